@@ -1,0 +1,605 @@
+"""Joint least squares over catalogue effects, with honest standard errors.
+
+The measurement model of :mod:`gyrocore.effects`, linearised at zero error, is
+
+    r(t_n) = y(t_n) − ω_ref(t_n) ≈ A(t_n)·θ + e(t_n),       A from ``effects.design``
+
+with ``r`` and ``e`` of shape (N, 3), ``A`` of shape (N, 3, P) and θ the stacked parameters of
+the chosen effects. Per-axis effects (bias, scale, ...) are block-diagonal in A; a shared
+parameter (``time_offset``) has one column that touches all three axes. The whole 3-axis
+problem is solved at once, so cross-axis terms (misalignment, g-sensitivity) and shared terms
+are estimated jointly.
+
+Estimation is weighted least squares (axis weights 1/σ_i² from a first pass, times optional
+user row weights). Standard errors come from one of three covariances:
+
+* ``"ols"`` — s²·(AᵀWA)⁻¹, right when the residual is white;
+* ``"hac"`` — the Newey–West sandwich (AᵀWA)⁻¹·S·(AᵀWA)⁻¹ with the Bartlett kernel
+  (Newey & West 1987), AR(1) pre-whitening of the score series and the Andrews (1991) AR(1)
+  plug-in bandwidth (Andrews & Monahan 1992); right for coloured residuals (on-chip low-pass,
+  Gauss–Markov bias, slow drift);
+* ``"block"`` — batch means over ``n_blocks`` contiguous blocks (cluster-robust by time).
+
+``"auto"`` (the default) runs a Ljung–Box test on the weighted residual and uses ``"hac"``
+when it is autocorrelated (p < 0.01), ``"ols"`` otherwise; the result says which
+(:attr:`LsqFit.cov_kind`) and why (:attr:`LsqFit.ljung_box_p`).
+
+Observability: columns are checked in the declared effect order by a rank-revealing
+(sequential Gram–Schmidt) test on the column-equilibrated matrix; a column whose part outside
+the span of the earlier columns is below ``rank_rtol`` of its norm (a never-rotated axis, f
+constant and so collinear with bias, ...) is *unobservable*: it is not fitted (its value is
+reported as 0 with an infinite standard error) and it is named in
+:attr:`LsqFit.unobservable` as ``"effect.param[index]"``. After the fit, a parameter whose
+standard error exceeds its physically plausible magnitude (:data:`PLAUSIBLE_MAGNITUDE`) is
+named as well — the data then say nothing that its plausible range did not already say — and
+the fit is redone without it (``on_unobservable="drop"``) or :class:`UnobservableError` is
+raised (``"raise"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+from scipy import linalg, stats
+
+from . import effects as E
+from .errors import GyroInputError, UnobservableError
+
+__all__ = [
+    "LsqFit",
+    "build_design",
+    "solve",
+    "fit_effects",
+    "PLAUSIBLE_MAGNITUDE",
+    "NOISY_REGRESSOR_EFFECTS",
+    "ljung_box_p",
+    "long_run_covariance",
+]
+
+#: Largest physically plausible |θ| per effect, SI (used to call a parameter unobservable when
+#: its standard error exceeds it). Generous on purpose: a consumer MEMS gyro is far inside.
+PLAUSIBLE_MAGNITUDE: dict[str, float] = {
+    "bias": 1.0,  # rad/s (57 deg/s)
+    "bias_thermal": 0.05,  # rad/s per °C^k
+    "bias_temp_rate": 1.0,  # rad/s per °C/s
+    "bias_ramp": 1e-2,  # rad/s²
+    "scale": 0.5,  # 50 %
+    "scale_thermal": 0.01,  # per °C^k
+    "scale_asymmetry": 0.2,
+    "scale_nonlinearity": 0.2,  # s/rad
+    "misalignment": 0.2,  # rad (11 deg)
+    "g_sensitivity": 5e-3,  # rad/s per m/s² (2.8 deg/s/g)
+    "g2_sensitivity": 1e-3,  # rad/s per (m/s²)²
+    "time_offset": 1.0,  # s
+}
+
+
+#: Effects whose regressors are built from measured, noisy inputs (accel, temperature).
+NOISY_REGRESSOR_EFFECTS: tuple[str, ...] = (
+    "g_sensitivity", "g2_sensitivity", "bias_thermal", "scale_thermal", "bias_temp_rate",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class LsqFit:
+    """Result of a joint least-squares fit.
+
+    Attributes
+    ----------
+    theta : ndarray, shape (P,)
+        Estimated parameters in SI, in column order; unobservable ones are 0.
+    names : tuple of str, length P
+        ``"effect.param[index]"`` per column (e.g. ``"scale.s[0]"``).
+    slices : dict
+        Effect name -> slice into ``theta`` of that effect's columns.
+    cov : ndarray, shape (P, P)
+        Covariance of ``theta`` (rows/columns of unobservable parameters are NaN off the
+        diagonal, +inf on it).
+    stderr : ndarray, shape (P,)
+        sqrt(diag(cov)); +inf for unobservable parameters.
+    cov_kind : str
+        ``"ols"``, ``"hac"`` or ``"block"`` — which covariance ``cov`` is.
+    ljung_box_p : float
+        p-value of the Ljung–Box whiteness test on the weighted residual (small = coloured).
+    hac_bandwidth : float
+        Bartlett bandwidth (samples after ``stride``) used by ``"hac"``; NaN otherwise.
+    residual_rad_s : ndarray, shape (N, 3)
+        r − A·θ on all N input samples (not only the strided ones), rad/s.
+    residual_rms_rad_s : ndarray, shape (3,)
+        RMS of the residual per axis over the rows used in the fit, rad/s.
+    axis_sigma_rad_s : ndarray, shape (3,)
+        Per-axis residual standard deviation used for the axis weights, rad/s.
+    rank : int
+        Number of fitted (observable) columns.
+    condition : float
+        2-norm condition number of the column-equilibrated, weighted design of the fitted
+        columns.
+    unobservable : tuple of str
+        Names of parameters the data cannot determine (not fitted).
+    unobservable_reason : dict
+        Name -> one-line reason ("collinear with ...", "stderr ... > plausible ...").
+    n_rows : int
+        Samples used (after stride and zero-weight rows).
+    dof : int
+        3·n_rows − rank.
+    """
+
+    theta: np.ndarray
+    names: tuple[str, ...]
+    slices: dict[str, slice]
+    cov: np.ndarray
+    stderr: np.ndarray
+    cov_kind: str
+    ljung_box_p: float
+    hac_bandwidth: float
+    residual_rad_s: np.ndarray
+    residual_rms_rad_s: np.ndarray
+    axis_sigma_rad_s: np.ndarray
+    rank: int
+    condition: float
+    unobservable: tuple[str, ...]
+    unobservable_reason: dict[str, str] = field(default_factory=dict)
+    n_rows: int = 0
+    dof: int = 0
+
+    def effect_theta(self, effect: str) -> np.ndarray:
+        """The flat parameter vector of one effect."""
+        return self.theta[self.slices[effect]]
+
+    def effect_stderr(self, effect: str) -> np.ndarray:
+        """The flat standard errors of one effect."""
+        return self.stderr[self.slices[effect]]
+
+    def observable_mask(self) -> np.ndarray:
+        """Boolean (P,): True for fitted columns."""
+        bad = set(self.unobservable)
+        return np.array([n not in bad for n in self.names])
+
+
+# ---------------------------------------------------------------------------- design
+def build_design(
+    effects: Sequence[str],
+    inp: E.ModelInputs,
+    *,
+    orders: Mapping[str, int] | None = None,
+) -> tuple[np.ndarray, list[str], dict[str, slice]]:
+    """Stack the regressors of ``effects`` (in the given order).
+
+    Parameters
+    ----------
+    effects : sequence of str
+        Fittable catalogue effects (see :func:`gyrocore.effects.design`).
+    inp : ModelInputs
+        Physical inputs; ``omega_S_rad_s`` is the reference rate (rad/s, S frame).
+    orders : mapping, optional
+        Polynomial order per thermal effect (``bias_thermal``, ``scale_thermal``); default 1.
+
+    Returns
+    -------
+    A : ndarray, shape (N, 3, P)
+    names : list of str, length P — ``"effect.param[index]"``
+    slices : dict effect -> slice
+    """
+    orders = dict(orders or {})
+    blocks, names, slices = [], [], {}
+    p0 = 0
+    for eff in E.check_effect_names(effects):
+        if eff in slices:
+            raise GyroInputError(f"effect {eff} listed twice")
+        cn, A = E.design(eff, inp, order=int(orders.get(eff, 1)))
+        blocks.append(A)
+        names += [f"{eff}.{c}" for c in cn]
+        slices[eff] = slice(p0, p0 + A.shape[2])
+        p0 += A.shape[2]
+    if not blocks:
+        raise GyroInputError("no effects to fit")
+    return np.concatenate(blocks, axis=2), names, slices
+
+
+# ---------------------------------------------------------------------------- statistics
+def ljung_box_p(e: np.ndarray, *, n_lags: int | None = None) -> float:
+    """Ljung–Box whiteness test, pooled over columns.
+
+    Parameters
+    ----------
+    e : ndarray, shape (N,) or (N, k)
+        Residual series (each column tested, Q statistics summed; they are independent under
+        the null of white, mutually uncorrelated columns).
+    n_lags : int, optional
+        Lags tested, default min(20, N // 5).
+
+    Returns
+    -------
+    float
+        p-value of Q = N(N+2)·Σ_l ρ_l²/(N−l) against χ² with k·n_lags degrees of freedom.
+    """
+    e = np.asarray(e, float)
+    if e.ndim == 1:
+        e = e[:, None]
+    n = e.shape[0]
+    m = int(n_lags or min(20, n // 5))
+    if m < 1:
+        return float("nan")
+    q = 0.0
+    dof = 0
+    for c in range(e.shape[1]):
+        x = e[:, c] - e[:, c].mean()
+        v = float(x @ x)
+        if v <= 0:
+            continue
+        rho = np.array([x[l:] @ x[:-l] / v for l in range(1, m + 1)])
+        q += n * (n + 2) * float(np.sum(rho**2 / (n - np.arange(1, m + 1))))
+        dof += m
+    if dof == 0:
+        return float("nan")
+    return float(stats.chi2.sf(q, dof))
+
+
+def _bartlett_obm(g: np.ndarray, L: int) -> np.ndarray:
+    """Σ_l (1 − |l|/(L+1))·Γ_l via overlapping batch means (moving sums of L+1 scores).
+
+    Equals the Bartlett-kernel long-run covariance up to edge terms; corrected by N/(N−L).
+    g : (N, P). Cost O(N·P²).
+    """
+    n = g.shape[0]
+    L = int(max(0, min(L, n - 2)))
+    if L == 0:
+        return g.T @ g
+    cs = np.vstack([np.zeros((1, g.shape[1])), np.cumsum(g, axis=0)])
+    G = cs[L + 1 :] - cs[: -(L + 1)]  # (N − L, P) moving sums
+    return (G.T @ G) / (L + 1) * (n / (n - L))
+
+
+def long_run_covariance(
+    g: np.ndarray, *, prewhiten: bool = True, bandwidth: float | None = None
+) -> tuple[np.ndarray, float]:
+    """Long-run covariance Σ_l Γ_l of a (mean-zero) score series (Newey–West, Bartlett).
+
+    Parameters
+    ----------
+    g : ndarray, shape (N, P)
+        Score series g_n = Σ_i A[n,i,:]·w[n,i]·e[n,i].
+    prewhiten : bool
+        AR(1) pre-whitening per component (Andrews & Monahan 1992), AR coefficient clipped to
+        [−0.97, 0.97]; the estimate is recoloured with (1 − φ)⁻¹.
+    bandwidth : float, optional
+        Bartlett bandwidth in samples; default: Andrews (1991) AR(1) plug-in,
+        L = 1.1447·(α·N)^(1/3), α = Σ 4ρ²σ⁴/((1−ρ)⁶(1+ρ)²) / Σ σ⁴/(1−ρ)⁴.
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+    L : float — the bandwidth used.
+    """
+    g = np.asarray(g, float)
+    n, P = g.shape
+    phi = np.zeros(P)
+    if prewhiten and n > 10:
+        num = np.einsum("np,np->p", g[1:], g[:-1])
+        den = np.einsum("np,np->p", g[:-1], g[:-1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            phi = np.where(den > 0, num / den, 0.0)
+        phi = np.clip(phi, -0.97, 0.97)
+        gw = g[1:] - phi[None, :] * g[:-1]
+    else:
+        gw = g
+    if bandwidth is None:
+        x0, x1 = gw[:-1], gw[1:]
+        num = np.einsum("np,np->p", x1, x0)
+        den = np.einsum("np,np->p", x0, x0)
+        ok = den > 0
+        rho = np.zeros(P)
+        rho[ok] = np.clip(num[ok] / den[ok], -0.97, 0.97)
+        sig2 = np.zeros(P)
+        sig2[ok] = np.mean((x1 - rho * x0)[:, ok] ** 2, axis=0)
+        a_num = np.sum(4 * rho**2 * sig2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2))
+        a_den = np.sum(sig2**2 / (1 - rho) ** 4)
+        alpha = a_num / a_den if a_den > 0 else 0.0
+        bandwidth = 1.1447 * (alpha * gw.shape[0]) ** (1.0 / 3.0)
+        bandwidth = float(min(bandwidth, gw.shape[0] / 4))
+    S = _bartlett_obm(gw, int(np.ceil(bandwidth)))
+    S *= n / max(gw.shape[0], 1)
+    if prewhiten:
+        D = 1.0 / (1.0 - phi)
+        S = D[:, None] * S * D[None, :]
+    return S, float(bandwidth)
+
+
+# ---------------------------------------------------------------------------- solver
+def _flat(A: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """sqrt(w)-scaled design, (N·3, P)."""
+    return (A * np.sqrt(w)[:, :, None]).reshape(-1, A.shape[2])
+
+
+def _sequential_rank(Aw: np.ndarray, rtol: float) -> tuple[list[int], dict[int, tuple[int, ...]]]:
+    """Columns kept by Gram–Schmidt in the given order; dropped -> the kept columns they
+    are (nearly) spanned by. Aw (M, P), columns equilibrated inside."""
+    norms = np.linalg.norm(Aw, axis=0)
+    kept: list[int] = []
+    dropped: dict[int, tuple[int, ...]] = {}
+    Q = np.zeros((Aw.shape[0], 0))
+    for p in range(Aw.shape[1]):
+        if norms[p] == 0 or not np.isfinite(norms[p]):
+            dropped[p] = ()
+            continue
+        a = Aw[:, p] / norms[p]
+        if Q.shape[1]:
+            coef = Q.T @ a
+            r = a - Q @ coef
+            coef2 = Q.T @ r  # re-orthogonalise (classical GS twice is stable)
+            r = r - Q @ coef2
+        else:
+            r = a
+        rn = float(np.linalg.norm(r))
+        if rn < rtol:
+            # which kept columns span it: least squares of a on kept columns
+            c, *_ = np.linalg.lstsq(Aw[:, kept] / norms[kept], a, rcond=None)
+            big = np.argsort(-np.abs(c))
+            dropped[p] = tuple(kept[j] for j in big[:3] if abs(c[j]) > 1e-3 * np.abs(c).max())
+            continue
+        kept.append(p)
+        Q = np.hstack([Q, (r / rn)[:, None]])
+    return kept, dropped
+
+
+def solve(
+    r: np.ndarray,
+    A: np.ndarray,
+    names: Sequence[str],
+    slices: Mapping[str, slice],
+    *,
+    weights: np.ndarray | None = None,
+    stride: int = 1,
+    covariance: str = "auto",
+    axis_weighting: bool = True,
+    n_blocks: int = 30,
+    rank_rtol: float = 1e-6,
+    on_unobservable: str = "drop",
+    plausible: Mapping[str, float] | None = None,
+    hac_bandwidth: float | None = None,
+    min_excitation_snr: float = 5.0,
+    noisy_effects: Sequence[str] = NOISY_REGRESSOR_EFFECTS,
+) -> LsqFit:
+    """Solve r ≈ A·θ jointly over the three axes.
+
+    Parameters
+    ----------
+    r : ndarray, shape (N, 3)
+        Left-hand side, usually measured minus reference rate, rad/s (S frame).
+    A : ndarray, shape (N, 3, P)
+        Regressors (see :func:`build_design`).
+    names : sequence of str, length P
+        Column names ``"effect.param[index]"``.
+    slices : mapping effect -> slice
+    weights : ndarray, shape (N,) or (N, 3), optional
+        Non-negative row weights (0 excludes a sample, e.g. a transient). Multiplied by the
+        axis weights 1/σ_i² when ``axis_weighting``.
+    stride : int
+        Use every ``stride``-th sample (downsampling for speed; the covariance is computed
+        on the same rows and stays honest through the HAC/block estimator).
+    covariance : {"auto", "ols", "hac", "block"}
+        See the module docstring.
+    axis_weighting : bool
+        Two-step feasible WLS: weight axis i by 1/σ̂_i² from a first unweighted pass.
+    n_blocks : int
+        Number of contiguous blocks for ``"block"``.
+    rank_rtol : float
+        Relative residual norm below which a column counts as spanned by earlier ones.
+    on_unobservable : {"drop", "raise"}
+        Drop unobservable columns and report them, or raise :class:`UnobservableError`.
+    plausible : mapping effect -> float, optional
+        Overrides of :data:`PLAUSIBLE_MAGNITUDE`.
+    hac_bandwidth : float, optional
+        Fixed Bartlett bandwidth (samples after stride); default Andrews' plug-in.
+    min_excitation_snr : float
+        For columns built from measured inputs (``noisy_effects``): the RMS of the column's
+        part independent of the other columns over its first-difference noise level
+        (std(Δ)/√2, which equals the RMS for white noise) must reach this, else the parameter
+        is unobservable (5 → errors-in-variables attenuation below (1/5)² = 4 %).
+    noisy_effects : sequence of str
+        Effects whose regressors come from measured inputs (accel, temperature).
+
+    Returns
+    -------
+    LsqFit
+    """
+    r_all = np.asarray(r, float)
+    A_all = np.asarray(A, float)
+    N, P = r_all.shape[0], A_all.shape[2]
+    if r_all.shape != (N, 3) or A_all.shape[:2] != (N, 3):
+        raise GyroInputError(f"lsq: r has shape {r_all.shape}, A has shape {A_all.shape}; expected (N,3) and (N,3,P)")
+    if len(names) != P:
+        raise GyroInputError(f"lsq: {len(names)} names for {P} columns")
+    if covariance not in ("auto", "ols", "hac", "block"):
+        raise GyroInputError(f"unknown covariance '{covariance}' (auto, ols, hac, block)")
+    if on_unobservable not in ("drop", "raise"):
+        raise GyroInputError(f"on_unobservable must be 'drop' or 'raise', not '{on_unobservable}'")
+    stride = max(1, int(stride))
+    w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(
+        np.asarray(weights, float).reshape(N, -1), (N, 3)).copy()
+    if np.any(~np.isfinite(w_all)) or np.any(w_all < 0):
+        raise GyroInputError("lsq: weights must be finite and non-negative")
+    if not np.all(np.isfinite(r_all)) or not np.all(np.isfinite(A_all)):
+        raise GyroInputError("lsq: non-finite values in the data or regressors")
+    idx = np.arange(0, N, stride)
+    idx = idx[np.any(w_all[idx] > 0, axis=1)]
+    if idx.size < 2:
+        raise GyroInputError("lsq: fewer than 2 samples with non-zero weight")
+    r_, A_, w_ = r_all[idx], A_all[idx], w_all[idx]
+    n = idx.size
+    plaus = dict(PLAUSIBLE_MAGNITUDE)
+    plaus.update(plausible or {})
+    eff_of = {}
+    for eff, sl in slices.items():
+        for p in range(sl.start, sl.stop):
+            eff_of[p] = eff
+
+    # -- observability: sequential rank test on the (unweighted-by-axis) design
+    kept, dropped = _sequential_rank(_flat(A_, w_), rank_rtol)
+    reasons: dict[str, str] = {}
+    for p, by in dropped.items():
+        if by:
+            reasons[names[p]] = "not separable from " + ", ".join(names[j] for j in by)
+        else:
+            reasons[names[p]] = "regressor is zero in the data (no excitation)"
+
+    # -- columns built from measured inputs (accel, temperature): their independent part
+    #    must stand above the input's own noise, else the fit is to noise (errors in variables)
+    noisy_idx = [p for p in kept if names[p].split(".")[0] in noisy_effects]
+    if noisy_idx and min_excitation_snr > 0:
+        Af = _flat(A_, w_)
+        drop_noisy = []
+        for p in noisy_idx:
+            others = [q for q in kept if q != p]
+            a = Af[:, p]
+            if others:
+                B = Af[:, others]
+                c, *_ = np.linalg.lstsq(B, a, rcond=None)
+                a = a - B @ c
+            R = a.reshape(n, 3)
+            exc2 = float(np.mean(R**2))
+            noise2 = float(np.mean(np.diff(R, axis=0) ** 2)) / 2.0
+            snr = np.sqrt(exc2 / noise2) if noise2 > 0 else np.inf
+            if snr < min_excitation_snr:
+                drop_noisy.append(p)
+                reasons[names[p]] = (
+                    f"its regressor varies only at the level of its own measurement noise "
+                    f"(excitation/noise {snr:.2g} < {min_excitation_snr:g})"
+                )
+        kept = [p for p in kept if p not in drop_noisy]
+
+    def _wls(cols: list[int], w: np.ndarray):
+        Aw = _flat(A_[:, :, cols], w)
+        rw = (r_ * np.sqrt(w)).reshape(-1)
+        cn = np.linalg.norm(Aw, axis=0)
+        cn[cn == 0] = 1.0
+        th_s, *_ = linalg.lstsq(Aw / cn, rw, lapack_driver="gelsd")
+        return th_s / cn
+
+    sigma = np.ones(3)
+    for _attempt in range(P + 1):
+        th = _wls(kept, w_)
+        e = r_ - np.einsum("nip,p->ni", A_[:, :, kept], th)
+        if axis_weighting:
+            sig = np.sqrt(np.sum(w_ * e**2, axis=0) / np.maximum(np.sum(w_ > 0, axis=0), 1))
+            sig = np.where(sig > 0, sig, max(float(sig.max()), 1e-300))
+            sigma = sig
+            W = w_ / sigma[None, :] ** 2
+            th = _wls(kept, W)
+            e = r_ - np.einsum("nip,p->ni", A_[:, :, kept], th)
+        else:
+            W = w_
+        Ak = A_[:, :, kept]
+        Aw = _flat(Ak, W)
+        cn = np.linalg.norm(Aw, axis=0)
+        cn[cn == 0] = 1.0
+        sv = np.linalg.svd(Aw / cn, compute_uv=False)
+        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+        XtX_s = (Aw / cn).T @ (Aw / cn)
+        bread = linalg.pinvh(XtX_s) / np.outer(cn, cn)
+        ew = e * np.sqrt(W)
+        lb_p = ljung_box_p(ew)
+        kind = covariance
+        if kind == "auto":
+            kind = "hac" if (np.isfinite(lb_p) and lb_p < 0.01) else "ols"
+        k = len(kept)
+        dof = max(int(np.sum(W > 0)) - k, 1)
+        L = float("nan")
+        if kind == "ols":
+            s2 = float(np.sum(ew**2)) / dof
+            cov_k = s2 * bread
+        else:
+            g = np.einsum("nip,ni->np", Ak, W * e)  # score per sample, (n, k)
+            if kind == "hac":
+                S, L = long_run_covariance(g, bandwidth=hac_bandwidth)
+            else:
+                M = int(max(2, min(n_blocks, n // 2)))
+                edges = np.linspace(0, n, M + 1).astype(int)
+                Gb = np.stack([g[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
+                Gb = Gb - Gb.mean(axis=0)
+                S = Gb.T @ Gb * (M / (M - 1))
+            S *= (n * 3) / dof  # small-sample correction
+            cov_k = bread @ S @ bread
+        se_k = np.sqrt(np.clip(np.diag(cov_k), 0, None))
+        # -- parameters whose standard error exceeds their plausible magnitude
+        too_wide = [
+            (j, p) for j, p in enumerate(kept)
+            if se_k[j] > plaus.get(names[p].split(".")[0], np.inf)
+        ]
+        if not too_wide:
+            break
+        for j, p in too_wide:
+            eff = names[p].split(".")[0]
+            reasons[names[p]] = (
+                f"standard error {se_k[j]:.3g} exceeds the plausible magnitude {plaus[eff]:.3g} (too little excitation)"
+            )
+            dropped[p] = ()
+        kept = [p for p in kept if p not in {p for _, p in too_wide}]
+        if not kept:
+            break
+    unobs = tuple(names[p] for p in range(P) if p not in kept)
+    if unobs and on_unobservable == "raise":
+        raise UnobservableError(
+            "unobservable parameters: " + "; ".join(f"{u} ({reasons.get(u, '')})" for u in unobs)
+        )
+    theta = np.zeros(P)
+    cov = np.full((P, P), np.nan)
+    if kept:
+        theta[kept] = th
+        cov[np.ix_(kept, kept)] = cov_k
+    for p in range(P):
+        if p not in kept:
+            cov[p, p] = np.inf
+    stderr = np.sqrt(np.diag(cov))
+    resid = r_all - np.einsum("nip,p->ni", A_all, theta)
+    used = resid[idx]
+    rms = np.sqrt(np.sum(w_ * used**2, axis=0) / np.maximum(np.sum(w_, axis=0), 1e-300))
+    return LsqFit(
+        theta=theta,
+        names=tuple(names),
+        slices=dict(slices),
+        cov=cov,
+        stderr=stderr,
+        cov_kind=kind,
+        ljung_box_p=float(lb_p),
+        hac_bandwidth=L,
+        residual_rad_s=resid,
+        residual_rms_rad_s=rms,
+        axis_sigma_rad_s=np.asarray(sigma, float),
+        rank=len(kept),
+        condition=cond if kept else float("inf"),
+        unobservable=unobs,
+        unobservable_reason={u: reasons.get(u, "") for u in unobs},
+        n_rows=int(n),
+        dof=int(dof),
+    )
+
+
+def fit_effects(
+    r: np.ndarray,
+    effects: Sequence[str],
+    inp: E.ModelInputs,
+    *,
+    orders: Mapping[str, int] | None = None,
+    **options,
+) -> LsqFit:
+    """Fit the linearised ``effects`` to r = y − ω_ref jointly (see :func:`solve`).
+
+    Parameters
+    ----------
+    r : ndarray, shape (N, 3)
+        Measured minus reference rate, rad/s, S frame.
+    effects : sequence of str
+        Catalogue effects with regressors (``effects.design``); the order matters for the
+        observability test (an earlier effect keeps a column that a later one duplicates).
+    inp : ModelInputs
+        ``omega_S_rad_s`` = reference rate; ``f_S_m_s2``/``temp_c`` when the effects need them.
+    orders : mapping, optional
+        Thermal polynomial orders.
+    **options
+        Keyword options of :func:`solve`.
+    """
+    A, names, slices = build_design(effects, inp, orders=orders)
+    return solve(r, A, names, slices, **options)
