@@ -1,0 +1,166 @@
+"""Monte Carlo campaigns: seeding, backends (serial, local processes, Dask), tables, files."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from experiments import montecarlo as mc
+from gyrocore import effects as E
+from gyrocore.errors import GyroInputError
+
+RATE_HZ = 200.0
+N_RAD_PER_SQRT_S = 1e-3  # white noise density of the statistical task below, rad/√s
+
+
+def static_bias_task(task: mc.MonteCarloTask) -> mc.TaskResult:
+    """A purely statistical task (no simulator): a still gyro with a random turn-on bias and
+    white noise, bias estimated as the sample mean. Module-level so that worker processes and
+    Dask workers can import it."""
+    rng = np.random.default_rng(task.seed)
+    duration_s = task.duration_s or 2.0
+    n = int(round(duration_s * RATE_HZ))
+    t = np.arange(n) / RATE_HZ
+    b_true = rng.normal(0.0, 0.01, size=3)
+    inp = E.ModelInputs(t_s=t, omega_S_rad_s=np.zeros((n, 3)))
+    clean = E.deterministic({"bias": {"b_rad_s": b_true}}, inp)
+    sigma = N_RAD_PER_SQRT_S * math.sqrt(RATE_HZ)  # DESIGN.md: per-sample σ = N·√rate
+    gyro = clean + rng.normal(0.0, sigma, size=(n, 3))
+    err = gyro.mean(axis=0) - b_true
+    scale = dict(task.options).get("scale", 1.0)
+    return mc.TaskResult.from_task(
+        task,
+        {
+            "bias_err_x_rad_s": scale * err[0],
+            "bias_err_norm_rad_s": scale * float(np.linalg.norm(err)),
+            "nan_metric": math.nan,
+        },
+    )
+
+
+def _metrics_array(results):
+    return np.array([[v for _, v in r.metrics] for r in results])
+
+
+def _same(a, b):
+    """Bit-identical results (NaN == NaN)."""
+    assert [(r.index, r.scenario, r.sensor, r.instance, r.seed) for r in a] == [
+        (r.index, r.scenario, r.sensor, r.instance, r.seed) for r in b
+    ]
+    assert np.array_equal(_metrics_array(a), _metrics_array(b), equal_nan=True)
+
+
+def test_seeds_come_from_spawned_seed_sequence_and_do_not_depend_on_count():
+    seeds = mc.instance_seeds(7, 5)
+    children = np.random.SeedSequence(7).spawn(5)
+    assert seeds == [int(c.generate_state(1, dtype=np.uint32)[0]) for c in children]
+    assert mc.instance_seeds(7, 3) == seeds[:3]
+    assert len(set(seeds)) == 5
+    assert mc.instance_seeds(8, 5) != seeds
+
+
+def test_tasks_share_instance_seeds_across_scenarios_and_sensors():
+    tasks = mc.make_tasks(scenarios=["a", "b"], sensors=["p", "q"], instances=3, seed=1)
+    assert [t.index for t in tasks] == list(range(12))
+    by_instance = {}
+    for t in tasks:
+        by_instance.setdefault(t.instance, set()).add(t.seed)
+    assert all(len(s) == 1 for s in by_instance.values())
+    # Selecting a subset of scenarios does not change a task's seed.
+    sub = mc.make_tasks(scenarios=["b"], sensors=["q"], instances=3, seed=1)
+    assert [t.seed for t in sub] == [t.seed for t in tasks if t.scenario == "b" and t.sensor == "q"]
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(instances=0),
+        dict(seed=-1),
+        dict(scenarios=[]),
+        dict(sensors=[]),
+        dict(duration_s=0.0),
+        dict(duration_s=float("nan")),
+    ],
+)
+def test_bad_campaign_options_are_one_line_errors(kwargs):
+    base = dict(scenarios=["s"], sensors=["p"], instances=2, seed=0)
+    base.update(kwargs)
+    with pytest.raises(GyroInputError) as ei:
+        mc.make_tasks(**base)
+    assert "\n" not in str(ei.value)
+
+
+def test_serial_and_local_processes_are_identical_and_statistics_are_right():
+    kw = dict(scenarios=["still"], sensors=["p"], instances=40, seed=3, duration_s=2.0,
+              task_function=static_bias_task)
+    serial = mc.run_campaign(workers=1, **kw)
+    procs = mc.run_campaign(workers=2, **kw)
+    assert serial.backend == "serial" and procs.backend == "processes" and procs.workers == 2
+    _same(serial.tasks, procs.tasks)
+    assert serial.summary == procs.summary
+    # The per-axis bias error of a 2-s mean is N(0, σ_b²) with σ_b = N/√T (T = 2 s).
+    # Its sample std over n = 40 instances has relative standard error ≈ 1/√(2(n−1)) = 0.113;
+    # 4 standard errors: |std/σ_b − 1| < 0.46.
+    s = serial.table("bias_err_x_rad_s")[("still", "p")]
+    sigma_b = N_RAD_PER_SQRT_S / math.sqrt(2.0)
+    assert s.n == 40
+    assert abs(s.std / sigma_b - 1) < 4 / math.sqrt(2 * 39)
+    x = np.array([r.metrics_dict["bias_err_x_rad_s"] for r in serial.tasks])
+    assert s.median == np.median(x) and s.p90 == np.percentile(x, 90)
+    nan = serial.table("nan_metric")[("still", "p")]
+    assert nan.n == 0 and math.isnan(nan.median)
+
+
+def test_dask_local_cluster_matches_serial_and_processes():
+    distributed = pytest.importorskip("dask.distributed")
+    kw = dict(scenarios=["still", "still2"], sensors=["p"], instances=6, seed=11, duration_s=1.0,
+              task_function=static_bias_task, options={"scale": 2.0})
+    serial = mc.run_campaign(workers=1, **kw)
+    procs = mc.run_campaign(workers=2, **kw)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+        silence_logs=50,
+    ) as cluster:
+        on_dask = mc.run_campaign(scheduler=cluster.scheduler_address, **kw)
+    assert on_dask.backend == "dask" and on_dask.workers == 2
+    _same(serial.tasks, on_dask.tasks)
+    _same(procs.tasks, on_dask.tasks)
+    assert serial.summary == on_dask.summary
+    # options reach the task function
+    assert serial.tasks[0].metrics_dict["bias_err_norm_rad_s"] > 0
+
+
+def test_unreachable_scheduler_is_a_one_line_error():
+    tasks = mc.make_tasks(scenarios=["s"], sensors=["p"], instances=1, seed=0)
+    with pytest.raises(GyroInputError, match="cannot connect to the Dask scheduler"):
+        mc.execute(static_bias_task, tasks, scheduler="tcp://127.0.0.1:9", connect_timeout_s=1.0)
+
+
+def test_files_round_trip(tmp_path):
+    res = mc.run_campaign(scenarios=["still"], sensors=["p", "q"], instances=4, seed=0,
+                          duration_s=0.5, workers=1, task_function=static_bias_task)
+    paths = mc.write_campaign(res, tmp_path / "mc")
+    back = mc.read_campaign(tmp_path / "mc")
+    _same(res.tasks, back.tasks)
+    assert back.summary == res.summary or all(
+        a.scenario == b.scenario and a.metric == b.metric and a.n == b.n
+        and np.array_equal([a.median, a.p90, a.mean, a.std], [b.median, b.p90, b.mean, b.std], equal_nan=True)
+        for a, b in zip(res.summary, back.summary)
+    )
+    md = paths["markdown"].read_text()
+    assert "## still" in md and "`bias_err_x_rad_s`" in md
+    rows = paths["summary_csv"].read_text().splitlines()
+    assert rows[0] == "scenario,sensor,metric,n,median,p90,mean,std"
+    assert len(rows) == 1 + 2 * 3
+    tasks_csv = paths["tasks_csv"].read_text().splitlines()
+    assert len(tasks_csv) == 1 + 8
+    first = tasks_csv[1].split(",")
+    assert float(first[4]) == res.tasks[0].metrics_dict["bias_err_x_rad_s"]  # repr round-trips
+    doc = json.loads(paths["json"].read_text())
+    doc["format_version"] = "2.0"
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(GyroInputError, match="format_version"):
+        mc.read_campaign(tmp_path / "bad.json")
