@@ -1,0 +1,100 @@
+"""``gyroharness convert``: turn a real set (or any data file) into the DESIGN.md data file."""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import click
+
+from ..cli import emit_json
+from ..convert import FORMATS, load_with_segments, write_segments_csv
+from ..errors import GyroInputError, RepairWarning
+from ..recording import _available_memory_bytes, file_sha256, iter_csv_chunks, write_csv, write_csv_chunks
+
+#: CSV inputs larger than this fraction of the available memory are streamed in chunks.
+STREAM_FRACTION = 0.1
+
+
+@click.command("convert")
+@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=str))
+@click.option("-o", "--output", "output", required=True, type=click.Path(path_type=str), help="Output data file (CSV, DESIGN.md columns, SI).")
+@click.option("--format", "fmt", type=click.Choice(FORMATS), default="auto", show_default=True, help="Source format (auto: from name and first bytes).")
+@click.option("--lsb-per-dps", type=float, default=None, help="Gyro sensitivity of a raw-LSB source, LSB per deg/s (default: the source's datasheet value).")
+@click.option("--lsb-per-g", type=float, default=None, help="Accel sensitivity of a raw-LSB source, LSB per g.")
+@click.option("--rate-hz", type=float, default=None, help="Sample rate for sources without timestamps, Hz.")
+@click.option("--retime/--no-retime", default=None, help="Replace bursty host timestamps by a uniform grid at the mean rate (default on for sunsided).")
+@click.option("--no-flip-x", is_flag=True, default=False, help="sunsided: keep the raw gyro X sign (default: negate it as its README documents).")
+@click.option("--sections", type=click.Path(path_type=str), default=None, help="imucal: section list JSON (default <stem>_list.json).")
+@click.option("--segments-out", type=click.Path(path_type=str), default=None, help="Write the known-rotation segments (t_start_s,t_end_s,axis,angle_deg).")
+@click.option("--chunk-rows", type=int, default=200_000, show_default=True, help="Rows per chunk when a large CSV input is streamed.")
+@click.option("--force", is_flag=True, default=False, help="Overwrite existing output files.")
+@click.option("--json", "as_json", is_flag=True, default=False, help="Print a JSON summary on stdout.")
+def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, segments_out,
+            chunk_rows, force, as_json):
+    """Convert INPUT (PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
+    IMU-TK .mat, gnss-ins-sim folder, or a data file) to the DESIGN.md data file."""
+    outs = [output] + ([segments_out] if segments_out else [])
+    for o in outs:
+        if not force and os.path.exists(o):
+            raise GyroInputError(f"{o} exists; pass --force to overwrite it")
+    if os.path.abspath(output) == os.path.abspath(input_path):
+        raise GyroInputError(f"{output}: output would overwrite the input")
+    opts = dict(lsb_per_dps=lsb_per_dps, lsb_per_g=lsb_per_g, rate_hz=rate_hz, retime=retime, sections=sections)
+    if no_flip_x:
+        opts["flip_gyro_x"] = False
+    repairs: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RepairWarning)
+        from ..convert import detect_format
+
+        actual = detect_format(input_path) if fmt == "auto" else fmt
+        if actual == "csv" and _is_large(input_path) and not retime:
+            unsupported = [k for k, v in opts.items() if v is not None and k != "retime"]
+            if unsupported:
+                raise GyroInputError(f"option --{unsupported[0].replace('_', '-')} does not apply to format csv")
+            n = write_csv_chunks(iter_csv_chunks(input_path, rows=chunk_rows), output, overwrite=True)
+            summary = {"input": input_path, "format": "csv", "output": output, "n_samples": n, "streamed": True,
+                       "chunk_rows": chunk_rows, "segments": 0}
+            rec = None
+            segs = ()
+        else:
+            conv = load_with_segments(input_path, format=actual, **opts)
+            rec, segs = conv.recording, conv.segments
+            if segments_out and not segs:
+                raise GyroInputError(
+                    f"{input_path}: this recording has no known rotations; --segments-out needs a rotation session"
+                )
+            write_csv(rec, output, overwrite=True)
+            summary = {
+                "input": input_path, "format": conv.format, "output": output, "n_samples": rec.n,
+                "duration_s": rec.duration_s, "rate_hz": rec.rate_hz, "streamed": False,
+                "columns": {"accel": rec.accel_m_s2 is not None, "temp": rec.temp_c is not None,
+                            "ref_rate": rec.ref_rate_rad_s is not None, "ref_quat": rec.ref_quat_wxyz is not None,
+                            "extra": sorted(rec.extra)},
+                "meta": dict(rec.meta), "segments": len(segs),
+            }
+    for w in caught:
+        if issubclass(w.category, RepairWarning):
+            repairs.append(str(w.message))
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    if segments_out:
+        if not segs:
+            raise GyroInputError(f"{input_path}: a streamed CSV has no known rotations; --segments-out needs a rotation session")
+        write_segments_csv(segs, segments_out, overwrite=True)
+        summary["segments_file"] = segments_out
+    summary["warnings"] = repairs
+    summary["sha256"] = file_sha256(output)
+    if as_json:
+        emit_json(summary)
+    else:
+        n = summary["n_samples"]
+        extra = f", {len(segs)} segments -> {segments_out}" if segments_out else ""
+        click.echo(f"{input_path} ({summary['format']}) -> {output}: {n} samples{extra}")
+
+
+def _is_large(path: str) -> bool:
+    """CSV inputs above STREAM_FRACTION of the available memory are streamed."""
+    p = Path(path)
+    return p.is_file() and p.stat().st_size * 3 > STREAM_FRACTION * _available_memory_bytes()
