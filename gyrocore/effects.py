@@ -44,6 +44,7 @@ __all__ = [
     "correct",
     "design",
     "earth_rate_S",
+    "earth_rate_W",
     "article_from_k",
     "k_from_article",
     "FF_ORDER",
@@ -209,11 +210,33 @@ def validate_params(params: Params) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
+def _rows_times(x: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``x @ M.T`` per sample in a fixed order, without BLAS: Σ_j x[:, j]·M[:, j], j = 0, 1, …
+
+    BLAS kernels (FMA, blocking) round differently from build to build; this elementwise
+    form gives the same bits on every machine, and a per-sample scalar implementation
+    (``sim.gyro.GyroStream``) that accumulates in the same order reproduces it exactly.
+    x (N, J), M (I, J) -> (N, I).
+    """
+    out = x[:, 0:1] * M[None, :, 0]
+    for j in range(1, M.shape[1]):
+        out = out + x[:, j : j + 1] * M[None, :, j]
+    return out
+
+
 def _poly(coef: np.ndarray, dT: np.ndarray) -> np.ndarray:
-    """Σ_k coef[:, k-1]·dT^k for k = 1..p; coef (3, p), dT (N,) -> (N, 3)."""
+    """Σ_k coef[:, k-1]·dT^k for k = 1..p; coef (3, p), dT (N,) -> (N, 3).
+
+    Powers by repeated multiplication (dT, dT·dT, dT·dT·dT, …), summed in order k = 1..p.
+    """
     p = coef.shape[1]
-    powers = dT[:, None] ** np.arange(1, p + 1)[None, :]  # (N, p)
-    return powers @ coef.T
+    powers = np.empty((dT.shape[0], p))
+    pw = dT
+    for k in range(p):
+        if k:
+            pw = pw * dT
+        powers[:, k] = pw
+    return _rows_times(powers, coef)
 
 
 def _clamped_dT(pd: Mapping[str, np.ndarray], T: np.ndarray) -> np.ndarray:
@@ -244,7 +267,8 @@ def _ff(f: np.ndarray) -> np.ndarray:
 
 
 def _quat_to_R(q: np.ndarray) -> np.ndarray:
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    nq = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3])
+    q = q / nq[:, None]
     w, x, y, z = q.T
     return np.stack(
         [
@@ -263,12 +287,18 @@ def earth_rate_S(latitude_rad: float, heading_rad: float, q_SW_wxyz: np.ndarray)
     ``heading_rad`` counter-clockwise from East). In ENU the Earth rate is
     Ω·(0, cos φ, sin φ).
     """
+    w_W = earth_rate_W(latitude_rad, heading_rad)
+    R_WS = _quat_to_R(np.asarray(q_SW_wxyz, float))  # S -> W
+    # ω_S[:, i] = Σ_j R_WS[:, j, i]·ω_W[j], summed in order j = 0, 1, 2 (no BLAS/einsum)
+    return R_WS[:, 0, :] * w_W[0] + R_WS[:, 1, :] * w_W[1] + R_WS[:, 2, :] * w_W[2]
+
+
+def earth_rate_W(latitude_rad: float, heading_rad: float) -> np.ndarray:
+    """Earth's rotation in W, rad/s, shape (3,) (W = ENU rotated by ``heading_rad`` about Up)."""
     w_enu = EARTH_RATE_RAD_S * np.array([0.0, np.cos(latitude_rad), np.sin(latitude_rad)])
     c, s = np.cos(heading_rad), np.sin(heading_rad)
     R_ENU_W = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    w_W = R_ENU_W.T @ w_enu
-    R_WS = _quat_to_R(np.asarray(q_SW_wxyz, float))  # S -> W
-    return np.einsum("nji,j->ni", R_WS, w_W)
+    return R_ENU_W.T @ w_enu
 
 
 def _shift(t: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
@@ -293,10 +323,10 @@ def _additive(params: Params, inp: ModelInputs) -> np.ndarray:
     if "bias_ramp" in params:
         out += inp.since_power_up()[:, None] * np.asarray(params["bias_ramp"]["ramp_rad_s2"])[None, :]
     if "g_sensitivity" in params:
-        out += inp._need("f_S_m_s2", "g_sensitivity") @ np.asarray(params["g_sensitivity"]["h_rad_s_per_m_s2"]).T
+        out += _rows_times(inp._need("f_S_m_s2", "g_sensitivity"), np.asarray(params["g_sensitivity"]["h_rad_s_per_m_s2"]))
     if "g2_sensitivity" in params:
         f = inp._need("f_S_m_s2", "g2_sensitivity")
-        out += _ff(f) @ np.asarray(params["g2_sensitivity"]["g_rad_s_per_m2_s4"]).T
+        out += _rows_times(_ff(f), np.asarray(params["g2_sensitivity"]["g_rad_s_per_m2_s4"]))
     return out
 
 
@@ -330,7 +360,7 @@ def deterministic(params: Params, inp: ModelInputs) -> np.ndarray:
     if "time_offset" in params:
         omega = _shift(t, omega, float(params["time_offset"]["tau_s"]))
     K = k_matrix(params)
-    y = omega @ K.T + _scale_diag(params, inp, omega) * omega
+    y = _rows_times(omega, K) + _scale_diag(params, inp, omega) * omega
     return y + _additive(params, inp)
 
 
