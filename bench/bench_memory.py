@@ -1,0 +1,296 @@
+"""Memory (issue 6 item 6): a one-hour 1 kHz recording processed end to end; peak RSS per stage.
+
+Run: ``nice python bench/bench_memory.py [--duration-s 3600] [--rate-hz 1000] [--work DIR] [--json]``.
+
+The recording (3.6 M samples, 15 columns: t, gyro, accel, temperature, reference rate and
+attitude) is a still, level sensor warming up from 25 °C to 45 °C (τ = 10 min) with a
+constant and thermal bias (:func:`gyrocore.effects.deterministic`) and white rate noise from
+an explicit ``np.random.Generator``. Every stage runs in its own subprocess; its peak
+resident set size is that process's ``ru_maxrss`` from ``os.wait4`` (Linux: KiB), so the
+figures are per stage, not cumulative. Stages:
+
+``baseline``      python + numpy + ``gyrocore.recording`` only (the floor of every other figure)
+``synth``         generate and write the CSV chunk by chunk (``write_csv_chunks``)
+``read_whole``    ``read_csv`` of the whole file (the path every CLI command takes)
+``read_chunks``   ``iter_csv_chunks`` with per-axis running sums (streaming)
+``allan``         gyro columns gathered from chunks, ``allan_analysis`` on 3 × 3.6 M samples
+``calibrate``     columns gathered from chunks, ``Calibrator(effects=bias,bias_thermal).fit``
+``apply``         per chunk: remove the fitted effects, write the corrected CSV (streaming)
+``attitude``      per chunk: ``integrate_gyro`` carried across chunks, error angle vs the
+                  reference attitude, running final/RMS/max (streaming)
+``cli_*``         the same through ``gyroharness allan|calibrate|apply`` (whole-file reads)
+
+A stage is *streaming* when its peak does not grow with the recording (O(chunk)); the
+others hold whole columns in memory (O(N)), reported in bytes per sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+G_M_S2 = 9.80665
+CHUNK_ROWS = 100_000
+SEED = 0
+# Still sensor: constant and thermal bias (order 2 in T − 25 °C), white noise density N.
+B_RAD_S = np.array([0.010, -0.007, 0.004])
+POLY_RAD_S = np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]])  # per °C, per °C²
+N_RAD_PER_SQRT_S = 2e-4
+T0_C = 25.0
+
+
+def _temp_c(t_s: np.ndarray) -> np.ndarray:
+    return T0_C + 20.0 * (1.0 - np.exp(-t_s / 600.0))
+
+
+def _true_params() -> dict:
+    return {
+        "bias": {"b_rad_s": B_RAD_S},
+        "bias_thermal": {"poly_rad_s": POLY_RAD_S, "t0_c": T0_C, "temp_min_c": -40.0, "temp_max_c": 85.0},
+    }
+
+
+# ---------------------------------------------------------------------------- stages (child side)
+def stage_baseline(a) -> dict:
+    import gyrocore.recording  # noqa: F401  (python + numpy + the data file module)
+
+    return {}
+
+
+def _chunks(a):
+    from gyrocore import effects as E
+    from gyrocore.recording import Recording
+
+    n = int(round(a.duration_s * a.rate_hz))
+    n_chunks = math.ceil(n / CHUNK_ROWS)
+    seeds = np.random.SeedSequence(SEED).spawn(n_chunks)
+    sigma = N_RAD_PER_SQRT_S * math.sqrt(a.rate_hz)
+    params = _true_params()
+    for k in range(n_chunks):
+        i0, i1 = k * CHUNK_ROWS, min(n, (k + 1) * CHUNK_ROWS)
+        rng = np.random.default_rng(seeds[k])
+        m = i1 - i0
+        t = np.arange(i0, i1) / a.rate_hz
+        T = _temp_c(t)
+        zeros = np.zeros((m, 3))
+        f = np.tile([0.0, 0.0, G_M_S2], (m, 1))
+        inp = E.ModelInputs(t_s=t, omega_S_rad_s=zeros, f_S_m_s2=f, temp_c=T)
+        gyro = E.deterministic(params, inp) + rng.normal(0.0, sigma, (m, 3))
+        accel = f + rng.normal(0.0, 0.02, (m, 3))
+        q = np.tile([1.0, 0.0, 0.0, 0.0], (m, 1))
+        yield Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=T + rng.normal(0, 0.01, m),
+                        ref_rate_rad_s=zeros, ref_quat_wxyz=q,
+                        meta={"sensor": "bench_memory", "scenario": "static_thermal", "rate_hz": str(a.rate_hz)})
+
+
+def stage_synth(a) -> dict:
+    from gyrocore.recording import write_csv_chunks
+
+    n = write_csv_chunks(_chunks(a), a.csv)
+    return {"rows": n, "csv_bytes": os.path.getsize(a.csv)}
+
+
+def stage_read_whole(a) -> dict:
+    from gyrocore.recording import read_csv
+
+    rec = read_csv(a.csv)
+    return {"rows": rec.n}
+
+
+def stage_read_chunks(a) -> dict:
+    from gyrocore.recording import iter_csv_chunks
+
+    n, s = 0, np.zeros(3)
+    for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS):
+        n += ch.n
+        s += ch.gyro_rad_s.sum(axis=0)
+    return {"rows": n, "mean_gyro_rad_s": (s / n).tolist()}
+
+
+def _gather(a, *, full: bool):
+    """The recording from chunks, keeping only the columns a stage needs (no text held)."""
+    from gyrocore.recording import Recording, iter_csv_chunks
+
+    cols: dict[str, list] = {"t": [], "g": [], "a": [], "T": [], "r": []}
+    for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS):
+        cols["t"].append(ch.t_s)
+        cols["g"].append(ch.gyro_rad_s)
+        if full:
+            cols["a"].append(ch.accel_m_s2)
+            cols["T"].append(ch.temp_c)
+            cols["r"].append(ch.ref_rate_rad_s)
+        meta = ch.meta
+    cat = {k: (np.concatenate(v) if v else None) for k, v in cols.items()}
+    return Recording(t_s=cat["t"], gyro_rad_s=cat["g"], accel_m_s2=cat["a"], temp_c=cat["T"],
+                     ref_rate_rad_s=cat["r"], meta=meta)
+
+
+def stage_allan(a) -> dict:
+    from gyrocore.allan import allan_analysis
+
+    res = allan_analysis(_gather(a, full=False))
+    return {"arw_rad_per_sqrt_s": {k: v.arw_rad_per_sqrt_s for k, v in res.axes.items()}}
+
+
+def stage_calibrate(a) -> dict:
+    from gyrocore.model import Calibrator, write_params
+
+    rec = _gather(a, full=True)
+    res = Calibrator(effects=("bias", "bias_thermal")).fit(rec)
+    write_params(res, a.params)
+    b = res.params["bias"]["b_rad_s"]
+    return {"bias_error_rad_s": (np.asarray(b) - B_RAD_S).tolist()}
+
+
+def stage_apply(a) -> dict:
+    from gyrocore.model import apply, read_params
+    from gyrocore.recording import iter_csv_chunks, write_csv_chunks
+
+    params = read_params(a.params)
+    n = write_csv_chunks((apply(params, ch) for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS)), a.corrected)
+    return {"rows": n}
+
+
+def stage_attitude(a) -> dict:
+    """Streaming score of the corrected file: integrate each chunk from the attitude carried
+    over from the previous one (the chunk starts at the previous chunk's last sample, so the
+    zero-order-hold step across the boundary is included exactly once)."""
+    from gyrocore.attitude import error_angle_rad, integrate_gyro
+    from gyrocore.recording import iter_csv_chunks
+
+    q_carry = t_last = w_last = None
+    n = 0
+    sum_sq = 0.0
+    err_max = 0.0
+    err_final = math.nan
+    t_first = None
+    path = a.corrected if os.path.exists(a.corrected) else a.csv  # raw when apply did not run
+    for ch in iter_csv_chunks(path, rows=CHUNK_ROWS):
+        t, w, q_ref = ch.t_s, ch.gyro_rad_s, ch.ref_quat_wxyz
+        if q_carry is None:
+            q = integrate_gyro(t, w, q0_wxyz=q_ref[0])
+            t_first = float(t[0])
+        else:
+            q = integrate_gyro(np.r_[t_last, t], np.vstack([w_last, w]), q0_wxyz=q_carry)[1:]
+        e = error_angle_rad(q, q_ref)
+        sum_sq += float(np.sum(e * e))
+        err_max = max(err_max, float(np.max(e)))
+        err_final = float(e[-1])
+        n += e.size
+        q_carry, t_last, w_last = q[-1], t[-1:], w[-1:]
+    dur = float(t_last[0] - t_first)
+    return {
+        "scored_file": os.path.basename(path),
+        "rows": n,
+        "final_error_deg": math.degrees(err_final),
+        "rms_error_deg": math.degrees(math.sqrt(sum_sq / n)),
+        "max_error_deg": math.degrees(err_max),
+        "drift_deg_per_min": math.degrees(err_final) / (dur / 60.0),
+    }
+
+
+STAGES = {
+    "baseline": stage_baseline,
+    "synth": stage_synth,
+    "read_whole": stage_read_whole,
+    "read_chunks": stage_read_chunks,
+    "allan": stage_allan,
+    "calibrate": stage_calibrate,
+    "apply": stage_apply,
+    "attitude": stage_attitude,
+}
+STREAMING = {"baseline", "synth", "read_chunks", "apply", "attitude"}
+
+
+# ---------------------------------------------------------------------------- parent side
+def _run_child(argv: list[str]) -> tuple[int, float, int, str]:
+    """Run ``argv``; return (exit status, wall s, peak RSS in bytes, stdout)."""
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        p = subprocess.Popen(argv, stdout=out, stderr=err)
+        _pid, status, ru = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+        wall = time.perf_counter() - t0
+        out.seek(0)
+        err.seek(0)
+        text = out.read().decode()
+        if p.returncode != 0:
+            tail = err.read().decode().strip().splitlines()[-3:]
+            text = " | ".join(tail)
+    return p.returncode, wall, int(ru.ru_maxrss) * 1024, text
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration-s", type=float, default=3600.0)
+    ap.add_argument("--rate-hz", type=float, default=1000.0)
+    ap.add_argument("--work", default=None, help="folder for the CSV files (default: a temporary folder, removed)")
+    ap.add_argument("--stages", default=",".join(STAGES) + ",cli_allan,cli_calibrate,cli_apply")
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--stage", help=argparse.SUPPRESS)  # child mode
+    a = ap.parse_args(argv)
+    work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="bench_memory_"))
+    a.csv = str(work / "one_hour.csv")
+    a.params = str(work / "params.json")
+    a.corrected = str(work / "corrected.csv")
+    if a.stage:  # child: run one stage, print its JSON
+        print(json.dumps(STAGES[a.stage](a)))
+        return 0
+
+    work.mkdir(parents=True, exist_ok=True)
+    n = int(round(a.duration_s * a.rate_hz))
+    data_bytes = n * 15 * 8  # the 15 float64 columns
+    exe = shutil.which("gyroharness") or "gyroharness"
+    common = ["--duration-s", str(a.duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work)]
+    cli = {
+        "cli_allan": [exe, "allan", a.csv, "--json"],
+        "cli_calibrate": [exe, "calibrate", a.csv, "--effects", "bias,bias_thermal", "-o", str(work / "cli_params.json"), "--json"],
+        "cli_apply": [exe, "apply", a.csv, "--params", a.params, "-o", str(work / "cli_corrected.csv"), "--json"],
+    }
+    rows = []
+    base_rss = 0
+    try:
+        for name in [s.strip() for s in a.stages.split(",") if s.strip()]:
+            argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
+            rc, wall, rss, out = _run_child(argv_c)
+            info = {}
+            if rc == 0 and not name.startswith("cli_"):
+                info = json.loads(out.strip().splitlines()[-1])
+            kind = "streaming" if name in STREAMING else "whole columns"
+            if name.startswith("cli_"):
+                kind = "CLI (whole-file read)"
+            if name == "baseline":
+                base_rss = rss
+            above = rss - base_rss
+            rows.append({"stage": name, "exit": rc, "wall_s": wall, "peak_rss_bytes": rss,
+                         "above_baseline_bytes": above, "bytes_per_sample_above_baseline": above / n,
+                         "kind": kind, "result": info if rc == 0 else out})
+            if not a.json:
+                print(f"{name:<14s} exit {rc}  wall {wall:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB "
+                      f"(+{above / 2**20:7.1f} MiB over baseline = {above / n:6.1f} B/sample)  {kind}" + ("" if rc == 0 else f"  FAILED: {out[:200]}"), flush=True)
+    finally:
+        if not a.work:
+            shutil.rmtree(work, ignore_errors=True)
+    summary = {"samples": n, "rate_hz": a.rate_hz, "duration_s": a.duration_s,
+               "data_float64_bytes": data_bytes, "chunk_rows": CHUNK_ROWS, "stages": rows}
+    if a.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        csv_b = next((r["result"].get("csv_bytes") for r in rows if r["stage"] == "synth" and r["exit"] == 0), None)
+        print(f"{n} samples; 15 float64 columns = {data_bytes / 2**20:.0f} MiB"
+              + (f"; CSV {csv_b / 2**20:.0f} MiB" if csv_b else ""))
+    return 0 if all(r["exit"] == 0 for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
