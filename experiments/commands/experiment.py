@@ -1,0 +1,41 @@
+"""``gyroharness experiment NAME``: run one experiment into a report folder."""
+
+from __future__ import annotations
+
+import time
+
+import click
+
+from gyrocore.cli import emit_json
+
+__all__ = ["command"]
+
+
+@click.command("experiment")
+@click.argument("name")
+@click.option("--out", "out_dir", default=None, type=click.Path(file_okay=False),
+              help="Report folder (default: out/<NAME>).")
+@click.option("--quick", is_flag=True, help="Smoke run: short recordings, few sensor instances.")
+@click.option("--seeds", type=click.IntRange(min=1), default=None, help="Sensor instances per scenario.")
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="Worker processes (default: all cores).")
+@click.option("--force", is_flag=True, help="Replace --out even if it is not a previous gyroharness report.")
+@click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
+def command(name, out_dir, quick, seeds, workers, force, as_json):
+    """Run one experiment NAME (see `gyroharness run --help`; names: article, ablation, cutoffs, close_the_loop).
+
+    Same folder policy as `gyroharness run`.
+    """
+    from experiments import registry
+    from experiments.report import build_report
+
+    run = registry.get(name)
+    t0 = time.perf_counter()
+    path, results = build_report([(name, run)], out_dir or f"out/{name}", force=force, quick=quick, seeds=seeds,
+                                 workers=workers, title=f"gyroharness experiment {name}")
+    r = results[0]
+    if as_json:
+        emit_json({"out": str(path), "name": name, "wall_s": r.wall_s, "figures": list(r.figures),
+                   "summary": r.summary})
+    else:
+        click.echo(f"{name}: {r.wall_s:.1f} s, {len(r.figures)} figures; report: {path / 'report.md'}")
+    return 0
