@@ -1,0 +1,738 @@
+"""Allan deviation and the IEEE Std 952 noise terms of a gyro, with confidence intervals.
+
+What is here
+------------
+- :func:`oadev` — overlapping Allan deviation of a rate signal (NIST SP 1065 eq. 11), either
+  through ``allantools.oadev`` or through our own kernel (same phase, same formula, in-place
+  buffers: identical values to relative 1e-12, faster on long records, see
+  ``bench/bench_allan.py``).
+- :func:`allan_analysis` — per axis: deviation, chi-square confidence intervals from
+  Greenhall's equivalent degrees of freedom (``allantools.edf_greenhall``), and the five
+  IEEE 952 terms fitted **jointly** by non-negative weighted least squares on the Allan
+  variance::
+
+      σ²(τ) = 3Q²/τ² + N²/τ + (2 ln2/π)B² + K²τ/3 + R²τ²/2
+
+  (Q angle quantization [rad], N angle random walk [rad/√s], B bias instability [rad/s],
+  K rate random walk [rad/s/√s], R rate ramp [rad/s²]; IEEE Std 952-1997 annex C).
+  A term the data cannot resolve (its 95 % interval reaches zero) is ``None``, not a guess.
+- :func:`simple_noise_model` — the seed article's model (§2.2): rate = truth + β + X,
+  X ~ N(0, σ²) per axis.
+- :func:`kalibr_imu_yaml` — Kalibr's ``imu.yaml`` (noise density = N, random walk = K).
+
+Conventions: rate signals are rad/s in the sensor frame S; the sample rate is the mean rate
+(N−1)/duration and the sample index is the time base (bursty host timestamps of real logs
+must not enter the Allan variance, DESIGN.md "Noise density convention").
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+import scipy.stats
+
+from .errors import GyroInputError, warn_repair
+from .recording import AXES, Recording
+
+__all__ = [
+    "TERM_NAMES",
+    "TERM_UNITS",
+    "AllanResult",
+    "AllanAnalysis",
+    "SimpleNoiseModel",
+    "oadev",
+    "octave_m",
+    "allan_analysis",
+    "fit_ieee952",
+    "select_ieee952",
+    "avar_correlation_white",
+    "ieee952_avar",
+    "simple_noise_model",
+    "kalibr_imu_yaml",
+    "to_datasheet_units",
+    "FORMAT_VERSION",
+]
+
+FORMAT_VERSION = "1.0"
+RAD2DEG = 180.0 / math.pi
+
+#: JSON names of the IEEE 952 terms, in the order of the model's coefficient vector.
+TERM_NAMES = (
+    "quantization_rad",
+    "arw_rad_per_sqrt_s",
+    "bias_instability_rad_s",
+    "rrw_rad_per_s_sqrt_s",
+    "rate_ramp_rad_s2",
+)
+TERM_UNITS = {
+    "quantization_rad": "rad",
+    "arw_rad_per_sqrt_s": "rad/s/sqrt(Hz) = rad/sqrt(s)",
+    "bias_instability_rad_s": "rad/s",
+    "rrw_rad_per_s_sqrt_s": "rad/s/sqrt(s) = rad/s^2/sqrt(Hz)",
+    "rate_ramp_rad_s2": "rad/s^2",
+}
+# Noise type α (S_y ∝ f^α) that dominates where each term dominates; used for the EDF.
+# Q: white phase (angle) noise α=2; N: white rate α=0; B: flicker rate α=−1;
+# K: random-walk rate α=−2; R: drift, treated as α=−2 (Greenhall needs α > −3 for AVAR).
+_TERM_ALPHA = (2, 0, -1, -2, -2)
+_B_FACTOR = 2.0 * math.log(2.0) / math.pi  # σ² = (2 ln2/π)·B² on the flat part
+_Z95 = scipy.stats.norm.isf(0.025)
+
+
+# ---------------------------------------------------------------------------- deviation
+def octave_m(n_samples: int, *, max_m: int | None = None) -> np.ndarray:
+    """Averaging factors m = 1, 2, 4, ... (octave spacing) usable on ``n_samples`` rate samples.
+
+    Overlapping ADEV needs 2m ≤ N − 1 phase differences; by default m ≤ (N−1)//4 so that the
+    last point still has ≥ ~3 equivalent degrees of freedom.
+    """
+    top = (n_samples - 1) // 4 if max_m is None else int(max_m)
+    top = min(top, (n_samples - 1) // 2)
+    if top < 1:
+        return np.zeros(0, dtype=np.int64)
+    return 2 ** np.arange(int(math.floor(math.log2(top))) + 1, dtype=np.int64)
+
+
+def _phase(omega: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Integrated angle (the 'phase' of SP 1065), exactly as ``allantools.frequency2phase``."""
+    import allantools
+
+    return allantools.frequency2phase(np.asarray(omega, dtype=float), rate_hz)
+
+
+def _oadev_fast(phase: np.ndarray, rate_hz: float, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Overlapping ADEV kernel: one preallocated buffer, in-place second differences, dot.
+
+    Same formula as ``allantools.calc_adev_phase(phase, rate, m, 1)``:
+    σ(mτ0) = sqrt(Σ(x[i+2m] − 2x[i+m] + x[i])² / (2 n)) / (m τ0), n = len(x) − 2m.
+    """
+    L = phase.shape[0]
+    buf = np.empty(max(L - 2 * int(m.min()), 1) if m.size else 1)
+    dev = np.empty(m.shape[0])
+    ns = np.empty(m.shape[0], dtype=np.int64)
+    for i, mj in enumerate(m.tolist()):
+        n = L - 2 * mj
+        v = buf[:n]
+        np.subtract(phase[2 * mj :], phase[mj : mj + n], out=v)
+        v -= phase[mj : mj + n]
+        v += phase[:n]
+        s = float(np.dot(v, v))
+        dev[i] = math.sqrt(s / (2.0 * n)) / mj * rate_hz
+        ns[i] = n
+    return dev, ns
+
+
+def oadev(
+    omega: np.ndarray, rate_hz: float, m: Sequence[int] | np.ndarray, *, engine: str = "fast"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Overlapping Allan deviation of one rate signal.
+
+    Parameters
+    ----------
+    omega : ndarray, shape (N,)
+        Rate samples (any unit U; the deviation comes out in U), evenly spaced by 1/rate_hz.
+    rate_hz : float
+        Sample rate, Hz (use the mean rate (N−1)/duration for jittery timestamps).
+    m : sequence of int
+        Averaging factors; τ = m / rate_hz.
+    engine : {"fast", "allantools"}
+        ``"allantools"`` calls ``allantools.oadev(..., data_type="freq")``; ``"fast"`` uses the
+        same phase and formula with in-place buffers (NIST SP 1065 eq. 11).
+
+    Returns
+    -------
+    taus_s : ndarray, shape (M,)
+    adev : ndarray, shape (M,), unit U
+    n_terms : ndarray, shape (M,)  number of second differences averaged (N − 2m)
+    """
+    m = np.asarray(m, dtype=np.int64)
+    if engine == "allantools":
+        import allantools
+
+        taus, dev, _err, ns = allantools.oadev(
+            np.asarray(omega, float), rate=rate_hz, data_type="freq", taus=m / rate_hz
+        )
+        return np.asarray(taus), np.asarray(dev), np.asarray(ns, dtype=np.int64)
+    if engine != "fast":
+        raise GyroInputError(f"unknown Allan engine {engine!r} (use 'fast' or 'allantools')")
+    phase = _phase(omega, rate_hz)
+    dev, ns = _oadev_fast(phase, rate_hz, m)
+    return m / rate_hz, dev, ns
+
+
+# ---------------------------------------------------------------------------- the model
+def ieee952_design(taus_s: np.ndarray) -> np.ndarray:
+    """Columns of σ²(τ) for coefficients c = (Q², N², B², K², R²); shape (M, 5)."""
+    t = np.asarray(taus_s, float)
+    return np.column_stack(
+        [3.0 / t**2, 1.0 / t, np.full_like(t, _B_FACTOR), t / 3.0, t**2 / 2.0]
+    )
+
+
+def ieee952_avar(taus_s: np.ndarray, terms: Mapping[str, float | None]) -> np.ndarray:
+    """Allan variance of the IEEE 952 model, σ²(τ), for the terms given (None = 0)."""
+    c = np.array([(terms.get(k) or 0.0) ** 2 for k in TERM_NAMES])
+    return ieee952_design(taus_s) @ c
+
+
+@functools.lru_cache(maxsize=4096)
+def _edf(alpha: int, m: int, n_phase: int) -> float:
+    import allantools
+
+    try:
+        e = float(allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase),
+                                           overlapping=True, modified=False))
+    except Exception:  # pragma: no cover - Greenhall's tables cover α in 2..-2
+        e = float("nan")
+    if not math.isfinite(e) or e <= 0:
+        # SP 1065 eq. (47) simple approximation for white FM, as a fallback.
+        n = n_phase - 1
+        e = (3 * (n - 1) / (2 * m) - 2 * (n - 2) / n) * 4 * m * m / (4 * m * m + 5)
+    return max(e, 1.0)
+
+
+_CORR_CACHE: dict[tuple, np.ndarray] = {}
+
+
+def avar_correlation_white(m: np.ndarray, n_phase: int) -> np.ndarray:
+    """Correlation matrix of overlapping AVAR estimates at factors ``m`` under white rate noise.
+
+    σ̂²(m) ∝ Σ_k d_m(k)², d_m = h_m ∗ y with h_m = (−1 ×m, +1 ×m). For Gaussian y,
+    Cov(Σ_k d_i(k)², Σ_l d_j(l)²) = 2 Σ_k Σ_l g_ij(k−l)², g_ij the cross-correlation of h_i
+    and h_j (exact count of (k, l) pairs per lag). Octave-spaced points are far from
+    independent (ρ ≈ 0.5–0.7 between neighbours); ignoring it makes the term intervals about
+    1.6× too narrow (measured by Monte Carlo, tests/gyrocore/test_allan.py).
+    """
+    import scipy.signal
+
+    key = (tuple(int(v) for v in m), int(n_phase))
+    hit = _CORR_CACHE.get(key)
+    if hit is not None:
+        return hit
+    m = [int(v) for v in m]
+    n = [n_phase - 2 * v for v in m]
+    h = [np.concatenate([-np.ones(v), np.ones(v)]) for v in m]
+    M = len(m)
+    V = np.zeros((M, M))
+    for i in range(M):
+        for j in range(i, M):
+            g = scipy.signal.fftconvolve(h[i], h[j][::-1])  # g[lag + len_j − 1]
+            g = np.rint(g)  # integer counts; remove FFT round-off
+            lags = np.arange(g.size) - (h[j].size - 1)  # d_i(k) with d_j(k − lag)
+            # pairs (k, l = k − lag) with 0 ≤ k < n_i, 0 ≤ l < n_j
+            pairs = np.clip(np.minimum(n[i], n[j] + lags) - np.maximum(0, lags), 0, None)
+            V[i, j] = V[j, i] = 2.0 * float(np.sum(pairs * g * g))
+    d = np.sqrt(np.diag(V))
+    R = V / np.outer(d, d)
+    _CORR_CACHE[key] = R
+    return R
+
+
+@dataclass(frozen=True)
+class _Fit:
+    coef: np.ndarray  # (5,) c = (Q², N², B², K², R²)
+    cov: np.ndarray  # (5, 5)
+    edf: np.ndarray  # (M,)
+    alpha: np.ndarray  # (M,)
+
+
+def fit_ieee952(
+    taus_s: np.ndarray,
+    avar: np.ndarray,
+    m: np.ndarray,
+    n_phase: int,
+    *,
+    iterations: int = 4,
+    terms: Sequence[str] = TERM_NAMES,
+) -> _Fit:
+    """Joint non-negative generalised least-squares fit of the IEEE 952 terms.
+
+    Model: σ²(τ) = A(τ)·c with c = (Q², N², B², K², R²) ≥ 0 (IEEE Std 952 eq. C.2 sum).
+    Covariance of the AVAR estimates: C_ij = ρ_ij·√(V_i V_j), with V_i = 2σ_i⁴/edf_i
+    (chi-square, NIST SP 1065 eq. 45), σ_i² from the current *model* (not the noisy estimate,
+    which would bias the fit low), edf_i from Greenhall's algorithm for the noise type that
+    dominates the model at τ_i, and ρ_ij the white-noise correlation between overlapping AVAR
+    estimates (:func:`avar_correlation_white`). The system is whitened with the Cholesky
+    factor of C and solved by NNLS; iterated ``iterations`` times from a white-noise start.
+
+    Returns the coefficients and their covariance (AᵀC⁻¹A)⁻¹ at the final weights, computed
+    without the sign constraint so that a term pinned at zero still gets an upper bound.
+    """
+    A_full = ieee952_design(taus_s)
+    use = np.array([k in terms for k in TERM_NAMES])
+    A = A_full[:, use]
+    m = np.asarray(m, dtype=np.int64)
+    avar = np.asarray(avar, float)
+    R = avar_correlation_white(m, n_phase)
+    alpha = np.zeros(len(taus_s), dtype=int)
+    model = avar.copy()
+    coef = np.zeros(5)
+    tiny = np.finfo(float).tiny
+
+    def whitened(model_, alpha_):
+        edf_ = np.array([_edf(int(a_), int(mm), int(n_phase)) for a_, mm in zip(alpha_, m)])
+        sd = np.sqrt(2.0 / edf_) * np.maximum(model_, tiny)
+        L = np.linalg.cholesky(R * np.outer(sd, sd))
+        Aw_ = scipy.linalg.solve_triangular(L, A, lower=True)
+        yw_ = scipy.linalg.solve_triangular(L, avar, lower=True)
+        return edf_, Aw_, yw_
+
+    for _ in range(max(1, iterations)):
+        edf, Aw, yw = whitened(model, alpha)
+        # Column scaling keeps NNLS well conditioned (the columns span many decades).
+        scale = np.linalg.norm(Aw, axis=0)
+        scale[scale == 0] = 1.0
+        sol, _ = scipy.optimize.nnls(Aw / scale, yw, maxiter=50 * A.shape[1])
+        coef = np.zeros(5)
+        coef[use] = sol / scale
+        new_model = A_full @ coef
+        model = np.where(new_model > 0, new_model, avar)
+        contrib = A_full * coef[None, :]
+        alpha = np.array(_TERM_ALPHA)[np.argmax(contrib, axis=1)]
+    edf, Aw, _yw = whitened(model, alpha)
+    scale = np.linalg.norm(Aw, axis=0)
+    scale[scale == 0] = 1.0
+    An = Aw / scale
+    cov_used = np.linalg.pinv(An.T @ An) / np.outer(scale, scale)
+    cov = np.full((5, 5), np.nan)
+    idx = np.flatnonzero(use)
+    cov[np.ix_(idx, idx)] = cov_used
+    return _Fit(coef=coef, cov=cov, edf=edf, alpha=alpha)
+
+
+# ---------------------------------------------------------------------------- results
+@dataclass(frozen=True, eq=False)
+class AllanResult:
+    """Allan deviation and IEEE 952 terms of one axis.
+
+    Attributes
+    ----------
+    axis : str
+        ``"x"``, ``"y"`` or ``"z"`` (sensor frame S).
+    signal : str
+        ``"gyro"`` (units rad/s) or ``"accel"`` (units m/s², then read every ``rad`` in the
+        term names as ``m/s``).
+    taus_s : ndarray, shape (M,)
+        Averaging times, s.
+    adev_rad_s : ndarray, shape (M,)
+        Overlapping Allan deviation, rad/s.
+    adev_ci95_rad_s : ndarray, shape (M, 2)
+        95 % chi-square interval of the deviation (Greenhall EDF, SP 1065 eq. 45).
+    edf : ndarray, shape (M,)
+        Equivalent degrees of freedom used.
+    fit_adev_rad_s : ndarray, shape (M,)
+        Deviation of the fitted model at ``taus_s``.
+    quantization_rad, arw_rad_per_sqrt_s, bias_instability_rad_s, rrw_rad_per_s_sqrt_s, rate_ramp_rad_s2 : float or None
+        The IEEE 952 terms Q, N, B, K, R; ``None`` when the data cannot resolve the term
+        (its 95 % interval reaches zero).
+    estimate : dict
+        Point estimate of every term (also the unresolved ones, for plotting / upper bounds).
+    ci95 : dict
+        95 % interval (lo, hi) of every term; lo = 0 for unresolved terms, hi is an upper bound.
+    rate_hz : float
+        Sample rate used (mean rate).
+    n_samples : int
+    """
+
+    axis: str
+    signal: str
+    taus_s: np.ndarray
+    adev_rad_s: np.ndarray
+    adev_ci95_rad_s: np.ndarray
+    edf: np.ndarray
+    fit_adev_rad_s: np.ndarray
+    quantization_rad: float | None
+    arw_rad_per_sqrt_s: float | None
+    bias_instability_rad_s: float | None
+    rrw_rad_per_s_sqrt_s: float | None
+    rate_ramp_rad_s2: float | None
+    estimate: Mapping[str, float] = field(default_factory=dict)
+    ci95: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    rate_hz: float = float("nan")
+    n_samples: int = 0
+    units: Mapping[str, str] = field(default_factory=lambda: dict(TERM_UNITS))
+
+    def terms(self) -> dict[str, float | None]:
+        """The five terms as DESIGN.md's JSON dict (None = unresolved)."""
+        return {k: getattr(self, k) for k in TERM_NAMES}
+
+    def to_json(self) -> dict:
+        """The DESIGN.md keys plus ``ci95``, ``estimate`` and the curve."""
+        out: dict = self.terms()
+        out["ci95"] = {k: [float(a), float(b)] for k, (a, b) in self.ci95.items()}
+        out["estimate"] = dict(self.estimate)
+        out["units"] = dict(self.units)
+        out["curve"] = {
+            "taus_s": self.taus_s,
+            "adev_rad_s": self.adev_rad_s,
+            "adev_ci95_rad_s": self.adev_ci95_rad_s,
+            "edf": self.edf,
+            "fit_adev_rad_s": self.fit_adev_rad_s,
+        }
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class AllanAnalysis:
+    """Allan results of a recording, per axis, plus what was used.
+
+    Attributes
+    ----------
+    axes : dict[str, AllanResult]
+        Gyro axes analysed.
+    accel : dict[str, AllanResult]
+        Accelerometer axes (only when requested and present), units m/s² instead of rad/s.
+    rate_hz : float
+        Mean sample rate (N−1)/duration, Hz.
+    n_samples : int
+    duration_s : float
+    dropped_taus_s : tuple of float
+        Requested averaging times that the recording was too short for.
+    format_version : str
+    """
+
+    axes: Mapping[str, AllanResult]
+    rate_hz: float
+    n_samples: int
+    duration_s: float
+    accel: Mapping[str, AllanResult] = field(default_factory=dict)
+    dropped_taus_s: tuple[float, ...] = ()
+    format_version: str = FORMAT_VERSION
+
+    def to_json(self) -> dict:
+        out = {
+            "axes": {a: r.to_json() for a, r in self.axes.items()},
+            "rate_hz": self.rate_hz,
+            "n_samples": self.n_samples,
+            "duration_s": self.duration_s,
+            "dropped_taus_s": list(self.dropped_taus_s),
+            "format_version": self.format_version,
+        }
+        if self.accel:
+            out["accel_axes"] = {a: r.to_json() for a, r in self.accel.items()}
+        return out
+
+
+def _term_interval(fit: _Fit, i: int) -> tuple[float, float, float]:
+    """(c, lo, hi) of coefficient i with its 95 % normal interval on the variance scale."""
+    c = float(fit.coef[i])
+    v = fit.cov[i, i]
+    se = math.sqrt(v) if (math.isfinite(v) and v > 0) else float("inf")
+    return c, c - _Z95 * se, c + _Z95 * se
+
+
+def select_ieee952(
+    taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_phase: int, *, keep_z: float = 3.0
+) -> tuple[_Fit, list[str], dict[str, float]]:
+    """Joint fit with backward elimination of the terms the data cannot resolve.
+
+    Start from all five terms; while some active term is not significant (c/se < ``keep_z``
+    on the variance coefficient, or NNLS pinned it at 0), drop the least significant one
+    (smallest c/se) and refit the others jointly. ``keep_z = 3`` rather than 1.96: with four
+    candidate terms absent, a 5 % level keeps a spurious one in ~20 % of white-noise records
+    and the N interval then under-covers (measured 91 % for a nominal 95 %). Collinear neighbours (e.g. K and R, or B
+    and K over a short τ range) would otherwise share one signal and all look insignificant.
+
+    Returns the final fit, the active terms and, for each dropped term, the upper end of its
+    95 % interval at the moment it was dropped (an upper bound, e.g. for Kalibr).
+    """
+    active = list(TERM_NAMES)
+    upper: dict[str, float] = {}
+    while True:
+        fit = fit_ieee952(taus_s, avar, m, n_phase, terms=active)
+        worst, worst_z = None, float("inf")
+        for name in active:
+            c, lo, hi = _term_interval(fit, TERM_NAMES.index(name))
+            se = (hi - c) / _Z95
+            if c > 0 and c - keep_z * se > 0:
+                continue
+            z = c / se if se > 0 and math.isfinite(se) else 0.0
+            if z < worst_z:
+                worst, worst_z = name, z
+        if worst is None or len(active) == 1:
+            return fit, active, upper
+        _c, _lo, hi = _term_interval(fit, TERM_NAMES.index(worst))
+        upper[worst] = hi
+        active.remove(worst)
+
+
+def _axis_result(
+    omega: np.ndarray, rate_hz: float, m: np.ndarray, *, axis: str, signal: str, engine: str
+) -> AllanResult:
+    taus, dev, ns = oadev(omega, rate_hz, m, engine=engine)
+    n_phase = omega.shape[0] + 1
+    fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
+    lo_q = scipy.stats.chi2.ppf(0.025, fit.edf)
+    hi_q = scipy.stats.chi2.ppf(0.975, fit.edf)
+    ci_dev = np.column_stack([dev * np.sqrt(fit.edf / hi_q), dev * np.sqrt(fit.edf / lo_q)])
+    fit_dev = np.sqrt(np.maximum(ieee952_design(taus) @ fit.coef, 0.0))
+    terms: dict[str, float | None] = {}
+    est: dict[str, float] = {}
+    ci: dict[str, tuple[float, float]] = {}
+    for i, name in enumerate(TERM_NAMES):
+        if name in active:
+            c, lo, hi = _term_interval(fit, i)
+            est[name] = math.sqrt(max(c, 0.0))
+            ci[name] = (math.sqrt(max(lo, 0.0)), math.sqrt(max(hi, 0.0)) if math.isfinite(hi) else float("inf"))
+            terms[name] = est[name] if (c > 0 and lo > 0) else None
+        else:
+            est[name] = 0.0
+            hi = upper.get(name, float("inf"))
+            ci[name] = (0.0, math.sqrt(max(hi, 0.0)) if math.isfinite(hi) else float("inf"))
+            terms[name] = None
+    return AllanResult(
+        axis=axis,
+        signal=signal,
+        taus_s=taus,
+        adev_rad_s=dev,
+        adev_ci95_rad_s=ci_dev,
+        edf=fit.edf,
+        fit_adev_rad_s=fit_dev,
+        estimate=est,
+        ci95=ci,
+        rate_hz=rate_hz,
+        n_samples=int(omega.shape[0]),
+        **terms,
+    )
+
+
+def _check_timestamps(rec: Recording) -> None:
+    d = np.diff(rec.t_s)
+    if d.size < 2:
+        return
+    med = float(np.median(d))
+    mean = rec.duration_s / (rec.n - 1)
+    if med <= 0 or d.max() > 5 * mean or abs(med - mean) > 0.2 * mean:
+        warn_repair(
+            f"timestamps are irregular (median dt {med * 1e3:.3g} ms, max {d.max() * 1e3:.3g} ms): "
+            f"Allan analysis uses the sample index at the mean rate (N-1)/duration = {rec.rate_hz:.6g} Hz"
+        )
+
+
+def allan_analysis(
+    recording: Recording,
+    *,
+    axes: Sequence[str] = AXES,
+    max_tau_s: float | None = None,
+    accel: bool = False,
+    engine: str = "fast",
+) -> AllanAnalysis:
+    """Overlapping ADEV and jointly fitted IEEE 952 terms of a static recording, per axis.
+
+    Parameters
+    ----------
+    recording : Recording
+        A still recording (gyro in rad/s, sensor frame S). Timestamps are used only for the
+        mean rate (N−1)/duration; bursty host timestamps trigger a one-line warning.
+    axes : sequence of {"x", "y", "z"}
+    max_tau_s : float, optional
+        Largest averaging time. Default: a quarter of the record (m ≤ (N−1)/4, octave steps).
+        A value beyond half the record drops those τ with a warning naming them.
+    accel : bool
+        Also analyse the accelerometer (needed for Kalibr's accelerometer entries).
+    engine : {"fast", "allantools"}
+        ADEV kernel, see :func:`oadev`.
+
+    Raises
+    ------
+    GyroInputError
+        Too few samples for at least 4 octave-spaced τ (a 5-term fit needs some spread), or a
+        bad axis name.
+    """
+    bad = [a for a in axes if a not in AXES]
+    if bad or not axes:
+        raise GyroInputError(f"unknown axis {','.join(bad) or '(none)'}; use a comma list of x,y,z")
+    n = recording.n
+    rate = recording.rate_hz
+    if not (n >= 2 and math.isfinite(rate) and rate > 0):
+        raise GyroInputError("Allan analysis needs at least 2 samples with increasing timestamps")
+    _check_timestamps(recording)
+    dropped: list[float] = []
+    if max_tau_s is not None:
+        if not (max_tau_s > 0):
+            raise GyroInputError(f"--max-tau-s must be positive, got {max_tau_s}")
+        want = octave_m(10**12, max_m=max(1, int(math.floor(max_tau_s * rate + 1e-9))))
+        limit = (n - 1) // 2
+        m = want[want <= limit]
+        dropped = [float(mm / rate) for mm in want[want > limit]]
+        if dropped:
+            warn_repair(
+                f"recording is {recording.duration_s:.4g} s long: dropped tau = "
+                + ", ".join(f"{t:.4g}" for t in dropped)
+                + f" s (overlapping ADEV needs tau <= T/2 = {limit / rate:.4g} s)"
+            )
+    else:
+        m = octave_m(n)
+    if m.size < 4:
+        raise GyroInputError(
+            f"recording too short for Allan analysis: {n} samples ({recording.duration_s:.3g} s) "
+            f"give {m.size} averaging times, need at least 4 (>= {16 * 2 + 1} samples)"
+        )
+    gyro = {
+        a: _axis_result(recording.gyro_rad_s[:, AXES.index(a)], rate, m, axis=a, signal="gyro", engine=engine)
+        for a in axes
+    }
+    acc: dict[str, AllanResult] = {}
+    if accel:
+        if recording.accel_m_s2 is None:
+            raise GyroInputError("accelerometer Allan analysis requested but the file has no accel columns")
+        acc = {
+            a: _axis_result(recording.accel_m_s2[:, AXES.index(a)], rate, m, axis=a, signal="accel", engine=engine)
+            for a in axes
+        }
+    return AllanAnalysis(
+        axes=gyro,
+        accel=acc,
+        rate_hz=float(rate),
+        n_samples=n,
+        duration_s=recording.duration_s,
+        dropped_taus_s=tuple(dropped),
+    )
+
+
+# ---------------------------------------------------------------------------- datasheet units
+def to_datasheet_units(name: str, value: float | None) -> tuple[float | None, str]:
+    """Convert an IEEE 952 term from SI to the datasheet unit engineers use.
+
+    N: deg/√h (×180/π×60); B: deg/h; K: deg/h/√h (×180/π×3600×60); R: deg/h²; Q: arcsec.
+    """
+    if value is None:
+        return None, ""
+    f = {
+        "quantization_rad": (RAD2DEG * 3600.0, "arcsec"),
+        "arw_rad_per_sqrt_s": (RAD2DEG * 60.0, "deg/sqrt(h)"),
+        "bias_instability_rad_s": (RAD2DEG * 3600.0, "deg/h"),
+        "rrw_rad_per_s_sqrt_s": (RAD2DEG * 3600.0 * 60.0, "deg/h/sqrt(h)"),
+        "rate_ramp_rad_s2": (RAD2DEG * 3600.0**2, "deg/h^2"),
+    }[name]
+    return value * f[0], f[1]
+
+
+# ---------------------------------------------------------------------------- article model
+@dataclass(frozen=True, eq=False)
+class SimpleNoiseModel:
+    """The seed article's model (§2.2): rate = truth + β + X, X ~ N(0, σ²), per axis.
+
+    Attributes
+    ----------
+    bias_rad_s : ndarray, shape (3,)
+        β, mean of the still recording, rad/s.
+    bias_se_rad_s : ndarray, shape (3,)
+        Standard error of β under the model's own assumption (white X): σ/√n. Correlated noise
+        (bias instability, random walk) makes the true error larger; compare with the Allan
+        deviation at τ = duration.
+    sigma_rad_s : ndarray, shape (3,)
+        σ, sample standard deviation (ddof=1), rad/s.
+    sigma_se_rad_s : ndarray, shape (3,)
+        σ/√(2(n−1)), Gaussian standard error of σ.
+    n_samples : int
+    rate_hz : float
+    """
+
+    bias_rad_s: np.ndarray
+    bias_se_rad_s: np.ndarray
+    sigma_rad_s: np.ndarray
+    sigma_se_rad_s: np.ndarray
+    n_samples: int
+    rate_hz: float
+    units: str = "rad/s"
+    format_version: str = FORMAT_VERSION
+
+    @property
+    def noise_density_rad_per_sqrt_s(self) -> np.ndarray:
+        """σ/√rate: the white-noise density the model implies (DESIGN.md convention)."""
+        return self.sigma_rad_s / math.sqrt(self.rate_hz)
+
+
+def simple_noise_model(recording: Recording) -> SimpleNoiseModel:
+    """Fit the article's bias + Gaussian model to a still recording (per axis mean and σ)."""
+    g = recording.gyro_rad_s
+    n = g.shape[0]
+    if n < 3:
+        raise GyroInputError(f"simple noise model needs at least 3 samples, got {n}")
+    mu = g.mean(axis=0)
+    sd = g.std(axis=0, ddof=1)
+    return SimpleNoiseModel(
+        bias_rad_s=mu,
+        bias_se_rad_s=sd / math.sqrt(n),
+        sigma_rad_s=sd,
+        sigma_se_rad_s=sd / math.sqrt(2.0 * (n - 1)),
+        n_samples=n,
+        rate_hz=float(recording.rate_hz),
+    )
+
+
+# ---------------------------------------------------------------------------- Kalibr
+def _kalibr_value(r: Mapping[str, AllanResult], name: str) -> tuple[float, bool]:
+    """Largest axis value of a term (conservative scalar); (value, is_upper_bound)."""
+    vals, upper = [], False
+    for res in r.values():
+        v = getattr(res, name)
+        if v is None:
+            v = res.ci95[name][1]
+            upper = True
+        vals.append(v)
+    return float(max(vals)), upper
+
+
+def kalibr_imu_yaml(
+    analysis: AllanAnalysis, *, rostopic: str = "/imu0", inflate: float = 1.0
+) -> str:
+    """Kalibr ``imu.yaml`` text from an Allan analysis.
+
+    Kalibr's ``gyroscope_noise_density`` is the white-noise density N (rad/s/√Hz = rad/√s),
+    the ``gyroscope_random_walk`` is the rate random walk K (rad/s²/√Hz = rad/s/√s) — NOT the
+    bias instability B (rad/s), a common confusion. Kalibr takes one scalar per sensor; we
+    write the largest axis. An unresolved K is replaced by the upper end of its 95 % interval
+    (said in a comment). Kalibr's wiki recommends inflating static Allan values for motion
+    (e.g. ×10 on the random walks); ``inflate`` multiplies every value and is recorded.
+    """
+    g = analysis.axes
+    if not g:
+        raise GyroInputError("no gyro axes in the Allan analysis")
+    nd, nd_up = _kalibr_value(g, "arw_rad_per_sqrt_s")
+    rw, rw_up = _kalibr_value(g, "rrw_rad_per_s_sqrt_s")
+    lines = [
+        "# Kalibr IMU noise model, written by gyroharness (gyrocore.allan) from a static recording",
+        f"# {analysis.n_samples} samples, {analysis.duration_s:.1f} s, mean rate {analysis.rate_hz:.6g} Hz; "
+        f"values = largest axis of {','.join(g)}",
+        f"# inflation factor applied to every value below: {inflate:g} "
+        "(Kalibr recommends inflating static Allan values for dynamic use)",
+        "#",
+        "# gyroscope_noise_density = white rate noise N (Allan 1/sqrt(tau) slope at tau = 1 s)",
+        "#   units rad/s/sqrt(Hz) = rad/sqrt(s)  (angle random walk; x 180/pi x 60 -> deg/sqrt(h))",
+        "# gyroscope_random_walk  = rate random walk K (Allan +1/2 slope, read at tau = 3 s)",
+        "#   units rad/s^2/sqrt(Hz) = rad/s/sqrt(s)  -- NOT the bias instability (rad/s, the flat floor)",
+    ]
+    if rw_up:
+        lines.append("# gyroscope_random_walk: K not resolved by the data; the value is its 95 % upper bound")
+    if nd_up:
+        lines.append("# gyroscope_noise_density: N not resolved by the data; the value is its 95 % upper bound")
+    if analysis.accel:
+        and_, and_up = _kalibr_value(analysis.accel, "arw_rad_per_sqrt_s")
+        arw, arw_up = _kalibr_value(analysis.accel, "rrw_rad_per_s_sqrt_s")
+        lines += [
+            "# accelerometer_noise_density: white noise, m/s^2/sqrt(Hz); accelerometer_random_walk: m/s^3/sqrt(Hz)",
+        ]
+        if and_up or arw_up:
+            lines.append("# an accelerometer value not resolved by the data is its 95 % upper bound")
+        lines += [
+            f"accelerometer_noise_density: {and_ * inflate:.6e}",
+            f"accelerometer_random_walk: {arw * inflate:.6e}",
+        ]
+    else:
+        lines.append("# accelerometer_* not written: the recording has no accelerometer analysis (Kalibr needs them)")
+    lines += [
+        f"gyroscope_noise_density: {nd * inflate:.6e}",
+        f"gyroscope_random_walk: {rw * inflate:.6e}",
+        f"rostopic: {rostopic}",
+        f"update_rate: {analysis.rate_hz:.6g}",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,462 @@
+"""Power-up (static) gyro bias with a motion gate — the seed article's §1, made range-independent.
+
+The article averages 200 samples at rest and refuses while moving: per axis it sums
+Σ|g[k] − g[k−1]| over the window and rejects when any axis exceeds 500 raw counts. A fixed
+count threshold depends on the range setting: at ±250 °/s an MPU-6050 at rest already sums
+≈ 2200–3300 counts per 200 samples, so that gate never lets it calibrate (shown on the
+tomisuarez2 static set in the tests and docs/noise.md).
+
+Here the threshold is derived from the sensor's own noise for a stated false-reject rate
+at rest α (probability that a window of a still sensor is rejected, all axes together):
+
+- ``statistic="abs_diff"`` (the article's statistic). With first differences Δ of
+  stationary Gaussian noise (σ_Δ² = Var Δ, ρ = corr(Δ_k, Δ_k+1), −1/2 for white noise),
+  S = Σ_{k=1}^{m}|Δ_k| (m = n − 1) has
+  E S = m σ_Δ √(2/π),
+  Var S = m σ_Δ² (1 − 2/π) + 2 (m − 1) σ_Δ² (2/π)(√(1−ρ²) + ρ asin ρ − 1)
+  (bivariate half-normal covariance; lags ≥ 2 neglected, exact for white noise).
+  The threshold is the upper α_axis quantile of a gamma law with that mean and variance
+  (the Gaussian quantile under-covers: S is right-skewed; the gamma law is slightly
+  conservative, measured 2.7e-4 for a nominal 3.3e-4 at n = 200).
+- ``statistic="variance"``: (n − 1) s²/σ² ~ χ²(n − 1) at rest under white noise (exact).
+
+α_axis = 1 − (1 − α)^(1/3) (independent axes). σ_Δ and ρ are estimated robustly from the
+whole recording (MAD of lag-1 and lag-2 differences, insensitive to sparse motion) unless the
+sensor's white-noise σ (or density N, σ = N √rate) is given. The result states the smallest
+motion that the gate catches half of the time: a rate step inside the window and a rate ramp
+(constant angular acceleration) over it. A constant rotation rate cannot be told from bias by a
+gyro alone and is not caught by any gyro-only gate.
+
+Rules: ``"mean"`` (the article), ``"median"`` (PX4-like, robust to spikes), ``"converge"``
+(ArduPilot-like: consecutive window means until they agree within a tolerance),
+``"article"`` (the article's fixed raw-count threshold, for comparison).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+from .errors import GyroInputError, warn_repair
+from .recording import Recording
+
+__all__ = ["StaticBiasCalibrator", "StaticBiasResult", "abs_diff_moments", "robust_diff_noise", "FORMAT_VERSION"]
+
+FORMAT_VERSION = "1.0"
+_MAD = 1.482602218505602  # 1/Φ⁻¹(3/4): MAD → σ for Gaussian data
+RULES = ("mean", "median", "converge", "article")
+STATISTICS = ("abs_diff", "variance")
+
+
+@dataclass(frozen=True, eq=False)
+class StaticBiasResult:
+    """Static bias estimate and what the motion gate did.
+
+    Attributes
+    ----------
+    bias_rad_s : ndarray, shape (3,)
+        Bias per sensor axis, rad/s.
+    bias_se_rad_s : ndarray, shape (3,)
+        Standard error: σ√VIF/√n (mean), √(π/2)·σ√VIF/√n (median), with VIF the variance
+        inflation of the window mean from the noise autocorrelation (1 for white noise).
+    rule, statistic : str
+    window_start_index, window_samples : int
+        First sample and length of the data that made the estimate (two windows for
+        ``"converge"``).
+    window_start_s, window_s : float
+        The same in seconds (window_s = samples / mean rate).
+    n_rejected_windows : int
+        Windows refused before the accepted one.
+    n_windows_total, n_windows_still : int
+        Windows in the recording and how many of them pass the gate.
+    false_reject_rate : float
+        Stated probability that a window of a still sensor is refused (all axes), nan for
+        ``"article"`` (not derived).
+    threshold : ndarray, shape (3,)
+        Per-axis gate threshold, in ``threshold_units``.
+    threshold_units : str
+        ``"rad/s"`` (sum of |Δ|, abs_diff), ``"(rad/s)^2"`` (variance) or ``"rad/s"`` for the
+        converge tolerance (Mahalanobis radius of the mean difference, see notes).
+    noise_sigma_rad_s : ndarray, shape (3,)
+        Per-sample white-noise σ used (σ_Δ/√2).
+    diff_corr : ndarray, shape (3,)
+        ρ = corr(Δ_k, Δ_k+1) used (−0.5 for white noise).
+    vif : ndarray, shape (3,)
+        Variance inflation factor of the window mean.
+    min_step_rad_s : ndarray, shape (3,)
+        Smallest rate step inside a window detected with 50 % probability.
+    min_ramp_rad_s2 : ndarray, shape (3,)
+        Smallest constant angular acceleration over a window detected with 50 % probability.
+    units : str
+    format_version : str
+    """
+
+    bias_rad_s: np.ndarray
+    bias_se_rad_s: np.ndarray
+    rule: str
+    statistic: str
+    window_start_index: int
+    window_samples: int
+    window_start_s: float
+    window_s: float
+    n_rejected_windows: int
+    n_windows_total: int
+    n_windows_still: int
+    false_reject_rate: float
+    threshold: np.ndarray
+    threshold_units: str
+    noise_sigma_rad_s: np.ndarray
+    diff_corr: np.ndarray
+    vif: np.ndarray
+    min_step_rad_s: np.ndarray
+    min_ramp_rad_s2: np.ndarray
+    units: str = "rad/s"
+    format_version: str = FORMAT_VERSION
+
+
+# ---------------------------------------------------------------------------- pure helpers
+def robust_diff_noise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust σ_Δ (std of first differences) and ρ = corr(Δ_k, Δ_k+1) per column.
+
+    σ_Δ = 1.4826·MAD(Δ); Var(x[k+2] − x[k]) = 2σ_Δ²(1 + ρ) gives ρ from the MAD of lag-2
+    differences. Falls back to the plain standard deviation when the data are so coarsely
+    quantized that the MAD is zero.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, C)
+
+    Returns
+    -------
+    sigma_diff : ndarray, shape (C,)
+    rho : ndarray, shape (C,), clipped to [−0.95, 0.95]
+    """
+    x = np.asarray(x, float)
+    if x.shape[0] < 4:
+        raise GyroInputError(f"need at least 4 samples to estimate the noise, got {x.shape[0]}")
+
+    def rsd(v):
+        med = np.median(v, axis=0)
+        s = _MAD * np.median(np.abs(v - med), axis=0)
+        return np.where(s > 0, s, v.std(axis=0))
+
+    s1 = rsd(np.diff(x, axis=0))
+    s2 = rsd(x[2:] - x[:-2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
+    return s1, np.clip(rho, -0.95, 0.95)
+
+
+def abs_diff_moments(m: int, sigma_diff: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance of S = Σ_{k=1}^{m} |Δ_k| for Gaussian Δ (σ_Δ, lag-1 correlation ρ)."""
+    sd = np.asarray(sigma_diff, float)
+    rho = np.asarray(rho, float)
+    mean = m * sd * math.sqrt(2.0 / math.pi)
+    v1 = sd**2 * (1.0 - 2.0 / math.pi)
+    c1 = (2.0 / math.pi) * sd**2 * (np.sqrt(1.0 - rho**2) + rho * np.arcsin(rho) - 1.0)
+    var = m * v1 + 2.0 * max(m - 1, 0) * c1
+    return mean, var
+
+
+def _folded_mean(mu: float, s: float) -> float:
+    """E|X| for X ~ N(mu, s²)."""
+    return s * math.sqrt(2 / math.pi) * math.exp(-mu * mu / (2 * s * s)) + mu * (1 - 2 * scipy.stats.norm.cdf(-mu / s))
+
+
+def _solve_increasing(f, target: float, hi0: float) -> float:
+    """Smallest x ≥ 0 with f(x) = target, f increasing; nan if not reachable."""
+    if f(0.0) >= target:
+        return 0.0
+    hi = hi0
+    for _ in range(200):
+        if f(hi) >= target:
+            break
+        hi *= 2
+    else:
+        return float("nan")
+    return float(scipy.optimize.brentq(lambda x: f(x) - target, 0.0, hi, xtol=hi * 1e-10))
+
+
+def _window_stats(x: np.ndarray, n: int, statistic: str) -> np.ndarray:
+    """Per-window statistic, shape (W, 3), for non-overlapping windows of n samples."""
+    W = x.shape[0] // n
+    xw = x[: W * n].reshape(W, n, x.shape[1])
+    if statistic == "abs_diff":
+        return np.abs(np.diff(xw, axis=1)).sum(axis=1)
+    return xw.var(axis=1, ddof=1)
+
+
+def _vif(xw: np.ndarray, max_lag: int) -> np.ndarray:
+    """Variance inflation of a window mean from the pooled autocorrelation of still windows.
+
+    xw : (W, n, 3) still windows. VIF = 1 + 2 Σ_{k=1}^{L} (1 − k/n) r_k, with r_k pooled over
+    the windows after removing each window's mean; the O(1/n) bias of demeaned
+    autocorrelations (E r_k ≈ −1/n for white noise) is added back.
+    """
+    W, n, _ = xw.shape
+    d = xw - xw.mean(axis=1, keepdims=True)
+    c0 = np.einsum("wnc,wnc->c", d, d)
+    vif = np.ones(xw.shape[2])
+    L = min(max_lag, n - 2)
+    for k in range(1, L + 1):
+        ck = np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k])
+        rk = ck / c0 + 1.0 / n
+        vif += 2.0 * (1.0 - k / n) * rk
+    return np.maximum(vif, 0.05)
+
+
+# ---------------------------------------------------------------------------- calibrator
+class StaticBiasCalibrator:
+    """Static bias with a motion gate, refusing while moving and retrying on the next window.
+
+    Parameters
+    ----------
+    window_samples : int, default 200
+        Samples per window (the article: 200).
+    window_s : float, optional
+        Window length in seconds (converted with the mean sample rate); overrides
+        ``window_samples``.
+    false_reject_rate : float, default 1e-3
+        Probability that a window of a still sensor is refused (all three axes together).
+    rule : {"mean", "median", "converge", "article"}
+        ``"mean"``: mean of the first still window (the article); ``"median"``: its median
+        (PX4-like, robust to spikes); ``"converge"``: consecutive window means until two agree
+        within the tolerance (ArduPilot-like), bias = their average; ``"article"``: mean with
+        the article's fixed gate Σ|Δ| > ``article_threshold_counts`` × ``lsb_rad_s``.
+    statistic : {"variance", "abs_diff"}
+        Gate statistic for "mean"/"median" (see module docstring). ``"variance"`` (default)
+        is ~50× more sensitive to slow motion than the article's Σ|Δ| at the same false-reject
+        rate (one step changes one difference but the whole window's variance); ``"abs_diff"``
+        reacts to high-frequency vibration.
+    max_retries : int, optional
+        Windows to try after the first; None = until the recording ends.
+    noise_sigma_rad_s : float or array (3,), optional
+        Per-sample white-noise σ of the sensor (e.g. N·√rate from an Allan analysis or the
+        datasheet). Default: estimated robustly from the recording itself.
+    lsb_rad_s : float, optional
+        Size of one raw count in rad/s (``"article"`` rule; e.g. (1/131)°/s at ±250 °/s).
+    article_threshold_counts : float, default 500
+    converge_tolerance_rad_s : float, optional
+        ``"converge"`` tolerance on |mean_k − mean_k−1| (Euclidean norm). Default: derived —
+        accept when Σ_i d_i²/(2 s_i²) < χ²₃ quantile at 1 − α (s_i² = σ_i² VIF_i / n).
+    max_lag : int, default 5
+        Lags used for the variance inflation factor.
+    correlation : {"auto", "white"}
+        "auto" estimates the VIF from the still windows; "white" sets VIF = 1.
+    """
+
+    def __init__(
+        self,
+        *,
+        window_samples: int = 200,
+        window_s: float | None = None,
+        false_reject_rate: float = 1e-3,
+        rule: str = "mean",
+        statistic: str = "variance",
+        max_retries: int | None = None,
+        noise_sigma_rad_s: float | np.ndarray | None = None,
+        lsb_rad_s: float | None = None,
+        article_threshold_counts: float = 500.0,
+        converge_tolerance_rad_s: float | None = None,
+        max_lag: int = 5,
+        correlation: str = "auto",
+    ) -> None:
+        if rule not in RULES:
+            raise GyroInputError(f"unknown bias rule {rule!r}; use one of {', '.join(RULES)}")
+        if statistic not in STATISTICS:
+            raise GyroInputError(f"unknown gate statistic {statistic!r}; use abs_diff or variance")
+        if not (0.0 < false_reject_rate < 1.0):
+            raise GyroInputError(f"false_reject_rate must be in (0, 1), got {false_reject_rate}")
+        if window_s is None and int(window_samples) < 8:
+            raise GyroInputError(f"window must have at least 8 samples, got {window_samples}")
+        if rule == "article" and not (lsb_rad_s and lsb_rad_s > 0):
+            raise GyroInputError("the article rule needs the raw count size lsb_rad_s (e.g. --lsb-dps 0.0076336)")
+        if correlation not in ("auto", "white"):
+            raise GyroInputError(f"correlation must be 'auto' or 'white', got {correlation!r}")
+        self.window_samples = int(window_samples)
+        self.window_s = window_s
+        self.false_reject_rate = float(false_reject_rate)
+        self.rule = rule
+        self.statistic = statistic
+        self.max_retries = max_retries
+        self.noise_sigma_rad_s = noise_sigma_rad_s
+        self.lsb_rad_s = lsb_rad_s
+        self.article_threshold_counts = float(article_threshold_counts)
+        self.converge_tolerance_rad_s = converge_tolerance_rad_s
+        self.max_lag = int(max_lag)
+        self.correlation = correlation
+
+    # ------------------------------------------------------------------ gate
+    def _noise(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.noise_sigma_rad_s is not None:
+            s = np.broadcast_to(np.asarray(self.noise_sigma_rad_s, float), (3,)).copy()
+            if not np.all(s > 0):
+                raise GyroInputError("noise_sigma_rad_s must be positive")
+            return s * math.sqrt(2.0), np.full(3, -0.5)
+        return robust_diff_noise(x)
+
+    def gate(self, n: int, sigma_diff: np.ndarray, rho: np.ndarray, dt_s: float):
+        """Threshold (3,), its units, α used, min step (3,) and min ramp (3,) for windows of n.
+
+        Returns
+        -------
+        threshold, units, alpha, min_step_rad_s, min_ramp_rad_s2
+        """
+        alpha_axis = 1.0 - (1.0 - self.false_reject_rate) ** (1.0 / 3.0)
+        m = n - 1
+        step = np.full(3, np.nan)
+        ramp = np.full(3, np.nan)
+        if self.rule in ("article",) or (self.rule != "converge" and self.statistic == "abs_diff"):
+            mean, var = abs_diff_moments(m, sigma_diff, rho)
+            if self.rule == "article":
+                thr = np.full(3, self.article_threshold_counts * float(self.lsb_rad_s))
+                alpha = float("nan")
+            else:
+                k = mean**2 / var
+                thr = scipy.stats.gamma.isf(alpha_axis, k, scale=var / mean)
+                alpha = self.false_reject_rate
+            for i in range(3):
+                sd = float(sigma_diff[i])
+                base = sd * math.sqrt(2 / math.pi)
+                # a step h changes one difference: E S = mean + E|N(h, σΔ²)| − E|N(0, σΔ²)|
+                step[i] = _solve_increasing(lambda h: mean[i] + _folded_mean(h, sd) - base, thr[i], sd)
+                # a ramp a shifts every difference by a·dt: E S = m·E|N(a dt, σΔ²)|
+                ramp[i] = _solve_increasing(lambda a: m * _folded_mean(a * dt_s, sd), thr[i], sd / dt_s)
+            return thr, "rad/s (sum of |diff| over the window)", alpha, step, ramp
+        sigma2 = sigma_diff**2 / 2.0  # white-noise per-sample variance
+        if self.rule == "converge":
+            return None, "", self.false_reject_rate, step, ramp
+        q = scipy.stats.chi2.isf(alpha_axis, m)
+        thr = sigma2 * q / m
+        for i in range(3):
+            s2 = float(sigma2[i])
+            # noncentral χ²: step at mid-window Σ(x−x̄)² = n h²/4; ramp (a dt)² n(n²−1)/12
+            det = lambda lam: scipy.stats.ncx2.sf(q, m, lam)  # noqa: E731
+            step[i] = _solve_increasing(lambda h: det(n * h * h / (4 * s2)), 0.5, math.sqrt(s2))
+            ramp[i] = _solve_increasing(
+                lambda a: det((a * dt_s) ** 2 * n * (n * n - 1) / 12 / s2), 0.5, math.sqrt(s2) / (n * dt_s)
+            )
+        return thr, "(rad/s)^2 (window variance)", self.false_reject_rate, step, ramp
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, recording: Recording) -> StaticBiasResult:
+        """Estimate the static bias of ``recording`` (gyro rad/s, sensor frame S).
+
+        Raises
+        ------
+        GyroInputError
+            Recording shorter than one window (two for "converge"), or motion detected in
+            every window tried (one line, with the threshold and how many windows were tried).
+        """
+        x = np.asarray(recording.gyro_rad_s, float)
+        rate = recording.rate_hz
+        if not (math.isfinite(rate) and rate > 0):
+            raise GyroInputError("static bias needs a sample rate (at least 2 timestamps)")
+        dt = 1.0 / rate
+        n = int(round(self.window_s * rate)) if self.window_s is not None else self.window_samples
+        if n < 8:
+            raise GyroInputError(f"window of {n} samples is too short (need >= 8)")
+        W = x.shape[0] // n
+        need = 2 if self.rule == "converge" else 1
+        if W < need:
+            raise GyroInputError(
+                f"recording has {x.shape[0]} samples, shorter than {need} window(s) of {n} samples"
+            )
+        sigma_diff, rho = self._noise(x)
+        if self.statistic == "variance" and self.rule in ("mean", "median") and np.any(np.abs(rho + 0.5) > 0.1):
+            warn_repair(
+                "gyro noise is not white (lag-1 correlation of differences "
+                + ", ".join(f"{r:.2f}" for r in rho)
+                + ", white = -0.50): the variance gate's false-reject rate is approximate"
+            )
+        thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt)
+        xw = x[: W * n].reshape(W, n, 3)
+        if self.rule == "converge":
+            still = np.ones(W, dtype=bool)
+        else:
+            stats = _window_stats(x, n, "abs_diff" if self.rule == "article" else self.statistic)
+            still = np.all(stats <= thr[None, :], axis=1)
+        n_still = int(still.sum())
+        if self.correlation == "white" or n_still == 0:
+            vif = np.ones(3)
+        else:
+            vif = _vif(xw[still] if self.rule != "converge" else xw, self.max_lag)
+        sigma = sigma_diff / math.sqrt(2.0)
+        last = W if self.max_retries is None else min(W, 1 + int(self.max_retries) + (need - 1))
+
+        if self.rule == "converge":
+            s_mean2 = sigma**2 * vif / n
+            if self.converge_tolerance_rad_s is None:
+                q3 = scipy.stats.chi2.isf(self.false_reject_rate, 3)
+                ok = lambda d: float(np.sum(d * d / (2 * s_mean2))) <= q3  # noqa: E731
+                thr = np.sqrt(2 * s_mean2 * q3)
+                units = "rad/s (per-axis scale of the derived Mahalanobis tolerance on mean differences)"
+            else:
+                tol = float(self.converge_tolerance_rad_s)
+                ok = lambda d: float(np.linalg.norm(d)) < tol  # noqa: E731
+                thr = np.full(3, tol)
+                units = "rad/s (tolerance on |mean difference|)"
+                alpha = float("nan")
+            # 50 % detection, approx: a step h at a window boundary moves the difference by h;
+            # a ramp a moves it by a·n·dt.
+            step = thr.copy()
+            ramp = thr / (n * dt)
+            means = xw.mean(axis=1)
+            for k in range(1, last):
+                if ok(means[k] - means[k - 1]):
+                    bias = 0.5 * (means[k] + means[k - 1])
+                    se = sigma * np.sqrt(vif / (2 * n))
+                    return self._result(bias, se, recording, (k - 1) * n, 2 * n, k - 1, W, n_still,
+                                        alpha, thr, units, sigma, rho, vif, step, ramp)
+            raise GyroInputError(
+                f"motion detected throughout: no two consecutive {n}-sample window means agreed "
+                f"within tolerance over {last} windows"
+            )
+
+        for k in range(last):
+            if still[k]:
+                w = xw[k]
+                if self.rule == "median":
+                    bias = np.median(w, axis=0)
+                    se = math.sqrt(math.pi / 2) * sigma * np.sqrt(vif / n)
+                else:
+                    bias = w.mean(axis=0)
+                    se = sigma * np.sqrt(vif / n)
+                return self._result(bias, se, recording, k * n, n, k, W, n_still,
+                                    alpha, thr, units, sigma, rho, vif, step, ramp)
+        worst = "rest statistic exceeds the fixed threshold" if (
+            self.rule == "article" and np.any(abs_diff_moments(n - 1, sigma_diff, rho)[0] > thr)
+        ) else "threshold"
+        raise GyroInputError(
+            f"motion detected throughout: all {last} windows of {n} samples rejected "
+            f"({self.rule} rule, {worst} {np.array2string(thr, precision=4)} {units.split(' (')[0]})"
+        )
+
+    def _result(self, bias, se, rec, start, length, n_rej, W, n_still, alpha, thr, units, sigma, rho, vif, step, ramp):
+        rate = rec.rate_hz
+        return StaticBiasResult(
+            bias_rad_s=np.asarray(bias, float),
+            bias_se_rad_s=np.asarray(se, float),
+            rule=self.rule,
+            statistic="mean_difference" if self.rule == "converge" else (
+                "abs_diff" if self.rule == "article" else self.statistic),
+            window_start_index=int(start),
+            window_samples=int(length),
+            window_start_s=float(rec.t_s[start] - rec.t_s[0]),
+            window_s=float(length / rate),
+            n_rejected_windows=int(n_rej),
+            n_windows_total=int(W),
+            n_windows_still=int(n_still),
+            false_reject_rate=float(alpha),
+            threshold=np.asarray(thr, float),
+            threshold_units=units,
+            noise_sigma_rad_s=np.asarray(sigma, float),
+            diff_corr=np.asarray(rho, float),
+            vif=np.asarray(vif, float),
+            min_step_rad_s=np.asarray(step, float),
+            min_ramp_rad_s2=np.asarray(ramp, float),
+        )
