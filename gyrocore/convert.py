@@ -46,6 +46,9 @@ __all__ = [
     "read_imutk",
     "read_gnss_ins_sim",
     "read_fusion",
+    "sunsided_segments",
+    "tomisuarez2_segments",
+    "imucal_segments",
     "timing_report",
     "TimingReport",
     "retime_uniform",
@@ -158,7 +161,7 @@ class TimingReport:
         Intervals longer than ``gap_factor`` × median (dropped samples, when not bursty).
     bursty : bool
         Host receive times: the median interval is under half the mean one and the longest
-        interval is over 10 × the mean (samples arrive in bursts, e.g. USB/serial buffering).
+        interval is over 4 × the mean (samples arrive in bursts, e.g. USB/serial buffering).
     """
 
     median_dt_s: float
@@ -180,7 +183,7 @@ def timing_report(t_s: np.ndarray, *, gap_factor: float = 1.5) -> TimingReport:
     med = float(np.median(d))
     mean = float((t_s[-1] - t_s[0]) / d.size)
     mx = float(d.max())
-    bursty = bool(med < 0.5 * mean and mx > 10.0 * mean)
+    bursty = bool(med < 0.5 * mean and mx > 4.0 * mean)
     n_gaps = int(np.count_nonzero(d > gap_factor * med)) if med > 0 else 0
     return TimingReport(med, mean, mx, n_gaps, bursty)
 

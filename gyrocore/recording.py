@@ -556,7 +556,7 @@ def _timing_checks(t: np.ndarray, path: str, retime: bool) -> np.ndarray:
     med = float(np.median(d))
     mean = float((t[-1] - t[0]) / d.size)
     mx = float(d.max())
-    if med < 0.5 * mean and mx > 10.0 * mean:
+    if med < 0.5 * mean and mx > 4.0 * mean:
         if retime:
             warn_repair(
                 f"{path}: bursty host timestamps (median dt {med * 1e3:.3g} ms, mean {mean * 1e3:.3g} ms, gaps up to "
@@ -609,7 +609,7 @@ def read_csv(path: str | os.PathLike, *, repair: bool = True, retime: bool = Fal
         ``ref_`` columns is kept, e.g. tracking lost —, non-increasing timestamps dropped,
         empty fields read as NaN). When False they raise :class:`GyroInputError`.
     retime : bool
-        Replace bursty host timestamps (median interval < ½ mean, gaps > 10 × mean) by a
+        Replace bursty host timestamps (median interval < ½ mean, gaps > 4 × mean) by a
         uniform grid at the mean rate (N−1)/duration, with a warning. Without it they are
         only reported.
     checks : bool
