@@ -2,7 +2,9 @@
 
 A campaign is a list of tasks ``(scenario, sensor, instance)``. Each task is run by a
 module-level *task function* (picklable, so it travels to worker processes and Dask workers)
-that returns a small frozen :class:`TaskResult` (named scalar metrics). The results are
+that returns a small frozen :class:`TaskResult` (named scalar metrics); the default is
+:func:`experiments.ablation.ablation_task` (one instance through the ablation: attitude error
+with no correction, each correction, all of them, and the noise floor). The results are
 aggregated per (scenario, sensor) into median / p90 tables written atomically as JSON, CSV
 and Markdown, which the ablation report reads back with :func:`read_campaign`.
 
@@ -62,6 +64,8 @@ __all__ = [
     "read_campaign",
     "campaign_markdown",
     "default_workers",
+    "resolve_names",
+    "to_jsonable_summary",
 ]
 
 FORMAT_VERSION = "1.0"
@@ -338,6 +342,35 @@ def _execute_dask(fn, tasks, address, tick, timeout_s):
     return results, n_workers
 
 
+def resolve_names(
+    *, scenarios: Sequence[str] | None, sensors: Sequence[str] | None
+) -> tuple[list[str], list[str]]:
+    """Check scenario and sensor names against the simulator's registries.
+
+    ``None`` means all of them (``sim.scenarios.SCENARIOS``, ``sim.presets.PRESETS``). A sensor
+    may also be a path to a TOML preset file. Unknown names -> one-line :class:`GyroInputError`.
+    """
+    from sim.presets import PRESETS
+    from sim.scenarios import SCENARIOS
+
+    scen = list(SCENARIOS) if scenarios is None else [s.strip() for s in scenarios if s.strip()]
+    sens = list(PRESETS) if sensors is None else [s.strip() for s in sensors if s.strip()]
+    bad = [s for s in scen if s not in SCENARIOS]
+    if bad:
+        raise GyroInputError(f"unknown scenario(s) {', '.join(bad)}; known: {', '.join(SCENARIOS)}")
+    bad = [s for s in sens if s not in PRESETS and not (s.endswith(".toml") and Path(s).is_file())]
+    if bad:
+        raise GyroInputError(f"unknown sensor(s) {', '.join(bad)}; known: {', '.join(PRESETS)} (or a .toml file)")
+    if not scen or not sens:
+        raise GyroInputError("no scenarios or no sensors to run")
+    return scen, sens
+
+
+def to_jsonable_summary(s: MetricSummary) -> dict:
+    """One summary row as a JSON-ready dict (NaN -> None)."""
+    return to_jsonable(s)
+
+
 # ---------------------------------------------------------------------------- summary
 def summarise(results: Iterable[TaskResult]) -> tuple[MetricSummary, ...]:
     """Median, p90, mean and std of every metric per (scenario, sensor), NaN ignored."""
@@ -382,11 +415,12 @@ def run_campaign(
 ) -> CampaignResult:
     """Build the tasks, run them (serial / local processes / Dask) and summarise.
 
-    ``task_function`` defaults to :func:`ablation_task`
-    (simulate the scenario, calibrate, score the attitude error against the truth).
+    ``task_function`` defaults to :func:`experiments.ablation.ablation_task` (simulate the
+    scenario with one sensor instance, calibrate it, score the attitude error of every
+    correction row against the truth).
     """
     if task_function is None:
-        task_function = ablation_task
+        from experiments.ablation import ablation_task as task_function
     tasks = make_tasks(
         scenarios=scenarios, sensors=sensors, instances=instances, seed=seed,
         duration_s=duration_s, options=options,
