@@ -46,6 +46,8 @@ __all__ = [
     "gauss_markov",
     "kasdin_walter_coefficients",
     "ALLAN_FLICKER_FACTOR",
+    "stable_key_int",
+    "effect_rng",
 ]
 
 #: σ_Allan / B for bias instability: sqrt(2 ln2 / π) ≈ 0.6643 (IEEE 952 Table C.1).
@@ -206,3 +208,24 @@ def gauss_markov(
         u[0] = w[0, i] * sigma[i]
         out[:, i] = signal.lfilter([1.0], [1.0, -phi], u)
     return out
+
+
+def stable_key_int(key: str) -> int:
+    """A stable 32-bit integer for a string key (first 4 bytes of its SHA-256).
+
+    Python's ``hash`` is salted per process; this is not, so a stream derived from it is
+    the same in every run and on every machine.
+    """
+    import hashlib
+
+    return int.from_bytes(hashlib.sha256(key.encode("utf-8")).digest()[:4], "little")
+
+
+def effect_rng(seed: int, key: str) -> np.random.Generator:
+    """The random stream of one effect: ``SeedSequence(seed, spawn_key=(stable_key_int(key),))``.
+
+    Each effect draws from its own stream, derived from the seed and a stable per-effect key
+    (not from a spawn order), so adding or removing one effect leaves the others' draws
+    unchanged.
+    """
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(stable_key_int(key),))))
