@@ -44,7 +44,7 @@ import scipy.stats
 from .errors import GyroInputError, warn_repair
 from .recording import Recording
 
-__all__ = ["StaticBiasCalibrator", "StaticBiasResult", "abs_diff_moments", "robust_diff_noise", "FORMAT_VERSION"]
+__all__ = ["StaticBiasCalibrator", "StaticBiasResult", "startup_still_slice", "abs_diff_moments", "robust_diff_noise", "FORMAT_VERSION"]
 
 FORMAT_VERSION = "1.0"
 _MAD = 1.482602218505602  # 1/Φ⁻¹(3/4): MAD → σ for Gaussian data
@@ -428,12 +428,17 @@ class StaticBiasCalibrator:
                     se = sigma * np.sqrt(vif / n)
                 return self._result(bias, se, recording, k * n, n, k, W, n_still,
                                     alpha, thr, units, sigma, rho, vif, step, ramp)
-        worst = "rest statistic exceeds the fixed threshold" if (
-            self.rule == "article" and np.any(abs_diff_moments(n - 1, sigma_diff, rho)[0] > thr)
-        ) else "threshold"
+        if self.rule == "article":
+            rest = abs_diff_moments(n - 1, sigma_diff, rho)[0] / float(self.lsb_rad_s)
+            raise GyroInputError(
+                f"motion detected throughout: all {last} windows of {n} samples rejected (article rule: "
+                f"sum|diff| > {self.article_threshold_counts:g} counts; a still sensor with this noise sums "
+                f"~{', '.join(f'{v:.0f}' for v in rest)} counts per axis)"
+            )
         raise GyroInputError(
             f"motion detected throughout: all {last} windows of {n} samples rejected "
-            f"({self.rule} rule, {worst} {np.array2string(thr, precision=4)} {units.split(' (')[0]})"
+            f"({self.rule} rule, {self.statistic} gate, threshold {np.array2string(thr, precision=4)} "
+            f"{units.split(' (')[0]}, false-reject rate {self.false_reject_rate:g})"
         )
 
     def _result(self, bias, se, rec, start, length, n_rej, W, n_still, alpha, thr, units, sigma, rho, vif, step, ramp):
@@ -460,3 +465,41 @@ class StaticBiasCalibrator:
             min_step_rad_s=np.asarray(step, float),
             min_ramp_rad_s2=np.asarray(ramp, float),
         )
+
+
+def startup_still_slice(
+    recording: Recording,
+    *,
+    max_duration_s: float = 10.0,
+    window_samples: int = 200,
+    false_reject_rate: float = 1e-3,
+    statistic: str = "variance",
+    noise_sigma_rad_s: float | np.ndarray | None = None,
+) -> slice | None:
+    """The still stretch at the start of a recording: consecutive gate-accepted windows.
+
+    Windows of ``window_samples`` from sample 0 are tested with the gate of
+    :class:`StaticBiasCalibrator` (same threshold, same false-reject rate); the slice ends
+    at the first moving window or after ``max_duration_s``. ``None`` if the first window
+    already moves (or the recording is shorter than a window).
+
+    The noise σ is estimated from the whole recording (MAD of differences) unless given;
+    a recording dominated by vibration inflates it and makes the gate laxer — pass the
+    sensor's σ (N·√rate) for flight logs.
+    """
+    cal = StaticBiasCalibrator(window_samples=window_samples, false_reject_rate=false_reject_rate,
+                               statistic=statistic, noise_sigma_rad_s=noise_sigma_rad_s)
+    x = np.asarray(recording.gyro_rad_s, float)
+    rate = recording.rate_hz
+    n = int(window_samples)
+    if x.shape[0] < n or not (math.isfinite(rate) and rate > 0):
+        return None
+    W_max = max(1, min(x.shape[0] // n, int(math.floor(max_duration_s * rate / n))))
+    sigma_diff, rho = cal._noise(x)
+    thr, *_ = cal.gate(n, sigma_diff, rho, 1.0 / rate)
+    stats = _window_stats(x[: W_max * n], n, statistic)
+    still = np.all(stats <= thr[None, :], axis=1)
+    if not still[0]:
+        return None
+    k = int(np.argmin(still)) if not still.all() else W_max
+    return slice(0, k * n)

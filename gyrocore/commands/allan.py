@@ -1,0 +1,131 @@
+"""``gyroharness allan``: Allan deviation and IEEE 952 noise terms per axis (DESIGN.md).
+
+JSON: ``{"axes": {"x": {"arw_rad_per_sqrt_s": …, "bias_instability_rad_s": …,
+"rrw_rad_per_s_sqrt_s": …, "quantization_rad": …, "rate_ramp_rad_s2": …, "ci95": {…},
+"estimate": {…}, "units": {…}, "curve": {…}}, …}, "rate_hz": …, …}``; an unresolved term is
+``null``.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import click
+import numpy as np
+
+from ..cli import emit_json
+from ..errors import GyroInputError
+
+_ASYMPTOTE = {
+    # name: (label, ADEV asymptote as a function of (τ, value))
+    "quantization_rad": ("Q", lambda t, v: math.sqrt(3.0) * v / t),
+    "arw_rad_per_sqrt_s": ("N", lambda t, v: v / np.sqrt(t)),
+    "bias_instability_rad_s": ("B", lambda t, v: math.sqrt(2 * math.log(2) / math.pi) * v * np.ones_like(t)),
+    "rrw_rad_per_s_sqrt_s": ("K", lambda t, v: v * np.sqrt(t / 3.0)),
+    "rate_ramp_rad_s2": ("R", lambda t, v: v * t / math.sqrt(2.0)),
+}
+
+
+def _axes(value: str) -> list[str]:
+    axes = [a.strip().lower() for a in value.split(",") if a.strip()]
+    bad = [a for a in axes if a not in ("x", "y", "z")]
+    if bad or not axes:
+        raise GyroInputError(f"--axes takes a comma list of x,y,z, got {value!r}")
+    return axes
+
+
+def report_text(analysis) -> str:
+    """Readable table in SI and datasheet units."""
+    from ..allan import TERM_NAMES, to_datasheet_units
+
+    lines = [
+        f"{analysis.n_samples} samples, {analysis.duration_s:.1f} s, mean rate {analysis.rate_hz:.6g} Hz"
+        + (f"; dropped tau {', '.join(f'{t:g}' for t in analysis.dropped_taus_s)} s" if analysis.dropped_taus_s else ""),
+        f"{'axis':4} {'term':24} {'value (SI)':>12} {'95% interval (SI)':>27} {'datasheet':>22}",
+    ]
+    for ax, r in analysis.axes.items():
+        for name in TERM_NAMES:
+            v = getattr(r, name)
+            lo, hi = r.ci95[name]
+            ds, unit = to_datasheet_units(name, v)
+            if v is None:
+                ub, unit_u = to_datasheet_units(name, hi)
+                lines.append(f"{ax:4} {name:24} {'unresolved':>12} {'< ' + format(hi, '.3e'):>27} "
+                             f"{('< ' + format(ub, '.3g') + ' ' + unit_u) if math.isfinite(hi) else '':>22}")
+            else:
+                lines.append(f"{ax:4} {name:24} {v:12.4e} {f'[{lo:.3e}, {hi:.3e}]':>27} {f'{ds:.4g} {unit}':>22}")
+        i_min = int(np.argmin(r.adev_rad_s))
+        lines.append(f"{ax:4} {'(ADEV minimum)':24} {r.adev_rad_s[i_min]:12.4e} {f'at tau = {r.taus_s[i_min]:.4g} s':>27} "
+                     f"{f'{r.adev_rad_s[i_min] * 180 / math.pi * 3600:.4g} deg/h':>22}")
+    return "\n".join(lines)
+
+
+def plot_png(analysis, path: str) -> None:
+    """ADEV with 95 % bars, the joint fit and each term's asymptote; written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..allan import TERM_NAMES
+    from ..recording import atomic_write_bytes
+
+    axes = list(analysis.axes.items())
+    fig, ax_list = plt.subplots(1, len(axes), figsize=(5.0 * len(axes), 4.2), squeeze=False)
+    for plot_ax, (name, r) in zip(ax_list[0], axes):
+        t = r.taus_s
+        err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
+        plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
+        tt = np.geomspace(t[0], t[-1], 200)
+        from ..allan import ieee952_avar
+
+        plot_ax.loglog(tt, np.sqrt(ieee952_avar(tt, r.estimate)), "r-", lw=1.5, label="joint IEEE 952 fit")
+        for term in TERM_NAMES:
+            v = getattr(r, term)
+            if v is None:
+                continue
+            label, f = _ASYMPTOTE[term]
+            plot_ax.loglog(tt, f(tt, v), "--", lw=1, label=f"{label} = {v:.3g} {r.units[term].split(' ')[0]}")
+        lo = float(np.min(r.adev_ci95_rad_s[:, 0])) / 3
+        hi = float(np.max(r.adev_ci95_rad_s[:, 1])) * 3
+        plot_ax.set_ylim(lo, hi)
+        plot_ax.set_xscale("log")
+        plot_ax.set_yscale("log")
+        plot_ax.set_xlabel("averaging time tau [s]")
+        plot_ax.set_ylabel("Allan deviation [rad/s]")
+        plot_ax.set_title(f"gyro {name}")
+        plot_ax.grid(True, which="both", alpha=0.3)
+        plot_ax.legend(fontsize=7)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+@click.command("allan")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None, help="write a PNG of the deviation and fit")
+@click.option("--json", "as_json", is_flag=True, help="print JSON only")
+@click.option("--kalibr-yaml", type=click.Path(dir_okay=False), default=None, help="write Kalibr imu.yaml")
+@click.option("--axes", "axes", default="x,y,z", show_default=True, help="comma list of axes")
+@click.option("--max-tau-s", type=float, default=None, help="largest averaging time, s (default: a quarter of the record)")
+@click.option("--kalibr-inflate", type=float, default=1.0, show_default=True, help="factor applied to the Kalibr values")
+@click.option("--engine", type=click.Choice(["fast", "allantools"]), default="fast", show_default=True)
+def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine):
+    """Allan deviation and IEEE 952 noise terms (Q, N, B, K, R) per axis of a still recording."""
+    from ..allan import allan_analysis, kalibr_imu_yaml
+    from ..recording import atomic_write_text, read_csv
+
+    rec = read_csv(file)
+    want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
+    res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine)
+    if plot:
+        plot_png(res, plot)
+    if kalibr_yaml:
+        atomic_write_text(kalibr_yaml, kalibr_imu_yaml(res, inflate=kalibr_inflate))
+    if as_json:
+        emit_json(res.to_json())
+    else:
+        click.echo(report_text(res))
