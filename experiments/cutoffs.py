@@ -1,0 +1,260 @@
+"""Experiment ``cutoffs``: which gyro low-pass (type and cutoff) to fly, judged by attitude.
+
+Closed loop
+    The MuJoCo quadrotor (:func:`sim.quadrotor.fly_hover`) hovers with small attitude steps
+    and rotor vibration; its rate controller flies on the simulated gyro
+    (:class:`sim.gyro.SyntheticGyro`, per-sample stream) through a
+    :class:`gyrocore.filters.Pipeline` = power-up bias removal + the filter under test. Scored:
+    the true attitude tracking error (true vs commanded attitude, RMS after the first second),
+    motor-command noise (RMS of the thrust commands above 20 Hz) and the measured delay of the
+    filtered gyro behind the true rate (cross-correlation in 0.2–15 Hz).
+Open loop
+    The raw gyro of the unfiltered flight is filtered offline; scored: the rate estimation
+    error (RMS of filtered − true rate) and the attitude error of integrating it.
+
+The power-up bias is removed with the unit's true turn-on bias (this is a filter study, not a
+calibration study: the ablation scores the bias estimate). Every configuration flies the
+same sensor instances and rotor phases (paired comparison); medians over instances.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from gyrocore.attitude import error_angle_rad, integrate_gyro
+from gyrocore.filters import AffineCorrection, Pipeline, make_filter
+
+from .report import ExperimentResult, md_table, new_figure, save_figure
+
+__all__ = ["run", "fly_config", "open_loop_scores", "KINDS", "CUTOFFS_HZ", "PRESETS"]
+
+KINDS = ("article", "pt2", "pt3", "biquad", "butter4")
+CUTOFFS_HZ = (15.0, 20.0, 30.0, 45.0, 60.0, 90.0, 130.0, 180.0)
+PRESETS = ("icm42688p", "bmi088", "mpu6050")
+GYRO_RATE_HZ = 1000.0
+SETTLE_S = 1.0
+FLIGHT_BAND_HZ = 20.0
+
+
+def _gyro(preset: str, seed: int):
+    from sim.gyro import SyntheticGyro
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return SyntheticGyro(preset, rate_hz=GYRO_RATE_HZ, seed=seed)
+
+
+def _fly(preset: str | None, seed: int, kind: str, fc_hz: float, duration_s: float, steps: bool):
+    """One closed-loop flight (``preset=None``: a perfect gyro, no filter)."""
+    from sim.controller import small_steps
+    from sim.quadrotor import PerfectGyro, fly_hover
+
+    n = int(math.floor(duration_s * GYRO_RATE_HZ + 1e-9))
+    if preset is None:
+        gyro, b0, flt = PerfectGyro(), np.zeros(3), make_filter("none", 30.0, GYRO_RATE_HZ)
+    else:
+        g = _gyro(preset, seed)
+        gyro, b0, flt = g.stream(n), g.power_up_bias(0), make_filter(kind, fc_hz, GYRO_RATE_HZ)
+    truth, log = fly_hover(duration_s=duration_s, gyro=gyro, pipeline=Pipeline([AffineCorrection(b0), flt]),
+                           manoeuvres=small_steps(duration_s) if steps else (), vibration=True, seed=seed,
+                           gyro_rate_hz=GYRO_RATE_HZ)
+    return truth, log, b0, flt
+
+
+def _crashed(log) -> bool:
+    return (not np.all(np.isfinite(log.q_WB_wxyz))) or float(np.max(log.tilt_rad())) > math.radians(60)
+
+
+def fly_config(preset: str, seed: int, kind: str, fc_hz: float, duration_s: float, ref_steps=None):
+    """Closed-loop metrics of one configuration: a hover flight and a step flight.
+
+    Returns (metrics dict, step-flight Truth, step-flight FlightLog, true power-up bias).
+    ``ref_steps`` is the FlightLog of the perfect-gyro step flight (same rotor phases) for the
+    excess tracking error.
+    """
+    nan = float("nan")
+    _, hov, _, flt = _fly(preset, seed, kind, fc_hz, duration_s, steps=False)
+    truth, stp, b0, _ = _fly(preset, seed, kind, fc_hz, duration_s, steps=True)
+    keep_h = hov.t_s >= SETTLE_S
+    keep_s = stp.t_s >= SETTLE_S
+    ok_h, ok_s = not _crashed(hov), not _crashed(stp)
+    m = {
+        "hover_att_rms_deg": float(np.degrees(np.sqrt(np.mean(hov.attitude_error_rad()[keep_h] ** 2)))) if ok_h else nan,
+        "motor_noise_n": hov.motor_noise_n(t_from_s=SETTLE_S) if ok_h else nan,
+        "step_track_rms_deg": float(np.degrees(np.sqrt(np.mean(stp.attitude_error_rad()[keep_s] ** 2)))) if ok_s else nan,
+        "excess_deg": nan,
+        "delay_ms": 1e3 * stp.gyro_delay_s() if ok_s else nan,
+        "filter_delay_ms": 1e3 * flt.delay_s(0.0),
+        "crashed": float(not (ok_h and ok_s)),
+    }
+    if ref_steps is not None and ok_s:
+        e = error_angle_rad(stp.q_WB_wxyz[keep_s], ref_steps.q_WB_wxyz[keep_s])
+        m["excess_deg"] = float(np.degrees(np.sqrt(np.mean(e**2))))
+    return m, truth, stp, b0
+
+
+def open_loop_scores(truth, gyro_meas_rad_s: np.ndarray, b0: np.ndarray, kind: str, fc_hz: float) -> dict:
+    """Offline filter of a raw gyro, scored against the truth.
+
+    ``rate_err_rms_deg_s``: RMS |filtered − true rate|, where the true rate is taken in the
+    flight band (zero-phase 4th-order Butterworth at 20 Hz: the rigid-body motion the
+    controller should see; rotor vibration above it is real motion but not wanted);
+    ``att_err_rms_deg``: RMS attitude error of integrating the filtered gyro from the truth.
+    """
+    from scipy import signal
+
+    flt = make_filter(kind, fc_hz, GYRO_RATE_HZ)
+    w = flt.apply(np.asarray(gyro_meas_rad_s, float) - b0)
+    sos = signal.butter(4, FLIGHT_BAND_HZ, fs=GYRO_RATE_HZ, output="sos")
+    w_band = signal.sosfiltfilt(sos, truth.omega_S_rad_s, axis=0)
+    keep = truth.t_s >= SETTLE_S
+    rate_err = np.degrees(np.sqrt(np.mean(np.sum((w - w_band)[keep] ** 2, axis=1))))
+    i0 = int(np.argmax(keep))
+    q = integrate_gyro(truth.t_s[i0:], w[i0:], q0_wxyz=truth.q_SW_wxyz[i0])
+    att = np.degrees(error_angle_rad(q, truth.q_SW_wxyz[i0:]))
+    return {"rate_err_rms_deg_s": float(rate_err), "att_err_rms_deg": float(np.sqrt(np.mean(att**2)))}
+
+
+def _configs(kinds, cutoffs):
+    return [("none", float("nan"))] + [(k, fc) for k in kinds for fc in cutoffs]
+
+
+def _task(args):
+    """All configurations for one (preset, seed): closed-loop flights + open-loop on the raw flight."""
+    preset, seed, kinds, cutoffs, duration_s = args
+    _, ref, _, _ = _fly(None, seed, "none", 30.0, duration_s, steps=True)
+    out = []
+    raw = None
+    for kind, fc in _configs(kinds, cutoffs):
+        m, truth, log, b0 = fly_config(preset, seed, kind, fc if kind != "none" else 30.0, duration_s, ref_steps=ref)
+        if kind == "none":
+            raw = (truth, log.gyro_meas_rad_s.copy(), b0)
+        out.append({"preset": preset, "seed": seed, "kind": kind, "fc_hz": fc, **m})
+    truth, gm, b0 = raw
+    for row in out:
+        row.update(open_loop_scores(truth, gm, b0, row["kind"], row["fc_hz"] if row["kind"] != "none" else 30.0))
+    return out
+
+
+def _median(rows, key):
+    v = np.array([r[key] for r in rows], float)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else float("nan")
+
+
+def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
+        presets: Sequence[str] | None = None, duration_s: float | None = None, seed: int = 0,
+        **_ignored) -> ExperimentResult:
+    """Sweep filter type × cutoff per sensor preset; write plots into ``out_dir``; return the section."""
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    kinds = ("article", "pt2") if quick else KINDS
+    cutoffs = (30.0, 90.0) if quick else CUTOFFS_HZ
+    presets = tuple(presets or (PRESETS[:1] if quick else PRESETS))
+    n_inst = seeds or (1 if quick else 2)
+    dur = duration_s or (3.0 if quick else 8.0)
+    from experiments.montecarlo import instance_seeds
+
+    inst = instance_seeds(seed, n_inst)
+    jobs = [(p, s, kinds, cutoffs, dur) for p in presets for s in inst]
+    n_work = 1 if workers == 1 or len(jobs) == 1 else (workers or None)
+    if n_work == 1:
+        results = [_task(j) for j in jobs]
+    else:
+        import multiprocessing
+
+        with ProcessPoolExecutor(max_workers=n_work, mp_context=multiprocessing.get_context("spawn")) as pool:
+            results = list(pool.map(_task, jobs))
+    rows = [r for chunk in results for r in chunk]
+
+    md = [f"Gyro at {GYRO_RATE_HZ:g} Hz, rotor vibration on, {dur:g} s flights, {n_inst} sensor instance(s) per "
+          "preset (medians; every configuration flies the same instances and rotor phases). Closed loop, two flights "
+          "per configuration: **hover** (no manoeuvres): RMS attitude error against the set point (noise and "
+          "vibration jitter) and *motor noise* = RMS of the thrust commands above 20 Hz; **steps** (5° roll/pitch, "
+          "15° yaw): RMS tracking error against the commanded attitude, the *excess* error = RMS angle between this "
+          "flight and the same flight with a perfect unfiltered gyro (what the gyro and its filter cost), and the "
+          "measured *delay* of the filtered gyro behind the true rate (0.2–15 Hz), beside the filter's own DC "
+          f"group delay. Open loop (raw gyro of the unfiltered step flight, filtered offline): *rate error* = RMS of "
+          f"filtered − true rate in the flight band (true rate zero-phase low-passed at {FLIGHT_BAND_HZ:g} Hz); "
+          "*attitude error* = RMS error of integrating the filtered gyro. Best cutoff = smallest step-tracking error.\n"]
+    figs = []
+    summary: dict = {"presets": {}}
+    keys = ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms",
+            "filter_delay_ms", "rate_err_rms_deg_s", "att_err_rms_deg", "crashed")
+    for p in presets:
+        pr = [r for r in rows if r["preset"] == p]
+        table, stats = [], {}
+        for kind, fc in _configs(kinds, cutoffs):
+            rr = [r for r in pr if r["kind"] == kind and (kind == "none" or r["fc_hz"] == fc)]
+            v = {k: _median(rr, k) for k in keys}
+            label = "none" if kind == "none" else f"{kind} {fc:g} Hz"
+            stats[label] = v
+            table.append((label, v["hover_att_rms_deg"], v["motor_noise_n"], v["step_track_rms_deg"], v["excess_deg"],
+                          v["delay_ms"], v["filter_delay_ms"], v["filter_delay_ms"] * GYRO_RATE_HZ / 1e3,
+                          v["rate_err_rms_deg_s"], v["att_err_rms_deg"]))
+        finite = {k: v for k, v in stats.items() if np.isfinite(v["step_track_rms_deg"])}
+        best = min(finite, key=lambda k: finite[k]["step_track_rms_deg"]) if finite else None
+        quiet = None
+        if best:  # the quietest motors among configurations that track no worse than the raw gyro
+            lim = stats["none"]["step_track_rms_deg"]
+            ok = {k: v for k, v in finite.items() if v["step_track_rms_deg"] <= lim} or {best: finite[best]}
+            quiet = min(ok, key=lambda k: ok[k]["motor_noise_n"])
+        art = stats.get("article 30 Hz")
+        summary["presets"][p] = {
+            "best": best, "quietest_within_10pct": quiet,
+            "best_step_track_rms_deg": finite[best]["step_track_rms_deg"] if best else None,
+            "none_step_track_rms_deg": stats["none"]["step_track_rms_deg"],
+            "none_excess_deg": stats["none"]["excess_deg"], "none_motor_noise_n": stats["none"]["motor_noise_n"],
+            "article30_step_track_rms_deg": art["step_track_rms_deg"] if art else None,
+            "article30_motor_noise_n": art["motor_noise_n"] if art else None,
+            "article30_delay_samples": art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3 if art else None,
+            "best_open_loop_rate": min(stats, key=lambda k: stats[k]["rate_err_rms_deg_s"]),
+        }
+        md.append(f"### {p}\n")
+        md.append(md_table(["filter", "hover error, °", "motor noise, N", "step tracking, °", "excess, °",
+                            "delay, ms", "filter delay, ms", "filter delay, samples", "rate error, °/s",
+                            "attitude error, °"], table))
+        if best:
+            b = stats[best]
+            n0 = stats["none"]
+            md.append(f"\nBest tracking for **{p}**: **{best}** (step tracking {b['step_track_rms_deg']:.3f}°, motor "
+                      f"noise {b['motor_noise_n']:.4f} N, delay {b['delay_ms']:.2f} ms); quietest motors among the filters "
+                      f"that track no worse than the raw gyro: **{quiet}** ({stats[quiet]['motor_noise_n']:.4f} N). "
+                      f"Unfiltered: tracking {n0['step_track_rms_deg']:.3f}°, motor noise {n0['motor_noise_n']:.4f} N.")
+        if art:
+            d_samp = art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3
+            md.append(f" The article's advice, first-order 30 Hz: tracking {art['step_track_rms_deg']:.3f}°, motor noise "
+                      f"{art['motor_noise_n']:.4f} N, filter delay {art['filter_delay_ms']:.2f} ms = {d_samp:.1f} samples at "
+                      f"{GYRO_RATE_HZ:g} Hz — {'over' if d_samp > 1 else 'within'} its one-sample budget (a first-order "
+                      f"filter meets that budget only for fc ≥ {GYRO_RATE_HZ / (2 * math.pi):.0f} Hz at this rate).")
+        md.append("\n")
+        fig = new_figure(figsize=(11, 3.4))
+        plots = (("step_track_rms_deg", "closed-loop step tracking RMS, °"), ("motor_noise_n", "motor noise > 20 Hz, N"),
+                 ("delay_ms", "measured gyro delay, ms"), ("rate_err_rms_deg_s", "open-loop rate error, °/s"))
+        axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
+        for kind in kinds:
+            for ax, (key, _) in zip(axs, plots):
+                ys = [stats[f"{kind} {fc:g} Hz"][key] for fc in cutoffs]
+                ax.plot(cutoffs, ys, marker="o", ms=3, label=kind)
+        for ax, (key, lab) in zip(axs, plots):
+            ax.axhline(stats["none"][key], color="k", ls=":", lw=1, label="none")
+            ax.set_xscale("log")
+            ax.set_xlabel("cutoff, Hz")
+            ax.set_ylabel(lab, fontsize=8)
+            ax.grid(alpha=0.3)
+        axs[0].legend(fontsize=7)
+        fig.suptitle(f"{p}: filter type and cutoff")
+        fig.tight_layout()
+        figs.append(save_figure(fig, out_dir, f"cutoffs_{p}"))
+        md.append(f"![cutoffs {p}]({figs[-1]})\n")
+    best_line = "; ".join(f"{p}: {v['best']}" for p, v in summary["presets"].items())
+    md.insert(1, f"**Best cutoff per preset (smallest closed-loop attitude tracking error):** {best_line}.\n")
+    return ExperimentResult(name="cutoffs", title="Filter cutoffs compared by attitude", markdown="\n".join(md),
+                            figures=tuple(figs), summary=summary, wall_s=time.perf_counter() - t0)
