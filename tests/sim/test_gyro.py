@@ -1,0 +1,335 @@
+"""The synthetic gyro: reproducibility, each effect against its formula (written out here,
+not taken from gyrocore.effects), independent per-effect streams, stream == batch."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gyrocore.effects import EFFECTS, EARTH_RATE_RAD_S
+from gyrocore.errors import GyroInputError, RepairWarning
+from sim.gyro import SyntheticGyro
+from sim.truth import Truth
+
+RATE = 1000.0
+ALL_BUT_VIB = [e for e in EFFECTS if e != "vibration"]
+
+
+def make_truth(n=2000, rate=RATE, *, seed=0, power_ups=None, omega=None, temp=None, q=None) -> Truth:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / rate
+    if omega is None:
+        omega = 0.5 * np.sin(2 * np.pi * 1.3 * t)[:, None] * np.array([1.0, -2.0, 0.7]) + rng.normal(0, 0.3, (n, 3))
+    f = np.array([0.3, -0.2, 9.81]) + rng.normal(0, 0.5, (n, 3))
+    if q is None:
+        q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    if temp is None:
+        temp = 20.0 + 0.02 * t * rate / 10 + 3 * np.sin(t)
+    pu = np.zeros(n, int) if power_ups is None else np.asarray(power_ups)
+    since = t.copy()
+    for k in np.unique(pu):
+        m = pu == k
+        since[m] = t[m] - t[m][0]
+    return Truth(t_s=t, omega_S_rad_s=omega, f_S_m_s2=f, q_SW_wxyz=q, temp_c=temp,
+                 t_since_power_up_s=since, power_up_index=pu)
+
+
+def only(effect, values=None, *, seed=1, rate=RATE, spec="icm42688p"):
+    """A gyro with exactly one effect (given values, or the preset's draw)."""
+    ov = {effect: values} if values is not None else {effect: {}}
+    return SyntheticGyro(spec, rate_hz=rate, seed=seed, without=[e for e in ALL_BUT_VIB if e != effect], overrides=ov)
+
+
+def test_same_seed_bit_identical_different_seed_differs():
+    tr = make_truth()
+    a = SyntheticGyro("icm42688p", rate_hz=RATE, seed=7).measure(tr)
+    b = SyntheticGyro("icm42688p", rate_hz=RATE, seed=7).measure(tr)
+    c = SyntheticGyro("icm42688p", rate_hz=RATE, seed=8).measure(tr)
+    assert np.array_equal(a.gyro_rad_s, b.gyro_rad_s)
+    assert not np.array_equal(a.gyro_rad_s, c.gyro_rad_s)
+
+
+def test_no_effects_is_the_truth():
+    tr = make_truth()
+    g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=1, without=ALL_BUT_VIB)
+    assert g.effects == ()
+    assert np.array_equal(g.measure(tr).gyro_rad_s, tr.omega_S_rad_s)
+
+
+# ---------------------------------------------------------------- each effect vs its formula
+RTOL = 1e-12  # same formula evaluated in a different operation order: a few ulp
+
+
+def _y(effect, values, tr, **kw):
+    return only(effect, values, **kw).measure(tr).gyro_rad_s
+
+
+def test_bias():
+    tr = make_truth()
+    b = np.array([0.01, -0.02, 0.005])
+    y = _y("bias", {"b_rad_s": b, "turn_on_sigma_rad_s": 0.0}, tr)
+    assert np.allclose(y, tr.omega_S_rad_s + b, rtol=RTOL, atol=1e-15)
+
+
+def test_bias_thermal_polynomial_clamped():
+    tr = make_truth(temp=np.linspace(-50, 100, 2000))
+    c = np.array([[1e-3, 1e-5], [-2e-3, 0.0], [5e-4, -1e-5]])
+    y = _y("bias_thermal", {"poly_rad_s": c, "t0_c": 25.0, "temp_min_c": -40.0, "temp_max_c": 85.0}, tr)
+    dT = np.clip(tr.temp_c, -40, 85) - 25.0
+    expect = tr.omega_S_rad_s + dT[:, None] * c[:, 0] + dT[:, None] ** 2 * c[:, 1]
+    assert np.allclose(y, expect, rtol=RTOL, atol=1e-15)
+
+
+def test_bias_temp_rate():
+    # linear temperature ramp: dT/dt = 0.5 °C/s exactly, whatever the difference scheme
+    n = 2000
+    tr = make_truth(n, temp=20.0 + 0.5 * np.arange(n) / RATE)
+    k = np.array([1e-3, -2e-3, 3e-3])
+    y = _y("bias_temp_rate", {"k_rad_s_per_c_per_s": k}, tr)
+    assert np.allclose(y, tr.omega_S_rad_s + 0.5 * k, rtol=1e-9, atol=1e-15)
+
+
+def test_bias_ramp_restarts_at_power_up():
+    pu = np.repeat([0, 1], 1000)
+    tr = make_truth(power_ups=pu)
+    r = np.array([1e-4, -1e-4, 2e-4])
+    y = _y("bias_ramp", {"ramp_rad_s2": r}, tr)
+    t = tr.t_s
+    since = np.where(pu == 0, t - t[0], t - t[1000])
+    assert np.allclose(y, tr.omega_S_rad_s + since[:, None] * r, rtol=RTOL, atol=1e-15)
+
+
+def test_scale():
+    tr = make_truth()
+    s = np.array([0.01, -0.02, 0.03])
+    assert np.allclose(_y("scale", {"s": s}, tr), tr.omega_S_rad_s * (1 + s), rtol=RTOL)
+
+
+def test_scale_thermal():
+    tr = make_truth()
+    c = np.array([1e-3, 2e-3, -1e-3])  # order 1 given as 3 values
+    y = _y("scale_thermal", {"poly_per_c": c, "t0_c": 25.0}, tr)
+    dT = tr.temp_c - 25.0
+    assert np.allclose(y, tr.omega_S_rad_s * (1 + dT[:, None] * c), rtol=RTOL)
+
+
+def test_scale_asymmetry():
+    tr = make_truth()
+    a = np.array([0.01, -0.005, 0.002])
+    w = tr.omega_S_rad_s
+    # positive rates scaled by (1 + a), negative by (1 − a)
+    expect = np.where(w > 0, w * (1 + a), w * (1 - a))
+    assert np.allclose(_y("scale_asymmetry", {"a": a}, tr), expect, rtol=RTOL)
+
+
+def test_scale_nonlinearity():
+    tr = make_truth()
+    s2 = np.array([1e-3, -2e-3, 5e-4])
+    w = tr.omega_S_rad_s
+    assert np.allclose(_y("scale_nonlinearity", {"s2_s_per_rad": s2}, tr), w + s2 * w * np.abs(w), rtol=RTOL)
+
+
+def test_misalignment():
+    tr = make_truth()
+    m = np.array([1e-3, 2e-3, -3e-3, 4e-3, -5e-3, 6e-3])  # xy, xz, yx, yz, zx, zy
+    w = tr.omega_S_rad_s
+    expect = np.stack([
+        w[:, 0] + m[0] * w[:, 1] + m[1] * w[:, 2],
+        w[:, 1] + m[2] * w[:, 0] + m[3] * w[:, 2],
+        w[:, 2] + m[4] * w[:, 0] + m[5] * w[:, 1],
+    ], axis=1)
+    assert np.allclose(_y("misalignment", {"m_rad": m}, tr), expect, rtol=RTOL)
+
+
+def test_g_sensitivity_and_g2():
+    tr = make_truth()
+    H = np.arange(9).reshape(3, 3) * 1e-4
+    f = tr.f_S_m_s2
+    y = _y("g_sensitivity", {"h_rad_s_per_m_s2": H}, tr)
+    assert np.allclose(y, tr.omega_S_rad_s + np.einsum("ij,nj->ni", H, f), rtol=RTOL)
+    G = (np.arange(18).reshape(3, 6) - 9) * 1e-6
+    ff = np.stack([f[:, 0] ** 2, f[:, 1] ** 2, f[:, 2] ** 2, f[:, 0] * f[:, 1], f[:, 0] * f[:, 2], f[:, 1] * f[:, 2]], 1)
+    y2 = _y("g2_sensitivity", {"g_rad_s_per_m2_s4": G}, tr)
+    assert np.allclose(y2, tr.omega_S_rad_s + ff @ G.T, rtol=RTOL)
+
+
+def test_time_offset_delays_a_ramp():
+    n = 1000
+    t = np.arange(n) / RATE
+    w = np.stack([0.1 + 2.0 * t, -3.0 * t, 0.5 * t], 1)
+    tr = make_truth(n, omega=w)
+    tau = 0.0073  # not a multiple of the 2 ms period
+    y = _y("time_offset", {"tau_s": tau}, tr)
+    inner = t >= tau  # before that the first sample is held
+    expect = np.stack([0.1 + 2.0 * (t - tau), -3.0 * (t - tau), 0.5 * (t - tau)], 1)
+    assert np.allclose(y[inner], expect[inner], rtol=1e-9, atol=1e-12)
+    assert np.array_equal(y[~inner], np.tile(w[0], (int((~inner).sum()), 1)))
+
+
+def test_earth_rate():
+    lat, head = math.radians(47.0), math.radians(30.0)
+    tr = make_truth()  # q = identity: S = W
+    y = _y("earth_rate", {"latitude_rad": lat, "heading_rad": head}, tr)
+    # W = ENU turned by the heading about Up: x_W = (cos h, sin h, 0), y_W = (−sin h, cos h, 0) in ENU;
+    # Earth rate in ENU = Ω·(0, cos φ, sin φ)
+    om = EARTH_RATE_RAD_S
+    w_W = np.array([math.sin(head) * om * math.cos(lat), math.cos(head) * om * math.cos(lat), om * math.sin(lat)])
+    assert np.allclose(y, tr.omega_S_rad_s + w_W, rtol=RTOL, atol=1e-18)
+
+
+def test_quantization_and_saturation():
+    tr = make_truth()
+    q = 1e-3
+    y = _y("quantization", {"lsb_rad_s": q}, tr)
+    assert np.allclose(y / q, np.round(y / q), atol=1e-9)
+    assert np.all(np.abs(y - tr.omega_S_rad_s) <= q / 2 + 1e-15)
+    r = 0.4
+    ys = _y("saturation", {"range_rad_s": r}, tr)
+    assert np.array_equal(ys, np.where(tr.omega_S_rad_s > r, r, np.where(tr.omega_S_rad_s < -r, -r, tr.omega_S_rad_s)))
+
+
+@pytest.mark.parametrize("f_hz", [5.0, 40.0, 60.0])
+def test_lowpass_gain_is_butterworth(f_hz):
+    rate, fc, n = 1000.0, 40.0, 4000
+    t = np.arange(n) / rate
+    w = np.sin(2 * np.pi * f_hz * t)[:, None] * np.ones(3)
+    y = _y("lowpass", {"bandwidth_hz": fc}, make_truth(n, rate, omega=w), rate=rate)
+    # digital 2nd-order Butterworth (bilinear, prewarped): |H| = 1/sqrt(1 + (tan(πf/fs)/tan(πfc/fs))^4)
+    gain = 1 / math.sqrt(1 + (math.tan(math.pi * f_hz / rate) / math.tan(math.pi * fc / rate)) ** 4)
+    tail = slice(n // 2, n)  # transient gone (poles |z| ≈ 0.84 → 1e-3 after ~40 samples)
+    # amplitude by projection on sin/cos over whole periods (tail = 2 s)
+    s, c = np.sin(2 * np.pi * f_hz * t[tail]), np.cos(2 * np.pi * f_hz * t[tail])
+    amp = np.hypot(2 * np.mean(y[tail, 0] * s), 2 * np.mean(y[tail, 0] * c))
+    assert amp == pytest.approx(gain, rel=1e-6)
+
+
+def test_arw_level():
+    n = 20000
+    tr = make_truth(n, omega=np.zeros((n, 3)))
+    N = 1e-3
+    e = _y("arw", {"n_rad_per_sqrt_s": N}, tr)
+    # per-sample σ = N·√rate; sample std s.e. = σ/√(2n) → 5 s.e. = 2.5 %
+    assert np.allclose(e.std(axis=0), N * math.sqrt(RATE), rtol=5 / math.sqrt(2 * n))
+
+
+def test_vibration_is_not_a_gyro_effect():
+    with pytest.raises(GyroInputError):
+        SyntheticGyro("icm42688p", seed=0, overrides={"vibration": {}})
+
+
+# ---------------------------------------------------------------- independent streams
+def test_adding_effects_leaves_other_draws_unchanged():
+    tr = make_truth()
+    base = SyntheticGyro("icm42688p", rate_hz=RATE, seed=5)
+    more = SyntheticGyro("icm42688p", rate_hz=RATE, seed=5,
+                         overrides={"rrw": {}, "correlated": {}, "scale_asymmetry": {}, "bias_ramp": {}})
+    fewer = SyntheticGyro("icm42688p", rate_hz=RATE, seed=5, without=["arw", "scale", "misalignment"])
+    ob, om, of = base.measure(tr), more.measure(tr), fewer.measure(tr)
+    for eff in base.effects:
+        for other, out in ((more, om), (fewer, of)):
+            if eff not in other.effects:
+                continue
+            for k, v in base.params[eff].items():
+                assert np.array_equal(v, other.params[eff][k]), (eff, k)
+            for k, v in ob.draws[eff].items():
+                assert np.array_equal(v, out.draws[eff][k]), (eff, k)
+    # the noise of the added terms is purely additive: more − base = rrw + correlated realisations
+    assert not np.array_equal(om.noise_rad_s, ob.noise_rad_s)
+    # removing ARW removes exactly its realisation from the summed noise
+    arw = ob.noise_rad_s - of.noise_rad_s
+    assert arw.std(axis=0) == pytest.approx(ob.draws["arw"]["std_rad_s"], rel=1e-9)
+
+
+def test_turn_on_bias_redrawn_per_power_up():
+    pu = np.repeat([0, 1, 2], 400)
+    n = pu.size
+    tr = make_truth(n, power_ups=pu, omega=np.zeros((n, 3)))
+    sig = np.array([0.01, 0.02, 0.03])
+    g = only("bias", {"b_rad_s": [0.1, 0.2, 0.3], "turn_on_sigma_rad_s": sig}, seed=3)
+    out = g.measure(tr)
+    b = out.draws["bias"]["b_rad_s_per_power_up"]
+    assert b.shape == (3, 3)
+    for k in range(3):
+        assert np.allclose(out.gyro_rad_s[pu == k], b[k], rtol=RTOL)
+    assert not np.allclose(b[0], b[1]) and not np.allclose(b[1], b[2])
+    # power-up 0 has the same bias whether or not more power-ups follow
+    single = g.measure(make_truth(400, omega=np.zeros((400, 3))))
+    assert np.array_equal(single.draws["bias"]["b_rad_s_per_power_up"][0], b[0])
+
+
+def test_turn_on_population_spread():
+    # over 300 power-ups the draws have std = σ; chi-square: s.e. of a std ≈ σ/√(2·300) = 4 %, 5 s.e.
+    g = only("bias", {"b_rad_s": [0, 0, 0], "turn_on_sigma_rad_s": [0.01, 0.01, 0.01]}, seed=9)
+    d = np.array([g.power_up_bias(k) for k in range(300)])
+    assert np.allclose(d.std(axis=0), 0.01, rtol=5 / math.sqrt(600))
+
+
+# ---------------------------------------------------------------- stream == batch
+def _run_stream(g, tr, **kw):
+    st = g.stream(tr.n, **kw)
+    for k in range(tr.n):
+        y = st.step(k, tr.t_s[k], tr.omega_S_rad_s[k], tr.f_S_m_s2[k], tr.temp_c[k], tr.q_SW_wxyz[k])
+        assert y.shape == (3,)
+    return st
+
+
+@pytest.mark.parametrize("preset", ["icm42688p", "mpu6050", "adis16448"])
+def test_stream_bit_identical_to_batch_default(preset):
+    g = SyntheticGyro(preset, seed=11)
+    tr = make_truth(1500, g.rate_hz)
+    st = _run_stream(g, tr)
+    assert np.array_equal(st.gyro_rad_s, g.measure(tr).gyro_rad_s)
+
+
+def test_stream_bit_identical_to_batch_all_effects():
+    rng = np.random.default_rng(2)
+    n = 1500
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    tr = make_truth(n, q=q)
+    ov = {e: {} for e in ("bias_temp_rate", "bias_ramp", "scale_asymmetry", "g2_sensitivity", "earth_rate", "rrw", "correlated")}
+    ov["time_offset"] = {"tau_s": 0.0051}
+    ov["bias_thermal"] = {"poly_rad_s": rng.normal(0, 1e-4, (3, 3))}
+    ov["scale_thermal"] = {"poly_per_c": rng.normal(0, 1e-4, (3, 2))}
+    g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=4, overrides=ov)
+    assert set(g.effects) == set(ALL_BUT_VIB)
+    st = _run_stream(g, tr, t_s=tr.t_s, temp_c=tr.temp_c)
+    assert np.array_equal(st.gyro_rad_s, g.measure(tr).gyro_rad_s)
+
+
+def test_stream_refusals():
+    g = SyntheticGyro("icm42688p", seed=0, overrides={"time_offset": {"tau_s": -0.001}})
+    with pytest.raises(GyroInputError):
+        g.stream(10)
+    g = SyntheticGyro("icm42688p", seed=0, overrides={"bias_temp_rate": {}})
+    with pytest.raises(GyroInputError):
+        g.stream(10)
+    st = SyntheticGyro("icm42688p", seed=0).stream(3)
+    with pytest.raises(GyroInputError):
+        st.step(1, 0.0, [0, 0, 0], [0, 0, 9.8], 25.0)
+
+
+# ---------------------------------------------------------------- options and errors
+def test_overrides_and_errors():
+    g = SyntheticGyro("icm42688p", seed=0, overrides={"scale": {"s": 0.01}})
+    assert np.array_equal(g.params["scale"]["s"], [0.01, 0.01, 0.01])
+    with pytest.raises(GyroInputError):
+        SyntheticGyro("icm42688p", seed=0, overrides={"scale": {"nope": 1}})
+    with pytest.raises(GyroInputError):
+        SyntheticGyro("icm42688p", seed=0, overrides={"warp_drive": {}})
+    with pytest.raises(GyroInputError):
+        SyntheticGyro("icm42688p", seed=0, without=["nope"])
+    with pytest.raises(GyroInputError):
+        SyntheticGyro("icm42688p", seed=-1)
+    with pytest.raises(GyroInputError):
+        SyntheticGyro("nosuchsensor", seed=0)
+    with pytest.raises(GyroInputError):  # truth at another rate than the gyro
+        SyntheticGyro("icm42688p", seed=0).measure(make_truth(100, 200.0))
+
+
+def test_lowpass_repaired_at_low_rate():
+    with pytest.warns(RepairWarning):
+        g = SyntheticGyro("icm42688p", rate_hz=200.0, seed=0)
+    assert float(g.params["lowpass"]["bandwidth_hz"]) == pytest.approx(50.0)
