@@ -1,0 +1,572 @@
+"""The residual: what the measurement still holds against whatever reference the data offer.
+
+Every reference is reduced to the same form, a series of **observation windows** m = 1..M,
+each [t_a, t_b] with a residual mean rate error y_m (rad/s, sensor frame at t_b) and a linear
+operator that maps any per-sample regressor A(t) (N, 3, P) of :func:`gyrocore.effects.design`
+to the window regressor
+
+    X_m = (1/T_m) Σ_{k=a}^{b−1} R_{b←k} · A_k · Δt_k,        T_m = t_b − t_a,
+
+so that the linearised measurement model r(t) = y(t) − ω(t) ≈ A(t)·θ + e(t) becomes
+y_m ≈ X_m·θ + ε_m, exactly (the operator is linear). Sample k is held over [t_k, t_{k+1}]
+(zero-order hold, as in :func:`gyrocore.attitude.integrate_gyro`).
+
+Reference kinds
+---------------
+``"rate"``
+    Reference rates (``ref_*_rad_s``): r_k = y_k − ω_ref,k, windows are short contiguous blocks
+    (block means; no rotation, R = I). Windows with a NaN reference are dropped.
+``"attitude"``
+    Reference attitude (``ref_q*``; NaN where tracking was lost). The optical attitude is
+    *not* differentiated: for each window with a valid reference at both ends, the gyro is
+    integrated over the window and compared with the reference relative rotation,
+
+        E_m = (R_a^T R_b)^T · ΔR̂_{a→b},    y_m = rotvec(E_m) / T_m,
+
+    which to first order is the window mean of R_{b←k}·(ω_meas − ω_true) (the error rotation
+    expressed in S at t_b). R_{b←k} comes from the gyro's own integration within the window
+    (its error is second order). The regressors' rate is the gyro itself, low-passed
+    (errors-in-variables effect is second order for small errors).
+``"still"``
+    Still segments (true rate 0 relative to W): r_k = y_k, windows are blocks inside the
+    segments. Earth rate is then a candidate only when the attitude is known.
+``"angles"``
+    Known rotation segments (e.g. "two turns about x", a turntable's N revolutions): the
+    window is the whole segment and y_m = (∫ω_meas dt − φ_m·u_m)/T_m with the known rotation
+    vector φ_m·u_m in S, valid for rotations about a fixed sensor axis; R = I.
+
+Segments
+--------
+:class:`Segment` marks still intervals and known rotations. :func:`read_segments` reads a CSV
+with columns ``start_s, stop_s, kind`` (``still`` or ``rotation``) and, for rotations,
+``angle_x_rad, angle_y_rad, angle_z_rad`` (the rotation vector in S; ``_deg`` accepted).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy import signal
+from scipy.spatial.transform import Rotation
+
+from . import effects as E
+from .attitude import integrate_gyro
+from .errors import GyroInputError
+from .recording import Recording
+
+__all__ = [
+    "REFERENCE_KINDS",
+    "Segment",
+    "Residual",
+    "read_segments",
+    "as_segment",
+    "detect_still",
+    "build_residual",
+    "choose_reference",
+    "earth_rate_design",
+]
+
+REFERENCE_KINDS = ("rate", "attitude", "still", "angles")
+
+#: Target number of observation windows for the rate/still kinds (block means).
+_TARGET_WINDOWS = 1500
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A stretch of a recording with a known reference.
+
+    Parameters
+    ----------
+    start_s, stop_s : float
+        Segment bounds, s (same clock as ``t_s``).
+    kind : str
+        ``"still"`` (true rate 0 relative to W) or ``"rotation"``.
+    angle_S_rad : tuple of 3 floats or None
+        For rotations: the known rotation vector in S, rad (e.g. (4π, 0, 0) for two turns
+        about +x).
+    """
+
+    start_s: float
+    stop_s: float
+    kind: str
+    angle_S_rad: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("still", "rotation"):
+            raise GyroInputError(f"segment kind must be 'still' or 'rotation', not '{self.kind}'")
+        if not self.stop_s > self.start_s:
+            raise GyroInputError(f"segment {self.start_s}..{self.stop_s} s is empty")
+        if self.kind == "rotation" and self.angle_S_rad is None:
+            raise GyroInputError("a rotation segment needs its angle (angle_x/y/z)")
+
+
+def as_segment(seg) -> Segment:
+    """A :class:`Segment` from this module's or :class:`gyrocore.convert.Segment`
+    (``t_start_s, t_end_s, axis, angle_deg``: a known rotation about one sensor axis)."""
+    if isinstance(seg, Segment):
+        return seg
+    if hasattr(seg, "axis") and hasattr(seg, "angle_deg"):
+        v = np.zeros(3)
+        v["xyz".index(seg.axis)] = np.radians(float(seg.angle_deg))
+        return Segment(float(seg.t_start_s), float(seg.t_end_s), "rotation", tuple(float(x) for x in v))
+    raise GyroInputError(f"not a segment: {seg!r}")
+
+
+def read_segments(path: str | os.PathLike) -> list[Segment]:
+    """Read a segments CSV (see module docstring) or the known-rotation file of
+    :func:`gyrocore.convert.write_segments_csv`. Bad files raise :class:`GyroInputError`."""
+    path = str(path)
+    if not os.path.isfile(path):
+        raise GyroInputError(f"{path}: no such segments file")
+    out: list[Segment] = []
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = [r for r in csv.reader(l for l in fh if l.strip() and not l.lstrip().startswith("#"))]
+    if not rows:
+        raise GyroInputError(f"{path}: empty segments file")
+    head = [h.strip() for h in rows[0]]
+    if head[:4] == ["t_start_s", "t_end_s", "axis", "angle_deg"]:
+        from .convert import read_segments_csv
+
+        return [as_segment(s) for s in read_segments_csv(path)]
+    for need in ("start_s", "stop_s", "kind"):
+        if need not in head:
+            raise GyroInputError(f"{path}: segments file needs a '{need}' column")
+    ang_cols, fac = None, 1.0
+    if all(f"angle_{a}_rad" in head for a in "xyz"):
+        ang_cols = [head.index(f"angle_{a}_rad") for a in "xyz"]
+    elif all(f"angle_{a}_deg" in head for a in "xyz"):
+        ang_cols, fac = [head.index(f"angle_{a}_deg") for a in "xyz"], np.pi / 180.0
+    for ln, r in enumerate(rows[1:], start=2):
+        try:
+            rec = {h: r[i].strip() for i, h in enumerate(head) if i < len(r)}
+            kind = rec["kind"]
+            ang = None
+            if kind == "rotation":
+                if ang_cols is None:
+                    raise GyroInputError(f"{path}: rotation segments need angle_x/y/z_rad (or _deg) columns")
+                ang = tuple(float(r[i]) * fac for i in ang_cols)
+            out.append(Segment(float(rec["start_s"]), float(rec["stop_s"]), kind, ang))
+        except (KeyError, ValueError, IndexError):
+            raise GyroInputError(f"{path}: line {ln} is not a valid segment") from None
+    return out
+
+
+def earth_rate_design(R_WS: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """Regressors of the Earth rate as an unknown constant vector Ω_W in a fixed frame W.
+
+    ω_earth,S(t) = R_WS(t)ᵀ·Ω_W, so A[n, i, k] = R_WS[n, k, i]. Latitude and heading follow
+    from Ω_W (|Ω_W| must be the Earth rate): sin φ = Ω_up/|Ω|.
+
+    Parameters
+    ----------
+    R_WS : ndarray, shape (N, 3, 3)
+        Attitude S→W.
+
+    Returns
+    -------
+    names : list of str (3)
+    A : ndarray, shape (N, 3, 3)
+    """
+    return [f"omega_W_rad_s[{k}]" for k in range(3)], np.transpose(R_WS, (0, 2, 1)).copy()
+
+
+@dataclass(frozen=True, eq=False)
+class Residual:
+    """A residual series over observation windows, with what is needed to regress it.
+
+    Attributes
+    ----------
+    kind : str
+        One of :data:`REFERENCE_KINDS`.
+    y_rad_s : ndarray, shape (M, 3)
+        Residual mean rate error per window, rad/s, S frame (at the window end for
+        ``"attitude"``), before any correction.
+    win_start, win_stop : ndarray of int, shape (M,)
+        Sample indices a, b of each window (b exclusive of its own hold interval).
+    t_mid_s : ndarray, shape (M,)
+        Window centre times, s.
+    inputs : ModelInputs
+        Per-sample inputs of the regressors (N samples): reference (or proxy) rate, specific
+        force, temperature, time, attitude when known.
+    R_GS : ndarray, shape (N, 3, 3) or None
+        Gyro-integrated attitude in an arbitrary fixed frame G (for the window rotation
+        R_{b←k} = R_GS[b]ᵀ·R_GS[k]); None means R = I.
+    R_WS : ndarray, shape (N, 3, 3) or None
+        Attitude S→W for the Earth-rate regressors (None: Earth rate not testable).
+    gyro_rad_s : ndarray, shape (N, 3)
+        The measurement.
+    description : str
+        What the reference is, one line.
+    notes : tuple of str
+        Repairs and caveats (windows dropped, outliers, ...).
+    is_rotation : ndarray of bool, shape (M,) or None
+        ``"angles"``: True for the known-rotation windows (the others are still windows).
+    """
+
+    kind: str
+    y_rad_s: np.ndarray
+    win_start: np.ndarray
+    win_stop: np.ndarray
+    t_mid_s: np.ndarray
+    inputs: E.ModelInputs
+    R_GS: np.ndarray | None
+    R_WS: np.ndarray | None
+    gyro_rad_s: np.ndarray
+    description: str
+    notes: tuple[str, ...] = ()
+    is_rotation: np.ndarray | None = None
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def m(self) -> int:
+        """Number of observation windows."""
+        return int(self.y_rad_s.shape[0])
+
+    @property
+    def duration_s(self) -> np.ndarray:
+        """Window lengths T_m, s, shape (M,)."""
+        t = np.asarray(self.inputs.t_s, float)
+        return t[self.win_stop] - t[self.win_start]
+
+    # ---------------------------------------------------------------- regressors
+    def sample_design(self, effect: str, *, order: int = 1) -> tuple[list[str], np.ndarray]:
+        """Per-sample regressors of one effect, (names, A (N, 3, P)); NaN-free."""
+        key = ("s", effect, order)
+        if key not in self._cache:
+            if effect == "earth_rate":
+                if self.R_WS is None:
+                    raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
+                names, A = earth_rate_design(self.R_WS)
+            else:
+                names, A = E.design(effect, self.inputs, order=order)
+            if not np.all(np.isfinite(A)):
+                A = np.nan_to_num(A, nan=0.0, posinf=0.0, neginf=0.0)
+            self._cache[key] = (names, A)
+        return self._cache[key]
+
+    def window_mean(self, Z: np.ndarray) -> np.ndarray:
+        """Apply the window operator to per-sample values.
+
+        Parameters
+        ----------
+        Z : ndarray, shape (N, 3) or (N, 3, P)
+            Per-sample quantity in S (rad/s or regressor units).
+
+        Returns
+        -------
+        ndarray, shape (M, 3) or (M, 3, P)
+            (1/T_m) Σ_{k=a}^{b−1} R_{b←k}·Z_k·Δt_k.
+        """
+        Z = np.asarray(Z, float)
+        squeeze = Z.ndim == 2
+        if squeeze:
+            Z = Z[:, :, None]
+        t = np.asarray(self.inputs.t_s, float)
+        dt = np.diff(t)
+        if self.R_GS is not None:
+            Zg = np.einsum("nij,njp->nip", self.R_GS[:-1], Z[:-1])
+        else:
+            Zg = Z[:-1]
+        C = np.concatenate([np.zeros((1,) + Zg.shape[1:]), np.cumsum(Zg * dt[:, None, None], axis=0)])
+        D = C[self.win_stop] - C[self.win_start]
+        if self.R_GS is not None:
+            D = np.einsum("mji,mjp->mip", self.R_GS[self.win_stop], D)
+        D = D / self.duration_s[:, None, None]
+        return D[:, :, 0] if squeeze else D
+
+    def regressors(self, effect: str, *, order: int = 1) -> tuple[list[str], np.ndarray]:
+        """Window regressors of one effect: (names, X (M, 3, P))."""
+        key = ("w", effect, order)
+        if key not in self._cache:
+            names, A = self.sample_design(effect, order=order)
+            self._cache[key] = (names, self.window_mean(A))
+        return self._cache[key]
+
+
+# ---------------------------------------------------------------------------- builders
+def _blocks(mask: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Contiguous windows of ``block`` hold intervals inside runs of True in ``mask`` (N,).
+
+    A window [a, b] needs mask[a..b−1] (the samples held over it) all True.
+    """
+    starts, stops = [], []
+    n = mask.shape[0]
+    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    d = np.diff(m)
+    run_a = np.flatnonzero(d == 1)
+    run_b = np.flatnonzero(d == -1)  # exclusive
+    for a, b in zip(run_a, run_b):
+        last = min(b, n - 1)  # window end index may be the sample after the run
+        k = a
+        while k + block <= last:
+            starts.append(k)
+            stops.append(k + block)
+            k += block
+    return np.asarray(starts, int), np.asarray(stops, int)
+
+
+def detect_still(t: np.ndarray, gyro_rad_s: np.ndarray, *, window_s: float = 0.5, factor: float = 3.0) -> np.ndarray:
+    """Motion gate: True where the sensor looks still, shape (N,).
+
+    The moving standard deviation of each gyro axis over ``window_s`` is compared with
+    ``factor`` × its 10th percentile (the still-noise level when at least 10 % of the data are
+    still); all axes must pass, and the moving mean must stay within
+    ``factor`` × that level (+ 0.5 °/s for a turn-on bias) of the still median.
+    """
+    n = t.shape[0]
+    fs = (n - 1) / (t[-1] - t[0])
+    L = max(3, int(round(window_s * fs)))
+    if n < 2 * L:
+        return np.zeros(n, bool)
+    k = np.ones(L) / L
+    mean = np.stack([np.convolve(gyro_rad_s[:, i], k, mode="same") for i in range(3)], axis=1)
+    sq = np.stack([np.convolve(gyro_rad_s[:, i] ** 2, k, mode="same") for i in range(3)], axis=1)
+    sd = np.sqrt(np.clip(sq - mean**2, 0, None))
+    lvl = np.percentile(sd, 10, axis=0)
+    ok = np.all(sd <= factor * np.maximum(lvl, 1e-12), axis=1)
+    if ok.any():
+        med = np.median(mean[ok], axis=0)
+        ok &= np.all(np.abs(mean - med) <= factor * lvl + np.radians(0.5), axis=1)
+    ok[: L // 2] = ok[L // 2] if n > L else False
+    ok[-(L // 2):] = ok[-(L // 2) - 1]
+    return ok
+
+
+def _smooth(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Zero-phase low-pass of a proxy rate at min(0.1·fs, 20 Hz) (regressor inputs only)."""
+    fs = (t.shape[0] - 1) / (t[-1] - t[0])
+    fc = min(0.1 * fs, 20.0)
+    if t.shape[0] < 30 or not 0 < fc < fs / 2:
+        return x
+    sos = signal.butter(2, fc, fs=fs, output="sos")
+    return signal.sosfiltfilt(sos, x, axis=0)
+
+
+def _R(q: np.ndarray) -> np.ndarray:
+    return Rotation.from_quat(np.asarray(q, float), scalar_first=True).as_matrix()
+
+
+def _fill_nan_rows(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    ok = np.all(np.isfinite(x), axis=1)
+    if ok.all() or not ok.any():
+        return x
+    return np.stack([np.interp(t, t[ok], x[ok, i]) for i in range(x.shape[1])], axis=1)
+
+
+def choose_reference(rec: Recording, segments: Sequence[Segment] | None = None) -> str:
+    """The best reference the data offer: rate > attitude > angles > still."""
+    segments = [as_segment(x) for x in (segments or [])]
+    if rec.ref_rate_rad_s is not None and np.isfinite(rec.ref_rate_rad_s).any():
+        return "rate"
+    if rec.ref_quat_wxyz is not None and np.isfinite(rec.ref_quat_wxyz).all(axis=1).sum() >= 2:
+        return "attitude"
+    segs = list(segments or [])
+    if any(s.kind == "rotation" for s in segs):
+        return "angles"
+    if any(s.kind == "still" for s in segs):
+        return "still"
+    raise GyroInputError(
+        "no reference in the data: need ref_*_rad_s, ref_q* columns, or a segments file (--segments) "
+        "with still or rotation segments"
+    )
+
+
+def _segment_mask(t: np.ndarray, segs: Sequence[Segment], kind: str) -> np.ndarray:
+    m = np.zeros(t.shape[0], bool)
+    for s in segs:
+        if s.kind == kind:
+            m |= (t >= s.start_s) & (t <= s.stop_s)
+    return m
+
+
+def build_residual(
+    rec: Recording,
+    *,
+    reference: str = "auto",
+    segments: Sequence[Segment] | None = None,
+    window_s: float | None = None,
+    outlier_mad: float = 20.0,
+) -> Residual:
+    """Build the residual of ``rec`` against its reference.
+
+    Parameters
+    ----------
+    rec : Recording
+    reference : {"auto", "rate", "attitude", "still", "angles"}
+        Which reference to use; ``"auto"`` picks :func:`choose_reference`.
+    segments : sequence of Segment, optional
+        Still / known-rotation segments (needed for ``"still"`` unless the whole recording
+        is declared still by passing ``reference="still"`` without segments, and for
+        ``"angles"``).
+    window_s : float, optional
+        Window length, s. Default: blocks giving ≈ 1500 windows (≥ 2 samples) for
+        ``"rate"``/``"still"``; 1 s for ``"attitude"``.
+    outlier_mad : float
+        ``"attitude"`` only: windows whose |y| exceeds median + ``outlier_mad``·1.4826·MAD are
+        dropped as reference glitches (marker swaps) and counted in ``notes``.
+
+    Returns
+    -------
+    Residual
+    """
+    segs = [as_segment(x) for x in (segments or [])]
+    kind = choose_reference(rec, segs) if reference == "auto" else reference
+    if kind not in REFERENCE_KINDS:
+        raise GyroInputError(f"unknown reference '{reference}' ({', '.join(REFERENCE_KINDS)}, auto)")
+    t = rec.t_s
+    n = rec.n
+    if n < 3:
+        raise GyroInputError("too few samples for a residual")
+    gyro = rec.gyro_rad_s
+    fs = rec.rate_hz
+    notes: list[str] = []
+
+    def n_block(default_windows: int) -> int:
+        if window_s is not None:
+            return max(1, int(round(window_s * fs)))
+        return max(2, int(np.ceil(n / default_windows)))
+
+    R_GS = None
+    R_WS = None
+    q_ref = rec.ref_quat_wxyz
+    if kind == "rate":
+        if rec.ref_rate_rad_s is None:
+            raise GyroInputError("reference 'rate' needs the ref_x/y/z_rad_s columns")
+        ref = rec.ref_rate_rad_s
+        ok = np.all(np.isfinite(ref), axis=1)
+        if ok.sum() < 3:
+            raise GyroInputError("the reference rate is NaN almost everywhere")
+        if not ok.all():
+            notes.append(f"{int((~ok).sum())} samples with NaN reference rate excluded")
+        omega = _fill_nan_rows(t, ref)
+        a, b = _blocks(ok, n_block(_TARGET_WINDOWS))
+        if q_ref is not None and np.all(np.isfinite(q_ref)):
+            R_WS = _R(q_ref)
+        else:
+            R_WS = _R(integrate_gyro(t, omega))  # W' = S at t0, a fixed frame
+        r = gyro - omega
+        desc = "reference rate (ref_*_rad_s), block means"
+    elif kind == "still":
+        if segs:
+            mask = _segment_mask(t, segs, "still")
+            if not mask.any():
+                raise GyroInputError("no still segment covers any sample")
+            desc = f"{sum(s.kind == 'still' for s in segs)} still segment(s): true rate 0"
+        elif "static_pose_axis" in rec.extra:
+            mask = rec.extra["static_pose_axis"] != 0
+            desc = "static poses (static_pose_axis column): true rate 0"
+        else:
+            mask = detect_still(t, gyro)
+            desc = f"still samples found by a motion gate ({mask.mean():.0%} of the recording): true rate 0"
+        omega = np.zeros((n, 3))
+        a, b = _blocks(mask, n_block(_TARGET_WINDOWS))
+        if q_ref is not None and np.all(np.isfinite(q_ref)):
+            R_WS = _R(q_ref)
+        r = gyro
+    elif kind == "attitude":
+        if q_ref is None:
+            raise GyroInputError("reference 'attitude' needs the ref_qw/qx/qy/qz columns")
+        ok = np.all(np.isfinite(q_ref), axis=1)
+        L = max(2, int(round((window_s or 1.0) * fs)))
+        idx = np.arange(0, n - L, L)
+        a_all, b_all = idx, idx + L
+        keep = ok[a_all] & ok[b_all]
+        a, b = a_all[keep], b_all[keep]
+        if a.size < 3:
+            raise GyroInputError("fewer than 3 windows with a valid reference attitude at both ends")
+        n_lost = int((~keep).sum())
+        if n_lost:
+            notes.append(f"{n_lost} of {keep.size} windows dropped: reference attitude NaN at an end")
+        q_hat = integrate_gyro(t, gyro)
+        R_GS = _R(q_hat)
+        R_ref = np.full((n, 3, 3), np.nan)
+        R_ref[ok] = _R(q_ref[ok])
+        # E = (R_a^T R_b)^T · (R̂_a^T R̂_b)
+        rel_ref = np.einsum("mji,mjk->mik", R_ref[a], R_ref[b])
+        rel_hat = np.einsum("mji,mjk->mik", R_GS[a], R_GS[b])
+        Em = np.einsum("mji,mjk->mik", rel_ref, rel_hat)
+        T = t[b] - t[a]
+        y = Rotation.from_matrix(Em).as_rotvec() / T[:, None]
+        # attitude S->W per sample: anchored at the latest valid reference sample
+        vi = np.flatnonzero(ok)
+        anchor = vi[np.clip(np.searchsorted(vi, np.arange(n), side="right") - 1, 0, None)]
+        R_WS = np.einsum("nij,nkj,nkl->nil", R_ref[anchor], R_GS[anchor], R_GS)
+        omega = _smooth(t, gyro)
+        desc = f"reference attitude (ref_q*), {L / fs:.3g} s windows of integrated gyro vs reference rotation"
+        # glitches of the optical reference (marker swaps): robust outlier rejection
+        nrm = np.linalg.norm(y, axis=1)
+        med = float(np.median(nrm))
+        mad = float(np.median(np.abs(nrm - med))) * 1.4826
+        if mad > 0 and outlier_mad > 0:
+            good = nrm <= med + outlier_mad * mad
+            if (~good).any():
+                notes.append(
+                    f"{int((~good).sum())} windows dropped as reference glitches (|residual| > median + {outlier_mad:g}·MAD)"
+                )
+            a, b, y = a[good], b[good], y[good]
+        inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
+                               q_SW_wxyz=None)
+        return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=0.5 * (t[a] + t[b]),
+                        inputs=inputs, R_GS=R_GS, R_WS=R_WS, gyro_rad_s=gyro, description=desc,
+                        notes=tuple(notes))
+    else:  # angles
+        rots = [s for s in segs if s.kind == "rotation"]
+        if not rots:
+            raise GyroInputError("reference 'angles' needs rotation segments (--segments)")
+        a_l, b_l, phi = [], [], []
+        for s in rots:
+            ia = int(np.searchsorted(t, s.start_s, side="left"))
+            ib = int(np.searchsorted(t, s.stop_s, side="right")) - 1
+            if ib - ia < 2:
+                raise GyroInputError(f"rotation segment {s.start_s}..{s.stop_s} s covers fewer than 3 samples")
+            a_l.append(ia)
+            b_l.append(ib)
+            phi.append(s.angle_S_rad)
+        a, b = np.asarray(a_l), np.asarray(b_l)
+        n_rot = a.size
+        # still windows outside the rotations: they pin the bias (and g-sensitivity across poses)
+        in_rot = np.zeros(n, bool)
+        for ia, ib in zip(a, b):
+            in_rot[ia:ib + 1] = True
+        if any(s.kind == "still" for s in segs):
+            still = _segment_mask(t, segs, "still")
+            how = "still segments"
+        elif "static_pose_axis" in rec.extra:
+            still = rec.extra["static_pose_axis"] != 0
+            how = "static poses"
+        else:
+            still = detect_still(t, gyro)
+            how = "motion gate"
+        still &= ~in_rot
+        sa, sb = _blocks(still, max(2, int(round((window_s or 0.5) * fs))))
+        phi_all = np.vstack([np.asarray(phi, float), np.zeros((sa.size, 3))])
+        a, b = np.concatenate([a, sa]), np.concatenate([b, sb])
+        omega = _smooth(t, gyro)
+        omega[still] = 0.0
+        inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
+        res = Residual(kind=kind, y_rad_s=np.zeros((a.size, 3)), win_start=a, win_stop=b,
+                       t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=None, R_WS=None, gyro_rad_s=gyro,
+                       description=(f"{n_rot} known rotation(s): integrated gyro vs known angle; "
+                                    f"{sa.size} still windows ({how})"), notes=())
+        T = t[b] - t[a]
+        y = res.window_mean(gyro) - phi_all / T[:, None]
+        notes.append("known angles hold only for rotations about a fixed sensor axis; hand rotations are good to a few degrees")
+        return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
+                        R_GS=None, R_WS=None, gyro_rad_s=gyro, description=res.description, notes=tuple(notes),
+                        is_rotation=np.arange(a.size) < n_rot)
+
+    if a.size < 3:
+        raise GyroInputError(f"fewer than 3 observation windows for reference '{kind}'")
+    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
+                           q_SW_wxyz=None)
+    res = Residual(kind=kind, y_rad_s=np.zeros((a.size, 3)), win_start=a, win_stop=b,
+                   t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=None, R_WS=R_WS, gyro_rad_s=gyro,
+                   description=desc, notes=tuple(notes))
+    y = res.window_mean(np.where(np.isfinite(r), r, 0.0))
+    return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
+                    R_GS=None, R_WS=R_WS, gyro_rad_s=gyro, description=desc, notes=tuple(notes))
