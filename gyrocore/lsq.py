@@ -14,10 +14,15 @@ Estimation is weighted least squares (axis weights 1/σ_i² from a first pass, t
 user row weights). Standard errors come from one of three covariances:
 
 * ``"ols"`` — s²·(AᵀWA)⁻¹, right when the residual is white;
-* ``"hac"`` — the Newey–West sandwich (AᵀWA)⁻¹·S·(AᵀWA)⁻¹ with the Bartlett kernel
-  (Newey & West 1987), AR(1) pre-whitening of the score series and the Andrews (1991) AR(1)
-  plug-in bandwidth (Andrews & Monahan 1992); right for coloured residuals (on-chip low-pass,
-  Gauss–Markov bias, slow drift);
+* ``"hac"`` — the sandwich (AᵀWA)⁻¹·(AᵀW·Γ·WA)·(AᵀWA)⁻¹ with Γ the Toeplitz
+  autocovariance of each axis' residual: sample values at short lags plus a fitted
+  exponential (Gauss–Markov) tail (:func:`residual_autocov_model`). Right for coloured
+  residuals (on-chip low-pass, Gauss–Markov bias, bias instability over the record), and
+  honest even when the correlation time is long, where kernel estimators on the score
+  (Newey–West) truncate the tail and understate the error (checked by Monte Carlo in
+  tests/gyrocore/test_lsq.py);
+* ``"newey_west"`` — the Newey & West (1987) Bartlett-kernel sandwich on the score series,
+  AR(1) pre-whitened with the Andrews (1991) plug-in bandwidth (Andrews & Monahan 1992);
 * ``"block"`` — batch means over ``n_blocks`` contiguous blocks (cluster-robust by time).
 
 ``"auto"`` (the default) runs a Ljung–Box test on the weighted residual and uses ``"hac"``
@@ -100,11 +105,12 @@ class LsqFit:
     stderr : ndarray, shape (P,)
         sqrt(diag(cov)); +inf for unobservable parameters.
     cov_kind : str
-        ``"ols"``, ``"hac"`` or ``"block"`` — which covariance ``cov`` is.
+        ``"ols"``, ``"hac"``, ``"newey_west"`` or ``"block"`` — which covariance ``cov`` is.
     ljung_box_p : float
         p-value of the Ljung–Box whiteness test on the weighted residual (small = coloured).
     hac_bandwidth : float
-        Bartlett bandwidth (samples after ``stride``) used by ``"hac"``; NaN otherwise.
+        Longest lag (samples after ``stride``) of the autocovariance used by ``"hac"`` or the
+        Bartlett bandwidth of ``"newey_west"``; NaN otherwise.
     residual_rad_s : ndarray, shape (N, 3)
         r − A·θ on all N input samples (not only the strided ones), rad/s.
     residual_rms_rad_s : ndarray, shape (3,)
@@ -121,7 +127,7 @@ class LsqFit:
     unobservable_reason : dict
         Name -> one-line reason ("collinear with ...", "stderr ... > plausible ...").
     n_rows : int
-        Samples used (after stride and zero-weight rows).
+        Rows used in the fit (after stride, zero-weight rows and block averaging).
     dof : int
         3·n_rows − rank.
     """
@@ -225,11 +231,10 @@ def ljung_box_p(e: np.ndarray, *, n_lags: int | None = None) -> float:
     q = 0.0
     dof = 0
     for c in range(e.shape[1]):
-        x = e[:, c] - e[:, c].mean()
-        v = float(x @ x)
-        if v <= 0:
+        ac = _autocov(e[:, c], m)
+        if ac[0] <= 0:
             continue
-        rho = np.array([x[l:] @ x[:-l] / v for l in range(1, m + 1)])
+        rho = ac[1:] / ac[0]
         q += n * (n + 2) * float(np.sum(rho**2 / (n - np.arange(1, m + 1))))
         dof += m
     if dof == 0:
@@ -307,6 +312,104 @@ def long_run_covariance(
     return S, float(bandwidth)
 
 
+def _autocov(x: np.ndarray, m: int) -> np.ndarray:
+    """Biased sample autocovariance γ̂(0..m) of a 1-D series (FFT), mean removed."""
+    n = x.shape[0]
+    x = x - x.mean()
+    nf = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(x, nf)
+    return np.fft.irfft(f * np.conj(f), nf)[: m + 1] / n
+
+
+def residual_autocov_model(
+    x: np.ndarray, *, n_direct: int = 5, max_lag: int | None = None, tail_floor: float = 1e-4
+) -> np.ndarray:
+    """Autocovariance model of a stationary residual: sample values, then an exponential tail.
+
+    γ(l) = γ̂(l) for l ≤ ``n_direct`` (the short, well-estimated lags: white noise, on-chip
+    low-pass); beyond, γ(l) = a·φ^l fitted (log-linear least squares) to the run of sample
+    lags that stand above 2·γ̂(0)/√N (the sd of a sample autocovariance of white noise) —
+    the first-order Gauss–Markov part of gyro noise (DESIGN.md ``correlated``), which also
+    approximates bias instability over the record's time scales. Without such a run the
+    tail is 0. The tail is cut where φ^l < ``tail_floor``.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,)
+        Residual of one axis, rad/s.
+
+    Returns
+    -------
+    ndarray, shape (L + 1,)
+        γ(0..L), (rad/s)².
+    """
+    x = np.asarray(x, float)
+    n = x.shape[0]
+    m = int(max_lag or max(n_direct + 1, min(n // 10, 5000)))
+    m = min(m, n - 1)
+    ac = _autocov(x, m)
+    g = ac[: n_direct + 1].copy()
+    if ac[0] <= 0 or m <= n_direct + 3:
+        return g
+    c = ac[n_direct + 1 :]
+    sig = c > 2.0 * ac[0] / np.sqrt(n)
+    if not sig[0]:
+        return g
+    end = int(np.argmin(sig)) if not sig.all() else sig.size
+    if end < 3:
+        return g
+    lags = np.arange(n_direct + 1, n_direct + 1 + end)
+    slope, icpt = np.polyfit(lags, np.log(c[:end]), 1)
+    phi = float(np.exp(slope))
+    if not 0 < phi < 1:
+        phi = min(max(phi, 1e-6), 0.99999)
+    Lcut = int(min(np.ceil(np.log(tail_floor) / np.log(phi)), n - 1))
+    if Lcut <= n_direct:
+        return g
+    tail = np.exp(icpt) * phi ** np.arange(n_direct + 1, Lcut + 1)
+    return np.concatenate([g, tail])
+
+
+def residual_sandwich_meat(A: np.ndarray, W: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, int]:
+    """Meat Σ_i (W_i A_i)ᵀ Γ_i (W_i A_i) of the sandwich covariance with stationary errors.
+
+    Γ_i is the Toeplitz autocovariance of axis i's residual from
+    :func:`residual_autocov_model` (axes assumed mutually uncorrelated); the product is a
+    convolution along time, done by FFT (scipy.signal.fftconvolve), O(P·N log N).
+
+    Parameters
+    ----------
+    A : ndarray, shape (N, 3, P)
+    W : ndarray, shape (N, 3) — row weights
+    e : ndarray, shape (N, 3) — residual, rad/s
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+    L : int — the longest lag used.
+    """
+    from scipy import signal as _signal
+
+    n, _, P = A.shape
+    S = np.zeros((P, P))
+    Lmax = 0
+    for i in range(3):
+        g = residual_autocov_model(e[:, i])
+        L = g.size - 1
+        Lmax = max(Lmax, L)
+        u = A[:, i, :] * W[:, i, None]
+        cols = np.flatnonzero(np.any(u != 0, axis=0))
+        if not cols.size:
+            continue
+        if L == 0:
+            S[np.ix_(cols, cols)] += g[0] * (u[:, cols].T @ u[:, cols])
+            continue
+        ker = np.concatenate([g[::-1], g[1:]])  # lags −L..L
+        v = _signal.fftconvolve(u[:, cols], ker[:, None], mode="full", axes=0)[L : L + n]
+        S[np.ix_(cols, cols)] += u[:, cols].T @ v
+    return (S + S.T) / 2, Lmax
+
+
 # ---------------------------------------------------------------------------- solver
 def _flat(A: np.ndarray, w: np.ndarray) -> np.ndarray:
     """sqrt(w)-scaled design, (N·3, P)."""
@@ -314,33 +417,38 @@ def _flat(A: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _sequential_rank(Aw: np.ndarray, rtol: float) -> tuple[list[int], dict[int, tuple[int, ...]]]:
-    """Columns kept by Gram–Schmidt in the given order; dropped -> the kept columns they
-    are (nearly) spanned by. Aw (M, P), columns equilibrated inside."""
+    """Columns kept in the given order by a rank-revealing QR (no pivoting, so the declared
+    order decides which of two collinear columns is kept).
+
+    |R_pp| of the Householder QR of the column-equilibrated matrix is the norm of column p's
+    part outside the span of columns 0..p−1; below ``rtol`` the column is dropped. Returns
+    the kept indices and, per dropped index, up to 3 kept columns it is (nearly) spanned by.
+    Aw : (M, P).
+    """
     norms = np.linalg.norm(Aw, axis=0)
-    kept: list[int] = []
+    P = Aw.shape[1]
+    good = (norms > 0) & np.isfinite(norms)
+    X = Aw / np.where(good, norms, 1.0)
+    X[:, ~good] = 0.0
+    R = linalg.qr(X, mode="r", check_finite=False)[0]
+    d = np.abs(np.diag(R[:P, :P])) if R.shape[0] >= P else np.concatenate(
+        [np.abs(np.diag(R)), np.zeros(P - R.shape[0])])
+    kept = [p for p in range(P) if good[p] and d[p] >= rtol]
     dropped: dict[int, tuple[int, ...]] = {}
-    Q = np.zeros((Aw.shape[0], 0))
-    for p in range(Aw.shape[1]):
-        if norms[p] == 0 or not np.isfinite(norms[p]):
+    G = X.T @ X
+    for p in range(P):
+        if p in kept:
+            continue
+        if not good[p]:
             dropped[p] = ()
             continue
-        a = Aw[:, p] / norms[p]
-        if Q.shape[1]:
-            coef = Q.T @ a
-            r = a - Q @ coef
-            coef2 = Q.T @ r  # re-orthogonalise (classical GS twice is stable)
-            r = r - Q @ coef2
-        else:
-            r = a
-        rn = float(np.linalg.norm(r))
-        if rn < rtol:
-            # which kept columns span it: least squares of a on kept columns
-            c, *_ = np.linalg.lstsq(Aw[:, kept] / norms[kept], a, rcond=None)
-            big = np.argsort(-np.abs(c))
-            dropped[p] = tuple(kept[j] for j in big[:3] if abs(c[j]) > 1e-3 * np.abs(c).max())
+        ks = [k for k in kept if k < p]
+        if not ks:
+            dropped[p] = ()
             continue
-        kept.append(p)
-        Q = np.hstack([Q, (r / rn)[:, None]])
+        c = linalg.lstsq(G[np.ix_(ks, ks)], G[ks, p])[0]
+        big = np.argsort(-np.abs(c))
+        dropped[p] = tuple(ks[j] for j in big[:3] if abs(c[j]) > 1e-3 * np.abs(c).max())
     return kept, dropped
 
 
@@ -352,6 +460,7 @@ def solve(
     *,
     weights: np.ndarray | None = None,
     stride: int = 1,
+    average: int = 1,
     covariance: str = "auto",
     axis_weighting: bool = True,
     n_blocks: int = 30,
@@ -379,7 +488,11 @@ def solve(
     stride : int
         Use every ``stride``-th sample (downsampling for speed; the covariance is computed
         on the same rows and stays honest through the HAC/block estimator).
-    covariance : {"auto", "ols", "hac", "block"}
+    average : int
+        Fit weighted block means of ``average`` consecutive rows (after ``stride``) instead
+        of the rows: exact for the linear model, keeps nearly all the information of slow
+        regressors and cuts memory/time; residual RMS is still reported on all samples.
+    covariance : {"auto", "ols", "hac", "newey_west", "block"}
         See the module docstring.
     axis_weighting : bool
         Two-step feasible WLS: weight axis i by 1/σ̂_i² from a first unweighted pass.
@@ -392,7 +505,8 @@ def solve(
     plausible : mapping effect -> float, optional
         Overrides of :data:`PLAUSIBLE_MAGNITUDE`.
     hac_bandwidth : float, optional
-        Fixed Bartlett bandwidth (samples after stride); default Andrews' plug-in.
+        Fixed Bartlett bandwidth for ``"newey_west"`` (samples after stride); default
+        Andrews' plug-in.
     min_excitation_snr : float
         For columns built from measured inputs (``noisy_effects``): the RMS of the column's
         part independent of the other columns over its first-difference noise level
@@ -412,8 +526,8 @@ def solve(
         raise GyroInputError(f"lsq: r has shape {r_all.shape}, A has shape {A_all.shape}; expected (N,3) and (N,3,P)")
     if len(names) != P:
         raise GyroInputError(f"lsq: {len(names)} names for {P} columns")
-    if covariance not in ("auto", "ols", "hac", "block"):
-        raise GyroInputError(f"unknown covariance '{covariance}' (auto, ols, hac, block)")
+    if covariance not in ("auto", "ols", "hac", "newey_west", "block"):
+        raise GyroInputError(f"unknown covariance '{covariance}' (auto, ols, hac, newey_west, block)")
     if on_unobservable not in ("drop", "raise"):
         raise GyroInputError(f"on_unobservable must be 'drop' or 'raise', not '{on_unobservable}'")
     stride = max(1, int(stride))
@@ -428,7 +542,21 @@ def solve(
     if idx.size < 2:
         raise GyroInputError("lsq: fewer than 2 samples with non-zero weight")
     r_, A_, w_ = r_all[idx], A_all[idx], w_all[idx]
-    n = idx.size
+    average = max(1, int(average))
+    if average > 1:
+        # weighted block means of `average` consecutive used rows: the linear model holds
+        # exactly for the means, white noise shrinks by sqrt(average)
+        nb = r_.shape[0] // average
+        if nb < 2:
+            raise GyroInputError(f"lsq: average={average} leaves fewer than 2 rows")
+        m = nb * average
+        wb = w_[:m].reshape(nb, average, 3)
+        ws = wb.sum(axis=1)
+        safe = np.where(ws > 0, ws, 1.0)
+        r_ = (r_[:m].reshape(nb, average, 3) * wb).sum(axis=1) / safe
+        A_ = (A_[:m].reshape(nb, average, 3, -1) * wb[..., None]).sum(axis=1) / safe[..., None]
+        w_ = ws / average
+    n = r_.shape[0]
     plaus = dict(PLAUSIBLE_MAGNITUDE)
     plaus.update(plausible or {})
     eff_of = {}
@@ -451,13 +579,14 @@ def solve(
     if noisy_idx and min_excitation_snr > 0:
         Af = _flat(A_, w_)
         drop_noisy = []
+        Gk = Af[:, kept].T @ Af[:, kept]
         for p in noisy_idx:
-            others = [q for q in kept if q != p]
+            j = kept.index(p)
+            oth = [q for q in range(len(kept)) if q != j]
             a = Af[:, p]
-            if others:
-                B = Af[:, others]
-                c, *_ = np.linalg.lstsq(B, a, rcond=None)
-                a = a - B @ c
+            if oth:
+                c = linalg.lstsq(Gk[np.ix_(oth, oth)], Gk[oth, j])[0]
+                a = a - Af[:, [kept[q] for q in oth]] @ c
             R = a.reshape(n, 3)
             exc2 = float(np.mean(R**2))
             noise2 = float(np.mean(np.diff(R, axis=0) ** 2)) / 2.0
@@ -471,11 +600,14 @@ def solve(
         kept = [p for p in kept if p not in drop_noisy]
 
     def _wls(cols: list[int], w: np.ndarray):
-        Aw = _flat(A_[:, :, cols], w)
-        rw = (r_ * np.sqrt(w)).reshape(-1)
-        cn = np.linalg.norm(Aw, axis=0)
+        # normal equations of the column-equilibrated problem (the kept columns passed the
+        # rank test, so cond² stays far from 1/eps)
+        Ac = A_[:, :, cols]
+        G = np.einsum("nip,ni,niq->pq", Ac, w, Ac, optimize=True)
+        b = np.einsum("nip,ni,ni->p", Ac, w, r_, optimize=True)
+        cn = np.sqrt(np.diag(G))
         cn[cn == 0] = 1.0
-        th_s, *_ = linalg.lstsq(Aw / cn, rw, lapack_driver="gelsd")
+        th_s = linalg.solve(G / np.outer(cn, cn), b / cn, assume_a="pos")
         return th_s / cn
 
     sigma = np.ones(3)
@@ -511,8 +643,11 @@ def solve(
             s2 = float(np.sum(ew**2)) / dof
             cov_k = s2 * bread
         else:
-            g = np.einsum("nip,ni->np", Ak, W * e)  # score per sample, (n, k)
+            g = None if kind == "hac" else np.einsum("nip,ni->np", Ak, W * e)  # scores (n, k)
             if kind == "hac":
+                S, L = residual_sandwich_meat(Ak, W, e)
+                S *= n / max(n - k / 3.0, 1.0)  # dof: k parameters over 3 axes
+            elif kind == "newey_west":
                 S, L = long_run_covariance(g, bandwidth=hac_bandwidth)
             else:
                 M = int(max(2, min(n_blocks, n // 2)))
@@ -520,7 +655,8 @@ def solve(
                 Gb = np.stack([g[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
                 Gb = Gb - Gb.mean(axis=0)
                 S = Gb.T @ Gb * (M / (M - 1))
-            S *= (n * 3) / dof  # small-sample correction
+            if kind != "hac":
+                S *= (n * 3) / dof  # small-sample correction
             cov_k = bread @ S @ bread
         se_k = np.sqrt(np.clip(np.diag(cov_k), 0, None))
         # -- parameters whose standard error exceeds their plausible magnitude
@@ -554,8 +690,8 @@ def solve(
             cov[p, p] = np.inf
     stderr = np.sqrt(np.diag(cov))
     resid = r_all - np.einsum("nip,p->ni", A_all, theta)
-    used = resid[idx]
-    rms = np.sqrt(np.sum(w_ * used**2, axis=0) / np.maximum(np.sum(w_, axis=0), 1e-300))
+    used, wu = resid[idx], w_all[idx]
+    rms = np.sqrt(np.sum(wu * used**2, axis=0) / np.maximum(np.sum(wu, axis=0), 1e-300))
     return LsqFit(
         theta=theta,
         names=tuple(names),
