@@ -1,0 +1,83 @@
+"""Tests of experiments.ablation's scoring core (synthetic data; no simulator needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from experiments import ablation as A
+from gyrocore import effects as E
+from gyrocore.attitude import integrate_gyro
+
+
+def _static_case(seed=0, n=6000, rate=200.0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / rate
+    f = np.tile([0.0, 0.0, 9.80665], (n, 1))
+    params = {
+        "bias": {"b_rad_s": np.array([0.01, -0.02, 0.005]), "turn_on_sigma_rad_s": np.zeros(3)},
+        "scale": {"s": np.array([0.01, -0.005, 0.02])},
+        "g_sensitivity": {"h_rad_s_per_m_s2": rng.normal(0, 1e-4, (3, 3))},
+    }
+    inp = E.ModelInputs(t_s=t, omega_S_rad_s=np.zeros((n, 3)), f_S_m_s2=f)
+    noise = rng.normal(0, 1e-3, (n, 3))
+    y = E.deterministic(params, inp) + noise
+    return t, y, noise, params, E.ModelInputs(t_s=t, f_S_m_s2=f)
+
+
+def test_present_effects_and_rows():
+    p = {"bias": {"b_rad_s": np.zeros(3), "turn_on_sigma_rad_s": np.full(3, 1e-3)},
+         "scale": {"s": np.zeros(3)}, "misalignment": {"m_rad": np.full(6, 1e-3)},
+         "arw": {"n_rad_per_sqrt_s": np.full(3, 1e-4)}}
+    assert A.present_effects(p) == ["bias", "misalignment"]  # zero scale is absent, noise is not a correction
+    rows = A.row_names(["bias", "misalignment"])
+    assert rows == ["none", "all", "all but bias", "all but misalignment", "only bias", "only misalignment",
+                    "true params", "floor"]
+    assert A.row_names(["bias"]) == ["none", "all", "true params", "floor"]
+
+
+def test_corrected_gyro_static_removes_all_but_noise():
+    t, y, noise, params, inp = _static_case()
+    still = slice(0, 400)
+    w = A.corrected_gyro(y, inp, params, ["bias", "scale", "g_sensitivity"], still)
+    K = E.k_matrix(params)
+    expect = (noise - noise[still].mean(axis=0)) @ np.linalg.inv(K).T
+    assert np.allclose(w, expect, atol=1e-15)
+    # without "bias": the bias stays in
+    w2 = A.corrected_gyro(y, inp, params, ["scale", "g_sensitivity"], still)
+    assert np.allclose(w2.mean(axis=0), params["bias"]["b_rad_s"] @ np.linalg.inv(K).T, atol=1e-4)  # 4σ/√N≈5e-5
+
+
+def test_score_variants_orders_corrections():
+    t, y, noise, params, inp = _static_case()
+    q = np.tile([1.0, 0, 0, 0], (t.size, 1))
+    still = slice(0, 400)
+    variants = {
+        "none": y,
+        "all": A.corrected_gyro(y, inp, params, ["bias", "scale", "g_sensitivity"], still),
+        "floor": noise,
+    }
+    sc = A.score_variants(t, q, variants, start=400)
+    # none drifts at ~|b + H g| ≈ 0.023 rad/s for 28 s ≈ 37°; all and floor are noise-level:
+    # σθ = 1e-3/√200·√28 ... per axis N√t with N = 1e-3/√200 → 3.7e-4 rad ≈ 0.02°, plus the
+    # still-window mean error σ/√400·28 s ≈ 1.4e-3 rad ≈ 0.08° for "all".
+    assert sc["none"][0].final_error_deg > 20
+    assert sc["all"][0].final_error_deg < 0.5
+    assert sc["floor"][0].final_error_deg < 0.2
+    assert sc["all"][1].shape == (t.size - 400,)
+    # integration starts from the truth at `start`
+    assert sc["floor"][1][0] == 0.0
+
+
+def test_instance_metrics_flattening():
+    from gyrocore.attitude import AttitudeScore
+
+    s = AttitudeScore(1.0, 0.5, 1.2, 0.1, 600.0, 100)
+    f = AttitudeScore(0.1, 0.05, 0.12, 0.01, 600.0, 100)
+    ab = A.InstanceAblation("static", "x", 1, ("bias",), ("bias",), {"none": s, "all": f, "floor": f},
+                            np.linspace(0, 600, len(A.CURVE_FRACTIONS)),
+                            {"none": np.ones(len(A.CURVE_FRACTIONS))})
+    m = A.instance_metrics(ab)
+    assert m["none__final_deg"] == 1.0 and m["all__over_floor"] == 1.0 and m["none__over_floor"] == 10.0
+    assert m["present__bias"] == 1.0 and m["present__scale"] == 0.0
+    assert m["none__e00_deg"] == 1.0
