@@ -183,13 +183,17 @@ class ThermalState:
             self.integ_w = integ
         self.heater_w = min(max(p, 0.0), heater.max_power_w)
 
-    def step(self, t_next_s: float, *, motor_power_w: float = 0.0) -> float:
-        """Advance to ``t_next_s`` (s) with ``motor_power_w`` (W) held; return die temp, °C."""
+    def step(self, t_next_s: float, *, motor_power_w: float = 0.0, ambient_c: float | None = None) -> float:
+        """Advance to ``t_next_s`` (s) with ``motor_power_w`` (W) held; return die temp, °C.
+
+        ``ambient_c`` is the ambient at ``t_next_s`` if the caller has it precomputed (saves
+        an interpolation per step); default: from the spec.
+        """
         spec = self.spec
         h = t_next_s - self.t_s
         if h <= 0:
             raise GyroInputError("thermal step needs increasing times")
-        amb_next = float(spec.ambient_at(np.array([t_next_s]))[0])
+        amb_next = float(spec.ambient_at(np.array([t_next_s]))[0]) if ambient_c is None else float(ambient_c)
         a = math.exp(-h / spec.time_constant_s)
         c1 = 1.0 - spec.time_constant_s * (1.0 - a) / h
         z = spec.motor_c_per_w * motor_power_w

@@ -1,0 +1,456 @@
+"""Closed-loop hover flight of the MuJoCo quadrotor, with the simulated gyro in the rate loop.
+
+Per physics step (``physics_rate_hz``):
+
+1. the rotor aerodynamics are set from the rotors' ACTUAL state: thrust ``c_T Omega^2 (1 +
+   r cos(2 phi + psi_b))`` (axial blade-pass ripple at twice the rotor frequency) and the 2nd
+   imbalance harmonic ``h2 u Omega^2`` (in the rotor plane, turning at 2 Omega); the 1st harmonic is
+   the eccentric mass on each rotor (``models/quadrotor.xml``), i.e. pure MuJoCo dynamics;
+2. ``mj_step``. Its ``sensordata`` is the state at the START of the step (see
+   :mod:`sim.turntable`), so it is logged as sample ``k`` at ``t_k``.
+
+Per gyro sample (every ``m`` physics steps, ``m`` = nearest integer ratio, >= 1; physics is
+stepped at ``m`` x the gyro rate): the truth at ``t_k`` goes to ``gyro.step`` (the synthetic
+MEMS gyro, or :class:`PerfectGyro`), its output through ``pipeline.step`` (calibration + filter),
+into the :class:`sim.controller.CascadedController`, whose rotor speed commands apply from the
+next physics step: one physics step of computation delay (1 ms at 1 kHz), as on a flight
+controller that runs the loop right after the gyro sample. The attitude/position loops run at
+250 Hz (:class:`sim.controller.CascadedController`), the rate loop on every gyro sample.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Protocol, Sequence
+
+import mujoco
+import numpy as np
+from scipy import signal
+
+from gyrocore.errors import GyroInputError
+
+from .controller import CascadedController, ControllerGains, Manoeuvre, QuadParams
+from .paths import QUADROTOR_XML, model_path
+from .thermal import ThermalSpec, ThermalState, simulate_temperature
+from .truth import Truth
+from .turntable import physics_steps_per_sample
+
+__all__ = [
+    "GyroLike",
+    "PerfectGyro",
+    "VibrationSpec",
+    "FlightLog",
+    "fly_hover",
+    "load_quadrotor_model",
+    "hover_bare_step_rate",
+]
+
+_IMBALANCE_RADIUS_M = 0.01  # radius of the eccentric masses in models/quadrotor.xml
+
+
+class GyroLike(Protocol):
+    """What ``fly_hover`` needs of a gyro: ``sim.gyro.SyntheticGyro(...).stream(n)`` has it."""
+
+    def step(self, k: int, t_s: float, omega_S: np.ndarray, f_S: np.ndarray, temp_c: float) -> np.ndarray: ...
+
+
+class PerfectGyro:
+    """A gyro without errors: returns the true rate (same protocol as the synthetic gyro stream)."""
+
+    def step(self, k: int, t_s: float, omega_S: np.ndarray, f_S: np.ndarray, temp_c: float) -> np.ndarray:
+        return np.array(omega_S, dtype=float)
+
+
+@dataclass(frozen=True)
+class VibrationSpec:
+    """Rotor vibration sources (all reach the IMU only through the rigid-body physics).
+
+    Parameters
+    ----------
+    imbalance_kg_m : float
+        Rotating imbalance u = m r of each rotor, kg m. Force u Omega^2 at the rotor frequency:
+        2e-6 kg m (20 mg at the 10 cm prop radius, a poorly balanced hobby prop; ISO 1940 G6.3
+        for a 30 g rotor at 5300 rpm is 3.4e-7) gives 0.62 N per rotor in hover.
+    harmonic2_ratio : float
+        In-plane force at twice the rotor frequency, relative to the imbalance force.
+    blade_pass_ripple : float
+        Axial thrust ripple at the blade-pass frequency (2 blades: 2 x rotor), fraction of thrust.
+    """
+
+    imbalance_kg_m: float = 2e-6
+    harmonic2_ratio: float = 0.3
+    blade_pass_ripple: float = 0.02
+
+    def __post_init__(self) -> None:
+        if min(self.imbalance_kg_m, self.harmonic2_ratio, self.blade_pass_ripple) < 0:
+            raise GyroInputError("vibration amplitudes must be >= 0")
+
+
+NO_VIBRATION = VibrationSpec(imbalance_kg_m=0.0, harmonic2_ratio=0.0, blade_pass_ripple=0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class FlightLog:
+    """What the flight did, at the gyro sample times.
+
+    Parameters
+    ----------
+    t_s : ndarray (N,)
+        Time, s.
+    q_WB_wxyz : ndarray (N, 4)
+        True attitude, body to world.
+    q_sp_wxyz : ndarray (N, 4)
+        Commanded attitude (set point).
+    pos_W_m, vel_W_m_s : ndarray (N, 3)
+        True position and velocity, world.
+    pos_sp_W_m : ndarray (3,)
+        Position set point.
+    rate_sp_rad_s : ndarray (N, 3)
+        Rate set point from the attitude loop, body.
+    omega_true_rad_s : ndarray (N, 3)
+        True body rate (= Truth.omega_S_rad_s; S = B).
+    gyro_meas_rad_s : ndarray (N, 3)
+        The gyro as measured (output of ``gyro.step``).
+    gyro_filt_rad_s : ndarray (N, 3)
+        After the pipeline: what the rate loop used.
+    motor_thrust_cmd_n : ndarray (N, 4)
+        Rotor thrust commands from the mixer, N.
+    rotor_speed_rad_s : ndarray (N, 4)
+        Actual rotor speeds (signed), rad/s.
+    meta : dict
+    """
+
+    t_s: np.ndarray
+    q_WB_wxyz: np.ndarray
+    q_sp_wxyz: np.ndarray
+    pos_W_m: np.ndarray
+    vel_W_m_s: np.ndarray
+    pos_sp_W_m: np.ndarray
+    rate_sp_rad_s: np.ndarray
+    omega_true_rad_s: np.ndarray
+    gyro_meas_rad_s: np.ndarray
+    gyro_filt_rad_s: np.ndarray
+    motor_thrust_cmd_n: np.ndarray
+    rotor_speed_rad_s: np.ndarray
+    meta: dict
+
+    @property
+    def rate_hz(self) -> float:
+        return float(1.0 / (self.t_s[1] - self.t_s[0]))
+
+    def attitude_error_rad(self) -> np.ndarray:
+        """Angle between true and commanded attitude, rad, shape (N,)."""
+        d = np.abs(np.einsum("ij,ij->i", self.q_WB_wxyz, self.q_sp_wxyz))
+        return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+
+    def tilt_rad(self) -> np.ndarray:
+        """Tilt of the body z axis from the vertical, rad, shape (N,)."""
+        q = self.q_WB_wxyz
+        r33 = 1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2)
+        return np.arccos(np.clip(r33, -1.0, 1.0))
+
+    def altitude_error_m(self) -> np.ndarray:
+        """Height minus the set point, m, shape (N,)."""
+        return self.pos_W_m[:, 2] - self.pos_sp_W_m[2]
+
+    def motor_noise_n(self, *, highpass_hz: float = 20.0, t_from_s: float = 0.0) -> float:
+        """RMS of the motor thrust commands above ``highpass_hz`` (mean over motors), N.
+
+        The control action itself lives below a few Hz; what is above ``highpass_hz`` is gyro
+        noise and vibration passed to the motors (4th-order Butterworth, zero-phase).
+        """
+        sos = signal.butter(4, highpass_hz, btype="highpass", fs=self.rate_hz, output="sos")
+        x = self.motor_thrust_cmd_n[self.t_s >= t_from_s]
+        hp = signal.sosfiltfilt(sos, x, axis=0)
+        return float(np.sqrt(np.mean(hp**2)))
+
+    def gyro_delay_s(self, *, band_hz: tuple[float, float] = (0.2, 15.0)) -> float:
+        """Delay of the filtered gyro behind the true rate in the flight band, s.
+
+        Both are band-passed (zero-phase) to ``band_hz`` and the lag of the cross-correlation
+        peak is refined by a parabola through the three best lags.
+        """
+        fs = self.rate_hz
+        sos = signal.butter(2, band_hz, btype="bandpass", fs=fs, output="sos")
+        a = signal.sosfiltfilt(sos, self.omega_true_rad_s, axis=0).ravel(order="F")
+        b = signal.sosfiltfilt(sos, self.gyro_filt_rad_s, axis=0).ravel(order="F")
+        max_lag = int(0.1 * fs)
+        lags = np.arange(-max_lag, max_lag + 1)
+        c = np.array([np.dot(a[max(0, -l): a.size - max(0, l)], b[max(0, l): b.size - max(0, -l)]) for l in lags])
+        i = int(np.argmax(c))
+        frac = 0.0
+        if 0 < i < c.size - 1:
+            den = c[i - 1] - 2 * c[i] + c[i + 1]
+            frac = 0.5 * (c[i - 1] - c[i + 1]) / den if den != 0 else 0.0
+        return float((lags[i] + frac) / fs)
+
+
+def load_quadrotor_model(timestep_s: float = 1e-3) -> tuple[mujoco.MjModel, mujoco.MjData]:
+    """Compile ``models/quadrotor.xml`` with the given physics step (s)."""
+    model = mujoco.MjModel.from_xml_path(str(model_path(QUADROTOR_XML)))
+    model.opt.timestep = timestep_s
+    return model, mujoco.MjData(model)
+
+
+def hover_bare_step_rate(n_steps: int = 20_000) -> float:
+    """Simulated seconds per wall second of a bare ``mj_step`` loop on the quadrotor (benchmark)."""
+    import time
+
+    model, data = load_quadrotor_model()
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    step = mujoco.mj_step
+    t0 = time.perf_counter()
+    for _ in range(n_steps):
+        step(model, data)
+    return n_steps * model.opt.timestep / (time.perf_counter() - t0)
+
+
+def fly_hover(
+    *,
+    duration_s: float,
+    gyro: GyroLike | None = None,
+    pipeline=None,
+    manoeuvres: Sequence[Manoeuvre] = (),
+    vibration: bool | VibrationSpec = True,
+    physics_rate_hz: float = 1000.0,
+    gyro_rate_hz: float = 1000.0,
+    thermal: ThermalSpec | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    gains: ControllerGains | None = None,
+) -> tuple[Truth, FlightLog]:
+    """Fly the quadrotor in closed loop: hover at 1 m (plus manoeuvres) for ``duration_s``.
+
+    Parameters
+    ----------
+    duration_s : float
+        Flight time, s.
+    gyro : object with ``.step(k, t_s, omega_S (3,), f_S (3,), temp_c) -> (3,)``, optional
+        The simulated gyro in the loop (``sim.gyro.SyntheticGyro(...).stream(n)``, or the
+        ``SyntheticGyro`` itself: its stream is then opened here over the flight's time base
+        and temperature); default :class:`PerfectGyro`. Called once per gyro sample, k = 0, 1, ...
+    pipeline : object with ``.step(x (3,)) -> (3,)`` or a callable, optional
+        Calibration + filter between the gyro and the rate loop (e.g.
+        ``gyrocore.filters.Pipeline``); None = the raw gyro.
+    manoeuvres : sequence of Manoeuvre
+        Attitude steps on top of hover (see :func:`sim.controller.small_steps`).
+    vibration : bool or VibrationSpec
+        True = :class:`VibrationSpec` defaults, False = none.
+    physics_rate_hz, gyro_rate_hz : float
+        Requested physics rate and gyro output rate, Hz; physics runs at the nearest integer
+        multiple (>= 1) of the gyro rate (see the module docstring).
+    thermal : ThermalSpec, optional
+        Die temperature; with ``motor_c_per_w`` the rotor power ``c_M Omega^3`` heats it.
+        Default constant 25 °C.
+    seed : int
+        Seeds the rotor phases (imbalance, harmonic and blade-pass phases).
+    progress : bool
+        tqdm progress bar.
+    gains : ControllerGains, optional
+
+    Returns
+    -------
+    (Truth, FlightLog)
+        Truth at the gyro samples (rate of S in S, specific force in S, attitude S->W,
+        temperature, ...) and the flight log.
+    """
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        raise GyroInputError(f"duration_s must be > 0, got {duration_s}")
+    vib = VibrationSpec() if vibration is True else (NO_VIBRATION if vibration is False else vibration)
+    if not isinstance(vib, VibrationSpec):
+        raise GyroInputError("vibration must be True, False or a VibrationSpec")
+    m_per = physics_steps_per_sample(gyro_rate_hz, physics_rate_hz)
+    phys_hz = gyro_rate_hz * m_per
+    dt = 1.0 / phys_hz
+    dt_c = 1.0 / gyro_rate_hz
+    n = int(math.floor(duration_s * gyro_rate_hz + 1e-9))
+    if n < 2:
+        raise GyroInputError("flight shorter than two gyro samples")
+
+    model, data = load_quadrotor_model(dt)
+    qp = QuadParams()
+    gains = gains or ControllerGains()
+    # --- vibration set-up: imbalance masses, phases -------------------------------------------
+    for i in range(1, 5):
+        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_imbalance")
+        model.body_mass[bid] = vib.imbalance_kg_m / _IMBALANCE_RADIUS_M
+    mujoco.mj_setConst(model, data)
+    ss = np.random.SeedSequence(seed)
+    rng_rotor, rng_h2, rng_bp = (np.random.default_rng(s) for s in ss.spawn(3))
+    phi0 = rng_rotor.uniform(0.0, 2 * math.pi, 4)
+    psi_h2 = rng_h2.uniform(0.0, 2 * math.pi, 4)
+    psi_bp = rng_bp.uniform(0.0, 2 * math.pi, 4)
+    mujoco.mj_resetDataKeyframe(model, data, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "hover"))
+    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "rotor_1_spin")
+    rq0, rv0 = int(model.jnt_qposadr[jid]), int(model.jnt_dofadr[jid])
+    data.qpos[rq0 : rq0 + 4] = phi0
+    mujoco.mj_forward(model, data)
+    names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, i) for i in range(model.nu)]
+    expect = [f"thrust_{i}" for i in range(1, 5)] + [f"vib2_{i}_{a}" for i in range(1, 5) for a in "xy"] + [f"motor_{i}" for i in range(1, 5)]
+    if names != expect:
+        raise GyroInputError("quadrotor.xml actuator order changed (thrust_1..4, vib2_*_x/y, motor_1..4)")
+
+    def sens(name: str) -> int:
+        return int(model.sensor_adr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)])
+
+    s_gyro, s_acc, s_q, s_pos, s_vel = (sens(x) for x in ("imu_gyro", "imu_accel", "imu_quat", "body_pos", "body_linvel"))
+    nsd = model.nsensordata
+
+    # --- per-step constants (Python floats: cheaper than numpy for 4 rotors) ----------------
+    ct = qp.c_t_n_per_rad2_s2
+    r_bp = vib.blade_pass_ripple
+    h2u = vib.harmonic2_ratio * vib.imbalance_kg_m
+    # per rotor: c_T, ripple*cos(psi_b), ripple*sin(psi_b), h2*u*cos(psi_h), h2*u*sin(psi_h)
+    rotor_k = tuple(
+        (ct, r_bp * math.cos(pb), r_bp * math.sin(pb), h2u * math.cos(ph), h2u * math.sin(ph))
+        for pb, ph in zip(psi_bp, psi_h2)
+    )
+    spin = qp.spin
+    ff = qp.kappa_m / qp.motor_kv_n_m_s
+    kappa = qp.kappa_m
+    qpos, qvel, ctrl = data.qpos, data.qvel, data.ctrl
+    rq1, rv1 = rq0 + 4, rv0 + 4
+    step = mujoco.mj_step
+    cos, sin, sqrt = math.cos, math.sin, math.sqrt
+
+    def rotor_aero(om: list) -> list:
+        """Rotor forces from the rotors' state now: thrust_1..4 then vib2_i_x, vib2_i_y.
+
+        Thrust c_T w^2 (1 + r cos(2 phi + psi_b)); the 2nd-harmonic force h2 u w^2 at angle
+        phi + psi_h in the rotor frame, i.e. turning at 2 Omega in the body frame.
+        """
+        thr = []
+        v2 = []
+        for p, w, (c_t, bc, bs, hc, hs) in zip(qpos[rq0:rq1].tolist(), om, rotor_k):
+            c = cos(p)
+            s = sin(p)
+            w2 = w * w
+            thr.append(c_t * w2 * (1.0 + bc * (c * c - s * s) - bs * 2.0 * s * c))
+            v2 += (w2 * (c * hc - s * hs), w2 * (s * hc + c * hs))
+        return thr + v2
+
+    # --- gyro, pipeline, thermal, controller ----------------------------------------------------
+    gyro = gyro if gyro is not None else PerfectGyro()
+    if pipeline is None:
+        filt = None
+    elif hasattr(pipeline, "step"):
+        filt = pipeline.step
+    elif callable(pipeline):
+        filt = pipeline
+    else:
+        raise GyroInputError("pipeline must have .step(x) or be callable")
+    th_spec = thermal if thermal is not None else ThermalSpec.constant(25.0)
+    t_s = np.arange(n) * dt_c
+    t_l = t_s.tolist()
+    stream_thermal = th_spec.heater is not None or th_spec.motor_c_per_w != 0.0
+    if stream_thermal:
+        amb = th_spec.ambient_at(t_s).tolist()
+        th_state = ThermalState.start(th_spec, 0.0)
+        temp = np.empty(n)
+        temp_l = None
+    else:
+        temp = simulate_temperature(t_s, th_spec)
+        temp_l = temp.tolist()
+
+    if not hasattr(gyro, "step") and hasattr(gyro, "stream"):
+        # a sim.gyro.SyntheticGyro: open its per-sample stream over this flight's time base
+        gyro = gyro.stream(n, t_s=t_s, temp_c=None if stream_thermal else temp)
+    if not hasattr(gyro, "step"):
+        raise GyroInputError("gyro must have .step(k, t_s, omega_S, f_S, temp_c) (or .stream(n))")
+    gstep = gyro.step
+    ctl = CascadedController(qp, gains, dt_s=dt_c, pos_sp_W_m=tuple(data.qpos[0:3]), yaw_sp_rad=0.0, manoeuvres=manoeuvres)
+    outer_every = ctl.outer_every
+    sd_log = np.empty((n, nsd))
+    rec = np.empty((n, 14))  # gyro meas (3), gyro filtered (3), thrust cmd (4), rotor speed (4)
+    n_outer = (n + outer_every - 1) // outer_every
+    outer_log = np.empty((n_outer, 7))  # q_sp (4), rate_sp (3)
+    sensordata = data.sensordata
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n, unit="sample", desc="hover", leave=False, mininterval=0.5)
+    sg1, sa1, sq1, sp1, sv1 = s_gyro + 3, s_acc + 3, s_q + 4, s_pos + 3, s_vel + 3
+    update_rate = ctl.update_rate
+    extra_steps = range(m_per - 1)
+    mot_cmd = data.ctrl[12:16].tolist()  # hover keyframe's motor commands until the first update
+    for k in range(n):
+        om = qvel[rv0:rv1].tolist()
+        ctrl[:] = rotor_aero(om) + mot_cmd
+        step(model, data)
+        row = sd_log[k]
+        row[:] = sensordata  # the state at t_k (start of this step)
+        if stream_thermal:
+            tc = th_state.temp_c
+            temp[k] = tc
+        else:
+            tc = temp_l[k]
+        tk = t_l[k]
+        g = gstep(k, tk, row[s_gyro:sg1], row[s_acc:sa1], tc)
+        y = filt(g) if filt is not None else g
+        if k % outer_every == 0:
+            rl = row.tolist()
+            ctl.update_outer(tk, rl[s_pos:sp1], rl[s_vel:sv1], rl[s_q:sq1])
+            outer_log[k // outer_every] = ctl.q_sp + ctl.rate_sp
+        gl = g.tolist()
+        yl = y.tolist()
+        thrust = update_rate(yl[0], yl[1], yl[2])
+        rec[k] = gl + yl + thrust + om
+        mot_cmd = [sp * (sqrt(t / ct) + ff * t) for sp, t in zip(spin, thrust)]
+        if stream_thermal and k + 1 < n:
+            p_w = kappa * ct * sum(abs(w) ** 3 for w in om)
+            th_state.step(t_l[k + 1], motor_power_w=p_w, ambient_c=amb[k + 1])
+        for _ in extra_steps:
+            ctrl[:] = rotor_aero(qvel[rv0:rv1].tolist()) + mot_cmd
+            step(model, data)
+        if bar is not None and (k & 1023) == 0:
+            bar.update(min(1024, n - bar.n))
+    if bar is not None:
+        bar.close()
+    idx_outer = np.arange(n) // outer_every
+    qsp_log = outer_log[idx_outer, 0:4]
+    rsp_log = outer_log[idx_outer, 4:7]
+    meas = rec[:, 0:3]
+    filt_log = rec[:, 3:6]
+    thr_log = rec[:, 6:10]
+    rotor_log = rec[:, 10:14]
+
+    omega = sd_log[:, s_gyro : s_gyro + 3].copy()
+    meta = {
+        "model": QUADROTOR_XML,
+        "runner": "sim.quadrotor.fly_hover",
+        "physics_rate_hz": f"{phys_hz:.10g}",
+        "gyro_rate_hz": f"{gyro_rate_hz:.10g}",
+        "seed": str(seed),
+        "vibration": f"imbalance_kg_m={vib.imbalance_kg_m:g},harmonic2_ratio={vib.harmonic2_ratio:g},blade_pass_ripple={vib.blade_pass_ripple:g}",
+        "manoeuvres": str(len(tuple(manoeuvres))),
+        "gyro": type(gyro).__name__,
+        "pipeline": type(pipeline).__name__ if pipeline is not None else "none",
+    }
+    truth = Truth(
+        t_s=t_s,
+        omega_S_rad_s=omega,
+        f_S_m_s2=sd_log[:, s_acc : s_acc + 3].copy(),
+        q_SW_wxyz=sd_log[:, s_q : s_q + 4].copy(),
+        temp_c=temp,
+        t_since_power_up_s=t_s.copy(),
+        power_up_index=np.zeros(n, dtype=int),
+        meta=meta,
+    )
+    log = FlightLog(
+        t_s=t_s,
+        q_WB_wxyz=sd_log[:, s_q : s_q + 4].copy(),
+        q_sp_wxyz=qsp_log,
+        pos_W_m=sd_log[:, s_pos : s_pos + 3].copy(),
+        vel_W_m_s=sd_log[:, s_vel : s_vel + 3].copy(),
+        pos_sp_W_m=np.array(ctl.pos_sp),
+        rate_sp_rad_s=rsp_log,
+        omega_true_rad_s=omega,
+        gyro_meas_rad_s=meas,
+        gyro_filt_rad_s=filt_log,
+        motor_thrust_cmd_n=thr_log,
+        rotor_speed_rad_s=rotor_log,
+        meta=dict(meta),
+    )
+    return truth, log
