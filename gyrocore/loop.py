@@ -14,8 +14,11 @@ Start from the declared effects, fit them jointly to the residual of
 2. **Select with false-discovery control.** Forward step-down selection with Holm thresholds:
    at a step with K testable candidates the smallest p-value must be below α/K (Holm 1979),
    so the family-wise error over candidates and steps stays ≤ α. The winner must also be of
-   practical size: it must cut the windowed residual RMS by ``min_rms_reduction`` or the
-   attitude error by ``min_attitude_reduction``.
+   practical size: it must cut the window residual RMS by ``min_rms_reduction`` or the
+   attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: fitted on
+   one half of the recording (by time) it must lower the window residual RMS of the other
+   half (2-fold; in-sample when there are fewer than 40 windows). This guards against HAC's
+   optimism on short, strongly coloured residuals (an optical reference, bias instability).
 3. **Collinearity.** Every other candidate that also passes is tested again in the presence of
    the winner and vice versa; if neither adds anything once the other is in (e.g.
    ``bias_ramp`` vs ``bias_thermal`` when the temperature rises linearly in time) the step
@@ -132,6 +135,9 @@ class Evidence:
         Bartlett bandwidth in windows.
     ambiguous_with : tuple of str
         Candidates that explain the same residual (see module docstring).
+    cv_rms_reduction : float
+        1 − RMS(after)/RMS(before) of the out-of-sample window residual (2-fold by time: each
+        half predicted from a fit on the other); the practical-significance criterion.
     """
 
     statistic: float
@@ -147,6 +153,7 @@ class Evidence:
     attitude_reduction: float
     hac_bandwidth: float
     ambiguous_with: tuple[str, ...] = ()
+    cv_rms_reduction: float = float("nan")
 
     @property
     def significant(self) -> bool:
@@ -272,6 +279,7 @@ class LoopResult:
                 "std_errors": e.std_errors, "unobservable": list(e.unobservable),
                 "rms_reduction": e.rms_reduction, "attitude_reduction": e.attitude_reduction,
                 "hac_bandwidth_windows": e.hac_bandwidth, "ambiguous_with": list(e.ambiguous_with),
+                "cv_rms_reduction": e.cv_rms_reduction,
             }
 
         return {
@@ -333,8 +341,9 @@ class _Model:
         if not effects:
             return None, y.copy()
         X, names, slices = self.design(effects)
-        f = lsq.solve(y, X, names, slices, covariance="hac", on_unobservable="drop",
-                      min_excitation_snr=0.0)
+        with np.errstate(invalid="ignore"):  # a negative HAC variance comes back as NaN = not testable
+            f = lsq.solve(y, X, names, slices, covariance="hac", on_unobservable="drop",
+                          min_excitation_snr=0.0)
         return f, f.residual_rad_s
 
     def correction(self, fit, effects: Sequence[str]) -> np.ndarray:
@@ -347,6 +356,29 @@ class _Model:
             _, A = self.res.sample_design(e, order=self.orders.get(e, 1))
             c += np.einsum("nip,p->ni", A, th)
         return c
+
+
+def _cv_rms(y: np.ndarray, X: np.ndarray, *, min_windows: int = 40) -> float:
+    """Out-of-sample RMS of the window residual, 2-fold by time (first half ↔ second half).
+
+    Each half is predicted by the ordinary least-squares fit on the other half. With fewer
+    than ``min_windows`` windows the in-sample RMS is returned. y (M, 3), X (M, 3, P).
+    """
+    M = y.shape[0]
+    if X.shape[2] == 0:
+        return _rms(y)
+    if M < min_windows:
+        th, *_ = np.linalg.lstsq(X.reshape(-1, X.shape[2]), y.reshape(-1), rcond=None)
+        return _rms(y - np.einsum("mip,p->mi", X, th))
+    h = M // 2
+    out = []
+    for tr, te in ((slice(0, h), slice(h, M)), (slice(h, M), slice(0, h))):
+        A = X[tr].reshape(-1, X.shape[2])
+        cn = np.linalg.norm(A, axis=0)
+        cn[cn == 0] = 1.0
+        th, *_ = np.linalg.lstsq(A / cn, y[tr].reshape(-1), rcond=1e-10)
+        out.append(y[te] - np.einsum("mip,p->mi", X[te], th / cn))
+    return _rms(np.concatenate(out))
 
 
 def _rms(x: np.ndarray) -> float:
@@ -428,7 +460,8 @@ def _remaining(res: Residual, e: np.ndarray) -> Remaining:
                      allan_tau_s=np.asarray(taus), allan_adev_rad_s=adev, allan_slope=np.asarray(slope))
 
 
-def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rms_before: float):
+def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rms_before: float,
+          cv_before: float | None = None):
     """Fit current + cand, Wald-test cand's observable parameters. Returns (Evidence, fit)."""
     added = _with_companion(current, cand)
     fit, e = model.fit(list(current) + added)
@@ -455,12 +488,15 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
     else:
         F, p, lp = 0.0, 1.0, 0.0
     rms_after = _rms(e)
+    Xw, _, _ = model.design(list(current) + added)
+    cv_red = 1.0 - _cv_rms(model.res.y_rad_s, Xw) / cv_before if cv_before and cv_before > 0 else 0.0
     ev = Evidence(
         statistic=F, df1=q, df2=df2, p_value=p, log10_p=lp, threshold=threshold,
         params={n: float(fit.theta[p_]) for n, p_ in zip(names, cols)},
         std_errors={n: float(fit.stderr[p_]) for n, p_ in zip(names, cols)},
         unobservable=unobs,
         rms_reduction=1.0 - rms_after / rms_before if rms_before > 0 else 0.0,
+        cv_rms_reduction=cv_red,
         attitude_reduction=float("nan"),
         hac_bandwidth=float(fit.hac_bandwidth),
     )
@@ -572,7 +608,8 @@ def loop_residual(
         remaining = [c for c in cands if c not in model_effects]
         if not remaining:
             break
-        trial = {c: _test(model, model_effects, c, 0.0, rms_cur) for c in remaining}
+        cv_cur = _cv_rms(res.y_rad_s, model.design(model_effects)[0])
+        trial = {c: _test(model, model_effects, c, 0.0, rms_cur, cv_cur) for c in remaining}
         testable = [c for c in remaining if trial[c][0].df1 > 0]
         for c in remaining:
             if c not in testable:
@@ -589,8 +626,12 @@ def loop_residual(
                 att_red = 1.0 - att / att_cur if att_cur > 0 else float("nan")
             evs[c] = Evidence(**{**ev.__dict__, "threshold": thr, "attitude_reduction": att_red})
         def practical(ev: Evidence) -> bool:
-            return ev.rms_reduction >= min_rms_reduction or (
+            # out of sample (2-fold by time): an effect fitted to coloured noise does not
+            # predict the other half of the recording; and of a size that matters, in the
+            # residual or in the attitude
+            size = ev.rms_reduction >= min_rms_reduction or (
                 np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
+            return ev.cv_rms_reduction > 0 and size
         sig = [c for c in testable if evs[c].p_value < thr and practical(evs[c])]
         last_tests = evs
         if not sig:
@@ -681,8 +722,9 @@ def run_loop(
     thermal_order : int
         Polynomial order of the thermal candidates.
     min_rms_reduction, min_attitude_reduction : float
-        Practical significance: a winner must cut the window RMS or the attitude error by at
-        least these fractions.
+        Practical significance: a winner must cut the window residual RMS or the attitude
+        error by at least these fractions, and must predict the other half of the recording
+        (see the module docstring).
     max_steps : int
         At most this many effects are added.
 

@@ -44,7 +44,7 @@ def report_text(result) -> str:
         e = s.evidence
         lines.append(
             f"step {k}: {s.effect}  F = {e.statistic:.4g} (df {e.df1}, {e.df2}), log10 p = {e.log10_p:.3g} "
-            f"< log10 threshold {math.log10(e.threshold):.3g}; residual RMS {_fmt(s.residual_rms_before_rad_s, '', D)} -> "
+            f"< log10 threshold {math.log10(e.threshold):.3g}, out-of-sample RMS {-100 * e.cv_rms_reduction:+.2g} %; residual RMS {_fmt(s.residual_rms_before_rad_s, '', D)} -> "
             f"{_fmt(s.residual_rms_after_rad_s, ' deg/s', D)}, attitude {_fmt(s.attitude_error_before_deg)} -> "
             f"{_fmt(s.attitude_error_after_deg, ' deg')}"
         )
@@ -55,7 +55,7 @@ def report_text(result) -> str:
     if result.tested:
         top = sorted(result.tested.items(), key=lambda kv: kv[1].log10_p)[:4]
         lines.append("strongest not taken: " + "; ".join(
-            f"{c} (log10 p {ev.log10_p:.2g}, threshold {math.log10(ev.threshold):.2g}, RMS -{100 * ev.rms_reduction:.2g} %)"
+            f"{c} (log10 p {ev.log10_p:.2g}, threshold {math.log10(ev.threshold):.2g}, out-of-sample RMS {-100 * ev.cv_rms_reduction:+.2g} %)"
             for c, ev in top))
     if result.untestable:
         lines.append("not testable: " + "; ".join(f"{c}: {why}" for c, why in result.untestable.items()))
@@ -87,7 +87,8 @@ def report_text(result) -> str:
               help="Polynomial order of the thermal candidates.")
 @click.option("--min-rms-reduction", type=float, default=0.005, show_default=True,
               help="Practical significance: fraction of the residual RMS a new effect must remove "
-                   "(or --min-attitude-reduction of the attitude error).")
+                   "(or --min-attitude-reduction of the attitude error); it must also predict the other half "
+                   "of the recording (2-fold by time).")
 @click.option("--min-attitude-reduction", type=float, default=0.05, show_default=True)
 @click.option("--plot-dir", type=click.Path(path_type=str), default=None,
               help="Write residual-vs-regressor plots (before/after) per found effect here.")
