@@ -50,7 +50,7 @@ from gyrocore.effects import (
     output_stage,
     validate_params,
 )
-from gyrocore.errors import GyroInputError, warn_repair
+from gyrocore.errors import GyroInputError
 
 from . import noise as _noise
 from .presets import SensorSpec, load_preset
@@ -144,6 +144,9 @@ class SyntheticGyro:
     seed : int
         Unit seed (>= 0): the instance parameters, the turn-on biases and the noise
         realisations all derive from it, each effect on its own stream.
+    run : int
+        Run index of this unit (>= 0): run r > 0 is another session of the same unit (same
+        instance parameters, fresh turn-on biases and noise; stream keys get ``/run<r>``).
     without : iterable of str
         Effects to switch off (catalogue names).
     overrides : mapping
@@ -171,6 +174,7 @@ class SyntheticGyro:
         seed: int,
         without: Iterable[str] = (),
         overrides: Mapping[str, Mapping[str, object]] | None = None,
+        run: int = 0,
     ) -> None:
         self.spec = load_preset(spec)
         self.rate_hz = float(self.spec.rate_hz if rate_hz is None else rate_hz)
@@ -179,6 +183,11 @@ class SyntheticGyro:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
         self.seed = int(seed)
+        if isinstance(run, bool) or not isinstance(run, (int, np.integer)) or run < 0:
+            raise GyroInputError(f"run must be an integer >= 0, got {run!r}")
+        self.run = int(run)
+        #: notes on adjustments made to the preset (e.g. the DLPF moved below Nyquist)
+        self.notes: list[str] = []
         without = check_effect_names(list(without))
         overrides = dict(overrides or {})
         check_effect_names(list(overrides))
@@ -198,14 +207,18 @@ class SyntheticGyro:
         if "lowpass" in params and "lowpass" not in overrides:
             fc = float(params["lowpass"]["bandwidth_hz"])
             if fc >= _LOWPASS_MAX_FRACTION * self.rate_hz:
+                # as the chips' DLPF tables do when the ODR is lowered: bandwidth ≈ ODR/4
                 new = _LOWPASS_REPAIR_FRACTION * self.rate_hz
-                warn_repair(f"{self.spec.name}: lowpass {fc:g} Hz is too high for {self.rate_hz:g} Hz output; using {new:g} Hz")
+                self.notes.append(f"lowpass {fc:g} Hz is above 0.45 x the {self.rate_hz:g} Hz output rate; set to {new:g} Hz (rate/4)")
                 params["lowpass"] = {"bandwidth_hz": np.asarray(new)}
         self.params = validate_params({e: params[e] for e in EFFECTS if e in params})
         self.overridden = tuple(e for e in EFFECTS if e in overrides)
         self.without = tuple(without)
 
     # ------------------------------------------------------------------ pieces
+    def _key(self, key: str) -> str:
+        return key if self.run == 0 else f"{key}/run{self.run}"
+
     @property
     def effects(self) -> tuple[str, ...]:
         """Active effects, catalogue order."""
@@ -217,7 +230,7 @@ class SyntheticGyro:
             return np.zeros(3)
         pd = self.params["bias"]
         sigma = np.asarray(pd.get("turn_on_sigma_rad_s", np.zeros(3)), float)
-        z = _noise.effect_rng(self.seed, f"turn_on/{int(index)}").standard_normal(3)
+        z = _noise.effect_rng(self.seed, self._key(f"turn_on/{int(index)}")).standard_normal(3)
         return pd["b_rad_s"] + z * sigma
 
     def noise(self, n_samples: int) -> tuple[np.ndarray, dict[str, dict[str, np.ndarray]]]:
@@ -234,7 +247,7 @@ class SyntheticGyro:
             if eff not in self.params:
                 continue
             pd = self.params[eff]
-            rng = _noise.effect_rng(self.seed, f"noise/{eff}")
+            rng = _noise.effect_rng(self.seed, self._key(f"noise/{eff}"))
             if eff == "arw":
                 x = _noise.white_rate_noise(rng, n, rate_hz=r, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"])
             elif eff == "bias_instability":

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gyrocore.effects import EFFECTS, EARTH_RATE_RAD_S
-from gyrocore.errors import GyroInputError, RepairWarning
+from gyrocore.errors import GyroInputError
 from sim.gyro import SyntheticGyro
 from sim.truth import Truth
 
@@ -329,7 +329,18 @@ def test_overrides_and_errors():
         SyntheticGyro("icm42688p", seed=0).measure(make_truth(100, 200.0))
 
 
-def test_lowpass_repaired_at_low_rate():
-    with pytest.warns(RepairWarning):
-        g = SyntheticGyro("icm42688p", rate_hz=200.0, seed=0)
+def test_lowpass_moved_below_nyquist_at_low_rate():
+    g = SyntheticGyro("icm42688p", rate_hz=200.0, seed=0)
     assert float(g.params["lowpass"]["bandwidth_hz"]) == pytest.approx(50.0)
+    assert g.notes and "lowpass" in g.notes[0]
+
+
+def test_run_is_a_new_session_of_the_same_unit():
+    tr = make_truth()
+    a = SyntheticGyro("icm42688p", seed=5)
+    b = SyntheticGyro("icm42688p", seed=5, run=1)
+    for eff in a.params:
+        for k in a.params[eff]:
+            assert np.array_equal(a.params[eff][k], b.params[eff][k])
+    assert not np.array_equal(a.power_up_bias(0), b.power_up_bias(0))
+    assert not np.array_equal(a.measure(tr).noise_rad_s, b.measure(tr).noise_rad_s)

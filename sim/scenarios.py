@@ -1,0 +1,555 @@
+"""Scenarios as data: ``sim/scenarios/<name>.toml`` -> physics truth -> synthetic gyro -> recording.
+
+Each scenario file says what happens to the sensor (rate-table profile or hover flight,
+thermal environment, power-ups); :func:`simulate` runs it for one sensor unit and returns a
+:class:`SimResult` whose :attr:`SimResult.recording` is the DESIGN.md data file with the
+truth in the ``ref_`` columns. Physics comes from the runners of :mod:`sim.turntable`
+(:func:`~sim.turntable.run_table`) and :mod:`sim.quadrotor` (:func:`~sim.quadrotor.fly_hover`,
+with the gyro in the loop); this module only builds their inputs and does the bookkeeping
+(power-up splitting, metadata).
+
+Everything random derives from ``seed`` (and ``run``): the sensor unit's parameters, its
+turn-on biases and noise (:class:`sim.gyro.SyntheticGyro`), the bump pattern of
+``static_bumped`` and the rotor phases of ``hover``.
+
+Scenario files (see the shipped ones): ``kind`` = ``"table"`` or ``"hover"``, ``duration_s``
+(default length; the ``turns`` profile sets its own), optional ``gyro_rate_hz``, and tables
+``[table]`` (``profile`` = ``static`` | ``bumped`` | ``turns`` | ``cycle``), ``[bumps]``,
+``[power]`` (``cycles``), ``[hover]`` (``vibration``, ``manoeuvres``) and ``[thermal]``
+(:class:`sim.thermal.ThermalSpec` fields; ``ambient_c`` break points or ``ramps`` with
+fractions of the duration; optional ``[thermal.heater]``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from types import MappingProxyType
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from gyrocore.cli import to_jsonable
+from gyrocore.effects import EFFECTS, STOCHASTIC, validate_params
+from gyrocore.errors import GyroInputError
+from gyrocore.recording import Recording
+
+from .gyro import GyroOutput, SyntheticGyro
+from .noise import effect_rng
+from .presets import load_preset
+from .truth import Truth
+
+__all__ = [
+    "SCENARIOS",
+    "SCENARIO_DIR",
+    "ScenarioSpec",
+    "SimResult",
+    "load_scenario",
+    "simulate",
+    "true_bias_rad_s",
+    "floor_gyro",
+    "build_table_profile",
+    "build_thermal",
+]
+
+SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
+DEG = math.pi / 180.0
+_KINDS = ("table", "hover")
+_TOP_KEYS = {"name", "description", "kind", "duration_s", "gyro_rate_hz", "table", "bumps", "power", "hover", "thermal"}
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """A scenario file, parsed (values as in the file; SI units by their names).
+
+    Parameters
+    ----------
+    name, description : str
+    kind : str
+        ``"table"`` (rate-table runner) or ``"hover"`` (closed-loop quadrotor).
+    duration_s : float or None
+        Default duration, s (None: set by the table profile).
+    gyro_rate_hz : float or None
+        Output rate for this scenario (None: the sensor preset's).
+    table, bumps, power, hover, thermal : mapping
+        The sections of the file.
+    source : str
+        File path.
+    """
+
+    name: str
+    description: str
+    kind: str
+    duration_s: float | None
+    gyro_rate_hz: float | None
+    table: Mapping = field(default_factory=dict)
+    bumps: Mapping = field(default_factory=dict)
+    power: Mapping = field(default_factory=dict)
+    hover: Mapping = field(default_factory=dict)
+    thermal: Mapping = field(default_factory=dict)
+    source: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class SimResult:
+    """One simulated recording and everything true about it.
+
+    Parameters
+    ----------
+    scenario, sensor : str
+    seed, run : int
+    recording : gyrocore.recording.Recording
+        The data file: measured gyro; accel = true specific force (no accelerometer errors
+        are simulated); temp = die temperature; ``ref_`` = truth (rate of S in S, attitude
+        S→W); extra column ``power_up_index``; ``#`` metadata incl. ``params_true`` (JSON).
+    truth : sim.truth.Truth
+    params_true : dict
+        The unit's true parameters (PARAM_SCHEMA form, SI). ``bias.b_rad_s`` is the bias
+        of the first power-up; extras: ``b_mean_rad_s`` (unit mean), ``turn_on_sigma_rad_s``,
+        ``b_rad_s_per_power_up`` (P, 3). Stochastic effects carry their levels.
+    draws : dict
+        What each effect drew (:attr:`sim.gyro.GyroOutput.draws`).
+    noise_rad_s : ndarray, shape (N, 3)
+        The summed stochastic noise realisation, rad/s.
+    flight_log : sim.quadrotor.FlightLog or None
+        For ``hover``.
+    notes : tuple of str
+        Adjustments made (e.g. the DLPF moved below Nyquist, effects the closed loop could
+        not carry).
+    """
+
+    scenario: str
+    sensor: str
+    seed: int
+    run: int
+    recording: Recording
+    truth: Truth
+    params_true: Mapping
+    draws: Mapping
+    noise_rad_s: np.ndarray
+    flight_log: object | None = None
+    notes: tuple[str, ...] = ()
+
+
+# ---------------------------------------------------------------------------- registry
+def _discover() -> Mapping[str, Path]:
+    return MappingProxyType({p.stem: p for p in sorted(SCENARIO_DIR.glob("*.toml"))})
+
+
+#: Registry of the shipped scenarios: name -> TOML path.
+SCENARIOS: Mapping[str, Path] = _discover()
+
+
+def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
+    """Parse a scenario by registry name or from a TOML path (one-line errors)."""
+    if isinstance(name_or_path, ScenarioSpec):
+        return name_or_path
+    key = str(name_or_path)
+    if key in SCENARIOS:
+        path = SCENARIOS[key]
+    else:
+        path = Path(key)
+        if path.suffix != ".toml" or not path.is_file():
+            raise GyroInputError(f"unknown scenario '{key}'; known: {', '.join(SCENARIOS)} (or a .toml file)")
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise GyroInputError(f"scenario {path}: cannot read ({exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise GyroInputError(f"scenario {path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    unknown = set(raw) - _TOP_KEYS
+    if unknown:
+        raise GyroInputError(f"scenario {path}: unknown key(s) {', '.join(sorted(unknown))}")
+    kind = raw.get("kind", "table")
+    if kind not in _KINDS:
+        raise GyroInputError(f"scenario {path}: kind must be one of {', '.join(_KINDS)}, got {kind!r}")
+    dur = raw.get("duration_s")
+    if dur is not None and not (isinstance(dur, (int, float)) and dur > 0):
+        raise GyroInputError(f"scenario {path}: duration_s must be > 0")
+    rate = raw.get("gyro_rate_hz")
+    if rate is not None and not (isinstance(rate, (int, float)) and rate > 0):
+        raise GyroInputError(f"scenario {path}: gyro_rate_hz must be > 0")
+    table = raw.get("table", {})
+    if kind == "table" and table.get("profile") not in ("static", "bumped", "turns", "cycle"):
+        raise GyroInputError(f"scenario {path}: [table] profile must be static, bumped, turns or cycle")
+    if kind == "table" and table.get("profile") != "turns" and dur is None:
+        raise GyroInputError(f"scenario {path}: needs duration_s")
+    if kind == "hover" and dur is None:
+        raise GyroInputError(f"scenario {path}: needs duration_s")
+    return ScenarioSpec(
+        name=str(raw.get("name", path.stem)),
+        description=str(raw.get("description", "")),
+        kind=kind,
+        duration_s=None if dur is None else float(dur),
+        gyro_rate_hz=None if rate is None else float(rate),
+        table=table,
+        bumps=raw.get("bumps", {}),
+        power=raw.get("power", {}),
+        hover=raw.get("hover", {}),
+        thermal=raw.get("thermal", {}),
+        source=str(path),
+    )
+
+
+# ---------------------------------------------------------------------------- builders
+def build_thermal(section: Mapping, duration_s: float):
+    """:class:`sim.thermal.ThermalSpec` from a ``[thermal]`` section (ramps scale with the duration)."""
+    from .thermal import HeaterSpec, ThermalSpec, ambient_ramps
+
+    sec = dict(section)
+    kw: dict = {}
+    for k in ("time_constant_s", "self_heating_c", "motor_c_per_w", "initial_temp_c"):
+        if k in sec:
+            kw[k] = float(sec.pop(k))
+    if "ambient_c" in sec:
+        kw["ambient_c"] = tuple((float(t), float(c)) for t, c in sec.pop("ambient_c"))
+    if "ramps" in sec:
+        r = dict(sec.pop("ramps"))
+        try:
+            kw["ambient_c"] = ambient_ramps(
+                start_c=float(r["start_c"]), peak_c=float(r["peak_c"]),
+                start_s=float(r["start_frac"]) * duration_s, ramp_s=float(r["ramp_frac"]) * duration_s,
+                hold_s=float(r.get("hold_frac", 0.0)) * duration_s,
+                end_c=None if "end_c" not in r else float(r["end_c"]),
+            )
+        except KeyError as exc:
+            raise GyroInputError(f"[thermal] ramps needs {exc.args[0]}") from None
+    if "heater" in sec:
+        kw["heater"] = HeaterSpec(**{k: float(v) for k, v in dict(sec.pop("heater")).items()})
+    if sec:
+        raise GyroInputError(f"[thermal]: unknown key(s) {', '.join(sorted(sec))}")
+    return ThermalSpec(**kw)
+
+
+def _mount(m):
+    if isinstance(m, str):
+        return m
+    if isinstance(m, (list, tuple)) and len(m) == 4:
+        return tuple(float(v) for v in m)
+    raise GyroInputError(f"mount must be one of +x,-x,+y,-y,+z,-z or a quaternion [w,x,y,z], got {m!r}")
+
+
+def _segment_from(d: Mapping):
+    from .turntable import TableSegment
+
+    rate = float(d.get("rate_dps", 0.0)) * DEG
+    ramp = float(d.get("ramp_s", 0.5))
+    if "revolutions" in d:
+        if rate == 0.0:
+            raise GyroInputError("a segment with revolutions needs rate_dps != 0")
+        dur = float(d["revolutions"]) * 2 * math.pi / abs(rate) + ramp  # angle = rate·(duration − ramp)
+    else:
+        dur = float(d["duration_s"])
+    return TableSegment(mount=_mount(d.get("mount", "+z")), rate_rad_s=rate, duration_s=dur, ramp_s=ramp)
+
+
+def _turns(t: Mapping, *, revolutions: float, rates, rest_s: float, mounts):
+    from .turntable import table_profile_turns
+
+    return table_profile_turns(
+        mounts=tuple(_mount(m) for m in mounts), revolutions=revolutions,
+        rates_rad_s=tuple(float(r) * DEG for r in rates),
+        directions=tuple(int(d) for d in t.get("directions", (1, -1))), rest_s=rest_s,
+        ramp_s=float(t.get("ramp_s", 0.5)), repose_s=float(t.get("repose_s", 2.0)),
+        settle_s=float(t.get("settle_s", 1.0)),
+    )
+
+
+def _fit_turns(t: Mapping, duration_s: float | None):
+    """The ``turns`` profile, shortened to fit ``duration_s`` if given.
+
+    Reductions in order until it fits: fewer revolutions (down to 1), then only the first
+    rate, then 1-s rests, then only the three axis-up mounts (+x, +y, +z: the minimum that
+    observes all scales and misalignments). The revolutions are then the largest multiple of
+    1/4 turn that fits. Raises if even the smallest profile is longer than ``duration_s``.
+    """
+    mounts = list(t.get("mounts", ("+x", "-x", "+y", "-y", "+z", "-z")))
+    rates = list(t.get("rates_dps", (90.0,)))
+    rev = float(t.get("revolutions", 5.0))
+    rest = float(t.get("rest_s", 2.0))
+    full = _turns(t, revolutions=rev, rates=rates, rest_s=rest, mounts=mounts)
+    if duration_s is None or full.duration_s <= duration_s:
+        return full
+    options = [(rates, rest, mounts), (rates[:1], rest, mounts), (rates[:1], min(rest, 1.0), mounts),
+               (rates[:1], min(rest, 1.0), [m for m in ("+x", "+y", "+z")])]
+    for r_, rest_, m_ in options:
+        one = _turns(t, revolutions=1.0, rates=r_, rest_s=rest_, mounts=m_)
+        if one.duration_s <= duration_s:
+            quarter = _turns(t, revolutions=1.25, rates=r_, rest_s=rest_, mounts=m_).duration_s - one.duration_s
+            n_q = int(math.floor((duration_s - one.duration_s) / quarter + 1e-9)) if quarter > 0 else 0
+            best = min(rev, 1.0 + 0.25 * n_q)
+            return _turns(t, revolutions=best, rates=r_, rest_s=rest_, mounts=m_)
+    small = _turns(t, revolutions=1.0, rates=rates[:1], rest_s=min(rest, 1.0), mounts=["+x", "+y", "+z"])
+    raise GyroInputError(
+        f"the turntable profile needs at least {small.duration_s:.1f} s (one turn each way about x, y, z); got {duration_s:g} s"
+    )
+
+
+def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator):
+    """Still, a few random handling bumps (table jerks, tilts), then still until the end."""
+    from scipy.spatial.transform import Rotation
+
+    from .turntable import TableProfile, TableSegment, mount_quat_wxyz
+
+    base = _mount(t.get("mount", "+z"))
+    q_base = mount_quat_wxyz(base)
+    start = float(b.get("start_s", 0.3))
+    count = int(b.get("count", 5))
+    bump_s = float(b.get("duration_s", 0.4))
+    max_rate = float(b.get("max_rate_dps", 120.0)) * DEG
+    max_tilt = float(b.get("max_tilt_deg", 15.0)) * DEG
+    gap = float(b.get("gap_s", 0.3))
+    segs = [TableSegment(mount=base, rate_rad_s=0.0, duration_s=start)]
+    for i in range(count):
+        if i % 2 == 0:  # a jerk of the table (yaw), raised-cosine rate
+            r = rng.uniform(max_rate / 3, max_rate) * rng.choice([-1.0, 1.0])
+            segs.append(TableSegment(mount=base, rate_rad_s=float(r), duration_s=bump_s, ramp_s=bump_s / 2))
+            segs.append(TableSegment(mount=base, rate_rad_s=0.0, duration_s=gap))
+        else:  # picked up and tilted about a random horizontal axis, then put back
+            ang = rng.uniform(max_tilt / 3, max_tilt)
+            az = rng.uniform(0, 2 * math.pi)
+            tilt = Rotation.from_rotvec(ang * np.array([math.cos(az), math.sin(az), 0.0]))
+            qb = Rotation.from_quat([q_base[1], q_base[2], q_base[3], q_base[0]])
+            x, y, z, w = (tilt * qb).as_quat()
+            segs.append(TableSegment(mount=(float(w), float(x), float(y), float(z)), rate_rad_s=0.0, duration_s=gap))
+            segs.append(TableSegment(mount=base, rate_rad_s=0.0, duration_s=gap))
+    prof = TableProfile(segments=tuple(segs), repose_s=bump_s, settle_s=0.0)
+    rest = duration_s - prof.duration_s
+    if rest <= 0:
+        raise GyroInputError(f"static_bumped needs more than {prof.duration_s:.1f} s (the bumps alone); got {duration_s:g} s")
+    return TableProfile(segments=tuple(segs) + (TableSegment(mount=base, rate_rad_s=0.0, duration_s=rest),),
+                        repose_s=bump_s, settle_s=0.0)
+
+
+def _cycle(t: Mapping, duration_s: float):
+    """Repeat the segment pattern while it fits, then stay still until the end."""
+    from .turntable import TableProfile, TableSegment
+
+    pattern = [_segment_from(d) for d in t.get("segments", ())]
+    if not pattern:
+        raise GyroInputError("[table] profile = cycle needs [[table.segments]]")
+    kw = {"repose_s": float(t.get("repose_s", 2.0)), "settle_s": float(t.get("settle_s", 1.0))}
+    segs: list = []
+    while True:
+        trial = TableProfile(segments=tuple(segs + pattern), **kw)
+        if trial.duration_s > duration_s:
+            break
+        segs += pattern
+    if not segs:
+        segs = [TableSegment(mount=pattern[0].mount, rate_rad_s=0.0, duration_s=duration_s)]
+    rest = duration_s - TableProfile(segments=tuple(segs), **kw).duration_s
+    if rest > 1e-9:
+        segs.append(TableSegment(mount=segs[-1].mount, rate_rad_s=0.0, duration_s=rest))
+    return TableProfile(segments=tuple(segs), **kw)
+
+
+def build_table_profile(spec: ScenarioSpec, duration_s: float | None, *, seed: int = 0, run: int = 0):
+    """The :class:`sim.turntable.TableProfile` of a table scenario."""
+    from .turntable import table_profile_static
+
+    t = spec.table
+    prof = t.get("profile")
+    if prof == "turns":
+        return _fit_turns(t, duration_s)
+    assert duration_s is not None
+    if prof == "static":
+        return table_profile_static(_mount(t.get("mount", "+z")), duration_s)
+    if prof == "bumped":
+        key = "scenario/bumps" if run == 0 else f"scenario/bumps/run{run}"
+        return _bumped(t, spec.bumps, duration_s, effect_rng(seed, key))
+    return _cycle(t, duration_s)
+
+
+def _split_power_ups(truth: Truth, cycles: int, thermal) -> Truth:
+    """``cycles`` equal power-ups: index, time since power-up, and a cold die at each start."""
+    from .thermal import simulate_temperature
+
+    if cycles < 1:
+        raise GyroInputError("[power] cycles must be >= 1")
+    n = truth.n
+    if n < 2 * cycles:
+        raise GyroInputError(f"{cycles} power-ups need at least {2 * cycles} samples")
+    idx = (np.arange(n) * cycles) // n
+    since = np.empty(n)
+    temp = np.empty(n)
+    t = truth.t_s
+    for k in range(cycles):
+        m = idx == k
+        since[m] = t[m] - t[m][0]
+        temp[m] = simulate_temperature(t[m], thermal)
+    return replace(truth, power_up_index=idx, t_since_power_up_s=since, temp_c=temp)
+
+
+# ---------------------------------------------------------------------------- run
+def _params_true(gyro: SyntheticGyro, out: GyroOutput) -> dict:
+    p = {e: {k: np.array(v) for k, v in pd.items()} for e, pd in gyro.params.items()}
+    if "bias" in p:
+        d = out.draws["bias"]
+        per = d["b_rad_s_per_power_up"]
+        p["bias"] = {
+            "b_rad_s": per[0].copy() if per.size else p["bias"]["b_rad_s"],
+            "b_mean_rad_s": d["b_mean_rad_s"],
+            "turn_on_sigma_rad_s": d["turn_on_sigma_rad_s"],
+            "b_rad_s_per_power_up": per,
+        }
+    return validate_params(p)
+
+
+def _closed_loop_unsupported(gyro: SyntheticGyro, thermal) -> list[str]:
+    """Effects a GyroStream cannot carry in fly_hover (which passes no attitude, and whose
+    temperature is known in advance only without motor heating or heater)."""
+    out = []
+    if "earth_rate" in gyro.params:
+        out.append("earth_rate")
+    if "time_offset" in gyro.params and float(gyro.params["time_offset"]["tau_s"]) < 0:
+        out.append("time_offset")
+    if "bias_temp_rate" in gyro.params and (thermal.heater is not None or thermal.motor_c_per_w != 0.0):
+        out.append("bias_temp_rate")
+    return out
+
+
+def simulate(
+    name: str | ScenarioSpec,
+    *,
+    sensor: str = "icm42688p",
+    duration_s: float | None = None,
+    seed: int = 0,
+    run: int = 0,
+    overrides: Mapping[str, Mapping[str, object]] | None = None,
+    without: Iterable[str] = (),
+    gyro_rate_hz: float | None = None,
+    progress: bool = False,
+) -> SimResult:
+    """Simulate one scenario with one sensor unit.
+
+    Parameters
+    ----------
+    name : str or ScenarioSpec
+        Scenario name (:data:`SCENARIOS`) or a scenario TOML path.
+    sensor : str
+        Preset name (:data:`sim.presets.PRESETS`) or a preset TOML path.
+    duration_s : float, optional
+        Length, s (default: the scenario's). For the ``turns`` profile the profile is
+        shortened to fit (see :func:`_fit_turns`); the realised length may be shorter.
+    seed : int
+        Unit and scenario seed (>= 0).
+    run : int
+        Session of the same unit (0, 1, ...): same unit parameters, fresh turn-on bias,
+        noise, bumps and rotor phases.
+    overrides : mapping, optional
+        ``{effect: {param: value}}`` in SI, switched on whatever the preset says (the
+        calibration is not told: this is how the residual loop is tested).
+    without : iterable of str
+        Effects switched off.
+    gyro_rate_hz : float, optional
+        Output rate, Hz (default: the scenario's, else the preset's).
+    progress : bool
+        tqdm progress bars from the physics runners (stderr).
+
+    Returns
+    -------
+    SimResult
+    """
+    spec = load_scenario(name)
+    sensor_spec = load_preset(sensor)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
+    if duration_s is not None and not (math.isfinite(float(duration_s)) and float(duration_s) > 0):
+        raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
+    rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
+    dur = float(duration_s) if duration_s is not None else spec.duration_s
+    gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run), without=without, overrides=overrides)
+    notes = list(gyro.notes)
+    flight_log = None
+    if spec.kind == "table":
+        from .turntable import run_table
+
+        prof = build_table_profile(spec, dur, seed=int(seed), run=int(run))
+        thermal = build_thermal(spec.thermal, prof.duration_s)
+        truth = run_table(prof, gyro_rate_hz=rate, thermal=thermal, seed=int(seed), progress=progress)
+        cycles = int(spec.power.get("cycles", 1))
+        if cycles > 1:
+            truth = _split_power_ups(truth, cycles, thermal)
+    else:
+        from .controller import small_steps
+        from .quadrotor import fly_hover
+        from .thermal import simulate_temperature
+
+        thermal = build_thermal(spec.thermal, dur)
+        unsupported = _closed_loop_unsupported(gyro, thermal)
+        fly_gyro = gyro
+        if unsupported:
+            notes.append(f"the controller flew on the gyro without {', '.join(unsupported)} (not possible in closed loop); the recording has them")
+            fly_gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run),
+                                     without=list(without) + unsupported,
+                                     overrides={e: v for e, v in (overrides or {}).items() if e not in unsupported})
+        n = int(math.floor(dur * rate + 1e-9))  # fly_hover's sample count
+        kw = {}
+        if "bias_temp_rate" in fly_gyro.params:
+            t_all = np.arange(n) * (1.0 / rate)
+            kw = {"t_s": t_all, "temp_c": simulate_temperature(t_all, thermal)}
+        stream = fly_gyro.stream(n, **kw)
+        man = small_steps(dur) if spec.hover.get("manoeuvres", True) else ()
+        truth, flight_log = fly_hover(duration_s=dur, gyro=stream, vibration=bool(spec.hover.get("vibration", True)),
+                                      manoeuvres=man, gyro_rate_hz=rate, thermal=thermal, seed=int(seed) + 1000003 * int(run),
+                                      progress=progress)
+    out = gyro.measure(truth)
+    params_true = _params_true(gyro, out)
+    pu = np.asarray(truth.power_up_index, int)
+    starts = [float(truth.t_s[i]) for i in np.flatnonzero(np.concatenate([[True], np.diff(pu) != 0]))]
+    meta = {
+        "sensor": sensor_spec.name,
+        "sensor_part": sensor_spec.part,
+        "scenario": spec.name,
+        "scenario_description": spec.description,
+        "seed": str(int(seed)),
+        "run": str(int(run)),
+        "rate_hz": f"{rate:.10g}",
+        "duration_s": f"{truth.n / rate:.10g}",
+        "effects": ",".join(gyro.effects),
+        "overridden": ",".join(gyro.overridden),
+        "without": ",".join(gyro.without),
+        "accel": "true specific force (no accelerometer errors simulated)",
+        "power_up_t_s": json.dumps(starts),
+        "params_true": json.dumps(to_jsonable(params_true), separators=(",", ":")),
+    }
+    if notes:
+        meta["notes"] = " | ".join(notes)
+    for k, v in truth.meta.items():
+        meta.setdefault(f"truth_{k}" if k in meta else k, str(v))
+    rec = Recording(
+        t_s=truth.t_s,
+        gyro_rad_s=out.gyro_rad_s,
+        accel_m_s2=truth.f_S_m_s2,
+        temp_c=truth.temp_c,
+        ref_rate_rad_s=truth.omega_S_rad_s,
+        ref_quat_wxyz=truth.q_SW_wxyz,
+        meta=meta,
+        extra={"power_up_index": pu.astype(float)},
+    )
+    return SimResult(scenario=spec.name, sensor=sensor_spec.name, seed=int(seed), run=int(run), recording=rec,
+                     truth=truth, params_true=params_true, draws=out.draws, noise_rad_s=out.noise_rad_s,
+                     flight_log=flight_log, notes=tuple(notes))
+
+
+# ---------------------------------------------------------------------------- helpers for scoring
+def true_bias_rad_s(res: SimResult) -> np.ndarray:
+    """The true constant bias at every sample (the turn-on draw of its power-up), rad/s, (N, 3)."""
+    n = res.truth.n
+    if "bias" not in res.params_true:
+        return np.zeros((n, 3))
+    per = np.asarray(res.params_true["bias"]["b_rad_s_per_power_up"]).reshape(-1, 3)
+    idx = np.asarray(res.draws["bias"]["power_up_indices"], int)
+    pos = {int(k): i for i, k in enumerate(idx)}
+    return per[[pos[int(k)] for k in res.truth.power_up_index]]
+
+
+def floor_gyro(res: SimResult) -> np.ndarray:
+    """The gyro with every deterministic error perfectly removed: truth + the stochastic noise, rad/s (N, 3).
+
+    DESIGN.md "The score": the floor is the integration of this gyro.
+    """
+    return np.asarray(res.truth.omega_S_rad_s, float) + res.noise_rad_s
