@@ -20,6 +20,7 @@ controller that runs the loop right after the gyro sample. The attitude/position
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass
 from typing import Callable, Protocol, Sequence
@@ -58,8 +59,10 @@ class GyroLike(Protocol):
 class PerfectGyro:
     """A gyro without errors: returns the true rate (same protocol as the synthetic gyro stream)."""
 
-    def step(self, k: int, t_s: float, omega_S: np.ndarray, f_S: np.ndarray, temp_c: float) -> np.ndarray:
-        return np.array(omega_S, dtype=float)
+    def step(self, k: int, t_s: float, omega_S: np.ndarray, f_S: np.ndarray, temp_c: float,
+             q_SW_wxyz: np.ndarray | None = None) -> np.ndarray:
+        """The true rate ``omega_S`` itself (fly_hover passes a view it keeps; no copy needed)."""
+        return omega_S
 
 
 @dataclass(frozen=True)
@@ -359,6 +362,11 @@ def fly_hover(
     if not hasattr(gyro, "step"):
         raise GyroInputError("gyro must have .step(k, t_s, omega_S, f_S, temp_c) (or .stream(n))")
     gstep = gyro.step
+    # gyros that model the earth rate need the attitude: pass it when step() takes it
+    try:
+        pass_q = "q_SW_wxyz" in inspect.signature(gstep).parameters
+    except (TypeError, ValueError):
+        pass_q = False
     ctl = CascadedController(qp, gains, dt_s=dt_c, pos_sp_W_m=tuple(data.qpos[0:3]), yaw_sp_rad=0.0, manoeuvres=manoeuvres)
     outer_every = ctl.outer_every
     sd_log = np.empty((n, nsd))
@@ -387,7 +395,10 @@ def fly_hover(
         else:
             tc = temp_l[k]
         tk = t_l[k]
-        g = gstep(k, tk, row[s_gyro:sg1], row[s_acc:sa1], tc)
+        if pass_q:
+            g = gstep(k, tk, row[s_gyro:sg1], row[s_acc:sa1], tc, q_SW_wxyz=row[s_q:sq1])
+        else:
+            g = gstep(k, tk, row[s_gyro:sg1], row[s_acc:sa1], tc)
         y = filt(g) if filt is not None else g
         if k % outer_every == 0:
             rl = row.tolist()

@@ -11,6 +11,7 @@ from scipy import signal
 from gyrocore.filters import pt1
 from sim.controller import Manoeuvre, QuadParams, small_steps
 from sim.quadrotor import VibrationSpec, fly_hover
+from sim.thermal import ThermalSpec, simulate_temperature
 
 QP = QuadParams()
 # hover rotor speed sqrt(m g / (4 c_T)) = 557.5 rad/s -> rotor line at 88.73 Hz
@@ -159,3 +160,45 @@ def test_custom_vibration_scales_the_imbalance_line():
     # linear in u (the loop response to the ripple is linear too); 5 % for the leakage of the
     # slowly varying rotor speed
     assert amps[1] / amps[0] == pytest.approx(2.0, rel=0.05)
+
+
+def test_truth_timing_rate_matches_attitude(hover_vib):
+    # sample k is the state at t_k (sensordata after mj_step = start of the step). MuJoCo's
+    # semi-implicit Euler advances the free joint's attitude by exp(dt * omega(k+1)) in the body
+    # frame (S = B here), so the quaternion finite difference over [t_k, t_k+1] equals the
+    # truth rate of sample k+1 to rounding (quaternion normalisation ~1e-16 / dt), and differs
+    # from sample k by the vibration's rate change per step (~1e-3 rad/s).
+    from scipy.spatial.transform import Rotation
+
+    truth, _ = hover_vib
+    r = Rotation.from_quat(truth.q_SW_wxyz[:, [1, 2, 3, 0]])
+    w_fd = (r[:-1].inv() * r[1:]).as_rotvec() / 1e-3
+    err_next = np.abs(w_fd - truth.omega_S_rad_s[1:]).max()
+    err_same = np.abs(w_fd - truth.omega_S_rad_s[:-1]).max()
+    assert err_next < 1e-9
+    assert err_same > 1e4 * err_next
+
+
+def test_motor_heating_streams_like_the_batch_model():
+    spec = ThermalSpec(time_constant_s=5.0, ambient_c=((0.0, 20.0),), motor_c_per_w=0.05, self_heating_c=1.0)
+    truth, log = fly_hover(duration_s=3.0, thermal=spec)
+    # rotor (aerodynamic) power kappa c_T |Omega|^3 summed over the rotors, held per sample:
+    p_w = QP.kappa_m * QP.c_t_n_per_rad2_s2 * np.sum(np.abs(log.rotor_speed_rad_s) ** 3, axis=1)
+    # ~123 W in hover -> steady rise 6.2 °C + 1 °C self-heating; the closed-loop stream and the
+    # batch recursion are the same exact discretisation: equal to rounding
+    np.testing.assert_allclose(truth.temp_c, simulate_temperature(truth.t_s, spec, motor_power_w=p_w), atol=1e-9)
+    assert 120.0 < p_w.mean() < 126.0
+    expect_end = 20.0 + (1.0 + 0.05 * p_w.mean()) * (1 - math.exp(-truth.t_s[-1] / 5.0))
+    assert truth.temp_c[-1] == pytest.approx(expect_end, abs=0.05)
+
+
+def test_synthetic_gyro_in_the_loop_sees_the_truth_at_its_samples():
+    # The closed loop feeds sample k's truth to the stream; the batch path on the recorded truth
+    # must give the very same measurement (sim.gyro promises stream == batch bit for bit), so
+    # any mislabelled sample (off by one step) or wrong frame would show here.
+    from sim.gyro import SyntheticGyro
+
+    truth, log = fly_hover(duration_s=1.5, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4))
+    batch = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4).measure(truth)
+    np.testing.assert_array_equal(batch.gyro_rad_s, log.gyro_meas_rad_s)
+    assert not np.array_equal(log.gyro_meas_rad_s, log.omega_true_rad_s)

@@ -1,0 +1,131 @@
+"""Simulation speed: simulated seconds per wall second, beside a bare ``mj_step`` loop.
+
+Run: ``python bench/bench_sim.py [--hover-s 20] [--repeat 3]`` (prints one table).
+
+* hover: ``sim.quadrotor.fly_hover`` at physics 1 kHz, gyro 1 kHz, vibration on, with
+  (a) the error-free ``PerfectGyro`` (the harness alone), (b) ``sim.gyro.SyntheticGyro``
+  (ICM-42688-P preset) with EVERY catalogue effect switched on (the preset's plus overrides
+  for the rest), (c) as (b) plus a PT1 30 Hz pipeline (``gyrocore.filters.pt1``);
+* turntable: ``sim.turntable.run_table`` (mujoco.rollout in C, open loop), six mounts x 1 turn
+  each way at 180 deg/s;
+* bare: a Python loop of ``mujoco.mj_step`` on the same model (hover keyframe / turntable
+  at rest), the same number of steps.
+
+Each figure is the best of ``--repeat`` runs (the machine is shared; best-of is the least
+disturbed). The goal of issue 2 is hover >= 0.5 x bare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import time
+
+import mujoco
+import numpy as np
+
+
+def all_effects_overrides() -> dict:
+    """SI overrides switching on the catalogue effects the ICM-42688-P preset leaves off."""
+    deg = math.pi / 180.0
+    return {
+        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg},
+        "bias_ramp": {"ramp_rad_s2": 1e-6},
+        "scale_asymmetry": {"a": 1e-3},
+        "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
+        "time_offset": {"tau_s": 2e-4},
+        "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
+        "rrw": {"k_rad_s_per_sqrt_s": 1e-5},
+        "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
+    }
+
+
+def bare_rate(model: mujoco.MjModel, data: mujoco.MjData, n_steps: int) -> float:
+    step = mujoco.mj_step
+    t0 = time.perf_counter()
+    for _ in range(n_steps):
+        step(model, data)
+    return n_steps * model.opt.timestep / (time.perf_counter() - t0)
+
+
+def best(fn, repeat: int) -> float:
+    return max(fn() for _ in range(repeat))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hover-s", type=float, default=20.0, help="simulated hover seconds per run")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per figure (best is kept)")
+    args = ap.parse_args()
+
+    from gyrocore.filters import pt1
+    from sim.gyro import SyntheticGyro
+    from sim.quadrotor import PerfectGyro, fly_hover, load_quadrotor_model
+    from sim.turntable import load_table_model, run_table, table_profile_turns
+
+    T = args.hover_s
+    rows = []
+
+    def gyro_all():
+        return SyntheticGyro("icm42688p", rate_hz=1000.0, seed=1, overrides=all_effects_overrides())
+
+    print(f"mujoco {mujoco.__version__}, python {platform.python_version()}, {platform.machine()}; "
+          f"best of {args.repeat}; effects on in (b): {', '.join(gyro_all().effects)}")
+
+    m, d = load_quadrotor_model(1e-3)
+
+    def bare_hover():
+        mujoco.mj_resetDataKeyframe(m, d, 0)
+        return bare_rate(m, d, int(T * 1000))
+
+    def hover(gyro_factory, pipeline_factory):
+        def run():
+            g = gyro_factory()
+            p = pipeline_factory() if pipeline_factory else None
+            t0 = time.perf_counter()
+            fly_hover(duration_s=T, gyro=g, pipeline=p, vibration=True, physics_rate_hz=1000.0, gyro_rate_hz=1000.0, seed=0)
+            return T / (time.perf_counter() - t0)
+        return run
+
+    b_h = best(bare_hover, args.repeat)
+    for label, gf, pf in (
+        ("hover (a) PerfectGyro", PerfectGyro, None),
+        ("hover (b) SyntheticGyro, all effects", gyro_all, None),
+        ("hover (c) (b) + PT1 30 Hz pipeline", gyro_all, lambda: pt1(30.0, 1000.0)),
+    ):
+        r = best(hover(gf, pf), args.repeat)
+        rows.append((label, r, b_h))
+
+    prof = table_profile_turns(revolutions=1, rates_rad_s=(math.pi,), rest_s=1.0)
+    mt, dt_ = load_table_model(1e-3)
+    n_tab = int(round(prof.duration_s * 1000)) + 3000
+
+    def bare_table():
+        mujoco.mj_resetData(mt, dt_)
+        return bare_rate(mt, dt_, n_tab)
+
+    def table():
+        t0 = time.perf_counter()
+        tr = run_table(prof, gyro_rate_hz=1000.0)
+        return tr.t_s[-1] / (time.perf_counter() - t0)
+
+    def table_measured():
+        t0 = time.perf_counter()
+        tr = run_table(prof, gyro_rate_hz=1000.0)
+        SyntheticGyro("icm42688p", rate_hz=1000.0, seed=1, overrides={k: v for k, v in all_effects_overrides().items()}).measure(tr)
+        return tr.t_s[-1] / (time.perf_counter() - t0)
+
+    b_t = best(bare_table, args.repeat)
+    rows.append((f"turntable run_table ({prof.duration_s:.0f} s profile)", best(table, args.repeat), b_t))
+    rows.append(("turntable + SyntheticGyro.measure (all effects)", best(table_measured, args.repeat), b_t))
+
+    w = max(len(r[0]) for r in rows)
+    print(f"{'run':<{w}}  {'sim-s/wall-s':>12}  {'bare mj_step':>12}  {'ratio':>6}")
+    for label, r, b in rows:
+        print(f"{label:<{w}}  {r:12.1f}  {b:12.1f}  {r / b:6.2f}")
+    print(f"hover: {T:g} simulated s per run, physics 1 kHz, gyro 1 kHz, vibration on; goal ratio >= 0.5")
+
+
+if __name__ == "__main__":
+    main()
