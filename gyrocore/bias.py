@@ -195,17 +195,16 @@ def _vif(xw: np.ndarray, max_lag: int) -> np.ndarray:
 
     xw : (W, n, 3) still windows. VIF = 1 + 2 Σ_{k=1}^{L} (1 − k/n) r_k, with r_k pooled over
     the windows after removing each window's mean; the O(1/n) bias of demeaned
-    autocorrelations (E r_k ≈ −1/n for white noise) is added back.
+    autocorrelations (E r_k ≈ −VIF/n) is added back by a fixed-point iteration.
     """
     W, n, _ = xw.shape
     d = xw - xw.mean(axis=1, keepdims=True)
     c0 = np.einsum("wnc,wnc->c", d, d)
-    vif = np.ones(xw.shape[2])
     L = min(max_lag, n - 2)
-    for k in range(1, L + 1):
-        ck = np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k])
-        rk = ck / c0 + 1.0 / n
-        vif += 2.0 * (1.0 - k / n) * rk
+    r = [np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k]) / c0 for k in range(1, L + 1)]
+    vif = np.ones(xw.shape[2])
+    for _ in range(3):  # demeaning bias of r_k is −VIF/n: fixed-point correction
+        vif = 1.0 + sum(2.0 * (1.0 - k / n) * (r[k - 1] + vif / n) for k in range(1, L + 1))
     return np.maximum(vif, 0.05)
 
 
@@ -299,8 +298,13 @@ class StaticBiasCalibrator:
             return s * math.sqrt(2.0), np.full(3, -0.5)
         return robust_diff_noise(x)
 
-    def gate(self, n: int, sigma_diff: np.ndarray, rho: np.ndarray, dt_s: float):
+    def gate(self, n: int, sigma_diff: np.ndarray, rho: np.ndarray, dt_s: float, *,
+             sigma2: np.ndarray | None = None, dof: np.ndarray | None = None):
         """Threshold (3,), its units, α used, min step (3,) and min ramp (3,) for windows of n.
+
+        For the variance statistic, ``sigma2`` (per-sample variance) and ``dof`` (effective
+        degrees of freedom of a window variance) default to the white-noise values
+        σ_Δ²/2 and n − 1.
 
         Returns
         -------
@@ -327,20 +331,63 @@ class StaticBiasCalibrator:
                 # a ramp a shifts every difference by a·dt: E S = m·E|N(a dt, σΔ²)|
                 ramp[i] = _solve_increasing(lambda a: m * _folded_mean(a * dt_s, sd), thr[i], sd / dt_s)
             return thr, "rad/s (sum of |diff| over the window)", alpha, step, ramp
-        sigma2 = sigma_diff**2 / 2.0  # white-noise per-sample variance
         if self.rule == "converge":
             return None, "", self.false_reject_rate, step, ramp
-        q = scipy.stats.chi2.isf(alpha_axis, m)
-        thr = sigma2 * q / m
+        sigma2 = sigma_diff**2 / 2.0 if sigma2 is None else np.asarray(sigma2, float)
+        dof = np.full(3, float(m)) if dof is None else np.asarray(dof, float)
+        thr = np.empty(3)
         for i in range(3):
-            s2 = float(sigma2[i])
-            # noncentral χ²: step at mid-window Σ(x−x̄)² = n h²/4; ramp (a dt)² n(n²−1)/12
-            det = lambda lam: scipy.stats.ncx2.sf(q, m, lam)  # noqa: E731
+            s2, nu = float(sigma2[i]), float(dof[i])
+            q = scipy.stats.chi2.isf(alpha_axis, nu)
+            thr[i] = s2 * q / nu
+            # (ν/σ²)·s² ~ χ²(ν) at rest; a deterministic motion adds the noncentrality
+            # λ = Σ(x − x̄)²/σ² · ν/m: step at mid-window Σ = n h²/4, ramp (a dt)² n(n²−1)/12
+            det = lambda lam: scipy.stats.ncx2.sf(q, nu, lam * nu / m)  # noqa: E731
             step[i] = _solve_increasing(lambda h: det(n * h * h / (4 * s2)), 0.5, math.sqrt(s2))
             ramp[i] = _solve_increasing(
                 lambda a: det((a * dt_s) ** 2 * n * (n * n - 1) / 12 / s2), 0.5, math.sqrt(s2) / (n * dt_s)
             )
         return thr, "(rad/s)^2 (window variance)", self.false_reject_rate, step, ramp
+
+    def _variance_noise(self, xw: np.ndarray, rho: np.ndarray, quantile: float = 0.25):
+        """Per-sample variance and effective dof of a window variance, for the variance gate.
+
+        With ≥ 10 windows and no σ given: σ² = p-quantile of the window variances /
+        (χ²_ν,p / ν) (robust to a fraction 1 − p of the windows moving, and right for
+        coloured noise, where σ_Δ²/2 is not the sample variance),
+        ν = (n − 1)/(1 + 2 Σ_k (1 − k/n) r_k²) (Bartlett's variance of a sample variance),
+        r_k pooled over the windows whose variance is below 4σ². Otherwise the white-noise values (None, None) and a warning if the
+        differences say the noise is not white.
+        """
+        W, n, _ = xw.shape
+        if self.noise_sigma_rad_s is not None:
+            return None, None
+        if W < 10:
+            if np.any(np.abs(rho + 0.5) > 0.1):
+                warn_repair(
+                    "gyro noise is not white (lag-1 correlation of differences "
+                    + ", ".join(f"{r:.2f}" for r in rho)
+                    + ", white = -0.50) and the recording is too short to measure its correlation: "
+                    "the variance gate's false-reject rate is approximate"
+                )
+            return None, None
+        s2w = xw.var(axis=1, ddof=1)
+        qv = np.quantile(s2w, quantile, axis=0)
+        dof = np.full(3, float(n - 1))
+        for _ in range(2):  # white start, then with the measured correlation
+            sigma2 = qv / (scipy.stats.chi2.ppf(quantile, dof) / dof)
+            quiet = np.all(s2w <= 4.0 * sigma2[None, :], axis=1)
+            d = xw[quiet] - xw[quiet].mean(axis=1, keepdims=True)
+            c0 = np.einsum("wnc,wnc->c", d, d)
+            corr = np.zeros(3)
+            vif = np.ones(3)
+            r = [np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k]) / c0 for k in range(1, min(self.max_lag, n - 2) + 1)]
+            for _ in range(3):
+                vif = 1.0 + sum(2.0 * (1.0 - k / n) * (rk + vif / n) for k, rk in enumerate(r, 1))
+            corr = sum(2.0 * (1.0 - k / n) * (rk + vif / n) ** 2 for k, rk in enumerate(r, 1))
+            dof = (n - 1) / (1.0 + corr)
+        sigma2 = qv / (scipy.stats.chi2.ppf(quantile, dof) / dof)
+        return sigma2, dof
 
     # ------------------------------------------------------------------ fit
     def fit(self, recording: Recording) -> StaticBiasResult:
@@ -367,14 +414,11 @@ class StaticBiasCalibrator:
                 f"recording has {x.shape[0]} samples, shorter than {need} window(s) of {n} samples"
             )
         sigma_diff, rho = self._noise(x)
-        if self.statistic == "variance" and self.rule in ("mean", "median") and np.any(np.abs(rho + 0.5) > 0.1):
-            warn_repair(
-                "gyro noise is not white (lag-1 correlation of differences "
-                + ", ".join(f"{r:.2f}" for r in rho)
-                + ", white = -0.50): the variance gate's false-reject rate is approximate"
-            )
-        thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt)
         xw = x[: W * n].reshape(W, n, 3)
+        sigma2 = dof = None
+        if self.statistic == "variance" and self.rule in ("mean", "median"):
+            sigma2, dof = self._variance_noise(xw, rho)
+        thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)
         if self.rule == "converge":
             still = np.ones(W, dtype=bool)
         else:
@@ -385,7 +429,13 @@ class StaticBiasCalibrator:
             vif = np.ones(3)
         else:
             vif = _vif(xw[still] if self.rule != "converge" else xw, self.max_lag)
-        sigma = sigma_diff / math.sqrt(2.0)
+        # per-sample σ of the data (pooled within-window variance of the still windows; for
+        # coloured noise σ_Δ/√2 is not the marginal σ)
+        pool = xw[still] if (n_still and self.rule != "converge") else xw
+        if self.noise_sigma_rad_s is not None:
+            sigma = sigma_diff / math.sqrt(2.0)
+        else:
+            sigma = np.sqrt(pool.var(axis=1, ddof=1).mean(axis=0))
         last = W if self.max_retries is None else min(W, 1 + int(self.max_retries) + (need - 1))
 
         if self.rule == "converge":
@@ -475,6 +525,7 @@ def startup_still_slice(
     false_reject_rate: float = 1e-3,
     statistic: str = "variance",
     noise_sigma_rad_s: float | np.ndarray | None = None,
+    noise_quantile: float = 0.1,
 ) -> slice | None:
     """The still stretch at the start of a recording: consecutive gate-accepted windows.
 
@@ -483,9 +534,9 @@ def startup_still_slice(
     at the first moving window or after ``max_duration_s``. ``None`` if the first window
     already moves (or the recording is shorter than a window).
 
-    The noise σ is estimated from the whole recording (MAD of differences) unless given;
-    a recording dominated by vibration inflates it and makes the gate laxer — pass the
-    sensor's σ (N·√rate) for flight logs.
+    The noise σ is estimated from the whole recording unless given: the ``noise_quantile``
+    quantile of the window variances (so at least that fraction of the recording must be
+    still, e.g. 10 %); pass the sensor's σ (N·√rate) for flight logs that are mostly moving.
     """
     cal = StaticBiasCalibrator(window_samples=window_samples, false_reject_rate=false_reject_rate,
                                statistic=statistic, noise_sigma_rad_s=noise_sigma_rad_s)
@@ -496,7 +547,11 @@ def startup_still_slice(
         return None
     W_max = max(1, min(x.shape[0] // n, int(math.floor(max_duration_s * rate / n))))
     sigma_diff, rho = cal._noise(x)
-    thr, *_ = cal.gate(n, sigma_diff, rho, 1.0 / rate)
+    sigma2 = dof = None
+    if statistic == "variance":
+        W_all = x.shape[0] // n
+        sigma2, dof = cal._variance_noise(x[: W_all * n].reshape(W_all, n, 3), rho, quantile=noise_quantile)
+    thr, *_ = cal.gate(n, sigma_diff, rho, 1.0 / rate, sigma2=sigma2, dof=dof)
     stats = _window_stats(x[: W_max * n], n, statistic)
     still = np.all(stats <= thr[None, :], axis=1)
     if not still[0]:
