@@ -16,8 +16,9 @@ Start from the declared effects, fit them jointly to the residual of
    so the family-wise error over candidates and steps stays ≤ α. The winner must also be of
    practical size: it must cut the window residual RMS by ``min_rms_reduction`` or the
    attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: fitted on
-   one half of the recording (by time) it must lower the window residual RMS of the other
-   half (2-fold; in-sample when there are fewer than 40 windows). This guards against HAC's
+   every other tenth of the recording it must lower the window residual RMS of the remaining
+   tenths, and vice versa (2-fold blocked; in-sample when there are fewer than 40 windows or
+   the reference is a few known angles). This guards against HAC's
    optimism on short, strongly coloured residuals (an optical reference, bias instability).
 3. **Collinearity.** Every other candidate that also passes is tested again in the presence of
    the winner and vice versa; if neither adds anything once the other is in (e.g.
@@ -342,9 +343,31 @@ class _Model:
             return None, y.copy()
         X, names, slices = self.design(effects)
         with np.errstate(invalid="ignore"):  # a negative HAC variance comes back as NaN = not testable
-            f = lsq.solve(y, X, names, slices, covariance="hac", on_unobservable="drop",
-                          min_excitation_snr=0.0)
+            if self.res.kind == "angles":
+                # a few known angles among still windows: weighted least squares with the known
+                # angle uncertainty on the rotation windows and the still windows' own scatter;
+                # the covariance is s²(AᵀWA)⁻¹ (s² ≈ 1 when the weights are right)
+                f = lsq.solve(y, X, names, slices, weights=self.angle_weights(), covariance="ols",
+                              axis_weighting=False, on_unobservable="drop", min_excitation_snr=0.0)
+            else:
+                f = lsq.solve(y, X, names, slices, covariance="hac", on_unobservable="drop",
+                              min_excitation_snr=0.0)
         return f, f.residual_rad_s
+
+    def angle_weights(self) -> np.ndarray:
+        """Row weights 1/σ² for the ``angles`` residual, (M, 3)."""
+        if "angle_w" not in self.__dict__:
+            res = self.res
+            rot = res.is_rotation
+            T = res.duration_s
+            w = np.ones((res.m, 3))
+            still = ~rot
+            if still.sum() >= 3:
+                sd = np.std(res.y_rad_s[still], axis=0, ddof=1)
+                w[still] = 1.0 / np.maximum(sd, 1e-12) ** 2
+            w[rot] = (T[rot, None] / res.angle_sigma_rad) ** 2
+            self.angle_w = w
+        return self.angle_w
 
     def correction(self, fit, effects: Sequence[str]) -> np.ndarray:
         """Per-sample correction Σ A_e·θ_e, rad/s, (N, 3)."""
@@ -358,11 +381,14 @@ class _Model:
         return c
 
 
-def _cv_rms(y: np.ndarray, X: np.ndarray, *, min_windows: int = 40) -> float:
-    """Out-of-sample RMS of the window residual, 2-fold by time (first half ↔ second half).
+def _cv_rms(y: np.ndarray, X: np.ndarray, *, min_windows: int = 40, n_blocks: int = 10) -> float:
+    """Out-of-sample RMS of the window residual, 2-fold with blocks in time.
 
-    Each half is predicted by the ordinary least-squares fit on the other half. With fewer
-    than ``min_windows`` windows the in-sample RMS is returned. y (M, 3), X (M, 3, P).
+    The windows are cut into ``n_blocks`` contiguous blocks assigned alternately to two folds
+    (so both folds span the whole recording — temperature range, ramp — while neighbouring,
+    correlated windows stay together); each fold is predicted by the ordinary least-squares
+    fit on the other. With fewer than ``min_windows`` windows the in-sample RMS is returned.
+    y (M, 3), X (M, 3, P).
     """
     M = y.shape[0]
     if X.shape[2] == 0:
@@ -370,15 +396,20 @@ def _cv_rms(y: np.ndarray, X: np.ndarray, *, min_windows: int = 40) -> float:
     if M < min_windows:
         th, *_ = np.linalg.lstsq(X.reshape(-1, X.shape[2]), y.reshape(-1), rcond=None)
         return _rms(y - np.einsum("mip,p->mi", X, th))
-    h = M // 2
+    fold = (np.arange(M) * n_blocks // M) % 2 == 0
     out = []
-    for tr, te in ((slice(0, h), slice(h, M)), (slice(h, M), slice(0, h))):
+    for tr, te in ((fold, ~fold), (~fold, fold)):
         A = X[tr].reshape(-1, X.shape[2])
         cn = np.linalg.norm(A, axis=0)
         cn[cn == 0] = 1.0
         th, *_ = np.linalg.lstsq(A / cn, y[tr].reshape(-1), rcond=1e-10)
         out.append(y[te] - np.einsum("mip,p->mi", X[te], th / cn))
     return _rms(np.concatenate(out))
+
+
+def _cv_min(res: Residual) -> int:
+    # a few known-angle windows among many still ones cannot be split into folds
+    return res.m + 1 if res.kind == "angles" else 40
 
 
 def _rms(x: np.ndarray) -> float:
@@ -489,7 +520,8 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
         F, p, lp = 0.0, 1.0, 0.0
     rms_after = _rms(e)
     Xw, _, _ = model.design(list(current) + added)
-    cv_red = 1.0 - _cv_rms(model.res.y_rad_s, Xw) / cv_before if cv_before and cv_before > 0 else 0.0
+    cv_red = (1.0 - _cv_rms(model.res.y_rad_s, Xw, min_windows=_cv_min(model.res)) / cv_before
+              if cv_before and cv_before > 0 else 0.0)
     ev = Evidence(
         statistic=F, df1=q, df2=df2, p_value=p, log10_p=lp, threshold=threshold,
         params={n: float(fit.theta[p_]) for n, p_ in zip(names, cols)},
@@ -608,7 +640,7 @@ def loop_residual(
         remaining = [c for c in cands if c not in model_effects]
         if not remaining:
             break
-        cv_cur = _cv_rms(res.y_rad_s, model.design(model_effects)[0])
+        cv_cur = _cv_rms(res.y_rad_s, model.design(model_effects)[0], min_windows=_cv_min(res))
         trial = {c: _test(model, model_effects, c, 0.0, rms_cur, cv_cur) for c in remaining}
         testable = [c for c in remaining if trial[c][0].df1 > 0]
         for c in remaining:
@@ -700,6 +732,7 @@ def run_loop(
     min_rms_reduction: float = 0.005,
     min_attitude_reduction: float = 0.05,
     max_steps: int = 8,
+    angle_sigma_deg: float = 2.0,
 ) -> LoopResult:
     """Close the loop on one recording.
 
@@ -727,6 +760,8 @@ def run_loop(
         (see the module docstring).
     max_steps : int
         At most this many effects are added.
+    angle_sigma_deg : float
+        Uncertainty of each known rotation angle (``"angles"`` reference), degrees.
 
     Returns
     -------
@@ -735,7 +770,8 @@ def run_loop(
     if not 0 < alpha < 1:
         raise GyroInputError(f"alpha must be in (0, 1), not {alpha}")
     with _single_thread():
-        res = build_residual(rec, reference=reference, segments=segments, window_s=window_s)
+        res = build_residual(rec, reference=reference, segments=segments, window_s=window_s,
+                             angle_sigma_deg=angle_sigma_deg)
         return loop_residual(
             res, rec, declared=declared, candidates=candidates, alpha=alpha, thermal_order=thermal_order,
             min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,

@@ -206,6 +206,9 @@ class Residual:
         Repairs and caveats (windows dropped, outliers, ...).
     is_rotation : ndarray of bool, shape (M,) or None
         ``"angles"``: True for the known-rotation windows (the others are still windows).
+    angle_sigma_rad : float
+        ``"angles"``: standard uncertainty of each known angle, rad (hand rotations: a few
+        degrees); the rotation windows are weighted by it.
     """
 
     kind: str
@@ -220,6 +223,7 @@ class Residual:
     description: str
     notes: tuple[str, ...] = ()
     is_rotation: np.ndarray | None = None
+    angle_sigma_rad: float = float("nan")
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -359,7 +363,11 @@ def _fill_nan_rows(t: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def choose_reference(rec: Recording, segments: Sequence[Segment] | None = None) -> str:
-    """The best reference the data offer: rate > attitude > angles > still."""
+    """The best reference the data offer: rate > attitude > angles > still.
+
+    Without reference columns or segments, a recording that a motion gate finds ≥ 80 % still
+    (or that has a ``static_pose_axis`` column) is taken as ``"still"``.
+    """
     segments = [as_segment(x) for x in (segments or [])]
     if rec.ref_rate_rad_s is not None and np.isfinite(rec.ref_rate_rad_s).any():
         return "rate"
@@ -369,6 +377,8 @@ def choose_reference(rec: Recording, segments: Sequence[Segment] | None = None) 
     if any(s.kind == "rotation" for s in segs):
         return "angles"
     if any(s.kind == "still" for s in segs):
+        return "still"
+    if "static_pose_axis" in rec.extra or (rec.n > 100 and detect_still(rec.t_s, rec.gyro_rad_s).mean() >= 0.8):
         return "still"
     raise GyroInputError(
         "no reference in the data: need ref_*_rad_s, ref_q* columns, or a segments file (--segments) "
@@ -391,6 +401,7 @@ def build_residual(
     segments: Sequence[Segment] | None = None,
     window_s: float | None = None,
     outlier_mad: float = 20.0,
+    angle_sigma_deg: float = 2.0,
 ) -> Residual:
     """Build the residual of ``rec`` against its reference.
 
@@ -409,6 +420,9 @@ def build_residual(
     outlier_mad : float
         ``"attitude"`` only: windows whose |y| exceeds median + ``outlier_mad``·1.4826·MAD are
         dropped as reference glitches (marker swaps) and counted in ``notes``.
+    angle_sigma_deg : float
+        ``"angles"`` only: standard uncertainty of each known rotation angle, degrees (2° for
+        rotations by hand against a box edge; 0.01° for a rate table).
 
     Returns
     -------
@@ -544,6 +558,11 @@ def build_residual(
             how = "motion gate"
         still &= ~in_rot
         sa, sb = _blocks(still, max(2, int(round((window_s or 0.5) * fs))))
+        if n_rot + sa.size < 2:
+            raise GyroInputError(
+                "reference too poor: one known rotation and no still part give only 3 numbers "
+                "(record still periods before/after, or several rotations)"
+            )
         phi_all = np.vstack([np.asarray(phi, float), np.zeros((sa.size, 3))])
         a, b = np.concatenate([a, sa]), np.concatenate([b, sb])
         omega = _smooth(t, gyro)
@@ -558,7 +577,7 @@ def build_residual(
         notes.append("known angles hold only for rotations about a fixed sensor axis; hand rotations are good to a few degrees")
         return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
                         R_GS=None, R_WS=None, gyro_rad_s=gyro, description=res.description, notes=tuple(notes),
-                        is_rotation=np.arange(a.size) < n_rot)
+                        is_rotation=np.arange(a.size) < n_rot, angle_sigma_rad=np.radians(angle_sigma_deg))
 
     if a.size < 3:
         raise GyroInputError(f"fewer than 3 observation windows for reference '{kind}'")
