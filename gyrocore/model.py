@@ -1,0 +1,563 @@
+"""The correction model: fit any subset of catalogue effects, remove them, save/load them.
+
+``Calibrator(effects=[...]).fit(recording)`` returns a frozen :class:`CalibrationResult`
+(parameters in :data:`gyrocore.effects.PARAM_SCHEMA` form, SI, with standard errors);
+``result.apply(recording)`` removes the effects with :func:`gyrocore.effects.correct`.
+The references are taken from the file, in this order:
+
+1. a segments file of known rotation angles (``segments=``) → the article's integral method
+   (:func:`gyrocore.rotations.integral_calibration`): bias from the still parts, K and M from
+   the integrated outputs; effects ``bias``, ``scale``, ``misalignment`` only;
+2. reference rates (``ref_*_rad_s`` columns, rate table or simulation) → joint least squares
+   of all effects against y − ω_ref (:mod:`gyrocore.lsq`);
+3. neither → still parts (:func:`gyrocore.rotations.still_mask`) with reference rate 0:
+   bias-type effects (bias, thermal bias, ramp, g-sensitivity over several poses); the
+   rate-dependent ones are then reported unobservable by name.
+
+Parameter file (DESIGN.md "Parameter file"): JSON, written atomically, ``format_version``
+"1.0"; a file of another major version is refused with a message that says so.
+
+Article form (ARTICLE.md §5): ω = M·diag(1/s)·(ω̂′ − b), ω̂′ = ω̂ − H·a, which is this
+model with K⁻¹ = M·diag(1/s) (:func:`gyrocore.effects.article_from_k`), b = ``bias`` and
+H = ``g_sensitivity``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from . import effects as E
+from . import lsq
+from .errors import GyroInputError, warn_repair
+from .recording import Recording, atomic_write_text, file_sha256
+
+__all__ = [
+    "FORMAT_VERSION",
+    "FITTABLE",
+    "Calibrator",
+    "CalibrationResult",
+    "save_params",
+    "load_params",
+    "result_to_dict",
+    "result_from_dict",
+]
+
+FORMAT_VERSION = "1.0"
+
+#: Effects that ``calibrate`` can fit (those with least-squares regressors).
+FITTABLE: tuple[str, ...] = (
+    "bias", "bias_thermal", "bias_temp_rate", "bias_ramp", "scale", "scale_thermal",
+    "scale_asymmetry", "scale_nonlinearity", "misalignment", "g_sensitivity", "g2_sensitivity",
+    "time_offset",
+)
+_INTEGRAL_EFFECTS = ("bias", "scale", "misalignment")
+_NEEDS_ACCEL = ("g_sensitivity", "g2_sensitivity")
+_NEEDS_TEMP = ("bias_thermal", "scale_thermal", "bias_temp_rate")
+_RATE_EFFECTS = ("scale", "scale_thermal", "scale_asymmetry", "scale_nonlinearity", "misalignment", "time_offset")
+_THERMAL_META = ("t0_c", "temp_min_c", "temp_max_c")
+
+
+def _not_fittable_message(eff: str) -> str:
+    if eff in E.STOCHASTIC:
+        return f"effect {eff} is a noise term, identified by 'gyroharness allan', not by calibrate"
+    return f"effect {eff} is not fitted by calibrate (fittable: {', '.join(FITTABLE)})"
+
+
+# ============================================================================ result
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Fitted catalogue effects, ready to apply or save.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        Fitted effects, in the order given.
+    params : dict
+        ``{effect: {param: ndarray}}`` in SI (PARAM_SCHEMA names). Unobservable parameters
+        are 0 (not corrected).
+    stderr : dict
+        Same layout; standard errors (NaN where not estimated, e.g. t0_c; +inf for
+        unobservable parameters).
+    residual_rms_rad_s : ndarray, shape (3,)
+        RMS of the fit residual per axis (rad/s); for the integral method, of the still part.
+    unobservable : tuple of str
+        ``"effect.param[index]"`` names of parameters the data could not determine.
+    unobservable_reason : dict
+    method : str
+        ``"rate_reference"``, ``"still"`` or ``"integral"``.
+    covariance : str
+        Which covariance the standard errors come from (``ols``, ``hac``, ...; ``integral``).
+    sensor : str
+    source_file : str or None
+        Name of the data file (no folders).
+    source_sha256 : str or None
+    n_samples : int
+        Samples that entered the fit.
+    thermal_order : dict
+        Chosen polynomial order per thermal effect.
+    thermal_tests : tuple
+        The order-selection tests (:class:`gyrocore.thermal.OrderTest` as dicts).
+    notes : tuple of str
+    integral : dict or None
+        For the integral method: M, M_stderr, B_rad, C_rad, ... (lists).
+    format_version : str
+    """
+
+    effects: tuple[str, ...]
+    params: dict
+    stderr: dict
+    residual_rms_rad_s: np.ndarray
+    unobservable: tuple[str, ...] = ()
+    unobservable_reason: dict = field(default_factory=dict)
+    method: str = "rate_reference"
+    covariance: str = "ols"
+    sensor: str = "unknown"
+    source_file: str | None = None
+    source_sha256: str | None = None
+    n_samples: int = 0
+    thermal_order: dict = field(default_factory=dict)
+    thermal_tests: tuple = ()
+    notes: tuple[str, ...] = ()
+    integral: dict | None = None
+    format_version: str = FORMAT_VERSION
+
+    # ------------------------------------------------------------------ apply
+    def required_columns(self) -> list[str]:
+        """Data columns that :meth:`apply` needs besides the gyro."""
+        need = []
+        if any(e in self.params for e in _NEEDS_ACCEL):
+            need.append("accel")
+        if any(e in self.params for e in _NEEDS_TEMP):
+            need.append("temp_c")
+        return need
+
+    def apply(self, recording: Recording, *, iterations: int = 4) -> Recording:
+        """Remove the fitted effects from ``recording``'s gyro (rad/s, S frame).
+
+        Temperatures outside the fitted range are clamped to it (``effects.correct``) and
+        announced with one :class:`~gyrocore.errors.RepairWarning` giving the count.
+        Columns other than the gyro are unchanged.
+        """
+        for eff in self.params:
+            if eff in _NEEDS_ACCEL and recording.accel_m_s2 is None:
+                raise GyroInputError(f"the parameters include {eff}, which needs the accel_*_m_s2 columns; the data lack them")
+            if eff in _NEEDS_TEMP and recording.temp_c is None:
+                raise GyroInputError(f"the parameters include {eff}, which needs the temp_c column; the data lack it")
+        for eff in ("bias_thermal", "scale_thermal"):
+            if eff in self.params:
+                pd = self.params[eff]
+                lo, hi = float(pd["temp_min_c"]), float(pd["temp_max_c"])
+                T = recording.temp_c
+                n_out = int(np.sum((T < lo) | (T > hi)))
+                if n_out:
+                    warn_repair(
+                        f"{n_out} of {T.size} samples have a temperature outside the calibrated range "
+                        f"{lo:.2f}..{hi:.2f} C; {eff} is held at the range edge there"
+                    )
+        inp = E.ModelInputs(t_s=recording.t_s, f_S_m_s2=recording.accel_m_s2, temp_c=recording.temp_c)
+        omega = E.correct(self.params, recording.gyro_rad_s, inp, iterations=iterations)
+        return recording.with_gyro(
+            omega,
+            calibrated_effects=",".join(self.effects),
+            calibration_source=f"{self.source_file or '?'} sha256:{(self.source_sha256 or '?')[:16]}",
+        )
+
+    # ------------------------------------------------------------------ article form
+    def k_matrix(self) -> np.ndarray:
+        """Constant K = I + diag(s) + misalignment (3×3)."""
+        return E.k_matrix(self.params)
+
+    def article_form(self) -> dict[str, np.ndarray]:
+        """The article's ω = M·diag(1/s)·(ω̂′ − b), ω̂′ = ω̂ − H·a.
+
+        Returns
+        -------
+        dict with ``M`` (3×3, unit diagonal), ``s`` (3,), ``b_rad_s`` (3,), ``H_rad_s_per_m_s2`` (3×3).
+        """
+        M, s = E.article_from_k(self.k_matrix())
+        b = np.asarray(self.params.get("bias", {}).get("b_rad_s", np.zeros(3)), float)
+        H = np.asarray(self.params.get("g_sensitivity", {}).get("h_rad_s_per_m_s2", np.zeros((3, 3))), float)
+        return {"M": M, "s": s, "b_rad_s": b, "H_rad_s_per_m_s2": H}
+
+    @staticmethod
+    def params_from_article(M, s, b_rad_s=None, H_rad_s_per_m_s2=None) -> dict:
+        """Catalogue parameters (bias, scale, misalignment, g_sensitivity) from the article's form."""
+        K = E.k_from_article(np.asarray(M, float), np.asarray(s, float))
+        out = {
+            "scale": {"s": np.diag(K) - 1.0},
+            "misalignment": {"m_rad": np.array([K["xyz".index(p[0]), "xyz".index(p[1])] for p in E.MISALIGNMENT_ORDER])},
+        }
+        if b_rad_s is not None:
+            out["bias"] = {"b_rad_s": np.asarray(b_rad_s, float)}
+        if H_rad_s_per_m_s2 is not None:
+            out["g_sensitivity"] = {"h_rad_s_per_m_s2": np.asarray(H_rad_s_per_m_s2, float)}
+        return out
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (the parameter file)."""
+        return result_to_dict(self)
+
+
+# ============================================================================ estimator
+def _unflatten(effect: str, vec: np.ndarray, order: int) -> dict[str, np.ndarray]:
+    """Flat LsqFit slice -> {param: array} in PARAM_SCHEMA shapes."""
+    schema = E.PARAM_SCHEMA[effect]
+    (pname, shape), = [(k, v) for k, v in schema.items() if k not in _THERMAL_META]
+    shp = tuple(order if d == "p" else d for d in shape)
+    return {pname: np.asarray(vec, float).reshape(shp) if shp else np.asarray(float(vec[0]))}
+
+
+def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
+    """w(t − τ) by linear interpolation (the catalogue's time_offset convention)."""
+    if tau_s == 0.0:
+        return w
+    return np.stack([np.interp(t - tau_s, t, w[:, i]) for i in range(3)], axis=1)
+
+
+class Calibrator:
+    """Fit catalogue effects against the references in a recording.
+
+    Parameters
+    ----------
+    effects : sequence of str
+        Catalogue effects to fit (see :data:`FITTABLE`), e.g. ``["bias", "scale",
+        "misalignment"]``. Order matters only for observability: an earlier effect keeps a
+        column that a later one duplicates.
+    thermal_order : "auto" or int
+        Polynomial order of ``bias_thermal``/``scale_thermal``; "auto" chooses it from the
+        data (:func:`gyrocore.thermal.select_thermal_orders`, up to ``max_thermal_order``).
+    max_thermal_order : int
+    thermal_alpha : float
+        Significance level of the order tests.
+    segments : path or sequence, optional
+        Known-rotation segments → the integral method.
+    covariance : str
+        ``"auto"`` (Ljung–Box switch), ``"ols"``, ``"hac"``, ``"newey_west"``, ``"block"``.
+    on_unobservable : {"drop", "raise"}
+        Report unobservable parameters (fit the rest) or raise
+        :class:`~gyrocore.errors.UnobservableError`.
+    robust : bool
+        After a first fit, exclude samples whose residual exceeds 6 robust σ (rate-table
+        transients the model does not describe) and refit; the count is a note.
+    max_rows : int
+        Fit block means of consecutive samples when the data have more rows than this
+        (exact for the linear model; see ``lsq.solve(average=)``).
+    still_window_s, still_false_reject_rate : float
+        Still detection (no reference rate / integral method).
+    sensor : str, optional
+        Sensor name; default the file's ``# sensor:`` metadata.
+    """
+
+    def __init__(
+        self,
+        *,
+        effects: Sequence[str],
+        thermal_order: str | int = "auto",
+        max_thermal_order: int = 3,
+        thermal_alpha: float = 0.01,
+        segments=None,
+        covariance: str = "auto",
+        on_unobservable: str = "drop",
+        robust: bool = True,
+        max_rows: int = 60000,
+        still_window_s: float = 1.0,
+        still_false_reject_rate: float = 1e-3,
+        sensor: str | None = None,
+    ) -> None:
+        effs = E.check_effect_names(effects)
+        if not effs:
+            raise GyroInputError("no effects given to calibrate (e.g. --effects bias,scale,misalignment)")
+        if len(set(effs)) != len(effs):
+            raise GyroInputError("an effect is listed twice")
+        for e in effs:
+            if e not in FITTABLE:
+                raise GyroInputError(_not_fittable_message(e))
+        if thermal_order != "auto":
+            try:
+                thermal_order = int(thermal_order)
+            except (TypeError, ValueError):
+                raise GyroInputError(f"thermal order must be 'auto' or 1..3, got {thermal_order!r}") from None
+            if not 1 <= thermal_order <= 3:
+                raise GyroInputError(f"thermal order must be 'auto' or 1..3, got {thermal_order}")
+        if not 1 <= int(max_thermal_order) <= 3:
+            raise GyroInputError(f"max thermal order must be 1..3, got {max_thermal_order}")
+        self.effects = tuple(effs)
+        self.thermal_order = thermal_order
+        self.max_thermal_order = int(max_thermal_order)
+        self.thermal_alpha = float(thermal_alpha)
+        self.segments = segments
+        self.covariance = covariance
+        self.on_unobservable = on_unobservable
+        self.robust = bool(robust)
+        self.max_rows = int(max_rows)
+        self.still_window_s = float(still_window_s)
+        self.still_false_reject_rate = float(still_false_reject_rate)
+        self.sensor = sensor
+
+    # ------------------------------------------------------------------ public
+    def fit(self, recording: Recording, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
+        """Fit the effects; ``source_path`` (the data file) is recorded by name and SHA-256."""
+        src_name = src_sha = None
+        if source_path is not None:
+            src_name = Path(source_path).name
+            src_sha = file_sha256(source_path)
+        sensor = self.sensor or str(recording.meta.get("sensor", "unknown"))
+        for eff in self.effects:
+            if eff in _NEEDS_ACCEL and recording.accel_m_s2 is None:
+                raise GyroInputError(f"effect {eff} needs the accel_*_m_s2 columns, which the data lack")
+            if eff in _NEEDS_TEMP and recording.temp_c is None:
+                raise GyroInputError(f"effect {eff} needs the temp_c column, which the data lack")
+        common = dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
+        if self.segments is not None:
+            return self._fit_integral(recording, common)
+        return self._fit_lsq(recording, common)
+
+    # ------------------------------------------------------------------ integral method
+    def _fit_integral(self, rec: Recording, common: dict) -> CalibrationResult:
+        from .rotations import integral_calibration
+
+        bad = [e for e in self.effects if e not in _INTEGRAL_EFFECTS]
+        if bad:
+            raise GyroInputError(
+                f"with a segments file (integral method) only {', '.join(_INTEGRAL_EFFECTS)} can be fitted, not {', '.join(bad)}"
+            )
+        res = integral_calibration(rec, self.segments, window_s=self.still_window_s,
+                                   false_reject_rate=self.still_false_reject_rate)
+        params: dict = {}
+        stderr: dict = {}
+        notes = []
+        if "bias" in self.effects:
+            params["bias"] = {"b_rad_s": res.bias_rad_s}
+            stderr["bias"] = {"b_rad_s": res.bias_stderr_rad_s}
+        if "scale" in self.effects:
+            params["scale"] = {"s": res.scale}
+            stderr["scale"] = {"s": res.scale_stderr}
+        if "misalignment" in self.effects:
+            params["misalignment"] = {"m_rad": res.misalignment_rad}
+            stderr["misalignment"] = {"m_rad": res.misalignment_stderr_rad}
+        elif "scale" in self.effects:
+            notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
+        if "bias" not in self.effects:
+            notes.append("bias not requested but still removed before integrating (the integral method needs it)")
+        integral = {
+            "M": res.M, "M_stderr": res.M_stderr, "K": res.K, "K_stderr": res.K_stderr,
+            "B_rad": res.B_rad, "C_rad": res.C_rad, "angle_residual_rad": res.angle_residual_rad,
+            "noise_lr_rad2_s": res.noise_lr_rad2_s, "n_still": res.n_still,
+            "segment_duration_s": res.segment_duration_s,
+        }
+        rms = res.still_rms_rad_s
+        return CalibrationResult(
+            effects=self.effects, params=params, stderr=stderr, residual_rms_rad_s=rms,
+            method="integral", covariance="integral", n_samples=int(res.n_still),
+            notes=tuple(notes), integral=integral, **common,
+        )
+
+    # ------------------------------------------------------------------ least squares
+    def _references(self, rec: Recording):
+        """(omega_ref (N,3), weights (N,), method, notes)."""
+        notes: list[str] = []
+        if rec.ref_rate_rad_s is not None:
+            return rec.ref_rate_rad_s, np.ones(rec.n), "rate_reference", notes
+        from .rotations import still_mask
+
+        m = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
+        if m.sum() < 10:
+            raise GyroInputError("no reference rates (ref_*_rad_s) and no still part in the data: nothing to calibrate against")
+        notes.append(
+            f"no reference rates: fitted against rate 0 on {int(m.sum())} still samples "
+            f"({100.0 * m.mean():.0f} % of the file); Earth rate is absorbed in the bias"
+        )
+        return np.zeros((rec.n, 3)), m.astype(float), "still", notes
+
+    def _fit_lsq(self, rec: Recording, common: dict) -> CalibrationResult:
+        w_ref, weights, method, notes = self._references(rec)
+        y = rec.gyro_rad_s
+        t = rec.t_s
+        n_used = int(np.sum(weights > 0))
+        average = max(1, int(math.ceil(n_used / self.max_rows)))
+        if average > 1:
+            notes.append(f"fitted block means of {average} samples ({n_used} samples)")
+        opts = dict(weights=weights, average=average, covariance=self.covariance,
+                    on_unobservable=self.on_unobservable)
+        effects = list(self.effects)
+        thermal = [e for e in effects if e in ("bias_thermal", "scale_thermal")]
+        tau_total = 0.0
+
+        def inputs(tau):
+            return E.ModelInputs(t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau),
+                                 f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
+
+        def residual(tau):
+            return y - _shift_rate(t, w_ref, tau)
+
+        # 1) fit at the highest thermal order (or the fixed one) to settle τ and transients
+        orders: dict[str, int] = {
+            e: (self.max_thermal_order if self.thermal_order == "auto" else int(self.thermal_order)) for e in thermal
+        }
+        tests = []
+        fit = lsq.fit_effects(residual(0.0), effects, inputs(0.0), orders=orders, **opts)
+        # time_offset: Gauss–Newton on τ (the regressor −dω/dt is a linearisation)
+        if "time_offset" in effects:
+            for _ in range(8):
+                d = float(fit.effect_theta("time_offset")[0])
+                if not np.isfinite(fit.effect_stderr("time_offset")[0]) or d == 0.0:
+                    break
+                tau_total += d
+                fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders, **opts)
+                if abs(float(fit.effect_theta("time_offset")[0])) < 1e-3 * float(fit.effect_stderr("time_offset")[0]):
+                    break
+        # robust pass: drop transients the model does not describe
+        if self.robust and fit.rank:
+            e = fit.residual_rad_s
+            used = weights > 0
+            med = np.median(e[used], axis=0)
+            s_rob = 1.4826 * np.median(np.abs(e[used] - med), axis=0)
+            bad = used & np.any(np.abs(e - med) > 6.0 * np.where(s_rob > 0, s_rob, np.inf), axis=1)
+            nb = int(bad.sum())
+            # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
+            if 0 < nb < 0.05 * used.sum():
+                weights = np.where(bad, 0.0, weights)
+                opts["weights"] = weights
+                notes.append(f"excluded {nb} samples with residual > 6 robust sigma (transients)")
+        # 2) thermal order from the data, then the final fit
+        if thermal and self.thermal_order == "auto":
+            from .thermal import select_thermal_orders
+
+            orders, tests = select_thermal_orders(
+                residual(tau_total), inputs(tau_total), effects, max_order=self.max_thermal_order,
+                alpha=self.thermal_alpha, **dict(opts, on_unobservable="drop"))
+        fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders, **opts)
+        if "time_offset" in effects and np.isfinite(fit.effect_stderr("time_offset")[0]):
+            tau_total += float(fit.effect_theta("time_offset")[0])
+        params: dict = {}
+        stderr: dict = {}
+        inp0 = inputs(tau_total)
+        for eff in effects:
+            sl = fit.slices[eff]
+            order = orders.get(eff, 1)
+            params[eff] = _unflatten(eff, fit.theta[sl], order)
+            stderr[eff] = _unflatten(eff, fit.stderr[sl], order)
+            if eff in ("bias_thermal", "scale_thermal"):
+                T = np.asarray(rec.temp_c, float)
+                Tu = T[opts["weights"] > 0]
+                # design() centres the polynomial on the mean temperature of all rows it gets
+                params[eff].update(t0_c=np.asarray(float(np.mean(inp0.temp_c))),
+                                   temp_min_c=np.asarray(float(Tu.min())), temp_max_c=np.asarray(float(Tu.max())))
+                stderr[eff].update({k: np.asarray(np.nan) for k in _THERMAL_META})
+        if "time_offset" in effects:
+            params["time_offset"]["tau_s"] = np.asarray(tau_total if np.isfinite(fit.effect_stderr("time_offset")[0]) else 0.0)
+        return CalibrationResult(
+            effects=tuple(effects), params=params, stderr=stderr,
+            residual_rms_rad_s=np.asarray(fit.residual_rms_rad_s, float),
+            unobservable=fit.unobservable, unobservable_reason=dict(fit.unobservable_reason),
+            method=method, covariance=fit.cov_kind, n_samples=int(np.sum(opts["weights"] > 0)),
+            thermal_order=orders, thermal_tests=tuple(t_.__dict__ for t_ in tests),
+            notes=tuple(notes), **common,
+        )
+
+
+# ============================================================================ parameter file
+def _jsonable(v):
+    from .cli import to_jsonable
+
+    return to_jsonable(v)
+
+
+def result_to_dict(res: CalibrationResult) -> dict:
+    """The parameter file as a dict (DESIGN.md "Parameter file")."""
+    art = res.article_form() if any(e in res.params for e in ("scale", "misalignment", "bias", "g_sensitivity")) else None
+    d = {
+        "format_version": res.format_version,
+        "sensor": res.sensor,
+        "effects": list(res.effects),
+        "parameters": {e: {k: _jsonable(v) for k, v in pd.items()} for e, pd in res.params.items()},
+        "standard_errors": {e: {k: _jsonable(v) for k, v in pd.items()} for e, pd in res.stderr.items()},
+        "residual_rms_rad_s": _jsonable(res.residual_rms_rad_s),
+        "unobservable": list(res.unobservable),
+        "unobservable_reason": dict(res.unobservable_reason),
+        "method": res.method,
+        "covariance": res.covariance,
+        "n_samples": int(res.n_samples),
+        "thermal_order": dict(res.thermal_order),
+        "thermal_tests": _jsonable(list(res.thermal_tests)),
+        "notes": list(res.notes),
+        "source": {"file": res.source_file, "sha256": res.source_sha256},
+        "article_form": _jsonable(art) if art is not None else None,
+        "integral": _jsonable(res.integral) if res.integral is not None else None,
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "units": "SI: rad, s, m/s^2, degC; parameter names carry their unit",
+    }
+    return d
+
+
+def _arr(v, *, null=np.nan):
+    if v is None:
+        return np.asarray(null, float)
+    a = np.asarray(v, dtype=object)
+    return np.asarray(np.where(a == None, null, a), dtype=float)  # noqa: E711
+
+
+def result_from_dict(d: Mapping, *, where: str = "parameter file") -> CalibrationResult:
+    """Inverse of :func:`result_to_dict` (validates names, shapes and the format version)."""
+    if not isinstance(d, Mapping):
+        raise GyroInputError(f"{where}: not a gyroharness parameter file (top level is not an object)")
+    ver = d.get("format_version")
+    if not isinstance(ver, str) or not ver:
+        raise GyroInputError(f"{where}: not a gyroharness parameter file (no format_version)")
+    major = ver.split(".")[0]
+    if major != FORMAT_VERSION.split(".")[0]:
+        raise GyroInputError(
+            f"{where}: parameter file format_version {ver} is not supported; this gyroharness reads {FORMAT_VERSION.split('.')[0]}.x"
+        )
+    try:
+        effects = tuple(E.check_effect_names(d["effects"]))
+        raw = d["parameters"]
+        params = {e: {k: _arr(v) for k, v in raw[e].items()} for e in effects}
+        params = E.validate_params(params)
+        se_raw = d.get("standard_errors") or {}
+        stderr = {e: {k: _arr(v, null=np.inf) for k, v in se_raw.get(e, {}).items()} for e in effects}
+        rms = _arr(d.get("residual_rms_rad_s"))
+    except GyroInputError as exc:
+        raise GyroInputError(f"{where}: {exc}") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise GyroInputError(f"{where}: malformed parameter file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    src = d.get("source") or {}
+    return CalibrationResult(
+        effects=effects, params=params, stderr=stderr, residual_rms_rad_s=rms,
+        unobservable=tuple(d.get("unobservable") or ()),
+        unobservable_reason=dict(d.get("unobservable_reason") or {}),
+        method=str(d.get("method", "")), covariance=str(d.get("covariance", "")),
+        sensor=str(d.get("sensor", "unknown")), source_file=src.get("file"), source_sha256=src.get("sha256"),
+        n_samples=int(d.get("n_samples") or 0), thermal_order=dict(d.get("thermal_order") or {}),
+        thermal_tests=tuple(d.get("thermal_tests") or ()), notes=tuple(d.get("notes") or ()),
+        integral=d.get("integral"), format_version=ver,
+    )
+
+
+def save_params(result: CalibrationResult, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+    """Write the parameter file (JSON, atomically)."""
+    text = json.dumps(result_to_dict(result), indent=2, allow_nan=False)
+    atomic_write_text(path, text + "\n", overwrite=overwrite)
+
+
+def load_params(path: str | os.PathLike) -> CalibrationResult:
+    """Read a parameter file; a corrupt file or another major version -> one-line error."""
+    path = str(path)
+    if not os.path.isfile(path):
+        raise GyroInputError(f"{path}: no such parameter file")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = json.load(fh)
+    except UnicodeDecodeError:
+        raise GyroInputError(f"{path}: not a parameter file (not UTF-8 text)") from None
+    except json.JSONDecodeError as exc:
+        raise GyroInputError(f"{path}: not a parameter file (JSON error at line {exc.lineno}: {exc.msg})") from None
+    return result_from_dict(d, where=path)
