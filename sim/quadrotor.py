@@ -45,7 +45,11 @@ __all__ = [
     "fly_hover",
     "load_quadrotor_model",
     "hover_bare_step_rate",
+    "QUICK_HOVER_S",
 ]
+
+#: A quick hover length for tests and smoke runs, s (2 s settling + 8 s of steady hover).
+QUICK_HOVER_S = 10.0
 
 _IMBALANCE_RADIUS_M = 0.01  # radius of the eccentric masses in models/quadrotor.xml
 
@@ -176,11 +180,16 @@ class FlightLog:
         """
         fs = self.rate_hz
         sos = signal.butter(2, band_hz, btype="bandpass", fs=fs, output="sos")
-        a = signal.sosfiltfilt(sos, self.omega_true_rad_s, axis=0).ravel(order="F")
-        b = signal.sosfiltfilt(sos, self.gyro_filt_rad_s, axis=0).ravel(order="F")
+        # axes concatenated with a gap of zeros so no lag mixes two axes
+        pad = np.zeros((int(0.1 * fs) + 1, 3))
+        a = np.vstack([signal.sosfiltfilt(sos, self.omega_true_rad_s, axis=0), pad]).ravel(order="F")
+        b = np.vstack([signal.sosfiltfilt(sos, self.gyro_filt_rad_s, axis=0), pad]).ravel(order="F")
         max_lag = int(0.1 * fs)
+        # c[l] = sum_n a[n] b[n + l] (b lags a by l samples), over the three axes
+        full = signal.correlate(b, a, mode="full", method="fft")  # lag l at index l + n - 1
+        mid = a.size - 1
         lags = np.arange(-max_lag, max_lag + 1)
-        c = np.array([np.dot(a[max(0, -l): a.size - max(0, l)], b[max(0, l): b.size - max(0, -l)]) for l in lags])
+        c = full[mid - max_lag : mid + max_lag + 1]
         i = int(np.argmax(c))
         frac = 0.0
         if 0 < i < c.size - 1:

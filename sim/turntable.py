@@ -49,6 +49,7 @@ __all__ = [
     "TableRun",
     "table_profile_static",
     "table_profile_turns",
+    "table_profile_quick",
     "run_table",
     "run_table_detailed",
     "load_table_model",
@@ -259,6 +260,12 @@ def table_profile_turns(
                 segs.append(TableSegment(mount=mount, rate_rad_s=d * rate, duration_s=angle / rate + ramp, ramp_s=ramp))
                 segs.append(TableSegment(mount=mount, rate_rad_s=0.0, duration_s=rest_s))
     return TableProfile(segments=tuple(segs), repose_s=repose_s, settle_s=settle_s)
+
+
+def table_profile_quick() -> TableProfile:
+    """A short profile for tests and smoke runs (~14 s): mounts +z and -x, one turn each way at
+    180 deg/s, 1 s rests, one re-pose."""
+    return table_profile_turns(mounts=("+z", "-x"), revolutions=1.0, rates_rad_s=(math.pi,), rest_s=1.0)
 
 
 @dataclass(frozen=True, eq=False)
