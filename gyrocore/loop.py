@@ -794,7 +794,7 @@ _NATURAL = {
 }
 
 
-def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000) -> list:
+def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000, prefix: str = "loop") -> list:
     """Residual against the found effect's regressor, before and after each step (PNG per step).
 
     The x axis is the effect's physical variable where it has one per axis (time, T, dT/dt,
@@ -852,7 +852,7 @@ def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000) -> list:
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=90)
         plt.close(fig)
-        p = out / f"loop_step{k + 1}_{eff}.png"
+        p = out / f"{prefix}_step{k + 1}_{eff}.png"
         atomic_write_bytes(p, buf.getvalue())
         paths.append(p)
     return paths
