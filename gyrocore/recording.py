@@ -235,10 +235,8 @@ def write_csv(rec: Recording, path: str | os.PathLike, *, overwrite: bool = True
 #: at their widest range; the fastest parts stop at ±4000 °/s = 69.8 rad/s). Peaks above
 #: :data:`DEG_S_SUSPECT_RAD_S` in a column labelled rad/s are taken as deg/s mislabelled.
 DEG_S_SUSPECT_RAD_S = 70.0
-#: A still MEMS gyro's bias is at most a few °/s (MPU-6050 spec ±20 °/s worst case = 0.35 rad/s);
-#: a still recording whose median |ω| exceeds this, with noise that also looks 57× too big,
-#: is reported as probably deg/s.
-STILL_BIAS_SUSPECT_RAD_S = 0.35
+#: Per-sample noise of a still MEMS gyro is far below 0.05 rad/s (2.9 °/s); a still recording
+#: whose noise exceeds it is reported as probably deg/s labelled rad/s.
 STILL_NOISE_SUSPECT_RAD_S = 0.05
 #: Fraction of the available memory a whole-file read may use before it is refused.
 MEMORY_FRACTION = 0.5
@@ -487,7 +485,9 @@ def detect_saturation(x: np.ndarray, *, min_run: int = 3) -> tuple[np.ndarray, l
     more samples sit exactly at the extreme than in the 3σ band just inside it (a peak
     passes that band quickly). Gaussian noise about a constant rate (e.g. a rate table)
     has its maximum in the tail with far fewer samples than the band inside; the extreme
-    must also be 10σ from the median, so a still recording never qualifies.
+    must also be 10σ from the median, so a still recording never qualifies. Columns where
+    most consecutive samples are identical (noise-free or coarsely quantized) get no
+    verdict: there a run of equal values is normal.
     """
     x = np.asarray(x, float)
     if x.ndim == 1:
@@ -500,7 +500,14 @@ def detect_saturation(x: np.ndarray, *, min_run: int = 3) -> tuple[np.ndarray, l
         if fin.sum() < 10:
             continue
         c = col[fin]
-        sigma = _robust_noise(c)
+        inner = (c != c.max()) & (c != c.min())
+        d = np.diff(c)[inner[1:] & inner[:-1]]
+        if d.size < 10 or float(np.median(np.abs(d - np.median(d)))) == 0.0:
+            # away from the extremes most consecutive samples are identical (noise-free
+            # simulation, or a quantum coarser than the noise): repeated values are normal
+            # there and clipping cannot be told from a constant rate — no verdict
+            continue
+        sigma = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
         med = float(np.median(c))
         for ext in (float(c.max()), float(c.min())):
             at = col == ext

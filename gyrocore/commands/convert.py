@@ -11,7 +11,8 @@ import click
 from ..cli import emit_json
 from ..convert import FORMATS, load_with_segments, write_segments_csv
 from ..errors import GyroInputError, RepairWarning
-from ..recording import _available_memory_bytes, file_sha256, iter_csv_chunks, write_csv, write_csv_chunks
+from .. import recording as _recording
+from ..recording import file_sha256, iter_csv_chunks, write_csv, write_csv_chunks
 
 #: CSV inputs larger than this fraction of the available memory are streamed in chunks.
 STREAM_FRACTION = 0.1
@@ -97,4 +98,4 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
 def _is_large(path: str) -> bool:
     """CSV inputs above STREAM_FRACTION of the available memory are streamed."""
     p = Path(path)
-    return p.is_file() and p.stat().st_size * 3 > STREAM_FRACTION * _available_memory_bytes()
+    return p.is_file() and p.stat().st_size * 3 > STREAM_FRACTION * _recording._available_memory_bytes()

@@ -255,6 +255,10 @@ def test_saturation_detected_and_flagged(tmp_path):
     g = np.round((1.0 + rng.normal(0, 0.002, (n, 3))) / q) * q
     write_csv(Recording(t_s=t, gyro_rad_s=g), tmp_path / "c.csv")
     _strict(read_csv, tmp_path / "c.csv")
+    # a noise-free simulated rate-table step profile (exactly repeated values) is not flagged
+    steps = np.repeat([0.0, 1.0, 2.0, 5.0, 2.0, 0.0], n // 6 + 1)[:n]
+    write_csv(Recording(t_s=t, gyro_rad_s=np.column_stack([steps, 0 * steps, -steps])), tmp_path / "n.csv")
+    _strict(read_csv, tmp_path / "n.csv")
 
 
 def test_deg_s_and_g_columns_converted(tmp_path):
@@ -293,9 +297,6 @@ def test_cli_streams_large_csv(tmp_path, monkeypatch, capsys):
     src, out = tmp_path / "in.csv", tmp_path / "out.csv"
     write_csv(rec, src)
     monkeypatch.setattr(rc, "_available_memory_bytes", lambda: 200_000)
-    import gyrocore.commands.convert as cc
-
-    monkeypatch.setattr(cc, "_available_memory_bytes", lambda: 200_000)
     assert run_cli(build_group(), ["convert", str(src), "-o", str(out), "--chunk-rows", "500"]) == 0
     monkeypatch.setattr(rc, "_available_memory_bytes", lambda: 10**12)
     back = read_csv(out)
