@@ -1,0 +1,139 @@
+"""``gyroharness simulate``: write a simulated recording (the DESIGN.md data file)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+
+from gyrocore.cli import emit_json
+from gyrocore.errors import GyroInputError
+
+
+def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
+    """``effect.param=value`` items -> ``{effect: {param: ndarray}}`` (SI, PARAM_SCHEMA names).
+
+    Values are a number or a comma list; a list fills the parameter's shape row-major
+    (e.g. 9 values for ``g_sensitivity.h_rad_s_per_m_s2``; 3·p values for a thermal
+    polynomial ``(3, p)``). A single number broadcasts.
+    """
+    from gyrocore.effects import PARAM_SCHEMA, check_effect_names
+
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for item in items:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise GyroInputError(f"--set expects effect.param=value, got '{item}'")
+        key, text = item.split("=", 1)
+        eff, pname = (s.strip() for s in key.split(".", 1))
+        check_effect_names([eff])
+        schema = PARAM_SCHEMA[eff]
+        extra = ("turn_on_sigma_rad_s",) if eff == "bias" else ()
+        if pname not in schema and pname not in extra:
+            known = ", ".join(list(schema) + list(extra)) or "none"
+            raise GyroInputError(f"effect {eff} has no parameter '{pname}'; parameters: {known}")
+        try:
+            vals = [float(v) for v in text.split(",") if v.strip() != ""]
+        except ValueError:
+            raise GyroInputError(f"--set {key}: '{text}' is not a number or a comma list of numbers") from None
+        if not vals or not all(math.isfinite(v) for v in vals):
+            raise GyroInputError(f"--set {key}: needs finite number(s), got '{text}'")
+        shape = schema.get(pname, (3,))
+        if len(vals) == 1:
+            v = np.asarray(vals[0])
+        elif "p" in shape:
+            if len(vals) % 3:
+                raise GyroInputError(f"--set {key}: a thermal polynomial needs 3·p values (axis-major), got {len(vals)}")
+            v = np.asarray(vals).reshape(3, len(vals) // 3)
+        else:
+            size = int(np.prod(shape)) if shape else 1
+            if len(vals) != size:
+                raise GyroInputError(f"--set {key}: needs 1 or {size} values, got {len(vals)}")
+            v = np.asarray(vals).reshape(shape)
+        out.setdefault(eff, {})[pname] = v
+    return out
+
+
+@click.command("simulate")
+@click.argument("scenario")
+@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="CSV file to write.")
+@click.option("--sensor", default="icm42688p", show_default=True, metavar="PRESET|FILE.toml",
+              help="Sensor preset name or preset TOML file.")
+@click.option("--duration-s", type=float, default=None, help="Length in seconds (default: the scenario's).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Sensor-unit and scenario seed (>= 0).")
+@click.option("--run", type=int, default=0, show_default=True,
+              help="Session of the same unit: same parameters, new turn-on bias and noise.")
+@click.option("--rate-hz", type=float, default=None, help="Gyro output rate, Hz (default: scenario, else preset).")
+@click.option("--set", "sets", multiple=True, metavar="EFFECT.PARAM=VALUE",
+              help="Put an effect in with these SI values (even if the preset has it off); repeatable. "
+                   "VALUE is a number or a comma list, e.g. --set scale.s=0.01,0.02,-0.01")
+@click.option("--without", "without", multiple=True, metavar="EFFECT",
+              help="Switch an effect off; repeatable or comma-separated.")
+@click.option("--force", is_flag=True, help="Overwrite an existing output file.")
+@click.option("--progress/--no-progress", default=None,
+              help="Progress bar on stderr (default: for long runs when stderr is a terminal).")
+@click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
+def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, force, progress, as_json):
+    """Simulate SCENARIO with one sensor unit and write the recording (truth in the ref_ columns).
+
+    Scenarios: static, static_bumped, turntable, thermal, hover, power_cycles (or a
+    scenario TOML file). Effect and parameter names are those of the effect catalogue
+    (DESIGN.md), values in SI units.
+    """
+    from gyrocore.effects import check_effect_names
+    from gyrocore.recording import file_sha256, write_csv
+    from sim import presets as P
+    from sim import scenarios as S
+
+    out = Path(output)
+    if out.exists() and not force:
+        raise GyroInputError(f"{out} exists; pass --force to overwrite it")
+    if seed < 0 or run < 0:
+        raise GyroInputError("--seed and --run must be >= 0")
+    if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise GyroInputError(f"--rate-hz must be > 0, got {rate_hz}")
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise GyroInputError(f"--duration-s must be > 0, got {duration_s}")
+    spec = S.load_scenario(scenario)
+    sensor_spec = P.load_preset(sensor)
+    wo = check_effect_names([w for item in without for w in item.split(",")])
+    overrides = parse_set(sets)
+    if progress is None:
+        rate = rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz
+        dur = duration_s or spec.duration_s or 300.0
+        progress = sys.stderr.isatty() and (dur * rate > 200_000 or spec.kind == "hover" and dur * rate > 20_000)
+    res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
+                     without=wo, gyro_rate_hz=rate_hz, progress=bool(progress))
+    rec = res.recording
+    write_csv(rec, out, overwrite=force)
+    summary = {
+        "path": str(out),
+        "sha256": file_sha256(out),
+        "scenario": res.scenario,
+        "sensor": res.sensor,
+        "seed": res.seed,
+        "run": res.run,
+        "rate_hz": float(rec.meta["rate_hz"]),
+        "n_samples": rec.n,
+        "duration_s": rec.n / float(rec.meta["rate_hz"]),
+        "power_ups": len(res.draws.get("bias", {}).get("power_up_indices", [0])),
+        "effects": rec.meta["effects"].split(",") if rec.meta["effects"] else [],
+        "overridden": rec.meta["overridden"].split(",") if rec.meta["overridden"] else [],
+        "without": rec.meta["without"].split(",") if rec.meta["without"] else [],
+        "notes": list(res.notes),
+        "params_true": res.params_true,
+    }
+    if as_json:
+        emit_json(summary)
+        return
+    for note in res.notes:
+        click.echo(f"note: {note}", err=True)
+    click.echo(
+        f"wrote {out}: scenario {res.scenario}, sensor {res.sensor}, seed {res.seed}"
+        + (f", run {res.run}" if res.run else "")
+        + f", {rec.n} samples at {summary['rate_hz']:g} Hz ({summary['duration_s']:g} s), "
+        + f"{summary['power_ups']} power-up(s)"
+    )
+    click.echo(f"effects: {', '.join(summary['effects']) or 'none'}")

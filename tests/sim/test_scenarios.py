@@ -1,0 +1,169 @@
+"""Scenarios: every registered scenario runs, is reproducible per seed, and does what it says."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from gyrocore.effects import EFFECTS
+from gyrocore.errors import GyroInputError
+from gyrocore.recording import read_csv, write_csv
+from sim import scenarios as S
+
+ALL_BUT_VIB = [e for e in EFFECTS if e != "vibration"]
+# short, cheap versions of every scenario (duration s, gyro rate Hz)
+SHORT = {"static": (3.0, 200.0), "static_bumped": (6.0, 200.0), "turntable": (45.0, 100.0),
+         "thermal": (120.0, 50.0), "hover": (1.5, 500.0), "power_cycles": (4.0, 200.0)}
+
+
+def test_registry_has_the_required_scenarios():
+    assert set(SHORT) <= set(S.SCENARIOS)
+
+
+@pytest.mark.parametrize("name", sorted(S.SCENARIOS))
+def test_every_scenario_runs_and_records_the_truth(name):
+    dur, rate = SHORT.get(name, (5.0, 200.0))
+    res = S.simulate(name, duration_s=dur, gyro_rate_hz=rate, seed=3)
+    rec, tr = res.recording, res.truth
+    assert rec.n == tr.n and rec.n > 0
+    assert rec.duration_s <= dur + 1e-9
+    assert np.array_equal(rec.ref_rate_rad_s, tr.omega_S_rad_s)
+    assert np.array_equal(rec.ref_quat_wxyz, tr.q_SW_wxyz)
+    assert np.array_equal(rec.temp_c, tr.temp_c) and np.array_equal(rec.accel_m_s2, tr.f_S_m_s2)
+    assert np.all(np.isfinite(rec.gyro_rad_s))
+    for k in ("sensor", "scenario", "seed", "rate_hz", "params_true", "effects"):
+        assert k in rec.meta
+    assert rec.meta["scenario"] == name and float(rec.meta["rate_hz"]) == rate
+    pt = json.loads(rec.meta["params_true"])
+    assert set(pt) == set(res.params_true)
+    assert np.allclose(pt["scale"]["s"], res.params_true["scale"]["s"], rtol=0, atol=0)
+    # the recording is the batch measurement of the truth with the unit's parameters
+    assert not np.array_equal(rec.gyro_rad_s, tr.omega_S_rad_s)
+
+
+def test_same_seed_bit_identical_file(tmp_path):
+    a = S.simulate("static_bumped", duration_s=7.0, gyro_rate_hz=200.0, seed=4)
+    b = S.simulate("static_bumped", duration_s=7.0, gyro_rate_hz=200.0, seed=4)
+    c = S.simulate("static_bumped", duration_s=7.0, gyro_rate_hz=200.0, seed=5)
+    write_csv(a.recording, tmp_path / "a.csv")
+    write_csv(b.recording, tmp_path / "b.csv")
+    assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+    assert not np.array_equal(a.recording.gyro_rad_s, c.recording.gyro_rad_s)
+    # different bumps for a different seed
+    assert not np.array_equal(a.truth.omega_S_rad_s, c.truth.omega_S_rad_s)
+    back = read_csv(tmp_path / "a.csv")
+    assert np.array_equal(back.gyro_rad_s, a.recording.gyro_rad_s)
+
+
+def test_power_cycles_redraw_turn_on_bias_and_restart_cold():
+    sig = 0.01
+    res = S.simulate("power_cycles", duration_s=5.0, gyro_rate_hz=200.0, seed=2,
+                     without=[e for e in ALL_BUT_VIB if e != "bias"],
+                     overrides={"bias": {"turn_on_sigma_rad_s": sig}})
+    tr = res.truth
+    pu = tr.power_up_index
+    assert list(np.unique(pu)) == [0, 1, 2, 3, 4]
+    per = res.params_true["bias"]["b_rad_s_per_power_up"]
+    assert per.shape == (5, 3)
+    err = res.recording.gyro_rad_s - tr.omega_S_rad_s
+    for k in range(5):
+        m = pu == k
+        assert np.allclose(err[m], per[k], rtol=1e-12, atol=1e-15)
+        assert tr.t_since_power_up_s[m][0] == 0.0
+        assert tr.temp_c[m][0] == pytest.approx(25.0)  # cold start at ambient
+        assert tr.temp_c[m][-1] > tr.temp_c[m][0]  # then self-heating
+    # the turn-on draws differ between power-ups by ~σ: all pairwise differences non-zero
+    assert np.all(np.abs(np.diff(per, axis=0)) > 0)
+    assert np.allclose(S.true_bias_rad_s(res), per[pu])
+    assert json.loads(res.recording.meta["power_up_t_s"]) == pytest.approx([0.0, 1.0, 2.0, 3.0, 4.0])
+
+
+def test_static_bumped_moves_first_then_is_still():
+    res = S.simulate("static_bumped", duration_s=10.0, gyro_rate_hz=200.0, seed=1)
+    w = np.linalg.norm(res.truth.omega_S_rad_s, axis=1)
+    t = res.truth.t_s
+    moving = w > 0.05
+    assert moving.any() and t[moving][0] < 1.0 and t[moving][-1] < 6.0
+    assert np.all(w[t > 7.0] < 1e-6)
+
+
+def test_turntable_profile_fits_duration_with_exact_turns():
+    res = S.simulate("turntable", duration_s=45.0, gyro_rate_hz=100.0, seed=0, without=ALL_BUT_VIB)
+    phases = json.loads(res.recording.meta["table_phases"])
+    turns = [p for p in phases if p["kind"] == "segment" and p["rate_rad_s"] != 0.0]
+    mounts = {p["mount"] for p in turns}
+    assert {"+x", "+y", "+z"} <= mounts
+    rev = abs(turns[0]["angle_rad"]) / (2 * math.pi)
+    assert rev >= 1.0 and abs(rev * 4 - round(rev * 4)) < 1e-12  # multiple of 1/4 turn
+    assert sorted({math.copysign(1, p["rate_rad_s"]) for p in turns}) == [-1.0, 1.0]
+    full = S.build_table_profile(S.load_scenario("turntable"), None)
+    assert full.duration_s > 300  # the full run: 6 mounts, 5 turns each way at 2 rates
+    with pytest.raises(GyroInputError, match="at least"):
+        S.simulate("turntable", duration_s=10.0)
+
+
+def test_thermal_ramps_up_and_down_with_motion_and_rest():
+    res = S.simulate("thermal", duration_s=300.0, gyro_rate_hz=20.0, seed=0)
+    T = res.truth.temp_c
+    assert T.max() > T[0] + 15 and T[-1] < T.max() - 10
+    w = np.linalg.norm(res.truth.omega_S_rad_s, axis=1)
+    assert np.mean(w > 0.5) > 0.1 and np.mean(w < 1e-6) > 0.1
+    assert "lowpass" in " ".join(res.notes)  # the 250 Hz DLPF cannot run at 20 Hz
+
+
+def test_hover_gyro_in_the_loop_is_the_recording():
+    res = S.simulate("hover", duration_s=1.5, gyro_rate_hz=500.0, seed=0)
+    log = res.flight_log
+    # what the controller read (GyroStream) is bit-identical to the batch recording
+    assert np.array_equal(log.gyro_meas_rad_s, res.recording.gyro_rad_s)
+    # rotor vibration reaches the truth: a line at the rotor frequency (imbalance, 1st
+    # harmonic) that the same flight without vibration does not have
+    from sim.controller import small_steps
+    from sim.quadrotor import fly_hover
+
+    calm, calm_log = fly_hover(duration_s=1.5, vibration=False, manoeuvres=small_steps(1.5), gyro_rate_hz=500.0, seed=0)
+
+    def rotor_line(truth, flight):  # Hann-windowed periodogram of the last second, ±5 Hz around f_rotor
+        f_rot = np.abs(flight.rotor_speed_rad_s[-500:]).mean() / (2 * np.pi)
+        w = truth.omega_S_rad_s[-500:] - truth.omega_S_rad_s[-500:].mean(axis=0)
+        spec = (np.abs(np.fft.rfft(w * np.hanning(500)[:, None], axis=0)) ** 2).sum(axis=1)
+        f = np.fft.rfftfreq(500, 1 / 500.0)
+        assert 30 < f_rot < 240  # hover rotor speed of a 450-mm quad, below Nyquist here
+        return spec[np.abs(f - f_rot) < 5].sum()
+
+    assert rotor_line(res.truth, log) > 30 * rotor_line(calm, calm_log)
+    r2 = S.simulate("hover", duration_s=0.5, gyro_rate_hz=500.0, seed=0, overrides={"earth_rate": {}})
+    assert any("earth_rate" in n for n in r2.notes) and "earth_rate" in r2.params_true
+
+
+def test_overrides_reach_the_recording_and_floor():
+    res = S.simulate("static", duration_s=2.0, gyro_rate_hz=200.0, seed=0,
+                     overrides={"bias_ramp": {"ramp_rad_s2": [1e-3, 0, 0]}}, without=["quantization"])
+    assert "bias_ramp" in res.params_true and res.recording.meta["overridden"] == "bias_ramp"
+    assert "quantization" not in res.params_true and "quantization" in res.recording.meta["without"]
+    assert np.array_equal(S.floor_gyro(res), res.truth.omega_S_rad_s + res.noise_rad_s)
+
+
+def test_run_is_a_new_session():
+    a = S.simulate("static", duration_s=1.0, gyro_rate_hz=200.0, seed=6)
+    b = S.simulate("static", duration_s=1.0, gyro_rate_hz=200.0, seed=6, run=1)
+    assert np.array_equal(a.params_true["scale"]["s"], b.params_true["scale"]["s"])
+    assert not np.array_equal(a.params_true["bias"]["b_rad_s"], b.params_true["bias"]["b_rad_s"])
+
+
+def test_bad_scenario_files(tmp_path):
+    p = tmp_path / "x.toml"
+    p.write_text('kind = "boat"\nduration_s = 1\n', encoding="utf-8")
+    with pytest.raises(GyroInputError, match="kind"):
+        S.load_scenario(str(p))
+    p.write_text('kind = "table"\nduration_s = 1\nwarp = 1\n[table]\nprofile = "static"\n', encoding="utf-8")
+    with pytest.raises(GyroInputError, match="unknown key"):
+        S.load_scenario(str(p))
+    p.write_text('kind = "table"\nduration_s = 2\n[table]\nprofile = "static"\n[thermal]\nfoo = 1\n', encoding="utf-8")
+    with pytest.raises(GyroInputError, match="thermal"):
+        S.simulate(str(p), gyro_rate_hz=100.0)
+    with pytest.raises(GyroInputError, match="unknown scenario"):
+        S.simulate("nope")
