@@ -240,6 +240,7 @@ class _Fit:
     cov: np.ndarray  # (5, 5)
     edf: np.ndarray  # (M,)
     alpha: np.ndarray  # (M,)
+    chi2: float = float("nan")  # whitened residual sum of squares at the final weights
 
 
 def fit_ieee952(
@@ -295,7 +296,8 @@ def fit_ieee952(
         model = np.where(new_model > 0, new_model, avar)
         contrib = A_full * coef[None, :]
         alpha = np.array(_TERM_ALPHA)[np.argmax(contrib, axis=1)]
-    edf, Aw, _yw = whitened(model, alpha)
+    edf, Aw, yw = whitened(model, alpha)
+    chi2 = float(np.sum((yw - Aw @ coef[use]) ** 2))
     scale = np.linalg.norm(Aw, axis=0)
     scale[scale == 0] = 1.0
     An = Aw / scale
@@ -303,7 +305,7 @@ def fit_ieee952(
     cov = np.full((5, 5), np.nan)
     idx = np.flatnonzero(use)
     cov[np.ix_(idx, idx)] = cov_used
-    return _Fit(coef=coef, cov=cov, edf=edf, alpha=alpha)
+    return _Fit(coef=coef, cov=cov, edf=edf, alpha=alpha, chi2=chi2)
 
 
 # ---------------------------------------------------------------------------- results
@@ -434,32 +436,50 @@ def select_ieee952(
 
     Start from all five terms; while some active term is not significant (c/se < ``keep_z``
     on the variance coefficient, or NNLS pinned it at 0), drop the least significant one
-    (smallest c/se) and refit the others jointly. ``keep_z = 3`` rather than 1.96: with four
+    (smallest c/se) and refit the others jointly; then add back the dropped term that, fitted next
+    to the kept ones, lowers the generalised χ² most and is significant itself (if above ``keep_z`` without making a kept term
+    insignificant) and repeat. ``keep_z = 3`` rather than 1.96: with four
     candidate terms absent, a 5 % level keeps a spurious one in ~20 % of white-noise records
     and the N interval then under-covers (measured 91 % for a nominal 95 %). Collinear neighbours (e.g. K and R, or B
     and K over a short τ range) would otherwise share one signal and all look insignificant.
 
     Returns the final fit, the active terms and, for each dropped term, the upper end of its
-    95 % interval at the moment it was dropped (an upper bound, e.g. for Kalibr).
+    95 % interval when fitted next to the final terms (an upper bound, e.g. for Kalibr).
     """
+    def z_of(fit_: _Fit, name: str) -> float:
+        c, _lo, hi = _term_interval(fit_, TERM_NAMES.index(name))
+        se = (hi - c) / _Z95
+        return c / se if (c > 0 and se > 0 and math.isfinite(se)) else 0.0
+
     active = list(TERM_NAMES)
     upper: dict[str, float] = {}
-    while True:
-        fit = fit_ieee952(taus_s, avar, m, n_phase, terms=active)
-        worst, worst_z = None, float("inf")
-        for name in active:
-            c, lo, hi = _term_interval(fit, TERM_NAMES.index(name))
-            se = (hi - c) / _Z95
-            if c > 0 and c - keep_z * se > 0:
+    for _round in range(2 * len(TERM_NAMES)):
+        # backward: drop the least significant term while one is below keep_z
+        while True:
+            fit = fit_ieee952(taus_s, avar, m, n_phase, terms=active)
+            zs = {name: z_of(fit, name) for name in active}
+            worst = min(zs, key=zs.get)
+            if zs[worst] >= keep_z or len(active) == 1:
+                break
+            upper[worst] = _term_interval(fit, TERM_NAMES.index(worst))[2]
+            active.remove(worst)
+        # forward: a dropped term that is significant next to the kept ones comes back
+        # (collinear neighbours dropped together in the backward pass, e.g. B, K and R)
+        best, best_chi2, best_hi = None, float("inf"), {}
+        for name in TERM_NAMES:
+            if name in active:
                 continue
-            z = c / se if se > 0 and math.isfinite(se) else 0.0
-            if z < worst_z:
-                worst, worst_z = name, z
-        if worst is None or len(active) == 1:
+            trial = fit_ieee952(taus_s, avar, m, n_phase, terms=active + [name])
+            z = z_of(trial, name)
+            best_hi[name] = _term_interval(trial, TERM_NAMES.index(name))[2]
+            if z > keep_z and all(z_of(trial, k) >= keep_z for k in active) and trial.chi2 < best_chi2:
+                best, best_chi2 = name, trial.chi2
+        upper.update(best_hi)
+        if best is None:
             return fit, active, upper
-        _c, _lo, hi = _term_interval(fit, TERM_NAMES.index(worst))
-        upper[worst] = hi
-        active.remove(worst)
+        active = [k for k in TERM_NAMES if k in active or k == best]
+        upper.pop(best, None)
+    return fit, active, upper
 
 
 def _axis_result(
