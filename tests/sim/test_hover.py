@@ -214,3 +214,44 @@ def test_hover_at_low_and_high_gyro_rates(gyro_rate_hz):
     assert truth.n == int(3.0 * gyro_rate_hz)
     assert np.degrees(log.attitude_error_rad()[k0:]).max() < 0.1
     assert np.abs(log.altitude_error_m()[k0:]).max() < 5e-3
+
+
+def _unnamed_elements(model) -> list[str]:
+    import mujoco
+
+    out = []
+    for objtype, count in ((mujoco.mjtObj.mjOBJ_BODY, model.nbody), (mujoco.mjtObj.mjOBJ_JOINT, model.njnt),
+                           (mujoco.mjtObj.mjOBJ_GEOM, model.ngeom), (mujoco.mjtObj.mjOBJ_SITE, model.nsite),
+                           (mujoco.mjtObj.mjOBJ_ACTUATOR, model.nu), (mujoco.mjtObj.mjOBJ_SENSOR, model.nsensor)):
+        start = 1 if objtype == mujoco.mjtObj.mjOBJ_BODY else 0  # body 0 is the world
+        out += [f"{objtype.name}[{i}]" for i in range(start, count) if not mujoco.mj_id2name(model, objtype, i)]
+    return out
+
+
+def test_quadrotor_model_matches_its_sources():
+    import mujoco
+
+    from sim.paths import model_path
+    from sim.quadrotor import load_quadrotor_model
+
+    model, data = load_quadrotor_model()
+    assert _unnamed_elements(model) == []
+    assert all(model.sensor_noise == 0.0)  # every sensor error comes from sim.gyro
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    mujoco.mj_forward(model, data)
+    m_full = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, m_full)
+    # Quan (2017) F450: 1.4 kg, J = diag(0.0211, 0.0219, 0.0366) kg m^2. The model adds the
+    # 4 x 0.2 g imbalance masses (0.8 g) and their 1 cm offsets: within 0.1 % / 0.5 %.
+    assert m_full[0, 0] == pytest.approx(1.4, rel=1e-3)
+    np.testing.assert_allclose(np.diag(m_full[3:6, 3:6]), [0.0211, 0.0219, 0.0366], rtol=5e-3)
+    # products of inertia only from the imbalance masses: <= 4 m_u (d/sqrt2 + r) z_rotor
+    # = 4 * 2e-4 * 0.17 * 0.04 = 5.4e-6 kg m^2 (0.03 % of Jxx)
+    assert np.abs(m_full[3:6, 3:6] - np.diag(np.diag(m_full[3:6, 3:6]))).max() < 5.5e-6
+    # centre of mass at the frame origin (designed so): within the imbalance masses' 0.06 mm
+    assert np.abs(data.subtree_com[1] - data.xpos[1]).max() < 1e-4
+    # hover keyframe: four thrusts carry the weight
+    assert data.ctrl[:4].sum() == pytest.approx(QP.mass_kg * QP.gravity_m_s2, rel=1e-3)
+    # the scene includes the model
+    assert "quadrotor.xml" in model_path("scene_quadrotor.xml").read_text()
+    assert mujoco.MjModel.from_xml_path(str(model_path("scene_quadrotor.xml"))).nu == model.nu

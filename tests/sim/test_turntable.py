@@ -125,3 +125,25 @@ def test_bad_mount_is_one_line_error():
         mount_quat_wxyz("+w")
     with pytest.raises(GyroInputError):
         TableSegment(mount="+z", rate_rad_s=1.0, duration_s=0.5, ramp_s=0.5)
+
+
+def test_table_model_named_and_scene_includes_it():
+    import mujoco
+
+    from sim.paths import model_path
+    from sim.turntable import load_table_model
+
+    model, _ = load_table_model()
+    unnamed = []
+    for objtype, count in ((mujoco.mjtObj.mjOBJ_BODY, model.nbody), (mujoco.mjtObj.mjOBJ_JOINT, model.njnt),
+                           (mujoco.mjtObj.mjOBJ_GEOM, model.ngeom), (mujoco.mjtObj.mjOBJ_SITE, model.nsite),
+                           (mujoco.mjtObj.mjOBJ_ACTUATOR, model.nu), (mujoco.mjtObj.mjOBJ_SENSOR, model.nsensor)):
+        start = 1 if objtype == mujoco.mjtObj.mjOBJ_BODY else 0
+        unnamed += [i for i in range(start, count) if not mujoco.mj_id2name(model, objtype, i)]
+    assert unnamed == []
+    assert all(model.sensor_noise == 0.0)
+    for name in ("imu_gyro", "imu_accel"):
+        assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name) >= 0
+    assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "imu") >= 0
+    assert "turntable.xml" in model_path("scene_turntable.xml").read_text()
+    assert mujoco.MjModel.from_xml_path(str(model_path("scene_turntable.xml"))).nu == model.nu
