@@ -416,39 +416,38 @@ def _flat(A: np.ndarray, w: np.ndarray) -> np.ndarray:
     return (A * np.sqrt(w)[:, :, None]).reshape(-1, A.shape[2])
 
 
-def _sequential_rank(Aw: np.ndarray, rtol: float) -> tuple[list[int], dict[int, tuple[int, ...]]]:
-    """Columns kept in the given order by a rank-revealing QR (no pivoting, so the declared
-    order decides which of two collinear columns is kept).
+def _sequential_rank(G: np.ndarray, rtol: float) -> tuple[list[int], dict[int, tuple[int, ...]]]:
+    """Columns kept in the given order by a rank-revealing sequential test (no pivoting, so
+    the declared order decides which of two collinear columns is kept).
 
-    |R_pp| of the Householder QR of the column-equilibrated matrix is the norm of column p's
-    part outside the span of columns 0..p−1; below ``rtol`` the column is dropped. Returns
-    the kept indices and, per dropped index, up to 3 kept columns it is (nearly) spanned by.
-    Aw : (M, P).
+    Works on the Gram matrix G = XᵀX of the (weighted) design: with columns equilibrated to
+    unit norm, the squared norm of column p's part outside the span of the kept columns is
+    the Schur complement G_pp − G_pk·G_kk⁻¹·G_kp; below ``rtol``² the column is dropped.
+    (Gram round-off is ~1e-15 here, far below rtol² = 1e-12 for the default rtol.)
+    Returns the kept indices and, per dropped index, up to 3 kept columns it is (nearly)
+    spanned by.
     """
-    norms = np.linalg.norm(Aw, axis=0)
-    P = Aw.shape[1]
-    good = (norms > 0) & np.isfinite(norms)
-    X = Aw / np.where(good, norms, 1.0)
-    X[:, ~good] = 0.0
-    R = linalg.qr(X, mode="r", check_finite=False)[0]
-    d = np.abs(np.diag(R[:P, :P])) if R.shape[0] >= P else np.concatenate(
-        [np.abs(np.diag(R)), np.zeros(P - R.shape[0])])
-    kept = [p for p in range(P) if good[p] and d[p] >= rtol]
+    P = G.shape[0]
+    d = np.sqrt(np.clip(np.diag(G), 0, None))
+    good = (d > 0) & np.isfinite(d)
+    Gn = G / np.outer(np.where(good, d, 1.0), np.where(good, d, 1.0))
+    kept: list[int] = []
     dropped: dict[int, tuple[int, ...]] = {}
-    G = X.T @ X
     for p in range(P):
-        if p in kept:
-            continue
         if not good[p]:
             dropped[p] = ()
             continue
-        ks = [k for k in kept if k < p]
-        if not ks:
-            dropped[p] = ()
+        if kept:
+            Gkk = Gn[np.ix_(kept, kept)]
+            c = linalg.solve(Gkk, Gn[kept, p], assume_a="pos")
+            r2 = float(Gn[p, p] - Gn[p, kept] @ c)
+        else:
+            c, r2 = np.zeros(0), 1.0
+        if r2 < rtol**2:
+            big = np.argsort(-np.abs(c))
+            dropped[p] = tuple(kept[j] for j in big[:3] if abs(c[j]) > 1e-3 * np.abs(c).max())
             continue
-        c = linalg.lstsq(G[np.ix_(ks, ks)], G[ks, p])[0]
-        big = np.argsort(-np.abs(c))
-        dropped[p] = tuple(ks[j] for j in big[:3] if abs(c[j]) > 1e-3 * np.abs(c).max())
+        kept.append(p)
     return kept, dropped
 
 
@@ -565,7 +564,8 @@ def solve(
             eff_of[p] = eff
 
     # -- observability: sequential rank test on the (unweighted-by-axis) design
-    kept, dropped = _sequential_rank(_flat(A_, w_), rank_rtol)
+    G_all = np.einsum("nip,ni,niq->pq", A_, w_, A_, optimize=True)
+    kept, dropped = _sequential_rank(G_all, rank_rtol)
     reasons: dict[str, str] = {}
     for p, by in dropped.items():
         if by:
@@ -577,17 +577,16 @@ def solve(
     #    must stand above the input's own noise, else the fit is to noise (errors in variables)
     noisy_idx = [p for p in kept if names[p].split(".")[0] in noisy_effects]
     if noisy_idx and min_excitation_snr > 0:
-        Af = _flat(A_, w_)
+        sw = np.sqrt(w_)
         drop_noisy = []
-        Gk = Af[:, kept].T @ Af[:, kept]
+        Gk = G_all[np.ix_(kept, kept)]
         for p in noisy_idx:
             j = kept.index(p)
             oth = [q for q in range(len(kept)) if q != j]
-            a = Af[:, p]
+            R = A_[:, :, p] * sw
             if oth:
                 c = linalg.lstsq(Gk[np.ix_(oth, oth)], Gk[oth, j])[0]
-                a = a - Af[:, [kept[q] for q in oth]] @ c
-            R = a.reshape(n, 3)
+                R = R - np.einsum("nip,p->ni", A_[:, :, [kept[q] for q in oth]], c) * sw
             exc2 = float(np.mean(R**2))
             noise2 = float(np.mean(np.diff(R, axis=0) ** 2)) / 2.0
             snr = np.sqrt(exc2 / noise2) if noise2 > 0 else np.inf
@@ -624,12 +623,12 @@ def solve(
         else:
             W = w_
         Ak = A_[:, :, kept]
-        Aw = _flat(Ak, W)
-        cn = np.linalg.norm(Aw, axis=0)
+        XtX = np.einsum("nip,ni,niq->pq", Ak, W, Ak, optimize=True)
+        cn = np.sqrt(np.diag(XtX))
         cn[cn == 0] = 1.0
-        sv = np.linalg.svd(Aw / cn, compute_uv=False)
-        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
-        XtX_s = (Aw / cn).T @ (Aw / cn)
+        XtX_s = XtX / np.outer(cn, cn)
+        ev = np.linalg.eigvalsh(XtX_s)
+        cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
         bread = linalg.pinvh(XtX_s) / np.outer(cn, cn)
         ew = e * np.sqrt(W)
         lb_p = ljung_box_p(ew)

@@ -267,7 +267,7 @@ class Calibrator:
         covariance: str = "auto",
         on_unobservable: str = "drop",
         robust: bool = True,
-        max_rows: int = 60000,
+        max_rows: int = 30000,
         still_window_s: float = 1.0,
         still_false_reject_rate: float = 1e-3,
         sensor: str | None = None,
