@@ -239,3 +239,39 @@ def test_console_script_one_line_error_and_json_only_stdout(tmp_path):
     summary = json.loads(r.stdout)  # nothing but JSON on stdout
     assert summary["n_samples"] == 299 and any("dropped 1 rows" in w for w in summary["warnings"])
     assert [ln for ln in r.stderr.splitlines() if ln.startswith("warning:")]
+
+
+# ------------------------------------------------------------------ classes owned by other commands
+def _write_rec(path, n, rate_hz=200.0, *, seed=0, motion=None, accel=False):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / rate_hz
+    g = rng.normal(0, 0.002, (n, 3))  # 0.002 rad/s per sample: a typical MEMS at 200 Hz
+    if motion is not None:
+        g[:, 2] += motion(t)
+    a = (rng.normal(0, 0.01, (n, 3)) + [0, 0, 9.81]) if accel else None
+    write_csv(Recording(t_s=t, gyro_rad_s=g, accel_m_s2=a), path)
+    return path
+
+
+def test_recording_too_short_for_allan(tmp_path, capsys):
+    s, _, err = gh(capsys, "allan", _write_rec(tmp_path / "tiny.csv", 3))
+    assert_error(s, err, "too short for Allan analysis")
+    # averaging times beyond what the record supports are dropped, and the warning says which
+    s, _, err = gh(capsys, "allan", _write_rec(tmp_path / "short.csv", 4000), "--max-tau-s", "1000")
+    assert_repaired(s, err, r"recording is 20 s long: dropped tau = .* needs tau <= T/2")
+
+
+def test_motion_during_bias_calibration(tmp_path, capsys):
+    def moving(t):
+        return 0.5 * np.sin(2 * np.pi * 0.5 * t)  # a hand swinging the board, ±29 deg/s
+
+    p = _write_rec(tmp_path / "moving.csv", 4000, motion=moving)
+    # noise known from the datasheet (0.12 deg/s per sample): every window is refused
+    s, _, err = gh(capsys, "bias", p, "--noise-dps", "0.12")
+    assert_error(s, err, "motion detected throughout")
+
+
+def test_unknown_effect_name(tmp_path, capsys):
+    p = _write_rec(tmp_path / "still.csv", 4000, accel=True)
+    s, _, err = gh(capsys, "loop", p, "--effects", "bias,bais_thermal")
+    assert_error(s, err, r"unknown effect 'bais_thermal'")
