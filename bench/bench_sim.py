@@ -121,9 +121,10 @@ def main() -> None:
     rows.append(("turntable + SyntheticGyro.measure (all effects)", best(table_measured, args.repeat), b_t))
 
     w = max(len(r[0]) for r in rows)
-    print(f"{'run':<{w}}  {'sim-s/wall-s':>12}  {'bare mj_step':>12}  {'ratio':>6}")
+    print(f"{'run':<{w}}  {'sim-s/wall-s':>12}  {'bare mj_step':>12}  {'ratio':>6}  {'us/step':>8}  {'bare us/step':>12}")
     for label, r, b in rows:
-        print(f"{label:<{w}}  {r:12.1f}  {b:12.1f}  {r / b:6.2f}")
+        # per 1 ms physics step: wall microseconds = 1e3 / (sim-s per wall-s)
+        print(f"{label:<{w}}  {r:12.1f}  {b:12.1f}  {r / b:6.2f}  {1e3 / r:8.2f}  {1e3 / b:12.2f}")
     print(f"hover: {T:g} simulated s per run, physics 1 kHz, gyro 1 kHz, vibration on; goal ratio >= 0.5")
 
 
