@@ -186,3 +186,57 @@ def test_identification_and_false_alarm_rates_monte_carlo():
         else:
             assert row["identification_rate"] >= 0.90, row
             assert row["false_alarm_rate"] <= 0.10, row
+
+
+# ---------------------------------------------------------------------------- measured data
+def _load(path):
+    import warnings
+
+    from gyrocore.convert import load_with_segments
+    from gyrocore.errors import RepairWarning
+
+    if not path.exists():
+        pytest.skip(f"{path} absent")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RepairWarning)
+        return load_with_segments(path)
+
+
+def test_measured_broad_slow_rotation(shared_data):
+    c = _load(shared_data / "broad" / "02_undisturbed_slow_rotation_B.hdf5")
+    r = run_loop(c.recording, declared=["bias"])
+    assert r.reference == "attitude"
+    # the optical reference lags/leads the IMU: a time offset of a few ms is found first
+    assert r.found_effects[0] == "time_offset"
+    tau = r.found[0].evidence.params["tau_s"]
+    assert 0.001 < abs(tau) < 0.02
+    assert r.residual_rms_after_rad_s < r.residual_rms_before_rad_s
+
+
+def test_measured_sunsided_static_and_rotation(shared_data):
+    c = _load(shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward-10min")
+    r = run_loop(c.recording, declared=["bias"])
+    assert r.reference == "still"
+    assert set(r.found_effects) <= {"bias_ramp", "bias_thermal", "bias_temp_rate"}
+    assert r.attitude_error_after_deg <= r.attitude_error_before_deg
+    rot = _load(shared_data / "sunsided_mpu6050" / "set-1" / "rotate-360ccw-around-x-pointing-forward")
+    with pytest.raises(GyroInputError, match="too poor"):
+        run_loop(rot.recording, declared=["bias"], segments=rot.segments)
+
+
+def test_measured_imucal_ferraris(shared_data):
+    c = _load(shared_data / "imucal_ferraris" / "example_ferraris_session.csv")
+    r = run_loop(c.recording, declared=["bias"], segments=c.segments)
+    assert r.reference == "angles"
+    assert "scale" in r.found_effects
+    assert r.attitude_error_after_deg < r.attitude_error_before_deg
+
+
+def test_measured_static_logs(shared_data):
+    for p in (shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv", shared_data / "pyulog_samples" / "sample.ulg"):
+        c = _load(p)
+        r = run_loop(c.recording, declared=["bias"])
+        assert r.reference == "still"
+        assert r.residual_rms_after_rad_s <= r.residual_rms_before_rad_s
+        assert all(f in ("bias_ramp", "bias_thermal", "bias_temp_rate", "g_sensitivity", "g2_sensitivity")
+                   for f in r.found_effects)

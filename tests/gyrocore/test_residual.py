@@ -1,0 +1,114 @@
+"""The residual builders: window operator, reference kinds, segments, motion gate."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from experiments.close_the_loop import effect_params, synthetic_recording
+from gyrocore.errors import GyroInputError
+from gyrocore.recording import Recording
+from gyrocore.residual import Segment, as_segment, build_residual, detect_still, read_segments
+
+
+def _still_rec(n=6000, rate=100.0, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / rate
+    return Recording(t_s=t, gyro_rad_s=0.01 + rng.standard_normal((n, 3)) * 0.002)
+
+
+def test_rate_kind_window_mean_of_a_constant_is_exact():
+    rec = synthetic_recording({"bias": effect_params("bias")}, seed=1, duration_s=10.0, bias_instability_rad_s=0.0,
+                              arw_rad_per_sqrt_s=0.0)
+    res = build_residual(rec)
+    assert res.kind == "rate"
+    # noise-free: gyro − ref = b exactly; the block mean comes from differences of a running
+    # sum over N = 2001 samples, so its rounding error is ≤ N·eps·|b| ≈ 2000·2.2e-16·0.009 ≈ 4e-15
+    np.testing.assert_allclose(res.y_rad_s, np.broadcast_to(effect_params("bias")["b_rad_s"], res.y_rad_s.shape),
+                               rtol=0, atol=1e-14)
+    names, X = res.regressors("bias")
+    np.testing.assert_allclose(X[:, 0, 0], 1.0, atol=1e-12)
+
+
+def test_attitude_kind_is_first_order_window_mean():
+    """Noise-free bias b on a tumbling body: the window rotation residual is b to first order.
+
+    E = exp(∫R_{b←k}·b dt) exactly for a constant error; the attitude kind takes the same
+    operator on the regressors, so y − X·b is only the second-order (BCH) term,
+    ≤ |b|²·T/2 = (0.0087)²·1/2 ≈ 4e-5 rad/s for T = 1 s windows.
+    """
+    b = effect_params("bias")["b_rad_s"]
+    rec = synthetic_recording({"bias": effect_params("bias")}, seed=2, duration_s=20.0, bias_instability_rad_s=0.0,
+                              arw_rad_per_sqrt_s=0.0, with_quat=True)
+    rec = replace(rec, ref_rate_rad_s=None)
+    res = build_residual(rec)
+    assert res.kind == "attitude" and res.m >= 15
+    _, X = res.regressors("bias")
+    pred = np.einsum("mip,p->mi", X, b)
+    assert np.max(np.abs(res.y_rad_s - pred)) < 0.5 * np.linalg.norm(b) ** 2 * 1.0 + 1e-9
+
+
+def test_attitude_kind_drops_windows_with_nan_reference():
+    rec = synthetic_recording({"bias": effect_params("bias")}, seed=3, duration_s=20.0, with_quat=True)
+    q = rec.ref_quat_wxyz.copy()
+    q[500:900] = np.nan  # tracking lost for 2 s at 200 Hz
+    res = build_residual(replace(rec, ref_rate_rad_s=None, ref_quat_wxyz=q))
+    assert any("NaN" in n for n in res.notes)
+    t = rec.t_s
+    for a, b in zip(res.win_start, res.win_stop):
+        assert np.isfinite(q[a]).all() and np.isfinite(q[b]).all()
+
+
+def test_still_kind_auto_and_segments(tmp_path):
+    rec = _still_rec()
+    res = build_residual(rec)
+    assert res.kind == "still"
+    np.testing.assert_allclose(res.y_rad_s.mean(axis=0), 0.01, atol=5 * 0.002 / np.sqrt(rec.n))  # 5σ of a mean
+    seg = tmp_path / "seg.csv"
+    seg.write_text("start_s,stop_s,kind\n0,20,still\n")
+    segs = read_segments(seg)
+    res2 = build_residual(rec, reference="still", segments=segs)
+    assert rec.t_s[res2.win_stop].max() <= 20.0 + 1e-9
+
+
+def test_segments_files_both_formats(tmp_path):
+    f = tmp_path / "a.csv"
+    f.write_text("start_s,stop_s,kind,angle_x_deg,angle_y_deg,angle_z_deg\n1,5,rotation,720,0,0\n6,9,still,,,\n")
+    s = read_segments(f)
+    assert s[0].kind == "rotation" and s[0].angle_S_rad[0] == pytest.approx(4 * np.pi)
+    assert s[1].kind == "still"
+    g = tmp_path / "b.csv"
+    g.write_text("t_start_s,t_end_s,axis,angle_deg\n1.0,5.0,y,-360\n")
+    s2 = read_segments(g)
+    assert s2[0].angle_S_rad[1] == pytest.approx(-2 * np.pi)
+    bad = tmp_path / "c.csv"
+    bad.write_text("start_s,stop_s,kind\n1,0,still\n")
+    with pytest.raises(GyroInputError):
+        read_segments(bad)
+
+
+def test_angles_kind_needs_more_than_one_rotation():
+    rng = np.random.default_rng(4)
+    t = np.arange(1000) / 100.0
+    gyro = np.zeros((1000, 3)) + rng.standard_normal((1000, 3)) * 0.001
+    gyro[:, 0] += 2 * np.pi * 2 / 10.0  # two turns about x over the whole recording
+    rec = Recording(t_s=t, gyro_rad_s=gyro)
+    with pytest.raises(GyroInputError, match="too poor"):
+        build_residual(rec, segments=[Segment(0.0, 9.99, "rotation", (4 * np.pi, 0.0, 0.0))])
+
+
+def test_motion_gate():
+    rec = _still_rec()
+    g = rec.gyro_rad_s.copy()
+    g[2000:3000, 2] += 1.0  # 10 s of rotation about z
+    m = detect_still(rec.t_s, g)
+    assert m[:1900].mean() > 0.95 and m[2100:2900].mean() == 0.0 and m[3100:].mean() > 0.95
+
+
+def test_as_segment_from_convert():
+    from gyrocore.convert import Segment as CSeg
+
+    s = as_segment(CSeg(1.0, 2.0, "z", 90.0))
+    assert s.kind == "rotation" and s.angle_S_rad[2] == pytest.approx(np.pi / 2)
