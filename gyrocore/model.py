@@ -139,12 +139,22 @@ class CalibrationResult:
             need.append("temp_c")
         return need
 
-    def apply(self, recording: Recording, *, iterations: int = 4) -> Recording:
+    def apply(self, recording: Recording, *, iterations: int = 4, power_up_bias: bool = False,
+              still_max_s: float = 10.0) -> Recording:
         """Remove the fitted effects from ``recording``'s gyro (rad/s, S frame).
 
         Temperatures outside the fitted range are clamped to it (``effects.correct``) and
         announced with one :class:`~gyrocore.errors.RepairWarning` giving the count.
         Columns other than the gyro are unchanged.
+
+        Parameters
+        ----------
+        power_up_bias : bool
+            The constant bias is redrawn at every power-up (turn-on repeatability), so a bias
+            from another session is off by the turn-on σ. With True, the bias of this
+            recording is re-estimated from its still start (the article's §1, gate of
+            :func:`gyrocore.bias.startup_still_slice`, up to ``still_max_s``): the mean of
+            the corrected rate there is removed. Needs a still start.
         """
         for eff in self.params:
             if eff in _NEEDS_ACCEL and recording.accel_m_s2 is None:
@@ -164,8 +174,19 @@ class CalibrationResult:
                     )
         inp = E.ModelInputs(t_s=recording.t_s, f_S_m_s2=recording.accel_m_s2, temp_c=recording.temp_c)
         omega = E.correct(self.params, recording.gyro_rad_s, inp, iterations=iterations)
+        extra_meta = {}
+        if power_up_bias:
+            from .bias import startup_still_slice
+
+            sl = startup_still_slice(recording, max_duration_s=still_max_s)
+            if sl is None or sl.stop - sl.start < 8:
+                raise GyroInputError("power-up bias: the recording does not start still, so its bias cannot be re-estimated")
+            d = omega[sl].mean(axis=0)
+            omega = omega - d[None, :]
+            extra_meta["power_up_bias_rad_s"] = " ".join(f"{v:.6g}" for v in d)
+            extra_meta["power_up_bias_samples"] = str(sl.stop - sl.start)
         return recording.with_gyro(
-            omega,
+            omega, **extra_meta,
             calibrated_effects=",".join(self.effects),
             calibration_source=f"{self.source_file or '?'} sha256:{(self.source_sha256 or '?')[:16]}",
         )

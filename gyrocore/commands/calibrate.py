@@ -1,0 +1,94 @@
+"""``gyroharness calibrate``: fit catalogue effects against the references in a data file."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import click
+import numpy as np
+
+from ..cli import emit_json
+
+D = 180.0 / math.pi
+
+
+def _fmt(v, scale=1.0, p=5) -> str:
+    a = np.atleast_1d(np.asarray(v, float)) * scale
+    return "[" + ", ".join("—" if not np.isfinite(x) else f"{x:.{p}g}" for x in a.ravel()) + "]"
+
+
+def report_text(res, params_path: str, px4_path: str | None) -> str:
+    lines = [
+        f"calibrated {', '.join(res.effects)} on {res.source_file} ({res.method}, {res.n_samples} samples, "
+        f"standard errors: {res.covariance})",
+    ]
+    for eff, pd in res.params.items():
+        for name, v in pd.items():
+            se = res.stderr.get(eff, {}).get(name)
+            se_txt = "" if se is None or not np.any(np.isfinite(se)) else f"  ± {_fmt(se, 1.0, 2)}"
+            lines.append(f"  {eff}.{name} = {_fmt(v)}{se_txt}")
+    lines.append(f"residual RMS {_fmt(res.residual_rms_rad_s, D, 4)} deg/s")
+    if res.thermal_order:
+        lines.append("thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items()) + " (chosen from the data)"
+                     if res.thermal_tests else "thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items()))
+    if res.unobservable:
+        lines.append(f"UNOBSERVABLE (not fitted, left uncorrected): {len(res.unobservable)} parameter(s)")
+        for u in res.unobservable:
+            lines.append(f"  {u}: {res.unobservable_reason.get(u, '')}")
+    for n in res.notes:
+        lines.append(f"note: {n}")
+    if res.integral is not None:
+        M = np.asarray(res.integral["M"])
+        lines.append("article form M = C·B⁻¹ (true angle = M · integrated bias-free output):")
+        for row in M:
+            lines.append("  " + "  ".join(f"{x:+.5f}" for x in row))
+    lines.append(f"wrote {params_path}" + (f" and {px4_path}" if px4_path else ""))
+    return "\n".join(lines)
+
+
+@click.command("calibrate")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment")
+@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="parameter file (JSON) to write")
+@click.option("--segments", type=click.Path(dir_okay=False), default=None,
+              help="known rotations t_start_s,t_end_s,axis,angle_deg -> the integral method M = C·B⁻¹")
+@click.option("--thermal-order", default="auto", show_default=True, help="auto (chosen from the data, up to 3) or 1..3")
+@click.option("--covariance", type=click.Choice(["auto", "ols", "hac", "newey_west", "block"]), default="auto",
+              show_default=True, help="standard errors: auto switches to hac when the residual is coloured")
+@click.option("--px4-params", type=click.Path(dir_okay=False), default=None,
+              help="also write PX4 TC_G0_* thermal parameters (QGC .params) — needs bias_thermal")
+@click.option("--sensor", default=None, help="sensor name for the parameter file (default: file metadata)")
+@click.option("--force", is_flag=True, help="overwrite existing output files")
+@click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
+def command(file, effects, output, segments, thermal_order, covariance, px4_params, sensor, force, as_json):
+    """Fit the named effects against the references in FILE (reference rates, known-angle
+    segments, or still parts) and write the parameter file."""
+    from ..effects import check_effect_names
+    from ..errors import GyroInputError
+    from ..model import Calibrator, result_to_dict, save_params
+    from ..recording import read_csv
+
+    names = check_effect_names(effects.split(","))
+    for p in [output] + ([px4_params] if px4_params else []):
+        if os.path.exists(p) and not force:
+            raise GyroInputError(f"{p} exists; pass --force to overwrite it")
+    if thermal_order != "auto":
+        try:
+            thermal_order = int(thermal_order)
+        except ValueError:
+            raise GyroInputError(f"--thermal-order must be auto or 1..3, got {thermal_order!r}") from None
+    if px4_params and "bias_thermal" not in names:
+        raise GyroInputError("--px4-params needs bias_thermal among the effects (PX4 TC_G is a bias polynomial of temperature)")
+    rec = read_csv(file)
+    cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor)
+    res = cal.fit(rec, source_path=file)
+    save_params(res, output, overwrite=True)
+    if px4_params:
+        from ..thermal import write_px4_params
+
+        write_px4_params(px4_params, res.params, overwrite=True)
+    if as_json:
+        emit_json(result_to_dict(res))
+    else:
+        click.echo(report_text(res, output, px4_params))
