@@ -390,6 +390,7 @@ def fly_hover(
         bar = tqdm(total=n, unit="sample", desc="hover", leave=False, mininterval=0.5)
     sg1, sa1, sq1, sp1, sv1 = s_gyro + 3, s_acc + 3, s_q + 4, s_pos + 3, s_vel + 3
     update_rate = ctl.update_rate
+    nd = np.ndarray
     extra_steps = range(m_per - 1)
     mot_cmd = data.ctrl[12:16].tolist()  # hover keyframe's motor commands until the first update
     for k in range(n):
@@ -413,8 +414,8 @@ def fly_hover(
             rl = row.tolist()
             ctl.update_outer(tk, rl[s_pos:sp1], rl[s_vel:sv1], rl[s_q:sq1])
             outer_log[k // outer_every] = ctl.q_sp + ctl.rate_sp
-        gl = g.tolist()
-        yl = y.tolist()
+        gl = g.tolist() if type(g) is nd else [float(v) for v in g]
+        yl = y.tolist() if type(y) is nd else [float(v) for v in y]
         thrust = update_rate(yl[0], yl[1], yl[2])
         rec[k] = gl + yl + thrust + om
         mot_cmd = [sp * (sqrt(t / ct) + ff * t) for sp, t in zip(spin, thrust)]
