@@ -504,18 +504,22 @@ class GyroStream:
              "        S._start(k, float(t_s))",
              "    S._k_next = k + 1",
              "    t = float(t_s)",
-             "    if type(omega_S) is _nd: omega_S = omega_S.tolist()",
-             "    w0, w1, w2 = omega_S",
-             "    w0 = float(w0); w1 = float(w1); w2 = float(w2)"]
+             "    if type(omega_S) is _nd:",
+             "        w0, w1, w2 = omega_S.tolist()",
+             "    else:",
+             "        w0, w1, w2 = omega_S",
+             "        w0 = float(w0); w1 = float(w1); w2 = float(w2)"]
         need_T = self._sth is not None or self._bth is not None
         if need_T:
             L.append("    T = float(temp_c)")
         if self._earth is not None:
             env["e0"], env["e1"], env["e2"] = self._earth
             L += ["    if q_SW_wxyz is None: raise GyroInputError('earth_rate in a stream needs q_SW_wxyz at every step')",
-                  "    if type(q_SW_wxyz) is _nd: q_SW_wxyz = q_SW_wxyz.tolist()",
-                  "    qw, qx, qy, qz = q_SW_wxyz",
-                  "    qw = float(qw); qx = float(qx); qy = float(qy); qz = float(qz)",
+                  "    if type(q_SW_wxyz) is _nd:",
+                  "        qw, qx, qy, qz = q_SW_wxyz.tolist()",
+                  "    else:",
+                  "        qw, qx, qy, qz = q_SW_wxyz",
+                  "        qw = float(qw); qx = float(qx); qy = float(qy); qz = float(qz)",
                   "    nq = _sqrt(qw * qw + qx * qx + qy * qy + qz * qz)",
                   "    qw = qw / nq; qx = qx / nq; qy = qy / nq; qz = qz / nq",
                   "    r00 = 1 - 2 * (qy * qy + qz * qz); r01 = 2 * (qx * qy - qw * qz); r02 = 2 * (qx * qz + qw * qy)",
@@ -582,9 +586,11 @@ class GyroStream:
                 env[f"rp{i}"] = self._ramp[i]
                 L.append(f"    a{i} = a{i} + ts * rp{i}")
         if self._H is not None or self._G is not None:
-            L += ["    if type(f_S) is _nd: f_S = f_S.tolist()",
-                  "    f0, f1, f2 = f_S",
-                  "    f0 = float(f0); f1 = float(f1); f2 = float(f2)"]
+            L += ["    if type(f_S) is _nd:",
+                  "        f0, f1, f2 = f_S.tolist()",
+                  "    else:",
+                  "        f0, f1, f2 = f_S",
+                  "        f0 = float(f0); f1 = float(f1); f2 = float(f2)"]
         if self._H is not None:
             for i in range(3):
                 for j in range(3):

@@ -228,4 +228,6 @@ def effect_rng(seed: int, key: str) -> np.random.Generator:
     (not from a spawn order), so adding or removing one effect leaves the others' draws
     unchanged.
     """
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
+        raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(stable_key_int(key),))))

@@ -399,11 +399,10 @@ def _params_true(gyro: SyntheticGyro, out: GyroOutput) -> dict:
 
 
 def _closed_loop_unsupported(gyro: SyntheticGyro, thermal) -> list[str]:
-    """Effects a GyroStream cannot carry in fly_hover (which passes no attitude, and whose
-    temperature is known in advance only without motor heating or heater)."""
+    """Effects a GyroStream cannot carry in closed loop: a leading gyro (needs future truth)
+    and ``bias_temp_rate`` when the temperature is not known in advance (motor heating or a
+    heater make it depend on the flight). fly_hover passes the attitude, so ``earth_rate`` works."""
     out = []
-    if "earth_rate" in gyro.params:
-        out.append("earth_rate")
     if "time_offset" in gyro.params and float(gyro.params["time_offset"]["tau_s"]) < 0:
         out.append("time_offset")
     if "bias_temp_rate" in gyro.params and (thermal.heater is not None or thermal.motor_c_per_w != 0.0):
@@ -443,7 +442,7 @@ def simulate(
         ``{effect: {param: value}}`` in SI, switched on whatever the preset says (the
         calibration is not told: this is how the residual loop is tested).
     without : iterable of str
-        Effects switched off.
+        Effects switched off (``vibration`` turns the rotor vibration of ``hover`` off).
     gyro_rate_hz : float, optional
         Output rate, Hz (default: the scenario's, else the preset's).
     progress : bool
@@ -493,7 +492,8 @@ def simulate(
             kw = {"t_s": t_all, "temp_c": simulate_temperature(t_all, thermal)}
         stream = fly_gyro.stream(n, **kw)
         man = small_steps(dur) if spec.hover.get("manoeuvres", True) else ()
-        truth, flight_log = fly_hover(duration_s=dur, gyro=stream, vibration=bool(spec.hover.get("vibration", True)),
+        vib = bool(spec.hover.get("vibration", True)) and "vibration" not in gyro.without
+        truth, flight_log = fly_hover(duration_s=dur, gyro=stream, vibration=vib,
                                       manoeuvres=man, gyro_rate_hz=rate, thermal=thermal, seed=int(seed) + 1000003 * int(run),
                                       progress=progress)
     out = gyro.measure(truth)

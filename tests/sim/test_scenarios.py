@@ -135,8 +135,15 @@ def test_hover_gyro_in_the_loop_is_the_recording():
         return spec[np.abs(f - f_rot) < 5].sum()
 
     assert rotor_line(res.truth, log) > 30 * rotor_line(calm, calm_log)
-    r2 = S.simulate("hover", duration_s=0.5, gyro_rate_hz=500.0, seed=0, overrides={"earth_rate": {}})
-    assert any("earth_rate" in n for n in r2.notes) and "earth_rate" in r2.params_true
+    # earth rate rides in the loop (fly_hover passes the attitude); a temperature-rate bias
+    # cannot (motor heating makes dT/dt depend on the flight): flown without, recorded with
+    r2 = S.simulate("hover", duration_s=0.5, gyro_rate_hz=500.0, seed=0,
+                    overrides={"earth_rate": {}, "bias_temp_rate": {}})
+    assert "earth_rate" in r2.params_true and "bias_temp_rate" in r2.params_true
+    assert any("bias_temp_rate" in n for n in r2.notes) and not any("earth_rate" in n for n in r2.notes)
+    assert not np.array_equal(r2.flight_log.gyro_meas_rad_s, r2.recording.gyro_rad_s)
+    r3 = S.simulate("hover", duration_s=0.5, gyro_rate_hz=500.0, seed=0, overrides={"earth_rate": {}})
+    assert np.array_equal(r3.flight_log.gyro_meas_rad_s, r3.recording.gyro_rad_s)
 
 
 def test_overrides_reach_the_recording_and_floor():
