@@ -20,8 +20,10 @@ figures are per stage, not cumulative. Stages:
                   reference attitude, running final/RMS/max (streaming)
 ``cli_*``         the same through ``gyroharness allan|calibrate|apply`` (whole-file reads)
 
-A stage is *streaming* when its peak does not grow with the recording (O(chunk)); the
-others hold whole columns in memory (O(N)), reported in bytes per sample.
+Every stage is run at two lengths (``--compare-duration-s``, default 10 min, and the full
+hour); the growth of its peak between them, in bytes per sample, tells a *streaming* stage
+(≈ 0: memory bounded by the chunk size, whatever the length) from one that holds whole
+columns (O(N): e.g. 3 gyro columns = 24 B/sample at least).
 """
 
 from __future__ import annotations
@@ -143,21 +145,28 @@ def stage_allan(a) -> dict:
 
 
 def stage_calibrate(a) -> dict:
-    from gyrocore.model import Calibrator, write_params
+    from gyrocore.model import Calibrator, save_params
 
     rec = _gather(a, full=True)
     res = Calibrator(effects=("bias", "bias_thermal")).fit(rec)
-    write_params(res, a.params)
-    b = res.params["bias"]["b_rad_s"]
-    return {"bias_error_rad_s": (np.asarray(b) - B_RAD_S).tolist()}
+    save_params(res, a.params)
+    return {
+        "bias_rad_s": np.asarray(res.params["bias"]["b_rad_s"]).tolist(),
+        "thermal_order": {k: int(v) for k, v in res.thermal_order.items()},
+        "residual_rms_rad_s": np.asarray(res.residual_rms_rad_s).tolist(),
+    }
 
 
 def stage_apply(a) -> dict:
-    from gyrocore.model import apply, read_params
+    import warnings
+
+    from gyrocore.model import load_params
     from gyrocore.recording import iter_csv_chunks, write_csv_chunks
 
-    params = read_params(a.params)
-    n = write_csv_chunks((apply(params, ch) for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS)), a.corrected)
+    cal = load_params(a.params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # per-chunk range notes
+        n = write_csv_chunks((cal.apply(ch) for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS)), a.corrected)
     return {"rows": n}
 
 
@@ -230,9 +239,38 @@ def _run_child(argv: list[str]) -> tuple[int, float, int, str]:
     return p.returncode, wall, int(ru.ru_maxrss) * 1024, text
 
 
+def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bool) -> list[dict]:
+    """Every stage at one recording length; rows with peak RSS and wall time."""
+    n = int(round(duration_s * a.rate_hz))
+    csv_path = work / "one_hour.csv"
+    exe = shutil.which("gyroharness") or "gyroharness"
+    common = ["--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work)]
+    cli = {
+        "cli_allan": [exe, "allan", str(csv_path), "--json"],
+        "cli_calibrate": [exe, "calibrate", str(csv_path), "--effects", "bias,bias_thermal",
+                          "-o", str(work / "cli_params.json"), "--json"],
+        "cli_apply": [exe, "apply", str(csv_path), "--params", str(work / "params.json"),
+                      "-o", str(work / "cli_corrected.csv"), "--json"],
+    }
+    rows = []
+    for name in names:
+        argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
+        rc, wall, rss, out = _run_child(argv_c)
+        info = json.loads(out.strip().splitlines()[-1]) if rc == 0 and not name.startswith("cli_") else {}
+        rows.append({"stage": name, "samples": n, "exit": rc, "wall_s": wall, "peak_rss_bytes": rss,
+                     "result": info if rc == 0 else out})
+        if not quiet:
+            print(f"  [{duration_s:g} s] {name:<14s} exit {rc}  wall {wall:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB"
+                  + ("" if rc == 0 else f"  FAILED: {out[:300]}"), flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration-s", type=float, default=3600.0)
+    ap.add_argument("--compare-duration-s", type=float, default=600.0,
+                    help="a shorter run of every stage; the peak's growth between the two lengths, per "
+                         "sample, tells streaming (≈ 0) from whole-column stages (0 = skip)")
     ap.add_argument("--rate-hz", type=float, default=1000.0)
     ap.add_argument("--work", default=None, help="folder for the CSV files (default: a temporary folder, removed)")
     ap.add_argument("--stages", default=",".join(STAGES) + ",cli_allan,cli_calibrate,cli_apply")
@@ -248,48 +286,41 @@ def main(argv=None) -> int:
         return 0
 
     work.mkdir(parents=True, exist_ok=True)
+    names = [s.strip() for s in a.stages.split(",") if s.strip()]
     n = int(round(a.duration_s * a.rate_hz))
-    data_bytes = n * 15 * 8  # the 15 float64 columns
-    exe = shutil.which("gyroharness") or "gyroharness"
-    common = ["--duration-s", str(a.duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work)]
-    cli = {
-        "cli_allan": [exe, "allan", a.csv, "--json"],
-        "cli_calibrate": [exe, "calibrate", a.csv, "--effects", "bias,bias_thermal", "-o", str(work / "cli_params.json"), "--json"],
-        "cli_apply": [exe, "apply", a.csv, "--params", a.params, "-o", str(work / "cli_corrected.csv"), "--json"],
-    }
-    rows = []
-    base_rss = 0
     try:
-        for name in [s.strip() for s in a.stages.split(",") if s.strip()]:
-            argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
-            rc, wall, rss, out = _run_child(argv_c)
-            info = {}
-            if rc == 0 and not name.startswith("cli_"):
-                info = json.loads(out.strip().splitlines()[-1])
-            kind = "streaming" if name in STREAMING else "whole columns"
-            if name.startswith("cli_"):
-                kind = "CLI (whole-file read)"
-            if name == "baseline":
-                base_rss = rss
-            above = rss - base_rss
-            rows.append({"stage": name, "exit": rc, "wall_s": wall, "peak_rss_bytes": rss,
-                         "above_baseline_bytes": above, "bytes_per_sample_above_baseline": above / n,
-                         "kind": kind, "result": info if rc == 0 else out})
-            if not a.json:
-                print(f"{name:<14s} exit {rc}  wall {wall:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB "
-                      f"(+{above / 2**20:7.1f} MiB over baseline = {above / n:6.1f} B/sample)  {kind}" + ("" if rc == 0 else f"  FAILED: {out[:200]}"), flush=True)
+        small = []
+        if a.compare_duration_s and a.compare_duration_s < a.duration_s:
+            small = _run_stages(a, a.compare_duration_s, work, names, quiet=a.json)
+        big = _run_stages(a, a.duration_s, work, names, quiet=a.json)
+        csv_bytes = os.path.getsize(a.csv) if os.path.exists(a.csv) else None
     finally:
         if not a.work:
             shutil.rmtree(work, ignore_errors=True)
+    by_small = {r["stage"]: r for r in small}
+    base = next((r["peak_rss_bytes"] for r in big if r["stage"] == "baseline"), 0)
+    for r in big:
+        r["above_baseline_bytes"] = r["peak_rss_bytes"] - base
+        s = by_small.get(r["stage"])
+        if s is not None and s["exit"] == 0 and r["exit"] == 0:
+            r["growth_bytes_per_sample"] = (r["peak_rss_bytes"] - s["peak_rss_bytes"]) / (r["samples"] - s["samples"])
     summary = {"samples": n, "rate_hz": a.rate_hz, "duration_s": a.duration_s,
-               "data_float64_bytes": data_bytes, "chunk_rows": CHUNK_ROWS, "stages": rows}
+               "compare_duration_s": a.compare_duration_s or None,
+               "data_float64_bytes": n * 15 * 8, "csv_bytes": csv_bytes, "chunk_rows": CHUNK_ROWS,
+               "stages": big, "stages_short": small}
     if a.json:
         print(json.dumps(summary, indent=1))
     else:
-        csv_b = next((r["result"].get("csv_bytes") for r in rows if r["stage"] == "synth" and r["exit"] == 0), None)
-        print(f"{n} samples; 15 float64 columns = {data_bytes / 2**20:.0f} MiB"
-              + (f"; CSV {csv_b / 2**20:.0f} MiB" if csv_b else ""))
-    return 0 if all(r["exit"] == 0 for r in rows) else 1
+        print(f"{n} samples ({a.duration_s:g} s at {a.rate_hz:g} Hz); 15 float64 columns = {n * 120 / 2**20:.0f} MiB"
+              + (f"; CSV {csv_bytes / 2**20:.0f} MiB" if csv_bytes else "") + f"; chunks of {CHUNK_ROWS} rows")
+        print(f"{'stage':<14s} {'peak RSS MiB':>12s} {'growth B/sample':>16s}  {'wall s':>7s}  design")
+        for r in big:
+            g = r.get("growth_bytes_per_sample")
+            design = "CLI, whole-file read" if r["stage"].startswith("cli_") else (
+                "streaming" if r["stage"] in STREAMING else "whole columns")
+            print(f"{r['stage']:<14s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
+                  f"  {r['wall_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED"))
+    return 0 if all(r["exit"] == 0 for r in big + small) else 1
 
 
 if __name__ == "__main__":
