@@ -15,8 +15,9 @@ uncertainty of a ratio of standard deviations from n instances is ≈ 1/√(2(n�
    still recording of T seconds) with white noise density N (rad/√s). For white Gaussian
    noise the CRB of the bias is σ/√n = N·√fs/√(fs·T) = N/√T. Goal ≤ 1.1 for the mean rule;
    the median rule is shown too (its asymptotic efficiency loss is √(π/2) = 1.2533).
-2. **Rate table** — :func:`gyrocore.lsq.fit_effects` (the least squares behind
-   ``gyrocore.model.Calibrator``) fitting bias, scale, misalignment and g-sensitivity to
+2. **Rate table** — :class:`gyrocore.model.Calibrator` (default options: least squares of
+   :mod:`gyrocore.lsq` with the Ljung–Box covariance switch and the robust pass) fitting
+   bias, scale, misalignment and g-sensitivity to
    six mounts (each sensor axis up and down) × (still, +rate, −rate). The model
    y − ω_ref = A·θ + e is exactly linear in these effects and e is white Gaussian with σ per
    sample, so the Fisher information is AᵀA/σ² and the CRB of θ_p is
@@ -44,7 +45,8 @@ import numpy as np
 
 from gyrocore import effects as E
 from gyrocore.allan import allan_analysis
-from gyrocore.lsq import build_design, fit_effects
+from gyrocore.lsq import build_design
+from gyrocore.model import Calibrator
 from gyrocore.recording import Recording
 
 G_M_S2 = 9.80665
@@ -138,12 +140,14 @@ def rate_table(instances: int, seed: int, *, rate_hz=100.0, segment_s=5.0, n_rad
             "g_sensitivity": {"h_rad_s_per_m_s2": rng.normal(0, 1e-4, (3, 3))},
         }
         y = E.deterministic(params, inp) + rng.normal(0.0, sigma, (n, 3))
-        fit = fit_effects(y - inp.omega_S_rad_s, RATE_TABLE_EFFECTS, inp, covariance="ols")
-        if fit.unobservable:
-            raise RuntimeError(f"rate-table design left {fit.unobservable} unobservable")
-        true = np.concatenate([np.ravel(params[e][k]) for e in RATE_TABLE_EFFECTS for k in E.PARAM_SCHEMA[e]])
-        thetas_err.append(fit.theta - true)
-        reported.append(fit.stderr)
+        rec = Recording(t_s=inp.t_s, gyro_rad_s=y, accel_m_s2=inp.f_S_m_s2, ref_rate_rad_s=inp.omega_S_rad_s,
+                        meta={"sensor": "white", "scenario": "rate_table"})
+        res = Calibrator(effects=RATE_TABLE_EFFECTS).fit(rec)
+        if res.unobservable:
+            raise RuntimeError(f"rate-table design left {res.unobservable} unobservable")
+        flat = lambda d: np.concatenate([np.ravel(d[e][k]) for e in RATE_TABLE_EFFECTS for k in E.PARAM_SCHEMA[e]])  # noqa: E731
+        thetas_err.append(flat(res.params) - flat(params))
+        reported.append(flat(res.stderr))
     err = np.asarray(thetas_err)
     std = np.std(err, axis=0, ddof=1)
     ratio = std / crb
@@ -154,7 +158,7 @@ def rate_table(instances: int, seed: int, *, rate_hz=100.0, segment_s=5.0, n_rad
         "H (g-sensitivity)": slices["g_sensitivity"],
     }
     out = {
-        "estimator": "gyrocore.lsq.fit_effects (covariance='ols')",
+        "estimator": "gyrocore.model.Calibrator(effects=bias,scale,misalignment,g_sensitivity)",
         "design": f"6 mounts x (still, +1, -1 rad/s) x {segment_s:g} s at {rate_hz:g} Hz",
         "n_rad_per_sqrt_s": n_rad_per_sqrt_s,
         "ratio_mc_rel_se": _ratio_ci(instances),
