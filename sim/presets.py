@@ -386,5 +386,6 @@ def load_preset(name_or_path: str | Path | SensorSpec) -> SensorSpec:
     except tomllib.TOMLDecodeError as exc:
         raise GyroInputError(f"preset {path}: not valid TOML ({str(exc).splitlines()[0]})") from None
     spec = _convert(raw, str(path))
-    _CACHE[key] = spec
+    if key in PRESETS:  # registry files are cached; a user's file is re-read every time
+        _CACHE[key] = spec
     return spec
