@@ -20,6 +20,7 @@ controller that runs the loop right after the gyro sample. The attitude/position
 
 from __future__ import annotations
 
+import array
 import inspect
 import math
 from dataclasses import dataclass
@@ -326,21 +327,30 @@ def fly_hover(
     step = mujoco.mj_step
     cos, sin, sqrt = math.cos, math.sin, math.sqrt
 
-    def rotor_aero(om: list) -> list:
+    (k0, k1, k2, k3) = rotor_k
+
+    def rotor_aero(om: list) -> tuple:
         """Rotor forces from the rotors' state now: thrust_1..4 then vib2_i_x, vib2_i_y.
 
         Thrust c_T w^2 (1 + r cos(2 phi + psi_b)); the 2nd-harmonic force h2 u w^2 at angle
-        phi + psi_h in the rotor frame, i.e. turning at 2 Omega in the body frame.
+        phi + psi_h in the rotor frame, i.e. turning at 2 Omega in the body frame. Unrolled over
+        the four rotors (this runs every physics step).
         """
-        thr = []
-        v2 = []
-        for p, w, (c_t, bc, bs, hc, hs) in zip(qpos[rq0:rq1].tolist(), om, rotor_k):
-            c = cos(p)
-            s = sin(p)
-            w2 = w * w
-            thr.append(c_t * w2 * (1.0 + bc * (c * c - s * s) - bs * 2.0 * s * c))
-            v2 += (w2 * (c * hc - s * hs), w2 * (s * hc + c * hs))
-        return thr + v2
+        p0, p1, p2, p3 = qpos[rq0:rq1].tolist()
+        w0, w1, w2, w3 = om
+        c0 = cos(p0); s0 = sin(p0); c1 = cos(p1); s1 = sin(p1)  # noqa: E702
+        c2 = cos(p2); s2 = sin(p2); c3 = cos(p3); s3 = sin(p3)  # noqa: E702
+        q0 = w0 * w0; q1 = w1 * w1; q2 = w2 * w2; q3 = w3 * w3  # noqa: E702
+        return (
+            k0[0] * q0 * (1.0 + k0[1] * (c0 * c0 - s0 * s0) - k0[2] * 2.0 * s0 * c0),
+            k1[0] * q1 * (1.0 + k1[1] * (c1 * c1 - s1 * s1) - k1[2] * 2.0 * s1 * c1),
+            k2[0] * q2 * (1.0 + k2[1] * (c2 * c2 - s2 * s2) - k2[2] * 2.0 * s2 * c2),
+            k3[0] * q3 * (1.0 + k3[1] * (c3 * c3 - s3 * s3) - k3[2] * 2.0 * s3 * c3),
+            q0 * (c0 * k0[3] - s0 * k0[4]), q0 * (s0 * k0[3] + c0 * k0[4]),
+            q1 * (c1 * k1[3] - s1 * k1[4]), q1 * (s1 * k1[3] + c1 * k1[4]),
+            q2 * (c2 * k2[3] - s2 * k2[4]), q2 * (s2 * k2[3] + c2 * k2[4]),
+            q3 * (c3 * k3[3] - s3 * k3[4]), q3 * (s3 * k3[3] + c3 * k3[4]),
+        )
 
     # --- gyro, pipeline, thermal, controller ----------------------------------------------------
     gyro = gyro if gyro is not None else PerfectGyro()
@@ -379,7 +389,8 @@ def fly_hover(
     ctl = CascadedController(qp, gains, dt_s=dt_c, pos_sp_W_m=tuple(data.qpos[0:3]), yaw_sp_rad=0.0, manoeuvres=manoeuvres)
     outer_every = ctl.outer_every
     sd_log = np.empty((n, nsd))
-    rec = np.empty((n, 14))  # gyro meas (3), gyro filtered (3), thrust cmd (4), rotor speed (4)
+    rec_arr = array.array("d")  # per sample: gyro meas (3), gyro filtered (3), thrust cmd (4), rotor speed (4)
+    rec_extend = rec_arr.extend
     n_outer = (n + outer_every - 1) // outer_every
     outer_log = np.empty((n_outer, 7))  # q_sp (4), rate_sp (3)
     sensordata = data.sensordata
@@ -392,7 +403,7 @@ def fly_hover(
     update_rate = ctl.update_rate
     nd = np.ndarray
     extra_steps = range(m_per - 1)
-    mot_cmd = data.ctrl[12:16].tolist()  # hover keyframe's motor commands until the first update
+    mot_cmd = tuple(data.ctrl[12:16].tolist())  # hover keyframe's motor commands until the first update
     for k in range(n):
         om = qvel[rv0:rv1].tolist()
         ctrl[:] = rotor_aero(om) + mot_cmd
@@ -417,8 +428,8 @@ def fly_hover(
         gl = g.tolist() if type(g) is nd else [float(v) for v in g]
         yl = y.tolist() if type(y) is nd else [float(v) for v in y]
         thrust = update_rate(yl[0], yl[1], yl[2])
-        rec[k] = gl + yl + thrust + om
-        mot_cmd = [sp * (sqrt(t / ct) + ff * t) for sp, t in zip(spin, thrust)]
+        rec_extend(gl + yl + thrust + om)
+        mot_cmd = tuple([sp * (sqrt(t / ct) + ff * t) for sp, t in zip(spin, thrust)])
         if stream_thermal and k + 1 < n:
             p_w = kappa * ct * sum(abs(w) ** 3 for w in om)
             th_state.step(t_l[k + 1], motor_power_w=p_w, ambient_c=amb[k + 1])
@@ -429,6 +440,7 @@ def fly_hover(
             bar.update(min(1024, n - bar.n))
     if bar is not None:
         bar.close()
+    rec = np.frombuffer(rec_arr, dtype=np.float64).reshape(n, 14).copy()
     idx_outer = np.arange(n) // outer_every
     qsp_log = outer_log[idx_outer, 0:4]
     rsp_log = outer_log[idx_outer, 4:7]
