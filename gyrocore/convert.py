@@ -198,14 +198,32 @@ def retime_uniform(t_s: np.ndarray) -> np.ndarray:
 
 
 def motion_span(
-    t_s: np.ndarray, omega_rad_s: np.ndarray, *, threshold_rad_s: float = np.deg2rad(10.0), pad_s: float = 0.5
+    t_s: np.ndarray,
+    omega_rad_s: np.ndarray,
+    *,
+    threshold_rad_s: float = np.deg2rad(10.0),
+    pad_s: float = 0.5,
+    window_s: float = 0.5,
 ) -> tuple[float, float]:
-    """First and last time |ω − median ω| exceeds ``threshold_rad_s``, padded by ``pad_s``.
+    """First and last time |ω − b| exceeds ``threshold_rad_s``, padded by ``pad_s``.
 
-    Used to place a known-rotation segment around the actual motion of a hand rotation (the
-    still parts before and after are kept out of the segment but can give the bias).
+    ``b`` is the mean rate over the quietest ``window_s`` window (smallest summed standard
+    deviation), i.e. the bias seen while the hand held the board still. Used to place a
+    known-rotation segment around the actual motion of a hand rotation, so that the still
+    parts before and after stay outside the segment (they can give the bias).
     """
-    dev = np.linalg.norm(omega_rad_s - np.median(omega_rad_s, axis=0), axis=1)
+    t_s = np.asarray(t_s, float)
+    n = t_s.size
+    rate = (n - 1) / (t_s[-1] - t_s[0]) if n > 1 and t_s[-1] > t_s[0] else 1.0
+    k = max(2, int(round(window_s * rate)))
+    if n >= 2 * k:
+        starts = np.arange(0, n - k + 1, max(1, k // 4))
+        sd = np.array([omega_rad_s[i : i + k].std(axis=0).sum() for i in starts])
+        i0 = int(starts[int(np.argmin(sd))])
+        b = omega_rad_s[i0 : i0 + k].mean(axis=0)
+    else:
+        b = np.median(omega_rad_s, axis=0)
+    dev = np.linalg.norm(omega_rad_s - b, axis=1)
     idx = np.flatnonzero(dev > threshold_rad_s)
     if idx.size == 0:
         return float(t_s[0]), float(t_s[-1])
