@@ -275,3 +275,74 @@ def test_unknown_effect_name(tmp_path, capsys):
     p = _write_rec(tmp_path / "still.csv", 4000, accel=True)
     s, _, err = gh(capsys, "loop", p, "--effects", "bias,bais_thermal")
     assert_error(s, err, r"unknown effect 'bais_thermal'")
+
+
+def _table_z_only(path, seed=0):
+    """Rate-table run turning about z only: x/y scale cannot be observed."""
+    rng = np.random.default_rng(seed)
+    n = 6000
+    t = np.arange(n) / 200.0
+    ref = np.zeros((n, 3))
+    ref[:, 2] = np.repeat([0.0, 1.0, -1.0, 2.0, -2.0, 0.0], n // 6)
+    g = ref * [1.0, 1.0, 1.01] + [0.01, -0.02, 0.005] + rng.normal(0, 0.002, (n, 3))
+    write_csv(Recording(t_s=t, gyro_rad_s=g, ref_rate_rad_s=ref), path)
+    return path
+
+
+def test_rotation_set_cannot_observe_parameters(tmp_path, capsys):
+    p = _table_z_only(tmp_path / "zonly.csv")
+    s, out, err = gh(capsys, "calibrate", p, "--effects", "bias,scale", "-o", tmp_path / "p.json", "--json")
+    assert s == 0 and not any(ln.startswith("error:") or "Traceback" in ln for ln in err), err
+    res = json.loads(out)
+    # the two unexcited scale factors are named, not fitted to noise
+    assert res["unobservable"] == ["scale.s[0]", "scale.s[1]"]
+    assert res["standard_errors"]["scale"]["s"][:2] == [None, None]
+    s, out, err = gh(capsys, "calibrate", p, "--effects", "bias,scale", "-o", tmp_path / "p2.json")
+    assert s == 0 and "scale.s[0]" in out and "scale.s[1]" in out and "UNOBSERVABLE" in out
+
+
+def _thermal_params(tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    n = 6000
+    t = np.arange(n) / 200.0
+    temp = np.linspace(20.0, 30.0, n)
+    g = 0.01 + 0.001 * (temp - 25.0)[:, None] * [1, 2, 3] + rng.normal(0, 0.002, (n, 3))
+    write_csv(Recording(t_s=t, gyro_rad_s=g, temp_c=temp, ref_rate_rad_s=np.zeros((n, 3))), tmp_path / "cal.csv")
+    s, _, err = gh(capsys, "calibrate", tmp_path / "cal.csv", "--effects", "bias_thermal", "-o", tmp_path / "pt.json")
+    assert s == 0, err
+    return tmp_path / "pt.json"
+
+
+def test_temperature_outside_calibrated_range(tmp_path, capsys):
+    params = _thermal_params(tmp_path, capsys)
+    rng = np.random.default_rng(6)
+    n = 2000
+    temp = np.linspace(35.0, 45.0, n)
+    g = 0.01 + 0.001 * (temp - 25.0)[:, None] * [1, 2, 3] + rng.normal(0, 0.002, (n, 3))
+    write_csv(Recording(t_s=np.arange(n) / 200.0, gyro_rad_s=g, temp_c=temp), tmp_path / "hot.csv")
+    s, _, err = gh(capsys, "apply", tmp_path / "hot.csv", "--params", params, "-o", tmp_path / "c.csv")
+    assert_repaired(s, err, r"outside the calibrated range 20.00..30.00 C; bias_thermal is held at the range edge")
+
+
+def test_parameter_file_corrupt_or_other_version(tmp_path, capsys):
+    params = _thermal_params(tmp_path, capsys)
+    data = _write_rec(tmp_path / "d.csv", 1000)
+    doc = json.loads(params.read_text())
+    doc["format_version"] = "2.0"
+    (tmp_path / "v2.json").write_text(json.dumps(doc))
+    s, _, err = gh(capsys, "apply", data, "--params", tmp_path / "v2.json", "-o", tmp_path / "c1.csv")
+    assert_error(s, err, r"format_version 2.0 is not supported")
+    (tmp_path / "bad.json").write_text(params.read_text()[:150])  # truncated: an interrupted copy
+    s, _, err = gh(capsys, "apply", data, "--params", tmp_path / "bad.json", "-o", tmp_path / "c2.csv")
+    assert_error(s, err, r"not a parameter file \(JSON error")
+    (tmp_path / "bin.json").write_bytes(b"\x00\x01\x02garbage")
+    s, _, err = gh(capsys, "apply", data, "--params", tmp_path / "bin.json", "-o", tmp_path / "c3.csv")
+    assert_error(s, err, "not a parameter file")
+    assert not any((tmp_path / f"c{i}.csv").exists() for i in (1, 2, 3))  # nothing half-written
+
+
+def test_unknown_effect_name_in_calibrate(tmp_path, capsys):
+    p = _table_z_only(tmp_path / "zonly.csv")
+    s, _, err = gh(capsys, "calibrate", p, "--effects", "bias,scael", "-o", tmp_path / "p.json")
+    assert_error(s, err, r"unknown effect 'scael'; known effects: bias, ")
+    assert not (tmp_path / "p.json").exists()
