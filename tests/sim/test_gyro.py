@@ -344,3 +344,19 @@ def test_run_is_a_new_session_of_the_same_unit():
             assert np.array_equal(a.params[eff][k], b.params[eff][k])
     assert not np.array_equal(a.power_up_bias(0), b.power_up_bias(0))
     assert not np.array_equal(a.measure(tr).noise_rad_s, b.measure(tr).noise_rad_s)
+
+
+@pytest.mark.parametrize("effect, values", [
+    ("bias_instability", {"b_rad_s": 1e-4}),
+    ("rrw", {"k_rad_s_per_sqrt_s": 1e-4}),
+    ("correlated", {"sigma_rad_s": 1e-3, "tau_c_s": 0.5}),
+])
+def test_stochastic_effects_are_purely_additive(effect, values):
+    # the levels themselves are checked against IEEE 952 in test_noise.py; here: the gyro adds
+    # exactly its realisation (y − ω = noise) and reports its summary
+    tr = make_truth()
+    out = only(effect, values).measure(tr)
+    e = out.gyro_rad_s - tr.omega_S_rad_s
+    assert np.allclose(e, out.noise_rad_s, rtol=0, atol=1e-15)
+    assert np.allclose(out.draws[effect]["std_rad_s"], out.noise_rad_s.std(axis=0))
+    assert np.all(out.noise_rad_s.std(axis=0) > 0)
