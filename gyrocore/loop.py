@@ -25,7 +25,10 @@ Start from the declared effects, fit them jointly to the residual of
    ``bias_ramp`` vs ``bias_thermal`` when the temperature rises linearly in time) the step
    reports them as *ambiguous* (``evidence["ambiguous_with"]``); the winner stays the one
    with the strongest evidence (smallest p-value, which accounts for the number of
-   parameters). A thermal candidate is tested on top of its constant companion
+   parameters) unless another is within one decade of p, in which case the simpler effect is
+   taken (fewer parameters, then the lower-order, more common one: earlier in
+   :data:`CANDIDATES`). A candidate contained in the winner
+   that explains the same residual replaces it (parsimony). A thermal candidate is tested on top of its constant companion
    (:data:`COMPANION`) and added with it.
 4. **Add and refit** everything jointly, record the error before and after (windowed residual
    RMS, attitude error), and repeat until nothing significant is left.
@@ -365,7 +368,14 @@ class _Model:
             if still.sum() >= 3:
                 sd = np.std(res.y_rad_s[still], axis=0, ddof=1)
                 w[still] = 1.0 / np.maximum(sd, 1e-12) ** 2
-            w[rot] = (T[rot, None] / res.angle_sigma_rad) ** 2
+            # per component: σ_i² = σ_angle²·u_i² + σ_across²·(1 − u_i²), u = φ/|φ|,
+            # σ_across = max(σ_angle, |φ|·sin σ_axis) (exact for rotations about a sensor axis)
+            phi = res.angle_S_rad[rot] if res.angle_S_rad is not None else np.zeros((rot.sum(), 3))
+            ang = np.linalg.norm(phi, axis=1)
+            u2 = np.where(ang[:, None] > 0, (phi / np.where(ang > 0, ang, 1.0)[:, None]) ** 2, 1.0 / 3)
+            s_across = np.maximum(res.angle_sigma_rad, ang * np.sin(res.axis_sigma_rad))
+            var = res.angle_sigma_rad**2 * u2 + s_across[:, None] ** 2 * (1 - u2)
+            w[rot] = T[rot, None] ** 2 / var
             self.angle_w = w
         return self.angle_w
 
@@ -567,6 +577,11 @@ def _params_table(fit, effects) -> dict:
     return out
 
 
+#: Still references: g-sensitivity needs poses whose specific force differs by at least this
+#: much (m/s², ≈ 0.2 g) on some axis; within one pose, changes of f mean motion, not a signal.
+_MIN_POSE_CHANGE_M_S2 = 2.0
+
+
 def _input_check(res: Residual, effect: str) -> str | None:
     """Reason why a candidate cannot be tested on these data, or None."""
     inp = res.inputs
@@ -578,6 +593,13 @@ def _input_check(res: Residual, effect: str) -> str | None:
         return "no temp_c column"
     if needs == "accel" and inp.f_S_m_s2 is None:
         return "no accel columns"
+    if needs == "accel" and res.kind in ("still", "angles"):
+        f = res.window_mean(np.nan_to_num(np.asarray(inp.f_S_m_s2, float)))
+        rot = res.is_rotation if res.is_rotation is not None else np.zeros(res.m, bool)
+        fs = f[~rot]
+        if fs.shape[0] < 2 or np.all(np.ptp(fs, axis=0) < _MIN_POSE_CHANGE_M_S2):
+            return ("one static pose: the specific force hardly changes, so g-sensitivity is a bias here "
+                    "(and small changes of f mean the sensor moved)")
     if effect == "earth_rate" and res.R_WS is None:
         return "no attitude to resolve the Earth rate (it is a bias in a fixed pose)"
     if effect in ("scale", "scale_thermal", "scale_asymmetry", "scale_nonlinearity", "misalignment",
@@ -681,6 +703,15 @@ def loop_residual(
         if nested:  # parsimony: the smaller effect that explains the same residual
             best = min(nested, key=lambda c: (evs[c].log10_p, -evs[c].statistic))
             ambiguous = [c for c in ambiguous if c != best]
+        if ambiguous:
+            # evidence decides when it differs by ≥ 1 decade of p; otherwise (a tie the data
+            # cannot break) the simpler effect: fewer parameters, then the lower-order, more
+            # common one (earlier in CANDIDATES)
+            pool = [best] + ambiguous
+            close = [c for c in pool if evs[c].log10_p <= evs[best].log10_p + 1.0]
+            pick = min(close, key=lambda c: (evs[c].df1, CANDIDATES.index(c)))
+            ambiguous = [c for c in pool if c != pick]
+            best = pick
         # `best` has the strongest evidence (smallest p-value, which accounts for its number
         # of parameters); the ambiguous ones are reported with it.
         model_effects.extend(_with_companion(model_effects, best))
@@ -733,6 +764,7 @@ def run_loop(
     min_attitude_reduction: float = 0.05,
     max_steps: int = 8,
     angle_sigma_deg: float = 2.0,
+    axis_sigma_deg: float = 5.0,
 ) -> LoopResult:
     """Close the loop on one recording.
 
@@ -760,8 +792,9 @@ def run_loop(
         (see the module docstring).
     max_steps : int
         At most this many effects are added.
-    angle_sigma_deg : float
-        Uncertainty of each known rotation angle (``"angles"`` reference), degrees.
+    angle_sigma_deg, axis_sigma_deg : float
+        Uncertainty of each known rotation angle and of its axis (``"angles"`` reference),
+        degrees.
 
     Returns
     -------
@@ -771,7 +804,7 @@ def run_loop(
         raise GyroInputError(f"alpha must be in (0, 1), not {alpha}")
     with _single_thread():
         res = build_residual(rec, reference=reference, segments=segments, window_s=window_s,
-                             angle_sigma_deg=angle_sigma_deg)
+                             angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg)
         return loop_residual(
             res, rec, declared=declared, candidates=candidates, alpha=alpha, thermal_order=thermal_order,
             min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,

@@ -209,6 +209,12 @@ class Residual:
     angle_sigma_rad : float
         ``"angles"``: standard uncertainty of each known angle, rad (hand rotations: a few
         degrees); the rotation windows are weighted by it.
+    axis_sigma_rad : float
+        ``"angles"``: uncertainty of the rotation axis direction, rad (a hand rotation "about
+        x" wobbles by a few degrees, so the cross-axis components of ∫ω dt are uncertain by
+        |φ|·sin(axis σ)).
+    angle_S_rad : ndarray, shape (M, 3) or None
+        ``"angles"``: the known rotation vector of each window (zeros for still windows).
     """
 
     kind: str
@@ -224,6 +230,8 @@ class Residual:
     notes: tuple[str, ...] = ()
     is_rotation: np.ndarray | None = None
     angle_sigma_rad: float = float("nan")
+    axis_sigma_rad: float = float("nan")
+    angle_S_rad: np.ndarray | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -402,6 +410,7 @@ def build_residual(
     window_s: float | None = None,
     outlier_mad: float = 20.0,
     angle_sigma_deg: float = 2.0,
+    axis_sigma_deg: float = 5.0,
 ) -> Residual:
     """Build the residual of ``rec`` against its reference.
 
@@ -423,6 +432,9 @@ def build_residual(
     angle_sigma_deg : float
         ``"angles"`` only: standard uncertainty of each known rotation angle, degrees (2° for
         rotations by hand against a box edge; 0.01° for a rate table).
+    axis_sigma_deg : float
+        ``"angles"`` only: uncertainty of the rotation axis, degrees (5° by hand; 0.01° on a
+        rate table).
 
     Returns
     -------
@@ -577,7 +589,8 @@ def build_residual(
         notes.append("known angles hold only for rotations about a fixed sensor axis; hand rotations are good to a few degrees")
         return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
                         R_GS=None, R_WS=None, gyro_rad_s=gyro, description=res.description, notes=tuple(notes),
-                        is_rotation=np.arange(a.size) < n_rot, angle_sigma_rad=np.radians(angle_sigma_deg))
+                        is_rotation=np.arange(a.size) < n_rot, angle_sigma_rad=np.radians(angle_sigma_deg),
+                        axis_sigma_rad=np.radians(axis_sigma_deg), angle_S_rad=phi_all)
 
     if a.size < 3:
         raise GyroInputError(f"fewer than 3 observation windows for reference '{kind}'")

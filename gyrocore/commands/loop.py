@@ -92,11 +92,13 @@ def report_text(result) -> str:
 @click.option("--min-attitude-reduction", type=float, default=0.05, show_default=True)
 @click.option("--angle-sigma-deg", type=float, default=2.0, show_default=True,
               help="Uncertainty of each known rotation angle (hand: a few degrees; rate table: 0.01).")
+@click.option("--axis-sigma-deg", type=float, default=5.0, show_default=True,
+              help="Uncertainty of the known rotations' axis (hand: ~5 degrees; rate table: 0.01).")
 @click.option("--plot-dir", type=click.Path(path_type=str), default=None,
               help="Write residual-vs-regressor plots (before/after) per found effect here.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the JSON result on stdout.")
 def command(path, effects, segments, candidates, reference, window_s, alpha, thermal_order, min_rms_reduction,
-            min_attitude_reduction, angle_sigma_deg, plot_dir, as_json):
+            min_attitude_reduction, angle_sigma_deg, axis_sigma_deg, plot_dir, as_json):
     """The residual loop on FILE (a data file or any real set `gyroharness convert` reads)."""
     from ..convert import load_with_segments
     from ..loop import run_loop
@@ -111,6 +113,7 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         conv.recording, declared=declared, segments=segs, candidates=_split(candidates), reference=reference,
         window_s=window_s, alpha=alpha, thermal_order=thermal_order, min_rms_reduction=min_rms_reduction,
         min_attitude_reduction=min_attitude_reduction, angle_sigma_deg=angle_sigma_deg,
+        axis_sigma_deg=axis_sigma_deg,
     )
     if plot_dir:
         from ..loop import plot_found
