@@ -246,25 +246,28 @@ def _segment_from(d: Mapping):
     return TableSegment(mount=_mount(d.get("mount", "+z")), rate_rad_s=rate, duration_s=dur, ramp_s=ramp)
 
 
-def _turns(t: Mapping, *, revolutions: float, rates, rest_s: float, mounts):
+def _turns(t: Mapping, *, revolutions: float, rates, rest_s: float, mounts, repose_s=None, settle_s=None):
     from .turntable import table_profile_turns
 
     return table_profile_turns(
         mounts=tuple(_mount(m) for m in mounts), revolutions=revolutions,
         rates_rad_s=tuple(float(r) * DEG for r in rates),
         directions=tuple(int(d) for d in t.get("directions", (1, -1))), rest_s=rest_s,
-        ramp_s=float(t.get("ramp_s", 0.5)), repose_s=float(t.get("repose_s", 2.0)),
-        settle_s=float(t.get("settle_s", 1.0)),
+        ramp_s=float(t.get("ramp_s", 0.5)),
+        repose_s=float(t.get("repose_s", 2.0)) if repose_s is None else repose_s,
+        settle_s=float(t.get("settle_s", 1.0)) if settle_s is None else settle_s,
     )
 
 
 def _fit_turns(t: Mapping, duration_s: float | None):
     """The ``turns`` profile, shortened to fit ``duration_s`` if given.
 
-    Reductions in order until it fits: fewer revolutions (down to 1), then only the first
-    rate, then 1-s rests, then only the three axis-up mounts (+x, +y, +z: the minimum that
-    observes all scales and misalignments). The revolutions are then the largest multiple of
-    1/4 turn that fits. Raises if even the smallest profile is longer than ``duration_s``.
+    Reductions in order until one fits: (1) fewer revolutions (down to 1), (2) only the first
+    rate, (3) 1-s rests, (4) only the three axis-up mounts (+x, +y, +z: the minimum that
+    observes every scale and misalignment), (5) the fastest rate with 0.5-s rests, 1-s
+    re-poses and 0.5-s settling, down to a quarter turn. Within the first option that fits,
+    the revolutions are the largest multiple of 1/4 turn (at most the file's). Raises if
+    even the smallest profile is longer than ``duration_s``.
     """
     mounts = list(t.get("mounts", ("+x", "-x", "+y", "-y", "+z", "-z")))
     rates = list(t.get("rates_dps", (90.0,)))
@@ -273,18 +276,24 @@ def _fit_turns(t: Mapping, duration_s: float | None):
     full = _turns(t, revolutions=rev, rates=rates, rest_s=rest, mounts=mounts)
     if duration_s is None or full.duration_s <= duration_s:
         return full
-    options = [(rates, rest, mounts), (rates[:1], rest, mounts), (rates[:1], min(rest, 1.0), mounts),
-               (rates[:1], min(rest, 1.0), [m for m in ("+x", "+y", "+z")])]
-    for r_, rest_, m_ in options:
-        one = _turns(t, revolutions=1.0, rates=r_, rest_s=rest_, mounts=m_)
-        if one.duration_s <= duration_s:
-            quarter = _turns(t, revolutions=1.25, rates=r_, rest_s=rest_, mounts=m_).duration_s - one.duration_s
-            n_q = int(math.floor((duration_s - one.duration_s) / quarter + 1e-9)) if quarter > 0 else 0
-            best = min(rev, 1.0 + 0.25 * n_q)
-            return _turns(t, revolutions=best, rates=r_, rest_s=rest_, mounts=m_)
-    small = _turns(t, revolutions=1.0, rates=rates[:1], rest_s=min(rest, 1.0), mounts=["+x", "+y", "+z"])
+    axes = ["+x", "+y", "+z"]
+    # (rates, rest, mounts, repose, settle, min revolutions)
+    options = [(rates, rest, mounts, None, None, 1.0), (rates[:1], rest, mounts, None, None, 1.0),
+               (rates[:1], min(rest, 1.0), mounts, None, None, 1.0), (rates[:1], min(rest, 1.0), axes, None, None, 1.0),
+               ([max(rates)], min(rest, 0.5), axes, 1.0, 0.5, 0.25)]
+
+    def prof(r_, rest_, m_, rp, st, n_rev):
+        return _turns(t, revolutions=n_rev, rates=r_, rest_s=rest_, mounts=m_, repose_s=rp, settle_s=st)
+
+    for r_, rest_, m_, rp, st, rmin in options:
+        low = prof(r_, rest_, m_, rp, st, rmin)
+        if low.duration_s <= duration_s:
+            quarter = prof(r_, rest_, m_, rp, st, rmin + 0.25).duration_s - low.duration_s
+            n_q = int(math.floor((duration_s - low.duration_s) / quarter + 1e-9)) if quarter > 0 else 0
+            return prof(r_, rest_, m_, rp, st, min(max(rev, rmin), rmin + 0.25 * n_q))
+    small = prof(*options[-1][:5], 0.25)
     raise GyroInputError(
-        f"the turntable profile needs at least {small.duration_s:.1f} s (one turn each way about x, y, z); got {duration_s:g} s"
+        f"the turntable profile needs at least {small.duration_s:.1f} s (a quarter turn each way about x, y, z); got {duration_s:g} s"
     )
 
 

@@ -62,7 +62,7 @@ def test_refuses_to_overwrite_without_force(tmp_path, capsys):
     (["static", "--set", "scale.s=1,2"], "needs 1 or 3"),
     (["static", "--without", "nope"], "unknown effect"),
     (["static", "--duration-s", "-1"], "must be > 0"),
-    (["turntable", "--duration-s", "5"], "at least"),
+    (["turntable", "--duration-s", "8"], "at least"),
 ])
 def test_one_line_errors(tmp_path, capsys, args, needle):
     f = tmp_path / "x.csv"

@@ -101,8 +101,11 @@ def test_turntable_profile_fits_duration_with_exact_turns():
     assert sorted({math.copysign(1, p["rate_rad_s"]) for p in turns}) == [-1.0, 1.0]
     full = S.build_table_profile(S.load_scenario("turntable"), None)
     assert full.duration_s > 300  # the full run: 6 mounts, 5 turns each way at 2 rates
+    # shortest form: x, y, z up, quarter turns each way at the fastest rate
+    short = S.build_table_profile(S.load_scenario("turntable"), 20.0)
+    assert short.duration_s <= 20.0 and {seg.mount for seg in short.segments} == {"+x", "+y", "+z"}
     with pytest.raises(GyroInputError, match="at least"):
-        S.simulate("turntable", duration_s=10.0)
+        S.simulate("turntable", duration_s=8.0)
 
 
 def test_thermal_ramps_up_and_down_with_motion_and_rest():
