@@ -298,7 +298,10 @@ def _fit_turns(t: Mapping, duration_s: float | None):
 
 
 def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator):
-    """Still, a few random handling bumps (table jerks, tilts), then still until the end."""
+    """Still, a few random handling bumps (table jerks, tilts), then still until the end.
+
+    If the bumps do not leave at least half the run still, fewer bumps are used (at least one).
+    """
     from scipy.spatial.transform import Rotation
 
     from .turntable import TableProfile, TableSegment, mount_quat_wxyz
@@ -311,24 +314,34 @@ def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator)
     max_rate = float(b.get("max_rate_dps", 120.0)) * DEG
     max_tilt = float(b.get("max_tilt_deg", 15.0)) * DEG
     gap = float(b.get("gap_s", 0.3))
-    segs = [TableSegment(mount=base, rate_rad_s=0.0, duration_s=start)]
-    for i in range(count):
-        if i % 2 == 0:  # a jerk of the table (yaw), raised-cosine rate
-            r = rng.uniform(max_rate / 3, max_rate) * rng.choice([-1.0, 1.0])
-            segs.append(TableSegment(mount=base, rate_rad_s=float(r), duration_s=bump_s, ramp_s=bump_s / 2))
-            segs.append(TableSegment(mount=base, rate_rad_s=0.0, duration_s=gap))
-        else:  # picked up and tilted about a random horizontal axis, then put back
-            ang = rng.uniform(max_tilt / 3, max_tilt)
-            az = rng.uniform(0, 2 * math.pi)
-            tilt = Rotation.from_rotvec(ang * np.array([math.cos(az), math.sin(az), 0.0]))
-            qb = Rotation.from_quat([q_base[1], q_base[2], q_base[3], q_base[0]])
-            x, y, z, w = (tilt * qb).as_quat()
-            segs.append(TableSegment(mount=(float(w), float(x), float(y), float(z)), rate_rad_s=0.0, duration_s=gap))
-            segs.append(TableSegment(mount=base, rate_rad_s=0.0, duration_s=gap))
-    prof = TableProfile(segments=tuple(segs), repose_s=bump_s, settle_s=0.0)
-    rest = duration_s - prof.duration_s
+    # draw every bump first (the draws do not depend on how many are used)
+    draws = [(rng.uniform(max_rate / 3, max_rate) * rng.choice([-1.0, 1.0]), rng.uniform(max_tilt / 3, max_tilt),
+              rng.uniform(0, 2 * math.pi)) for _ in range(max(count, 1))]
+    qb = Rotation.from_quat([q_base[1], q_base[2], q_base[3], q_base[0]])
+
+    def segments(k: int) -> list:
+        segs = [TableSegment(mount=base, rate_rad_s=0.0, duration_s=start)]
+        for i, (r, ang, az) in enumerate(draws[:k]):
+            if i % 2 == 0:  # a jerk of the table (yaw), raised-cosine rate
+                segs.append(TableSegment(mount=base, rate_rad_s=float(r), duration_s=bump_s, ramp_s=bump_s / 2))
+                segs.append(TableSegment(mount=base, rate_rad_s=0.0, duration_s=gap))
+            else:  # picked up and tilted about a random horizontal axis, then put back
+                tilt = Rotation.from_rotvec(ang * np.array([math.cos(az), math.sin(az), 0.0]))
+                x, y, z, w = (tilt * qb).as_quat()
+                segs.append(TableSegment(mount=(float(w), float(x), float(y), float(z)), rate_rad_s=0.0, duration_s=gap))
+                segs.append(TableSegment(mount=base, rate_rad_s=0.0, duration_s=gap))
+        return segs
+
+    k = max(count, 1)
+    while True:
+        segs = segments(k)
+        busy = TableProfile(segments=tuple(segs), repose_s=bump_s, settle_s=0.0).duration_s
+        if busy <= 0.5 * duration_s or k == 1:
+            break
+        k -= 1
+    rest = duration_s - busy
     if rest <= 0:
-        raise GyroInputError(f"static_bumped needs more than {prof.duration_s:.1f} s (the bumps alone); got {duration_s:g} s")
+        raise GyroInputError(f"static_bumped needs more than {busy:.1f} s (one bump); got {duration_s:g} s")
     return TableProfile(segments=tuple(segs) + (TableSegment(mount=base, rate_rad_s=0.0, duration_s=rest),),
                         repose_s=bump_s, settle_s=0.0)
 
