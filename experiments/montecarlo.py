@@ -39,6 +39,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -312,8 +313,14 @@ def execute(
                 backend = "serial"
             else:
                 ctx = multiprocessing.get_context("spawn")
-                with ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx) as pool:
-                    results = [tick(r) for r in pool.map(fn, tasks, chunksize=1)]
+                try:
+                    with ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx) as pool:
+                        results = [tick(r) for r in pool.map(fn, tasks, chunksize=1)]
+                except BrokenProcessPool:
+                    raise RuntimeError(
+                        "a Monte Carlo worker process died (out of memory?, or a script that starts a "
+                        "campaign with workers > 1 without an `if __name__ == '__main__':` guard)"
+                    ) from None
                 backend = "processes"
     finally:
         if bar is not None:

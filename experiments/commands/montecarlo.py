@@ -36,10 +36,12 @@ def _split(text: str | None) -> list[str] | None:
               help="Campaign seed; instance i uses SeedSequence(seed).spawn(instances)[i].")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="out/montecarlo",
               show_default=True, help="Folder for montecarlo.{json,md} and the CSV tables.")
+@click.option("--quick", is_flag=True,
+              help="Short calibration recordings (60 s) in each task: a smoke run, not a measurement.")
 @click.option("--progress/--no-progress", default=None,
               help="Progress bar on stderr (default: when stderr is a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout.")
-def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed, out_dir, progress, as_json):
+def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed, out_dir, quick, progress, as_json):
     """Monte Carlo campaign: simulate, calibrate and score many sensor instances.
 
     Each task simulates one scenario with one instance of one sensor, fits the corrections,
@@ -65,6 +67,7 @@ def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed,
     result = mc.run_campaign(
         scenarios=scen, sensors=sens, instances=instances, seed=seed, duration_s=duration_s,
         workers=workers, scheduler=scheduler, progress=progress,
+        options={"quick": True} if quick else None,
     )
     paths = mc.write_campaign(result, out_dir)
     if as_json:
