@@ -7,7 +7,8 @@ The references are taken from the file, in this order:
 
 1. a segments file of known rotation angles (``segments=``) → the article's integral method
    (:func:`gyrocore.rotations.integral_calibration`): bias from the still parts, K and M from
-   the integrated outputs; effects ``bias``, ``scale``, ``misalignment`` only;
+   the integrated outputs; effects ``bias``, ``scale``, ``misalignment`` and
+   ``g_sensitivity`` (fitted on the still poses first, as in imucal's Ferraris method);
 2. reference rates (``ref_*_rad_s`` columns, rate table or simulation) → joint least squares
    of all effects against y − ω_ref (:mod:`gyrocore.lsq`);
 3. neither → still parts (:func:`gyrocore.rotations.still_mask`) with reference rate 0:
@@ -58,7 +59,7 @@ FITTABLE: tuple[str, ...] = (
     "scale_asymmetry", "scale_nonlinearity", "misalignment", "g_sensitivity", "g2_sensitivity",
     "time_offset",
 )
-_INTEGRAL_EFFECTS = ("bias", "scale", "misalignment")
+_INTEGRAL_EFFECTS = ("bias", "scale", "misalignment", "g_sensitivity")
 _NEEDS_ACCEL = ("g_sensitivity", "g2_sensitivity")
 _NEEDS_TEMP = ("bias_thermal", "scale_thermal", "bias_temp_rate")
 _RATE_EFFECTS = ("scale", "scale_thermal", "scale_asymmetry", "scale_nonlinearity", "misalignment", "time_offset")
@@ -350,11 +351,29 @@ class Calibrator:
             raise GyroInputError(
                 f"with a segments file (integral method) only {', '.join(_INTEGRAL_EFFECTS)} can be fitted, not {', '.join(bad)}"
             )
-        res = integral_calibration(rec, self.segments, window_s=self.still_window_s,
-                                   false_reject_rate=self.still_false_reject_rate)
+        from .rotations import segments_from_any, still_mask
+
+        segs = segments_from_any(self.segments)
+        still = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate,
+                           exclude=[(s_.t_start_s, s_.t_end_s) for s_ in segs])
         params: dict = {}
         stderr: dict = {}
         notes = []
+        H = None
+        unobs: tuple = ()
+        reasons: dict = {}
+        if "g_sensitivity" in self.effects:
+            # H from the still poses (rate 0, gravity in different directions), jointly with
+            # the bias; then removed before integrating (imucal's Ferraris does the same)
+            inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=np.zeros((rec.n, 3)), f_S_m_s2=rec.accel_m_s2)
+            fit = lsq.fit_effects(rec.gyro_rad_s, ["bias", "g_sensitivity"], inp, weights=still.astype(float),
+                                  covariance=self.covariance, on_unobservable=self.on_unobservable)
+            H = fit.effect_theta("g_sensitivity").reshape(3, 3)
+            params["g_sensitivity"] = {"h_rad_s_per_m_s2": H}
+            stderr["g_sensitivity"] = {"h_rad_s_per_m_s2": fit.effect_stderr("g_sensitivity").reshape(3, 3)}
+            unobs, reasons = fit.unobservable, dict(fit.unobservable_reason)
+            notes.append(f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}")
+        res = integral_calibration(rec, segs, still=still, h_rad_s_per_m_s2=H)
         if "bias" in self.effects:
             params["bias"] = {"b_rad_s": res.bias_rad_s}
             stderr["bias"] = {"b_rad_s": res.bias_stderr_rad_s}
@@ -375,8 +394,11 @@ class Calibrator:
             "segment_duration_s": res.segment_duration_s,
         }
         rms = res.still_rms_rad_s
+        params = {e: params[e] for e in self.effects if e in params}
+        stderr = {e: stderr[e] for e in self.effects if e in stderr}
         return CalibrationResult(
             effects=self.effects, params=params, stderr=stderr, residual_rms_rad_s=rms,
+            unobservable=unobs, unobservable_reason=reasons,
             method="integral", covariance="integral", n_samples=int(res.n_still),
             notes=tuple(notes), integral=integral, **common,
         )

@@ -222,6 +222,7 @@ def integral_calibration(
     window_s: float = 1.0,
     false_reject_rate: float = 1e-3,
     margin_s: float = 0.5,
+    h_rad_s_per_m_s2: np.ndarray | None = None,
 ) -> IntegralResult:
     """The article's integral method, generalised to any number of known-angle segments.
 
@@ -234,6 +235,9 @@ def integral_calibration(
         the whole motion (still at both ends) and the three axes must all be turned.
     still : ndarray of bool, shape (N,), optional
         Samples to take the bias from; default :func:`still_mask` outside the segments.
+    h_rad_s_per_m_s2 : ndarray, shape (3, 3), optional
+        A known g-sensitivity H (e.g. fitted on the still poses): H·f is removed from the
+        gyro before the bias is taken and before integrating (as imucal's Ferraris does).
 
     Returns
     -------
@@ -252,6 +256,10 @@ def integral_calibration(
     if n_still < 10:
         raise GyroInputError("integral method: no still part found to take the bias from (need still data outside the segments)")
     dt = float(np.median(np.diff(t)))
+    if h_rad_s_per_m_s2 is not None:
+        if recording.accel_m_s2 is None:
+            raise GyroInputError("g-sensitivity removal needs the accel_*_m_s2 columns, which the data lack")
+        y = y - recording.accel_m_s2 @ np.asarray(h_rad_s_per_m_s2, float).T
     b = y[still].mean(axis=0)
     # long-run variance from each contiguous still stretch's residual (stretch means removed
     # would hide drift; use one mean, the bias, as the model does)
