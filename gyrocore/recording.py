@@ -587,11 +587,17 @@ def _timing_checks(t: np.ndarray, path: str, retime: bool) -> np.ndarray:
 
 def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool, retime: bool) -> Recording:
     """Post-parse checks common to the whole-file and chunked readers."""
+    span = np.subtract(t[-1], t[0], dtype=float) if t.size else 0.0
+    with np.errstate(all="ignore"):
+        if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
+            raise GyroInputError(f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})")
     if checks:
-        _unit_checks(t, gyro, accel, path, meta.pop("__gyro_col__", "gyro_x_rad_s"))
-        t = _timing_checks(t, path, retime)
+        with np.errstate(all="ignore"):  # absurd finite values (1e300) must not print overflow warnings
+            _unit_checks(t, gyro, accel, path, meta.pop("__gyro_col__", "gyro_x_rad_s"))
+            t = _timing_checks(t, path, retime)
         sat_parts = [gyro] + ([accel] if accel is not None else [])
-        sat, found = detect_saturation(np.hstack(sat_parts))
+        with np.errstate(all="ignore"):
+            sat, found = detect_saturation(np.hstack(sat_parts))
         if found:
             names = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
             desc = ", ".join(f"{names[j]} {n} at {v:.6g}" for j, v, n in found)

@@ -119,6 +119,28 @@ def test_csv_like_text_only_gyroinputerror(tmp_path, body):
     _read_any(p)
 
 
+_any_float = st.floats(allow_nan=True, allow_infinity=True)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(rows=st.lists(st.tuples(*[_any_float] * 8), max_size=40))
+def test_extreme_values_only_gyroinputerror_no_overflow_warnings(tmp_path, rows):
+    """Any float64 (±1e308, inf, NaN) in any column: a Recording or one GyroInputError, and no
+    numpy overflow RuntimeWarning (the CLI would print it as a stray warning line)."""
+    p = tmp_path / "e.csv"
+    p.write_text(
+        "t_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s,accel_x_m_s2,accel_y_m_s2,accel_z_m_s2,temp_c\n"
+        + "".join(",".join(repr(v) for v in r) + "\n" for r in rows)
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        warnings.simplefilter("ignore", RepairWarning)
+        try:
+            read_csv(p)
+        except GyroInputError as exc:
+            assert "\n" not in str(exc)
+
+
 # ------------------------------------------------------------------ hardening (unit level)
 def test_missing_file_folder_empty(tmp_path):
     with pytest.raises(GyroInputError, match="no such file"):
