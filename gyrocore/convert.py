@@ -1044,6 +1044,8 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
         "csv": read_csv,
     }
     reader = readers[fmt]
+    if fmt != "csv":  # read_csv checks memory itself (and the CLI streams large CSV files)
+        _check_convert_memory(Path(path), fmt)
     import inspect
 
     accepted = set(inspect.signature(reader).parameters) - {"path"}
@@ -1061,6 +1063,27 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
     elif fmt in ("imucal", "imucal_annotated"):
         segs = imucal_segments(rec)
     return Converted(recording=rec, segments=tuple(segs), format=fmt)
+
+
+#: Memory needed per byte of source file while converting (parsed float64 arrays, copies,
+#: the Recording and the text written out): text ≈ 4 (a value takes ≥ 5 characters and ends
+#: up in ≈ 3 float64 copies), binary (HDF5 / ULog) ≈ 6 (pyulog/h5py hold every topic/dataset).
+_BYTES_PER_SOURCE_BYTE = {"ulog": 6.0, "broad": 6.0, "sunsided": 6.0}
+
+
+def _check_convert_memory(path: Path, fmt: str) -> None:
+    """Refuse a conversion whose in-memory arrays would not fit comfortably."""
+    from . import recording as _rc
+
+    files = [f for f in path.iterdir() if f.is_file()] if path.is_dir() else [path]
+    size = sum(f.stat().st_size for f in files)
+    need = size * _BYTES_PER_SOURCE_BYTE.get(fmt, 4.0)
+    avail = _rc._available_memory_bytes()
+    if need > _rc.MEMORY_FRACTION * avail:
+        raise GyroInputError(
+            f"{path}: {size / 2**20:.0f} MiB of {fmt} data needs ~{need / 2**20:.0f} MiB to convert, more than "
+            f"{_rc.MEMORY_FRACTION:.0%} of the {avail / 2**20:.0f} MiB available; split the recording first"
+        )
 
 
 def load_any(path: str | os.PathLike, *, format: str = "auto", **options) -> Recording:

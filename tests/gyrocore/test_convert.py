@@ -400,3 +400,13 @@ def test_cli_convert_json_segments_force_and_determinism(shared_data, tmp_path):
     assert r3.returncode != 0 and r3.stderr.strip().splitlines() == [f"error: {out1} exists; pass --force to overwrite it"]
     r4 = _cli("convert", src, "-o", out1, "--force")
     assert r4.returncode == 0
+
+
+def test_convert_refuses_source_too_large_for_memory(shared_data, monkeypatch):
+    import gyrocore.recording as rc
+
+    monkeypatch.setattr(rc, "_available_memory_bytes", lambda: 10 * 2**20)  # 10 MiB free
+    with pytest.raises(GyroInputError, match=r"MiB of broad data needs ~\d+ MiB to convert"):
+        cv.load_any(shared_data / "broad" / "02_undisturbed_slow_rotation_B.hdf5")
+    with pytest.raises(GyroInputError, match="MiB of sunsided data"):
+        cv.load_any(shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward-10min")
