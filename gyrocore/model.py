@@ -311,6 +311,12 @@ class Calibrator:
                 raise GyroInputError(f"thermal order must be 'auto' or 1..3, got {thermal_order}")
         if not 1 <= int(max_thermal_order) <= 3:
             raise GyroInputError(f"max thermal order must be 1..3, got {max_thermal_order}")
+        if segments is not None:
+            bad = [e for e in effs if e not in _INTEGRAL_EFFECTS]
+            if bad:
+                raise GyroInputError(
+                    f"with a segments file (integral method) only {', '.join(_INTEGRAL_EFFECTS)} can be fitted, not {', '.join(bad)}"
+                )
         self.effects = tuple(effs)
         self.thermal_order = thermal_order
         self.max_thermal_order = int(max_thermal_order)
@@ -346,11 +352,6 @@ class Calibrator:
     def _fit_integral(self, rec: Recording, common: dict) -> CalibrationResult:
         from .rotations import integral_calibration
 
-        bad = [e for e in self.effects if e not in _INTEGRAL_EFFECTS]
-        if bad:
-            raise GyroInputError(
-                f"with a segments file (integral method) only {', '.join(_INTEGRAL_EFFECTS)} can be fitted, not {', '.join(bad)}"
-            )
         from .rotations import segments_from_any, still_mask
 
         segs = segments_from_any(self.segments)

@@ -1,0 +1,174 @@
+"""Rotation calibration: the article's worked numbers, the integral method on known truth,
+and imucal's Ferraris session beside imucal's own result."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from gyrocore import effects as E
+from gyrocore.convert import Segment, write_segments_csv
+from gyrocore.errors import GyroInputError, RepairWarning
+from gyrocore.model import Calibrator
+from gyrocore.recording import Recording
+from gyrocore.rotations import article_worked_example, integral_calibration, still_mask
+
+from ..conftest import SHARED_DATA
+
+# ------------------------------------------------------------------ the article's §5
+def test_article_worked_numbers_and_where_they_fail():
+    ex = article_worked_example()
+    # B's diagonal is about 10 turns (2π·10 = 62.83 rad), not the 5 turns of C = 10π·I
+    np.testing.assert_allclose(ex["turns_on_diagonal"], [10.249, 10.302, 10.216], atol=1e-3)
+    # with the article's C = 10π·I, M ≈ 0.488·I: not a calibration matrix near I
+    np.testing.assert_allclose(np.diag(ex["M_C_10pi"]), [0.4878, 0.4854, 0.4894], atol=1e-4)
+    # with C = 20π·I (10 turns) the diagonal matches: M00 = 0.9757 vs the printed 0.9754
+    M20 = ex["M_C_20pi"]
+    assert abs(M20[0, 0] - 0.9754) < 5e-4
+    assert abs(M20[2, 2] - 0.9851) < 0.007  # 0.9789 vs 0.9851
+    # ... but the off-diagonal terms do not follow from B: printed M[2,1] = 0.107, B gives −0.0125
+    assert M20[2, 1] == pytest.approx(-0.0125, abs=1e-4)
+    assert abs(ex["M_printed_minus_C_20pi"][2, 1]) > 0.1
+    # the signs of the printed off-diagonals disagree too (e.g. M[0,1]: −0.0135 printed, +0.0005 from B)
+    assert np.sign(ex["M_printed"][0, 1]) != np.sign(M20[0, 1])
+    # "5 turns" is 1800°, and 3600/3500 is 1.029, not "≈ 1.02"
+    assert ex["five_turns_deg"] == 1800.0
+    assert ex["scale_3600_over_3500"] == pytest.approx(1.0286, abs=1e-4)
+
+
+# ------------------------------------------------------------------ integral method, known truth
+TRUE = {
+    "bias": {"b_rad_s": np.array([0.01, -0.006, 0.003])},
+    "scale": {"s": np.array([0.02, -0.015, 0.005])},
+    "misalignment": {"m_rad": np.array([4e-3, -6e-3, 2e-3, 3e-3, 9e-3, -7e-3])},
+}
+SIGMA_RAD_S = 0.001
+
+
+def hand_session(seed, *, rate_hz=100.0, turns=(-1.0, -1.0, -1.0), still_s=20.0, rest_s=8.0):
+    """Still, then one rotation about each axis (smooth, 4 s, `turns` turns), rests between.
+
+    Returns the recording and the segments (each covers its rotation plus 1 s either side)."""
+    rng = np.random.default_rng(seed)
+    pieces, segs = [np.zeros((int(still_s * rate_hz), 3))], []
+    t_cur = still_s
+    rot_s = 4.0
+    for i, k in enumerate(turns):
+        n_rot = int(rot_s * rate_hz)
+        u = np.arange(n_rot) / n_rot
+        w = np.zeros((n_rot, 3))
+        w[:, i] = k * 2 * np.pi / rot_s * (1 - np.cos(2 * np.pi * u))  # integrates to k turns
+        pieces += [w, np.zeros((int(rest_s * rate_hz), 3))]
+        segs.append(Segment(t_cur - 1.0, t_cur + rot_s + 1.0, "xyz"[i], 360.0 * k))
+        t_cur += rot_s + rest_s
+    w = np.vstack(pieces)
+    n = len(w)
+    t = np.arange(n) / rate_hz
+    y = E.deterministic(TRUE, E.ModelInputs(t_s=t, omega_S_rad_s=w)) + rng.normal(0, SIGMA_RAD_S, (n, 3))
+    return Recording(t_s=t, gyro_rad_s=y, meta={"rate_hz": str(rate_hz)}), segs, w
+
+
+def test_integral_method_recovers_K_within_4_sigma(tmp_path):
+    rec, segs, w = hand_session(0)
+    write_segments_csv(segs, tmp_path / "seg.csv")
+    res = Calibrator(effects=["bias", "scale", "misalignment"], segments=tmp_path / "seg.csv").fit(rec)
+    assert res.method == "integral"
+    K_true = E.k_matrix(TRUE)
+    K = np.asarray(res.integral["K"])
+    z = (K - K_true) / np.asarray(res.integral["K_stderr"])
+    # z ~ N(0,1) if the propagated errors (ARW·√T per integral + bias error·T) are right
+    assert np.all(np.abs(z) < 4), z
+    # the article's M = C·B⁻¹ is K⁻¹ (three segments: exact)
+    np.testing.assert_allclose(res.integral["M"], res.integral["C_rad"] @ np.linalg.inv(res.integral["B_rad"]), rtol=1e-12)
+    # theory for a diagonal entry: σ_K ≈ sqrt(n_k)·dt·σ / |angle| = sqrt(600)·0.01·0.001/2π
+    # (600 samples per 6-s segment; the bias term T·σ/sqrt(n_still) adds ~ 6·1e-3/sqrt(~3000) ≈ 1e-4 rad,
+    # i.e. ~ 1.3 %: combined σ_K ≈ 3.9e-5 ... 4.2e-5 depending on the still count)
+    se = np.asarray(res.integral["K_stderr"])
+    base = np.sqrt(601) * 0.01 * SIGMA_RAD_S / (2 * np.pi)
+    assert np.all((se > base) & (se < 1.5 * base)), se / base
+    z_b = (res.params["bias"]["b_rad_s"] - TRUE["bias"]["b_rad_s"]) / res.stderr["bias"]["b_rad_s"]
+    assert np.all(np.abs(z_b) < 4)
+    # apply: the corrected rate integrates to the true angles
+    out = res.apply(rec)
+    for s in segs:
+        m = (rec.t_s >= s.t_start_s) & (rec.t_s <= s.t_end_s)
+        ang = np.trapezoid(out.gyro_rad_s[m], rec.t_s[m], axis=0)
+        want = np.zeros(3)
+        want["xyz".index(s.axis)] = np.radians(s.angle_deg)
+        assert np.all(np.abs(ang - want) < 4 * 6 * 2 * np.pi * base)  # 4σ of the angle ≈ 4·|angle|·σ_K·√(3 terms)
+
+
+def test_integral_method_needs_all_three_axes_and_still_data():
+    rec, segs, _ = hand_session(1)
+    with pytest.raises(GyroInputError, match="all three axes"):
+        integral_calibration(rec, segs[:2])
+    with pytest.raises(GyroInputError, match="integral method"):
+        Calibrator(effects=["bias", "scale", "bias_thermal"], segments=segs)
+
+
+def test_still_mask_finds_the_still_parts():
+    rec, segs, w = hand_session(2)
+    m = still_mask(rec, exclude=[(s.t_start_s, s.t_end_s) for s in segs])
+    moving = np.any(w != 0, axis=1)
+    assert not np.any(m & moving)
+    # nearly all truly still time outside the segment margins is found (1-s windows, α = 1e-3)
+    assert m.sum() > 0.8 * np.sum(~moving) - 3 * 700
+
+
+@pytest.mark.slow
+def test_monte_carlo_integral_errors_are_honest():
+    """60 seeds: z = (K̂ − K)/σ̂ pooled over the 9 entries; effective count ≈ 60·3 →
+    sd of var(z) ≈ 0.105; accept 0.7 < var(z) < 1.35."""
+    K_true = E.k_matrix(TRUE)
+    zs = []
+    for seed in range(60):
+        rec, segs, _ = hand_session(100 + seed)
+        r = integral_calibration(rec, segs)
+        zs.append(((r.K - K_true) / r.K_stderr).ravel())
+    z = np.concatenate(zs)
+    assert 0.7 < np.var(z) < 1.35, np.var(z)
+
+
+# ------------------------------------------------------------------ imucal's Ferraris session
+def test_imucal_ferraris_session_beside_imucal(shared_data):
+    """Our core (integral method + still-pose g-sensitivity) on imucal's example session next
+    to imucal's FerrarisCalibration on the same file. imucal: raw − b_g − K_ga·a = K_g·R_g·ω;
+    ours: y − b − H·f = K·ω, so K ≡ K_g·R_g, b ≡ b_g, H ≡ K_ga (deg/s → rad/s)."""
+    imucal = pytest.importorskip("imucal")
+    pd = pytest.importorskip("pandas")
+    from gyrocore.convert import imucal_segments, read_imucal
+
+    d = shared_data / "imucal_ferraris"
+    rec = read_imucal(d / "example_ferraris_session.csv")
+    segs = imucal_segments(rec)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RepairWarning)
+        res = Calibrator(effects=["bias", "scale", "misalignment", "g_sensitivity"], segments=segs).fit(rec)
+    data = pd.read_csv(d / "example_ferraris_session.csv").set_index("n_samples")
+    sl = pd.read_json(d / "example_ferraris_session_list.json").T
+    regions = imucal.ferraris_regions_from_section_list(data, sl)
+    cal = imucal.FerrarisCalibration().compute(regions, sampling_rate_hz=102.4, from_acc_unit="m/s^2",
+                                              from_gyr_unit="deg/s")
+    K_imucal = cal.K_g @ cal.R_g
+    K = np.asarray(res.integral["K"])
+    K_se = np.asarray(res.integral["K_stderr"])
+    b = np.degrees(res.params["bias"]["b_rad_s"])
+    H = np.degrees(res.params["g_sensitivity"]["h_rad_s_per_m_s2"])
+    # The two differ only in which samples give the bias/H (imucal: the six labelled pose
+    # sections; ours: every still window outside the rotations) and in rectangle vs trapezoid
+    # integration. A bias difference δb and H difference δH change a 360° integral by
+    # (|δb| + 9.81·|δH|)·T, i.e. K by that / 360°; allow that plus 3 of our σ_K.
+    T = float(np.max(res.integral["segment_duration_s"]))
+    db = np.max(np.abs(b - cal.b_g))
+    dH = np.max(np.abs(H - cal.K_ga))
+    tol = (db + 9.81 * dH) * T / 360.0 + 3 * K_se
+    assert np.all(np.abs(K - K_imucal) < tol), (K - K_imucal, tol)
+    assert np.all(np.abs(K - K_imucal) < 2e-4)  # and both agree to 0.02 % in absolute terms
+    # bias: the same static data, different selections -> agree within 0.01 deg/s (the
+    # per-pose bias spread of this hand session is ~0.005 deg/s)
+    assert np.all(np.abs(b - cal.b_g) < 0.01)
+    np.set_printoptions(precision=5, suppress=True)
+    print("\nimucal K_g@R_g\n", K_imucal, "\nours K\n", K, "\nours sigma_K\n", K_se)
+    print("imucal b_g deg/s", cal.b_g, "ours", b, "+-", np.degrees(res.stderr["bias"]["b_rad_s"]))
+    print("imucal K_ga deg/s/(m/s2)\n", cal.K_ga, "\nours H\n", H, "\nours sigma_H\n",
+          np.degrees(res.stderr["g_sensitivity"]["h_rad_s_per_m_s2"]))
