@@ -137,12 +137,18 @@ def synthetic_recording(
     n = int(round(duration_s * rate_hz)) + 1
     t = np.arange(n) / rate_hz
     # rate: per axis, three sinusoids (0.02–1.3 Hz) with random phases, amplitude ≈ 1.2 rad/s
-    omega = np.zeros((n, 3))
     freqs = np.array([[0.05, 0.31, 1.1], [0.07, 0.43, 0.9], [0.03, 0.23, 1.3]])
     amps = np.array([0.8, 0.5, 0.3])
-    for i in range(3):
-        for k in range(3):
-            omega[:, i] += amps[k] * np.sin(2 * np.pi * freqs[i, k] * t + rng.uniform(0, 2 * np.pi))
+    phases = rng.uniform(0, 2 * np.pi, (3, 3))
+
+    def omega_at(tt: np.ndarray) -> np.ndarray:
+        w = np.zeros((tt.shape[0], 3))
+        for i in range(3):
+            for k in range(3):
+                w[:, i] += amps[k] * np.sin(2 * np.pi * freqs[i, k] * tt + phases[i, k])
+        return w
+
+    omega = omega_at(t)
     q = integrate_gyro(t, omega)
     up_S = np.stack([2 * (q[:, 1] * q[:, 3] - q[:, 0] * q[:, 2]), 2 * (q[:, 2] * q[:, 3] + q[:, 0] * q[:, 1]),
                      1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2)], axis=1)
@@ -154,7 +160,14 @@ def synthetic_recording(
         temp = 25.0 + 12.0 * t / duration_s
     else:
         raise ValueError(f"unknown temp_profile {temp_profile!r}")
-    inp = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=f, temp_c=temp, q_SW_wxyz=q)
+    params = dict(params)
+    omega_sensed = omega
+    if "time_offset" in params:
+        # the delay is applied exactly to the analytic trajectory (effects.deterministic
+        # delays by linear interpolation, which at 200 Hz also attenuates the 1 Hz motion by
+        # ~1e-4 — a scale-like artefact the loop would rightly report)
+        omega_sensed = omega_at(t - float(params.pop("time_offset")["tau_s"]))
+    inp = E.ModelInputs(t_s=t, omega_S_rad_s=omega_sensed, f_S_m_s2=f, temp_c=temp, q_SW_wxyz=q)
     y = E.deterministic(params, inp)
     y = y + noise.white_rate_noise(rng, n, rate_hz=rate_hz, n_rad_per_sqrt_s=arw_rad_per_sqrt_s)
     if bias_instability_rad_s > 0:

@@ -31,7 +31,11 @@ Start from the declared effects, fit them jointly to the residual of
    that explains the same residual replaces it (parsimony). A thermal candidate is tested on top of its constant companion
    (:data:`COMPANION`) and added with it.
 4. **Add and refit** everything jointly, record the error before and after (windowed residual
-   RMS, attitude error), and repeat until nothing significant is left.
+   RMS, attitude error), and repeat until nothing significant is left. ``time_offset`` is
+   re-linearised (Gauss–Newton): the gyro is advanced by the estimate (cubic spline) and the
+   residual rebuilt, until the correction is below 1 µs — the first-order regressor −τ·dω/dt
+   leaves a second-order term τ²/2·d²ω/dt² that fast motion would otherwise pass to scale-like
+   candidates.
 
 What remains is described by a Ljung–Box whiteness test, a Welch spectrum and the Allan
 deviation of the final window residual (:class:`Remaining`).
@@ -555,6 +559,23 @@ def _log10_chi2_sf(W: float, q: int) -> float:
     return lp / np.log(10)
 
 
+_TAU_ITERATIONS = 4
+_TAU_TOL_S = 1e-6
+
+
+def _advance(rec: Recording, tau_s: float) -> Recording:
+    """The recording with the gyro advanced by τ: gyro'(t) = gyro(t + τ) (cubic spline, ends
+    held), which undoes a lag τ of the gyro behind the reference exactly (no linearisation)."""
+    from dataclasses import replace
+
+    from scipy.interpolate import CubicSpline
+
+    t = rec.t_s
+    tq = np.clip(t + tau_s, t[0], t[-1])
+    g = CubicSpline(t, rec.gyro_rad_s, axis=0)(tq)
+    return replace(rec, gyro_rad_s=g)
+
+
 def _with_companion(current: Sequence[str], cand: str) -> list[str]:
     comp = COMPANION.get(cand)
     return [comp, cand] if comp is not None and comp not in current else [cand]
@@ -620,8 +641,13 @@ def loop_residual(
     min_rms_reduction: float = 0.005,
     min_attitude_reduction: float = 0.05,
     max_steps: int = 8,
+    rebuild=None,
 ) -> LoopResult:
-    """Run the loop on a prepared :class:`~gyrocore.residual.Residual` (see :func:`run_loop`)."""
+    """Run the loop on a prepared :class:`~gyrocore.residual.Residual` (see :func:`run_loop`).
+
+    ``rebuild(recording) -> Residual`` (optional) rebuilds the residual from a recording; it
+    enables the Gauss–Newton refinement of ``time_offset`` (see :func:`run_loop`).
+    """
     declared = E.check_effect_names(declared)
     notes = list(res.notes)
     ignored = [d for d in declared if d not in FITTABLE]
@@ -651,7 +677,26 @@ def loop_residual(
             untestable[c] = why
     cands = [c for c in cand_all if c not in untestable]
 
-    fit, e = model.fit(model_effects)
+    rec0 = rec
+    tau_acc = 0.0
+
+    def refit(res, model, rec, tau_acc):
+        """Joint fit; with time_offset in the model, re-linearise around its estimate."""
+        fit, e = model.fit(model_effects)
+        if rebuild is None or "time_offset" not in model_effects or res.kind not in ("rate", "attitude"):
+            return res, model, rec, tau_acc, fit, e
+        for _ in range(_TAU_ITERATIONS):
+            d = float(fit.effect_theta("time_offset")[0])
+            if not np.isfinite(d) or abs(d) < _TAU_TOL_S:
+                break
+            tau_acc += d
+            rec = _advance(rec0, tau_acc)
+            res = rebuild(rec)
+            model = _Model(res, orders)
+            fit, e = model.fit(model_effects)
+        return res, model, rec, tau_acc, fit, e
+
+    res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc)
     history = [e]
     rms0 = _rms(e)
     att0 = attitude_error_deg(res, rec, model.correction(fit, model_effects))
@@ -715,7 +760,7 @@ def loop_residual(
         # `best` has the strongest evidence (smallest p-value, which accounts for its number
         # of parameters); the ambiguous ones are reported with it.
         model_effects.extend(_with_companion(model_effects, best))
-        fit, e = model.fit(model_effects)
+        res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc)
         history.append(e)
         rms_new = _rms(e)
         att_new = attitude_error_deg(res, rec, model.correction(fit, model_effects))
@@ -729,6 +774,12 @@ def loop_residual(
         last_tests = {}
         rms_cur, att_cur = rms_new, att_new
     found = [s.effect for s in steps]
+    params = _params_table(fit, model_effects)
+    if tau_acc != 0.0 and "time_offset" in params:
+        v, se = params["time_offset"]["tau_s"]
+        params["time_offset"]["tau_s"] = [tau_acc + v, se]
+        notes.append(f"time_offset re-linearised (Gauss-Newton): the gyro was advanced by {tau_acc:.6g} s and "
+                     "the fit repeated; tau_s is the total")
     return LoopResult(
         declared=tuple(declared),
         found=tuple(steps),
@@ -738,7 +789,7 @@ def loop_residual(
         residual_rms_after_rad_s=rms_cur,
         attitude_error_before_deg=att0,
         attitude_error_after_deg=att_cur,
-        params=_params_table(fit, model_effects),
+        params=params,
         tested={c: ev for c, ev in last_tests.items() if c not in found},
         untestable=untestable,
         remaining=_remaining(res, e),
@@ -805,8 +856,12 @@ def run_loop(
     with _single_thread():
         res = build_residual(rec, reference=reference, segments=segments, window_s=window_s,
                              angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg)
+        def rebuild(r: Recording) -> Residual:
+            return build_residual(r, reference=res.kind, segments=segments, window_s=window_s,
+                                  angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg)
+
         return loop_residual(
-            res, rec, declared=declared, candidates=candidates, alpha=alpha, thermal_order=thermal_order,
+            res, rec, declared=declared, candidates=candidates, alpha=alpha, thermal_order=thermal_order, rebuild=rebuild,
             min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,
             max_steps=max_steps,
         )
@@ -856,6 +911,8 @@ def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000, prefix: s
     for k, step in enumerate(result.found):
         before, after = result.history[k], result.history[k + 1]
         eff = step.effect
+        if before.shape != after.shape or before.shape[0] != res.m:
+            continue  # the windows changed (re-linearised time offset dropped a glitch window)
         if eff in _NATURAL:
             xlabel, fx = _NATURAL[eff]
             x = fx(res)
