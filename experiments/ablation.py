@@ -40,7 +40,7 @@ import numpy as np
 from gyrocore import effects as E
 from gyrocore.attitude import AttitudeScore, error_angle_rad, integrate_gyro, score_attitude
 
-from .report import ExperimentResult, md_table, new_figure, save_figure
+from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
 __all__ = [
     "SCENARIOS",
@@ -113,29 +113,60 @@ def row_names(present: Sequence[str]) -> list[str]:
     return rows
 
 
+def _as_stages(calibration) -> list[dict]:
+    """Normalise a calibration to a list of stages ``{effect: (params, toggle_effect)}``.
+
+    A plain ``{effect: params}`` mapping is one stage whose entries toggle with their own
+    name. A list of such mappings is applied in order. An entry key ``"scale@scale_thermal"``
+    is effect ``scale`` toggled by ``scale_thermal`` (the thermal run's re-referenced scale).
+    """
+    if isinstance(calibration, Mapping):
+        calibration = [calibration]
+    out = []
+    for st in calibration:
+        d = {}
+        for key, pd in st.items():
+            eff, _, toggle = key.partition("@")
+            d[key] = (eff, dict(pd), toggle or eff)
+        out.append(d)
+    return out
+
+
 def corrected_gyro(
     gyro_rad_s: np.ndarray,
     inp: E.ModelInputs,
-    params_est: Mapping[str, Mapping[str, np.ndarray]],
+    calibration,
     subset: Sequence[str],
     still: slice | None,
 ) -> np.ndarray:
     """The gyro after the corrections in ``subset`` (rad/s, (N, 3)).
 
-    Non-bias effects are removed with ``params_est`` (:func:`gyrocore.effects.correct`). If
-    ``"bias"`` is in ``subset`` the power-up bias is the mean of the corrected rate over the
-    ``still`` samples at the start of the recording (true rate 0 there), subtracted after the
-    other corrections, as a user does after applying a calibration file. Without a still
-    window the calibration's own ``bias`` (a stale turn-on draw) is used if it has one.
+    Non-bias effects are removed with the calibration's estimates
+    (:func:`gyrocore.effects.correct`, stage by stage; see :func:`_as_stages`). If ``"bias"``
+    is in ``subset`` the power-up bias is the mean of the corrected rate over the ``still``
+    samples at the start of the recording (true rate 0 there), subtracted after the other
+    corrections, as a user does after applying a calibration file. Without a still window
+    the calibration's own last ``bias`` (a stale turn-on draw) is used if it has one.
+    ``still`` may also be a list of ``(power-up segment slice, still window slice or None)``:
+    one power-up calibration per power-up.
     """
-    others = {e: params_est[e] for e in subset if e != "bias" and e in params_est}
-    g = np.asarray(gyro_rad_s, float)
-    w = E.correct(others, g, inp) if others else g.copy()
+    stages = _as_stages(calibration)
+    w = np.asarray(gyro_rad_s, float).copy()
+    stale_bias = None
+    for st in stages:
+        active = {eff: pd for key, (eff, pd, tog) in st.items() if tog in subset and eff != "bias"}
+        if active:
+            w = E.correct(active, w, inp)
+        for key, (eff, pd, tog) in st.items():
+            if eff == "bias":
+                stale_bias = np.asarray(pd["b_rad_s"], float)
     if "bias" in subset:
-        if still is not None and (still.stop or 0) > (still.start or 0):
-            w = w - w[still].mean(axis=0)
-        elif "bias" in params_est:
-            w = w - np.asarray(params_est["bias"]["b_rad_s"], float)
+        segs = still if isinstance(still, list) else [(slice(0, w.shape[0]), still)]
+        for seg, win in segs:
+            if win is not None and (win.stop or 0) > (win.start or 0):
+                w[seg] = w[seg] - w[win].mean(axis=0)
+            elif stale_bias is not None:
+                w[seg] = w[seg] - stale_bias
     return w
 
 
@@ -193,21 +224,134 @@ class InstanceAblation:
     notes: tuple[str, ...] = ()
 
 
-def _fittable_from(rec_kind: str, present: Sequence[str]) -> list[str]:
-    """Which present effects each calibration recording is used to fit."""
-    table = {
-        "turntable": ("bias", "scale", "misalignment", "g_sensitivity", "scale_asymmetry",
-                      "scale_nonlinearity", "g2_sensitivity", "time_offset"),
-        "thermal": ("bias", "bias_thermal", "scale_thermal", "bias_temp_rate", "bias_ramp"),
-    }[rec_kind]
-    return [e for e in table if e in present]
+#: Effects fitted on the rate-table run (constant temperature) and on the thermal run.
+TABLE_EFFECTS = ("bias", "scale", "misalignment", "g_sensitivity", "scale_asymmetry", "scale_nonlinearity",
+                 "g2_sensitivity", "time_offset")
+THERMAL_EFFECTS = ("bias_thermal", "scale_thermal", "bias_temp_rate", "bias_ramp")
+#: Power-up still window (s) and how far into the recording it may be searched (s).
+POWERUP_WINDOW_S = 2.0
+POWERUP_SEARCH_S = 30.0
+#: Calibrator settings for the ablation: point estimates are what matter here, so the
+#: cheaper OLS covariance and block means of ≤ 15000 rows (exact for the linear model).
+_CAL_KW = {"covariance": "ols", "max_rows": 15000}
 
 
-def _still_window(rec, *, max_s: float = 10.0) -> slice | None:
-    """Still samples at the start of ``rec`` (motion-gated static calibration, gyrocore.bias)."""
-    from gyrocore import bias as B
+def calibrate_instance(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
+                       cache_dir: str | None = None) -> list[dict]:
+    """What a user would get for this unit: a rate-table calibration, then a thermal one.
 
-    return B.startup_still_slice(rec, max_duration_s=max_s)
+    1. ``turntable`` run (``run=1``: same unit, another power-up, fresh noise) → fit the
+       present effects of :data:`TABLE_EFFECTS`;
+    2. ``thermal`` run (``run=2``), first corrected with stage 1 → fit ``bias`` + the present
+       effects of :data:`THERMAL_EFFECTS` (+ ``scale`` re-referenced with ``scale_thermal``).
+
+    Returns the stages for :func:`corrected_gyro`. Cached as parameter files in ``cache_dir``.
+    """
+    import json
+    import warnings
+
+    from gyrocore.model import Calibrator, load_params, save_params
+    from sim import scenarios as S
+
+    tt = [e for e in TABLE_EFFECTS if e in present]
+    th = [e for e in THERMAL_EFFECTS if e in present]
+    key = f"{sensor}_{seed}_{'quick' if quick else 'full'}_{'-'.join(tt)}_{'-'.join(th)}"
+    paths = None
+    if cache_dir:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        paths = [Path(cache_dir) / f"{key}_stage{i}.json" for i in (1, 2)]
+        done = Path(cache_dir) / f"{key}.done"
+        if done.exists():
+            have = json.loads(done.read_text())
+            return [_stage_from(load_params(p), i + 1) if have[i] else {} for i, p in enumerate(paths)]
+    stages: list[dict] = []
+    results = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if tt:
+            cal = S.simulate("turntable", sensor=sensor, seed=seed, run=1, duration_s=120.0 if quick else None)
+            r1 = Calibrator(effects=["bias"] + [e for e in tt if e != "bias"], **_CAL_KW).fit(cal.recording)
+        else:
+            r1 = None
+        results.append(r1)
+        stages.append(_stage_from(r1, 1))
+        if th:
+            cal2 = S.simulate("thermal", sensor=sensor, seed=seed, run=2, duration_s=300.0 if quick else None)
+            rec2 = cal2.recording
+            if stages[0]:
+                inp2 = E.ModelInputs(t_s=rec2.t_s, f_S_m_s2=rec2.accel_m_s2, temp_c=rec2.temp_c)
+                p1 = {eff: pd for key_, (eff, pd, _) in _as_stages(stages[0])[0].items() if eff != "bias"}
+                rec2 = rec2.with_gyro(E.correct(p1, rec2.gyro_rad_s, inp2) if p1 else rec2.gyro_rad_s)
+            eff2 = ["bias"] + (["scale"] if "scale_thermal" in th else []) + th
+            r2 = Calibrator(effects=eff2, **_CAL_KW).fit(rec2)
+        else:
+            r2 = None
+        results.append(r2)
+        stages.append(_stage_from(r2, 2))
+    if paths:
+        from gyrocore.recording import atomic_write_text
+
+        for p, r in zip(paths, results):
+            if r is not None:
+                save_params(r, p)
+        atomic_write_text(done, json.dumps([r is not None for r in results]))
+    return stages
+
+
+def _stage_from(result, stage: int) -> dict:
+    if result is None:
+        return {}
+    out = {}
+    for eff, pd in result.params.items():
+        key = "scale@scale_thermal" if (stage == 2 and eff == "scale") else eff
+        out[key] = {k: np.asarray(v, float) for k, v in pd.items()}
+    return out
+
+
+def powerup_window(rec, params_true: Mapping | None = None) -> slice | None:
+    """The first still :data:`POWERUP_WINDOW_S` window in the first :data:`POWERUP_SEARCH_S`.
+
+    Motion-gated static calibration (:class:`gyrocore.bias.StaticBiasCalibrator`, variance
+    gate, false-reject rate 1e-3), refusing while moving and retrying on the next window, as
+    a flight controller does at power-up. The gate uses the sensor's white-noise σ (datasheet
+    noise density and LSB: σ² = N²·rate + LSB²/12) when known, so rotor vibration cannot
+    inflate it. None if the start never goes still.
+    """
+    from gyrocore.bias import StaticBiasCalibrator
+    from gyrocore.errors import GyroInputError
+
+    rate = rec.rate_hz
+    n_search = int(min(rec.n, POWERUP_SEARCH_S * rate))
+    sigma = None
+    if params_true is not None and "arw" in params_true:
+        # per-sample white σ² = N²·rate + LSB²/12 (rounding noise); the datasheet knows both
+        var = np.asarray(params_true["arw"]["n_rad_per_sqrt_s"], float) ** 2 * rate
+        if "quantization" in params_true:
+            var = var + float(params_true["quantization"]["lsb_rad_s"]) ** 2 / 12.0
+        sigma = np.sqrt(var)
+    cal = StaticBiasCalibrator(window_s=POWERUP_WINDOW_S, rule="mean", statistic="variance",
+                               noise_sigma_rad_s=sigma)
+    try:
+        r = cal.fit(rec.slice(0, n_search))
+    except GyroInputError:
+        return None
+    return slice(int(r.window_start_index), int(r.window_start_index + r.window_samples))
+
+
+def powerup_windows(rec, params_true: Mapping | None = None) -> list[tuple[slice, slice | None]]:
+    """One (segment, still window) per power-up (extra column ``power_up_index``; else one)."""
+    pu = rec.extra.get("power_up_index")
+    if pu is None:
+        return [(slice(0, rec.n), powerup_window(rec, params_true))]
+    pu = np.asarray(pu)
+    edges = np.flatnonzero(np.diff(pu) != 0) + 1
+    starts = np.concatenate([[0], edges]).astype(int)
+    stops = np.concatenate([edges, [rec.n]]).astype(int)
+    out = []
+    for a, b in zip(starts, stops):
+        win = powerup_window(rec.slice(int(a), int(b)), params_true) if b - a > 8 else None
+        out.append((slice(int(a), int(b)), None if win is None else slice(int(a) + win.start, int(a) + win.stop)))
+    return out
 
 
 def ablate_instance(
@@ -217,63 +361,61 @@ def ablate_instance(
     seed: int = 0,
     duration_s: float | None = None,
     quick: bool = False,
-    calibration: Mapping[str, Mapping[str, np.ndarray]] | None = None,
+    calibration=None,
+    cache_dir: str | None = None,
 ) -> InstanceAblation:
-    """Run the whole ablation for one instance of ``sensor`` in ``scenario`` (needs :mod:`sim`)."""
+    """Run the whole ablation for one instance of ``sensor`` in ``scenario`` (needs :mod:`sim`).
+
+    ``calibration`` (stages, see :func:`corrected_gyro`) skips the calibration runs.
+    """
+    import warnings
+
     from sim import scenarios as S
 
-    from gyrocore.model import Calibrator
-
-    res = S.simulate(scenario, sensor=sensor, duration_s=duration_s, seed=seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = S.simulate(scenario, sensor=sensor, duration_s=duration_s, seed=seed, run=0)
     rec, truth, p_true = res.recording, res.truth, res.params_true
     present = present_effects(p_true)
-    notes: list[str] = []
-    # --- calibration recordings of the same instance (other power-ups, fresh noise)
-    params_est: dict[str, dict[str, np.ndarray]] = {} if calibration is None else {k: dict(v) for k, v in calibration.items()}
+    notes: list[str] = list(res.notes)
     if calibration is None:
-        for kind in ("turntable", "thermal"):
-            fit = [e for e in _fittable_from(kind, present) if e not in params_est or e == "bias"]
-            if not fit:
-                continue
-            cal = S.simulate(kind, sensor=sensor, seed=seed, run=1 + ("turntable", "thermal").index(kind),
-                             duration_s=60.0 if quick else None)
-            result = Calibrator(effects=fit).fit(cal.recording)
-            for e, pd in result.params.items():
-                if e == "bias" and "bias" in params_est:
-                    continue
-                params_est[e] = pd
-    estimated = tuple(e for e in present if e in params_est or e == "bias")
+        calibration = calibrate_instance(sensor, seed, present, quick=quick, cache_dir=cache_dir)
+    stages = _as_stages(calibration)
+    have = {tog for st in stages for (_, _, tog) in st.values()}
+    estimated = tuple(e for e in present if e in have or e == "bias")
     missing = [e for e in present if e not in estimated]
     if missing:
         notes.append(f"not estimated by the calibration runs: {', '.join(missing)}")
     inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=None, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
                         q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
-    still = _still_window(rec)
-    if still is None and "bias" in present:
-        notes.append("no still window at the start: bias from the calibration run")
+    still = powerup_windows(rec, p_true)
+    n_missing = sum(w is None for _, w in still)
+    if n_missing and "bias" in present:
+        notes.append(f"no still window at {n_missing} of {len(still)} power-up(s): bias there from the calibration "
+                     "run (a stale turn-on draw)")
     variants: dict[str, np.ndarray] = {}
     for row in row_names(present):
         if row == "none":
             variants[row] = rec.gyro_rad_s
         elif row == "all":
-            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, params_est, present, still)
+            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, present, still)
         elif row.startswith("all but "):
             x = row[len("all but "):]
-            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, params_est, [e for e in present if e != x], still)
+            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, [e for e in present if e != x], still)
         elif row.startswith("only "):
-            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, params_est, [row[len("only "):]], still)
+            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, [row[len("only "):]], still)
         elif row == "true params":
             ptrue = {e: p_true[e] for e in present if e != "bias"}
             w = E.correct(ptrue, rec.gyro_rad_s, inp) if ptrue else rec.gyro_rad_s.copy()
-            if "bias" in present:
-                w = w - S.true_bias_rad_s(res)  # the per-power-up true bias (N, 3)
+            if "bias" in present:  # the true per-power-up bias, removed in sensor units before K⁻¹
+                w = w - S.true_bias_rad_s(res) @ np.linalg.inv(E.k_matrix(p_true)).T
             variants[row] = w
         elif row == "floor":
             variants[row] = S.floor_gyro(res)
-    start = 0 if still is None else int(still.stop)
+    start = 0 if still[0][1] is None else int(still[0][1].stop)
     sc = score_variants(rec.t_s, truth.q_SW_wxyz, variants, start=start)
     t = rec.t_s[start:] - rec.t_s[start]
-    idx = np.unique(np.clip(np.round(np.asarray(CURVE_FRACTIONS) * (t.size - 1)).astype(int), 0, t.size - 1))
+    idx = np.clip(np.round(np.asarray(CURVE_FRACTIONS) * (t.size - 1)).astype(int), 0, t.size - 1)
     return InstanceAblation(
         scenario=scenario, sensor=sensor, seed=seed, present=tuple(present), estimated=estimated,
         scores={k: v[0] for k, v in sc.items()}, t_s=t[idx],
@@ -283,7 +425,12 @@ def ablate_instance(
 
 # ------------------------------------------------------------------ Monte Carlo task
 def _key(row: str) -> str:
-    return row.replace(" ", "_")
+    """Metric-name form of a row label (spaces -> '-'; effect names have no '-')."""
+    return row.replace(" ", "-")
+
+
+def _label(key: str) -> str:
+    return key.replace("-", " ")
 
 
 #: Rows whose error curves are kept per instance (for median curves).
@@ -321,10 +468,10 @@ def ablation_task(task) -> "Any":
     from experiments.montecarlo import TaskResult
 
     opts = dict(task.options)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), single_thread_blas():
         warnings.simplefilter("ignore")
         ab = ablate_instance(task.scenario, sensor=task.sensor, seed=task.seed, duration_s=task.duration_s,
-                             quick=bool(opts.get("quick", False)))
+                             quick=bool(opts.get("quick", False)), cache_dir=opts.get("cache_dir"))
     return TaskResult.from_task(task, instance_metrics(ab))
 
 
@@ -338,8 +485,8 @@ def _rows_in(campaign, scenario: str, sensor: str) -> list[str]:
     for s in campaign.summary:
         if s.scenario == scenario and s.sensor == sensor and s.metric.endswith("__final_deg"):
             keys.append(s.metric[: -len("__final_deg")])
-    order = {"none": 0, "all": 1, "true_params": 98, "floor": 99}
-    return sorted(keys, key=lambda k: (order.get(k, 2 if k.startswith("all_but") else 3), keys.index(k)))
+    order = {"none": 0, "all": 1, "true-params": 98, "floor": 99}
+    return sorted(keys, key=lambda k: (order.get(k, 2 if k.startswith("all-but") else 3), keys.index(k)))
 
 
 def campaign_tables(campaign) -> tuple[str, dict]:
@@ -360,7 +507,7 @@ def campaign_tables(campaign) -> tuple[str, dict]:
             for k in keys:
                 f, r, d = tab[f"{k}__final_deg"], tab[f"{k}__rms_deg"], tab[f"{k}__drift_deg_per_min"]
                 of = tab.get(f"{k}__over_floor")
-                rows.append((k.replace("_", " ").replace("all but", "all but").replace("true params", "true params"),
+                rows.append((_label(k),
                              f.median, f.p90, r.median, r.p90, d.median, d.p90,
                              of.median if of else float("nan"), of.p90 if of else float("nan")))
             md.append(md_table(["correction", "final °, median", "final °, p90", "RMS °, median", "RMS °, p90",
@@ -369,7 +516,7 @@ def campaign_tables(campaign) -> tuple[str, dict]:
             summary[f"{sc}/{se}"] = {
                 k: {"final_deg_median": tab[f"{k}__final_deg"].median, "final_deg_p90": tab[f"{k}__final_deg"].p90,
                     "rms_deg_median": tab[f"{k}__rms_deg"].median, "rms_deg_p90": tab[f"{k}__rms_deg"].p90}
-                for k in keys if k in ("none", "all", "true_params", "floor")
+                for k in keys if k in ("none", "all", "true-params", "floor")
             }
             summary[f"{sc}/{se}"]["present"] = present
             summary[f"{sc}/{se}"]["instances"] = n
@@ -424,9 +571,16 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     instances = seeds or (2 if quick else DEFAULT_INSTANCES)
     if duration_s is None and quick:
         duration_s = QUICK_DURATION_S
-    camp = run_campaign(scenarios=scenarios, sensors=sensors, instances=instances, seed=seed,
-                        duration_s=duration_s, workers=workers, task_function=ablation_task,
-                        options={"quick": bool(quick)})
+    import shutil
+    import tempfile
+
+    cache = tempfile.mkdtemp(prefix="gyroharness-calcache-")
+    try:
+        camp = run_campaign(scenarios=scenarios, sensors=sensors, instances=instances, seed=seed,
+                            duration_s=duration_s, workers=workers, task_function=ablation_task,
+                            options={"quick": bool(quick), "cache_dir": cache})
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
     write_campaign(camp, out_dir / "ablation_montecarlo")
     tables, summary = campaign_tables(camp)
     figs = []

@@ -31,7 +31,7 @@ import numpy as np
 from gyrocore.attitude import error_angle_rad, integrate_gyro
 from gyrocore.filters import AffineCorrection, Pipeline, make_filter
 
-from .report import ExperimentResult, md_table, new_figure, save_figure
+from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
 __all__ = ["run", "fly_config", "open_loop_scores", "KINDS", "CUTOFFS_HZ", "PRESETS"]
 
@@ -128,6 +128,11 @@ def _configs(kinds, cutoffs):
 
 def _task(args):
     """All configurations for one (preset, seed): closed-loop flights + open-loop on the raw flight."""
+    with single_thread_blas():
+        return _task_inner(args)
+
+
+def _task_inner(args):
     preset, seed, kinds, cutoffs, duration_s = args
     _, ref, _, _ = _fly(None, seed, "none", 30.0, duration_s, steps=True)
     out = []

@@ -22,12 +22,18 @@ def test_vectorised_matches_loop_random_rates_and_jittery_steps(monkeypatch):
     t = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, n))
     w = rng.normal(0.0, 3.0, (n, 3))
     q0 = A.qnormalize(rng.normal(size=4))
-    qv = A.integrate_gyro(t, w, q0_wxyz=q0)
-    ql = A.integrate_gyro_loop(t, w, q0_wxyz=q0)
-    # Both are exact products of the same unit quaternions; only rounding differs:
-    # ≲ n·ε ≈ 5e3 · 1.1e-16 ≈ 6e-13 rad worst case.
-    assert np.max(A.error_angle_rad(qv, ql)) < 1e-11
-    assert np.allclose(np.linalg.norm(qv, axis=1), 1.0, atol=1e-14)
+    for hold in ("backward", "forward"):
+        qv = A.integrate_gyro(t, w, q0_wxyz=q0, hold=hold)
+        ql = A.integrate_gyro_loop(t, w, q0_wxyz=q0, hold=hold)
+        # Both are exact products of the same unit quaternions; only rounding differs:
+        # ≲ n·ε ≈ 5e3 · 1.1e-16 ≈ 6e-13 rad worst case.
+        assert np.max(A.error_angle_rad(qv, ql)) < 1e-11
+        assert np.allclose(np.linalg.norm(qv, axis=1), 1.0, atol=1e-14)
+    # backward hold of ω is forward hold of ω shifted by one sample
+    ws = np.vstack([w[1:], w[:1]])
+    assert np.array_equal(A.integrate_gyro(t, w), A.integrate_gyro(t, ws, hold="forward"))
+    with pytest.raises(GyroInputError):
+        A.integrate_gyro(t, w, hold="midpoint")
 
 
 def test_constant_rate_is_exact_rotation():
@@ -50,8 +56,8 @@ def test_body_to_world_convention():
     # and body-frame rates compose on the right: x then z rotation
     t2 = np.linspace(0.0, 2.0, 201)
     w2 = np.zeros((201, 3))
-    w2[:100, 0] = np.pi / 2  # samples 0..99 held over [0, 1) s: 90° about x
-    w2[100:, 2] = np.pi / 2  # 90° about the (new) body z
+    w2[1:101, 0] = np.pi / 2  # backward hold: samples 1..100 cover [0, 1] s: 90° about x
+    w2[101:, 2] = np.pi / 2  # 90° about the (new) body z
     q2 = A.integrate_gyro(t2, w2)[-1]
     expect = A.qmul(_axis_angle([1, 0, 0], np.pi / 2), _axis_angle([0, 0, 1], np.pi / 2))
     assert A.error_angle_rad(q2, expect) < 1e-12
