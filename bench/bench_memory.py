@@ -10,6 +10,8 @@ resident set size is that process's ``ru_maxrss`` from ``os.wait4`` (Linux: KiB)
 figures are per stage, not cumulative. Stages:
 
 ``baseline``      python + numpy + ``gyrocore.recording`` only (the floor of every other figure)
+``simulate``      ``gyroharness simulate thermal --duration-s 3600 --rate-hz 1000`` (MuJoCo rate
+                  table + thermal model + synthetic gyro, whole arrays, one CSV write)
 ``synth``         generate and write the CSV chunk by chunk (``write_csv_chunks``)
 ``read_whole``    ``read_csv`` of the whole file (the path every CLI command takes)
 ``read_chunks``   ``iter_csv_chunks`` with per-axis running sums (streaming)
@@ -49,6 +51,11 @@ B_RAD_S = np.array([0.010, -0.007, 0.004])
 POLY_RAD_S = np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]])  # per °C, per °C²
 N_RAD_PER_SQRT_S = 2e-4
 T0_C = 25.0
+
+
+#: Effects fitted by the calibrate stages, per source recording.
+EFFECTS = {"synth": ("bias", "bias_thermal"),
+           "sim": ("bias", "bias_thermal", "scale", "scale_thermal", "misalignment")}
 
 
 def _temp_c(t_s: np.ndarray) -> np.ndarray:
@@ -148,9 +155,10 @@ def stage_calibrate(a) -> dict:
     from gyrocore.model import Calibrator, save_params
 
     rec = _gather(a, full=True)
-    res = Calibrator(effects=("bias", "bias_thermal")).fit(rec)
+    res = Calibrator(effects=EFFECTS[a.source]).fit(rec)
     save_params(res, a.params)
     return {
+        "effects": list(res.effects),
         "bias_rad_s": np.asarray(res.params["bias"]["b_rad_s"]).tolist(),
         "thermal_order": {k: int(v) for k, v in res.thermal_order.items()},
         "residual_rms_rad_s": np.asarray(res.residual_rms_rad_s).tolist(),
@@ -244,19 +252,29 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
     n = int(round(duration_s * a.rate_hz))
     csv_path = work / "one_hour.csv"
     exe = shutil.which("gyroharness") or "gyroharness"
-    common = ["--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work)]
+    common = ["--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work), "--source", a.source]
+    sim_path = csv_path if a.source == "sim" else work / "sim_thermal.csv"
     cli = {
+        "simulate": [exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
+                     "--seed", str(SEED), "-o", str(sim_path), "--force", "--no-progress", "--json"],
         "cli_allan": [exe, "allan", str(csv_path), "--json"],
-        "cli_calibrate": [exe, "calibrate", str(csv_path), "--effects", "bias,bias_thermal",
+        "cli_calibrate": [exe, "calibrate", str(csv_path), "--effects", ",".join(EFFECTS[a.source]),
                           "-o", str(work / "cli_params.json"), "--json"],
         "cli_apply": [exe, "apply", str(csv_path), "--params", str(work / "params.json"),
                       "-o", str(work / "cli_corrected.csv"), "--json"],
     }
     rows = []
     for name in names:
+        if name == "synth" and a.source == "sim":
+            continue
         argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
         rc, wall, rss, out = _run_child(argv_c)
-        info = json.loads(out.strip().splitlines()[-1]) if rc == 0 and not name.startswith("cli_") else {}
+        info = {}
+        if rc == 0 and name in STAGES:
+            info = json.loads(out.strip().splitlines()[-1])
+        elif rc == 0 and name == "simulate":
+            doc = json.loads(out)
+            info = {k: doc.get(k) for k in ("n_samples", "rate_hz", "duration_s", "effects")}
         rows.append({"stage": name, "samples": n, "exit": rc, "wall_s": wall, "peak_rss_bytes": rss,
                      "result": info if rc == 0 else out})
         if not quiet:
@@ -273,7 +291,10 @@ def main(argv=None) -> int:
                          "sample, tells streaming (≈ 0) from whole-column stages (0 = skip)")
     ap.add_argument("--rate-hz", type=float, default=1000.0)
     ap.add_argument("--work", default=None, help="folder for the CSV files (default: a temporary folder, removed)")
-    ap.add_argument("--stages", default=",".join(STAGES) + ",cli_allan,cli_calibrate,cli_apply")
+    ap.add_argument("--stages", default="baseline,simulate," + ",".join(list(STAGES)[1:]) + ",cli_allan,cli_calibrate,cli_apply")
+    ap.add_argument("--source", choices=("synth", "sim"), default="synth",
+                    help="recording processed by the later stages: 'synth' (still, thermal; default) or "
+                         "'sim' (the simulated thermal rate-table run of the 'simulate' stage)")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--stage", help=argparse.SUPPRESS)  # child mode
     a = ap.parse_args(argv)
@@ -316,7 +337,7 @@ def main(argv=None) -> int:
         print(f"{'stage':<14s} {'peak RSS MiB':>12s} {'growth B/sample':>16s}  {'wall s':>7s}  design")
         for r in big:
             g = r.get("growth_bytes_per_sample")
-            design = "CLI, whole-file read" if r["stage"].startswith("cli_") else (
+            design = "CLI, whole-file read" if r["stage"].startswith("cli_") else "CLI, whole arrays" if r["stage"] == "simulate" else (
                 "streaming" if r["stage"] in STREAMING else "whole columns")
             print(f"{r['stage']:<14s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
                   f"  {r['wall_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED"))
