@@ -495,9 +495,14 @@ def read_sunsided(path: str | os.PathLike, *, retime: bool = True, flip_gyro_x: 
         if set_name == "set-2":
             accel *= -1.0
             repairs.note("accel negated (set-2 logs the gravity direction; converted to specific force)")
-        else:
+        elif set_name == "set-1":
             accel[:, 0] *= -1.0
             repairs.note("accel X negated (set-1 README: X sign flipped)")
+        else:
+            accel[:, 0] *= -1.0
+            repairs.add(
+                f"folder {set_name!r} is neither set-1 nor set-2: accel convention unknown, set-1's assumed (X negated)"
+            )
     temp = T[keep, 1] if T is not None else None
     rep = timing_report(t)
     t_host = t
@@ -950,7 +955,7 @@ def read_fusion(path: str | os.PathLike) -> Recording:
         str(p), "fusion", "x-io Technologies device (model unstated)", rate, repairs,
         timing=f"jittery timestamps kept: median dt {rep.median_dt_s * 1e3:.2f} ms, max {rep.max_dt_s * 1e3:.1f} ms, {rep.n_gaps} intervals > 1.5 x median",
     )
-    return Recording(t_s=t - t[0] if t[0] != 0 else t, gyro_rad_s=gyro, accel_m_s2=accel, meta=meta, extra=extra)
+    return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, meta=meta, extra=extra)
 
 
 # ============================================================================ generic text
