@@ -1,7 +1,7 @@
 """Monte Carlo speed-up (issue 6 item 5): the same campaign on 1 and on K local workers, side by side.
 
 Run: ``nice python bench/bench_montecarlo.py [--scenarios a,b] [--sensors p] [--instances 8]
-[--duration-s 20] [--workers 2] [--dask] [--json]``.
+[--duration-s 20] [--workers 2] [--quick] [--dask] [--json]``.
 
 The same tasks (same seed) run serially (1 worker, in this process), on ``--workers`` local
 processes, and optionally (``--dask``) on a ``dask.distributed.LocalCluster`` with the same
@@ -39,6 +39,7 @@ def main(argv=None) -> int:
     ap.add_argument("--duration-s", type=float, default=None)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help="the tasks' short calibration runs (option quick=True)")
     ap.add_argument("--dask", action="store_true", help="also run on a LocalCluster")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
@@ -46,7 +47,8 @@ def main(argv=None) -> int:
         scenarios=None if a.scenarios is None else a.scenarios.split(","),
         sensors=None if a.sensors is None else a.sensors.split(","),
     )
-    kw = dict(scenarios=scen, sensors=sens, instances=a.instances, seed=a.seed, duration_s=a.duration_s)
+    kw = dict(scenarios=scen, sensors=sens, instances=a.instances, seed=a.seed, duration_s=a.duration_s,
+              options={"quick": True} if a.quick else None)
     n_tasks = len(scen) * len(sens) * a.instances
     runs = {}
     runs["serial"] = mc.run_campaign(workers=1, **kw)
@@ -67,6 +69,7 @@ def main(argv=None) -> int:
         "sensors": sens,
         "instances": a.instances,
         "duration_s": a.duration_s,
+        "quick": a.quick,
         "runs": {
             k: {"wall_s": r.wall_s, "speedup_vs_serial": base.wall_s / r.wall_s, "identical_to_serial": _identical(base, r),
                 "backend": r.backend, "workers": r.workers}

@@ -35,18 +35,18 @@ python -c "import sys, numpy, scipy, mujoco, allantools, dask; print('python', s
 echo
 
 if [[ $QUICK == 1 ]]; then
-    run bench/bench_sim.py --quick
-    run bench/bench_allan.py --n 1000000
+    run bench/bench_sim.py --hover-s 5 --repeat 1
+    run bench/bench_allan.py --n 1000000 --repeat 1
     run bench/bench_attitude.py --n 1000000 --loop-n 100000
     run bench/bench_efficiency.py --instances 40
-    run bench/bench_montecarlo.py --scenarios static --sensors icm42688p --instances 2 --duration-s 20
-    run bench/bench_memory.py --duration-s 300
+    run bench/bench_montecarlo.py --scenarios static --sensors icm42688p --instances 2 --duration-s 20 --quick
+    run bench/bench_memory.py --duration-s 300 --compare-duration-s 100
 else
     run bench/bench_sim.py
     run bench/bench_allan.py
     run bench/bench_attitude.py
     run bench/bench_efficiency.py --instances 200
-    run bench/bench_montecarlo.py --scenarios static,turntable --sensors icm42688p --instances 4 --dask
+    run bench/bench_montecarlo.py --scenarios static,turntable --sensors icm42688p --instances 4 --duration-s 60 --quick --dask
     run bench/bench_memory.py
 fi
 exit $status
