@@ -40,6 +40,8 @@ __all__ = [
     "ARTICLE_B_RAD",
     "ARTICLE_M_PRINTED",
     "segments_from_any",
+    "GravityPoseResult",
+    "gravity_pose_calibration",
 ]
 
 AXES = ("x", "y", "z")
@@ -98,6 +100,7 @@ def still_mask(
     false_reject_rate: float = 1e-3,
     exclude: Sequence[tuple[float, float]] = (),
     margin_s: float = 0.5,
+    std_factor: float = 1.0,
 ) -> np.ndarray:
     """Samples that belong to still windows, shape (N,) bool.
 
@@ -110,6 +113,8 @@ def still_mask(
     first-difference estimates too small). Spans in ``exclude`` (e.g. the rotation segments)
     widened by ``margin_s`` are never still. A constant rotation rate has no variance and is
     not caught by any gyro-only test; the segments file must cover every rotation.
+    ``std_factor`` > 1 widens the threshold on the window standard deviation by that factor
+    (hand-held "still" poses: the gravity direction is steady although the hand trembles).
     """
     x = np.asarray(recording.gyro_rad_s, float)
     t = recording.t_s
@@ -133,7 +138,7 @@ def still_mask(
     sigma2 = np.quantile(cand, 0.25, axis=0) / q25
     sigma2 = np.where(sigma2 > 0, sigma2, np.max(sigma2) if np.max(sigma2) > 0 else 1e-30)
     a_axis = 1.0 - (1.0 - false_reject_rate) ** (1.0 / 3.0)
-    thr = sigma2 * stats.chi2.ppf(1.0 - a_axis, n - 1) / (n - 1)
+    thr = sigma2 * stats.chi2.ppf(1.0 - a_axis, n - 1) / (n - 1) * float(std_factor) ** 2
     still_w = np.all(var <= thr[None, :], axis=1) & ~win_excl
     mask[: nw * n] = np.repeat(still_w, n)
     return mask
@@ -343,3 +348,164 @@ def article_worked_example() -> dict[str, object]:
         "five_turns_deg": 5 * 360.0,
         "scale_3600_over_3500": 3600.0 / 3500.0,
     }
+
+
+# ---------------------------------------------------------------------------- gravity poses
+@dataclass(frozen=True, eq=False)
+class GravityPoseResult:
+    """Multi-pose calibration against gravity directions (Tedaldi et al. 2014, gyro part).
+
+    Attributes
+    ----------
+    K, K_stderr : ndarray, shape (3, 3)
+        Catalogue K (y − b = K·ω) and its standard errors (from the Jacobian, scaled by the
+        residual variance — they include the pose-direction noise and hand-motion model error).
+    M : ndarray, shape (3, 3)
+        K⁻¹ (ω = M·(y − b)).
+    bias_rad_s, bias_stderr_rad_s : ndarray, shape (3,)
+        Bias from the first still pose (Tedaldi's initialisation interval).
+    intervals : ndarray, shape (P, 2)
+        Sample index ranges [start, stop) of the still poses used.
+    residual_rad : ndarray, shape (U, 3)
+        Gravity-direction misfit after each used motion (unit-vector difference ≈ angle, rad).
+    n_motions_saturated : int
+        Motions dropped because the gyro clipped during them.
+    rms_residual_rad : float
+    condition : float
+        Condition number of the Jacobian (large: some rotation axis not exercised).
+    """
+
+    K: np.ndarray
+    K_stderr: np.ndarray
+    M: np.ndarray
+    bias_rad_s: np.ndarray
+    bias_stderr_rad_s: np.ndarray
+    intervals: np.ndarray
+    residual_rad: np.ndarray
+    rms_residual_rad: float
+    condition: float
+    n_motions_saturated: int = 0
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+def gravity_pose_calibration(
+    recording: Recording,
+    *,
+    still: np.ndarray | None = None,
+    intervals: Sequence[tuple[int, int]] | None = None,
+    window_s: float = 0.5,
+    min_pose_s: float = 1.0,
+    false_reject_rate: float = 1e-3,
+    pose_std_factor: float = 5.0,
+    bias_from: str = "first",
+) -> GravityPoseResult:
+    """K from the rotations between still poses, with gravity as the attitude reference.
+
+    Between consecutive still poses k and k+1 the bias-free, corrected gyro
+    ω = M·(y − b) is integrated (:func:`gyrocore.attitude.integrate_gyro`) to the rotation
+    R_k; the measured gravity direction of pose k, carried through R_k, must match that of
+    pose k+1: u_{k+1} = R_kᵀ·u_k. M (9 entries) is fitted by Levenberg–Marquardt
+    (scipy.optimize.least_squares) over all transitions; K = M⁻¹. Rotations about the
+    vertical leave gravity unchanged and carry no information — the poses must tilt the
+    sensor about every axis. The accelerometer is used uncalibrated (direction only).
+
+    Parameters
+    ----------
+    recording : Recording
+        Gyro (rad/s) and accel (m/s²), sensor frame S.
+    still : ndarray of bool, shape (N,), optional
+        Still samples (default :func:`still_mask` with ``window_s``).
+    intervals : sequence of (start, stop), optional
+        Still poses as sample ranges (overrides ``still``), e.g. the authors' own list.
+    min_pose_s : float
+        Shortest still run accepted as a pose.
+    pose_std_factor : float
+        A pose window may have up to this many times the still-noise standard deviation
+        (hand-held poses tremble; only the mean gravity direction is used).
+    bias_from : {"first", "all"}
+        Bias from the first pose (Tedaldi's initialisation) or from all poses.
+    """
+    from scipy.optimize import least_squares
+
+    from .attitude import integrate_gyro
+
+    if recording.accel_m_s2 is None:
+        raise GyroInputError("multi-pose calibration needs the accel_*_m_s2 columns (gravity is the reference)")
+    if bias_from not in ("first", "all"):
+        raise GyroInputError(f"bias_from must be 'first' or 'all', not {bias_from!r}")
+    y = recording.gyro_rad_s
+    f = recording.accel_m_s2
+    t = recording.t_s
+    rate = recording.rate_hz
+    if intervals is None:
+        if still is None:
+            still = still_mask(recording, window_s=window_s, false_reject_rate=false_reject_rate, margin_s=0.0,
+                               std_factor=pose_std_factor)
+        runs = [(a, b) for a, b in _runs(np.asarray(still, bool)) if (b - a) >= min_pose_s * rate]
+    else:
+        runs = [(int(a), int(b)) for a, b in intervals]
+    if len(runs) < 4:
+        raise GyroInputError(f"multi-pose calibration: found {len(runs)} still poses, need at least 4")
+    runs = sorted(runs)
+    if bias_from == "first":
+        a, b_ = runs[0]
+        e0 = y[a:b_]
+    else:
+        e0 = np.vstack([y[a:b_] for a, b_ in runs])
+    bias = e0.mean(axis=0)
+    lr = np.array([_long_run_var(e0[:, i] - bias[i]) for i in range(3)])
+    se_b = np.sqrt(lr / e0.shape[0])
+    u = np.array([f[a:b_].mean(axis=0) for a, b_ in runs])
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    moves_all = [(k, runs[k][1] - 1, runs[k + 1][0] + 1) for k in range(len(runs) - 1)]
+    # a motion through a clipped (saturated) sample cannot be integrated: drop it
+    absy = np.abs(y)
+    top = absy.max(axis=0)
+    clipped = np.any((absy >= top[None, :] * (1 - 1e-9)) & (np.sum(absy >= top * (1 - 1e-9), axis=0) >= 3)[None, :], axis=1)
+    moves = [(k, a, b_) for k, a, b_ in moves_all if not clipped[a:b_].any()]
+    n_sat = len(moves_all) - len(moves)
+    if n_sat:
+        warn_repair(f"multi-pose calibration: {n_sat} of {len(moves_all)} motions pass through clipped (saturated) gyro samples and are not used")
+    if 3 * len(moves) < 12:
+        raise GyroInputError(f"multi-pose calibration: only {len(moves)} usable motions between poses, need at least 4")
+    yb = y - bias
+
+    def rot_of(M, a, b_):
+        q = integrate_gyro(t[a:b_], yb[a:b_] @ M.T)[-1]
+        w, x, yy, z = q
+        return np.array([
+            [1 - 2 * (yy * yy + z * z), 2 * (x * yy - w * z), 2 * (x * z + w * yy)],
+            [2 * (x * yy + w * z), 1 - 2 * (x * x + z * z), 2 * (yy * z - w * x)],
+            [2 * (x * z - w * yy), 2 * (yy * z + w * x), 1 - 2 * (x * x + yy * yy)],
+        ])
+
+    def resid(p):
+        M = p.reshape(3, 3)
+        out = np.empty((len(moves), 3))
+        for j, (k, a, b_) in enumerate(moves):
+            R = rot_of(M, a, b_)
+            out[j] = u[k + 1] - R.T @ u[k]
+        return out.ravel()
+
+    sol = least_squares(resid, np.eye(3).ravel(), method="lm", x_scale=np.full(9, 0.01))
+    M = sol.x.reshape(3, 3)
+    J = sol.jac
+    m = J.shape[0]
+    dof = max(m - 9, 1)
+    s2 = 2.0 * sol.cost / dof
+    sv = np.linalg.svd(J, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    cov_M = s2 * np.linalg.pinv(J.T @ J)
+    K = np.linalg.inv(M)
+    Jk = -np.kron(K, K.T)
+    cov_K = Jk @ cov_M @ Jk.T
+    r = sol.fun.reshape(-1, 3)
+    return GravityPoseResult(
+        K=K, K_stderr=np.sqrt(np.clip(np.diag(cov_K), 0, None)).reshape(3, 3), M=M,
+        bias_rad_s=bias, bias_stderr_rad_s=se_b, intervals=np.array(runs), residual_rad=r,
+        rms_residual_rad=float(np.sqrt(np.mean(r**2))), condition=cond, n_motions_saturated=n_sat,
+    )
