@@ -390,3 +390,42 @@ def run(*, out_dir, quick: bool = False, seed: int = 0, seeds: int | None = None
     atomic_write_text(out / "close_the_loop.md", "## Closing the loop\n\n" + text + "\n")
     return ExperimentResult(name="close_the_loop", title="Closing the loop: undeclared effects", markdown=text,
                             figures=tuple(figures), summary=summary, wall_s=_time.time() - t_start)
+
+
+# ---------------------------------------------------------------------------- measured sets
+def concat_session(paths: Sequence, *, gap_s: float = 1.0):
+    """Concatenate recordings of one session (e.g. sunsided's three ``rotate-*`` runs and a
+    static run of the same set) into one recording with their known-rotation segments.
+
+    Time is shifted so that each recording starts ``gap_s`` after the previous one ends (no
+    samples in the gap: windows never span it). Columns missing in any recording are dropped.
+    This assumes one bias for the whole session (same power-up); say so where it is used.
+
+    Returns
+    -------
+    (Recording, list of gyrocore.residual.Segment)
+    """
+    import warnings
+
+    from gyrocore.convert import load_with_segments
+    from gyrocore.errors import RepairWarning
+    from gyrocore.residual import Segment, as_segment
+
+    recs, segs, t0 = [], [], 0.0
+    for p in paths:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RepairWarning)
+            c = load_with_segments(p)
+        r = c.recording
+        shift = t0 - r.t_s[0]
+        recs.append((r, shift))
+        for s in c.segments:
+            s = as_segment(s)
+            segs.append(Segment(s.start_s + shift, s.stop_s + shift, s.kind, s.angle_S_rad))
+        t0 = r.t_s[-1] + shift + gap_s
+    t = np.concatenate([r.t_s + sh for r, sh in recs])
+    gyro = np.concatenate([r.gyro_rad_s for r, _ in recs])
+    acc = np.concatenate([r.accel_m_s2 for r, _ in recs]) if all(r.accel_m_s2 is not None for r, _ in recs) else None
+    temp = np.concatenate([r.temp_c for r, _ in recs]) if all(r.temp_c is not None for r, _ in recs) else None
+    meta = {"source": " + ".join(str(p) for p in paths), "note": f"concatenated session, {gap_s:g} s gaps"}
+    return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=acc, temp_c=temp, meta=meta), segs

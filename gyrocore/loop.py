@@ -372,12 +372,15 @@ class _Model:
             if still.sum() >= 3:
                 sd = np.std(res.y_rad_s[still], axis=0, ddof=1)
                 w[still] = 1.0 / np.maximum(sd, 1e-12) ** 2
-            # per component: σ_i² = σ_angle²·u_i² + σ_across²·(1 − u_i²), u = φ/|φ|,
-            # σ_across = max(σ_angle, |φ|·sin σ_axis) (exact for rotations about a sensor axis)
+            # per component: σ_i² = σ_angle²·u_i² + σ_across²·(1 − u_i²), u = φ/|φ|; an axis
+            # error δ moves exp(φ) by 2|sin(φ/2)|·δ across the axis (nothing for whole turns):
+            # σ_across = max(σ_angle, 2|sin(φ/2)|·σ_axis) (exact for rotations about a sensor axis)
             phi = res.angle_S_rad[rot] if res.angle_S_rad is not None else np.zeros((rot.sum(), 3))
             ang = np.linalg.norm(phi, axis=1)
             u2 = np.where(ang[:, None] > 0, (phi / np.where(ang > 0, ang, 1.0)[:, None]) ** 2, 1.0 / 3)
-            s_across = np.maximum(res.angle_sigma_rad, ang * np.sin(res.axis_sigma_rad))
+            s_across = np.maximum(res.angle_sigma_rad, 2 * np.abs(np.sin(ang / 2)) * res.axis_sigma_rad)
+            if res.angle_mode == "axis":  # nothing known across the axis
+                s_across = np.full_like(s_across, 1e6)
             var = res.angle_sigma_rad**2 * u2 + s_across[:, None] ** 2 * (1 - u2)
             w[rot] = T[rot, None] ** 2 / var
             self.angle_w = w
@@ -445,7 +448,12 @@ def attitude_error_deg(res: Residual, rec: Recording, correction_rad_s: np.ndarr
         # y_after·T = ∫(ω − c)dt − φ
         d = (res.y_rad_s - res.window_mean(correction_rad_s)) * T[:, None]
         rot = res.is_rotation if res.is_rotation is not None else np.ones(res.m, bool)
-        return float(np.degrees(np.sqrt(np.mean(np.sum(d[rot] ** 2, axis=1)))))
+        d = d[rot]
+        if res.angle_mode == "axis" and res.angle_S_rad is not None:
+            phi = res.angle_S_rad[rot]
+            u = phi / np.maximum(np.linalg.norm(phi, axis=1, keepdims=True), 1e-300)
+            d = np.sum(d * u, axis=1, keepdims=True)  # only the along-axis angle is known
+        return float(np.degrees(np.sqrt(np.mean(np.sum(d**2, axis=1)))))
     if res.kind == "still":
         # windows are contiguous blocks: the angle accumulates inside each still run
         return _still_runs_error(res, integrate_gyro(t, w))
@@ -623,6 +631,8 @@ def _input_check(res: Residual, effect: str) -> str | None:
                     "(and small changes of f mean the sensor moved)")
     if effect == "earth_rate" and res.R_WS is None:
         return "no attitude to resolve the Earth rate (it is a bias in a fixed pose)"
+    if effect == "time_offset" and res.kind == "angles":
+        return "known angles carry no timing: a lag between gyro and reference needs a time-resolved reference"
     if effect in ("scale", "scale_thermal", "scale_asymmetry", "scale_nonlinearity", "misalignment",
                   "time_offset") and res.kind == "still":
         return "still data: the true rate is zero, rate-proportional errors are invisible"
@@ -816,6 +826,7 @@ def run_loop(
     max_steps: int = 8,
     angle_sigma_deg: float = 2.0,
     axis_sigma_deg: float = 5.0,
+    angle_mode: str = "rotation",
 ) -> LoopResult:
     """Close the loop on one recording.
 
@@ -846,6 +857,9 @@ def run_loop(
     angle_sigma_deg, axis_sigma_deg : float
         Uncertainty of each known rotation angle and of its axis (``"angles"`` reference),
         degrees.
+    angle_mode : {"rotation", "axis"}
+        Known rotations: whole rotations (start/end poses known) or the total angle about the
+        axis only (free hand turns); see :func:`gyrocore.residual.build_residual`.
 
     Returns
     -------
@@ -855,10 +869,12 @@ def run_loop(
         raise GyroInputError(f"alpha must be in (0, 1), not {alpha}")
     with _single_thread():
         res = build_residual(rec, reference=reference, segments=segments, window_s=window_s,
-                             angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg)
+                             angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg,
+                             angle_mode=angle_mode)
         def rebuild(r: Recording) -> Residual:
             return build_residual(r, reference=res.kind, segments=segments, window_s=window_s,
-                                  angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg)
+                                  angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg,
+                             angle_mode=angle_mode)
 
         return loop_residual(
             res, rec, declared=declared, candidates=candidates, alpha=alpha, thermal_order=thermal_order, rebuild=rebuild,

@@ -32,8 +32,14 @@ Reference kinds
     segments. Earth rate is then a candidate only when the attitude is known.
 ``"angles"``
     Known rotation segments (e.g. "two turns about x", a turntable's N revolutions): the
-    window is the whole segment and y_m = (∫ω_meas dt − φ_m·u_m)/T_m with the known rotation
-    vector φ_m·u_m in S, valid for rotations about a fixed sensor axis; R = I.
+    window is the whole segment and, as for ``"attitude"``, the gyro's rotation over it is
+    compared with the known rotation exp(φ_m) (φ_m the rotation vector in S):
+    y_m = rotvec(exp(φ_m)ᵀ·ΔR̂_m)/T_m. Comparing rotations (not ∫ω dt) makes the residual
+    independent of the path — wobble and coning of a hand rotation — and for whole turns of
+    the axis direction as well. Still windows outside the segments (still segments, a
+    ``static_pose_axis`` column or a motion gate) are added; they pin the bias. With
+    ``angle_mode="axis"`` (free hand turns: start and end poses unknown) only the total angle
+    about the axis is used, y_m = (∫ω dt − φ_m)/T_m with zero weight across the axis.
 
 Segments
 --------
@@ -215,6 +221,10 @@ class Residual:
         |φ|·sin(axis σ)).
     angle_S_rad : ndarray, shape (M, 3) or None
         ``"angles"``: the known rotation vector of each window (zeros for still windows).
+    angle_mode : str
+        ``"angles"``: ``"rotation"`` (start and end attitudes related by the known rotation:
+        rate table, turns against a box edge) or ``"axis"`` (only the total angle about the
+        axis is known: free hand turns).
     """
 
     kind: str
@@ -232,6 +242,7 @@ class Residual:
     angle_sigma_rad: float = float("nan")
     axis_sigma_rad: float = float("nan")
     angle_S_rad: np.ndarray | None = None
+    angle_mode: str = "rotation"
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -411,6 +422,7 @@ def build_residual(
     outlier_mad: float = 20.0,
     angle_sigma_deg: float = 2.0,
     axis_sigma_deg: float = 5.0,
+    angle_mode: str = "rotation",
 ) -> Residual:
     """Build the residual of ``rec`` against its reference.
 
@@ -435,6 +447,9 @@ def build_residual(
     axis_sigma_deg : float
         ``"angles"`` only: uncertainty of the rotation axis, degrees (5° by hand; 0.01° on a
         rate table).
+    angle_mode : {"rotation", "axis"}
+        ``"angles"`` only: compare whole rotations (start/end poses known) or only the total
+        angle about the axis (free hand turns).
 
     Returns
     -------
@@ -579,18 +594,40 @@ def build_residual(
         a, b = np.concatenate([a, sa]), np.concatenate([b, sb])
         omega = _smooth(t, gyro)
         omega[still] = 0.0
+        # a first bias from the still windows is removed before integrating, so that the error
+        # rotation of each known rotation stays small (first order); it is added back below
+        b0 = gyro[still].mean(axis=0) if still.any() else np.zeros(3)
+        if angle_mode not in ("rotation", "axis"):
+            raise GyroInputError(f"angle mode must be 'rotation' or 'axis', not '{angle_mode}'")
+        R_GS = _R(integrate_gyro(t, gyro - b0)) if angle_mode == "rotation" else None
         inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
         res = Residual(kind=kind, y_rad_s=np.zeros((a.size, 3)), win_start=a, win_stop=b,
-                       t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=None, R_WS=None, gyro_rad_s=gyro,
-                       description=(f"{n_rot} known rotation(s): integrated gyro vs known angle; "
+                       t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=R_GS, R_WS=None, gyro_rad_s=gyro,
+                       description=(f"{n_rot} known rotation(s): integrated gyro rotation vs known rotation; "
                                     f"{sa.size} still windows ({how})"), notes=())
         T = t[b] - t[a]
-        y = res.window_mean(gyro) - phi_all / T[:, None]
-        notes.append("known angles hold only for rotations about a fixed sensor axis; hand rotations are good to a few degrees")
+        y = res.window_mean(gyro)  # still windows: the mean rate (true rate 0)
+        # rotation windows: E = exp(φ)ᵀ·(R̂_aᵀ·R̂_b) — compared as rotations, so the path (wobble,
+        # coning of a hand rotation) does not matter, only the start and end attitudes
+        if angle_mode == "rotation":
+            ra, rb = a[:n_rot], b[:n_rot]
+            rel_hat = np.einsum("mji,mjk->mik", R_GS[ra], R_GS[rb])
+            Rk = Rotation.from_rotvec(phi_all[:n_rot]).as_matrix()
+            Em = np.einsum("mji,mjk->mik", Rk, rel_hat)
+            b0_win = res.window_mean(np.broadcast_to(b0, gyro.shape).copy())
+            y[:n_rot] = Rotation.from_matrix(Em).as_rotvec() / T[:n_rot, None] + b0_win[:n_rot]
+            notes.append("known rotations are compared as rotations (start vs end attitude); by hand they are "
+                         "good to a few degrees (see angle_sigma/axis_sigma)")
+        else:
+            # only the total angle about the axis is known (hand turns whose start and end
+            # poses differ): ∫ω dt along the axis; the cross-axis components get zero weight
+            y[:n_rot] = y[:n_rot] - phi_all[:n_rot] / T[:n_rot, None]
+            notes.append("angle mode 'axis': only the total angle about each rotation axis is used "
+                         "(∫ω dt along the axis; the start and end poses are not assumed known)")
         return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
-                        R_GS=None, R_WS=None, gyro_rad_s=gyro, description=res.description, notes=tuple(notes),
+                        R_GS=R_GS, R_WS=None, gyro_rad_s=gyro, description=res.description, notes=tuple(notes),
                         is_rotation=np.arange(a.size) < n_rot, angle_sigma_rad=np.radians(angle_sigma_deg),
-                        axis_sigma_rad=np.radians(axis_sigma_deg), angle_S_rad=phi_all)
+                        axis_sigma_rad=np.radians(axis_sigma_deg), angle_S_rad=phi_all, angle_mode=angle_mode)
 
     if a.size < 3:
         raise GyroInputError(f"fewer than 3 observation windows for reference '{kind}'")

@@ -94,11 +94,14 @@ def report_text(result) -> str:
               help="Uncertainty of each known rotation angle (hand: a few degrees; rate table: 0.01).")
 @click.option("--axis-sigma-deg", type=float, default=5.0, show_default=True,
               help="Uncertainty of the known rotations' axis (hand: ~5 degrees; rate table: 0.01).")
+@click.option("--angle-mode", type=click.Choice(["rotation", "axis"]), default="rotation", show_default=True,
+              help="Known rotations: whole rotations (start/end poses known: table, box edge) or only the "
+                   "total angle about the axis (free hand turns).")
 @click.option("--plot-dir", type=click.Path(path_type=str), default=None,
               help="Write residual-vs-regressor plots (before/after) per found effect here.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the JSON result on stdout.")
 def command(path, effects, segments, candidates, reference, window_s, alpha, thermal_order, min_rms_reduction,
-            min_attitude_reduction, angle_sigma_deg, axis_sigma_deg, plot_dir, as_json):
+            min_attitude_reduction, angle_sigma_deg, axis_sigma_deg, angle_mode, plot_dir, as_json):
     """The residual loop on FILE (a data file or any real set `gyroharness convert` reads)."""
     from ..convert import load_with_segments
     from ..loop import run_loop
@@ -113,7 +116,7 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         conv.recording, declared=declared, segments=segs, candidates=_split(candidates), reference=reference,
         window_s=window_s, alpha=alpha, thermal_order=thermal_order, min_rms_reduction=min_rms_reduction,
         min_attitude_reduction=min_attitude_reduction, angle_sigma_deg=angle_sigma_deg,
-        axis_sigma_deg=axis_sigma_deg,
+        axis_sigma_deg=axis_sigma_deg, angle_mode=angle_mode,
     )
     if plot_dir:
         from ..loop import plot_found
