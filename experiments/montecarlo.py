@@ -24,7 +24,8 @@ Backends
 --------
 * ``workers=1`` and no scheduler: serial, in this process.
 * ``workers=K > 1``: :class:`concurrent.futures.ProcessPoolExecutor` with the ``spawn``
-  start method (safe with threads, MuJoCo and a live Dask client in the parent).
+  start method (safe with threads, MuJoCo and a live Dask client in the parent; a script
+  that starts such a campaign needs the usual ``if __name__ == "__main__":`` guard).
 * ``scheduler="tcp://host:port"``: an existing Dask distributed cluster through
   ``dask.distributed.Client(address)``.
 """
