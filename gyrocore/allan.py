@@ -83,6 +83,7 @@ TERM_UNITS = {
 _TERM_ALPHA = (2, 0, -1, -2, -2)
 _B_FACTOR = 2.0 * math.log(2.0) / math.pi  # σ² = (2 ln2/π)·B² on the flat part
 _Z95 = scipy.stats.norm.isf(0.025)
+_LONG_TERMS = ("bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2")
 
 
 # ---------------------------------------------------------------------------- deviation
@@ -443,8 +444,9 @@ def select_ieee952(
     and the N interval then under-covers (measured 91 % for a nominal 95 %). Collinear neighbours (e.g. K and R, or B
     and K over a short τ range) would otherwise share one signal and all look insignificant.
 
-    Returns the final fit, the active terms and, for each dropped term, the upper end of its
-    95 % interval when fitted next to the final terms (an upper bound, e.g. for Kalibr).
+    Returns the final fit, the active terms and, for each dropped term, an upper bound: the
+    upper end of its 95 % interval when it replaces the kept terms of its τ family (B, K, R
+    stand in for each other over a short record), or next to the final terms if larger.
     """
     def z_of(fit_: _Fit, name: str) -> float:
         c, _lo, hi = _term_interval(fit_, TERM_NAMES.index(name))
@@ -474,8 +476,19 @@ def select_ieee952(
             best_hi[name] = _term_interval(trial, TERM_NAMES.index(name))[2]
             if z > keep_z and all(z_of(trial, k) >= keep_z for k in active) and trial.chi2 < best_chi2:
                 best, best_chi2 = name, trial.chi2
-        upper.update(best_hi)
         if best is None:
+            # Upper bound of each dropped term: fitted in place of the kept terms of its own
+            # τ family (long: B, K, R, which can stand in for each other over a short record;
+            # short: Q), so that a neighbour does not absorb its signal.
+            for name in TERM_NAMES:
+                if name in active:
+                    continue
+                if name in _LONG_TERMS:
+                    trial_terms = [k for k in active if k not in _LONG_TERMS] + [name]
+                else:
+                    trial_terms = active + [name]
+                trial = fit_ieee952(taus_s, avar, m, n_phase, terms=trial_terms)
+                upper[name] = max(_term_interval(trial, TERM_NAMES.index(name))[2], best_hi.get(name, 0.0))
             return fit, active, upper
         active = [k for k in TERM_NAMES if k in active or k == best]
         upper.pop(best, None)
