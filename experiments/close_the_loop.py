@@ -276,23 +276,70 @@ def rates_markdown(rows: Sequence[dict]) -> str:
     return "\n".join(out)
 
 
-if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
-    import argparse
-    import json as _json
+#: The measured sets of docs/measured.md: (name, path(s) under the data folder, run_loop options).
+MEASURED: tuple[tuple[str, tuple[str, ...], dict], ...] = (
+    ("BROAD 02 slow rotation", ("broad/02_undisturbed_slow_rotation_B.hdf5",), {}),
+    ("BROAD 05 slow rotation, breaks", ("broad/05_undisturbed_slow_rotation_with_breaks_B.hdf5",), {}),
+    ("BROAD 07 fast rotation", ("broad/07_undisturbed_fast_rotation_B.hdf5",), {}),
+    ("BROAD 09 fast rotation, breaks", ("broad/09_undisturbed_fast_rotation_with_breaks_B.hdf5",), {}),
+    ("sunsided set-2 static 10 min", ("sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward-10min",), {}),
+    ("sunsided set-1 session (static + 2 turns about x, y, z)",
+     ("sunsided_mpu6050/set-1/unmoved-x-pointing-forward", "sunsided_mpu6050/set-1/rotate-360ccw-around-x-pointing-forward",
+      "sunsided_mpu6050/set-1/rotate-360ccw-around-y-pointing-left", "sunsided_mpu6050/set-1/rotate-360ccw-around-z-pointing-up"),
+     {"angle_mode": "axis"}),
+    ("sunsided set-2 session (static + 2 turns about x, y, z)",
+     ("sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward", "sunsided_mpu6050/set-2/rotate-ccw-around-x-pointing-forward",
+      "sunsided_mpu6050/set-2/rotate-ccw-around-y-pointing-left", "sunsided_mpu6050/set-2/rotate-ccw-around-z-pointing-up"),
+     {"angle_mode": "axis"}),
+    ("imucal Ferraris session (6 poses + 3 turns)", ("imucal_ferraris/example_ferraris_session.csv",), {}),
+    ("tomisuarez2 static 449 s", ("tomisuarez2_mpu6050/imu_static_test.csv",), {}),
+    ("tomisuarez2 +90° about X (hand)", ("tomisuarez2_mpu6050/imu_90_x_rot.csv",), {"angle_mode": "axis"}),
+    ("PX4 sample.ulg (stationary part)", ("pyulog_samples/sample.ulg",), {}),
+)
 
-    ap = argparse.ArgumentParser(description="Loop identification / false-alarm Monte Carlo")
-    ap.add_argument("--seeds", type=int, default=50)
-    ap.add_argument("--scales", default="0.03,0.1,0.3,1")
-    ap.add_argument("--effects", default=None)
-    ap.add_argument("--out", default=None, help="write rows as JSON here")
-    a = ap.parse_args()
-    rows = identification_rates(seeds=range(a.seeds), scales=[float(x) for x in a.scales.split(",")],
-                                effects=a.effects.split(",") if a.effects else None, progress=True)
-    print(rates_markdown(rows))
-    if a.out:
-        from gyrocore.recording import atomic_write_text
 
-        atomic_write_text(a.out, _json.dumps(rows, indent=1))
+def measured_runs(data_dir, *, names: Sequence[str] | None = None) -> list[dict]:
+    """Run the loop (declared: bias) on the measured sets of :data:`MEASURED`.
+
+    Returns one row per set: name, reference, found (with key evidence), residual RMS and
+    attitude error before/after, notes; or the one-line error when the data cannot do it.
+    """
+    import warnings
+
+    from gyrocore.convert import load_with_segments
+    from gyrocore.errors import GyroInputError, RepairWarning
+    from gyrocore.loop import run_loop
+
+    rows = []
+    for name, paths, opts in MEASURED:
+        if names is not None and name not in names:
+            continue
+        full = [Path(data_dir) / p for p in paths]
+        if not all(p.exists() for p in full):
+            continue
+        try:
+            if len(full) == 1:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RepairWarning)
+                    c = load_with_segments(full[0])
+                rec, segs = c.recording, list(c.segments)
+            else:
+                rec, segs = concat_session(full)
+            r = run_loop(rec, declared=["bias"], segments=segs, **opts)
+        except GyroInputError as exc:
+            rows.append({"name": name, "error": str(exc)})
+            continue
+        rows.append({
+            "name": name, "reference": r.reference, "n_windows": r.n_windows,
+            "found": [{"effect": s.effect, "log10_p": s.evidence.log10_p, "ambiguous_with": list(s.evidence.ambiguous_with),
+                       "params": s.evidence.params, "std_errors": s.evidence.std_errors} for s in r.found],
+            "residual_rms_before_dps": r.residual_rms_before_rad_s * 180 / np.pi,
+            "residual_rms_after_dps": r.residual_rms_after_rad_s * 180 / np.pi,
+            "attitude_error_before_deg": r.attitude_error_before_deg,
+            "attitude_error_after_deg": r.attitude_error_after_deg,
+            "ljung_box_p": r.remaining.ljung_box_p, "notes": list(r.notes), "final_params": r.params,
+        })
+    return rows
 
 
 # ---------------------------------------------------------------------------- the experiment
@@ -429,3 +476,29 @@ def concat_session(paths: Sequence, *, gap_s: float = 1.0):
     temp = np.concatenate([r.temp_c for r, _ in recs]) if all(r.temp_c is not None for r, _ in recs) else None
     meta = {"source": " + ".join(str(p) for p in paths), "note": f"concatenated session, {gap_s:g} s gaps"}
     return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=acc, temp_c=temp, meta=meta), segs
+
+
+if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
+    import argparse
+    import json as _json
+
+    ap = argparse.ArgumentParser(description="Loop identification / false-alarm Monte Carlo")
+    ap.add_argument("--seeds", type=int, default=50)
+    ap.add_argument("--scales", default="0.03,0.1,0.3,1")
+    ap.add_argument("--effects", default=None)
+    ap.add_argument("--out", default=None, help="write rows as JSON here")
+    ap.add_argument("--measured", default=None, metavar="DATA_DIR", help="run the measured sets instead")
+    a = ap.parse_args()
+    if a.measured:
+        from gyrocore.cli import to_jsonable
+
+        rows = measured_runs(a.measured)
+        print(_json.dumps(to_jsonable(rows), indent=1))
+        raise SystemExit(0)
+    rows = identification_rates(seeds=range(a.seeds), scales=[float(x) for x in a.scales.split(",")],
+                                effects=a.effects.split(",") if a.effects else None, progress=True)
+    print(rates_markdown(rows))
+    if a.out:
+        from gyrocore.recording import atomic_write_text
+
+        atomic_write_text(a.out, _json.dumps(rows, indent=1))

@@ -184,6 +184,9 @@ class Step:
 class Remaining:
     """What the final residual still holds.
 
+    The Ljung–Box test uses all windows; the Welch spectrum and the Allan deviation use the
+    longest run of evenly spaced windows (empty when it is shorter than 17 windows).
+
     Attributes
     ----------
     ljung_box_p : float
@@ -489,15 +492,27 @@ def _remaining(res: Residual, e: np.ndarray) -> Remaining:
     T = res.duration_s
     win = float(np.median(T))
     lb = lsq.ljung_box_p(e)
-    uniform = res.m > 16 and np.allclose(T, win, rtol=0.05) and np.allclose(
-        np.diff(res.t_mid_s), win, rtol=0.05)
+    # spectrum and Allan deviation on the longest run of evenly spaced windows (still
+    # segments, dropped windows and known-rotation windows break the spacing)
+    even = np.concatenate([[False], (np.abs(np.diff(res.t_mid_s) - win) <= 0.05 * win)
+                           & (np.abs(T[1:] - win) <= 0.05 * win)])
+    best, cur, start, best_start = 0, 0, 0, 0
+    for k in range(res.m):
+        if k > 0 and even[k]:
+            cur += 1
+        else:
+            cur, start = 1, k
+        if cur > best:
+            best, best_start = cur, start
+    uniform = best > 16
     if uniform:
+        e = e[best_start:best_start + best]
         fs = 1.0 / win
-        f, P = signal.welch(e, fs=fs, axis=0, nperseg=min(256, res.m))
+        f, P = signal.welch(e, fs=fs, axis=0, nperseg=min(256, e.shape[0]))
         from .allan import octave_m, oadev
 
-        m = octave_m(res.m)
-        m = m[m <= res.m // 3] if (m <= res.m // 3).any() else m[:1]
+        m = octave_m(e.shape[0])
+        m = m[m <= e.shape[0] // 3] if (m <= e.shape[0] // 3).any() else m[:1]
         taus, adev = None, []
         for i in range(3):
             taus, d, _ = oadev(e[:, i], fs, m)
