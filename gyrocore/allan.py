@@ -52,6 +52,7 @@ __all__ = [
     "fit_ieee952",
     "select_ieee952",
     "avar_correlation_white",
+    "avar_correlation_model",
     "ieee952_avar",
     "simple_noise_model",
     "kalibr_imu_yaml",
@@ -225,13 +226,111 @@ def avar_correlation_white(m: np.ndarray, n_phase: int) -> np.ndarray:
         for j in range(i, M):
             g = scipy.signal.fftconvolve(h[i], h[j][::-1])  # g[lag + len_j − 1]
             g = np.rint(g)  # integer counts; remove FFT round-off
-            lags = np.arange(g.size) - (h[j].size - 1)  # d_i(k) with d_j(k − lag)
-            # pairs (k, l = k − lag) with 0 ≤ k < n_i, 0 ≤ l < n_j
-            pairs = np.clip(np.minimum(n[i], n[j] + lags) - np.maximum(0, lags), 0, None)
+            lags = np.arange(g.size) - (h[j].size - 1)  # g at lag = Cov(d_i(k), d_j(k + lag))
+            # pairs (k, l = k + lag) with 0 ≤ k < n_i, 0 ≤ l < n_j
+            pairs = np.clip(np.minimum(n[i], n[j] - lags) - np.maximum(0, -lags), 0, None)
             V[i, j] = V[j, i] = 2.0 * float(np.sum(pairs * g * g))
     d = np.sqrt(np.diag(V))
     R = V / np.outer(d, d)
     _CORR_CACHE[key] = R
+    return R
+
+
+_QF_CACHE: dict[tuple, np.ndarray] = {}
+_QF_STACK: dict[tuple, np.ndarray] = {}
+_MAX_RATIO = 1024  # pairs of τ further apart than this are taken as uncorrelated
+
+
+def _pair_quadratic(mi: int, mj: int, n_phase: int, res: int = 16) -> np.ndarray:
+    """Coefficients (A1..A6) of Cov(Σd_i², Σd_j²)/2 as a quadratic form in (a, b, c).
+
+    a = white-rate variance per sample (N²·rate), b = rate-random-walk increment variance
+    (K²·τ0), c = white-angle variance in rate units (Q²·rate²). d_m = Haar filter h_m (−1 ×m,
+    +1 ×m) on the rate for a; its running sum, the triangle g_m(v) = min(v, 2m − v), on the
+    random-walk increments for b; p_m = δ₀ − 2δ_m + δ₂m on the angle noise for c. With
+    c_ij(lag) = a·X_hh + b·X_gg + c·X_pp (cross-correlations of the filters),
+    Cov = 2 Σ_lag pairs(lag)·c_ij(lag)² = 2(a²A1 + b²A2 + c²A3 + 2abA4 + 2acA5 + 2bcA6).
+    Long filters are evaluated on a grid of step s = min(m)/res (box sums are exact on it; the
+    triangle's Riemann sum has O(1/res) error) — checked against Monte Carlo in the tests.
+    """
+    key = (mi, mj, n_phase, res)
+    hit = _QF_CACHE.get(key)
+    if hit is not None:
+        return hit
+    import scipy.signal
+
+    s = max(1, min(mi, mj) // res)
+    ni, nj = n_phase - 2 * mi, n_phase - 2 * mj
+
+    def h_dec(mm: int) -> np.ndarray:
+        L = mm // s
+        return np.concatenate([-np.ones(L), np.ones(L)])
+
+    def g_dec(mm: int) -> np.ndarray:
+        v = np.arange(0, 2 * mm, s, dtype=float)
+        return np.minimum(v, 2 * mm - v)
+
+    hj = h_dec(mj)
+    Wf = s * np.rint(scipy.signal.fftconvolve(h_dec(mi), hj[::-1]))
+    Kf = s * scipy.signal.fftconvolve(g_dec(mi), g_dec(mj)[::-1])
+    idx0 = hj.size - 1
+    lags = (np.arange(Wf.size) - idx0) * s  # value at lag = Cov(d_i(k), d_j(k + lag))
+    pairs = np.clip(np.minimum(ni, nj - lags) - np.maximum(0, -lags), 0, None).astype(float)
+    A1 = s * float(np.sum(pairs * Wf * Wf))
+    A2 = s * float(np.sum(pairs * Kf * Kf))
+    A4 = s * float(np.sum(pairs * Wf * Kf))
+    P: dict[int, float] = {}
+    for u, pu in ((0, 1.0), (mi, -2.0), (2 * mi, 1.0)):
+        for v, pv in ((0, 1.0), (mj, -2.0), (2 * mj, 1.0)):
+            P[u - v] = P.get(u - v, 0.0) + pu * pv  # shared angle sample: l = k + (u − v)
+    A3 = A5 = A6 = 0.0
+    grid = np.arange(Wf.size)
+    for lag, pv in P.items():
+        if pv == 0.0:
+            continue
+        pr = max(0, min(ni, nj - lag) - max(0, -lag))
+        k = lag / s + idx0
+        A3 += pr * pv * pv
+        A5 += pr * pv * float(np.interp(k, grid, Wf))
+        A6 += pr * pv * float(np.interp(k, grid, Kf))
+    out = np.array([A1, A2, A3, A4, A5, A6])
+    _QF_CACHE[key] = out
+    return out
+
+
+def avar_correlation_model(m: np.ndarray, n_phase: int, rate_hz: float, coef: np.ndarray) -> np.ndarray:
+    """Correlation of overlapping AVAR estimates for white rate + rate random walk + white angle.
+
+    ``coef`` = (Q², N², B², K², R²) of the current fit; B and R do not enter (flicker has no
+    finite-filter form; a ramp is deterministic). Pure white noise when N = K = Q = 0.
+    Random walk correlates the octave points far more than white noise (neighbours ≈ 0.87
+    instead of 0.5), so using the white correlation for it over-counts long-τ evidence.
+    """
+    Q2, N2, _B2, K2, _R2 = (float(v) for v in coef)
+    a, b, c = N2 * rate_hz, K2 / rate_hz, Q2 * rate_hz**2
+    if not (a > 0 or b > 0 or c > 0):
+        a, b, c = 1.0, 0.0, 0.0
+    key = (tuple(int(v) for v in m), int(n_phase))
+    T = _QF_STACK.get(key)
+    if T is None:
+        M = len(m)
+        T = np.zeros((M, M, 6))
+        for i in range(M):
+            for j in range(i, M):
+                mi, mj = int(m[i]), int(m[j])
+                if max(mi, mj) > _MAX_RATIO * min(mi, mj):
+                    continue
+                T[i, j] = T[j, i] = _pair_quadratic(mi, mj, int(n_phase))
+        _QF_STACK[key] = T
+    C = T @ np.array([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c])
+    d = np.sqrt(np.diag(C))
+    R = C / np.outer(d, d)
+    # far pairs set to 0 may leave R slightly indefinite: clip its eigenvalues
+    w, V = np.linalg.eigh(R)
+    if w.min() < 1e-6:
+        R = (V * np.maximum(w, 1e-6)) @ V.T
+        d = np.sqrt(np.diag(R))
+        R = R / np.outer(d, d)
     return R
 
 
@@ -259,8 +358,9 @@ def fit_ieee952(
     Covariance of the AVAR estimates: C_ij = ρ_ij·√(V_i V_j), with V_i = 2σ_i⁴/edf_i
     (chi-square, NIST SP 1065 eq. 45), σ_i² from the current *model* (not the noisy estimate,
     which would bias the fit low), edf_i from Greenhall's algorithm for the noise type that
-    dominates the model at τ_i, and ρ_ij the white-noise correlation between overlapping AVAR
-    estimates (:func:`avar_correlation_white`). The system is whitened with the Cholesky
+    dominates the model at τ_i, and ρ_ij the correlation between overlapping AVAR estimates
+    under the current model's white, random-walk and quantization parts
+    (:func:`avar_correlation_model`; white noise at the start). The system is whitened with the Cholesky
     factor of C and solved by NNLS; iterated ``iterations`` times from a white-noise start.
 
     Returns the coefficients and their covariance (AᵀC⁻¹A)⁻¹ at the final weights, computed
@@ -271,13 +371,14 @@ def fit_ieee952(
     A = A_full[:, use]
     m = np.asarray(m, dtype=np.int64)
     avar = np.asarray(avar, float)
-    R = avar_correlation_white(m, n_phase)
+    rate_hz = float(m[0] / taus_s[0])
     alpha = np.zeros(len(taus_s), dtype=int)
     model = avar.copy()
     coef = np.zeros(5)
     tiny = np.finfo(float).tiny
 
     def whitened(model_, alpha_):
+        R = avar_correlation_model(m, n_phase, rate_hz, coef)
         edf_ = np.array([_edf(int(a_), int(mm), int(n_phase)) for a_, mm in zip(alpha_, m)])
         sd = np.sqrt(2.0 / edf_) * np.maximum(model_, tiny)
         L = np.linalg.cholesky(R * np.outer(sd, sd))
