@@ -25,9 +25,10 @@ user row weights). Standard errors come from one of three covariances:
   AR(1) pre-whitened with the Andrews (1991) plug-in bandwidth (Andrews & Monahan 1992);
 * ``"block"`` — batch means over ``n_blocks`` contiguous blocks (cluster-robust by time).
 
-``"auto"`` (the default) runs a Ljung–Box test on the weighted residual and uses ``"hac"``
-when it is autocorrelated (p < 0.01), ``"ols"`` otherwise; the result says which
-(:attr:`LsqFit.cov_kind`) and why (:attr:`LsqFit.ljung_box_p`).
+``"auto"`` (the default) runs a Ljung–Box test on the weighted residual and a block-mean
+variance test for slow noise (:func:`low_frequency_excess`) and uses ``"hac"`` when either
+finds the residual coloured (p < 0.01 / α = 1e-3), ``"ols"`` otherwise; the result says which
+(:attr:`LsqFit.cov_kind`) and the Ljung–Box p (:attr:`LsqFit.ljung_box_p`).
 
 Observability: columns are checked in the declared effect order by a rank-revealing
 (sequential Gram–Schmidt) test on the column-equilibrated matrix; a column whose part outside
@@ -60,6 +61,8 @@ __all__ = [
     "PLAUSIBLE_MAGNITUDE",
     "NOISY_REGRESSOR_EFFECTS",
     "ljung_box_p",
+    "low_frequency_excess",
+    "residual_autocov_model",
     "long_run_covariance",
 ]
 
@@ -321,29 +324,8 @@ def _autocov(x: np.ndarray, m: int) -> np.ndarray:
     return np.fft.irfft(f * np.conj(f), nf)[: m + 1] / n
 
 
-def residual_autocov_model(
-    x: np.ndarray, *, n_direct: int = 5, max_lag: int | None = None, tail_floor: float = 1e-4
-) -> np.ndarray:
-    """Autocovariance model of a stationary residual: sample values, then an exponential tail.
-
-    γ(l) = γ̂(l) for l ≤ ``n_direct`` (the short, well-estimated lags: white noise, on-chip
-    low-pass); beyond, γ(l) = a·φ^l fitted (log-linear least squares) to the run of sample
-    lags that stand above 2·γ̂(0)/√N (the sd of a sample autocovariance of white noise) —
-    the first-order Gauss–Markov part of gyro noise (DESIGN.md ``correlated``), which also
-    approximates bias instability over the record's time scales. Without such a run the
-    tail is 0. The tail is cut where φ^l < ``tail_floor``.
-
-    Parameters
-    ----------
-    x : ndarray, shape (N,)
-        Residual of one axis, rad/s.
-
-    Returns
-    -------
-    ndarray, shape (L + 1,)
-        γ(0..L), (rad/s)².
-    """
-    x = np.asarray(x, float)
+def _short_and_tail(x: np.ndarray, n_direct: int, max_lag: int | None, tail_floor: float) -> np.ndarray:
+    """Sample autocovariance at lags ≤ n_direct plus a fitted exponential tail (see below)."""
     n = x.shape[0]
     m = int(max_lag or max(n_direct + 1, min(n // 10, 5000)))
     m = min(m, n - 1)
@@ -368,6 +350,118 @@ def residual_autocov_model(
         return g
     tail = np.exp(icpt) * phi ** np.arange(n_direct + 1, Lcut + 1)
     return np.concatenate([g, tail])
+
+
+def _block_mean_var_model(g: np.ndarray, L: int) -> float:
+    """Var of the mean of L consecutive samples under autocovariance g (zero beyond its end)."""
+    k = min(L, g.size)
+    l = np.arange(1, k)
+    return float((L * g[0] + 2.0 * np.sum((L - l) * g[1:k])) / L**2)
+
+
+def _gm_block_var(s2: float, phi: float, L: int) -> float:
+    """Var of an L-sample mean of a Gauss–Markov sequence (variance s2, lag-1 corr φ)."""
+    if phi <= 0:
+        return s2 / L
+    return float(s2 / L**2 * (L * (1 + phi) / (1 - phi) - 2 * phi * (1 - phi**L) / (1 - phi) ** 2))
+
+
+def low_frequency_excess(x: np.ndarray, *, alpha: float = 1e-3, n_direct: int = 5) -> bool:
+    """True when block means of ``x`` vary more than its short-lag autocovariance explains
+    (χ² test at level ``alpha`` for L = 16, 32, … ≤ N/8): slow noise such as bias instability
+    that a lag-by-lag whiteness test (Ljung–Box) does not see."""
+    x = np.asarray(x, float)
+    n = x.shape[0]
+    if n < 16 * 8:
+        return False
+    g = _autocov(x, n_direct)
+    xc = x - x.mean()
+    L = 16
+    while L <= n // 8:
+        m = n // L
+        bm = xc[: m * L].reshape(m, L).mean(axis=1)
+        if np.var(bm, ddof=1) > stats.chi2.ppf(1 - alpha, m - 1) / (m - 1) * _block_mean_var_model(g, L):
+            return True
+        L *= 2
+    return False
+
+
+def residual_autocov_model(
+    x: np.ndarray, *, n_direct: int = 5, max_lag: int | None = None, tail_floor: float = 1e-4,
+    low_freq_check: bool = True, alpha: float = 1e-3,
+) -> np.ndarray:
+    """Autocovariance model of a stationary residual: sample values, an exponential tail, and
+    a slow component when block means say there is more low-frequency power.
+
+    1. γ(l) = γ̂(l) for l ≤ ``n_direct`` (the short, well-estimated lags: white noise, on-chip
+       low-pass).
+    2. Beyond, γ(l) = a·φ^l fitted (log-linear least squares) to the run of sample lags that
+       stand above 2·γ̂(0)/√N (the sd of a sample autocovariance of white noise) — the
+       first-order Gauss–Markov part of gyro noise (DESIGN.md ``correlated``). Without such a
+       run the tail is 0; it is cut where φ^l < ``tail_floor``.
+    3. Flicker (bias-instability) noise has per-lag correlations too small to pass step 2
+       and yet dominates the variance of long averages. So the variance of block means
+       V(L) = Var(mean of L samples) is compared with the model's for L = 16, 32, … ≤ N/8;
+       where V_obs/V_model exceeds the χ²_{m−1}(1 − α)/(m − 1) bound (m = N/L blocks), a
+       second Gauss–Markov component s²·φ₂^l is added, φ₂ = exp(−1/L*) on the grid of L and
+       s² by weighted least squares on the excess V_obs − V_model (weights m − 1), the best
+       grid point kept. Its tail is cut at φ₂^l < ``tail_floor`` (at most N − 1 lags).
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,)
+        Residual of one axis, rad/s.
+
+    Returns
+    -------
+    ndarray, shape (L + 1,)
+        γ(0..L), (rad/s)².
+    """
+    x = np.asarray(x, float)
+    n = x.shape[0]
+    g = _short_and_tail(x, n_direct, max_lag, tail_floor)
+    if not low_freq_check or n < 16 * 8:
+        return g
+    xc = x - x.mean()
+    Ls, vobs, vmod, wts = [], [], [], []
+    L = 16
+    while L <= n // 8:
+        m = n // L
+        bm = xc[: m * L].reshape(m, L).mean(axis=1)
+        Ls.append(L)
+        vobs.append(float(np.var(bm, ddof=1)))
+        vmod.append(_block_mean_var_model(g, L))
+        wts.append(m - 1)
+        L *= 2
+    if not Ls:
+        return g
+    Ls, vobs, vmod, wts = map(np.asarray, (Ls, vobs, vmod, wts))
+    crit = stats.chi2.ppf(1 - alpha, wts) / wts
+    if not np.any(vobs > crit * vmod):
+        return g
+    excess = np.clip(vobs - vmod, 0.0, None)
+    best = None
+    # candidate correlation times: the block lengths, and beyond them up to N/2 (flicker
+    # noise keeps V(L) flat to the longest blocks: its correlation outlasts what they show)
+    cands = list(Ls) + [int(Ls[-1] * 2), int(Ls[-1] * 4)]
+    for Lstar in cands:
+        phi2 = float(np.exp(-1.0 / Lstar))
+        basis = np.array([_gm_block_var(1.0, phi2, int(L_)) for L_ in Ls])
+        w = wts / np.maximum(vobs, 1e-300) ** 2  # relative (log-like) weighting
+        s2 = float(np.sum(w * basis * excess) / np.sum(w * basis**2))
+        if s2 <= 0:
+            continue
+        err = float(np.sum(w * (excess - s2 * basis) ** 2))
+        if best is None or err < best[0]:
+            best = (err, s2, phi2)
+    if best is None:
+        return g
+    _, s2, phi2 = best
+    Lcut = int(min(np.ceil(np.log(tail_floor) / np.log(phi2)), n - 1))
+    out = np.zeros(max(g.size, Lcut + 1))
+    out[: g.size] = g
+    out[: Lcut + 1] += s2 * phi2 ** np.arange(Lcut + 1)
+    return out
 
 
 def residual_sandwich_meat(A: np.ndarray, W: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, int]:
@@ -634,7 +728,9 @@ def solve(
         lb_p = ljung_box_p(ew)
         kind = covariance
         if kind == "auto":
-            kind = "hac" if (np.isfinite(lb_p) and lb_p < 0.01) else "ols"
+            coloured = (np.isfinite(lb_p) and lb_p < 0.01) or any(
+                low_frequency_excess(ew[:, i][W[:, i] > 0]) for i in range(3))
+            kind = "hac" if coloured else "ols"
         k = len(kept)
         dof = max(int(np.sum(W > 0)) - k, 1)
         L = float("nan")

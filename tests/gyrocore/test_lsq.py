@@ -157,3 +157,28 @@ def test_monte_carlo_standard_errors_are_honest(kind, noise, n):
         zs.append((fit.theta - _truth_vector(fit)) / fit.stderr)
     z = np.concatenate(zs)
     assert 0.7 < np.var(z) < 1.35, np.var(z)
+
+
+def test_slow_noise_invisible_to_ljung_box_is_caught_by_block_means():
+    """White σ = 1 plus a weak slow Gauss–Markov part (σ = 0.05, τc = 2000 samples): its
+    lag-l correlations are ≈ 0.0025, so Ljung–Box (20 lags, Q ≈ N·20·0.0025² ≈ 5 against
+    χ²₂₀) does not see it, yet it carries ≈ 0.0025·2τc = 10× the white long-run variance.
+    Blocks of 2048 samples (19 of them): predicted white Var(mean) = 1/2048 = 4.9e-4, the GM
+    part adds ≈ 0.0025·0.6 = 1.5e-3 — a ratio of 4 against a χ²₁₈(0.999)/18 = 2.4 bound."""
+    rng = np.random.default_rng(12)
+    n = 40000
+    white = rng.normal(0, 1.0, n)
+    x = white + _ar1_noise(np.exp(-1 / 2000), 0.05)(rng, n)[:, 0]
+    assert lsq.ljung_box_p(x) > 0.01
+    assert lsq.low_frequency_excess(x)
+    assert not lsq.low_frequency_excess(white)
+    g = lsq.residual_autocov_model(x)
+    lr_model = g[0] + 2 * g[1:].sum()
+    lr_true = 1.0 + 0.05**2 * (1 + np.exp(-1 / 2000)) / (1 - np.exp(-1 / 2000))  # = 11
+    # Only part of that is visible in 20 correlation times (block variances at L ≥ 2048 rest
+    # on 19 and 9 blocks, relative sd 0.33 and 0.5, and the mean is removed); the model must
+    # add the visible part — above the short-lag model's own long-run variance (≈ 1.0 + its
+    # sampling noise 2·5·1/sqrt(N) ≈ 0.05) — and must not exceed the truth by much.
+    g0 = lsq._short_and_tail(x, 5, None, 1e-4)
+    assert lr_model > 1.5 * (g0[0] + 2 * g0[1:].sum())
+    assert lr_model < 1.5 * lr_true
