@@ -459,21 +459,21 @@ def attitude_error_deg(res: Residual, rec: Recording, correction_rad_s: np.ndarr
         return float(np.degrees(np.sqrt(np.mean(np.sum(d**2, axis=1)))))
     if res.kind == "still":
         # windows are contiguous blocks: the angle accumulates inside each still run
-        return _still_runs_error(res, integrate_gyro(t, w))
+        return _still_runs_error(res, integrate_gyro(t, w, hold="backward"))
     if res.kind == "rate":
         q_ref = rec.ref_quat_wxyz
         if q_ref is None or not np.all(np.isfinite(q_ref)):
             ref = rec.ref_rate_rad_s
             if ref is None or not np.all(np.isfinite(ref)):
                 return float("nan")
-            q_ref = integrate_gyro(t, ref)
-        q = integrate_gyro(t, w, q0_wxyz=q_ref[0])
+            q_ref = integrate_gyro(t, ref, hold="backward")
+        q = integrate_gyro(t, w, q0_wxyz=q_ref[0], hold="backward")
         return float(np.degrees(_rms(error_angle_rad(q, q_ref))))
     # attitude
     q_ref = rec.ref_quat_wxyz
     ok = np.all(np.isfinite(q_ref), axis=1)
     i0 = int(np.flatnonzero(ok)[0])
-    q = integrate_gyro(t[i0:], w[i0:], q0_wxyz=q_ref[i0])
+    q = integrate_gyro(t[i0:], w[i0:], q0_wxyz=q_ref[i0], hold="backward")
     e = error_angle_rad(q[ok[i0:]], q_ref[i0:][ok[i0:]])
     return float(np.degrees(_rms(e)))
 

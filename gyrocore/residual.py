@@ -5,11 +5,12 @@ each [t_a, t_b] with a residual mean rate error y_m (rad/s, sensor frame at t_b)
 operator that maps any per-sample regressor A(t) (N, 3, P) of :func:`gyrocore.effects.design`
 to the window regressor
 
-    X_m = (1/T_m) Σ_{k=a}^{b−1} R_{b←k} · A_k · Δt_k,        T_m = t_b − t_a,
+    X_m = (1/T_m) Σ_{k=a}^{b−1} R_{b←k+1} · A_{k+1} · Δt_k,        T_m = t_b − t_a,
 
 so that the linearised measurement model r(t) = y(t) − ω(t) ≈ A(t)·θ + e(t) becomes
-y_m ≈ X_m·θ + ε_m, exactly (the operator is linear). Sample k is held over [t_k, t_{k+1}]
-(zero-order hold, as in :func:`gyrocore.attitude.integrate_gyro`).
+y_m ≈ X_m·θ + ε_m, exactly (the operator is linear). Sample k+1 is the rate over
+[t_k, t_{k+1}] (backward hold, the convention of :func:`gyrocore.attitude.integrate_gyro`,
+used explicitly here).
 
 Reference kinds
 ---------------
@@ -283,7 +284,7 @@ class Residual:
         Returns
         -------
         ndarray, shape (M, 3) or (M, 3, P)
-            (1/T_m) Σ_{k=a}^{b−1} R_{b←k}·Z_k·Δt_k.
+            (1/T_m) Σ_{k=a}^{b−1} R_{b←k+1}·Z_{k+1}·Δt_k (backward hold).
         """
         Z = np.asarray(Z, float)
         squeeze = Z.ndim == 2
@@ -291,10 +292,12 @@ class Residual:
             Z = Z[:, :, None]
         t = np.asarray(self.inputs.t_s, float)
         dt = np.diff(t)
+        # backward hold (gyrocore.attitude.integrate_gyro's convention): sample k+1 is the
+        # rate over [t_k, t_{k+1}]
         if self.R_GS is not None:
-            Zg = np.einsum("nij,njp->nip", self.R_GS[:-1], Z[:-1])
+            Zg = np.einsum("nij,njp->nip", self.R_GS[1:], Z[1:])
         else:
-            Zg = Z[:-1]
+            Zg = Z[1:]
         C = np.concatenate([np.zeros((1,) + Zg.shape[1:]), np.cumsum(Zg * dt[:, None, None], axis=0)])
         D = C[self.win_stop] - C[self.win_start]
         if self.R_GS is not None:
@@ -315,16 +318,16 @@ class Residual:
 def _blocks(mask: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
     """Contiguous windows of ``block`` hold intervals inside runs of True in ``mask`` (N,).
 
-    A window [a, b] needs mask[a..b−1] (the samples held over it) all True.
+    A window [a, b] needs mask[a..b] all True (samples a+1..b are held over it; a too, as a
+    margin).
     """
     starts, stops = [], []
-    n = mask.shape[0]
     m = np.concatenate([[False], mask, [False]]).astype(np.int8)
     d = np.diff(m)
     run_a = np.flatnonzero(d == 1)
     run_b = np.flatnonzero(d == -1)  # exclusive
     for a, b in zip(run_a, run_b):
-        last = min(b, n - 1)  # window end index may be the sample after the run
+        last = b - 1  # last sample of the run (inclusive): it is held over the window's end
         k = a
         while k + block <= last:
             starts.append(k)
@@ -489,7 +492,7 @@ def build_residual(
         if q_ref is not None and np.all(np.isfinite(q_ref)):
             R_WS = _R(q_ref)
         else:
-            R_WS = _R(integrate_gyro(t, omega))  # W' = S at t0, a fixed frame
+            R_WS = _R(integrate_gyro(t, omega, hold="backward"))  # W' = S at t0, a fixed frame
         r = gyro - omega
         desc = "reference rate (ref_*_rad_s), block means"
     elif kind == "still":
@@ -523,7 +526,7 @@ def build_residual(
         n_lost = int((~keep).sum())
         if n_lost:
             notes.append(f"{n_lost} of {keep.size} windows dropped: reference attitude NaN at an end")
-        q_hat = integrate_gyro(t, gyro)
+        q_hat = integrate_gyro(t, gyro, hold="backward")
         R_GS = _R(q_hat)
         R_ref = np.full((n, 3, 3), np.nan)
         R_ref[ok] = _R(q_ref[ok])
@@ -599,7 +602,7 @@ def build_residual(
         b0 = gyro[still].mean(axis=0) if still.any() else np.zeros(3)
         if angle_mode not in ("rotation", "axis"):
             raise GyroInputError(f"angle mode must be 'rotation' or 'axis', not '{angle_mode}'")
-        R_GS = _R(integrate_gyro(t, gyro - b0)) if angle_mode == "rotation" else None
+        R_GS = _R(integrate_gyro(t, gyro - b0, hold="backward")) if angle_mode == "rotation" else None
         inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
         res = Residual(kind=kind, y_rad_s=np.zeros((a.size, 3)), win_start=a, win_stop=b,
                        t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=R_GS, R_WS=None, gyro_rad_s=gyro,
