@@ -15,9 +15,9 @@ Start from the declared effects, fit them jointly to the residual of
    at a step with K testable candidates the smallest p-value must be below α/K (Holm 1979),
    so the family-wise error over candidates and steps stays ≤ α. The winner must also be of
    practical size: it must cut the window residual RMS by ``min_rms_reduction`` or the
-   attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: fitted on
-   every other tenth of the recording it must lower the window residual RMS of the remaining
-   tenths, and vice versa (2-fold blocked; in-sample when there are fewer than 40 windows or
+   attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: its
+   columns, fitted to the current residual on every other tenth of the recording, must lower
+   the residual RMS of the remaining tenths, and vice versa (2-fold blocked; in-sample when there are fewer than 40 windows or
    the reference is a few known angles). This guards against HAC's
    optimism on short, strongly coloured residuals (an optical reference, bias instability).
 3. **Collinearity.** Every other candidate that also passes is tested again in the presence of
@@ -144,8 +144,9 @@ class Evidence:
     ambiguous_with : tuple of str
         Candidates that explain the same residual (see module docstring).
     cv_rms_reduction : float
-        1 − RMS(after)/RMS(before) of the out-of-sample window residual (2-fold by time: each
-        half predicted from a fit on the other); the practical-significance criterion.
+        1 − RMS(after)/RMS(before) of the current residual predicted out of sample by the
+        candidate's columns (2-fold blocked in time: each fold predicted from a fit on the
+        other); NaN when a fold cannot identify the candidate (no verdict).
     """
 
     statistic: float
@@ -417,11 +418,19 @@ def _cv_rms(y: np.ndarray, X: np.ndarray, *, min_windows: int = 40, n_blocks: in
         th, *_ = np.linalg.lstsq(X.reshape(-1, X.shape[2]), y.reshape(-1), rcond=None)
         return _rms(y - np.einsum("mip,p->mi", X, th))
     fold = (np.arange(M) * n_blocks // M) % 2 == 0
+    Af = X.reshape(-1, X.shape[2])
+    cf = np.linalg.norm(Af, axis=0)
+    cf[cf == 0] = 1.0
+    rank_full = np.linalg.matrix_rank(Af / cf, tol=1e-8 * np.sqrt(Af.shape[0]))
     out = []
     for tr, te in ((fold, ~fold), (~fold, fold)):
         A = X[tr].reshape(-1, X.shape[2])
         cn = np.linalg.norm(A, axis=0)
         cn[cn == 0] = 1.0
+        if np.linalg.matrix_rank(A / cn, tol=1e-8 * np.sqrt(A.shape[0])) < rank_full:
+            # a designed experiment (rate table: one axis and one sense of rotation at a time)
+            # can leave a fold without the excitation a column needs: no out-of-sample verdict
+            return float("nan")
         th, *_ = np.linalg.lstsq(A / cn, y[tr].reshape(-1), rcond=1e-10)
         out.append(y[te] - np.einsum("mip,p->mi", X[te], th / cn))
     return _rms(np.concatenate(out))
@@ -529,8 +538,12 @@ def _remaining(res: Residual, e: np.ndarray) -> Remaining:
 
 
 def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rms_before: float,
-          cv_before: float | None = None):
-    """Fit current + cand, Wald-test cand's observable parameters. Returns (Evidence, fit)."""
+          e_current: np.ndarray | None = None):
+    """Fit current + cand and Wald-test cand's observable parameters.
+
+    ``e_current`` is the current model's window residual (M, 3) for the out-of-sample check.
+    Returns (Evidence, fit).
+    """
     added = _with_companion(current, cand)
     fit, e = model.fit(list(current) + added)
     # the test is on the candidate's own columns; a companion (constant term) is part of the
@@ -556,9 +569,14 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
     else:
         F, p, lp = 0.0, 1.0, 0.0
     rms_after = _rms(e)
-    Xw, _, _ = model.design(list(current) + added)
-    cv_red = (1.0 - _cv_rms(model.res.y_rad_s, Xw, min_windows=_cv_min(model.res)) / cv_before
-              if cv_before and cv_before > 0 else 0.0)
+    # out of sample: the candidate's own columns (with its companion) fitted to the current
+    # model's residual on one fold must predict it on the other
+    Xc, _, _ = model.design(added)
+    e_cur = e_current if isinstance(e_current, np.ndarray) else None
+    if e_cur is not None:
+        cv_red = 1.0 - _cv_rms(e_cur, Xc, min_windows=_cv_min(model.res)) / max(_rms(e_cur), 1e-300)
+    else:
+        cv_red = float("nan")
     ev = Evidence(
         statistic=F, df1=q, df2=df2, p_value=p, log10_p=lp, threshold=threshold,
         params={n: float(fit.theta[p_]) for n, p_ in zip(names, cols)},
@@ -732,8 +750,7 @@ def loop_residual(
         remaining = [c for c in cands if c not in model_effects]
         if not remaining:
             break
-        cv_cur = _cv_rms(res.y_rad_s, model.design(model_effects)[0], min_windows=_cv_min(res))
-        trial = {c: _test(model, model_effects, c, 0.0, rms_cur, cv_cur) for c in remaining}
+        trial = {c: _test(model, model_effects, c, 0.0, rms_cur, e) for c in remaining}
         testable = [c for c in remaining if trial[c][0].df1 > 0]
         for c in remaining:
             if c not in testable:
@@ -755,7 +772,8 @@ def loop_residual(
             # residual or in the attitude
             size = ev.rms_reduction >= min_rms_reduction or (
                 np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
-            return ev.cv_rms_reduction > 0 and size
+            held = ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)
+            return held and size
         sig = [c for c in testable if evs[c].p_value < thr and practical(evs[c])]
         last_tests = evs
         if not sig:
