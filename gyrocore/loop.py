@@ -6,20 +6,23 @@ Start from the declared effects, fit them jointly to the residual of
 1. **Trace.** For every catalogue effect not yet in the model (each through its physical
    regressors from :func:`gyrocore.effects.design`, integrated over the observation windows),
    refit the model plus that candidate jointly (:func:`gyrocore.lsq.solve`) and test
-   "candidate parameters = 0" with a Wald statistic on the **HAC** covariance (Newey–West,
-   Bartlett kernel, AR(1) pre-whitening and the Andrews plug-in bandwidth, so that coloured
-   residuals — on-chip low-pass, bias instability, rate random walk, an optical reference's
-   noise — do not pass for a signal), referred to F(q, M − P) (q candidate parameters, M
-   windows, P fitted parameters).
-2. **Select with false-discovery control.** Forward step-down selection with Holm thresholds:
-   at a step with K testable candidates the smallest p-value must be below α/K (Holm 1979),
-   so the family-wise error over candidates and steps stays ≤ α. The winner must also be of
-   practical size: it must cut the window residual RMS by ``min_rms_reduction`` or the
-   attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: its
+   "candidate parameters = 0" with a Wald statistic on a **HAC** covariance — ``lsq``'s
+   ``"hac"``: the sandwich with each axis' residual autocovariance (short-lag sample values
+   plus a fitted Gauss–Markov tail), so that coloured residuals (on-chip low-pass, bias
+   instability, rate random walk, an optical reference's noise) do not pass for a signal —
+   referred to F(q, M − P) (q candidate parameters, M windows, P fitted parameters). With a
+   known-angle reference the fit is weighted by the known uncertainties (OLS covariance).
+2. **Select with false-discovery control.** Forward selection with Holm-type step-down
+   thresholds: at a step with K testable candidates the smallest p-value must be below α/K
+   (Holm 1979), so the family-wise error over candidates and steps stays ≤ α. The winner must
+   also be of practical size: it must cut the window residual RMS by ``min_rms_reduction`` or
+   the attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: its
    columns, fitted to the current residual on every other tenth of the recording, must lower
-   the residual RMS of the remaining tenths, and vice versa (2-fold blocked; in-sample when there are fewer than 40 windows or
-   the reference is a few known angles). This guards against HAC's
-   optimism on short, strongly coloured residuals (an optical reference, bias instability).
+   the residual RMS of the remaining tenths, and vice versa (2-fold blocked; in-sample with
+   fewer than 40 windows or a known-angle reference; no verdict when a fold lacks the
+   excitation a column needs, as on a rate table turning one axis at a time). This guards
+   against HAC's optimism on short, strongly coloured residuals: a ramp fitted to one stretch
+   of flicker wander does not predict the next.
 3. **Collinearity.** Every other candidate that also passes is tested again in the presence of
    the winner and vice versa; if neither adds anything once the other is in (e.g.
    ``bias_ramp`` vs ``bias_thermal`` when the temperature rises linearly in time) the step
@@ -27,8 +30,8 @@ Start from the declared effects, fit them jointly to the residual of
    with the strongest evidence (smallest p-value, which accounts for the number of
    parameters) unless another is within one decade of p, in which case the simpler effect is
    taken (fewer parameters, then the lower-order, more common one: earlier in
-   :data:`CANDIDATES`). A candidate contained in the winner
-   that explains the same residual replaces it (parsimony). A thermal candidate is tested on top of its constant companion
+   :data:`CANDIDATES`). A candidate contained in the winner that explains the same residual
+   replaces it (parsimony). A thermal candidate is tested on top of its constant companion
    (:data:`COMPANION`) and added with it.
 4. **Add and refit** everything jointly, record the error before and after (windowed residual
    RMS, attitude error), and repeat until nothing significant is left. ``time_offset`` is
