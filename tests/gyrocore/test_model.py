@@ -211,12 +211,14 @@ def test_cli_names_unobservable(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_monte_carlo_calibrator_standard_errors_are_honest():
-    """60 seeds: z = (θ̂ − θ)/σ̂ over the 21 K/bias/H-parameters... pooled variance in
+    """60 seeds: z = (θ̂ − θ)/σ̂ over the 21 bias/K/H parameters; pooled variance in
     (0.7, 1.35): effective count ≈ 60·3 → sd of var(z) ≈ sqrt(2/180) = 0.105, ±3 sd."""
+    effs = ["bias", "scale", "misalignment", "g_sensitivity"]
+    pn = {"bias": "b_rad_s", "scale": "s", "misalignment": "m_rad", "g_sensitivity": "h_rad_s_per_m_s2"}
     zs = []
     for seed in range(60):
-        res = Calibrator(effects=["bias", "scale", "misalignment"]).fit(table_run(100 + seed, seg_s=6.0))
-        zs.append(np.concatenate([_z(res, "bias", "b_rad_s"), _z(res, "scale", "s"), _z(res, "misalignment", "m_rad")]))
+        res = Calibrator(effects=effs).fit(table_run(100 + seed, seg_s=6.0))
+        zs.append(np.concatenate([np.ravel(_z(res, e, pn[e])) for e in effs]))
     z = np.concatenate(zs)
     assert 0.7 < np.var(z) < 1.35, np.var(z)
 
