@@ -606,8 +606,10 @@ def build_residual(
         inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
         res = Residual(kind=kind, y_rad_s=np.zeros((a.size, 3)), win_start=a, win_stop=b,
                        t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=R_GS, R_WS=None, gyro_rad_s=gyro,
-                       description=(f"{n_rot} known rotation(s): integrated gyro rotation vs known rotation; "
-                                    f"{sa.size} still windows ({how})"), notes=())
+                       description=(f"{n_rot} known rotation(s): "
+                                    + ("integrated gyro rotation vs known rotation" if angle_mode == "rotation"
+                                       else "integrated angle about each axis vs known angle")
+                                    + f"; {sa.size} still windows ({how})"), notes=())
         T = t[b] - t[a]
         y = res.window_mean(gyro)  # still windows: the mean rate (true rate 0)
         # rotation windows: E = exp(φ)ᵀ·(R̂_aᵀ·R̂_b) — compared as rotations, so the path (wobble,
