@@ -461,16 +461,18 @@ def instance_metrics(ab: InstanceAblation) -> dict[str, float]:
 def ablation_task(task) -> "Any":
     """Monte Carlo task function (:mod:`experiments.montecarlo`): one instance through the ablation.
 
-    Options (``task.options``): ``quick`` (bool).
+    Options (``task.options``): ``quick`` (bool), ``cache_dir`` (calibration cache),
+    ``durations`` (tuple of (scenario, seconds), used when the task has no duration).
     """
     import warnings
 
     from experiments.montecarlo import TaskResult
 
     opts = dict(task.options)
+    dur = task.duration_s if task.duration_s is not None else dict(opts.get("durations", ())).get(task.scenario)
     with warnings.catch_warnings(), single_thread_blas():
         warnings.simplefilter("ignore")
-        ab = ablate_instance(task.scenario, sensor=task.sensor, seed=task.seed, duration_s=task.duration_s,
+        ab = ablate_instance(task.scenario, sensor=task.sensor, seed=task.seed, duration_s=dur,
                              quick=bool(opts.get("quick", False)), cache_dir=opts.get("cache_dir"))
     return TaskResult.from_task(task, instance_metrics(ab))
 
@@ -607,3 +609,79 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     return ExperimentResult(name="ablation", title="Ablation: attitude drift with and without each correction",
                             markdown="\n".join(md), figures=tuple(figs), summary=summary,
                             wall_s=time.perf_counter() - t0)
+
+
+# ------------------------------------------------------------------ accuracy contract
+#: Short scored runs of the CI accuracy contract (tests/experiments/test_accuracy_contract.py),
+#: with the quick calibration runs. s.
+CONTRACT_DURATIONS_S = {"static": 60.0, "static_bumped": 30.0, "turntable": 60.0, "thermal": 120.0,
+                        "hover": 15.0, "power_cycles": 60.0}
+CONTRACT_SENSOR = "icm42688p"
+
+
+def contract_campaign(*, instances: int, seed: int = 1, workers: int | None = None, progress: bool = False):
+    """The Monte Carlo behind the accuracy contract: every scenario, short runs, quick calibration."""
+    import shutil
+    import tempfile
+
+    from experiments.montecarlo import run_campaign
+
+    cache = tempfile.mkdtemp(prefix="gyroharness-calcache-")
+    try:
+        return run_campaign(scenarios=SCENARIOS, sensors=(CONTRACT_SENSOR,), instances=instances, seed=seed,
+                            duration_s=None, workers=workers, task_function=ablation_task, progress=progress,
+                            options={"quick": True, "cache_dir": cache,
+                                     "durations": tuple(sorted(CONTRACT_DURATIONS_S.items()))})
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+
+
+def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
+    """Thresholds from a contract campaign, per scenario.
+
+    For a metric x > 0 that varies over sensor instances, log x is close to normal (products of
+    independent error sources); the bound exp(mean(log x) + n_sigma·sd(log x)) is exceeded by
+    a new instance with probability ≈ Φ(−n_sigma) (3e-5 for 4σ) — a CI failure then means the
+    correction stopped paying off, not bad luck. Returned per scenario:
+
+    * ``k_all_over_floor``: bound on RMS(all) / RMS(floor);
+    * ``all_final_deg``: bound on the final error with all corrections, degrees;
+    * ``pays_off``: effects whose omission raises the RMS error in *every* instance by at
+      least 5 % (``all but X`` / ``all`` ≥ 1.05): the contract requires they keep paying off.
+      Effects present but below that are reported in ``negligible`` with their median ratio.
+    """
+    out = {}
+    for sc in campaign.scenarios:
+        tasks = [t.metrics_dict for t in campaign.tasks if t.scenario == sc]
+        if not tasks:
+            continue
+
+        def col(k):
+            return np.array([m.get(k, np.nan) for m in tasks], float)
+
+        def bound(x):
+            lx = np.log(x[np.isfinite(x) & (x > 0)])
+            return float(np.exp(lx.mean() + n_sigma * lx.std(ddof=1))) if lx.size > 2 else float("nan")
+
+        ratio = col("all__rms_deg") / col("floor__rms_deg")
+        pays, negl = [], {}
+        for e in CORRECTABLE:
+            k = f"all-but-{e}__rms_deg"
+            if k not in tasks[0]:
+                continue
+            r = col(k) / col("all__rms_deg")
+            if np.all(r >= 1.05):
+                pays.append(e)
+            else:
+                negl[e] = float(np.nanmedian(r))
+        out[sc] = {
+            "instances": len(tasks),
+            "k_all_over_floor": bound(ratio),
+            "ratio_median": float(np.nanmedian(ratio)), "ratio_max": float(np.nanmax(ratio)),
+            "all_final_deg": bound(col("all__final_deg")),
+            "all_final_median_deg": float(np.nanmedian(col("all__final_deg"))),
+            "all_final_max_deg": float(np.nanmax(col("all__final_deg"))),
+            "pays_off": pays,
+            "negligible": negl,
+        }
+    return out
