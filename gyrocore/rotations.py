@@ -359,7 +359,8 @@ class GravityPoseResult:
     ----------
     K, K_stderr : ndarray, shape (3, 3)
         Catalogue K (y − b = K·ω) and its standard errors (from the Jacobian, scaled by the
-        residual variance — they include the pose-direction noise and hand-motion model error).
+        residual variance — they include the pose-direction noise and hand-motion model error,
+        not the first-pose bias error, whose effect σ_b·T per motion is usually far smaller).
     M : ndarray, shape (3, 3)
         K⁻¹ (ω = M·(y − b)).
     bias_rad_s, bias_stderr_rad_s : ndarray, shape (3,)
