@@ -603,6 +603,7 @@ def _log10_chi2_sf(W: float, q: int) -> float:
     return lp / np.log(10)
 
 
+_MIN_ATTITUDE_DEG = 1e-3
 _TAU_ITERATIONS = 4
 _TAU_TOL_S = 1e-6
 
@@ -647,6 +648,16 @@ def _params_table(fit, effects) -> dict:
 _MIN_POSE_CHANGE_M_S2 = 2.0
 
 
+def _n_poses(f: np.ndarray, tol_m_s2: float = _MIN_POSE_CHANGE_M_S2) -> int:
+    """Number of distinct static poses among window-mean specific forces f (M, 3): greedy
+    clustering, a new pose when f is farther than ``tol_m_s2`` from every known pose."""
+    centres: list[np.ndarray] = []
+    for v in f:
+        if all(np.linalg.norm(v - c) > tol_m_s2 for c in centres):
+            centres.append(v)
+    return len(centres)
+
+
 def _input_check(res: Residual, effect: str) -> str | None:
     """Reason why a candidate cannot be tested on these data, or None."""
     inp = res.inputs
@@ -662,9 +673,13 @@ def _input_check(res: Residual, effect: str) -> str | None:
         f = res.window_mean(np.nan_to_num(np.asarray(inp.f_S_m_s2, float)))
         rot = res.is_rotation if res.is_rotation is not None else np.zeros(res.m, bool)
         fs = f[~rot]
-        if fs.shape[0] < 2 or np.all(np.ptp(fs, axis=0) < _MIN_POSE_CHANGE_M_S2):
+        poses = _n_poses(fs)
+        if poses < 2:
             return ("one static pose: the specific force hardly changes, so g-sensitivity is a bias here "
                     "(and small changes of f mean the sensor moved)")
+        if poses < 3:
+            return ("two static poses: a bias change between them (drift, warm-up) explains the same step; "
+                    "g-sensitivity needs three or more poses")
     if effect == "earth_rate" and res.R_WS is None:
         return "no attitude to resolve the Earth rate (it is a bias in a fixed pose)"
     if effect == "time_offset" and res.kind == "angles":
@@ -767,7 +782,9 @@ def loop_residual(
             att_red = float("nan")
             if ev.p_value < thr:
                 att = attitude_error_deg(res, rec, model.correction(f, model_effects + [c]))
-                att_red = 1.0 - att / att_cur if att_cur > 0 else float("nan")
+                # relative change, defined only above 1 mdeg (below, the reference is already
+                # matched to numerical precision, e.g. three known angles and three scales)
+                att_red = 1.0 - att / att_cur if att_cur > _MIN_ATTITUDE_DEG else float("nan")
             evs[c] = Evidence(**{**ev.__dict__, "threshold": thr, "attitude_reduction": att_red})
         def practical(ev: Evidence) -> bool:
             # out of sample (2-fold by time): an effect fitted to coloured noise does not
@@ -776,6 +793,9 @@ def loop_residual(
             size = ev.rms_reduction >= min_rms_reduction or (
                 np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
             held = ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)
+            if res.kind == "angles" and np.isfinite(ev.attitude_reduction):
+                # the known angles are the reference: an effect that makes them worse is refuted
+                held = held and ev.attitude_reduction > -min_attitude_reduction
             return held and size
         sig = [c for c in testable if evs[c].p_value < thr and practical(evs[c])]
         last_tests = evs
