@@ -5,7 +5,8 @@ model identified by :mod:`gyrocore.allan` (or given by hand):
 
 (a) :class:`StillBiasTracker` — sensor at rest: measurement ``gyro = bias + white noise``
     (per-sample variance r = N²·rate, DESIGN.md density convention), bias as a random walk
-    (q = K²·dt) or a first-order Gauss–Markov process (φ = e^(−dt/τc), q = σ²(1 − φ²)).
+    (q = K²·dt) or a turn-on constant plus a first-order Gauss–Markov process
+    (φ = e^(−dt/τc), q = σ²(1 − φ²)).
     Its steady-state error variance is the discrete Riccati solution
     (:func:`steady_state_variance`, scipy.linalg.solve_discrete_are).
 (b) :class:`AttitudeBiasTracker` — moving sensor with a reference attitude (e.g. motion
@@ -191,13 +192,18 @@ class BiasTrack:
 
 # ---------------------------------------------------------------------------- (a) still
 class StillBiasTracker:
-    """Online bias of a still gyro: x = b (3,), z = gyro = b + v, filterpy KalmanFilter.
+    """Online bias of a still gyro, filterpy KalmanFilter, z = gyro = b + v (r = N²·rate).
+
+    Random-walk model: x = b (3,), b_k+1 = b_k + w (q = K²·dt).
+    Gauss–Markov model: the bias is a turn-on constant plus a zero-mean Gauss–Markov part,
+    x = (c, g) (6,), c_k+1 = c_k, g_k+1 = φ g_k + w, b = c + g. (A Gauss–Markov state alone
+    would pull the estimate of a several-°/s turn-on bias towards zero.)
 
     Parameters
     ----------
     model : BiasNoiseModel
     rate_hz : float
-        Sample rate (r = N²·rate per axis).
+        Sample rate.
     bias0_rad_s : array (3,)
         Initial bias estimate (e.g. 0 or the last calibration).
     bias0_sigma_rad_s : float or array (3,)
@@ -215,20 +221,40 @@ class StillBiasTracker:
         phi, q = model.discrete(dt)
         self.phi, self.q = phi, q
         self.r = model.arw_rad_per_sqrt_s**2 * self.rate_hz
-        kf = KalmanFilter(dim_x=3, dim_z=3)
-        kf.x = np.broadcast_to(np.asarray(bias0_rad_s, float), (3,)).copy()
-        kf.P = np.diag(np.broadcast_to(np.asarray(bias0_sigma_rad_s, float), (3,)) ** 2)
-        kf.F = np.diag(phi)
-        kf.Q = np.diag(q)
-        kf.H = np.eye(3)
+        b0 = np.broadcast_to(np.asarray(bias0_rad_s, float), (3,)).copy()
+        s0 = np.broadcast_to(np.asarray(bias0_sigma_rad_s, float), (3,)) ** 2
+        if model.gauss_markov:
+            kf = KalmanFilter(dim_x=6, dim_z=3)
+            kf.x = np.concatenate([b0, np.zeros(3)])
+            kf.P = np.diag(np.concatenate([s0, model.gm_sigma_rad_s**2]))
+            kf.F = np.diag(np.concatenate([np.ones(3), phi]))
+            kf.Q = np.diag(np.concatenate([np.zeros(3), q]))
+            kf.H = np.hstack([np.eye(3), np.eye(3)])
+            self._S = np.hstack([np.eye(3), np.eye(3)])  # b = c + g
+        else:
+            kf = KalmanFilter(dim_x=3, dim_z=3)
+            kf.x = b0
+            kf.P = np.diag(s0)
+            kf.F = np.diag(phi)
+            kf.Q = np.diag(q)
+            kf.H = np.eye(3)
+            self._S = np.eye(3)
         kf.R = np.diag(self.r)
         self.kf = kf
+
+    @property
+    def bias_rad_s(self) -> np.ndarray:
+        return self._S @ np.asarray(self.kf.x, float).reshape(-1)
+
+    @property
+    def bias_sigma_rad_s(self) -> np.ndarray:
+        return np.sqrt(np.diag(self._S @ self.kf.P @ self._S.T))
 
     def step(self, gyro_rad_s: np.ndarray) -> np.ndarray:
         """One sample (3,) in rad/s; returns the posterior bias (3,)."""
         self.kf.predict()
         self.kf.update(np.asarray(gyro_rad_s, float))
-        return np.array(self.kf.x, float).reshape(3)
+        return self.bias_rad_s
 
     def run(self, gyro_rad_s: np.ndarray) -> BiasTrack:
         """Filter a whole still recording (N, 3)."""
@@ -237,11 +263,15 @@ class StillBiasTracker:
         s = np.empty_like(g)
         for k in range(g.shape[0]):
             b[k] = self.step(g[k])
-            s[k] = np.sqrt(np.diag(self.kf.P))
+            s[k] = self.bias_sigma_rad_s
         return BiasTrack(bias_rad_s=b, bias_sigma_rad_s=s)
 
     def steady_state_sigma(self) -> np.ndarray:
-        """Posterior steady-state standard deviation per axis (Riccati), rad/s."""
+        """Posterior steady-state standard deviation per axis (Riccati), rad/s.
+
+        For the Gauss–Markov model this is the limit once the turn-on constant is learned
+        (its variance decays like 1/time): the scalar Riccati solution of the g part.
+        """
         return np.array([math.sqrt(steady_state_variance(float(p), float(q), float(r))[1])
                          for p, q, r in zip(self.phi, self.q, self.r)])
 
@@ -333,22 +363,19 @@ class AttitudeBiasTracker:
 
     def _FQ(self, omega_hat: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         N2 = self.model.arw_rad_per_sqrt_s**2
-        phi_b, q_b = self.model.discrete(dt)
         F = np.eye(6)
         # exact attitude-error transition for constant ω̂ over dt: R(ω̂ dt)ᵀ ≈ I − [ω̂×]dt + …
         F[:3, :3] = _rodrigues(-omega_hat * dt)
         F[:3, 3:] = -np.eye(3) * dt
-        F[3:, 3:] = np.diag(phi_b)
         Q = np.zeros((6, 6))
-        if self.model.gauss_markov:
-            Q[:3, :3] = np.diag(N2 * dt)
-            Q[3:, 3:] = np.diag(q_b)
-        else:
-            K2 = self.model.rrw_rad_per_s_sqrt_s**2
-            # Farrenkopf's discrete noise of the (angle, random-walk bias) pair
-            Q[:3, :3] = np.diag(N2 * dt + K2 * dt**3 / 3.0)
-            Q[:3, 3:] = Q[3:, :3] = np.diag(-K2 * dt**2 / 2.0)
-            Q[3:, 3:] = np.diag(K2 * dt)
+        # Gauss–Markov bias: tracked as a random walk with the same short-term diffusion
+        # K² = 2σ²/τc (keeps the turn-on constant; conservative beyond τc).
+        K2 = (2.0 * self.model.gm_sigma_rad_s**2 / self.model.gm_tau_s if self.model.gauss_markov
+              else self.model.rrw_rad_per_s_sqrt_s**2)
+        # Farrenkopf's discrete noise of the (angle, random-walk bias) pair
+        Q[:3, :3] = np.diag(N2 * dt + K2 * dt**3 / 3.0)
+        Q[:3, 3:] = Q[3:, :3] = np.diag(-K2 * dt**2 / 2.0)
+        Q[3:, 3:] = np.diag(K2 * dt)
         return F, Q
 
     def predict(self, gyro_rad_s: np.ndarray, dt_s: float) -> None:

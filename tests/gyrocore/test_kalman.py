@@ -76,6 +76,16 @@ def test_gauss_markov_model_steady_state():
     tr = KF.StillBiasTracker(m, rate_hz=RATE_HZ)
     Pm, Pp = KF.steady_state_variance(float(phi[0]), float(q[0]), N**2 * RATE_HZ)
     assert Pp < 0.01**2 and tr.steady_state_sigma()[0] == pytest.approx(math.sqrt(Pp))
+    # a turn-on constant of 0.05 rad/s (≫ σ_GM) is tracked, not pulled towards 0
+    rng = np.random.default_rng(26)
+    n = 3000
+    g_gm = np.zeros((n, 3))
+    g_gm[0] = 0.01 * rng.standard_normal(3)
+    for k in range(1, n):
+        g_gm[k] = phi * g_gm[k - 1] + np.sqrt(q) * rng.standard_normal(3)
+    b = 0.05 + g_gm
+    out = KF.StillBiasTracker(m, rate_hz=RATE_HZ).run(b + N * math.sqrt(RATE_HZ) * rng.standard_normal((n, 3)))
+    assert np.all(np.abs(out.bias_rad_s[-1] - b[-1]) < 4 * out.bias_sigma_rad_s[-1])
 
 
 def test_model_from_allan():
