@@ -612,7 +612,11 @@ def select_ieee952(
 def _axis_result(
     omega: np.ndarray, rate_hz: float, m: np.ndarray, *, axis: str, signal: str, engine: str
 ) -> AllanResult:
+    if not np.all(np.isfinite(omega)):
+        raise GyroInputError(f"{signal} axis {axis}: non-finite samples; drop or repair them before Allan analysis")
     taus, dev, ns = oadev(omega, rate_hz, m, engine=engine)
+    if not np.all(dev > 0):
+        raise GyroInputError(f"{signal} axis {axis}: constant signal (zero Allan deviation), nothing to identify")
     n_phase = omega.shape[0] + 1
     fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
     lo_q = scipy.stats.chi2.ppf(0.025, fit.edf)

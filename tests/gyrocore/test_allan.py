@@ -122,6 +122,12 @@ def test_short_recording_and_dropped_taus():
     assert a.axes["x"].taus_s[-1] <= rec.duration_s / 2
     with pytest.raises(GyroInputError, match="axis"):
         AL.allan_analysis(rec, axes=("w",))
+    with pytest.raises(GyroInputError, match="constant"):
+        AL.allan_analysis(_rec(np.zeros((3000, 3))))
+    g = _white(rng, 3000, 0.01)
+    g[5, 1] = np.nan
+    with pytest.raises(GyroInputError, match="non-finite"):
+        AL.allan_analysis(_rec(g))
 
 
 def test_bursty_timestamps_use_mean_rate_and_index():
