@@ -420,7 +420,13 @@ class StaticBiasCalibrator:
             sigma2, dof = self._variance_noise(xw, rho)
         thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)
         if self.rule == "converge":
-            still = np.ones(W, dtype=bool)
+            # the convergence test is the rule's own motion check; σ and the VIF are estimated
+            # on the windows the (default) variance gate calls still, so motion cannot inflate them
+            est = StaticBiasCalibrator(window_samples=n, false_reject_rate=self.false_reject_rate,
+                                       noise_sigma_rad_s=self.noise_sigma_rad_s, max_lag=self.max_lag)
+            s2v, dofv = est._variance_noise(xw, rho)
+            thr_v = est.gate(n, sigma_diff, rho, dt, sigma2=s2v, dof=dofv)[0]
+            still = np.all(_window_stats(x, n, "variance") <= thr_v[None, :], axis=1)
         else:
             stats = _window_stats(x, n, "abs_diff" if self.rule == "article" else self.statistic)
             still = np.all(stats <= thr[None, :], axis=1)
@@ -428,10 +434,10 @@ class StaticBiasCalibrator:
         if self.correlation == "white" or n_still == 0:
             vif = np.ones(3)
         else:
-            vif = _vif(xw[still] if self.rule != "converge" else xw, self.max_lag)
+            vif = _vif(xw[still], self.max_lag)
         # per-sample σ of the data (pooled within-window variance of the still windows; for
         # coloured noise σ_Δ/√2 is not the marginal σ)
-        pool = xw[still] if (n_still and self.rule != "converge") else xw
+        pool = xw[still] if n_still else xw
         if self.noise_sigma_rad_s is not None:
             sigma = sigma_diff / math.sqrt(2.0)
         else:
