@@ -664,10 +664,13 @@ def read_csv(path: str | os.PathLike, *, repair: bool = True, retime: bool = Fal
         raise GyroInputError(f"{path}: not UTF-8 text after the header ({exc.reason})") from None
     except ValueError:
         # not a clean table: the exact parser names the line and column (or reads empty fields)
-        with open(path, "r", encoding="utf-8", errors="strict") as fh:
-            for _ in range(n_skip):
-                fh.readline()
-            lines = fh.readlines()
+        try:
+            with open(path, "r", encoding="utf-8", errors="strict") as fh:
+                for _ in range(n_skip):
+                    fh.readline()
+                lines = fh.readlines()
+        except UnicodeDecodeError as exc:  # found by bench/fuzz_reader.py (atheris)
+            raise GyroInputError(f"{path}: not UTF-8 text after the header ({exc.reason})") from None
         data = _slow_parse(lines, n_skip + 1, header, path)
     if data.shape[0] == 0:
         raise GyroInputError(f"{path}: header only, no samples")

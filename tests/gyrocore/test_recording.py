@@ -168,6 +168,18 @@ def test_binary_and_hdf5(tmp_path):
         read_csv(p)
 
 
+def test_fuzz_regression_bad_text_then_invalid_utf8(tmp_path):
+    """Found by bench/fuzz_reader.py (atheris): a bad number sends the reader to its exact
+    parser, which then met an invalid UTF-8 byte at the end and raised UnicodeDecodeError."""
+    p = tmp_path / "crash.csv"
+    p.write_bytes(
+        b"# sens\n# rate_hz: 1 sens\n# rate_hz: 100\nt_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s\n"
+        b"1,0\x0f.1,0.2t_s,gyr00\nt_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s\n0,0\x0f.1,0.2t_s,gy\xf2"
+    )
+    with pytest.raises(GyroInputError, match="not UTF-8 text after the header"):
+        read_csv(p)
+
+
 def test_text_in_number_names_line_and_column(tmp_path):
     p = _write(tmp_path, "# a: b\n" + HEADER + "\n0,0,0,0\n0.01,0,abc,0\n")
     with pytest.raises(GyroInputError, match=r"line 4, column 'gyro_y_rad_s': text in a number \('abc'\)"):
