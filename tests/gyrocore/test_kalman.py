@@ -152,3 +152,34 @@ def test_attitude_tracker_nees_montecarlo():
         nees += float(e @ np.linalg.solve(P_bb, e))
     lo, hi = scipy.stats.chi2.ppf([5e-4, 1 - 5e-4], 3 * S)
     assert lo < nees < hi, nees
+
+
+@pytest.mark.slow
+def test_attitude_tracker_on_broad_matches_rest_bias(shared_data):
+    """Real IMU + OptiTrack (BROAD trial 05): the bias the MEKF learns from the reference during
+    ~170 s of motion (rest excluded) agrees with the mean of the leading rest within 4σ
+    (σ² = tracker variance + SE² of the rest mean; the bias may also drift a little)."""
+    p = shared_data / "broad" / "05_undisturbed_slow_rotation_with_breaks_B.hdf5"
+    if not p.exists():
+        pytest.skip("BROAD trial 05 not present")
+    from gyrocore.bias import startup_still_slice
+    from gyrocore.convert import read_broad
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RepairWarning)
+        rec = read_broad(p)
+        sl = startup_still_slice(rec, max_duration_s=60.0)
+        rest = rec.slice(0, sl.stop)
+        model = KF.BiasNoiseModel.from_allan(AL.allan_analysis(rest))
+    b_rest = rest.gyro_rad_s.mean(axis=0)
+    se_rest = rest.gyro_rad_s.std(axis=0, ddof=1) / math.sqrt(rest.n)
+    t, g, q = rec.t_s[sl.stop:], rec.gyro_rad_s[sl.stop:], rec.ref_quat_wxyz[sl.stop:]
+    first = int(np.flatnonzero(np.all(np.isfinite(q), axis=1))[0])
+    t, g, q = t[first:], g[first:], q[first:]
+    ref_sigma = math.radians(0.5)
+    tr = KF.AttitudeBiasTracker(model, ref_sigma_rad=ref_sigma, q0_wxyz=q[0],
+                                bias0_sigma_rad_s=math.radians(2.0), att0_sigma_rad=ref_sigma)
+    out = tr.run(t, g, q)
+    s = np.sqrt(out.bias_sigma_rad_s[-1] ** 2 + se_rest**2)
+    assert np.all(np.abs(out.bias_rad_s[-1] - b_rest) < 4 * s)
+    assert np.all(out.bias_sigma_rad_s[-1] < math.radians(2.0) / 10)  # learned from the reference
