@@ -16,11 +16,12 @@ Start from the declared effects, fit them jointly to the residual of
    thresholds: at a step with K testable candidates the smallest p-value must be below α/K
    (Holm 1979), so the family-wise error over candidates and steps stays ≤ α. The winner must
    also be of practical size: it must cut the window residual RMS by ``min_rms_reduction`` or
-   the attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: its
-   columns, fitted to the current residual on every other tenth of the recording, must lower
-   the residual RMS of the remaining tenths, and vice versa (2-fold blocked; in-sample with
-   fewer than 40 windows or a known-angle reference; no verdict when a fold lacks the
-   excitation a column needs, as on a rate table turning one axis at a time). This guards
+   the attitude error by ``min_attitude_reduction``, and it must hold *out of sample*: the
+   model plus the candidate, refitted on every other tenth of the recording, must predict the
+   remaining tenths better than the model alone, and vice versa (2-fold blocked; in-sample
+   with fewer than 40 windows or a known-angle reference). Where a fold cannot identify the
+   joint model (a rate table turning one axis and one sense at a time) the candidate's own
+   columns, fitted to the current residual, must predict it instead. This guards
    against HAC's optimism on short, strongly coloured residuals: a ramp fitted to one stretch
    of flicker wander does not predict the next.
 3. **Collinearity.** Every other candidate that also passes is tested again in the presence of
@@ -147,9 +148,9 @@ class Evidence:
     ambiguous_with : tuple of str
         Candidates that explain the same residual (see module docstring).
     cv_rms_reduction : float
-        1 − RMS(after)/RMS(before) of the current residual predicted out of sample by the
-        candidate's columns (2-fold blocked in time: each fold predicted from a fit on the
-        other); NaN when a fold cannot identify the candidate (no verdict).
+        1 − RMS(with)/RMS(without the candidate) of the window residual predicted out of
+        sample (2-fold blocked in time; see the module docstring); NaN when no fold split
+        can identify the candidate (no verdict).
     """
 
     statistic: float
@@ -541,10 +542,11 @@ def _remaining(res: Residual, e: np.ndarray) -> Remaining:
 
 
 def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rms_before: float,
-          e_current: np.ndarray | None = None):
+          e_current: np.ndarray | None = None, cv_base: float | None = None):
     """Fit current + cand and Wald-test cand's observable parameters.
 
-    ``e_current`` is the current model's window residual (M, 3) for the out-of-sample check.
+    ``e_current`` is the current model's window residual (M, 3) and ``cv_base`` its
+    out-of-sample RMS (:func:`_cv_rms`), for the out-of-sample check.
     Returns (Evidence, fit).
     """
     added = _with_companion(current, cand)
@@ -572,14 +574,20 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
     else:
         F, p, lp = 0.0, 1.0, 0.0
     rms_after = _rms(e)
-    # out of sample: the candidate's own columns (with its companion) fitted to the current
-    # model's residual on one fold must predict it on the other
-    Xc, _, _ = model.design(added)
-    e_cur = e_current if isinstance(e_current, np.ndarray) else None
-    if e_cur is not None:
-        cv_red = 1.0 - _cv_rms(e_cur, Xc, min_windows=_cv_min(model.res)) / max(_rms(e_cur), 1e-300)
-    else:
-        cv_red = float("nan")
+    # out of sample: the model plus the candidate, refitted on one fold, must predict the
+    # other better than the model alone; where a fold cannot identify the joint model (a rate
+    # table turning one axis and one sense at a time), the candidate's own columns fitted to
+    # the current residual must
+    cv_red = float("nan")
+    if e_current is not None:
+        mw = _cv_min(model.res)
+        if cv_base is not None and np.isfinite(cv_base):
+            cv_full = _cv_rms(model.res.y_rad_s, model.design(list(current) + added)[0], min_windows=mw)
+            if np.isfinite(cv_full):
+                cv_red = 1.0 - cv_full / max(cv_base, 1e-300)
+        if not np.isfinite(cv_red):
+            Xc, _, _ = model.design(added)
+            cv_red = 1.0 - _cv_rms(e_current, Xc, min_windows=mw) / max(_rms(e_current), 1e-300)
     ev = Evidence(
         statistic=F, df1=q, df2=df2, p_value=p, log10_p=lp, threshold=threshold,
         params={n: float(fit.theta[p_]) for n, p_ in zip(names, cols)},
@@ -768,7 +776,8 @@ def loop_residual(
         remaining = [c for c in cands if c not in model_effects]
         if not remaining:
             break
-        trial = {c: _test(model, model_effects, c, 0.0, rms_cur, e) for c in remaining}
+        cv_base = _cv_rms(res.y_rad_s, model.design(model_effects)[0], min_windows=_cv_min(res))
+        trial = {c: _test(model, model_effects, c, 0.0, rms_cur, e, cv_base) for c in remaining}
         testable = [c for c in remaining if trial[c][0].df1 > 0]
         for c in remaining:
             if c not in testable:
