@@ -219,6 +219,78 @@ def hover_bare_step_rate(n_steps: int = 20_000) -> float:
     return n_steps * model.opt.timestep / (time.perf_counter() - t0)
 
 
+#: Use the compiled per-step kernels (:mod:`sim._fast`) when they cover the flight; False = the
+#: Python reference loop everywhere (tests compare the two bit for bit).
+USE_COMPILED = True
+
+
+def _compiled_path(gyro, n: int, stream_thermal: bool) -> bool:
+    """Whether :mod:`sim._fast` covers this flight: PerfectGyro or a fresh, long enough GyroStream,
+    and no streamed (motor-heated) temperature; anything else runs the Python loop."""
+    if not USE_COMPILED or stream_thermal:
+        return False
+    if type(gyro) is PerfectGyro:
+        return True
+    from .gyro import GyroStream
+
+    return type(gyro) is GyroStream and gyro._k_next == 0 and gyro.n >= n
+
+
+def _fly_compiled(model, data, *, gyro, filt, n, m_per, rq0, rv0, sens, rotor_k, spin, ff, ct, ctl, t_s, temp,
+                  sd_log, outer_log, bar) -> np.ndarray:
+    """The closed loop with one compiled call per physics step (two around a Python pipeline).
+
+    Same sequence as the Python loop in :func:`fly_hover`: forces from the rotor state + held
+    motor commands, ``mj_step``, log/gyro/controller at the gyro sample, motor commands for the
+    next physics step. Returns the per-sample record (n, 14): gyro meas (3), filtered (3),
+    thrust commands (4), rotor speeds (4).
+    """
+    from . import _fast
+
+    stream = None if type(gyro) is PerfectGyro else gyro
+    rec = np.empty((n, 14))
+    kern = _fast.build(data=data, rq0=rq0, rv0=rv0, sens=sens, rotor_k=rotor_k, spin=spin, ff=ff, ct=ct, ctl=ctl,
+                       t_s=np.ascontiguousarray(t_s, dtype=np.float64), temp_c=np.ascontiguousarray(temp, dtype=np.float64),
+                       sd_log=sd_log, outer_log=outer_log, rec=rec, stream=stream)
+    A, W = kern.A, kern.W
+    step = mujoco.mj_step
+    aero = _fast.aero
+    aero(A, W)
+    extra = range(m_per - 1)
+    if filt is None and bar is None and m_per == 1:
+        after = _fast.after_step
+        for k in range(n):
+            step(model, data)
+            after(k, A, W)
+    else:
+        after, gyro_k, control = _fast.after_step, _fast.log_and_gyro, _fast.control
+        nd = np.ndarray
+        s_g = sens["gyro"]
+        for k in range(n):
+            step(model, data)
+            if filt is None:
+                after(k, A, W)
+            else:
+                gyro_k(k, A, W)
+                g = gyro._view[k] if stream is not None else sd_log[k, s_g:s_g + 3]
+                y = filt(g)
+                yl = y.tolist() if type(y) is nd else [float(v) for v in y]
+                control(k, A, W, yl[0], yl[1], yl[2])
+            for _ in extra:
+                step(model, data)
+                aero(A, W)
+            if bar is not None and (k & 1023) == 0:
+                bar.update(min(1024, n - bar.n))
+    if stream is not None:
+        # leave the stream as its own step() would have: all n samples taken
+        stream._k_next = n
+        if stream._t_pu is None:
+            stream._t_pu = float(t_s[0])
+        if stream._lp is not None:
+            stream._lp_state[:] = W[_fast.W_LPZ:_fast.W_LPZ + 6].tolist()
+    return rec
+
+
 def fly_hover(
     *,
     duration_s: float,
@@ -404,7 +476,14 @@ def fly_hover(
     nd = np.ndarray
     extra_steps = range(m_per - 1)
     mot_cmd = tuple(data.ctrl[12:16].tolist())  # hover keyframe's motor commands until the first update
-    for k in range(n):
+    fast = _compiled_path(gyro, n, stream_thermal)
+    if fast:
+        rec = _fly_compiled(
+            model, data, gyro=gyro, filt=filt, n=n, m_per=m_per, rq0=rq0, rv0=rv0,
+            sens={"gyro": s_gyro, "acc": s_acc, "quat": s_q, "pos": s_pos, "vel": s_vel},
+            rotor_k=rotor_k, spin=spin, ff=ff, ct=ct, ctl=ctl, t_s=t_s, temp=temp, sd_log=sd_log,
+            outer_log=outer_log, bar=bar)
+    for k in range(0 if fast else n):
         om = qvel[rv0:rv1].tolist()
         ctrl[:] = rotor_aero(om) + mot_cmd
         step(model, data)
@@ -440,7 +519,8 @@ def fly_hover(
             bar.update(min(1024, n - bar.n))
     if bar is not None:
         bar.close()
-    rec = np.frombuffer(rec_arr, dtype=np.float64).reshape(n, 14).copy()
+    if not fast:
+        rec = np.frombuffer(rec_arr, dtype=np.float64).reshape(n, 14).copy()
     idx_outer = np.arange(n) // outer_every
     qsp_log = outer_log[idx_outer, 0:4]
     rsp_log = outer_log[idx_outer, 4:7]

@@ -255,3 +255,74 @@ def test_quadrotor_model_matches_its_sources():
     # the scene includes the model
     assert "quadrotor.xml" in model_path("scene_quadrotor.xml").read_text()
     assert mujoco.MjModel.from_xml_path(str(model_path("scene_quadrotor.xml"))).nu == model.nu
+
+
+# ---------------------------------------------------------------- compiled path (sim._fast)
+def _all_effects_gyro(rate_hz: float):
+    """ICM-42688-P with every catalogue effect on (as bench/bench_sim.py's hover (b))."""
+    from sim.gyro import SyntheticGyro
+
+    deg = math.pi / 180.0
+    overrides = {
+        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg}, "bias_ramp": {"ramp_rad_s2": 1e-6},
+        "scale_asymmetry": {"a": 1e-3}, "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
+        "time_offset": {"tau_s": 2e-4}, "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
+        "rrw": {"k_rad_s_per_sqrt_s": 1e-5}, "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
+    }
+    return SyntheticGyro("icm42688p", rate_hz=rate_hz, seed=1, overrides=overrides)
+
+
+def _bits(x) -> np.ndarray:
+    """The IEEE bit patterns (so -0.0 != 0.0 and NaN payloads count)."""
+    return np.ascontiguousarray(x, dtype=np.float64).view(np.uint64)
+
+
+def _assert_same_flight(a, b) -> None:
+    (ta, la), (tb, lb) = a, b
+    for f in ("omega_S_rad_s", "f_S_m_s2", "q_SW_wxyz", "temp_c"):
+        np.testing.assert_array_equal(_bits(getattr(ta, f)), _bits(getattr(tb, f)), err_msg=f)
+    for f in ("q_WB_wxyz", "q_sp_wxyz", "pos_W_m", "vel_W_m_s", "rate_sp_rad_s", "gyro_meas_rad_s",
+              "gyro_filt_rad_s", "motor_thrust_cmd_n", "rotor_speed_rad_s"):
+        np.testing.assert_array_equal(_bits(getattr(la, f)), _bits(getattr(lb, f)), err_msg=f)
+    assert la.meta == lb.meta
+
+
+@pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline"])
+def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
+    # sim._fast transcribes rotor forces, GyroStream's generated code and the controller
+    # operation by operation (libm cos/sin, IEEE sqrt, no FMA): the flights must agree in every
+    # bit (incl. signed zeros), for the three kernel entries (with/without pipeline, m = 2
+    # physics steps per sample) and every gyro effect (time offset, earth rate, temperature
+    # rate, thermal polynomials, low-pass, saturation, quantization).
+    import sim.quadrotor as Q
+    from sim.gyro import SyntheticGyro
+
+    def run():
+        if case == "all_effects_pt1_manoeuvres":
+            return fly_hover(duration_s=1.2, seed=2, gyro=_all_effects_gyro(1000.0), pipeline=pt1(30.0, 1000.0),
+                             manoeuvres=(Manoeuvre(0.2, 0.6, roll_rad=0.05, yaw_rad=0.1),))
+        if case == "perfect_gyro_500hz":
+            return fly_hover(duration_s=1.0, seed=5, gyro_rate_hz=500.0, manoeuvres=small_steps(1.0))
+        return fly_hover(duration_s=1.0, seed=4, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4))
+
+    calls = []
+    compiled = Q._fly_compiled
+    monkeypatch.setattr(Q, "_fly_compiled", lambda *a, **kw: calls.append(1) or compiled(*a, **kw))
+    fast = run()
+    assert calls == [1]  # the compiled path did fly
+    monkeypatch.setattr(Q, "USE_COMPILED", False)
+    slow = run()
+    assert calls == [1]
+    _assert_same_flight(fast, slow)
+
+
+def test_compiled_all_effects_gyro_is_the_batch_measurement():
+    # The compiled gyro against SyntheticGyro.measure on the flight's own truth: every effect
+    # on, the same measurement (value equality: the batch path's np.round may give -0.0 where
+    # the stream's round() gives +0.0). The stream object is left as its own step() leaves it.
+    g = _all_effects_gyro(1000.0)
+    stream = g.stream(1000, t_s=np.arange(1000) / 1000.0, temp_c=np.full(1000, 25.0))
+    truth, log = fly_hover(duration_s=1.0, gyro=stream, seed=1)
+    np.testing.assert_array_equal(_all_effects_gyro(1000.0).measure(truth).gyro_rad_s, log.gyro_meas_rad_s)
+    np.testing.assert_array_equal(stream.gyro_rad_s, log.gyro_meas_rad_s)
+    assert stream._k_next == 1000
