@@ -5,7 +5,9 @@ Run: ``python bench/bench_sim.py [--hover-s 20] [--repeat 3]`` (prints one table
 * hover: ``sim.quadrotor.fly_hover`` at physics 1 kHz, gyro 1 kHz, vibration on, with
   (a) the error-free ``PerfectGyro`` (the harness alone), (b) ``sim.gyro.SyntheticGyro``
   (ICM-42688-P preset) with EVERY catalogue effect switched on (the preset's plus overrides
-  for the rest), (c) as (b) plus a PT1 30 Hz pipeline (``gyrocore.filters.pt1``);
+  for the rest), (c) as (b) plus a PT1 30 Hz pipeline (``gyrocore.filters.pt1``); (b) and (c)
+  again on the Python reference loop (``sim.quadrotor.USE_COMPILED = False``: the loop before
+  the compiled kernels of :mod:`sim._fast`, bit-identical results);
 * turntable: ``sim.turntable.run_table`` (mujoco.rollout in C, open loop), six mounts x 1 turn
   each way at 180 deg/s;
 * bare: a Python loop of ``mujoco.mj_step`` on the same model (hover keyframe / turntable
@@ -78,6 +80,7 @@ def main() -> None:
 
     from gyrocore.filters import pt1
     from sim.gyro import SyntheticGyro
+    import sim.quadrotor as Q
     from sim.quadrotor import PerfectGyro, fly_hover, load_quadrotor_model
     from sim.turntable import load_table_model, run_table, table_profile_turns
 
@@ -105,14 +108,34 @@ def main() -> None:
             return T / c.wall_s, T / c.cpu_s
         return run
 
+    # the compiled kernels (sim._fast): loaded from numba's cache, or compiled on a fresh checkout
+    with Clock() as c_first:
+        fly_hover(duration_s=0.01, gyro=gyro_all(), pipeline=pt1(30.0, 1000.0))
+    print(f"first flight in this process (numba kernels compiled or loaded from cache): {c_first.wall_s:.2f} s wall")
+
     b_h = best(bare_hover, args.repeat)
-    for label, gf, pf in (
-        ("hover (a) PerfectGyro", PerfectGyro, None),
-        ("hover (b) SyntheticGyro, all effects", gyro_all, None),
-        ("hover (c) (b) + PT1 30 Hz pipeline", gyro_all, lambda: pt1(30.0, 1000.0)),
+    for label, gf, pf, compiled in (
+        ("hover (a) PerfectGyro", PerfectGyro, None, True),
+        ("hover (b) SyntheticGyro, all effects", gyro_all, None, True),
+        ("hover (c) (b) + PT1 30 Hz pipeline", gyro_all, lambda: pt1(30.0, 1000.0), True),
+        ("hover (b) Python reference loop", gyro_all, None, False),
+        ("hover (c) Python reference loop", gyro_all, lambda: pt1(30.0, 1000.0), False),
     ):
-        r = best(hover(gf, pf), args.repeat)
+        Q.USE_COMPILED = compiled
+        try:
+            r = best(hover(gf, pf), args.repeat)
+        finally:
+            Q.USE_COMPILED = True
         rows.append((label, r, b_h))
+
+    # the pipeline's own step, alone (gyrocore.filters, called once per gyro sample in (c))
+    p = pt1(30.0, 1000.0)
+    x = np.zeros((1, 3))[0]
+    n_p = 20_000
+    with Clock() as c_p:
+        for _ in range(n_p):
+            p.step(x)
+    pipe_us = 1e6 * c_p.cpu_s / n_p
 
     prof = table_profile_turns(revolutions=1, rates_rad_s=(math.pi,), rest_s=1.0)
     mt, dt_ = load_table_model(1e-3)
@@ -143,6 +166,7 @@ def main() -> None:
         # per 1 ms physics step: microseconds = 1e3 / (sim-s per s)
         print(f"{label:<{w}}  {rw:12.1f}  {bw:8.1f}  {rw / bw:5.2f}  |  {rc:11.1f}  {bc:8.1f}  {rc / bc:5.2f}  {1e3 / rc:11.2f}  {1e3 / bc:6.2f}")
     print(f"hover: {T:g} simulated s per run, physics 1 kHz, gyro 1 kHz, vibration on; goal ratio >= 0.5")
+    print(f"PT1 pipeline step alone (gyrocore.filters.SosFilter.step): {pipe_us:.2f} CPU us per call")
 
 
 if __name__ == "__main__":

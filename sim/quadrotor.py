@@ -16,6 +16,12 @@ into the :class:`sim.controller.CascadedController`, whose rotor speed commands 
 next physics step: one physics step of computation delay (1 ms at 1 kHz), as on a flight
 controller that runs the loop right after the gyro sample. The attitude/position loops run at
 250 Hz (:class:`sim.controller.CascadedController`), the rate loop on every gyro sample.
+
+Speed: with :class:`PerfectGyro` or a :class:`sim.gyro.GyroStream` (and no motor-heated
+temperature), everything but ``mj_step`` runs in compiled kernels (:mod:`sim._fast`, numba):
+one call per physics step, two around a Python ``pipeline``. They transcribe the Python loop
+below operation by operation and give the same flight bit for bit (``tests/sim/test_hover.py``);
+``USE_COMPILED = False`` runs the Python loop (the reference) everywhere.
 """
 
 from __future__ import annotations
@@ -228,6 +234,10 @@ def _compiled_path(gyro, n: int, stream_thermal: bool) -> bool:
     """Whether :mod:`sim._fast` covers this flight: PerfectGyro or a fresh, long enough GyroStream,
     and no streamed (motor-heated) temperature; anything else runs the Python loop."""
     if not USE_COMPILED or stream_thermal:
+        return False
+    try:
+        import numba  # noqa: F401
+    except ImportError:  # the Python loop gives the same flight, only slower
         return False
     if type(gyro) is PerfectGyro:
         return True
