@@ -230,10 +230,10 @@ def hover_bare_step_rate(n_steps: int = 20_000) -> float:
 USE_COMPILED = True
 
 
-def _compiled_path(gyro, n: int, stream_thermal: bool) -> bool:
+def _compiled_path(gyro, n: int, stream_thermal: ThermalSpec | None) -> bool:
     """Whether :mod:`sim._fast` covers this flight: PerfectGyro or a fresh, long enough GyroStream,
-    and no streamed (motor-heated) temperature; anything else runs the Python loop."""
-    if not USE_COMPILED or stream_thermal:
+    and no heater in a streamed temperature (motor heating is covered); else the Python loop."""
+    if not USE_COMPILED or (stream_thermal is not None and stream_thermal.heater is not None):
         return False
     try:
         import numba  # noqa: F401
@@ -247,7 +247,7 @@ def _compiled_path(gyro, n: int, stream_thermal: bool) -> bool:
 
 
 def _fly_compiled(model, data, *, gyro, filt, n, m_per, rq0, rv0, sens, rotor_k, spin, ff, ct, ctl, t_s, temp,
-                  sd_log, outer_log, bar) -> np.ndarray:
+                  sd_log, outer_log, bar, thermal=None, ambient_c=None, kappa_ct=0.0) -> np.ndarray:
     """The closed loop with one compiled call per physics step (two around a Python pipeline).
 
     Same sequence as the Python loop in :func:`fly_hover`: forces from the rotor state + held
@@ -261,7 +261,8 @@ def _fly_compiled(model, data, *, gyro, filt, n, m_per, rq0, rv0, sens, rotor_k,
     rec = np.empty((n, 14))
     kern = _fast.build(data=data, rq0=rq0, rv0=rv0, sens=sens, rotor_k=rotor_k, spin=spin, ff=ff, ct=ct, ctl=ctl,
                        t_s=np.ascontiguousarray(t_s, dtype=np.float64), temp_c=np.ascontiguousarray(temp, dtype=np.float64),
-                       sd_log=sd_log, outer_log=outer_log, rec=rec, stream=stream)
+                       sd_log=sd_log, outer_log=outer_log, rec=rec, stream=stream, thermal=thermal, ambient_c=ambient_c,
+                       kappa_ct=kappa_ct)
     A, W = kern.A, kern.W
     step = mujoco.mj_step
     aero = _fast.aero
@@ -486,13 +487,14 @@ def fly_hover(
     nd = np.ndarray
     extra_steps = range(m_per - 1)
     mot_cmd = tuple(data.ctrl[12:16].tolist())  # hover keyframe's motor commands until the first update
-    fast = _compiled_path(gyro, n, stream_thermal)
+    fast = _compiled_path(gyro, n, th_spec if stream_thermal else None)
     if fast:
         rec = _fly_compiled(
             model, data, gyro=gyro, filt=filt, n=n, m_per=m_per, rq0=rq0, rv0=rv0,
             sens={"gyro": s_gyro, "acc": s_acc, "quat": s_q, "pos": s_pos, "vel": s_vel},
             rotor_k=rotor_k, spin=spin, ff=ff, ct=ct, ctl=ctl, t_s=t_s, temp=temp, sd_log=sd_log,
-            outer_log=outer_log, bar=bar)
+            outer_log=outer_log, bar=bar, thermal=th_state if stream_thermal else None,
+            ambient_c=np.asarray(amb, float) if stream_thermal else None, kappa_ct=kappa * ct)
     for k in range(0 if fast else n):
         om = qvel[rv0:rv1].tolist()
         ctrl[:] = rotor_aero(om) + mot_cmd

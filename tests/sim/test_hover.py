@@ -287,7 +287,7 @@ def _assert_same_flight(a, b) -> None:
     assert la.meta == lb.meta
 
 
-@pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline"])
+@pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating"])
 def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     # sim._fast transcribes rotor forces, GyroStream's generated code and the controller
     # operation by operation (libm cos/sin, IEEE sqrt, no FMA): the flights must agree in every
@@ -303,6 +303,12 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
                              manoeuvres=(Manoeuvre(0.2, 0.6, roll_rad=0.05, yaw_rad=0.1),))
         if case == "perfect_gyro_500hz":
             return fly_hover(duration_s=1.0, seed=5, gyro_rate_hz=500.0, manoeuvres=small_steps(1.0))
+        if case == "motor_heating":  # the die temperature streamed from the rotor power, thermal effects on
+            spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0), (1.0, 22.0)), motor_c_per_w=0.05,
+                               self_heating_c=1.0)
+            g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=3,
+                              overrides={"bias_thermal": {"poly_rad_s": [[1e-4, 2e-6]] * 3}, "scale_thermal": {"poly_per_c": [1e-4] * 3}})
+            return fly_hover(duration_s=1.0, seed=6, gyro=g, thermal=spec)
         return fly_hover(duration_s=1.0, seed=4, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4))
 
     calls = []
