@@ -39,7 +39,7 @@ from numba.extending import intrinsic
  # integers
  A_RQ0, A_RV0, A_NSD, A_SGYRO, A_SACC, A_SQ, A_SPOS, A_SVEL, A_OUTER_EVERY, A_N, A_NMAN, A_STREAM,
  A_EARTH, A_TAU, A_STH_P, A_ASYM, A_NL, A_BIAS, A_BTH_P, A_KTR, A_RAMP, A_H, A_G, A_LP, A_SAT, A_Q,
- A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_SIZE) = range(51)
+ A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_SIZE) = range(52)
 
 
 def _layout(*fields):
@@ -67,13 +67,16 @@ _W, W_SIZE = _layout(
     ("LPZ", 6), ("W_FIRST", 3), ("GOUT3", 3),
     # streamed (motor-heated) die temperature: constants, then the ThermalState
     ("TH_TAU", 1), ("TH_SELF", 1), ("TH_MOTOR", 1), ("TH_KC", 1), ("TH_TEMP", 1), ("TH_T", 1), ("TH_AMB", 1),
+    # heater PI (sim.thermal.ThermalState._update_heater): constants, then its state
+    ("HT_KP", 1), ("HT_KI", 1), ("HT_SP", 1), ("HT_MAXW", 1), ("HT_CPW", 1), ("HT_INTEG", 1), ("HT_W", 1),
 )
 (W_RK, W_SPIN, W_FF, W_CT, W_POS_SP, W_YAW_SP, W_DT, W_DT_OUTER, W_IL, W_ALT_KP, W_ALT_KI,
  W_ALT_KD, W_XY_KP, W_XY_KD, W_AMAX, W_TMAX, W_LIM, W_ATT_K, W_MASS, W_GRAV, W_TM, W_JKP,
  W_JKI, W_JKD, W_AINV, W_K, W_EARTH, W_TAUV, W_ASYMV, W_NLV, W_BV, W_STH_LIM, W_BTH_LIM,
  W_KTRV, W_RAMPV, W_HV, W_GV, W_LPV, W_ZI, W_SATV, W_LSB, W_T_PU, W_I_RATE, W_I_ALT, W_PREV_G,
  W_Q_SP, W_RATE_SP, W_COLL, W_THRUST, W_MOT, W_OM, W_LPZ, W_W_FIRST, W_GOUT3, W_TH_TAU, W_TH_SELF,
- W_TH_MOTOR, W_TH_KC, W_TH_TEMP, W_TH_T, W_TH_AMB) = (
+ W_TH_MOTOR, W_TH_KC, W_TH_TEMP, W_TH_T, W_TH_AMB, W_HT_KP, W_HT_KI, W_HT_SP, W_HT_MAXW, W_HT_CPW,
+ W_HT_INTEG, W_HT_W) = (
     _W[_k] for _k in _W)
 assert all(globals()["W_" + _k] == _v for _k, _v in _W.items())  # names follow the layout
 
@@ -520,11 +523,21 @@ def _rate_mix_motor(k, A, W, g0, g1, g2):
         a = math.exp(-h / tau)
         c1 = 1.0 - tau * (1.0 - a) / h
         z = W[W_TH_MOTOR] * p_w
+        if A[A_HEATER] != 0:
+            z += W[W_HT_CPW] * W[W_HT_W]
         u0 = W[W_TH_AMB] + W[W_TH_SELF]
         u1 = amb_next + W[W_TH_SELF]
         W[W_TH_TEMP] = a * W[W_TH_TEMP] + (1.0 - a) * (u0 + z) + (u1 - u0) * c1
         W[W_TH_T] = t_next
         W[W_TH_AMB] = amb_next
+        if A[A_HEATER] != 0:
+            maxw = W[W_HT_MAXW]
+            err = W[W_HT_SP] - W[W_TH_TEMP]
+            integ = W[W_HT_INTEG] + W[W_HT_KI] * err * h
+            p = W[W_HT_KP] * err + integ
+            if 0.0 <= p <= maxw:  # conditional integration (anti-windup)
+                W[W_HT_INTEG] = integ
+            W[W_HT_W] = _pmin(_pmax(p, 0.0), maxw)
 
 
 @njit(cache=True)
@@ -592,7 +605,7 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
     stream : sim.gyro.GyroStream, optional
         The synthetic gyro (None: the true rate, PerfectGyro).
     thermal : sim.thermal.ThermalState, optional
-        Streamed die temperature (motor heating, no heater): its state at t_0; ``temp_c`` is
+        Streamed die temperature (motor heating, heater): its state at t_0; ``temp_c`` is
         then written, sample by sample. ``ambient_c`` (n,) the ambient at the samples, °C;
         ``kappa_ct`` = kappa c_T, rotor power per |Omega|^3, W s^3.
     """
@@ -630,14 +643,18 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
     W[W_Q_SP:W_Q_SP + 4], W[W_RATE_SP:W_RATE_SP + 3] = ctl.q_sp, ctl.rate_sp
     W[W_COLL], W[W_THRUST:W_THRUST + 4] = ctl.collective_n, ctl.thrust_cmd
     if thermal is not None:
-        if thermal.spec.heater is not None:
-            raise ValueError("the compiled kernel streams motor heating only (no heater)")
         amb = np.ascontiguousarray(ambient_c, dtype=np.float64)
         keep.append(amb)
         A[A_THERM], A[A_AMB] = 1, _addr(amb)
         W[W_TH_TAU], W[W_TH_SELF], W[W_TH_MOTOR] = (thermal.spec.time_constant_s, thermal.spec.self_heating_c,
                                                     thermal.spec.motor_c_per_w)
         W[W_TH_KC], W[W_TH_TEMP], W[W_TH_T], W[W_TH_AMB] = kappa_ct, thermal.temp_c, thermal.t_s, thermal._amb_c
+        ht = thermal.spec.heater
+        if ht is not None:
+            A[A_HEATER] = 1
+            W[W_HT_KP], W[W_HT_KI] = ht.gains(thermal.spec.time_constant_s)
+            W[W_HT_SP], W[W_HT_MAXW], W[W_HT_CPW] = ht.setpoint_c, ht.max_power_w, ht.heater_c_per_w
+            W[W_HT_INTEG], W[W_HT_W] = thermal.integ_w, thermal.heater_w
     man = np.array([(m.t_start_s, m.duration_s, m.roll_rad, m.pitch_rad, m.yaw_rad) for m in ctl.manoeuvres], float).reshape(-1, 5)
     keep.append(man)
     A[A_NMAN] = man.shape[0]

@@ -17,8 +17,7 @@ next physics step: one physics step of computation delay (1 ms at 1 kHz), as on 
 controller that runs the loop right after the gyro sample. The attitude/position loops run at
 250 Hz (:class:`sim.controller.CascadedController`), the rate loop on every gyro sample.
 
-Speed: with :class:`PerfectGyro` or a :class:`sim.gyro.GyroStream` (and no motor-heated
-temperature), everything but ``mj_step`` runs in compiled kernels (:mod:`sim._fast`, numba):
+Speed: with :class:`PerfectGyro` or a :class:`sim.gyro.GyroStream`, everything but ``mj_step`` runs in compiled kernels (:mod:`sim._fast`, numba):
 one call per physics step, two around a Python ``pipeline``. They transcribe the Python loop
 below operation by operation and give the same flight bit for bit (``tests/sim/test_hover.py``);
 ``USE_COMPILED = False`` runs the Python loop (the reference) everywhere.
@@ -230,10 +229,10 @@ def hover_bare_step_rate(n_steps: int = 20_000) -> float:
 USE_COMPILED = True
 
 
-def _compiled_path(gyro, n: int, stream_thermal: ThermalSpec | None) -> bool:
-    """Whether :mod:`sim._fast` covers this flight: PerfectGyro or a fresh, long enough GyroStream,
-    and no heater in a streamed temperature (motor heating is covered); else the Python loop."""
-    if not USE_COMPILED or (stream_thermal is not None and stream_thermal.heater is not None):
+def _compiled_path(gyro, n: int) -> bool:
+    """Whether :mod:`sim._fast` covers this flight: PerfectGyro or a fresh, long enough
+    GyroStream; other gyro objects run the Python loop."""
+    if not USE_COMPILED:
         return False
     try:
         import numba  # noqa: F401
@@ -487,7 +486,7 @@ def fly_hover(
     nd = np.ndarray
     extra_steps = range(m_per - 1)
     mot_cmd = tuple(data.ctrl[12:16].tolist())  # hover keyframe's motor commands until the first update
-    fast = _compiled_path(gyro, n, th_spec if stream_thermal else None)
+    fast = _compiled_path(gyro, n)
     if fast:
         rec = _fly_compiled(
             model, data, gyro=gyro, filt=filt, n=n, m_per=m_per, rq0=rq0, rv0=rv0,

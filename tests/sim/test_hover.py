@@ -258,8 +258,8 @@ def test_quadrotor_model_matches_its_sources():
 
 
 # ---------------------------------------------------------------- compiled path (sim._fast)
-def _all_effects_gyro(rate_hz: float):
-    """ICM-42688-P with every catalogue effect on (as bench/bench_sim.py's hover (b))."""
+def _all_effects_gyro(rate_hz: float, without: tuple = ()):
+    """ICM-42688-P with every catalogue effect on (as bench/bench_sim.py's hover (b)), less ``without``."""
     from sim.gyro import SyntheticGyro
 
     deg = math.pi / 180.0
@@ -269,7 +269,7 @@ def _all_effects_gyro(rate_hz: float):
         "time_offset": {"tau_s": 2e-4}, "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
         "rrw": {"k_rad_s_per_sqrt_s": 1e-5}, "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
     }
-    return SyntheticGyro("icm42688p", rate_hz=rate_hz, seed=1, overrides=overrides)
+    return SyntheticGyro("icm42688p", rate_hz=rate_hz, seed=1, overrides={e: v for e, v in overrides.items() if e not in without})
 
 
 def _bits(x) -> np.ndarray:
@@ -287,7 +287,8 @@ def _assert_same_flight(a, b) -> None:
     assert la.meta == lb.meta
 
 
-@pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating"])
+@pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating",
+                                  "heater"])
 def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     # sim._fast transcribes rotor forces, GyroStream's generated code and the controller
     # operation by operation (libm cos/sin, IEEE sqrt, no FMA): the flights must agree in every
@@ -309,6 +310,13 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
             g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=3,
                               overrides={"bias_thermal": {"poly_rad_s": [[1e-4, 2e-6]] * 3}, "scale_thermal": {"poly_per_c": [1e-4] * 3}})
             return fly_hover(duration_s=1.0, seed=6, gyro=g, thermal=spec)
+        if case == "heater":  # PI heater to 23 °C, saturating at first (anti-windup), plus motor heating
+            from sim.thermal import HeaterSpec
+
+            spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.01,
+                               heater=HeaterSpec(setpoint_c=23.0, max_power_w=2.0, heater_c_per_w=2.0,
+                                                 closed_loop_time_constant_s=0.2))
+            return fly_hover(duration_s=1.0, seed=6, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)), thermal=spec)
         return fly_hover(duration_s=1.0, seed=4, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4))
 
     calls = []
