@@ -803,8 +803,10 @@ def loop_residual(
                 np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
             held = ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)
             if res.kind == "angles" and np.isfinite(ev.attitude_reduction):
-                # the known angles are the reference: an effect that makes them worse is refuted
-                held = held and ev.attitude_reduction > -min_attitude_reduction
+                # the known angles are the reference: an effect that makes them worse by more
+                # than a quarter of their uncertainty is refuted
+                worse_deg = -ev.attitude_reduction * att_cur
+                held = held and worse_deg <= 0.25 * np.degrees(res.angle_sigma_rad)
             return held and size
         sig = [c for c in testable if evs[c].p_value < thr and practical(evs[c])]
         last_tests = evs
