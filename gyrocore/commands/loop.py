@@ -12,7 +12,6 @@ from pathlib import Path
 import click
 
 from ..cli import emit_json
-from ..errors import GyroInputError
 
 
 def _split(value: str | None) -> list[str] | None:

@@ -16,7 +16,6 @@ re-measures the rates.
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest

@@ -56,7 +56,6 @@ def test_attitude_kind_drops_windows_with_nan_reference():
     q[500:900] = np.nan  # tracking lost for 2 s at 200 Hz
     res = build_residual(replace(rec, ref_rate_rad_s=None, ref_quat_wxyz=q))
     assert any("NaN" in n for n in res.notes)
-    t = rec.t_s
     for a, b in zip(res.win_start, res.win_stop):
         assert np.isfinite(q[a]).all() and np.isfinite(q[b]).all()
 
