@@ -13,6 +13,10 @@ Run: ``python bench/bench_sim.py [--hover-s 20] [--repeat 3]`` (prints one table
 * bare: a Python loop of ``mujoco.mj_step`` on the same model (hover keyframe / turntable
   at rest), the same number of steps.
 
+Also printed: the wall time of the first flight in the process (numba loading, or on a fresh
+checkout compiling, the kernels of :mod:`sim._fast`) and the CPU time of the PT1 pipeline's
+``step`` alone (``gyrocore.filters``), the main cost left in (c).
+
 Each figure is the best of ``--repeat`` runs (the machine is shared; best-of is the least
 disturbed). Besides wall time, CPU time of this process (``time.process_time``) is shown: on a
 loaded machine it is the steadier measure of the same thing. The goal of issue 2 is hover
