@@ -308,14 +308,16 @@ def _stage_from(result, stage: int) -> dict:
     return out
 
 
-def powerup_window(rec, params_true: Mapping | None = None) -> slice | None:
+def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s: float | None = None) -> slice | None:
     """The first still :data:`POWERUP_WINDOW_S` window in the first :data:`POWERUP_SEARCH_S`.
 
     Motion-gated static calibration (:class:`gyrocore.bias.StaticBiasCalibrator`, variance
     gate, false-reject rate 1e-3), refusing while moving and retrying on the next window, as
     a flight controller does at power-up. The gate uses the sensor's white-noise σ (datasheet
     noise density and LSB: σ² = N²·rate + LSB²/12) when known, so rotor vibration cannot
-    inflate it. None if the start never goes still.
+    inflate it. A variance (or Σ|Δ|) gate cannot see a *steady* rotation, so a window whose
+    mean exceeds ``bias_bound_rad_s`` (a plausible bias: 5× the datasheet bias spread) is
+    refused too and the search goes on after it. None if the start never goes still.
     """
     from gyrocore.bias import StaticBiasCalibrator
     from gyrocore.errors import GyroInputError
@@ -331,26 +333,69 @@ def powerup_window(rec, params_true: Mapping | None = None) -> slice | None:
         sigma = np.sqrt(var)
     cal = StaticBiasCalibrator(window_s=POWERUP_WINDOW_S, rule="mean", statistic="variance",
                                noise_sigma_rad_s=sigma)
+    start = 0
+    while n_search - start >= POWERUP_WINDOW_S * rate:
+        try:
+            r = cal.fit(rec.slice(start, n_search))
+        except GyroInputError:
+            return None
+        a = start + int(r.window_start_index)
+        b = a + int(r.window_samples)
+        if bias_bound_rad_s is None or np.all(np.abs(r.bias_rad_s) <= bias_bound_rad_s):
+            return slice(a, b)
+        start = b  # a steady rotation passed the gate: not a bias
+    return None
+
+
+def bias_bound_rad_s(sensor: str) -> float | None:
+    """5× the datasheet bias spread √(σ_b² + σ_turn-on²) of a preset, rad/s (None if unknown)."""
     try:
-        r = cal.fit(rec.slice(0, n_search))
-    except GyroInputError:
+        from sim.presets import load_preset
+
+        d = load_preset(sensor).distribution("bias") or {}
+    except Exception:  # noqa: BLE001 - a sensor file without a bias level: no bound
         return None
-    return slice(int(r.window_start_index), int(r.window_start_index + r.window_samples))
+    sb = float(d.get("b_sigma_rad_s", 0.0))
+    st = float(d.get("turn_on_sigma_rad_s", 0.0))
+    v = math.hypot(sb, st)
+    return 5.0 * v if v > 0 else None
 
 
-def powerup_windows(rec, params_true: Mapping | None = None) -> list[tuple[slice, slice | None]]:
+def powerup_windows(rec, params_true: Mapping | None = None, *,
+                    bias_bound_rad_s: float | None = None) -> list[tuple[slice, slice | None]]:
     """One (segment, still window) per power-up (extra column ``power_up_index``; else one)."""
+    kw = {"bias_bound_rad_s": bias_bound_rad_s}
     pu = rec.extra.get("power_up_index")
     if pu is None:
-        return [(slice(0, rec.n), powerup_window(rec, params_true))]
+        return [(slice(0, rec.n), powerup_window(rec, params_true, **kw))]
     pu = np.asarray(pu)
     edges = np.flatnonzero(np.diff(pu) != 0) + 1
     starts = np.concatenate([[0], edges]).astype(int)
     stops = np.concatenate([edges, [rec.n]]).astype(int)
     out = []
     for a, b in zip(starts, stops):
-        win = powerup_window(rec.slice(int(a), int(b)), params_true) if b - a > 8 else None
+        win = powerup_window(rec.slice(int(a), int(b)), params_true, **kw) if b - a > 8 else None
         out.append((slice(int(a), int(b)), None if win is None else slice(int(a) + win.start, int(a) + win.stop)))
+    return out
+
+
+#: Mahony proportional gain for the tilt rows, 1/s (tilt time constant ≈ 1 s), and its gate:
+#: the accelerometer is used only while | |f| − g | < 1 m/s².
+MAHONY_KP_PER_S = 1.0
+
+
+def _tilt_rows(rec, truth, w_all: np.ndarray, start: int, kp: float) -> dict:
+    from gyrocore.attitude import mahony, tilt_error_rad
+
+    t = rec.t_s[start:]
+    q_true = truth.q_SW_wxyz[start:]
+    q_int = integrate_gyro(t, w_all[start:], q0_wxyz=q_true[0])
+    q_mah, _ = mahony(t, w_all[start:], rec.accel_m_s2[start:], q0_wxyz=q_true[0], kp_per_s=kp,
+                      accel_gate_m_s2=1.0)
+    out = {}
+    for name, q in (("all (tilt)", q_int), ("all + Mahony (tilt)", q_mah)):
+        e = tilt_error_rad(q, q_true)
+        out[name] = (score_attitude(t, e), e)
     return out
 
 
@@ -363,10 +408,14 @@ def ablate_instance(
     quick: bool = False,
     calibration=None,
     cache_dir: str | None = None,
+    mahony_kp_per_s: float | None = MAHONY_KP_PER_S,
 ) -> InstanceAblation:
     """Run the whole ablation for one instance of ``sensor`` in ``scenario`` (needs :mod:`sim`).
 
-    ``calibration`` (stages, see :func:`corrected_gyro`) skips the calibration runs.
+    ``calibration`` (stages, see :func:`corrected_gyro`) skips the calibration runs. With
+    ``mahony_kp_per_s`` two extra rows score the *tilt* error (roll/pitch only) of the
+    all-corrections gyro: integrated alone (``all (tilt)``) and fused with the accelerometer's
+    view of gravity by :func:`gyrocore.attitude.mahony` (``all + Mahony (tilt)``).
     """
     import warnings
 
@@ -388,7 +437,7 @@ def ablate_instance(
         notes.append(f"not estimated by the calibration runs: {', '.join(missing)}")
     inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=None, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
                         q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
-    still = powerup_windows(rec, p_true)
+    still = powerup_windows(rec, p_true, bias_bound_rad_s=bias_bound_rad_s(sensor))
     n_missing = sum(w is None for _, w in still)
     if n_missing and "bias" in present:
         notes.append(f"no still window at {n_missing} of {len(still)} power-up(s): bias there from the calibration "
@@ -414,6 +463,8 @@ def ablate_instance(
             variants[row] = S.floor_gyro(res)
     start = 0 if still[0][1] is None else int(still[0][1].stop)
     sc = score_variants(rec.t_s, truth.q_SW_wxyz, variants, start=start)
+    if mahony_kp_per_s and rec.accel_m_s2 is not None:
+        sc.update(_tilt_rows(rec, truth, variants["all"], start, mahony_kp_per_s))
     t = rec.t_s[start:] - rec.t_s[start]
     idx = np.clip(np.round(np.asarray(CURVE_FRACTIONS) * (t.size - 1)).astype(int), 0, t.size - 1)
     return InstanceAblation(
@@ -450,6 +501,8 @@ def instance_metrics(ab: InstanceAblation) -> dict[str, float]:
     fl = ab.scores.get("floor")
     if fl is not None:
         for row, s in ab.scores.items():
+            if "(tilt)" in row:  # tilt-only errors are not comparable with the full-angle floor
+                continue
             m[f"{_key(row)}__over_floor"] = s.rms_error_deg / fl.rms_error_deg if fl.rms_error_deg > 0 else float("nan")
     for row in CURVE_ROWS:
         if row in ab.errors_deg:
@@ -487,7 +540,7 @@ def _rows_in(campaign, scenario: str, sensor: str) -> list[str]:
     for s in campaign.summary:
         if s.scenario == scenario and s.sensor == sensor and s.metric.endswith("__final_deg"):
             keys.append(s.metric[: -len("__final_deg")])
-    order = {"none": 0, "all": 1, "true-params": 98, "floor": 99}
+    order = {"none": 0, "all": 1, "true-params": 96, "floor": 97, "all-(tilt)": 98, "all-+-Mahony-(tilt)": 99}
     return sorted(keys, key=lambda k: (order.get(k, 2 if k.startswith("all-but") else 3), keys.index(k)))
 
 
@@ -600,7 +653,9 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         "Corrections are estimated by the calibration core from separate calibration recordings of the same unit "
         "(rate table, thermal), plus the power-up bias from the still start of the scored recording. Scoring starts "
         "at the end of that still window, from the true attitude. RMS/floor = RMS error over the floor's RMS error "
-        "(same instance).\n",
+        "(same instance). The last two rows score only the *tilt* (roll/pitch) error of the all-corrections gyro: "
+        f"integrated alone, and fused with the accelerometer's view of gravity by a Mahony filter (kp = "
+        f"{MAHONY_KP_PER_S:g}/s, accelerometer used while | |f| − g | < 1 m/s²) — the heading it cannot help.\n",
         tables,
         "\n".join(fig_md),
         f"\nPer-instance results: `ablation_montecarlo/` (JSON, CSV). Campaign wall time {camp.wall_s:.1f} s on "
@@ -614,9 +669,15 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
 # ------------------------------------------------------------------ accuracy contract
 #: Short scored runs of the CI accuracy contract (tests/experiments/test_accuracy_contract.py),
 #: with the quick calibration runs. s.
-CONTRACT_DURATIONS_S = {"static": 60.0, "static_bumped": 30.0, "turntable": 60.0, "thermal": 120.0,
+CONTRACT_DURATIONS_S = {"static": 60.0, "static_bumped": 30.0, "turntable": 387.0, "thermal": 300.0,
                         "hover": 15.0, "power_cycles": 60.0}
+#: The contract uses the full calibration runs (a quick 300-s thermal run makes scale_thermal
+#: worse than nothing: the contract would then pin a bad calibration).
+CONTRACT_QUICK_CALIBRATION = False
 CONTRACT_SENSOR = "icm42688p"
+#: An effect "pays off" in a scenario if omitting it raised the RMS error by this factor in
+#: every Monte Carlo instance.
+PAYS_OFF_MIN_RATIO = 1.05
 
 
 def contract_campaign(*, instances: int, seed: int = 1, workers: int | None = None, progress: bool = False):
@@ -630,7 +691,7 @@ def contract_campaign(*, instances: int, seed: int = 1, workers: int | None = No
     try:
         return run_campaign(scenarios=SCENARIOS, sensors=(CONTRACT_SENSOR,), instances=instances, seed=seed,
                             duration_s=None, workers=workers, task_function=ablation_task, progress=progress,
-                            options={"quick": True, "cache_dir": cache,
+                            options={"quick": CONTRACT_QUICK_CALIBRATION, "cache_dir": cache,
                                      "durations": tuple(sorted(CONTRACT_DURATIONS_S.items()))})
     finally:
         shutil.rmtree(cache, ignore_errors=True)
@@ -646,9 +707,11 @@ def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
 
     * ``k_all_over_floor``: bound on RMS(all) / RMS(floor);
     * ``all_final_deg``: bound on the final error with all corrections, degrees;
-    * ``pays_off``: effects whose omission raises the RMS error in *every* instance by at
-      least 5 % (``all but X`` / ``all`` ≥ 1.05): the contract requires they keep paying off.
-      Effects present but below that are reported in ``negligible`` with their median ratio.
+    * ``pays_off``: effects whose omission raised the RMS error by ≥ 5 % in *every* instance
+      (r = RMS(all but X) / RMS(all) ≥ :data:`PAYS_OFF_MIN_RATIO`; r is bounded below near 1
+      and skewed, so no parametric tail is claimed). The contract requires r > 1 for them —
+      the 5 % margin keeps a working correction from failing it. Effects present but below
+      that are in ``negligible`` with their median r.
     """
     out = {}
     for sc in campaign.scenarios:
@@ -670,10 +733,11 @@ def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
             if k not in tasks[0]:
                 continue
             r = col(k) / col("all__rms_deg")
-            if np.all(r >= 1.05):
+            r = r[np.isfinite(r)]
+            if r.size > 2 and r.min() >= PAYS_OFF_MIN_RATIO:
                 pays.append(e)
             else:
-                negl[e] = float(np.nanmedian(r))
+                negl[e] = float(np.median(r)) if r.size else float("nan")
         out[sc] = {
             "instances": len(tasks),
             "k_all_over_floor": bound(ratio),
