@@ -262,6 +262,9 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         for ax, (key, lab) in zip(axs, plots):
             ax.axhline(stats["none"][key], color="k", ls=":", lw=1, label="none")
             ax.set_xscale("log")
+            ax.set_xticks(list(cutoffs))
+            ax.set_xticklabels([f"{c:g}" for c in cutoffs], fontsize=7)
+            ax.minorticks_off()
             ax.set_xlabel("cutoff, Hz")
             ax.set_ylabel(lab, fontsize=8)
             ax.grid(alpha=0.3)
