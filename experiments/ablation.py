@@ -600,10 +600,10 @@ def curve_figure(campaign, scenario: str, sensor: str, out_dir) -> str | None:
     ax = fig.add_subplot(111)
     tt = np.asarray(CURVE_FRACTIONS) * dur
     for row, arr in by_row.items():
-        med = np.nanmedian(arr, axis=0)
-        p90 = np.nanpercentile(arr, 90, axis=0)
-        (ln,) = ax.plot(tt, med, label=f"{row} (median)")
-        ax.fill_between(tt, med, p90, color=ln.get_color(), alpha=0.15)
+        med = np.nanmedian(arr, axis=0)[1:]  # t = 0 is 0 by construction (log axis)
+        p90 = np.nanpercentile(arr, 90, axis=0)[1:]
+        (ln,) = ax.plot(tt[1:], med, marker=".", label=f"{row} (median)")
+        ax.fill_between(tt[1:], med, p90, color=ln.get_color(), alpha=0.15)
     ax.set_yscale("log")
     ax.set_xlabel("time since the end of the power-up still window, s")
     ax.set_ylabel("attitude error, deg")
