@@ -259,9 +259,9 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
                      "--seed", str(SEED), "-o", str(sim_path), "--force", "--no-progress", "--json"],
         "cli_allan": [exe, "allan", str(csv_path), "--json"],
         "cli_calibrate": [exe, "calibrate", str(csv_path), "--effects", ",".join(EFFECTS[a.source]),
-                          "-o", str(work / "cli_params.json"), "--json"],
+                          "-o", str(work / "cli_params.json"), "--force", "--json"],
         "cli_apply": [exe, "apply", str(csv_path), "--params", str(work / "params.json"),
-                      "-o", str(work / "cli_corrected.csv"), "--json"],
+                      "-o", str(work / "cli_corrected.csv"), "--force", "--json"],
     }
     rows = []
     for name in names:
