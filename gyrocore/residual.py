@@ -81,6 +81,11 @@ REFERENCE_KINDS = ("rate", "attitude", "still", "angles")
 
 #: Target number of observation windows for the rate/still kinds (block means).
 _TARGET_WINDOWS = 1500
+#: Recordings longer than this are regressed in chunks of this many samples (memory).
+CHUNK_SAMPLES = 200_000
+#: Effects whose regressor at a sample depends only on that sample's inputs.
+_POINTWISE = frozenset({"bias", "bias_ramp", "scale", "scale_asymmetry", "scale_nonlinearity", "misalignment",
+                        "g_sensitivity", "g2_sensitivity", "earth_rate"})
 
 
 @dataclass(frozen=True)
@@ -306,12 +311,65 @@ class Residual:
         return D[:, :, 0] if squeeze else D
 
     def regressors(self, effect: str, *, order: int = 1) -> tuple[list[str], np.ndarray]:
-        """Window regressors of one effect: (names, X (M, 3, P))."""
+        """Window regressors of one effect: (names, X (M, 3, P)).
+
+        Long recordings (more than :data:`CHUNK_SAMPLES` samples) of a point-wise effect (whose
+        regressor at a sample depends only on that sample's inputs) are processed in chunks,
+        so that the per-sample regressors (N, 3, P) — 1.3 GB for ``g2_sensitivity`` over an
+        hour at 1 kHz — are never held at once; the result is the same.
+        """
         key = ("w", effect, order)
         if key not in self._cache:
-            names, A = self.sample_design(effect, order=order)
-            self._cache[key] = (names, self.window_mean(A))
+            if self.inputs.n > CHUNK_SAMPLES and effect in _POINTWISE:
+                self._cache[key] = self._chunked_regressors(effect, order)
+            else:
+                names, A = self.sample_design(effect, order=order)
+                self._cache[key] = (names, self.window_mean(A))
         return self._cache[key]
+
+    def _chunked_regressors(self, effect: str, order: int) -> tuple[list[str], np.ndarray]:
+        inp = self.inputs
+        n = inp.n
+        t = np.asarray(inp.t_s, float)
+        dt = np.diff(t)
+        need = np.union1d(self.win_start, self.win_stop)
+        C_need: dict[int, np.ndarray] = {}
+        carry = None
+        names = None
+        # C_j = Σ_{k<j} R[k+1]·A[k+1]·Δt_k; chunk of k in [k0, k1) uses samples k0+1 .. k1
+        for k0 in range(0, n - 1, CHUNK_SAMPLES):
+            k1 = min(k0 + CHUNK_SAMPLES, n - 1)
+            sl = slice(k0 + 1, k1 + 1)
+
+            def cut(v):
+                return None if v is None else np.asarray(v)[sl]
+
+            sub = E.ModelInputs(t_s=t[sl], omega_S_rad_s=cut(inp.omega_S_rad_s), f_S_m_s2=cut(inp.f_S_m_s2),
+                                temp_c=cut(inp.temp_c), q_SW_wxyz=cut(inp.q_SW_wxyz),
+                                t_since_power_up_s=inp.since_power_up()[sl])
+            if effect == "earth_rate":
+                if self.R_WS is None:
+                    raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
+                names, A = earth_rate_design(self.R_WS[sl])
+            else:
+                names, A = E.design(effect, sub, order=order)
+            A = np.nan_to_num(A, nan=0.0, posinf=0.0, neginf=0.0)
+            if self.R_GS is not None:
+                A = np.einsum("nij,njp->nip", self.R_GS[sl], A)
+            A *= dt[k0:k1, None, None]
+            np.cumsum(A, axis=0, out=A)
+            if carry is None:
+                carry = np.zeros(A.shape[1:])
+                C_need[0] = carry.copy()
+            for j in need[(need > k0) & (need <= k1)]:
+                C_need[int(j)] = carry + A[j - k0 - 1]
+            carry = carry + A[-1]
+        a = np.stack([C_need[int(j)] for j in self.win_start])
+        b = np.stack([C_need[int(j)] for j in self.win_stop])
+        D = b - a
+        if self.R_GS is not None:
+            D = np.einsum("mji,mjp->mip", self.R_GS[self.win_stop], D)
+        return names, D / self.duration_s[:, None, None]
 
 
 # ---------------------------------------------------------------------------- builders
