@@ -400,9 +400,7 @@ class _Model:
         if fit is None:
             return c
         for e in effects:
-            th = fit.effect_theta(e)
-            _, A = self.res.sample_design(e, order=self.orders.get(e, 1))
-            c += np.einsum("nip,p->ni", A, th)
+            c += self.res.sample_correction(e, fit.effect_theta(e), order=self.orders.get(e, 1))
         return c
 
 

@@ -263,20 +263,44 @@ class Residual:
         return t[self.win_stop] - t[self.win_start]
 
     # ---------------------------------------------------------------- regressors
-    def sample_design(self, effect: str, *, order: int = 1) -> tuple[list[str], np.ndarray]:
-        """Per-sample regressors of one effect, (names, A (N, 3, P)); NaN-free."""
-        key = ("s", effect, order)
-        if key not in self._cache:
-            if effect == "earth_rate":
-                if self.R_WS is None:
-                    raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
-                names, A = earth_rate_design(self.R_WS)
-            else:
-                names, A = E.design(effect, self.inputs, order=order)
-            if not np.all(np.isfinite(A)):
-                A = np.nan_to_num(A, nan=0.0, posinf=0.0, neginf=0.0)
-            self._cache[key] = (names, A)
-        return self._cache[key]
+    def sample_design(self, effect: str, *, order: int = 1, rows: slice | None = None) -> tuple[list[str], np.ndarray]:
+        """Per-sample regressors of one effect, (names, A (N, 3, P)); NaN-free; not cached.
+
+        ``rows`` (point-wise effects only, see :meth:`regressors`) restricts them to a slice of
+        the samples.
+        """
+        inp = self.inputs
+        if rows is not None:
+            if effect not in _POINTWISE:
+                raise ValueError(f"{effect} is not point-wise; its regressors need all samples")
+
+            def cut(v):
+                return None if v is None else np.asarray(v)[rows]
+
+            inp = E.ModelInputs(t_s=np.asarray(inp.t_s)[rows], omega_S_rad_s=cut(inp.omega_S_rad_s),
+                                f_S_m_s2=cut(inp.f_S_m_s2), temp_c=cut(inp.temp_c), q_SW_wxyz=cut(inp.q_SW_wxyz),
+                                t_since_power_up_s=inp.since_power_up()[rows])
+        if effect == "earth_rate":
+            if self.R_WS is None:
+                raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
+            names, A = earth_rate_design(self.R_WS if rows is None else self.R_WS[rows])
+        else:
+            names, A = E.design(effect, inp, order=order)
+        if not np.all(np.isfinite(A)):
+            A = np.nan_to_num(A, nan=0.0, posinf=0.0, neginf=0.0)
+        return names, A
+
+    def sample_correction(self, effect: str, theta: np.ndarray, *, order: int = 1) -> np.ndarray:
+        """Σ_p A[:, :, p]·θ_p for one effect, rad/s, (N, 3) — in chunks for long recordings."""
+        n = self.inputs.n
+        th = np.asarray(theta, float)
+        if n <= CHUNK_SAMPLES or effect not in _POINTWISE:
+            return np.einsum("nip,p->ni", self.sample_design(effect, order=order)[1], th)
+        out = np.empty((n, 3))
+        for s0 in range(0, n, CHUNK_SAMPLES):
+            sl = slice(s0, min(s0 + CHUNK_SAMPLES, n))
+            out[sl] = np.einsum("nip,p->ni", self.sample_design(effect, order=order, rows=sl)[1], th)
+        return out
 
     def window_mean(self, Z: np.ndarray) -> np.ndarray:
         """Apply the window operator to per-sample values.
@@ -328,10 +352,8 @@ class Residual:
         return self._cache[key]
 
     def _chunked_regressors(self, effect: str, order: int) -> tuple[list[str], np.ndarray]:
-        inp = self.inputs
-        n = inp.n
-        t = np.asarray(inp.t_s, float)
-        dt = np.diff(t)
+        n = self.inputs.n
+        dt = np.diff(np.asarray(self.inputs.t_s, float))
         need = np.union1d(self.win_start, self.win_stop)
         C_need: dict[int, np.ndarray] = {}
         carry = None
@@ -341,19 +363,7 @@ class Residual:
             k1 = min(k0 + CHUNK_SAMPLES, n - 1)
             sl = slice(k0 + 1, k1 + 1)
 
-            def cut(v):
-                return None if v is None else np.asarray(v)[sl]
-
-            sub = E.ModelInputs(t_s=t[sl], omega_S_rad_s=cut(inp.omega_S_rad_s), f_S_m_s2=cut(inp.f_S_m_s2),
-                                temp_c=cut(inp.temp_c), q_SW_wxyz=cut(inp.q_SW_wxyz),
-                                t_since_power_up_s=inp.since_power_up()[sl])
-            if effect == "earth_rate":
-                if self.R_WS is None:
-                    raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
-                names, A = earth_rate_design(self.R_WS[sl])
-            else:
-                names, A = E.design(effect, sub, order=order)
-            A = np.nan_to_num(A, nan=0.0, posinf=0.0, neginf=0.0)
+            names, A = self.sample_design(effect, order=order, rows=sl)
             if self.R_GS is not None:
                 A = np.einsum("nij,njp->nip", self.R_GS[sl], A)
             A *= dt[k0:k1, None, None]

@@ -125,6 +125,8 @@ def test_chunked_regressors_equal_whole(monkeypatch, kind):
     whole = build_residual(rec)
     effs = ("g2_sensitivity", "misalignment", "bias_ramp")
     Xws = {eff: whole.regressors(eff)[1] for eff in effs}  # computed before the patch: one pass
+    th = np.linspace(-1e-5, 1e-5, 18)
+    c_whole = whole.sample_correction("g2_sensitivity", th)
     monkeypatch.setattr(R, "CHUNK_SAMPLES", 777)  # forces ~6 chunks over 4001 samples
     chunked = build_residual(rec)
     for eff in effs:
@@ -132,3 +134,5 @@ def test_chunked_regressors_equal_whole(monkeypatch, kind):
         _, Xc = chunked.regressors(eff)
         scale = np.max(np.abs(Xw)) + 1e-300
         assert np.max(np.abs(Xw - Xc)) <= 1e-10 * scale, eff
+    # the per-sample correction is computed chunk by chunk: identical (no running sums)
+    np.testing.assert_array_equal(chunked.sample_correction("g2_sensitivity", th), c_whole)
