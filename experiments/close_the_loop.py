@@ -411,8 +411,9 @@ def run(*, out_dir, quick: bool = False, seed: int = 0, seeds: int | None = None
         extra = [f for f in res.found_effects if f not in case["undeclared"]]
         md += ["", f"Found {', '.join(res.found_effects) or 'nothing'}; missed: {', '.join(missed) or 'none'}; "
                f"not injected but found: {', '.join(extra) or 'none'}"
-               + (" (time_offset here is the on-chip low-pass filter's group delay, which the linear model "
-                  "does not carry: a real effect of the simulated sensor)" if "time_offset" in extra else "") + ".",
+               + (" (time_offset here is the on-chip low-pass filter's group delay — 1/√2 sample for the "
+                  "preset's digital Butterworth at a quarter of the sample rate — which the linear model does not "
+                  "carry: a real effect of the simulated sensor)" if "time_offset" in extra else "") + ".",
                "", f"Remaining residual: Ljung–Box p = {res.remaining.ljung_box_p:.3g}; Allan slope "
                + ", ".join(f"{x:.2f}" for x in res.remaining.allan_slope) + " (−½ white).", ""]
         for p in paths:
