@@ -788,15 +788,15 @@ def loop_residual(
             ev, f = trial[c]
             att_red = float("nan")
             if ev.p_value < thr:
-                att = attitude_error_deg(res, rec, model.correction(f, model_effects + [c]))
+                att = attitude_error_deg(res, rec, model.correction(f, model_effects + _with_companion(model_effects, c)))
                 # relative change, defined only above 1 mdeg (below, the reference is already
                 # matched to numerical precision, e.g. three known angles and three scales)
                 att_red = 1.0 - att / att_cur if att_cur > _MIN_ATTITUDE_DEG else float("nan")
             evs[c] = Evidence(**{**ev.__dict__, "threshold": thr, "attitude_reduction": att_red})
         def practical(ev: Evidence) -> bool:
-            # out of sample (2-fold by time): an effect fitted to coloured noise does not
-            # predict the other half of the recording; and of a size that matters, in the
-            # residual or in the attitude
+            # out of sample (2-fold blocked): an effect fitted to coloured noise does not
+            # predict the other folds; and of a size that matters, in the residual or in the
+            # attitude
             size = ev.rms_reduction >= min_rms_reduction or (
                 np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
             held = ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)
