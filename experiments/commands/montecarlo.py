@@ -8,6 +8,10 @@ from gyrocore.cli import emit_json
 from gyrocore.errors import GyroInputError
 
 
+#: Metrics shown on the terminal when present (the ablation's headline rows); all are in the files.
+KEY_METRICS = ("none__rms_deg", "all__rms_deg", "true_params__rms_deg", "floor__rms_deg")
+
+
 def _split(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -83,5 +87,17 @@ def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed,
             "summary": [mc.to_jsonable_summary(s) for s in result.summary],
         })
     else:
-        click.echo(mc.campaign_markdown(result))
-        click.echo(f"wrote {paths['markdown']}, {paths['json']}, {paths['summary_csv']}, {paths['tasks_csv']}")
+        names = result.metric_names
+        key = [m for m in KEY_METRICS if m in names] or list(names[:6])
+        click.echo(f"{len(result.tasks)} tasks on {result.backend} ({result.workers} worker(s)) in {result.wall_s:.1f} s")
+        click.echo("median [p90] per scenario and sensor:")
+        for sc in result.scenarios:
+            for se in result.sensors:
+                cells = []
+                for m in key:
+                    s = result.table(m).get((sc, se))
+                    if s is not None:
+                        cells.append(f"{m} {s.median:.4g} [{s.p90:.4g}]")
+                click.echo(f"  {sc} / {se}: " + ", ".join(cells))
+        click.echo(f"wrote {paths['markdown']} (all {len(names)} metrics), {paths['json']}, "
+                   f"{paths['summary_csv']}, {paths['tasks_csv']}")
