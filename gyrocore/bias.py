@@ -208,6 +208,41 @@ def _vif(xw: np.ndarray, max_lag: int) -> np.ndarray:
     return np.maximum(vif, 0.05)
 
 
+NOISE_RATIO_BOUND = 4.0
+"""Largest accepted ratio of the window-variance σ² to the AR(1) prediction from differences."""
+
+
+def _check_noise_plausible(sigma2: np.ndarray | None, sigma_diff: np.ndarray, rho: np.ndarray) -> None:
+    """Refuse a self-estimated noise that smooth motion has inflated (one-line GyroInputError).
+
+    The variance gate estimates σ² from a low quantile of the window variances; a recording
+    that moves the whole time (e.g. a slow ±29 °/s sine) inflates every window variance, so
+    the gate would accept it with its motion as "noise". Smooth (low-frequency) motion barely
+    changes the first differences Δ, whose robust σ_Δ (MAD) therefore still measures the
+    noise. For stationary noise σ² = σ_Δ² / (2 (1 − r₁)); for AR(1) noise (an on-chip
+    low-pass, coefficient φ) r₁ = φ and ρ = corr(Δ_k, Δ_k+1) = −(1 − φ)/2, so the expected
+    ratio is σ²/(σ_Δ²/2) = −1/(2ρ) (1 for white noise, ρ = −0.5). ρ is clipped to ≤ −0.1
+    (φ ≤ 0.8: a low-pass at ≳ rate/30) so that motion, which drives the measured ρ towards 0,
+    cannot raise the allowance without bound. A still recording passes unless the variance σ²
+    exceeds that prediction by :data:`NOISE_RATIO_BOUND` = 4 — at W ≥ 10 windows of n ≥ 8
+    samples the 25 %-quantile estimate has a relative error of a few tens of per cent at
+    most, and the real static MPU-6050 and PX4 logs give 0.85…1.5 (docs/calibration.md).
+    """
+    if sigma2 is None:
+        return
+    expected = np.asarray(sigma_diff, float) ** 2 / 2.0 * np.maximum(1.0, -1.0 / (2.0 * np.minimum(rho, -0.1)))
+    ratio = np.asarray(sigma2, float) / expected
+    if np.any(ratio > NOISE_RATIO_BOUND):
+        i = int(np.argmax(ratio))
+        raise GyroInputError(
+            f"motion detected throughout: the window variances imply a noise sigma of "
+            f"{math.degrees(math.sqrt(float(sigma2[i]))):.3g} deg/s on axis {'xyz'[i]} but its sample-to-sample "
+            f"differences only {math.degrees(math.sqrt(float(expected[i]))):.3g} deg/s (variance ratio "
+            f"{ratio[i]:.3g} > {NOISE_RATIO_BOUND:g}): the recording moves smoothly the whole time; "
+            f"if it is really still, give the sensor's noise (--noise-dps)"
+        )
+
+
 # ---------------------------------------------------------------------------- calibrator
 class StaticBiasCalibrator:
     """Static bias with a motion gate, refusing while moving and retrying on the next window.
@@ -418,6 +453,7 @@ class StaticBiasCalibrator:
         sigma2 = dof = None
         if self.statistic == "variance" and self.rule in ("mean", "median"):
             sigma2, dof = self._variance_noise(xw, rho)
+            _check_noise_plausible(sigma2, sigma_diff, rho)
         thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)
         if self.rule == "converge":
             # the convergence test is the rule's own motion check; σ and the VIF are estimated
@@ -425,6 +461,7 @@ class StaticBiasCalibrator:
             est = StaticBiasCalibrator(window_samples=n, false_reject_rate=self.false_reject_rate,
                                        noise_sigma_rad_s=self.noise_sigma_rad_s, max_lag=self.max_lag)
             s2v, dofv = est._variance_noise(xw, rho)
+            _check_noise_plausible(s2v, sigma_diff, rho)
             thr_v = est.gate(n, sigma_diff, rho, dt, sigma2=s2v, dof=dofv)[0]
             still = np.all(_window_stats(x, n, "variance") <= thr_v[None, :], axis=1)
         else:

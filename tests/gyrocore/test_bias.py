@@ -207,3 +207,59 @@ def test_mpu6050_article_gate_never_calibrates_ours_does(shared_data):
         # refused still windows: Binomial(224, 1e-3) ⇒ ≤ 2 at the 0.1 % level
         assert r.n_windows_total - r.n_windows_still <= scipy.stats.binom.ppf(0.999, W, 1e-3)
         np.testing.assert_allclose(r.bias_rad_s, raw[:n].mean(axis=0) * lsb_rad_s, rtol=1e-12)
+
+
+# ---------------------------------------------------------------------------- noise sanity bound
+@pytest.mark.parametrize("kw", [{}, {"rule": "median"}, {"rule": "converge"}])
+def test_smooth_motion_throughout_refused_without_given_noise(kw):
+    """A ±29 °/s (0.5 rad/s) 0.2 Hz sine for 300 s, σ self-estimated: every window variance
+    holds the motion (the 25 % quantile gave σ ≈ 8 °/s and the gate accepted it before); the
+    first differences hold only the noise (the sine changes Δ by ≤ 0.5·2π·0.2/100 = 0.006
+    rad/s ≪ σ_Δ = 0.028 rad/s), so the variance/difference ratio (≈ 60 ≫ 4) refuses it."""
+    rng = np.random.default_rng(21)
+    t = np.arange(30000) / RATE_HZ
+    g = _still(rng, t.size) + 0.5 * np.sin(2 * np.pi * 0.2 * t)[:, None]
+    with pytest.raises(GyroInputError) as e:
+        StaticBiasCalibrator(**kw).fit(_rec(g))
+    msg = str(e.value)
+    assert "motion detected throughout" in msg and "moves smoothly" in msg and "\n" not in msg
+
+
+def test_noise_bound_keeps_still_recordings_at_the_stated_rate():
+    """Still recordings (white and on-chip low-pass AR(1) φ = 0.5, 0.8 noise) are never refused
+    by the σ sanity bound, and the gate's own false-reject rate is unchanged: 60 short
+    recordings (10 windows of 200 samples, the smallest that self-estimates σ from window
+    variances) per noise; refused windows ~ Binomial(60·10, 1e-3) ⇒ ≤ 3 at the 0.1 % level.
+    Theory: the bound is 4× the AR(1) prediction, the ratio's sampling spread here is ~10 %."""
+    from gyrocore.bias import NOISE_RATIO_BOUND
+
+    for phi in (0.0, 0.5, 0.8):
+        refused = 0
+        for seed in range(60):
+            rng = np.random.default_rng(2000 + seed)
+            e = SIGMA * rng.standard_normal((2000, 3))
+            if phi:
+                e = scipy.signal.lfilter([1 - phi], [1, -phi], e, axis=0)
+            r = StaticBiasCalibrator().fit(_rec(BIAS + e))  # raises if the bound refused it
+            refused += r.n_windows_total - r.n_windows_still
+        assert refused <= scipy.stats.binom.ppf(0.999, 600, 1e-3), (phi, refused)
+    assert NOISE_RATIO_BOUND == 4.0
+
+
+def test_real_static_logs_pass_the_noise_bound(shared_data):
+    """Real static MPU-6050 logs (sunsided, tomisuarez2) still calibrate with self-estimated σ."""
+    import warnings
+
+    from gyrocore.convert import load_any
+    from gyrocore.errors import RepairWarning
+
+    paths = [shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward",
+             shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv"]
+    if not all(p.exists() for p in paths):
+        pytest.skip("static logs absent")
+    for p in paths:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RepairWarning)
+            rec = load_any(p)
+        r = StaticBiasCalibrator().fit(rec)
+        assert r.n_rejected_windows == 0
