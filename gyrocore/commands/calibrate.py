@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 
 import click
 import numpy as np
@@ -83,6 +84,14 @@ def command(file, effects, output, segments, thermal_order, covariance, px4_para
     rec = read_csv(file)
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor)
     res = cal.fit(rec, source_path=file)
+    if res.unobservable:
+        # one line on stderr (the CLI prints "warning: ..."); stdout (and --json) unchanged
+        warnings.warn(
+            f"{len(res.unobservable)} parameter(s) unobservable from this data, not fitted and left uncorrected: "
+            + ", ".join(res.unobservable),
+            UserWarning,
+            stacklevel=2,
+        )
     save_params(res, output, overwrite=True)
     if px4_params:
         from ..thermal import write_px4_params

@@ -204,9 +204,22 @@ def test_cli_calibrate_apply(tmp_path, capsys):
 def test_cli_names_unobservable(tmp_path, capsys):
     write_csv(table_run(9, axes="z"), tmp_path / "z.csv")
     rc = _run_cli(["calibrate", str(tmp_path / "z.csv"), "--effects", "bias,scale", "-o", str(tmp_path / "p.json")])
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
     assert rc == 0
     assert "UNOBSERVABLE" in out and "scale.s[0]" in out and "scale.s[1]" in out and "scale.s[2]" not in out.split("UNOBSERVABLE")[1]
+    # and one warning line on stderr naming them
+    warn_lines = [ln for ln in cap.err.splitlines() if ln.startswith("warning:")]
+    assert len(warn_lines) == 1 and "unobservable" in warn_lines[0], cap.err
+    assert "scale.s[0]" in warn_lines[0] and "scale.s[1]" in warn_lines[0] and "scale.s[2]" not in warn_lines[0]
+    # --json: stdout stays pure JSON, the warning still goes to stderr
+    rc = _run_cli(["calibrate", str(tmp_path / "z.csv"), "--effects", "bias,scale", "-o", str(tmp_path / "p.json"),
+                   "--force", "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0
+    d = json.loads(cap.out)
+    assert "scale.s[0]" in d["unobservable"]
+    assert sum(ln.startswith("warning:") and "unobservable" in ln for ln in cap.err.splitlines()) == 1
 
 
 @pytest.mark.slow
