@@ -476,7 +476,9 @@ def _robust_noise(x: np.ndarray) -> float:
     return float(nz.min()) if nz.size else 0.0
 
 
-def detect_saturation(x: np.ndarray, *, min_run: int = 3) -> tuple[np.ndarray, list[tuple[int, float, int]]]:
+def detect_saturation(
+    x: np.ndarray, *, min_run: int = 3, min_clip: np.ndarray | float = 0.0
+) -> tuple[np.ndarray, list[tuple[int, float, int]]]:
     """Samples clipped at a plateau: runs of identical values at a column's extreme.
 
     Parameters
@@ -485,6 +487,10 @@ def detect_saturation(x: np.ndarray, *, min_run: int = 3) -> tuple[np.ndarray, l
         Samples (any unit), one column per axis.
     min_run : int
         Shortest run of identical extreme values counted as a plateau.
+    min_clip : float or ndarray, shape (K,)
+        Smallest |plateau| that can be a clip level, per column (same unit as ``x``): no
+        sensor clips below its smallest full-scale setting, so a plateau below it (e.g. an
+        exactly constant simulated 1 g at rest) is a steady reading, not saturation.
 
     Returns
     -------
@@ -507,6 +513,7 @@ def detect_saturation(x: np.ndarray, *, min_run: int = 3) -> tuple[np.ndarray, l
         x = x[:, None]
     mask = np.zeros(x.shape[0], bool)
     found = []
+    floor = np.broadcast_to(np.asarray(min_clip, float), (x.shape[1],))
     for j in range(x.shape[1]):
         col = x[:, j]
         fin = np.isfinite(col)
@@ -525,7 +532,7 @@ def detect_saturation(x: np.ndarray, *, min_run: int = 3) -> tuple[np.ndarray, l
         for ext in (float(c.max()), float(c.min())):
             at = col == ext
             n_at = int(at.sum())
-            if n_at < min_run or abs(ext - med) <= 10.0 * max(sigma, 1e-300):
+            if n_at < min_run or abs(ext - med) <= 10.0 * max(sigma, 1e-300) or abs(ext) < floor[j]:
                 continue
             # longest run of consecutive samples at the extreme
             edges = np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))
@@ -610,7 +617,10 @@ def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool
             t = _timing_checks(t, path, retime)
         sat_parts = [gyro] + ([accel] if accel is not None else [])
         with np.errstate(all="ignore"):
-            sat, found = detect_saturation(np.hstack(sat_parts))
+            # smallest full scales on the market: gyro ±125 deg/s (BMI088, ICM-42688-P low
+            # ranges), accel ±2 g; a plateau below 90 % of these cannot be clipping.
+            min_clip = [0.9 * 125.0 * DEG] * 3 + ([0.9 * 2.0 * G0_M_S2] * 3 if accel is not None else [])
+            sat, found = detect_saturation(np.hstack(sat_parts), min_clip=np.asarray(min_clip))
         if found:
             names = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
             desc = ", ".join(f"{names[j]} {n} at {v:.6g}" for j, v, n in found)

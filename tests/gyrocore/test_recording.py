@@ -403,3 +403,26 @@ def test_no_silent_overwrite(tmp_path):
         write_csv(_rec(), p, overwrite=False)
     with pytest.raises(GyroInputError, match="pass --force"):
         write_csv_chunks([_rec()], p, overwrite=False)
+
+
+def test_exact_one_g_plateau_is_not_saturation():
+    """A noise-free simulated accelerometer at rest reads exactly 9.81 m/s² for long runs.
+
+    No accelerometer clips below ±2 g (the smallest full scale sold), so a plateau at 1 g is a
+    steady reading: it must not be flagged. A gyro plateau at a real full scale still is.
+    """
+    from gyrocore.recording import detect_saturation
+
+    rng = np.random.default_rng(7)
+    n = 2000
+    acc = np.zeros((n, 1))
+    acc[:, 0] = 9.80665
+    acc[500:700, 0] = 9.80665 * np.cos(np.linspace(0, np.pi, 200))  # a smooth re-pose
+    acc[700:1500, 0] = -9.80665
+    mask, found = detect_saturation(acc, min_clip=0.9 * 2 * 9.80665)
+    assert not found and not mask.any()
+    # a gyro clipped at ±250 deg/s = 4.363 rad/s, noise 0.01 rad/s: found at the limit
+    g = rng.normal(0, 0.01, n) + 6.0 * np.sin(np.linspace(0, 6 * np.pi, n))
+    g = np.clip(g, -4.3633, 4.3633)[:, None]
+    mask, found = detect_saturation(g, min_clip=0.9 * 125 * np.pi / 180)
+    assert found and mask.sum() == np.sum(np.abs(g[:, 0]) == 4.3633)
