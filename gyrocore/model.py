@@ -244,6 +244,21 @@ def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
     return np.stack([np.interp(t - tau_s, t, w[:, i]) for i in range(3)], axis=1)
 
 
+def _external_bias_dict(ext) -> dict:
+    """``bias_rad_s``, ``bias_stderr_rad_s``, ``noise_lr_rad2_s`` from a StaticBiasResult or a mapping."""
+    if hasattr(ext, "bias_rad_s") and hasattr(ext, "noise_sigma_rad_s"):
+        # StaticBiasResult: long-run variance σ²·VIF per sample → (rad/s)²·s with the window's rate
+        rate = ext.window_samples / ext.window_s
+        lr = np.asarray(ext.noise_sigma_rad_s, float) ** 2 * np.asarray(ext.vif, float) / rate
+        return {"bias_rad_s": np.asarray(ext.bias_rad_s, float), "bias_stderr_rad_s": np.asarray(ext.bias_se_rad_s, float),
+                "noise_lr_rad2_s": lr}
+    try:
+        d = {k: np.asarray(ext[k], float) for k in ("bias_rad_s", "bias_stderr_rad_s", "noise_lr_rad2_s")}
+    except (KeyError, TypeError):
+        raise GyroInputError("external bias needs bias_rad_s, bias_stderr_rad_s and noise_lr_rad2_s") from None
+    return d
+
+
 class Calibrator:
     """Fit catalogue effects against the references in a recording.
 
@@ -276,6 +291,13 @@ class Calibrator:
         Still detection (no reference rate / integral method).
     sensor : str, optional
         Sensor name; default the file's ``# sensor:`` metadata.
+    external_bias : StaticBiasResult or mapping, optional
+        Integral method only: take the bias from elsewhere (e.g. a static recording of the
+        same session) instead of the still parts of the data — for hand turns without a
+        still part. A :class:`gyrocore.bias.StaticBiasResult`, or a mapping with
+        ``bias_rad_s``, ``bias_stderr_rad_s`` and ``noise_lr_rad2_s`` ((rad/s)²·s, the
+        long-run noise variance, N² for white noise). Its standard error and the noise are
+        propagated into the standard errors of K and M.
     """
 
     def __init__(
@@ -293,6 +315,7 @@ class Calibrator:
         still_window_s: float = 1.0,
         still_false_reject_rate: float = 1e-3,
         sensor: str | None = None,
+        external_bias=None,
     ) -> None:
         effs = E.check_effect_names(effects)
         if not effs:
@@ -317,6 +340,13 @@ class Calibrator:
                 raise GyroInputError(
                     f"with a segments file (integral method) only {', '.join(_INTEGRAL_EFFECTS)} can be fitted, not {', '.join(bad)}"
                 )
+        if external_bias is not None:
+            if segments is None:
+                raise GyroInputError("an external bias is used by the integral method only (give a segments file)")
+            if "g_sensitivity" in effs:
+                raise GyroInputError("g_sensitivity with an external bias is not supported (it is fitted on the still poses with the bias)")
+            external_bias = _external_bias_dict(external_bias)
+        self.external_bias = external_bias
         self.effects = tuple(effs)
         self.thermal_order = thermal_order
         self.max_thermal_order = int(max_thermal_order)
@@ -355,8 +385,11 @@ class Calibrator:
         from .rotations import segments_from_any, still_mask
 
         segs = segments_from_any(self.segments)
-        still = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate,
-                           exclude=[(s_.t_start_s, s_.t_end_s) for s_ in segs])
+        if self.external_bias is not None:
+            still = None  # no still part needed: the bias comes from elsewhere
+        else:
+            still = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate,
+                               exclude=[(s_.t_start_s, s_.t_end_s) for s_ in segs])
         params: dict = {}
         stderr: dict = {}
         notes = []
@@ -374,7 +407,9 @@ class Calibrator:
             stderr["g_sensitivity"] = {"h_rad_s_per_m_s2": fit.effect_stderr("g_sensitivity").reshape(3, 3)}
             unobs, reasons = fit.unobservable, dict(fit.unobservable_reason)
             notes.append(f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}")
-        res = integral_calibration(rec, segs, still=still, h_rad_s_per_m_s2=H)
+        res = integral_calibration(rec, segs, still=still, h_rad_s_per_m_s2=H, **(self.external_bias or {}))
+        if self.external_bias is not None:
+            notes.append("bias taken from outside the data (external bias; its standard error is propagated into K and M)")
         if "bias" in self.effects:
             params["bias"] = {"b_rad_s": res.bias_rad_s}
             stderr["bias"] = {"b_rad_s": res.bias_stderr_rad_s}

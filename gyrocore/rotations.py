@@ -158,7 +158,8 @@ class IntegralResult:
         Catalogue K (y = K·ω + b): K = I + diag(s) + misalignment.
     K_stderr : ndarray, shape (3, 3)
     bias_rad_s, bias_stderr_rad_s : ndarray, shape (3,)
-        Bias from the still parts, rad/s, and its standard error (long-run variance).
+        Bias from the still parts, rad/s, and its standard error (long-run variance); or the
+        external bias and standard error that were given (then ``n_still`` may be 0).
     B_rad : ndarray, shape (3, K)
         Integrated bias-free outputs per segment, rad.
     C_rad : ndarray, shape (3, K)
@@ -211,6 +212,13 @@ class IntegralResult:
         return np.array([self.K_stderr["xyz".index(p[0]), "xyz".index(p[1])] for p in MISALIGNMENT_ORDER])
 
 
+def _vec3(what: str, v, *, positive: bool = False) -> np.ndarray:
+    a = np.broadcast_to(np.asarray(v, float), (3,)).copy() if np.ndim(v) == 0 else np.asarray(v, float)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or (positive and not np.all(a >= 0)):
+        raise GyroInputError(f"integral method: {what} must be 3 finite{' non-negative' if positive else ''} numbers, got {v!r}")
+    return a
+
+
 def _long_run_var(e: np.ndarray) -> float:
     """σ²_LR = γ(0) + 2Σγ(l) of one still residual series (model of gyrocore.lsq)."""
     from .lsq import residual_autocov_model
@@ -228,6 +236,9 @@ def integral_calibration(
     false_reject_rate: float = 1e-3,
     margin_s: float = 0.5,
     h_rad_s_per_m_s2: np.ndarray | None = None,
+    bias_rad_s: np.ndarray | None = None,
+    bias_stderr_rad_s: np.ndarray | None = None,
+    noise_lr_rad2_s: np.ndarray | None = None,
 ) -> IntegralResult:
     """The article's integral method, generalised to any number of known-angle segments.
 
@@ -243,6 +254,16 @@ def integral_calibration(
     h_rad_s_per_m_s2 : ndarray, shape (3, 3), optional
         A known g-sensitivity H (e.g. fitted on the still poses): H·f is removed from the
         gyro before the bias is taken and before integrating (as imucal's Ferraris does).
+    bias_rad_s : ndarray, shape (3,), optional
+        External bias, rad/s (e.g. :class:`gyrocore.bias.StaticBiasCalibrator` on a static
+        recording of the same session), for recordings without a still part (hand turns
+        that start and end moving). Then ``still`` is not searched and
+        ``bias_stderr_rad_s`` and ``noise_lr_rad2_s`` are required.
+    bias_stderr_rad_s : ndarray, shape (3,), optional
+        Its standard error, rad/s; enters every integral as δb·T_k (shared by the segments).
+    noise_lr_rad2_s : ndarray, shape (3,), optional
+        Long-run noise variance of the gyro, (rad/s)²·s (= N² for white noise; σ²·VIF/rate
+        from a static fit), for the noise of each integral, n_k·dt²·σ²_LR.
 
     Returns
     -------
@@ -253,24 +274,38 @@ def integral_calibration(
         raise GyroInputError("integral method: the segments file lists no rotations")
     t = recording.t_s
     y = recording.gyro_rad_s
-    if still is None:
+    dt = float(np.median(np.diff(t)))
+    external = bias_rad_s is not None
+    if external:
+        if bias_stderr_rad_s is None or noise_lr_rad2_s is None:
+            raise GyroInputError("integral method: an external bias needs its standard error and the noise level too")
+        b = _vec3("bias", bias_rad_s)
+        se_b = _vec3("bias standard error", bias_stderr_rad_s, positive=True)
+        lr = _vec3("long-run noise variance", noise_lr_rad2_s, positive=True) / dt  # (rad/s)² per sample
+        still = np.zeros(t.size, bool) if still is None else np.asarray(still, bool)
+    elif still is None:
         still = still_mask(recording, window_s=window_s, false_reject_rate=false_reject_rate,
                            exclude=[(s.t_start_s, s.t_end_s) for s in segs], margin_s=margin_s)
     still = np.asarray(still, bool)
     n_still = int(still.sum())
-    if n_still < 10:
-        raise GyroInputError("integral method: no still part found to take the bias from (need still data outside the segments)")
-    dt = float(np.median(np.diff(t)))
+    if not external and n_still < 10:
+        raise GyroInputError(
+            "integral method: no still part found to take the bias from (need still data outside the segments, "
+            "or an external bias: --bias-from STATIC.csv / --bias-dps)"
+        )
     if h_rad_s_per_m_s2 is not None:
         if recording.accel_m_s2 is None:
             raise GyroInputError("g-sensitivity removal needs the accel_*_m_s2 columns, which the data lack")
         y = y - recording.accel_m_s2 @ np.asarray(h_rad_s_per_m_s2, float).T
-    b = y[still].mean(axis=0)
-    # long-run variance from each contiguous still stretch's residual (stretch means removed
-    # would hide drift; use one mean, the bias, as the model does)
-    e = y[still] - b
-    lr = np.array([_long_run_var(e[:, i]) for i in range(3)])  # (rad/s)² per sample, long-run
-    se_b = np.sqrt(lr / n_still)
+    if external:
+        e = y[still] - b if n_still else np.full((1, 3), np.nan)
+    else:
+        b = y[still].mean(axis=0)
+        # long-run variance from each contiguous still stretch's residual (stretch means removed
+        # would hide drift; use one mean, the bias, as the model does)
+        e = y[still] - b
+        lr = np.array([_long_run_var(e[:, i]) for i in range(3)])  # (rad/s)² per sample, long-run
+        se_b = np.sqrt(lr / n_still)
     nseg = len(segs)
     B = np.zeros((3, nseg))
     C = np.zeros((3, nseg))

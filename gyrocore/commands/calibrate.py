@@ -48,12 +48,58 @@ def report_text(res, params_path: str, px4_path: str | None) -> str:
     return "\n".join(lines)
 
 
+def _three(text: str, what: str) -> np.ndarray:
+    from ..errors import GyroInputError
+
+    try:
+        v = np.array([float(x) for x in str(text).split(",")])
+    except ValueError:
+        v = np.array([])
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise GyroInputError(f"{what} needs three comma-separated numbers x,y,z, got {text!r}")
+    return v
+
+
+def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str, arw_dps_rt_hz: float):
+    """The external bias of ``--bias-from`` / ``--bias-dps`` (None when neither is given).
+
+    ``--bias-from``: :class:`gyrocore.bias.StaticBiasCalibrator` (default gate, first still
+    window) on the static recording → bias, standard error and long-run noise.
+    ``--bias-dps``: the given bias, standard error and white-noise density (N² per second).
+    """
+    from ..errors import GyroInputError
+
+    if bias_from and bias_dps:
+        raise GyroInputError("give --bias-from or --bias-dps, not both")
+    if bias_from:
+        from ..bias import StaticBiasCalibrator
+        from ..recording import read_csv
+
+        return StaticBiasCalibrator().fit(read_csv(bias_from))
+    if bias_dps:
+        if not (math.isfinite(arw_dps_rt_hz) and arw_dps_rt_hz >= 0):
+            raise GyroInputError(f"--arw-dps-rt-hz must be >= 0, got {arw_dps_rt_hz}")
+        se = _three(bias_se_dps, "--bias-se-dps")
+        if np.any(se < 0):
+            raise GyroInputError("--bias-se-dps must be >= 0")
+        return {"bias_rad_s": _three(bias_dps, "--bias-dps") / D, "bias_stderr_rad_s": se / D,
+                "noise_lr_rad2_s": np.full(3, (arw_dps_rt_hz / D) ** 2)}
+    return None
+
+
 @click.command("calibrate")
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment")
 @click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="parameter file (JSON) to write")
 @click.option("--segments", type=click.Path(dir_okay=False), default=None,
               help="known rotations t_start_s,t_end_s,axis,angle_deg -> the integral method M = C·B⁻¹")
+@click.option("--bias-from", type=click.Path(dir_okay=False), default=None,
+              help="integral method: take the bias (and its standard error, and the noise) from this static recording "
+                   "of the same session (gyrocore.bias.StaticBiasCalibrator) — for turns without a still part")
+@click.option("--bias-dps", default=None, help="integral method: the bias x,y,z in deg/s, known from elsewhere")
+@click.option("--bias-se-dps", default="0,0,0", show_default=True, help="with --bias-dps: its standard error x,y,z, deg/s")
+@click.option("--arw-dps-rt-hz", type=float, default=0.0, show_default=True,
+              help="with --bias-dps: white rate noise density N, deg/s/sqrt(Hz), for the noise of each integral")
 @click.option("--thermal-order", default="auto", show_default=True, help="auto (chosen from the data, up to 3) or 1..3")
 @click.option("--covariance", type=click.Choice(["auto", "ols", "hac", "newey_west", "block"]), default="auto",
               show_default=True, help="standard errors: auto switches to hac when the residual is coloured")
@@ -62,7 +108,8 @@ def report_text(res, params_path: str, px4_path: str | None) -> str:
 @click.option("--sensor", default=None, help="sensor name for the parameter file (default: file metadata)")
 @click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
-def command(file, effects, output, segments, thermal_order, covariance, px4_params, sensor, force, as_json):
+def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, thermal_order, covariance,
+            px4_params, sensor, force, as_json):
     """Fit the named effects against the references in FILE (reference rates, known-angle
     segments, or still parts) and write the parameter file."""
     from ..effects import check_effect_names
@@ -81,8 +128,12 @@ def command(file, effects, output, segments, thermal_order, covariance, px4_para
             raise GyroInputError(f"--thermal-order must be auto or 1..3, got {thermal_order!r}") from None
     if px4_params and "bias_thermal" not in names:
         raise GyroInputError("--px4-params needs bias_thermal among the effects (PX4 TC_G is a bias polynomial of temperature)")
+    if (bias_from or bias_dps) and not segments:
+        raise GyroInputError("--bias-from/--bias-dps are for the integral method: give --segments too")
+    ext = external_bias(bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz)
     rec = read_csv(file)
-    cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor)
+    cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
+                     external_bias=ext)
     res = cal.fit(rec, source_path=file)
     if res.unobservable:
         # one line on stderr (the CLI prints "warning: ..."); stdout (and --json) unchanged

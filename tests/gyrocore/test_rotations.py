@@ -255,3 +255,130 @@ def test_tomisuarez2_multipose_beside_authors(shared_data):
     print("\nours K\n", r.K, "\nsigma\n", r.K_stderr, "\nauthors K\n", K_auth,
           "\nbias ours deg/s", np.degrees(r.bias_rad_s), "authors", b_lsb / 131.0,
           "\nrms gravity misfit deg", np.degrees(r.rms_residual_rad), "poses", len(r.intervals))
+
+
+# ------------------------------------------------------------------ external bias (no still part)
+def _no_still_session(seed, *, rate_hz=100.0):
+    """One turn about each axis (4 s each, smooth), only 0.3 s rest between them and at the
+    ends: no still window of 1 s exists. Segments: each rotation ± 0.1 s (no overlap)."""
+    rng = np.random.default_rng(seed)
+    rot_s, rest_s = 4.0, 0.3
+    n_rot, n_rest = int(rot_s * rate_hz), int(rest_s * rate_hz)
+    pieces, segs = [np.zeros((n_rest, 3))], []
+    t_cur = rest_s
+    for i in range(3):
+        u = np.arange(n_rot) / n_rot
+        w = np.zeros((n_rot, 3))
+        w[:, i] = -2 * np.pi / rot_s * (1 - np.cos(2 * np.pi * u))  # −1 turn
+        pieces += [w, np.zeros((n_rest, 3))]
+        segs.append(Segment(t_cur - 0.1, t_cur + rot_s + 0.1, "xyz"[i], -360.0))
+        t_cur += rot_s + rest_s
+    w = np.vstack(pieces)
+    t = np.arange(len(w)) / rate_hz
+    y = E.deterministic(TRUE, E.ModelInputs(t_s=t, omega_S_rad_s=w)) + rng.normal(0, SIGMA_RAD_S, w.shape)
+    return Recording(t_s=t, gyro_rad_s=y, meta={"rate_hz": str(rate_hz)}), segs, w
+
+
+def test_external_bias_errors_are_propagated_montecarlo():
+    """200 seeds without a still part; the bias comes from outside with a known error
+    δb ~ N(0, σ_b²), σ_b = 2 mrad/s (dominant: δb·T over T ≈ 4.2 s is ≈ 0.5° per segment).
+    z = (K̂ − K)/σ̂ pooled over the 9 entries: the bias error is shared by a row's three
+    segments, so the effective count is ≈ 200·3 → sd of var(z) ≈ √(2/600) = 0.058; accept
+    0.8 < var(z) < 1.2 (±3.4 sd). Ignoring σ_b (se given as 0) must fail that band."""
+    K_true = E.k_matrix(TRUE)
+    se_b = 2e-3
+    z_ok, z_naive = [], []
+    for seed in range(200):
+        rec, segs, _ = _no_still_session(300 + seed)
+        rng = np.random.default_rng(10_000 + seed)
+        b_ext = TRUE["bias"]["b_rad_s"] + se_b * rng.standard_normal(3)
+        noise_lr = np.full(3, SIGMA_RAD_S**2 / 100.0)  # white noise: N² = σ²·dt
+        r = integral_calibration(rec, segs, bias_rad_s=b_ext, bias_stderr_rad_s=np.full(3, se_b), noise_lr_rad2_s=noise_lr)
+        r0 = integral_calibration(rec, segs, bias_rad_s=b_ext, bias_stderr_rad_s=np.zeros(3), noise_lr_rad2_s=noise_lr)
+        assert r.n_still == 0 and np.array_equal(r.bias_rad_s, b_ext)
+        z_ok.append(((r.K - K_true) / r.K_stderr).ravel())
+        z_naive.append(((r0.K - K_true) / r0.K_stderr).ravel())
+    assert 0.8 < np.var(np.concatenate(z_ok)) < 1.2, np.var(np.concatenate(z_ok))
+    assert np.var(np.concatenate(z_naive)) > 1.2
+
+
+def test_external_bias_options_and_errors(tmp_path):
+    rec, segs, _ = _no_still_session(5)
+    with pytest.raises(GyroInputError, match="no still part found.*--bias-from"):
+        integral_calibration(rec, segs)
+    with pytest.raises(GyroInputError, match="standard error"):
+        integral_calibration(rec, segs, bias_rad_s=np.zeros(3))
+    with pytest.raises(GyroInputError, match="3 finite"):
+        integral_calibration(rec, segs, bias_rad_s=np.zeros(2), bias_stderr_rad_s=np.zeros(3), noise_lr_rad2_s=np.zeros(3))
+    ext = {"bias_rad_s": TRUE["bias"]["b_rad_s"], "bias_stderr_rad_s": np.full(3, 1e-4),
+           "noise_lr_rad2_s": np.full(3, SIGMA_RAD_S**2 / 100.0)}
+    with pytest.raises(GyroInputError, match="integral method only"):
+        Calibrator(effects=["bias", "scale"], external_bias=ext)
+    res = Calibrator(effects=["bias", "scale", "misalignment"], segments=segs, external_bias=ext).fit(rec)
+    np.testing.assert_array_equal(res.params["bias"]["b_rad_s"], ext["bias_rad_s"])
+    np.testing.assert_array_equal(res.stderr["bias"]["b_rad_s"], ext["bias_stderr_rad_s"])
+    z = (np.asarray(res.integral["K"]) - E.k_matrix(TRUE)) / np.asarray(res.integral["K_stderr"])
+    assert np.all(np.abs(z) < 4), z  # N(0,1) per entry
+    assert any("external bias" in n for n in res.notes)
+
+
+def test_cli_calibrate_with_external_bias(tmp_path, capsys):
+    import json
+
+    from gyrocore.cli import build_group, run_cli
+    from gyrocore.recording import write_csv
+
+    rec, segs, _ = _no_still_session(6)
+    write_csv(rec, tmp_path / "rot.csv")
+    write_segments_csv(segs, tmp_path / "seg.csv")
+    base = ["calibrate", str(tmp_path / "rot.csv"), "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")]
+    assert run_cli(build_group(), base + ["--segments", str(tmp_path / "seg.csv")]) == 2
+    assert "--bias-from" in capsys.readouterr().err
+    assert run_cli(build_group(), base + ["--bias-dps", "1,2,3"]) == 2
+    assert "give --segments too" in capsys.readouterr().err
+    b_dps = ",".join(f"{v:.9f}" for v in np.degrees(TRUE["bias"]["b_rad_s"]))
+    rc = run_cli(build_group(), base + ["--segments", str(tmp_path / "seg.csv"), "--bias-dps", b_dps, "--bias-se-dps",
+                                        "0.001,0.001,0.001", "--arw-dps-rt-hz", f"{np.degrees(SIGMA_RAD_S) / 10:.9f}", "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    d = json.loads(out.out)
+    K = np.asarray(d["integral"]["K"])
+    z = (K - E.k_matrix(TRUE)) / np.asarray(d["integral"]["K_stderr"])
+    assert np.all(np.abs(z) < 4), z
+
+
+def test_sunsided_set1_turns_with_bias_from_the_static_recording(shared_data):
+    """The sunsided hand turns have no still part (the hand moves within 0.5 s of both ends);
+    bias from set-1's static recording (StaticBiasCalibrator). Each diagonal K_jj must be 1
+    within its hand-rotation uncertainty: 3 standard errors (noise + bias error·T), plus the
+    end pose put back by eye (±5° over 720°: 0.7 %), plus the tilt θ_j of the hand's turn axis
+    from the sensor axis, which shortens the on-axis integral by 1 − cos θ_j (θ_j measured
+    from column j's off-diagonals). MPU-6050 sensitivity tolerance is ±3 % (datasheet), so
+    the test can fail on a wrong scale, sign or unit. The column norms (tilt-free) must be 1
+    within 3 SE + 0.7 % as well."""
+    from gyrocore.bias import StaticBiasCalibrator
+    from gyrocore.convert import concat_converted, load_with_segments
+
+    base = shared_data / "sunsided_mpu6050" / "set-1"
+    names = ["rotate-360ccw-around-x-pointing-forward", "rotate-360ccw-around-y-pointing-left",
+             "rotate-360ccw-around-z-pointing-up"]
+    if not (base / "unmoved-x-pointing-forward").exists():
+        pytest.skip("sunsided set-1 absent")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RepairWarning)
+        conv = concat_converted([load_with_segments(base / n) for n in names])
+        static = load_with_segments(base / "unmoved-x-pointing-forward").recording
+    with pytest.raises(GyroInputError, match="no still part"):
+        Calibrator(effects=["bias", "scale", "misalignment"], segments=conv.segments).fit(conv.recording)
+    sb = StaticBiasCalibrator().fit(static)
+    res = Calibrator(effects=["bias", "scale", "misalignment"], segments=conv.segments, external_bias=sb).fit(conv.recording)
+    K = np.asarray(res.integral["K"])
+    Ks = np.asarray(res.integral["K_stderr"])
+    hand = 5.0 / 720.0
+    norms = np.linalg.norm(K, axis=0)
+    tilt = np.arccos(np.clip(np.diag(K) / norms, -1, 1))
+    for j in range(3):
+        assert abs(K[j, j] - 1) < 3 * Ks[j, j] + hand + (1 - np.cos(tilt[j])), (j, K[j, j], Ks[j, j], tilt[j])
+        assert abs(norms[j] - 1) < 3 * np.linalg.norm(Ks[:, j]) + hand, (j, norms[j])
+    # the bias's standard error reaches K: every diagonal SE exceeds the pure-noise part
+    assert np.all(np.asarray(res.stderr["bias"]["b_rad_s"]) == sb.bias_se_rad_s)
