@@ -37,6 +37,7 @@ __all__ = [
     "detect_format",
     "load_any",
     "load_with_segments",
+    "concat_converted",
     "read_ulog",
     "read_sunsided",
     "read_tomisuarez2",
@@ -1017,6 +1018,59 @@ def detect_format(path: str | os.PathLike) -> str:
     if first.startswith("Time (s),Gyroscope"):
         return "fusion"
     return "csv"
+
+
+def concat_converted(parts: Sequence[Converted], *, gap_s: float | None = None) -> Converted:
+    """Join recordings of one session (e.g. sunsided's three ``rotate-*`` runs) end to end.
+
+    Each part's time axis is shifted to start ``gap_s`` (default: one mean sample interval of
+    the previous part, so the file has no gap) after the previous part's last sample and its
+    segments are shifted with it, so that a single segments file covers turns about
+    all three axes (the integral method needs them in one recording). Columns present in
+    every part are kept (accel, temperature, references, extra columns); metadata of the
+    first part, with ``source`` listing all parts.
+
+    Raises
+    ------
+    GyroInputError
+        No parts, or ``gap_s`` not positive.
+    """
+    parts = list(parts)
+    if not parts:
+        raise GyroInputError("nothing to concatenate")
+    if gap_s is not None:
+        gap_s = _positive("gap_s", gap_s)
+    recs, segs, t0, gap = [], [], None, 0.0
+    for c in parts:
+        r = c.recording
+        shift = 0.0 if t0 is None else t0 + gap - float(r.t_s[0])
+        gap = gap_s if gap_s is not None else 1.0 / r.rate_hz
+        recs.append((r, shift))
+        segs.extend(Segment(s.t_start_s + shift, s.t_end_s + shift, s.axis, s.angle_deg, s.label) for s in c.segments)
+        t0 = float(r.t_s[-1]) + shift
+
+    def cat(get):
+        cols = [get(r) for r, _ in recs]
+        return None if any(c is None for c in cols) else np.concatenate(cols)
+
+    extra_keys = set.intersection(*(set(r.extra) for r, _ in recs))
+    first = recs[0][0]
+    meta = dict(first.meta)
+    meta["source"] = " + ".join(str(r.meta.get("source", "?")) for r, _ in recs)
+    meta["concatenated"] = f"{len(recs)} recordings" + (f", {gap_s:g} s gaps" if gap_s is not None else ", no gaps")
+    rec = Recording(
+        t_s=np.concatenate([r.t_s + sh for r, sh in recs]),
+        gyro_rad_s=cat(lambda r: r.gyro_rad_s),
+        accel_m_s2=cat(lambda r: r.accel_m_s2),
+        temp_c=cat(lambda r: r.temp_c),
+        ref_rate_rad_s=cat(lambda r: r.ref_rate_rad_s),
+        ref_quat_wxyz=cat(lambda r: r.ref_quat_wxyz),
+        meta=meta,
+        extra={k: np.concatenate([r.extra[k] + (sh if k.startswith("t_") and k.endswith("_s") else 0.0) for r, sh in recs])
+               for k in sorted(extra_keys)},
+    )
+    fmts = {c.format for c in parts}
+    return Converted(recording=rec, segments=tuple(segs), format=fmts.pop() if len(fmts) == 1 else "mixed")
 
 
 def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **options) -> Converted:

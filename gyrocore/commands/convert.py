@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from ..cli import emit_json
-from ..convert import FORMATS, load_with_segments, write_segments_csv
+from ..convert import FORMATS, concat_converted, load_with_segments, write_segments_csv
 from ..errors import GyroInputError, RepairWarning
 from .. import recording as _recording
 from ..recording import file_sha256, iter_csv_chunks, write_csv, write_csv_chunks
@@ -29,19 +29,24 @@ STREAM_FRACTION = 0.1
 @click.option("--no-flip-x", is_flag=True, default=False, help="sunsided: keep the raw gyro X sign (default: negate it as its README documents).")
 @click.option("--sections", type=click.Path(path_type=str), default=None, help="imucal: section list JSON (default <stem>_list.json).")
 @click.option("--segments-out", type=click.Path(path_type=str), default=None, help="Write the known-rotation segments (t_start_s,t_end_s,axis,angle_deg).")
+@click.option("--append", "append", multiple=True, type=click.Path(path_type=str),
+              help="Another recording of the same session, joined after INPUT (repeatable; same options), "
+                   "e.g. the rotate-* runs about y and z after the one about x: one file and one segments file.")
+@click.option("--gap-s", type=float, default=None, help="Time gap inserted between joined recordings, s (default: one sample interval).")
 @click.option("--chunk-rows", type=int, default=200_000, show_default=True, help="Rows per chunk when a large CSV input is streamed.")
 @click.option("--force", is_flag=True, default=False, help="Overwrite existing output files.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print a JSON summary on stdout.")
 def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, segments_out,
-            chunk_rows, force, as_json):
+            append, gap_s, chunk_rows, force, as_json):
     """Convert INPUT (PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
     IMU-TK .mat, gnss-ins-sim folder, or a data file) to the DESIGN.md data file."""
     outs = [output] + ([segments_out] if segments_out else [])
     for o in outs:
         if not force and os.path.exists(o):
             raise GyroInputError(f"{o} exists; pass --force to overwrite it")
-    if os.path.abspath(output) == os.path.abspath(input_path):
-        raise GyroInputError(f"{output}: output would overwrite the input")
+    for i in (input_path, *append):
+        if os.path.abspath(output) == os.path.abspath(i):
+            raise GyroInputError(f"{output}: output would overwrite the input")
     opts = dict(lsb_per_dps=lsb_per_dps, lsb_per_g=lsb_per_g, rate_hz=rate_hz, retime=retime, sections=sections)
     if no_flip_x:
         opts["flip_gyro_x"] = False
@@ -51,7 +56,7 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
         from ..convert import detect_format
 
         actual = detect_format(input_path) if fmt == "auto" else fmt
-        if actual == "csv" and _is_large(input_path) and not retime:
+        if actual == "csv" and _is_large(input_path) and not retime and not append:
             unsupported = [k for k, v in opts.items() if v is not None and k != "retime"]
             if unsupported:
                 raise GyroInputError(f"option --{unsupported[0].replace('_', '-')} does not apply to format csv")
@@ -62,6 +67,11 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
             segs = ()
         else:
             conv = load_with_segments(input_path, format=actual, **opts)
+            if append:
+                conv = concat_converted(
+                    [conv] + [load_with_segments(a, format=fmt if fmt != "auto" else detect_format(a), **opts) for a in append],
+                    gap_s=gap_s,
+                )
             rec, segs = conv.recording, conv.segments
             if segments_out and not segs:
                 raise GyroInputError(

@@ -410,3 +410,41 @@ def test_convert_refuses_source_too_large_for_memory(shared_data, monkeypatch):
         cv.load_any(shared_data / "broad" / "02_undisturbed_slow_rotation_B.hdf5")
     with pytest.raises(GyroInputError, match="MiB of sunsided data"):
         cv.load_any(shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward-10min")
+
+
+def test_concat_converted_joins_a_session_and_shifts_segments(shared_data, tmp_path):
+    """Three sunsided rotate-* runs → one recording with three segments on its time axis;
+    the CLI's --append gives the same file."""
+    base = shared_data / "sunsided_mpu6050" / "set-1"
+    names = ["rotate-360ccw-around-x-pointing-forward", "rotate-360ccw-around-y-pointing-left",
+             "rotate-360ccw-around-z-pointing-up"]
+    parts = [_quiet(cv.load_with_segments, base / n) for n in names]
+    c = cv.concat_converted(parts)
+    r = c.recording
+    assert r.n == sum(p.recording.n for p in parts)
+    assert np.all(np.diff(r.t_s) > 0)
+    # default gap: one sample interval of the previous part (no gap warning when read back)
+    k = parts[0].recording.n
+    assert r.t_s[k] - r.t_s[k - 1] == pytest.approx(1 / parts[0].recording.rate_hz)
+    assert [s.axis for s in c.segments] == ["x", "y", "z"]
+    for p, s in zip(parts, c.segments):
+        (s0,) = p.segments
+        # the shifted segment spans the same samples (same gyro integral)
+        m0 = (p.recording.t_s >= s0.t_start_s) & (p.recording.t_s <= s0.t_end_s)
+        m = (r.t_s >= s.t_start_s) & (r.t_s <= s.t_end_s)
+        assert m.sum() == m0.sum()
+        np.testing.assert_array_equal(r.gyro_rad_s[m], p.recording.gyro_rad_s[m0])
+        assert s.angle_deg == s0.angle_deg
+    assert "t_host_s" in r.extra and np.all(np.diff(r.extra["t_host_s"]) > 0)
+    assert c.format == "sunsided" and "3 recordings" in r.meta["concatenated"]
+    with pytest.raises(GyroInputError):
+        cv.concat_converted([])
+    # CLI
+    out, seg = tmp_path / "rot.csv", tmp_path / "seg.csv"
+    res = _cli("convert", base / names[0], "--append", base / names[1], "--append", base / names[2], "-o", out,
+               "--segments-out", seg, "--json")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["segments"] == 3
+    back = read_csv(out)
+    np.testing.assert_allclose(back.gyro_rad_s, r.gyro_rad_s, rtol=1e-15, atol=0)
+    assert [s.axis for s in cv.read_segments_csv(seg)] == ["x", "y", "z"]
