@@ -448,3 +448,27 @@ def test_concat_converted_joins_a_session_and_shifts_segments(shared_data, tmp_p
     back = read_csv(out)
     np.testing.assert_allclose(back.gyro_rad_s, r.gyro_rad_s, rtol=1e-15, atol=0)
     assert [s.axis for s in cv.read_segments_csv(seg)] == ["x", "y", "z"]
+
+
+def test_sunsided_frames_per_set(sun):
+    """Evidence for docs/data.md (H10 follow-up): with the accel as converted, the raw gyro is
+    not frame-consistent (set-1 y turn, all of set-2), the README X flip neither, but a 180°
+    turn of the gyro is, different per set: set-1 (+,−,−), set-2 (−,−,+)."""
+    from dataclasses import replace
+
+    cases = {
+        "set-1": (["rotate-360ccw-around-y-pointing-left", "tilt-around-y-pointing-left", "tilt-sphere"], (1, -1, -1)),
+        "set-2": (["rotate-ccw-around-x-pointing-forward", "rotate-ccw-around-y-pointing-left", "full-sphere"], (-1, -1, 1)),
+    }
+    for setname, (names, pattern) in cases.items():
+        fc_flipped = []
+        for name in names:
+            flipped = _quiet(cv.read_sunsided, sun / setname / name)  # README flip: gyro (−, +, +) of raw
+            raw = replace(flipped, gyro_rad_s=flipped.gyro_rad_s * np.array([-1.0, 1.0, 1.0]))
+            turned = replace(raw, gyro_rad_s=raw.gyro_rad_s * np.array(pattern, float))
+            # measured: turned +0.57 … +0.88, raw −0.26 … −0.82 (docs/data.md)
+            assert cv.frame_consistency(turned) > 0.2, (setname, name)
+            assert cv.frame_consistency(raw) < -0.2, (setname, name)
+            fc_flipped.append(cv.frame_consistency(flipped))
+        # the README flip is inconsistent on at least one of them too (set-1 all, set-2 the y turn)
+        assert min(fc_flipped) < -0.2, (setname, fc_flipped)
