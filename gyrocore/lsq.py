@@ -709,7 +709,10 @@ def solve(
         e = r_ - np.einsum("nip,p->ni", A_[:, :, kept], th)
         if axis_weighting:
             sig = np.sqrt(np.sum(w_ * e**2, axis=0) / np.maximum(np.sum(w_ > 0, axis=0), 1))
-            sig = np.where(sig > 0, sig, max(float(sig.max()), 1e-300))
+            # an exact fit (noise-free data) has nothing to weight: unit weights; otherwise a
+            # relative floor keeps an exactly fitted axis from getting an infinite weight
+            smax = float(sig.max())
+            sig = np.ones(3) if smax == 0.0 else np.maximum(sig, 1e-9 * smax)
             sigma = sig
             W = w_ / sigma[None, :] ** 2
             th = _wls(kept, W)
