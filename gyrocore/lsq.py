@@ -755,6 +755,12 @@ def solve(
                 S = Gb.T @ Gb * (M / (M - 1))
             if kind != "hac":
                 S *= (n * 3) / dof  # small-sample correction
+            # a lag-truncated autocovariance sum need not be positive semidefinite; clip its
+            # negative eigenvalues (projection onto the PSD cone) so no variance is negative
+            S = 0.5 * (S + S.T)
+            lam, V = np.linalg.eigh(S)
+            if lam.min() < 0:
+                S = (V * np.clip(lam, 0, None)) @ V.T
             cov_k = bread @ S @ bread
         se_k = np.sqrt(np.clip(np.diag(cov_k), 0, None))
         # -- parameters whose standard error exceeds their plausible magnitude
