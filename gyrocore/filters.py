@@ -162,8 +162,33 @@ class SosFilter:
         """Filter one sample x (C,) -> (C,); bit-identical to :meth:`apply` on the stream so far.
 
         Transposed direct form II per section, the operation order of scipy's ``_sosfilt``.
+        Plain Python floats per channel (no numpy temporaries): a numpy expression on a
+        3-vector costs more than the arithmetic; this is the closed-loop hover hot path
+        (float arithmetic is the same IEEE double arithmetic, so the results are unchanged).
         """
-        v = np.array(x, dtype=float)  # copy
+        if type(x) is np.ndarray and x.ndim == 1 and x.dtype == np.float64:
+            v = x
+        else:
+            v = np.array(x, dtype=float)
+            if v.ndim != 1:
+                return self._step_array(v)
+        vals = v.tolist()
+        if self._z is None:
+            self._z = self.initial_state(v).copy()
+            # per section: [z0 of each channel..., z1 of each channel...]
+            self._zl = [list(self._z[k, 0]) + list(self._z[k, 1]) for k in range(self._z.shape[0])]
+        C = len(vals)
+        for zk, (b0, b1, b2, _a0, a1, a2) in zip(self._zl, self._rows):
+            for c in range(C):
+                xc = vals[c]
+                vc = b0 * xc + zk[c]
+                zk[c] = b1 * xc - a1 * vc + zk[C + c]
+                zk[C + c] = b2 * xc - a2 * vc
+                vals[c] = vc
+        return np.array(vals)
+
+    def _step_array(self, v: np.ndarray) -> np.ndarray:
+        """:meth:`step` for a scalar channel (numpy arithmetic)."""
         if self._z is None:
             self._z = self.initial_state(v).copy()
         z = self._z
