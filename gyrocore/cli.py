@@ -85,6 +85,14 @@ def run_cli(group: click.Group, argv: Sequence[str] | None = None) -> int:
     warnings.showwarning = _showwarning
     warnings.simplefilter("default")
     try:
+        from threadpoolctl import threadpool_limits
+
+        # One BLAS thread: our linear algebra is many small products and solves, where
+        # OpenBLAS threads only contend (measured 40x slower (N,3)@(3,3) on a loaded 2-core box).
+        threadpool_limits(limits=1, user_api="blas")
+    except ImportError:  # pragma: no cover - threadpoolctl is a dependency
+        pass
+    try:
         rv = group.main(
             args=list(argv) if argv is not None else None, prog_name="gyroharness", standalone_mode=False
         )
