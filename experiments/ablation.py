@@ -60,21 +60,7 @@ __all__ = [
 SCENARIOS = ("static", "static_bumped", "turntable", "thermal", "hover", "power_cycles")
 
 #: Deterministic effects that :func:`gyrocore.effects.correct` can remove.
-CORRECTABLE = (
-    "bias",
-    "bias_thermal",
-    "bias_temp_rate",
-    "bias_ramp",
-    "scale",
-    "scale_thermal",
-    "scale_asymmetry",
-    "scale_nonlinearity",
-    "misalignment",
-    "g_sensitivity",
-    "g2_sensitivity",
-    "time_offset",
-    "earth_rate",
-)
+CORRECTABLE = E.CORRECTABLE
 
 #: Fractions of the scored duration at which error curves are kept (for median curves).
 CURVE_FRACTIONS = tuple(np.round(np.linspace(0.0, 1.0, 21), 3))

@@ -31,6 +31,7 @@ from .errors import GyroInputError
 __all__ = [
     "EFFECTS",
     "DETERMINISTIC",
+    "CORRECTABLE",
     "STOCHASTIC",
     "PARAM_SCHEMA",
     "EARTH_RATE_RAD_S",
@@ -81,6 +82,12 @@ STOCHASTIC: tuple[str, ...] = ("arw", "bias_instability", "rrw", "correlated")
 #: Effects with a deterministic formula (removable by :func:`correct`).
 DETERMINISTIC: tuple[str, ...] = tuple(
     e for e in EFFECTS if e not in STOCHASTIC and e not in ("vibration",)
+)
+
+#: Deterministic effects that :func:`correct` removes and :func:`design` can regress (all but
+#: the non-invertible output stage: quantization, saturation, lowpass).
+CORRECTABLE: tuple[str, ...] = tuple(
+    e for e in DETERMINISTIC if e not in ("quantization", "saturation", "lowpass")
 )
 
 #: Misalignment angles order: K[0,1], K[0,2], K[1,0], K[1,2], K[2,0], K[2,1].

@@ -81,21 +81,7 @@ __all__ = [
 FORMAT_VERSION = "1.0"
 
 #: Effects the loop can trace (each has linear regressors).
-CANDIDATES: tuple[str, ...] = (
-    "bias",
-    "bias_thermal",
-    "bias_temp_rate",
-    "bias_ramp",
-    "scale",
-    "scale_thermal",
-    "scale_asymmetry",
-    "scale_nonlinearity",
-    "misalignment",
-    "g_sensitivity",
-    "g2_sensitivity",
-    "time_offset",
-    "earth_rate",
-)
+CANDIDATES: tuple[str, ...] = E.CORRECTABLE
 FITTABLE = CANDIDATES
 
 #: A thermal polynomial in (T − T0) with T0 ≠ the recording's mean temperature also shifts
