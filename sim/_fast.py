@@ -39,7 +39,7 @@ from numba.extending import intrinsic
  # integers
  A_RQ0, A_RV0, A_NSD, A_SGYRO, A_SACC, A_SQ, A_SPOS, A_SVEL, A_OUTER_EVERY, A_N, A_NMAN, A_STREAM,
  A_EARTH, A_TAU, A_STH_P, A_ASYM, A_NL, A_BIAS, A_BTH_P, A_KTR, A_RAMP, A_H, A_G, A_LP, A_SAT, A_Q,
- A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_SIZE) = range(52)
+ A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_ARMED, A_SIZE) = range(53)
 
 
 def _layout(*fields):
@@ -69,6 +69,8 @@ _W, W_SIZE = _layout(
     ("TH_TAU", 1), ("TH_SELF", 1), ("TH_MOTOR", 1), ("TH_KC", 1), ("TH_TEMP", 1), ("TH_T", 1), ("TH_AMB", 1),
     # heater PI (sim.thermal.ThermalState._update_heater): constants, then its state
     ("HT_KP", 1), ("HT_KI", 1), ("HT_SP", 1), ("HT_MAXW", 1), ("HT_CPW", 1), ("HT_INTEG", 1), ("HT_W", 1),
+    # take-off from the ground (CascadedController arm_at_s, climb_s, z_start_m)
+    ("T_ARM", 1), ("CLIMB", 1), ("Z0", 1),
 )
 (W_RK, W_SPIN, W_FF, W_CT, W_POS_SP, W_YAW_SP, W_DT, W_DT_OUTER, W_IL, W_ALT_KP, W_ALT_KI,
  W_ALT_KD, W_XY_KP, W_XY_KD, W_AMAX, W_TMAX, W_LIM, W_ATT_K, W_MASS, W_GRAV, W_TM, W_JKP,
@@ -76,7 +78,7 @@ _W, W_SIZE = _layout(
  W_KTRV, W_RAMPV, W_HV, W_GV, W_LPV, W_ZI, W_SATV, W_LSB, W_T_PU, W_I_RATE, W_I_ALT, W_PREV_G,
  W_Q_SP, W_RATE_SP, W_COLL, W_THRUST, W_MOT, W_OM, W_LPZ, W_W_FIRST, W_GOUT3, W_TH_TAU, W_TH_SELF,
  W_TH_MOTOR, W_TH_KC, W_TH_TEMP, W_TH_T, W_TH_AMB, W_HT_KP, W_HT_KI, W_HT_SP, W_HT_MAXW, W_HT_CPW,
- W_HT_INTEG, W_HT_W) = (
+ W_HT_INTEG, W_HT_W, W_T_ARM, W_CLIMB, W_Z0) = (
     _W[_k] for _k in _W)
 assert all(globals()["W_" + _k] == _v for _k, _v in _W.items())  # names follow the layout
 
@@ -388,12 +390,32 @@ def _outer(k, A, W):
     sp = A[A_SPOS]
     sv = A[A_SVEL]
     sq = A[A_SQ]
+    t_arm = W[W_T_ARM]
+    if t_s < t_arm:  # on the ground, disarmed: nothing runs (the log keeps the held set points)
+        A[A_ARMED] = 0
+        _log_outer(k, A, W)
+        return
+    A[A_ARMED] = 1
     dt = W[W_DT_OUTER]
     grav = W[W_GRAV]
     il = W[W_IL]
-    ez = W[W_POS_SP + 2] - sd[sp + 2]
+    z_sp = W[W_POS_SP + 2]
+    climbing = t_s < t_arm + W[W_CLIMB]
+    vz_sp = 0.0
+    az_sp = 0.0
+    if climbing:
+        u = math.pi * (t_s - t_arm) / W[W_CLIMB]
+        half = 0.5 * (z_sp - W[W_Z0])
+        w = math.pi / W[W_CLIMB]
+        vz_sp = half * w * math.sin(u)
+        az_sp = half * w * w * math.cos(u)
+        z_sp = W[W_Z0] + half * (1.0 - math.cos(u))
+    ez = z_sp - sd[sp + 2]
     W[W_I_ALT] = _pmin(_pmax(W[W_I_ALT] + ez * dt, -il), il)
-    az = W[W_ALT_KP] * ez + W[W_ALT_KI] * W[W_I_ALT] - W[W_ALT_KD] * sd[sv + 2]
+    if climbing:
+        az = az_sp + W[W_ALT_KP] * ez + W[W_ALT_KI] * W[W_I_ALT] - W[W_ALT_KD] * (sd[sv + 2] - vz_sp)
+    else:
+        az = W[W_ALT_KP] * ez + W[W_ALT_KI] * W[W_I_ALT] - W[W_ALT_KD] * sd[sv + 2]
     ax = W[W_XY_KP] * (W[W_POS_SP] - sd[sp]) - W[W_XY_KD] * sd[sv]
     ay = W[W_XY_KP] * (W[W_POS_SP + 1] - sd[sp + 1]) - W[W_XY_KD] * sd[sv + 1]
     amax = W[W_AMAX]
@@ -451,6 +473,13 @@ def _outer(k, A, W):
     W[W_RATE_SP + 2] = _pmin(_pmax(W[W_ATT_K + 2] * sgn * e3, -lim), lim)
     r33 = 1.0 - 2.0 * (qx * qx + qy * qy)
     W[W_COLL] = W[W_MASS] * (grav + az) / _pmax(r33, 0.5)
+    _log_outer(k, A, W)
+
+
+@njit(cache=True)
+def _log_outer(k, A, W):
+    """Outer log row of sample k: q_sp (4), rate_sp (3)."""
+    n = A[A_N]
     outlog = _f2(A[A_OUTLOG], (n + A[A_OUTER_EVERY] - 1) // A[A_OUTER_EVERY], 7)
     row = k // A[A_OUTER_EVERY]
     for i in range(4):
@@ -462,6 +491,15 @@ def _outer(k, A, W):
 @njit(cache=True)
 def _rate_mix_motor(k, A, W, g0, g1, g2):
     """CascadedController.update_rate on the filtered gyro, mixer, log, motor commands, next forces."""
+    if A[A_ARMED] == 0:  # disarmed (on the ground): thrusts 0, integrators and derivative memory untouched
+        _mix_motor(k, A, W, g0, g1, g2, False, 0.0, 0.0, 0.0)
+    else:
+        _rate_pid_mix_motor(k, A, W, g0, g1, g2)
+
+
+@njit(cache=True)
+def _rate_pid_mix_motor(k, A, W, g0, g1, g2):
+    """Armed: CascadedController.update_rate's PID, then the mixer."""
     dt = W[W_DT]
     il = W[W_IL]
     e0 = W[W_RATE_SP] - g0
@@ -491,6 +529,12 @@ def _rate_mix_motor(k, A, W, g0, g1, g2):
     W[W_PREV_G] = g0
     W[W_PREV_G + 1] = g1
     W[W_PREV_G + 2] = g2
+    _mix_motor(k, A, W, g0, g1, g2, True, t0, t1, t2)
+
+
+@njit(cache=True)
+def _mix_motor(k, A, W, g0, g1, g2, armed, t0, t1, t2):
+    """Log, mixer (thrusts 0 when not armed), motor commands, streamed die temperature."""
     c = W[W_COLL]
     tm = W[W_TM]
     rec = _f2(A[A_REC], A[A_N], 14)
@@ -504,8 +548,11 @@ def _rate_mix_motor(k, A, W, g0, g1, g2):
     ff = W[W_FF]
     for i in range(4):
         a = W_AINV + 4 * i
-        ti = W[a] * c + W[a + 1] * t0 + W[a + 2] * t1 + W[a + 3] * t2
-        ti = tm if ti > tm else (0.0 if ti < 0.0 else ti)
+        if armed:
+            ti = W[a] * c + W[a + 1] * t0 + W[a + 2] * t1 + W[a + 3] * t2
+            ti = tm if ti > tm else (0.0 if ti < 0.0 else ti)
+        else:
+            ti = 0.0
         W[W_THRUST + i] = ti
         rec[k, 6 + i] = ti
         rec[k, 10 + i] = W[W_OM + i]  # rotor speeds at the start of this physics step
@@ -642,6 +689,8 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
         A[A_PREV] = 1
     W[W_Q_SP:W_Q_SP + 4], W[W_RATE_SP:W_RATE_SP + 3] = ctl.q_sp, ctl.rate_sp
     W[W_COLL], W[W_THRUST:W_THRUST + 4] = ctl.collective_n, ctl.thrust_cmd
+    W[W_T_ARM], W[W_CLIMB], W[W_Z0] = ctl.arm_at_s, ctl.climb_s, ctl.z_start_m
+    A[A_ARMED] = 1 if ctl.armed else 0
     if thermal is not None:
         amb = np.ascontiguousarray(ambient_c, dtype=np.float64)
         keep.append(amb)

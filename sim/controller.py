@@ -188,13 +188,28 @@ class CascadedController:
     manoeuvres : sequence of Manoeuvre
     outer_rate_hz : float
         Rate of the attitude/position loops, Hz; they run every ``round(rate/outer)`` samples (>= 1).
+    arm_at_s : float
+        Take-off from the ground: the controller is DISARMED (all rotor thrusts 0, loops and
+        integrators idle) before ``arm_at_s``, s; it arms at the first outer-loop update at or
+        after it. Default 0: armed from the start (airborne).
+    climb_s : float
+        After arming, the height set point ramps from ``z_start_m`` to ``pos_sp_W_m[2]`` over
+        ``climb_s`` s (raised cosine: zero climb rate at both ends, peak ``pi/2`` x the mean),
+        with the ramp's climb rate and vertical acceleration fed forward (velocity set point of
+        the altitude D term, acceleration added); 0 = no ramp.
+    z_start_m : float
+        Start of the height ramp (the height on the ground), m.
     """
 
     def __init__(self, params: QuadParams, gains: ControllerGains, *, dt_s: float,
                  pos_sp_W_m=(0.0, 0.0, 1.0), yaw_sp_rad: float = 0.0, manoeuvres=(),
-                 outer_rate_hz: float = 250.0) -> None:
+                 outer_rate_hz: float = 250.0, arm_at_s: float = 0.0, climb_s: float = 0.0,
+                 z_start_m: float = 0.0) -> None:
         if not dt_s > 0 or not outer_rate_hz > 0:
             raise GyroInputError("controller dt_s and outer_rate_hz must be > 0")
+        if not (math.isfinite(arm_at_s) and arm_at_s >= 0 and math.isfinite(climb_s) and climb_s >= 0):
+            raise GyroInputError("controller arm_at_s and climb_s must be finite and >= 0")
+        self.arm_at_s, self.climb_s, self.z_start_m = float(arm_at_s), float(climb_s), float(z_start_m)
         self.p, self.g, self.dt = params, gains, float(dt_s)
         self.outer_every = max(1, int(round(1.0 / (dt_s * outer_rate_hz))))
         self.dt_outer = self.outer_every * self.dt
@@ -218,6 +233,7 @@ class CascadedController:
         self.rate_sp = (0.0, 0.0, 0.0)
         self.collective_n = self.p.mass_kg * self.p.gravity_m_s2
         self.thrust_cmd = [self.collective_n / 4.0] * 4
+        self.armed = self.arm_at_s <= 0.0
 
     def outer_due(self, k: int) -> bool:
         """Whether the outer loops run at gyro sample ``k``."""
@@ -245,11 +261,27 @@ class CascadedController:
         q_WB : sequence of 4 floats
             True attitude (w, x, y, z), body to world.
         """
+        if t_s < self.arm_at_s:  # on the ground, disarmed: nothing runs
+            self.armed = False
+            return
+        self.armed = True
         p, g, dt = self.p, self.g, self.dt_outer
         grav = p.gravity_m_s2
-        ez = self.pos_sp[2] - pos_W[2]
+        z_sp = self.pos_sp[2]
+        climbing = t_s < self.arm_at_s + self.climb_s
+        if climbing:  # take-off: raised-cosine ramp from the ground to the hover height (v = 0 at both ends)
+            u = math.pi * (t_s - self.arm_at_s) / self.climb_s
+            half = 0.5 * (z_sp - self.z_start_m)
+            w = math.pi / self.climb_s
+            vz_sp = half * w * math.sin(u)
+            az_sp = half * w * w * math.cos(u)
+            z_sp = self.z_start_m + half * (1.0 - math.cos(u))
+        ez = z_sp - pos_W[2]
         self.i_alt = min(max(self.i_alt + ez * dt, -g.integrator_limit), g.integrator_limit)
-        az = g.alt_kp_per_s2 * ez + g.alt_ki_per_s3 * self.i_alt - g.alt_kd_per_s * vel_W[2]
+        if climbing:
+            az = az_sp + g.alt_kp_per_s2 * ez + g.alt_ki_per_s3 * self.i_alt - g.alt_kd_per_s * (vel_W[2] - vz_sp)
+        else:
+            az = g.alt_kp_per_s2 * ez + g.alt_ki_per_s3 * self.i_alt - g.alt_kd_per_s * vel_W[2]
         ax = g.xy_kp_per_s2 * (self.pos_sp[0] - pos_W[0]) - g.xy_kd_per_s * vel_W[0]
         ay = g.xy_kp_per_s2 * (self.pos_sp[1] - pos_W[1]) - g.xy_kd_per_s * vel_W[1]
         amax = g.max_horiz_accel_m_s2
@@ -282,8 +314,13 @@ class CascadedController:
         Returns
         -------
         list of 4 floats
-            Rotor thrust commands, N (the same list object as ``self.thrust_cmd``).
+            Rotor thrust commands, N (the same list object as ``self.thrust_cmd``); all 0 while
+            disarmed (integrators and derivative memory untouched).
         """
+        if not self.armed:
+            out = self.thrust_cmd
+            out[0] = out[1] = out[2] = out[3] = 0.0
+            return out
         dt = self.dt
         il = self.g.integrator_limit
         r0, r1, r2 = self.rate_sp

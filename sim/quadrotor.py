@@ -52,10 +52,15 @@ __all__ = [
     "load_quadrotor_model",
     "hover_bare_step_rate",
     "QUICK_HOVER_S",
+    "TAKEOFF_CLIMB_S",
 ]
 
 #: A quick hover length for tests and smoke runs, s (2 s settling + 8 s of steady hover).
 QUICK_HOVER_S = 10.0
+
+#: With a ground phase (``fly_hover(ground_s > 0)``): after arming, the height set point ramps
+#: from the ground to the 1-m hover height in this time, s (0.85 m, raised cosine: peak 0.45 m/s).
+TAKEOFF_CLIMB_S = 3.0
 
 _IMBALANCE_RADIUS_M = 0.01  # radius of the eccentric masses in models/quadrotor.xml
 
@@ -314,8 +319,16 @@ def fly_hover(
     seed: int = 0,
     progress: bool = False,
     gains: ControllerGains | None = None,
+    ground_s: float = 0.0,
 ) -> tuple[Truth, FlightLog]:
     """Fly the quadrotor in closed loop: hover at 1 m (plus manoeuvres) for ``duration_s``.
+
+    With ``ground_s > 0`` the flight starts on the ground (keyframe ``ground``: resting on its
+    four feet on the floor, contact on, rotors stopped): the gyro is powered up from t = 0 and
+    sees a still IMU (specific force = gravity only, rate = contact micro-motion, < 2e-6 rad/s)
+    while the controller is disarmed (thrusts 0) until ``ground_s``; then it arms, the rotors
+    spool up and the height set point ramps to 1 m over :data:`TAKEOFF_CLIMB_S`; manoeuvres
+    are flown at their own times (schedule them after take-off).
 
     Parameters
     ----------
@@ -343,6 +356,9 @@ def fly_hover(
     progress : bool
         tqdm progress bar.
     gains : ControllerGains, optional
+    ground_s : float
+        Time on the ground before take-off, s (0 <= ground_s < duration_s); default 0: the
+        flight starts airborne, in hover (keyframe ``hover``).
 
     Returns
     -------
@@ -352,6 +368,8 @@ def fly_hover(
     """
     if not (duration_s > 0 and math.isfinite(duration_s)):
         raise GyroInputError(f"duration_s must be > 0, got {duration_s}")
+    if not (math.isfinite(ground_s) and 0.0 <= ground_s < duration_s):
+        raise GyroInputError(f"ground_s must be >= 0 and shorter than the flight, got {ground_s}")
     vib = VibrationSpec() if vibration is True else (NO_VIBRATION if vibration is False else vibration)
     if not isinstance(vib, VibrationSpec):
         raise GyroInputError("vibration must be True, False or a VibrationSpec")
@@ -376,7 +394,13 @@ def fly_hover(
     phi0 = rng_rotor.uniform(0.0, 2 * math.pi, 4)
     psi_h2 = rng_h2.uniform(0.0, 2 * math.pi, 4)
     psi_bp = rng_bp.uniform(0.0, 2 * math.pi, 4)
-    mujoco.mj_resetDataKeyframe(model, data, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "hover"))
+    key_hover = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "hover")
+    if ground_s > 0.0:
+        # on the floor: contact on (the feet and the ground plane are the only colliding geoms)
+        model.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        mujoco.mj_resetDataKeyframe(model, data, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "ground"))
+    else:
+        mujoco.mj_resetDataKeyframe(model, data, key_hover)
     jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "rotor_1_spin")
     rq0, rv0 = int(model.jnt_qposadr[jid]), int(model.jnt_dofadr[jid])
     data.qpos[rq0 : rq0 + 4] = phi0
@@ -468,7 +492,12 @@ def fly_hover(
         pass_q = "q_SW_wxyz" in inspect.signature(gstep).parameters
     except (TypeError, ValueError):
         pass_q = False
-    ctl = CascadedController(qp, gains, dt_s=dt_c, pos_sp_W_m=tuple(data.qpos[0:3]), yaw_sp_rad=0.0, manoeuvres=manoeuvres)
+    if ground_s > 0.0:
+        ctl = CascadedController(qp, gains, dt_s=dt_c, pos_sp_W_m=tuple(model.key_qpos[key_hover, 0:3].tolist()),
+                                 yaw_sp_rad=0.0, manoeuvres=manoeuvres, arm_at_s=float(ground_s),
+                                 climb_s=TAKEOFF_CLIMB_S, z_start_m=float(data.sensordata[s_pos + 2]))
+    else:
+        ctl = CascadedController(qp, gains, dt_s=dt_c, pos_sp_W_m=tuple(data.qpos[0:3]), yaw_sp_rad=0.0, manoeuvres=manoeuvres)
     outer_every = ctl.outer_every
     sd_log = np.empty((n, nsd))
     rec_arr = array.array("d")  # per sample: gyro meas (3), gyro filtered (3), thrust cmd (4), rotor speed (4)
@@ -485,7 +514,7 @@ def fly_hover(
     update_rate = ctl.update_rate
     nd = np.ndarray
     extra_steps = range(m_per - 1)
-    mot_cmd = tuple(data.ctrl[12:16].tolist())  # hover keyframe's motor commands until the first update
+    mot_cmd = tuple(data.ctrl[12:16].tolist())  # the keyframe's motor commands until the first update
     fast = _compiled_path(gyro, n)
     if fast:
         rec = _fly_compiled(
@@ -552,6 +581,9 @@ def fly_hover(
         "gyro": type(gyro).__name__,
         "pipeline": type(pipeline).__name__ if pipeline is not None else "none",
     }
+    if ground_s > 0.0:
+        meta["ground_s"] = f"{ground_s:.10g}"
+        meta["takeoff_climb_s"] = f"{TAKEOFF_CLIMB_S:.10g}"
     truth = Truth(
         t_s=t_s,
         omega_S_rad_s=omega,

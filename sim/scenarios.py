@@ -15,7 +15,8 @@ turn-on biases and noise (:class:`sim.gyro.SyntheticGyro`), the bump pattern of
 Scenario files (see the shipped ones): ``kind`` = ``"table"`` or ``"hover"``, ``duration_s``
 (default length; the ``turns`` profile sets its own), optional ``gyro_rate_hz``, and tables
 ``[table]`` (``profile`` = ``static`` | ``bumped`` | ``turns`` | ``cycle``), ``[bumps]``,
-``[power]`` (``cycles``), ``[hover]`` (``vibration``, ``manoeuvres``) and ``[thermal]``
+``[power]`` (``cycles``), ``[hover]`` (``vibration``, ``manoeuvres``, ``ground_s``: still on the
+ground, gyro on, before the take-off, see :func:`hover_ground_s`) and ``[thermal]``
 (:class:`sim.thermal.ThermalSpec` fields; ``ambient_c`` break points or ``ramps`` with
 fractions of the duration; optional ``[thermal.heater]``).
 """
@@ -53,6 +54,8 @@ __all__ = [
     "floor_gyro",
     "build_table_profile",
     "build_thermal",
+    "hover_ground_s",
+    "MIN_AIRBORNE_S",
 ]
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
@@ -179,6 +182,9 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
         raise GyroInputError(f"scenario {path}: needs duration_s")
     if kind == "hover" and dur is None:
         raise GyroInputError(f"scenario {path}: needs duration_s")
+    gs = raw.get("hover", {}).get("ground_s", 0.0)
+    if isinstance(gs, bool) or not isinstance(gs, (int, float)) or not (math.isfinite(gs) and gs >= 0):
+        raise GyroInputError(f"scenario {path}: [hover] ground_s must be a number >= 0")
     return ScenarioSpec(
         name=str(raw.get("name", path.stem)),
         description=str(raw.get("description", "")),
@@ -496,7 +502,7 @@ def simulate(
             truth = _split_power_ups(truth, cycles, thermal)
     else:
         from .controller import small_steps
-        from .quadrotor import fly_hover
+        from .quadrotor import TAKEOFF_CLIMB_S, fly_hover
         from .thermal import simulate_temperature
 
         thermal = build_thermal(spec.thermal, dur)
@@ -513,11 +519,17 @@ def simulate(
             t_all = np.arange(n) * (1.0 / rate)
             kw = {"t_s": t_all, "temp_c": simulate_temperature(t_all, thermal)}
         stream = fly_gyro.stream(n, **kw)
-        man = small_steps(dur) if spec.hover.get("manoeuvres", True) else ()
+        ground = hover_ground_s(spec, dur)
+        if ground == 0.0 and float(spec.hover.get("ground_s", 0.0)) > 0.0:
+            notes.append(f"no ground phase: {dur:g} s is shorter than ground_s + take-off + {MIN_AIRBORNE_S:g} s of "
+                         "hover (the flight starts airborne)")
+        t_air = ground + (TAKEOFF_CLIMB_S if ground > 0.0 else 0.0)  # manoeuvres after the take-off
+        man = (tuple(replace(m, t_start_s=m.t_start_s + t_air) for m in small_steps(dur - t_air))
+               if spec.hover.get("manoeuvres", True) else ())
         vib = bool(spec.hover.get("vibration", True)) and "vibration" not in gyro.without
         truth, flight_log = fly_hover(duration_s=dur, gyro=stream, vibration=vib,
                                       manoeuvres=man, gyro_rate_hz=rate, thermal=thermal, seed=int(seed) + 1000003 * int(run),
-                                      progress=progress)
+                                      progress=progress, ground_s=ground)
     out = gyro.measure(truth)
     params_true = _params_true(gyro, out)
     pu = np.asarray(truth.power_up_index, int)
@@ -555,6 +567,25 @@ def simulate(
     return SimResult(scenario=spec.name, sensor=sensor_spec.name, seed=int(seed), run=int(run), recording=rec,
                      truth=truth, params_true=params_true, draws=out.draws, noise_rad_s=out.noise_rad_s,
                      flight_log=flight_log, notes=tuple(notes))
+
+
+#: ``hover``: shortest hover after the take-off for the ground phase to be flown, s.
+MIN_AIRBORNE_S = 5.0
+
+
+def hover_ground_s(spec: ScenarioSpec, duration_s: float) -> float:
+    """Time on the ground before take-off for a ``hover`` scenario of ``duration_s``, s.
+
+    ``[hover] ground_s`` when the flight also has room for the take-off
+    (:data:`sim.quadrotor.TAKEOFF_CLIMB_S`) and :data:`MIN_AIRBORNE_S` of hover after it; else 0
+    (airborne start: short test flights keep the plain hover).
+    """
+    from .quadrotor import TAKEOFF_CLIMB_S
+
+    ground = float(spec.hover.get("ground_s", 0.0))
+    if ground > 0.0 and duration_s >= ground + TAKEOFF_CLIMB_S + MIN_AIRBORNE_S:
+        return ground
+    return 0.0
 
 
 # ---------------------------------------------------------------------------- helpers for scoring

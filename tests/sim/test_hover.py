@@ -288,7 +288,7 @@ def _assert_same_flight(a, b) -> None:
 
 
 @pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating",
-                                  "heater"])
+                                  "heater", "ground_all_effects_pt1", "ground_preset_no_pipeline_500hz"])
 def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     # sim._fast transcribes rotor forces, GyroStream's generated code and the controller
     # operation by operation (libm cos/sin, IEEE sqrt, no FMA): the flights must agree in every
@@ -302,6 +302,14 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
         if case == "all_effects_pt1_manoeuvres":
             return fly_hover(duration_s=1.2, seed=2, gyro=_all_effects_gyro(1000.0), pipeline=pt1(30.0, 1000.0),
                              manoeuvres=(Manoeuvre(0.2, 0.6, roll_rad=0.05, yaw_rad=0.1),))
+        if case == "ground_all_effects_pt1":  # disarmed on the floor (contact), arming, take-off ramp; motor heating
+            spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.05)
+            return fly_hover(duration_s=1.6, ground_s=0.5, seed=2, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)),
+                             pipeline=pt1(30.0, 1000.0), thermal=spec,
+                             manoeuvres=(Manoeuvre(1.0, 0.4, roll_rad=0.05, yaw_rad=0.1),))
+        if case == "ground_preset_no_pipeline_500hz":  # kernel entry without a pipeline, m = 2
+            return fly_hover(duration_s=1.5, ground_s=0.3, seed=4, gyro_rate_hz=500.0,
+                             gyro=SyntheticGyro("icm42688p", rate_hz=500.0, seed=4))
         if case == "perfect_gyro_500hz":
             return fly_hover(duration_s=1.0, seed=5, gyro_rate_hz=500.0, manoeuvres=small_steps(1.0))
         if case == "motor_heating":  # the die temperature streamed from the rotor power, thermal effects on
@@ -340,3 +348,67 @@ def test_compiled_all_effects_gyro_is_the_batch_measurement():
     np.testing.assert_array_equal(_all_effects_gyro(1000.0).measure(truth).gyro_rad_s, log.gyro_meas_rad_s)
     np.testing.assert_array_equal(stream.gyro_rad_s, log.gyro_meas_rad_s)
     assert stream._k_next == 1000
+
+
+# ---------------------------------------------------------------- ground phase (power-up still, take-off)
+GROUND_S = 3.0
+
+
+@pytest.fixture(scope="module")
+def from_ground():
+    from sim.quadrotor import TAKEOFF_CLIMB_S
+
+    dur = GROUND_S + TAKEOFF_CLIMB_S + SETTLE_S + 3.0
+    return fly_hover(duration_s=dur, ground_s=GROUND_S, vibration=True, seed=3, manoeuvres=()), dur
+
+
+def test_ground_phase_is_still_with_gravity_only(from_ground):
+    (truth, log), _ = from_ground
+    g = truth.t_s < GROUND_S
+    assert g.sum() == int(GROUND_S * 1000)
+    # Rotors stopped, motors off (controller disarmed): no thrust, no vibration source.
+    assert np.all(log.motor_thrust_cmd_n[g] == 0.0)
+    assert np.abs(log.rotor_speed_rad_s[g]).max() < 1e-6
+    # Contact micro-motion on the four feet (soft contact settling from the keyframe, 0.1 mm
+    # penetration): measured < 1.1e-6 rad/s. Bound 2e-6 rad/s: 1/14 of the ICM-42688-P's
+    # bias resolution over the ground phase, N / sqrt(T) = 0.0028 deg/s/sqrt(Hz) * (pi/180)
+    # / sqrt(3 s) = 2.8e-5 rad/s, so a static calibration sees a still sensor.
+    assert np.linalg.norm(truth.omega_S_rad_s[g], axis=1).max() < 2e-6
+    # Specific force = gravity only, +z in S (S = B, level on the ground): the settling
+    # transient is measured < 6e-5 m/s^2; bound 1e-3 m/s^2 (= 0.1 mrad of tilt to the
+    # accelerometer, far below any still-detector threshold).
+    np.testing.assert_allclose(truth.f_S_m_s2[g], np.broadcast_to([0.0, 0.0, QP.gravity_m_s2], truth.f_S_m_s2[g].shape),
+                               rtol=0, atol=1e-3)
+    assert np.degrees(log.tilt_rad()[g]).max() < 1e-3  # level on four equal feet
+    # the gyro is powered up from t = 0, on the ground
+    np.testing.assert_array_equal(truth.t_since_power_up_s, truth.t_s)
+    assert truth.meta["ground_s"] == "3"
+
+
+def test_takes_off_and_holds_hover_after_the_ground_phase(from_ground):
+    from sim.quadrotor import TAKEOFF_CLIMB_S
+
+    (truth, log), dur = from_ground
+    z = log.pos_W_m[:, 2]
+    assert z[0] < 0.2 and log.pos_sp_W_m[2] == 1.0  # starts on its 15-cm feet, climbs to 1 m
+    # spools up right after arming: thrust commanded from the first outer update at >= GROUND_S
+    assert log.motor_thrust_cmd_n[int(GROUND_S * 1000) + 4].sum() > 0.5 * QP.mass_kg * QP.gravity_m_s2
+    # The same bounds as the airborne start (test_hover_holds_attitude_and_altitude_with_vibration,
+    # derivations there), SETTLE_S after the climb ends: the ramp is a raised cosine with
+    # velocity and acceleration fed forward, so it ends at the set point at rest.
+    k0 = int((GROUND_S + TAKEOFF_CLIMB_S + SETTLE_S) * 1000)
+    assert k0 < truth.n - 2000
+    assert np.degrees(log.attitude_error_rad()[k0:]).max() < 0.1
+    assert np.degrees(log.tilt_rad()[k0:]).max() < 0.1
+    assert np.abs(log.altitude_error_m()[k0:]).max() < 5e-3
+    assert np.abs(log.pos_W_m[k0:, :2] - log.pos_sp_W_m[:2]).max() < 1e-2
+    # and it is flying: the rotor line is back in the truth (hover speed, 88.7 Hz)
+    assert abs(np.abs(log.rotor_speed_rad_s[k0:]).mean() / (2 * math.pi) - F_ROTOR_HZ) < 0.5
+
+
+def test_ground_s_is_checked():
+    from gyrocore.errors import GyroInputError
+
+    for bad in (-1.0, 2.0, 3.0, float("nan")):
+        with pytest.raises(GyroInputError, match="ground_s"):
+            fly_hover(duration_s=2.0, ground_s=bad)

@@ -177,3 +177,37 @@ def test_bad_scenario_files(tmp_path):
         S.simulate(str(p), gyro_rate_hz=100.0)
     with pytest.raises(GyroInputError, match="unknown scenario"):
         S.simulate("nope")
+    p.write_text('kind = "hover"\nduration_s = 20\n[hover]\nground_s = -1\n', encoding="utf-8")
+    with pytest.raises(GyroInputError, match="ground_s"):
+        S.load_scenario(str(p))
+
+
+def test_hover_powers_up_on_the_ground_and_the_static_bias_calibration_finds_it():
+    from gyrocore.bias import StaticBiasCalibrator
+    from sim.quadrotor import TAKEOFF_CLIMB_S
+
+    spec = S.load_scenario("hover")
+    ground = float(spec.hover["ground_s"])
+    dur = ground + TAKEOFF_CLIMB_S + S.MIN_AIRBORNE_S  # shortest flight with the ground phase
+    assert S.hover_ground_s(spec, dur) == ground and S.hover_ground_s(spec, dur - 0.1) == 0.0
+    # g-sensitivity (H g ~ 3e-4 rad/s here, 4 sigma) and the thermal bias add their own static
+    # offsets on the ground: off, so that the still window measures the turn-on bias alone
+    res = S.simulate("hover", duration_s=dur, gyro_rate_hz=500.0, seed=0, without=["g_sensitivity", "bias_thermal"])
+    assert res.recording.meta["ground_s"] == f"{ground:g}"
+    t = res.truth.t_s
+    on_ground = t < ground
+    assert np.linalg.norm(res.truth.omega_S_rad_s[on_ground], axis=1).max() < 2e-6  # bound: tests/sim/test_hover.py
+    assert res.flight_log.pos_W_m[-1, 2] > 0.9  # took off
+    # the manoeuvres come after the take-off: no rate set point beyond the hover loops' before
+    rate_sp_deg_s = np.degrees(np.abs(res.flight_log.rate_sp_rad_s[t < ground + TAKEOFF_CLIMB_S])).max()
+    assert rate_sp_deg_s < 1.0, rate_sp_deg_s
+    fit = StaticBiasCalibrator().fit(res.recording)
+    # the first still window lies in the ground phase
+    assert fit.window_start_s + fit.window_s <= ground
+    # Turn-on bias within 4 standard errors per axis: bias_se = sigma VIF / sqrt(n) of the
+    # window mean (ARW 0.0028 deg/s/sqrt(Hz) over 0.4 s: 7.7e-5 rad/s); P(|z| > 4) = 6e-5 per axis.
+    b_true = S.true_bias_rad_s(res)[0]
+    assert np.all(np.abs(fit.bias_rad_s - b_true) < 4.0 * fit.bias_se_rad_s)
+    # a short flight has no room for the ground phase: airborne start, said in the notes
+    short = S.simulate("hover", duration_s=1.0, gyro_rate_hz=500.0, seed=0)
+    assert "ground_s" not in short.recording.meta and any("no ground phase" in n for n in short.notes)
