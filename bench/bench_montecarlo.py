@@ -11,7 +11,8 @@ only on the campaign seed and its instance number). Process start-up (spawn, imp
 inside the timed region: it is part of what a user waits for. CPU seconds are shown beside
 the wall time (this process for the serial run; the reaped worker processes for the others,
 including their start-up): on a shared machine the wall-time speed-up is bounded by the CPU
-the other users leave, and the CPU ratio shows the parallel overhead.
+the other users leave ("cores obtained" = CPU seconds / wall seconds), and the CPU ratio
+shows the parallel overhead.
 """
 
 from __future__ import annotations
@@ -98,7 +99,8 @@ def main(argv=None) -> int:
         "quick": a.quick,
         "runs": {
             k: {"wall_s": r.wall_s, "speedup_vs_serial": base.wall_s / r.wall_s, "identical_to_serial": _identical(base, r),
-                "cpu_s": cpu[k], "cpu_over_serial_cpu": cpu[k] / cpu["serial"], "backend": r.backend, "workers": r.workers}
+                "cpu_s": cpu[k], "cpu_over_serial_cpu": cpu[k] / cpu["serial"], "cores_obtained": cpu[k] / r.wall_s,
+                "backend": r.backend, "workers": r.workers}
             for k, r in runs.items()
         },
     }
@@ -111,7 +113,7 @@ def main(argv=None) -> int:
               f"{a.instances} instances), duration {a.duration_s or 'default'}")
         for k, v in out["runs"].items():
             print(f"  {k:<26s} wall {v['wall_s']:7.1f} s  speed-up {v['speedup_vs_serial']:.2f}x  "
-                  f"CPU {v['cpu_s']:7.1f} s ({v['cpu_over_serial_cpu']:.2f}x serial)  "
+                  f"CPU {v['cpu_s']:7.1f} s ({v['cpu_over_serial_cpu']:.2f}x serial, {v['cores_obtained']:.2f} cores obtained)  "
                   f"identical to serial: {v['identical_to_serial']}")
         print(f"  load average before/after: {load0} / {_load()}")
         if a.dask:
