@@ -127,21 +127,35 @@ def stage_read_chunks(a) -> dict:
 
 
 def _gather(a, *, full: bool):
-    """The recording from chunks, keeping only the columns a stage needs (no text held)."""
+    """The recording from chunks, keeping only the columns a stage needs (no text held).
+
+    The columns are preallocated for the known length and filled chunk by chunk, so the
+    gather peaks at the columns themselves (not at chunk lists plus their concatenation)."""
     from gyrocore.recording import Recording, iter_csv_chunks
 
-    cols: dict[str, list] = {"t": [], "g": [], "a": [], "T": [], "r": []}
+    n = int(round(a.duration_s * a.rate_hz))
+    shapes = {"t": (n,), "g": (n, 3)}
+    if full:
+        shapes.update({"a": (n, 3), "T": (n,), "r": (n, 3)})
+    cat = {k: np.empty(s) for k, s in shapes.items()}
+    i0 = 0
+    meta = {}
     for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS):
-        cols["t"].append(ch.t_s)
-        cols["g"].append(ch.gyro_rad_s)
+        i1 = i0 + ch.n
+        if i1 > n:
+            raise SystemExit(f"{a.csv}: more than the expected {n} rows")
+        cat["t"][i0:i1] = ch.t_s
+        cat["g"][i0:i1] = ch.gyro_rad_s
         if full:
-            cols["a"].append(ch.accel_m_s2)
-            cols["T"].append(ch.temp_c)
-            cols["r"].append(ch.ref_rate_rad_s)
+            cat["a"][i0:i1] = ch.accel_m_s2
+            cat["T"][i0:i1] = ch.temp_c
+            cat["r"][i0:i1] = ch.ref_rate_rad_s
         meta = ch.meta
-    cat = {k: (np.concatenate(v) if v else None) for k, v in cols.items()}
-    return Recording(t_s=cat["t"], gyro_rad_s=cat["g"], accel_m_s2=cat["a"], temp_c=cat["T"],
-                     ref_rate_rad_s=cat["r"], meta=meta)
+        i0 = i1
+    if i0 != n:
+        raise SystemExit(f"{a.csv}: {i0} rows, expected {n}")
+    return Recording(t_s=cat["t"], gyro_rad_s=cat["g"], accel_m_s2=cat.get("a"), temp_c=cat.get("T"),
+                     ref_rate_rad_s=cat.get("r"), meta=meta)
 
 
 def stage_allan(a) -> dict:

@@ -435,7 +435,8 @@ def correct(params: Params, gyro_rad_s: np.ndarray, inp: ModelInputs, *, iterati
 
 
 # ---------------------------------------------------------------------------- regressors
-def design(effect: str, inp: ModelInputs, *, order: int = 1) -> tuple[list[str], np.ndarray]:
+def design(effect: str, inp: ModelInputs, *, order: int = 1,
+           t0_c: float | None = None) -> tuple[list[str], np.ndarray]:
     """Regressors of one effect: ∂(measurement)/∂(parameters), linearised at zero error.
 
     Parameters
@@ -447,6 +448,9 @@ def design(effect: str, inp: ModelInputs, *, order: int = 1) -> tuple[list[str],
     order : int
         Polynomial order for ``bias_thermal`` / ``scale_thermal`` (powers 1..order of T − T0,
         with T0 = ``inp`` mean temperature; the caller stores T0).
+    t0_c : float, optional
+        T0 of the thermal polynomials, °C; default the mean of ``inp.temp_c``. Pass the
+        whole record's mean when building the design of a slice of it (chunked fits).
 
     Returns
     -------
@@ -476,7 +480,7 @@ def design(effect: str, inp: ModelInputs, *, order: int = 1) -> tuple[list[str],
         return [f"{pname}[{i}]" for i in range(3)], A
     if effect in ("bias_thermal", "scale_thermal"):
         T = inp._need("temp_c", effect)
-        dT = T - float(np.mean(T))
+        dT = T - (float(np.mean(T)) if t0_c is None else float(t0_c))
         powers = dT[:, None] ** np.arange(1, order + 1)[None, :]  # (N, p)
         A = np.zeros((n, 3, 3 * order))
         w = inp._need("omega_S_rad_s", effect) if effect == "scale_thermal" else np.ones((n, 3))

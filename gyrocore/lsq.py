@@ -44,6 +44,7 @@ raised (``"raise"``).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -173,6 +174,7 @@ def build_design(
     inp: E.ModelInputs,
     *,
     orders: Mapping[str, int] | None = None,
+    t0_c: float | None = None,
 ) -> tuple[np.ndarray, list[str], dict[str, slice]]:
     """Stack the regressors of ``effects`` (in the given order).
 
@@ -184,6 +186,9 @@ def build_design(
         Physical inputs; ``omega_S_rad_s`` is the reference rate (rad/s, S frame).
     orders : mapping, optional
         Polynomial order per thermal effect (``bias_thermal``, ``scale_thermal``); default 1.
+    t0_c : float, optional
+        T0 of the thermal polynomials, °C; default the mean of ``inp.temp_c`` (see
+        :func:`gyrocore.effects.design`).
 
     Returns
     -------
@@ -197,7 +202,7 @@ def build_design(
     for eff in E.check_effect_names(effects):
         if eff in slices:
             raise GyroInputError(f"effect {eff} listed twice")
-        cn, A = E.design(eff, inp, order=int(orders.get(eff, 1)))
+        cn, A = E.design(eff, inp, order=int(orders.get(eff, 1)), t0_c=t0_c)
         blocks.append(A)
         names += [f"{eff}.{c}" for c in cn]
         slices[eff] = slice(p0, p0 + A.shape[2])
@@ -817,12 +822,19 @@ def solve(
     )
 
 
+#: Window length of the chunked design in :func:`fit_effects` (rows); records longer than
+#: 4 windows fitted with ``average`` > 1 take the chunked path (bounded memory).
+CHUNK_ROWS: int = 32768
+
+
 def fit_effects(
     r: np.ndarray,
     effects: Sequence[str],
     inp: E.ModelInputs,
     *,
     orders: Mapping[str, int] | None = None,
+    chunk_rows: int | None = CHUNK_ROWS,
+    keep_residual: bool = True,
     **options,
 ) -> LsqFit:
     """Fit the linearised ``effects`` to r = y − ω_ref jointly (see :func:`solve`).
@@ -838,8 +850,138 @@ def fit_effects(
         ``omega_S_rad_s`` = reference rate; ``f_S_m_s2``/``temp_c`` when the effects need them.
     orders : mapping, optional
         Thermal polynomial orders.
+    chunk_rows : int or None
+        With ``average`` > 1 and N > 4·``chunk_rows``, the design (N, 3, P) is never held
+        whole: it is built in windows of ``chunk_rows`` samples (one sample of overlap for
+        the time derivatives of ``time_offset``/``bias_temp_rate``; the thermal T0 and the
+        power-up time of the whole record), reduced to the weighted block means that
+        ``solve(average=)`` fits, and the full-resolution residual is computed window by
+        window from θ. Same result as the whole-array path to float rounding; memory
+        O(chunk_rows·P + N_blocks·P) instead of O(N·P). None: always the whole-array path.
+    keep_residual : bool
+        False: the result's ``residual_rad_s`` is empty, shape (0, 3) (its RMS is still
+        computed), so a fit whose residual is not used (e.g. an order test) holds no
+        (N, 3) array.
     **options
         Keyword options of :func:`solve`.
     """
+    average = max(1, int(options.get("average", 1)))
+    n = int(np.shape(r)[0]) if np.ndim(r) >= 1 else 0
+    if chunk_rows and average > 1 and n > 4 * int(chunk_rows):
+        return _fit_effects_chunked(r, effects, inp, orders=orders, chunk_rows=int(chunk_rows),
+                                    keep_residual=keep_residual, **options)
     A, names, slices = build_design(effects, inp, orders=orders)
-    return solve(r, A, names, slices, **options)
+    fit = solve(r, A, names, slices, **options)
+    if not keep_residual:
+        fit = dataclasses.replace(fit, residual_rad_s=np.zeros((0, 3)))
+    return fit
+
+
+def _window_inputs(inp: E.ModelInputs, lo: int, hi: int) -> E.ModelInputs:
+    """Rows lo:hi of ``inp``; the power-up time stays that of the whole record."""
+    kw = {}
+    for f in dataclasses.fields(inp):
+        v = getattr(inp, f.name)
+        kw[f.name] = None if v is None else np.asarray(v)[lo:hi]
+    if inp.t_since_power_up_s is None:
+        t = np.asarray(inp.t_s, float)
+        kw["t_since_power_up_s"] = t[lo:hi] - t[0]
+    return E.ModelInputs(**kw)
+
+
+def _window_design(effects, inp, orders, t0_c, a: int, b: int, n: int):
+    """Design rows a:b of the whole record, built on a:b plus one neighbour each side (so
+    central differences at the window edges equal those of the whole record)."""
+    lo, hi = max(a - 1, 0), min(b + 1, n)
+    A, names, slices = build_design(effects, _window_inputs(inp, lo, hi), orders=orders, t0_c=t0_c)
+    A = A[a - lo : a - lo + (b - a)]
+    if not np.all(np.isfinite(A)):
+        raise GyroInputError("lsq: non-finite values in the data or regressors")
+    return A, names, slices
+
+
+def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_residual: bool = True,
+                         weights=None, stride: int = 1, average: int = 1, **options) -> LsqFit:
+    """:func:`fit_effects` for long records: block means built window by window (see there)."""
+    r_all = np.asarray(r, float)
+    N = r_all.shape[0]
+    if r_all.shape != (N, 3):
+        raise GyroInputError(f"lsq: r has shape {r_all.shape}; expected (N,3)")
+    if inp.n != N:
+        raise GyroInputError(f"lsq: r has {N} rows, the model inputs {inp.n}")
+    stride = max(1, int(stride))
+    average = max(1, int(average))
+    w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(
+        np.asarray(weights, float).reshape(N, -1), (N, 3))
+    if np.any(~np.isfinite(w_all)) or np.any(w_all < 0):
+        raise GyroInputError("lsq: weights must be finite and non-negative")
+    if not np.all(np.isfinite(r_all)):
+        raise GyroInputError("lsq: non-finite values in the data or regressors")
+    keep = np.zeros(N, bool)  # the rows solve() uses: every stride-th with a non-zero weight
+    keep[::stride] = True
+    keep &= np.any(w_all > 0, axis=1)
+    n_used = int(np.count_nonzero(keep))
+    if n_used < 2:
+        raise GyroInputError("lsq: fewer than 2 samples with non-zero weight")
+    nb = n_used // average
+    if nb < 2:
+        raise GyroInputError(f"lsq: average={average} leaves fewer than 2 rows")
+    m = nb * average
+    t0_c = None if inp.temp_c is None else float(np.mean(np.asarray(inp.temp_c, float)))
+    # pass 1: weighted block sums of r and A over `average` consecutive used rows (the
+    # same sums, in the same order, as solve(average=) except where a block straddles two
+    # windows)
+    Sr = Sw = SA = None
+    names = slices = None
+    j0 = 0  # used rows before the window
+    for a in range(0, N, chunk_rows):
+        b = min(a + chunk_rows, N)
+        rows = a + np.flatnonzero(keep[a:b])
+        j1 = min(j0 + rows.size, m)
+        rows = rows[: j1 - j0]
+        if rows.size == 0:
+            j0 += rows.size
+            if j0 >= m:
+                break
+            continue
+        A, names, slices = _window_design(effects, inp, orders, t0_c, a, b, N)
+        wr = w_all[rows]
+        A = A[rows - a]
+        A *= wr[..., None]
+        rw = r_all[rows] * wr
+        if SA is None:
+            SA = np.zeros((nb, 3, A.shape[2]))
+            Sr = np.zeros((nb, 3))
+            Sw = np.zeros((nb, 3))
+        k = np.arange(j0, j1) // average
+        starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+        kb = k[starts]
+        SA[kb] += np.add.reduceat(A, starts, axis=0)
+        Sr[kb] += np.add.reduceat(rw, starts, axis=0)
+        Sw[kb] += np.add.reduceat(wr, starts, axis=0)
+        del A, rw, wr
+        j0 = j1
+        if j0 >= m:
+            break
+    safe = np.where(Sw > 0, Sw, 1.0)
+    fit = solve(Sr / safe, SA / safe[..., None], names, slices, weights=Sw / average, stride=1, average=1,
+                **options)
+    del SA
+    # pass 2: the residual r − A·θ at full resolution and its RMS over the used rows
+    theta = fit.theta
+    resid = np.empty_like(r_all) if keep_residual else np.zeros((0, 3))
+    num = np.zeros(3)
+    den = np.zeros(3)
+    for a in range(0, N, chunk_rows):
+        b = min(a + chunk_rows, N)
+        A, _, _ = _window_design(effects, inp, orders, t0_c, a, b, N)
+        e = r_all[a:b] - np.einsum("nip,p->ni", A, theta)
+        del A
+        if keep_residual:
+            resid[a:b] = e
+        sel = keep[a:b]
+        wu = w_all[a:b][sel]
+        num += np.sum(wu * e[sel] ** 2, axis=0)
+        den += np.sum(wu, axis=0)
+    rms = np.sqrt(num / np.maximum(den, 1e-300))
+    return dataclasses.replace(fit, residual_rad_s=resid, residual_rms_rad_s=rms)

@@ -444,7 +444,8 @@ class Calibrator:
         """(omega_ref (N,3), weights (N,), method, notes)."""
         notes: list[str] = []
         if rec.ref_rate_rad_s is not None:
-            return rec.ref_rate_rad_s, np.ones(rec.n), "rate_reference", notes
+            # unit weights as a read-only broadcast view: no (N,) array for a long record
+            return rec.ref_rate_rad_s, np.broadcast_to(1.0, (rec.n,)), "rate_reference", notes
         from .rotations import still_mask
 
         m = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
@@ -490,6 +491,7 @@ class Calibrator:
                 if not np.isfinite(fit.effect_stderr("time_offset")[0]) or d == 0.0:
                     break
                 tau_total += d
+                fit = None  # free the previous full-resolution residual first
                 fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders, **opts)
                 if abs(float(fit.effect_theta("time_offset")[0])) < 1e-3 * float(fit.effect_stderr("time_offset")[0]):
                     break
@@ -497,22 +499,36 @@ class Calibrator:
         if self.robust and fit.rank:
             e = fit.residual_rad_s
             used = weights > 0
-            med = np.median(e[used], axis=0)
-            s_rob = 1.4826 * np.median(np.abs(e[used] - med), axis=0)
-            bad = used & np.any(np.abs(e - med) > 6.0 * np.where(s_rob > 0, s_rob, np.inf), axis=1)
+            # per axis (same values as np.median(e[used], axis=0)): one (N,) copy at a time
+            med, s_rob = np.zeros(3), np.zeros(3)
+            all_used = bool(used.all())
+            for i in range(3):
+                ei = e[:, i] if all_used else e[used, i]
+                med[i] = np.median(ei)
+                dev = np.abs(ei - med[i])
+                s_rob[i] = 1.4826 * np.median(dev)
+                del ei, dev
+            thr = 6.0 * np.where(s_rob > 0, s_rob, np.inf)
+            bad = np.zeros(e.shape[0], bool)  # |e − med| > thr on any axis, one axis at a time
+            for i in range(3):
+                bad |= np.abs(e[:, i] - med[i]) > thr[i]
+            bad &= used
+            del e
             nb = int(bad.sum())
             # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
             if 0 < nb < 0.05 * used.sum():
                 weights = np.where(bad, 0.0, weights)
                 opts["weights"] = weights
                 notes.append(f"excluded {nb} samples with residual > 6 robust sigma (transients)")
-        # 2) thermal order from the data, then the final fit
+        # 2) thermal order from the data, then the final fit (the first fit's full-resolution
+        #    residual is no longer needed: free it before the next fits)
+        fit = None
         if thermal and self.thermal_order == "auto":
             from .thermal import select_thermal_orders
 
             orders, tests = select_thermal_orders(
                 residual(tau_total), inputs(tau_total), effects, max_order=self.max_thermal_order,
-                alpha=self.thermal_alpha, **dict(opts, on_unobservable="drop"))
+                alpha=self.thermal_alpha, **dict(opts, on_unobservable="drop", keep_residual=False))
         fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders, **opts)
         if "time_offset" in effects and np.isfinite(fit.effect_stderr("time_offset")[0]):
             tau_total += float(fit.effect_theta("time_offset")[0])

@@ -347,3 +347,43 @@ def test_noise_free_data_with_zero_parameters_fits():
     t, w, f = _rich_reference()
     res = Calibrator(effects=_EFFS).fit(Recording(t_s=t, gyro_rad_s=w.copy(), accel_m_s2=f, ref_rate_rad_s=w))
     assert np.max(np.abs(res.apply(Recording(t_s=t, gyro_rad_s=w.copy(), accel_m_s2=f)).gyro_rad_s - w)) < 1e-9
+
+
+def test_long_record_chunked_fit_equals_whole_array_fit(monkeypatch):
+    # Calibrator.fit of a long record builds the design in windows (lsq.fit_effects
+    # chunk_rows) and keeps only block means; with a small window the same fit (thermal order
+    # selection, time_offset Gauss–Newton, robust outlier pass) must give the whole-array
+    # result up to float-addition order where blocks straddle windows: relative rounding
+    # ~average·eps ≈ 1e-14 times the normal-equation condition (< 1e3 here) → 1e-9 relative.
+    from gyrocore import lsq
+
+    rng = np.random.default_rng(11)
+    n = 12000
+    t = np.arange(n) / 200.0
+    w = np.stack([0.8 * np.sin(2 * np.pi * t / 7.0), 0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
+                  0.5 * np.sin(2 * np.pi * t / 11.0 + 2)], 1)
+    T = 25 + 20 * (1 - np.exp(-t / 20.0))
+    params = {"bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
+              "scale": {"s": np.array([0.01, -0.02, 0.005])},
+              "bias_thermal": {"poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
+                               "t0_c": np.asarray(30.0), "temp_min_c": np.asarray(0.0),
+                               "temp_max_c": np.asarray(100.0)},
+              "time_offset": {"tau_s": np.asarray(0.004)}}
+    y = w + E.deterministic(params, E.ModelInputs(t_s=t, omega_S_rad_s=w, temp_c=T))
+    y = y + 2e-3 * rng.standard_normal((n, 3))
+    y[rng.choice(n, 40, replace=False)] += 0.5  # transients for the robust pass
+    rec = Recording(t_s=t, gyro_rad_s=y, temp_c=T, ref_rate_rad_s=w)
+    eff = ["bias", "scale", "bias_thermal", "time_offset"]
+    monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", None)
+    whole = Calibrator(effects=eff, max_rows=1000).fit(rec)
+    monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", 1500)
+    chunked = Calibrator(effects=eff, max_rows=1000).fit(rec)
+    assert any("excluded" in s for s in whole.notes) and chunked.notes == whole.notes
+    assert chunked.thermal_order == whole.thermal_order and chunked.covariance == whole.covariance
+    for e in eff:
+        for p, v in whole.params[e].items():
+            np.testing.assert_allclose(chunked.params[e][p], v, rtol=1e-9, atol=1e-15, err_msg=f"{e}.{p}")
+            s = whole.stderr[e][p]
+            if np.all(np.isfinite(s)):
+                np.testing.assert_allclose(chunked.stderr[e][p], s, rtol=1e-9, err_msg=f"{e}.{p}")
+    np.testing.assert_allclose(chunked.residual_rms_rad_s, whole.residual_rms_rad_s, rtol=1e-9)
