@@ -835,6 +835,7 @@ def fit_effects(
     orders: Mapping[str, int] | None = None,
     chunk_rows: int | None = CHUNK_ROWS,
     keep_residual: bool = True,
+    overwrite_r: bool = False,
     **options,
 ) -> LsqFit:
     """Fit the linearised ``effects`` to r = y − ω_ref jointly (see :func:`solve`).
@@ -862,6 +863,10 @@ def fit_effects(
         False: the result's ``residual_rad_s`` is empty, shape (0, 3) (its RMS is still
         computed), so a fit whose residual is not used (e.g. an order test) holds no
         (N, 3) array.
+    overwrite_r : bool
+        Chunked path only: write the residual into ``r`` (a float64 (N, 3) array the caller
+        no longer needs) and return it as ``residual_rad_s``, saving one (N, 3) array —
+        like scipy's ``overwrite_a``.
     **options
         Keyword options of :func:`solve`.
     """
@@ -869,7 +874,7 @@ def fit_effects(
     n = int(np.shape(r)[0]) if np.ndim(r) >= 1 else 0
     if chunk_rows and average > 1 and n > 4 * int(chunk_rows):
         return _fit_effects_chunked(r, effects, inp, orders=orders, chunk_rows=int(chunk_rows),
-                                    keep_residual=keep_residual, **options)
+                                    keep_residual=keep_residual, overwrite_r=overwrite_r, **options)
     A, names, slices = build_design(effects, inp, orders=orders)
     fit = solve(r, A, names, slices, **options)
     if not keep_residual:
@@ -901,7 +906,7 @@ def _window_design(effects, inp, orders, t0_c, a: int, b: int, n: int):
 
 
 def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_residual: bool = True,
-                         weights=None, stride: int = 1, average: int = 1, **options) -> LsqFit:
+                         overwrite_r: bool = False, weights=None, stride: int = 1, average: int = 1, **options) -> LsqFit:
     """:func:`fit_effects` for long records: block means built window by window (see there)."""
     r_all = np.asarray(r, float)
     N = r_all.shape[0]
@@ -969,7 +974,11 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
     del SA
     # pass 2: the residual r − A·θ at full resolution and its RMS over the used rows
     theta = fit.theta
-    resid = np.empty_like(r_all) if keep_residual else np.zeros((0, 3))
+    in_place = keep_residual and overwrite_r and r_all is r and r_all.flags.writeable
+    if not keep_residual:
+        resid = np.zeros((0, 3))
+    else:
+        resid = r_all if in_place else np.empty_like(r_all)  # window a:b reads only r[a:b]
     num = np.zeros(3)
     den = np.zeros(3)
     for a in range(0, N, chunk_rows):

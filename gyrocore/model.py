@@ -483,7 +483,8 @@ class Calibrator:
             e: (self.max_thermal_order if self.thermal_order == "auto" else int(self.thermal_order)) for e in thermal
         }
         tests = []
-        fit = lsq.fit_effects(residual(0.0), effects, inputs(0.0), orders=orders, **opts)
+        # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
+        fit = lsq.fit_effects(residual(0.0), effects, inputs(0.0), orders=orders, overwrite_r=True, **opts)
         # time_offset: Gauss–Newton on τ (the regressor −dω/dt is a linearisation)
         if "time_offset" in effects:
             for _ in range(8):
@@ -492,7 +493,8 @@ class Calibrator:
                     break
                 tau_total += d
                 fit = None  # free the previous full-resolution residual first
-                fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders, **opts)
+                fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders,
+                                      overwrite_r=True, **opts)
                 if abs(float(fit.effect_theta("time_offset")[0])) < 1e-3 * float(fit.effect_stderr("time_offset")[0]):
                     break
         # robust pass: drop transients the model does not describe
@@ -506,8 +508,9 @@ class Calibrator:
                 ei = e[:, i] if all_used else e[used, i]
                 med[i] = np.median(ei)
                 dev = np.abs(ei - med[i])
-                s_rob[i] = 1.4826 * np.median(dev)
-                del ei, dev
+                del ei
+                s_rob[i] = 1.4826 * np.median(dev, overwrite_input=True)
+                del dev
             thr = 6.0 * np.where(s_rob > 0, s_rob, np.inf)
             bad = np.zeros(e.shape[0], bool)  # |e − med| > thr on any axis, one axis at a time
             for i in range(3):
@@ -529,7 +532,9 @@ class Calibrator:
             orders, tests = select_thermal_orders(
                 residual(tau_total), inputs(tau_total), effects, max_order=self.max_thermal_order,
                 alpha=self.thermal_alpha, **dict(opts, on_unobservable="drop", keep_residual=False))
-        fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders, **opts)
+        # only θ, its standard errors and the residual RMS are kept from the final fit
+        fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders,
+                              keep_residual=False, **opts)
         if "time_offset" in effects and np.isfinite(fit.effect_stderr("time_offset")[0]):
             tau_total += float(fit.effect_theta("time_offset")[0])
         params: dict = {}
