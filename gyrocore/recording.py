@@ -7,6 +7,7 @@ reference attitude as a unit quaternion ``w, x, y, z`` rotating S to W.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import itertools
@@ -25,6 +26,7 @@ __all__ = [
     "Recording",
     "read_csv",
     "write_csv",
+    "atomic_open",
     "atomic_write_text",
     "atomic_write_bytes",
     "file_sha256",
@@ -154,11 +156,13 @@ class Recording:
 
 
 # ---------------------------------------------------------------------- writing
-def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool = True) -> None:
-    """Write ``data`` to ``path`` atomically (temp file in the same folder + rename).
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "wb", *, overwrite: bool = True, **open_kw):
+    """Open a temporary file beside ``path``; on success fsync it and rename it onto ``path``.
 
-    An interrupted write leaves either the old file or nothing, never a partial file.
-    With ``overwrite=False`` an existing file is an error.
+    An exception (or interrupt) inside the ``with`` block removes the temporary file, so the
+    target is either the old file or the complete new one, never partial. With
+    ``overwrite=False`` an existing target is an error.
     """
     path = Path(path)
     if not overwrite and path.exists():
@@ -166,8 +170,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool 
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+        with os.fdopen(fd, mode, **open_kw) as fh:
+            yield fh
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
@@ -177,6 +181,16 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool 
         except FileNotFoundError:
             pass
         raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool = True) -> None:
+    """Write ``data`` to ``path`` atomically (temp file in the same folder + rename).
+
+    An interrupted write leaves either the old file or nothing, never a partial file.
+    With ``overwrite=False`` an existing file is an error.
+    """
+    with atomic_open(path, "wb", overwrite=overwrite) as fh:
+        fh.write(data)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str, *, overwrite: bool = True) -> None:
@@ -816,35 +830,20 @@ def write_csv_chunks(chunks: Iterable[Recording], path: str | os.PathLike, *, ov
     from the first chunk (``meta`` replaces its metadata when given); every chunk must have
     the same columns. Returns the number of rows written.
     """
-    path = Path(path)
-    if not overwrite and path.exists():
-        raise GyroInputError(f"{path} exists; pass --force to overwrite it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     n = 0
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            names0 = None
-            for rec in chunks:
-                names, body = _format_rows(rec)
-                if names0 is None:
-                    names0 = names
-                    for k, v in (rec.meta if meta is None else meta).items():
-                        fh.write(f"# {k}: {str(v).replace(chr(10), ' ')}\n")
-                    fh.write(",".join(names) + "\n")
-                elif names != names0:
-                    raise GyroInputError(f"{path}: chunk columns changed ({','.join(names)})")
-                fh.write(body)
-                n += rec.n
+    with atomic_open(path, "w", overwrite=overwrite, encoding="utf-8", newline="\n") as fh:
+        names0 = None
+        for rec in chunks:
+            names, body = _format_rows(rec)
             if names0 is None:
-                raise GyroInputError(f"{path}: nothing to write (no samples)")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+                names0 = names
+                for k, v in (rec.meta if meta is None else meta).items():
+                    fh.write(f"# {k}: {str(v).replace(chr(10), ' ')}\n")
+                fh.write(",".join(names) + "\n")
+            elif names != names0:
+                raise GyroInputError(f"{path}: chunk columns changed ({','.join(names)})")
+            fh.write(body)
+            n += rec.n
+        if names0 is None:
+            raise GyroInputError(f"{path}: nothing to write (no samples)")
     return n
