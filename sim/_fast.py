@@ -116,6 +116,28 @@ def _pmin(a, b):
     return b if b < a else a
 
 
+@njit
+def _clamped_poly(coef, p, T, W, lim):
+    """Σ_k coef[:, k-1]·dT^k (k = 1..p) with dT = clip(T, W[lim], W[lim+1]) − W[lim+2]: the
+    thermal polynomial of gyrocore.effects in the same operation order, per axis."""
+    Tc = T
+    if Tc < W[lim]:
+        Tc = W[lim]
+    if Tc > W[lim + 1]:
+        Tc = W[lim + 1]
+    dT = Tc - W[lim + 2]
+    s0 = dT * coef[0, 0]
+    s1 = dT * coef[1, 0]
+    s2 = dT * coef[2, 0]
+    pw = dT
+    for kk in range(1, p):
+        pw = pw * dT
+        s0 = s0 + pw * coef[0, kk]
+        s1 = s1 + pw * coef[1, kk]
+        s2 = s2 + pw * coef[2, kk]
+    return s0, s1, s2
+
+
 @njit(cache=True)
 def _aero(A, W):
     """ctrl[0:16] = rotor forces from the rotors' state now + the held motor commands; W[OM] = rotor speeds."""
@@ -238,22 +260,7 @@ def _log_and_gyro(k, A, W):
     d2 = 0.0
     p = A[A_STH_P]
     if p > 0:
-        coef = _f2(A[A_STH], 3, p)
-        Tc = T
-        if Tc < W[W_STH_LIM]:
-            Tc = W[W_STH_LIM]
-        if Tc > W[W_STH_LIM + 1]:
-            Tc = W[W_STH_LIM + 1]
-        dT = Tc - W[W_STH_LIM + 2]
-        s0 = dT * coef[0, 0]
-        s1 = dT * coef[1, 0]
-        s2 = dT * coef[2, 0]
-        pw = dT
-        for kk in range(1, p):
-            pw = pw * dT
-            s0 = s0 + pw * coef[0, kk]
-            s1 = s1 + pw * coef[1, kk]
-            s2 = s2 + pw * coef[2, kk]
+        s0, s1, s2 = _clamped_poly(_f2(A[A_STH], 3, p), p, T, W, W_STH_LIM)
         d0 = d0 + s0
         d1 = d1 + s1
         d2 = d2 + s2
@@ -277,22 +284,7 @@ def _log_and_gyro(k, A, W):
         a2 = a2 + W[W_BV + 2]
     p = A[A_BTH_P]
     if p > 0:
-        coef = _f2(A[A_BTH], 3, p)
-        Tc = T
-        if Tc < W[W_BTH_LIM]:
-            Tc = W[W_BTH_LIM]
-        if Tc > W[W_BTH_LIM + 1]:
-            Tc = W[W_BTH_LIM + 1]
-        dT = Tc - W[W_BTH_LIM + 2]
-        s0 = dT * coef[0, 0]
-        s1 = dT * coef[1, 0]
-        s2 = dT * coef[2, 0]
-        pw = dT
-        for kk in range(1, p):
-            pw = pw * dT
-            s0 = s0 + pw * coef[0, kk]
-            s1 = s1 + pw * coef[1, kk]
-            s2 = s2 + pw * coef[2, kk]
+        s0, s1, s2 = _clamped_poly(_f2(A[A_BTH], 3, p), p, T, W, W_BTH_LIM)
         a0 = a0 + s0
         a1 = a1 + s1
         a2 = a2 + s2
