@@ -360,6 +360,25 @@ PRESETS: Mapping[str, Path] = _discover()
 _CACHE: dict[str, SensorSpec] = {}
 
 
+def read_registered_toml(key: str, registry: Mapping[str, Path], *, what: str, short: str) -> tuple[Path, dict]:
+    """Resolve ``key`` as a registry name or a ``.toml`` path and parse it (one-line errors).
+
+    Shared by the sensor presets and the scenarios: both are TOML data registered by name.
+    """
+    if key in registry:
+        path = registry[key]
+    else:
+        path = Path(key)
+        if path.suffix != ".toml" or not path.is_file():
+            raise GyroInputError(f"unknown {what} '{key}'; known: {', '.join(registry)} (or a .toml file)")
+    try:
+        return path, tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise GyroInputError(f"{short} {path}: cannot read ({exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise GyroInputError(f"{short} {path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+
+
 def load_preset(name_or_path: str | Path | SensorSpec) -> SensorSpec:
     """Load a preset by registry name (``"icm42688p"``) or from a TOML file path.
 
@@ -373,18 +392,7 @@ def load_preset(name_or_path: str | Path | SensorSpec) -> SensorSpec:
     key = str(name_or_path)
     if key in _CACHE:
         return _CACHE[key]
-    if key in PRESETS:
-        path = PRESETS[key]
-    else:
-        path = Path(key)
-        if path.suffix != ".toml" or not path.is_file():
-            raise GyroInputError(f"unknown sensor preset '{key}'; known: {', '.join(PRESETS)} (or a .toml file)")
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise GyroInputError(f"preset {path}: cannot read ({exc})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise GyroInputError(f"preset {path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    path, raw = read_registered_toml(key, PRESETS, what="sensor preset", short="preset")
     spec = _convert(raw, str(path))
     if key in PRESETS:  # registry files are cached; a user's file is re-read every time
         _CACHE[key] = spec

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -40,7 +39,7 @@ from gyrocore.recording import Recording
 
 from .gyro import GyroOutput, SyntheticGyro
 from .noise import effect_rng
-from .presets import load_preset
+from .presets import load_preset, read_registered_toml
 from .truth import Truth
 
 __all__ = [
@@ -151,18 +150,7 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
     if isinstance(name_or_path, ScenarioSpec):
         return name_or_path
     key = str(name_or_path)
-    if key in SCENARIOS:
-        path = SCENARIOS[key]
-    else:
-        path = Path(key)
-        if path.suffix != ".toml" or not path.is_file():
-            raise GyroInputError(f"unknown scenario '{key}'; known: {', '.join(SCENARIOS)} (or a .toml file)")
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise GyroInputError(f"scenario {path}: cannot read ({exc})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise GyroInputError(f"scenario {path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    path, raw = read_registered_toml(key, SCENARIOS, what="scenario", short="scenario")
     unknown = set(raw) - _TOP_KEYS
     if unknown:
         raise GyroInputError(f"scenario {path}: unknown key(s) {', '.join(sorted(unknown))}")
