@@ -2,9 +2,11 @@
 
 A campaign is a list of tasks ``(scenario, sensor, instance)``. Each task is run by a
 module-level *task function* (picklable, so it travels to worker processes and Dask workers)
-that returns a small frozen :class:`TaskResult` (named scalar metrics); the default is
-:func:`experiments.ablation.ablation_task` (one instance through the ablation: attitude error
-with no correction, each correction, all of them, and the noise floor). The results are
+that returns a small frozen :class:`TaskResult` (named scalar metrics), given as a callable or
+as a name registered in :data:`experiments.registry.TASKS` (default ``"ablation"``:
+:func:`experiments.ablation.ablation_task`, one instance through the ablation: attitude error
+with no correction, each correction, all of them, and the noise floor). The runner never
+imports an experiment module: the experiments import the runner, one way. The results are
 aggregated per (scenario, sensor) into median / p90 tables written atomically as JSON, CSV
 and Markdown, which the ablation report reads back with :func:`read_campaign`.
 
@@ -67,6 +69,8 @@ __all__ = [
     "read_campaign",
     "campaign_markdown",
     "default_workers",
+    "resolve_task",
+    "DEFAULT_TASK",
     "resolve_names",
     "to_jsonable_summary",
 ]
@@ -240,6 +244,23 @@ def make_tasks(
             for i, s in enumerate(seeds):
                 tasks.append(MonteCarloTask(len(tasks), sc, se, i, s, duration_s, opts))
     return tasks
+
+
+#: Registry name of the default task (:data:`experiments.registry.TASKS`).
+DEFAULT_TASK = "ablation"
+
+
+def resolve_task(task: Callable[[MonteCarloTask], TaskResult] | str | None) -> Callable[[MonteCarloTask], TaskResult]:
+    """A task callable from a callable, a registered task name, or None (:data:`DEFAULT_TASK`)."""
+    if task is None:
+        task = DEFAULT_TASK
+    if isinstance(task, str):
+        from experiments.registry import get_task
+
+        return get_task(task)
+    if not callable(task):
+        raise GyroInputError(f"task_function must be callable or a registered task name, got {task!r}")
+    return task
 
 
 def default_workers() -> int:
@@ -441,18 +462,17 @@ def run_campaign(
     duration_s: float | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
-    task_function: Callable[[MonteCarloTask], TaskResult] | None = None,
+    task_function: Callable[[MonteCarloTask], TaskResult] | str | None = None,
     options: Mapping[str, Any] | None = None,
     progress: bool = False,
 ) -> CampaignResult:
     """Build the tasks, run them (serial / local processes / Dask) and summarise.
 
-    ``task_function`` defaults to :func:`experiments.ablation.ablation_task` (simulate the
-    scenario with one sensor instance, calibrate it, score the attitude error of every
-    correction row against the truth).
+    ``task_function`` is a module-level callable or a name of :data:`experiments.registry.TASKS`
+    (None: :data:`DEFAULT_TASK`, the ablation: simulate the scenario with one sensor instance,
+    calibrate it, score the attitude error of every correction row against the truth).
     """
-    if task_function is None:
-        from experiments.ablation import ablation_task as task_function
+    task_function = resolve_task(task_function)
     tasks = make_tasks(
         scenarios=scenarios, sensors=sensors, instances=instances, seed=seed,
         duration_s=duration_s, options=options,

@@ -17,7 +17,7 @@ from typing import Callable
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["EXPERIMENTS", "get", "names"]
+__all__ = ["EXPERIMENTS", "TASKS", "get", "get_task", "names"]
 
 EXPERIMENTS: dict[str, str] = {
     "article": "experiments.article:run",
@@ -25,6 +25,33 @@ EXPERIMENTS: dict[str, str] = {
     "cutoffs": "experiments.cutoffs:run",
     "close_the_loop": "experiments.close_the_loop:run",
 }
+
+
+#: Monte Carlo task functions (``MonteCarloTask -> TaskResult``) by name, for
+#: :func:`experiments.montecarlo.run_campaign`: the runner resolves a name here and never
+#: imports an experiment module itself (the experiments import the runner, one way).
+TASKS: dict[str, str] = {
+    "ablation": "experiments.ablation:ablation_task",
+}
+
+
+def _load(kind: str, name: str, target: str) -> Callable:
+    mod, _, fn = target.partition(":")
+    try:
+        module = importlib.import_module(mod)
+    except ImportError as exc:
+        raise GyroInputError(f"{kind} {name}: cannot import {mod} ({str(exc).splitlines()[0]})") from exc
+    obj = getattr(module, fn, None)
+    if not callable(obj):
+        raise GyroInputError(f"{kind} {name}: {mod} has no function {fn}")
+    return obj
+
+
+def get_task(name: str) -> Callable:
+    """The Monte Carlo task function registered as ``name`` in :data:`TASKS` (imported now)."""
+    if name not in TASKS:
+        raise GyroInputError(f"unknown Monte Carlo task '{name}'; known: {', '.join(TASKS)}")
+    return _load("task", name, TASKS[name])
 
 
 def names() -> list[str]:
@@ -36,12 +63,4 @@ def get(name: str) -> Callable:
     """The ``run`` function of experiment ``name`` (imported now)."""
     if name not in EXPERIMENTS:
         raise GyroInputError(f"unknown experiment '{name}'; known: {', '.join(EXPERIMENTS)}")
-    mod, _, fn = EXPERIMENTS[name].partition(":")
-    try:
-        module = importlib.import_module(mod)
-    except ImportError as exc:
-        raise GyroInputError(f"experiment {name}: cannot import {mod} ({str(exc).splitlines()[0]})") from exc
-    run = getattr(module, fn, None)
-    if not callable(run):
-        raise GyroInputError(f"experiment {name}: {mod} has no function {fn}")
-    return run
+    return _load("experiment", name, EXPERIMENTS[name])

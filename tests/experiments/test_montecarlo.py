@@ -247,3 +247,26 @@ def test_real_ablation_task_is_identical_on_every_backend():
     assert serial.task_function == "experiments.ablation:ablation_task"
     _same(serial.tasks, procs.tasks)
     _same(serial.tasks, on_dask.tasks)
+
+
+def test_runner_does_not_import_the_experiments_and_resolves_registered_tasks():
+    """Issue 12 item 5: the arrow runs one way (ablation -> montecarlo). The runner module
+    imports no experiment module; tasks come as callables or registry names."""
+    import ast
+    import inspect
+
+    tree = ast.parse(inspect.getsource(mc))
+    imported = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            imported.add(node.module)
+        elif isinstance(node, ast.Import):
+            imported.update(a.name for a in node.names)
+    assert not any(m.startswith("experiments.") and m != "experiments.registry" for m in imported), imported
+    from experiments.ablation import ablation_task
+
+    assert mc.resolve_task("ablation") is ablation_task
+    assert mc.resolve_task(None) is ablation_task
+    assert mc.resolve_task(static_bias_task) is static_bias_task
+    with pytest.raises(GyroInputError, match="unknown Monte Carlo task"):
+        mc.resolve_task("no_such_task")
