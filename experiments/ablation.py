@@ -51,6 +51,8 @@ __all__ = [
     "score_variants",
     "InstanceAblation",
     "ablate_instance",
+    "calibrate_core",
+    "calibrate_instance",
     "ablation_task",
     "run",
     "CURVE_FRACTIONS",
@@ -222,22 +224,24 @@ POWERUP_SEARCH_S = 30.0
 _CAL_KW = {"covariance": "ols", "max_rows": 15000}
 
 
-def calibrate_instance(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
-                       cache_dir: str | None = None) -> list[dict]:
-    """What a user would get for this unit: a rate-table calibration, then a thermal one.
+def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
+                   cache_dir: str | None = None):
+    """The core's calibration of this unit, through the calibrator door.
 
-    1. ``turntable`` run (``run=1``: same unit, another power-up, fresh noise) → fit the
-       present effects of :data:`TABLE_EFFECTS`;
-    2. ``thermal`` run (``run=2``), first corrected with stage 1 → fit ``bias`` + the present
-       effects of :data:`THERMAL_EFFECTS` (+ ``scale`` re-referenced with ``scale_thermal``).
-
-    Returns the stages for :func:`corrected_gyro`. Cached as parameter files in ``cache_dir``.
+    The unit's calibration recordings (:func:`experiments.calibrators.calibration_recordings`:
+    a ``turntable`` run ``run=1`` and a ``thermal`` run ``run=2``, stripped of their truth by
+    :func:`experiments.calibrators.strip_truth`) go to
+    ``CoreCalibrator(effects=present).fit`` (:class:`experiments.calibrators.CoreCalibrator`):
+    the table effects of :data:`TABLE_EFFECTS` present, then ``bias`` + the present
+    :data:`THERMAL_EFFECTS` (+ ``scale`` re-referenced with ``scale_thermal``) on the thermal run
+    corrected with stage 1. Returns its :class:`~experiments.calibrators.CoreParams`, cached as
+    parameter files in ``cache_dir``.
     """
     import json
-    import warnings
 
-    from gyrocore.model import Calibrator, load_params, save_params
-    from sim import scenarios as S
+    from gyrocore.model import load_params, save_params
+
+    from .calibrators import CoreCalibrator, CoreParams, calibration_recordings, strip_truth
 
     tt = [e for e in TABLE_EFFECTS if e in present]
     th = [e for e in THERMAL_EFFECTS if e in present]
@@ -249,39 +253,25 @@ def calibrate_instance(sensor: str, seed: int, present: Sequence[str], *, quick:
         done = Path(cache_dir) / f"{key}.done"
         if done.exists():
             have = json.loads(done.read_text())
-            return [_stage_from(load_params(p), i + 1) if have[i] else {} for i, p in enumerate(paths)]
-    stages: list[dict] = []
-    results = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        if tt:
-            cal = S.simulate("turntable", sensor=sensor, seed=seed, run=1, duration_s=120.0 if quick else None)
-            r1 = Calibrator(effects=["bias"] + [e for e in tt if e != "bias"], **_CAL_KW).fit(cal.recording)
-        else:
-            r1 = None
-        results.append(r1)
-        stages.append(_stage_from(r1, 1))
-        if th:
-            cal2 = S.simulate("thermal", sensor=sensor, seed=seed, run=2, duration_s=300.0 if quick else None)
-            rec2 = cal2.recording
-            if stages[0]:
-                inp2 = E.ModelInputs(t_s=rec2.t_s, f_S_m_s2=rec2.accel_m_s2, temp_c=rec2.temp_c)
-                p1 = {eff: pd for key_, (eff, pd, _) in _as_stages(stages[0])[0].items() if eff != "bias"}
-                rec2 = rec2.with_gyro(E.correct(p1, rec2.gyro_rad_s, inp2) if p1 else rec2.gyro_rad_s)
-            eff2 = ["bias"] + (["scale"] if "scale_thermal" in th else []) + th
-            r2 = Calibrator(effects=eff2, **_CAL_KW).fit(rec2)
-        else:
-            r2 = None
-        results.append(r2)
-        stages.append(_stage_from(r2, 2))
+            res = tuple(load_params(p) if have[i] else None for i, p in enumerate(paths))
+            return CoreParams(effects=tuple(present), stages=tuple(_stage_from(r, i + 1) for i, r in enumerate(res)),
+                              results=res)
+    recs = [strip_truth(r, references=True) for r in calibration_recordings(sensor, seed, quick=quick)]
+    params = CoreCalibrator(effects=present).fit(recs)
     if paths:
         from gyrocore.recording import atomic_write_text
 
-        for p, r in zip(paths, results):
+        for p, r in zip(paths, params.results):
             if r is not None:
                 save_params(r, p)
-        atomic_write_text(done, json.dumps([r is not None for r in results]))
-    return stages
+        atomic_write_text(done, json.dumps([r is not None for r in params.results]))
+    return params
+
+
+def calibrate_instance(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
+                       cache_dir: str | None = None) -> list[dict]:
+    """What a user would get for this unit: the stages of :func:`calibrate_core` (for :func:`corrected_gyro`)."""
+    return list(calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir).stages)
 
 
 def _stage_from(result, stage: int) -> dict:
@@ -413,8 +403,14 @@ def ablate_instance(
     rec, truth, p_true = res.recording, res.truth, res.params_true
     present = present_effects(p_true)
     notes: list[str] = list(res.notes)
+    from .calibrators import CoreCalibrator, CoreParams, strip_truth
+
     if calibration is None:
-        calibration = calibrate_instance(sensor, seed, present, quick=quick, cache_dir=cache_dir)
+        core_params = calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir)
+        calibration = list(core_params.stages)
+    else:
+        core_params = CoreParams(effects=tuple(present),
+                                 stages=(calibration,) if isinstance(calibration, Mapping) else tuple(calibration))
     stages = _as_stages(calibration)
     have = {tog for st in stages for (_, _, tog) in st.values()}
     estimated = tuple(e for e in present if e in have or e == "bias")
@@ -432,8 +428,8 @@ def ablate_instance(
     for row in row_names(present):
         if row == "none":
             variants[row] = rec.gyro_rad_s
-        elif row == "all":
-            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, present, still)
+        elif row == "all":  # through the calibrator door, on the recording stripped of its truth
+            variants[row] = CoreCalibrator(effects=present).apply(strip_truth(rec, references=False), core_params)
         elif row.startswith("all but "):
             x = row[len("all but "):]
             variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, [e for e in present if e != x], still)
