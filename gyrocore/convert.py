@@ -979,7 +979,7 @@ def _loadtxt(path: Path, *, skiprows: int, ncols: int, delimiter: str | None = "
 
 
 # ============================================================================ dispatcher
-FORMATS = ("auto", "ulog", "sunsided", "tomisuarez2", "imucal", "imucal_annotated", "broad", "imutk", "gnss_ins_sim", "fusion", "csv")
+FORMATS = ("auto", "blackbox", "ulog", "sunsided", "tomisuarez2", "imucal", "imucal_annotated", "broad", "imutk", "gnss_ins_sim", "fusion", "csv")
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -999,6 +999,8 @@ def detect_format(path: str | os.PathLike) -> str:
         head = fh.read(4096)
     if head.startswith(b"ULog\x01\x12\x35"):
         return "ulog"
+    if head.startswith(b"H Product:Blackbox"):  # Betaflight/Cleanflight-lineage blackbox (.BBL/.BFL/.TXT)
+        return "blackbox"
     if head.startswith(b"\x89HDF\r\n\x1a\n") or head[512:520] == b"\x89HDF\r\n\x1a\n" or b"MATLAB 7.3" in head[:128]:
         if p.name.startswith("mpu6050_"):
             return "sunsided"
@@ -1091,6 +1093,7 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
     if fmt not in FORMATS:
         raise GyroInputError(f"unknown format {format!r}; choose one of {', '.join(FORMATS)}")
     readers: dict[str, Callable[..., Recording]] = {
+        "blackbox": _read_blackbox,
         "ulog": read_ulog,
         "sunsided": read_sunsided,
         "tomisuarez2": read_tomisuarez2,
@@ -1124,10 +1127,21 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
     return Converted(recording=rec, segments=tuple(segs), format=fmt)
 
 
+def _read_blackbox(path: str | os.PathLike, *, log_index: int | None = None) -> Recording:
+    """Betaflight blackbox log (all logs of the file as segments): :func:`gyrocore.blackbox.read_blackbox`."""
+    from .blackbox import read_blackbox
+
+    return read_blackbox(path, log_index=log_index)
+
+
+#: Blackbox: ~30 B of compressed log per frame become ~35 Python ints in a tuple (~1.3 kB)
+#: before the float64 table: ≈ 50 bytes of memory per byte of log.
+_BLACKBOX_BYTES_PER_BYTE = 50.0
+
 #: Memory needed per byte of source file while converting (parsed float64 arrays, copies,
 #: the Recording and the text written out): text ≈ 4 (a value takes ≥ 5 characters and ends
 #: up in ≈ 3 float64 copies), binary (HDF5 / ULog) ≈ 6 (pyulog/h5py hold every topic/dataset).
-_BYTES_PER_SOURCE_BYTE = {"ulog": 6.0, "broad": 6.0, "sunsided": 6.0}
+_BYTES_PER_SOURCE_BYTE = {"ulog": 6.0, "broad": 6.0, "sunsided": 6.0, "blackbox": _BLACKBOX_BYTES_PER_BYTE}
 
 
 def _check_convert_memory(path: Path, fmt: str) -> None:

@@ -28,6 +28,7 @@ STREAM_FRACTION = 0.1
 @click.option("--retime/--no-retime", default=None, help="Replace bursty host timestamps by a uniform grid at the mean rate (default on for sunsided).")
 @click.option("--no-flip-x", is_flag=True, default=False, help="sunsided: keep the raw gyro X sign (default: negate it as its README documents).")
 @click.option("--sections", type=click.Path(path_type=str), default=None, help="imucal: section list JSON (default <stem>_list.json).")
+@click.option("--log-index", type=int, default=None, help="blackbox: read only this log of the file (1-based; default: every log, as segments).")
 @click.option("--segments-out", type=click.Path(path_type=str), default=None, help="Write the known-rotation segments (t_start_s,t_end_s,axis,angle_deg).")
 @click.option("--append", "append", multiple=True, type=click.Path(path_type=str),
               help="Another recording of the same session, joined after INPUT (repeatable; same options), "
@@ -36,9 +37,9 @@ STREAM_FRACTION = 0.1
 @click.option("--chunk-rows", type=int, default=200_000, show_default=True, help="Rows per chunk when a large CSV input is streamed.")
 @click.option("--force", is_flag=True, default=False, help="Overwrite existing output files.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print a JSON summary on stdout.")
-def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, segments_out,
+def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, log_index, segments_out,
             append, gap_s, chunk_rows, force, as_json):
-    """Convert INPUT (PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
+    """Convert INPUT (Betaflight blackbox .BBL/.BFL/.TXT, PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
     IMU-TK .mat, gnss-ins-sim folder, or a data file) to the DESIGN.md data file."""
     outs = [output] + ([segments_out] if segments_out else [])
     for o in outs:
@@ -47,7 +48,8 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
     for i in (input_path, *append):
         if os.path.abspath(output) == os.path.abspath(i):
             raise GyroInputError(f"{output}: output would overwrite the input")
-    opts = dict(lsb_per_dps=lsb_per_dps, lsb_per_g=lsb_per_g, rate_hz=rate_hz, retime=retime, sections=sections)
+    opts = dict(lsb_per_dps=lsb_per_dps, lsb_per_g=lsb_per_g, rate_hz=rate_hz, retime=retime, sections=sections,
+                log_index=log_index)
     if no_flip_x:
         opts["flip_gyro_x"] = False
     repairs: list[str] = []
