@@ -28,7 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .errors import GyroInputError, warn_repair
-from .recording import AXES, DEG, G0_M_S2, Recording, atomic_write_text, read_csv
+from .recording import AXES, DEG, G0_M_S2, Recording, atomic_write_text, is_parquet, read_csv, read_parquet
 
 __all__ = [
     "Segment",
@@ -979,7 +979,7 @@ def _loadtxt(path: Path, *, skiprows: int, ncols: int, delimiter: str | None = "
 
 
 # ============================================================================ dispatcher
-FORMATS = ("auto", "blackbox", "ulog", "sunsided", "tomisuarez2", "imucal", "imucal_annotated", "broad", "imutk", "gnss_ins_sim", "fusion", "csv")
+FORMATS = ("auto", "blackbox", "ulog", "sunsided", "tomisuarez2", "imucal", "imucal_annotated", "broad", "imutk", "gnss_ins_sim", "fusion", "csv", "parquet")
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -997,6 +997,8 @@ def detect_format(path: str | os.PathLike) -> str:
         raise GyroInputError(f"{p}: folder is not a known recording (sunsided, gnss-ins-sim or IMU-TK)")
     with open(p, "rb") as fh:
         head = fh.read(4096)
+    if is_parquet(p):
+        return "parquet"
     if head.startswith(b"ULog\x01\x12\x35"):
         return "ulog"
     if head.startswith(b"H Product:Blackbox"):  # Betaflight/Cleanflight-lineage blackbox (.BBL/.BFL/.TXT)
@@ -1104,9 +1106,10 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
         "gnss_ins_sim": read_gnss_ins_sim,
         "fusion": read_fusion,
         "csv": read_csv,
+        "parquet": read_parquet,
     }
     reader = readers[fmt]
-    if fmt != "csv":  # read_csv checks memory itself (and the CLI streams large CSV files)
+    if fmt not in ("csv", "parquet"):  # read_csv/read_parquet check memory themselves (and the CLI streams large CSV files)
         _check_convert_memory(Path(path), fmt)
     import inspect
 

@@ -141,7 +141,7 @@ class CalibrationResult:
         return need
 
     def apply(self, recording: Recording, *, iterations: int = 4, power_up_bias: bool = False,
-              still_max_s: float = 10.0) -> Recording:
+              still_max_s: float = 10.0, t_since_power_up_s: np.ndarray | None = None) -> Recording:
         """Remove the fitted effects from ``recording``'s gyro (rad/s, S frame).
 
         Temperatures outside the fitted range are clamped to it (``effects.correct``) and
@@ -156,6 +156,9 @@ class CalibrationResult:
             recording is re-estimated from its still start (the article's §1, gate of
             :func:`gyrocore.bias.startup_still_slice`, up to ``still_max_s``): the mean of
             the corrected rate there is removed. Needs a still start.
+        t_since_power_up_s : ndarray, shape (N,), optional
+            Time since power-up, s (default ``t_s − t_s[0]``); a chunk of a longer
+            recording passes it from the file's first sample (streamed ``apply``).
         """
         for eff in self.params:
             if eff in _NEEDS_ACCEL and recording.accel_m_s2 is None:
@@ -173,7 +176,8 @@ class CalibrationResult:
                         f"{n_out} of {T.size} samples have a temperature outside the calibrated range "
                         f"{lo:.2f}..{hi:.2f} C; {eff} is held at the range edge there"
                     )
-        inp = E.ModelInputs(t_s=recording.t_s, f_S_m_s2=recording.accel_m_s2, temp_c=recording.temp_c)
+        inp = E.ModelInputs(t_s=recording.t_s, f_S_m_s2=recording.accel_m_s2, temp_c=recording.temp_c,
+                            t_since_power_up_s=t_since_power_up_s)  # a chunk of a longer file: from the file's start
         omega = E.correct(self.params, recording.gyro_rad_s, inp, iterations=iterations)
         extra_meta = {}
         if power_up_bias:

@@ -58,7 +58,7 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
 
 @click.command("simulate")
 @click.argument("scenario")
-@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="CSV file to write.")
+@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="Data file to write (.parquet: Parquet, else CSV).")
 @click.option("--sensor", default="icm42688p", show_default=True, metavar="PRESET|FILE.toml",
               help="Sensor preset name or preset TOML file.")
 @click.option("--duration-s", type=float, default=None, help="Length in seconds (default: the scenario's).")
@@ -83,7 +83,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     (DESIGN.md), values in SI units.
     """
     from gyrocore.effects import check_effect_names
-    from gyrocore.recording import file_sha256, write_csv
+    from gyrocore.recording import file_sha256, write_recording
     from sim import presets as P
     from sim import scenarios as S
 
@@ -107,7 +107,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
                      without=wo, gyro_rate_hz=rate_hz, progress=bool(progress))
     rec = res.recording
-    write_csv(rec, out, overwrite=force)
+    write_recording(rec, out, overwrite=force)  # .parquet: Parquet, else CSV
     summary = {
         "path": str(out),
         "sha256": file_sha256(out),

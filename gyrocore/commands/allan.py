@@ -105,7 +105,7 @@ def plot_png(analysis, path: str) -> None:
 
 
 @click.command("allan")
-@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("file", type=click.Path(dir_okay=False))  # CSV or Parquet
 @click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None, help="write a PNG of the deviation and fit")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only")
 @click.option("--kalibr-yaml", type=click.Path(dir_okay=False), default=None, help="write Kalibr imu.yaml")
@@ -116,9 +116,10 @@ def plot_png(analysis, path: str) -> None:
 def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine):
     """Allan deviation and IEEE 952 noise terms (Q, N, B, K, R) per axis of a still recording."""
     from ..allan import allan_analysis, kalibr_imu_yaml
-    from ..recording import atomic_write_text, read_csv
+    from ..recording import atomic_write_text, read_recording
 
-    rec = read_csv(file)
+    # only the columns the analysis needs (t, gyro; accel for Kalibr): memory O(4 columns)
+    rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
     want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
     res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine)
     if plot:

@@ -48,9 +48,9 @@ def command(file, rule, statistic, window_s, window_samples, false_reject_rate, 
             lsb_dps, article_counts, as_json):
     """Static bias of a still start, refusing windows with motion and retrying on the next."""
     from ..bias import StaticBiasCalibrator
-    from ..recording import read_csv
+    from ..recording import read_recording
 
-    rec = read_csv(file)
+    rec = read_recording(file, columns=())  # t and gyro only (the gate and the estimate use nothing else)
     cal = StaticBiasCalibrator(
         window_samples=window_samples,
         window_s=window_s,

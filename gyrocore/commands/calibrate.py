@@ -73,9 +73,9 @@ def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str,
         raise GyroInputError("give --bias-from or --bias-dps, not both")
     if bias_from:
         from ..bias import StaticBiasCalibrator
-        from ..recording import read_csv
+        from ..recording import read_recording
 
-        return StaticBiasCalibrator().fit(read_csv(bias_from))
+        return StaticBiasCalibrator().fit(read_recording(bias_from, columns=()))
     if bias_dps:
         if not (math.isfinite(arw_dps_rt_hz) and arw_dps_rt_hz >= 0):
             raise GyroInputError(f"--arw-dps-rt-hz must be >= 0, got {arw_dps_rt_hz}")
@@ -115,7 +115,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     from ..effects import check_effect_names
     from ..errors import GyroInputError
     from ..model import Calibrator, result_to_dict, save_params
-    from ..recording import read_csv
+    from ..recording import read_recording
 
     names = check_effect_names(effects.split(","))
     for p in [output] + ([px4_params] if px4_params else []):
@@ -131,7 +131,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     if (bias_from or bias_dps) and not segments:
         raise GyroInputError("--bias-from/--bias-dps are for the integral method: give --segments too")
     ext = external_bias(bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz)
-    rec = read_csv(file)
+    rec = read_recording(file)  # CSV or Parquet, by the file name
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
                      external_bias=ext)
     res = cal.fit(rec, source_path=file)

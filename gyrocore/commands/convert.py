@@ -12,15 +12,24 @@ from ..cli import emit_json
 from ..convert import FORMATS, concat_converted, load_with_segments, write_segments_csv
 from ..errors import GyroInputError, RepairWarning
 from .. import recording as _recording
-from ..recording import file_sha256, iter_csv_chunks, write_csv, write_csv_chunks
+from ..recording import PARQUET_SUFFIXES, file_sha256, iter_chunks, write_chunks, write_csv, write_parquet
 
-#: CSV inputs larger than this fraction of the available memory are streamed in chunks.
+#: Data-file inputs (CSV or Parquet) larger than this fraction of the available memory are
+#: streamed in chunks ...
 STREAM_FRACTION = 0.1
+#: ... and so are those whose whole read would take more than this (bounded memory: one
+#: hour at 1 kHz with 15 columns is ~600 MB of CSV). A streamed conversion runs the per-row
+#: repairs (NaN rows, time going backwards) but not the whole-series checks (gaps, units,
+#: saturation), which need the whole record.
+STREAM_BYTES = 96 * 2**20
 
 
 @click.command("convert")
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=str))
-@click.option("-o", "--output", "output", required=True, type=click.Path(path_type=str), help="Output data file (CSV, DESIGN.md columns, SI).")
+@click.option("-o", "--output", "output", required=True, type=click.Path(path_type=str),
+              help="Output data file (DESIGN.md columns, SI): Parquet when it ends in .parquet/.pq, else CSV.")
+@click.option("--to", "to", type=click.Choice(["auto", "csv", "parquet"]), default="auto", show_default=True,
+              help="Output format (auto: from the output name).")
 @click.option("--format", "fmt", type=click.Choice(FORMATS), default="auto", show_default=True, help="Source format (auto: from name and first bytes).")
 @click.option("--lsb-per-dps", type=float, default=None, help="Gyro sensitivity of a raw-LSB source, LSB per deg/s (default: the source's datasheet value).")
 @click.option("--lsb-per-g", type=float, default=None, help="Accel sensitivity of a raw-LSB source, LSB per g.")
@@ -37,10 +46,11 @@ STREAM_FRACTION = 0.1
 @click.option("--chunk-rows", type=int, default=200_000, show_default=True, help="Rows per chunk when a large CSV input is streamed.")
 @click.option("--force", is_flag=True, default=False, help="Overwrite existing output files.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print a JSON summary on stdout.")
-def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, log_index, segments_out,
+def command(input_path, output, to, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, log_index, segments_out,
             append, gap_s, chunk_rows, force, as_json):
     """Convert INPUT (Betaflight blackbox .BBL/.BFL/.TXT, PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
-    IMU-TK .mat, gnss-ins-sim folder, or a data file) to the DESIGN.md data file."""
+    IMU-TK .mat, gnss-ins-sim folder, or a data file, CSV or Parquet) to the DESIGN.md data file
+    (CSV, or Parquet with --to parquet or an output named .parquet)."""
     outs = [output] + ([segments_out] if segments_out else [])
     for o in outs:
         if not force and os.path.exists(o):
@@ -48,6 +58,8 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
     for i in (input_path, *append):
         if os.path.abspath(output) == os.path.abspath(i):
             raise GyroInputError(f"{output}: output would overwrite the input")
+    out_parquet = to == "parquet" or (to == "auto" and output.lower().endswith(PARQUET_SUFFIXES))
+    out_fmt = "auto" if to == "auto" else to
     opts = dict(lsb_per_dps=lsb_per_dps, lsb_per_g=lsb_per_g, rate_hz=rate_hz, retime=retime, sections=sections,
                 log_index=log_index)
     if no_flip_x:
@@ -58,12 +70,13 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
         from ..convert import detect_format
 
         actual = detect_format(input_path) if fmt == "auto" else fmt
-        if actual == "csv" and _is_large(input_path) and not retime and not append:
+        if actual in ("csv", "parquet") and _is_large(input_path) and not retime and not append:
             unsupported = [k for k, v in opts.items() if v is not None and k != "retime"]
             if unsupported:
-                raise GyroInputError(f"option --{unsupported[0].replace('_', '-')} does not apply to format csv")
-            n = write_csv_chunks(iter_csv_chunks(input_path, rows=chunk_rows), output, overwrite=True)
-            summary = {"input": input_path, "format": "csv", "output": output, "n_samples": n, "streamed": True,
+                raise GyroInputError(f"option --{unsupported[0].replace('_', '-')} does not apply to format {actual}")
+            n = write_chunks(iter_chunks(input_path, rows=chunk_rows), output, overwrite=True) if out_fmt == "auto" else (
+                _write_chunks_as(out_fmt, iter_chunks(input_path, rows=chunk_rows), output))
+            summary = {"input": input_path, "format": actual, "output": output, "n_samples": n, "streamed": True,
                        "chunk_rows": chunk_rows, "segments": 0}
             rec = None
             segs = ()
@@ -79,7 +92,7 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
                 raise GyroInputError(
                     f"{input_path}: this recording has no known rotations; --segments-out needs a rotation session"
                 )
-            write_csv(rec, output, overwrite=True)
+            (write_parquet if out_parquet else write_csv)(rec, output, overwrite=True)
             summary = {
                 "input": input_path, "format": conv.format, "output": output, "n_samples": rec.n,
                 "duration_s": rec.duration_s, "rate_hz": rec.rate_hz, "streamed": False,
@@ -108,6 +121,15 @@ def command(input_path, output, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no
 
 
 def _is_large(path: str) -> bool:
-    """CSV inputs above STREAM_FRACTION of the available memory are streamed."""
+    """Data-file inputs above STREAM_BYTES, or above STREAM_FRACTION of the available memory, are streamed."""
     p = Path(path)
-    return p.is_file() and p.stat().st_size * 3 > STREAM_FRACTION * _recording._available_memory_bytes()
+    if not p.is_file():
+        return False
+    size = p.stat().st_size * (4 if _recording.is_parquet(p) else 1)  # Parquet: ~4x denser than CSV text
+    return size > STREAM_BYTES or size * 3 > STREAM_FRACTION * _recording._available_memory_bytes()
+
+
+def _write_chunks_as(fmt: str, chunks, output: str) -> int:
+    from ..recording import write_csv_chunks, write_parquet_chunks
+
+    return (write_parquet_chunks if fmt == "parquet" else write_csv_chunks)(chunks, output, overwrite=True)

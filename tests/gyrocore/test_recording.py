@@ -431,3 +431,129 @@ def test_exact_one_g_plateau_is_not_saturation():
     g = np.clip(g, -4.3633, 4.3633)[:, None]
     mask, found = detect_saturation(g, min_clip=0.9 * 125 * np.pi / 180)
     assert found and mask.sum() == np.sum(np.abs(g[:, 0]) == 4.3633)
+
+
+# ------------------------------------------------------------------ Arrow parser, Parquet, column groups
+def test_arrow_and_exact_parsers_agree_bit_for_bit(tmp_path):
+    """The clean file goes through Arrow; the same rows with one empty field in the last
+    row go through the exact parser: every other value is identical."""
+    rec = _rec(500, seed=3)
+    p = tmp_path / "clean.csv"
+    write_csv(rec, p)
+    fast = _strict(read_csv, p, checks=False)
+    lines = p.read_text().splitlines()
+    lines[-1] = ",".join(lines[-1].split(",")[:-1] + [""])  # empty 'flag' field: not a clean table
+    q = _write(tmp_path, "\n".join(lines) + "\n", "dirty.csv")
+    with pytest.warns(RepairWarning, match="1 empty fields read as missing"):
+        slow = read_csv(q, checks=False)
+    for name in ("t_s", "gyro_rad_s", "accel_m_s2", "temp_c", "ref_quat_wxyz"):
+        assert np.array_equal(getattr(fast, name), getattr(slow, name)), name
+    assert np.array_equal(fast.extra["flag"][:-1], slow.extra["flag"][:-1]) and np.isnan(slow.extra["flag"][-1])
+
+
+def test_chunked_error_in_a_late_chunk_names_the_file_line(tmp_path):
+    """Arrow streams the clean chunks; the exact parser takes over at the refused block and
+    names the file line (metadata lines and a blank line counted)."""
+    rec = _rec(12000, seed=4, quat=False)  # ~3 MB: several 1 MiB Arrow blocks
+    p = tmp_path / "late.csv"
+    write_csv(rec, p)
+    lines = p.read_text().splitlines()
+    n_meta = sum(1 for ln in lines if ln.startswith("#"))
+    lines.insert(n_meta + 1 + 1000, "")  # a blank line after data row 1000
+    bad = n_meta + 1 + 11001 + 1  # file line of data row 11001 (1-based; +1 for the blank line)
+    f = lines[bad - 1].split(",")
+    f[2] = "1.2.3"
+    lines[bad - 1] = ",".join(f)
+    _write(tmp_path, "\n".join(lines) + "\n", "late.csv")
+    got = []
+    with pytest.raises(GyroInputError, match=rf"line {bad}, column 'gyro_y_rad_s': text in a number \('1.2.3'\)"):
+        for c in iter_csv_chunks(p, rows=2000):
+            got.append(c.n)
+    assert got == [2000] * 5  # the clean chunks before it were read
+    with pytest.raises(GyroInputError, match=rf"line {bad}, column 'gyro_y_rad_s'"):
+        read_csv(p)
+
+
+def test_comment_and_whitespace_lines_among_data_still_read(tmp_path):
+    text = HEADER + "\n0,1,2,3\n# operator note\n0.01,1,2,3\n   \n0.02 , 1,2,3\n"
+    rec = _strict(read_csv, _write(tmp_path, text), checks=False)
+    assert np.array_equal(rec.t_s, [0.0, 0.01, 0.02]) and np.all(rec.gyro_rad_s == [1, 2, 3])
+
+
+def test_column_groups_read_only_what_is_asked(tmp_path):
+    rec = _rec(400, seed=5)
+    p = tmp_path / "r.csv"
+    write_csv(rec, p)
+    part = _strict(read_csv, p, columns=("temp",))
+    assert part.accel_m_s2 is None and part.ref_quat_wxyz is None and part.ref_rate_rad_s is None and not part.extra
+    assert np.array_equal(part.gyro_rad_s, rec.gyro_rad_s) and np.array_equal(part.temp_c, rec.temp_c)
+    chunks = list(iter_csv_chunks(p, rows=150, columns=("accel",)))
+    assert np.array_equal(np.vstack([c.accel_m_s2 for c in chunks]), rec.accel_m_s2)
+    assert all(c.temp_c is None for c in chunks)
+    with pytest.raises(ValueError, match="unknown column group"):
+        read_csv(p, columns=("gyroscope",))
+    # the header is validated whatever is asked
+    with pytest.raises(GyroInputError, match="incomplete column group, missing accel_z_m_s2"):
+        read_csv(_write(tmp_path, HEADER + ",accel_x_m_s2,accel_y_m_s2\n0,0,0,0,0,0\n", "g.csv"), columns=())
+
+
+def test_parquet_round_trip_bit_exact_with_metadata(tmp_path):
+    rec = _rec(1000, seed=6)
+    p = tmp_path / "r.parquet"
+    rc.write_recording(rec, p)
+    assert rc.is_parquet(p)
+    back = _strict(rc.read_recording, p)
+    for name in ("t_s", "gyro_rad_s", "accel_m_s2", "temp_c", "ref_rate_rad_s", "ref_quat_wxyz"):
+        assert np.array_equal(getattr(back, name), getattr(rec, name)), name
+    assert back.meta == rec.meta and np.array_equal(back.extra["flag"], rec.extra["flag"])
+    chunks = list(rc.iter_chunks(p, rows=300, columns=("ref_quat",)))
+    assert [c.n for c in chunks] == [300, 300, 300, 100]
+    assert np.array_equal(np.vstack([c.ref_quat_wxyz for c in chunks]), rec.ref_quat_wxyz)
+    # CSV -> Parquet -> CSV by streaming is bit-exact too
+    rc.write_chunks(rc.iter_chunks(p, rows=256), tmp_path / "b.csv")
+    assert np.array_equal(_strict(read_csv, tmp_path / "b.csv").gyro_rad_s, rec.gyro_rad_s)
+
+
+def test_parquet_bad_input_one_line_errors(tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    p = tmp_path / "x.parquet"
+    p.write_bytes(b"PAR1 not really")
+    with pytest.raises(GyroInputError, match="not a readable Parquet file"):
+        rc.read_recording(p)
+    (tmp_path / "e.parquet").write_bytes(b"")
+    with pytest.raises(GyroInputError, match="empty file"):
+        rc.read_recording(tmp_path / "e.parquet")
+    pq.write_table(pa.table({"t_s": [0.0, 0.1], "gyro_x_rad_s": ["a", "b"]}), tmp_path / "s.parquet")
+    with pytest.raises(GyroInputError, match="column 'gyro_x_rad_s' is not numeric"):
+        rc.read_recording(tmp_path / "s.parquet")
+    pq.write_table(pa.table({"t_s": [0.0, 0.1], "gyro_x_rad_s": [0.0, 1.0]}), tmp_path / "m.parquet")
+    with pytest.raises(GyroInputError, match="incomplete column group, missing gyro_y_rad_s"):
+        rc.read_recording(tmp_path / "m.parquet")
+    # nulls are read as NaN and those rows dropped, with the same warnings as empty CSV fields
+    cols = {"t_s": [0.0, 0.1, 0.2], "gyro_x_rad_s": [0.0, None, 0.0], "gyro_y_rad_s": [0.0] * 3, "gyro_z_rad_s": [0.0] * 3}
+    pq.write_table(pa.table(cols), tmp_path / "n.parquet")
+    with pytest.warns(RepairWarning) as w:
+        r = rc.read_recording(tmp_path / "n.parquet", checks=False)
+    msgs = " | ".join(str(x.message) for x in w)
+    assert "1 empty fields read as missing" in msgs and "dropped 1 rows" in msgs and r.n == 2
+
+
+def test_still_check_without_reading_the_accel_columns(tmp_path):
+    """A still deg/s recording labelled rad/s is warned about even when only the gyro is
+    asked for (the accel is reduced to running moments, never held)."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    rec = Recording(t_s=np.arange(n) * 0.01, gyro_rad_s=rng.normal(0, 0.1, (n, 3)) + [4.5, 0.1, 1.0],
+                    accel_m_s2=rng.normal(0, 0.02, (n, 3)) + [0, 0, 9.81])
+    for name in ("s.csv", "s.parquet"):
+        rc.write_recording(rec, tmp_path / name)
+        with pytest.warns(RepairWarning, match="is it deg/s labelled rad/s"):
+            got = rc.read_recording(tmp_path / name, columns=())
+        assert got.accel_m_s2 is None
+    m = rc._Moments([0])
+    x = rec.accel_m_s2[:, 2]
+    for k in range(0, n, 300):
+        m.update({0: x[k:k + 300].copy()})
+    assert m.std()[0] == pytest.approx(np.std(x), rel=1e-12)
