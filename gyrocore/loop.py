@@ -63,7 +63,9 @@ from . import lsq
 from .attitude import error_angle_rad, integrate_gyro
 from .errors import GyroInputError
 from .recording import Recording
+from . import search as S
 from .residual import Residual, Segment, build_residual
+from .search import Unexplained, column_axis
 
 __all__ = [
     "CANDIDATES",
@@ -245,7 +247,15 @@ class LoopResult:
     residual : Residual
         The residual the loop worked on (window regressors, for plots).
     history : tuple of ndarray, each (M, 3)
-        Window residual with the declared model, then after each step, rad/s.
+        Window residual with the declared model, then after each catalogue step, rad/s.
+    unexplained : tuple of gyrocore.search.Unexplained
+        Effects outside the catalogue described by the open search (DESIGN.md
+        "Effects outside the catalogue"), in the order they were added.
+    open_search : dict
+        What the open search tested last (the strongest candidate of each kind, not taken),
+        or why it did not run.
+    t0_c : float or None
+        Reference temperature of the thermal polynomials (mean temperature), °C.
     """
 
     declared: tuple[str, ...]
@@ -266,6 +276,9 @@ class LoopResult:
     format_version: str = FORMAT_VERSION
     residual: Residual | None = field(default=None, repr=False)
     history: tuple = field(default=(), repr=False)
+    unexplained: tuple = ()
+    open_search: dict = field(default_factory=dict)
+    t0_c: float | None = None
 
     @property
     def found_effects(self) -> list[str]:
@@ -309,6 +322,8 @@ class LoopResult:
             "params": self.params,
             "not_taken": {k: ev(v) for k, v in self.tested.items()},
             "untestable": dict(self.untestable),
+            "unexplained": [u.to_json() for u in self.unexplained],
+            "open_search": self.open_search,
             "remaining": self.remaining.summary(),
             "notes": list(self.notes),
         }
@@ -323,7 +338,12 @@ class _Model:
         self.orders = dict(orders)
 
     def block(self, effect: str) -> tuple[list[str], np.ndarray]:
-        return self.res.regressors(effect, order=self.orders.get(effect, 1))
+        base, axis = split_axis(effect)
+        names, X = self.res.regressors(base, order=self.orders.get(base, 1))
+        if axis is None:
+            return names, X
+        cols = [p for p, n in enumerate(names) if column_axis(n) == axis]
+        return [names[p] for p in cols], X[:, :, cols]
 
     def design(self, effects: Sequence[str]):
         cols, names, slices, p0 = [], [], {}, 0
@@ -386,7 +406,14 @@ class _Model:
         if fit is None:
             return c
         for e in effects:
-            c += self.res.sample_correction(e, fit.effect_theta(e), order=self.orders.get(e, 1))
+            base, axis = split_axis(e)
+            th = fit.effect_theta(e)
+            if axis is not None:  # one axis of a family term: the other columns are 0
+                names = self.res.regressors(base, order=1)[0]
+                full = np.zeros(len(names))
+                full[[p for p, n in enumerate(names) if column_axis(n) == axis]] = th
+                th = full
+            c += self.res.sample_correction(base, th, order=self.orders.get(base, 1))
         return c
 
 
@@ -539,7 +566,7 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
     # base model of the test, so a thermal candidate must add something beyond a constant
     cols = list(range(fit.slices[cand].start, fit.slices[cand].stop))
     idx = [p for p in cols if np.isfinite(fit.stderr[p])]
-    names = [fit.names[p].split(".", 1)[1] for p in cols]
+    names = [fit.names[p].rsplit(".", 1)[1] for p in cols]
     unobs = tuple(n for n, p in zip(names, cols) if p not in idx)
     q = len(idx)
     df2 = max(model.res.m - fit.rank, 1)
@@ -613,6 +640,15 @@ def _advance(rec: Recording, tau_s: float) -> Recording:
     return replace(rec, gyro_rad_s=g)
 
 
+def split_axis(effect: str) -> tuple[str, int | None]:
+    """Internal name of one axis of a family term, ``"regressor[omega_x*omega_y]@0"`` ->
+    (``"regressor[omega_x*omega_y]"``, 0); other names -> (name, None)."""
+    if "@" in effect:
+        base, ax = effect.rsplit("@", 1)
+        return base, int(ax)
+    return effect, None
+
+
 def _with_companion(current: Sequence[str], cand: str) -> list[str]:
     comp = COMPANION.get(cand)
     return [comp, cand] if comp is not None and comp not in current else [cand]
@@ -624,8 +660,9 @@ def _params_table(fit, effects) -> dict:
         return out
     for e in effects:
         sl = fit.slices[e]
-        out[e] = {fit.names[p].split(".", 1)[1]: [float(fit.theta[p]), float(fit.stderr[p])]
-                  for p in range(sl.start, sl.stop)}
+        base, _ = split_axis(e)
+        out.setdefault(base, {}).update({fit.names[p].rsplit(".", 1)[1]: [float(fit.theta[p]), float(fit.stderr[p])]
+                                         for p in range(sl.start, sl.stop)})
         if e == "earth_rate":
             om = fit.theta[sl]
             mag = float(np.linalg.norm(om))
@@ -695,11 +732,15 @@ def loop_residual(
     min_attitude_reduction: float = 0.05,
     max_steps: int = 8,
     rebuild=None,
+    open_search: bool = True,
+    max_open_steps: int = 8,
+    seed: int = 0,
 ) -> LoopResult:
     """Run the loop on a prepared :class:`~gyrocore.residual.Residual` (see :func:`run_loop`).
 
     ``rebuild(recording) -> Residual`` (optional) rebuilds the residual from a recording; it
-    enables the Gauss–Newton refinement of ``time_offset`` (see :func:`run_loop`).
+    enables the Gauss–Newton refinement of ``time_offset`` and the sample-level removal of
+    narrow-band lines (see :func:`run_loop`).
     """
     declared = E.check_effect_names(declared)
     notes = list(res.notes)
@@ -729,12 +770,34 @@ def loop_residual(
                 raise GyroInputError(f"declared effect {c} cannot be fitted here: {why}")
             untestable[c] = why
     cands = [c for c in cand_all if c not in untestable]
+    do_open = bool(open_search) and res.kind != "angles"
+    if open_search and not do_open:
+        notes.append("open search not run: a known-angle reference has a few rotation windows, too few to "
+                     "describe effects outside the catalogue")
+    # family-wise error: a weighted Bonferroni/Holm split of alpha between the catalogue and the
+    # three open-search kinds (search.ALPHA_SHARE); without the open search the catalogue has all of it
+    alpha_cat = alpha * (S.ALPHA_SHARE["catalogue"] if do_open else 1.0)
+    rng = np.random.default_rng(seed)
 
     rec0 = rec
     tau_acc = 0.0
+    held: dict[str, np.ndarray] = {}        # sample-level line terms removed from the gyro (raw frame)
+    held_params: dict[str, dict] = {}
 
-    def refit(res, model, rec, tau_acc):
+    def base_rec():
+        if not held:
+            return rec0
+        from dataclasses import replace
+
+        return replace(rec0, gyro_rad_s=rec0.gyro_rad_s - sum(held.values()))
+
+    def refit(res, model, rec, tau_acc, force_rebuild=False):
         """Joint fit; with time_offset in the model, re-linearise around its estimate."""
+        if force_rebuild:
+            rb = base_rec()
+            rec = _advance(rb, tau_acc) if tau_acc != 0.0 else rb
+            res = rebuild(rec)
+            model = _Model(res, orders)
         fit, e = model.fit(model_effects)
         if rebuild is None or "time_offset" not in model_effects or res.kind not in ("rate", "attitude"):
             return res, model, rec, tau_acc, fit, e
@@ -743,7 +806,7 @@ def loop_residual(
             if not np.isfinite(d) or abs(d) < _TAU_TOL_S:
                 break
             tau_acc += d
-            rec = _advance(rec0, tau_acc)
+            rec = _advance(base_rec(), tau_acc)
             res = rebuild(rec)
             model = _Model(res, orders)
             fit, e = model.fit(model_effects)
@@ -755,92 +818,204 @@ def loop_residual(
     att0 = attitude_error_deg(res, rec, model.correction(fit, model_effects))
     rms_cur, att_cur = rms0, att0
     steps: list[Step] = []
+    unexplained: list[Unexplained] = []
     last_tests: dict[str, Evidence] = {}
-    for _ in range(max_steps):
+    open_last: dict = {}
+    n_cat = 0
+
+    def practical(ev: Evidence) -> bool:
+        # out of sample (2-fold blocked): an effect fitted to coloured noise does not
+        # predict the other folds; and of a size that matters, in the residual or in the
+        # attitude
+        size = ev.rms_reduction >= min_rms_reduction or (
+            np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
+        held_ = ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)
+        if res.kind == "angles" and np.isfinite(ev.attitude_reduction):
+            # the known angles are the reference: an effect that makes them worse by more
+            # than a quarter of their uncertainty is refuted
+            worse_deg = -ev.attitude_reduction * att_cur
+            held_ = held_ and worse_deg <= 0.25 * np.degrees(res.angle_sigma_rad)
+        return held_ and size
+
+    def with_attitude(ev: Evidence, f, added: list[str]) -> Evidence:
+        att = attitude_error_deg(res, rec, model.correction(f, model_effects + added))
+        att_red = 1.0 - att / att_cur if att_cur > _MIN_ATTITUDE_DEG else float("nan")
+        return Evidence(**{**ev.__dict__, "attitude_reduction": att_red})
+
+    def open_term_test(name: str, thr: float, cv_base: float):
+        """Full joint refit + HAC Wald test of an open term (as a catalogue candidate)."""
+        ev, f = _test(model, model_effects, name, thr, rms_cur, e, cv_base)
+        if ev.df1 > 0 and ev.p_value < thr:
+            ev = with_attitude(ev, f, [name])
+        return ev, f
+
+    def step_screen_now(thr_step: float):
+        X0 = model.design(model_effects)[0]
+        sig = fit.axis_sigma_rad_s if fit is not None else np.maximum(np.std(e, axis=0), 1e-12)
+        return S.screen_step(res, X0, e, sig, threshold=thr_step, rng=rng)
+
+    def add_open(kind: str, axis: int, name: str, fields: dict, evidence: dict, before: float, after: float,
+                 att_b: float, att_a: float) -> None:
+        unexplained.append(Unexplained(kind=kind, axis="xyz"[axis], effect=name, fields=fields, evidence=evidence,
+                                       residual_rms_before_rad_s=before, residual_rms_after_rad_s=after,
+                                       attitude_error_before_deg=att_b, attitude_error_after_deg=att_a))
+
+    def ev_dict(ev: Evidence) -> dict:
+        return {"statistic": ev.statistic, "df1": ev.df1, "df2": ev.df2, "p_value": ev.p_value, "log10_p": ev.log10_p,
+                "threshold": ev.threshold, "cv_rms_reduction": ev.cv_rms_reduction,
+                "rms_reduction": ev.rms_reduction, "attitude_reduction": ev.attitude_reduction,
+                "params": ev.params, "std_errors": ev.std_errors}
+
+    for _ in range(max_steps + max_open_steps):
         remaining = [c for c in cands if c not in model_effects]
-        if not remaining:
-            break
         cv_base = _cv_rms(res.y_rad_s, model.design(model_effects)[0], min_windows=_cv_min(res))
-        trial = {c: _test(model, model_effects, c, 0.0, rms_cur, e, cv_base) for c in remaining}
-        testable = [c for c in remaining if trial[c][0].df1 > 0]
-        for c in remaining:
-            if c not in testable:
-                untestable[c] = "not observable given the model: " + ", ".join(trial[c][0].unobservable)
-        if not testable:
-            break
-        thr = alpha / len(testable)
+        sig: list[str] = []
         evs: dict[str, Evidence] = {}
-        for c in testable:
-            ev, f = trial[c]
-            att_red = float("nan")
-            if ev.p_value < thr:
-                att = attitude_error_deg(res, rec, model.correction(f, model_effects + _with_companion(model_effects, c)))
-                # relative change, defined only above 1 mdeg (below, the reference is already
-                # matched to numerical precision, e.g. three known angles and three scales)
-                att_red = 1.0 - att / att_cur if att_cur > _MIN_ATTITUDE_DEG else float("nan")
-            evs[c] = Evidence(**{**ev.__dict__, "threshold": thr, "attitude_reduction": att_red})
-        def practical(ev: Evidence) -> bool:
-            # out of sample (2-fold blocked): an effect fitted to coloured noise does not
-            # predict the other folds; and of a size that matters, in the residual or in the
-            # attitude
-            size = ev.rms_reduction >= min_rms_reduction or (
-                np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
-            held = ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)
-            if res.kind == "angles" and np.isfinite(ev.attitude_reduction):
-                # the known angles are the reference: an effect that makes them worse by more
-                # than a quarter of their uncertainty is refuted
-                worse_deg = -ev.attitude_reduction * att_cur
-                held = held and worse_deg <= 0.25 * np.degrees(res.angle_sigma_rad)
-            return held and size
-        sig = [c for c in testable if evs[c].p_value < thr and practical(evs[c])]
-        last_tests = evs
-        if not sig:
+        if remaining and n_cat < max_steps:
+            trial = {c: _test(model, model_effects, c, 0.0, rms_cur, e, cv_base) for c in remaining}
+            testable = [c for c in remaining if trial[c][0].df1 > 0]
+            for c in remaining:
+                if c not in testable:
+                    untestable[c] = "not observable given the model: " + ", ".join(trial[c][0].unobservable)
+            if testable:
+                thr = alpha_cat / len(testable)
+                for c in testable:
+                    ev, f = trial[c]
+                    ev = Evidence(**{**ev.__dict__, "threshold": thr})
+                    if ev.p_value < thr:
+                        ev = with_attitude(ev, f, _with_companion(model_effects, c))
+                    evs[c] = ev
+                sig = [c for c in testable if evs[c].p_value < thr and practical(evs[c])]
+                last_tests = evs
+        if sig:
+            sig.sort(key=lambda c: (evs[c].log10_p, -evs[c].statistic))
+            best = sig[0]
+            ambiguous, nested = [], []
+            thr = evs[best].threshold
+            for r in sig[1:]:
+                ev_b, _ = _test(model, model_effects + _with_companion(model_effects, r), best, thr, rms_cur)
+                ev_r, _ = _test(model, model_effects + _with_companion(model_effects, best), r, thr, rms_cur)
+                if ev_r.df1 == 0 and ev_b.df1 > 0 and not ev_b.significant:
+                    nested.append(r)  # r is contained in best and best adds nothing to it
+                elif not ev_b.significant and not ev_r.significant:
+                    ambiguous.append(r)
+            if nested:  # parsimony: the smaller effect that explains the same residual
+                best = min(nested, key=lambda c: (evs[c].log10_p, -evs[c].statistic))
+                ambiguous = [c for c in ambiguous if c != best]
+            if ambiguous:
+                # evidence decides when it differs by ≥ 1 decade of p; otherwise (a tie the data
+                # cannot break) the simpler effect: fewer parameters, then the lower-order, more
+                # common one (earlier in CANDIDATES)
+                pool = [best] + ambiguous
+                close = [c for c in pool if evs[c].log10_p <= evs[best].log10_p + 1.0]
+                pick = min(close, key=lambda c: (evs[c].df1, CANDIDATES.index(c)))
+                ambiguous = [c for c in pool if c != pick]
+                best = pick
+            if best == "bias_ramp" and do_open:
+                # step vs ramp: a bias step also correlates with time; model comparison decides
+                thr_step = alpha * S.ALPHA_SHARE["step"]
+                st = step_screen_now(thr_step)
+                if st is not None and st.p_value < thr_step:
+                    name = f"step[{S._fmt_num(st.t_s)}]"
+                    ev_s, f_s = open_term_test(name, thr_step, cv_base)
+                    X0 = model.design(model_effects)[0]
+                    cv_step = _cv_rms(res.y_rad_s, np.concatenate([X0, model.block(name)[1]], axis=2),
+                                      min_windows=_cv_min(res))
+                    cv_ramp = _cv_rms(res.y_rad_s, np.concatenate([X0, model.block("bias_ramp")[1]], axis=2),
+                                      min_windows=_cv_min(res))
+                    if cv_step < cv_ramp and ev_s.df1 > 0 and practical(ev_s):
+                        model_effects.append(name)
+                        res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc)
+                        rms_new = _rms(e)
+                        att_new = attitude_error_deg(res, rec, model.correction(fit, model_effects))
+                        size = np.array([fit.effect_theta(name)[i] for i in range(3)])
+                        se = np.array([fit.effect_stderr(name)[i] for i in range(3)])
+                        ax = int(np.argmax(np.abs(size) / np.where(se > 0, se, np.inf)))
+                        evd = ev_dict(ev_s)
+                        evd.update({"sup_statistic": st.statistic, "bootstrap_p": st.p_value, "n_boot": st.n_boot,
+                                    "n_candidates": st.n_candidates, "log10_p_step": st.log10_p,
+                                    "threshold_step": thr_step,
+                                    "vs_ramp": {"cv_rms_step_rad_s": cv_step, "cv_rms_ramp_rad_s": cv_ramp,
+                                                "chosen": "step"},
+                                    "size_std_errors_rad_s": se})
+                        add_open("step", ax, name, {"t_s": st.t_s, "size_rad_s": size}, evd, rms_cur, rms_new,
+                                 att_cur, att_new)
+                        notes.append(f"a bias step at t = {st.t_s:.6g} s explains the residual better than "
+                                     f"bias_ramp (out-of-sample RMS {cv_step:.3g} vs {cv_ramp:.3g} rad/s)")
+                        history.append(e)
+                        rms_cur, att_cur = rms_new, att_new
+                        last_tests = {}
+                        continue
+            # `best` has the strongest evidence (smallest p-value, which accounts for its number
+            # of parameters); the ambiguous ones are reported with it.
+            model_effects.extend(_with_companion(model_effects, best))
+            res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc)
+            history.append(e)
+            rms_new = _rms(e)
+            att_new = attitude_error_deg(res, rec, model.correction(fit, model_effects))
+            evb = evs[best]
+            steps.append(Step(
+                effect=best,
+                evidence=Evidence(**{**evb.__dict__, "ambiguous_with": tuple(ambiguous)}),
+                residual_rms_before_rad_s=rms_cur, residual_rms_after_rad_s=rms_new,
+                attitude_error_before_deg=att_cur, attitude_error_after_deg=att_new,
+            ))
+            n_cat += 1
+            last_tests = {}
+            rms_cur, att_cur = rms_new, att_new
+            continue
+        # ------------------------------------------------------------ open search
+        if not do_open or len(unexplained) >= max_open_steps:
             break
-        sig.sort(key=lambda c: (evs[c].log10_p, -evs[c].statistic))
-        best = sig[0]
-        ambiguous, nested = [], []
-        for r in sig[1:]:
-            ev_b, _ = _test(model, model_effects + _with_companion(model_effects, r), best, thr, rms_cur)
-            ev_r, _ = _test(model, model_effects + _with_companion(model_effects, best), r, thr, rms_cur)
-            if ev_r.df1 == 0 and ev_b.df1 > 0 and not ev_b.significant:
-                nested.append(r)  # r is contained in best and best adds nothing to it
-            elif not ev_b.significant and not ev_r.significant:
-                ambiguous.append(r)
-        if nested:  # parsimony: the smaller effect that explains the same residual
-            best = min(nested, key=lambda c: (evs[c].log10_p, -evs[c].statistic))
-            ambiguous = [c for c in ambiguous if c != best]
-        if ambiguous:
-            # evidence decides when it differs by ≥ 1 decade of p; otherwise (a tie the data
-            # cannot break) the simpler effect: fewer parameters, then the lower-order, more
-            # common one (earlier in CANDIDATES)
-            pool = [best] + ambiguous
-            close = [c for c in pool if evs[c].log10_p <= evs[best].log10_p + 1.0]
-            pick = min(close, key=lambda c: (evs[c].df1, CANDIDATES.index(c)))
-            ambiguous = [c for c in pool if c != pick]
-            best = pick
-        # `best` has the strongest evidence (smallest p-value, which accounts for its number
-        # of parameters); the ambiguous ones are reported with it.
-        model_effects.extend(_with_companion(model_effects, best))
-        res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc)
+        took = _open_step(
+            res=res, rec=rec, model=model, model_effects=model_effects, fit=fit, e=e, alpha=alpha,
+            rms_cur=rms_cur, att_cur=att_cur, cv_base=cv_base, open_term_test=open_term_test, practical=practical,
+            step_screen_now=step_screen_now, ev_dict=ev_dict, untestable=untestable, held=held, tau_acc=tau_acc,
+            can_hold=rebuild is not None, open_last=open_last,
+        )
+        if took is None:
+            break
+        kind, axis, name, fields, evd, held_corr = took
+        if held_corr is not None:
+            # a sample-level line: removed from the gyro (raw time frame), residual rebuilt
+            x_before = evd.pop("_sample_rms_before")
+            held[name] = held.get(name, 0.0) + held_corr
+            hp = held_params.setdefault(name, {})
+            for k_, v_ in evd.pop("_params").items():
+                hp[k_] = v_
+            res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc, force_rebuild=True)
+            x_after = evd.pop("_sample_rms_after")
+            rms_new = _rms(e)
+            att_new = attitude_error_deg(res, rec, model.correction(fit, model_effects))
+            evd["window_residual_rms_before_rad_s"] = rms_cur
+            evd["window_residual_rms_after_rad_s"] = rms_new
+            add_open(kind, axis, name, fields, evd, x_before, x_after, att_cur, att_new)
+        else:
+            model_effects.append(name if axis is None or kind == "step" else f"{name}@{axis}")
+            res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc)
+            rms_new = _rms(e)
+            att_new = attitude_error_deg(res, rec, model.correction(fit, model_effects))
+            if kind == "step":
+                size = np.array(fit.effect_theta(name), float)
+                se = np.array(fit.effect_stderr(name), float)
+                fields = dict(fields, size_rad_s=size)
+                evd["size_std_errors_rad_s"] = se
+                axis = int(np.argmax(np.abs(size) / np.where(se > 0, se, np.inf)))
+            elif kind == "regressor":
+                fields = dict(fields, coef=float(fit.effect_theta(f"{name}@{axis}")[0]))
+            add_open(kind, axis, name, fields, evd, rms_cur, rms_new, att_cur, att_new)
         history.append(e)
-        rms_new = _rms(e)
-        att_new = attitude_error_deg(res, rec, model.correction(fit, model_effects))
-        evb = evs[best]
-        steps.append(Step(
-            effect=best,
-            evidence=Evidence(**{**evb.__dict__, "ambiguous_with": tuple(ambiguous)}),
-            residual_rms_before_rad_s=rms_cur, residual_rms_after_rad_s=rms_new,
-            attitude_error_before_deg=att_cur, attitude_error_after_deg=att_new,
-        ))
-        last_tests = {}
         rms_cur, att_cur = rms_new, att_new
     found = [s.effect for s in steps]
     params = _params_table(fit, model_effects)
+    for name, hp in held_params.items():
+        params[name] = {k: [float(v[0]), float(v[1])] for k, v in hp.items()}
     if tau_acc != 0.0 and "time_offset" in params:
         v, se = params["time_offset"]["tau_s"]
         params["time_offset"]["tau_s"] = [tau_acc + v, se]
         notes.append(f"time_offset re-linearised (Gauss-Newton): the gyro was advanced by {tau_acc:.6g} s and "
                      "the fit repeated; tau_s is the total")
+    t0_c = float(np.mean(np.asarray(res.inputs.temp_c, float))) if res.inputs.temp_c is not None else None
     return LoopResult(
         declared=tuple(declared),
         found=tuple(steps),
@@ -859,7 +1034,215 @@ def loop_residual(
         alpha=alpha,
         residual=res,
         history=tuple(history),
+        unexplained=tuple(unexplained),
+        open_search=open_last,
+        t0_c=t0_c,
     )
+
+
+def _line_series(res: Residual, rec: Recording, correction: np.ndarray):
+    """The series the line search runs on: (x (n, 3), t (n,), fs, reference motion (n, R) or
+    None, level, sample slice or None).
+
+    ``rate``: the sample-level residual gyro − ω_ref − model (longest run with a finite
+    reference); ``still``: gyro − model over the longest contiguous run of still windows;
+    ``attitude``: the window residual (no sample-level reference: the optical attitude is
+    never differentiated), longest evenly spaced run.
+    """
+    t = rec.t_s
+    if res.kind == "rate":
+        ref = rec.ref_rate_rad_s
+        ok = np.all(np.isfinite(ref), axis=1)
+        a, b = _longest_run(ok)
+        sl = slice(a, b)
+        x = rec.gyro_rad_s[sl] - ref[sl] - correction[sl]
+        mot = [ref[sl], np.gradient(ref[sl], t[sl], axis=0)]
+        if rec.accel_m_s2 is not None:
+            mot.append(np.nan_to_num(rec.accel_m_s2[sl]))
+        return x, t[sl], rec.rate_hz, np.concatenate(mot, axis=1), "sample", sl
+    if res.kind == "still":
+        a_w, b_w = res.win_start, res.win_stop
+        cont = np.concatenate([[False], a_w[1:] == b_w[:-1]])
+        best, cur, st, bst = 0, 0, 0, 0
+        for k in range(res.m):
+            if k > 0 and cont[k]:
+                cur += 1
+            else:
+                cur, st = 1, k
+            if cur > best:
+                best, bst = cur, st
+        sl = slice(int(a_w[bst]) + 1, int(b_w[bst + best - 1]) + 1)
+        x = rec.gyro_rad_s[sl] - correction[sl]
+        mot = np.nan_to_num(rec.accel_m_s2[sl]) if rec.accel_m_s2 is not None else None
+        return x, t[sl], rec.rate_hz, mot, "sample", sl
+    return None
+
+
+def _longest_run(ok: np.ndarray) -> tuple[int, int]:
+    m = np.concatenate([[False], ok, [False]]).astype(np.int8)
+    d = np.diff(m)
+    a, b = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    if a.size == 0:
+        return 0, 0
+    j = int(np.argmax(b - a))
+    return int(a[j]), int(b[j])
+
+
+def _window_line_series(res: Residual, e: np.ndarray):
+    """Longest evenly spaced run of windows of the window residual: (x, t_mid, fs, idx)."""
+    T = res.duration_s
+    win = float(np.median(T))
+    even = np.concatenate([[False], (np.abs(np.diff(res.t_mid_s) - win) <= 0.05 * win)
+                           & (np.abs(T[1:] - win) <= 0.05 * win)])
+    best, cur, st, bst = 0, 0, 0, 0
+    for k in range(res.m):
+        if k > 0 and even[k]:
+            cur += 1
+        else:
+            cur, st = 1, k
+        if cur > best:
+            best, bst = cur, st
+    idx = np.arange(bst, bst + best)
+    return e[idx], res.t_mid_s[idx], 1.0 / win, idx
+
+
+def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cur, cv_base, open_term_test,
+               practical, step_screen_now, ev_dict, untestable, held, tau_acc, can_hold, open_last):
+    """One step of the open search: the strongest significant description among the regressor
+    library, lines and a bias step, or None. See :mod:`gyrocore.search`.
+
+    Returns (kind, axis, effect name, fields, evidence, held correction (N, 3) or None).
+    """
+    options = []  # (log10 p − log10 threshold, payload)
+    sig = fit.axis_sigma_rad_s if fit is not None else np.maximum(np.std(e, axis=0), 1e-12)
+    X0 = model.design(model_effects)[0]
+    n_par = fit.rank if fit is not None else 0
+    # ---------------- regressor library
+    terms = S.library_terms(res.inputs, kind=res.kind)
+    exclude = set()
+    for term in terms:
+        for i in range(3):
+            eq = S.catalogue_equivalent(term, i)
+            if eq is not None or f"regressor[{term}]@{i}" in model_effects:
+                exclude.add((term, i))
+    lib = S.screen_library(res, X0, e, sig, terms, exclude, n_par) if terms else None
+    if lib is not None:
+        thr = alpha * S.ALPHA_SHARE["regressor"] / lib.n_tested
+        open_last["regressor"] = {"term": lib.term, "axis": "xyz"[lib.axis], "score_F": lib.statistic,
+                                  "log10_p": lib.log10_p, "threshold": thr, "n_tested": lib.n_tested}
+        if lib.p_value < thr:
+            name = f"regressor[{lib.term}]"
+            ev, _ = open_term_test(f"{name}@{lib.axis}", thr, cv_base)
+            open_last["regressor"].update({"wald_log10_p": ev.log10_p, "cv_rms_reduction": ev.cv_rms_reduction,
+                                           "rms_reduction": ev.rms_reduction})
+            if ev.df1 > 0 and ev.p_value < thr and practical(ev):
+                evd = ev_dict(ev)
+                evd.update({"score_F": lib.statistic, "score_log10_p": lib.log10_p, "n_tested": lib.n_tested,
+                            "residual": "window"})
+                options.append((ev.log10_p - np.log10(thr),
+                                ("regressor", lib.axis, name, {"term": lib.term}, evd, None)))
+    elif not terms:
+        open_last["regressor"] = {"skipped": "no signal varies in the data"}
+    # ---------------- lines
+    thr_line = alpha * S.ALPHA_SHARE["periodic"] / 3.0
+    corr = model.correction(fit, model_effects)
+    ser = _line_series(res, rec, corr) if can_hold else None
+    if ser is not None and ser[0].shape[0] >= 256:
+        x, tt, fs, mot, level, sl = ser
+        # (axis, frequency) already removed
+        done = [(i, float(n[len("periodic["):-1])) for n, c in held.items() for i in range(3) if np.any(c[:, i] != 0)]
+        lines = S.screen_lines(x, fs, ref=mot, skip=done)
+        open_last["periodic"] = [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
+                                  "log10_p": l.log10_p, "threshold": thr_line, "n_freq": l.n_freq,
+                                  "bandwidth_hz": l.bandwidth_hz, "masked_by_motion_bins": l.masked_by_motion}
+                                 for l in lines]
+        for l in lines:
+            if l.log10_p >= np.log10(thr_line):
+                continue
+            i = l.axis
+            # ± one bin of the segment grid (fs/L)
+            f = S.round_frequency(S.refine_frequency(x[:, i], tt, l.frequency_hz, fs / S.segment_length(x.shape[0])))
+            cv = S.sinusoid_cv_reduction(x[:, i], tt, f)
+            if not cv > 0:
+                continue
+            name = f"periodic[{S._fmt_num(f)}]"
+            coef, se = S.fit_sinusoid(x[:, i], tt, f)
+            a, b = float(coef[0, 0]), float(coef[1, 0])
+            before = float(np.sqrt(np.mean((x[:, i] - x[:, i].mean()) ** 2)))
+            ph = 2 * np.pi * f * tt
+            xa = x[:, i] - a * np.cos(ph) - b * np.sin(ph)
+            after = float(np.sqrt(np.mean((xa - xa.mean()) ** 2)))
+            # raw time frame: the residual is of the gyro advanced by tau (time_offset)
+            phi = 2 * np.pi * f * tau_acc
+            a_raw, b_raw = a * np.cos(phi) - b * np.sin(phi), a * np.sin(phi) + b * np.cos(phi)
+            tr = rec.t_s
+            corr_full = np.zeros((tr.size, 3))
+            corr_full[:, i] = a_raw * np.cos(2 * np.pi * f * tr) + b_raw * np.sin(2 * np.pi * f * tr)
+            evd = {"statistic": l.statistic, "df1": l.df1, "df2": l.df2, "log10_p": l.log10_p,
+                   "p_value": 10 ** l.log10_p, "threshold": thr_line, "n_frequencies_tested": l.n_freq,
+                   "bandwidth_hz": l.bandwidth_hz, "grid_frequency_hz": l.frequency_hz,
+                   "cv_rms_reduction": cv, "residual": level, "test": "Thomson multitaper harmonic F (NW 4, K 7)",
+                   "params": {f"a_cos_rad_s[{i}]": a_raw, f"a_sin_rad_s[{i}]": b_raw},
+                   "std_errors": {f"a_cos_rad_s[{i}]": float(se[0, 0]), f"a_sin_rad_s[{i}]": float(se[1, 0])},
+                   "_sample_rms_before": before, "_sample_rms_after": after,
+                   "_params": {f"a_cos_rad_s[{i}]": (a_raw, float(se[0, 0])),
+                               f"a_sin_rad_s[{i}]": (b_raw, float(se[1, 0]))}}
+            fields = {"frequency_hz": f, "amplitude_rad_s": float(np.hypot(a, b))}
+            options.append((l.log10_p - np.log10(thr_line), ("periodic", i, name, fields, evd, corr_full)))
+    elif res.kind == "attitude" and res.m >= 64:
+        x, tt, fs, idx = _window_line_series(res, e)
+        if x.shape[0] >= 64:
+            mot = res.window_mean(np.asarray(res.inputs.omega_S_rad_s, float))[idx]
+            done = [(column_axis("a[" + k.split("@")[1] + "]"), float(k[len("periodic["):k.index("]")]))
+                    for k in model_effects if k.startswith("periodic[")]
+            lines = S.screen_lines(x, fs, ref=mot, skip=done)
+            open_last["periodic"] = [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
+                                      "log10_p": l.log10_p, "threshold": thr_line, "n_freq": l.n_freq,
+                                      "level": "window"} for l in lines]
+            for l in lines:
+                if l.log10_p >= np.log10(thr_line):
+                    continue
+                f = S.round_frequency(S.refine_frequency(x[:, l.axis], tt, l.frequency_hz, 2 * l.bandwidth_hz))
+                name = f"periodic[{S._fmt_num(f)}]"
+                ev, _ = open_term_test(f"{name}@{l.axis}", thr_line, cv_base)
+                # the harmonic F decided significance; the window refit must hold out of sample
+                if ev.df1 > 0 and (ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)):
+                    evd = ev_dict(ev)
+                    evd.update({"line_F": l.statistic, "line_log10_p": l.log10_p, "threshold": thr_line,
+                                "residual": "window", "n_frequencies_tested": l.n_freq})
+                    a = ev.params.get(f"a_cos_rad_s[{l.axis}]", 0.0)
+                    b = ev.params.get(f"a_sin_rad_s[{l.axis}]", 0.0)
+                    options.append((l.log10_p - np.log10(thr_line),
+                                    ("periodic", l.axis, name, {"frequency_hz": f, "amplitude_rad_s": float(np.hypot(a, b))},
+                                     evd, None)))
+    # ---------------- step
+    thr_step = alpha * S.ALPHA_SHARE["step"]
+    st = step_screen_now(thr_step)
+    if st is not None:
+        open_last["step"] = {"t_s": st.t_s, "sup_statistic": st.statistic, "bootstrap_p": st.p_value,
+                             "threshold": thr_step, "n_boot": st.n_boot, "n_candidates": st.n_candidates}
+        if st.p_value < thr_step:
+            name = f"step[{S._fmt_num(st.t_s)}]"
+            if name not in model_effects:
+                ev, _ = open_term_test(name, thr_step, cv_base)
+                if ev.df1 > 0 and practical(ev):
+                    X0c = model.design(model_effects)[0]
+                    cv_step = _cv_rms(res.y_rad_s, np.concatenate([X0c, model.block(name)[1]], axis=2),
+                                      min_windows=_cv_min(res))
+                    evd = ev_dict(ev)
+                    evd.update({"sup_statistic": st.statistic, "bootstrap_p": st.p_value, "n_boot": st.n_boot,
+                                "n_candidates": st.n_candidates, "threshold_step": thr_step, "residual": "window"})
+                    if "bias_ramp" not in model_effects:
+                        cv_ramp = _cv_rms(res.y_rad_s, np.concatenate([X0c, model.block("bias_ramp")[1]], axis=2),
+                                          min_windows=_cv_min(res))
+                        evd["vs_ramp"] = {"cv_rms_step_rad_s": cv_step, "cv_rms_ramp_rad_s": cv_ramp,
+                                          "chosen": "step" if cv_step <= cv_ramp else "ramp"}
+                    options.append((np.log10(st.p_value) - np.log10(thr_step),
+                                    ("step", 0, name, {"t_s": st.t_s}, evd, None)))
+    if not options:
+        return None
+    options.sort(key=lambda o: o[0])
+    return options[0][1]
 
 
 def run_loop(
@@ -878,6 +1261,8 @@ def run_loop(
     angle_sigma_deg: float = 2.0,
     axis_sigma_deg: float = 5.0,
     angle_mode: str = "rotation",
+    open_search: bool = True,
+    seed: int = 0,
 ) -> LoopResult:
     """Close the loop on one recording.
 
@@ -912,6 +1297,13 @@ def run_loop(
         Known rotations: whole rotations (start/end poses known) or the total angle about the
         axis only (free hand turns); see :func:`gyrocore.residual.build_residual`.
 
+    open_search : bool
+        After the catalogue, describe what is still significant outside it (regressor
+        library, narrow-band lines, bias steps: :mod:`gyrocore.search`); α is then split
+        between the catalogue (½) and the three open kinds (⅙ each).
+    seed : int
+        Seed of the step test's parametric bootstrap.
+
     Returns
     -------
     LoopResult
@@ -930,7 +1322,7 @@ def run_loop(
         return loop_residual(
             res, rec, declared=declared, candidates=candidates, alpha=alpha, thermal_order=thermal_order, rebuild=rebuild,
             min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,
-            max_steps=max_steps,
+            max_steps=max_steps, open_search=open_search, seed=seed,
         )
 
 
@@ -1013,3 +1405,180 @@ def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000, prefix: s
         atomic_write_bytes(p, buf.getvalue())
         paths.append(p)
     return paths
+
+
+# ---------------------------------------------------------------------------- the model leaves the recording
+def _schema_shape(effect: str, pname: str, order: int) -> tuple:
+    base = effect.split("[")[0]
+    if base in ("regressor", "step"):
+        return (3,)
+    if base == "periodic":
+        return (3,)
+    shape = E.PARAM_SCHEMA[effect][pname]
+    return tuple(order if d == "p" else d for d in shape)
+
+
+def loop_parameters(result: LoopResult, rec: Recording, *, thermal_order: int = 1) -> tuple[dict, dict]:
+    """The loop's final model as parameter-file parameters and standard errors.
+
+    Returns ``(params, stderr)``, each ``{effect: {param: ndarray}}`` in the
+    :data:`gyrocore.effects.PARAM_SCHEMA` form (SI); family terms (``regressor[..]``,
+    ``periodic[..]``, ``step[..]``) carry their coefficients on every axis (0 where the loop
+    did not fit one). Thermal polynomials are referenced to the recording's mean temperature
+    (``t0_c``) with its range; ``earth_rate`` is converted from the fitted vector Ω_W to
+    latitude and heading (W = the reference's world frame, z up).
+    """
+    params: dict = {}
+    stderr: dict = {}
+    for eff, table in result.params.items():
+        order = thermal_order if eff in ("bias_thermal", "scale_thermal") else 1
+        if eff == "earth_rate":
+            om = np.array([table[f"omega_W_rad_s[{k}]"][0] for k in range(3)])
+            lat = float(np.arctan2(om[2], np.hypot(om[0], om[1])))
+            head = float(np.arctan2(om[0], om[1]))
+            params[eff] = {"latitude_rad": np.asarray(lat), "heading_rad": np.asarray(head)}
+            stderr[eff] = {"latitude_rad": np.asarray(np.nan), "heading_rad": np.asarray(np.nan)}
+            continue
+        by_param: dict[str, dict] = {}
+        for key, (v, se) in table.items():
+            pname, _, idx = key.partition("[")
+            by_param.setdefault(pname, {})[idx.rstrip("]")] = (v, se)
+        params[eff], stderr[eff] = {}, {}
+        for pname, vals in by_param.items():
+            shape = _schema_shape(eff, pname, order)
+            val = np.zeros(shape)
+            err = np.full(shape, np.nan)
+            for idx, (v, se) in vals.items():
+                ix = tuple(int(x) for x in idx.split(",")) if idx else ()
+                val[ix] = v
+                err[ix] = se
+            params[eff][pname] = val
+            stderr[eff][pname] = err
+        if eff.startswith("periodic["):  # both halves of the line on every axis
+            for pname in ("a_cos_rad_s", "a_sin_rad_s"):
+                params[eff].setdefault(pname, np.zeros(3))
+                stderr[eff].setdefault(pname, np.full(3, np.nan))
+        if eff in ("bias_thermal", "scale_thermal"):
+            T = np.asarray(rec.temp_c, float)
+            params[eff].update(t0_c=np.asarray(result.t0_c if result.t0_c is not None else float(np.mean(T))),
+                               temp_min_c=np.asarray(float(np.nanmin(T))), temp_max_c=np.asarray(float(np.nanmax(T))))
+            stderr[eff].update(t0_c=np.asarray(np.nan), temp_min_c=np.asarray(np.nan), temp_max_c=np.asarray(np.nan))
+    return params, stderr
+
+
+def loop_calibration(result: LoopResult, rec: Recording, *, source_path=None, sensor: str | None = None,
+                     thermal_order: int = 1):
+    """The loop's final model as a :class:`gyrocore.model.CalibrationResult` (the parameter
+    file ``loop -o`` and ``calibrate`` with a reference attitude write)."""
+    from pathlib import Path
+
+    from .model import CalibrationResult
+    from .recording import file_sha256
+
+    params, stderr = loop_parameters(result, rec, thermal_order=thermal_order)
+    src_name = src_sha = None
+    if source_path is not None and Path(source_path).is_file():
+        src_name, src_sha = Path(source_path).name, file_sha256(source_path)
+    elif source_path is not None:
+        src_name = Path(source_path).name
+    rms = np.full(3, result.residual_rms_after_rad_s)
+    notes = [f"fitted by the residual loop against the {result.reference} reference ({result.description}); "
+             f"residual_rms_rad_s is the RMS of the window residual over all axes"]
+    notes += [f"found: {s.effect}" for s in result.found]
+    notes += [f"unexplained ({u.kind}, axis {u.axis}): {u.effect}" for u in result.unexplained]
+    thermal = {e: thermal_order for e in params if e in ("bias_thermal", "scale_thermal")}
+    return CalibrationResult(
+        effects=tuple(params), params=params, stderr=stderr, residual_rms_rad_s=rms,
+        method=f"loop_{result.reference}", covariance="hac", sensor=sensor or str(rec.meta.get("sensor", "unknown")),
+        source_file=src_name, source_sha256=src_sha, n_samples=int(rec.n), thermal_order=thermal,
+        notes=tuple(notes),
+    )
+
+
+def _param_theta(res: Residual, effect: str, pd: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Flatten one effect's parameters in the column order of its regressors."""
+    names, _ = res.regressors(effect, order=int(np.shape(pd.get("poly_rad_s", pd.get("poly_per_c", np.zeros((3, 1)))))[1])
+                              if effect in ("bias_thermal", "scale_thermal") else 1)
+    th = np.zeros(len(names))
+    for p, n in enumerate(names):
+        pname, _, idx = n.partition("[")
+        ix = tuple(int(x) for x in idx.rstrip("]").split(",")) if idx else ()
+        th[p] = float(np.asarray(pd[pname], float)[ix])
+    return th
+
+
+def model_correction(res: Residual, params: Mapping[str, Mapping[str, np.ndarray]]) -> np.ndarray:
+    """Per-sample correction Σ A_e·θ_e (rad/s, (N, 3)) of a parameter set on a residual's
+    inputs — the loop's linearised measurement model (``time_offset`` excluded: it is applied
+    exactly by advancing the gyro; ``earth_rate`` through latitude/heading and the attitude).
+
+    Thermal polynomials use the parameters' own ``t0_c`` (not the new record's mean).
+    """
+    n = res.inputs.n
+    c = np.zeros((n, 3))
+    for eff, pd in params.items():
+        if eff in ("time_offset",):
+            continue
+        if eff == "earth_rate":
+            if res.R_WS is not None:
+                w_W = E.earth_rate_W(float(pd["latitude_rad"]), float(pd["heading_rad"]))
+                c += np.einsum("nji,j->ni", res.R_WS, w_W)
+            continue
+        if eff in ("bias_thermal", "scale_thermal"):
+            coef = np.asarray(pd["poly_rad_s" if eff == "bias_thermal" else "poly_per_c"], float)
+            _, A = E.design(eff, res.inputs, order=coef.shape[1], t0_c=float(pd["t0_c"]))
+            c += np.einsum("nip,p->ni", A, coef.reshape(-1))
+            continue
+        th = _param_theta(res, eff, pd)
+        c += res.sample_correction(eff, th)
+    return c
+
+
+def validate_model(rec: Recording, *, params_after: Mapping, params_before: Mapping, reference: str = "auto",
+                   segments=None, window_s: float | None = None, refit_bias: bool = True) -> dict:
+    """Score two parameter sets on a recording not used to fit them (the honest "after").
+
+    ``time_offset`` is applied exactly (the gyro advanced by τ), every other effect through
+    the linearised model on this recording's inputs (:func:`model_correction`). The constant
+    bias is redrawn at every power-up (turn-on repeatability), so with ``refit_bias`` it is
+    re-estimated on this recording for both sets (the window residual's mean): everything
+    else is transferred.
+
+    Returns the DESIGN.md ``validation`` keys (``file`` is added by the caller).
+    """
+    out = {}
+    for tag, params in (("before", params_before), ("after", params_after)):
+        r = rec
+        tau = float(params.get("time_offset", {}).get("tau_s", 0.0)) if "time_offset" in params else 0.0
+        if tau != 0.0:
+            r = _advance(rec, tau)
+        res = build_residual(r, reference=reference, segments=segments, window_s=window_s)
+        corr = model_correction(res, params)
+        y = res.y_rad_s - res.window_mean(corr)
+        if refit_bias:
+            _, Xb = res.regressors("bias")
+            th, *_ = np.linalg.lstsq(Xb.reshape(-1, 3), y.reshape(-1), rcond=None)
+            y = y - np.einsum("mip,p->mi", Xb, th)
+            corr = corr + th[None, :]
+        out[f"residual_rms_{tag}_rad_s"] = _rms(y)
+        out[f"attitude_error_{tag}_deg"] = attitude_error_deg(res, r, corr)
+        out["reference"] = res.kind
+        out["n_windows"] = res.m
+    out["bias"] = "re-estimated on this recording (turn-on bias)" if refit_bias else "transferred"
+    return out
+
+
+def check_compatible(rec_fit: Recording, rec_val: Recording, *, fit_name: str, val_name: str) -> None:
+    """One ``error:`` line when a validation recording does not match the fitted one: another
+    sensor, sample rate (> 2 % apart) or units."""
+    s1, s2 = rec_fit.meta.get("sensor"), rec_val.meta.get("sensor")
+    if s1 and s2 and str(s1).strip().lower() != str(s2).strip().lower() and "unknown" not in (s1, s2):
+        raise GyroInputError(f"--validate {val_name}: sensor '{s2}' differs from the fitted file's '{s1}' "
+                             "(a model of one sensor does not transfer to another)")
+    r1, r2 = rec_fit.rate_hz, rec_val.rate_hz
+    if not (abs(r1 - r2) <= 0.02 * max(r1, r2)):
+        raise GyroInputError(f"--validate {val_name}: sample rate {r2:.6g} Hz differs from the fitted file's "
+                             f"{r1:.6g} Hz")
+    u1, u2 = rec_fit.meta.get("units"), rec_val.meta.get("units")
+    if u1 and u2 and u1 != u2:
+        raise GyroInputError(f"--validate {val_name}: units '{u2}' differ from the fitted file's '{u1}'")

@@ -88,6 +88,31 @@ _POINTWISE = frozenset({"bias", "bias_ramp", "scale", "scale_asymmetry", "scale_
                         "g_sensitivity", "g2_sensitivity", "earth_rate"})
 
 
+def is_pointwise(effect: str) -> bool:
+    """True when an effect's regressor at a sample depends only on that sample's inputs (so its
+    regressors can be built chunk by chunk). Family terms: steps and lines are; a library term
+    is unless it holds a derivative (``alpha_*``, ``dtemp_dt``)."""
+    if effect in _POINTWISE:
+        return True
+    if effect.startswith(("step[", "periodic[")):
+        return True
+    if effect.startswith("regressor["):
+        return "alpha_" not in effect and "dtemp_dt" not in effect
+    return False
+
+
+def family_design(effect: str, inp) -> tuple[list[str], np.ndarray]:
+    """Regressors of an open-world family effect (``regressor[..]``, ``periodic[..]``,
+    ``step[..]``): the registry's :func:`gyrocore.effects.design` when it knows the family,
+    else :func:`gyrocore.search.family_design` (same contract)."""
+    try:
+        return E.design(effect, inp)
+    except GyroInputError:
+        from .search import family_design as _fd
+
+        return _fd(effect, inp)
+
+
 @dataclass(frozen=True)
 class Segment:
     """A stretch of a recording with a known reference.
@@ -271,7 +296,7 @@ class Residual:
         """
         inp = self.inputs
         if rows is not None:
-            if effect not in _POINTWISE:
+            if not is_pointwise(effect):
                 raise ValueError(f"{effect} is not point-wise; its regressors need all samples")
 
             def cut(v):
@@ -284,6 +309,8 @@ class Residual:
             if self.R_WS is None:
                 raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
             names, A = earth_rate_design(self.R_WS if rows is None else self.R_WS[rows])
+        elif "[" in effect:
+            names, A = family_design(effect, inp)
         else:
             names, A = E.design(effect, inp, order=order)
         if not np.all(np.isfinite(A)):
@@ -294,7 +321,7 @@ class Residual:
         """Σ_p A[:, :, p]·θ_p for one effect, rad/s, (N, 3) — in chunks for long recordings."""
         n = self.inputs.n
         th = np.asarray(theta, float)
-        if n <= CHUNK_SAMPLES or effect not in _POINTWISE:
+        if n <= CHUNK_SAMPLES or not is_pointwise(effect):
             return np.einsum("nip,p->ni", self.sample_design(effect, order=order)[1], th)
         out = np.empty((n, 3))
         for s0 in range(0, n, CHUNK_SAMPLES):
@@ -344,7 +371,7 @@ class Residual:
         """
         key = ("w", effect, order)
         if key not in self._cache:
-            if self.inputs.n > CHUNK_SAMPLES and effect in _POINTWISE:
+            if self.inputs.n > CHUNK_SAMPLES and is_pointwise(effect):
                 self._cache[key] = self._chunked_regressors(effect, order)
             else:
                 names, A = self.sample_design(effect, order=order)

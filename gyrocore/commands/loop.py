@@ -26,9 +26,11 @@ def _fmt(x: float, unit: str = "", scale: float = 1.0, digits: int = 4) -> str:
     return f"{x * scale:.{digits}g}{unit}"
 
 
+D = 180.0 / math.pi
+
+
 def report_text(result) -> str:
     """The readable report of a :class:`gyrocore.loop.LoopResult`."""
-    D = 180.0 / math.pi
     lines = [
         f"reference: {result.reference} — {result.description} ({result.n_windows} windows)",
         f"declared: {', '.join(result.declared) or '(none)'}",
@@ -51,6 +53,17 @@ def report_text(result) -> str:
             lines.append(f"        ambiguous with {', '.join(e.ambiguous_with)} (the data cannot tell them apart)")
         for name, v in e.params.items():
             lines.append(f"        {name} = {v:.4g} ± {e.std_errors.get(name, float('nan')):.2g} (SI)")
+    for u in result.unexplained:
+        ev = u.evidence
+        what = {"regressor": lambda f: f"term {f['term']}, coef {f['coef']:.4g} (SI)",
+                "periodic": lambda f: f"{f['frequency_hz']:.6g} Hz, amplitude {f['amplitude_rad_s'] * D:.4g} deg/s",
+                "step": lambda f: f"at t = {f['t_s']:.6g} s, size [{', '.join(f'{v * D:.4g}' for v in f['size_rad_s'])}] deg/s",
+                }[u.kind](u.fields)
+        lines.append(
+            f"unexplained: {u.kind} on axis {u.axis}: {what}; log10 p = {ev.get('log10_p', float('nan')):.3g} "
+            f"< log10 threshold {math.log10(ev['threshold']):.3g}; residual RMS "
+            f"{_fmt(u.residual_rms_before_rad_s, '', D)} -> {_fmt(u.residual_rms_after_rad_s, ' deg/s', D)} "
+            f"({ev.get('residual', 'window')} level); added as {u.effect}")
     if result.tested:
         top = sorted(result.tested.items(), key=lambda kv: kv[1].log10_p)[:4]
         lines.append("strongest not taken: " + "; ".join(
@@ -64,9 +77,33 @@ def report_text(result) -> str:
         f"Allan slope per axis {', '.join(_fmt(x, '', 1, 2) for x in rem['allan_slope'])} "
         "(−0.5 white, 0 flicker, +0.5 random walk)"
     )
+    os_ = result.open_search
+    if os_ and not result.unexplained:
+        parts = []
+        if "regressor" in os_ and "term" in os_["regressor"]:
+            g = os_["regressor"]
+            parts.append(f"best library term {g['term']} on {g['axis']} (log10 p {g['log10_p']:.2g}, threshold "
+                         f"{math.log10(g['threshold']):.2g}, {g['n_tested']} tested)")
+        if os_.get("periodic"):
+            g = min(os_["periodic"], key=lambda d: d["log10_p"])
+            parts.append(f"strongest line {g['frequency_hz']:.4g} Hz on {g['axis']} (log10 p {g['log10_p']:.2g}, "
+                         f"threshold {math.log10(g['threshold']):.2g})")
+        if "step" in os_:
+            g = os_["step"]
+            parts.append(f"best step at {g['t_s']:.5g} s (bootstrap p {g['bootstrap_p']:.2g}, threshold {g['threshold']:.2g})")
+        if parts:
+            lines.append("open search, nothing significant: " + "; ".join(parts))
     for n in result.notes:
         lines.append(f"note: {n}")
     return "\n".join(lines)
+
+
+def validation_text(v: dict) -> str:
+    D = 180.0 / math.pi
+    return (f"validation on {v['file']} ({v['reference']}, {v['n_windows']} windows; bias {v['bias']}): "
+            f"residual RMS {_fmt(v['residual_rms_before_rad_s'], '', D)} (declared model) -> "
+            f"{_fmt(v['residual_rms_after_rad_s'], ' deg/s', D)} (final model); attitude error "
+            f"{_fmt(v['attitude_error_before_deg'])} -> {_fmt(v['attitude_error_after_deg'], ' deg')}")
 
 
 @click.command("loop")
@@ -98,30 +135,87 @@ def report_text(result) -> str:
                    "total angle about the axis (free hand turns).")
 @click.option("--plot-dir", type=click.Path(path_type=str), default=None,
               help="Write residual-vs-regressor plots (before/after) per found effect here.")
+@click.option("--open-search/--no-open-search", default=True, show_default=True,
+              help="After the catalogue, describe what is still significant outside it (regressor library, "
+                   "narrow-band lines, bias steps); alpha is split between the catalogue and the open search.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the step test's bootstrap.")
+@click.option("-o", "--output", "output", type=click.Path(dir_okay=False, path_type=str), default=None,
+              help="Write the final model as a parameter file (readable by apply).")
+@click.option("--validate", "validate", type=click.Path(path_type=str), default=None,
+              help="Score the final model (and the declared model fitted on FILE) on this other recording.")
+@click.option("--validate-segments", type=click.Path(path_type=str), default=None,
+              help="Segments CSV of the --validate recording.")
+@click.option("--force", is_flag=True, help="Overwrite an existing -o file.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the JSON result on stdout.")
 def command(path, effects, segments, candidates, reference, window_s, alpha, thermal_order, min_rms_reduction,
-            min_attitude_reduction, angle_sigma_deg, axis_sigma_deg, angle_mode, plot_dir, as_json):
+            min_attitude_reduction, angle_sigma_deg, axis_sigma_deg, angle_mode, plot_dir, open_search, seed, output,
+            validate, validate_segments, force, as_json):
     """The residual loop on FILE (a data file or any real set `gyroharness convert` reads)."""
+    import os
+
     from ..convert import load_with_segments
+    from ..errors import GyroInputError
     from ..loop import run_loop
     from ..residual import read_segments
 
+    if output and os.path.exists(output) and not force:
+        raise GyroInputError(f"{output} exists; pass --force to overwrite it")
     conv = load_with_segments(path)
     segs = list(conv.segments)
     if segments:
         segs = read_segments(segments)
     declared = _split(effects) or []
+    val_conv = None
+    if validate:
+        from ..loop import check_compatible
+
+        val_conv = load_with_segments(validate)
+        check_compatible(conv.recording, val_conv.recording, fit_name=path, val_name=validate)
+    opts = dict(segments=segs, reference=reference, window_s=window_s, alpha=alpha, thermal_order=thermal_order,
+                angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg, angle_mode=angle_mode)
     result = run_loop(
-        conv.recording, declared=declared, segments=segs, candidates=_split(candidates), reference=reference,
-        window_s=window_s, alpha=alpha, thermal_order=thermal_order, min_rms_reduction=min_rms_reduction,
-        min_attitude_reduction=min_attitude_reduction, angle_sigma_deg=angle_sigma_deg,
-        axis_sigma_deg=axis_sigma_deg, angle_mode=angle_mode,
+        conv.recording, declared=declared, candidates=_split(candidates), min_rms_reduction=min_rms_reduction,
+        min_attitude_reduction=min_attitude_reduction, open_search=open_search, seed=seed, **opts,
     )
+    payload = result.to_json()
+    if validate:
+        payload["validation"] = validation(result, conv.recording, val_conv, declared=declared, opts=opts,
+                                           validate=validate, validate_segments=validate_segments)
+    if output:
+        from ..loop import loop_calibration
+        from ..model import save_params
+
+        save_params(loop_calibration(result, conv.recording, source_path=path, thermal_order=thermal_order),
+                    output, overwrite=True)
+        payload["params_file"] = output
     if plot_dir:
         from ..loop import plot_found
 
         plot_found(result, Path(plot_dir))
     if as_json:
-        emit_json(result.to_json())
+        emit_json(payload)
     else:
         click.echo(report_text(result))
+        if validate:
+            click.echo(validation_text(payload["validation"]))
+        if output:
+            click.echo(f"wrote {output}")
+
+
+def validation(result, rec_fit, val_conv, *, declared, opts, validate, validate_segments=None) -> dict:
+    """The ``validation`` block: the final model and the declared model fitted on FILE, scored
+    on the other recording (:func:`gyrocore.loop.validate_model`)."""
+    from ..errors import GyroInputError
+    from ..loop import loop_parameters, run_loop, validate_model
+    from ..residual import read_segments
+
+    base = run_loop(rec_fit, declared=declared, candidates=[], open_search=False, **opts)
+    p_before, _ = loop_parameters(base, rec_fit, thermal_order=opts.get("thermal_order", 1))
+    p_after, _ = loop_parameters(result, rec_fit, thermal_order=opts.get("thermal_order", 1))
+    vsegs = read_segments(validate_segments) if validate_segments else list(val_conv.segments)
+    try:
+        v = validate_model(val_conv.recording, params_after=p_after, params_before=p_before, segments=vsegs,
+                           window_s=opts.get("window_s"))
+    except GyroInputError as exc:
+        raise GyroInputError(f"--validate {validate}: {exc}") from None
+    return {"file": validate, **v}

@@ -1,0 +1,862 @@
+"""Open search: what the residual still holds once no catalogue effect explains it.
+
+After the catalogue candidates of :mod:`gyrocore.loop`, three detectors describe effects
+outside the catalogue (DESIGN.md "Effects outside the catalogue"), each under the loop's
+family-wise error control (a weighted Holm/Bonferroni split of α, see :data:`ALPHA_SHARE`):
+
+* **Regressor library** (:func:`library_terms`, :func:`screen_library`): signals built from
+  the data — reference rate ``omega_*`` (S, rad/s), its derivative ``alpha_*`` (rad/s²),
+  specific force ``f_*`` (m/s²), ``temp_c``, ``dtemp_dt`` (°C/s), ``t`` (s since the start)
+  — and their products and squares (degree 2, across axes), each on each gyro axis. A term
+  that a catalogue effect already spans (:func:`catalogue_equivalent`: ``omega_y`` on x is
+  ``misalignment``, ``f_x*f_z`` is ``g2_sensitivity``, ``t`` is ``bias_ramp`` ...) is not in
+  the library: it was tested under its catalogue name. Selection is **forward stepwise on
+  the same HAC statistics as the catalogue**: every column is screened by a score (Lagrange
+  multiplier) test — the column is projected off the current model (Frisch–Waugh–Lovell),
+  its inner product with the residual is referred to its variance under the residual's
+  autocovariance model (:func:`gyrocore.lsq.residual_autocov_model`: short lags, a
+  Gauss–Markov tail and a flicker/low-frequency component) — with a Bonferroni threshold
+  over the library; the winner is then refitted jointly and Wald-tested on the HAC
+  covariance exactly as a catalogue candidate, and must pass the blocked out-of-sample guard.
+  Why stepwise and not a LASSO path: a LASSO path has no p-value that survives the selection
+  (post-selection inference would need the polyhedral lemma under white noise, which these
+  residuals are not), whereas the stepwise screen keeps an honest Bonferroni bound over the
+  library at every step, with the same coloured-noise statistic the catalogue uses, and the
+  refit is unpenalised (no shrinkage bias in the reported coefficient).
+* **Narrow-band lines** (:func:`harmonic_f_test`, :func:`screen_lines`) in the
+  *sample-level* residual (window means would hide them): Thomson's (1982) multitaper
+  harmonic F-test, F(f) = (K − 1)·|μ̂(f)|²·Σ_k U_k(0)² / Σ_k |Y_k(f) − μ̂(f)·U_k(0)|²
+  ~ F(2, 2K − 2) for a line in noise whose spectrum is smooth over ±W — the local
+  comparison makes it valid under coloured noise (flicker, random walk, Gauss–Markov,
+  the on-chip low-pass). Long records are cut into segments (≤ 65536 samples) whose
+  eigencoefficients are pooled, F ~ F(2S, 2S(K − 1)). The p-value is Bonferroni over the
+  frequencies tested; frequencies below 10·W (where 1/f noise is not smooth over the band)
+  and bins where the reference motion itself (rate, its derivative, specific force) has a
+  line are not tested — a line the motion explains is a motion-coupled error, not a new
+  effect. The frequency is refined by maximising the periodogram of the whole residual, the
+  amplitude fitted by least squares (cos/sin) at that frequency.
+* **Bias steps** (:func:`screen_step`): a change-point test on the window residual. For
+  each candidate time τ the three-axis step regressor is projected off the model and its
+  score tested (χ²₃ pointwise with the residual's autocovariance model); the supremum over
+  τ is calibrated by a parametric bootstrap from the same noise model (circulant embedding
+  of the identified autocovariance), because random-walk and flicker bias noise make the
+  naive CUSUM/χ² supremum false-alarm. Step vs ramp is a model comparison: the blocked
+  out-of-sample RMS of model + step vs model + ``bias_ramp``.
+
+Each described term is a registered effect family (BRIEFING contract):
+``regressor[<expr>]`` (``coef`` (3,)), ``periodic[<f_hz>]`` (``a_cos_rad_s``, ``a_sin_rad_s``
+(3,)), ``step[<t_s>]`` (``size_rad_s`` (3,)). :func:`family_design` gives their regressors
+(the registry's :func:`gyrocore.effects.design` when it knows the family).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy import signal as _signal
+from scipy import stats
+
+from . import lsq
+from .errors import GyroInputError
+
+__all__ = [
+    "ALPHA_SHARE",
+    "BASE_SIGNALS",
+    "Unexplained",
+    "parse_family",
+    "term_values",
+    "family_design",
+    "catalogue_equivalent",
+    "library_terms",
+    "screen_library",
+    "harmonic_f_test",
+    "screen_lines",
+    "fit_sinusoid",
+    "refine_frequency",
+    "screen_step",
+    "simulate_gaussian",
+]
+
+#: Share of the family-wise α: the catalogue candidates get one half (split equally among
+#: them at each step, Holm), the open search the other half, one sixth of α each for the
+#: regressor library (Bonferroni over its terms), lines (over axes and frequencies) and steps.
+#: A weighted Bonferroni/Holm split: under the complete null P(any false claim) ≤ Σ shares·α = α.
+ALPHA_SHARE = {"catalogue": 0.5, "regressor": 1.0 / 6, "periodic": 1.0 / 6, "step": 1.0 / 6}
+
+BASE_SIGNALS = ("omega_x", "omega_y", "omega_z", "alpha_x", "alpha_y", "alpha_z", "f_x", "f_y", "f_z",
+                "temp_c", "dtemp_dt", "t")
+_AX = "xyz"
+
+
+# ---------------------------------------------------------------------------- terms
+def parse_family(name: str) -> tuple[str, str] | None:
+    """``"periodic[37.5]"`` -> ("periodic", "37.5"); catalogue names -> None."""
+    m = re.fullmatch(r"(regressor|periodic|step)\[(.+)\]", name.strip())
+    return (m.group(1), m.group(2)) if m else None
+
+
+def term_factors(expr: str) -> list[str]:
+    """``"omega_y*omega_z"`` -> [omega_y, omega_z]; ``"f_x^2"`` -> [f_x, f_x]."""
+    out = []
+    for part in expr.replace(" ", "").split("*"):
+        base, _, pw = part.partition("^")
+        if base not in BASE_SIGNALS:
+            raise GyroInputError(f"unknown signal '{base}' in term '{expr}' (signals: {', '.join(BASE_SIGNALS)})")
+        try:
+            k = int(pw) if pw else 1
+        except ValueError:
+            raise GyroInputError(f"bad power in term '{expr}'") from None
+        if not 1 <= k <= 3:
+            raise GyroInputError(f"bad power in term '{expr}'")
+        out += [base] * k
+    if not out:
+        raise GyroInputError(f"empty term '{expr}'")
+    return out
+
+
+def term_name(factors: Sequence[str]) -> str:
+    """Canonical expression: sorted by BASE_SIGNALS order, squares as ``a^2``."""
+    fs = sorted(factors, key=BASE_SIGNALS.index)
+    if len(fs) == 2 and fs[0] == fs[1]:
+        return f"{fs[0]}^2"
+    return "*".join(fs)
+
+
+def _base_values(name: str, inp, cache: dict) -> np.ndarray:
+    if name in cache:
+        return cache[name]
+    t = np.asarray(inp.t_s, float)
+    if name.startswith("omega_") or name.startswith("alpha_"):
+        w = inp.omega_S_rad_s
+        if w is None:
+            raise GyroInputError(f"signal {name} needs the reference rate (ref_*_rad_s or an attitude)")
+        w = np.asarray(w, float)
+        i = _AX.index(name[-1])
+        if name.startswith("omega_"):
+            v = w[:, i]
+        else:
+            if "alpha" not in cache:
+                cache["alpha"] = np.gradient(w, t, axis=0) if w.shape[0] > 1 else np.zeros_like(w)
+            v = cache["alpha"][:, i]
+    elif name.startswith("f_"):
+        if inp.f_S_m_s2 is None:
+            raise GyroInputError(f"signal {name} needs the accel_* columns")
+        v = np.asarray(inp.f_S_m_s2, float)[:, _AX.index(name[-1])]
+    elif name == "temp_c":
+        if inp.temp_c is None:
+            raise GyroInputError("signal temp_c needs the temp_c column")
+        v = np.asarray(inp.temp_c, float)
+    elif name == "dtemp_dt":
+        if inp.temp_c is None:
+            raise GyroInputError("signal dtemp_dt needs the temp_c column")
+        v = np.gradient(np.asarray(inp.temp_c, float), t) if t.size > 1 else np.zeros_like(t)
+    elif name == "t":
+        v = inp.since_power_up()
+    else:  # pragma: no cover - guarded by term_factors
+        raise GyroInputError(f"unknown signal {name}")
+    cache[name] = v
+    return v
+
+
+def term_values(expr: str, inp, cache: dict | None = None) -> np.ndarray:
+    """Per-sample value of a library term, shape (N,) (SI units of its signals)."""
+    cache = {} if cache is None else cache
+    v = None
+    for f in term_factors(expr):
+        b = _base_values(f, inp, cache)
+        v = b.copy() if v is None else v * b
+    return v
+
+
+def _fmt_num(x: float) -> str:
+    return f"{x:.10g}"
+
+
+def round_frequency(f_hz: float) -> float:
+    """A line's frequency as carried in its name: 1 µHz resolution (a phase error below
+    2π·0.5e-6·3600 s = 0.011 rad over an hour)."""
+    return round(float(f_hz), 6)
+
+
+def family_design(name: str, inp) -> tuple[list[str], np.ndarray]:
+    """Regressors of a family effect instance, (names, A (N, 3, P)) (BRIEFING contract).
+
+    ``regressor[expr]``: A[:, i, i] = term(t) (``coef[i]``); ``periodic[f]``: cos(2πf·t_s) in
+    column i and sin in column 3 + i (``a_cos_rad_s[i]``, ``a_sin_rad_s[i]``); ``step[t0]``:
+    1 for t_s ≥ t0 (``size_rad_s[i]``).
+    """
+    fam = parse_family(name)
+    if fam is None:
+        raise GyroInputError(f"{name} is not an open-world family effect")
+    kind, arg = fam
+    t = np.asarray(inp.t_s, float)
+    n = t.shape[0]
+    if kind == "regressor":
+        g = term_values(arg, inp)
+        A = np.zeros((n, 3, 3))
+        for i in range(3):
+            A[:, i, i] = g
+        return [f"coef[{i}]" for i in range(3)], A
+    try:
+        x = float(arg)
+    except ValueError:
+        raise GyroInputError(f"{name}: '{arg}' is not a number") from None
+    if kind == "periodic":
+        if not (np.isfinite(x) and x > 0):
+            raise GyroInputError(f"{name}: frequency must be > 0 Hz")
+        ph = 2 * np.pi * x * t
+        c, s = np.cos(ph), np.sin(ph)
+        A = np.zeros((n, 3, 6))
+        for i in range(3):
+            A[:, i, i] = c
+            A[:, i, 3 + i] = s
+        return [f"a_cos_rad_s[{i}]" for i in range(3)] + [f"a_sin_rad_s[{i}]" for i in range(3)], A
+    g = (t >= x).astype(float)
+    A = np.zeros((n, 3, 3))
+    for i in range(3):
+        A[:, i, i] = g
+    return [f"size_rad_s[{i}]" for i in range(3)], A
+
+
+def column_axis(pname: str) -> int:
+    """Axis of a family parameter column name (``coef[1]`` -> 1)."""
+    return int(pname[pname.index("[") + 1: pname.index("]")])
+
+
+def catalogue_equivalent(term: str, axis: int | str) -> str | None:
+    """The catalogue effect whose regressors span ``term`` on gyro ``axis``, or None.
+
+    ``t`` → bias_ramp; ``temp_c``, ``temp_c^2``, ``temp_c^3`` → bias_thermal; ``dtemp_dt`` →
+    bias_temp_rate; ``omega_i`` on i → scale, on j ≠ i → misalignment;
+    ``temp_c*omega_i`` on i → scale_thermal; ``f_j`` → g_sensitivity; ``f_j*f_k`` →
+    g2_sensitivity. (``alpha_i`` alone on axis i is a per-axis delay, not the catalogue's
+    one ``time_offset`` shared by the axes; ``omega_i^2`` is even in ω, unlike
+    ``scale_nonlinearity`` ω|ω|.)
+    """
+    try:
+        from . import effects as _E
+
+        fn = getattr(_E, "catalogue_equivalent", None)
+        if fn is not None and fn is not catalogue_equivalent:
+            return fn(term, axis)
+    except Exception:  # pragma: no cover - registry variants
+        pass
+    i = _AX.index(axis) if isinstance(axis, str) else int(axis)
+    fs = sorted(term_factors(term), key=BASE_SIGNALS.index)
+    if fs == ["t"]:
+        return "bias_ramp"
+    if all(f == "temp_c" for f in fs):
+        return "bias_thermal"
+    if fs == ["dtemp_dt"]:
+        return "bias_temp_rate"
+    if len(fs) == 1 and fs[0].startswith("omega_"):
+        return "scale" if _AX.index(fs[0][-1]) == i else "misalignment"
+    if len(fs) == 2 and fs[0].startswith("omega_") and fs[1] == "temp_c" and _AX.index(fs[0][-1]) == i:
+        return "scale_thermal"
+    if all(f.startswith("f_") for f in fs):
+        return "g_sensitivity" if len(fs) == 1 else "g2_sensitivity"
+    return None
+
+
+def library_terms(inp, *, kind: str) -> list[str]:
+    """The degree-≤2 library of terms the data support (see module docstring).
+
+    Rate signals need a time-resolved rate (``rate``/``attitude`` references, not ``still``);
+    temperature and specific-force signals need their columns; a signal constant over the
+    record (zero rate, constant temperature) is left out.
+    """
+    avail = []
+    for s in BASE_SIGNALS:
+        if s[:6] in ("omega_", "alpha_") and (kind == "still" or inp.omega_S_rad_s is None):
+            continue
+        if s.startswith("f_") and inp.f_S_m_s2 is None:
+            continue
+        if s in ("temp_c", "dtemp_dt") and inp.temp_c is None:
+            continue
+        try:
+            v = _base_values(s, inp, {})
+        except GyroInputError:
+            continue
+        if not np.all(np.isfinite(v)) or np.ptp(v) <= 0:
+            continue
+        avail.append(s)
+    terms = [term_name([a]) for a in avail]
+    for j, a in enumerate(avail):
+        for b in avail[j:]:
+            terms.append(term_name([a, b]))
+    return terms
+
+
+# ---------------------------------------------------------------------------- findings
+@dataclass(frozen=True)
+class Unexplained:
+    """One effect outside the catalogue, described and added to the model.
+
+    Attributes
+    ----------
+    kind : {"regressor", "periodic", "step"}
+    axis : str
+        "x", "y" or "z" (for a step: the axis with the largest size/standard error).
+    effect : str
+        The registered family instance added to the model (``regressor[omega_x*omega_y]``).
+    fields : dict
+        The DESIGN.md extra keys: ``term``/``coef`` (regressor, coef in SI per unit of the
+        term), ``frequency_hz``/``amplitude_rad_s`` (periodic), ``t_s``/``size_rad_s`` (3,)
+        (step).
+    evidence : dict
+        Test statistic, p-value (log10), threshold, out-of-sample reduction, ...
+    residual_rms_before_rad_s, residual_rms_after_rad_s : float
+        Window residual RMS (regressor, step) or the sample-level residual RMS of the axis
+        (periodic; ``evidence["residual"]`` says which), rad/s.
+    attitude_error_before_deg, attitude_error_after_deg : float
+    """
+
+    kind: str
+    axis: str
+    effect: str
+    fields: dict
+    evidence: dict
+    residual_rms_before_rad_s: float
+    residual_rms_after_rad_s: float
+    attitude_error_before_deg: float = float("nan")
+    attitude_error_after_deg: float = float("nan")
+
+    def to_json(self) -> dict:
+        d = {"kind": self.kind, "axis": self.axis}
+        d.update(self.fields)
+        d.update({"effect": self.effect, "evidence": self.evidence,
+                  "residual_rms_before_rad_s": self.residual_rms_before_rad_s,
+                  "residual_rms_after_rad_s": self.residual_rms_after_rad_s,
+                  "attitude_error_before_deg": self.attitude_error_before_deg,
+                  "attitude_error_after_deg": self.attitude_error_after_deg})
+        return d
+
+
+# ---------------------------------------------------------------------------- noise model helpers
+def _autocovs(e_w: np.ndarray) -> list[np.ndarray]:
+    """The HAC autocovariance model of each column of e_w (M, 3)."""
+    return [lsq.residual_autocov_model(e_w[:, i]) for i in range(e_w.shape[1])]
+
+
+def _gamma_apply(U: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Γ·U for a Toeplitz Γ with autocovariance g (lags 0..L), U (M, K)."""
+    M = U.shape[0]
+    L = min(g.size - 1, M - 1)
+    if L <= 0:
+        return g[0] * U
+    ker = np.concatenate([g[L:0:-1], g[: L + 1]])
+    return _signal.fftconvolve(U, ker[:, None], mode="full", axes=0)[L: L + M]
+
+
+def _project_off(Xw: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """C minus its least-squares projection on the columns of Xw (both (R, ·))."""
+    if Xw.shape[1] == 0:
+        return C
+    Q, Rr = np.linalg.qr(Xw, mode="reduced")
+    keep = np.abs(np.diag(Rr)) > 1e-10 * max(np.abs(np.diag(Rr)).max(), 1e-300)
+    Q = Q[:, keep]
+    return C - Q @ (Q.T @ C)
+
+
+def _weighted(X: np.ndarray, sw: np.ndarray) -> np.ndarray:
+    """(M, 3, P) design × per-axis √w -> flattened (3M, P), axis-major rows."""
+    return np.concatenate([X[:, i, :] * sw[i] for i in range(3)], axis=0)
+
+
+# ---------------------------------------------------------------------------- regressor library
+def library_windows(res, terms: Sequence[str]) -> np.ndarray:
+    """Window regressors of the library: (M, 3, 3·T), column 3·k + i = term k on gyro axis i.
+
+    Computed per term (and in sample chunks for long records without rotation), so at most
+    one term's per-sample values are held at once.
+    """
+    from .residual import CHUNK_SAMPLES
+
+    inp = res.inputs
+    n, M = inp.n, res.m
+    T = len(terms)
+    out = np.zeros((M, 3, 3 * T))
+    if res.R_GS is None:
+        # no rotation: the window operator is a scalar window mean per term
+        t = np.asarray(inp.t_s, float)
+        dt = np.diff(t)
+        need = np.union1d(res.win_start, res.win_stop)
+        Cn = np.zeros((need.size, T))
+        carry = np.zeros(T)
+        # chunks with a one-sample overlap each side (derivatives by central differences)
+        for k0 in range(0, n - 1, CHUNK_SAMPLES):
+            k1 = min(k0 + CHUNK_SAMPLES, n - 1)
+            lo, hi = max(k0, 0), min(k1 + 2, n)  # samples k0 .. k1+1 (derivative neighbours)
+            sub = _slice_inputs(inp, lo, hi)
+            cache: dict = {}
+            V = np.empty((k1 - k0, T))
+            for j, term in enumerate(terms):
+                V[:, j] = term_values(term, sub, cache)[k0 + 1 - lo: k1 + 1 - lo]
+            V *= dt[k0:k1, None]
+            np.cumsum(V, axis=0, out=V)
+            sel = (need > k0) & (need <= k1)
+            Cn[sel] = carry + V[need[sel] - k0 - 1]
+            carry = carry + V[-1]
+        pos = {int(j): r for r, j in enumerate(need)}
+        a = Cn[[pos[int(j)] for j in res.win_start]]
+        b = Cn[[pos[int(j)] for j in res.win_stop]]
+        mean = (b - a) / res.duration_s[:, None]
+        for k in range(T):
+            for i in range(3):
+                out[:, i, 3 * k + i] = mean[:, k]
+        return out
+    cache = {}
+    for k, term in enumerate(terms):
+        g = term_values(term, inp, cache)
+        A = np.zeros((n, 3, 3))
+        for i in range(3):
+            A[:, i, i] = g
+        out[:, :, 3 * k: 3 * k + 3] = res.window_mean(A)
+    return out
+
+
+def _slice_inputs(inp, lo: int, hi: int):
+    from . import effects as E
+
+    def cut(v):
+        return None if v is None else np.asarray(v)[lo:hi]
+
+    return E.ModelInputs(t_s=np.asarray(inp.t_s)[lo:hi], omega_S_rad_s=cut(inp.omega_S_rad_s),
+                         f_S_m_s2=cut(inp.f_S_m_s2), temp_c=cut(inp.temp_c), q_SW_wxyz=cut(inp.q_SW_wxyz),
+                         t_since_power_up_s=inp.since_power_up()[lo:hi])
+
+
+@dataclass(frozen=True)
+class LibraryScreen:
+    """Best library column by the score test: term, axis, statistic, p-value, columns tested."""
+
+    term: str
+    axis: int
+    statistic: float
+    p_value: float
+    log10_p: float
+    n_tested: int
+    df2: int
+
+
+def score_tests(X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, C: np.ndarray):
+    """Score (LM) tests of single columns C (M, 3, K) added to the model X0 (M, 3, P).
+
+    The residual ``e`` (M, 3) of the weighted fit of X0 (axis weights 1/σ²), each column is
+    projected off X0 (Frisch–Waugh–Lovell), z = c⊥ᵀ·W·e, Var(z) = Σ_axes c⊥ᵀ·Γ_axis·c⊥ with
+    Γ the HAC autocovariance model of the weighted residual; F = z²/Var(z) ~ F(1, 3M − P).
+
+    Returns F (K,) and the coefficient estimate z / c⊥ᵀc⊥ (K,) (SI per unit of the column).
+    """
+    M = e.shape[0]
+    sw = 1.0 / np.maximum(np.asarray(sigma, float), 1e-300)
+    Xw = _weighted(X0, sw)
+    Cw = _weighted(C, sw)
+    ew = np.concatenate([e[:, i] * sw[i] for i in range(3)])
+    Cp = _project_off(Xw, Cw)
+    z = Cp.T @ ew
+    gs = _autocovs(np.stack([e[:, i] * sw[i] for i in range(3)], axis=1))
+    var = np.zeros(C.shape[2])
+    for i in range(3):
+        U = Cp[i * M:(i + 1) * M]
+        var += np.einsum("mk,mk->k", U, _gamma_apply(U, gs[i]))
+    nrm = np.einsum("rk,rk->k", Cp, Cp)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        F = np.where(var > 0, z**2 / var, 0.0)
+        coef = np.where(nrm > 0, z / nrm, 0.0)
+    # columns (nearly) spanned by the model carry nothing to test
+    Cn = np.einsum("rk,rk->k", Cw, Cw)
+    F = np.where(nrm > 1e-10 * np.maximum(Cn, 1e-300), F, 0.0)
+    return F, coef
+
+
+def screen_library(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, terms: Sequence[str],
+                   exclude: set, n_params: int) -> LibraryScreen | None:
+    """Score-test every (term, axis) of the library not excluded; the best one.
+
+    ``exclude`` holds (term, axis) pairs already in the model or equivalent to a catalogue
+    effect. The p-value is referred to F(1, 3M − P); the caller compares it with its
+    Bonferroni threshold over ``n_tested``.
+    """
+    cols = [(k, i) for k, term in enumerate(terms) for i in range(3) if (term, i) not in exclude]
+    if not cols:
+        return None
+    Xlib = library_windows(res, terms)
+    C = Xlib[:, :, [3 * k + i for k, i in cols]]
+    F, _ = score_tests(X0, e, sigma, C)
+    df2 = max(3 * res.m - n_params - 1, 1)
+    j = int(np.argmax(F))
+    lp = float(stats.f.logsf(F[j], 1, df2) / np.log(10))
+    if not np.isfinite(lp):
+        lp = float(stats.chi2.logsf(F[j], 1) / np.log(10))
+    k, i = cols[j]
+    return LibraryScreen(term=terms[k], axis=i, statistic=float(F[j]), p_value=float(10 ** lp), log10_p=lp,
+                         n_tested=len(cols), df2=df2)
+
+
+# ---------------------------------------------------------------------------- lines
+_SEG_MAX = 65536
+
+
+def segment_length(n: int, seg_max: int = _SEG_MAX) -> int:
+    """Length of the equal segments :func:`harmonic_f_test` cuts n samples into."""
+    return n // int(np.ceil(n / seg_max))
+
+
+@dataclass(frozen=True, eq=False)
+class HarmonicF:
+    """Pooled multitaper harmonic F-test on a grid (see :func:`harmonic_f_test`)."""
+
+    freq_hz: np.ndarray
+    F: np.ndarray          # (F,) or (F, C)
+    df1: int
+    df2: int
+    bandwidth_hz: float    # W
+    amplitude: np.ndarray  # 2|μ̂| pooled (RMS over segments), same shape as F
+
+
+def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None = None,
+                    seg_max: int = _SEG_MAX, pad: int = 4) -> HarmonicF:
+    """Thomson's harmonic F-test for a sinusoid in coloured noise, per column of x.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,) or (N, C)
+        Evenly sampled series (mean removed per segment).
+    fs : float
+        Sample rate, Hz.
+    nw : float
+        Time-bandwidth product (W = nw·fs/L for segments of L samples).
+    k : int, optional
+        Number of Slepian tapers, default 2·nw − 1.
+    pad : int
+        Zero-padding factor of the FFT grid. The F statistic of a line between two grid
+        frequencies saturates (the offset eigencoefficient pattern leaks into the
+        denominator), so the grid is ``pad`` times finer than 1/L; a Bonferroni bound over the
+        padded grid is then conservative.
+    seg_max : int
+        Longest segment; longer series are cut into S equal segments whose statistics are
+        pooled: F = [Σ_s |μ̂_s|²ΣU²/2S] / [Σ_s Σ_k |Y_sk − μ̂_s U_k|² / (2S(K−1))] ~ F(2S, 2S(K−1)).
+
+    Returns
+    -------
+    HarmonicF
+        On the rfft grid of one segment (DC excluded).
+
+    References
+    ----------
+    D. J. Thomson, "Spectrum estimation and harmonic analysis", Proc. IEEE 70 (1982) 1055–1096, §XIII.
+    """
+    x = np.asarray(x, float)
+    squeeze = x.ndim == 1
+    if squeeze:
+        x = x[:, None]
+    N, C = x.shape
+    K = int(k or max(1, int(2 * nw - 1)))
+    S = int(np.ceil(N / seg_max))
+    L = N // S
+    tapers = _signal.windows.dpss(L, nw, K)  # (K, L), unit energy
+    U0 = tapers.sum(axis=1)                    # U_k(0)
+    sU2 = float(np.sum(U0**2))
+    nfft = int(pad) * L
+    nf = nfft // 2 + 1
+    num = np.zeros((nf, C))
+    den = np.zeros((nf, C))
+    amp2 = np.zeros((nf, C))
+    for s in range(S):
+        seg = x[s * L:(s + 1) * L]
+        seg = seg - seg.mean(axis=0)
+        Y = np.fft.rfft(tapers[:, :, None] * seg[None, :, :], n=nfft, axis=1)  # (K, nf, C)
+        mu = np.einsum("k,kfc->fc", U0, Y) / sU2
+        resid = Y - mu[None] * U0[:, None, None]
+        num += np.abs(mu) ** 2 * sU2
+        den += np.sum(np.abs(resid) ** 2, axis=0)
+        amp2 += 4 * np.abs(mu) ** 2
+    df1, df2 = 2 * S, 2 * S * (K - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        F = np.where(den > 0, (num / df1) / (den / df2), 0.0)
+    f = np.fft.rfftfreq(nfft, 1.0 / fs)
+    F, f, amp = F[1:], f[1:], np.sqrt(amp2[1:] / S)
+    if squeeze:
+        F, amp = F[:, 0], amp[:, 0]
+    return HarmonicF(freq_hz=f, F=F, df1=df1, df2=df2, bandwidth_hz=nw * fs / L, amplitude=amp)
+
+
+@dataclass(frozen=True)
+class LineScreen:
+    axis: int
+    frequency_hz: float
+    statistic: float
+    df1: int
+    df2: int
+    log10_p: float     # Bonferroni over the frequencies tested
+    n_freq: int
+    bandwidth_hz: float
+    masked_by_motion: int
+
+
+def _motion_mask(ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, p_mask: float = 1e-4) -> np.ndarray:
+    """Bins within ±2W of a line in any reference-motion column (p < p_mask per bin)."""
+    mask = np.zeros(f.size, bool)
+    if ref is None or ref.size == 0:
+        return mask
+    h = harmonic_f_test(ref, fs)
+    Fm = h.F if h.F.ndim == 2 else h.F[:, None]
+    hit = np.any(stats.f.sf(Fm, h.df1, h.df2) < p_mask, axis=1)
+    # the reference also must carry power there: a line of the motion, not of its noise
+    fl = h.freq_hz[hit]
+    for f0 in fl:
+        mask |= np.abs(f - f0) <= 2 * max(W, h.bandwidth_hz)
+    return mask
+
+
+def screen_lines(x: np.ndarray, fs: float, *, ref: np.ndarray | None = None, f_min_hz: float | None = None,
+                 nw: float = 4.0, skip: Sequence[tuple[int, float]] = ()) -> list[LineScreen]:
+    """Strongest line per axis of x (N, 3) and its Bonferroni p-value over frequencies.
+
+    Frequencies below ``f_min_hz`` (default 10·W) and bins within ±2W of a line of the
+    reference motion ``ref`` (N, R) are not tested; neither are (axis, frequency) pairs in
+    ``skip`` (lines already in the model, ±2W).
+    """
+    h = harmonic_f_test(x, fs, nw=nw)
+    W = h.bandwidth_hz
+    fmin = 10 * W if f_min_hz is None else max(f_min_hz, 2 * W)
+    ok = (h.freq_hz >= fmin) & (h.freq_hz <= 0.5 * fs - 2 * W)
+    mm = _motion_mask(ref, fs, h.freq_hz, W)
+    out = []
+    for i in range(x.shape[1]):
+        oki = ok & ~mm
+        for (ax, f0) in skip:
+            if ax == i:
+                oki &= np.abs(h.freq_hz - f0) > 2 * W
+        n = int(oki.sum())
+        if n == 0:
+            continue
+        Fi = np.where(oki, h.F[:, i], -np.inf)
+        j = int(np.argmax(Fi))
+        lp1 = float(stats.f.logsf(Fi[j], h.df1, h.df2) / np.log(10))
+        out.append(LineScreen(axis=i, frequency_hz=float(h.freq_hz[j]), statistic=float(Fi[j]), df1=h.df1,
+                              df2=h.df2, log10_p=min(0.0, lp1 + np.log10(n)), n_freq=n, bandwidth_hz=W,
+                              masked_by_motion=int((ok & mm).sum())))
+    return out
+
+
+def refine_frequency(x: np.ndarray, t: np.ndarray, f0: float, half_width_hz: float) -> float:
+    """The frequency in f0 ± half_width maximising the periodogram |Σ x e^{−i2πft}|² of x (N,).
+
+    Grid search (≥ 64 points over the interval, ≈ 16 per Fourier bin 1/T) then a bounded
+    scalar refinement (scipy.optimize.minimize_scalar).
+    """
+    from scipy.optimize import minimize_scalar
+
+    x = np.asarray(x, float) - np.mean(x)
+    tt = np.asarray(t, float) - t[0]
+
+    def power(f):
+        ph = 2 * np.pi * f * tt
+        return -(np.dot(x, np.cos(ph)) ** 2 + np.dot(x, np.sin(ph)) ** 2)
+
+    T = max(tt[-1], 1e-9)
+    npts = int(min(max(64, 16 * 2 * half_width_hz * T), 2000))
+    grid = np.linspace(max(f0 - half_width_hz, 1e-9), f0 + half_width_hz, npts)
+    vals = np.array([power(f) for f in grid])
+    j = int(np.argmin(vals))
+    step = grid[1] - grid[0]
+    r = minimize_scalar(power, bounds=(grid[max(j - 1, 0)], grid[min(j + 1, npts - 1)]), method="bounded",
+                        options={"xatol": step * 1e-3})
+    return float(r.x) if r.fun <= vals[j] else float(grid[j])
+
+
+def fit_sinusoid(x: np.ndarray, t: np.ndarray, f_hz: float, *, X_window=None) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares a_cos, a_sin of a·cos(2πf t) + b·sin(2πf t) (+ constant) per column of x.
+
+    ``X_window`` (M, 2) replaces the cos/sin columns when x is a window-mean series (the
+    window operator applied to them). Returns (coef (2, C), standard errors (2, C), OLS).
+    """
+    x = np.asarray(x, float)
+    if x.ndim == 1:
+        x = x[:, None]
+    if X_window is None:
+        ph = 2 * np.pi * f_hz * np.asarray(t, float)
+        B = np.stack([np.cos(ph), np.sin(ph), np.ones_like(ph)], axis=1)
+    else:
+        B = np.column_stack([X_window, np.ones(X_window.shape[0])])
+    th, *_ = np.linalg.lstsq(B, x, rcond=None)
+    r = x - B @ th
+    s2 = np.sum(r**2, axis=0) / max(x.shape[0] - 3, 1)
+    cov = np.linalg.pinv(B.T @ B)
+    se = np.sqrt(np.outer(np.diag(cov)[:2], s2))
+    return th[:2], se
+
+
+def sinusoid_cv_reduction(x: np.ndarray, t: np.ndarray, f_hz: float, *, n_blocks: int = 10) -> float:
+    """1 − RMS(predicted out of sample)/RMS(x − mean) of a sinusoid fitted on alternate blocks
+    of time and predicted on the others (2-fold blocked, the loop's guard), x (N,)."""
+    x = np.asarray(x, float)
+    N = x.shape[0]
+    fold = (np.arange(N) * n_blocks // N) % 2 == 0
+    ph = 2 * np.pi * f_hz * np.asarray(t, float)
+    B = np.stack([np.cos(ph), np.sin(ph), np.ones_like(ph)], axis=1)
+    Bo = B[:, 2:]
+    err, err0 = [], []
+    for tr, te in ((fold, ~fold), (~fold, fold)):
+        th, *_ = np.linalg.lstsq(B[tr], x[tr], rcond=None)
+        th0, *_ = np.linalg.lstsq(Bo[tr], x[tr], rcond=None)
+        err.append(x[te] - B[te] @ th)
+        err0.append(x[te] - Bo[te] @ th0)
+    r1 = np.sqrt(np.mean(np.concatenate(err) ** 2))
+    r0 = np.sqrt(np.mean(np.concatenate(err0) ** 2))
+    return float(1.0 - r1 / r0) if r0 > 0 else 0.0
+
+
+# ---------------------------------------------------------------------------- steps
+def simulate_gaussian(g: np.ndarray, n: int, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Stationary Gaussian series with autocovariance g (lags 0..), shape (n, size).
+
+    Circulant embedding (Dietrich & Newsam 1997): the autocovariance is embedded in a circulant
+    of length 2n whose eigenvalues (FFT) give the spectrum; negative eigenvalues (a truncated
+    model need not embed exactly) are set to 0.
+    """
+    c = np.zeros(n)
+    L = min(g.size, n)
+    c[:L] = g[:L]
+    row = np.concatenate([c, [0.0], c[:0:-1]])  # length 2n
+    lam = np.clip(np.fft.rfft(row).real, 0.0, None)
+    m = row.size
+    Z = rng.standard_normal((lam.size, size)) + 1j * rng.standard_normal((lam.size, size))
+    Z[0] = Z[0].real * np.sqrt(2)
+    if m % 2 == 0:
+        Z[-1] = Z[-1].real * np.sqrt(2)
+    y = np.fft.irfft(np.sqrt(lam / 2)[:, None] * Z, n=m, axis=0) * np.sqrt(m)
+    return y[:n]
+
+
+@dataclass(frozen=True, eq=False)
+class StepScreen:
+    index: int            # first window after the step
+    t_s: float            # step time (start of that window), s
+    statistic: float      # sup_τ χ²₃ statistic
+    p_value: float        # bootstrap p-value of the supremum
+    log10_p: float
+    n_boot: int
+    n_candidates: int
+    size_rad_s: np.ndarray  # (3,) score estimate of the step
+
+
+def step_columns(res, idx: np.ndarray) -> np.ndarray:
+    """Window regressors of unit bias steps starting at window ``idx`` (step at its start time):
+    (M, 3, 3·J), column 3j + i on axis i (windows wholly after: 1, before: 0; exact at a
+    window boundary)."""
+    M = res.m
+    J = idx.size
+    C = np.zeros((M, 3, 3 * J))
+    t0 = res.inputs.t_s[res.win_start]
+    ts = t0[idx]
+    for j in range(J):
+        g = (t0 >= ts[j]).astype(float)
+        for i in range(3):
+            C[:, i, 3 * j + i] = g
+    if res.R_GS is not None:
+        # a constant vector held over a rotating window: apply the operator exactly
+        for j in range(J):
+            t = np.asarray(res.inputs.t_s, float)
+            s = (t >= ts[j]).astype(float)
+            A = np.zeros((t.size, 3, 3))
+            for i in range(3):
+                A[:, i, i] = s
+            C[:, :, 3 * j: 3 * j + 3] = res.window_mean(A)
+    return C
+
+
+def _refine_step(res, X0, e, sw, idx, jbest) -> int:
+    """Window index of the least-squares step location between the coarse neighbours of
+    ``idx[jbest]`` (the test ran on a thinned grid; the location is refined on every window)."""
+    lo = int(idx[max(jbest - 1, 0)])
+    hi = int(idx[min(jbest + 1, idx.size - 1)])
+    fine = np.arange(lo, hi + 1)
+    if fine.size <= 1:
+        return int(idx[jbest])
+    C = step_columns(res, fine)
+    Cp = _project_off(_weighted(X0, sw), _weighted(C, sw))
+    ew = np.concatenate([e[:, i] * sw[i] for i in range(3)])
+    J = fine.size
+    z = (Cp.T @ ew).reshape(J, 3)
+    Cp3 = Cp.reshape(Cp.shape[0], J, 3)
+    G = np.einsum("rja,rjb->jab", Cp3, Cp3)
+    gain = [float(z[j] @ np.linalg.lstsq(G[j], z[j], rcond=None)[0]) for j in range(J)]
+    return int(fine[int(np.argmax(gain))])
+
+
+def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, threshold: float,
+                rng: np.random.Generator, max_candidates: int = 300, edge: int | None = None,
+                max_boot: int = 4000) -> StepScreen | None:
+    """Change-point test for a bias step (all three axes) on the window residual.
+
+    Statistic: T(τ) = zᵀV⁻¹z with z the scores of the three step columns projected off the
+    model, V their covariance under the autocovariance model of the residual *after* the best
+    step is removed (as the catalogue's Wald tests use the alternative's residual); sup over
+    the candidate τ (every window start, thinned to ``max_candidates``, ``edge`` windows from
+    each end). The supremum's null distribution comes from a parametric bootstrap of the same
+    noise model (:func:`simulate_gaussian`), B = ⌈2/threshold⌉ draws (at least 199; so that the
+    smallest attainable p-value, 1/(B+1), is below the threshold); the p-value is
+    (1 + #{T*_sup ≥ T_sup})/(B + 1).
+    """
+    M = res.m
+    edge = max(5, int(0.02 * M)) if edge is None else edge
+    if M < 2 * edge + 10:
+        return None
+    # window boundaries that are contiguous in time (a step at a gap is a step between runs)
+    idx = np.arange(edge, M - edge)
+    if idx.size > max_candidates:
+        idx = idx[np.linspace(0, idx.size - 1, max_candidates).astype(int)]
+    C = step_columns(res, idx)
+    sw = 1.0 / np.maximum(np.asarray(sigma, float), 1e-300)
+    Xw = _weighted(X0, sw)
+    Cp = _project_off(Xw, _weighted(C, sw))
+    ew = np.concatenate([e[:, i] * sw[i] for i in range(3)])
+    J = idx.size
+    z = (Cp.T @ ew).reshape(J, 3)
+    Cp3 = Cp.reshape(Cp.shape[0], J, 3)
+    Gjj = np.einsum("rja,rjb->jab", Cp3, Cp3)  # (J, 3, 3): the three columns of each τ
+    # best step by least squares (white weights) -> the alternative's residual -> noise model
+    with np.errstate(invalid="ignore"):
+        th = np.linalg.solve(Gjj + 1e-300 * np.eye(3), z[:, :, None])[:, :, 0]
+    gain = np.einsum("ji,ji->j", z, th)
+    jb = int(np.nanargmax(gain))
+    e_alt = ew - Cp[:, 3 * jb: 3 * jb + 3] @ th[jb]
+    E_alt = e_alt.reshape(3, M).T
+    gs = _autocovs(E_alt)
+    V = np.zeros((J, 3, 3))
+    for a in range(3):
+        U = Cp[a * M:(a + 1) * M]
+        GU = _gamma_apply(U, gs[a])
+        V += np.einsum("mja,mjb->jab", U.reshape(M, J, 3), GU.reshape(M, J, 3))
+    Vinv = np.linalg.pinv(V)
+    Tobs = np.einsum("ji,jik,jk->j", z, Vinv, z)
+    jbest = int(np.argmax(Tobs))
+    Tsup = float(Tobs[jbest])
+    j_fine = _refine_step(res, X0, e, sw, idx, jbest)
+    B = int(min(max(199, np.ceil(2.0 / max(threshold, 1e-12))), max_boot))
+    exceed = 0
+    done = 0
+    chunk = 200
+    CpT = Cp.T
+    while done < B:
+        b = min(chunk, B - done)
+        Es = np.concatenate([simulate_gaussian(gs[a], M, b, rng) for a in range(3)], axis=0)  # (3M, b)
+        Zs = (CpT @ Es).reshape(J, 3, b)
+        Ts = np.sum(Zs * np.matmul(Vinv, Zs), axis=1).max(axis=0)
+        exceed += int(np.sum(Ts >= Tsup))
+        done += b
+        # sequential Monte Carlo (Besag & Clifford 1991): stop once the p-value is clearly large
+        if exceed >= 20:
+            break
+    p = (1 + exceed) / (done + 1)
+    # weighted columns against the weighted residual: the coefficient is the step in rad/s
+    size = np.linalg.lstsq(Gjj[jbest], z[jbest], rcond=None)[0]
+    t_step = float(res.inputs.t_s[res.win_start[j_fine]])
+    return StepScreen(index=int(j_fine), t_s=t_step, statistic=Tsup, p_value=float(p), log10_p=float(np.log10(p)),
+                      n_boot=done, n_candidates=J, size_rad_s=size)
