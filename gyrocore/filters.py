@@ -53,6 +53,11 @@ __all__ = [
     "FILTER_KINDS",
     "AffineCorrection",
     "Pipeline",
+    "betaflight_notch_q",
+    "betaflight_notch",
+    "firmware_stage",
+    "chain_filters",
+    "chain_response",
 ]
 
 
@@ -405,3 +410,76 @@ class Pipeline:
     def delay_s(self, f_hz: float = 0.0) -> float:
         """Sum of the filter stages' group delays at ``f_hz``, s."""
         return float(sum(s.delay_s(f_hz) for s in self.stages if hasattr(s, "delay_s")))
+
+
+# ---------------------------------------------------------------- firmware chains
+def betaflight_notch_q(center_hz: float, cutoff_hz: float) -> float:
+    """Betaflight ``filterGetNotchQ`` (src/main/common/filter.c): Q = f0·fc/(f0² − fc²).
+
+    ``cutoff_hz`` is the lower −3 dB edge the pilot sets (``gyro_notch1_cutoff``); 3.1's
+    octave form ``√(2^o)/(2^o − 1)``, o = 2·log2(f0/fc), is algebraically the same value.
+    """
+    if not (0 < cutoff_hz < center_hz):
+        raise GyroInputError(f"notch cutoff {cutoff_hz} Hz must be in (0, centre {center_hz} Hz)")
+    return center_hz * cutoff_hz / (center_hz * center_hz - cutoff_hz * cutoff_hz)
+
+
+def betaflight_notch(center_hz: float, cutoff_hz: float, rate_hz: float, *, start: str = "steady") -> SosFilter:
+    """Betaflight's static gyro notch: RBJ biquad notch (``biquadFilterInit(..., FILTER_NOTCH)``)
+    at ``center_hz`` with Q from :func:`betaflight_notch_q`, run at ``rate_hz``."""
+    q = betaflight_notch_q(center_hz, cutoff_hz)
+    f = biquad_notch(center_hz, rate_hz, q=q, start=start)
+    f.name = f"notch {center_hz:g}/{cutoff_hz:g} Hz"
+    return f
+
+
+def firmware_stage(stage: dict, *, loop_scale: float = 1.0, start: str = "steady") -> SosFilter | None:
+    """One static firmware gyro stage (dict of ``gyrocore.blackbox.FilterStage.to_dict``) as an SosFilter.
+
+    The coefficients are Betaflight's (``pt1FilterGain`` k = ω/(ω+1), ω = 2π·fc·dT;
+    PT2/PT3 with the cutoff correction; RBJ biquad low-pass Q = 1/√2; RBJ notch) for the
+    nominal loop period ``dT = 1/rate_hz``; the filter then runs on the real clock
+    (``rate_hz·loop_scale``), which is how its response is evaluated at physical frequencies.
+    ``butter2``/``butter4``/``article`` kinds are accepted for other firmware (PX4's 2nd-order
+    Butterworth, ArduPilot's LowPassFilter2p = 2nd-order Butterworth biquad, the article's
+    first-order filter). Dynamic stages (dyn_notch, rpm_notch, dyn_lpf) and FIR return None.
+    """
+    kind = stage["kind"]
+    fc = float(stage["cutoff_hz"])
+    rate = float(stage["rate_hz"])
+    if stage.get("dynamic") or kind in ("fir", "dyn_notch", "rpm_notch", "dyn_lpf"):
+        return None
+    if kind == "notch":
+        q = float(stage["q"]) if "q" in stage and stage["q"] == stage["q"] else betaflight_notch_q(fc, float(stage["notch_cutoff_hz"]))
+        flt = biquad_notch(fc, rate, q=q, start=start)
+    else:
+        flt = make_filter(kind, fc, rate, start=start)
+    if loop_scale != 1.0:
+        flt = SosFilter(flt.sos, rate_hz=rate * loop_scale, name=flt.name, cutoff_hz=fc, start=start)
+    return flt
+
+
+def chain_filters(stages: Sequence[dict], *, loop_scale: float = 1.0) -> list[SosFilter]:
+    """The static stages of a firmware chain as SosFilters (dynamic ones skipped)."""
+    out = []
+    for s in stages:
+        f = firmware_stage(s, loop_scale=loop_scale)
+        if f is not None:
+            out.append(f)
+    return out
+
+
+def chain_response(stages: Sequence[dict], f_hz, *, loop_scale: float = 1.0) -> FilterResponse:
+    """Magnitude (product) and group delay (sum) of a firmware chain's static stages at ``f_hz``.
+
+    Stages may run at different rates (Betaflight 4.2+: LPF2 at the gyro rate, the rest at
+    the PID rate); a cascade's magnitude multiplies and its group delay adds.
+    """
+    f = np.atleast_1d(np.asarray(f_hz, float))
+    mag = np.ones_like(f)
+    gd = np.zeros_like(f)
+    for flt in chain_filters(stages, loop_scale=loop_scale):
+        r = flt.response(f)
+        mag *= r.magnitude
+        gd += r.group_delay_s
+    return FilterResponse(f_hz=f, magnitude=mag, group_delay_s=gd)
