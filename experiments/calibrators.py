@@ -697,7 +697,7 @@ class CommandCalibrator:
                 warnings.simplefilter("ignore")
                 got = read_csv(out, repair=False, checks=False)
         except GyroInputError as exc:
-            raise RoutineFailure(f"output file unreadable: {str(exc).replace(str(d) + os.sep, '')}") from None
+            raise RoutineFailure(f"output file rejected: {str(exc).replace(str(d) + os.sep, '')}") from None
         return check_output(recording.gyro_rad_s, got.gyro_rad_s, t_in=recording.t_s, t_out=got.t_s)
 
     def close(self) -> None:

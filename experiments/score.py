@@ -217,6 +217,7 @@ class ScoreCampaign:
     results: tuple[UnitScore, ...]
     wall_s: float
     workers: int
+    calibration_s: tuple | None = None
     format_version: int = FORMAT_VERSION
 
     @property
@@ -277,6 +278,7 @@ def score_campaign(*, routine_spec: Mapping[str, Any], scenarios: Sequence[str] 
         shutil.rmtree(cache, ignore_errors=True)
     return ScoreCampaign(calibrator=describe_spec(routine_spec), sensor=sensor, seed=int(seed), units=int(units),
                          scenarios=scenarios, durations_s=durations, quick=bool(quick), results=tuple(results),
+                         calibration_s=None if calibration_durations_s is None else tuple(calibration_durations_s),
                          wall_s=time.perf_counter() - t0, workers=n_workers)
 
 
@@ -321,6 +323,7 @@ def campaign_json(c: ScoreCampaign) -> dict:
     return {
         "format_version": c.format_version,
         "calibrator": c.calibrator, "sensor": c.sensor, "seed": c.seed, "units": c.units, "quick": c.quick,
+        "calibration_s": None if c.calibration_s is None else list(c.calibration_s),
         "scenarios": {sc: scenario_summary(c.of(sc)) for sc in c.scenarios},
         "per_unit": [{"scenario": u.scenario, "unit": u.instance, "seed": u.seed,
                       **{f"rms_{r}_deg": u.rms_deg[r] for r in ROWS}, "failed": u.failed} for u in c.results],
@@ -359,6 +362,12 @@ def score_figure(c: ScoreCampaign, out_dir) -> str:
     return save_figure(fig, out_dir, "score")
 
 
+def _cal_text(c: ScoreCampaign) -> str:
+    if c.calibration_s:
+        return f"{c.calibration_s[0]:g}-s table and {c.calibration_s[1]:g}-s thermal"
+    return "quick (120-s table, 300-s thermal)" if c.quick else "full"
+
+
 def report_markdown(c: ScoreCampaign, figure: str | None = None, check: "CheckResult | None" = None) -> str:
     """The report section: one table per run, failures listed, the plot linked."""
     from .report import md_table
@@ -379,7 +388,7 @@ def report_markdown(c: ScoreCampaign, figure: str | None = None, check: "CheckRe
         rows = [r[:8] + r[9:] for r in rows]
     md = [f"## Score: {c.calibrator}\n",
           f"Sensor {c.sensor}, {c.units} units per scenario (campaign seed {c.seed}, the ablation's units), "
-          f"{'quick' if c.quick else 'full'} calibration runs. RMS attitude error against the truth, median over units, "
+          f"{_cal_text(c)} calibration runs. RMS attitude error against the truth, median over units, "
           "integrated from the true attitude at the end of the power-up still window: no correction, the "
           "gyroharness core through the same door, the user's routine, the floor (truth + the unit's own noise). "
           "Ratios are medians of per-unit ratios.\n",
@@ -431,6 +440,7 @@ class Contract:
         units = 4                  # units per scenario (default 4)
         seed = 0                   # campaign seed (default 0): fixed units, a deterministic gate
         calibration = "quick"      # "quick" (120-s table, 300-s thermal) or "full"
+        calibration_s = [40, 60]   # optional: other (table, thermal) durations, s
         timeout_s = 120            # per routine step
         [calibrator]               # optional; the command line overrides it
         fit_cmd = "./cal fit {params} {inputs}"
@@ -450,6 +460,7 @@ class Contract:
     seed: int
     quick: bool
     timeout_s: float
+    calibration_s: tuple[float, float] | None
     calibrator: Mapping[str, str]
     scenarios: Mapping[str, Mapping[str, float]]
     durations_s: Mapping[str, float | None]
@@ -464,7 +475,7 @@ def load_contract(path) -> Contract:
         d = tomllib.loads(p.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise GyroInputError(f"{path}: not a valid TOML file ({str(exc).splitlines()[0]})") from None
-    known = {"sensor", "units", "seed", "calibration", "timeout_s", "calibrator", "scenario"}
+    known = {"sensor", "units", "seed", "calibration", "calibration_s", "timeout_s", "calibrator", "scenario"}
     extra = set(d) - known
     if extra:
         raise GyroInputError(f"{path}: unknown key(s) {', '.join(sorted(extra))}; known: {', '.join(sorted(known))}")
@@ -501,6 +512,11 @@ def load_contract(path) -> Contract:
     cal = d.get("calibration", "quick")
     if cal not in ("quick", "full"):
         raise GyroInputError(f"{path}: calibration must be \"quick\" or \"full\", got {cal!r}")
+    cal_s = d.get("calibration_s")
+    if cal_s is not None and not (isinstance(cal_s, list) and len(cal_s) == 2
+                                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0
+                                          for v in cal_s)):
+        raise GyroInputError(f"{path}: calibration_s must be [table_s, thermal_s], got {cal_s!r}")
     c = d.get("calibrator", {}) or {}
     if not isinstance(c, dict) or set(c) - {"fit_cmd", "apply_cmd", "python"}:
         raise GyroInputError(f"{path}: [calibrator] takes fit_cmd and apply_cmd, or python")
@@ -510,6 +526,7 @@ def load_contract(path) -> Contract:
         raise GyroInputError(f"{path}: timeout_s must be a positive number, got {timeout!r}")
     return Contract(path=str(path), sensor=str(d.get("sensor", "icm42688p")), units=int(units), seed=int(seed),
                     quick=(cal == "quick"), timeout_s=float(timeout),
+                    calibration_s=None if cal_s is None else (float(cal_s[0]), float(cal_s[1])),
                     calibrator={k: v for k, v in spec.items() if v}, scenarios=bounds, durations_s=durations)
 
 
@@ -646,7 +663,7 @@ def check_contract(contract, *, routine_spec: Mapping[str, Any] | None = None, w
     spec.setdefault("timeout_s", c.timeout_s)
     camp = score_campaign(routine_spec=spec, scenarios=tuple(c.scenarios), sensor=c.sensor,
                           units=units or c.units, seed=c.seed, durations_s=c.durations_s, quick=c.quick,
-                          workers=workers, progress=progress)
+                          calibration_durations_s=c.calibration_s, workers=workers, progress=progress)
     return evaluate(c, camp)
 
 

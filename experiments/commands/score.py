@@ -45,11 +45,13 @@ def spec_from(calibrator, fit_cmd, apply_cmd, timeout_s) -> dict:
               help="Scored duration of every scenario, s (default: each scenario's own).")
 @click.option("--calibration", type=click.Choice(["quick", "full"]), default="quick", show_default=True,
               help="Calibration runs: quick (120-s table, 300-s thermal) or the scenarios' full ones.")
+@click.option("--calibration-s", default=None, metavar="TABLE,THERMAL",
+              help="Durations of the calibration runs, s (overrides --calibration), e.g. 40,60.")
 @click.option("--out", "out_dir", default=None, type=click.Path(file_okay=False),
               help="Write score.md, score.json and figures/score.png here.")
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON result on stdout.")
 def command(calibrator, fit_cmd, apply_cmd, timeout_s, workers, scenarios, sensor, units, seed, duration_s,
-            calibration, out_dir, as_json):
+            calibration, calibration_s, out_dir, as_json):
     """Score a calibration routine: attitude error after its corrections, per scenario and unit.
 
     Exit status 0 when the routine ran on every unit, 1 when it failed on any (each failed unit
@@ -59,9 +61,18 @@ def command(calibrator, fit_cmd, apply_cmd, timeout_s, workers, scenarios, senso
 
     spec = spec_from(calibrator, fit_cmd, apply_cmd, timeout_s)
     scen = tuple(s.strip() for s in scenarios.split(",") if s.strip()) if scenarios else SC.DEFAULT_SCENARIOS
+    cal_s = None
+    if calibration_s:
+        try:
+            cal_s = tuple(float(x) for x in calibration_s.split(","))
+            if len(cal_s) != 2 or not all(x > 0 for x in cal_s):
+                raise ValueError
+        except ValueError:
+            raise click.BadParameter(f"expected TABLE,THERMAL seconds, got {calibration_s!r}",
+                                     param_hint="--calibration-s") from None
     camp = SC.score_campaign(routine_spec=spec, scenarios=scen, sensor=sensor, units=units, seed=seed,
                              durations_s={s: duration_s for s in scen}, quick=(calibration == "quick"),
-                             workers=workers, progress=False)
+                             calibration_durations_s=cal_s, workers=workers, progress=False)
     report = SC.write_report(camp, out_dir) if out_dir else None
     if as_json:
         d = SC.campaign_json(camp)
