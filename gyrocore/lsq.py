@@ -70,25 +70,32 @@ __all__ = [
 #: Largest physically plausible |θ| per effect, SI (used to call a parameter unobservable when
 #: its standard error exceeds it). Generous on purpose: a consumer MEMS gyro is far inside.
 PLAUSIBLE_MAGNITUDE: dict[str, float] = {
-    "bias": 1.0,  # rad/s (57 deg/s)
-    "bias_thermal": 0.05,  # rad/s per °C^k
-    "bias_temp_rate": 1.0,  # rad/s per °C/s
-    "bias_ramp": 1e-2,  # rad/s²
-    "scale": 0.5,  # 50 %
-    "scale_thermal": 0.01,  # per °C^k
-    "scale_asymmetry": 0.2,
-    "scale_nonlinearity": 0.2,  # s/rad
-    "misalignment": 0.2,  # rad (11 deg)
-    "g_sensitivity": 5e-3,  # rad/s per m/s² (2.8 deg/s/g)
-    "g2_sensitivity": 1e-3,  # rad/s per (m/s²)²
-    "time_offset": 1.0,  # s
+    # from the registry (gyrocore.effects, Effect.plausible): bias 1 rad/s (57 deg/s),
+    # bias_thermal 0.05 rad/s per °C^k, bias_temp_rate 1 rad/s per °C/s, bias_ramp 1e-2 rad/s²,
+    # scale 0.5, scale_thermal 0.01 per °C^k, scale_asymmetry 0.2, scale_nonlinearity 0.2 s/rad,
+    # misalignment 0.2 rad (11 deg), g_sensitivity 5e-3 rad/s per m/s² (2.8 deg/s/g),
+    # g2_sensitivity 1e-3 rad/s per (m/s²)², time_offset 1 s. Family terms: periodic/step
+    # 1 rad/s, regressor unbounded (its unit depends on the signal).
+    e.name: e.plausible for e in E.REGISTRY.values() if e.fittable
 }
 
 
 #: Effects whose regressors are built from measured, noisy inputs (accel, temperature).
-NOISY_REGRESSOR_EFFECTS: tuple[str, ...] = (
-    "g_sensitivity", "g2_sensitivity", "bias_thermal", "scale_thermal", "bias_temp_rate",
-)
+NOISY_REGRESSOR_EFFECTS: tuple[str, ...] = tuple(e.name for e in E.REGISTRY.values() if e.fittable and e.noisy)
+
+
+def _plausible(plaus: Mapping[str, float], eff: str) -> float:
+    if eff in plaus:
+        return plaus[eff]
+    try:
+        return E.resolve(eff).plausible
+    except GyroInputError:
+        return np.inf
+
+
+def _is_noisy(eff: str, noisy_effects) -> bool:
+    """A catalogue effect listed in ``noisy_effects``, or a family term built from accel/temperature."""
+    return eff in noisy_effects or (E.is_family(eff) and E.resolve(eff).noisy)
 
 
 @dataclass(frozen=True, eq=False)
@@ -674,7 +681,7 @@ def solve(
 
     # -- columns built from measured inputs (accel, temperature): their independent part
     #    must stand above the input's own noise, else the fit is to noise (errors in variables)
-    noisy_idx = [p for p in kept if names[p].split(".")[0] in noisy_effects]
+    noisy_idx = [p for p in kept if _is_noisy(eff_of[p], noisy_effects)]
     if noisy_idx and min_excitation_snr > 0:
         sw = np.sqrt(w_)
         drop_noisy = []
@@ -771,14 +778,14 @@ def solve(
         # -- parameters whose standard error exceeds their plausible magnitude
         too_wide = [
             (j, p) for j, p in enumerate(kept)
-            if se_k[j] > plaus.get(names[p].split(".")[0], np.inf)
+            if se_k[j] > _plausible(plaus, eff_of[p])
         ]
         if not too_wide:
             break
         for j, p in too_wide:
-            eff = names[p].split(".")[0]
+            eff = eff_of[p]
             reasons[names[p]] = (
-                f"standard error {se_k[j]:.3g} exceeds the plausible magnitude {plaus[eff]:.3g} (too little excitation)"
+                f"standard error {se_k[j]:.3g} exceeds the plausible magnitude {_plausible(plaus, eff):.3g} (too little excitation)"
             )
             dropped[p] = ()
         kept = [p for p in kept if p not in {p for _, p in too_wide}]

@@ -16,7 +16,11 @@ The references are taken from the file, in this order:
    rate-dependent ones are then reported unobservable by name.
 
 Parameter file (DESIGN.md "Parameter file"): JSON, written atomically, ``format_version``
-"1.0"; a file of another major version is refused with a message that says so.
+"1.1"; a file of another major version is refused with a message that says so. 1.1 (a minor
+bump: every 1.0 file still reads) may carry family terms of the registry by their canonical
+name (``periodic[37.5]``, ``step[12.25]``, ``regressor[omega_y*omega_z]``, see
+:func:`gyrocore.effects.resolve`); a name this version does not know is one ``error:`` line
+naming it.
 
 Article form (ARTICLE.md §5): ω = M·diag(1/s)·(ω̂′ − b), ω̂′ = ω̂ − H·a, which is this
 model with K⁻¹ = M·diag(1/s) (:func:`gyrocore.effects.article_from_k`), b = ``bias`` and
@@ -51,19 +55,21 @@ __all__ = [
     "result_from_dict",
 ]
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 
-#: Effects that ``calibrate`` can fit (those with least-squares regressors).
-FITTABLE: tuple[str, ...] = (
-    "bias", "bias_thermal", "bias_temp_rate", "bias_ramp", "scale", "scale_thermal",
-    "scale_asymmetry", "scale_nonlinearity", "misalignment", "g_sensitivity", "g2_sensitivity",
-    "time_offset",
-)
+#: Catalogue effects that ``calibrate`` can fit (those with least-squares regressors); every
+#: family term (``periodic[...]``, ``step[...]``, ``regressor[...]``) is fittable too.
+FITTABLE: tuple[str, ...] = tuple(e.name for e in E.REGISTRY.values() if e.fittable)
 _INTEGRAL_EFFECTS = ("bias", "scale", "misalignment", "g_sensitivity")
-_NEEDS_ACCEL = ("g_sensitivity", "g2_sensitivity")
-_NEEDS_TEMP = ("bias_thermal", "scale_thermal", "bias_temp_rate")
-_RATE_EFFECTS = ("scale", "scale_thermal", "scale_asymmetry", "scale_nonlinearity", "misalignment", "time_offset")
-_THERMAL_META = ("t0_c", "temp_min_c", "temp_max_c")
+_THERMAL_META = E.THERMAL_META
+
+
+def _needs_accel(eff: str) -> bool:
+    return "f" in E.resolve(eff).inputs
+
+
+def _needs_temp(eff: str) -> bool:
+    return any(i in ("temp", "dtemp") for i in E.resolve(eff).inputs)
 
 
 def _not_fittable_message(eff: str) -> str:
@@ -134,9 +140,9 @@ class CalibrationResult:
     def required_columns(self) -> list[str]:
         """Data columns that :meth:`apply` needs besides the gyro."""
         need = []
-        if any(e in self.params for e in _NEEDS_ACCEL):
+        if any(_needs_accel(e) for e in self.params):
             need.append("accel")
-        if any(e in self.params for e in _NEEDS_TEMP):
+        if any(_needs_temp(e) for e in self.params):
             need.append("temp_c")
         return need
 
@@ -161,9 +167,9 @@ class CalibrationResult:
             recording passes it from the file's first sample (streamed ``apply``).
         """
         for eff in self.params:
-            if eff in _NEEDS_ACCEL and recording.accel_m_s2 is None:
+            if _needs_accel(eff) and recording.accel_m_s2 is None:
                 raise GyroInputError(f"the parameters include {eff}, which needs the accel_*_m_s2 columns; the data lack them")
-            if eff in _NEEDS_TEMP and recording.temp_c is None:
+            if _needs_temp(eff) and recording.temp_c is None:
                 raise GyroInputError(f"the parameters include {eff}, which needs the temp_c column; the data lack it")
         for eff in ("bias_thermal", "scale_thermal"):
             if eff in self.params:
@@ -235,10 +241,7 @@ class CalibrationResult:
 # ============================================================================ estimator
 def _unflatten(effect: str, vec: np.ndarray, order: int) -> dict[str, np.ndarray]:
     """Flat LsqFit slice -> {param: array} in PARAM_SCHEMA shapes."""
-    schema = E.PARAM_SCHEMA[effect]
-    (pname, shape), = [(k, v) for k, v in schema.items() if k not in _THERMAL_META]
-    shp = tuple(order if d == "p" else d for d in shape)
-    return {pname: np.asarray(vec, float).reshape(shp) if shp else np.asarray(float(vec[0]))}
+    return E.resolve(effect).unflatten(vec, order)
 
 
 def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
@@ -327,7 +330,7 @@ class Calibrator:
         if len(set(effs)) != len(effs):
             raise GyroInputError("an effect is listed twice")
         for e in effs:
-            if e not in FITTABLE:
+            if not E.resolve(e).fittable:
                 raise GyroInputError(_not_fittable_message(e))
         if thermal_order != "auto":
             try:
@@ -373,9 +376,9 @@ class Calibrator:
             src_sha = file_sha256(source_path)
         sensor = self.sensor or str(recording.meta.get("sensor", "unknown"))
         for eff in self.effects:
-            if eff in _NEEDS_ACCEL and recording.accel_m_s2 is None:
+            if _needs_accel(eff) and recording.accel_m_s2 is None:
                 raise GyroInputError(f"effect {eff} needs the accel_*_m_s2 columns, which the data lack")
-            if eff in _NEEDS_TEMP and recording.temp_c is None:
+            if _needs_temp(eff) and recording.temp_c is None:
                 raise GyroInputError(f"effect {eff} needs the temp_c column, which the data lack")
         common = dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
         if self.segments is not None:
@@ -622,12 +625,15 @@ def result_from_dict(d: Mapping, *, where: str = "parameter file") -> Calibratio
             f"{where}: parameter file format_version {ver} is not supported; this gyroharness reads {FORMAT_VERSION.split('.')[0]}.x"
         )
     try:
-        effects = tuple(E.check_effect_names(d["effects"]))
+        given = [str(n) for n in d["effects"]]
+        effects = tuple(E.check_effect_names(given))  # canonical names (a 1.0 file: catalogue only)
+        if len(set(effects)) != len(effects):
+            raise GyroInputError("an effect is listed twice")
         raw = d["parameters"]
-        params = {e: {k: _arr(v) for k, v in raw[e].items()} for e in effects}
+        params = {e: {k: _arr(v) for k, v in raw[g].items()} for g, e in zip(given, effects)}
         params = E.validate_params(params)
         se_raw = d.get("standard_errors") or {}
-        stderr = {e: {k: _arr(v, null=np.inf) for k, v in se_raw.get(e, {}).items()} for e in effects}
+        stderr = {e: {k: _arr(v, null=np.inf) for k, v in se_raw.get(g, {}).items()} for g, e in zip(given, effects)}
         rms = _arr(d.get("residual_rms_rad_s"))
     except GyroInputError as exc:
         raise GyroInputError(f"{where}: {exc}") from None

@@ -38,7 +38,6 @@ import numpy as np
 from scipy import signal
 
 from gyrocore.effects import (
-    EFFECTS,
     FF_ORDER,
     PARAM_SCHEMA,
     STOCHASTIC,
@@ -47,7 +46,9 @@ from gyrocore.effects import (
     deterministic,
     earth_rate_W,
     k_matrix,
+    ordered_effects,
     output_stage,
+    resolve,
     validate_params,
 )
 from gyrocore.errors import GyroInputError
@@ -120,7 +121,8 @@ def _complete_override(eff: str, given: Mapping, base: Mapping | None, temp_ref_
             except ValueError:
                 raise GyroInputError(f"effect {eff}: {pname} has shape {v.shape}, expected {shape} (or a scalar)") from None
         out[pname] = v
-    defaults = {"t0_c": temp_ref_c, "temp_min_c": -40.0, "temp_max_c": 85.0, "heading_rad": 0.0}
+    defaults = {"t0_c": temp_ref_c, "temp_min_c": -40.0, "temp_max_c": 85.0, "heading_rad": 0.0,
+                **resolve(eff).defaults}  # family terms: unspecified coefficients are 0
     for pname in schema:
         if pname not in out and pname in defaults:
             out[pname] = np.asarray(defaults[pname])
@@ -189,8 +191,13 @@ class SyntheticGyro:
         #: notes on adjustments made to the preset (e.g. the DLPF moved below Nyquist)
         self.notes: list[str] = []
         without = check_effect_names(list(without))
-        overrides = dict(overrides or {})
-        check_effect_names(list(overrides))
+        given = dict(overrides or {})
+        overrides = {}
+        for name, val in given.items():  # canonical names (family terms: periodic[37.50] = periodic[37.5])
+            (canon,) = check_effect_names([name])
+            if canon in overrides:
+                raise GyroInputError(f"effect {canon} is overridden twice ({name!r} is another spelling of it)")
+            overrides[canon] = val
         clash = set(without) & set(overrides)
         if clash:
             raise GyroInputError(f"effect {sorted(clash)[0]} is both overridden and switched off")
@@ -211,8 +218,8 @@ class SyntheticGyro:
                 new = _LOWPASS_REPAIR_FRACTION * self.rate_hz
                 self.notes.append(f"lowpass {fc:g} Hz is above 0.45 x the {self.rate_hz:g} Hz output rate; set to {new:g} Hz (rate/4)")
                 params["lowpass"] = {"bandwidth_hz": np.asarray(new)}
-        self.params = validate_params({e: params[e] for e in EFFECTS if e in params})
-        self.overridden = tuple(e for e in EFFECTS if e in overrides)
+        self.params = validate_params({e: params[e] for e in ordered_effects(params)})
+        self.overridden = tuple(ordered_effects(overrides))
         self.without = tuple(without)
 
     # ------------------------------------------------------------------ pieces
@@ -221,7 +228,7 @@ class SyntheticGyro:
 
     @property
     def effects(self) -> tuple[str, ...]:
-        """Active effects, catalogue order."""
+        """Active effects, model order (catalogue, then registry family terms by name)."""
         return tuple(self.params)
 
     def power_up_bias(self, index: int) -> np.ndarray:
@@ -331,7 +338,7 @@ class SyntheticGyro:
                 }
             elif eff not in STOCHASTIC:
                 draws[eff] = {k: np.array(v) for k, v in pd.items()}
-        draws = {e: draws[e] for e in EFFECTS if e in draws}
+        draws = {e: draws[e] for e in ordered_effects(draws)}
         return GyroOutput(t_s=t, gyro_rad_s=y, noise_rad_s=noise_total, draws=draws, params=self.params)
 
     # ------------------------------------------------------------------ stream
@@ -364,6 +371,16 @@ class SyntheticGyro:
         return GyroStream(self, int(n_samples), t_power_up_s=t_power_up_s, t_s=t_s, temp_c=temp_c)
 
 
+@dataclass(frozen=True, eq=False)
+class _OneSample(ModelInputs):
+    """One sample's model inputs in a stream; dT/dt comes from the precomputed trajectory."""
+
+    temp_rate: float = math.nan
+
+    def temp_rate_c_s(self, effect: str = "bias_temp_rate") -> np.ndarray:
+        return np.array([self.temp_rate])
+
+
 class GyroStream:
     """Per-sample synthetic gyro (see :meth:`SyntheticGyro.stream`).
 
@@ -373,7 +390,12 @@ class GyroStream:
     :attr:`gyro_rad_s` (the whole output so far; copy it if you keep it).
 
     Not supported in closed loop: a leading gyro (``time_offset`` τ < 0, which needs future
-    truth) and ``bias_temp_rate`` without the temperature trajectory given up front.
+    truth), ``regressor`` terms of the rate derivative ``alpha_*`` (a central difference, it
+    needs the next sample), and ``bias_temp_rate`` (or a ``dtemp_dt`` term) without the
+    temperature trajectory given up front. Registry family terms run through a generic
+    per-step call (the batch path's numpy term on a one-sample input), so
+    :func:`sim.quadrotor.fly_hover` takes its Python loop, not the compiled kernels, when
+    the gyro has one.
     """
 
     def __init__(self, gyro: SyntheticGyro, n_samples: int, *, t_power_up_s=None, t_s=None, temp_c=None) -> None:
@@ -430,6 +452,22 @@ class GyroStream:
         self._ramp = P["bias_ramp"]["ramp_rad_s2"].tolist() if "bias_ramp" in P else None
         self._H = P["g_sensitivity"]["h_rad_s_per_m_s2"].tolist() if "g_sensitivity" in P else None
         self._G = P["g2_sensitivity"]["g_rad_s_per_m2_s4"].tolist() if "g2_sensitivity" in P else None
+        # --- registry family terms (periodic, step, regressor): one generic per-step call each,
+        #     the same numpy term as the batch path on a one-sample input (model order)
+        self._fam = [(resolve(e), P[e]) for e in ordered_effects(P) if resolve(e).family is not None]
+        self._fam_temp_rate = None
+        for eff, _ in self._fam:
+            if "alpha" in eff.inputs:
+                raise GyroInputError(f"effect {eff.name} needs the rate derivative (a central difference of "
+                                     "future truth): not possible in a stream")
+            if "dtemp" in eff.inputs and self._fam_temp_rate is None:
+                if t_s is None or temp_c is None:
+                    raise GyroInputError(f"effect {eff.name} in a stream needs the temperature trajectory: "
+                                         "pass t_s= and temp_c= to stream()")
+                t_arr, T_arr = np.asarray(t_s, float), np.asarray(temp_c, float)
+                if t_arr.shape != (n_samples,) or T_arr.shape != (n_samples,):
+                    raise GyroInputError(f"stream t_s/temp_c must have shape ({n_samples},)")
+                self._fam_temp_rate = ModelInputs(t_s=t_arr, temp_c=T_arr).temp_rate_c_s()
         # --- output stage
         self._lp = None
         if "lowpass" in P:
@@ -446,6 +484,25 @@ class GyroStream:
         self._q = float(P["quantization"]["lsb_rad_s"]) if "quantization" in P else None
         #: step(k, t_s, omega_S, f_S, temp_c, q_SW_wxyz=None) -> ndarray (3,), generated code
         self.step = self._compile()
+
+    def _family_step(self, eff, pd):
+        """Per-step evaluation of one family term: (k, t, w0, w1, w2, f_S, temp_c) -> (u0, u1, u2)."""
+        need_f = "f" in eff.inputs
+        need_T = "temp" in eff.inputs
+        TR = self._fam_temp_rate
+
+        def fam(k, t, w0, w1, w2, f_S, temp_c):
+            inp = _OneSample(
+                t_s=np.array([t]),
+                f_S_m_s2=np.asarray(f_S, float).reshape(1, 3) if need_f else None,
+                temp_c=np.array([float(temp_c)]) if need_T else None,
+                t_since_power_up_s=np.array([t - self._t_pu]),
+                temp_rate=float(TR[k]) if TR is not None else math.nan,
+            )
+            u0, u1, u2 = eff.term(pd, inp, np.array([[w0, w1, w2]]))[0].tolist()
+            return u0, u1, u2
+
+        return fam
 
     @staticmethod
     def _thermal(P, eff, pname):
@@ -603,6 +660,11 @@ class GyroStream:
                 for jj in range(6):
                     env[f"G{i}_{jj}"] = self._G[i][jj]
                 L.append(f"    a{i} = a{i} + ({' + '.join(f'ff{jj} * G{i}_{jj}' for jj in range(6))})")
+        for j, (eff, pd) in enumerate(self._fam):
+            env[f"FAM{j}"] = self._family_step(eff, pd)
+            L.append(f"    u0, u1, u2 = FAM{j}(k, t, w0, w1, w2, f_S, temp_c)  # {eff.name}")
+            for i in range(3):
+                L.append(f"    a{i} = a{i} + u{i}")
         for i in range(3):
             L.append(f"    x{i} = y{i} + a{i}")
         if self._lp is not None:

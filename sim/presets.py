@@ -20,6 +20,10 @@ Reading conventions (one rule for every preset):
   ω = F), so s2 = frac / ((3 − 2√2)·F).
 * ``enabled = false`` in a section: the level is known but the effect is off unless switched
   on (``SyntheticGyro(..., overrides=...)`` or ``draw_instance(..., include=...)``).
+* A section named by a registry family term (``["periodic[37.5]"]``, ``["step[12.25]"]``,
+  ``["regressor[omega_y*omega_z]"]``; :func:`gyrocore.effects.resolve`) injects that term with
+  fixed values in SI, the parameter names of its schema (``a_cos_rad_s = [0.01, 0, 0]``; a
+  scalar means all three axes; missing parameters are 0): the same for every unit.
 
 A :class:`SensorSpec` holds the SI distributions; :meth:`SensorSpec.draw_instance` draws one
 sensor's true parameters in :data:`gyrocore.effects.PARAM_SCHEMA` form, every effect from
@@ -37,7 +41,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from gyrocore.effects import EFFECTS, PARAM_SCHEMA, validate_params
+from gyrocore.effects import EFFECTS, PARAM_SCHEMA, is_family, resolve, validate_params
 from gyrocore.errors import GyroInputError
 
 from .noise import ALLAN_FLICKER_FACTOR, effect_rng
@@ -168,6 +172,9 @@ class SensorSpec:
         Same, for effects whose level is known but which are off by default.
     source : str
         Path of the TOML file.
+    terms : mapping
+        Registry family terms with fixed SI parameters ``{canonical name: {param: tuple}}``
+        (the same for every unit; see the module docstring).
     """
 
     name: str
@@ -180,10 +187,12 @@ class SensorSpec:
     effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     disabled: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     source: str = ""
+    terms: Mapping[str, Mapping[str, tuple]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "effects", _freeze(self.effects))
         object.__setattr__(self, "disabled", _freeze(self.disabled))
+        object.__setattr__(self, "terms", _freeze(self.terms))
 
     def distribution(self, effect: str) -> Mapping[str, float] | None:
         """The SI distribution of ``effect`` (on or off), or None if the preset has none."""
@@ -277,7 +286,10 @@ class SensorSpec:
             N(0, turn_on_sigma²) draw (done by :class:`sim.gyro.SyntheticGyro`).
         """
         names = [e for e in EFFECTS if e in self.effects or e in set(include)]
-        return validate_params({e: self.draw_effect(e, seed) for e in names if e != "vibration"})
+        out = {e: self.draw_effect(e, seed) for e in names if e != "vibration"}
+        for e, pd in self.terms.items():  # family terms: fixed values, no draw
+            out[e] = {k: np.array(v, float) for k, v in pd.items()}
+        return validate_params(out)
 
 
 # ---------------------------------------------------------------------------- loading
@@ -299,8 +311,16 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
     lsb_rad_s = DEG / float(out["sensitivity_lsb_per_dps"])
     on: dict[str, dict[str, float]] = {}
     off: dict[str, dict[str, float]] = {}
+    terms: dict[str, dict[str, tuple]] = {}
     for eff, table in raw.items():
         if eff in ("name", "part", "datasheet", "output"):
+            continue
+        if is_family(eff):
+            name, pd = _family_section(eff, table, path)
+            if name in terms:
+                raise GyroInputError(f"preset {path}: [{eff}] is the term {name} given twice")
+            if pd is not None:
+                terms[name] = pd
             continue
         if eff not in _KEYS:
             raise GyroInputError(f"preset {path}: unknown effect section [{eff}]; known: {', '.join(EFFECTS)}")
@@ -348,7 +368,39 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
         effects=on,
         disabled=off,
         source=str(path),
+        terms=terms,
     )
+
+
+def _family_section(eff: str, table, path: str):
+    """A registry family term's section -> (canonical name, {param: tuple} or None if disabled)."""
+    try:
+        effect = resolve(eff)
+    except GyroInputError as exc:
+        raise GyroInputError(f"preset {path}: [{eff}]: {exc}") from None
+    if not isinstance(table, Mapping):
+        raise GyroInputError(f"preset {path}: [{eff}] must be a table")
+    enabled = table.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise GyroInputError(f"preset {path}: [{eff}] enabled must be true or false")
+    pd: dict[str, tuple] = {}
+    for key, val in table.items():
+        if key == "enabled":
+            continue
+        if key not in effect.schema:
+            raise GyroInputError(f"preset {path}: unknown key {key} in [{eff}]; accepted: {', '.join(effect.schema)} (SI)")
+        vals = val if isinstance(val, list) else [val]
+        if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in vals):
+            raise GyroInputError(f"preset {path}: [{eff}] {key} must be a finite number or a list of 3, got {val!r}")
+        try:
+            arr = np.broadcast_to(np.asarray(vals if isinstance(val, list) else float(val), float),
+                                  effect.schema[key]).copy()
+        except ValueError:
+            raise GyroInputError(f"preset {path}: [{eff}] {key} needs shape {effect.schema[key]} (or a scalar)") from None
+        pd[key] = tuple(arr.tolist())
+    for key, d in effect.defaults.items():
+        pd.setdefault(key, tuple(np.asarray(d, float).tolist()))
+    return effect.name, (pd if enabled else None)
 
 
 def _discover() -> Mapping[str, Path]:

@@ -33,7 +33,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from gyrocore.cli import to_jsonable
-from gyrocore.effects import EFFECTS, STOCHASTIC, validate_params
+from gyrocore.effects import EFFECTS, STOCHASTIC, canonical_name, resolve, validate_params
 from gyrocore.errors import GyroInputError
 from gyrocore.recording import Recording
 
@@ -417,12 +417,19 @@ def _params_true(gyro: SyntheticGyro, out: GyroOutput) -> dict:
 def _closed_loop_unsupported(gyro: SyntheticGyro, thermal) -> list[str]:
     """Effects a GyroStream cannot carry in closed loop: a leading gyro (needs future truth)
     and ``bias_temp_rate`` when the temperature is not known in advance (motor heating or a
-    heater make it depend on the flight). fly_hover passes the attitude, so ``earth_rate`` works."""
+    heater make it depend on the flight). fly_hover passes the attitude, so ``earth_rate`` works.
+    Registry family terms: a ``regressor`` of the rate derivative ``alpha_*`` (needs the next
+    sample) and one of ``dtemp_dt`` under the same condition as ``bias_temp_rate``."""
     out = []
     if "time_offset" in gyro.params and float(gyro.params["time_offset"]["tau_s"]) < 0:
         out.append("time_offset")
-    if "bias_temp_rate" in gyro.params and (thermal.heater is not None or thermal.motor_c_per_w != 0.0):
+    heated = thermal.heater is not None or thermal.motor_c_per_w != 0.0
+    if "bias_temp_rate" in gyro.params and heated:
         out.append("bias_temp_rate")
+    for e in gyro.params:
+        eff = resolve(e)
+        if eff.family is not None and ("alpha" in eff.inputs or "dtemp" in eff.inputs and heated):
+            out.append(eff.name)
     return out
 
 
@@ -500,10 +507,11 @@ def simulate(
             notes.append(f"the controller flew on the gyro without {', '.join(unsupported)} (not possible in closed loop); the recording has them")
             fly_gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run),
                                      without=list(without) + unsupported,
-                                     overrides={e: v for e, v in (overrides or {}).items() if e not in unsupported})
+                                     overrides={e: v for e, v in (overrides or {}).items()
+                                                if canonical_name(e) not in unsupported})
         n = int(math.floor(dur * rate + 1e-9))  # fly_hover's sample count
         kw = {}
-        if "bias_temp_rate" in fly_gyro.params:
+        if "bias_temp_rate" in fly_gyro.params or any("dtemp" in resolve(e).inputs for e in fly_gyro.params):
             t_all = np.arange(n) * (1.0 / rate)
             kw = {"t_s": t_all, "temp_c": simulate_temperature(t_all, thermal)}
         stream = fly_gyro.stream(n, **kw)

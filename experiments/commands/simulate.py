@@ -18,17 +18,23 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
 
     Values are a number or a comma list; a list fills the parameter's shape row-major
     (e.g. 9 values for ``g_sensitivity.h_rad_s_per_m_s2``; 3·p values for a thermal
-    polynomial ``(3, p)``). A single number broadcasts.
+    polynomial ``(3, p)``). A single number broadcasts. The effect may be a registry family
+    term, e.g. ``periodic[37.5].a_cos_rad_s=0.01,0,0`` (its name is canonicalised; the
+    parameters it does not set are 0).
     """
+    import re
+
     from gyrocore.effects import PARAM_SCHEMA, check_effect_names
 
     out: dict[str, dict[str, np.ndarray]] = {}
     for item in items:
-        if "=" not in item or "." not in item.split("=", 1)[0]:
-            raise GyroInputError(f"--set expects effect.param=value, got '{item}'")
-        key, text = item.split("=", 1)
-        eff, pname = (s.strip() for s in key.split(".", 1))
-        check_effect_names([eff])
+        key, _, text = item.partition("=")
+        m = re.match(r"^\s*([^.\[\]=]+\[[^\]]*\]|[^.\[\]=]+)\s*\.\s*([^.]+?)\s*$", key) if _ else None
+        if m is None:
+            raise GyroInputError(f"--set expects effect.param=value (e.g. scale.s=0.01 or "
+                                 f"periodic[37.5].a_cos_rad_s=0.01,0,0), got '{item}'")
+        (eff,) = check_effect_names([m.group(1)])
+        pname = m.group(2)
         schema = PARAM_SCHEMA[eff]
         extra = ("turn_on_sigma_rad_s",) if eff == "bias" else ()
         if pname not in schema and pname not in extra:

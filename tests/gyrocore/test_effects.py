@@ -91,3 +91,148 @@ def test_earth_rate_magnitude_and_vertical_component():
     w = E.earth_rate_S(lat, 0.3, q)
     np.testing.assert_allclose(np.linalg.norm(w, axis=1), E.EARTH_RATE_RAD_S, rtol=1e-12)
     np.testing.assert_allclose(w[:, 2], E.EARTH_RATE_RAD_S * np.sin(lat), rtol=1e-12)
+
+
+# ---------------------------------------------------------------- the registry
+FAMILY_EXAMPLES = ("periodic[37.5]", "step[1.25]", "regressor[omega_y*omega_z]", "regressor[f_x^2]",
+                   "regressor[alpha_x]", "regressor[temp_c]", "regressor[dtemp_dt]", "regressor[t]",
+                   "regressor[omega_x*temp_c]")
+
+
+def _smooth_inputs(n=1500, rate=200.0):
+    """Smooth signals (np.gradient is exact to O(dt²) on them)."""
+    t = np.arange(n) / rate
+    w = np.stack([np.sin(2 * np.pi * 0.3 * t), 0.7 * np.cos(2 * np.pi * 0.17 * t), 0.4 * np.sin(2 * np.pi * 0.11 * t + 1)], 1)
+    f = np.array([0.5, -0.3, 9.8]) + np.stack([np.sin(0.5 * t), np.cos(0.3 * t), 0.2 * np.sin(0.2 * t)], 1)
+    T = 25 + 5 * np.sin(2 * np.pi * 0.05 * t)
+    return E.ModelInputs(t_s=t, omega_S_rad_s=w, f_S_m_s2=f, temp_c=T)
+
+
+def test_registry_derives_the_old_tuples():
+    assert E.EFFECTS == tuple(E.REGISTRY) and len(E.EFFECTS) == 21
+    assert E.STOCHASTIC == ("arw", "bias_instability", "rrw", "correlated")
+    assert set(E.DETERMINISTIC) == set(E.EFFECTS) - set(E.STOCHASTIC) - {"vibration"}
+    assert set(E.CORRECTABLE) == set(E.DETERMINISTIC) - {"quantization", "saturation", "lowpass"}
+    for name, eff in E.REGISTRY.items():
+        assert eff.name == name and E.resolve(name) is eff and E.PARAM_SCHEMA[name] == dict(eff.schema)
+        assert eff.kind in E.KINDS and (eff.stage in E.STAGES or eff.kind in ("stochastic", "physics"))
+        assert set(eff.inputs) <= set(E.INPUTS)
+    # fittable = the catalogue effects with regressors (earth_rate has none)
+    assert [e for e in E.CORRECTABLE if E.resolve(e).fittable] == [e for e in E.CORRECTABLE if e != "earth_rate"]
+
+
+@pytest.mark.parametrize("name", FAMILY_EXAMPLES)
+def test_family_round_trip(name):
+    """resolve -> canonical name -> resolve is the same effect; schema/design/forward/inverse agree."""
+    eff = E.resolve(name)
+    assert eff.name == name and E.resolve(eff.name) is eff and eff.family == name.split("[")[0]
+    assert name in E.PARAM_SCHEMA and E.PARAM_SCHEMA[name] == dict(eff.schema)
+    assert name not in E.EFFECTS  # the catalogue tuple is unchanged
+    inp = _smooth_inputs()
+    names, A = E.design(name, inp)
+    rng = np.random.default_rng(4)
+    theta = rng.normal(size=len(names)) * 1e-3
+    p = {name: eff.unflatten(theta)}
+    assert E.validate_params(p).keys() == {name}
+    y = E.deterministic(p, inp)
+    # linear in θ and no other stage: A·θ is the term exactly (to rounding)
+    np.testing.assert_allclose(y - inp.omega_S_rad_s, A @ theta, rtol=0, atol=1e-12)
+    # the inverse removes it; rate-dependent terms by fixed-point iteration (contraction
+    # |∂term/∂ω| ≲ 1e-3·|ω| per step: 8 steps -> < 1e-15 relative)
+    back = E.correct(p, y, E.ModelInputs(t_s=inp.t_s, f_S_m_s2=inp.f_S_m_s2, temp_c=inp.temp_c), iterations=8)
+    np.testing.assert_allclose(back, inp.omega_S_rad_s, rtol=0, atol=1e-12)
+
+
+def test_family_with_catalogue_effects_inverts():
+    inp = _smooth_inputs()
+    p = {"bias": {"b_rad_s": [0.01, 0.02, -0.01]}, "scale": {"s": [0.01, -0.02, 0.003]},
+         "scale_nonlinearity": {"s2_s_per_rad": [1e-3, 0, -2e-3]}, "time_offset": {"tau_s": 0.004},
+         "periodic[2.5]": {"a_cos_rad_s": [1e-3, 0, 0], "a_sin_rad_s": [0, -2e-3, 0]},
+         "regressor[omega_y*omega_z]": {"coef": [3e-3, 0, -1e-3]}, "step[3]": {"size_rad_s": [0, 0, 5e-3]}}
+    y = E.deterministic(p, inp)
+    back = E.correct(p, y, E.ModelInputs(t_s=inp.t_s), iterations=10)
+    # time_offset is applied and undone by linear interpolation: each costs at most dt²/8·max|ω''|
+    # (linear-interpolation error bound), so two cost dt²/4·max|ω''| per axis (edges held: inside only)
+    dt = float(inp.t_s[1] - inp.t_s[0])
+    w2 = np.gradient(np.gradient(inp.omega_S_rad_s, inp.t_s, axis=0), inp.t_s, axis=0)
+    bound = dt**2 / 4 * np.abs(w2).max(axis=0) * 1.05  # 5 %: the K, s2 and family terms scale ω by < 1 %
+    assert np.all(np.abs(back - inp.omega_S_rad_s)[5:-5].max(axis=0) < bound)
+    no_delay = {k: v for k, v in p.items() if k != "time_offset"}
+    back = E.correct(no_delay, E.deterministic(no_delay, inp), E.ModelInputs(t_s=inp.t_s), iterations=10)
+    np.testing.assert_allclose(back, inp.omega_S_rad_s, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("given, canonical", [
+    ("periodic[37.50]", "periodic[37.5]"), ("periodic[ 50 ]", "periodic[50]"), ("periodic[5e1]", "periodic[50]"),
+    ("periodic[0.001]", "periodic[0.001]"), ("step[12.250]", "step[12.25]"), ("step[-0.0]", "step[0]"),
+    ("step[+3]", "step[3]"), ("regressor[omega_z*omega_y]", "regressor[omega_y*omega_z]"),
+    ("regressor[omega_x*omega_x]", "regressor[omega_x^2]"), ("regressor[ f_x ^ 2 ]", "regressor[f_x^2]"),
+    ("regressor[temp_c*omega_x]", "regressor[omega_x*temp_c]"), ("regressor[t^1]", "regressor[t]"),
+    ("regressor[omega_x*omega_x*f_y]", "regressor[omega_x^2*f_y]"),
+])
+def test_names_are_canonical(given, canonical):
+    assert E.canonical_name(given) == canonical
+    assert E.check_effect_names([given, "bias"]) == [canonical, "bias"]
+    assert E.validate_params({given: E.resolve(canonical).defaults}).keys() == {canonical}
+
+
+@pytest.mark.parametrize("bad, msg", [
+    ("periodic[abc]", "decimal number"), ("periodic[-2]", "> 0 Hz"), ("periodic[0]", "> 0 Hz"),
+    ("periodic[nan]", "decimal number"), ("periodic[inf]", "decimal number"), ("step[]", "decimal number"),
+    ("step[1e999]", "finite"), ("regressor[]", "product of signals"), ("regressor[omega_w]", "unknown signal 'omega_w'"),
+    ("regressor[omega_x+1]", "cannot read"), ("regressor[omega_x^4]", "degree 4"), ("regressor[omega_x^0]", "cannot read|>= 1"),
+    ("regressor[omega_x**2]", "product of signals"), ("regressor[2*omega_x]", "cannot read"),
+    ("regressor[omega_x*omega_x*omega_x*omega_x]", "degree 4"), ("wobble[3]", "unknown effect 'wobble\\[3\\]'"),
+    ("periodic37.5", "unknown effect"),
+])
+def test_bad_family_names_are_one_line_errors(bad, msg):
+    with pytest.raises(GyroInputError, match=msg) as ei:
+        E.resolve(bad)
+    assert "\n" not in str(ei.value) and bad.strip()[:8] in str(ei.value)
+
+
+def test_twice_under_two_spellings_is_an_error():
+    with pytest.raises(GyroInputError, match="given twice"):
+        E.validate_params({"step[1]": {"size_rad_s": np.zeros(3)}, "step[1.0]": {"size_rad_s": np.zeros(3)}})
+
+
+@pytest.mark.parametrize("term, axis, expect", [
+    ("omega_x", "x", "scale"), ("regressor[omega_x]", 0, "scale"), ("omega_y", "x", "misalignment"),
+    ("alpha_z", "z", "time_offset"), ("alpha_z", "x", None), ("f_y", "x", "g_sensitivity"),
+    ("regressor[f_y]", "z", "g_sensitivity"), ("f_x*f_z", "y", "g2_sensitivity"), ("f_y^2", "y", "g2_sensitivity"),
+    ("t", "y", "bias_ramp"), ("dtemp_dt", "x", "bias_temp_rate"), ("temp_c", "z", "bias_thermal"),
+    ("temp_c^2", "z", "bias_thermal"), ("temp_c^3", "x", "bias_thermal"), ("omega_x*temp_c", "x", "scale_thermal"),
+    ("omega_x*temp_c", "y", None), ("omega_x*omega_x", "x", None), ("omega_y*omega_z", "x", None),
+    ("f_x*omega_x", "x", None), ("periodic[37.5]", "x", None), ("step[2]", "y", None), ("t*temp_c", "x", None),
+    ("f_x^2*f_y", "x", None),
+])
+def test_catalogue_equivalent(term, axis, expect):
+    assert E.catalogue_equivalent(term, axis) == expect
+
+
+def test_catalogue_equivalent_is_the_catalogue_regressor():
+    """Where a term is mapped to a catalogue effect, the term's regressor on that axis lies in
+    the span of that effect's design columns for the axis (so reporting it twice would double count)."""
+    inp = _smooth_inputs()
+    for term in ("omega_x", "omega_z", "alpha_x", "f_y", "f_x*f_z", "t", "dtemp_dt", "temp_c", "temp_c^2", "omega_x*temp_c"):
+        for i in range(3):
+            cat = E.catalogue_equivalent(term, i)
+            if cat is None:
+                continue
+            _, g = E.design(f"regressor[{term}]", inp)
+            order = 3 if cat in ("bias_thermal", "scale_thermal") else 1
+            _, A = E.design(cat, inp, order=order)
+            # + the constant term of the polynomial: bias (ones), or scale (ω_i) for scale_thermal
+            const = inp.omega_S_rad_s[:, i:i + 1] if cat == "scale_thermal" else np.ones((inp.n, 1))
+            cols = np.concatenate([A[:, i, :], const], axis=1)
+            y = g[:, i, i]
+            coef, *_ = np.linalg.lstsq(cols, y, rcond=None)
+            np.testing.assert_allclose(cols @ coef, y, rtol=0, atol=1e-8 * np.max(np.abs(y)), err_msg=f"{term} axis {i} -> {cat}")
+
+
+def test_parameter_schema_view_still_a_dict_of_the_catalogue():
+    assert list(E.PARAM_SCHEMA) == list(E.EFFECTS)
+    assert "periodic[3]" in E.PARAM_SCHEMA and "nope" not in E.PARAM_SCHEMA and "periodic[x]" not in E.PARAM_SCHEMA
+    assert E.PARAM_SCHEMA.get("nope") is None
+    with pytest.raises(KeyError):
+        E.PARAM_SCHEMA["nope"]

@@ -100,7 +100,7 @@ def test_parameter_file_round_trip_and_errors(tmp_path):
     p = tmp_path / "params.json"
     save_params(res, p)
     d = json.loads(p.read_text())
-    assert d["format_version"] == "1.0" and d["effects"] == ["bias", "scale", "misalignment"]
+    assert d["format_version"] == "1.1" and d["effects"] == ["bias", "scale", "misalignment"]
     assert d["source"]["file"] == "run.csv" and len(d["source"]["sha256"]) == 64
     assert set(d["parameters"]["misalignment"]) == {"m_rad"}
     back = load_params(p)
@@ -113,9 +113,9 @@ def test_parameter_file_round_trip_and_errors(tmp_path):
     (tmp_path / "v2.json").write_text(json.dumps(d2))
     with pytest.raises(GyroInputError, match=r"format_version 2\.0 is not supported"):
         load_params(tmp_path / "v2.json")
-    # a minor version is fine
-    (tmp_path / "v11.json").write_text(json.dumps(dict(d, format_version="1.1")))
-    assert load_params(tmp_path / "v11.json").format_version == "1.1"
+    # another minor version is fine: a 1.0 file (the previous format) still reads
+    (tmp_path / "v10.json").write_text(json.dumps(dict(d, format_version="1.0")))
+    assert load_params(tmp_path / "v10.json").format_version == "1.0"
     # corrupt file: one line
     (tmp_path / "bad.json").write_text(p.read_text()[:-40])
     with pytest.raises(GyroInputError) as ei:

@@ -360,3 +360,79 @@ def test_stochastic_effects_are_purely_additive(effect, values):
     assert np.allclose(e, out.noise_rad_s, rtol=0, atol=1e-15)
     assert np.allclose(out.draws[effect]["std_rad_s"], out.noise_rad_s.std(axis=0))
     assert np.all(out.noise_rad_s.std(axis=0) > 0)
+
+
+# ---------------------------------------------------------------- registry family terms
+FAMILY_TERMS = {
+    "periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, -0.002], "a_sin_rad_s": [0.0, 0.004, 0.0]},
+    "step[0.7]": {"size_rad_s": [0.003, -0.001, 0.0]},
+    "regressor[omega_y*omega_z]": {"coef": [2e-3, 0.0, -1e-3]},
+    "regressor[f_x^2]": {"coef": [0.0, 1e-4, 0.0]},
+    "regressor[temp_c]": {"coef": [1e-4, 0.0, 0.0]},
+    "regressor[dtemp_dt]": {"coef": [0.0, 0.0, 2e-3]},
+    "regressor[t]": {"coef": [1e-3, 0.0, 0.0]},
+    "regressor[omega_x*temp_c]": {"coef": [0.0, 1e-4, 0.0]},
+}
+
+
+@pytest.mark.parametrize("name", sorted(FAMILY_TERMS))
+def test_family_term_is_its_formula(name):
+    """A family term alone: measurement − truth = the registry's term (same numpy code) exactly."""
+    from gyrocore.effects import ModelInputs, resolve
+
+    tr = make_truth(1200)
+    g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=1, without=ALL_BUT_VIB, overrides={name: FAMILY_TERMS[name]})
+    assert g.effects == (name,)
+    y = g.measure(tr).gyro_rad_s
+    inp = ModelInputs(t_s=tr.t_s, omega_S_rad_s=tr.omega_S_rad_s, f_S_m_s2=tr.f_S_m_s2, temp_c=tr.temp_c,
+                      t_since_power_up_s=tr.t_since_power_up_s)
+    eff = resolve(name)
+    term = eff.term(g.params[name], inp, tr.omega_S_rad_s)
+    assert np.array_equal(y, tr.omega_S_rad_s + term)
+    # and it is the documented formula (independent evaluation)
+    t = tr.t_s
+    p = {k: np.asarray(v) for k, v in FAMILY_TERMS[name].items()}
+    if name.startswith("periodic"):
+        ref = np.cos(2 * np.pi * 37.5 * t)[:, None] * p["a_cos_rad_s"] + np.sin(2 * np.pi * 37.5 * t)[:, None] * p["a_sin_rad_s"]
+    elif name.startswith("step"):
+        ref = (t >= 0.7)[:, None] * p["size_rad_s"]
+    else:
+        w, f, T = tr.omega_S_rad_s, tr.f_S_m_s2, tr.temp_c
+        sig = {"regressor[omega_y*omega_z]": w[:, 1] * w[:, 2], "regressor[f_x^2]": f[:, 0] ** 2,
+               "regressor[temp_c]": T, "regressor[dtemp_dt]": np.gradient(T, t), "regressor[t]": t,
+               "regressor[omega_x*temp_c]": w[:, 0] * T}[name]
+        ref = sig[:, None] * p["coef"]
+    # same formula in another operation order (2π·f·t grouping, powers): a few ulp of the phase
+    np.testing.assert_allclose(y - tr.omega_S_rad_s, ref, rtol=0, atol=1e-12)
+
+
+def test_stream_bit_identical_to_batch_with_family_terms():
+    rng = np.random.default_rng(3)
+    n = 1500
+    tr = make_truth(n)
+    ov = {e: {} for e in ("bias_temp_rate", "bias_ramp", "scale_asymmetry", "g2_sensitivity", "rrw", "correlated")}
+    ov["time_offset"] = {"tau_s": 0.0031}
+    ov["bias_thermal"] = {"poly_rad_s": rng.normal(0, 1e-4, (3, 2))}
+    ov.update(FAMILY_TERMS)
+    ov["periodic[ 37.50 ]"] = ov.pop("periodic[37.5]")  # another spelling of the same term
+    g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=5, overrides=ov)
+    assert set(FAMILY_TERMS) <= set(g.effects)
+    st = _run_stream(g, tr, t_s=tr.t_s, temp_c=tr.temp_c)
+    assert np.array_equal(st.gyro_rad_s, g.measure(tr).gyro_rad_s)
+
+
+def test_family_terms_in_stream_refusals_and_overrides():
+    with pytest.raises(GyroInputError, match="rate derivative"):
+        SyntheticGyro("icm42688p", seed=0, overrides={"regressor[alpha_x]": {"coef": 1e-3}}).stream(10)
+    with pytest.raises(GyroInputError, match="temperature trajectory"):
+        SyntheticGyro("icm42688p", seed=0, overrides={"regressor[dtemp_dt]": {"coef": 1e-3}}).stream(10)
+    # missing coefficients are 0; scalars broadcast
+    g = SyntheticGyro("icm42688p", seed=0, overrides={"periodic[5]": {"a_sin_rad_s": 0.002}})
+    assert np.array_equal(g.params["periodic[5]"]["a_cos_rad_s"], np.zeros(3))
+    assert np.array_equal(g.params["periodic[5]"]["a_sin_rad_s"], np.full(3, 0.002))
+    with pytest.raises(GyroInputError, match="no parameter 'coef'"):
+        SyntheticGyro("icm42688p", seed=0, overrides={"step[1]": {"coef": 1.0}})
+    with pytest.raises(GyroInputError, match="overridden twice"):
+        SyntheticGyro("icm42688p", seed=0, overrides={"step[1]": {}, "step[1.0]": {}})
+    with pytest.raises(GyroInputError, match="unknown signal"):
+        SyntheticGyro("icm42688p", seed=0, overrides={"regressor[omega_w]": {}})
