@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from dataclasses import replace as _replace
 from functools import lru_cache
 from typing import Callable, Iterable, Mapping
 
@@ -121,6 +122,9 @@ class ModelInputs:
     t_since_power_up_s : ndarray, shape (N,) or None
         Time since the last power-up (for ``bias_ramp`` and the signal ``t``); defaults to
         ``t_s - t_s[0]``.
+    alpha_S_rad_s2 : ndarray, shape (N, 3) or None
+        Rate derivative for the ``alpha_*`` signals; default the central difference of the
+        rate (:func:`correct` sets a smoothed one, see there).
     """
 
     t_s: np.ndarray
@@ -129,6 +133,7 @@ class ModelInputs:
     temp_c: np.ndarray | None = None
     q_SW_wxyz: np.ndarray | None = None
     t_since_power_up_s: np.ndarray | None = None
+    alpha_S_rad_s2: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -626,6 +631,8 @@ def _signal(sig: str, inp: ModelInputs, omega: np.ndarray | None, effect: str) -
     """Value of one signal, shape (N,). ``omega`` (N, 3) overrides ``inp.omega_S_rad_s``."""
     if sig.startswith(("omega_", "alpha_")):
         j = "xyz".index(sig[-1])
+        if sig.startswith("alpha_") and inp.alpha_S_rad_s2 is not None:
+            return np.asarray(inp.alpha_S_rad_s2, float)[:, j]
         w = inp._need("omega_S_rad_s", effect) if omega is None else omega
         if sig.startswith("omega_"):
             return w[:, j]
@@ -1005,6 +1012,23 @@ def output_stage(
 
 
 # ---------------------------------------------------------------------------- inverse
+#: Half-window of the Savitzky–Golay rate derivative used by :func:`correct` for ``alpha_*`` terms, s.
+ALPHA_HALF_WINDOW_S = 0.01
+
+
+def _smooth_derivative(t: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """dω/dt of a measured rate (N, 3): quadratic Savitzky–Golay derivative (scipy), ±ALPHA_HALF_WINDOW_S."""
+    from scipy.signal import savgol_filter
+
+    n = w.shape[0]
+    if n < 5:
+        return np.gradient(w, t, axis=0) if n > 1 else np.zeros_like(w)
+    dt = float(np.median(np.diff(t)))
+    m = max(2, int(round(ALPHA_HALF_WINDOW_S / dt)))
+    win = min(2 * m + 1, n if n % 2 else n - 1)
+    return savgol_filter(w, win, 2, deriv=1, delta=dt, axis=0, mode="interp")
+
+
 def correct(params: Params, gyro_rad_s: np.ndarray, inp: ModelInputs, *, iterations: int = 4) -> np.ndarray:
     """Remove the deterministic effects in ``params`` from a measurement.
 
@@ -1013,7 +1037,12 @@ def correct(params: Params, gyro_rad_s: np.ndarray, inp: ModelInputs, *, iterati
     known). Generic inverse: the additive terms that do not depend on ω are subtracted, K is
     inverted, and the rate-dependent terms (scale_thermal/asymmetry/nonlinearity and
     family regressors of ω or α, evaluated at the current estimate) by fixed-point iteration,
-    which converges because they are small (|a|, |s2·ω| ≪ 1). ``rate``-stage effects
+    which converges because they are small (|a|, |s2·ω| ≪ 1). A term of the rate derivative
+    (``alpha_*``) is evaluated from the estimate's Savitzky–Golay derivative (quadratic, ±10 ms
+    half-window, at least ±2 samples; :data:`ALPHA_HALF_WINDOW_S`), because the central
+    difference of a measured rate amplifies its noise by √2/dt: with white noise σ the
+    derivative's sd is σ/dt·√(3/(m(m+1)(2m+1))) for half-width m (0.036·σ/dt at m = 10).
+    ``rate``-stage effects
     (time_offset, earth_rate) use their own inverse, in reverse order. ``quantization``,
     ``saturation`` and ``lowpass`` are not invertible and are ignored; stochastic effects
     are not removed.
@@ -1021,12 +1050,20 @@ def correct(params: Params, gyro_rad_s: np.ndarray, inp: ModelInputs, *, iterati
     params = validate_params(params)
     y = np.asarray(gyro_rad_s, float)
     rate_add = _has_rate_additive(params)
+    if rate_add and any("alpha" in e.inputs for e, _ in _stage(params, "additive")):
+        base_inp = inp
+
+        def inp_at(w):
+            return _replace(base_inp, alpha_S_rad_s2=_smooth_derivative(np.asarray(base_inp.t_s, float), w))
+    else:
+        def inp_at(w):
+            return inp
     z = y - (_additive(params, inp, which="static") if rate_add else _additive(params, inp))
     Kinv = np.linalg.inv(k_matrix(params))
     omega = z @ Kinv.T
     if rate_add:
         for _ in range(iterations):
-            omega = (z - _scale_diag(params, inp, omega) * omega - _additive(params, inp, omega, which="rate")) @ Kinv.T
+            omega = (z - _scale_diag(params, inp, omega) * omega - _additive(params, inp_at(omega), omega, which="rate")) @ Kinv.T
     elif _stage(params, "scale"):
         for _ in range(iterations):
             omega = (z - _scale_diag(params, inp, omega) * omega) @ Kinv.T

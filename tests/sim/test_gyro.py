@@ -367,7 +367,7 @@ FAMILY_TERMS = {
     "periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, -0.002], "a_sin_rad_s": [0.0, 0.004, 0.0]},
     "step[0.7]": {"size_rad_s": [0.003, -0.001, 0.0]},
     "regressor[omega_y*omega_z]": {"coef": [2e-3, 0.0, -1e-3]},
-    "regressor[f_x^2]": {"coef": [0.0, 1e-4, 0.0]},
+    "regressor[f_x^2]": {"coef": [0.0, 1e-3, 0.0]},
     "regressor[temp_c]": {"coef": [1e-4, 0.0, 0.0]},
     "regressor[dtemp_dt]": {"coef": [0.0, 0.0, 2e-3]},
     "regressor[t]": {"coef": [1e-3, 0.0, 0.0]},
@@ -436,3 +436,71 @@ def test_family_terms_in_stream_refusals_and_overrides():
         SyntheticGyro("icm42688p", seed=0, overrides={"step[1]": {}, "step[1.0]": {}})
     with pytest.raises(GyroInputError, match="unknown signal"):
         SyntheticGyro("icm42688p", seed=0, overrides={"regressor[omega_w]": {}})
+
+
+# ---------------------------------------------------------------- add that effect: inject -> fit -> remove
+SIGMA_ADD = 2e-3  # per-sample white noise, rad/s (arw N = σ/√rate)
+N_ADD = 20000  # 20 s at 1 kHz
+
+ADD_CASES = {
+    "periodic[37.5]": {"a_cos_rad_s": [4e-3, 0.0, -2e-3], "a_sin_rad_s": [0.0, 3e-3, 1e-3]},
+    "step[12.25]": {"size_rad_s": [5e-3, -3e-3, 0.0]},
+    "regressor[omega_y*omega_z]": {"coef": [4e-3, 0.0, -3e-3]},
+    "regressor[f_x^2]": {"coef": [0.0, 1e-3, 0.0]},
+    "regressor[alpha_y]": {"coef": [5e-3, 0.0, 0.0]},
+}
+
+
+def _add_truth(seed):
+    """Smooth, well-excited truth (the family regressors are far above their own sample noise)."""
+    t = np.arange(N_ADD) / RATE
+    w = np.stack([0.8 * np.sin(2 * np.pi * 0.31 * t), 1.1 * np.sin(2 * np.pi * 0.23 * t + 0.4),
+                  0.9 * np.cos(2 * np.pi * 0.17 * t)], 1)
+    f = np.array([0.4, -0.2, 9.81]) + np.stack([3 * np.sin(2 * np.pi * 0.07 * t), np.cos(0.3 * t), 0.5 * np.sin(0.2 * t)], 1)
+    temp = 25.0 + 0.1 * t
+    return Truth(t_s=t, omega_S_rad_s=w, f_S_m_s2=f, q_SW_wxyz=np.tile([1.0, 0, 0, 0], (N_ADD, 1)), temp_c=temp,
+                 t_since_power_up_s=t.copy(), power_up_index=np.zeros(N_ADD, int))
+
+
+def _add_recording(name, run):
+    from gyrocore.recording import Recording
+
+    g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=21, run=run, without=[e for e in ALL_BUT_VIB if e != "arw"],
+                      overrides={"arw": {"n_rad_per_sqrt_s": SIGMA_ADD / math.sqrt(RATE)}, name: ADD_CASES[name]})
+    tr = _add_truth(run)
+    out = g.measure(tr)
+    return Recording(t_s=tr.t_s, gyro_rad_s=out.gyro_rad_s, accel_m_s2=tr.f_S_m_s2, temp_c=tr.temp_c,
+                     ref_rate_rad_s=tr.omega_S_rad_s, meta={"sensor": "icm42688p"})
+
+
+@pytest.mark.parametrize("name", sorted(ADD_CASES))
+def test_injected_family_term_is_fitted_saved_and_removed(name, tmp_path):
+    """simulate with the term -> Calibrator (least squares) recovers it within its standard error
+    -> parameter file round trip -> apply on ANOTHER recording of the unit (held out) leaves
+    the pure noise."""
+    from gyrocore.model import Calibrator, load_params, save_params
+
+    fit_rec = _add_recording(name, run=0)
+    res = Calibrator(effects=["bias", name], covariance="ols").fit(fit_rec)
+    assert not res.unobservable
+    for pname, true in ADD_CASES[name].items():
+        z = (res.params[name][pname] - np.asarray(true)) / res.stderr[name][pname]
+        # the noise is white and Gaussian, so OLS standard errors are exact: z ~ N(0, 1) per
+        # parameter; |z| < 4 has a false-failure probability 6e-5 per parameter
+        assert np.all(np.abs(z) < 4), (pname, z)
+    save_params(res, tmp_path / "p.json")
+    back = load_params(tmp_path / "p.json")
+    assert back.effects == ("bias", name) and back.format_version == "1.1"
+    np.testing.assert_array_equal(back.params[name][next(iter(ADD_CASES[name]))], res.params[name][next(iter(ADD_CASES[name]))])
+    held = _add_recording(name, run=1)  # other noise realisation: the "after" is out of sample
+    e_after = back.apply(held).gyro_rad_s - held.ref_rate_rad_s
+    e_before = held.gyro_rad_s - held.ref_rate_rad_s
+    ms_after = np.mean(e_after**2, axis=0) / SIGMA_ADD**2
+    # pure noise: mean square / σ² ~ χ²_N / N, sd √(2/N) = 0.010 for N = 20000; 4 sd, plus the
+    # parameter-error term (θ̂ − θ)·g of a held-out record, E = P_axis/N·σ² (P_axis ≤ 3: 1.5e-4)
+    tol = 4 * math.sqrt(2 / N_ADD) + 3 / N_ADD
+    assert np.all(np.abs(ms_after - 1) < tol), ms_after
+    # before: the term is there, on the axes where it was injected
+    term_axes = np.any([np.asarray(v) != 0 for v in ADD_CASES[name].values()], axis=0)
+    ms_before = np.mean(e_before**2, axis=0) / SIGMA_ADD**2
+    assert np.all(ms_before[term_axes] > 1 + 10 * tol), ms_before
