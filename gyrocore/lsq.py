@@ -93,6 +93,13 @@ def _plausible(plaus: Mapping[str, float], eff: str) -> float:
         return np.inf
 
 
+def _column_effect(name: str) -> str:
+    """Effect of a column name ``"effect.param[index]"`` (a family name may hold a '.': periodic[37.5].a_cos_rad_s[0])."""
+    if "[" in name.split(".", 1)[0]:
+        return name[: name.index("]") + 1]
+    return name.split(".", 1)[0]
+
+
 def _is_noisy(eff: str, noisy_effects) -> bool:
     """A catalogue effect listed in ``noisy_effects``, or a family term built from accel/temperature."""
     return eff in noisy_effects or (E.is_family(eff) and E.resolve(eff).noisy)
@@ -681,7 +688,7 @@ def solve(
 
     # -- columns built from measured inputs (accel, temperature): their independent part
     #    must stand above the input's own noise, else the fit is to noise (errors in variables)
-    noisy_idx = [p for p in kept if _is_noisy(eff_of[p], noisy_effects)]
+    noisy_idx = [p for p in kept if _is_noisy(_column_effect(names[p]), noisy_effects)]
     if noisy_idx and min_excitation_snr > 0:
         sw = np.sqrt(w_)
         drop_noisy = []
@@ -778,12 +785,12 @@ def solve(
         # -- parameters whose standard error exceeds their plausible magnitude
         too_wide = [
             (j, p) for j, p in enumerate(kept)
-            if se_k[j] > _plausible(plaus, eff_of[p])
+            if se_k[j] > _plausible(plaus, _column_effect(names[p]))
         ]
         if not too_wide:
             break
         for j, p in too_wide:
-            eff = eff_of[p]
+            eff = _column_effect(names[p])
             reasons[names[p]] = (
                 f"standard error {se_k[j]:.3g} exceeds the plausible magnitude {_plausible(plaus, eff):.3g} (too little excitation)"
             )

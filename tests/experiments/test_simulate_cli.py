@@ -81,3 +81,57 @@ def test_parse_set_shapes():
     assert float(p["time_offset"]["tau_s"]) == 0.001
     with pytest.raises(GyroInputError):
         parse_set(["scale"])
+
+
+def test_family_terms_from_set_and_sensor_toml_round_trip(tmp_path, capsys):
+    """simulate with a term from --set and one from a sensor TOML -> calibrate -> apply (CLI):
+    the parameter file carries both by name and apply leaves the white noise."""
+    import math
+
+    from gyrocore.model import load_params
+
+    sigma, rate, dur = 2e-3, 1000.0, 20.0
+    toml = tmp_path / "unit.toml"
+    toml.write_text(
+        'name = "unit"\n[output]\nrate_hz = 1000.0\nfull_scale_dps = 2000.0\nsensitivity_lsb_per_dps = 16.4\n'
+        f"[arw]\ndensity_dps_per_sqrt_hz = {sigma / math.sqrt(rate) * 180 / math.pi!r}\n"
+        '["periodic[37.50]"]\na_cos_rad_s = [0.004, 0.0, -0.002]\na_sin_rad_s = 0.001\n', encoding="utf-8")
+    f = tmp_path / "s.csv"
+    code, out, err = run(["simulate", "static", "-o", str(f), "--sensor", str(toml), "--duration-s", str(dur),
+                          "--seed", "2", "--set", "step[12.5].size_rad_s=0.003,0,-0.001", "--json"], capsys)
+    assert code == 0, err
+    js = json.loads(out)
+    assert js["params_true"]["periodic[37.5]"]["a_sin_rad_s"] == [0.001] * 3
+    assert js["params_true"]["step[12.5]"]["size_rad_s"] == [0.003, 0.0, -0.001]
+    rec = read_csv(f)
+    res = simulate("static", sensor=str(toml), duration_s=dur, seed=2,
+                   overrides={"step[12.50]": {"size_rad_s": [0.003, 0.0, -0.001]}})
+    assert np.array_equal(rec.gyro_rad_s, res.recording.gyro_rad_s)
+    p = tmp_path / "p.json"
+    code, out, err = run(["calibrate", str(f), "--effects", "bias,periodic[37.5],step[12.5]", "-o", str(p),
+                          "--json"], capsys)
+    assert code == 0, err
+    cal = load_params(p)
+    assert cal.effects == ("bias", "periodic[37.5]", "step[12.5]")
+    z = (cal.params["step[12.5]"]["size_rad_s"] - [0.003, 0.0, -0.001]) / cal.stderr["step[12.5]"]["size_rad_s"]
+    assert np.all(np.abs(z) < 4), z  # N(0,1) under white noise (see tests/sim/test_gyro.py)
+    g = tmp_path / "c.csv"
+    code, out, err = run(["apply", str(f), "--params", str(p), "-o", str(g)], capsys)
+    assert code == 0, err
+    e = read_csv(g).gyro_rad_s - rec.ref_rate_rad_s
+    n = rec.n
+    # in-sample: mean square of the residual of a P-parameter fit per axis ~ σ²·χ²_{N−P}/N
+    ms = np.mean(e**2, axis=0) / sigma**2
+    assert np.all(np.abs(ms - 1) < 4 * math.sqrt(2 / n) + 4 / n), ms
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["static", "--set", "periodic[abc].a_cos_rad_s=1"], "decimal number"),
+    (["static", "--set", "periodic[5].coef=1"], "no parameter 'coef'"),
+    (["static", "--set", "regressor[omega_q].coef=1"], "unknown signal"),
+    (["static", "--set", "periodic[5]a_cos_rad_s=1"], "effect.param=value"),
+])
+def test_family_term_errors_are_one_line(tmp_path, capsys, args, needle):
+    f = tmp_path / "x.csv"
+    code, out, err = run(["simulate", *args[:1], "-o", str(f), *args[1:]], capsys)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1 and needle in err, err
