@@ -64,6 +64,7 @@ __all__ = [
     "parse_expr",
     "canonical_name",
     "ordered_effects",
+    "context_rows",
     "EFFECTS",
     "DETERMINISTIC",
     "CORRECTABLE",
@@ -1016,17 +1017,43 @@ def output_stage(
 ALPHA_HALF_WINDOW_S = 0.01
 
 
+def _alpha_half_rows(dt_s: float) -> int:
+    return max(2, int(round(ALPHA_HALF_WINDOW_S / dt_s)))
+
+
+def context_rows(params: Params, dt_s: float, *, iterations: int = 4) -> int:
+    """Neighbour rows :func:`correct` reads on each side of a sample (for chunked correction).
+
+    Central differences reach 1 row, the time-offset shift |τ|/dt rows, and every fixed-point
+    iteration over an ``alpha_*`` term one Savitzky–Golay half-window more.
+    """
+    reach = 2
+    for e, pd in params.items():
+        eff = resolve(e)
+        if eff.name == "time_offset":
+            reach += int(math.ceil(abs(float(np.asarray(pd["tau_s"]))) / dt_s)) + 1
+        if "alpha" in eff.inputs and eff.stage == "additive":
+            reach += (int(iterations) + 1) * (_alpha_half_rows(dt_s) + 1)
+    return reach
+
+
 def _smooth_derivative(t: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """dω/dt of a measured rate (N, 3): quadratic Savitzky–Golay derivative (scipy), ±ALPHA_HALF_WINDOW_S."""
+    """dω/dt of a measured rate (N, 3): quadratic Savitzky–Golay derivative (scipy), ±ALPHA_HALF_WINDOW_S.
+
+    The half-width m (samples) comes from the median step; the derivative per sample is
+    divided by the local step.
+    """
     from scipy.signal import savgol_filter
 
     n = w.shape[0]
     if n < 5:
         return np.gradient(w, t, axis=0) if n > 1 else np.zeros_like(w)
     dt = float(np.median(np.diff(t)))
-    m = max(2, int(round(ALPHA_HALF_WINDOW_S / dt)))
+    m = _alpha_half_rows(dt)
     win = min(2 * m + 1, n if n % 2 else n - 1)
-    return savgol_filter(w, win, 2, deriv=1, delta=dt, axis=0, mode="interp")
+    # derivative per sample, divided by the local step (central difference of t): the same
+    # value for a sample whatever chunk of the record it is computed in
+    return savgol_filter(w, win, 2, deriv=1, delta=1.0, axis=0, mode="interp") / np.gradient(t)[:, None]
 
 
 def correct(params: Params, gyro_rad_s: np.ndarray, inp: ModelInputs, *, iterations: int = 4) -> np.ndarray:

@@ -25,6 +25,11 @@ def _context_rows(res, first) -> int:
         tau = abs(float(np.asarray(res.params["time_offset"]["tau_s"])))
         dt = float(np.min(np.diff(first.t_s)))
         ctx = max(ctx, int(math.ceil(tau / dt)) + 2) if dt > 0 else ctx
+    if first.n > 1:  # the registry's own reach (e.g. a regressor of the rate derivative alpha_*)
+        from ..effects import context_rows
+
+        dt = float(np.min(np.diff(first.t_s)))
+        ctx = max(ctx, context_rows(res.params, dt)) if dt > 0 else ctx
     return ctx
 
 

@@ -87,3 +87,29 @@ def test_streamed_power_up_bias_matches_whole(tmp_path, capsys):
     got = read_csv(tmp_path / "o.csv", checks=False)
     assert np.array_equal(got.gyro_rad_s, whole.gyro_rad_s)
     assert got.meta["power_up_bias_rad_s"] == whole.meta["power_up_bias_rad_s"]
+
+
+def test_streamed_apply_with_family_terms_is_bit_identical(tmp_path, capsys):
+    """Registry family terms (time, rate, rate-derivative, temperature-rate regressors) need the
+    reach gyrocore.effects.context_rows gives; the streamed apply equals the whole-record one."""
+    rec = _recording()
+    src = tmp_path / "in.csv"
+    write_recording(rec, src)
+    res = Calibrator(effects=("bias", "scale")).fit(read_csv(src))
+    params = dict(res.params)
+    params["time_offset"] = {"tau_s": np.asarray(0.012)}
+    params["periodic[7.5]"] = {"a_cos_rad_s": np.array([1e-3, 0, 0]), "a_sin_rad_s": np.array([0, 2e-3, 0])}
+    params["step[12.25]"] = {"size_rad_s": np.array([0, 0, 3e-3])}
+    params["regressor[alpha_z]"] = {"coef": np.array([2e-3, 0, -1e-3])}
+    params["regressor[omega_x*omega_z]"] = {"coef": np.array([0, 1e-3, 0])}
+    params["regressor[t]"] = {"coef": np.array([1e-5, 0, 0])}
+    params["regressor[dtemp_dt]"] = {"coef": np.array([0, 0, 1e-3])}
+    res = dataclasses.replace(res, params=params, effects=tuple(params))
+    save_params(res, tmp_path / "p.json")
+    res = load_params(tmp_path / "p.json")
+    whole = res.apply(read_recording(src, checks=False))
+    out = tmp_path / "out.csv"
+    s = run_cli(build_group(), ["apply", str(src), "--params", str(tmp_path / "p.json"), "-o", str(out),
+                                "--chunk-rows", "137"])
+    assert s == 0, capsys.readouterr().err
+    assert np.array_equal(read_recording(out, checks=False).gyro_rad_s, whole.gyro_rad_s)
