@@ -387,3 +387,39 @@ def test_long_record_chunked_fit_equals_whole_array_fit(monkeypatch):
             if np.all(np.isfinite(s)):
                 np.testing.assert_allclose(chunked.stderr[e][p], s, rtol=1e-9, err_msg=f"{e}.{p}")
     np.testing.assert_allclose(chunked.residual_rms_rad_s, whole.residual_rms_rad_s, rtol=1e-9)
+
+
+def test_parameter_file_with_family_terms_and_unknown_terms(tmp_path):
+    """Format 1.1 carries family terms by their canonical name; a name this version does not
+    know (or a malformed family term) is one error line naming it; a 1.0 file still reads."""
+    res = CalibrationResult(
+        effects=("bias", "periodic[37.5]", "regressor[omega_y*omega_z]"),
+        params={"bias": {"b_rad_s": np.array([1e-3, 0, 0])},
+                "periodic[37.5]": {"a_cos_rad_s": np.array([1e-3, 0, 0]), "a_sin_rad_s": np.zeros(3)},
+                "regressor[omega_y*omega_z]": {"coef": np.array([0, 2e-3, 0])}},
+        stderr={"bias": {"b_rad_s": np.full(3, 1e-5)},
+                "periodic[37.5]": {"a_cos_rad_s": np.full(3, 1e-5), "a_sin_rad_s": np.full(3, 1e-5)},
+                "regressor[omega_y*omega_z]": {"coef": np.full(3, 1e-5)}},
+        residual_rms_rad_s=np.full(3, 1e-3))
+    p = tmp_path / "p.json"
+    save_params(res, p)
+    d = json.loads(p.read_text())
+    assert d["format_version"] == "1.1" and d["effects"] == ["bias", "periodic[37.5]", "regressor[omega_y*omega_z]"]
+    back = load_params(p)
+    assert back.effects == res.effects
+    np.testing.assert_array_equal(back.params["regressor[omega_y*omega_z]"]["coef"], [0, 2e-3, 0])
+    # another spelling of the same term reads under the canonical name
+    d2 = json.loads(p.read_text())
+    d2["effects"][1] = "periodic[37.50]"
+    d2["parameters"]["periodic[37.50]"] = d2["parameters"].pop("periodic[37.5]")
+    (tmp_path / "spelled.json").write_text(json.dumps(d2))
+    assert load_params(tmp_path / "spelled.json").effects == res.effects
+    for bad, needle in (("wobble[3]", "unknown effect 'wobble[3]'"), ("periodic[abc]", "periodic[abc]"),
+                        ("regressor[omega_q]", "unknown signal 'omega_q'")):
+        d3 = json.loads(p.read_text())
+        d3["effects"][1] = bad
+        d3["parameters"][bad] = d3["parameters"].pop("periodic[37.5]")
+        (tmp_path / "bad.json").write_text(json.dumps(d3))
+        with pytest.raises(GyroInputError) as ei:
+            load_params(tmp_path / "bad.json")
+        assert "\n" not in str(ei.value) and needle in str(ei.value) and "bad.json" in str(ei.value)
