@@ -796,12 +796,15 @@ def catalogue_equivalent(term: str, axis) -> str | None:
     Returns
     -------
     str or None
-        ``scale`` (ω_i on axis i), ``misalignment`` (ω_j, j ≠ i), ``time_offset`` (α_i on axis i:
-        the delay's regressor −τ·dω_i/dt), ``g_sensitivity`` (f_j), ``g2_sensitivity``
-        (f_j·f_k), ``bias_thermal`` (T, T², T³: the polynomial in T − T0, constant in bias),
-        ``scale_thermal`` (ω_i·T, ω_i·T² on axis i), ``bias_temp_rate`` (dT/dt),
-        ``bias_ramp`` (t); else None (``omega_x^2`` is even in ω, ``scale_nonlinearity``'s
-        ω|ω| is odd: not the same term).
+        The effect one of whose design columns (with its constant companion: ``bias`` for the
+        thermal bias polynomial, ``scale`` for the thermal scale polynomial) is exactly the
+        term on that axis: ``scale`` (ω_i on axis i), ``misalignment`` (ω_j, j ≠ i),
+        ``g_sensitivity`` (f_j), ``g2_sensitivity`` (f_j·f_k), ``bias_thermal`` (T, T², T³:
+        the polynomial in T − T0), ``scale_thermal`` (ω_i·T, ω_i·T² on axis i),
+        ``bias_temp_rate`` (dT/dt), ``bias_ramp`` (t); else None. Not equivalent:
+        ``alpha_i`` alone (a per-axis delay; the catalogue's ``time_offset`` is one τ shared
+        by the three axes, a single column across them) and ``omega_i^2`` (even in ω;
+        ``scale_nonlinearity``'s ω|ω| is odd).
     """
     i = axis if isinstance(axis, (int, np.integer)) else "xyz".index(str(axis)) if str(axis) in ("x", "y", "z") else None
     if i is None or not 0 <= int(i) <= 2:
@@ -824,7 +827,7 @@ def catalogue_equivalent(term: str, axis) -> str | None:
         if s.startswith("omega_"):
             return "scale" if s[-1] == ax else "misalignment"
         if s.startswith("alpha_"):
-            return "time_offset" if s[-1] == ax else None
+            return None
         if s.startswith("f_"):
             return "g_sensitivity"
         return {"temp_c": "bias_thermal", "dtemp_dt": "bias_temp_rate", "t": "bias_ramp"}[s]
