@@ -158,10 +158,10 @@ def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_
     after = psd_raw * H2[:, None]
     df = f_hz[1] - f_hz[0]
     band = (f_hz >= 40.0) & (f_hz < reliable_below_hz)
-    gyro_noise = np.sqrt(np.sum(after[band], axis=0) * df)
+    gyro_noise = np.sqrt(np.nansum(after[band], axis=0) * df)  # NaN: bins not reconstructed (notch holes)
     w = 2 * np.pi * f_hz
-    motor = np.sqrt(np.sum(after[band] * (w[band, None] ** 2), axis=0) * df)
-    jitter = np.sqrt(np.sum(after[band] / (w[band, None] ** 2), axis=0) * df)
+    motor = np.sqrt(np.nansum(after[band] * (w[band, None] ** 2), axis=0) * df)
+    jitter = np.sqrt(np.nansum(after[band] / (w[band, None] ** 2), axis=0) * df)
     fb = np.linspace(flight_band_hz[0], flight_band_hz[1], 30)
     rb = chain_response(cand.stages, np.concatenate([fb, [flight_band_hz[1]]]), loop_scale=loop_scale)
     tau = float(np.mean(rb.group_delay_s[:-1]))

@@ -58,6 +58,9 @@ RHO_HANN_50 = 0.167
 #: Hann window equivalent noise bandwidth, bins.
 ENBW_HANN = 1.5
 HIGHPASS_HZ = 40.0
+#: Bins where the undone filters' |H|² is below −20 dB (around a notch) are not reconstructed:
+#: dividing by it would amplify the logged noise floor and quantisation 100-fold.
+H2_FLOOR = 1e-2
 
 
 def _dof(k: int) -> float:
@@ -116,7 +119,7 @@ def undo_response(stages: Sequence[dict], f_hz: np.ndarray, *, loop_scale: float
         Himg = np.ones_like(f_hz)
         for flt in flts:
             Himg *= flt.response(img).magnitude ** 2
-        bad = (Himg / np.maximum(H2, 1e-300) > 0.25) | (H2 < 1e-3)
+        bad = (Himg / np.maximum(H2, 1e-300) > 0.25) & (H2 >= H2_FLOOR)
         bad &= f_hz > 0
         if bad.any():
             reliable = float(f_hz[np.argmax(bad)])
@@ -413,11 +416,18 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
                          + " (dynamic: response not logged, cannot be undone)")
     elif sig.stages_before:
         warns.append("no unfiltered gyro analysed: the spectrum has been through " + ", ".join(_label(s) for s in sig.stages_before))
-    if sig.kind != "raw" and not sig.stages_before:
-        pass
-    if sig.kind == "filtered" and "gyro_prefilter" not in rec.meta and rec.meta.get("format") == "blackbox":
-        warns.append("no unfiltered gyro in the log: " + (rec.meta.get("lacks", "").split(" | ")[0]))
+    if sig.kind == "filtered" and "gyro_prefilter" not in rec.meta and sig.stages_before:
+        why = [x for x in rec.meta.get("lacks", "").split(" | ") if x.startswith("no unfiltered gyro")]
+        warns.append("no unfiltered gyro in the log" + (f" ({why[0].split(': ', 1)[1].split(' (')[0]})" if why else "")
+                     + ": the spectrum has been through " + ", ".join(_label(s) for s in sig.stages_before)
+                     + ("; the static ones are undone in the spectrum" if undo else ""))
     psd = W.psd / H2[None, :, None]  # above ``reliable`` kept for the plot/spec, flagged, not integrated
+    hole = H2 < H2_FLOOR
+    psd[:, hole, :] = np.nan
+    if hole.any():
+        edges_h = np.flatnonzero(np.diff(np.concatenate([[0], hole.astype(int), [0]])))
+        spans = [(float(f[a]), float(f[b - 1])) for a, b in zip(edges_h[::2], edges_h[1::2])]
+        notes.append("not reconstructed (undone filters below -20 dB): " + ", ".join(f"{a:.0f}-{b:.0f} Hz" for a, b in spans))
     # accel windows (as logged)
     accel_psd = None
     if rec.accel_m_s2 is not None:
@@ -474,10 +484,15 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         peaks = _find_peaks(f, np.nanmean(W.psd[sel], axis=0), W.psd[sel], int(sel.sum()), fmin=fmin_hz, fmax=f[-1] - 2 * df,
                             df_res=ENBW_HANN * df)
         # line power in the raw domain: scale by 1/|H|² at the line (smooth across ±2 bins)
+        kept = []
         for p in peaks:
             g = float(np.interp(p.f_hz, f, H2))
+            if g < H2_FLOOR:
+                continue
             p.power /= g
             p.power_se /= g
+            kept.append(p)
+        peaks = kept
         row["_peaks"] = peaks
         band_rows.append(row)
         band_psd.append(pb)
@@ -501,7 +516,9 @@ def _label(s: dict) -> str:
     if s.get("kind") == "notch":
         return f"notch {s['cutoff_hz']:g} Hz (Q {s.get('q', float('nan')):.2f})"
     if s.get("dynamic"):
-        return f"{s['kind']} (dynamic, {s['cutoff_hz']:g}-{s.get('max_hz', float('nan')):g} Hz)"
+        lo, hi = s.get("cutoff_hz", 0.0), s.get("max_hz", float("nan"))
+        rng = f", {lo:g}-{hi:g} Hz" if (lo and hi and hi == hi) else ", range not in the header"
+        return f"{s['kind']} (dynamic{rng})"
     return f"{s['kind']} {s['cutoff_hz']:g} Hz"
 
 
