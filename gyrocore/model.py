@@ -272,8 +272,9 @@ class Calibrator:
     Parameters
     ----------
     effects : sequence of str
-        Catalogue effects to fit (see :data:`FITTABLE`), e.g. ``["bias", "scale",
-        "misalignment"]``. Order matters only for observability: an earlier effect keeps a
+        Effects to fit: catalogue (see :data:`FITTABLE`) or registry family terms
+        (``periodic[37.5]``, ``step[12.25]``, ``regressor[omega_y*omega_z]``;
+        :func:`gyrocore.effects.resolve`), e.g. ``["bias", "scale", "misalignment"]``. Order matters only for observability: an earlier effect keeps a
         column that a later one duplicates.
     thermal_order : "auto" or int
         Polynomial order of ``bias_thermal``/``scale_thermal``; "auto" chooses it from the

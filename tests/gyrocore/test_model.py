@@ -423,3 +423,37 @@ def test_parameter_file_with_family_terms_and_unknown_terms(tmp_path):
         with pytest.raises(GyroInputError) as ei:
             load_params(tmp_path / "bad.json")
         assert "\n" not in str(ei.value) and needle in str(ei.value) and "bad.json" in str(ei.value)
+
+
+def test_chunked_fit_with_family_terms_equals_whole_array_fit(monkeypatch):
+    # as test_long_record_chunked_fit_equals_whole_array_fit, with registry family terms
+    # (time-only, rate product, rate derivative: central differences need the one-row window
+    # overlap of lsq's chunked design); tolerance as there (1e-9 relative)
+    from gyrocore import lsq
+
+    rng = np.random.default_rng(12)
+    n = 12000
+    t = 3.0 + np.arange(n) / 200.0
+    w = np.stack([0.8 * np.sin(2 * np.pi * t / 7.0), 0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
+                  0.5 * np.sin(2 * np.pi * t / 11.0 + 2)], 1)
+    params = {"bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
+              "periodic[7.25]": {"a_cos_rad_s": np.array([2e-3, 0, 0]), "a_sin_rad_s": np.array([0, -1e-3, 0])},
+              "step[40]": {"size_rad_s": np.array([0, 0, 3e-3])},
+              "regressor[omega_x*omega_y]": {"coef": np.array([0, 0, 4e-3])},
+              "regressor[alpha_z]": {"coef": np.array([5e-3, 0, 0])}}
+    y = w + E.deterministic(params, E.ModelInputs(t_s=t, omega_S_rad_s=w))
+    y = y + 2e-3 * rng.standard_normal((n, 3))
+    rec = Recording(t_s=t, gyro_rad_s=y, ref_rate_rad_s=w)
+    eff = list(params)
+    monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", None)
+    whole = Calibrator(effects=eff, max_rows=1000).fit(rec)
+    monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", 1500)
+    chunked = Calibrator(effects=eff, max_rows=1000).fit(rec)
+    assert not whole.unobservable
+    for e in eff:
+        for p, v in whole.params[e].items():
+            np.testing.assert_allclose(chunked.params[e][p], v, rtol=1e-9, atol=1e-15, err_msg=f"{e}.{p}")
+            np.testing.assert_allclose(chunked.stderr[e][p], whole.stderr[e][p], rtol=1e-9, err_msg=f"{e}.{p}")
+        for p, true in params[e].items():  # and the fit finds them: |z| < 4 (see tests/sim/test_gyro.py)
+            z = (whole.params[e][p] - true) / whole.stderr[e][p]
+            assert np.all(np.abs(z) < 4), (e, p, z)

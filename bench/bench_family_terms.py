@@ -1,0 +1,61 @@
+"""Cost of a registry family term (``periodic[...]`` etc.) in the closed-loop hover.
+
+Run: ``python bench/bench_family_terms.py [--hover-s 10] [--repeat 3]`` (prints one table).
+
+A :class:`sim.gyro.GyroStream` with a family term has no numba kernel: ``fly_hover`` takes
+its Python loop and the term runs as one generic per-step call (the batch path's numpy term
+on a one-sample input; bit-identical to ``SyntheticGyro.measure``). Three flights of the same
+unit (ICM-42688-P preset, physics and gyro 1 kHz, vibration on), side by side in one run:
+(a) the preset's catalogue effects on the compiled kernels, (b) the same on the Python loop
+(``sim.quadrotor.USE_COMPILED = False``), (c) (a) plus ``periodic[37.5]`` (Python loop, by
+necessity). (b)/(a) is the price of leaving the kernels, (c)/(b) the family term's own.
+Best of ``--repeat``, CPU time of this process (steadier than wall time on a shared machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from sim import quadrotor as Q
+from sim.gyro import SyntheticGyro
+
+TERM = {"periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, 0.0]}}
+
+
+def _fly(overrides: dict, compiled: bool, hover_s: float) -> tuple[float, float]:
+    g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=1, overrides=overrides)
+    st = g.stream(int(round(hover_s * 1000.0)))
+    Q.USE_COMPILED = compiled
+    try:
+        c0, w0 = time.process_time(), time.perf_counter()
+        Q.fly_hover(duration_s=hover_s, gyro=st, seed=1)
+        return time.process_time() - c0, time.perf_counter() - w0
+    finally:
+        Q.USE_COMPILED = True
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hover-s", type=float, default=10.0)
+    ap.add_argument("--repeat", type=int, default=3)
+    a = ap.parse_args()
+    _fly({}, True, 1.0)  # load the numba kernels once (not timed)
+    cases = (("(a) catalogue, compiled kernels", {}, True), ("(b) catalogue, Python loop", {}, False),
+             ("(c) catalogue + periodic[37.5]", TERM, True))
+    best = {}
+    for _ in range(a.repeat):
+        for label, ov, comp in cases:
+            c, w = _fly(ov, comp, a.hover_s)
+            b = best.get(label)
+            best[label] = (min(c, b[0]), min(w, b[1])) if b else (c, w)
+    print(f"hover {a.hover_s:g} s, best of {a.repeat}")
+    print(f"{'case':36s} {'cpu s':>7s} {'wall s':>7s} {'cpu / (a)':>9s}")
+    ca = best[cases[0][0]][0]
+    for label, _, _ in cases:
+        c, w = best[label]
+        print(f"{label:36s} {c:7.2f} {w:7.2f} {c / ca:9.2f}")
+
+
+if __name__ == "__main__":
+    main()
