@@ -70,6 +70,7 @@ __all__ = [
     "CORRECTABLE",
     "STOCHASTIC",
     "OUTPUT_STAGE",
+    "POLYNOMIAL",
     "PARAM_SCHEMA",
     "EARTH_RATE_RAD_S",
     "ModelInputs",
@@ -251,6 +252,11 @@ class Effect:
     def noisy(self) -> bool:
         """Its regressors are built from measured, noisy inputs (accel, temperature)."""
         return any(i in ("f", "temp", "dtemp") for i in self.inputs)
+
+    @property
+    def polynomial(self) -> bool:
+        """Has a polynomial parameter of estimator-chosen order (``"p"`` in a shape: the thermal ones)."""
+        return any("p" in shape for shape in self.schema.values())
 
     @property
     def fit_params(self) -> tuple[str, ...]:
@@ -554,6 +560,8 @@ DETERMINISTIC: tuple[str, ...] = tuple(e.name for e in _CATALOGUE if e.kind in (
 #: Deterministic effects that :func:`correct` removes and :func:`design` can regress (all but
 #: the non-invertible output stage: quantization, saturation, lowpass).
 CORRECTABLE: tuple[str, ...] = tuple(e.name for e in _CATALOGUE if e.kind == "correctable")
+#: Effects with a polynomial of estimator-chosen order (in T − t0_c, clamped to the fitted range).
+POLYNOMIAL: tuple[str, ...] = tuple(e.name for e in _CATALOGUE if e.polynomial)
 #: The output stage in the order it is applied (filter, then noise, then clip).
 OUTPUT_STAGE: tuple[str, ...] = ("lowpass", "saturation", "quantization")
 

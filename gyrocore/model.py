@@ -171,7 +171,7 @@ class CalibrationResult:
                 raise GyroInputError(f"the parameters include {eff}, which needs the accel_*_m_s2 columns; the data lack them")
             if _needs_temp(eff) and recording.temp_c is None:
                 raise GyroInputError(f"the parameters include {eff}, which needs the temp_c column; the data lack it")
-        for eff in ("bias_thermal", "scale_thermal"):
+        for eff in E.POLYNOMIAL:  # thermal polynomials: clamped to the fitted range
             if eff in self.params:
                 pd = self.params[eff]
                 lo, hi = float(pd["temp_min_c"]), float(pd["temp_max_c"])
@@ -476,7 +476,7 @@ class Calibrator:
         opts = dict(weights=weights, average=average, covariance=self.covariance,
                     on_unobservable=self.on_unobservable)
         effects = list(self.effects)
-        thermal = [e for e in effects if e in ("bias_thermal", "scale_thermal")]
+        thermal = [e for e in effects if e in E.POLYNOMIAL]
         tau_total = 0.0
 
         def inputs(tau):
@@ -553,7 +553,7 @@ class Calibrator:
             order = orders.get(eff, 1)
             params[eff] = _unflatten(eff, fit.theta[sl], order)
             stderr[eff] = _unflatten(eff, fit.stderr[sl], order)
-            if eff in ("bias_thermal", "scale_thermal"):
+            if eff in E.POLYNOMIAL:
                 T = np.asarray(rec.temp_c, float)
                 Tu = T[opts["weights"] > 0]
                 # design() centres the polynomial on the mean temperature of all rows it gets

@@ -33,7 +33,7 @@ from .recording import atomic_write_text
 
 __all__ = ["THERMAL_EFFECTS", "OrderTest", "select_thermal_orders", "px4_tc_params", "write_px4_params"]
 
-THERMAL_EFFECTS = ("bias_thermal", "scale_thermal")
+THERMAL_EFFECTS = E.POLYNOMIAL  # ("bias_thermal", "scale_thermal"), from the registry
 
 
 @dataclass(frozen=True)
