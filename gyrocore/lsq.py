@@ -731,7 +731,11 @@ def solve(
             # an exact fit (noise-free data) has nothing to weight: unit weights; otherwise a
             # relative floor keeps an exactly fitted axis from getting an infinite weight
             smax = float(sig.max())
-            sig = np.ones(3) if smax == 0.0 else np.maximum(sig, 1e-9 * smax)
+            # ... and so is a residual at the rounding level of the data (64 eps·max|r|) or
+            # below 1e-100 rad/s (no instrument's noise; 1/σ² of the 1e-9 floor then stays
+            # below 1e218, no overflow: hypothesis found b = 1.4e-146 rad/s, σ ~ 1e-150)
+            exact = smax <= max(64.0 * np.finfo(float).eps * float(np.max(np.abs(r_), initial=0.0)), 1e-100)
+            sig = np.ones(3) if smax == 0.0 or exact else np.maximum(sig, 1e-9 * smax)
             sigma = sig
             W = w_ / sigma[None, :] ** 2
             th = _wls(kept, W)
