@@ -48,7 +48,7 @@ from .errors import GyroInputError, warn_repair
 from .recording import Recording, atomic_write_text
 
 __all__ = ["VibrationResult", "analyse", "write_spec", "read_spec", "SPEC_FORMAT_VERSION", "undo_response",
-           "plot_vibration"]
+           "plot_vibration", "synthesize", "add_vibration", "fidelity", "spec_band"]
 
 AXES = ("x", "y", "z")
 SPEC_FORMAT_VERSION = "1.0"
@@ -760,3 +760,92 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
     with atomic_open(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=110)
     plt.close(fig)
+
+
+# ------------------------------------------------------------------ synthesis (simulator side)
+def spec_band(spec: dict, band: int | str = "middle") -> dict:
+    """One band of a vibration spec: an index, or "middle" (the band with the median command)."""
+    bands = spec.get("bands") or []
+    if not bands:
+        raise GyroInputError("vibration spec has no bands")
+    if band == "middle":
+        return bands[len(bands) // 2]
+    try:
+        return bands[int(band)]
+    except (ValueError, IndexError):
+        raise GyroInputError(f"vibration band {band!r}: the spec has bands 0..{len(bands) - 1} (or 'middle')") from None
+
+
+def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str = "middle",
+               fmin_hz: float = HIGHPASS_HZ) -> np.ndarray:
+    """A gyro vibration disturbance (n, 3), rad/s, whose PSD is the spec band's raw-domain PSD.
+
+    Random-phase synthesis: for each rfft bin k of length n at ``rate_hz``,
+    X_k = √(S(f_k)·fs·n/2)·(g₁ + i g₂)/√2 with g ~ N(0, 1), so that the one-sided periodogram
+    2|X_k|²/(fs·n) has expectation S(f_k); x = irfft(X). S is the spec's PSD interpolated
+    linearly in f; zero below ``fmin_hz`` (the flight's own motion is not vibration), above
+    the spec's reliable limit and its Nyquist, and where the spec has no value (notch holes).
+    Gaussian: the lines come out as narrow-band noise of the measured power, not as
+    phase-coherent sinusoids. ``seed``: ``np.random.default_rng(seed)``.
+    """
+    b = spec_band(spec, band)
+    f_spec = np.asarray(spec["f_hz"], float)
+    lim = min(float(spec.get("reconstructed_reliable_below_hz") or f_spec[-1]), f_spec[-1])
+    rng = np.random.default_rng(seed)
+    f = np.fft.rfftfreq(n, d=1.0 / rate_hz)
+    out = np.empty((n, 3))
+    for j, a in enumerate(AXES):
+        s = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][a]], float)
+        S = np.interp(f, f_spec, np.nan_to_num(s, nan=0.0), left=0.0, right=0.0)
+        S[(f < fmin_hz) | (f >= lim)] = 0.0
+        S[np.interp(f, f_spec, np.isnan(s).astype(float)) > 0] = 0.0
+        amp = np.sqrt(S * rate_hz * n / 2.0)
+        X = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) / math.sqrt(2.0)
+        X[0] = 0.0
+        if n % 2 == 0:
+            X[-1] = 0.0
+        out[:, j] = np.fft.irfft(X, n)
+    return out
+
+
+def add_vibration(rec: Recording, spec: dict, *, seed: int, band: int | str = "middle") -> Recording:
+    """``rec`` with :func:`synthesize`'s disturbance added to its gyro (open loop: the truth and
+    any controller that flew the recording did not see it); metadata says so."""
+    d = synthesize(spec, n=rec.n, rate_hz=rec.rate_hz, seed=seed, band=band)
+    b = spec_band(spec, band)
+    return rec.with_gyro(rec.gyro_rad_s + d, vibration_spec=str(spec.get("source", "")),
+                         vibration_band=json.dumps({"throttle": b.get("throttle"), "median": b.get("median")}),
+                         vibration_injection="shaped Gaussian disturbance added to the measured gyro (open loop), seed "
+                                             f"{seed}; PSD of the spec band above {HIGHPASS_HZ:g} Hz")
+
+
+def fidelity(sim: VibrationResult, spec: dict, *, band: int | str = "middle", fmin_hz: float = HIGHPASS_HZ) -> dict:
+    """In-band fraction: bins (fmin .. min(Nyquists, reliable limit)) where the simulated gyro's
+    PSD is statistically indistinguishable from the real flight's band PSD.
+
+    Under equal spectra the ratio of two averaged periodograms is F(ν_sim, ν_real)-distributed
+    (ν from each one's window count, :func:`_dof`); a bin is in band when the ratio lies in the
+    central 95 % of that F distribution, so a perfect match gives 0.95 on average.
+    Also returns the median ratio (sim/real) and the RMS above fmin of both.
+    """
+    b = spec_band(spec, band)
+    f_r = np.asarray(spec["f_hz"], float)
+    lim = min(float(spec.get("reconstructed_reliable_below_hz") or f_r[-1]), f_r[-1], sim.f_hz[-1])
+    nu_r = _dof(int(b["n_windows"]))
+    nu_s = _dof(int(sim.n_windows))
+    lo_q, hi_q = stats.f.ppf([0.025, 0.975], nu_s, nu_r)
+    out = {}
+    fs = sim.f_hz
+    sel = (fs >= fmin_hz) & (fs < lim)
+    for j, a in enumerate(AXES):
+        real = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][a]], float)
+        R = np.interp(fs[sel], f_r, real)
+        S = sim.mean_psd[sel, j]
+        ok = np.isfinite(R) & np.isfinite(S) & (R > 0)
+        ratio = S[ok] / R[ok]
+        dfr = fs[1] - fs[0]
+        out[a] = {"in_band_fraction": float(np.mean((ratio >= lo_q) & (ratio <= hi_q))) if ok.any() else float("nan"),
+                  "median_ratio_sim_to_real": float(np.median(ratio)) if ok.any() else float("nan"),
+                  "rms_sim_rad_s": float(np.sqrt(np.nansum(S) * dfr)), "rms_real_rad_s": float(np.sqrt(np.nansum(R) * dfr)),
+                  "band_hz": [fmin_hz, float(lim)]}
+    return out

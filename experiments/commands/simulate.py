@@ -77,11 +77,15 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
                    "VALUE is a number or a comma list, e.g. --set scale.s=0.01,0.02,-0.01")
 @click.option("--without", "without", multiple=True, metavar="EFFECT",
               help="Switch an effect off; repeatable or comma-separated.")
+@click.option("--vibration", "vibration_spec", default=None, type=click.Path(dir_okay=False),
+              help="Vibration spec (gyroharness vibration -o): add its measured gyro PSD as a shaped disturbance (open loop).")
+@click.option("--vibration-band", default="middle", show_default=True, help="Spec band: index or 'middle'.")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--progress/--no-progress", default=None,
               help="Progress bar on stderr (default: for long runs when stderr is a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
-def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, force, progress, as_json):
+def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, vibration_spec, vibration_band, force,
+            progress, as_json):
     """Simulate SCENARIO with one sensor unit and write the recording (truth in the ref_ columns).
 
     Scenarios: static, static_bumped, turntable, thermal, hover, power_cycles (or a
@@ -104,6 +108,12 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         raise GyroInputError(f"--duration-s must be > 0, got {duration_s}")
     spec = S.load_scenario(scenario)
     sensor_spec = P.load_preset(sensor)
+    vib = None
+    if vibration_spec:
+        from gyrocore.vibration import read_spec, spec_band
+
+        vib = read_spec(vibration_spec)
+        spec_band(vib, vibration_band)  # a bad band is one error line before the simulation runs
     wo = check_effect_names([w for item in without for w in item.split(",")])
     overrides = parse_set(sets)
     if progress is None:
@@ -113,6 +123,12 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
                      without=wo, gyro_rate_hz=rate_hz, progress=bool(progress))
     rec = res.recording
+    if vib is not None:
+        from gyrocore.vibration import add_vibration
+
+        # issue 16: the measured vibration as a shaped disturbance on the gyro (seeded from --seed/--run)
+        rec = add_vibration(rec, vib, seed=int(np.random.SeedSequence([seed, run, 16]).generate_state(1)[0]),
+                            band=vibration_band)
     write_recording(rec, out, overwrite=force)  # .parquet: Parquet, else CSV
     summary = {
         "path": str(out),
