@@ -106,6 +106,9 @@ REGISTRY: dict[str, str] = {
 def load_calibrator(spec: str, **options) -> CalibrationRoutine:
     """A calibrator from a registered name or ``module:factory`` (``factory(**options)``).
 
+    The module is imported from ``sys.path`` plus the current directory (a ``my_cal.py`` beside
+    the user is ``my_cal:factory``).
+
     Raises :class:`~gyrocore.errors.GyroInputError` (one line) for an unknown name, a module
     that does not import, a missing factory, or an object without ``fit``/``apply``.
     """
@@ -114,6 +117,8 @@ def load_calibrator(spec: str, **options) -> CalibrationRoutine:
     if not sep or not mod_name or not attr:
         raise GyroInputError(f"calibrator {spec!r}: expected a registered name ({', '.join(REGISTRY)}) "
                              "or module:factory")
+    if os.getcwd() not in sys.path and "" not in sys.path:  # a module beside the user, as `python -m` does
+        sys.path.insert(0, os.getcwd())
     try:
         mod = importlib.import_module(mod_name)
     except Exception as exc:  # noqa: BLE001 - the user's module: any import error becomes one line

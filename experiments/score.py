@@ -122,18 +122,17 @@ def validate_spec(spec: Mapping[str, Any]) -> None:
     make_routine(spec)
 
 
-def _predicted_rms_deg(scenario: str, sensor: str, seed: int, res, core_params) -> float:
-    """The drift prediction of the core's RMS error where it exists (helper "drift", issue 12)."""
-    try:
-        from . import ablation as A
-    except ImportError:  # pragma: no cover
-        return float("nan")
-    fn = getattr(A, "predicted_rms_deg", None)
+def _predicted_rms_deg(res, core_params, present, still, start: int) -> float:
+    """The drift prediction of the core's RMS error (``experiments.ablation.predict_instance``,
+    helper "drift", issue 12) where it exists; NaN otherwise."""
+    from . import ablation as A
+
+    fn = getattr(A, "predict_instance", None)
     if fn is None:
         return float("nan")
     try:
-        return float(fn(scenario=scenario, sensor=sensor, seed=seed, result=res, calibration=core_params))
-    except Exception:  # noqa: BLE001 - a prediction is optional beside the measured score
+        return float(fn(res, list(core_params.stages), present, still, start).rms_predicted_deg)
+    except Exception:  # noqa: BLE001 - the prediction is optional beside the measured score
         return float("nan")
 
 
@@ -188,7 +187,7 @@ def score_unit(scenario: str, *, routine_spec: Mapping[str, Any], sensor: str = 
         scenario=scenario, sensor=sensor, instance=int(instance), seed=int(seed),
         rms_deg={r: (sc[r][0].rms_error_deg if r in sc else nan) for r in ROWS},
         final_deg={r: (sc[r][0].final_error_deg if r in sc else nan) for r in ROWS},
-        rms_predicted_deg=_predicted_rms_deg(scenario, sensor, seed, res, core_params),
+        rms_predicted_deg=_predicted_rms_deg(res, core_params, present, still, start),
         failed=failed, wall_s=time.perf_counter() - t0, t_s=tuple(float(x) for x in t[idx]),
         curves_deg={r: tuple(float(x) for x in np.degrees(sc[r][1][idx])) for r in ROWS if r in sc},
     )
@@ -599,6 +598,7 @@ class CheckResult:
     checks: tuple[BoundCheck, ...]
     failed_units: tuple[tuple[str, int, int, str], ...]
     campaign: ScoreCampaign | None = None
+    contract_units: int | None = None
 
     @property
     def passed(self) -> bool:
@@ -642,17 +642,19 @@ def evaluate(contract: Contract, campaign: ScoreCampaign) -> CheckResult:
             per_unit = [u.rms_deg["user"] if k == "max_rms_deg" else u.ratio(metric[len("ratio_to_"):]) for u in ok]
             passed = bool(math.isfinite(value) and value <= limit)
             checks.append(BoundCheck(sc, k, limit, value, passed,
-                                     false_failure_rate(per_unit, limit, len(units))))
+                                     false_failure_rate(per_unit, limit, contract.units)))
     failed = tuple((u.scenario, u.instance, u.seed, u.failed) for u in campaign.results if u.failed)
-    return CheckResult(contract=contract.path, checks=tuple(checks), failed_units=failed, campaign=campaign)
+    return CheckResult(contract=contract.path, checks=tuple(checks), failed_units=failed, campaign=campaign,
+                       contract_units=contract.units)
 
 
 def check_contract(contract, *, routine_spec: Mapping[str, Any] | None = None, workers: int | None = 1,
-                   units: int | None = None, progress: bool = False) -> CheckResult:
+                   units: int | None = None, seed: int | None = None, progress: bool = False) -> CheckResult:
     """Run the contract's campaign for a routine and check every bound (``gyroharness check``).
 
     ``routine_spec`` (``{"calibrator": …}`` or ``{"fit_cmd": …, "apply_cmd": …}``) overrides the
-    contract's ``[calibrator]``; ``units`` overrides its unit count.
+    contract's ``[calibrator]``; ``units`` and ``seed`` override the contract's (e.g. to derive
+    bounds on more units, and other ones, than the gate uses: :func:`suggestions`).
     """
     c = contract if isinstance(contract, Contract) else load_contract(contract)
     spec = dict(routine_spec or {})
@@ -662,7 +664,7 @@ def check_contract(contract, *, routine_spec: Mapping[str, Any] | None = None, w
                              "or a [calibrator] section")
     spec.setdefault("timeout_s", c.timeout_s)
     camp = score_campaign(routine_spec=spec, scenarios=tuple(c.scenarios), sensor=c.sensor,
-                          units=units or c.units, seed=c.seed, durations_s=c.durations_s, quick=c.quick,
+                          units=units or c.units, seed=c.seed if seed is None else int(seed), durations_s=c.durations_s, quick=c.quick,
                           calibration_durations_s=c.calibration_s, workers=workers, progress=progress)
     return evaluate(c, camp)
 
@@ -696,12 +698,15 @@ def junit_xml(result: CheckResult) -> str:
 
 
 def suggestions(result: CheckResult, rate: float) -> dict:
-    """Per scenario and bound of the contract, the limit with false-failure ``rate`` (:func:`suggest_bound`)."""
+    """Per scenario and bound of the contract, the limit with false-failure ``rate`` (:func:`suggest_bound`)
+    for the median over the *contract's* number of units, from the spread of this run's units
+    (run more, and other, units than the gate: ``check --units 16 --seed 1 --suggest 1e-3``)."""
     camp = result.campaign
+    n = result.contract_units or camp.units
     out: dict = {}
     for c in result.checks:
         ok = [u for u in camp.of(c.scenario) if not u.failed]
         metric = _METRIC_OF[c.bound][0]
         vals = [u.rms_deg["user"] if c.bound == "max_rms_deg" else u.ratio(metric[len("ratio_to_"):]) for u in ok]
-        out.setdefault(c.scenario, {})[c.bound] = suggest_bound(vals, camp.units, rate)
+        out.setdefault(c.scenario, {})[c.bound] = suggest_bound(vals, n, rate)
     return out

@@ -279,3 +279,48 @@ def test_wrong_sign_breaks(gyroharness_check):
     res = pytester.runpytest("-p", "experiments.pytest_plugin", "-p", "no:cacheprovider")
     res.assert_outcomes(passed=1, failed=1)
     res.stdout.fnmatch_lines(["*static: RMS/none * > max_ratio_to_none 0.5 (median over units)*"])
+
+
+# ------------------------------------------------------------------ slow: the core through score = the ablation
+@pytest.mark.slow
+def test_score_core_equals_the_ablation_all_row_in_every_scenario():
+    """`score --calibrator core` (the registered entry, effects from the datasheet) reproduces the
+    ablation's 'all' row bit for bit, and so does the harness's own core column."""
+    from experiments import ablation as A
+    from experiments.montecarlo import instance_seeds
+
+    seed = instance_seeds(0, 1)[0]
+    durations = {"static": 30.0, "static_bumped": 30.0, "turntable": 60.0, "thermal": 120.0, "hover": 15.0,
+                 "power_cycles": 60.0}
+    for sc, dur in durations.items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ab = A.ablate_instance(sc, seed=seed, duration_s=dur, quick=True, mahony_kp_per_s=None)
+        u = SC.score_unit(sc, routine_spec={"calibrator": "core"}, seed=seed, duration_s=dur, quick=True)
+        assert u.failed is None
+        assert u.rms_deg["user"] == ab.scores["all"].rms_error_deg, sc
+        assert u.rms_deg["core"] == ab.scores["all"].rms_error_deg, sc
+        assert u.rms_deg["none"] == ab.scores["none"].rms_error_deg, sc
+        assert u.rms_deg["floor"] == ab.scores["floor"].rms_error_deg, sc
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                    reason="no C compiler (cc/gcc) on this machine: the C example cannot be built")
+def test_example_contract_passes_the_c_calibrator_and_fails_the_wrong_one(tmp_path, capsys):
+    """The shipped contract (bounds from 16 other units at a 1e-3 false-failure rate each) holds
+    for the C example on its own 4 units and breaks for the sign error."""
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    exe = tmp_path / "bias_scale"
+    subprocess.run([compiler, "-O2", "-std=c99", "-Wall", "-Werror", "-o", str(exe),
+                    str(EXAMPLES / "bias_scale.c"), "-lm"], check=True)
+    contract = EXAMPLES / "contract_c.toml"
+    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "2",
+                         "--fit-cmd", f"{exe} fit {{params}} {{inputs}}",
+                         "--apply-cmd", f"{exe} apply {{params}} {{input}} {{output}}"], capsys)
+    assert rc == 0, out + err
+    wrong = EXAMPLES / "wrong_calibrator.py"
+    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "2",
+                         "--fit-cmd", f"{PY} {wrong} fit {{params}} {{inputs}}",
+                         "--apply-cmd", f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign"], capsys)
+    assert rc == 1 and "max_ratio_to_none" in out, out + err
