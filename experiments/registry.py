@@ -24,6 +24,7 @@ EXPERIMENTS: dict[str, str] = {
     "ablation": "experiments.ablation:run",
     "cutoffs": "experiments.cutoffs:run",
     "close_the_loop": "experiments.close_the_loop:run",
+    "twin": "experiments.twin:run",
 }
 
 

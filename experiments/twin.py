@@ -350,18 +350,17 @@ _DETERMINISTIC_SKIP = {"bias_thermal", "scale_thermal"}  # need t0/range the loo
 
 def _loop_params(table: Mapping) -> dict:
     """LoopResult.params (``{effect: {"name[i]": [value, se]}}``) -> PARAM_SCHEMA arrays."""
-    from gyrocore.effects import PARAM_SCHEMA
-
     out = {}
     for eff, entries in table.items():
-        if eff not in PARAM_SCHEMA or eff in _DETERMINISTIC_SKIP or eff == "earth_rate":
+        schema = _schema(eff)
+        if schema is None or eff in _DETERMINISTIC_SKIP or eff == "earth_rate":
             continue
         arrs: dict[str, np.ndarray] = {}
         for key, (val, _se) in entries.items():
             name, _, idx = key.partition("[")
-            if name not in PARAM_SCHEMA[eff]:
+            if name not in schema:
                 continue
-            shape = PARAM_SCHEMA[eff][name]
+            shape = schema[name]
             a = arrs.setdefault(name, np.zeros(shape))
             v = float(val) if np.isfinite(val) else 0.0
             if idx:
@@ -369,9 +368,25 @@ def _loop_params(table: Mapping) -> dict:
                 a[ij] = v
             else:
                 arrs[name] = np.asarray(v)
-        if set(arrs) == set(PARAM_SCHEMA[eff]):
+        if set(arrs) == set(schema):
             out[eff] = arrs
     return out
+
+
+def _schema(name: str):
+    """Parameter schema of a catalogue effect or (once the effect registry is on main) of a
+    family instance such as ``periodic[37.5]`` / ``step[9.47]``; None when unknown."""
+    from gyrocore import effects as E
+
+    if name in E.PARAM_SCHEMA:
+        return E.PARAM_SCHEMA[name]
+    resolve = getattr(E, "resolve", None)
+    if resolve is None:
+        return None
+    try:
+        return dict(resolve(name).schema)
+    except Exception:  # noqa: BLE001 - an unknown name is simply not replayed
+        return None
 
 
 def _inputs(rec: Recording, ref: Reference, rate_hz: float):
@@ -684,7 +699,7 @@ def _extra_noise(model: TwinModel, rng_seed: int, n: int) -> tuple[np.ndarray, n
     if "reference_angle_noise" in model.extra:
         s = np.asarray(model.extra["reference_angle_noise"]["sigma_rad"], float)
         ref_noise = effect_rng(rng_seed, "twin/reference_angle_noise").standard_normal((n, 3)) * s[None, :]
-    if "periodic" in model.extra:
+    if model.extra.get("periodic"):
         t = np.arange(n) / r
         for fz, c in model.extra["periodic"].items():
             c = np.asarray(c, float)
@@ -737,10 +752,16 @@ def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray
 
 
 def replica_statistics(model: TwinModel, rec: Recording, ref: Reference, layout: StatLayout, *,
-                       n_replicas: int, seed: int) -> list[dict]:
-    """Statistics of ``n_replicas`` replicas, seeds ``SeedSequence(seed).spawn(n_replicas)``."""
+                       n_replicas: int, seed: int, det_err: np.ndarray | None = None) -> list[dict]:
+    """Statistics of ``n_replicas`` replicas, seeds ``SeedSequence(seed).spawn(n_replicas)``.
+
+    ``det_err`` (default: :func:`model_error` of ``model``) is what is taken off every error
+    signal; the closing step keeps the one of the model as given, so that the real error signal
+    is the same before and after and a term added by the closing is simulated, not subtracted.
+    """
     truth = _truth(rec, ref, model.rate_hz)
-    det_err = model_error(model, rec, ref)
+    if det_err is None:
+        det_err = model_error(model, rec, ref)
     children = np.random.SeedSequence(seed).spawn(n_replicas)
     out = []
     R_ref = None
@@ -1005,24 +1026,31 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
     e_sig = rec.gyro_rad_s - (E.deterministic(det, inp) if det else 0.0)
     x = _span_concat(e_sig, ref.spans)
     failed = {n for n, ok in cmp.passed.items() if not ok}
+    lines_found = False
     if "psd" in failed:
         lines = _lines(e_sig, ref.spans, rate)
+        lines_found = bool(lines)
         if lines:
             t = inp.t_s
-            extra.setdefault("periodic", {})
+            extra["periodic"] = {}
             for fz in lines:
                 cov = np.zeros(rec.n, bool)
                 for a, b in ref.spans:
                     cov[a:b] = True
                 A = np.column_stack([np.cos(2 * np.pi * fz * t[cov]), np.sin(2 * np.pi * fz * t[cov]), np.ones(cov.sum())])
                 coef, *_ = np.linalg.lstsq(A, e_sig[cov], rcond=None)
-                extra["periodic"][f"{fz:.6g}"] = coef[:2]  # (2, 3): a_cos, a_sin per axis
+                fam = f"periodic[{fz:.6g}]"
+                if _schema(fam) is not None:  # the effect registry simulates it
+                    params[fam] = {"a_cos_rad_s": coef[0], "a_sin_rad_s": coef[1]}
+                    sources[fam] = "closing: a line of the real PSD, least squares on the covered spans"
+                else:
+                    extra["periodic"][f"{fz:.6g}"] = coef[:2]  # (2, 3): a_cos, a_sin per axis
                 e_sig = e_sig - (np.cos(2 * np.pi * fz * t)[:, None] * coef[0][None, :]
                                  + np.sin(2 * np.pi * fz * t)[:, None] * coef[1][None, :])
                 added.append(f"line periodic[{fz:.4g}] amplitude "
                              + ", ".join(f"{np.hypot(*coef[:2, i]):.3g}" for i in range(3)) + " rad/s")
         x = _span_concat(e_sig, ref.spans)
-    if failed & {"adev", "window_acf"} or ("psd" in failed and "periodic" not in extra):
+    if failed & {"adev", "window_acf"} or ("psd" in failed and not lines_found):
         lsb = float(params["quantization"]["lsb_rad_s"]) if "quantization" in params else 0.0
         fit = fit_noise_family(e_sig, ref.spans, rate, lsb_rad_s=lsb)
         old = {k: np.asarray(v.get(list(v)[0]), float) for k, v in params.items() if k in ("arw", "bias_instability", "rrw")}
@@ -1156,7 +1184,8 @@ def twin(rec: Recording, *, segments: Sequence = (), params_file: str | None = N
     if close and not all(before.passed.values()):
         model_after, added = close_twin(model, rec, ref, before)
         if added:
-            reps2 = replica_statistics(model_after, rec, ref, layout, n_replicas=n_replicas, seed=seed + 1)
+            reps2 = replica_statistics(model_after, rec, ref, layout, n_replicas=n_replicas, seed=seed + 1,
+                                       det_err=model_error(model, rec, ref))
             after = compare(real, reps2, alpha=alpha, seed=seed + 1)
         else:
             model_after = None
@@ -1212,10 +1241,22 @@ def _row(name: str, cmd: str, r: TwinResult) -> list:
             cell(r.after), f"{r.after.twin_distance:.3f}" if r.after is not None else "—", f"`{cmd}`"]
 
 
+#: The real data beside the checkout (as tests/conftest.py's ``shared_data``).
+DATA_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+#: ``--quick``: two small sets only.
+QUICK_SETS = ("tomisuarez2 static 449 s", "imucal Ferraris session")
+
+
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        data_dir: str = "../shared/data", replicas: int | None = None, names: Sequence[str] | None = None,
+        data_dir: str | None = None, replicas: int | None = None, names: Sequence[str] | None = None,
         seed: int = 0, **_ignored):
-    """The twin on every real set of :data:`SETS` found under ``data_dir`` (one setting for all)."""
+    """The twin on every real set of :data:`SETS` found under ``data_dir`` (one setting for all).
+
+    ``quick``: 39 replicas on :data:`QUICK_SETS` only. Sets whose files are absent are skipped.
+    """
+    if names is None and quick:
+        names = QUICK_SETS
+    data_dir = DATA_DIR if data_dir is None else data_dir
     from experiments.report import ExperimentResult, md_table
     from gyrocore.recording import atomic_write_text
 
@@ -1237,6 +1278,10 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         figures += plot_twin(r, out, prefix=f"twin_{slug}")
         rows.append(_row(name, f"gyroharness twin {rel} --replicas {n_rep} -o out/twin_{slug} --json", r))
         summary[name] = r.to_json()
+    if not rows:
+        md = [f"No real set found under {data_dir}: nothing to twin."]
+        return ExperimentResult(name="twin", title="Digital twin of the real sensors", markdown="\n".join(md),
+                                figures=(), summary={}, wall_s=_time.time() - t_start)
     md = [f"Replicas: {n_rep} per set, seed {seed}; band k = {max(1, int(0.025 * (n_rep + 1)))}; "
           f"α = {ALPHA} family-wise over the statistics.", "",
           md_table(["set", "statistics as given (in-band fraction)", "distance", "added", "after", "distance after",
