@@ -373,6 +373,60 @@ def _loop_params(table: Mapping) -> dict:
     return out
 
 
+_FAMILY_FALLBACK = {"periodic": {"a_cos_rad_s": (3,), "a_sin_rad_s": (3,)}, "step": {"size_rad_s": (3,)}}
+
+
+def _family(name: str) -> tuple[str, float] | None:
+    """(family, argument) of ``periodic[f]`` / ``step[t_s]`` names, else None."""
+    for fam in _FAMILY_FALLBACK:
+        if name.startswith(fam + "[") and name.endswith("]"):
+            try:
+                return fam, float(name[len(fam) + 1:-1])
+            except ValueError:
+                return None
+    return None
+
+
+def _simulated_by_sim(name: str) -> bool:
+    """True when SyntheticGyro itself injects ``name`` (catalogue, or a registry family)."""
+    from gyrocore import effects as E
+
+    if name in E.PARAM_SCHEMA:
+        return True
+    resolve = getattr(E, "resolve", None)
+    if resolve is None:
+        return False
+    try:
+        resolve(name)
+        return True
+    except Exception:  # noqa: BLE001
+        return False
+
+
+def _family_values(name: str, pd: Mapping, t_s: np.ndarray) -> np.ndarray:
+    """The twin's own forward term of a family instance (used until the effect registry is on
+    main; same definitions as the registry contract in BRIEFING.md): periodic[f] =
+    a_cos·cos(2πf t) + a_sin·sin(2πf t), step[t_s] = size·(t ≥ t_s), per axis, rad/s (N, 3)."""
+    fam, arg = _family(name)
+    t = np.asarray(t_s, float)[:, None]
+    if fam == "periodic":
+        w = 2 * np.pi * arg * t
+        return np.cos(w) * np.asarray(pd["a_cos_rad_s"])[None] + np.sin(w) * np.asarray(pd["a_sin_rad_s"])[None]
+    return (t >= arg) * np.asarray(pd["size_rad_s"], float)[None]
+
+
+def _deterministic(det: Mapping, inp) -> np.ndarray:
+    """gyrocore.effects.deterministic of ``det`` plus the twin's own family terms (rad/s, (N, 3))."""
+    from gyrocore import effects as E
+
+    own = {e: p for e, p in det.items() if not _simulated_by_sim(e)}
+    cat = {e: p for e, p in det.items() if e not in own}
+    y = E.deterministic(cat, inp) if cat else np.array(inp.omega_S_rad_s, float)
+    for e, p in own.items():
+        y = y + _family_values(e, p, inp.t_s)
+    return y
+
+
 def _schema(name: str):
     """Parameter schema of a catalogue effect or (once the effect registry is on main) of a
     family instance such as ``periodic[37.5]`` / ``step[9.47]``; None when unknown."""
@@ -381,19 +435,22 @@ def _schema(name: str):
     if name in E.PARAM_SCHEMA:
         return E.PARAM_SCHEMA[name]
     resolve = getattr(E, "resolve", None)
-    if resolve is None:
-        return None
-    try:
-        return dict(resolve(name).schema)
-    except Exception:  # noqa: BLE001 - an unknown name is simply not replayed
-        return None
+    if resolve is not None:
+        try:
+            return dict(resolve(name).schema)
+        except Exception:  # noqa: BLE001 - an unknown name is simply not replayed
+            return None
+    fam = _family(name)
+    return _FAMILY_FALLBACK[fam[0]] if fam else None
 
 
 def _inputs(rec: Recording, ref: Reference, rate_hz: float):
     from gyrocore.effects import ModelInputs
 
     n = rec.n
-    t = np.arange(n) / rate_hz
+    # uniform clock at the mean rate, from the recording's first time stamp (the loop's family
+    # terms, periodic[f] and step[t_s], use absolute time)
+    t = float(rec.t_s[0]) + np.arange(n) / rate_hz
     f = rec.accel_m_s2 if rec.accel_m_s2 is not None else np.tile([0.0, 0.0, 9.80665], (n, 1))
     temp = rec.temp_c if rec.temp_c is not None else np.full(n, 25.0)
     return ModelInputs(t_s=t, omega_S_rad_s=ref.omega_S_rad_s, f_S_m_s2=np.asarray(f, float),
@@ -446,9 +503,9 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
                 loop_result = run_loop(rec, declared=["bias"], segments=list(segments))
         lp = _loop_params(loop_result.params)
         params.update(lp)
+        found = list(loop_result.found_effects) + [u.effect for u in getattr(loop_result, "unexplained", ())]
         for e in lp:
-            sources[e] = "residual loop (declared bias" + (f"; found {', '.join(loop_result.found_effects)}"
-                                                           if loop_result.found_effects else "") + ")"
+            sources[e] = "residual loop (declared bias" + (f"; found {', '.join(found)}" if found else "") + ")"
         skipped = [e for e in loop_result.params if e not in lp]
         if skipped:
             notes.append(f"loop terms not replayed: {', '.join(skipped)}")
@@ -475,8 +532,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
     else:
         inp = _inputs(rec, ref, rate)
         det = {e: p for e, p in params.items() if e not in ("quantization",)}
-        model = E.deterministic(det, inp) if det else np.zeros((rec.n, 3))
-        e_sig = rec.gyro_rad_s - model
+        e_sig = rec.gyro_rad_s - _deterministic(det, inp)
         x = _span_concat(e_sig, ref.spans)
         sub = Recording(t_s=np.arange(x.shape[0]) / rate, gyro_rad_s=x, meta={})
         with warnings.catch_warnings():
@@ -586,9 +642,7 @@ def model_error(model: "TwinModel", rec: Recording, ref: Reference) -> np.ndarra
     from gyrocore import effects as E
 
     det = {e: p for e, p in model.params.items() if e not in E.STOCHASTIC and e not in ("quantization", "saturation", "lowpass")}
-    if not det:
-        return np.zeros((rec.n, 3))
-    return E.deterministic(det, _inputs(rec, ref, model.rate_hz)) - ref.omega_S_rad_s
+    return _deterministic(det, _inputs(rec, ref, model.rate_hz)) - ref.omega_S_rad_s
 
 
 def _acf(series: list[np.ndarray], lags: int) -> np.ndarray:
@@ -684,11 +738,12 @@ def _truth(rec: Recording, ref: Reference, rate_hz: float):
                  power_up_index=np.zeros(n, int))
 
 
-def _extra_noise(model: TwinModel, rng_seed: int, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+def _extra_noise(model: TwinModel, rng_seed: int, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """The twin's own terms (:attr:`TwinModel.extra`) for one replica: (rate noise (N, 3) rad/s,
     reference angle noise (N, 3) rad or None). ``heavy_tails`` is applied in :func:`_replica`."""
     from sim.noise import effect_rng
 
+    n = int(np.asarray(t_s).shape[0])
     extra = np.zeros((n, 3))
     ref_noise = None
     r = model.rate_hz
@@ -700,7 +755,7 @@ def _extra_noise(model: TwinModel, rng_seed: int, n: int) -> tuple[np.ndarray, n
         s = np.asarray(model.extra["reference_angle_noise"]["sigma_rad"], float)
         ref_noise = effect_rng(rng_seed, "twin/reference_angle_noise").standard_normal((n, 3)) * s[None, :]
     if model.extra.get("periodic"):
-        t = np.arange(n) / r
+        t = np.asarray(t_s, float)
         for fz, c in model.extra["periodic"].items():
             c = np.asarray(c, float)
             w = 2 * np.pi * float(fz) * t
@@ -712,7 +767,8 @@ def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray
     from sim.gyro import SyntheticGyro
     from sim.noise import effect_rng
 
-    params = {e: dict(p) for e, p in model.params.items()}
+    params = {e: dict(p) for e, p in model.params.items() if _simulated_by_sim(e)}
+    own = {e: p for e, p in model.params.items() if not _simulated_by_sim(e)}
     nu = None
     N_white = None
     if ("heavy_tails" in model.extra or "noise_lowpass" in model.extra) and "arw" in params:
@@ -722,7 +778,9 @@ def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray
         nu = np.asarray(model.extra["heavy_tails"]["nu"], float)
     g = SyntheticGyro(_spec(model.rate_hz), rate_hz=model.rate_hz, seed=seed, overrides=params)
     n = truth.n
-    extra, ref_noise = _extra_noise(model, seed, n)
+    extra, ref_noise = _extra_noise(model, seed, truth.t_s)
+    for e, p in own.items():  # family terms the simulator does not know yet (registry not on main)
+        extra = extra + _family_values(e, p, truth.t_s)
     if N_white is not None:
         if nu is not None:
             # Student-t white rate noise with the identified variance: t_ν·sqrt((ν−2)/ν)·N·sqrt(rate)
@@ -1023,7 +1081,7 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
     from gyrocore import effects as E
 
     det = {e: p for e, p in params.items() if e not in E.STOCHASTIC and e != "quantization"}
-    e_sig = rec.gyro_rad_s - (E.deterministic(det, inp) if det else 0.0)
+    e_sig = rec.gyro_rad_s - _deterministic(det, inp)
     x = _span_concat(e_sig, ref.spans)
     failed = {n for n, ok in cmp.passed.items() if not ok}
     lines_found = False
