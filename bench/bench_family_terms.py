@@ -2,13 +2,16 @@
 
 Run: ``python bench/bench_family_terms.py [--hover-s 10] [--repeat 3]`` (prints one table).
 
-A :class:`sim.gyro.GyroStream` with a family term has no numba kernel: ``fly_hover`` takes
-its Python loop and the term runs as one generic per-step call (the batch path's numpy term
-on a one-sample input; bit-identical to ``SyntheticGyro.measure``). Three flights of the same
-unit (ICM-42688-P preset, physics and gyro 1 kHz, vibration on), side by side in one run:
-(a) the preset's catalogue effects on the compiled kernels, (b) the same on the Python loop
-(``sim.quadrotor.USE_COMPILED = False``), (c) (a) plus ``periodic[37.5]`` (Python loop, by
-necessity). (b)/(a) is the price of leaving the kernels, (c)/(b) the family term's own.
+Family terms of time alone (periodic, step, ``regressor[t]``) are tabulated before the flight
+and added by the numba kernels; any other family term (of the rate, the specific force, the
+temperature) sends ``fly_hover`` to its Python loop, where the term is one generic per-step
+call (the batch path's numpy term on a one-sample input; bit-identical to
+``SyntheticGyro.measure`` either way). Four flights of the same unit (ICM-42688-P preset,
+physics and gyro 1 kHz, vibration on), side by side in one run: (a) the preset's catalogue
+effects on the compiled kernels, (b) (a) plus ``periodic[37.5]`` (compiled, tabulated),
+(c) the catalogue on the Python loop (``sim.quadrotor.USE_COMPILED = False``), (d) (a) plus
+``regressor[omega_x*f_z]`` (Python loop, by necessity). (c)/(a) is the price of leaving the
+kernels, (d)/(c) the per-step family call's own.
 Best of ``--repeat``, CPU time of this process (steadier than wall time on a shared machine).
 """
 
@@ -21,6 +24,7 @@ from sim import quadrotor as Q
 from sim.gyro import SyntheticGyro
 
 TERM = {"periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, 0.0]}}
+RATE_TERM = {"regressor[omega_x*f_z]": {"coef": [0.0, 1e-3, 0.0]}}
 
 
 def _fly(overrides: dict, compiled: bool, hover_s: float) -> tuple[float, float]:
@@ -41,8 +45,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
     _fly({}, True, 1.0)  # load the numba kernels once (not timed)
-    cases = (("(a) catalogue, compiled kernels", {}, True), ("(b) catalogue, Python loop", {}, False),
-             ("(c) catalogue + periodic[37.5]", TERM, True))
+    cases = (("(a) catalogue, compiled kernels", {}, True), ("(b) + periodic[37.5], compiled", TERM, True),
+             ("(c) catalogue, Python loop", {}, False), ("(d) + regressor[omega_x*f_z], Python", RATE_TERM, True))
     best = {}
     for _ in range(a.repeat):
         for label, ov, comp in cases:

@@ -39,7 +39,9 @@ from numba.extending import intrinsic
  # integers
  A_RQ0, A_RV0, A_NSD, A_SGYRO, A_SACC, A_SQ, A_SPOS, A_SVEL, A_OUTER_EVERY, A_N, A_NMAN, A_STREAM,
  A_EARTH, A_TAU, A_STH_P, A_ASYM, A_NL, A_BIAS, A_BTH_P, A_KTR, A_RAMP, A_H, A_G, A_LP, A_SAT, A_Q,
- A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_ARMED, A_SIZE) = range(53)
+ A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_ARMED,
+ # registry family terms of time only, precomputed (n, 3·A_NFAM) (sim.gyro.GyroStream.family_table)
+ A_FAM, A_NFAM, A_SIZE) = range(55)
 
 
 def _layout(*fields):
@@ -319,6 +321,15 @@ def _log_and_gyro(k, A, W):
         a0 = a0 + (ff0 * W[G] + ff1 * W[G + 1] + ff2 * W[G + 2] + ff3 * W[G + 3] + ff4 * W[G + 4] + ff5 * W[G + 5])
         a1 = a1 + (ff0 * W[G + 6] + ff1 * W[G + 7] + ff2 * W[G + 8] + ff3 * W[G + 9] + ff4 * W[G + 10] + ff5 * W[G + 11])
         a2 = a2 + (ff0 * W[G + 12] + ff1 * W[G + 13] + ff2 * W[G + 14] + ff3 * W[G + 15] + ff4 * W[G + 16] + ff5 * W[G + 17])
+    m = A[A_NFAM]
+    if m > 0:
+        # registry family terms (gyrocore.effects: periodic, step, regressor[t]), each added
+        # in model order as GyroStream's generic per-step call adds it
+        fam = _f2(A[A_FAM], n, 3 * m)
+        for j in range(m):
+            a0 = a0 + fam[k, 3 * j]
+            a1 = a1 + fam[k, 3 * j + 1]
+            a2 = a2 + fam[k, 3 * j + 2]
     x0 = y0 + a0
     x1 = y1 + a1
     x2 = y2 + a2
@@ -742,6 +753,10 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
             A[A_LP] = 1
             W[W_LPV:W_LPV + 5] = S._lp
             W[W_ZI:W_ZI + 2] = [float(v) for v in S._lp_zi]
+        if S._fam:
+            fam = np.ascontiguousarray(S.family_table(t_s, W[W_T_PU]))
+            keep.append(fam)
+            A[A_FAM], A[A_NFAM] = _addr(fam), len(S._fam)
         if S._sat is not None:
             A[A_SAT], W[W_SATV] = 1, S._sat
         if S._q is not None:

@@ -393,9 +393,10 @@ class GyroStream:
     truth), ``regressor`` terms of the rate derivative ``alpha_*`` (a central difference, it
     needs the next sample), and ``bias_temp_rate`` (or a ``dtemp_dt`` term) without the
     temperature trajectory given up front. Registry family terms run through a generic
-    per-step call (the batch path's numpy term on a one-sample input), so
-    :func:`sim.quadrotor.fly_hover` takes its Python loop, not the compiled kernels, when
-    the gyro has one.
+    per-step call (the batch path's numpy term on a one-sample input); in
+    :func:`sim.quadrotor.fly_hover`'s compiled kernels, terms of time alone (periodic, step,
+    ``regressor[t]``) are tabulated before the flight (:meth:`family_table`), and a gyro with
+    any other family term flies the Python loop.
     """
 
     def __init__(self, gyro: SyntheticGyro, n_samples: int, *, t_power_up_s=None, t_s=None, temp_c=None) -> None:
@@ -484,6 +485,24 @@ class GyroStream:
         self._q = float(P["quantization"]["lsb_rad_s"]) if "quantization" in P else None
         #: step(k, t_s, omega_S, f_S, temp_c, q_SW_wxyz=None) -> ndarray (3,), generated code
         self.step = self._compile()
+
+    @property
+    def families_time_only(self) -> bool:
+        """Every family term depends on time alone (periodic, step, regressor[t]): they can be
+        tabulated before the flight (:meth:`family_table`), which the compiled hover kernels use."""
+        return all(set(eff.inputs) <= {"t"} for eff, _ in self._fam)
+
+    def family_table(self, t_s: np.ndarray, t_power_up_s: float) -> np.ndarray:
+        """The time-only family terms on the whole time base, (n, 3·m) in model order.
+
+        The same numpy term as the batch path and :meth:`_family_step` (elementwise, so each
+        row has the same bits as the one-sample call)."""
+        if not self.families_time_only:
+            raise GyroInputError("family_table: a family term depends on more than time")
+        t = np.asarray(t_s, float)
+        inp = ModelInputs(t_s=t, t_since_power_up_s=t - float(t_power_up_s))
+        cols = [np.asarray(eff.term(pd, inp, None), float) for eff, pd in self._fam]
+        return np.concatenate(cols, axis=1) if cols else np.zeros((t.shape[0], 0))
 
     def _family_step(self, eff, pd):
         """Per-step evaluation of one family term: (k, t, w0, w1, w2, f_S, temp_c) -> (u0, u1, u2)."""

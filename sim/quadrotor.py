@@ -247,8 +247,8 @@ def _compiled_path(gyro, n: int) -> bool:
         return True
     from .gyro import GyroStream
 
-    # registry family terms (periodic/step/regressor) have no compiled kernel: Python loop
-    return type(gyro) is GyroStream and gyro._k_next == 0 and gyro.n >= n and not gyro._fam
+    # registry family terms: the kernels add those of time alone from a table; others fly the Python loop
+    return type(gyro) is GyroStream and gyro._k_next == 0 and gyro.n >= n and gyro.families_time_only
 
 
 def _fly_compiled(model, data, *, gyro, filt, n, m_per, rq0, rv0, sens, rotor_k, spin, ff, ct, ctl, t_s, temp,

@@ -288,7 +288,8 @@ def _assert_same_flight(a, b) -> None:
 
 
 @pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating",
-                                  "heater", "ground_all_effects_pt1", "ground_preset_no_pipeline_500hz"])
+                                  "heater", "ground_all_effects_pt1", "ground_preset_no_pipeline_500hz",
+                                  "family_terms_of_time"])
 def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     # sim._fast transcribes rotor forces, GyroStream's generated code and the controller
     # operation by operation (libm cos/sin, IEEE sqrt, no FMA): the flights must agree in every
@@ -310,6 +311,9 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
         if case == "ground_preset_no_pipeline_500hz":  # kernel entry without a pipeline, m = 2
             return fly_hover(duration_s=1.5, ground_s=0.3, seed=4, gyro_rate_hz=500.0,
                              gyro=SyntheticGyro("icm42688p", rate_hz=500.0, seed=4))
+        if case == "family_terms_of_time":  # registry terms of time alone: tabulated for the kernels
+            g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=7, overrides=FAMILY_OF_TIME)
+            return fly_hover(duration_s=1.0, seed=7, gyro=g, pipeline=pt1(30.0, 1000.0))
         if case == "perfect_gyro_500hz":
             return fly_hover(duration_s=1.0, seed=5, gyro_rate_hz=500.0, manoeuvres=small_steps(1.0))
         if case == "motor_heating":  # the die temperature streamed from the rotor power, thermal effects on
@@ -336,6 +340,30 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     slow = run()
     assert calls == [1]
     _assert_same_flight(fast, slow)
+
+
+FAMILY_OF_TIME = {"periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, -0.004], "a_sin_rad_s": [0.0, 0.003, 0.0]},
+                  "step[0.4]": {"size_rad_s": [0.02, 0.0, 0.0]}, "regressor[t]": {"coef": [0.0, 1e-3, 0.0]}}
+
+
+@pytest.mark.parametrize("extra", [{}, {"regressor[omega_x*f_z]": {"coef": [0.0, 1e-3, 0.0]}}])
+def test_family_terms_in_the_loop_are_the_batch_measurement(extra, monkeypatch):
+    # time-only family terms ride the compiled kernels (a table built before the flight); a term
+    # of the rate or the specific force sends the flight to the Python loop (generic per-step
+    # call). Either way the controller's gyro is SyntheticGyro.measure on the flight's truth.
+    import sim.quadrotor as Q
+    from sim.gyro import SyntheticGyro
+
+    calls = []
+    compiled = Q._fly_compiled
+    monkeypatch.setattr(Q, "_fly_compiled", lambda *a, **kw: calls.append(1) or compiled(*a, **kw))
+    ov = {**FAMILY_OF_TIME, **extra}
+    stream = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=8, overrides=ov).stream(800)
+    truth, log = fly_hover(duration_s=0.8, gyro=stream, seed=8)
+    assert calls == ([] if extra else [1])
+    want = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=8, overrides=ov).measure(truth).gyro_rad_s
+    np.testing.assert_array_equal(want, log.gyro_meas_rad_s)
+    np.testing.assert_array_equal(stream.gyro_rad_s, log.gyro_meas_rad_s)
 
 
 def test_compiled_all_effects_gyro_is_the_batch_measurement():
