@@ -36,6 +36,7 @@ echo
 
 if [[ $QUICK == 1 ]]; then
     run bench/bench_sim.py --hover-s 5 --repeat 1
+    run bench/bench_family_terms.py --hover-s 3 --repeat 1
     run bench/bench_allan.py --n 1000000 --repeat 1
     run bench/bench_attitude.py --n 1000000 --loop-n 100000
     run bench/bench_efficiency.py --instances 40
@@ -43,6 +44,7 @@ if [[ $QUICK == 1 ]]; then
     run bench/bench_memory.py --duration-s 300 --compare-duration-s 100
 else
     run bench/bench_sim.py
+    run bench/bench_family_terms.py
     run bench/bench_allan.py
     run bench/bench_attitude.py
     run bench/bench_efficiency.py --instances 200
