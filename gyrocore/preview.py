@@ -252,3 +252,45 @@ def betaflight_cli(row: dict, version: tuple | None) -> list[str]:
         else:
             out.append(f"set gyro_notch{i + 1}_hz = 0")
     return out
+
+
+#: Betaflight's RPM filter notch Q: ``rpm_filter_q`` / ``gyro_rpm_notch_q`` default 500, used as
+#: Q = value/100 (src/main/flight/rpm_filter.c: ``rpmFilterConfig->rpm_filter_q / 100.0f``).
+RPM_NOTCH_Q = 5.0
+
+
+def preview_tracking(f_hz: np.ndarray, band_psd: np.ndarray, band_weights: np.ndarray, base: Candidate,
+                     track_hz: np.ndarray, *, reliable_below_hz: float, omega_rms_rad_s: float, loop_scale: float = 1.0,
+                     rate_hz: float, q: float = RPM_NOTCH_Q, lines: Sequence[dict] = ()) -> dict:
+    """An RPM-tracking notch (Betaflight's RPM filter, one harmonic) on top of ``base``.
+
+    The notch centre follows the line: in throttle band b it sits at ``track_hz[b, l]`` for
+    each tracked line l (NaN: no notch in that band, e.g. below rpm_filter_min_hz). Each band's
+    spectrum ``band_psd[b]`` (raw domain) is filtered by the chain of that band; the scores
+    combine the bands with ``band_weights`` (their share of the airborne windows): noise
+    powers add with the weights, delay is the weighted mean.
+    """
+    rows = []
+    for b in range(band_psd.shape[0]):
+        st = list(base.stages)
+        for f0 in np.atleast_1d(track_hz[b]):
+            if np.isfinite(f0) and f0 < rate_hz / 2:
+                st.append(_stage("notch", f0, rate_hz, q=q, notch_cutoff_hz=float("nan")))
+        c = Candidate(base.name, tuple(st), family=base.family, lowpass=base.lowpass, cutoff_hz=base.cutoff_hz)
+        rows.append(preview(f_hz, band_psd[b], c, reliable_below_hz=reliable_below_hz, omega_rms_rad_s=omega_rms_rad_s,
+                            loop_scale=loop_scale, lines=lines))
+    w = np.asarray(band_weights, float) / np.sum(band_weights)
+    tau_ms = float(np.sum(w * [r["delay_ms"] for r in rows]))
+    motor = float(np.sqrt(np.sum(w * np.array([r["motor_noise"] for r in rows]) ** 2)))
+    gn = {a: float(np.sqrt(np.sum(w * np.array([r["gyro_noise_rad_s"][a] for r in rows]) ** 2))) for a in "xyz"}
+    th_v = float(np.sqrt(np.sum(w * np.radians([r["attitude_cost_vibration_deg"] for r in rows]) ** 2)))
+    th_d = tau_ms * 1e-3 * omega_rms_rad_s
+    after = np.nansum(w[:, None, None] * np.array([r["psd_after"] for r in rows]), axis=0)
+    name = base.name + f" + RPM notch (Q {q:g})"
+    return {"name": name, "family": "betaflight", "filter": base.lowpass, "cutoff_hz": base.cutoff_hz, "notches_hz": [],
+            "rpm_notch": {"q": q, "tracks_hz": np.asarray(track_hz, float).tolist()},
+            "stages": list(base.stages), "delay_ms": tau_ms,
+            "phase_deg_at_hz": [float(np.sum(w * [r["phase_deg_at_hz"][0] for r in rows])), rows[0]["phase_deg_at_hz"][1]],
+            "gyro_noise_rad_s": gn, "motor_noise": motor, "attitude_cost": float(np.degrees(math.hypot(th_d, th_v))),
+            "attitude_cost_delay_deg": float(np.degrees(th_d)), "attitude_cost_vibration_deg": float(np.degrees(th_v)),
+            "lines_left": [], "psd_after": after}

@@ -114,7 +114,9 @@ def undo_response(stages: Sequence[dict], f_hz: np.ndarray, *, loop_scale: float
         H2 *= flt.response(f_hz).magnitude ** 2
         done.append(dict(s, undone=True))
     reliable = float(f_hz[-1]) if f_hz.size else float("nan")
-    if flts and log_rate_hz:
+    # folding: only where a filter ran faster than the log (decimation without anti-aliasing);
+    # a filter at the logged rate has no image (its response is periodic in that rate)
+    if flts and log_rate_hz and any(flt.rate_hz > 1.01 * log_rate_hz for flt in flts):
         img = np.clip(log_rate_hz - f_hz, 0.0, None)
         Himg = np.ones_like(f_hz)
         for flt in flts:

@@ -24,6 +24,8 @@ _KEYS = ("filter", "cutoff_hz", "notches_hz", "attitude_cost", "delay_ms", "moto
 
 def _public(row: dict) -> dict:
     d = {k: row[k] for k in _KEYS}
+    if "rpm_notch" in row:
+        d["rpm_notch"] = row["rpm_notch"]
     d.update({"name": row["name"], "phase_deg_at_hz": row["phase_deg_at_hz"], "gyro_noise_rad_s": row["gyro_noise_rad_s"],
               "attitude_cost_delay_deg": row["attitude_cost_delay_deg"],
               "attitude_cost_vibration_deg": row["attitude_cost_vibration_deg"], "lines_left": row["lines_left"]})
@@ -67,7 +69,30 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
     cands = P.candidates(rate, lines=res.lines, as_flown=as_flown, nyquist_hz=res.rate_hz / 2)
     rows = [P.preview(res.f_hz, res.mean_psd, c, reliable_below_hz=res.reliable_below_hz, omega_rms_rad_s=omega_rms,
                       loop_scale=loop_scale, lines=res.lines) for c in cands]
-    best, budget, src, front = P.recommend(rows)
+    # RPM-tracking notch (needs eRPM telemetry in flight): one notch per moving line, at its
+    # frequency in each throttle band, on top of each low-pass of the grid
+    moving = [ln for ln in res.lines if ln["follows"] in ("throttle", "erpm") and not ln.get("aliased")]
+    if moving and res.band_psd.shape[0] > 1:
+        us = np.array([b["median"] for b in res.bands])
+        track = np.column_stack([ln["law"]["hz_at_zero"] + ln["law"]["hz_per_unit"] * us for ln in moving[:3]])
+        track[track < 100.0] = np.nan  # rpm_filter_min_hz default 100
+        weights = np.array([b["n_windows"] for b in res.bands], float)
+        for c in [c for c in cands if c.family == "betaflight" and c.lowpass in P.LP_KINDS and not c.notches_hz]:
+            rows.append(P.preview_tracking(res.f_hz, res.band_psd, weights, c, track, reliable_below_hz=res.reliable_below_hz,
+                                           omega_rms_rad_s=omega_rms, loop_scale=loop_scale, rate_hz=rate, lines=res.lines))
+        notes.append(f"RPM-tracking notch candidates: Q {P.RPM_NOTCH_Q:g} notches following " + ", ".join(
+            f"{ln['axis']} {ln['frequency_hz']:.0f} Hz" for ln in moving[:3]) + " per throttle band (needs bidirectional DShot / eRPM)")
+    version = tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta else None
+    rpm_rows = [r for r in rows if "rpm_notch" in r]
+    can_rpm = version is None or version >= (4, 0, 0)
+    best, budget, src, front = P.recommend(rows if can_rpm else [r for r in rows if "rpm_notch" not in r])
+    rpm_best = None
+    if rpm_rows:
+        ok_r = [r for r in rpm_rows if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(rpm_rows, key=lambda r: r["motor_noise"])]
+        rpm_best = min(ok_r, key=lambda r: r["attitude_cost"])
+        if not can_rpm:
+            notes.append(f"RPM filter: Betaflight {meta['firmware_version']} has none (4.0+ with bidirectional DShot); "
+                         "its best candidate is reported under 'with_rpm_filter', not recommended")
     by = {r["family"]: r for r in rows}
     # PX4 / ArduPilot: their LPF is a 2nd-order Butterworth; best cutoff under the same budget
     b2 = []
@@ -77,21 +102,27 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
                             loop_scale=loop_scale, lines=res.lines))
     ok = [r for r in b2 if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(b2, key=lambda r: r["motor_noise"])]
     b2best = min(ok, key=lambda r: r["attitude_cost"])
-    moving = [ln for ln in res.lines if ln["follows"] in ("throttle", "erpm") and not ln.get("aliased")]
-    version = None
-    if "firmware_version" in meta:
-        version = tuple(int(x) for x in meta["firmware_version"].split("."))
     ardu = {"INS_GYRO_FILTER": round(b2best["cutoff_hz"])}
     if moving:
         top = max(moving, key=lambda ln: ln["amplitude_rad_s"])
         span = [p["frequency_hz"] for p in top.get("per_band", [])] or [top["frequency_hz"]]
         ardu.update({"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 1, "INS_HNTCH_FREQ": round(min(span)),
                      "INS_HNTCH_BW": round(max(40.0, min(span) / 2))})
+    bf_lines = P.betaflight_cli(best, version)
+    if "rpm_notch" in best:
+        v = version or (4, 5, 0)
+        if v < (4, 0, 0):
+            bf_lines.append("# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)")
+        elif v < (4, 3, 0):
+            bf_lines += ["set dshot_bidir = ON", "set gyro_rpm_notch_harmonics = 1", f"set gyro_rpm_notch_q = {P.RPM_NOTCH_Q * 100:.0f}"]
+        else:
+            bf_lines += ["set dshot_bidir = ON", "set rpm_filter_harmonics = 1", f"set rpm_filter_q = {P.RPM_NOTCH_Q * 100:.0f}"]
     out = {
         "recommended": _public(best),
         "as_flown": _public(by["as_flown"]) if "as_flown" in by else None,
+        "with_rpm_filter": _public(rpm_best) if rpm_best else None,
         "firmware": {
-            "betaflight": P.betaflight_cli(best, version),
+            "betaflight": bf_lines,
             "px4": {"IMU_GYRO_CUTOFF": round(b2best["cutoff_hz"])},
             "ardupilot": ardu,
         },

@@ -163,6 +163,10 @@ def test_cli_on_shared_blackbox(shared_data, tmp_path):
 # ---------------------------------------------------------------- filter recommendation
 def _flown(seed):
     r = _flight(seed)
+    # rigid-body motion of the flight (the delay's attitude cost needs a rate): 1 rad/s at 0.7 Hz
+    g = r.gyro_rad_s.copy()
+    g[:, :2] += 1.0 * np.sin(2 * np.pi * 0.7 * r.t_s)[:, None]
+    r = Recording(t_s=r.t_s, gyro_rad_s=g, meta=r.meta, extra=r.extra)
     meta = dict(r.meta, gyro_filters=json.dumps([{"kind": "pt1", "cutoff_hz": 100.0, "rate_hz": RATE, "dynamic": False,
                                                    "header": "gyro_lowpass_hz"}]))
     return Recording(t_s=r.t_s, gyro_rad_s=r.gyro_rad_s, meta=meta, extra=r.extra)
@@ -185,6 +189,12 @@ def test_filter_recommendation_stable_across_noise_seeds():
         assert r["motor_noise"] <= out["budget"]["motor_noise"] * (1 + 1e-9)
         assert r["attitude_cost"] <= out["as_flown"]["attitude_cost"] + 1e-12
         picks.append((r["name"]))
+        assert r["name"] != "none" and r["delay_ms"] > 0
+        # the tracking notch removes the moving line: for the same motor-noise budget it
+        # allows a lighter low-pass, so less attitude cost than the best static chain
+        rp = out["with_rpm_filter"]
+        assert rp is not None and rp["motor_noise"] <= out["budget"]["motor_noise"] * (1 + 1e-9)
+        assert rp["attitude_cost"] < r["attitude_cost"] or r["name"] == rp["name"]
         assert set(out["firmware"]) == {"betaflight", "px4", "ardupilot"}
         assert any(s.startswith("set gyro_lowpass_type") or s.startswith("set gyro_lpf1_type") for s in out["firmware"]["betaflight"])
     assert len(set(picks)) == 1, picks
