@@ -257,3 +257,36 @@ def test_parameter_schema_view_still_a_dict_of_the_catalogue():
     assert E.PARAM_SCHEMA.get("nope") is None
     with pytest.raises(KeyError):
         E.PARAM_SCHEMA["nope"]
+
+
+@pytest.mark.parametrize("name", [e for e in E.CORRECTABLE])
+def test_catalogue_registry_round_trip(name):
+    """Every correctable catalogue effect: resolve/schema/validate round trip, forward minus its
+    regressors is second order in θ (design is ∂y/∂θ at zero error), and correct inverts it."""
+    eff = E.resolve(name)
+    assert eff.name == name and eff.correctable and E.canonical_name(name) == name
+    inp = _smooth_inputs()
+    inp = E.ModelInputs(t_s=inp.t_s, omega_S_rad_s=inp.omega_S_rad_s, f_S_m_s2=inp.f_S_m_s2, temp_c=inp.temp_c,
+                        q_SW_wxyz=np.tile([0.9, 0.1, -0.3, 0.2], (inp.n, 1)))
+    rng = np.random.default_rng(5)
+    if eff.fittable:
+        order = 2 if eff.polynomial else 1
+        cols, A = E.design(name, inp, order=order)
+        theta = rng.normal(size=len(cols)) * (1e-4 if name != "time_offset" else 1e-3)
+        pd = eff.unflatten(theta, order)
+        if eff.polynomial:
+            pd.update(t0_c=np.asarray(float(np.mean(inp.temp_c))), temp_min_c=np.asarray(-50.0), temp_max_c=np.asarray(150.0))
+    else:  # earth_rate: no regressors (a known input, not fitted)
+        pd = {"latitude_rad": np.asarray(0.8), "heading_rad": np.asarray(0.3)}
+    p = {name: pd}
+    assert set(E.validate_params(p)[name]) == set(eff.schema)
+    y = E.deterministic(p, inp)
+    sl = slice(3, -3) if name == "time_offset" else slice(None)  # the shift holds the edge values
+    if eff.fittable:
+        # linear-in-θ effects exactly; time_offset's shift is linear to O(τ²·|ω''|) ≤ 1e-6·4: 1e-5
+        np.testing.assert_allclose((y - inp.omega_S_rad_s)[sl], (A @ theta)[sl], rtol=0,
+                                   atol=1e-5 if name == "time_offset" else 1e-12)
+    back = E.correct(p, y, E.ModelInputs(t_s=inp.t_s, f_S_m_s2=inp.f_S_m_s2, temp_c=inp.temp_c, q_SW_wxyz=inp.q_SW_wxyz),
+                     iterations=8)
+    # time_offset: two linear interpolations at dt = 5 ms, dt²/4·max|ω''| ≤ 2.5e-5 (see above)
+    np.testing.assert_allclose(back[sl], inp.omega_S_rad_s[sl], rtol=0, atol=2.5e-5 if name == "time_offset" else 1e-12)
