@@ -504,3 +504,25 @@ def test_injected_family_term_is_fitted_saved_and_removed(name, tmp_path):
     term_axes = np.any([np.asarray(v) != 0 for v in ADD_CASES[name].values()], axis=0)
     ms_before = np.mean(e_before**2, axis=0) / SIGMA_ADD**2
     assert np.all(ms_before[term_axes] > 1 + 10 * tol), ms_before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(ADD_CASES))
+def test_family_standard_errors_are_calibrated_over_seeds(name):
+    """Over K independent recordings (runs of the unit), the fitted term's z-scores
+    (θ̂ − θ)/se are N(0, 1) under white noise: Σz² ~ χ²(K·P). Two-sided 1e-4 quantiles of
+    χ²(K·P) bound it (a wrong standard error by 10 % moves Σz²/(K·P) by ±0.2, far outside)."""
+    import scipy.stats
+
+    from gyrocore.model import Calibrator
+
+    K = 40
+    z2, dof = 0.0, 0
+    for run in range(K):
+        res = Calibrator(effects=["bias", name], covariance="ols").fit(_add_recording(name, run=run))
+        for pname, true in ADD_CASES[name].items():
+            z = (res.params[name][pname] - np.asarray(true)) / res.stderr[name][pname]
+            z2 += float(np.sum(z**2))
+            dof += z.size
+    lo, hi = scipy.stats.chi2.ppf([1e-4, 1 - 1e-4], dof)
+    assert lo < z2 < hi, (z2 / dof, lo / dof, hi / dof)
