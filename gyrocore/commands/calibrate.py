@@ -87,6 +87,46 @@ def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str,
     return None
 
 
+def _read_any(path: str):
+    """A DESIGN.md data file (CSV or Parquet), or any set `gyroharness convert` reads (BROAD
+    .hdf5, ULog, ...)."""
+    from ..convert import detect_format, load_with_segments
+    from ..recording import read_recording
+
+    if detect_format(path) in ("csv", "parquet"):
+        return read_recording(path)
+    return load_with_segments(path).recording
+
+
+def _has_attitude(rec) -> bool:
+    q = rec.ref_quat_wxyz
+    return q is not None and int(np.isfinite(q).all(axis=1).sum()) >= 2
+
+
+def _fit_against_attitude(rec, names, path, thermal_order, sensor):
+    """A reference attitude (e.g. optical motion capture) and no reference rate: the residual
+    loop's machinery — attitude increments over windows, the optical attitude never
+    differentiated (gyrocore.residual, reference "attitude") — fits exactly the named effects
+    (no search) and its joint fit is the calibration."""
+    from dataclasses import replace
+
+    from ..errors import GyroInputError
+    from ..loop import FITTABLE as LOOP_FITTABLE, loop_calibration, run_loop
+
+    bad = [e for e in names if e not in LOOP_FITTABLE]
+    if bad:
+        raise GyroInputError(f"against a reference attitude {', '.join(bad)} cannot be fitted "
+                             f"(fittable: {', '.join(LOOP_FITTABLE)})")
+    order = 1 if thermal_order == "auto" else int(thermal_order)
+    r = run_loop(rec, declared=names, candidates=[], reference="attitude", thermal_order=order, open_search=False)
+    res = loop_calibration(r, rec, source_path=path, sensor=sensor, thermal_order=order)
+    notes = list(res.notes) + [f"calibrated against the reference attitude (ref_q*): {r.description}, "
+                               f"{r.n_windows} windows"] + list(r.notes)
+    if thermal_order == "auto" and any(e in names for e in ("bias_thermal", "scale_thermal")):
+        notes.append("thermal order 1 (order selection is not done against an attitude reference)")
+    return replace(res, notes=tuple(notes), method="attitude_reference")
+
+
 @click.command("calibrate")
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment")
@@ -110,8 +150,8 @@ def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str,
 @click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
 def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, thermal_order, covariance,
             px4_params, sensor, force, as_json):
-    """Fit the named effects against the references in FILE (reference rates, known-angle
-    segments, or still parts) and write the parameter file."""
+    """Fit the named effects against the references in FILE (reference rates, a reference
+    attitude, known-angle segments, or still parts) and write the parameter file."""
     from ..effects import check_effect_names
     from ..errors import GyroInputError
     from ..model import Calibrator, result_to_dict, save_params
@@ -131,7 +171,19 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     if (bias_from or bias_dps) and not segments:
         raise GyroInputError("--bias-from/--bias-dps are for the integral method: give --segments too")
     ext = external_bias(bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz)
-    rec = read_recording(file)  # CSV or Parquet, by the file name
+    rec = _read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
+    if not segments and rec.ref_rate_rad_s is None and _has_attitude(rec):
+        res = _fit_against_attitude(rec, names, file, thermal_order, sensor)
+        save_params(res, output, overwrite=True)
+        if px4_params:
+            from ..thermal import write_px4_params
+
+            write_px4_params(px4_params, res.params, overwrite=True)
+        if as_json:
+            emit_json(result_to_dict(res))
+        else:
+            click.echo(report_text(res, output, px4_params))
+        return
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
                      external_bias=ext)
     res = cal.fit(rec, source_path=file)

@@ -45,7 +45,6 @@ def test_terms_and_catalogue_equivalence():
     assert S.catalogue_equivalent("t", 1) == "bias_ramp"
     assert S.catalogue_equivalent("omega_x*temp_c", 0) == "scale_thermal"
     assert S.catalogue_equivalent("omega_y*omega_z", 0) is None
-    assert S.catalogue_equivalent("alpha_x", 0) is None  # a per-axis delay, not the shared time_offset
     with pytest.raises(Exception, match="unknown signal"):
         S.term_factors("omega_q")
 
@@ -222,3 +221,23 @@ def test_cli_validate_bad_input(tmp_path, capsys):
     assert_error(status, err, "no reference in the data: need ref_")
     status, _, err = gh(capsys, "loop", fa, "-o", fa)
     assert_error(status, err, "exists")
+
+
+def test_calibrate_uses_a_reference_attitude(tmp_path, capsys):
+    """calibrate on a file with ref_q* and no reference rate fits against the attitude (the
+    loop's attitude increments), not against a still part (there is none: it tumbles)."""
+    from tests.gyrocore.test_bad_input import gh
+
+    rec = synthetic_recording({"bias": effect_params("bias"), "scale": effect_params("scale")}, seed=38,
+                              duration_s=DUR_S, rate_hz=RATE_HZ, with_quat=True)
+    f = tmp_path / "att.csv"
+    write_csv(replace(rec, ref_rate_rad_s=None), f)
+    out = tmp_path / "p.json"
+    status, stdout, err = gh(capsys, "calibrate", f, "--effects", "bias,scale", "-o", out, "--json")
+    assert status == 0, err
+    js = json.loads(stdout)
+    assert js["method"] == "attitude_reference"
+    s = np.asarray(js["parameters"]["scale"]["s"])
+    se = np.asarray(js["standard_errors"]["scale"]["s"])
+    # within 5 HAC σ plus the first-order linearisation's |s|² ≈ 2.5e-5 (test_loop's bound)
+    assert np.all(np.abs(s - effect_params("scale")["s"]) < 5 * se + 3e-5)
