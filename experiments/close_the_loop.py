@@ -102,6 +102,9 @@ def synthetic_recording(
     bias_instability_rad_s: float = 3.0 / 3600 * DEG,
     with_quat: bool = False,
     temp_profile: str = "warmup",
+    rrw_rad_s_per_sqrt_s: float = 0.0,
+    gm_sigma_rad_s: float = 0.0,
+    gm_tau_s: float = 100.0,
 ) -> Recording:
     """A rich synthetic recording through the shared measurement model.
 
@@ -119,6 +122,10 @@ def synthetic_recording(
         Flicker bias instability B (rad/s).
     with_quat : bool
         Also write the true attitude in ``ref_q*``.
+    rrw_rad_s_per_sqrt_s : float
+        Rate random walk K (rad/s/√s), 0 = none.
+    gm_sigma_rad_s, gm_tau_s : float
+        First-order Gauss–Markov bias σ (rad/s, 0 = none) and correlation time (s).
     temp_profile : {"warmup", "linear"}
         ``"warmup"``: 25 °C + 12 °C·(1 − e^(−3t/T)) + 2 °C·sin(8πt/T), so T, dT/dt and t are
         distinguishable; ``"linear"``: 25 → 37 °C linearly in time (then ``bias_thermal`` of
@@ -171,6 +178,10 @@ def synthetic_recording(
     y = y + noise.white_rate_noise(rng, n, rate_hz=rate_hz, n_rad_per_sqrt_s=arw_rad_per_sqrt_s)
     if bias_instability_rad_s > 0:
         y = y + noise.flicker_noise(rng, n, rate_hz=rate_hz, b_rad_s=bias_instability_rad_s)
+    if rrw_rad_s_per_sqrt_s > 0:
+        y = y + noise.rate_random_walk(rng, n, rate_hz=rate_hz, k_rad_s_per_sqrt_s=rrw_rad_s_per_sqrt_s)
+    if gm_sigma_rad_s > 0:
+        y = y + noise.gauss_markov(rng, n, rate_hz=rate_hz, sigma_rad_s=gm_sigma_rad_s, tau_c_s=gm_tau_s)
     acc = f + rng.standard_normal((n, 3)) * 0.02
     return Recording(
         t_s=t, gyro_rad_s=y, accel_m_s2=acc, temp_c=np.round(temp, 3), ref_rate_rad_s=omega,
@@ -272,6 +283,145 @@ def rates_markdown(rows: Sequence[dict]) -> str:
             out.append(f"| {eff} | {best['magnitude_si']:.3g} | {best['scale']:g} |")
         else:
             out.append(f"| {eff} | not found at the tested sizes | — |")
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------------------- open search Monte Carlo
+#: Coloured noise of the open-search Monte Carlo on the synthetic generator (white + flicker +
+#: RRW + Gauss–Markov), SI: ARW 0.005 °/s/√Hz, B 3 °/h, K 10 °/h/√h, GM 0.002 °/s with τ 20 s.
+OPEN_NOISE = {"arw_rad_per_sqrt_s": 0.005 * DEG, "bias_instability_rad_s": 3.0 / 3600 * DEG,
+              "rrw_rad_s_per_sqrt_s": 10.0 / 3600 / 60 * DEG, "gm_sigma_rad_s": 0.002 * DEG, "gm_tau_s": 20.0}
+
+#: Out-of-catalogue terms injected per kind at size 1 (SI): a product regressor ω_y·ω_z on x
+#: (rad/s per (rad/s)²), a 37.3 Hz line on y (amplitude rad/s), a bias step at 0.43·T (rad/s,
+#: direction (1, −0.5, 0.75)).
+OPEN_UNIT = {"regressor": 1e-3, "periodic": 1e-3, "step": 1e-3}
+
+
+def inject_open(rec: Recording, kind: str, size: float, *, f_hz: float = 37.3, t_frac: float = 0.43) -> Recording:
+    """``rec`` with one out-of-catalogue term of ``size`` added to its gyro (see :data:`OPEN_UNIT`)."""
+    from dataclasses import replace
+
+    g = rec.gyro_rad_s.copy()
+    if kind == "regressor":
+        w = rec.ref_rate_rad_s
+        g[:, 0] += size * w[:, 1] * w[:, 2]
+    elif kind == "periodic":
+        g[:, 1] += size * np.cos(2 * np.pi * f_hz * rec.t_s + 0.4)
+    elif kind == "step":
+        t0 = rec.t_s[0] + t_frac * (rec.t_s[-1] - rec.t_s[0])
+        g += np.where(rec.t_s[:, None] >= t0, size * np.array([1.0, -0.5, 0.75])[None, :], 0.0)
+    elif kind != "none":
+        raise ValueError(kind)
+    return replace(rec, gyro_rad_s=g)
+
+
+def _open_trial(kind: str, size: float, seed: int, duration_s: float, rate_hz: float, alpha: float) -> dict:
+    from gyrocore.loop import run_loop
+
+    rec = synthetic_recording({"bias": effect_params("bias")}, seed=seed, duration_s=duration_s, rate_hz=rate_hz,
+                              **OPEN_NOISE)
+    rec = inject_open(rec, kind, size * OPEN_UNIT.get(kind, 0.0))
+    r = run_loop(rec, declared=["bias"], alpha=alpha, seed=seed)
+    kinds = [u.kind for u in r.unexplained]
+    out = {"kinds": kinds, "found": r.found_effects,
+           "described": kind in kinds,
+           # anything else claimed (a catalogue effect, or another kind) is a false alarm
+           "false_alarm": bool(r.found_effects) or any(k != kind for k in kinds)}
+    for u in r.unexplained:
+        if u.kind == kind:
+            out["rms_before"], out["rms_after"] = u.residual_rms_before_rad_s, u.residual_rms_after_rad_s
+            break
+    return out
+
+
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Exact binomial confidence interval of k/n (scipy.stats.binomtest)."""
+    from scipy.stats import binomtest
+
+    ci = binomtest(int(k), int(n)).proportion_ci(confidence_level=level, method="exact")
+    return float(ci.low), float(ci.high)
+
+
+def open_search_rates(*, kinds: Sequence[str] = ("none", "regressor", "periodic", "step"),
+                      sizes: Sequence[float] = (0.5, 1.0, 2.0, 4.0), seeds: Sequence[int] = range(20),
+                      duration_s: float = 40.0, rate_hz: float = 200.0, alpha: float = 0.01,
+                      progress: bool = False) -> list[dict]:
+    """Description (detection) and false-alarm rates of the open search per kind and size, on
+    the synthetic tumbling generator with coloured noise (:data:`OPEN_NOISE`).
+
+    Returns one row per (kind, size): n, described, false alarms (any other claim), both with
+    Clopper–Pearson 95 % intervals, and the median residual RMS before → after the term.
+    """
+    rows = []
+    for kind in kinds:
+        for sz in ((1.0,) if kind == "none" else sizes):
+            trials = []
+            for s in seeds:
+                trials.append(_open_trial(kind, sz, int(s), duration_s, rate_hz, alpha))
+                if progress:
+                    print(f"{kind} x{sz} seed {s}: {trials[-1]['found']} {trials[-1]['kinds']}", flush=True)
+            n = len(trials)
+            kd = sum(t["described"] for t in trials)
+            kf = sum(t["false_alarm"] for t in trials)
+            rb = [t["rms_before"] for t in trials if "rms_before" in t]
+            ra = [t["rms_after"] for t in trials if "rms_after" in t]
+            rows.append({"kind": kind, "size": sz, "size_si": sz * OPEN_UNIT.get(kind, 0.0), "n": n,
+                         "described": kd / n if kind != "none" else None,
+                         "described_ci95": clopper_pearson(kd, n) if kind != "none" else None,
+                         "false_alarms": kf, "false_alarm_rate": kf / n, "false_alarm_ci95": clopper_pearson(kf, n),
+                         "rms_before_median_rad_s": float(np.median(rb)) if rb else None,
+                         "rms_after_median_rad_s": float(np.median(ra)) if ra else None})
+    return rows
+
+
+def simulator_null_false_alarms(*, presets: Sequence[str] | None = None,
+                                scenarios: Sequence[tuple[str, float]] = (("turntable", 60.0), ("static", 120.0)),
+                                seeds: Sequence[int] = range(10), alpha: float = 0.01, progress: bool = False) -> dict:
+    """False alarms of the open search on simulator null recordings: every preset, its whole
+    deterministic model declared, its noise with RRW and Gauss–Markov switched on (white +
+    flicker + RRW + GM). A false alarm is any ``unexplained`` entry (the catalogue's own finds —
+    e.g. ``time_offset``, the on-chip filter's group delay — are listed, not counted).
+    """
+    from gyrocore.loop import CANDIDATES, run_loop
+    from sim.presets import PRESETS, load_preset
+    from sim.scenarios import simulate
+
+    presets = list(presets) if presets is not None else sorted(PRESETS)
+    runs = []
+    for p in presets:
+        spec = load_preset(p)
+        for sc, dur in scenarios:
+            for s in seeds:
+                inst = spec.draw_instance(int(s), include=("rrw", "correlated"))
+                ov = {e: {k: np.asarray(v).tolist() for k, v in inst[e].items()} for e in ("rrw", "correlated")}
+                sim = simulate(sc, sensor=p, duration_s=dur, seed=int(s), overrides=ov)
+                declared = [e for e in sim.params_true if e in CANDIDATES]
+                r = run_loop(sim.recording, declared=declared, alpha=alpha, seed=int(s))
+                runs.append({"preset": p, "scenario": sc, "seed": int(s), "found": r.found_effects,
+                             "unexplained": [u.effect for u in r.unexplained],
+                             "false_alarm": bool(r.unexplained)})
+                if progress:
+                    print(p, sc, s, r.found_effects, runs[-1]["unexplained"], flush=True)
+    k = sum(r["false_alarm"] for r in runs)
+    return {"n": len(runs), "false_alarms": k, "rate": k / max(len(runs), 1),
+            "ci95": clopper_pearson(k, len(runs)), "alpha": alpha, "runs": runs}
+
+
+def open_rates_markdown(rows: Sequence[dict]) -> str:
+    """Markdown table of :func:`open_search_rates` rows."""
+    D = 180.0 / np.pi
+    out = ["| kind | size (× unit) | size | n | described (95 % CI) | false alarms (95 % CI) | residual RMS before → after, median (°/s) |",
+           "|---|---|---|---|---|---|---|"]
+    unit = {"regressor": "rad/s per (rad/s)²", "periodic": "rad/s", "step": "rad/s", "none": ""}
+    for r in rows:
+        d = "—" if r["described"] is None else (f"{100 * r['described']:.0f} % ({100 * r['described_ci95'][0]:.0f}–"
+                                                f"{100 * r['described_ci95'][1]:.0f} %)")
+        fa = f"{r['false_alarms']}/{r['n']} ({100 * r['false_alarm_ci95'][0]:.1f}–{100 * r['false_alarm_ci95'][1]:.1f} %)"
+        rms = ("—" if r["rms_before_median_rad_s"] is None else
+               f"{r['rms_before_median_rad_s'] * D:.3g} → {r['rms_after_median_rad_s'] * D:.3g}")
+        size = "—" if r["kind"] == "none" else f"{r['size_si']:.3g} {unit[r['kind']]}"
+        out.append(f"| {r['kind']} | {r['size']:g} | {size} | {r['n']} | {d} | {fa} | {rms} |")
     return "\n".join(out)
 
 
@@ -488,7 +638,27 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
     ap.add_argument("--effects", default=None)
     ap.add_argument("--out", default=None, help="write rows as JSON here")
     ap.add_argument("--measured", default=None, metavar="DATA_DIR", help="run the measured sets instead")
+    ap.add_argument("--open", action="store_true", help="open-search rates (kinds x sizes, synthetic coloured noise)")
+    ap.add_argument("--open-kinds", default="none,regressor,periodic,step")
+    ap.add_argument("--open-sizes", default="0.5,1,2,4")
+    ap.add_argument("--simulator-null", action="store_true",
+                    help="open-search false alarms on simulator null recordings, every preset")
     a = ap.parse_args()
+    if a.open or a.simulator_null:
+        from gyrocore.cli import to_jsonable
+
+        if a.open:
+            rows = open_search_rates(kinds=a.open_kinds.split(","), sizes=[float(x) for x in a.open_sizes.split(",")],
+                                     seeds=range(a.seeds), progress=True)
+            print(open_rates_markdown(rows))
+        else:
+            rows = simulator_null_false_alarms(seeds=range(a.seeds), progress=True)
+            print(f"simulator null: {rows['false_alarms']}/{rows['n']} false alarms, 95 % CI {rows['ci95']}")
+        if a.out:
+            from gyrocore.recording import atomic_write_text
+
+            atomic_write_text(a.out, _json.dumps(to_jsonable(rows), indent=1))
+        raise SystemExit(0)
     if a.measured:
         from gyrocore.cli import to_jsonable
 

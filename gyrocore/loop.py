@@ -1056,7 +1056,7 @@ def _line_series(res: Residual, rec: Recording, correction: np.ndarray):
         a, b = _longest_run(ok)
         sl = slice(a, b)
         x = rec.gyro_rad_s[sl] - ref[sl] - correction[sl]
-        mot = [ref[sl], np.gradient(ref[sl], t[sl], axis=0)]
+        mot = [ref[sl]]  # (a line of the rate is a line of its derivative too)
         if rec.accel_m_s2 is not None:
             mot.append(np.nan_to_num(rec.accel_m_s2[sl]))
         return x, t[sl], rec.rate_hz, np.concatenate(mot, axis=1), "sample", sl

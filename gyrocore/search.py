@@ -386,9 +386,11 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
         need = np.union1d(res.win_start, res.win_stop)
         Cn = np.zeros((need.size, T))
         carry = np.zeros(T)
-        # chunks with a one-sample overlap each side (derivatives by central differences)
-        for k0 in range(0, n - 1, CHUNK_SAMPLES):
-            k1 = min(k0 + CHUNK_SAMPLES, n - 1)
+        # chunks with a one-sample overlap each side (derivatives by central differences), of
+        # at most ~32 MB of term values
+        chunk = int(max(4096, min(CHUNK_SAMPLES, 4_000_000 // max(T, 1))))
+        for k0 in range(0, n - 1, chunk):
+            k1 = min(k0 + chunk, n - 1)
             lo, hi = max(k0, 0), min(k1 + 2, n)  # samples k0 .. k1+1 (derivative neighbours)
             sub = _slice_inputs(inp, lo, hi)
             cache: dict = {}
@@ -771,6 +773,11 @@ def step_columns(res, idx: np.ndarray) -> np.ndarray:
     return C
 
 
+#: Residual the step test's noise model is identified on: "null" (the model without a step:
+#: conservative — a step inflates the low-frequency part of the model) or "alternative".
+STEP_NOISE_FROM = "null"
+
+
 def _refine_step(res, X0, e, sw, idx, jbest) -> int:
     """Window index of the least-squares step location between the coarse neighbours of
     ``idx[jbest]`` (the test ran on a thinned grid; the location is refined on every window)."""
@@ -792,7 +799,7 @@ def _refine_step(res, X0, e, sw, idx, jbest) -> int:
 
 def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, threshold: float,
                 rng: np.random.Generator, max_candidates: int = 300, edge: int | None = None,
-                max_boot: int = 4000) -> StepScreen | None:
+                max_boot: int = 4000, noise_from: str = STEP_NOISE_FROM) -> StepScreen | None:
     """Change-point test for a bias step (all three axes) on the window residual.
 
     Statistic: T(τ) = zᵀV⁻¹z with z the scores of the three step columns projected off the
@@ -828,7 +835,7 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     jb = int(np.nanargmax(gain))
     e_alt = ew - Cp[:, 3 * jb: 3 * jb + 3] @ th[jb]
     E_alt = e_alt.reshape(3, M).T
-    gs = _autocovs(E_alt)
+    gs = _autocovs(E_alt if noise_from == "alternative" else ew.reshape(3, M).T)
     V = np.zeros((J, 3, 3))
     for a in range(3):
         U = Cp[a * M:(a + 1) * M]
