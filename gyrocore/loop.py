@@ -1568,6 +1568,15 @@ def validate_model(rec: Recording, *, params_after: Mapping, params_before: Mapp
     return out
 
 
+def split_halves(rec: Recording) -> tuple[Recording, Recording]:
+    """The first and second halves of a recording (by time)."""
+    t = rec.t_s
+    k = int(np.searchsorted(t, 0.5 * (t[0] + t[-1])))
+    if k < 10 or rec.n - k < 10:
+        raise GyroInputError("the recording is too short to split into halves")
+    return rec.slice(0, k), rec.slice(k, rec.n)
+
+
 def check_compatible(rec_fit: Recording, rec_val: Recording, *, fit_name: str, val_name: str) -> None:
     """One ``error:`` line when a validation recording does not match the fitted one: another
     sensor, sample rate (> 2 % apart) or units."""

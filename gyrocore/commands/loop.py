@@ -145,11 +145,13 @@ def validation_text(v: dict) -> str:
               help="Score the final model (and the declared model fitted on FILE) on this other recording.")
 @click.option("--validate-segments", type=click.Path(path_type=str), default=None,
               help="Segments CSV of the --validate recording.")
+@click.option("--validate-split", is_flag=True,
+              help="Fit on the first half of FILE and score on the second half (long logs without a second file).")
 @click.option("--force", is_flag=True, help="Overwrite an existing -o file.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the JSON result on stdout.")
 def command(path, effects, segments, candidates, reference, window_s, alpha, thermal_order, min_rms_reduction,
             min_attitude_reduction, angle_sigma_deg, axis_sigma_deg, angle_mode, plot_dir, open_search, seed, output,
-            validate, validate_segments, force, as_json):
+            validate, validate_segments, validate_split, force, as_json):
     """The residual loop on FILE (a data file or any real set `gyroharness convert` reads)."""
     import os
 
@@ -166,7 +168,20 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         segs = read_segments(segments)
     declared = _split(effects) or []
     val_conv = None
-    if validate:
+    if validate and validate_split:
+        raise GyroInputError("give --validate OTHER or --validate-split, not both")
+    if validate_split:
+        from ..convert import Converted
+        from ..loop import split_halves
+
+        if segs:
+            raise GyroInputError("--validate-split cuts a recording in time; known-rotation segments would be cut too "
+                                 "(use --validate OTHER)")
+        first, second = split_halves(conv.recording)
+        conv = Converted(recording=first, segments=())
+        val_conv = Converted(recording=second, segments=())
+        validate = f"{path} (second half, t >= {second.t_s[0]:.6g} s)"
+    elif validate:
         from ..loop import check_compatible
 
         val_conv = load_with_segments(validate)
@@ -178,6 +193,8 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         min_attitude_reduction=min_attitude_reduction, open_search=open_search, seed=seed, **opts,
     )
     payload = result.to_json()
+    if validate_split:
+        payload["fitted_on"] = f"{path} (first half, t < {conv.recording.t_s[-1]:.6g} s)"
     if validate:
         payload["validation"] = validation(result, conv.recording, val_conv, declared=declared, opts=opts,
                                            validate=validate, validate_segments=validate_segments)
