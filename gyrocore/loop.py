@@ -640,6 +640,14 @@ def _advance(rec: Recording, tau_s: float) -> Recording:
     return replace(rec, gyro_rad_s=g)
 
 
+def _fittable(effect: str) -> bool:
+    """A declared effect the loop fits: a catalogue effect with linear regressors, or a
+    registered family term (``periodic[..]``, ``step[..]``, ``regressor[..]``)."""
+    if effect in FITTABLE:
+        return True
+    return "[" in effect and bool(getattr(E.resolve(effect), "fittable", False))
+
+
 def split_axis(effect: str) -> tuple[str, int | None]:
     """Internal name of one axis of a family term, ``"regressor[omega_x*omega_y]@0"`` ->
     (``"regressor[omega_x*omega_y]"``, 0); other names -> (name, None)."""
@@ -744,10 +752,10 @@ def loop_residual(
     """
     declared = E.check_effect_names(declared)
     notes = list(res.notes)
-    ignored = [d for d in declared if d not in FITTABLE]
+    ignored = [d for d in declared if not _fittable(d)]
     if ignored:
         notes.append(f"declared effects without linear regressors are not fitted: {', '.join(ignored)}")
-    model_effects = [d for d in declared if d in FITTABLE]
+    model_effects = [d for d in declared if _fittable(d)]
     if candidates is None:
         cand_all = [c for c in CANDIDATES if c not in declared]
     else:
@@ -916,7 +924,7 @@ def loop_residual(
                 thr_step = alpha * S.ALPHA_SHARE["step"]
                 st = step_screen_now(thr_step)
                 if st is not None and st.p_value < thr_step:
-                    name = f"step[{S._fmt_num(st.t_s)}]"
+                    name = S.canonical(f"step[{S._fmt_num(st.t_s)}]")
                     ev_s, f_s = open_term_test(name, thr_step, cv_base)
                     X0 = model.design(model_effects)[0]
                     cv_step = _cv_rms(res.y_rad_s, np.concatenate([X0, model.block(name)[1]], axis=2),
@@ -1131,7 +1139,7 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
         open_last["regressor"] = {"term": lib.term, "axis": "xyz"[lib.axis], "score_F": lib.statistic,
                                   "log10_p": lib.log10_p, "threshold": thr, "n_tested": lib.n_tested}
         if lib.p_value < thr:
-            name = f"regressor[{lib.term}]"
+            name = S.canonical(f"regressor[{lib.term}]")
             ev, _ = open_term_test(f"{name}@{lib.axis}", thr, cv_base)
             open_last["regressor"].update({"wald_log10_p": ev.log10_p, "cv_rms_reduction": ev.cv_rms_reduction,
                                            "rms_reduction": ev.rms_reduction})
@@ -1165,7 +1173,7 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
             cv = S.sinusoid_cv_reduction(x[:, i], tt, f)
             if not cv > 0:
                 continue
-            name = f"periodic[{S._fmt_num(f)}]"
+            name = S.canonical(f"periodic[{S._fmt_num(f)}]")
             coef, se = S.fit_sinusoid(x[:, i], tt, f)
             a, b = float(coef[0, 0]), float(coef[1, 0])
             before = float(np.sqrt(np.mean((x[:, i] - x[:, i].mean()) ** 2)))
@@ -1203,7 +1211,7 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
                 if l.log10_p >= np.log10(thr_line):
                     continue
                 f = S.round_frequency(S.refine_frequency(x[:, l.axis], tt, l.frequency_hz, 2 * l.bandwidth_hz))
-                name = f"periodic[{S._fmt_num(f)}]"
+                name = S.canonical(f"periodic[{S._fmt_num(f)}]")
                 ev, _ = open_term_test(f"{name}@{l.axis}", thr_line, cv_base)
                 # the harmonic F decided significance; the window refit must hold out of sample
                 if ev.df1 > 0 and (ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)):
@@ -1222,7 +1230,7 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
         open_last["step"] = {"t_s": st.t_s, "sup_statistic": st.statistic, "bootstrap_p": st.p_value,
                              "threshold": thr_step, "n_boot": st.n_boot, "n_candidates": st.n_candidates}
         if st.p_value < thr_step:
-            name = f"step[{S._fmt_num(st.t_s)}]"
+            name = S.canonical(f"step[{S._fmt_num(st.t_s)}]")
             if name not in model_effects:
                 ev, _ = open_term_test(name, thr_step, cv_base)
                 if ev.df1 > 0 and practical(ev):

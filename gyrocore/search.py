@@ -172,7 +172,17 @@ def term_values(expr: str, inp, cache: dict | None = None) -> np.ndarray:
 
 
 def _fmt_num(x: float) -> str:
-    return f"{x:.10g}"
+    """Shortest round-trip decimal, never an exponent (the registry's canonical form)."""
+    s = np.format_float_positional(float(x), trim="-")
+    return "0" if s in ("-0", "0") else s
+
+
+def canonical(name: str) -> str:
+    """The registry's canonical name of a family instance (``gyrocore.effects.canonical_name``)."""
+    from . import effects as _E
+
+    fn = getattr(_E, "canonical_name", None)
+    return fn(name) if fn is not None else name
 
 
 def round_frequency(f_hz: float) -> float:
