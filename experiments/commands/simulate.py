@@ -74,7 +74,9 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
 @click.option("--rate-hz", type=float, default=None, help="Gyro output rate, Hz (default: scenario, else preset).")
 @click.option("--set", "sets", multiple=True, metavar="EFFECT.PARAM=VALUE",
               help="Put an effect in with these SI values (even if the preset has it off); repeatable. "
-                   "VALUE is a number or a comma list, e.g. --set scale.s=0.01,0.02,-0.01")
+                   "VALUE is a number or a comma list, e.g. --set scale.s=0.01,0.02,-0.01. EFFECT may be a "
+                   "term outside the catalogue: --set 'periodic[37.5].a_cos_rad_s=0.01,0,0', "
+                   "'step[12.25].size_rad_s=2e-3,0,0', 'regressor[omega_y*omega_z].coef=1e-3,0,0'")
 @click.option("--without", "without", multiple=True, metavar="EFFECT",
               help="Switch an effect off; repeatable or comma-separated.")
 @click.option("--vibration", "vibration_spec", default=None, type=click.Path(dir_okay=False),
