@@ -415,6 +415,13 @@ def _family_values(name: str, pd: Mapping, t_s: np.ndarray) -> np.ndarray:
     return (t >= arg) * np.asarray(pd["size_rad_s"], float)[None]
 
 
+def _canonical(name: str) -> str:
+    from gyrocore import effects as E
+
+    canon = getattr(E, "canonical_name", None)
+    return canon(name) if canon is not None else name
+
+
 def _deterministic(det: Mapping, inp) -> np.ndarray:
     """gyrocore.effects.deterministic of ``det`` plus the twin's own family terms (rad/s, (N, 3))."""
     from gyrocore import effects as E
@@ -1097,7 +1104,7 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
                     cov[a:b] = True
                 A = np.column_stack([np.cos(2 * np.pi * fz * t[cov]), np.sin(2 * np.pi * fz * t[cov]), np.ones(cov.sum())])
                 coef, *_ = np.linalg.lstsq(A, e_sig[cov], rcond=None)
-                fam = f"periodic[{fz:.6g}]"
+                fam = _canonical(f"periodic[{fz:.6g}]")
                 if _schema(fam) is not None:  # the effect registry simulates it
                     params[fam] = {"a_cos_rad_s": coef[0], "a_sin_rad_s": coef[1]}
                     sources[fam] = "closing: a line of the real PSD, least squares on the covered spans"
