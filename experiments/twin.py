@@ -1296,14 +1296,19 @@ def load_recording(path, *, retime: bool | None = None):
     return c.recording, list(c.segments)
 
 
-def _row(name: str, cmd: str, r: TwinResult) -> list:
-    def cell(c: Comparison | None) -> str:
-        if c is None:
-            return "—"
-        return ", ".join(f"{n} {'in' if c.passed[n] else '**out**'} ({c.in_band_fraction[n]:.2f})" for n in c.real)
+def _cell(c: Comparison | None) -> str:
+    if c is None:
+        return "—"
+    return ", ".join(f"{n} {'in' if c.passed[n] else '**out**'} ({c.in_band_fraction[n]:.2f})" for n in c.real)
 
-    return [name, cell(r.before), f"{r.before.twin_distance:.3f}", "; ".join(r.added) or "nothing",
-            cell(r.after), f"{r.after.twin_distance:.3f}" if r.after is not None else "—", f"`{cmd}`"]
+
+def _row(name: str, cmd: str, r: TwinResult, h: dict | None = None) -> list:
+    hb = h.get("_before") if h else None
+    ha = h.get("_after") if h else None
+    held = ("—" if not h else (h["error"] if h.get("error") else
+            f"{hb.twin_distance:.3f} → {ha.twin_distance:.3f}" if ha is not None else f"{hb.twin_distance:.3f}"))
+    return [name, held, _cell(r.before), f"{r.before.twin_distance:.3f}", "; ".join(r.added) or "nothing",
+            _cell(r.after), f"{r.after.twin_distance:.3f}" if r.after is not None else "—", f"`{cmd}`"]
 
 
 #: The real data beside the checkout (as tests/conftest.py's ``shared_data``).
@@ -1314,7 +1319,7 @@ QUICK_SETS = ("tomisuarez2 static 449 s", "imucal Ferraris session")
 
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
         data_dir: str | None = None, replicas: int | None = None, names: Sequence[str] | None = None,
-        seed: int = 0, **_ignored):
+        seed: int = 0, do_holdout: bool = True, **_ignored):
     """The twin on every real set of :data:`SETS` found under ``data_dir`` (one setting for all).
 
     ``quick``: 39 replicas on :data:`QUICK_SETS` only. Sets whose files are absent are skipped.
@@ -1339,18 +1344,21 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             warnings.simplefilter("ignore")
             rec, segs = load_recording(p)
             r = twin(rec, segments=segs, n_replicas=n_rep, seed=seed, file=str(p))
+            h = holdout(rec, segments=segs, n_replicas=n_rep, seed=seed) if do_holdout else None
         slug = "".join(ch if ch.isalnum() else "_" for ch in name.lower()).strip("_")
         figures += plot_twin(r, out, prefix=f"twin_{slug}")
-        rows.append(_row(name, f"gyroharness twin {rel} --replicas {n_rep} -o out/twin_{slug} --json", r))
+        rows.append(_row(name, f"gyroharness twin {rel} --replicas {n_rep} -o out/twin_{slug} --json", r, h))
         summary[name] = r.to_json()
+        if h is not None:
+            summary[name]["holdout"] = {k: v for k, v in h.items() if not k.startswith("_")}
     if not rows:
         md = [f"No real set found under {data_dir}: nothing to twin."]
         return ExperimentResult(name="twin", title="Digital twin of the real sensors", markdown="\n".join(md),
                                 figures=(), summary={}, wall_s=_time.time() - t_start)
     md = [f"Replicas: {n_rep} per set, seed {seed}; band k = {max(1, int(0.025 * (n_rep + 1)))}; "
           f"α = {ALPHA} family-wise over the statistics.", "",
-          md_table(["set", "statistics as given (in-band fraction)", "distance", "added", "after", "distance after",
-                    "command"], rows)]
+          md_table(["set", "held out: distance given → after", "statistics as given (in-band fraction)", "distance",
+                    "added", "after", "distance after", "command"], rows)]
     text = "\n".join(md)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "twin.md", "## Digital twin\n\n" + text + "\n")
@@ -1429,3 +1437,62 @@ def preset_claim(rec: Recording, *, segments: Sequence = (), preset: str = "mpu6
     ratio = 10 ** (c_preset.real["adev"][:, 0] - c_preset.median["adev"][:, 0])
     return {"preset": preset, "terms": terms, "comparison": c_preset.to_json(), "twin": c_twin.to_json(),
             "real_over_preset_adev_tau0": ratio}
+
+
+def holdout(rec: Recording, *, segments: Sequence = (), n_replicas: int = DEFAULT_REPLICAS, seed: int = 0,
+            alpha: float = ALPHA) -> dict:
+    """The held-out figure: the noise model and the closing terms are identified on the first
+    half of the recording and compared with the second half.
+
+    The deterministic terms (bias, ramp, steps, …) are per-session nuisance and are identified
+    on the second half itself (the loop); the noise terms (``arw``, ``bias_instability``,
+    ``rrw``), the LSB and the closing terms (:attr:`TwinModel.extra` and lines) come from the
+    first half only. Returns ``{"before": Comparison.to_json() | None, "after": … | None,
+    "added": [...], "error": str | None}`` for the second half.
+    """
+    from gyrocore.residual import Segment, as_segment
+
+    n = rec.n
+    rec_a, rec_b = rec.slice(0, n // 2), rec.slice(n // 2, n)
+
+    def cut(r: Recording) -> list:
+        t0, t1 = float(r.t_s[0]), float(r.t_s[-1])
+        out = []
+        for s in map(as_segment, segments):
+            if s.kind == "rotation":
+                if s.start_s >= t0 and s.stop_s <= t1:
+                    out.append(s)
+            elif min(s.stop_s, t1) - max(s.start_s, t0) > 0:
+                out.append(Segment(max(s.start_s, t0), min(s.stop_s, t1), "still"))
+        return out
+
+    seg_a, seg_b = cut(rec_a), cut(rec_b)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ra = twin(rec_a, segments=seg_a, n_replicas=n_replicas, seed=seed, alpha=alpha)
+            ref_b = reference_of(rec_b, seg_b)
+            mb = identify(rec_b, ref_b, segments=seg_b)
+    except GyroInputError as exc:
+        return {"before": None, "after": None, "added": [], "error": str(exc)}
+    noise_keys = set(("arw", "bias_instability", "rrw", "quantization"))
+
+    def transplant(src: TwinModel) -> TwinModel:
+        det = {e: p for e, p in mb.params.items() if e not in noise_keys}
+        noise = {e: p for e, p in src.params.items() if e in noise_keys}
+        lines = {e: p for e, p in src.params.items() if e.startswith("periodic[") and e not in mb.params}
+        return replace(mb, params={**det, **noise, **lines}, extra=dict(src.extra),
+                       sources={**mb.sources, **{e: "first half" for e in noise}})
+
+    layout = layout_for(ref_b, mb.rate_hz, rec_b.n)
+    given = transplant(ra.model)
+    real = _real_stats(rec_b, ref_b, layout, given)
+    det_err = model_error(given, rec_b, ref_b)
+    before = compare(real, replica_statistics(given, rec_b, ref_b, layout, n_replicas=n_replicas, seed=seed + 2,
+                                              det_err=det_err), alpha=alpha)
+    after = None
+    if ra.model_after is not None:
+        after = compare(real, replica_statistics(transplant(ra.model_after), rec_b, ref_b, layout,
+                                                 n_replicas=n_replicas, seed=seed + 3, det_err=det_err), alpha=alpha)
+    return {"before": before.to_json(), "after": after.to_json() if after else None, "added": list(ra.added),
+            "error": None, "_before": before, "_after": after}

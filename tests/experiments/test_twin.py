@@ -182,6 +182,7 @@ def test_false_fail_rate_of_the_band(tmp_path):
         rec = _recording(100 + s, n=3000)
         r = T.twin(rec, model=_true_model(), n_replicas=59, seed=s, close=False, alpha=0.2)
         fails += sum(not v for v in r.before.passed.values())
+    print(f"false fails: {fails} of 120 statistic verdicts (expected <= 6)")
     assert fails <= 14, fails
 
 
@@ -195,3 +196,14 @@ def test_real_sets_run(shared_data):
             rec, segs = T.load_recording(p)
             r = T.twin(rec, segments=segs, n_replicas=19, seed=0, close=False)
         assert 0.0 <= r.before.twin_distance <= 1.0, name
+
+
+def test_holdout_runs_on_halves():
+    """holdout(): noise from the first half, compared with the second (smoke: keys, a distance)."""
+    rec = _recording(5, n=4000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        h = T.holdout(rec, n_replicas=19, seed=0)
+    assert h["error"] is None
+    assert 0.0 <= h["before"]["twin_distance"] <= 1.0
+    assert set(h["before"]["statistics"]) == {"adev", "psd", "distribution", "window_acf"}
