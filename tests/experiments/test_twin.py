@@ -207,3 +207,23 @@ def test_holdout_runs_on_halves():
     assert h["error"] is None
     assert 0.0 <= h["before"]["twin_distance"] <= 1.0
     assert set(h["before"]["statistics"]) == {"adev", "psd", "distribution", "window_acf"}
+
+
+def test_cli_params_file_is_the_declared_model(tmp_path):
+    """--params P: the file's deterministic and noise terms replace the identified ones."""
+    from experiments.commands.twin import command
+
+    rec = _recording(6, n=3000)
+    f = tmp_path / "rec.csv"
+    write_csv(rec, f)
+    pf = tmp_path / "params.json"
+    pf.write_text(json.dumps({"format_version": "1.1", "sensor": "test", "effects": ["bias", "arw"],
+                              "parameters": {"bias": {"b_rad_s": [0.01, -0.02, 0.005]},
+                                             "arw": {"n_rad_per_sqrt_s": [N_ARW] * 3}}}))
+    res = CliRunner().invoke(command, [str(f), "--params", str(pf), "--replicas", "19", "--no-close",
+                                       "-o", str(tmp_path / "out"), "--json"])
+    assert res.exit_code == 0, res.output
+    d = json.loads(res.output)
+    assert "parameter file" in d["model"]["sources"]["bias"] and d["model"]["sources"]["arw"] == "parameter file"
+    assert d["model"]["params"]["arw"]["n_rad_per_sqrt_s"] == pytest.approx([N_ARW] * 3)
+    assert "after" not in d
