@@ -152,14 +152,14 @@ class FilterStage:
             d["q"] = self.q
             d["notch_cutoff_hz"] = self.notch_cutoff_hz
         if self.dynamic:
-            d["max_hz"] = self.max_hz
+            d["max_hz"] = self.max_hz if math.isfinite(self.max_hz) else None
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "FilterStage":
         return cls(kind=d["kind"], cutoff_hz=float(d["cutoff_hz"]), rate_hz=float(d["rate_hz"]),
                    header=d.get("header", ""), q=float(d.get("q", float("nan"))), dynamic=bool(d.get("dynamic", False)),
-                   notch_cutoff_hz=float(d.get("notch_cutoff_hz", float("nan"))), max_hz=float(d.get("max_hz", float("nan"))))
+                   notch_cutoff_hz=float(d.get("notch_cutoff_hz", float("nan"))), max_hz=float(d["max_hz"]) if d.get("max_hz") is not None else float("nan"))
 
 
 def notch_q(center_hz: float, cutoff_hz: float) -> float:

@@ -26,6 +26,7 @@ def _public(row: dict) -> dict:
     d = {k: row[k] for k in _KEYS}
     if "rpm_notch" in row:
         d["rpm_notch"] = row["rpm_notch"]
+    d["stages"] = row["stages"]
     d.update({"name": row["name"], "phase_deg_at_hz": row["phase_deg_at_hz"], "gyro_noise_rad_s": row["gyro_noise_rad_s"],
               "attitude_cost_delay_deg": row["attitude_cost_delay_deg"],
               "attitude_cost_vibration_deg": row["attitude_cost_vibration_deg"], "lines_left": row["lines_left"]})

@@ -57,3 +57,19 @@ def test_simulate_vibration_bad_band_is_one_error(tmp_path):
                          "--duration-s", "5", "--vibration", str(spec), "--vibration-band", "7"], capture_output=True,
                         text=True, timeout=600)
     assert cp.returncode != 0 and cp.stderr.strip().startswith("error:") and len(cp.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_closed_loop_flight_filter_with_measured_vibration(tmp_path):
+    """experiments.flight_filter: every chain flies (no crash) with the spec's vibration in the
+    loop, and filtering lowers the motor noise the unfiltered gyro causes."""
+    from experiments.flight_filter import fly
+    from gyrocore.vibration import read_spec, synthesize
+
+    spec, _ = _spec(tmp_path)
+    d = synthesize(read_spec(spec), n=8001, rate_hz=1000.0, seed=1)
+    none = fly([], d, duration_s=8.0, seed=1)
+    pt1 = fly([{"kind": "pt1", "cutoff_hz": 60.0, "rate_hz": 8000.0}], d, duration_s=8.0, seed=1)
+    assert not none["crashed"] and not pt1["crashed"]
+    assert pt1["motor_noise_n"] < none["motor_noise_n"]
+    assert pt1["delay_ms"] > none["delay_ms"]
