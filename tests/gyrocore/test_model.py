@@ -457,3 +457,19 @@ def test_chunked_fit_with_family_terms_equals_whole_array_fit(monkeypatch):
         for p, true in params[e].items():  # and the fit finds them: |z| < 4 (see tests/sim/test_gyro.py)
             z = (whole.params[e][p] - true) / whole.stderr[e][p]
             assert np.all(np.abs(z) < 4), (e, p, z)
+
+
+def test_cli_apply_with_a_term_this_version_does_not_know(tmp_path, capsys):
+    write_csv(table_run(7), tmp_path / "a.csv")
+    p = tmp_path / "p.json"
+    assert _run_cli(["calibrate", str(tmp_path / "a.csv"), "--effects", "bias,step[3]", "-o", str(p)]) == 0
+    d = json.loads(p.read_text())
+    assert d["effects"] == ["bias", "step[3]"]
+    d["effects"][1] = "wobble[3]"
+    d["parameters"]["wobble[3]"] = d["parameters"].pop("step[3]")
+    (tmp_path / "w.json").write_text(json.dumps(d))
+    capsys.readouterr()
+    rc = _run_cli(["apply", str(tmp_path / "a.csv"), "--params", str(tmp_path / "w.json"), "-o", str(tmp_path / "c.csv")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error:") and "unknown effect 'wobble[3]'" in err and err.count("\n") == 1
+    assert not (tmp_path / "c.csv").exists()
