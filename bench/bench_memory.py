@@ -20,7 +20,9 @@ figures are per stage, not cumulative. Stages:
 ``apply``         per chunk: remove the fitted effects, write the corrected CSV (streaming)
 ``attitude``      per chunk: ``integrate_gyro`` carried across chunks, error angle vs the
                   reference attitude, running final/RMS/max (streaming)
-``cli_*``         the same through ``gyroharness allan|calibrate|apply`` (whole-file reads)
+``cli_*``         every command that reads a recording, through ``gyroharness``: ``convert``
+                  (to Parquet, streamed), ``bias`` (t + gyro), ``allan`` (one axis at a time),
+                  ``calibrate`` and ``loop`` (whole-file reads), ``apply`` (streamed)
 
 Every stage is run at two lengths (``--compare-duration-s``, default 10 min, and the full
 hour); the growth of its peak between them, in bytes per sample, tells a *streaming* stage
@@ -241,6 +243,15 @@ STAGES = {
     "attitude": stage_attitude,
 }
 STREAMING = {"baseline", "synth", "read_chunks", "apply", "attitude"}
+#: How each command holds the recording (issue 13).
+CLI_DESIGN = {
+    "cli_convert": "CLI, streamed (chunks)",
+    "cli_bias": "CLI, t + gyro columns",
+    "cli_allan": "CLI, one axis at a time",
+    "cli_calibrate": "CLI, whole-file read",
+    "cli_apply": "CLI, streamed (chunks + context)",
+    "cli_loop": "CLI, whole-file read",
+}
 
 
 # ---------------------------------------------------------------------------- parent side
@@ -265,16 +276,20 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
     """Every stage at one recording length; rows with peak RSS and wall time."""
     n = int(round(duration_s * a.rate_hz))
     csv_path = work / "one_hour.csv"
-    exe = shutil.which("gyroharness") or "gyroharness"
+    # the checkout this script belongs to (PYTHONPATH), not whatever `gyroharness` is installed
+    exe = [sys.executable, "-m", "experiments.cli"]
     common = ["--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work), "--source", a.source]
     sim_path = csv_path if a.source == "sim" else work / "sim_thermal.csv"
     cli = {
-        "simulate": [exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
+        "simulate": [*exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
                      "--seed", str(SEED), "-o", str(sim_path), "--force", "--no-progress", "--json"],
-        "cli_allan": [exe, "allan", str(csv_path), "--json"],
-        "cli_calibrate": [exe, "calibrate", str(csv_path), "--effects", ",".join(EFFECTS[a.source]),
+        "cli_convert": [*exe, "convert", str(csv_path), "-o", str(work / "cli_converted.parquet"), "--force", "--json"],
+        "cli_bias": [*exe, "bias", str(csv_path), "--json"],
+        "cli_loop": [*exe, "loop", str(csv_path), "--effects", ",".join(EFFECTS[a.source]), "--json"],
+        "cli_allan": [*exe, "allan", str(csv_path), "--json"],
+        "cli_calibrate": [*exe, "calibrate", str(csv_path), "--effects", ",".join(EFFECTS[a.source]),
                           "-o", str(work / "cli_params.json"), "--force", "--json"],
-        "cli_apply": [exe, "apply", str(csv_path), "--params", str(work / "params.json"),
+        "cli_apply": [*exe, "apply", str(csv_path), "--params", str(work / "cli_params.json"),
                       "-o", str(work / "cli_corrected.csv"), "--force", "--json"],
     }
     rows = []
@@ -305,7 +320,8 @@ def main(argv=None) -> int:
                          "sample, tells streaming (≈ 0) from whole-column stages (0 = skip)")
     ap.add_argument("--rate-hz", type=float, default=1000.0)
     ap.add_argument("--work", default=None, help="folder for the CSV files (default: a temporary folder, removed)")
-    ap.add_argument("--stages", default="baseline,simulate," + ",".join(list(STAGES)[1:]) + ",cli_allan,cli_calibrate,cli_apply")
+    ap.add_argument("--stages", default="baseline,simulate," + ",".join(list(STAGES)[1:])
+                    + ",cli_convert,cli_bias,cli_allan,cli_calibrate,cli_apply,cli_loop")
     ap.add_argument("--source", choices=("synth", "sim"), default="synth",
                     help="recording processed by the later stages: 'synth' (still, thermal; default) or "
                          "'sim' (the simulated thermal rate-table run of the 'simulate' stage)")
@@ -351,7 +367,7 @@ def main(argv=None) -> int:
         print(f"{'stage':<14s} {'peak RSS MiB':>12s} {'growth B/sample':>16s}  {'wall s':>7s}  design")
         for r in big:
             g = r.get("growth_bytes_per_sample")
-            design = "CLI, whole-file read" if r["stage"].startswith("cli_") else "CLI, whole arrays" if r["stage"] == "simulate" else (
+            design = CLI_DESIGN.get(r["stage"], "CLI") if r["stage"].startswith("cli_") else "CLI, whole arrays" if r["stage"] == "simulate" else (
                 "streaming" if r["stage"] in STREAMING else "whole columns")
             print(f"{r['stage']:<14s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
                   f"  {r['wall_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED"))

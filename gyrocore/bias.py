@@ -144,8 +144,19 @@ def robust_diff_noise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s = _MAD * np.median(np.abs(v - med), axis=0)
         return np.where(s > 0, s, v.std(axis=0))
 
-    s1 = rsd(np.diff(x, axis=0))
-    s2 = rsd(x[2:] - x[:-2])
+    if x.nbytes > _BLOCK_BYTES:  # long record: one column at a time (same values, 1/3 of the temporaries)
+        s1, s2 = np.empty(x.shape[1]), np.empty(x.shape[1])
+        for j in range(x.shape[1]):
+            c = x[:, j]
+            s1[j] = rsd(np.diff(c))
+            s2[j] = rsd(c[2:] - c[:-2])
+            del c
+        if not (np.all(s1 > 0) and np.all(s2 > 0)):  # the std fallback exactly as for the whole array
+            s1 = rsd(np.diff(x, axis=0))
+            s2 = rsd(x[2:] - x[:-2])
+    else:
+        s1 = rsd(np.diff(x, axis=0))
+        s2 = rsd(x[2:] - x[:-2])
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
     return s1, np.clip(rho, -0.95, 0.95)
@@ -181,27 +192,62 @@ def _solve_increasing(f, target: float, hi0: float) -> float:
     return float(scipy.optimize.brentq(lambda x: f(x) - target, 0.0, hi, xtol=hi * 1e-10))
 
 
+#: Records larger than this (bytes of the (N, 3) gyro) have their per-window statistics
+#: computed a block of windows at a time (memory O(block) instead of several copies of the
+#: record); smaller records take the whole-array path unchanged.
+_BLOCK_BYTES = 32 * 2**20
+
+
+def _blocks(W: int, n: int, width: int):
+    """Window ranges [a, b) of about _BLOCK_BYTES each (one range when the record is small)."""
+    per = max(1, _BLOCK_BYTES // max(1, n * width * 8))
+    if W * n * width * 8 <= _BLOCK_BYTES:
+        per = max(W, 1)
+    return [(a, min(a + per, W)) for a in range(0, W, per)]
+
+
 def _window_stats(x: np.ndarray, n: int, statistic: str) -> np.ndarray:
     """Per-window statistic, shape (W, 3), for non-overlapping windows of n samples."""
     W = x.shape[0] // n
     xw = x[: W * n].reshape(W, n, x.shape[1])
-    if statistic == "abs_diff":
-        return np.abs(np.diff(xw, axis=1)).sum(axis=1)
-    return xw.var(axis=1, ddof=1)
+    out = np.empty((W, x.shape[1]))
+    for a, b in _blocks(W, n, x.shape[1]):
+        if statistic == "abs_diff":
+            out[a:b] = np.abs(np.diff(xw[a:b], axis=1)).sum(axis=1)
+        else:
+            out[a:b] = xw[a:b].var(axis=1, ddof=1)
+    return out
 
 
-def _vif(xw: np.ndarray, max_lag: int) -> np.ndarray:
+def _lag_sums(xw: np.ndarray, sel: np.ndarray, L: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """c0 and the lag-k cross sums of the demeaned selected windows, block by block."""
+    W, n, C = xw.shape
+    c0 = np.zeros(C)
+    ck = [np.zeros(C) for _ in range(L)]
+    for a, b in _blocks(W, n, C):
+        s = sel[a:b]
+        if not s.any():
+            continue
+        blk = xw[a:b][s]
+        d = blk - blk.mean(axis=1, keepdims=True)
+        del blk
+        c0 = c0 + np.einsum("wnc,wnc->c", d, d)
+        for k in range(1, L + 1):
+            ck[k - 1] = ck[k - 1] + np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k])
+    return c0, ck
+
+
+def _vif(xw: np.ndarray, max_lag: int, sel: np.ndarray | None = None) -> np.ndarray:
     """Variance inflation of a window mean from the pooled autocorrelation of still windows.
 
-    xw : (W, n, 3) still windows. VIF = 1 + 2 Σ_{k=1}^{L} (1 − k/n) r_k, with r_k pooled over
+    xw : (W, n, 3) windows, of which ``sel`` (bool (W,), default all) are the still ones. VIF = 1 + 2 Σ_{k=1}^{L} (1 − k/n) r_k, with r_k pooled over
     the windows after removing each window's mean; the O(1/n) bias of demeaned
     autocorrelations (E r_k ≈ −VIF/n) is added back by a fixed-point iteration.
     """
     W, n, _ = xw.shape
-    d = xw - xw.mean(axis=1, keepdims=True)
-    c0 = np.einsum("wnc,wnc->c", d, d)
     L = min(max_lag, n - 2)
-    r = [np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k]) / c0 for k in range(1, L + 1)]
+    c0, ck = _lag_sums(xw, np.ones(W, bool) if sel is None else sel, L)
+    r = [c / c0 for c in ck]
     vif = np.ones(xw.shape[2])
     for _ in range(3):  # demeaning bias of r_k is −VIF/n: fixed-point correction
         vif = 1.0 + sum(2.0 * (1.0 - k / n) * (r[k - 1] + vif / n) for k in range(1, L + 1))
@@ -406,17 +452,16 @@ class StaticBiasCalibrator:
                     "the variance gate's false-reject rate is approximate"
                 )
             return None, None
-        s2w = xw.var(axis=1, ddof=1)
+        s2w = _window_stats(xw.reshape(W * n, -1), n, "variance")
         qv = np.quantile(s2w, quantile, axis=0)
         dof = np.full(3, float(n - 1))
         for _ in range(2):  # white start, then with the measured correlation
             sigma2 = qv / (scipy.stats.chi2.ppf(quantile, dof) / dof)
             quiet = np.all(s2w <= 4.0 * sigma2[None, :], axis=1)
-            d = xw[quiet] - xw[quiet].mean(axis=1, keepdims=True)
-            c0 = np.einsum("wnc,wnc->c", d, d)
+            c0, ck = _lag_sums(xw, quiet, min(self.max_lag, n - 2))
             corr = np.zeros(3)
             vif = np.ones(3)
-            r = [np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k]) / c0 for k in range(1, min(self.max_lag, n - 2) + 1)]
+            r = [c / c0 for c in ck]
             for _ in range(3):
                 vif = 1.0 + sum(2.0 * (1.0 - k / n) * (rk + vif / n) for k, rk in enumerate(r, 1))
             corr = sum(2.0 * (1.0 - k / n) * (rk + vif / n) ** 2 for k, rk in enumerate(r, 1))
@@ -471,14 +516,14 @@ class StaticBiasCalibrator:
         if self.correlation == "white" or n_still == 0:
             vif = np.ones(3)
         else:
-            vif = _vif(xw[still], self.max_lag)
+            vif = _vif(xw, self.max_lag, still)
         # per-sample σ of the data (pooled within-window variance of the still windows; for
         # coloured noise σ_Δ/√2 is not the marginal σ)
-        pool = xw[still] if n_still else xw
         if self.noise_sigma_rad_s is not None:
             sigma = sigma_diff / math.sqrt(2.0)
         else:
-            sigma = np.sqrt(pool.var(axis=1, ddof=1).mean(axis=0))
+            wv = _window_stats(x[: W * n], n, "variance")  # per-window variances, block by block
+            sigma = np.sqrt((wv[still] if n_still else wv).mean(axis=0))
         last = W if self.max_retries is None else min(W, 1 + int(self.max_retries) + (need - 1))
 
         if self.rule == "converge":

@@ -44,6 +44,8 @@ __all__ = [
     "is_parquet",
     "COLUMN_GROUPS",
     "concat_recordings",
+    "spill_columns",
+    "ColumnSpill",
     "detect_saturation",
     "locate_bad_value",
     "AXES",
@@ -373,9 +375,12 @@ def _slow_parse(lines: list[str], first_lineno: int, header: list[str], path: st
 
 
 # ---------------------------------------------------------------- the C/Arrow parser
-#: Bytes per Arrow CSV block in streaming reads (rounded to whole lines by Arrow).
-_MIN_BLOCK_BYTES = 1 << 20
-_MAX_BLOCK_BYTES = 4 << 20  # measured: 1-4 MiB blocks stream fastest (16-64 MiB: 1.6x slower)
+#: Bytes per Arrow CSV block (rounded to whole lines by Arrow). Arrow's streaming reader
+#: reads blocks ahead, so its memory grows with the block size: measured on a 608 MiB file,
+#: peak RSS above the imports 74 MiB at 256 KiB, 100 MiB at 512 KiB, 225 MiB at 4 MiB, for
+#: the same speed (5.3-5.7 s under load 13).
+_MIN_BLOCK_BYTES = 256 << 10
+_MAX_BLOCK_BYTES = 256 << 10
 
 
 class _NotClean(Exception):
@@ -449,20 +454,87 @@ class _Moments:
         return np.sqrt(np.maximum(self.s2 / self.n - m * m, 0.0))
 
 
-def _arrow_whole(path: str, offset: int, header: list[str], want: list[int], moments: "_Moments") -> dict[int, np.ndarray]:
-    """Whole table through Arrow's C++ CSV reader, batch by batch; {header index: column}.
-    Columns in ``moments.idx`` are only reduced to running moments (not kept)."""
-    parts: dict[int, list[np.ndarray]] = {i: [] for i in want if i not in moments.idx}
-    for blk in _arrow_stream(path, offset, header, want, _MAX_BLOCK_BYTES):
-        moments.update(blk)
-        for i, v in blk.items():
-            parts[i].append(v)
-    cols: dict[int, np.ndarray] = {}
-    for i in list(parts):  # column by column, freeing each list: peak ≈ the columns + one column
-        lst = parts.pop(i)
-        cols[i] = lst[0] if len(lst) == 1 else (np.concatenate(lst) if lst else np.empty(0))
-        del lst
-    return cols
+class _Filler:
+    """The final arrays of a whole read (the Recording's own, SI, groups as (N, k)),
+    preallocated for an upper bound of the row count and filled block by block: the columns
+    are held once — never lists of blocks plus their concatenation (which, with the
+    allocator's fragmentation, measured 2-4x the data). Check-only accel columns are reduced
+    to running moments."""
+
+    def __init__(self, layout: "_Layout", capacity: int) -> None:
+        self.layout = layout
+        self.n = 0
+        cap = max(int(capacity), 1)
+        self.t = np.empty(cap)
+        self.groups = {name: np.empty((cap, len(blk[0])))
+                       for name, blk in (("gyro", layout.gyro), ("accel", layout.accel), ("rref", layout.rref),
+                                         ("qref", layout.qref)) if blk is not None}
+        self.temp = np.empty(cap) if layout.temp is not None else None
+        self.extra = {h: np.empty(cap) for h, _ in layout.extra}
+        self.moments = layout.moments()
+
+    def _arrays(self):
+        yield "t", self.t
+        yield from self.groups.items()
+        if self.temp is not None:
+            yield "temp", self.temp
+        for h, v in self.extra.items():
+            yield "extra:" + h, v
+
+    def _grow(self, need: int) -> None:
+        cap = max(need, int(self.t.shape[0] * 1.5) + 1)
+        for name, old in list(self._arrays()):
+            new = np.empty((cap,) + old.shape[1:])
+            new[: self.n] = old[: self.n]
+            if name == "t":
+                self.t = new
+            elif name == "temp":
+                self.temp = new
+            elif name.startswith("extra:"):
+                self.extra[name[6:]] = new
+            else:
+                self.groups[name] = new
+
+    def add(self, blk: dict[int, np.ndarray]) -> None:
+        L = self.layout
+        self.moments.update(blk)
+        m = len(blk[L.t])
+        if m == 0:
+            return
+        if self.n + m > self.t.shape[0]:
+            self._grow(self.n + m)
+        s = slice(self.n, self.n + m)
+        self.t[s] = blk[L.t]
+        for name, arr in self.groups.items():
+            idx, fac = getattr(L, {"gyro": "gyro", "accel": "accel", "rref": "rref", "qref": "qref"}[name])
+            for j, (i, f) in enumerate(zip(idx, fac)):
+                if f == 1.0:
+                    arr[s, j] = blk[i]
+                else:
+                    np.multiply(blk[i], f, out=arr[s, j])
+        if self.temp is not None:
+            self.temp[s] = blk[L.temp]
+        for h, i in L.extra:
+            self.extra[h][s] = blk[i]
+        self.n += m
+
+    def columns(self):
+        """(t, gyro, accel, temp, rref, qref, extra) trimmed to the rows read (views)."""
+        n = self.n
+        g = self.groups
+        return (self.t[:n], g["gyro"][:n], g["accel"][:n] if "accel" in g else None,
+                None if self.temp is None else self.temp[:n], g["rref"][:n] if "rref" in g else None,
+                g["qref"][:n] if "qref" in g else None, {h: v[:n] for h, v in self.extra.items()})
+
+
+def _count_lines(path: str, offset: int) -> int:
+    """Newlines after ``offset`` + 1: an upper bound of the data rows (16 MiB at a time)."""
+    n = 1
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        for chunk in iter(lambda: fh.read(16 << 20), b""):
+            n += chunk.count(b"\n")
+    return n
 
 
 def _rechunk(blocks: Iterable[dict[int, np.ndarray]], rows: int) -> Iterator[dict[int, np.ndarray]]:
@@ -496,8 +568,7 @@ def _arrow_stream(path: str, offset: int, header: list[str], want: list[int], bl
     try:
         src = pa.OSFile(path)
         src.seek(offset)
-        reader = pc.open_csv(src, read_options=ro, parse_options=po, convert_options=co,
-                             memory_pool=pa.system_memory_pool())
+        reader = pc.open_csv(src, read_options=ro, parse_options=po, convert_options=co)
         for batch in reader:
             yield {i: _to_numpy(batch.column(k)) for k, i in enumerate(want)}
     except (pa.ArrowException, UnicodeDecodeError) as exc:
@@ -667,13 +738,14 @@ class _Layout:
         if block is None:
             return None
         get = cols.pop if pop else cols.__getitem__
-        parts = [get(i) for i in block[0]]
-        out = np.empty((parts[0].shape[0], len(parts)))
-        for j, (c, f) in enumerate(zip(parts, block[1])):
+        out = np.empty((cols[block[0][0]].shape[0], len(block[0])))
+        for j, (i, f) in enumerate(zip(block[0], block[1])):
+            c = get(i)  # popped one at a time: the single column is freed once copied
             if f == 1.0:
                 out[:, j] = c
             else:
                 np.multiply(c, f, out=out[:, j])
+            del c
         return out
 
 
@@ -700,8 +772,11 @@ def _valid_rows(t, gyro, accel, temp, path, repair, *, t_prev: float = -np.inf) 
     n_bad = int((~keep).sum())
     if n_bad and not repair:
         raise GyroInputError(f"{path}: {n_bad} rows with NaN/inf values")
-    t_k = t[keep]
+    all_kept = not n_bad
+    t_k = t if all_kept else t[keep]
     n_back = 0
+    if t_k.size and all_kept and t_k[0] > t_prev and bool(np.all(t_k[1:] > t_k[:-1])):
+        return keep, n_bad, 0  # strictly increasing (the usual case): no running-max copies
     if t_k.size:
         running_max = np.maximum.accumulate(np.concatenate([[t_prev], t_k]))
         mono = t_k > running_max[:-1]
@@ -720,7 +795,10 @@ def _robust_noise(x: np.ndarray) -> float:
     d = np.diff(x)
     if d.size == 0:
         return 0.0
-    mad = float(np.median(np.abs(d - np.median(d))))
+    a = d - np.median(d)
+    np.abs(a, out=a)
+    mad = float(np.median(a, overwrite_input=True))  # in place: same value, one temporary fewer
+    del a
     if mad > 0:
         return 1.4826 * mad / np.sqrt(2.0)
     nz = np.abs(d[d != 0])
@@ -807,7 +885,7 @@ def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
     """Warn when a column labelled rad/s carries deg/s (magnitude evidence), or error."""
     if not gyro_col.endswith("_rad_s") or gyro.shape[0] < 2:
         return
-    peak = float(np.max(np.abs(gyro)))
+    peak = max(float(np.max(gyro)), -float(np.min(gyro)))  # = max |gyro|, without an (N, 3) temporary
     if peak > DEG_S_SUSPECT_RAD_S:
         raise GyroInputError(
             f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
@@ -820,7 +898,7 @@ def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
     sd = np.std(accel, axis=0) if accel is not None else accel_std
     if sd is None or not bool(np.all(sd < 0.05 * G0_M_S2)):
         return
-    med = np.median(gyro, axis=0)
+    med = np.array([np.median(gyro[:, i]) for i in range(3)])  # per column: no (N, 3) copy
     noise = np.array([_robust_noise(gyro[:, i]) for i in range(3)])
     # (a large median alone is not evidence: a centred sensor on a turning rate table also has steady accel)
     if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
@@ -937,38 +1015,28 @@ def read_csv(path: str | os.PathLike, *, repair: bool = True, retime: bool = Fal
     layout = _Layout(header, path, columns)
     _check_memory(path, n_skip, len(layout.want) - len(layout.check_accel))
     offset = _data_offset(path, n_skip)
-    cols = None
-    moments = layout.moments()
+    fill = None
     if offset is not None:
+        fill = _Filler(layout, _count_lines(path, offset))
         try:
-            cols = _arrow_whole(path, offset, header, layout.want, moments)
+            for blk in _arrow_stream(path, offset, header, layout.want, _MAX_BLOCK_BYTES):
+                fill.add(blk)
         except _NotClean:
-            cols = None
-    if cols is None:  # not a clean table: the exact parser, chunk by chunk (line numbers, empty fields)
-        moments = layout.moments()
-        parts = []
+            fill = None
+    if fill is None:  # not a clean table: the exact parser, chunk by chunk (line numbers, empty fields)
+        fill = _Filler(layout, _count_lines(path, 0))
         for blk in _exact_blocks(path, header, n_skip, layout.want, 0, n_skip + 1):
-            moments.update(blk)
-            parts.append(blk)
-        keys = [i for i in layout.want if i not in layout.check_accel]
-        cols = {i: (np.concatenate([p[i] for p in parts]) if parts else np.empty(0)) for i in keys}
-        del parts
-    if cols[layout.t].shape[0] == 0:
+            fill.add(blk)
+    if fill.n == 0:
         raise GyroInputError(f"{path}: header only, no samples")
-    return _assemble(cols, layout, meta, path, repair=repair, retime=retime, checks=checks,
-                     accel_std=layout.accel_std(moments))
+    return _assemble_filled(fill, meta, path, repair=repair, retime=retime, checks=checks)
 
 
-def _assemble(cols: dict[int, np.ndarray], layout: _Layout, meta, path, *, repair, retime, checks, min_rows=2,
-              accel_std=None):
-    """Columns {header index: array} -> checked :class:`Recording` (consumes ``cols``)."""
-    t = cols.pop(layout.t)
-    gyro = layout.take(cols, layout.gyro, pop=True)
-    accel = layout.take(cols, layout.accel, pop=True)
-    rref = layout.take(cols, layout.rref, pop=True)
-    qref = layout.take(cols, layout.qref, pop=True)
-    temp = cols.pop(layout.temp) if layout.temp is not None else None
-    extra = {h: cols.pop(i) for h, i in layout.extra}
+def _assemble_filled(fill: _Filler, meta, path, *, repair, retime, checks, min_rows=2) -> Recording:
+    """Filled columns -> checked :class:`Recording` (rows with NaN or non-increasing time
+    dropped with a warning; copies only when rows are dropped)."""
+    t, gyro, accel, temp, rref, qref, extra = fill.columns()
+    layout = fill.layout
     keep, n_bad, n_back = _valid_rows(t, gyro, accel, temp, path, repair)
     if n_bad:
         warn_repair(f"{path}: dropped {n_bad} rows with NaN/inf time, gyro, accel or temperature")
@@ -984,8 +1052,9 @@ def _assemble(cols: dict[int, np.ndarray], layout: _Layout, meta, path, *, repai
 
     meta = dict(meta)
     meta["__gyro_col__"] = layout.gyro_unit_col
-    extra = {h: k(v) for h, v in extra.items()}
-    return _finish(k(t), k(gyro), k(accel), k(temp), k(rref), k(qref), meta, extra, path,
+    accel_std = layout.accel_std(fill.moments)
+    del fill
+    return _finish(k(t), k(gyro), k(accel), k(temp), k(rref), k(qref), meta, {h: k(v) for h, v in extra.items()}, path,
                    checks=checks, retime=retime, accel_std=accel_std)
 
 
@@ -1274,27 +1343,17 @@ def read_parquet(path: str | os.PathLike, *, repair: bool = True, retime: bool =
     layout = _Layout(header, path, columns)
     _check_memory(path, 0, len(layout.want) - len(layout.check_accel), est_rows=pf.metadata.num_rows)
     nulls = [0]
-    moments = layout.moments()
-    parts: dict[int, list[np.ndarray]] = {i: [] for i in layout.want if i not in layout.check_accel}
+    fill = _Filler(layout, pf.metadata.num_rows)
     try:
         for batch in pf.iter_batches(batch_size=PARQUET_ROW_GROUP, columns=[header[i] for i in layout.want]):
-            blk = _parquet_cols(batch, header, layout.want, path, nulls)
-            moments.update(blk)
-            for i, v in blk.items():
-                parts[i].append(v)
+            fill.add(_parquet_cols(batch, header, layout.want, path, nulls))
     except (pa.ArrowException, OSError) as exc:
         raise _parquet_read_error(path, exc) from None
-    cols = {}
-    for i in list(parts):
-        lst = parts.pop(i)
-        cols[i] = lst[0] if len(lst) == 1 else (np.concatenate(lst) if lst else np.empty(0))
-        del lst
     if nulls[0]:
         warn_repair(f"{path}: {nulls[0]} empty fields read as missing values (NaN)")
-    if cols[layout.t].shape[0] == 0:
+    if fill.n == 0:
         raise GyroInputError(f"{path}: header only, no samples")
-    return _assemble(cols, layout, meta, path, repair=repair, retime=retime, checks=checks,
-                     accel_std=layout.accel_std(moments))
+    return _assemble_filled(fill, meta, path, repair=repair, retime=retime, checks=checks)
 
 
 def iter_parquet_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True,
@@ -1363,3 +1422,131 @@ def concat_recordings(recs: list[Recording]) -> Recording:
     return Recording(t_s=cat("t_s"), gyro_rad_s=cat("gyro_rad_s"), accel_m_s2=cat("accel_m_s2"), temp_c=cat("temp_c"),
                      ref_rate_rad_s=cat("ref_rate_rad_s"), ref_quat_wxyz=cat("ref_quat_wxyz"), meta=recs[0].meta,
                      extra={k: np.concatenate([r.extra[k] for r in recs]) for k in recs[0].extra})
+
+
+# ---------------------------------------------------------------------- long recordings, one column at a time
+class ColumnSpill:
+    """The checked columns of a long recording kept on disk, loaded one at a time.
+
+    Made by :func:`spill_columns`. ``t_s`` is in memory (it is needed for the rate and the
+    timestamp checks); every other column (SI units, names of :func:`_columns`: e.g.
+    ``gyro_x_rad_s``) is loaded by :meth:`column`. An analysis that needs the whole series of
+    one axis at a time (overlapping ADEV) then holds two columns, not the whole table.
+    """
+
+    def __init__(self, folder: Path, names: list[str], n: int, t_s: np.ndarray, meta: dict[str, str]) -> None:
+        self.folder = folder
+        self.names = names
+        self.n = n
+        self.t_s = t_s
+        self.meta = meta
+
+    def column(self, name: str) -> np.ndarray:
+        """One column, shape (N,), float64 (a fresh array)."""
+        if name not in self.names:
+            raise KeyError(name)
+        return np.fromfile(self.folder / f"{name}.f64", dtype=np.float64, count=self.n)
+
+    def recording(self, gyro_axis: int, *, accel_axis: int | None = None) -> Recording:
+        """A :class:`Recording` holding only gyro axis ``gyro_axis`` (the other two axes are
+        views of the same column: use only that axis), optionally one accel axis likewise."""
+        g = self.column(GYRO_COLS[gyro_axis])
+        a = None if accel_axis is None else self.column(ACCEL_COLS[accel_axis])
+        return Recording(t_s=self.t_s, gyro_rad_s=np.broadcast_to(g[:, None], (self.n, 3)),
+                         accel_m_s2=None if a is None else np.broadcast_to(a[:, None], (self.n, 3)),
+                         meta=self.meta)
+
+
+def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: bool = False, rows: int = 32_768,
+                  repair: bool = True) -> ColumnSpill:
+    """Stream a data file (CSV or Parquet) into per-column files in ``folder``, with the
+    same repairs, checks, warnings and errors as :func:`read_recording` — run one column at
+    a time, so memory stays O(2 columns) instead of O(all columns).
+
+    Columns kept: ``t_s``, the gyro (SI) and, with ``accel``, the accel. The saturation check
+    warns as usual but the ``saturated`` flag column is not kept. No ``retime``.
+    """
+    path = str(path)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    names = [TIME_COL, *GYRO_COLS]
+    if is_parquet(path):
+        _pf, header, _m = _open_parquet(path)
+    else:
+        _sniff_file(path)
+        _m, header, _ = _header_info(path)
+    layout = _Layout(header, path, ("accel",))
+    has_accel = layout.accel is not None
+    if has_accel and accel:
+        names += list(ACCEL_COLS)
+    files = {nm: open(folder / f"{nm}.f64", "wb") for nm in names}
+    n = 0
+    meta: dict[str, str] = {}
+    g_max, g_min = -np.inf, np.inf
+    mom = _Moments([0, 1, 2])
+    try:
+        for ch in iter_chunks(path, rows=rows, repair=repair, columns=("accel",) if has_accel else ()):
+            meta = dict(ch.meta)
+            cols = {TIME_COL: ch.t_s, **{GYRO_COLS[j]: ch.gyro_rad_s[:, j] for j in range(3)}}
+            if has_accel:
+                mom.update({j: ch.accel_m_s2[:, j].copy() for j in range(3)})
+                if accel:
+                    cols.update({ACCEL_COLS[j]: ch.accel_m_s2[:, j] for j in range(3)})
+            for nm in names:
+                np.ascontiguousarray(cols[nm], dtype=np.float64).tofile(files[nm])
+            g_max = max(g_max, float(ch.gyro_rad_s.max()))
+            g_min = min(g_min, float(ch.gyro_rad_s.min()))
+            n += ch.n
+    finally:
+        for fh in files.values():
+            fh.close()
+    if n < 2:
+        raise GyroInputError(f"{path}: fewer than 2 valid samples")
+    t = np.fromfile(folder / f"{TIME_COL}.f64", dtype=np.float64, count=n)
+    store = ColumnSpill(folder, names, n, t, meta)
+    span = np.subtract(t[-1], t[0], dtype=float)
+    with np.errstate(all="ignore"):
+        if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
+            raise GyroInputError(f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})")
+    # the checks of _finish, in its order, one column at a time
+    gyro_col = layout.gyro_unit_col
+    with np.errstate(all="ignore"):
+        if gyro_col.endswith("_rad_s"):
+            peak = max(g_max, -g_min)
+            if peak > DEG_S_SUSPECT_RAD_S:
+                raise GyroInputError(
+                    f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
+                    f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
+                )
+            sd = mom.std() if has_accel else None  # chunks are SI already
+            if sd is not None and bool(np.all(sd < 0.05 * G0_M_S2)):
+                med, noise = [], []
+                for j in range(3):
+                    c = store.column(GYRO_COLS[j])
+                    med.append(float(np.median(c)))
+                    noise.append(_robust_noise(c))
+                    del c
+                if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
+                    warn_repair(
+                        f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
+                        f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
+                        f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
+                        f"Data left unchanged"
+                    )
+        _timing_checks(t, path, False)
+        found, n_sat = [], 0
+        sat_any = None
+        for j, nm in enumerate(GYRO_COLS + (ACCEL_COLS if has_accel and accel else ())):
+            c = store.column(nm)
+            clip = 0.9 * 125.0 * DEG if j < 3 else 0.9 * 2.0 * G0_M_S2
+            m, f = detect_saturation(c[:, None], min_clip=clip)
+            if f:
+                sat_any = m if sat_any is None else (sat_any | m)
+                found += [(j, v, cnt) for _, v, cnt in f]
+            del c
+        if found:
+            n_sat = int(sat_any.sum())
+            names6 = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
+            desc = ", ".join(f"{names6[j]} {cnt} at {v:.6g}" for j, v, cnt in found)
+            warn_repair(f"{path}: {n_sat} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'")
+    return store

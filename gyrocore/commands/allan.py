@@ -104,6 +104,67 @@ def plot_png(analysis, path: str) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+#: Files whose t + gyro columns would exceed this are analysed one axis at a time
+#: (:func:`allan_by_axis`): same numbers, memory O(2 columns) instead of O(4).
+BY_AXIS_BYTES = 64 * 2**20
+
+
+def _long(file: str) -> bool:
+    import os
+
+    from ..recording import is_parquet
+
+    if not os.path.isfile(file):
+        return False
+    # rows ~ CSV bytes / 150 (a 15-column %.17g row is ~180 B, a 4-column one ~75 B: take the
+    # larger count); Parquet stores ~8 B per value
+    size = os.path.getsize(file)
+    rows = size / (8 * 4) if is_parquet(file) else size / 75
+    return rows * 4 * 8 > BY_AXIS_BYTES
+
+
+def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str):
+    """:func:`gyrocore.allan.allan_analysis` of a long recording, one axis at a time.
+
+    The file is streamed once into per-column files in a temporary folder
+    (:func:`gyrocore.recording.spill_columns`: the same repairs, checks and warnings as a
+    whole read); each axis is then loaded alone with the time column. The results are
+    identical to the whole-record analysis (same samples, same rate, same kernel); memory
+    holds two columns (t and the axis) plus the ADEV buffers.
+    """
+    import tempfile
+    import warnings
+
+    from ..allan import AllanAnalysis, allan_analysis
+    from ..recording import AXES, spill_columns
+
+    with tempfile.TemporaryDirectory(prefix="gyroharness_allan_") as tmp:
+        store = spill_columns(file, tmp, accel=kalibr)
+        has_accel = "accel_x_m_s2" in store.names
+        per_axis, per_accel = {}, {}
+        seen: set[str] = set()
+        last = None
+        for a in axes:
+            j = AXES.index(a)
+            for kind in ("gyro", "accel") if has_accel else ("gyro",):
+                rec = store.recording(j) if kind == "gyro" else store.recording(j, accel_axis=j)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    r = allan_analysis(rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine)
+                for w in caught:  # the record-level warnings once, not once per axis
+                    if str(w.message) not in seen:
+                        seen.add(str(w.message))
+                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                if kind == "gyro":
+                    per_axis[a] = r.axes[a]
+                else:
+                    per_accel[a] = r.accel[a]
+                last = r
+                del rec
+    return AllanAnalysis(axes=per_axis, accel=per_accel, rate_hz=last.rate_hz, n_samples=last.n_samples,
+                         duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s)
+
+
 @click.command("allan")
 @click.argument("file", type=click.Path(dir_okay=False))  # CSV or Parquet
 @click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None, help="write a PNG of the deviation and fit")
@@ -118,10 +179,13 @@ def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, e
     from ..allan import allan_analysis, kalibr_imu_yaml
     from ..recording import atomic_write_text, read_recording
 
-    # only the columns the analysis needs (t, gyro; accel for Kalibr): memory O(4 columns)
-    rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
-    want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
-    res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine)
+    if _long(file):
+        res = allan_by_axis(file, axes=_axes(axes), max_tau_s=max_tau_s, kalibr=kalibr_yaml is not None, engine=engine)
+    else:
+        # only the columns the analysis needs (t, gyro; accel for Kalibr)
+        rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
+        want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
+        res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine)
     if plot:
         plot_png(res, plot)
     if kalibr_yaml:

@@ -111,7 +111,7 @@ def apply_streaming(res, path: str, output: str, *, power_up_bias: bool = False,
               help="corrected data file to write (.parquet: Parquet, else CSV)")
 @click.option("--power-up-bias", is_flag=True,
               help="re-estimate the constant bias from FILE's still start (the bias changes at every power-up)")
-@click.option("--chunk-rows", type=click.IntRange(min=16), default=200_000, show_default=True,
+@click.option("--chunk-rows", type=click.IntRange(min=16), default=50_000, show_default=True,
               help="rows corrected at a time (memory O(chunk); the result does not depend on it)")
 @click.option("--force", is_flag=True, help="overwrite an existing output file")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only")

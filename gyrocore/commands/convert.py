@@ -43,7 +43,8 @@ STREAM_BYTES = 96 * 2**20
               help="Another recording of the same session, joined after INPUT (repeatable; same options), "
                    "e.g. the rotate-* runs about y and z after the one about x: one file and one segments file.")
 @click.option("--gap-s", type=float, default=None, help="Time gap inserted between joined recordings, s (default: one sample interval).")
-@click.option("--chunk-rows", type=int, default=200_000, show_default=True, help="Rows per chunk when a large CSV input is streamed.")
+@click.option("--chunk-rows", type=int, default=50_000, show_default=True,
+              help="Rows per chunk when a large data file is streamed (memory ~ 10 copies of a chunk).")
 @click.option("--force", is_flag=True, default=False, help="Overwrite existing output files.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print a JSON summary on stdout.")
 def command(input_path, output, to, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, log_index, segments_out,
