@@ -194,3 +194,28 @@ def test_not_a_blackbox_is_one_error(tmp_path):
     p.write_bytes(b"hello\n")
     with pytest.raises(GyroInputError):
         bb.read_blackbox(p)
+
+
+def test_betaflight_44_header_names_and_gyro_scaled(log_path, tmp_path):
+    """A 4.4 header (the same frames): debug_mode 6 is GYRO_SCALED (raw gyro), LPF1 from
+    gyro_lpf1_static_hz with type 2 = PT2 (4.3+ lowpassFilterType_e), dynamic notch from
+    dyn_notch_count, RPM filter from rpm_filter_harmonics with dshot_bidir, integer P interval,
+    and blackbox_high_resolution: gyroADC ×10 (debug fields are not scaled)."""
+    data = log_path.read_bytes()[:PREFIX_BYTES]
+    extra = (b"H gyro_lpf1_static_hz:90\nH gyro_lpf1_type:2\nH gyro_lpf1_dyn_hz:0,0\nH gyro_lpf2_static_hz:0\n"
+             b"H dyn_notch_count:3\nH dyn_notch_min_hz:100\nH dyn_notch_max_hz:600\nH rpm_filter_harmonics:3\n"
+             b"H dshot_bidir:1\nH motor_poles:14\nH blackbox_high_resolution:1\n")
+    s = (data.replace(b"Betaflight 3.1.5", b"Betaflight 4.4.2").replace(b"H debug_mode:8", b"H debug_mode:6")
+         .replace(b"H gyro_lowpass_hz:90\n", extra).replace(b"H P interval:1/8", b"H P interval:8"))
+    p = tmp_path / "bf44.BBL"
+    p.write_bytes(s)
+    rec, _ = _read(p)
+    base, _ = _read(_patched_header(log_path, tmp_path, b"H debug_mode:8", b"H debug_mode:8"))
+    assert rec.meta["debug_mode"] == "6 = DEBUG_GYRO_SCALED"
+    pre = json.loads(rec.meta["gyro_prefilter"])
+    assert pre["signal"] == "raw" and pre["filters_before"] == []
+    kinds = [(c["kind"], c["dynamic"]) for c in json.loads(rec.meta["gyro_filters"])]
+    assert kinds == [("dyn_notch", True), ("rpm_notch", True), ("notch", False), ("pt2", False)]
+    assert float(rec.meta["log_rate_nominal_hz"]) == 1000
+    np.testing.assert_allclose(rec.gyro_rad_s, base.gyro_rad_s / 10.0, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(rec.extra["gyro_prefilter_x_rad_s"], base.extra["gyro_prefilter_x_rad_s"])

@@ -263,3 +263,15 @@ def test_synthesized_vibration_reproduces_the_spec_band(res, tmp_path):
     # and a disturbance of the wrong level is out of band
     bad = Recording(t_s=rec.t_s, gyro_rad_s=3.0 * d, meta={"source": "synth"})
     assert fidelity(analyse(bad), spec, band=3)["y"]["in_band_fraction"] < 0.2
+
+
+def test_line_following_rotor_speed_is_erpm_with_its_harmonic():
+    """With a rotor-speed column (blackbox 4.5+ eRPM → rotor_hz_i) a line at 2× the rotor
+    frequency follows ``erpm``, harmonic 2."""
+    r = _flight(4)
+    u = r.extra["motor_cmd_mean"]
+    rotor_hz = (F0 + K_U * u) / 2.0  # the y line is at twice this rotor frequency
+    extra = dict(r.extra, **{f"rotor_hz_{i}": rotor_hz for i in range(4)})
+    res4 = analyse(Recording(t_s=r.t_s, gyro_rad_s=r.gyro_rad_s, meta=r.meta, extra=extra))
+    ln = _line(res4, "y", "erpm")
+    assert ln["harmonic"] == 2
