@@ -825,8 +825,18 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
                 extra[f"rotor_hz_{i}"] = col[rows] * 100.0 / (poles / 2.0) / 60.0
         if not (isinstance(poles, int) and poles > 0):
             lacks.append("eRPM logged but no motor_poles in the header: rotor speed in Hz unknown")
+    elif dname == "RPM_FILTER" and fw.version >= (4, 0, 0) and _triplet(log, "debug") is not None:
+        # 4.0-2026.6 rpm_filter.c: DEBUG_SET(DEBUG_RPM_FILTER, motor, motorFrequency[Hz][motor]) for
+        # motors 0..3: the PT1-smoothed rotor frequency (erpmToHz = 100/60/(poles/2)), integer Hz
+        for i in range(4):
+            col = log.column(f"debug[{i}]")
+            if col is not None:
+                extra[f"rotor_hz_{i}"] = col[rows].astype(float)
+        meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in Betaflight {fw.version_str}: "
+                                   "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)")
     else:
-        lacks.append("no eRPM (fields need bidirectional DShot and Betaflight 4.5+): line laws from throttle only")
+        lacks.append("no eRPM (fields need bidirectional DShot and Betaflight 4.5+, or debug_mode RPM_FILTER in 4.0+): "
+                     "line laws from throttle only")
     nyq = log_hz / 2.0
     lacks.append(f"logged at {log_hz:.0f} Hz: content above its Nyquist {nyq:.0f} Hz (gyro runs at {rates['gyro_hz']:.0f} Hz, "
                  f"decimated without anti-alias filter) folds into the band")

@@ -219,3 +219,19 @@ def test_betaflight_44_header_names_and_gyro_scaled(log_path, tmp_path):
     assert float(rec.meta["log_rate_nominal_hz"]) == 1000
     np.testing.assert_allclose(rec.gyro_rad_s, base.gyro_rad_s / 10.0, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(rec.extra["gyro_prefilter_x_rad_s"], base.extra["gyro_prefilter_x_rad_s"])
+
+
+def test_rpm_filter_debug_mode_gives_rotor_frequency(log_path, tmp_path):
+    """4.x debug_mode RPM_FILTER: debug[0..3] = rotor frequency per motor in Hz (rpm_filter.c)."""
+    from gyrocore._betaflight_debug_modes import BETAFLIGHT_DEBUG_MODES
+
+    names = [n for lo, hi, n in BETAFLIGHT_DEBUG_MODES if lo <= (4, 2, 0) <= hi][0]
+    idx = names.index("RPM_FILTER")
+    data = log_path.read_bytes()[:PREFIX_BYTES]
+    s = data.replace(b"Betaflight 3.1.5", b"Betaflight 4.2.0").replace(b"H debug_mode:8", b"H debug_mode:%d" % idx)
+    p = tmp_path / "rpm.BBL"
+    p.write_bytes(s)
+    rec, _ = _read(p)
+    base, _ = _read(_patched_header(log_path, tmp_path, b"H debug_mode:8", b"H debug_mode:8"))
+    assert "no eRPM" not in rec.meta["lacks"] and "DEBUG_RPM_FILTER" in rec.meta["rotor_hz_source"]
+    np.testing.assert_allclose(rec.extra["rotor_hz_0"], np.degrees(base.extra["gyro_prefilter_x_rad_s"]), atol=1e-9)
