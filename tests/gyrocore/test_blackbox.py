@@ -235,3 +235,26 @@ def test_rpm_filter_debug_mode_gives_rotor_frequency(log_path, tmp_path):
     base, _ = _read(_patched_header(log_path, tmp_path, b"H debug_mode:8", b"H debug_mode:8"))
     assert "no eRPM" not in rec.meta["lacks"] and "DEBUG_RPM_FILTER" in rec.meta["rotor_hz_source"]
     np.testing.assert_allclose(rec.extra["rotor_hz_0"], np.degrees(base.extra["gyro_prefilter_x_rad_s"]), atol=1e-9)
+
+
+def test_convert_cli_writes_data_file_with_metadata(log_path, tmp_path):
+    import subprocess
+    import sys
+
+    from gyrocore.recording import read_csv
+
+    cut = tmp_path / "cut.BBL"
+    cut.write_bytes(log_path.read_bytes()[:80_000])
+    out = tmp_path / "f.csv"
+    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(cut), "-o", str(out), "--json", "--log-index", "1"],
+                        capture_output=True, text=True, timeout=300)
+    assert cp.returncode == 0, cp.stderr
+    d = json.loads(cp.stdout)
+    assert d["format"] == "blackbox" and "gyro_prefilter_x_rad_s" in d["columns"]["extra"]
+    warn = [ln for ln in cp.stderr.splitlines() if ln.startswith("warning:")]
+    assert any("truncated" in w for w in warn)
+    rec = read_csv(out)
+    assert rec.n == d["n_samples"] and json.loads(rec.meta["gyro_filters"])[0]["kind"] == "pt1"
+    bad = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(cut), "-o", str(tmp_path / "g.csv"),
+                          "--log-index", "3"], capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and bad.stderr.strip().startswith("error:") and "holds 1" in bad.stderr
