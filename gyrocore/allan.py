@@ -45,6 +45,13 @@ __all__ = [
     "TERM_UNITS",
     "AllanResult",
     "AllanAnalysis",
+    "NoiseAxis",
+    "NoiseResult",
+    "identify_noise",
+    "still_fraction",
+    "needed_duration_s",
+    "ALL_TERM_NAMES",
+    "METHODS",
     "SimpleNoiseModel",
     "oadev",
     "octave_m",
@@ -60,7 +67,7 @@ __all__ = [
     "FORMAT_VERSION",
 ]
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "2.0"  # 2.0: GM terms, method, resolved flags, τ up to T/2 (issue 11)
 RAD2DEG = 180.0 / math.pi
 
 #: JSON names of the IEEE 952 terms, in the order of the model's coefficient vector.
@@ -71,7 +78,11 @@ TERM_NAMES = (
     "rrw_rad_per_s_sqrt_s",
     "rate_ramp_rad_s2",
 )
+#: The IEEE terms plus the first-order Gauss–Markov pair (``correlated`` in the catalogue).
+ALL_TERM_NAMES = TERM_NAMES + ("correlated_sigma_rad_s", "correlated_tau_c_s")
 TERM_UNITS = {
+    "correlated_sigma_rad_s": "rad/s",
+    "correlated_tau_c_s": "s",
     "quantization_rad": "rad",
     "arw_rad_per_sqrt_s": "rad/s/sqrt(Hz) = rad/sqrt(s)",
     "bias_instability_rad_s": "rad/s",
@@ -474,17 +485,31 @@ class AllanResult:
     rate_hz: float = float("nan")
     n_samples: int = 0
     units: Mapping[str, str] = field(default_factory=lambda: dict(TERM_UNITS))
+    correlated_sigma_rad_s: float | None = None
+    correlated_tau_c_s: float | None = None
+    method: str = "gmwm"
+    resolved: Mapping[str, bool] = field(default_factory=dict)
+    chi2: float = float("nan")
+    dof: int = 0
 
     def terms(self) -> dict[str, float | None]:
-        """The five terms as DESIGN.md's JSON dict (None = unresolved)."""
+        """The five IEEE terms as DESIGN.md's JSON dict (None = unresolved)."""
         return {k: getattr(self, k) for k in TERM_NAMES}
 
+    def all_terms(self) -> dict[str, float | None]:
+        """The five IEEE terms and the Gauss–Markov pair (None = unresolved / absent)."""
+        return {k: getattr(self, k) for k in ALL_TERM_NAMES}
+
     def to_json(self) -> dict:
-        """The DESIGN.md keys plus ``ci95``, ``estimate`` and the curve."""
-        out: dict = self.terms()
+        """The DESIGN.md keys (+ ``correlated_sigma_rad_s``, ``correlated_tau_c_s``), ``ci95``, ``estimate``, the curve."""
+        out: dict = self.all_terms()
+        out["method"] = self.method
+        out["resolved"] = {k: bool(v) for k, v in self.resolved.items()}
         out["ci95"] = {k: [float(a), float(b)] for k, (a, b) in self.ci95.items()}
         out["estimate"] = dict(self.estimate)
         out["units"] = dict(self.units)
+        out["chi2"] = self.chi2
+        out["dof"] = self.dof
         out["curve"] = {
             "taus_s": self.taus_s,
             "adev_rad_s": self.adev_rad_s,
@@ -521,9 +546,13 @@ class AllanAnalysis:
     accel: Mapping[str, AllanResult] = field(default_factory=dict)
     dropped_taus_s: tuple[float, ...] = ()
     format_version: str = FORMAT_VERSION
+    method: str = "gmwm"
+    still_fraction: float | None = None
 
     def to_json(self) -> dict:
         out = {
+            "method": self.method,
+            "still_fraction": self.still_fraction,
             "axes": {a: r.to_json() for a, r in self.axes.items()},
             "rate_hz": self.rate_hz,
             "n_samples": self.n_samples,
@@ -609,8 +638,12 @@ def select_ieee952(
     return fit, active, upper
 
 
+METHODS = ("gmwm", "adev", "adev_legacy")
+
+
 def _axis_result(
-    omega: np.ndarray, rate_hz: float, m: np.ndarray, *, axis: str, signal: str, engine: str
+    omega: np.ndarray, rate_hz: float, m: np.ndarray, *, axis: str, signal: str, engine: str,
+    method: str = "gmwm",
 ) -> AllanResult:
     if not np.all(np.isfinite(omega)):
         raise GyroInputError(f"{signal} axis {axis}: non-finite samples; drop or repair them before Allan analysis")
@@ -618,6 +651,24 @@ def _axis_result(
     if not np.all(dev > 0):
         raise GyroInputError(f"{signal} axis {axis}: constant signal (zero Allan deviation), nothing to identify")
     n_phase = omega.shape[0] + 1
+    if method != "adev_legacy":
+        from . import gmwm
+
+        f = gmwm.fit_noise(taus, dev**2, m, int(omega.shape[0]), method=method)
+        edf = f.edf
+        lo_q = scipy.stats.chi2.ppf(0.025, edf)
+        hi_q = scipy.stats.chi2.ppf(0.975, edf)
+        ci_dev = np.column_stack([dev * np.sqrt(edf / hi_q), dev * np.sqrt(edf / lo_q)])
+        names = ALL_TERM_NAMES if method == "gmwm" else TERM_NAMES
+        terms = {k: f.terms.get(k) for k in ALL_TERM_NAMES}
+        est = {k: float(f.estimate[k]) for k in names}
+        ci = {k: (float(f.ci95[k][0]), float(f.ci95[k][1])) for k in names}
+        resolved = {k: terms[k] is not None for k in names}
+        return AllanResult(
+            axis=axis, signal=signal, taus_s=taus, adev_rad_s=dev, adev_ci95_rad_s=ci_dev, edf=edf,
+            fit_adev_rad_s=np.sqrt(np.maximum(f.fit_avar, 0.0)), estimate=est, ci95=ci, rate_hz=rate_hz,
+            n_samples=int(omega.shape[0]), method=method, resolved=resolved, chi2=f.chi2, dof=f.dof, **terms,
+        )
     fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
     lo_q = scipy.stats.chi2.ppf(0.025, fit.edf)
     hi_q = scipy.stats.chi2.ppf(0.975, fit.edf)
@@ -649,6 +700,9 @@ def _axis_result(
         ci95=ci,
         rate_hz=rate_hz,
         n_samples=int(omega.shape[0]),
+        method=method,
+        resolved={k: terms[k] is not None for k in TERM_NAMES},
+        chi2=fit.chi2,
         **terms,
     )
 
@@ -666,6 +720,31 @@ def _check_timestamps(rec: Recording) -> None:
         )
 
 
+#: Largest fraction of 2-s windows the motion gate may refuse before the record is called non-static.
+MAX_MOVING_FRACTION = 0.5
+
+
+def still_fraction(recording: Recording, *, window_s: float = 2.0, false_reject_rate: float = 1e-3) -> float:
+    """Fraction of ``window_s`` windows the variance motion gate of :mod:`gyrocore.bias` calls still.
+
+    The gate (window variance against χ² quantiles of the record's own robust noise level,
+    false-reject rate ``false_reject_rate`` per still window) is blind to slow bias wander
+    (B, K, GM change a 2-s window's variance by far less than its χ² spread).
+    """
+    from .bias import StaticBiasCalibrator
+
+    n_win = int(round(window_s * recording.rate_hz))
+    if recording.n < 10 * max(n_win, 8):
+        return float("nan")  # too short to judge
+    try:
+        r = StaticBiasCalibrator(window_s=window_s, false_reject_rate=false_reject_rate).fit(recording)
+    except GyroInputError as exc:
+        if "motion detected" in str(exc):
+            return 0.0
+        raise
+    return r.n_windows_still / max(r.n_windows_total, 1)
+
+
 def allan_analysis(
     recording: Recording,
     *,
@@ -673,8 +752,10 @@ def allan_analysis(
     max_tau_s: float | None = None,
     accel: bool = False,
     engine: str = "fast",
+    method: str = "gmwm",
+    check_static: bool = False,
 ) -> AllanAnalysis:
-    """Overlapping ADEV and jointly fitted IEEE 952 terms of a static recording, per axis.
+    """Overlapping ADEV and the identified noise terms of a static recording, per axis.
 
     Parameters
     ----------
@@ -683,19 +764,29 @@ def allan_analysis(
         mean rate (N−1)/duration; bursty host timestamps trigger a one-line warning.
     axes : sequence of {"x", "y", "z"}
     max_tau_s : float, optional
-        Largest averaging time. Default: a quarter of the record (m ≤ (N−1)/4, octave steps).
-        A value beyond half the record drops those τ with a warning naming them.
+        Largest averaging time. Default: the whole record (m ≤ (N−1)/2, octave steps) for
+        ``gmwm``/``adev``; a quarter of it for ``adev_legacy``. A value beyond half the
+        record drops those τ with a warning naming them.
     accel : bool
         Also analyse the accelerometer (needed for Kalibr's accelerometer entries).
     engine : {"fast", "allantools"}
         ADEV kernel, see :func:`oadev`.
+    method : {"gmwm", "adev", "adev_legacy"}
+        ``gmwm`` (default): :mod:`gyrocore.gmwm` with Gauss–Markov terms; ``adev``: the IEEE 952
+        joint fit on the same statistic and weights; ``adev_legacy``: the fit before issue 11
+        (τ ≤ T/4, backward elimination), kept for the study's baseline.
+    check_static : bool
+        Refuse a recording whose motion gate rejects more than :data:`MAX_MOVING_FRACTION`
+        of its 2-s windows (one ``error:`` line naming the fraction).
 
     Raises
     ------
     GyroInputError
-        Too few samples for at least 4 octave-spaced τ (a 5-term fit needs some spread), or a
-        bad axis name.
+        Too few samples for at least 4 octave-spaced τ, a bad axis name or method, or
+        (``check_static``) a moving recording.
     """
+    if method not in METHODS:
+        raise GyroInputError(f"unknown noise method {method!r}; use gmwm or adev")
     bad = [a for a in axes if a not in AXES]
     if bad or not axes:
         raise GyroInputError(f"unknown axis {','.join(bad) or '(none)'}; use a comma list of x,y,z")
@@ -704,6 +795,14 @@ def allan_analysis(
     if not (n >= 2 and math.isfinite(rate) and rate > 0):
         raise GyroInputError("Allan analysis needs at least 2 samples with increasing timestamps")
     _check_timestamps(recording)
+    still = None
+    if check_static:
+        still = still_fraction(recording)
+        if math.isfinite(still) and (1.0 - still) > MAX_MOVING_FRACTION:
+            raise GyroInputError(
+                f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "
+                f"(more than {100 * MAX_MOVING_FRACTION:.0f} %); noise identification needs a still sensor"
+            )
     dropped: list[float] = []
     if max_tau_s is not None:
         if not (max_tau_s > 0):
@@ -718,25 +817,32 @@ def allan_analysis(
                 + ", ".join(f"{t:.4g}" for t in dropped)
                 + f" s (overlapping ADEV needs tau <= T/2 = {limit / rate:.4g} s)"
             )
-    else:
+    elif method == "adev_legacy":
         m = octave_m(n)
-    if m.size < 4:
+    else:
+        from .gmwm import scales
+
+        m = scales(n)
+    if m.size < 4 or octave_m(n).size < 4:
         raise GyroInputError(
             f"recording too short for Allan analysis: {n} samples ({recording.duration_s:.3g} s) "
-            f"give {m.size} averaging times, need at least 4 (>= {16 * 2 + 1} samples)"
+            f"give {octave_m(n).size} averaging times, need at least 4 (>= {16 * 2 + 1} samples)"
         )
-    gyro = {
-        a: _axis_result(recording.gyro_rad_s[:, AXES.index(a)], rate, m, axis=a, signal="gyro", engine=engine)
-        for a in axes
-    }
+
+    def run(x, signal):
+        return {
+            a: _axis_result(x[:, AXES.index(a)], rate, m, axis=a, signal=signal, engine=engine, method=method)
+            for a in axes
+        }
+
+    gyro = run(recording.gyro_rad_s, "gyro")
     acc: dict[str, AllanResult] = {}
     if accel:
         if recording.accel_m_s2 is None:
             raise GyroInputError("accelerometer Allan analysis requested but the file has no accel columns")
-        acc = {
-            a: _axis_result(recording.accel_m_s2[:, AXES.index(a)], rate, m, axis=a, signal="accel", engine=engine)
-            for a in axes
-        }
+        acc = run(recording.accel_m_s2, "accel")
+    if method != "adev_legacy":
+        _warn_short(gyro, recording.duration_s, n, float(rate), method)
     return AllanAnalysis(
         axes=gyro,
         accel=acc,
@@ -744,7 +850,137 @@ def allan_analysis(
         n_samples=n,
         duration_s=recording.duration_s,
         dropped_taus_s=tuple(dropped),
+        method=method,
+        still_fraction=still,
     )
+
+
+_LONG = {"bias_instability_rad_s": "B", "rrw_rad_per_s_sqrt_s": "K", "rate_ramp_rad_s2": "R",
+         "correlated_sigma_rad_s": "GM"}
+
+
+def needed_duration_s(result: AllanResult, name: str, *, level_factor: float = 0.5, max_factor: int = 4096) -> float:
+    """Record length at which term ``name`` at ``level_factor`` × its current 95 % upper bound would be
+    resolvable (margin of :func:`gyrocore.gmwm.expected_z` ≥ 1.28), next to the resolved terms.
+
+    Doubles the record length until the predicted margin of the term reaches the threshold; inf if
+    not within ``max_factor`` × the present length. For GM the correlation time is the
+    longest τ of the present record.
+    """
+    from .gmwm import Z_POWER, expected_z
+
+    level = result.ci95.get(name, (0.0, float("nan")))[1] * level_factor
+    if not (math.isfinite(level) and level > 0):
+        return float("nan")
+    base = {k: v for k, v in result.all_terms().items() if v is not None}
+    base[name] = level
+    if name == "correlated_sigma_rad_s":
+        base["correlated_tau_c_s"] = float(result.taus_s[-1])
+    n = result.n_samples
+    f = 1
+    while f <= max_factor:
+        z = expected_z(base, n_samples=n * f, rate_hz=result.rate_hz, method=result.method).get(name, 0.0)
+        if z >= Z_POWER:
+            return n * f / result.rate_hz
+        f *= 2
+    return float("inf")
+
+
+#: Below this record length, a record with no long-τ term resolved gets the one warning.
+SHORT_RECORD_S = 1800.0
+
+
+def _warn_short(axes: Mapping[str, AllanResult], duration_s: float, n: int, rate: float, method: str) -> None:
+    """One warning when no long-τ term is resolved on any axis of a record shorter than
+    :data:`SHORT_RECORD_S`: which terms need how long a record (at half their upper bound)."""
+    if duration_s >= SHORT_RECORD_S or any(getattr(r, k) is not None for r in axes.values() for k in _LONG):
+        return
+    names = [k for k in _LONG if method == "gmwm" or k != "correlated_sigma_rad_s"]
+    need = {}
+    for k in names:
+        vals = [needed_duration_s(r, k) for r in axes.values()]
+        vals = [v for v in vals if math.isfinite(v)]
+        if vals:
+            need[k] = min(vals)
+    def fmt(t):
+        return f"{t / 3600:.3g} h" if t >= 7200 else (f"{t / 60:.3g} min" if t >= 120 else f"{t:.3g} s")
+    parts = [f"{_LONG[k]} at half its upper bound needs >= {fmt(v)}" for k, v in need.items()]
+    warn_repair(
+        f"no long-tau term resolved in {fmt(duration_s)}: bias instability, random walks and correlated terms are "
+        "null with 95 % upper bounds" + ("; " + ", ".join(parts) if parts else "")
+    )
+
+
+def identify_noise(
+    data,
+    *,
+    rate_hz: float | None = None,
+    method: str = "gmwm",
+    axes: Sequence[str] | None = None,
+    max_tau_s: float | None = None,
+    signal: str = "gyro",
+    check_static: bool = True,
+    engine: str = "fast",
+) -> "NoiseResult":
+    """Identify the noise terms of a still recording or of rate arrays (the public API, issue 11).
+
+    Parameters
+    ----------
+    data : Recording or ndarray, shape (n,) or (n, k), k ≤ 3
+        A :class:`~gyrocore.recording.Recording` (gyro rad/s in the sensor frame S; rate =
+        its mean rate (N−1)/duration), or rate samples [rad/s] evenly spaced at ``rate_hz``
+        (columns = axes x, y, z in order).
+    rate_hz : float
+        Sample rate, Hz; required for arrays, ignored for a Recording.
+    method : {"gmwm", "adev"}
+        ``gmwm`` (default, :mod:`gyrocore.gmwm`): Q, N, B, K, R and one Gauss–Markov term;
+        ``adev``: the IEEE 952 joint fit (no GM).
+    axes : sequence of {"x", "y", "z"}, optional
+        Default: all columns.
+    max_tau_s : float, optional
+    signal : {"gyro", "accel"}
+        Which signal of a Recording (accel: units m/s², read rad as m/s in the term names).
+    check_static : bool
+        Refuse non-static data (motion gate, see :func:`allan_analysis`).
+
+    Returns
+    -------
+    NoiseResult
+        Frozen; ``.axes[a]`` is a :class:`NoiseAxis` with every term (None = not resolved),
+        ``.estimate``, ``.ci95`` (95 % intervals; [0, upper bound] when unresolved),
+        ``.resolved`` flags and the ADEV curves.
+    """
+    if isinstance(data, Recording):
+        rec = data
+        if signal == "accel":
+            if rec.accel_m_s2 is None:
+                raise GyroInputError("accelerometer noise requested but the recording has no accel columns")
+            rec = Recording(t_s=rec.t_s, gyro_rad_s=rec.accel_m_s2)
+        elif signal != "gyro":
+            raise GyroInputError(f"signal must be 'gyro' or 'accel', got {signal!r}")
+        ax = tuple(axes) if axes is not None else AXES
+    else:
+        x = np.asarray(data, dtype=float)
+        if x.ndim == 1:
+            x = x[:, None]
+        if x.ndim != 2 or not (1 <= x.shape[1] <= 3):
+            raise GyroInputError(f"rate array must have shape (n,) or (n, k<=3), got {np.shape(data)}")
+        if rate_hz is None or not (math.isfinite(float(rate_hz)) and float(rate_hz) > 0):
+            raise GyroInputError("identify_noise on an array needs rate_hz > 0")
+        k = x.shape[1]
+        g = np.zeros((x.shape[0], 3))
+        g[:, :k] = x
+        g[:, k:] = 1.0  # placeholder columns, never analysed
+        rec = Recording(t_s=np.arange(x.shape[0]) / float(rate_hz), gyro_rad_s=g)
+        ax = tuple(axes) if axes is not None else AXES[:k]
+        check_static = check_static and k == 3
+    return allan_analysis(rec, axes=ax, max_tau_s=max_tau_s, engine=engine, method=method,
+                          check_static=check_static)
+
+
+#: Public names of the results (issue 11 API): a per-axis result and the whole analysis.
+NoiseAxis = AllanResult
+NoiseResult = AllanAnalysis
 
 
 # ---------------------------------------------------------------------------- datasheet units
@@ -761,6 +997,8 @@ def to_datasheet_units(name: str, value: float | None) -> tuple[float | None, st
         "bias_instability_rad_s": (RAD2DEG * 3600.0, "deg/h"),
         "rrw_rad_per_s_sqrt_s": (RAD2DEG * 3600.0 * 60.0, "deg/h/sqrt(h)"),
         "rate_ramp_rad_s2": (RAD2DEG * 3600.0**2, "deg/h^2"),
+        "correlated_sigma_rad_s": (RAD2DEG * 3600.0, "deg/h"),
+        "correlated_tau_c_s": (1.0, "s"),
     }[name]
     return value * f[0], f[1]
 

@@ -150,9 +150,12 @@ class BiasNoiseModel:
         """From a :class:`gyrocore.allan.AllanAnalysis` (or a dict axis → AllanResult).
 
         N is required (resolved on every axis). The bias process: random walk with K where
-        K is resolved; else a Gauss–Markov process matched to the bias-instability floor
-        (σ = 0.6643 B / 0.6178, τc = τ(ADEV minimum)/1.89) where B is resolved; else a random
-        walk with K at the upper end of its 95 % interval (what the data cannot exclude).
+        K is resolved on every axis; else the identified first-order Gauss–Markov term
+        (``correlated_sigma_rad_s``, ``correlated_tau_c_s`` of the GMWM identification, issue 11)
+        where it is resolved on every axis; else a Gauss–Markov process matched to the
+        bias-instability floor (σ = 0.6643 B / 0.6178, τc = τ(ADEV minimum)/1.89) where B is
+        resolved; else a random walk with K at the upper end of its 95 % interval (what the
+        data cannot exclude).
         """
         axes = getattr(analysis, "axes", analysis)
         if set(axes) != {"x", "y", "z"}:
@@ -167,6 +170,11 @@ class BiasNoiseModel:
         B = [r.bias_instability_rad_s for r in res]
         if all(k is not None for k in K):
             return cls(np.array(N), np.array(K), source="allan: N, K")
+        gs = [getattr(r, "correlated_sigma_rad_s", None) for r in res]
+        gt = [getattr(r, "correlated_tau_c_s", None) for r in res]
+        if all(v is not None for v in gs) and all(v is not None for v in gt):
+            return cls(np.array(N), np.zeros(3), gm_sigma_rad_s=np.array(gs, float), gm_tau_s=np.array(gt, float),
+                       source="noise: N, Gauss-Markov (identified)")
         if all(b is not None for b in B):
             sig = np.array(B) * _B_FLOOR / _GM_PEAK
             tau = np.array([r.taus_s[int(np.argmin(r.adev_rad_s))] / _GM_TAU for r in res])

@@ -1,7 +1,8 @@
-"""``gyroharness allan``: Allan deviation and IEEE 952 noise terms per axis (DESIGN.md).
+"""``gyroharness allan`` (alias ``gyroharness noise``): noise identification per axis (DESIGN.md, issue 11).
 
-JSON: ``{"axes": {"x": {"arw_rad_per_sqrt_s": …, "bias_instability_rad_s": …,
-"rrw_rad_per_s_sqrt_s": …, "quantization_rad": …, "rate_ramp_rad_s2": …, "ci95": {…},
+JSON: ``{"method": "gmwm", "axes": {"x": {"arw_rad_per_sqrt_s": …, "bias_instability_rad_s": …,
+"rrw_rad_per_s_sqrt_s": …, "quantization_rad": …, "rate_ramp_rad_s2": …,
+"correlated_sigma_rad_s": …, "correlated_tau_c_s": …, "resolved": {…}, "ci95": {…},
 "estimate": {…}, "units": {…}, "curve": {…}}, …}, "rate_hz": …, …}``; an unresolved term is
 ``null``.
 """
@@ -25,6 +26,23 @@ _ASYMPTOTE = {
     "rrw_rad_per_s_sqrt_s": ("K", lambda t, v: v * np.sqrt(t / 3.0)),
     "rate_ramp_rad_s2": ("R", lambda t, v: v * t / math.sqrt(2.0)),
 }
+_COLORS = {"quantization_rad": "tab:purple", "arw_rad_per_sqrt_s": "tab:blue", "bias_instability_rad_s": "tab:orange",
+           "rrw_rad_per_s_sqrt_s": "tab:green", "rate_ramp_rad_s2": "tab:brown", "correlated_sigma_rad_s": "tab:pink"}
+
+
+def _term_adev(r, name: str, value: float, tt: np.ndarray) -> np.ndarray:
+    """ADEV of one term at value ``value`` (the method's own model: exact discrete for gmwm)."""
+    from ..gmwm import model_avar
+
+    m = np.maximum(tt * r.rate_hz, 1.0)
+    terms = {name: value}
+    if name == "correlated_sigma_rad_s":
+        terms["correlated_tau_c_s"] = r.estimate.get("correlated_tau_c_s")
+    meth = "adev" if r.method != "gmwm" else "gmwm"
+    if meth == "gmwm" and name == "bias_instability_rad_s":
+        # the exact flicker factor is tabulated at integer m; the plot uses the asymptote
+        meth = "adev"
+    return np.sqrt(np.maximum(model_avar(m, r.rate_hz, terms, method=meth), 0.0))
 
 
 def _axes(value: str) -> list[str]:
@@ -37,18 +55,24 @@ def _axes(value: str) -> list[str]:
 
 def report_text(analysis) -> str:
     """Readable table in SI and datasheet units."""
-    from ..allan import TERM_NAMES, to_datasheet_units
+    from ..allan import ALL_TERM_NAMES, TERM_NAMES, to_datasheet_units
 
     lines = [
+        f"method {getattr(analysis, 'method', 'gmwm')}; "
         f"{analysis.n_samples} samples, {analysis.duration_s:.1f} s, mean rate {analysis.rate_hz:.6g} Hz"
         + (f"; dropped tau {', '.join(f'{t:g}' for t in analysis.dropped_taus_s)} s" if analysis.dropped_taus_s else ""),
         f"{'axis':4} {'term':24} {'value (SI)':>12} {'95% interval (SI)':>27} {'datasheet':>22}",
     ]
     for ax, r in analysis.axes.items():
-        for name in TERM_NAMES:
+        for name in (ALL_TERM_NAMES if r.method == "gmwm" else TERM_NAMES):
             v = getattr(r, name)
             lo, hi = r.ci95[name]
             ds, unit = to_datasheet_units(name, v)
+            if name == "correlated_tau_c_s":
+                if v is None:
+                    continue
+                lines.append(f"{ax:4} {name:24} {v:12.4e} {f'[{lo:.3e}, {hi:.3e}]':>27} {'':>22}")
+                continue
             if v is None:
                 ub, unit_u = to_datasheet_units(name, hi)
                 lines.append(f"{ax:4} {name:24} {'unresolved':>12} {'< ' + format(hi, '.3e'):>27} "
@@ -62,41 +86,56 @@ def report_text(analysis) -> str:
 
 
 def plot_png(analysis, path: str) -> None:
-    """ADEV with 95 % bars, the joint fit and each term's asymptote; written atomically."""
+    """ADEV with 95 % bars, each resolved term's line and 95 % band, the fitted sum, and the τ
+    range where each long-τ term is resolvable shaded; written atomically."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..allan import TERM_NAMES
+    from ..allan import ALL_TERM_NAMES
     from ..recording import atomic_write_bytes
 
     axes = list(analysis.axes.items())
-    fig, ax_list = plt.subplots(1, len(axes), figsize=(5.0 * len(axes), 4.2), squeeze=False)
+    fig, ax_list = plt.subplots(1, len(axes), figsize=(5.2 * len(axes), 4.4), squeeze=False)
     for plot_ax, (name, r) in zip(ax_list[0], axes):
         t = r.taus_s
         err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
         plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
         tt = np.geomspace(t[0], t[-1], 200)
-        from ..allan import ieee952_avar
-
-        plot_ax.loglog(tt, np.sqrt(ieee952_avar(tt, r.estimate)), "r-", lw=1.5, label="joint IEEE 952 fit")
-        for term in TERM_NAMES:
+        plot_ax.loglog(t, r.fit_adev_rad_s, "r-", lw=1.8, label=f"fitted sum ({r.method})")
+        lo_y = float(np.min(r.adev_ci95_rad_s[:, 0])) / 3
+        hi_y = float(np.max(r.adev_ci95_rad_s[:, 1])) * 3
+        for term in ALL_TERM_NAMES:
+            if term == "correlated_tau_c_s":
+                continue
             v = getattr(r, term)
             if v is None:
                 continue
-            label, f = _ASYMPTOTE[term]
-            plot_ax.loglog(tt, f(tt, v), "--", lw=1, label=f"{label} = {v:.3g} {r.units[term].split(' ')[0]}")
-        lo = float(np.min(r.adev_ci95_rad_s[:, 0])) / 3
-        hi = float(np.max(r.adev_ci95_rad_s[:, 1])) * 3
-        plot_ax.set_ylim(lo, hi)
+            label = {"correlated_sigma_rad_s": "GM"}.get(term) or _ASYMPTOTE[term][0]
+            c = _COLORS[term]
+            y = _term_adev(r, term, v, tt)
+            lo_v, hi_v = r.ci95[term]
+            plot_ax.fill_between(tt, _term_adev(r, term, lo_v, tt), _term_adev(r, term, hi_v, tt), color=c, alpha=0.15, lw=0)
+            extra = f", tc = {r.correlated_tau_c_s:.3g} s" if term == "correlated_sigma_rad_s" else ""
+            plot_ax.loglog(tt, y, "--", lw=1, color=c, label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}]{extra}")
+            # resolvable region: where this term is the largest of the fitted terms
+            others = np.zeros_like(tt)
+            for o in ALL_TERM_NAMES:
+                if o in (term, "correlated_tau_c_s") or getattr(r, o) is None:
+                    continue
+                others = np.maximum(others, _term_adev(r, o, getattr(r, o), tt))
+            dom = y > others
+            if np.any(dom) and term != "arw_rad_per_sqrt_s":
+                plot_ax.axvspan(tt[dom][0], tt[dom][-1], color=c, alpha=0.07, lw=0)
+        plot_ax.set_ylim(lo_y, hi_y)
         plot_ax.set_xscale("log")
         plot_ax.set_yscale("log")
-        plot_ax.set_xlabel("averaging time tau [s]")
+        plot_ax.set_xlabel("averaging time tau [s]  (shaded: tau where a fitted long-tau term dominates)")
         plot_ax.set_ylabel("Allan deviation [rad/s]")
         plot_ax.set_title(f"gyro {name}")
         plot_ax.grid(True, which="both", alpha=0.3)
-        plot_ax.legend(fontsize=7)
+        plot_ax.legend(fontsize=6)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
@@ -123,7 +162,7 @@ def _long(file: str) -> bool:
     return rows * 4 * 8 > BY_AXIS_BYTES
 
 
-def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str):
+def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, method: str = "gmwm"):
     """:func:`gyrocore.allan.allan_analysis` of a long recording, one axis at a time.
 
     The file is streamed once into per-column files in a temporary folder
@@ -150,7 +189,8 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str):
                 rec = store.recording(j) if kind == "gyro" else store.recording(j, accel_axis=j)
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    r = allan_analysis(rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine)
+                    r = allan_analysis(rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine,
+                                       method=method)
                 for w in caught:  # the record-level warnings once, not once per axis
                     if str(w.message) not in seen:
                         seen.add(str(w.message))
@@ -162,7 +202,7 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str):
                 last = r
                 del rec
     return AllanAnalysis(axes=per_axis, accel=per_accel, rate_hz=last.rate_hz, n_samples=last.n_samples,
-                         duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s)
+                         duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s, method=method)
 
 
 @click.command("allan")
@@ -174,18 +214,27 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str):
 @click.option("--max-tau-s", type=float, default=None, help="largest averaging time, s (default: a quarter of the record)")
 @click.option("--kalibr-inflate", type=float, default=1.0, show_default=True, help="factor applied to the Kalibr values")
 @click.option("--engine", type=click.Choice(["fast", "allantools"]), default="fast", show_default=True)
-def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine):
-    """Allan deviation and IEEE 952 noise terms (Q, N, B, K, R) per axis of a still recording."""
+@click.option("--method", type=click.Choice(["gmwm", "adev", "adev_legacy"]), default="gmwm", show_default=True,
+              help="gmwm: wavelet-variance fit with Gauss-Markov terms (default); adev: IEEE 952 joint ADEV fit; "
+                   "adev_legacy: the fit before issue 11")
+@click.option("--no-static-check", is_flag=True, help="skip the motion gate (non-static data is refused by default)")
+def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine, method, no_static_check):
+    """Noise identification per axis of a still recording: Allan deviation and the terms Q, N, B, K, R and a
+    Gauss-Markov bias (sigma, tau_c), each with its 95 % interval (null = not resolved)."""
     from ..allan import allan_analysis, kalibr_imu_yaml
     from ..recording import atomic_write_text, read_recording
 
     if _long(file):
-        res = allan_by_axis(file, axes=_axes(axes), max_tau_s=max_tau_s, kalibr=kalibr_yaml is not None, engine=engine)
+        # long files: one axis at a time (memory); the motion gate needs all three axes at once
+        # and is skipped there
+        res = allan_by_axis(file, axes=_axes(axes), max_tau_s=max_tau_s, kalibr=kalibr_yaml is not None, engine=engine,
+                            method=method)
     else:
         # only the columns the analysis needs (t, gyro; accel for Kalibr)
         rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
         want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
-        res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine)
+        res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine,
+                             method=method, check_static=not no_static_check)
     if plot:
         plot_png(res, plot)
     if kalibr_yaml:

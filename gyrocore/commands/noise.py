@@ -1,0 +1,14 @@
+"""``gyroharness noise``: the same command as ``gyroharness allan`` (issue 11: the name now fits better)."""
+
+from __future__ import annotations
+
+import click
+
+from .allan import command as _allan
+
+command = click.Command(
+    "noise",
+    callback=_allan.callback,
+    params=list(_allan.params),
+    help=(_allan.help or "") + " Same command as 'allan'.",
+)

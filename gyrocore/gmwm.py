@@ -1,0 +1,617 @@
+"""Noise identification on the Haar wavelet variance: GMWM and the fixed joint ADEV fit (issue 11).
+
+Two estimators share this engine; both take the overlapping Allan variance σ̂²(τ_j) at the
+octave factors m_j = 1, 2, 4, … ≤ (n−1)/2 (the **whole** τ range, not T/4). The Haar MODWT
+wavelet variance at scale τ_j = 2m_j is exactly σ̂²(m_j)/2 (Percival & Walden 2000, §8.6), so a
+fit of the Allan variance *is* a fit of the Haar wavelet variance up to a constant factor.
+
+``method="gmwm"`` — generalised method of wavelet moments (Guerrier, Skaloud, Stebler &
+Victoria-Feser 2013, JASA 108(502) 776–789): θ̂ = argmin (ν̂ − ν(θ))ᵀ Ω (ν̂ − ν(θ)) with the
+**exact discrete** wavelet variance ν(θ) of each term at the sample spacing and Ω the
+inverse covariance of ν̂. Terms: quantization Q (white angle noise), white rate N, flicker B
+(the Kasdin–Walter α = 1 process of :mod:`sim.noise`, whose exact discrete Allan variance
+(2B²/πm²)∫₀^{π/2} sin⁴(mx)/sin³x dx we integrate numerically — flicker is modelled
+directly, *not* approximated by a sum of Gauss–Markov terms), rate random walk K (discrete:
+K²τ/3 + K²τ0²/(6τ)), rate ramp R, and one first-order Gauss–Markov term (σ, τc) with the
+exact AR(1) Allan variance. Ω is model based (parametric, as Guerrier et al.'s parametric
+bootstrap estimate but analytic) and iterated (continuous updating).
+
+``method="adev"`` — the IEEE 952 joint fit on the same statistic: the continuous asymptotes
+3Q²/τ² + N²/τ + (2 ln2/π)B² + K²τ/3 + R²τ²/2, no Gauss–Markov term, same weights and the
+same model selection. (The fix of the old fit: whole τ range, EDF and correlation from the
+fitted model including flicker, information-criterion selection instead of backward
+elimination.)
+
+Covariance of the Allan-variance estimates
+------------------------------------------
+Var σ̂²_j = 2σ_j⁴/edf_j with Greenhall's EDF (``allantools.edf_greenhall``; exact for power
+laws at any m ≤ (n−1)/2, including the last octaves where edf ≈ 1–5) for the power law that
+has the local log–log slope of the fitted model at τ_j. The correlation between scales is the
+large-sample Gaussian form (Percival & Walden eq. 308 generalised to two scales):
+Cov(σ̂²_i, σ̂²_j) ∝ ∫|H_i(ν)|²|H_j(ν)|² S(ν)² dν / max(M_i, M_j), with |H_m(ν)|² =
+4 sin⁴(πmν)/(m² sin²(πν)) the Haar (Allan) filter, S the model's two-sided spectrum (white
+N²·f_s, flicker B²/|2 sin πν|, random walk K²τ0/(4 sin²πν), white angle 4Q²f_s² sin²πν,
+AR(1) σ²(1−φ²)/|1−φe^{−2πiν}|²) and M_j = n − 2m_j terms. Integrated on a log-spaced ν grid
+(64 points per e-fold); where a filter oscillates faster than the grid, sin⁴ is replaced by
+its average (3/8; products of two such by their exact averages 35/128, 7/64, 9/64).
+
+Model selection
+---------------
+Every subset of the candidate terms is fitted (non-negative GLS, the GM τc profiled on a
+log grid then refined) with the **same** weight matrix (that of the full model), and the
+subset with the least χ² + Σ penalties is kept: a term's penalty is the likelihood-ratio
+threshold of a one-sided test on the boundary, χ²₁ at 1 − 2α (the null law of the LR is
+½χ²₀ + ½χ²₁), α = ``ALPHA``; Gauss–Markov has two parameters and an unidentified τc under the
+null, penalty χ²₂ at 1 − α. B and K therefore compete on their χ², not on the order of
+elimination. The selected model is refitted with its own iterated weights; its terms are
+"resolved" and carry 95 % intervals from (JᵀΣ⁻¹J)⁻¹ on the variance scale (square-rooted,
+lower end clipped at 0); an unselected term is ``None`` with the upper end of its interval
+when added to the selected model.
+
+Resolvability (predicted, :func:`expected_z`): at the true parameters, the Fisher information
+JᵀΣ⁻¹J of the true model at the record's τ grid gives each term's expected z = c/se(c). The
+selection claims a term with ≥ 90 % probability when z ≥ z_{1−α} + z_{0.9}.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+__all__ = [
+    "ALL_TERMS",
+    "GM_TERMS",
+    "ALPHA",
+    "Z_RESOLVABLE",
+    "NoiseFit",
+    "term_avar",
+    "flicker_avar_factor",
+    "model_avar",
+    "avar_covariance",
+    "fit_noise",
+    "expected_z",
+    "scales",
+]
+
+#: Coefficient names, in the order of the linear coefficient vector (variance scale):
+#: Q² (rad²), N² (rad²/s), B² (rad²/s²), K² (rad²/s³), R² (rad²/s⁴), σ_GM² (rad²/s²).
+LINEAR = ("quantization_rad", "arw_rad_per_sqrt_s", "bias_instability_rad_s",
+          "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2", "correlated_sigma_rad_s")
+GM_TERMS = ("correlated_sigma_rad_s", "correlated_tau_c_s")
+ALL_TERMS = LINEAR[:5] + GM_TERMS
+#: level of the one-sided test behind each term's penalty
+ALPHA = 0.01
+Z_RESOLVABLE = float(scipy.stats.norm.isf(ALPHA) + scipy.stats.norm.isf(0.10))
+_PEN_LINEAR = float(scipy.stats.chi2.isf(2 * ALPHA, 1))
+#: Gauss–Markov: two parameters, τc unidentified under the null (Davies' problem) and a GM
+#: with τc at either end of the τ range mimics N, K or the flicker floor — a stricter level.
+ALPHA_GM = 0.001
+_PEN_GM = float(scipy.stats.chi2.isf(ALPHA_GM, 2))
+Z_RESOLVABLE_GM = float(math.sqrt(_PEN_GM) + scipy.stats.norm.isf(0.10))
+#: resolvability threshold on the margin returned by :func:`expected_z` (90 % power)
+Z_POWER = float(scipy.stats.norm.isf(0.10))
+_Z95 = float(scipy.stats.norm.isf(0.025))
+_B_FACTOR = 2.0 * math.log(2.0) / math.pi
+
+
+# ---------------------------------------------------------------------------- term variances
+@functools.lru_cache(maxsize=256)
+def flicker_avar_factor(m: int) -> float:
+    """Allan variance of unit Kasdin–Walter flicker (α = 1, innovation σ = 1) at factor m.
+
+    (2/(π m²)) ∫₀^{π/2} sin⁴(mx)/sin³(x) dx (two-sided spectrum 1/|2 sin πν| through the
+    Haar filter); → 2 ln2/π for m → ∞ with an O(ln m/m²) correction, used beyond m = 4096.
+    """
+    m = int(m)
+    if m > 4096:
+        return _B_FACTOR
+    # ∫ sin⁴(mx)(1/sin³x − 1/x³) dx numerically + m²∫₀^{mπ/2} sin⁴u/u³ du in closed-ish form
+    n_pts = max(4001, 200 * m + 1)
+    x = np.linspace(0.0, math.pi / 2, n_pts)
+    x[0] = 1e-300
+    s4 = np.sin(m * x) ** 4
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        g = np.where(x > 1e-3, 1.0 / np.sin(x) ** 3 - 1.0 / x**3, 0.5 / x + 17.0 * x / 120.0)
+    g[0] = 0.0
+    part1 = float(np.trapezoid(s4 * g, x))
+    U = m * math.pi / 2
+    u = np.linspace(1e-9, U, max(20001, 400 * m + 1))
+    part2 = m * m * float(np.trapezoid(np.sin(u) ** 4 / u**3, u))
+    return 2.0 / (math.pi * m * m) * (part1 + part2)
+
+
+def _gm_avar(m: np.ndarray, dt_s: float, tau_c_s: float) -> np.ndarray:
+    """Allan variance of a unit-variance AR(1) with φ = exp(−dt/τc) at factors m (exact, discrete).
+
+    AVAR = Var(ȳ_m) − Cov(ȳ₁, ȳ₂): Var(ȳ_m) = [m + 2φ(m(1−φ) − (1−φᵐ))/(1−φ)²]/m²,
+    Cov = φ(1−φᵐ)²/((1−φ)² m²).
+    """
+    m = np.asarray(m, float)
+    a = dt_s / tau_c_s
+    omp = -math.expm1(-a)  # 1 − φ
+    phi = 1.0 - omp
+    ompm = -np.expm1(-a * m)  # 1 − φ^m
+    var = (m + 2.0 * phi * (m * omp - ompm) / omp**2) / m**2
+    cov = phi * ompm**2 / (omp**2 * m**2)
+    return np.maximum(var - cov, 0.0)
+
+
+def term_avar(m: np.ndarray, rate_hz: float, *, method: str = "gmwm", tau_c_s: float | None = None) -> np.ndarray:
+    """Design matrix: Allan variance of each unit term at factors m; shape (M, 6).
+
+    Columns Q², N², B², K², R², σ_GM² (units so that AVAR = A @ c in rad²/s²). ``method``
+    "gmwm": exact discrete forms; "adev": IEEE 952 continuous asymptotes (GM column zero).
+    """
+    A = _base_design(tuple(int(v) for v in np.asarray(m).ravel()), float(rate_hz), method).copy()
+    if method != "adev" and tau_c_s is not None:
+        A[:, 5] = _gm_avar(np.asarray(m, float), 1.0 / rate_hz, tau_c_s)
+    return A
+
+
+@functools.lru_cache(maxsize=256)
+def _base_design(m_key: tuple[int, ...], rate_hz: float, method: str) -> np.ndarray:
+    m = np.array(m_key, float)
+    dt = 1.0 / rate_hz
+    t = m * dt
+    A = np.zeros((m.size, 6))
+    A[:, 0] = 3.0 / t**2
+    A[:, 1] = 1.0 / t
+    A[:, 4] = t**2 / 2.0
+    if method == "adev":
+        A[:, 2] = _B_FACTOR
+        A[:, 3] = t / 3.0
+    else:
+        A[:, 2] = [flicker_avar_factor(int(v)) for v in m]
+        A[:, 3] = t / 3.0 + dt * dt / (6.0 * t)
+    A.setflags(write=False)
+    return A
+
+
+def model_avar(m: np.ndarray, rate_hz: float, terms: Mapping[str, float | None], *, method: str = "gmwm") -> np.ndarray:
+    """Allan variance of a set of terms (SI values, None/absent = 0) at factors m."""
+    tc = terms.get("correlated_tau_c_s")
+    A = term_avar(m, rate_hz, method=method, tau_c_s=tc if tc else None)
+    c = np.array([(terms.get(k) or 0.0) ** 2 for k in LINEAR])
+    return A @ c
+
+
+# ---------------------------------------------------------------------------- covariance
+_GRID_PER_EFOLD = 64
+
+
+@functools.lru_cache(maxsize=64)
+def _grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Log-spaced ν grid (cycles/sample) from 1/(64 n) to 1/2 and its trapezoid weights."""
+    lo = 1.0 / (64.0 * n)
+    k = int(math.ceil(_GRID_PER_EFOLD * math.log(0.5 / lo)))
+    nu = np.geomspace(lo, 0.5, k + 1)
+    w = np.zeros_like(nu)
+    d = np.diff(nu)
+    w[:-1] += d / 2
+    w[1:] += d / 2
+    w[0] += lo  # the sliver (0, lo): integrand taken constant
+    return nu, w
+
+
+@functools.lru_cache(maxsize=64)
+def _filters(m_key: tuple[int, ...], n: int):
+    """sin⁴(π m ν) on the grid, exact where resolved and its mean 3/8 elsewhere; flags."""
+    nu, w = _grid(n)
+    dnu = np.gradient(nu)
+    m = np.array(m_key, float)[:, None]
+    fast = m * dnu[None, :] > 0.25
+    s4 = np.where(fast, 0.375, np.sin(np.pi * m * nu[None, :]) ** 4)
+    return s4, fast
+
+
+@functools.lru_cache(maxsize=64)
+def _pair_factor(m_key: tuple[int, ...]) -> np.ndarray:
+    mm = np.array(m_key, float)
+    ratio = mm[:, None] / mm[None, :]
+    ratio = np.maximum(ratio, 1.0 / ratio)
+    return np.where(np.isclose(ratio, 1.0), (35 / 128) / (9 / 64), np.where(np.isclose(ratio, 2.0), (7 / 64) / (9 / 64), 1.0))
+
+
+def _spectrum(nu: np.ndarray, rate_hz: float, c: np.ndarray, tau_c_s: float | None) -> np.ndarray:
+    """Two-sided spectrum (rad²/s² per cycle/sample) of the stochastic terms c = (Q², N², B², K², R², σ²)."""
+    s = np.sin(np.pi * nu)
+    S = c[1] * rate_hz + c[0] * rate_hz**2 * 4.0 * s * s + c[2] / (2.0 * s) + c[3] / rate_hz / (4.0 * s * s)
+    if tau_c_s and c[5] > 0:
+        phi = math.exp(-1.0 / (rate_hz * tau_c_s))
+        S = S + c[5] * (1.0 - phi * phi) / (1.0 + phi * phi - 2.0 * phi * np.cos(2.0 * np.pi * nu))
+    return S
+
+
+def _alpha_of_slope(mu: np.ndarray) -> np.ndarray:
+    """Power-law α (S ∝ f^α) with the Allan-variance slope μ (AVAR ∝ τ^μ): α = −μ − 1, μ ≤ −1.5 → α = 2."""
+    a = np.rint(np.clip(-mu - 1.0, -2.0, 1.0)).astype(int)
+    return np.where(mu <= -1.5, 2, np.where(a == 1, 0, a))
+
+
+@functools.lru_cache(maxsize=8192)
+def _edf(alpha: int, m: int, n_phase: int) -> float:
+    import allantools
+
+    try:
+        e = float(allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase),
+                                           overlapping=True, modified=False))
+    except Exception:  # pragma: no cover
+        e = float("nan")
+    if not math.isfinite(e) or e <= 0:
+        n = n_phase - 1
+        e = (3 * (n - 1) / (2 * m) - 2 * (n - 2) / n) * 4 * m * m / (4 * m * m + 5)
+    return max(e, 1.0)
+
+
+def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray, tau_c_s: float | None,
+                    model: np.ndarray, *, method: str = "gmwm") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Covariance (M, M) of the overlapping AVAR estimates under the model; also edf (M,), α (M,).
+
+    Diagonal 2·model²/edf (Greenhall EDF for the local power law of the model); correlation
+    from the spectral integral of the module docstring, including the finite-M factor
+    √(min(M_i, M_j)/max(M_i, M_j)).
+    """
+    m = np.asarray(m, np.int64)
+    key = tuple(int(v) for v in m)
+    nu, w = _grid(int(n_samples))
+    s4, fast = _filters(key, int(n_samples))
+    sn2 = np.sin(np.pi * nu) ** 2
+    mm = m.astype(float)[:, None]
+    H2 = 4.0 * s4 / (mm**2 * sn2[None, :])  # |H_m|², averaged where fast
+    cc = np.where(np.asarray(c) > 0, c, 0.0)
+    if not np.any(cc[:4] > 0) and not cc[5] > 0:
+        cc = cc.copy()
+        cc[1] = 1.0
+    S = _spectrum(nu, rate_hz, cc, tau_c_s)
+    G = H2 * S[None, :]
+    C = (G * w[None, :]) @ G.T
+    # products of two fast-oscillating sin⁴ terms: replace (3/8)² by their exact mean
+    # (35/128 for equal m, 7/64 for m_j = 2 m_i, 9/64 otherwise)
+    Gf = np.where(fast, G, 0.0)
+    C = C + ((Gf * w[None, :]) @ Gf.T) * (_pair_factor(key) - 1.0)
+    d = np.sqrt(np.diag(C))
+    R = C / np.outer(d, d)
+    Mt = (n_samples - 2 * m).astype(float)
+    R = R * np.sqrt(np.minimum.outer(Mt, Mt) / np.maximum.outer(Mt, Mt))
+    np.fill_diagonal(R, 1.0)
+    # EDF from the local slope of the model
+    lt = np.log(m.astype(float))
+    lm = np.log(np.maximum(model, np.finfo(float).tiny))
+    mu = np.gradient(lm, lt) if m.size > 1 else np.array([-1.0])
+    alpha = _alpha_of_slope(mu)
+    edf = np.array([_edf(int(a), int(v), int(n_samples) + 1) for a, v in zip(alpha, m)])
+    sd = np.sqrt(2.0 / edf) * model
+    w_, V = np.linalg.eigh(R)
+    if w_.min() < 1e-9:
+        R = (V * np.maximum(w_, 1e-9)) @ V.T
+        dd = np.sqrt(np.diag(R))
+        R = R / np.outer(dd, dd)
+    return R * np.outer(sd, sd), edf, alpha
+
+
+# ---------------------------------------------------------------------------- fitting
+@dataclass(frozen=True, eq=False)
+class NoiseFit:
+    """Result of :func:`fit_noise` for one axis.
+
+    Attributes
+    ----------
+    method : str
+    terms : dict
+        Selected terms, SI values (None = not selected): keys of :data:`ALL_TERMS`.
+    estimate : dict
+        Point estimate of every term (0 for an unselected linear term; the profiled τc of the
+        best fit with a GM term, else NaN).
+    ci95 : dict
+        (lo, hi) of every term; [0, upper bound] for unselected terms.
+    coef : ndarray (6,)
+        Variance-scale coefficients of the selected fit (Q², N², B², K², R², σ²).
+    tau_c_s : float or None
+    cov : ndarray (M, M)
+        Covariance of the AVAR estimates used for the final fit.
+    edf : ndarray (M,)
+    chi2 : float
+        Generalised χ² of the selected fit (its own weights); dof = M − parameters.
+    dof : int
+    fit_avar : ndarray (M,)
+    """
+
+    method: str
+    terms: Mapping[str, float | None]
+    estimate: Mapping[str, float]
+    ci95: Mapping[str, tuple[float, float]]
+    coef: np.ndarray
+    tau_c_s: float | None
+    cov: np.ndarray
+    edf: np.ndarray
+    chi2: float
+    dof: int
+    fit_avar: np.ndarray
+    selected: tuple[str, ...] = ()
+    tau_c_range_s: tuple[float, float] = (float("nan"), float("nan"))
+
+
+def scales(n_samples: int, *, max_m: int | None = None) -> np.ndarray:
+    """Octave factors m = 1, 2, 4, … ≤ (n−1)/2 (or ``max_m``): the whole Haar-scale range."""
+    top = (n_samples - 1) // 2 if max_m is None else min(int(max_m), (n_samples - 1) // 2)
+    if top < 1:
+        return np.zeros(0, np.int64)
+    return 2 ** np.arange(int(math.floor(math.log2(top))) + 1, dtype=np.int64)
+
+
+def _nnls_gls(A: np.ndarray, y: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, float]:
+    """min ‖L(A c − y)‖², c ≥ 0 with L = chol(C)⁻¹ the whitening matrix; returns (c, χ²)."""
+    if A.shape[1] == 0:
+        r = L @ y
+        return np.zeros(0), float(r @ r)
+    Aw, yw = L @ A, L @ y  # L is the inverse Cholesky factor (whitening matrix)
+    sc = np.linalg.norm(Aw, axis=0)
+    sc[sc == 0] = 1.0
+    sol, _ = scipy.optimize.nnls(Aw / sc, yw, maxiter=50 * A.shape[1] + 50)
+    c = sol / sc
+    r = yw - Aw @ c
+    return c, float(r @ r)
+
+
+def _fit_subset(m, rate_hz, avar, L, use: Sequence[int], method: str, tc_grid: np.ndarray):
+    """NNLS fit of the linear terms ``use`` (indices into LINEAR); GM τc profiled if 5 in use."""
+    if 5 not in use:
+        A = term_avar(m, rate_hz, method=method)[:, list(use)]
+        c, chi2 = _nnls_gls(A, avar, L)
+        return c, None, chi2
+    best = (None, None, float("inf"))
+
+    def at(tc):
+        A = term_avar(m, rate_hz, method=method, tau_c_s=tc)[:, list(use)]
+        return _nnls_gls(A, avar, L)
+
+    vals = []
+    for tc in tc_grid:
+        c, chi2 = at(float(tc))
+        vals.append(chi2)
+        if chi2 < best[2]:
+            best = (c, float(tc), chi2)
+    i = int(np.argmin(vals))
+    lo, hi = tc_grid[max(i - 1, 0)], tc_grid[min(i + 1, len(tc_grid) - 1)]
+    if hi > lo:
+        r = scipy.optimize.minimize_scalar(lambda u: at(math.exp(u))[1], bounds=(math.log(lo), math.log(hi)),
+                                           method="bounded", options={"xatol": 1e-2})
+        if r.fun < best[2]:
+            c, chi2 = at(math.exp(r.x))
+            best = (c, math.exp(r.x), chi2)
+    return best
+
+
+def _jacobian(m, rate_hz, coef, tc, use: Sequence[int], method: str) -> np.ndarray:
+    """∂AVAR/∂(c_use…, log τc) at the fit; shape (M, p)."""
+    A = term_avar(m, rate_hz, method=method, tau_c_s=tc)[:, list(use)]
+    if 5 in use and tc:
+        h = 1e-4
+        d = (_gm_avar(m, 1.0 / rate_hz, tc * math.exp(h)) - _gm_avar(m, 1.0 / rate_hz, tc * math.exp(-h))) / (2 * h)
+        A = np.column_stack([A, coef[5] * d])
+    return A
+
+
+def _interval(c: float, var: float) -> tuple[float, float, float]:
+    se = math.sqrt(var) if (math.isfinite(var) and var > 0) else float("inf")
+    return c, c - _Z95 * se, c + _Z95 * se
+
+
+def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3):
+    """Iterated GLS of subset ``sub``: weights from its own fitted model (continuous updating).
+
+    Start: diagonal relative weights (Var σ̂² ≈ σ̂⁴·2/edf, white-noise EDF), then
+    ``iterations`` rounds with the model covariance (τc re-profiled near its value).
+    Returns coef (6,), τc, C, edf, whitening L = chol(C)⁻¹, χ², −2 log L (Gaussian).
+    """
+    edf0 = np.array([_edf(0, int(v), int(n_samples) + 1) for v in m])
+    L0 = np.diag(1.0 / (avar * np.sqrt(2.0 / edf0)))
+    c_use, tc_, _ = _fit_subset(m, rate_hz, avar, L0, sub, method, tc_grid)
+    coef_ = np.zeros(6)
+    coef_[list(sub)] = c_use
+    for it in range(max(1, iterations)):
+        mod = term_avar(m, rate_hz, method=method, tau_c_s=tc_) @ coef_
+        mod = np.where(mod > 0, mod, avar)
+        C_, edf_, _a = avar_covariance(m, n_samples, rate_hz, coef_, tc_, mod, method=method)
+        Lw = np.linalg.inv(np.linalg.cholesky(C_))
+        grid = tc_grid if tc_ is None else np.geomspace(tc_ / 2.0, tc_ * 2.0, 5)
+        c_use, tc_, _ = _fit_subset(m, rate_hz, avar, Lw, sub, method, grid)
+        coef_ = np.zeros(6)
+        coef_[list(sub)] = c_use
+    mod = term_avar(m, rate_hz, method=method, tau_c_s=tc_) @ coef_
+    mod = np.where(mod > 0, mod, avar)
+    C_, edf_, _a = avar_covariance(m, n_samples, rate_hz, coef_, tc_, mod, method=method)
+    Lc = np.linalg.cholesky(C_)
+    Lw = np.linalg.inv(Lc)
+    r_ = Lw @ (avar - mod)
+    chi2 = float(r_ @ r_)
+    return coef_, tc_, C_, edf_, Lw, chi2, chi2 + 2.0 * float(np.sum(np.log(np.diag(Lc))))
+
+
+def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: int, *,
+              method: str = "gmwm", iterations: int = 3,
+              candidates: Sequence[str] | None = None) -> NoiseFit:
+    """Identify the noise terms of one axis from its overlapping Allan variance at octave factors m.
+
+    Parameters
+    ----------
+    taus_s : ndarray (M,)
+        Averaging times m/rate, s.
+    avar : ndarray (M,)
+        Overlapping Allan variance at ``taus_s``, (rad/s)².
+    m : ndarray (M,) of int
+        Averaging factors.
+    n_samples : int
+        Number of rate samples of the record.
+    method : {"gmwm", "adev"}
+    candidates : sequence of str, optional
+        Terms allowed (names of :data:`LINEAR`); default all (``adev``: all but GM).
+
+    Returns
+    -------
+    NoiseFit
+    """
+    m = np.asarray(m, np.int64)
+    avar = np.asarray(avar, float)
+    rate_hz = float(m[0] / taus_s[0])
+    if candidates is None:
+        candidates = LINEAR if method == "gmwm" else LINEAR[:5]
+    cand = [LINEAR.index(k) for k in candidates]
+    if m.size < 6:
+        cand = [i for i in cand if i != 5]  # GM needs a turnover inside the τ range
+    t = m / rate_hz
+    # τc from the first τ to a quarter of the last: the hump (peak at 1.89 τc) and its 1/τ
+    # fall must both be inside the range, else a GM is a white or random-walk term
+    tc_grid = np.geomspace(t[0], t[-1] / 4.0, 21) if 5 in cand else np.zeros(0)
+
+    def full_cov(coef, tc, model):
+        C, edf, _alpha = avar_covariance(m, n_samples, rate_hz, coef, tc, model, method=method)
+        return C, edf
+
+    def fit_model(sub):
+        return _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations)
+
+    # Every subset (N always in: a gyro always has white rate noise), each with its own
+    # iterated weights; keep the least −2 log L (Gaussian, model covariance: the log det
+    # term stops a model that over-predicts the long-τ variance from buying a small χ²)
+    # plus the penalties.
+    others = [i for i in cand if i != 1]
+    base = [1] if 1 in cand else []
+    best = None
+    fits = {}
+    for k in range(0, len(others) + 1):
+        for extra in itertools.combinations(others, k):
+            sub = tuple(sorted(base + list(extra)))
+            if not sub:
+                continue
+            res = fit_model(sub)
+            fits[sub] = res
+            if np.any(res[0][list(sub)] <= 0):
+                continue  # a term pinned at zero: the same model as a smaller subset
+            crit = res[6] + sum(_PEN_GM if i == 5 else _PEN_LINEAR for i in sub if i != 1)
+            if best is None or crit < best[0]:
+                best = (crit, sub)
+    sub = best[1] if best else tuple(base or cand[:1])
+    coef_s, tc_s, C, edf, L, chi2, _m2ll = fits[sub]
+    Ci = L.T @ L
+    model_s = term_avar(m, rate_hz, method=method, tau_c_s=tc_s) @ coef_s
+    J = _jacobian(m, rate_hz, coef_s, tc_s, sub, method)
+    F = J.T @ Ci @ J
+    try:
+        cov_p = np.linalg.inv(F)
+    except np.linalg.LinAlgError:
+        cov_p = np.linalg.pinv(F)
+
+    terms: dict[str, float | None] = {k: None for k in ALL_TERMS}
+    est: dict[str, float] = {k: 0.0 for k in ALL_TERMS}
+    ci: dict[str, tuple[float, float]] = {}
+    est["correlated_tau_c_s"] = float("nan")
+    for j, i in enumerate(sub):
+        name = LINEAR[i]
+        c, lo, hi = _interval(float(coef_s[i]), float(cov_p[j, j]))
+        est[name] = math.sqrt(max(c, 0.0))
+        terms[name] = est[name]
+        ci[name] = (math.sqrt(max(lo, 0.0)), math.sqrt(hi) if math.isfinite(hi) else float("inf"))
+    if 5 in sub and tc_s:
+        v = float(cov_p[-1, -1])
+        se = math.sqrt(v) if v > 0 and math.isfinite(v) else float("inf")
+        terms["correlated_tau_c_s"] = est["correlated_tau_c_s"] = float(tc_s)
+        ci["correlated_tau_c_s"] = (tc_s * math.exp(-_Z95 * se), tc_s * math.exp(_Z95 * se))
+    # upper bounds of the unselected terms: the term added to the selected model
+    for i in cand:
+        if i in sub:
+            continue
+        name = LINEAR[i]
+        sub2 = tuple(sorted(set(sub) | {i}))
+        c2, tc2, _ = _fit_subset(m, rate_hz, avar, L, sub2, method, tc_grid)
+        cf = np.zeros(6)
+        cf[list(sub2)] = c2
+        J2 = _jacobian(m, rate_hz, cf, tc2 if tc2 else (tc_s if i == 5 else None), sub2, method)
+        try:
+            cv = np.linalg.inv(J2.T @ Ci @ J2)
+            var = float(cv[sub2.index(i), sub2.index(i)])
+        except np.linalg.LinAlgError:
+            var = float("inf")
+        _c, _lo, hi = _interval(float(cf[i]), var)
+        ci[name] = (0.0, math.sqrt(max(hi, 0.0)) if math.isfinite(hi) else float("inf"))
+        if i == 5:
+            est["correlated_tau_c_s"] = float(tc2) if tc2 else float("nan")
+    if 5 in cand and 5 not in sub:
+        ci["correlated_tau_c_s"] = (float(t[0]), float(t[-1] / 4.0))
+    for i in range(5):
+        if i not in cand:
+            ci.setdefault(LINEAR[i], (0.0, float("inf")))
+    if 5 not in cand:
+        ci.pop("correlated_sigma_rad_s", None)
+    return NoiseFit(method=method, terms=terms, estimate=est, ci95=ci, coef=coef_s, tau_c_s=tc_s if 5 in sub else None,
+                    cov=C, edf=edf, chi2=chi2, dof=int(m.size - len(sub) - (1 if 5 in sub else 0)),
+                    fit_avar=model_s, selected=tuple(LINEAR[i] for i in sub),
+                    tau_c_range_s=(float(t[0]), float(t[-1])))
+
+
+def _penalty(sub) -> float:
+    return sum(_PEN_GM if i == 5 else _PEN_LINEAR for i in sub if i != 1)
+
+
+def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: float,
+               method: str = "gmwm") -> dict[str, float]:
+    """Predicted resolvability margin of each present term (the resolvability rule).
+
+    At the true parameters, with the true covariance Σ of the AVAR estimates on the τ grid
+    the estimator uses (octaves up to (n−1)/2): for every alternative model *without* term X
+    (the other candidate terms in any combination, N always in), fitted to the noise-free
+    true Allan variance with its own iterated weights, λ_alt = 2·KL(true ‖ alt) =
+    ΔμᵀΣ_a⁻¹Δμ + tr(Σ_a⁻¹Σ) − M + log det Σ_a − log det Σ — the expected value of the
+    Gaussian likelihood-ratio statistic the selection uses, between the true model and that
+    stand-in (B against K or GM, K against R or GM,
+    …). The selection prefers the true model when LR > Δpen = penalty(true) − penalty(alt);
+    with √LR ≈ N(√λ, 1) it does so with ≥ 90 % probability when √λ_alt − √Δpen ≥ z₀.₉ = 1.28
+    (no condition when Δpen ≤ 0). Returned: min over alternatives of √λ_alt − √max(Δpen, 0)
+    (for a term with no stand-in, its Fisher z minus √penalty); **resolvable when ≥**
+    :data:`Z_POWER`.
+    """
+    m = scales(int(n_samples))
+    if m.size < 4:
+        return {}
+    tc = terms.get("correlated_tau_c_s") or None
+    coef = np.array([(terms.get(k) or 0.0) ** 2 for k in LINEAR])
+    if not tc:
+        coef[5] = 0.0
+    model = term_avar(m, rate_hz, method=method, tau_c_s=tc) @ coef
+    C, _edf, _a = avar_covariance(m, int(n_samples), rate_hz, coef, tc, model, method=method)
+    Ct_half = np.linalg.cholesky(C)
+    logdet_t = 2.0 * float(np.sum(np.log(np.diag(Ct_half))))
+    t = m / rate_hz
+    cand = list(range(6)) if method == "gmwm" else list(range(5))
+    true_sub = tuple(i for i in cand if coef[i] > 0)
+    pen_true = _penalty(true_sub)
+    tc_grid = np.geomspace(t[0], t[-1] / 4.0, 21)
+    out = {}
+    cache: dict[tuple, float] = {}
+    for i in true_sub:
+        others = [j for j in cand if j not in (1, i)]
+        margin = float("inf")
+        for k in range(0, len(others) + 1):
+            for extra in itertools.combinations(others, k):
+                sub = tuple(sorted(([1] if i != 1 else []) + list(extra)))
+                if not sub:
+                    continue
+                dpen = pen_true - _penalty(sub)
+                if dpen <= 0:
+                    continue
+                if sub not in cache:
+                    # 2·KL(true ‖ alt): E[−2 log L_alt] − E[−2 log L_true] with the data
+                    # ~ (true AVAR, Σ_true) and the alternative fitted with its own weights
+                    ca, tca, Ca, _e, La, chi2a, m2a = _fit_model(m, rate_hz, model, int(n_samples), sub, method, tc_grid)
+                    Ma = La @ Ct_half
+                    cache[sub] = chi2a + float(np.sum(Ma * Ma)) - m.size + (m2a - chi2a) - logdet_t
+                margin = min(margin, math.sqrt(max(cache[sub], 0.0)) - math.sqrt(dpen))
+        out[LINEAR[i]] = margin
+    return out
