@@ -861,13 +861,14 @@ _LONG = {"bias_instability_rad_s": "B", "rrw_rad_per_s_sqrt_s": "K", "rate_ramp_
 
 def needed_duration_s(result: AllanResult, name: str, *, level_factor: float = 0.5, max_factor: int = 4096) -> float:
     """Record length at which term ``name`` at ``level_factor`` × its current 95 % upper bound would be
-    resolvable (margin of :func:`gyrocore.gmwm.expected_z` ≥ 1.28), next to the resolved terms.
+    resolvable (:func:`gyrocore.gmwm.fisher_margin` ≥ 1.28: Fisher z against the term's absence,
+    next to the resolved terms — no stand-in terms considered, so a lower bound on the length).
 
     Doubles the record length until the predicted margin of the term reaches the threshold; inf if
     not within ``max_factor`` × the present length. For GM the correlation time is the
     longest τ of the present record.
     """
-    from .gmwm import Z_POWER, expected_z
+    from .gmwm import Z_POWER, fisher_margin
 
     level = result.ci95.get(name, (0.0, float("nan")))[1] * level_factor
     if not (math.isfinite(level) and level > 0):
@@ -879,7 +880,8 @@ def needed_duration_s(result: AllanResult, name: str, *, level_factor: float = 0
     n = result.n_samples
     f = 1
     while f <= max_factor:
-        z = expected_z(base, n_samples=n * f, rate_hz=result.rate_hz, method=result.method).get(name, 0.0)
+        z = fisher_margin(base, name, n_samples=n * f, rate_hz=result.rate_hz,
+                          method="adev" if result.method != "gmwm" else "gmwm")
         if z >= Z_POWER:
             return n * f / result.rate_hz
         f *= 2
