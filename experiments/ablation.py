@@ -199,6 +199,9 @@ class InstanceAblation:
     errors_deg : dict
         ``{row: ndarray (M,)}`` error angle curves (decimated), degrees.
     notes : tuple of str
+    prediction : gyrocore.budget.ErrorPrediction or None
+        Predicted error of the ``all`` row from the calibration's standard errors and the
+        noise (:func:`predict_instance`).
     """
 
     scenario: str
@@ -210,6 +213,7 @@ class InstanceAblation:
     t_s: np.ndarray
     errors_deg: Mapping[str, np.ndarray]
     notes: tuple[str, ...] = ()
+    prediction: Any = None
 
 
 #: Effects fitted on the rate-table run (constant temperature) and on the thermal run.
@@ -281,7 +285,16 @@ def _stage_from(result, stage: int) -> dict:
     for eff, pd in result.params.items():
         key = "scale@scale_thermal" if (stage == 2 and eff == "scale") else eff
         out[key] = {k: np.asarray(v, float) for k, v in pd.items()}
+        # standard errors ride along as extra "<param>__se" entries (ignored by correct();
+        # read by the drift prediction, :func:`predict_instance`)
+        for k, v in (result.stderr.get(eff) or {}).items():
+            if k in E.PARAM_SCHEMA.get(eff, {}) and k not in ("t0_c", "temp_min_c", "temp_max_c"):
+                out[key][f"{k}{SE_SUFFIX}"] = np.asarray(v, float)
     return out
+
+
+#: Suffix of the standard-error entries carried in a calibration stage (see :func:`_stage_from`).
+SE_SUFFIX = "__se"
 
 
 def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s: float | None = None) -> slice | None:
@@ -385,6 +398,7 @@ def ablate_instance(
     calibration=None,
     cache_dir: str | None = None,
     mahony_kp_per_s: float | None = MAHONY_KP_PER_S,
+    predict: bool = True,
 ) -> InstanceAblation:
     """Run the whole ablation for one instance of ``sensor`` in ``scenario`` (needs :mod:`sim`).
 
@@ -449,11 +463,97 @@ def ablate_instance(
         sc.update(_tilt_rows(rec, truth, variants["all"], start, mahony_kp_per_s))
     t = rec.t_s[start:] - rec.t_s[start]
     idx = np.clip(np.round(np.asarray(CURVE_FRACTIONS) * (t.size - 1)).astype(int), 0, t.size - 1)
+    prediction = None
+    if predict:
+        prediction = predict_instance(res, calibration, present, still, start)
     return InstanceAblation(
         scenario=scenario, sensor=sensor, seed=seed, present=tuple(present), estimated=estimated,
         scores={k: v[0] for k, v in sc.items()}, t_s=t[idx],
         errors_deg={k: np.degrees(v[1][idx]) for k, v in sc.items()}, notes=tuple(notes),
+        prediction=prediction,
     )
+
+
+# ------------------------------------------------------------------ predicted drift (issue 12)
+#: Effects the calibration never corrects but that are part of every gyro's achievable error
+#: (the on-chip low-pass is not invertible): predicted, not counted against the calibration.
+IRREDUCIBLE = ("lowpass",)
+
+
+def calibration_groups(calibration, present: Sequence[str]) -> list:
+    """One :class:`gyrocore.budget.ParameterGroup` per estimated effect of the ``all`` row.
+
+    The power-up bias replaces every stage's ``bias`` (its own error is the window's noise,
+    predicted from the noise model). An effect fitted again by a later stage (``scale``
+    re-referenced by the thermal run) is superseded: the later fit estimates the residual left
+    by the earlier one, so only its error remains (to first order).
+    """
+    from gyrocore.budget import ParameterGroup
+
+    last: dict[str, tuple[dict, dict]] = {}
+    for st in _as_stages(calibration):
+        for key, (eff, pd, tog) in st.items():
+            if eff == "bias" or tog not in present:
+                continue
+            schema = E.PARAM_SCHEMA[eff]
+            params = {k: np.asarray(v, float) for k, v in pd.items() if k in schema}
+            se = {k[: -len(SE_SUFFIX)]: np.asarray(v, float) for k, v in pd.items() if k.endswith(SE_SUFFIX)}
+            last[eff] = (params, se)
+    return [ParameterGroup(name=eff, params={eff: p}, stderr={eff: se}) for eff, (p, se) in last.items()]
+
+
+def uncorrected_rate_errors(res, present: Sequence[str], estimated: Sequence[str]) -> dict[str, np.ndarray]:
+    """Deterministic rate errors left in the ``all`` gyro, rad/s (N, 3), from the true parameters:
+    present effects the calibration did not estimate, and the on-chip low-pass (D(ω) − ω)."""
+    from scipy import signal
+
+    truth, p_true, rec = res.truth, res.params_true, res.recording
+    w = np.asarray(truth.omega_S_rad_s, float)
+    inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=w, f_S_m_s2=np.asarray(truth.f_S_m_s2, float),
+                        temp_c=np.asarray(truth.temp_c, float), q_SW_wxyz=truth.q_SW_wxyz,
+                        t_since_power_up_s=truth.t_since_power_up_s)
+    out = {}
+    for e in present:
+        if e in estimated or e == "bias":
+            continue
+        out[e] = E.deterministic({e: p_true[e]}, inp) - w
+    if "lowpass" in p_true:
+        fc = float(np.asarray(p_true["lowpass"]["bandwidth_hz"]))
+        b, a = signal.butter(2, fc, fs=rec.rate_hz)
+        z0 = signal.lfilter_zi(b, a)
+        d = np.empty_like(w)
+        pu = np.asarray(truth.power_up_index)
+        edges = np.concatenate([[0], np.flatnonzero(np.diff(pu) != 0) + 1, [w.shape[0]]])
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            for i in range(3):
+                x = w[lo:hi, i]
+                d[lo:hi, i] = signal.lfilter(b, a, x, zi=z0 * x[0])[0] - x
+        out["lowpass"] = d
+    return out
+
+
+def predict_instance(res, calibration, present: Sequence[str], still, start: int):
+    """Predicted attitude error of the ``all`` row (:func:`gyrocore.budget.predict_error`).
+
+    Noise: the unit's true noise terms (simulation; a user passes the identified ones).
+    Parameter errors: the calibration's standard errors (diagonal). Power-up bias: the still
+    windows actually used. Uncorrected: present effects the calibration did not estimate
+    (reported, not predicted) and the low-pass (predicted: no correction removes it).
+    """
+    from gyrocore.budget import NoiseModel, predict_error
+
+    rec, truth, p_true = res.recording, res.truth, res.params_true
+    groups = calibration_groups(calibration, present)
+    estimated = [g.name for g in groups]
+    inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=np.asarray(truth.omega_S_rad_s, float),
+                        f_S_m_s2=np.asarray(truth.f_S_m_s2, float), temp_c=np.asarray(truth.temp_c, float),
+                        q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
+    stale = None
+    if "bias" in p_true:
+        stale = np.asarray(p_true["bias"].get("turn_on_sigma_rad_s", np.zeros(3)), float) * math.sqrt(2.0)
+    return predict_error(inp, start=start, segments=still, noise=NoiseModel.from_params(p_true), groups=groups,
+                         uncorrected=uncorrected_rate_errors(res, present, estimated),
+                         expected_uncorrected=IRREDUCIBLE, stale_bias_sigma_rad_s=stale)
 
 
 # ------------------------------------------------------------------ Monte Carlo task
@@ -486,6 +586,20 @@ def instance_metrics(ab: InstanceAblation) -> dict[str, float]:
             if "(tilt)" in row:  # tilt-only errors are not comparable with the full-angle floor
                 continue
             m[f"{_key(row)}__over_floor"] = s.rms_error_deg / fl.rms_error_deg if fl.rms_error_deg > 0 else float("nan")
+    pr = ab.prediction
+    if pr is not None:
+        all_rms = ab.scores["all"].rms_error_deg
+        m["pred__rms_deg"] = pr.rms_predicted_deg
+        m["pred__final_deg"] = pr.final_predicted_deg
+        m["pred__final_sd_deg2"] = math.degrees(math.degrees(pr.final_sd_rad2))
+        m["pred__rms_with_uncorrected_deg"] = pr.rms_with_uncorrected_deg
+        m["pred-floor__rms_deg"] = pr.rms_floor_deg
+        m["pred-floor__final_deg"] = pr.final_floor_deg
+        m["all__over_pred"] = all_rms / pr.rms_predicted_deg if pr.rms_predicted_deg > 0 else float("nan")
+        if fl is not None and pr.rms_floor_deg > 0:
+            m["floor__over_pred-floor"] = fl.rms_error_deg / pr.rms_floor_deg
+        for comp, deg in pr.budget_deg().items():
+            m[f"budget__{_key(comp)}__deg"] = deg
     for row in CURVE_ROWS:
         if row in ab.errors_deg:
             for i, v in enumerate(ab.errors_deg[row]):
