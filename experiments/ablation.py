@@ -297,7 +297,8 @@ def _stage_from(result, stage: int) -> dict:
 SE_SUFFIX = "__se"
 
 
-def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s: float | None = None) -> slice | None:
+def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s: float | None = None,
+                   window_s: float | None = None) -> slice | None:
     """The first still :data:`POWERUP_WINDOW_S` window in the first :data:`POWERUP_SEARCH_S`.
 
     Motion-gated static calibration (:class:`gyrocore.bias.StaticBiasCalibrator`, variance
@@ -320,10 +321,12 @@ def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s:
         if "quantization" in params_true:
             var = var + float(params_true["quantization"]["lsb_rad_s"]) ** 2 / 12.0
         sigma = np.sqrt(var)
-    cal = StaticBiasCalibrator(window_s=POWERUP_WINDOW_S, rule="mean", statistic="variance",
+    win_s = POWERUP_WINDOW_S if window_s is None else float(window_s)
+    n_search = max(n_search, int(min(rec.n, 2 * win_s * rate)))
+    cal = StaticBiasCalibrator(window_s=win_s, rule="mean", statistic="variance",
                                noise_sigma_rad_s=sigma)
     start = 0
-    while n_search - start >= POWERUP_WINDOW_S * rate:
+    while n_search - start >= win_s * rate:
         try:
             r = cal.fit(rec.slice(start, n_search))
         except GyroInputError:
@@ -351,9 +354,12 @@ def bias_bound_rad_s(sensor: str) -> float | None:
 
 
 def powerup_windows(rec, params_true: Mapping | None = None, *,
-                    bias_bound_rad_s: float | None = None) -> list[tuple[slice, slice | None]]:
-    """One (segment, still window) per power-up (extra column ``power_up_index``; else one)."""
-    kw = {"bias_bound_rad_s": bias_bound_rad_s}
+                    bias_bound_rad_s: float | None = None,
+                    window_s: float | None = None) -> list[tuple[slice, slice | None]]:
+    """One (segment, still window) per power-up (extra column ``power_up_index``; else one).
+
+    ``window_s``: still-window length, s (default :data:`POWERUP_WINDOW_S`)."""
+    kw = {"bias_bound_rad_s": bias_bound_rad_s, "window_s": window_s}
     pu = rec.extra.get("power_up_index")
     if pu is None:
         return [(slice(0, rec.n), powerup_window(rec, params_true, **kw))]
@@ -399,6 +405,7 @@ def ablate_instance(
     cache_dir: str | None = None,
     mahony_kp_per_s: float | None = MAHONY_KP_PER_S,
     predict: bool = True,
+    powerup_window_s: float | None = None,
 ) -> InstanceAblation:
     """Run the whole ablation for one instance of ``sensor`` in ``scenario`` (needs :mod:`sim`).
 
@@ -433,7 +440,7 @@ def ablate_instance(
         notes.append(f"not estimated by the calibration runs: {', '.join(missing)}")
     inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=None, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
                         q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
-    still = powerup_windows(rec, p_true, bias_bound_rad_s=bias_bound_rad_s(sensor))
+    still = powerup_windows(rec, p_true, bias_bound_rad_s=bias_bound_rad_s(sensor), window_s=powerup_window_s)
     n_missing = sum(w is None for _, w in still)
     if n_missing and "bias" in present:
         notes.append(f"no still window at {n_missing} of {len(still)} power-up(s): bias there from the calibration "
@@ -504,7 +511,8 @@ def calibration_groups(calibration, present: Sequence[str]) -> list:
 
 def uncorrected_rate_errors(res, present: Sequence[str], estimated: Sequence[str]) -> dict[str, np.ndarray]:
     """Deterministic rate errors left in the ``all`` gyro, rad/s (N, 3), from the true parameters:
-    present effects the calibration did not estimate, and the on-chip low-pass (D(ω) − ω)."""
+    present effects the calibration did not estimate, and (key ``lowpass``) the on-chip
+    low-pass, D(ω) − ω per power-up (the filter restarts from steady state)."""
     from scipy import signal
 
     truth, p_true, rec = res.truth, res.params_true, res.recording
@@ -551,9 +559,25 @@ def predict_instance(res, calibration, present: Sequence[str], still, start: int
     stale = None
     if "bias" in p_true:
         stale = np.asarray(p_true["bias"].get("turn_on_sigma_rad_s", np.zeros(3)), float) * math.sqrt(2.0)
+    unc = uncorrected_rate_errors(res, present, estimated)
+    # Irreducible and exact: the scorer's integrator on the true rate (the floor's own error;
+    # not zero when the truth is sampled at the output rate, e.g. 100 Hz) and on the true rate
+    # plus the low-pass error (minus its window mean, as the power-up bias removes it).
+    w_true = np.asarray(truth.omega_S_rad_s, float)
+    d = np.zeros_like(w_true)
+    for key in IRREDUCIBLE:
+        if key in unc:
+            d = d + unc.pop(key)
+    for seg, win in still:
+        if win is not None:
+            d[seg] = d[seg] - d[win].mean(axis=0)
+    t_sc, q_sc = rec.t_s[start:], truth.q_SW_wxyz[start:]
+    e_int = error_angle_rad(integrate_gyro(t_sc, w_true[start:], q0_wxyz=q_sc[0]), q_sc)
+    e_irr = error_angle_rad(integrate_gyro(t_sc, (w_true + d)[start:], q0_wxyz=q_sc[0]), q_sc)
     return predict_error(inp, start=start, segments=still, noise=NoiseModel.from_params(p_true), groups=groups,
-                         uncorrected=uncorrected_rate_errors(res, present, estimated),
-                         expected_uncorrected=IRREDUCIBLE, stale_bias_sigma_rad_s=stale)
+                         uncorrected=unc, stale_bias_sigma_rad_s=stale,
+                         exact_error_rad={"irreducible (low-pass, integration)": e_irr},
+                         floor_exact_error_rad={"integration": e_int})
 
 
 # ------------------------------------------------------------------ Monte Carlo task
@@ -709,6 +733,92 @@ def curve_figure(campaign, scenario: str, sensor: str, out_dir) -> str | None:
     return save_figure(fig, out_dir, f"ablation_{scenario}_{sensor}")
 
 
+def prediction_summary(campaign) -> dict:
+    """``{scenario: {"rms_all_deg", "rms_predicted_deg", "rms_floor_deg", "budget": {component: deg}, …}}``:
+    medians over the instances (first sensor of each scenario), plus the calibration check
+    mean of (measured/predicted)² with its standard error and the median ratio."""
+    out = {}
+    for sc in campaign.scenarios:
+        ms = [t.metrics_dict for t in campaign.tasks if t.scenario == sc]
+        ms = [m for m in ms if "pred__rms_deg" in m]
+        if not ms:
+            continue
+
+        def med(k):
+            x = np.array([m.get(k, np.nan) for m in ms], float)
+            return float(np.nanmedian(x)) if np.any(np.isfinite(x)) else float("nan")
+
+        r = np.array([m["all__over_pred"] for m in ms], float)
+        r = r[np.isfinite(r)]
+        comps = [k for k in ms[0] if k.startswith("budget__")]
+        out[sc] = {
+            "instances": len(ms),
+            "rms_all_deg": med("all__rms_deg"),
+            "rms_predicted_deg": med("pred__rms_deg"),
+            "rms_floor_deg": med("floor__rms_deg"),
+            "rms_floor_predicted_deg": med("pred-floor__rms_deg"),
+            "final_all_deg": med("all__final_deg"),
+            "final_predicted_deg": med("pred__final_deg"),
+            "measured_over_predicted_median": float(np.median(r)) if r.size else float("nan"),
+            "measured2_over_predicted2_mean": float(np.mean(r ** 2)) if r.size else float("nan"),
+            "measured2_over_predicted2_se": float(np.std(r ** 2, ddof=1) / np.sqrt(r.size)) if r.size > 1 else float("nan"),
+            "budget": {_label(k[len("budget__"):-len("__deg")]): med(k) for k in comps},
+        }
+    return out
+
+
+def budget_markdown(pred: Mapping[str, Mapping]) -> str:
+    """Budget table: one row per scenario, the median RMS-equivalent share of each component."""
+    comps: list[str] = []
+    for v in pred.values():
+        for c in v["budget"]:
+            if c not in comps:
+                comps.append(c)
+    comps = [c for c in comps if any(abs(v["budget"].get(c, 0.0)) >= 5e-4 for v in pred.values())]
+    head = ["scenario", "measured RMS °", "predicted RMS °", "floor RMS °", "mean (meas/pred)² ± se"] + comps
+    rows = []
+    for sc, v in pred.items():
+        rows.append([sc, v["rms_all_deg"], v["rms_predicted_deg"], v["rms_floor_deg"],
+                     f"{v['measured2_over_predicted2_mean']:.2f} ± {v['measured2_over_predicted2_se']:.2f}"]
+                    + [v["budget"].get(c, 0.0) for c in comps])
+    return md_table(head, rows)
+
+
+def budget_figure(pred: Mapping[str, Mapping], out_dir, name: str = "ablation_budget") -> str | None:
+    """Stacked bars per scenario: each component's share of the predicted mean squared error
+    (deg², signed shares below zero), with the measured median RMS² as a marker."""
+    if not pred:
+        return None
+    comps: list[str] = []
+    for v in pred.values():
+        for c in v["budget"]:
+            if c not in comps:
+                comps.append(c)
+    fig = new_figure(figsize=(7.5, 4.0))
+    ax = fig.add_subplot(111)
+    names = list(pred)
+    x = np.arange(len(names))
+    pos = np.zeros(len(names))
+    neg = np.zeros(len(names))
+    for c in comps:
+        v = np.array([np.sign(pred[n]["budget"].get(c, 0.0)) * pred[n]["budget"].get(c, 0.0) ** 2 for n in names])
+        if np.all(np.abs(v) < 1e-8):
+            continue
+        base = np.where(v >= 0, pos, neg)
+        ax.bar(x, v, bottom=base, label=c, width=0.6)
+        pos = pos + np.where(v >= 0, v, 0)
+        neg = neg + np.where(v < 0, v, 0)
+    ax.plot(x, [pred[n]["rms_all_deg"] ** 2 for n in names], "k*", ms=9, label="measured RMS² (median)")
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=20)
+    ax.set_yscale("symlog", linthresh=1e-4)
+    ax.set_ylabel("mean squared attitude error, deg²")
+    ax.set_title("Predicted error budget (median over units)")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=6, ncol=2)
+    return save_figure(fig, out_dir, name)
+
+
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
         scenarios: Sequence[str] | None = None, sensors: Sequence[str] | None = None,
         duration_s: float | None = None, seed: int = 0, **_ignored) -> ExperimentResult:
@@ -734,8 +844,13 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         shutil.rmtree(cache, ignore_errors=True)
     write_campaign(camp, out_dir / "ablation_montecarlo")
     tables, summary = campaign_tables(camp)
+    pred = prediction_summary(camp)
+    summary["scenarios"] = pred
     figs = []
     fig_md = []
+    bf = budget_figure(pred, out_dir)
+    if bf:
+        figs.append(bf)
     for sc in scenarios:
         for se in sensors:
             f = curve_figure(camp, sc, se, out_dir)
@@ -754,6 +869,13 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         f"{MAHONY_KP_PER_S:g}/s, accelerometer used while | |f| − g | < 1 m/s²) — the heading it cannot help.\n",
         tables,
         "\n".join(fig_md),
+        "\n### Predicted drift and error budget\n\nPredicted RMS error of the all-corrections row from the "
+        "calibration's own standard errors, the noise (floor terms; the power-up window's noise, signed: negative "
+        "where the window mean removes more slow noise than it adds) and the uncorrected terms "
+        "(gyrocore.budget; docs/accuracy.md). Medians over units, degrees (RMS-equivalent shares: their squares "
+        "add up).\n",
+        budget_markdown(pred),
+        f"\n![budget]({bf})" if bf else "",
         f"\nPer-instance results: `ablation_montecarlo/` (JSON, CSV). Campaign wall time {camp.wall_s:.1f} s on "
         f"{camp.workers} worker(s) ({camp.backend}).",
     ]
@@ -845,3 +967,90 @@ def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
             "negligible": negl,
         }
     return out
+
+
+# ------------------------------------------------------------------ drift contract (issue 12)
+#: One-sided tail probability of each band of the drift contract (6 scenarios × 3 tails + the
+#: pooled band: 19 tails; a fresh, correct calibration fails CI with probability ≤ 19·α).
+DRIFT_TAIL_ALPHA = 1e-4
+
+
+def drift_statistics(metrics: Sequence[Mapping[str, float]]) -> dict:
+    """The statistics of the drift contract over a set of units (one scenario's metrics).
+
+    * ``honesty``: mean over units of log(measured RMS / predicted RMS) of the all row — near 0
+      when the calibration's standard errors and the noise model describe its real error; up
+      when the estimator is worse than it claims (an effect dropped, a wrong model), down when
+      it claims too much uncertainty (an inflated standard error);
+    * ``quality``: mean over units of log(predicted RMS / predicted floor RMS) — how far the
+      calibration protocol and estimator leave the attitude above the noise floor; nearly
+      deterministic per scenario (it moves with the standard errors and the still window,
+      not with the noise draw), so its band is tight.
+    """
+    h = np.array([math.log(m["all__over_pred"]) for m in metrics if np.isfinite(m.get("all__over_pred", np.nan))])
+    q = np.array([math.log(m["pred__rms_deg"] / m["pred-floor__rms_deg"]) for m in metrics
+                  if m.get("pred-floor__rms_deg", 0) > 0])
+    return {"n": int(h.size), "honesty": float(h.mean()) if h.size else float("nan"),
+            "quality": float(q.mean()) if q.size else float("nan")}
+
+
+def drift_thresholds(campaign, *, units: int, alpha: float = DRIFT_TAIL_ALPHA) -> dict:
+    """Bands of the drift contract for a check run on ``units`` units, from a Monte Carlo.
+
+    Per scenario, over the campaign's M units: x = log(measured/predicted RMS) and
+    y = log(predicted/floor RMS) have means x̄, ȳ and sds s_x, s_y. The mean of x over a fresh
+    set of n units is a prediction from a normal sample: (x̄_n − x̄) / (s_x·√(1/n + 1/M)) follows
+    Student's t with M − 1 dof, so the band x̄ ± t_{1−α, M−1}·s_x·√(1/n + 1/M) is left with
+    probability 2α (two-sided; honesty) and ȳ + t·s_y·√(1/n + 1/M) with probability α (one-sided;
+    quality). ``pooled``: the same for the mean of x over all scenarios (6n values), catches a
+    shift common to every scenario with more power.
+    """
+    from scipy import stats
+
+    out: dict = {"units": int(units), "alpha": float(alpha), "scenarios": {}}
+    pooled = []
+    for sc in campaign.scenarios:
+        ms = [t.metrics_dict for t in campaign.tasks if t.scenario == sc]
+        x = np.array([math.log(m["all__over_pred"]) for m in ms])
+        y = np.array([math.log(m["pred__rms_deg"] / m["pred-floor__rms_deg"]) for m in ms])
+        M = x.size
+        t = float(stats.t.ppf(1.0 - alpha, M - 1))
+        k = math.sqrt(1.0 / units + 1.0 / M)
+        out["scenarios"][sc] = {
+            "mc_units": M, "honesty_mean": float(x.mean()), "honesty_sd": float(x.std(ddof=1)),
+            "honesty_lo": float(x.mean() - t * x.std(ddof=1) * k), "honesty_hi": float(x.mean() + t * x.std(ddof=1) * k),
+            "quality_mean": float(y.mean()), "quality_sd": float(y.std(ddof=1)),
+            "quality_hi": float(y.mean() + t * y.std(ddof=1) * k),
+            "median_measured_over_predicted": float(np.exp(np.median(x))),
+            "mean_measured2_over_predicted2": float(np.mean(np.exp(2 * x))),
+            "mean_measured2_over_predicted2_se": float(np.std(np.exp(2 * x), ddof=1) / math.sqrt(M)),
+        }
+        pooled.append(x - x.mean())
+    allx = np.concatenate(pooled)
+    t = float(stats.t.ppf(1.0 - alpha, allx.size - len(pooled)))
+    # the pooled statistic is the mean over scenarios of each scenario's honesty minus its MC mean
+    sd = float(np.sqrt(np.sum([p.var(ddof=1) for p in pooled])) / len(pooled))
+    out["pooled"] = {"sd_per_unit": sd, "band": float(t * sd * math.sqrt(1.0 / units + 1.0 / min(p.size for p in pooled)))}
+    return out
+
+
+def drift_contract_failures(stats_by_scenario: Mapping[str, Mapping], thresholds: Mapping) -> list[str]:
+    """Messages of every failed band (empty: the contract holds). ``stats_by_scenario`` from
+    :func:`drift_statistics`."""
+    fails = []
+    dev = []
+    for sc, st in stats_by_scenario.items():
+        th = thresholds["scenarios"][sc]
+        h, q = st["honesty"], st["quality"]
+        if not th["honesty_lo"] <= h <= th["honesty_hi"]:
+            fails.append(f"{sc}: measured/predicted RMS {math.exp(h):.3g} outside [{math.exp(th['honesty_lo']):.3g}, "
+                         f"{math.exp(th['honesty_hi']):.3g}] (geometric mean over {st['n']} units)")
+        if not q <= th["quality_hi"]:
+            fails.append(f"{sc}: predicted/floor RMS {math.exp(q):.3g} > {math.exp(th['quality_hi']):.3g} "
+                         "(calibration protocol or standard errors worse)")
+        dev.append(h - th["honesty_mean"])
+    if len(dev) == len(thresholds["scenarios"]):
+        d = float(np.mean(dev))
+        if abs(d) > thresholds["pooled"]["band"]:
+            fails.append(f"all scenarios: measured/predicted shifted by ×{math.exp(d):.3g} (band ×{math.exp(thresholds['pooled']['band']):.3g})")
+    return fails

@@ -25,6 +25,7 @@ EXPERIMENTS: dict[str, str] = {
     "cutoffs": "experiments.cutoffs:run",
     "close_the_loop": "experiments.close_the_loop:run",
     "twin": "experiments.twin:run",
+    "protocol": "experiments.protocol:run",
 }
 
 

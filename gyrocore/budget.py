@@ -564,6 +564,8 @@ def predict_error(
     uncorrected: Mapping[str, np.ndarray] | None = None,
     expected_uncorrected: Sequence[str] = (),
     stale_bias_sigma_rad_s: np.ndarray | None = None,
+    exact_error_rad: Mapping[str, np.ndarray] | None = None,
+    floor_exact_error_rad: Mapping[str, np.ndarray] | None = None,
     max_blocks: int = 800,
 ) -> ErrorPrediction:
     """Predict the attitude error of the corrected gyro along a trajectory.
@@ -589,6 +591,13 @@ def predict_error(
         low-pass); the others are reported but not predicted.
     stale_bias_sigma_rad_s : ndarray (3,), optional
         σ of the bias error in segments without a still window (turn-on repeatability).
+    exact_error_rad : dict, optional
+        ``{label: ndarray (N − start,)}``: deterministic error-angle series computed exactly
+        (e.g. the integration of the true rate plus the low-pass error by the scorer's own
+        integrator): |e|² enters the prediction as component ``label`` (zero-mean random
+        errors add to it in expectation, ε = e + random).
+    floor_exact_error_rad : dict, optional
+        The same for the floor (e.g. the integrator's error on the true rate alone).
     max_blocks : int
         Block grid size (accuracy vs time: the quadratic forms cost O(M²)).
 
@@ -664,6 +673,11 @@ def predict_error(
         if np.any(v > 0):
             var["stale bias"] = v[sc]
             notes.append("segments without a still window: bias from the calibration run (turn-on repeatability)")
+    at = blocks.i1[sc] - 1 - start
+    for label, e in (exact_error_rad or {}).items():
+        var[label] = np.asarray(e, float)[at] ** 2
+    for label, e in (floor_exact_error_rad or {}).items():
+        floor[label] = np.asarray(e, float)[at] ** 2
     predicted = tuple(k for k in var if not k.startswith("uncorrected:") or k[len("uncorrected:"):] in expected_uncorrected)
     return ErrorPrediction(t_s=t_m, var_rad2=var, floor_var_rad2=floor, predicted=predicted,
                            final_cov_rad2=cov_final, notes=tuple(notes))

@@ -34,8 +34,10 @@ def command(name, out_dir, quick, seeds, workers, force, as_json):
                                  workers=workers, title=f"gyroharness experiment {name}")
     r = results[0]
     if as_json:
-        emit_json({"out": str(path), "name": name, "wall_s": r.wall_s, "figures": list(r.figures),
-                   "summary": r.summary})
+        doc = {"out": str(path), "name": name, "wall_s": r.wall_s, "figures": list(r.figures), "summary": r.summary}
+        if isinstance(r.summary, dict) and "scenarios" in r.summary:  # ablation: predicted drift per scenario
+            doc["scenarios"] = r.summary["scenarios"]
+        emit_json(doc)
     else:
         click.echo(f"{name}: {r.wall_s:.1f} s, {len(r.figures)} figures; report: {path / 'report.md'}")
     return 0
