@@ -223,9 +223,18 @@ THERMAL_EFFECTS = ("bias_thermal", "scale_thermal", "bias_temp_rate", "bias_ramp
 #: Power-up still window (s) and how far into the recording it may be searched (s).
 POWERUP_WINDOW_S = 2.0
 POWERUP_SEARCH_S = 30.0
-#: Calibrator settings for the ablation: point estimates are what matter here, so the
-#: cheaper OLS covariance and block means of ≤ 15000 rows (exact for the linear model).
-_CAL_KW = {"covariance": "ols", "max_rows": 15000}
+#: Calibrator settings for the ablation: block means of ≤ 15000 rows (exact for the linear
+#: model) and the "auto" covariance (HAC when the residual is coloured). The standard errors
+#: feed the drift prediction (:func:`predict_instance`); with "ols" the rate-table
+#: g-sensitivity errors were 5–9 standard errors (bias instability drifts between the mounts:
+#: coloured residuals), with "auto" ≤ 2 (issue 12).
+_CAL_KW = {"covariance": "auto", "max_rows": 15000}
+#: Nuisance effects fitted with the thermal run but not applied elsewhere: the thermal run's
+#: output filter (25 Hz at 100 Hz) delays the rate by ≈ 7 ms, and its unmodelled residual bursts
+#: at every rate ramp (RMS 4.3e-3 rad/s against 5.8e-4 of noise) made the thermal standard errors
+#: 3× too large; a fitted time offset (7.07 ms) brings the residual to the noise. Its value
+#: belongs to that run's filter setting, not to the 1-kHz flights, so it is dropped from the stage.
+THERMAL_NUISANCE = ("time_offset",)
 
 
 def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
@@ -283,6 +292,8 @@ def _stage_from(result, stage: int) -> dict:
         return {}
     out = {}
     for eff, pd in result.params.items():
+        if stage == 2 and eff in THERMAL_NUISANCE:
+            continue
         key = "scale@scale_thermal" if (stage == 2 and eff == "scale") else eff
         out[key] = {k: np.asarray(v, float) for k, v in pd.items()}
         # standard errors ride along as extra "<param>__se" entries (ignored by correct();
@@ -973,6 +984,13 @@ def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
 #: One-sided tail probability of each band of the drift contract (6 scenarios × 3 tails + the
 #: pooled band: 19 tails; a fresh, correct calibration fails CI with probability ≤ 19·α).
 DRIFT_TAIL_ALPHA = 1e-4
+#: Smallest margin of the quality bound (log): where the Monte Carlo spread of predicted/floor
+#: is ~0 (it does not depend on the noise draw), the bound would otherwise pin the
+#: implementation (block grid, window search) instead of the calibration: 5 %.
+DRIFT_QUALITY_MIN_MARGIN = math.log(1.05)
+#: Completeness: the budget's uncorrected terms (present effects the calibration did not
+#: estimate, from the true parameters) may add at most 5 % to the predicted RMS error.
+DRIFT_COMPLETENESS_MAX = 1.05
 
 
 def drift_statistics(metrics: Sequence[Mapping[str, float]]) -> dict:
@@ -990,67 +1008,78 @@ def drift_statistics(metrics: Sequence[Mapping[str, float]]) -> dict:
     h = np.array([math.log(m["all__over_pred"]) for m in metrics if np.isfinite(m.get("all__over_pred", np.nan))])
     q = np.array([math.log(m["pred__rms_deg"] / m["pred-floor__rms_deg"]) for m in metrics
                   if m.get("pred-floor__rms_deg", 0) > 0])
+    c = np.array([m["pred__rms_with_uncorrected_deg"] / m["pred__rms_deg"] for m in metrics
+                  if m.get("pred__rms_deg", 0) > 0])
     return {"n": int(h.size), "honesty": float(h.mean()) if h.size else float("nan"),
-            "quality": float(q.mean()) if q.size else float("nan")}
+            "quality": float(q.mean()) if q.size else float("nan"),
+            "completeness": float(c.max()) if c.size else float("nan")}
 
 
-def drift_thresholds(campaign, *, units: int, alpha: float = DRIFT_TAIL_ALPHA) -> dict:
-    """Bands of the drift contract for a check run on ``units`` units, from a Monte Carlo.
+def drift_thresholds(campaign, *, alpha: float = DRIFT_TAIL_ALPHA) -> dict:
+    """The Monte Carlo statistics behind the drift contract, per scenario.
 
     Per scenario, over the campaign's M units: x = log(measured/predicted RMS) and
-    y = log(predicted/floor RMS) have means x̄, ȳ and sds s_x, s_y. The mean of x over a fresh
-    set of n units is a prediction from a normal sample: (x̄_n − x̄) / (s_x·√(1/n + 1/M)) follows
-    Student's t with M − 1 dof, so the band x̄ ± t_{1−α, M−1}·s_x·√(1/n + 1/M) is left with
-    probability 2α (two-sided; honesty) and ȳ + t·s_y·√(1/n + 1/M) with probability α (one-sided;
-    quality). ``pooled``: the same for the mean of x over all scenarios (6n values), catches a
-    shift common to every scenario with more power.
+    y = log(predicted/floor RMS), their means and sds. The mean of x over n fresh units is a
+    prediction from a normal sample: (x̄_n − x̄)/(s_x·√(1/n + 1/M)) follows Student's t with
+    M − 1 dof, so the band x̄ ± t_{1−α, M−1}·s_x·√(1/n + 1/M) is left with probability 2α
+    (honesty, two-sided) and ȳ + t·s_y·√(1/n + 1/M) with probability α (quality, one-sided);
+    :func:`drift_bands` evaluates them for n. ``pooled``: the mean over scenarios of
+    (x̄_n − x̄), sd √(Σ s_x²)/S per unit.
     """
-    from scipy import stats
-
-    out: dict = {"units": int(units), "alpha": float(alpha), "scenarios": {}}
-    pooled = []
+    out: dict = {"alpha": float(alpha), "scenarios": {}}
     for sc in campaign.scenarios:
         ms = [t.metrics_dict for t in campaign.tasks if t.scenario == sc]
         x = np.array([math.log(m["all__over_pred"]) for m in ms])
         y = np.array([math.log(m["pred__rms_deg"] / m["pred-floor__rms_deg"]) for m in ms])
-        M = x.size
-        t = float(stats.t.ppf(1.0 - alpha, M - 1))
-        k = math.sqrt(1.0 / units + 1.0 / M)
         out["scenarios"][sc] = {
-            "mc_units": M, "honesty_mean": float(x.mean()), "honesty_sd": float(x.std(ddof=1)),
-            "honesty_lo": float(x.mean() - t * x.std(ddof=1) * k), "honesty_hi": float(x.mean() + t * x.std(ddof=1) * k),
+            "mc_units": int(x.size), "honesty_mean": float(x.mean()), "honesty_sd": float(x.std(ddof=1)),
             "quality_mean": float(y.mean()), "quality_sd": float(y.std(ddof=1)),
-            "quality_hi": float(y.mean() + t * y.std(ddof=1) * k),
             "median_measured_over_predicted": float(np.exp(np.median(x))),
             "mean_measured2_over_predicted2": float(np.mean(np.exp(2 * x))),
-            "mean_measured2_over_predicted2_se": float(np.std(np.exp(2 * x), ddof=1) / math.sqrt(M)),
+            "mean_measured2_over_predicted2_se": float(np.std(np.exp(2 * x), ddof=1) / math.sqrt(x.size)),
         }
-        pooled.append(x - x.mean())
-    allx = np.concatenate(pooled)
-    t = float(stats.t.ppf(1.0 - alpha, allx.size - len(pooled)))
-    # the pooled statistic is the mean over scenarios of each scenario's honesty minus its MC mean
-    sd = float(np.sqrt(np.sum([p.var(ddof=1) for p in pooled])) / len(pooled))
-    out["pooled"] = {"sd_per_unit": sd, "band": float(t * sd * math.sqrt(1.0 / units + 1.0 / min(p.size for p in pooled)))}
     return out
+
+
+def drift_bands(thresholds: Mapping, scenario: str, n: int) -> dict:
+    """Honesty band (lo, hi) and quality bound (hi) in log units for the mean over ``n`` units."""
+    from scipy import stats
+
+    th = thresholds["scenarios"][scenario]
+    M = th["mc_units"]
+    t = float(stats.t.ppf(1.0 - thresholds["alpha"], M - 1))
+    k = math.sqrt(1.0 / n + 1.0 / M)
+    return {"honesty_lo": th["honesty_mean"] - t * th["honesty_sd"] * k,
+            "honesty_hi": th["honesty_mean"] + t * th["honesty_sd"] * k,
+            "quality_hi": th["quality_mean"] + max(t * th["quality_sd"] * k, DRIFT_QUALITY_MIN_MARGIN)}
 
 
 def drift_contract_failures(stats_by_scenario: Mapping[str, Mapping], thresholds: Mapping) -> list[str]:
     """Messages of every failed band (empty: the contract holds). ``stats_by_scenario`` from
-    :func:`drift_statistics`."""
+    :func:`drift_statistics`; the bands are evaluated for each scenario's number of units."""
+    from scipy import stats
+
     fails = []
-    dev = []
+    dev, var, nmin = [], [], []
     for sc, st in stats_by_scenario.items():
         th = thresholds["scenarios"][sc]
+        b = drift_bands(thresholds, sc, st["n"])
         h, q = st["honesty"], st["quality"]
-        if not th["honesty_lo"] <= h <= th["honesty_hi"]:
-            fails.append(f"{sc}: measured/predicted RMS {math.exp(h):.3g} outside [{math.exp(th['honesty_lo']):.3g}, "
-                         f"{math.exp(th['honesty_hi']):.3g}] (geometric mean over {st['n']} units)")
-        if not q <= th["quality_hi"]:
-            fails.append(f"{sc}: predicted/floor RMS {math.exp(q):.3g} > {math.exp(th['quality_hi']):.3g} "
+        if not b["honesty_lo"] <= h <= b["honesty_hi"]:
+            fails.append(f"{sc}: measured/predicted RMS {math.exp(h):.3g} outside [{math.exp(b['honesty_lo']):.3g}, "
+                         f"{math.exp(b['honesty_hi']):.3g}] (geometric mean over {st['n']} units)")
+        if not q <= b["quality_hi"]:
+            fails.append(f"{sc}: predicted/floor RMS {math.exp(q):.3g} > {math.exp(b['quality_hi']):.3g} "
                          "(calibration protocol or standard errors worse)")
+        if st.get("completeness", 1.0) > DRIFT_COMPLETENESS_MAX:
+            fails.append(f"{sc}: uncorrected effects add ×{st['completeness']:.3g} to the predicted error "
+                         f"(> {DRIFT_COMPLETENESS_MAX:g}: a present effect was not calibrated)")
         dev.append(h - th["honesty_mean"])
-    if len(dev) == len(thresholds["scenarios"]):
+        var.append(th["honesty_sd"] ** 2 * (1.0 / st["n"] + 1.0 / th["mc_units"]))
+        nmin.append(th["mc_units"])
+    if len(dev) == len(thresholds["scenarios"]) and len(dev) > 1:
         d = float(np.mean(dev))
-        if abs(d) > thresholds["pooled"]["band"]:
-            fails.append(f"all scenarios: measured/predicted shifted by ×{math.exp(d):.3g} (band ×{math.exp(thresholds['pooled']['band']):.3g})")
+        band = float(stats.t.ppf(1.0 - thresholds["alpha"], min(nmin) - 1)) * math.sqrt(sum(var)) / len(dev)
+        if abs(d) > band:
+            fails.append(f"all scenarios: measured/predicted shifted by ×{math.exp(d):.3g} (band ×{math.exp(band):.3g})")
     return fails

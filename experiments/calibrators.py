@@ -315,6 +315,7 @@ class CoreCalibrator:
                     p1 = {eff: pd for key_, (eff, pd, _) in A._as_stages(s1)[0].items() if eff != "bias"}
                     rec2 = rec2.with_gyro(E.correct(p1, rec2.gyro_rad_s, inp2) if p1 else rec2.gyro_rad_s)
                 eff2 = ["bias"] + (["scale"] if "scale_thermal" in th else []) + th
+                eff2 += [e for e in A.THERMAL_NUISANCE if e not in eff2]  # fitted, not applied (ablation._stage_from)
                 r2 = Calibrator(effects=eff2, **kw).fit(rec2)
         return CoreParams(effects=tuple(present), stages=(s1, A._stage_from(r2, 2)), results=(r1, r2))
 

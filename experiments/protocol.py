@@ -108,35 +108,50 @@ def _prefixed_inputs(res, ground_s: float, window_s: float):
     return inp, [(slice(0, n), slice(0, nw))], nw
 
 
-def _scaled(groups, f_table: float, d_thermal: float):
-    from gyrocore.budget import ParameterGroup
-
-    out = []
-    for g in groups:
-        k = 1.0 / math.sqrt(f_table if g.name in TABLE_GROUPS else d_thermal)
-        out.append(ParameterGroup(name=g.name, params=g.params,
-                                  stderr={e: {p: np.asarray(v) * k for p, v in pd.items()} for e, pd in g.stderr.items()}))
-    return out
+@dataclass(frozen=True)
+class _Pred:
+    final_predicted_deg: float
+    rms_predicted_deg: float
+    rms_floor_deg: float
+    final_floor_deg: float
 
 
 def evaluate_grid(res, ground_s: float, groups, *, windows=WINDOWS_S, table=TABLE_FRACTIONS,
                   thermal=THERMAL_FRACTIONS) -> list[dict]:
-    """Predicted hover error for every protocol of the grid (one trajectory per window length)."""
+    """Predicted hover error for every protocol of the grid.
+
+    One budget per window length (its trajectory); the table/thermal fractions scale each
+    parameter group's variance by 1/f (SE ∝ 1/√f), exactly, without recomputing."""
     from gyrocore.budget import NoiseModel, predict_error
 
     noise = NoiseModel.from_params(res.params_true)
     rows = []
     for tw in windows:
         inp, segs, start = _prefixed_inputs(res, ground_s, tw)
+        pr = predict_error(inp, start=start, segments=segs, noise=noise, groups=groups, max_blocks=400)
+        base = np.zeros_like(pr.t_s)
+        tab = np.zeros_like(pr.t_s)
+        th = np.zeros_like(pr.t_s)
+        for k in pr.predicted:
+            v = pr.var_rad2[k]
+            if k.startswith("param:"):
+                if k[len("param:"):] in TABLE_GROUPS:
+                    tab = tab + v
+                else:
+                    th = th + v
+            else:
+                base = base + v
         for f in table:
             for d in thermal:
-                pr = predict_error(inp, start=start, segments=segs, noise=noise, groups=_scaled(groups, f, d),
-                                   max_blocks=400)
+                v = base + tab / f + th / d
+                p = _Pred(final_predicted_deg=math.degrees(math.sqrt(max(v[-1], 0.0))),
+                          rms_predicted_deg=math.degrees(math.sqrt(max(pr._mean(v), 0.0))),
+                          rms_floor_deg=pr.rms_floor_deg, final_floor_deg=pr.final_floor_deg)
                 rows.append({"window_s": tw, "table_fraction": f, "thermal_fraction": d,
                              "cost_s": tw + f * TABLE_REF_S + d * THERMAL_REF_S,
-                             "final_deg": pr.final_predicted_deg, "rms_deg": pr.rms_predicted_deg,
-                             "floor_rms_deg": pr.rms_floor_deg, "floor_final_deg": pr.final_floor_deg,
-                             "pred": pr})
+                             "final_deg": p.final_predicted_deg, "rms_deg": p.rms_predicted_deg,
+                             "floor_rms_deg": p.rms_floor_deg, "floor_final_deg": p.final_floor_deg,
+                             "pred": p})
     return rows
 
 
@@ -148,7 +163,7 @@ def choose(rows: Sequence[dict], target: Target) -> dict | None:
     return min(ok, key=lambda r: (r["cost_s"], r["final_deg"]))
 
 
-def confirm(window_s: float, seeds: Sequence[int], *, airborne_s: float) -> list[dict]:
+def confirm(window_s: float, seeds: Sequence[int], *, airborne_s: float, cache_dir: str | None = None) -> list[dict]:
     """Fly ``seeds`` units with a ground phase of ``window_s`` + 1 s, power-up bias from a
     ``window_s`` still window, reference calibration; measured vs predicted error."""
     import warnings
@@ -165,7 +180,7 @@ def confirm(window_s: float, seeds: Sequence[int], *, airborne_s: float) -> list
         with warnings.catch_warnings(), single_thread_blas():
             warnings.simplefilter("ignore")
             ab = A.ablate_instance(spec, sensor=SENSOR, seed=int(sd), duration_s=ground + 3.0 + airborne_s,
-                                   powerup_window_s=window_s, mahony_kp_per_s=None)
+                                   powerup_window_s=window_s, mahony_kp_per_s=None, cache_dir=cache_dir)
         out.append({"seed": int(sd), "final_deg": ab.scores["all"].final_error_deg,
                     "rms_deg": ab.scores["all"].rms_error_deg, "floor_rms_deg": ab.scores["floor"].rms_error_deg,
                     "pred_final_deg": ab.prediction.final_predicted_deg, "pred_rms_deg": ab.prediction.rms_predicted_deg,
@@ -194,9 +209,17 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     rows = evaluate_grid(res, ground, groups, windows=windows, table=fr, thermal=fr)
     chosen = {t.name: choose(rows, t) for t in TARGETS}
     # simulation check of the window dimension (reference table and thermal runs)
-    n_units = seeds or (1 if quick else 4)
+    n_units = seeds or (1 if quick else 3)
     check_windows = sorted({2.0} | {c["window_s"] for c in chosen.values() if c is not None})
-    conf = {tw: confirm(tw, instance_seeds(seed + 1, n_units), airborne_s=airborne) for tw in check_windows}
+    import shutil
+    import tempfile
+
+    cache = tempfile.mkdtemp(prefix="gyroharness-protocol-")
+    try:
+        conf = {tw: confirm(tw, instance_seeds(seed + 1, n_units), airborne_s=airborne, cache_dir=cache)
+                for tw in check_windows}
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
 
     ref = [r for r in rows if r["table_fraction"] == 1.0 and r["thermal_fraction"] == 1.0]
     tab = md_table(["still window, s", "predicted final °", "predicted RMS °", "floor RMS °", "RMS / floor"],
