@@ -669,7 +669,8 @@ def _rows_in(campaign, scenario: str, sensor: str) -> list[str]:
     """Row keys present in the campaign for (scenario, sensor), table order."""
     keys = []
     for s in campaign.summary:
-        if s.scenario == scenario and s.sensor == sensor and s.metric.endswith("__final_deg"):
+        if (s.scenario == scenario and s.sensor == sensor and s.metric.endswith("__final_deg")
+                and not s.metric.startswith("pred")):  # predictions are not correction rows
             keys.append(s.metric[: -len("__final_deg")])
     order = {"none": 0, "all": 1, "true-params": 96, "floor": 97, "all-(tilt)": 98, "all-+-Mahony-(tilt)": 99}
     return sorted(keys, key=lambda k: (order.get(k, 2 if k.startswith("all-but") else 3), keys.index(k)))
@@ -797,7 +798,8 @@ def budget_markdown(pred: Mapping[str, Mapping]) -> str:
 
 def budget_figure(pred: Mapping[str, Mapping], out_dir, name: str = "ablation_budget") -> str | None:
     """Stacked bars per scenario: each component's share of the predicted mean squared error
-    (deg², signed shares below zero), with the measured median RMS² as a marker."""
+    (% of the predicted total; a negative share below zero), with the measured median RMS² as a
+    star on the same scale (100 % = measured as predicted)."""
     if not pred:
         return None
     comps: list[str] = []
@@ -805,28 +807,32 @@ def budget_figure(pred: Mapping[str, Mapping], out_dir, name: str = "ablation_bu
         for c in v["budget"]:
             if c not in comps:
                 comps.append(c)
-    fig = new_figure(figsize=(7.5, 4.0))
+    fig = new_figure(figsize=(10.0, 4.4))
     ax = fig.add_subplot(111)
     names = list(pred)
     x = np.arange(len(names))
+    tot = np.array([pred[n]["rms_predicted_deg"] ** 2 for n in names])
     pos = np.zeros(len(names))
     neg = np.zeros(len(names))
     for c in comps:
         v = np.array([np.sign(pred[n]["budget"].get(c, 0.0)) * pred[n]["budget"].get(c, 0.0) ** 2 for n in names])
-        if np.all(np.abs(v) < 1e-8):
+        v = 100.0 * v / np.where(tot > 0, tot, np.nan)
+        if np.all(np.abs(np.nan_to_num(v)) < 0.5):
             continue
         base = np.where(v >= 0, pos, neg)
         ax.bar(x, v, bottom=base, label=c, width=0.6)
         pos = pos + np.where(v >= 0, v, 0)
         neg = neg + np.where(v < 0, v, 0)
-    ax.plot(x, [pred[n]["rms_all_deg"] ** 2 for n in names], "k*", ms=9, label="measured RMS² (median)")
+    ax.plot(x, [100.0 * pred[n]["rms_all_deg"] ** 2 / pred[n]["rms_predicted_deg"] ** 2 for n in names], "k*", ms=10,
+            label="measured RMS² (median) / predicted")
+    ax.axhline(0, color="k", lw=0.6)
     ax.set_xticks(x)
-    ax.set_xticklabels(names, rotation=20)
-    ax.set_yscale("symlog", linthresh=1e-4)
-    ax.set_ylabel("mean squared attitude error, deg²")
-    ax.set_title("Predicted error budget (median over units)")
+    ax.set_xticklabels([f"{n}\n{pred[n]['rms_predicted_deg']:.3g}°" for n in names], fontsize=8)
+    ax.set_ylabel("share of the predicted mean squared error, %")
+    ax.set_title("Predicted error budget per scenario (medians over units; under the name: predicted RMS)")
     ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=6, ncol=2)
+    ax.legend(fontsize=6, ncol=2, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    fig.tight_layout()
     return save_figure(fig, out_dir, name)
 
 

@@ -81,3 +81,32 @@ def test_instance_metrics_flattening():
     assert m["none__final_deg"] == 1.0 and m["all__over_floor"] == 1.0 and m["none__over_floor"] == 10.0
     assert m["present__bias"] == 1.0 and m["present__scale"] == 0.0
     assert m["none__e00_deg"] == 1.0
+
+
+def test_prediction_summary_budget_table_and_rows(tmp_path):
+    """The ablation's JSON block "scenarios" (issue 12): medians over units of measured,
+    predicted and floor RMS and of each budget component; prediction metrics are not rows."""
+    from types import SimpleNamespace
+
+    from experiments import ablation as A
+    from experiments.montecarlo import MetricSummary, TaskResult
+
+    def task(i, all_rms, pred):
+        m = {"all__final_deg": 2 * all_rms, "all__rms_deg": all_rms, "all__drift_deg_per_min": 1.0,
+             "floor__final_deg": 0.1, "floor__rms_deg": 0.05, "floor__drift_deg_per_min": 0.1,
+             "pred__rms_deg": pred, "pred__final_deg": 2 * pred, "pred-floor__rms_deg": 0.05,
+             "pred-floor__final_deg": 0.1, "all__over_pred": all_rms / pred,
+             "budget__floor:arw__deg": 0.03, "budget__powerup-window__deg": 0.04}
+        return TaskResult(index=i, scenario="static", sensor="s", instance=i, seed=i, metrics=tuple(m.items()))
+
+    tasks = [task(0, 0.10, 0.1), task(1, 0.20, 0.1), task(2, 0.05, 0.1)]
+    summ = tuple(MetricSummary("static", "s", k, 3, float(np.median([t.metrics_dict[k] for t in tasks])), 0.0, 0.0, 0.0)
+                 for k in tasks[0].metrics_dict)
+    camp = SimpleNamespace(scenarios=("static",), sensors=("s",), tasks=tasks, summary=summ)
+    ps = A.prediction_summary(camp)["static"]
+    assert ps["rms_all_deg"] == 0.10 and ps["rms_predicted_deg"] == 0.1 and ps["rms_floor_deg"] == 0.05
+    assert ps["measured2_over_predicted2_mean"] == np.mean([1.0, 4.0, 0.25])
+    assert ps["budget"] == {"floor:arw": 0.03, "powerup window": 0.04}
+    assert A._rows_in(camp, "static", "s") == ["all", "floor"]
+    assert "powerup window" in A.budget_markdown({"static": ps})
+    assert A.budget_figure({"static": ps}, tmp_path).endswith(".png")
