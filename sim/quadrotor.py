@@ -209,9 +209,9 @@ class FlightLog:
         return float((lags[i] + frac) / fs)
 
 
-def load_quadrotor_model(timestep_s: float = 1e-3) -> tuple[mujoco.MjModel, mujoco.MjData]:
-    """Compile ``models/quadrotor.xml`` with the given physics step (s)."""
-    model = mujoco.MjModel.from_xml_path(str(model_path(QUADROTOR_XML)))
+def load_quadrotor_model(timestep_s: float = 1e-3, *, model_xml: str = QUADROTOR_XML) -> tuple[mujoco.MjModel, mujoco.MjData]:
+    """Compile ``models/<model_xml>`` (default the F450, ``quadrotor.xml``) with the given physics step (s)."""
+    model = mujoco.MjModel.from_xml_path(str(model_path(model_xml)))
     model.opt.timestep = timestep_s
     return model, mujoco.MjData(model)
 
@@ -321,6 +321,7 @@ def fly_hover(
     progress: bool = False,
     gains: ControllerGains | None = None,
     ground_s: float = 0.0,
+    vehicle: str | object = "f450",
 ) -> tuple[Truth, FlightLog]:
     """Fly the quadrotor in closed loop: hover at 1 m (plus manoeuvres) for ``duration_s``.
 
@@ -345,7 +346,8 @@ def fly_hover(
     manoeuvres : sequence of Manoeuvre
         Attitude steps on top of hover (see :func:`sim.controller.small_steps`).
     vibration : bool or VibrationSpec
-        True = :class:`VibrationSpec` defaults, False = none.
+        True = the vehicle class's default vibration (the F450's: :class:`VibrationSpec`
+        defaults), False = none.
     physics_rate_hz, gyro_rate_hz : float
         Requested physics rate and gyro output rate, Hz; physics runs at the nearest integer
         multiple (>= 1) of the gyro rate (see the module docstring).
@@ -360,6 +362,9 @@ def fly_hover(
     ground_s : float
         Time on the ground before take-off, s (0 <= ground_s < duration_s); default 0: the
         flight starts airborne, in hover (keyframe ``hover``).
+    vehicle : str or sim.vehicles.VehicleClass
+        Airframe (:data:`sim.vehicles.VEHICLES`: ``f450``, ``racing5``): its model, controller
+        constants, gains (unless ``gains`` is given) and default vibration.
 
     Returns
     -------
@@ -371,7 +376,10 @@ def fly_hover(
         raise GyroInputError(f"duration_s must be > 0, got {duration_s}")
     if not (math.isfinite(ground_s) and 0.0 <= ground_s < duration_s):
         raise GyroInputError(f"ground_s must be >= 0 and shorter than the flight, got {ground_s}")
-    vib = VibrationSpec() if vibration is True else (NO_VIBRATION if vibration is False else vibration)
+    from .vehicles import get_vehicle
+
+    veh = get_vehicle(vehicle)
+    vib = veh.vibration if vibration is True else (NO_VIBRATION if vibration is False else vibration)
     if not isinstance(vib, VibrationSpec):
         raise GyroInputError("vibration must be True, False or a VibrationSpec")
     m_per = physics_steps_per_sample(gyro_rate_hz, physics_rate_hz)
@@ -382,9 +390,9 @@ def fly_hover(
     if n < 2:
         raise GyroInputError("flight shorter than two gyro samples")
 
-    model, data = load_quadrotor_model(dt)
-    qp = QuadParams()
-    gains = gains or ControllerGains()
+    model, data = load_quadrotor_model(dt, model_xml=veh.model_xml)
+    qp = veh.params
+    gains = gains or veh.gains
     # --- vibration set-up: imbalance masses, phases -------------------------------------------
     for i in range(1, 5):
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_imbalance")
@@ -572,7 +580,8 @@ def fly_hover(
 
     omega = sd_log[:, s_gyro : s_gyro + 3].copy()
     meta = {
-        "model": QUADROTOR_XML,
+        "model": veh.model_xml,
+        "vehicle": veh.name,
         "runner": "sim.quadrotor.fly_hover",
         "physics_rate_hz": f"{phys_hz:.10g}",
         "gyro_rate_hz": f"{gyro_rate_hz:.10g}",

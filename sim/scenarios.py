@@ -15,7 +15,8 @@ turn-on biases and noise (:class:`sim.gyro.SyntheticGyro`), the bump pattern of
 Scenario files (see the shipped ones): ``kind`` = ``"table"`` or ``"hover"``, ``duration_s``
 (default length; the ``turns`` profile sets its own), optional ``gyro_rate_hz``, and tables
 ``[table]`` (``profile`` = ``static`` | ``bumped`` | ``turns`` | ``cycle``), ``[bumps]``,
-``[power]`` (``cycles``), ``[hover]`` (``vibration``, ``manoeuvres``, ``ground_s``: still on the
+``[power]`` (``cycles``), ``[hover]`` (``vibration``, ``manoeuvres``, ``vehicle``: a class of
+:data:`sim.vehicles.VEHICLES`, default ``f450``; ``ground_s``: still on the
 ground, gyro on, before the take-off, see :func:`hover_ground_s`) and ``[thermal]``
 (:class:`sim.thermal.ThermalSpec` fields; ``ambient_c`` break points or ``ramps`` with
 fractions of the duration; optional ``[thermal.heater]``).
@@ -170,6 +171,11 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
         raise GyroInputError(f"scenario {path}: needs duration_s")
     if kind == "hover" and dur is None:
         raise GyroInputError(f"scenario {path}: needs duration_s")
+    veh = raw.get("hover", {}).get("vehicle", "f450")
+    if kind == "hover":
+        from .vehicles import get_vehicle
+
+        get_vehicle(str(veh))  # an unknown class is one error line at load time
     gs = raw.get("hover", {}).get("ground_s", 0.0)
     if isinstance(gs, bool) or not isinstance(gs, (int, float)) or not (math.isfinite(gs) and gs >= 0):
         raise GyroInputError(f"scenario {path}: [hover] ground_s must be a number >= 0")
@@ -444,6 +450,7 @@ def simulate(
     without: Iterable[str] = (),
     gyro_rate_hz: float | None = None,
     progress: bool = False,
+    vehicle: str | None = None,
 ) -> SimResult:
     """Simulate one scenario with one sensor unit.
 
@@ -470,6 +477,9 @@ def simulate(
         Output rate, Hz (default: the scenario's, else the preset's).
     progress : bool
         tqdm progress bars from the physics runners (stderr).
+    vehicle : str, optional
+        ``hover``: vehicle class (:data:`sim.vehicles.VEHICLES`), overriding the scenario's
+        ``[hover] vehicle`` (default ``f450``).
 
     Returns
     -------
@@ -525,7 +535,8 @@ def simulate(
         vib = bool(spec.hover.get("vibration", True)) and "vibration" not in gyro.without
         truth, flight_log = fly_hover(duration_s=dur, gyro=stream, vibration=vib,
                                       manoeuvres=man, gyro_rate_hz=rate, thermal=thermal, seed=int(seed) + 1000003 * int(run),
-                                      progress=progress, ground_s=ground)
+                                      progress=progress, ground_s=ground,
+                                      vehicle=vehicle or str(spec.hover.get("vehicle", "f450")))
     out = gyro.measure(truth)
     params_true = _params_true(gyro, out)
     pu = np.asarray(truth.power_up_index, int)

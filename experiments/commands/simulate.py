@@ -82,12 +82,14 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
 @click.option("--vibration", "vibration_spec", default=None, type=click.Path(dir_okay=False),
               help="Vibration spec (gyroharness vibration -o): add its measured gyro PSD as a shaped disturbance (open loop).")
 @click.option("--vibration-band", default="middle", show_default=True, help="Spec band: index or 'middle'.")
+@click.option("--vehicle", default=None, metavar="CLASS",
+              help="hover: vehicle class (f450, racing5; sim/vehicles.py), overriding the scenario's [hover] vehicle.")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--progress/--no-progress", default=None,
               help="Progress bar on stderr (default: for long runs when stderr is a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
-def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, vibration_spec, vibration_band, force,
-            progress, as_json):
+def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, vibration_spec, vibration_band, vehicle,
+            force, progress, as_json):
     """Simulate SCENARIO with one sensor unit and write the recording (truth in the ref_ columns).
 
     Scenarios: static, static_bumped, turntable, thermal, hover, power_cycles (or a
@@ -109,6 +111,12 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
         raise GyroInputError(f"--duration-s must be > 0, got {duration_s}")
     spec = S.load_scenario(scenario)
+    if vehicle is not None:
+        from sim.vehicles import get_vehicle
+
+        if spec.kind != "hover":
+            raise GyroInputError(f"--vehicle applies to hover scenarios; {spec.name} is a {spec.kind} scenario")
+        vehicle = get_vehicle(vehicle).name
     sensor_spec = P.load_preset(sensor)
     vib = None
     if vibration_spec:
@@ -123,7 +131,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         dur = duration_s or spec.duration_s or 300.0
         progress = sys.stderr.isatty() and (dur * rate > 200_000 or spec.kind == "hover" and dur * rate > 20_000)
     res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
-                     without=wo, gyro_rate_hz=rate_hz, progress=bool(progress))
+                     without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle)
     rec = res.recording
     if vib is not None:
         from gyrocore.vibration import add_vibration

@@ -1,0 +1,250 @@
+"""Vehicle classes as data: the airframes the closed-loop hover can fly (issue 16).
+
+Each :class:`VehicleClass` names its MJCF model (``models/*.xml``, whose header comment cites the
+source of every constant), the constants the controller needs (:class:`sim.controller.QuadParams`,
+the same numbers as the model), its controller gains, its default rotor vibration and its sourced
+hover rotor speed. :data:`VEHICLES` is the registry (``sim.quadrotor.fly_hover(vehicle=...)``,
+``gyroharness simulate hover --vehicle NAME``, scenario key ``[hover] vehicle``); tests iterate it.
+
+Classes
+-------
+``f450``
+    450-mm quad, 1.4 kg, 10-inch props on 3S (Quan Quan 2017; ``models/quadrotor.xml``). Its
+    entries are the former hard-coded defaults (``QuadParams()``, ``ControllerGains()``,
+    ``VibrationSpec()``), so its hover is bit for bit what it was.
+``racing5``
+    5-inch racing/freestyle quad, 0.496 kg, 2306 2400-KV motors, 5-inch props on 4S
+    (``models/racing5.xml``: Agilicious' 5-inch thrust/torque map and motor time constant,
+    mass and inertia from a component build-up). Gains from :func:`derive_gains`.
+
+Gain design rule (:func:`derive_gains`)
+---------------------------------------
+Rate gains are normalised by the inertia (torque = J x angular acceleration), so the rate loop
+is ``L(s) ~ Kp / s`` times the motor lag ``1 / (1 + tau_m s)`` and one sample of delay: its
+crossover is ``Kp``. The F450's ``Kp = 15 /s`` with ``tau_m = 20 ms`` gives ``Kp tau_m = 0.3``
+(phase margin 90 - atan(0.3) - 0.9 = 72.4 deg). A class keeps that product (same phase margin)
+and the F450's ratios: PI zero ``Ki/Kp`` at the same fraction of crossover (``Ki ∝ Kp²``), D
+kept (its ratio to P at crossover is ``Kd`` itself), attitude gain the same fraction of the rate
+crossover. Yaw: a rotor-speed change reacts on the frame through the motor torque, ``kv / (2
+kappa c_T Omega_hover)`` times more than the drag-torque change the mixer assumes at high
+frequency (the "yaw coupling", 15.1 on the F450), so the yaw crossover is ``coupling x Kp_yaw``;
+it is kept at the F450's ratio to the roll crossover (4.03). Position/altitude loops (omega_n 1-2
+rad/s) stay; they sit below the attitude loop of every class here. Applied to the F450's own
+constants the rule returns its gains exactly (tested).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+from gyrocore.errors import GyroInputError
+
+from .controller import ControllerGains, QuadParams
+from .paths import QUADROTOR_XML
+
+__all__ = ["VehicleClass", "VEHICLES", "get_vehicle", "derive_gains", "yaw_coupling", "RACING5_XML"]
+
+RACING5_XML = "racing5.xml"
+
+# --- the F450 reference of the design rule (models/quadrotor.xml) ---------------------------------
+_F450_GAINS = ControllerGains()
+_F450_TAU_S = 6e-5 / 0.003  # J_r / kv = 20 ms
+_F450_KP_TAU = _F450_GAINS.rate_kp_per_s[0] * _F450_TAU_S  # 0.3
+
+
+def yaw_coupling(params: QuadParams, hover_rotor_speed_rad_s: float) -> float:
+    """High-frequency yaw reaction per unit of the mixer's assumed drag-torque change.
+
+    ``kv / (2 kappa c_T Omega)`` (dimensionless): a thrust change dT asks the rotor speed
+    dOmega = dT / (2 c_T Omega); at frequencies above the motor's, the torque that accelerates
+    the rotor, kv dOmega, reacts on the frame instead of the drag torque kappa dT.
+    """
+    return params.motor_kv_n_m_s / (2.0 * params.kappa_m * params.c_t_n_per_rad2_s2 * hover_rotor_speed_rad_s)
+
+
+_F450_YAW_COUPLING = yaw_coupling(QuadParams(), 557.426)
+#: yaw crossover / roll crossover of the F450: coupling x Kp_yaw / Kp_roll = 15.13 x 4 / 15
+_F450_YAW_RATIO = _F450_YAW_COUPLING * _F450_GAINS.rate_kp_per_s[2] / _F450_GAINS.rate_kp_per_s[0]
+
+
+def derive_gains(*, motor_tau_s: float, yaw_coupling_ratio: float) -> ControllerGains:
+    """Controller gains by the F450's design rule (module docstring) for a motor lag and yaw coupling.
+
+    Parameters
+    ----------
+    motor_tau_s : float
+        Mechanical time constant of a rotor, ``J_r / kv``, s.
+    yaw_coupling_ratio : float
+        :func:`yaw_coupling` of the class at its hover rotor speed.
+
+    Returns
+    -------
+    ControllerGains
+        Rate Kp = 0.3 / tau_m (roll, pitch), Ki = 10 (Kp/15)², Kd 0.05, attitude 6 Kp/15; yaw Kp
+        such that coupling x Kp_yaw / Kp = 4.03, yaw Ki = 2 (Kp_yaw/4)², yaw attitude 2.5 Kp_yaw/4.
+        Everything else as the F450.
+    """
+    if not (motor_tau_s > 0 and yaw_coupling_ratio > 0):
+        raise GyroInputError("derive_gains needs motor_tau_s > 0 and yaw_coupling_ratio > 0")
+    g = _F450_GAINS
+    kp = _F450_KP_TAU / motor_tau_s
+    r = kp / g.rate_kp_per_s[0]
+    kp_y = _F450_YAW_RATIO * kp / yaw_coupling_ratio
+    ry = kp_y / g.rate_kp_per_s[2]
+    return replace(
+        g,
+        rate_kp_per_s=(kp, kp, kp_y),
+        rate_ki_per_s2=(g.rate_ki_per_s2[0] * r * r, g.rate_ki_per_s2[1] * r * r, g.rate_ki_per_s2[2] * ry * ry),
+        rate_kd=g.rate_kd,
+        att_kp_per_s=(g.att_kp_per_s[0] * r, g.att_kp_per_s[1] * r, g.att_kp_per_s[2] * ry),
+    )
+
+
+@dataclass(frozen=True)
+class VehicleClass:
+    """One airframe: model file, controller constants and gains, default vibration, sources.
+
+    Parameters
+    ----------
+    name : str
+        Registry key (``--vehicle NAME``).
+    description : str
+    model_xml : str
+        File in ``models/`` (its header comment cites every constant).
+    params : QuadParams
+        The model's constants as the controller needs them (mass incl. imbalance masses).
+    gains : ControllerGains
+    vibration : sim.quadrotor.VibrationSpec
+        Default rotor vibration (``fly_hover(vibration=True)``).
+    rotor_spin_inertia_kg_m2 : float
+        J_r of one rotor (prop + bell), kg m² (as in the model).
+    hover_rotor_speed_rad_s : float
+        Sourced hover rotor speed sqrt(m g / (4 c_T)) as written in the model's header and its
+        ``hover`` keyframe, rad/s.
+    sources : tuple of str
+        One line per constant group: where it comes from.
+    """
+
+    name: str
+    description: str
+    model_xml: str
+    params: QuadParams
+    gains: ControllerGains
+    vibration: object
+    rotor_spin_inertia_kg_m2: float
+    hover_rotor_speed_rad_s: float
+    sources: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def motor_tau_s(self) -> float:
+        """Mechanical time constant of a rotor, J_r / kv, s."""
+        return self.rotor_spin_inertia_kg_m2 / self.params.motor_kv_n_m_s
+
+    @property
+    def hover_rotor_hz(self) -> float:
+        """Hover rotor frequency, Hz."""
+        return self.hover_rotor_speed_rad_s / (2.0 * math.pi)
+
+
+def _build() -> dict[str, VehicleClass]:
+    from .quadrotor import VibrationSpec  # quadrotor imports this module lazily; no cycle at import
+
+    f450 = VehicleClass(
+        name="f450",
+        description="450-mm quad, 1.4 kg, DJI 2212/920KV, 10x4.5 props, 3S (Quan Quan 2017)",
+        model_xml=QUADROTOR_XML,
+        params=QuadParams(),
+        gains=ControllerGains(),
+        vibration=VibrationSpec(),
+        rotor_spin_inertia_kg_m2=6e-5,
+        hover_rotor_speed_rad_s=557.426,
+        sources=(
+            "mass, inertia, arm, c_T, c_M: Quan Quan, Introduction to Multicopter Design and Control, Springer 2017 (F450)",
+            "rotor 30 g, J_r 6e-5 (12 g 10-inch prop m L^2/12), motor tau 20 ms (2212-class, 15-40 ms): models/quadrotor.xml",
+        ),
+    )
+    # racing5: every number as in models/racing5.xml (its header derives them)
+    ct, cq = 1.562522e-6, 1.908873e-8
+    mass = 0.496 + 4 * 5e-5
+    j_r, tau = 8e-6, 0.033
+    a = 0.077782
+    rp = QuadParams(
+        mass_kg=mass,
+        inertia_kg_m2=(1.2355e-3, 1.4656e-3, 2.4067e-3),
+        c_t_n_per_rad2_s2=ct,
+        kappa_m=cq / ct,
+        spin=(1, 1, -1, -1),
+        rotor_xy_m=((a, -a), (-a, a), (a, a), (-a, -a)),
+        motor_kv_n_m_s=j_r / tau,
+        max_thrust_n=13.4,
+        gravity_m_s2=9.81,
+    )
+    omega_h = 882.510  # sqrt(m g / (4 c_T)) = sqrt(1.21693 / 1.562522e-6), models/racing5.xml
+    racing5 = VehicleClass(
+        name="racing5",
+        description="5-inch racing quad, 0.50 kg, 2306 2400KV, 5-inch tri-blade props, 4S",
+        model_xml=RACING5_XML,
+        params=rp,
+        gains=derive_gains(motor_tau_s=tau, yaw_coupling_ratio=yaw_coupling(rp, omega_h)),
+        vibration=VibrationSpec(imbalance_kg_m=5e-7, harmonic2_ratio=0.3, blade_pass_ripple=0.02),
+        rotor_spin_inertia_kg_m2=j_r,
+        hover_rotor_speed_rad_s=omega_h,
+        sources=(
+            "c_T 1.562522e-6, c_Q 1.908873e-8, motor tau 33 ms: agilib (Agilicious, Foehn et al., Sci. Robotics 2022)",
+            "mass 0.496 kg, inertia, arm 0.110 m: component build-up (models/racing5.xml header)",
+            "J_r 8e-6: 4.5 g 5-inch prop m L^2/12 + 10 g bell ring (estimate)",
+            "imbalance 5e-7 kg m: the F450's prop-quality rule scaled to a 4.5 g prop (estimate)",
+        ),
+    )
+    return {v.name: v for v in (f450, racing5)}
+
+
+_REGISTRY: dict[str, VehicleClass] | None = None
+
+
+def vehicles() -> dict[str, VehicleClass]:
+    """The registry {name: VehicleClass} (built on first use)."""
+    global _REGISTRY
+    if _REGISTRY is None:
+        _REGISTRY = _build()
+    return _REGISTRY
+
+
+class _Registry:
+    """Mapping view of the registry (``VEHICLES["racing5"]``, iteration in registration order)."""
+
+    def __getitem__(self, name: str) -> VehicleClass:
+        return get_vehicle(name)
+
+    def __iter__(self):
+        return iter(vehicles())
+
+    def __len__(self) -> int:
+        return len(vehicles())
+
+    def __contains__(self, name) -> bool:
+        return name in vehicles()
+
+    def keys(self):
+        return vehicles().keys()
+
+    def values(self):
+        return vehicles().values()
+
+    def items(self):
+        return vehicles().items()
+
+
+VEHICLES = _Registry()
+
+
+def get_vehicle(vehicle: str | VehicleClass) -> VehicleClass:
+    """A class by name (or the class itself); an unknown name is one error line listing the known."""
+    if isinstance(vehicle, VehicleClass):
+        return vehicle
+    reg = vehicles()
+    key = str(vehicle).strip().lower()
+    if key not in reg:
+        raise GyroInputError(f"unknown vehicle class '{vehicle}'; known: {', '.join(reg)}")
+    return reg[key]
