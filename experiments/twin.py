@@ -1269,20 +1269,24 @@ def plot_twin(result: TwinResult, out_dir, *, prefix: str = "twin") -> list[str]
         x, xlabel = result.layout.x(nm)
         fig = new_figure(figsize=(12, 3.4))
         axs = fig.subplots(1, 3)
+        rel = nm in ("adev", "psd")  # plotted relative to the replicas' median (the bands are narrow)
         for i, ax in enumerate(axs):
             c = result.before
-            ax.fill_between(x, c.lo[nm][i], c.hi[nm][i], color="0.75", label=f"twin as given, {c.n_replicas} replicas")
+            base = c.median[nm][i] if rel else 0.0
+            ax.fill_between(x, c.lo[nm][i] - base, c.hi[nm][i] - base, color="0.75",
+                            label=f"twin as given, {c.n_replicas} replicas")
             if result.after is not None:
-                ax.fill_between(x, result.after.lo[nm][i], result.after.hi[nm][i], color="tab:blue", alpha=0.3,
-                                label="twin after closing")
-            ax.plot(x, c.real[nm][i], "k.-", label="real")
+                ax.fill_between(x, result.after.lo[nm][i] - base, result.after.hi[nm][i] - base, color="tab:blue",
+                                alpha=0.3, label="twin after closing")
+            ax.plot(x, c.real[nm][i] - base, "k.-", label="real")
             o = c.out[nm][i]
-            ax.plot(np.asarray(x)[o], c.real[nm][i][o], "rx", label="outside band")
+            ax.plot(np.asarray(x)[o], (c.real[nm][i] - base)[o], "rx", label="outside band")
             if nm in ("adev", "psd"):
                 ax.set_xscale("log")
             ax.set_title(f"{nm}, axis {'xyz'[i]}")
             ax.set_xlabel(xlabel)
-        axs[0].set_ylabel({"adev": "log10 ADEV, rad/s", "psd": "log10 PSD, (rad/s)²/Hz"}.get(nm, "value"))
+        axs[0].set_ylabel({"adev": "log10(ADEV / median of replicas as given)",
+                           "psd": "log10(PSD / median of replicas as given)"}.get(nm, "value"))
         axs[-1].legend(fontsize=7)
         paths.append(save_figure(fig, out_dir, f"{prefix}_{nm}"))
     return paths
