@@ -1196,6 +1196,8 @@ class TwinResult:
                   "model": self.model.to_json(), "added": list(self.added), "wall_s": self.wall_s})
         if self.after is not None:
             d["after"] = self.after.to_json()
+            # the closing is adopted only when it brings the twin closer to the real sensor
+            d["after"]["accepted"] = bool(self.after.twin_distance < self.before.twin_distance)
             d["model_after"] = self.model_after.to_json()
         return d
 
