@@ -324,3 +324,24 @@ def test_example_contract_passes_the_c_calibrator_and_fails_the_wrong_one(tmp_pa
                          "--fit-cmd", f"{PY} {wrong} fit {{params}} {{inputs}}",
                          "--apply-cmd", f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign"], capsys)
     assert rc == 1 and "max_ratio_to_none" in out, out + err
+
+
+def test_predicted_column_appears_when_the_drift_prediction_exists(monkeypatch, tmp_path):
+    """The score carries the core's predicted RMS error once ablation.predict_instance exists."""
+    from types import SimpleNamespace
+
+    from experiments import ablation as A
+
+    monkeypatch.setattr(A, "predict_instance", lambda res, cal, present, still, start:
+                        SimpleNamespace(rms_predicted_deg=0.25), raising=False)
+    assert SC._predicted_rms_deg(None, SimpleNamespace(stages=()), [], [], 0) == 0.25
+    units = [SC.UnitScore("static", "icm42688p", i, i, {"none": 2.0, "core": 0.2, "user": 0.4, "floor": 0.1},
+                          {r: 1.0 for r in SC.ROWS}, rms_predicted_deg=0.25) for i in range(3)]
+    s = SC.scenario_summary(units)
+    assert s["rms_predicted_deg"] == 0.25 and s["ratio_to_core"] == 2.0 and s["ratio_to_floor"] == 4.0
+    camp = SC.ScoreCampaign("x", "icm42688p", 0, 3, ("static",), {"static": None}, True, tuple(units), 1.0, 1)
+    assert "predicted (core), °" in SC.report_markdown(camp)
+    monkeypatch.delattr(A, "predict_instance", raising=False)
+    assert math.isnan(SC._predicted_rms_deg(None, None, [], [], 0))
+    assert "rms_predicted_deg" not in SC.scenario_summary([SC.UnitScore(
+        "static", "icm42688p", 0, 0, {r: 1.0 for r in SC.ROWS}, {r: 1.0 for r in SC.ROWS})])
