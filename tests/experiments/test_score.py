@@ -320,7 +320,7 @@ def test_example_contract_passes_the_c_calibrator_and_fails_the_wrong_one(tmp_pa
                          "--apply-cmd", f"{exe} apply {{params}} {{input}} {{output}}"], capsys)
     assert rc == 0, out + err
     wrong = EXAMPLES / "wrong_calibrator.py"
-    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "2",
+    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "2", "--units", "1",
                          "--fit-cmd", f"{PY} {wrong} fit {{params}} {{inputs}}",
                          "--apply-cmd", f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign"], capsys)
     assert rc == 1 and "max_ratio_to_none" in out, out + err
