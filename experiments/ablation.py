@@ -258,7 +258,10 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
 
     tt = [e for e in TABLE_EFFECTS if e in present]
     th = [e for e in THERMAL_EFFECTS if e in present]
-    key = f"{sensor}_{seed}_{'quick' if quick else 'full'}_{'-'.join(tt)}_{'-'.join(th)}"
+    # a sensor may be a TOML path: keep the key a plain file name inside cache_dir (a path with
+    # "/" made Path(cache_dir) / key point outside cache_dir, shared between caches)
+    safe = "".join(c if (c.isalnum() or c in "._-") else "_" for c in str(sensor))
+    key = f"{safe}_{seed}_{'quick' if quick else 'full'}_{'-'.join(tt)}_{'-'.join(th)}"
     paths = None
     if cache_dir:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)

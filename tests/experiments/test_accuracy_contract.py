@@ -20,9 +20,8 @@ The bands (DRIFT_THRESHOLDS) come from ``experiments.ablation.drift_thresholds``
 Carlo of 12 units (``contract_campaign(instances=12, seed=1)``): Student-t prediction bands for
 the mean of CONTRACT_UNITS fresh units, one-sided tail α = 1e-4 each (19 tails: a correct
 calibration fails CI with probability ≤ 2e-3). Mutation tests below prove that the contract
-bites (half still window, scale dropped, standard errors ×3; a forced wrong thermal order did
-not bite on the 300-s thermal run — docs/accuracy.md); the slow test checks it over fresh units
-(campaign seed 99).
+bites (half still window, scale dropped, standard errors ×3; slow: thermal order forced to 1 on
+a unit with a quadratic thermal bias); the slow test checks it over fresh units (campaign seed 99).
 """
 
 from __future__ import annotations
@@ -188,3 +187,34 @@ def test_drift_contract_holds_for_fresh_units():
         for m in ms:
             for eff in PAYS_OFF[sc]:
                 assert m[f"all-but-{eff}__rms_deg"] > m["all__rms_deg"], (sc, eff)
+
+
+@pytest.mark.slow
+def test_mutation_wrong_thermal_order_fails(tmp_path, monkeypatch):
+    """A unit whose thermal bias is quadratic (the preset plus σ = 0.0005 dps/°C² per axis: 0.11 dps of curvature over ±15 °C; all three axes below 0.2σ has probability 0.4 %), calibrated
+    with the thermal order forced to 1: the thermal scenario's measured error leaves the band of
+    what the calibration claims or its own standard errors blow up (quality: the wrong model
+    leaves a structured residual; unit 20240607: measured 6.55° vs predicted 1.85°, predicted/floor
+    ×5.3 against a bound of ×2.7 for one unit). The same unit with the order chosen from the data
+    passes (0.37° vs 0.51°)."""
+    from sim.presets import PRESETS
+
+    src = PRESETS[A.CONTRACT_SENSOR].read_text()
+    assert "tol_dps_per_c = 0.005" in src
+    toml = tmp_path / "icm42688p_quadratic.toml"
+    toml.write_text(src.replace("tol_dps_per_c = 0.005", "tol_dps_per_c = 0.005\nsigma_dps_per_c2 = 0.0005"))
+    sensor = str(toml)
+    unit = CONTRACT_UNITS[0]
+
+    def run(cache):
+        from experiments.report import single_thread_blas
+
+        with single_thread_blas():
+            ab = A.ablate_instance("thermal", sensor=sensor, seed=unit, duration_s=A.CONTRACT_DURATIONS_S["thermal"],
+                                   quick=A.CONTRACT_QUICK_CALIBRATION, cache_dir=cache, mahony_kp_per_s=None)
+        return A.drift_contract_failures({"thermal": A.drift_statistics([A.instance_metrics(ab)])}, DRIFT_THRESHOLDS)
+
+    assert not run(str(tmp_path / "auto"))
+    monkeypatch.setitem(A._CAL_KW, "thermal_order", 1)
+    fails = run(str(tmp_path / "order1"))
+    assert any(f.startswith("thermal:") for f in fails), fails
