@@ -779,7 +779,7 @@ def spec_band(spec: dict, band: int | str = "middle") -> dict:
 
 
 def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str = "middle",
-               fmin_hz: float = HIGHPASS_HZ) -> np.ndarray:
+               fmin_hz: float = HIGHPASS_HZ, exclude_hz: Sequence[tuple[float, float]] = ()) -> np.ndarray:
     """A gyro vibration disturbance (n, 3), rad/s, whose PSD is the spec band's raw-domain PSD.
 
     Random-phase synthesis: for each rfft bin k of length n at ``rate_hz``,
@@ -788,7 +788,8 @@ def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str
     linearly in f; zero below ``fmin_hz`` (the flight's own motion is not vibration), above
     the spec's reliable limit and its Nyquist, and where the spec has no value (notch holes).
     Gaussian: the lines come out as narrow-band noise of the measured power, not as
-    phase-coherent sinusoids. ``seed``: ``np.random.default_rng(seed)``.
+    phase-coherent sinusoids. ``seed``: ``np.random.default_rng(seed)``. ``exclude_hz``: (lo, hi)
+    intervals, Hz, where S is set to 0 (a line the simulator's physics already carries).
     """
     b = spec_band(spec, band)
     f_spec = np.asarray(spec["f_hz"], float)
@@ -801,6 +802,8 @@ def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str
         S = np.interp(f, f_spec, np.nan_to_num(s, nan=0.0), left=0.0, right=0.0)
         S[(f < fmin_hz) | (f >= lim)] = 0.0
         S[np.interp(f, f_spec, np.isnan(s).astype(float)) > 0] = 0.0
+        for lo, hi in exclude_hz:
+            S[(f >= lo) & (f <= hi)] = 0.0
         amp = np.sqrt(S * rate_hz * n / 2.0)
         X = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) / math.sqrt(2.0)
         X[0] = 0.0
@@ -810,15 +813,19 @@ def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str
     return out
 
 
-def add_vibration(rec: Recording, spec: dict, *, seed: int, band: int | str = "middle") -> Recording:
+def add_vibration(rec: Recording, spec: dict, *, seed: int, band: int | str = "middle",
+                  exclude_hz: Sequence[tuple[float, float]] = ()) -> Recording:
     """``rec`` with :func:`synthesize`'s disturbance added to its gyro (open loop: the truth and
-    any controller that flew the recording did not see it); metadata says so."""
-    d = synthesize(spec, n=rec.n, rate_hz=rec.rate_hz, seed=seed, band=band)
+    any controller that flew the recording did not see it); metadata says so. ``exclude_hz`` as
+    :func:`synthesize`."""
+    d = synthesize(spec, n=rec.n, rate_hz=rec.rate_hz, seed=seed, band=band, exclude_hz=exclude_hz)
     b = spec_band(spec, band)
     return rec.with_gyro(rec.gyro_rad_s + d, vibration_spec=str(spec.get("source", "")),
                          vibration_band=json.dumps({"throttle": b.get("throttle"), "median": b.get("median")}),
                          vibration_injection="shaped Gaussian disturbance added to the measured gyro (open loop), seed "
-                                             f"{seed}; PSD of the spec band above {HIGHPASS_HZ:g} Hz")
+                                             f"{seed}; PSD of the spec band above {HIGHPASS_HZ:g} Hz"
+                                             + (f", without {', '.join(f'{lo:g}-{hi:g} Hz' for lo, hi in exclude_hz)}"
+                                                if exclude_hz else ""))
 
 
 def fidelity(sim: VibrationResult, spec: dict, *, band: int | str = "middle", fmin_hz: float = HIGHPASS_HZ) -> dict:

@@ -451,6 +451,7 @@ def simulate(
     gyro_rate_hz: float | None = None,
     progress: bool = False,
     vehicle: str | None = None,
+    hover_vibration=None,
 ) -> SimResult:
     """Simulate one scenario with one sensor unit.
 
@@ -480,6 +481,9 @@ def simulate(
     vehicle : str, optional
         ``hover``: vehicle class (:data:`sim.vehicles.VEHICLES`), overriding the scenario's
         ``[hover] vehicle`` (default ``f450``).
+    hover_vibration : sim.quadrotor.VibrationSpec, optional
+        ``hover``: rotor vibration instead of the class's default (e.g. from a measured spec,
+        :func:`sim.spec_vibration.vibration_from_spec`); ignored when vibration is off.
 
     Returns
     -------
@@ -533,6 +537,8 @@ def simulate(
         man = (tuple(replace(m, t_start_s=m.t_start_s + t_air) for m in small_steps(dur - t_air))
                if spec.hover.get("manoeuvres", True) else ())
         vib = bool(spec.hover.get("vibration", True)) and "vibration" not in gyro.without
+        if vib and hover_vibration is not None:
+            vib = hover_vibration
         truth, flight_log = fly_hover(duration_s=dur, gyro=stream, vibration=vib,
                                       manoeuvres=man, gyro_rate_hz=rate, thermal=thermal, seed=int(seed) + 1000003 * int(run),
                                       progress=progress, ground_s=ground,

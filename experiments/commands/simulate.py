@@ -82,14 +82,18 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
 @click.option("--vibration", "vibration_spec", default=None, type=click.Path(dir_okay=False),
               help="Vibration spec (gyroharness vibration -o): add its measured gyro PSD as a shaped disturbance (open loop).")
 @click.option("--vibration-band", default="middle", show_default=True, help="Spec band: index or 'middle'.")
+@click.option("--vibration-physics", is_flag=True,
+              help="hover + --vibration: the spec's rotor line enters through the rotor imbalance of the vehicle class "
+                   "(closed loop, at the commanded rotor speed; sim/spec_vibration.py) and only the rest of the spectrum "
+                   "(broadband, frame) is added as the shaped disturbance.")
 @click.option("--vehicle", default=None, metavar="CLASS",
               help="hover: vehicle class (f450, racing5; sim/vehicles.py), overriding the scenario's [hover] vehicle.")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--progress/--no-progress", default=None,
               help="Progress bar on stderr (default: for long runs when stderr is a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
-def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, vibration_spec, vibration_band, vehicle,
-            force, progress, as_json):
+def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, vibration_spec, vibration_band,
+            vibration_physics, vehicle, force, progress, as_json):
     """Simulate SCENARIO with one sensor unit and write the recording (truth in the ref_ columns).
 
     Scenarios: static, static_bumped, turntable, thermal, hover, power_cycles (or a
@@ -124,6 +128,20 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
 
         vib = read_spec(vibration_spec)
         spec_band(vib, vibration_band)  # a bad band is one error line before the simulation runs
+    hover_vib, exclude, vib_info = None, (), None
+    if vibration_physics:
+        if vib is None or spec.kind != "hover":
+            raise GyroInputError("--vibration-physics needs --vibration SPEC and a hover scenario")
+        from sim.spec_vibration import vibration_from_spec
+
+        veh_name = vehicle or str(spec.hover.get("vehicle", "f450"))
+        hover_vib, vib_info = vibration_from_spec(vib, veh_name, band=vibration_band, seed=int(seed))
+        # the real rotor line is carried by the physics: not again in the shaped disturbance
+        # (± max(3 spec resolutions, 6 %) around it, the line linker's tolerance)
+        f_line = vib_info["real_line_hz"]
+        df = float(vib["f_hz"][1]) - float(vib["f_hz"][0])
+        half = max(3 * df, 0.06 * f_line)
+        exclude = ((f_line - half, f_line + half),)
     wo = check_effect_names([w for item in without for w in item.split(",")])
     overrides = parse_set(sets)
     if progress is None:
@@ -131,14 +149,19 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         dur = duration_s or spec.duration_s or 300.0
         progress = sys.stderr.isatty() and (dur * rate > 200_000 or spec.kind == "hover" and dur * rate > 20_000)
     res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
-                     without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle)
+                     without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle,
+                     hover_vibration=hover_vib)
     rec = res.recording
     if vib is not None:
         from gyrocore.vibration import add_vibration
 
         # issue 16: the measured vibration as a shaped disturbance on the gyro (seeded from --seed/--run)
         rec = add_vibration(rec, vib, seed=int(np.random.SeedSequence([seed, run, 16]).generate_state(1)[0]),
-                            band=vibration_band)
+                            band=vibration_band, exclude_hz=exclude)
+        if vib_info is not None:
+            import json as _json
+
+            rec = rec.with_gyro(rec.gyro_rad_s, vibration_physics=_json.dumps(vib_info, separators=(",", ":")))
     write_recording(rec, out, overwrite=force)  # .parquet: Parquet, else CSV
     summary = {
         "path": str(out),

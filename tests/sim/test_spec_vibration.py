@@ -95,3 +95,57 @@ def test_mean_line_power_matches_the_spec():
     se_check = p.std(ddof=1) / math.sqrt(p.size) / p.mean()
     se = math.hypot(se_check, info["calibration_power_se_rel"])
     assert abs(math.log(p.mean() / p_spec)) <= 1.96 * se
+
+
+def _spec_file(tmp_path, *, with_rotor_line=True):
+    """A spec file with a flat 1e-4 (rad/s)²/Hz band PSD 0..500 Hz and the rotor line of _spec()."""
+    import json
+
+    f = np.arange(0.0, 500.5, 1.0)
+    s = _spec()
+    if not with_rotor_line:
+        s["lines"] = [ln for ln in s["lines"] if ln["follows"] == "fixed"]
+    for i, b in enumerate(s["bands"]):
+        b.update(throttle=[0.1 * i, 0.1 * i + 0.1], n_windows=20,
+                 psd_rad2_s2_hz={a: [1e-4] * f.size for a in "xyz"})
+    s.update(kind="gyroharness.vibration_spec", format_version="1.0", source="synthetic", f_hz=f.tolist(),
+             reconstructed_reliable_below_hz=450.0)
+    p = tmp_path / "spec.json"
+    p.write_text(json.dumps(s))
+    return p
+
+
+def _run(argv, capsys):
+    from experiments.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    out = capsys.readouterr()
+    return exc.value.code, out.out, out.err
+
+
+def test_simulate_vibration_physics_cli(tmp_path, capsys):
+    import json
+
+    from gyrocore.recording import read_recording
+
+    spec = _spec_file(tmp_path)
+    out = tmp_path / "r.csv"
+    code, _, err = _run(["simulate", "hover", "--vehicle", "racing5", "--vibration", str(spec), "--vibration-physics",
+                         "--vibration-band", "0", "--duration-s", "3", "-o", str(out)], capsys)
+    assert code == 0, err
+    rec = read_recording(out)
+    info = json.loads(rec.meta["vibration_physics"])
+    assert info["vehicle"] == "racing5" and info["band"] == 0 and info["imbalance_kg_m"] > 0
+    # the real line (260 Hz, ± max(3 bins, 6 %) = ± 15.6 Hz) is left out of the shaped part
+    assert "without 244.4-275.6 Hz" in rec.meta["vibration_injection"]
+    assert rec.meta["vehicle"] == "racing5"
+    # no rotor line in the spec, or no --vibration: one error line
+    sub = tmp_path / "b"
+    sub.mkdir()
+    bad = _spec_file(sub, with_rotor_line=False)
+    code, _, err = _run(["simulate", "hover", "--vehicle", "racing5", "--vibration", str(bad), "--vibration-physics",
+                         "--duration-s", "3", "-o", str(tmp_path / "x.csv")], capsys)
+    assert code != 0 and "no line that follows throttle or eRPM" in err and err.count("\n") == 1
+    code, _, err = _run(["simulate", "hover", "--vibration-physics", "--duration-s", "3", "-o", str(tmp_path / "y.csv")], capsys)
+    assert code != 0 and "--vibration-physics needs --vibration SPEC" in err and err.count("\n") == 1
