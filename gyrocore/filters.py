@@ -37,6 +37,7 @@ from scipy import signal
 from .errors import GyroInputError
 
 __all__ = [
+    "RpmNotch",
     "article_lpf_coefficient",
     "pt_cutoff_correction",
     "SosFilter",
@@ -483,3 +484,65 @@ def chain_response(stages: Sequence[dict], f_hz, *, loop_scale: float = 1.0) -> 
         mag *= r.magnitude
         gd += r.group_delay_s
     return FilterResponse(f_hz=f, magnitude=mag, group_delay_s=gd)
+
+
+class RpmNotch:
+    """Betaflight's RPM filter: an RBJ biquad notch per rotor and harmonic, tracking rotor speed.
+
+    As Betaflight 4.x ``rpm_filter.c`` (``rpm_filter_harmonics`` 3, ``rpm_filter_q`` 500 = Q 5,
+    ``rpm_filter_min_hz`` 100): for each rotor i and harmonic h = 1..``harmonics`` a notch at
+    h·f_i, clamped below at ``min_hz``, coefficients recomputed whenever the rotor frequencies
+    are updated (the firmware does it from eRPM every loop); a notch at or above 0.48·rate is
+    switched off (the firmware fades it out near Nyquist). Direct form II transposed per axis.
+
+    ``set_rotor_hz(f (n_rotors,))`` before ``step``; ``sim.quadrotor.fly_hover`` calls it on
+    every gyro sample with the simulator's rotor speeds (|Ω|/2π after the physics step) when
+    the pipeline (or a stage) has it.
+
+    Parameters
+    ----------
+    rate_hz : float
+        Sample rate, Hz.
+    q : float
+    harmonics : int
+    min_hz : float
+    """
+
+    def __init__(self, rate_hz: float, *, q: float = 5.0, harmonics: int = 3, min_hz: float = 100.0) -> None:
+        if not (rate_hz > 0 and q > 0 and int(harmonics) >= 1 and min_hz >= 0):
+            raise GyroInputError("RpmNotch needs rate_hz > 0, q > 0, harmonics >= 1, min_hz >= 0")
+        self.rate_hz, self.q, self.harmonics, self.min_hz = float(rate_hz), float(q), int(harmonics), float(min_hz)
+        self.name = f"rpm notch x{self.harmonics} Q{self.q:g}"
+        self._coef: list = []
+        self._z: list = []
+
+    def reset(self) -> None:
+        self._z = [[0.0] * 6 for _ in self._coef]
+
+    def set_rotor_hz(self, rotor_hz) -> None:
+        """Retune to these rotor frequencies (Hz, one per rotor); filter states are kept."""
+        coef = []
+        for f in rotor_hz:
+            for h in range(1, self.harmonics + 1):
+                fc = max(abs(float(f)) * h, self.min_hz)
+                if fc >= 0.48 * self.rate_hz:
+                    continue
+                w0 = 2.0 * math.pi * fc / self.rate_hz
+                alpha = math.sin(w0) / (2.0 * self.q)
+                a0 = 1.0 + alpha
+                c = -2.0 * math.cos(w0) / a0
+                coef.append((1.0 / a0, c, 1.0 / a0, c, (1.0 - alpha) / a0))
+        if len(coef) != len(self._coef):
+            self._z = [[0.0] * 6 for _ in coef]
+        self._coef = coef
+
+    def step(self, x) -> np.ndarray:
+        v = [float(x[0]), float(x[1]), float(x[2])]
+        for (b0, b1, b2, a1, a2), z in zip(self._coef, self._z):
+            for j in range(3):
+                xin = v[j]
+                y = b0 * xin + z[2 * j]
+                z[2 * j] = b1 * xin - a1 * y + z[2 * j + 1]
+                z[2 * j + 1] = b2 * xin - a2 * y
+                v[j] = y
+        return np.array(v)

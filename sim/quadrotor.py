@@ -473,6 +473,19 @@ def fly_hover(
         filt = None
     elif hasattr(pipeline, "step"):
         filt = pipeline.step
+        # an RPM filter in the pipeline follows the simulator's rotor speeds (as Betaflight's from eRPM)
+        rpm_cbs = [s.set_rotor_hz for s in ([pipeline] + list(getattr(pipeline, "stages", ())))
+                   if callable(getattr(s, "set_rotor_hz", None))]
+        if rpm_cbs:
+            inner = filt
+            qv = data.qvel
+            two_pi = 2.0 * math.pi
+
+            def filt(g, _inner=inner, _cbs=tuple(rpm_cbs)):
+                hz = [abs(w) / two_pi for w in qv[rv0:rv0 + 4].tolist()]  # rotor speeds after this physics step
+                for cb in _cbs:
+                    cb(hz)
+                return _inner(g)
     elif callable(pipeline):
         filt = pipeline
     else:
