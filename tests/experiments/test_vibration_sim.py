@@ -73,3 +73,17 @@ def test_closed_loop_flight_filter_with_measured_vibration(tmp_path):
     assert not none["crashed"] and not pt1["crashed"]
     assert pt1["motor_noise_n"] < none["motor_noise_n"]
     assert pt1["delay_ms"] > none["delay_ms"]
+
+
+def test_flight_filter_flies_the_racing_class_with_the_rpm_filter():
+    """experiments.flight_filter on racing5: the RPM notch on the simulated rotors takes the rotor
+    line out of the motor commands (lower motor noise than no filter) at a delay cost."""
+    from experiments.flight_filter import fly
+
+    d = np.zeros((4001, 3))
+    none = fly([], d, duration_s=4.0, seed=1, vehicle="racing5")
+    rpm = fly([], d, duration_s=4.0, seed=1, vehicle="racing5", rpm=True)
+    assert not none["crashed"] and not rpm["crashed"]
+    assert rpm["chain"] == ["rpm notch x3 Q5"]
+    assert rpm["motor_noise_n"] < none["motor_noise_n"]
+    assert rpm["delay_ms"] > none["delay_ms"]
