@@ -95,3 +95,16 @@ def test_bias_blockwise_statistics_equal_whole_array(monkeypatch):
         assert np.array_equal(whole.bias_rad_s, blocks.bias_rad_s) and whole.window_start_index == blocks.window_start_index
         for f in ("bias_se_rad_s", "noise_sigma_rad_s", "threshold", "vif"):
             assert np.allclose(getattr(whole, f), getattr(blocks, f), rtol=1e-12, atol=0), (rule, f)
+
+
+def test_write_csv_streams_long_recordings_byte_identically(tmp_path, monkeypatch):
+    import gyrocore.recording as rc
+
+    rng = np.random.default_rng(0)
+    n = 5001
+    rec = Recording(t_s=np.arange(n) / 1000, gyro_rad_s=rng.normal(size=(n, 3)), temp_c=rng.normal(size=n),
+                    meta={"a": "b", "c": "d\ne"}, extra={"f": rng.normal(size=n)})
+    rc.write_csv(rec, tmp_path / "whole.csv")
+    monkeypatch.setattr(rc, "WRITE_CHUNK_ROWS", 700)
+    rc.write_csv(rec, tmp_path / "chunked.csv")
+    assert (tmp_path / "whole.csv").read_bytes() == (tmp_path / "chunked.csv").read_bytes()
