@@ -162,14 +162,17 @@ def _long(file: str) -> bool:
     return rows * 4 * 8 > BY_AXIS_BYTES
 
 
-def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, method: str = "gmwm"):
+def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, method: str = "gmwm",
+                  check_static: bool = True):
     """:func:`gyrocore.allan.allan_analysis` of a long recording, one axis at a time.
 
     The file is streamed once into per-column files in a temporary folder
     (:func:`gyrocore.recording.spill_columns`: the same repairs, checks and warnings as a
     whole read); each axis is then loaded alone with the time column. The results are
     identical to the whole-record analysis (same samples, same rate, same kernel); memory
-    holds two columns (t and the axis) plus the ADEV buffers.
+    holds two columns (t and the axis) plus the ADEV buffers — except for the motion gate
+    (``check_static``), which needs the three gyro axes at once (t + gyro, freed before the
+    analysis).
     """
     import tempfile
     import warnings
@@ -180,6 +183,24 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
     with tempfile.TemporaryDirectory(prefix="gyroharness_allan_") as tmp:
         store = spill_columns(file, tmp, accel=kalibr)
         has_accel = "accel_x_m_s2" in store.names
+        still = None
+        if check_static:  # the same gate and error as allan_analysis(check_static=True)
+            import math
+
+            from ..allan import MAX_MOVING_FRACTION, still_fraction
+            from ..errors import GyroInputError
+            from ..recording import Recording
+
+            g3 = np.empty((store.n, 3))
+            for j in range(3):
+                g3[:, j] = store.column(f"gyro_{AXES[j]}_rad_s")
+            still = still_fraction(Recording(t_s=store.t_s, gyro_rad_s=g3, meta=store.meta))
+            del g3
+            if math.isfinite(still) and (1.0 - still) > MAX_MOVING_FRACTION:
+                raise GyroInputError(
+                    f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "
+                    f"(more than {100 * MAX_MOVING_FRACTION:.0f} %); noise identification needs a still sensor"
+                )
         per_axis, per_accel = {}, {}
         seen: set[str] = set()
         last = None
@@ -192,6 +213,8 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
                     r = allan_analysis(rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine,
                                        method=method)
                 for w in caught:  # the record-level warnings once, not once per axis
+                    if str(w.message).startswith("no long-tau term resolved"):
+                        continue  # given once below, from all the axes (as allan_analysis does)
                     if str(w.message) not in seen:
                         seen.add(str(w.message))
                         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
@@ -201,8 +224,13 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
                     per_accel[a] = r.accel[a]
                 last = r
                 del rec
+    from ..allan import _warn_short
+
+    if method != "adev_legacy":
+        _warn_short(per_axis, last.duration_s, last.n_samples, last.rate_hz, method)
     return AllanAnalysis(axes=per_axis, accel=per_accel, rate_hz=last.rate_hz, n_samples=last.n_samples,
-                         duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s, method=method)
+                         duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s, method=method,
+                         still_fraction=still)
 
 
 @click.command("allan")
@@ -225,10 +253,9 @@ def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, e
     from ..recording import atomic_write_text, read_recording
 
     if _long(file):
-        # long files: one axis at a time (memory); the motion gate needs all three axes at once
-        # and is skipped there
+        # long files: one axis at a time (memory); the motion gate loads the three axes once
         res = allan_by_axis(file, axes=_axes(axes), max_tau_s=max_tau_s, kalibr=kalibr_yaml is not None, engine=engine,
-                            method=method)
+                            method=method, check_static=not no_static_check)
     else:
         # only the columns the analysis needs (t, gyro; accel for Kalibr)
         rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
