@@ -719,6 +719,7 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
 
     ap = argparse.ArgumentParser(description="Loop identification / false-alarm Monte Carlo")
     ap.add_argument("--seeds", type=int, default=50)
+    ap.add_argument("--seed-start", type=int, default=0, help="first seed (seeds seed-start .. seed-start+seeds-1)")
     ap.add_argument("--scales", default="0.03,0.1,0.3,1")
     ap.add_argument("--effects", default=None)
     ap.add_argument("--out", default=None, help="write rows as JSON here")
@@ -748,10 +749,10 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
 
         if a.open:
             rows = open_search_rates(kinds=a.open_kinds.split(","), sizes=[float(x) for x in a.open_sizes.split(",")],
-                                     seeds=range(a.seeds), progress=True)
+                                     seeds=range(a.seed_start, a.seed_start + a.seeds), progress=True)
             print(open_rates_markdown(rows))
         else:
-            rows = simulator_null_false_alarms(seeds=range(a.seeds), progress=True)
+            rows = simulator_null_false_alarms(seeds=range(a.seed_start, a.seed_start + a.seeds), progress=True)
             print(f"simulator null: {rows['false_alarms']}/{rows['n']} false alarms, 95 % CI {rows['ci95']}")
         if a.out:
             from gyrocore.recording import atomic_write_text
