@@ -238,7 +238,7 @@ THERMAL_NUISANCE = ("time_offset",)
 
 
 def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
-                   cache_dir: str | None = None):
+                   cache_dir: str | None = None, durations_s: tuple[float, float] | None = None):
     """The core's calibration of this unit, through the calibrator door.
 
     The unit's calibration recordings (:func:`experiments.calibrators.calibration_recordings`:
@@ -261,7 +261,10 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
     # a sensor may be a TOML path: keep the key a plain file name inside cache_dir (a path with
     # "/" made Path(cache_dir) / key point outside cache_dir, shared between caches)
     safe = "".join(c if (c.isalnum() or c in "._-") else "_" for c in str(sensor))
-    key = f"{safe}_{seed}_{'quick' if quick else 'full'}_{'-'.join(tt)}_{'-'.join(th)}"
+    runs = "quick" if quick else "full"
+    if durations_s is not None:  # other calibration-run durations (table, thermal), s
+        runs = f"{durations_s[0]:g}-{durations_s[1]:g}"
+    key = f"{safe}_{seed}_{runs}_{'-'.join(tt)}_{'-'.join(th)}"
     paths = None
     if cache_dir:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
@@ -272,7 +275,8 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
             res = tuple(load_params(p) if have[i] else None for i, p in enumerate(paths))
             return CoreParams(effects=tuple(present), stages=tuple(_stage_from(r, i + 1) for i, r in enumerate(res)),
                               results=res)
-    recs = [strip_truth(r, references=True) for r in calibration_recordings(sensor, seed, quick=quick)]
+    recs = [strip_truth(r, references=True)
+            for r in calibration_recordings(sensor, seed, quick=quick, durations_s=durations_s)]
     params = CoreCalibrator(effects=present).fit(recs)
     if paths:
         from gyrocore.recording import atomic_write_text

@@ -163,10 +163,8 @@ def score_unit(scenario: str, *, routine_spec: Mapping[str, Any], sensor: str = 
     cal_raw = calibration_recordings(sensor, seed, quick=quick, durations_s=calibration_durations_s)
     cal = [strip_truth(r, references=True) for r in cal_raw]
     scored = strip_truth(rec, references=False)
-    if calibration_durations_s is None:
-        core_params = A.calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir)
-    else:
-        core_params = CoreCalibrator(effects=present).fit(cal)
+    core_params = A.calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir,
+                                   durations_s=calibration_durations_s)
     variants = {"none": rec.gyro_rad_s,
                 "core": CoreCalibrator(effects=present).apply(scored, core_params),
                 "floor": S.floor_gyro(res)}

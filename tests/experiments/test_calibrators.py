@@ -13,6 +13,10 @@ from gyrocore import effects as E
 from gyrocore.errors import GyroInputError
 
 
+#: Calibration-run durations of the pin (table, thermal), s: short, the same in both paths.
+CAL_S = (40.0, 60.0)
+
+
 def _old_calibration(sensor, seed, present):
     """The ablation's calibration path before the door (issue 17), verbatim, on un-stripped runs."""
     from gyrocore.model import Calibrator
@@ -23,10 +27,10 @@ def _old_calibration(sensor, seed, present):
     stages = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cal = S.simulate("turntable", sensor=sensor, seed=seed, run=1, duration_s=120.0)
+        cal = S.simulate("turntable", sensor=sensor, seed=seed, run=1, duration_s=CAL_S[0])
         r1 = Calibrator(effects=["bias"] + [e for e in tt if e != "bias"], **A._CAL_KW).fit(cal.recording)
         stages.append(A._stage_from(r1, 1))
-        rec2 = S.simulate("thermal", sensor=sensor, seed=seed, run=2, duration_s=300.0).recording
+        rec2 = S.simulate("thermal", sensor=sensor, seed=seed, run=2, duration_s=CAL_S[1]).recording
         inp2 = E.ModelInputs(t_s=rec2.t_s, f_S_m_s2=rec2.accel_m_s2, temp_c=rec2.temp_c)
         p1 = {eff: pd for _, (eff, pd, _) in A._as_stages(stages[0])[0].items() if eff != "bias"}
         rec2 = rec2.with_gyro(E.correct(p1, rec2.gyro_rad_s, inp2))
@@ -36,21 +40,33 @@ def _old_calibration(sensor, seed, present):
     return stages
 
 
+SEED = 5
+
+
+@pytest.fixture(scope="module")
+def calibrations():
+    """The unit's calibration by the old path and through the door (the same unit in both scenarios)."""
+    from experiments import ablation as A
+    from sim.presets import load_preset
+
+    present = [e for e in E.CORRECTABLE if e in load_preset("icm42688p").effects]
+    return present, _old_calibration("icm42688p", SEED, present), A.calibrate_core("icm42688p", SEED, present,
+                                                                                     durations_s=CAL_S)
+
+
 @pytest.mark.parametrize("scenario,duration_s", [("static", 20.0), ("power_cycles", 30.0)])
-def test_core_through_the_door_is_bit_identical_to_the_old_ablation(scenario, duration_s):
+def test_core_through_the_door_is_bit_identical_to_the_old_ablation(scenario, duration_s, calibrations):
     """Same numbers as the ablation before the door: the fit (on truth-stripped runs) and the
     'all' row (applied to the truth-stripped scored recording, datasheet gate σ) match the old
     path (truth-bearing inputs, σ from params_true) bit for bit."""
     from sim import scenarios as S
 
-    seed = 5
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = S.simulate(scenario, sensor="icm42688p", duration_s=duration_s, seed=seed, run=0)
+        res = S.simulate(scenario, sensor="icm42688p", duration_s=duration_s, seed=SEED, run=0)
     rec, truth, p_true = res.recording, res.truth, res.params_true
-    present = A.present_effects(p_true)
-    old_stages = _old_calibration("icm42688p", seed, present)
-    new = A.calibrate_core("icm42688p", seed, present, quick=True)
+    present, old_stages, new = calibrations
+    assert A.present_effects(p_true) == present
     for so, sn in zip(old_stages, new.stages):
         assert so.keys() == sn.keys()
         for k in so:
@@ -64,8 +80,8 @@ def test_core_through_the_door_is_bit_identical_to_the_old_ablation(scenario, du
     w_new = C.CoreCalibrator(effects=present).apply(stripped, new)
     np.testing.assert_array_equal(w_old, w_new)
     # and the ablation's 'all' row is that gyro
-    ab = A.ablate_instance(scenario, seed=seed, duration_s=duration_s, quick=True, calibration=old_stages,
-                           mahony_kp_per_s=None)
+    ab = A.ablate_instance(scenario, seed=SEED, duration_s=duration_s, quick=True, calibration=old_stages,
+                           mahony_kp_per_s=None, predict=False)
     start = int(still[0][1].stop)
     sc = A.score_variants(rec.t_s, truth.q_SW_wxyz, {"all": w_old}, start=start)["all"][0]
     assert ab.scores["all"].rms_error_deg == sc.rms_error_deg
