@@ -228,25 +228,42 @@ def run(*, methods: Sequence[str] = ("adev", "gmwm"), replicates: int = 12, seed
                 # entropy of (replicate child, cell, mix): independent of execution order
                 ent = child.generate_state(4).tolist() + [ci, list(MIXES).index(mix)]
                 jobs.append((mix, cell, rep, ent, tuple(methods)))
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0 = time.perf_counter()
     n_work = workers or min(2, os.cpu_count() or 1)
-    if n_work == 1:
-        chunks = [_task(j) for j in jobs]
-    else:
-        with ProcessPoolExecutor(max_workers=n_work, mp_context=multiprocessing.get_context("spawn")) as pool:
-            chunks = list(pool.map(_task, jobs, chunksize=2))
-    rows = [r for c in chunks for r in c]
-    summ = summarise(rows)
-    result = {"rows": rows, "summary": summ, "goals": goals(summ),
-              "timing": {"wall_s": time.perf_counter() - t0, "cpu_s_workers": float(sum(r["cpu_s"] * 1 for r in rows)),
-                         "jobs": len(jobs), "workers": n_work, "load": os.getloadavg()},
-              "options": {"methods": list(methods), "replicates": replicates, "seed": seed, "mixes": mixes,
-                          "cells": cells}}
-    if out:
-        from gyrocore.recording import atomic_write_text
+    options = {"methods": list(methods), "replicates": replicates, "seed": seed, "mixes": mixes, "cells": cells}
 
-        atomic_write_text(out, json.dumps(result, indent=1, default=float))
-    return result
+    def dump(rows, done):
+        # rows of the replicates completed so far (jobs run replicate by replicate), so that a
+        # run cut short still leaves a complete, seed-ordered subset
+        summ = summarise(rows)
+        res = {"rows": rows, "summary": summ, "goals": goals(summ),
+               "timing": {"wall_s": time.perf_counter() - t0, "cpu_s_fits": float(sum(r["cpu_s"] for r in rows)),
+                          "jobs_done": done, "jobs": len(jobs), "workers": n_work, "load": os.getloadavg()},
+               "options": options}
+        if out:
+            from gyrocore.recording import atomic_write_text
+
+            atomic_write_text(out, json.dumps(res, indent=1, default=float))
+        return res
+
+    per_rep = len(jobs) // max(replicates, 1)
+    rows: list[dict] = []
+    if n_work == 1:
+        it = map(_task, jobs)
+        pool = None
+    else:
+        pool = ProcessPoolExecutor(max_workers=n_work, mp_context=multiprocessing.get_context("spawn"))
+        it = pool.map(_task, jobs, chunksize=1)
+    result = None
+    try:
+        for k, chunk in enumerate(it, 1):
+            rows.extend(chunk)
+            if k % per_rep == 0:
+                result = dump(rows, k)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    return result if result is not None else dump(rows, len(jobs))
 
 
 def main(argv=None) -> None:
@@ -271,3 +288,36 @@ def main(argv=None) -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def compact(summaries: Sequence[list[dict]], methods: Sequence[str]) -> str:
+    """One row per (mix, cell): per method, each present term as claimed % (coverage %) with the
+    prediction (✓ resolvable / ✗ not, from the gmwm rule), then the absent terms claimed."""
+    allrows = [s for summ in summaries for s in summ]
+    cells = sorted({(s["mix"], s["T_s"], s["rate_hz"]) for s in allrows},
+                   key=lambda k: (list(MIXES).index(k[0]), k[2], k[1]))
+    head = "| mix | T, rate | " + " | ".join(methods) + " |"
+    lines = [head, "|---|---|" + "---|" * len(methods)]
+    for mix, T, rate in cells:
+        cols = []
+        for meth in methods:
+            ss = [s for s in allrows if (s["method"], s["mix"], s["T_s"], s["rate_hz"]) == (meth, mix, T, rate)]
+            if not ss:
+                cols.append("—")
+                continue
+            parts = []
+            for s in ss:
+                if s["present"] and s["term"] != "GMt" and s["term"] != "N":
+                    zp = s.get("z_pred", float("nan"))
+                    mark = "" if not math.isfinite(zp) else ("✓" if zp >= z_threshold(s["term"]) else "✗")
+                    parts.append(f"{s['term']}{mark} {100 * s['claimed']:.0f} ({100 * s['coverage']:.0f})")
+            n_cov = [s for s in ss if s["term"] == "N"]
+            if n_cov:
+                parts.insert(0, f"N 100 ({100 * n_cov[0]['coverage']:.0f})" if n_cov[0]["claimed"] == 1 else
+                             f"N {100 * n_cov[0]['claimed']:.0f} ({100 * n_cov[0]['coverage']:.0f})")
+            fc = [f"{s['term']} {100 * s['claimed']:.0f}" for s in ss if not s["present"] and s["claimed"] > 0]
+            if fc:
+                parts.append("**false: " + ", ".join(fc) + "**")
+            cols.append("; ".join(parts) + f" [{ss[0]['runs']}]")
+        lines.append(f"| {mix} | {T / 60:g} min, {rate:g} Hz | " + " | ".join(cols) + " |")
+    return "\n".join(lines)

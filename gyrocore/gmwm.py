@@ -45,8 +45,10 @@ threshold of a one-sided test on the boundary, χ²₁ at 1 − 2α (the null la
 null, penalty χ²₂ at 1 − α. B and K therefore compete on their χ², not on the order of
 elimination. The selected model is refitted with its own iterated weights; its terms are
 "resolved" and carry 95 % intervals from (JᵀΣ⁻¹J)⁻¹ on the variance scale (square-rooted,
-lower end clipped at 0); an unselected term is ``None`` with the upper end of its interval
-when added to the selected model.
+lower end clipped at 0). A term selected on marginal evidence (less than twice its penalty)
+whose Wald z = c/se(c) is below z_{1−α} is dropped again (the weakest first). An
+unselected term is ``None`` with the upper end of its interval when added to the selected
+model.
 
 Resolvability (predicted, :func:`expected_z`): at the true parameters, the Fisher information
 JᵀΣ⁻¹J of the true model at the record's τ grid gives each term's expected z = c/se(c). The
@@ -98,6 +100,7 @@ Z_RESOLVABLE_GM = float(math.sqrt(_PEN_GM) + scipy.stats.norm.isf(0.10))
 #: resolvability threshold on the margin returned by :func:`expected_z` (90 % power)
 Z_POWER = float(scipy.stats.norm.isf(0.10))
 _Z95 = float(scipy.stats.norm.isf(0.025))
+_Z_WALD = float(scipy.stats.norm.isf(ALPHA))
 _B_FACTOR = 2.0 * math.log(2.0) / math.pi
 
 
@@ -288,8 +291,10 @@ def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray
     alpha = _alpha_of_slope(mu)
     edf = np.array([_edf(int(a), int(v), int(n_samples) + 1) for a, v in zip(alpha, m)])
     sd = np.sqrt(2.0 / edf) * model
-    w_, V = np.linalg.eigh(R)
-    if w_.min() < 1e-9:
+    try:  # positive definite (the usual case): no eigen-decomposition needed
+        np.linalg.cholesky(R - 1e-9 * np.eye(R.shape[0]))
+    except np.linalg.LinAlgError:
+        w_, V = np.linalg.eigh(R)
         R = (V * np.maximum(w_, 1e-9)) @ V.T
         dd = np.sqrt(np.diag(R))
         R = R / np.outer(dd, dd)
@@ -517,24 +522,54 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     full = subsets[-1]
     W_log, bias_log = _log_weights(fits[full][2], fits[full][3])
     best = None
+    lchi2 = {}
     for sub in subsets:
         res = fits[sub]
+        mod = term_avar(m, rate_hz, method=method, tau_c_s=res[1]) @ res[0]
+        lchi2[sub] = _log_chi2(avar, mod, W_log, bias_log)
         if np.any(res[0][list(sub)] <= 0):
             continue  # a term pinned at zero: the same model as a smaller subset
-        mod = term_avar(m, rate_hz, method=method, tau_c_s=res[1]) @ res[0]
-        crit = _log_chi2(avar, mod, W_log, bias_log) + _penalty(sub)
+        crit = lchi2[sub] + _penalty(sub)
         if best is None or crit < best[0]:
             best = (crit, sub)
     sub = best[1] if best else tuple(base or cand[:1])
+
+    def wald(sub_):
+        coef_, tc_, C_, edf_, L_, chi2_, _m = fits[sub_]
+        Ci_ = L_.T @ L_
+        J_ = _jacobian(m, rate_hz, coef_, tc_, sub_, method)
+        try:
+            cov_ = np.linalg.inv(J_.T @ Ci_ @ J_)
+        except np.linalg.LinAlgError:
+            cov_ = np.linalg.pinv(J_.T @ Ci_ @ J_)
+        return cov_
+
+    # A term claimed on marginal evidence (its removal raises the selection χ² by less than
+    # twice its penalty) must also stand on its own interval: drop the weakest such term while
+    # its Wald z = c/se(c) at the final weights is below z_{1−α} (the level of its penalty).
+    # Stand-ins (B for an unresolvable K, R for B, …) are claimed on marginal evidence; a term
+    # whose removal wrecks the fit (a random walk whose long-τ points sag) is kept even when
+    # its variance-scale interval, symmetric at edf ≈ 2–6, reaches zero.
+    while True:
+        cov_p = wald(sub)
+        coef_s = fits[sub][0]
+        zw = {}
+        for j, i in enumerate(sub):
+            if i == 1:
+                continue
+            smaller = tuple(k for k in sub if k != i)
+            pen_i = _PEN_GM if i == 5 else _PEN_LINEAR
+            if smaller in lchi2 and lchi2[smaller] - lchi2[sub] < 2.0 * pen_i:
+                zw[i] = coef_s[i] / math.sqrt(cov_p[j, j]) if cov_p[j, j] > 0 else float("inf")
+        if not zw:
+            break
+        worst = min(zw, key=zw.get)
+        if zw[worst] >= _Z_WALD or len(sub) == 1:
+            break
+        sub = tuple(i for i in sub if i != worst)
     coef_s, tc_s, C, edf, L, chi2, _m2ll = fits[sub]
     Ci = L.T @ L
     model_s = term_avar(m, rate_hz, method=method, tau_c_s=tc_s) @ coef_s
-    J = _jacobian(m, rate_hz, coef_s, tc_s, sub, method)
-    F = J.T @ Ci @ J
-    try:
-        cov_p = np.linalg.inv(F)
-    except np.linalg.LinAlgError:
-        cov_p = np.linalg.pinv(F)
 
     terms: dict[str, float | None] = {k: None for k in ALL_TERMS}
     est: dict[str, float] = {k: 0.0 for k in ALL_TERMS}

@@ -31,18 +31,16 @@ _COLORS = {"quantization_rad": "tab:purple", "arw_rad_per_sqrt_s": "tab:blue", "
 
 
 def _term_adev(r, name: str, value: float, tt: np.ndarray) -> np.ndarray:
-    """ADEV of one term at value ``value`` (the method's own model: exact discrete for gmwm)."""
-    from ..gmwm import model_avar
+    """ADEV of one term at value ``value`` on a continuous τ grid: the IEEE 952 asymptote, and
+    the exact AR(1) Allan variance for the Gauss–Markov term (at the fitted τc)."""
+    from ..gmwm import _gm_avar
 
-    m = np.maximum(tt * r.rate_hz, 1.0)
-    terms = {name: value}
     if name == "correlated_sigma_rad_s":
-        terms["correlated_tau_c_s"] = r.estimate.get("correlated_tau_c_s")
-    meth = "adev" if r.method != "gmwm" else "gmwm"
-    if meth == "gmwm" and name == "bias_instability_rad_s":
-        # the exact flicker factor is tabulated at integer m; the plot uses the asymptote
-        meth = "adev"
-    return np.sqrt(np.maximum(model_avar(m, r.rate_hz, terms, method=meth), 0.0))
+        tc = r.estimate.get("correlated_tau_c_s")
+        if not tc or not np.isfinite(tc):
+            return np.full_like(tt, np.nan)
+        return value * np.sqrt(_gm_avar(np.maximum(tt * r.rate_hz, 1.0), 1.0 / r.rate_hz, float(tc)))
+    return np.abs(_ASYMPTOTE[name][1](tt, value))
 
 
 def _axes(value: str) -> list[str]:
@@ -131,7 +129,7 @@ def plot_png(analysis, path: str) -> None:
         plot_ax.set_ylim(lo_y, hi_y)
         plot_ax.set_xscale("log")
         plot_ax.set_yscale("log")
-        plot_ax.set_xlabel("averaging time tau [s]  (shaded: tau where a fitted long-tau term dominates)")
+        plot_ax.set_xlabel("averaging time tau [s]; shaded: where a long-tau term dominates")
         plot_ax.set_ylabel("Allan deviation [rad/s]")
         plot_ax.set_title(f"gyro {name}")
         plot_ax.grid(True, which="both", alpha=0.3)
