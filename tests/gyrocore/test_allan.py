@@ -93,6 +93,7 @@ def test_rate_random_walk_identified():
     assert hits_k >= 2 and hits_n >= 2
 
 
+@pytest.mark.slow  # 150 identifications with the GMWM subset search (≈ 20–30 s on an idle machine)
 def test_n_interval_coverage_montecarlo():
     """50 seeds × 3 axes of white noise: the 95 % interval of N covers the truth.
 
