@@ -1297,7 +1297,9 @@ def _open_parquet(path: str):
     if os.path.getsize(path) == 0:
         raise GyroInputError(f"{path}: empty file")
     try:
-        pf = pq.ParquetFile(path, memory_map=False)
+        # no pre-buffering: with it, iterating row groups kept the file's column chunks
+        # (measured: 343 vs 136 MiB peak for a one-hour 15-column file, 2.6 GiB at ten hours)
+        pf = pq.ParquetFile(path, memory_map=False, pre_buffer=False, buffer_size=1 << 20)
         schema = pf.schema_arrow
     except (pa.ArrowException, OSError, ValueError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
