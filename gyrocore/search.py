@@ -36,12 +36,14 @@ family-wise error control (a weighted Holm/Bonferroni split of α, see :data:`AL
   effect. The frequency is refined by maximising the periodogram of the whole residual, the
   amplitude fitted by least squares (cos/sin) at that frequency.
 * **Bias steps** (:func:`screen_step`): a change-point test on the window residual. For
-  each candidate time τ the three-axis step regressor is projected off the model and its
-  score tested (χ²₃ pointwise with the residual's autocovariance model); the supremum over
-  τ is calibrated by a parametric bootstrap from the same noise model (circulant embedding
-  of the identified autocovariance), because random-walk and flicker bias noise make the
-  naive CUSUM/χ² supremum false-alarm. Step vs ramp is a model comparison: the blocked
-  out-of-sample RMS of model + step vs model + ``bias_ramp``.
+  each candidate time τ a local three-axis contrast (h windows after minus h before) is
+  projected off the model and its score tested (χ²₃ pointwise with the residual's
+  autocovariance model); the supremum over τ is calibrated by a parametric bootstrap from a
+  noise model identified on a robust structure function (:func:`step_noise_model`: white +
+  random walk + Gauss–Markov grid; a step moves few increments, wander moves all), because
+  random-walk and flicker bias noise make the naive CUSUM/χ² supremum false-alarm. Step vs
+  ramp is a model comparison: the blocked out-of-sample RMS of model + step vs model +
+  ``bias_ramp``.
 
 Each described term is a registered effect family (BRIEFING contract):
 ``regressor[<expr>]`` (``coef`` (3,)), ``periodic[<f_hz>]`` (``a_cos_rad_s``, ``a_sin_rad_s``
@@ -863,14 +865,17 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
                 max_boot: int = 4000, noise_from: str = STEP_NOISE_FROM) -> StepScreen | None:
     """Change-point test for a bias step (all three axes) on the window residual.
 
-    Statistic: T(τ) = zᵀV⁻¹z with z the scores of the three step columns projected off the
-    model, V their covariance under the autocovariance model of the residual *after* the best
-    step is removed (as the catalogue's Wald tests use the alternative's residual); sup over
-    the candidate τ (every window start, thinned to ``max_candidates``, ``edge`` windows from
-    each end). The supremum's null distribution comes from a parametric bootstrap of the same
-    noise model (:func:`simulate_gaussian`), B = ⌈2/threshold⌉ draws (at least 199; so that the
-    smallest attainable p-value, 1/(B+1), is below the threshold); the p-value is
-    (1 + #{T*_sup ≥ T_sup})/(B + 1).
+    Statistic: T(τ) = zᵀV⁻¹z with z the scores of the three *local contrast* columns (mean of
+    the h = M/20 windows after τ minus the h before, per axis) projected off the model, V their
+    covariance under the HAC autocovariance model of the residual with the best (full) step
+    removed; sup over the candidate τ (every window start, thinned to ``max_candidates``, at
+    least h windows from each end). The supremum's null distribution comes from a parametric
+    bootstrap of the noise model of :func:`step_noise_model` (robust structure function:
+    white + random walk + Gauss–Markov grid; :func:`simulate_noise_model`), B = ⌈2/threshold⌉
+    draws (at least 199, at most ``max_boot``; so that the smallest attainable p-value,
+    1/(B+1), is below the threshold), stopped once 20 draws exceed (Besag & Clifford 1991);
+    p = (1 + #{T*_sup ≥ T_sup})/(B + 1). The location is refined to the window by least squares
+    on the full step; ``size_rad_s`` is the full step's estimate there.
     """
     M = res.m
     edge = max(5, int(0.02 * M)) if edge is None else edge
