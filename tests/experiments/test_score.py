@@ -295,7 +295,7 @@ def test_score_core_equals_the_ablation_all_row_in_every_scenario():
     for sc, dur in durations.items():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ab = A.ablate_instance(sc, seed=seed, duration_s=dur, quick=True, mahony_kp_per_s=None)
+            ab = A.ablate_instance(sc, seed=seed, duration_s=dur, quick=True, mahony_kp_per_s=None, predict=False)
         u = SC.score_unit(sc, routine_spec={"calibrator": "core"}, seed=seed, duration_s=dur, quick=True)
         assert u.failed is None
         assert u.rms_deg["user"] == ab.scores["all"].rms_error_deg, sc
