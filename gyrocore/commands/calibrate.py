@@ -174,15 +174,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     rec = _read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
     if not segments and rec.ref_rate_rad_s is None and _has_attitude(rec):
         res = _fit_against_attitude(rec, names, file, thermal_order, sensor)
-        save_params(res, output, overwrite=True)
-        if px4_params:
-            from ..thermal import write_px4_params
-
-            write_px4_params(px4_params, res.params, overwrite=True)
-        if as_json:
-            emit_json(result_to_dict(res))
-        else:
-            click.echo(report_text(res, output, px4_params))
+        _write_and_report(res, output, px4_params, as_json)
         return
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
                      external_bias=ext)
@@ -195,6 +187,13 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
             UserWarning,
             stacklevel=2,
         )
+    _write_and_report(res, output, px4_params, as_json)
+
+
+def _write_and_report(res, output, px4_params, as_json: bool) -> None:
+    """Write the parameter file (and PX4 TC_G parameters), then print the report or the JSON."""
+    from ..model import result_to_dict, save_params
+
     save_params(res, output, overwrite=True)
     if px4_params:
         from ..thermal import write_px4_params
