@@ -346,16 +346,6 @@ def misalignment_matrix(m_rad: np.ndarray) -> np.ndarray:
     return M
 
 
-def k_matrix(params: Params) -> np.ndarray:
-    """Constant part of K: I + diag(s) + misalignment, 3×3."""
-    K = np.eye(3)
-    if "scale" in params:
-        K = K + np.diag(np.asarray(params["scale"]["s"], float))
-    if "misalignment" in params:
-        K = K + misalignment_matrix(params["misalignment"]["m_rad"])
-    return K
-
-
 def _ff(f: np.ndarray) -> np.ndarray:
     return np.stack([f[:, i] * f[:, j] for i, j in _FF_IDX], axis=1)
 
@@ -426,22 +416,22 @@ def _misalignment_design(inp, order, t0_c):
     return [f"m_rad[{p}]" for p in range(6)], A
 
 
-def _g_design(inp, order, t0_c):
-    f = inp._need("f_S_m_s2", "g_sensitivity")
-    A = np.zeros((inp.n, 3, 9))
+def _matrix_design(x: np.ndarray, pname: str):
+    """Regressors of a 3×J matrix acting on the signals x (N, J): y_i += Σ_j M[i, j]·x_j."""
+    J = x.shape[1]
+    A = np.zeros((x.shape[0], 3, 3 * J))
     for i in range(3):
-        for j in range(3):
-            A[:, i, 3 * i + j] = f[:, j]
-    return [f"h_rad_s_per_m_s2[{i},{j}]" for i in range(3) for j in range(3)], A
+        for j in range(J):
+            A[:, i, J * i + j] = x[:, j]
+    return [f"{pname}[{i},{j}]" for i in range(3) for j in range(J)], A
+
+
+def _g_design(inp, order, t0_c):
+    return _matrix_design(inp._need("f_S_m_s2", "g_sensitivity"), "h_rad_s_per_m_s2")
 
 
 def _g2_design(inp, order, t0_c):
-    ff = _ff(inp._need("f_S_m_s2", "g2_sensitivity"))
-    A = np.zeros((inp.n, 3, 18))
-    for i in range(3):
-        for j in range(6):
-            A[:, i, 6 * i + j] = ff[:, j]
-    return [f"g_rad_s_per_m2_s4[{i},{j}]" for i in range(3) for j in range(6)], A
+    return _matrix_design(_ff(inp._need("f_S_m_s2", "g2_sensitivity")), "g_rad_s_per_m2_s4")
 
 
 def _time_offset_design(inp, order, t0_c):

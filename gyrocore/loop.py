@@ -513,25 +513,13 @@ def _still_runs_error(res: Residual, q: np.ndarray) -> float:
 
 
 def _remaining(res: Residual, e: np.ndarray) -> Remaining:
-    T = res.duration_s
-    win = float(np.median(T))
+    win = float(np.median(res.duration_s))
     lb = lsq.ljung_box_p(e)
     # spectrum and Allan deviation on the longest run of evenly spaced windows (still
     # segments, dropped windows and known-rotation windows break the spacing)
-    even = np.concatenate([[False], (np.abs(np.diff(res.t_mid_s) - win) <= 0.05 * win)
-                           & (np.abs(T[1:] - win) <= 0.05 * win)])
-    best, cur, start, best_start = 0, 0, 0, 0
-    for k in range(res.m):
-        if k > 0 and even[k]:
-            cur += 1
-        else:
-            cur, start = 1, k
-        if cur > best:
-            best, best_start = cur, start
-    uniform = best > 16
-    if uniform:
-        e = e[best_start:best_start + best]
-        fs = 1.0 / win
+    e_run, _, fs, _ = _window_line_series(res, e)
+    if e_run.shape[0] > 16:
+        e = e_run
         f, P = signal.welch(e, fs=fs, axis=0, nperseg=min(256, e.shape[0]))
         from .allan import octave_m, oadev
 
