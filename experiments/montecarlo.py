@@ -34,7 +34,6 @@ Backends
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
@@ -50,7 +49,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from gyrocore.cli import to_jsonable
+from gyrocore.cli import to_jsonable, worker_environment
 from gyrocore.errors import GyroInputError
 from gyrocore.recording import atomic_write_text
 
@@ -340,7 +339,7 @@ def execute(
                     with ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx) as pool:
                         # Workers are spawned (fresh interpreters) during the submissions and
                         # read the BLAS/OpenMP thread counts from the environment at start-up.
-                        with _environ(WORKER_ENV):
+                        with worker_environment():
                             futures = [pool.submit(fn, t) for t in tasks]
                         results = [tick(f.result()) for f in futures]
                 except BrokenProcessPool:
@@ -356,25 +355,6 @@ def execute(
         if not isinstance(r, TaskResult) or r.index != t.index:
             raise RuntimeError(f"task function {_function_name(fn)} returned a wrong result for task {t.index}")
     return results, backend, n_workers
-
-
-#: Environment of local worker processes: one BLAS/OpenMP thread each (K processes on K cores;
-#: K multi-threaded BLAS pools would oversubscribe them). Variables already set are kept.
-#: Dask's nanny does the same for its workers.
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-@contextlib.contextmanager
-def _environ(defaults: Mapping[str, str]):
-    """Set the unset variables of ``defaults`` in os.environ for the duration of the block."""
-    added = [k for k in defaults if k not in os.environ]
-    for k in added:
-        os.environ[k] = defaults[k]
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
 
 
 def _execute_dask(fn, tasks, address, tick, timeout_s):

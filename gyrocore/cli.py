@@ -7,20 +7,22 @@ one ``warning: ...`` line each on stderr.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import math
+import os
 import pkgutil
 import sys
 import warnings
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import click
 import numpy as np
 
 from .errors import GyroInputError
 
-__all__ = ["build_group", "run_cli", "emit_json", "to_jsonable"]
+__all__ = ["build_group", "run_cli", "emit_json", "to_jsonable", "WORKER_ENV", "worker_environment"]
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -43,6 +45,24 @@ def to_jsonable(obj: Any) -> Any:
     if isinstance(obj, (np.bool_,)):
         return bool(obj)
     return obj
+
+
+#: Thread counts for spawned worker processes (Monte Carlo, batch): one BLAS/OpenMP thread each,
+#: so that N workers on N cores do not oversubscribe (as Dask's nanny does).
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+@contextlib.contextmanager
+def worker_environment(defaults: Mapping[str, str] = WORKER_ENV):
+    """Set the unset variables of ``defaults`` in os.environ for the duration of the block."""
+    added = [k for k in defaults if k not in os.environ]
+    for k in added:
+        os.environ[k] = defaults[k]
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
 
 
 def emit_json(obj: Any) -> None:

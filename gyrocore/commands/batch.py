@@ -28,7 +28,6 @@ probability ≈ 5e-4). Needs ≥ 5 successful files; a number with MAD = 0 flags
 
 from __future__ import annotations
 
-import contextlib
 import glob
 import io
 import json
@@ -40,7 +39,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ..cli import emit_json
+from ..cli import emit_json, worker_environment
 from ..errors import GyroInputError
 
 #: Commands the batch runs.
@@ -54,7 +53,6 @@ MIN_FLEET = 5
 #: Data-file suffixes picked up from a folder.
 DATA_SUFFIXES = (".csv", ".parquet", ".pq")
 #: Environment of local workers: one BLAS/OpenMP thread each (K workers on K cores).
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 AX = ("x", "y", "z")
 
 
@@ -346,18 +344,6 @@ def write_table(df, path: str) -> None:
 
 
 # ------------------------------------------------------------------ execution
-@contextlib.contextmanager
-def _environ(defaults):
-    added = [k for k in defaults if k not in os.environ]
-    for k in added:
-        os.environ[k] = defaults[k]
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
-
-
 def execute(tasks: list[tuple], *, workers: int, scheduler: str | None, progress: bool = False) -> tuple[list[dict], dict]:
     """Run ``run_one(*task)`` for every task; rows in task order, and backend info.
 
@@ -394,7 +380,7 @@ def _execute_dask(tasks, workers, scheduler, tick):
 
     cluster = None
     if scheduler is None:
-        with _environ(WORKER_ENV):  # workers are spawned now and read their thread counts at start-up
+        with worker_environment():  # workers are spawned now and read their thread counts at start-up
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=logging.ERROR)
         client = Client(cluster, set_as_default=False)
