@@ -32,6 +32,9 @@ through a shell; placeholders ``{params}``, ``{inputs}``, ``{input}``, ``{output
 timeout), reads the corrected file back and checks it (:func:`check_output`). The truth never
 enters the folder; it stays in the harness's memory.
 
+A user's Python routine (``module:factory`` not in :data:`REGISTRY`) runs in its own process
+with the same per-step timeout (:class:`IsolatedCalibrator`).
+
 A routine that fails (raises, crashes, hangs, writes nothing, NaN, wrong rows, deg/s where
 rad/s belong) raises :class:`RoutineFailure` with a one-line reason; the harness records the
 unit as failed and goes on.
@@ -71,6 +74,7 @@ __all__ = [
     "PX4Calibrator",
     "ArduPilotCalibrator",
     "CommandCalibrator",
+    "IsolatedCalibrator",
     "split_template",
     "check_output",
     "run_routine",
@@ -710,6 +714,125 @@ class CommandCalibrator:
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
+
+
+# ------------------------------------------------------------------------------ a user's Python routine, isolated
+def _isolated_worker(conn, spec: str) -> None:  # pragma: no cover - runs in the child process
+    """The child's loop: load the routine once, then answer ``("fit", recs)`` / ``("apply", rec)``.
+
+    The routine's params stay in the child (they need not pickle); replies are
+    ``("ok", value)`` or ``("error", one_line_reason)``.
+    """
+    import warnings
+
+    warnings.simplefilter("ignore")
+    try:
+        routine = load_calibrator(spec)
+    except GyroInputError as exc:
+        conn.send(("error", str(exc).splitlines()[0]))
+        return
+    params = None
+    while True:
+        try:
+            step, payload = conn.recv()
+        except EOFError:
+            return
+        if step == "close":
+            return
+        try:
+            if step == "fit":
+                params = routine.fit(payload)
+                conn.send(("ok", None))
+            else:
+                conn.send(("ok", np.asarray(routine.apply(payload, params))))
+        except RoutineFailure as exc:
+            conn.send(("error", str(exc)))
+        except Exception as exc:  # noqa: BLE001 - the user's code: any error becomes the unit's reason
+            conn.send(("error", f"{step} raised {type(exc).__name__}: {_one_line(exc)}"))
+
+
+@dataclass
+class IsolatedCalibrator:
+    """A user's Python routine (``module:factory``) run in its own process, with a timeout.
+
+    The Python form runs the user's code; code that hangs (a loop that never ends, a lock)
+    must not hang the harness. The routine is created in a child process started with the
+    ``spawn`` method (no inherited threads or locks; the parent's ``sys.path`` and working
+    directory carry over, so a ``my_cal.py`` beside the user still imports), stays there for
+    the unit, and answers ``fit`` / ``apply`` through a pipe; each step has ``timeout_s``
+    seconds, after which the child is killed and the unit fails with one line. The
+    registered calibrators (:data:`REGISTRY`) are the harness's own code and run in-process.
+
+    Parameters
+    ----------
+    spec : str
+        ``module:factory``.
+    timeout_s : float
+        Per step (fit, each apply), s.
+    """
+
+    spec: str
+    timeout_s: float = 120.0
+    _proc: Any = field(default=None, repr=False)
+    _conn: Any = field(default=None, repr=False)
+
+    def _start(self) -> None:
+        import multiprocessing as mp
+
+        self.close()
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_isolated_worker, args=(child, self.spec), daemon=True,
+                                 name="gyroharness-routine")
+        self._proc.start()
+        child.close()
+        self._conn = parent
+
+    def _call(self, step: str, payload) -> Any:
+        if self._conn is None:
+            raise RoutineFailure("apply before fit")
+        try:
+            self._conn.send((step, payload))
+            ready = self._conn.poll(self.timeout_s)
+        except (BrokenPipeError, EOFError, OSError):
+            ready = True  # the child is gone: recv below says how
+        if not ready:
+            self.close()
+            raise RoutineFailure(f"{step} timed out after {self.timeout_s:g} s (killed)")
+        try:
+            status, value = self._conn.recv()
+        except (EOFError, OSError):
+            code = None
+            if self._proc is not None:
+                self._proc.join(timeout=5.0)
+                code = self._proc.exitcode
+            self.close()
+            raise RoutineFailure(f"{step}: the routine's process died (exit code {code})") from None
+        if status != "ok":
+            raise RoutineFailure(str(value))
+        return value
+
+    def fit(self, recordings: Sequence[Recording]) -> None:
+        self._start()
+        return self._call("fit", list(recordings))
+
+    def apply(self, recording: Recording, params: Any) -> np.ndarray:
+        return self._call("apply", recording)
+
+    def close(self) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.send(("close", None))
+            except (BrokenPipeError, OSError):
+                pass
+            self._conn.close()
+            self._conn = None
+        if self._proc is not None:
+            self._proc.join(timeout=1.0)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join()
+            self._proc = None
 
 
 def _resolve_program(argv: list[str]) -> list[str]:

@@ -146,6 +146,34 @@ def test_python_form_faults(unit):
         C.run_routine(_Degs(), cal, [scored])
 
 
+def test_python_routine_runs_isolated_with_a_timeout(unit):
+    """A user's module:factory runs in its own process: its params need not pickle, a hang is
+    killed at the timeout, a dying process and an exception are one line each."""
+    import time
+
+    cal, scored = unit
+    mod = "tests.experiments.python_routine_probe"
+    w = C.run_routine(C.IsolatedCalibrator(f"{mod}:ok", timeout_s=60.0), cal, [scored])[0]
+    g = scored.gyro_rad_s
+    np.testing.assert_array_equal(w, g - g[:100].mean(axis=0))  # pickled through the pipe: exact
+    t0 = time.perf_counter()
+    with pytest.raises(C.RoutineFailure, match=r"^apply timed out after 3 s \(killed\)$"):
+        C.run_routine(C.IsolatedCalibrator(f"{mod}:hang", timeout_s=3.0), cal, [scored])
+    assert time.perf_counter() - t0 < 60  # killed, not waited for (the routine sleeps 600 s)
+    with pytest.raises(C.RoutineFailure, match=r"^apply: the routine's process died \(exit code 7\)$"):
+        C.run_routine(C.IsolatedCalibrator(f"{mod}:die", timeout_s=60.0), cal, [scored])
+    with pytest.raises(C.RoutineFailure, match=r"^apply raised RuntimeError: no luck$"):
+        C.run_routine(C.IsolatedCalibrator(f"{mod}:fails", timeout_s=60.0), cal, [scored])
+    with pytest.raises(C.RoutineFailure, match="cannot import"):
+        C.run_routine(C.IsolatedCalibrator("no_such_module_xyz:f", timeout_s=60.0), cal, [scored])
+
+
+def test_make_routine_isolates_user_modules_only():
+    assert isinstance(SC.make_routine({"calibrator": "tests.experiments.python_routine_probe:ok"}),
+                      C.IsolatedCalibrator)
+    assert isinstance(SC.make_routine({"calibrator": "core"}), C.CoreCalibrator)
+
+
 def test_units_check_accepts_real_calibrations():
     """A calibration changes the raw→corrected slope by percent; 57.3× is refused (and ≈ 1 kept)."""
     rng = np.random.default_rng(0)
