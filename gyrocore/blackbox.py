@@ -184,12 +184,22 @@ class FirmwareInfo:
 _REV = re.compile(r"^\s*(Betaflight|INAV|Cleanflight|EmuFlight|Emuflight|Rotorflight|KISS)\s+v?(\d+)\.(\d+)(?:\.(\d+))?", re.I)
 
 
+#: INAV releases whose blackbox writer was read (major, minor) → what was read. The source read is
+#: the stored iNavFlight/inav revision 00b5622b (a development revision after 9.0.1: it already has
+#: the secondary-gyro field gyroRaw2) of src/main/blackbox/blackbox.c, blackbox_fielddefs.h and
+#: src/main/sensors/gyro.c; its header writer (``blackboxWriteSysinfo``: every ``H`` key, in
+#: order) and main-field list agree line by line with a real INAV 9.0.1 log (tests), so 9.0.x is
+#: read; no other INAV release's source was read.
+INAV_READ = {(9, 0): "iNavFlight/inav 00b5622b: blackbox/blackbox.c, blackbox/blackbox_fielddefs.h, sensors/gyro.c"}
+
+
 def firmware_info(headers: dict, source: str = "") -> FirmwareInfo:
     """Identify the firmware; one-line :class:`GyroInputError` for a firmware/data version not read.
 
-    Betaflight 3.1 … 2026.6 is read (``gyroADC`` in deg/s, ``gyro_scale`` = 1.0 checked);
-    Betaflight 3.0 and older, INAV and Cleanflight proper log other units/debug lists that
-    were not read here, and blackbox data versions other than 1 and 2 are unknown.
+    Read: Betaflight 3.1 … 2026.6 (``gyroADC`` in deg/s, ``gyro_scale`` = 1.0 checked) and INAV
+    9.0.x (:data:`INAV_READ`). Betaflight 3.0 and older, other INAV releases, Cleanflight and
+    other forks log units/fields/debug lists that were not read here; blackbox data versions
+    other than 1 and 2 are unknown.
     """
     dv = headers.get("Data version")
     if dv not in (1, 2):
@@ -198,14 +208,20 @@ def firmware_info(headers: dict, source: str = "") -> FirmwareInfo:
     ftype = str(headers.get("Firmware type", "")).strip()
     m = _REV.match(rev)
     if not m:
-        raise GyroInputError(f"{source}: firmware {rev or ftype or 'unnamed'!r} is not one this reader knows (Betaflight 3.1–2026.6)")
+        raise GyroInputError(f"{source}: firmware {rev or ftype or 'unnamed'!r} is not one this reader knows "
+                             f"(Betaflight 3.1–2026.6, INAV 9.0)")
     name = m.group(1).lower()
     ver = tuple(int(x) for x in m.groups()[1:] if x is not None)
     if len(ver) == 2:
         ver = ver + (0,)
+    if name == "inav":
+        if ver[:2] not in INAV_READ:
+            raise GyroInputError(f"{source}: INAV {_version_str(ver)} logs are not read (its blackbox writer and gyro "
+                                 f"units were not checked in that release's source); INAV 9.0.x and Betaflight 3.1–2026.6 are")
+        return FirmwareInfo(name=name, version=ver, revision=rev, data_version=int(dv))
     if name != "betaflight":
         raise GyroInputError(f"{source}: {m.group(1)} {_version_str(ver)} logs are not read (units and debug modes of that "
-                             f"firmware were not checked in its source); Betaflight 3.1–2026.6 is")
+                             f"firmware were not checked in its source); Betaflight 3.1–2026.6 and INAV 9.0.x are")
     if ver < (3, 1, 0):
         raise GyroInputError(f"{source}: Betaflight {_version_str(ver)} is older than 3.1 (gyro logged in raw counts with a "
                              f"per-build gyro_scale); this reader knows Betaflight 3.1–2026.6")
@@ -335,6 +351,50 @@ def _dyn_notch_feature(headers: dict, fw: FirmwareInfo) -> bool:
     return isinstance(feats, int) and bool(feats & _FEATURE_DYNAMIC_FILTER)
 
 
+def inav_loop_rates(headers: dict) -> dict:
+    """INAV loop and logged rates from the header, Hz (INAV source read: :data:`INAV_READ`).
+
+    ``looptime`` is ``getLooptime()``: the PID/filter loop period in µs (the gyro task's own
+    sampling period is not in the header: ``gyro_hz`` is NaN). ``P interval`` is
+    ``rate_num/rate_denom``: one main frame per ``rate_denom/rate_num`` loops.
+    """
+    lt = _h(headers, "looptime")
+    if not isinstance(lt, (int, float)) or not lt > 0:
+        raise GyroInputError(f"header 'looptime' is {lt!r}, not a loop period in µs")
+    pid_hz = 1e6 / float(lt)
+    pint = _h(headers, "P interval", "1/1")
+    if isinstance(pint, str) and "/" in pint:
+        num, den = (int(x) for x in pint.split("/"))
+    else:
+        num, den = 1, int(pint or 1)
+    return {"gyro_hz": float("nan"), "pid_hz": pid_hz, "filter_hz": pid_hz, "lpf2_hz": pid_hz,
+            "log_hz_nominal": pid_hz * num / den}
+
+
+def inav_filter_chain(headers: dict, rates: dict) -> list[FilterStage]:
+    """The INAV gyro filters the header names, in the firmware's order (sensors/gyro.c ``gyroFilter``).
+
+    Order after the anti-alias PT1 (not in the header): RPM filter (``rpm_gyro_filter_enabled``,
+    dynamic), LULU (not in the header), main LPF = PT1 at ``gyro_lpf_hz`` on the loop period
+    (``initGyroFilter``: ``pt1FilterInit(cutoff, looptime)``; off when gyro_filter_mode is OFF,
+    moved by the adaptive mode — neither is in the header), dynamic notch (``dynamicGyroNotchMinHz``
+    / ``Q`` are logged, its enable flag is not: listed as dynamic), Kalman (not in the header).
+    """
+    fr = rates["filter_hz"]
+    out: list[FilterStage] = []
+    if _h(headers, "rpm_gyro_filter_enabled", 0):
+        out.append(FilterStage("rpm_notch", float(_h(headers, "rpm_gyro_min_hz", 0) or 0), fr,
+                               "rpm_gyro_filter_enabled, rpm_gyro_min_hz", dynamic=True))
+    f_main = _h(headers, "gyro_lpf_hz", 0)
+    if isinstance(f_main, (int, float)) and f_main > 0:
+        out.append(FilterStage("pt1", float(f_main), fr, "gyro_lpf_hz (INAV main gyro LPF, PT1)"))
+    if "dynamicGyroNotchMinHz" in headers:
+        out.append(FilterStage("dyn_notch", float(_h(headers, "dynamicGyroNotchMinHz", 0) or 0), fr,
+                               "dynamicGyroNotchMinHz, dynamicGyroNotchQ (enable flag not logged)", dynamic=True,
+                               max_hz=fr / 2.0))
+    return out
+
+
 @dataclass(frozen=True)
 class DebugGyro:
     """What ``debug[0..2]`` holds for the gyro: ``kind`` raw/partly_filtered, filters before it."""
@@ -455,12 +515,18 @@ _SIGNED_VB: list = [None]  # orangebox.decoders._signed_vb, bound on first use (
 _END_OF_LOG = b"End of log\x00"
 
 
-def _read_event(reader, data: bytes, n: int) -> str:
+#: INAV blackbox.c ``blackboxLogEvent(FLIGHT_LOG_EVENT_LOG_END)``: "End of log (disarm reason:%d)" and a 0 byte.
+_INAV_END_OF_LOG = re.compile(rb"End of log \(disarm reason:-?\d+\)\x00")
+
+
+def _read_event(reader, data: bytes, n: int, inav: bool = False) -> str:
     """Consume one event frame's payload (blackbox-log-viewer's ``parseEventFrame``).
 
     Events: 0 sync beep (time), 13 in-flight adjustment (function byte; a float when the
     function ≥ 128, else a signed VB), 14 logging resume (iteration, time), 15 disarm
     (reason), 30 flight mode (new, old flags), 255 end of log ("End of log\\0" follows).
+    INAV (``inav``): 40 IMU failure (error code), and 255 is followed by "End of log (disarm
+    reason:N)\\0" (blackbox.c / blackbox_fielddefs.h of the INAV source read, :data:`INAV_READ`).
     Returns "ok", "resume", "end" or "bad" (unknown event type or malformed end marker).
     orangebox 0.4.0 leaves the payload of events 13 and 14 unread (stubs) and has no 15.
     """
@@ -474,7 +540,14 @@ def _read_event(reader, data: bytes, n: int) -> str:
         if data[p:p + len(_END_OF_LOG)] == _END_OF_LOG:
             reader.seek(p + len(_END_OF_LOG))
             return "end"
+        m = _INAV_END_OF_LOG.match(data, p, p + 64) if inav else None
+        if m:
+            reader.seek(m.end())
+            return "end"
         return "bad"
+    if etype == 40 and inav:  # INAV FLIGHT_LOG_EVENT_IMU_FAILURE: errorCode (unsigned VB)
+        _unsigned_vb(reader)
+        return "ok"
     if etype == 0 or etype == 15:
         _unsigned_vb(reader)
         return "ok"
@@ -515,6 +588,7 @@ def _iter_frames(parser, stats: dict) -> Iterator[tuple]:
     stream_valid = False
     last_it = last_t = None
     i_interval = max(1, int(ctx.i_interval))
+    inav = str(parser.headers.get("Firmware revision", "")).strip().upper().startswith("INAV")
     while True:
         pos = reader.tell()
         if pos >= n:
@@ -535,7 +609,7 @@ def _iter_frames(parser, stats: dict) -> Iterator[tuple]:
         reader.seek(pos + 1)
         try:
             if ftype == FrameType.EVENT:
-                status = _read_event(reader, data_bytes, n)
+                status = _read_event(reader, data_bytes, n, inav=inav)
                 if status == "end":
                     stats["ended"] = True
                     stats["truncated"] = False
@@ -730,13 +804,14 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     """One decoded log → SI arrays, extra columns and metadata (see :func:`read_blackbox`)."""
     hdr = log.headers
     fw = firmware_info(hdr, f"{src} log {log.index}")
-    if fw.version > NEWEST_KNOWN:
+    inav = fw.name == "inav"
+    if not inav and fw.version > NEWEST_KNOWN:
         raise GyroInputError(f"{src}: Betaflight {fw.version_str} is newer than the newest release read here (2026.6); "
                              f"its field meanings were not checked")
     gscale = _float_header(hdr.get("gyro_scale", "0x3f800000"))
     if not math.isclose(gscale, 1.0, rel_tol=1e-6):
         raise GyroInputError(f"{src}: gyro_scale {gscale:g} ≠ 1.0: not the deg/s gyroADC of Betaflight 3.1+")
-    hires = bool(hdr.get("blackbox_high_resolution", 0))
+    hires = bool(hdr.get("blackbox_high_resolution", 0)) and not inav
     gyro_div = 10.0 if hires else 1.0
     lacks: list[str] = []
     notes: list[str] = []
@@ -751,8 +826,8 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     rows = np.nonzero(keep)[0]
     t_us = t_us[rows]
     gyro_deg_s = g[rows] / gyro_div
-    rates = loop_rates(hdr, fw)
-    chain = gyro_filter_chain(hdr, fw)
+    rates = inav_loop_rates(hdr) if inav else loop_rates(hdr, fw)
+    chain = inav_filter_chain(hdr, rates) if inav else gyro_filter_chain(hdr, fw)
     it = log.column("loopIteration")
     dt = np.diff(t_us) * 1e-6
     log_hz = 1.0 / float(np.median(dt))
@@ -780,10 +855,23 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
         lacks.append("no accelerometer (accSmooth or acc_1G missing)")
     # debug gyro / gyroUnfilt
     dmode_idx = hdr.get("debug_mode")
-    dname = debug_mode_name(fw.version, int(dmode_idx)) if isinstance(dmode_idx, int) else None
+    dname = debug_mode_name(fw.version, int(dmode_idx)) if isinstance(dmode_idx, int) and not inav else None
     unf = _triplet(log, "gyroUnfilt")
+    raw_inav = _triplet(log, "gyroRaw") if inav else None
     pre_meta = {}
-    if unf is not None:
+    if inav:
+        # INAV blackbox.c loadMainState: gyroRaw[i] = lrintf(gyro.gyroRaw[i]); sensors/gyro.c gyroUpdate:
+        # gyro.gyroRaw = deg/s after zero calibration and sensor/board alignment, before the anti-alias
+        # LPF and every later filter ("unfiltered gyro value [deg/s]"). Logged when the blackbox
+        # include flag GYRO_RAW is set (FLIGHT_LOG_FIELD_CONDITION_GYRO_RAW).
+        if raw_inav is not None:
+            extra.update({f"gyro_prefilter_{ax}_rad_s": raw_inav[rows, i] * DEG for i, ax in enumerate("xyz")})
+            pre_meta = {"source": f"gyroRaw[0..2] (INAV {fw.version_str}: gyro before every software filter, "
+                                  "sensors/gyro.c gyroUpdate); rounded to 1 deg/s by lrintf",
+                        "signal": "raw", "filters_before": []}
+        else:
+            lacks.append("no unfiltered gyro: INAV logs gyroRaw only with the blackbox GYRO_RAW field enabled")
+    elif unf is not None:
         extra.update({f"gyro_prefilter_{ax}_rad_s": unf[rows, i] / gyro_div * DEG for i, ax in enumerate("xyz")})
         pre_meta = {"source": "gyroUnfilt[0..2] (4.5+: gyro before every software filter)", "signal": "raw", "filters_before": []}
     else:
@@ -834,12 +922,20 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
                 extra[f"rotor_hz_{i}"] = col[rows].astype(float)
         meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in Betaflight {fw.version_str}: "
                                    "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)")
+    elif inav:
+        lacks.append("no eRPM per motor (INAV logs one escRPM value in slow frames only): line laws from throttle only")
     else:
         lacks.append("no eRPM (fields need bidirectional DShot and Betaflight 4.5+, or debug_mode RPM_FILTER in 4.0+): "
                      "line laws from throttle only")
     nyq = log_hz / 2.0
-    lacks.append(f"logged at {log_hz:.0f} Hz: content above its Nyquist {nyq:.0f} Hz (gyro runs at {rates['gyro_hz']:.0f} Hz, "
+    runs = f"gyro runs at {rates['gyro_hz']:.0f} Hz" if math.isfinite(rates["gyro_hz"]) else \
+        f"PID loop at {rates['pid_hz']:.0f} Hz, gyro sampling rate not in the header"
+    lacks.append(f"logged at {log_hz:.0f} Hz: content above its Nyquist {nyq:.0f} Hz ({runs}, "
                  f"decimated without anti-alias filter) folds into the band")
+    if inav:
+        lacks.append("INAV header lacks filters that gyroADC has been through (anti-alias PT1 gyro_anti_aliasing_lpf_hz at "
+                     "the gyro rate, LULU, dynamic and secondary dynamic notches, Kalman, the main LPF mode/adaptive "
+                     "cutoff): gyro_filters lists the logged ones only")
     if log.truncated:
         notes.append("log ends inside a frame or without an end-of-log marker (flash full or power cut): complete frames kept")
     meta.update({
@@ -855,11 +951,16 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
         "loop_rate_measured_hz": f"{loop_hz_meas:.6g}",
         "gyro_filters": json.dumps([s.to_dict() for s in chain]),
         "gyro_signal": "filtered (gyroADC: after every software gyro filter listed in gyro_filters)",
-        "debug_mode": f"{dmode_idx} = {('DEBUG_' + dname) if dname else 'unmapped'}",
-        "gyro_units_check": (f"gyroADC logged in deg/s (gyro_scale 1.0{', high resolution x10' if hires else ''}); max |gyro| "
+        "debug_mode": (f"{dmode_idx} (INAV debug list not mapped: gyroRaw carries the unfiltered gyro)" if inav else
+                       f"{dmode_idx} = {('DEBUG_' + dname) if dname else 'unmapped'}"),
+        "gyro_units_check": (f"gyroADC logged in deg/s (gyro_scale 1.0{', high resolution x10' if hires else ''}"
+                             f"{'; INAV blackbox.c: lrintf(gyro.gyroADCf), deg/s' if inav else ''}); max |gyro| "
                              f"{full:.0f} deg/s, {sat_n} samples at the +-2000 deg/s full scale"),
+        "firmware_name": fw.name,
+        "firmware_source_read": (INAV_READ[fw.version[:2]] if inav else
+                                 "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"),
         "motor_output_range": f"{lo:g},{hi:g}",
-        "header_filters": json.dumps({k: v for k, v in hdr.items() if re.match(r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high)", k)}),
+        "header_filters": json.dumps({k: v for k, v in hdr.items() if re.match(r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high|dynamicGyroNotch)", k)}),
     })
     if pre_meta:
         meta["gyro_prefilter"] = json.dumps(pre_meta)
