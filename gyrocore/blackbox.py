@@ -1,4 +1,4 @@
-"""Betaflight / Cleanflight-lineage blackbox logs (.BBL/.BFL/.TXT) as the DESIGN.md data file.
+"""Betaflight / INAV / Cleanflight blackbox logs (.BBL/.BFL/.TXT) as the DESIGN.md data file.
 
 What is ours and what is orangebox's
     Byte-level decoding (headers, field definitions, the variable-byte and tag encodings, the
@@ -33,8 +33,19 @@ What the firmware logged (read in the Betaflight source, tags v3.1.0 … 2026.6.
     * ``rcCommand[3]``: throttle, 1000–2000 (µs-like); written as unsigned ``throttle −
       minthrottle`` in 3.x, so a throttle below ``minthrottle`` wraps to ~4.29e9: read as a
       signed 32-bit value (a repair that is counted).
-INAV and Cleanflight proper (firmware revision not starting "Betaflight") are refused with one
-error line: their units and debug modes have not been read in their source here.
+INAV 9.0.x (source read: :data:`INAV_READ`)
+    * ``gyroADC[i]`` = ``lrintf(gyro.gyroADCf[i])``, deg/s after every gyro filter; ``gyroRaw[i]``
+      = ``lrintf(gyro.gyroRaw[i])``, deg/s after zero calibration and alignment, before every
+      software filter (sensors/gyro.c ``gyroUpdate``): the less-filtered gyro.
+    * ``accSmooth[i]`` = ``lrintf(acc.accADCf[i] · acc_1G)``; ``motor[i]`` in ``motorOutput``;
+      ``rcCommand[3]`` written as unsigned ``throttle − idle`` (same wrap as Betaflight 3.x).
+    * ``looptime`` is the PID loop period; ``P interval`` is ``num/denom``; the end-of-log event
+      carries "End of log (disarm reason:N)"; event 40 is an IMU failure.
+    * Only some gyro filters are in the header (main LPF ``gyro_lpf_hz``, dynamic notch, RPM
+      filter); the rest (anti-alias LPF, LULU, Kalman, …) are said to be missing in ``lacks``.
+Cleanflight 2.4.0, 2.4.1, 2.5.0, 4.2.0, 4.2.2: read as the Betaflight release whose source they
+equal (:data:`CLEANFLIGHT_AS_BETAFLIGHT`). Every other firmware/version is refused with one error
+line naming it: its units and debug modes have not been read in its source here.
 """
 
 from __future__ import annotations
@@ -169,16 +180,34 @@ def notch_q(center_hz: float, cutoff_hz: float) -> float:
 
 @dataclass(frozen=True)
 class FirmwareInfo:
-    """Firmware named by the header: ``name`` ("betaflight"), ``version`` tuple, revision text."""
+    """Firmware named by the header.
+
+    ``name`` ("betaflight", "inav", "cleanflight"); ``version``: the version whose source gives
+    the log's meaning — for Cleanflight the Betaflight release its source equals
+    (:data:`CLEANFLIGHT_AS_BETAFLIGHT`), else the firmware's own; ``release``: the firmware's own
+    version as the header names it; revision text; blackbox data version.
+    """
 
     name: str
     version: tuple[int, ...]
     revision: str
     data_version: int
+    release: tuple[int, ...] | None = None
 
     @property
     def version_str(self) -> str:
         return _version_str(self.version)
+
+    @property
+    def release_str(self) -> str:
+        return _version_str(self.release or self.version)
+
+    @property
+    def label(self) -> str:
+        """E.g. "Betaflight 4.2.0", "INAV 9.0.1", "Cleanflight 2.4.1 (= Betaflight 3.4.1 source)"."""
+        if self.name == "cleanflight":
+            return f"Cleanflight {self.release_str} (= Betaflight {self.version_str} source)"
+        return f"{'INAV' if self.name == 'inav' else 'Betaflight'} {self.version_str}"
 
 
 _REV = re.compile(r"^\s*(Betaflight|INAV|Cleanflight|EmuFlight|Emuflight|Rotorflight|KISS)\s+v?(\d+)\.(\d+)(?:\.(\d+))?", re.I)
@@ -191,6 +220,19 @@ _REV = re.compile(r"^\s*(Betaflight|INAV|Cleanflight|EmuFlight|Emuflight|Rotorfl
 #: order) and main-field list agree line by line with a real INAV 9.0.1 log (tests), so 9.0.x is
 #: read; no other INAV release's source was read.
 INAV_READ = {(9, 0): "iNavFlight/inav 00b5622b: blackbox/blackbox.c, blackbox/blackbox_fielddefs.h, sensors/gyro.c"}
+
+
+#: Cleanflight releases read (own version → the Betaflight release whose source it equals).
+#: Read in the cleanflight/cleanflight repository: the first-parent commits during which
+#: src/main/build/version.h named each version; for each, build/debug.h's debugType_e list is one
+#: list over the whole range and equals that Betaflight release's, and blackbox/blackbox.c,
+#: sensors/gyro.c (and gyro_filter_impl.c for 4.2) differ from the Betaflight tag only in licence
+#: comments, includes and (4.2) a cache-flush state of the header writer. Not read: Cleanflight
+#: 1.x (gyro in raw counts), 2.0.0, 2.1.0, 2.3.0 (the debug list changed while that version was
+#: current: ambiguous), 2.2.0 and 2.3.1 (debug lists of their own, matching no Betaflight release).
+CLEANFLIGHT_AS_BETAFLIGHT = {
+    (2, 4, 0): (3, 4, 0), (2, 4, 1): (3, 4, 1), (2, 5, 0): (3, 5, 0), (4, 2, 0): (4, 2, 0), (4, 2, 2): (4, 2, 2),
+}
 
 
 def firmware_info(headers: dict, source: str = "") -> FirmwareInfo:
@@ -209,7 +251,7 @@ def firmware_info(headers: dict, source: str = "") -> FirmwareInfo:
     m = _REV.match(rev)
     if not m:
         raise GyroInputError(f"{source}: firmware {rev or ftype or 'unnamed'!r} is not one this reader knows "
-                             f"(Betaflight 3.1–2026.6, INAV 9.0)")
+                             f"(Betaflight 3.1–2026.6, INAV 9.0, Cleanflight 2.4/2.5/4.2)")
     name = m.group(1).lower()
     ver = tuple(int(x) for x in m.groups()[1:] if x is not None)
     if len(ver) == 2:
@@ -219,9 +261,17 @@ def firmware_info(headers: dict, source: str = "") -> FirmwareInfo:
             raise GyroInputError(f"{source}: INAV {_version_str(ver)} logs are not read (its blackbox writer and gyro "
                                  f"units were not checked in that release's source); INAV 9.0.x and Betaflight 3.1–2026.6 are")
         return FirmwareInfo(name=name, version=ver, revision=rev, data_version=int(dv))
+    if name == "cleanflight":
+        if ver not in CLEANFLIGHT_AS_BETAFLIGHT:
+            known = ", ".join(_version_str(v) for v in CLEANFLIGHT_AS_BETAFLIGHT)
+            raise GyroInputError(f"{source}: Cleanflight {_version_str(ver)} logs are not read (its debug list and gyro "
+                                 f"fields were not matched to a read source); Cleanflight {known} are")
+        return FirmwareInfo(name=name, version=CLEANFLIGHT_AS_BETAFLIGHT[ver], revision=rev, data_version=int(dv),
+                            release=ver)
     if name != "betaflight":
         raise GyroInputError(f"{source}: {m.group(1)} {_version_str(ver)} logs are not read (units and debug modes of that "
-                             f"firmware were not checked in its source); Betaflight 3.1–2026.6 and INAV 9.0.x are")
+                             f"firmware were not checked in its source); Betaflight 3.1–2026.6, INAV 9.0.x and "
+                             f"Cleanflight 2.4/2.5/4.2 are")
     if ver < (3, 1, 0):
         raise GyroInputError(f"{source}: Betaflight {_version_str(ver)} is older than 3.1 (gyro logged in raw counts with a "
                              f"per-build gyro_scale); this reader knows Betaflight 3.1–2026.6")
@@ -879,7 +929,7 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
         meaning = debug_gyro_meaning(fw, dname, chain) if dname else None
         if dbg is not None and meaning is not None:
             extra.update({f"gyro_prefilter_{ax}_rad_s": dbg[rows, i] * DEG for i, ax in enumerate("xyz")})
-            pre_meta = {"source": f"debug[0..2], debug_mode {dmode_idx} = DEBUG_{meaning.mode} in Betaflight {fw.version_str} ({meaning.source}); "
+            pre_meta = {"source": f"debug[0..2], debug_mode {dmode_idx} = DEBUG_{meaning.mode} in {fw.label} ({meaning.source}); "
                                   f"rounded to 1 deg/s by lrintf",
                         "signal": meaning.kind, "filters_before": [chain[i].to_dict() for i in meaning.before]}
         else:
@@ -920,7 +970,7 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
             col = log.column(f"debug[{i}]")
             if col is not None:
                 extra[f"rotor_hz_{i}"] = col[rows].astype(float)
-        meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in Betaflight {fw.version_str}: "
+        meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in {fw.label}: "
                                    "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)")
     elif inav:
         lacks.append("no eRPM per motor (INAV logs one escRPM value in slow frames only): line laws from throttle only")
@@ -940,7 +990,8 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
         notes.append("log ends inside a frame or without an end-of-log marker (flash full or power cut): complete frames kept")
     meta.update({
         "firmware": fw.revision,
-        "firmware_version": fw.version_str,
+        "firmware_version": fw.release_str,
+        "betaflight_equivalent_version": "" if inav else fw.version_str,
         "blackbox_data_version": str(fw.data_version),
         "craft_name": str(hdr.get("Craft name", "")),
         "gyro_rate_hz": f"{rates['gyro_hz']:.6g}",
@@ -958,7 +1009,8 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
                              f"{full:.0f} deg/s, {sat_n} samples at the +-2000 deg/s full scale"),
         "firmware_name": fw.name,
         "firmware_source_read": (INAV_READ[fw.version[:2]] if inav else
-                                 "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"),
+                                 ("cleanflight/cleanflight commits of that version (version.h), matched to " if fw.name == "cleanflight" else "")
+                                 + "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"),
         "motor_output_range": f"{lo:g},{hi:g}",
         "header_filters": json.dumps({k: v for k, v in hdr.items() if re.match(r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high|dynamicGyroNotch)", k)}),
     })

@@ -238,3 +238,38 @@ def test_inav_truncated_and_corrupt(public_dir, tmp_path):
     idx = np.searchsorted(t_clean, t_kept)
     ok = (idx < t_clean.size) & (t_clean[np.minimum(idx, t_clean.size - 1)] == t_kept)
     assert ok.mean() > 0.99 and rec2.n > full.n - 4 * 300
+
+
+# ----------------------------------------------------------------------------- Cleanflight
+@pytest.mark.parametrize("rev,equiv", [("Cleanflight 2.4.1", (3, 4, 1)), ("Cleanflight 2.5.0", (3, 5, 0)),
+                                       ("Cleanflight 4.2.2", (4, 2, 2))])
+def test_cleanflight_release_reads_as_its_betaflight_source(rev, equiv):
+    """Cleanflight's debug list per release, read in cleanflight/cleanflight (see
+    CLEANFLIGHT_AS_BETAFLIGHT): 2.4.x = Betaflight 3.4, 2.5.0 = 3.5.0, 4.2.x = 4.2.x."""
+    fw = bb.firmware_info({"Data version": 2, "Firmware revision": f"{rev} (abc) OMNIBUSF4"}, "f.BFL")
+    assert fw.name == "cleanflight" and fw.version == equiv and fw.release_str == rev.split()[1]
+    # debug_mode 6 is GYRO_SCALED (the unfiltered gyro) in Betaflight 3.4-4.2 and so in these
+    assert bb.debug_mode_name(fw.version, 6) == "GYRO_SCALED"
+
+
+@pytest.mark.parametrize("rev", ["Cleanflight 2.2.0", "Cleanflight 2.3.1", "Cleanflight 1.14.2", "Cleanflight 2.1.0"])
+def test_cleanflight_release_not_read_is_one_error(rev):
+    with pytest.raises(GyroInputError) as e:
+        bb.firmware_info({"Data version": 2, "Firmware revision": f"{rev} (abc) X"}, "f.BFL")
+    assert rev in str(e.value) and "\n" not in str(e.value)
+
+
+def test_cleanflight_header_on_the_shared_log(shared_data, tmp_path):
+    """The shared Betaflight 3.1.5 frames under a Cleanflight 2.4.1 header (a header patch: no real
+    Cleanflight log was found): debug_mode 6 maps to GYRO_SCALED of Betaflight 3.4.1, named so."""
+    p = shared_data / "betaflight_blackbox" / "better_tune.BBL"
+    if not p.exists():
+        pytest.skip("shared blackbox log absent")
+    data = p.read_bytes()[:200_000]
+    q = tmp_path / "cf.BFL"
+    q.write_bytes(data.replace(b"Betaflight 3.1.5", b"Cleanflight 2.4.1", 1).replace(b"H debug_mode:8", b"H debug_mode:6", 1)
+                  .replace(b"H P interval:1/8", b"H P interval:8", 1))
+    rec, _ = _read(q)
+    assert rec.meta["firmware_name"] == "cleanflight" and rec.meta["firmware_version"] == "2.4.1"
+    assert rec.meta["betaflight_equivalent_version"] == "3.4.1"
+    assert "Cleanflight 2.4.1 (= Betaflight 3.4.1 source)" in json.loads(rec.meta["gyro_prefilter"])["source"]
