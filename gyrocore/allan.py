@@ -735,17 +735,42 @@ def still_fraction(recording: Recording, *, window_s: float = 2.0, false_reject_
     binomial standard error ≤ 3.5 %, ample against the 50 % limit; the gate costs
     O(max_windows · window), not O(n)).
     """
+    return _still_fraction(recording.n, recording.rate_hz, lambda idx, starts, n_win: np.asarray(recording.gyro_rad_s)[idx],
+                           lambda: recording, window_s=window_s, false_reject_rate=false_reject_rate,
+                           max_windows=max_windows)
+
+
+def still_fraction_spilled(store, **options) -> float:
+    """:func:`still_fraction` of a recording held on disk (:func:`gyrocore.recording.spill_columns`):
+    only the judged windows are read (the same rows, the same number)."""
+    from .recording import GYRO_COLS
+
+    head = Recording(t_s=store.t_s, gyro_rad_s=np.broadcast_to(0.0, (store.n, 3)), meta=store.meta)
+
+    def rows(idx, starts, n_win):  # the picked windows, read one at a time
+        return np.concatenate([store.block(GYRO_COLS, int(a), int(a) + n_win) for a in starts])
+
+    def whole():
+        return Recording(t_s=store.t_s, gyro_rad_s=store.block(GYRO_COLS, 0, store.n), meta=store.meta)
+
+    return _still_fraction(store.n, head.rate_hz, rows, whole, **options)
+
+
+def _still_fraction(n: int, rate_hz: float, gyro_rows, whole, *, window_s: float = 2.0,
+                    false_reject_rate: float = 1e-3, max_windows: int = 200) -> float:
     from .bias import StaticBiasCalibrator
 
-    n_win = int(round(window_s * recording.rate_hz))
-    if recording.n < 10 * max(n_win, 8):
+    n_win = int(round(window_s * rate_hz))
+    if n < 10 * max(n_win, 8):
         return float("nan")  # too short to judge
-    W = recording.n // n_win
+    W = n // n_win
     if W > max_windows:
         pick = np.linspace(0, W - 1, max_windows).round().astype(np.int64)
         idx = (pick[:, None] * n_win + np.arange(n_win)[None, :]).ravel()
-        g = np.asarray(recording.gyro_rad_s)[idx]
-        recording = Recording(t_s=np.arange(idx.size) / recording.rate_hz, gyro_rad_s=g)
+        g = gyro_rows(idx, pick * n_win, n_win)
+        recording = Recording(t_s=np.arange(idx.size) / rate_hz, gyro_rad_s=g)
+    else:
+        recording = whole()
     try:
         r = StaticBiasCalibrator(window_s=window_s, false_reject_rate=false_reject_rate).fit(recording)
     except GyroInputError as exc:

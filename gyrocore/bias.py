@@ -162,6 +162,37 @@ def robust_diff_noise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s1, np.clip(rho, -0.95, 0.95)
 
 
+def _rsd_consuming(v: np.ndarray) -> float:
+    """The ``rsd`` of :func:`robust_diff_noise` for one fresh 1-D array, overwriting it (one
+    temporary instead of three; the same value). Falls back to nan when the MAD is 0."""
+    med = np.median(v, overwrite_input=True)  # permutes v; the MAD does not depend on the order
+    np.subtract(v, med, out=v)
+    np.abs(v, out=v)
+    s = _MAD * float(np.median(v, overwrite_input=True))
+    return s if s > 0 else float("nan")
+
+
+def _robust_diff_noise_columns(store) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`robust_diff_noise` of the gyro of a :class:`gyrocore.recording.ColumnSpill`,
+    one column at a time (the same values as the in-memory long-record path)."""
+    from .recording import GYRO_COLS
+
+    if store.n < 4:
+        raise GyroInputError(f"need at least 4 samples to estimate the noise, got {store.n}")
+    s1, s2 = np.empty(3), np.empty(3)
+    for j, nm in enumerate(GYRO_COLS):
+        c = store.column(nm)
+        s1[j] = _rsd_consuming(np.diff(c))
+        s2[j] = _rsd_consuming(c[2:] - c[:-2])
+        del c
+    if not (np.all(s1 > 0) and np.all(s2 > 0)):  # a MAD of 0 (coarse quantization): the whole-array rule
+        x = np.stack([store.column(nm) for nm in GYRO_COLS], axis=1)
+        return robust_diff_noise(x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
+    return s1, np.clip(rho, -0.95, 0.95)
+
+
 def abs_diff_moments(m: int, sigma_diff: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and variance of S = Σ_{k=1}^{m} |Δ_k| for Gaussian Δ (σ_Δ, lag-1 correlation ρ)."""
     sd = np.asarray(sigma_diff, float)
@@ -206,20 +237,66 @@ def _blocks(W: int, n: int, width: int):
     return [(a, min(a + per, W)) for a in range(0, W, per)]
 
 
-def _window_stats(x: np.ndarray, n: int, statistic: str) -> np.ndarray:
-    """Per-window statistic, shape (W, 3), for non-overlapping windows of n samples."""
-    W = x.shape[0] // n
-    xw = x[: W * n].reshape(W, n, x.shape[1])
-    out = np.empty((W, x.shape[1]))
-    for a, b in _blocks(W, n, x.shape[1]):
+class SpilledWindows:
+    """Non-overlapping windows of n samples of a gyro held on disk (a
+    :class:`gyrocore.recording.ColumnSpill`), shape (W, n, 3) like ``x[:W*n].reshape(W, n, 3)``,
+    read a block of windows at a time (:meth:`block`); the window statistics of this module
+    take it in place of the in-memory array and do the same arithmetic on the same blocks."""
+
+    def __init__(self, store, n: int) -> None:
+        from .recording import GYRO_COLS
+
+        self.store = store
+        self.cols = GYRO_COLS
+        self.shape = (store.n // n, n, 3)
+
+    def block(self, a: int, b: int) -> np.ndarray:
+        """Windows a:b, shape (b − a, n, 3) (a fresh array)."""
+        n = self.shape[1]
+        return self.store.block(self.cols, a * n, b * n).reshape(b - a, n, 3)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return self.block(k, k + 1)[0]
+
+
+def _wblock(xw, a: int, b: int) -> np.ndarray:
+    return xw[a:b] if isinstance(xw, np.ndarray) else xw.block(a, b)
+
+
+def _window_stats(x, n: int, statistic: str) -> np.ndarray:
+    """Per-window statistic, shape (W, 3), for non-overlapping windows of n samples.
+
+    ``x`` : (N, C) array, or a :class:`SpilledWindows` of windows of n samples."""
+    if isinstance(x, np.ndarray):
+        W = x.shape[0] // n
+        xw = x[: W * n].reshape(W, n, x.shape[1])
+    else:
+        xw = x
+        W = xw.shape[0]
+    C = xw.shape[2]
+    out = np.empty((W, C))
+    for a, b in _blocks(W, n, C):
+        blk = _wblock(xw, a, b)
         if statistic == "abs_diff":
-            out[a:b] = np.abs(np.diff(xw[a:b], axis=1)).sum(axis=1)
+            out[a:b] = np.abs(np.diff(blk, axis=1)).sum(axis=1)
         else:
-            out[a:b] = xw[a:b].var(axis=1, ddof=1)
+            out[a:b] = blk.var(axis=1, ddof=1)
+        del blk
     return out
 
 
-def _lag_sums(xw: np.ndarray, sel: np.ndarray, L: int) -> tuple[np.ndarray, list[np.ndarray]]:
+def _window_means(xw) -> np.ndarray:
+    """Mean of every window, shape (W, C), block by block."""
+    W, n, C = xw.shape
+    if isinstance(xw, np.ndarray):
+        return xw.mean(axis=1)
+    out = np.empty((W, C))
+    for a, b in _blocks(W, n, C):
+        out[a:b] = xw.block(a, b).mean(axis=1)
+    return out
+
+
+def _lag_sums(xw, sel: np.ndarray, L: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """c0 and the lag-k cross sums of the demeaned selected windows, block by block."""
     W, n, C = xw.shape
     c0 = np.zeros(C)
@@ -228,7 +305,7 @@ def _lag_sums(xw: np.ndarray, sel: np.ndarray, L: int) -> tuple[np.ndarray, list
         s = sel[a:b]
         if not s.any():
             continue
-        blk = xw[a:b][s]
+        blk = _wblock(xw, a, b)[s]
         d = blk - blk.mean(axis=1, keepdims=True)
         del blk
         c0 = c0 + np.einsum("wnc,wnc->c", d, d)
@@ -452,7 +529,7 @@ class StaticBiasCalibrator:
                     "the variance gate's false-reject rate is approximate"
                 )
             return None, None
-        s2w = _window_stats(xw.reshape(W * n, -1), n, "variance")
+        s2w = _window_stats(xw.reshape(W * n, -1) if isinstance(xw, np.ndarray) else xw, n, "variance")
         qv = np.quantile(s2w, quantile, axis=0)
         dof = np.full(3, float(n - 1))
         for _ in range(2):  # white start, then with the measured correlation
@@ -480,21 +557,43 @@ class StaticBiasCalibrator:
             every window tried (one line, with the threshold and how many windows were tried).
         """
         x = np.asarray(recording.gyro_rad_s, float)
-        rate = recording.rate_hz
+        return self._fit(recording, x.shape[0], recording.rate_hz, lambda: self._noise(x),
+                         lambda n: (x, x[: (x.shape[0] // n) * n].reshape(x.shape[0] // n, n, 3)))
+
+    def fit_spilled(self, store) -> StaticBiasResult:
+        """:meth:`fit` of a long recording held on disk (:func:`gyrocore.recording.spill_columns`),
+        read a block of windows at a time: memory O(one gyro column) for the robust noise
+        (one column at a time, as :func:`robust_diff_noise` does for long records) and O(W)
+        for the window statistics, instead of the (N, 3) gyro. Same numbers as :meth:`fit`
+        of the recording in memory (same blocks, same order of operations)."""
+        from .recording import Recording
+
+        # what _result reads (the rate, the start time): t with a zero-stride stand-in gyro
+        head = Recording(t_s=store.t_s, gyro_rad_s=np.broadcast_to(0.0, (store.n, 3)), meta=store.meta)
+        rate = head.rate_hz
+
+        def noise():
+            if self.noise_sigma_rad_s is not None:
+                return self._noise(None)
+            return _robust_diff_noise_columns(store)
+
+        return self._fit(head, store.n, rate, noise, lambda n: (SpilledWindows(store, n),) * 2)
+
+    def _fit(self, recording, N: int, rate: float, noise, windows) -> StaticBiasResult:
         if not (math.isfinite(rate) and rate > 0):
             raise GyroInputError("static bias needs a sample rate (at least 2 timestamps)")
         dt = 1.0 / rate
         n = int(round(self.window_s * rate)) if self.window_s is not None else self.window_samples
         if n < 8:
             raise GyroInputError(f"window of {n} samples is too short (need >= 8)")
-        W = x.shape[0] // n
+        W = N // n
         need = 2 if self.rule == "converge" else 1
         if W < need:
             raise GyroInputError(
-                f"recording has {x.shape[0]} samples, shorter than {need} window(s) of {n} samples"
+                f"recording has {N} samples, shorter than {need} window(s) of {n} samples"
             )
-        sigma_diff, rho = self._noise(x)
-        xw = x[: W * n].reshape(W, n, 3)
+        sigma_diff, rho = noise()
+        x, xw = windows(n)  # the (N, 3) gyro and its (W, n, 3) windows (or both SpilledWindows)
         sigma2 = dof = None
         if self.statistic == "variance" and self.rule in ("mean", "median"):
             sigma2, dof = self._variance_noise(xw, rho)
@@ -522,7 +621,7 @@ class StaticBiasCalibrator:
         if self.noise_sigma_rad_s is not None:
             sigma = sigma_diff / math.sqrt(2.0)
         else:
-            wv = _window_stats(x[: W * n], n, "variance")  # per-window variances, block by block
+            wv = _window_stats(x[: W * n] if isinstance(x, np.ndarray) else x, n, "variance")  # block by block
             sigma = np.sqrt((wv[still] if n_still else wv).mean(axis=0))
         last = W if self.max_retries is None else min(W, 1 + int(self.max_retries) + (need - 1))
 
@@ -543,7 +642,7 @@ class StaticBiasCalibrator:
             # a ramp a moves it by a·n·dt.
             step = thr.copy()
             ramp = thr / (n * dt)
-            means = xw.mean(axis=1)
+            means = _window_means(xw)
             for k in range(1, last):
                 if ok(means[k] - means[k - 1]):
                     bias = 0.5 * (means[k] + means[k - 1])

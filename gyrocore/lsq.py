@@ -59,6 +59,8 @@ __all__ = [
     "build_design",
     "solve",
     "fit_effects",
+    "RowSource",
+    "ArrayRows",
     "PLAUSIBLE_MAGNITUDE",
     "NOISY_REGRESSOR_EFFECTS",
     "ljung_box_p",
@@ -854,14 +856,17 @@ def fit_effects(
     chunk_rows: int | None = CHUNK_ROWS,
     keep_residual: bool = True,
     overwrite_r: bool = False,
+    residual_sink=None,
     **options,
 ) -> LsqFit:
     """Fit the linearised ``effects`` to r = y − ω_ref jointly (see :func:`solve`).
 
     Parameters
     ----------
-    r : ndarray, shape (N, 3)
-        Measured minus reference rate, rad/s, S frame.
+    r : ndarray, shape (N, 3), or RowSource
+        Measured minus reference rate, rad/s, S frame; or a :class:`RowSource` that gives r
+        and the model inputs a window at a time (a record on disk; ``inp`` is then unused
+        and the chunked path is taken whenever ``average`` > 1).
     effects : sequence of str
         Catalogue effects with regressors (``effects.design``); the order matters for the
         observability test (an earlier effect keeps a column that a later one duplicates).
@@ -885,14 +890,25 @@ def fit_effects(
         Chunked path only: write the residual into ``r`` (a float64 (N, 3) array the caller
         no longer needs) and return it as ``residual_rad_s``, saving one (N, 3) array —
         like scipy's ``overwrite_a``.
+    residual_sink : callable, optional
+        ``residual_sink(a, b, e)`` receives the full-resolution residual of rows a:b
+        (shape (b − a, 3), rad/s) window by window (chunked path, taken whenever a sink is
+        given), e.g. to write it to disk instead of holding (N, 3) in memory.
     **options
         Keyword options of :func:`solve`.
     """
     average = max(1, int(options.get("average", 1)))
+    if isinstance(r, RowSource):
+        if average > 1 or residual_sink is not None:
+            return _fit_effects_chunked(r, effects, None, orders=orders, chunk_rows=int(chunk_rows or CHUNK_ROWS),
+                                        keep_residual=keep_residual, residual_sink=residual_sink, **options)
+        # no block means (few rows with a weight): the whole-array path on the rows read back
+        r, inp = r.r_rows(0, r.n), r.inputs(0, r.n)
     n = int(np.shape(r)[0]) if np.ndim(r) >= 1 else 0
-    if chunk_rows and average > 1 and n > 4 * int(chunk_rows):
-        return _fit_effects_chunked(r, effects, inp, orders=orders, chunk_rows=int(chunk_rows),
-                                    keep_residual=keep_residual, overwrite_r=overwrite_r, **options)
+    if residual_sink is not None or (chunk_rows and average > 1 and n > 4 * int(chunk_rows)):
+        return _fit_effects_chunked(r, effects, inp, orders=orders, chunk_rows=int(chunk_rows or CHUNK_ROWS),
+                                    keep_residual=keep_residual, overwrite_r=overwrite_r,
+                                    residual_sink=residual_sink, **options)
     A, names, slices = build_design(effects, inp, orders=orders)
     fit = solve(r, A, names, slices, **options)
     if not keep_residual:
@@ -912,11 +928,62 @@ def _window_inputs(inp: E.ModelInputs, lo: int, hi: int) -> E.ModelInputs:
     return E.ModelInputs(**kw)
 
 
-def _window_design(effects, inp, orders, t0_c, a: int, b: int, n: int):
+class RowSource:
+    """Rows of a fit's left-hand side r = y − ω_ref and of its model inputs, a window at a time.
+
+    The chunked (block-mean) path of :func:`fit_effects` reads its data only through this
+    interface, so a record held on disk (:class:`gyrocore.stream.SpillRows`: the columns of a
+    long data file, read back a window at a time) is fitted with exactly the arithmetic of the
+    in-memory arrays (:class:`ArrayRows`) — same windows, same sums, same numbers.
+
+    Attributes
+    ----------
+    n : int
+        Number of rows N.
+    has_temp : bool
+        Whether the inputs carry a temperature column.
+    """
+
+    n: int = 0
+    has_temp: bool = False
+
+    def r_rows(self, a: int, b: int) -> np.ndarray:
+        """r on rows a:b, rad/s, shape (b − a, 3) (a fresh or read-only array)."""
+        raise NotImplementedError
+
+    def inputs(self, lo: int, hi: int) -> E.ModelInputs:
+        """Model inputs of rows lo:hi (``t_since_power_up_s`` counted from the record's start)."""
+        raise NotImplementedError
+
+    def temp_mean_c(self) -> float | None:
+        """Mean temperature over all N rows, °C (the thermal T0 of :func:`gyrocore.effects.design`)."""
+        raise NotImplementedError
+
+
+class ArrayRows(RowSource):
+    """:class:`RowSource` over in-memory arrays ``r`` (N, 3) and ``inp``."""
+
+    def __init__(self, r: np.ndarray, inp: E.ModelInputs) -> None:
+        self.r = r
+        self.inp = inp
+        self.n = int(np.shape(r)[0])
+        self.has_temp = inp.temp_c is not None
+
+    def r_rows(self, a: int, b: int) -> np.ndarray:
+        return self.r[a:b]
+
+    def inputs(self, lo: int, hi: int) -> E.ModelInputs:
+        return _window_inputs(self.inp, lo, hi)
+
+    def temp_mean_c(self) -> float | None:
+        return None if self.inp.temp_c is None else float(np.mean(np.asarray(self.inp.temp_c, float)))
+
+
+def _window_design(effects, src: RowSource, orders, t0_c, a: int, b: int, n: int):
     """Design rows a:b of the whole record, built on a:b plus one neighbour each side (so
     central differences at the window edges equal those of the whole record)."""
     lo, hi = max(a - 1, 0), min(b + 1, n)
-    A, names, slices = build_design(effects, _window_inputs(inp, lo, hi), orders=orders, t0_c=t0_c)
+    A, names, slices = build_design(effects, src.inputs(lo, hi), orders=orders, t0_c=t0_c)
     A = A[a - lo : a - lo + (b - a)]
     if not np.all(np.isfinite(A)):
         raise GyroInputError("lsq: non-finite values in the data or regressors")
@@ -924,22 +991,30 @@ def _window_design(effects, inp, orders, t0_c, a: int, b: int, n: int):
 
 
 def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_residual: bool = True,
-                         overwrite_r: bool = False, weights=None, stride: int = 1, average: int = 1, **options) -> LsqFit:
-    """:func:`fit_effects` for long records: block means built window by window (see there)."""
-    r_all = np.asarray(r, float)
-    N = r_all.shape[0]
-    if r_all.shape != (N, 3):
-        raise GyroInputError(f"lsq: r has shape {r_all.shape}; expected (N,3)")
-    if inp.n != N:
-        raise GyroInputError(f"lsq: r has {N} rows, the model inputs {inp.n}")
+                         overwrite_r: bool = False, residual_sink=None, weights=None, stride: int = 1,
+                         average: int = 1, **options) -> LsqFit:
+    """:func:`fit_effects` for long records: block means built window by window (see there).
+
+    ``r`` is an (N, 3) array (with ``inp``) or a :class:`RowSource` (``inp`` unused)."""
+    if isinstance(r, RowSource):
+        src = r
+        r_arr = None
+    else:
+        r_arr = np.asarray(r, float)
+        if r_arr.ndim != 2 or r_arr.shape[1] != 3:
+            raise GyroInputError(f"lsq: r has shape {r_arr.shape}; expected (N,3)")
+        if inp.n != r_arr.shape[0]:
+            raise GyroInputError(f"lsq: r has {r_arr.shape[0]} rows, the model inputs {inp.n}")
+        if not np.all(np.isfinite(r_arr)):
+            raise GyroInputError("lsq: non-finite values in the data or regressors")
+        src = ArrayRows(r_arr, inp)
+    N = src.n
     stride = max(1, int(stride))
     average = max(1, int(average))
     w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(
         np.asarray(weights, float).reshape(N, -1), (N, 3))
     if np.any(~np.isfinite(w_all)) or np.any(w_all < 0):
         raise GyroInputError("lsq: weights must be finite and non-negative")
-    if not np.all(np.isfinite(r_all)):
-        raise GyroInputError("lsq: non-finite values in the data or regressors")
     keep = np.zeros(N, bool)  # the rows solve() uses: every stride-th with a non-zero weight
     keep[::stride] = True
     keep &= np.any(w_all > 0, axis=1)
@@ -950,7 +1025,7 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
     if nb < 2:
         raise GyroInputError(f"lsq: average={average} leaves fewer than 2 rows")
     m = nb * average
-    t0_c = None if inp.temp_c is None else float(np.mean(np.asarray(inp.temp_c, float)))
+    t0_c = src.temp_mean_c() if src.has_temp else None
     # pass 1: weighted block sums of r and A over `average` consecutive used rows (the
     # same sums, in the same order, as solve(average=) except where a block straddles two
     # windows)
@@ -967,11 +1042,14 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
             if j0 >= m:
                 break
             continue
-        A, names, slices = _window_design(effects, inp, orders, t0_c, a, b, N)
+        A, names, slices = _window_design(effects, src, orders, t0_c, a, b, N)
         wr = w_all[rows]
         A = A[rows - a]
         A *= wr[..., None]
-        rw = r_all[rows] * wr
+        rw = src.r_rows(a, b)[rows - a]
+        if r_arr is None and not np.all(np.isfinite(rw)):
+            raise GyroInputError("lsq: non-finite values in the data or regressors")
+        rw = rw * wr
         if SA is None:
             SA = np.zeros((nb, 3, A.shape[2]))
             Sr = np.zeros((nb, 3))
@@ -992,20 +1070,22 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
     del SA
     # pass 2: the residual r − A·θ at full resolution and its RMS over the used rows
     theta = fit.theta
-    in_place = keep_residual and overwrite_r and r_all is r and r_all.flags.writeable
-    if not keep_residual:
+    in_place = keep_residual and overwrite_r and r_arr is not None and r_arr is r and r_arr.flags.writeable
+    if not keep_residual or r_arr is None:
         resid = np.zeros((0, 3))
     else:
-        resid = r_all if in_place else np.empty_like(r_all)  # window a:b reads only r[a:b]
+        resid = r_arr if in_place else np.empty_like(r_arr)  # window a:b reads only r[a:b]
     num = np.zeros(3)
     den = np.zeros(3)
     for a in range(0, N, chunk_rows):
         b = min(a + chunk_rows, N)
-        A, _, _ = _window_design(effects, inp, orders, t0_c, a, b, N)
-        e = r_all[a:b] - np.einsum("nip,p->ni", A, theta)
+        A, _, _ = _window_design(effects, src, orders, t0_c, a, b, N)
+        e = src.r_rows(a, b) - np.einsum("nip,p->ni", A, theta)
         del A
-        if keep_residual:
+        if keep_residual and r_arr is not None:
             resid[a:b] = e
+        if residual_sink is not None:
+            residual_sink(a, b, e)
         sel = keep[a:b]
         wu = w_all[a:b][sel]
         num += np.sum(wu * e[sel] ** 2, axis=0)

@@ -251,6 +251,11 @@ def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
     return np.stack([np.interp(t - tau_s, t, w[:, i]) for i in range(3)], axis=1)
 
 
+def _swap(r_inp, effects):
+    """(r, inp), effects -> the positional arguments (r, effects, inp) of ``lsq.fit_effects``."""
+    return r_inp[0], effects, r_inp[1]
+
+
 def _external_bias_dict(ext) -> dict:
     """``bias_rad_s``, ``bias_stderr_rad_s``, ``noise_lr_rad2_s`` from a StaticBiasResult or a mapping."""
     if hasattr(ext, "bias_rad_s") and hasattr(ext, "noise_sigma_rad_s"):
@@ -386,6 +391,34 @@ class Calibrator:
             return self._fit_integral(recording, common)
         return self._fit_lsq(recording, common)
 
+    def fit_spilled(self, store, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
+        """Fit a long recording held on disk (:func:`gyrocore.recording.spill_columns` with
+        ``groups=("temp", "ref_rate")``), a window at a time (:mod:`gyrocore.stream`).
+
+        Reference rates only (method ``rate_reference``); the result equals :meth:`fit` of the
+        same recording in memory (the same windows and block sums: the same numbers, see
+        :func:`gyrocore.lsq.fit_effects`). Memory: the time column, one weight column and one
+        residual axis at a time, not the recording.
+        """
+        from .recording import REF_RATE_COLS, TEMP_COL
+
+        if self.segments is not None:
+            raise GyroInputError("the integral method (segments) needs the recording in memory")
+        if not all(c in store.names for c in REF_RATE_COLS):
+            raise GyroInputError("a streamed fit needs reference rates (ref_*_rad_s)")
+        src_name = src_sha = None
+        if source_path is not None:
+            src_name = Path(source_path).name
+            src_sha = file_sha256(source_path)
+        sensor = self.sensor or str(store.meta.get("sensor", "unknown"))
+        for eff in self.effects:
+            if _needs_accel(eff) and "accel_x_m_s2" not in store.names:
+                raise GyroInputError(f"effect {eff} needs the accel_*_m_s2 columns, which the data lack")
+            if _needs_temp(eff) and TEMP_COL not in store.names:
+                raise GyroInputError(f"effect {eff} needs the temp_c column, which the data lack")
+        common = dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
+        return self._fit_lsq(None, common, store=store)
+
     # ------------------------------------------------------------------ integral method
     def _fit_integral(self, rec: Recording, common: dict) -> CalibrationResult:
         from .rotations import integral_calibration
@@ -465,10 +498,44 @@ class Calibrator:
         )
         return np.zeros((rec.n, 3)), m.astype(float), "still", notes
 
-    def _fit_lsq(self, rec: Recording, common: dict) -> CalibrationResult:
-        w_ref, weights, method, notes = self._references(rec)
-        y = rec.gyro_rad_s
-        t = rec.t_s
+    def _fit_lsq(self, rec: Recording, common: dict, *, store=None) -> CalibrationResult:
+        if store is not None:  # a long recording on disk (gyrocore.stream): same fit, window by window
+            from .stream import ResidualFiles, SpillRows
+
+            n_all = store.n
+            w_ref = None
+            weights, method, notes = np.broadcast_to(1.0, (n_all,)), "rate_reference", []
+
+            def lhs(tau):
+                return SpillRows(store, tau_s=tau), None
+
+            sink = ResidualFiles(store.folder, n_all)
+            first_kw = dict(residual_sink=sink, keep_residual=False)
+
+            def first_axis(fit, i):  # a fresh array: the robust pass works on it in place
+                return sink.axis(i)
+
+            def temp_column():
+                return store.column("temp_c")
+        else:
+            w_ref, weights, method, notes = self._references(rec)
+            n_all = rec.n
+            y = rec.gyro_rad_s
+            t = rec.t_s
+
+            def lhs(tau):
+                # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
+                return y - _shift_rate(t, w_ref, tau), E.ModelInputs(
+                    t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau), f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
+
+            first_kw = dict(overwrite_r=True)
+
+            def first_axis(fit, i):  # a fresh array: the robust pass works on it in place
+                return fit.residual_rad_s[:, i].copy()
+
+            def temp_column():
+                return np.asarray(rec.temp_c, float)
+
         n_used = int(np.sum(weights > 0))
         average = max(1, int(math.ceil(n_used / self.max_rows)))
         if average > 1:
@@ -479,20 +546,13 @@ class Calibrator:
         thermal = [e for e in effects if e in E.POLYNOMIAL]
         tau_total = 0.0
 
-        def inputs(tau):
-            return E.ModelInputs(t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau),
-                                 f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
-
-        def residual(tau):
-            return y - _shift_rate(t, w_ref, tau)
-
         # 1) fit at the highest thermal order (or the fixed one) to settle τ and transients
         orders: dict[str, int] = {
             e: (self.max_thermal_order if self.thermal_order == "auto" else int(self.thermal_order)) for e in thermal
         }
         tests = []
         # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
-        fit = lsq.fit_effects(residual(0.0), effects, inputs(0.0), orders=orders, overwrite_r=True, **opts)
+        fit = lsq.fit_effects(*_swap(lhs(0.0), effects), orders=orders, **first_kw, **opts)
         # time_offset: Gauss–Newton on τ (the regressor −dω/dt is a linearisation)
         if "time_offset" in effects:
             for _ in range(8):
@@ -501,30 +561,34 @@ class Calibrator:
                     break
                 tau_total += d
                 fit = None  # free the previous full-resolution residual first
-                fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders,
-                                      overwrite_r=True, **opts)
+                fit = lsq.fit_effects(*_swap(lhs(tau_total), effects), orders=orders, **first_kw, **opts)
                 if abs(float(fit.effect_theta("time_offset")[0])) < 1e-3 * float(fit.effect_stderr("time_offset")[0]):
                     break
         # robust pass: drop transients the model does not describe
         if self.robust and fit.rank:
-            e = fit.residual_rad_s
             used = weights > 0
             # per axis (same values as np.median(e[used], axis=0)): one (N,) copy at a time
             med, s_rob = np.zeros(3), np.zeros(3)
             all_used = bool(used.all())
             for i in range(3):
-                ei = e[:, i] if all_used else e[used, i]
-                med[i] = np.median(ei)
-                dev = np.abs(ei - med[i])
+                # in place on a fresh copy of the axis: the median and the MAD do not depend
+                # on the order the partition leaves (the same values, one (N,) array)
+                ei = first_axis(fit, i)
+                ei = ei if all_used else ei[used]
+                med[i] = np.median(ei, overwrite_input=True)
+                np.subtract(ei, med[i], out=ei)
+                np.abs(ei, out=ei)
+                s_rob[i] = 1.4826 * np.median(ei, overwrite_input=True)
                 del ei
-                s_rob[i] = 1.4826 * np.median(dev, overwrite_input=True)
-                del dev
             thr = 6.0 * np.where(s_rob > 0, s_rob, np.inf)
-            bad = np.zeros(e.shape[0], bool)  # |e − med| > thr on any axis, one axis at a time
+            bad = np.zeros(n_all, bool)  # |e − med| > thr on any axis, one axis at a time
             for i in range(3):
-                bad |= np.abs(e[:, i] - med[i]) > thr[i]
+                ei = first_axis(fit, i)
+                np.subtract(ei, med[i], out=ei)
+                np.abs(ei, out=ei)
+                bad |= ei > thr[i]
+                del ei
             bad &= used
-            del e
             nb = int(bad.sum())
             # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
             if 0 < nb < 0.05 * used.sum():
@@ -538,26 +602,24 @@ class Calibrator:
             from .thermal import select_thermal_orders
 
             orders, tests = select_thermal_orders(
-                residual(tau_total), inputs(tau_total), effects, max_order=self.max_thermal_order,
+                *lhs(tau_total), effects, max_order=self.max_thermal_order,
                 alpha=self.thermal_alpha, **dict(opts, on_unobservable="drop", keep_residual=False))
         # only θ, its standard errors and the residual RMS are kept from the final fit
-        fit = lsq.fit_effects(residual(tau_total), effects, inputs(tau_total), orders=orders,
-                              keep_residual=False, **opts)
+        fit = lsq.fit_effects(*_swap(lhs(tau_total), effects), orders=orders, keep_residual=False, **opts)
         if "time_offset" in effects and np.isfinite(fit.effect_stderr("time_offset")[0]):
             tau_total += float(fit.effect_theta("time_offset")[0])
         params: dict = {}
         stderr: dict = {}
-        inp0 = inputs(tau_total)
         for eff in effects:
             sl = fit.slices[eff]
             order = orders.get(eff, 1)
             params[eff] = _unflatten(eff, fit.theta[sl], order)
             stderr[eff] = _unflatten(eff, fit.stderr[sl], order)
             if eff in E.POLYNOMIAL:
-                T = np.asarray(rec.temp_c, float)
+                T = temp_column()
                 Tu = T[opts["weights"] > 0]
                 # design() centres the polynomial on the mean temperature of all rows it gets
-                params[eff].update(t0_c=np.asarray(float(np.mean(inp0.temp_c))),
+                params[eff].update(t0_c=np.asarray(float(np.mean(T))),
                                    temp_min_c=np.asarray(float(Tu.min())), temp_max_c=np.asarray(float(Tu.max())))
                 stderr[eff].update({k: np.asarray(np.nan) for k in _THERMAL_META})
         if "time_offset" in effects:

@@ -46,6 +46,7 @@ __all__ = [
     "concat_recordings",
     "spill_columns",
     "ColumnSpill",
+    "file_layout",
     "detect_saturation",
     "locate_bad_value",
     "AXES",
@@ -666,6 +667,34 @@ def _check_header(header: list[str], path: str) -> None:
         raise GyroInputError(f"{path}: empty column name in header")
 
 
+def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int]:
+    """Column groups present in a data file (CSV or Parquet) and its estimated number of rows,
+    from the header and the file size only (no data read).
+
+    Returns
+    -------
+    groups : tuple of str
+        Those of :data:`COLUMN_GROUPS` the header holds (``extra``: any other column).
+    est_rows : int
+        Parquet: the row count of its metadata; CSV: the file size over the mean length of
+        the first 64 KiB of lines.
+    """
+    path = str(path)
+    if is_parquet(path):
+        pf, header, _m = _open_parquet(path)
+        est = int(pf.metadata.num_rows)
+    else:
+        _sniff_file(path)
+        _m, header, _n = _header_info(path)
+        with open(path, "rb") as fh:
+            sample = fh.read(1 << 16)
+        est = int(os.path.getsize(path) / max(len(sample) / max(sample.count(b"\n"), 1), 1.0))
+    lay = _Layout(header, path)
+    present = {"accel": lay.accel is not None, "temp": lay.temp is not None, "ref_rate": lay.rref is not None,
+               "ref_quat": lay.qref is not None, "extra": bool(lay.extra)}
+    return tuple(g for g in COLUMN_GROUPS if present[g]), est
+
+
 #: Column groups a reader can be asked for (``columns=``); ``t_s`` and the gyro are always read.
 COLUMN_GROUPS = ("accel", "temp", "ref_rate", "ref_quat", "extra")
 
@@ -800,12 +829,15 @@ def _robust_noise(x: np.ndarray) -> float:
     d = np.diff(x)
     if d.size == 0:
         return 0.0
-    a = d - np.median(d)
-    np.abs(a, out=a)
-    mad = float(np.median(a, overwrite_input=True))  # in place: same value, one temporary fewer
-    del a
+    # in place (the median and the MAD do not depend on the order of d, which the partition
+    # permutes): the same values with d as the only temporary
+    med = np.median(d, overwrite_input=True)
+    np.subtract(d, med, out=d)
+    np.abs(d, out=d)
+    mad = float(np.median(d, overwrite_input=True))
     if mad > 0:
         return 1.4826 * mad / np.sqrt(2.0)
+    d = np.diff(x)
     nz = np.abs(d[d != 0])
     return float(nz.min()) if nz.size else 0.0
 
@@ -853,7 +885,7 @@ def detect_saturation(
         fin = np.isfinite(col)
         if fin.sum() < 10:
             continue
-        c = col[fin]
+        c = col if fin.all() else col[fin]  # no copy of an all-finite column
         c_max, c_min = float(c.max()), float(c.min())
         if int(np.count_nonzero(c == c_max)) < min_run and int(np.count_nonzero(c == c_min)) < min_run:
             continue  # neither extreme repeats: no plateau possible (skips the medians below)
@@ -920,9 +952,11 @@ def _timing_checks(t: np.ndarray, path: str, retime: bool) -> np.ndarray:
     d = np.diff(t)
     if d.size < 2:
         return t
-    med = float(np.median(d))
     mean = float((t[-1] - t[0]) / d.size)
     mx = float(d.max())
+    # the partition permutes d in place; what follows (max, counts, a sum of integers) does
+    # not depend on the order: the same values with d as the only temporary
+    med = float(np.median(d, overwrite_input=True))
     if med < 0.5 * mean and mx > 4.0 * mean:
         if retime:
             warn_repair(
@@ -1447,6 +1481,21 @@ class ColumnSpill:
             raise KeyError(name)
         return np.fromfile(self.folder / f"{name}.f64", dtype=np.float64, count=self.n)
 
+    def rows(self, name: str, a: int, b: int) -> np.ndarray:
+        """Rows a:b of one column, shape (b − a,), float64 (a fresh array)."""
+        if name not in self.names:
+            raise KeyError(name)
+        a, b = max(0, int(a)), min(self.n, int(b))
+        return np.fromfile(self.folder / f"{name}.f64", dtype=np.float64, count=max(b - a, 0), offset=8 * a)
+
+    def block(self, names, a: int, b: int) -> np.ndarray:
+        """Rows a:b of several columns side by side, shape (b − a, len(names))."""
+        a, b = max(0, int(a)), min(self.n, int(b))
+        out = np.empty((max(b - a, 0), len(names)))
+        for j, nm in enumerate(names):
+            out[:, j] = self.rows(nm, a, b)
+        return out
+
     def recording(self, gyro_axis: int, *, accel_axis: int | None = None) -> Recording:
         """A :class:`Recording` holding only gyro axis ``gyro_axis`` (the other two axes are
         views of the same column: use only that axis), optionally one accel axis likewise."""
@@ -1457,14 +1506,26 @@ class ColumnSpill:
                          meta=self.meta)
 
 
+def _release_arrow_memory() -> None:
+    """Return the memory Arrow's allocator keeps after a read to the system (its pools hold
+    freed blocks for reuse: ~20 MiB after streaming a long CSV)."""
+    import sys
+
+    pa = sys.modules.get("pyarrow")
+    if pa is not None:
+        pa.default_memory_pool().release_unused()
+
+
 def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: bool = False, rows: int = 32_768,
-                  repair: bool = True) -> ColumnSpill:
+                  repair: bool = True, groups: Iterable[str] = ()) -> ColumnSpill:
     """Stream a data file (CSV or Parquet) into per-column files in ``folder``, with the
     same repairs, checks, warnings and errors as :func:`read_recording` — run one column at
     a time, so memory stays O(2 columns) instead of O(all columns).
 
-    Columns kept: ``t_s``, the gyro (SI) and, with ``accel``, the accel. The saturation check
-    warns as usual but the ``saturated`` flag column is not kept. No ``retime``.
+    Columns kept: ``t_s``, the gyro (SI) and, with ``accel``, the accel; ``groups`` adds
+    ``temp`` (``temp_c``), ``ref_rate`` (``ref_*_rad_s``) and ``ref_quat`` (``ref_q*``)
+    when the file has them. The saturation check warns as usual but the ``saturated`` flag
+    column is not kept. No ``retime``.
     """
     path = str(path)
     folder = Path(folder)
@@ -1475,19 +1536,36 @@ def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: 
     else:
         _sniff_file(path)
         _m, header, _ = _header_info(path)
-    layout = _Layout(header, path, ("accel",))
+    groups = tuple(groups)
+    bad = sorted(set(groups) - {"temp", "ref_rate", "ref_quat"})
+    if bad:
+        raise ValueError(f"spill_columns: unknown column group(s) {bad}")
+    layout = _Layout(header, path, ("accel", *groups))
     has_accel = layout.accel is not None
     if has_accel and accel:
         names += list(ACCEL_COLS)
+    if layout.temp is not None:
+        names.append(TEMP_COL)
+    if layout.rref is not None:
+        names += list(REF_RATE_COLS)
+    if layout.qref is not None:
+        names += list(REF_QUAT_COLS)
+    read_groups = (("accel",) if has_accel else ()) + groups
     files = {nm: open(folder / f"{nm}.f64", "wb") for nm in names}
     n = 0
     meta: dict[str, str] = {}
     g_max, g_min = -np.inf, np.inf
     mom = _Moments([0, 1, 2])
     try:
-        for ch in iter_chunks(path, rows=rows, repair=repair, columns=("accel",) if has_accel else ()):
+        for ch in iter_chunks(path, rows=rows, repair=repair, columns=read_groups):
             meta = dict(ch.meta)
             cols = {TIME_COL: ch.t_s, **{GYRO_COLS[j]: ch.gyro_rad_s[:, j] for j in range(3)}}
+            if layout.temp is not None:
+                cols[TEMP_COL] = ch.temp_c
+            if layout.rref is not None:
+                cols.update({REF_RATE_COLS[j]: ch.ref_rate_rad_s[:, j] for j in range(3)})
+            if layout.qref is not None:
+                cols.update({REF_QUAT_COLS[j]: ch.ref_quat_wxyz[:, j] for j in range(4)})
             if has_accel:
                 mom.update({j: ch.accel_m_s2[:, j].copy() for j in range(3)})
                 if accel:
@@ -1500,6 +1578,7 @@ def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: 
     finally:
         for fh in files.values():
             fh.close()
+    _release_arrow_memory()
     if n < 2:
         raise GyroInputError(f"{path}: fewer than 2 valid samples")
     t = np.fromfile(folder / f"{TIME_COL}.f64", dtype=np.float64, count=n)
@@ -1523,8 +1602,8 @@ def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: 
                 med, noise = [], []
                 for j in range(3):
                     c = store.column(GYRO_COLS[j])
-                    med.append(float(np.median(c)))
                     noise.append(_robust_noise(c))
+                    med.append(float(np.median(c, overwrite_input=True)))  # c is not used again
                     del c
                 if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
                     warn_repair(

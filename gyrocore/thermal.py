@@ -88,10 +88,11 @@ def select_thermal_orders(
 
     Parameters
     ----------
-    r : ndarray, shape (N, 3)
-        Measured minus reference rate, rad/s.
-    inp : ModelInputs
-        Needs ``temp_c``; ``omega_S_rad_s`` for ``scale_thermal``.
+    r : ndarray, shape (N, 3), or lsq.RowSource
+        Measured minus reference rate, rad/s (or a source of it and of the inputs, a window
+        at a time: see :func:`gyrocore.lsq.fit_effects`).
+    inp : ModelInputs or None
+        Needs ``temp_c``; ``omega_S_rad_s`` for ``scale_thermal``. None with a RowSource.
     effects : sequence of str
         The whole model (thermal and other effects are fitted jointly in every test).
     max_order : int
@@ -110,7 +111,8 @@ def select_thermal_orders(
     """
     if not 1 <= max_order <= 3:
         raise GyroInputError(f"thermal order must be 1, 2 or 3, got {max_order}")
-    if inp.temp_c is None:
+    has_temp = r.has_temp if isinstance(r, lsq.RowSource) else inp.temp_c is not None
+    if not has_temp:
         raise GyroInputError("thermal effects need the temp_c column, which the data lack")
     orders = {e: max_order for e in effects if e in THERMAL_EFFECTS}
     orders.update({k: int(v) for k, v in (fixed or {}).items()})

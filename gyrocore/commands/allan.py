@@ -168,9 +168,8 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
     (:func:`gyrocore.recording.spill_columns`: the same repairs, checks and warnings as a
     whole read); each axis is then loaded alone with the time column. The results are
     identical to the whole-record analysis (same samples, same rate, same kernel); memory
-    holds two columns (t and the axis) plus the ADEV buffers — except for the motion gate
-    (``check_static``), which needs the three gyro axes at once (t + gyro, freed before the
-    analysis).
+    holds two columns (t and the axis) plus the ADEV buffers; the motion gate
+    (``check_static``) reads only the windows it judges.
     """
     import tempfile
     import warnings
@@ -185,15 +184,10 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
         if check_static:  # the same gate and error as allan_analysis(check_static=True)
             import math
 
-            from ..allan import MAX_MOVING_FRACTION, still_fraction
+            from ..allan import MAX_MOVING_FRACTION, still_fraction_spilled
             from ..errors import GyroInputError
-            from ..recording import Recording
 
-            g3 = np.empty((store.n, 3))
-            for j in range(3):
-                g3[:, j] = store.column(f"gyro_{AXES[j]}_rad_s")
-            still = still_fraction(Recording(t_s=store.t_s, gyro_rad_s=g3, meta=store.meta))
-            del g3
+            still = still_fraction_spilled(store)  # reads only the windows it judges
             if math.isfinite(still) and (1.0 - still) > MAX_MOVING_FRACTION:
                 raise GyroInputError(
                     f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "

@@ -30,6 +30,22 @@ def report_text(r) -> str:
     return "\n".join(lines)
 
 
+#: Files of more rows than this are read back from disk a block of windows at a time
+#: (:meth:`gyrocore.bias.StaticBiasCalibrator.fit_spilled`; same numbers).
+LONG_ROWS = 1_000_000
+
+
+def _long(file: str) -> bool:
+    import os
+
+    from ..convert import detect_format
+    from ..recording import file_layout
+
+    if not os.path.isfile(file) or detect_format(file) not in ("csv", "parquet"):
+        return False
+    return file_layout(file)[1] > LONG_ROWS
+
+
 @click.command("bias")
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--rule", type=click.Choice(["mean", "median", "converge", "article"]), default="mean", show_default=True)
@@ -48,9 +64,7 @@ def command(file, rule, statistic, window_s, window_samples, false_reject_rate, 
             lsb_dps, article_counts, as_json):
     """Static bias of a still start, refusing windows with motion and retrying on the next."""
     from ..bias import StaticBiasCalibrator
-    from ..recording import read_recording
 
-    rec = read_recording(file, columns=())  # t and gyro only (the gate and the estimate use nothing else)
     cal = StaticBiasCalibrator(
         window_samples=window_samples,
         window_s=window_s,
@@ -62,7 +76,19 @@ def command(file, rule, statistic, window_s, window_samples, false_reject_rate, 
         lsb_rad_s=None if lsb_dps is None else lsb_dps / D,
         article_threshold_counts=article_counts,
     )
-    r = cal.fit(rec)
+    if _long(file):
+        # a long file: t and gyro spilled to per-column files (every check and warning of a
+        # whole read), then the gate and the estimate a block of windows / one column at a time
+        import tempfile
+
+        from ..recording import spill_columns
+
+        with tempfile.TemporaryDirectory(prefix="gyroharness_bias_") as tmp:
+            r = cal.fit_spilled(spill_columns(file, tmp))
+    else:
+        from ..recording import read_recording
+
+        r = cal.fit(read_recording(file, columns=()))  # t and gyro only (the gate and the estimate use nothing else)
     if as_json:
         emit_json(r)
     else:

@@ -171,6 +171,20 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     if (bias_from or bias_dps) and not segments:
         raise GyroInputError("--bias-from/--bias-dps are for the integral method: give --segments too")
     ext = external_bias(bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz)
+    if not segments and _streamable(file):
+        # a long data file with reference rates: spilled to per-column files and fitted a
+        # window at a time (gyrocore.stream); the same fit as in memory, bounded memory
+        import tempfile
+
+        from ..recording import spill_columns
+
+        cal = Calibrator(effects=names, thermal_order=thermal_order, covariance=covariance, sensor=sensor)
+        with tempfile.TemporaryDirectory(prefix="gyroharness_calibrate_") as tmp:
+            store = spill_columns(file, tmp, accel=True, groups=("temp", "ref_rate"))
+            res = cal.fit_spilled(store, source_path=file)
+        _warn_unobservable(res)
+        _write_and_report(res, output, px4_params, as_json)
+        return
     rec = _read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
     if not segments and rec.ref_rate_rad_s is None and _has_attitude(rec):
         res = _fit_against_attitude(rec, names, file, thermal_order, sensor)
@@ -179,15 +193,36 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
                      external_bias=ext)
     res = cal.fit(rec, source_path=file)
+    _warn_unobservable(res)
+    _write_and_report(res, output, px4_params, as_json)
+
+
+#: Data files of more rows than this are calibrated from disk, a window at a time
+#: (:meth:`gyrocore.model.Calibrator.fit_spilled`) when they have reference rates: above
+#: 4 × ``lsq.CHUNK_ROWS`` the in-memory fit takes the same chunked path, so the numbers agree.
+STREAM_ROWS = 4 * 32768
+
+
+def _streamable(path: str) -> bool:
+    """A CSV/Parquet data file of more than :data:`STREAM_ROWS` rows with reference rates."""
+    from ..convert import detect_format
+    from ..recording import file_layout
+
+    if not os.path.isfile(path) or detect_format(path) not in ("csv", "parquet"):
+        return False
+    groups, est_rows = file_layout(path)
+    return "ref_rate" in groups and est_rows > STREAM_ROWS
+
+
+def _warn_unobservable(res) -> None:
     if res.unobservable:
         # one line on stderr (the CLI prints "warning: ..."); stdout (and --json) unchanged
         warnings.warn(
             f"{len(res.unobservable)} parameter(s) unobservable from this data, not fitted and left uncorrected: "
             + ", ".join(res.unobservable),
             UserWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    _write_and_report(res, output, px4_params, as_json)
 
 
 def _write_and_report(res, output, px4_params, as_json: bool) -> None:
