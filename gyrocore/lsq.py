@@ -955,6 +955,10 @@ class RowSource:
         """Model inputs of rows lo:hi (``t_since_power_up_s`` counted from the record's start)."""
         raise NotImplementedError
 
+    def t_rows(self, a: int, b: int) -> np.ndarray:
+        """Sample times of rows a:b, s."""
+        return np.asarray(self.inputs(a, b).t_s, float)
+
     def temp_mean_c(self) -> float | None:
         """Mean temperature over all N rows, °C (the thermal T0 of :func:`gyrocore.effects.design`)."""
         raise NotImplementedError
@@ -974,6 +978,9 @@ class ArrayRows(RowSource):
 
     def inputs(self, lo: int, hi: int) -> E.ModelInputs:
         return _window_inputs(self.inp, lo, hi)
+
+    def t_rows(self, a: int, b: int) -> np.ndarray:
+        return np.asarray(self.inp.t_s, float)[a:b]
 
     def temp_mean_c(self) -> float | None:
         return None if self.inp.temp_c is None else float(np.mean(np.asarray(self.inp.temp_c, float)))
@@ -1031,6 +1038,12 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
     # windows)
     Sr = Sw = SA = None
     names = slices = None
+    # per block mean: Σw² (effective samples (Σw)²/Σw²) and the time span it averages — the
+    # row intervals of a noise-model covariance (forwarded to solve with covariance="noise_model")
+    Sw2 = np.zeros((nb, 3))
+    T0 = np.full(nb, np.inf)
+    T1 = np.full(nb, -np.inf)
+    t_first = float(src.t_rows(0, 1)[0])
     j0 = 0  # used rows before the window
     for a in range(0, N, chunk_rows):
         b = min(a + chunk_rows, N)
@@ -1060,11 +1073,20 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
         SA[kb] += np.add.reduceat(A, starts, axis=0)
         Sr[kb] += np.add.reduceat(rw, starts, axis=0)
         Sw[kb] += np.add.reduceat(wr, starts, axis=0)
+        Sw2[kb] += np.add.reduceat(wr * wr, starts, axis=0)
+        tr = src.t_rows(a, b)[rows - a] - t_first
+        ends = np.r_[starts[1:], k.size] - 1
+        np.minimum.at(T0, kb, tr[starts])
+        np.maximum.at(T1, kb, tr[ends])
         del A, rw, wr
         j0 = j1
         if j0 >= m:
             break
     safe = np.where(Sw > 0, Sw, 1.0)
+    if options.get("covariance") == "noise_model":
+        dt = (float(src.t_rows(N - 1, N)[0]) - t_first) / max(N - 1, 1)
+        options = dict(options, row_t0_s=T0, row_t1_s=T1 + dt,
+                       row_n_eff=np.where(Sw2 > 0, Sw**2 / np.where(Sw2 > 0, Sw2, 1.0), 0.0))
     fit = solve(Sr / safe, SA / safe[..., None], names, slices, weights=Sw / average, stride=1, average=1,
                 **options)
     del SA
