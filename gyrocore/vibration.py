@@ -48,7 +48,7 @@ from .errors import GyroInputError, warn_repair
 from .recording import Recording, atomic_write_text
 
 __all__ = ["VibrationResult", "analyse", "write_spec", "read_spec", "SPEC_FORMAT_VERSION", "undo_response",
-           "plot_vibration", "synthesize", "add_vibration", "fidelity", "spec_band"]
+           "plot_vibration", "synthesize", "shaped_params", "add_vibration", "fidelity", "spec_band"]
 
 AXES = ("x", "y", "z")
 SPEC_FORMAT_VERSION = "1.0"
@@ -776,6 +776,35 @@ def spec_band(spec: dict, band: int | str = "middle") -> dict:
         return bands[int(band)]
     except (ValueError, IndexError):
         raise GyroInputError(f"vibration band {band!r}: the spec has bands 0..{len(bands) - 1} (or 'middle')") from None
+
+
+def shaped_params(spec: dict, *, band: int | str = "middle", fmin_hz: float = HIGHPASS_HZ,
+                  exclude_hz: Sequence[tuple[float, float]] = ()) -> dict:
+    """The shaped part of the registry effect ``vibration`` from one band of a spec.
+
+    Returns ``{"f_hz": (n,), "psd_rad2_s2_hz": (3, n)}`` (the effect's schema, SI): the spec
+    band's raw-domain gyro PSD per axis on the spec's grid, set to 0 below ``fmin_hz`` (the
+    flight's own motion is not vibration), at and above the spec's reliable limit, in notch
+    holes (no value) and inside the ``exclude_hz`` intervals (a line the simulator's physics
+    already carries). The grid is cut to [first bin ≥ fmin − one bin, reliable limit + one bin]
+    so the zeros at its ends are kept (linear interpolation then falls to 0 within one bin).
+    ``sim.noise.ShapedNoise`` generates it; ``simulate --vibration SPEC`` and a preset's
+    ``[vibration] spec = ...`` put it into ``SyntheticGyro`` as this effect's parameters.
+    """
+    b = spec_band(spec, band)
+    f_spec = np.asarray(spec["f_hz"], float)
+    lim = min(float(spec.get("reconstructed_reliable_below_hz") or f_spec[-1]), f_spec[-1])
+    P = np.zeros((3, f_spec.size))
+    for j, a in enumerate(AXES):
+        s = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][a]], float)
+        S = np.nan_to_num(s, nan=0.0)
+        S[(f_spec < fmin_hz) | (f_spec >= lim) | np.isnan(s)] = 0.0
+        for lo, hi in exclude_hz:
+            S[(f_spec >= lo) & (f_spec <= hi)] = 0.0
+        P[j] = np.maximum(S, 0.0)
+    df = float(f_spec[1] - f_spec[0])
+    keep = (f_spec >= fmin_hz - 1.01 * df) & (f_spec <= lim + 1.01 * df)
+    return {"f_hz": f_spec[keep].copy(), "psd_rad2_s2_hz": P[:, keep].copy()}
 
 
 def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str = "middle",

@@ -62,7 +62,7 @@ __all__ = ["SyntheticGyro", "GyroOutput", "GyroStream", "OUTPUT_STAGE", "NOISE_O
 #: Effects applied by gyrocore.effects.output_stage (not by deterministic()).
 OUTPUT_STAGE = ("lowpass", "saturation", "quantization")
 #: Order in which the stochastic terms are summed into the noise.
-NOISE_ORDER = ("arw", "bias_instability", "rrw", "correlated")
+NOISE_ORDER = ("arw", "bias_instability", "rrw", "correlated", "vibration")
 _FF_IDX = tuple(("xyz".index(p[0]), "xyz".index(p[1])) for p in FF_ORDER)
 #: A lowpass bandwidth at or above this fraction of the rate is repaired (Nyquist).
 _LOWPASS_MAX_FRACTION = 0.45
@@ -203,9 +203,16 @@ class SyntheticGyro:
             raise GyroInputError(f"effect {sorted(clash)[0]} is both overridden and switched off")
         include = [e for e in overrides if e not in self.spec.effects and self.spec.distribution(e) is not None]
         params = self.spec.draw_instance(self.seed, include=include)
+        if self.spec.shaped_vibration and "vibration" not in overrides:
+            params["vibration"] = {k: np.asarray(v, float) for k, v in self.spec.shaped_vibration.items()}
         for eff, given in overrides.items():
             if eff == "vibration":
-                raise GyroInputError("vibration comes from the physics (the quadrotor), not from the gyro")
+                # the physics part comes from the hover; an override carries only the shaped part
+                # (f_hz, psd_rad2_s2_hz: gyrocore.vibration.shaped_params), or {} for none
+                if not isinstance(given, Mapping):
+                    raise GyroInputError("override of vibration must map parameter names to values")
+                params[eff] = validate_params({eff: dict(given)})[eff]
+                continue
             if not isinstance(given, Mapping):
                 raise GyroInputError(f"override of {eff} must map parameter names to values")
             params[eff] = _complete_override(eff, given, params.get(eff), self.spec.temp_ref_c)
@@ -255,7 +262,12 @@ class SyntheticGyro:
                 continue
             pd = self.params[eff]
             rng = _noise.effect_rng(self.seed, self._key(f"noise/{eff}"))
-            if eff == "arw":
+            if eff == "vibration":
+                if "psd_rad2_s2_hz" not in pd:
+                    continue  # from the physics alone
+                taps = _noise.shaped_taps(pd["f_hz"], pd["psd_rad2_s2_hz"], rate_hz=r)
+                x = _noise.ShapedNoise(rng, taps).next(n)
+            elif eff == "arw":
                 x = _noise.white_rate_noise(rng, n, rate_hz=r, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"])
             elif eff == "bias_instability":
                 x = _noise.flicker_noise(rng, n, rate_hz=r, b_rad_s=pd["b_rad_s"])

@@ -34,6 +34,8 @@ standard deviation equals B, whatever the sample rate.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import signal
 
@@ -48,6 +50,8 @@ __all__ = [
     "ALLAN_FLICKER_FACTOR",
     "stable_key_int",
     "effect_rng",
+    "shaped_taps",
+    "ShapedNoise",
 ]
 
 #: σ_Allan / B for bias instability: sqrt(2 ln2 / π) ≈ 0.6643 (IEEE 952 Table C.1).
@@ -231,3 +235,114 @@ def effect_rng(seed: int, key: str) -> np.random.Generator:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
         raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(stable_key_int(key),))))
+
+
+# ---------------------------------------------------------------------------- shaped (vibration) noise
+def shaped_taps(f_hz, psd_rad2_s2_hz, *, rate_hz: float, grid_hz: float | None = None) -> np.ndarray:
+    """FIR taps (L, 3) whose output, driven by unit white noise, has the one-sided PSD ``psd``.
+
+    Frequency-sampling design (no window): the amplitude A(f_k) = √(S(f_k)·fs/2) on the grid
+    f_k = k·fs/L (S interpolated linearly in f from ``f_hz``, 0 outside it), zero phase,
+    ``irfft`` of length L and rolled by L/2 (linear phase). For unit white input the output's
+    one-sided PSD is (2/fs)·|H(f)|², which equals S(f_k) at every grid frequency, and its variance
+    is Σh² = (1/L)·Σ_k |A_k|² = Σ_k S(f_k)·fs/L ≈ ∫S df exactly on the grid (Parseval); between
+    grid points |H|² interpolates (Dirichlet kernel), so any average over ≥ 2 grid spacings
+    (a Welch bin of the spec's resolution) has the spec's expectation.
+
+    Parameters
+    ----------
+    f_hz : array_like, shape (n,)
+        Increasing frequency grid of the PSD, Hz.
+    psd_rad2_s2_hz : array_like, shape (3, n)
+        One-sided PSD per axis, (rad/s)²/Hz (≥ 0).
+    rate_hz : float
+        Sample rate of the generated noise, Hz.
+    grid_hz : float, optional
+        Design grid spacing fs/L, Hz; default half the smallest spacing of ``f_hz`` (so a spec
+        bin holds two grid points).
+
+    Returns
+    -------
+    ndarray, shape (L, 3)
+    """
+    f = np.asarray(f_hz, float)
+    S = np.asarray(psd_rad2_s2_hz, float)
+    r = float(rate_hz)
+    if f.ndim != 1 or f.size < 2 or S.shape != (3, f.size) or not np.all(np.diff(f) > 0):
+        raise GyroInputError(f"shaped vibration: f_hz must be an increasing grid (n,) and psd (3, n); got {f.shape}, {S.shape}")
+    if not (np.all(np.isfinite(S)) and np.all(S >= 0)):
+        raise GyroInputError("shaped vibration: psd_rad2_s2_hz must be finite and >= 0")
+    if not (np.isfinite(r) and r > 0):
+        raise GyroInputError(f"rate_hz must be > 0, got {rate_hz}")
+    df = float(grid_hz) if grid_hz is not None else float(np.min(np.diff(f))) / 2.0
+    L = max(int(math.ceil(r / df)), 8)
+    fk = np.fft.rfftfreq(L, d=1.0 / r)
+    taps = np.empty((L, 3))
+    for j in range(3):
+        Sk = np.interp(fk, f, S[j], left=0.0, right=0.0)
+        A = np.sqrt(Sk * r / 2.0)
+        taps[:, j] = np.roll(np.fft.irfft(A, L), L // 2)
+    return taps
+
+
+class ShapedNoise:
+    """Gaussian noise (n, 3) through FIR taps, generated in fixed internal blocks (block-friendly).
+
+    White noise is drawn from ``rng`` in fixed blocks of B samples (``standard_normal((B, 3))``,
+    one after the other), each block is FFT-convolved with the taps and overlap-added (the tail
+    of L − 1 samples carried to the next block), and :meth:`next` serves the caller's chunks from
+    that stream. So ``next(n1); next(n2)`` returns exactly the bits of ``next(n1 + n2)`` whatever
+    the chunking. The first L − 1 outputs (the filter filling up) are dropped: the noise is
+    stationary from its first sample.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    taps : ndarray, shape (L, 3)
+        :func:`shaped_taps`.
+    block : int, optional
+        Internal block length (default max(4 L, 8192)); part of the definition of the stream
+        (another block length gives another realisation).
+    """
+
+    def __init__(self, rng: np.random.Generator, taps: np.ndarray, *, block: int | None = None) -> None:
+        from scipy import fft as _fft
+
+        self._rng = rng
+        h = np.asarray(taps, float)
+        if h.ndim != 2 or h.shape[1] != 3 or h.shape[0] < 1:
+            raise GyroInputError(f"ShapedNoise taps must have shape (L, 3), got {h.shape}")
+        self.L = int(h.shape[0])
+        self.B = int(block) if block is not None else max(4 * self.L, 8192)
+        self._nfft = _fft.next_fast_len(self.B + self.L - 1, real=True)
+        self._H = np.fft.rfft(h, self._nfft, axis=0)
+        self._tail = np.zeros((self.L - 1, 3))
+        self._chunks: list[np.ndarray] = []
+        self._have = 0
+        first = self._block()
+        self._push(first[self.L - 1:])
+
+    def _block(self) -> np.ndarray:
+        w = self._rng.standard_normal((self.B, 3))
+        y = np.fft.irfft(np.fft.rfft(w, self._nfft, axis=0) * self._H, self._nfft, axis=0)[: self.B + self.L - 1]
+        y[: self.L - 1] += self._tail
+        self._tail = y[self.B:].copy()
+        return y[: self.B]
+
+    def _push(self, x: np.ndarray) -> None:
+        if x.shape[0]:
+            self._chunks.append(x)
+            self._have += x.shape[0]
+
+    def next(self, n_samples: int) -> np.ndarray:
+        """The next ``n_samples`` samples, rad/s, shape (n, 3)."""
+        n = int(n_samples)
+        if n < 0:
+            raise GyroInputError(f"n_samples must be >= 0, got {n_samples}")
+        while self._have < n:
+            self._push(self._block())
+        buf = np.concatenate(self._chunks, axis=0) if len(self._chunks) > 1 else (self._chunks[0] if self._chunks else np.zeros((0, 3)))
+        out, rest = buf[:n].copy(), buf[n:]
+        self._chunks = [rest] if rest.shape[0] else []
+        self._have = rest.shape[0]
+        return out

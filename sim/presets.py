@@ -175,6 +175,11 @@ class SensorSpec:
     terms : mapping
         Registry family terms with fixed SI parameters ``{canonical name: {param: tuple}}``
         (the same for every unit; see the module docstring).
+    shaped_vibration : mapping
+        The shaped part of ``vibration`` (``{"f_hz": tuple, "psd_rad2_s2_hz": tuple of 3
+        tuples}``, :func:`gyrocore.vibration.shaped_params`) from a ``[vibration]`` section with
+        ``spec = "SPEC.json"`` (path relative to the TOML) and optional ``band`` (index or
+        ``"middle"``); empty = none (the physics part alone).
     """
 
     name: str
@@ -188,6 +193,7 @@ class SensorSpec:
     disabled: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     source: str = ""
     terms: Mapping[str, Mapping[str, tuple]] = field(default_factory=dict)
+    shaped_vibration: Mapping[str, tuple] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "effects", _freeze(self.effects))
@@ -311,6 +317,7 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
     lsb_rad_s = DEG / float(out["sensitivity_lsb_per_dps"])
     on: dict[str, dict[str, float]] = {}
     off: dict[str, dict[str, float]] = {}
+    shaped: dict[str, tuple] = {}
     terms: dict[str, dict[str, tuple]] = {}
     for eff, table in raw.items():
         if eff in ("name", "part", "datasheet", "output"):
@@ -324,6 +331,9 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
             continue
         if eff not in _KEYS:
             raise GyroInputError(f"preset {path}: unknown effect section [{eff}]; known: {', '.join(EFFECTS)}")
+        if eff == "vibration" and isinstance(table, Mapping) and "spec" in table:
+            shaped = _vibration_section(table, path)
+            continue
         if not isinstance(table, Mapping):
             raise GyroInputError(f"preset {path}: [{eff}] must be a table")
         enabled = table.get("enabled", True)
@@ -369,7 +379,27 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
         disabled=off,
         source=str(path),
         terms=terms,
+        shaped_vibration=shaped,
     )
+
+
+def _vibration_section(table: Mapping, path: str) -> dict[str, tuple]:
+    """``[vibration] spec = "SPEC.json", band = N|"middle", enabled = bool`` -> the shaped part's SI parameters."""
+    from gyrocore.vibration import read_spec, shaped_params
+
+    unknown = set(table) - {"spec", "band", "enabled"}
+    if unknown:
+        raise GyroInputError(f"preset {path}: unknown key(s) in [vibration]: {', '.join(sorted(unknown))}; accepted: spec, band, enabled")
+    enabled = table.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise GyroInputError(f"preset {path}: [vibration] enabled must be true or false")
+    if not enabled:
+        return {}
+    sp = Path(str(table["spec"]))
+    if not sp.is_absolute():
+        sp = Path(path).resolve().parent / sp
+    pd = shaped_params(read_spec(sp), band=table.get("band", "middle"))
+    return {"f_hz": tuple(pd["f_hz"].tolist()), "psd_rad2_s2_hz": tuple(tuple(r) for r in pd["psd_rad2_s2_hz"].tolist())}
 
 
 def _family_section(eff: str, table, path: str):

@@ -94,14 +94,26 @@ class VibrationSpec:
         In-plane force at twice the rotor frequency, relative to the imbalance force.
     blade_pass_ripple : float
         Axial thrust ripple at the blade-pass frequency (2 blades: 2 x rotor), fraction of thrust.
+    hub_moment_kg_m2 : float
+        Rotating once-per-revolution moment in the rotor plane per Omega², kg m² (N m per
+        (rad/s)²): the couple (dynamic) unbalance U_c of ISO 21940-11 (mass distributed out of the
+        rotor plane; the static unbalance is ``imbalance_kg_m``), and the aerodynamic unbalance of
+        a stiff prop (blade-to-blade thrust or pitch difference dT acting at the blades' thrust
+        radius r_T: dT r_T, also ∝ Omega²) have this one form. It acts on the frame about the
+        body x/y axes, so its line is on roll and pitch, where an in-plane force u Omega² at the
+        arm a mostly yaws the frame (moment u Omega² a about z; about x/y only through the rotor
+        height above the centre of mass). Built as two point masses on the rotor at ±h above and
+        below its plane, opposite each other (``rotor_i_couple_a/b`` in the model): pure MuJoCo
+        dynamics, as the static imbalance. Default 0 (the F450 has none).
     """
 
     imbalance_kg_m: float = 2e-6
     harmonic2_ratio: float = 0.3
     blade_pass_ripple: float = 0.02
+    hub_moment_kg_m2: float = 0.0
 
     def __post_init__(self) -> None:
-        if min(self.imbalance_kg_m, self.harmonic2_ratio, self.blade_pass_ripple) < 0:
+        if min(self.imbalance_kg_m, self.harmonic2_ratio, self.blade_pass_ripple, self.hub_moment_kg_m2) < 0:
             raise GyroInputError("vibration amplitudes must be >= 0")
 
 
@@ -307,6 +319,28 @@ def _fly_compiled(model, data, *, gyro, filt, n, m_per, rq0, rv0, sens, rotor_k,
     return rec
 
 
+def _set_couple_imbalance(model, hub_moment_kg_m2: float, ss: np.random.SeedSequence, model_xml: str) -> None:
+    """Masses of the couple-imbalance pairs (:attr:`VibrationSpec.hub_moment_kg_m2`), each pair turned
+    to a seeded phase on its rotor (a 4th child of the flight's SeedSequence, so the other phases are
+    unchanged). The model's ``rotor_i_couple_a`` sits at (r, 0, +h) on the rotor, ``_b`` at (−r, 0, −h):
+    mass m each gives the couple 2 m r h Omega² and no net force."""
+    ids = [(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_couple_a"),
+            mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_couple_b")) for i in range(1, 5)]
+    if any(a < 0 or b < 0 for a, b in ids):
+        if hub_moment_kg_m2 > 0:
+            raise GyroInputError(f"{model_xml} has no couple-imbalance bodies (rotor_i_couple_a/b): hub_moment_kg_m2 needs them")
+        return
+    (theta,) = (np.random.default_rng(s).uniform(0.0, 2 * math.pi, 4) for s in ss.spawn(1))
+    for (a, b), th in zip(ids, theta):
+        x, y, h = (float(v) for v in model.body_pos[a])
+        r = math.hypot(x, y)
+        m = hub_moment_kg_m2 / (2.0 * r * h)
+        model.body_pos[a] = (r * math.cos(th), r * math.sin(th), h)
+        model.body_pos[b] = (-r * math.cos(th), -r * math.sin(th), -h)
+        model.body_mass[a] = m
+        model.body_mass[b] = m
+
+
 def fly_hover(
     *,
     duration_s: float,
@@ -397,9 +431,10 @@ def fly_hover(
     for i in range(1, 5):
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_imbalance")
         model.body_mass[bid] = vib.imbalance_kg_m / _IMBALANCE_RADIUS_M
-    mujoco.mj_setConst(model, data)
     ss = np.random.SeedSequence(seed)
     rng_rotor, rng_h2, rng_bp = (np.random.default_rng(s) for s in ss.spawn(3))
+    _set_couple_imbalance(model, vib.hub_moment_kg_m2, ss, veh.model_xml)
+    mujoco.mj_setConst(model, data)
     phi0 = rng_rotor.uniform(0.0, 2 * math.pi, 4)
     psi_h2 = rng_h2.uniform(0.0, 2 * math.pi, 4)
     psi_bp = rng_bp.uniform(0.0, 2 * math.pi, 4)
@@ -599,7 +634,8 @@ def fly_hover(
         "physics_rate_hz": f"{phys_hz:.10g}",
         "gyro_rate_hz": f"{gyro_rate_hz:.10g}",
         "seed": str(seed),
-        "vibration": f"imbalance_kg_m={vib.imbalance_kg_m:g},harmonic2_ratio={vib.harmonic2_ratio:g},blade_pass_ripple={vib.blade_pass_ripple:g}",
+        "vibration": f"imbalance_kg_m={vib.imbalance_kg_m:g},harmonic2_ratio={vib.harmonic2_ratio:g},blade_pass_ripple={vib.blade_pass_ripple:g}"
+                     + (f",hub_moment_kg_m2={vib.hub_moment_kg_m2:g}" if vib.hub_moment_kg_m2 > 0 else ""),
         "manoeuvres": str(len(tuple(manoeuvres))),
         "gyro": type(gyro).__name__,
         "pipeline": type(pipeline).__name__ if pipeline is not None else "none",

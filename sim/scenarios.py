@@ -61,7 +61,8 @@ __all__ = [
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 DEG = math.pi / 180.0
 _KINDS = ("table", "hover")
-_TOP_KEYS = {"name", "description", "kind", "duration_s", "gyro_rate_hz", "table", "bumps", "power", "hover", "thermal"}
+_TOP_KEYS = {"name", "description", "kind", "duration_s", "gyro_rate_hz", "table", "bumps", "power", "hover", "thermal",
+             "vibration"}
 
 
 @dataclass(frozen=True)
@@ -79,6 +80,11 @@ class ScenarioSpec:
         Output rate for this scenario (None: the sensor preset's).
     table, bumps, power, hover, thermal : mapping
         The sections of the file.
+    vibration : mapping
+        ``[vibration]``: ``spec`` (a vibration spec, ``gyroharness vibration -o``; path relative
+        to the TOML), ``band`` (index or ``"middle"``), ``physics`` (hover: the spec's rotor line
+        through the vehicle's rotor imbalance): the registry effect ``vibration``
+        (:func:`sim.spec_vibration.spec_injection`, as ``simulate --vibration``).
     source : str
         File path.
     """
@@ -94,6 +100,7 @@ class ScenarioSpec:
     hover: Mapping = field(default_factory=dict)
     thermal: Mapping = field(default_factory=dict)
     source: str = ""
+    vibration: Mapping = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,6 +183,14 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
         from .vehicles import get_vehicle
 
         get_vehicle(str(veh))  # an unknown class is one error line at load time
+    vsec = raw.get("vibration", {})
+    if not isinstance(vsec, Mapping) or set(vsec) - {"spec", "band", "physics"} or ("spec" not in vsec and vsec):
+        raise GyroInputError(f"scenario {path}: [vibration] takes spec = \"SPEC.json\" and optional band, physics")
+    if vsec:
+        sp = Path(str(vsec["spec"]))
+        vsec = dict(vsec, spec=str(sp if sp.is_absolute() else Path(path).resolve().parent / sp))
+        if vsec.get("physics") and kind != "hover":
+            raise GyroInputError(f"scenario {path}: [vibration] physics = true needs kind = \"hover\"")
     gs = raw.get("hover", {}).get("ground_s", 0.0)
     if isinstance(gs, bool) or not isinstance(gs, (int, float)) or not (math.isfinite(gs) and gs >= 0):
         raise GyroInputError(f"scenario {path}: [hover] ground_s must be a number >= 0")
@@ -191,6 +206,7 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
         hover=raw.get("hover", {}),
         thermal=raw.get("thermal", {}),
         source=str(path),
+        vibration=vsec,
     )
 
 
@@ -497,6 +513,19 @@ def simulate(
         raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
     rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
     dur = float(duration_s) if duration_s is not None else spec.duration_s
+    vib_info = None
+    if spec.vibration and not any(canonical_name(e) == "vibration" for e in (overrides or {})) \
+            and "vibration" not in [canonical_name(w) for w in without]:
+        from gyrocore.vibration import read_spec
+
+        from .spec_vibration import spec_injection
+
+        hv, vib_over, vib_info = spec_injection(read_spec(spec.vibration["spec"]), band=spec.vibration.get("band", "middle"),
+                                                vehicle=vehicle or str(spec.hover.get("vehicle", "f450")),
+                                                physics=bool(spec.vibration.get("physics", False)), seed=int(seed))
+        overrides = {**(overrides or {}), **vib_over}
+        if hover_vibration is None:
+            hover_vibration = hv
     gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run), without=without, overrides=overrides)
     notes = list(gyro.notes)
     flight_log = None
@@ -565,6 +594,9 @@ def simulate(
     }
     if notes:
         meta["notes"] = " | ".join(notes)
+    if vib_info is not None:
+        meta["vibration_spec"] = str(spec.vibration["spec"])
+        meta["vibration_injection"] = json.dumps(vib_info, separators=(",", ":"), default=str)
     for k, v in truth.meta.items():
         meta.setdefault(f"truth_{k}" if k in meta else k, str(v))
     rec = Recording(

@@ -33,7 +33,7 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["RotorLine", "rotor_line", "line_amplitude_in_gyro", "vibration_from_spec"]
+__all__ = ["RotorLine", "rotor_line", "line_amplitude_in_gyro", "vibration_from_spec", "spec_injection", "line_exclusion_hz"]
 
 #: relative frequency tolerance to call two bands' peaks the same line (as gyrocore.vibration's linker, 6 %)
 _F_TOL = 0.06
@@ -138,9 +138,38 @@ def line_amplitude_in_gyro(omega_rad_s: np.ndarray, rate_hz: float, f_hz: float,
     return np.sqrt(2.0 * pw)
 
 
+def _calibration_powers(veh, vib, *, seed: int, tag: int, calib_s: float, n_calib: int):
+    """Line power per axis (n_calib, 3), (rad/s)², and the rotor frequencies of seeded hovers with ``vib``."""
+    from .quadrotor import fly_hover
+
+    p_axes, f_rots = [], []
+    for j in range(int(n_calib)):
+        sj = int(np.random.SeedSequence([int(seed), tag, j]).generate_state(1)[0])
+        truth, log = fly_hover(duration_s=calib_s, vehicle=veh, vibration=vib, seed=sj)
+        k0 = int(round(1.0 * log.rate_hz))
+        f_rot = float(np.abs(log.rotor_speed_rad_s[k0:]).mean()) / (2 * math.pi)
+        p_axes.append(line_amplitude_in_gyro(truth.omega_S_rad_s[k0:], log.rate_hz, f_rot) ** 2 / 2.0)
+        f_rots.append(f_rot)
+    return np.asarray(p_axes), float(np.mean(f_rots))
+
+
 def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: int = 0, calib_s: float = 3.0,
                         n_calib: int = 16):
-    """The class's :class:`sim.quadrotor.VibrationSpec` with the imbalance set from the spec's rotor line.
+    """The class's :class:`sim.quadrotor.VibrationSpec` with its rotor unbalance set from the spec's rotor line.
+
+    Two physical sources put a line at the rotor frequency, and they load different axes:
+    the static unbalance u (an in-plane force u Omega² at the arm: mostly yaw) and the hub
+    moment U (couple and aerodynamic unbalance, a moment U Omega² in the rotor plane: roll and
+    pitch; :class:`sim.quadrotor.VibrationSpec`). Their line powers add in the mean over the
+    rotors' independent random phases (the cross terms average out), and each is ∝ its source
+    squared, so with the mean per-axis powers of ``n_calib`` seeded hovers at the class's
+    reference u0 alone (A) and at a reference U0 alone (B),
+
+        P_xy = α A_xy + β B_xy,   P_z = α A_z + β B_z,   u = u0 √α,  U = U0 √β,
+
+    solved for α, β ≥ 0 in relative terms (non-negative least squares on the two rows divided by
+    their targets; exact when both are positive) against the spec band's per-axis line powers
+    P_xy = (a_x² + a_y²)/2, P_z = a_z²/2.
 
     Parameters
     ----------
@@ -149,19 +178,20 @@ def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: i
     vehicle : str or VehicleClass
     band : int or "middle"
     seed : int
-        Seeds the calibration hovers' rotor phases (``SeedSequence([seed, 16, j])``).
+        Seeds the calibration hovers' rotor phases (``SeedSequence([seed, 16 or 17, j])``).
     calib_s : float
         Calibration hover length, s (the first second is left out).
     n_calib : int
-        Calibration hovers averaged (rotor phases seeded by ``SeedSequence([seed, 16, j])``).
+        Calibration hovers per source.
 
     Returns
     -------
     (VibrationSpec, dict)
-        The spec for :func:`sim.quadrotor.fly_hover` and what was done (rotor line, calibration
-        amplitude, imbalance before/after, commanded rotor frequency).
+        The spec for :func:`sim.quadrotor.fly_hover` and what was done (rotor line, the two
+        calibration bases, u and U, commanded rotor frequency, relative SE of the mean powers).
     """
-    from .quadrotor import fly_hover
+    from scipy.optimize import nnls
+
     from .vehicles import get_vehicle
 
     veh = get_vehicle(vehicle)
@@ -171,27 +201,77 @@ def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: i
         raise GyroInputError(f"vehicle {veh.name} has no default imbalance to calibrate")
     if int(n_calib) < 1:
         raise GyroInputError("n_calib must be >= 1")
-    p_axes, f_rots = [], []
-    for j in range(int(n_calib)):
-        sj = int(np.random.SeedSequence([int(seed), 16, j]).generate_state(1)[0])
-        truth, log = fly_hover(duration_s=calib_s, vehicle=veh, vibration=v0, seed=sj)
-        k0 = int(round(1.0 * log.rate_hz))
-        f_rot = float(np.abs(log.rotor_speed_rad_s[k0:]).mean()) / (2 * math.pi)
-        p_axes.append(line_amplitude_in_gyro(truth.omega_S_rad_s[k0:], log.rate_hz, f_rot) ** 2 / 2.0)
-        f_rots.append(f_rot)
-    p_tot = np.sum(p_axes, axis=1)
-    p_se_rel = float(np.std(p_tot, ddof=1) / math.sqrt(len(p_tot)) / np.mean(p_tot)) if len(p_tot) > 1 else float("nan")
-    p_mean = np.mean(p_axes, axis=0)  # line power per axis, (rad/s)^2
-    a_sim = np.sqrt(2.0 * p_mean)
-    tot_sim = float(np.sqrt(np.sum(a_sim**2)))
-    if not tot_sim > 0:
+    u0 = v0.imbalance_kg_m
+    hub0 = v0.hub_moment_kg_m2 if v0.hub_moment_kg_m2 > 0 else u0 * 0.01
+    pa, f_a = _calibration_powers(veh, replace(v0, hub_moment_kg_m2=0.0), seed=seed, tag=16, calib_s=calib_s, n_calib=n_calib)
+    has_hub = True
+    try:
+        pb, f_b = _calibration_powers(veh, replace(v0, imbalance_kg_m=0.0, hub_moment_kg_m2=hub0), seed=seed, tag=17,
+                                      calib_s=calib_s, n_calib=n_calib)
+    except GyroInputError:  # a model without couple-imbalance bodies (the F450): static unbalance alone
+        has_hub, pb, f_b = False, np.zeros_like(pa), f_a
+    a = line.amplitude_rad_s
+    target = np.array([(a["x"] ** 2 + a["y"] ** 2) / 2.0, a["z"] ** 2 / 2.0])
+    A = np.array([pa[:, 0:2].sum(axis=1).mean(), pa[:, 2].mean()])
+    B = np.array([pb[:, 0:2].sum(axis=1).mean(), pb[:, 2].mean()])
+    if not (A.sum() > 0):
         raise GyroInputError(f"vehicle {veh.name}: no rotor line in the calibration hovers")
-    f_rot = float(np.mean(f_rots))
-    u = v0.imbalance_kg_m * line.total_rad_s / tot_sim
+    w = 1.0 / np.maximum(target, 1e-3 * target.max())  # relative residuals; an absent axis still counts
+    M = np.column_stack([A, B]) * w[:, None]
+    coef, _ = nnls(M, target * w)
+    alpha, beta = float(coef[0]), float(coef[1])
+    u, hub = u0 * math.sqrt(alpha), hub0 * math.sqrt(beta)
+
+    def se_rel(p):
+        tot = p.sum(axis=1)
+        return float(np.std(tot, ddof=1) / math.sqrt(tot.size) / np.mean(tot)) if tot.size > 1 and np.mean(tot) > 0 else float("nan")
+
+    pred = alpha * A + beta * B
     info = {"vehicle": veh.name, "band": line.band, "real_line_hz": line.frequency_hz,
             "real_line_amplitude_rad_s": line.amplitude_rad_s, "real_line_total_rad_s": line.total_rad_s,
-            "real_line_source": line.source, "sim_rotor_hz": f_rot,
-            "calibration_amplitude_rad_s": dict(zip("xyz", a_sim.tolist())), "calibration_imbalance_kg_m": v0.imbalance_kg_m,
-            "n_calib": int(n_calib), "calibration_power_se_rel": p_se_rel,
-            "imbalance_kg_m": u}
-    return replace(v0, imbalance_kg_m=u), info
+            "real_line_source": line.source, "sim_rotor_hz": f_a,
+            "calibration_power_xy_z_static": A.tolist(), "calibration_power_xy_z_hub": B.tolist(),
+            "calibration_imbalance_kg_m": u0, "calibration_hub_moment_kg_m2": hub0 if has_hub else 0.0,
+            "target_power_xy_z": target.tolist(), "fitted_power_xy_z": pred.tolist(),
+            "n_calib": int(n_calib), "calibration_power_se_rel": max(se_rel(pa), se_rel(pb) if has_hub else 0.0),
+            "imbalance_kg_m": u, "hub_moment_kg_m2": hub,
+            "model_has_hub_moment": has_hub}
+    return replace(v0, imbalance_kg_m=u, hub_moment_kg_m2=hub), info
+
+
+def line_exclusion_hz(spec: dict, line_hz: float) -> tuple[tuple[float, float], ...]:
+    """± max(3 spec bins, 6 %) around a line the physics carries (the line linker's tolerance):
+    the interval the shaped part leaves out so the line is not in the gyro twice."""
+    df = float(spec["f_hz"][1]) - float(spec["f_hz"][0])
+    half = max(3 * df, _F_TOL * float(line_hz))
+    return ((float(line_hz) - half, float(line_hz) + half),)
+
+
+def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = False, seed: int = 0,
+                   n_calib: int = 16) -> tuple[object, dict, dict]:
+    """How a vibration spec enters a simulation: the one path of ``simulate --vibration SPEC
+    [--vibration-physics]``, a scenario's ``[vibration]`` section and the experiments.
+
+    Returns ``(hover_vibration, overrides, info)``: ``hover_vibration`` is a
+    :class:`sim.quadrotor.VibrationSpec` for the rotor physics (``physics=True``: the spec's
+    rotor line through :func:`vibration_from_spec`) or None (the class's default);
+    ``overrides`` = ``{"vibration": shaped part}`` for :class:`sim.gyro.SyntheticGyro` (the
+    registry effect ``vibration``'s parameters, :func:`gyrocore.vibration.shaped_params`, without
+    the rotor line when the physics carries it); ``info`` for the recording's metadata.
+    """
+    from gyrocore.vibration import shaped_params, spec_band
+
+    b = spec_band(spec, band)  # a bad band is one error line before anything runs
+    hover_vib, exclude, info = None, (), {"spec": str(spec.get("source", "")), "band": band,
+                                          "band_throttle": b.get("throttle"), "band_median": b.get("median")}
+    if physics:
+        if vehicle is None:
+            raise GyroInputError("the spec's rotor line through the physics needs a hover vehicle class")
+        hover_vib, pinfo = vibration_from_spec(spec, vehicle, band=band, seed=int(seed), n_calib=n_calib)
+        exclude = line_exclusion_hz(spec, pinfo["real_line_hz"])
+        info["physics"] = pinfo
+    shaped = shaped_params(spec, band=band, exclude_hz=exclude)
+    info["shaped"] = ("registry effect vibration, shaped part: Gaussian disturbance with the spec band's PSD above 40 Hz"
+                      + (f", without {', '.join(f'{lo:g}-{hi:g} Hz' for lo, hi in exclude)}" if exclude else "")
+                      + "; added in the gyro's noise stage (sim.noise.ShapedNoise), so a closed loop flies on it")
+    return hover_vib, {"vibration": shaped}, info

@@ -80,7 +80,8 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
 @click.option("--without", "without", multiple=True, metavar="EFFECT",
               help="Switch an effect off; repeatable or comma-separated.")
 @click.option("--vibration", "vibration_spec", default=None, type=click.Path(dir_okay=False),
-              help="Vibration spec (gyroharness vibration -o): add its measured gyro PSD as a shaped disturbance (open loop).")
+              help="Vibration spec (gyroharness vibration -o): its band's measured gyro PSD enters as the registry effect "
+                   "`vibration` (shaped part, in the gyro's noise stage; a hover flies on it in closed loop).")
 @click.option("--vibration-band", default="middle", show_default=True, help="Spec band: index or 'middle'.")
 @click.option("--vibration-physics", is_flag=True,
               help="hover + --vibration: the spec's rotor line enters through the rotor imbalance of the vehicle class "
@@ -122,28 +123,25 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
             raise GyroInputError(f"--vehicle applies to hover scenarios; {spec.name} is a {spec.kind} scenario")
         vehicle = get_vehicle(vehicle).name
     sensor_spec = P.load_preset(sensor)
-    vib = None
+    hover_vib, vib_over, vib_info = None, {}, None
+    if vibration_physics and (not vibration_spec or spec.kind != "hover"):
+        raise GyroInputError("--vibration-physics needs --vibration SPEC and a hover scenario")
     if vibration_spec:
-        from gyrocore.vibration import read_spec, spec_band
+        from gyrocore.vibration import read_spec
+        from sim.spec_vibration import spec_injection
 
-        vib = read_spec(vibration_spec)
-        spec_band(vib, vibration_band)  # a bad band is one error line before the simulation runs
-    hover_vib, exclude, vib_info = None, (), None
-    if vibration_physics:
-        if vib is None or spec.kind != "hover":
-            raise GyroInputError("--vibration-physics needs --vibration SPEC and a hover scenario")
-        from sim.spec_vibration import vibration_from_spec
-
+        # issue 16: the spec enters as the registry effect `vibration` (its shaped part, in the gyro's
+        # noise stage: a hover's controller flies on it), and with --vibration-physics its rotor line
+        # through the vehicle's rotor imbalance
         veh_name = vehicle or str(spec.hover.get("vehicle", "f450"))
-        hover_vib, vib_info = vibration_from_spec(vib, veh_name, band=vibration_band, seed=int(seed))
-        # the real rotor line is carried by the physics: not again in the shaped disturbance
-        # (± max(3 spec resolutions, 6 %) around it, the line linker's tolerance)
-        f_line = vib_info["real_line_hz"]
-        df = float(vib["f_hz"][1]) - float(vib["f_hz"][0])
-        half = max(3 * df, 0.06 * f_line)
-        exclude = ((f_line - half, f_line + half),)
+        hover_vib, vib_over, vib_info = spec_injection(read_spec(vibration_spec), band=vibration_band, vehicle=veh_name,
+                                                       physics=vibration_physics, seed=int(seed))
     wo = check_effect_names([w for item in without for w in item.split(",")])
     overrides = parse_set(sets)
+    if vib_over:
+        if "vibration" in overrides:
+            raise GyroInputError("--vibration and --set vibration.* both give the shaped vibration; use one")
+        overrides.update(vib_over)
     if progress is None:
         rate = rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz
         dur = duration_s or spec.duration_s or 300.0
@@ -152,16 +150,11 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
                      without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle,
                      hover_vibration=hover_vib)
     rec = res.recording
-    if vib is not None:
-        from gyrocore.vibration import add_vibration
+    if vib_info is not None:
+        import json as _json
 
-        # issue 16: the measured vibration as a shaped disturbance on the gyro (seeded from --seed/--run)
-        rec = add_vibration(rec, vib, seed=int(np.random.SeedSequence([seed, run, 16]).generate_state(1)[0]),
-                            band=vibration_band, exclude_hz=exclude)
-        if vib_info is not None:
-            import json as _json
-
-            rec = rec.with_gyro(rec.gyro_rad_s, vibration_physics=_json.dumps(vib_info, separators=(",", ":")))
+        rec = rec.with_gyro(rec.gyro_rad_s, vibration_spec=str(vibration_spec),
+                            vibration_injection=_json.dumps(vib_info, separators=(",", ":"), default=str))
     write_recording(rec, out, overwrite=force)  # .parquet: Parquet, else CSV
     summary = {
         "path": str(out),
