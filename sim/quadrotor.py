@@ -348,7 +348,7 @@ def fly_hover(
     pipeline=None,
     manoeuvres: Sequence[Manoeuvre] = (),
     vibration: bool | VibrationSpec = True,
-    physics_rate_hz: float = 1000.0,
+    physics_rate_hz: float | None = None,
     gyro_rate_hz: float = 1000.0,
     thermal: ThermalSpec | None = None,
     seed: int = 0,
@@ -383,8 +383,9 @@ def fly_hover(
         True = the vehicle class's default vibration (the F450's: :class:`VibrationSpec`
         defaults), False = none.
     physics_rate_hz, gyro_rate_hz : float
-        Requested physics rate and gyro output rate, Hz; physics runs at the nearest integer
-        multiple (>= 1) of the gyro rate (see the module docstring).
+        Requested physics rate (default: the vehicle class's, 1 kHz for the F450) and gyro
+        output rate, Hz; physics runs at the nearest integer multiple (>= 1) of the gyro rate
+        (see the module docstring).
     thermal : ThermalSpec, optional
         Die temperature; with ``motor_c_per_w`` the rotor power ``c_M Omega^3`` heats it.
         Default constant 25 °C.
@@ -416,6 +417,8 @@ def fly_hover(
     vib = veh.vibration if vibration is True else (NO_VIBRATION if vibration is False else vibration)
     if not isinstance(vib, VibrationSpec):
         raise GyroInputError("vibration must be True, False or a VibrationSpec")
+    if physics_rate_hz is None:
+        physics_rate_hz = veh.physics_rate_hz
     m_per = physics_steps_per_sample(gyro_rate_hz, physics_rate_hz)
     phys_hz = gyro_rate_hz * m_per
     dt = 1.0 / phys_hz

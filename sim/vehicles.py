@@ -12,6 +12,10 @@ Classes
     450-mm quad, 1.4 kg, 10-inch props on 3S (Quan Quan 2017; ``models/quadrotor.xml``). Its
     entries are the former hard-coded defaults (``QuadParams()``, ``ControllerGains()``,
     ``VibrationSpec()``), so its hover is bit for bit what it was.
+``racing25``
+    The 2.5-inch quad that flew the shared Betaflight log (``models/racing25.xml``: cells and hover
+    rotor speed from the log, mass and inertia from a component build-up, c_T = m g / (4 Omega²)),
+    physics at 8 kHz (its 327-Hz rotors). Gains from :func:`derive_gains`.
 ``racing5``
     5-inch racing/freestyle quad, 0.496 kg, 2306 2400-KV motors, 5-inch props on 4S
     (``models/racing5.xml``: Agilicious' 5-inch thrust/torque map and motor time constant,
@@ -43,9 +47,10 @@ from gyrocore.errors import GyroInputError
 from .controller import ControllerGains, QuadParams
 from .paths import QUADROTOR_XML
 
-__all__ = ["VehicleClass", "VEHICLES", "get_vehicle", "derive_gains", "yaw_coupling", "RACING5_XML"]
+__all__ = ["VehicleClass", "VEHICLES", "get_vehicle", "derive_gains", "yaw_coupling", "RACING5_XML", "RACING25_XML"]
 
 RACING5_XML = "racing5.xml"
+RACING25_XML = "racing25.xml"
 
 # --- the F450 reference of the design rule (models/quadrotor.xml) ---------------------------------
 _F450_GAINS = ControllerGains()
@@ -124,6 +129,9 @@ class VehicleClass:
         ``hover`` keyframe, rad/s.
     sources : tuple of str
         One line per constant group: where it comes from.
+    physics_rate_hz : float
+        Physics step rate the class needs, Hz (default 1 kHz; faster rotors need more steps per
+        revolution: racing25's 327-Hz rotors fly at 8 kHz, 24 steps per revolution).
     """
 
     name: str
@@ -135,6 +143,7 @@ class VehicleClass:
     rotor_spin_inertia_kg_m2: float
     hover_rotor_speed_rad_s: float
     sources: tuple[str, ...] = field(default_factory=tuple)
+    physics_rate_hz: float = 1000.0
 
     @property
     def motor_tau_s(self) -> float:
@@ -197,7 +206,48 @@ def _build() -> dict[str, VehicleClass]:
             "imbalance 5e-7 kg m: the F450's prop-quality rule scaled to a 4.5 g prop (estimate)",
         ),
     )
-    return {v.name: v for v in (f450, racing5)}
+    # racing25: the 2.5-inch quad of the shared Betaflight log, every number as in models/racing25.xml
+    omega_h25 = 2054.6  # the log's roll rotor line at the hover command (models/racing25.xml header)
+    mass25 = 0.1498 + 4 * 6.5e-6
+    ct25 = mass25 * 9.81 / (4.0 * omega_h25**2)
+    j_r25, tau25 = 5.75e-7, 0.020
+    a25 = 0.038891
+    p25 = QuadParams(
+        mass_kg=mass25,
+        inertia_kg_m2=(1.1348e-4, 1.2873e-4, 2.0257e-4),
+        c_t_n_per_rad2_s2=ct25,
+        kappa_m=0.0061085,
+        spin=(1, 1, -1, -1),
+        rotor_xy_m=((a25, -a25), (-a25, a25), (a25, a25), (-a25, -a25)),
+        motor_kv_n_m_s=j_r25 / tau25,
+        max_thrust_n=1.42,
+        gravity_m_s2=9.81,
+    )
+    racing25 = VehicleClass(
+        name="racing25",
+        description="2.5-inch quad of the shared Betaflight log (CS110), 0.15 kg, 1105-class ~4500KV, 3S",
+        model_xml=RACING25_XML,
+        params=p25,
+        gains=derive_gains(motor_tau_s=tau25, yaw_coupling_ratio=yaw_coupling(p25, omega_h25)),
+        vibration=VibrationSpec(imbalance_kg_m=6.5e-8, harmonic2_ratio=0.3, blade_pass_ripple=0.02,
+                                hub_moment_kg_m2=1.04e-11),
+        rotor_spin_inertia_kg_m2=j_r25,
+        hover_rotor_speed_rad_s=omega_h25,
+        physics_rate_hz=8000.0,
+        sources=(
+            "3S: the log's vbatref 125 (12.5 V at arming) and vbatLatest (median 11.0 V); hover rotor 327.0 Hz: the "
+            "log's roll rotor line law at the hover command 0.21 (models/racing25.xml header)",
+            "KV ~4500: the line law at full command, 38,650 rpm = 0.77 x KV x 11.1 V (estimate)",
+            "mass 0.150 kg, inertia, 110-mm diagonal: component build-up (estimates, models/racing25.xml header)",
+            "c_T = m g / (4 Omega_h^2) = 8.70e-8 (Agilicious 5-inch c_T x (2.5/5)^4 = 9.77e-8); kappa 0.0061 m: "
+            "Agilicious' scaled by D",
+            "J_r 5.75e-7 (1.2 g prop + 3.5 g bell); motor tau 20 ms: estimate (the F450 model's)",
+            "imbalance 6.5e-8 kg m: the F450's prop-quality rule on a 1.2 g prop; hub moment 1.04e-11 kg m^2: a 1 % "
+            "blade-to-blade thrust difference at 0.75 R in hover, 0.01 x T/2 x 0.75 R / Omega^2 (estimate); both "
+            "are set from a spec by sim.spec_vibration",
+        ),
+    )
+    return {v.name: v for v in (f450, racing5, racing25)}
 
 
 _REGISTRY: dict[str, VehicleClass] | None = None

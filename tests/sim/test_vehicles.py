@@ -25,9 +25,9 @@ def hover(request):
 
 
 def test_registry_has_a_racing_class_and_refuses_unknown_names():
-    assert {"f450", "racing5"} <= set(NAMES)
+    assert {"f450", "racing5", "racing25"} <= set(NAMES)
     assert get_vehicle("RACING5") is VEHICLES["racing5"]
-    with pytest.raises(GyroInputError, match="unknown vehicle class 'x'; known: f450, racing5"):
+    with pytest.raises(GyroInputError, match="unknown vehicle class 'x'; known: f450, racing5, racing25"):
         get_vehicle("x")
 
 
@@ -103,8 +103,10 @@ def test_hover_thrust_balance_and_rotor_speed(hover):
 
 
 def test_rotor_line_at_the_hover_rotor_frequency(hover):
-    # the imbalance (1st harmonic) line in the yaw gyro sits at the commanded rotor frequency,
-    # within the Welch resolution (fs / nperseg = 1 Hz)
+    # the imbalance (1st harmonic) line sits at the commanded rotor frequency, within the Welch
+    # resolution (fs / nperseg = 1 Hz); searched within ± 5 % (racing25's 2nd harmonic at 654 Hz
+    # folds to 346 Hz at the 1-kHz gyro rate: +6 %); yaw (static unbalance), or roll+pitch+yaw where
+    # the class has a hub moment
     from scipy import signal
 
     veh, (truth, _) = hover
@@ -112,8 +114,8 @@ def test_rotor_line_at_the_hover_rotor_frequency(hover):
     nper = 1000
     f, p = signal.welch(truth.omega_S_rad_s[k0:], fs=1000.0, nperseg=nper, axis=0)
     f_rot = veh.hover_rotor_hz
-    band = (f > 0.8 * f_rot) & (f < 1.2 * f_rot)
-    pz = p[:, 2]
+    band = (f > 0.95 * f_rot) & (f < 1.05 * f_rot)
+    pz = p[:, 2] if veh.vibration.hub_moment_kg_m2 == 0 else p.sum(axis=1)
     f_peak = f[band][np.argmax(pz[band])]
     assert abs(f_peak - f_rot) <= 1000.0 / nper
 
