@@ -1,21 +1,32 @@
-"""Closed-loop check of ``gyroharness filter``: the candidates flown by the simulator with the
-measured vibration in the loop (issue 16 item 5).
+"""Closed-loop check of ``gyroharness filter``: the candidate chains flown by the simulator with
+the pilot's identified vibration, scored on what the filter changes (issue 16 item 5).
 
-A vehicle class (default ``racing5``, the 5-inch racing class: the class nearest the 2.5-inch
-quad that flew the shared log; ``--vehicle f450`` for the first version's airframe) hovers with
-small attitude steps. The spec band's rotor line enters through the rotor physics
-(:func:`sim.spec_vibration.vibration_from_spec`: the imbalance that gives the measured line
-power, at the rotor speed the controller commands); the rest of the band's PSD (without the real
-line) is a shaped Gaussian disturbance added to the gyro sample by sample inside the loop
-(:func:`gyrocore.vibration.synthesize`). The rate loop reads it through power-up-bias removal +
-the chain under test (the firmware chains of ``gyroharness filter``, re-rated to the
-simulator's gyro rate). Candidates with an RPM filter fly :class:`gyrocore.filters.RpmNotch`,
-fed the simulator's rotor speeds every sample (as Betaflight's from eRPM). Scored as
-``experiment cutoffs``: attitude tracking error (RMS, after 1 s), motor-command noise above
-20 Hz, measured gyro delay.
+The vehicle is a registered class (default ``racing25``: the 2.5-inch quad that flew the shared
+log). The flight's vibration spec (its middle throttle band by default) enters as everywhere
+else (:func:`sim.spec_vibration.spec_injection`): the rotor line through the rotors' static and
+hub-moment unbalance at the rotor speed the controller commands, the rest of the band as the
+registry effect ``vibration``'s shaped part in the gyro (so the rate loop flies on it). A chain
+is the firmware chain of ``gyroharness filter`` (re-rated to the simulator's 1-kHz gyro; stages
+at or above its Nyquist dropped) after the power-up bias removal; RPM-filter candidates fly
+:class:`gyrocore.filters.RpmNotch` fed the simulated rotor speeds.
 
-    python -m experiments.flight_filter --spec spec.json --filter-json filter.json [--duration-s 20] [--seed 0]
-        [--vehicle racing5|f450] [--no-physics]
+What the filter changes, each isolated by a paired flight (same seed: same gyro noise, rotor
+phases, shaped-vibration draw):
+
+* ``att_vibration_deg`` — steady hover (no manoeuvres) with the vibration against the same hover
+  without it (same chain): RMS of the angle between the two attitudes. What the vibration the
+  chain lets through does to the attitude.
+* ``att_delay_deg`` — attitude steps without vibration: the RMS tracking error's increase over
+  the unfiltered chain's, in quadrature, √max(RMS_c² − RMS_none², 0). What the chain's delay costs.
+* ``attitude_cost_deg`` = hypot of the two; ``motor_noise_n`` (motor thrust commands above
+  20 Hz in the vibrating hover); ``delay_ms`` (gyro delay measured in the step flight).
+
+Recommendation (as ``gyroharness filter``): least attitude cost among the chains whose motor noise
+does not exceed the as-flown chain's, per seed; the recommendation is stable when every seed
+picks the same chain.
+
+    python -m experiments.flight_filter --flight FLIGHT.BBL [--vehicle racing25] [--seeds 3] [--duration-s 8]
+    gyroharness filter-closed-loop FLIGHT.BBL [--json]
 """
 
 from __future__ import annotations
@@ -31,16 +42,6 @@ GYRO_RATE_HZ = 1000.0
 SETTLE_S = 1.0
 
 
-class _Disturbed:
-    """A gyro stream whose output carries a precomputed disturbance d[k] (rad/s)."""
-
-    def __init__(self, inner, d: np.ndarray) -> None:
-        self.inner, self.d = inner, d
-
-    def step(self, k, t_s, omega_S, f_S, temp_c, *args, **kw):
-        return self.inner.step(k, t_s, omega_S, f_S, temp_c, *args, **kw) + self.d[min(k, self.d.shape[0] - 1)]
-
-
 def _rerated(stages, rate_hz):
     out = []
     for s in stages:
@@ -50,8 +51,14 @@ def _rerated(stages, rate_hz):
     return out
 
 
-def fly(stages, d, *, duration_s: float, seed: int, preset: str = "icm42688p", vehicle: str = "f450",
-        vibration=True, rpm: bool = False) -> dict:
+def fly(stages, *, duration_s: float, seed: int, vehicle: str = "racing25", preset: str = "icm42688p",
+        vibration=True, shaped: dict | None = None, rpm: bool = False, manoeuvres: bool = True):
+    """One closed-loop flight of a chain; returns (FlightLog, chain stage names).
+
+    ``vibration``: the rotor physics (True = the class's default, False = none, or a
+    VibrationSpec); ``shaped``: the registry effect ``vibration``'s shaped part (overrides of the
+    synthetic gyro, :func:`sim.spec_vibration.spec_injection`) or None.
+    """
     from gyrocore.filters import AffineCorrection, Pipeline, RpmNotch, chain_filters
     from sim.controller import small_steps
     from sim.gyro import SyntheticGyro
@@ -60,88 +67,215 @@ def fly(stages, d, *, duration_s: float, seed: int, preset: str = "icm42688p", v
     n = int(math.floor(duration_s * GYRO_RATE_HZ + 1e-9))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        g = SyntheticGyro(preset, rate_hz=GYRO_RATE_HZ, seed=seed)
+        g = SyntheticGyro(preset, rate_hz=GYRO_RATE_HZ, seed=seed, overrides=shaped or None)
     flts = chain_filters(_rerated(stages, GYRO_RATE_HZ))
     if rpm:
         flts = [RpmNotch(GYRO_RATE_HZ), *flts]
     pipe = Pipeline([AffineCorrection(g.power_up_bias(0)), *flts])
-    truth, log = fly_hover(duration_s=duration_s, gyro=_Disturbed(g.stream(n), d), pipeline=pipe,
-                           manoeuvres=small_steps(duration_s), vibration=vibration, seed=seed, gyro_rate_hz=GYRO_RATE_HZ,
-                           vehicle=vehicle)
-    keep = log.t_s >= SETTLE_S
-    ok = np.all(np.isfinite(log.q_WB_wxyz)) and float(np.max(log.tilt_rad())) < math.radians(60)
+    _, log = fly_hover(duration_s=duration_s, gyro=g.stream(n), pipeline=pipe,
+                       manoeuvres=small_steps(duration_s) if manoeuvres else (), vibration=vibration, seed=seed,
+                       gyro_rate_hz=GYRO_RATE_HZ, vehicle=vehicle)
+    return log, [f.name for f in flts]
+
+
+def _angle_between_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+    d = np.abs(np.einsum("ij,ij->i", qa, qb))
+    return np.degrees(2.0 * np.arccos(np.clip(d, 0.0, 1.0)))
+
+
+def score_chain(stages, *, hover_vib, shaped, seed: int, duration_s: float, vehicle: str, rpm: bool = False,
+                track_none_deg: float | None = None) -> dict:
+    """The paired flights of one chain (module docstring) -> scores."""
+    keep_s = SETTLE_S
+    log_v, chain = fly(stages, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=hover_vib or True,
+                       shaped=shaped, rpm=rpm, manoeuvres=False)
+    log_r, _ = fly(stages, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=False, shaped=None, rpm=rpm,
+                   manoeuvres=False)
+    log_m, _ = fly(stages, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=False, shaped=None, rpm=rpm,
+                   manoeuvres=True)
+    k = log_v.t_s >= keep_s
+    ok = all(np.all(np.isfinite(lg.q_WB_wxyz)) and float(np.max(lg.tilt_rad())) < math.radians(60) for lg in (log_v, log_r, log_m))
     nan = float("nan")
-    return {"crashed": not ok,
-            "att_rms_deg": float(np.degrees(np.sqrt(np.mean(log.attitude_error_rad()[keep] ** 2)))) if ok else nan,
-            "motor_noise_n": log.motor_noise_n(t_from_s=SETTLE_S) if ok else nan,
-            "delay_ms": 1e3 * log.gyro_delay_s() if ok else nan,
-            "chain": [f.name for f in flts]}
+    if not ok:
+        return {"crashed": True, "chain": chain, "att_vibration_deg": nan, "att_delay_deg": nan, "attitude_cost_deg": nan,
+                "motor_noise_n": nan, "delay_ms": nan, "track_rms_deg": nan}
+    att_vib = float(np.sqrt(np.mean(_angle_between_deg(log_v.q_WB_wxyz[k], log_r.q_WB_wxyz[k]) ** 2)))
+    track = float(np.degrees(np.sqrt(np.mean(log_m.attitude_error_rad()[k] ** 2))))
+    base = track if track_none_deg is None else track_none_deg
+    att_delay = math.sqrt(max(track * track - base * base, 0.0))
+    return {"crashed": False, "chain": chain, "att_vibration_deg": att_vib, "att_delay_deg": att_delay,
+            "attitude_cost_deg": math.hypot(att_vib, att_delay), "motor_noise_n": log_v.motor_noise_n(t_from_s=keep_s),
+            "delay_ms": 1e3 * log_m.gyro_delay_s(), "track_rms_deg": track}
 
 
-def run(*, spec_path: str, filter_json: str, duration_s: float = 20.0, seed: int = 0, band="middle",
-        vehicle: str = "racing5", physics: bool = True) -> dict:
-    from gyrocore.vibration import read_spec, synthesize
+def _candidates(fj: dict, *, physics: bool, extra_pt1=(60.0, 150.0, 250.0)) -> dict:
+    """name -> (stages, rpm, open-loop row key) from ``gyroharness filter``'s result."""
+    from gyrocore import preview as P
 
-    spec = read_spec(spec_path)
-    fj = json.load(open(filter_json))
-    n = int(duration_s * GYRO_RATE_HZ) + 1
-    vib, exclude, info = True, (), None
-    if physics:
-        from sim.spec_vibration import vibration_from_spec
-
-        vib, info = vibration_from_spec(spec, vehicle, band=band, seed=seed)
-        f_line = info["real_line_hz"]
-        half = max(3 * (float(spec["f_hz"][1]) - float(spec["f_hz"][0])), 0.06 * f_line)
-        exclude = ((f_line - half, f_line + half),)
-    d = synthesize(spec, n=n, rate_hz=GYRO_RATE_HZ, seed=int(np.random.SeedSequence([seed, 16]).generate_state(1)[0]), band=band,
-                   exclude_hz=exclude)
-    rows = fj.get("_rows_for_sim") or []
-    cands = {"none": []}
-    for key in ("recommended", "as_flown", "with_rpm_filter", "article", "px4_ardupilot_lowpass"):
+    rate = float(fj.get("filter_rate_hz", 8000.0))
+    cands = {"none": ([], False)}
+    for key in ("as_flown", "recommended", "article", "px4_ardupilot_lowpass"):
         if fj.get(key) and fj[key].get("stages") is not None:
-            cands[key] = fj[key]["stages"]
-    for k, v in fj.get("defaults", {}).items():
+            cands[key] = (list(fj[key]["stages"]), False)
+    for k, v in (fj.get("defaults") or {}).items():
         if v.get("stages") is not None:
-            cands[k] = v["stages"]
-    rpm_cands = {}
+            cands[k] = (list(v["stages"]), False)
+    for fc in extra_pt1:
+        cands[f"pt1 {fc:g} Hz"] = ([P._stage("pt1", fc, rate)], False)
     if physics:
-        # the RPM filter tracks the simulator's rotors; only where the spec's rotor line is in the physics
-        if "with_rpm_filter" in cands:
-            rpm_cands["with_rpm_filter"] = cands["with_rpm_filter"]
+        # the RPM filter tracks the simulator's rotors (the rotor line is in the physics)
+        if fj.get("with_rpm_filter") and fj["with_rpm_filter"].get("stages") is not None:
+            cands["with_rpm_filter"] = (list(fj["with_rpm_filter"]["stages"]), True)
         if "as_flown" in cands:
-            rpm_cands["as_flown+rpm"] = cands["as_flown"]
-        rpm_cands["rpm_only"] = []
-    caveat = (f"vehicle {vehicle}; the 2.5-inch quad's rotor line through the rotor imbalance at {vehicle}'s commanded rotor "
-              "speed, the rest of its spectrum as an in-loop gyro disturbance (not motion)" if physics else
-              f"vehicle {vehicle}; the 2.5-inch quad's vibration as an in-loop gyro disturbance (not motion); "
-              "RPM notches not flown (the spec's lines are not tied to the vehicle's rotors)")
-    out = {"spec": spec_path, "band": band, "duration_s": duration_s, "seed": seed, "vehicle": vehicle,
-           "physics": info, "caveat": caveat, "rows": {}}
-    for name, st in cands.items():
-        out["rows"][name] = fly(st, d, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=vib)
-    for name, st in rpm_cands.items():
-        key = name if name != "with_rpm_filter" else "with_rpm_filter (+ RPM notch)"
-        out["rows"][key] = fly(st, d, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=vib, rpm=True)
+            cands["as_flown + rpm"] = (cands["as_flown"][0], True)
+    return cands
+
+
+def _pick(rows: dict) -> tuple[str, float]:
+    """Least attitude cost with motor noise <= the as-flown chain's (else <= the least noisy's)."""
+    ok = {k: r for k, r in rows.items() if not r["crashed"]}
+    budget = ok["as_flown"]["motor_noise_n"] if "as_flown" in ok else min(r["motor_noise_n"] for r in ok.values())
+    pool = {k: r for k, r in ok.items() if r["motor_noise_n"] <= budget * (1 + 1e-9)}
+    best = min(pool, key=lambda k: (pool[k]["attitude_cost_deg"], pool[k]["motor_noise_n"]))
+    return best, budget
+
+
+def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: float = 8.0, band="middle",
+        physics: bool = True, n_calib: int = 8, calib_s: float = 2.0, candidates: dict | None = None) -> dict:
+    """The closed-loop recommendation for a flight log (module docstring). Returns the JSON dict
+    (DESIGN.md keys ``recommended``, ``as_flown``, ``firmware``, ``defaults``; plus per-seed picks,
+    ``stable`` and every chain's scores per seed)."""
+    import os
+    import tempfile
+
+    from gyrocore import preview as P
+    from gyrocore.commands.filter import run_filter
+    from gyrocore.convert import detect_format, load_any
+    from gyrocore.recording import read_csv
+    from gyrocore.vibration import read_spec, write_spec
+    from sim.spec_vibration import spec_injection
+
+    rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
+    fj = run_filter(rec)
+    with tempfile.TemporaryDirectory() as d:
+        p = os.path.join(d, "spec.json")
+        write_spec(fj["_res"], p, source=flight)
+        spec = read_spec(p)
+    hv, shaped, info = spec_injection(spec, band=band, vehicle=vehicle, physics=physics, seed=0, n_calib=n_calib,
+                                      calib_s=calib_s)
+    cands = candidates or _candidates(fj, physics=physics)
+    per_seed, picks = [], []
+    for s in seeds:
+        none = score_chain([], hover_vib=hv, shaped=shaped, seed=int(s), duration_s=duration_s, vehicle=vehicle)
+        rows = {"none": none}
+        for name, (st, rpm) in cands.items():
+            if name == "none":
+                continue
+            rows[name] = score_chain(st, hover_vib=hv, shaped=shaped, seed=int(s), duration_s=duration_s, vehicle=vehicle,
+                                     rpm=rpm, track_none_deg=none["track_rms_deg"])
+        best, budget = _pick(rows)
+        picks.append(best)
+        per_seed.append({"seed": int(s), "pick": best, "budget_motor_noise_n": budget, "rows": rows})
+    names = list(per_seed[0]["rows"])
+    summary = {}
+    for name in names:
+        vals = {k: [ps["rows"][name][k] for ps in per_seed] for k in
+                ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "motor_noise_n", "delay_ms")}
+        summary[name] = {k: {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")}
+                         for k, v in vals.items()}
+        summary[name]["chain"] = per_seed[0]["rows"][name]["chain"]
+    mode = max(set(picks), key=picks.count)
+    version = tuple(int(x) for x in rec.meta["firmware_version"].split(".")) \
+        if rec.meta.get("firmware_name", "betaflight") == "betaflight" and "firmware_version" in rec.meta else None
+    by_open = {"as_flown": fj.get("as_flown"), "recommended": fj.get("recommended"), "article": fj.get("article"),
+               "px4_ardupilot_lowpass": fj.get("px4_ardupilot_lowpass"), "with_rpm_filter": fj.get("with_rpm_filter"),
+               **(fj.get("defaults") or {})}
+
+    def public(name):
+        st, rpm = cands.get(name, ([], False))
+        lp = [x for x in st if x["kind"] in ("pt1", "pt2", "pt3", "biquad", "butter2", "article")]
+        m = summary[name]
+        return {"filter": lp[0]["kind"] if lp else "none", "cutoff_hz": float(lp[0]["cutoff_hz"]) if lp else None,
+                "notches_hz": [float(x["cutoff_hz"]) for x in st if x["kind"] == "notch"],
+                "attitude_cost": m["attitude_cost_deg"]["mean"], "delay_ms": m["delay_ms"]["mean"],
+                "motor_noise": m["motor_noise_n"]["mean"], "rpm_filter": bool(rpm), "name": name,
+                "chain_flown": m["chain"], "units": {"attitude_cost": "deg", "delay_ms": "ms", "motor_noise": "N"}}
+
+    rec_pub = public(mode)
+    st = cands[mode][0]
+    bf = []
+    if rec.meta.get("firmware_name", "betaflight") == "betaflight":
+        if rec_pub["filter"] in ("pt1", "pt2", "pt3", "biquad"):
+            bf = P.betaflight_cli({"filter": rec_pub["filter"], "cutoff_hz": rec_pub["cutoff_hz"], "stages": st}, version)
+        elif rec_pub["filter"] == "none":
+            bf = ["# no static gyro low-pass recommended"]
+        else:
+            bf = [f"# {rec_pub['filter']} is not a Betaflight gyro filter: see the px4/ardupilot names"]
+        if cands[mode][1]:
+            v = version or (4, 5, 0)
+            bf += (["# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)"] if v < (4, 0, 0) else
+                   ["set dshot_bidir = ON"] + (["set gyro_rpm_notch_harmonics = 3"] if v < (4, 3, 0) else ["set rpm_filter_harmonics = 3"]))
+    else:
+        bf = [f"# {rec.meta.get('firmware_name')} log: Betaflight CLI names do not apply"]
+    b2 = {k: summary[k]["attitude_cost_deg"]["mean"] for k in ("px4_default", "ardupilot_default", "px4_ardupilot_lowpass")
+          if k in summary}
+    b2best = min(b2, key=b2.get) if b2 else None
+    b2fc = public(b2best)["cutoff_hz"] if b2best else None
+    out = {
+        "flight": flight, "vehicle": vehicle, "band": band, "duration_s": duration_s, "seeds": [int(s) for s in seeds],
+        "recommended": rec_pub,
+        "as_flown": public("as_flown") if "as_flown" in summary else None,
+        "defaults": {k: public(k) for k in ("betaflight_default", "px4_default", "ardupilot_default") if k in summary},
+        "open_loop_recommended": public("recommended") if "recommended" in summary else None,
+        "firmware": {"betaflight": bf, "px4": {"IMU_GYRO_CUTOFF": round(b2fc)} if b2fc else {},
+                     "ardupilot": {"INS_GYRO_FILTER": round(b2fc)} if b2fc else {}},
+        "picks_per_seed": picks, "stable": len(set(picks)) == 1,
+        "chains": summary, "per_seed": per_seed, "injection": info,
+        "open_loop": {k: (v["name"] if v else None) for k, v in by_open.items()},
+        "scores": {"att_vibration_deg": "RMS angle between the vibrating and the vibration-free steady hover (same chain, seed)",
+                   "att_delay_deg": "sqrt(max(RMS_track^2 - RMS_track(none)^2, 0)) on attitude steps without vibration",
+                   "attitude_cost": "hypot(att_vibration, att_delay), deg",
+                   "motor_noise": "RMS of the motor thrust commands above 20 Hz in the vibrating hover, N"},
+        "notes": [f"chains re-rated to the simulator's {GYRO_RATE_HZ:g}-Hz gyro (stages at or above its Nyquist dropped)",
+                  f"vehicle {vehicle}: motor time constant {1e3 * _tau(vehicle):.0f} ms (estimate); the delay cost depends on it"],
+    }
     return out
+
+
+def _tau(vehicle):
+    from sim.vehicles import get_vehicle
+
+    return get_vehicle(vehicle).motor_tau_s
+
+
+def print_table(out: dict) -> None:
+    print(f"| chain | flown as | attitude cost, deg | vibration part | delay part | motor noise, N | gyro delay, ms |")
+    print("|---|---|---|---|---|---|---|")
+    for k, m in out["chains"].items():
+        def f(key, fmt):
+            v = m[key]
+            return (fmt % v["mean"]) + (f" ± {fmt % v['sd']}" if np.isfinite(v["sd"]) else "")
+        print(f"| {k} | {' -> '.join(m['chain']) or 'none'} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
+              f"{f('att_delay_deg', '%.4f')} | {f('motor_noise_n', '%.4f')} | {f('delay_ms', '%.2f')} |")
+    print(f"picks per seed {out['seeds']}: {out['picks_per_seed']} (stable: {out['stable']})")
+    print("recommended:", out["recommended"]["name"], "| betaflight:", "; ".join(out["firmware"]["betaflight"]),
+          "| px4:", out["firmware"]["px4"], "| ardupilot:", out["firmware"]["ardupilot"])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--spec", required=True)
-    ap.add_argument("--filter-json", required=True)
-    ap.add_argument("--duration-s", type=float, default=20.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--vehicle", default="racing5")
-    ap.add_argument("--no-physics", action="store_true", help="the whole spec band as in-loop disturbance (first version)")
+    ap.add_argument("--flight", required=True)
+    ap.add_argument("--vehicle", default="racing25")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--duration-s", type=float, default=8.0)
+    ap.add_argument("--band", default="middle")
+    ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
-    out = run(spec_path=a.spec, filter_json=a.filter_json, duration_s=a.duration_s, seed=a.seed, vehicle=a.vehicle,
-              physics=not a.no_physics)
-    print("| chain | flown as | attitude RMS, deg | motor noise, N | gyro delay, ms |")
-    print("|---|---|---|---|---|")
-    for k, r in out["rows"].items():
-        print(f"| {k} | {' -> '.join(r['chain']) or 'none'} | {r['att_rms_deg']:.3f} | {r['motor_noise_n']:.4f} | {r['delay_ms']:.2f} |"
-              + (" crashed" if r["crashed"] else ""))
-    print(out["caveat"])
+    out = run(flight=a.flight, vehicle=a.vehicle, seeds=tuple(range(a.seeds)), duration_s=a.duration_s, band=a.band)
+    if a.json:
+        print(json.dumps({k: v for k, v in out.items() if k != "per_seed"}, indent=1, default=str))
+    else:
+        print_table(out)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,17 @@ class (``--vehicle-duration-s``, airborne start, analysed after 2 s):
 
     python -m experiments.vibration_fidelity --spec spec.json --hover hover.csv [--t-from-s 8] [--seed 0]
         [--vehicle racing5 [--vehicle-duration-s 12] [--plot fidelity.png]]
+
+Out of sample (``--flight``): the spec is built from the first half of the flight (``analyse(t <
+t_mid)``, its 8 equal-count throttle bands) and the simulated hovers are compared with the
+second half analysed in the same bands (``band_edges``); the in-sample figure (the same hovers
+against the first half) is printed second. Columns: *before* = today's F450 defaults (no spec);
+*after* = the vehicle class (default ``racing25``, the log's quad) with the first half's band in
+the physics (its rotor line through the static + hub-moment unbalance) and the rest of the band as
+the registry effect ``vibration``'s shaped part — what ``gyroharness simulate hover --vehicle
+racing25 --vibration SPEC_A --vibration-physics --vibration-band i`` writes.
+
+    python -m experiments.vibration_fidelity --flight FLIGHT.BBL [--vehicle racing25] [--out-dir d] [--plot p.png]
 """
 
 from __future__ import annotations
@@ -118,8 +129,11 @@ def _plot(spec: dict, curves: dict, path: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--spec", required=True)
-    ap.add_argument("--hover", required=True)
+    ap.add_argument("--spec", default=None)
+    ap.add_argument("--hover", default=None)
+    ap.add_argument("--flight", default=None, help="out of sample: spec from the first half of this flight, compared on the second")
+    ap.add_argument("--out-dir", default=None, help="--flight: where the two half specs are written")
+    ap.add_argument("--duration-s", type=float, default=12.0, help="--flight: hover length, s")
     ap.add_argument("--t-from-s", type=float, default=8.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--vehicle", default=None, help="also fly this vehicle class with the spec (e.g. racing5)")
@@ -127,6 +141,16 @@ def main() -> None:
     ap.add_argument("--plot", default=None, help="PNG of the PSDs of bands 0, 4, 7 (with --vehicle)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
+    if a.flight:
+        out = run_split(flight=a.flight, vehicle=a.vehicle or "racing25", seed=a.seed, duration_s=a.duration_s,
+                        out_dir=a.out_dir, plot=a.plot)
+        if a.json:
+            print(json.dumps(out, indent=1, default=str))
+        else:
+            _print_split(out)
+        return
+    if not (a.spec and a.hover):
+        ap.error("give --flight, or --spec and --hover")
     out = run(spec_path=a.spec, hover_path=a.hover, t_from_s=a.t_from_s, seed=a.seed, vehicle=a.vehicle,
               vehicle_duration_s=a.vehicle_duration_s, plot=a.plot)
     if a.json:
@@ -153,6 +177,142 @@ def main() -> None:
             else:
                 print(f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | {af['in_band_fraction']:.2f} | "
                       f"{b['rms_sim_rad_s'] * d:.2f} / {af['rms_sim_rad_s'] * d:.2f} / {b['rms_real_rad_s'] * d:.2f} |")
+
+
+
+# ---------------------------------------------------------------------------- out of sample
+def _hover_result(spec, band, *, vehicle: str, duration_s: float, seed: int, n_calib: int, calib_s: float,
+                  t_from_s: float):
+    """Analysis of a hover of ``vehicle`` with the spec band injected (physics + registry shaped part)."""
+    from gyrocore.vibration import analyse
+    from sim import scenarios as S
+    from sim.spec_vibration import spec_injection
+
+    hv, over, info = spec_injection(spec, band=band, vehicle=vehicle, physics=True, seed=seed, n_calib=n_calib,
+                                    calib_s=calib_s)
+    res = S.simulate("hover", duration_s=duration_s, seed=seed, vehicle=vehicle, overrides=over, hover_vibration=hv)
+    return analyse(res.recording, t_from_s=t_from_s), info
+
+
+def run_split(*, flight: str, vehicle: str = "racing25", seed: int = 0, duration_s: float = 12.0, t_from_s: float = 2.0,
+              n_calib: int = 8, calib_s: float = 2.0, out_dir: str | None = None, plot: str | None = None,
+              plot_bands=(0, 3, 7)) -> dict:
+    """Fidelity per throttle band, out of sample (spec from the first half, compared on the second).
+
+    Returns ``{"t_split_s", "bands": [{"band", "throttle", "out_of_sample": {"before": fid, "after": fid},
+    "in_sample": {...}, "physics": info}]}`` with ``fid`` = :func:`gyrocore.vibration.fidelity` per axis.
+    """
+    import os
+    import tempfile
+    from types import SimpleNamespace
+
+    from gyrocore.convert import detect_format, load_any
+    from gyrocore.recording import read_csv
+    from gyrocore.vibration import analyse, fidelity, write_spec
+    from sim import scenarios as S
+
+    rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
+    t = rec.t_s
+    t_mid = float(t[0] + 0.5 * (t[-1] - t[0]))
+    res_a = analyse(rec, t_to_s=t_mid)
+    edges = [b["throttle"][0] for b in res_a.bands] + [res_a.bands[-1]["throttle"][1]]
+    res_b = analyse(rec, t_from_s=t_mid, band_edges=edges)
+    d = out_dir or tempfile.mkdtemp(prefix="vibfid_")
+    os.makedirs(d, exist_ok=True)
+    spec_a = write_spec(res_a, os.path.join(d, "spec_first_half.json"), source=f"{flight} t < {t_mid:.2f} s")
+    spec_b = write_spec(res_b, os.path.join(d, "spec_second_half.json"), source=f"{flight} t >= {t_mid:.2f} s")
+    b_index = {round(b["throttle"][0], 9): j for j, b in enumerate(spec_b["bands"])}
+    f450 = S.simulate("hover", duration_s=duration_s, seed=seed, vehicle="f450")
+    before = analyse(f450.recording, t_from_s=t_from_s)
+    rows, curves = [], {}
+    for i, b in enumerate(spec_a["bands"]):
+        j = b_index.get(round(b["throttle"][0], 9))
+        if j is None:
+            continue  # the second half has too few windows in this band
+        after, info = _hover_result(spec_a, i, vehicle=vehicle, duration_s=duration_s, seed=seed, n_calib=n_calib,
+                                    calib_s=calib_s, t_from_s=t_from_s)
+        # the data's own repeatability: the first half's band against the second half's, same test
+        half_a = SimpleNamespace(f_hz=np.asarray(spec_a["f_hz"], float), n_windows=int(b["n_windows"]),
+                                 mean_psd=np.column_stack([[np.nan if x is None else x for x in b["psd_rad2_s2_hz"][a]]
+                                                           for a in "xyz"]))
+        rows.append({"band": i, "throttle": b["throttle"], "n_windows_first": b["n_windows"],
+                     "first_vs_second_half": fidelity(half_a, spec_b, band=j),
+                     "n_windows_second": spec_b["bands"][j]["n_windows"],
+                     "out_of_sample": {"before": fidelity(before, spec_b, band=j), "after": fidelity(after, spec_b, band=j)},
+                     "in_sample": {"before": fidelity(before, spec_a, band=i), "after": fidelity(after, spec_a, band=i)},
+                     "physics": info.get("physics")})
+        if plot and i in plot_bands:
+            curves[i] = (j, {"F450 defaults": before, f"{vehicle}, first-half spec (physics + shaped)": after})
+    if plot and curves:
+        _plot_split(spec_a, spec_b, curves, plot)
+    return {"flight": flight, "t_split_s": t_mid, "vehicle": vehicle, "seed": seed, "duration_s": duration_s,
+            "spec_first_half": os.path.join(d, "spec_first_half.json"),
+            "spec_second_half": os.path.join(d, "spec_second_half.json"), "bands": rows}
+
+
+def _plot_split(spec_a: dict, spec_b: dict, curves: dict, path: str) -> None:
+    """PSD per plotted band (rows) and axis x, y, z: second half (held out), first half, the simulations."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from gyrocore.recording import atomic_write_bytes
+
+    d2 = (180 / math.pi) ** 2
+    f_r = np.asarray(spec_a["f_hz"], float)
+    lim = float(spec_a.get("reconstructed_reliable_below_hz") or f_r[-1])
+    bands = sorted(curves)
+    fig, axs = plt.subplots(len(bands), 3, figsize=(14, 3.2 * len(bands)), squeeze=False)
+    for r, i in enumerate(bands):
+        j, sims = curves[i]
+        ba, bb = spec_a["bands"][i], spec_b["bands"][j]
+        for c, ax_name in enumerate("xyz"):
+            ax = axs[r, c]
+            for b, lab, sty in ((bb, "real, second half (held out)", "k"), (ba, "real, first half (spec)", "0.6")):
+                v = np.array([np.nan if x is None else x for x in b["psd_rad2_s2_hz"][ax_name]], float)
+                ax.semilogy(f_r, v * d2, sty, lw=1.4, label=lab)
+            for name, res in sims.items():
+                ax.semilogy(res.f_hz, res.mean_psd[:, "xyz".index(ax_name)] * d2, lw=0.9, label=name)
+            ax.axvspan(lim, f_r[-1], color="0.9")
+            ax.set_xlim(0, f_r[-1])
+            ax.set_title(f"band {i} (motor cmd {ba['throttle'][0]:.2f}-{ba['throttle'][1]:.2f}), gyro {ax_name}", fontsize=9)
+            ax.set_ylabel("PSD, (°/s)²/Hz")
+            if r == len(bands) - 1:
+                ax.set_xlabel("Hz (grey: above the spec's reliable limit)")
+    axs[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=70)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _print_split(out: dict) -> None:
+    d = 180 / math.pi
+    v = out["vehicle"]
+    for which in ("out_of_sample", "in_sample"):
+        title = ("OUT OF SAMPLE: spec from t < %.1f s, compared with the second half" % out["t_split_s"]
+                 if which == "out_of_sample" else "IN SAMPLE: the same hovers against the first half (the spec's own data)")
+        print(title)
+        oos = which == "out_of_sample"
+        print(f"| band (motor cmd) | axis | in-band: F450 defaults | in-band: {v} + spec |"
+              + (" real first half vs second half |" if oos else "") + f" rms >40 Hz, deg/s: F450 / {v} / real |")
+        print("|---|---|---|---|" + ("---|" if oos else "") + "---|")
+        for r in out["bands"]:
+            for ax in "xyz":
+                b, a = r[which]["before"][ax], r[which]["after"][ax]
+                print(f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | "
+                      f"{a['in_band_fraction']:.2f} |" + (f" {r['first_vs_second_half'][ax]['in_band_fraction']:.2f} |" if oos else "")
+                      + f" {b['rms_sim_rad_s'] * d:.2f} / {a['rms_sim_rad_s'] * d:.2f} / {b['rms_real_rad_s'] * d:.2f} |")
+        fr = [r[which]["after"][ax]["in_band_fraction"] for r in out["bands"] for ax in "xyz"]
+        fb = [r[which]["before"][ax]["in_band_fraction"] for r in out["bands"] for ax in "xyz"]
+        print(f"in-band fraction, median over bands and axes: before {np.median(fb):.2f}, after {np.median(fr):.2f} "
+              f"(range {min(fr):.2f}-{max(fr):.2f})"
+              + (f"; real first half vs second half {np.median([r['first_vs_second_half'][ax]['in_band_fraction'] for r in out['bands'] for ax in 'xyz']):.2f}"
+                 if oos else "") + "\n")
 
 
 if __name__ == "__main__":

@@ -342,7 +342,8 @@ def _rotor_hz(rec: Recording):
 
 
 def analyse(rec: Recording, *, use: str = "auto", undo: bool = True, window_s: float = 1.0, n_bands: int = 8,
-            t_from_s: float | None = None, airborne_min_cmd: float = 0.1, fmin_hz: float = 40.0) -> VibrationResult:
+            t_from_s: float | None = None, airborne_min_cmd: float = 0.1, fmin_hz: float = 40.0,
+            t_to_s: float | None = None, band_edges: Sequence[float] | None = None) -> VibrationResult:
     """Vibration of a recording: PSD per throttle band, broadband RMS above 40 Hz, lines and their laws.
 
     Parameters
@@ -357,8 +358,12 @@ def analyse(rec: Recording, *, use: str = "auto", undo: bool = True, window_s: f
         Hann window length, s (resolution 1.5/window_s Hz).
     n_bands : int
         Throttle bands (equal-count quantiles of the band variable over airborne windows).
-    t_from_s : float, optional
-        Analyse only t ≥ t_from_s (e.g. after a simulated take-off).
+    t_from_s, t_to_s : float, optional
+        Analyse only t_from_s ≤ t < t_to_s (e.g. after a simulated take-off; one half of a
+        flight, to build a spec on one part and compare on the other).
+    band_edges : sequence of float, optional
+        Throttle band edges (increasing; e.g. another part's ``[b["throttle"][0] for b in
+        bands] + [last hi]``) instead of the equal-count quantiles, so two analyses band alike.
     airborne_min_cmd : float
         Airborne = band variable ≥ this (motor command fraction); all samples when the
         recording has no motor/throttle column.
@@ -370,10 +375,11 @@ def analyse(rec: Recording, *, use: str = "auto", undo: bool = True, window_s: f
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Mean of empty slice", category=RuntimeWarning)
         return _analyse(rec, use=use, undo=undo, window_s=window_s, n_bands=n_bands, t_from_s=t_from_s,
-                        airborne_min_cmd=airborne_min_cmd, fmin_hz=fmin_hz)
+                        airborne_min_cmd=airborne_min_cmd, fmin_hz=fmin_hz, t_to_s=t_to_s, band_edges=band_edges)
 
 
-def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, fmin_hz) -> VibrationResult:
+def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, fmin_hz, t_to_s=None,
+             band_edges=None) -> VibrationResult:
     if use not in ("auto", "prefilter", "gyro"):
         raise GyroInputError(f"signal must be auto, prefilter or gyro, got {use!r}")
     notes, warns = [], []
@@ -390,6 +396,8 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         airborne &= np.isfinite(bv) & (bv >= airborne_min_cmd)
     if t_from_s is not None:
         airborne &= t >= t_from_s
+    if t_to_s is not None:
+        airborne &= t < t_to_s
     if not airborne.any():
         raise GyroInputError("no airborne samples (band variable below the airborne threshold everywhere)")
     W = _windows(t, sig.gyro, bv, _rotor_hz(rec), airborne, nperseg=nper, rate_hz=rate)
@@ -456,7 +464,13 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         arms = {a: float(am[i]) for i, a in enumerate(AXES)}
     # throttle bands
     bands = []
-    if bv is not None and np.ptp(W.band_var) > 0.02:
+    if band_edges is not None:
+        edges = np.asarray(band_edges, float)
+        if edges.ndim != 1 or edges.size < 2 or not np.all(np.diff(edges) > 0):
+            raise GyroInputError(f"band edges must be an increasing list of at least 2 values, got {list(band_edges)}")
+        if bv is None:
+            raise GyroInputError("band edges need a motor or throttle column")
+    elif bv is not None and np.ptp(W.band_var) > 0.02:
         qs = np.quantile(W.band_var, np.linspace(0, 1, n_bands + 1))
         edges = np.unique(qs)
     else:

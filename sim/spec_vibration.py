@@ -138,8 +138,29 @@ def line_amplitude_in_gyro(omega_rad_s: np.ndarray, rate_hz: float, f_hz: float,
     return np.sqrt(2.0 * pw)
 
 
+_CALIB_CACHE: dict = {}
+
+
 def _calibration_powers(veh, vib, *, seed: int, tag: int, calib_s: float, n_calib: int):
-    """Line power per axis (n_calib, 3), (rad/s)², and the rotor frequencies of seeded hovers with ``vib``."""
+    """Line power per axis (n_calib, 3), (rad/s)², and the mean rotor frequency of seeded hovers with ``vib``.
+
+    Deterministic in its arguments (seeded hovers), so a registered class's results are kept for
+    the process (the calibration bases do not depend on the spec: one per class, not one per band).
+    """
+    from .vehicles import VEHICLES
+
+    key = (veh.name, vib, int(seed), int(tag), float(calib_s), int(n_calib))
+    cacheable = veh.name in VEHICLES and VEHICLES[veh.name] is veh
+    if cacheable and key in _CALIB_CACHE:
+        p, f = _CALIB_CACHE[key]
+        return p.copy(), f
+    out = _calibration_powers_uncached(veh, vib, seed=seed, tag=tag, calib_s=calib_s, n_calib=n_calib)
+    if cacheable:
+        _CALIB_CACHE[key] = (out[0].copy(), out[1])
+    return out
+
+
+def _calibration_powers_uncached(veh, vib, *, seed: int, tag: int, calib_s: float, n_calib: int):
     from .quadrotor import fly_hover
 
     p_axes, f_rots = [], []
@@ -248,7 +269,7 @@ def line_exclusion_hz(spec: dict, line_hz: float) -> tuple[tuple[float, float], 
 
 
 def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = False, seed: int = 0,
-                   n_calib: int = 16) -> tuple[object, dict, dict]:
+                   n_calib: int = 16, calib_s: float = 3.0) -> tuple[object, dict, dict]:
     """How a vibration spec enters a simulation: the one path of ``simulate --vibration SPEC
     [--vibration-physics]``, a scenario's ``[vibration]`` section and the experiments.
 
@@ -267,7 +288,7 @@ def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = F
     if physics:
         if vehicle is None:
             raise GyroInputError("the spec's rotor line through the physics needs a hover vehicle class")
-        hover_vib, pinfo = vibration_from_spec(spec, vehicle, band=band, seed=int(seed), n_calib=n_calib)
+        hover_vib, pinfo = vibration_from_spec(spec, vehicle, band=band, seed=int(seed), n_calib=n_calib, calib_s=calib_s)
         exclude = line_exclusion_hz(spec, pinfo["real_line_hz"])
         info["physics"] = pinfo
     shaped = shaped_params(spec, band=band, exclude_hz=exclude)

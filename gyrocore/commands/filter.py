@@ -83,17 +83,21 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
                                            omega_rms_rad_s=omega_rms, loop_scale=loop_scale, rate_hz=rate, lines=res.lines))
         notes.append(f"RPM-tracking notch candidates: Q {P.RPM_NOTCH_Q:g} notches following " + ", ".join(
             f"{ln['axis']} {ln['frequency_hz']:.0f} Hz" for ln in moving[:3]) + " per throttle band (needs bidirectional DShot / eRPM)")
-    version = tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta else None
+    firmware = str(meta.get("firmware_name", "betaflight")).lower()
+    is_bf = firmware == "betaflight"
+    version = tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta and is_bf else None
     rpm_rows = [r for r in rows if "rpm_notch" in r]
-    can_rpm = version is None or version >= (4, 0, 0)
+    # another firmware's RPM filter (INAV's) was not read here: its candidates are reported, not recommended
+    can_rpm = is_bf and (version is None or version >= (4, 0, 0))
     best, budget, src, front = P.recommend(rows if can_rpm else [r for r in rows if "rpm_notch" not in r])
     rpm_best = None
     if rpm_rows:
         ok_r = [r for r in rpm_rows if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(rpm_rows, key=lambda r: r["motor_noise"])]
         rpm_best = min(ok_r, key=lambda r: r["attitude_cost"])
         if not can_rpm:
-            notes.append(f"RPM filter: Betaflight {meta['firmware_version']} has none (4.0+ with bidirectional DShot); "
-                         "its best candidate is reported under 'with_rpm_filter', not recommended")
+            notes.append((f"RPM filter: Betaflight {meta['firmware_version']} has none (4.0+ with bidirectional DShot); "
+                          if is_bf else f"RPM filter: {firmware}'s was not read here; ")
+                         + "its best candidate is reported under 'with_rpm_filter', not recommended")
     by = {r["family"]: r for r in rows}
     # PX4 / ArduPilot: their LPF is a 2nd-order Butterworth; best cutoff under the same budget
     b2 = []
@@ -109,8 +113,9 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
         span = [p["frequency_hz"] for p in top.get("per_band", [])] or [top["frequency_hz"]]
         ardu.update({"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 1, "INS_HNTCH_FREQ": round(min(span)),
                      "INS_HNTCH_BW": round(max(40.0, min(span) / 2))})
-    bf_lines = P.betaflight_cli(best, version)
-    if "rpm_notch" in best:
+    bf_lines = P.betaflight_cli(best, version) if is_bf else [
+        f"# {firmware} log: Betaflight CLI names do not apply (this firmware's parameter names were not read)"]
+    if "rpm_notch" in best and is_bf:
         v = version or (4, 5, 0)
         if v < (4, 0, 0):
             bf_lines.append("# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)")

@@ -27,10 +27,15 @@ from ..errors import GyroInputError, warn_repair
 @click.option("--window-s", type=float, default=1.0, show_default=True, help="Hann window, s (resolution 1.5/window Hz).")
 @click.option("--bands", "n_bands", type=int, default=8, show_default=True, help="Throttle bands (equal-count).")
 @click.option("--t-from-s", type=float, default=None, help="Analyse only t >= this (e.g. after a simulated take-off).")
+@click.option("--t-to-s", type=float, default=None, help="Analyse only t < this (e.g. one half of a flight: build a spec "
+              "on one part, compare on the other).")
+@click.option("--band-edges", default=None, metavar="E0,E1,...",
+              help="Throttle band edges (increasing, motor-command fraction) instead of equal-count bands, e.g. another "
+                   "part's spec's edges.")
 @click.option("--log-index", type=int, default=None, help="blackbox: only this log of the file.")
 @click.option("--force", is_flag=True, default=False, help="Overwrite existing outputs.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the JSON result on stdout.")
-def command(path, spec_out, plot, use, no_undo, window_s, n_bands, t_from_s, log_index, force, as_json):
+def command(path, spec_out, plot, use, no_undo, window_s, n_bands, t_from_s, t_to_s, band_edges, log_index, force, as_json):
     """Vibration of a flight log or a simulated hover: spectra vs throttle, broadband level, lines and their laws."""
     from ..convert import detect_format, load_any
     from ..recording import read_csv
@@ -52,7 +57,16 @@ def command(path, spec_out, plot, use, no_undo, window_s, n_bands, t_from_s, log
         raise GyroInputError("--window-s must be positive")
     if n_bands < 1:
         raise GyroInputError("--bands must be >= 1")
-    res = analyse(rec, use=use, undo=not no_undo, window_s=window_s, n_bands=n_bands, t_from_s=t_from_s)
+    edges = None
+    if band_edges is not None:
+        try:
+            edges = [float(x) for x in band_edges.split(",") if x.strip()]
+        except ValueError:
+            raise GyroInputError(f"--band-edges must be a comma list of numbers, got {band_edges!r}") from None
+    if t_from_s is not None and t_to_s is not None and not t_to_s > t_from_s:
+        raise GyroInputError("--t-to-s must be after --t-from-s")
+    res = analyse(rec, use=use, undo=not no_undo, window_s=window_s, n_bands=n_bands, t_from_s=t_from_s, t_to_s=t_to_s,
+                  band_edges=edges)
     for w in res.warnings:
         warn_repair(w)
     out = res.to_json()

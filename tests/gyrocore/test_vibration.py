@@ -200,6 +200,22 @@ def test_filter_recommendation_stable_across_noise_seeds():
     assert len(set(picks)) == 1, picks
 
 
+def test_filter_names_betaflight_parameters_only_for_betaflight_logs():
+    """An INAV (or other non-Betaflight) log gets no Betaflight `set` lines and no RPM-filter
+    recommendation (that firmware's names and filter were not read): one comment instead."""
+    from gyrocore import filters as F
+    from gyrocore.commands.filter import run_filter
+
+    rec = _flown(11)
+    g = F.pt1(100.0, RATE).apply(rec.gyro_rad_s)
+    rec = Recording(t_s=rec.t_s, gyro_rad_s=g, meta=dict(rec.meta, firmware_name="inav", firmware_version="9.0.1"),
+                    extra=rec.extra)
+    out = run_filter(rec)
+    bf = out["firmware"]["betaflight"]
+    assert len(bf) == 1 and bf[0].startswith("# inav log") and not any(s.startswith("set ") for s in bf)
+    assert "rpm_notch" not in out["recommended"] or out["recommended"]["rpm_notch"] is None
+
+
 def test_filter_cli_on_shared_blackbox(shared_data):
     log = shared_data / "betaflight_blackbox" / "better_tune.BBL"
     if not log.exists():
