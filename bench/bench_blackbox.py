@@ -1,11 +1,13 @@
 """Benchmark: blackbox parse rate (frames/s) of our reader beside orangebox alone (issue 16 item 6).
 
-Same file, same run: (1) orangebox 0.4.0's own ``Parser.frames()`` loop, (2) our frame loop
-(``gyrocore.blackbox.read_blackbox_logs``: orangebox's decoders + frame validation), (3) the whole
-``read_blackbox`` (decode + SI conversion + metadata). Best of ``--repeat`` wall times, frames/s
-and the ratio to orangebox alone.
+For each file, in one run: (1) orangebox 0.4.0's own ``Parser.frames()`` loop over every log of
+the file, (2) our frame loop (``gyrocore.blackbox.read_blackbox_logs``: orangebox's decoders +
+frame validation), (3) the whole ``read_blackbox`` (decode + SI conversion + metadata). Best of
+``--repeat`` wall times, frames/s and the ratio to orangebox alone. Default files: the shared
+Betaflight 3.1.5 log, and the Betaflight 4.2.0 / INAV 9.0.1 logs of
+``../shared/data/blackbox_public`` when present.
 
-    nice python bench/bench_blackbox.py [FILE.BBL] [--repeat 3]
+    nice python bench/bench_blackbox.py [FILE ...] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ import time
 import warnings
 from pathlib import Path
 
-DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "betaflight_blackbox" / "better_tune.BBL"
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DEFAULT = [DATA / "betaflight_blackbox" / "better_tune.BBL", DATA / "blackbox_public" / "LOG00037.BFL",
+           DATA / "blackbox_public" / "blackbox_log_2026-02-21_145057.TXT"]
 
 
 def _best(fn, repeat):
@@ -32,7 +36,7 @@ def _best(fn, repeat):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("file", nargs="?", default=str(DEFAULT))
+    ap.add_argument("files", nargs="*", default=[str(p) for p in DEFAULT if p.exists()])
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     import orangebox
@@ -40,28 +44,45 @@ def main() -> None:
     from gyrocore import blackbox as bb
 
     logging.getLogger("orangebox").setLevel(logging.ERROR)
-
-    def ob():
-        p = orangebox.Parser.load(args.file)
-        return sum(1 for _ in p.frames())
-
-    def ours():
-        return sum(lg.data.shape[0] for lg in bb.read_blackbox_logs(args.file))
-
-    def full():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return bb.read_blackbox(args.file).n
-
-    t_ob, n_ob = _best(ob, args.repeat)
-    t_us, n_us = _best(ours, args.repeat)
-    t_full, n_full = _best(full, args.repeat)
-    print(f"file {args.file} ({os.path.getsize(args.file) / 2**20:.2f} MiB); python {platform.python_version()}, "
-          f"orangebox {orangebox.__version__ if hasattr(orangebox, '__version__') else bb.ORANGEBOX_VERSION}; "
+    print(f"python {platform.python_version()}, orangebox {getattr(orangebox, '__version__', bb.ORANGEBOX_VERSION)}; "
           f"load {os.getloadavg()[0]:.2f}; best of {args.repeat}")
-    print(f"orangebox Parser.frames : {n_ob:7d} frames {t_ob:6.2f} s  {n_ob / t_ob:9.0f} frames/s  ratio 1.00")
-    print(f"gyrocore frame loop     : {n_us:7d} frames {t_us:6.2f} s  {n_us / t_us:9.0f} frames/s  ratio {t_us / t_ob:.2f}")
-    print(f"gyrocore read_blackbox  : {n_full:7d} frames {t_full:6.2f} s  {n_full / t_full:9.0f} frames/s  ratio {t_full / t_ob:.2f}")
+    for path in args.files:
+        raised = []
+
+        def ob():
+            # orangebox alone; it raises on INAV's end-of-log text ("End of log (disarm reason:N)",
+            # atomgomba/orangebox#11): frames up to the raise are counted, the raise reported
+            p = orangebox.Parser.load(path)
+            n = 0
+            raised.clear()
+            for li in range(1, p.reader.log_count + 1):
+                p.set_log_index(li)
+                try:
+                    for _ in p.frames():
+                        n += 1
+                except Exception as exc:  # noqa: BLE001 - reported, not hidden
+                    raised.append(f"log {li}: {type(exc).__name__}: {exc}")
+            return n
+
+        def ours():
+            return sum(lg.data.shape[0] for lg in bb.read_blackbox_logs(path))
+
+        def full():
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return bb.read_blackbox(path).n
+
+        t_ob, n_ob = _best(ob, args.repeat)
+        t_us, n_us = _best(ours, args.repeat)
+        t_full, n_full = _best(full, args.repeat)
+        with open(path, "rb") as fh:
+            rev = next((ln.split(b":", 1)[1].strip().decode(errors="replace") for ln in fh.read(20000).split(b"\n")
+                        if ln.startswith(b"H Firmware revision:")), "?")
+        print(f"file {Path(path).name} ({os.path.getsize(path) / 2**20:.2f} MiB, {rev})")
+        print(f"  orangebox Parser.frames : {n_ob:7d} frames {t_ob:6.2f} s  {n_ob / t_ob:9.0f} frames/s  ratio 1.00"
+              + (f"  (raised in {len(raised)} log(s): {raised[0]})" if raised else ""))
+        print(f"  gyrocore frame loop     : {n_us:7d} frames {t_us:6.2f} s  {n_us / t_us:9.0f} frames/s  ratio {t_us / t_ob:.2f}")
+        print(f"  gyrocore read_blackbox  : {n_full:7d} frames {t_full:6.2f} s  {n_full / t_full:9.0f} frames/s  ratio {t_full / t_ob:.2f}")
 
 
 if __name__ == "__main__":
