@@ -229,10 +229,17 @@ def _solve_increasing(f, target: float, hi0: float) -> float:
 _BLOCK_BYTES = 32 * 2**20
 
 
-def _blocks(W: int, n: int, width: int):
-    """Window ranges [a, b) of about _BLOCK_BYTES each (one range when the record is small)."""
-    per = max(1, _BLOCK_BYTES // max(1, n * width * 8))
-    if W * n * width * 8 <= _BLOCK_BYTES:
+#: Block of windows read at a time from disk (:class:`SpilledWindows`): small, since each
+#: block is a fresh array (the in-memory path's blocks are views of the record).
+_SPILL_BLOCK_BYTES = 4 * 2**20
+
+
+def _blocks(W: int, n: int, width: int, block_bytes: int | None = None):
+    """Window ranges [a, b) of about ``block_bytes`` (default _BLOCK_BYTES) each (one range
+    when the record is small)."""
+    block_bytes = _BLOCK_BYTES if block_bytes is None else int(block_bytes)
+    per = max(1, block_bytes // max(1, n * width * 8))
+    if W * n * width * 8 <= block_bytes:
         per = max(W, 1)
     return [(a, min(a + per, W)) for a in range(0, W, per)]
 
@@ -249,6 +256,10 @@ class SpilledWindows:
         self.store = store
         self.cols = GYRO_COLS
         self.shape = (store.n // n, n, 3)
+
+    @property
+    def block_bytes(self) -> int:
+        return _SPILL_BLOCK_BYTES
 
     def block(self, a: int, b: int) -> np.ndarray:
         """Windows a:b, shape (b − a, n, 3) (a fresh array)."""
@@ -275,7 +286,7 @@ def _window_stats(x, n: int, statistic: str) -> np.ndarray:
         W = xw.shape[0]
     C = xw.shape[2]
     out = np.empty((W, C))
-    for a, b in _blocks(W, n, C):
+    for a, b in _blocks(W, n, C, getattr(xw, "block_bytes", None)):
         blk = _wblock(xw, a, b)
         if statistic == "abs_diff":
             out[a:b] = np.abs(np.diff(blk, axis=1)).sum(axis=1)
@@ -291,7 +302,7 @@ def _window_means(xw) -> np.ndarray:
     if isinstance(xw, np.ndarray):
         return xw.mean(axis=1)
     out = np.empty((W, C))
-    for a, b in _blocks(W, n, C):
+    for a, b in _blocks(W, n, C, xw.block_bytes):
         out[a:b] = xw.block(a, b).mean(axis=1)
     return out
 
@@ -301,7 +312,7 @@ def _lag_sums(xw, sel: np.ndarray, L: int) -> tuple[np.ndarray, list[np.ndarray]
     W, n, C = xw.shape
     c0 = np.zeros(C)
     ck = [np.zeros(C) for _ in range(L)]
-    for a, b in _blocks(W, n, C):
+    for a, b in _blocks(W, n, C, getattr(xw, "block_bytes", None)):
         s = sel[a:b]
         if not s.any():
             continue

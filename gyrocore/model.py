@@ -40,7 +40,6 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from . import effects as E
-from . import lsq
 from .errors import GyroInputError, warn_repair
 from .recording import Recording, atomic_write_text, file_sha256
 
@@ -421,6 +420,7 @@ class Calibrator:
 
     # ------------------------------------------------------------------ integral method
     def _fit_integral(self, rec: Recording, common: dict) -> CalibrationResult:
+        from . import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
         from .rotations import integral_calibration
 
         from .rotations import segments_from_any, still_mask
@@ -499,6 +499,8 @@ class Calibrator:
         return np.zeros((rec.n, 3)), m.astype(float), "still", notes
 
     def _fit_lsq(self, rec: Recording, common: dict, *, store=None) -> CalibrationResult:
+        from . import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
+
         if store is not None:  # a long recording on disk (gyrocore.stream): same fit, window by window
             from .stream import ResidualFiles, SpillRows
 

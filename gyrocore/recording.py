@@ -424,6 +424,13 @@ def _to_numpy(col) -> np.ndarray:
     """Arrow (chunked) float64 column -> writable numpy array; empty fields -> _NotClean."""
     if col.null_count:
         raise _NotClean("empty fields")
+    import pyarrow as pa
+
+    if isinstance(col, pa.Array) and pa.types.is_float64(col.type):
+        # the values buffer read directly and copied: the same bytes as to_numpy(), without
+        # the ~50 MiB that pyarrow's numpy conversion keeps resident once used (measured on a
+        # one-hour 15-column file)
+        return np.frombuffer(col.buffers()[1], dtype=np.float64, count=len(col), offset=col.offset * 8).copy()
     arr = col.to_numpy()
     return arr if arr.flags.writeable else arr.copy()
 

@@ -42,9 +42,11 @@ def apply_streaming(res, path: str, output: str, *, power_up_bias: bool = False,
     the derivative and shift terms see the same neighbours as in the whole record. Memory:
     O(``rows``). The temperature-range warning is given once, for the whole file.
     """
-    from ..bias import startup_still_slice
     from ..errors import GyroInputError, warn_repair
     from ..recording import concat_recordings, iter_chunks, write_chunks
+
+    if power_up_bias:  # (lazy: scipy.stats/optimize, ~40 MiB, only for the power-up bias)
+        from ..bias import startup_still_slice
 
     stats = {"n": 0, "s_corr": np.zeros(3), "s2_corr": np.zeros(3), "s2_before": np.zeros(3), "s2_after": np.zeros(3),
              "has_ref": None, "pub": None}
