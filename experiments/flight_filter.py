@@ -18,7 +18,12 @@ phases, shaped-vibration draw):
   chain lets through does to the attitude.
 * ``att_delay_deg`` — attitude steps without vibration: the RMS tracking error's increase over
   the unfiltered chain's, in quadrature, √max(RMS_c² − RMS_none², 0). What the chain's delay costs.
-* ``attitude_cost_deg`` = hypot of the two; ``motor_noise_n`` (motor thrust commands above
+* ``att_delay_flight_deg`` — the chain's extra gyro delay (measured in the step flight, over the
+  unfiltered chain's) times the pilot's own flight-band rate (RMS of the log's gyro below 30 Hz):
+  a pure delay τ on a rate ω lags the attitude by τ·ω. The simulated airframe's step tracking
+  cannot stand in for the pilot's acro flight (its rate loop is set by the estimated motor lag),
+  so the delay is priced at the flight's own rates.
+* ``attitude_cost_deg`` = hypot of the three; ``motor_noise_n`` (motor thrust commands above
   20 Hz in the vibrating hover); ``delay_ms`` (gyro delay measured in the step flight).
 
 Recommendation (as ``gyroharness filter``): least attitude cost among the chains whose motor noise
@@ -84,7 +89,8 @@ def _angle_between_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
 
 
 def score_chain(stages, *, hover_vib, shaped, seed: int, duration_s: float, vehicle: str, rpm: bool = False,
-                track_none_deg: float | None = None) -> dict:
+                track_none_deg: float | None = None, delay_none_ms: float | None = None,
+                flight_rate_rms_rad_s: float = 0.0) -> dict:
     """The paired flights of one chain (module docstring) -> scores."""
     keep_s = SETTLE_S
     log_v, chain = fly(stages, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=hover_vib or True,
@@ -97,15 +103,18 @@ def score_chain(stages, *, hover_vib, shaped, seed: int, duration_s: float, vehi
     ok = all(np.all(np.isfinite(lg.q_WB_wxyz)) and float(np.max(lg.tilt_rad())) < math.radians(60) for lg in (log_v, log_r, log_m))
     nan = float("nan")
     if not ok:
-        return {"crashed": True, "chain": chain, "att_vibration_deg": nan, "att_delay_deg": nan, "attitude_cost_deg": nan,
-                "motor_noise_n": nan, "delay_ms": nan, "track_rms_deg": nan}
+        return {"crashed": True, "chain": chain, "att_vibration_deg": nan, "att_delay_deg": nan, "att_delay_flight_deg": nan,
+                "attitude_cost_deg": nan, "motor_noise_n": nan, "delay_ms": nan, "track_rms_deg": nan}
     att_vib = float(np.sqrt(np.mean(_angle_between_deg(log_v.q_WB_wxyz[k], log_r.q_WB_wxyz[k]) ** 2)))
     track = float(np.degrees(np.sqrt(np.mean(log_m.attitude_error_rad()[k] ** 2))))
     base = track if track_none_deg is None else track_none_deg
     att_delay = math.sqrt(max(track * track - base * base, 0.0))
+    delay_ms = 1e3 * log_m.gyro_delay_s()
+    extra_s = max(delay_ms - (delay_ms if delay_none_ms is None else delay_none_ms), 0.0) / 1e3
+    att_flight = math.degrees(extra_s * float(flight_rate_rms_rad_s))
     return {"crashed": False, "chain": chain, "att_vibration_deg": att_vib, "att_delay_deg": att_delay,
-            "attitude_cost_deg": math.hypot(att_vib, att_delay), "motor_noise_n": log_v.motor_noise_n(t_from_s=keep_s),
-            "delay_ms": 1e3 * log_m.gyro_delay_s(), "track_rms_deg": track}
+            "att_delay_flight_deg": att_flight, "attitude_cost_deg": math.sqrt(att_vib**2 + att_delay**2 + att_flight**2),
+            "motor_noise_n": log_v.motor_noise_n(t_from_s=keep_s), "delay_ms": delay_ms, "track_rms_deg": track}
 
 
 def _candidates(fj: dict, *, physics: bool, extra_pt1=(60.0, 150.0, 250.0)) -> dict:
@@ -166,13 +175,15 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
     cands = candidates or _candidates(fj, physics=physics)
     per_seed, picks = [], []
     for s in seeds:
+        w_rms = float(fj["flight_rate_rms_rad_s"])
         none = score_chain([], hover_vib=hv, shaped=shaped, seed=int(s), duration_s=duration_s, vehicle=vehicle)
         rows = {"none": none}
         for name, (st, rpm) in cands.items():
             if name == "none":
                 continue
             rows[name] = score_chain(st, hover_vib=hv, shaped=shaped, seed=int(s), duration_s=duration_s, vehicle=vehicle,
-                                     rpm=rpm, track_none_deg=none["track_rms_deg"])
+                                     rpm=rpm, track_none_deg=none["track_rms_deg"], delay_none_ms=none["delay_ms"],
+                                     flight_rate_rms_rad_s=w_rms)
         best, budget = _pick(rows)
         picks.append(best)
         per_seed.append({"seed": int(s), "pick": best, "budget_motor_noise_n": budget, "rows": rows})
@@ -180,7 +191,7 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
     summary = {}
     for name in names:
         vals = {k: [ps["rows"][name][k] for ps in per_seed] for k in
-                ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "motor_noise_n", "delay_ms")}
+                ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "att_delay_flight_deg", "motor_noise_n", "delay_ms")}
         summary[name] = {k: {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")}
                          for k, v in vals.items()}
         summary[name]["chain"] = per_seed[0]["rows"][name]["chain"]
@@ -222,7 +233,7 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
     b2best = min(b2, key=b2.get) if b2 else None
     b2fc = public(b2best)["cutoff_hz"] if b2best else None
     out = {
-        "flight": flight, "vehicle": vehicle, "band": band, "duration_s": duration_s, "seeds": [int(s) for s in seeds],
+        "flight": flight, "vehicle": vehicle, "flight_rate_rms_rad_s": float(fj["flight_rate_rms_rad_s"]), "band": band, "duration_s": duration_s, "seeds": [int(s) for s in seeds],
         "recommended": rec_pub,
         "as_flown": public("as_flown") if "as_flown" in summary else None,
         "defaults": {k: public(k) for k in ("betaflight_default", "px4_default", "ardupilot_default") if k in summary},
@@ -234,7 +245,8 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
         "open_loop": {k: (v["name"] if v else None) for k, v in by_open.items()},
         "scores": {"att_vibration_deg": "RMS angle between the vibrating and the vibration-free steady hover (same chain, seed)",
                    "att_delay_deg": "sqrt(max(RMS_track^2 - RMS_track(none)^2, 0)) on attitude steps without vibration",
-                   "attitude_cost": "hypot(att_vibration, att_delay), deg",
+                   "att_delay_flight_deg": "(delay - delay(none)) x the log's flight-band rate RMS",
+                   "attitude_cost": "sqrt(att_vibration^2 + att_delay^2 + att_delay_flight^2), deg",
                    "motor_noise": "RMS of the motor thrust commands above 20 Hz in the vibrating hover, N"},
         "notes": [f"chains re-rated to the simulator's {GYRO_RATE_HZ:g}-Hz gyro (stages at or above its Nyquist dropped)",
                   f"vehicle {vehicle}: motor time constant {1e3 * _tau(vehicle):.0f} ms (estimate); the delay cost depends on it"],
@@ -249,14 +261,16 @@ def _tau(vehicle):
 
 
 def print_table(out: dict) -> None:
-    print(f"| chain | flown as | attitude cost, deg | vibration part | delay part | motor noise, N | gyro delay, ms |")
-    print("|---|---|---|---|---|---|---|")
+    print("| chain | flown as | attitude cost, deg | vibration part | step-tracking delay part | flight-rate delay part | "
+          "motor noise, N | gyro delay, ms |")
+    print("|---|---|---|---|---|---|---|---|")
     for k, m in out["chains"].items():
         def f(key, fmt):
             v = m[key]
             return (fmt % v["mean"]) + (f" ± {fmt % v['sd']}" if np.isfinite(v["sd"]) else "")
         print(f"| {k} | {' -> '.join(m['chain']) or 'none'} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
-              f"{f('att_delay_deg', '%.4f')} | {f('motor_noise_n', '%.4f')} | {f('delay_ms', '%.2f')} |")
+              f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_n', '%.4f')} | "
+              f"{f('delay_ms', '%.2f')} |")
     print(f"picks per seed {out['seeds']}: {out['picks_per_seed']} (stable: {out['stable']})")
     print("recommended:", out["recommended"]["name"], "| betaflight:", "; ".join(out["firmware"]["betaflight"]),
           "| px4:", out["firmware"]["px4"], "| ardupilot:", out["firmware"]["ardupilot"])

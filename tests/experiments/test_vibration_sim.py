@@ -149,3 +149,30 @@ def test_simulated_hover_with_a_known_spec_is_recovered(tmp_path):
     expect = _m.sqrt(P_shaped + 2 * N * N * band + q * q / 12.0 * band / 500.0)
     lo, hi = sim.rms_above_40hz_interval_rad_s["x"]
     assert lo <= expect <= hi, (lo, expect, hi)
+
+
+@pytest.mark.slow
+def test_closed_loop_recommendation_is_stable_across_noise_seeds(shared_data):
+    """gyroharness filter-closed-loop on the shared log (racing25 with the log's own vibration):
+    every noise seed (gyro noise, rotor phases, shaped-vibration draw) picks the same chain, it
+    meets the as-flown motor-noise budget, and it is reported in firmware parameter names beside
+    the pilot's chain and the defaults (DESIGN.md keys)."""
+    log = shared_data / "betaflight_blackbox" / "better_tune.BBL"
+    if not log.exists():
+        pytest.skip("shared blackbox log absent")
+    from experiments.flight_filter import run
+
+    out = run(flight=str(log), seeds=(0, 1, 2), duration_s=4.0, n_calib=4, calib_s=2.0)
+    assert out["stable"], out["picks_per_seed"]
+    r = out["recommended"]
+    for k in ("filter", "cutoff_hz", "notches_hz", "attitude_cost", "delay_ms", "motor_noise"):
+        assert k in r and k in out["as_flown"]
+    assert r["name"] != "none"
+    for ps in out["per_seed"]:
+        rows = ps["rows"]
+        assert rows[ps["pick"]]["motor_noise_n"] <= rows["as_flown"]["motor_noise_n"] * (1 + 1e-9)
+        # filtering takes the vibration out of the motors: every low-pass below the unfiltered gyro's noise
+        assert rows["as_flown"]["motor_noise_n"] < rows["none"]["motor_noise_n"]
+    bf = out["firmware"]["betaflight"]
+    assert any(s.startswith("set gyro_lowpass") for s in bf) or bf[0].startswith("#")
+    assert set(out["defaults"]) == {"betaflight_default", "px4_default", "ardupilot_default"}
