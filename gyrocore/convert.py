@@ -979,7 +979,7 @@ def _loadtxt(path: Path, *, skiprows: int, ncols: int, delimiter: str | None = "
 
 
 # ============================================================================ dispatcher
-FORMATS = ("auto", "blackbox", "ulog", "sunsided", "tomisuarez2", "imucal", "imucal_annotated", "broad", "imutk", "gnss_ins_sim", "fusion", "csv", "parquet")
+FORMATS = ("auto", "blackbox", "dataflash", "ulog", "sunsided", "tomisuarez2", "imucal", "imucal_annotated", "broad", "imutk", "gnss_ins_sim", "fusion", "csv", "parquet")
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -1001,8 +1001,10 @@ def detect_format(path: str | os.PathLike) -> str:
         return "parquet"
     if head.startswith(b"ULog\x01\x12\x35"):
         return "ulog"
-    if head.startswith(b"H Product:Blackbox"):  # Betaflight/Cleanflight-lineage blackbox (.BBL/.BFL/.TXT)
+    if head.startswith(b"H Product:Blackbox"):  # Betaflight/INAV/Cleanflight blackbox (.BBL/.BFL/.TXT)
         return "blackbox"
+    if head.startswith(b"\xa3\x95\x80"):  # ArduPilot DataFlash: a FMT message first (.bin)
+        return "dataflash"
     if head.startswith(b"\x89HDF\r\n\x1a\n") or head[512:520] == b"\x89HDF\r\n\x1a\n" or b"MATLAB 7.3" in head[:128]:
         if p.name.startswith("mpu6050_"):
             return "sunsided"
@@ -1096,6 +1098,7 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
         raise GyroInputError(f"unknown format {format!r}; choose one of {', '.join(FORMATS)}")
     readers: dict[str, Callable[..., Recording]] = {
         "blackbox": _read_blackbox,
+        "dataflash": _read_dataflash,
         "ulog": read_ulog,
         "sunsided": read_sunsided,
         "tomisuarez2": read_tomisuarez2,
@@ -1137,6 +1140,13 @@ def _read_blackbox(path: str | os.PathLike, *, log_index: int | None = None) -> 
     return read_blackbox(path, log_index=log_index)
 
 
+def _read_dataflash(path: str | os.PathLike) -> Recording:
+    """ArduPilot DataFlash log (IMU instance 0): :func:`gyrocore.dataflash.read_dataflash`."""
+    from .dataflash import read_dataflash
+
+    return read_dataflash(path)
+
+
 #: Blackbox: ~30 B of compressed log per frame become ~35 Python ints in a tuple (~1.3 kB)
 #: before the float64 table: ≈ 50 bytes of memory per byte of log.
 _BLACKBOX_BYTES_PER_BYTE = 50.0
@@ -1144,7 +1154,7 @@ _BLACKBOX_BYTES_PER_BYTE = 50.0
 #: Memory needed per byte of source file while converting (parsed float64 arrays, copies,
 #: the Recording and the text written out): text ≈ 4 (a value takes ≥ 5 characters and ends
 #: up in ≈ 3 float64 copies), binary (HDF5 / ULog) ≈ 6 (pyulog/h5py hold every topic/dataset).
-_BYTES_PER_SOURCE_BYTE = {"ulog": 6.0, "broad": 6.0, "sunsided": 6.0, "blackbox": _BLACKBOX_BYTES_PER_BYTE}
+_BYTES_PER_SOURCE_BYTE = {"ulog": 6.0, "broad": 6.0, "sunsided": 6.0, "blackbox": _BLACKBOX_BYTES_PER_BYTE, "dataflash": 6.0}
 
 
 def _check_convert_memory(path: Path, fmt: str) -> None:

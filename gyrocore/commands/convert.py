@@ -49,7 +49,7 @@ STREAM_BYTES = 96 * 2**20
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print a JSON summary on stdout.")
 def command(input_path, output, to, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, log_index, segments_out,
             append, gap_s, chunk_rows, force, as_json):
-    """Convert INPUT (Betaflight blackbox .BBL/.BFL/.TXT, PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
+    """Convert INPUT (Betaflight/INAV/Cleanflight blackbox .BBL/.BFL/.TXT, ArduPilot DataFlash .bin, PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
     IMU-TK .mat, gnss-ins-sim folder, or a data file, CSV or Parquet) to the DESIGN.md data file
     (CSV, or Parquet with --to parquet or an output named .parquet)."""
     outs = [output] + ([segments_out] if segments_out else [])
