@@ -793,7 +793,7 @@ def spec_band(spec: dict, band: int | str = "middle") -> dict:
 
 
 def shaped_params(spec: dict, *, band: int | str = "middle", fmin_hz: float = HIGHPASS_HZ,
-                  exclude_hz: Sequence[tuple[float, float]] = ()) -> dict:
+                  exclude_hz: Sequence[tuple[float, float]] = (), subtract_lines: Sequence[tuple[float, dict]] = ()) -> dict:
     """The shaped part of the registry effect ``vibration`` from one band of a spec.
 
     Returns ``{"f_hz": (n,), "psd_rad2_s2_hz": (3, n)}`` (the effect's schema, SI): the spec
@@ -802,6 +802,12 @@ def shaped_params(spec: dict, *, band: int | str = "middle", fmin_hz: float = HI
     holes (no value) and inside the ``exclude_hz`` intervals (a line the simulator's physics
     already carries). The grid is cut to [first bin ≥ fmin − one bin, reliable limit + one bin]
     so the zeros at its ends are kept (linear interpolation then falls to 0 within one bin).
+    ``subtract_lines``: ``(f_hz, {axis: power (rad/s)²})`` of lines the simulator's physics
+    carries: within ± 3 bins of f_hz (a Hann window's main lobe and first side lobes hold > 99.9 %
+    of a tone's power) the PSD's excess over the local floor (median of the bins 10..30 away) is
+    removed up to the line's power, so the broadband under the line and any power the line
+    detector did not attribute to the line (e.g. the line smeared by the throttle moving within
+    the band) stay.
     ``sim.noise.ShapedNoise`` generates it; ``simulate --vibration SPEC`` and a preset's
     ``[vibration] spec = ...`` put it into ``SyntheticGyro`` as this effect's parameters.
     """
@@ -815,6 +821,19 @@ def shaped_params(spec: dict, *, band: int | str = "middle", fmin_hz: float = HI
         S[(f_spec < fmin_hz) | (f_spec >= lim) | np.isnan(s)] = 0.0
         for lo, hi in exclude_hz:
             S[(f_spec >= lo) & (f_spec <= hi)] = 0.0
+        dfs = float(f_spec[1] - f_spec[0])
+        for f0, pw in subtract_lines:
+            p_line = float(pw.get(a, 0.0)) if isinstance(pw, dict) else float(pw[j])
+            if not p_line > 0:
+                continue
+            k = int(round((float(f0) - f_spec[0]) / dfs))
+            side = np.r_[max(k - 30, 0):max(k - 10, 0), min(k + 11, f_spec.size):min(k + 31, f_spec.size)]
+            floor = float(np.median(S[side])) if side.size else 0.0
+            lo_k, hi_k = max(k - 3, 0), min(k + 4, f_spec.size)
+            excess = np.maximum(S[lo_k:hi_k] - floor, 0.0)
+            tot = float(excess.sum()) * dfs
+            if tot > 0:
+                S[lo_k:hi_k] -= excess * min(1.0, p_line / tot)
         P[j] = np.maximum(S, 0.0)
     df = float(f_spec[1] - f_spec[0])
     keep = (f_spec >= fmin_hz - 1.01 * df) & (f_spec <= lim + 1.01 * df)

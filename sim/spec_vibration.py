@@ -283,16 +283,18 @@ def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = F
     from gyrocore.vibration import shaped_params, spec_band
 
     b = spec_band(spec, band)  # a bad band is one error line before anything runs
-    hover_vib, exclude, info = None, (), {"spec": str(spec.get("source", "")), "band": band,
-                                          "band_throttle": b.get("throttle"), "band_median": b.get("median")}
+    hover_vib, sub, info = None, (), {"spec": str(spec.get("source", "")), "band": band,
+                                      "band_throttle": b.get("throttle"), "band_median": b.get("median")}
     if physics:
         if vehicle is None:
             raise GyroInputError("the spec's rotor line through the physics needs a hover vehicle class")
         hover_vib, pinfo = vibration_from_spec(spec, vehicle, band=band, seed=int(seed), n_calib=n_calib, calib_s=calib_s)
-        exclude = line_exclusion_hz(spec, pinfo["real_line_hz"])
+        # the physics carries the rotor line's power (at the vehicle's own rotor speed): take that
+        # power, per axis, out of the shaped part at the real line; the broadband under it stays
+        sub = ((pinfo["real_line_hz"], {a: v * v / 2.0 for a, v in pinfo["real_line_amplitude_rad_s"].items()}),)
         info["physics"] = pinfo
-    shaped = shaped_params(spec, band=band, exclude_hz=exclude)
+    shaped = shaped_params(spec, band=band, subtract_lines=sub)
     info["shaped"] = ("registry effect vibration, shaped part: Gaussian disturbance with the spec band's PSD above 40 Hz"
-                      + (f", without {', '.join(f'{lo:g}-{hi:g} Hz' for lo, hi in exclude)}" if exclude else "")
+                      + (f", without the rotor line's power at {sub[0][0]:.1f} Hz (carried by the physics)" if sub else "")
                       + "; added in the gyro's noise stage (sim.noise.ShapedNoise), so a closed loop flies on it")
     return hover_vib, {"vibration": shaped}, info

@@ -133,3 +133,80 @@ def test_mean_line_power_matches_the_spec():
     se_check = p.std(axis=0, ddof=1) / math.sqrt(len(p)) / p.mean(axis=0)
     se = np.hypot(se_check, info["calibration_power_se_rel"])
     assert np.all(np.abs(np.log(p.mean(axis=0) / target)) <= 1.96 * se)
+
+
+def _spec_file(tmp_path, *, with_rotor_line=True):
+    """A spec file with a flat 1e-4 (rad/s)²/Hz band PSD 0..500 Hz and the rotor line of _spec()."""
+    import json
+
+    f = np.arange(0.0, 500.5, 1.0)
+    s = _spec()
+    if not with_rotor_line:
+        s["lines"] = [ln for ln in s["lines"] if ln["follows"] == "fixed"]
+    for i, b in enumerate(s["bands"]):
+        b.update(throttle=[0.1 * i, 0.1 * i + 0.1], n_windows=20,
+                 psd_rad2_s2_hz={a: [1e-4] * f.size for a in "xyz"})
+    s.update(kind="gyroharness.vibration_spec", format_version="1.0", source="synthetic", f_hz=f.tolist(),
+             reconstructed_reliable_below_hz=450.0)
+    p = tmp_path / "spec.json"
+    p.write_text(json.dumps(s))
+    return p
+
+
+def _run(argv, capsys):
+    from experiments.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    out = capsys.readouterr()
+    return exc.value.code, out.out, out.err
+
+
+def test_simulate_vibration_physics_cli(tmp_path, capsys):
+    import json
+
+    from gyrocore.recording import read_recording
+
+    spec = _spec_file(tmp_path)
+    out = tmp_path / "r.csv"
+    code, _, err = _run(["simulate", "hover", "--vehicle", "racing5", "--vibration", str(spec), "--vibration-physics",
+                         "--vibration-band", "0", "--duration-s", "3", "-o", str(out)], capsys)
+    assert code == 0, err
+    rec = read_recording(out)
+    capsys.readouterr()  # the reader's own notes on the recording are not this command's output
+    inj = json.loads(rec.meta["vibration_injection"])
+    info = inj["physics"]
+    assert info["vehicle"] == "racing5" and info["band"] == 0 and info["imbalance_kg_m"] + info["hub_moment_kg_m2"] > 0
+    # the real line's power (260 Hz) is taken out of the shaped part (the physics carries it)
+    assert "without the rotor line's power at 260.0 Hz" in inj["shaped"]
+    # the shaped part is the registry effect `vibration`, in the sensor's parameters
+    assert "vibration" in rec.meta["effects"].split(",") and "psd_rad2_s2_hz" in json.loads(rec.meta["params_true"])["vibration"]
+    assert rec.meta["vehicle"] == "racing5"
+    # no rotor line in the spec, or no --vibration: one error line
+    sub = tmp_path / "b"
+    sub.mkdir()
+    bad = _spec_file(sub, with_rotor_line=False)
+    code, _, err = _run(["simulate", "hover", "--vehicle", "racing5", "--vibration", str(bad), "--vibration-physics",
+                         "--duration-s", "3", "-o", str(tmp_path / "x.csv")], capsys)
+    assert code != 0 and "no line that follows throttle or eRPM" in err and err.count("\n") == 1
+    code, _, err = _run(["simulate", "hover", "--vibration-physics", "--duration-s", "3", "-o", str(tmp_path / "y.csv")], capsys)
+    assert code != 0 and "--vibration-physics needs --vibration SPEC" in err and err.count("\n") == 1
+
+
+def test_shaped_part_without_the_line_keeps_the_floor():
+    """shaped_params(subtract_lines=...): the line's power leaves the band's PSD at the line, the
+    broadband around and under it stays (a flat 1e-4 floor plus a 7-bin bump of 0.02 (rad/s)²)."""
+    from gyrocore.vibration import shaped_params
+
+    s = {"f_hz": list(np.arange(0.0, 400.5, 1.0)), "reconstructed_reliable_below_hz": 380.0,
+         "bands": [{"throttle": [0, 1], "median": 0.5, "n_windows": 20,
+                    "psd_rad2_s2_hz": {a: [1e-4] * 401 for a in "xyz"}}]}
+    s["bands"][0]["psd_rad2_s2_hz"]["y"] = [1e-4 + (0.02 / 7 if abs(f - 260) <= 3 else 0.0) for f in s["f_hz"]]
+    pd = shaped_params(s, band=0, subtract_lines=((260.0, {"x": 0.0, "y": 0.02, "z": 0.0}),))
+    f, P = pd["f_hz"], pd["psd_rad2_s2_hz"]
+    near = np.abs(f - 260) <= 3
+    np.testing.assert_allclose(P[1, near], 1e-4, rtol=1e-9)  # the bump is gone, the floor stays
+    np.testing.assert_allclose(P[0], np.where((f >= 40) & (f < 380), 1e-4, 0.0), rtol=1e-12)  # other axes untouched
+    # a line weaker than the bump takes only its own power out
+    half = shaped_params(s, band=0, subtract_lines=((260.0, {"y": 0.01}),))["psd_rad2_s2_hz"][1]
+    assert (half[near].sum() - 7e-4) == pytest.approx(0.01, rel=1e-9)
