@@ -32,17 +32,20 @@ from __future__ import annotations
 import array
 import math
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping
+from typing import Iterable, Iterator, Mapping
 
 import numpy as np
 from scipy import signal
 
 from gyrocore.effects import (
     FF_ORDER,
+    OUTPUT_STAGE as _CORE_OUTPUT_STAGE,
     PARAM_SCHEMA,
+    REGISTRY,
     STOCHASTIC,
     ModelInputs,
     check_effect_names,
+    context_rows,
     deterministic,
     earth_rate_W,
     k_matrix,
@@ -57,7 +60,7 @@ from . import noise as _noise
 from .presets import SensorSpec, load_preset
 from .truth import Truth
 
-__all__ = ["SyntheticGyro", "GyroOutput", "GyroStream", "OUTPUT_STAGE", "NOISE_ORDER"]
+__all__ = ["SyntheticGyro", "GyroOutput", "GyroChunk", "GyroNoise", "GyroStream", "OUTPUT_STAGE", "NOISE_ORDER"]
 
 #: Effects applied by gyrocore.effects.output_stage (not by deterministic()).
 OUTPUT_STAGE = ("lowpass", "saturation", "quantization")
@@ -247,35 +250,25 @@ class SyntheticGyro:
         z = _noise.effect_rng(self.seed, self._key(f"turn_on/{int(index)}")).standard_normal(3)
         return pd["b_rad_s"] + z * sigma
 
+    def noise_blocks(self) -> "GyroNoise":
+        """The summed stochastic noise as a block generator (:class:`GyroNoise`), from sample 0.
+
+        Each term draws from its own stream ``noise/<effect>`` (:mod:`sim.noise` block
+        generators); ``take(m)`` gives the next m samples, bit-identical however the record
+        is cut into blocks.
+        """
+        return GyroNoise(self)
+
     def noise(self, n_samples: int) -> tuple[np.ndarray, dict[str, dict[str, np.ndarray]]]:
         """The summed stochastic noise for ``n_samples`` samples, rad/s (N, 3), and per-effect summaries.
 
         Terms are generated from their own streams ``noise/<effect>`` and summed in
-        :data:`NOISE_ORDER`.
+        :data:`NOISE_ORDER` (one block of :meth:`noise_blocks`).
         """
         n = int(n_samples)
-        total = np.zeros((n, 3))
+        total, parts = self.noise_blocks().take(n, parts=True)
         draws: dict[str, dict[str, np.ndarray]] = {}
-        r = self.rate_hz
-        for eff in NOISE_ORDER:
-            if eff not in self.params:
-                continue
-            pd = self.params[eff]
-            rng = _noise.effect_rng(self.seed, self._key(f"noise/{eff}"))
-            if eff == "vibration":
-                if "psd_rad2_s2_hz" not in pd:
-                    continue  # from the physics alone
-                taps = _noise.shaped_taps(pd["f_hz"], pd["psd_rad2_s2_hz"], rate_hz=r)
-                x = _noise.ShapedNoise(rng, taps).next(n)
-            elif eff == "arw":
-                x = _noise.white_rate_noise(rng, n, rate_hz=r, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"])
-            elif eff == "bias_instability":
-                x = _noise.flicker_noise(rng, n, rate_hz=r, b_rad_s=pd["b_rad_s"])
-            elif eff == "rrw":
-                x = _noise.rate_random_walk(rng, n, rate_hz=r, k_rad_s_per_sqrt_s=pd["k_rad_s_per_sqrt_s"])
-            else:
-                x = _noise.gauss_markov(rng, n, rate_hz=r, sigma_rad_s=pd["sigma_rad_s"], tau_c_s=pd["tau_c_s"])
-            total += x
+        for eff, x in parts.items():
             d = {"mean_rad_s": x.mean(axis=0) if n else np.zeros(3), "std_rad_s": x.std(axis=0) if n else np.zeros(3)}
             if eff == "rrw" and n:
                 d["final_rad_s"] = x[-1].copy()
@@ -352,6 +345,32 @@ class SyntheticGyro:
                 draws[eff] = {k: np.array(v) for k, v in pd.items()}
         draws = {e: draws[e] for e in ordered_effects(draws)}
         return GyroOutput(t_s=t, gyro_rad_s=y, noise_rad_s=noise_total, draws=draws, params=self.params)
+
+    # ------------------------------------------------------------------ chunked
+    def measure_chunks(self, chunks: Iterable[Truth]) -> Iterator["GyroChunk"]:
+        """Measure a truth that arrives in consecutive chunks (bounded memory).
+
+        Parameters
+        ----------
+        chunks : iterable of sim.truth.Truth
+            Consecutive pieces of one truth (any lengths, ≥ 0 samples each), in time order.
+
+        Yields
+        ------
+        GyroChunk
+            Consecutive pieces of the measurement. Bit-identical, row for row, to
+            :meth:`measure` on the concatenated truth, whatever the chunk lengths: the
+            deterministic model is evaluated on each piece with
+            :func:`gyrocore.effects.context_rows` neighbour rows on each side (central
+            differences, the time-offset shift), clipped to the power-up; the on-chip
+            low-pass carries its memory across pieces and restarts from steady state at each
+            power-up; the noise comes from :meth:`noise_blocks`. Output lags the input by at
+            most the context rows; the buffer holds at most one input chunk plus the context.
+        """
+        eng = _ChunkedMeasure(self)
+        for ch in chunks:
+            yield from eng.feed(ch)
+        yield from eng.finish()
 
     # ------------------------------------------------------------------ stream
     def stream(
@@ -727,3 +746,194 @@ class GyroStream:
         exec(compile(src, "<GyroStream.step>", "exec"), env)
         self.step_source = src
         return env["step"]
+
+
+@dataclass(frozen=True, eq=False)
+class GyroChunk:
+    """One piece of a chunked measurement (:meth:`SyntheticGyro.measure_chunks`).
+
+    Parameters
+    ----------
+    start : int
+        Index of the first row in the whole record.
+    t_s : ndarray, shape (m,)
+        Sample times, s.
+    gyro_rad_s : ndarray, shape (m, 3)
+        The measurement, rad/s, sensor frame S.
+    noise_rad_s : ndarray, shape (m, 3)
+        The summed stochastic noise of these rows, rad/s.
+    power_up_bias_rad_s : dict
+        Turn-on bias of every power-up begun so far, {index: (3,)} rad/s.
+    """
+
+    start: int
+    t_s: np.ndarray
+    gyro_rad_s: np.ndarray
+    noise_rad_s: np.ndarray
+    power_up_bias_rad_s: Mapping[int, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.t_s.shape[0])
+
+
+class GyroNoise:
+    """The summed stochastic noise of one unit as a block generator (:meth:`SyntheticGyro.noise_blocks`)."""
+
+    def __init__(self, gyro: SyntheticGyro) -> None:
+        r = gyro.rate_hz
+        self.terms: list[tuple[str, object]] = []
+        for eff in NOISE_ORDER:
+            if eff not in gyro.params:
+                continue
+            pd = gyro.params[eff]
+            rng = _noise.effect_rng(gyro.seed, gyro._key(f"noise/{eff}"))
+            if eff == "vibration":
+                if "psd_rad2_s2_hz" not in pd:
+                    continue  # from the physics alone
+                g = _noise.ShapedNoise(rng, _noise.shaped_taps(pd["f_hz"], pd["psd_rad2_s2_hz"], rate_hz=r))
+            elif eff == "arw":
+                g = _noise.WhiteRateBlocks(rng, rate_hz=r, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"])
+            elif eff == "bias_instability":
+                g = _noise.FlickerBlocks(rng, rate_hz=r, b_rad_s=pd["b_rad_s"])
+            elif eff == "rrw":
+                g = _noise.RateRandomWalkBlocks(rng, rate_hz=r, k_rad_s_per_sqrt_s=pd["k_rad_s_per_sqrt_s"])
+            else:
+                g = _noise.GaussMarkovBlocks(rng, rate_hz=r, sigma_rad_s=pd["sigma_rad_s"], tau_c_s=pd["tau_c_s"])
+            self.terms.append((eff, g))
+        #: samples produced so far
+        self.position = 0
+
+    def take(self, m: int, *, parts: bool = False):
+        """The next ``m`` samples of the summed noise, rad/s (m, 3); with ``parts=True`` also
+        ``{effect: (m, 3)}`` of each term."""
+        m = int(m)
+        total = np.zeros((m, 3))
+        out = {}
+        for eff, g in self.terms:
+            x = g.take(m) if hasattr(g, "take") else g.next(m)
+            total += x
+            if parts:
+                out[eff] = x
+        self.position += m
+        return (total, out) if parts else total
+
+
+_TRUTH_FIELDS = ("t_s", "omega_S_rad_s", "f_S_m_s2", "q_SW_wxyz", "temp_c", "t_since_power_up_s", "power_up_index")
+
+
+def _lowpass_chunk(pd, y: np.ndarray, rate_hz: float, zi):
+    """gyrocore.effects' ``lowpass`` term with its memory carried: (filtered (m, 3), final state).
+
+    ``zi`` None = a power-up: the steady-state start of the core's term (lfilter_zi × first
+    sample); the same lfilter calls per axis, so the pieces equal the whole bit for bit."""
+    fc = float(pd["bandwidth_hz"])
+    if not 0 < fc < rate_hz / 2:
+        raise GyroInputError(f"lowpass bandwidth {fc} Hz must be in (0, {rate_hz / 2}) Hz at {rate_hz} Hz")
+    b, a = signal.butter(2, fc, fs=rate_hz)
+    if zi is None:
+        z0 = signal.lfilter_zi(b, a)
+        zi = [z0 * y[0, i] for i in range(3)]
+    cols, zf = [], []
+    for i in range(3):
+        yi, zfi = signal.lfilter(b, a, y[:, i], zi=zi[i])
+        cols.append(yi)
+        zf.append(zfi)
+    return np.stack(cols, axis=1), zf
+
+
+class _ChunkedMeasure:
+    """The engine of :meth:`SyntheticGyro.measure_chunks` (see there)."""
+
+    def __init__(self, gyro: SyntheticGyro) -> None:
+        self.g = gyro
+        self.noise = gyro.noise_blocks()
+        self.ctx = context_rows(gyro._model_params(np.zeros(3)), 1.0 / gyro.rate_hz)
+        self.buf: dict[str, np.ndarray] | None = None
+        self.b0 = 0  # global index of buffer row 0
+        self.emit = 0  # next global row to emit
+        self.seg_start = 0
+        self.seg_index: int | None = None
+        self.seen: list[int] = []
+        self.biases: dict[int, np.ndarray] = {}
+        self.params = None
+        self.lp_zi = None
+        for name in _CORE_OUTPUT_STAGE:
+            if name in gyro.params and REGISTRY[name].stage == "filter" and name != "lowpass":
+                raise GyroInputError(f"chunked measurement: the output-stage filter {name} has no carried state")
+
+    def feed(self, truth: Truth):
+        new = {k: np.asarray(getattr(truth, k)) for k in _TRUTH_FIELDS}
+        if new["t_s"].shape[0] == 0:
+            return
+        if self.buf is None and self.emit == 0:
+            self.g._check_truth_rate(new["t_s"])
+        if self.buf is None:
+            self.buf = {k: np.array(v, copy=True) for k, v in new.items()}
+        else:
+            self.buf = {k: np.concatenate([self.buf[k], new[k]]) for k in _TRUTH_FIELDS}
+        yield from self._process(final=False)
+
+    def finish(self):
+        if self.buf is not None:
+            yield from self._process(final=True)
+
+    def _process(self, *, final: bool):
+        buf, c = self.buf, self.ctx
+        end = self.b0 + buf["t_s"].shape[0]
+        pu = buf["power_up_index"]
+        while self.emit < end:
+            j = self.emit - self.b0
+            idx = int(pu[j])
+            change = np.flatnonzero(pu[j:] != pu[j])
+            closed = change.size > 0 or final
+            s1 = self.emit + int(change[0]) if change.size else end
+            stop = s1 if closed else min(s1, end - c)
+            if stop <= self.emit:
+                break
+            if self.seg_index != idx:  # a power-up begins at this row
+                if idx in self.seen:
+                    raise GyroInputError("truth.power_up_index must not return to an earlier power-up")
+                self.seen.append(idx)
+                self.seg_index, self.seg_start = idx, self.emit
+                b = self.g.power_up_bias(idx)
+                self.biases[idx] = b
+                self.params = self.g._model_params(b)
+                self.lp_zi = None
+            lo = max(self.seg_start, self.emit - c)
+            hi = s1 if closed else end
+            hi = min(hi, stop + c)
+            a0, a1 = lo - self.b0, hi - self.b0
+            inp = ModelInputs(
+                t_s=buf["t_s"][a0:a1].astype(float, copy=False),
+                omega_S_rad_s=buf["omega_S_rad_s"][a0:a1].astype(float, copy=False),
+                f_S_m_s2=buf["f_S_m_s2"][a0:a1].astype(float, copy=False),
+                temp_c=buf["temp_c"][a0:a1].astype(float, copy=False),
+                q_SW_wxyz=buf["q_SW_wxyz"][a0:a1].astype(float, copy=False),
+                t_since_power_up_s=buf["t_since_power_up_s"][a0:a1].astype(float, copy=False),
+            )
+            x = deterministic(self.params, inp)[self.emit - lo:stop - lo]
+            y = self._output(x, stop - self.emit)
+            yield GyroChunk(start=self.emit, t_s=buf["t_s"][j:j + (stop - self.emit)].astype(float, copy=True),
+                            gyro_rad_s=y[0], noise_rad_s=y[1], power_up_bias_rad_s=dict(self.biases))
+            self.emit = stop
+        keep = max(self.b0, self.emit - c)  # rows an unfinished piece may still read
+        if keep > self.b0:
+            k = keep - self.b0
+            self.buf = {kk: v[k:].copy() for kk, v in buf.items()}
+            self.b0 = keep
+
+    def _output(self, x: np.ndarray, m: int):
+        """gyrocore.effects.output_stage with the low-pass memory carried; returns (y, noise)."""
+        p, rate = self.params, self.g.rate_hz
+        y = np.asarray(x, float)
+        for name in _CORE_OUTPUT_STAGE:
+            if REGISTRY[name].stage == "filter" and name in p:
+                y, self.lp_zi = _lowpass_chunk(p[name], y, rate, self.lp_zi)
+        nz = self.noise.take(m)
+        y = y + nz
+        for name in _CORE_OUTPUT_STAGE:
+            eff = REGISTRY[name]
+            if eff.stage == "clip" and name in p:
+                y = eff.term(p[name], y, rate)
+        return y, nz

@@ -1,35 +1,61 @@
-"""Stochastic gyro error terms (IEEE Std 952-1997, Annex C), as pure generator functions.
+"""Stochastic gyro error terms (IEEE Std 952-1997, Annex C), generated in blocks.
 
-Every function takes an explicit :class:`numpy.random.Generator` and returns the noise of
-three independent axes, rad/s, shape ``(n_samples, 3)``, sampled at ``rate_hz``. The
-levels follow the Allan-variance terms of DESIGN.md / IEEE 952::
+Every term is a *block generator*: created with an explicit :class:`numpy.random.Generator`
+and its levels, then asked for consecutive blocks of samples with ``take(m)``; the state
+(filter memories, the random walk's last value, the position in the random stream) is
+carried from one block to the next, so the samples do not depend on how the record is cut:
+``take(997)`` then ``take(4096)`` gives, bit for bit, the first 5093 samples of
+``take(5093)`` (tested for every term). A long record therefore never needs its whole noise
+in memory. The plain functions (:func:`white_rate_noise`, ...) are one ``take(n)``.
+
+Each term returns the noise of three independent axes, rad/s, shape ``(m, 3)``, sampled at
+``rate_hz``. The levels follow the Allan-variance terms of DESIGN.md / IEEE 952::
 
     σ²(τ) = N²/τ  +  (2 ln2/π)·B²  +  K²·τ/3          (+ the Gauss–Markov hump)
 
-* :func:`white_rate_noise` — angle random walk, N in rad/√s (= rad/s/√Hz); per-sample
+* :class:`WhiteRateBlocks` — angle random walk, N in rad/√s (= rad/s/√Hz); per-sample
   σ = N·√rate_hz, so that the Allan variance of the averaged rate is N²/τ.
-* :func:`flicker_noise` — bias instability, B in rad/s. A 1/f (flicker) process made with
-  Kasdin & Walter's fractional-differencing filter (Kasdin & Walter 1992, "Discrete simulation
-  of power law noise", Proc. IEEE FCS; Kasdin 1995, Proc. IEEE 83(5) eq. 115–116): white
-  noise of variance Q filtered by (1 − z⁻¹)^(−α/2), α = 1. A single Gauss–Markov process
-  does not give the flat Allan floor; this does.
-* :func:`rate_random_walk` — K in rad/s/√s: the rate performs a random walk with
+* :class:`FlickerBlocks` — bias instability, B in rad/s: white noise through a cascade of
+  first-order pole–zero sections (a filter bank approximating 1/f; see "Flicker" below).
+* :class:`RateRandomWalkBlocks` — K in rad/s/√s: the rate performs a random walk with
   increments of σ = K·√dt.
-* :func:`gauss_markov` — first-order Gauss–Markov (exponentially correlated) bias, σ in
-  rad/s and correlation time τc in s, discretised exactly: x[k+1] = φ·x[k] + σ·√(1−φ²)·w[k]
+* :class:`GaussMarkovBlocks` — first-order Gauss–Markov (exponentially correlated) bias, σ
+  in rad/s and correlation time τc in s, discretised exactly: x[k+1] = φ·x[k] + σ·√(1−φ²)·w[k]
   with φ = exp(−dt/τc), started from its stationary distribution.
 
 Quantization noise is not generated here: it is the output rounding in
 :func:`gyrocore.effects.output_stage`.
 
-Calibration of the flicker level
---------------------------------
+Flicker (bias instability)
+--------------------------
 IEEE 952 (C.2) writes the bias-instability rate PSD in its "4∫" convention as
 S(f) = (B²/2π)·(1/f), i.e. one-sided S₁(f) = B²/(π f) = h₋₁/f with h₋₁ = B²/π, whose Allan
-variance is the constant 2 ln2·h₋₁ = (2 ln2/π)·B² (Barnes et al. 1971, NBS TN 394). The
-Kasdin–Walter sequence has one-sided PSD S₁(f) = 2Qτ₀ / |2 sin(π f τ₀)|^α (Kasdin 1995
-eq. 116), which for α = 1 and f ≪ 1/τ₀ is Q/(π f). Matching gives Q = B²: the innovation
-standard deviation equals B, whatever the sample rate.
+variance is the constant 2 ln2·h₋₁ = (2 ln2/π)·B² (Barnes et al. 1971, NBS TN 394).
+
+A 1/f spectrum has no finite-order rational form, and the exact fractional integrator of
+Kasdin & Walter (1992) used before (an FFT convolution with an impulse response as long as
+the record) needs the whole record at once. Here 1/f is approximated over a stated band by
+a cascade of first-order analog sections (s + 2π z_i)/(s + 2π p_i) with poles p_i spaced
+geometrically, :data:`FLICKER_SECTIONS_PER_DECADE` per decade (ratio r = 10^(1/2)), and each
+zero z_i = p_i·√r half-way (in log f) to the next pole: between a pole and its zero the
+magnitude falls at −20 dB/decade, between a zero and the next pole it is flat, on average
+−10 dB/decade, i.e. |H|² ∝ 1/f (Keshner 1982, Proc. IEEE 70(3); Corsini & Saletti 1988,
+IEEE Trans. Instrum. Meas. 37(4)). The lowest pole is :data:`FLICKER_F_LO_HZ`, the sections
+go up to rate/4; each is discretised by the bilinear transform with its corner frequencies
+pre-warped (so the digital corners are where they are designed), and the cascade runs in
+:func:`scipy.signal.sosfilt` with its section memories carried between blocks (started at
+rest, as Kasdin–Walter's was: the process is switched on at the first sample). One unit
+normal per sample and axis drives it, times B; the gain is set so that the geometric mean of
+f·S₁(f) over 10⁻⁵ Hz … rate/40 is B²/π exactly.
+
+Band claimed, from the digital filter's exact response (``scipy.signal.sosfreqz``, checked
+in tests/sim/test_noise.py): S₁(f) is within ±1 % of B²/(π f) for
+:data:`FLICKER_BAND_LO_HZ` ≤ f ≤ rate/20 (±0.2 % up to rate/40; the ripple of two sections
+per decade is ±0.1 %), and the Allan deviation of the stationary process, from the exact PSD
+(σ²(m) = 2∫S₁(f)·sin⁴(πfmτ₀)/(m sin(πfτ₀))² df), is within ±0.1 % of B·√(2 ln2/π) for
+averaging factors m ≥ 8 and τ ≤ 10⁵ s (+0.5 %/−0.8 % at m = 2…4; −13 % at m = 1, where the
+white ARW dominates every real gyro anyway). Above rate/4 the spectrum flattens (the last
+zero) and rolls off towards Nyquist; below 10⁻⁷ Hz it is flat.
 """
 
 from __future__ import annotations
@@ -46,8 +72,16 @@ __all__ = [
     "flicker_noise",
     "rate_random_walk",
     "gauss_markov",
+    "WhiteRateBlocks",
+    "FlickerBlocks",
+    "RateRandomWalkBlocks",
+    "GaussMarkovBlocks",
+    "flicker_sos",
     "kasdin_walter_coefficients",
     "ALLAN_FLICKER_FACTOR",
+    "FLICKER_F_LO_HZ",
+    "FLICKER_BAND_LO_HZ",
+    "FLICKER_SECTIONS_PER_DECADE",
     "stable_key_int",
     "effect_rng",
     "shaped_taps",
@@ -56,6 +90,14 @@ __all__ = [
 
 #: σ_Allan / B for bias instability: sqrt(2 ln2 / π) ≈ 0.6643 (IEEE 952 Table C.1).
 ALLAN_FLICKER_FACTOR = float(np.sqrt(2.0 * np.log(2.0) / np.pi))
+#: Lowest pole of the flicker cascade, Hz (below it the spectrum is flat).
+FLICKER_F_LO_HZ = 1e-7
+#: Lowest frequency of the claimed 1/f band, Hz (a decade above the lowest pole).
+FLICKER_BAND_LO_HZ = 1e-6
+#: Sections of the flicker cascade per decade of frequency (ripple ±0.1 % in PSD).
+FLICKER_SECTIONS_PER_DECADE = 2
+#: Highest zero of the flicker cascade as a fraction of the sample rate.
+_FLICKER_TOP_FRACTION = 0.25
 
 
 def _per_axis(value, name: str) -> np.ndarray:
@@ -75,37 +117,219 @@ def _check(n_samples: int, rate_hz: float) -> tuple[int, float]:
     return n, r
 
 
-def white_rate_noise(
-    rng: np.random.Generator, n_samples: int, *, rate_hz: float, n_rad_per_sqrt_s
-) -> np.ndarray:
-    """White rate noise (angle random walk).
+class _Blocks:
+    """Common part of the block generators: the stream, the position, ``take``."""
+
+    def __init__(self, rng: np.random.Generator, rate_hz: float) -> None:
+        if not isinstance(rng, np.random.Generator):
+            raise GyroInputError("the noise needs an explicit numpy.random.Generator")
+        _, self.rate_hz = _check(0, rate_hz)
+        self.rng = rng
+        #: samples produced so far
+        self.position = 0
+
+    def take(self, m: int) -> np.ndarray:
+        """The next ``m`` samples, rad/s, shape (m, 3) (state carried to the next call)."""
+        m, _ = _check(m, self.rate_hz)
+        out = self._take(m)
+        self.position += m
+        return out
+
+    def _take(self, m: int) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class WhiteRateBlocks(_Blocks):
+    """White rate noise (angle random walk) in blocks.
 
     Parameters
     ----------
     rng : numpy.random.Generator
         Source of randomness (the caller owns the seed).
-    n_samples : int
-        Number of output samples.
     rate_hz : float
         Sample rate, Hz.
     n_rad_per_sqrt_s : float or array_like, shape (3,)
-        ARW coefficient N per axis, rad/√s (= rad/s/√Hz).
-
-    Returns
-    -------
-    ndarray, shape (n_samples, 3)
-        Rate noise, rad/s, per-sample σ = N·√rate_hz (DESIGN.md noise-density convention),
-        so that σ²_Allan(τ) = N²/τ (IEEE 952 C.1).
+        ARW coefficient N per axis, rad/√s (= rad/s/√Hz). Per-sample σ = N·√rate_hz
+        (DESIGN.md noise-density convention), so that σ²_Allan(τ) = N²/τ (IEEE 952 C.1).
     """
-    n, r = _check(n_samples, rate_hz)
-    N = _per_axis(n_rad_per_sqrt_s, "n_rad_per_sqrt_s")
-    return rng.standard_normal((n, 3)) * (N * np.sqrt(r))[None, :]
+
+    def __init__(self, rng, *, rate_hz: float, n_rad_per_sqrt_s) -> None:
+        super().__init__(rng, rate_hz)
+        self._sigma = (_per_axis(n_rad_per_sqrt_s, "n_rad_per_sqrt_s") * np.sqrt(self.rate_hz))[None, :]
+
+    def _take(self, m):
+        # Generator.standard_normal fills row-major from one stream: blocks (a, 3) then (b, 3)
+        # draw exactly the numbers of one (a + b, 3) call
+        return self.rng.standard_normal((m, 3)) * self._sigma
+
+
+def flicker_sos(rate_hz: float) -> np.ndarray:
+    """Second-order sections of the 1/f cascade at ``rate_hz`` (unit-B gain), shape (n_sections, 6).
+
+    Analog sections (s + 2πz_i)/(s + 2πp_i), p_i = FLICKER_F_LO_HZ·r^i, z_i = p_i·√r,
+    r = 10^(1/FLICKER_SECTIONS_PER_DECADE), up to the first zero at or above rate/4; bilinear
+    transform with pre-warped corners (ω = 2·rate·tan(π f/rate)). The overall gain makes
+    f·S₁(f) = 1/π (geometric mean over 10⁻⁵ Hz … rate/40) for white input of unit variance
+    per sample, i.e. S₁(f) = B²/(π f) for input of standard deviation B (module docstring).
+    """
+    _, rate = _check(0, rate_hz)
+    r = 10.0 ** (1.0 / FLICKER_SECTIONS_PER_DECADE)
+    top = _FLICKER_TOP_FRACTION * rate
+    if top <= 10.0 * FLICKER_F_LO_HZ:
+        raise GyroInputError(f"flicker noise needs a rate above {40 * FLICKER_F_LO_HZ:g} Hz, got {rate:g} Hz")
+    poles = []
+    f = FLICKER_F_LO_HZ
+    while True:
+        poles.append(f)
+        if f * np.sqrt(r) >= top:
+            break
+        f *= r
+    p_hz = np.asarray(poles)
+    z_hz = p_hz * np.sqrt(r)
+    c = 2.0 * rate
+    wp = c * np.tan(np.pi * np.minimum(p_hz, 0.49 * rate) / rate)
+    wz = c * np.tan(np.pi * np.minimum(z_hz, 0.49 * rate) / rate)
+    # bilinear transform of (s + wz)/(s + wp): k·(1 − zd z⁻¹)/(1 − pd z⁻¹)
+    k = (c + wz) / (c + wp)
+    sos = np.zeros((p_hz.size, 6))
+    sos[:, 0] = k
+    sos[:, 1] = -k * (c - wz) / (c + wz)
+    sos[:, 3] = 1.0
+    sos[:, 4] = -(c - wp) / (c + wp)
+    # level: one-sided PSD of unit-variance white input through H is (2/rate)|H|²; want 1/(πf)
+    f_grid = np.logspace(-5.0, np.log10(rate / 40.0), 2001)
+    _, h = signal.sosfreqz(sos, worN=f_grid, fs=rate)
+    level = float(np.exp(np.mean(np.log(f_grid * np.abs(h) ** 2 * (2.0 / rate) * np.pi))))
+    sos[0, :3] /= np.sqrt(level)
+    return sos
+
+
+class FlickerBlocks(_Blocks):
+    """Bias instability as flicker (1/f) rate noise, in blocks (module docstring, "Flicker").
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Source of randomness.
+    rate_hz : float
+        Sample rate, Hz (the level does not depend on it).
+    b_rad_s : float or array_like, shape (3,)
+        Bias-instability coefficient B per axis, rad/s (IEEE 952). The Allan deviation floor
+        is B·sqrt(2 ln2/π) ≈ 0.664·B for averaging times from 8 samples to 10⁵ s (±0.1 %);
+        the PSD is B²/(π f) within ±1 % from 10⁻⁶ Hz to rate/20.
+
+    Notes
+    -----
+    White noise of σ = B through :func:`flicker_sos` (``scipy.signal.sosfilt``, section
+    memories carried between blocks, started at rest at the first sample).
+    """
+
+    def __init__(self, rng, *, rate_hz: float, b_rad_s) -> None:
+        super().__init__(rng, rate_hz)
+        self._b = _per_axis(b_rad_s, "b_rad_s")[None, :]
+        self.sos = flicker_sos(self.rate_hz)
+        self._zi = np.zeros((self.sos.shape[0], 2, 3))
+
+    def _take(self, m):
+        w = self.rng.standard_normal((m, 3)) * self._b
+        if m == 0:
+            return w
+        y, self._zi = signal.sosfilt(self.sos, w, axis=0, zi=self._zi)
+        return y
+
+
+class RateRandomWalkBlocks(_Blocks):
+    """Rate random walk in blocks.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Source of randomness.
+    rate_hz : float
+        Sample rate, Hz.
+    k_rad_s_per_sqrt_s : float or array_like, shape (3,)
+        RRW coefficient K per axis, rad/s/√s: cumulative sum of independent increments of
+        σ = K·√dt (the first sample already carries one increment), so that
+        σ²_Allan(τ) = K²τ/3 (IEEE 952 C.4) up to a discretisation term O(dt/τ).
+    """
+
+    def __init__(self, rng, *, rate_hz: float, k_rad_s_per_sqrt_s) -> None:
+        super().__init__(rng, rate_hz)
+        self._step = (_per_axis(k_rad_s_per_sqrt_s, "k_rad_s_per_sqrt_s") * np.sqrt(1.0 / self.rate_hz))[None, :]
+        self._last = None  # (1, 3): the walk's value at the previous sample
+
+    def _take(self, m):
+        inc = self.rng.standard_normal((m, 3)) * self._step
+        if m == 0:
+            return inc
+        if self._last is None:
+            out = np.cumsum(inc, axis=0)
+        else:  # the sequential sum continued: last + inc[0], (last + inc[0]) + inc[1], ...
+            out = np.cumsum(np.concatenate([self._last, inc]), axis=0)[1:]
+        self._last = out[-1:].copy()
+        return out
+
+
+class GaussMarkovBlocks(_Blocks):
+    """First-order Gauss–Markov (exponentially correlated) bias in blocks, exact discretisation.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Source of randomness.
+    rate_hz : float
+        Sample rate, Hz.
+    sigma_rad_s : float or array_like, shape (3,)
+        Stationary standard deviation per axis, rad/s.
+    tau_c_s : float or array_like, shape (3,)
+        Correlation time per axis, s (> 0).
+
+    Notes
+    -----
+    x[0] ~ N(0, σ²) (stationary start); x[k] = φ·x[k−1] + σ·√(1−φ²)·w[k], φ = exp(−dt/τc):
+    the exact sampling of dx/dt = −x/τc + white noise, so that E[x[k]x[k+m]] = σ²·exp(−m·dt/τc)
+    at every sample rate. The recursion runs in :func:`scipy.signal.lfilter` with its memory
+    carried between blocks.
+    """
+
+    def __init__(self, rng, *, rate_hz: float, sigma_rad_s, tau_c_s) -> None:
+        super().__init__(rng, rate_hz)
+        self._sigma = _per_axis(sigma_rad_s, "sigma_rad_s")
+        tau = np.broadcast_to(np.asarray(tau_c_s, dtype=float), (3,))
+        if not np.all(np.isfinite(tau)) or np.any(tau <= 0):
+            raise GyroInputError(f"tau_c_s must be finite and > 0 per axis, got {tau.tolist()}")
+        self._phi = [float(np.exp(-1.0 / (self.rate_hz * tau[i]))) for i in range(3)]
+        self._zi = [np.zeros(1) for _ in range(3)]
+
+    def _take(self, m):
+        w = self.rng.standard_normal((m, 3))
+        out = np.empty((m, 3))
+        if m == 0:
+            return out
+        first = self.position == 0
+        for i in range(3):
+            phi = self._phi[i]
+            u = w[:, i] * (self._sigma[i] * np.sqrt(1.0 - phi * phi))
+            if first:
+                u[0] = w[0, i] * self._sigma[i]
+            out[:, i], self._zi[i] = signal.lfilter([1.0], [1.0, -phi], u, zi=self._zi[i])
+        return out
+
+
+def white_rate_noise(
+    rng: np.random.Generator, n_samples: int, *, rate_hz: float, n_rad_per_sqrt_s
+) -> np.ndarray:
+    """White rate noise (angle random walk), ``n_samples`` × 3, rad/s: :class:`WhiteRateBlocks` in one block."""
+    n, _ = _check(n_samples, rate_hz)
+    return WhiteRateBlocks(rng, rate_hz=rate_hz, n_rad_per_sqrt_s=n_rad_per_sqrt_s).take(n)
 
 
 def kasdin_walter_coefficients(n: int, alpha: float) -> np.ndarray:
     """Impulse response of (1 − z⁻¹)^(−α/2): h₀ = 1, h_k = h_{k−1}·(k − 1 + α/2)/k.
 
-    Kasdin 1995, Proc. IEEE 83(5), eq. 115. Shape (n,).
+    Kasdin 1995, Proc. IEEE 83(5), eq. 115. Shape (n,). (The exact fractional integrator; no
+    longer used by :func:`flicker_noise`, which must run in blocks; kept as the reference the
+    budget and noise tests compare with.)
     """
     k = np.arange(1, n, dtype=float)
     return np.concatenate([[1.0], np.cumprod((k - 1.0 + alpha / 2.0) / k)])
@@ -114,104 +338,29 @@ def kasdin_walter_coefficients(n: int, alpha: float) -> np.ndarray:
 def flicker_noise(
     rng: np.random.Generator, n_samples: int, *, rate_hz: float, b_rad_s
 ) -> np.ndarray:
-    """Bias instability as flicker (1/f) rate noise with a flat Allan floor.
+    """Bias instability as flicker (1/f) rate noise, ``n_samples`` × 3, rad/s: :class:`FlickerBlocks` in one block.
 
-    Parameters
-    ----------
-    rng : numpy.random.Generator
-        Source of randomness.
-    n_samples : int
-        Number of output samples.
-    rate_hz : float
-        Sample rate, Hz (the level does not depend on it; kept for a uniform signature).
-    b_rad_s : float or array_like, shape (3,)
-        Bias-instability coefficient B per axis, rad/s (IEEE 952). The Allan deviation floor
-        is B·sqrt(2 ln2/π) ≈ 0.664·B.
-
-    Returns
-    -------
-    ndarray, shape (n_samples, 3)
-        Flicker rate noise, rad/s: white noise of σ = B filtered by Kasdin & Walter's
-        α = 1 fractional integrator (see the module docstring for the level). The process
-        starts at rest at the first sample (the filter has no pre-history).
+    B per axis in rad/s (IEEE 952); Allan floor B·sqrt(2 ln2/π) ≈ 0.664·B over the band of
+    :class:`FlickerBlocks`.
     """
     n, _ = _check(n_samples, rate_hz)
-    B = _per_axis(b_rad_s, "b_rad_s")
-    if n == 0:
-        return np.zeros((0, 3))
-    w = rng.standard_normal((n, 3)) * B[None, :]
-    h = kasdin_walter_coefficients(n, 1.0)
-    return signal.fftconvolve(w, h[:, None], mode="full", axes=0)[:n]
+    return FlickerBlocks(rng, rate_hz=rate_hz, b_rad_s=b_rad_s).take(n)
 
 
 def rate_random_walk(
     rng: np.random.Generator, n_samples: int, *, rate_hz: float, k_rad_s_per_sqrt_s
 ) -> np.ndarray:
-    """Rate random walk.
-
-    Parameters
-    ----------
-    rng : numpy.random.Generator
-        Source of randomness.
-    n_samples : int
-        Number of output samples.
-    rate_hz : float
-        Sample rate, Hz.
-    k_rad_s_per_sqrt_s : float or array_like, shape (3,)
-        RRW coefficient K per axis, rad/s/√s.
-
-    Returns
-    -------
-    ndarray, shape (n_samples, 3)
-        Random walk of the rate, rad/s: cumulative sum of independent increments of
-        σ = K·√dt (the first sample already carries one increment), so that
-        σ²_Allan(τ) = K²τ/3 (IEEE 952 C.4) up to a discretisation term O(dt/τ).
-    """
-    n, r = _check(n_samples, rate_hz)
-    K = _per_axis(k_rad_s_per_sqrt_s, "k_rad_s_per_sqrt_s")
-    return np.cumsum(rng.standard_normal((n, 3)) * (K * np.sqrt(1.0 / r))[None, :], axis=0)
+    """Rate random walk, ``n_samples`` × 3, rad/s: :class:`RateRandomWalkBlocks` in one block."""
+    n, _ = _check(n_samples, rate_hz)
+    return RateRandomWalkBlocks(rng, rate_hz=rate_hz, k_rad_s_per_sqrt_s=k_rad_s_per_sqrt_s).take(n)
 
 
 def gauss_markov(
     rng: np.random.Generator, n_samples: int, *, rate_hz: float, sigma_rad_s, tau_c_s
 ) -> np.ndarray:
-    """First-order Gauss–Markov (exponentially correlated) bias, exact discretisation.
-
-    Parameters
-    ----------
-    rng : numpy.random.Generator
-        Source of randomness.
-    n_samples : int
-        Number of output samples.
-    rate_hz : float
-        Sample rate, Hz.
-    sigma_rad_s : float or array_like, shape (3,)
-        Stationary standard deviation per axis, rad/s.
-    tau_c_s : float or array_like, shape (3,)
-        Correlation time per axis, s (> 0).
-
-    Returns
-    -------
-    ndarray, shape (n_samples, 3)
-        x[0] ~ N(0, σ²) (stationary start); x[k] = φ·x[k−1] + σ·√(1−φ²)·w[k],
-        φ = exp(−dt/τc): the exact sampling of dx/dt = −x/τc + white noise, so that
-        E[x[k]x[k+m]] = σ²·exp(−m·dt/τc) at every sample rate.
-    """
-    n, r = _check(n_samples, rate_hz)
-    sigma = _per_axis(sigma_rad_s, "sigma_rad_s")
-    tau = np.broadcast_to(np.asarray(tau_c_s, dtype=float), (3,))
-    if not np.all(np.isfinite(tau)) or np.any(tau <= 0):
-        raise GyroInputError(f"tau_c_s must be finite and > 0 per axis, got {tau.tolist()}")
-    w = rng.standard_normal((n, 3))
-    out = np.empty((n, 3))
-    if n == 0:
-        return out
-    for i in range(3):
-        phi = float(np.exp(-1.0 / (r * tau[i])))
-        u = w[:, i] * (sigma[i] * np.sqrt(1.0 - phi * phi))
-        u[0] = w[0, i] * sigma[i]
-        out[:, i] = signal.lfilter([1.0], [1.0, -phi], u)
-    return out
+    """First-order Gauss–Markov bias, ``n_samples`` × 3, rad/s: :class:`GaussMarkovBlocks` in one block."""
+    n, _ = _check(n_samples, rate_hz)
+    return GaussMarkovBlocks(rng, rate_hz=rate_hz, sigma_rad_s=sigma_rad_s, tau_c_s=tau_c_s).take(n)
 
 
 def stable_key_int(key: str) -> int:
