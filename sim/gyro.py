@@ -764,6 +764,8 @@ class GyroChunk:
         The summed stochastic noise of these rows, rad/s.
     power_up_bias_rad_s : dict
         Turn-on bias of every power-up begun so far, {index: (3,)} rad/s.
+    truth : sim.truth.Truth
+        The truth rows these samples were measured from (same rows; ``meta`` not copied).
     """
 
     start: int
@@ -771,6 +773,7 @@ class GyroChunk:
     gyro_rad_s: np.ndarray
     noise_rad_s: np.ndarray
     power_up_bias_rad_s: Mapping[int, np.ndarray] = field(default_factory=dict)
+    truth: Truth | None = None
 
     @property
     def n(self) -> int:
@@ -914,8 +917,9 @@ class _ChunkedMeasure:
             )
             x = deterministic(self.params, inp)[self.emit - lo:stop - lo]
             y = self._output(x, stop - self.emit)
-            yield GyroChunk(start=self.emit, t_s=buf["t_s"][j:j + (stop - self.emit)].astype(float, copy=True),
-                            gyro_rad_s=y[0], noise_rad_s=y[1], power_up_bias_rad_s=dict(self.biases))
+            rows = {k: buf[k][j:j + (stop - self.emit)].copy() for k in _TRUTH_FIELDS}
+            yield GyroChunk(start=self.emit, t_s=rows["t_s"].astype(float, copy=False), gyro_rad_s=y[0], noise_rad_s=y[1],
+                            power_up_bias_rad_s=dict(self.biases), truth=Truth(**rows))
             self.emit = stop
         keep = max(self.b0, self.emit - c)  # rows an unfinished piece may still read
         if keep > self.b0:

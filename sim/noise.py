@@ -53,8 +53,8 @@ in tests/sim/test_noise.py): S₁(f) is within ±1 % of B²/(π f) for
 :data:`FLICKER_BAND_LO_HZ` ≤ f ≤ rate/20 (±0.2 % up to rate/40; the ripple of two sections
 per decade is ±0.1 %), and the Allan deviation of the stationary process, from the exact PSD
 (σ²(m) = 2∫S₁(f)·sin⁴(πfmτ₀)/(m sin(πfτ₀))² df), is within ±0.1 % of B·√(2 ln2/π) for
-averaging factors m ≥ 8 and τ ≤ 10⁵ s (+0.5 %/−0.8 % at m = 2…4; −13 % at m = 1, where the
-white ARW dominates every real gyro anyway). Above rate/4 the spectrum flattens (the last
+averaging factors m ≥ 16 up to τ = 10⁵ s, ±0.3 % at m = 8 (−0.5 … −3 % at m = 2…4 and
+−2 … −18 % at m = 1, depending on the rate: there the white ARW dominates every real gyro). Above rate/4 the spectrum flattens (the last
 zero) and rolls off towards Nyquist; below 10⁻⁷ Hz it is flat.
 """
 
@@ -215,7 +215,7 @@ class FlickerBlocks(_Blocks):
         Sample rate, Hz (the level does not depend on it).
     b_rad_s : float or array_like, shape (3,)
         Bias-instability coefficient B per axis, rad/s (IEEE 952). The Allan deviation floor
-        is B·sqrt(2 ln2/π) ≈ 0.664·B for averaging times from 8 samples to 10⁵ s (±0.1 %);
+        is B·sqrt(2 ln2/π) ≈ 0.664·B for averaging times from 16 samples to 10⁵ s (±0.1 %; ±0.3 % at 8);
         the PSD is B²/(π f) within ±1 % from 10⁻⁶ Hz to rate/20.
 
     Notes

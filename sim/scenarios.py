@@ -36,7 +36,7 @@ import numpy as np
 from gyrocore.cli import to_jsonable
 from gyrocore.effects import EFFECTS, STOCHASTIC, canonical_name, resolve, validate_params
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import Recording
+from gyrocore.recording import Recording, concat_recordings
 
 from .gyro import GyroOutput, SyntheticGyro
 from .noise import effect_rng
@@ -50,6 +50,8 @@ __all__ = [
     "SimResult",
     "load_scenario",
     "simulate",
+    "simulate_stream",
+    "SimStream",
     "true_bias_rad_s",
     "floor_gyro",
     "build_table_profile",
@@ -423,9 +425,13 @@ def _split_power_ups(truth: Truth, cycles: int, thermal) -> Truth:
 
 # ---------------------------------------------------------------------------- run
 def _params_true(gyro: SyntheticGyro, out: GyroOutput) -> dict:
+    return _params_true_from(gyro, out.draws.get("bias"))
+
+
+def _params_true_from(gyro: SyntheticGyro, bias_draws: Mapping | None) -> dict:
     p = {e: {k: np.array(v) for k, v in pd.items()} for e, pd in gyro.params.items()}
     if "bias" in p:
-        d = out.draws["bias"]
+        d = bias_draws
         per = d["b_rad_s_per_power_up"]
         p["bias"] = {
             "b_rad_s": per[0].copy() if per.size else p["bias"]["b_rad_s"],
@@ -434,6 +440,36 @@ def _params_true(gyro: SyntheticGyro, out: GyroOutput) -> dict:
             "b_rad_s_per_power_up": per,
         }
     return validate_params(p)
+
+
+def _recording_meta(spec: ScenarioSpec, sensor_spec, gyro: SyntheticGyro, *, seed: int, run: int, rate: float,
+                    n: int, starts: list[float], params_true: Mapping, notes: list[str], truth_meta: Mapping,
+                    vib_info: Mapping | None = None) -> dict:
+    """The ``#`` metadata of a simulated recording (shared by :func:`simulate` and :func:`simulate_stream`)."""
+    meta = {
+        "sensor": sensor_spec.name,
+        "sensor_part": sensor_spec.part,
+        "scenario": spec.name,
+        "scenario_description": spec.description,
+        "seed": str(int(seed)),
+        "run": str(int(run)),
+        "rate_hz": f"{rate:.10g}",
+        "duration_s": f"{n / rate:.10g}",
+        "effects": ",".join(gyro.effects),
+        "overridden": ",".join(gyro.overridden),
+        "without": ",".join(gyro.without),
+        "accel": "true specific force (no accelerometer errors simulated)",
+        "power_up_t_s": json.dumps(starts),
+        "params_true": json.dumps(to_jsonable(params_true), separators=(",", ":")),
+    }
+    if notes:
+        meta["notes"] = " | ".join(notes)
+    if vib_info is not None:
+        meta["vibration_spec"] = str(spec.vibration["spec"])
+        meta["vibration_injection"] = json.dumps(vib_info, separators=(",", ":"), default=str)
+    for k, v in truth_meta.items():
+        meta.setdefault(f"truth_{k}" if k in meta else k, str(v))
+    return meta
 
 
 def _closed_loop_unsupported(gyro: SyntheticGyro, thermal) -> list[str]:
@@ -453,6 +489,26 @@ def _closed_loop_unsupported(gyro: SyntheticGyro, thermal) -> list[str]:
         if eff.family is not None and ("alpha" in eff.inputs or "dtemp" in eff.inputs and heated):
             out.append(eff.name)
     return out
+
+
+def _scenario_vibration(spec: ScenarioSpec, overrides, without, vehicle, hover_vibration, seed):
+    """The scenario's ``[vibration]`` spec as the registry effect (and the hover's rotor vibration):
+    (overrides, hover_vibration, vib_info); unchanged when the scenario has none or the caller
+    overrides or removes ``vibration``."""
+    vib_info = None
+    if spec.vibration and not any(canonical_name(e) == "vibration" for e in (overrides or {})) \
+            and "vibration" not in [canonical_name(w) for w in without]:
+        from gyrocore.vibration import read_spec
+
+        from .spec_vibration import spec_injection
+
+        hv, vib_over, vib_info = spec_injection(read_spec(spec.vibration["spec"]), band=spec.vibration.get("band", "middle"),
+                                                vehicle=vehicle or str(spec.hover.get("vehicle", "f450")),
+                                                physics=bool(spec.vibration.get("physics", False)), seed=int(seed))
+        overrides = {**(overrides or {}), **vib_over}
+        if hover_vibration is None:
+            hover_vibration = hv
+    return overrides, hover_vibration, vib_info
 
 
 def simulate(
@@ -513,19 +569,7 @@ def simulate(
         raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
     rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
     dur = float(duration_s) if duration_s is not None else spec.duration_s
-    vib_info = None
-    if spec.vibration and not any(canonical_name(e) == "vibration" for e in (overrides or {})) \
-            and "vibration" not in [canonical_name(w) for w in without]:
-        from gyrocore.vibration import read_spec
-
-        from .spec_vibration import spec_injection
-
-        hv, vib_over, vib_info = spec_injection(read_spec(spec.vibration["spec"]), band=spec.vibration.get("band", "middle"),
-                                                vehicle=vehicle or str(spec.hover.get("vehicle", "f450")),
-                                                physics=bool(spec.vibration.get("physics", False)), seed=int(seed))
-        overrides = {**(overrides or {}), **vib_over}
-        if hover_vibration is None:
-            hover_vibration = hv
+    overrides, hover_vibration, vib_info = _scenario_vibration(spec, overrides, without, vehicle, hover_vibration, seed)
     gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run), without=without, overrides=overrides)
     notes = list(gyro.notes)
     flight_log = None
@@ -576,29 +620,8 @@ def simulate(
     params_true = _params_true(gyro, out)
     pu = np.asarray(truth.power_up_index, int)
     starts = [float(truth.t_s[i]) for i in np.flatnonzero(np.concatenate([[True], np.diff(pu) != 0]))]
-    meta = {
-        "sensor": sensor_spec.name,
-        "sensor_part": sensor_spec.part,
-        "scenario": spec.name,
-        "scenario_description": spec.description,
-        "seed": str(int(seed)),
-        "run": str(int(run)),
-        "rate_hz": f"{rate:.10g}",
-        "duration_s": f"{truth.n / rate:.10g}",
-        "effects": ",".join(gyro.effects),
-        "overridden": ",".join(gyro.overridden),
-        "without": ",".join(gyro.without),
-        "accel": "true specific force (no accelerometer errors simulated)",
-        "power_up_t_s": json.dumps(starts),
-        "params_true": json.dumps(to_jsonable(params_true), separators=(",", ":")),
-    }
-    if notes:
-        meta["notes"] = " | ".join(notes)
-    if vib_info is not None:
-        meta["vibration_spec"] = str(spec.vibration["spec"])
-        meta["vibration_injection"] = json.dumps(vib_info, separators=(",", ":"), default=str)
-    for k, v in truth.meta.items():
-        meta.setdefault(f"truth_{k}" if k in meta else k, str(v))
+    meta = _recording_meta(spec, sensor_spec, gyro, seed=seed, run=run, rate=rate, n=truth.n, starts=starts,
+                           params_true=params_true, notes=notes, truth_meta=truth.meta, vib_info=vib_info)
     rec = Recording(
         t_s=truth.t_s,
         gyro_rad_s=out.gyro_rad_s,
@@ -612,6 +635,193 @@ def simulate(
     return SimResult(scenario=spec.name, sensor=sensor_spec.name, seed=int(seed), run=int(run), recording=rec,
                      truth=truth, params_true=params_true, draws=out.draws, noise_rad_s=out.noise_rad_s,
                      flight_log=flight_log, notes=tuple(notes))
+
+
+class SimStream:
+    """A simulated recording delivered in chunks (bounded memory): :func:`simulate_stream`.
+
+    Attributes
+    ----------
+    scenario, sensor : str
+    seed, run : int
+    rate_hz : float
+    n_samples : int
+        Rows of the whole recording.
+    meta : dict
+        The recording's ``#`` metadata (identical to :func:`simulate`'s, ``params_true`` included).
+    params_true : dict
+    notes : tuple of str
+    bounded : bool
+        True when the chunks are generated chunk by chunk (table scenarios); False when the
+        scenario is simulated whole and then cut (``hover``: the closed loop holds the flight).
+
+    :meth:`chunks` yields :class:`gyrocore.recording.Recording` pieces of at most
+    ``chunk_rows`` rows, once; their concatenation equals :func:`simulate`'s recording bit for bit.
+    """
+
+    def __init__(self, **kw) -> None:
+        self.__dict__.update(kw)
+        self._used = False
+
+    def chunks(self):
+        if self._used:
+            raise GyroInputError("a SimStream runs once")
+        self._used = True
+        return self._chunks()
+
+
+def _rechunk_recordings(pieces, rows: int):
+    """Concatenate/cut consecutive Recording pieces into pieces of ``rows`` rows (the last shorter)."""
+    held: list[Recording] = []
+    count = 0
+    for rec in pieces:
+        if rec.n == 0:
+            continue
+        held.append(rec)
+        count += rec.n
+        while count >= rows:
+            whole = held[0] if len(held) == 1 else concat_recordings(held)
+            yield whole.slice(0, rows)
+            rest = whole.slice(rows, whole.n)
+            held = [rest] if rest.n else []
+            count = rest.n
+    if count:
+        yield held[0] if len(held) == 1 else concat_recordings(held)
+
+
+def _power_cycle_chunks(truths, n: int, cycles: int, thermal):
+    """:func:`_split_power_ups` on a truth arriving in chunks (same index, time since power-up and
+    cold-start temperature per cycle, bit for bit)."""
+    from .thermal import TemperatureChunks
+
+    if cycles < 1:
+        raise GyroInputError("[power] cycles must be >= 1")
+    if n < 2 * cycles:
+        raise GyroInputError(f"{cycles} power-ups need at least {2 * cycles} samples")
+    starts = [-(-(i * n) // cycles) for i in range(cycles)] + [n]  # first k with k*cycles//n == i
+    k0 = 0
+    cur, t_first, temp = -1, None, None
+    for tr in truths:
+        m = tr.n
+        k = np.arange(k0, k0 + m)
+        idx = (k * cycles) // n
+        since = np.empty(m)
+        tc = np.empty(m)
+        for c in np.unique(idx):
+            sel = idx == c
+            if c != cur:
+                cur = int(c)
+                t_first = float(tr.t_s[sel][0])
+                temp = TemperatureChunks(thermal, n_total=starts[cur + 1] - starts[cur])
+            since[sel] = tr.t_s[sel] - t_first
+            tc[sel] = temp.take(tr.t_s[sel])
+        yield replace(tr, power_up_index=idx, t_since_power_up_s=since, temp_c=tc)
+        k0 += m
+
+
+def simulate_stream(
+    name: str | ScenarioSpec,
+    *,
+    sensor: str = "icm42688p",
+    duration_s: float | None = None,
+    seed: int = 0,
+    run: int = 0,
+    overrides: Mapping[str, Mapping[str, object]] | None = None,
+    without: Iterable[str] = (),
+    gyro_rate_hz: float | None = None,
+    progress: bool = False,
+    vehicle: str | None = None,
+    hover_vibration=None,
+    chunk_rows: int = 65_536,
+) -> SimStream:
+    """:func:`simulate` as a stream of recording chunks, for long recordings (issue 13).
+
+    Parameters are those of :func:`simulate`, plus ``chunk_rows`` (rows per chunk yielded).
+    Table scenarios run chunk by chunk — the rate table (:func:`sim.turntable.stream_table`,
+    ``chunk_rows`` physics steps per rollout), the die temperature
+    (:class:`sim.thermal.TemperatureChunks`), the power-up split, the gyro
+    (:meth:`sim.gyro.SyntheticGyro.measure_chunks` with the block noise generators) — so the
+    memory does not grow with the duration. ``hover`` is simulated whole (the closed-loop
+    flight is held in memory) and then cut. Either way the rows equal :func:`simulate`'s bit
+    for bit (tested).
+
+    Returns
+    -------
+    SimStream
+        Metadata up front; :meth:`SimStream.chunks` runs the simulation.
+    """
+    spec = load_scenario(name)
+    sensor_spec = load_preset(sensor)
+    if int(chunk_rows) < 1:
+        raise GyroInputError("chunk_rows must be >= 1")
+    chunk_rows = int(chunk_rows)
+    if spec.kind != "table":
+        res = simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
+                       without=without, gyro_rate_hz=gyro_rate_hz, progress=progress, vehicle=vehicle,
+                       hover_vibration=hover_vibration)
+        rec = res.recording
+
+        def whole():
+            for i in range(0, rec.n, chunk_rows):
+                yield rec.slice(i, i + chunk_rows)
+
+        st = SimStream(scenario=res.scenario, sensor=res.sensor, seed=res.seed, run=res.run,
+                       rate_hz=float(rec.meta["rate_hz"]), n_samples=rec.n, meta=rec.meta,
+                       params_true=res.params_true, notes=res.notes, bounded=False)
+        st._chunks = whole
+        return st
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
+    if duration_s is not None and not (math.isfinite(float(duration_s)) and float(duration_s) > 0):
+        raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
+    from .turntable import stream_table
+
+    rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
+    dur = float(duration_s) if duration_s is not None else spec.duration_s
+    without = list(without)
+    overrides, _hv, vib_info = _scenario_vibration(spec, overrides, without, vehicle, hover_vibration, seed)
+    gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run), without=without, overrides=overrides)
+    notes = list(gyro.notes)
+    prof = build_table_profile(spec, dur, seed=int(seed), run=int(run))
+    thermal = build_thermal(spec.thermal, prof.duration_s)
+    table = stream_table(prof, gyro_rate_hz=rate, thermal=thermal, seed=int(seed), progress=progress,
+                         chunk_steps=chunk_rows)
+    n = table.n_samples
+    cycles = int(spec.power.get("cycles", 1))
+    if cycles < 1:
+        raise GyroInputError("[power] cycles must be >= 1")
+    if cycles > 1 and n < 2 * cycles:
+        raise GyroInputError(f"{cycles} power-ups need at least {2 * cycles} samples")
+    starts_k = [-(-(i * n) // cycles) for i in range(cycles)]
+    starts = [float(np.arange(k, k + 1)[0] / rate) for k in starts_k]
+    pd = gyro.params.get("bias")
+    bias_draws = None
+    if pd is not None:
+        bias_draws = {
+            "b_mean_rad_s": pd["b_rad_s"].copy(),
+            "turn_on_sigma_rad_s": np.asarray(pd.get("turn_on_sigma_rad_s", np.zeros(3))).copy(),
+            "power_up_indices": np.arange(cycles),
+            "b_rad_s_per_power_up": np.array([gyro.power_up_bias(i) for i in range(cycles)]).reshape(-1, 3),
+        }
+    params_true = _params_true_from(gyro, bias_draws)
+    meta = _recording_meta(spec, sensor_spec, gyro, seed=seed, run=run, rate=rate, n=n, starts=starts,
+                           params_true=params_true, notes=notes, truth_meta=table.meta, vib_info=vib_info)
+
+    def chunks():
+        truths = (tr for tr, _ang in table.chunks())
+        if cycles > 1:
+            truths = _power_cycle_chunks(truths, n, cycles, thermal)
+        pieces = (Recording(t_s=gc.t_s, gyro_rad_s=gc.gyro_rad_s, accel_m_s2=gc.truth.f_S_m_s2,
+                            temp_c=gc.truth.temp_c, ref_rate_rad_s=gc.truth.omega_S_rad_s,
+                            ref_quat_wxyz=gc.truth.q_SW_wxyz, meta=meta,
+                            extra={"power_up_index": np.asarray(gc.truth.power_up_index, int).astype(float)})
+                  for gc in gyro.measure_chunks(truths))
+        yield from _rechunk_recordings(pieces, chunk_rows)
+
+    st = SimStream(scenario=spec.name, sensor=sensor_spec.name, seed=int(seed), run=int(run), rate_hz=rate,
+                   n_samples=n, meta=meta, params_true=params_true, notes=tuple(notes), bounded=True)
+    st._chunks = chunks
+    return st
 
 
 #: ``hover``: shortest hover after the take-off for the ground phase to be flown, s.

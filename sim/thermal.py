@@ -36,6 +36,7 @@ __all__ = [
     "HeaterSpec",
     "ThermalSpec",
     "ThermalState",
+    "TemperatureChunks",
     "ambient_ramps",
     "simulate_temperature",
 ]
@@ -261,3 +262,100 @@ def simulate_temperature(
     for k in range(1, n):
         out[k] = st.step(t[k], motor_power_w=p_m[k - 1])
     return out
+
+
+class TemperatureChunks:
+    """:func:`simulate_temperature` evaluated in consecutive chunks of sample times (one power-up).
+
+    ``take(t_chunk)`` returns the die temperature at those times, bit-identical to the
+    matching rows of ``simulate_temperature(t_all, spec)`` however the times are cut: the
+    uniform no-heater path carries the recursion's memory (``lfilter``'s final state) and the
+    last input sample; the heater path carries the :class:`ThermalState`.
+
+    Parameters
+    ----------
+    spec : ThermalSpec
+        The thermal model.
+    n_total : int, optional
+        Number of samples of the whole series, when known (a one-sample series starts from
+        :meth:`ThermalState.start`, as :func:`simulate_temperature` does).
+
+    Notes
+    -----
+    The sample interval is taken from the first two times (the first chunk must hold at least
+    two unless it is the whole series); times after it must stay uniform to rtol 1e-9 (the
+    whole-series path's test) — sample clocks of the rate table always are. Non-uniform
+    times with a heater go through the step loop like the whole-series path.
+    """
+
+    def __init__(self, spec: ThermalSpec, *, n_total: int | None = None) -> None:
+        self.spec = spec
+        self.n_total = n_total
+        self.position = 0
+        self._state: ThermalState | None = None
+        self._a = self._c1 = self._h0 = None
+        self._zi = None
+        self._u_prev = self._z_prev = self._t_prev = None
+        self._p_prev = 0.0
+
+    def take(self, t_s: np.ndarray, *, motor_power_w: np.ndarray | None = None) -> np.ndarray:
+        """Die temperature, °C, at the next times ``t_s`` (s, shape (m,))."""
+        t = np.asarray(t_s, dtype=float)
+        m = t.shape[0]
+        if t.ndim != 1:
+            raise GyroInputError("TemperatureChunks.take needs a 1-D time array")
+        p_m = np.zeros(m) if motor_power_w is None else np.asarray(motor_power_w, dtype=float)
+        if p_m.shape != (m,):
+            raise GyroInputError(f"motor_power_w must have shape ({m},), got {p_m.shape}")
+        if m == 0:
+            return np.empty(0)
+        spec = self.spec
+        first = self.position == 0
+        if first and self.n_total == 1:
+            self.position += m
+            return simulate_temperature(t, spec, motor_power_w=p_m)
+        tt = t if first else np.concatenate([[self._t_prev], t])
+        if tt.size > 1 and np.any(np.diff(tt) <= 0):
+            raise GyroInputError("simulate_temperature needs strictly increasing times")
+        if first:
+            if m < 2:
+                raise GyroInputError("TemperatureChunks: the first chunk needs at least two samples")
+            self._h0 = float(t[1] - t[0])
+        h = np.diff(tt)
+        uniform = np.allclose(h, self._h0, rtol=1e-9, atol=0.0)
+        out = np.empty(m)
+        if spec.heater is None:
+            if not uniform:
+                raise GyroInputError("TemperatureChunks: sample times must be uniform (no heater)")
+            tau = spec.time_constant_s
+            if first:
+                self._a = math.exp(-self._h0 / tau)
+                self._c1 = 1.0 - tau * (1.0 - self._a) / self._h0
+            a, c1 = self._a, self._c1
+            u = spec.ambient_at(t) + spec.self_heating_c
+            z = spec.motor_c_per_w * p_m
+            if first:
+                t0 = u[0] - spec.self_heating_c if spec.initial_temp_c is None else spec.initial_temp_c
+                v = (1.0 - a) * (u[:-1] + z[:-1]) + (u[1:] - u[:-1]) * c1
+                out[0] = t0
+                out[1:], self._zi = lfilter([1.0], [1.0, -a], v, zi=[a * t0])
+            else:
+                uu = np.concatenate([[self._u_prev], u])
+                zz = np.concatenate([[self._z_prev], z])
+                v = (1.0 - a) * (uu[:-1] + zz[:-1]) + (uu[1:] - uu[:-1]) * c1
+                out[:], self._zi = lfilter([1.0], [1.0, -a], v, zi=self._zi)
+            self._u_prev, self._z_prev = float(u[-1]), float(z[-1])
+        else:
+            if first:
+                self._state = ThermalState.start(spec, t[0])
+                out[0] = self._state.temp_c
+                k0 = 1
+            else:
+                k0 = 0
+            st = self._state
+            for k in range(k0, m):
+                out[k] = st.step(t[k], motor_power_w=(p_m[k - 1] if k > 0 else self._p_prev))
+            self._p_prev = float(p_m[-1])
+        self._t_prev = float(t[-1])
+        self.position += m
+        return out

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from gyrocore.errors import GyroInputError
 
 from .paths import TURNTABLE_XML, model_path
-from .thermal import ThermalSpec, simulate_temperature
+from .thermal import TemperatureChunks, ThermalSpec, simulate_temperature
 from .truth import Truth
 
 __all__ = [
@@ -52,6 +52,8 @@ __all__ = [
     "table_profile_quick",
     "run_table",
     "run_table_detailed",
+    "stream_table",
+    "TableStream",
     "load_table_model",
     "physics_steps_per_sample",
 ]
@@ -310,6 +312,185 @@ def _raised_cosine_angle(tau: np.ndarray, duration: float, angle: float) -> np.n
     return angle * (x - np.sin(2 * math.pi * x) / (2 * math.pi))
 
 
+class TableStream:
+    """A table run delivered in chunks of gyro samples (bounded memory; :func:`stream_table`).
+
+    Attributes
+    ----------
+    n_samples : int
+        Gyro samples of the whole run.
+    phases : tuple of dict
+        The phase bookkeeping (see :class:`TableRun`), known before the run.
+    meta : dict
+        The truth metadata (see :func:`run_table`).
+    physics_rate_hz : float
+
+    :meth:`chunks` runs the physics once (the model is stepped in place) and yields
+    ``(Truth, table_angle_rad)`` pieces in time order; their concatenation equals
+    :func:`run_table_detailed` bit for bit, whatever ``chunk_steps`` (``mujoco.rollout`` from the
+    full physics state is exact across cuts; tested).
+    """
+
+    def __init__(self, profile: TableProfile, *, gyro_rate_hz: float, physics_rate_hz: float,
+                 thermal: ThermalSpec | None, seed: int, progress: bool, chunk_steps: int) -> None:
+        if int(chunk_steps) < 1:
+            raise GyroInputError("chunk_steps must be >= 1")
+        self.profile = profile
+        self.gyro_rate_hz = float(gyro_rate_hz)
+        self.m_per = physics_steps_per_sample(gyro_rate_hz, physics_rate_hz)
+        self.physics_rate_hz = phys_hz = gyro_rate_hz * self.m_per
+        self.dt = dt = 1.0 / phys_hz
+        self.thermal = thermal if thermal is not None else ThermalSpec.constant(25.0)
+        self.progress = progress
+        self.chunk_steps = int(chunk_steps)
+        self.model, self.data = model, _data = load_table_model(dt)
+        self._ids = {
+            "fixture": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "fixture"),
+            "repose": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "fixture_repose"),
+            "act_fix": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, "fixture_servo"),
+            "act_table": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, "table_servo"),
+        }
+
+        def sens_slice(name: str) -> slice:
+            sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)
+            a = model.sensor_adr[sid]
+            return slice(a, a + model.sensor_dim[sid])
+
+        self._sens = tuple(sens_slice(n) for n in ("imu_gyro", "imu_accel", "imu_quat", "table_angle"))
+        # ---- the phases (their controls are built chunk by chunk in chunks())
+        phases: list[dict] = []
+        plan: list[tuple] = []  # kind, nsteps, angle function of the step time, repose axis
+        step0 = 0
+        q_cur = mount_quat_wxyz(profile.segments[0].mount)
+        for seg in profile.segments:
+            q_new = mount_quat_wxyz(seg.mount)
+            if not _same_rotation(q_cur, q_new):
+                r_rel = _wxyz_to_rot(q_cur).inv() * _wxyz_to_rot(q_new)  # rotation in the fixture frame
+                rotvec = r_rel.as_rotvec()
+                ang = float(np.linalg.norm(rotvec))
+                axis = rotvec / ang
+                n = int(math.ceil((profile.repose_s + profile.settle_s) * phys_hz - 1e-9))
+                plan.append(("repose", n, (lambda tk, _a=ang: _raised_cosine_angle(tk, profile.repose_s, _a)), axis))
+                phases.append({"kind": "repose", "t_start_s": step0 * dt, "t_end_s": step0 * dt + profile.repose_s,
+                               "mount": _mount_label(seg.mount), "rate_rad_s": 0.0, "angle_rad": ang,
+                               "axis_S": [float(v) for v in axis]})
+                step0 += n
+                q_cur = q_new
+            n = int(math.ceil(seg.duration_s * phys_hz - 1e-9))
+            plan.append(("segment", n, seg.theta_rad, None))
+            phases.append({"kind": "segment", "t_start_s": step0 * dt, "t_end_s": step0 * dt + seg.duration_s,
+                           "mount": _mount_label(seg.mount), "rate_rad_s": float(seg.rate_rad_s),
+                           "angle_rad": float(seg.angle_rad)})
+            step0 += n
+        self._plan = plan
+        self.phases = tuple(phases)
+        self.total_steps = step0
+        self.n_samples = step0 // self.m_per
+        if self.n_samples < 1:
+            raise GyroInputError("table profile shorter than one gyro sample")
+        self.meta = {
+            "model": TURNTABLE_XML,
+            "runner": "sim.turntable.run_table",
+            "physics_rate_hz": f"{phys_hz:.10g}",
+            "gyro_rate_hz": f"{gyro_rate_hz:.10g}",
+            "seed": str(seed),
+            "table_phases": json.dumps(phases, separators=(",", ":")),
+        }
+        self._used = False
+
+    def chunks(self):
+        """Run the physics; yield ``(Truth, table_angle_rad)`` pieces of at most ``chunk_steps`` physics steps."""
+        if self._used:
+            raise GyroInputError("a TableStream runs once")
+        self._used = True
+        model, data, ids, dt, m_per = self.model, self.data, self._ids, self.dt, self.m_per
+        s_gyro, s_acc, s_quat, s_ang = self._sens
+        fixture_id, repose_jid = ids["fixture"], ids["repose"]
+        q_adr_fix = model.jnt_qposadr[repose_jid]
+        act_fix = ids["act_fix"]
+        model.body_quat[fixture_id] = mount_quat_wxyz(self.profile.segments[0].mount)
+        mujoco.mj_resetData(model, data)
+        mujoco.mj_forward(model, data)
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        state = np.empty(mujoco.mj_stateSize(model, spec))
+        mujoco.mj_getState(model, data, state, spec)
+        temp = TemperatureChunks(self.thermal, n_total=self.n_samples)
+        n_samples = self.n_samples
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=self.total_steps * dt, unit="sim-s", desc="rate table", leave=False)
+        step = 0
+        try:
+            for kind, n, angle, axis in self._plan:
+                act = act_fix if kind == "repose" else ids["act_table"]
+                if kind == "repose":
+                    # Bake the fixture hinge's current angle into the fixture mount, then point the hinge
+                    # along the new re-pose axis (pose and servo error unchanged; hinge at rest).
+                    mujoco.mj_setState(model, data, state, spec)
+                    phi = float(data.qpos[q_adr_fix])
+                    r_mount = _wxyz_to_rot(model.body_quat[fixture_id]) * Rotation.from_rotvec(phi * model.jnt_axis[repose_jid])
+                    model.body_quat[fixture_id] = _rot_to_wxyz(r_mount)
+                    data.qpos[q_adr_fix] = 0.0
+                    data.act[act_fix] -= phi
+                    model.jnt_axis[repose_jid] = axis
+                    mujoco.mj_forward(model, data)
+                    mujoco.mj_getState(model, data, state, spec)
+                for c0 in range(0, n, self.chunk_steps):
+                    c1 = min(n, c0 + self.chunk_steps)
+                    # the per-step command: the same elementwise arithmetic as on the whole phase
+                    tk = np.arange(c0, c1 + 1) * dt
+                    ctrl = np.zeros((c1 - c0, model.nu))
+                    ctrl[:, act] = np.diff(angle(tk)) / dt
+                    st, sd = mj_rollout.rollout(model, data, state, ctrl)
+                    st, sd = st[0], sd[0]
+                    state = st[-1].copy()
+                    del st
+                    # global step indices step+c0 .. step+c1-1; keep those that are multiples of m_per
+                    first = (-(step + c0)) % m_per
+                    rows = sd[first::m_per]
+                    k0 = (step + c0 + first) // m_per
+                    k1 = min(n_samples, k0 + rows.shape[0])
+                    rows = rows[: k1 - k0]
+                    if bar is not None:
+                        bar.update((c1 - c0) * dt)
+                    if k1 <= k0:
+                        continue
+                    t_s = np.arange(k0, k1) / self.gyro_rate_hz
+                    truth = Truth(
+                        t_s=t_s,
+                        omega_S_rad_s=np.ascontiguousarray(rows[:, s_gyro]),
+                        f_S_m_s2=np.ascontiguousarray(rows[:, s_acc]),
+                        q_SW_wxyz=np.ascontiguousarray(rows[:, s_quat]),
+                        temp_c=temp.take(t_s),
+                        t_since_power_up_s=t_s.copy(),
+                        power_up_index=np.zeros(k1 - k0, dtype=int),
+                        meta=self.meta,
+                    )
+                    yield truth, np.ascontiguousarray(rows[:, s_ang]).ravel()
+                step += n
+        finally:
+            if bar is not None:
+                bar.close()
+
+
+def stream_table(
+    profile: TableProfile,
+    *,
+    gyro_rate_hz: float,
+    physics_rate_hz: float = 1000.0,
+    thermal: ThermalSpec | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    chunk_steps: int = 65_536,
+) -> TableStream:
+    """The table run of :func:`run_table` as a :class:`TableStream` (chunks of at most
+    ``chunk_steps`` physics steps; bit-identical to the whole run)."""
+    return TableStream(profile, gyro_rate_hz=gyro_rate_hz, physics_rate_hz=physics_rate_hz, thermal=thermal,
+                       seed=seed, progress=progress, chunk_steps=chunk_steps)
+
+
 def run_table_detailed(
     profile: TableProfile,
     *,
@@ -321,125 +502,24 @@ def run_table_detailed(
     chunk_steps: int = 200_000,
 ) -> TableRun:
     """Run a table profile; see :func:`run_table` (this also returns the phase bookkeeping)."""
-    m_per = physics_steps_per_sample(gyro_rate_hz, physics_rate_hz)
-    phys_hz = gyro_rate_hz * m_per
-    dt = 1.0 / phys_hz
-    model, data = load_table_model(dt)
-    fixture_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "fixture")
-    repose_jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "fixture_repose")
-    table_jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "table_spin")
-    q_adr_table = model.jnt_qposadr[table_jid]
-    q_adr_fix = model.jnt_qposadr[repose_jid]
-    act_fix = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, "fixture_servo")
-    act_table = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, "table_servo")
-
-    def sens_slice(name: str) -> slice:
-        sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)
-        a = model.sensor_adr[sid]
-        return slice(a, a + model.sensor_dim[sid])
-
-    s_gyro, s_acc, s_quat, s_ang = (sens_slice(n) for n in ("imu_gyro", "imu_accel", "imu_quat", "table_angle"))
-
-    # ---- build the per-step control sequence, phase by phase -----------------------------
-    phases: list[dict] = []
-    plan: list[tuple[str, int, np.ndarray, np.ndarray | None]] = []  # kind, nsteps, ctrl, repose axis
-    step0 = 0
-    q_cur = mount_quat_wxyz(profile.segments[0].mount)
-    for seg in profile.segments:
-        q_new = mount_quat_wxyz(seg.mount)
-        if not _same_rotation(q_cur, q_new):
-            r_rel = _wxyz_to_rot(q_cur).inv() * _wxyz_to_rot(q_new)  # rotation in the fixture frame
-            rotvec = r_rel.as_rotvec()
-            ang = float(np.linalg.norm(rotvec))
-            axis = rotvec / ang
-            n = int(math.ceil((profile.repose_s + profile.settle_s) * phys_hz - 1e-9))
-            tk = np.arange(n + 1) * dt
-            th = _raised_cosine_angle(tk, profile.repose_s, ang)
-            ctrl = np.zeros((n, model.nu))
-            ctrl[:, act_fix] = np.diff(th) / dt
-            plan.append(("repose", n, ctrl, axis))
-            phases.append({"kind": "repose", "t_start_s": step0 * dt, "t_end_s": step0 * dt + profile.repose_s,
-                           "mount": _mount_label(seg.mount), "rate_rad_s": 0.0, "angle_rad": ang,
-                           "axis_S": [float(v) for v in axis]})
-            step0 += n
-            q_cur = q_new
-        n = int(math.ceil(seg.duration_s * phys_hz - 1e-9))
-        tk = np.arange(n + 1) * dt
-        ctrl = np.zeros((n, model.nu))
-        ctrl[:, act_table] = np.diff(seg.theta_rad(tk)) / dt
-        plan.append(("segment", n, ctrl, None))
-        phases.append({"kind": "segment", "t_start_s": step0 * dt, "t_end_s": step0 * dt + seg.duration_s,
-                       "mount": _mount_label(seg.mount), "rate_rad_s": float(seg.rate_rad_s),
-                       "angle_rad": float(seg.angle_rad)})
-        step0 += n
-    total_steps = step0
-    n_samples = total_steps // m_per
-    if n_samples < 1:
-        raise GyroInputError("table profile shorter than one gyro sample")
-
-    # ---- run --------------------------------------------------------------------------------
-    model.body_quat[fixture_id] = mount_quat_wxyz(profile.segments[0].mount)
-    mujoco.mj_resetData(model, data)
-    mujoco.mj_forward(model, data)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    state = np.empty(mujoco.mj_stateSize(model, spec))
-    mujoco.mj_getState(model, data, state, spec)
-
+    ts = stream_table(profile, gyro_rate_hz=gyro_rate_hz, physics_rate_hz=physics_rate_hz, thermal=thermal,
+                      seed=seed, progress=progress, chunk_steps=chunk_steps)
+    n_samples = ts.n_samples
     omega = np.empty((n_samples, 3))
     f_S = np.empty((n_samples, 3))
     quat = np.empty((n_samples, 4))
+    temp_c = np.empty(n_samples)
     table_ang = np.empty(n_samples)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total_steps * dt, unit="sim-s", desc="rate table", leave=False)
-    step = 0
-    for kind, n, ctrl, axis in plan:
-        if kind == "repose":
-            # Bake the fixture hinge's current angle into the fixture mount, then point the hinge
-            # along the new re-pose axis (pose and servo error unchanged; hinge at rest).
-            mujoco.mj_setState(model, data, state, spec)
-            phi = float(data.qpos[q_adr_fix])
-            r_mount = _wxyz_to_rot(model.body_quat[fixture_id]) * Rotation.from_rotvec(phi * model.jnt_axis[repose_jid])
-            model.body_quat[fixture_id] = _rot_to_wxyz(r_mount)
-            data.qpos[q_adr_fix] = 0.0
-            data.act[act_fix] -= phi
-            model.jnt_axis[repose_jid] = axis
-            mujoco.mj_forward(model, data)
-            mujoco.mj_getState(model, data, state, spec)
-        for c0 in range(0, n, chunk_steps):
-            c1 = min(n, c0 + chunk_steps)
-            st, sd = mj_rollout.rollout(model, data, state, ctrl[c0:c1])
-            st, sd = st[0], sd[0]
-            state = st[-1].copy()
-            # global step indices step+c0 .. step+c1-1; keep those that are multiples of m_per
-            first = (-(step + c0)) % m_per
-            rows = sd[first::m_per]
-            k0 = (step + c0 + first) // m_per
-            k1 = min(n_samples, k0 + rows.shape[0])
-            rows = rows[: k1 - k0]
-            omega[k0:k1] = rows[:, s_gyro]
-            f_S[k0:k1] = rows[:, s_acc]
-            quat[k0:k1] = rows[:, s_quat]
-            table_ang[k0:k1] = rows[:, s_ang].ravel()
-            if bar is not None:
-                bar.update((c1 - c0) * dt)
-        step += n
-    if bar is not None:
-        bar.close()
-
+    k = 0
+    for tr, ang in ts.chunks():
+        k1 = k + tr.n
+        omega[k:k1] = tr.omega_S_rad_s
+        f_S[k:k1] = tr.f_S_m_s2
+        quat[k:k1] = tr.q_SW_wxyz
+        temp_c[k:k1] = tr.temp_c
+        table_ang[k:k1] = ang
+        k = k1
     t_s = np.arange(n_samples) / gyro_rate_hz
-    spec_th = thermal if thermal is not None else ThermalSpec.constant(25.0)
-    temp_c = simulate_temperature(t_s, spec_th)
-    meta = {
-        "model": TURNTABLE_XML,
-        "runner": "sim.turntable.run_table",
-        "physics_rate_hz": f"{phys_hz:.10g}",
-        "gyro_rate_hz": f"{gyro_rate_hz:.10g}",
-        "seed": str(seed),
-        "table_phases": json.dumps(phases, separators=(",", ":")),
-    }
     truth = Truth(
         t_s=t_s,
         omega_S_rad_s=omega,
@@ -448,9 +528,9 @@ def run_table_detailed(
         temp_c=temp_c,
         t_since_power_up_s=t_s.copy(),
         power_up_index=np.zeros(n_samples, dtype=int),
-        meta=meta,
+        meta=ts.meta,
     )
-    return TableRun(truth=truth, phases=tuple(phases), table_angle_rad=table_ang)
+    return TableRun(truth=truth, phases=ts.phases, table_angle_rad=table_ang)
 
 
 def run_table(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -102,7 +103,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     (DESIGN.md), values in SI units.
     """
     from gyrocore.effects import check_effect_names
-    from gyrocore.recording import file_sha256, write_recording
+    from gyrocore.recording import file_sha256, write_chunks
     from sim import presets as P
     from sim import scenarios as S
 
@@ -146,16 +147,19 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         rate = rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz
         dur = duration_s or spec.duration_s or 300.0
         progress = sys.stderr.isatty() and (dur * rate > 200_000 or spec.kind == "hover" and dur * rate > 20_000)
-    res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
-                     without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle,
-                     hover_vibration=hover_vib)
-    rec = res.recording
+    # issue 13: generated and written chunk by chunk (table scenarios in bounded memory; hover is
+    # flown whole, then written in chunks); the same rows as S.simulate
+    res = S.simulate_stream(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
+                            without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle,
+                            hover_vibration=hover_vib)
+    meta = dict(res.meta)
     if vib_info is not None:
         import json as _json
 
-        rec = rec.with_gyro(rec.gyro_rad_s, vibration_spec=str(vibration_spec),
-                            vibration_injection=_json.dumps(vib_info, separators=(",", ":"), default=str))
-    write_recording(rec, out, overwrite=force)  # .parquet: Parquet, else CSV
+        meta.update(vibration_spec=str(vibration_spec),
+                    vibration_injection=_json.dumps(vib_info, separators=(",", ":"), default=str))
+    n_samples = write_chunks(res.chunks(), out, overwrite=force, meta=meta)
+    power_ups = len(json.loads(meta["power_up_t_s"]))
     summary = {
         "path": str(out),
         "sha256": file_sha256(out),
@@ -163,13 +167,13 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         "sensor": res.sensor,
         "seed": res.seed,
         "run": res.run,
-        "rate_hz": float(rec.meta["rate_hz"]),
-        "n_samples": rec.n,
-        "duration_s": rec.n / float(rec.meta["rate_hz"]),
-        "power_ups": len(res.draws.get("bias", {}).get("power_up_indices", [0])),
-        "effects": rec.meta["effects"].split(",") if rec.meta["effects"] else [],
-        "overridden": rec.meta["overridden"].split(",") if rec.meta["overridden"] else [],
-        "without": rec.meta["without"].split(",") if rec.meta["without"] else [],
+        "rate_hz": float(meta["rate_hz"]),
+        "n_samples": n_samples,
+        "duration_s": n_samples / float(meta["rate_hz"]),
+        "power_ups": power_ups,
+        "effects": meta["effects"].split(",") if meta["effects"] else [],
+        "overridden": meta["overridden"].split(",") if meta["overridden"] else [],
+        "without": meta["without"].split(",") if meta["without"] else [],
         "notes": list(res.notes),
         "params_true": res.params_true,
     }
@@ -181,7 +185,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     click.echo(
         f"wrote {out}: scenario {res.scenario}, sensor {res.sensor}, seed {res.seed}"
         + (f", run {res.run}" if res.run else "")
-        + f", {rec.n} samples at {summary['rate_hz']:g} Hz ({summary['duration_s']:g} s), "
+        + f", {n_samples} samples at {summary['rate_hz']:g} Hz ({summary['duration_s']:g} s), "
         + f"{summary['power_ups']} power-up(s)"
     )
     click.echo(f"effects: {', '.join(summary['effects']) or 'none'}")

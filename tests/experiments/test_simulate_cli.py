@@ -135,3 +135,23 @@ def test_family_term_errors_are_one_line(tmp_path, capsys, args, needle):
     f = tmp_path / "x.csv"
     code, out, err = run(["simulate", *args[:1], "-o", str(f), *args[1:]], capsys)
     assert code == 2 and out == "" and len(err.strip().splitlines()) == 1 and needle in err, err
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_streamed_file_equals_the_whole_write(tmp_path, capsys, suffix):
+    """Issue 13: the command writes chunk by chunk; the file holds exactly what writing
+    simulate()'s whole recording gives (CSV: the same bytes)."""
+    from gyrocore.recording import read_recording, write_recording
+
+    f = tmp_path / f"s{suffix}"
+    code, out, err = run(["simulate", "power_cycles", "-o", str(f), "--duration-s", "150", "--rate-hz", "500",
+                          "--seed", "5", "--json"], capsys)
+    assert code == 0, err
+    js = json.loads(out)
+    assert js["n_samples"] == 75_000 and js["power_ups"] == 5  # [power] cycles = 5
+    ref = tmp_path / f"ref{suffix}"
+    write_recording(simulate("power_cycles", duration_s=150.0, gyro_rate_hz=500.0, seed=5).recording, ref)
+    if suffix == ".csv":
+        assert f.read_bytes() == ref.read_bytes()
+    a, b = read_recording(f), read_recording(ref)
+    assert a.meta == b.meta and np.array_equal(a.gyro_rad_s, b.gyro_rad_s) and np.array_equal(a.ref_quat_wxyz, b.ref_quat_wxyz)

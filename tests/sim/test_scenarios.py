@@ -211,3 +211,41 @@ def test_hover_powers_up_on_the_ground_and_the_static_bias_calibration_finds_it(
     # a short flight has no room for the ground phase: airborne start, said in the notes
     short = S.simulate("hover", duration_s=1.0, gyro_rate_hz=500.0, seed=0)
     assert "ground_s" not in short.recording.meta and any("no ground phase" in n for n in short.notes)
+
+
+# ---------------------------------------------------------------- chunked simulation (issue 13)
+@pytest.mark.parametrize("name, kw", [
+    ("static_bumped", dict(duration_s=20.0, seed=3, run=1)),
+    ("power_cycles", dict(duration_s=30.0, seed=2)),
+    ("thermal", dict(duration_s=200.0, gyro_rate_hz=200.0)),
+    ("turntable", dict(duration_s=90.0, sensor="adis16448",
+                       overrides={"time_offset": {"tau_s": -0.003}, "rrw": {}, "correlated": {}})),
+])
+@pytest.mark.parametrize("chunk_rows", [997, 4096])
+def test_stream_equals_simulate_bit_for_bit(name, kw, chunk_rows):
+    """simulate_stream (physics, temperature, power-ups, gyro and noise all in chunks) gives the
+    recording of simulate() row for row and the same metadata, whatever the chunk size."""
+    from gyrocore.recording import concat_recordings
+
+    res = S.simulate(name, **kw)
+    st = S.simulate_stream(name, chunk_rows=chunk_rows, **kw)
+    assert st.bounded and st.meta == res.recording.meta and st.n_samples == res.recording.n
+    recs = list(st.chunks())
+    assert max(r.n for r in recs) <= chunk_rows
+    rec = concat_recordings(recs)
+    a = res.recording
+    for f in ("t_s", "gyro_rad_s", "accel_m_s2", "temp_c", "ref_rate_rad_s", "ref_quat_wxyz"):
+        assert np.array_equal(getattr(rec, f), getattr(a, f)), f
+    assert np.array_equal(rec.extra["power_up_index"], a.extra["power_up_index"])
+    with pytest.raises(GyroInputError):
+        st.chunks()
+
+
+def test_stream_of_hover_is_the_whole_flight_cut():
+    kw = dict(duration_s=2.0, seed=4)
+    st = S.simulate_stream("hover", chunk_rows=300, **kw)
+    assert not st.bounded
+    from gyrocore.recording import concat_recordings
+
+    rec = concat_recordings(list(st.chunks()))
+    assert np.array_equal(rec.gyro_rad_s, S.simulate("hover", **kw).recording.gyro_rad_s)

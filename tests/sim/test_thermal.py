@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gyrocore.errors import GyroInputError
-from sim.thermal import HeaterSpec, ThermalSpec, ThermalState, ambient_ramps, simulate_temperature
+from sim.thermal import HeaterSpec, TemperatureChunks, ThermalSpec, ThermalState, ambient_ramps, simulate_temperature
 
 
 def test_step_response_matches_exponential():
@@ -79,3 +79,24 @@ def test_bad_inputs():
         ThermalSpec(time_constant_s=0.0)
     with pytest.raises(GyroInputError):
         simulate_temperature(np.array([0.0, 0.0]), ThermalSpec())
+
+
+@pytest.mark.parametrize("heater", [False, True])
+@pytest.mark.parametrize("sizes", [(2,), (997,), (4096,), (3, 1, 50)])
+def test_temperature_chunks_bit_identical_to_whole(heater, sizes):
+    """Issue 13: the die temperature of a long record in chunks equals the whole-series
+    evaluation bit for bit (motor power held, ambient ramps, optional heater)."""
+    spec = ThermalSpec(ambient_c=ambient_ramps(start_c=10.0, peak_c=40.0, start_s=1.0, ramp_s=5.0, hold_s=2.0, end_c=20.0),
+                       time_constant_s=3.0, self_heating_c=0.7, motor_c_per_w=0.01,
+                       heater=HeaterSpec(setpoint_c=45.0) if heater else None)
+    n = 12_000
+    t = np.arange(n) / 1000.0
+    p = 50.0 + 10.0 * np.sin(t)
+    whole = simulate_temperature(t, spec, motor_power_w=p)
+    tc = TemperatureChunks(spec, n_total=n)
+    got, i, k = [], 0, 0
+    while i < n:
+        j = min(n, i + sizes[k % len(sizes)])
+        got.append(tc.take(t[i:j], motor_power_w=p[i:j]))
+        i, k = j, k + 1
+    assert np.array_equal(np.concatenate(got), whole)
