@@ -11,7 +11,11 @@ figures are per stage, not cumulative. Stages:
 
 ``baseline``      python + numpy + ``gyrocore.recording`` only (the floor of every other figure)
 ``simulate``      ``gyroharness simulate thermal --duration-s 3600 --rate-hz 1000`` (MuJoCo rate
-                  table + thermal model + synthetic gyro, whole arrays, one CSV write)
+                  table + thermal model + synthetic gyro with every noise term, generated and
+                  written chunk by chunk: sim.scenarios.simulate_stream, issue 13)
+``simulate_parquet`` the same to a Parquet file
+``simulate_long`` the same for ``--long-duration-s`` (e.g. 36000: ten hours) to Parquet, run once
+                  (not at the compare length): completes, and its peak tells bounded from O(N)
 ``synth``         generate and write the CSV chunk by chunk (``write_csv_chunks``)
 ``read_whole``    ``read_csv`` of the whole file (the path every CLI command takes)
 ``read_chunks``   ``iter_csv_chunks`` with per-axis running sums (streaming)
@@ -283,6 +287,12 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
     cli = {
         "simulate": [*exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
                      "--seed", str(SEED), "-o", str(sim_path), "--force", "--no-progress", "--json"],
+        "simulate_parquet": [*exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
+                             "--seed", str(SEED), "-o", str(work / "sim_thermal.parquet"), "--force", "--no-progress",
+                             "--json"],
+        "simulate_long": [*exe, "simulate", "thermal", "--duration-s", str(a.long_duration_s), "--rate-hz",
+                          str(a.rate_hz), "--seed", str(SEED), "-o", str(work / "sim_thermal_long.parquet"), "--force",
+                          "--no-progress", "--json"],
         "cli_convert": [*exe, "convert", str(csv_path), "-o", str(work / "cli_converted.parquet"), "--force", "--json"],
         "cli_bias": [*exe, "bias", str(csv_path), "--json"],
         "cli_loop": [*exe, "loop", str(csv_path), "--effects", ",".join(EFFECTS[a.source]), "--json"],
@@ -296,18 +306,23 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
     for name in names:
         if name == "synth" and a.source == "sim":
             continue
+        if name == "simulate_long" and (not a.long_duration_s or duration_s != a.duration_s):
+            continue  # once, at its own length
         argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
         rc, wall, rss, out = _run_child(argv_c)
         info = {}
         if rc == 0 and name in STAGES:
             info = json.loads(out.strip().splitlines()[-1])
-        elif rc == 0 and name == "simulate":
+        elif rc == 0 and name.startswith("simulate"):
             doc = json.loads(out)
             info = {k: doc.get(k) for k in ("n_samples", "rate_hz", "duration_s", "effects")}
-        rows.append({"stage": name, "samples": n, "exit": rc, "wall_s": wall, "peak_rss_bytes": rss,
+        if name == "simulate_long":
+            (work / "sim_thermal_long.parquet").unlink(missing_ok=True)
+        rows.append({"stage": name, "samples": int(round(a.long_duration_s * a.rate_hz)) if name == "simulate_long" else n,
+                     "exit": rc, "wall_s": wall, "peak_rss_bytes": rss,
                      "result": info if rc == 0 else out})
         if not quiet:
-            print(f"  [{duration_s:g} s] {name:<14s} exit {rc}  wall {wall:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB"
+            print(f"  [{duration_s if name != 'simulate_long' else a.long_duration_s:g} s] {name:<14s} exit {rc}  wall {wall:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB"
                   + ("" if rc == 0 else f"  FAILED: {out[:300]}"), flush=True)
     return rows
 
@@ -319,6 +334,8 @@ def main(argv=None) -> int:
                     help="a shorter run of every stage; the peak's growth between the two lengths, per "
                          "sample, tells streaming (≈ 0) from whole-column stages (0 = skip)")
     ap.add_argument("--rate-hz", type=float, default=1000.0)
+    ap.add_argument("--long-duration-s", type=float, default=0.0,
+                    help="stage simulate_long: simulate this long to Parquet once (e.g. 36000; 0 = skip)")
     ap.add_argument("--work", default=None, help="folder for the CSV files (default: a temporary folder, removed)")
     ap.add_argument("--stages", default="baseline,simulate," + ",".join(list(STAGES)[1:])
                     + ",cli_convert,cli_bias,cli_allan,cli_calibrate,cli_apply,cli_loop")
@@ -367,7 +384,8 @@ def main(argv=None) -> int:
         print(f"{'stage':<14s} {'peak RSS MiB':>12s} {'growth B/sample':>16s}  {'wall s':>7s}  design")
         for r in big:
             g = r.get("growth_bytes_per_sample")
-            design = CLI_DESIGN.get(r["stage"], "CLI") if r["stage"].startswith("cli_") else "CLI, whole arrays" if r["stage"] == "simulate" else (
+            design = CLI_DESIGN.get(r["stage"], "CLI") if r["stage"].startswith("cli_") else (
+                f"CLI, chunked ({r['samples']} samples)") if r["stage"].startswith("simulate") else (
                 "streaming" if r["stage"] in STREAMING else "whole columns")
             print(f"{r['stage']:<14s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
                   f"  {r['wall_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED"))
