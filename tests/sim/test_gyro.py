@@ -614,8 +614,9 @@ def test_chunked_measure_is_bit_identical_to_batch(sizes, tau_s):
     ov.update(FAMILY_TERMS)
     ov["regressor[alpha_x]"] = {"coef": [1e-4, 0.0, 0.0]}
     ov["bias"] = {"turn_on_sigma_rad_s": 1e-3}
+    ov["vibration"] = _shaped()  # the shaped vibration noise term (ShapedNoise, fixed internal blocks)
     g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=9, overrides=ov)
-    assert set(ALL_BUT_VIB) <= set(g.effects)
+    assert set(ALL_BUT_VIB) | {"vibration"} <= set(g.effects)
     whole = g.measure(tr)
     parts = list(g.measure_chunks(_pieces(tr, sizes)))
     assert [p.start for p in parts] == list(np.cumsum([0] + [p.n for p in parts[:-1]]))
@@ -629,7 +630,7 @@ def test_chunked_measure_is_bit_identical_to_batch(sizes, tau_s):
 
 
 def test_noise_blocks_equal_whole_noise():
-    g = SyntheticGyro("adis16448", seed=3, overrides={"rrw": {}, "correlated": {}})
+    g = SyntheticGyro("adis16448", seed=3, overrides={"rrw": {}, "correlated": {}, "vibration": _shaped()})
     whole, _ = g.noise(10_007)
     blocks = g.noise_blocks()
     got = np.concatenate([blocks.take(m) for m in (997, 4096, 1, 4913)])
