@@ -1140,11 +1140,11 @@ def _read_blackbox(path: str | os.PathLike, *, log_index: int | None = None) -> 
     return read_blackbox(path, log_index=log_index)
 
 
-def _read_dataflash(path: str | os.PathLike) -> Recording:
-    """ArduPilot DataFlash log (IMU instance 0): :func:`gyrocore.dataflash.read_dataflash`."""
+def _read_dataflash(path: str | os.PathLike, *, stream: str | None = None) -> Recording:
+    """ArduPilot DataFlash log (IMU instance 0; ``stream`` imu or batch): :func:`gyrocore.dataflash.read_dataflash`."""
     from .dataflash import read_dataflash
 
-    return read_dataflash(path)
+    return read_dataflash(path, stream=stream or "imu")
 
 
 #: Blackbox: ~30 B of compressed log per frame become ~35 Python ints in a tuple (~1.3 kB)

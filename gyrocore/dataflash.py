@@ -16,7 +16,9 @@ What is read, and from where
     * ``RCOU`` C1…Cn: motor PWM in µs (n from FRAME_CLASS), normalised by MOT_PWM_MIN/MAX;
       ``CTUN.ThO``: throttle output 0–1. Both held to the IMU times (zero-order hold).
     * The batch sampler (``ISBH``/``ISBD``: windows of ``smp_cnt`` raw samples at ``smp_rate``,
-      value/``mul``) is counted in the metadata but not converted (windows, not a stream).
+      int16 ``multiplier · sample``, AP_InertialSensor/BatchSampler.cpp) is the gyro before the
+      filters at the sensor rate: ``stream="batch"`` (``convert --stream batch``) gives those
+      windows, with gaps between them, as the recording (:func:`_batch_recording`).
 Tested on one real log (ArduCopter 4.5.7, CubeOrangePlus; PROVENANCE in tests/data/dataflash).
 """
 
@@ -106,7 +108,7 @@ def _bytes_after_last_message(log, size: int) -> int:
     return size - max(ok) if ok else 0
 
 
-def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0):
+def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0, stream: str = "imu"):
     """An ArduPilot DataFlash log as a :class:`~gyrocore.recording.Recording`.
 
     Columns: ``gyro_*_rad_s`` / ``accel_*_m_s2`` = IMU instance ``imu_instance`` (as flown, see the
@@ -115,6 +117,10 @@ def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0):
     = median, measured), gyro sample rate, ``gyro_filters`` (INS_GYRO_FILTER, harmonic notches),
     ``header_filters`` (the INS_/SCHED_/MOT_PWM_ parameters), ``lacks`` one line each.
 
+    ``stream="batch"``: the gyro of the IMU batch sampler instead (:func:`_batch_recording`):
+    windows of raw samples at the sensor rate, with gaps between them (no accelerometer columns:
+    its windows are at other times).
+
     Raises
     ------
     GyroInputError
@@ -122,6 +128,8 @@ def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0):
         messages of that instance.
     """
     p = Path(path)
+    if stream not in ("imu", "batch"):
+        raise GyroInputError(f"stream {stream!r}: choose imu or batch")
     if not p.exists():
         raise GyroInputError(f"{p}: no such file")
     if not is_dataflash(p):
@@ -134,7 +142,8 @@ def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0):
     # pymavlink reports skipped bad bytes with print() on stdout/stderr: captured, counted, and
     # said in one warning (stdout is the CLI's JSON channel)
     with _captured_output() as chatter:
-        log, imu, rcou, ctun, params, msgs, isb, imu_units, stopped = _scan(p, DFReader, imu_instance, size)
+        log, imu, rcou, ctun, params, msgs, isb, imu_units, stopped = _scan(p, DFReader, imu_instance, size,
+                                                                            want_isb=(stream == "batch"))
     for msg in stopped:
         warn_repair(msg)
     rest = _bytes_after_last_message(log, size)
@@ -148,21 +157,26 @@ def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0):
     if skipped or bad_hdr:
         warn_repair(f"{p.name}: corrupt data skipped: {len(skipped)} stretch(es), {sum(skipped)} bytes"
                     + (f" ({bad_hdr} bad message headers while indexing)" if bad_hdr else ""))
-    return _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, imu_instance)
+    rec = _to_recording(p, log, imu, rcou, ctun, params, msgs, len(isb["hdr"]), imu_units, rest, imu_instance)
+    if stream == "batch":
+        return _batch_recording(p, rec, isb, rcou, ctun, params, imu_instance)
+    rec.meta["time_us_first"] = rec.meta.pop("_t0_us")
+    return rec
 
 
-def _scan(p, DFReader, imu_instance, size):
+def _scan(p, DFReader, imu_instance, size, want_isb=False):
     """Decode the messages the reader needs (pymavlink)."""
     try:
         log = DFReader.DFReader_binary(str(p), zero_time_base=False)
     except Exception as exc:  # pymavlink raises plain Exceptions on a bad file
         raise GyroInputError(f"{p}: not a readable DataFlash log ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-    imu, rcou, ctun, params, msgs, isb = [], [], [], {}, [], 0
+    imu, rcou, ctun, params, msgs = [], [], [], {}, []
+    isb = {"hdr": {}, "data": {}}
     imu_units = None
     stopped: list[str] = []
     while True:
         try:
-            m = log.recv_match(type=["IMU", "RCOU", "CTUN", "PARM", "MSG", "ISBH"])
+            m = log.recv_match(type=["IMU", "RCOU", "CTUN", "PARM", "MSG", "ISBH"] + (["ISBD"] if want_isb else []))
         except Exception as exc:  # a damaged message pymavlink cannot skip
             stopped.append(f"{p.name}: DataFlash decoding stopped at byte {log.offset} of {size} "
                            f"({type(exc).__name__}); messages before it kept")
@@ -185,40 +199,16 @@ def _scan(p, DFReader, imu_instance, size):
         elif ty == "MSG":
             msgs.append(str(m.Message))
         elif ty == "ISBH":
-            isb += 1
+            isb["hdr"][int(m.N)] = (int(m.type), int(m.instance), float(m.mul), int(m.smp_cnt), float(m.SampleUS), float(m.smp_rate))
+        elif ty == "ISBD":
+            isb["data"].setdefault(int(m.N), []).append((int(m.seqno), np.asarray(m.x, float), np.asarray(m.y, float),
+                                                         np.asarray(m.z, float)))
     return log, imu, rcou, ctun, params, msgs, isb, imu_units, stopped
 
 
-def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, imu_instance):
-    """Decoded messages → :class:`~gyrocore.recording.Recording` (see :func:`read_dataflash`)."""
-    from .recording import Recording
-
-    if not imu:
-        raise GyroInputError(f"{p}: no IMU messages of instance {imu_instance}")
-    if rest > 0:
-        warn_repair(f"{p.name}: the log ends with {rest} bytes that do not form a complete message (truncated): "
-                    f"the complete messages are kept")
-    if not imu_units:
-        raise GyroInputError(f"{p}: the log has no FMTU units for IMU: gyro/accel units cannot be checked")
-    bad = {k: imu_units.get(k) for k in ("GyrX", "GyrY", "GyrZ") if imu_units.get(k) != "rad/s"}
-    bad.update({k: imu_units.get(k) for k in ("AccX", "AccY", "AccZ") if imu_units.get(k) != "m/s/s"})
-    if bad:
-        raise GyroInputError(f"{p}: IMU units {bad} are not rad/s and m/s/s: not read")
-    a = np.asarray(imu, dtype=float)
-    keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
-    n_back = int((~keep).sum())
-    a = a[keep]
-    if a.shape[0] < 2:
-        raise GyroInputError(f"{p}: {a.shape[0]} IMU samples of instance {imu_instance}")
-    t_us = a[:, 0]
-    t_s = (t_us - t_us[0]) * 1e-6
-    dt = np.diff(t_s)
-    log_hz = 1.0 / float(np.median(dt))
+def _motor_extras(t_us, rcou, ctun, params, lacks, notes) -> dict:
+    """RCOU motors (PWM, 0-1 of MOT_PWM_MIN..MAX, mean) and CTUN.ThO held at times ``t_us``."""
     extra: dict[str, np.ndarray] = {}
-    lacks: list[str] = []
-    notes: list[str] = []
-    fw = next((s for s in msgs if _FW.match(s)), "")
-    board = next((s for s in msgs if re.match(r"^(CubeOrange|Cube|Pixhawk|Matek|SpeedyBee|Kakute|MatekH7|\w+ [0-9A-F]{8} )", s)), "")
     frame_class = int(params.get("FRAME_CLASS", 0) or 0)
     n_mot = FRAME_CLASS_MOTORS.get(frame_class)
     if rcou:
@@ -250,6 +240,39 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
             v = extra[k]
             first = np.flatnonzero(~np.isnan(v))
             extra[k] = np.where(np.isnan(v), v[first[0]] if first.size else 0.0, v)
+    return extra
+
+
+def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, imu_instance):
+    """Decoded messages → :class:`~gyrocore.recording.Recording` (see :func:`read_dataflash`)."""
+    from .recording import Recording
+
+    if not imu:
+        raise GyroInputError(f"{p}: no IMU messages of instance {imu_instance}")
+    if rest > 0:
+        warn_repair(f"{p.name}: the log ends with {rest} bytes that do not form a complete message (truncated): "
+                    f"the complete messages are kept")
+    if not imu_units:
+        raise GyroInputError(f"{p}: the log has no FMTU units for IMU: gyro/accel units cannot be checked")
+    bad = {k: imu_units.get(k) for k in ("GyrX", "GyrY", "GyrZ") if imu_units.get(k) != "rad/s"}
+    bad.update({k: imu_units.get(k) for k in ("AccX", "AccY", "AccZ") if imu_units.get(k) != "m/s/s"})
+    if bad:
+        raise GyroInputError(f"{p}: IMU units {bad} are not rad/s and m/s/s: not read")
+    a = np.asarray(imu, dtype=float)
+    keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
+    n_back = int((~keep).sum())
+    a = a[keep]
+    if a.shape[0] < 2:
+        raise GyroInputError(f"{p}: {a.shape[0]} IMU samples of instance {imu_instance}")
+    t_us = a[:, 0]
+    t_s = (t_us - t_us[0]) * 1e-6
+    dt = np.diff(t_s)
+    log_hz = 1.0 / float(np.median(dt))
+    lacks: list[str] = []
+    notes: list[str] = []
+    fw = next((s for s in msgs if _FW.match(s)), "")
+    board = next((s for s in msgs if re.match(r"^(CubeOrange|Cube|Pixhawk|Matek|SpeedyBee|Kakute|MatekH7|\w+ [0-9A-F]{8} )", s)), "")
+    extra = _motor_extras(t_us, rcou, ctun, params, lacks, notes)
     ghz = float(np.nanmedian(a[:, 7])) if np.isfinite(a[:, 7]).any() else float("nan")
     chain = []
     f_lpf = params.get("INS_GYRO_FILTER", 0.0)
@@ -265,7 +288,7 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
     lacks.append(f"gyro logged at {log_hz:.0f} Hz (IMU messages): Nyquist {log_hz / 2:.1f} Hz, far below the motor lines "
                  f"(gyro sampled at {ghz:.0f} Hz)")
     lacks.append("no unfiltered gyro stream: IMU holds the gyro after INS_GYRO_FILTER and the notches"
-                 + (f"; the batch sampler's {isb} ISBH windows are in the log but not converted" if isb else
+                 + (f"; the batch sampler's {isb} ISBH windows are in the log: convert --stream batch" if isb else
                     " (INS_LOG_BAT_* batch sampler not logged)"))
     lacks.append("no per-motor RPM converted (ESC telemetry not read)")
     if n_back:
@@ -292,5 +315,117 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
         "batch_sampler_windows": str(isb),
         "lacks": " | ".join(lacks),
         "repairs": "; ".join(notes) if notes else "none",
+        "_t0_us": f"{t_us[0]:.0f}",
     }
     return Recording(t_s=t_s, gyro_rad_s=a[:, 1:4].copy(), accel_m_s2=a[:, 4:7].copy(), meta=meta, extra=extra)
+
+
+#: INS_LOG_BAT_OPT bits (AP_InertialSensor BatchSampler ``batch_opt_t``): sensor-rate logging,
+#: post-filter sampling, pre- and post-filter sampling.
+BATCH_OPT_SENSOR_RATE, BATCH_OPT_POST_FILTER, BATCH_OPT_PRE_POST_FILTER = 1, 2, 4
+
+
+def _hf_rms(windows, f_lo_hz: float) -> float:
+    """Mean over windows of the rms above ``f_lo_hz`` (rad/s), all axes."""
+    out = []
+    for _t0, rate, g in windows:
+        spec = np.abs(np.fft.rfft(g - g.mean(axis=0), axis=0)) ** 2
+        f = np.fft.rfftfreq(g.shape[0], 1.0 / rate)
+        out.append(np.sqrt(spec[f >= f_lo_hz].sum() * 2.0 / g.shape[0] ** 2))
+    return float(np.mean(out)) if out else float("nan")
+
+
+def _batch_recording(p, imu_rec, isb, rcou, ctun, params, imu_instance):
+    """The batch sampler's gyro windows (ISBH/ISBD) of one IMU as a Recording with gaps.
+
+    Read in AP_InertialSensor/BatchSampler.cpp: a batch is ``smp_cnt`` consecutive samples of
+    one sensor (ISBH ``type`` 0 accel, 1 gyro; pymavlink tools/mavfft_isb.py names them so),
+    stored as int16 ``multiplier · sample`` — so value/``mul`` is the gyro in the backend's
+    unit, rad/s — at ``smp_rate`` from ``SampleUS``; batches rotate accel → gyro → next IMU.
+    Without option bits the samples are taken before the filters; bit 1 samples after them. With
+    bit 2 (pre and post filter) the log holds two instances per IMU; which one is post-filter
+    was not read in the source: it is told on the data (the pre-filter one carries ≥ 3× the rms
+    above 4·INS_GYRO_FILTER; the ratio is in the metadata) and the pre-filter one is used.
+    Incomplete batches (missing ISBD sequence numbers) are dropped and counted.
+    """
+    from .recording import Recording
+
+    hdr, data = isb["hdr"], isb["data"]
+    opt = int(params.get("INS_LOG_BAT_OPT", 0) or 0)
+    by_inst: dict[int, list] = {}
+    dropped = 0
+    for n, (typ, inst, mul, cnt, t0_us, rate) in sorted(hdr.items()):
+        if typ != 1:
+            continue
+        seg = sorted(data.get(n, []), key=lambda r: r[0])
+        if not seg or [r[0] for r in seg] != list(range(len(seg))) or sum(r[1].size for r in seg) != cnt or mul <= 0:
+            dropped += inst == imu_instance
+            continue
+        g = np.column_stack([np.concatenate([r[k] for r in seg]) for k in (1, 2, 3)]) / mul
+        by_inst.setdefault(inst, []).append((t0_us, rate, g))
+    if not by_inst:
+        raise GyroInputError(f"{p}: no complete gyro batch (ISBH/ISBD) in the log: the batch sampler was off "
+                             f"(INS_LOG_BAT_MASK) or its batches are incomplete")
+    f_lpf = float(params.get("INS_GYRO_FILTER", 0.0) or 0.0)
+    post = bool(opt & BATCH_OPT_POST_FILTER) and not opt & BATCH_OPT_PRE_POST_FILTER
+    check = ""
+    inst = imu_instance
+    if opt & BATCH_OPT_PRE_POST_FILTER:
+        if inst not in by_inst or len(by_inst) < 2 or f_lpf <= 0:
+            raise GyroInputError(f"{p}: INS_LOG_BAT_OPT {opt} (pre and post filter) but the gyro batches of IMU "
+                                 f"{imu_instance} and their counterpart are not both in the log")
+        f_lo = 4.0 * f_lpf
+        hf = {k: _hf_rms(v, f_lo) for k, v in by_inst.items()}
+        others = [k for k in hf if k != inst]
+        ratio = hf[inst] / max(min(hf[k] for k in others), 1e-12)
+        if ratio < 3.0:
+            raise GyroInputError(f"{p}: cannot tell the pre-filter gyro batches of IMU {imu_instance} from the "
+                                 f"post-filter ones (rms above {f_lo:.0f} Hz only {ratio:.1f}x the quietest instance)")
+        check = (f"INS_LOG_BAT_OPT {opt}: batch instances {sorted(hf)}; instance {inst} taken as pre-filter on the data: rms above "
+                 f"{f_lo:.0f} Hz " + ", ".join(f"instance {k} {np.degrees(v):.2f} deg/s" for k, v in sorted(hf.items())))
+    elif inst not in by_inst:
+        raise GyroInputError(f"{p}: no gyro batch of IMU {imu_instance} (instances {sorted(by_inst)})")
+    wins = sorted(by_inst[inst], key=lambda w: w[0])
+    t_parts, g_parts = [], []
+    last = -np.inf
+    for t0_us, rate, g in wins:
+        t_us = t0_us + np.arange(g.shape[0]) * 1e6 / rate
+        if t_us[0] <= last:
+            dropped += 1
+            continue
+        last = t_us[-1]
+        t_parts.append(t_us)
+        g_parts.append(g)
+    t_us = np.concatenate(t_parts)
+    gyro = np.concatenate(g_parts)
+    rate = float(np.median([w[1] for w in wins]))
+    lacks, notes = [], []
+    extra = _motor_extras(t_us, rcou, ctun, params, lacks, notes)
+    chain = json.loads(imu_rec.meta["gyro_filters"])
+    if post:
+        pre_meta = None
+        signal_txt = "filtered (batch sampler, post-filter: INS_LOG_BAT_OPT bit 1)"
+    else:
+        for i, ax in enumerate("xyz"):
+            extra[f"gyro_prefilter_{ax}_rad_s"] = gyro[:, i]
+        pre_meta = {"source": f"ISBH/ISBD gyro batches of IMU {imu_instance} (pre-filter: INS_LOG_BAT_OPT {opt}), "
+                              f"value/mul in rad/s", "signal": "raw", "filters_before": []}
+        signal_txt = "raw (batch sampler, before INS_GYRO_FILTER and the notches)"
+    if dropped:
+        warn_repair(f"{p.name}: {dropped} incomplete or overlapping gyro batch(es) dropped")
+    meta = dict(imu_rec.meta)
+    meta.pop("_t0_us", None)
+    meta.update({
+        "stream": "batch", "rate_hz": f"{rate:.6g}", "log_rate_measured_hz": f"{rate:.6g}",
+        "sensor": meta["sensor"] + " batch sampler",
+        "gyro_signal": signal_txt, "batch_windows": str(len(wins)),
+        "batch_window_s": f"{wins[0][2].shape[0] / rate:.6g}",
+        "batch_prepost_check": check or "n/a",
+        "lacks": " | ".join([f"gyro in {len(wins)} batch windows of {wins[0][2].shape[0]} samples ({wins[0][2].shape[0] / rate:.3f} s) "
+                             f"at {rate:.0f} Hz with gaps between them; no accelerometer columns (its batches are at other times)"]
+                            + [x for x in meta["lacks"].split(" | ") if not x.startswith(("gyro logged at", "no unfiltered gyro"))] + lacks),
+    })
+    if pre_meta:
+        meta["gyro_prefilter"] = json.dumps(pre_meta)
+    meta["time_us_first"] = f"{t_us[0]:.0f}"
+    return Recording(t_s=(t_us - t_us[0]) * 1e-6, gyro_rad_s=gyro, accel_m_s2=None, meta=meta, extra=extra)

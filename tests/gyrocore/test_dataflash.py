@@ -22,7 +22,7 @@ from gyrocore.convert import detect_format, load_any  # noqa: E402
 from gyrocore.dataflash import read_dataflash  # noqa: E402
 from gyrocore.errors import GyroInputError, RepairWarning  # noqa: E402
 
-LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first300k.BIN"
+LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
 G0 = 9.80665
 
 
@@ -37,8 +37,8 @@ def test_real_arducopter_log_units_rates_and_header():
     rec, warns = _read(LOG)
     assert not warns
     assert detect_format(LOG) == "dataflash"
-    # 130 IMU0 messages at 25 Hz over 5.16 s (PROVENANCE, read with pymavlink directly)
-    assert rec.n == 130 and abs(float(rec.meta["log_rate_measured_hz"]) - 25.0) < 0.1
+    # 318 IMU0 messages at 25 Hz over 12.68 s (PROVENANCE, read with pymavlink directly)
+    assert rec.n == 318 and abs(float(rec.meta["log_rate_measured_hz"]) - 25.0) < 0.1
     assert rec.meta["firmware"].startswith("ArduCopter V4.5.7") and rec.meta["firmware_version"] == "4.5.7"
     assert float(rec.meta["gyro_sample_rate_hz"]) == 6406 and float(rec.meta["loop_rate_hz"]) == 400
     # units on the data: with the motors at MOT_PWM_MIN the copter stands still: |a| = g within
@@ -54,7 +54,7 @@ def test_real_arducopter_log_units_rates_and_header():
     chain = json.loads(rec.meta["gyro_filters"])
     assert [(c["kind"], c["cutoff_hz"], c["dynamic"]) for c in chain][0] == ("butter2", 42.0, False)
     assert chain[1]["kind"] == "dyn_notch" and chain[1]["dynamic"]
-    assert "Nyquist 12.5 Hz" in rec.meta["lacks"] and "ISBH windows" in rec.meta["lacks"]
+    assert "Nyquist 12.5 Hz" in rec.meta["lacks"] and "convert --stream batch" in rec.meta["lacks"]
 
 
 def test_truncated_log_keeps_complete_messages_with_one_warning(tmp_path):
@@ -83,7 +83,7 @@ def test_convert_cli_and_vibration_refusal(tmp_path):
                         capture_output=True, text=True, timeout=300)
     assert cp.returncode == 0, cp.stderr
     d = json.loads(cp.stdout)
-    assert d["format"] == "dataflash" and d["n_samples"] == 130
+    assert d["format"] == "dataflash" and d["n_samples"] == 318
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RepairWarning)
         assert load_any(LOG).meta["format"] == "dataflash"
@@ -112,3 +112,30 @@ def test_corrupt_headers_are_skipped_and_counted_in_one_warning(tmp_path):
     idx = np.searchsorted(t_clean, t_kept)
     assert np.all(idx < t_clean.size) and np.array_equal(t_clean[idx], t_kept)
     assert rec.n >= full.n - 3 and np.array_equal(rec.gyro_rad_s, full.gyro_rad_s[idx])
+
+
+def test_batch_sampler_stream_and_vibration_on_it(tmp_path):
+    """The batch sampler's raw gyro (ISBH/ISBD): windows of 1024 samples at IMU.GHz. With
+    INS_LOG_BAT_OPT 4 (pre and post filter) the pre-filter instance is told on the data: above
+    4·INS_GYRO_FILTER the 2nd-order Butterworth attenuates by 1/sqrt(1 + 4^4) ≈ 1/16, so the
+    pre-filter rms there must exceed the post-filter one by far more than the 3x demanded."""
+    rec, _ = _read(LOG, stream="batch")
+    assert rec.meta["stream"] == "batch" and rec.meta["batch_windows"] == "3" and rec.n == 3 * 1024
+    assert abs(float(rec.meta["rate_hz"]) - float(rec.meta["gyro_sample_rate_hz"])) < 1.0
+    assert json.loads(rec.meta["gyro_prefilter"])["signal"] == "raw" and rec.accel_m_s2 is None
+    assert "instance 0 taken as pre-filter" in rec.meta["batch_prepost_check"]
+    # inside a window the samples are 1/rate apart; windows are separated by gaps of seconds
+    dt = np.diff(rec.t_s)
+    assert np.allclose(dt[dt < 0.01], 1 / float(rec.meta["rate_hz"]), rtol=1e-6) and (dt > 1).sum() == 2
+    out = tmp_path / "isb.csv"
+    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(LOG), "--stream", "batch", "-o", str(out)],
+                        capture_output=True, text=True, timeout=300)
+    assert cp.returncode == 0, cp.stderr
+    cp2 = subprocess.run([sys.executable, "-m", "experiments.cli", "vibration", str(out), "--window-s", "0.15", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert cp2.returncode == 0, cp2.stderr
+    d = json.loads(cp2.stdout)
+    assert d["signal"] == "raw" and abs(d["rate_hz"] - float(rec.meta["rate_hz"])) < 1 and d["n_windows"] >= 2
+    for ax in "xyz":
+        lo, hi = d["rms_above_40hz_interval_rad_s"][ax]
+        assert lo <= d["rms_above_40hz_rad_s"][ax] <= hi
