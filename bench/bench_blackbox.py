@@ -4,8 +4,10 @@ For each file, in one run: (1) orangebox 0.4.0's own ``Parser.frames()`` loop ov
 the file, (2) our frame loop (``gyrocore.blackbox.read_blackbox_logs``: orangebox's decoders +
 frame validation), (3) the whole ``read_blackbox`` (decode + SI conversion + metadata). Best of
 ``--repeat`` wall times, frames/s and the ratio to orangebox alone. Default files: the shared
-Betaflight 3.1.5 log, and the Betaflight 4.2.0 / INAV 9.0.1 logs of
-``../shared/data/blackbox_public`` when present.
+Betaflight 3.1.5 log, the Betaflight 4.2.0 / INAV 9.0.1 logs of ``../shared/data/blackbox_public``
+when present, and the ArduPilot DataFlash fixture (tests/data/dataflash): for a DataFlash file,
+(1) pymavlink's DFReader reading every message, (2) pymavlink reading only the messages
+``gyrocore.dataflash`` needs, (3) the whole ``read_dataflash`` (IMU stream) — messages/s.
 
     nice python bench/bench_blackbox.py [FILE ...] [--repeat 3]
 """
@@ -22,7 +24,8 @@ from pathlib import Path
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT = [DATA / "betaflight_blackbox" / "better_tune.BBL", DATA / "blackbox_public" / "LOG00037.BFL",
-           DATA / "blackbox_public" / "blackbox_log_2026-02-21_145057.TXT"]
+           DATA / "blackbox_public" / "blackbox_log_2026-02-21_145057.TXT",
+           Path(__file__).resolve().parents[1] / "tests" / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"]
 
 
 def _best(fn, repeat):
@@ -47,6 +50,9 @@ def main() -> None:
     print(f"python {platform.python_version()}, orangebox {getattr(orangebox, '__version__', bb.ORANGEBOX_VERSION)}; "
           f"load {os.getloadavg()[0]:.2f}; best of {args.repeat}")
     for path in args.files:
+        if path.lower().endswith(".bin"):
+            _bench_dataflash(path, args.repeat)
+            continue
         raised = []
 
         def ob():
@@ -83,6 +89,33 @@ def main() -> None:
               + (f"  (raised in {len(raised)} log(s): {raised[0]})" if raised else ""))
         print(f"  gyrocore frame loop     : {n_us:7d} frames {t_us:6.2f} s  {n_us / t_us:9.0f} frames/s  ratio {t_us / t_ob:.2f}")
         print(f"  gyrocore read_blackbox  : {n_full:7d} frames {t_full:6.2f} s  {n_full / t_full:9.0f} frames/s  ratio {t_full / t_ob:.2f}")
+
+
+def _bench_dataflash(path: str, repeat: int) -> None:
+    from pymavlink import DFReader
+
+    from gyrocore import dataflash as df
+
+    def count(types):
+        log = DFReader.DFReader_binary(path, zero_time_base=False)
+        n = 0
+        while log.recv_match(type=types) is not None:
+            n += 1
+        return n
+
+    def full():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return df.read_dataflash(path).n
+
+    t_all, n_all = _best(lambda: count(None), repeat)
+    need = ["IMU", "RCOU", "CTUN", "PARM", "MSG", "ISBH"]
+    t_need, n_need = _best(lambda: count(need), repeat)
+    t_full, n_imu = _best(full, repeat)
+    print(f"file {Path(path).name} ({os.path.getsize(path) / 2**20:.2f} MiB, ArduPilot DataFlash)")
+    print(f"  pymavlink every message : {n_all:7d} msgs   {t_all:6.2f} s  {n_all / t_all:9.0f} msgs/s  ratio 1.00")
+    print(f"  pymavlink needed types  : {n_need:7d} msgs   {t_need:6.2f} s  {n_need / t_need:9.0f} msgs/s  ratio {t_need / t_all:.2f}")
+    print(f"  gyrocore read_dataflash : {n_imu:7d} IMU    {t_full:6.2f} s  {n_need / t_full:9.0f} msgs/s  ratio {t_full / t_all:.2f}")
 
 
 if __name__ == "__main__":
