@@ -25,8 +25,14 @@ figures are per stage, not cumulative. Stages:
 ``attitude``      per chunk: ``integrate_gyro`` carried across chunks, error angle vs the
                   reference attitude, running final/RMS/max (streaming)
 ``cli_*``         every command that reads a recording, through ``gyroharness``: ``convert``
-                  (to Parquet, streamed), ``bias`` (t + gyro), ``allan`` (one axis at a time),
-                  ``calibrate`` and ``loop`` (whole-file reads), ``apply`` (streamed)
+                  (to Parquet, streamed), ``bias`` (windows read back from disk a block at a
+                  time), ``allan`` (one axis at a time), ``calibrate`` (fitted from disk a
+                  window at a time), ``apply`` (streamed), ``loop`` (whole-file read)
+``imports_*``     only the modules that command loads (``gyrocore.cli`` + its modules + the
+                  reader): what the command costs before it reads anything
+
+``--format parquet`` writes and processes ``one_hour.parquet`` instead of the CSV (much faster to
+generate at ten hours: no text formatting).
 
 Every stage is run at two lengths (``--compare-duration-s``, default 10 min, and the full
 hour); the growth of its peak between them, in bytes per sample, tells a *streaming* stage
@@ -109,24 +115,53 @@ def _chunks(a):
 
 
 def stage_synth(a) -> dict:
-    from gyrocore.recording import write_csv_chunks
+    from gyrocore.recording import write_chunks
 
-    n = write_csv_chunks(_chunks(a), a.csv)
+    n = write_chunks(_chunks(a), a.csv)  # CSV or Parquet by the file name (--format)
     return {"rows": n, "csv_bytes": os.path.getsize(a.csv)}
 
 
-def stage_read_whole(a) -> dict:
-    from gyrocore.recording import read_csv
+#: What each command imports when it runs (``gyrocore.cli`` and the command modules are
+#: loaded by every command; pyarrow.csv by every reader).
+IMPORTS = {
+    "imports_convert": ["gyrocore.convert", "gyrocore.recording", "pyarrow.csv", "pyarrow.parquet"],
+    "imports_bias": ["gyrocore.bias", "gyrocore.convert", "gyrocore.recording", "pyarrow.csv"],
+    "imports_allan": ["gyrocore.allan", "gyrocore.gmwm", "gyrocore.recording", "pyarrow.csv"],
+    "imports_calibrate": ["gyrocore.model", "gyrocore.lsq", "gyrocore.thermal", "gyrocore.stream", "gyrocore.convert",
+                          "pyarrow.csv"],
+    "imports_apply": ["gyrocore.model", "gyrocore.recording", "pyarrow.csv"],
+    "imports_loop": ["gyrocore.loop", "gyrocore.search", "gyrocore.residual", "gyrocore.model", "gyrocore.lsq",
+                     "gyrocore.recording", "pyarrow.csv"],
+}
 
-    rec = read_csv(a.csv)
+
+def _stage_imports(name):
+    def run(a) -> dict:
+        import importlib
+
+        import experiments.cli  # noqa: F401  (gyrocore.cli, click)
+        from gyrocore.cli import build_group
+
+        build_group(["experiments.commands"])  # imports every command module, as `gyroharness` does
+        for m in IMPORTS[name]:
+            importlib.import_module(m)
+        return {"modules": IMPORTS[name]}
+
+    return run
+
+
+def stage_read_whole(a) -> dict:
+    from gyrocore.recording import read_recording
+
+    rec = read_recording(a.csv)
     return {"rows": rec.n}
 
 
 def stage_read_chunks(a) -> dict:
-    from gyrocore.recording import iter_csv_chunks
+    from gyrocore.recording import iter_chunks
 
     n, s = 0, np.zeros(3)
-    for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS):
+    for ch in iter_chunks(a.csv, rows=CHUNK_ROWS):
         n += ch.n
         s += ch.gyro_rad_s.sum(axis=0)
     return {"rows": n, "mean_gyro_rad_s": (s / n).tolist()}
@@ -137,7 +172,7 @@ def _gather(a, *, full: bool):
 
     The columns are preallocated for the known length and filled chunk by chunk, so the
     gather peaks at the columns themselves (not at chunk lists plus their concatenation)."""
-    from gyrocore.recording import Recording, iter_csv_chunks
+    from gyrocore.recording import Recording, iter_chunks
 
     n = int(round(a.duration_s * a.rate_hz))
     shapes = {"t": (n,), "g": (n, 3)}
@@ -146,7 +181,7 @@ def _gather(a, *, full: bool):
     cat = {k: np.empty(s) for k, s in shapes.items()}
     i0 = 0
     meta = {}
-    for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS):
+    for ch in iter_chunks(a.csv, rows=CHUNK_ROWS):
         i1 = i0 + ch.n
         if i1 > n:
             raise SystemExit(f"{a.csv}: more than the expected {n} rows")
@@ -189,12 +224,12 @@ def stage_apply(a) -> dict:
     import warnings
 
     from gyrocore.model import load_params
-    from gyrocore.recording import iter_csv_chunks, write_csv_chunks
+    from gyrocore.recording import iter_chunks, write_chunks
 
     cal = load_params(a.params)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # per-chunk range notes
-        n = write_csv_chunks((cal.apply(ch) for ch in iter_csv_chunks(a.csv, rows=CHUNK_ROWS)), a.corrected)
+        n = write_chunks((cal.apply(ch) for ch in iter_chunks(a.csv, rows=CHUNK_ROWS)), a.corrected)
     return {"rows": n}
 
 
@@ -203,7 +238,7 @@ def stage_attitude(a) -> dict:
     over from the previous one (the chunk starts at the previous chunk's last sample, so the
     zero-order-hold step across the boundary is included exactly once)."""
     from gyrocore.attitude import error_angle_rad, integrate_gyro
-    from gyrocore.recording import iter_csv_chunks
+    from gyrocore.recording import iter_chunks
 
     q_carry = t_last = w_last = None
     n = 0
@@ -212,7 +247,7 @@ def stage_attitude(a) -> dict:
     err_final = math.nan
     t_first = None
     path = a.corrected if os.path.exists(a.corrected) else a.csv  # raw when apply did not run
-    for ch in iter_csv_chunks(path, rows=CHUNK_ROWS):
+    for ch in iter_chunks(path, rows=CHUNK_ROWS):
         t, w, q_ref = ch.t_s, ch.gyro_rad_s, ch.ref_quat_wxyz
         if q_carry is None:
             q = integrate_gyro(t, w, q0_wxyz=q_ref[0])
@@ -245,14 +280,15 @@ STAGES = {
     "calibrate": stage_calibrate,
     "apply": stage_apply,
     "attitude": stage_attitude,
+    **{k: _stage_imports(k) for k in IMPORTS},
 }
-STREAMING = {"baseline", "synth", "read_chunks", "apply", "attitude"}
+STREAMING = {"baseline", "synth", "read_chunks", "apply", "attitude", *IMPORTS}
 #: How each command holds the recording (issue 13).
 CLI_DESIGN = {
     "cli_convert": "CLI, streamed (chunks)",
-    "cli_bias": "CLI, t + gyro columns",
+    "cli_bias": "CLI, spilled; windows read back a block at a time",
     "cli_allan": "CLI, one axis at a time",
-    "cli_calibrate": "CLI, whole-file read",
+    "cli_calibrate": "CLI, spilled; fitted a window at a time",
     "cli_apply": "CLI, streamed (chunks + context)",
     "cli_loop": "CLI, whole-file read",
 }
@@ -279,10 +315,11 @@ def _run_child(argv: list[str]) -> tuple[int, float, int, str]:
 def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bool) -> list[dict]:
     """Every stage at one recording length; rows with peak RSS and wall time."""
     n = int(round(duration_s * a.rate_hz))
-    csv_path = work / "one_hour.csv"
+    csv_path = Path(a.csv)  # one_hour.csv, or one_hour.parquet with --format parquet
     # the checkout this script belongs to (PYTHONPATH), not whatever `gyroharness` is installed
     exe = [sys.executable, "-m", "experiments.cli"]
-    common = ["--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work), "--source", a.source]
+    common = ["--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work), "--source", a.source,
+              "--format", a.format]
     sim_path = csv_path if a.source == "sim" else work / "sim_thermal.csv"
     cli = {
         "simulate": [*exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
@@ -342,11 +379,13 @@ def main(argv=None) -> int:
     ap.add_argument("--source", choices=("synth", "sim"), default="synth",
                     help="recording processed by the later stages: 'synth' (still, thermal; default) or "
                          "'sim' (the simulated thermal rate-table run of the 'simulate' stage)")
+    ap.add_argument("--format", choices=("csv", "parquet"), default="csv",
+                    help="data file the stages write and read (parquet: no text formatting, for long runs)")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--stage", help=argparse.SUPPRESS)  # child mode
     a = ap.parse_args(argv)
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="bench_memory_"))
-    a.csv = str(work / "one_hour.csv")
+    a.csv = str(work / ("one_hour.parquet" if a.format == "parquet" else "one_hour.csv"))
     a.params = str(work / "params.json")
     a.corrected = str(work / "corrected.csv")
     if a.stage:  # child: run one stage, print its JSON

@@ -420,6 +420,12 @@ def _arrow_options(header: list[str], want: list[int], block_size: int | None = 
     return ro, po, co, [names[i] for i in want]
 
 
+def _is_float64_array(col) -> bool:
+    import pyarrow as pa
+
+    return isinstance(col, pa.Array) and pa.types.is_float64(col.type)
+
+
 def _to_numpy(col) -> np.ndarray:
     """Arrow (chunked) float64 column -> writable numpy array; empty fields -> _NotClean."""
     if col.null_count:
@@ -1363,6 +1369,9 @@ def _parquet_cols(batch_or_table, header: list[str], want: list[int], path: str,
     for i in want:
         c = batch_or_table.column(header[i])
         counter[0] += c.null_count
+        if not c.null_count and _is_float64_array(c):  # the values buffer, copied (see _to_numpy)
+            cols[i] = np.frombuffer(c.buffers()[1], dtype=np.float64, count=len(c), offset=c.offset * 8).copy()
+            continue
         arr = np.asarray(c.to_numpy(zero_copy_only=False), dtype=np.float64)
         cols[i] = arr if arr.flags.writeable else arr.copy()
     return cols
@@ -1412,7 +1421,7 @@ def iter_parquet_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair:
 
         nulls = [0]
         try:
-            for batch in pf.iter_batches(batch_size=rows, columns=[header[i] for i in layout.want]):
+            for batch in pf.iter_batches(batch_size=rows, columns=[header[i] for i in layout.want], use_threads=False):
                 yield _parquet_cols(batch, header, layout.want, path, nulls)
         except (pa.ArrowException, OSError) as exc:
             raise _parquet_read_error(path, exc) from None
