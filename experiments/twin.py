@@ -13,8 +13,8 @@ simulated sensor matches the real one and where it does not.
 2. **Identification** (:func:`identify`): the twin's parameters — deterministic terms from the
    residual loop (:func:`gyrocore.loop.run_loop`, declared ``bias``; or a ``--params`` file),
    noise from the Allan analysis of the per-sample error signal on the covered spans after the
-   deterministic model (:func:`gyrocore.allan.allan_analysis`: N -> ``arw``, B ->
-   ``bias_instability``, K -> ``rrw``; N² less the LSB²/(12·rate) that rounding adds), output
+   deterministic model (:func:`gyrocore.allan.identify_noise`: N -> ``arw``, B ->
+   ``bias_instability``, K -> ``rrw``, a Gauss–Markov term -> ``correlated`` σ, τc; N² less the LSB²/(12·rate) that rounding adds), output
    rate from the timestamps, the LSB from the lattice of first differences
    (:func:`lsb_from_differences`).
 3. **Replicas** (:func:`replica_statistics`): N runs of :class:`sim.gyro.SyntheticGyro` driven
@@ -485,7 +485,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
         A loop already run on ``rec`` (saves the run).
     """
     from gyrocore import effects as E
-    from gyrocore.allan import allan_analysis
+    from gyrocore.allan import identify_noise
 
     rate = float(rec.rate_hz)
     notes: list[str] = []
@@ -541,33 +541,43 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
         det = {e: p for e, p in params.items() if e not in ("quantization",)}
         e_sig = rec.gyro_rad_s - _deterministic(det, inp)
         x = _span_concat(e_sig, ref.spans)
-        sub = Recording(t_s=np.arange(x.shape[0]) / rate, gyro_rad_s=x, meta={})
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            an = allan_analysis(sub)
+            # the project's noise identification (issue 11 default, GMWM with Gauss–Markov
+            # terms); the spans are joined, so the motion gate is off (the error signal is
+            # what is left after the deterministic model, not a still recording)
+            an = identify_noise(x, rate_hz=rate, check_static=False)
         N = np.zeros(3)
         B = np.zeros(3)
         K = np.zeros(3)
         Q = np.zeros(3)
+        GMs = np.zeros(3)
+        GMt = np.ones(3)
         for i, a in enumerate("xyz"):
             r = an.axes[a]
             N[i] = r.arw_rad_per_sqrt_s or 0.0
             B[i] = r.bias_instability_rad_s or 0.0
             K[i] = r.rrw_rad_per_s_sqrt_s or 0.0
             Q[i] = r.quantization_rad or 0.0
+            if r.correlated_sigma_rad_s is not None and r.correlated_tau_c_s:
+                GMs[i] = r.correlated_sigma_rad_s
+                GMt[i] = r.correlated_tau_c_s
         if lsb is not None:
             n2 = N**2 - lsb**2 / (12.0 * rate)
             if np.any(n2 <= 0):
                 notes.append("white noise at or below the LSB rounding noise on some axis: arw set to 0 there")
             N = np.sqrt(np.clip(n2, 0.0, None))
         params["arw"] = {"n_rad_per_sqrt_s": N}
-        sources["arw"] = "Allan N of the covered spans" + (" (less LSB²/12 of rounding)" if lsb is not None else "")
+        sources["arw"] = "identify_noise N of the covered spans" + (" (less LSB²/12 of rounding)" if lsb is not None else "")
         if np.any(B > 0):
             params["bias_instability"] = {"b_rad_s": B}
-            sources["bias_instability"] = "Allan B (unresolved axes 0)"
+            sources["bias_instability"] = "identify_noise B (unresolved axes 0)"
         if np.any(K > 0):
             params["rrw"] = {"k_rad_s_per_sqrt_s": K}
-            sources["rrw"] = "Allan K (unresolved axes 0)"
+            sources["rrw"] = "identify_noise K (unresolved axes 0)"
+        if np.any(GMs > 0):
+            params["correlated"] = {"sigma_rad_s": GMs, "tau_c_s": GMt}
+            sources["correlated"] = "identified Gauss–Markov σ, τc (unresolved axes σ = 0)"
         if np.any(Q > 0):
             notes.append("Allan resolves white angle noise Q = " + ", ".join(f"{q:.3g}" for q in Q)
                          + " rad, which the catalogue simulator does not carry")
@@ -1077,8 +1087,6 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
       (a white angle noise θ at the window ends gives y_m = (θ_b − θ_a)/T, lag-1 covariance
       −σ_θ²/T²). This is a term of the *reference*, not of the sensor.
     """
-    from gyrocore.allan import allan_analysis
-
     added: list[str] = []
     params = {e: dict(p) for e, p in model.params.items()}
     extra = {e: dict(p) for e, p in model.extra.items()}

@@ -906,7 +906,7 @@ def needed_duration_s(result: AllanResult, name: str, *, level_factor: float = 0
     from .gmwm import Z_POWER, fisher_margin
 
     level = result.ci95.get(name, (0.0, float("nan")))[1] * level_factor
-    if not (math.isfinite(level) and level > 0):
+    if not (math.isfinite(level) and 0 < level < 1e100):
         return float("nan")
     base = {k: v for k, v in result.all_terms().items() if v is not None}
     base[name] = level

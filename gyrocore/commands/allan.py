@@ -83,20 +83,38 @@ def report_text(analysis) -> str:
     return "\n".join(lines)
 
 
+#: terms whose dominance region is shaded (the long-τ terms; Q and N dominate short τ)
+_LONG_TAU = ("bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2", "correlated_sigma_rad_s")
+
+
 def plot_png(analysis, path: str) -> None:
     """ADEV with 95 % bars, each resolved term's line and 95 % band, the fitted sum, and the τ
-    range where each long-τ term is resolvable shaded; written atomically."""
+    range where each resolved long-τ term dominates shaded; written atomically."""
+    from ..recording import atomic_write_bytes
+
+    fig = adev_figure(analysis)
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def adev_figure(analysis):
+    """The figure of :func:`plot_png` (one panel per axis). The x-label mentions shading only
+    on a panel where a long-τ term's region is shaded."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from ..allan import ALL_TERM_NAMES
-    from ..recording import atomic_write_bytes
 
     axes = list(analysis.axes.items())
     fig, ax_list = plt.subplots(1, len(axes), figsize=(5.2 * len(axes), 4.4), squeeze=False)
     for plot_ax, (name, r) in zip(ax_list[0], axes):
+        shaded = []
         t = r.taus_s
         err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
         plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
@@ -124,21 +142,20 @@ def plot_png(analysis, path: str) -> None:
                     continue
                 others = np.maximum(others, _term_adev(r, o, getattr(r, o), tt))
             dom = y > others
-            if np.any(dom) and term != "arw_rad_per_sqrt_s":
+            if np.any(dom) and term in _LONG_TAU:
                 plot_ax.axvspan(tt[dom][0], tt[dom][-1], color=c, alpha=0.07, lw=0)
+                shaded.append(label)
         plot_ax.set_ylim(lo_y, hi_y)
         plot_ax.set_xscale("log")
         plot_ax.set_yscale("log")
-        plot_ax.set_xlabel("averaging time tau [s]; shaded: where a long-tau term dominates")
+        plot_ax.set_xlabel("averaging time tau [s]" + (f"; shaded: where {', '.join(shaded)} dominates" if shaded
+                                                       else "; no long-tau term resolved"))
         plot_ax.set_ylabel("Allan deviation [rad/s]")
         plot_ax.set_title(f"gyro {name}")
         plot_ax.grid(True, which="both", alpha=0.3)
         plot_ax.legend(fontsize=6)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    return fig
 
 
 #: Files whose t + gyro columns would exceed this are analysed one axis at a time
