@@ -491,6 +491,9 @@ class AllanResult:
     resolved: Mapping[str, bool] = field(default_factory=dict)
     chi2: float = float("nan")
     dof: int = 0
+    #: terms of the fitted model (``estimate``) not resolved because a stand-in with a higher
+    #: penalty fits as well: {term: stand-in} (``gmwm`` only, issue 11 round 2)
+    ambiguous: Mapping[str, str] = field(default_factory=dict)
 
     def terms(self) -> dict[str, float | None]:
         """The five IEEE terms as DESIGN.md's JSON dict (None = unresolved)."""
@@ -510,6 +513,7 @@ class AllanResult:
         out["units"] = dict(self.units)
         out["chi2"] = self.chi2
         out["dof"] = self.dof
+        out["ambiguous"] = dict(self.ambiguous)
         out["curve"] = {
             "taus_s": self.taus_s,
             "adev_rad_s": self.adev_rad_s,
@@ -667,7 +671,8 @@ def _axis_result(
         return AllanResult(
             axis=axis, signal=signal, taus_s=taus, adev_rad_s=dev, adev_ci95_rad_s=ci_dev, edf=edf,
             fit_adev_rad_s=np.sqrt(np.maximum(f.fit_avar, 0.0)), estimate=est, ci95=ci, rate_hz=rate_hz,
-            n_samples=int(omega.shape[0]), method=method, resolved=resolved, chi2=f.chi2, dof=f.dof, **terms,
+            n_samples=int(omega.shape[0]), method=method, resolved=resolved, chi2=f.chi2, dof=f.dof,
+            ambiguous=dict(f.ambiguous), **terms,
         )
     fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
     lo_q = scipy.stats.chi2.ppf(0.025, fit.edf)

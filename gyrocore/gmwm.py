@@ -644,10 +644,12 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
         if i in ambiguous:  # fitted, but its signature is not told from a stand-in: not resolved
             terms[name] = None
             ci[name] = (0.0, ci[name][1])
-    if 5 in sub and tc_s and 5 not in ambiguous:
+    if 5 in sub and tc_s:
         v = float(cov_p[-1, -1])
         se = math.sqrt(v) if v > 0 and math.isfinite(v) else float("inf")
-        terms["correlated_tau_c_s"] = est["correlated_tau_c_s"] = float(tc_s)
+        est["correlated_tau_c_s"] = float(tc_s)
+        if 5 not in ambiguous:
+            terms["correlated_tau_c_s"] = float(tc_s)
         ci["correlated_tau_c_s"] = (tc_s * math.exp(-_Z95 * se), tc_s * math.exp(_Z95 * se))
     # upper bounds of the unselected terms: the term added to the selected model
     for i in cand:

@@ -154,7 +154,7 @@ class BiasNoiseModel:
         (``correlated_sigma_rad_s``, ``correlated_tau_c_s`` of the GMWM identification, issue 11)
         where it is resolved on every axis; else a Gauss–Markov process matched to the
         bias-instability floor (σ = 0.6643 B / 0.6178, τc = τ(ADEV minimum)/1.89) where B is
-        resolved; else a random walk with K at the upper end of its 95 % interval (what the
+        resolved or fitted but ambiguous with a Gauss–Markov term; else a random walk with K at the upper end of its 95 % interval (what the
         data cannot exclude).
         """
         axes = getattr(analysis, "axes", analysis)
@@ -167,7 +167,11 @@ class BiasNoiseModel:
                 raise GyroInputError(f"angle random walk N of axis {r.axis} not resolved; cannot set the measurement noise")
             N.append(r.arw_rad_per_sqrt_s)
         K = [r.rrw_rad_per_s_sqrt_s for r in res]
-        B = [r.bias_instability_rad_s for r in res]
+        # a flicker floor fitted but not told from a Gauss–Markov term (``ambiguous``, issue 11):
+        # either way a Gauss–Markov process matched to the floor is the model to track
+        B = [r.bias_instability_rad_s if r.bias_instability_rad_s is not None else
+             (r.estimate.get("bias_instability_rad_s") or None
+              if "bias_instability_rad_s" in getattr(r, "ambiguous", {}) else None) for r in res]
         if all(k is not None for k in K):
             return cls(np.array(N), np.array(K), source="allan: N, K")
         gs = [getattr(r, "correlated_sigma_rad_s", None) for r in res]

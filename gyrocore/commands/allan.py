@@ -77,6 +77,9 @@ def report_text(analysis) -> str:
                              f"{('< ' + format(ub, '.3g') + ' ' + unit_u) if math.isfinite(hi) else '':>22}")
             else:
                 lines.append(f"{ax:4} {name:24} {v:12.4e} {f'[{lo:.3e}, {hi:.3e}]':>27} {f'{ds:.4g} {unit}':>22}")
+        for name, other in getattr(r, "ambiguous", {}).items():
+            lines.append(f"{ax:4} {'(' + name + ')':24} fitted {r.estimate.get(name, float('nan')):.3e} but not told "
+                         f"from {other} (stand-in check): unresolved")
         i_min = int(np.argmin(r.adev_rad_s))
         lines.append(f"{ax:4} {'(ADEV minimum)':24} {r.adev_rad_s[i_min]:12.4e} {f'at tau = {r.taus_s[i_min]:.4g} s':>27} "
                      f"{f'{r.adev_rad_s[i_min] * 180 / math.pi * 3600:.4g} deg/h':>22}")

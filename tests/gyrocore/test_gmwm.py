@@ -252,3 +252,39 @@ def test_adev_plot_label_mentions_shading_only_when_shaded():
         assert "shaded: where K dominates" in fig.axes[0].get_xlabel()
     finally:
         plt.close(fig)
+
+
+def test_stand_in_check_flicker_floor_against_gauss_markov():
+    """An Allan variance halfway between a flicker floor and a Gauss–Markov hump (noise-free
+    blend, N = 1e-4, B = 1.5e-5 / GM 3e-5, 20 s): over 1 h B is selected (cheaper penalty) but
+    a GM fits as well, so B is fitted and reported unresolved, ambiguous with GM — the rule
+    predicts B unresolvable at 1 h; over 4 h a blend dominated by the floor has B resolved."""
+    def blend(T, w):
+        n = int(T * RATE)
+        m = G.scales(n)
+        b = G.term_avar(m, RATE) @ np.array([0, 1e-8, 2.25e-10, 0, 0, 0])
+        g = G.term_avar(m, RATE, tau_c_s=20.0) @ np.array([0, 1e-8, 0, 0, 0, 9e-10])
+        return G.fit_noise(m / RATE, w * b + (1 - w) * g, m, n)
+
+    truth_b = {"arw_rad_per_sqrt_s": 1e-4, "bias_instability_rad_s": 1.5e-5}
+    assert G.expected_z(truth_b, n_samples=360000, rate_hz=RATE)["bias_instability_rad_s"] < G.Z_POWER
+    assert G.expected_z(truth_b, n_samples=1440000, rate_hz=RATE)["bias_instability_rad_s"] >= G.Z_POWER
+    f = blend(3600, 0.5)
+    assert "bias_instability_rad_s" in f.selected and f.terms["bias_instability_rad_s"] is None
+    assert f.ambiguous == {"bias_instability_rad_s": "correlated_sigma_rad_s"}
+    assert f.estimate["bias_instability_rad_s"] > 0 and f.ci95["bias_instability_rad_s"][0] == 0.0
+    f4 = blend(14400, 0.7)
+    assert f4.terms["bias_instability_rad_s"] is not None and not f4.ambiguous
+
+
+def test_chi_square_interval_of_a_coefficient():
+    """The 95 % interval of a fitted coefficient c with variance v is the chi-square interval
+    cν/χ²_ν(0.975) … cν/χ²_ν(0.025), ν = 2c²/v; for large ν it tends to c ± 1.96√v."""
+    c, v = 4.0, 2.0  # ν = 16
+    _c, lo, hi = G._interval(c, v)
+    assert lo == pytest.approx(c * 16 / scipy.stats.chi2.isf(0.025, 16))
+    assert hi == pytest.approx(c * 16 / scipy.stats.chi2.ppf(0.025, 16))
+    _c, lo, hi = G._interval(1.0, 1e-8)
+    assert lo == pytest.approx(1 - 1.96e-4, abs=2e-6) and hi == pytest.approx(1 + 1.96e-4, abs=2e-6)
+    _c, lo, hi = G._interval(1.0, 1e-8, pivot=False)
+    assert (lo, hi) == pytest.approx((1 - 1.959964e-4, 1 + 1.959964e-4))
