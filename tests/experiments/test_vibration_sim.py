@@ -176,3 +176,31 @@ def test_closed_loop_recommendation_is_stable_across_noise_seeds(shared_data):
     bf = out["firmware"]["betaflight"]
     assert any(s.startswith("set gyro_lowpass") for s in bf) or bf[0].startswith("#")
     assert set(out["defaults"]) == {"betaflight_default", "px4_default", "ardupilot_default"}
+
+
+def test_sensor_preset_carries_the_shaped_vibration(tmp_path):
+    """A sensor preset TOML's [vibration] spec = "..." (path relative to the TOML) puts the spec
+    band's shaped part into every unit of that sensor, as the registry effect's parameters; a bad
+    key or a bad scenario [vibration] section is one error line."""
+    from gyrocore.errors import GyroInputError
+    from gyrocore.vibration import read_spec, shaped_params
+    from sim.gyro import SyntheticGyro
+    from sim.presets import load_preset
+    from sim.scenarios import load_scenario
+
+    spec_path, _ = _spec(tmp_path)
+    base = ('name = "vib"\n[output]\nrate_hz = 1000.0\nfull_scale_dps = 2000.0\nsensitivity_lsb_per_dps = 16.4\n'
+            '[arw]\ndensity_dps_per_sqrt_hz = 0.0028\n')
+    p = tmp_path / "vib.toml"
+    p.write_text(base + f'[vibration]\nspec = "{spec_path.name}"\nband = 0\n')
+    g = SyntheticGyro(load_preset(str(p)), seed=1)
+    want = shaped_params(read_spec(spec_path), band=0)
+    np.testing.assert_array_equal(g.params["vibration"]["psd_rad2_s2_hz"], want["psd_rad2_s2_hz"])
+    assert "vibration" in g.noise(4000)[1]
+    p.write_text(base + f'[vibration]\nspec = "{spec_path.name}"\nbnd = 0\n')
+    with pytest.raises(GyroInputError, match=r"unknown key\(s\) in \[vibration\]: bnd"):
+        load_preset(str(p))
+    sc = tmp_path / "s.toml"
+    sc.write_text(f'kind = "table"\nduration_s = 5.0\n[table]\nprofile = "static"\n[vibration]\nspec = "{spec_path.name}"\nphysics = true\n')
+    with pytest.raises(GyroInputError, match="physics = true needs kind"):
+        load_scenario(str(sc))
