@@ -12,7 +12,8 @@ signal). Everything is on one absolute scale, (rad/s)²/Hz (plots: (°/s)²/Hz),
 logs and candidates compare directly.
 
 Scores of a chain (first version: an open-loop spectral / delay cost model on the recorded
-gyro; the closed-loop simulator version is ``experiment cutoffs``):
+gyro; the closed-loop simulator version is ``gyroharness filter-closed-loop``,
+``experiments/flight_filter.py``):
 
 * ``delay_ms`` — mean group delay of the chain over the flight band (default 1–30 Hz);
 * ``phase_deg_at_hz`` — phase lag at the band's upper edge;

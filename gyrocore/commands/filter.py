@@ -4,8 +4,8 @@ JSON: ``{"recommended": {"filter", "cutoff_hz", "notches_hz", "attitude_cost", "
 "motor_noise", ...}, "as_flown": {same keys}, "firmware": {"betaflight": ["set …", ...],
 "px4": {...}, "ardupilot": {...}}, "defaults": {...}, "article": {...}, "pareto": [...], ...}``.
 First version: the open-loop spectral / delay cost model of :mod:`gyrocore.preview` on the
-recorded gyro (before the firmware's filters); the closed-loop comparison is
-``gyroharness experiment cutoffs``.
+recorded gyro (before the firmware's filters); the closed-loop comparison (the candidates flown
+with the flight's vibration by the simulator) is ``gyroharness filter-closed-loop``.
 """
 
 from __future__ import annotations
@@ -144,8 +144,8 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
         "vibration": {"signal": res.signal, "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s, "lines": res.lines},
         "candidates": [{"name": r["name"], "attitude_cost": r["attitude_cost"], "motor_noise": r["motor_noise"],
                         "delay_ms": r["delay_ms"]} for r in rows],
-        "notes": notes + ["first version: open-loop spectral/delay cost model on the recorded gyro; closed loop: "
-                          "gyroharness experiment cutoffs",
+        "notes": notes + ["open-loop spectral/delay cost model on the recorded gyro; closed loop (flown with this "
+                          "flight's vibration): gyroharness filter-closed-loop",
                           "Betaflight 4.x default: static part only (dynamic LPF at its 250 Hz minimum + LPF2 500 Hz; dynamic notch and RPM filter not modelled)"],
         "_rows": rows, "_res": res,
     }
