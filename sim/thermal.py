@@ -209,6 +209,13 @@ class ThermalState:
         return self.temp_c
 
 
+def _rounding_atol(t_first: float, t_last: float) -> float:
+    """What the rounding of the times themselves does to their differences: 4 ulp of the largest
+    |t|. A clock k/rate is uniform, but its differences vary by an ulp of t, which exceeds
+    1e-9 of the interval beyond ~2 h at 1 kHz (ulp(8192 s) = 1.8e-12 s)."""
+    return 4.0 * float(np.spacing(max(abs(float(t_first)), abs(float(t_last)))))
+
+
 def simulate_temperature(
     t_s: np.ndarray, spec: ThermalSpec, *, motor_power_w: np.ndarray | None = None
 ) -> np.ndarray:
@@ -245,7 +252,7 @@ def simulate_temperature(
         out[0] = st.temp_c
         return out
     h = np.diff(t)
-    uniform = np.allclose(h, h[0], rtol=1e-9, atol=0.0)
+    uniform = np.allclose(h, h[0], rtol=1e-9, atol=_rounding_atol(t[0], t[-1]))
     if spec.heater is None and uniform:
         tau = spec.time_constant_s
         a = math.exp(-h[0] / tau)
@@ -322,7 +329,7 @@ class TemperatureChunks:
                 raise GyroInputError("TemperatureChunks: the first chunk needs at least two samples")
             self._h0 = float(t[1] - t[0])
         h = np.diff(tt)
-        uniform = np.allclose(h, self._h0, rtol=1e-9, atol=0.0)
+        uniform = np.allclose(h, self._h0, rtol=1e-9, atol=_rounding_atol(tt[0], tt[-1]))
         out = np.empty(m)
         if spec.heater is None:
             if not uniform:

@@ -100,3 +100,17 @@ def test_temperature_chunks_bit_identical_to_whole(heater, sizes):
         got.append(tc.take(t[i:j], motor_power_w=p[i:j]))
         i, k = j, k + 1
     assert np.array_equal(np.concatenate(got), whole)
+
+
+def test_long_uniform_clock_takes_the_recursion_in_chunks_too():
+    """Ten hours at 1 kHz: the clock k/rate is uniform although its differences vary by an ulp of
+    t (> 1e-9 of the interval beyond ~2 h); the whole series and the chunks both take the
+    recursion (same numbers), and it matches the step loop to rounding."""
+    spec = ThermalSpec(ambient_c=((0.0, 15.0), (36_000.0, 45.0)), time_constant_s=60.0)
+    t = np.arange(35_990_000, 36_000_000) / 1000.0  # the last 10 s of ten hours
+    whole = simulate_temperature(t, spec)
+    tc = TemperatureChunks(spec, n_total=t.size)
+    assert np.array_equal(np.concatenate([tc.take(t[:4000]), tc.take(t[4000:])]), whole)
+    st = ThermalState.start(spec, t[0])
+    loop = [st.temp_c] + [st.step(tk) for tk in t[1:200]]
+    np.testing.assert_allclose(whole[:200], loop, rtol=0, atol=1e-9)
