@@ -471,6 +471,8 @@ def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3):
     return coef_, tc_, C_, edf_, Lw, chi2, chi2 + 2.0 * float(np.sum(np.log(np.diag(Lc))))
 
 
+#: upper bounds of unselected terms from the enlarged model's own iterated fit (round 2)
+UPPER_OWN_WEIGHTS = True
 #: switch of the stand-in check (:func:`_ambiguous`); False only to reproduce the study's "before"
 AMBIGUITY = True
 #: one-sided level of the stand-in check: a term is claimed only when the stand-in world is
@@ -657,16 +659,38 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
             continue
         name = LINEAR[i]
         sub2 = tuple(sorted(set(sub) | {i}))
-        c2, tc2, _ = _fit_subset(m, rate_hz, avar, L, sub2, method, tc_grid)
-        cf = np.zeros(6)
-        cf[list(sub2)] = c2
-        J2 = _jacobian(m, rate_hz, cf, tc2 if tc2 else (tc_s if i == 5 else None), sub2, method)
-        try:
-            cv = np.linalg.inv(J2.T @ Ci @ J2)
-            var = float(cv[sub2.index(i), sub2.index(i)])
-        except np.linalg.LinAlgError:
-            var = float("inf")
-        _c, _lo, hi = _interval(float(cf[i]), var, pivot=False)
+        if UPPER_OWN_WEIGHTS and sub2 in fits:
+            # round 2: the enlarged models with their own iterated weights (the selected model's
+            # weights leave the term's own variance out of the long-τ covariance), and the term
+            # also in place of each selected term (a selected stand-in — B or R for an
+            # unresolved K — absorbs the term in the enlarged model): the bound is the largest
+            # upper end over these models, valid whichever of them is right
+            alts = [sub2] + [tuple(sorted((set(sub) - {j}) | {i})) for j in sub if j != 1]
+            his = []
+            for s2 in alts:
+                if s2 not in fits:
+                    continue
+                cf2, tc_2 = fits[s2][0], fits[s2][1]
+                J2 = _jacobian(m, rate_hz, cf2, tc_2 if tc_2 else (tc_s if i == 5 else None), s2, method)
+                try:
+                    cv = np.linalg.inv(J2.T @ (fits[s2][4].T @ fits[s2][4]) @ J2)
+                    var = float(cv[s2.index(i), s2.index(i)])
+                except np.linalg.LinAlgError:
+                    var = float("inf")
+                his.append(_interval(float(cf2[i]), var, pivot=False)[2])
+            hi = max(his)
+            tc2 = fits[sub2][1]
+        else:
+            c2, tc2, _ = _fit_subset(m, rate_hz, avar, L, sub2, method, tc_grid)
+            cf = np.zeros(6)
+            cf[list(sub2)] = c2
+            J2 = _jacobian(m, rate_hz, cf, tc2 if tc2 else (tc_s if i == 5 else None), sub2, method)
+            try:
+                cv = np.linalg.inv(J2.T @ Ci @ J2)
+                var = float(cv[sub2.index(i), sub2.index(i)])
+            except np.linalg.LinAlgError:
+                var = float("inf")
+            _c, _lo, hi = _interval(float(cf[i]), var, pivot=False)
         ci[name] = (0.0, math.sqrt(max(hi, 0.0)) if math.isfinite(hi) else float("inf"))
         if i == 5:
             est["correlated_tau_c_s"] = float(tc2) if tc2 else float("nan")
