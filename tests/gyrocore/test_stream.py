@@ -182,3 +182,36 @@ def test_streamed_bias_with_its_own_blocks_equals_in_memory_to_rounding(tmp_path
     assert streamed.window_start_index == mem.window_start_index
     for f in ("bias_rad_s", "bias_se_rad_s", "vif", "threshold", "noise_sigma_rad_s", "min_step_rad_s"):
         np.testing.assert_allclose(getattr(streamed, f), getattr(mem, f), rtol=1e-12, err_msg=f)
+
+
+def test_bias_cli_streams_long_files(tmp_path, capsys, monkeypatch):
+    # above LONG_ROWS the command spills t + gyro and fits from disk: the same JSON, bit for
+    # bit, and the same warnings as the whole read
+    import json
+    import warnings
+
+    import gyrocore.commands.bias as CB
+    from gyrocore.cli import build_group, run_cli
+
+    rng = np.random.default_rng(9)
+    n = 30_000
+    y = np.array([0.01, -0.02, 0.003]) + 2e-3 * rng.standard_normal((n, 3))
+    t = np.arange(n) / 400.0
+    t[20_000:] += 0.5  # a gap: one warning, from either path
+    path = tmp_path / "still.csv"
+    write_csv(Recording(t_s=t, gyro_rad_s=y), path)
+    from gyrocore.bias import StaticBiasCalibrator
+
+    called = []
+    orig = StaticBiasCalibrator.fit_spilled
+    monkeypatch.setattr(StaticBiasCalibrator, "fit_spilled", lambda self, st: called.append(1) or orig(self, st))
+    outs = []
+    for limit in (10**12, 100):  # whole read, then from disk
+        monkeypatch.setattr(CB, "LONG_ROWS", limit)
+        with warnings.catch_warnings():
+            s = run_cli(build_group(), ["bias", str(path), "--json"])
+        cap = capsys.readouterr()
+        assert s == 0, cap.err
+        outs.append((json.loads(cap.out), sorted(ln for ln in cap.err.splitlines() if ln.startswith("warning:"))))
+    assert called == [1]
+    assert outs[0] == outs[1] and any("gaps" in w for w in outs[0][1])
