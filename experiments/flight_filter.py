@@ -150,7 +150,7 @@ def _pick(rows: dict) -> tuple[str, float]:
 
 
 def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: float = 8.0, band="middle",
-        physics: bool = True, n_calib: int = 8, calib_s: float = 2.0, candidates: dict | None = None) -> dict:
+        physics: bool = True, n_calib: int = 16, calib_s: float = 2.0, candidates: dict | None = None) -> dict:
     """The closed-loop recommendation for a flight log (module docstring). Returns the JSON dict
     (DESIGN.md keys ``recommended``, ``as_flown``, ``firmware``, ``defaults``; plus per-seed picks,
     ``stable`` and every chain's scores per seed)."""

@@ -213,7 +213,7 @@ def _hover_result(spec, band, *, vehicle: str, duration_s: float, seed: int, n_c
 
 
 def run_split(*, flight: str, vehicle: str = "racing25", seed: int = 0, duration_s: float = 12.0, t_from_s: float = 2.0,
-              n_calib: int = 8, calib_s: float = 2.0, out_dir: str | None = None, plot: str | None = None,
+              n_calib: int = 16, calib_s: float = 2.0, out_dir: str | None = None, plot: str | None = None,
               plot_bands=(0, 3, 7)) -> dict:
     """Fidelity per throttle band, out of sample (spec from the first half, compared on the second).
 
