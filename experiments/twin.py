@@ -319,11 +319,11 @@ class TwinModel:
         ``{effect: {param: ndarray}}`` (PARAM_SCHEMA names, SI) handed to
         :class:`sim.gyro.SyntheticGyro` as overrides: deterministic terms, noise, quantization.
     extra : dict
-        Terms the catalogue simulator does not carry, added to each replica by the twin
-        (:func:`_extra_noise`): ``angle_white`` {``q_rad`` (3,)}: white angle noise (Allan Q);
-        ``heavy_tails`` {``nu`` (3,)}: the white rate noise drawn from a Student t with ν
-        degrees of freedom (same variance); ``reference_angle_noise`` {``sigma_rad`` (3,)}:
-        white noise on the replicas' reference attitude (attitude references).
+        Terms of the *reference*, not of the sensor, added by the twin (:func:`_extra_noise`):
+        ``reference_angle_noise`` {``sigma_rad`` (3,)}: white noise on the replicas' reference
+        attitude (attitude references). The sensor's noise shapes the closing finds are
+        registered simulator terms in ``params`` (``arw_lowpass``, ``arw_student``,
+        ``angle_white``; :data:`gyrocore.effects.NOISE_TERMS`).
     sources : dict
         effect -> where its value came from.
     notes : tuple of str
@@ -496,7 +496,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
         from gyrocore.model import load_params
 
         given = {e: dict(p) for e, p in load_params(params_file).params.items()}
-    det_given = {e: p for e, p in given.items() if e not in E.STOCHASTIC and e not in ("quantization", "saturation", "lowpass")}
+    det_given = {e: p for e, p in given.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}
     if det_given:
         params.update(det_given)
         for e in det_given:
@@ -531,7 +531,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
     notes.append("no on-chip low-pass in the twin: the simulator adds its noise after the DLPF, which would shape "
                  "only the motion; its delay is the loop's time_offset where one was found")
     # noise: Allan of the per-sample error signal after the deterministic model, covered spans
-    noise_given = {e: p for e, p in given.items() if e in E.STOCHASTIC}
+    noise_given = {e: p for e, p in given.items() if E.is_stochastic(e)}
     if noise_given:
         params.update(noise_given)
         for e in noise_given:
@@ -658,7 +658,7 @@ def model_error(model: "TwinModel", rec: Recording, ref: Reference) -> np.ndarra
     """
     from gyrocore import effects as E
 
-    det = {e: p for e, p in model.params.items() if e not in E.STOCHASTIC and e not in ("quantization", "saturation", "lowpass")}
+    det = {e: p for e, p in model.params.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}
     return _deterministic(det, _inputs(rec, ref, model.rate_hz)) - ref.omega_S_rad_s
 
 
@@ -757,17 +757,13 @@ def _truth(rec: Recording, ref: Reference, rate_hz: float):
 
 def _extra_noise(model: TwinModel, rng_seed: int, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """The twin's own terms (:attr:`TwinModel.extra`) for one replica: (rate noise (N, 3) rad/s,
-    reference angle noise (N, 3) rad or None). ``heavy_tails`` is applied in :func:`_replica`."""
+    reference angle noise (N, 3) rad or None)."""
     from sim.noise import effect_rng
 
     n = int(np.asarray(t_s).shape[0])
     extra = np.zeros((n, 3))
     ref_noise = None
     r = model.rate_hz
-    if "angle_white" in model.extra:
-        q = np.asarray(model.extra["angle_white"]["q_rad"], float)
-        th = effect_rng(rng_seed, "twin/angle_white").standard_normal((n + 1, 3)) * q[None, :]
-        extra += np.diff(th, axis=0) * r
     if "reference_angle_noise" in model.extra:
         s = np.asarray(model.extra["reference_angle_noise"]["sigma_rad"], float)
         ref_noise = effect_rng(rng_seed, "twin/reference_angle_noise").standard_normal((n, 3)) * s[None, :]
@@ -781,49 +777,59 @@ def _extra_noise(model: TwinModel, rng_seed: int, t_s: np.ndarray) -> tuple[np.n
 
 
 def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """One replica: the simulator (:class:`sim.gyro.SyntheticGyro`) with the twin's parameters —
+    deterministic terms, catalogue noise and the registered noise terms the closing adds
+    (``arw_lowpass``, ``arw_student``, ``angle_white``: :data:`gyrocore.effects.NOISE_TERMS`) —
+    plus the twin's reference terms (:func:`_extra_noise`)."""
     from sim.gyro import SyntheticGyro
-    from sim.noise import effect_rng
 
     params = {e: dict(p) for e, p in model.params.items() if _simulated_by_sim(e)}
     own = {e: p for e, p in model.params.items() if not _simulated_by_sim(e)}
-    nu = None
-    N_white = None
-    if ("heavy_tails" in model.extra or "noise_lowpass" in model.extra) and "arw" in params:
-        N_white = np.asarray(params["arw"]["n_rad_per_sqrt_s"], float)
-        params["arw"] = {"n_rad_per_sqrt_s": np.zeros(3)}
-    if "heavy_tails" in model.extra and N_white is not None:
-        nu = np.asarray(model.extra["heavy_tails"]["nu"], float)
     g = SyntheticGyro(_spec(model.rate_hz), rate_hz=model.rate_hz, seed=seed, overrides=params)
-    n = truth.n
     extra, ref_noise = _extra_noise(model, seed, truth.t_s)
-    for e, p in own.items():  # family terms the simulator does not know yet (registry not on main)
+    for e, p in own.items():  # family terms the simulator does not know (legacy parameter files)
         extra = extra + _family_values(e, p, truth.t_s)
-    if N_white is not None:
-        if nu is not None:
-            # Student-t white rate noise with the identified variance: t_ν·sqrt((ν−2)/ν)·N·sqrt(rate)
-            z = effect_rng(seed, "twin/heavy_tails").standard_t(np.broadcast_to(nu, (n, 3)))
-            z = z * np.sqrt((nu - 2.0) / nu)[None, :]
-        else:
-            z = effect_rng(seed, "twin/white").standard_normal((n, 3))
-        w = z * (N_white * np.sqrt(model.rate_hz))[None, :]
-        if "noise_lowpass" in model.extra:
-            # the chip's DLPF acts on the noise too: same 2nd-order Butterworth as the output stage
-            fc = float(model.extra["noise_lowpass"]["bandwidth_hz"])
-            b, a = signal.butter(2, fc, fs=model.rate_hz)
-            w = signal.lfilter(b, a, w, axis=0, zi=signal.lfilter_zi(b, a)[:, None] * w[:1])[0]
-        extra += w
     if np.any(extra):
-        # the extra noise joins the simulator's own noise before quantization: re-run the output
-        # stage with it (same order as sim.gyro: deterministic, DLPF, + noise, saturate, quantize)
-        from gyrocore.effects import deterministic, output_stage, ModelInputs, STOCHASTIC
+        # legacy line terms join the simulator's own noise before quantization: re-run the output
+        # stage with them (same order as sim.gyro: deterministic, DLPF, + noise, saturate, quantize)
+        from gyrocore.effects import deterministic, output_stage, ModelInputs
 
-        noise, _ = g.noise(n)
+        noise, _ = g.noise(truth.n)
         p = g._model_params(g.power_up_bias(0))
         inp = ModelInputs(t_s=truth.t_s, omega_S_rad_s=truth.omega_S_rad_s, f_S_m_s2=truth.f_S_m_s2,
                           temp_c=truth.temp_c, q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
         y = output_stage(deterministic(p, inp), p, rate_hz=model.rate_hz, noise_rad_s=noise + extra)
         return y, ref_noise
     return g.measure(truth).gyro_rad_s, ref_noise
+
+
+def shaped_white_noise_terms(N: np.ndarray, *, fc_hz: float = float("inf"), nu=None) -> dict:
+    """The registered noise term that carries white rate noise of density N (rad/√s, (3,))
+    through the chip's low-pass at ``fc_hz`` (∞ = none) with Student-t draws of ν (None =
+    Gaussian): ``{"arw": …}``, ``{"arw_lowpass": …}`` or ``{"arw_student": …}``
+    (:data:`gyrocore.effects.NOISE_TERMS`)."""
+    N = np.asarray(N, float)
+    fc = float(fc_hz)
+    if nu is not None:
+        return {"arw_student": {"n_rad_per_sqrt_s": N, "nu": np.asarray(nu, float),
+                                "bandwidth_hz": np.asarray(fc if np.isfinite(fc) else 0.0)}}
+    if np.isfinite(fc):
+        return {"arw_lowpass": {"n_rad_per_sqrt_s": N, "bandwidth_hz": np.asarray(fc)}}
+    return {"arw": {"n_rad_per_sqrt_s": N}}
+
+
+_WHITE_TERMS = ("arw", "arw_lowpass", "arw_student")
+
+
+def _white_term(params: Mapping) -> tuple[np.ndarray | None, float, np.ndarray | None]:
+    """(N, fc, ν) of the white rate noise term in ``params`` (whichever of :data:`_WHITE_TERMS`)."""
+    for e in _WHITE_TERMS:
+        if e in params:
+            pd = params[e]
+            fc = float(pd.get("bandwidth_hz", 0.0)) if e != "arw" else 0.0
+            return (np.asarray(pd["n_rad_per_sqrt_s"], float), fc if fc > 0 else float("inf"),
+                    np.asarray(pd["nu"], float) if "nu" in pd else None)
+    return None, float("inf"), None
 
 
 def replica_statistics(model: TwinModel, rec: Recording, ref: Reference, layout: StatLayout, *,
@@ -1095,7 +1101,7 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
     inp = _inputs(rec, ref, rate)
     from gyrocore import effects as E
 
-    det = {e: p for e, p in params.items() if e not in E.STOCHASTIC and e != "quantization"}
+    det = {e: p for e, p in params.items() if not E.is_stochastic(e) and e != "quantization"}
     e_sig = rec.gyro_rad_s - _deterministic(det, inp)
     x = _span_concat(e_sig, ref.spans)
     failed = {n for n, ok in cmp.passed.items() if not ok}
@@ -1127,23 +1133,24 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
         lsb = float(params["quantization"]["lsb_rad_s"]) if "quantization" in params else 0.0
         fit = fit_noise_family(e_sig, ref.spans, rate, lsb_rad_s=lsb)
         old = {k: np.asarray(v.get(list(v)[0]), float) for k, v in params.items() if k in ("arw", "bias_instability", "rrw")}
-        for eff in ("arw", "bias_instability", "rrw"):
+        for eff in ("arw", "bias_instability", "rrw", "angle_white") + _WHITE_TERMS:
             params.pop(eff, None)
-        params["arw"] = {"n_rad_per_sqrt_s": fit["N"]}
+        # the white part through the registry: arw, or arw_lowpass when the chip's filter shapes it
+        white = shaped_white_noise_terms(fit["N"], fc_hz=fit["fc_hz"])
+        params.update(white)
         if np.any(fit["B"] > 0):
             params["bias_instability"] = {"b_rad_s": fit["B"]}
         if np.any(fit["K"] > 0):
             params["rrw"] = {"k_rad_s_per_sqrt_s": fit["K"]}
-        for k in ("arw", "bias_instability", "rrw"):
+        for k in ("bias_instability", "rrw", *white):
             sources[k] = "noise refit over the extended family (ADEV of the covered spans)"
         what = []
         if np.isfinite(fit["fc_hz"]):
-            extra["noise_lowpass"] = {"bandwidth_hz": np.asarray(fit["fc_hz"])}
-            sources["noise_lowpass"] = "noise refit: the white noise passes a 2nd-order low-pass"
-            what.append(f"white noise through a 2nd-order low-pass at {fit['fc_hz']:.3g} Hz (coloured noise)")
+            sources["arw_lowpass"] = "noise refit: the white noise passes a 2nd-order low-pass (registered term arw_lowpass)"
+            what.append(f"white noise through a 2nd-order low-pass at {fit['fc_hz']:.3g} Hz (coloured noise; arw_lowpass)")
         if np.any(fit["Q"] > 0):
-            extra["angle_white"] = {"q_rad": fit["Q"]}
-            sources["angle_white"] = "noise refit: white angle noise (Allan Q)"
+            params["angle_white"] = {"q_rad": fit["Q"]}
+            sources["angle_white"] = "noise refit: white angle noise (Allan Q; registered term angle_white)"
             what.append("white angle noise Q = " + ", ".join(f"{q:.3g}" for q in fit["Q"]) + " rad")
         ob = old.get("bias_instability", np.zeros(3))
         if np.any(np.abs(fit["B"] - ob) > 0.2 * np.maximum(ob, 1e-12)):
@@ -1154,15 +1161,17 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
     if "distribution" in failed:
         ku = cmp.real["distribution"][:, 1]
         hi = cmp.hi["distribution"][:, 1]
-        if np.any(ku > hi) and "arw" in params:
+        N, fc_w, _ = _white_term(params)
+        if np.any(ku > hi) and N is not None:
             sd2 = x.var(axis=0)
-            N = np.asarray(params["arw"]["n_rad_per_sqrt_s"], float)
             w2 = N**2 * rate
             kw = np.where(ku > hi, ku * (sd2 / np.maximum(w2, 1e-300)) ** 2, 0.0)
             nu = np.where(kw > 0, 4.0 + 6.0 / np.maximum(kw, 1e-6), 1e6)
             nu = np.clip(nu, 4.05, 1e6)
-            extra["heavy_tails"] = {"nu": nu}
-            sources["heavy_tails"] = "Student-t white noise, ν from the excess kurtosis"
+            for e in _WHITE_TERMS:
+                params.pop(e, None)
+            params.update(shaped_white_noise_terms(N, fc_hz=fc_w, nu=nu))
+            sources["arw_student"] = "Student-t white noise, ν from the excess kurtosis (registered term arw_student)"
             added.append("heavy-tailed white noise, Student t ν = " + ", ".join(f"{v:.3g}" for v in nu))
     if "attitude_residual" in failed and ref.q_ref_wxyz is not None:
         ac1 = cmp.real["attitude_residual"][:, 2]
@@ -1437,7 +1446,7 @@ def preset_claim(rec: Recording, *, segments: Sequence = (), preset: str = "mpu6
     ref = reference_of(rec, segments)
     if model is None:
         model = identify(rec, ref, segments=segments)
-    params = {e: dict(p) for e, p in model.params.items() if e not in ("arw", "bias_instability", "rrw")}
+    params = {e: dict(p) for e, p in model.params.items() if e not in ("bias_instability", "rrw", "angle_white") + _WHITE_TERMS}
     terms = {}
     for eff in ("arw", "bias_instability", "rrw"):
         if eff in spec.effects:
@@ -1489,7 +1498,7 @@ def holdout(rec: Recording, *, segments: Sequence = (), n_replicas: int = DEFAUL
             mb = identify(rec_b, ref_b, segments=seg_b)
     except GyroInputError as exc:
         return {"before": None, "after": None, "added": [], "error": str(exc)}
-    noise_keys = set(("arw", "bias_instability", "rrw", "quantization"))
+    noise_keys = set(("bias_instability", "rrw", "quantization", "angle_white") + _WHITE_TERMS)
 
     def transplant(src: TwinModel) -> TwinModel:
         det = {e: p for e, p in mb.params.items() if e not in noise_keys}

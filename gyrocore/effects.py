@@ -72,6 +72,9 @@ __all__ = [
     "DETERMINISTIC",
     "CORRECTABLE",
     "STOCHASTIC",
+    "NOISE",
+    "NOISE_TERMS",
+    "is_stochastic",
     "OUTPUT_STAGE",
     "POLYNOMIAL",
     "PARAM_SCHEMA",
@@ -549,9 +552,33 @@ _CATALOGUE: tuple[Effect, ...] = (
 #: Catalogue name -> :class:`Effect` (DESIGN.md order).
 REGISTRY: dict[str, Effect] = {e.name: e for e in _CATALOGUE}
 
+_S = "stochastic"
+#: Registered noise terms outside the DESIGN.md catalogue (docs/DESIGN.md "Project notes"): the
+#: noise shapes the digital twin finds on real sensors (docs/twin.md). Each is an independent
+#: additive noise with its own stream ``noise/<name>`` in the simulator (``sim.gyro``), injected
+#: by ``--set`` or a sensor TOML ``[terms."<name>"]`` like a family term; no preset sets them.
+_NOISE_TERMS: tuple[Effect, ...] = (
+    Effect("arw_lowpass", _S, {"n_rad_per_sqrt_s": (3,), "bandwidth_hz": ()},
+           description="white rate noise of density N (rad/√s, below the corner) generated before the chip's "
+                       "2nd-order Butterworth low-pass at bandwidth_hz: the filter shapes the noise "
+                       "(the catalogue's lowpass acts on the signal only; its noise is added after it)"),
+    Effect("arw_student", _S, {"n_rad_per_sqrt_s": (3,), "nu": (3,), "bandwidth_hz": ()},
+           defaults={"bandwidth_hz": np.asarray(0.0)},
+           description="heavy-tailed white rate noise: Student t with nu > 2 degrees of freedom scaled to the "
+                       "variance of density N (N²·rate per sample); through the 2nd-order low-pass at "
+                       "bandwidth_hz when > 0"),
+    Effect("angle_white", _S, {"q_rad": (3,)},
+           description="white angle noise (IEEE 952's 'quantization noise' Q, Allan σ² = 3Q²/τ²): an angle "
+                       "sequence of σ = Q per sample, differentiated (rate = Δθ·rate)"),
+)
+#: Noise-term name -> :class:`Effect` (registered outside the catalogue; see :data:`_NOISE_TERMS`).
+NOISE_TERMS: dict[str, Effect] = {e.name: e for e in _NOISE_TERMS}
+
 #: Canonical effect names, in DESIGN.md order.
 EFFECTS: tuple[str, ...] = tuple(REGISTRY)
 STOCHASTIC: tuple[str, ...] = tuple(e.name for e in _CATALOGUE if e.kind == "stochastic")
+#: Every registered noise term: the catalogue's (:data:`STOCHASTIC`) and :data:`NOISE_TERMS`.
+NOISE: tuple[str, ...] = STOCHASTIC + tuple(NOISE_TERMS)
 #: Effects with a deterministic formula (correctable + output stage).
 DETERMINISTIC: tuple[str, ...] = tuple(e.name for e in _CATALOGUE if e.kind in ("correctable", "output"))
 #: Deterministic effects that :func:`correct` removes and :func:`design` can regress (all but
@@ -742,7 +769,7 @@ def is_family(name: str) -> bool:
 
 def _unknown(name: str) -> GyroInputError:
     return GyroInputError(f"unknown effect '{name}'; known effects: {', '.join(EFFECTS)}; "
-                          f"families: periodic[<f_hz>], step[<t_s>], regressor[<expr>]")
+                          f"noise terms: {', '.join(NOISE_TERMS)}; families: periodic[<f_hz>], step[<t_s>], regressor[<expr>]")
 
 
 @lru_cache(maxsize=4096)
@@ -779,7 +806,17 @@ def resolve(name: str) -> Effect:
     key = name.strip()
     if key in REGISTRY:
         return REGISTRY[key]
+    if key in NOISE_TERMS:
+        return NOISE_TERMS[key]
     return _family_effect(key)
+
+
+def is_stochastic(name: str) -> bool:
+    """Whether ``name`` is a registered noise term (catalogue or :data:`NOISE_TERMS`)."""
+    try:
+        return resolve(name).kind == "stochastic"
+    except GyroInputError:
+        return False
 
 
 def canonical_name(name: str) -> str:

@@ -42,7 +42,8 @@ from gyrocore.effects import (
     OUTPUT_STAGE as _CORE_OUTPUT_STAGE,
     PARAM_SCHEMA,
     REGISTRY,
-    STOCHASTIC,
+    NOISE,
+    NOISE_TERMS,
     ModelInputs,
     check_effect_names,
     context_rows,
@@ -65,7 +66,7 @@ __all__ = ["SyntheticGyro", "GyroOutput", "GyroChunk", "GyroNoise", "GyroStream"
 #: Effects applied by gyrocore.effects.output_stage (not by deterministic()).
 OUTPUT_STAGE = ("lowpass", "saturation", "quantization")
 #: Order in which the stochastic terms are summed into the noise.
-NOISE_ORDER = ("arw", "bias_instability", "rrw", "correlated", "vibration")
+NOISE_ORDER = ("arw", "bias_instability", "rrw", "correlated", "vibration", "arw_lowpass", "arw_student", "angle_white")
 _FF_IDX = tuple(("xyz".index(p[0]), "xyz".index(p[1])) for p in FF_ORDER)
 #: A lowpass bandwidth at or above this fraction of the rate is repaired (Nyquist).
 _LOWPASS_MAX_FRACTION = 0.45
@@ -277,7 +278,7 @@ class SyntheticGyro:
 
     def _model_params(self, bias_rad_s: np.ndarray) -> dict:
         """Deterministic + output-stage parameters with the given power-up bias."""
-        p = {e: v for e, v in self.params.items() if e not in STOCHASTIC}
+        p = {e: v for e, v in self.params.items() if e not in NOISE}
         if "bias" in p:
             p["bias"] = {"b_rad_s": np.asarray(bias_rad_s, float)}
         return p
@@ -341,7 +342,7 @@ class SyntheticGyro:
                     "power_up_indices": np.asarray(indices, int),
                     "b_rad_s_per_power_up": np.array([biases[i] for i in indices]).reshape(-1, 3),
                 }
-            elif eff not in STOCHASTIC:
+            elif eff not in NOISE:
                 draws[eff] = {k: np.array(v) for k, v in pd.items()}
         draws = {e: draws[e] for e in ordered_effects(draws)}
         return GyroOutput(t_s=t, gyro_rad_s=y, noise_rad_s=noise_total, draws=draws, params=self.params)
@@ -795,6 +796,8 @@ class GyroNoise:
                 if "psd_rad2_s2_hz" not in pd:
                     continue  # from the physics alone
                 g = _noise.ShapedNoise(rng, _noise.shaped_taps(pd["f_hz"], pd["psd_rad2_s2_hz"], rate_hz=r))
+            elif eff in NOISE_TERMS:  # registered noise terms outside the catalogue (gyrocore.effects)
+                g = _noise.noise_term_generator(eff, pd, rng, rate_hz=r)
             elif eff == "arw":
                 g = _noise.WhiteRateBlocks(rng, rate_hz=r, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"])
             elif eff == "bias_instability":

@@ -72,6 +72,9 @@ __all__ = [
     "flicker_noise",
     "rate_random_walk",
     "gauss_markov",
+    "LowpassWhiteNoise",
+    "AngleWhiteNoise",
+    "noise_term_generator",
     "WhiteRateBlocks",
     "FlickerBlocks",
     "RateRandomWalkBlocks",
@@ -383,6 +386,102 @@ def gauss_markov(
     """First-order Gauss–Markov bias, ``n_samples`` × 3, rad/s: :class:`GaussMarkovBlocks` in one block."""
     n, _ = _check(n_samples, rate_hz)
     return GaussMarkovBlocks(rng, rate_hz=rate_hz, sigma_rad_s=sigma_rad_s, tau_c_s=tau_c_s).take(n)
+
+
+class LowpassWhiteNoise(_Blocks):
+    """White rate noise generated *before* a 2nd-order Butterworth low-pass (``arw_lowpass``,
+    ``arw_student``; :data:`gyrocore.effects.NOISE_TERMS`): the chip's digital low-pass shapes
+    its own noise. Block generator (:class:`_Blocks`): draws consumed in row-major (m, 3) order,
+    the filter state carried between blocks (scipy.signal.lfilter with ``zi``), so any sequence
+    of :meth:`take` equals one call for the total, bit for bit.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        The term's own stream.
+    rate_hz : float
+        Sample rate, Hz.
+    n_rad_per_sqrt_s : float or array_like, shape (3,)
+        Density N per axis, rad/√s: per-sample σ = N·√rate_hz before the filter, so the
+        low-frequency density (and the long-τ Allan variance N²/τ) is N — unit DC gain.
+    bandwidth_hz : float
+        Corner of the 2nd-order Butterworth (scipy.signal.butter(2, f, fs=rate)), 0 < f <
+        rate/2; 0 = no filter.
+    nu : float or array_like, shape (3,), optional
+        Student-t degrees of freedom per axis (> 2): draws t_ν·√((ν − 2)/ν) (unit variance,
+        excess kurtosis 6/(ν − 4) for ν > 4). None = Gaussian.
+
+    The filter starts in steady state for the first sample (lfilter_zi × the first draw), as the
+    catalogue's ``lowpass`` does for the signal.
+    """
+
+    def __init__(self, rng, *, rate_hz: float, n_rad_per_sqrt_s, bandwidth_hz: float = 0.0, nu=None) -> None:
+        super().__init__(rng, rate_hz)
+        r = self.rate_hz
+        self._scale = _per_axis(n_rad_per_sqrt_s, "n_rad_per_sqrt_s") * np.sqrt(r)
+        fc = float(bandwidth_hz)
+        if not np.isfinite(fc) or fc < 0 or fc >= r / 2:
+            raise GyroInputError(f"noise low-pass bandwidth_hz must be 0 (none) or in (0, {r / 2:g}) Hz at {r:g} Hz, got {fc:g}")
+        self._ba = signal.butter(2, fc, fs=r) if fc > 0 else None
+        self._zi = None
+        if nu is None:
+            self._nu = None
+        else:
+            v = np.broadcast_to(np.asarray(nu, float), (3,)).copy()
+            if not np.all(np.isfinite(v)) or np.any(v <= 2):
+                raise GyroInputError(f"nu (Student-t degrees of freedom) must be finite and > 2 per axis, got {v.tolist()}")
+            self._nu = v
+
+    def _take(self, m):
+        if m == 0:
+            return np.zeros((0, 3))
+        if self._nu is None:
+            z = self.rng.standard_normal((m, 3))
+        else:
+            z = self.rng.standard_t(np.broadcast_to(self._nu, (m, 3))) * np.sqrt((self._nu - 2.0) / self._nu)[None, :]
+        x = z * self._scale[None, :]
+        if self._ba is None:
+            return x
+        b, a = self._ba
+        if self._zi is None:
+            self._zi = signal.lfilter_zi(b, a)[:, None] * x[:1]
+        y, self._zi = signal.lfilter(b, a, x, axis=0, zi=self._zi)
+        return y
+
+
+class AngleWhiteNoise(_Blocks):
+    """White angle noise (``angle_white``; IEEE 952's "quantization noise" Q): an angle sequence
+    θ_k of σ = Q per sample and axis seen as the rate (θ_{k+1} − θ_k)·rate_hz, so that
+    σ²_Allan(τ) = 3Q²/τ² (IEEE 952 C.1). Block generator (the last angle carried)."""
+
+    def __init__(self, rng, *, rate_hz: float, q_rad) -> None:
+        super().__init__(rng, rate_hz)
+        self._q = _per_axis(q_rad, "q_rad")
+        self._last = None
+
+    def _take(self, m):
+        if m == 0:
+            return np.zeros((0, 3))
+        if self._last is None:
+            self._last = self.rng.standard_normal((1, 3)) * self._q[None, :]
+        th = self.rng.standard_normal((m, 3)) * self._q[None, :]
+        out = np.diff(np.concatenate([self._last, th]), axis=0) * self.rate_hz
+        self._last = th[-1:]
+        return out
+
+
+def noise_term_generator(name: str, pd, rng: np.random.Generator, *, rate_hz: float) -> _Blocks:
+    """The block generator of a registered noise term outside the catalogue
+    (:data:`gyrocore.effects.NOISE_TERMS`) from its parameters ``pd``."""
+    if name == "arw_lowpass":
+        return LowpassWhiteNoise(rng, rate_hz=rate_hz, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"],
+                                 bandwidth_hz=float(pd["bandwidth_hz"]))
+    if name == "arw_student":
+        return LowpassWhiteNoise(rng, rate_hz=rate_hz, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"],
+                                 bandwidth_hz=float(pd.get("bandwidth_hz", 0.0)), nu=pd["nu"])
+    if name == "angle_white":
+        return AngleWhiteNoise(rng, rate_hz=rate_hz, q_rad=pd["q_rad"])
+    raise GyroInputError(f"no noise generator for '{name}'")
 
 
 def stable_key_int(key: str) -> int:

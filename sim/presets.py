@@ -23,7 +23,10 @@ Reading conventions (one rule for every preset):
 * A section named by a registry family term (``["periodic[37.5]"]``, ``["step[12.25]"]``,
   ``["regressor[omega_y*omega_z]"]``; :func:`gyrocore.effects.resolve`) injects that term with
   fixed values in SI, the parameter names of its schema (``a_cos_rad_s = [0.01, 0, 0]``; a
-  scalar means all three axes; missing parameters are 0): the same for every unit.
+  scalar means all three axes; missing parameters are 0): the same for every unit. A
+  registered noise term outside the catalogue (``[arw_lowpass]``, ``[arw_student]``,
+  ``[angle_white]``; :data:`gyrocore.effects.NOISE_TERMS`) is given the same way; every
+  parameter is required except ``arw_student.bandwidth_hz`` (default 0 = no low-pass).
 
 A :class:`SensorSpec` holds the SI distributions; :meth:`SensorSpec.draw_instance` draws one
 sensor's true parameters in :data:`gyrocore.effects.PARAM_SCHEMA` form, every effect from
@@ -41,7 +44,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from gyrocore.effects import EFFECTS, PARAM_SCHEMA, is_family, resolve, validate_params
+from gyrocore.effects import EFFECTS, NOISE_TERMS, PARAM_SCHEMA, is_family, resolve, validate_params
 from gyrocore.errors import GyroInputError
 
 from .noise import ALLAN_FLICKER_FACTOR, effect_rng
@@ -322,7 +325,7 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
     for eff, table in raw.items():
         if eff in ("name", "part", "datasheet", "output"):
             continue
-        if is_family(eff):
+        if is_family(eff) or eff in NOISE_TERMS:
             name, pd = _family_section(eff, table, path)
             if name in terms:
                 raise GyroInputError(f"preset {path}: [{eff}] is the term {name} given twice")
@@ -427,9 +430,10 @@ def _family_section(eff: str, table, path: str):
                                   effect.schema[key]).copy()
         except ValueError:
             raise GyroInputError(f"preset {path}: [{eff}] {key} needs shape {effect.schema[key]} (or a scalar)") from None
-        pd[key] = tuple(arr.tolist())
+        pd[key] = tuple(arr.tolist()) if arr.ndim else float(arr)
     for key, d in effect.defaults.items():
-        pd.setdefault(key, tuple(np.asarray(d, float).tolist()))
+        d = np.asarray(d, float)
+        pd.setdefault(key, tuple(d.tolist()) if d.ndim else float(d))
     return effect.name, (pd if enabled else None)
 
 

@@ -19,11 +19,11 @@ N_ARW = 1.5e-4  # rad/√s (MPU-6050 class, docs/noise.md)
 LSB = DEG / 131.0  # ±250 °/s
 
 
-def _true_model(**extra) -> T.TwinModel:
+def _true_model(*, t_nu=None) -> T.TwinModel:
+    # the white noise: arw, or the registered Student-t term arw_student (same variance)
+    white = T.shaped_white_noise_terms(np.full(3, N_ARW), nu=None if t_nu is None else np.full(3, float(t_nu)))
     return T.TwinModel(rate_hz=RATE, params={"bias": {"b_rad_s": np.array([0.01, -0.02, 0.005])},
-                                             "quantization": {"lsb_rad_s": np.asarray(LSB)},
-                                             "arw": {"n_rad_per_sqrt_s": np.full(3, N_ARW)}},
-                       extra=extra)
+                                             "quantization": {"lsb_rad_s": np.asarray(LSB)}, **white})
 
 
 def _recording(seed: int, *, n: int = 6000, line=None, t_nu=None, gaps: bool = False) -> Recording:
@@ -38,10 +38,7 @@ def _recording(seed: int, *, n: int = 6000, line=None, t_nu=None, gaps: bool = F
     t = np.arange(n) / RATE
     omega = 0.3 * np.sin(2 * np.pi * np.array([0.05, 0.07, 0.11]) * t[:, None] + np.array([0.0, 1.0, 2.0]))
     rec0 = Recording(t_s=t, gyro_rad_s=omega.copy(), ref_rate_rad_s=omega, meta={})
-    extra = {}
-    if t_nu is not None:
-        extra["heavy_tails"] = {"nu": np.full(3, float(t_nu))}
-    model = _true_model(**extra)
+    model = _true_model(t_nu=t_nu)
     ref = reference_of(rec0)
     y, _ = _replica(model, _truth(rec0, ref, RATE), 10_000 + seed)
     if line is not None:
@@ -108,7 +105,7 @@ def test_heavier_tails_fail_distribution_and_closing_adds_them():
     assert r.before.passed["psd"] and r.before.passed["adev"]
     assert any("heavy-tailed" in a for a in r.added), r.added
     assert r.after.passed["distribution"], r.after.to_json()
-    nu = r.model_after.extra["heavy_tails"]["nu"]
+    nu = r.model_after.params["arw_student"]["nu"]  # a registered simulator term (gyrocore.effects.NOISE_TERMS)
     assert np.all((nu > 4.2) & (nu < 9.0)), nu  # kurtosis estimate from 6000 samples is rough
 
 
