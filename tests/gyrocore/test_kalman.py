@@ -104,6 +104,17 @@ def test_model_from_allan():
     np.testing.assert_allclose(m2.rrw_rad_per_s_sqrt_s, [w.axes[x].ci95["rrw_rad_per_s_sqrt_s"][1] for x in "xyz"])
     with pytest.raises(GyroInputError):
         KF.BiasNoiseModel(np.zeros(3), np.zeros(3))
+    # a flicker floor fitted but ambiguous with a Gauss–Markov term (issue 11 stand-in check):
+    # tracked as the Gauss–Markov process matched to the floor, like a resolved B
+    import dataclasses
+
+    amb = {x: dataclasses.replace(r, bias_instability_rad_s=None,
+                                  estimate={**r.estimate, "bias_instability_rad_s": 3e-5},
+                                  ambiguous={"bias_instability_rad_s": "correlated_sigma_rad_s"})
+           for x, r in w.axes.items()}
+    m3 = KF.BiasNoiseModel.from_allan(amb)
+    assert m3.source == "allan: N, B -> Gauss-Markov" and m3.gauss_markov
+    np.testing.assert_allclose(m3.gm_sigma_rad_s, 3e-5 * KF._B_FLOOR / KF._GM_PEAK)
 
 
 def test_quaternion_helpers():
