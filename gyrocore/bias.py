@@ -172,6 +172,16 @@ def _rsd_consuming(v: np.ndarray) -> float:
     return s if s > 0 else float("nan")
 
 
+def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndarray:
+    """x[k + lag] − x[k] written over x[k] block by block (block [a, b) reads x[a .. b + lag),
+    none of it overwritten yet); returns the view x[:N − lag]."""
+    n = x.shape[0] - lag
+    for a in range(0, max(n, 0), block):
+        b = min(a + block, n)
+        x[a:b] = x[a + lag:b + lag] - x[a:b]
+    return x[: max(n, 0)]
+
+
 def _robust_diff_noise_columns(store) -> tuple[np.ndarray, np.ndarray]:
     """:func:`robust_diff_noise` of the gyro of a :class:`gyrocore.recording.ColumnSpill`,
     one column at a time (the same values as the in-memory long-record path)."""
@@ -181,10 +191,10 @@ def _robust_diff_noise_columns(store) -> tuple[np.ndarray, np.ndarray]:
         raise GyroInputError(f"need at least 4 samples to estimate the noise, got {store.n}")
     s1, s2 = np.empty(3), np.empty(3)
     for j, nm in enumerate(GYRO_COLS):
-        c = store.column(nm)
-        s1[j] = _rsd_consuming(np.diff(c))
-        s2[j] = _rsd_consuming(c[2:] - c[:-2])
-        del c
+        # the lag-1 and lag-2 differences each formed in place in a fresh read of the column
+        # (one (N,) array at a time; the same values as np.diff(c) and c[2:] − c[:-2])
+        s1[j] = _rsd_consuming(_lag_diff_in_place(store.column(nm), 1))
+        s2[j] = _rsd_consuming(_lag_diff_in_place(store.column(nm), 2))
     if not (np.all(s1 > 0) and np.all(s2 > 0)):  # a MAD of 0 (coarse quantization): the whole-array rule
         x = np.stack([store.column(nm) for nm in GYRO_COLS], axis=1)
         return robust_diff_noise(x)

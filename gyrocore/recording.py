@@ -855,6 +855,24 @@ def _robust_noise(x: np.ndarray) -> float:
     return float(nz.min()) if nz.size else 0.0
 
 
+def _robust_noise_consuming(x: np.ndarray, block: int = 1 << 20) -> float | None:
+    """:func:`_robust_noise` of a fresh 1-D array, overwriting it: the first differences are
+    formed in place block by block (block [a, b) reads x[a..b], none of it overwritten yet),
+    so no second (N,) array is made. None when the MAD is 0 (the fallback needs the data)."""
+    n = x.shape[0]
+    if n < 2:
+        return 0.0
+    for a in range(0, n - 1, block):
+        b = min(a + block, n - 1)
+        x[a:b] = x[a + 1:b + 1] - x[a:b]
+    d = x[: n - 1]
+    med = np.median(d, overwrite_input=True)
+    np.subtract(d, med, out=d)
+    np.abs(d, out=d)
+    mad = float(np.median(d, overwrite_input=True))
+    return 1.4826 * mad / np.sqrt(2.0) if mad > 0 else None
+
+
 def detect_saturation(
     x: np.ndarray, *, min_run: int = 3, min_clip: np.ndarray | float = 0.0
 ) -> tuple[np.ndarray, list[tuple[int, float, int]]]:
@@ -1617,8 +1635,13 @@ def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: 
             if sd is not None and bool(np.all(sd < 0.05 * G0_M_S2)):
                 med, noise = [], []
                 for j in range(3):
+                    # one column in memory at a time: the noise from a copy overwritten in place,
+                    # then the median from the column read again (the same values)
                     c = store.column(GYRO_COLS[j])
-                    noise.append(_robust_noise(c))
+                    v = _robust_noise_consuming(c)
+                    del c
+                    c = store.column(GYRO_COLS[j])
+                    noise.append(_robust_noise(c) if v is None else v)
                     med.append(float(np.median(c, overwrite_input=True)))  # c is not used again
                     del c
                 if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
