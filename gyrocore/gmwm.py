@@ -790,11 +790,16 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                     mod_a = term_avar(m, rate_hz, method=method, tau_c_s=tca) @ ca
                     cache[sub] = (_log_chi2(model, mod_a, W_log, np.zeros(m.size)), mod_a)
                 lam = max(cache[sub][0], 0.0)
-                if dpen > 0:
+                nested = set(sub) <= set(true_sub)
+                if dpen > 0 and nested:
+                    # a submodel of the truth: LR ≈ noncentral χ², √LR ≈ N(√λ, 1) > √Δpen
                     margin = min(margin, math.sqrt(lam) - math.sqrt(dpen))
-                elif dpen == 0:
-                    # equal penalties: the better fit wins; √LR ≈ N(√λ, 1) > 0
-                    margin = min(margin, math.sqrt(lam))
+                elif dpen >= 0:
+                    # a non-nested stand-in (R or B for K, K for B, …): the difference of the two
+                    # fits' statistics is ≈ N(λ, 4λ) (Vuong 1989) and may be negative; the true
+                    # model wins when it exceeds Δpen: z = (λ − Δpen)/(2√λ) (round 2; the √ form
+                    # above made K at 1 h look safer than the study shows)
+                    margin = min(margin, (lam - dpen) / (2.0 * math.sqrt(lam)) if lam > 0 else -math.inf)
                 else:
                     # the stand-in check of :func:`_ambiguous` for the GM swap of term i: the
                     # stand-in world Y* (the swap fitted to the truth, at distance λ_X) and
