@@ -289,9 +289,9 @@ class TemperatureChunks:
 
     Notes
     -----
-    The sample interval is taken from the first two times (the first chunk must hold at least
-    two unless it is the whole series); times after it must stay uniform to rtol 1e-9 (the
-    whole-series path's test) — sample clocks of the rate table always are. Non-uniform
+    The sample interval is taken from the first two times (as the whole-series path does);
+    times after it must stay uniform to rtol 1e-9 plus the rounding of t (the whole-series
+    path's test) — sample clocks of the rate table always are. Non-uniform
     times with a heater go through the step loop like the whole-series path.
     """
 
@@ -300,7 +300,7 @@ class TemperatureChunks:
         self.n_total = n_total
         self.position = 0
         self._state: ThermalState | None = None
-        self._a = self._c1 = self._h0 = None
+        self._a = self._c1 = self._h0 = self._t0 = None
         self._zi = None
         self._u_prev = self._z_prev = self._t_prev = None
         self._p_prev = 0.0
@@ -324,33 +324,35 @@ class TemperatureChunks:
         tt = t if first else np.concatenate([[self._t_prev], t])
         if tt.size > 1 and np.any(np.diff(tt) <= 0):
             raise GyroInputError("simulate_temperature needs strictly increasing times")
-        if first:
-            if m < 2:
-                raise GyroInputError("TemperatureChunks: the first chunk needs at least two samples")
-            self._h0 = float(t[1] - t[0])
-        h = np.diff(tt)
-        uniform = np.allclose(h, self._h0, rtol=1e-9, atol=_rounding_atol(tt[0], tt[-1]))
+        if self._h0 is None and tt.size > 1:
+            self._h0 = float(tt[1] - tt[0])  # the whole series' first interval
+        if tt.size > 1:
+            uniform = np.allclose(np.diff(tt), self._h0, rtol=1e-9, atol=_rounding_atol(tt[0], tt[-1]))
+        else:
+            uniform = True
         out = np.empty(m)
         if spec.heater is None:
             if not uniform:
                 raise GyroInputError("TemperatureChunks: sample times must be uniform (no heater)")
-            tau = spec.time_constant_s
-            if first:
-                self._a = math.exp(-self._h0 / tau)
-                self._c1 = 1.0 - tau * (1.0 - self._a) / self._h0
-            a, c1 = self._a, self._c1
             u = spec.ambient_at(t) + spec.self_heating_c
             z = spec.motor_c_per_w * p_m
-            if first:
+            if first:  # the power-up sample; the recursion continues from it
                 t0 = u[0] - spec.self_heating_c if spec.initial_temp_c is None else spec.initial_temp_c
-                v = (1.0 - a) * (u[:-1] + z[:-1]) + (u[1:] - u[:-1]) * c1
-                out[0] = t0
-                out[1:], self._zi = lfilter([1.0], [1.0, -a], v, zi=[a * t0])
+                out[0] = self._t0 = t0
+                uu, zz, rows = u, z, slice(1, m)
             else:
                 uu = np.concatenate([[self._u_prev], u])
                 zz = np.concatenate([[self._z_prev], z])
+                rows = slice(0, m)
+            if uu.size > 1:
+                if self._a is None:  # first interval known: as the whole-series path, a and c1 from it
+                    tau = spec.time_constant_s
+                    self._a = math.exp(-self._h0 / tau)
+                    self._c1 = 1.0 - tau * (1.0 - self._a) / self._h0
+                    self._zi = [self._a * self._t0]
+                a, c1 = self._a, self._c1
                 v = (1.0 - a) * (uu[:-1] + zz[:-1]) + (uu[1:] - uu[:-1]) * c1
-                out[:], self._zi = lfilter([1.0], [1.0, -a], v, zi=self._zi)
+                out[rows], self._zi = lfilter([1.0], [1.0, -a], v, zi=self._zi)
             self._u_prev, self._z_prev = float(u[-1]), float(z[-1])
         else:
             if first:

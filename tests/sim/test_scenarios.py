@@ -249,3 +249,16 @@ def test_stream_of_hover_is_the_whole_flight_cut():
 
     rec = concat_recordings(list(st.chunks()))
     assert np.array_equal(rec.gyro_rad_s, S.simulate("hover", **kw).recording.gyro_rad_s)
+
+
+@pytest.mark.parametrize("name, kw", [("static", dict(duration_s=2.0, gyro_rate_hz=200.0)),
+                                      ("power_cycles", dict(duration_s=3.0, gyro_rate_hz=100.0))])
+def test_stream_with_one_row_chunks(name, kw):
+    """Chunks shorter than the physics-to-gyro ratio (one physics step per rollout, most with no
+    gyro sample) and single-sample temperature chunks still give simulate()'s rows."""
+    from gyrocore.recording import concat_recordings
+
+    a = S.simulate(name, **kw).recording
+    rec = concat_recordings(list(S.simulate_stream(name, chunk_rows=1, **kw).chunks()))
+    for f in ("t_s", "gyro_rad_s", "accel_m_s2", "temp_c", "ref_rate_rad_s", "ref_quat_wxyz"):
+        assert np.array_equal(getattr(rec, f), getattr(a, f)), f

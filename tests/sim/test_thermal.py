@@ -82,7 +82,7 @@ def test_bad_inputs():
 
 
 @pytest.mark.parametrize("heater", [False, True])
-@pytest.mark.parametrize("sizes", [(2,), (997,), (4096,), (3, 1, 50)])
+@pytest.mark.parametrize("sizes", [(1,), (2,), (997,), (4096,), (3, 1, 50)])
 def test_temperature_chunks_bit_identical_to_whole(heater, sizes):
     """Issue 13: the die temperature of a long record in chunks equals the whole-series
     evaluation bit for bit (motor power held, ambient ramps, optional heater)."""
