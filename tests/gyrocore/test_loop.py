@@ -278,3 +278,24 @@ def test_measured_sunsided_session_hand_turns(shared_data):
     for i in range(3):
         v, se = r.params["scale"][f"s[{i}]"]
         assert abs(v - expected[i]) < 3 * se + 0.003, (i, v, se, expected[i])
+
+
+@pytest.mark.parametrize("seed", [48, 73, 194])
+def test_coloured_noise_null_is_not_a_slow_effect(seed, monkeypatch):
+    """White + flicker + RRW + Gauss–Markov (τc 20 s) nulls on which the HAC test (with the
+    halves guard) named ``bias_thermal`` (seeds 48, 73) or ``bias_ramp`` (194) in the Monte Carlo
+    of docs/loop.md §4a: with the model-based test the loop names nothing. The family-wise bound
+    makes a claim on a given null seed a ≤ α event; the seeds are the measured failures of the
+    HAC-only rule, so the test fails if the model-based test stops doing its job."""
+    import gyrocore.loop as L
+    from experiments.close_the_loop import OPEN_NOISE
+
+    rec = _rec({}, seed=seed, **OPEN_NOISE)
+    r = run_loop(rec, declared=["bias"], alpha=0.005, open_search=False)
+    assert r.found_effects == [], r.found_effects
+    ev = r.tested["bias_ramp"]
+    assert np.isfinite(ev.model_log10_p) and np.isfinite(ev.hac_log10_p)
+    assert ev.log10_p == max(ev.hac_log10_p, ev.model_log10_p)
+    monkeypatch.setattr(L, "MODEL_TEST", False)
+    r0 = run_loop(rec, declared=["bias"], alpha=0.005, open_search=False)
+    assert set(r0.found_effects) & {"bias_ramp", "bias_thermal"}, r0.found_effects
