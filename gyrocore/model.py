@@ -619,10 +619,13 @@ class Calibrator:
             stderr[eff] = _unflatten(eff, fit.stderr[sl], order)
             if eff in E.POLYNOMIAL:
                 T = temp_column()
-                Tu = T[opts["weights"] > 0]
-                # design() centres the polynomial on the mean temperature of all rows it gets
+                used_rows = opts["weights"] > 0
+                # design() centres the polynomial on the mean temperature of all rows it gets;
+                # the range over the rows used, without a copy of them (min/max are exact)
                 params[eff].update(t0_c=np.asarray(float(np.mean(T))),
-                                   temp_min_c=np.asarray(float(Tu.min())), temp_max_c=np.asarray(float(Tu.max())))
+                                   temp_min_c=np.asarray(float(np.min(T, where=used_rows, initial=np.inf))),
+                                   temp_max_c=np.asarray(float(np.max(T, where=used_rows, initial=-np.inf))))
+                del T, used_rows
                 stderr[eff].update({k: np.asarray(np.nan) for k in _THERMAL_META})
         if "time_offset" in effects:
             params["time_offset"]["tau_s"] = np.asarray(tau_total if np.isfinite(fit.effect_stderr("time_offset")[0]) else 0.0)
