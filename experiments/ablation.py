@@ -224,11 +224,16 @@ THERMAL_EFFECTS = ("bias_thermal", "scale_thermal", "bias_temp_rate", "bias_ramp
 POWERUP_WINDOW_S = 2.0
 POWERUP_SEARCH_S = 30.0
 #: Calibrator settings for the ablation: block means of ≤ 15000 rows (exact for the linear
-#: model) and the "auto" covariance (HAC when the residual is coloured). The standard errors
-#: feed the drift prediction (:func:`predict_instance`); with "ols" the rate-table
-#: g-sensitivity errors were 5–9 standard errors (bias instability drifts between the mounts:
-#: coloured residuals), with "auto" ≤ 2 (issue 12).
-_CAL_KW = {"covariance": "auto", "max_rows": 15000}
+#: model) and the "noise_model" covariance: the sandwich with the row covariance implied by the
+#: noise model identified (GMWM) on the fit's own residual (white + flicker + RRW + GM). The
+#: standard errors feed the drift prediction (:func:`predict_instance`), and the identified
+#: noise model is the prediction's noise. History (issue 12): with "ols" the rate-table
+#: g-sensitivity errors were 5–9 standard errors (bias instability drifts between the mounts);
+#: the "auto" HAC (exponential-tail autocovariance) gave |error|/SE RMS 0.82.
+#: Rate ramps (± 0.25 s) are left out of both fits: the on-chip low-pass leaves a transient
+#: there (RMS 3.3e-3 rad/s on the table run, 10× the noise) that biased the g-sensitivity by up
+#: to 4 standard errors and that the noise identification took for a Gauss–Markov term.
+_CAL_KW = {"covariance": "noise_model", "max_rows": 15000, "ramp_margin_s": 0.25}
 #: Nuisance effects fitted with the thermal run but not applied elsewhere: the thermal run's
 #: output filter (25 Hz at 100 Hz) delays the rate by ≈ 7 ms, and its unmodelled residual bursts
 #: at every rate ramp (RMS 4.3e-3 rad/s against 5.8e-4 of noise) made the thermal standard errors
@@ -264,7 +269,8 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
     runs = "quick" if quick else "full"
     if durations_s is not None:  # other calibration-run durations (table, thermal), s
         runs = f"{durations_s[0]:g}-{durations_s[1]:g}"
-    key = f"{safe}_{seed}_{runs}_{'-'.join(tt)}_{'-'.join(th)}"
+    key = (f"{safe}_{seed}_{runs}_{'-'.join(tt)}_{'-'.join(th)}_{_CAL_KW['covariance']}"
+           f"_r{_CAL_KW.get('ramp_margin_s', 0):g}")
     paths = None
     if cache_dir:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
@@ -490,7 +496,10 @@ def ablate_instance(
     idx = np.clip(np.round(np.asarray(CURVE_FRACTIONS) * (t.size - 1)).astype(int), 0, t.size - 1)
     prediction = None
     if predict:
-        prediction = predict_instance(res, calibration, present, still, start)
+        nm = identified_noise(core_params, float(rec.rate_hz))
+        if nm is None:
+            notes.append("prediction: no identified noise model in the calibration; the unit's true noise is used")
+        prediction = predict_instance(res, calibration, present, still, start, noise=nm)
     return InstanceAblation(
         scenario=scenario, sensor=sensor, seed=seed, present=tuple(present), estimated=estimated,
         scores={k: v[0] for k, v in sc.items()}, t_s=t[idx],
@@ -558,10 +567,24 @@ def uncorrected_rate_errors(res, present: Sequence[str], estimated: Sequence[str
     return out
 
 
-def predict_instance(res, calibration, present: Sequence[str], still, start: int):
+def identified_noise(core_params, rate_hz: float):
+    """The noise model identified by the calibration (:class:`gyrocore.budget.NoiseModel`):
+    that of the calibration run whose sample rate is ``rate_hz`` (its white level includes
+    that rate's quantization noise; the table run is 1 kHz, the thermal run 100 Hz), else the
+    first one with a model; None when the calibration carries none."""
+    results = [r for r in (getattr(core_params, "results", None) or ()) if r is not None and r.noise_model]
+    for r in results:
+        if abs(float(r.noise_model.get("rate_hz", np.nan)) - rate_hz) <= 1e-3 * rate_hz:
+            return r.noise()
+    return results[0].noise() if results else None
+
+
+def predict_instance(res, calibration, present: Sequence[str], still, start: int, *, noise=None):
     """Predicted attitude error of the ``all`` row (:func:`gyrocore.budget.predict_error`).
 
-    Noise: the unit's true noise terms (simulation; a user passes the identified ones).
+    Noise: ``noise`` (a :class:`gyrocore.budget.NoiseModel`: the model the calibration
+    identified on its own residual, :func:`identified_noise`); None: the unit's true noise
+    terms (simulation only).
     Parameter errors: the calibration's standard errors (diagonal). Power-up bias: the still
     windows actually used. Uncorrected: present effects the calibration did not estimate
     (reported, not predicted) and the low-pass (predicted: no correction removes it).
@@ -592,7 +615,9 @@ def predict_instance(res, calibration, present: Sequence[str], still, start: int
     t_sc, q_sc = rec.t_s[start:], truth.q_SW_wxyz[start:]
     e_int = error_angle_rad(integrate_gyro(t_sc, w_true[start:], q0_wxyz=q_sc[0]), q_sc)
     e_irr = error_angle_rad(integrate_gyro(t_sc, (w_true + d)[start:], q0_wxyz=q_sc[0]), q_sc)
-    return predict_error(inp, start=start, segments=still, noise=NoiseModel.from_params(p_true), groups=groups,
+    if noise is None:
+        noise = NoiseModel.from_params(p_true)
+    return predict_error(inp, start=start, segments=still, noise=noise, groups=groups,
                          uncorrected=unc, stale_bias_sigma_rad_s=stale,
                          exact_error_rad={"irreducible (low-pass, integration)": e_irr},
                          floor_exact_error_rad={"integration": e_int})

@@ -149,6 +149,41 @@ class NoiseModel:
                    gm_tau_c_s=v("correlated", "tau_c_s", np.inf),
                    quantization_lsb_rad_s=lsb)
 
+    @classmethod
+    def from_identified(cls, result, *, quantization_lsb_rad_s: float = 0.0) -> "NoiseModel":
+        """From an identified noise model (:func:`gyrocore.allan.identify_noise`, a
+        ``NoiseResult`` with axes x, y, z): the *selected* terms N, B, K and Gauss–Markov (σ, τc)
+        per axis; a term the identification did not resolve is 0 (the model selection found
+        no evidence for it). Angle quantization Q and the rate ramp R are not used (Q is white
+        angle noise: its rate-mean variance 2·Q²/T² is negligible beyond a few samples; R is a
+        deterministic drift, fitted where it matters as ``bias_ramp``). A missing axis takes the
+        mean of the others."""
+        names = ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s",
+                 "correlated_sigma_rad_s", "correlated_tau_c_s")
+        vals = {k: np.full(3, np.nan) for k in names}
+        for i, a in enumerate("xyz"):
+            ax = result.axes.get(a) if hasattr(result, "axes") else None
+            if ax is None:
+                continue
+            for k in names:
+                v = getattr(ax, k, None)
+                vals[k][i] = float(v) if v is not None else (np.inf if k == "correlated_tau_c_s" else 0.0)
+        for k in names:
+            v = vals[k]
+            ok = np.isfinite(v) | (k == "correlated_tau_c_s")
+            have = ~np.isnan(v)
+            if not have.any():
+                raise GyroInputError("identified noise model has no axis")
+            fill = float(np.mean(v[have & ok])) if np.any(have & ok & np.isfinite(v)) else (np.inf if k == "correlated_tau_c_s" else 0.0)
+            vals[k] = np.where(have, v, fill)
+        sig = vals["correlated_sigma_rad_s"]
+        tau = np.where(sig > 0, vals["correlated_tau_c_s"], np.inf)
+        return cls(arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"],
+                   bias_instability_rad_s=vals["bias_instability_rad_s"],
+                   rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"],
+                   gm_sigma_rad_s=sig, gm_tau_c_s=tau,
+                   quantization_lsb_rad_s=float(quantization_lsb_rad_s))
+
     def white_n2(self, rate_hz: float) -> np.ndarray:
         """N² + LSB²/(12·rate) per axis, rad²/s."""
         return np.asarray(self.arw_rad_per_sqrt_s, float) ** 2 + self.quantization_lsb_rad_s ** 2 / (12.0 * rate_hz)

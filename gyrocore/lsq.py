@@ -67,6 +67,7 @@ __all__ = [
     "low_frequency_excess",
     "residual_autocov_model",
     "long_run_covariance",
+    "noise_model_meat",
 ]
 
 #: Largest physically plausible |θ| per effect, SI (used to call a parameter unobservable when
@@ -525,6 +526,105 @@ def residual_sandwich_meat(A: np.ndarray, W: np.ndarray, e: np.ndarray) -> tuple
     return (S + S.T) / 2, Lmax
 
 
+#: Coarse bins (at most) over which the slow noise terms (flicker, random walk, Gauss–Markov)
+#: of :func:`noise_model_meat` are integrated (dense K×K covariance).
+NOISE_MODEL_BINS: int = 1500
+
+
+def noise_model_meat(
+    U: np.ndarray,
+    row_t0_s: np.ndarray,
+    row_t1_s: np.ndarray,
+    row_n_eff: np.ndarray,
+    noise,
+    *,
+    dt_s: float,
+    max_bins: int = NOISE_MODEL_BINS,
+) -> np.ndarray:
+    """Meat Σ_i U_iᵀ·C_i·U_i of the sandwich covariance with C_i the covariance of the rows'
+    noise *implied by a noise model* (white + flicker + rate random walk + Gauss–Markov).
+
+    Each row of the fit is a (weighted) mean of samples over [t0, t1); its noise is the mean
+    of the gyro noise there. Per axis i (axes independent):
+
+    * white N_i (+ quantization LSB²/12 per sample): Var = (N_i²/dt + LSB²/12)/n_eff, rows
+      uncorrelated — exact;
+    * flicker B, random walk K, Gauss–Markov (σ, τc), started at the power-up (t = 0) as the
+      chip and :mod:`sim.noise` do: the rows are grouped into at most ``max_bins`` contiguous
+      time bins c; Σ_b U_b·x̄_b ≈ Σ_c V_c·x̄_c with V_c = Σ_{b∈c} U_b, and Cov(x̄_c, x̄_d) in
+      closed form (:func:`gyrocore.budget.block_covariance`, the same formulas as the drift
+      prediction). Exact when every bin is one row; otherwise the error is the slow noise's
+      variation inside a bin times the regressors' variation inside it (bins ≤ T/1500: a
+      0.26-s bin for a 387-s table run, where the flicker's within-bin variance B² is ~1 % of
+      a row's white variance and the regressors are piecewise constant).
+
+    Parameters
+    ----------
+    U : ndarray, shape (n, 3, P)
+        Weighted regressors of the fitted rows (A·W, W = row weight / axis σ²), SI.
+    row_t0_s, row_t1_s : ndarray, shape (n,)
+        Interval each row averages, s since the power-up (non-decreasing rows).
+    row_n_eff : ndarray, shape (n,) or (n, 3)
+        Effective number of samples of each row's mean, (Σw)²/Σw² (the count for 0/1 weights).
+    noise : gyrocore.budget.NoiseModel
+        Per-axis noise levels (:meth:`gyrocore.budget.NoiseModel.from_identified` for an
+        identified model).
+    dt_s : float
+        Sample spacing, s.
+    max_bins : int
+
+    Returns
+    -------
+    ndarray, shape (P, P)
+    """
+    from .budget import Blocks, block_covariance
+
+    U = np.asarray(U, float)
+    n, _, P = U.shape
+    t0 = np.asarray(row_t0_s, float)
+    t1 = np.asarray(row_t1_s, float)
+    ne = np.broadcast_to(np.asarray(row_n_eff, float).reshape(n, -1), (n, 3))
+    S = np.zeros((P, P))
+    # -- white (ARW + quantization), per sample variance N²/dt + LSB²/12
+    s2 = np.asarray(noise.arw_rad_per_sqrt_s, float) ** 2 / dt_s + float(noise.quantization_lsb_rad_s) ** 2 / 12.0
+    for i in range(3):
+        v = s2[i] / np.where(ne[:, i] > 0, ne[:, i], np.inf)
+        S += U[:, i, :].T @ (U[:, i, :] * v[:, None])
+    # -- slow terms on coarse time bins
+    B2 = np.asarray(noise.bias_instability_rad_s, float) ** 2
+    K2 = np.asarray(noise.rrw_rad_s_per_sqrt_s, float) ** 2
+    gs = np.asarray(noise.gm_sigma_rad_s, float)
+    gt = np.asarray(noise.gm_tau_c_s, float)
+    if not (np.any(B2 > 0) or np.any(K2 > 0) or np.any(gs > 0)):
+        return (S + S.T) / 2
+    K = int(min(n, max(1, max_bins)))
+    edges = np.linspace(0, n, K + 1).round().astype(int)
+    edges = np.unique(edges)
+    lo, hi = edges[:-1], edges[1:]
+    V = np.add.reduceat(U, lo, axis=0)  # (K, 3, P)
+    bt0, bt1 = t0[lo], t1[hi - 1]
+    bt1 = np.maximum(bt1, bt0 + 1e-12)
+    Kb = lo.size
+    blk = Blocks(i0=lo, i1=hi, t0_s=bt0, t1_s=bt1, scored=np.ones(Kb, bool), segment=np.zeros(Kb, int),
+                 window=np.full(Kb, -1))
+    terms = []
+    if np.any(B2 > 0):
+        terms.append((block_covariance(blk, "bias_instability"), B2))
+    if np.any(K2 > 0):
+        terms.append((block_covariance(blk, "rrw"), K2))
+    for i in range(3):
+        if gs[i] > 0 and np.isfinite(gt[i]) and gt[i] > 0:
+            L2 = np.zeros(3)
+            L2[i] = gs[i] ** 2
+            terms.append((block_covariance(blk, "correlated", tau_c_s=float(gt[i])), L2))
+    for C, L2 in terms:
+        for i in range(3):
+            if L2[i] > 0:
+                Vi = V[:, i, :]
+                S += L2[i] * (Vi.T @ (C @ Vi))
+    return (S + S.T) / 2
+
+
 # ---------------------------------------------------------------------------- solver
 def _flat(A: np.ndarray, w: np.ndarray) -> np.ndarray:
     """sqrt(w)-scaled design, (N·3, P)."""
@@ -584,6 +684,11 @@ def solve(
     hac_bandwidth: float | None = None,
     min_excitation_snr: float = 5.0,
     noisy_effects: Sequence[str] = NOISY_REGRESSOR_EFFECTS,
+    noise_model=None,
+    t_s: np.ndarray | None = None,
+    row_t0_s: np.ndarray | None = None,
+    row_t1_s: np.ndarray | None = None,
+    row_n_eff: np.ndarray | None = None,
 ) -> LsqFit:
     """Solve r ≈ A·θ jointly over the three axes.
 
@@ -606,8 +711,9 @@ def solve(
         Fit weighted block means of ``average`` consecutive rows (after ``stride``) instead
         of the rows: exact for the linear model, keeps nearly all the information of slow
         regressors and cuts memory/time; residual RMS is still reported on all samples.
-    covariance : {"auto", "ols", "hac", "newey_west", "block"}
-        See the module docstring.
+    covariance : {"auto", "ols", "hac", "newey_west", "block", "noise_model"}
+        See the module docstring. ``"noise_model"`` needs ``noise_model`` and the row times
+        (``t_s``, or ``row_t0_s``/``row_t1_s``/``row_n_eff`` for rows that are already means).
     axis_weighting : bool
         Two-step feasible WLS: weight axis i by 1/σ̂_i² from a first unweighted pass.
     n_blocks : int
@@ -628,6 +734,18 @@ def solve(
         is unobservable (5 → errors-in-variables attenuation below (1/5)² = 4 %).
     noisy_effects : sequence of str
         Effects whose regressors come from measured inputs (accel, temperature).
+    noise_model : gyrocore.budget.NoiseModel, optional
+        The gyro's noise (identified, e.g. :func:`gyrocore.allan.identify_noise` →
+        :meth:`gyrocore.budget.NoiseModel.from_identified`), for ``covariance="noise_model"``:
+        the sandwich (AᵀWA)⁻¹·(Σ_i U_iᵀ C_i U_i)·(AᵀWA)⁻¹, U = W·A, C_i the covariance of the
+        rows' noise implied by the model (:func:`noise_model_meat`).
+    t_s : ndarray, shape (N,), optional
+        Sample times, s since the power-up (flicker and random walk start there).
+    row_t0_s, row_t1_s, row_n_eff : ndarray, optional
+        For rows that are already means of samples (a streaming caller; ``average`` = 1,
+        ``stride`` = 1): each row's interval, s since the power-up, and effective sample count
+        (n,) or (n, 3); with these ``t_s`` is only used for the sample spacing ``dt``
+        (or give ``t_s`` of length 2: [0, dt]).
 
     Returns
     -------
@@ -640,8 +758,10 @@ def solve(
         raise GyroInputError(f"lsq: r has shape {r_all.shape}, A has shape {A_all.shape}; expected (N,3) and (N,3,P)")
     if len(names) != P:
         raise GyroInputError(f"lsq: {len(names)} names for {P} columns")
-    if covariance not in ("auto", "ols", "hac", "newey_west", "block"):
-        raise GyroInputError(f"unknown covariance '{covariance}' (auto, ols, hac, newey_west, block)")
+    if covariance not in ("auto", "ols", "hac", "newey_west", "block", "noise_model"):
+        raise GyroInputError(f"unknown covariance '{covariance}' (auto, ols, hac, newey_west, block, noise_model)")
+    if covariance == "noise_model" and (noise_model is None or (t_s is None and row_t0_s is None)):
+        raise GyroInputError("covariance 'noise_model' needs the noise model and the sample times")
     if on_unobservable not in ("drop", "raise"):
         raise GyroInputError(f"on_unobservable must be 'drop' or 'raise', not '{on_unobservable}'")
     stride = max(1, int(stride))
@@ -657,6 +777,25 @@ def solve(
         raise GyroInputError("lsq: fewer than 2 samples with non-zero weight")
     r_, A_, w_ = r_all[idx], A_all[idx], w_all[idx]
     average = max(1, int(average))
+    rows_t = None
+    if covariance == "noise_model":
+        t_arr = np.asarray(t_s if t_s is not None else [], float)
+        dt_s = float(np.median(np.diff(t_arr))) if t_arr.size > 1 else float("nan")
+        if row_t0_s is not None:
+            if not np.isfinite(dt_s):  # sample spacing from the rows: the shortest span per sample
+                ne0 = np.asarray(row_n_eff, float).reshape(N, -1)[:, 0]
+                span = np.asarray(row_t1_s, float) - np.asarray(row_t0_s, float)
+                ok = ne0 > 0
+                dt_s = float(np.min(span[ok] / ne0[ok])) if ok.any() else 1.0
+            if average != 1 or stride != 1:
+                raise GyroInputError("lsq: row times are for rows that are already means (average=1, stride=1)")
+            rows_t = (np.asarray(row_t0_s, float)[idx], np.asarray(row_t1_s, float)[idx],
+                      np.broadcast_to(np.asarray(row_n_eff, float).reshape(N, -1), (N, 3))[idx])
+        else:
+            if t_arr.shape != (N,):
+                raise GyroInputError(f"lsq: t_s has shape {t_arr.shape}, expected ({N},)")
+            tt = t_arr[idx]
+            rows_t = (tt, tt + dt_s, np.ones((idx.size, 3)))
     if average > 1:
         # weighted block means of `average` consecutive used rows: the linear model holds
         # exactly for the means, white noise shrinks by sqrt(average)
@@ -669,6 +808,10 @@ def solve(
         safe = np.where(ws > 0, ws, 1.0)
         r_ = (r_[:m].reshape(nb, average, 3) * wb).sum(axis=1) / safe
         A_ = (A_[:m].reshape(nb, average, 3, -1) * wb[..., None]).sum(axis=1) / safe[..., None]
+        if rows_t is not None:  # each row's interval and effective count (Σw)²/Σw²
+            w2 = (wb**2).sum(axis=1)
+            rows_t = (rows_t[0][:m:average], rows_t[1][average - 1 : m : average],
+                      np.where(w2 > 0, ws**2 / np.where(w2 > 0, w2, 1.0), 0.0))
         w_ = ws / average
     n = r_.shape[0]
     plaus = dict(PLAUSIBLE_MAGNITUDE)
@@ -765,6 +908,10 @@ def solve(
         if kind == "ols":
             s2 = float(np.sum(ew**2)) / dof
             cov_k = s2 * bread
+        elif kind == "noise_model":
+            meat = noise_model_meat(Ak * W[:, :, None], rows_t[0], rows_t[1], rows_t[2], noise_model, dt_s=dt_s)
+            cov_k = bread @ meat @ bread
+            cov_k = 0.5 * (cov_k + cov_k.T)
         else:
             g = None if kind == "hac" else np.einsum("nip,ni->np", Ak, W * e)  # scores (n, k)
             if kind == "hac":

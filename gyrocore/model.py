@@ -114,6 +114,13 @@ class CalibrationResult:
     notes : tuple of str
     integral : dict or None
         For the integral method: M, M_stderr, B_rad, C_rad, ... (lists).
+    noise_model : dict or None
+        The noise model behind ``covariance="noise_model"`` standard errors, per axis (3,):
+        ``arw_rad_per_sqrt_s``, ``bias_instability_rad_s``, ``rrw_rad_s_per_sqrt_s``,
+        ``gm_sigma_rad_s``, ``gm_tau_c_s`` (inf = no Gauss–Markov term)
+        (:class:`gyrocore.budget.NoiseModel` fields; :meth:`noise` rebuilds it), and
+        ``rate_hz``, the sample rate of the data it describes (its white level includes that
+        rate's quantization noise).
     format_version : str
     """
 
@@ -133,7 +140,16 @@ class CalibrationResult:
     thermal_tests: tuple = ()
     notes: tuple[str, ...] = ()
     integral: dict | None = None
+    noise_model: dict | None = None
     format_version: str = FORMAT_VERSION
+
+    def noise(self):
+        """The :class:`gyrocore.budget.NoiseModel` of the standard errors, or None."""
+        if not self.noise_model:
+            return None
+        from .budget import NoiseModel
+
+        return NoiseModel(**{k: np.asarray(self.noise_model[k], float) for k in _NOISE_MODEL_KEYS})
 
     # ------------------------------------------------------------------ apply
     def required_columns(self) -> list[str]:
@@ -243,6 +259,23 @@ def _unflatten(effect: str, vec: np.ndarray, order: int) -> dict[str, np.ndarray
     return E.resolve(effect).unflatten(vec, order)
 
 
+def near_rate_changes(t_s: np.ndarray, w_ref_rad_s: np.ndarray, margin_s: float,
+                      *, threshold_rad_s2: float = 1e-2) -> np.ndarray:
+    """Boolean (N,): samples within ``margin_s`` of a change of the reference rate
+    (|Δω_ref|/Δt > ``threshold_rad_s2`` on any axis) — rate ramps and their filter transients."""
+    t = np.asarray(t_s, float)
+    w = np.asarray(w_ref_rad_s, float)
+    n = t.size
+    if n < 3:
+        return np.zeros(n, bool)
+    dw = np.max(np.abs(np.diff(w, axis=0)), axis=1) / np.diff(t)
+    ramp = np.r_[dw > threshold_rad_s2, False] | np.r_[False, dw > threshold_rad_s2]
+    if not ramp.any():
+        return ramp
+    k = int(round(margin_s / float(np.median(np.diff(t)))))
+    return np.convolve(ramp.astype(np.float64), np.ones(2 * k + 1), mode="same") > 0.5
+
+
 def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
     """w(t − τ) by linear interpolation (the catalogue's time_offset convention)."""
     if tau_s == 0.0:
@@ -289,7 +322,21 @@ class Calibrator:
     segments : path or sequence, optional
         Known-rotation segments → the integral method.
     covariance : str
-        ``"auto"`` (Ljung–Box switch), ``"ols"``, ``"hac"``, ``"newey_west"``, ``"block"``.
+        ``"auto"`` (Ljung–Box switch), ``"ols"``, ``"hac"``, ``"newey_west"``, ``"block"``, or
+        ``"noise_model"``: the sandwich with the row covariance implied by the gyro's noise
+        model (white + flicker + rate random walk + Gauss–Markov, started at the power-up =
+        the first sample; :func:`gyrocore.lsq.noise_model_meat`). The model is ``noise`` if
+        given, else identified (:func:`gyrocore.allan.identify_noise`, GMWM) on the residual
+        of the first fit (outliers of the robust pass set to 0). Least-squares method only.
+    noise : gyrocore.budget.NoiseModel or NoiseResult, optional
+        The noise model for ``covariance="noise_model"`` (e.g. identified on a still
+        recording of the same session); default: identified from the fit's residual.
+    ramp_margin_s : float
+        Reference-rate method: leave out the samples within this time of a change of the
+        reference rate (|Δω_ref|/dt > 1e-2 rad/s²). At rate ramps the gyro's own output
+        filter leaves a transient no catalogue effect describes (on the icm42688p table run
+        10× the noise); fitted, it biased the g-sensitivity by up to 4 standard errors
+        (issue 12). 0 (default): use every sample.
     on_unobservable : {"drop", "raise"}
         Report unobservable parameters (fit the rest) or raise
         :class:`~gyrocore.errors.UnobservableError`.
@@ -328,6 +375,8 @@ class Calibrator:
         still_false_reject_rate: float = 1e-3,
         sensor: str | None = None,
         external_bias=None,
+        noise=None,
+        ramp_margin_s: float = 0.0,
     ) -> None:
         effs = E.check_effect_names(effects)
         if not effs:
@@ -358,6 +407,14 @@ class Calibrator:
             if "g_sensitivity" in effs:
                 raise GyroInputError("g_sensitivity with an external bias is not supported (it is fitted on the still poses with the bias)")
             external_bias = _external_bias_dict(external_bias)
+        if noise is not None and not hasattr(noise, "arw_rad_per_sqrt_s"):
+            from .budget import NoiseModel
+
+            noise = NoiseModel.from_identified(noise)
+        self.noise = noise
+        if not (np.isfinite(ramp_margin_s) and ramp_margin_s >= 0):
+            raise GyroInputError(f"ramp margin must be >= 0 s, got {ramp_margin_s}")
+        self.ramp_margin_s = float(ramp_margin_s)
         self.external_bias = external_bias
         self.effects = tuple(effs)
         self.thermal_order = thermal_order
@@ -481,10 +538,76 @@ class Calibrator:
         )
 
     # ------------------------------------------------------------------ least squares
+    #: Noise identification for ``covariance="noise_model"`` uses only samples farther than
+    #: this from a change of the reference rate (|Δω_ref|/dt > :data:`RAMP_RATE_RAD_S2`): at rate
+    #: ramps the residual holds the on-chip low-pass's transient (deterministic, ≈ 10× the
+    #: noise on the icm42688p table run: RMS 3.3e-3 vs 3.1e-4 rad/s on the plateaus), which a
+    #: noise model must not absorb (GMWM took it for a Gauss–Markov term σ 5e-4 rad/s, τc 0.15 s,
+    #: in every unit, and the scale/misalignment standard errors came out 2–5× too large).
+    QUIET_MARGIN_S = 0.25
+    RAMP_RATE_RAD_S2 = 1e-2
+
+    @classmethod
+    def _identified_noise(cls, axis, bad: np.ndarray, rate_hz: float, notes: list,
+                          w_ref: np.ndarray | None = None, t_s: np.ndarray | None = None) -> dict:
+        """solve() options of the noise-model covariance, the model identified (GMWM, per axis)
+        on the residual — ``axis(i)`` returns axis i as a fresh (N,) array — without the
+        ``bad`` samples and, with a reference rate ``w_ref``, without the samples within
+        :data:`QUIET_MARGIN_S` of a rate change; the kept stretches are joined (the slow
+        noise barely moves across a sub-second gap)."""
+        import warnings
+
+        from .allan import identify_noise
+        from .budget import NoiseModel
+
+        keep = ~np.asarray(bad, bool)
+        n = keep.size
+        if w_ref is not None and n > 2:
+            tt = np.arange(n) / rate_hz if t_s is None else t_s
+            near = near_rate_changes(tt, w_ref, cls.QUIET_MARGIN_S)
+            if np.count_nonzero(keep & ~near) >= 0.25 * n:
+                keep &= ~near
+        if not keep.all():
+            notes.append(f"noise identified on {100.0 * keep.mean():.0f} % of the samples (rate ramps and outliers left out)")
+        vals = {k: np.zeros(3) for k in ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s",
+                                         "correlated_sigma_rad_s")}
+        tau = np.full(3, np.inf)
+        for i in range(3):
+            x = axis(i)
+            x = x[keep] if not keep.all() else x
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the short-record note of identify_noise
+                ax = identify_noise(x, rate_hz=rate_hz, check_static=False).axes["x"]
+            del x
+            for k in vals:
+                v = getattr(ax, k, None)
+                vals[k][i] = float(v) if v is not None else 0.0
+            if vals["correlated_sigma_rad_s"][i] > 0 and ax.correlated_tau_c_s is not None:
+                tau[i] = float(ax.correlated_tau_c_s)
+        nm = NoiseModel(arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"], bias_instability_rad_s=vals["bias_instability_rad_s"],
+                        rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"], gm_sigma_rad_s=vals["correlated_sigma_rad_s"],
+                        gm_tau_c_s=tau)
+
+        def fmt(a):
+            return "/".join(f"{v:.3g}" for v in np.asarray(a, float))
+
+        notes.append(
+            "standard errors: noise-model sandwich, noise identified on the fit residual (GMWM): "
+            f"N {fmt(nm.arw_rad_per_sqrt_s)} rad/sqrt(s), B {fmt(nm.bias_instability_rad_s)} rad/s, "
+            f"K {fmt(nm.rrw_rad_s_per_sqrt_s)} rad/s/sqrt(s), GM sigma {fmt(nm.gm_sigma_rad_s)} rad/s "
+            f"tau {fmt(nm.gm_tau_c_s)} s")
+        return dict(covariance="noise_model", noise_model=nm)
+
     def _references(self, rec: Recording):
         """(omega_ref (N,3), weights (N,), method, notes)."""
         notes: list[str] = []
         if rec.ref_rate_rad_s is not None:
+            if self.ramp_margin_s > 0:
+                near = near_rate_changes(rec.t_s, rec.ref_rate_rad_s, self.ramp_margin_s)
+                if near.any() and np.count_nonzero(~near) >= 0.25 * rec.n:
+                    notes.append(f"left out {int(near.sum())} samples within {self.ramp_margin_s:g} s of a reference-rate "
+                                 "change (rate ramps: the gyro's own filter transient)")
+                    return rec.ref_rate_rad_s, (~near).astype(float), "rate_reference", notes
             # unit weights as a read-only broadcast view: no (N,) array for a long record
             return rec.ref_rate_rad_s, np.broadcast_to(1.0, (rec.n,)), "rate_reference", notes
         from .rotations import still_mask
@@ -542,7 +665,16 @@ class Calibrator:
         average = max(1, int(math.ceil(n_used / self.max_rows)))
         if average > 1:
             notes.append(f"fitted block means of {average} samples ({n_used} samples)")
-        opts = dict(weights=weights, average=average, covariance=self.covariance,
+        model_cov = self.covariance == "noise_model"
+        t_all = np.asarray(rec.t_s if store is None else store.t_s, float)
+        rate_hz = float((n_all - 1) / max(float(t_all[-1] - t_all[0]), 1e-300)) if n_all > 1 else float("nan")
+        # sample times since the first sample (flicker and random walk start there); a
+        # streamed record's fit gets the row intervals from the chunked path (t_s: only dt)
+        t_since = t_all - float(t_all[0])
+        # with the noise-model covariance the first fits (time offset, robust pass) use OLS
+        # standard errors; the model is identified on their residual, then used from the
+        # thermal order tests on
+        opts = dict(weights=weights, average=average, covariance="ols" if model_cov else self.covariance,
                     on_unobservable=self.on_unobservable)
         effects = list(self.effects)
         thermal = [e for e in effects if e in E.POLYNOMIAL]
@@ -591,12 +723,23 @@ class Calibrator:
                 bad |= ei > thr[i]
                 del ei
             bad &= used
+            if model_cov and self.noise is None:
+                opts.update(self._identified_noise(lambda i: first_axis(fit, i), bad | ~used, rate_hz, notes,
+                                                   None if w_ref is None else _shift_rate(t, w_ref, tau_total)))
             nb = int(bad.sum())
             # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
             if 0 < nb < 0.05 * used.sum():
                 weights = np.where(bad, 0.0, weights)
                 opts["weights"] = weights
                 notes.append(f"excluded {nb} samples with residual > 6 robust sigma (transients)")
+        if model_cov and "noise_model" not in opts:
+            if self.noise is not None:
+                opts.update(covariance="noise_model", noise_model=self.noise, t_s=t_since)
+                notes.append("standard errors: noise-model sandwich (noise model given)")
+            else:
+                opts.update(self._identified_noise(lambda i: first_axis(fit, i), ~(weights > 0), rate_hz, notes,
+                                                   None if w_ref is None else _shift_rate(t, w_ref, tau_total)))
+            opts["t_s"] = t_since
         # 2) thermal order from the data, then the final fit (the first fit's full-resolution
         #    residual is no longer needed: free it before the next fits)
         fit = None
@@ -635,8 +778,16 @@ class Calibrator:
             unobservable=fit.unobservable, unobservable_reason=dict(fit.unobservable_reason),
             method=method, covariance=fit.cov_kind, n_samples=int(np.sum(opts["weights"] > 0)),
             thermal_order=orders, thermal_tests=tuple(t_.__dict__ for t_ in tests),
-            notes=tuple(notes), **common,
+            notes=tuple(notes), noise_model=_noise_model_dict(opts.get("noise_model"), rate_hz), **common,
         )
+
+
+def _noise_model_dict(nm, rate_hz: float) -> dict | None:
+    if nm is None:
+        return None
+    out: dict = {k: np.broadcast_to(np.asarray(getattr(nm, k), float), (3,)).copy() for k in _NOISE_MODEL_KEYS}
+    out["rate_hz"] = float(rate_hz)
+    return out
 
 
 # ============================================================================ parameter file
@@ -667,6 +818,9 @@ def result_to_dict(res: CalibrationResult) -> dict:
         "source": {"file": res.source_file, "sha256": res.source_sha256},
         "article_form": _jsonable(art) if art is not None else None,
         "integral": _jsonable(res.integral) if res.integral is not None else None,
+        "noise_model": ({k: ([None if not np.isfinite(x) else float(x) for x in np.asarray(v, float).reshape(-1)]
+                             if k != "rate_hz" else float(v)) for k, v in res.noise_model.items()}
+                        if res.noise_model else None),
         "created_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "units": "SI: rad, s, m/s^2, degC; parameter names carry their unit",
     }
@@ -716,8 +870,24 @@ def result_from_dict(d: Mapping, *, where: str = "parameter file") -> Calibratio
         sensor=str(d.get("sensor", "unknown")), source_file=src.get("file"), source_sha256=src.get("sha256"),
         n_samples=int(d.get("n_samples") or 0), thermal_order=dict(d.get("thermal_order") or {}),
         thermal_tests=tuple(d.get("thermal_tests") or ()), notes=tuple(d.get("notes") or ()),
-        integral=d.get("integral"), format_version=ver,
+        integral=d.get("integral"), noise_model=_noise_model_from(d.get("noise_model"), where),
+        format_version=ver,
     )
+
+
+_NOISE_MODEL_KEYS = ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_s_per_sqrt_s", "gm_sigma_rad_s", "gm_tau_c_s")
+
+
+def _noise_model_from(d, where: str) -> dict | None:
+    """The optional ``noise_model`` entry of a parameter file (null τc = inf)."""
+    if not d:
+        return None
+    try:
+        out = {k: _arr(d[k], null=np.inf if k == "gm_tau_c_s" else 0.0).reshape(3) for k in _NOISE_MODEL_KEYS}
+        out["rate_hz"] = float(d.get("rate_hz") or np.nan)
+    except (KeyError, TypeError, ValueError):
+        raise GyroInputError(f"{where}: malformed noise_model entry (needs {', '.join(_NOISE_MODEL_KEYS)}, 3 values each)") from None
+    return out
 
 
 def save_params(result: CalibrationResult, path: str | os.PathLike, *, overwrite: bool = True) -> None:
