@@ -141,15 +141,19 @@ def _fit_against_attitude(rec, names, path, thermal_order, sensor):
 @click.option("--arw-dps-rt-hz", type=float, default=0.0, show_default=True,
               help="with --bias-dps: white rate noise density N, deg/s/sqrt(Hz), for the noise of each integral")
 @click.option("--thermal-order", default="auto", show_default=True, help="auto (chosen from the data, up to 3) or 1..3")
-@click.option("--covariance", type=click.Choice(["auto", "ols", "hac", "newey_west", "block"]), default="auto",
-              show_default=True, help="standard errors: auto switches to hac when the residual is coloured")
+@click.option("--covariance", type=click.Choice(["auto", "ols", "hac", "newey_west", "block", "noise_model"]),
+              default="auto", show_default=True,
+              help="standard errors: auto switches to hac when the residual is coloured; noise_model: sandwich with "
+                   "the noise model identified (GMWM) on the fit residual")
+@click.option("--ramp-margin-s", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
+              help="leave out samples within this time of a reference-rate change (the gyro filter's transient)")
 @click.option("--px4-params", type=click.Path(dir_okay=False), default=None,
               help="also write PX4 TC_G0_* thermal parameters (QGC .params) — needs bias_thermal")
 @click.option("--sensor", default=None, help="sensor name for the parameter file (default: file metadata)")
 @click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
 def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, thermal_order, covariance,
-            px4_params, sensor, force, as_json):
+            ramp_margin_s, px4_params, sensor, force, as_json):
     """Fit the named effects against the references in FILE (reference rates, a reference
     attitude, known-angle segments, or still parts) and write the parameter file."""
     from ..effects import check_effect_names
@@ -191,7 +195,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
         _write_and_report(res, output, px4_params, as_json)
         return
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
-                     external_bias=ext)
+                     external_bias=ext, ramp_margin_s=ramp_margin_s)
     res = cal.fit(rec, source_path=file)
     _warn_unobservable(res)
     _write_and_report(res, output, px4_params, as_json)

@@ -23,21 +23,31 @@ def _fake_hover(rate=100.0, ground_s=3.0, flight_s=60.0):
     return SimpleNamespace(truth=truth, recording=SimpleNamespace(rate_hz=rate), params_true=params), ground_s
 
 
+def _cand(label, cost, se=None, unobservable=()):
+    return {"label": label, "cost_s": cost, "se": se, "t0_c": float("nan"), "unobservable": unobservable}
+
+
 def test_longer_window_and_longer_runs_predict_less_drift_and_choose_is_cheapest():
     res, ground = _fake_hover()
     groups = [ParameterGroup("scale", {"scale": {"s": np.zeros(3)}}, {"scale": {"s": np.full(3, 1e-3)}})]
-    rows = P.evaluate_grid(res, ground, groups, windows=(0.5, 2.0, 8.0), table=(0.25, 1.0), thermal=(1.0,))
-    ref = {r["window_s"]: r for r in rows if r["table_fraction"] == 1.0}
+    table = [_cand("ref", 387.0), _cand("quarter", 97.0, {"scale": np.full(3, 2e-3)}),
+             _cand("3 mounts", 50.0, {"scale": np.full(3, 1e-3)}, ("g_sensitivity.h_rad_s_per_m_s2[1]",))]
+    rows = P.evaluate_grid(res, ground, groups, windows=(0.5, 2.0, 8.0), table=table)
+    ref = {r["window_s"]: r for r in rows if r["table"] == "ref"}
     # white noise of the window: σ_b² = N²/T_w; a longer window always helps at this noise level
     assert ref[0.5]["final_deg"] > ref[2.0]["final_deg"] > ref[8.0]["final_deg"]
     # the floor hardly depends on the protocol: a later take-off only adds flicker power since
     # the power-up (the process starts at rest; its low-frequency variance grows like ln t)
     assert ref[0.5]["floor_rms_deg"] <= ref[8.0]["floor_rms_deg"] < 1.15 * ref[0.5]["floor_rms_deg"]
-    # a quarter of the table time: SE × 2 on the scale group → more drift
-    short = {r["window_s"]: r for r in rows if r["table_fraction"] == 0.25}
+    # the short table run: SE × 2 on the scale group → 4× its variance, more drift
+    short = {r["window_s"]: r for r in rows if r["table"] == "quarter"}
     assert short[2.0]["final_deg"] > ref[2.0]["final_deg"]
+    np.testing.assert_allclose(short[2.0]["table_deg"], 2.0 * ref[2.0]["table_deg"], rtol=1e-9)
     target = P.Target("t", final_deg=ref[2.0]["final_deg"] * 1.0001)
     best = P.choose(rows, target)
-    ok = [r for r in rows if target.met(r["pred"])]
+    ok = [r for r in rows if r["eligible"] and target.met(r["pred"])]
     assert best is not None and best["cost_s"] == min(r["cost_s"] for r in ok)
+    # a candidate that cannot observe a parameter is never chosen, however cheap
+    assert all(not r["eligible"] for r in rows if r["table"] == "3 mounts")
+    assert best["table"] != "3 mounts"
     assert P.choose(rows, P.Target("impossible", final_deg=1e-9)) is None
