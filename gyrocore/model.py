@@ -739,6 +739,7 @@ class Calibrator:
             else:
                 opts.update(self._identified_noise(lambda i: first_axis(fit, i), ~(weights > 0), rate_hz, notes,
                                                    None if w_ref is None else _shift_rate(t, w_ref, tau_total)))
+        if model_cov:
             opts["t_s"] = t_since
         # 2) thermal order from the data, then the final fit (the first fit's full-resolution
         #    residual is no longer needed: free it before the next fits)

@@ -110,3 +110,38 @@ def test_noise_model_covariance_needs_the_model():
     t, A, names, slices = _design(600, 50.0)
     with pytest.raises(GyroInputError, match="noise model"):
         lsq.solve(np.zeros((600, 3)), A, names, slices, covariance="noise_model")
+
+
+def test_calibrator_noise_model_covariance_identifies_the_noise_and_keeps_it_in_the_parameter_file(tmp_path):
+    # A rate-table recording (6 mounts, ±rate plateaus with 0.2-s raised-cosine ramps) with white
+    # + flicker noise: the calibrator identifies N and B on the residual away from the ramps
+    # (GMWM), reports noise-model standard errors, and the parameter file round-trips the model.
+    from gyrocore.model import Calibrator, load_params, near_rate_changes, save_params
+    from gyrocore.recording import Recording
+
+    rate, n = 200.0, 200 * 180
+    t, A, _, _ = _design(n, rate)
+    w = A[:, :, 4] * 1.0  # ±1 rad/s plateaus about the mount's axis
+    ker = np.hanning(int(0.2 * rate))
+    w = signal.fftconvolve(w, (ker / ker.sum())[:, None], mode="same", axes=0)  # ramps instead of steps
+    f = A[:, 0, 1:4]
+    true = {"bias": {"b_rad_s": np.array([0.01, -0.02, 0.005])}, "scale": {"s": np.array([0.01, -0.02, 0.003])},
+            "g_sensitivity": {"h_rad_s_per_m_s2": np.full((3, 3), 2e-4)}}
+    inp = E.ModelInputs(t_s=t, omega_S_rad_s=w, f_S_m_s2=f)
+    rng = np.random.default_rng(7)
+    N, B = 1e-3, 6e-4  # Allan floor 0.664·B = 4e-4 rad/s above the white 1e-3/√τ beyond τ ≈ 6 s
+    y = E.deterministic(true, inp) + rng.standard_normal((n, 3)) * N * np.sqrt(rate) + _flicker(rng, n, B)
+    rec = Recording(t_s=t, gyro_rad_s=y, accel_m_s2=f, ref_rate_rad_s=w, meta={"sensor": "synthetic"})
+    assert 0.05 < near_rate_changes(t, w, 0.25).mean() < 0.5
+    res = Calibrator(effects=["bias", "scale", "g_sensitivity"], covariance="noise_model", ramp_margin_s=0.25).fit(rec)
+    assert res.covariance == "noise_model"
+    nm = res.noise()
+    # N from ≈ 1.5e5 samples per axis: a few % (GMWM); B from 3 min: within a factor 2
+    np.testing.assert_allclose(nm.arw_rad_per_sqrt_s, N, rtol=0.1)
+    assert np.all((nm.bias_instability_rad_s > B / 2) & (nm.bias_instability_rad_s < 2 * B))
+    assert any("left out" in x for x in res.notes) and any("GMWM" in x for x in res.notes)
+    assert np.all(np.isfinite(res.stderr["g_sensitivity"]["h_rad_s_per_m_s2"]))
+    save_params(res, tmp_path / "p.json")
+    back = load_params(tmp_path / "p.json")
+    np.testing.assert_allclose(back.noise().arw_rad_per_sqrt_s, nm.arw_rad_per_sqrt_s)
+    assert back.noise_model["rate_hz"] == pytest.approx(rate, rel=1e-9)
