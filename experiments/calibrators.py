@@ -274,9 +274,12 @@ class CoreCalibrator:
 
     name = "core"
 
-    def __init__(self, *, effects: Sequence[str] | None = None, cal_kw: Mapping | None = None) -> None:
+    def __init__(self, *, effects: Sequence[str] | None = None, cal_kw: Mapping | None = None,
+                 powerup_window_s: float | None = None) -> None:
         self.effects = None if effects is None else tuple(effects)
         self.cal_kw = dict(cal_kw) if cal_kw is not None else None
+        # still-window length of the power-up bias in apply(), s (None: ablation.POWERUP_WINDOW_S)
+        self.powerup_window_s = powerup_window_s
 
     def _effects_for(self, rec: Recording) -> tuple[str, ...]:
         if self.effects is not None:
@@ -331,7 +334,8 @@ class CoreCalibrator:
                             t_since_power_up_s=_since_power_up(rec))
         sensor = rec.meta.get("sensor")
         still = A.powerup_windows(rec, datasheet_noise_params(sensor),
-                                  bias_bound_rad_s=A.bias_bound_rad_s(sensor) if sensor else None)
+                                  bias_bound_rad_s=A.bias_bound_rad_s(sensor) if sensor else None,
+                                  window_s=self.powerup_window_s)
         return A.corrected_gyro(rec.gyro_rad_s, inp, list(params.stages), list(params.effects), still)
 
 
