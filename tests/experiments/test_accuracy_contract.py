@@ -9,10 +9,13 @@ truth, and its error *predicted* from the calibration's own standard errors and 
 (:func:`experiments.ablation.ablate_instance`, :mod:`gyrocore.budget`). Checked per scenario
 (:func:`experiments.ablation.drift_contract_failures`):
 
-1. honesty: the geometric mean over the units of measured/predicted RMS error lies in a band;
-2. quality: the geometric mean of predicted/floor RMS error stays below a bound (the
-   prediction is nearly deterministic, so this band is tight: a shorter still window, a worse
-   protocol or inflated standard errors move it);
+1. honesty: the geometric mean over the units of measured/predicted RMS error lies in a band
+   (prediction from the calibration's noise-model standard errors and the noise model it
+   identified);
+2. quality: the geometric mean of predicted/floor RMS error (both with the unit's true noise,
+   so that it moves with the protocol and the standard errors, not with the identification's
+   scatter) stays below a bound (nearly deterministic, so this band is tight: a shorter still
+   window, a worse protocol or inflated standard errors move it);
 3. pooled honesty over all scenarios (a shift common to all);
 4. every correction that pays off in the Monte Carlo still does: RMS(all but X) > RMS(all).
 
@@ -39,20 +42,22 @@ CONTRACT_UNITS = (20240607, 20240608)
 #: Effects that must keep paying off per scenario (omitting them raised the RMS error by ≥ 5 %
 #: in every unit of the Monte Carlo; contract_thresholds(...)["pays_off"]).
 PAYS_OFF = {'static': ['bias'], 'static_bumped': ['bias'], 'turntable': ['bias', 'scale', 'misalignment', 'g_sensitivity'],
-            'thermal': ['bias', 'bias_thermal', 'misalignment'], 'hover': ['bias'], 'power_cycles': ['bias']}
+            'thermal': ['bias', 'bias_thermal'], 'hover': ['bias'], 'power_cycles': ['bias']}
 
 #: Bands of the drift contract for len(CONTRACT_UNITS) units, from
-#: drift_thresholds(contract_campaign(instances=12, seed=1)) (docs/accuracy.md); the bands for
-#: n units are evaluated by experiments.ablation.drift_bands.
+#: drift_thresholds(contract_campaign(instances=12, seed=1)) (docs/accuracy.md; issue 12, second
+#: session: noise-model standard errors, identified noise, rate ramps left out of the fits,
+#: quality with the true noise); the bands for n units are evaluated by
+#: experiments.ablation.drift_bands.
 DRIFT_THRESHOLDS = {
     "alpha": 1e-4,
     "scenarios": {
-        "static": {"mc_units": 12, "honesty_mean": -0.0989, "honesty_sd": 0.5709, "quality_mean": 0.60223, "quality_sd": 7.52e-05},
-        "static_bumped": {"mc_units": 12, "honesty_mean": -0.2861, "honesty_sd": 0.4229, "quality_mean": 0.45321, "quality_sd": 1.21e-05},
-        "turntable": {"mc_units": 12, "honesty_mean": -0.2686, "honesty_sd": 0.3001, "quality_mean": 0.77134, "quality_sd": 3.09e-03},
-        "thermal": {"mc_units": 12, "honesty_mean": -0.3032, "honesty_sd": 0.2935, "quality_mean": 0.40148, "quality_sd": 1.05e-01},
-        "hover": {"mc_units": 12, "honesty_mean": -0.1228, "honesty_sd": 0.3287, "quality_mean": 0.44906, "quality_sd": 6.52e-05},
-        "power_cycles": {"mc_units": 12, "honesty_mean": -0.0535, "honesty_sd": 0.2961, "quality_mean": -0.17987, "quality_sd": 7.46e-05},
+        "static": {"mc_units": 12, "honesty_mean": -0.06981, "honesty_sd": 0.59472, "quality_mean": 0.6022, "quality_sd": 6.64e-06},
+        "static_bumped": {"mc_units": 12, "honesty_mean": -0.25671, "honesty_sd": 0.40243, "quality_mean": 0.4532, "quality_sd": 1.06e-06},
+        "turntable": {"mc_units": 12, "honesty_mean": -0.06231, "honesty_sd": 0.26661, "quality_mean": 0.48885, "quality_sd": 2.89e-02},
+        "thermal": {"mc_units": 12, "honesty_mean": -0.13632, "honesty_sd": 0.38513, "quality_mean": 0.298, "quality_sd": 7.81e-03},
+        "hover": {"mc_units": 12, "honesty_mean": -0.10284, "honesty_sd": 0.35543, "quality_mean": 0.44904, "quality_sd": 4.73e-05},
+        "power_cycles": {"mc_units": 12, "honesty_mean": -0.03462, "honesty_sd": 0.31706, "quality_mean": -0.17991, "quality_sd": 6.45e-06},
     },
 }
 
