@@ -99,6 +99,7 @@ __all__ = [
     "sensitivity",
     "predict_error",
     "rotation_matrices",
+    "identified_term",
 ]
 
 FORMAT_VERSION = "1.0"
@@ -106,6 +107,25 @@ _NOISE_TERMS = ("arw", "bias_instability", "rrw", "correlated")
 
 
 # ============================================================================ inputs
+def identified_term(axis, name: str) -> float:
+    """One noise term of an identified axis (:class:`gyrocore.allan.NoiseAxis`) for a noise
+    *model*: the resolved value; for a term fitted but *ambiguous* (GMWM's stand-in check:
+    flicker and a Gauss–Markov term fit equally well, ``axis.ambiguous``) its fitted estimate —
+    the slow noise is there, only its name is uncertain, and dropping it made the standard
+    errors too small; else 0."""
+    v = getattr(axis, name, None)
+    if v is not None:
+        return float(v)
+    amb = getattr(axis, "ambiguous", None) or {}
+    est = getattr(axis, "estimate", None) or {}
+    tau_of = {"correlated_tau_c_s": "correlated_sigma_rad_s"}
+    key = tau_of.get(name, name)
+    if key in amb and est.get(name) is not None and np.isfinite(est.get(name)):
+        return float(est[name])
+    return 0.0
+
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     """Identified (or datasheet) noise of one gyro, per axis.
@@ -154,7 +174,7 @@ class NoiseModel:
         """From an identified noise model (:func:`gyrocore.allan.identify_noise`, a
         ``NoiseResult`` with axes x, y, z): the *selected* terms N, B, K and Gauss–Markov (σ, τc)
         per axis; a term the identification did not resolve is 0 (the model selection found
-        no evidence for it). Angle quantization Q and the rate ramp R are not used (Q is white
+        no evidence for it), an *ambiguous* one its fitted estimate (:func:`identified_term`). Angle quantization Q and the rate ramp R are not used (Q is white
         angle noise: its rate-mean variance 2·Q²/T² is negligible beyond a few samples; R is a
         deterministic drift, fitted where it matters as ``bias_ramp``). A missing axis takes the
         mean of the others."""
@@ -166,8 +186,8 @@ class NoiseModel:
             if ax is None:
                 continue
             for k in names:
-                v = getattr(ax, k, None)
-                vals[k][i] = float(v) if v is not None else (np.inf if k == "correlated_tau_c_s" else 0.0)
+                v = identified_term(ax, k)
+                vals[k][i] = v if (v > 0 or k != "correlated_tau_c_s") else np.inf
         for k in names:
             v = vals[k]
             ok = np.isfinite(v) | (k == "correlated_tau_c_s")

@@ -579,11 +579,12 @@ class Calibrator:
                 warnings.simplefilter("ignore")  # the short-record note of identify_noise
                 ax = identify_noise(x, rate_hz=rate_hz, check_static=False).axes["x"]
             del x
+            from .budget import identified_term
+
             for k in vals:
-                v = getattr(ax, k, None)
-                vals[k][i] = float(v) if v is not None else 0.0
-            if vals["correlated_sigma_rad_s"][i] > 0 and ax.correlated_tau_c_s is not None:
-                tau[i] = float(ax.correlated_tau_c_s)
+                vals[k][i] = identified_term(ax, k)
+            if vals["correlated_sigma_rad_s"][i] > 0:
+                tau[i] = identified_term(ax, "correlated_tau_c_s") or np.inf
         nm = NoiseModel(arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"], bias_instability_rad_s=vals["bias_instability_rad_s"],
                         rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"], gm_sigma_rad_s=vals["correlated_sigma_rad_s"],
                         gm_tau_c_s=tau)
