@@ -132,14 +132,16 @@ def validate_spec(spec: Mapping[str, Any]) -> None:
 
 def _predicted_rms_deg(res, core_params, present, still, start: int) -> float:
     """The drift prediction of the core's RMS error (``experiments.ablation.predict_instance``,
-    helper "drift", issue 12) where it exists; NaN otherwise."""
+    issue 12) with the noise model the core's calibration identified (not the unit's true noise:
+    the same prediction the ablation reports), where it exists; NaN otherwise."""
     from . import ablation as A
 
     fn = getattr(A, "predict_instance", None)
     if fn is None:
         return float("nan")
     try:
-        return float(fn(res, list(core_params.stages), present, still, start).rms_predicted_deg)
+        nm = A.identified_noise(core_params, float(res.recording.rate_hz))  # as the ablation predicts
+        return float(fn(res, list(core_params.stages), present, still, start, noise=nm).rms_predicted_deg)
     except Exception:  # noqa: BLE001 - the prediction is optional beside the measured score
         return float("nan")
 

@@ -360,9 +360,21 @@ def test_predicted_column_appears_when_the_drift_prediction_exists(monkeypatch, 
 
     from experiments import ablation as A
 
-    monkeypatch.setattr(A, "predict_instance", lambda res, cal, present, still, start:
-                        SimpleNamespace(rms_predicted_deg=0.25), raising=False)
-    assert SC._predicted_rms_deg(None, SimpleNamespace(stages=()), [], [], 0) == 0.25
+    seen = {}
+
+    def stub(res, cal, present, still, start, *, noise=None):
+        seen["noise"] = noise
+        return SimpleNamespace(rms_predicted_deg=0.25)
+
+    monkeypatch.setattr(A, "predict_instance", stub, raising=False)
+    # the prediction uses the noise model the core's calibration identified (the run at the
+    # scored rate), as the ablation's does, not the unit's true noise
+    identified = object()
+    stage = SimpleNamespace(noise_model={"rate_hz": 100.0}, noise=lambda: identified)
+    other = SimpleNamespace(noise_model={"rate_hz": 1000.0}, noise=lambda: None)
+    res = SimpleNamespace(recording=SimpleNamespace(rate_hz=100.0))
+    assert SC._predicted_rms_deg(res, SimpleNamespace(stages=(), results=(other, stage)), [], [], 0) == 0.25
+    assert seen["noise"] is identified
     units = [SC.UnitScore("static", "icm42688p", i, i, {"none": 2.0, "core": 0.2, "user": 0.4, "floor": 0.1},
                           {r: 1.0 for r in SC.ROWS}, rms_predicted_deg=0.25) for i in range(3)]
     s = SC.scenario_summary(units)
