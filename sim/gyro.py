@@ -817,7 +817,7 @@ class GyroNoise:
         total = np.zeros((m, 3))
         out = {}
         for eff, g in self.terms:
-            x = g.take(m) if hasattr(g, "take") else g.next(m)
+            x = g.take(m)
             total += x
             if parts:
                 out[eff] = x

@@ -616,3 +616,6 @@ class ShapedNoise:
         self._chunks = [rest] if rest.shape[0] else []
         self._have = rest.shape[0]
         return out
+
+    #: the block-generator name of :meth:`next` (sim.gyro.GyroNoise calls ``take`` on every term)
+    take = next

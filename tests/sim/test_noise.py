@@ -129,6 +129,9 @@ GENERATORS = {
     "arw_student": lambda: noise.LowpassWhiteNoise(np.random.default_rng(26), rate_hz=1000.0,
                                                    n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4], bandwidth_hz=90.0, nu=[5.0, 6.0, 30.0]),
     "angle_white": lambda: noise.AngleWhiteNoise(np.random.default_rng(27), rate_hz=1000.0, q_rad=[1e-5, 2e-5, 3e-6]),
+    # the shaped vibration (fixed internal FFT blocks, served in the caller's blocks)
+    "shaped": lambda: noise.ShapedNoise(np.random.default_rng(28), noise.shaped_taps(
+        50.0 + np.arange(60.0), np.vstack([np.full(60, 1e-4), np.full(60, 2e-4), np.zeros(60)]), rate_hz=1000.0)),
 }
 
 
