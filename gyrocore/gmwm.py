@@ -253,6 +253,32 @@ def _edf(alpha: int, m: int, n_phase: int) -> float:
     return max(e, 1.0)
 
 
+_ALPHAS = np.array([-2, -1, 0, 2])
+
+
+@functools.lru_cache(maxsize=64)
+def _pure_spec_edf(m_key: tuple[int, ...], n: int) -> np.ndarray:
+    """edf_spec (without the 1/M factor, as in :func:`avar_covariance`) of each pure power law
+    α = −2 (K), −1 (B), 0 (N), 2 (Q) at factors m; shape (4, M). Scale-free, so unit levels
+    at rate 1 Hz."""
+    nu, w = _grid(n)
+    s4, fast = _filters(m_key, n)
+    sn2 = np.sin(np.pi * nu) ** 2
+    mm = np.array(m_key, float)[:, None]
+    H2 = 4.0 * s4 / (mm**2 * sn2[None, :])
+    pf = np.diag(_pair_factor(m_key))[:, None]
+    out = np.empty((4, len(m_key)))
+    for k, idx in enumerate((3, 2, 1, 0)):  # K, B, N, Q columns of the coefficient vector
+        c = np.zeros(6)
+        c[idx] = 1.0
+        G = H2 * _spectrum(nu, 1.0, c, None)[None, :]
+        d = (G * G * w[None, :]).sum(axis=1) + (np.where(fast, G, 0.0) ** 2 * w[None, :]).sum(axis=1) * (pf[:, 0] - 1.0)
+        lv = (G * w[None, :]).sum(axis=1)
+        out[k] = 2.0 * lv**2 / np.maximum(d, np.finfo(float).tiny)
+    out.setflags(write=False)
+    return out
+
+
 def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray, tau_c_s: float | None,
                     model: np.ndarray, *, method: str = "gmwm") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Covariance (M, M) of the overlapping AVAR estimates under the model; also edf (M,), α (M,).
@@ -279,6 +305,7 @@ def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray
     # (35/128 for equal m, 7/64 for m_j = 2 m_i, 9/64 otherwise)
     Gf = np.where(fast, G, 0.0)
     C = C + ((Gf * w[None, :]) @ Gf.T) * (_pair_factor(key) - 1.0)
+    lvl = (G * w[None, :]).sum(axis=1)  # the model's AVAR from the same integral
     d = np.sqrt(np.diag(C))
     R = C / np.outer(d, d)
     Mt = (n_samples - 2 * m).astype(float)
@@ -290,6 +317,20 @@ def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray
     mu = np.gradient(lm, lt) if m.size > 1 else np.array([-1.0])
     alpha = _alpha_of_slope(mu)
     edf = np.array([_edf(int(a), int(v), int(n_samples) + 1) for a, v in zip(alpha, m)])
+    # Mixtures (round 3): Greenhall's EDF is that of ONE power law; where two terms share an
+    # octave (white angle Q and white rate N over m = 1…3Q²f_s/N² at 1 kHz) Var σ̂² is not
+    # that law's. The large-sample variance Var σ̂²_j ≈ 2∫|H_j|⁴S² dν / M_j (Percival & Walden
+    # eq. 308; the diagonal of C above) gives edf_spec = 2σ⁴_j M_j / ∫|H_j|⁴S², which is
+    # Greenhall's for a pure law within 1 % over the middle octaves (m = 64 … n/2¹⁰ at
+    # n = 6·10⁵; off by up to 30 % at m ≤ 4 from the grid and by far at the last octaves).
+    # The EDF used is Greenhall's times the mixture's edf_spec over the pure law's edf_spec
+    # at the same m: unchanged for a pure law, Greenhall's finite-M form kept at the last
+    # octaves, the mixture's variance in the shared octaves (white-PM EDF ≈ n/2 at m = 64
+    # became 3.5× too large with Q + N at 1 kHz: N's interval covered 62–79 %).
+    e_mix = 2.0 * lvl**2 / np.maximum(np.diag(C), np.finfo(float).tiny)
+    e_pure = _pure_spec_edf(key, int(n_samples))
+    ratio = e_mix / e_pure[np.searchsorted(_ALPHAS, alpha), np.arange(m.size)]
+    edf = np.maximum(edf * np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0), 1.0)
     sd = np.sqrt(2.0 / edf) * model
     try:  # positive definite (the usual case): no eigen-decomposition needed
         np.linalg.cholesky(R - 1e-9 * np.eye(R.shape[0]))
