@@ -622,6 +622,18 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
             if np.isfinite(b2) and np.isfinite(f2):
                 half = 1.0 - f2 / max(b2, 1e-300)
                 cv_red = half if not np.isfinite(cv_red) else min(cv_red, half)
+            elif SLOW_OPEN_HALVES and _slow_open_term(cand):
+                # a slow open term (a library product with t) where a half cannot identify
+                # the joint model (a rate table turning one axis per phase): as the interleaved
+                # fallback above, the candidate's own columns fitted to the current residual on
+                # one half must predict the other. Without it the guard is silent exactly where
+                # a t-term can be fitted to wander (mpu6050 turntable null, seed 0:
+                # regressor[omega_z*t] on y, docs/loop.md §4c)
+                Xc, _, _ = model.design(added)
+                h2 = _cv_rms(e_current, Xc, min_windows=mw, n_blocks=2)
+                if np.isfinite(h2):
+                    half = 1.0 - h2 / max(_rms(e_current), 1e-300)
+                    cv_red = half if not np.isfinite(cv_red) else min(cv_red, half)
     ev = Evidence(
         statistic=F, df1=q, df2=df2, p_value=p, log10_p=lp, threshold=threshold,
         params={n: float(fit.theta[p_]) for n, p_ in zip(names, cols)},
@@ -634,6 +646,22 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
         hac_log10_p=lp_hac, model_log10_p=lp_mod,
     )
     return ev, fit
+
+
+#: The halves guard's own-columns fallback for slow open terms (:func:`_slow_open_term`);
+#: off only to measure the loop without it (docs/loop.md §4c).
+SLOW_OPEN_HALVES = True
+
+
+def _slow_open_term(cand: str) -> bool:
+    """True for an open regressor candidate (``regressor[...]@axis``) with a factor ``t``."""
+    if not cand.startswith("regressor["):
+        return False
+    expr = cand[len("regressor["): cand.rindex("]")]
+    try:
+        return "t" in S.term_factors(expr)
+    except Exception:
+        return False
 
 
 #: Run the second, noise-model-based Wald test of :func:`_model_wald` (both must reject). Off
@@ -1045,7 +1073,8 @@ def loop_residual(
         return {"statistic": ev.statistic, "df1": ev.df1, "df2": ev.df2, "p_value": ev.p_value, "log10_p": ev.log10_p,
                 "threshold": ev.threshold, "cv_rms_reduction": ev.cv_rms_reduction,
                 "rms_reduction": ev.rms_reduction, "attitude_reduction": ev.attitude_reduction,
-                "params": ev.params, "std_errors": ev.std_errors}
+                "params": ev.params, "std_errors": ev.std_errors,
+                "hac_log10_p": ev.hac_log10_p, "model_log10_p": ev.model_log10_p}
 
     for _ in range(max_steps + max_open_steps):
         remaining = [c for c in cands if c not in model_effects]
@@ -1306,11 +1335,26 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
             eq = S.catalogue_equivalent(term, i)
             if eq is not None or f"regressor[{term}]@{i}" in model_effects:
                 exclude.add((term, i))
-    lib = S.screen_library(res, X0, e, sig, terms, exclude, n_par) if terms else None
+    Xlib = S.library_windows(res, terms) if terms else None
+    # a product that is numerically one of its factors on this recording (f_x*t in a still
+    # log is a ramp t) is that factor: screened under the factor's own name, or, when the
+    # factor is a catalogue term, already tested (and kept or refused) as that effect
+    equiv = {}
+    if terms:
+        for (term, i), simple in S.collinear_simpler(res, X0, sig, terms, Xlib).items():
+            if (term, i) in exclude:
+                continue
+            exclude.add((term, i))
+            cat = S.catalogue_equivalent(simple, i)
+            equiv[f"{term}@{'xyz'[i]}"] = (f"{cat} (tested in the catalogue step)" if cat is not None
+                                           else f"regressor[{simple}]")
+    lib = S.screen_library(res, X0, e, sig, terms, exclude, n_par, Xlib) if terms else None
     if lib is not None:
         thr = alpha * S.ALPHA_SHARE["regressor"] / lib.n_tested
         open_last["regressor"] = {"term": lib.term, "axis": "xyz"[lib.axis], "score_F": lib.statistic,
                                   "log10_p": lib.log10_p, "threshold": thr, "n_tested": lib.n_tested}
+        if equiv:
+            open_last["regressor"]["collinear_with_simpler"] = equiv
         if lib.p_value < thr:
             name = S.canonical(f"regressor[{lib.term}]")
             ev, _ = open_term_test(f"{name}@{lib.axis}", thr, cv_base)

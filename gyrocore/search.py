@@ -72,6 +72,7 @@ __all__ = [
     "term_values",
     "family_design",
     "catalogue_equivalent",
+    "collinear_simpler",
     "library_terms",
     "screen_library",
     "harmonic_f_test",
@@ -443,6 +444,75 @@ def _slice_inputs(inp, lo: int, hi: int):
                          t_since_power_up_s=inp.since_power_up()[lo:hi])
 
 
+#: A product term whose window column, projected off the current model, has less than this
+#: fraction of its (weighted) norm² outside the span of one of its factors' columns is that
+#: factor in disguise on this recording (``f_x*t`` on a still log, where f_x is constant, is
+#: a ramp ``t``). With ρ² = 1 − δ the score statistic of the product is
+#: z_ab = ρ·z_a + √δ·z_r (z_r ⟂ z_a, N(0, 1) under the null of the rest), so at δ = 0.01 its
+#: own direction adds at most 0.1 σ to a score that is ≥ 0.995 of the factor's: any
+#: detection of the product is a detection of the factor.
+COLLINEAR_DELTA = 0.01
+
+
+def collinear_simpler(res, X0: np.ndarray, sigma: np.ndarray, terms: Sequence[str],
+                      Xlib: np.ndarray | None = None) -> dict:
+    """Product terms that are numerically one of their factors on this recording.
+
+    Parameters
+    ----------
+    res : Residual
+    X0 : (M, 3, P) ndarray
+        The current model's window design.
+    sigma : (3,) ndarray
+        Per-axis residual scale (rad/s) of the weighted fit.
+    terms : sequence of str
+        The library (:func:`library_terms`).
+    Xlib : (M, 3, 3·T) ndarray, optional
+        :func:`library_windows` of ``terms`` (computed when omitted).
+
+    Returns
+    -------
+    dict
+        ``{(term, axis): simpler_term}`` for every product term on axis ``axis`` whose column,
+        projected off X0 (Frisch–Waugh–Lovell, axis weights 1/σ), has a fraction
+        1 − ρ² < :data:`COLLINEAR_DELTA` of its norm² outside the span of one factor's column
+        (the factor with the largest ρ²). The caller reports such a term as the simpler one
+        (or as its catalogue equivalent, :func:`catalogue_equivalent`), never under the
+        product's name.
+    """
+    Xlib = library_windows(res, terms) if Xlib is None else Xlib
+    sw = 1.0 / np.maximum(np.asarray(sigma, float), 1e-300)
+    Xw = _weighted(X0, sw)
+    pos = {t: k for k, t in enumerate(terms)}
+    out = {}
+    for k, term in enumerate(terms):
+        fs = sorted(set(term_factors(term)), key=BASE_SIGNALS.index)
+        if len(term_factors(term)) < 2:
+            continue
+        subs = [(f, pos[f]) for f in fs if f in pos]
+        if not subs:
+            continue
+        for i in range(3):
+            cols = [3 * k + i] + [3 * kk + i for _, kk in subs]
+            P = _project_off(Xw, _weighted(Xlib[:, :, cols], sw))
+            c = P[:, 0]
+            nc = float(c @ c)
+            if not nc > 0:
+                continue
+            best, best_r2 = None, 0.0
+            for j, (f, _) in enumerate(subs):
+                a = P[:, j + 1]
+                na = float(a @ a)
+                if not na > 0:
+                    continue
+                r2 = float(a @ c) ** 2 / (na * nc)
+                if r2 > best_r2:
+                    best, best_r2 = f, r2
+            if best is not None and 1.0 - best_r2 < COLLINEAR_DELTA:
+                out[(term, i)] = best
+    return out
+
+
 @dataclass(frozen=True)
 class LibraryScreen:
     """Best library column by the score test: term, axis, statistic, p-value, columns tested."""
@@ -488,7 +558,7 @@ def score_tests(X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, C: np.ndarray)
 
 
 def screen_library(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, terms: Sequence[str],
-                   exclude: set, n_params: int) -> LibraryScreen | None:
+                   exclude: set, n_params: int, Xlib: np.ndarray | None = None) -> LibraryScreen | None:
     """Score-test every (term, axis) of the library not excluded; the best one.
 
     ``exclude`` holds (term, axis) pairs already in the model or equivalent to a catalogue
@@ -498,7 +568,7 @@ def screen_library(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, terms:
     cols = [(k, i) for k, term in enumerate(terms) for i in range(3) if (term, i) not in exclude]
     if not cols:
         return None
-    Xlib = library_windows(res, terms)
+    Xlib = library_windows(res, terms) if Xlib is None else Xlib
     C = Xlib[:, :, [3 * k + i for k, i in cols]]
     F, _ = score_tests(X0, e, sigma, C)
     df2 = max(3 * res.m - n_params - 1, 1)

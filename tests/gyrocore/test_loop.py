@@ -251,6 +251,18 @@ def test_measured_static_logs(shared_data):
                    for f in r.found_effects)
 
 
+def test_still_log_drift_is_not_a_product_in_disguise(shared_data):
+    """tomisuarez2 static 449 s: the catalogue refuses ``bias_ramp`` (its drift does not carry
+    half to half); the open search used to name the z drift ``regressor[f_x*t]`` (log10 p
+    −4.7) — with f_x constant on a still log that is a one-axis ramp under another name. It is
+    now refused as bias_ramp's equivalent (docs/loop.md §4c)."""
+    c = _load(shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv")
+    r = run_loop(c.recording, declared=["bias"])
+    eq = r.open_search["regressor"]["collinear_with_simpler"]
+    assert eq["f_x*t@z"].startswith("bias_ramp")
+    assert not any(u.kind == "regressor" and "*t" in u.effect for u in r.unexplained)
+
+
 def test_measured_sunsided_session_hand_turns(shared_data):
     """Static + three 2-turn hand rotations of set-2, angle about the axis only.
 

@@ -295,3 +295,26 @@ def test_open_search_rates_monte_carlo():
     rows += open_search_rates(kinds=("step",), sizes=(2.0,), seeds=range(1000, 1010))
     for r in rows:
         assert r["described"] >= 0.9, r
+
+
+def test_constant_factor_product_is_its_simpler_term():
+    """Still log, gravity on x: f_x is a constant plus 0.01 m/s² noise, so f_x·t is the ramp
+    t in disguise (1 − ρ² ≈ (0.01/9.81)² ≈ 1e-6 ≪ COLLINEAR_DELTA): refused as ``bias_ramp``
+    (its catalogue equivalent, tested in the catalogue step), never named
+    ``regressor[f_x*t]``. f_y·t and f_z·t (zero-mean noise × t) are not ramps (ρ² ≈ 0): they
+    stay in the library. On a moving recording no f_j·t is collinear with t."""
+    rng = np.random.default_rng(5)
+    n = 120 * 100
+    t = np.arange(n) / 100.0
+    gyro = 0.01 + np.array([0.0, 0.0, 1e-5]) * t[:, None] + rng.standard_normal((n, 3)) * 0.002
+    rec = Recording(t_s=t, gyro_rad_s=gyro,
+                    accel_m_s2=np.tile([9.81, 0, 0], (n, 1)) + rng.standard_normal((n, 3)) * 0.01)
+    # bias_ramp left out of the catalogue step so the drift reaches the open search
+    r = run_loop(rec, declared=["bias"], reference="still", candidates=["g_sensitivity"])
+    eq = r.open_search["regressor"]["collinear_with_simpler"]
+    assert set(eq) == {"f_x*t@x", "f_x*t@y", "f_x*t@z"}
+    assert all(v.startswith("bias_ramp") for v in eq.values())
+    assert not any("f_x*t" in u.effect for u in r.unexplained)
+    moving = run_loop(_rec(30), declared=["bias"])
+    eq = moving.open_search.get("regressor", {}).get("collinear_with_simpler", {})
+    assert not {k.split("@")[0] for k in eq} & {"f_x*t", "f_y*t", "f_z*t"}
