@@ -10,7 +10,9 @@ family-wise error control (a weighted Holm/Bonferroni split of α, see :data:`AL
   — and their products and squares (degree 2, across axes), each on each gyro axis. A term
   that a catalogue effect already spans (:func:`catalogue_equivalent`: ``omega_y`` on x is
   ``misalignment``, ``f_x*f_z`` is ``g2_sensitivity``, ``t`` is ``bias_ramp`` ...) is not in
-  the library: it was tested under its catalogue name. Selection is **forward stepwise on
+  the library: it was tested under its catalogue name; nor is a product that is numerically
+  one of its factors on the recording (:func:`collinear_simpler`: ``f_x*t`` in a still log is
+  the ramp ``t``). Selection is **forward stepwise on
   the same HAC statistics as the catalogue**: every column is screened by a score (Lagrange
   multiplier) test — the column is projected off the current model (Frisch–Waugh–Lovell),
   its inner product with the residual is referred to its variance under the residual's
