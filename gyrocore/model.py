@@ -429,20 +429,26 @@ class Calibrator:
         self.still_false_reject_rate = float(still_false_reject_rate)
         self.sensor = sensor
 
-    # ------------------------------------------------------------------ public
-    def fit(self, recording: Recording, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
-        """Fit the effects; ``source_path`` (the data file) is recorded by name and SHA-256."""
+    def _common(self, meta, source_path, *, has_accel: bool, has_temp: bool) -> dict:
+        """The result fields every fit path shares (sensor, data file name and SHA-256), after
+        checking that the data carry the columns the effects need (one ``error:`` line)."""
+        for eff in self.effects:
+            if _needs_accel(eff) and not has_accel:
+                raise GyroInputError(f"effect {eff} needs the accel_*_m_s2 columns, which the data lack")
+            if _needs_temp(eff) and not has_temp:
+                raise GyroInputError(f"effect {eff} needs the temp_c column, which the data lack")
         src_name = src_sha = None
         if source_path is not None:
             src_name = Path(source_path).name
             src_sha = file_sha256(source_path)
-        sensor = self.sensor or str(recording.meta.get("sensor", "unknown"))
-        for eff in self.effects:
-            if _needs_accel(eff) and recording.accel_m_s2 is None:
-                raise GyroInputError(f"effect {eff} needs the accel_*_m_s2 columns, which the data lack")
-            if _needs_temp(eff) and recording.temp_c is None:
-                raise GyroInputError(f"effect {eff} needs the temp_c column, which the data lack")
-        common = dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
+        sensor = self.sensor or str(meta.get("sensor", "unknown"))
+        return dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
+
+    # ------------------------------------------------------------------ public
+    def fit(self, recording: Recording, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
+        """Fit the effects; ``source_path`` (the data file) is recorded by name and SHA-256."""
+        common = self._common(recording.meta, source_path, has_accel=recording.accel_m_s2 is not None,
+                              has_temp=recording.temp_c is not None)
         if self.segments is not None:
             return self._fit_integral(recording, common)
         return self._fit_lsq(recording, common)
@@ -462,17 +468,8 @@ class Calibrator:
             raise GyroInputError("the integral method (segments) needs the recording in memory")
         if not all(c in store.names for c in REF_RATE_COLS):
             raise GyroInputError("a streamed fit needs reference rates (ref_*_rad_s)")
-        src_name = src_sha = None
-        if source_path is not None:
-            src_name = Path(source_path).name
-            src_sha = file_sha256(source_path)
-        sensor = self.sensor or str(store.meta.get("sensor", "unknown"))
-        for eff in self.effects:
-            if _needs_accel(eff) and "accel_x_m_s2" not in store.names:
-                raise GyroInputError(f"effect {eff} needs the accel_*_m_s2 columns, which the data lack")
-            if _needs_temp(eff) and TEMP_COL not in store.names:
-                raise GyroInputError(f"effect {eff} needs the temp_c column, which the data lack")
-        common = dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
+        common = self._common(store.meta, source_path, has_accel="accel_x_m_s2" in store.names,
+                              has_temp=TEMP_COL in store.names)
         return self._fit_lsq(None, common, store=store)
 
     # ------------------------------------------------------------------ integral method
