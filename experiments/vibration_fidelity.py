@@ -114,8 +114,6 @@ def _plot(spec: dict, curves: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gyrocore.recording import atomic_write_bytes
-
     d2 = (180 / math.pi) ** 2
     f_r = np.asarray(spec["f_hz"], float)
     lim = float(spec.get("reconstructed_reliable_below_hz") or f_r[-1])
@@ -127,18 +125,37 @@ def _plot(spec: dict, curves: dict, path: str) -> None:
             ax = axs[r, c]
             real = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][ax_name]], float)
             ax.semilogy(f_r, real * d2, "k", lw=1.6, label="real flight (2.5-inch, before firmware filters)")
-            for name, res in curves[i].items():
-                ax.semilogy(res.f_hz, res.mean_psd[:, "xyz".index(ax_name)] * d2, lw=0.9, label=name)
-            ax.axvspan(lim, f_r[-1], color="0.9")
-            ax.set_xlim(0, f_r[-1])
-            ax.set_title(f"band {i} (motor cmd {b['throttle'][0]:.2f}-{b['throttle'][1]:.2f}), gyro {ax_name}")
-            ax.set_ylabel("PSD, (°/s)²/Hz")
-            if r == len(bands) - 1:
-                ax.set_xlabel("frequency, Hz (grey: above the spec's reliable limit)")
-    axs[0, 0].legend(fontsize=7)
-    fig.tight_layout()
+            _finish_psd_axis(ax, curves[i], ax_name, f_r, lim,
+                             title=f"band {i} (motor cmd {b['throttle'][0]:.2f}-{b['throttle'][1]:.2f}), gyro {ax_name}",
+                             xlabel="frequency, Hz (grey: above the spec's reliable limit)" if r == len(bands) - 1 else None)
+    _save_png(fig, axs, path)
+
+
+def _finish_psd_axis(ax, sims: dict, ax_name: str, f_r: np.ndarray, lim: float, *, title: str,
+                     xlabel: str | None, title_fontsize: float | None = None) -> None:
+    """One PSD panel of the fidelity plots: the simulated curves ((°/s)²/Hz), the band above the
+    spec's reliable limit greyed, title and labels."""
+    d2 = (180 / math.pi) ** 2
+    for name, res in sims.items():
+        ax.semilogy(res.f_hz, res.mean_psd[:, "xyz".index(ax_name)] * d2, lw=0.9, label=name)
+    ax.axvspan(lim, f_r[-1], color="0.9")
+    ax.set_xlim(0, f_r[-1])
+    ax.set_title(title, **({} if title_fontsize is None else {"fontsize": title_fontsize}))
+    ax.set_ylabel("PSD, (°/s)²/Hz")
+    if xlabel:
+        ax.set_xlabel(xlabel)
+
+
+def _save_png(fig, axs, path: str) -> None:
+    """Legend on the first panel, then the figure as a PNG written atomically."""
     import io
 
+    import matplotlib.pyplot as plt
+
+    from gyrocore.recording import atomic_write_bytes
+
+    axs[0, 0].legend(fontsize=7)
+    fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=70)
     plt.close(fig)
@@ -270,14 +287,10 @@ def run_split(*, flight: str, vehicle: str = "racing25", seed: int = 0, duration
 
 def _plot_split(spec_a: dict, spec_b: dict, curves: dict, path: str) -> None:
     """PSD per plotted band (rows) and axis x, y, z: second half (held out), first half, the simulations."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from gyrocore.recording import atomic_write_bytes
 
     d2 = (180 / math.pi) ** 2
     f_r = np.asarray(spec_a["f_hz"], float)
@@ -292,20 +305,10 @@ def _plot_split(spec_a: dict, spec_b: dict, curves: dict, path: str) -> None:
             for b, lab, sty in ((bb, "real, second half (held out)", "k"), (ba, "real, first half (spec)", "0.6")):
                 v = np.array([np.nan if x is None else x for x in b["psd_rad2_s2_hz"][ax_name]], float)
                 ax.semilogy(f_r, v * d2, sty, lw=1.4, label=lab)
-            for name, res in sims.items():
-                ax.semilogy(res.f_hz, res.mean_psd[:, "xyz".index(ax_name)] * d2, lw=0.9, label=name)
-            ax.axvspan(lim, f_r[-1], color="0.9")
-            ax.set_xlim(0, f_r[-1])
-            ax.set_title(f"band {i} (motor cmd {ba['throttle'][0]:.2f}-{ba['throttle'][1]:.2f}), gyro {ax_name}", fontsize=9)
-            ax.set_ylabel("PSD, (°/s)²/Hz")
-            if r == len(bands) - 1:
-                ax.set_xlabel("Hz (grey: above the spec's reliable limit)")
-    axs[0, 0].legend(fontsize=7)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=70)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+            _finish_psd_axis(ax, sims, ax_name, f_r, lim, title_fontsize=9,
+                             title=f"band {i} (motor cmd {ba['throttle'][0]:.2f}-{ba['throttle'][1]:.2f}), gyro {ax_name}",
+                             xlabel="Hz (grey: above the spec's reliable limit)" if r == len(bands) - 1 else None)
+    _save_png(fig, axs, path)
 
 
 def _print_split(out: dict) -> None:
