@@ -552,11 +552,14 @@ class AllanAnalysis:
     format_version: str = FORMAT_VERSION
     method: str = "gmwm"
     still_fraction: float | None = None
+    #: (t_first_s, t_last_s) of the still stretch analysed when the record held motion, else None
+    analysed_span_s: tuple[float, float] | None = None
 
     def to_json(self) -> dict:
         out = {
             "method": self.method,
             "still_fraction": self.still_fraction,
+            "analysed_span_s": None if self.analysed_span_s is None else list(self.analysed_span_s),
             "axes": {a: r.to_json() for a, r in self.axes.items()},
             "rate_hz": self.rate_hz,
             "n_samples": self.n_samples,
@@ -785,6 +788,135 @@ def _still_fraction(n: int, rate_hz: float, gyro_rows, whole, *, window_s: float
     return r.n_windows_still / max(r.n_windows_total, 1)
 
 
+#: A still stretch shorter than this is not analysed (ten 2-s gate windows: below it the
+#: long-τ end of the Allan curve is a handful of averages, and no term beyond N is resolvable).
+MIN_STILL_STRETCH_S = 20.0
+#: Per-window false-reject rate of the strict gate that marks *motion* when the record is cut
+#: to its still stretch: a window of a still sensor crosses it once in 10⁶, so a false reject
+#: of the 10⁻³ gate (one window in a thousand) does not split a still record, while handling
+#: (variance 10²–10⁶ × the noise's) is caught in any window it touches.
+STRICT_FALSE_REJECT_RATE = 1e-6
+
+
+@dataclass(frozen=True)
+class StillSpan:
+    """Where a recording is still, from the motion gate of :mod:`gyrocore.bias` on every 2-s window.
+
+    Attributes
+    ----------
+    start, stop : int
+        Sample rows ``start:stop`` to analyse (the whole record when its rejected windows are as
+        many as the gate's false-reject rate explains).
+    still_fraction : float
+        Fraction of the windows the 10⁻³ gate calls still (NaN: too short to judge).
+    n_windows, n_rejected : int
+    cut : bool
+        True when the record was cut to its longest still stretch.
+    message : str
+        What was done, for a ``warning:`` line ('' when nothing was cut).
+    """
+
+    start: int
+    stop: int
+    still_fraction: float
+    n_windows: int = 0
+    n_rejected: int = 0
+    cut: bool = False
+    message: str = ""
+
+
+def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, window_s: float = 2.0,
+               false_reject_rate: float = 1e-3) -> StillSpan:
+    """The part of a record that a noise identification may use: all of it, or its longest still stretch.
+
+    Every ``window_s`` window is judged by the variance gate of
+    :class:`gyrocore.bias.StaticBiasCalibrator` (threshold from the record's own robust noise
+    level, false-reject rate ``false_reject_rate`` per still window). When the number of
+    rejected windows k is one the false-reject rate explains (binomial tail
+    P(X ≥ k | W, α) ≥ 10⁻³) the whole record is used, as before. Otherwise the record holds
+    motion, and a single moving window ruins an Allan variance (a 30 °/s hand turn is 10⁴ × the
+    variance of an MPU-6050's noise): the analysis is cut to the longest run of windows that
+    pass the strict gate (:data:`STRICT_FALSE_REJECT_RATE`), less one window at each end that
+    borders motion (the window holding the start or end of the motion may pass the gate with
+    part of it inside). More than :data:`MAX_MOVING_FRACTION` of the windows moving (the
+    noise level, a quantile of the window variances, is then not the sensor's), or a stretch
+    shorter than :data:`MIN_STILL_STRETCH_S`, is an error naming the longest still stretch.
+
+    Parameters
+    ----------
+    gyro_rad_s : ndarray (N, 3)
+        Rate samples, rad/s, sensor frame S, evenly spaced at ``rate_hz``.
+    rate_hz : float
+    t0_s : float
+        Time of the first sample (for the messages), s.
+
+    Raises
+    ------
+    GyroInputError
+        Mostly moving, or no still stretch of :data:`MIN_STILL_STRETCH_S`.
+    """
+    from .bias import StaticBiasCalibrator, _check_noise_plausible, _window_stats
+
+    x = np.asarray(gyro_rad_s, float)
+    N = x.shape[0]
+    n_win = int(round(window_s * rate_hz))
+    if n_win < 8 or N < 10 * n_win:
+        return StillSpan(0, N, float("nan"))
+    W = N // n_win
+    cal = StaticBiasCalibrator(window_samples=n_win, false_reject_rate=false_reject_rate)
+    sigma_diff, rho = cal._noise(x)
+    xw = x[: W * n_win].reshape(W, n_win, x.shape[1])
+    sigma2, dof = cal._variance_noise(xw, rho)
+    try:
+        _check_noise_plausible(sigma2, sigma_diff, rho)
+    except GyroInputError:
+        # motion in most windows inflated the window-variance quantile: gate with the noise of
+        # the sample-to-sample differences instead (smooth motion barely changes them)
+        sigma2 = dof = None
+    dt = 1.0 / rate_hz
+    thr = cal.gate(n_win, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)[0]
+    strict = StaticBiasCalibrator(window_samples=n_win, false_reject_rate=STRICT_FALSE_REJECT_RATE).gate(
+        n_win, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)[0]
+    stats = _window_stats(x, n_win, "variance")
+    still = np.all(stats <= thr[None, :], axis=1)
+    quiet = np.all(stats <= strict[None, :], axis=1)
+    k = int(W - still.sum())
+    frac = float(still.mean())
+    if k == 0 or scipy.stats.binom.sf(k - 1, W, false_reject_rate) >= 1e-3:
+        return StillSpan(0, N, frac, W, k)
+    # runs of quiet windows [a, b), less one window at an end that borders motion
+    best = (0, 0)
+    i = 0
+    while i < W:
+        if not quiet[i]:
+            i += 1
+            continue
+        j = i
+        while j < W and quiet[j]:
+            j += 1
+        a = i + (1 if i > 0 else 0)
+        b = j - (1 if j < W else 0)
+        if b - a > best[1] - best[0]:
+            best = (a, b)
+        i = j
+    a, b = best
+    moving = np.flatnonzero(~still)
+    tw = n_win / rate_hz  # window length as cut, s
+    where = f"first at t = {t0_s + moving[0] * tw:.4g} s, last ending t = {t0_s + (moving[-1] + 1) * tw:.4g} s"
+    stop = N if b == W else b * n_win  # a still end keeps the samples after the last whole window
+    desc = f"t = {t0_s + a * tw:.4g}-{t0_s + stop / rate_hz:.4g} s ({(stop - a * n_win) / rate_hz:.3g} s)"
+    longest = f"the longest still stretch is {desc}" if b > a else "no still stretch"
+    if (1.0 - frac) > MAX_MOVING_FRACTION or (stop - a * n_win) / rate_hz < MIN_STILL_STRETCH_S:
+        raise GyroInputError(
+            f"recording is not static: the motion gate rejects {100 * (1 - frac):.0f} % of its {window_s:g}-s windows "
+            f"({where}) and {longest}; noise identification needs a still sensor for >= {MIN_STILL_STRETCH_S:g} s "
+            f"(choose one with --t-from-s/--t-to-s)"
+        )
+    msg = (f"motion in {k} of {W} {window_s:g}-s windows ({where}; the gate's false-reject rate explains "
+           f"{W * false_reject_rate:.2g}): noise identified on the longest still stretch, {desc}, {100 * (stop - a * n_win) / N:.0f} % of the record")
+    return StillSpan(a * n_win, stop, frac, W, k, True, msg)
+
+
 def allan_analysis(
     recording: Recording,
     *,
@@ -836,13 +968,15 @@ def allan_analysis(
         raise GyroInputError("Allan analysis needs at least 2 samples with increasing timestamps")
     _check_timestamps(recording)
     still = None
+    span_s = None
     if check_static:
-        still = still_fraction(recording)
-        if math.isfinite(still) and (1.0 - still) > MAX_MOVING_FRACTION:
-            raise GyroInputError(
-                f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "
-                f"(more than {100 * MAX_MOVING_FRACTION:.0f} %); noise identification needs a still sensor"
-            )
+        sp = still_span(recording.gyro_rad_s, rate, t0_s=float(recording.t_s[0]))
+        still = sp.still_fraction
+        if sp.cut:
+            warn_repair(sp.message)
+            recording = recording.slice(sp.start, sp.stop)
+            n = recording.n
+            span_s = (float(recording.t_s[0]), float(recording.t_s[-1]))
     dropped: list[float] = []
     if max_tau_s is not None:
         if not (max_tau_s > 0):
@@ -892,6 +1026,7 @@ def allan_analysis(
         dropped_taus_s=tuple(dropped),
         method=method,
         still_fraction=still,
+        analysed_span_s=span_s,
     )
 
 

@@ -180,8 +180,19 @@ def _long(file: str) -> bool:
     return rows * 4 * 8 > BY_AXIS_BYTES
 
 
+def _t_rows(t_s: np.ndarray, t_from_s: float | None, t_to_s: float | None) -> tuple[int, int]:
+    """Rows [a, b) with t_from_s <= t < t_to_s (one ``error:`` line when that leaves too little)."""
+    a = 0 if t_from_s is None else int(np.searchsorted(t_s, t_from_s, side="left"))
+    b = t_s.size if t_to_s is None else int(np.searchsorted(t_s, t_to_s, side="left"))
+    if b - a < 2:
+        raise GyroInputError(
+            f"--t-from-s/--t-to-s select {max(b - a, 0)} samples; the recording spans t = {t_s[0]:.6g}-{t_s[-1]:.6g} s"
+        )
+    return a, b
+
+
 def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, method: str = "gmwm",
-                  check_static: bool = True):
+                  check_static: bool = True, t_from_s: float | None = None, t_to_s: float | None = None):
     """:func:`gyrocore.allan.allan_analysis` of a long recording, one axis at a time.
 
     The file is streamed once into per-column files in a temporary folder
@@ -201,18 +212,46 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
         store = spill_columns(file, tmp, accel=kalibr)
         has_accel = "accel_x_m_s2" in store.names
         still = None
-        if check_static:  # the same gate and error as allan_analysis(check_static=True)
+        rows = (0, store.n)
+        span_s = None
+        if t_from_s is not None or t_to_s is not None:
+            rows = _t_rows(store.t_s, t_from_s, t_to_s)
+        if check_static and rows != (0, store.n):
+            # a chosen part: the whole gate of allan_analysis on its three axes (memory O(3 × part))
+            from ..allan import still_span
+            from ..recording import GYRO_COLS
+
+            from ..recording import Recording
+
+            part = Recording(t_s=store.t_s[rows[0]:rows[1]], gyro_rad_s=store.block(GYRO_COLS, *rows))
+            sp = still_span(part.gyro_rad_s, part.rate_hz, t0_s=float(part.t_s[0]))
+            still = sp.still_fraction
+            if sp.cut:
+                from ..errors import warn_repair
+
+                warn_repair(sp.message)
+                rows = (rows[0] + sp.start, rows[0] + sp.stop)
+            del part
+        elif check_static:  # the same gate as allan_analysis(check_static=True), on up to 200 windows
             import math
 
+            import scipy.stats
+
             from ..allan import MAX_MOVING_FRACTION, still_fraction_spilled
-            from ..errors import GyroInputError
 
             still = still_fraction_spilled(store)  # reads only the windows it judges
-            if math.isfinite(still) and (1.0 - still) > MAX_MOVING_FRACTION:
+            n_win = int(round(2.0 * store.n / max(float(store.t_s[-1] - store.t_s[0]), 1e-300)))
+            w_judged = min(200, store.n // max(n_win, 1))
+            k = int(round((1.0 - still) * w_judged)) if math.isfinite(still) else 0
+            if math.isfinite(still) and ((1.0 - still) > MAX_MOVING_FRACTION or (
+                    k > 0 and scipy.stats.binom.sf(k - 1, w_judged, 1e-3) < 1e-3)):
                 raise GyroInputError(
-                    f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "
-                    f"(more than {100 * MAX_MOVING_FRACTION:.0f} %); noise identification needs a still sensor"
+                    f"recording is not static: the motion gate rejects {k} of {w_judged} 2-s windows spread over it "
+                    f"(a still sensor: {w_judged * 1e-3:.2g} by chance); a long file is analysed whole: choose its still "
+                    f"part with --t-from-s/--t-to-s"
                 )
+        if rows != (0, store.n):
+            span_s = (float(store.t_s[rows[0]]), float(store.t_s[rows[1] - 1]))
         per_axis, per_accel = {}, {}
         seen: set[str] = set()
         last = None
@@ -220,6 +259,8 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
             j = AXES.index(a)
             for kind in ("gyro", "accel") if has_accel else ("gyro",):
                 rec = store.recording(j) if kind == "gyro" else store.recording(j, accel_axis=j)
+                if rows != (0, store.n):
+                    rec = rec.slice(*rows)
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
                     r = allan_analysis(rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine,
@@ -242,7 +283,7 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
         _warn_short(per_axis, last.duration_s, last.n_samples, last.rate_hz, method)
     return AllanAnalysis(axes=per_axis, accel=per_accel, rate_hz=last.rate_hz, n_samples=last.n_samples,
                          duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s, method=method,
-                         still_fraction=still)
+                         still_fraction=still, analysed_span_s=span_s)
 
 
 @click.command("allan")
@@ -251,14 +292,19 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
 @click.option("--json", "as_json", is_flag=True, help="print JSON only")
 @click.option("--kalibr-yaml", type=click.Path(dir_okay=False), default=None, help="write Kalibr imu.yaml")
 @click.option("--axes", "axes", default="x,y,z", show_default=True, help="comma list of axes")
-@click.option("--max-tau-s", type=float, default=None, help="largest averaging time, s (default: a quarter of the record)")
+@click.option("--max-tau-s", type=float, default=None, help="largest averaging time, s (default: half the record; adev_legacy: a quarter)")
 @click.option("--kalibr-inflate", type=float, default=1.0, show_default=True, help="factor applied to the Kalibr values")
 @click.option("--engine", type=click.Choice(["fast", "allantools"]), default="fast", show_default=True)
 @click.option("--method", type=click.Choice(["gmwm", "adev", "adev_legacy"]), default="gmwm", show_default=True,
               help="gmwm: wavelet-variance fit with Gauss-Markov terms (default); adev: IEEE 952 joint ADEV fit; "
                    "adev_legacy: the fit before issue 11")
-@click.option("--no-static-check", is_flag=True, help="skip the motion gate (non-static data is refused by default)")
-def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine, method, no_static_check):
+@click.option("--no-static-check", is_flag=True,
+              help="skip the motion gate (by default a record with motion is cut to its longest still stretch, "
+                   "with a warning, or refused)")
+@click.option("--t-from-s", type=float, default=None, help="analyse only t >= this, s (e.g. the still part of a log)")
+@click.option("--t-to-s", type=float, default=None, help="analyse only t < this, s")
+def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine, method, no_static_check,
+            t_from_s, t_to_s):
     """Noise identification per axis of a still recording: Allan deviation and the terms Q, N, B, K, R and a
     Gauss-Markov bias (sigma, tau_c), each with its 95 % interval (null = not resolved)."""
     from ..allan import allan_analysis, kalibr_imu_yaml
@@ -267,10 +313,12 @@ def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, e
     if _long(file):
         # long files: one axis at a time (memory); the motion gate loads the three axes once
         res = allan_by_axis(file, axes=_axes(axes), max_tau_s=max_tau_s, kalibr=kalibr_yaml is not None, engine=engine,
-                            method=method, check_static=not no_static_check)
+                            method=method, check_static=not no_static_check, t_from_s=t_from_s, t_to_s=t_to_s)
     else:
         # only the columns the analysis needs (t, gyro; accel for Kalibr)
         rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
+        if t_from_s is not None or t_to_s is not None:
+            rec = rec.slice(*_t_rows(rec.t_s, t_from_s, t_to_s))
         want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
         res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine,
                              method=method, check_static=not no_static_check)

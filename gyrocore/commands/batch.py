@@ -89,8 +89,10 @@ def headline_allan(path: str, options: dict) -> dict:
     from ..recording import read_recording
 
     rec = read_recording(path, columns=())
-    res = allan_analysis(rec)
-    out = {"n_samples": rec.n, "duration_s": rec.duration_s, "rate_hz": rec.rate_hz}
+    # the motion gate as `gyroharness allan` runs it: a record with motion is cut to its
+    # longest still stretch (warning) or refused (one error line, the row marked failed)
+    res = allan_analysis(rec, check_static=True)
+    out = {"n_samples": res.n_samples, "duration_s": res.duration_s, "rate_hz": rec.rate_hz}
     for ax, r in res.axes.items():
         out[f"arw_{ax}_rad_per_sqrt_s"] = _num(r.arw_rad_per_sqrt_s)
         out[f"bias_instability_{ax}_rad_s"] = _num(r.bias_instability_rad_s)
