@@ -62,6 +62,16 @@ REF_RATE_COLS = tuple(f"ref_{a}_rad_s" for a in AXES)
 REF_QUAT_COLS = ("ref_qw", "ref_qx", "ref_qy", "ref_qz")
 TEMP_COL = "temp_c"
 TIME_COL = "t_s"
+#: Time columns accepted in place of ``t_s`` (converted to seconds on read): a logger's
+#: millisecond, microsecond or nanosecond counter (Arduino millis(), PX4 timestamp, ROS stamps).
+TIME_ALTS = {"t_s": 1.0, "t_ms": 1e-3, "t_us": 1e-6, "t_ns": 1e-9}
+#: A t_s column whose median interval is above this is not seconds (no gyro recording is
+#: sampled slower than 0.5 Hz; a millisecond counter at <= 500 Hz, or any microsecond or
+#: nanosecond counter, lands above it): one error line naming t_ms / t_us / t_ns.
+T_S_MAX_MEDIAN_DT_S = 2.0
+#: ... and above this (but not above the limit) a warning: a millisecond counter at 1 kHz has
+#: dt = 1 "s" — as would a genuine 1-Hz log, hence only a warning.
+T_S_SUSPECT_MEDIAN_DT_S = 0.5
 
 # Accepted alternative unit suffixes, converted on read: (suffix, factor to SI suffix).
 _ALT_UNITS = {"_rad_s": [("_deg_s", DEG)], "_m_s2": [("_g", G0_M_S2)]}
@@ -523,7 +533,10 @@ class _Filler:
         if self.n + m > self.t.shape[0]:
             self._grow(self.n + m)
         s = slice(self.n, self.n + m)
-        self.t[s] = blk[L.t]
+        if L.t_factor == 1.0:
+            self.t[s] = blk[L.t]
+        else:
+            np.multiply(blk[L.t], L.t_factor, out=self.t[s])
         for name, arr in self.groups.items():
             idx, fac = getattr(L, {"gyro": "gyro", "accel": "accel", "rref": "rref", "qref": "qref"}[name])
             for j, (i, f) in enumerate(zip(idx, fac)):
@@ -670,9 +683,24 @@ def _header_info(path: str) -> tuple[dict[str, str], list[str], int]:
     return meta, header, n_skip
 
 
+def _time_col(header: list[str], path: str) -> tuple[int, float]:
+    """Index of the time column (``t_s`` or one of :data:`TIME_ALTS`) and its factor to seconds."""
+    found = [(h, header.index(h)) for h in TIME_ALTS if h in header]
+    if len(found) > 1:
+        raise GyroInputError(f"{path}: several time columns ({', '.join(h for h, _ in found)}); keep one")
+    if not found:
+        hint = ""
+        if len(header) == 1 and any(c in header[0] for c in ";\t|"):
+            sep = next(c for c in ";\t|" if c in header[0])
+            hint = (f" (the header is one column {header[0][:60]!r}: the file is separated by "
+                    f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)")
+        raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
+    h, i = found[0]
+    return i, TIME_ALTS[h]
+
+
 def _check_header(header: list[str], path: str) -> None:
-    if TIME_COL not in header:
-        raise GyroInputError(f"{path}: missing required column t_s")
+    _time_col(header, path)
     if len(set(header)) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
         raise GyroInputError(f"{path}: duplicate column names in header ({', '.join(dup)})")
@@ -720,7 +748,7 @@ class _Layout:
         self.header = header
         self.check_accel: list[int] = []
         self.accel_factor = None
-        self.t = header.index(TIME_COL)
+        self.t, self.t_factor = _time_col(header, path)
         self.gyro = self._block(GYRO_COLS, path, required=True)
         self.accel = self._block(ACCEL_COLS, path)
         self.rref = self._block(REF_RATE_COLS, path)
@@ -978,7 +1006,21 @@ def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
         )
 
 
-def _timing_checks(t: np.ndarray, path: str, retime: bool) -> np.ndarray:
+def _time_unit_check(med_dt_s: float, path: str, time_col: str) -> None:
+    """One error line (median interval > :data:`T_S_MAX_MEDIAN_DT_S`) or warning
+    (> :data:`T_S_SUSPECT_MEDIAN_DT_S`) when a column labelled seconds is evidently a counter."""
+    if time_col != TIME_COL or not (med_dt_s > T_S_SUSPECT_MEDIAN_DT_S):
+        return
+    what = (f"{path}: column t_s has a median sample interval of {med_dt_s:.6g} s ({1 / med_dt_s:.3g} Hz)")
+    if med_dt_s > T_S_MAX_MEDIAN_DT_S:
+        raise GyroInputError(
+            f"{what}, slower than any gyro log: the time is probably in ms, us or ns — rename the column "
+            f"t_ms, t_us or t_ns (converted on read)"
+        )
+    warn_repair(f"{what}: if the time is a millisecond counter (a 1 kHz log), rename the column t_ms; data kept as seconds")
+
+
+def _timing_checks(t: np.ndarray, path: str, retime: bool, time_col: str = TIME_COL) -> np.ndarray:
     """Warn on gaps (dropped samples) and bursty host timestamps; retime on request."""
     d = np.diff(t)
     if d.size < 2:
@@ -988,6 +1030,7 @@ def _timing_checks(t: np.ndarray, path: str, retime: bool) -> np.ndarray:
     # the partition permutes d in place; what follows (max, counts, a sum of integers) does
     # not depend on the order: the same values with d as the only temporary
     med = float(np.median(d, overwrite_input=True))
+    _time_unit_check(med, path, time_col)
     if med < 0.5 * mean and mx > 4.0 * mean:
         if retime:
             warn_repair(
@@ -1019,7 +1062,7 @@ def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool
     if checks:
         with np.errstate(all="ignore"):  # absurd finite values (1e300) must not print overflow warnings
             _unit_checks(t, gyro, accel, path, meta.pop("__gyro_col__", "gyro_x_rad_s"), accel_std=accel_std)
-            t = _timing_checks(t, path, retime)
+            t = _timing_checks(t, path, retime, meta.pop("__time_col__", TIME_COL))
         with np.errstate(all="ignore"):
             # smallest full scales on the market: gyro ±125 deg/s (BMI088, ICM-42688-P low
             # ranges), accel ±2 g; a plateau below 90 % of these cannot be clipping.
@@ -1036,6 +1079,7 @@ def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool
             prev = extra.get("saturated")
             extra["saturated"] = (sat | (prev > 0)).astype(float) if prev is not None else sat.astype(float)
     meta.pop("__gyro_col__", None)
+    meta.pop("__time_col__", None)
     return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=temp, ref_rate_rad_s=rref,
                      ref_quat_wxyz=qref, meta=meta, extra=extra)
 
@@ -1122,6 +1166,7 @@ def _assemble_filled(fill: _Filler, meta, path, *, repair, retime, checks, min_r
 
     meta = dict(meta)
     meta["__gyro_col__"] = layout.gyro_unit_col
+    meta["__time_col__"] = layout.header[layout.t]
     accel_std = layout.accel_std(fill.moments)
     del fill
     return _finish(k(t), k(gyro), k(accel), k(temp), k(rref), k(qref), meta, {h: k(v) for h, v in extra.items()}, path,
@@ -1156,7 +1201,7 @@ def _chunk_records(blocks: Iterable[dict[int, np.ndarray]], layout: _Layout, met
     for cols in blocks:
         for i in layout.check_accel:  # no whole-series checks on chunks
             cols.pop(i, None)
-        t = cols[layout.t]
+        t = cols[layout.t] if layout.t_factor == 1.0 else cols[layout.t] * layout.t_factor
         gyro = layout.take(cols, layout.gyro)
         accel = layout.take(cols, layout.accel)
         temp = cols[layout.temp] if layout.temp is not None else None
@@ -1651,7 +1696,7 @@ def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: 
                         f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
                         f"Data left unchanged"
                     )
-        _timing_checks(t, path, False)
+        _timing_checks(t, path, False, layout.header[layout.t])
         found, n_sat = [], 0
         sat_any = None
         for j, nm in enumerate(GYRO_COLS + (ACCEL_COLS if has_accel and accel else ())):
