@@ -259,21 +259,53 @@ def _unflatten(effect: str, vec: np.ndarray, order: int) -> dict[str, np.ndarray
     return E.resolve(effect).unflatten(vec, order)
 
 
-def near_rate_changes(t_s: np.ndarray, w_ref_rad_s: np.ndarray, margin_s: float,
-                      *, threshold_rad_s2: float = 1e-2) -> np.ndarray:
+def near_rate_changes(t_s: np.ndarray, w_ref_rad_s, margin_s: float,
+                      *, threshold_rad_s2: float = 1e-2, chunk_rows: int = 1 << 20) -> np.ndarray:
     """Boolean (N,): samples within ``margin_s`` of a change of the reference rate
-    (|Δω_ref|/Δt > ``threshold_rad_s2`` on any axis) — rate ramps and their filter transients."""
+    (|Δω_ref|/Δt > ``threshold_rad_s2`` on any axis) — rate ramps and their filter transients.
+
+    ``w_ref_rad_s``: the (N, 3) reference rate, or a callable ``(a, b) -> rows a:b`` (a spilled
+    record read a window at a time, :class:`gyrocore.stream.SpillRows`); windows of
+    ``chunk_rows`` rows, each read with one row either side. Sample i is a ramp sample when the
+    rate changes faster than the threshold between i−1 and i or between i and i+1; every sample
+    within k = round(margin_s / median Δt) samples of a ramp sample is near (the dilation
+    marks each run of ramp samples ± k: the same mask as a convolution with a box of 2k + 1).
+    Memory: the mask (1 B/sample) and one window."""
     t = np.asarray(t_s, float)
-    w = np.asarray(w_ref_rad_s, float)
     n = t.size
     if n < 3:
         return np.zeros(n, bool)
-    dw = np.max(np.abs(np.diff(w, axis=0)), axis=1) / np.diff(t)
-    ramp = np.r_[dw > threshold_rad_s2, False] | np.r_[False, dw > threshold_rad_s2]
+    read = w_ref_rad_s if callable(w_ref_rad_s) else (lambda a, b, _w=np.asarray(w_ref_rad_s, float): _w[a:b])
+    ramp = np.zeros(n, bool)
+    step = max(int(chunk_rows), 2)
+    for a in range(0, n, step):
+        b = min(a + step, n)
+        lo, hi = max(a - 1, 0), min(b + 1, n)
+        w = np.asarray(read(lo, hi), float)
+        fast = np.max(np.abs(np.diff(w, axis=0)), axis=1) / np.diff(t[lo:hi]) > threshold_rad_s2  # pairs lo..hi-1
+        # sample i (a ≤ i < b) is a ramp sample if pair (i−1, i) or pair (i, i+1) is fast
+        i = np.arange(a, b)
+        left = np.zeros(b - a, bool)
+        has_left = i - 1 >= lo
+        left[has_left] = fast[(i - 1 - lo)[has_left]]
+        right = np.zeros(b - a, bool)
+        has_right = i + 1 < hi
+        right[has_right] = fast[(i - lo)[has_right]]
+        ramp[a:b] = left | right
     if not ramp.any():
         return ramp
     k = int(round(margin_s / float(np.median(np.diff(t)))))
-    return np.convolve(ramp.astype(np.float64), np.ones(2 * k + 1), mode="same") > 0.5
+    near = np.zeros(n, bool)
+    for a in range(0, n, step):  # runs of ramp samples, window by window (a run may span two)
+        idx = np.flatnonzero(ramp[a:a + step])
+        if idx.size == 0:
+            continue
+        cut = np.flatnonzero(np.diff(idx) > 1)
+        starts = idx[np.r_[0, cut + 1]] + a
+        ends = idx[np.r_[cut, idx.size - 1]] + a
+        for s0, e0 in zip(starts, ends):
+            near[max(s0 - k, 0):min(e0 + k + 1, n)] = True
+    return near
 
 
 def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
@@ -546,10 +578,11 @@ class Calibrator:
 
     @classmethod
     def _identified_noise(cls, axis, bad: np.ndarray, rate_hz: float, notes: list,
-                          w_ref: np.ndarray | None = None, t_s: np.ndarray | None = None) -> dict:
+                          w_ref=None, t_s: np.ndarray | None = None) -> dict:
         """solve() options of the noise-model covariance, the model identified (GMWM, per axis)
         on the residual — ``axis(i)`` returns axis i as a fresh (N,) array — without the
-        ``bad`` samples and, with a reference rate ``w_ref``, without the samples within
+        ``bad`` samples and, with a reference rate ``w_ref`` ((N, 3), or a window reader
+        ``(a, b) -> rows`` for a spilled record), without the samples within
         :data:`QUIET_MARGIN_S` of a rate change; the kept stretches are joined (the slow
         noise barely moves across a sub-second gap)."""
         import warnings
@@ -596,18 +629,25 @@ class Calibrator:
             f"tau {fmt(nm.gm_tau_c_s)} s")
         return dict(covariance="noise_model", noise_model=nm)
 
+    def _ramp_weights(self, t_s: np.ndarray, w_ref, notes: list) -> np.ndarray:
+        """Fit weights (N,): 0 within ``ramp_margin_s`` of a reference-rate change (when that
+        leaves ≥ 25 % of the samples), else a read-only broadcast 1 (no (N,) array for a long
+        record). ``w_ref``: (N, 3) or a window reader ``(a, b) -> rows`` (a spilled record:
+        :func:`near_rate_changes` reads it a window at a time, the same mask)."""
+        n = int(np.asarray(t_s).size)
+        if self.ramp_margin_s > 0:
+            near = near_rate_changes(t_s, w_ref, self.ramp_margin_s)
+            if near.any() and np.count_nonzero(~near) >= 0.25 * n:
+                notes.append(f"left out {int(near.sum())} samples within {self.ramp_margin_s:g} s of a reference-rate "
+                             "change (rate ramps: the gyro's own filter transient)")
+                return (~near).astype(float)
+        return np.broadcast_to(1.0, (n,))
+
     def _references(self, rec: Recording):
         """(omega_ref (N,3), weights (N,), method, notes)."""
         notes: list[str] = []
         if rec.ref_rate_rad_s is not None:
-            if self.ramp_margin_s > 0:
-                near = near_rate_changes(rec.t_s, rec.ref_rate_rad_s, self.ramp_margin_s)
-                if near.any() and np.count_nonzero(~near) >= 0.25 * rec.n:
-                    notes.append(f"left out {int(near.sum())} samples within {self.ramp_margin_s:g} s of a reference-rate "
-                                 "change (rate ramps: the gyro's own filter transient)")
-                    return rec.ref_rate_rad_s, (~near).astype(float), "rate_reference", notes
-            # unit weights as a read-only broadcast view: no (N,) array for a long record
-            return rec.ref_rate_rad_s, np.broadcast_to(1.0, (rec.n,)), "rate_reference", notes
+            return rec.ref_rate_rad_s, self._ramp_weights(rec.t_s, rec.ref_rate_rad_s, notes), "rate_reference", notes
         from .rotations import still_mask
 
         m = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
@@ -627,7 +667,12 @@ class Calibrator:
 
             n_all = store.n
             w_ref = None
-            weights, method, notes = np.broadcast_to(1.0, (n_all,)), "rate_reference", []
+            method, notes = "rate_reference", []
+            # ramps left out as in memory: the mask from the reference rate read window by window
+            weights = self._ramp_weights(store.t_s, SpillRows(store).ref_rows, notes)
+
+            def ref_at(tau):  # ω_ref(t − τ) as a window reader (the noise identification's ramp mask)
+                return SpillRows(store, tau_s=tau).ref_rows
 
             def lhs(tau):
                 return SpillRows(store, tau_s=tau), None
@@ -652,6 +697,9 @@ class Calibrator:
                     t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau), f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
 
             first_kw = dict(overwrite_r=True)
+
+            def ref_at(tau):
+                return None if w_ref is None else _shift_rate(t, w_ref, tau)
 
             def first_axis(fit, i):  # a fresh array: the robust pass works on it in place
                 return fit.residual_rad_s[:, i].copy()
@@ -723,7 +771,7 @@ class Calibrator:
             bad &= used
             if model_cov and self.noise is None:
                 opts.update(self._identified_noise(lambda i: first_axis(fit, i), bad | ~used, rate_hz, notes,
-                                                   None if w_ref is None else _shift_rate(t, w_ref, tau_total)))
+                                                   ref_at(tau_total)))
             nb = int(bad.sum())
             # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
             if 0 < nb < 0.05 * used.sum():
@@ -736,7 +784,7 @@ class Calibrator:
                 notes.append("standard errors: noise-model sandwich (noise model given)")
             else:
                 opts.update(self._identified_noise(lambda i: first_axis(fit, i), ~(weights > 0), rate_hz, notes,
-                                                   None if w_ref is None else _shift_rate(t, w_ref, tau_total)))
+                                                   ref_at(tau_total)))
         if model_cov:
             opts["t_s"] = t_since
         # 2) thermal order from the data, then the final fit (the first fit's full-resolution

@@ -67,6 +67,10 @@ class SpillRows(lsq.RowSource):
         w = self.store.block(REF_RATE_COLS, i0, i1)
         return np.stack([np.interp(tq, t[i0:i1], w[:, i]) for i in range(3)], axis=1)
 
+    def ref_rows(self, a: int, b: int) -> np.ndarray:
+        """ω_ref(t − τ) on rows a:b, shape (b − a, 3) (zeros without reference columns)."""
+        return self._ref(a, b)
+
     def r_rows(self, a: int, b: int) -> np.ndarray:
         return self.store.block(GYRO_COLS, a, b) - self._ref(a, b)
 

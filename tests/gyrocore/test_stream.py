@@ -215,3 +215,95 @@ def test_bias_cli_streams_long_files(tmp_path, capsys, monkeypatch):
         outs.append((json.loads(cap.out), sorted(ln for ln in cap.err.splitlines() if ln.startswith("warning:"))))
     assert called == [1]
     assert outs[0] == outs[1] and any("gaps" in w for w in outs[0][1])
+
+
+def _table_steps_record(n: int = 60_000, rate: float = 200.0, seed: int = 21) -> Recording:
+    """A rate-table-like record: plateaus of constant reference rate joined by 0.5-s linear
+    ramps, each ramp followed by a filter transient (first-order, τ 0.02 s) the model does not
+    describe; white + random-walk noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / rate
+    w = np.zeros((n, 3))
+    level = np.zeros(3)
+    plateau, ramp = int(6.0 * rate), int(0.5 * rate)
+    i = 0
+    while i < n:
+        new = rng.uniform(-3.0, 3.0, 3) * (rng.random(3) < 0.6)
+        j = min(i + ramp, n)
+        w[i:j] = level + (new - level) * np.linspace(0.0, 1.0, j - i, endpoint=False)[:, None]
+        k = min(j + plateau, n)
+        w[j:k] = new
+        level = new
+        i = k
+    params = {"bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])}, "scale": {"s": np.array([0.01, -0.02, 0.005])}}
+    y = E.deterministic(params, E.ModelInputs(t_s=t, omega_S_rad_s=w))  # (1 + s)·ω + b
+    # the chip filter's lag at every ramp (what ramp_margin_s leaves out): y − w low-passed
+    a = np.exp(-1.0 / (0.02 * rate))  # gone to e^-12.5 of its size 0.25 s after a ramp
+    lag = np.zeros((n, 3))
+    dw = np.r_[np.zeros((1, 3)), np.diff(w, axis=0)]
+    for m in range(1, n):
+        lag[m] = a * lag[m - 1] + a * dw[m]
+    y = y - lag
+    y = y + 2e-3 * rng.standard_normal((n, 3)) + np.cumsum(2e-7 * rng.standard_normal((n, 3)), axis=0)
+    acc = np.tile([0.0, 0.0, 9.80665], (n, 1))
+    return Recording(t_s=t, gyro_rad_s=y, accel_m_s2=acc, ref_rate_rad_s=w, meta={"sensor": "s"})
+
+
+@pytest.mark.parametrize("chunk", [4096, 7001])
+def test_streamed_noise_model_fit_leaves_ramps_out_like_in_memory(tmp_path, monkeypatch, chunk):
+    # Issue 12: the streamed calibrate path leaves the rate ramps out (ramp_margin_s: the mask
+    # from the reference column read window by window, gyrocore.model.near_rate_changes) and
+    # identifies the noise model without the samples near a ramp, as in memory. The streamed
+    # and in-memory fits run the same arithmetic on the same windows (the chunked block-mean
+    # path, the same full-resolution residual for GMWM), so parameters, noise-model standard
+    # errors and the identified model agree to rounding: 1e-13 as the OLS case above.
+    rec = _table_steps_record()
+    path = tmp_path / "rec.csv"
+    write_csv(rec, path)
+    rec = read_csv(path)
+    eff = ["bias", "scale"]
+    kw = dict(effects=eff, max_rows=3000, covariance="noise_model", ramp_margin_s=0.25)
+    monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", chunk)
+    in_memory = Calibrator(**kw).fit(rec)
+    store = spill_columns(path, tmp_path / "spill", accel=True, groups=("ref_rate",))
+    streamed = Calibrator(**kw).fit_spilled(store)
+    assert any(s.startswith("left out") for s in streamed.notes)
+    assert any("noise identified on" in s for s in streamed.notes)
+    assert streamed.covariance == "noise_model" and streamed.n_samples < rec.n
+    _assert_same(in_memory, streamed, rtol=1e-13)
+    for k, v in in_memory.noise_model.items():
+        np.testing.assert_allclose(streamed.noise_model[k], v, rtol=1e-13, err_msg=k)
+    # the ramps matter here (the check can fail): without the margin the fit uses every
+    # sample and the transient biases the scale by many standard errors (z −7, −9 on this
+    # record); with the ramps out z is N(0, 1) if the noise-model standard errors are honest,
+    # so |z| < 5 on all three fails with probability 3·6e-7
+    no_margin = Calibrator(**dict(kw, ramp_margin_s=0.0)).fit_spilled(store)
+    assert no_margin.n_samples == rec.n
+    s_true = np.array([0.01, -0.02, 0.005])
+    z_out = (streamed.params["scale"]["s"] - s_true) / streamed.stderr["scale"]["s"]
+    z_in = (no_margin.params["scale"]["s"] - s_true) / no_margin.stderr["scale"]["s"]
+    assert np.max(np.abs(z_in)) > 5.0 > np.max(np.abs(z_out)), (z_in, z_out)
+
+
+def test_near_rate_changes_window_by_window_equals_the_box_convolution():
+    # the ramp mask read a window at a time (one row of overlap each side, runs dilated by k)
+    # is the whole-column definition: ramp samples convolved with a box of 2k + 1 > 0.5
+    from gyrocore.model import near_rate_changes
+
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        n = int(rng.integers(400, 3000))
+        t = np.cumsum(rng.uniform(0.0005, 0.0015, n))
+        w = np.zeros((n, 3))
+        for _j in range(int(rng.integers(0, 6))):
+            a = int(rng.integers(0, n))
+            b = min(n, a + int(rng.integers(1, 200)))
+            w[a:b, int(rng.integers(0, 3))] += np.linspace(0.0, rng.uniform(-3, 3), b - a)
+        margin = float(rng.uniform(0.0, 0.15))
+        dw = np.max(np.abs(np.diff(w, axis=0)), axis=1) / np.diff(t)
+        ramp = np.r_[dw > 1e-2, False] | np.r_[False, dw > 1e-2]
+        k = int(round(margin / float(np.median(np.diff(t)))))
+        ref = (np.convolve(ramp.astype(float), np.ones(2 * k + 1), mode="same") > 0.5) if ramp.any() else ramp
+        for chunk in (2, 7, 997, n):
+            np.testing.assert_array_equal(near_rate_changes(t, w, margin, chunk_rows=chunk), ref)
+            np.testing.assert_array_equal(near_rate_changes(t, lambda a, b: w[a:b], margin, chunk_rows=chunk), ref)
