@@ -41,13 +41,14 @@ from gyrocore import effects as E
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
 __all__ = ["Target", "TARGETS", "TableProtocol", "ThermalProtocol", "TABLE_PROTOCOLS", "THERMAL_PROTOCOLS",
+           "NoiseSource", "load_noise", "simulated_still_noise", "record_support",
            "hover_trajectory", "design_stderr", "candidate_stderr", "evaluate_grid", "choose", "confirm", "run"]
 
 SENSOR = "icm42688p"
 #: Reference protocol times (the ablation's calibration runs), s.
 TABLE_REF_S = 387.0
 THERMAL_REF_S = 900.0
-WINDOWS_S = (0.5, 1.0, 2.0, 4.0, 8.0, 15.0, 30.0)
+WINDOWS_S = (0.5, 1.0, 2.0, 4.0, 8.0, 15.0, 30.0, 60.0, 120.0)
 _SIX = ("+x", "-x", "+y", "-y", "+z", "-z")
 _THREE = ("+x", "+y", "+z")
 
@@ -110,8 +111,296 @@ class Target:
         return pred.rms_predicted_deg <= self.floor_ratio * pred.rms_floor_deg
 
 
-TARGETS = (Target("final error ≤ 1° after 10 min of hover", final_deg=1.0),
-           Target("RMS error ≤ 1.3 × floor over 10 min of hover", floor_ratio=1.3))
+#: Default targets: "how long must I calibrate for X°" (expected final error after the hover,
+#: √E|ε(T)|², for X = 1, 1.5, 2, 3°) and "within 1.3 × the floor" (RMS over the hover).
+TARGETS = (Target("final error ≤ 1° after the hover", final_deg=1.0),
+           Target("final error ≤ 1.5° after the hover", final_deg=1.5),
+           Target("final error ≤ 2° after the hover", final_deg=2.0),
+           Target("final error ≤ 3° after the hover", final_deg=3.0),
+           Target("RMS error ≤ 1.3 × floor over the hover", floor_ratio=1.3))
+
+
+# ----------------------------------------------------------------------------- noise model
+#: Length of the simulated still recording the default run identifies the flight's noise on,
+#: as a multiple of the flight (and at least :data:`NOISE_RECORD_MIN_S`).
+NOISE_RECORD_FACTOR = 4.0
+NOISE_RECORD_MIN_S = 1200.0
+#: A noise term "matters" for a flight when it raises the flight's floor RMS by this fraction.
+SUPPORT_RISE = 0.10
+#: Longest still recording the support search considers, s (24 h).
+SUPPORT_MAX_RECORD_S = 86400.0
+_SLOW_TERMS = ("bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "correlated_sigma_rad_s")
+_TERM_LABEL = {"bias_instability_rad_s": "flicker (bias instability) B", "rrw_rad_per_s_sqrt_s": "rate random walk K",
+               "correlated_sigma_rad_s": "Gauss–Markov σ"}
+
+
+@dataclass(frozen=True)
+class NoiseSource:
+    """The noise model the protocol's flight budget uses and where it comes from.
+
+    Attributes
+    ----------
+    model : gyrocore.budget.NoiseModel
+        Per-axis noise (rad/√s, rad/s, rad/s/√s; Gauss–Markov σ rad/s, τc s).
+    label : str
+        Where it comes from (said in the report and the JSON).
+    record_s : float or None
+        Length of the still record the model was identified on, s (None: unknown).
+    rate_hz : float or None
+        That record's sample rate, Hz.
+    kind : str
+        ``"noise-json"`` (``gyroharness allan/noise --json``), ``"recording"`` (a still data
+        file identified here), ``"parameter-file"`` (a calibration's ``noise_model``: its
+        residual), ``"simulated-still"``, ``"calibration"`` (the reference calibration's
+        residual).
+    """
+
+    model: object
+    label: str
+    record_s: float | None
+    rate_hz: float | None
+    kind: str
+
+    @property
+    def n_samples(self) -> int | None:
+        if self.record_s is None or self.rate_hz is None:
+            return None
+        return int(round(self.record_s * self.rate_hz)) + 1
+
+    def terms(self) -> dict:
+        """Axis means of the model's terms (the keys of :func:`gyrocore.gmwm.expected_z`)."""
+        m = self.model
+        sig = np.asarray(m.gm_sigma_rad_s, float)
+        tau = np.asarray(m.gm_tau_c_s, float)
+        has = (sig > 0) & np.isfinite(tau)
+        return {"arw_rad_per_sqrt_s": float(np.mean(m.arw_rad_per_sqrt_s)),
+                "bias_instability_rad_s": float(np.mean(m.bias_instability_rad_s)),
+                "rrw_rad_per_s_sqrt_s": float(np.mean(m.rrw_rad_s_per_sqrt_s)),
+                "correlated_sigma_rad_s": float(np.mean(sig[has])) if has.any() else 0.0,
+                "correlated_tau_c_s": float(np.mean(tau[has])) if has.any() else None}
+
+
+def _noise_from_allan_json(doc: dict, where: str):
+    """NoiseModel from the JSON of ``gyroharness allan/noise --json`` (per-axis terms, null =
+    not resolved, ``ambiguous`` and ``estimate``: :meth:`gyrocore.budget.NoiseModel.from_identified`)."""
+    from types import SimpleNamespace
+
+    from gyrocore.budget import NoiseModel
+    from gyrocore.errors import GyroInputError
+
+    axes = doc.get("axes")
+    if not isinstance(axes, dict) or not axes:
+        raise GyroInputError(f"{where}: no 'axes' in the noise JSON (expected the output of `gyroharness noise --json`)")
+    keys = ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "correlated_sigma_rad_s",
+            "correlated_tau_c_s")
+    ns = {}
+    for a, d in axes.items():
+        if a not in ("x", "y", "z") or not isinstance(d, dict):
+            continue
+        try:
+            vals = {k: (None if d.get(k) is None else float(d[k])) for k in keys}
+        except (TypeError, ValueError):
+            raise GyroInputError(f"{where}: axis {a}: a noise term is not a number") from None
+        if vals["arw_rad_per_sqrt_s"] is None or not (vals["arw_rad_per_sqrt_s"] > 0):
+            raise GyroInputError(f"{where}: axis {a} has no white rate noise (arw_rad_per_sqrt_s)")
+        ns[a] = SimpleNamespace(**vals, ambiguous=dict(d.get("ambiguous") or {}), estimate=dict(d.get("estimate") or {}))
+    if not ns:
+        raise GyroInputError(f"{where}: no gyro axis x, y or z in the noise JSON")
+    return NoiseModel.from_identified(SimpleNamespace(axes=ns))
+
+
+def load_noise(path) -> NoiseSource:
+    """The flight's noise model from ``path`` (``experiment protocol --noise FILE``).
+
+    ``path`` is either a JSON file — the output of ``gyroharness allan --json`` /
+    ``gyroharness noise --json`` (the record's ``duration_s`` and ``rate_hz`` are used by
+    :func:`record_support`), or a parameter file of ``gyroharness calibrate --covariance
+    noise_model`` (its ``noise_model``: identified on the calibration residual, record length
+    = its fitted samples / rate) — or a still data file (CSV/Parquet, as every command reads
+    it), whose noise is identified here as ``gyroharness noise`` does (GMWM, motion gate on;
+    long files one axis at a time).
+    """
+    import json
+    import os
+    import warnings
+
+    from gyrocore.errors import GyroInputError
+
+    path = str(path)
+    if not os.path.isfile(path):
+        raise GyroInputError(f"{path}: no such noise file")
+    doc = None
+    with open(path, "rb") as fh:
+        head = fh.read(64).lstrip()
+    if head.startswith(b"{"):
+        try:
+            with open(path, encoding="utf-8") as fh:
+                doc = json.load(fh)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise GyroInputError(f"{path}: not a noise JSON ({type(exc).__name__})") from None
+        if not isinstance(doc, dict):
+            raise GyroInputError(f"{path}: not a noise JSON (top level is not an object)")
+    if doc is not None and "axes" in doc:
+        model = _noise_from_allan_json(doc, path)
+        dur = doc.get("duration_s")
+        rate = doc.get("rate_hz")
+        dur = float(dur) if isinstance(dur, (int, float)) and dur > 0 else None
+        rate = float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
+        what = f"{dur:.0f}-s" if dur else "a"
+        return NoiseSource(model=model, label=f"{os.path.basename(path)} (noise JSON: GMWM on {what} still record"
+                                              f"{f' at {rate:g} Hz' if rate else ''})",
+                           record_s=dur, rate_hz=rate, kind="noise-json")
+    if doc is not None and "noise_model" in doc:
+        from gyrocore.model import result_from_dict
+
+        res = result_from_dict(doc, where=path)
+        if not res.noise_model:
+            raise GyroInputError(f"{path}: the parameter file has no noise_model (calibrate with --covariance noise_model)")
+        rate = float(res.noise_model.get("rate_hz", float("nan")))
+        rate = rate if np.isfinite(rate) and rate > 0 else None
+        dur = float(res.n_samples) / rate if rate and res.n_samples else None
+        return NoiseSource(model=res.noise(), label=f"{os.path.basename(path)} (calibration residual, "
+                                                    f"{res.n_samples} samples{f' at {rate:g} Hz' if rate else ''})",
+                           record_s=dur, rate_hz=rate, kind="parameter-file")
+    if doc is not None:
+        raise GyroInputError(f"{path}: JSON is neither a noise JSON (`gyroharness noise --json`) nor a parameter file")
+    # a still data file: identify as `gyroharness noise FILE` does
+    from gyrocore.allan import allan_analysis
+    from gyrocore.budget import NoiseModel
+    from gyrocore.commands.allan import _long, allan_by_axis
+    from gyrocore.recording import read_recording
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="no long-tau term resolved")
+        if _long(path):
+            an = allan_by_axis(path, axes=["x", "y", "z"], max_tau_s=None, kalibr=False, engine="fast")
+        else:
+            an = allan_analysis(read_recording(path), axes=["x", "y", "z"], check_static=True)
+    return NoiseSource(model=NoiseModel.from_identified(an),
+                       label=f"{os.path.basename(path)} (GMWM on its {an.duration_s:.0f}-s still record at {an.rate_hz:g} Hz)",
+                       record_s=float(an.duration_s), rate_hz=float(an.rate_hz), kind="recording")
+
+
+def simulated_still_noise(*, seed: int, duration_s: float) -> NoiseSource:
+    """The design unit's noise identified (GMWM) on a simulated still recording of
+    ``duration_s`` (scenario ``static``, a separate power-up: run 3) — what a user gets from
+    ``gyroharness noise`` on a long still log of the same sensor."""
+    import warnings
+
+    from gyrocore.allan import allan_analysis
+    from gyrocore.budget import NoiseModel
+    from sim import scenarios as S
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = S.simulate("static", sensor=SENSOR, seed=int(seed), run=3, duration_s=float(duration_s)).recording
+        an = allan_analysis(rec, axes=["x", "y", "z"])
+    del rec
+    return NoiseSource(model=NoiseModel.from_identified(an),
+                       label=f"GMWM on a simulated {an.duration_s:.0f}-s still recording of the unit (static, run 3)",
+                       record_s=float(an.duration_s), rate_hz=float(an.rate_hz), kind="simulated-still")
+
+
+def record_support(terms: dict, *, n_samples: int | None, rate_hz: float | None, unit_var: dict,
+                   rise: float = SUPPORT_RISE, max_record_s: float = SUPPORT_MAX_RECORD_S) -> list[dict]:
+    """Does the noise record support the flight? The resolvability rule, term by term.
+
+    A flight's floor is set by the slow terms (flicker B, rate random walk K, a Gauss–Markov
+    bias) at time scales up to the flight's length; a model identified on a shorter record
+    may have missed them or mistaken one for another (a 387-s calibration residual gave a
+    10-min floor of 0.54° for a unit whose true floor is 0.81°). For each slow term X:
+
+    * its level: the model's value if the model has it, else (B and K only) the *smallest
+      level that matters*, the one that raises the flight's floor RMS by ``rise``:
+      x² = ((1 + rise)² − 1)·V_rest / v_X, with V_rest the floor variance of the other terms
+      and v_X that of X at unit level (``unit_var``; the floor is linear in each term's
+      variance coefficient);
+    * a term present but adding less than ``rise`` to the floor RMS does not matter;
+    * otherwise it must be resolvable from the record: :func:`gyrocore.gmwm.expected_z`
+      (the model with X at its level, the record's sample count and rate) ≥
+      :data:`gyrocore.gmwm.Z_POWER` (GMWM claims it with ≥ 90 % probability). If not, the
+      record length that would resolve it is searched by doubling (up to ``max_record_s``).
+
+    Parameters
+    ----------
+    terms : dict
+        Axis-mean terms, keys of :func:`gyrocore.gmwm.expected_z` (rad/√s, rad/s, rad/s/√s).
+    n_samples, rate_hz : int, float or None
+        The noise record (None: unknown → every term that matters is unsupported).
+    unit_var : dict
+        {term: the flight floor's variance (rad², time mean over the flight) for the term at
+        unit level (1 in its unit), the others 0}; ``correlated_sigma_rad_s`` at the model's τc.
+
+    Returns
+    -------
+    list of dict, one per slow term: ``term``, ``level``, ``present`` (in the model),
+    ``floor_rise`` (fractional RMS rise of the floor it causes), ``matters``, ``margin`` (at the
+    record), ``resolvable``, ``needed_record_s`` (None: resolvable now; inf: beyond
+    ``max_record_s``), ``warn`` (True: a present term or the flicker term the record cannot
+    support; an absent random walk or Gauss–Markov term is stated as an assumption instead).
+    """
+    from gyrocore import gmwm
+
+    lev = {k: float(terms.get(k) or 0.0) for k in ("arw_rad_per_sqrt_s",) + _SLOW_TERMS}
+    tau = terms.get("correlated_tau_c_s")
+    v_of = {k: float(unit_var.get(k, 0.0)) for k in lev}
+    rows = []
+    q = (1.0 + rise) ** 2 - 1.0
+    for x in _SLOW_TERMS:
+        present = lev[x] > 0
+        if x == "correlated_sigma_rad_s" and not present:
+            continue  # no τc to test an absent Gauss–Markov term at
+        v_rest = sum(lev[k] ** 2 * v_of[k] for k in lev if k != x)
+        if v_of[x] <= 0 or v_rest <= 0:
+            continue
+        level = lev[x] if present else math.sqrt(q * v_rest / v_of[x])
+        rise_x = math.sqrt(1.0 + level ** 2 * v_of[x] / v_rest) - 1.0
+        row = {"term": x, "label": _TERM_LABEL[x], "level": level, "present": present, "floor_rise": rise_x,
+               "matters": rise_x >= rise * (1 - 1e-9), "margin": None, "resolvable": True, "needed_record_s": None,
+               "warn": False}
+        if row["matters"]:
+            tt = {**{k: (lev[k] or None) for k in lev}, x: level, "correlated_tau_c_s": tau}
+
+            def margin(n):
+                return float(gmwm.expected_z(tt, n_samples=int(n), rate_hz=float(rate_hz)).get(x, -math.inf))
+
+            if n_samples is None or rate_hz is None:
+                row.update(resolvable=False, needed_record_s=float("nan"))
+            else:
+                m0 = margin(n_samples)
+                row["margin"] = m0
+                if m0 < gmwm.Z_POWER:
+                    row["resolvable"] = False
+                    n, need = int(n_samples), math.inf
+                    while n / rate_hz < max_record_s:
+                        n *= 2
+                        if margin(n) >= gmwm.Z_POWER:
+                            need = n / rate_hz
+                            break
+                    row["needed_record_s"] = need
+            row["warn"] = (not row["resolvable"]) and (present or x == "bias_instability_rad_s")
+        rows.append(row)
+    return rows
+
+
+def _support_message(rows: list[dict], src: NoiseSource, flight_s: float) -> str | None:
+    """The one ``warning:`` line when the noise record does not support the flight."""
+    bad = [r for r in rows if r["warn"]]
+    if not bad:
+        return None
+    rec = "of unknown length" if src.record_s is None else f"of {src.record_s:.0f} s"
+
+    def need(r):
+        n = r["needed_record_s"]
+        if n is None or not np.isfinite(n):
+            return "a record of unknown length" if n is not None and np.isnan(n) else f"> {SUPPORT_MAX_RECORD_S:.0f} s"
+        return f"≥ {n:.0f} s"
+
+    parts = [f"{r['label']} {r['level']:.2g} ({'identified' if r['present'] else 'smallest that matters'}, "
+             f"+{100 * r['floor_rise']:.0f} % on the floor) needs {need(r)}" for r in bad]
+    return (f"the noise record {rec} does not support a {flight_s:g}-s flight (resolvability rule, "
+            f"gyrocore.gmwm.expected_z, 90 % power): " + "; ".join(parts)
+            + " — the floor may be under-predicted; give --noise a longer still recording")
 
 
 def hover_trajectory(*, seed: int, airborne_s: float):
@@ -318,6 +607,9 @@ def evaluate_grid(res, ground_s: float, groups, *, windows=WINDOWS_S, table=None
                              "floor_rms_deg": p.rms_floor_deg, "floor_final_deg": p.final_floor_deg,
                              "table_deg": math.degrees(math.sqrt(max(pr._mean(a), 0.0))),
                              "thermal_deg": math.degrees(math.sqrt(max(pr._mean(b), 0.0))),
+                             # the noise + window part alone (what a true-parameter flight measures)
+                             "noise_final_deg": math.degrees(math.sqrt(max(base[-1], 0.0))),
+                             "noise_rms_deg": math.degrees(math.sqrt(max(pr._mean(base), 0.0))),
                              "pred": p})
     return rows
 
@@ -388,13 +680,62 @@ def _interval(x: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
     return math.exp(m), math.exp(m - h), math.exp(m + h)
 
 
+def _mean_square_interval(x: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
+    """Mean of x (final error², one value per unit) and its Student-t interval (lower end
+    clipped at 0): the n units are independent draws, the mean is ≈ normal for n ≳ 8 (x is
+    χ²-like with ~3 dof: skewed, so the interval is approximate on the low side)."""
+    from scipy import stats
+
+    x = np.asarray(x, float)
+    m = float(x.mean())
+    if x.size < 2:
+        return m, float("nan"), float("nan")
+    h = float(stats.t.ppf(0.5 + level / 2, x.size - 1)) * float(x.std(ddof=1)) / math.sqrt(x.size)
+    return m, max(m - h, 0.0), m + h
+
+
+def _floor_ms(inp, start: int, segs, model) -> float:
+    """Time mean of the floor's E|ε|² (rad²) of a flight for a noise model."""
+    from gyrocore.budget import predict_error
+
+    pr = predict_error(inp, start=start, segments=segs, noise=model, groups=(), max_blocks=400)
+    return float(pr._mean(np.asarray(sum(pr.floor_var_rad2.values()), float))) if pr.floor_var_rad2 else 0.0
+
+
+def _unit_floor_var(inp, start: int, segs, tau_c_s: float | None) -> dict:
+    """{term: the flight floor's mean variance at unit level of that term alone} (linear in
+    each term's variance coefficient: :func:`record_support`)."""
+    from gyrocore.budget import NoiseModel
+
+    z, one = np.zeros(3), np.ones(3)
+    out = {"arw_rad_per_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=one)),
+           "bias_instability_rad_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z,
+                                                                            bias_instability_rad_s=one)),
+           "rrw_rad_per_s_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z,
+                                                                          rrw_rad_s_per_sqrt_s=one))}
+    if tau_c_s is not None and np.isfinite(tau_c_s):
+        out["correlated_sigma_rad_s"] = _floor_ms(inp, start, segs, NoiseModel(
+            arw_rad_per_sqrt_s=z, gm_sigma_rad_s=one, gm_tau_c_s=np.full(3, float(tau_c_s))))
+    return out
+
+
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        seed: int = 0, **_ignored) -> ExperimentResult:
-    """Protocol design for :data:`TARGETS`; tables, figure and simulation check into ``out_dir``."""
+        seed: int = 0, noise=None, **_ignored) -> ExperimentResult:
+    """Protocol design for :data:`TARGETS`; tables, figures and the held-out simulation check
+    into ``out_dir``.
+
+    ``noise``: the flight's noise model — None (default): identified (GMWM) on a simulated
+    still recording of the design unit, :data:`NOISE_RECORD_FACTOR` × the flight long;
+    ``"calibration"``: the reference calibration's residual model (the previous behaviour);
+    a path (:func:`load_noise`) or a :class:`NoiseSource`. One ``warning:`` line when the
+    record does not support the flight (:func:`record_support`).
+    """
     import shutil
     import tempfile
+    import warnings
 
     from experiments.montecarlo import instance_seeds
+    from gyrocore.budget import NoiseModel
 
     from . import ablation as A
 
@@ -403,16 +744,48 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     airborne = 60.0 if quick else HOVER_S
     unit = instance_seeds(seed, 1)[0]
     res, ground = hover_trajectory(seed=unit, airborne_s=airborne)
+    rate = float(res.recording.rate_hz)
     present = A.present_effects(res.params_true)
     with single_thread_blas():
         core = A.calibrate_core(SENSOR, unit, present, quick=quick)
     stages = list(core.stages)
     groups = A.calibration_groups(stages, present)
-    nm = A.identified_noise(core, float(res.recording.rate_hz))
+    nm_cal = A.identified_noise(core, rate)
     r1, r2 = (tuple(core.results) + (None, None))[:2]
-    n_tab = r1.noise() if r1 is not None and r1.noise_model else nm
-    n_th = r2.noise() if r2 is not None and r2.noise_model else nm
+    n_tab = r1.noise() if r1 is not None and r1.noise_model else nm_cal
+    n_th = r2.noise() if r2 is not None and r2.noise_model else nm_cal
     orders = dict(r2.thermal_order) if r2 is not None else None
+    cal_rec_s = (float(r1.n_samples) / rate) if r1 is not None and r1.n_samples else None
+    cal_src = NoiseSource(model=nm_cal, label="the reference calibration's residual (GMWM on the table run)",
+                          record_s=cal_rec_s, rate_hz=rate, kind="calibration")
+    # --- the flight's noise model and whether its record supports the flight
+    if isinstance(noise, NoiseSource):
+        src = noise
+    elif noise is None:
+        src = simulated_still_noise(seed=unit, duration_s=max(NOISE_RECORD_FACTOR * airborne, NOISE_RECORD_MIN_S))
+    elif str(noise) == "calibration":
+        src = cal_src
+    else:
+        src = load_noise(noise)
+    nm = src.model
+    inp2, segs2, start2 = _prefixed_inputs(res, ground, 2.0)
+    terms = src.terms()
+    unit_var = _unit_floor_var(inp2, start2, segs2, terms.get("correlated_tau_c_s"))
+    support = record_support(terms, n_samples=src.n_samples, rate_hz=src.rate_hz, unit_var=unit_var)
+    warn_msg = _support_message(support, src, airborne)
+    if warn_msg:
+        warnings.warn(warn_msg, UserWarning, stacklevel=2)
+    floors = []
+    for name, model in (("flight noise model used: " + src.label, nm),
+                        ("reference calibration's residual model", nm_cal),
+                        ("the unit's true noise (simulation only)", NoiseModel.from_params(res.params_true))):
+        if model is None:
+            continue
+        from gyrocore.budget import predict_error
+
+        pr = predict_error(inp2, start=start2, segments=segs2, noise=model, groups=(), max_blocks=400)
+        floors.append((name, pr.rms_floor_deg, pr.final_floor_deg, pr.rms_predicted_deg, pr.final_predicted_deg))
+
     windows = (0.5, 2.0, 8.0, 30.0) if quick else WINDOWS_S
     tabs = TABLE_PROTOCOLS[:2] if quick else TABLE_PROTOCOLS
     ths = THERMAL_PROTOCOLS[:2] if quick else THERMAL_PROTOCOLS
@@ -421,17 +794,65 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
                                           thermal=ths, thermal_orders=orders)
     rows = evaluate_grid(res, ground, groups, windows=windows, table=cand_t, thermal=cand_h, noise=nm)
     chosen = {t.name: choose(rows, t) for t in TARGETS}
-    # simulation check: the chosen window against the 2-s reference, true-parameter calibration
-    n_units = seeds or (1 if quick else 12)
-    check_windows = sorted({2.0} | {c["window_s"] for c in chosen.values() if c is not None})
+    # --- held-out check: fresh units (not the design unit) flown with each chosen window;
+    # calibration = each unit's true parameters, so the flight measures the window + noise part
+    n_units = seeds or (1 if quick else 8)
+    check_windows = sorted({c["window_s"] for c in chosen.values() if c is not None})
+    fresh = instance_seeds(seed + 1, n_units)
     cache = tempfile.mkdtemp(prefix="gyroharness-protocol-")
     try:
-        conf = {tw: confirm(tw, instance_seeds(seed + 1, n_units), airborne_s=airborne, cache_dir=cache)
-                for tw in check_windows}
+        conf = {tw: confirm(tw, fresh, airborne_s=airborne, cache_dir=cache) for tw in check_windows}
     finally:
         shutil.rmtree(cache, ignore_errors=True)
 
     ref_t, ref_h = cand_t[0]["label"], cand_h[0]["label"]
+    # --- "how long must I calibrate for X°": held-out figures first
+    how_rows, how_json = [], {}
+    for t in TARGETS:
+        c = chosen[t.name]
+        if c is None:
+            best = min((r for r in rows if r["eligible"]), key=lambda r: r["final_deg"] if t.final_deg is not None
+                       else r["rms_deg"] / r["floor_rms_deg"])
+            how_rows.append((t.name, "not reachable on the grid", "", "", "", "", "",
+                             f"best: {best['final_deg']:.2f}° final, RMS/floor {best['rms_deg'] / best['floor_rms_deg']:.2f} "
+                             f"({best['window_s']:g}-s window); floor final {best['floor_final_deg']:.2f}°"))
+            how_json[t.name] = None
+            continue
+        lst = conf[c["window_s"]]
+        fin2 = np.array([x["final_deg"] for x in lst]) ** 2
+        par2 = max(c["final_deg"] ** 2 - c["noise_final_deg"] ** 2, 0.0)  # parameter shares (budget, final)
+        m2, lo2, hi2 = _mean_square_interval(fin2)
+        est = math.sqrt(m2 + par2)
+        ci = (math.sqrt(lo2 + par2), math.sqrt(hi2 + par2)) if np.isfinite(hi2) else (float("nan"), float("nan"))
+        mr = np.array([x["rms_deg"] for x in lst])
+        fl = np.array([x["floor_rms_deg"] for x in lst])
+        g, glo, ghi = _interval(mr / fl)
+        if t.final_deg is not None:
+            held = f"{est:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]"
+            within = f"{int(np.sum(np.sqrt(fin2 + par2) <= t.final_deg))}/{len(lst)}"
+            verdict = "yes" if est <= t.final_deg else "no"
+        else:
+            held = f"RMS/floor {g:.2f} [{glo:.2f}, {ghi:.2f}]"
+            within = f"{int(np.sum(mr / fl <= t.floor_ratio))}/{len(lst)}"
+            verdict = "yes" if g <= t.floor_ratio else "no"
+        how_rows.append((t.name, c["cost_s"], f"{c['window_s']:g} s window; {c['table']}; {c['thermal']}",
+                         held, within, verdict,
+                         c["final_deg"] if t.final_deg is not None else c["rms_deg"] / c["floor_rms_deg"],
+                         f"window + noise part: predicted {c['noise_final_deg']:.2f}° final, measured "
+                         f"√mean {math.sqrt(m2):.2f}° [{math.sqrt(lo2):.2f}, {math.sqrt(hi2):.2f}]"))
+        how_json[t.name] = {"window_s": c["window_s"], "table": c["table"], "thermal": c["thermal"],
+                            "cost_s": c["cost_s"], "predicted_final_deg": c["final_deg"],
+                            "predicted_rms_over_floor": c["rms_deg"] / c["floor_rms_deg"],
+                            "predicted_noise_final_deg": c["noise_final_deg"], "parameter_final_deg": math.sqrt(par2),
+                            "heldout_final_deg": est, "heldout_final_ci95_deg": list(ci),
+                            "heldout_noise_final_deg": math.sqrt(m2),
+                            "heldout_noise_final_ci95_deg": [math.sqrt(lo2), math.sqrt(hi2)],
+                            "heldout_rms_over_floor": g, "heldout_rms_over_floor_ci95": [glo, ghi],
+                            "units_within": within, "met": verdict == "yes"}
+    how = md_table(["target", "total calibration time, s", "shortest protocol (budget)",
+                    f"held-out: {n_units} fresh units, final ° √mean [95 % CI] (or RMS/floor)", "units within target",
+                    "met on fresh units", "predicted (budget)", "detail"], how_rows)
+
     ref = [r for r in rows if r["table"] == ref_t and r["thermal"] == ref_h]
     tab = md_table(["still window, s", "predicted final °", "predicted RMS °", "floor RMS °", "RMS / floor"],
                    [(r["window_s"], r["final_deg"], r["rms_deg"], r["floor_rms_deg"], r["rms_deg"] / r["floor_rms_deg"])
@@ -458,16 +879,22 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
                 at(label_h=c["label"])["final_deg"]) for c in cand_h]
     h_tab = md_table(["thermal run", "duration, s", "bias_thermal SE (median), SI", "unobservable",
                       f"thermal params' hover RMS ° ({w_show:g}-s window)", "predicted final °"], th_rows)
-    ch_rows = []
-    for t in TARGETS:
-        c = chosen[t.name]
-        if c is None:
-            ch_rows.append((t.name, "not reachable on the grid", "", "", "", "", ""))
-        else:
-            ch_rows.append((t.name, c["window_s"], c["table"], c["thermal"], c["cost_s"], c["final_deg"],
-                            c["rms_deg"] / c["floor_rms_deg"]))
-    ch = md_table(["target", "still window, s", "table run", "thermal run", "total, s", "predicted final °",
-                   "predicted RMS/floor"], ch_rows)
+    fl_tab = md_table(["noise model", "floor RMS °", "floor final °", "predicted RMS ° (2-s window)",
+                       "predicted final ° (2-s window)"], floors)
+
+    def _need(r):
+        n = r["needed_record_s"]
+        if n is None:
+            return "resolvable"
+        if np.isnan(n):
+            return "record length unknown"
+        return f"≥ {n:.0f} s" if np.isfinite(n) else f"> {SUPPORT_MAX_RECORD_S:.0f} s"
+
+    sup_tab = md_table(["term", "level (axis mean)", "in the model", "raises the flight floor RMS by",
+                        "margin at the record (resolvable ≥ 1.28)", "record needed", "warning"],
+                       [(r["label"], f"{r['level']:.3g}", "yes" if r["present"] else "no (smallest level that matters)",
+                         f"{100 * r['floor_rise']:.0f} %", "" if r["margin"] is None else f"{r['margin']:.2f}", _need(r),
+                         "yes" if r["warn"] else ("assumed absent" if not r["resolvable"] else "")) for r in support])
     cf_rows = []
     summary_conf = {}
     for tw, lst in conf.items():
@@ -477,13 +904,51 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         r2v = (mr / prr) ** 2
         se2 = float(np.std(r2v, ddof=1) / math.sqrt(r2v.size)) if r2v.size > 1 else float("nan")
         g, lo, hi = _interval(mr / fl)
-        cf_rows.append((tw, len(lst), float(np.median(mr)), float(np.median(prr)), f"{np.mean(r2v):.2f} ± {se2:.2f}",
-                        float(np.median(prr / np.array([x["pred_floor_rms_deg"] for x in lst]))),
-                        f"{g:.2f} [{lo:.2f}, {hi:.2f}]"))
+        budget_row = next(r for r in ref if r["window_s"] == tw)
+        cf_rows.append((tw, len(lst), float(np.sqrt(np.mean(np.array([x["final_deg"] for x in lst]) ** 2))),
+                        budget_row["noise_final_deg"], float(np.median(mr)), float(np.median(prr)),
+                        f"{np.mean(r2v):.2f} ± {se2:.2f}", f"{g:.2f} [{lo:.2f}, {hi:.2f}]"))
         summary_conf[str(tw)] = {"units": lst, "measured_over_floor_geomean": g, "ci95": [lo, hi],
-                                 "mean_r2": float(np.mean(r2v)), "mean_r2_se": se2}
-    cf = md_table(["still window, s", "units", "measured RMS ° (median)", "predicted RMS ° (median)",
-                   "mean (meas/pred RMS)² ± se", "predicted RMS/floor", "measured RMS/floor: geo-mean [95 % CI]"], cf_rows)
+                                 "mean_r2": float(np.mean(r2v)), "mean_r2_se": se2,
+                                 "budget_noise_final_deg": budget_row["noise_final_deg"]}
+    cf = md_table(["still window, s", "fresh units", "measured final ° (√mean of squares)",
+                   "budget final ° (window + noise, flight noise model)", "measured RMS ° (median)",
+                   "predicted RMS ° (median, unit's true noise)", "mean (meas/pred RMS)² ± se",
+                   "measured RMS/floor: geo-mean [95 % CI]"], cf_rows)
+
+    # --- figures: how long (cost vs predicted final, held-out points) and the grid by knob
+    fig0 = new_figure(figsize=(6.4, 4.2))
+    ax0 = fig0.add_subplot(111)
+    elig = [r for r in rows if r["eligible"]]
+    ax0.scatter([r["cost_s"] for r in elig], [r["final_deg"] for r in elig], s=6, c="0.7", label="grid protocols")
+    order = sorted(elig, key=lambda r: (r["cost_s"], r["final_deg"]))
+    front, best = [], math.inf
+    for r in order:
+        if r["final_deg"] < best:
+            best = r["final_deg"]
+            front.append(r)
+    ax0.step([r["cost_s"] for r in front], [r["final_deg"] for r in front], where="post", color="C0",
+             label="shortest protocol for a target (budget)")
+    for t in TARGETS:
+        if t.final_deg is None:
+            continue
+        ax0.axhline(t.final_deg, color="r", lw=0.6, ls=":")
+        j = how_json.get(t.name)
+        if j:
+            lo_, hi_ = j["heldout_final_ci95_deg"]
+            ax0.errorbar([j["cost_s"]], [j["heldout_final_deg"]], yerr=[[j["heldout_final_deg"] - lo_],
+                                                                         [hi_ - j["heldout_final_deg"]]],
+                         fmt="kx", ms=6, capsize=3)
+    ax0.plot([], [], "kx", label=f"held out: {n_units} fresh units (95 % CI)")
+    ax0.axhline(ref[0]["floor_final_deg"], color="k", lw=0.8, ls="--", label="floor (final)")
+    ax0.set_xscale("log")
+    ax0.set_xlabel("total calibration time (still window + table + thermal run), s")
+    ax0.set_ylabel(f"final attitude error after {airborne:g} s of hover, deg")
+    ax0.set_title(f"How long must I calibrate? (noise: {src.kind})", fontsize=8)
+    ax0.grid(alpha=0.3, which="both")
+    ax0.legend(fontsize=6)
+    fig0p = save_figure(fig0, out_dir, "protocol_how_long")
+
     fig = new_figure(figsize=(10.0, 3.8))
     ax = fig.add_subplot(121)
     for c in cand_t:
@@ -498,7 +963,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     ax.set_yscale("log")
     ax.set_xlabel("power-up still window, s")
     ax.set_ylabel(f"final error after {airborne:g} s of hover, deg")
-    ax.set_title("table runs (reference thermal run); x: simulated units", fontsize=8)
+    ax.set_title("table runs (reference thermal run); x: fresh simulated units", fontsize=8)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=6)
     ax2 = fig.add_subplot(122)
@@ -515,28 +980,48 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     ax2.legend(fontsize=6)
     figp = save_figure(fig, out_dir, "protocol_hover")
     md = [
-        f"Predicted attitude error after {airborne:g} s of hover (sensor {SENSOR}, unit seed {unit}) for a grid of "
-        "calibration protocols: power-up still window × rate-table run (mounts, rates, revolutions) × thermal run "
-        "(ambient span, duration = ramp rate). The table and thermal runs' standard errors are predicted from each "
-        "candidate's design with the noise-model covariance (experiments.protocol.design_stderr), the noise is the "
-        "model the reference calibration identified; the power-up window is exact in the budget.\n",
+        f"**Noise model of the flight:** {src.label}"
+        + (f" — **warning:** {warn_msg}" if warn_msg else " — the record supports the flight (resolvability rule)."),
+        "\n#### How long must I calibrate for X°? (held-out figures first)\n",
+        f"Shortest protocol per target by the budget on the design unit (seed {unit}); held out: {n_units} fresh "
+        f"units (campaign seed {seed + 1}, not the design unit) flown with that protocol's still window and their "
+        "true parameters (so the flight measures the window + noise part), plus the budget's parameter share "
+        "(the table/thermal runs' standard errors, whose honesty the z-score Monte Carlo of docs/accuracy.md "
+        "checks). The target is on the expected error √E|ε(T)|² over units; a single unit's final error "
+        "scatters around it (χ²-like).\n", how,
+        f"\n![how long]({fig0p})\n",
+        "#### Held-out simulation, per window\n", cf,
+        "\n#### The flight's noise model and its record\n", fl_tab,
+        "\nDoes the record support the flight? (`experiments.protocol.record_support`: each slow term that raises "
+        f"the flight's floor RMS by ≥ {100 * SUPPORT_RISE:.0f} % must be resolvable from the record, "
+        "`gyrocore.gmwm.expected_z` ≥ 1.28, i.e. claimed by GMWM with ≥ 90 % probability)\n", sup_tab,
+        f"\n#### Predicted error after {airborne:g} s of hover (sensor {SENSOR}, unit seed {unit})\n",
+        "Grid: power-up still window × rate-table run (mounts, rates, revolutions) × thermal run (ambient span, "
+        "duration = ramp rate). The table and thermal runs' standard errors are predicted from each candidate's "
+        "design with the noise-model covariance (experiments.protocol.design_stderr; noise: the model each "
+        "reference calibration identified on its own residual, a record as long as the run); the window and the "
+        "floor use the flight's noise model above.\n",
         "#### Still window (reference table and thermal runs)\n", tab,
         "\n#### Rate-table run candidates (reference thermal run)\n", t_tab,
         "\n#### Thermal run candidates (reference table run)\n", h_tab,
-        "\n#### Shortest protocol per target\n", ch,
-        "\n#### Simulation check (units flown with each window; calibration = the unit's true parameters, so only "
-        "the window and the noise differ)\n", cf,
         f"\n![protocol]({figp})",
     ]
     summary = {
+        "noise_source": {"label": src.label, "kind": src.kind, "record_s": src.record_s, "rate_hz": src.rate_hz,
+                         "terms": terms, "supported": warn_msg is None, "warning": warn_msg, "support": support},
+        "floors": [{"noise": f[0], "floor_rms_deg": f[1], "floor_final_deg": f[2], "pred_rms_deg_2s": f[3],
+                    "pred_final_deg_2s": f[4]} for f in floors],
+        "how_long": how_json,
         "targets": {t.name: (None if chosen[t.name] is None else
                              {k: v for k, v in chosen[t.name].items() if k != "pred"}) for t in TARGETS},
         "grid": [{k: v for k, v in r.items() if k != "pred"} for r in rows],
         "table_candidates": [{k: v for k, v in c.items() if k != "se"} for c in cand_t],
         "thermal_candidates": [{k: v for k, v in c.items() if k != "se"} for c in cand_h],
         "confirmation": summary_conf,
+        "fresh_seeds": [int(s) for s in fresh],
+        "design_unit_seed": int(unit),
         "airborne_s": airborne,
     }
     return ExperimentResult(name="protocol", title="Protocol design: how long to calibrate for a drift target",
-                            markdown="\n".join(md), figures=(figp,), summary=summary,
+                            markdown="\n".join(md), figures=(fig0p, figp), summary=summary,
                             wall_s=time.perf_counter() - t0)

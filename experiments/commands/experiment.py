@@ -19,19 +19,32 @@ __all__ = ["command"]
 @click.option("--seeds", type=click.IntRange(min=1), default=None, help="Sensor instances per scenario.")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Worker processes (default: all cores).")
 @click.option("--force", is_flag=True, help="Replace --out even if it is not a previous gyroharness report.")
+@click.option("--noise", "noise", default=None, type=click.Path(dir_okay=False),
+              help="protocol only: the flight's noise model — a JSON of `gyroharness noise --json`, a parameter file "
+                   "with a noise_model, or a long still recording (CSV/Parquet) to identify it from "
+                   "(default: a simulated still recording of the design unit, 4x the flight).")
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
-def command(name, out_dir, quick, seeds, workers, force, as_json):
-    """Run one experiment NAME (see `gyroharness run --help`; names: article, ablation, cutoffs, close_the_loop).
+def command(name, out_dir, quick, seeds, workers, force, noise, as_json):
+    """Run one experiment NAME (see `gyroharness run --help`; names: article, ablation, cutoffs, close_the_loop,
+    twin, protocol).
 
     Same folder policy as `gyroharness run`.
     """
     from experiments import registry
     from experiments.report import build_report
+    from gyrocore.errors import GyroInputError
 
     run = registry.get(name)
+    extra = {}
+    if noise is not None:
+        if name != "protocol":
+            raise GyroInputError(f"--noise applies to the protocol experiment only, not {name}")
+        from experiments.protocol import load_noise
+
+        extra["noise"] = load_noise(noise)  # bad files fail here, before any simulation
     t0 = time.perf_counter()
     path, results = build_report([(name, run)], out_dir or f"out/{name}", force=force, quick=quick, seeds=seeds,
-                                 workers=workers, title=f"gyroharness experiment {name}")
+                                 workers=workers, title=f"gyroharness experiment {name}", **extra)
     r = results[0]
     if as_json:
         doc = {"out": str(path), "name": name, "wall_s": r.wall_s, "figures": list(r.figures), "summary": r.summary}
@@ -40,4 +53,7 @@ def command(name, out_dir, quick, seeds, workers, force, as_json):
         emit_json(doc)
     else:
         click.echo(f"{name}: {r.wall_s:.1f} s, {len(r.figures)} figures; report: {path / 'report.md'}")
+        src = r.summary.get("noise_source") if isinstance(r.summary, dict) else None
+        if src:  # protocol: say which noise model the flight's budget used
+            click.echo(f"noise model: {src['label']}")
     return 0
