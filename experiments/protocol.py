@@ -755,9 +755,14 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     n_tab = r1.noise() if r1 is not None and r1.noise_model else nm_cal
     n_th = r2.noise() if r2 is not None and r2.noise_model else nm_cal
     orders = dict(r2.thermal_order) if r2 is not None else None
-    cal_rec_s = (float(r1.n_samples) / rate) if r1 is not None and r1.n_samples else None
-    cal_src = NoiseSource(model=nm_cal, label="the reference calibration's residual (GMWM on the table run)",
-                          record_s=cal_rec_s, rate_hz=rate, kind="calibration")
+    # the calibration runs' residual records (the longest bounds what the model can have seen)
+    cal_recs = [(float(r.n_samples) / float(r.noise_model["rate_hz"]), float(r.noise_model["rate_hz"]))
+                for r in (r1, r2) if r is not None and r.noise_model and r.n_samples
+                and np.isfinite(float(r.noise_model.get("rate_hz", np.nan)))]
+    cal_rec_s, cal_rate = max(cal_recs) if cal_recs else (None, None)
+    cal_src = NoiseSource(model=nm_cal, label="the reference calibration's residual model "
+                                              "(experiments.ablation.identified_noise)",
+                          record_s=cal_rec_s, rate_hz=cal_rate, kind="calibration")
     # --- the flight's noise model and whether its record supports the flight
     if isinstance(noise, NoiseSource):
         src = noise
