@@ -22,6 +22,12 @@ Memory: the kernels take two arrays, ``A`` (int64: addresses of the numpy/MuJoCo
 read and write, and integer settings) and ``W`` (float64: constants and state), so that the
 per-call dispatch cost stays small (numba unboxes every array argument). The address slots
 and the ``W`` offsets are the module constants below; :func:`build` fills both.
+
+Blocks (issue 13): the per-sample arrays (logs, times, temperature, noise, gyro output, tables)
+hold one block of the flight, rows ``A_K0 … A_K0 + A_NB − 1`` (the times and the ambient one row
+more, for the step to ``k + 1``); the kernels index them with ``k − A_K0`` and keep every piece
+of state in ``W``/``A``, so a flight cut into blocks is the same flight bit for bit.
+:meth:`Kernel.set_block` points ``A`` at the next block's arrays.
 """
 
 from __future__ import annotations
@@ -40,8 +46,10 @@ from numba.extending import intrinsic
  A_RQ0, A_RV0, A_NSD, A_SGYRO, A_SACC, A_SQ, A_SPOS, A_SVEL, A_OUTER_EVERY, A_N, A_NMAN, A_STREAM,
  A_EARTH, A_TAU, A_STH_P, A_ASYM, A_NL, A_BIAS, A_BTH_P, A_KTR, A_RAMP, A_H, A_G, A_LP, A_SAT, A_Q,
  A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_ARMED,
- # registry family terms of time only, precomputed (n, 3·A_NFAM) (sim.gyro.GyroStream.family_table)
- A_FAM, A_NFAM, A_SIZE) = range(55)
+ # registry family terms of time only, precomputed (rows, 3·A_NFAM) (sim.gyro.GyroStream.family_table)
+ A_FAM, A_NFAM,
+ # the current block (issue 13): global index of its first sample, rows of its arrays
+ A_K0, A_NB, A_SIZE) = range(57)
 
 
 def _layout(*fields):
@@ -169,12 +177,13 @@ def _log_and_gyro(k, A, W):
     """Log sensordata as sample k, run the gyro; the gyro output lands in W[GOUT3:GOUT3+3]."""
     nsd = A[A_NSD]
     sd = _f1(A[A_SD], nsd)
-    n = A[A_N]
-    sdlog = _f2(A[A_SDLOG], n, nsd)
+    nb = A[A_NB]
+    kb = k - A[A_K0]  # row of sample k in the block's arrays
+    sdlog = _f2(A[A_SDLOG], nb, nsd)
     for j in range(nsd):
-        sdlog[k, j] = sd[j]
+        sdlog[kb, j] = sd[j]
     if A[A_THERM] != 0:
-        _f1(A[A_TEMP], n)[k] = W[W_TH_TEMP]  # die temperature at t_k
+        _f1(A[A_TEMP], nb)[kb] = W[W_TH_TEMP]  # die temperature at t_k
     sg = A[A_SGYRO]
     w0 = sd[sg]
     w1 = sd[sg + 1]
@@ -185,7 +194,7 @@ def _log_and_gyro(k, A, W):
         W[W_GOUT3 + 2] = w2
         return
     # ---- the synthetic gyro: GyroStream._compile's code, block by block
-    t = _f1(A[A_TS], n)[k]
+    t = _f1(A[A_TS], nb + 1)[kb]
     if A[A_EARTH] != 0:
         sq = A[A_SQ]
         qw = sd[sq]
@@ -256,7 +265,7 @@ def _log_and_gyro(k, A, W):
     y2 = w0 * W[K + 6] + w1 * W[K + 7] + w2 * W[K + 8]
     T = 0.0
     if A[A_STH_P] > 0 or A[A_BTH_P] > 0:
-        T = _f1(A[A_TEMP], n)[k]
+        T = _f1(A[A_TEMP], nb)[kb]
     d0 = 0.0
     d1 = 0.0
     d2 = 0.0
@@ -291,7 +300,7 @@ def _log_and_gyro(k, A, W):
         a1 = a1 + s1
         a2 = a2 + s2
     if A[A_KTR] != 0:
-        r = _f1(A[A_TR], n)[k]
+        r = _f1(A[A_TR], nb)[kb]
         a0 = a0 + r * W[W_KTRV]
         a1 = a1 + r * W[W_KTRV + 1]
         a2 = a2 + r * W[W_KTRV + 2]
@@ -325,11 +334,11 @@ def _log_and_gyro(k, A, W):
     if m > 0:
         # registry family terms (gyrocore.effects: periodic, step, regressor[t]), each added
         # in model order as GyroStream's generic per-step call adds it
-        fam = _f2(A[A_FAM], n, 3 * m)
+        fam = _f2(A[A_FAM], nb, 3 * m)
         for j in range(m):
-            a0 = a0 + fam[k, 3 * j]
-            a1 = a1 + fam[k, 3 * j + 1]
-            a2 = a2 + fam[k, 3 * j + 2]
+            a0 = a0 + fam[kb, 3 * j]
+            a1 = a1 + fam[kb, 3 * j + 1]
+            a2 = a2 + fam[kb, 3 * j + 2]
     x0 = y0 + a0
     x1 = y1 + a1
     x2 = y2 + a2
@@ -359,10 +368,10 @@ def _log_and_gyro(k, A, W):
         W[Z + 4] = W[Z + 5] + x2 * lb1 - yn * la1
         W[Z + 5] = x2 * lb2 - yn * la2
         x2 = yn
-    nz = _f2(A[A_NOISE], n, 3)
-    x0 = x0 + nz[k, 0]
-    x1 = x1 + nz[k, 1]
-    x2 = x2 + nz[k, 2]
+    nz = _f2(A[A_NOISE], nb, 3)
+    x0 = x0 + nz[kb, 0]
+    x1 = x1 + nz[kb, 1]
+    x2 = x2 + nz[kb, 2]
     if A[A_SAT] != 0:
         S = W[W_SATV]
         NS = -S
@@ -375,10 +384,10 @@ def _log_and_gyro(k, A, W):
         x0 = (np.rint(x0 / L) + 0.0) * L
         x1 = (np.rint(x1 / L) + 0.0) * L
         x2 = (np.rint(x2 / L) + 0.0) * L
-    gout = _f2(A[A_GOUT], n, 3)
-    gout[k, 0] = x0
-    gout[k, 1] = x1
-    gout[k, 2] = x2
+    gout = _f2(A[A_GOUT], nb, 3)
+    gout[kb, 0] = x0
+    gout[kb, 1] = x1
+    gout[kb, 2] = x2
     W[W_GOUT3] = x0
     W[W_GOUT3 + 1] = x1
     W[W_GOUT3 + 2] = x2
@@ -387,9 +396,8 @@ def _log_and_gyro(k, A, W):
 @njit(cache=True)
 def _outer(k, A, W):
     """CascadedController.update_outer at t_k on the true state (sensordata), op by op."""
-    n = A[A_N]
     sd = _f1(A[A_SD], A[A_NSD])
-    t_s = _f1(A[A_TS], n)[k]
+    t_s = _f1(A[A_TS], A[A_NB] + 1)[k - A[A_K0]]
     sp = A[A_SPOS]
     sv = A[A_SVEL]
     sq = A[A_SQ]
@@ -481,10 +489,11 @@ def _outer(k, A, W):
 
 @njit(cache=True)
 def _log_outer(k, A, W):
-    """Outer log row of sample k: q_sp (4), rate_sp (3)."""
-    n = A[A_N]
-    outlog = _f2(A[A_OUTLOG], (n + A[A_OUTER_EVERY] - 1) // A[A_OUTER_EVERY], 7)
-    row = k // A[A_OUTER_EVERY]
+    """Outer log row of sample k: q_sp (4), rate_sp (3); the block's log starts at the row of its first sample."""
+    oe = A[A_OUTER_EVERY]
+    k0 = A[A_K0]
+    outlog = _f2(A[A_OUTLOG], (k0 + A[A_NB] - 1) // oe - k0 // oe + 1, 7)
+    row = k // oe - k0 // oe
     for i in range(4):
         outlog[row, i] = W[W_Q_SP + i]
     for i in range(3):
@@ -540,13 +549,15 @@ def _mix_motor(k, A, W, g0, g1, g2, armed, t0, t1, t2):
     """Log, mixer (thrusts 0 when not armed), motor commands, streamed die temperature."""
     c = W[W_COLL]
     tm = W[W_TM]
-    rec = _f2(A[A_REC], A[A_N], 14)
-    rec[k, 0] = W[W_GOUT3]
-    rec[k, 1] = W[W_GOUT3 + 1]
-    rec[k, 2] = W[W_GOUT3 + 2]
-    rec[k, 3] = g0
-    rec[k, 4] = g1
-    rec[k, 5] = g2
+    nb = A[A_NB]
+    kb = k - A[A_K0]
+    rec = _f2(A[A_REC], nb, 14)
+    rec[kb, 0] = W[W_GOUT3]
+    rec[kb, 1] = W[W_GOUT3 + 1]
+    rec[kb, 2] = W[W_GOUT3 + 2]
+    rec[kb, 3] = g0
+    rec[kb, 4] = g1
+    rec[kb, 5] = g2
     ct = W[W_CT]
     ff = W[W_FF]
     for i in range(4):
@@ -557,8 +568,8 @@ def _mix_motor(k, A, W, g0, g1, g2, armed, t0, t1, t2):
         else:
             ti = 0.0
         W[W_THRUST + i] = ti
-        rec[k, 6 + i] = ti
-        rec[k, 10 + i] = W[W_OM + i]  # rotor speeds at the start of this physics step
+        rec[kb, 6 + i] = ti
+        rec[kb, 10 + i] = W[W_OM + i]  # rotor speeds at the start of this physics step
         W[W_MOT + i] = W[W_SPIN + i] * (math.sqrt(ti / ct) + ff * ti)
     if A[A_THERM] != 0 and k + 1 < A[A_N]:
         # rotor power kappa c_T sum |Omega|^3 over this step -> sim.thermal.ThermalState.step
@@ -566,8 +577,8 @@ def _mix_motor(k, A, W, g0, g1, g2, armed, t0, t1, t2):
         for i in range(4):
             s = s + math.pow(abs(W[W_OM + i]), 3.0)  # Python's float ** 3 is C pow(x, 3.0)
         p_w = W[W_TH_KC] * s
-        t_next = _f1(A[A_TS], A[A_N])[k + 1]
-        amb_next = _f1(A[A_AMB], A[A_N])[k + 1]
+        t_next = _f1(A[A_TS], nb + 1)[kb + 1]
+        amb_next = _f1(A[A_AMB], nb + 1)[kb + 1]
         tau = W[W_TH_TAU]
         h = t_next - W[W_TH_T]
         a = math.exp(-h / tau)
@@ -616,11 +627,66 @@ aero = _aero
 class Kernel:
     """The compiled per-step work of one flight: the ``A``/``W`` arrays and what they point into.
 
-    Build with :func:`build`; keeps every array it hands out by address alive.
+    Build with :func:`build`, then :meth:`set_block` before each block of samples; keeps every
+    array it hands out by address alive (the flight's for its life, a block's until the next).
     """
 
     def __init__(self, A: np.ndarray, W: np.ndarray, keep: list) -> None:
         self.A, self.W, self._keep = A, W, keep
+        self._block: list = []
+
+    def set_block(self, k0: int, *, t_s: np.ndarray, temp_c: np.ndarray, sd_log: np.ndarray, outer_log: np.ndarray,
+                  rec: np.ndarray, ambient_c: np.ndarray | None = None, gyro_out: np.ndarray | None = None,
+                  noise: np.ndarray | None = None, temp_rate: np.ndarray | None = None,
+                  family: np.ndarray | None = None) -> None:
+        """Point the kernels at the arrays of samples ``k0 … k0 + m − 1``.
+
+        Parameters
+        ----------
+        k0 : int
+            Global index of the block's first sample.
+        t_s : ndarray (m + 1,)
+            Sample times of the block and of the sample after it, s.
+        temp_c : ndarray (m,)
+            Die temperature, °C (written by the kernels when the temperature is streamed).
+        sd_log : ndarray (m, nsensordata); rec : ndarray (m, 14)
+            Logs, written in place.
+        outer_log : ndarray ((k0 + m − 1) // outer_every − k0 // outer_every + 1, 7)
+            Outer-loop log from the row of sample k0 (a row begun in the previous block is
+            rewritten only at its next update: fill it from there).
+        ambient_c : ndarray (m + 1,), optional
+            Ambient at the block's times and the next, °C (streamed temperature).
+        gyro_out, noise : ndarray (m, 3), optional
+            The synthetic gyro's output rows and summed noise rows (with a stream).
+        temp_rate : ndarray (m,), optional
+            dT/dt, °C/s (``bias_temp_rate``).
+        family : ndarray (m, 3·nfam), optional
+            The time-only family terms' table.
+        """
+        A = self.A
+        m = int(temp_c.shape[0])
+        oe = int(A[A_OUTER_EVERY])
+        checks = [(t_s, (m + 1,)), (temp_c, (m,)), (sd_log, (m, int(A[A_NSD]))), (rec, (m, 14)),
+                  (outer_log, ((k0 + m - 1) // oe - k0 // oe + 1, 7))]
+        if A[A_THERM] != 0:
+            checks.append((ambient_c, (m + 1,)))
+        if A[A_STREAM] != 0:
+            checks += [(gyro_out, (m, 3)), (noise, (m, 3))]
+        if A[A_KTR] != 0:
+            checks.append((temp_rate, (m,)))
+        if A[A_NFAM] > 0:
+            checks.append((family, (m, 3 * int(A[A_NFAM]))))
+        for arr, shape in checks:
+            if arr is None or arr.shape != shape:
+                raise ValueError(f"kernel block array of shape {None if arr is None else arr.shape}, expected {shape}")
+        A[A_K0], A[A_NB] = int(k0), m
+        A[A_TS], A[A_TEMP], A[A_SDLOG], A[A_REC], A[A_OUTLOG] = (_addr(x) for x in (t_s, temp_c, sd_log, rec, outer_log))
+        block = [t_s, temp_c, sd_log, rec, outer_log]
+        for arr, slot in ((ambient_c, A_AMB), (gyro_out, A_GOUT), (noise, A_NOISE), (temp_rate, A_TR), (family, A_FAM)):
+            if arr is not None and arr.size:
+                A[slot] = _addr(arr)
+                block.append(arr)
+        self._block = block
 
 
 def _addr(a: np.ndarray) -> int:
@@ -629,10 +695,9 @@ def _addr(a: np.ndarray) -> int:
     return int(a.ctypes.data)
 
 
-def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct: float, ctl, t_s: np.ndarray,
-          temp_c: np.ndarray, sd_log: np.ndarray, outer_log: np.ndarray, rec: np.ndarray, stream=None,
-          thermal=None, ambient_c: np.ndarray | None = None, kappa_ct: float = 0.0) -> Kernel:
-    """Fill the kernel arrays for one flight.
+def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct: float, ctl, n: int,
+          t_power_up_s: float, stream=None, thermal=None, kappa_ct: float = 0.0) -> Kernel:
+    """Fill the kernel arrays for one flight (the per-sample arrays: :meth:`Kernel.set_block`).
 
     Parameters
     ----------
@@ -648,26 +713,25 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
         Rotor spin signs, drag-torque feed-forward kappa/kv (s), thrust coefficient.
     ctl : sim.controller.CascadedController
         Freshly reset controller (constants and initial state are copied).
-    t_s, temp_c : ndarray (n,)
-        Gyro sample times (s) and die temperature (°C).
-    sd_log : ndarray (n, nsensordata); outer_log : ndarray (ceil(n/outer_every), 7); rec : ndarray (n, 14)
-        Logs, written in place.
+    n : int
+        Gyro samples of the whole flight.
+    t_power_up_s : float
+        The gyro's power-up time (the first sample's), s, unless the stream has its own.
     stream : sim.gyro.GyroStream, optional
         The synthetic gyro (None: the true rate, PerfectGyro).
     thermal : sim.thermal.ThermalState, optional
-        Streamed die temperature (motor heating, heater): its state at t_0; ``temp_c`` is
-        then written, sample by sample. ``ambient_c`` (n,) the ambient at the samples, °C;
+        Streamed die temperature (motor heating, heater): its state at t_0; the block's
+        ``temp_c`` is then written, sample by sample, from the block's ``ambient_c``;
         ``kappa_ct`` = kappa c_T, rotor power per |Omega|^3, W s^3.
     """
     from gyrocore.effects import FF_ORDER
 
-    n = int(t_s.shape[0])
+    n = int(n)
     A = np.zeros(A_SIZE, dtype=np.int64)
     W = np.zeros(W_SIZE)
-    keep: list = [t_s, temp_c, sd_log, outer_log, rec]
+    keep: list = []
     A[A_QPOS], A[A_QVEL], A[A_SD], A[A_CTRL] = (_addr(x) for x in (data.qpos, data.qvel, data.sensordata, data.ctrl))
     A[A_NQPOS], A[A_NQVEL], A[A_NSD], A[A_NU] = data.qpos.size, data.qvel.size, data.sensordata.size, data.ctrl.size
-    A[A_SDLOG], A[A_REC], A[A_OUTLOG], A[A_TS], A[A_TEMP] = (_addr(x) for x in (sd_log, rec, outer_log, t_s, temp_c))
     A[A_RQ0], A[A_RV0], A[A_N] = rq0, rv0, n
     A[A_SGYRO], A[A_SACC], A[A_SQ], A[A_SPOS], A[A_SVEL] = (sens[x] for x in ("gyro", "acc", "quat", "pos", "vel"))
     A[A_OUTER_EVERY] = ctl.outer_every
@@ -695,9 +759,7 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
     W[W_T_ARM], W[W_CLIMB], W[W_Z0] = ctl.arm_at_s, ctl.climb_s, ctl.z_start_m
     A[A_ARMED] = 1 if ctl.armed else 0
     if thermal is not None:
-        amb = np.ascontiguousarray(ambient_c, dtype=np.float64)
-        keep.append(amb)
-        A[A_THERM], A[A_AMB] = 1, _addr(amb)
+        A[A_THERM] = 1
         W[W_TH_TAU], W[W_TH_SELF], W[W_TH_MOTOR] = (thermal.spec.time_constant_s, thermal.spec.self_heating_c,
                                                     thermal.spec.motor_c_per_w)
         W[W_TH_KC], W[W_TH_TEMP], W[W_TH_T], W[W_TH_AMB] = kappa_ct, thermal.temp_c, thermal.t_s, thermal._amb_c
@@ -717,11 +779,8 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
         if tuple(FF_ORDER) != ("xx", "yy", "zz", "xy", "xz", "yz"):
             raise ValueError("gyrocore.effects.FF_ORDER changed: update sim._fast")
         A[A_STREAM] = 1
-        A[A_GOUT] = _addr(S.gyro_rad_s)
-        noise = np.ascontiguousarray(S.noise_rad_s, dtype=np.float64)
-        keep += [S, noise]
-        A[A_NOISE] = _addr(noise)
-        W[W_T_PU] = S._t_pu if S._t_pu is not None else float(t_s[0])
+        keep.append(S)
+        W[W_T_PU] = S._t_pu if S._t_pu is not None else float(t_power_up_s)
         if S._earth is not None:
             A[A_EARTH] = 1
             W[W_EARTH:W_EARTH + 3] = S._earth
@@ -745,18 +804,12 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
             if val is not None:
                 A[flag] = 1
                 W[slot:slot + size] = np.asarray(val, float).ravel()
-        if S._ktr is not None:
-            tr = np.frombuffer(S._temp_rate, dtype=np.float64)
-            keep.append(tr)
-            A[A_TR] = int(tr.ctypes.data)
         if S._lp is not None:
             A[A_LP] = 1
             W[W_LPV:W_LPV + 5] = S._lp
             W[W_ZI:W_ZI + 2] = [float(v) for v in S._lp_zi]
         if S._fam:
-            fam = np.ascontiguousarray(S.family_table(t_s, W[W_T_PU]))
-            keep.append(fam)
-            A[A_FAM], A[A_NFAM] = _addr(fam), len(S._fam)
+            A[A_NFAM] = len(S._fam)
         if S._sat is not None:
             A[A_SAT], W[W_SATV] = 1, S._sat
         if S._q is not None:

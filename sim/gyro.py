@@ -59,6 +59,7 @@ from gyrocore.errors import GyroInputError
 
 from . import noise as _noise
 from .presets import SensorSpec, load_preset
+from .thermal import TempRateBlocks
 from .truth import Truth
 
 __all__ = ["SyntheticGyro", "GyroOutput", "GyroChunk", "GyroNoise", "GyroStream", "OUTPUT_STAGE", "NOISE_ORDER"]
@@ -381,13 +382,16 @@ class SyntheticGyro:
         t_power_up_s: float | None = None,
         t_s: np.ndarray | None = None,
         temp_c: np.ndarray | None = None,
+        blocks: bool = False,
+        thermal=None,
     ) -> "GyroStream":
         """The per-sample path for closed-loop simulation (one power-up, index 0).
 
         Parameters
         ----------
         n_samples : int
-            Number of samples the run will take (the noise is precomputed for all of them).
+            Number of samples the run will take (the noise is precomputed for all of them,
+            unless ``blocks``).
         t_power_up_s : float, optional
             Power-up time: ``t_since_power_up = t_s − t_power_up_s``; default the first
             step's ``t_s``.
@@ -395,12 +399,21 @@ class SyntheticGyro:
             The whole time base and temperature trajectory, needed only by
             ``bias_temp_rate`` (its dT/dt is a central difference, which looks one sample
             ahead; gyrocore.effects.ModelInputs.temp_rate_c_s).
+        blocks : bool
+            Bounded memory (issue 13): noise and output are held one block at a time; the
+            caller opens each block with :meth:`GyroStream.next_block` before stepping it.
+            The samples are bit-identical to the whole stream's whatever the block sizes.
+        thermal : sim.thermal.ThermalSpec, optional
+            With ``blocks``: the die temperature model on the clock ``k / rate_hz`` (one
+            power-up, no motor heating) from which ``bias_temp_rate``'s dT/dt is computed block
+            by block (:class:`sim.thermal.TempRateBlocks`), instead of ``t_s``/``temp_c``.
 
         Returns
         -------
         GyroStream
         """
-        return GyroStream(self, int(n_samples), t_power_up_s=t_power_up_s, t_s=t_s, temp_c=temp_c)
+        return GyroStream(self, int(n_samples), t_power_up_s=t_power_up_s, t_s=t_s, temp_c=temp_c, blocks=blocks,
+                          thermal=thermal)
 
 
 @dataclass(frozen=True, eq=False)
@@ -431,23 +444,32 @@ class GyroStream:
     any other family term flies the Python loop.
     """
 
-    def __init__(self, gyro: SyntheticGyro, n_samples: int, *, t_power_up_s=None, t_s=None, temp_c=None) -> None:
+    def __init__(self, gyro: SyntheticGyro, n_samples: int, *, t_power_up_s=None, t_s=None, temp_c=None,
+                 blocks: bool = False, thermal=None) -> None:
         if n_samples < 1:
             raise GyroInputError(f"n_samples must be >= 1, got {n_samples}")
         self.n = n_samples
         self.rate_hz = gyro.rate_hz
         P = gyro.params
-        noise_total, self.noise_draws = gyro.noise(n_samples)
-        self.noise_rad_s = noise_total
-        # flat C doubles (24 B/sample; a list of lists would cost ~150 B/sample)
-        self._noise = array.array("d")
-        self._noise.frombytes(np.ascontiguousarray(noise_total, dtype=np.float64).tobytes())
-        self.gyro_rad_s = np.zeros((n_samples, 3))
-        self._view = self.gyro_rad_s.view()
-        self._view.flags.writeable = False
+        #: True: noise and output are held one block at a time (:meth:`next_block`, issue 13)
+        self.blocked = bool(blocks)
         self._k_next = 0
         self._t_pu = None if t_power_up_s is None else float(t_power_up_s)
         self.bias_rad_s = gyro.power_up_bias(0)
+        if thermal is not None and not self.blocked:
+            raise GyroInputError("GyroStream: thermal= goes with blocks=True (else pass t_s= and temp_c=)")
+        # dT/dt of the die temperature (bias_temp_rate, dtemp_dt terms): a central difference,
+        # one sample ahead; whole (from t_s/temp_c) or block by block (from thermal)
+        need_rate = "bias_temp_rate" in P or any("dtemp" in resolve(e).inputs for e in P if resolve(e).family is not None)
+        self._temp_rate_all = None
+        self._temp_rate_blocks = None
+        if need_rate and self.blocked and thermal is not None:
+            self._temp_rate_blocks = TempRateBlocks(thermal, n_samples, self.rate_hz)
+        elif need_rate and t_s is not None and temp_c is not None:
+            t_arr, T_arr = np.asarray(t_s, float), np.asarray(temp_c, float)
+            if t_arr.shape != (n_samples,) or T_arr.shape != (n_samples,):
+                raise GyroInputError(f"stream t_s/temp_c must have shape ({n_samples},)")
+            self._temp_rate_all = np.ascontiguousarray(ModelInputs(t_s=t_arr, temp_c=T_arr).temp_rate_c_s())
 
         # --- earth rate
         self._earth = None
@@ -474,33 +496,23 @@ class GyroStream:
         self._bth = self._thermal(P, "bias_thermal", "poly_rad_s")
         self._ktr = None
         if "bias_temp_rate" in P:
-            if t_s is None or temp_c is None:
-                raise GyroInputError("bias_temp_rate in a stream needs the temperature trajectory: pass t_s= and temp_c= to stream()")
-            t_arr, T_arr = np.asarray(t_s, float), np.asarray(temp_c, float)
-            if t_arr.shape != (n_samples,) or T_arr.shape != (n_samples,):
-                raise GyroInputError(f"stream t_s/temp_c must have shape ({n_samples},)")
+            if self._temp_rate_all is None and self._temp_rate_blocks is None:
+                raise GyroInputError("bias_temp_rate in a stream needs the temperature trajectory: pass t_s= and temp_c= "
+                                     "(or, with blocks=True, thermal=) to stream()")
             self._ktr = P["bias_temp_rate"]["k_rad_s_per_c_per_s"].tolist()
-            self._temp_rate = array.array("d")
-            self._temp_rate.frombytes(np.ascontiguousarray(ModelInputs(t_s=t_arr, temp_c=T_arr).temp_rate_c_s()).tobytes())
         self._ramp = P["bias_ramp"]["ramp_rad_s2"].tolist() if "bias_ramp" in P else None
         self._H = P["g_sensitivity"]["h_rad_s_per_m_s2"].tolist() if "g_sensitivity" in P else None
         self._G = P["g2_sensitivity"]["g_rad_s_per_m2_s4"].tolist() if "g2_sensitivity" in P else None
         # --- registry family terms (periodic, step, regressor): one generic per-step call each,
         #     the same numpy term as the batch path on a one-sample input (model order)
         self._fam = [(resolve(e), P[e]) for e in ordered_effects(P) if resolve(e).family is not None]
-        self._fam_temp_rate = None
         for eff, _ in self._fam:
             if "alpha" in eff.inputs:
                 raise GyroInputError(f"effect {eff.name} needs the rate derivative (a central difference of "
                                      "future truth): not possible in a stream")
-            if "dtemp" in eff.inputs and self._fam_temp_rate is None:
-                if t_s is None or temp_c is None:
-                    raise GyroInputError(f"effect {eff.name} in a stream needs the temperature trajectory: "
-                                         "pass t_s= and temp_c= to stream()")
-                t_arr, T_arr = np.asarray(t_s, float), np.asarray(temp_c, float)
-                if t_arr.shape != (n_samples,) or T_arr.shape != (n_samples,):
-                    raise GyroInputError(f"stream t_s/temp_c must have shape ({n_samples},)")
-                self._fam_temp_rate = ModelInputs(t_s=t_arr, temp_c=T_arr).temp_rate_c_s()
+            if "dtemp" in eff.inputs and self._temp_rate_all is None and self._temp_rate_blocks is None:
+                raise GyroInputError(f"effect {eff.name} in a stream needs the temperature trajectory: "
+                                     "pass t_s= and temp_c= (or, with blocks=True, thermal=) to stream()")
         # --- output stage
         self._lp = None
         if "lowpass" in P:
@@ -515,8 +527,59 @@ class GyroStream:
             self._lp_z = None  # per axis [z0, z1], set at the first sample
         self._sat = float(P["saturation"]["range_rad_s"]) if "saturation" in P else None
         self._q = float(P["quantization"]["lsb_rad_s"]) if "quantization" in P else None
+        # --- the current block's arrays: the whole run, or none yet (blocks: next_block)
+        self._k0 = 0
+        self._blk_end = 0
+        if self.blocked:
+            self._noise_gen = gyro.noise_blocks()
+            self.noise_draws = None
+            self._set_block(0, np.zeros((0, 3)), None)
+        else:
+            noise_total, self.noise_draws = gyro.noise(n_samples)
+            self._set_block(0, noise_total, self._temp_rate_all)
         #: step(k, t_s, omega_S, f_S, temp_c, q_SW_wxyz=None) -> ndarray (3,), generated code
         self.step = self._compile()
+
+    def _set_block(self, k0: int, noise: np.ndarray, temp_rate: np.ndarray | None) -> None:
+        """Make rows k0 … k0 + len(noise) − 1 the current block: its noise, a zeroed output,
+        its dT/dt (or None)."""
+        m = int(noise.shape[0])
+        #: the current block's summed noise, rad/s (m, 3) (the whole run unless ``blocked``)
+        self.noise_rad_s = noise
+        # flat C doubles (24 B/sample; a list of lists would cost ~150 B/sample)
+        self._nz = array.array("d")
+        self._nz.frombytes(np.ascontiguousarray(noise, dtype=np.float64).tobytes())
+        #: the current block's output, rad/s (m, 3): row j is sample block_start + j
+        self.gyro_rad_s = np.zeros((m, 3))
+        self._view = self.gyro_rad_s.view()
+        self._view.flags.writeable = False
+        #: the current block's dT/dt, °C/s (m,), or None (numpy for the compiled kernels, flat doubles per step)
+        self._tr = None if temp_rate is None else np.ascontiguousarray(temp_rate, dtype=np.float64)
+        self._tr_l = None
+        if temp_rate is not None:
+            self._tr_l = array.array("d")
+            self._tr_l.frombytes(self._tr.tobytes())
+        self._k0 = int(k0)
+        self._blk_end = int(k0) + m
+
+    @property
+    def block_start(self) -> int:
+        """Global index of row 0 of :attr:`gyro_rad_s` and :attr:`noise_rad_s`."""
+        return self._k0
+
+    def next_block(self, m: int) -> None:
+        """Open the next ``m`` samples (``blocks=True``): their noise (the block generators of
+        :meth:`SyntheticGyro.noise_blocks`, bit-identical however the run is cut) and dT/dt;
+        the previous block's samples must all have been stepped."""
+        if not self.blocked:
+            raise GyroInputError("GyroStream.next_block: the stream holds the whole run (blocks=False)")
+        m = int(m)
+        if self._k_next != self._blk_end:
+            raise GyroInputError(f"GyroStream.next_block: samples {self._k_next}…{self._blk_end - 1} of the block were not stepped")
+        if m < 1 or self._blk_end + m > self.n:
+            raise GyroInputError(f"GyroStream.next_block: {m} samples from {self._blk_end} exceed the {self.n} allocated")
+        tr = self._temp_rate_blocks.take(m) if self._temp_rate_blocks is not None else None
+        self._set_block(self._blk_end, self._noise_gen.take(m), tr)
 
     @property
     def families_time_only(self) -> bool:
@@ -540,7 +603,7 @@ class GyroStream:
         """Per-step evaluation of one family term: (k, t, w0, w1, w2, f_S, temp_c) -> (u0, u1, u2)."""
         need_f = "f" in eff.inputs
         need_T = "temp" in eff.inputs
-        TR = self._fam_temp_rate
+        need_rate = "dtemp" in eff.inputs
 
         def fam(k, t, w0, w1, w2, f_S, temp_c):
             inp = _OneSample(
@@ -548,7 +611,7 @@ class GyroStream:
                 f_S_m_s2=np.asarray(f_S, float).reshape(1, 3) if need_f else None,
                 temp_c=np.array([float(temp_c)]) if need_T else None,
                 t_since_power_up_s=np.array([t - self._t_pu]),
-                temp_rate=float(TR[k]) if TR is not None else math.nan,
+                temp_rate=float(self._tr_l[k - self._k0]) if need_rate else math.nan,
             )
             u0, u1, u2 = eff.term(pd, inp, np.array([[w0, w1, w2]]))[0].tolist()
             return u0, u1, u2
@@ -595,6 +658,8 @@ class GyroStream:
             raise GyroInputError(f"GyroStream.step: expected sample {self._k_next}, got {k}")
         if k >= self.n:
             raise GyroInputError(f"GyroStream.step: only {self.n} samples were allocated")
+        if k >= self._blk_end:
+            raise GyroInputError(f"GyroStream.step: sample {k} is beyond the open block (next_block first)")
         if k == 0 and self._t_pu is None:
             self._t_pu = t
 
@@ -608,7 +673,7 @@ class GyroStream:
         """
         env: dict = {"S": self, "_nd": np.ndarray, "GyroInputError": GyroInputError, "_sqrt": math.sqrt}
         L = ["def step(k, t_s, omega_S, f_S, temp_c, q_SW_wxyz=None):",
-             "    if k != S._k_next or k >= S.n or k == 0:",
+             "    if k != S._k_next or k >= S._blk_end or k == 0:",
              "        S._start(k, float(t_s))",
              "    S._k_next = k + 1",
              "    t = float(t_s)",
@@ -683,8 +748,7 @@ class GyroStream:
         if self._bth is not None:
             L += poly_lines(self._bth, "bth", "a")
         if self._ktr is not None:
-            env["TR"] = self._temp_rate
-            L.append("    r = TR[k]")
+            L.append("    r = S._tr_l[k - S._k0]")
             for i in range(3):
                 env[f"kt{i}"] = self._ktr[i]
                 L.append(f"    a{i} = a{i} + r * kt{i}")
@@ -730,8 +794,10 @@ class GyroStream:
                       f"    Z[{2 * i}] = Z[{2 * i + 1}] + x{i} * lb1 - yn * la1",
                       f"    Z[{2 * i + 1}] = x{i} * lb2 - yn * la2",
                       f"    x{i} = yn"]
-        env["NZ"] = self._noise
-        L.append("    k3 = 3 * k")
+        # the current block's rows (the whole run unless blocked): row j = sample k0 + j
+        L.append("    j = k - S._k0")
+        L.append("    NZ = S._nz")
+        L.append("    k3 = 3 * j")
         L.append("    x0 = x0 + NZ[k3]; x1 = x1 + NZ[k3 + 1]; x2 = x2 + NZ[k3 + 2]")
         if self._sat is not None:
             env["SAT"], env["NSAT"] = self._sat, -self._sat
@@ -740,9 +806,7 @@ class GyroStream:
         if self._q is not None:
             env["LSB"] = self._q
             L.append("    x0 = round(x0 / LSB) * LSB; x1 = round(x1 / LSB) * LSB; x2 = round(x2 / LSB) * LSB")
-        env["OUT"] = self.gyro_rad_s
-        env["VIEW"] = self._view
-        L += ["    row = OUT[k]", "    row[0] = x0; row[1] = x1; row[2] = x2", "    return VIEW[k]"]
+        L += ["    row = S.gyro_rad_s[j]", "    row[0] = x0; row[1] = x1; row[2] = x2", "    return S._view[j]"]
         src = "\n".join(L) + "\n"
         exec(compile(src, "<GyroStream.step>", "exec"), env)
         self.step_source = src

@@ -368,3 +368,97 @@ class TemperatureChunks:
         self._t_prev = float(t[-1])
         self.position += m
         return out
+
+
+class TempRateBlocks:
+    """dT/dt of the die temperature on the clock ``t_k = k · (1 / rate_hz)``, block by block.
+
+    ``take(m)`` returns the next m values of
+    ``gyrocore.effects.ModelInputs(t_s=t, temp_c=simulate_temperature(t, spec)).temp_rate_c_s()``
+    for the whole clock of ``n_total`` samples, bit for bit, however the record is cut
+    (issue 13: the closed-loop gyro's ``bias_temp_rate`` without the whole trajectory). That
+    is ``numpy.gradient(T, t)`` (edge_order 1), transcribed: central differences inside —
+    the uniform-spacing formula when every difference of the whole clock equals the first
+    (numpy's test; checked block by block before the first block), else the non-uniform
+    three-point one — and one-sided at the two ends. The temperature comes from
+    :class:`TemperatureChunks`, one sample ahead of the block.
+
+    Parameters
+    ----------
+    spec : ThermalSpec
+        The die temperature model (one power-up at t = 0).
+    n_total : int
+        Samples of the whole record (>= 2).
+    rate_hz : float
+        Sample rate, Hz.
+    """
+
+    _CHECK_ROWS = 1 << 20
+
+    def __init__(self, spec: ThermalSpec, n_total: int, rate_hz: float) -> None:
+        self.n = int(n_total)
+        if self.n < 2:
+            raise GyroInputError("dT/dt needs at least two samples")
+        self.dt = 1.0 / float(rate_hz)
+        self._temp = TemperatureChunks(spec, n_total=self.n)
+        d0 = float(np.arange(1, 2)[0] * self.dt - np.arange(0, 1)[0] * self.dt)
+        uniform = True
+        for a in range(0, self.n - 1, self._CHECK_ROWS):  # numpy: (diff(t) == diff(t)[0]).all()
+            b = min(self.n, a + self._CHECK_ROWS + 1)
+            if not np.all(np.diff(self._clock(a, b)) == d0):
+                uniform = False
+                break
+        self._dx0 = d0 if uniform else None
+        self.position = 0
+        # the last two samples already generated (t, T): the block's left neighbour and one ahead
+        self._t = np.empty(0)
+        self._T = np.empty(0)
+        self._generated = 0
+
+    def _clock(self, a: int, b: int) -> np.ndarray:
+        return np.arange(a, b) * self.dt
+
+    def _generate(self, upto: int) -> None:
+        """Extend the held window with the temperature of samples up to ``upto`` (exclusive)."""
+        if upto > self._generated:
+            t = self._clock(self._generated, upto)
+            self._t = np.concatenate([self._t, t])
+            self._T = np.concatenate([self._T, self._temp.take(t)])
+            self._generated = upto
+
+    def take(self, m: int) -> np.ndarray:
+        """dT/dt, °C/s, of the next ``m`` samples, shape (m,)."""
+        m = int(m)
+        k0, k1 = self.position, self.position + m
+        if m < 0 or k1 > self.n:
+            raise GyroInputError(f"TempRateBlocks.take: {m} samples from {k0} exceed the {self.n} of the record")
+        if m == 0:
+            return np.empty(0)
+        self._generate(min(k1 + 1, self.n))
+        w0 = self._generated - self._t.shape[0]  # global index of the held window's row 0
+        lo = max(k0 - 1, 0)
+        t = self._t[lo - w0:]
+        f = self._T[lo - w0:]
+        out = np.empty(f.shape[0])
+        if f.shape[0] > 2:
+            if self._dx0 is not None:
+                out[1:-1] = (f[2:] - f[:-2]) / (2. * self._dx0)
+            else:
+                dx = np.diff(t)
+                dx1 = dx[0:-1]
+                dx2 = dx[1:]
+                a = -(dx2) / (dx1 * (dx1 + dx2))
+                b = (dx2 - dx1) / (dx1 * dx2)
+                c = dx1 / (dx2 * (dx1 + dx2))
+                out[1:-1] = a * f[:-2] + b * f[1:-1] + c * f[2:]
+        if k0 == 0:  # numpy's first-order edges: out[0] = (f[1] − f[0]) / (x[1] − x[0])
+            out[0] = (f[1] - f[0]) / (self._dx0 if self._dx0 is not None else t[1] - t[0])
+        if k1 == self.n:
+            out[-1] = (f[-1] - f[-2]) / (self._dx0 if self._dx0 is not None else t[-1] - t[-2])
+        res = out[(k0 - lo):(k0 - lo) + m].copy()
+        # keep the last sample of this block and the one ahead (the next block's neighbours)
+        keep = max(k1 - 1, 0)
+        self._t = self._t[keep - w0:].copy()
+        self._T = self._T[keep - w0:].copy()
+        self.position = k1
+        return res
