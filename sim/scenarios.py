@@ -524,8 +524,9 @@ def simulate(
     progress: bool = False,
     vehicle: str | None = None,
     hover_vibration=None,
-) -> SimResult:
-    """Simulate one scenario with one sensor unit.
+    chunk_rows: int | None = None,
+) -> "SimResult | SimStream":
+    """Simulate one scenario with one sensor unit: whole, or chunk by chunk in bounded memory.
 
     Parameters
     ----------
@@ -556,89 +557,199 @@ def simulate(
     hover_vibration : sim.quadrotor.VibrationSpec, optional
         ``hover``: rotor vibration instead of the class's default (e.g. from a measured spec,
         :func:`sim.spec_vibration.vibration_from_spec`); ignored when vibration is off.
+    chunk_rows : int, optional
+        None (default): simulate the whole record in memory and return a :class:`SimResult`
+        (truth, noise, draws and flight log as arrays). An int: return a :class:`SimStream`
+        whose :meth:`SimStream.chunks` generates the recording chunk by chunk (issue 13) —
+        the rate table (:func:`sim.turntable.stream_table`, ``chunk_rows`` physics steps per
+        rollout) or the closed-loop flight (:class:`sim.quadrotor.HoverFlight`, ``chunk_rows``
+        gyro samples per block), the die temperature (:class:`sim.thermal.TemperatureChunks`),
+        the power-up split and the gyro (:meth:`sim.gyro.SyntheticGyro.measure_chunks`, block
+        noise generators) — so the memory does not grow with the duration. The rows equal the
+        whole path's bit for bit, whatever ``chunk_rows`` (tested for every registered
+        scenario). 16 384 rows: one hour at 1 kHz written to CSV peaks at ≈ 180 MiB, most of
+        it the imports.
 
     Returns
     -------
-    SimResult
+    SimResult, or SimStream when ``chunk_rows`` is given
     """
-    spec = load_scenario(name)
-    sensor_spec = load_preset(sensor)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
-    if duration_s is not None and not (math.isfinite(float(duration_s)) and float(duration_s) > 0):
-        raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
-    rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
-    dur = float(duration_s) if duration_s is not None else spec.duration_s
-    overrides, hover_vibration, vib_info = _scenario_vibration(spec, overrides, without, vehicle, hover_vibration, seed)
-    gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run), without=without, overrides=overrides)
-    notes = list(gyro.notes)
-    flight_log = None
-    if spec.kind == "table":
-        from .turntable import run_table
+    setup = _Setup(name, sensor=sensor, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
+                   without=without, gyro_rate_hz=gyro_rate_hz, progress=progress, vehicle=vehicle,
+                   hover_vibration=hover_vibration)
+    if chunk_rows is None:
+        return setup.whole()
+    if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, (int, np.integer)) or int(chunk_rows) < 1:
+        raise GyroInputError(f"chunk_rows must be an integer >= 1, got {chunk_rows!r}")
+    return setup.chunked(int(chunk_rows))
 
-        prof = build_table_profile(spec, dur, seed=int(seed), run=int(run))
-        thermal = build_thermal(spec.thermal, prof.duration_s)
-        truth = run_table(prof, gyro_rate_hz=rate, thermal=thermal, seed=int(seed), progress=progress)
-        cycles = int(spec.power.get("cycles", 1))
-        if cycles > 1:
-            truth = _split_power_ups(truth, cycles, thermal)
-    else:
+
+def simulate_stream(name: str | ScenarioSpec, *, chunk_rows: int = 16_384, **options) -> "SimStream":
+    """``simulate(name, chunk_rows=chunk_rows, **options)``: the recording as a :class:`SimStream`
+    of ``chunk_rows``-row chunks (the keyword options are :func:`simulate`'s)."""
+    return simulate(name, chunk_rows=chunk_rows, **options)
+
+
+class _Setup:
+    """Everything :func:`simulate` decides before it runs (the scenario, the sensor unit, the
+    table profile or the flight, the thermal model, the notes), shared by the whole path
+    (:meth:`whole`) and the chunked one (:meth:`chunked`)."""
+
+    def __init__(self, name, *, sensor, duration_s, seed, run, overrides, without, gyro_rate_hz, progress, vehicle,
+                 hover_vibration) -> None:
+        spec = load_scenario(name)
+        sensor_spec = load_preset(sensor)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
+        if duration_s is not None and not (math.isfinite(float(duration_s)) and float(duration_s) > 0):
+            raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
+        self.spec, self.sensor_spec, self.seed, self.run, self.progress = spec, sensor_spec, int(seed), int(run), progress
+        self.rate = rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
+        dur = float(duration_s) if duration_s is not None else spec.duration_s
+        without = list(without)
+        overrides, hover_vibration, self.vib_info = _scenario_vibration(spec, overrides, without, vehicle, hover_vibration,
+                                                                        seed)
+        self.gyro = gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=self.seed, run=self.run, without=without,
+                                         overrides=overrides)
+        self.notes = list(gyro.notes)
+        if spec.kind == "table":
+            self.prof = build_table_profile(spec, dur, seed=self.seed, run=self.run)
+            self.thermal = build_thermal(spec.thermal, self.prof.duration_s)
+            self.cycles = int(spec.power.get("cycles", 1))
+            return
         from .controller import small_steps
-        from .quadrotor import TAKEOFF_CLIMB_S, fly_hover
-        from .thermal import simulate_temperature
+        from .quadrotor import TAKEOFF_CLIMB_S
 
-        thermal = build_thermal(spec.thermal, dur)
+        self.dur = dur
+        self.thermal = thermal = build_thermal(spec.thermal, dur)
         unsupported = _closed_loop_unsupported(gyro, thermal)
-        fly_gyro = gyro
+        self.fly_gyro = gyro
         if unsupported:
-            notes.append(f"the controller flew on the gyro without {', '.join(unsupported)} (not possible in closed loop); the recording has them")
-            fly_gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run),
-                                     without=list(without) + unsupported,
-                                     overrides={e: v for e, v in (overrides or {}).items()
-                                                if canonical_name(e) not in unsupported})
-        n = int(math.floor(dur * rate + 1e-9))  # fly_hover's sample count
-        kw = {}
-        if "bias_temp_rate" in fly_gyro.params or any("dtemp" in resolve(e).inputs for e in fly_gyro.params):
-            t_all = np.arange(n) * (1.0 / rate)
-            kw = {"t_s": t_all, "temp_c": simulate_temperature(t_all, thermal)}
-        stream = fly_gyro.stream(n, **kw)
+            self.notes.append(f"the controller flew on the gyro without {', '.join(unsupported)} (not possible in closed "
+                              "loop); the recording has them")
+            self.fly_gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=self.seed, run=self.run,
+                                          without=without + unsupported,
+                                          overrides={e: v for e, v in (overrides or {}).items()
+                                                     if canonical_name(e) not in unsupported})
         ground = hover_ground_s(spec, dur)
         if ground == 0.0 and float(spec.hover.get("ground_s", 0.0)) > 0.0:
-            notes.append(f"no ground phase: {dur:g} s is shorter than ground_s + take-off + {MIN_AIRBORNE_S:g} s of "
-                         "hover (the flight starts airborne)")
+            self.notes.append(f"no ground phase: {dur:g} s is shorter than ground_s + take-off + {MIN_AIRBORNE_S:g} s of "
+                              "hover (the flight starts airborne)")
         t_air = ground + (TAKEOFF_CLIMB_S if ground > 0.0 else 0.0)  # manoeuvres after the take-off
         man = (tuple(replace(m, t_start_s=m.t_start_s + t_air) for m in small_steps(dur - t_air))
                if spec.hover.get("manoeuvres", True) else ())
         vib = bool(spec.hover.get("vibration", True)) and "vibration" not in gyro.without
         if vib and hover_vibration is not None:
             vib = hover_vibration
-        truth, flight_log = fly_hover(duration_s=dur, gyro=stream, vibration=vib,
-                                      manoeuvres=man, gyro_rate_hz=rate, thermal=thermal, seed=int(seed) + 1000003 * int(run),
-                                      progress=progress, ground_s=ground,
-                                      vehicle=vehicle or str(spec.hover.get("vehicle", "f450")))
-    out = gyro.measure(truth)
-    params_true = _params_true(gyro, out)
-    pu = np.asarray(truth.power_up_index, int)
-    starts = [float(truth.t_s[i]) for i in np.flatnonzero(np.concatenate([[True], np.diff(pu) != 0]))]
-    meta = _recording_meta(spec, sensor_spec, gyro, seed=seed, run=run, rate=rate, n=truth.n, starts=starts,
-                           params_true=params_true, notes=notes, truth_meta=truth.meta, vib_info=vib_info)
-    rec = Recording(
-        t_s=truth.t_s,
-        gyro_rad_s=out.gyro_rad_s,
-        accel_m_s2=truth.f_S_m_s2,
-        temp_c=truth.temp_c,
-        ref_rate_rad_s=truth.omega_S_rad_s,
-        ref_quat_wxyz=truth.q_SW_wxyz,
-        meta=meta,
-        extra={"power_up_index": pu.astype(float)},
-    )
-    return SimResult(scenario=spec.name, sensor=sensor_spec.name, seed=int(seed), run=int(run), recording=rec,
-                     truth=truth, params_true=params_true, draws=out.draws, noise_rad_s=out.noise_rad_s,
-                     flight_log=flight_log, notes=tuple(notes))
+        #: fly_hover / HoverFlight options (the gyro apart)
+        self.flight = dict(duration_s=dur, vibration=vib, manoeuvres=man, gyro_rate_hz=rate, thermal=thermal,
+                           seed=self.seed + 1000003 * self.run, progress=progress, ground_s=ground,
+                           vehicle=vehicle or str(spec.hover.get("vehicle", "f450")))
+
+    def _meta(self, params_true, n: int, starts: list[float], truth_meta) -> dict:
+        return _recording_meta(self.spec, self.sensor_spec, self.gyro, seed=self.seed, run=self.run, rate=self.rate, n=n,
+                               starts=starts, params_true=params_true, notes=self.notes, truth_meta=truth_meta,
+                               vib_info=self.vib_info)
+
+    # ------------------------------------------------------------------ whole
+    def whole(self) -> SimResult:
+        """Truth whole (``run_table`` / ``fly_hover``), ``SyntheticGyro.measure``, one :class:`SimResult`."""
+        gyro, flight_log = self.gyro, None
+        if self.spec.kind == "table":
+            from .turntable import run_table
+
+            truth = run_table(self.prof, gyro_rate_hz=self.rate, thermal=self.thermal, seed=self.seed,
+                              progress=self.progress)
+            if self.cycles > 1:
+                truth = _split_power_ups(truth, self.cycles, self.thermal)
+        else:
+            from .quadrotor import fly_hover
+            from .thermal import simulate_temperature
+
+            fly_gyro, rate = self.fly_gyro, self.rate
+            n = int(math.floor(self.dur * rate + 1e-9))  # fly_hover's sample count
+            kw = {}
+            if "bias_temp_rate" in fly_gyro.params or any("dtemp" in resolve(e).inputs for e in fly_gyro.params):
+                t_all = np.arange(n) * (1.0 / rate)
+                kw = {"t_s": t_all, "temp_c": simulate_temperature(t_all, self.thermal)}
+            truth, flight_log = fly_hover(gyro=fly_gyro.stream(n, **kw), **self.flight)
+        out = gyro.measure(truth)
+        params_true = _params_true(gyro, out)
+        pu = np.asarray(truth.power_up_index, int)
+        starts = [float(truth.t_s[i]) for i in np.flatnonzero(np.concatenate([[True], np.diff(pu) != 0]))]
+        meta = self._meta(params_true, truth.n, starts, truth.meta)
+        rec = Recording(
+            t_s=truth.t_s,
+            gyro_rad_s=out.gyro_rad_s,
+            accel_m_s2=truth.f_S_m_s2,
+            temp_c=truth.temp_c,
+            ref_rate_rad_s=truth.omega_S_rad_s,
+            ref_quat_wxyz=truth.q_SW_wxyz,
+            meta=meta,
+            extra={"power_up_index": pu.astype(float)},
+        )
+        return SimResult(scenario=self.spec.name, sensor=self.sensor_spec.name, seed=self.seed, run=self.run,
+                         recording=rec, truth=truth, params_true=params_true, draws=out.draws,
+                         noise_rad_s=out.noise_rad_s, flight_log=flight_log, notes=tuple(self.notes))
+
+    # ------------------------------------------------------------------ chunked
+    def chunked(self, chunk_rows: int) -> "SimStream":
+        """The truth chunk by chunk (rate table or flight), ``measure_chunks``, one :class:`SimStream`."""
+        gyro, rate = self.gyro, self.rate
+        if self.spec.kind == "table":
+            from .turntable import stream_table
+
+            table = stream_table(self.prof, gyro_rate_hz=rate, thermal=self.thermal, seed=self.seed,
+                                 progress=self.progress, chunk_steps=chunk_rows)
+            n, cycles, truth_meta = table.n_samples, self.cycles, table.meta
+            if cycles < 1:
+                raise GyroInputError("[power] cycles must be >= 1")
+            if cycles > 1 and n < 2 * cycles:
+                raise GyroInputError(f"{cycles} power-ups need at least {2 * cycles} samples")
+            starts_k = [-(-(i * n) // cycles) for i in range(cycles)]
+            starts = [float(np.arange(k, k + 1)[0] / rate) for k in starts_k]
+
+            def truths():
+                tr = (tr for tr, _ang in table.chunks())
+                return _power_cycle_chunks(tr, n, cycles, self.thermal) if cycles > 1 else tr
+        else:
+            from .quadrotor import HoverFlight
+
+            # the flight block by block: a block stream of the gyro in the loop (noise drawn per block)
+            flight = HoverFlight(gyro=self.fly_gyro, gyro_blocks=True, **self.flight)
+            n, cycles, truth_meta = flight.n, 1, flight.meta
+            starts = [float(flight._times(0, 1)[0])]
+
+            def truths():
+                return (tr for tr, _log in flight.blocks(chunk_rows))
+        pd = gyro.params.get("bias")
+        bias_draws = None
+        if pd is not None:
+            bias_draws = {
+                "b_mean_rad_s": pd["b_rad_s"].copy(),
+                "turn_on_sigma_rad_s": np.asarray(pd.get("turn_on_sigma_rad_s", np.zeros(3))).copy(),
+                "power_up_indices": np.arange(cycles),
+                "b_rad_s_per_power_up": np.array([gyro.power_up_bias(i) for i in range(cycles)]).reshape(-1, 3),
+            }
+        params_true = _params_true_from(gyro, bias_draws)
+        meta = self._meta(params_true, n, starts, truth_meta)
+
+        def chunks():
+            pieces = (Recording(t_s=gc.t_s, gyro_rad_s=gc.gyro_rad_s, accel_m_s2=gc.truth.f_S_m_s2,
+                                temp_c=gc.truth.temp_c, ref_rate_rad_s=gc.truth.omega_S_rad_s,
+                                ref_quat_wxyz=gc.truth.q_SW_wxyz, meta=meta,
+                                extra={"power_up_index": np.asarray(gc.truth.power_up_index, int).astype(float)})
+                      for gc in gyro.measure_chunks(truths()))
+            yield from _rechunk_recordings(pieces, chunk_rows)
+
+        st = SimStream(scenario=self.spec.name, sensor=self.sensor_spec.name, seed=self.seed, run=self.run, rate_hz=rate,
+                       n_samples=n, meta=meta, params_true=params_true, notes=tuple(self.notes), bounded=True)
+        st._chunks = chunks
+        return st
 
 
 class SimStream:
-    """A simulated recording delivered in chunks (bounded memory): :func:`simulate_stream`.
+    """A simulated recording delivered in chunks (bounded memory): ``simulate(..., chunk_rows=N)``.
 
     Attributes
     ----------
@@ -648,15 +759,15 @@ class SimStream:
     n_samples : int
         Rows of the whole recording.
     meta : dict
-        The recording's ``#`` metadata (identical to :func:`simulate`'s, ``params_true`` included).
+        The recording's ``#`` metadata (identical to the whole path's, ``params_true`` included).
     params_true : dict
     notes : tuple of str
     bounded : bool
-        True when the chunks are generated chunk by chunk (table scenarios); False when the
-        scenario is simulated whole and then cut (``hover``: the closed loop holds the flight).
+        True: the chunks are generated chunk by chunk (every scenario since the hover flies in
+        blocks, :class:`sim.quadrotor.HoverFlight`).
 
     :meth:`chunks` yields :class:`gyrocore.recording.Recording` pieces of at most
-    ``chunk_rows`` rows, once; their concatenation equals :func:`simulate`'s recording bit for bit.
+    ``chunk_rows`` rows, once; their concatenation equals the whole path's recording bit for bit.
     """
 
     def __init__(self, **kw) -> None:
@@ -717,113 +828,6 @@ def _power_cycle_chunks(truths, n: int, cycles: int, thermal):
             tc[sel] = temp.take(tr.t_s[sel])
         yield replace(tr, power_up_index=idx, t_since_power_up_s=since, temp_c=tc)
         k0 += m
-
-
-def simulate_stream(
-    name: str | ScenarioSpec,
-    *,
-    sensor: str = "icm42688p",
-    duration_s: float | None = None,
-    seed: int = 0,
-    run: int = 0,
-    overrides: Mapping[str, Mapping[str, object]] | None = None,
-    without: Iterable[str] = (),
-    gyro_rate_hz: float | None = None,
-    progress: bool = False,
-    vehicle: str | None = None,
-    hover_vibration=None,
-    chunk_rows: int = 16_384,
-) -> SimStream:
-    """:func:`simulate` as a stream of recording chunks, for long recordings (issue 13).
-
-    Parameters are those of :func:`simulate`, plus ``chunk_rows`` (rows per chunk yielded; 16 384
-    rows: one hour at 1 kHz peaks at ≈ 210 MiB written to CSV, of which ≈ 130 are the imports;
-    65 536 rows cost ≈ 50 MiB more for no measurable speed).
-    Table scenarios run chunk by chunk — the rate table (:func:`sim.turntable.stream_table`,
-    ``chunk_rows`` physics steps per rollout), the die temperature
-    (:class:`sim.thermal.TemperatureChunks`), the power-up split, the gyro
-    (:meth:`sim.gyro.SyntheticGyro.measure_chunks` with the block noise generators) — so the
-    memory does not grow with the duration. ``hover`` is simulated whole (the closed-loop
-    flight is held in memory) and then cut. Either way the rows equal :func:`simulate`'s bit
-    for bit (tested).
-
-    Returns
-    -------
-    SimStream
-        Metadata up front; :meth:`SimStream.chunks` runs the simulation.
-    """
-    spec = load_scenario(name)
-    sensor_spec = load_preset(sensor)
-    if int(chunk_rows) < 1:
-        raise GyroInputError("chunk_rows must be >= 1")
-    chunk_rows = int(chunk_rows)
-    if spec.kind != "table":
-        res = simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
-                       without=without, gyro_rate_hz=gyro_rate_hz, progress=progress, vehicle=vehicle,
-                       hover_vibration=hover_vibration)
-        rec = res.recording
-
-        def whole():
-            for i in range(0, rec.n, chunk_rows):
-                yield rec.slice(i, i + chunk_rows)
-
-        st = SimStream(scenario=res.scenario, sensor=res.sensor, seed=res.seed, run=res.run,
-                       rate_hz=float(rec.meta["rate_hz"]), n_samples=rec.n, meta=rec.meta,
-                       params_true=res.params_true, notes=res.notes, bounded=False)
-        st._chunks = whole
-        return st
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
-    if duration_s is not None and not (math.isfinite(float(duration_s)) and float(duration_s) > 0):
-        raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
-    from .turntable import stream_table
-
-    rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
-    dur = float(duration_s) if duration_s is not None else spec.duration_s
-    without = list(without)
-    overrides, _hv, vib_info = _scenario_vibration(spec, overrides, without, vehicle, hover_vibration, seed)
-    gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=int(seed), run=int(run), without=without, overrides=overrides)
-    notes = list(gyro.notes)
-    prof = build_table_profile(spec, dur, seed=int(seed), run=int(run))
-    thermal = build_thermal(spec.thermal, prof.duration_s)
-    table = stream_table(prof, gyro_rate_hz=rate, thermal=thermal, seed=int(seed), progress=progress,
-                         chunk_steps=chunk_rows)
-    n = table.n_samples
-    cycles = int(spec.power.get("cycles", 1))
-    if cycles < 1:
-        raise GyroInputError("[power] cycles must be >= 1")
-    if cycles > 1 and n < 2 * cycles:
-        raise GyroInputError(f"{cycles} power-ups need at least {2 * cycles} samples")
-    starts_k = [-(-(i * n) // cycles) for i in range(cycles)]
-    starts = [float(np.arange(k, k + 1)[0] / rate) for k in starts_k]
-    pd = gyro.params.get("bias")
-    bias_draws = None
-    if pd is not None:
-        bias_draws = {
-            "b_mean_rad_s": pd["b_rad_s"].copy(),
-            "turn_on_sigma_rad_s": np.asarray(pd.get("turn_on_sigma_rad_s", np.zeros(3))).copy(),
-            "power_up_indices": np.arange(cycles),
-            "b_rad_s_per_power_up": np.array([gyro.power_up_bias(i) for i in range(cycles)]).reshape(-1, 3),
-        }
-    params_true = _params_true_from(gyro, bias_draws)
-    meta = _recording_meta(spec, sensor_spec, gyro, seed=seed, run=run, rate=rate, n=n, starts=starts,
-                           params_true=params_true, notes=notes, truth_meta=table.meta, vib_info=vib_info)
-
-    def chunks():
-        truths = (tr for tr, _ang in table.chunks())
-        if cycles > 1:
-            truths = _power_cycle_chunks(truths, n, cycles, thermal)
-        pieces = (Recording(t_s=gc.t_s, gyro_rad_s=gc.gyro_rad_s, accel_m_s2=gc.truth.f_S_m_s2,
-                            temp_c=gc.truth.temp_c, ref_rate_rad_s=gc.truth.omega_S_rad_s,
-                            ref_quat_wxyz=gc.truth.q_SW_wxyz, meta=meta,
-                            extra={"power_up_index": np.asarray(gc.truth.power_up_index, int).astype(float)})
-                  for gc in gyro.measure_chunks(truths))
-        yield from _rechunk_recordings(pieces, chunk_rows)
-
-    st = SimStream(scenario=spec.name, sensor=sensor_spec.name, seed=int(seed), run=int(run), rate_hz=rate,
-                   n_samples=n, meta=meta, params_true=params_true, notes=tuple(notes), bounded=True)
-    st._chunks = chunks
-    return st
 
 
 #: ``hover``: shortest hover after the take-off for the ground phase to be flown, s.

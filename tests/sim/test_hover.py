@@ -287,9 +287,53 @@ def _assert_same_flight(a, b) -> None:
     assert la.meta == lb.meta
 
 
-@pytest.mark.parametrize("case", ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating",
-                                  "heater", "ground_all_effects_pt1", "ground_preset_no_pipeline_500hz",
-                                  "family_terms_of_time"])
+CASES = ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating", "heater",
+         "ground_all_effects_pt1", "ground_preset_no_pipeline_500hz", "family_terms_of_time"]
+
+
+def _flight(case: str, **kw):
+    """The flights the compiled/Python and block tests compare (``kw``: e.g. ``block_samples``)."""
+    from sim.gyro import SyntheticGyro
+
+    if case == "all_effects_pt1_manoeuvres":
+        return fly_hover(duration_s=1.2, seed=2, gyro=_all_effects_gyro(1000.0), pipeline=pt1(30.0, 1000.0),
+                         manoeuvres=(Manoeuvre(0.2, 0.6, roll_rad=0.05, yaw_rad=0.1),), **kw)
+    if case == "ground_all_effects_pt1":  # disarmed on the floor (contact), arming, take-off ramp; motor heating
+        spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.05)
+        return fly_hover(duration_s=1.6, ground_s=0.5, seed=2, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)),
+                         pipeline=pt1(30.0, 1000.0), thermal=spec,
+                         manoeuvres=(Manoeuvre(1.0, 0.4, roll_rad=0.05, yaw_rad=0.1),), **kw)
+    if case == "ground_preset_no_pipeline_500hz":  # kernel entry without a pipeline, m = 2
+        return fly_hover(duration_s=1.5, ground_s=0.3, seed=4, gyro_rate_hz=500.0,
+                         gyro=SyntheticGyro("icm42688p", rate_hz=500.0, seed=4), **kw)
+    if case == "family_terms_of_time":  # registry terms of time alone: tabulated for the kernels
+        g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=7, overrides=FAMILY_OF_TIME)
+        return fly_hover(duration_s=1.0, seed=7, gyro=g, pipeline=pt1(30.0, 1000.0), **kw)
+    if case == "perfect_gyro_500hz":
+        return fly_hover(duration_s=1.0, seed=5, gyro_rate_hz=500.0, manoeuvres=small_steps(1.0), **kw)
+    if case == "motor_heating":  # the die temperature streamed from the rotor power, thermal effects on
+        spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0), (1.0, 22.0)), motor_c_per_w=0.05,
+                           self_heating_c=1.0)
+        g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=3,
+                          overrides={"bias_thermal": {"poly_rad_s": [[1e-4, 2e-6]] * 3}, "scale_thermal": {"poly_per_c": [1e-4] * 3}})
+        return fly_hover(duration_s=1.0, seed=6, gyro=g, thermal=spec, **kw)
+    if case == "heater":  # PI heater to 23 °C, saturating at first (anti-windup), plus motor heating
+        from sim.thermal import HeaterSpec
+
+        spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.01,
+                           heater=HeaterSpec(setpoint_c=23.0, max_power_w=2.0, heater_c_per_w=2.0,
+                                             closed_loop_time_constant_s=0.2))
+        return fly_hover(duration_s=1.0, seed=6, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)), thermal=spec,
+                         **kw)
+    if case == "temp_rate_ramp":  # bias_temp_rate on a warming die (no motor heating): dT/dt block by block
+        spec = ThermalSpec(time_constant_s=0.3, ambient_c=((0.0, 20.0), (0.6, 30.0)), self_heating_c=1.0)
+        return fly_hover(duration_s=1.0, seed=9, gyro=_all_effects_gyro(1000.0), thermal=spec,
+                         pipeline=pt1(30.0, 1000.0), **kw)
+    assert case == "preset_no_pipeline"
+    return fly_hover(duration_s=1.0, seed=4, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4), **kw)
+
+
+@pytest.mark.parametrize("case", CASES)
 def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     # sim._fast transcribes rotor forces, GyroStream's generated code and the controller
     # operation by operation (libm cos/sin, IEEE sqrt, no FMA): the flights must agree in every
@@ -297,49 +341,52 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     # physics steps per sample) and every gyro effect (time offset, earth rate, temperature
     # rate, thermal polynomials, low-pass, saturation, quantization).
     import sim.quadrotor as Q
-    from sim.gyro import SyntheticGyro
-
-    def run():
-        if case == "all_effects_pt1_manoeuvres":
-            return fly_hover(duration_s=1.2, seed=2, gyro=_all_effects_gyro(1000.0), pipeline=pt1(30.0, 1000.0),
-                             manoeuvres=(Manoeuvre(0.2, 0.6, roll_rad=0.05, yaw_rad=0.1),))
-        if case == "ground_all_effects_pt1":  # disarmed on the floor (contact), arming, take-off ramp; motor heating
-            spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.05)
-            return fly_hover(duration_s=1.6, ground_s=0.5, seed=2, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)),
-                             pipeline=pt1(30.0, 1000.0), thermal=spec,
-                             manoeuvres=(Manoeuvre(1.0, 0.4, roll_rad=0.05, yaw_rad=0.1),))
-        if case == "ground_preset_no_pipeline_500hz":  # kernel entry without a pipeline, m = 2
-            return fly_hover(duration_s=1.5, ground_s=0.3, seed=4, gyro_rate_hz=500.0,
-                             gyro=SyntheticGyro("icm42688p", rate_hz=500.0, seed=4))
-        if case == "family_terms_of_time":  # registry terms of time alone: tabulated for the kernels
-            g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=7, overrides=FAMILY_OF_TIME)
-            return fly_hover(duration_s=1.0, seed=7, gyro=g, pipeline=pt1(30.0, 1000.0))
-        if case == "perfect_gyro_500hz":
-            return fly_hover(duration_s=1.0, seed=5, gyro_rate_hz=500.0, manoeuvres=small_steps(1.0))
-        if case == "motor_heating":  # the die temperature streamed from the rotor power, thermal effects on
-            spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0), (1.0, 22.0)), motor_c_per_w=0.05,
-                               self_heating_c=1.0)
-            g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=3,
-                              overrides={"bias_thermal": {"poly_rad_s": [[1e-4, 2e-6]] * 3}, "scale_thermal": {"poly_per_c": [1e-4] * 3}})
-            return fly_hover(duration_s=1.0, seed=6, gyro=g, thermal=spec)
-        if case == "heater":  # PI heater to 23 °C, saturating at first (anti-windup), plus motor heating
-            from sim.thermal import HeaterSpec
-
-            spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.01,
-                               heater=HeaterSpec(setpoint_c=23.0, max_power_w=2.0, heater_c_per_w=2.0,
-                                                 closed_loop_time_constant_s=0.2))
-            return fly_hover(duration_s=1.0, seed=6, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)), thermal=spec)
-        return fly_hover(duration_s=1.0, seed=4, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4))
 
     calls = []
     compiled = Q._fly_compiled
     monkeypatch.setattr(Q, "_fly_compiled", lambda *a, **kw: calls.append(1) or compiled(*a, **kw))
-    fast = run()
+    fast = _flight(case)
     assert calls == [1]  # the compiled path did fly
     monkeypatch.setattr(Q, "USE_COMPILED", False)
-    slow = run()
+    slow = _flight(case)
     assert calls == [1]
     _assert_same_flight(fast, slow)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("case", CASES + ["temp_rate_ramp"])
+def test_flight_in_blocks_is_the_whole_flight_bit_for_bit(case, compiled, monkeypatch):
+    # issue 13: HoverFlight carries every state across blocks (MuJoCo, controller incl. the
+    # outer-loop row a block starts inside, motor commands, die temperature, the gyro's noise
+    # generators, delay history, low-pass, dT/dt) and nothing indexes the whole flight: cut into
+    # blocks of 997 samples (one cut) or 7 (cuts at every phase of the 4-sample outer loop, and
+    # of the 2 physics steps per sample at 500 Hz) the flight is the same in every bit.
+    import sim.quadrotor as Q
+
+    monkeypatch.setattr(Q, "USE_COMPILED", compiled)
+    whole = _flight(case)
+    for b in (997, 7):
+        _assert_same_flight(_flight(case, block_samples=b), whole)
+
+
+def test_hover_flight_blocks_hold_one_block():
+    # the blocks are pieces of the flight (sample times, sizes), a SyntheticGyro is opened as a
+    # block stream (its arrays hold one block), and a flight runs once
+    from gyrocore.errors import GyroInputError
+    from sim.gyro import SyntheticGyro
+    from sim.quadrotor import HoverFlight
+
+    fl = HoverFlight(duration_s=0.5, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=1), seed=1)
+    sizes = []
+    for tr, log in fl.blocks(120):
+        assert tr.t_s[0] == sum(sizes) * 1e-3 and log.gyro_meas_rad_s.shape == (tr.n, 3)
+        assert fl.gyro.blocked and fl.gyro.gyro_rad_s.shape == (tr.n, 3)
+        sizes.append(tr.n)
+    assert sizes == [120, 120, 120, 120, 20] and fl.gyro._k_next == 500
+    with pytest.raises(GyroInputError, match="flies once"):
+        next(fl.blocks(10))
+    with pytest.raises(GyroInputError, match="block_samples"):
+        next(HoverFlight(duration_s=0.1).blocks(0))
 
 
 FAMILY_OF_TIME = {"periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, -0.004], "a_sin_rad_s": [0.0, 0.003, 0.0]},

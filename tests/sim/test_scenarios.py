@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from gyrocore.cli import to_jsonable
 from gyrocore.effects import EFFECTS
 from gyrocore.errors import GyroInputError
 from gyrocore.recording import read_csv, write_csv
@@ -214,41 +215,80 @@ def test_hover_powers_up_on_the_ground_and_the_static_bias_calibration_finds_it(
 
 
 # ---------------------------------------------------------------- chunked simulation (issue 13)
-@pytest.mark.parametrize("name, kw", [
-    ("static_bumped", dict(duration_s=20.0, seed=3, run=1)),
-    ("power_cycles", dict(duration_s=30.0, seed=2)),
-    ("thermal", dict(duration_s=200.0, gyro_rate_hz=200.0)),
-    ("turntable", dict(duration_s=90.0, sensor="adis16448",
-                       overrides={"time_offset": {"tau_s": -0.003}, "rrw": {}, "correlated": {}})),
-])
-@pytest.mark.parametrize("chunk_rows", [997, 4096])
-def test_stream_equals_simulate_bit_for_bit(name, kw, chunk_rows):
-    """simulate_stream (physics, temperature, power-ups, gyro and noise all in chunks) gives the
-    recording of simulate() row for row and the same metadata, whatever the chunk size."""
+#: Short runs of every registered scenario for the chunked == whole test (a scenario added later
+#: without an entry runs at its own duration, at most 30 s).
+SHORT = {
+    "static": dict(duration_s=20.0, seed=1),
+    "static_bumped": dict(duration_s=20.0, seed=3, run=1),
+    "power_cycles": dict(duration_s=30.0, seed=2),
+    "thermal": dict(duration_s=200.0, gyro_rate_hz=200.0),
+    "turntable": dict(duration_s=90.0, sensor="adis16448",
+                      overrides={"time_offset": {"tau_s": -0.003}, "rrw": {}, "correlated": {}}),
+    # 16 s: the ground phase (5 s), take-off (3 s) and the manoeuvres are flown
+    "hover": dict(duration_s=16.0, seed=5, run=1),
+}
+
+
+def _short(name: str) -> dict:
+    if name in SHORT:
+        return SHORT[name]
+    return dict(duration_s=min(S.load_scenario(name).duration_s or 30.0, 30.0))
+
+
+def _assert_chunked_is_whole(name, kw, chunk_rows):
     from gyrocore.recording import concat_recordings
 
     res = S.simulate(name, **kw)
-    st = S.simulate_stream(name, chunk_rows=chunk_rows, **kw)
+    st = S.simulate(name, chunk_rows=chunk_rows, **kw)
     assert st.bounded and st.meta == res.recording.meta and st.n_samples == res.recording.n
+    assert st.notes == res.notes and json.dumps(to_jsonable(st.params_true)) == json.dumps(to_jsonable(res.params_true))
     recs = list(st.chunks())
     assert max(r.n for r in recs) <= chunk_rows
     rec = concat_recordings(recs)
     a = res.recording
     for f in ("t_s", "gyro_rad_s", "accel_m_s2", "temp_c", "ref_rate_rad_s", "ref_quat_wxyz"):
-        assert np.array_equal(getattr(rec, f), getattr(a, f)), f
+        assert np.array_equal(getattr(rec, f).view(np.uint64), np.asarray(getattr(a, f), float).view(np.uint64)), f
     assert np.array_equal(rec.extra["power_up_index"], a.extra["power_up_index"])
     with pytest.raises(GyroInputError):
         st.chunks()
 
 
-def test_stream_of_hover_is_the_whole_flight_cut():
-    kw = dict(duration_s=2.0, seed=4)
-    st = S.simulate_stream("hover", chunk_rows=300, **kw)
-    assert not st.bounded
+@pytest.mark.parametrize("name", sorted(S.SCENARIOS))
+@pytest.mark.parametrize("chunk_rows", [997, 4096])
+def test_chunked_equals_whole_bit_for_bit(name, chunk_rows):
+    """simulate(chunk_rows=...) (physics — rate table or closed-loop flight —, temperature,
+    power-ups, gyro and noise all in chunks) gives the recording of the whole path bit for bit
+    and the same metadata, whatever the chunk size, for every registered scenario."""
+    _assert_chunked_is_whole(name, _short(name), chunk_rows)
+
+
+def test_chunked_hover_with_temperature_rate_and_a_leading_gyro(tmp_path):
+    """A hover without motor heating flies bias_temp_rate (its dT/dt block by block,
+    sim.thermal.TempRateBlocks); a leading time offset is left out of the loop and put in the
+    recording (a note); both paths agree bit for bit."""
+    toml = tmp_path / "warm_hover.toml"
+    toml.write_text('kind = "hover"\nduration_s = 3.0\n[hover]\nvibration = true\n'
+                    '[thermal]\ntime_constant_s = 1.0\nambient_c = [[0.0, 20.0], [2.0, 35.0]]\n')
+    deg = math.pi / 180.0
+    kw = dict(seed=2, overrides={"bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg}, "rrw": {}})
+    res = S.simulate(str(toml), **kw)
+    assert "bias_temp_rate" in res.params_true and not res.notes
+    _assert_chunked_is_whole(str(toml), kw, 700)
+    lead = dict(kw, overrides={**kw["overrides"], "time_offset": {"tau_s": -0.002}})
+    assert any("without time_offset" in n for n in S.simulate(str(toml), chunk_rows=500, **lead).notes)
+    _assert_chunked_is_whole(str(toml), lead, 500)
+
+
+def test_simulate_stream_is_simulate_with_chunk_rows():
+    # one entry point: simulate_stream(name, chunk_rows=N, **options) is simulate(name, chunk_rows=N, **options)
     from gyrocore.recording import concat_recordings
 
-    rec = concat_recordings(list(st.chunks()))
-    assert np.array_equal(rec.gyro_rad_s, S.simulate("hover", **kw).recording.gyro_rad_s)
+    a = concat_recordings(list(S.simulate_stream("static", duration_s=3.0, chunk_rows=500).chunks()))
+    b = concat_recordings(list(S.simulate("static", duration_s=3.0, chunk_rows=1000).chunks()))
+    assert np.array_equal(a.gyro_rad_s, b.gyro_rad_s)
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(GyroInputError, match="chunk_rows"):
+            S.simulate("static", duration_s=3.0, chunk_rows=bad)
 
 
 @pytest.mark.parametrize("name, kw", [("static", dict(duration_s=2.0, gyro_rate_hz=200.0)),
