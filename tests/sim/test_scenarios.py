@@ -217,7 +217,7 @@ def test_hover_powers_up_on_the_ground_and_the_static_bias_calibration_finds_it(
 # ---------------------------------------------------------------- chunked simulation (issue 13)
 #: Short runs of every registered scenario for the chunked == whole test (a scenario added later
 #: without an entry runs at its own duration, at most 30 s).
-SHORT = {
+CHUNKED_RUNS = {
     "static": dict(duration_s=20.0, seed=1),
     "static_bumped": dict(duration_s=20.0, seed=3, run=1),
     "power_cycles": dict(duration_s=30.0, seed=2),
@@ -230,8 +230,8 @@ SHORT = {
 
 
 def _short(name: str) -> dict:
-    if name in SHORT:
-        return SHORT[name]
+    if name in CHUNKED_RUNS:
+        return CHUNKED_RUNS[name]
     return dict(duration_s=min(S.load_scenario(name).duration_s or 30.0, 30.0))
 
 
