@@ -334,16 +334,62 @@ def _set_couple_imbalance(model, hub_moment_kg_m2: float, ss: np.random.SeedSequ
 class HoverFlight:
     """A closed-loop hover flight, flown block by block in bounded memory (issue 13).
 
-    The constructor sets the flight up (model, vibration, controller, gyro, thermal model) with
-    the options of :func:`fly_hover`; :meth:`blocks` flies it, yielding consecutive pieces
-    ``(Truth, FlightLog)`` of at most ``block_samples`` gyro samples. Everything that evolves
-    — the MuJoCo state, the controller (integrators, set points, derivative memory, the
-    outer-loop log row), the held motor commands, the die temperature, the gyro stream (noise
-    generators, low-pass and delay memory) — is carried from block to block, and nothing
-    indexes the whole flight, so the pieces concatenated are :func:`fly_hover`'s flight bit for
-    bit whatever the block size (tested). A :class:`sim.gyro.SyntheticGyro` given as ``gyro``
-    is opened as a block stream (``stream(n, blocks=True)``: noise generated block by block);
-    a :class:`sim.gyro.GyroStream` opened whole is used as it is (its arrays hold the flight).
+    The flight: hover at 1 m (plus manoeuvres) for ``duration_s``. With ``ground_s > 0`` it
+    starts on the ground (keyframe ``ground``: resting on its four feet on the floor, contact on,
+    rotors stopped): the gyro is powered up from t = 0 and sees a still IMU (specific force =
+    gravity only, rate = contact micro-motion, < 2e-6 rad/s) while the controller is disarmed
+    (thrusts 0) until ``ground_s``; then it arms, the rotors spool up and the height set point
+    ramps to 1 m over :data:`TAKEOFF_CLIMB_S`; manoeuvres are flown at their own times
+    (schedule them after take-off). :func:`fly_hover` returns it whole.
+
+    The constructor sets the flight up (model, vibration, controller, gyro, thermal model);
+    :meth:`blocks` flies it, yielding consecutive pieces ``(Truth, FlightLog)`` of at most
+    ``block_samples`` gyro samples. Everything that evolves — the MuJoCo state, the controller
+    (integrators, set points, derivative memory, the outer-loop log row a block starts inside),
+    the held motor commands, the die temperature, the gyro stream (noise generators, low-pass
+    and delay memory, dT/dt) — is carried from block to block, and nothing indexes the whole
+    flight, so the pieces concatenated are the whole flight bit for bit whatever the block size
+    (tested, compiled and Python paths). A :class:`sim.gyro.SyntheticGyro` given as ``gyro`` is
+    opened as a block stream (``stream(n, blocks=True)``: noise generated block by block); a
+    :class:`sim.gyro.GyroStream` opened whole is used as it is (its arrays hold the flight).
+
+    Parameters
+    ----------
+    duration_s : float
+        Flight time, s.
+    gyro : object with ``.step(k, t_s, omega_S (3,), f_S (3,), temp_c) -> (3,)``, optional
+        The simulated gyro in the loop (``sim.gyro.SyntheticGyro(...).stream(n)``, or the
+        ``SyntheticGyro`` itself: its stream is then opened here over the flight's time base
+        and temperature); default :class:`PerfectGyro`. Called once per gyro sample, k = 0, 1, ...
+    pipeline : object with ``.step(x (3,)) -> (3,)`` or a callable, optional
+        Calibration + filter between the gyro and the rate loop (e.g.
+        ``gyrocore.filters.Pipeline``); None = the raw gyro.
+    manoeuvres : sequence of Manoeuvre
+        Attitude steps on top of hover (see :func:`sim.controller.small_steps`).
+    vibration : bool or VibrationSpec
+        True = the vehicle class's default vibration (the F450's: :class:`VibrationSpec`
+        defaults), False = none.
+    physics_rate_hz, gyro_rate_hz : float
+        Requested physics rate (default: the vehicle class's, 1 kHz for the F450) and gyro
+        output rate, Hz; physics runs at the nearest integer multiple (>= 1) of the gyro rate
+        (see the module docstring).
+    thermal : ThermalSpec, optional
+        Die temperature; with ``motor_c_per_w`` the rotor power ``c_M Omega^3`` heats it.
+        Default constant 25 °C.
+    seed : int
+        Seeds the rotor phases (imbalance, harmonic and blade-pass phases).
+    progress : bool
+        tqdm progress bar.
+    gains : ControllerGains, optional
+    ground_s : float
+        Time on the ground before take-off, s (0 <= ground_s < duration_s); default 0: the
+        flight starts airborne, in hover (keyframe ``hover``).
+    vehicle : str or sim.vehicles.VehicleClass
+        Airframe (:data:`sim.vehicles.VEHICLES`: ``f450``, ``racing5``): its model, controller
+        constants, gains (unless ``gains`` is given) and default vibration.
+    gyro_blocks : bool
+        Open a ``SyntheticGyro`` given as ``gyro`` as a block stream (default; False: one
+        whole-flight stream, as before issue 13).
 
     Attributes
     ----------
@@ -760,69 +806,18 @@ def _concat_flight(pieces: list[tuple[Truth, FlightLog]]) -> tuple[Truth, Flight
     return truth, log
 
 
-def fly_hover(
-    *,
-    duration_s: float,
-    gyro: GyroLike | None = None,
-    pipeline=None,
-    manoeuvres: Sequence[Manoeuvre] = (),
-    vibration: bool | VibrationSpec = True,
-    physics_rate_hz: float | None = None,
-    gyro_rate_hz: float = 1000.0,
-    thermal: ThermalSpec | None = None,
-    seed: int = 0,
-    progress: bool = False,
-    gains: ControllerGains | None = None,
-    ground_s: float = 0.0,
-    vehicle: str | object = "f450",
-    block_samples: int | None = None,
-) -> tuple[Truth, FlightLog]:
+def fly_hover(*, block_samples: int | None = None, **options) -> tuple[Truth, FlightLog]:
     """Fly the quadrotor in closed loop: hover at 1 m (plus manoeuvres) for ``duration_s``.
 
-    With ``ground_s > 0`` the flight starts on the ground (keyframe ``ground``: resting on its
-    four feet on the floor, contact on, rotors stopped): the gyro is powered up from t = 0 and
-    sees a still IMU (specific force = gravity only, rate = contact micro-motion, < 2e-6 rad/s)
-    while the controller is disarmed (thrusts 0) until ``ground_s``; then it arms, the rotors
-    spool up and the height set point ramps to 1 m over :data:`TAKEOFF_CLIMB_S`; manoeuvres
-    are flown at their own times (schedule them after take-off).
+    ``options`` are :class:`HoverFlight`'s (``duration_s``, ``gyro``, ``pipeline``,
+    ``manoeuvres``, ``vibration``, ``physics_rate_hz``, ``gyro_rate_hz``, ``thermal``, ``seed``,
+    ``progress``, ``gains``, ``ground_s``, ``vehicle``: see there); the whole flight is returned.
 
     Parameters
     ----------
-    duration_s : float
-        Flight time, s.
-    gyro : object with ``.step(k, t_s, omega_S (3,), f_S (3,), temp_c) -> (3,)``, optional
-        The simulated gyro in the loop (``sim.gyro.SyntheticGyro(...).stream(n)``, or the
-        ``SyntheticGyro`` itself: its stream is then opened here over the flight's time base
-        and temperature); default :class:`PerfectGyro`. Called once per gyro sample, k = 0, 1, ...
-    pipeline : object with ``.step(x (3,)) -> (3,)`` or a callable, optional
-        Calibration + filter between the gyro and the rate loop (e.g.
-        ``gyrocore.filters.Pipeline``); None = the raw gyro.
-    manoeuvres : sequence of Manoeuvre
-        Attitude steps on top of hover (see :func:`sim.controller.small_steps`).
-    vibration : bool or VibrationSpec
-        True = the vehicle class's default vibration (the F450's: :class:`VibrationSpec`
-        defaults), False = none.
-    physics_rate_hz, gyro_rate_hz : float
-        Requested physics rate (default: the vehicle class's, 1 kHz for the F450) and gyro
-        output rate, Hz; physics runs at the nearest integer multiple (>= 1) of the gyro rate
-        (see the module docstring).
-    thermal : ThermalSpec, optional
-        Die temperature; with ``motor_c_per_w`` the rotor power ``c_M Omega^3`` heats it.
-        Default constant 25 °C.
-    seed : int
-        Seeds the rotor phases (imbalance, harmonic and blade-pass phases).
-    progress : bool
-        tqdm progress bar.
-    gains : ControllerGains, optional
-    ground_s : float
-        Time on the ground before take-off, s (0 <= ground_s < duration_s); default 0: the
-        flight starts airborne, in hover (keyframe ``hover``).
-    vehicle : str or sim.vehicles.VehicleClass
-        Airframe (:data:`sim.vehicles.VEHICLES`: ``f450``, ``racing5``): its model, controller
-        constants, gains (unless ``gains`` is given) and default vibration.
     block_samples : int, optional
-        Fly in blocks of this many gyro samples (:class:`HoverFlight`) and concatenate: the
-        same flight bit for bit (a ``SyntheticGyro`` then draws its noise block by block).
+        Fly in blocks of this many gyro samples (:meth:`HoverFlight.blocks`) and concatenate:
+        the same flight bit for bit (a ``SyntheticGyro`` then draws its noise block by block).
         Default: one block. For bounded memory iterate :meth:`HoverFlight.blocks` instead.
 
     Returns
@@ -831,8 +826,5 @@ def fly_hover(
         Truth at the gyro samples (rate of S in S, specific force in S, attitude S->W,
         temperature, ...) and the flight log.
     """
-    flight = HoverFlight(duration_s=duration_s, gyro=gyro, pipeline=pipeline, manoeuvres=manoeuvres, vibration=vibration,
-                         physics_rate_hz=physics_rate_hz, gyro_rate_hz=gyro_rate_hz, thermal=thermal, seed=seed,
-                         progress=progress, gains=gains, ground_s=ground_s, vehicle=vehicle,
-                         gyro_blocks=block_samples is not None)
+    flight = HoverFlight(gyro_blocks=block_samples is not None, **options)
     return _concat_flight(list(flight.blocks(block_samples)))
