@@ -44,8 +44,11 @@ def _split(text: str | None) -> list[str] | None:
               help="Short calibration recordings (60 s) in each task: a smoke run, not a measurement.")
 @click.option("--progress/--no-progress", default=None,
               help="Progress bar on stderr (default: when stderr is a terminal).")
+@click.option("--task", "task", default="ablation", show_default=True, metavar="NAME",
+              help="Task run per instance: a name of experiments.registry.TASKS (the runner imports no experiment).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout.")
-def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed, out_dir, quick, progress, as_json):
+def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed, out_dir, quick, progress, task,
+            as_json):
     """Monte Carlo campaign: simulate, calibrate and score many sensor instances.
 
     Each task simulates one scenario with one instance of one sensor, fits the corrections,
@@ -63,6 +66,7 @@ def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed,
         raise GyroInputError(f"--workers must be >= 1, got {workers}")
     if instances < 1:
         raise GyroInputError(f"--instances must be >= 1, got {instances}")
+    mc.resolve_task(task)  # an unknown task name: one error line before any work
     scen = _split(scenarios)
     sens = _split(sensors)
     scen, sens = mc.resolve_names(scenarios=scen, sensors=sens)
@@ -70,7 +74,7 @@ def command(scenarios, sensors, instances, workers, scheduler, duration_s, seed,
         progress = sys.stderr.isatty()
     result = mc.run_campaign(
         scenarios=scen, sensors=sens, instances=instances, seed=seed, duration_s=duration_s,
-        workers=workers, scheduler=scheduler, progress=progress,
+        workers=workers, scheduler=scheduler, progress=progress, task_function=task,
         options={"quick": True} if quick else None,
     )
     paths = mc.write_campaign(result, out_dir)

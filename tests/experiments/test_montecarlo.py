@@ -203,6 +203,7 @@ def _cli(argv):
         (["--instances", "0"], "--instances must be >= 1"),
         (["--workers", "0"], "--workers must be >= 1"),
         (["--workers", "2", "--scheduler", "tcp://127.0.0.1:9"], "exclude each other"),
+        (["--scenarios", "static", "--sensors", "icm42688p", "--task", "nope"], "unknown Monte Carlo task 'nope'"),
     ],
 )
 def test_command_bad_options_are_one_line_errors(argv, message, tmp_path):
