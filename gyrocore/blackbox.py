@@ -1086,7 +1086,7 @@ def read_blackbox(path: str | os.PathLike, *, log_index: int | None = None):
     meta.update(first.meta)
     if len(convs) > 1:
         meta["segments"] = "several logs: column log_index, spans in 'logs'"
-        for k in ("gyro_filters", "header_filters", "gyro_prefilter", "debug_mode"):
+        for k in ("gyro_filters", "header_filters", "gyro_prefilter", "debug_mode", "log_rate_nominal_hz"):
             vals = {c.meta.get(k) for _, c in convs}
             if len(vals) > 1:
                 meta[k + "_per_log"] = json.dumps({lg.index: c.meta.get(k) for lg, c in convs})

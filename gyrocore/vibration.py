@@ -137,6 +137,47 @@ class _Signal:
     undo: bool
 
 
+#: Metadata a multi-log blackbox file carries per log when its logs differ (gyrocore.blackbox):
+#: one spectrum cannot undo two filter chains, mix two debug signals or two log rates.
+_PER_LOG_KEYS = {"gyro_filters": "gyro filters", "gyro_prefilter": "less-filtered gyro signal",
+                 "debug_mode": "debug mode", "log_rate_nominal_hz": "log rate"}
+
+
+def _describe_setting(key: str, value) -> str:
+    if key == "gyro_filters" and isinstance(value, str):
+        try:
+            return " + ".join(f"{f['kind']} {f['cutoff_hz']:g} Hz" for f in json.loads(value)) or "none"
+        except (ValueError, KeyError, TypeError):
+            pass
+    return str(value)[:60]
+
+
+def _check_logs_alike(rec: Recording, t_from_s: float | None, t_to_s: float | None) -> None:
+    """One ``error:`` line when the analysed time span covers logs of one file flown with
+    different gyro filters, debug signal or log rate (the blackbox reader joins the logs of a
+    file end to end and keeps each log's settings in ``<key>_per_log``): the spectrum would
+    undo the first log's filters on all of them."""
+    keys = [k for k in _PER_LOG_KEYS if f"{k}_per_log" in rec.meta]
+    if not keys:
+        return
+    try:
+        spans = json.loads(rec.meta.get("logs", "[]"))
+    except ValueError:
+        spans = []
+    lo = -math.inf if t_from_s is None else t_from_s
+    hi = math.inf if t_to_s is None else t_to_s
+    inside = [int(sp["log"]) for sp in spans if sp["t_end_s"] >= lo and sp["t_start_s"] < hi]
+    for k in keys:
+        per = json.loads(rec.meta[f"{k}_per_log"])
+        vals = {str(i): per.get(str(i)) for i in inside}
+        if len(set(json.dumps(v) for v in vals.values())) > 1:
+            desc = "; ".join(f"log {i}: {_describe_setting(k, v)}" for i, v in vals.items())
+            raise GyroInputError(
+                f"the file's logs {', '.join(vals)} were flown with different {_PER_LOG_KEYS[k]} ({desc}): "
+                f"one spectrum cannot undo both; analyse one log at a time with --log-index N"
+            )
+
+
 def _choose_signal(rec: Recording, *, use: str, undo: bool) -> _Signal:
     meta = rec.meta
     pre = meta.get("gyro_prefilter")
@@ -383,6 +424,7 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
     if use not in ("auto", "prefilter", "gyro"):
         raise GyroInputError(f"signal must be auto, prefilter or gyro, got {use!r}")
     notes, warns = [], []
+    _check_logs_alike(rec, t_from_s, t_to_s)
     sig = _choose_signal(rec, use=use, undo=undo)
     t = rec.t_s
     rate = 1.0 / float(np.median(np.diff(t)))
