@@ -42,7 +42,8 @@ from .report import ExperimentResult, md_table, new_figure, save_figure, single_
 
 __all__ = ["Target", "TARGETS", "TableProtocol", "ThermalProtocol", "TABLE_PROTOCOLS", "THERMAL_PROTOCOLS",
            "NoiseSource", "load_noise", "simulated_still_noise", "record_support",
-           "hover_trajectory", "design_stderr", "candidate_stderr", "evaluate_grid", "choose", "confirm", "run"]
+           "hover_trajectory", "design_stderr", "candidate_stderr", "evaluate_grid", "choose", "confirm", "confirm_all",
+           "run"]
 
 SENSOR = "icm42688p"
 #: Reference protocol times (the ablation's calibration runs), s.
@@ -668,6 +669,37 @@ def confirm(window_s: float, seeds: Sequence[int], *, airborne_s: float, cache_d
     return out
 
 
+def _confirm_one(args) -> dict:
+    window_s, sd, airborne_s, cache_dir = args
+    return confirm(window_s, [sd], airborne_s=airborne_s, cache_dir=cache_dir)[0]
+
+
+def confirm_all(windows: Sequence[float], seeds: Sequence[int], *, airborne_s: float, cache_dir: str | None = None,
+                workers: int | None = None) -> dict:
+    """:func:`confirm` for every window × unit, on ``workers`` processes (None: the cores of
+    this machine; spawned, as :mod:`experiments.montecarlo`). Each flight is seeded by its unit
+    alone, so the results do not depend on ``workers``. Returns {window: [unit dicts]}."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from experiments.montecarlo import default_workers
+    from gyrocore.cli import worker_environment
+
+    jobs = [(float(tw), int(sd), float(airborne_s), cache_dir) for tw in windows for sd in seeds]
+    n_workers = min(default_workers() if workers is None else int(workers), len(jobs))
+    if n_workers <= 1:
+        res = [_confirm_one(j) for j in jobs]
+    else:
+        with ProcessPoolExecutor(max_workers=n_workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            with worker_environment():
+                futures = [pool.submit(_confirm_one, j) for j in jobs]
+            res = [f.result() for f in futures]
+    out: dict = {float(tw): [] for tw in windows}
+    for j, r in zip(jobs, res):
+        out[j[0]].append(r)
+    return out
+
+
 def _interval(x: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
     """Mean of log x and its Student-t interval, back-transformed: (geometric mean, lo, hi)."""
     from scipy import stats
@@ -806,7 +838,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     fresh = instance_seeds(seed + 1, n_units)
     cache = tempfile.mkdtemp(prefix="gyroharness-protocol-")
     try:
-        conf = {tw: confirm(tw, fresh, airborne_s=airborne, cache_dir=cache) for tw in check_windows}
+        conf = confirm_all(check_windows, fresh, airborne_s=airborne, cache_dir=cache, workers=workers)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
 
