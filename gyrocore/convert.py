@@ -367,7 +367,8 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0) -> Recording:
     temp = None
     temp_note = "none logged"
     try:
-        sg = ulog.get_dataset("sensor_gyro", multi_id)
+        inst, inst_note = _ulog_selected_gyro_instance(ulog)
+        sg = ulog.get_dataset("sensor_gyro", inst)
         tt = np.asarray(sg.data["timestamp"], float)
         tv = np.asarray(sg.data["temperature"], float)
         ok = np.isfinite(tv) & (tv != 0)
@@ -377,7 +378,7 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0) -> Recording:
             n_out = int(np.count_nonzero((ts_us < tt[0]) | (ts_us > tt[-1])))
             if n_out:
                 repairs.add(f"temperature (sensor_gyro, {tt.size} samples) held at its nearest value for {n_out} gyro samples outside its span")
-            temp_note = f"sensor_gyro.temperature ({tt.size} samples, interpolated)"
+            temp_note = f"sensor_gyro[{inst}].temperature ({tt.size} samples, interpolated; {inst_note})"
     except (KeyError, IndexError, ValueError):
         pass
     try:
@@ -402,6 +403,39 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0) -> Recording:
         note="ekf_q* columns are PX4's attitude estimate (vehicle_attitude), NOT a reference",
     )
     return Recording(t_s=t_s, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=temp, meta=meta, extra=extra)
+
+
+def _ulog_selected_gyro_instance(ulog) -> tuple[int, str]:
+    """The ``sensor_gyro`` instance whose device is the gyro ``sensor_combined`` carries.
+
+    A flight controller with several IMUs logs one ``sensor_gyro`` instance per gyro, and the
+    instance numbers need not follow the selection (PX4 picks the gyro by ``CAL_GYRO_PRIME`` in
+    older releases and publishes the choice in ``sensor_selection.gyro_device_id`` in newer
+    ones). Temperature taken from instance 0 when another gyro is selected belongs to another
+    chip (on a CubeOrange the three read 40, 28 and 30 °C). Returns (instance, how it was
+    chosen); instance 0 when nothing in the log says which.
+    """
+    dev = None
+    how = ""
+    try:
+        sel = ulog.get_dataset("sensor_selection", 0)
+        ids = np.asarray(sel.data["gyro_device_id"])
+        if ids.size and int(ids[-1]) != 0:
+            dev, how = int(ids[-1]), "sensor_selection.gyro_device_id"
+    except (KeyError, IndexError, ValueError):
+        pass
+    if dev is None:
+        prime = ulog.initial_parameters.get("CAL_GYRO_PRIME")
+        if prime:
+            dev, how = int(prime), "CAL_GYRO_PRIME"
+    if dev is None:
+        return 0, "instance 0: the log does not say which gyro is selected"
+    for d in ulog.data_list:
+        if d.name == "sensor_gyro" and "device_id" in d.data:
+            ids = np.asarray(d.data["device_id"])
+            if ids.size and int(ids[0]) == dev:
+                return int(d.multi_id), f"device {dev} = {how}"
+    return 0, f"instance 0: no sensor_gyro instance has the selected device {dev} ({how})"
 
 
 # ============================================================================ sunsided
