@@ -197,6 +197,14 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
                      external_bias=ext, ramp_margin_s=ramp_margin_s)
     res = cal.fit(rec, source_path=file)
+    if segments and res.integral is not None:
+        from dataclasses import replace
+
+        # the integral method's covariance propagates gyro noise and bias (rotations.integral_calibration);
+        # the known angles enter as exact, which a hand turn is not (imucal's guide: a few degrees)
+        res = replace(res, notes=tuple(res.notes) + (
+            "standard errors: gyro noise and bias only, the segments' angles taken as exact; a turn by hand "
+            "(±2-5 deg over 360-720 deg, 0.3-1.4 %) is far less certain than the scale SEs above",))
     _warn_unobservable(res)
     _write_and_report(res, output, px4_params, as_json)
 

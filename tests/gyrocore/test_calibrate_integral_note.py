@@ -1,0 +1,20 @@
+"""The integral method's standard errors leave out the known angles' own uncertainty; on a hand
+session (imucal's Ferraris, three turns "by hand against a box edge") the report says so."""
+
+from __future__ import annotations
+
+import json
+
+from gyrocore.cli import build_group, run_cli
+
+
+def test_hand_turn_standard_errors_say_what_they_leave_out(shared_data, tmp_path, capsys):
+    g = build_group(["gyrocore.commands"])
+    src = shared_data / "imucal_ferraris" / "example_ferraris_session.csv"
+    assert run_cli(g, ["convert", str(src), "-o", str(tmp_path / "f.csv"), "--segments-out", str(tmp_path / "s.csv")]) == 0
+    capsys.readouterr()
+    status = run_cli(g, ["calibrate", str(tmp_path / "f.csv"), "--segments", str(tmp_path / "s.csv"),
+                         "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")])
+    out = capsys.readouterr().out
+    assert status == 0 and "angles taken as exact" in out
+    assert any("angles taken as exact" in n for n in json.loads((tmp_path / "p.json").read_text())["notes"])
