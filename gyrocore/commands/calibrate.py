@@ -182,7 +182,8 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
 
         from ..recording import spill_columns
 
-        cal = Calibrator(effects=names, thermal_order=thermal_order, covariance=covariance, sensor=sensor)
+        cal = Calibrator(effects=names, thermal_order=thermal_order, covariance=covariance, sensor=sensor,
+                         ramp_margin_s=ramp_margin_s)
         with tempfile.TemporaryDirectory(prefix="gyroharness_calibrate_") as tmp:
             store = spill_columns(file, tmp, accel=True, groups=("temp", "ref_rate"))
             res = cal.fit_spilled(store, source_path=file)

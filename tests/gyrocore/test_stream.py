@@ -307,3 +307,30 @@ def test_near_rate_changes_window_by_window_equals_the_box_convolution():
         for chunk in (2, 7, 997, n):
             np.testing.assert_array_equal(near_rate_changes(t, w, margin, chunk_rows=chunk), ref)
             np.testing.assert_array_equal(near_rate_changes(t, lambda a, b: w[a:b], margin, chunk_rows=chunk), ref)
+
+
+def test_calibrate_cli_streamed_path_takes_the_ramp_margin(tmp_path, monkeypatch):
+    # `calibrate --covariance noise_model --ramp-margin-s 0.25` on a long file (streamed path):
+    # the margin reaches the streamed fit (it was dropped there) and the parameter file equals
+    # the in-memory fit (same windows: 1e-13, as above)
+    from click.testing import CliRunner
+
+    from gyrocore.commands import calibrate as C
+    from gyrocore.model import load_params
+
+    rec = _table_steps_record(n=40_000)
+    path = tmp_path / "rec.csv"
+    write_csv(rec, path)
+    monkeypatch.setattr(C, "STREAM_ROWS", 100)
+    monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", 4096)
+    called = []
+    orig = Calibrator.fit_spilled
+    monkeypatch.setattr(Calibrator, "fit_spilled", lambda self, *a, **k: called.append(1) or orig(self, *a, **k))
+    r = CliRunner().invoke(C.command, [str(path), "--effects", "bias,scale", "--covariance", "noise_model",
+                                       "--ramp-margin-s", "0.25", "-o", str(tmp_path / "p.json"), "--json"])
+    assert r.exit_code == 0, r.output
+    assert called
+    streamed = load_params(tmp_path / "p.json")
+    mem = Calibrator(effects=["bias", "scale"], covariance="noise_model", ramp_margin_s=0.25).fit(read_csv(path))
+    assert any(s.startswith("left out") for s in streamed.notes) and streamed.n_samples == mem.n_samples < rec.n
+    _assert_same(mem, streamed, rtol=1e-13)
