@@ -571,7 +571,17 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
     names = [fit.names[p].rsplit(".", 1)[1] for p in cols]
     unobs = tuple(n for n, p in zip(names, cols) if p not in idx)
     q = len(idx)
-    df2 = max(model.res.m - fit.rank, 1)
+    df2 = model.res.m - fit.rank
+    resid_dof = 3 * model.res.m - fit.rank  # window residuals (3 axes each) left after the fit
+    if q and resid_dof < 1:
+        # the model plus the candidate fits every window residual exactly (3 hand turns, bias
+        # declared: 9 residuals, 3 + 6 misalignment parameters): no residual is left to judge
+        # the fit by, so the candidate is not testable (a floor of 1 used to turn the exact fit
+        # into F ~ 1e26 and a 'found' misalignment of 6 rad)
+        unobs = (f"no residual degrees of freedom left ({3 * model.res.m} window residuals, "
+                 f"{fit.rank} parameters with it)",)
+        idx, q = [], 0
+    df2 = max(df2, 1)
     if q:
         th = fit.theta[idx]
         C = fit.cov[np.ix_(idx, idx)]
