@@ -177,16 +177,22 @@ def plot_filter(out: dict, path: str) -> None:
         for name, col, lab in show:
             if name in rows:
                 r = rows[name]
-                ax.semilogy(f, r["psd_after"][:, j] * conv, color=col, lw=0.8,
-                            label=f"{lab or name}: {r['delay_ms']:.2f} ms, motor noise {r['motor_noise']:.0f}")
+                rec_name = out["recommended"]["name"]
+                same = lab == "as flown" and rec_name in rows and np.allclose(rows[rec_name]["psd_after"], r["psd_after"])
+                ax.semilogy(f, r["psd_after"][:, j] * conv, color=col, lw=0.8, ls="--" if same else "-",
+                            label=f"{lab or name}{' (= recommended)' if same else ''}: {r['delay_ms']:.2f} ms, "
+                                  f"motor noise {r['motor_noise']:.0f} rad/s^2")
         if res.reliable_below_hz < f[-1]:
-            ax.axvspan(res.reliable_below_hz, f[-1], color="0.85", zorder=0)
+            ax.axvspan(res.reliable_below_hz, f[-1], color="0.85", zorder=0,
+                       label=f"above {res.reliable_below_hz:.0f} Hz: folded from above the logged Nyquist (unreliable)")
         ax.set_title(f"gyro {a}")
         ax.set_xlabel("frequency, Hz")
         ax.set_ylabel("PSD, (deg/s)^2/Hz")
         ax.set_ylim(1e-6, None)
         if j == 0:
             ax.legend(fontsize=6)
+    fig.suptitle(f"{os.path.basename(str(out.get('file', '')))}: the flight's gyro spectrum ({res.signal} signal) "
+                 f"after each candidate filter chain", fontsize=9)
     with atomic_open(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=110)
     plt.close(fig)
@@ -215,11 +221,11 @@ def command(path, loop_hz, window_s, use, log_index, plot, force, as_json):
     out = run_filter(rec, loop_hz=loop_hz, window_s=window_s, use=use)
     for w in out["_res"].warnings:
         warn_repair(w)
+    out["file"] = path
     if plot:
         plot_filter(out, plot)
         out["plot"] = plot
     out = {k: v for k, v in out.items() if not k.startswith("_")}
-    out["file"] = path
     if as_json:
         emit_json(out)
         return
