@@ -110,3 +110,25 @@ def test_prediction_summary_budget_table_and_rows(tmp_path):
     assert A._rows_in(camp, "static", "s") == ["all", "floor"]
     assert "powerup window" in A.budget_markdown({"static": ps})
     assert A.budget_figure({"static": ps}, tmp_path).endswith(".png")
+
+
+def test_identified_noise_takes_slow_terms_from_the_longest_run():
+    from types import SimpleNamespace
+
+    from gyrocore.budget import NoiseModel
+
+    def res(rate, n, N, B):
+        nm = NoiseModel(arw_rad_per_sqrt_s=np.full(3, N), bias_instability_rad_s=np.full(3, B))
+        return SimpleNamespace(noise_model={"rate_hz": rate}, n_samples=n, noise=lambda nm=nm: nm)
+
+    table, thermal = res(1000.0, 320_000, 5e-5, 2.5e-5), res(100.0, 72_000, 6e-5, 3e-5)  # 320 s, 720 s
+    cp = SimpleNamespace(results=(table, thermal))
+    nm = A.identified_noise(cp, 1000.0)
+    assert np.all(nm.arw_rad_per_sqrt_s == 5e-5) and np.all(nm.bias_instability_rad_s == 3e-5)
+    assert np.all(A.identified_noise(cp, 1000.0, slow_from_longest=False).bias_instability_rad_s == 2.5e-5)
+    nm100 = A.identified_noise(cp, 100.0)
+    assert np.all(nm100.arw_rad_per_sqrt_s == 6e-5) and np.all(nm100.bias_instability_rad_s == 3e-5)
+    # a longer table run keeps its own slow terms
+    cp2 = SimpleNamespace(results=(res(1000.0, 2_000_000, 5e-5, 2.5e-5), thermal))
+    assert np.all(A.identified_noise(cp2, 1000.0).bias_instability_rad_s == 2.5e-5)
+    assert A.identified_noise(SimpleNamespace(results=()), 1000.0) is None
