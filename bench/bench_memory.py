@@ -16,6 +16,11 @@ figures are per stage, not cumulative. Stages:
 ``simulate_parquet`` the same to a Parquet file
 ``simulate_long`` the same for ``--long-duration-s`` (e.g. 36000: ten hours) to Parquet, run once
                   (not at the compare length): completes, and its peak tells bounded from O(N)
+``simulate_<scenario>``, ``simulate_<scenario>_parquet`` the same for every registered scenario
+                  (``sim/scenarios/*.toml``: hover, power_cycles, static, static_bumped, thermal,
+                  turntable — the closed-loop hover flown block by block, issue 13), to CSV /
+                  Parquet; ``turntable`` is its own profile's length whatever the duration
+``simulate_hover_long`` hover for ``--long-duration-s`` to Parquet, run once
 ``synth``         generate and write the CSV chunk by chunk (``write_csv_chunks``)
 ``read_whole``    ``read_csv`` of the whole file (the path every CLI command takes)
 ``read_chunks``   ``iter_csv_chunks`` with per-axis running sums (streaming)
@@ -296,7 +301,8 @@ CLI_DESIGN = {
 
 # ---------------------------------------------------------------------------- parent side
 def _run_child(argv: list[str]) -> tuple[int, float, int, str]:
-    """Run ``argv``; return (exit status, wall s, peak RSS in bytes, stdout)."""
+    """Run ``argv``; return (exit status, wall s, peak RSS in bytes, stdout); its CPU seconds
+    (user + system) in ``_run_child.cpu_s``."""
     t0 = time.perf_counter()
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         p = subprocess.Popen(argv, stdout=out, stderr=err)
@@ -309,7 +315,12 @@ def _run_child(argv: list[str]) -> tuple[int, float, int, str]:
         if p.returncode != 0:
             tail = err.read().decode().strip().splitlines()[-3:]
             text = " | ".join(tail)
+    _run_child.cpu_s = float(ru.ru_utime + ru.ru_stime)
     return p.returncode, wall, int(ru.ru_maxrss) * 1024, text
+
+
+#: Registered scenarios (the TOML files of sim/scenarios; read without importing sim).
+SCENARIO_NAMES = sorted(p.stem for p in (Path(__file__).resolve().parent.parent / "sim" / "scenarios").glob("*.toml"))
 
 
 def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bool) -> list[dict]:
@@ -330,6 +341,13 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
         "simulate_long": [*exe, "simulate", "thermal", "--duration-s", str(a.long_duration_s), "--rate-hz",
                           str(a.rate_hz), "--seed", str(SEED), "-o", str(work / "sim_thermal_long.parquet"), "--force",
                           "--no-progress", "--json"],
+        "simulate_hover_long": [*exe, "simulate", "hover", "--duration-s", str(a.long_duration_s), "--rate-hz",
+                                str(a.rate_hz), "--seed", str(SEED), "-o", str(work / "sim_hover_long.parquet"),
+                                "--force", "--no-progress", "--json"],
+        **{f"simulate_{sc}{suf}": [*exe, "simulate", sc, "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
+                                   "--seed", str(SEED), "-o", str(work / f"scn_{sc}{ext}"), "--force", "--no-progress",
+                                   "--json"]
+           for sc in SCENARIO_NAMES for suf, ext in (("", ".csv"), ("_parquet", ".parquet"))},
         "cli_convert": [*exe, "convert", str(csv_path), "-o", str(work / "cli_converted.parquet"), "--force", "--json"],
         "cli_bias": [*exe, "bias", str(csv_path), "--json"],
         "cli_loop": [*exe, "loop", str(csv_path), "--effects", ",".join(EFFECTS[a.source]), "--json"],
@@ -343,7 +361,8 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
     for name in names:
         if name == "synth" and a.source == "sim":
             continue
-        if name == "simulate_long" and (not a.long_duration_s or duration_s != a.duration_s):
+        long = name in ("simulate_long", "simulate_hover_long")
+        if long and (not a.long_duration_s or duration_s != a.duration_s):
             continue  # once, at its own length
         argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
         rc, wall, rss, out = _run_child(argv_c)
@@ -353,13 +372,17 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
         elif rc == 0 and name.startswith("simulate"):
             doc = json.loads(out)
             info = {k: doc.get(k) for k in ("n_samples", "rate_hz", "duration_s", "effects")}
-        if name == "simulate_long":
-            (work / "sim_thermal_long.parquet").unlink(missing_ok=True)
-        rows.append({"stage": name, "samples": int(round(a.long_duration_s * a.rate_hz)) if name == "simulate_long" else n,
-                     "exit": rc, "wall_s": wall, "peak_rss_bytes": rss,
+        if name.startswith("simulate") and name != "simulate":
+            # the files of the other simulate stages are not read again (1 h at 1 kHz: 1.1 GB of CSV)
+            Path(cli[name][cli[name].index("-o") + 1]).unlink(missing_ok=True)
+        samples = int(round(a.long_duration_s * a.rate_hz)) if long else n
+        if rc == 0 and isinstance(info, dict) and info.get("n_samples"):
+            samples = int(info["n_samples"])  # turntable: its profile's own length
+        rows.append({"stage": name, "samples": samples,
+                     "exit": rc, "wall_s": wall, "cpu_s": _run_child.cpu_s, "peak_rss_bytes": rss,
                      "result": info if rc == 0 else out})
         if not quiet:
-            print(f"  [{duration_s if name != 'simulate_long' else a.long_duration_s:g} s] {name:<14s} exit {rc}  wall {wall:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB"
+            print(f"  [{samples / a.rate_hz:g} s] {name:<22s} exit {rc}  wall {wall:7.1f} s  CPU {_run_child.cpu_s:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB"
                   + ("" if rc == 0 else f"  FAILED: {out[:300]}"), flush=True)
     return rows
 
@@ -410,7 +433,8 @@ def main(argv=None) -> int:
         r["above_baseline_bytes"] = r["peak_rss_bytes"] - base
         s = by_small.get(r["stage"])
         if s is not None and s["exit"] == 0 and r["exit"] == 0:
-            r["growth_bytes_per_sample"] = (r["peak_rss_bytes"] - s["peak_rss_bytes"]) / (r["samples"] - s["samples"])
+            if r["samples"] != s["samples"]:
+                r["growth_bytes_per_sample"] = (r["peak_rss_bytes"] - s["peak_rss_bytes"]) / (r["samples"] - s["samples"])
     summary = {"samples": n, "rate_hz": a.rate_hz, "duration_s": a.duration_s,
                "compare_duration_s": a.compare_duration_s or None,
                "data_float64_bytes": n * 15 * 8, "csv_bytes": csv_bytes, "chunk_rows": CHUNK_ROWS,
@@ -420,14 +444,14 @@ def main(argv=None) -> int:
     else:
         print(f"{n} samples ({a.duration_s:g} s at {a.rate_hz:g} Hz); 15 float64 columns = {n * 120 / 2**20:.0f} MiB"
               + (f"; CSV {csv_bytes / 2**20:.0f} MiB" if csv_bytes else "") + f"; chunks of {CHUNK_ROWS} rows")
-        print(f"{'stage':<14s} {'peak RSS MiB':>12s} {'growth B/sample':>16s}  {'wall s':>7s}  design")
+        print(f"{'stage':<22s} {'peak RSS MiB':>12s} {'growth B/sample':>16s}  {'wall s':>7s}  {'CPU s':>7s}  design")
         for r in big:
             g = r.get("growth_bytes_per_sample")
             design = CLI_DESIGN.get(r["stage"], "CLI") if r["stage"].startswith("cli_") else (
                 f"CLI, chunked ({r['samples']} samples)") if r["stage"].startswith("simulate") else (
                 "streaming" if r["stage"] in STREAMING else "whole columns")
-            print(f"{r['stage']:<14s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
-                  f"  {r['wall_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED"))
+            print(f"{r['stage']:<22s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
+                  f"  {r['wall_s']:7.1f}  {r['cpu_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED"))
     return 0 if all(r["exit"] == 0 for r in big + small) else 1
 
 

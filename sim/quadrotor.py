@@ -587,10 +587,12 @@ class HoverFlight:
         """Gyro sample times t_k = k · dt, s, for k0 ≤ k < k1 (the elements of ``np.arange(n) * dt``)."""
         return np.arange(k0, k1) * self.dt_c
 
-    def blocks(self, block_samples: int | None = None) -> Iterator[tuple[Truth, FlightLog]]:
+    def blocks(self, block_samples: int | None = None, *, flight_log: bool = True
+               ) -> Iterator[tuple[Truth, FlightLog | None]]:
         """Fly the flight; yield ``(Truth, FlightLog)`` for each block of at most ``block_samples``
         consecutive gyro samples (default: the whole flight in one block). Runs once.
 
+        ``flight_log=False`` yields ``(Truth, None)`` (the log's 17 columns are not built).
         Memory: one block of logs (the sensor state, 14 + 7 log columns, the gyro's noise and
         output: ≈ 0.4 kB per sample), whatever the flight's length.
         """
@@ -608,12 +610,12 @@ class HoverFlight:
             bar = tqdm(total=n, unit="sample", desc="hover", leave=False, mininterval=0.5)
         try:
             for k0 in range(0, n, b):
-                yield self._block(k0, min(n, k0 + b), bar)
+                yield self._block(k0, min(n, k0 + b), bar, flight_log)
         finally:
             if bar is not None:
                 bar.close()
 
-    def _block(self, k0: int, k1: int, bar) -> tuple[Truth, FlightLog]:
+    def _block(self, k0: int, k1: int, bar, flight_log: bool = True) -> tuple[Truth, FlightLog | None]:
         """Fly samples k0 … k1 − 1 (the next ones) and return their truth and log."""
         if k0 != self._k:
             raise GyroInputError(f"HoverFlight: block from {k0}, expected {self._k}")
@@ -659,7 +661,7 @@ class HoverFlight:
             rec = self._fly_python(k0, k1, t_b, temp, amb, sd_log, outer_log, bar)
         self._outer_last = outer_log[-1].copy()
         self._k = k1
-        return self._pieces(k0, k1, t_b[:m], temp, sd_log, outer_log, rec)
+        return self._pieces(k0, k1, t_b[:m], temp, sd_log, outer_log, rec, flight_log)
 
     def _fly_python(self, k0, k1, t_b, temp, amb, sd_log, outer_log, bar) -> np.ndarray:
         """The Python reference loop over samples k0 … k1 − 1 (operation for operation what the
@@ -750,7 +752,7 @@ class HoverFlight:
         self.mot_cmd = mot_cmd
         return np.frombuffer(rec_arr, dtype=np.float64).reshape(k1 - k0, 14).copy()
 
-    def _pieces(self, k0, k1, t_s, temp, sd_log, outer_log, rec) -> tuple[Truth, FlightLog]:
+    def _pieces(self, k0, k1, t_s, temp, sd_log, outer_log, rec, flight_log=True) -> tuple[Truth, FlightLog | None]:
         m = k1 - k0
         s = self.sens
         oe = self.outer_every
@@ -767,6 +769,8 @@ class HoverFlight:
             power_up_index=np.zeros(m, dtype=int),
             meta=dict(self.meta),
         )
+        if not flight_log:
+            return truth, None
         log = FlightLog(
             t_s=t_s,
             q_WB_wxyz=sd_log[:, s_q : s_q + 4].copy(),

@@ -511,6 +511,14 @@ def _scenario_vibration(spec: ScenarioSpec, overrides, without, vehicle, hover_v
     return overrides, hover_vibration, vib_info
 
 
+#: The chunked path simulates (physics, temperature, gyro) in blocks of at most this many rows
+#: (physics steps for the rate table), re-cut to ``chunk_rows``: the working arrays of a block
+#: (truth, model terms, noise) cost ~2 kB a row, so 16 384-row blocks added ~30 MiB to the peak
+#: of `simulate hover` (measured 279 vs 248 MiB for 2 min at 1 kHz to CSV); the rows are the
+#: same for any block size.
+SIM_BLOCK_ROWS = 4096
+
+
 def simulate(
     name: str | ScenarioSpec,
     *,
@@ -567,8 +575,8 @@ def simulate(
         the power-up split and the gyro (:meth:`sim.gyro.SyntheticGyro.measure_chunks`, block
         noise generators) — so the memory does not grow with the duration. The rows equal the
         whole path's bit for bit, whatever ``chunk_rows`` (tested for every registered
-        scenario). 16 384 rows: one hour at 1 kHz written to CSV peaks at ≈ 180 MiB, most of
-        it the imports.
+        scenario). The simulation itself runs in blocks of at most :data:`SIM_BLOCK_ROWS`
+        rows, re-cut to ``chunk_rows`` (a Parquet row group each when written).
 
     Returns
     -------
@@ -696,11 +704,12 @@ class _Setup:
     def chunked(self, chunk_rows: int) -> "SimStream":
         """The truth chunk by chunk (rate table or flight), ``measure_chunks``, one :class:`SimStream`."""
         gyro, rate = self.gyro, self.rate
+        block = min(chunk_rows, SIM_BLOCK_ROWS)
         if self.spec.kind == "table":
             from .turntable import stream_table
 
             table = stream_table(self.prof, gyro_rate_hz=rate, thermal=self.thermal, seed=self.seed,
-                                 progress=self.progress, chunk_steps=chunk_rows)
+                                 progress=self.progress, chunk_steps=block)
             n, cycles, truth_meta = table.n_samples, self.cycles, table.meta
             if cycles < 1:
                 raise GyroInputError("[power] cycles must be >= 1")
@@ -721,7 +730,7 @@ class _Setup:
             starts = [float(flight._times(0, 1)[0])]
 
             def truths():
-                return (tr for tr, _log in flight.blocks(chunk_rows))
+                return (tr for tr, _log in flight.blocks(block, flight_log=False))
         pd = gyro.params.get("bias")
         bias_draws = None
         if pd is not None:
