@@ -833,7 +833,9 @@ def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, win
     :class:`gyrocore.bias.StaticBiasCalibrator` (threshold from the record's own robust noise
     level, false-reject rate ``false_reject_rate`` per still window). When the number of
     rejected windows k is one the false-reject rate explains (binomial tail
-    P(X ≥ k | W, α) ≥ 10⁻³) the whole record is used, as before. Otherwise the record holds
+    P(X ≥ k | W, α) ≥ 10⁻³), and so is the number over the strict gate
+    (:data:`STRICT_FALSE_REJECT_RATE`: a single 2-s turn in a long still log is not a false
+    reject), the whole record is used, as before. Otherwise the record holds
     motion, and a single moving window ruins an Allan variance (a 30 °/s hand turn is 10⁴ × the
     variance of an MPU-6050's noise): the analysis is cut to the longest run of windows that
     pass the strict gate (:data:`STRICT_FALSE_REJECT_RATE`), less one window at each end that
@@ -860,7 +862,7 @@ def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, win
     x = np.asarray(gyro_rad_s, float)
     N = x.shape[0]
     n_win = int(round(window_s * rate_hz))
-    if n_win < 8 or N < 10 * n_win:
+    if n_win < 8 or N < 2 * n_win:
         return StillSpan(0, N, float("nan"))
     W = N // n_win
     cal = StaticBiasCalibrator(window_samples=n_win, false_reject_rate=false_reject_rate)
@@ -881,8 +883,12 @@ def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, win
     still = np.all(stats <= thr[None, :], axis=1)
     quiet = np.all(stats <= strict[None, :], axis=1)
     k = int(W - still.sum())
+    k_strict = int(W - quiet.sum())
     frac = float(still.mean())
-    if k == 0 or scipy.stats.binom.sf(k - 1, W, false_reject_rate) >= 1e-3:
+    # motion: more windows over the gate than its false-reject rate explains, or any window over
+    # the strict gate that its 1e-6 rate does not explain (one 2-s turn in a 10-min log)
+    if (k == 0 or scipy.stats.binom.sf(k - 1, W, false_reject_rate) >= 1e-3) and (
+            k_strict == 0 or scipy.stats.binom.sf(k_strict - 1, W, STRICT_FALSE_REJECT_RATE) >= 1e-3):
         return StillSpan(0, N, frac, W, k)
     # runs of quiet windows [a, b), less one window at an end that borders motion
     best = (0, 0)
