@@ -1062,7 +1062,10 @@ def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool
     if checks:
         with np.errstate(all="ignore"):  # absurd finite values (1e300) must not print overflow warnings
             _unit_checks(t, gyro, accel, path, meta.pop("__gyro_col__", "gyro_x_rad_s"), accel_std=accel_std)
-            t = _timing_checks(t, path, retime, meta.pop("__time_col__", TIME_COL))
+            if meta.get("stream") == "batch":  # ArduPilot batch sampler: windows with gaps by design
+                meta.pop("__time_col__", None)
+            else:
+                t = _timing_checks(t, path, retime, meta.pop("__time_col__", TIME_COL))
         with np.errstate(all="ignore"):
             # smallest full scales on the market: gyro ±125 deg/s (BMI088, ICM-42688-P low
             # ranges), accel ±2 g; a plateau below 90 % of these cannot be clipping.

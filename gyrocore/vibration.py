@@ -442,7 +442,14 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         airborne &= t < t_to_s
     if not airborne.any():
         raise GyroInputError("no airborne samples (band variable below the airborne threshold everywhere)")
-    W = _windows(t, sig.gyro, bv, _rotor_hz(rec), airborne, nperseg=nper, rate_hz=rate)
+    try:
+        W = _windows(t, sig.gyro, bv, _rotor_hz(rec), airborne, nperseg=nper, rate_hz=rate)
+    except GyroInputError as exc:
+        if rec.meta.get("stream") == "batch" and rec.meta.get("batch_window_s"):
+            wb = float(rec.meta["batch_window_s"])
+            raise GyroInputError(f"{exc}: the batch sampler's windows are {wb:.3g} s long; use --window-s "
+                                 f"{math.floor(wb * 0.95 * 100) / 100:g} or less") from None
+        raise
     f = W.f_hz
     # undo the firmware filters in the spectral domain
     loop_scale = 1.0
