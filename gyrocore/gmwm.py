@@ -481,7 +481,7 @@ def _log_chi2(avar: np.ndarray, model: np.ndarray, L: np.ndarray, b: np.ndarray)
     return float(r @ r)
 
 
-def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3):
+def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3, tc_max=None):
     """Iterated GLS of subset ``sub``: weights from its own fitted model (continuous updating).
 
     Start: diagonal relative weights (Var σ̂² ≈ σ̂⁴·2/edf, white-noise EDF), then
@@ -499,6 +499,8 @@ def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3):
         C_, edf_, _a = avar_covariance(m, n_samples, rate_hz, coef_, tc_, mod, method=method)
         Lw = np.linalg.inv(np.linalg.cholesky(C_))
         grid = tc_grid if tc_ is None else np.geomspace(tc_ / 2.0, tc_ * 2.0, 5)
+        if tc_max is not None and tc_ is not None:
+            grid = np.unique(np.minimum(grid, tc_max))
         c_use, tc_, _ = _fit_subset(m, rate_hz, avar, Lw, sub, method, grid)
         coef_ = np.zeros(6)
         coef_[list(sub)] = c_use
@@ -523,6 +525,26 @@ _Z_STANDIN = float(scipy.stats.norm.isf(ALPHA_STANDIN))
 #: pairs where one term is a limit of the other (GM with τc → ∞ is a random walk over the
 #: record): nested, so the penalty (an LR test) already decides between them
 _NESTED = {frozenset((3, 5))}
+#: stand-in checks beyond "a candidate with a larger penalty" (round 4): the rate ramp R is
+#: checked against the random walk K. Their penalties are equal, so the selection picks
+#: whichever fits the realisation better, and a random-walk realisation over the record always
+#: carries a linear trend: with K true the ramp won on 8–12 % of the 1-h axes (the Vuong
+#: margin √λ/2 ≈ 1.3 of the rule, Φ(−1.3) ≈ 10 %). A ramp is a deterministic drift, the random
+#: walk the stochastic model that explains a trend by itself, so the burden of proof is put on
+#: the ramp: R is claimed only when the K world (K fitted in R's place) is rejected at
+#: :data:`ALPHA_STANDIN`, which bounds R claimed for a true K by that level (the issue's ≤ 5 %).
+_EXTRA_CHECKS = {(4, 3)}
+FALLBACK = True
+
+
+def _checked(x: int, y: int) -> bool:
+    """Is a selected term x checked against the stand-in y (see :func:`_ambiguous`)?"""
+    if x == 1 or x == y:
+        return False
+    if (x, y) in _EXTRA_CHECKS:
+        return True
+    pen = lambda i: _PEN_GM if i == 5 else _PEN_LINEAR  # noqa: E731
+    return pen(y) > pen(x) and frozenset((x, y)) not in _NESTED
 
 
 def _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) -> dict[int, int]:
@@ -539,12 +561,11 @@ def _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) 
     is fitted but not resolved. Returns {X: Y}.
     """
     out: dict[int, int] = {}
-    pen = lambda i: _PEN_GM if i == 5 else _PEN_LINEAR  # noqa: E731
     for x in sub:
         if x == 1:
             continue
         for y in sorted({k for s_ in fits for k in s_} - set(sub)):
-            if pen(y) <= pen(x) or frozenset((x, y)) in _NESTED:
+            if not _checked(x, y):
                 continue
             swap = tuple(sorted((set(sub) - {x}) | {y}))
             if swap not in fits:
@@ -670,6 +691,15 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
             break
         sub = tuple(i for i in sub if i != worst)
     ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) if AMBIGUITY else {}
+    for x, y in list(ambiguous.items()):
+        # round 4: a ramp not told from a random walk (see _EXTRA_CHECKS) is the random walk's
+        # trend — the random-walk model stands in its place when all its terms are positive
+        swap = tuple(sorted((set(sub) - {x}) | {y}))
+        if FALLBACK and (x, y) in _EXTRA_CHECKS and swap in fits and np.all(fits[swap][0][list(swap)] > 0):
+            sub = swap
+            cov_p = wald(sub)
+            ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log)
+            break
     coef_s, tc_s, C, edf, L, chi2, _m2ll = fits[sub]
     Ci = L.T @ L
     model_s = term_avar(m, rate_hz, method=method, tau_c_s=tc_s) @ coef_s
@@ -778,6 +808,11 @@ def _penalty(sub) -> float:
     return sum(_PEN_GM if i == 5 else _PEN_LINEAR for i in sub if i != 1)
 
 
+#: combine the alternatives of :func:`expected_z` by the union bound (round 4); False = the
+#: minimum over alternatives (rounds 1–3), kept to reproduce the earlier rule
+UNION = True
+
+
 def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: float,
                method: str = "gmwm") -> dict[str, float]:
     """Predicted resolvability margin of each present term (the resolvability rule).
@@ -813,16 +848,18 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
     cache: dict[tuple, float] = {}
     for i in true_sub:
         others = [j for j in cand if j not in (1, i)]
-        margin = float("inf")
+        zs: list[float] = []
         for k in range(0, len(others) + 1):
             for extra in itertools.combinations(others, k):
                 sub = tuple(sorted(([1] if i != 1 else []) + list(extra)))
                 if not sub:
                     continue
                 dpen = pen_true - _penalty(sub)
-                if dpen < 0 and not (AMBIGUITY and i != 1 and 5 in sub and 5 not in true_sub
-                                     and frozenset((i, 5)) not in _NESTED and len(sub) == len(true_sub)
-                                     and set(sub) - {5} == set(true_sub) - {i}):
+                # the swap of i for a stand-in y that :func:`_ambiguous` checks
+                swap_y = [y for y in set(sub) - set(true_sub)
+                          if len(sub) == len(true_sub) and set(sub) - {y} == set(true_sub) - {i}]
+                check = AMBIGUITY and i != 1 and bool(swap_y) and _checked(i, swap_y[0])
+                if dpen < 0 and not check:
                     continue
                 if sub not in cache:
                     # the alternative fitted to the noise-free truth as the estimator fits it,
@@ -834,24 +871,42 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                 nested = set(sub) <= set(true_sub)
                 if dpen > 0 and nested:
                     # a submodel of the truth: LR ≈ noncentral χ², √LR ≈ N(√λ, 1) > √Δpen
-                    margin = min(margin, math.sqrt(lam) - math.sqrt(dpen))
+                    zs.append(math.sqrt(lam) - math.sqrt(dpen))
                 elif dpen >= 0:
                     # a non-nested stand-in (R or B for K, K for B, …): the difference of the two
                     # fits' statistics is ≈ N(λ, 4λ) (Vuong 1989) and may be negative; the true
                     # model wins when it exceeds Δpen: z = (λ − Δpen)/(2√λ) (round 2; the √ form
                     # above made K at 1 h look safer than the study shows)
-                    margin = min(margin, (lam - dpen) / (2.0 * math.sqrt(lam)) if lam > 0 else -math.inf)
-                else:
-                    # the stand-in check of :func:`_ambiguous` for the GM swap of term i: the
-                    # stand-in world Y* (the swap fitted to the truth, at distance λ_X) and
-                    # λ_Y = distance of the true model fitted back to Y*; the term is claimed
-                    # when D ≈ N(−λ_X, 4λ_X) < λ_Y − z_{1−α}·2√λ_Y
+                    z_v = (lam - dpen) / (2.0 * math.sqrt(lam)) if lam > 0 else -math.inf
+                    if AMBIGUITY and FALLBACK and swap_y and (swap_y[0], i) in _EXTRA_CHECKS:
+                        # round 4: the stand-in y (R for a true K) must also reject the world of
+                        # term i, fitted to the data ≈ the truth, at distance ≈ λ from y's fit:
+                        # claimed when D ≈ N(λ, 4λ) < λ − z_{1−α}·2√λ, i.e. with probability
+                        # α (z = z_{1−α}); otherwise i stands in its place (fallback)
+                        z_v = max(z_v, _Z_STANDIN)
+                    zs.append(z_v)
+                if check:
+                    # the stand-in check of :func:`_ambiguous` for the swap of term i for y (GM,
+                    # or K for R): the stand-in world Y* (the swap fitted to the truth, at
+                    # distance λ_X) and λ_Y = distance of the true model fitted back to Y*; the
+                    # term is claimed when D ≈ N(−λ_X, 4λ_X) < λ_Y − z_{1−α}·2√λ_Y
                     mod_y = cache[sub][1]
                     cb, tcb = _fit_model(m, rate_hz, mod_y, int(n_samples), true_sub, method, tc_grid)[:2]
                     lam_y = max(_log_chi2(mod_y, term_avar(m, rate_hz, method=method, tau_c_s=tcb) @ cb, W_log,
                                           np.zeros(m.size)), 0.0)
                     thr = lam_y - _Z_STANDIN * 2.0 * math.sqrt(lam_y)
                     z_claim = (thr + lam) / (2.0 * math.sqrt(lam)) if lam > 0 else (math.inf if thr > 0 else -math.inf)
-                    margin = min(margin, z_claim)
+                    zs.append(z_claim)
+        # round 4: the term is missed when ANY alternative wins, so the miss probability is
+        # bounded by the sum over alternatives (union bound), not the largest one: with K at 1 h
+        # both R (Φ(−1.29) ≈ 10 %) and B (≈ 6 %) stand in, and the minimum alone (1.29 ≥ 1.28)
+        # called K resolvable where the study found it on 79 %. margin = Φ⁻¹(1 − Σ Φ(−z_alt)).
+        margin = min(zs, default=math.inf)
+        if UNION and zs:
+            p_miss = float(sum(scipy.stats.norm.sf(z) for z in zs))
+            if 0.0 < p_miss < 0.5:
+                margin = min(margin, float(scipy.stats.norm.isf(p_miss)))
+            elif p_miss >= 0.5:  # the bound says nothing beyond "unresolvable": at most 0
+                margin = min(margin, 0.0)
         out[LINEAR[i]] = margin
     return out
