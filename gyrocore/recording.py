@@ -1259,6 +1259,15 @@ def iter_csv_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: boo
     return _chunk_records(_csv_blocks(path, header, n_skip, layout.want, rows), layout, meta, path, repair)
 
 
+def _header_name(h: str) -> str:
+    """A header field without surrounding whitespace and double quotes (R's write.csv, MATLAB and
+    spreadsheets quote the header)."""
+    h = h.strip()
+    if len(h) >= 2 and h[0] == h[-1] == '"':
+        h = h[1:-1].replace('""', '"').strip()
+    return h
+
+
 def _parse_header(lines: Iterable[str], path: str) -> tuple[dict[str, str], list[str], int]:
     """``# key: value`` metadata lines, then the header row; returns (meta, header, lines used)."""
     meta: dict[str, str] = {}
@@ -1274,7 +1283,15 @@ def _parse_header(lines: Iterable[str], path: str) -> tuple[dict[str, str], list
                 k, v = body.split(":", 1)
                 meta[k.strip()] = v.strip()
             continue
-        header = [h.strip() for h in s.split(",")]
+        header = [_header_name(h) for h in s.split(",")]
+        empty = [i for i, h in enumerate(header) if not h]
+        if empty:
+            # a pandas index written without a name (to_csv() default), R's row names, a trailing
+            # comma: kept as extra columns with a name, said once
+            for i in empty:
+                header[i] = f"unnamed_{i}"
+            warn_repair(f"{path}: {len(empty)} column(s) without a name in the header (a pandas/R index, a trailing "
+                        f"comma?) kept as extra column(s) {', '.join(header[i] for i in empty)}")
         return meta, header, n_skip
     raise GyroInputError(f"{path}: no header row (file is empty or only has comments)")
 

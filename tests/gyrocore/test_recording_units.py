@@ -105,3 +105,25 @@ def test_bom_crlf_reordered_extra_columns_and_pandas_parquet_read_the_same(tmp_p
         b = json.loads(out)["bias_rad_s"]
         ref = ref or b
         assert b == ref, name
+
+
+def test_quoted_header_pandas_index_and_trailing_comma(tmp_path, frame, capsys):
+    """R's write.csv and MATLAB quote the header; pandas' to_csv() writes its index as a first
+    column with no name; some loggers end every line with a comma. Each used to be refused
+    ('missing required column t_s', 'empty column name in header'); now read, the unnamed column
+    kept as an extra column with a warning, and the bias is the plain file's."""
+    import csv
+
+    frame.to_csv(tmp_path / "plain.csv", index=False)
+    frame.to_csv(tmp_path / "quoted.csv", index=False, quoting=csv.QUOTE_NONNUMERIC)
+    frame.to_csv(tmp_path / "index.csv")
+    lines = (tmp_path / "plain.csv").read_text().splitlines()
+    (tmp_path / "trailing.csv").write_text("".join(line + ",\n" for line in lines))
+    status, out, _e = _gh(capsys, "bias", str(tmp_path / "plain.csv"), "--json")
+    ref = json.loads(out)["bias_rad_s"]
+    for name in ("quoted.csv", "index.csv", "trailing.csv"):
+        status, out, err = _gh(capsys, "bias", str(tmp_path / name), "--json")
+        assert status == 0, (name, err)
+        assert json.loads(out)["bias_rad_s"] == ref, name
+        if name != "quoted.csv":
+            assert "without a name" in err
