@@ -193,6 +193,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     rec = _read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
     if not segments and rec.ref_rate_rad_s is None and _has_attitude(rec):
         res = _fit_against_attitude(rec, names, file, thermal_order, sensor)
+        _warn_sign(res)
         _write_and_report(res, output, px4_params, as_json)
         return
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
@@ -227,7 +228,25 @@ def _streamable(path: str) -> bool:
     return "ref_rate" in groups and est_rows > STREAM_ROWS
 
 
+def _warn_sign(res) -> None:
+    """A scale below −50 % (K_ii = 1 + s < 0.5, typically ≈ −1) is not a sensitivity error: the
+    axis reads against the reference (a flipped axis, or the known angles' sign convention — imucal's
+    expected_angle −360° on turns that integrate positive); say so in one warning line."""
+    s = res.params.get("scale", {}).get("s")
+    if s is None:
+        return
+    s = np.asarray(s, float)
+    bad = [f"{'xyz'[i]} {100 * v:+.0f} %" for i, v in enumerate(s) if np.isfinite(v) and v < -0.5]
+    if bad:
+        warnings.warn(
+            f"scale {', '.join(bad)}: K_ii = 1 + s is negative, i.e. the axis reads against the reference — a flipped "
+            f"axis or the reference's sign convention (segments' angle signs, frame), not a sensitivity error",
+            UserWarning, stacklevel=3,
+        )
+
+
 def _warn_unobservable(res) -> None:
+    _warn_sign(res)
     if res.unobservable:
         # one line on stderr (the CLI prints "warning: ..."); stdout (and --json) unchanged
         warnings.warn(

@@ -15,6 +15,22 @@ def test_hand_turn_standard_errors_say_what_they_leave_out(shared_data, tmp_path
     capsys.readouterr()
     status = run_cli(g, ["calibrate", str(tmp_path / "f.csv"), "--segments", str(tmp_path / "s.csv"),
                          "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")])
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
     assert status == 0 and "angles taken as exact" in out
+    assert "reads against the reference" not in cap.err  # this session's turns agree with -360 deg
     assert any("angles taken as exact" in n for n in json.loads((tmp_path / "p.json").read_text())["notes"])
+
+
+def test_negative_scale_is_called_a_sign_disagreement(shared_data, tmp_path, capsys):
+    """imucal's annotated session: its turns integrate positive, the segments carry imucal's
+    expected_angle −360°, so the fit gives scale ≈ −200 % (K ≈ −I, as imucal's own snapshot).
+    Printed bare, it read as a 200 % sensitivity error; now one warning names the sign."""
+    g = build_group(["gyrocore.commands"])
+    src = shared_data / "imucal_ferraris" / "annotated_session.csv"
+    assert run_cli(g, ["convert", str(src), "-o", str(tmp_path / "a.csv"), "--segments-out", str(tmp_path / "s.csv")]) == 0
+    capsys.readouterr()
+    status = run_cli(g, ["calibrate", str(tmp_path / "a.csv"), "--segments", str(tmp_path / "s.csv"),
+                         "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")])
+    err = capsys.readouterr().err
+    assert status == 0 and "reads against the reference" in err
