@@ -57,7 +57,7 @@ def report_text(analysis) -> str:
 
     lines = [
         f"method {getattr(analysis, 'method', 'gmwm')}; "
-        f"{analysis.n_samples} samples, {analysis.duration_s:.1f} s, mean rate {analysis.rate_hz:.6g} Hz"
+        f"{analysis.n_samples} samples, {analysis.duration_s:.1f} s sampled, rate {analysis.rate_hz:.6g} Hz"
         + (f"; dropped tau {', '.join(f'{t:g}' for t in analysis.dropped_taus_s)} s" if analysis.dropped_taus_s else ""),
         f"{'axis':4} {'term':24} {'value (SI)':>12} {'95% interval (SI)':>27} {'datasheet':>22}",
     ]

@@ -188,3 +188,22 @@ def test_short_flight_log_is_refused(tmp_path, capsys):
     write_csv(load_any(src), p)
     status, _o, err = _gh(capsys, "noise", str(p))
     assert status == 2 and "recording is not static" in err
+
+
+def test_paused_log_uses_the_rate_of_its_samples_not_the_wall_span(shared_data, tmp_path, capsys):
+    """tomisuarez2's 449-s still log with a 300-s pause in the middle (a logger stopped, two
+    recordings appended): the Allan time base was the mean rate (N-1)/duration = 60 Hz, and N came
+    out 29 % high (sqrt(750/449)) with only a warning. Now the rate of the intervals without gaps
+    (100 Hz): the same N as the log without the pause."""
+    rec = load_any(shared_data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv")
+    ref = AL.allan_analysis(rec)
+    t = rec.t_s.copy()
+    t[t.size // 2:] += 300.0
+    p = tmp_path / "paused.csv"
+    write_csv(Recording(t_s=t, gyro_rad_s=rec.gyro_rad_s), p)
+    status, out, err = _gh(capsys, "noise", str(p), "--json")
+    assert status == 0 and "gap" in err
+    j = json.loads(out)
+    assert j["rate_hz"] == pytest.approx(100.0, rel=1e-9)
+    for a in "xyz":
+        assert j["axes"][a]["arw_rad_per_sqrt_s"] == pytest.approx(ref.axes[a].arw_rad_per_sqrt_s, rel=1e-9)
