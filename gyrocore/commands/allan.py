@@ -73,7 +73,8 @@ def report_text(analysis) -> str:
                 continue
             if v is None:
                 ub, unit_u = to_datasheet_units(name, hi)
-                lines.append(f"{ax:4} {name:24} {'unresolved':>12} {'< ' + format(hi, '.3e'):>27} "
+                lines.append(f"{ax:4} {name:24} {'unresolved':>12} "
+                             f"{('< ' + format(hi, '.3e')) if math.isfinite(hi) else 'no bound from this record':>27} "
                              f"{('< ' + format(ub, '.3g') + ' ' + unit_u) if math.isfinite(hi) else '':>22}")
             else:
                 lines.append(f"{ax:4} {name:24} {v:12.4e} {f'[{lo:.3e}, {hi:.3e}]':>27} {f'{ds:.4g} {unit}':>22}")
