@@ -810,6 +810,24 @@ def _still_fraction(n: int, rate_hz: float, gyro_rows, whole, *, window_s: float
     return r.n_windows_still / max(r.n_windows_total, 1)
 
 
+def _check_rest_noise(recording: Recording) -> None:
+    """One warning when a record the motion gate calls still has a per-sample noise no MEMS gyro
+    has at rest (> ``STILL_NOISE_SUSPECT_RAD_S`` = 0.05 rad/s on an axis): deg/s numbers under a
+    rad/s header. The reader makes this check only when accel columns say the sensor is at rest;
+    a gyro-only file (an MPU-6050's 0.1 deg/s read as 0.1 rad/s) reached the analysis silently
+    with N 57x too large."""
+    from .recording import STILL_NOISE_SUSPECT_RAD_S, _robust_noise
+
+    g = np.asarray(recording.gyro_rad_s)
+    noise = np.array([_robust_noise(np.array(g[:, i], float)) for i in range(3)])
+    if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
+        warn_repair(
+            f"the still record's per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s exceeds any MEMS "
+            f"gyro at rest ({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s (rename the "
+            f"columns gyro_*_deg_s)? Numbers below are as read"
+        )
+
+
 #: A still stretch shorter than this is not analysed (ten 2-s gate windows: below it the
 #: long-τ end of the Allan curve is a handful of averages, and no term beyond N is resolvable).
 MIN_STILL_STRETCH_S = 20.0
@@ -1005,6 +1023,7 @@ def allan_analysis(
             recording = recording.slice(sp.start, sp.stop)
             n = recording.n
             span_s = (float(recording.t_s[0]), float(recording.t_s[-1]))
+        _check_rest_noise(recording)
     dropped: list[float] = []
     if max_tau_s is not None:
         if not (max_tau_s > 0):

@@ -207,3 +207,19 @@ def test_paused_log_uses_the_rate_of_its_samples_not_the_wall_span(shared_data, 
     assert j["rate_hz"] == pytest.approx(100.0, rel=1e-9)
     for a in "xyz":
         assert j["axes"][a]["arw_rad_per_sqrt_s"] == pytest.approx(ref.axes[a].arw_rad_per_sqrt_s, rel=1e-9)
+
+
+def test_gyro_only_file_in_deg_s_labelled_rad_s_warns(shared_data, tmp_path, capsys):
+    """A gyro-only still log whose deg/s numbers sit under rad/s headers: the reader's unit check
+    needs accel columns to know the sensor is at rest, so `noise` reported N 57x too large
+    (tomisuarez2: 25.7 deg/sqrt(h) for 0.45) without a word; the motion gate now says it is at
+    rest, and a per-sample noise above 0.05 rad/s there gets one warning."""
+    rec = load_any(shared_data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv")
+    p = tmp_path / "degs.csv"
+    write_csv(Recording(t_s=rec.t_s, gyro_rad_s=np.rad2deg(rec.gyro_rad_s)), p)
+    status, _o, err = _gh(capsys, "noise", str(p))
+    assert status == 0 and "is it deg/s labelled rad/s" in err
+    q = tmp_path / "rads.csv"
+    write_csv(Recording(t_s=rec.t_s, gyro_rad_s=rec.gyro_rad_s), q)
+    status, _o, err = _gh(capsys, "noise", str(q))
+    assert status == 0 and "labelled rad/s" not in err
