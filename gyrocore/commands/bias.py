@@ -89,6 +89,18 @@ def command(file, rule, statistic, window_s, window_samples, false_reject_rate, 
         from ..recording import read_recording
 
         r = cal.fit(read_recording(file, columns=()))  # t and gyro only (the gate and the estimate use nothing else)
+    from ..recording import STILL_NOISE_SUSPECT_RAD_S
+
+    if noise_dps is None and np.any(np.asarray(r.noise_sigma_rad_s) > STILL_NOISE_SUSPECT_RAD_S):
+        # the still windows' own noise: beyond any MEMS gyro at rest (the reader checks this only
+        # when accel columns say the sensor is at rest)
+        from ..errors import warn_repair
+
+        warn_repair(
+            f"the still window's per-sample noise ({', '.join(f'{v:.3g}' for v in r.noise_sigma_rad_s)}) rad/s exceeds "
+            f"any MEMS gyro at rest ({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s "
+            f"(rename the columns gyro_*_deg_s)? The bias below is as read"
+        )
     if as_json:
         emit_json(r)
     else:

@@ -219,7 +219,10 @@ def test_gyro_only_file_in_deg_s_labelled_rad_s_warns(shared_data, tmp_path, cap
     write_csv(Recording(t_s=rec.t_s, gyro_rad_s=np.rad2deg(rec.gyro_rad_s)), p)
     status, _o, err = _gh(capsys, "noise", str(p))
     assert status == 0 and "is it deg/s labelled rad/s" in err
+    status, _o, err = _gh(capsys, "bias", str(p))  # the same check on the bias window
+    assert status == 0 and "is it deg/s labelled rad/s" in err
     q = tmp_path / "rads.csv"
     write_csv(Recording(t_s=rec.t_s, gyro_rad_s=rec.gyro_rad_s), q)
-    status, _o, err = _gh(capsys, "noise", str(q))
-    assert status == 0 and "labelled rad/s" not in err
+    for cmd in ("noise", "bias"):
+        status, _o, err = _gh(capsys, cmd, str(q))
+        assert status == 0 and "labelled rad/s" not in err
