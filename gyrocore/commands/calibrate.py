@@ -20,8 +20,16 @@ def _fmt(v, scale=1.0, p=5) -> str:
 
 
 def report_text(res, params_path: str, px4_path: str | None) -> str:
+    if res.method == "integral" and res.integral is not None:
+        # n_samples of the integral method is the still samples the bias came from (0 with a bias
+        # from outside the data): say what it counts
+        nseg = int(np.asarray(res.integral.get("C_rad", np.zeros((3, 0)))).shape[1])
+        what = (f"{nseg} known rotations, bias from {res.n_samples} still samples" if res.n_samples
+                else f"{nseg} known rotations, bias from outside the data")
+    else:
+        what = f"{res.n_samples} samples"
     lines = [
-        f"calibrated {', '.join(res.effects)} on {res.source_file} ({res.method}, {res.n_samples} samples, "
+        f"calibrated {', '.join(res.effects)} on {res.source_file} ({res.method}, {what}, "
         f"standard errors: {res.covariance})",
     ]
     for eff, pd in res.params.items():
@@ -29,7 +37,10 @@ def report_text(res, params_path: str, px4_path: str | None) -> str:
             se = res.stderr.get(eff, {}).get(name)
             se_txt = "" if se is None or not np.any(np.isfinite(se)) else f"  ± {_fmt(se, 1.0, 2)}"
             lines.append(f"  {eff}.{name} = {_fmt(v)}{se_txt}")
-    lines.append(f"residual RMS {_fmt(res.residual_rms_rad_s, D, 4)} deg/s")
+    if res.method == "integral" and not res.n_samples:
+        lines.append("residual RMS: none (no still samples in this file; the bias came from outside it)")
+    else:
+        lines.append(f"residual RMS {_fmt(res.residual_rms_rad_s, D, 4)} deg/s")
     if res.thermal_order:
         lines.append("thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items()) + " (chosen from the data)"
                      if res.thermal_tests else "thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items()))

@@ -19,6 +19,7 @@ def test_hand_turn_standard_errors_say_what_they_leave_out(shared_data, tmp_path
     out = cap.out
     assert status == 0 and "angles taken as exact" in out
     assert "reads against the reference" not in cap.err  # this session's turns agree with -360 deg
+    assert "(integral, 3 known rotations, bias from 6936 still samples," in out  # not "6936 samples"
     assert any("angles taken as exact" in n for n in json.loads((tmp_path / "p.json").read_text())["notes"])
 
 
