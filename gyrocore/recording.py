@@ -1448,7 +1448,11 @@ def _open_parquet(path: str):
     _check_header(header, path)
     for f in schema:
         if not (pa.types.is_floating(f.type) or pa.types.is_integer(f.type) or pa.types.is_boolean(f.type)):
-            raise GyroInputError(f"{path}: column {f.name!r} is not numeric ({f.type})")
+            hint = ""
+            if pa.types.is_timestamp(f.type) or pa.types.is_duration(f.type) or pa.types.is_date(f.type):
+                hint = ("; store the time as numbers: seconds in t_s (pandas: df['t_s'] = (df[col] - df[col].iloc[0])"
+                        ".dt.total_seconds()) or a counter in t_ms / t_us / t_ns")
+            raise GyroInputError(f"{path}: column {f.name!r} is not numeric ({f.type}){hint}")
     meta: dict[str, str] = {}
     raw = (schema.metadata or {}).get(PARQUET_META_KEY)
     if raw is not None:

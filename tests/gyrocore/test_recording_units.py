@@ -127,3 +127,12 @@ def test_quoted_header_pandas_index_and_trailing_comma(tmp_path, frame, capsys):
         assert json.loads(out)["bias_rad_s"] == ref, name
         if name != "quoted.csv":
             assert "without a name" in err
+
+
+def test_parquet_datetime_time_column_error_says_how_to_store_it(tmp_path, frame):
+    d = frame.copy()
+    d["t_s"] = pd.to_datetime(d["t_s"], unit="s")
+    p = tmp_path / "dt.parquet"
+    d.to_parquet(p)
+    with pytest.raises(GyroInputError, match=r"not numeric \(timestamp\[ns\]\); store the time as numbers"):
+        read_recording(p)
