@@ -317,7 +317,16 @@ def _h5(path: Path):
 
 
 # ============================================================================ PX4 ULog
-def read_ulog(path: str | os.PathLike, *, multi_id: int = 0) -> Recording:
+#: A ``sensor_gyro`` instance logged slower than this is a housekeeping stream (PX4's default
+#: profile: 1 Hz); its thermal-calibration and sensor-comparison profiles log every instance at
+#: 10 Hz (logged_topics.cpp: add_topic_multi("sensor_gyro", 100 ms)) — enough for bias against
+#: temperature (PX4's own TC_G fit), not for noise or vibration (below
+#: :data:`ULOG_NOISE_GYRO_RATE_HZ` a warning says so).
+ULOG_MIN_GYRO_RATE_HZ = 5.0
+ULOG_NOISE_GYRO_RATE_HZ = 50.0
+
+
+def read_ulog(path: str | os.PathLike, *, multi_id: int = 0, gyro_instance: int | None = None) -> Recording:
     """PX4 ULog: ``sensor_combined`` gyro/accel, ``sensor_gyro`` temperature when logged.
 
     Parameters
@@ -326,6 +335,12 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0) -> Recording:
         A ``.ulg`` file.
     multi_id : int
         Instance of ``sensor_combined`` to read.
+    gyro_instance : int, optional
+        Read ``sensor_gyro`` instance N instead (one of a board's several gyros, as its driver
+        published it: rotated to the board frame, *before* PX4's CAL_GYRO calibration), with its
+        own temperature; no accel. Refused (one line) when that instance is logged slower than
+        :data:`ULOG_MIN_GYRO_RATE_HZ` (PX4's default logging profile keeps it at 1 Hz; its
+        thermal-calibration profile at 10 Hz, read with a warning below 50 Hz).
 
     Notes
     -----
@@ -347,6 +362,8 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0) -> Recording:
         ulog = ULog(str(p))
     except Exception as exc:  # pyulog raises bare Exceptions on corrupt files
         raise GyroInputError(f"{p}: not a readable ULog file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    if gyro_instance is not None:
+        return _read_ulog_sensor_gyro(ulog, p, int(gyro_instance))
     repairs = _Repairs(p.name)
     try:
         sc = ulog.get_dataset("sensor_combined", multi_id)
@@ -403,6 +420,60 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0) -> Recording:
         note="ekf_q* columns are PX4's attitude estimate (vehicle_attitude), NOT a reference",
     )
     return Recording(t_s=t_s, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=temp, meta=meta, extra=extra)
+
+
+def _read_ulog_sensor_gyro(ulog, p: Path, inst: int) -> Recording:
+    """``sensor_gyro`` instance ``inst`` of a ULog as a recording (see :func:`read_ulog`)."""
+    have = sorted(int(d.multi_id) for d in ulog.data_list if d.name == "sensor_gyro")
+    if inst not in have:
+        raise GyroInputError(f"{p}: no sensor_gyro instance {inst} in the log (instances: "
+                             f"{', '.join(map(str, have)) or 'none'})")
+    sg = ulog.get_dataset("sensor_gyro", inst)
+    key = "timestamp_sample" if "timestamp_sample" in sg.data else "timestamp"
+    ts_us = np.asarray(sg.data[key], dtype=np.int64)
+    dev = int(np.asarray(sg.data["device_id"])[0]) if "device_id" in sg.data else None
+    span = (ts_us[-1] - ts_us[0]) * 1e-6 if ts_us.size > 1 else 0.0
+    rate = (ts_us.size - 1) / span if span > 0 else 0.0
+    if rate < ULOG_MIN_GYRO_RATE_HZ:
+        sc_rate = ""
+        try:
+            t_sc = np.asarray(ulog.get_dataset("sensor_combined", 0).data["timestamp"], float)
+            sc_rate = f"; sensor_combined carries the selected gyro at {(t_sc.size - 1) / ((t_sc[-1] - t_sc[0]) * 1e-6):.0f} Hz"
+        except (KeyError, IndexError, ValueError, ZeroDivisionError):
+            pass
+        raise GyroInputError(
+            f"{p}: sensor_gyro instance {inst} (device {dev}) is logged at {rate:.3g} Hz ({ts_us.size} samples), too slow "
+            f"to calibrate from: PX4's thermal-calibration or sensor-comparison profile (SDLOG_PROFILE) logs every "
+            f"gyro at 10 Hz; the full-rate raw gyro is sensor_gyro_fifo (not read here){sc_rate}"
+        )
+    repairs = _Repairs(p.name)
+    if rate < ULOG_NOISE_GYRO_RATE_HZ:
+        repairs.add(f"sensor_gyro[{inst}] is logged at {rate:.3g} Hz: enough for bias against temperature, "
+                    f"not for noise identification or vibration")
+    gyro = np.column_stack([np.asarray(sg.data[a], float) for a in "xyz"])
+    temp = np.asarray(sg.data["temperature"], float) if "temperature" in sg.data else None
+    keep = _check_finite(p.name, {"g": gyro}, repairs)
+    order_ok = np.concatenate([[True], np.diff(ts_us) > 0])
+    if not order_ok.all():
+        repairs.add(f"dropped {int((~order_ok).sum())} rows whose timestamp repeats or goes backwards")
+        keep &= order_ok
+    ts_us, gyro = ts_us[keep], gyro[keep]
+    if temp is not None:
+        temp = temp[keep]
+        if not np.all(np.isfinite(temp)) or np.all(temp == 0):
+            temp = None
+    t_s = (ts_us - ts_us[0]) * 1e-6
+    sel, how = _ulog_selected_gyro_instance(ulog)
+    info = ulog.msg_info_dict
+    meta = _meta(
+        str(p), "ulog", f"PX4 {info.get('ver_hw', 'unknown hardware')} sensor_gyro[{inst}] (device {dev})",
+        (t_s.size - 1) / t_s[-1], repairs,
+        t0_us=str(int(ts_us[0])),
+        calibration="sensor_gyro as the driver published it: board-rotated, before PX4's CAL_GYRO offsets/scale",
+        temperature=f"sensor_gyro[{inst}].temperature" if temp is not None else "none logged",
+        selected_gyro=f"instance {sel} ({how})" + (" = this one" if sel == inst else ": not this one"),
+    )
+    return Recording(t_s=t_s, gyro_rad_s=gyro, temp_c=temp, meta=meta)
 
 
 def _ulog_selected_gyro_instance(ulog) -> tuple[int, str]:

@@ -38,6 +38,9 @@ STREAM_BYTES = 96 * 2**20
 @click.option("--no-flip-x", is_flag=True, default=False, help="sunsided: keep the raw gyro X sign (default: negate it as its README documents).")
 @click.option("--sections", type=click.Path(path_type=str), default=None, help="imucal: section list JSON (default <stem>_list.json).")
 @click.option("--log-index", type=int, default=None, help="blackbox: read only this log of the file (1-based; default: every log, as segments).")
+@click.option("--gyro-instance", type=int, default=None,
+              help="ulog: read sensor_gyro instance N (one of several gyros, before PX4's calibration) instead of "
+                   "sensor_combined (the selected gyro, calibrated).")
 @click.option("--stream", type=click.Choice(["imu", "batch"]), default=None,
               help="dataflash: imu = IMU messages (gyro as flown, logger rate); batch = the IMU batch sampler's raw gyro windows (ISBH/ISBD).")
 @click.option("--segments-out", type=click.Path(path_type=str), default=None, help="Write the known-rotation segments (t_start_s,t_end_s,axis,angle_deg).")
@@ -49,8 +52,8 @@ STREAM_BYTES = 96 * 2**20
               help="Rows per chunk when a large data file is streamed (memory ~ 10 copies of a chunk).")
 @click.option("--force", is_flag=True, default=False, help="Overwrite existing output files.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print a JSON summary on stdout.")
-def command(input_path, output, to, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, log_index, stream, segments_out,
-            append, gap_s, chunk_rows, force, as_json):
+def command(input_path, output, to, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime, no_flip_x, sections, log_index, gyro_instance,
+            stream, segments_out, append, gap_s, chunk_rows, force, as_json):
     """Convert INPUT (Betaflight/INAV/Cleanflight blackbox .BBL/.BFL/.TXT, ArduPilot DataFlash .bin, PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
     IMU-TK .mat, gnss-ins-sim folder, or a data file, CSV or Parquet) to the DESIGN.md data file
     (CSV, or Parquet with --to parquet or an output named .parquet)."""
@@ -64,7 +67,7 @@ def command(input_path, output, to, fmt, lsb_per_dps, lsb_per_g, rate_hz, retime
     out_parquet = to == "parquet" or (to == "auto" and output.lower().endswith(PARQUET_SUFFIXES))
     out_fmt = "auto" if to == "auto" else to
     opts = dict(lsb_per_dps=lsb_per_dps, lsb_per_g=lsb_per_g, rate_hz=rate_hz, retime=retime, sections=sections,
-                log_index=log_index, stream=stream)
+                log_index=log_index, stream=stream, gyro_instance=gyro_instance)
     if no_flip_x:
         opts["flip_gyro_x"] = False
     repairs: list[str] = []
