@@ -1063,7 +1063,8 @@ def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
 
 # ------------------------------------------------------------------ drift contract (issue 12)
 #: One-sided tail probability of each band of the drift contract (6 scenarios × 3 tails + the
-#: pooled band: 19 tails; a fresh, correct calibration fails CI with probability ≤ 19·α).
+#: pooled honesty's 2 tails: 20 tails; a fresh, correct calibration fails CI with probability
+#: ≤ 20·α).
 DRIFT_TAIL_ALPHA = 1e-4
 #: Smallest margin of the quality bound (log): where the Monte Carlo spread of predicted/floor
 #: is ~0 (it does not depend on the noise draw), the bound would otherwise pin the
@@ -1072,6 +1073,10 @@ DRIFT_QUALITY_MIN_MARGIN = math.log(1.05)
 #: Completeness: the budget's uncorrected terms (present effects the calibration did not
 #: estimate, from the true parameters) may add at most 5 % to the predicted RMS error.
 DRIFT_COMPLETENESS_MAX = 1.05
+#: Confidence with which the Gamma shape of r² behind the honesty band is *not* over-estimated
+#: from the Monte Carlo's units (the band uses the lower limit: a wider band; see
+#: :func:`r2_shape`).
+DRIFT_SHAPE_CONFIDENCE = 0.9
 
 
 def _quality(m: Mapping[str, float]) -> float:
@@ -1084,93 +1089,152 @@ def _quality(m: Mapping[str, float]) -> float:
     return math.log(m["pred__rms_deg"] / m["pred-floor__rms_deg"])
 
 
+def _r2(metrics: Sequence[Mapping[str, float]]) -> np.ndarray:
+    """r² = (measured / predicted RMS error of the all row)² of each unit (finite ones)."""
+    r = np.array([m.get("all__over_pred", np.nan) for m in metrics], float)
+    return r[np.isfinite(r)] ** 2
+
+
 def drift_statistics(metrics: Sequence[Mapping[str, float]]) -> dict:
     """The statistics of the drift contract over a set of units (one scenario's metrics).
 
-    * ``honesty``: mean over units of log(measured RMS / predicted RMS) of the all row — near 0
-      when the calibration's standard errors and the noise model describe its real error; up
-      when the estimator is worse than it claims (an effect dropped, a wrong model), down when
-      it claims too much uncertainty (an inflated standard error);
+    * ``honesty_r2``: mean over units of r² = (measured RMS / predicted RMS)² of the all row.
+      The prediction is the *expected* mean-square error, so a calibrated prediction has
+      E[r²] = 1 exactly, whatever the spread (a mean of log r or a median of r is not centred
+      on 0 or 1: r² ~ χ²_ν/ν has E log r = ½(ψ(ν/2) − log(ν/2)) < 0 and median < 1). Up when the
+      estimator is worse than it claims (an effect dropped, a wrong model), down when it
+      claims too much uncertainty (an inflated standard error). ``honesty``: the mean of
+      log r (reported, not tested);
     * ``quality``: mean over units of log(predicted RMS / predicted floor RMS) (with the true
-      noise in simulation, :func:`_quality`) — how far the
-      calibration protocol and estimator leave the attitude above the noise floor; nearly
-      deterministic per scenario (it moves with the standard errors and the still window,
-      not with the noise draw), so its band is tight.
+      noise in simulation, :func:`_quality`) — how far the calibration protocol and estimator
+      leave the attitude above the noise floor; nearly deterministic per scenario (it moves
+      with the standard errors and the still window, not with the noise draw), so its band is
+      tight;
+    * ``completeness``: the largest ratio over units of the predicted RMS with the uncorrected
+      terms to the predicted RMS.
     """
-    h = np.array([math.log(m["all__over_pred"]) for m in metrics if np.isfinite(m.get("all__over_pred", np.nan))])
+    r2 = _r2(metrics)
     q = np.array([_quality(m) for m in metrics if m.get("pred-floor__rms_deg", 0) > 0])
     c = np.array([m["pred__rms_with_uncorrected_deg"] / m["pred__rms_deg"] for m in metrics
                   if m.get("pred__rms_deg", 0) > 0])
-    return {"n": int(h.size), "honesty": float(h.mean()) if h.size else float("nan"),
+    return {"n": int(r2.size),
+            "honesty_r2": float(r2.mean()) if r2.size else float("nan"),
+            "honesty": float(np.mean(0.5 * np.log(r2))) if r2.size else float("nan"),
             "quality": float(q.mean()) if q.size else float("nan"),
             "completeness": float(c.max()) if c.size else float("nan")}
+
+
+def r2_shape(r2: np.ndarray, *, confidence: float = DRIFT_SHAPE_CONFIDENCE, seed: int = 0,
+             replicates: int = 4000) -> tuple[float, float]:
+    """Gamma shape k of one unit's r² (maximum likelihood, location 0) and its lower limit at
+    ``confidence`` (parametric bootstrap: ``replicates`` samples of the same size from
+    Gamma(k̂), refitted; the limit is k̂ divided by the ``confidence`` quantile of k̂*/k̂).
+
+    Why a Gamma: r² is a time-mean of |ε|² over the expected value, a positive quadratic form
+    in Gaussian errors; Box (1954) — a scaled χ²_ν (a Gamma with shape ν/2) with the first two
+    moments — describes it, and the unit-to-unit spread of the prediction's own error widens
+    it (a smaller k). The lower limit makes the band wider when 12–32 units leave k uncertain.
+    """
+    from scipy import stats
+
+    r2 = np.asarray(r2, float)
+    r2 = r2[np.isfinite(r2) & (r2 > 0)]
+    if r2.size < 3:
+        return float("nan"), float("nan")
+    k, _loc, _scale = stats.gamma.fit(r2, floc=0.0)
+    rng = np.random.default_rng(seed)
+    sim = rng.gamma(k, 1.0, size=(replicates, r2.size))
+    # MLE of the shape from the sufficient statistic s = log(mean) − mean(log) (Minka 2002):
+    # solve log k − ψ(k) = s by Newton from the closed-form start
+    s = np.log(sim.mean(axis=1)) - np.log(sim).mean(axis=1)
+    kk = (3.0 - s + np.sqrt((s - 3.0) ** 2 + 24.0 * s)) / (12.0 * s)
+    from scipy import special
+
+    for _ in range(6):
+        kk = kk - (np.log(kk) - special.digamma(kk) - s) / (1.0 / kk - special.polygamma(1, kk))
+    ratio = np.quantile(kk / k, confidence)
+    return float(k), float(k / ratio)
 
 
 def drift_thresholds(campaign, *, alpha: float = DRIFT_TAIL_ALPHA) -> dict:
     """The Monte Carlo statistics behind the drift contract, per scenario.
 
-    Per scenario, over the campaign's M units: x = log(measured/predicted RMS) and
-    y = log(predicted/floor RMS), their means and sds. The mean of x over n fresh units is a
-    prediction from a normal sample: (x̄_n − x̄)/(s_x·√(1/n + 1/M)) follows Student's t with
-    M − 1 dof, so the band x̄ ± t_{1−α, M−1}·s_x·√(1/n + 1/M) is left with probability 2α
-    (honesty, two-sided) and ȳ + t·s_y·√(1/n + 1/M) with probability α (quality, one-sided);
-    :func:`drift_bands` evaluates them for n. ``pooled``: the mean over scenarios of
-    (x̄_n − x̄), sd √(Σ s_x²)/S per unit.
+    ``campaign``: a Monte Carlo campaign (tasks with ``metrics_dict``) or a mapping
+    ``{scenario: [metrics, …]}``. Per scenario, over its M units:
+
+    * honesty: r² = (measured/predicted RMS)²; its mean (must be ≈ 1: the prediction is
+      calibrated) with its standard error, and the Gamma shape of one unit's r² with its lower
+      limit (:func:`r2_shape`) — the band of the mean over n fresh units is the Gamma(n·k)
+      interval around 1 (:func:`drift_bands`);
+    * quality: y = log(predicted/floor RMS), mean and sd; the mean over n fresh units is a
+      prediction from a normal sample, (ȳ_n − ȳ)/(s_y·√(1/n + 1/M)) ~ Student t with M − 1 dof,
+      bound ȳ + t_{1−α}·s_y·√(1/n + 1/M) (at least :data:`DRIFT_QUALITY_MIN_MARGIN`).
     """
+    if isinstance(campaign, Mapping):
+        by = {sc: list(ms) for sc, ms in campaign.items()}
+    else:
+        by = {sc: [t.metrics_dict for t in campaign.tasks if t.scenario == sc] for sc in campaign.scenarios}
     out: dict = {"alpha": float(alpha), "scenarios": {}}
-    for sc in campaign.scenarios:
-        ms = [t.metrics_dict for t in campaign.tasks if t.scenario == sc]
-        x = np.array([math.log(m["all__over_pred"]) for m in ms])
+    for i, (sc, ms) in enumerate(by.items()):
+        r2 = _r2(ms)
         y = np.array([_quality(m) for m in ms])
+        k_mle, k_lo = r2_shape(r2, seed=i)
         out["scenarios"][sc] = {
-            "mc_units": int(x.size), "honesty_mean": float(x.mean()), "honesty_sd": float(x.std(ddof=1)),
+            "mc_units": int(r2.size),
+            "r2_mean": float(r2.mean()), "r2_mean_se": float(r2.std(ddof=1) / math.sqrt(r2.size)),
+            "r2_shape_mle": k_mle, "r2_shape": k_lo,
             "quality_mean": float(y.mean()), "quality_sd": float(y.std(ddof=1)),
-            "median_measured_over_predicted": float(np.exp(np.median(x))),
-            "mean_measured2_over_predicted2": float(np.mean(np.exp(2 * x))),
-            "mean_measured2_over_predicted2_se": float(np.std(np.exp(2 * x), ddof=1) / math.sqrt(x.size)),
+            "median_measured_over_predicted": float(np.sqrt(np.median(r2))),
         }
     return out
 
 
 def drift_bands(thresholds: Mapping, scenario: str, n: int) -> dict:
-    """Honesty band (lo, hi) and quality bound (hi) in log units for the mean over ``n`` units."""
+    """Bands of the mean over ``n`` units: honesty (lo, hi) on the mean r², the Gamma(n·k, 1/(n·k))
+    quantiles α and 1 − α (mean 1: a calibrated prediction); quality bound (hi) in log units."""
     from scipy import stats
 
     th = thresholds["scenarios"][scenario]
+    a = thresholds["alpha"]
     M = th["mc_units"]
-    t = float(stats.t.ppf(1.0 - thresholds["alpha"], M - 1))
-    k = math.sqrt(1.0 / n + 1.0 / M)
-    return {"honesty_lo": th["honesty_mean"] - t * th["honesty_sd"] * k,
-            "honesty_hi": th["honesty_mean"] + t * th["honesty_sd"] * k,
-            "quality_hi": th["quality_mean"] + max(t * th["quality_sd"] * k, DRIFT_QUALITY_MIN_MARGIN)}
+    t = float(stats.t.ppf(1.0 - a, M - 1))
+    nk = n * th["r2_shape"]
+    return {"honesty_r2_lo": float(stats.gamma.ppf(a, nk, scale=1.0 / nk)),
+            "honesty_r2_hi": float(stats.gamma.isf(a, nk, scale=1.0 / nk)),
+            "quality_hi": th["quality_mean"] + max(t * th["quality_sd"] * math.sqrt(1.0 / n + 1.0 / M),
+                                                   DRIFT_QUALITY_MIN_MARGIN)}
+
+
+def pooled_band(thresholds: Mapping, n_by_scenario: Mapping[str, int]) -> tuple[float, float]:
+    """(lo, hi) of the mean over scenarios of their mean r² (each Gamma(n_s·k_s), mean 1): the
+    Gamma with the same mean (1) and variance Σ 1/(n_s·k_s) / S² (Satterthwaite), quantiles α and 1 − α."""
+    from scipy import stats
+
+    S = len(n_by_scenario)
+    var = sum(1.0 / (n * thresholds["scenarios"][sc]["r2_shape"]) for sc, n in n_by_scenario.items()) / S ** 2
+    a = thresholds["alpha"]
+    return float(stats.gamma.ppf(a, 1.0 / var, scale=var)), float(stats.gamma.isf(a, 1.0 / var, scale=var))
 
 
 def drift_contract_failures(stats_by_scenario: Mapping[str, Mapping], thresholds: Mapping) -> list[str]:
     """Messages of every failed band (empty: the contract holds). ``stats_by_scenario`` from
     :func:`drift_statistics`; the bands are evaluated for each scenario's number of units."""
-    from scipy import stats
-
     fails = []
-    dev, var, nmin = [], [], []
     for sc, st in stats_by_scenario.items():
-        th = thresholds["scenarios"][sc]
         b = drift_bands(thresholds, sc, st["n"])
-        h, q = st["honesty"], st["quality"]
-        if not b["honesty_lo"] <= h <= b["honesty_hi"]:
-            fails.append(f"{sc}: measured/predicted RMS {math.exp(h):.3g} outside [{math.exp(b['honesty_lo']):.3g}, "
-                         f"{math.exp(b['honesty_hi']):.3g}] (geometric mean over {st['n']} units)")
+        h, q = st["honesty_r2"], st["quality"]
+        if not b["honesty_r2_lo"] <= h <= b["honesty_r2_hi"]:
+            fails.append(f"{sc}: mean (measured/predicted RMS)² {h:.3g} outside [{b['honesty_r2_lo']:.3g}, "
+                         f"{b['honesty_r2_hi']:.3g}] (mean over {st['n']} units; 1 if the prediction is calibrated)")
         if not q <= b["quality_hi"]:
             fails.append(f"{sc}: predicted/floor RMS {math.exp(q):.3g} > {math.exp(b['quality_hi']):.3g} "
                          "(calibration protocol or standard errors worse)")
         if st.get("completeness", 1.0) > DRIFT_COMPLETENESS_MAX:
             fails.append(f"{sc}: uncorrected effects add ×{st['completeness']:.3g} to the predicted error "
                          f"(> {DRIFT_COMPLETENESS_MAX:g}: a present effect was not calibrated)")
-        dev.append(h - th["honesty_mean"])
-        var.append(th["honesty_sd"] ** 2 * (1.0 / st["n"] + 1.0 / th["mc_units"]))
-        nmin.append(th["mc_units"])
-    if len(dev) == len(thresholds["scenarios"]) and len(dev) > 1:
-        d = float(np.mean(dev))
-        band = float(stats.t.ppf(1.0 - thresholds["alpha"], min(nmin) - 1)) * math.sqrt(sum(var)) / len(dev)
-        if abs(d) > band:
-            fails.append(f"all scenarios: measured/predicted shifted by ×{math.exp(d):.3g} (band ×{math.exp(band):.3g})")
+    if len(stats_by_scenario) == len(thresholds["scenarios"]) and len(stats_by_scenario) > 1:
+        d = float(np.mean([st["honesty_r2"] for st in stats_by_scenario.values()]))
+        lo, hi = pooled_band(thresholds, {sc: st["n"] for sc, st in stats_by_scenario.items()})
+        if not lo <= d <= hi:
+            fails.append(f"all scenarios: mean (measured/predicted RMS)² {d:.3g} outside [{lo:.3g}, {hi:.3g}]")
     return fails
