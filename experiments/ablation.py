@@ -849,9 +849,19 @@ def prediction_summary(campaign) -> dict:
             "measured_over_predicted_median": float(np.median(r)) if r.size else float("nan"),
             "measured2_over_predicted2_mean": float(np.mean(r ** 2)) if r.size else float("nan"),
             "measured2_over_predicted2_se": float(np.std(r ** 2, ddof=1) / np.sqrt(r.size)) if r.size > 1 else float("nan"),
+            # simulation only: E[r² | unit] = (prediction with the unit's true noise / with the
+            # identified noise)², the expectation of r² given the calibration, free of the χ²
+            # scatter of one run's error (docs/accuracy.md, "Is the prediction calibrated?")
+            "expected_r2_given_unit_mean": _expected_r2(ms),
             "budget": {_label(k[len("budget__"):-len("__deg")]): med(k) for k in comps},
         }
     return out
+
+
+def _expected_r2(ms: Sequence[Mapping[str, float]]) -> float:
+    x = np.array([(m["pred-true-noise__rms_deg"] / m["pred__rms_deg"]) ** 2 for m in ms
+                  if m.get("pred__rms_deg", 0) > 0 and m.get("pred-true-noise__rms_deg", 0) > 0], float)
+    return float(x.mean()) if x.size else float("nan")
 
 
 def budget_markdown(pred: Mapping[str, Mapping]) -> str:

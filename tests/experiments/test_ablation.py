@@ -107,6 +107,15 @@ def test_prediction_summary_budget_table_and_rows(tmp_path):
     assert ps["rms_all_deg"] == 0.10 and ps["rms_predicted_deg"] == 0.1 and ps["rms_floor_deg"] == 0.05
     assert ps["measured2_over_predicted2_mean"] == np.mean([1.0, 4.0, 0.25])
     assert ps["budget"] == {"floor:arw": 0.03, "powerup window": 0.04}
+    assert np.isnan(ps["expected_r2_given_unit_mean"])  # no true-noise prediction in these metrics
+    import dataclasses
+
+    # E[r² | unit] = (true-noise / identified prediction)²
+    camp.tasks = [dataclasses.replace(t, metrics=t.metrics + (("pred-true-noise__rms_deg", tn),))
+                  for t, tn in zip(tasks, (0.1, 0.12, 0.09))]
+    assert A.prediction_summary(camp)["static"]["expected_r2_given_unit_mean"] == pytest.approx(
+        np.mean([1.0, 1.44, 0.81]))
+    camp.tasks = tasks
     assert A._rows_in(camp, "static", "s") == ["all", "floor"]
     assert "powerup window" in A.budget_markdown({"static": ps})
     assert A.budget_figure({"static": ps}, tmp_path).endswith(".png")
