@@ -71,6 +71,7 @@ from .recording import Recording
 from . import search as S
 from .residual import Residual, Segment, build_residual
 from .search import Unexplained, column_axis
+from .stream import Rows, SpilledRecording, held_correction, rows_of
 
 __all__ = [
     "CANDIDATES",
@@ -416,10 +417,8 @@ class _Model:
 
     def correction(self, fit, effects: Sequence[str]) -> np.ndarray:
         """Per-sample correction Σ A_e·θ_e, rad/s, (N, 3)."""
-        c = np.zeros((self.res.inputs.n, 3))
-        if fit is None:
-            return c
-        for e in effects:
+        terms = []
+        for e in effects if fit is not None else ():
             base, axis = split_axis(e)
             th = fit.effect_theta(e)
             if axis is not None:  # one axis of a family term: the other columns are 0
@@ -427,7 +426,13 @@ class _Model:
                 full = np.zeros(len(names))
                 full[[p for p, n in enumerate(names) if column_axis(n) == axis]] = th
                 th = full
-            c += self.res.sample_correction(base, th, order=self.orders.get(base, 1))
+            terms.append((base, th, self.orders.get(base, 1)))
+        if self.res.lazy:
+            # a recording on disk: the correction is computed a window at a time where it is used
+            return self.res.correction_rows(terms)
+        c = np.zeros((self.res.inputs.n, 3))
+        for base, th, order in terms:
+            c += self.res.sample_correction(base, th, order=order)
         return c
 
 
@@ -482,6 +487,8 @@ def attitude_error_deg(res: Residual, rec: Recording, correction_rad_s: np.ndarr
     where valid. ``still``: the integrated angle from each still window's start. ``angles``:
     RMS over the known-rotation segments of |∫ω dt − φ|.
     """
+    if isinstance(rec, SpilledRecording):
+        return _attitude_error_spilled(res, rec, correction_rad_s)
     t = rec.t_s
     w = rec.gyro_rad_s - correction_rad_s
     if res.kind == "angles":
@@ -514,6 +521,33 @@ def attitude_error_deg(res: Residual, rec: Recording, correction_rad_s: np.ndarr
     q = integrate_gyro(t[i0:], w[i0:], q0_wxyz=q_ref[i0], hold="backward")
     e = error_angle_rad(q[ok[i0:]], q_ref[i0:][ok[i0:]])
     return float(np.degrees(_rms(e)))
+
+
+def _attitude_error_spilled(res: Residual, rec: SpilledRecording, correction) -> float:
+    """:func:`attitude_error_deg` (``rate`` reference) of a recording on disk: the corrected
+    gyro integrated a window at a time, the attitude carried across windows (each window
+    starts from the previous one's last attitude and sample: the backward-hold step across the
+    cut is taken once), the squared error angles summed."""
+    if res.kind != "rate":  # pragma: no cover - _build_spilled makes only rate residuals
+        raise GyroInputError("a recording on disk has only the rate reference")
+    q_ref = rec.reference_quaternions()
+    if q_ref is None:
+        return float("nan")
+    t = rec.t_s
+    q_carry = w_last = None
+    s2, cnt = 0.0, 0
+    for lo, hi in rec.chunks():
+        w = rec.gyro_rad_s.rows(lo, hi) - rows_of(correction, lo, hi)
+        qr = q_ref.rows(lo, hi)
+        if q_carry is None:
+            q = integrate_gyro(t[lo:hi], w, q0_wxyz=qr[0], hold="backward")
+        else:
+            q = integrate_gyro(t[lo - 1:hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward")[1:]
+        e = error_angle_rad(q, qr)
+        s2 += float(np.sum(e * e))
+        cnt += e.size
+        q_carry, w_last = q[-1], w[-1:]
+    return float(np.degrees(np.sqrt(s2 / cnt)))
 
 
 def _still_runs_error(res: Residual, q: np.ndarray) -> float:
@@ -845,6 +879,8 @@ def _advance(rec: Recording, tau_s: float) -> Recording:
 
     from scipy.interpolate import CubicSpline
 
+    if isinstance(rec, SpilledRecording):  # advanced a window at a time where it is read
+        return rec.with_ops(tau_s=tau_s)
     t = rec.t_s
     tq = np.clip(t + tau_s, t[0], t[-1])
     g = CubicSpline(t, rec.gyro_rad_s, axis=0)(tq)
@@ -1000,15 +1036,19 @@ def loop_residual(
 
     rec0 = rec
     tau_acc = 0.0
-    held: dict[str, np.ndarray] = {}        # sample-level line terms removed from the gyro (raw frame)
+    # sample-level line terms removed from the gyro (raw time frame): name -> [(axis, f_hz,
+    # a_cos, a_sin), ...]; the correction is stream.held_correction (on the fly for a spill)
+    held: dict[str, list] = {}
     held_params: dict[str, dict] = {}
 
     def base_rec():
         if not held:
             return rec0
+        if isinstance(rec0, SpilledRecording):
+            return rec0.with_ops(held=held, tau_s=0.0)
         from dataclasses import replace
 
-        return replace(rec0, gyro_rad_s=rec0.gyro_rad_s - sum(held.values()))
+        return replace(rec0, gyro_rad_s=rec0.gyro_rad_s - held_correction(rec0.t_s, held))
 
     def refit(res, model, rec, tau_acc, force_rebuild=False):
         """Joint fit; with time_offset in the model, re-linearise around its estimate."""
@@ -1199,7 +1239,7 @@ def loop_residual(
         if held_corr is not None:
             # a sample-level line: removed from the gyro (raw time frame), residual rebuilt
             x_before = evd.pop("_sample_rms_before")
-            held[name] = held.get(name, 0.0) + held_corr
+            held.setdefault(name, []).append(held_corr)
             hp = held_params.setdefault(name, {})
             for k_, v_ in evd.pop("_params").items():
                 hp[k_] = v_
@@ -1235,7 +1275,7 @@ def loop_residual(
         params["time_offset"]["tau_s"] = [tau_acc + v, se]
         notes.append(f"time_offset re-linearised (Gauss-Newton): the gyro was advanced by {tau_acc:.6g} s and "
                      "the fit repeated; tau_s is the total")
-    t0_c = float(np.mean(np.asarray(res.inputs.temp_c, float))) if res.inputs.temp_c is not None else None
+    t0_c = res.temp_mean_c()
     return LoopResult(
         declared=tuple(declared),
         found=tuple(steps),
@@ -1270,6 +1310,22 @@ def _line_series(res: Residual, rec: Recording, correction: np.ndarray):
     never differentiated), longest evenly spaced run.
     """
     t = rec.t_s
+    if isinstance(rec, SpilledRecording):
+        # from disk (rate reference, finite everywhere: stream._build_spilled): the residual
+        # and the motion columns a window at a time
+        if res.kind != "rate":  # pragma: no cover
+            return None
+        ref, acc = rec.ref_rate_rad_s, rec.accel_m_s2
+
+        def x_rows(a, b):
+            return rec.gyro_rad_s.rows(a, b) - ref.rows(a, b) - rows_of(correction, a, b)
+
+        def m_rows(a, b):
+            return ref.rows(a, b) if acc is None else np.concatenate([ref.rows(a, b), np.nan_to_num(acc.rows(a, b))],
+                                                                     axis=1)
+
+        return (Rows(x_rows, rec.n, 3), t, rec.rate_hz, Rows(m_rows, rec.n, 3 if acc is None else 6), "sample",
+                slice(0, rec.n))
     if res.kind == "rate":
         ref = rec.ref_rate_rad_s
         ok = np.all(np.isfinite(ref), axis=1)
@@ -1331,14 +1387,15 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
     """One step of the open search: the strongest significant description among the regressor
     library, lines and a bias step, or None. See :mod:`gyrocore.search`.
 
-    Returns (kind, axis, effect name, fields, evidence, held correction (N, 3) or None).
+    Returns (kind, axis, effect name, fields, evidence, held line (axis, f_hz, a_cos, a_sin) or None).
     """
     options = []  # (log10 p − log10 threshold, payload)
     sig = fit.axis_sigma_rad_s if fit is not None else np.maximum(np.std(e, axis=0), 1e-12)
     X0 = model.design(model_effects)[0]
     n_par = fit.rank if fit is not None else 0
     # ---------------- regressor library
-    terms = S.library_terms(res.inputs, kind=res.kind)
+    terms = S.library_terms(res.inputs, kind=res.kind,
+                            chunks=(res.iter_inputs(context=1) if res.chunked() else None))
     exclude = set()
     for term in terms:
         for i in range(3):
@@ -1385,7 +1442,8 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
     if ser is not None and ser[0].shape[0] >= 256:
         x, tt, fs, mot, level, sl = ser
         # (axis, frequency) already removed
-        done = [(i, float(n[len("periodic["):-1])) for n, c in held.items() for i in range(3) if np.any(c[:, i] != 0)]
+        done = [(i, float(n[len("periodic["):-1])) for n, ls in held.items() for i in range(3)
+                if any(ax == i and (a_ != 0 or b_ != 0) for ax, _, a_, b_ in ls)]
         lines = S.screen_lines(x, fs, ref=mot, skip=done)
         open_last["periodic"] = [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
                                   "log10_p": l.log10_p, "threshold": thr_line, "n_freq": l.n_freq,
@@ -1395,24 +1453,23 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
             if l.log10_p >= np.log10(thr_line):
                 continue
             i = l.axis
+            # one axis of the sample-level residual at a time (a recording on disk: read and
+            # corrected a window at a time into one (n,) array)
+            xi = x.axis(i) if isinstance(x, Rows) else x[:, i]
             # ± one bin of the segment grid (fs/L)
-            f = S.round_frequency(S.refine_frequency(x[:, i], tt, l.frequency_hz, fs / S.segment_length(x.shape[0])))
-            cv = S.sinusoid_cv_reduction(x[:, i], tt, f)
+            f = S.round_frequency(S.refine_frequency(xi, tt, l.frequency_hz, fs / S.segment_length(x.shape[0])))
+            cv = S.sinusoid_cv_reduction(xi, tt, f)
             if not cv > 0:
                 continue
             name = S.canonical(f"periodic[{S._fmt_num(f)}]")
-            coef, se = S.fit_sinusoid(x[:, i], tt, f)
+            coef, se = S.fit_sinusoid(xi, tt, f)
             a, b = float(coef[0, 0]), float(coef[1, 0])
-            before = float(np.sqrt(np.mean((x[:, i] - x[:, i].mean()) ** 2)))
-            ph = 2 * np.pi * f * tt
-            xa = x[:, i] - a * np.cos(ph) - b * np.sin(ph)
-            after = float(np.sqrt(np.mean((xa - xa.mean()) ** 2)))
+            before, after = S.sinusoid_rms(xi, tt, f, a, b)
+            del xi
             # raw time frame: the residual is of the gyro advanced by tau (time_offset)
             phi = 2 * np.pi * f * tau_acc
             a_raw, b_raw = a * np.cos(phi) - b * np.sin(phi), a * np.sin(phi) + b * np.cos(phi)
-            tr = rec.t_s
-            corr_full = np.zeros((tr.size, 3))
-            corr_full[:, i] = a_raw * np.cos(2 * np.pi * f * tr) + b_raw * np.sin(2 * np.pi * f * tr)
+            corr_full = (i, f, a_raw, b_raw)  # stream.held_correction
             evd = {"statistic": l.statistic, "df1": l.df1, "df2": l.df2, "log10_p": l.log10_p,
                    "p_value": 10 ** l.log10_p, "threshold": thr_line, "n_frequencies_tested": l.n_freq,
                    "bandwidth_hz": l.bandwidth_hz, "grid_frequency_hz": l.frequency_hz,
@@ -1568,12 +1625,16 @@ _NATURAL = {
         np.repeat(np.asarray(r.inputs.temp_c, float)[:, None], 3, axis=1))[:, :1], 3, axis=1)),
     "bias_temp_rate": ("dT/dt, °C/s", lambda r: np.repeat(r.window_mean(
         np.repeat(r.inputs.temp_rate_c_s()[:, None], 3, axis=1))[:, :1], 3, axis=1)),
-    "scale": ("reference rate, rad/s", lambda r: r.window_mean(np.asarray(r.inputs.omega_S_rad_s, float))),
-    "scale_asymmetry": ("reference rate, rad/s", lambda r: r.window_mean(np.asarray(r.inputs.omega_S_rad_s, float))),
-    "scale_nonlinearity": ("reference rate, rad/s", lambda r: r.window_mean(np.asarray(r.inputs.omega_S_rad_s, float))),
+    "scale": ("reference rate, rad/s", lambda r: r.window_mean(_as_rows(r.inputs.omega_S_rad_s))),
+    "scale_asymmetry": ("reference rate, rad/s", lambda r: r.window_mean(_as_rows(r.inputs.omega_S_rad_s))),
+    "scale_nonlinearity": ("reference rate, rad/s", lambda r: r.window_mean(_as_rows(r.inputs.omega_S_rad_s))),
     "time_offset": ("rate derivative dω/dt, rad/s²", lambda r: r.window_mean(
         np.gradient(np.asarray(r.inputs.omega_S_rad_s, float), np.asarray(r.inputs.t_s, float), axis=0))),
 }
+
+
+def _as_rows(v):
+    return v if isinstance(v, Rows) else np.asarray(v, float)
 
 
 def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000, prefix: str = "loop") -> list:

@@ -64,6 +64,7 @@ from . import effects as E
 from .attitude import integrate_gyro
 from .errors import GyroInputError
 from .recording import Recording
+from .stream import Rows, rows_of
 
 __all__ = [
     "REFERENCE_KINDS",
@@ -274,6 +275,7 @@ class Residual:
     axis_sigma_rad: float = float("nan")
     angle_S_rad: np.ndarray | None = None
     angle_mode: str = "rotation"
+    chunk_rows: int = 0
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -287,6 +289,72 @@ class Residual:
         t = np.asarray(self.inputs.t_s, float)
         return t[self.win_stop] - t[self.win_start]
 
+    # ---------------------------------------------------------------- per-sample data a window at a time
+    @property
+    def chunk(self) -> int:
+        """Rows per window of the chunked (bounded-memory) paths."""
+        return int(self.chunk_rows or CHUNK_SAMPLES)
+
+    @property
+    def lazy(self) -> bool:
+        """True when the per-sample data are read from disk a window at a time
+        (:class:`gyrocore.stream.SpilledRecording`): every per-sample pass is then chunked."""
+        return isinstance(self.gyro_rad_s, Rows)
+
+    def chunked(self) -> bool:
+        """Whether per-sample passes go window by window (long or lazy records)."""
+        return self.lazy or self.inputs.n > self.chunk
+
+    def input_rows(self, lo: int, hi: int) -> E.ModelInputs:
+        """Model inputs of samples lo:hi (time since power-up counted from the record's start)."""
+        inp = self.inputs
+        t = np.asarray(inp.t_s)
+        sp = (rows_of(inp.t_since_power_up_s, lo, hi) if inp.t_since_power_up_s is not None
+              else t[lo:hi] - t[0])
+        return E.ModelInputs(t_s=t[lo:hi], omega_S_rad_s=rows_of(inp.omega_S_rad_s, lo, hi),
+                             f_S_m_s2=rows_of(inp.f_S_m_s2, lo, hi), temp_c=rows_of(inp.temp_c, lo, hi),
+                             q_SW_wxyz=rows_of(inp.q_SW_wxyz, lo, hi), t_since_power_up_s=sp)
+
+    def temp_mean_c(self) -> float | None:
+        """Mean temperature of the record, °C (the T0 of the thermal regressors), or None."""
+        if self.inputs.temp_c is None:
+            return None
+        if "temp_mean" not in self._cache:
+            self._cache["temp_mean"] = float(np.mean(np.asarray(self.inputs.temp_c, float)))
+        return self._cache["temp_mean"]
+
+    def design_rows(self, effect: str, a: int, b: int, *, order: int = 1) -> tuple[list[str], np.ndarray]:
+        """Per-sample regressors of samples a:b, (names, A (b − a, 3, P)), NaN-free — equal to
+        rows a:b of the whole record's: built on a:b plus one neighbour on each side (central
+        differences: ``time_offset``, ``bias_temp_rate``, ``alpha_*``), thermal polynomials
+        about the whole record's mean temperature."""
+        n = self.inputs.n
+        lo, hi = (a, b) if is_pointwise(effect) else (max(a - 1, 0), min(b + 1, n))
+        inp = self.input_rows(lo, hi)
+        if effect == "earth_rate":
+            if self.R_WS is None:
+                raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
+            names, A = earth_rate_design(rows_of(self.R_WS, lo, hi))
+        elif "[" in effect:
+            names, A = family_design(effect, inp)
+        elif effect in ("bias_thermal", "scale_thermal"):
+            names, A = E.design(effect, inp, order=order, t0_c=self.temp_mean_c())
+        else:
+            names, A = E.design(effect, inp, order=order)
+        A = A[a - lo: a - lo + (b - a)]
+        if not np.all(np.isfinite(A)):
+            A = np.nan_to_num(A, nan=0.0, posinf=0.0, neginf=0.0)
+        return names, A
+
+    def iter_inputs(self, *, context: int = 1):
+        """Windows of the record: (a, b, lo, inputs of lo:hi) with lo:hi = a:b plus ``context``
+        samples on each side (trim with ``[a − lo : b − lo]``)."""
+        n = self.inputs.n
+        for a in range(0, n, self.chunk):
+            b = min(a + self.chunk, n)
+            lo, hi = max(a - context, 0), min(b + context, n)
+            yield a, b, lo, self.input_rows(lo, hi)
+
     # ---------------------------------------------------------------- regressors
     def sample_design(self, effect: str, *, order: int = 1, rows: slice | None = None) -> tuple[list[str], np.ndarray]:
         """Per-sample regressors of one effect, (names, A (N, 3, P)); NaN-free; not cached.
@@ -294,21 +362,18 @@ class Residual:
         ``rows`` (point-wise effects only, see :meth:`regressors`) restricts them to a slice of
         the samples.
         """
-        inp = self.inputs
         if rows is not None:
             if not is_pointwise(effect):
                 raise ValueError(f"{effect} is not point-wise; its regressors need all samples")
-
-            def cut(v):
-                return None if v is None else np.asarray(v)[rows]
-
-            inp = E.ModelInputs(t_s=np.asarray(inp.t_s)[rows], omega_S_rad_s=cut(inp.omega_S_rad_s),
-                                f_S_m_s2=cut(inp.f_S_m_s2), temp_c=cut(inp.temp_c), q_SW_wxyz=cut(inp.q_SW_wxyz),
-                                t_since_power_up_s=inp.since_power_up()[rows])
+            lo, hi, _ = rows.indices(self.inputs.n)
+            return self.design_rows(effect, lo, hi, order=order)
+        inp = self.inputs
+        if self.lazy:
+            return self.design_rows(effect, 0, inp.n, order=order)
         if effect == "earth_rate":
             if self.R_WS is None:
                 raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
-            names, A = earth_rate_design(self.R_WS if rows is None else self.R_WS[rows])
+            names, A = earth_rate_design(self.R_WS)
         elif "[" in effect:
             names, A = family_design(effect, inp)
         else:
@@ -321,13 +386,26 @@ class Residual:
         """Σ_p A[:, :, p]·θ_p for one effect, rad/s, (N, 3) — in chunks for long recordings."""
         n = self.inputs.n
         th = np.asarray(theta, float)
-        if n <= CHUNK_SAMPLES or not is_pointwise(effect):
+        if not self.chunked():
             return np.einsum("nip,p->ni", self.sample_design(effect, order=order)[1], th)
         out = np.empty((n, 3))
-        for s0 in range(0, n, CHUNK_SAMPLES):
-            sl = slice(s0, min(s0 + CHUNK_SAMPLES, n))
-            out[sl] = np.einsum("nip,p->ni", self.sample_design(effect, order=order, rows=sl)[1], th)
+        for s0 in range(0, n, self.chunk):
+            s1 = min(s0 + self.chunk, n)
+            out[s0:s1] = np.einsum("nip,p->ni", self.design_rows(effect, s0, s1, order=order)[1], th)
         return out
+
+    def correction_rows(self, terms) -> Rows:
+        """Σ_e A_e·θ_e as a lazy (N, 3) :class:`~gyrocore.stream.Rows`, ``terms`` a list of
+        (effect, θ, order): rows computed a window at a time (rows a:b equal the whole record's)."""
+        terms = [(e, np.asarray(th, float), int(o)) for e, th, o in terms]
+
+        def fn(a, b):
+            c = np.zeros((b - a, 3))
+            for e, th, o in terms:
+                c += np.einsum("nip,p->ni", self.design_rows(e, a, b, order=o)[1], th)
+            return c
+
+        return Rows(fn, self.inputs.n, 3)
 
     def window_mean(self, Z: np.ndarray) -> np.ndarray:
         """Apply the window operator to per-sample values.
@@ -342,6 +420,15 @@ class Residual:
         ndarray, shape (M, 3) or (M, 3, P)
             (1/T_m) Σ_{k=a}^{b−1} R_{b←k+1}·Z_{k+1}·Δt_k (backward hold).
         """
+        if isinstance(Z, Rows):
+            squeeze = Z.ndim == 2
+
+            def fn(a, b):
+                z = np.asarray(Z.rows(a, b), float)
+                return z[:, :, None] if squeeze else z
+
+            D = self._window_sums(fn)
+            return D[:, :, 0] if squeeze else D
         Z = np.asarray(Z, float)
         squeeze = Z.ndim == 2
         if squeeze:
@@ -364,36 +451,38 @@ class Residual:
     def regressors(self, effect: str, *, order: int = 1) -> tuple[list[str], np.ndarray]:
         """Window regressors of one effect: (names, X (M, 3, P)).
 
-        Long recordings (more than :data:`CHUNK_SAMPLES` samples) of a point-wise effect (whose
-        regressor at a sample depends only on that sample's inputs) are processed in chunks,
+        Long recordings (more than :data:`CHUNK_SAMPLES` samples, or read from disk) are
+        processed in chunks (:meth:`design_rows`: one neighbour sample on each side for the
+        central differences, thermal polynomials about the whole record's mean temperature),
         so that the per-sample regressors (N, 3, P) — 1.3 GB for ``g2_sensitivity`` over an
-        hour at 1 kHz — are never held at once; the result is the same.
+        hour at 1 kHz — are never held at once; the result is the same to rounding.
         """
         key = ("w", effect, order)
         if key not in self._cache:
-            if self.inputs.n > CHUNK_SAMPLES and is_pointwise(effect):
+            if self.chunked():
                 self._cache[key] = self._chunked_regressors(effect, order)
             else:
                 names, A = self.sample_design(effect, order=order)
                 self._cache[key] = (names, self.window_mean(A))
         return self._cache[key]
 
-    def _chunked_regressors(self, effect: str, order: int) -> tuple[list[str], np.ndarray]:
+    def _window_sums(self, rows_fn) -> np.ndarray:
+        """The window operator applied window by window: ``rows_fn(a, b)`` gives the per-sample
+        values of samples a:b, (b − a, 3, P); returns (M, 3, P). Running sums are carried
+        across windows (C_j = Σ_{k<j} R[k+1]·A[k+1]·Δt_k), so the result equals the whole-array
+        :meth:`window_mean` (bit for bit with one window)."""
         n = self.inputs.n
-        dt = np.diff(np.asarray(self.inputs.t_s, float))
+        t = np.asarray(self.inputs.t_s, float)
         need = np.union1d(self.win_start, self.win_stop)
         C_need: dict[int, np.ndarray] = {}
         carry = None
-        names = None
-        # C_j = Σ_{k<j} R[k+1]·A[k+1]·Δt_k; chunk of k in [k0, k1) uses samples k0+1 .. k1
-        for k0 in range(0, n - 1, CHUNK_SAMPLES):
-            k1 = min(k0 + CHUNK_SAMPLES, n - 1)
-            sl = slice(k0 + 1, k1 + 1)
-
-            names, A = self.sample_design(effect, order=order, rows=sl)
+        # chunk of k in [k0, k1) uses samples k0+1 .. k1
+        for k0 in range(0, n - 1, self.chunk):
+            k1 = min(k0 + self.chunk, n - 1)
+            A = rows_fn(k0 + 1, k1 + 1)
             if self.R_GS is not None:
-                A = np.einsum("nij,njp->nip", self.R_GS[sl], A)
-            A *= dt[k0:k1, None, None]
+                A = np.einsum("nij,njp->nip", rows_of(self.R_GS, k0 + 1, k1 + 1), A)
+            A = A * np.diff(t[k0:k1 + 1])[:, None, None]
             np.cumsum(A, axis=0, out=A)
             if carry is None:
                 carry = np.zeros(A.shape[1:])
@@ -405,8 +494,19 @@ class Residual:
         b = np.stack([C_need[int(j)] for j in self.win_stop])
         D = b - a
         if self.R_GS is not None:
-            D = np.einsum("mji,mjp->mip", self.R_GS[self.win_stop], D)
-        return names, D / self.duration_s[:, None, None]
+            D = np.einsum("mji,mjp->mip", np.asarray(self.R_GS)[self.win_stop], D)
+        return D / self.duration_s[:, None, None]
+
+    def _chunked_regressors(self, effect: str, order: int) -> tuple[list[str], np.ndarray]:
+        names: list = []
+
+        def fn(a, b):
+            nm, A = self.design_rows(effect, a, b, order=order)
+            names[:] = nm
+            return A
+
+        D = self._window_sums(fn)
+        return list(names), D
 
 
 # ---------------------------------------------------------------------------- builders
@@ -554,6 +654,10 @@ def build_residual(
     Residual
     """
     segs = [as_segment(x) for x in (segments or [])]
+    from .stream import SpilledRecording
+
+    if isinstance(rec, SpilledRecording):
+        return _build_spilled(rec, reference=reference, segments=segs, window_s=window_s)
     kind = choose_reference(rec, segs) if reference == "auto" else reference
     if kind not in REFERENCE_KINDS:
         raise GyroInputError(f"unknown reference '{reference}' ({', '.join(REFERENCE_KINDS)}, auto)")
@@ -739,3 +843,47 @@ def build_residual(
     y = res.window_mean(np.where(np.isfinite(r), r, 0.0))
     return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
                     R_GS=None, R_WS=R_WS, gyro_rad_s=gyro, description=desc, notes=tuple(notes))
+
+
+def _build_spilled(rec, *, reference: str, segments, window_s: float | None) -> Residual:
+    """:func:`build_residual` of a recording held on disk (:class:`gyrocore.stream.SpilledRecording`):
+    the ``rate`` reference, window means read a window at a time; the same windows, values
+    and notes as the in-memory path (equal to rounding: sums carried across windows).
+
+    Raises :class:`gyrocore.stream.NotStreamable` for what only the in-memory path does (other
+    references, segments, a reference rate with NaN rows): the caller reads the file whole.
+    """
+    from .stream import LazyRotations, NotStreamable
+
+    if segments or reference not in ("auto", "rate"):
+        raise NotStreamable("only the rate reference without segments is built from disk")
+    if rec.ref_rate_rad_s is None:
+        if reference == "rate":
+            raise GyroInputError("reference 'rate' needs the ref_x/y/z_rad_s columns")
+        raise NotStreamable("no reference rate")
+    n = rec.n
+    if n < 3:
+        raise GyroInputError("too few samples for a residual")
+    if not rec.all_finite("ref_rate"):
+        raise NotStreamable("NaN rows in the reference rate")
+    t = rec.t_s
+    fs = rec.rate_hz
+    block = max(1, int(round(window_s * fs))) if window_s is not None else max(2, int(np.ceil(n / _TARGET_WINDOWS)))
+    a, b = _blocks(np.ones(n, bool), block)
+    if a.size < 3:
+        raise GyroInputError("fewer than 3 observation windows for reference 'rate'")
+    q = rec.reference_quaternions()
+    R_WS = LazyRotations(q) if q is not None else None
+    desc = "reference rate (ref_*_rad_s), block means"
+    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=rec.ref_rate_rad_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
+                           q_SW_wxyz=None)
+    kw = dict(kind="rate", win_start=a, win_stop=b, t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=None,
+              R_WS=R_WS, gyro_rad_s=rec.gyro_rad_s, description=desc, notes=(), chunk_rows=rec.chunk_rows)
+    res = Residual(y_rad_s=np.zeros((a.size, 3)), **kw)
+
+    def r_rows(lo, hi):
+        r = rec.gyro_rad_s.rows(lo, hi) - rec.ref_rate_rad_s.rows(lo, hi)
+        return np.where(np.isfinite(r), r, 0.0)
+
+    y = res.window_mean(Rows(r_rows, n, 3))
+    return Residual(y_rad_s=y, **kw)

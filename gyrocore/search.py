@@ -276,14 +276,18 @@ def catalogue_equivalent(term: str, axis: int | str) -> str | None:
     return None
 
 
-def library_terms(inp, *, kind: str) -> list[str]:
+def library_terms(inp, *, kind: str, chunks=None) -> list[str]:
     """The degree-≤2 library of terms the data support (see module docstring).
 
     Rate signals need a time-resolved rate (``rate``/``attitude`` references, not ``still``);
     temperature and specific-force signals need their columns; a signal constant over the
-    record (zero rate, constant temperature) is left out.
+    record (zero rate, constant temperature) is left out. ``chunks`` (optional, long or
+    on-disk records): an iterable of (a, b, lo, inputs of lo:hi) windows covering the record
+    (:meth:`gyrocore.residual.Residual.iter_inputs`, one neighbour on each side for the
+    derivatives); the signals are then checked window by window (same decision: all finite,
+    max − min > 0).
     """
-    avail = []
+    cands = []
     for s in BASE_SIGNALS:
         if s[:6] in ("omega_", "alpha_") and (kind == "still" or inp.omega_S_rad_s is None):
             continue
@@ -291,6 +295,29 @@ def library_terms(inp, *, kind: str) -> list[str]:
             continue
         if s in ("temp_c", "dtemp_dt") and inp.temp_c is None:
             continue
+        cands.append(s)
+    avail = []
+    if chunks is not None:
+        lo_v = {s: np.inf for s in cands}
+        hi_v = {s: -np.inf for s in cands}
+        bad: set = set()
+        for a, b, lo, sub in chunks:
+            cache: dict = {}
+            for s in cands:
+                if s in bad:
+                    continue
+                try:
+                    v = _base_values(s, sub, cache)[a - lo: b - lo]
+                except GyroInputError:
+                    bad.add(s)
+                    continue
+                if not np.all(np.isfinite(v)):
+                    bad.add(s)
+                    continue
+                lo_v[s] = min(lo_v[s], float(np.min(v)))
+                hi_v[s] = max(hi_v[s], float(np.max(v)))
+        avail = [s for s in cands if s not in bad and hi_v[s] - lo_v[s] > 0]
+    for s in cands if chunks is None else ():
         try:
             v = _base_values(s, inp, {})
         except GyroInputError:
@@ -407,7 +434,7 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
         for k0 in range(0, n - 1, chunk):
             k1 = min(k0 + chunk, n - 1)
             lo, hi = max(k0, 0), min(k1 + 2, n)  # samples k0 .. k1+1 (derivative neighbours)
-            sub = _slice_inputs(inp, lo, hi)
+            sub = res.input_rows(lo, hi) if hasattr(res, "input_rows") else _slice_inputs(inp, lo, hi)
             cache: dict = {}
             V = np.empty((k1 - k0, T))
             for j, term in enumerate(terms):
@@ -587,6 +614,22 @@ def screen_library(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, terms:
 _SEG_MAX = 65536
 
 
+#: Largest (K, nf, C) complex spectrum :func:`harmonic_f_test` forms at once (bytes); beyond
+#: it the columns are transformed one at a time (memory, not numbers: each column's
+#: statistics are computed by the same operations).
+_FFT_BATCH_BYTES = 16 * 2**20
+#: Series longer than this (samples) are summed in chunks of this length by the line fits
+#: (:func:`refine_frequency`, :func:`fit_sinusoid`, :func:`sinusoid_cv_reduction`,
+#: :func:`sinusoid_rms`): the per-sample cos/sin/design temporaries stay bounded; shorter
+#: series take the whole-array arithmetic.
+LINE_CHUNK = 1 << 18
+
+
+def _spans(n: int):
+    for a in range(0, n, LINE_CHUNK):
+        yield a, min(a + LINE_CHUNK, n)
+
+
 def segment_length(n: int, seg_max: int = _SEG_MAX) -> int:
     """Length of the equal segments :func:`harmonic_f_test` cuts n samples into."""
     return n // int(np.ceil(n / seg_max))
@@ -636,7 +679,10 @@ def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None 
     ----------
     D. J. Thomson, "Spectrum estimation and harmonic analysis", Proc. IEEE 70 (1982) 1055–1096, §XIII.
     """
-    x = np.asarray(x, float)
+    from .stream import Rows
+
+    if not isinstance(x, Rows):  # a lazy (N, C) series is read one segment at a time
+        x = np.asarray(x, float)
     squeeze = x.ndim == 1
     if squeeze:
         x = x[:, None]
@@ -652,15 +698,20 @@ def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None 
     num = np.zeros((nf, C))
     den = np.zeros((nf, C))
     amp2 = np.zeros((nf, C))
+    # long segments are transformed one column at a time (the (K, nf, C) spectra of 6 motion
+    # columns of 65 536 samples are ~0.2 GB; the statistics of each column are independent)
+    cols = [slice(0, C)] if K * nf * C * 16 <= _FFT_BATCH_BYTES else [slice(c, c + 1) for c in range(C)]
     for s in range(S):
-        seg = x[s * L:(s + 1) * L]
+        seg = np.asarray(x[s * L:(s + 1) * L], float)
         seg = seg - seg.mean(axis=0)
-        Y = np.fft.rfft(tapers[:, :, None] * seg[None, :, :], n=nfft, axis=1)  # (K, nf, C)
-        mu = np.einsum("k,kfc->fc", U0, Y) / sU2
-        resid = Y - mu[None] * U0[:, None, None]
-        num += np.abs(mu) ** 2 * sU2
-        den += np.sum(np.abs(resid) ** 2, axis=0)
-        amp2 += 4 * np.abs(mu) ** 2
+        for cs in cols:
+            Y = np.fft.rfft(tapers[:, :, None] * seg[None, :, cs], n=nfft, axis=1)  # (K, nf, C)
+            mu = np.einsum("k,kfc->fc", U0, Y) / sU2
+            resid = Y - mu[None] * U0[:, None, None]
+            num[:, cs] += np.abs(mu) ** 2 * sU2
+            den[:, cs] += np.sum(np.abs(resid) ** 2, axis=0)
+            amp2[:, cs] += 4 * np.abs(mu) ** 2
+            del Y, resid
     df1, df2 = 2 * S, 2 * S * (K - 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         F = np.where(den > 0, (num / df1) / (den / df2), 0.0)
@@ -687,7 +738,7 @@ class LineScreen:
 def _motion_mask(ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, p_mask: float = 1e-4) -> np.ndarray:
     """Bins within ±2W of a line in any reference-motion column (p < p_mask per bin)."""
     mask = np.zeros(f.size, bool)
-    if ref is None or ref.size == 0:
+    if ref is None or int(np.prod(ref.shape)) == 0:
         return mask
     h = harmonic_f_test(ref, fs)
     Fm = h.F if h.F.ndim == 2 else h.F[:, None]
@@ -742,8 +793,15 @@ def refine_frequency(x: np.ndarray, t: np.ndarray, f0: float, half_width_hz: flo
     tt = np.asarray(t, float) - t[0]
 
     def power(f):
-        ph = 2 * np.pi * f * tt
-        return -(np.dot(x, np.cos(ph)) ** 2 + np.dot(x, np.sin(ph)) ** 2)
+        if x.shape[0] <= LINE_CHUNK:
+            ph = 2 * np.pi * f * tt
+            return -(np.dot(x, np.cos(ph)) ** 2 + np.dot(x, np.sin(ph)) ** 2)
+        c = s_ = 0.0
+        for a, b in _spans(x.shape[0]):
+            ph = 2 * np.pi * f * tt[a:b]
+            c += np.dot(x[a:b], np.cos(ph))
+            s_ += np.dot(x[a:b], np.sin(ph))
+        return -(c**2 + s_**2)
 
     T = max(tt[-1], 1e-9)
     npts = int(min(max(64, 16 * 2 * half_width_hz * T), 2000))
@@ -765,6 +823,26 @@ def fit_sinusoid(x: np.ndarray, t: np.ndarray, f_hz: float, *, X_window=None) ->
     x = np.asarray(x, float)
     if x.ndim == 1:
         x = x[:, None]
+    if X_window is None and x.shape[0] > LINE_CHUNK:
+        # normal equations summed a chunk at a time (B = [cos, sin, 1] over many periods is
+        # well conditioned: cond(BᵀB) ≈ 2, so squaring it costs nothing at float64)
+        t = np.asarray(t, float)
+        G = np.zeros((3, 3))
+        g = np.zeros((3, x.shape[1]))
+        for a, b in _spans(x.shape[0]):
+            ph = 2 * np.pi * f_hz * t[a:b]
+            B = np.stack([np.cos(ph), np.sin(ph), np.ones_like(ph)], axis=1)
+            G += B.T @ B
+            g += B.T @ x[a:b]
+        th = np.linalg.solve(G, g)
+        rss = np.zeros(x.shape[1])
+        for a, b in _spans(x.shape[0]):
+            ph = 2 * np.pi * f_hz * t[a:b]
+            B = np.stack([np.cos(ph), np.sin(ph), np.ones_like(ph)], axis=1)
+            rss += np.sum((x[a:b] - B @ th) ** 2, axis=0)
+        s2 = rss / max(x.shape[0] - 3, 1)
+        cov = np.linalg.pinv(G)
+        return th[:2], np.sqrt(np.outer(np.diag(cov)[:2], s2))
     if X_window is None:
         ph = 2 * np.pi * f_hz * np.asarray(t, float)
         B = np.stack([np.cos(ph), np.sin(ph), np.ones_like(ph)], axis=1)
@@ -783,6 +861,8 @@ def sinusoid_cv_reduction(x: np.ndarray, t: np.ndarray, f_hz: float, *, n_blocks
     of time and predicted on the others (2-fold blocked, the loop's guard), x (N,)."""
     x = np.asarray(x, float)
     N = x.shape[0]
+    if N > LINE_CHUNK:
+        return _sinusoid_cv_chunked(x, np.asarray(t, float), f_hz, n_blocks)
     fold = (np.arange(N) * n_blocks // N) % 2 == 0
     ph = 2 * np.pi * f_hz * np.asarray(t, float)
     B = np.stack([np.cos(ph), np.sin(ph), np.ones_like(ph)], axis=1)
@@ -799,6 +879,62 @@ def sinusoid_cv_reduction(x: np.ndarray, t: np.ndarray, f_hz: float, *, n_blocks
 
 
 # ---------------------------------------------------------------------------- steps
+def _sinusoid_cv_chunked(x: np.ndarray, t: np.ndarray, f_hz: float, n_blocks: int) -> float:
+    """:func:`sinusoid_cv_reduction` of a long series by normal equations summed a chunk at a
+    time (per fold: the sinusoid + constant and the constant alone)."""
+    N = x.shape[0]
+    G = np.zeros((2, 3, 3))
+    g = np.zeros((2, 3))
+
+    def parts(a, b):
+        ph = 2 * np.pi * f_hz * t[a:b]
+        B = np.stack([np.cos(ph), np.sin(ph), np.ones_like(ph)], axis=1)
+        fold = (np.arange(a, b) * n_blocks // N) % 2 == 0
+        return B, fold
+
+    for a, b in _spans(N):
+        B, fold = parts(a, b)
+        for k, sel in enumerate((fold, ~fold)):
+            G[k] += B[sel].T @ B[sel]
+            g[k] += B[sel].T @ x[a:b][sel]
+    th = [np.linalg.lstsq(G[k], g[k], rcond=None)[0] for k in range(2)]
+    th0 = [g[k][2] / G[k][2, 2] if G[k][2, 2] > 0 else 0.0 for k in range(2)]
+    e2 = e02 = 0.0
+    for a, b in _spans(N):
+        B, fold = parts(a, b)
+        for k, te in ((0, ~fold), (1, fold)):  # fitted on fold k, scored on the other
+            e2 += float(np.sum((x[a:b][te] - B[te] @ th[k]) ** 2))
+            e02 += float(np.sum((x[a:b][te] - th0[k]) ** 2))
+    r1, r0 = np.sqrt(e2 / N), np.sqrt(e02 / N)
+    return float(1.0 - r1 / r0) if r0 > 0 else 0.0
+
+
+def sinusoid_rms(x: np.ndarray, t: np.ndarray, f_hz: float, a: float, b: float) -> tuple[float, float]:
+    """RMS about the mean of x (N,) before and after removing a·cos(2πft) + b·sin(2πft)."""
+    x = np.asarray(x, float)
+    t = np.asarray(t, float)
+    if x.shape[0] <= LINE_CHUNK:
+        before = float(np.sqrt(np.mean((x - x.mean()) ** 2)))
+        ph = 2 * np.pi * f_hz * t
+        xa = x - a * np.cos(ph) - b * np.sin(ph)
+        return before, float(np.sqrt(np.mean((xa - xa.mean()) ** 2)))
+    N = x.shape[0]
+
+    def after(a_, b_):
+        s = 0.0
+        for p, q in _spans(N):
+            ph = 2 * np.pi * f_hz * t[p:q]
+            s += float(np.sum(x[p:q] - a_ * np.cos(ph) - b_ * np.sin(ph)))
+        m = s / N
+        s2 = 0.0
+        for p, q in _spans(N):
+            ph = 2 * np.pi * f_hz * t[p:q]
+            s2 += float(np.sum((x[p:q] - a_ * np.cos(ph) - b_ * np.sin(ph) - m) ** 2))
+        return float(np.sqrt(s2 / N))
+
+    return after(0.0, 0.0), after(a, b)
+
+
 def simulate_gaussian(g: np.ndarray, n: int, size: int, rng: np.random.Generator) -> np.ndarray:
     """Stationary Gaussian series with autocovariance g (lags 0..), shape (n, size).
 

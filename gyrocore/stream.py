@@ -24,7 +24,8 @@ from . import effects as E
 from . import lsq
 from .recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, ColumnSpill
 
-__all__ = ["SpillRows", "ResidualFiles"]
+__all__ = ["SpillRows", "ResidualFiles", "Rows", "LazyColumn", "LazyRotations", "SpilledRecording", "rows_of",
+           "held_correction", "NotStreamable"]
 
 
 class SpillRows(lsq.RowSource):
@@ -110,3 +111,236 @@ class ResidualFiles:
 
     def axis(self, i: int) -> np.ndarray:
         return np.fromfile(self.paths[i], dtype=np.float64, count=self.n)
+
+
+# ---------------------------------------------------------------------------- the residual loop from disk
+class NotStreamable(Exception):
+    """What the residual loop cannot do from disk (another reference than the reference rate,
+    segments, NaN rows in the reference): the caller reads the recording whole instead."""
+
+
+class Rows:
+    """A lazy (N, C) or (N,) array: rows lo:hi are computed by ``fn(lo, hi)`` when asked.
+
+    The residual loop passes per-sample quantities of a spilled recording (the model
+    correction, the sample-level residual, the motion columns) as ``Rows`` so that they are
+    built a window at a time; ``np.asarray`` assembles the whole array (a fallback for code
+    that needs it: correct, but O(N) memory).
+    """
+
+    def __init__(self, fn, n: int, ncol: int | None) -> None:
+        self.fn = fn
+        self.n = int(n)
+        self.shape = (self.n,) if ncol is None else (self.n, int(ncol))
+        self.ndim = len(self.shape)
+
+    def rows(self, lo: int, hi: int) -> np.ndarray:
+        lo, hi = max(0, int(lo)), min(self.n, int(hi))
+        return self.fn(lo, hi)
+
+    def axis(self, i: int, chunk: int = 1 << 17) -> np.ndarray:
+        """Column i as a whole (N,) array, filled a chunk at a time."""
+        out = np.empty(self.n)
+        for a in range(0, self.n, chunk):
+            b = min(a + chunk, self.n)
+            out[a:b] = self.rows(a, b)[:, i]
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        out = np.empty(self.shape)
+        for a in range(0, self.n, 1 << 17):
+            b = min(a + (1 << 17), self.n)
+            out[a:b] = self.rows(a, b)
+        return out if dtype is None else out.astype(dtype)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, key):
+        if isinstance(key, slice) and key.step in (None, 1):
+            lo, hi, _ = key.indices(self.n)
+            return self.rows(lo, hi)
+        return np.asarray(self)[key]
+
+
+def rows_of(v, lo: int, hi: int):
+    """Rows lo:hi of an array, a :class:`Rows` or a :class:`LazyColumn` (None stays None)."""
+    if v is None:
+        return None
+    if isinstance(v, Rows):
+        return v.rows(lo, hi)
+    return np.asarray(v)[lo:hi]
+
+
+class LazyColumn(Rows):
+    """Columns of a :class:`~gyrocore.recording.ColumnSpill` read from disk rows lo:hi at a time
+    (``squeeze``: one column, shape (N,))."""
+
+    def __init__(self, store: ColumnSpill, names, *, squeeze: bool = False) -> None:
+        names = list(names)
+        self.store = store
+        self.names = names
+        if squeeze:
+            fn = lambda lo, hi: store.rows(names[0], lo, hi)  # noqa: E731
+        else:
+            fn = lambda lo, hi: store.block(names, lo, hi)  # noqa: E731
+        super().__init__(fn, store.n, None if squeeze else len(names))
+
+
+class LazyRotations(Rows):
+    """Rotation matrices R (N, 3, 3) of a quaternion column set (w, x, y, z), rows on demand."""
+
+    def __init__(self, q: Rows) -> None:
+        from scipy.spatial.transform import Rotation
+
+        def fn(lo, hi):
+            return Rotation.from_quat(np.asarray(q.rows(lo, hi), float), scalar_first=True).as_matrix()
+
+        super().__init__(fn, q.n, 3)
+        self.shape = (q.n, 3, 3)
+        self.ndim = 3
+
+
+#: Extra samples on each side of a window when the gyro is advanced by a time offset with a
+#: not-a-knot cubic spline fitted to the window only: the spline's dependence on a sample k
+#: rows away decays as (2 − √3)^k ≈ 0.268^k, so 64 rows put the cut's influence at ~1e-37 of
+#: the data — below the float64 rounding of the whole-record spline.
+SPLINE_CONTEXT = 64
+
+
+class SpilledRecording:
+    """A long recording held on disk (:func:`gyrocore.recording.spill_columns`), with the
+    attributes of :class:`~gyrocore.recording.Recording` the residual loop reads: ``t_s`` in
+    memory, every other column a :class:`LazyColumn` read a window at a time.
+
+    The loop's two changes of the gyro are applied on the fly, per window, in the order of the
+    in-memory path: narrow-band lines removed (``held``: ``{name: [(axis, f_hz, a_cos, a_sin),
+    …]}``, raw time frame), then the advance by a time offset τ (``tau_s``: gyro'(t) =
+    gyro(t + τ), cubic spline; see :data:`SPLINE_CONTEXT`).
+    """
+
+    def __init__(self, store: ColumnSpill, *, held: dict | None = None, tau_s: float = 0.0,
+                 chunk_rows: int | None = None, q_integrated: Rows | None = None) -> None:
+        from .residual import CHUNK_SAMPLES
+
+        self.store = store
+        self.t_s = store.t_s
+        self.n = int(store.n)
+        self.meta = store.meta
+        self.extra: dict = {}
+        self.held = {k: list(v) for k, v in (held or {}).items()}
+        self.tau_s = float(tau_s)
+        self.chunk_rows = int(chunk_rows or CHUNK_SAMPLES)
+        names = store.names
+        self.ref_rate_rad_s = LazyColumn(store, REF_RATE_COLS) if all(c in names for c in REF_RATE_COLS) else None
+        self.accel_m_s2 = LazyColumn(store, ACCEL_COLS) if all(c in names for c in ACCEL_COLS) else None
+        self.temp_c = LazyColumn(store, [TEMP_COL], squeeze=True) if TEMP_COL in names else None
+        from .recording import REF_QUAT_COLS
+
+        self.ref_quat_wxyz = LazyColumn(store, REF_QUAT_COLS) if all(c in names for c in REF_QUAT_COLS) else None
+        self.gyro_rad_s = Rows(self._gyro_rows, self.n, 3)
+        self._q_integrated = q_integrated
+        self._finite: dict = {}
+
+    # Recording's properties
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1] - self.t_s[0])
+
+    @property
+    def rate_hz(self) -> float:
+        if self.n < 2 or self.duration_s <= 0:
+            r = self.meta.get("rate_hz")
+            return float(r) if r else float("nan")
+        return (self.n - 1) / self.duration_s
+
+    def with_ops(self, *, held: dict | None = None, tau_s: float | None = None) -> "SpilledRecording":
+        """The same file with other lines removed and/or another time offset."""
+        return SpilledRecording(self.store, held=self.held if held is None else held,
+                                tau_s=self.tau_s if tau_s is None else tau_s, chunk_rows=self.chunk_rows,
+                                q_integrated=self._q_integrated)
+
+    def chunks(self):
+        """(lo, hi) of consecutive windows of ``chunk_rows`` rows."""
+        for lo in range(0, self.n, self.chunk_rows):
+            yield lo, min(lo + self.chunk_rows, self.n)
+
+    def all_finite(self, name: str) -> bool:
+        """Whether every row of a column group (``ref_rate``, ``ref_quat``) is finite."""
+        if name not in self._finite:
+            col = {"ref_rate": self.ref_rate_rad_s, "ref_quat": self.ref_quat_wxyz}[name]
+            ok = col is not None
+            if ok:
+                for lo, hi in self.chunks():
+                    if not np.all(np.isfinite(col.rows(lo, hi))):
+                        ok = False
+                        break
+            self._finite[name] = ok
+        return self._finite[name]
+
+    def _base_rows(self, lo: int, hi: int) -> np.ndarray:
+        g = self.store.block(GYRO_COLS, lo, hi)
+        if self.held:
+            g = g - held_correction(self.t_s[lo:hi], self.held)
+        return g
+
+    def _gyro_rows(self, lo: int, hi: int) -> np.ndarray:
+        if self.tau_s == 0.0:
+            return self._base_rows(lo, hi)
+        from scipy.interpolate import CubicSpline
+
+        t = self.t_s
+        fs = self.rate_hz
+        m = SPLINE_CONTEXT + int(np.ceil(abs(self.tau_s) * fs)) + 2
+        a, b = max(0, lo - m), min(self.n, hi + m)
+        tq = np.clip(t[lo:hi] + self.tau_s, t[0], t[-1])
+        return CubicSpline(t[a:b], self._base_rows(a, b), axis=0)(tq)
+
+    def reference_quaternions(self) -> Rows | None:
+        """The reference attitude S→W per sample: ``ref_q*`` when finite everywhere, else the
+        reference rate integrated window by window (the attitude carried across windows;
+        :func:`gyrocore.attitude.integrate_gyro`, backward hold), kept in a file beside the
+        spill. None without either."""
+        if self.ref_quat_wxyz is not None and self.all_finite("ref_quat"):
+            return self.ref_quat_wxyz
+        if self.ref_rate_rad_s is None or not self.all_finite("ref_rate"):
+            return None
+        if self._q_integrated is None:
+            from .attitude import integrate_gyro
+
+            names = [f"ref_int_q{c}" for c in "wxyz"]
+            files = [open(self.store.folder / f"{nm}.f64", "wb") for nm in names]
+            q_carry = None
+            try:
+                for lo, hi in self.chunks():
+                    w = self.ref_rate_rad_s.rows(lo, hi)
+                    if q_carry is None:
+                        q = integrate_gyro(self.t_s[lo:hi], w, hold="backward")
+                    else:
+                        q = integrate_gyro(self.t_s[lo - 1:hi], np.vstack([w_last, w]), q0_wxyz=q_carry,
+                                           hold="backward")[1:]
+                    for j in range(4):
+                        np.ascontiguousarray(q[:, j]).tofile(files[j])
+                    q_carry, w_last = q[-1], w[-1:]
+            finally:
+                for fh in files:
+                    fh.close()
+            for nm in names:
+                if nm not in self.store.names:
+                    self.store.names.append(nm)
+            self._q_integrated = LazyColumn(self.store, names)
+        return self._q_integrated
+
+
+def held_correction(t: np.ndarray, held: dict) -> np.ndarray | float:
+    """Σ of the narrow-band lines removed from the gyro, rad/s, (n, 3) on times t (s): per
+    name the sum of its lines a·cos(2πft) + b·sin(2πft) on its axis (the loop's ``held``)."""
+    total = 0
+    for lines in held.values():
+        acc = 0.0
+        for (i, f, a, b) in lines:
+            c = np.zeros((t.size, 3))
+            c[:, i] = a * np.cos(2 * np.pi * f * t) + b * np.sin(2 * np.pi * f * t)
+            acc = acc + c
+        total = total + acc
+    return total

@@ -162,11 +162,35 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
 
     if output and os.path.exists(output) and not force:
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")
+    declared = _split(effects) or []
+    if (not segments and not validate and not validate_split and reference in ("auto", "rate")
+            and _streamable(path)):
+        # a long data file with reference rates: spilled to per-column files and looped over a
+        # window at a time (gyrocore.stream.SpilledRecording); the same loop, bounded memory.
+        # What only the in-memory path does (NaN rows in the reference) falls through below.
+        import tempfile
+
+        from ..recording import spill_columns
+        from ..stream import NotStreamable, SpilledRecording
+
+        with tempfile.TemporaryDirectory(prefix="gyroharness_loop_") as tmp:
+            store = spill_columns(path, tmp, accel=True, groups=("temp", "ref_rate", "ref_quat"))
+            try:
+                result = run_loop(SpilledRecording(store), declared=declared, candidates=_split(candidates),
+                                  min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,
+                                  open_search=open_search, seed=seed, reference=reference, window_s=window_s,
+                                  alpha=alpha, thermal_order=thermal_order, angle_sigma_deg=angle_sigma_deg,
+                                  axis_sigma_deg=axis_sigma_deg, angle_mode=angle_mode)
+            except NotStreamable:
+                result = None
+            if result is not None:
+                _finish(result, SpilledRecording(store), path=path, output=output, plot_dir=plot_dir,
+                        thermal_order=thermal_order, as_json=as_json)
+                return
     conv = load_with_segments(path)
     segs = list(conv.segments)
     if segments:
         segs = read_segments(segments)
-    declared = _split(effects) or []
     val_conv = None
     if validate and validate_split:
         raise GyroInputError("give --validate OTHER or --validate-split, not both")
@@ -217,6 +241,36 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
             click.echo(validation_text(payload["validation"]))
         if output:
             click.echo(f"wrote {output}")
+
+
+def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json) -> None:
+    """Parameter file, plots and report of a loop run on a recording held on disk."""
+    payload = result.to_json()
+    if output:
+        from ..loop import loop_calibration
+        from ..model import save_params
+
+        save_params(loop_calibration(result, rec, source_path=path, thermal_order=thermal_order), output,
+                    overwrite=True)
+        payload["params_file"] = output
+    if plot_dir:
+        from ..loop import plot_found
+
+        plot_found(result, Path(plot_dir))
+    if as_json:
+        emit_json(payload)
+    else:
+        click.echo(report_text(result))
+        if output:
+            click.echo(f"wrote {output}")
+
+
+def _streamable(path: str) -> bool:
+    """A CSV/Parquet data file long enough to loop over from disk (the rule of ``calibrate``:
+    more than ``STREAM_ROWS`` rows, with reference rates)."""
+    from .calibrate import _streamable as streamable
+
+    return streamable(path)
 
 
 def validation(result, rec_fit, val_conv, *, declared, opts, validate, validate_segments=None) -> dict:
