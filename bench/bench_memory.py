@@ -32,7 +32,8 @@ figures are per stage, not cumulative. Stages:
 ``cli_*``         every command that reads a recording, through ``gyroharness``: ``convert``
                   (to Parquet, streamed), ``bias`` (windows read back from disk a block at a
                   time), ``allan`` (one axis at a time), ``calibrate`` (fitted from disk a
-                  window at a time), ``apply`` (streamed), ``loop`` (whole-file read)
+                  window at a time), ``apply`` (streamed), ``loop`` (spilled; the residual loop
+                  reads it back a window at a time: gyrocore.stream.SpilledRecording)
 ``imports_*``     only the modules that command loads (``gyrocore.cli`` + its modules + the
                   reader): what the command costs before it reads anything
 
@@ -295,7 +296,7 @@ CLI_DESIGN = {
     "cli_allan": "CLI, one axis at a time",
     "cli_calibrate": "CLI, spilled; fitted a window at a time",
     "cli_apply": "CLI, streamed (chunks + context)",
-    "cli_loop": "CLI, whole-file read",
+    "cli_loop": "CLI, spilled; residual loop a window at a time",
 }
 
 

@@ -390,16 +390,33 @@ def _gamma_apply(U: np.ndarray, g: np.ndarray) -> np.ndarray:
     if L <= 0:
         return g[0] * U
     ker = np.concatenate([g[L:0:-1], g[: L + 1]])
-    return _signal.fftconvolve(U, ker[:, None], mode="full", axes=0)[L: L + M]
+    # in blocks of columns: each column's convolution is independent (same FFT length), and
+    # the complex spectra of all 900 step columns at once are ~0.3 GB
+    K = U.shape[1]
+    if K <= _GAMMA_BLOCK:
+        return _signal.fftconvolve(U, ker[:, None], mode="full", axes=0)[L: L + M]
+    out = np.empty(U.shape)
+    for c in range(0, K, _GAMMA_BLOCK):
+        out[:, c:c + _GAMMA_BLOCK] = _signal.fftconvolve(U[:, c:c + _GAMMA_BLOCK], ker[:, None], mode="full",
+                                                         axes=0)[L: L + M]
+    return out
 
 
-def _project_off(Xw: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """C minus its least-squares projection on the columns of Xw (both (R, ·))."""
+#: Columns per block of :func:`_gamma_apply` (memory only).
+_GAMMA_BLOCK = 64
+
+
+def _project_off(Xw: np.ndarray, C: np.ndarray, *, overwrite: bool = False) -> np.ndarray:
+    """C minus its least-squares projection on the columns of Xw (both (R, ·)); ``overwrite``:
+    in place in C (a temporary of the caller's: one (R, ·) array fewer, the same numbers)."""
     if Xw.shape[1] == 0:
         return C
     Q, Rr = np.linalg.qr(Xw, mode="reduced")
     keep = np.abs(np.diag(Rr)) > 1e-10 * max(np.abs(np.diag(Rr)).max(), 1e-300)
     Q = Q[:, keep]
+    if overwrite:
+        C -= Q @ (Q.T @ C)
+        return C
     return C - Q @ (Q.T @ C)
 
 
@@ -430,7 +447,7 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
         carry = np.zeros(T)
         # chunks with a one-sample overlap each side (derivatives by central differences), of
         # at most ~32 MB of term values
-        chunk = int(max(4096, min(CHUNK_SAMPLES, 4_000_000 // max(T, 1))))
+        chunk = int(max(4096, min(getattr(res, "chunk", CHUNK_SAMPLES), 4_000_000 // max(T, 1))))
         for k0 in range(0, n - 1, chunk):
             k1 = min(k0 + chunk, n - 1)
             lo, hi = max(k0, 0), min(k1 + 2, n)  # samples k0 .. k1+1 (derivative neighbours)
@@ -1042,6 +1059,22 @@ def step_columns(res, idx: np.ndarray) -> np.ndarray:
     return C
 
 
+def _weighted_step_columns(res, idx: np.ndarray, sw: np.ndarray) -> np.ndarray:
+    """``_weighted(step_columns(res, idx), sw)`` built directly as (3M, 3J) (without the
+    rotation operator: the same numbers, one array instead of two)."""
+    if res.R_GS is not None:
+        return _weighted(step_columns(res, idx), sw)
+    M, J = res.m, idx.size
+    t0 = res.inputs.t_s[res.win_start]
+    ts = t0[idx]
+    Cw = np.zeros((3 * M, 3 * J))
+    for j in range(J):
+        g = (t0 >= ts[j]).astype(float)
+        for i in range(3):
+            Cw[i * M:(i + 1) * M, 3 * j + i] = g * sw[i]
+    return Cw
+
+
 #: Residual the step test's noise model is identified on: "alternative" (the residual with the
 #: best step removed, as the catalogue's Wald tests use the alternative's residual) or "null"
 #: (the model without a step: conservative, but a real step then inflates the low-frequency
@@ -1097,10 +1130,9 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     idx = np.arange(edge, M - edge)
     if idx.size > max_candidates:
         idx = idx[np.linspace(0, idx.size - 1, max_candidates).astype(int)]
-    C = step_columns(res, idx)
     sw = 1.0 / np.maximum(np.asarray(sigma, float), 1e-300)
     Xw = _weighted(X0, sw)
-    Cp = _project_off(Xw, _weighted(C, sw))
+    Cp = _project_off(Xw, _weighted_step_columns(res, idx, sw), overwrite=True)
     ew = np.concatenate([e[:, i] * sw[i] for i in range(3)])
     J = idx.size
     z = (Cp.T @ ew).reshape(J, 3)
@@ -1112,6 +1144,10 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     gain = np.einsum("ji,ji->j", z, th)
     jb = int(np.nanargmax(gain))
     e_alt = ew - Cp[:, 3 * jb: 3 * jb + 3] @ th[jb]
+    # the full-step scores z (= Cpᵀ·ew) are all that is needed of Cp below (the size
+    # estimate): Cp is released before the contrast columns are built (memory)
+    zf = z.copy()
+    del Cp
     E_alt = e_alt.reshape(3, M).T
     gs = _autocovs(E_alt if noise_from == "alternative" else ew.reshape(3, M).T)
     # the test statistic is a *local* contrast (mean of the h windows after τ minus the h
@@ -1119,12 +1155,16 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     # correlation time of the record's length, flicker, random walk) hardly does — whereas the
     # global CUSUM contrast cannot tell a step from a wander that the short-lag noise model
     # does not see
-    Cl = np.zeros((M, 3, 3 * J))
-    for j, k in enumerate(idx):
-        for i in range(3):
-            Cl[k:k + h, i, 3 * j + i] = 1.0 / h
-            Cl[k - h:k, i, 3 * j + i] = -1.0 / h
-    Clp = _project_off(Xw, _weighted(Cl, sw))
+    # the weighted contrast columns (_weighted of the (M, 3, 3J) design: rows axis-major, axis
+    # i's rows × √w_i), built in place: the same numbers, one (3M, 3J) array
+    Clw = np.zeros((3 * M, 3 * J))
+    for i in range(3):
+        up, down = (1.0 / h) * sw[i], (-1.0 / h) * sw[i]
+        for j, k in enumerate(idx):
+            Clw[i * M + k: i * M + k + h, 3 * j + i] = up
+            Clw[i * M + k - h: i * M + k, 3 * j + i] = down
+    Clp = _project_off(Xw, Clw, overwrite=True)
+    del Clw
     z = (Clp.T @ ew).reshape(J, 3)
     V = np.zeros((J, 3, 3))
     for a in range(3):
@@ -1159,7 +1199,6 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
             break
     p = (1 + exceed) / (done + 1)
     # weighted columns against the weighted residual: the coefficient is the step in rad/s
-    zf = (Cp.T @ ew).reshape(J, 3)
     size = np.linalg.lstsq(Gjj[jbest], zf[jbest], rcond=None)[0]
     t_step = float(res.inputs.t_s[res.win_start[j_fine]])
     return StepScreen(index=int(j_fine), t_s=t_step, statistic=Tsup, p_value=float(p), log10_p=float(np.log10(p)),

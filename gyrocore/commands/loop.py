@@ -171,10 +171,11 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         import tempfile
 
         from ..recording import spill_columns
-        from ..stream import NotStreamable, SpilledRecording
+        from ..stream import NotStreamable, SpilledRecording, release_memory
 
         with tempfile.TemporaryDirectory(prefix="gyroharness_loop_") as tmp:
             store = spill_columns(path, tmp, accel=True, groups=("temp", "ref_rate", "ref_quat"))
+            release_memory()
             try:
                 result = run_loop(SpilledRecording(store), declared=declared, candidates=_split(candidates),
                                   min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,
