@@ -414,8 +414,10 @@ def _project_off(Xw: np.ndarray, C: np.ndarray, *, overwrite: bool = False) -> n
     Q, Rr = np.linalg.qr(Xw, mode="reduced")
     keep = np.abs(np.diag(Rr)) > 1e-10 * max(np.abs(np.diag(Rr)).max(), 1e-300)
     Q = Q[:, keep]
-    if overwrite:
-        C -= Q @ (Q.T @ C)
+    if overwrite:  # in blocks of columns: a (R, 64) temporary instead of (R, ·)
+        for c in range(0, C.shape[1], _GAMMA_BLOCK):
+            blk = C[:, c:c + _GAMMA_BLOCK]
+            blk -= Q @ (Q.T @ blk)
         return C
     return C - Q @ (Q.T @ C)
 
@@ -724,11 +726,14 @@ def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None 
         for cs in cols:
             Y = np.fft.rfft(tapers[:, :, None] * seg[None, :, cs], n=nfft, axis=1)  # (K, nf, C)
             mu = np.einsum("k,kfc->fc", U0, Y) / sU2
-            resid = Y - mu[None] * U0[:, None, None]
+            Y -= mu[None] * U0[:, None, None]  # the residual eigencoefficients, in place
+            r2 = np.abs(Y)
+            del Y
+            np.square(r2, out=r2)
             num[:, cs] += np.abs(mu) ** 2 * sU2
-            den[:, cs] += np.sum(np.abs(resid) ** 2, axis=0)
+            den[:, cs] += np.sum(r2, axis=0)
             amp2[:, cs] += 4 * np.abs(mu) ** 2
-            del Y, resid
+            del r2
     df1, df2 = 2 * S, 2 * S * (K - 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         F = np.where(den > 0, (num / df1) / (den / df2), 0.0)
@@ -1147,7 +1152,7 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     # the full-step scores z (= Cpᵀ·ew) are all that is needed of Cp below (the size
     # estimate): Cp is released before the contrast columns are built (memory)
     zf = z.copy()
-    del Cp
+    del Cp, Cp3
     E_alt = e_alt.reshape(3, M).T
     gs = _autocovs(E_alt if noise_from == "alternative" else ew.reshape(3, M).T)
     # the test statistic is a *local* contrast (mean of the h windows after τ minus the h
@@ -1171,6 +1176,7 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
         U = Clp[a * M:(a + 1) * M]
         GU = _gamma_apply(U, gs[a])
         V += np.einsum("mja,mjb->jab", U.reshape(M, J, 3), GU.reshape(M, J, 3))
+        del GU
     Vinv = np.linalg.pinv(V)
     Tobs = np.einsum("ji,jik,jk->j", z, Vinv, z)
     # null distribution: the noise model is identified on the residual *without* a step by a
