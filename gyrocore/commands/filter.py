@@ -115,6 +115,15 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
                      "INS_HNTCH_BW": round(max(40.0, min(span) / 2))})
     bf_lines = P.betaflight_cli(best, version) if is_bf else [
         f"# {firmware} log: Betaflight CLI names do not apply (this firmware's parameter names were not read)"]
+    flown_dyn_lpf = [st for st in (as_flown or []) if st.get("kind") == "dyn_lpf"]
+    if is_bf and flown_dyn_lpf and any(ln.endswith("dyn_min_hz = 0") or ln == "set dyn_lpf_gyro_min_hz = 0" for ln in bf_lines):
+        d = flown_dyn_lpf[0]
+        msg = (f"the set lines turn off the dynamic gyro low-pass you flew ({d['cutoff_hz']:g}-{d.get('max_hz') or float('nan'):g} Hz), "
+               f"which the figures above do not model (the 'as flown' row and the motor-noise budget are its static part "
+               f"only, so the recommendation may filter less than you fly now): keep your dyn_lpf settings unless you "
+               f"mean to change them")
+        notes.append(msg)
+        bf_lines.insert(0, "# " + msg)
     if "rpm_notch" in best and is_bf:
         v = version or (4, 5, 0)
         if v < (4, 0, 0):
@@ -244,3 +253,5 @@ def command(path, loop_hz, window_s, use, log_index, plot, force, as_json):
         click.echo("  " + line)
     click.echo("px4: " + ", ".join(f"{k} {v}" for k, v in out["firmware"]["px4"].items()))
     click.echo("ardupilot: " + ", ".join(f"{k} {v}" for k, v in out["firmware"]["ardupilot"].items()))
+    for n in out.get("notes", []):  # the caveats (signal already filtered, dynamic filters not modelled)
+        click.echo(f"note: {n}")

@@ -273,3 +273,17 @@ def test_cleanflight_header_on_the_shared_log(shared_data, tmp_path):
     assert rec.meta["firmware_name"] == "cleanflight" and rec.meta["firmware_version"] == "2.4.1"
     assert rec.meta["betaflight_equivalent_version"] == "3.4.1"
     assert "Cleanflight 2.4.1 (= Betaflight 3.4.1 source)" in json.loads(rec.meta["gyro_prefilter"])["source"]
+
+
+def test_filter_says_when_its_set_lines_drop_a_flown_dynamic_lowpass(public_dir, capsys):
+    """Betaflight 4.2.0 flight with a dynamic gyro LPF (240-600 Hz), dynamic notch and RPM filter:
+    the recommendation is scored against the static part of what was flown, and its `set` lines
+    turn the dynamic LPF off. The text output printed none of the caveats; now a comment above the
+    set lines and a note say so."""
+    from gyrocore.cli import build_group, run_cli
+
+    status = run_cli(build_group(["gyrocore.commands"]), ["filter", str(_path(public_dir, BF42))])
+    out = capsys.readouterr().out
+    assert status == 0
+    assert "# the set lines turn off the dynamic gyro low-pass you flew (240-600 Hz)" in out
+    assert "note: as flown: dynamic filters" in out
