@@ -851,6 +851,10 @@ def _penalty(sub) -> float:
 #: combine the alternatives of :func:`expected_z` by the union bound (round 4); False = the
 #: minimum over alternatives (rounds 1–3), kept to reproduce the earlier rule
 UNION = True
+#: simulate the selection between the truth and its near alternatives (round 4): draws and seed
+SIMULATE = True
+SIM_DRAWS = 400
+SIM_SEED = 20261125
 
 
 def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: float,
@@ -886,9 +890,36 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
     tc_grid = np.geomspace(t[0], t[-1] / 4.0, 21)
     out = {}
     cache: dict[tuple, float] = {}
+    sim_cache: dict[tuple, np.ndarray] = {}
+    draws = None
+
+    def sim(sub_):
+        """log-space χ² of model ``sub_`` refitted to each simulated AVAR vector (see SIMULATE)."""
+        nonlocal draws
+        if draws is None:
+            # σ̂²_j = σ²_j χ²_ν/ν (ν = the EDF), correlated between scales through a Gaussian
+            # copula with the correlation of C; explicit seed: the rule is deterministic
+            rng = np.random.default_rng(np.random.SeedSequence(SIM_SEED))
+            d_ = np.sqrt(np.diag(C))
+            zc = rng.standard_normal((SIM_DRAWS, m.size)) @ np.linalg.cholesky(C / np.outer(d_, d_)).T
+            draws = model[None, :] * scipy.stats.chi2.ppf(scipy.stats.norm.cdf(zc), _edf[None, :]) / _edf[None, :]
+        if sub_ not in sim_cache:
+            # weights of the model's fit to the truth (the estimator iterates its weights; fixed here)
+            cp, tcp, _C, _e, Lp = _fit_model(m, rate_hz, model, int(n_samples), sub_, method, tc_grid)[:5]
+            grid = np.geomspace(tcp / 2.0, tcp * 2.0, 5) if (5 in sub_ and tcp) else tc_grid
+            vals = np.empty(SIM_DRAWS)
+            for k_, a_ in enumerate(draws):
+                c_, tc_, _x = _fit_subset(m, rate_hz, a_, Lp, sub_, method, grid)
+                cf_ = np.zeros(6)
+                cf_[list(sub_)] = c_
+                vals[k_] = _log_chi2(a_, term_avar(m, rate_hz, method=method, tau_c_s=tc_) @ cf_, W_log, _b)
+            sim_cache[sub_] = vals
+        return sim_cache[sub_]
+
     for i in true_sub:
         others = [j for j in cand if j not in (1, i)]
         zs: list[float] = []
+        sel_alts: list[tuple[tuple[int, ...], float]] = []
         for k in range(0, len(others) + 1):
             for extra in itertools.combinations(others, k):
                 sub = tuple(sorted(([1] if i != 1 else []) + list(extra)))
@@ -912,6 +943,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                 if dpen > 0 and nested:
                     # a submodel of the truth: LR ≈ noncentral χ², √LR ≈ N(√λ, 1) > √Δpen
                     zs.append(math.sqrt(lam) - math.sqrt(dpen))
+                    sel_alts.append((sub, zs[-1]))
                 elif dpen >= 0:
                     # a non-nested stand-in (R or B for K, K for B, …): the difference of the two
                     # fits' statistics is ≈ N(λ, 4λ) (Vuong 1989) and may be negative; the true
@@ -924,7 +956,10 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                         # claimed when D ≈ N(λ, 4λ) < λ − z_{1−α}·2√λ, i.e. with probability
                         # α (z = z_{1−α}); otherwise i stands in its place (fallback)
                         z_v = max(z_v, _Z_STANDIN)
-                    zs.append(z_v)
+                        zs.append(z_v)
+                    else:
+                        zs.append(z_v)
+                        sel_alts.append((sub, z_v))
                 if check:
                     # the stand-in check of :func:`_ambiguous` for the swap of term i for y (GM,
                     # or K for R): the stand-in world Y* (the swap fitted to the truth, at
@@ -942,7 +977,25 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
         # both R (Φ(−1.29) ≈ 10 %) and B (≈ 6 %) stand in, and the minimum alone (1.29 ≥ 1.28)
         # called K resolvable where the study found it on 79 %. margin = Φ⁻¹(1 − Σ Φ(−z_alt)).
         margin = min(zs, default=math.inf)
-        if UNION and zs:
+        near = [a for a, z in sel_alts if z < 5.0]
+        if SIMULATE and near and i != 1:  # N is in every model the estimator fits
+            # the selection between the truth and its near alternatives, simulated (round 4): the
+            # normal approximations above ignore that each model is refitted to the realisation —
+            # with K true at 1 h the flicker model, refitted, beats N + K on 4–5 % of draws where
+            # the Vuong form gives 0.6 % (the study: B selected on 5.8 % of the development axes)
+            crit_t = sim(true_sub) + pen_true
+            best_alt = np.min([sim(a) + _penalty(a) for a in near], axis=0)
+            p_sel = float(np.mean(best_alt < crit_t))
+            rest = [z for z in zs]
+            for _a, za in sel_alts:
+                if _a in near:
+                    rest.remove(za)
+            p_miss = p_sel + float(sum(scipy.stats.norm.sf(z) for z in rest))
+            margin = float(scipy.stats.norm.isf(p_miss)) if 0.0 < p_miss < 0.5 else (
+                0.0 if p_miss >= 0.5 else min(rest, default=math.inf))
+            if p_miss >= 0.5:
+                margin = min(margin, min(zs))
+        elif UNION and zs and i != 1:  # N: the minimum, as before (N is never left out)
             p_miss = float(sum(scipy.stats.norm.sf(z) for z in zs))
             if 0.0 < p_miss < 0.5:
                 margin = min(margin, float(scipy.stats.norm.isf(p_miss)))
