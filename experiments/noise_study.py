@@ -308,6 +308,43 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
             "chi2_interval_coverage": float(np.mean(chi2_cover))}
 
 
+def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, base: int = 4404) -> dict:
+    """Development diagnostics of one cell (round 4 of issue 11): over ``seeds`` × 3 axes drawn with
+    ``SeedSequence([s, base])`` (not the study's seed), how often each (selected subset, ambiguous
+    pairs) occurs, and the selection statistic's difference D = χ²_log(alternative) − χ²_log(true
+    model) for every alternative of the same size (mean, sd, P(D < 0))."""
+    from collections import Counter
+
+    from gyrocore import allan as AL
+    from gyrocore import gmwm as G
+
+    n = int(round(T_s * rate_hz))
+    m = G.scales(n)
+    true_sub = tuple(TERM_KEYS[k] for k in TERM_KEYS if k in MIXES[mix] and k != "GMt")
+    true_sub = tuple(k for k in G.LINEAR if k in true_sub)
+    census: Counter = Counter()
+    diffs: dict[tuple, list] = {}
+    for s in range(seeds):
+        rng = np.random.default_rng(np.random.SeedSequence([s, base]))
+        g = simulate(rng, MIXES[mix], n, rate_hz)
+        for ax in range(3):
+            t, d, _ = AL.oadev(g[:, ax], rate_hz, m)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                f = G.fit_noise(t, d**2, m, n)
+            short = lambda k: [s_ for s_, v in TERM_KEYS.items() if v == k][0]  # noqa: E731
+            census[(" ".join(short(k) for k in f.selected),
+                    " ".join(f"{short(a)}~{short(b)}" for a, b in f.ambiguous.items()))] += 1
+            for alt, v in f.criteria.items():
+                if len(alt) == len(true_sub) and alt != true_sub and true_sub in f.criteria:
+                    diffs.setdefault(" ".join(short(k) for k in alt), []).append(v - f.criteria[true_sub])
+    stats = {a: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "p_below_0": float(np.mean(np.array(v) < 0))}
+             for a, v in diffs.items()}
+    return {"mix": mix, "T_s": T_s, "rate_hz": rate_hz, "axes": 3 * seeds,
+            "selected": [{"selected": k[0], "ambiguous": k[1], "axes": c} for k, c in census.most_common()],
+            "D_vs_true": stats}
+
+
 def _nu_from_interval(c: float, lo: float, hi: float) -> float:
     """ν of a chi-square interval [cν/χ²₀.₉₇₅(ν), cν/χ²₀.₀₂₅(ν)] from its ends (ratio hi/lo is monotone in ν)."""
     import scipy.optimize
@@ -331,7 +368,14 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default=None)
     ap.add_argument("--k-check", action="store_true", help="only the fixed N+K interval check (k_interval_check)")
     ap.add_argument("--k-seeds", type=int, default=12, help="seeds (x 3 axes) of --k-check")
+    ap.add_argument("--census", default=None, help="development census of one cell, MIX:T_s@rate_hz (selection_census)")
+    ap.add_argument("--census-seeds", type=int, default=40)
     a = ap.parse_args(argv)
+    if a.census:
+        mix, cell = a.census.split(":")
+        T, r = (float(v) for v in cell.split("@"))
+        print(json.dumps(selection_census(mix, T, r, seeds=a.census_seeds), indent=1))
+        return
     if a.k_check:
         print(json.dumps(k_interval_check(seeds=a.k_seeds)))
         return

@@ -731,6 +731,9 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     for x, y in list(ambiguous.items()):
         # round 4: a ramp not told from a random walk (see _EXTRA_CHECKS) is the random walk's
         # trend — the random-walk model stands in its place when all its terms are positive
+        # (also when a GM is not rejected either: between K and GM the penalty decides, as in the
+        # selection; requiring K to be the only stand-in cost 3 of 120 true-K development axes at
+        # 1 h and removed no false K in N+GM)
         swap = tuple(sorted((set(sub) - {x}) | {y}))
         if FALLBACK and (x, y) in _EXTRA_CHECKS and swap in fits and np.all(fits[swap][0][list(swap)] > 0):
             sub = swap

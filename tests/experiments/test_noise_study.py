@@ -17,3 +17,10 @@ def test_tiny_study_runs_deterministic_and_scores():
     assert not terms["B"]["present"]
     assert "gmwm" in r1["goals"]
     assert "N+K" in S.compact([r1["summary"]], ["gmwm"])
+
+
+def test_selection_census_counts_every_axis():
+    c = S.selection_census("N+K", 600.0, 100.0, seeds=1)
+    assert c["axes"] == 3 and sum(r["axes"] for r in c["selected"]) == 3
+    assert all(r["selected"].startswith("N") or " N" in r["selected"] for r in c["selected"])
+    assert "N R" in c["D_vs_true"] and 0.0 <= c["D_vs_true"]["N R"]["p_below_0"] <= 1.0
