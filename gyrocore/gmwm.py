@@ -50,9 +50,18 @@ whose Wald z = c/se(c) is below z_{1−α} is dropped again (the weakest first).
 unselected term is ``None`` with the upper end of its interval when added to the selected
 model.
 
-Resolvability (predicted, :func:`expected_z`): at the true parameters, the Fisher information
-JᵀΣ⁻¹J of the true model at the record's τ grid gives each term's expected z = c/se(c). The
-selection claims a term with ≥ 90 % probability when z ≥ z_{1−α} + z_{0.9}.
+Resolvability (predicted, :func:`expected_z`): at the true parameters, every alternative model
+without the term is fitted to the noise-free truth; the probability that the selection prefers one
+of the near alternatives is simulated (chi-square draws of the Allan variance with its correlation,
+each model refitted), the stand-in checks keep their normal form, and the miss probabilities are
+summed (round 4). Resolvable when the margin Φ⁻¹(1 − p_miss) ≥ z_{0.9} (claimed with ≥ 90 %
+probability).
+
+Stand-in checks (:func:`_ambiguous`): a selected B, Q or R must reject the world of a GM in its
+place, and (round 4) a selected R the world of K in its place, at 5 %; a ramp not told from a
+random walk is reported as the random walk. Intervals of selected long-τ terms are widened to
+the enlarged model's where an unselected term moves them by more than their SE (round 4,
+:func:`_robust_ends`).
 """
 
 from __future__ import annotations
@@ -872,8 +881,12 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
     statistic's difference between the true model and that stand-in (B against K or GM, K against R or GM,
     …). The selection prefers the true model when LR > Δpen = penalty(true) − penalty(alt);
     with √LR ≈ N(√λ, 1) it does so with ≥ 90 % probability when √λ_alt − √Δpen ≥ z₀.₉ = 1.28
-    (no condition when Δpen ≤ 0). Returned: min over alternatives of √λ_alt − √max(Δpen, 0)
-    (for a term with no stand-in, its Fisher z minus √penalty); **resolvable when ≥**
+    (no condition when Δpen ≤ 0). Round 4: the term is missed when any alternative wins, so the
+    margin is Φ⁻¹(1 − p_miss) with p_miss = P(some near alternative, z < 5, beats the truth in the
+    selection) — simulated with :data:`SIM_DRAWS` seeded draws σ̂²_j = σ²_j χ²_ν/ν correlated through
+    a Gaussian copula, each model refitted with the weights of its fit to the truth, because the
+    normal forms ignore the refit — plus Σ Φ(−z) over the stand-in checks; ≤ 0 when p_miss ≥ ½.
+    N, in every model the estimator fits, keeps the minimum. **Resolvable when ≥**
     :data:`Z_POWER`.
     """
     m = scales(int(n_samples))
