@@ -87,6 +87,20 @@ def report_text(analysis) -> str:
     return "\n".join(lines)
 
 
+_RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
+
+
+def _datasheet(term: str, value: float) -> tuple[float, str]:
+    """The term in datasheet units for the legend ('' unit when there is none)."""
+    from ..allan import to_datasheet_units
+
+    try:
+        v, unit = to_datasheet_units(term, value)
+    except Exception:  # a term without a datasheet unit
+        return float("nan"), ""
+    return (v, unit) if unit else (float("nan"), "")
+
+
 #: terms whose dominance region is shaded (the long-τ terms; Q and N dominate short τ)
 _LONG_TAU = ("bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2", "correlated_sigma_rad_s")
 
@@ -138,7 +152,12 @@ def adev_figure(analysis):
             lo_v, hi_v = r.ci95[term]
             plot_ax.fill_between(tt, _term_adev(r, term, lo_v, tt), _term_adev(r, term, hi_v, tt), color=c, alpha=0.15, lw=0)
             extra = f", tc = {r.correlated_tau_c_s:.3g} s" if term == "correlated_sigma_rad_s" else ""
-            plot_ax.loglog(tt, y, "--", lw=1, color=c, label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}]{extra}")
+            ds, ds_unit = _datasheet(term, v)
+            unit = {"quantization_rad": "rad", "arw_rad_per_sqrt_s": "rad/√s", "bias_instability_rad_s": "rad/s",
+                    "rrw_rad_per_s_sqrt_s": "rad/s/√s", "rate_ramp_rad_s2": "rad/s²", "correlated_sigma_rad_s": "rad/s"}[term]
+            plot_ax.loglog(tt, y, "--", lw=1, color=c,
+                           label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}] {unit}{extra}"
+                                 + (f" = {ds:.3g} {ds_unit}" if ds_unit else ""))
             # resolvable region: where this term is the largest of the fitted terms
             others = np.zeros_like(tt)
             for o in ALL_TERM_NAMES:
@@ -155,6 +174,9 @@ def adev_figure(analysis):
         plot_ax.set_xlabel("averaging time tau [s]" + (f"; shaded: where {', '.join(shaded)} dominates" if shaded
                                                        else "; no long-tau term resolved"))
         plot_ax.set_ylabel("Allan deviation [rad/s]")
+        # the datasheet unit beside the SI one (flight-controller and navigation users read deg/h)
+        sec = plot_ax.secondary_yaxis("right", functions=(lambda y: y * _RAD_S_TO_DEG_H, lambda y: y / _RAD_S_TO_DEG_H))
+        sec.set_ylabel("[deg/h]")
         plot_ax.set_title(f"gyro {name}")
         plot_ax.grid(True, which="both", alpha=0.3)
         plot_ax.legend(fontsize=6)
