@@ -409,6 +409,8 @@ class Calibrator:
         external_bias=None,
         noise=None,
         ramp_margin_s: float = 0.0,
+        angle_sigma_deg: float = 0.0,
+        axis_sigma_deg: float = 0.0,
     ) -> None:
         effs = E.check_effect_names(effects)
         if not effs:
@@ -447,6 +449,12 @@ class Calibrator:
         if not (np.isfinite(ramp_margin_s) and ramp_margin_s >= 0):
             raise GyroInputError(f"ramp margin must be >= 0 s, got {ramp_margin_s}")
         self.ramp_margin_s = float(ramp_margin_s)
+        for nm, v in (("angle", angle_sigma_deg), ("axis", axis_sigma_deg)):
+            if not (np.isfinite(v) and v >= 0):
+                raise GyroInputError(f"{nm} uncertainty must be >= 0 deg, got {v}")
+        #: known rotations' angle / axis uncertainty (integral method), deg
+        self.angle_sigma_deg = float(angle_sigma_deg)
+        self.axis_sigma_deg = float(axis_sigma_deg)
         self.external_bias = external_bias
         self.effects = tuple(effs)
         self.thermal_order = thermal_order
@@ -534,7 +542,12 @@ class Calibrator:
             stderr["g_sensitivity"] = {"h_rad_s_per_m_s2": fit.effect_stderr("g_sensitivity").reshape(3, 3)}
             unobs, reasons = fit.unobservable, dict(fit.unobservable_reason)
             notes.append(f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}")
-        res = integral_calibration(rec, segs, still=still, h_rad_s_per_m_s2=H, **(self.external_bias or {}))
+        res = integral_calibration(rec, segs, still=still, h_rad_s_per_m_s2=H, **(self.external_bias or {}),
+                                   angle_sigma_rad=np.radians(self.angle_sigma_deg),
+                                   axis_sigma_rad=np.radians(self.axis_sigma_deg))
+        if self.angle_sigma_deg or self.axis_sigma_deg:
+            notes.append(f"standard errors include the known angles' uncertainty: angle {self.angle_sigma_deg:g} deg, "
+                         f"axis {self.axis_sigma_deg:g} deg per segment")
         if self.external_bias is not None:
             notes.append("bias taken from outside the data (external bias; its standard error is propagated into K and M)")
         if "bias" in self.effects:

@@ -239,6 +239,8 @@ def integral_calibration(
     bias_rad_s: np.ndarray | None = None,
     bias_stderr_rad_s: np.ndarray | None = None,
     noise_lr_rad2_s: np.ndarray | None = None,
+    angle_sigma_rad: float = 0.0,
+    axis_sigma_rad: float = 0.0,
 ) -> IntegralResult:
     """The article's integral method, generalised to any number of known-angle segments.
 
@@ -264,6 +266,13 @@ def integral_calibration(
     noise_lr_rad2_s : ndarray, shape (3,), optional
         Long-run noise variance of the gyro, (rad/s)²·s (= N² for white noise; σ²·VIF/rate
         from a static fit), for the noise of each integral, n_k·dt²·σ²_LR.
+    angle_sigma_rad, axis_sigma_rad : float
+        Standard deviation of each known rotation's angle (rad) and of its axis direction (rad,
+        per orthogonal component): a turn by hand is good to a few degrees. Propagated into K's
+        covariance to first order: the true angle vector c_k = C[:, k] + δc_k with
+        cov(δc_k) = σ_θ² a aᵀ + θ_k² σ_φ² (I − a aᵀ) (a = the segment's axis), and K = B·C⁺ gives
+        dK = −K·δC·C⁺ (B's part outside C's row space is the fit residual, left out), i.e.
+        cov(vec_r dK) += Σ_k (K Σ_k Kᵀ) ⊗ (C⁺[k] C⁺[k]ᵀ). 0 (default): the angles are exact.
 
     Returns
     -------
@@ -334,6 +343,16 @@ def integral_calibration(
     for i in range(3):
         Sig = np.diag(nk * dt**2 * lr[i]) + np.outer(T, T) * se_b[i] ** 2
         cov_K[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = Cp.T @ Sig @ Cp
+    sa, sx = float(angle_sigma_rad), float(axis_sigma_rad)
+    if not (math.isfinite(sa) and sa >= 0 and math.isfinite(sx) and sx >= 0):
+        raise GyroInputError(f"angle/axis uncertainty must be >= 0, got {angle_sigma_rad}, {axis_sigma_rad}")
+    if sa > 0 or sx > 0:
+        for k in range(nseg):
+            theta = float(np.linalg.norm(C[:, k]))
+            a = C[:, k] / theta if theta > 0 else np.zeros(3)
+            P = np.outer(a, a)
+            Sk = sa**2 * P + (theta * sx) ** 2 * (np.eye(3) - P)
+            cov_K += np.kron(K @ Sk @ K.T, np.outer(Cp[k], Cp[k]))
     J = -np.kron(M, M.T)  # vec_r(dM) = −(M ⊗ Mᵀ) vec_r(dK)
     cov_M = J @ cov_K @ J.T
     return IntegralResult(

@@ -151,6 +151,11 @@ def _fit_against_attitude(rec, names, path, thermal_order, sensor):
 @click.option("--bias-se-dps", default="0,0,0", show_default=True, help="with --bias-dps: its standard error x,y,z, deg/s")
 @click.option("--arw-dps-rt-hz", type=float, default=0.0, show_default=True,
               help="with --bias-dps: white rate noise density N, deg/s/sqrt(Hz), for the noise of each integral")
+@click.option("--angle-sigma-deg", type=float, default=0.0, show_default=True,
+              help="integral method: uncertainty of each known rotation's angle, deg (a turn by hand: 2-5), "
+                   "propagated into the standard errors")
+@click.option("--axis-sigma-deg", type=float, default=0.0, show_default=True,
+              help="integral method: uncertainty of each known rotation's axis direction, deg (by hand: ~5)")
 @click.option("--thermal-order", default="auto", show_default=True, help="auto (chosen from the data, up to 3) or 1..3")
 @click.option("--covariance", type=click.Choice(["auto", "ols", "hac", "newey_west", "block", "noise_model"]),
               default="auto", show_default=True,
@@ -163,8 +168,8 @@ def _fit_against_attitude(rec, names, path, thermal_order, sensor):
 @click.option("--sensor", default=None, help="sensor name for the parameter file (default: file metadata)")
 @click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
-def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, thermal_order, covariance,
-            ramp_margin_s, px4_params, sensor, force, as_json):
+def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, angle_sigma_deg, axis_sigma_deg,
+            thermal_order, covariance, ramp_margin_s, px4_params, sensor, force, as_json):
     """Fit the named effects against the references in FILE (reference rates, a reference
     attitude, known-angle segments, or still parts) and write the parameter file."""
     from ..effects import check_effect_names
@@ -207,17 +212,21 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
         _warn_sign(res)
         _write_and_report(res, output, px4_params, as_json)
         return
+    if (angle_sigma_deg or axis_sigma_deg) and not segments:
+        raise GyroInputError("--angle-sigma-deg/--axis-sigma-deg are for the integral method: give --segments too")
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
-                     external_bias=ext, ramp_margin_s=ramp_margin_s)
+                     external_bias=ext, ramp_margin_s=ramp_margin_s, angle_sigma_deg=angle_sigma_deg,
+                     axis_sigma_deg=axis_sigma_deg)
     res = cal.fit(rec, source_path=file)
-    if segments and res.integral is not None:
+    if segments and res.integral is not None and not (angle_sigma_deg or axis_sigma_deg):
         from dataclasses import replace
 
         # the integral method's covariance propagates gyro noise and bias (rotations.integral_calibration);
-        # the known angles enter as exact, which a hand turn is not (imucal's guide: a few degrees)
+        # the known angles enter as exact unless their uncertainty is given
         res = replace(res, notes=tuple(res.notes) + (
             "standard errors: gyro noise and bias only, the segments' angles taken as exact; a turn by hand "
-            "(±2-5 deg over 360-720 deg, 0.3-1.4 %) is far less certain than the scale SEs above",))
+            "(±2-5 deg over 360-720 deg, 0.3-1.4 %) is far less certain than the scale SEs above: give "
+            "--angle-sigma-deg/--axis-sigma-deg to include it",))
     _warn_unobservable(res)
     _write_and_report(res, output, px4_params, as_json)
 
