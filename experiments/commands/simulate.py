@@ -63,6 +63,12 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
+#: Hover runs of at least this many samples compile the numba kernels in a child process first
+#: (sim._fast.warm_cache_in_child: ~2 s with a warm cache; one million samples = 17 min at 1 kHz,
+#: where the bounded-memory budget starts to matter).
+_WARM_IN_CHILD_SAMPLES = 1_000_000
+
+
 @click.command("simulate")
 @click.argument("scenario")
 @click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="Data file to write (.parquet: Parquet, else CSV).")
@@ -154,6 +160,13 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     # and the closed-loop hover flight alike); the same rows as the whole path S.simulate(...)
     # (16 384-row chunks; Parquet: one row group each, whose ~13 kB of metadata pyarrow's writer keeps
     # until the footer: +30 MiB per 1000 groups, measured — larger chunks cost more than they save)
+    if spec.kind == "hover":
+        rate = rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz
+        if (duration_s or spec.duration_s or 0.0) * rate >= _WARM_IN_CHILD_SAMPLES:
+            # the hover kernels compiled in a child (a cold numba cache costs this process ~50 MiB)
+            from sim._fast import warm_cache_in_child
+
+            warm_cache_in_child()
     res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
                      without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle,
                      hover_vibration=hover_vib, chunk_rows=chunk_rows)

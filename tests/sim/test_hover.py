@@ -487,3 +487,12 @@ def test_ground_s_is_checked():
     for bad in (-1.0, 2.0, 3.0, float("nan")):
         with pytest.raises(GyroInputError, match="ground_s"):
             fly_hover(duration_s=2.0, ground_s=bad)
+
+
+def test_kernels_warm_up_in_a_child_process():
+    # `simulate hover` of >= 1e6 samples first compiles/loads the numba cache in a child process
+    # (compiling keeps ~50 MiB of LLVM memory in the process that does it); the child must work
+    # from the test's sys.path
+    from sim._fast import warm_cache_in_child
+
+    assert warm_cache_in_child()
