@@ -155,3 +155,18 @@ def test_streamed_file_equals_the_whole_write(tmp_path, capsys, suffix):
         assert f.read_bytes() == ref.read_bytes()
     a, b = read_recording(f), read_recording(ref)
     assert a.meta == b.meta and np.array_equal(a.gyro_rad_s, b.gyro_rad_s) and np.array_equal(a.ref_quat_wxyz, b.ref_quat_wxyz)
+
+
+@pytest.mark.parametrize("chunk_rows", ["700", "16384"])
+def test_hover_file_is_the_whole_write_for_any_chunk_rows(tmp_path, capsys, chunk_rows):
+    """Issue 13: `simulate hover` flies and writes block by block (--chunk-rows); the CSV is the
+    whole-array path's byte for byte (ground phase, take-off and manoeuvres in 16 s)."""
+    from gyrocore.recording import write_recording
+
+    f = tmp_path / "h.csv"
+    code, out, err = run(["simulate", "hover", "-o", str(f), "--duration-s", "16", "--seed", "2",
+                          "--chunk-rows", chunk_rows, "--json"], capsys)
+    assert code == 0, err
+    ref = tmp_path / "ref.csv"
+    write_recording(simulate("hover", duration_s=16.0, seed=2).recording, ref)
+    assert f.read_bytes() == ref.read_bytes()
