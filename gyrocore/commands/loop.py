@@ -171,8 +171,9 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         import tempfile
 
         from ..recording import spill_columns
-        from ..stream import NotStreamable, SpilledRecording, release_memory
+        from ..stream import NotStreamable, SpilledRecording, bounded_heap, release_memory
 
+        bounded_heap()  # freed window arrays go back to the system (see there)
         with tempfile.TemporaryDirectory(prefix="gyroharness_loop_") as tmp:
             store = spill_columns(path, tmp, accel=True, groups=("temp", "ref_rate", "ref_quat"))
             release_memory()
