@@ -34,6 +34,9 @@ figures are per stage, not cumulative. Stages:
                   time), ``allan`` (one axis at a time), ``calibrate`` (fitted from disk a
                   window at a time), ``apply`` (streamed), ``loop`` (spilled; the residual loop
                   reads it back a window at a time: gyrocore.stream.SpilledRecording)
+``cli_loop_long`` ``loop`` on the synthetic recording of ``--long-duration-s`` (e.g. 36000: ten hours),
+                  written to Parquet in ``WORK/long/`` first; ``--loop-args`` adds options (e.g.
+                  ``--no-open-search``); run once: completes, and its peak
 ``imports_*``     only the modules that command loads (``gyrocore.cli`` + its modules + the
                   reader): what the command costs before it reads anything
 
@@ -297,6 +300,7 @@ CLI_DESIGN = {
     "cli_calibrate": "CLI, spilled; fitted a window at a time",
     "cli_apply": "CLI, streamed (chunks + context)",
     "cli_loop": "CLI, spilled; residual loop a window at a time",
+    "cli_loop_long": "CLI, spilled; residual loop a window at a time (--long-duration-s, Parquet)",
 }
 
 
@@ -362,9 +366,22 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
     for name in names:
         if name == "synth" and a.source == "sim":
             continue
-        long = name in ("simulate_long", "simulate_hover_long")
+        long = name in ("simulate_long", "simulate_hover_long", "cli_loop_long")
         if long and (not a.long_duration_s or duration_s != a.duration_s):
             continue  # once, at its own length
+        if name == "cli_loop_long":
+            # the synthetic recording of --long-duration-s, to Parquet (WORK/long/, kept for reruns)
+            long_dir = work / "long"
+            long_dir.mkdir(exist_ok=True)
+            long_file = long_dir / "one_hour.parquet"
+            if not long_file.exists():
+                rc, _, _, out = _run_child([sys.executable, __file__, "--stage", "synth", "--duration-s",
+                                            str(a.long_duration_s), "--rate-hz", str(a.rate_hz), "--work", str(long_dir),
+                                            "--format", "parquet"])
+                if rc != 0:
+                    raise SystemExit(f"cli_loop_long: writing the long recording failed: {out}")
+            cli[name] = [*exe, "loop", str(long_file), "--effects", ",".join(EFFECTS["synth"]), "--json",
+                         *getattr(a, "loop_args", "").split()]
         argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
         rc, wall, rss, out = _run_child(argv_c)
         info = {}
@@ -373,6 +390,10 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
         elif rc == 0 and name.startswith("simulate"):
             doc = json.loads(out)
             info = {k: doc.get(k) for k in ("n_samples", "rate_hz", "duration_s", "effects")}
+        elif rc == 0 and name.startswith("cli_loop"):
+            doc = json.loads(out)
+            info = {"found": [f["effect"] for f in doc["found"]], "unexplained": [u["effect"] for u in doc["unexplained"]],
+                    "n_windows": doc["n_windows"]}
         if name.startswith("simulate") and name != "simulate":
             # the files of the other simulate stages are not read again (1 h at 1 kHz: 1.1 GB of CSV)
             Path(cli[name][cli[name].index("-o") + 1]).unlink(missing_ok=True)
@@ -397,6 +418,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rate-hz", type=float, default=1000.0)
     ap.add_argument("--long-duration-s", type=float, default=0.0,
                     help="stage simulate_long: simulate this long to Parquet once (e.g. 36000; 0 = skip)")
+    ap.add_argument("--loop-args", default="",
+                    help="extra options of the cli_loop_long stage, e.g. '--no-open-search' (catalogue only)")
     ap.add_argument("--work", default=None, help="folder for the CSV files (default: a temporary folder, removed)")
     ap.add_argument("--stages", default="baseline,simulate," + ",".join(list(STAGES)[1:])
                     + ",cli_convert,cli_bias,cli_allan,cli_calibrate,cli_apply,cli_loop")
