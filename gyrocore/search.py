@@ -720,23 +720,37 @@ def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None 
     # long segments are transformed one column at a time (the (K, nf, C) spectra of 6 motion
     # columns of 65 536 samples are ~0.2 GB; the statistics of each column are independent)
     cols = [slice(0, C)] if K * nf * C * 16 <= _FFT_BATCH_BYTES else [slice(c, c + 1) for c in range(C)]
+    # work arrays reused for every segment and column (the same operations with out=: no
+    # allocation per segment — with allocations served by mmap, stream.bounded_heap, each would
+    # be page-faulted anew)
+    nc = cols[0].stop - cols[0].start
+    prod = np.empty((K, L, nc))
+    Y = np.empty((K, nf, nc), dtype=complex)
+    r2 = np.empty((K, nf, nc))
     for s in range(S):
         seg = np.asarray(x[s * L:(s + 1) * L], float)
         seg = seg - seg.mean(axis=0)
         for cs in cols:
-            Y = np.fft.rfft(tapers[:, :, None] * seg[None, :, cs], n=nfft, axis=1)  # (K, nf, C)
+            np.multiply(tapers[:, :, None], seg[None, :, cs], out=prod)
+            np.fft.rfft(prod, n=nfft, axis=1, out=Y)  # (K, nf, C)
             mu = np.einsum("k,kfc->fc", U0, Y) / sU2
-            Y -= mu[None] * U0[:, None, None]  # the residual eigencoefficients, in place
-            r2 = np.abs(Y)
-            del Y
+            for k_ in range(K):  # the residual eigencoefficients, in place
+                Y[k_] -= mu * U0[k_]
+            np.abs(Y, out=r2)
             np.square(r2, out=r2)
             num[:, cs] += np.abs(mu) ** 2 * sU2
             den[:, cs] += np.sum(r2, axis=0)
             amp2[:, cs] += 4 * np.abs(mu) ** 2
-            del r2
+    del prod, Y, r2
     df1, df2 = 2 * S, 2 * S * (K - 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        F = np.where(den > 0, (num / df1) / (den / df2), 0.0)
+    # F = (num/df1)/(den/df2) where den > 0, else 0 — in place (the same divisions)
+    ok = den > 0
+    num /= df1
+    den /= df2
+    np.divide(num, den, out=num, where=ok)
+    num[~ok] = 0.0
+    F = num
+    del den, ok
     f = np.fft.rfftfreq(nfft, 1.0 / fs)
     F, f, amp = F[1:], f[1:], np.sqrt(amp2[1:] / S)
     if squeeze:
@@ -764,7 +778,9 @@ def _motion_mask(ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, 
         return mask
     h = harmonic_f_test(ref, fs)
     Fm = h.F if h.F.ndim == 2 else h.F[:, None]
-    hit = np.any(stats.f.sf(Fm, h.df1, h.df2) < p_mask, axis=1)
+    hit = np.zeros(Fm.shape[0], bool)
+    for c in range(Fm.shape[1]):  # one column at a time (scipy's temporaries of 6 columns × 2¹⁷ bins)
+        hit |= stats.f.sf(Fm[:, c], h.df1, h.df2) < p_mask
     # the reference also must carry power there: a line of the motion, not of its noise
     fl = h.freq_hz[hit]
     for f0 in fl:
