@@ -776,11 +776,29 @@ def _motion_mask(ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, 
     mask = np.zeros(f.size, bool)
     if ref is None or int(np.prod(ref.shape)) == 0:
         return mask
-    h = harmonic_f_test(ref, fs)
-    Fm = h.F if h.F.ndim == 2 else h.F[:, None]
-    hit = np.zeros(Fm.shape[0], bool)
-    for c in range(Fm.shape[1]):  # one column at a time (scipy's temporaries of 6 columns × 2¹⁷ bins)
-        hit |= stats.f.sf(Fm[:, c], h.df1, h.df2) < p_mask
+    from .stream import Rows
+
+    n_r = ref.shape[0]
+    C = ref.shape[1] if len(ref.shape) == 2 else 1
+    L = segment_length(n_r)
+    if C > 1 and 7 * (2 * L + 1) * C * 16 > _FFT_BATCH_BYTES:
+        # long records: one motion column per test (harmonic_f_test transforms them one at a
+        # time anyway — the same numbers — and its accumulators are then (nf, 1), not (nf, 6))
+        if isinstance(ref, Rows):
+            cols = [Rows(lambda a, b, c=c: ref.rows(a, b)[:, c:c + 1], n_r, 1) for c in range(C)]
+        else:
+            cols = [ref[:, c:c + 1] for c in range(C)]
+    else:
+        cols = [ref]
+    hit = None
+    for col in cols:
+        h = harmonic_f_test(col, fs)
+        Fm = h.F if h.F.ndim == 2 else h.F[:, None]
+        if hit is None:
+            hit = np.zeros(Fm.shape[0], bool)
+        for c in range(Fm.shape[1]):  # one column at a time (scipy's temporaries of 6 columns × 2¹⁷ bins)
+            hit |= stats.f.sf(Fm[:, c], h.df1, h.df2) < p_mask
+        del Fm
     # the reference also must carry power there: a line of the motion, not of its noise
     fl = h.freq_hz[hit]
     for f0 in fl:
