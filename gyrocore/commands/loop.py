@@ -170,8 +170,13 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         # What only the in-memory path does (NaN rows in the reference) falls through below.
         import tempfile
 
+        from ..effects import check_effect_names
         from ..recording import spill_columns
         from ..stream import NotStreamable, SpilledRecording, bounded_heap, release_memory
+
+        check_effect_names(declared)  # a misspelt effect is one error line before a long spill
+        if candidates:
+            check_effect_names(_split(candidates))
 
         bounded_heap()  # freed window arrays go back to the system (see there)
         with tempfile.TemporaryDirectory(prefix="gyroharness_loop_") as tmp:
