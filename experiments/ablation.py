@@ -877,8 +877,15 @@ def budget_markdown(pred: Mapping[str, Mapping]) -> str:
     for sc, v in pred.items():
         rows.append([sc, v["rms_all_deg"], v["rms_predicted_deg"], v["rms_floor_deg"],
                      f"{v['measured2_over_predicted2_mean']:.2f} ± {v['measured2_over_predicted2_se']:.2f}"]
-                    + [v["budget"].get(c, 0.0) for c in comps])
+                    + [_budget_cell(v["budget"].get(c, 0.0)) for c in comps])
     return md_table(head, rows)
+
+
+def _budget_cell(share_deg: float) -> float | str:
+    """A budget share for the table: shares below 1e-6 ° are rounding of an exactly-zero
+    sensitivity (a parameter the scenario's motion does not excite: 1e-14 ° is float64 noise on
+    a ~1° total), printed ``0`` instead of ``2.07e-14``."""
+    return 0.0 if abs(share_deg) < 1e-6 else share_deg
 
 
 def budget_figure(pred: Mapping[str, Mapping], out_dir, name: str = "ablation_budget") -> str | None:

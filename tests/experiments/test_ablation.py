@@ -118,6 +118,13 @@ def test_prediction_summary_budget_table_and_rows(tmp_path):
     camp.tasks = tasks
     assert A._rows_in(camp, "static", "s") == ["all", "floor"]
     assert "powerup window" in A.budget_markdown({"static": ps})
+    # a share that is float64 rounding of an unexcited parameter (1e-14 °) prints as 0, a real
+    # small share (2e-4 °, above the 1e-6 ° cut) keeps its value
+    tiny = {**ps, "budget": {"floor:arw": 0.03, "param:g_sensitivity": 2.07e-14, "param:scale": 2e-4,
+                             "powerup window": 0.04}}
+    table = A.budget_markdown({"static": tiny, "turntable": {**tiny, "budget": {**tiny["budget"],
+                                                                               "param:g_sensitivity": 0.12}}})
+    assert "e-14" not in table and "0.12" in table
     assert A.budget_figure({"static": ps}, tmp_path).endswith(".png")
 
 
