@@ -223,36 +223,23 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         conv.recording, declared=declared, candidates=_split(candidates), min_rms_reduction=min_rms_reduction,
         min_attitude_reduction=min_attitude_reduction, open_search=open_search, seed=seed, **opts,
     )
-    payload = result.to_json()
+    extra: dict = {}
     if validate_split:
-        payload["fitted_on"] = f"{path} (first half, t < {conv.recording.t_s[-1]:.6g} s)"
+        extra["fitted_on"] = f"{path} (first half, t < {conv.recording.t_s[-1]:.6g} s)"
     if validate:
-        payload["validation"] = validation(result, conv.recording, val_conv, declared=declared, opts=opts,
-                                           validate=validate, validate_segments=validate_segments)
-    if output:
-        from ..loop import loop_calibration
-        from ..model import save_params
-
-        save_params(loop_calibration(result, conv.recording, source_path=path, thermal_order=thermal_order),
-                    output, overwrite=True)
-        payload["params_file"] = output
-    if plot_dir:
-        from ..loop import plot_found
-
-        plot_found(result, Path(plot_dir))
-    if as_json:
-        emit_json(payload)
-    else:
-        click.echo(report_text(result))
-        if validate:
-            click.echo(validation_text(payload["validation"]))
-        if output:
-            click.echo(f"wrote {output}")
+        extra["validation"] = validation(result, conv.recording, val_conv, declared=declared, opts=opts,
+                                         validate=validate, validate_segments=validate_segments)
+    _finish(result, conv.recording, path=path, output=output, plot_dir=plot_dir, thermal_order=thermal_order,
+            as_json=as_json, extra=extra,
+            extra_text=validation_text(extra["validation"]) if validate else None)
 
 
-def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json) -> None:
-    """Parameter file, plots and report of a loop run on a recording held on disk."""
+def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extra=None, extra_text=None) -> None:
+    """Parameter file, plots and report of a loop run (in memory or on a recording held on
+    disk); ``extra`` keys go into the JSON after the result's, ``extra_text`` (the validation's
+    report) is printed after the loop's report."""
     payload = result.to_json()
+    payload.update(extra or {})
     if output:
         from ..loop import loop_calibration
         from ..model import save_params
@@ -268,6 +255,8 @@ def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json) -> N
         emit_json(payload)
     else:
         click.echo(report_text(result))
+        if extra_text:
+            click.echo(extra_text)
         if output:
             click.echo(f"wrote {output}")
 
