@@ -22,7 +22,7 @@ import numpy as np
 
 from . import effects as E
 from . import lsq
-from .recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, ColumnSpill
+from .recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, ColumnSpill, Recording
 
 __all__ = ["SpillRows", "ResidualFiles", "Rows", "LazyColumn", "LazyRotations", "SpilledRecording", "rows_of",
            "held_correction", "NotStreamable", "release_memory",
@@ -246,17 +246,9 @@ class SpilledRecording:
         self._q_integrated = q_integrated
         self._finite: dict = {}
 
-    # Recording's properties
-    @property
-    def duration_s(self) -> float:
-        return float(self.t_s[-1] - self.t_s[0])
-
-    @property
-    def rate_hz(self) -> float:
-        if self.n < 2 or self.duration_s <= 0:
-            r = self.meta.get("rate_hz")
-            return float(r) if r else float("nan")
-        return (self.n - 1) / self.duration_s
+    # Recording's own properties (they read only t_s, n and meta, which this class holds too)
+    duration_s = Recording.duration_s
+    rate_hz = Recording.rate_hz
 
     def with_ops(self, *, held: dict | None = None, tau_s: float | None = None) -> "SpilledRecording":
         """The same file with other lines removed and/or another time offset."""
