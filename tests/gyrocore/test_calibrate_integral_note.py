@@ -8,14 +8,20 @@ import json
 from gyrocore.cli import build_group, run_cli
 
 
-def test_hand_turn_standard_errors_say_what_they_leave_out(shared_data, tmp_path, capsys):
+def _convert_and_calibrate(src, tmp_path, capsys):
+    """``convert`` an imucal session with its segments, then ``calibrate --segments`` it (bias,
+    scale, misalignment; parameter file p.json); returns the exit status and captured output."""
     g = build_group(["gyrocore.commands"])
-    src = shared_data / "imucal_ferraris" / "example_ferraris_session.csv"
     assert run_cli(g, ["convert", str(src), "-o", str(tmp_path / "f.csv"), "--segments-out", str(tmp_path / "s.csv")]) == 0
     capsys.readouterr()
     status = run_cli(g, ["calibrate", str(tmp_path / "f.csv"), "--segments", str(tmp_path / "s.csv"),
                          "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")])
-    cap = capsys.readouterr()
+    return status, capsys.readouterr()
+
+
+def test_hand_turn_standard_errors_say_what_they_leave_out(shared_data, tmp_path, capsys):
+    status, cap = _convert_and_calibrate(shared_data / "imucal_ferraris" / "example_ferraris_session.csv",
+                                         tmp_path, capsys)
     out = cap.out
     assert status == 0 and "angles taken as exact" in out
     assert "reads against the reference" not in cap.err  # this session's turns agree with -360 deg
@@ -27,11 +33,6 @@ def test_negative_scale_is_called_a_sign_disagreement(shared_data, tmp_path, cap
     """imucal's annotated session: its turns integrate positive, the segments carry imucal's
     expected_angle −360°, so the fit gives scale ≈ −200 % (K ≈ −I, as imucal's own snapshot).
     Printed bare, it read as a 200 % sensitivity error; now one warning names the sign."""
-    g = build_group(["gyrocore.commands"])
-    src = shared_data / "imucal_ferraris" / "annotated_session.csv"
-    assert run_cli(g, ["convert", str(src), "-o", str(tmp_path / "a.csv"), "--segments-out", str(tmp_path / "s.csv")]) == 0
-    capsys.readouterr()
-    status = run_cli(g, ["calibrate", str(tmp_path / "a.csv"), "--segments", str(tmp_path / "s.csv"),
-                         "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")])
-    err = capsys.readouterr().err
+    status, cap = _convert_and_calibrate(shared_data / "imucal_ferraris" / "annotated_session.csv", tmp_path, capsys)
+    err = cap.err
     assert status == 0 and "reads against the reference" in err
