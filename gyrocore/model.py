@@ -335,6 +335,13 @@ def _external_bias_dict(ext) -> dict:
     return d
 
 
+def has_reference_attitude(rec: Recording) -> bool:
+    """True when the recording carries a reference attitude (``ref_q*``) valid at two or more
+    samples."""
+    q = rec.ref_quat_wxyz
+    return q is not None and int(np.isfinite(q).all(axis=1).sum()) >= 2
+
+
 class Calibrator:
     """Fit catalogue effects against the references in a recording.
 
@@ -491,7 +498,35 @@ class Calibrator:
                               has_temp=recording.temp_c is not None)
         if self.segments is not None:
             return self._fit_integral(recording, common)
+        if recording.ref_rate_rad_s is None and has_reference_attitude(recording):
+            return self._fit_attitude(recording, source_path, common)
         return self._fit_lsq(recording, common)
+
+    # ------------------------------------------------------------------ reference attitude
+    def _fit_attitude(self, rec: Recording, source_path, common: dict) -> CalibrationResult:
+        """A reference attitude (e.g. optical motion capture) and no reference rate: the
+        residual loop's machinery — attitude increments over 1-s windows, the optical attitude
+        never differentiated (:func:`gyrocore.residual.build_residual`, reference
+        ``"attitude"``) — fits exactly the named effects (no search); its joint fit (HAC
+        standard errors) is the calibration. Without this path the still parts alone would be
+        fitted against rate 0 and every rate-dependent effect reported unobservable."""
+        from dataclasses import replace
+
+        from .loop import FITTABLE as LOOP_FITTABLE, loop_calibration, run_loop
+
+        bad = [e for e in self.effects if e not in LOOP_FITTABLE]
+        if bad:
+            raise GyroInputError(f"against a reference attitude {', '.join(bad)} cannot be fitted "
+                                 f"(fittable: {', '.join(LOOP_FITTABLE)})")
+        order = 1 if self.thermal_order == "auto" else int(self.thermal_order)
+        r = run_loop(rec, declared=list(self.effects), candidates=[], reference="attitude", thermal_order=order,
+                     open_search=False)
+        res = loop_calibration(r, rec, source_path=source_path, sensor=common["sensor"], thermal_order=order)
+        notes = list(res.notes) + [f"calibrated against the reference attitude (ref_q*): {r.description}, "
+                                   f"{r.n_windows} windows"] + list(r.notes)
+        if self.thermal_order == "auto" and any(e in self.effects for e in ("bias_thermal", "scale_thermal")):
+            notes.append("thermal order 1 (order selection is not done against an attitude reference)")
+        return replace(res, notes=tuple(notes), method="attitude_reference")
 
     def fit_spilled(self, store, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
         """Fit a long recording held on disk (:func:`gyrocore.recording.spill_columns` with

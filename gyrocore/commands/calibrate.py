@@ -109,35 +109,6 @@ def _read_any(path: str):
     return load_with_segments(path).recording
 
 
-def _has_attitude(rec) -> bool:
-    q = rec.ref_quat_wxyz
-    return q is not None and int(np.isfinite(q).all(axis=1).sum()) >= 2
-
-
-def _fit_against_attitude(rec, names, path, thermal_order, sensor):
-    """A reference attitude (e.g. optical motion capture) and no reference rate: the residual
-    loop's machinery — attitude increments over windows, the optical attitude never
-    differentiated (gyrocore.residual, reference "attitude") — fits exactly the named effects
-    (no search) and its joint fit is the calibration."""
-    from dataclasses import replace
-
-    from ..errors import GyroInputError
-    from ..loop import FITTABLE as LOOP_FITTABLE, loop_calibration, run_loop
-
-    bad = [e for e in names if e not in LOOP_FITTABLE]
-    if bad:
-        raise GyroInputError(f"against a reference attitude {', '.join(bad)} cannot be fitted "
-                             f"(fittable: {', '.join(LOOP_FITTABLE)})")
-    order = 1 if thermal_order == "auto" else int(thermal_order)
-    r = run_loop(rec, declared=names, candidates=[], reference="attitude", thermal_order=order, open_search=False)
-    res = loop_calibration(r, rec, source_path=path, sensor=sensor, thermal_order=order)
-    notes = list(res.notes) + [f"calibrated against the reference attitude (ref_q*): {r.description}, "
-                               f"{r.n_windows} windows"] + list(r.notes)
-    if thermal_order == "auto" and any(e in names for e in ("bias_thermal", "scale_thermal")):
-        notes.append("thermal order 1 (order selection is not done against an attitude reference)")
-    return replace(res, notes=tuple(notes), method="attitude_reference")
-
-
 @click.command("calibrate")
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment")
@@ -207,11 +178,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
         _write_and_report(res, output, px4_params, as_json)
         return
     rec = _read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
-    if not segments and rec.ref_rate_rad_s is None and _has_attitude(rec):
-        res = _fit_against_attitude(rec, names, file, thermal_order, sensor)
-        _warn_sign(res)
-        _write_and_report(res, output, px4_params, as_json)
-        return
+    # (a reference attitude and no reference rate: Calibrator.fit fits against the attitude)
     if (angle_sigma_deg or axis_sigma_deg) and not segments:
         raise GyroInputError("--angle-sigma-deg/--axis-sigma-deg are for the integral method: give --segments too")
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
