@@ -245,6 +245,20 @@ def _windows(t_s, x, band_var, rotor_hz, airborne, *, nperseg: int, rate_hz: flo
                     rate_hz=rate_hz, nperseg=nperseg)
 
 
+#: Fewest windows a throttle band is analysed with (its averaged PSD has ν ≈ 2·K·(overlap
+#: factor) degrees of freedom; below 4 windows the χ² line threshold exceeds 8× the baseline).
+MIN_BAND_WINDOWS = 4
+
+
+def _band_counts(band_var: np.ndarray, edges: np.ndarray) -> list[int]:
+    """Windows per band for the half-open bands of ``edges`` (the last one closed), as the band
+    loop of :func:`_analyse` selects them."""
+    if len(edges) < 2:
+        return [int(band_var.size)]
+    return [int(((band_var >= edges[i]) & ((band_var < edges[i + 1]) | (i == len(edges) - 2))).sum())
+            for i in range(len(edges) - 1)]
+
+
 # ------------------------------------------------------------------ lines
 def _baseline(p: np.ndarray, half_bins: int) -> np.ndarray:
     """Running median of log PSD over ±half_bins (robust to the lines themselves)."""
@@ -520,8 +534,16 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         if bv is None:
             raise GyroInputError("band edges need a motor or throttle column")
     elif bv is not None and np.ptp(W.band_var) > 0.02:
-        qs = np.quantile(W.band_var, np.linspace(0, 1, n_bands + 1))
-        edges = np.unique(qs)
+        # equal-count bands, as many as asked for while every band keeps MIN_BAND_WINDOWS
+        # windows (a band with fewer is not analysed: on a 17-s flight 8 bands of 3 windows
+        # had dropped 18 of 26 windows, and the flight's motor line with them)
+        for nb in range(max(1, min(int(n_bands), K // MIN_BAND_WINDOWS)), 0, -1):
+            edges = np.unique(np.quantile(W.band_var, np.linspace(0, 1, nb + 1)))
+            if min(_band_counts(W.band_var, edges)) >= MIN_BAND_WINDOWS:
+                break
+        if len(edges) - 1 < n_bands:
+            notes.append(f"{len(edges) - 1} throttle band(s) instead of {n_bands}: {K} windows of {window_s:g} s, "
+                         f"each band needs at least {MIN_BAND_WINDOWS}")
     else:
         edges = np.array([W.band_var.min(), W.band_var.max()]) if bv is not None else np.array([0.0, 0.0])
         if bv is not None:
@@ -529,10 +551,12 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         else:
             notes.append("no motor or throttle column: one band, lines have no throttle law")
     band_psd, band_apsd, band_rows = [], [], []
+    dropped: list = []
     for bi in range(len(edges) - 1 if len(edges) > 1 else 1):
         lo_e, hi_e = (edges[bi], edges[bi + 1]) if len(edges) > 1 else (edges[0], edges[0])
         sel = (W.band_var >= lo_e) & ((W.band_var < hi_e) | (bi == len(edges) - 2)) if len(edges) > 1 else np.ones(K, bool)
-        if sel.sum() < 4:
+        if sel.sum() < MIN_BAND_WINDOWS:
+            dropped.append((float(lo_e), float(hi_e), int(sel.sum())))
             continue
         pb = np.nanmean(psd[sel], axis=0)
         b_rms, b_lo, b_hi = rms_stats(psd[sel], hp)
@@ -561,6 +585,10 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         row["_peaks"] = peaks
         band_rows.append(row)
         band_psd.append(pb)
+    if dropped:
+        notes.append("not analysed (fewer than %d windows): " % MIN_BAND_WINDOWS
+                     + ", ".join(f"band {a:.3g}-{b:.3g} ({n} windows)" for a, b, n in dropped)
+                     + ("" if band_rows else "; no band spectra or lines, the rms is over all windows"))
     lines = _link_lines(band_rows, f, rate, has_bv=bv is not None and len(edges) > 2, rotor=W.rotor_hz is not None,
                         reliable_hz=reliable)
     for r in band_rows:
@@ -785,15 +813,23 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
     conv = (180.0 / math.pi) ** 2
     fig, axs = plt.subplots(2, 3, figsize=(15, 8), constrained_layout=True)
     B = res.band_psd.shape[0]
+    # decimals of the band labels: enough to tell adjacent bands apart (a 17-s flight's six bands
+    # span 0.29-0.38 of the motor command: two decimals printed 0.34 three times)
+    meds = [b["median"] for b in res.bands] + [x for b in res.bands for x in b["throttle"]]
+    steps = np.diff(np.unique(np.round(meds, 6))) if len(meds) > 1 else np.array([])
+    nd = int(min(4, max(2, -np.floor(np.log10(steps.min())) if steps.size and steps.min() > 0 else 2)))
     cmap = plt.get_cmap("viridis")
-    finite = res.band_psd[np.isfinite(res.band_psd) & (res.band_psd > 0)] * conv
+    shown = res.band_psd if res.band_psd.size else res.mean_psd
+    finite = shown[np.isfinite(shown) & (shown > 0)] * conv
     vmin, vmax = (np.percentile(finite, 5), np.percentile(finite, 99.9)) if finite.size else (1e-4, 1)
     for j, a in enumerate(AXES):
         ax = axs[0, j]
         for i in range(B):
             thr = res.bands[i]["throttle"]
             ax.semilogy(f, res.band_psd[i][:, j] * conv, color=cmap(i / max(B - 1, 1)), lw=0.8,
-                        label=f"{thr[0]:.2f}-{thr[1]:.2f}")
+                        label=f"{thr[0]:.{nd}f}-{thr[1]:.{nd}f}")
+        if B == 0:  # too few windows for a band: the mean over every window analysed
+            ax.semilogy(f, res.mean_psd[:, j] * conv, color="k", lw=0.8, label=f"all {res.n_windows} windows")
         for ln in res.lines:
             if ln["axis"] == a:
                 ax.axvline(ln["frequency_hz"], color="r" if ln["follows"] != "fixed" else "k", ls=":", lw=0.8)
@@ -810,7 +846,7 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
             edges = [b["throttle"][0] for b in res.bands] + [res.bands[-1]["throttle"][1]]
             Z = np.log10(np.maximum(res.band_psd[:, :, j] * conv, 1e-12))
             ax2.pcolormesh(np.concatenate([f - (f[1] - f[0]) / 2, [f[-1] + (f[1] - f[0]) / 2]]), np.arange(B + 1), Z, shading="flat", vmin=np.log10(vmin), vmax=np.log10(vmax))
-            ax2.set_yticks(np.arange(B) + 0.5, [f"{b['median']:.2f}" for b in res.bands])
+            ax2.set_yticks(np.arange(B) + 0.5, [f"{b['median']:.{nd}f}" for b in res.bands])
             for ln in res.lines:
                 if ln["axis"] == a:
                     if "per_band" in ln:
@@ -818,7 +854,11 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
                     else:
                         ax2.axvline(ln["frequency_hz"], color="w", ls=":", lw=0.8)
             ax2.set_ylabel("band (median " + (res.band_variable or "").split(" ")[0] + ")")
-        ax2.set_xlabel("frequency, Hz")
+            ax2.set_xlabel("frequency, Hz")
+        else:
+            ax2.set_axis_off()
+            ax2.text(0.5, 0.5, f"{B} throttle band{'s' if B != 1 else ''}: no band x frequency map",
+                     ha="center", va="center", transform=ax2.transAxes, color="0.4")
     fig.suptitle(title or "vibration")
     from .recording import atomic_open
 
