@@ -705,6 +705,14 @@ class Calibrator:
             f"no reference rates: fitted against rate 0 on {int(m.sum())} still samples "
             f"({100.0 * m.mean():.0f} % of the file); Earth rate is absorbed in the bias"
         )
+        rate_effects = [e for e in self.effects if {"omega", "alpha"} & set(E.resolve(e).inputs)]
+        if rate_effects:
+            # against rate 0 their regressors are zero: say what would excite them (a multi-pose
+            # session such as IMU-TK's turns between poses without a rate reference)
+            notes.append(
+                f"{', '.join(rate_effects)} need a reference for the motion: reference rates (ref_*_rad_s), a "
+                "reference attitude (ref_q*), or known rotations (--segments); the turns between static poses "
+                "are not used (their gravity directions are not a gyro reference here)")
         return np.zeros((rec.n, 3)), m.astype(float), "still", notes
 
     def _fit_lsq(self, rec: Recording, common: dict, *, store=None) -> CalibrationResult:

@@ -54,3 +54,19 @@ def test_batch_calibrate_equals_the_single_file_command(broad05, tmp_path):
     for i, a in enumerate("xyz"):
         assert row[f"scale.s_{a}"] == pytest.approx(single.params["scale"]["s"][i], rel=1e-6, abs=1e-9)
         assert row[f"scale.s_{a}_se"] == pytest.approx(single.stderr["scale"]["s"][i], rel=1e-6)
+
+
+def test_rate_effects_without_a_motion_reference_say_what_would_excite_them():
+    """IMU-TK's multi-pose session (turns between poses, no rate or attitude reference) gave
+    "scale.s[0]: regressor is zero in the data (no excitation)" and nothing on why: the fit is
+    against rate 0 on the still parts; the note now names the references that would do."""
+    from gyrocore.recording import Recording
+
+    rng = np.random.default_rng(3)
+    t = np.arange(2000) / 100.0
+    rec = Recording(t_s=t, gyro_rad_s=0.01 + rng.normal(0, 1e-3, (t.size, 3)), meta={})
+    res = Calibrator(effects=["bias", "scale"]).fit(rec)
+    assert res.method == "still" and len(res.unobservable) == 3
+    assert any("scale need a reference for the motion" in n and "--segments" in n for n in res.notes), res.notes
+    only_bias = Calibrator(effects=["bias"]).fit(rec)
+    assert not any("reference for the motion" in n for n in only_bias.notes)
