@@ -318,6 +318,9 @@ def _sniff_file(path: str) -> None:
         head = fh.read(8192)
     if head.startswith(b"\x89HDF") or head.startswith(b"ULog") or head.startswith(b"MATLAB"):
         raise GyroInputError(f"{path}: binary file (HDF5/MATLAB/ULog); convert it first: gyroharness convert {path} -o OUT.csv")
+    if head.startswith(b"H Product:Blackbox") or head.startswith(b"\xa3\x95\x80"):
+        kind = "blackbox log" if head.startswith(b"H") else "ArduPilot DataFlash log"
+        raise GyroInputError(f"{path}: {kind}, not a data file; convert it first: gyroharness convert {path} -o OUT.csv")
     if b"\x00" in head:
         raise GyroInputError(f"{path}: binary file, expected a CSV data file")
     try:
