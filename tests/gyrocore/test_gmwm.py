@@ -326,7 +326,7 @@ def test_arw_interval_with_quantization_at_1khz_covers():
 def test_ramp_must_reject_the_random_walk_world():
     """Round 4: R (rate ramp) against K (rate random walk), equal penalties. An Allan variance
     halfway between N + K and the N + R fit to it (noise-free blend, 1 h at 100 Hz) has R
-    selected by a hair; R is claimed only when the K world is rejected at 5 %, which a blend
+    selected by a hair; R is claimed only when the K world is rejected (round 4: at 5 %), which a blend
     cannot do, so the random walk stands in its place (K reported, R null). Before round 4 R
     was claimed here (the study: R for a true K on 8–12 % of the 1-h axes). A pure ramp world
     (the N + R fit itself) is still reported as R."""
@@ -339,10 +339,28 @@ def test_ramp_must_reject_the_random_walk_world():
     assert f.terms["rate_ramp_rad_s2"] is None and f.terms["rrw_rad_per_s_sqrt_s"] is not None
     f0 = G.fit_noise(m / RATE, r_world, m, n)
     assert f0.terms["rate_ramp_rad_s2"] is not None and f0.terms["rrw_rad_per_s_sqrt_s"] is None
-    # the rule: a ramp claimed for a true K only when the K world is rejected (level 5 %), so
-    # K's margin against R is at least z_0.95 — the R stand-in alone no longer caps it at ≈ 1.3
+    # the rule: a ramp claimed for a true K only when the K world is rejected (level ALPHA_RAMP),
+    # so K's margin against R is at least z_{1−α} — the R stand-in alone no longer caps it at ≈ 1.3
     z_k = G.expected_z({"arw_rad_per_sqrt_s": 1e-4, "rrw_rad_per_s_sqrt_s": 2e-6}, n_samples=n, rate_hz=RATE)
     assert z_k["rrw_rad_per_s_sqrt_s"] >= G.Z_POWER
+
+
+def test_ramp_claimed_at_the_level_of_every_claim():
+    """Round 5: the R-against-K check at the level α = 1 % of every other claim (ALPHA_RAMP), not
+    5 %. Noise-free Allan variance 3/4 of the way from N + K (1 h, 100 Hz) to the N + R fit to it:
+    R is selected and its check statistic z = (λ − D)/(2√λ) is 2.01, between z₀.₉₅ = 1.645 (R
+    claimed in round 4, a 5 % false ramp per cell) and z₀.₉₉ = 2.33: now the random walk stands in
+    (K reported, R null). The pure ramp world (z = 3.2) is still reported as a ramp; the rule's
+    margin of K against R is at least z₀.₉₉."""
+    n = 360000
+    m = G.scales(n)
+    k_world = G.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 4e-12, 0, 0])
+    r_world = G.fit_noise(m / RATE, k_world, m, n, candidates=("arw_rad_per_sqrt_s", "rate_ramp_rad_s2")).fit_avar
+    f = G.fit_noise(m / RATE, 0.25 * k_world + 0.75 * r_world, m, n)
+    assert f.terms["rate_ramp_rad_s2"] is None and f.terms["rrw_rad_per_s_sqrt_s"] is not None, f.selected
+    f1 = G.fit_noise(m / RATE, r_world, m, n)
+    assert f1.terms["rate_ramp_rad_s2"] is not None and f1.terms["rrw_rad_per_s_sqrt_s"] is None
+    assert G.ALPHA_RAMP == G.ALPHA
 
 
 def test_interval_robust_to_an_omitted_confounder(monkeypatch):
