@@ -101,8 +101,14 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
     by = {r["family"]: r for r in rows}
     # PX4 / ArduPilot: their LPF is a 2nd-order Butterworth; best cutoff under the same budget
     b2 = []
-    for fc in P.CUTOFF_GRID_HZ + (20.0, 30.0):
-        c = P.Candidate(f"butter2 {fc:g} Hz", (P._stage("butter2", fc, rate),), family="butter2", lowpass="butter2", cutoff_hz=fc)
+    # the grid, plus the flown 2nd-order Butterworth cutoff (ArduPilot INS_GYRO_FILTER, PX4
+    # IMU_GYRO_CUTOFF): without it an ArduPilot log whose own 42 Hz was best was told "40"
+    # (at the flown stage's own rate, the same chain as the "as flown" row)
+    flown_b2 = {float(st["cutoff_hz"]): st for st in (as_flown or [])
+                if st.get("kind") == "butter2" and not st.get("dynamic") and st.get("cutoff_hz")}
+    for fc in sorted(set(P.CUTOFF_GRID_HZ + (20.0, 30.0)) | set(flown_b2)):
+        st = P._stage("butter2", fc, float(flown_b2[fc].get("rate_hz") or rate)) if fc in flown_b2 else P._stage("butter2", fc, rate)
+        c = P.Candidate(f"butter2 {fc:g} Hz", (st,), family="butter2", lowpass="butter2", cutoff_hz=fc)
         b2.append(P.preview(res.f_hz, res.mean_psd, c, reliable_below_hz=res.reliable_below_hz, omega_rms_rad_s=omega_rms,
                             loop_scale=loop_scale, lines=res.lines))
     ok = [r for r in b2 if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(b2, key=lambda r: r["motor_noise"])]

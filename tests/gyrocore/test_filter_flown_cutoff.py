@@ -1,0 +1,28 @@
+"""`filter` on an ArduPilot log: the PX4/ArduPilot low-pass line keeps the flown cutoff when it is best.
+
+The ArduCopter 4.5.7 fixture flew INS_GYRO_FILTER 42 Hz (2nd-order Butterworth at 6406 Hz) and
+`filter` recommended "as flown", yet printed "ardupilot: INS_GYRO_FILTER 40": the Butterworth
+grid (…, 40, 45, …) had no 42 Hz, so its best under the same motor-noise budget was 40 Hz, at a
+larger attitude cost than the flown chain (0.0538 vs 0.0512 deg). The flown cutoff is now a
+candidate of that grid, at the flown stage's rate (the same chain as the "as flown" row).
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+from gyrocore.commands.filter import run_filter
+from gyrocore.dataflash import read_dataflash
+
+LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
+
+
+def test_ardupilot_lowpass_line_keeps_the_flown_cutoff():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = read_dataflash(LOG, stream="batch")
+        out = run_filter(rec, window_s=0.15)
+    assert out["recommended"]["name"] == "as flown"
+    assert out["firmware"]["ardupilot"]["INS_GYRO_FILTER"] == 42
+    assert out["px4_ardupilot_lowpass"]["attitude_cost"] <= out["as_flown"]["attitude_cost"] * (1 + 1e-9)
