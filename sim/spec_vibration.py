@@ -92,7 +92,19 @@ def rotor_line(spec: dict, band="middle") -> RotorLine:
     cands = [ln for ln in lines if ln.get("follows") in ("throttle", "erpm") and not ln.get("aliased")
              and ln.get("harmonic") in (None, 1)]
     if not cands:
-        raise GyroInputError("vibration spec has no line that follows throttle or eRPM (no rotor line to put into the physics)")
+        bands = [b for b in (spec.get("bands") or []) if len(b.get("throttle") or ()) == 2]
+        why = ""
+        if bands:
+            lo = min(float(b["throttle"][0]) for b in bands)
+            hi = max(float(b["throttle"][1]) for b in bands)
+            erpm = any("rotor_hz_median" in b for b in bands)
+            why = (f": its {len(bands)} band(s) span motor command {lo:.2f}-{hi:.2f}"
+                   + ("" if erpm else " and the log has no rotor speed (eRPM)")
+                   + ("; a flight that holds one throttle (a hover) gives no throttle law: use a log with "
+                      "throttle changes" + ("" if erpm else " or with eRPM (bidirectional DShot telemetry)")
+                      if hi - lo < 0.2 else ""))
+        raise GyroInputError("vibration spec has no line that follows throttle or eRPM (no rotor line to put into "
+                             "the physics)" + why)
     main = max(cands, key=lambda ln: ln["amplitude_rad_s"])
     own = {p["band"]: p for p in main.get("per_band", [])}
     if i in own:
