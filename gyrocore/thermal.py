@@ -197,5 +197,10 @@ def write_px4_params(path, params: Mapping[str, Mapping[str, np.ndarray]], *, ov
             lines.append(f"1\t1\t{k}\t{v:.9g}\t9")
     if "scale_thermal" in params:
         lines.insert(2, "# NOTE: the fitted scale_thermal has no PX4 parameter and is not exported.")
+    if not int(p[f"TC_G{options.get('instance', 0)}_ID"]):
+        # PX4's TemperatureCompensation::set_sensor_id_gyro applies slot i only to the gyro whose
+        # device id equals TC_G<i>_ID: 0 matches none, the set would be loaded and never used
+        lines.insert(2, f"# NOTE: TC_G{options.get('instance', 0)}_ID is 0 and matches no gyro: set it to your gyro's "
+                        "device id (CAL_GYRO0_ID) or PX4 will not apply this set.")
     atomic_write_text(path, "\n".join(lines) + "\n", overwrite=overwrite)
     return p

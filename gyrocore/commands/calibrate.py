@@ -136,11 +136,14 @@ def _read_any(path: str):
               help="leave out samples within this time of a reference-rate change (the gyro filter's transient)")
 @click.option("--px4-params", type=click.Path(dir_okay=False), default=None,
               help="also write PX4 TC_G0_* thermal parameters (QGC .params) — needs bias_thermal")
+@click.option("--px4-device-id", type=click.IntRange(min=1), default=None,
+              help="with --px4-params: TC_G0_ID, the gyro's PX4 device id (CAL_GYRO0_ID in the vehicle's parameters); "
+                   "PX4 applies the TC_G0 set only to the gyro with that id")
 @click.option("--sensor", default=None, help="sensor name for the parameter file (default: file metadata)")
 @click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
 def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, angle_sigma_deg, axis_sigma_deg,
-            thermal_order, covariance, ramp_margin_s, px4_params, sensor, force, as_json):
+            thermal_order, covariance, ramp_margin_s, px4_params, px4_device_id, sensor, force, as_json):
     """Fit the named effects against the references in FILE (reference rates, a reference
     attitude, known-angle segments, or still parts) and write the parameter file."""
     from ..effects import check_effect_names
@@ -157,6 +160,8 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
             thermal_order = int(thermal_order)
         except ValueError:
             raise GyroInputError(f"--thermal-order must be auto or 1..3, got {thermal_order!r}") from None
+    if px4_device_id is not None and not px4_params:
+        raise GyroInputError("--px4-device-id goes with --px4-params")
     if px4_params and "bias_thermal" not in names:
         raise GyroInputError("--px4-params needs bias_thermal among the effects (PX4 TC_G is a bias polynomial of temperature)")
     if (bias_from or bias_dps) and not segments:
@@ -175,7 +180,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
             store = spill_columns(file, tmp, accel=True, groups=("temp", "ref_rate"))
             res = cal.fit_spilled(store, source_path=file)
         _warn_unobservable(res)
-        _write_and_report(res, output, px4_params, as_json)
+        _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
         return
     rec = _read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
     # (a reference attitude and no reference rate: Calibrator.fit fits against the attitude)
@@ -195,7 +200,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
             "(±2-5 deg over 360-720 deg, 0.3-1.4 %) is far less certain than the scale SEs above: give "
             "--angle-sigma-deg/--axis-sigma-deg to include it",))
     _warn_unobservable(res)
-    _write_and_report(res, output, px4_params, as_json)
+    _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
 
 
 #: Data files of more rows than this are calibrated from disk, a window at a time
@@ -244,7 +249,7 @@ def _warn_unobservable(res) -> None:
         )
 
 
-def _write_and_report(res, output, px4_params, as_json: bool) -> None:
+def _write_and_report(res, output, px4_params, as_json: bool, *, px4_device_id: int | None = None) -> None:
     """Write the parameter file (and PX4 TC_G parameters), then print the report or the JSON."""
     from ..model import result_to_dict, save_params
 
@@ -252,7 +257,11 @@ def _write_and_report(res, output, px4_params, as_json: bool) -> None:
     if px4_params:
         from ..thermal import write_px4_params
 
-        write_px4_params(px4_params, res.params, overwrite=True)
+        write_px4_params(px4_params, res.params, overwrite=True, device_id=px4_device_id or 0)
+        if not px4_device_id:
+            warnings.warn(f"{px4_params}: TC_G0_ID is 0, which matches no gyro: PX4 will not apply these parameters "
+                          "until TC_G0_ID is your gyro's device id (CAL_GYRO0_ID; or calibrate --px4-device-id ID)",
+                          UserWarning, stacklevel=2)
     if as_json:
         emit_json(result_to_dict(res))
     else:
