@@ -653,6 +653,66 @@ def _robust_ends(i, sub, fits, c, var, lo, hi, cand, m, rate_hz, method, tc_s):
     return lo, hi
 
 
+#: helper indep: the upper bound of an unselected term from the profile of the selection's own
+#: log-space statistic (see :func:`_upper_profile`) instead of the Wald end at the fit
+UPPER_PROFILE = True
+#: χ²₁ at 0.95: the end of a two-sided 95 % profile interval (one-sided 97.5 %)
+_CHI2_95 = float(scipy.stats.chi2.ppf(0.95, 1))
+
+
+def _upper_profile(i, s2, cf2, tc, hi_wald, m, rate_hz, avar, L2, W_log, bias_log, method) -> float:
+    """Upper end of an unselected term i: the profile bound of the log-space generalised χ².
+
+    The Wald end ĉ + 1.96·se takes se from the model at the estimate, where the term is ≈ 0
+    (often pinned at 0 by the non-negativity): its own share of the variance of the long-τ
+    octaves it would dominate is missing, so se is too small — an unresolved flicker floor of a
+    BMI088-like sensor (2 h, B = 1.46e-5 rad/s, N = 2.44e-4 rad/√s) got upper ends
+    1.07–1.41e-5 on 4 of 12 axes, and the study's unresolved terms covered 75–88 % in several
+    cells.  Evaluating se at the bound instead (Wilson's construction) has no finite end where
+    the octaves that carry the term have edf < 8 (h − ĉ ≤ 1.96·h·√(2/ν) for every h): the
+    normal form of σ̂² fails there, not the data.  The statistic the selection already uses —
+    log σ̂² with E = log σ² + ψ(ν/2) − log(ν/2), Var = ψ′(ν/2), near-normal at any edf — gives
+    the bound as a profile-likelihood end: the largest h with
+    χ²_log(term fixed at h, the other terms of the model refitted) − min ≤ χ²₁,₀.₉₅ = 3.84.
+    Refits: NNLS on avar − h·A_i with the enlarged model's whitening (the GM's τc held at its
+    fit); h on a geometric grid (≈ ×2^(1/4)) from the Wald end/16 to 256× the level at which the
+    term alone reaches the data at some octave, the end interpolated in log h; no end on the
+    grid → ∞ (the record does not bound the term).
+    """
+    A_all = term_avar(m, rate_hz, method=method, tau_c_s=tc)
+    others = [j for j in s2 if j != i]
+    Ao = A_all[:, others]
+    ai = A_all[:, i]
+
+    def stat(h: float) -> float:
+        c, _ = _nnls_gls(Ao, avar - h * ai, L2)
+        return _log_chi2(avar, Ao @ c + h * ai, W_log, bias_log)
+
+    c0 = max(float(cf2[i]), 0.0)
+    pos = ai > 0
+    if not np.any(pos):
+        return hi_wald
+    # the level at which the term alone reaches the data at some octave: the bound cannot lie
+    # far above it (the term alone would exceed the data at every octave it shapes)
+    h_ref = float(np.max(avar[pos] / ai[pos]))
+    lo_h = max(min(hi_wald if math.isfinite(hi_wald) else h_ref, h_ref), c0, h_ref * 1e-12) / 16.0
+    hi_h = h_ref * 256.0
+    steps = int(min(240, max(8, math.ceil(4.0 * math.log2(hi_h / lo_h)))))
+    grid = np.geomspace(lo_h, hi_h, steps + 1)
+    grid = np.concatenate([[c0], grid[grid > c0]])
+    vals = np.array([stat(float(h)) for h in grid])
+    k0 = int(np.argmin(vals))
+    base = float(vals[k0])
+    for k in range(k0 + 1, grid.size):
+        if vals[k] - base >= _CHI2_95:
+            h0, h1, v0, v1 = grid[k - 1], grid[k], vals[k - 1] - base, vals[k] - base
+            if h0 <= 0:
+                return float(h1)
+            w = (_CHI2_95 - v0) / (v1 - v0)
+            return float(math.exp(math.log(h0) + w * (math.log(h1) - math.log(h0))))
+    return float("inf")
+
+
 def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: int, *,
               method: str = "gmwm", iterations: int = 3,
               candidates: Sequence[str] | None = None) -> NoiseFit:
@@ -824,7 +884,11 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
                     var = float(cv[s2.index(i), s2.index(i)])
                 except np.linalg.LinAlgError:
                     var = float("inf")
-                his.append(_interval(float(cf2[i]), var, pivot=False)[2])
+                hi_ = _interval(float(cf2[i]), var, pivot=False)[2]
+                if UPPER_PROFILE:
+                    hi_ = _upper_profile(i, s2, cf2, tc_2 if tc_2 else (tc_s if i == 5 else None), hi_, m,
+                                         rate_hz, avar, fits[s2][4], W_log, bias_log, method)
+                his.append(hi_)
             hi = max(his)
             tc2 = fits[sub2][1]
         else:
