@@ -119,6 +119,28 @@ class StaticBiasResult:
 
 
 # ---------------------------------------------------------------------------- pure helpers
+def _refuse_constant(noise: tuple[np.ndarray, np.ndarray], x: np.ndarray | None = None):
+    """Pass ``(sigma_diff, rho)`` through, or one error line when a gyro axis never changes.
+
+    An axis with σ_Δ = 0 holds one value over the whole record: its output is quantized more
+    coarsely than its noise (INAV logs gyroADC, after a 30-Hz low-pass, rounded to 1 deg/s: a
+    quad at rest reads exactly 0 on every axis). No gate, noise or bias standard error can be
+    derived from it (the gate divided by σ² = 0: a ZeroDivisionError traceback in ``noise``,
+    "motion detected throughout ... threshold [nan nan nan]" in ``bias``).
+    """
+    sigma_diff = np.asarray(noise[0], float)
+    flat = [i for i in range(min(3, sigma_diff.size)) if not sigma_diff[i] > 0]
+    if flat:
+        vals = ""
+        if x is not None:
+            vals = " (" + ", ".join(f"{'xyz'[i]} = {float(x[0, i]):.6g} rad/s" for i in flat) + ")"
+        raise GyroInputError(
+            f"gyro axis {', '.join('xyz'[i] for i in flat)} never changes over the record{vals}: its output is "
+            "quantized more coarsely than its noise (e.g. a filtered gyro rounded to 1 deg/s), so no noise, gate or "
+            "bias error can be measured from this record (a finer output is needed)")
+    return noise
+
+
 def robust_diff_noise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Robust σ_Δ (std of first differences) and ρ = corr(Δ_k, Δ_k+1) per column.
 
@@ -475,7 +497,7 @@ class StaticBiasCalibrator:
             if not np.all(s > 0):
                 raise GyroInputError("noise_sigma_rad_s must be positive")
             return s * math.sqrt(2.0), np.full(3, -0.5)
-        return robust_diff_noise(x)
+        return _refuse_constant(robust_diff_noise(x), x)
 
     def gate(self, n: int, sigma_diff: np.ndarray, rho: np.ndarray, dt_s: float, *,
              sigma2: np.ndarray | None = None, dof: np.ndarray | None = None):
@@ -596,7 +618,7 @@ class StaticBiasCalibrator:
         def noise():
             if self.noise_sigma_rad_s is not None:
                 return self._noise(None)
-            return _robust_diff_noise_columns(store)
+            return _refuse_constant(_robust_diff_noise_columns(store))
 
         return self._fit(head, store.n, rate, noise, lambda n: (SpilledWindows(store, n),) * 2)
 
