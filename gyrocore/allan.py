@@ -494,6 +494,20 @@ class AllanResult:
     #: terms of the fitted model (``estimate``) not resolved because a stand-in with a higher
     #: penalty fits as well: {term: stand-in} (``gmwm`` only, issue 11 round 2)
     ambiguous: Mapping[str, str] = field(default_factory=dict)
+    #: deviation of the sum of the REPORTED terms (unresolved ones left out), rad/s, at ``taus_s``
+    #: (round 5; ``fit_adev_rad_s`` is the selected fit, stand-ins included)
+    reported_adev_rad_s: np.ndarray | None = None
+    #: shortest τ of the fit, s: shorter τ are shaped by the sensor's low-pass and not fitted
+    #: (:func:`gyrocore.gmwm.bandwidth_start`)
+    fit_from_tau_s: float = float("nan")
+    #: goodness of fit of the selected model on the fitted scales (:func:`gyrocore.gmwm.goodness_of_fit`):
+    #: ok, p_value, stat, dof, misses (points outside their 95 % interval), points, p_misses, z
+    fit_check: Mapping[str, object] = field(default_factory=dict)
+
+    @property
+    def fit_ok(self) -> bool | None:
+        """Does the selected model fit the measured Allan variance (None: not checked)?"""
+        return self.fit_check.get("ok") if self.fit_check else None
 
     def terms(self) -> dict[str, float | None]:
         """The five IEEE terms as DESIGN.md's JSON dict (None = unresolved)."""
@@ -514,6 +528,10 @@ class AllanResult:
         out["chi2"] = self.chi2
         out["dof"] = self.dof
         out["ambiguous"] = dict(self.ambiguous)
+        if self.fit_check:
+            out["fit_ok"] = bool(self.fit_check["ok"])
+            out["fit_check"] = {k: v for k, v in self.fit_check.items() if k != "z"} | {
+                "fitted_from_tau_s": self.fit_from_tau_s}
         out["curve"] = {
             "taus_s": self.taus_s,
             "adev_rad_s": self.adev_rad_s,
@@ -521,6 +539,10 @@ class AllanResult:
             "edf": self.edf,
             "fit_adev_rad_s": self.fit_adev_rad_s,
         }
+        if self.reported_adev_rad_s is not None:
+            out["curve"]["reported_adev_rad_s"] = self.reported_adev_rad_s
+        if self.fit_check:
+            out["curve"]["fit_z"] = list(self.fit_check["z"])
         return out
 
 
@@ -661,8 +683,33 @@ def _axis_result(
     if method != "adev_legacy":
         from . import gmwm
 
-        f = gmwm.fit_noise(taus, dev**2, m, int(omega.shape[0]), method=method)
+        n = int(omega.shape[0])
+        avar = dev**2
+        # round 5: the octaves shaped by the sensor's low-pass are left out of the fit
+        k0 = gmwm.bandwidth_start(avar, m, n, rate_hz)
+        f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=method)
+        sel = [gmwm.LINEAR.index(k) for k in f.selected]
+        chk = gmwm.goodness_of_fit(avar[k0:], f.fit_avar, f.cov, f.edf, gmwm._n_params(f.coef, f.tau_c_s, sel))
+        fit_all = gmwm.term_avar(m, rate_hz, method=method, tau_c_s=f.tau_c_s) @ f.coef
         edf = f.edf
+        if k0:
+            edf = gmwm.avar_covariance(m, n, rate_hz, f.coef, f.tau_c_s, np.where(fit_all > 0, fit_all, avar),
+                                       method=method)[1]
+            warn_repair(f"{signal} axis {axis}: the Allan variance below tau = {taus[k0]:.3g} s is shaped by the sensor's "
+                        f"low-pass (over the first octave it falls to {avar[1] / avar[0]:.2f} of its value; white noise: 0.5): "
+                        f"the noise model is fitted from tau = {taus[k0]:.3g} s")
+        # the sum of what is reported: unresolved terms (null, bounds only) left out
+        c_rep = np.array(f.coef, float).copy()
+        for i, name in enumerate(gmwm.LINEAR):
+            if f.terms.get(name) is None:
+                c_rep[i] = 0.0
+        rep_all = gmwm.term_avar(m, rate_hz, method=method, tau_c_s=f.tau_c_s) @ c_rep
+        if not chk.ok:
+            j = int(np.argmax(np.abs(chk.z)))
+            warn_repair(f"{signal} axis {axis}: the fitted noise model does not fit its Allan variance (goodness of fit "
+                        f"p = {chk.p_value:.2g}; {chk.misses} of {chk.z.size} points outside their 95 % interval, worst "
+                        f"at tau = {taus[k0 + j]:.3g} s, {math.sqrt(avar[k0 + j] / f.fit_avar[j]):.2g}x the fitted "
+                        "deviation): its terms are not to be trusted")
         lo_q = scipy.stats.chi2.ppf(0.025, edf)
         hi_q = scipy.stats.chi2.ppf(0.975, edf)
         ci_dev = np.column_stack([dev * np.sqrt(edf / hi_q), dev * np.sqrt(edf / lo_q)])
@@ -673,9 +720,14 @@ def _axis_result(
         resolved = {k: terms[k] is not None for k in names}
         return AllanResult(
             axis=axis, signal=signal, taus_s=taus, adev_rad_s=dev, adev_ci95_rad_s=ci_dev, edf=edf,
-            fit_adev_rad_s=np.sqrt(np.maximum(f.fit_avar, 0.0)), estimate=est, ci95=ci, rate_hz=rate_hz,
+            fit_adev_rad_s=np.sqrt(np.maximum(fit_all, 0.0)), estimate=est, ci95=ci, rate_hz=rate_hz,
             n_samples=int(omega.shape[0]), method=method, resolved=resolved, chi2=f.chi2, dof=f.dof,
-            ambiguous=dict(f.ambiguous), **terms,
+            ambiguous=dict(f.ambiguous), reported_adev_rad_s=np.sqrt(np.maximum(rep_all, 0.0)),
+            fit_from_tau_s=float(taus[k0]),
+            fit_check={"ok": chk.ok, "p_value": chk.p_value, "stat": chk.stat, "dof": chk.dof,
+                       "misses": chk.misses, "points": int(chk.z.size), "p_misses": chk.p_misses,
+                       "z": [float(v) for v in chk.z]},
+            **terms,
         )
     fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
     lo_q = scipy.stats.chi2.ppf(0.025, fit.edf)

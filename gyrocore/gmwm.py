@@ -523,6 +523,9 @@ def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3, 
     return coef_, tc_, C_, edf_, Lw, chi2, chi2 + 2.0 * float(np.sum(np.log(np.diag(Lc))))
 
 
+#: round 5: subsets the goodness-of-fit test rejects are no candidates (unless all are), and a
+#: term whose removal is rejected by it is not dropped by the Wald step
+GOF_SCREEN = True
 #: upper bounds of unselected terms from the enlarged model's own iterated fit (round 2)
 UPPER_OWN_WEIGHTS = True
 #: switch of the stand-in check (:func:`_ambiguous`); False only to reproduce the study's "before"
@@ -776,12 +779,19 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     W_log, bias_log = _log_weights(fits[full][2], fits[full][3])
     best = None
     lchi2 = {}
+    # round 5: a subset the data reject (goodness of fit, :func:`goodness_of_fit`, below
+    # ALPHA_GOF) is no candidate when some subset is not rejected. The log-space χ² underrates a
+    # long-τ point far above the model (thin upper tail of log χ²_ν at ν ≈ 2–6)
+    rejected = {s_: not _fit_check(fits[s_], s_, avar, m, rate_hz, method).ok for s_ in subsets} if GOF_SCREEN else {}
+    screen = GOF_SCREEN and not all(rejected[s_] for s_ in subsets if not np.any(fits[s_][0][list(s_)] <= 0))
     for sub in subsets:
         res = fits[sub]
         mod = term_avar(m, rate_hz, method=method, tau_c_s=res[1]) @ res[0]
         lchi2[sub] = _log_chi2(avar, mod, W_log, bias_log)
         if np.any(res[0][list(sub)] <= 0):
             continue  # a term pinned at zero: the same model as a smaller subset
+        if screen and rejected[sub]:
+            continue
         crit = lchi2[sub] + _penalty(sub)
         if best is None or crit < best[0]:
             best = (crit, sub)
@@ -812,6 +822,8 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
                 continue
             smaller = tuple(k for k in sub if k != i)
             pen_i = _PEN_GM if i == 5 else _PEN_LINEAR
+            if screen and rejected.get(smaller, False) and not rejected[sub]:
+                continue  # round 5: its removal is rejected by the data — not marginal evidence
             if smaller in lchi2 and lchi2[smaller] - lchi2[sub] < 2.0 * pen_i:
                 zw[i] = coef_s[i] / math.sqrt(cov_p[j, j]) if cov_p[j, j] > 0 else float("inf")
         if not zw:
@@ -1107,3 +1119,139 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                 margin = min(margin, 0.0)
         out[LINEAR[i]] = margin
     return out
+
+
+# ---------------------------------------------------------------------------- goodness of fit (round 5)
+#: level of the goodness-of-fit test of the selected model (``fit_ok`` false below it)
+ALPHA_GOF = 0.01
+#: one-sided level of the test that the shortest scales are shaped by the sensor's low-pass
+#: (anti-aliasing/DLPF, integration): a white-noise octave pair whose Allan variance falls by
+#: significantly less than the factor 2 of white rate noise (white angle noise only steepens it)
+ALPHA_BANDWIDTH = 0.001
+
+
+@dataclass(frozen=True, eq=False)
+class FitCheck:
+    """Goodness of fit of a fitted Allan variance against the measured one (round 5).
+
+    Attributes
+    ----------
+    stat : float
+        zᵀR⁻¹z with z_j = Φ⁻¹(F_{χ²(ν_j)}(ν_j σ̂²_j / σ²_j)) (probability-integral transform of
+        each point with its exact chi-square law, ν_j the model's EDF) and R the model
+        correlation between scales; ≈ χ²(dof) when the model holds.
+    dof : int
+        Scales fitted minus free parameters (positive coefficients, and τc).
+    p_value : float
+        P(χ²(dof) ≥ stat).
+    z : ndarray (M,)
+        Per-scale normal scores (positive: the data above the model).
+    misses : int
+        Scales outside their 95 % chi-square interval (|z| > 1.96).
+    p_misses : float
+        P(Binomial(M, 0.05) ≥ misses) — the per-point view of the same question (points are
+        correlated, so this is indicative; ``p_value`` is the test).
+    ok : bool
+        ``p_value ≥`` :data:`ALPHA_GOF`.
+    """
+
+    stat: float
+    dof: int
+    p_value: float
+    z: np.ndarray
+    misses: int
+    p_misses: float
+    ok: bool
+
+
+def _pit_z(avar: np.ndarray, model: np.ndarray, edf: np.ndarray) -> np.ndarray:
+    """Normal scores of σ̂²_j under σ̂²_j ~ σ²_j χ²_ν/ν (each tail from its own side: exact far out)."""
+    x = np.asarray(edf, float) * np.asarray(avar, float) / np.maximum(np.asarray(model, float), np.finfo(float).tiny)
+    lo = scipy.stats.chi2.cdf(x, edf)
+    hi = scipy.stats.chi2.sf(x, edf)
+    with np.errstate(divide="ignore"):
+        z = np.where(lo < hi, scipy.stats.norm.ppf(lo), scipy.stats.norm.isf(hi))
+    return np.clip(z, -37.0, 37.0)
+
+
+def goodness_of_fit(avar: np.ndarray, model: np.ndarray, cov: np.ndarray, edf: np.ndarray,
+                    n_params: int) -> FitCheck:
+    """Is the measured Allan variance consistent with the fitted model? (round 5)
+
+    Why not the selection's log-space χ²: log σ̂² with ν ≈ 2–6 (the last octaves) has a thin
+    upper tail, so a model 50× below a long-τ point (tomisuarez2 y, N alone) scored z ≈ 2.8 there;
+    its exact chi-square tail puts it beyond z = 10. The probability-integral transform keeps each
+    point's exact marginal law and the Gaussian-copula correlation of the model (as the
+    simulations of :func:`expected_z`), so zᵀR⁻¹z ≈ χ²(M − p) under the model (p fitted
+    parameters; the selection, which picks the best-fitting subset, only makes it conservative).
+
+    Parameters
+    ----------
+    avar, model : ndarray (M,)
+        Measured and fitted Allan variance, (rad/s)².
+    cov : ndarray (M, M)
+        Model covariance of the estimates (:func:`avar_covariance`); only its correlation is used.
+    edf : ndarray (M,)
+        EDF of each scale under the model.
+    n_params : int
+        Free parameters of the fit.
+    """
+    z = _pit_z(avar, model, edf)
+    d = np.sqrt(np.diag(cov))
+    R = cov / np.outer(d, d)
+    stat = float(z @ np.linalg.solve(R, z))
+    dof = max(int(z.size - n_params), 1)
+    p = float(scipy.stats.chi2.sf(stat, dof))
+    misses = int(np.sum(np.abs(z) > _Z95))
+    p_m = float(scipy.stats.binom.sf(misses - 1, z.size, 0.05)) if misses else 1.0
+    return FitCheck(stat=stat, dof=dof, p_value=p, z=z, misses=misses, p_misses=p_m, ok=bool(p >= ALPHA_GOF))
+
+
+def _n_params(coef: np.ndarray, tc: float | None, sub: Sequence[int]) -> int:
+    return int(sum(1 for i in sub if coef[i] > 0) + (1 if (5 in sub and tc and coef[5] > 0) else 0))
+
+
+def _fit_check(fit_entry, sub, avar, m, rate_hz, method) -> FitCheck:
+    """:func:`goodness_of_fit` of one stored subset fit (coef, τc, C, edf, …) of ``fit_noise``."""
+    coef_, tc_, C_, edf_ = fit_entry[:4]
+    mod = term_avar(m, rate_hz, method=method, tau_c_s=tc_) @ coef_
+    return goodness_of_fit(avar, mod, C_, edf_, _n_params(coef_, tc_, sub))
+
+
+def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: float) -> int:
+    """Index of the first scale above the sensor's low-pass (0 when none is seen). (round 5)
+
+    A gyro's output is low-pass filtered (digital LPF, anti-aliasing, integration over the
+    output interval). Below a few filter time constants its Allan variance falls by less than
+    the factor 2 per octave of white rate noise (a first-order filter of time constant τf:
+    σ²(τ) ≈ N²/τ · (1 − 1.5 τf/τ)); none of the model's terms has that shape — white angle
+    noise Q steepens the fall, the long-τ terms are negligible at the sample scale — so a fit
+    over those octaves is misspecified where the EDF is largest (PX4 sample.ulg at 250 Hz:
+    σ̂²(8 ms)/σ̂²(4 ms) = 0.99; the fit took a flicker floor of 5e-4 rad/s for it and
+    reported N at a quarter of its value).
+
+    Test of octave pair (m_k, m_{k+1}): d = log(σ̂²_{k+1}/σ̂²_k) − log(white ratio m_k/m_{k+1}),
+    Var d = 2/ν_k + 2/ν_{k+1} − 4ρ/√(ν_kν_{k+1}) with the white-noise EDF and correlation;
+    low-pass when d > z_{1−α}·sd (α = :data:`ALPHA_BANDWIDTH`, one-sided). Starting at the
+    first pair, the fit starts at the first pair that is not flagged (at most all but 6
+    scales are cut). On white noise the first pair is flagged with probability α.
+    """
+    avar = np.asarray(avar, float)
+    m = np.asarray(m, np.int64)
+    if m.size < 8:
+        return 0
+    coef = np.zeros(6)
+    coef[1] = float(avar[0]) * m[0] / rate_hz  # white level; only the shape matters
+    white = term_avar(m, rate_hz) @ coef
+    C, edf, _a = avar_covariance(m, int(n_samples), rate_hz, coef, None, white)
+    d_ = np.sqrt(np.diag(C))
+    R = C / np.outer(d_, d_)
+    z_lim = float(scipy.stats.norm.isf(ALPHA_BANDWIDTH))
+    k = 0
+    while k < m.size - 6:
+        d = math.log(avar[k + 1] / avar[k]) - math.log(white[k + 1] / white[k])
+        var = 2.0 / edf[k] + 2.0 / edf[k + 1] - 4.0 * R[k, k + 1] / math.sqrt(edf[k] * edf[k + 1])
+        if not d > z_lim * math.sqrt(max(var, 1e-300)):
+            break
+        k += 1
+    return k

@@ -43,6 +43,10 @@ def _term_adev(r, name: str, value: float, tt: np.ndarray) -> np.ndarray:
     return np.abs(_ASYMPTOTE[name][1](tt, value))
 
 
+def _label(term: str) -> str:
+    return {"correlated_sigma_rad_s": "GM", "correlated_tau_c_s": "GM"}.get(term) or _ASYMPTOTE.get(term, (term,))[0]
+
+
 def _axes(value: str) -> list[str]:
     axes = [a.strip().lower() for a in value.split(",") if a.strip()]
     bad = [a for a in axes if a not in ("x", "y", "z")]
@@ -137,9 +141,37 @@ def adev_figure(analysis):
         err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
         plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
         tt = np.geomspace(t[0], t[-1], 200)
-        plot_ax.loglog(t, r.fit_adev_rad_s, "r-", lw=1.8, label=f"fitted sum ({r.method})")
+        # round 5: the solid line is the sum of the REPORTED terms, over the fitted τ range; a
+        # stand-in that was fitted but is not reported (ambiguous) shows as the thin grey fit;
+        # unresolved terms appear only as their 95 % upper bounds (dotted)
+        t0 = r.fit_from_tau_s if np.isfinite(r.fit_from_tau_s) else t[0]
+        fitted = t >= t0 * (1 - 1e-9)
+        rep = r.reported_adev_rad_s if r.reported_adev_rad_s is not None else r.fit_adev_rad_s
+        chk = r.fit_check or {}
+        fit_note = ("" if not chk else (f"; fit p = {chk['p_value']:.2g}" if chk["ok"]
+                                         else f"; MODEL DOES NOT FIT (p = {chk['p_value']:.1g})"))
+        plot_ax.loglog(t[fitted], rep[fitted], "r-", lw=1.8, label=f"sum of reported terms ({r.method}{fit_note})")
+        if getattr(r, "ambiguous", None):
+            plot_ax.loglog(t[fitted], r.fit_adev_rad_s[fitted], "-", color="0.5", lw=1,
+                           label="selected fit incl. " + ", ".join(
+                               f"{_label(k)} (not told from {_label(v)}: unresolved)" for k, v in r.ambiguous.items()))
+        if np.any(~fitted):
+            plot_ax.axvspan(t[0] / 1.2, t0 / np.sqrt(2), color="0.6", alpha=0.15, lw=0)
+            plot_ax.loglog(t[~fitted], rep[~fitted], ":", color="r", lw=1,
+                           label=f"below tau = {t0:.2g} s: sensor low-pass, not fitted (grey)")
         lo_y = float(np.min(r.adev_ci95_rad_s[:, 0])) / 3
         hi_y = float(np.max(r.adev_ci95_rad_s[:, 1])) * 3
+        for term in ("quantization_rad", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2"):
+            if getattr(r, term) is not None or term not in r.ci95:
+                continue
+            ub = r.ci95[term][1]
+            if not (np.isfinite(ub) and ub > 0):
+                continue
+            yb = _term_adev(r, term, ub, tt)
+            keep = (yb >= lo_y) & (yb <= hi_y)
+            if np.any(keep):
+                plot_ax.loglog(tt[keep], yb[keep], ":", lw=0.9, color=_COLORS[term], alpha=0.8,
+                               label=f"{_ASYMPTOTE[term][0]} < {ub:.2g} (95 % bound, unresolved)")
         for term in ALL_TERM_NAMES:
             if term == "correlated_tau_c_s":
                 continue
