@@ -494,8 +494,9 @@ class AllanResult:
     #: terms of the fitted model (``estimate``) not resolved because a stand-in with a higher
     #: penalty fits as well: {term: stand-in} (``gmwm`` only, issue 11 round 2)
     ambiguous: Mapping[str, str] = field(default_factory=dict)
-    #: deviation of the sum of the REPORTED terms (unresolved ones left out), rad/s, at ``taus_s``
-    #: (round 5; ``fit_adev_rad_s`` is the selected fit, stand-ins included)
+    #: deviation of the sum of the REPORTED terms, rad/s, at ``taus_s`` (round 5): resolved terms and
+    #: terms fitted but not told from a stand-in (``ambiguous``); unresolved (null) terms left out.
+    #: ``fit_adev_rad_s`` is the selected fit (the same unless the selection kept a null term)
     reported_adev_rad_s: np.ndarray | None = None
     #: shortest τ of the fit, s: shorter τ are shaped by the sensor's low-pass and not fitted
     #: (:func:`gyrocore.gmwm.bandwidth_start`)
@@ -503,6 +504,11 @@ class AllanResult:
     #: goodness of fit of the selected model on the fitted scales (:func:`gyrocore.gmwm.goodness_of_fit`):
     #: ok, p_value, stat, dof, misses (points outside their 95 % interval), points, p_misses, z
     fit_check: Mapping[str, object] = field(default_factory=dict)
+    #: narrowband lines found and removed before the fit (:func:`gyrocore.gmwm.line_avar`): Hz, rms
+    #: (signal units) and their deviation at ``taus_s``
+    lines_hz: tuple[float, ...] = ()
+    lines_rms: tuple[float, ...] = ()
+    lines_adev_rad_s: np.ndarray | None = None
 
     @property
     def fit_ok(self) -> bool | None:
@@ -532,6 +538,8 @@ class AllanResult:
             out["fit_ok"] = bool(self.fit_check["ok"])
             out["fit_check"] = {k: v for k, v in self.fit_check.items() if k != "z"} | {
                 "fitted_from_tau_s": self.fit_from_tau_s}
+        if self.method != "adev_legacy":
+            out["lines"] = [{"freq_hz": fq, "rms": a} for fq, a in zip(self.lines_hz, self.lines_rms)]
         out["curve"] = {
             "taus_s": self.taus_s,
             "adev_rad_s": self.adev_rad_s,
@@ -685,25 +693,40 @@ def _axis_result(
 
         n = int(omega.shape[0])
         avar = dev**2
+        # round 5: narrowband lines (vibration, interference) are not sensor noise: their Allan
+        # variance is subtracted before the fit (one warning naming them)
+        lines = gmwm.line_avar(omega, rate_hz, m)
+        if lines.freqs_hz:
+            avar = np.maximum(avar - lines.avar, 0.05 * avar)
+            warn_repair(f"{signal} axis {axis}: narrowband line(s) at "
+                        + ", ".join(f"{fq:.4g} Hz (rms {a:.2g})" for fq, a in zip(lines.freqs_hz, lines.rms))
+                        + " are not sensor noise: their Allan variance (up to "
+                        + f"{100 * float(np.max(lines.avar / dev**2)):.0f} % at tau = {taus[int(np.argmax(lines.avar / dev**2))]:.3g} s)"
+                        + " is removed before the noise fit")
         # round 5: the octaves shaped by the sensor's low-pass are left out of the fit
         k0 = gmwm.bandwidth_start(avar, m, n, rate_hz)
-        f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=method)
+        # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
+        meth = method + "+lp" if k0 else method
+        f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth)
         sel = [gmwm.LINEAR.index(k) for k in f.selected]
         chk = gmwm.goodness_of_fit(avar[k0:], f.fit_avar, f.cov, f.edf, gmwm._n_params(f.coef, f.tau_c_s, sel))
-        fit_all = gmwm.term_avar(m, rate_hz, method=method, tau_c_s=f.tau_c_s) @ f.coef
+        fit_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef
         edf = f.edf
         if k0:
             edf = gmwm.avar_covariance(m, n, rate_hz, f.coef, f.tau_c_s, np.where(fit_all > 0, fit_all, avar),
-                                       method=method)[1]
+                                       method=meth)[1]
             warn_repair(f"{signal} axis {axis}: the Allan variance below tau = {taus[k0]:.3g} s is shaped by the sensor's "
                         f"low-pass (over the first octave it falls to {avar[1] / avar[0]:.2f} of its value; white noise: 0.5): "
                         f"the noise model is fitted from tau = {taus[k0]:.3g} s")
-        # the sum of what is reported: unresolved terms (null, bounds only) left out
+        # the sum of what is reported: unresolved terms (null, bounds only) left out. A term fitted
+        # but not told from a stand-in (``ambiguous``: reported as "fitted X, not told from Y") stays
+        # in: the data reject the model without it, only its name is open (sunsided 10-min x: without
+        # it the sum is 7 σ below the last points)
         c_rep = np.array(f.coef, float).copy()
         for i, name in enumerate(gmwm.LINEAR):
-            if f.terms.get(name) is None:
-                c_rep[i] = 0.0
-        rep_all = gmwm.term_avar(m, rate_hz, method=method, tau_c_s=f.tau_c_s) @ c_rep
+            if f.terms.get(name) is None and name not in f.ambiguous and not (k0 and i == 0):
+                c_rep[i] = 0.0  # (the low-pass deficit, column 0 under "+lp", is N's shape)
+        rep_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ c_rep
         if not chk.ok:
             j = int(np.argmax(np.abs(chk.z)))
             warn_repair(f"{signal} axis {axis}: the fitted noise model does not fit its Allan variance (goodness of fit "
@@ -717,13 +740,18 @@ def _axis_result(
         terms = {k: f.terms.get(k) for k in ALL_TERM_NAMES}
         est = {k: float(f.estimate[k]) for k in names}
         ci = {k: (float(f.ci95[k][0]), float(f.ci95[k][1])) for k in names}
+        if k0:  # beside a low-pass, Q is not identified (its column is the filter's deficit)
+            terms["quantization_rad"] = None
+            est["quantization_rad"] = 0.0
+            ci["quantization_rad"] = (0.0, float("inf"))
         resolved = {k: terms[k] is not None for k in names}
         return AllanResult(
             axis=axis, signal=signal, taus_s=taus, adev_rad_s=dev, adev_ci95_rad_s=ci_dev, edf=edf,
             fit_adev_rad_s=np.sqrt(np.maximum(fit_all, 0.0)), estimate=est, ci95=ci, rate_hz=rate_hz,
             n_samples=int(omega.shape[0]), method=method, resolved=resolved, chi2=f.chi2, dof=f.dof,
             ambiguous=dict(f.ambiguous), reported_adev_rad_s=np.sqrt(np.maximum(rep_all, 0.0)),
-            fit_from_tau_s=float(taus[k0]),
+            fit_from_tau_s=float(taus[k0]), lines_hz=tuple(lines.freqs_hz), lines_rms=tuple(lines.rms),
+            lines_adev_rad_s=np.sqrt(lines.avar),
             fit_check={"ok": chk.ok, "p_value": chk.p_value, "stat": chk.stat, "dof": chk.dof,
                        "misses": chk.misses, "points": int(chk.z.size), "p_misses": chk.p_misses,
                        "z": [float(v) for v in chk.z]},

@@ -85,6 +85,16 @@ def report_text(analysis) -> str:
         for name, other in getattr(r, "ambiguous", {}).items():
             lines.append(f"{ax:4} {'(' + name + ')':24} fitted {r.estimate.get(name, float('nan')):.3e} but not told "
                          f"from {other} (stand-in check): unresolved")
+        chk = getattr(r, "fit_check", None)
+        if chk:
+            verdict = "fits" if chk["ok"] else "DOES NOT FIT (terms not to be trusted)"
+            first = getattr(r, "fit_from_tau_s", float("nan"))
+            lines.append(f"{ax:4} {'(model fit)':24} {verdict}: p = {chk['p_value']:.2g}, {chk['misses']} of "
+                         f"{chk['points']} points outside their 95 % interval"
+                         + (f"; fitted from tau = {first:.3g} s (sensor low-pass below)"
+                            if np.isfinite(first) and first > r.taus_s[0] * (1 + 1e-9) else "")
+                         + ("; lines removed at " + ", ".join(f"{fq:.4g}" for fq in r.lines_hz) + " Hz"
+                            if getattr(r, "lines_hz", ()) else ""))
         i_min = int(np.argmin(r.adev_rad_s))
         lines.append(f"{ax:4} {'(ADEV minimum)':24} {r.adev_rad_s[i_min]:12.4e} {f'at tau = {r.taus_s[i_min]:.4g} s':>27} "
                      f"{f'{r.adev_rad_s[i_min] * 180 / math.pi * 3600:.4g} deg/h':>22}")
@@ -151,10 +161,16 @@ def adev_figure(analysis):
         fit_note = ("" if not chk else (f"; fit p = {chk['p_value']:.2g}" if chk["ok"]
                                          else f"; MODEL DOES NOT FIT (p = {chk['p_value']:.1g})"))
         plot_ax.loglog(t[fitted], rep[fitted], "r-", lw=1.8, label=f"sum of reported terms ({r.method}{fit_note})")
-        if getattr(r, "ambiguous", None):
-            plot_ax.loglog(t[fitted], r.fit_adev_rad_s[fitted], "-", color="0.5", lw=1,
-                           label="selected fit incl. " + ", ".join(
-                               f"{_label(k)} (not told from {_label(v)}: unresolved)" for k, v in r.ambiguous.items()))
+        for k, v in (getattr(r, "ambiguous", None) or {}).items():
+            # fitted, needed by the data, but not told from a stand-in: in the sum, named as open
+            val = r.estimate.get(k, float("nan"))
+            if k in _ASYMPTOTE and np.isfinite(val) and val > 0:
+                plot_ax.loglog(tt, _term_adev(r, k, val, tt), "-.", lw=1, color=_COLORS.get(k, "0.4"),
+                               label=f"{_label(k)} = {val:.2g} or {_label(v)} (fitted, not told apart: unresolved)")
+        if getattr(r, "lines_hz", ()) and r.lines_adev_rad_s is not None:
+            plot_ax.loglog(t, np.sqrt(rep**2 + r.lines_adev_rad_s**2), "--", color="tab:red", lw=0.9, alpha=0.7,
+                           label="with narrowband line(s) at " + ", ".join(f"{fq:.3g}" for fq in r.lines_hz)
+                                 + " Hz (not noise, removed before the fit)")
         if np.any(~fitted):
             plot_ax.axvspan(t[0] / 1.2, t0 / np.sqrt(2), color="0.6", alpha=0.15, lw=0)
             plot_ax.loglog(t[~fitted], rep[~fitted], ":", color="r", lw=1,

@@ -1,0 +1,242 @@
+"""Issue 11 round 5: the reported noise model must fit the measured Allan variance.
+
+The lead's last new-user check found `gyroharness noise` on the PX4 sample.ulg plotting a
+"fitted sum" 7x above every long-tau ADEV point and reporting N at a quarter of its value: the
+octaves below the sensor's low-pass were fitted with a flicker floor. These tests hold the
+estimator to the data: a goodness-of-fit test with a tolerance from the chi-square law of each
+Allan-variance point, on simulated sensors with a low-pass or a narrowband line and on every real
+still recording in ../shared/data that `noise` accepts.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import warnings
+
+import numpy as np
+import pytest
+import scipy.signal
+import scipy.stats
+
+from gyrocore import allan as AL
+from gyrocore import gmwm
+from gyrocore.cli import build_group, run_cli
+from gyrocore.convert import load_any
+from gyrocore.errors import GyroInputError
+from gyrocore.recording import write_csv
+
+
+def _gh(capsys, *argv):
+    status = run_cli(build_group(["gyrocore.commands"]), list(argv))
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def _reported_z(r: AL.AllanResult) -> np.ndarray:
+    """Normal scores of the measured AVAR (narrowband lines removed, as the fit sees it) against
+    the REPORTED sum, each from its exact chi-square law with the model's EDF; fitted τ only."""
+    avar = r.adev_rad_s**2
+    if r.lines_adev_rad_s is not None:
+        avar = np.maximum(avar - r.lines_adev_rad_s**2, 0.05 * avar)
+    keep = r.taus_s >= r.fit_from_tau_s * (1 - 1e-9)
+    return gmwm._pit_z(avar[keep], r.reported_adev_rad_s[keep] ** 2, r.edf[keep])
+
+
+def _assert_fits(results: dict[str, AL.AllanResult], n_tests: int, alpha: float = 0.01) -> None:
+    """Every axis: the generalised test p ≥ α/K and every fitted point of the REPORTED sum inside
+    its chi-square band at level α/(2·K·M) — Bonferroni over the K axes (and their M points) of the
+    whole test, so that a model that is right fails the test with probability ≤ α."""
+    for name, r in results.items():
+        c = r.fit_check
+        assert c["p_value"] >= alpha / n_tests, (name, c)
+        z = _reported_z(r)
+        lim = scipy.stats.norm.isf(alpha / (2 * n_tests * z.size))
+        assert np.all(np.abs(z) <= lim), (name, np.round(z, 2), lim)
+
+
+# ---------------------------------------------------------------------------- simulated
+def test_low_pass_octaves_are_not_fitted_and_n_is_unbiased():
+    """White rate noise through a first-order low-pass of 1.5 samples (a DLPF at ~f_s/9): the
+    first octaves fall by far less than 2x, no model term has that shape. The fit must start
+    above them, report N within its interval and fit. (Before: N 0.27x, a flicker floor of
+    ~5x N/sqrt(tau) claimed as the fitted sum.)"""
+    rng = np.random.default_rng(20261125)
+    rate, n, N = 250.0, 15000, 6.5e-5
+    phi = math.exp(-1.0 / 1.5)
+    w = rng.standard_normal((n, 3)) * N * math.sqrt(rate)
+    g = scipy.signal.lfilter([1 - phi], [1, -phi], w, axis=0)  # unit DC gain: density N below the cut
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = AL.identify_noise(g, rate_hz=rate, check_static=False)
+    assert any("shaped by the sensor's low-pass" in str(c.message) for c in caught)
+    for a, r in res.axes.items():
+        assert r.fit_from_tau_s > r.taus_s[0]
+        lo, hi = r.ci95["arw_rad_per_sqrt_s"]
+        # 99.9 % two-sided from the 95 % interval (half-width/1.96 = SE): 3.29 SE
+        se = (hi - lo) / (2 * 1.96)
+        assert abs(r.arw_rad_per_sqrt_s - N) <= 3.29 * se, (a, r.arw_rad_per_sqrt_s, lo, hi)
+        assert r.bias_instability_rad_s is None and r.quantization_rad is None
+    _assert_fits(res.axes, 3)
+
+
+def test_white_noise_keeps_every_octave_and_has_no_line():
+    """The low-pass and line tests fire on white noise with probability 0.1 % per axis (their
+    levels); this seed must keep the whole τ range and find no line."""
+    rng = np.random.default_rng(7)
+    rate, n = 100.0, 60000
+    g = rng.standard_normal((n, 3)) * 1e-4 * math.sqrt(rate)
+    avar_m = gmwm.scales(n)
+    for a in range(3):
+        _t, dev, _n = AL.oadev(g[:, a], rate, avar_m)
+        assert gmwm.bandwidth_start(dev**2, avar_m, n, rate) == 0
+        assert gmwm.line_avar(g[:, a], rate, avar_m).freqs_hz == ()
+
+
+def test_narrowband_line_is_removed_not_taken_for_quantization():
+    """White noise + a 31.4-Hz sinusoid at 100 Hz (the sunsided MPU-6050 z line: its Allan
+    variance ~ A²sin⁴(πmν)/(m²sin²πν) falls as 1/τ² beyond the first octaves, i.e. looks like
+    white angle noise Q): the line is named, its rms recovered, Q not claimed, N within its interval."""
+    rng = np.random.default_rng(31)
+    rate, n, N, A, f0 = 100.0, 60000, 1.7e-4, 2.5e-3, 31.4
+    t = np.arange(n) / rate
+    g = rng.standard_normal((n, 3)) * N * math.sqrt(rate)
+    g[:, 2] += A * np.sin(2 * np.pi * f0 * t + 0.3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = AL.identify_noise(g, rate_hz=rate, check_static=False)
+    r = res.axes["z"]
+    assert len(r.lines_hz) == 1 and abs(r.lines_hz[0] - f0) < 0.2
+    # rms of the line A/√2 from the excess over the floor of ~5 bins: the floor's χ² noise over
+    # those bins is < 1 % of the line's power here; 5 % allows the leakage outside ±2 bins (Hann)
+    assert r.lines_rms[0] == pytest.approx(A / math.sqrt(2), rel=0.05)
+    assert r.quantization_rad is None
+    for a, rr in res.axes.items():
+        lo, hi = rr.ci95["arw_rad_per_sqrt_s"]
+        se = (hi - lo) / (2 * 1.96)
+        assert abs(rr.arw_rad_per_sqrt_s - N) <= 3.29 * se, (a, rr.arw_rad_per_sqrt_s, lo, hi)
+    assert res.axes["x"].lines_hz == () and res.axes["y"].lines_hz == ()
+    _assert_fits(res.axes, 3)
+
+
+def test_goodness_of_fit_is_calibrated_on_the_model():
+    """Under the model the statistic must not reject more than its level: 48 simulated axes
+    (N+K and N+B+K, 10 min at 100 Hz, seeds not used elsewhere) — p < 0.01 on at most 3
+    (P(Binomial(48, 0.01) ≥ 4) = 1.3e-3); and a fit that misses is caught: N alone against the
+    N+K data, p < 1e-3 on every axis."""
+    from experiments.noise_study import MIXES, simulate
+
+    rate, n = 100.0, 60000
+    ps = []
+    for mix in ("N+K", "N+B+K"):
+        for s in range(8):
+            g = simulate(np.random.default_rng(np.random.SeedSequence([s, 5502])), MIXES[mix], n, rate)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = AL.identify_noise(g, rate_hz=rate, check_static=False)
+            ps += [r.fit_check["p_value"] for r in res.axes.values()]
+    assert sum(p < 0.01 for p in ps) <= 3, sorted(ps)[:6]
+    # N alone fitted to 1-h N+K data (K clearly present): the test rejects it
+    g = simulate(np.random.default_rng(np.random.SeedSequence([0, 5503])), MIXES["N+K"], 360000, rate)
+    m = gmwm.scales(g.shape[0])
+    for a in range(3):
+        taus, dev, _n = AL.oadev(g[:, a], rate, m)
+        f = gmwm.fit_noise(taus, dev**2, m, g.shape[0], candidates=("arw_rad_per_sqrt_s",))
+        chk = gmwm.goodness_of_fit(dev**2, f.fit_avar, f.cov, f.edf, 1)
+        assert chk.p_value < 1e-3 and not chk.ok
+
+
+# ---------------------------------------------------------------------------- the issue's case
+def test_px4_sample_ulg_reported_sum_fits_its_adev(shared_data, tmp_path, capsys):
+    """The lead's case: `noise sample.ulg-converted.csv --json --plot`. Before: on y and z a flicker
+    floor 5.1e-4 rad/s (the sensor's low-pass octaves), N 1.6e-5/1.8e-5 rad/sqrt(s), the plotted sum
+    7x above the ADEV at 2 s. Now: the low-pass octaves are cut (warning), the reported sum is inside
+    the chi-square band of every fitted point, and N agrees with the ADEV at 1 s (white-dominated
+    there: its 95 % chi-square interval, EDF ~65, must overlap N's interval)."""
+    rec = load_any(shared_data / "pyulog_samples" / "sample.ulg")
+    p = tmp_path / "px4.csv"
+    write_csv(rec, p)
+    png = tmp_path / "adev.png"
+    status, out, err = _gh(capsys, "noise", str(p), "--json", "--plot", str(png))
+    assert status == 0, err
+    assert "shaped by the sensor's low-pass" in err and "does not fit" not in err
+    assert png.stat().st_size > 10000
+    j = json.loads(out)
+    for a in "xyz":
+        ja = j["axes"][a]
+        assert ja["fit_ok"] is True and ja["fit_check"]["fitted_from_tau_s"] > 0.03
+        assert len(ja["curve"]["reported_adev_rad_s"]) == len(ja["curve"]["taus_s"])
+        assert ja["bias_instability_rad_s"] is None
+        taus = np.array(ja["curve"]["taus_s"])
+        i1 = int(np.argmin(np.abs(np.log(taus))))
+        lo1, hi1 = np.array(ja["curve"]["adev_ci95_rad_s"][i1]) * math.sqrt(taus[i1])
+        lo, hi = ja["ci95"]["arw_rad_per_sqrt_s"]
+        assert lo <= hi1 and hi >= lo1, (a, (lo, hi), (lo1, hi1))
+    status, out, err = _gh(capsys, "noise", str(p))
+    assert status == 0 and out.count("(model fit)") == 3 and "fits: p =" in out
+
+
+# ---------------------------------------------------------------------------- every real still record
+#: every recording of ../shared/data that `noise` accepts, whole or (when the gate refuses it and
+#: names a still stretch of >= 20 s) on that stretch, as the error line tells a user to do
+REAL = [
+    "sunsided_mpu6050/set-1/unmoved-x-pointing-forward",
+    "sunsided_mpu6050/set-1/unmoved-x-pointing-up",
+    "sunsided_mpu6050/set-1/unmoved-z-pointing-left",
+    "sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward",
+    "sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward-10min",
+    "sunsided_mpu6050/set-2/unmoved-with-z-pointing-front-and-x-up",
+    "sunsided_mpu6050/set-2/unmoved-with-z-pointing-front-and-y-down",
+    "tomisuarez2_mpu6050/example_data_tinit_calc.csv",
+    "tomisuarez2_mpu6050/imu_static_test.csv",
+    "tomisuarez2_mpu6050/example_data_calibration.csv",
+    "imucal_ferraris/annotated_session.csv",
+    "imu_tk_xsens/xsens_gyro.mat",
+    "pyulog_samples/sample.ulg",
+    "broad/02_undisturbed_slow_rotation_B.hdf5",
+    "broad/05_undisturbed_slow_rotation_with_breaks_B.hdf5",
+    "broad/07_undisturbed_fast_rotation_B.hdf5",
+    "broad/09_undisturbed_fast_rotation_with_breaks_B.hdf5",
+]
+#: refused by `noise` (no still stretch of 20 s): listed so that a change of the gate shows here
+REFUSED = [
+    "tomisuarez2_mpu6050/imu_90_x_rot.csv", "imucal_ferraris/example_ferraris_session.csv",
+    "pyulog_samples/sample_log_small.ulg", "pyulog_samples/sample_appended_multiple.ulg",
+    "gnss_ins_sim_logged_360z/bosch", "gnss_ins_sim_logged_360z/nxp", "fusion_xio/sensor_data.csv",
+    "betaflight_blackbox/better_tune.BBL",
+]
+
+
+def _analyse(path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = load_any(path)
+        try:
+            return AL.allan_analysis(rec, check_static=True)
+        except GyroInputError as e:
+            # as a user does: the error line names the longest still stretch; take it when >= 20 s
+            hit = re.search(r"longest still stretch is t = ([0-9.]+)-([0-9.]+) s \(([0-9.]+) s\)", str(e))
+            if not hit or float(hit.group(3)) < 20.0:
+                raise
+            a, b = np.searchsorted(rec.t_s, [float(hit.group(1)), float(hit.group(2))])
+            return AL.allan_analysis(rec.slice(int(a), int(b)), check_static=True)
+
+
+@pytest.mark.slow
+def test_every_real_still_recording_is_fitted(shared_data):
+    """17 recordings, 51 axes (≈ 40 s CPU): each axis's fit passes the goodness-of-fit test and the
+    reported sum lies in the chi-square band of every fitted point, Bonferroni over the 51 axes
+    (a right model fails this test with probability ≤ 1 %). On main before round 5 (same test
+    statistic applied to its fits), 21 of 51 axes failed (p < 0.01/51) and 26 had p < 0.01: the PX4
+    low-pass, the 31-Hz line of the sunsided MPU-6050 z axis taken for Q, the long-τ rise of
+    tomisuarez2 y dropped by the Wald step."""
+    results = {}
+    for rel in REAL:
+        a = _analyse(shared_data / rel)
+        for ax, r in a.axes.items():
+            results[f"{rel}:{ax}"] = r
+    _assert_fits(results, len(results))
+    for rel in REFUSED:
+        with pytest.raises(GyroInputError):
+            _analyse(shared_data / rel)
