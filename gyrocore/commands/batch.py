@@ -105,10 +105,10 @@ def headline_allan(path: str, options: dict) -> dict:
 def headline_calibrate(path: str, options: dict) -> dict:
     from ..effects import check_effect_names
     from ..model import Calibrator, save_params
-    from ..recording import read_recording
+    from .calibrate import _read_any
 
     names = check_effect_names(options.get("effects", "bias").split(","))
-    rec = read_recording(path)
+    rec = _read_any(path)  # as `gyroharness calibrate`: a data file or any set `convert` reads (BROAD .hdf5, ...)
     res = Calibrator(effects=names).fit(rec, source_path=path)
     if options.get("params_dir"):
         save_params(res, Path(options["params_dir"]) / f"{Path(path).stem}.params.json", overwrite=True)

@@ -56,6 +56,14 @@ def test_batch_calibrate_equals_the_single_file_command(broad05, tmp_path):
         assert row[f"scale.s_{a}_se"] == pytest.approx(single.stderr["scale"]["s"][i], rel=1e-6)
 
 
+def test_batch_calibrate_reads_what_calibrate_reads(shared_data):
+    """`calibrate TRIAL.hdf5` reads the BROAD file directly; `batch calibrate '*.hdf5'` failed
+    every file with "binary file ... convert it first"."""
+    row = headline_calibrate(str(shared_data / "broad" / TRIAL), {"effects": "bias,scale"})
+    single = Calibrator(effects=["bias", "scale"]).fit(load_any(shared_data / "broad" / TRIAL))
+    assert row["scale.s_x"] == pytest.approx(single.params["scale"]["s"][0], rel=1e-6)
+
+
 def test_rate_effects_without_a_motion_reference_say_what_would_excite_them():
     """IMU-TK's multi-pose session (turns between poses, no rate or attitude reference) gave
     "scale.s[0]: regressor is zero in the data (no excitation)" and nothing on why: the fit is
