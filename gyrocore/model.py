@@ -418,6 +418,8 @@ class Calibrator:
         ramp_margin_s: float = 0.0,
         angle_sigma_deg: float = 0.0,
         axis_sigma_deg: float = 0.0,
+        poses: bool = False,
+        pose_std_factor: float = 5.0,
     ) -> None:
         effs = E.check_effect_names(effects)
         if not effs:
@@ -475,6 +477,17 @@ class Calibrator:
         self.still_window_s = float(still_window_s)
         self.still_false_reject_rate = float(still_false_reject_rate)
         self.sensor = sensor
+        if poses:
+            bad = [e for e in effs if e not in ("bias", "scale", "misalignment")]
+            if bad or segments is not None or external_bias is not None:
+                raise GyroInputError(
+                    "the multi-pose method (poses) fits bias, scale and misalignment only, without segments or an "
+                    "external bias" + (f", not {', '.join(bad)}" if bad else ""))
+        #: multi-pose method (gravity directions of still poses as the reference; Tedaldi et al. 2014)
+        self.poses = bool(poses)
+        if not (np.isfinite(pose_std_factor) and pose_std_factor >= 1):
+            raise GyroInputError(f"pose std factor must be >= 1, got {pose_std_factor}")
+        self.pose_std_factor = float(pose_std_factor)
 
     def _common(self, meta, source_path, *, has_accel: bool, has_temp: bool) -> dict:
         """The result fields every fit path shares (sensor, data file name and SHA-256), after
@@ -498,9 +511,48 @@ class Calibrator:
                               has_temp=recording.temp_c is not None)
         if self.segments is not None:
             return self._fit_integral(recording, common)
+        if self.poses:
+            return self._fit_poses(recording, common)
         if recording.ref_rate_rad_s is None and has_reference_attitude(recording):
             return self._fit_attitude(recording, source_path, common)
         return self._fit_lsq(recording, common)
+
+    # ------------------------------------------------------------------ multi-pose (gravity)
+    def _fit_poses(self, rec: Recording, common: dict) -> CalibrationResult:
+        """The multi-pose method (:func:`gyrocore.rotations.gravity_pose_calibration`, Tedaldi
+        et al. 2014, IMU-TK): K from the turns between still poses, each pose's measured
+        gravity direction carried through the corrected, integrated gyro onto the next pose's;
+        bias from the first pose. scale s_i = K_ii − 1, misalignment = K's off-diagonal entries
+        (:data:`gyrocore.effects.MISALIGNMENT_ORDER`), standard errors from the fit's Jacobian
+        scaled by its residual (the hand-held poses' tremble included)."""
+        from .rotations import gravity_pose_calibration
+
+        if rec.accel_m_s2 is None:
+            raise GyroInputError("the multi-pose method needs the accel_*_m_s2 columns (gravity is the reference)")
+        r = gravity_pose_calibration(rec, pose_std_factor=self.pose_std_factor)
+        K, Kse = np.asarray(r.K, float), np.asarray(r.K_stderr, float)
+        params: dict = {"bias": {"b_rad_s": r.bias_rad_s}, "scale": {"s": np.diag(K) - 1.0},
+                        "misalignment": {"m_rad": np.array([K[i, j] for i, j in E._MIS_IDX])}}
+        stderr: dict = {"bias": {"b_rad_s": r.bias_stderr_rad_s}, "scale": {"s": np.diag(Kse).copy()},
+                        "misalignment": {"m_rad": np.array([Kse[i, j] for i, j in E._MIS_IDX])}}
+        n_used = int(r.residual_rad.shape[0])
+        notes = [f"multi-pose method (Tedaldi et al. 2014): {len(r.intervals)} still poses, {n_used} motions between "
+                 f"them used" + (f" ({r.n_motions_saturated} through clipped samples dropped)" if r.n_motions_saturated else "")
+                 + f"; gravity-direction misfit after calibration {np.degrees(r.rms_residual_rad):.2f} deg RMS; "
+                 f"Jacobian condition {r.condition:.3g}; bias from the first pose",
+                 "residual_rms_rad_s: the still poses' scatter is not a rate residual here (the reference is the "
+                 "gravity direction); see the misfit above"]
+        if "scale" in self.effects and "misalignment" not in self.effects:
+            notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
+        if "bias" not in self.effects:
+            notes.append("bias not requested but still removed before integrating (the method needs it)")
+        params = {e: params[e] for e in self.effects}
+        stderr = {e: stderr[e] for e in self.effects}
+        return CalibrationResult(
+            effects=self.effects, params=params, stderr=stderr, residual_rms_rad_s=np.full(3, np.nan),
+            method="gravity_poses", covariance="jacobian", n_samples=int(sum(b - a for a, b in r.intervals)),
+            notes=tuple(notes), **common,
+        )
 
     # ------------------------------------------------------------------ reference attitude
     def _fit_attitude(self, rec: Recording, source_path, common: dict) -> CalibrationResult:
@@ -711,8 +763,8 @@ class Calibrator:
             # session such as IMU-TK's turns between poses without a rate reference)
             notes.append(
                 f"{', '.join(rate_effects)} need a reference for the motion: reference rates (ref_*_rad_s), a "
-                "reference attitude (ref_q*), or known rotations (--segments); the turns between static poses "
-                "are not used (their gravity directions are not a gyro reference here)")
+                "reference attitude (ref_q*), known rotations (--segments), or, for a multi-pose session (still "
+                "poses joined by turns, IMU-TK), the poses' gravity directions (--poses)")
         return np.zeros((rec.n, 3)), m.astype(float), "still", notes
 
     def _fit_lsq(self, rec: Recording, common: dict, *, store=None) -> CalibrationResult:

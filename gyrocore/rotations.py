@@ -526,7 +526,9 @@ def gravity_pose_calibration(
     if n_sat:
         warn_repair(f"multi-pose calibration: {n_sat} of {len(moves_all)} motions pass through clipped (saturated) gyro samples and are not used")
     if 3 * len(moves) < 12:
-        raise GyroInputError(f"multi-pose calibration: only {len(moves)} usable motions between poses, need at least 4")
+        raise GyroInputError(f"multi-pose calibration: only {len(moves)} usable motions between poses, need at least 4 "
+                             f"({len(runs)} still poses found at {pose_std_factor:g}x the rest noise; hand-held poses "
+                             "tremble: a larger factor, calibrate --pose-std-factor 10, admits them)")
     yb = y - bias
 
     def rot_of(M, a, b_):

@@ -127,6 +127,12 @@ def _read_any(path: str):
                    "propagated into the standard errors")
 @click.option("--axis-sigma-deg", type=float, default=0.0, show_default=True,
               help="integral method: uncertainty of each known rotation's axis direction, deg (by hand: ~5)")
+@click.option("--poses", is_flag=True,
+              help="multi-pose method (Tedaldi et al. 2014, IMU-TK): bias, scale, misalignment from the turns between "
+                   "still poses, each pose's gravity direction (accel) as the reference; no rate reference needed")
+@click.option("--pose-std-factor", type=float, default=5.0, show_default=True,
+              help="with --poses: a still pose may scatter up to this many times the rest noise (hand-held poses "
+                   "tremble: 10)")
 @click.option("--thermal-order", default="auto", show_default=True, help="auto (chosen from the data, up to 3) or 1..3")
 @click.option("--covariance", type=click.Choice(["auto", "ols", "hac", "newey_west", "block", "noise_model"]),
               default="auto", show_default=True,
@@ -143,7 +149,7 @@ def _read_any(path: str):
 @click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
 def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, angle_sigma_deg, axis_sigma_deg,
-            thermal_order, covariance, ramp_margin_s, px4_params, px4_device_id, sensor, force, as_json):
+            poses, pose_std_factor, thermal_order, covariance, ramp_margin_s, px4_params, px4_device_id, sensor, force, as_json):
     """Fit the named effects against the references in FILE (reference rates, a reference
     attitude, known-angle segments, or still parts) and write the parameter file."""
     from ..effects import check_effect_names
@@ -167,7 +173,9 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     if (bias_from or bias_dps) and not segments:
         raise GyroInputError("--bias-from/--bias-dps are for the integral method: give --segments too")
     ext = external_bias(bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz)
-    if not segments and _streamable(file):
+    if poses and segments:
+        raise GyroInputError("--poses and --segments are two methods: give one")
+    if not segments and not poses and _streamable(file):
         # a long data file with reference rates: spilled to per-column files and fitted a
         # window at a time (gyrocore.stream); the same fit as in memory, bounded memory
         import tempfile
@@ -188,7 +196,8 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
         raise GyroInputError("--angle-sigma-deg/--axis-sigma-deg are for the integral method: give --segments too")
     cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
                      external_bias=ext, ramp_margin_s=ramp_margin_s, angle_sigma_deg=angle_sigma_deg,
-                     axis_sigma_deg=axis_sigma_deg)
+                     axis_sigma_deg=axis_sigma_deg, poses=poses,
+                     pose_std_factor=pose_std_factor)
     res = cal.fit(rec, source_path=file)
     if segments and res.integral is not None and not (angle_sigma_deg or axis_sigma_deg):
         from dataclasses import replace
