@@ -409,6 +409,25 @@ def _check_noise_plausible(sigma2: np.ndarray | None, sigma_diff: np.ndarray, rh
         )
 
 
+def _plausible_or_differences(sigma2, dof, sigma_diff, rho):
+    """``(sigma2, dof, "")`` when the window-variance noise passes :func:`_check_noise_plausible`;
+    else ``(None, None, why)``: the gate then uses the noise of the sample-to-sample differences
+    (smooth motion barely changes them), as :func:`gyrocore.allan.still_span` does.
+
+    The window-variance noise is a 25 % quantile: with fewer than a quarter of the windows
+    still it holds motion. BROAD trial 05 with 20-s windows (the first of its ten is still,
+    35 s of rest) was refused as "moves smoothly the whole time"; gated with the differences'
+    noise its still window is found and the moving ones are refused. A record that really moves
+    the whole time has every window refused, and the error keeps the explanation."""
+    try:
+        _check_noise_plausible(sigma2, sigma_diff, rho)
+    except GyroInputError as exc:
+        msg = str(exc)
+        why = msg.split("the window variances ", 1)[-1].split(": the recording", 1)[0]
+        return None, None, "the window variances " + why
+    return sigma2, dof, ""
+
+
 # ---------------------------------------------------------------------------- calibrator
 class StaticBiasCalibrator:
     """Static bias with a motion gate, refusing while moving and retrying on the next window.
@@ -638,9 +657,10 @@ class StaticBiasCalibrator:
         sigma_diff, rho = noise()
         x, xw = windows(n)  # the (N, 3) gyro and its (W, n, 3) windows (or both SpilledWindows)
         sigma2 = dof = None
+        inflated = ""  # why the window variances were not used (motion in most windows), else ""
         if self.statistic == "variance" and self.rule in ("mean", "median"):
             sigma2, dof = self._variance_noise(xw, rho)
-            _check_noise_plausible(sigma2, sigma_diff, rho)
+            sigma2, dof, inflated = _plausible_or_differences(sigma2, dof, sigma_diff, rho)
         thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)
         if self.rule == "converge":
             # the convergence test is the rule's own motion check; σ and the VIF are estimated
@@ -648,13 +668,16 @@ class StaticBiasCalibrator:
             est = StaticBiasCalibrator(window_samples=n, false_reject_rate=self.false_reject_rate,
                                        noise_sigma_rad_s=self.noise_sigma_rad_s, max_lag=self.max_lag)
             s2v, dofv = est._variance_noise(xw, rho)
-            _check_noise_plausible(s2v, sigma_diff, rho)
+            s2v, dofv, inflated = _plausible_or_differences(s2v, dofv, sigma_diff, rho)
             thr_v = est.gate(n, sigma_diff, rho, dt, sigma2=s2v, dof=dofv)[0]
             still = np.all(_window_stats(x, n, "variance") <= thr_v[None, :], axis=1)
         else:
             stats = _window_stats(x, n, "abs_diff" if self.rule == "article" else self.statistic)
             still = np.all(stats <= thr[None, :], axis=1)
         n_still = int(still.sum())
+        if inflated and n_still:
+            warn_repair("motion in most windows: " + inflated + "; the gate uses the noise of the sample-to-sample "
+                        "differences instead")
         if self.correlation == "white" or n_still == 0:
             vif = np.ones(3)
         else:
@@ -694,7 +717,8 @@ class StaticBiasCalibrator:
                                         alpha, thr, units, sigma, rho, vif, step, ramp)
             raise GyroInputError(
                 f"motion detected throughout: no two consecutive {n}-sample window means agreed "
-                f"within tolerance over {last} windows"
+                f"within tolerance over {last} windows" + (f"; {inflated}: the recording moves smoothly the whole "
+                                                            f"time" if inflated else "")
             )
 
         for k in range(last):
@@ -715,6 +739,10 @@ class StaticBiasCalibrator:
                 f"sum|diff| > {self.article_threshold_counts:g} counts; a still sensor with this noise sums "
                 f"~{', '.join(f'{v:.0f}' for v in rest)} counts per axis)"
             )
+        if inflated:
+            raise GyroInputError(
+                f"motion detected throughout: all {last} windows of {n} samples rejected; {inflated}: the recording "
+                f"moves smoothly the whole time; if it is really still, give the sensor's noise (--noise-dps)")
         raise GyroInputError(
             f"motion detected throughout: all {last} windows of {n} samples rejected "
             f"({self.rule} rule, {self.statistic} gate, threshold {np.array2string(thr, precision=4)} "
