@@ -10,6 +10,7 @@ compares every reported term and its 95 % interval with the generator's truth.  
 
     PYTHONPATH=$PWD python bench/indep_noise_check.py --cases all --seeds 4 --out /tmp/indep/res.json
     PYTHONPATH=$PWD python bench/indep_noise_check.py --summarise /tmp/indep/res.json
+    PYTHONPATH=$PWD python bench/indep_noise_check.py --drift 60,600 --cases rw_kalibr_200Hz_1h --seeds 8
 
 Truth: N, K, B, GM σ/τc as generated; with output rounding the white density the data carry is
 √(N² + LSB²/(12·fs)) (rounding adds white rate noise when the noise spans ≳ ½ LSB, Widrow).
@@ -267,7 +268,16 @@ def main(argv=None) -> None:
     ap.add_argument("--plot", action="store_true")
     ap.add_argument("--keep", action="store_true")
     ap.add_argument("--summarise", default=None, help="print the table of a saved result JSON")
+    ap.add_argument("--drift", default=None, metavar="W,H",
+                    help="instead: heading drift over H s after a W-s bias window, measured vs predicted")
     a = ap.parse_args(argv)
+    if a.drift:
+        w, h = (float(v) for v in a.drift.split(","))
+        os.makedirs(a.workdir, exist_ok=True)
+        names = list(CASES) if a.cases == "all" else a.cases.split(",")
+        for name in names:
+            print(json.dumps(drift_check(CASES[name], a.seeds, a.seed0, w, h, a.workdir)), flush=True)
+        return
     if a.summarise:
         print(summarise(json.load(open(a.summarise))))
         return
@@ -283,6 +293,55 @@ def main(argv=None) -> None:
                 with open(a.out, "w") as fh:
                     json.dump(rows, fh)
     print(summarise(rows))
+
+
+def drift_sd_rad(terms: dict, window_s: float, horizon_s: float) -> float:
+    """Predicted SD of the heading error ∫(ω − b̂)dt over ``horizon_s`` after a still window of
+    ``window_s`` whose mean is taken as the bias: θ = H·(ȳ[W, W+H] − ȳ[0, W]), its variance from
+    the block covariances of :func:`gyrocore.budget.block_covariance` (the drift model the
+    error budget uses) for each term.  ``terms``: the noise JSON keys (None/absent = 0)."""
+    from gyrocore.budget import Blocks, block_covariance
+
+    t0 = np.array([0.0, window_s])
+    t1 = np.array([window_s, window_s + horizon_s])
+    bl = Blocks(i0=np.array([0, 1]), i1=np.array([1, 2]), t0_s=t0, t1_s=t1, scored=np.array([False, True]),
+                segment=np.zeros(2, int), window=np.array([0, -1]))
+    d = np.array([1.0, -1.0])
+    var = 0.0
+    for key, term, sq in (("arw_rad_per_sqrt_s", "arw", 1), ("bias_instability_rad_s", "bias_instability", 1),
+                          ("rrw_rad_per_s_sqrt_s", "rrw", 1)):
+        v = terms.get(key) or 0.0
+        if v:
+            var += v * v * float(d @ block_covariance(bl, term) @ d)
+    s, tc = terms.get("correlated_sigma_rad_s") or 0.0, terms.get("correlated_tau_c_s") or 0.0
+    if s and tc:
+        var += s * s * float(d @ block_covariance(bl, "correlated", tau_c_s=tc) @ d)
+    return horizon_s * math.sqrt(var)
+
+
+def drift_check(case: Case, seeds: int, seed0: int, window_s: float, horizon_s: float, workdir: str) -> dict:
+    """Measured heading-error RMS of the generated files (bias = mean of the first window,
+    integrated over the horizon after it) against the drift predicted from the truth and from
+    what ``gyroharness noise`` reports (a null term counts 0, as the budget takes it)."""
+    meas, pred_rep = [], []
+    for s in range(seed0, seed0 + seeds):
+        rng = np.random.default_rng(np.random.SeedSequence([s, zlib.crc32(case.name.encode())]))
+        omega = make_axes(case, rng)
+        path = os.path.join(workdir, f"drift_{case.name}_s{s}.csv")
+        out = json.loads(_cli(["noise", write_file(case, omega, path), "--json"]))
+        os.remove(path)
+        iw = int(round(window_s * case.fs_hz))
+        ih = int(round(horizon_s * case.fs_hz))
+        for k, ax in enumerate("xyz"):
+            x = omega[:, k]
+            meas.append((x[iw:iw + ih].mean() - x[:iw].mean()) * horizon_s)
+            pred_rep.append(drift_sd_rad(out["axes"][ax], window_s, horizon_s))
+    tr = {k: v for k, v in truth(case).items() if isinstance(v, float)}
+    return {"case": case.name, "window_s": window_s, "horizon_s": horizon_s, "axes": len(meas),
+            "measured_rms_deg": math.degrees(math.sqrt(np.mean(np.square(meas)))),
+            "predicted_truth_deg": math.degrees(drift_sd_rad(tr, window_s, horizon_s)),
+            "predicted_reported_deg_median": math.degrees(float(np.median(pred_rep))),
+            "predicted_reported_deg_range": [math.degrees(min(pred_rep)), math.degrees(max(pred_rep))]}
 
 
 if __name__ == "__main__":
