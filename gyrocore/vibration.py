@@ -454,8 +454,17 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         airborne &= t >= t_from_s
     if t_to_s is not None:
         airborne &= t < t_to_s
+    if t_from_s is not None or t_to_s is not None:
+        in_span = np.ones(rec.n, bool)
+        if t_from_s is not None:
+            in_span &= t >= t_from_s
+        if t_to_s is not None:
+            in_span &= t < t_to_s
+        if not in_span.any():
+            raise GyroInputError(f"--t-from-s/--t-to-s select 0 samples; the recording spans t = {t[0]:g}-{t[-1]:g} s")
     if not airborne.any():
-        raise GyroInputError("no airborne samples (band variable below the airborne threshold everywhere)")
+        raise GyroInputError("no airborne samples (band variable below the airborne threshold everywhere"
+                             + (" in the selected time span)" if t_from_s is not None or t_to_s is not None else ")"))
     try:
         W = _windows(t, sig.gyro, bv, _rotor_hz(rec), airborne, nperseg=nper, rate_hz=rate)
     except GyroInputError as exc:

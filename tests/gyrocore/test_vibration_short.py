@@ -46,3 +46,14 @@ def test_too_few_windows_for_a_band_is_said_and_plotted(tmp_path):
     png = tmp_path / "v.png"
     plot_vibration(res, png)
     assert png.stat().st_size > 10_000
+
+
+def test_time_span_outside_the_record_is_named():
+    """`vibration --t-from-s 300` on a 129-s flight said "no airborne samples (band variable below
+    the airborne threshold everywhere)": the span, not the throttle, was empty."""
+    import pytest
+
+    from gyrocore.errors import GyroInputError
+
+    with pytest.raises(GyroInputError, match=r"--t-from-s/--t-to-s select 0 samples; the recording spans t = 0-"):
+        analyse(_short_flight(1.5), t_from_s=300.0)
