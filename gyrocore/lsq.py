@@ -654,7 +654,10 @@ def _sequential_rank(G: np.ndarray, rtol: float) -> tuple[list[int], dict[int, t
             continue
         if kept:
             Gkk = Gn[np.ix_(kept, kept)]
-            c = linalg.solve(Gkk, Gn[kept, p], assume_a="pos")
+            try:
+                c = linalg.solve(Gkk, Gn[kept, p], assume_a="pos")
+            except linalg.LinAlgError:  # SciPy ≥ 1.17 raises on an exactly singular Gkk (see _wls)
+                c = linalg.lstsq(Gkk, Gn[kept, p])[0]
             r2 = float(Gn[p, p] - Gn[p, kept] @ c)
         else:
             c, r2 = np.zeros(0), 1.0
@@ -864,7 +867,15 @@ def solve(
         b = np.einsum("nip,ni,ni->p", Ac, w, r_, optimize=True)
         cn = np.sqrt(np.diag(G))
         cn[cn == 0] = 1.0
-        th_s = linalg.solve(G / np.outer(cn, cn), b / cn, assume_a="pos")
+        Gs = G / np.outer(cn, cn)
+        try:
+            th_s = linalg.solve(Gs, b / cn, assume_a="pos")
+        except linalg.LinAlgError:
+            # exactly singular normal equations (a candidate's columns collinear with the model's
+            # on this record, e.g. a companion term that repeats a kept column): SciPy ≥ 1.17
+            # raises where older releases returned a solution with a LinAlgWarning. The
+            # minimum-norm solution is the same fit; the covariance below uses pinvh as before
+            th_s = linalg.lstsq(Gs, b / cn)[0]
         return th_s / cn
 
     sigma = np.ones(3)
