@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace as _replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -678,6 +678,40 @@ def select_ieee952(
 METHODS = ("gmwm", "adev", "adev_legacy")
 
 
+#: issue 11 round 6: a claimed rate random walk must also reject a Gauss–Markov bias that turns
+#: over inside the record, on the exact likelihood of the block means (gyrocore.rwgm)
+RW_CHECK = True
+_RW_CHECK_MODELS = {"quantization_rad", "arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s"}
+
+
+def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *, low_pass: bool):
+    """K claimed by the GMWM selection, tested against a GM that turns over inside the record.
+
+    Applies where the selected model is K with white rate noise (and white angle noise or the
+    low-pass deficit): the block-mean likelihood of :mod:`gyrocore.rwgm` holds those terms
+    exactly; a flicker floor (long memory) has no finite block-mean autocovariance there, so a
+    model with B is left to the Allan-variance checks. When the GM world is not rejected at 5 %,
+    K stays in the fitted model (its estimate, the fitted sum, N) but is reported null with its
+    upper bound and ``ambiguous: {K: GM}`` — as a flicker floor not told from a GM.
+    """
+    from . import rwgm
+
+    k = "rrw_rad_per_s_sqrt_s"
+    if (not RW_CHECK or not f.method.startswith("gmwm") or f.terms.get(k) is None
+            or "correlated_sigma_rad_s" not in f.ci95 or not set(f.selected) <= _RW_CHECK_MODELS):
+        return f
+    chk = rwgm.random_walk_check(omega, rate_hz, arw_rad_per_sqrt_s=float(f.estimate["arw_rad_per_sqrt_s"]),
+                                 quantization_rad=0.0 if low_pass else float(f.estimate["quantization_rad"]),
+                                 tau_max_s=float(tau_max_s))
+    if chk is None or chk.claimed:
+        return f
+    terms = dict(f.terms)
+    terms[k] = None
+    ci = dict(f.ci95)
+    ci[k] = (0.0, ci[k][1])
+    return _replace(f, terms=terms, ci95=ci, ambiguous={**dict(f.ambiguous), k: "correlated_sigma_rad_s"})
+
+
 def _axis_result(
     omega: np.ndarray, rate_hz: float, m: np.ndarray, *, axis: str, signal: str, engine: str,
     method: str = "gmwm",
@@ -708,6 +742,7 @@ def _axis_result(
         # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
         meth = method + "+lp" if k0 else method
         f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth)
+        f = _random_walk_check(f, omega, rate_hz, taus[-1], low_pass=bool(k0))
         sel = [gmwm.LINEAR.index(k) for k in f.selected]
         chk = gmwm.goodness_of_fit(avar[k0:], f.fit_avar, f.cov, f.edf, gmwm._n_params(f.coef, f.tau_c_s, sel))
         fit_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef

@@ -628,6 +628,9 @@ def _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) 
     return out
 
 
+#: round 6: the rule counts the block-likelihood check of a claimed K against a GM that turns over
+#: inside the record (gyrocore.rwgm, applied by gyrocore.allan; False reproduces round 5's rule)
+RW_CHECK = True
 #: round 4: intervals of selected long-τ terms robust to an omitted confounder (see _robust_ends)
 ROBUST_CI = True
 #: helper indep: the robust union leaves out a candidate nested with the term (see _robust_ends)
@@ -1111,6 +1114,14 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                     thr = lam_y - _z_check(i, swap_y[0]) * 2.0 * math.sqrt(lam_y)
                     z_claim = (thr + lam) / (2.0 * math.sqrt(lam)) if lam > 0 else (math.inf if thr > 0 else -math.inf)
                     zs.append(z_claim)
+        if AMBIGUITY and RW_CHECK and i == 3 and 5 in cand and set(true_sub) <= {0, 1, 3}:
+            # round 6: the claimed K must also reject a GM that turns over inside the record, on the
+            # exact likelihood of the block means (gyrocore.rwgm; applied in allan._axis_result)
+            from . import rwgm
+
+            zs.append(rwgm.miss_z(arw_rad_per_sqrt_s=math.sqrt(coef[1]), rrw_rad_per_s_sqrt_s=math.sqrt(coef[3]),
+                                  quantization_rad=math.sqrt(coef[0]), n_samples=int(n_samples), rate_hz=rate_hz,
+                                  tau_max_s=float(t[-1])))
         # round 4: the term is missed when ANY alternative wins, so the miss probability is
         # bounded by the sum over alternatives (union bound), not the largest one: with K at 1 h
         # both R (Φ(−1.29) ≈ 10 %) and B (≈ 6 %) stand in, and the minimum alone (1.29 ≥ 1.28)

@@ -121,5 +121,9 @@ def test_upper_bound_of_an_unresolved_random_walk_covers():
                 hi = ax.ci95["rrw_rad_per_s_sqrt_s"][1]
                 assert math.isfinite(hi)
                 covered += hi >= K
-    assert unresolved >= 30, unresolved
+    # K is claimed with probability Φ(margin) = Φ(−0.79) ≈ 21 % (a present but unresolvable term,
+    # not a false claim): unresolved ~ Bin(36, 0.79), P(X < 22) = 0.4 %; 22 axes keep the coverage
+    # check below meaningful (the old bound 30 sat above the mean 28.4: 27 measured in the sixth
+    # session with the round-5 code, 29 with the round-6 check)
+    assert unresolved >= 22, unresolved
     assert covered > 0.85 * unresolved, (covered, unresolved)
