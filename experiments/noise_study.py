@@ -99,6 +99,15 @@ def _identify(method: str, g: np.ndarray, rate_hz: float) -> dict[str, dict]:
             from gyrocore.recording import Recording
 
             res = AL.allan_analysis(Recording(t_s=np.arange(g.shape[0]) / rate_hz, gyro_rad_s=g))
+        elif method == "gmwm_rwcheck":
+            # round 6: the default estimator with the block-likelihood check of a claimed K against
+            # a GM that turns over inside the record (gyrocore.rwgm; off by default)
+            old = AL.RW_CHECK
+            AL.RW_CHECK = True
+            try:
+                res = AL.identify_noise(g, rate_hz=rate_hz, method="gmwm", check_static=False)
+            finally:
+                AL.RW_CHECK = old
         else:
             res = AL.identify_noise(g, rate_hz=rate_hz, method=method, check_static=False)
     for ax, r in res.axes.items():
@@ -141,9 +150,16 @@ def predicted(mix: dict[str, float], T: float, rate: float, method: str) -> dict
         from gyrocore.gmwm import expected_z
     except ImportError:
         return {}
+    from gyrocore import gmwm as G
+
     truth = {TERM_KEYS[k]: v for k, v in mix.items()}
-    meth = "gmwm" if method == "gmwm" else "adev"
-    return expected_z(truth, n_samples=int(round(T * rate)), rate_hz=rate, method=meth)
+    meth = "gmwm" if method.startswith("gmwm") else "adev"
+    old = G.RW_CHECK
+    G.RW_CHECK = method == "gmwm_rwcheck"  # the rule counts the check only where it is applied
+    try:
+        return expected_z(truth, n_samples=int(round(T * rate)), rate_hz=rate, method=meth)
+    finally:
+        G.RW_CHECK = old
 
 
 def summarise(rows: list[dict]) -> list[dict]:

@@ -630,7 +630,7 @@ def _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) 
 
 #: round 6: the rule counts the block-likelihood check of a claimed K against a GM that turns over
 #: inside the record (gyrocore.rwgm, applied by gyrocore.allan; False reproduces round 5's rule)
-RW_CHECK = True
+RW_CHECK = False
 #: round 4: intervals of selected long-τ terms robust to an omitted confounder (see _robust_ends)
 ROBUST_CI = True
 #: helper indep: the robust union leaves out a candidate nested with the term (see _robust_ends)
