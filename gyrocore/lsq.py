@@ -631,6 +631,20 @@ def _flat(A: np.ndarray, w: np.ndarray) -> np.ndarray:
     return (A * np.sqrt(w)[:, :, None]).reshape(-1, A.shape[2])
 
 
+def _solve_pos(G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve the symmetric positive (semi-)definite system G x = b.
+
+    Exactly singular G (a candidate's columns collinear with the model's on this record, e.g. a
+    companion term that repeats a kept column): SciPy ≥ 1.17 raises ``LinAlgError`` where older
+    releases returned a solution with a ``LinAlgWarning``; the minimum-norm least-squares
+    solution is then the same fit (the covariance uses ``pinvh`` in any case).
+    """
+    try:
+        return linalg.solve(G, b, assume_a="pos")
+    except linalg.LinAlgError:
+        return linalg.lstsq(G, b)[0]
+
+
 def _sequential_rank(G: np.ndarray, rtol: float) -> tuple[list[int], dict[int, tuple[int, ...]]]:
     """Columns kept in the given order by a rank-revealing sequential test (no pivoting, so
     the declared order decides which of two collinear columns is kept).
@@ -654,10 +668,7 @@ def _sequential_rank(G: np.ndarray, rtol: float) -> tuple[list[int], dict[int, t
             continue
         if kept:
             Gkk = Gn[np.ix_(kept, kept)]
-            try:
-                c = linalg.solve(Gkk, Gn[kept, p], assume_a="pos")
-            except linalg.LinAlgError:  # SciPy ≥ 1.17 raises on an exactly singular Gkk (see _wls)
-                c = linalg.lstsq(Gkk, Gn[kept, p])[0]
+            c = _solve_pos(Gkk, Gn[kept, p])
             r2 = float(Gn[p, p] - Gn[p, kept] @ c)
         else:
             c, r2 = np.zeros(0), 1.0
@@ -867,16 +878,7 @@ def solve(
         b = np.einsum("nip,ni,ni->p", Ac, w, r_, optimize=True)
         cn = np.sqrt(np.diag(G))
         cn[cn == 0] = 1.0
-        Gs = G / np.outer(cn, cn)
-        try:
-            th_s = linalg.solve(Gs, b / cn, assume_a="pos")
-        except linalg.LinAlgError:
-            # exactly singular normal equations (a candidate's columns collinear with the model's
-            # on this record, e.g. a companion term that repeats a kept column): SciPy ≥ 1.17
-            # raises where older releases returned a solution with a LinAlgWarning. The
-            # minimum-norm solution is the same fit; the covariance below uses pinvh as before
-            th_s = linalg.lstsq(Gs, b / cn)[0]
-        return th_s / cn
+        return _solve_pos(G / np.outer(cn, cn), b / cn) / cn
 
     sigma = np.ones(3)
     for _attempt in range(P + 1):

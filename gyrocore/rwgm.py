@@ -132,7 +132,7 @@ def block_differences(omega_rad_s: np.ndarray, rate_hz: float, *, n_blocks: int 
         Block length Δ, s.
     """
     x = np.asarray(omega_rad_s, float)
-    size = max(1, x.size // int(n_blocks))
+    size = _block_size(x.size, n_blocks)
     nb = x.size // size
     means = x[: nb * size].reshape(nb, size).mean(axis=1)
     return np.diff(means), size / float(rate_hz)
@@ -141,7 +141,9 @@ def block_differences(omega_rad_s: np.ndarray, rate_hz: float, *, n_blocks: int 
 def acov_white(n: int, block_s: float) -> np.ndarray:
     """Autocovariance (lags 0…n−1) of the differenced block means of unit white rate noise (N = 1)."""
     g = np.zeros(n)
-    g[0], g[1 % n] = 2.0 / block_s, -1.0 / block_s if n > 1 else 0.0
+    g[0] = 2.0 / block_s
+    if n > 1:
+        g[1] = -1.0 / block_s
     return g
 
 
@@ -243,7 +245,7 @@ def _fit_rw(objective, k2_guess: float) -> float:
     lo, hi = math.log(max(k2_guess, 1e-300)) - 25.0, math.log(max(k2_guess, 1e-300)) + 12.0
     r = scipy.optimize.minimize_scalar(lambda u: objective(math.exp(u)), bounds=(lo, hi), method="bounded",
                                        options={"xatol": 1e-3})
-    return math.exp(float(r.x)) if objective(math.exp(float(r.x))) <= objective(0.0) else 0.0
+    return math.exp(float(r.x)) if r.fun <= objective(0.0) else 0.0
 
 
 def _fit_gm(objective, s2_guess: float, tc_lo: float, tc_hi: float) -> tuple[float, float]:
@@ -272,9 +274,30 @@ def tau_c_cap_s(tau_max_s: float) -> float:
     return float(tau_max_s) * TC_INSIDE
 
 
-def _worlds(n: int, block_s: float, tc_cap_s: float):
-    """Unit autocovariances and the τc range of the GM world (≥ 2 blocks)."""
-    return acov_white(n, block_s), acov_angle(n, block_s), acov_rw(n, block_s), max(2.0 * block_s, 1e-12)
+def _block_size(n_samples: int, n_blocks: int) -> int:
+    """Samples per block (trailing samples that do not fill a block are left out)."""
+    return max(1, int(n_samples) // int(n_blocks))
+
+
+def _setup(n_samples: int, rate_hz: float, tau_max_s: float, n_blocks: int, arw: float, quantization: float):
+    """Block geometry and the fixed part of both worlds, or None when the record is too short.
+
+    Returns (n differences, Δ s, τc cap s, τc lower end = 2Δ, unit random-walk autocovariance,
+    autocovariance of the white rate + white angle noise held at the GMWM values).
+    """
+    size = _block_size(n_samples, n_blocks)
+    n, block_s = int(n_samples) // size - 1, size / float(rate_hz)
+    cap = tau_c_cap_s(tau_max_s)
+    if n < 63 or cap < 2.0 * block_s:
+        return None
+    base = arw**2 * acov_white(n, block_s) + (quantization or 0.0) ** 2 * acov_angle(n, block_s)
+    return n, block_s, cap, 2.0 * block_s, acov_rw(n, block_s), base
+
+
+def _threshold(gam_g: np.ndarray, base: np.ndarray, gk: np.ndarray, k2_guess: float) -> tuple[float, float]:
+    """(α quantile of D were the GM world ``gam_g`` true, K*² of the random walk closest to it)."""
+    k2s = _fit_rw(lambda v: kl2(gam_g, base + v * gk)[0], k2_guess)
+    return float(np.quantile(gchi2_draws(gam_g, base + k2s * gk, gam_g), ALPHA)), k2s
 
 
 def random_walk_check(omega_rad_s: np.ndarray, rate_hz: float, *, arw_rad_per_sqrt_s: float,
@@ -298,13 +321,12 @@ def random_walk_check(omega_rad_s: np.ndarray, rate_hz: float, *, arw_rad_per_sq
         None when the record is too short for the check (fewer than 64 blocks or the cap below
         two blocks).
     """
-    d, block_s = block_differences(omega_rad_s, rate_hz, n_blocks=n_blocks)
-    n = d.size
-    cap = tau_c_cap_s(tau_max_s)
-    if n < 63 or cap < 2.0 * block_s:
+    x = np.asarray(omega_rad_s, float)
+    got = _setup(x.size, rate_hz, tau_max_s, n_blocks, arw_rad_per_sqrt_s, quantization_rad)
+    if got is None:
         return None
-    gw, gq, gk, tc_lo = _worlds(n, block_s, cap)
-    base = arw_rad_per_sqrt_s**2 * gw + (quantization_rad or 0.0) ** 2 * gq
+    n, block_s, cap, tc_lo, gk, base = got
+    d = block_differences(x, rate_hz, n_blocks=n_blocks)[0]
     # scale guesses from the data: the variance of the differences beyond the white part
     excess = max(float(np.mean(d * d)) - base[0], 1e-6 * base[0])
     k2 = _fit_rw(lambda v: neg2_loglik(d, base + v * gk), excess / gk[0])
@@ -314,11 +336,10 @@ def random_walk_check(omega_rad_s: np.ndarray, rate_hz: float, *, arw_rad_per_sq
     D = neg2_loglik(d, gam_k) - neg2_loglik(d, gam_g)
     if s2 <= 0.0:
         return RandomWalkCheck(True, D, 0.0, 0.0, math.sqrt(k2), 0.0, tc, cap, block_s)
-    # the random walk closest to the GM world (pseudo-true K*), then the stand-in test
-    k2s = _fit_rw(lambda v: kl2(gam_g, base + v * gk)[0], k2 if k2 > 0 else excess / gk[0])
+    # the stand-in test: were the GM world true, D would follow a generalised χ² against the random
+    # walk closest to it (pseudo-true K*): K claimed below its α quantile
+    thr, k2s = _threshold(gam_g, base, gk, k2 if k2 > 0 else excess / gk[0])
     E, V = kl2(gam_g, base + k2s * gk)
-    # were the GM world true, D would follow this generalised χ²: K claimed below its α quantile
-    thr = float(np.quantile(gchi2_draws(gam_g, base + k2s * gk, gam_g), ALPHA))
     claimed = bool(D < thr)
     return RandomWalkCheck(claimed, D, E, math.sqrt(max(V, 0.0)), math.sqrt(k2), math.sqrt(s2), tc, cap, block_s)
 
@@ -332,23 +353,17 @@ def miss_z(*, arw_rad_per_sqrt_s: float, rrw_rad_per_s_sqrt_s: float, quantizati
     :func:`gchi2_draws`); under the truth D follows the generalised χ² of the truth against G*.
     The miss probability p = P(D ≥ t) is returned as z = Φ⁻¹(1 − p) (∞ when no draw misses).
     """
-    size = max(1, int(n_samples) // int(n_blocks))
-    nb = int(n_samples) // size
-    n, block_s = nb - 1, size / float(rate_hz)
-    cap = tau_c_cap_s(tau_max_s)
-    if n < 63 or cap < 2.0 * block_s:
+    got = _setup(n_samples, rate_hz, tau_max_s, n_blocks, arw_rad_per_sqrt_s, quantization_rad)
+    if got is None:
         return math.inf
-    gw, gq, gk, tc_lo = _worlds(n, block_s, cap)
-    base = arw_rad_per_sqrt_s**2 * gw + (quantization_rad or 0.0) ** 2 * gq
+    n, block_s, cap, tc_lo, gk, base = got
     gam_t = base + rrw_rad_per_s_sqrt_s**2 * gk
     s2, tc = _fit_gm(lambda v, t: kl2(gam_t, base + v * acov_gm(n, block_s, t))[0], rrw_rad_per_s_sqrt_s**2 * cap,
                      tc_lo, cap)
     if s2 <= 0.0:
         return math.inf
     gam_g = base + s2 * acov_gm(n, block_s, tc)
-    k2s = _fit_rw(lambda v: kl2(gam_g, base + v * gk)[0], rrw_rad_per_s_sqrt_s**2)
-    gam_ks = base + k2s * gk
-    thr = float(np.quantile(gchi2_draws(gam_g, gam_ks, gam_g), ALPHA))
+    thr = _threshold(gam_g, base, gk, rrw_rad_per_s_sqrt_s**2)[0]
     # under the truth the data's own fits are ≈ K (the truth) and G*: D's law from the same form
     p_miss = float(np.mean(gchi2_draws(gam_t, gam_t, gam_g) >= thr))
     if p_miss <= 0.0:
