@@ -28,8 +28,8 @@ def main() -> None:
 
     import allantools
 
-    from gyrocore import allan as AL
-    from gyrocore.recording import Recording
+    from gyrocore.noise import allan as AL
+    from gyrocore.data.recording import Recording
 
     rng = np.random.default_rng(args.seed)
     fs = args.rate_hz
@@ -65,7 +65,7 @@ def main() -> None:
     print(f"data: {args.n} samples at {fs:g} Hz, {m.size} octave taus ({taus[0]:g} .. {taus[-1]:g} s), "
           f"best of {args.repeat}, interleaved; both times include the rate-to-angle integration")
     print(f"allantools.oadev          : {t_at:8.3f} s")
-    print(f"gyrocore.allan.oadev fast : {t_ours:8.3f} s   speed-up x{t_at / t_ours:.2f}")
+    print(f"gyrocore.noise.allan.oadev fast : {t_ours:8.3f} s   speed-up x{t_at / t_ours:.2f}")
     print(f"max relative difference   : {rel:.3e}")
     print(f"full analysis of one axis (ADEV + EDF + joint fit): {t_full:.3f} s; "
           f"N = {r.arw_rad_per_sqrt_s} (true {N}), K = {r.rrw_rad_per_s_sqrt_s} (true {K})")

@@ -1,13 +1,13 @@
 """Benchmark: blackbox parse rate (frames/s) of our reader beside orangebox alone (issue 16 item 6).
 
 For each file, in one run: (1) orangebox 0.4.0's own ``Parser.frames()`` loop over every log of
-the file, (2) our frame loop (``gyrocore.blackbox.read_blackbox_logs``: orangebox's decoders +
+the file, (2) our frame loop (``gyrocore.readers.blackbox.read_blackbox_logs``: orangebox's decoders +
 frame validation), (3) the whole ``read_blackbox`` (decode + SI conversion + metadata). Best of
 ``--repeat`` wall times, frames/s and the ratio to orangebox alone. Default files: the shared
 Betaflight 3.1.5 log, the Betaflight 4.2.0 / INAV 9.0.1 logs of ``../shared/data/blackbox_public``
 when present, and the ArduPilot DataFlash fixture (tests/data/dataflash): for a DataFlash file,
 (1) pymavlink's DFReader reading every message, (2) pymavlink reading only the messages
-``gyrocore.dataflash`` needs, (3) the whole ``read_dataflash`` (IMU stream) — messages/s.
+``gyrocore.readers.dataflash`` needs, (3) the whole ``read_dataflash`` (IMU stream) — messages/s.
 
     nice python bench/bench_blackbox.py [FILE ...] [--repeat 3]
 """
@@ -44,7 +44,7 @@ def main() -> None:
     args = ap.parse_args()
     import orangebox
 
-    from gyrocore import blackbox as bb
+    from gyrocore.readers import blackbox as bb
 
     logging.getLogger("orangebox").setLevel(logging.ERROR)
     print(f"python {platform.python_version()}, orangebox {getattr(orangebox, '__version__', bb.ORANGEBOX_VERSION)}; "
@@ -94,7 +94,7 @@ def main() -> None:
 def _bench_dataflash(path: str, repeat: int) -> None:
     from pymavlink import DFReader
 
-    from gyrocore import dataflash as df
+    from gyrocore.readers import dataflash as df
 
     def count(types):
         log = DFReader.DFReader_binary(path, zero_time_base=False)

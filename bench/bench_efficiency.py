@@ -3,7 +3,7 @@
 Run: ``nice python bench/bench_efficiency.py [--instances 200] [--seed 0] [--json]``.
 
 For each estimator, many independent synthetic recordings are made with
-:func:`gyrocore.effects.deterministic` plus white rate noise from an explicit
+:func:`gyrocore.effects.registry.deterministic` plus white rate noise from an explicit
 ``np.random.Generator`` (instance ``i`` uses ``SeedSequence(seed).spawn(n)[i]``), the *real*
 gyrocore estimator is run on each, and the standard deviation of the estimates over the
 instances is divided by the Cramér–Rao bound (or by the spread the estimator's own interval
@@ -11,12 +11,12 @@ claims). A ratio of 1 is an efficient estimator (or an honest interval); the Mon
 uncertainty of a ratio of standard deviations from n instances is ≈ 1/√(2(n−1))
 (5 % for n = 200), printed beside each ratio.
 
-1. **Static bias** — :class:`gyrocore.bias.StaticBiasCalibrator` (one window spanning a
+1. **Static bias** — :class:`gyrocore.calib.bias.StaticBiasCalibrator` (one window spanning a
    still recording of T seconds) with white noise density N (rad/√s). For white Gaussian
    noise the CRB of the bias is σ/√n = N·√fs/√(fs·T) = N/√T. Goal ≤ 1.1 for the mean rule;
    the median rule is shown too (its asymptotic efficiency loss is √(π/2) = 1.2533).
-2. **Rate table** — :class:`gyrocore.model.Calibrator` (default options: least squares of
-   :mod:`gyrocore.lsq` with the Ljung–Box covariance switch and the robust pass) fitting
+2. **Rate table** — :class:`gyrocore.calibrator.Calibrator` (default options: least squares of
+   :mod:`gyrocore.calib.lsq` with the Ljung–Box covariance switch and the robust pass) fitting
    bias, scale, misalignment and g-sensitivity to
    six mounts (each sensor axis up and down) × (still, +rate, −rate). The model
    y − ω_ref = A·θ + e is exactly linear in these effects and e is white Gaussian with σ per
@@ -24,7 +24,7 @@ uncertainty of a ratio of standard deviations from n instances is ≈ 1/√(2(n�
    σ·√[(AᵀA)⁻¹]_pp (A flattened to (3N, P), regressors from ``effects.design``). Reported:
    median and max over the parameters of each group (K = scale + misalignment, 9 values;
    H = g-sensitivity, 9 values).
-3. **Allan N** — :func:`gyrocore.allan.allan_analysis` on white noise: (a) the MC spread of
+3. **Allan N** — :func:`gyrocore.noise.allan.allan_analysis` on white noise: (a) the MC spread of
    N̂ over the spread implied by its reported 95 % interval, which comes from the
    chi-square (Greenhall EDF) weights of the fit: σ_c = (hi² − lo²)/(2·1.96) on the variance
    coefficient c = N², so σ_N = σ_c/(2N); ratio ≈ 1 = an honest interval. (b) the MC spread
@@ -43,11 +43,11 @@ import time
 
 import numpy as np
 
-from gyrocore import effects as E
-from gyrocore.allan import allan_analysis
-from gyrocore.lsq import build_design
-from gyrocore.model import Calibrator
-from gyrocore.recording import Recording
+from gyrocore.effects import registry as E
+from gyrocore.noise.allan import allan_analysis
+from gyrocore.calib.lsq import build_design
+from gyrocore.calibrator import Calibrator
+from gyrocore.data.recording import Recording
 
 G_M_S2 = 9.80665
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
@@ -68,7 +68,7 @@ def _ratio_ci(n: int) -> float:
 # ---------------------------------------------------------------------------- 1. static bias
 def static_bias(instances: int, seed: int, *, rate_hz=200.0, duration_s=10.0, n_rad_per_sqrt_s=1e-3,
                 rule="mean"):
-    from gyrocore.bias import StaticBiasCalibrator
+    from gyrocore.calib.bias import StaticBiasCalibrator
 
     n = int(round(rate_hz * duration_s))
     # Three windows of T = n / rate: the estimate is the first window the motion gate accepts
@@ -91,7 +91,7 @@ def static_bias(instances: int, seed: int, *, rate_hz=200.0, duration_s=10.0, n_
     crb = n_rad_per_sqrt_s / math.sqrt(n / rate_hz)  # N/√T = σ/√n (per axis, rad/s)
     std = float(np.std(errs, ddof=1))  # pooled over axes: 3·instances draws
     return {
-        "estimator": f"gyrocore.bias.StaticBiasCalibrator(rule={rule!r})",
+        "estimator": f"gyrocore.calib.bias.StaticBiasCalibrator(rule={rule!r})",
         "rate_hz": rate_hz,
         "duration_s": n / rate_hz,
         "n_rad_per_sqrt_s": n_rad_per_sqrt_s,
@@ -158,7 +158,7 @@ def rate_table(instances: int, seed: int, *, rate_hz=100.0, segment_s=5.0, n_rad
         "H (g-sensitivity)": slices["g_sensitivity"],
     }
     out = {
-        "estimator": "gyrocore.model.Calibrator(effects=bias,scale,misalignment,g_sensitivity)",
+        "estimator": "gyrocore.calibrator.Calibrator(effects=bias,scale,misalignment,g_sensitivity)",
         "design": f"6 mounts x (still, +1, -1 rad/s) x {segment_s:g} s at {rate_hz:g} Hz",
         "n_rad_per_sqrt_s": n_rad_per_sqrt_s,
         "ratio_mc_rel_se": _ratio_ci(instances),
@@ -198,7 +198,7 @@ def allan_n(instances: int, seed: int, *, rate_hz=100.0, duration_s=1000.0, n_ra
     std = float(np.std(est, ddof=1))
     crb = n_rad_per_sqrt_s / math.sqrt(2 * n)
     return {
-        "estimator": "gyrocore.allan.allan_analysis (joint IEEE 952 fit)",
+        "estimator": "gyrocore.noise.allan.allan_analysis (joint IEEE 952 fit)",
         "rate_hz": rate_hz,
         "duration_s": duration_s,
         "n_rad_per_sqrt_s": n_rad_per_sqrt_s,

@@ -5,7 +5,7 @@ figures do not include another stage's memory:
 
 * ``synth``: only build the recording (:func:`experiments.close_the_loop.synthetic_recording`,
   tumbling reference, white + flicker + RRW + Gauss–Markov noise) — the baseline;
-* ``loop``: the same recording, then :func:`gyrocore.loop.run_loop` with the open search
+* ``loop``: the same recording, then :func:`gyrocore.loop.loop.run_loop` with the open search
   (declared: bias);
 * ``loop_catalogue``: the same with ``open_search=False`` (the catalogue alone, for the ratio).
 

@@ -4,12 +4,12 @@ Run: ``nice python bench/bench_memory.py [--duration-s 3600] [--rate-hz 1000] [-
 
 The recording (3.6 M samples, 15 columns: t, gyro, accel, temperature, reference rate and
 attitude) is a still, level sensor warming up from 25 °C to 45 °C (τ = 10 min) with a
-constant and thermal bias (:func:`gyrocore.effects.deterministic`) and white rate noise from
+constant and thermal bias (:func:`gyrocore.effects.registry.deterministic`) and white rate noise from
 an explicit ``np.random.Generator``. Every stage runs in its own subprocess; its peak
 resident set size is that process's ``ru_maxrss`` from ``os.wait4`` (Linux: KiB), so the
 figures are per stage, not cumulative. Stages:
 
-``baseline``      python + numpy + ``gyrocore.recording`` only (the floor of every other figure)
+``baseline``      python + numpy + ``gyrocore.data.recording`` only (the floor of every other figure)
 ``simulate``      ``gyroharness simulate thermal --duration-s 3600 --rate-hz 1000`` (MuJoCo rate
                   table + thermal model + synthetic gyro with every noise term, generated and
                   written chunk by chunk: sim.scenarios.simulate_stream, issue 13)
@@ -33,7 +33,7 @@ figures are per stage, not cumulative. Stages:
                   (to Parquet, streamed), ``bias`` (windows read back from disk a block at a
                   time), ``allan`` (one axis at a time), ``calibrate`` (fitted from disk a
                   window at a time), ``apply`` (streamed), ``loop`` (spilled; the residual loop
-                  reads it back a window at a time: gyrocore.stream.SpilledRecording)
+                  reads it back a window at a time: gyrocore.calib.stream.SpilledRecording)
 ``cli_loop_long`` ``loop`` on the synthetic recording of ``--long-duration-s`` (e.g. 36000: ten hours),
                   written to Parquet in ``WORK/long/`` first; ``--loop-args`` adds options (e.g.
                   ``--no-open-search``); run once: completes, and its peak
@@ -92,14 +92,14 @@ def _true_params() -> dict:
 
 # ---------------------------------------------------------------------------- stages (child side)
 def stage_baseline(a) -> dict:
-    import gyrocore.recording  # noqa: F401  (python + numpy + the data file module)
+    import gyrocore.data.recording  # noqa: F401  (python + numpy + the data file module)
 
     return {}
 
 
 def _chunks(a):
-    from gyrocore import effects as E
-    from gyrocore.recording import Recording
+    from gyrocore.effects import registry as E
+    from gyrocore.data.recording import Recording
 
     n = int(round(a.duration_s * a.rate_hz))
     n_chunks = math.ceil(n / CHUNK_ROWS)
@@ -124,7 +124,7 @@ def _chunks(a):
 
 
 def stage_synth(a) -> dict:
-    from gyrocore.recording import write_chunks
+    from gyrocore.data.recording import write_chunks
 
     n = write_chunks(_chunks(a), a.csv)  # CSV or Parquet by the file name (--format)
     return {"rows": n, "csv_bytes": os.path.getsize(a.csv)}
@@ -133,14 +133,14 @@ def stage_synth(a) -> dict:
 #: What each command imports when it runs (``gyrocore.cli`` and the command modules are
 #: loaded by every command; pyarrow.csv by every reader).
 IMPORTS = {
-    "imports_convert": ["gyrocore.convert", "gyrocore.recording", "pyarrow.csv", "pyarrow.parquet"],
-    "imports_bias": ["gyrocore.bias", "gyrocore.convert", "gyrocore.recording", "pyarrow.csv"],
-    "imports_allan": ["gyrocore.allan", "gyrocore.gmwm", "gyrocore.recording", "pyarrow.csv"],
-    "imports_calibrate": ["gyrocore.model", "gyrocore.lsq", "gyrocore.thermal", "gyrocore.stream", "gyrocore.convert",
+    "imports_convert": ["gyrocore.readers.convert", "gyrocore.data.recording", "pyarrow.csv", "pyarrow.parquet"],
+    "imports_bias": ["gyrocore.calib.bias", "gyrocore.readers.convert", "gyrocore.data.recording", "pyarrow.csv"],
+    "imports_allan": ["gyrocore.noise.allan", "gyrocore.noise.gmwm", "gyrocore.data.recording", "pyarrow.csv"],
+    "imports_calibrate": ["gyrocore.calibrator", "gyrocore.calib.lsq", "gyrocore.calib.thermal", "gyrocore.calib.stream", "gyrocore.readers.convert",
                           "pyarrow.csv"],
-    "imports_apply": ["gyrocore.model", "gyrocore.recording", "pyarrow.csv"],
-    "imports_loop": ["gyrocore.loop", "gyrocore.search", "gyrocore.residual", "gyrocore.model", "gyrocore.lsq",
-                     "gyrocore.recording", "pyarrow.csv"],
+    "imports_apply": ["gyrocore.calibrator", "gyrocore.data.recording", "pyarrow.csv"],
+    "imports_loop": ["gyrocore.loop.loop", "gyrocore.loop.search", "gyrocore.loop.residual", "gyrocore.calibrator", "gyrocore.calib.lsq",
+                     "gyrocore.data.recording", "pyarrow.csv"],
 }
 
 
@@ -160,14 +160,14 @@ def _stage_imports(name):
 
 
 def stage_read_whole(a) -> dict:
-    from gyrocore.recording import read_recording
+    from gyrocore.data.recording import read_recording
 
     rec = read_recording(a.csv)
     return {"rows": rec.n}
 
 
 def stage_read_chunks(a) -> dict:
-    from gyrocore.recording import iter_chunks
+    from gyrocore.data.recording import iter_chunks
 
     n, s = 0, np.zeros(3)
     for ch in iter_chunks(a.csv, rows=CHUNK_ROWS):
@@ -181,7 +181,7 @@ def _gather(a, *, full: bool):
 
     The columns are preallocated for the known length and filled chunk by chunk, so the
     gather peaks at the columns themselves (not at chunk lists plus their concatenation)."""
-    from gyrocore.recording import Recording, iter_chunks
+    from gyrocore.data.recording import Recording, iter_chunks
 
     n = int(round(a.duration_s * a.rate_hz))
     shapes = {"t": (n,), "g": (n, 3)}
@@ -209,14 +209,14 @@ def _gather(a, *, full: bool):
 
 
 def stage_allan(a) -> dict:
-    from gyrocore.allan import allan_analysis
+    from gyrocore.noise.allan import allan_analysis
 
     res = allan_analysis(_gather(a, full=False))
     return {"arw_rad_per_sqrt_s": {k: v.arw_rad_per_sqrt_s for k, v in res.axes.items()}}
 
 
 def stage_calibrate(a) -> dict:
-    from gyrocore.model import Calibrator, save_params
+    from gyrocore.calibrator import Calibrator, save_params
 
     rec = _gather(a, full=True)
     res = Calibrator(effects=EFFECTS[a.source]).fit(rec)
@@ -232,8 +232,8 @@ def stage_calibrate(a) -> dict:
 def stage_apply(a) -> dict:
     import warnings
 
-    from gyrocore.model import load_params
-    from gyrocore.recording import iter_chunks, write_chunks
+    from gyrocore.calibrator import load_params
+    from gyrocore.data.recording import iter_chunks, write_chunks
 
     cal = load_params(a.params)
     with warnings.catch_warnings():
@@ -247,7 +247,7 @@ def stage_attitude(a) -> dict:
     over from the previous one (the chunk starts at the previous chunk's last sample, so the
     zero-order-hold step across the boundary is included exactly once)."""
     from gyrocore.attitude import error_angle_rad, integrate_gyro
-    from gyrocore.recording import iter_chunks
+    from gyrocore.data.recording import iter_chunks
 
     q_carry = t_last = w_last = None
     n = 0

@@ -4,9 +4,9 @@ Both on the same data (white N + random walk K + flicker B, three axes), timed s
 one run, interleaved, best of ``--repeat`` (single timings on this shared machine vary 3–10×
 with the load; the ratio of the best times is the figure):
 
-- **ADEV alone**: :func:`gyrocore.allan.oadev` (fast kernel, rate → angle integration included)
+- **ADEV alone**: :func:`gyrocore.noise.allan.oadev` (fast kernel, rate → angle integration included)
   at the octave τ the old analysis used (m ≤ (n−1)/4), three axes;
-- **full identification**: :func:`gyrocore.allan.identify_noise` with ``method`` (the ADEV at
+- **full identification**: :func:`gyrocore.noise.allan.identify_noise` with ``method`` (the ADEV at
   every octave up to (n−1)/2, EDF, model covariance, subset selection, intervals), three axes,
   motion gate included.
 
@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from gyrocore import allan as AL  # noqa: E402
+from gyrocore.noise import allan as AL  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -66,10 +66,10 @@ def main(argv=None) -> None:
         c_full.append(time.process_time() - c0)
     # parts of the full identification, once each (CPU s)
     c0 = time.process_time()
-    AL.still_fraction(res_rec := __import__("gyrocore.recording", fromlist=["Recording"]).Recording(
+    AL.still_fraction(res_rec := __import__("gyrocore.data.recording", fromlist=["Recording"]).Recording(
         t_s=np.arange(n) / rate, gyro_rad_s=g))
     c_gate = time.process_time() - c0
-    from gyrocore import gmwm as G
+    from gyrocore.noise import gmwm as G
 
     m_all = G.scales(n)
     c0 = time.process_time()

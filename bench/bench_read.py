@@ -3,17 +3,17 @@
 Run: ``nice python bench/bench_read.py [--rows 1000000] [--repeat 3] [--work DIR] [--json]``.
 
 The file is a DESIGN.md data file with all 15 columns (t, gyro, accel, temperature,
-reference rate and attitude) written by :func:`gyrocore.recording.write_csv_chunks`
+reference rate and attitude) written by :func:`gyrocore.data.recording.write_csv_chunks`
 (``%.17g``, as every file the project writes). Timed, interleaved, best of ``--repeat``:
 
 ``pandas``        ``pandas.read_csv(path, comment="#")`` — the plain C parser into a DataFrame
                   (default float precision; no checks): the reference.
-``read_csv``      :func:`gyrocore.recording.read_csv`: parse (Arrow C++), column groups, SI
+``read_csv``      :func:`gyrocore.data.recording.read_csv`: parse (Arrow C++), column groups, SI
                   units, NaN/backwards-time repairs and every plausibility check (gaps,
                   units, saturation) — what every command does.
 ``read_csv_raw``  the same with ``checks=False``.
-``iter_chunks``   :func:`gyrocore.recording.iter_csv_chunks` over the whole file (200 000 rows).
-``parquet``       :func:`gyrocore.recording.read_parquet` of the same data as Parquet.
+``iter_chunks``   :func:`gyrocore.data.recording.iter_csv_chunks` over the whole file (200 000 rows).
+``parquet``       :func:`gyrocore.data.recording.read_parquet` of the same data as Parquet.
 
 The ratio printed is each time over the ``pandas`` time (goal for ``read_csv``: ≤ 1.5).
 """
@@ -34,7 +34,7 @@ import numpy as np
 
 
 def make_file(path: Path, rows: int, chunk: int = 200_000) -> None:
-    from gyrocore.recording import Recording, write_chunks
+    from gyrocore.data.recording import Recording, write_chunks
 
     rng = np.random.default_rng(0)
 
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     import pandas as pd
 
-    from gyrocore.recording import iter_csv_chunks, read_csv, read_parquet, write_parquet_chunks
+    from gyrocore.data.recording import iter_csv_chunks, read_csv, read_parquet, write_parquet_chunks
 
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="bench_read_"))
     work.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ Run: ``python bench/bench_sim.py [--hover-s 20] [--repeat 3]`` (prints one table
 * hover: ``sim.quadrotor.fly_hover`` at physics 1 kHz, gyro 1 kHz, vibration on, with
   (a) the error-free ``PerfectGyro`` (the harness alone), (b) ``sim.gyro.SyntheticGyro``
   (ICM-42688-P preset) with EVERY catalogue effect switched on (the preset's plus overrides
-  for the rest), (c) as (b) plus a PT1 30 Hz pipeline (``gyrocore.filters.pt1``); (b) and (c)
+  for the rest), (c) as (b) plus a PT1 30 Hz pipeline (``gyrocore.flight.filters.pt1``); (b) and (c)
   again on the Python reference loop (``sim.quadrotor.USE_COMPILED = False``: the loop before
   the compiled kernels of :mod:`sim._fast`, bit-identical results);
 * turntable: ``sim.turntable.run_table`` (mujoco.rollout in C, open loop), six mounts x 1 turn
@@ -15,7 +15,7 @@ Run: ``python bench/bench_sim.py [--hover-s 20] [--repeat 3]`` (prints one table
 
 Also printed: the wall time of the first flight in the process (numba loading, or on a fresh
 checkout compiling, the kernels of :mod:`sim._fast`) and the CPU time of the PT1 pipeline's
-``step`` alone (``gyrocore.filters``), the main cost left in (c).
+``step`` alone (``gyrocore.flight.filters``), the main cost left in (c).
 
 Each figure is the best of ``--repeat`` runs (the machine is shared; best-of is the least
 disturbed). Besides wall time, CPU time of this process (``time.process_time``) is shown: on a
@@ -82,7 +82,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="runs per figure (best is kept)")
     args = ap.parse_args()
 
-    from gyrocore.filters import pt1
+    from gyrocore.flight.filters import pt1
     from sim.gyro import SyntheticGyro
     import sim.quadrotor as Q
     from sim.quadrotor import PerfectGyro, fly_hover, load_quadrotor_model
@@ -132,7 +132,7 @@ def main() -> None:
             Q.USE_COMPILED = True
         rows.append((label, r, b_h))
 
-    # the pipeline's own step, alone (gyrocore.filters, called once per gyro sample in (c))
+    # the pipeline's own step, alone (gyrocore.flight.filters, called once per gyro sample in (c))
     p = pt1(30.0, 1000.0)
     x = np.zeros((1, 3))[0]
     n_p = 20_000
@@ -170,7 +170,7 @@ def main() -> None:
         # per 1 ms physics step: microseconds = 1e3 / (sim-s per s)
         print(f"{label:<{w}}  {rw:12.1f}  {bw:8.1f}  {rw / bw:5.2f}  |  {rc:11.1f}  {bc:8.1f}  {rc / bc:5.2f}  {1e3 / rc:11.2f}  {1e3 / bc:6.2f}")
     print(f"hover: {T:g} simulated s per run, physics 1 kHz, gyro 1 kHz, vibration on; goal ratio >= 0.5")
-    print(f"PT1 pipeline step alone (gyrocore.filters.SosFilter.step): {pipe_us:.2f} CPU us per call")
+    print(f"PT1 pipeline step alone (gyrocore.flight.filters.SosFilter.step): {pipe_us:.2f} CPU us per call")
 
 
 if __name__ == "__main__":

@@ -49,8 +49,8 @@ class Harness:
     """Runs every target on one input and classifies the outcome."""
 
     def __init__(self, crash_dir: Path) -> None:
-        from gyrocore import convert as cv
-        from gyrocore import recording as rc
+        from gyrocore.readers import convert as cv
+        from gyrocore.data import recording as rc
         from gyrocore.errors import GyroInputError
 
         self.GyroInputError = GyroInputError
@@ -176,8 +176,8 @@ def main() -> None:
         import atheris
 
         with atheris.instrument_imports():
-            import gyrocore.convert  # noqa: F401
-            import gyrocore.recording  # noqa: F401
+            import gyrocore.readers.convert  # noqa: F401
+            import gyrocore.data.recording  # noqa: F401
         h = Harness(args.crash_dir)
         run_atheris(h, args.runs, args.seed, t0)
     else:

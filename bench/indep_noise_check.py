@@ -298,9 +298,9 @@ def main(argv=None) -> None:
 def drift_sd_rad(terms: dict, window_s: float, horizon_s: float) -> float:
     """Predicted SD of the heading error ∫(ω − b̂)dt over ``horizon_s`` after a still window of
     ``window_s`` whose mean is taken as the bias: θ = H·(ȳ[W, W+H] − ȳ[0, W]), its variance from
-    the block covariances of :func:`gyrocore.budget.block_covariance` (the drift model the
+    the block covariances of :func:`gyrocore.calib.budget.block_covariance` (the drift model the
     error budget uses) for each term.  ``terms``: the noise JSON keys (None/absent = 0)."""
-    from gyrocore.budget import Blocks, block_covariance
+    from gyrocore.calib.budget import Blocks, block_covariance
 
     t0 = np.array([0.0, window_s])
     t1 = np.array([window_s, window_s + horizon_s])

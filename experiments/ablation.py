@@ -18,7 +18,7 @@ Rows
 
 Which effects are *present* comes from the instance's true parameters. The corrections are
 what a user would really get: parameters estimated by the calibration core
-(:class:`gyrocore.model.Calibrator`) from calibration recordings of the same instance (a
+(:class:`gyrocore.calibrator.Calibrator`) from calibration recordings of the same instance (a
 rate-table run and a thermal run, separate power-ups with fresh noise), plus the power-up
 bias taken at the start of the scored recording, still, *after* the other corrections
 (turn-on bias changes at every power-up). ``bias`` in a row means that power-up bias.
@@ -37,7 +37,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.attitude import AttitudeScore, error_angle_rad, integrate_gyro, score_attitude
 
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
@@ -61,7 +61,7 @@ __all__ = [
 #: Scenarios scored by the ablation (sim.scenarios names).
 SCENARIOS = ("static", "static_bumped", "turntable", "thermal", "hover", "power_cycles")
 
-#: Deterministic effects that :func:`gyrocore.effects.correct` can remove.
+#: Deterministic effects that :func:`gyrocore.effects.registry.correct` can remove.
 CORRECTABLE = E.CORRECTABLE
 
 #: Fractions of the scored duration at which error curves are kept (for median curves).
@@ -130,7 +130,7 @@ def corrected_gyro(
     """The gyro after the corrections in ``subset`` (rad/s, (N, 3)).
 
     Non-bias effects are removed with the calibration's estimates
-    (:func:`gyrocore.effects.correct`, stage by stage; see :func:`_as_stages`). If ``"bias"``
+    (:func:`gyrocore.effects.registry.correct`, stage by stage; see :func:`_as_stages`). If ``"bias"``
     is in ``subset`` the power-up bias is the mean of the corrected rate over the ``still``
     samples at the start of the recording (true rate 0 there), subtracted after the other
     corrections, as a user does after applying a calibration file. Without a still window
@@ -199,10 +199,10 @@ class InstanceAblation:
     errors_deg : dict
         ``{row: ndarray (M,)}`` error angle curves (decimated), degrees.
     notes : tuple of str
-    prediction : gyrocore.budget.ErrorPrediction or None
+    prediction : gyrocore.calib.budget.ErrorPrediction or None
         Predicted error of the ``all`` row from the calibration's standard errors and the
         noise model the calibration identified (:func:`predict_instance`).
-    prediction_true_noise : gyrocore.budget.ErrorPrediction or None
+    prediction_true_noise : gyrocore.calib.budget.ErrorPrediction or None
         The same with the unit's *true* noise (simulation only): the contract's quality
         statistic (predicted/floor), which should move with the protocol and the estimator,
         not with the noise identification's own scatter.
@@ -262,7 +262,7 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
     """
     import json
 
-    from gyrocore.model import load_params, save_params
+    from gyrocore.calibrator import load_params, save_params
 
     from .calibrators import CoreCalibrator, CoreParams, calibration_recordings, strip_truth
 
@@ -290,7 +290,7 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
             for r in calibration_recordings(sensor, seed, quick=quick, durations_s=durations_s)]
     params = CoreCalibrator(effects=present).fit(recs)
     if paths:
-        from gyrocore.recording import atomic_write_text
+        from gyrocore.data.recording import atomic_write_text
 
         for p, r in zip(paths, params.results):
             if r is not None:
@@ -330,7 +330,7 @@ def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s:
                    window_s: float | None = None) -> slice | None:
     """The first still :data:`POWERUP_WINDOW_S` window in the first :data:`POWERUP_SEARCH_S`.
 
-    Motion-gated static calibration (:class:`gyrocore.bias.StaticBiasCalibrator`, variance
+    Motion-gated static calibration (:class:`gyrocore.calib.bias.StaticBiasCalibrator`, variance
     gate, false-reject rate 1e-3), refusing while moving and retrying on the next window, as
     a flight controller does at power-up. The gate uses the sensor's white-noise σ (datasheet
     noise density and LSB: σ² = N²·rate + LSB²/12) when known, so rotor vibration cannot
@@ -338,7 +338,7 @@ def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s:
     mean exceeds ``bias_bound_rad_s`` (a plausible bias: 5× the datasheet bias spread) is
     refused too and the search goes on after it. None if the start never goes still.
     """
-    from gyrocore.bias import StaticBiasCalibrator
+    from gyrocore.calib.bias import StaticBiasCalibrator
     from gyrocore.errors import GyroInputError
 
     rate = rec.rate_hz
@@ -524,14 +524,14 @@ IRREDUCIBLE = ("lowpass",)
 
 
 def calibration_groups(calibration, present: Sequence[str]) -> list:
-    """One :class:`gyrocore.budget.ParameterGroup` per estimated effect of the ``all`` row.
+    """One :class:`gyrocore.calib.budget.ParameterGroup` per estimated effect of the ``all`` row.
 
     The power-up bias replaces every stage's ``bias`` (its own error is the window's noise,
     predicted from the noise model). An effect fitted again by a later stage (``scale``
     re-referenced by the thermal run) is superseded: the later fit estimates the residual left
     by the earlier one, so only its error remains (to first order).
     """
-    from gyrocore.budget import ParameterGroup
+    from gyrocore.calib.budget import ParameterGroup
 
     last: dict[str, tuple[dict, dict]] = {}
     for st in _as_stages(calibration):
@@ -577,7 +577,7 @@ def uncorrected_rate_errors(res, present: Sequence[str], estimated: Sequence[str
 
 
 def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = True):
-    """The noise model identified by the calibration (:class:`gyrocore.budget.NoiseModel`), None
+    """The noise model identified by the calibration (:class:`gyrocore.calib.budget.NoiseModel`), None
     when the calibration carries none.
 
     White level: that of the calibration run whose sample rate is ``rate_hz`` (it includes that
@@ -619,16 +619,16 @@ def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = T
 
 
 def predict_instance(res, calibration, present: Sequence[str], still, start: int, *, noise=None):
-    """Predicted attitude error of the ``all`` row (:func:`gyrocore.budget.predict_error`).
+    """Predicted attitude error of the ``all`` row (:func:`gyrocore.calib.budget.predict_error`).
 
-    Noise: ``noise`` (a :class:`gyrocore.budget.NoiseModel`: the model the calibration
+    Noise: ``noise`` (a :class:`gyrocore.calib.budget.NoiseModel`: the model the calibration
     identified on its own residual, :func:`identified_noise`); None: the unit's true noise
     terms (simulation only).
     Parameter errors: the calibration's standard errors (diagonal). Power-up bias: the still
     windows actually used. Uncorrected: present effects the calibration did not estimate
     (reported, not predicted) and the low-pass (predicted: no correction removes it).
     """
-    from gyrocore.budget import NoiseModel, predict_error
+    from gyrocore.calib.budget import NoiseModel, predict_error
 
     rec, truth, p_true = res.recording, res.truth, res.params_true
     groups = calibration_groups(calibration, present)
@@ -981,7 +981,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         "\n### Predicted drift and error budget\n\nPredicted RMS error of the all-corrections row from the "
         "calibration's own standard errors, the noise (floor terms; the power-up window's noise, signed: negative "
         "where the window mean removes more slow noise than it adds) and the uncorrected terms "
-        "(gyrocore.budget; docs/accuracy.md). Medians over units, degrees (RMS-equivalent shares: their squares "
+        "(gyrocore.calib.budget; docs/accuracy.md). Medians over units, degrees (RMS-equivalent shares: their squares "
         "add up).\n",
         budget_markdown(pred),
         f"\n![budget]({bf})" if bf else "",

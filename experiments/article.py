@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from gyrocore.attitude import error_angle_rad, integrate_gyro, score_attitude
-from gyrocore.filters import article_lpf, article_lpf_coefficient, make_filter
+from gyrocore.flight.filters import article_lpf, article_lpf_coefficient, make_filter
 
 from .report import ExperimentResult, md_table, new_figure, save_figure
 
@@ -77,7 +77,7 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
     data = shared_data_dir()
     src = None
     if data is not None and (data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv").exists():
-        from gyrocore.convert import read_tomisuarez2
+        from gyrocore.readers.convert import read_tomisuarez2
 
         src = data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv"
         rec = read_tomisuarez2(src)
@@ -133,11 +133,11 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
     # a steady rotation is invisible to the gate: add 0.5 °/s on z to the still data
     steady = counts + np.array([0.0, 0.0, 0.5 * MPU6050_LSB_PER_DPS])
     sums_steady = gate_sums_counts(steady)
-    # the gate derived from the sensor's own noise (gyrocore.bias), same statistic and window
+    # the gate derived from the sensor's own noise (gyrocore.calib.bias), same statistic and window
     derived = None
     try:
-        from gyrocore.bias import StaticBiasCalibrator
-        from gyrocore.recording import Recording
+        from gyrocore.calib.bias import StaticBiasCalibrator
+        from gyrocore.data.recording import Recording
 
         r = StaticBiasCalibrator(window_samples=ARTICLE_WINDOW, statistic="abs_diff", false_reject_rate=1e-3).fit(
             Recording(t_s=t, gyro_rad_s=g))
@@ -173,9 +173,9 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
           f"A steady rotation does not change the statistic at all (it differences the rate): with +0.5 °/s on z the "
           f"sums are {'identical' if np.allclose(sums_steady, sums) else 'different'}, so a slowly turning vehicle passes the gate and its "
           f"0.5 °/s goes into the bias — a drift of 30 °/min. A threshold must come from the sensor's own noise "
-          f"(`gyrocore.bias`), and stillness needs a test on the rate itself, not only on its differences.\n",
+          f"(`gyrocore.calib.bias`), and stillness needs a test on the rate itself, not only on its differences.\n",
           (f"With the threshold derived from the sensor's own noise for a 1e-3 false-reject rate at rest "
-           f"(`gyrocore.bias.StaticBiasCalibrator`, same Σ|Δ| statistic): "
+           f"(`gyrocore.calib.bias.StaticBiasCalibrator`, same Σ|Δ| statistic): "
            f"{', '.join(f'{x:.0f}' for x in derived[0])} counts per axis; {derived[1]} of {derived[2]} still windows "
            f"accepted; smallest rate step caught with 50 % probability "
            f"{', '.join(f'{x:.1f}' for x in derived[3])} °/s.\n" if derived else ""),
@@ -247,7 +247,7 @@ def _part_m():
           f"\nWith C = 20π·I only M₀₀ matches ({M20[0, 0]:.4f} vs 0.9754); the other diagonal entries "
           f"({M20[1, 1]:.4f}, {M20[2, 2]:.4f} vs 0.9841, 0.9851) and every off-diagonal entry do not follow from the "
           f"printed B (e.g. M[2,1] = {M20[2, 1]:.4f}, the article prints 0.107). The scale example: 3600/3500 = {3600 / 3500:.4f}, not 1.02; and 5 turns are 1800°, "
-          "not 3600°. The integral method itself is sound (it is what `gyrocore.rotations` implements); the "
+          "not 3600°. The integral method itself is sound (it is what `gyrocore.calib.rotations` implements); the "
           "printed example is not self-consistent.\n"]
     n_match = sum(r[-1] == "yes" for r in rows)
     return "\n".join(md), {"M_C20_diag": np.diag(M20).tolist(), "M_C10_diag": np.diag(M10).tolist(),

@@ -4,7 +4,7 @@ DESIGN.md "Scoring a user's calibration". A calibration routine has two steps:
 
 ``fit(recordings) -> params``
     ``recordings``: the unit's calibration recordings, in order the rate-table run, then the
-    thermal run (:class:`gyrocore.recording.Recording`, truth metadata stripped; they keep the
+    thermal run (:class:`gyrocore.data.recording.Recording`, truth metadata stripped; they keep the
     references a real calibration rig gives: the table's rate and attitude, the chamber's
     temperature). ``params`` is the routine's own object (opaque to the harness).
 ``apply(recording, params) -> gyro``
@@ -56,9 +56,9 @@ from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import Recording
+from gyrocore.data.recording import Recording
 
 __all__ = [
     "CalibrationRoutine",
@@ -244,7 +244,7 @@ class CoreParams:
     stages : tuple of dict
         Calibration stages for :func:`experiments.ablation.corrected_gyro`.
     results : tuple
-        The :class:`gyrocore.model.CalibrationResult` of each stage (None where not fitted).
+        The :class:`gyrocore.calibrator.CalibrationResult` of each stage (None where not fitted).
     """
 
     effects: tuple[str, ...]
@@ -263,7 +263,7 @@ class CoreCalibrator:
         model has (the preset named by the recordings' ``# sensor:`` metadata) — in the
         ablation, the effects present in the unit (the same list for every preset unit).
     cal_kw : mapping, optional
-        :class:`gyrocore.model.Calibrator` options (default the ablation's).
+        :class:`gyrocore.calibrator.Calibrator` options (default the ablation's).
 
     ``fit``: the rate-table run → the table effects (:data:`experiments.ablation.TABLE_EFFECTS`)
     present; the thermal run, first corrected with that, → ``bias`` + the thermal effects
@@ -297,7 +297,7 @@ class CoreCalibrator:
     def fit(self, recordings: Sequence[Recording]) -> CoreParams:
         import warnings
 
-        from gyrocore.model import Calibrator
+        from gyrocore.calibrator import Calibrator
 
         from . import ablation as A
 
@@ -673,7 +673,7 @@ class CommandCalibrator:
                                                            allowed=("{params}", "{input}", "{output}")))
 
     def fit(self, recordings: Sequence[Recording]) -> str:
-        from gyrocore.recording import write_csv
+        from gyrocore.data.recording import write_csv
 
         self.close()
         self._tmp = tempfile.TemporaryDirectory(prefix="gyroharness-routine-", dir=self.workdir)
@@ -692,7 +692,7 @@ class CommandCalibrator:
     def apply(self, recording: Recording, params: str) -> np.ndarray:
         import warnings
 
-        from gyrocore.recording import read_csv, write_csv
+        from gyrocore.data.recording import read_csv, write_csv
 
         if self._tmp is None:
             raise RoutineFailure("apply before fit")

@@ -5,7 +5,7 @@ Two parts:
 * :func:`synthetic_recording` — a fast, rich synthetic reference (multi-axis tumbling at
   0.02–1.3 Hz with both signs of rate, a warm-up plus oscillating temperature so that T, dT/dt
   and t are distinguishable, gravity plus linear acceleration) through the shared measurement
-  model :func:`gyrocore.effects.deterministic` and the noise generators of :mod:`sim.noise`
+  model :func:`gyrocore.effects.registry.deterministic` and the noise generators of :mod:`sim.noise`
   (ARW + flicker bias instability). Used by the tests and the Monte Carlo.
 * :func:`run` — the whole cycle on the hover and turntable scenarios of :mod:`sim.scenarios`
   with one undeclared effect, plots of the residual against its regressor before and after,
@@ -19,9 +19,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.attitude import integrate_gyro
-from gyrocore.recording import Recording
+from gyrocore.data.recording import Recording
 
 __all__ = [
     "DEFAULT_EFFECT_PARAMS",
@@ -192,7 +192,7 @@ def synthetic_recording(
 
 # ---------------------------------------------------------------------------- Monte Carlo
 def _one_trial(effect: str, scale: float, seed: int, duration_s: float, rate_hz: float, alpha: float) -> dict:
-    from gyrocore.loop import COMPANION, run_loop
+    from gyrocore.loop.loop import COMPANION, run_loop
 
     params = {"bias": effect_params("bias")}
     if effect != "none":
@@ -226,7 +226,7 @@ def identification_rates(
 
     For each effect (and ``"none"``, the null case), each magnitude ``scale`` × the 1× size of
     :data:`DEFAULT_MAGNITUDE` and each seed, a :func:`synthetic_recording` with that one
-    undeclared effect (and a declared bias) goes through :func:`gyrocore.loop.run_loop`.
+    undeclared effect (and a declared bias) goes through :func:`gyrocore.loop.loop.run_loop`.
 
     Returns
     -------
@@ -237,7 +237,7 @@ def identification_rates(
         constant companion of a thermal effect (``scale`` for ``scale_thermal``) is not
         counted as a false alarm.
     """
-    from gyrocore.loop import CANDIDATES
+    from gyrocore.loop.loop import CANDIDATES
 
     effects = list(effects) if effects is not None else ["none"] + [c for c in CANDIDATES if c != "bias"]
     rows = []
@@ -317,7 +317,7 @@ def inject_open(rec: Recording, kind: str, size: float, *, f_hz: float = 37.3, t
 
 
 def _open_trial(kind: str, size: float, seed: int, duration_s: float, rate_hz: float, alpha: float) -> dict:
-    from gyrocore.loop import run_loop
+    from gyrocore.loop.loop import run_loop
 
     rec = synthetic_recording({"bias": effect_params("bias")}, seed=seed, duration_s=duration_s, rate_hz=rate_hz,
                               **OPEN_NOISE)
@@ -386,7 +386,7 @@ def simulator_null_false_alarms(*, presets: Sequence[str] | None = None,
     flicker + RRW + GM). A false alarm is any ``unexplained`` entry (the catalogue's own finds —
     e.g. ``time_offset``, the on-chip filter's group delay — are listed, not counted).
     """
-    from gyrocore.loop import CANDIDATES, run_loop
+    from gyrocore.loop.loop import CANDIDATES, run_loop
     from sim.presets import PRESETS, load_preset
     from sim.scenarios import simulate
 
@@ -458,9 +458,9 @@ def measured_runs(data_dir, *, names: Sequence[str] | None = None) -> list[dict]
     """
     import warnings
 
-    from gyrocore.convert import load_with_segments
+    from gyrocore.readers.convert import load_with_segments
     from gyrocore.errors import GyroInputError, RepairWarning
-    from gyrocore.loop import run_loop
+    from gyrocore.loop.loop import run_loop
 
     rows = []
     for name, paths, opts in MEASURED:
@@ -508,7 +508,7 @@ STATIC_LOGS = (("sunsided set-2 static 10 min", "sunsided_mpu6050/set-2/unmoved-
 def _load_quiet(path):
     import warnings
 
-    from gyrocore.convert import load_with_segments
+    from gyrocore.readers.convert import load_with_segments
     from gyrocore.errors import RepairWarning
 
     with warnings.catch_warnings():
@@ -529,13 +529,13 @@ def out_of_sample_runs(data_dir, *, declared: Sequence[str] = ("bias",), progres
     """The out-of-sample table of docs/measured.md, one setting for every set (the loop's
     defaults, declared ``bias``, open search on): BROAD fit-on-A / score-on-B for all 12 ordered
     pairs, and the long static logs first half → second half
-    (:func:`gyrocore.loop.validate_model`: the turn-on bias re-estimated on the scored part,
+    (:func:`gyrocore.loop.loop.validate_model`: the turn-on bias re-estimated on the scored part,
     everything else transferred; "before" = the declared model fitted on the same data).
 
     Same numbers as ``gyroharness loop A --effects bias --validate B --json`` and
     ``gyroharness loop LOG --effects bias --validate-split --json``.
     """
-    from gyrocore.loop import loop_parameters, run_loop, split_halves, validate_model
+    from gyrocore.loop.loop import loop_parameters, run_loop, split_halves, validate_model
 
     data = Path(data_dir)
     out: dict = {"broad": {"fits": {}, "pairs": []}, "static": []}
@@ -646,8 +646,8 @@ def run(*, out_dir, quick: bool = False, seed: int = 0, seeds: int | None = None
 
     For each case: simulate with :func:`sim.scenarios.simulate` (the undeclared effect in
     ``overrides``; the preset's other deterministic effects declared, minus ``leave_out``),
-    run :func:`gyrocore.loop.run_loop`, plot the residual against each found effect's
-    regressor before and after (:func:`gyrocore.loop.plot_found`), and tabulate the steps.
+    run :func:`gyrocore.loop.loop.run_loop`, plot the residual against each found effect's
+    regressor before and after (:func:`gyrocore.loop.loop.plot_found`), and tabulate the steps.
     ``mc_seeds`` > 0 adds the synthetic identification / false-alarm table
     (:func:`identification_rates`).
 
@@ -658,7 +658,7 @@ def run(*, out_dir, quick: bool = False, seed: int = 0, seeds: int | None = None
     import time as _time
 
     from experiments.report import ExperimentResult, md_table
-    from gyrocore.loop import CANDIDATES, plot_found, run_loop
+    from gyrocore.loop.loop import CANDIDATES, plot_found, run_loop
     from sim.scenarios import simulate
 
     t_start = _time.time()
@@ -718,7 +718,7 @@ def run(*, out_dir, quick: bool = False, seed: int = 0, seeds: int | None = None
         md += ["### Identification and false alarms over seeds (synthetic tumbling reference)", "",
                rates_markdown(rows), ""]
         summary["rates"] = rows
-    from gyrocore.recording import atomic_write_text
+    from gyrocore.data.recording import atomic_write_text
 
     text = "\n".join(md)
     out.mkdir(parents=True, exist_ok=True)
@@ -738,13 +738,13 @@ def concat_session(paths: Sequence, *, gap_s: float = 1.0):
 
     Returns
     -------
-    (Recording, list of gyrocore.residual.Segment)
+    (Recording, list of gyrocore.loop.residual.Segment)
     """
     import warnings
 
-    from gyrocore.convert import load_with_segments
+    from gyrocore.readers.convert import load_with_segments
     from gyrocore.errors import RepairWarning
-    from gyrocore.residual import Segment, as_segment
+    from gyrocore.loop.residual import Segment, as_segment
 
     recs, segs, t0 = [], [], 0.0
     for p in paths:
@@ -791,7 +791,7 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
         res = out_of_sample_runs(a.out_of_sample, progress=True)
         text = _json.dumps(to_jsonable(res), indent=1)
         if a.out:
-            from gyrocore.recording import atomic_write_text
+            from gyrocore.data.recording import atomic_write_text
 
             atomic_write_text(a.out, text)
         else:
@@ -808,7 +808,7 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
             rows = simulator_null_false_alarms(seeds=range(a.seed_start, a.seed_start + a.seeds), progress=True)
             print(f"simulator null: {rows['false_alarms']}/{rows['n']} false alarms, 95 % CI {rows['ci95']}")
         if a.out:
-            from gyrocore.recording import atomic_write_text
+            from gyrocore.data.recording import atomic_write_text
 
             atomic_write_text(a.out, _json.dumps(to_jsonable(rows), indent=1))
         raise SystemExit(0)
@@ -822,6 +822,6 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
                                 effects=a.effects.split(",") if a.effects else None, progress=True)
     print(rates_markdown(rows))
     if a.out:
-        from gyrocore.recording import atomic_write_text
+        from gyrocore.data.recording import atomic_write_text
 
         atomic_write_text(a.out, _json.dumps(rows, indent=1))

@@ -4,7 +4,7 @@ Closed loop
     The MuJoCo quadrotor (:func:`sim.quadrotor.fly_hover`) hovers with small attitude steps
     and rotor vibration; its rate controller flies on the simulated gyro
     (:class:`sim.gyro.SyntheticGyro`, per-sample stream) through a
-    :class:`gyrocore.filters.Pipeline` = power-up bias removal + the filter under test. Scored:
+    :class:`gyrocore.flight.filters.Pipeline` = power-up bias removal + the filter under test. Scored:
     the true attitude tracking error (true vs commanded attitude, RMS after the first second),
     motor-command noise (RMS of the thrust commands above 20 Hz) and the measured delay of the
     filtered gyro behind the true rate (cross-correlation in 0.2–15 Hz).
@@ -29,7 +29,7 @@ from typing import Sequence
 import numpy as np
 
 from gyrocore.attitude import error_angle_rad, integrate_gyro
-from gyrocore.filters import AffineCorrection, Pipeline, make_filter
+from gyrocore.flight.filters import AffineCorrection, Pipeline, make_filter
 
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 

@@ -8,7 +8,7 @@ hub-moment unbalance at the rotor speed the controller commands, the rest of the
 registry effect ``vibration``'s shaped part in the gyro (so the rate loop flies on it). A chain
 is the firmware chain of ``gyroharness filter`` (re-rated to the simulator's 1-kHz gyro; stages
 at or above its Nyquist dropped) after the power-up bias removal; RPM-filter candidates fly
-:class:`gyrocore.filters.RpmNotch` fed the simulated rotor speeds.
+:class:`gyrocore.flight.filters.RpmNotch` fed the simulated rotor speeds.
 
 What the filter changes, each isolated by a paired flight (same seed: same gyro noise, rotor
 phases, shaped-vibration draw):
@@ -64,7 +64,7 @@ def fly(stages, *, duration_s: float, seed: int, vehicle: str = "racing25", pres
     VibrationSpec); ``shaped``: the registry effect ``vibration``'s shaped part (overrides of the
     synthetic gyro, :func:`sim.spec_vibration.spec_injection`) or None.
     """
-    from gyrocore.filters import AffineCorrection, Pipeline, RpmNotch, chain_filters
+    from gyrocore.flight.filters import AffineCorrection, Pipeline, RpmNotch, chain_filters
     from sim.controller import small_steps
     from sim.gyro import SyntheticGyro
     from sim.quadrotor import fly_hover
@@ -119,7 +119,7 @@ def score_chain(stages, *, hover_vib, shaped, seed: int, duration_s: float, vehi
 
 def _candidates(fj: dict, *, physics: bool, extra_pt1=(60.0, 150.0, 250.0)) -> dict:
     """name -> (stages, rpm, open-loop row key) from ``gyroharness filter``'s result."""
-    from gyrocore import preview as P
+    from gyrocore.flight import preview as P
 
     rate = float(fj.get("filter_rate_hz", 8000.0))
     cands = {"none": ([], False)}
@@ -157,11 +157,11 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
     import os
     import tempfile
 
-    from gyrocore import preview as P
-    from gyrocore.commands.filter import run_filter
-    from gyrocore.convert import detect_format, load_any
-    from gyrocore.recording import read_csv
-    from gyrocore.vibration import read_spec, write_spec
+    from gyrocore.flight import preview as P
+    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.readers.convert import detect_format, load_any
+    from gyrocore.data.recording import read_csv
+    from gyrocore.flight.vibration import read_spec, write_spec
     from sim.spec_vibration import spec_injection
 
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)

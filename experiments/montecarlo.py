@@ -51,7 +51,7 @@ import numpy as np
 
 from gyrocore.cli import to_jsonable, worker_environment
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import atomic_write_text
+from gyrocore.data.recording import atomic_write_text
 
 __all__ = [
     "FORMAT_VERSION",

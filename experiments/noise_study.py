@@ -12,7 +12,7 @@ is identified by every requested method; per term we score
 - relative bias and RMSE of the estimate (over all runs, unresolved counted at their point
   estimate — 0 when not selected),
 - coverage of the reported 95 % interval (for unresolved terms the interval is [0, upper bound]),
-- the **predicted** resolvability of each present term (:func:`gyrocore.gmwm.expected_z`:
+- the **predicted** resolvability of each present term (:func:`gyrocore.noise.gmwm.expected_z`:
   min over stand-in models of √λ − √Δpen, λ the expected likelihood-ratio statistic of the
   true model against the stand-in at the record's τ grid and EDF, Δpen the penalty
   difference; resolvable when ≥ 1.28, i.e. claimed with ≥ 90 % probability).
@@ -89,19 +89,19 @@ def simulate(rng: np.random.Generator, mix: dict[str, float], n: int, rate_hz: f
 
 def _identify(method: str, g: np.ndarray, rate_hz: float) -> dict[str, dict]:
     """Per axis: {term: (resolved, estimate, lo, hi)} for one method."""
-    from gyrocore import allan as AL
+    from gyrocore.noise import allan as AL
 
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         if method == "adev_legacy" and not hasattr(AL, "identify_noise"):
             # today's code (before issue 11): allan_analysis on a Recording
-            from gyrocore.recording import Recording
+            from gyrocore.data.recording import Recording
 
             res = AL.allan_analysis(Recording(t_s=np.arange(g.shape[0]) / rate_hz, gyro_rad_s=g))
         elif method == "gmwm_rwcheck":
             # round 6: the default estimator with the block-likelihood check of a claimed K against
-            # a GM that turns over inside the record (gyrocore.rwgm; off by default)
+            # a GM that turns over inside the record (gyrocore.noise.rwgm; off by default)
             old = AL.RW_CHECK
             AL.RW_CHECK = True
             try:
@@ -139,7 +139,7 @@ def _task(job) -> list[dict]:
 
 
 def z_threshold(term: str) -> float:
-    from gyrocore.gmwm import Z_POWER
+    from gyrocore.noise.gmwm import Z_POWER
 
     return Z_POWER
 
@@ -147,10 +147,10 @@ def z_threshold(term: str) -> float:
 def predicted(mix: dict[str, float], T: float, rate: float, method: str) -> dict[str, float]:
     """Predicted √λ of each present term (theory), or {} when the predictor is not available."""
     try:
-        from gyrocore.gmwm import expected_z
+        from gyrocore.noise.gmwm import expected_z
     except ImportError:
         return {}
-    from gyrocore import gmwm as G
+    from gyrocore.noise import gmwm as G
 
     truth = {TERM_KEYS[k]: v for k, v in mix.items()}
     meth = "gmwm" if method.startswith("gmwm") else "adev"
@@ -257,7 +257,7 @@ def run(*, methods: Sequence[str] = ("adev", "gmwm"), replicates: int = 12, seed
                           "jobs_done": done, "jobs": len(jobs), "workers": n_work, "load": os.getloadavg()},
                "options": options}
         if out:
-            from gyrocore.recording import atomic_write_text
+            from gyrocore.data.recording import atomic_write_text
 
             atomic_write_text(out, json.dumps(res, indent=1, default=float))
         return res
@@ -290,8 +290,8 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
     and the coverage of the Wald and of the chi-square (Satterthwaite) interval."""
     import scipy.stats
 
-    from gyrocore import allan as AL
-    from gyrocore import gmwm as G
+    from gyrocore.noise import allan as AL
+    from gyrocore.noise import gmwm as G
     from sim import noise as SN
 
     n, rate, k2 = 360000, 100.0, 4e-12
@@ -331,8 +331,8 @@ def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, b
     model) for every alternative of the same size (mean, sd, P(D < 0))."""
     from collections import Counter
 
-    from gyrocore import allan as AL
-    from gyrocore import gmwm as G
+    from gyrocore.noise import allan as AL
+    from gyrocore.noise import gmwm as G
 
     n = int(round(T_s * rate_hz))
     m = G.scales(n)

@@ -1,7 +1,7 @@
 """Experiment ``protocol``: the shortest calibration protocol that reaches a drift target.
 
 "How long must I calibrate for X°?" — answered with the error budget
-(:mod:`gyrocore.budget`) on the scored manoeuvre (a 10-min hover), then confirmed by
+(:mod:`gyrocore.calib.budget`) on the scored manoeuvre (a 10-min hover), then confirmed by
 simulation.
 
 Protocol knobs and how each enters the budget
@@ -13,7 +13,7 @@ Protocol knobs and how each enters the budget
   standard errors are *predicted from the design*, before any data: the candidate run's
   reference trajectory (rate, specific force, temperature; simulated), the calibration's
   own rows (ramps left out, block means) and the noise-model covariance
-  (:func:`gyrocore.lsq.noise_model_meat`, the same sandwich the calibration reports; its
+  (:func:`gyrocore.calib.lsq.noise_model_meat`, the same sandwich the calibration reports; its
   honesty is checked by Monte Carlo in docs/accuracy.md) — :func:`design_stderr`. A
   parameter the candidate cannot observe (three mounts: g-sensitivity not separable from the
   bias) makes the candidate ineligible.
@@ -36,7 +36,7 @@ from typing import Sequence
 
 import numpy as np
 
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
@@ -141,7 +141,7 @@ class NoiseSource:
 
     Attributes
     ----------
-    model : gyrocore.budget.NoiseModel
+    model : gyrocore.calib.budget.NoiseModel
         Per-axis noise (rad/√s, rad/s, rad/s/√s; Gauss–Markov σ rad/s, τc s).
     label : str
         Where it comes from (said in the report and the JSON).
@@ -169,7 +169,7 @@ class NoiseSource:
         return int(round(self.record_s * self.rate_hz)) + 1
 
     def terms(self) -> dict:
-        """Axis means of the model's terms (the keys of :func:`gyrocore.gmwm.expected_z`)."""
+        """Axis means of the model's terms (the keys of :func:`gyrocore.noise.gmwm.expected_z`)."""
         m = self.model
         sig = np.asarray(m.gm_sigma_rad_s, float)
         tau = np.asarray(m.gm_tau_c_s, float)
@@ -183,10 +183,10 @@ class NoiseSource:
 
 def _noise_from_allan_json(doc: dict, where: str):
     """NoiseModel from the JSON of ``gyroharness allan/noise --json`` (per-axis terms, null =
-    not resolved, ``ambiguous`` and ``estimate``: :meth:`gyrocore.budget.NoiseModel.from_identified`)."""
+    not resolved, ``ambiguous`` and ``estimate``: :meth:`gyrocore.calib.budget.NoiseModel.from_identified`)."""
     from types import SimpleNamespace
 
-    from gyrocore.budget import NoiseModel
+    from gyrocore.calib.budget import NoiseModel
     from gyrocore.errors import GyroInputError
 
     axes = doc.get("axes")
@@ -252,7 +252,7 @@ def load_noise(path) -> NoiseSource:
                                               f"{f' at {rate:g} Hz' if rate else ''})",
                            record_s=dur, rate_hz=rate, kind="noise-json")
     if doc is not None and "noise_model" in doc:
-        from gyrocore.model import result_from_dict
+        from gyrocore.calibrator import result_from_dict
 
         res = result_from_dict(doc, where=path)
         if not res.noise_model:
@@ -266,10 +266,10 @@ def load_noise(path) -> NoiseSource:
     if doc is not None:
         raise GyroInputError(f"{path}: JSON is neither a noise JSON (`gyroharness noise --json`) nor a parameter file")
     # a still data file: identify as `gyroharness noise FILE` does
-    from gyrocore.allan import allan_analysis
-    from gyrocore.budget import NoiseModel
-    from gyrocore.commands.allan import _long, allan_by_axis
-    from gyrocore.recording import read_recording
+    from gyrocore.noise.allan import allan_analysis
+    from gyrocore.calib.budget import NoiseModel
+    from gyrocore.cli.commands.allan import _long, allan_by_axis
+    from gyrocore.data.recording import read_recording
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="no long-tau term resolved")
@@ -288,8 +288,8 @@ def simulated_still_noise(*, seed: int, duration_s: float) -> NoiseSource:
     ``gyroharness noise`` on a long still log of the same sensor."""
     import warnings
 
-    from gyrocore.allan import allan_analysis
-    from gyrocore.budget import NoiseModel
+    from gyrocore.noise.allan import allan_analysis
+    from gyrocore.calib.budget import NoiseModel
     from sim import scenarios as S
 
     with warnings.catch_warnings():
@@ -317,15 +317,15 @@ def record_support(terms: dict, *, n_samples: int | None, rate_hz: float | None,
       and v_X that of X at unit level (``unit_var``; the floor is linear in each term's
       variance coefficient);
     * a term present but adding less than ``rise`` to the floor RMS does not matter;
-    * otherwise it must be resolvable from the record: :func:`gyrocore.gmwm.expected_z`
+    * otherwise it must be resolvable from the record: :func:`gyrocore.noise.gmwm.expected_z`
       (the model with X at its level, the record's sample count and rate) ≥
-      :data:`gyrocore.gmwm.Z_POWER` (GMWM claims it with ≥ 90 % probability). If not, the
+      :data:`gyrocore.noise.gmwm.Z_POWER` (GMWM claims it with ≥ 90 % probability). If not, the
       record length that would resolve it is searched by doubling (up to ``max_record_s``).
 
     Parameters
     ----------
     terms : dict
-        Axis-mean terms, keys of :func:`gyrocore.gmwm.expected_z` (rad/√s, rad/s, rad/s/√s).
+        Axis-mean terms, keys of :func:`gyrocore.noise.gmwm.expected_z` (rad/√s, rad/s, rad/s/√s).
     n_samples, rate_hz : int, float or None
         The noise record (None: unknown → every term that matters is unsupported).
     unit_var : dict
@@ -340,7 +340,7 @@ def record_support(terms: dict, *, n_samples: int | None, rate_hz: float | None,
     ``max_record_s``), ``warn`` (True: a present term or the flicker term the record cannot
     support; an absent random walk or Gauss–Markov term is stated as an assumption instead).
     """
-    from gyrocore import gmwm
+    from gyrocore.noise import gmwm
 
     lev = {k: float(terms.get(k) or 0.0) for k in ("arw_rad_per_sqrt_s",) + _SLOW_TERMS}
     tau = terms.get("correlated_tau_c_s")
@@ -400,7 +400,7 @@ def _support_message(rows: list[dict], src: NoiseSource, flight_s: float) -> str
     parts = [f"{r['label']} {r['level']:.2g} ({'identified' if r['present'] else 'smallest that matters'}, "
              f"+{100 * r['floor_rise']:.0f} % on the floor) needs {need(r)}" for r in bad]
     return (f"the noise record {rec} does not support a {flight_s:g}-s flight (resolvability rule, "
-            f"gyrocore.gmwm.expected_z, 90 % power): " + "; ".join(parts)
+            f"gyrocore.noise.gmwm.expected_z, 90 % power): " + "; ".join(parts)
             + " — the floor may be under-predicted; give --noise a longer still recording")
 
 
@@ -454,9 +454,9 @@ def design_stderr(spec, *, seed: int, effects: Sequence[str], noise, orders=None
 
     Simulates the candidate run's reference trajectory (rate, specific force, temperature of
     ``spec``; the gyro samples are not used), builds the calibration's rows as
-    :class:`gyrocore.model.Calibrator` does with the ablation's settings (ramps ± the
+    :class:`gyrocore.calibrator.Calibrator` does with the ablation's settings (ramps ± the
     ramp margin left out, block means of ≤ ``max_rows`` rows) and evaluates the noise-model
-    sandwich (AᵀWA)⁻¹·(Σ U_iᵀ C_i U_i)·(AᵀWA)⁻¹ of ``noise`` (:func:`gyrocore.lsq.solve`
+    sandwich (AᵀWA)⁻¹·(Σ U_iᵀ C_i U_i)·(AᵀWA)⁻¹ of ``noise`` (:func:`gyrocore.calib.lsq.solve`
     with r = 0: the covariance does not depend on the data).
 
     Returns
@@ -466,8 +466,8 @@ def design_stderr(spec, *, seed: int, effects: Sequence[str], noise, orders=None
     """
     import warnings
 
-    from gyrocore import lsq
-    from gyrocore.model import near_rate_changes
+    from gyrocore.calib import lsq
+    from gyrocore.calibrator import near_rate_changes
     from sim import scenarios as S
 
     from . import ablation as A
@@ -540,7 +540,7 @@ def candidate_stderr(groups, *, seed: int, noise_table, noise_thermal, table=TAB
 
 def _recentred(g, t0_c: float):
     """Group ``g`` with its thermal polynomials centred on ``t0_c`` (the candidate run's mean)."""
-    from gyrocore.budget import ParameterGroup
+    from gyrocore.calib.budget import ParameterGroup
 
     if not np.isfinite(t0_c):
         return g
@@ -553,12 +553,12 @@ def evaluate_grid(res, ground_s: float, groups, *, windows=WINDOWS_S, table=None
     """Predicted hover error for every protocol of the grid (window × table × thermal).
 
     One budget per window length (its trajectory) for the noise and the window
-    (:func:`gyrocore.budget.predict_error`); each parameter group's variance
-    Σ_p |S_p(t)|²·SE_p² from its sensitivity S (:func:`gyrocore.budget.sensitivity`) and the
+    (:func:`gyrocore.calib.budget.predict_error`); each parameter group's variance
+    Σ_p |S_p(t)|²·SE_p² from its sensitivity S (:func:`gyrocore.calib.budget.sensitivity`) and the
     candidate's standard errors. ``table``/``thermal``: candidates of
     :func:`candidate_stderr` (None: one "reference" candidate with the groups' own standard
     errors). ``noise``: the noise model (None: the unit's true noise)."""
-    from gyrocore.budget import NoiseModel, make_blocks, predict_error, rotation_matrices, sensitivity
+    from gyrocore.calib.budget import NoiseModel, make_blocks, predict_error, rotation_matrices, sensitivity
 
     if noise is None:
         noise = NoiseModel.from_params(res.params_true)
@@ -728,7 +728,7 @@ def _mean_square_interval(x: np.ndarray, level: float = 0.95) -> tuple[float, fl
 
 def _floor_ms(inp, start: int, segs, model) -> float:
     """Time mean of the floor's E|ε|² (rad²) of a flight for a noise model."""
-    from gyrocore.budget import predict_error
+    from gyrocore.calib.budget import predict_error
 
     pr = predict_error(inp, start=start, segments=segs, noise=model, groups=(), max_blocks=400)
     return float(pr._mean(np.asarray(sum(pr.floor_var_rad2.values()), float))) if pr.floor_var_rad2 else 0.0
@@ -737,7 +737,7 @@ def _floor_ms(inp, start: int, segs, model) -> float:
 def _unit_floor_var(inp, start: int, segs, tau_c_s: float | None) -> dict:
     """{term: the flight floor's mean variance at unit level of that term alone} (linear in
     each term's variance coefficient: :func:`record_support`)."""
-    from gyrocore.budget import NoiseModel
+    from gyrocore.calib.budget import NoiseModel
 
     z, one = np.zeros(3), np.ones(3)
     out = {"arw_rad_per_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=one)),
@@ -767,7 +767,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     import warnings
 
     from experiments.montecarlo import instance_seeds
-    from gyrocore.budget import NoiseModel
+    from gyrocore.calib.budget import NoiseModel
 
     from . import ablation as A
 
@@ -818,7 +818,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
                         ("the unit's true noise (simulation only)", NoiseModel.from_params(res.params_true))):
         if model is None:
             continue
-        from gyrocore.budget import predict_error
+        from gyrocore.calib.budget import predict_error
 
         pr = predict_error(inp2, start=start2, segments=segs2, noise=model, groups=(), max_blocks=400)
         floors.append((name, pr.rms_floor_deg, pr.final_floor_deg, pr.rms_predicted_deg, pr.final_predicted_deg))
@@ -1031,7 +1031,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         "\n#### The flight's noise model and its record\n", fl_tab,
         "\nDoes the record support the flight? (`experiments.protocol.record_support`: each slow term that raises "
         f"the flight's floor RMS by ≥ {100 * SUPPORT_RISE:.0f} % must be resolvable from the record, "
-        "`gyrocore.gmwm.expected_z` ≥ 1.28, i.e. claimed by GMWM with ≥ 90 % probability)\n", sup_tab,
+        "`gyrocore.noise.gmwm.expected_z` ≥ 1.28, i.e. claimed by GMWM with ≥ 90 % probability)\n", sup_tab,
         f"\n#### Predicted error after {airborne:g} s of hover (sensor {SENSOR}, unit seed {unit})\n",
         "Grid: power-up still window × rate-table run (mounts, rates, revolutions) × thermal run (ambient span, "
         "duration = ramp rate). The table and thermal runs' standard errors are predicted from each candidate's "

@@ -39,7 +39,7 @@ def gyroharness_check(request):
     def check(contract, *, calibrator=None, fit_cmd=None, apply_cmd=None, timeout_s=None, units=None,
               expect_pass=True):
         from experiments import score as SC
-        from gyrocore.recording import atomic_write_text
+        from gyrocore.data.recording import atomic_write_text
 
         spec = {k: v for k, v in {"calibrator": calibrator, "fit_cmd": fit_cmd, "apply_cmd": apply_cmd}.items() if v}
         if timeout_s is not None:

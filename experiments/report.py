@@ -37,7 +37,7 @@ import numpy as np
 
 from gyrocore.cli import to_jsonable
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import atomic_write_text
+from gyrocore.data.recording import atomic_write_text
 
 __all__ = [
     "ExperimentResult",
@@ -127,7 +127,7 @@ def save_figure(fig, out_dir: str | os.PathLike, name: str) -> str:
     rel = f"{FIG_DIR}/{name}.png"
     path = Path(out_dir) / rel
     path.parent.mkdir(parents=True, exist_ok=True)
-    from gyrocore.recording import atomic_write_bytes
+    from gyrocore.data.recording import atomic_write_bytes
 
     atomic_write_bytes(path, buf.getvalue())
     return rel

@@ -418,7 +418,7 @@ def write_report(c: ScoreCampaign, out_dir, check: "CheckResult | None" = None) 
     import json
 
     from gyrocore.cli import to_jsonable
-    from gyrocore.recording import atomic_write_text
+    from gyrocore.data.recording import atomic_write_text
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

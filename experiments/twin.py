@@ -11,9 +11,9 @@ simulated sensor matches the real one and where it does not.
    rate there. Hand rotations (known angles only) are not replayed: their rate profile is
    unknown. Specific force comes from the accelerometer, temperature from the file.
 2. **Identification** (:func:`identify`): the twin's parameters — deterministic terms from the
-   residual loop (:func:`gyrocore.loop.run_loop`, declared ``bias``; or a ``--params`` file),
+   residual loop (:func:`gyrocore.loop.loop.run_loop`, declared ``bias``; or a ``--params`` file),
    noise from the Allan analysis of the per-sample error signal on the covered spans after the
-   deterministic model (:func:`gyrocore.allan.identify_noise`: N -> ``arw``, B ->
+   deterministic model (:func:`gyrocore.noise.allan.identify_noise`: N -> ``arw``, B ->
    ``bias_instability``, K -> ``rrw``, a Gauss–Markov term -> ``correlated`` σ, τc; N² less the LSB²/(12·rate) that rounding adds), output
    rate from the timestamps, the LSB from the lattice of first differences
    (:func:`lsb_from_differences`).
@@ -42,7 +42,7 @@ The statistics (:func:`error_statistics`), all per axis of the sensor frame:
     Autocorrelation at lags 1..5 of the 1-s window means of the error signal (span means
     removed) — the "window residual" of the still / rate reference.
 ``attitude_residual`` (attitude references only)
-    The loop's window residual (:func:`gyrocore.residual.build_residual`, 1-s windows of
+    The loop's window residual (:func:`gyrocore.loop.residual.build_residual`, 1-s windows of
     integrated gyro against the reference rotation, windows with tracking loss inside dropped):
     log10 std, excess kurtosis and lag-1, 2, 3 autocorrelation per axis.
 
@@ -63,7 +63,7 @@ import numpy as np
 from scipy import signal, stats as _st
 
 from gyrocore.errors import GyroInputError, warn_repair
-from gyrocore.recording import Recording
+from gyrocore.data.recording import Recording
 
 __all__ = [
     "FORMAT_VERSION",
@@ -118,7 +118,7 @@ class Reference:
     Attributes
     ----------
     kind : str
-        ``"rate"``, ``"attitude"`` or ``"still"`` (gyrocore.residual kinds; ``"angles"`` maps
+        ``"rate"``, ``"attitude"`` or ``"still"`` (gyrocore.loop.residual kinds; ``"angles"`` maps
         to ``"still"``: only the still part is replayed).
     omega_S_rad_s : ndarray, shape (N, 3)
         Rate that drives the twin, rad/s, sensor frame (0 on still samples; filled by linear
@@ -198,7 +198,7 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
         recording is not a still log), or a reference that covers less than
         :data:`MIN_SPAN_S` of contiguous samples.
     """
-    from gyrocore.residual import as_segment, choose_reference, detect_still
+    from gyrocore.loop.residual import as_segment, choose_reference, detect_still
 
     segs = [as_segment(s) for s in segments]
     t = np.asarray(rec.t_s, float)
@@ -323,7 +323,7 @@ class TwinModel:
         ``reference_angle_noise`` {``sigma_rad`` (3,)}: white noise on the replicas' reference
         attitude (attitude references). The sensor's noise shapes the closing finds are
         registered simulator terms in ``params`` (``arw_lowpass``, ``arw_student``,
-        ``angle_white``; :data:`gyrocore.effects.NOISE_TERMS`).
+        ``angle_white``; :data:`gyrocore.effects.registry.NOISE_TERMS`).
     sources : dict
         effect -> where its value came from.
     notes : tuple of str
@@ -389,7 +389,7 @@ def _family(name: str) -> tuple[str, float] | None:
 
 def _simulated_by_sim(name: str) -> bool:
     """True when SyntheticGyro itself injects ``name`` (catalogue, or a registry family)."""
-    from gyrocore import effects as E
+    from gyrocore.effects import registry as E
 
     if name in E.PARAM_SCHEMA:
         return True
@@ -416,15 +416,15 @@ def _family_values(name: str, pd: Mapping, t_s: np.ndarray) -> np.ndarray:
 
 
 def _canonical(name: str) -> str:
-    from gyrocore import effects as E
+    from gyrocore.effects import registry as E
 
     canon = getattr(E, "canonical_name", None)
     return canon(name) if canon is not None else name
 
 
 def _deterministic(det: Mapping, inp) -> np.ndarray:
-    """gyrocore.effects.deterministic of ``det`` plus the twin's own family terms (rad/s, (N, 3))."""
-    from gyrocore import effects as E
+    """gyrocore.effects.registry.deterministic of ``det`` plus the twin's own family terms (rad/s, (N, 3))."""
+    from gyrocore.effects import registry as E
 
     own = {e: p for e, p in det.items() if not _simulated_by_sim(e)}
     cat = {e: p for e, p in det.items() if e not in own}
@@ -437,7 +437,7 @@ def _deterministic(det: Mapping, inp) -> np.ndarray:
 def _schema(name: str):
     """Parameter schema of a catalogue effect or (once the effect registry is on main) of a
     family instance such as ``periodic[37.5]`` / ``step[9.47]``; None when unknown."""
-    from gyrocore import effects as E
+    from gyrocore.effects import registry as E
 
     if name in E.PARAM_SCHEMA:
         return E.PARAM_SCHEMA[name]
@@ -452,7 +452,7 @@ def _schema(name: str):
 
 
 def _inputs(rec: Recording, ref: Reference, rate_hz: float):
-    from gyrocore.effects import ModelInputs
+    from gyrocore.effects.registry import ModelInputs
 
     n = rec.n
     # uniform clock at the mean rate, from the recording's first time stamp (the loop's family
@@ -484,8 +484,8 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
     loop_result : LoopResult, optional
         A loop already run on ``rec`` (saves the run).
     """
-    from gyrocore import effects as E
-    from gyrocore.allan import identify_noise
+    from gyrocore.effects import registry as E
+    from gyrocore.noise.allan import identify_noise
 
     rate = float(rec.rate_hz)
     notes: list[str] = []
@@ -493,7 +493,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
     params: dict[str, dict[str, np.ndarray]] = {}
     given: dict = {}
     if params_file is not None:
-        from gyrocore.model import load_params
+        from gyrocore.calibrator import load_params
 
         given = {e: dict(p) for e, p in load_params(params_file).params.items()}
     det_given = {e: p for e, p in given.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}
@@ -503,7 +503,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
             sources[e] = f"parameter file {Path(params_file).name}"
     else:
         if loop_result is None:
-            from gyrocore.loop import run_loop
+            from gyrocore.loop.loop import run_loop
 
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -656,7 +656,7 @@ def model_error(model: "TwinModel", rec: Recording, ref: Reference) -> np.ndarra
     The error signal of the real recording and of every replica is the measurement less
     det(ω_ref) (the loop's residual form): what is left is what the noise model must explain.
     """
-    from gyrocore import effects as E
+    from gyrocore.effects import registry as E
 
     det = {e: p for e, p in model.params.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}
     return _deterministic(det, _inputs(rec, ref, model.rate_hz)) - ref.omega_S_rad_s
@@ -677,7 +677,7 @@ def _acf(series: list[np.ndarray], lags: int) -> np.ndarray:
 
 
 def _attitude_windows(gyro: np.ndarray, t: np.ndarray, R_ref, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Window residual (M, 3) rad/s: rotvec((R_aᵀR_b)ᵀ·ΔR̂_{a→b})/T (gyrocore.residual, attitude kind)."""
+    """Window residual (M, 3) rad/s: rotvec((R_aᵀR_b)ᵀ·ΔR̂_{a→b})/T (gyrocore.loop.residual, attitude kind)."""
     from gyrocore.attitude import integrate_gyro
 
     qh = integrate_gyro(t, gyro, hold="backward")
@@ -779,7 +779,7 @@ def _extra_noise(model: TwinModel, rng_seed: int, t_s: np.ndarray) -> tuple[np.n
 def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
     """One replica: the simulator (:class:`sim.gyro.SyntheticGyro`) with the twin's parameters —
     deterministic terms, catalogue noise and the registered noise terms the closing adds
-    (``arw_lowpass``, ``arw_student``, ``angle_white``: :data:`gyrocore.effects.NOISE_TERMS`) —
+    (``arw_lowpass``, ``arw_student``, ``angle_white``: :data:`gyrocore.effects.registry.NOISE_TERMS`) —
     plus the twin's reference terms (:func:`_extra_noise`)."""
     from sim.gyro import SyntheticGyro
 
@@ -792,7 +792,7 @@ def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray
     if np.any(extra):
         # legacy line terms join the simulator's own noise before quantization: re-run the output
         # stage with them (same order as sim.gyro: deterministic, DLPF, + noise, saturate, quantize)
-        from gyrocore.effects import deterministic, output_stage, ModelInputs
+        from gyrocore.effects.registry import deterministic, output_stage, ModelInputs
 
         noise, _ = g.noise(truth.n)
         p = g._model_params(g.power_up_bias(0))
@@ -807,7 +807,7 @@ def shaped_white_noise_terms(N: np.ndarray, *, fc_hz: float = float("inf"), nu=N
     """The registered noise term that carries white rate noise of density N (rad/√s, (3,))
     through the chip's low-pass at ``fc_hz`` (∞ = none) with Student-t draws of ν (None =
     Gaussian): ``{"arw": …}``, ``{"arw_lowpass": …}`` or ``{"arw_student": …}``
-    (:data:`gyrocore.effects.NOISE_TERMS`)."""
+    (:data:`gyrocore.effects.registry.NOISE_TERMS`)."""
     N = np.asarray(N, float)
     fc = float(fc_hz)
     if nu is not None:
@@ -1099,7 +1099,7 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
     sources = dict(model.sources)
     rate = model.rate_hz
     inp = _inputs(rec, ref, rate)
-    from gyrocore import effects as E
+    from gyrocore.effects import registry as E
 
     det = {e: p for e, p in params.items() if not E.is_stochastic(e) and e != "quantization"}
     e_sig = rec.gyro_rad_s - _deterministic(det, inp)
@@ -1312,8 +1312,8 @@ def plot_twin(result: TwinResult, out_dir, *, prefix: str = "twin") -> list[str]
 
 
 def load_recording(path, *, retime: bool | None = None):
-    """(Recording, segments) of a data file or a real set (gyrocore.convert.load_with_segments)."""
-    from gyrocore.convert import load_with_segments
+    """(Recording, segments) of a data file or a real set (gyrocore.readers.convert.load_with_segments)."""
+    from gyrocore.readers.convert import load_with_segments
 
     c = load_with_segments(path)
     return c.recording, list(c.segments)
@@ -1351,7 +1351,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         names = QUICK_SETS
     data_dir = DATA_DIR if data_dir is None else data_dir
     from experiments.report import ExperimentResult, md_table
-    from gyrocore.recording import atomic_write_text
+    from gyrocore.data.recording import atomic_write_text
 
     t_start = _time.time()
     out = Path(out_dir)
@@ -1473,7 +1473,7 @@ def holdout(rec: Recording, *, segments: Sequence = (), n_replicas: int = DEFAUL
     first half only. Returns ``{"before": Comparison.to_json() | None, "after": … | None,
     "added": [...], "error": str | None}`` for the second half.
     """
-    from gyrocore.residual import Segment, as_segment
+    from gyrocore.loop.residual import Segment, as_segment
 
     n = rec.n
     rec_a, rec_b = rec.slice(0, n // 2), rec.slice(n // 2, n)

@@ -57,7 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import GyroInputError
+from gyrocore.errors import GyroInputError
 
 __all__ = [
     "AttitudeScore",

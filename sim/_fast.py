@@ -11,7 +11,7 @@ results are bit-identical to the Python path:
 
 * rotor forces: ``fly_hover``'s ``rotor_aero`` (Python reference kept in :mod:`sim.quadrotor`);
 * gyro: the straight-line code :meth:`sim.gyro.GyroStream._compile` generates (itself
-  bit-identical to :mod:`gyrocore.effects`); ``math.cos/sin/sqrt`` and ``np.rint`` compile to
+  bit-identical to :mod:`gyrocore.effects.registry`); ``math.cos/sin/sqrt`` and ``np.rint`` compile to
   the same libm calls / IEEE operations Python uses (checked by ``tests/sim/test_hover.py``,
   which compares this path with the Python path and with ``SyntheticGyro.measure``);
 * controller: :meth:`CascadedController.update_outer` / :meth:`update_rate`; Python's
@@ -129,7 +129,7 @@ def _pmin(a, b):
 @njit
 def _clamped_poly(coef, p, T, W, lim):
     """Σ_k coef[:, k-1]·dT^k (k = 1..p) with dT = clip(T, W[lim], W[lim+1]) − W[lim+2]: the
-    thermal polynomial of gyrocore.effects in the same operation order, per axis."""
+    thermal polynomial of gyrocore.effects.registry in the same operation order, per axis."""
     Tc = T
     if Tc < W[lim]:
         Tc = W[lim]
@@ -319,7 +319,7 @@ def _log_and_gyro(k, A, W):
         a1 = a1 + (f0 * W[H + 3] + f1 * W[H + 4] + f2 * W[H + 5])
         a2 = a2 + (f0 * W[H + 6] + f1 * W[H + 7] + f2 * W[H + 8])
     if A[A_G] != 0:
-        # FF_ORDER = xx, yy, zz, xy, xz, yz (gyrocore.effects), checked in build()
+        # FF_ORDER = xx, yy, zz, xy, xz, yz (gyrocore.effects.registry), checked in build()
         ff0 = f0 * f0
         ff1 = f1 * f1
         ff2 = f2 * f2
@@ -332,7 +332,7 @@ def _log_and_gyro(k, A, W):
         a2 = a2 + (ff0 * W[G + 12] + ff1 * W[G + 13] + ff2 * W[G + 14] + ff3 * W[G + 15] + ff4 * W[G + 16] + ff5 * W[G + 17])
     m = A[A_NFAM]
     if m > 0:
-        # registry family terms (gyrocore.effects: periodic, step, regressor[t]), each added
+        # registry family terms (gyrocore.effects.registry: periodic, step, regressor[t]), each added
         # in model order as GyroStream's generic per-step call adds it
         fam = _f2(A[A_FAM], nb, 3 * m)
         for j in range(m):
@@ -724,7 +724,7 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
         ``temp_c`` is then written, sample by sample, from the block's ``ambient_c``;
         ``kappa_ct`` = kappa c_T, rotor power per |Omega|^3, W s^3.
     """
-    from gyrocore.effects import FF_ORDER
+    from gyrocore.effects.registry import FF_ORDER
 
     n = int(n)
     A = np.zeros(A_SIZE, dtype=np.int64)
@@ -777,7 +777,7 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
     if stream is not None:
         S = stream
         if tuple(FF_ORDER) != ("xx", "yy", "zz", "xy", "xz", "yz"):
-            raise ValueError("gyrocore.effects.FF_ORDER changed: update sim._fast")
+            raise ValueError("gyrocore.effects.registry.FF_ORDER changed: update sim._fast")
         A[A_STREAM] = 1
         keep.append(S)
         W[W_T_PU] = S._t_pu if S._t_pu is not None else float(t_power_up_s)

@@ -4,9 +4,9 @@ Measurement model (DESIGN.md, "The effect catalogue")::
 
     omega_meas = Q( sat( D( K(T)·omega(t − τ) + b(T, t) + H·f + G·(f⊗f) + nonlinear(omega) ) + noise ) )
 
-The formulas live in :mod:`gyrocore.effects` and are used here, not re-implemented:
-:func:`gyrocore.effects.deterministic` gives the part inside ``D(...)`` and
-:func:`gyrocore.effects.output_stage` applies ``D`` (on-chip low-pass), adds the noise,
+The formulas live in :mod:`gyrocore.effects.registry` and are used here, not re-implemented:
+:func:`gyrocore.effects.registry.deterministic` gives the part inside ``D(...)`` and
+:func:`gyrocore.effects.registry.output_stage` applies ``D`` (on-chip low-pass), adds the noise,
 saturates and quantizes. This module supplies what the core does not: a drawn sensor
 instance (:meth:`sim.presets.SensorSpec.draw_instance`), the turn-on bias redrawn at every
 power-up, and the stochastic terms (:mod:`sim.noise`).
@@ -23,7 +23,7 @@ Two paths:
   ``t_since_power_up_s`` restarting, the on-chip filter restarting from steady state.
 * :meth:`SyntheticGyro.stream` — :class:`GyroStream`, the per-sample path for closed loop
   (the hover controller reads the gyro every step). Plain float arithmetic in the same order
-  as :mod:`gyrocore.effects` (which uses fixed-order elementwise arithmetic for this reason),
+  as :mod:`gyrocore.effects.registry` (which uses fixed-order elementwise arithmetic for this reason),
   so the stream is bit-identical to :meth:`measure` on the same truth (one power-up).
 """
 
@@ -37,7 +37,7 @@ from typing import Iterable, Iterator, Mapping
 import numpy as np
 from scipy import signal
 
-from gyrocore.effects import (
+from gyrocore.effects.registry import (
     FF_ORDER,
     OUTPUT_STAGE as _CORE_OUTPUT_STAGE,
     PARAM_SCHEMA,
@@ -64,7 +64,7 @@ from .truth import Truth
 
 __all__ = ["SyntheticGyro", "GyroOutput", "GyroChunk", "GyroNoise", "GyroStream", "OUTPUT_STAGE", "NOISE_ORDER"]
 
-#: Effects applied by gyrocore.effects.output_stage (not by deterministic()).
+#: Effects applied by gyrocore.effects.registry.output_stage (not by deterministic()).
 OUTPUT_STAGE = ("lowpass", "saturation", "quantization")
 #: Order in which the stochastic terms are summed into the noise.
 NOISE_ORDER = ("arw", "bias_instability", "rrw", "correlated", "vibration", "arw_lowpass", "arw_student", "angle_white")
@@ -213,7 +213,7 @@ class SyntheticGyro:
         for eff, given in overrides.items():
             if eff == "vibration":
                 # the physics part comes from the hover; an override carries only the shaped part
-                # (f_hz, psd_rad2_s2_hz: gyrocore.vibration.shaped_params), or {} for none
+                # (f_hz, psd_rad2_s2_hz: gyrocore.flight.vibration.shaped_params), or {} for none
                 if not isinstance(given, Mapping):
                     raise GyroInputError("override of vibration must map parameter names to values")
                 params[eff] = validate_params({eff: dict(given)})[eff]
@@ -363,7 +363,7 @@ class SyntheticGyro:
             Consecutive pieces of the measurement. Bit-identical, row for row, to
             :meth:`measure` on the concatenated truth, whatever the chunk lengths: the
             deterministic model is evaluated on each piece with
-            :func:`gyrocore.effects.context_rows` neighbour rows on each side (central
+            :func:`gyrocore.effects.registry.context_rows` neighbour rows on each side (central
             differences, the time-offset shift), clipped to the power-up; the on-chip
             low-pass carries its memory across pieces and restarts from steady state at each
             power-up; the noise comes from :meth:`noise_blocks`. Output lags the input by at
@@ -398,7 +398,7 @@ class SyntheticGyro:
         t_s, temp_c : ndarray, shape (n_samples,), optional
             The whole time base and temperature trajectory, needed only by
             ``bias_temp_rate`` (its dT/dt is a central difference, which looks one sample
-            ahead; gyrocore.effects.ModelInputs.temp_rate_c_s).
+            ahead; gyrocore.effects.registry.ModelInputs.temp_rate_c_s).
         blocks : bool
             Bounded memory (issue 13): noise and output are held one block at a time; the
             caller opens each block with :meth:`GyroStream.next_block` before stepping it.
@@ -667,7 +667,7 @@ class GyroStream:
     def _compile(self):
         """Build ``step`` as straight-line float code for the active effects.
 
-        Each block mirrors one formula of :mod:`gyrocore.effects` operation by operation
+        Each block mirrors one formula of :mod:`gyrocore.effects.registry` operation by operation
         (same operands, same order, no fused multiply-add), which is what makes the stream
         bit-identical to the batch path; the generated source is kept in ``self.step_source``.
         """
@@ -860,7 +860,7 @@ class GyroNoise:
                 if "psd_rad2_s2_hz" not in pd:
                     continue  # from the physics alone
                 g = _noise.ShapedNoise(rng, _noise.shaped_taps(pd["f_hz"], pd["psd_rad2_s2_hz"], rate_hz=r))
-            elif eff in NOISE_TERMS:  # registered noise terms outside the catalogue (gyrocore.effects)
+            elif eff in NOISE_TERMS:  # registered noise terms outside the catalogue (gyrocore.effects.registry)
                 g = _noise.noise_term_generator(eff, pd, rng, rate_hz=r)
             elif eff == "arw":
                 g = _noise.WhiteRateBlocks(rng, rate_hz=r, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"])
@@ -893,7 +893,7 @@ _TRUTH_FIELDS = ("t_s", "omega_S_rad_s", "f_S_m_s2", "q_SW_wxyz", "temp_c", "t_s
 
 
 def _lowpass_chunk(pd, y: np.ndarray, rate_hz: float, zi):
-    """gyrocore.effects' ``lowpass`` term with its memory carried: (filtered (m, 3), final state).
+    """gyrocore.effects.registry' ``lowpass`` term with its memory carried: (filtered (m, 3), final state).
 
     ``zi`` None = a power-up: the steady-state start of the core's term (lfilter_zi × first
     sample); the same lfilter calls per axis, so the pieces equal the whole bit for bit."""
@@ -995,7 +995,7 @@ class _ChunkedMeasure:
             self.b0 = keep
 
     def _output(self, x: np.ndarray, m: int):
-        """gyrocore.effects.output_stage with the low-pass memory carried; returns (y, noise)."""
+        """gyrocore.effects.registry.output_stage with the low-pass memory carried; returns (y, noise)."""
         p, rate = self.params, self.g.rate_hz
         y = np.asarray(x, float)
         for name in _CORE_OUTPUT_STAGE:

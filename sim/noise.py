@@ -24,7 +24,7 @@ Each term returns the noise of three independent axes, rad/s, shape ``(m, 3)``, 
   with φ = exp(−dt/τc), started from its stationary distribution.
 
 Quantization noise is not generated here: it is the output rounding in
-:func:`gyrocore.effects.output_stage`.
+:func:`gyrocore.effects.registry.output_stage`.
 
 Flicker (bias instability)
 --------------------------
@@ -344,7 +344,7 @@ def kasdin_walter_flicker(
     """The exact discrete flicker process of Kasdin & Walter (whole record, FFT convolution).
 
     Reference only (tests of models that assume this discretisation, e.g. the GMWM's exact
-    discrete flicker AVAR, :func:`gyrocore.gmwm.flicker_avar_factor`); the simulator uses
+    discrete flicker AVAR, :func:`gyrocore.noise.gmwm.flicker_avar_factor`); the simulator uses
     :class:`FlickerBlocks`, which equals it in Allan deviation within 0.3 % for m ≥ 8 and in
     impulse response within 0.2 % for lags ≥ 100 samples, but is lower at m < 8 (this process
     is 1.44× the IEEE asymptote in AVAR at m = 1; :class:`FlickerBlocks` 0.68–0.96×, depending
@@ -390,7 +390,7 @@ def gauss_markov(
 
 class LowpassWhiteNoise(_Blocks):
     """White rate noise generated *before* a 2nd-order Butterworth low-pass (``arw_lowpass``,
-    ``arw_student``; :data:`gyrocore.effects.NOISE_TERMS`): the chip's digital low-pass shapes
+    ``arw_student``; :data:`gyrocore.effects.registry.NOISE_TERMS`): the chip's digital low-pass shapes
     its own noise. Block generator (:class:`_Blocks`): draws consumed in row-major (m, 3) order,
     the filter state carried between blocks (scipy.signal.lfilter with ``zi``), so any sequence
     of :meth:`take` equals one call for the total, bit for bit.
@@ -472,7 +472,7 @@ class AngleWhiteNoise(_Blocks):
 
 def noise_term_generator(name: str, pd, rng: np.random.Generator, *, rate_hz: float) -> _Blocks:
     """The block generator of a registered noise term outside the catalogue
-    (:data:`gyrocore.effects.NOISE_TERMS`) from its parameters ``pd``."""
+    (:data:`gyrocore.effects.registry.NOISE_TERMS`) from its parameters ``pd``."""
     if name == "arw_lowpass":
         return LowpassWhiteNoise(rng, rate_hz=rate_hz, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"],
                                  bandwidth_hz=float(pd["bandwidth_hz"]))

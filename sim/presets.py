@@ -21,15 +21,15 @@ Reading conventions (one rule for every preset):
 * ``enabled = false`` in a section: the level is known but the effect is off unless switched
   on (``SyntheticGyro(..., overrides=...)`` or ``draw_instance(..., include=...)``).
 * A section named by a registry family term (``["periodic[37.5]"]``, ``["step[12.25]"]``,
-  ``["regressor[omega_y*omega_z]"]``; :func:`gyrocore.effects.resolve`) injects that term with
+  ``["regressor[omega_y*omega_z]"]``; :func:`gyrocore.effects.registry.resolve`) injects that term with
   fixed values in SI, the parameter names of its schema (``a_cos_rad_s = [0.01, 0, 0]``; a
   scalar means all three axes; missing parameters are 0): the same for every unit. A
   registered noise term outside the catalogue (``[arw_lowpass]``, ``[arw_student]``,
-  ``[angle_white]``; :data:`gyrocore.effects.NOISE_TERMS`) is given the same way; every
+  ``[angle_white]``; :data:`gyrocore.effects.registry.NOISE_TERMS`) is given the same way; every
   parameter is required except ``arw_student.bandwidth_hz`` (default 0 = no low-pass).
 
 A :class:`SensorSpec` holds the SI distributions; :meth:`SensorSpec.draw_instance` draws one
-sensor's true parameters in :data:`gyrocore.effects.PARAM_SCHEMA` form, every effect from
+sensor's true parameters in :data:`gyrocore.effects.registry.PARAM_SCHEMA` form, every effect from
 its own seeded stream (:func:`sim.noise.effect_rng`).
 """
 
@@ -44,7 +44,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from gyrocore.effects import EFFECTS, NOISE_TERMS, PARAM_SCHEMA, is_family, resolve, validate_params
+from gyrocore.effects.registry import EFFECTS, NOISE_TERMS, PARAM_SCHEMA, is_family, resolve, validate_params
 from gyrocore.errors import GyroInputError
 
 from .noise import ALLAN_FLICKER_FACTOR, effect_rng
@@ -180,7 +180,7 @@ class SensorSpec:
         (the same for every unit; see the module docstring).
     shaped_vibration : mapping
         The shaped part of ``vibration`` (``{"f_hz": tuple, "psd_rad2_s2_hz": tuple of 3
-        tuples}``, :func:`gyrocore.vibration.shaped_params`) from a ``[vibration]`` section with
+        tuples}``, :func:`gyrocore.flight.vibration.shaped_params`) from a ``[vibration]`` section with
         ``spec = "SPEC.json"`` (path relative to the TOML) and optional ``band`` (index or
         ``"middle"``); empty = none (the physics part alone).
     """
@@ -388,7 +388,7 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
 
 def _vibration_section(table: Mapping, path: str) -> dict[str, tuple]:
     """``[vibration] spec = "SPEC.json", band = N|"middle", enabled = bool`` -> the shaped part's SI parameters."""
-    from gyrocore.vibration import read_spec, shaped_params
+    from gyrocore.flight.vibration import read_spec, shaped_params
 
     unknown = set(table) - {"spec", "band", "enabled"}
     if unknown:

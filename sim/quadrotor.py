@@ -363,7 +363,7 @@ class HoverFlight:
         and temperature); default :class:`PerfectGyro`. Called once per gyro sample, k = 0, 1, ...
     pipeline : object with ``.step(x (3,)) -> (3,)`` or a callable, optional
         Calibration + filter between the gyro and the rate loop (e.g.
-        ``gyrocore.filters.Pipeline``); None = the raw gyro.
+        ``gyrocore.flight.filters.Pipeline``); None = the raw gyro.
     manoeuvres : sequence of Manoeuvre
         Attitude steps on top of hover (see :func:`sim.controller.small_steps`).
     vibration : bool or VibrationSpec

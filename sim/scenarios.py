@@ -34,9 +34,9 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from gyrocore.cli import to_jsonable
-from gyrocore.effects import EFFECTS, STOCHASTIC, canonical_name, resolve, validate_params
+from gyrocore.effects.registry import EFFECTS, STOCHASTIC, canonical_name, resolve, validate_params
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import Recording, concat_recordings
+from gyrocore.data.recording import Recording, concat_recordings
 
 from .gyro import GyroOutput, SyntheticGyro
 from .noise import effect_rng
@@ -113,7 +113,7 @@ class SimResult:
     ----------
     scenario, sensor : str
     seed, run : int
-    recording : gyrocore.recording.Recording
+    recording : gyrocore.data.recording.Recording
         The data file: measured gyro; accel = true specific force (no accelerometer errors
         are simulated); temp = die temperature; ``ref_`` = truth (rate of S in S, attitude
         S→W); extra column ``power_up_index``; ``#`` metadata incl. ``params_true`` (JSON).
@@ -498,7 +498,7 @@ def _scenario_vibration(spec: ScenarioSpec, overrides, without, vehicle, hover_v
     vib_info = None
     if spec.vibration and not any(canonical_name(e) == "vibration" for e in (overrides or {})) \
             and "vibration" not in [canonical_name(w) for w in without]:
-        from gyrocore.vibration import read_spec
+        from gyrocore.flight.vibration import read_spec
 
         from .spec_vibration import spec_injection
 
@@ -775,7 +775,7 @@ class SimStream:
         True: the chunks are generated chunk by chunk (every scenario since the hover flies in
         blocks, :class:`sim.quadrotor.HoverFlight`).
 
-    :meth:`chunks` yields :class:`gyrocore.recording.Recording` pieces of at most
+    :meth:`chunks` yields :class:`gyrocore.data.recording.Recording` pieces of at most
     ``chunk_rows`` rows, once; their concatenation equals the whole path's recording bit for bit.
     """
 

@@ -21,7 +21,7 @@ The mean line power of flights with other seeds then matches the spec within the
 Monte Carlo error (relative SE of the mean power, reported); one flight's line scatters around it
 (as the real quad's, one draw of its phases).
 What the physics cannot give — the real frame's resonances and broadband — stays a shaped
-disturbance (:func:`gyrocore.vibration.synthesize`).
+disturbance (:func:`gyrocore.flight.vibration.synthesize`).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from gyrocore.errors import GyroInputError
 
 __all__ = ["RotorLine", "rotor_line", "line_amplitude_in_gyro", "vibration_from_spec", "spec_injection", "line_exclusion_hz"]
 
-#: relative frequency tolerance to call two bands' peaks the same line (as gyrocore.vibration's linker, 6 %)
+#: relative frequency tolerance to call two bands' peaks the same line (as gyrocore.flight.vibration's linker, 6 %)
 _F_TOL = 0.06
 
 
@@ -209,7 +209,7 @@ def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: i
     Parameters
     ----------
     spec : dict
-        A vibration spec (:func:`gyrocore.vibration.read_spec`).
+        A vibration spec (:func:`gyrocore.flight.vibration.read_spec`).
     vehicle : str or VehicleClass
     band : int or "middle"
     seed : int
@@ -306,10 +306,10 @@ def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = F
     :class:`sim.quadrotor.VibrationSpec` for the rotor physics (``physics=True``: the spec's
     rotor line through :func:`vibration_from_spec`) or None (the class's default);
     ``overrides`` = ``{"vibration": shaped part}`` for :class:`sim.gyro.SyntheticGyro` (the
-    registry effect ``vibration``'s parameters, :func:`gyrocore.vibration.shaped_params`, without
+    registry effect ``vibration``'s parameters, :func:`gyrocore.flight.vibration.shaped_params`, without
     the rotor line when the physics carries it); ``info`` for the recording's metadata.
     """
-    from gyrocore.vibration import shaped_params, spec_band
+    from gyrocore.flight.vibration import shaped_params, spec_band
 
     b = spec_band(spec, band)  # a bad band is one error line before anything runs
     hover_vib, sub, info = None, (), {"spec": str(spec.get("source", "")), "band": band,

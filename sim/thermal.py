@@ -374,7 +374,7 @@ class TempRateBlocks:
     """dT/dt of the die temperature on the clock ``t_k = k · (1 / rate_hz)``, block by block.
 
     ``take(m)`` returns the next m values of
-    ``gyrocore.effects.ModelInputs(t_s=t, temp_c=simulate_temperature(t, spec)).temp_rate_c_s()``
+    ``gyrocore.effects.registry.ModelInputs(t_s=t, temp_c=simulate_temperature(t, spec)).temp_rate_c_s()``
     for the whole clock of ``n_total`` samples, bit for bit, however the record is cut
     (issue 13: the closed-loop gyro's ``bias_temp_rate`` without the whole trajectory). That
     is ``numpy.gradient(T, t)`` (edge_order 1), transcribed: central differences inside —

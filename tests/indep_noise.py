@@ -1,6 +1,6 @@
 """Still-gyro noise generators written independently of ``sim/`` (issue 11, helper indep).
 
-The noise identification (``gyrocore/gmwm.py``) was studied on the simulator's own generators
+The noise identification (``gyrocore/noise/gmwm.py``) was studied on the simulator's own generators
 (``sim/noise.py``).  These are the generators *other people* use, re-written here from their
 published description (no code copied), so that the estimator is held against noise it was not
 built beside.  Every function returns one axis of angular rate in rad/s, shape (n,), and takes an

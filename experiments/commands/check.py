@@ -32,7 +32,7 @@ def command(contract_path, calibrator, fit_cmd, apply_cmd, timeout_s, workers, u
     and per failed unit; 2 for bad input (contract, template, module).
     """
     from experiments import score as SC
-    from gyrocore.recording import atomic_write_text
+    from gyrocore.data.recording import atomic_write_text
 
     contract = SC.load_contract(contract_path)
     res = SC.check_contract(contract, routine_spec=spec_from(calibrator, fit_cmd, apply_cmd, timeout_s),

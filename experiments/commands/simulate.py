@@ -25,7 +25,7 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
     """
     import re
 
-    from gyrocore.effects import PARAM_SCHEMA, check_effect_names
+    from gyrocore.effects.registry import PARAM_SCHEMA, check_effect_names
 
     out: dict[str, dict[str, np.ndarray]] = {}
     for item in items:
@@ -111,8 +111,8 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     scenario TOML file). Effect and parameter names are those of the effect catalogue
     (DESIGN.md), values in SI units.
     """
-    from gyrocore.effects import check_effect_names
-    from gyrocore.recording import file_sha256, write_chunks
+    from gyrocore.effects.registry import check_effect_names
+    from gyrocore.data.recording import file_sha256, write_chunks
     from sim import presets as P
     from sim import scenarios as S
 
@@ -137,7 +137,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
     if vibration_physics and (not vibration_spec or spec.kind != "hover"):
         raise GyroInputError("--vibration-physics needs --vibration SPEC and a hover scenario")
     if vibration_spec:
-        from gyrocore.vibration import read_spec
+        from gyrocore.flight.vibration import read_spec
         from sim.spec_vibration import spec_injection
 
         # issue 16: the spec enters as the registry effect `vibration` (its shaped part, in the gyro's

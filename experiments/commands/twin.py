@@ -19,7 +19,7 @@ __all__ = ["command"]
 @click.option("--params", "params_file", default=None, type=click.Path(dir_okay=False),
               help="Parameter file of the declared model (default: the residual loop identifies it).")
 @click.option("--segments", "segments_file", default=None, type=click.Path(dir_okay=False),
-              help="Still / known-rotation segments CSV (gyrocore.residual.read_segments).")
+              help="Still / known-rotation segments CSV (gyrocore.loop.residual.read_segments).")
 @click.option("--replicas", type=int, default=None,
               help="Number of replicas N (default 199: the smallest p-value 1/(N+1) must be below α/5).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Root seed of the replicas (SeedSequence.spawn).")
@@ -33,7 +33,7 @@ def command(file, params_file, segments_file, replicas, seed, no_close, out_dir,
     distribution, window autocorrelation; attitude references also the loop's window residual).
     """
     from experiments import twin as T
-    from gyrocore.recording import atomic_write_text
+    from gyrocore.data.recording import atomic_write_text
 
     if not Path(file).exists():
         raise GyroInputError(f"{file}: no such file or folder")
@@ -41,7 +41,7 @@ def command(file, params_file, segments_file, replicas, seed, no_close, out_dir,
         raise GyroInputError(f"--seed must be >= 0, got {seed}")
     rec, segs = T.load_recording(file)
     if segments_file is not None:
-        from gyrocore.residual import read_segments
+        from gyrocore.loop.residual import read_segments
 
         segs = read_segments(segments_file)
     n_rep = T.DEFAULT_REPLICAS if replicas is None else replicas

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from experiments import ablation as A
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.attitude import integrate_gyro
 
 
@@ -162,7 +162,7 @@ def test_r2_shape_lower_limit_covers_the_true_shape():
 def test_identified_noise_takes_slow_terms_from_the_longest_run():
     from types import SimpleNamespace
 
-    from gyrocore.budget import NoiseModel
+    from gyrocore.calib.budget import NoiseModel
 
     def res(rate, n, N, B):
         nm = NoiseModel(arw_rad_per_sqrt_s=np.full(3, N), bias_instability_rad_s=np.full(3, B))

@@ -6,7 +6,7 @@ Each scenario is simulated for CONTRACT_UNITS fixed sensor units (icm42688p) on 
 calibrated the way a user would (rate-table and thermal calibration runs of the same unit,
 power-up bias from the motion-gated still start), scored by the attitude error against the
 truth, and its error *predicted* from the calibration's own standard errors and the noise
-(:func:`experiments.ablation.ablate_instance`, :mod:`gyrocore.budget`). Checked per scenario
+(:func:`experiments.ablation.ablate_instance`, :mod:`gyrocore.calib.budget`). Checked per scenario
 (:func:`experiments.ablation.drift_contract_failures`):
 
 1. honesty: the mean over the units of r² = (measured/predicted RMS error)² lies in a band

@@ -9,7 +9,7 @@ import pytest
 
 from experiments import ablation as A
 from experiments import calibrators as C
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 
 
@@ -19,7 +19,7 @@ CAL_S = (40.0, 60.0)
 
 def _old_calibration(sensor, seed, present):
     """The ablation's calibration path before the door (issue 17), verbatim, on un-stripped runs."""
-    from gyrocore.model import Calibrator
+    from gyrocore.calibrator import Calibrator
     from sim import scenarios as S
 
     tt = [e for e in A.TABLE_EFFECTS if e in present]

@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("mujoco")
 
 from experiments import cutoffs as C
-from gyrocore.filters import make_filter
+from gyrocore.flight.filters import make_filter
 
 DUR = 3.0
 

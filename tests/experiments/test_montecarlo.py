@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments import montecarlo as mc
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 
 RATE_HZ = 200.0

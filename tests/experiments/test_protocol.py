@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments import protocol as P
-from gyrocore.budget import ParameterGroup
+from gyrocore.calib.budget import ParameterGroup
 
 
 def _fake_hover(rate=100.0, ground_s=3.0, flight_s=60.0):
@@ -82,11 +82,11 @@ def test_record_support_follows_the_resolvability_rule():
     # 10-min flight's floor; gmwm.expected_z says it is not resolvable (90 % power) from a
     # 387-s record at 1 kHz (margin 0.0 < 1.28) and is from 2400 s (margin ≈ 9 by the Fisher
     # form, > 1.28 by the stand-in form): the 387-s calibration residual must warn, 2400 s not.
-    from gyrocore import gmwm
+    from gyrocore.noise import gmwm
 
     uv = _unit_var_10min()
     # the floor is linear in each term's variance coefficient (what record_support relies on)
-    from gyrocore.budget import NoiseModel
+    from gyrocore.calib.budget import NoiseModel
 
     res, ground = _fake_hover(rate=100.0, ground_s=3.0, flight_s=600.0)
     inp, segs, start = P._prefixed_inputs(res, ground, 2.0)
@@ -116,7 +116,7 @@ def test_record_support_follows_the_resolvability_rule():
 
 
 def _still_csv(path, *, n=200_000, rate=1000.0, seed=5):
-    from gyrocore.recording import Recording, write_csv
+    from gyrocore.data.recording import Recording, write_csv
 
     rng = np.random.default_rng(seed)
     N = np.array([5e-5, 6e-5, 4e-5])

@@ -10,7 +10,7 @@ import pytest
 from experiments.cli import main
 from experiments.commands.simulate import parse_set
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import file_sha256, read_csv
+from gyrocore.data.recording import file_sha256, read_csv
 from sim.scenarios import simulate
 
 
@@ -88,7 +88,7 @@ def test_family_terms_from_set_and_sensor_toml_round_trip(tmp_path, capsys):
     the parameter file carries both by name and apply leaves the white noise."""
     import math
 
-    from gyrocore.model import load_params
+    from gyrocore.calibrator import load_params
 
     sigma, rate, dur = 2e-3, 1000.0, 20.0
     toml = tmp_path / "unit.toml"
@@ -141,7 +141,7 @@ def test_family_term_errors_are_one_line(tmp_path, capsys, args, needle):
 def test_streamed_file_equals_the_whole_write(tmp_path, capsys, suffix):
     """Issue 13: the command writes chunk by chunk; the file holds exactly what writing
     simulate()'s whole recording gives (CSV: the same bytes)."""
-    from gyrocore.recording import read_recording, write_recording
+    from gyrocore.data.recording import read_recording, write_recording
 
     f = tmp_path / f"s{suffix}"
     code, out, err = run(["simulate", "power_cycles", "-o", str(f), "--duration-s", "150", "--rate-hz", "500",
@@ -161,7 +161,7 @@ def test_streamed_file_equals_the_whole_write(tmp_path, capsys, suffix):
 def test_hover_file_is_the_whole_write_for_any_chunk_rows(tmp_path, capsys, chunk_rows):
     """Issue 13: `simulate hover` flies and writes block by block (--chunk-rows); the CSV is the
     whole-array path's byte for byte (ground phase, take-off and manoeuvres in 16 s)."""
-    from gyrocore.recording import write_recording
+    from gyrocore.data.recording import write_recording
 
     f = tmp_path / "h.csv"
     code, out, err = run(["simulate", "hover", "-o", str(f), "--duration-s", "16", "--seed", "2",

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from experiments import twin as T
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import Recording, write_csv
+from gyrocore.data.recording import Recording, write_csv
 
 RATE = 100.0
 DEG = np.pi / 180.0
@@ -105,7 +105,7 @@ def test_heavier_tails_fail_distribution_and_closing_adds_them():
     assert r.before.passed["psd"] and r.before.passed["adev"]
     assert any("heavy-tailed" in a for a in r.added), r.added
     assert r.after.passed["distribution"], r.after.to_json()
-    nu = r.model_after.params["arw_student"]["nu"]  # a registered simulator term (gyrocore.effects.NOISE_TERMS)
+    nu = r.model_after.params["arw_student"]["nu"]  # a registered simulator term (gyrocore.effects.registry.NOISE_TERMS)
     assert np.all((nu > 4.2) & (nu < 9.0)), nu  # kurtosis estimate from 6000 samples is rough
 
 

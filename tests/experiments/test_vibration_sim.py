@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from gyrocore.recording import Recording, read_csv
-from gyrocore.vibration import analyse, write_spec
+from gyrocore.data.recording import Recording, read_csv
+from gyrocore.flight.vibration import analyse, write_spec
 
 
 def _spec(tmp_path):
@@ -65,7 +65,7 @@ def test_closed_loop_flight_filter_with_measured_vibration(tmp_path):
     registry effect's shaped part in the gyro stream), and filtering lowers the motor noise the
     unfiltered gyro causes at a delay cost."""
     from experiments.flight_filter import fly
-    from gyrocore.vibration import read_spec
+    from gyrocore.flight.vibration import read_spec
     from sim.spec_vibration import spec_injection
 
     spec, _ = _spec(tmp_path)
@@ -122,7 +122,7 @@ def test_simulated_hover_with_a_known_spec_is_recovered(tmp_path):
     quantization q²/12 over the band's share of 0..fs/2."""
     import math as _m
 
-    from gyrocore.vibration import read_spec, shaped_params
+    from gyrocore.flight.vibration import read_spec, shaped_params
     from sim import scenarios as S
 
     spec_path, spec_res = _spec(tmp_path)
@@ -183,7 +183,7 @@ def test_sensor_preset_carries_the_shaped_vibration(tmp_path):
     band's shaped part into every unit of that sensor, as the registry effect's parameters; a bad
     key or a bad scenario [vibration] section is one error line."""
     from gyrocore.errors import GyroInputError
-    from gyrocore.vibration import read_spec, shaped_params
+    from gyrocore.flight.vibration import read_spec, shaped_params
     from sim.gyro import SyntheticGyro
     from sim.presets import load_preset
     from sim.scenarios import load_scenario

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from gyrocore import allan as AL
+from gyrocore.noise import allan as AL
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import Recording, write_csv
+from gyrocore.data.recording import Recording, write_csv
 
 RATE_HZ = 100.0
 
@@ -228,7 +228,7 @@ def _sunsided_10min(shared_data) -> Recording:
     p = shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward-10min"
     if not p.exists():
         pytest.skip("sunsided 10-min static log not present")
-    from gyrocore.convert import read_sunsided
+    from gyrocore.readers.convert import read_sunsided
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RepairWarning)  # bursty timestamps → uniform grid

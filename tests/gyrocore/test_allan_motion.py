@@ -14,16 +14,16 @@ import math
 import numpy as np
 import pytest
 
-from gyrocore import allan as AL
+from gyrocore.noise import allan as AL
 from gyrocore.cli import build_group, run_cli
-from gyrocore.convert import load_any
-from gyrocore.recording import Recording, write_csv
+from gyrocore.readers.convert import load_any
+from gyrocore.data.recording import Recording, write_csv
 
 RATE = 200.0
 
 
 def _gh(capsys, *argv):
-    status = run_cli(build_group(["gyrocore.commands"]), list(argv))
+    status = run_cli(build_group(["gyrocore.cli.commands"]), list(argv))
     out, err = capsys.readouterr()
     return status, out, err
 

@@ -11,8 +11,8 @@ import pytest
 
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import RepairWarning
-from gyrocore.model import Calibrator, load_params, save_params
-from gyrocore.recording import Recording, read_csv, read_recording, write_recording
+from gyrocore.calibrator import Calibrator, load_params, save_params
+from gyrocore.data.recording import Recording, read_csv, read_recording, write_recording
 
 
 def _recording(n=3000, rate_hz=200.0, seed=0):
@@ -91,7 +91,7 @@ def test_streamed_power_up_bias_matches_whole(tmp_path, capsys):
 
 def test_streamed_apply_with_family_terms_is_bit_identical(tmp_path, capsys):
     """Registry family terms (time, rate, rate-derivative, temperature-rate regressors) need the
-    reach gyrocore.effects.context_rows gives; the streamed apply equals the whole-record one."""
+    reach gyrocore.effects.registry.context_rows gives; the streamed apply equals the whole-record one."""
     rec = _recording()
     src = tmp_path / "in.csv"
     write_recording(rec, src)

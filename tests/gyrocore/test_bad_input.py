@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from gyrocore.cli import build_group, run_cli
-from gyrocore.recording import Recording, read_csv, write_csv
+from gyrocore.data.recording import Recording, read_csv, write_csv
 
 HEADER = "t_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s"
 
@@ -174,7 +174,7 @@ def test_saturated_samples(tmp_path, capsys):
 
 
 def test_large_file_refused_or_streamed(tmp_path, capsys, monkeypatch):
-    import gyrocore.recording as rc
+    import gyrocore.data.recording as rc
 
     t, g = _still(5000)
     write_csv(Recording(t_s=t, gyro_rad_s=g), tmp_path / "big.csv")

@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 
 from gyrocore.cli import build_group, run_cli
-from gyrocore.commands import batch as B
-from gyrocore.recording import Recording, write_csv, write_recording
+from gyrocore.cli.commands import batch as B
+from gyrocore.data.recording import Recording, write_csv, write_recording
 
 N_UNITS = 20
 DURATION_S = 40.0
@@ -118,7 +118,7 @@ def test_disk_full_while_writing_the_table_is_one_error_line(fleet, tmp_path, ca
 
     table = tmp_path / "t.csv"
     table.write_text("precious")
-    import gyrocore.recording as rc
+    import gyrocore.data.recording as rc
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")

@@ -1,4 +1,4 @@
-"""Static bias with a motion gate (gyrocore.bias): synthetic truth, rules, gate honesty, real MPU-6050."""
+"""Static bias with a motion gate (gyrocore.calib.bias): synthetic truth, rules, gate honesty, real MPU-6050."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import scipy.signal
 import scipy.stats
 
-from gyrocore.bias import (
+from gyrocore.calib.bias import (
     StaticBiasCalibrator,
     _window_stats,
     abs_diff_moments,
@@ -17,7 +17,7 @@ from gyrocore.bias import (
     startup_still_slice,
 )
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import Recording
+from gyrocore.data.recording import Recording
 
 RATE_HZ = 100.0
 N_RAD_SQRT_S = 0.002  # white rate noise density, rad/s/√Hz
@@ -231,7 +231,7 @@ def test_noise_bound_keeps_still_recordings_at_the_stated_rate():
     recordings (10 windows of 200 samples, the smallest that self-estimates σ from window
     variances) per noise; refused windows ~ Binomial(60·10, 1e-3) ⇒ ≤ 3 at the 0.1 % level.
     Theory: the bound is 4× the AR(1) prediction, the ratio's sampling spread here is ~10 %."""
-    from gyrocore.bias import NOISE_RATIO_BOUND
+    from gyrocore.calib.bias import NOISE_RATIO_BOUND
 
     for phi in (0.0, 0.5, 0.8):
         refused = 0
@@ -250,7 +250,7 @@ def test_real_static_logs_pass_the_noise_bound(shared_data):
     """Real static MPU-6050 logs (sunsided, tomisuarez2) still calibrate with self-estimated σ."""
     import warnings
 
-    from gyrocore.convert import load_any
+    from gyrocore.readers.convert import load_any
     from gyrocore.errors import RepairWarning
 
     paths = [shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward",

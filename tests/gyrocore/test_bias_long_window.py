@@ -13,8 +13,8 @@ import warnings
 
 import numpy as np
 
-from gyrocore.bias import StaticBiasCalibrator
-from gyrocore.convert import load_any
+from gyrocore.calib.bias import StaticBiasCalibrator
+from gyrocore.readers.convert import load_any
 from gyrocore.errors import RepairWarning
 
 

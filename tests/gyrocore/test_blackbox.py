@@ -1,8 +1,8 @@
-"""Blackbox reader (gyrocore.blackbox) on the shared Betaflight 3.1.5 log and on damaged copies.
+"""Blackbox reader (gyrocore.readers.blackbox) on the shared Betaflight 3.1.5 log and on damaged copies.
 
 Expected figures come from ../shared/data/betaflight_blackbox/PROVENANCE.md (measured there
 with orangebox 0.4.0 and numpy, independently of this reader) and from the Betaflight source
-(debug.h / gyro.c of the tags named in gyrocore/blackbox.py).
+(debug.h / gyro.c of the tags named in gyrocore/readers/blackbox.py).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import warnings
 import numpy as np
 import pytest
 
-from gyrocore import blackbox as bb
-from gyrocore.convert import detect_format, load_any
+from gyrocore.readers import blackbox as bb
+from gyrocore.readers.convert import detect_format, load_any
 from gyrocore.errors import GyroInputError, RepairWarning
 
 DEG = math.pi / 180.0
@@ -223,7 +223,7 @@ def test_betaflight_44_header_names_and_gyro_scaled(log_path, tmp_path):
 
 def test_rpm_filter_debug_mode_gives_rotor_frequency(log_path, tmp_path):
     """4.x debug_mode RPM_FILTER: debug[0..3] = rotor frequency per motor in Hz (rpm_filter.c)."""
-    from gyrocore._betaflight_debug_modes import BETAFLIGHT_DEBUG_MODES
+    from gyrocore.readers._betaflight_debug_modes import BETAFLIGHT_DEBUG_MODES
 
     names = [n for lo, hi, n in BETAFLIGHT_DEBUG_MODES if lo <= (4, 2, 0) <= hi][0]
     idx = names.index("RPM_FILTER")
@@ -241,7 +241,7 @@ def test_convert_cli_writes_data_file_with_metadata(log_path, tmp_path):
     import subprocess
     import sys
 
-    from gyrocore.recording import read_csv
+    from gyrocore.data.recording import read_csv
 
     cut = tmp_path / "cut.BBL"
     cut.write_bytes(log_path.read_bytes()[:80_000])

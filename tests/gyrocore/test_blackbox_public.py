@@ -8,7 +8,7 @@ The tests that need no data (INAV header handling, version refusal) always run.
 
 Expected figures come from outside this reader: the Rust parser blackbox-log's snapshot of
 LOG00037.BFL (frame count, field extremes), INAV's blackbox.c / blackbox_fielddefs.h /
-sensors/gyro.c (revision named in ``gyrocore.blackbox.INAV_READ``), and an independent Welch
+sensors/gyro.c (revision named in ``gyrocore.readers.blackbox.INAV_READ``), and an independent Welch
 estimate with scipy.
 """
 
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gyrocore import blackbox as bb
+from gyrocore.readers import blackbox as bb
 from gyrocore.errors import GyroInputError, RepairWarning
 
 DEG = math.pi / 180.0
@@ -282,7 +282,7 @@ def test_filter_says_when_its_set_lines_drop_a_flown_dynamic_lowpass(public_dir,
     set lines and a note say so."""
     from gyrocore.cli import build_group, run_cli
 
-    status = run_cli(build_group(["gyrocore.commands"]), ["filter", str(_path(public_dir, BF42))])
+    status = run_cli(build_group(["gyrocore.cli.commands"]), ["filter", str(_path(public_dir, BF42))])
     out = capsys.readouterr().out
     assert status == 0
     assert "# the set lines turn off the dynamic gyro low-pass you flew (240-600 Hz)" in out

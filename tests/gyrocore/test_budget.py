@@ -1,4 +1,4 @@
-"""gyrocore.budget: predicted attitude error from noise and parameter uncertainty."""
+"""gyrocore.calib.budget: predicted attitude error from noise and parameter uncertainty."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from gyrocore import budget as B
-from gyrocore import effects as E
+from gyrocore.calib import budget as B
+from gyrocore.effects import registry as E
 from gyrocore.attitude import floor_sigma_theta_rad
 
 

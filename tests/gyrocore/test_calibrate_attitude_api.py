@@ -18,10 +18,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gyrocore.commands.batch import headline_calibrate
-from gyrocore.convert import load_any
-from gyrocore.model import Calibrator
-from gyrocore.recording import write_csv
+from gyrocore.cli.commands.batch import headline_calibrate
+from gyrocore.readers.convert import load_any
+from gyrocore.calibrator import Calibrator
+from gyrocore.data.recording import write_csv
 
 TRIAL = "05_undisturbed_slow_rotation_with_breaks_B.hdf5"
 S_INDEP = np.array([-0.00163, -0.00161, -0.00139])
@@ -68,7 +68,7 @@ def test_rate_effects_without_a_motion_reference_say_what_would_excite_them():
     """IMU-TK's multi-pose session (turns between poses, no rate or attitude reference) gave
     "scale.s[0]: regressor is zero in the data (no excitation)" and nothing on why: the fit is
     against rate 0 on the still parts; the note now names the references that would do."""
-    from gyrocore.recording import Recording
+    from gyrocore.data.recording import Recording
 
     rng = np.random.default_rng(3)
     t = np.arange(2000) / 100.0

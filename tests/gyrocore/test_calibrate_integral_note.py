@@ -11,7 +11,7 @@ from gyrocore.cli import build_group, run_cli
 def _convert_and_calibrate(src, tmp_path, capsys):
     """``convert`` an imucal session with its segments, then ``calibrate --segments`` it (bias,
     scale, misalignment; parameter file p.json); returns the exit status and captured output."""
-    g = build_group(["gyrocore.commands"])
+    g = build_group(["gyrocore.cli.commands"])
     assert run_cli(g, ["convert", str(src), "-o", str(tmp_path / "f.csv"), "--segments-out", str(tmp_path / "s.csv")]) == 0
     capsys.readouterr()
     status = run_cli(g, ["calibrate", str(tmp_path / "f.csv"), "--segments", str(tmp_path / "s.csv"),

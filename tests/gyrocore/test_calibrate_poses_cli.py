@@ -1,6 +1,6 @@
 """`calibrate --poses`: the multi-pose method (Tedaldi et al. 2014) reachable from the CLI.
 
-`gyrocore.rotations.gravity_pose_calibration` existed (docs/calibration.md, tomisuarez2 beside
+`gyrocore.calib.rotations.gravity_pose_calibration` existed (docs/calibration.md, tomisuarez2 beside
 its authors) but no command ran it: `calibrate` on a multi-pose session fitted the still parts
 against rate 0 and reported scale and misalignment unobservable. Expected values come from
 outside the code: the authors' own params_gyro.csv (their model ω = T·diag(k)·(raw − b)),
@@ -14,7 +14,7 @@ import json
 
 import numpy as np
 
-from gyrocore.effects import MISALIGNMENT_ORDER
+from gyrocore.effects.registry import MISALIGNMENT_ORDER
 from tests.gyrocore.test_bad_input import assert_error, gh
 
 

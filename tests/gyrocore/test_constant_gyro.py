@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gyrocore.recording import Recording, write_csv
+from gyrocore.data.recording import Recording, write_csv
 from tests.gyrocore.test_bad_input import assert_error, gh
 
 

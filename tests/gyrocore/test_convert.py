@@ -15,9 +15,9 @@ import warnings
 import numpy as np
 import pytest
 
-from gyrocore import convert as cv
+from gyrocore.readers import convert as cv
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import G0_M_S2, read_csv, write_csv
+from gyrocore.data.recording import G0_M_S2, read_csv, write_csv
 
 DEG = np.pi / 180.0
 
@@ -403,7 +403,7 @@ def test_cli_convert_json_segments_force_and_determinism(shared_data, tmp_path):
 
 
 def test_convert_refuses_source_too_large_for_memory(shared_data, monkeypatch):
-    import gyrocore.recording as rc
+    import gyrocore.data.recording as rc
 
     monkeypatch.setattr(rc, "_available_memory_bytes", lambda: 10 * 2**20)  # 10 MiB free
     with pytest.raises(GyroInputError, match=r"MiB of broad data needs ~\d+ MiB to convert"):

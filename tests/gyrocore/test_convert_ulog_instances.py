@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import pyulog
 
-from gyrocore import convert as cv
+from gyrocore.readers import convert as cv
 
 
 def test_temperature_of_the_selected_gyro(shared_data):
@@ -49,7 +49,7 @@ def test_gyro_instance_option(shared_data, tmp_path, monkeypatch, capsys):
     from gyrocore.cli import build_group, run_cli
 
     src = shared_data / "pyulog_samples" / "sample_log_small.ulg"
-    g = build_group(["gyrocore.commands"])
+    g = build_group(["gyrocore.cli.commands"])
     assert run_cli(g, ["convert", str(src), "--gyro-instance", "1", "-o", str(tmp_path / "a.csv")]) == 2
     err = capsys.readouterr().err
     assert "logged at 1 Hz" in err and "10 Hz" in err and len(err.strip().splitlines()) == 1

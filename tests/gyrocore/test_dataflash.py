@@ -1,4 +1,4 @@
-"""ArduPilot DataFlash reader (gyrocore.dataflash) on a real ArduCopter 4.5.7 log (tests/data/dataflash).
+"""ArduPilot DataFlash reader (gyrocore.readers.dataflash) on a real ArduCopter 4.5.7 log (tests/data/dataflash).
 
 Expected figures come from outside the reader: the fixture's PROVENANCE (read with pymavlink
 directly), the log's own FMTU units, gravity (|a| = g with the motors stopped) and the header
@@ -18,8 +18,8 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
-from gyrocore.convert import detect_format, load_any  # noqa: E402
-from gyrocore.dataflash import read_dataflash  # noqa: E402
+from gyrocore.readers.convert import detect_format, load_any  # noqa: E402
+from gyrocore.readers.dataflash import read_dataflash  # noqa: E402
 from gyrocore.errors import GyroInputError, RepairWarning  # noqa: E402
 
 LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"

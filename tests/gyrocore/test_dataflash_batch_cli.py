@@ -8,13 +8,13 @@ import warnings
 from pathlib import Path
 
 from gyrocore.cli import build_group, run_cli
-from gyrocore.recording import read_csv
+from gyrocore.data.recording import read_csv
 
 BIN = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
 
 
 def test_batch_stream_file_reads_without_retime_advice_and_vibration_names_the_window(tmp_path, capsys):
-    g = build_group(["gyrocore.commands"])
+    g = build_group(["gyrocore.cli.commands"])
     out = tmp_path / "isb.csv"
     assert run_cli(g, ["convert", str(BIN), "--stream", "batch", "-o", str(out)]) == 0
     capsys.readouterr()

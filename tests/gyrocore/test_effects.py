@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 
 

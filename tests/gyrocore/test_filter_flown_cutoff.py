@@ -12,8 +12,8 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from gyrocore.commands.filter import run_filter
-from gyrocore.dataflash import read_dataflash
+from gyrocore.cli.commands.filter import run_filter
+from gyrocore.readers.dataflash import read_dataflash
 
 LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
 

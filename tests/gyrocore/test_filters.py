@@ -1,4 +1,4 @@
-"""Tests of gyrocore.filters: the article's coefficient and delay, PTn, biquads, Butterworth,
+"""Tests of gyrocore.flight.filters: the article's coefficient and delay, PTn, biquads, Butterworth,
 batch/streaming bit-identity, the pipeline."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from gyrocore import filters as F
+from gyrocore.flight import filters as F
 from gyrocore.errors import GyroInputError
 
 

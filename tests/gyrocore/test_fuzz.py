@@ -25,8 +25,8 @@ def _load():
 
 def test_seeds_are_valid_inputs(tmp_path):
     """Each seed is accepted by the reader it was written for (so mutations start deep)."""
-    from gyrocore import convert as cv
-    from gyrocore import recording as rc
+    from gyrocore.readers import convert as cv
+    from gyrocore.data import recording as rc
 
     fz = _load()
     readers = [rc.read_csv, rc.read_csv, rc.read_csv, cv.read_segments_csv, cv.read_tomisuarez2,

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from gyrocore import allan as AL
-from gyrocore import gmwm as G
+from gyrocore.noise import allan as AL
+from gyrocore.noise import gmwm as G
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import Recording, write_csv
+from gyrocore.data.recording import Recording, write_csv
 from sim import noise as SN
 
 RATE = 100.0
@@ -61,7 +61,7 @@ def test_exact_discrete_term_avar_matches_simulation(kind):
 
 def test_spectral_correlation_matches_exact_white_plus_random_walk():
     """The spectral (all-terms) correlation of AVAR estimates agrees with the exact finite-filter
-    one of gyrocore.allan for white + random walk (checked there against Monte Carlo) to 0.05
+    one of gyrocore.noise.allan for white + random walk (checked there against Monte Carlo) to 0.05
     (the log-grid averaging of the fast sin⁴ factors is the approximation)."""
     n = 200000
     m = AL.octave_m(n)
@@ -232,7 +232,7 @@ def test_arw_rrw_monte_carlo_rates():
 def test_adev_plot_label_mentions_shading_only_when_shaded():
     """The ADEV plot's x-label says what is shaded only on a panel where a long-τ term's region
     is shaded (white noise alone: nothing shaded, the label says no long-τ term is resolved)."""
-    from gyrocore.commands.allan import adev_figure
+    from gyrocore.cli.commands.allan import adev_figure
     import matplotlib.pyplot as plt
 
     rng = np.random.default_rng(8)

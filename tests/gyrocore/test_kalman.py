@@ -1,4 +1,4 @@
-"""Kalman bias tracking (gyrocore.kalman): Riccati steady state, filterpy vs pure steps, MEKF consistency."""
+"""Kalman bias tracking (gyrocore.noise.kalman): Riccati steady state, filterpy vs pure steps, MEKF consistency."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from gyrocore import allan as AL
-from gyrocore import kalman as KF
+from gyrocore.noise import allan as AL
+from gyrocore.noise import kalman as KF
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import Recording
+from gyrocore.data.recording import Recording
 
 RATE_HZ = 100.0
 DT = 1.0 / RATE_HZ
@@ -173,8 +173,8 @@ def test_attitude_tracker_on_broad_matches_rest_bias(shared_data):
     p = shared_data / "broad" / "05_undisturbed_slow_rotation_with_breaks_B.hdf5"
     if not p.exists():
         pytest.skip("BROAD trial 05 not present")
-    from gyrocore.bias import startup_still_slice
-    from gyrocore.convert import read_broad
+    from gyrocore.calib.bias import startup_still_slice
+    from gyrocore.readers.convert import read_broad
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RepairWarning)

@@ -1,7 +1,7 @@
 """The residual loop: undeclared effects are named (and only they), null cases find nothing.
 
 Recordings come from :func:`experiments.close_the_loop.synthetic_recording`: a rich tumbling
-reference through the shared measurement model (:func:`gyrocore.effects.deterministic`) plus
+reference through the shared measurement model (:func:`gyrocore.effects.registry.deterministic`) plus
 ARW (0.005 °/s/√Hz) and flicker bias instability (3 °/h). The effect magnitudes are the
 "1×" sizes of :data:`experiments.close_the_loop.DEFAULT_MAGNITUDE` (typical consumer MEMS).
 
@@ -22,10 +22,10 @@ import pytest
 from click.testing import CliRunner
 
 from experiments.close_the_loop import effect_params, identification_rates, synthetic_recording
-from gyrocore.commands.loop import command as loop_command
+from gyrocore.cli.commands.loop import command as loop_command
 from gyrocore.errors import GyroInputError
-from gyrocore.loop import CANDIDATES, COMPANION, run_loop
-from gyrocore.recording import write_csv
+from gyrocore.loop.loop import CANDIDATES, COMPANION, run_loop
+from gyrocore.data.recording import write_csv
 
 DURATION_S = 40.0
 RATE_HZ = 200.0
@@ -138,7 +138,7 @@ def test_still_reference_finds_ramp():
     """A still recording (no reference columns): true rate 0 is the reference."""
     from dataclasses import replace
 
-    from gyrocore.recording import Recording
+    from gyrocore.data.recording import Recording
 
     rng = np.random.default_rng(5)
     n = int(120 * 100)
@@ -201,7 +201,7 @@ def test_identification_and_false_alarm_rates_monte_carlo():
 def _load(path):
     import warnings
 
-    from gyrocore.convert import load_with_segments
+    from gyrocore.readers.convert import load_with_segments
     from gyrocore.errors import RepairWarning
 
     if not path.exists():

@@ -11,7 +11,7 @@ from gyrocore.cli import build_group, run_cli
 
 
 def test_exactly_determined_candidate_is_not_testable(shared_data, tmp_path, capsys):
-    g = build_group(["gyrocore.commands"])
+    g = build_group(["gyrocore.cli.commands"])
     s = shared_data / "sunsided_mpu6050" / "set-1"
     rot, seg = tmp_path / "rot.csv", tmp_path / "seg.csv"
     assert run_cli(g, ["convert", str(s / "rotate-360ccw-around-x-pointing-forward"),

@@ -25,9 +25,9 @@ import sys
 import numpy as np
 import pytest
 
-from gyrocore.loop import run_loop
-from gyrocore.recording import read_csv, spill_columns, write_csv
-from gyrocore.stream import NotStreamable, SpilledRecording
+from gyrocore.loop.loop import run_loop
+from gyrocore.data.recording import read_csv, spill_columns, write_csv
+from gyrocore.calib.stream import NotStreamable, SpilledRecording
 
 RTOL, ATOL = 1e-8, 1e-12
 
@@ -84,7 +84,7 @@ def test_loop_from_disk_equals_in_memory(tmp_path, kind, chunk):
 def test_spilled_residual_rows_equal_the_arrays(tmp_path):
     # the lazy columns, the reference attitude integrated window by window and the window
     # operator applied to lazy rows give the in-memory numbers
-    from gyrocore.residual import build_residual
+    from gyrocore.loop.residual import build_residual
 
     path = tmp_path / "rec.csv"
     write_csv(_record("none", duration_s=20.0), path)
@@ -103,7 +103,7 @@ def test_spilled_residual_rows_equal_the_arrays(tmp_path):
         assert n_m == n_d
         np.testing.assert_allclose(X_d, X_m, rtol=RTOL, atol=1e-12 * np.max(np.abs(X_m)), err_msg=eff)
     # a time offset: the spline on windows + context equals the whole-record spline
-    from gyrocore.loop import _advance
+    from gyrocore.loop.loop import _advance
 
     adv_m, adv_d = _advance(rec, 0.0037), _advance(sp, 0.0037)
     np.testing.assert_allclose(np.asarray(adv_d.gyro_rad_s), adv_m.gyro_rad_s, rtol=0, atol=1e-15)
@@ -115,9 +115,9 @@ def test_loop_cli_streams_long_files_and_falls_back(tmp_path, monkeypatch, capsy
     # is not streamed (NotStreamable): the command reads the file whole instead
     from click.testing import CliRunner
 
-    import gyrocore.commands.calibrate as cal
-    import gyrocore.loop as L
-    from gyrocore.commands.loop import command as main
+    import gyrocore.cli.commands.calibrate as cal
+    import gyrocore.loop.loop as L
+    from gyrocore.cli.commands.loop import command as main
 
     monkeypatch.setattr(cal, "STREAM_ROWS", 1000)
     seen = []
@@ -150,7 +150,7 @@ def test_loop_cli_streams_long_files_and_falls_back(tmp_path, monkeypatch, capsy
 
 
 def test_spilled_residual_refuses_what_it_cannot_stream(tmp_path):
-    from gyrocore.residual import Segment, build_residual
+    from gyrocore.loop.residual import Segment, build_residual
 
     path = tmp_path / "rec.csv"
     write_csv(_record("none", duration_s=10.0), path)

@@ -10,7 +10,7 @@ import pytest
 
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import Recording, read_recording, spill_columns, write_recording
+from gyrocore.data.recording import Recording, read_recording, spill_columns, write_recording
 
 
 def _still(n=20_000, rate_hz=200.0, seed=0, *, gap=False, scale=1.0):
@@ -58,7 +58,7 @@ def test_spill_same_columns_and_warnings_as_a_whole_read(tmp_path, suffix):
 
 
 def test_allan_by_axis_equals_whole_record(tmp_path, capsys, monkeypatch):
-    import gyrocore.commands.allan as A
+    import gyrocore.cli.commands.allan as A
 
     rec = _still(40_000, gap=True)
     p = tmp_path / "r.csv"
@@ -79,7 +79,7 @@ def test_bias_blockwise_statistics_equal_whole_array(monkeypatch):
     """Long records: window statistics a block of windows at a time. The bias and the window
     are identical; the pooled sums (VIF, threshold, s.e.) only change their summation order:
     relative difference ≤ (number of blocks)·ε ≈ 1e-14 here, asserted at 1e-12."""
-    import gyrocore.bias as B
+    import gyrocore.calib.bias as B
 
     rng = np.random.default_rng(1)
     n = 60_000
@@ -98,7 +98,7 @@ def test_bias_blockwise_statistics_equal_whole_array(monkeypatch):
 
 
 def test_write_csv_streams_long_recordings_byte_identically(tmp_path, monkeypatch):
-    import gyrocore.recording as rc
+    import gyrocore.data.recording as rc
 
     rng = np.random.default_rng(0)
     n = 5001

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from gyrocore import effects as E
-from gyrocore import lsq
+from gyrocore.effects import registry as E
+from gyrocore.calib import lsq
 from gyrocore.errors import GyroInputError, UnobservableError
 
 TRUE = {

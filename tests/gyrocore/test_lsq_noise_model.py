@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from gyrocore import effects as E
-from gyrocore import lsq
-from gyrocore.budget import Blocks, NoiseModel, block_covariance
+from gyrocore.effects import registry as E
+from gyrocore.calib import lsq
+from gyrocore.calib.budget import Blocks, NoiseModel, block_covariance
 from gyrocore.errors import GyroInputError
 
 
@@ -35,7 +35,7 @@ def _design(n, rate_hz):
 
 
 def _flicker(rng, n, b):
-    """Kasdin & Walter α = 1 flicker (the process of sim.noise and of gyrocore.budget): white of
+    """Kasdin & Walter α = 1 flicker (the process of sim.noise and of gyrocore.calib.budget): white of
     σ = B through h_0 = 1, h_k = h_{k−1}(k − 1/2)/k, started at rest."""
     k = np.arange(1, n, dtype=float)
     h = np.concatenate([[1.0], np.cumprod((k - 0.5) / k)])
@@ -116,8 +116,8 @@ def test_calibrator_noise_model_covariance_identifies_the_noise_and_keeps_it_in_
     # A rate-table recording (6 mounts, ±rate plateaus with 0.2-s raised-cosine ramps) with white
     # + flicker noise: the calibrator identifies N and B on the residual away from the ramps
     # (GMWM), reports noise-model standard errors, and the parameter file round-trips the model.
-    from gyrocore.model import Calibrator, load_params, near_rate_changes, save_params
-    from gyrocore.recording import Recording
+    from gyrocore.calibrator import Calibrator, load_params, near_rate_changes, save_params
+    from gyrocore.data.recording import Recording
 
     rate, n = 200.0, 200 * 180
     t, A, _, _ = _design(n, rate)

@@ -6,10 +6,10 @@ import warnings
 import numpy as np
 import pytest
 
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError, RepairWarning, UnobservableError
-from gyrocore.model import Calibrator, CalibrationResult, load_params, save_params
-from gyrocore.recording import Recording, write_csv
+from gyrocore.calibrator import Calibrator, CalibrationResult, load_params, save_params
+from gyrocore.data.recording import Recording, write_csv
 
 SIGMA_RAD_S = 0.004
 TRUE = {
@@ -355,7 +355,7 @@ def test_long_record_chunked_fit_equals_whole_array_fit(monkeypatch):
     # selection, time_offset Gauss–Newton, robust outlier pass) must give the whole-array
     # result up to float-addition order where blocks straddle windows: relative rounding
     # ~average·eps ≈ 1e-14 times the normal-equation condition (< 1e3 here) → 1e-9 relative.
-    from gyrocore import lsq
+    from gyrocore.calib import lsq
 
     rng = np.random.default_rng(11)
     n = 12000
@@ -429,7 +429,7 @@ def test_chunked_fit_with_family_terms_equals_whole_array_fit(monkeypatch):
     # as test_long_record_chunked_fit_equals_whole_array_fit, with registry family terms
     # (time-only, rate product, rate derivative: central differences need the one-row window
     # overlap of lsq's chunked design); tolerance as there (1e-9 relative)
-    from gyrocore import lsq
+    from gyrocore.calib import lsq
 
     rng = np.random.default_rng(12)
     n = 12000

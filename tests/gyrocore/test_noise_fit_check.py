@@ -20,16 +20,16 @@ import pytest
 import scipy.signal
 import scipy.stats
 
-from gyrocore import allan as AL
-from gyrocore import gmwm
+from gyrocore.noise import allan as AL
+from gyrocore.noise import gmwm
 from gyrocore.cli import build_group, run_cli
-from gyrocore.convert import load_any
+from gyrocore.readers.convert import load_any
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import write_csv
+from gyrocore.data.recording import write_csv
 
 
 def _gh(capsys, *argv):
-    status = run_cli(build_group(["gyrocore.commands"]), list(argv))
+    status = run_cli(build_group(["gyrocore.cli.commands"]), list(argv))
     out, err = capsys.readouterr()
     return status, out, err
 

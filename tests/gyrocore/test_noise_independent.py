@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from gyrocore.allan import identify_noise
+from gyrocore.noise.allan import identify_noise
 from tests import indep_noise as G
 
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from gyrocore.cli import build_group, run_cli
-from gyrocore.recording import Recording, is_parquet, read_csv, read_recording, write_csv
+from gyrocore.data.recording import Recording, is_parquet, read_csv, read_recording, write_csv
 
 
 def _still(n=6000, rate_hz=200.0, seed=0):

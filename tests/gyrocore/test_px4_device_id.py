@@ -7,7 +7,7 @@ is never applied. Now `--px4-device-id` sets it; without it the file and the CLI
 
 from __future__ import annotations
 
-from gyrocore.recording import write_csv
+from gyrocore.data.recording import write_csv
 from tests.gyrocore.test_bad_input import gh
 from tests.gyrocore.test_thermal import CUBIC, thermal_run
 

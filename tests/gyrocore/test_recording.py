@@ -15,9 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from gyrocore import recording as rc
+from gyrocore.data import recording as rc
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import Recording, iter_csv_chunks, read_csv, write_csv, write_csv_chunks
+from gyrocore.data.recording import Recording, iter_csv_chunks, read_csv, write_csv, write_csv_chunks
 
 HEADER = "t_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s"
 
@@ -416,7 +416,7 @@ def test_exact_one_g_plateau_is_not_saturation():
     No accelerometer clips below ±2 g (the smallest full scale sold), so a plateau at 1 g is a
     steady reading: it must not be flagged. A gyro plateau at a real full scale still is.
     """
-    from gyrocore.recording import detect_saturation
+    from gyrocore.data.recording import detect_saturation
 
     rng = np.random.default_rng(7)
     n = 2000

@@ -11,14 +11,14 @@ import pytest
 
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import read_csv, read_recording
+from gyrocore.data.recording import read_csv, read_recording
 
 RATE = 200.0
 N = 4000
 
 
 def _gh(capsys, *argv):
-    status = run_cli(build_group(["gyrocore.commands"]), list(argv))
+    status = run_cli(build_group(["gyrocore.cli.commands"]), list(argv))
     out, err = capsys.readouterr()
     return status, out, err
 

@@ -9,8 +9,8 @@ import pytest
 
 from experiments.close_the_loop import effect_params, synthetic_recording
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import Recording
-from gyrocore.residual import Segment, as_segment, build_residual, detect_still, read_segments
+from gyrocore.data.recording import Recording
+from gyrocore.loop.residual import Segment, as_segment, build_residual, detect_still, read_segments
 
 
 def _still_rec(n=6000, rate=100.0, seed=0):
@@ -107,7 +107,7 @@ def test_motion_gate():
 
 
 def test_as_segment_from_convert():
-    from gyrocore.convert import Segment as CSeg
+    from gyrocore.readers.convert import Segment as CSeg
 
     s = as_segment(CSeg(1.0, 2.0, "z", 90.0))
     assert s.kind == "rotation" and s.angle_S_rad[2] == pytest.approx(np.pi / 2)
@@ -117,7 +117,7 @@ def test_as_segment_from_convert():
 def test_chunked_regressors_equal_whole(monkeypatch, kind):
     """Long recordings are regressed in chunks; the windows must come out the same (to
     rounding of the running sums, ≤ N·eps relative)."""
-    import gyrocore.residual as R
+    import gyrocore.loop.residual as R
 
     rec = synthetic_recording({"bias": effect_params("bias")}, seed=6, duration_s=20.0, with_quat=True)
     if kind == "attitude":

@@ -6,12 +6,12 @@ import warnings
 import numpy as np
 import pytest
 
-from gyrocore import effects as E
-from gyrocore.convert import Segment, write_segments_csv
+from gyrocore.effects import registry as E
+from gyrocore.readers.convert import Segment, write_segments_csv
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.model import Calibrator
-from gyrocore.recording import Recording
-from gyrocore.rotations import article_worked_example, integral_calibration, still_mask
+from gyrocore.calibrator import Calibrator
+from gyrocore.data.recording import Recording
+from gyrocore.calib.rotations import article_worked_example, integral_calibration, still_mask
 
 from ..conftest import SHARED_DATA
 
@@ -136,7 +136,7 @@ def test_imucal_ferraris_session_beside_imucal(shared_data):
     ours: y − b − H·f = K·ω, so K ≡ K_g·R_g, b ≡ b_g, H ≡ K_ga (deg/s → rad/s)."""
     imucal = pytest.importorskip("imucal")
     pd = pytest.importorskip("pandas")
-    from gyrocore.convert import imucal_segments, read_imucal
+    from gyrocore.readers.convert import imucal_segments, read_imucal
 
     d = shared_data / "imucal_ferraris"
     rec = read_imucal(d / "example_ferraris_session.csv")
@@ -208,7 +208,7 @@ K_POSE = np.array([[1.02, 0.01, -0.005], [0.003, 0.98, 0.008], [-0.006, 0.004, 1
 
 
 def test_gravity_pose_calibration_recovers_K():
-    from gyrocore.rotations import gravity_pose_calibration
+    from gyrocore.calib.rotations import gravity_pose_calibration
 
     r = gravity_pose_calibration(pose_session(0, K_POSE))
     assert len(r.intervals) == 13 and r.n_motions_saturated == 0
@@ -221,7 +221,7 @@ def test_gravity_pose_calibration_recovers_K():
 
 
 def test_gravity_pose_calibration_drops_clipped_motions():
-    from gyrocore.rotations import gravity_pose_calibration
+    from gyrocore.calib.rotations import gravity_pose_calibration
 
     # peak rate of a 2-rad, 2-s motion is 2 rad/s; clip at 1.5 rad/s cuts the larger turns
     with pytest.warns(RepairWarning, match="clipped"):
@@ -236,8 +236,8 @@ def test_tomisuarez2_multipose_beside_authors(shared_data):
     The session is weak for the gyro: 2 of its 9 motions clip at ±250 °/s and the rest leave a
     gravity misfit of ~5° rms, so σ_K ≈ 0.04–0.07. The test states what the data support:
     the bias (same first-pose average) agrees to 0.001 °/s, and K agrees within 2.5 σ."""
-    from gyrocore.convert import read_tomisuarez2
-    from gyrocore.rotations import gravity_pose_calibration
+    from gyrocore.readers.convert import read_tomisuarez2
+    from gyrocore.calib.rotations import gravity_pose_calibration
 
     d = shared_data / "tomisuarez2_mpu6050"
     rec = read_tomisuarez2(d / "example_data_calibration.csv")
@@ -246,7 +246,7 @@ def test_tomisuarez2_multipose_beside_authors(shared_data):
     p = np.loadtxt(d / "params_gyro.csv")
     m, k, b_lsb = p[:6], p[6:9], p[9:]
     T = np.array([[1, -m[0], m[1]], [m[2], 1, -m[3]], [-m[4], m[5], 1]])
-    k0 = np.radians(1.0) / 131.0  # rad/s per LSB at ±250 °/s, as read by gyrocore.convert
+    k0 = np.radians(1.0) / 131.0  # rad/s per LSB at ±250 °/s, as read by gyrocore.readers.convert
     K_auth = np.linalg.inv(T @ np.diag(k / k0))
     assert r.n_motions_saturated == 2
     np.testing.assert_allclose(np.degrees(r.bias_rad_s), b_lsb / 131.0, atol=1e-3)
@@ -326,7 +326,7 @@ def test_cli_calibrate_with_external_bias(tmp_path, capsys):
     import json
 
     from gyrocore.cli import build_group, run_cli
-    from gyrocore.recording import write_csv
+    from gyrocore.data.recording import write_csv
 
     rec, segs, _ = _no_still_session(6)
     write_csv(rec, tmp_path / "rot.csv")
@@ -356,8 +356,8 @@ def test_sunsided_set1_turns_with_bias_from_the_static_recording(shared_data):
     from column j's off-diagonals). MPU-6050 sensitivity tolerance is ±3 % (datasheet), so
     the test can fail on a wrong scale, sign or unit. The column norms (tilt-free) must be 1
     within 3 SE + 0.7 % as well."""
-    from gyrocore.bias import StaticBiasCalibrator
-    from gyrocore.convert import concat_converted, load_with_segments
+    from gyrocore.calib.bias import StaticBiasCalibrator
+    from gyrocore.readers.convert import concat_converted, load_with_segments
 
     base = shared_data / "sunsided_mpu6050" / "set-1"
     names = ["rotate-360ccw-around-x-pointing-forward", "rotate-360ccw-around-y-pointing-left",

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from gyrocore.convert import Segment
-from gyrocore.recording import Recording
-from gyrocore.rotations import integral_calibration
+from gyrocore.readers.convert import Segment
+from gyrocore.data.recording import Recording
+from gyrocore.calib.rotations import integral_calibration
 
 RATE = 100.0
 SIG_ANGLE = np.radians(3.0)

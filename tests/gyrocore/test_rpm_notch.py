@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gyrocore.errors import GyroInputError
-from gyrocore.filters import RpmNotch
+from gyrocore.flight.filters import RpmNotch
 
 
 def _run(f_tone, rotor_hz, n=4000, rate=1000.0):

@@ -1,4 +1,4 @@
-"""gyrocore.rwgm: block-mean likelihood of a random walk against a Gauss–Markov bias (issue 11, round 6).
+"""gyrocore.noise.rwgm: block-mean likelihood of a random walk against a Gauss–Markov bias (issue 11, round 6).
 
 The closed-form autocovariances are checked against exact sums over the discrete processes
 (deterministic, no simulation); the likelihood against scipy's multivariate normal; the check's
@@ -12,7 +12,7 @@ import pytest
 import scipy.linalg
 import scipy.stats
 
-from gyrocore import rwgm
+from gyrocore.noise import rwgm
 
 DT = 0.01
 M = 400  # samples per block: the discrete sums differ from the continuous forms by O(1/M)
@@ -133,7 +133,7 @@ def test_identify_noise_with_the_check_reports_k_ambiguous_with_a_gm(monkeypatch
     ambiguous with the GM; with the check off it is claimed."""
     import warnings
 
-    from gyrocore import allan as AL
+    from gyrocore.noise import allan as AL
     from experiments.noise_study import MIXES, simulate
 
     g = simulate(np.random.default_rng(np.random.SeedSequence([2, 5507])), MIXES["N+GM"], 30000, 50.0)

@@ -1,4 +1,4 @@
-"""Open search (gyrocore.search via gyrocore.loop): effects outside the catalogue are described
+"""Open search (gyrocore.loop.search via gyrocore.loop.loop): effects outside the catalogue are described
 and removed, under the loop's family-wise error control.
 
 Recordings: :func:`experiments.close_the_loop.synthetic_recording` (tumbling reference, ARW
@@ -19,10 +19,10 @@ from click.testing import CliRunner
 from scipy import stats
 
 from experiments.close_the_loop import effect_params, synthetic_recording
-from gyrocore import search as S
-from gyrocore.commands.loop import command as loop_command
-from gyrocore.loop import run_loop
-from gyrocore.recording import Recording, write_csv
+from gyrocore.loop import search as S
+from gyrocore.cli.commands.loop import command as loop_command
+from gyrocore.loop.loop import run_loop
+from gyrocore.data.recording import Recording, write_csv
 
 DUR_S, RATE_HZ = 40.0, 200.0
 
@@ -267,7 +267,7 @@ def test_loop_output_applies_to_another_recording(tmp_path, capsys):
     assert kinds == ["periodic", "regressor"]
     status, stdout, err = gh(capsys, "apply", fb, "--params", pj, "-o", out, "--json")
     assert status == 0, err
-    from gyrocore.recording import read_recording
+    from gyrocore.data.recording import read_recording
 
     corr = read_recording(out)
     e0 = rb.gyro_rad_s - rb.ref_rate_rad_s

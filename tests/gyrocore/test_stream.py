@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gyrocore import effects as E
-from gyrocore import lsq
-from gyrocore.model import Calibrator
-from gyrocore.recording import Recording, read_csv, spill_columns, write_csv
+from gyrocore.effects import registry as E
+from gyrocore.calib import lsq
+from gyrocore.calibrator import Calibrator
+from gyrocore.data.recording import Recording, read_csv, spill_columns, write_csv
 
 
 def _thermal_rate_record(n: int = 12000, seed: int = 11, *, outliers: int = 40) -> Recording:
@@ -46,7 +46,7 @@ def _assert_same(a, b, rtol):
 @pytest.mark.parametrize("chunk", [1500, 4096, 7001])
 def test_streamed_calibration_equals_in_memory(tmp_path, monkeypatch, chunk):
     # Calibrator.fit_spilled reads the record back from per-column files a window at a time
-    # (gyrocore.stream.SpillRows); with the same windows it does exactly the in-memory chunked
+    # (gyrocore.calib.stream.SpillRows); with the same windows it does exactly the in-memory chunked
     # path's arithmetic (bit for bit), and against the whole-array fit (chunk_rows=None) it
     # differs only by the float-addition order where blocks straddle windows: relative
     # rounding ~average·eps ≈ 1e-14 times the normal-equation condition (< 1e3 here) → 1e-9.
@@ -69,8 +69,8 @@ def test_streamed_calibration_equals_in_memory(tmp_path, monkeypatch, chunk):
 def test_streamed_rows_equal_in_memory_rows(tmp_path):
     # SpillRows gives the same r and inputs as the arrays, also with a time offset (the
     # reference interpolated at t − τ reads only the bracketing rows of the window)
-    from gyrocore.model import _shift_rate
-    from gyrocore.stream import SpillRows
+    from gyrocore.calibrator import _shift_rate
+    from gyrocore.calib.stream import SpillRows
 
     rec = _thermal_rate_record(n=3000, outliers=0)
     path = tmp_path / "rec.csv"
@@ -95,8 +95,8 @@ def test_calibrate_cli_streams_long_files(tmp_path, monkeypatch):
 
     from click.testing import CliRunner
 
-    from gyrocore.commands import calibrate as C
-    from gyrocore.model import load_params
+    from gyrocore.cli.commands import calibrate as C
+    from gyrocore.calibrator import load_params
 
     rec = _thermal_rate_record(n=36000, seed=3)  # > max_rows = 30000: block means of 2
     path = tmp_path / "rec.csv"
@@ -123,7 +123,7 @@ def test_streamed_bias_equals_in_memory(tmp_path, monkeypatch, kw):
     # StaticBiasCalibrator.fit_spilled reads windows back from disk a block at a time and the
     # noise one column at a time: the same blocks and operations as the in-memory path of a
     # long record, so the same numbers (checked bit for bit, with blocks of 7 windows)
-    from gyrocore import bias as B
+    from gyrocore.calib import bias as B
 
     rng = np.random.default_rng(5)
     n = 40_000
@@ -150,7 +150,7 @@ def test_streamed_bias_equals_in_memory(tmp_path, monkeypatch, kw):
 
 def test_still_fraction_from_disk_reads_the_same_windows(tmp_path):
     # the allan motion gate of a long file reads only the 200 windows it judges from disk
-    from gyrocore.allan import still_fraction, still_fraction_spilled
+    from gyrocore.noise.allan import still_fraction, still_fraction_spilled
 
     rng = np.random.default_rng(8)
     n = 60_000  # 300 windows of 2 s at 100 Hz: 200 of them picked
@@ -168,7 +168,7 @@ def test_streamed_bias_with_its_own_blocks_equals_in_memory_to_rounding(tmp_path
     # from disk the windows are read in smaller blocks than the in-memory path uses: only the
     # order of the lag sums over blocks changes, so the numbers agree to float rounding
     # (relative ~W·eps ≈ 1e-14 for W = 200 windows; 1e-12 asserted)
-    from gyrocore import bias as B
+    from gyrocore.calib import bias as B
 
     rng = np.random.default_rng(6)
     n = 40_000
@@ -190,7 +190,7 @@ def test_bias_cli_streams_long_files(tmp_path, capsys, monkeypatch):
     import json
     import warnings
 
-    import gyrocore.commands.bias as CB
+    import gyrocore.cli.commands.bias as CB
     from gyrocore.cli import build_group, run_cli
 
     rng = np.random.default_rng(9)
@@ -200,7 +200,7 @@ def test_bias_cli_streams_long_files(tmp_path, capsys, monkeypatch):
     t[20_000:] += 0.5  # a gap: one warning, from either path
     path = tmp_path / "still.csv"
     write_csv(Recording(t_s=t, gyro_rad_s=y), path)
-    from gyrocore.bias import StaticBiasCalibrator
+    from gyrocore.calib.bias import StaticBiasCalibrator
 
     called = []
     orig = StaticBiasCalibrator.fit_spilled
@@ -252,7 +252,7 @@ def _table_steps_record(n: int = 60_000, rate: float = 200.0, seed: int = 21) ->
 @pytest.mark.parametrize("chunk", [4096, 7001])
 def test_streamed_noise_model_fit_leaves_ramps_out_like_in_memory(tmp_path, monkeypatch, chunk):
     # Issue 12: the streamed calibrate path leaves the rate ramps out (ramp_margin_s: the mask
-    # from the reference column read window by window, gyrocore.model.near_rate_changes) and
+    # from the reference column read window by window, gyrocore.calibrator.near_rate_changes) and
     # identifies the noise model without the samples near a ramp, as in memory. The streamed
     # and in-memory fits run the same arithmetic on the same windows (the chunked block-mean
     # path, the same full-resolution residual for GMWM), so parameters, noise-model standard
@@ -288,7 +288,7 @@ def test_streamed_noise_model_fit_leaves_ramps_out_like_in_memory(tmp_path, monk
 def test_near_rate_changes_window_by_window_equals_the_box_convolution():
     # the ramp mask read a window at a time (one row of overlap each side, runs dilated by k)
     # is the whole-column definition: ramp samples convolved with a box of 2k + 1 > 0.5
-    from gyrocore.model import near_rate_changes
+    from gyrocore.calibrator import near_rate_changes
 
     rng = np.random.default_rng(3)
     for _ in range(40):
@@ -315,8 +315,8 @@ def test_calibrate_cli_streamed_path_takes_the_ramp_margin(tmp_path, monkeypatch
     # the in-memory fit (same windows: 1e-13, as above)
     from click.testing import CliRunner
 
-    from gyrocore.commands import calibrate as C
-    from gyrocore.model import load_params
+    from gyrocore.cli.commands import calibrate as C
+    from gyrocore.calibrator import load_params
 
     rec = _table_steps_record(n=40_000)
     path = tmp_path / "rec.csv"

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from gyrocore import effects as E
+from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.model import Calibrator
-from gyrocore.recording import Recording
-from gyrocore.thermal import px4_tc_params, write_px4_params
+from gyrocore.calibrator import Calibrator
+from gyrocore.data.recording import Recording
+from gyrocore.calib.thermal import px4_tc_params, write_px4_params
 
 SIGMA_RAD_S = 0.003
 

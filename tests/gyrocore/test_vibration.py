@@ -1,4 +1,4 @@
-"""gyrocore.vibration on simulated signals with a known line set, and the CLI on the shared log.
+"""gyrocore.flight.vibration on simulated signals with a known line set, and the CLI on the shared log.
 
 The simulated recordings are built here from closed-form signals (white noise + sinusoids
 whose frequency is a known function of a stepped motor command), so every expected value is
@@ -17,10 +17,10 @@ import warnings
 import numpy as np
 import pytest
 
-from gyrocore import filters as F
+from gyrocore.flight import filters as F
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.recording import Recording
-from gyrocore.vibration import analyse, read_spec, write_spec
+from gyrocore.data.recording import Recording
+from gyrocore.flight.vibration import analyse, read_spec, write_spec
 
 RATE = 1000.0
 LEVELS = (0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55)
@@ -173,14 +173,14 @@ def _flown(seed):
 
 
 def test_filter_recommendation_stable_across_noise_seeds():
-    from gyrocore.commands.filter import run_filter
+    from gyrocore.cli.commands.filter import run_filter
 
     picks = []
     for seed in (11, 12, 13):
         rec = _flown(seed)
         # the as-flown gyro columns are the raw synthetic gyro here (no prefilter column): the
         # analysis undoes the declared PT1 100 Hz, so hand it the filtered signal it expects
-        from gyrocore import filters as F
+        from gyrocore.flight import filters as F
 
         g = F.pt1(100.0, RATE).apply(rec.gyro_rad_s)
         rec = Recording(t_s=rec.t_s, gyro_rad_s=g, meta=rec.meta, extra=rec.extra)
@@ -203,8 +203,8 @@ def test_filter_recommendation_stable_across_noise_seeds():
 def test_filter_names_betaflight_parameters_only_for_betaflight_logs():
     """An INAV (or other non-Betaflight) log gets no Betaflight `set` lines and no RPM-filter
     recommendation (that firmware's names and filter were not read): one comment instead."""
-    from gyrocore import filters as F
-    from gyrocore.commands.filter import run_filter
+    from gyrocore.flight import filters as F
+    from gyrocore.cli.commands.filter import run_filter
 
     rec = _flown(11)
     g = F.pt1(100.0, RATE).apply(rec.gyro_rad_s)
@@ -260,7 +260,7 @@ def test_firmware_chain_response_matches_betaflight_formulas():
 
 # ---------------------------------------------------------------- simulator side: synthesis and fidelity
 def test_synthesized_vibration_reproduces_the_spec_band(res, tmp_path):
-    from gyrocore.vibration import fidelity, synthesize
+    from gyrocore.flight.vibration import fidelity, synthesize
 
     p = tmp_path / "spec.json"
     write_spec(res, p, source="synthetic")

@@ -12,7 +12,7 @@ from gyrocore.cli import build_group, run_cli
 
 
 def _gh(capsys, *argv):
-    status = run_cli(build_group(["gyrocore.commands"]), list(argv))
+    status = run_cli(build_group(["gyrocore.cli.commands"]), list(argv))
     out, err = capsys.readouterr()
     return status, out, err
 

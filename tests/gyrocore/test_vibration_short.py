@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from gyrocore.vibration import MIN_BAND_WINDOWS, analyse, plot_vibration
+from gyrocore.flight.vibration import MIN_BAND_WINDOWS, analyse, plot_vibration
 from tests.gyrocore.test_vibration import A_FIXED, F_FIXED, LEVELS, N_WHITE, RATE, _line
 
 
 def _short_flight(hold_s: float, seed: int = 5):
-    from gyrocore.recording import Recording
+    from gyrocore.data.recording import Recording
 
     rng = np.random.default_rng(seed)
     u = np.repeat(LEVELS, int(hold_s * RATE))

@@ -1,5 +1,5 @@
 """The synthetic gyro: reproducibility, each effect against its formula (written out here,
-not taken from gyrocore.effects), independent per-effect streams, stream == batch."""
+not taken from gyrocore.effects.registry), independent per-effect streams, stream == batch."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from gyrocore.effects import EFFECTS, EARTH_RATE_RAD_S
+from gyrocore.effects.registry import EFFECTS, EARTH_RATE_RAD_S
 from gyrocore.errors import GyroInputError
 from sim.gyro import SyntheticGyro
 from sim.truth import Truth
@@ -431,7 +431,7 @@ FAMILY_TERMS = {
 @pytest.mark.parametrize("name", sorted(FAMILY_TERMS))
 def test_family_term_is_its_formula(name):
     """A family term alone: measurement − truth = the registry's term (same numpy code) exactly."""
-    from gyrocore.effects import ModelInputs, resolve
+    from gyrocore.effects.registry import ModelInputs, resolve
 
     tr = make_truth(1200)
     g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=1, without=ALL_BUT_VIB, overrides={name: FAMILY_TERMS[name]})
@@ -516,7 +516,7 @@ def _add_truth(seed):
 
 
 def _add_recording(name, run):
-    from gyrocore.recording import Recording
+    from gyrocore.data.recording import Recording
 
     g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=21, run=run, without=[e for e in ALL_BUT_VIB if e != "arw"],
                       overrides={"arw": {"n_rad_per_sqrt_s": SIGMA_ADD / math.sqrt(RATE)}, name: ADD_CASES[name]})
@@ -531,7 +531,7 @@ def test_injected_family_term_is_fitted_saved_and_removed(name, tmp_path):
     """simulate with the term -> Calibrator (least squares) recovers it within its standard error
     -> parameter file round trip -> apply on ANOTHER recording of the unit (held out) leaves
     the pure noise."""
-    from gyrocore.model import Calibrator, load_params, save_params
+    from gyrocore.calibrator import Calibrator, load_params, save_params
 
     fit_rec = _add_recording(name, run=0)
     res = Calibrator(effects=["bias", name], covariance="ols").fit(fit_rec)
@@ -567,7 +567,7 @@ def test_family_standard_errors_are_calibrated_over_seeds(name):
     χ²(K·P) bound it (a wrong standard error by 10 % moves Σz²/(K·P) by ±0.2, far outside)."""
     import scipy.stats
 
-    from gyrocore.model import Calibrator
+    from gyrocore.calibrator import Calibrator
 
     K = 40
     z2, dof = 0.0, 0

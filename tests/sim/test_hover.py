@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from gyrocore.filters import pt1
+from gyrocore.flight.filters import pt1
 from sim.controller import Manoeuvre, QuadParams, small_steps
 from sim.quadrotor import VibrationSpec, fly_hover
 from sim.thermal import ThermalSpec, simulate_temperature

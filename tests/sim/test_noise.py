@@ -123,7 +123,7 @@ GENERATORS = {
     "rrw": lambda: noise.RateRandomWalkBlocks(np.random.default_rng(23), rate_hz=1000.0, k_rad_s_per_sqrt_s=[1e-4, 2e-4, 5e-5]),
     "gm": lambda: noise.GaussMarkovBlocks(np.random.default_rng(24), rate_hz=1000.0, sigma_rad_s=[1e-3, 2e-3, 5e-4],
                                           tau_c_s=[0.1, 1.0, 30.0]),
-    # registered noise terms outside the catalogue (gyrocore.effects.NOISE_TERMS)
+    # registered noise terms outside the catalogue (gyrocore.effects.registry.NOISE_TERMS)
     "arw_lowpass": lambda: noise.LowpassWhiteNoise(np.random.default_rng(25), rate_hz=1000.0,
                                                    n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4], bandwidth_hz=90.0),
     "arw_student": lambda: noise.LowpassWhiteNoise(np.random.default_rng(26), rate_hz=1000.0,

@@ -9,7 +9,7 @@ import re
 import numpy as np
 import pytest
 
-from gyrocore.effects import PARAM_SCHEMA, validate_params
+from gyrocore.effects.registry import PARAM_SCHEMA, validate_params
 from gyrocore.errors import GyroInputError
 from sim.presets import NL_MINIMAX_FACTOR, PRESETS, TOL_SIGMAS, SensorSpec, load_preset
 

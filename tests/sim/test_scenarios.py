@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from gyrocore.cli import to_jsonable
-from gyrocore.effects import EFFECTS
+from gyrocore.effects.registry import EFFECTS
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import read_csv, write_csv
+from gyrocore.data.recording import read_csv, write_csv
 from sim import scenarios as S
 
 ALL_BUT_VIB = [e for e in EFFECTS if e != "vibration"]
@@ -184,7 +184,7 @@ def test_bad_scenario_files(tmp_path):
 
 
 def test_hover_powers_up_on_the_ground_and_the_static_bias_calibration_finds_it():
-    from gyrocore.bias import StaticBiasCalibrator
+    from gyrocore.calib.bias import StaticBiasCalibrator
     from sim.quadrotor import TAKEOFF_CLIMB_S
 
     spec = S.load_scenario("hover")
@@ -236,7 +236,7 @@ def _short(name: str) -> dict:
 
 
 def _assert_chunked_is_whole(name, kw, chunk_rows):
-    from gyrocore.recording import concat_recordings
+    from gyrocore.data.recording import concat_recordings
 
     res = S.simulate(name, **kw)
     st = S.simulate(name, chunk_rows=chunk_rows, **kw)
@@ -281,7 +281,7 @@ def test_chunked_hover_with_temperature_rate_and_a_leading_gyro(tmp_path):
 
 def test_simulate_stream_is_simulate_with_chunk_rows():
     # one entry point: simulate_stream(name, chunk_rows=N, **options) is simulate(name, chunk_rows=N, **options)
-    from gyrocore.recording import concat_recordings
+    from gyrocore.data.recording import concat_recordings
 
     a = concat_recordings(list(S.simulate_stream("static", duration_s=3.0, chunk_rows=500).chunks()))
     b = concat_recordings(list(S.simulate("static", duration_s=3.0, chunk_rows=1000).chunks()))
@@ -296,7 +296,7 @@ def test_simulate_stream_is_simulate_with_chunk_rows():
 def test_stream_with_one_row_chunks(name, kw):
     """Chunks shorter than the physics-to-gyro ratio (one physics step per rollout, most with no
     gyro sample) and single-sample temperature chunks still give simulate()'s rows."""
-    from gyrocore.recording import concat_recordings
+    from gyrocore.data.recording import concat_recordings
 
     a = S.simulate(name, **kw).recording
     rec = concat_recordings(list(S.simulate_stream(name, chunk_rows=1, **kw).chunks()))

@@ -165,7 +165,7 @@ def _run(argv, capsys):
 def test_simulate_vibration_physics_cli(tmp_path, capsys):
     import json
 
-    from gyrocore.recording import read_recording
+    from gyrocore.data.recording import read_recording
 
     spec = _spec_file(tmp_path)
     out = tmp_path / "r.csv"
@@ -196,7 +196,7 @@ def test_simulate_vibration_physics_cli(tmp_path, capsys):
 def test_shaped_part_without_the_line_keeps_the_floor():
     """shaped_params(subtract_lines=...): the line's power leaves the band's PSD at the line, the
     broadband around and under it stays (a flat 1e-4 floor plus a 7-bin bump of 0.02 (rad/s)²)."""
-    from gyrocore.vibration import shaped_params
+    from gyrocore.flight.vibration import shaped_params
 
     s = {"f_hz": list(np.arange(0.0, 400.5, 1.0)), "reconstructed_reliable_below_hz": 380.0,
          "bands": [{"throttle": [0, 1], "median": 0.5, "n_windows": 20,

@@ -143,7 +143,7 @@ def _run(argv, capsys):
 
 
 def test_simulate_cli_flies_the_racing_class(tmp_path, capsys):
-    from gyrocore.recording import read_recording
+    from gyrocore.data.recording import read_recording
 
     out = tmp_path / "r.csv"
     code, _, err = _run(["simulate", "hover", "--vehicle", "racing5", "--duration-s", "2", "-o", str(out)], capsys)
@@ -159,7 +159,7 @@ def test_rpm_notch_in_the_loop_tracks_the_simulated_rotors():
     # so the rotor line (1st harmonic, 140.5 Hz on racing5) leaves the filtered gyro: the line
     # amplitude falls by > 20 dB (a Q-5 notch centred within 0.01 Hz of the line: > 40 dB in
     # steady state; 20 dB leaves room for the rotor speed's jitter in the loop)
-    from gyrocore.filters import Pipeline, RpmNotch
+    from gyrocore.flight.filters import Pipeline, RpmNotch
     from sim.spec_vibration import line_amplitude_in_gyro
 
     truth, log = fly_hover(duration_s=3.0, vehicle="racing5", seed=2, pipeline=Pipeline([RpmNotch(1000.0)]))

@@ -1,0 +1,2 @@
+"""Deterministic calibration: least squares, thermal polynomials, rotations, static bias, the error
+budget, and the bounded-memory row sources the fits read."""

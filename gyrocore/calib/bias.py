@@ -1,0 +1,818 @@
+"""Power-up (static) gyro bias with a motion gate — the seed article's §1, made range-independent.
+
+The article averages 200 samples at rest and refuses while moving: per axis it sums
+Σ|g[k] − g[k−1]| over the window and rejects when any axis exceeds 500 raw counts. A fixed
+count threshold depends on the range setting: at ±250 °/s an MPU-6050 at rest already sums
+≈ 2200–3300 counts per 200 samples, so that gate never lets it calibrate (shown on the
+tomisuarez2 static set in the tests and docs/noise.md).
+
+Here the threshold is derived from the sensor's own noise for a stated false-reject rate
+at rest α (probability that a window of a still sensor is rejected, all axes together):
+
+- ``statistic="abs_diff"`` (the article's statistic). With first differences Δ of
+  stationary Gaussian noise (σ_Δ² = Var Δ, ρ = corr(Δ_k, Δ_k+1), −1/2 for white noise),
+  S = Σ_{k=1}^{m}|Δ_k| (m = n − 1) has
+  E S = m σ_Δ √(2/π),
+  Var S = m σ_Δ² (1 − 2/π) + 2 (m − 1) σ_Δ² (2/π)(√(1−ρ²) + ρ asin ρ − 1)
+  (bivariate half-normal covariance; lags ≥ 2 neglected, exact for white noise).
+  The threshold is the upper α_axis quantile of a gamma law with that mean and variance
+  (the Gaussian quantile under-covers: S is right-skewed; the gamma law is slightly
+  conservative, measured 2.7e-4 for a nominal 3.3e-4 at n = 200).
+- ``statistic="variance"``: (n − 1) s²/σ² ~ χ²(n − 1) at rest under white noise (exact).
+
+α_axis = 1 − (1 − α)^(1/3) (independent axes). σ_Δ and ρ are estimated robustly from the
+whole recording (MAD of lag-1 and lag-2 differences, insensitive to sparse motion) unless the
+sensor's white-noise σ (or density N, σ = N √rate) is given. The result states the smallest
+motion that the gate catches half of the time: a rate step inside the window and a rate ramp
+(constant angular acceleration) over it. A constant rotation rate cannot be told from bias by a
+gyro alone and is not caught by any gyro-only gate.
+
+Rules: ``"mean"`` (the article), ``"median"`` (PX4-like, robust to spikes), ``"converge"``
+(ArduPilot-like: consecutive window means until they agree within a tolerance),
+``"article"`` (the article's fixed raw-count threshold, for comparison).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+from gyrocore.errors import GyroInputError, warn_repair
+from gyrocore.data.recording import Recording
+
+__all__ = ["StaticBiasCalibrator", "StaticBiasResult", "startup_still_slice", "abs_diff_moments", "robust_diff_noise", "FORMAT_VERSION"]
+
+FORMAT_VERSION = "1.0"
+_MAD = 1.482602218505602  # 1/Φ⁻¹(3/4): MAD → σ for Gaussian data
+RULES = ("mean", "median", "converge", "article")
+STATISTICS = ("abs_diff", "variance")
+
+
+@dataclass(frozen=True, eq=False)
+class StaticBiasResult:
+    """Static bias estimate and what the motion gate did.
+
+    Attributes
+    ----------
+    bias_rad_s : ndarray, shape (3,)
+        Bias per sensor axis, rad/s.
+    bias_se_rad_s : ndarray, shape (3,)
+        Standard error: σ√VIF/√n (mean), √(π/2)·σ√VIF/√n (median), with VIF the variance
+        inflation of the window mean from the noise autocorrelation (1 for white noise).
+    rule, statistic : str
+    window_start_index, window_samples : int
+        First sample and length of the data that made the estimate (two windows for
+        ``"converge"``).
+    window_start_s, window_s : float
+        The same in seconds (window_s = samples / mean rate).
+    n_rejected_windows : int
+        Windows refused before the accepted one.
+    n_windows_total, n_windows_still : int
+        Windows in the recording and how many of them pass the gate.
+    false_reject_rate : float
+        Stated probability that a window of a still sensor is refused (all axes), nan for
+        ``"article"`` (not derived).
+    threshold : ndarray, shape (3,)
+        Per-axis gate threshold, in ``threshold_units``.
+    threshold_units : str
+        ``"rad/s"`` (sum of |Δ|, abs_diff), ``"(rad/s)^2"`` (variance) or ``"rad/s"`` for the
+        converge tolerance (Mahalanobis radius of the mean difference, see notes).
+    noise_sigma_rad_s : ndarray, shape (3,)
+        Per-sample white-noise σ used (σ_Δ/√2).
+    diff_corr : ndarray, shape (3,)
+        ρ = corr(Δ_k, Δ_k+1) used (−0.5 for white noise).
+    vif : ndarray, shape (3,)
+        Variance inflation factor of the window mean.
+    min_step_rad_s : ndarray, shape (3,)
+        Smallest rate step inside a window detected with 50 % probability.
+    min_ramp_rad_s2 : ndarray, shape (3,)
+        Smallest constant angular acceleration over a window detected with 50 % probability.
+    units : str
+    format_version : str
+    """
+
+    bias_rad_s: np.ndarray
+    bias_se_rad_s: np.ndarray
+    rule: str
+    statistic: str
+    window_start_index: int
+    window_samples: int
+    window_start_s: float
+    window_s: float
+    n_rejected_windows: int
+    n_windows_total: int
+    n_windows_still: int
+    false_reject_rate: float
+    threshold: np.ndarray
+    threshold_units: str
+    noise_sigma_rad_s: np.ndarray
+    diff_corr: np.ndarray
+    vif: np.ndarray
+    min_step_rad_s: np.ndarray
+    min_ramp_rad_s2: np.ndarray
+    units: str = "rad/s"
+    format_version: str = FORMAT_VERSION
+
+
+# ---------------------------------------------------------------------------- pure helpers
+def _refuse_constant(noise: tuple[np.ndarray, np.ndarray], x: np.ndarray | None = None):
+    """Pass ``(sigma_diff, rho)`` through, or one error line when a gyro axis never changes.
+
+    An axis with σ_Δ = 0 holds one value over the whole record: its output is quantized more
+    coarsely than its noise (INAV logs gyroADC, after a 30-Hz low-pass, rounded to 1 deg/s: a
+    quad at rest reads exactly 0 on every axis). No gate, noise or bias standard error can be
+    derived from it (the gate divided by σ² = 0: a ZeroDivisionError traceback in ``noise``,
+    "motion detected throughout ... threshold [nan nan nan]" in ``bias``).
+    """
+    sigma_diff = np.asarray(noise[0], float)
+    flat = [i for i in range(min(3, sigma_diff.size)) if not sigma_diff[i] > 0]
+    if flat:
+        vals = ""
+        if x is not None:
+            vals = " (" + ", ".join(f"{'xyz'[i]} = {float(x[0, i]):.6g} rad/s" for i in flat) + ")"
+        raise GyroInputError(
+            f"gyro axis {', '.join('xyz'[i] for i in flat)} never changes over the record{vals}: its output is "
+            "quantized more coarsely than its noise (e.g. a filtered gyro rounded to 1 deg/s), so no noise, gate or "
+            "bias error can be measured from this record (a finer output is needed)")
+    return noise
+
+
+def robust_diff_noise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust σ_Δ (std of first differences) and ρ = corr(Δ_k, Δ_k+1) per column.
+
+    σ_Δ = 1.4826·MAD(Δ); Var(x[k+2] − x[k]) = 2σ_Δ²(1 + ρ) gives ρ from the MAD of lag-2
+    differences. Falls back to the plain standard deviation when the data are so coarsely
+    quantized that the MAD is zero.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, C)
+
+    Returns
+    -------
+    sigma_diff : ndarray, shape (C,)
+    rho : ndarray, shape (C,), clipped to [−0.95, 0.95]
+    """
+    x = np.asarray(x, float)
+    if x.shape[0] < 4:
+        raise GyroInputError(f"need at least 4 samples to estimate the noise, got {x.shape[0]}")
+
+    def rsd(v):
+        med = np.median(v, axis=0)
+        s = _MAD * np.median(np.abs(v - med), axis=0)
+        return np.where(s > 0, s, v.std(axis=0))
+
+    if x.nbytes > _BLOCK_BYTES:  # long record: one column at a time (same values, 1/3 of the temporaries)
+        s1, s2 = np.empty(x.shape[1]), np.empty(x.shape[1])
+        for j in range(x.shape[1]):
+            c = x[:, j]
+            s1[j] = rsd(np.diff(c))
+            s2[j] = rsd(c[2:] - c[:-2])
+            del c
+        if not (np.all(s1 > 0) and np.all(s2 > 0)):  # the std fallback exactly as for the whole array
+            s1 = rsd(np.diff(x, axis=0))
+            s2 = rsd(x[2:] - x[:-2])
+    else:
+        s1 = rsd(np.diff(x, axis=0))
+        s2 = rsd(x[2:] - x[:-2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
+    return s1, np.clip(rho, -0.95, 0.95)
+
+
+def _rsd_consuming(v: np.ndarray) -> float:
+    """The ``rsd`` of :func:`robust_diff_noise` for one fresh 1-D array, overwriting it (one
+    temporary instead of three; the same value). Falls back to nan when the MAD is 0."""
+    med = np.median(v, overwrite_input=True)  # permutes v; the MAD does not depend on the order
+    np.subtract(v, med, out=v)
+    np.abs(v, out=v)
+    s = _MAD * float(np.median(v, overwrite_input=True))
+    return s if s > 0 else float("nan")
+
+
+def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndarray:
+    """x[k + lag] − x[k] written over x[k] block by block (block [a, b) reads x[a .. b + lag),
+    none of it overwritten yet); returns the view x[:N − lag]."""
+    n = x.shape[0] - lag
+    for a in range(0, max(n, 0), block):
+        b = min(a + block, n)
+        x[a:b] = x[a + lag:b + lag] - x[a:b]
+    return x[: max(n, 0)]
+
+
+def _robust_diff_noise_columns(store) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`robust_diff_noise` of the gyro of a :class:`gyrocore.data.recording.ColumnSpill`,
+    one column at a time (the same values as the in-memory long-record path)."""
+    from gyrocore.data.recording import GYRO_COLS
+
+    if store.n < 4:
+        raise GyroInputError(f"need at least 4 samples to estimate the noise, got {store.n}")
+    s1, s2 = np.empty(3), np.empty(3)
+    for j, nm in enumerate(GYRO_COLS):
+        # the lag-1 and lag-2 differences each formed in place in a fresh read of the column
+        # (one (N,) array at a time; the same values as np.diff(c) and c[2:] − c[:-2])
+        s1[j] = _rsd_consuming(_lag_diff_in_place(store.column(nm), 1))
+        s2[j] = _rsd_consuming(_lag_diff_in_place(store.column(nm), 2))
+    if not (np.all(s1 > 0) and np.all(s2 > 0)):  # a MAD of 0 (coarse quantization): the whole-array rule
+        x = np.stack([store.column(nm) for nm in GYRO_COLS], axis=1)
+        return robust_diff_noise(x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
+    return s1, np.clip(rho, -0.95, 0.95)
+
+
+def abs_diff_moments(m: int, sigma_diff: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance of S = Σ_{k=1}^{m} |Δ_k| for Gaussian Δ (σ_Δ, lag-1 correlation ρ)."""
+    sd = np.asarray(sigma_diff, float)
+    rho = np.asarray(rho, float)
+    mean = m * sd * math.sqrt(2.0 / math.pi)
+    v1 = sd**2 * (1.0 - 2.0 / math.pi)
+    c1 = (2.0 / math.pi) * sd**2 * (np.sqrt(1.0 - rho**2) + rho * np.arcsin(rho) - 1.0)
+    var = m * v1 + 2.0 * max(m - 1, 0) * c1
+    return mean, var
+
+
+def _folded_mean(mu: float, s: float) -> float:
+    """E|X| for X ~ N(mu, s²)."""
+    return s * math.sqrt(2 / math.pi) * math.exp(-mu * mu / (2 * s * s)) + mu * (1 - 2 * scipy.stats.norm.cdf(-mu / s))
+
+
+def _solve_increasing(f, target: float, hi0: float) -> float:
+    """Smallest x ≥ 0 with f(x) = target, f increasing; nan if not reachable."""
+    if f(0.0) >= target:
+        return 0.0
+    hi = hi0
+    for _ in range(200):
+        if f(hi) >= target:
+            break
+        hi *= 2
+    else:
+        return float("nan")
+    return float(scipy.optimize.brentq(lambda x: f(x) - target, 0.0, hi, xtol=hi * 1e-10))
+
+
+#: Records larger than this (bytes of the (N, 3) gyro) have their per-window statistics
+#: computed a block of windows at a time (memory O(block) instead of several copies of the
+#: record); smaller records take the whole-array path unchanged.
+_BLOCK_BYTES = 32 * 2**20
+
+
+#: Block of windows read at a time from disk (:class:`SpilledWindows`): small, since each
+#: block is a fresh array (the in-memory path's blocks are views of the record).
+_SPILL_BLOCK_BYTES = 4 * 2**20
+
+
+def _blocks(W: int, n: int, width: int, block_bytes: int | None = None):
+    """Window ranges [a, b) of about ``block_bytes`` (default _BLOCK_BYTES) each (one range
+    when the record is small)."""
+    block_bytes = _BLOCK_BYTES if block_bytes is None else int(block_bytes)
+    per = max(1, block_bytes // max(1, n * width * 8))
+    if W * n * width * 8 <= block_bytes:
+        per = max(W, 1)
+    return [(a, min(a + per, W)) for a in range(0, W, per)]
+
+
+class SpilledWindows:
+    """Non-overlapping windows of n samples of a gyro held on disk (a
+    :class:`gyrocore.data.recording.ColumnSpill`), shape (W, n, 3) like ``x[:W*n].reshape(W, n, 3)``,
+    read a block of windows at a time (:meth:`block`); the window statistics of this module
+    take it in place of the in-memory array and do the same arithmetic on the same blocks."""
+
+    def __init__(self, store, n: int) -> None:
+        from gyrocore.data.recording import GYRO_COLS
+
+        self.store = store
+        self.cols = GYRO_COLS
+        self.shape = (store.n // n, n, 3)
+
+    @property
+    def block_bytes(self) -> int:
+        return _SPILL_BLOCK_BYTES
+
+    def block(self, a: int, b: int) -> np.ndarray:
+        """Windows a:b, shape (b − a, n, 3) (a fresh array)."""
+        n = self.shape[1]
+        return self.store.block(self.cols, a * n, b * n).reshape(b - a, n, 3)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return self.block(k, k + 1)[0]
+
+
+def _wblock(xw, a: int, b: int) -> np.ndarray:
+    return xw[a:b] if isinstance(xw, np.ndarray) else xw.block(a, b)
+
+
+def _window_stats(x, n: int, statistic: str) -> np.ndarray:
+    """Per-window statistic, shape (W, 3), for non-overlapping windows of n samples.
+
+    ``x`` : (N, C) array, or a :class:`SpilledWindows` of windows of n samples."""
+    if isinstance(x, np.ndarray):
+        W = x.shape[0] // n
+        xw = x[: W * n].reshape(W, n, x.shape[1])
+    else:
+        xw = x
+        W = xw.shape[0]
+    C = xw.shape[2]
+    out = np.empty((W, C))
+    for a, b in _blocks(W, n, C, getattr(xw, "block_bytes", None)):
+        blk = _wblock(xw, a, b)
+        if statistic == "abs_diff":
+            out[a:b] = np.abs(np.diff(blk, axis=1)).sum(axis=1)
+        else:
+            out[a:b] = blk.var(axis=1, ddof=1)
+        del blk
+    return out
+
+
+def _window_means(xw) -> np.ndarray:
+    """Mean of every window, shape (W, C), block by block."""
+    W, n, C = xw.shape
+    if isinstance(xw, np.ndarray):
+        return xw.mean(axis=1)
+    out = np.empty((W, C))
+    for a, b in _blocks(W, n, C, xw.block_bytes):
+        out[a:b] = xw.block(a, b).mean(axis=1)
+    return out
+
+
+def _lag_sums(xw, sel: np.ndarray, L: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """c0 and the lag-k cross sums of the demeaned selected windows, block by block."""
+    W, n, C = xw.shape
+    c0 = np.zeros(C)
+    ck = [np.zeros(C) for _ in range(L)]
+    for a, b in _blocks(W, n, C, getattr(xw, "block_bytes", None)):
+        s = sel[a:b]
+        if not s.any():
+            continue
+        blk = _wblock(xw, a, b)[s]
+        d = blk - blk.mean(axis=1, keepdims=True)
+        del blk
+        c0 = c0 + np.einsum("wnc,wnc->c", d, d)
+        for k in range(1, L + 1):
+            ck[k - 1] = ck[k - 1] + np.einsum("wnc,wnc->c", d[:, k:], d[:, :-k])
+    return c0, ck
+
+
+def _vif(xw: np.ndarray, max_lag: int, sel: np.ndarray | None = None) -> np.ndarray:
+    """Variance inflation of a window mean from the pooled autocorrelation of still windows.
+
+    xw : (W, n, 3) windows, of which ``sel`` (bool (W,), default all) are the still ones. VIF = 1 + 2 Σ_{k=1}^{L} (1 − k/n) r_k, with r_k pooled over
+    the windows after removing each window's mean; the O(1/n) bias of demeaned
+    autocorrelations (E r_k ≈ −VIF/n) is added back by a fixed-point iteration.
+    """
+    W, n, _ = xw.shape
+    L = min(max_lag, n - 2)
+    c0, ck = _lag_sums(xw, np.ones(W, bool) if sel is None else sel, L)
+    r = [c / c0 for c in ck]
+    vif = np.ones(xw.shape[2])
+    for _ in range(3):  # demeaning bias of r_k is −VIF/n: fixed-point correction
+        vif = 1.0 + sum(2.0 * (1.0 - k / n) * (r[k - 1] + vif / n) for k in range(1, L + 1))
+    return np.maximum(vif, 0.05)
+
+
+NOISE_RATIO_BOUND = 4.0
+"""Largest accepted ratio of the window-variance σ² to the AR(1) prediction from differences."""
+
+
+def _check_noise_plausible(sigma2: np.ndarray | None, sigma_diff: np.ndarray, rho: np.ndarray) -> None:
+    """Refuse a self-estimated noise that smooth motion has inflated (one-line GyroInputError).
+
+    The variance gate estimates σ² from a low quantile of the window variances; a recording
+    that moves the whole time (e.g. a slow ±29 °/s sine) inflates every window variance, so
+    the gate would accept it with its motion as "noise". Smooth (low-frequency) motion barely
+    changes the first differences Δ, whose robust σ_Δ (MAD) therefore still measures the
+    noise. For stationary noise σ² = σ_Δ² / (2 (1 − r₁)); for AR(1) noise (an on-chip
+    low-pass, coefficient φ) r₁ = φ and ρ = corr(Δ_k, Δ_k+1) = −(1 − φ)/2, so the expected
+    ratio is σ²/(σ_Δ²/2) = −1/(2ρ) (1 for white noise, ρ = −0.5). ρ is clipped to ≤ −0.1
+    (φ ≤ 0.8: a low-pass at ≳ rate/30) so that motion, which drives the measured ρ towards 0,
+    cannot raise the allowance without bound. A still recording passes unless the variance σ²
+    exceeds that prediction by :data:`NOISE_RATIO_BOUND` = 4 — at W ≥ 10 windows of n ≥ 8
+    samples the 25 %-quantile estimate has a relative error of a few tens of per cent at
+    most, and the real static MPU-6050 and PX4 logs give 0.85…1.5 (docs/calibration.md).
+    """
+    if sigma2 is None:
+        return
+    expected = np.asarray(sigma_diff, float) ** 2 / 2.0 * np.maximum(1.0, -1.0 / (2.0 * np.minimum(rho, -0.1)))
+    ratio = np.asarray(sigma2, float) / expected
+    if np.any(ratio > NOISE_RATIO_BOUND):
+        i = int(np.argmax(ratio))
+        raise GyroInputError(
+            f"motion detected throughout: the window variances imply a noise sigma of "
+            f"{math.degrees(math.sqrt(float(sigma2[i]))):.3g} deg/s on axis {'xyz'[i]} but its sample-to-sample "
+            f"differences only {math.degrees(math.sqrt(float(expected[i]))):.3g} deg/s (variance ratio "
+            f"{ratio[i]:.3g} > {NOISE_RATIO_BOUND:g}): the recording moves smoothly the whole time; "
+            f"if it is really still, give the sensor's noise (--noise-dps)"
+        )
+
+
+def _plausible_or_differences(sigma2, dof, sigma_diff, rho):
+    """``(sigma2, dof, "")`` when the window-variance noise passes :func:`_check_noise_plausible`;
+    else ``(None, None, why)``: the gate then uses the noise of the sample-to-sample differences
+    (smooth motion barely changes them), as :func:`gyrocore.noise.allan.still_span` does.
+
+    The window-variance noise is a 25 % quantile: with fewer than a quarter of the windows
+    still it holds motion. BROAD trial 05 with 20-s windows (the first of its ten is still,
+    35 s of rest) was refused as "moves smoothly the whole time"; gated with the differences'
+    noise its still window is found and the moving ones are refused. A record that really moves
+    the whole time has every window refused, and the error keeps the explanation."""
+    try:
+        _check_noise_plausible(sigma2, sigma_diff, rho)
+    except GyroInputError as exc:
+        msg = str(exc)
+        why = msg.split("the window variances ", 1)[-1].split(": the recording", 1)[0]
+        return None, None, "the window variances " + why
+    return sigma2, dof, ""
+
+
+# ---------------------------------------------------------------------------- calibrator
+class StaticBiasCalibrator:
+    """Static bias with a motion gate, refusing while moving and retrying on the next window.
+
+    Parameters
+    ----------
+    window_samples : int, default 200
+        Samples per window (the article: 200).
+    window_s : float, optional
+        Window length in seconds (converted with the mean sample rate); overrides
+        ``window_samples``.
+    false_reject_rate : float, default 1e-3
+        Probability that a window of a still sensor is refused (all three axes together).
+    rule : {"mean", "median", "converge", "article"}
+        ``"mean"``: mean of the first still window (the article); ``"median"``: its median
+        (PX4-like, robust to spikes); ``"converge"``: consecutive window means until two agree
+        within the tolerance (ArduPilot-like), bias = their average; ``"article"``: mean with
+        the article's fixed gate Σ|Δ| > ``article_threshold_counts`` × ``lsb_rad_s``.
+    statistic : {"variance", "abs_diff"}
+        Gate statistic for "mean"/"median" (see module docstring). ``"variance"`` (default)
+        is ~50× more sensitive to slow motion than the article's Σ|Δ| at the same false-reject
+        rate (one step changes one difference but the whole window's variance); ``"abs_diff"``
+        reacts to high-frequency vibration.
+    max_retries : int, optional
+        Windows to try after the first; None = until the recording ends.
+    noise_sigma_rad_s : float or array (3,), optional
+        Per-sample white-noise σ of the sensor (e.g. N·√rate from an Allan analysis or the
+        datasheet). Default: estimated robustly from the recording itself.
+    lsb_rad_s : float, optional
+        Size of one raw count in rad/s (``"article"`` rule; e.g. (1/131)°/s at ±250 °/s).
+    article_threshold_counts : float, default 500
+    converge_tolerance_rad_s : float, optional
+        ``"converge"`` tolerance on |mean_k − mean_k−1| (Euclidean norm). Default: derived —
+        accept when Σ_i d_i²/(2 s_i²) < χ²₃ quantile at 1 − α (s_i² = σ_i² VIF_i / n).
+    max_lag : int, default 5
+        Lags used for the variance inflation factor.
+    correlation : {"auto", "white"}
+        "auto" estimates the VIF from the still windows; "white" sets VIF = 1.
+    """
+
+    def __init__(
+        self,
+        *,
+        window_samples: int = 200,
+        window_s: float | None = None,
+        false_reject_rate: float = 1e-3,
+        rule: str = "mean",
+        statistic: str = "variance",
+        max_retries: int | None = None,
+        noise_sigma_rad_s: float | np.ndarray | None = None,
+        lsb_rad_s: float | None = None,
+        article_threshold_counts: float = 500.0,
+        converge_tolerance_rad_s: float | None = None,
+        max_lag: int = 5,
+        correlation: str = "auto",
+    ) -> None:
+        if rule not in RULES:
+            raise GyroInputError(f"unknown bias rule {rule!r}; use one of {', '.join(RULES)}")
+        if statistic not in STATISTICS:
+            raise GyroInputError(f"unknown gate statistic {statistic!r}; use abs_diff or variance")
+        if not (0.0 < false_reject_rate < 1.0):
+            raise GyroInputError(f"false_reject_rate must be in (0, 1), got {false_reject_rate}")
+        if window_s is None and int(window_samples) < 8:
+            raise GyroInputError(f"window must have at least 8 samples, got {window_samples}")
+        if rule == "article" and not (lsb_rad_s and lsb_rad_s > 0):
+            raise GyroInputError("the article rule needs the raw count size lsb_rad_s (e.g. --lsb-dps 0.0076336)")
+        if correlation not in ("auto", "white"):
+            raise GyroInputError(f"correlation must be 'auto' or 'white', got {correlation!r}")
+        self.window_samples = int(window_samples)
+        self.window_s = window_s
+        self.false_reject_rate = float(false_reject_rate)
+        self.rule = rule
+        self.statistic = statistic
+        self.max_retries = max_retries
+        self.noise_sigma_rad_s = noise_sigma_rad_s
+        self.lsb_rad_s = lsb_rad_s
+        self.article_threshold_counts = float(article_threshold_counts)
+        self.converge_tolerance_rad_s = converge_tolerance_rad_s
+        self.max_lag = int(max_lag)
+        self.correlation = correlation
+
+    # ------------------------------------------------------------------ gate
+    def _noise(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.noise_sigma_rad_s is not None:
+            s = np.broadcast_to(np.asarray(self.noise_sigma_rad_s, float), (3,)).copy()
+            if not np.all(s > 0):
+                raise GyroInputError("noise_sigma_rad_s must be positive")
+            return s * math.sqrt(2.0), np.full(3, -0.5)
+        return _refuse_constant(robust_diff_noise(x), x)
+
+    def gate(self, n: int, sigma_diff: np.ndarray, rho: np.ndarray, dt_s: float, *,
+             sigma2: np.ndarray | None = None, dof: np.ndarray | None = None):
+        """Threshold (3,), its units, α used, min step (3,) and min ramp (3,) for windows of n.
+
+        For the variance statistic, ``sigma2`` (per-sample variance) and ``dof`` (effective
+        degrees of freedom of a window variance) default to the white-noise values
+        σ_Δ²/2 and n − 1.
+
+        Returns
+        -------
+        threshold, units, alpha, min_step_rad_s, min_ramp_rad_s2
+        """
+        alpha_axis = 1.0 - (1.0 - self.false_reject_rate) ** (1.0 / 3.0)
+        m = n - 1
+        step = np.full(3, np.nan)
+        ramp = np.full(3, np.nan)
+        if self.rule in ("article",) or (self.rule != "converge" and self.statistic == "abs_diff"):
+            mean, var = abs_diff_moments(m, sigma_diff, rho)
+            if self.rule == "article":
+                thr = np.full(3, self.article_threshold_counts * float(self.lsb_rad_s))
+                alpha = float("nan")
+            else:
+                k = mean**2 / var
+                thr = scipy.stats.gamma.isf(alpha_axis, k, scale=var / mean)
+                alpha = self.false_reject_rate
+            for i in range(3):
+                sd = float(sigma_diff[i])
+                base = sd * math.sqrt(2 / math.pi)
+                # a step h changes one difference: E S = mean + E|N(h, σΔ²)| − E|N(0, σΔ²)|
+                step[i] = _solve_increasing(lambda h: mean[i] + _folded_mean(h, sd) - base, thr[i], sd)
+                # a ramp a shifts every difference by a·dt: E S = m·E|N(a dt, σΔ²)|
+                ramp[i] = _solve_increasing(lambda a: m * _folded_mean(a * dt_s, sd), thr[i], sd / dt_s)
+            return thr, "rad/s (sum of |diff| over the window)", alpha, step, ramp
+        if self.rule == "converge":
+            return None, "", self.false_reject_rate, step, ramp
+        sigma2 = sigma_diff**2 / 2.0 if sigma2 is None else np.asarray(sigma2, float)
+        dof = np.full(3, float(m)) if dof is None else np.asarray(dof, float)
+        thr = np.empty(3)
+        for i in range(3):
+            s2, nu = float(sigma2[i]), float(dof[i])
+            q = scipy.stats.chi2.isf(alpha_axis, nu)
+            thr[i] = s2 * q / nu
+            # (ν/σ²)·s² ~ χ²(ν) at rest; a deterministic motion adds the noncentrality
+            # λ = Σ(x − x̄)²/σ² · ν/m: step at mid-window Σ = n h²/4, ramp (a dt)² n(n²−1)/12
+            det = lambda lam: scipy.stats.ncx2.sf(q, nu, lam * nu / m)  # noqa: E731
+            step[i] = _solve_increasing(lambda h: det(n * h * h / (4 * s2)), 0.5, math.sqrt(s2))
+            ramp[i] = _solve_increasing(
+                lambda a: det((a * dt_s) ** 2 * n * (n * n - 1) / 12 / s2), 0.5, math.sqrt(s2) / (n * dt_s)
+            )
+        return thr, "(rad/s)^2 (window variance)", self.false_reject_rate, step, ramp
+
+    def _variance_noise(self, xw: np.ndarray, rho: np.ndarray, quantile: float = 0.25):
+        """Per-sample variance and effective dof of a window variance, for the variance gate.
+
+        With ≥ 10 windows and no σ given: σ² = p-quantile of the window variances /
+        (χ²_ν,p / ν) (robust to a fraction 1 − p of the windows moving, and right for
+        coloured noise, where σ_Δ²/2 is not the sample variance),
+        ν = (n − 1)/(1 + 2 Σ_k (1 − k/n) r_k²) (Bartlett's variance of a sample variance),
+        r_k pooled over the windows whose variance is below 4σ². Otherwise the white-noise values (None, None) and a warning if the
+        differences say the noise is not white.
+        """
+        W, n, _ = xw.shape
+        if self.noise_sigma_rad_s is not None:
+            return None, None
+        if W < 10:
+            if np.any(np.abs(rho + 0.5) > 0.1):
+                warn_repair(
+                    "gyro noise is not white (lag-1 correlation of differences "
+                    + ", ".join(f"{r:.2f}" for r in rho)
+                    + ", white = -0.50) and the recording is too short to measure its correlation: "
+                    "the variance gate's false-reject rate is approximate"
+                )
+            return None, None
+        s2w = _window_stats(xw.reshape(W * n, -1) if isinstance(xw, np.ndarray) else xw, n, "variance")
+        qv = np.quantile(s2w, quantile, axis=0)
+        dof = np.full(3, float(n - 1))
+        for _ in range(2):  # white start, then with the measured correlation
+            sigma2 = qv / (scipy.stats.chi2.ppf(quantile, dof) / dof)
+            quiet = np.all(s2w <= 4.0 * sigma2[None, :], axis=1)
+            c0, ck = _lag_sums(xw, quiet, min(self.max_lag, n - 2))
+            corr = np.zeros(3)
+            vif = np.ones(3)
+            r = [c / c0 for c in ck]
+            for _ in range(3):
+                vif = 1.0 + sum(2.0 * (1.0 - k / n) * (rk + vif / n) for k, rk in enumerate(r, 1))
+            corr = sum(2.0 * (1.0 - k / n) * (rk + vif / n) ** 2 for k, rk in enumerate(r, 1))
+            dof = (n - 1) / (1.0 + corr)
+        sigma2 = qv / (scipy.stats.chi2.ppf(quantile, dof) / dof)
+        return sigma2, dof
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, recording: Recording) -> StaticBiasResult:
+        """Estimate the static bias of ``recording`` (gyro rad/s, sensor frame S).
+
+        Raises
+        ------
+        GyroInputError
+            Recording shorter than one window (two for "converge"), or motion detected in
+            every window tried (one line, with the threshold and how many windows were tried).
+        """
+        x = np.asarray(recording.gyro_rad_s, float)
+        return self._fit(recording, x.shape[0], recording.rate_hz, lambda: self._noise(x),
+                         lambda n: (x, x[: (x.shape[0] // n) * n].reshape(x.shape[0] // n, n, 3)))
+
+    def fit_spilled(self, store) -> StaticBiasResult:
+        """:meth:`fit` of a long recording held on disk (:func:`gyrocore.data.recording.spill_columns`),
+        read a block of windows at a time: memory O(one gyro column) for the robust noise
+        (one column at a time, as :func:`robust_diff_noise` does for long records) and O(W)
+        for the window statistics, instead of the (N, 3) gyro. Same numbers as :meth:`fit`
+        of the recording in memory (same blocks, same order of operations)."""
+        from gyrocore.data.recording import Recording
+
+        # what _result reads (the rate, the start time): t with a zero-stride stand-in gyro
+        head = Recording(t_s=store.t_s, gyro_rad_s=np.broadcast_to(0.0, (store.n, 3)), meta=store.meta)
+        rate = head.rate_hz
+
+        def noise():
+            if self.noise_sigma_rad_s is not None:
+                return self._noise(None)
+            return _refuse_constant(_robust_diff_noise_columns(store))
+
+        return self._fit(head, store.n, rate, noise, lambda n: (SpilledWindows(store, n),) * 2)
+
+    def _fit(self, recording, N: int, rate: float, noise, windows) -> StaticBiasResult:
+        if not (math.isfinite(rate) and rate > 0):
+            raise GyroInputError("static bias needs a sample rate (at least 2 timestamps)")
+        dt = 1.0 / rate
+        n = int(round(self.window_s * rate)) if self.window_s is not None else self.window_samples
+        if n < 8:
+            raise GyroInputError(f"window of {n} samples is too short (need >= 8)")
+        W = N // n
+        need = 2 if self.rule == "converge" else 1
+        if W < need:
+            raise GyroInputError(
+                f"recording has {N} samples, shorter than {need} window(s) of {n} samples"
+            )
+        sigma_diff, rho = noise()
+        x, xw = windows(n)  # the (N, 3) gyro and its (W, n, 3) windows (or both SpilledWindows)
+        sigma2 = dof = None
+        inflated = ""  # why the window variances were not used (motion in most windows), else ""
+        if self.statistic == "variance" and self.rule in ("mean", "median"):
+            sigma2, dof = self._variance_noise(xw, rho)
+            sigma2, dof, inflated = _plausible_or_differences(sigma2, dof, sigma_diff, rho)
+        thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)
+        if self.rule == "converge":
+            # the convergence test is the rule's own motion check; σ and the VIF are estimated
+            # on the windows the (default) variance gate calls still, so motion cannot inflate them
+            est = StaticBiasCalibrator(window_samples=n, false_reject_rate=self.false_reject_rate,
+                                       noise_sigma_rad_s=self.noise_sigma_rad_s, max_lag=self.max_lag)
+            s2v, dofv = est._variance_noise(xw, rho)
+            s2v, dofv, inflated = _plausible_or_differences(s2v, dofv, sigma_diff, rho)
+            thr_v = est.gate(n, sigma_diff, rho, dt, sigma2=s2v, dof=dofv)[0]
+            still = np.all(_window_stats(x, n, "variance") <= thr_v[None, :], axis=1)
+        else:
+            stats = _window_stats(x, n, "abs_diff" if self.rule == "article" else self.statistic)
+            still = np.all(stats <= thr[None, :], axis=1)
+        n_still = int(still.sum())
+        if inflated and n_still:
+            warn_repair("motion in most windows: " + inflated + "; the gate uses the noise of the sample-to-sample "
+                        "differences instead")
+        if self.correlation == "white" or n_still == 0:
+            vif = np.ones(3)
+        else:
+            vif = _vif(xw, self.max_lag, still)
+        # per-sample σ of the data (pooled within-window variance of the still windows; for
+        # coloured noise σ_Δ/√2 is not the marginal σ)
+        if self.noise_sigma_rad_s is not None:
+            sigma = sigma_diff / math.sqrt(2.0)
+        else:
+            wv = _window_stats(x[: W * n] if isinstance(x, np.ndarray) else x, n, "variance")  # block by block
+            sigma = np.sqrt((wv[still] if n_still else wv).mean(axis=0))
+        last = W if self.max_retries is None else min(W, 1 + int(self.max_retries) + (need - 1))
+
+        if self.rule == "converge":
+            s_mean2 = sigma**2 * vif / n
+            if self.converge_tolerance_rad_s is None:
+                q3 = scipy.stats.chi2.isf(self.false_reject_rate, 3)
+                ok = lambda d: float(np.sum(d * d / (2 * s_mean2))) <= q3  # noqa: E731
+                thr = np.sqrt(2 * s_mean2 * q3)
+                units = "rad/s (per-axis scale of the derived Mahalanobis tolerance on mean differences)"
+            else:
+                tol = float(self.converge_tolerance_rad_s)
+                ok = lambda d: float(np.linalg.norm(d)) < tol  # noqa: E731
+                thr = np.full(3, tol)
+                units = "rad/s (tolerance on |mean difference|)"
+                alpha = float("nan")
+            # 50 % detection, approx: a step h at a window boundary moves the difference by h;
+            # a ramp a moves it by a·n·dt.
+            step = thr.copy()
+            ramp = thr / (n * dt)
+            means = _window_means(xw)
+            for k in range(1, last):
+                if ok(means[k] - means[k - 1]):
+                    bias = 0.5 * (means[k] + means[k - 1])
+                    se = sigma * np.sqrt(vif / (2 * n))
+                    return self._result(bias, se, recording, (k - 1) * n, 2 * n, k - 1, W, n_still,
+                                        alpha, thr, units, sigma, rho, vif, step, ramp)
+            raise GyroInputError(
+                f"motion detected throughout: no two consecutive {n}-sample window means agreed "
+                f"within tolerance over {last} windows" + (f"; {inflated}: the recording moves smoothly the whole "
+                                                            f"time" if inflated else "")
+            )
+
+        for k in range(last):
+            if still[k]:
+                w = xw[k]
+                if self.rule == "median":
+                    bias = np.median(w, axis=0)
+                    se = math.sqrt(math.pi / 2) * sigma * np.sqrt(vif / n)
+                else:
+                    bias = w.mean(axis=0)
+                    se = sigma * np.sqrt(vif / n)
+                return self._result(bias, se, recording, k * n, n, k, W, n_still,
+                                    alpha, thr, units, sigma, rho, vif, step, ramp)
+        if self.rule == "article":
+            rest = abs_diff_moments(n - 1, sigma_diff, rho)[0] / float(self.lsb_rad_s)
+            raise GyroInputError(
+                f"motion detected throughout: all {last} windows of {n} samples rejected (article rule: "
+                f"sum|diff| > {self.article_threshold_counts:g} counts; a still sensor with this noise sums "
+                f"~{', '.join(f'{v:.0f}' for v in rest)} counts per axis)"
+            )
+        if inflated:
+            raise GyroInputError(
+                f"motion detected throughout: all {last} windows of {n} samples rejected; {inflated}: the recording "
+                f"moves smoothly the whole time; if it is really still, give the sensor's noise (--noise-dps)")
+        raise GyroInputError(
+            f"motion detected throughout: all {last} windows of {n} samples rejected "
+            f"({self.rule} rule, {self.statistic} gate, threshold {np.array2string(thr, precision=4)} "
+            f"{units.split(' (')[0]}, false-reject rate {self.false_reject_rate:g})"
+        )
+
+    def _result(self, bias, se, rec, start, length, n_rej, W, n_still, alpha, thr, units, sigma, rho, vif, step, ramp):
+        rate = rec.rate_hz
+        return StaticBiasResult(
+            bias_rad_s=np.asarray(bias, float),
+            bias_se_rad_s=np.asarray(se, float),
+            rule=self.rule,
+            statistic="mean_difference" if self.rule == "converge" else (
+                "abs_diff" if self.rule == "article" else self.statistic),
+            window_start_index=int(start),
+            window_samples=int(length),
+            window_start_s=float(rec.t_s[start] - rec.t_s[0]),
+            window_s=float(length / rate),
+            n_rejected_windows=int(n_rej),
+            n_windows_total=int(W),
+            n_windows_still=int(n_still),
+            false_reject_rate=float(alpha),
+            threshold=np.asarray(thr, float),
+            threshold_units=units,
+            noise_sigma_rad_s=np.asarray(sigma, float),
+            diff_corr=np.asarray(rho, float),
+            vif=np.asarray(vif, float),
+            min_step_rad_s=np.asarray(step, float),
+            min_ramp_rad_s2=np.asarray(ramp, float),
+        )
+
+
+def startup_still_slice(
+    recording: Recording,
+    *,
+    max_duration_s: float = 10.0,
+    window_samples: int = 200,
+    false_reject_rate: float = 1e-3,
+    statistic: str = "variance",
+    noise_sigma_rad_s: float | np.ndarray | None = None,
+    noise_quantile: float = 0.1,
+) -> slice | None:
+    """The still stretch at the start of a recording: consecutive gate-accepted windows.
+
+    Windows of ``window_samples`` from sample 0 are tested with the gate of
+    :class:`StaticBiasCalibrator` (same threshold, same false-reject rate); the slice ends
+    at the first moving window or after ``max_duration_s``. ``None`` if the first window
+    already moves (or the recording is shorter than a window).
+
+    The noise σ is estimated from the whole recording unless given: the ``noise_quantile``
+    quantile of the window variances (so at least that fraction of the recording must be
+    still, e.g. 10 %); pass the sensor's σ (N·√rate) for flight logs that are mostly moving.
+    """
+    cal = StaticBiasCalibrator(window_samples=window_samples, false_reject_rate=false_reject_rate,
+                               statistic=statistic, noise_sigma_rad_s=noise_sigma_rad_s)
+    x = np.asarray(recording.gyro_rad_s, float)
+    rate = recording.rate_hz
+    n = int(window_samples)
+    if x.shape[0] < n or not (math.isfinite(rate) and rate > 0):
+        return None
+    W_max = max(1, min(x.shape[0] // n, int(math.floor(max_duration_s * rate / n))))
+    sigma_diff, rho = cal._noise(x)
+    sigma2 = dof = None
+    if statistic == "variance":
+        W_all = x.shape[0] // n
+        sigma2, dof = cal._variance_noise(x[: W_all * n].reshape(W_all, n, 3), rho, quantile=noise_quantile)
+    thr, *_ = cal.gate(n, sigma_diff, rho, 1.0 / rate, sigma2=sigma2, dof=dof)
+    stats = _window_stats(x[: W_max * n], n, statistic)
+    still = np.all(stats <= thr[None, :], axis=1)
+    if not still[0]:
+        return None
+    k = int(np.argmin(still)) if not still.all() else W_max
+    return slice(0, k * n)

@@ -1,0 +1,380 @@
+"""Fits of long recordings held on disk, a window at a time (issue 13: bounded memory).
+
+A long data file is streamed once into per-column files (:func:`gyrocore.data.recording.spill_columns`,
+with every check, repair and warning of a whole read); the least-squares fits then read it
+back a window of ``lsq.CHUNK_ROWS`` rows at a time through :class:`SpillRows`, a
+:class:`gyrocore.calib.lsq.RowSource`. The chunked path of :func:`gyrocore.calib.lsq.fit_effects` reduces
+each window to the weighted block means that :func:`gyrocore.calib.lsq.solve` fits (an exact
+reduction for the linear model, see ``solve(average=)``), so the fit, its rank test, axis
+weights, covariance (OLS/HAC/...) and standard errors are computed by the same function on
+the same numbers as for a record in memory; a second pass gives the full-resolution residual
+(its RMS, or per axis on disk for the robust pass). Memory: the time column, one (N,) weight
+column and one residual axis at a time, plus a window (``CHUNK_ROWS`` × 3 × P) and the block
+means (≤ ``max_rows`` × 3 × P).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from gyrocore.effects import registry as E
+from . import lsq
+from gyrocore.data.recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, ColumnSpill, Recording
+
+__all__ = ["SpillRows", "ResidualFiles", "Rows", "LazyColumn", "LazyRotations", "SpilledRecording", "rows_of",
+           "held_correction", "NotStreamable", "release_memory",
+           "bounded_heap"]
+
+
+class SpillRows(lsq.RowSource):
+    """r = y − ω_ref(t − τ) and the model inputs of a spilled recording, a window at a time.
+
+    Parameters
+    ----------
+    store : ColumnSpill
+        The spilled columns (``t_s`` in memory; gyro, ``ref_*_rad_s`` and, when present,
+        accel and ``temp_c`` on disk).
+    tau_s : float
+        Time offset τ, s: the reference rate is taken at t − τ by linear interpolation (the
+        catalogue's ``time_offset`` convention, as ``model._shift_rate``); rows outside the
+        record hold the end values (``np.interp``).
+    """
+
+    def __init__(self, store: ColumnSpill, *, tau_s: float = 0.0) -> None:
+        self.store = store
+        self.tau_s = float(tau_s)
+        self.n = int(store.n)
+        self.t = store.t_s
+        self.has_ref = all(c in store.names for c in REF_RATE_COLS)
+        self.has_accel = all(c in store.names for c in ACCEL_COLS)
+        self.has_temp = TEMP_COL in store.names
+        self._temp_mean = None
+
+    def _ref(self, a: int, b: int) -> np.ndarray:
+        """ω_ref(t − τ) on rows a:b, shape (b − a, 3)."""
+        if not self.has_ref:
+            return np.zeros((b - a, 3))
+        if self.tau_s == 0.0:
+            return self.store.block(REF_RATE_COLS, a, b)
+        t = self.t
+        tq = t[a:b] - self.tau_s
+        # the rows of the reference that bracket every query point (np.interp uses only the
+        # bracketing pair, and the end values beyond the record): the same numbers as on the
+        # whole column
+        i0 = max(int(np.searchsorted(t, tq[0], side="left")) - 1, 0)
+        i1 = min(int(np.searchsorted(t, tq[-1], side="right")) + 1, self.n)
+        w = self.store.block(REF_RATE_COLS, i0, i1)
+        return np.stack([np.interp(tq, t[i0:i1], w[:, i]) for i in range(3)], axis=1)
+
+    def ref_rows(self, a: int, b: int) -> np.ndarray:
+        """ω_ref(t − τ) on rows a:b, shape (b − a, 3) (zeros without reference columns)."""
+        return self._ref(a, b)
+
+    def r_rows(self, a: int, b: int) -> np.ndarray:
+        return self.store.block(GYRO_COLS, a, b) - self._ref(a, b)
+
+    def inputs(self, lo: int, hi: int) -> E.ModelInputs:
+        t = self.t
+        return E.ModelInputs(
+            t_s=t[lo:hi], omega_S_rad_s=self._ref(lo, hi),
+            f_S_m_s2=self.store.block(ACCEL_COLS, lo, hi) if self.has_accel else None,
+            temp_c=self.store.rows(TEMP_COL, lo, hi) if self.has_temp else None,
+            t_since_power_up_s=t[lo:hi] - t[0],
+        )
+
+    def temp_mean_c(self) -> float | None:
+        if not self.has_temp:
+            return None
+        if self._temp_mean is None:  # np.mean of the whole column: the same number as in memory
+            self._temp_mean = float(np.mean(self.store.column(TEMP_COL)))
+        return self._temp_mean
+
+
+class ResidualFiles:
+    """A ``residual_sink`` for :func:`gyrocore.calib.lsq.fit_effects` writing each axis of the
+    full-resolution residual to its own file; :meth:`axis` reads one axis back (N,)."""
+
+    def __init__(self, folder: str | os.PathLike, n: int) -> None:
+        self.n = int(n)
+        self.paths = [Path(folder) / f"residual_{a}.f64" for a in "xyz"]
+        for p in self.paths:
+            with open(p, "wb") as fh:
+                fh.truncate(8 * self.n)
+
+    def __call__(self, a: int, b: int, e: np.ndarray) -> None:
+        for i, p in enumerate(self.paths):
+            with open(p, "r+b") as fh:
+                fh.seek(8 * int(a))
+                fh.write(np.ascontiguousarray(e[:, i], dtype=np.float64).tobytes())
+
+    def axis(self, i: int) -> np.ndarray:
+        return np.fromfile(self.paths[i], dtype=np.float64, count=self.n)
+
+
+# ---------------------------------------------------------------------------- the residual loop from disk
+class NotStreamable(Exception):
+    """What the residual loop cannot do from disk (another reference than the reference rate,
+    segments, NaN rows in the reference): the caller reads the recording whole instead."""
+
+
+class Rows:
+    """A lazy (N, C) or (N,) array: rows lo:hi are computed by ``fn(lo, hi)`` when asked.
+
+    The residual loop passes per-sample quantities of a spilled recording (the model
+    correction, the sample-level residual, the motion columns) as ``Rows`` so that they are
+    built a window at a time; ``np.asarray`` assembles the whole array (a fallback for code
+    that needs it: correct, but O(N) memory).
+    """
+
+    def __init__(self, fn, n: int, ncol: int | None) -> None:
+        self.fn = fn
+        self.n = int(n)
+        self.shape = (self.n,) if ncol is None else (self.n, int(ncol))
+        self.ndim = len(self.shape)
+
+    def rows(self, lo: int, hi: int) -> np.ndarray:
+        lo, hi = max(0, int(lo)), min(self.n, int(hi))
+        return self.fn(lo, hi)
+
+    def axis(self, i: int, chunk: int = 1 << 17) -> np.ndarray:
+        """Column i as a whole (N,) array, filled a chunk at a time."""
+        out = np.empty(self.n)
+        for a in range(0, self.n, chunk):
+            b = min(a + chunk, self.n)
+            out[a:b] = self.rows(a, b)[:, i]
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        out = np.empty(self.shape)
+        for a in range(0, self.n, 1 << 17):
+            b = min(a + (1 << 17), self.n)
+            out[a:b] = self.rows(a, b)
+        return out if dtype is None else out.astype(dtype)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, key):
+        if isinstance(key, slice) and key.step in (None, 1):
+            lo, hi, _ = key.indices(self.n)
+            return self.rows(lo, hi)
+        return np.asarray(self)[key]
+
+
+def rows_of(v, lo: int, hi: int):
+    """Rows lo:hi of an array, a :class:`Rows` or a :class:`LazyColumn` (None stays None)."""
+    if v is None:
+        return None
+    if isinstance(v, Rows):
+        return v.rows(lo, hi)
+    return np.asarray(v)[lo:hi]
+
+
+class LazyColumn(Rows):
+    """Columns of a :class:`~gyrocore.data.recording.ColumnSpill` read from disk rows lo:hi at a time
+    (``squeeze``: one column, shape (N,))."""
+
+    def __init__(self, store: ColumnSpill, names, *, squeeze: bool = False) -> None:
+        names = list(names)
+        self.store = store
+        self.names = names
+        if squeeze:
+            fn = lambda lo, hi: store.rows(names[0], lo, hi)  # noqa: E731
+        else:
+            fn = lambda lo, hi: store.block(names, lo, hi)  # noqa: E731
+        super().__init__(fn, store.n, None if squeeze else len(names))
+
+
+class LazyRotations(Rows):
+    """Rotation matrices R (N, 3, 3) of a quaternion column set (w, x, y, z), rows on demand."""
+
+    def __init__(self, q: Rows) -> None:
+        from scipy.spatial.transform import Rotation
+
+        def fn(lo, hi):
+            return Rotation.from_quat(np.asarray(q.rows(lo, hi), float), scalar_first=True).as_matrix()
+
+        super().__init__(fn, q.n, 3)
+        self.shape = (q.n, 3, 3)
+        self.ndim = 3
+
+
+#: Rows per window of a :class:`SpilledRecording` (the residual loop's per-sample passes): the
+#: largest per-sample design, ``g2_sensitivity`` (3 × 18 columns), is 14 MB per window of
+#: 32 768 rows (86 MB at the in-memory path's 200 000).
+SPILL_CHUNK_ROWS = 32_768
+
+#: Extra samples on each side of a window when the gyro is advanced by a time offset with a
+#: not-a-knot cubic spline fitted to the window only: the spline's dependence on a sample k
+#: rows away decays as (2 − √3)^k ≈ 0.268^k, so 64 rows put the cut's influence at ~1e-37 of
+#: the data — below the float64 rounding of the whole-record spline.
+SPLINE_CONTEXT = 64
+
+
+class SpilledRecording:
+    """A long recording held on disk (:func:`gyrocore.data.recording.spill_columns`), with the
+    attributes of :class:`~gyrocore.data.recording.Recording` the residual loop reads: ``t_s`` in
+    memory, every other column a :class:`LazyColumn` read a window at a time.
+
+    The loop's two changes of the gyro are applied on the fly, per window, in the order of the
+    in-memory path: narrow-band lines removed (``held``: ``{name: [(axis, f_hz, a_cos, a_sin),
+    …]}``, raw time frame), then the advance by a time offset τ (``tau_s``: gyro'(t) =
+    gyro(t + τ), cubic spline; see :data:`SPLINE_CONTEXT`).
+    """
+
+    def __init__(self, store: ColumnSpill, *, held: dict | None = None, tau_s: float = 0.0,
+                 chunk_rows: int | None = None, q_integrated: Rows | None = None) -> None:
+        self.store = store
+        self.t_s = store.t_s
+        self.n = int(store.n)
+        self.meta = store.meta
+        self.extra: dict = {}
+        self.held = {k: list(v) for k, v in (held or {}).items()}
+        self.tau_s = float(tau_s)
+        self.chunk_rows = int(chunk_rows or SPILL_CHUNK_ROWS)
+        names = store.names
+        self.ref_rate_rad_s = LazyColumn(store, REF_RATE_COLS) if all(c in names for c in REF_RATE_COLS) else None
+        self.accel_m_s2 = LazyColumn(store, ACCEL_COLS) if all(c in names for c in ACCEL_COLS) else None
+        self.temp_c = LazyColumn(store, [TEMP_COL], squeeze=True) if TEMP_COL in names else None
+        from gyrocore.data.recording import REF_QUAT_COLS
+
+        self.ref_quat_wxyz = LazyColumn(store, REF_QUAT_COLS) if all(c in names for c in REF_QUAT_COLS) else None
+        self.gyro_rad_s = Rows(self._gyro_rows, self.n, 3)
+        self._q_integrated = q_integrated
+        self._finite: dict = {}
+
+    # Recording's own properties (they read only t_s, n and meta, which this class holds too)
+    duration_s = Recording.duration_s
+    rate_hz = Recording.rate_hz
+
+    def with_ops(self, *, held: dict | None = None, tau_s: float | None = None) -> "SpilledRecording":
+        """The same file with other lines removed and/or another time offset."""
+        return SpilledRecording(self.store, held=self.held if held is None else held,
+                                tau_s=self.tau_s if tau_s is None else tau_s, chunk_rows=self.chunk_rows,
+                                q_integrated=self._q_integrated)
+
+    def chunks(self):
+        """(lo, hi) of consecutive windows of ``chunk_rows`` rows."""
+        for lo in range(0, self.n, self.chunk_rows):
+            yield lo, min(lo + self.chunk_rows, self.n)
+
+    def all_finite(self, name: str) -> bool:
+        """Whether every row of a column group (``ref_rate``, ``ref_quat``) is finite."""
+        if name not in self._finite:
+            col = {"ref_rate": self.ref_rate_rad_s, "ref_quat": self.ref_quat_wxyz}[name]
+            ok = col is not None
+            if ok:
+                for lo, hi in self.chunks():
+                    if not np.all(np.isfinite(col.rows(lo, hi))):
+                        ok = False
+                        break
+            self._finite[name] = ok
+        return self._finite[name]
+
+    def _base_rows(self, lo: int, hi: int) -> np.ndarray:
+        g = self.store.block(GYRO_COLS, lo, hi)
+        if self.held:
+            g = g - held_correction(self.t_s[lo:hi], self.held)
+        return g
+
+    def _gyro_rows(self, lo: int, hi: int) -> np.ndarray:
+        if self.tau_s == 0.0:
+            return self._base_rows(lo, hi)
+        from scipy.interpolate import CubicSpline
+
+        t = self.t_s
+        fs = self.rate_hz
+        m = SPLINE_CONTEXT + int(np.ceil(abs(self.tau_s) * fs)) + 2
+        a, b = max(0, lo - m), min(self.n, hi + m)
+        tq = np.clip(t[lo:hi] + self.tau_s, t[0], t[-1])
+        return CubicSpline(t[a:b], self._base_rows(a, b), axis=0)(tq)
+
+    def reference_quaternions(self) -> Rows | None:
+        """The reference attitude S→W per sample: ``ref_q*`` when finite everywhere, else the
+        reference rate integrated window by window (the attitude carried across windows;
+        :func:`gyrocore.attitude.integrate_gyro`, backward hold), kept in a file beside the
+        spill. None without either."""
+        if self.ref_quat_wxyz is not None and self.all_finite("ref_quat"):
+            return self.ref_quat_wxyz
+        if self.ref_rate_rad_s is None or not self.all_finite("ref_rate"):
+            return None
+        if self._q_integrated is None:
+            from gyrocore.attitude import integrate_gyro
+
+            names = [f"ref_int_q{c}" for c in "wxyz"]
+            files = [open(self.store.folder / f"{nm}.f64", "wb") for nm in names]
+            q_carry = None
+            try:
+                for lo, hi in self.chunks():
+                    w = self.ref_rate_rad_s.rows(lo, hi)
+                    if q_carry is None:
+                        q = integrate_gyro(self.t_s[lo:hi], w, hold="backward")
+                    else:
+                        q = integrate_gyro(self.t_s[lo - 1:hi], np.vstack([w_last, w]), q0_wxyz=q_carry,
+                                           hold="backward")[1:]
+                    for j in range(4):
+                        np.ascontiguousarray(q[:, j]).tofile(files[j])
+                    q_carry, w_last = q[-1], w[-1:]
+            finally:
+                for fh in files:
+                    fh.close()
+            for nm in names:
+                if nm not in self.store.names:
+                    self.store.names.append(nm)
+            self._q_integrated = LazyColumn(self.store, names)
+        return self._q_integrated
+
+
+def release_memory() -> None:
+    """Return freed memory to the system after a spill: Arrow's pool (``release_unused``) and
+    the C heap (glibc ``malloc_trim``; nothing elsewhere) — the reader's blocks otherwise stay
+    in the process's resident set (~20 MiB after a CSV of 10⁶ rows)."""
+    import ctypes
+    import sys
+
+    pa = sys.modules.get("pyarrow")
+    if pa is not None:
+        pa.default_memory_pool().release_unused()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        pass
+
+
+#: glibc ``mallopt`` parameter number of ``M_MMAP_THRESHOLD`` (malloc.h).
+_M_MMAP_THRESHOLD = -3
+
+
+def bounded_heap(threshold_bytes: int = 1024 * 1024) -> bool:
+    """Serve allocations above ``threshold_bytes`` by mmap, returned to the system when freed
+    (glibc ``mallopt(M_MMAP_THRESHOLD)``; nothing elsewhere). glibc's default threshold starts
+    at 128 KiB and rises to the largest block freed (up to 32 MiB): after the spill frees its
+    whole columns, the windows' arrays come from the heap and their freed space stays resident
+    (one hour at 1 kHz: 35 MiB kept after the regressor passes, 212 → 177 MiB after a
+    ``malloc_trim``; with a fixed threshold 180 MiB throughout). 256 KiB cost 4× the system
+    time of the default (every window array mmapped and page-faulted anew: 4.2 vs 1.0 s on 10
+    min of 1 kHz), 1 MiB 2.7 s for the same peak (227 vs 222 MiB): the default here. Returns
+    whether it was set."""
+    import ctypes
+
+    try:
+        return bool(ctypes.CDLL("libc.so.6").mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)))
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        return False
+
+
+def held_correction(t: np.ndarray, held: dict) -> np.ndarray | float:
+    """Σ of the narrow-band lines removed from the gyro, rad/s, (n, 3) on times t (s): per
+    name the sum of its lines a·cos(2πft) + b·sin(2πft) on its axis (the loop's ``held``)."""
+    total = 0
+    for lines in held.values():
+        acc = 0.0
+        for (i, f, a, b) in lines:
+            c = np.zeros((t.size, 3))
+            c[:, i] = a * np.cos(2 * np.pi * f * t) + b * np.sin(2 * np.pi * f * t)
+            acc = acc + c
+        total = total + acc
+    return total

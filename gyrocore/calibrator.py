@@ -1,0 +1,1066 @@
+"""The correction model: fit any subset of catalogue effects, remove them, save/load them.
+
+``Calibrator(effects=[...]).fit(recording)`` returns a frozen :class:`CalibrationResult`
+(parameters in :data:`gyrocore.effects.registry.PARAM_SCHEMA` form, SI, with standard errors);
+``result.apply(recording)`` removes the effects with :func:`gyrocore.effects.registry.correct`.
+The references are taken from the file, in this order:
+
+1. a segments file of known rotation angles (``segments=``) → the article's integral method
+   (:func:`gyrocore.calib.rotations.integral_calibration`): bias from the still parts, K and M from
+   the integrated outputs; effects ``bias``, ``scale``, ``misalignment`` and
+   ``g_sensitivity`` (fitted on the still poses first, as in imucal's Ferraris method);
+2. reference rates (``ref_*_rad_s`` columns, rate table or simulation) → joint least squares
+   of all effects against y − ω_ref (:mod:`gyrocore.calib.lsq`);
+3. neither → still parts (:func:`gyrocore.calib.rotations.still_mask`) with reference rate 0:
+   bias-type effects (bias, thermal bias, ramp, g-sensitivity over several poses); the
+   rate-dependent ones are then reported unobservable by name.
+
+Parameter file (DESIGN.md "Parameter file"): JSON, written atomically, ``format_version``
+"1.1"; a file of another major version is refused with a message that says so. 1.1 (a minor
+bump: every 1.0 file still reads) may carry family terms of the registry by their canonical
+name (``periodic[37.5]``, ``step[12.25]``, ``regressor[omega_y*omega_z]``, see
+:func:`gyrocore.effects.registry.resolve`); a name this version does not know is one ``error:`` line
+naming it.
+
+Article form (ARTICLE.md §5): ω = M·diag(1/s)·(ω̂′ − b), ω̂′ = ω̂ − H·a, which is this
+model with K⁻¹ = M·diag(1/s) (:func:`gyrocore.effects.registry.article_from_k`), b = ``bias`` and
+H = ``g_sensitivity``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from gyrocore.effects import registry as E
+from gyrocore.errors import GyroInputError, warn_repair
+from gyrocore.data.recording import Recording, atomic_write_text, file_sha256
+
+__all__ = [
+    "FORMAT_VERSION",
+    "FITTABLE",
+    "Calibrator",
+    "CalibrationResult",
+    "save_params",
+    "load_params",
+    "result_to_dict",
+    "result_from_dict",
+]
+
+FORMAT_VERSION = "1.1"
+
+#: Catalogue effects that ``calibrate`` can fit (those with least-squares regressors); every
+#: family term (``periodic[...]``, ``step[...]``, ``regressor[...]``) is fittable too.
+FITTABLE: tuple[str, ...] = tuple(e.name for e in E.REGISTRY.values() if e.fittable)
+_INTEGRAL_EFFECTS = ("bias", "scale", "misalignment", "g_sensitivity")
+_THERMAL_META = E.THERMAL_META
+
+
+def _needs_accel(eff: str) -> bool:
+    return "f" in E.resolve(eff).inputs
+
+
+def _needs_temp(eff: str) -> bool:
+    return any(i in ("temp", "dtemp") for i in E.resolve(eff).inputs)
+
+
+def _not_fittable_message(eff: str) -> str:
+    if eff in E.STOCHASTIC:
+        return f"effect {eff} is a noise term, identified by 'gyroharness allan', not by calibrate"
+    return f"effect {eff} is not fitted by calibrate (fittable: {', '.join(FITTABLE)})"
+
+
+# ============================================================================ result
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Fitted catalogue effects, ready to apply or save.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        Fitted effects, in the order given.
+    params : dict
+        ``{effect: {param: ndarray}}`` in SI (PARAM_SCHEMA names). Unobservable parameters
+        are 0 (not corrected).
+    stderr : dict
+        Same layout; standard errors (NaN where not estimated, e.g. t0_c; +inf for
+        unobservable parameters).
+    residual_rms_rad_s : ndarray, shape (3,)
+        RMS of the fit residual per axis (rad/s); for the integral method, of the still part.
+    unobservable : tuple of str
+        ``"effect.param[index]"`` names of parameters the data could not determine.
+    unobservable_reason : dict
+    method : str
+        ``"rate_reference"``, ``"still"`` or ``"integral"``.
+    covariance : str
+        Which covariance the standard errors come from (``ols``, ``hac``, ...; ``integral``).
+    sensor : str
+    source_file : str or None
+        Name of the data file (no folders).
+    source_sha256 : str or None
+    n_samples : int
+        Samples that entered the fit.
+    thermal_order : dict
+        Chosen polynomial order per thermal effect.
+    thermal_tests : tuple
+        The order-selection tests (:class:`gyrocore.calib.thermal.OrderTest` as dicts).
+    notes : tuple of str
+    integral : dict or None
+        For the integral method: M, M_stderr, B_rad, C_rad, ... (lists).
+    noise_model : dict or None
+        The noise model behind ``covariance="noise_model"`` standard errors, per axis (3,):
+        ``arw_rad_per_sqrt_s``, ``bias_instability_rad_s``, ``rrw_rad_s_per_sqrt_s``,
+        ``gm_sigma_rad_s``, ``gm_tau_c_s`` (inf = no Gauss–Markov term)
+        (:class:`gyrocore.calib.budget.NoiseModel` fields; :meth:`noise` rebuilds it), and
+        ``rate_hz``, the sample rate of the data it describes (its white level includes that
+        rate's quantization noise).
+    format_version : str
+    """
+
+    effects: tuple[str, ...]
+    params: dict
+    stderr: dict
+    residual_rms_rad_s: np.ndarray
+    unobservable: tuple[str, ...] = ()
+    unobservable_reason: dict = field(default_factory=dict)
+    method: str = "rate_reference"
+    covariance: str = "ols"
+    sensor: str = "unknown"
+    source_file: str | None = None
+    source_sha256: str | None = None
+    n_samples: int = 0
+    thermal_order: dict = field(default_factory=dict)
+    thermal_tests: tuple = ()
+    notes: tuple[str, ...] = ()
+    integral: dict | None = None
+    noise_model: dict | None = None
+    format_version: str = FORMAT_VERSION
+
+    def noise(self):
+        """The :class:`gyrocore.calib.budget.NoiseModel` of the standard errors, or None."""
+        if not self.noise_model:
+            return None
+        from gyrocore.calib.budget import NoiseModel
+
+        return NoiseModel(**{k: np.asarray(self.noise_model[k], float) for k in _NOISE_MODEL_KEYS})
+
+    # ------------------------------------------------------------------ apply
+    def required_columns(self) -> list[str]:
+        """Data columns that :meth:`apply` needs besides the gyro."""
+        need = []
+        if any(_needs_accel(e) for e in self.params):
+            need.append("accel")
+        if any(_needs_temp(e) for e in self.params):
+            need.append("temp_c")
+        return need
+
+    def apply(self, recording: Recording, *, iterations: int = 4, power_up_bias: bool = False,
+              still_max_s: float = 10.0, t_since_power_up_s: np.ndarray | None = None) -> Recording:
+        """Remove the fitted effects from ``recording``'s gyro (rad/s, S frame).
+
+        Temperatures outside the fitted range are clamped to it (``effects.correct``) and
+        announced with one :class:`~gyrocore.errors.RepairWarning` giving the count.
+        Columns other than the gyro are unchanged.
+
+        Parameters
+        ----------
+        power_up_bias : bool
+            The constant bias is redrawn at every power-up (turn-on repeatability), so a bias
+            from another session is off by the turn-on σ. With True, the bias of this
+            recording is re-estimated from its still start (the article's §1, gate of
+            :func:`gyrocore.calib.bias.startup_still_slice`, up to ``still_max_s``): the mean of
+            the corrected rate there is removed. Needs a still start.
+        t_since_power_up_s : ndarray, shape (N,), optional
+            Time since power-up, s (default ``t_s − t_s[0]``); a chunk of a longer
+            recording passes it from the file's first sample (streamed ``apply``).
+        """
+        for eff in self.params:
+            if _needs_accel(eff) and recording.accel_m_s2 is None:
+                raise GyroInputError(f"the parameters include {eff}, which needs the accel_*_m_s2 columns; the data lack them")
+            if _needs_temp(eff) and recording.temp_c is None:
+                raise GyroInputError(f"the parameters include {eff}, which needs the temp_c column; the data lack it")
+        for eff in E.POLYNOMIAL:  # thermal polynomials: clamped to the fitted range
+            if eff in self.params:
+                pd = self.params[eff]
+                lo, hi = float(pd["temp_min_c"]), float(pd["temp_max_c"])
+                T = recording.temp_c
+                n_out = int(np.sum((T < lo) | (T > hi)))
+                if n_out:
+                    warn_repair(
+                        f"{n_out} of {T.size} samples have a temperature outside the calibrated range "
+                        f"{lo:.2f}..{hi:.2f} C; {eff} is held at the range edge there"
+                    )
+        inp = E.ModelInputs(t_s=recording.t_s, f_S_m_s2=recording.accel_m_s2, temp_c=recording.temp_c,
+                            t_since_power_up_s=t_since_power_up_s)  # a chunk of a longer file: from the file's start
+        omega = E.correct(self.params, recording.gyro_rad_s, inp, iterations=iterations)
+        extra_meta = {}
+        if power_up_bias:
+            from gyrocore.calib.bias import startup_still_slice
+
+            sl = startup_still_slice(recording, max_duration_s=still_max_s)
+            if sl is None or sl.stop - sl.start < 8:
+                raise GyroInputError("power-up bias: the recording does not start still, so its bias cannot be re-estimated")
+            d = omega[sl].mean(axis=0)
+            omega = omega - d[None, :]
+            extra_meta["power_up_bias_rad_s"] = " ".join(f"{v:.6g}" for v in d)
+            extra_meta["power_up_bias_samples"] = str(sl.stop - sl.start)
+        return recording.with_gyro(
+            omega, **extra_meta,
+            calibrated_effects=",".join(self.effects),
+            calibration_source=f"{self.source_file or '?'} sha256:{(self.source_sha256 or '?')[:16]}",
+        )
+
+    # ------------------------------------------------------------------ article form
+    def k_matrix(self) -> np.ndarray:
+        """Constant K = I + diag(s) + misalignment (3×3)."""
+        return E.k_matrix(self.params)
+
+    def article_form(self) -> dict[str, np.ndarray]:
+        """The article's ω = M·diag(1/s)·(ω̂′ − b), ω̂′ = ω̂ − H·a.
+
+        Returns
+        -------
+        dict with ``M`` (3×3, unit diagonal), ``s`` (3,), ``b_rad_s`` (3,), ``H_rad_s_per_m_s2`` (3×3).
+        """
+        M, s = E.article_from_k(self.k_matrix())
+        b = np.asarray(self.params.get("bias", {}).get("b_rad_s", np.zeros(3)), float)
+        H = np.asarray(self.params.get("g_sensitivity", {}).get("h_rad_s_per_m_s2", np.zeros((3, 3))), float)
+        return {"M": M, "s": s, "b_rad_s": b, "H_rad_s_per_m_s2": H}
+
+    @staticmethod
+    def params_from_article(M, s, b_rad_s=None, H_rad_s_per_m_s2=None) -> dict:
+        """Catalogue parameters (bias, scale, misalignment, g_sensitivity) from the article's form."""
+        K = E.k_from_article(np.asarray(M, float), np.asarray(s, float))
+        out = {
+            "scale": {"s": np.diag(K) - 1.0},
+            "misalignment": {"m_rad": np.array([K["xyz".index(p[0]), "xyz".index(p[1])] for p in E.MISALIGNMENT_ORDER])},
+        }
+        if b_rad_s is not None:
+            out["bias"] = {"b_rad_s": np.asarray(b_rad_s, float)}
+        if H_rad_s_per_m_s2 is not None:
+            out["g_sensitivity"] = {"h_rad_s_per_m_s2": np.asarray(H_rad_s_per_m_s2, float)}
+        return out
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (the parameter file)."""
+        return result_to_dict(self)
+
+
+# ============================================================================ estimator
+def _unflatten(effect: str, vec: np.ndarray, order: int) -> dict[str, np.ndarray]:
+    """Flat LsqFit slice -> {param: array} in PARAM_SCHEMA shapes."""
+    return E.resolve(effect).unflatten(vec, order)
+
+
+def near_rate_changes(t_s: np.ndarray, w_ref_rad_s, margin_s: float,
+                      *, threshold_rad_s2: float = 1e-2, chunk_rows: int = 1 << 20) -> np.ndarray:
+    """Boolean (N,): samples within ``margin_s`` of a change of the reference rate
+    (|Δω_ref|/Δt > ``threshold_rad_s2`` on any axis) — rate ramps and their filter transients.
+
+    ``w_ref_rad_s``: the (N, 3) reference rate, or a callable ``(a, b) -> rows a:b`` (a spilled
+    record read a window at a time, :class:`gyrocore.calib.stream.SpillRows`); windows of
+    ``chunk_rows`` rows, each read with one row either side. Sample i is a ramp sample when the
+    rate changes faster than the threshold between i−1 and i or between i and i+1; every sample
+    within k = round(margin_s / median Δt) samples of a ramp sample is near (the dilation
+    marks each run of ramp samples ± k: the same mask as a convolution with a box of 2k + 1).
+    Memory: the mask (1 B/sample) and one window."""
+    t = np.asarray(t_s, float)
+    n = t.size
+    if n < 3:
+        return np.zeros(n, bool)
+    read = w_ref_rad_s if callable(w_ref_rad_s) else (lambda a, b, _w=np.asarray(w_ref_rad_s, float): _w[a:b])
+    ramp = np.zeros(n, bool)
+    step = max(int(chunk_rows), 2)
+    for a in range(0, n, step):
+        b = min(a + step, n)
+        lo, hi = max(a - 1, 0), min(b + 1, n)
+        w = np.asarray(read(lo, hi), float)
+        fast = np.max(np.abs(np.diff(w, axis=0)), axis=1) / np.diff(t[lo:hi]) > threshold_rad_s2  # pairs lo..hi-1
+        # sample i (a ≤ i < b) is a ramp sample if pair (i−1, i) or pair (i, i+1) is fast
+        i = np.arange(a, b)
+        left = np.zeros(b - a, bool)
+        has_left = i - 1 >= lo
+        left[has_left] = fast[(i - 1 - lo)[has_left]]
+        right = np.zeros(b - a, bool)
+        has_right = i + 1 < hi
+        right[has_right] = fast[(i - lo)[has_right]]
+        ramp[a:b] = left | right
+    if not ramp.any():
+        return ramp
+    k = int(round(margin_s / float(np.median(np.diff(t)))))
+    near = np.zeros(n, bool)
+    for a in range(0, n, step):  # runs of ramp samples, window by window (a run may span two)
+        idx = np.flatnonzero(ramp[a:a + step])
+        if idx.size == 0:
+            continue
+        cut = np.flatnonzero(np.diff(idx) > 1)
+        starts = idx[np.r_[0, cut + 1]] + a
+        ends = idx[np.r_[cut, idx.size - 1]] + a
+        for s0, e0 in zip(starts, ends):
+            near[max(s0 - k, 0):min(e0 + k + 1, n)] = True
+    return near
+
+
+def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
+    """w(t − τ) by linear interpolation (the catalogue's time_offset convention)."""
+    if tau_s == 0.0:
+        return w
+    return np.stack([np.interp(t - tau_s, t, w[:, i]) for i in range(3)], axis=1)
+
+
+def _swap(r_inp, effects):
+    """(r, inp), effects -> the positional arguments (r, effects, inp) of ``lsq.fit_effects``."""
+    return r_inp[0], effects, r_inp[1]
+
+
+def _external_bias_dict(ext) -> dict:
+    """``bias_rad_s``, ``bias_stderr_rad_s``, ``noise_lr_rad2_s`` from a StaticBiasResult or a mapping."""
+    if hasattr(ext, "bias_rad_s") and hasattr(ext, "noise_sigma_rad_s"):
+        # StaticBiasResult: long-run variance σ²·VIF per sample → (rad/s)²·s with the window's rate
+        rate = ext.window_samples / ext.window_s
+        lr = np.asarray(ext.noise_sigma_rad_s, float) ** 2 * np.asarray(ext.vif, float) / rate
+        return {"bias_rad_s": np.asarray(ext.bias_rad_s, float), "bias_stderr_rad_s": np.asarray(ext.bias_se_rad_s, float),
+                "noise_lr_rad2_s": lr}
+    try:
+        d = {k: np.asarray(ext[k], float) for k in ("bias_rad_s", "bias_stderr_rad_s", "noise_lr_rad2_s")}
+    except (KeyError, TypeError):
+        raise GyroInputError("external bias needs bias_rad_s, bias_stderr_rad_s and noise_lr_rad2_s") from None
+    return d
+
+
+def has_reference_attitude(rec: Recording) -> bool:
+    """True when the recording carries a reference attitude (``ref_q*``) valid at two or more
+    samples."""
+    q = rec.ref_quat_wxyz
+    return q is not None and int(np.isfinite(q).all(axis=1).sum()) >= 2
+
+
+class Calibrator:
+    """Fit catalogue effects against the references in a recording.
+
+    Parameters
+    ----------
+    effects : sequence of str
+        Effects to fit: catalogue (see :data:`FITTABLE`) or registry family terms
+        (``periodic[37.5]``, ``step[12.25]``, ``regressor[omega_y*omega_z]``;
+        :func:`gyrocore.effects.registry.resolve`), e.g. ``["bias", "scale", "misalignment"]``. Order matters only for observability: an earlier effect keeps a
+        column that a later one duplicates.
+    thermal_order : "auto" or int
+        Polynomial order of ``bias_thermal``/``scale_thermal``; "auto" chooses it from the
+        data (:func:`gyrocore.calib.thermal.select_thermal_orders`, up to ``max_thermal_order``).
+    max_thermal_order : int
+    thermal_alpha : float
+        Significance level of the order tests.
+    segments : path or sequence, optional
+        Known-rotation segments → the integral method.
+    covariance : str
+        ``"auto"`` (Ljung–Box switch), ``"ols"``, ``"hac"``, ``"newey_west"``, ``"block"``, or
+        ``"noise_model"``: the sandwich with the row covariance implied by the gyro's noise
+        model (white + flicker + rate random walk + Gauss–Markov, started at the power-up =
+        the first sample; :func:`gyrocore.calib.lsq.noise_model_meat`). The model is ``noise`` if
+        given, else identified (:func:`gyrocore.noise.allan.identify_noise`, GMWM) on the residual
+        of the first fit (outliers of the robust pass set to 0). Least-squares method only.
+    noise : gyrocore.calib.budget.NoiseModel or NoiseResult, optional
+        The noise model for ``covariance="noise_model"`` (e.g. identified on a still
+        recording of the same session); default: identified from the fit's residual.
+    ramp_margin_s : float
+        Reference-rate method: leave out the samples within this time of a change of the
+        reference rate (|Δω_ref|/dt > 1e-2 rad/s²). At rate ramps the gyro's own output
+        filter leaves a transient no catalogue effect describes (on the icm42688p table run
+        10× the noise); fitted, it biased the g-sensitivity by up to 4 standard errors
+        (issue 12). 0 (default): use every sample.
+    on_unobservable : {"drop", "raise"}
+        Report unobservable parameters (fit the rest) or raise
+        :class:`~gyrocore.errors.UnobservableError`.
+    robust : bool
+        After a first fit, exclude samples whose residual exceeds 6 robust σ (rate-table
+        transients the model does not describe) and refit; the count is a note.
+    max_rows : int
+        Fit block means of consecutive samples when the data have more rows than this
+        (exact for the linear model; see ``lsq.solve(average=)``).
+    still_window_s, still_false_reject_rate : float
+        Still detection (no reference rate / integral method).
+    sensor : str, optional
+        Sensor name; default the file's ``# sensor:`` metadata.
+    external_bias : StaticBiasResult or mapping, optional
+        Integral method only: take the bias from elsewhere (e.g. a static recording of the
+        same session) instead of the still parts of the data — for hand turns without a
+        still part. A :class:`gyrocore.calib.bias.StaticBiasResult`, or a mapping with
+        ``bias_rad_s``, ``bias_stderr_rad_s`` and ``noise_lr_rad2_s`` ((rad/s)²·s, the
+        long-run noise variance, N² for white noise). Its standard error and the noise are
+        propagated into the standard errors of K and M.
+    """
+
+    def __init__(
+        self,
+        *,
+        effects: Sequence[str],
+        thermal_order: str | int = "auto",
+        max_thermal_order: int = 3,
+        thermal_alpha: float = 0.01,
+        segments=None,
+        covariance: str = "auto",
+        on_unobservable: str = "drop",
+        robust: bool = True,
+        max_rows: int = 30000,
+        still_window_s: float = 1.0,
+        still_false_reject_rate: float = 1e-3,
+        sensor: str | None = None,
+        external_bias=None,
+        noise=None,
+        ramp_margin_s: float = 0.0,
+        angle_sigma_deg: float = 0.0,
+        axis_sigma_deg: float = 0.0,
+        poses: bool = False,
+        pose_std_factor: float = 5.0,
+    ) -> None:
+        effs = E.check_effect_names(effects)
+        if not effs:
+            raise GyroInputError("no effects given to calibrate (e.g. --effects bias,scale,misalignment)")
+        if len(set(effs)) != len(effs):
+            raise GyroInputError("an effect is listed twice")
+        for e in effs:
+            if not E.resolve(e).fittable:
+                raise GyroInputError(_not_fittable_message(e))
+        if thermal_order != "auto":
+            try:
+                thermal_order = int(thermal_order)
+            except (TypeError, ValueError):
+                raise GyroInputError(f"thermal order must be 'auto' or 1..3, got {thermal_order!r}") from None
+            if not 1 <= thermal_order <= 3:
+                raise GyroInputError(f"thermal order must be 'auto' or 1..3, got {thermal_order}")
+        if not 1 <= int(max_thermal_order) <= 3:
+            raise GyroInputError(f"max thermal order must be 1..3, got {max_thermal_order}")
+        if segments is not None:
+            bad = [e for e in effs if e not in _INTEGRAL_EFFECTS]
+            if bad:
+                raise GyroInputError(
+                    f"with a segments file (integral method) only {', '.join(_INTEGRAL_EFFECTS)} can be fitted, not {', '.join(bad)}"
+                )
+        if external_bias is not None:
+            if segments is None:
+                raise GyroInputError("an external bias is used by the integral method only (give a segments file)")
+            if "g_sensitivity" in effs:
+                raise GyroInputError("g_sensitivity with an external bias is not supported (it is fitted on the still poses with the bias)")
+            external_bias = _external_bias_dict(external_bias)
+        if noise is not None and not hasattr(noise, "arw_rad_per_sqrt_s"):
+            from gyrocore.calib.budget import NoiseModel
+
+            noise = NoiseModel.from_identified(noise)
+        self.noise = noise
+        if not (np.isfinite(ramp_margin_s) and ramp_margin_s >= 0):
+            raise GyroInputError(f"ramp margin must be >= 0 s, got {ramp_margin_s}")
+        self.ramp_margin_s = float(ramp_margin_s)
+        for nm, v in (("angle", angle_sigma_deg), ("axis", axis_sigma_deg)):
+            if not (np.isfinite(v) and v >= 0):
+                raise GyroInputError(f"{nm} uncertainty must be >= 0 deg, got {v}")
+        #: known rotations' angle / axis uncertainty (integral method), deg
+        self.angle_sigma_deg = float(angle_sigma_deg)
+        self.axis_sigma_deg = float(axis_sigma_deg)
+        self.external_bias = external_bias
+        self.effects = tuple(effs)
+        self.thermal_order = thermal_order
+        self.max_thermal_order = int(max_thermal_order)
+        self.thermal_alpha = float(thermal_alpha)
+        self.segments = segments
+        self.covariance = covariance
+        self.on_unobservable = on_unobservable
+        self.robust = bool(robust)
+        self.max_rows = int(max_rows)
+        self.still_window_s = float(still_window_s)
+        self.still_false_reject_rate = float(still_false_reject_rate)
+        self.sensor = sensor
+        if poses:
+            bad = [e for e in effs if e not in ("bias", "scale", "misalignment")]
+            if bad or segments is not None or external_bias is not None:
+                raise GyroInputError(
+                    "the multi-pose method (poses) fits bias, scale and misalignment only, without segments or an "
+                    "external bias" + (f", not {', '.join(bad)}" if bad else ""))
+        #: multi-pose method (gravity directions of still poses as the reference; Tedaldi et al. 2014)
+        self.poses = bool(poses)
+        if not (np.isfinite(pose_std_factor) and pose_std_factor >= 1):
+            raise GyroInputError(f"pose std factor must be >= 1, got {pose_std_factor}")
+        self.pose_std_factor = float(pose_std_factor)
+
+    def _common(self, meta, source_path, *, has_accel: bool, has_temp: bool) -> dict:
+        """The result fields every fit path shares (sensor, data file name and SHA-256), after
+        checking that the data carry the columns the effects need (one ``error:`` line)."""
+        for eff in self.effects:
+            if _needs_accel(eff) and not has_accel:
+                raise GyroInputError(f"effect {eff} needs the accel_*_m_s2 columns, which the data lack")
+            if _needs_temp(eff) and not has_temp:
+                raise GyroInputError(f"effect {eff} needs the temp_c column, which the data lack")
+        src_name = src_sha = None
+        if source_path is not None:
+            src_name = Path(source_path).name
+            src_sha = file_sha256(source_path)
+        sensor = self.sensor or str(meta.get("sensor", "unknown"))
+        return dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
+
+    # ------------------------------------------------------------------ public
+    def fit(self, recording: Recording, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
+        """Fit the effects; ``source_path`` (the data file) is recorded by name and SHA-256."""
+        common = self._common(recording.meta, source_path, has_accel=recording.accel_m_s2 is not None,
+                              has_temp=recording.temp_c is not None)
+        if self.segments is not None:
+            return self._fit_integral(recording, common)
+        if self.poses:
+            return self._fit_poses(recording, common)
+        if recording.ref_rate_rad_s is None and has_reference_attitude(recording):
+            return self._fit_attitude(recording, source_path, common)
+        return self._fit_lsq(recording, common)
+
+    # ------------------------------------------------------------------ multi-pose (gravity)
+    def _fit_poses(self, rec: Recording, common: dict) -> CalibrationResult:
+        """The multi-pose method (:func:`gyrocore.calib.rotations.gravity_pose_calibration`, Tedaldi
+        et al. 2014, IMU-TK): K from the turns between still poses, each pose's measured
+        gravity direction carried through the corrected, integrated gyro onto the next pose's;
+        bias from the first pose. scale s_i = K_ii − 1, misalignment = K's off-diagonal entries
+        (:data:`gyrocore.effects.registry.MISALIGNMENT_ORDER`), standard errors from the fit's Jacobian
+        scaled by its residual (the hand-held poses' tremble included)."""
+        from gyrocore.calib.rotations import gravity_pose_calibration
+
+        if rec.accel_m_s2 is None:
+            raise GyroInputError("the multi-pose method needs the accel_*_m_s2 columns (gravity is the reference)")
+        r = gravity_pose_calibration(rec, pose_std_factor=self.pose_std_factor)
+        K, Kse = np.asarray(r.K, float), np.asarray(r.K_stderr, float)
+        params: dict = {"bias": {"b_rad_s": r.bias_rad_s}, "scale": {"s": np.diag(K) - 1.0},
+                        "misalignment": {"m_rad": np.array([K[i, j] for i, j in E._MIS_IDX])}}
+        stderr: dict = {"bias": {"b_rad_s": r.bias_stderr_rad_s}, "scale": {"s": np.diag(Kse).copy()},
+                        "misalignment": {"m_rad": np.array([Kse[i, j] for i, j in E._MIS_IDX])}}
+        n_used = int(r.residual_rad.shape[0])
+        notes = [f"multi-pose method (Tedaldi et al. 2014): {len(r.intervals)} still poses, {n_used} motions between "
+                 f"them used" + (f" ({r.n_motions_saturated} through clipped samples dropped)" if r.n_motions_saturated else "")
+                 + f"; gravity-direction misfit after calibration {np.degrees(r.rms_residual_rad):.2f} deg RMS; "
+                 f"Jacobian condition {r.condition:.3g}; bias from the first pose",
+                 "residual_rms_rad_s: the still poses' scatter is not a rate residual here (the reference is the "
+                 "gravity direction); see the misfit above"]
+        if "scale" in self.effects and "misalignment" not in self.effects:
+            notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
+        if "bias" not in self.effects:
+            notes.append("bias not requested but still removed before integrating (the method needs it)")
+        params = {e: params[e] for e in self.effects}
+        stderr = {e: stderr[e] for e in self.effects}
+        return CalibrationResult(
+            effects=self.effects, params=params, stderr=stderr, residual_rms_rad_s=np.full(3, np.nan),
+            method="gravity_poses", covariance="jacobian", n_samples=int(sum(b - a for a, b in r.intervals)),
+            notes=tuple(notes), **common,
+        )
+
+    # ------------------------------------------------------------------ reference attitude
+    def _fit_attitude(self, rec: Recording, source_path, common: dict) -> CalibrationResult:
+        """A reference attitude (e.g. optical motion capture) and no reference rate: the
+        residual loop's machinery — attitude increments over 1-s windows, the optical attitude
+        never differentiated (:func:`gyrocore.loop.residual.build_residual`, reference
+        ``"attitude"``) — fits exactly the named effects (no search); its joint fit (HAC
+        standard errors) is the calibration. Without this path the still parts alone would be
+        fitted against rate 0 and every rate-dependent effect reported unobservable."""
+        from dataclasses import replace
+
+        from gyrocore.loop.loop import FITTABLE as LOOP_FITTABLE, loop_calibration, run_loop
+
+        bad = [e for e in self.effects if e not in LOOP_FITTABLE]
+        if bad:
+            raise GyroInputError(f"against a reference attitude {', '.join(bad)} cannot be fitted "
+                                 f"(fittable: {', '.join(LOOP_FITTABLE)})")
+        order = 1 if self.thermal_order == "auto" else int(self.thermal_order)
+        r = run_loop(rec, declared=list(self.effects), candidates=[], reference="attitude", thermal_order=order,
+                     open_search=False)
+        res = loop_calibration(r, rec, source_path=source_path, sensor=common["sensor"], thermal_order=order)
+        notes = list(res.notes) + [f"calibrated against the reference attitude (ref_q*): {r.description}, "
+                                   f"{r.n_windows} windows"] + list(r.notes)
+        if self.thermal_order == "auto" and any(e in self.effects for e in ("bias_thermal", "scale_thermal")):
+            notes.append("thermal order 1 (order selection is not done against an attitude reference)")
+        return replace(res, notes=tuple(notes), method="attitude_reference")
+
+    def fit_spilled(self, store, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
+        """Fit a long recording held on disk (:func:`gyrocore.data.recording.spill_columns` with
+        ``groups=("temp", "ref_rate")``), a window at a time (:mod:`gyrocore.calib.stream`).
+
+        Reference rates only (method ``rate_reference``); the result equals :meth:`fit` of the
+        same recording in memory (the same windows and block sums: the same numbers, see
+        :func:`gyrocore.calib.lsq.fit_effects`). Memory: the time column, one weight column and one
+        residual axis at a time, not the recording.
+        """
+        from gyrocore.data.recording import REF_RATE_COLS, TEMP_COL
+
+        if self.segments is not None:
+            raise GyroInputError("the integral method (segments) needs the recording in memory")
+        if not all(c in store.names for c in REF_RATE_COLS):
+            raise GyroInputError("a streamed fit needs reference rates (ref_*_rad_s)")
+        common = self._common(store.meta, source_path, has_accel="accel_x_m_s2" in store.names,
+                              has_temp=TEMP_COL in store.names)
+        return self._fit_lsq(None, common, store=store)
+
+    # ------------------------------------------------------------------ integral method
+    def _fit_integral(self, rec: Recording, common: dict) -> CalibrationResult:
+        from gyrocore.calib import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
+        from gyrocore.calib.rotations import integral_calibration
+
+        from gyrocore.calib.rotations import segments_from_any, still_mask
+
+        segs = segments_from_any(self.segments)
+        if self.external_bias is not None:
+            still = None  # no still part needed: the bias comes from elsewhere
+        else:
+            still = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate,
+                               exclude=[(s_.t_start_s, s_.t_end_s) for s_ in segs])
+        params: dict = {}
+        stderr: dict = {}
+        notes = []
+        H = None
+        unobs: tuple = ()
+        reasons: dict = {}
+        if "g_sensitivity" in self.effects:
+            # H from the still poses (rate 0, gravity in different directions), jointly with
+            # the bias; then removed before integrating (imucal's Ferraris does the same)
+            inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=np.zeros((rec.n, 3)), f_S_m_s2=rec.accel_m_s2)
+            fit = lsq.fit_effects(rec.gyro_rad_s, ["bias", "g_sensitivity"], inp, weights=still.astype(float),
+                                  covariance=self.covariance, on_unobservable=self.on_unobservable)
+            H = fit.effect_theta("g_sensitivity").reshape(3, 3)
+            params["g_sensitivity"] = {"h_rad_s_per_m_s2": H}
+            stderr["g_sensitivity"] = {"h_rad_s_per_m_s2": fit.effect_stderr("g_sensitivity").reshape(3, 3)}
+            unobs, reasons = fit.unobservable, dict(fit.unobservable_reason)
+            notes.append(f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}")
+        res = integral_calibration(rec, segs, still=still, h_rad_s_per_m_s2=H, **(self.external_bias or {}),
+                                   angle_sigma_rad=np.radians(self.angle_sigma_deg),
+                                   axis_sigma_rad=np.radians(self.axis_sigma_deg))
+        if self.angle_sigma_deg or self.axis_sigma_deg:
+            notes.append(f"standard errors include the known angles' uncertainty: angle {self.angle_sigma_deg:g} deg, "
+                         f"axis {self.axis_sigma_deg:g} deg per segment")
+        if self.external_bias is not None:
+            notes.append("bias taken from outside the data (external bias; its standard error is propagated into K and M)")
+        if "bias" in self.effects:
+            params["bias"] = {"b_rad_s": res.bias_rad_s}
+            stderr["bias"] = {"b_rad_s": res.bias_stderr_rad_s}
+        if "scale" in self.effects:
+            params["scale"] = {"s": res.scale}
+            stderr["scale"] = {"s": res.scale_stderr}
+        if "misalignment" in self.effects:
+            params["misalignment"] = {"m_rad": res.misalignment_rad}
+            stderr["misalignment"] = {"m_rad": res.misalignment_stderr_rad}
+        elif "scale" in self.effects:
+            notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
+        if "bias" not in self.effects:
+            notes.append("bias not requested but still removed before integrating (the integral method needs it)")
+        integral = {
+            "M": res.M, "M_stderr": res.M_stderr, "K": res.K, "K_stderr": res.K_stderr,
+            "B_rad": res.B_rad, "C_rad": res.C_rad, "angle_residual_rad": res.angle_residual_rad,
+            "noise_lr_rad2_s": res.noise_lr_rad2_s, "n_still": res.n_still,
+            "segment_duration_s": res.segment_duration_s,
+        }
+        rms = res.still_rms_rad_s
+        params = {e: params[e] for e in self.effects if e in params}
+        stderr = {e: stderr[e] for e in self.effects if e in stderr}
+        return CalibrationResult(
+            effects=self.effects, params=params, stderr=stderr, residual_rms_rad_s=rms,
+            unobservable=unobs, unobservable_reason=reasons,
+            method="integral", covariance="integral", n_samples=int(res.n_still),
+            notes=tuple(notes), integral=integral, **common,
+        )
+
+    # ------------------------------------------------------------------ least squares
+    #: Noise identification for ``covariance="noise_model"`` uses only samples farther than
+    #: this from a change of the reference rate (|Δω_ref|/dt > :data:`RAMP_RATE_RAD_S2`): at rate
+    #: ramps the residual holds the on-chip low-pass's transient (deterministic, ≈ 10× the
+    #: noise on the icm42688p table run: RMS 3.3e-3 vs 3.1e-4 rad/s on the plateaus), which a
+    #: noise model must not absorb (GMWM took it for a Gauss–Markov term σ 5e-4 rad/s, τc 0.15 s,
+    #: in every unit, and the scale/misalignment standard errors came out 2–5× too large).
+    QUIET_MARGIN_S = 0.25
+    RAMP_RATE_RAD_S2 = 1e-2
+
+    @classmethod
+    def _identified_noise(cls, axis, bad: np.ndarray, rate_hz: float, notes: list,
+                          w_ref=None, t_s: np.ndarray | None = None) -> dict:
+        """solve() options of the noise-model covariance, the model identified (GMWM, per axis)
+        on the residual — ``axis(i)`` returns axis i as a fresh (N,) array — without the
+        ``bad`` samples and, with a reference rate ``w_ref`` ((N, 3), or a window reader
+        ``(a, b) -> rows`` for a spilled record), without the samples within
+        :data:`QUIET_MARGIN_S` of a rate change; the kept stretches are joined (the slow
+        noise barely moves across a sub-second gap)."""
+        import warnings
+
+        from gyrocore.noise.allan import identify_noise
+        from gyrocore.calib.budget import NoiseModel
+
+        keep = ~np.asarray(bad, bool)
+        n = keep.size
+        if w_ref is not None and n > 2:
+            tt = np.arange(n) / rate_hz if t_s is None else t_s
+            near = near_rate_changes(tt, w_ref, cls.QUIET_MARGIN_S)
+            if np.count_nonzero(keep & ~near) >= 0.25 * n:
+                keep &= ~near
+        if not keep.all():
+            notes.append(f"noise identified on {100.0 * keep.mean():.0f} % of the samples (rate ramps and outliers left out)")
+        vals = {k: np.zeros(3) for k in ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s",
+                                         "correlated_sigma_rad_s")}
+        tau = np.full(3, np.inf)
+        for i in range(3):
+            x = axis(i)
+            x = x[keep] if not keep.all() else x
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the short-record note of identify_noise
+                ax = identify_noise(x, rate_hz=rate_hz, check_static=False).axes["x"]
+            del x
+            from gyrocore.calib.budget import identified_term
+
+            for k in vals:
+                vals[k][i] = identified_term(ax, k)
+            if vals["correlated_sigma_rad_s"][i] > 0:
+                tau[i] = identified_term(ax, "correlated_tau_c_s") or np.inf
+        nm = NoiseModel(arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"], bias_instability_rad_s=vals["bias_instability_rad_s"],
+                        rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"], gm_sigma_rad_s=vals["correlated_sigma_rad_s"],
+                        gm_tau_c_s=tau)
+
+        def fmt(a):
+            return "/".join(f"{v:.3g}" for v in np.asarray(a, float))
+
+        notes.append(
+            "standard errors: noise-model sandwich, noise identified on the fit residual (GMWM): "
+            f"N {fmt(nm.arw_rad_per_sqrt_s)} rad/sqrt(s), B {fmt(nm.bias_instability_rad_s)} rad/s, "
+            f"K {fmt(nm.rrw_rad_s_per_sqrt_s)} rad/s/sqrt(s), GM sigma {fmt(nm.gm_sigma_rad_s)} rad/s "
+            f"tau {fmt(nm.gm_tau_c_s)} s")
+        return dict(covariance="noise_model", noise_model=nm)
+
+    def _ramp_weights(self, t_s: np.ndarray, w_ref, notes: list) -> np.ndarray:
+        """Fit weights (N,): 0 within ``ramp_margin_s`` of a reference-rate change (when that
+        leaves ≥ 25 % of the samples), else a read-only broadcast 1 (no (N,) array for a long
+        record). ``w_ref``: (N, 3) or a window reader ``(a, b) -> rows`` (a spilled record:
+        :func:`near_rate_changes` reads it a window at a time, the same mask)."""
+        n = int(np.asarray(t_s).size)
+        if self.ramp_margin_s > 0:
+            near = near_rate_changes(t_s, w_ref, self.ramp_margin_s)
+            if near.any() and np.count_nonzero(~near) >= 0.25 * n:
+                notes.append(f"left out {int(near.sum())} samples within {self.ramp_margin_s:g} s of a reference-rate "
+                             "change (rate ramps: the gyro's own filter transient)")
+                return (~near).astype(float)
+        return np.broadcast_to(1.0, (n,))
+
+    def _references(self, rec: Recording):
+        """(omega_ref (N,3), weights (N,), method, notes)."""
+        notes: list[str] = []
+        if rec.ref_rate_rad_s is not None:
+            return rec.ref_rate_rad_s, self._ramp_weights(rec.t_s, rec.ref_rate_rad_s, notes), "rate_reference", notes
+        from gyrocore.calib.rotations import still_mask
+
+        m = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
+        if m.sum() < 10:
+            raise GyroInputError("no reference rates (ref_*_rad_s) and no still part in the data: nothing to calibrate against")
+        notes.append(
+            f"no reference rates: fitted against rate 0 on {int(m.sum())} still samples "
+            f"({100.0 * m.mean():.0f} % of the file); Earth rate is absorbed in the bias"
+        )
+        rate_effects = [e for e in self.effects if {"omega", "alpha"} & set(E.resolve(e).inputs)]
+        if rate_effects:
+            # against rate 0 their regressors are zero: say what would excite them (a multi-pose
+            # session such as IMU-TK's turns between poses without a rate reference)
+            notes.append(
+                f"{', '.join(rate_effects)} need a reference for the motion: reference rates (ref_*_rad_s), a "
+                "reference attitude (ref_q*), known rotations (--segments), or, for a multi-pose session (still "
+                "poses joined by turns, IMU-TK), the poses' gravity directions (--poses)")
+        return np.zeros((rec.n, 3)), m.astype(float), "still", notes
+
+    def _fit_lsq(self, rec: Recording, common: dict, *, store=None) -> CalibrationResult:
+        from gyrocore.calib import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
+
+        if store is not None:  # a long recording on disk (gyrocore.calib.stream): same fit, window by window
+            from gyrocore.calib.stream import ResidualFiles, SpillRows
+
+            n_all = store.n
+            w_ref = None
+            method, notes = "rate_reference", []
+            # ramps left out as in memory: the mask from the reference rate read window by window
+            weights = self._ramp_weights(store.t_s, SpillRows(store).ref_rows, notes)
+
+            def ref_at(tau):  # ω_ref(t − τ) as a window reader (the noise identification's ramp mask)
+                return SpillRows(store, tau_s=tau).ref_rows
+
+            def lhs(tau):
+                return SpillRows(store, tau_s=tau), None
+
+            sink = ResidualFiles(store.folder, n_all)
+            first_kw = dict(residual_sink=sink, keep_residual=False)
+
+            def first_axis(fit, i):  # a fresh array: the robust pass works on it in place
+                return sink.axis(i)
+
+            def temp_column():
+                return store.column("temp_c")
+        else:
+            w_ref, weights, method, notes = self._references(rec)
+            n_all = rec.n
+            y = rec.gyro_rad_s
+            t = rec.t_s
+
+            def lhs(tau):
+                # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
+                return y - _shift_rate(t, w_ref, tau), E.ModelInputs(
+                    t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau), f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
+
+            first_kw = dict(overwrite_r=True)
+
+            def ref_at(tau):
+                return None if w_ref is None else _shift_rate(t, w_ref, tau)
+
+            def first_axis(fit, i):  # a fresh array: the robust pass works on it in place
+                return fit.residual_rad_s[:, i].copy()
+
+            def temp_column():
+                return np.asarray(rec.temp_c, float)
+
+        n_used = int(np.sum(weights > 0))
+        average = max(1, int(math.ceil(n_used / self.max_rows)))
+        if average > 1:
+            notes.append(f"fitted block means of {average} samples ({n_used} samples)")
+        model_cov = self.covariance == "noise_model"
+        t_all = np.asarray(rec.t_s if store is None else store.t_s, float)
+        rate_hz = float((n_all - 1) / max(float(t_all[-1] - t_all[0]), 1e-300)) if n_all > 1 else float("nan")
+        # sample times since the first sample (flicker and random walk start there); a
+        # streamed record's fit gets the row intervals from the chunked path (t_s: only dt)
+        t_since = t_all - float(t_all[0])
+        # with the noise-model covariance the first fits (time offset, robust pass) use OLS
+        # standard errors; the model is identified on their residual, then used from the
+        # thermal order tests on
+        opts = dict(weights=weights, average=average, covariance="ols" if model_cov else self.covariance,
+                    on_unobservable=self.on_unobservable)
+        effects = list(self.effects)
+        thermal = [e for e in effects if e in E.POLYNOMIAL]
+        tau_total = 0.0
+
+        # 1) fit at the highest thermal order (or the fixed one) to settle τ and transients
+        orders: dict[str, int] = {
+            e: (self.max_thermal_order if self.thermal_order == "auto" else int(self.thermal_order)) for e in thermal
+        }
+        tests = []
+        # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
+        fit = lsq.fit_effects(*_swap(lhs(0.0), effects), orders=orders, **first_kw, **opts)
+        # time_offset: Gauss–Newton on τ (the regressor −dω/dt is a linearisation)
+        if "time_offset" in effects:
+            for _ in range(8):
+                d = float(fit.effect_theta("time_offset")[0])
+                if not np.isfinite(fit.effect_stderr("time_offset")[0]) or d == 0.0:
+                    break
+                tau_total += d
+                fit = None  # free the previous full-resolution residual first
+                fit = lsq.fit_effects(*_swap(lhs(tau_total), effects), orders=orders, **first_kw, **opts)
+                if abs(float(fit.effect_theta("time_offset")[0])) < 1e-3 * float(fit.effect_stderr("time_offset")[0]):
+                    break
+        # robust pass: drop transients the model does not describe
+        if self.robust and fit.rank:
+            used = weights > 0
+            # per axis (same values as np.median(e[used], axis=0)): one (N,) copy at a time
+            med, s_rob = np.zeros(3), np.zeros(3)
+            all_used = bool(used.all())
+            for i in range(3):
+                # in place on a fresh copy of the axis: the median and the MAD do not depend
+                # on the order the partition leaves (the same values, one (N,) array)
+                ei = first_axis(fit, i)
+                ei = ei if all_used else ei[used]
+                med[i] = np.median(ei, overwrite_input=True)
+                np.subtract(ei, med[i], out=ei)
+                np.abs(ei, out=ei)
+                s_rob[i] = 1.4826 * np.median(ei, overwrite_input=True)
+                del ei
+            thr = 6.0 * np.where(s_rob > 0, s_rob, np.inf)
+            bad = np.zeros(n_all, bool)  # |e − med| > thr on any axis, one axis at a time
+            for i in range(3):
+                ei = first_axis(fit, i)
+                np.subtract(ei, med[i], out=ei)
+                np.abs(ei, out=ei)
+                bad |= ei > thr[i]
+                del ei
+            bad &= used
+            if model_cov and self.noise is None:
+                opts.update(self._identified_noise(lambda i: first_axis(fit, i), bad | ~used, rate_hz, notes,
+                                                   ref_at(tau_total)))
+            nb = int(bad.sum())
+            # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
+            if 0 < nb < 0.05 * used.sum():
+                weights = np.where(bad, 0.0, weights)
+                opts["weights"] = weights
+                notes.append(f"excluded {nb} samples with residual > 6 robust sigma (transients)")
+        if model_cov and "noise_model" not in opts:
+            if self.noise is not None:
+                opts.update(covariance="noise_model", noise_model=self.noise, t_s=t_since)
+                notes.append("standard errors: noise-model sandwich (noise model given)")
+            else:
+                opts.update(self._identified_noise(lambda i: first_axis(fit, i), ~(weights > 0), rate_hz, notes,
+                                                   ref_at(tau_total)))
+        if model_cov:
+            opts["t_s"] = t_since
+        # 2) thermal order from the data, then the final fit (the first fit's full-resolution
+        #    residual is no longer needed: free it before the next fits)
+        fit = None
+        if thermal and self.thermal_order == "auto":
+            from gyrocore.calib.thermal import select_thermal_orders
+
+            orders, tests = select_thermal_orders(
+                *lhs(tau_total), effects, max_order=self.max_thermal_order,
+                alpha=self.thermal_alpha, **dict(opts, on_unobservable="drop", keep_residual=False))
+        # only θ, its standard errors and the residual RMS are kept from the final fit
+        fit = lsq.fit_effects(*_swap(lhs(tau_total), effects), orders=orders, keep_residual=False, **opts)
+        if "time_offset" in effects and np.isfinite(fit.effect_stderr("time_offset")[0]):
+            tau_total += float(fit.effect_theta("time_offset")[0])
+        params: dict = {}
+        stderr: dict = {}
+        for eff in effects:
+            sl = fit.slices[eff]
+            order = orders.get(eff, 1)
+            params[eff] = _unflatten(eff, fit.theta[sl], order)
+            stderr[eff] = _unflatten(eff, fit.stderr[sl], order)
+            if eff in E.POLYNOMIAL:
+                T = temp_column()
+                used_rows = opts["weights"] > 0
+                # design() centres the polynomial on the mean temperature of all rows it gets;
+                # the range over the rows used, without a copy of them (min/max are exact)
+                params[eff].update(t0_c=np.asarray(float(np.mean(T))),
+                                   temp_min_c=np.asarray(float(np.min(T, where=used_rows, initial=np.inf))),
+                                   temp_max_c=np.asarray(float(np.max(T, where=used_rows, initial=-np.inf))))
+                del T, used_rows
+                stderr[eff].update({k: np.asarray(np.nan) for k in _THERMAL_META})
+        if "time_offset" in effects:
+            params["time_offset"]["tau_s"] = np.asarray(tau_total if np.isfinite(fit.effect_stderr("time_offset")[0]) else 0.0)
+        return CalibrationResult(
+            effects=tuple(effects), params=params, stderr=stderr,
+            residual_rms_rad_s=np.asarray(fit.residual_rms_rad_s, float),
+            unobservable=fit.unobservable, unobservable_reason=dict(fit.unobservable_reason),
+            method=method, covariance=fit.cov_kind, n_samples=int(np.sum(opts["weights"] > 0)),
+            thermal_order=orders, thermal_tests=tuple(t_.__dict__ for t_ in tests),
+            notes=tuple(notes), noise_model=_noise_model_dict(opts.get("noise_model"), rate_hz), **common,
+        )
+
+
+def _noise_model_dict(nm, rate_hz: float) -> dict | None:
+    if nm is None:
+        return None
+    out: dict = {k: np.broadcast_to(np.asarray(getattr(nm, k), float), (3,)).copy() for k in _NOISE_MODEL_KEYS}
+    out["rate_hz"] = float(rate_hz)
+    return out
+
+
+# ============================================================================ parameter file
+def _jsonable(v):
+    from gyrocore.cli import to_jsonable
+
+    return to_jsonable(v)
+
+
+def result_to_dict(res: CalibrationResult) -> dict:
+    """The parameter file as a dict (DESIGN.md "Parameter file")."""
+    art = res.article_form() if any(e in res.params for e in ("scale", "misalignment", "bias", "g_sensitivity")) else None
+    d = {
+        "format_version": res.format_version,
+        "sensor": res.sensor,
+        "effects": list(res.effects),
+        "parameters": {e: {k: _jsonable(v) for k, v in pd.items()} for e, pd in res.params.items()},
+        "standard_errors": {e: {k: _jsonable(v) for k, v in pd.items()} for e, pd in res.stderr.items()},
+        "residual_rms_rad_s": _jsonable(res.residual_rms_rad_s),
+        "unobservable": list(res.unobservable),
+        "unobservable_reason": dict(res.unobservable_reason),
+        "method": res.method,
+        "covariance": res.covariance,
+        "n_samples": int(res.n_samples),
+        "thermal_order": dict(res.thermal_order),
+        "thermal_tests": _jsonable(list(res.thermal_tests)),
+        "notes": list(res.notes),
+        "source": {"file": res.source_file, "sha256": res.source_sha256},
+        "article_form": _jsonable(art) if art is not None else None,
+        "integral": _jsonable(res.integral) if res.integral is not None else None,
+        "noise_model": ({k: ([None if not np.isfinite(x) else float(x) for x in np.asarray(v, float).reshape(-1)]
+                             if k != "rate_hz" else float(v)) for k, v in res.noise_model.items()}
+                        if res.noise_model else None),
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "units": "SI: rad, s, m/s^2, degC; parameter names carry their unit",
+    }
+    return d
+
+
+def _arr(v, *, null=np.nan):
+    if v is None:
+        return np.asarray(null, float)
+    a = np.asarray(v, dtype=object)
+    return np.asarray(np.where(a == None, null, a), dtype=float)  # noqa: E711
+
+
+def result_from_dict(d: Mapping, *, where: str = "parameter file") -> CalibrationResult:
+    """Inverse of :func:`result_to_dict` (validates names, shapes and the format version)."""
+    if not isinstance(d, Mapping):
+        raise GyroInputError(f"{where}: not a gyroharness parameter file (top level is not an object)")
+    ver = d.get("format_version")
+    if not isinstance(ver, str) or not ver:
+        raise GyroInputError(f"{where}: not a gyroharness parameter file (no format_version)")
+    major = ver.split(".")[0]
+    if major != FORMAT_VERSION.split(".")[0]:
+        raise GyroInputError(
+            f"{where}: parameter file format_version {ver} is not supported; this gyroharness reads {FORMAT_VERSION.split('.')[0]}.x"
+        )
+    try:
+        given = [str(n) for n in d["effects"]]
+        effects = tuple(E.check_effect_names(given))  # canonical names (a 1.0 file: catalogue only)
+        if len(set(effects)) != len(effects):
+            raise GyroInputError("an effect is listed twice")
+        raw = d["parameters"]
+        params = {e: {k: _arr(v) for k, v in raw[g].items()} for g, e in zip(given, effects)}
+        params = E.validate_params(params)
+        se_raw = d.get("standard_errors") or {}
+        stderr = {e: {k: _arr(v, null=np.inf) for k, v in se_raw.get(g, {}).items()} for g, e in zip(given, effects)}
+        rms = _arr(d.get("residual_rms_rad_s"))
+    except GyroInputError as exc:
+        raise GyroInputError(f"{where}: {exc}") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise GyroInputError(f"{where}: malformed parameter file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    src = d.get("source") or {}
+    return CalibrationResult(
+        effects=effects, params=params, stderr=stderr, residual_rms_rad_s=rms,
+        unobservable=tuple(d.get("unobservable") or ()),
+        unobservable_reason=dict(d.get("unobservable_reason") or {}),
+        method=str(d.get("method", "")), covariance=str(d.get("covariance", "")),
+        sensor=str(d.get("sensor", "unknown")), source_file=src.get("file"), source_sha256=src.get("sha256"),
+        n_samples=int(d.get("n_samples") or 0), thermal_order=dict(d.get("thermal_order") or {}),
+        thermal_tests=tuple(d.get("thermal_tests") or ()), notes=tuple(d.get("notes") or ()),
+        integral=d.get("integral"), noise_model=_noise_model_from(d.get("noise_model"), where),
+        format_version=ver,
+    )
+
+
+_NOISE_MODEL_KEYS = ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_s_per_sqrt_s", "gm_sigma_rad_s", "gm_tau_c_s")
+
+
+def _noise_model_from(d, where: str) -> dict | None:
+    """The optional ``noise_model`` entry of a parameter file (null τc = inf)."""
+    if not d:
+        return None
+    try:
+        out = {k: _arr(d[k], null=np.inf if k == "gm_tau_c_s" else 0.0).reshape(3) for k in _NOISE_MODEL_KEYS}
+        out["rate_hz"] = float(d.get("rate_hz") or np.nan)
+    except (KeyError, TypeError, ValueError):
+        raise GyroInputError(f"{where}: malformed noise_model entry (needs {', '.join(_NOISE_MODEL_KEYS)}, 3 values each)") from None
+    return out
+
+
+def save_params(result: CalibrationResult, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+    """Write the parameter file (JSON, atomically)."""
+    text = json.dumps(result_to_dict(result), indent=2, allow_nan=False)
+    atomic_write_text(path, text + "\n", overwrite=overwrite)
+
+
+def load_params(path: str | os.PathLike) -> CalibrationResult:
+    """Read a parameter file; a corrupt file or another major version -> one-line error."""
+    path = str(path)
+    if not os.path.isfile(path):
+        raise GyroInputError(f"{path}: no such parameter file")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = json.load(fh)
+    except UnicodeDecodeError:
+        raise GyroInputError(f"{path}: not a parameter file (not UTF-8 text)") from None
+    except json.JSONDecodeError as exc:
+        raise GyroInputError(f"{path}: not a parameter file (JSON error at line {exc.lineno}: {exc.msg})") from None
+    return result_from_dict(d, where=path)

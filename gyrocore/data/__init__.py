@@ -1,0 +1,2 @@
+"""The data a calibration reads and writes: :class:`~gyrocore.data.recording.Recording`, its CSV/Parquet
+file format, atomic writes and column spilling."""

@@ -1,0 +1,1754 @@
+"""The data file of DESIGN.md: one CSV row per sample, unit-suffixed columns, ``#`` metadata
+(or the same columns in a Parquet file, the metadata in its schema; chosen by the file name).
+
+A :class:`Recording` is the in-memory form, shared by measured and simulated data. Arrays are
+SI: rad/s, m/s², °C, seconds; frames: gyro, accel and reference rate in the sensor frame S,
+reference attitude as a unit quaternion ``w, x, y, z`` rotating S to W.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import itertools
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Iterable, Iterator, Mapping
+
+import numpy as np
+
+from gyrocore.errors import GyroInputError, warn_repair
+
+__all__ = [
+    "Recording",
+    "read_csv",
+    "write_csv",
+    "atomic_open",
+    "atomic_write_text",
+    "atomic_write_bytes",
+    "file_sha256",
+    "iter_csv_chunks",
+    "write_csv_chunks",
+    "read_parquet",
+    "write_parquet",
+    "iter_parquet_chunks",
+    "write_parquet_chunks",
+    "read_recording",
+    "write_recording",
+    "iter_chunks",
+    "write_chunks",
+    "is_parquet",
+    "COLUMN_GROUPS",
+    "concat_recordings",
+    "spill_columns",
+    "ColumnSpill",
+    "file_layout",
+    "detect_saturation",
+    "locate_bad_value",
+    "AXES",
+]
+
+AXES = ("x", "y", "z")
+DEG = np.pi / 180.0
+G0_M_S2 = 9.80665
+
+GYRO_COLS = tuple(f"gyro_{a}_rad_s" for a in AXES)
+ACCEL_COLS = tuple(f"accel_{a}_m_s2" for a in AXES)
+REF_RATE_COLS = tuple(f"ref_{a}_rad_s" for a in AXES)
+REF_QUAT_COLS = ("ref_qw", "ref_qx", "ref_qy", "ref_qz")
+TEMP_COL = "temp_c"
+TIME_COL = "t_s"
+#: Time columns accepted in place of ``t_s`` (converted to seconds on read): a logger's
+#: millisecond, microsecond or nanosecond counter (Arduino millis(), PX4 timestamp, ROS stamps).
+TIME_ALTS = {"t_s": 1.0, "t_ms": 1e-3, "t_us": 1e-6, "t_ns": 1e-9}
+#: A t_s column whose median interval is above this is not seconds (no gyro recording is
+#: sampled slower than 0.5 Hz; a millisecond counter at <= 500 Hz, or any microsecond or
+#: nanosecond counter, lands above it): one error line naming t_ms / t_us / t_ns.
+T_S_MAX_MEDIAN_DT_S = 2.0
+#: ... and above this (but not above the limit) a warning: a millisecond counter at 1 kHz has
+#: dt = 1 "s" — as would a genuine 1-Hz log, hence only a warning.
+T_S_SUSPECT_MEDIAN_DT_S = 0.5
+
+# Accepted alternative unit suffixes, converted on read: (suffix, factor to SI suffix).
+_ALT_UNITS = {"_rad_s": [("_deg_s", DEG)], "_m_s2": [("_g", G0_M_S2)]}
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """One recording, measured or simulated.
+
+    Parameters
+    ----------
+    t_s : ndarray, shape (N,)
+        Sample times in seconds, strictly increasing.
+    gyro_rad_s : ndarray, shape (N, 3)
+        Measured angular rate of S w.r.t. inertial space, in S, rad/s.
+    accel_m_s2 : ndarray, shape (N, 3) or None
+        Measured specific force in S, m/s².
+    temp_c : ndarray, shape (N,) or None
+        Sensor (die) temperature, °C.
+    ref_rate_rad_s : ndarray, shape (N, 3) or None
+        Reference (true or commanded) angular rate in S, rad/s.
+    ref_quat_wxyz : ndarray, shape (N, 4) or None
+        Reference attitude, unit quaternion (w, x, y, z) rotating S to W. NaN rows allowed
+        (e.g. optical tracking lost).
+    meta : dict
+        ``# key: value`` metadata lines (strings).
+    extra : dict
+        Any other numeric columns, kept but ignored by the estimators.
+    """
+
+    t_s: np.ndarray
+    gyro_rad_s: np.ndarray
+    accel_m_s2: np.ndarray | None = None
+    temp_c: np.ndarray | None = None
+    ref_rate_rad_s: np.ndarray | None = None
+    ref_quat_wxyz: np.ndarray | None = None
+    meta: Mapping[str, str] = field(default_factory=dict)
+    extra: Mapping[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, dtype=float)
+        n = t.shape[0]
+        object.__setattr__(self, "t_s", t)
+        for name, width in (
+            ("gyro_rad_s", 3),
+            ("accel_m_s2", 3),
+            ("ref_rate_rad_s", 3),
+            ("ref_quat_wxyz", 4),
+            ("temp_c", None),
+        ):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            v = np.asarray(v, dtype=float)
+            want = (n,) if width is None else (n, width)
+            if v.shape != want:
+                raise GyroInputError(f"{name} has shape {v.shape}, expected {want}")
+            object.__setattr__(self, name, v)
+        object.__setattr__(self, "meta", dict(self.meta))
+        object.__setattr__(self, "extra", {k: np.asarray(v, float) for k, v in self.extra.items()})
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.t_s.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        """Time span from first to last sample, s."""
+        return float(self.t_s[-1] - self.t_s[0]) if self.n > 1 else 0.0
+
+    @property
+    def rate_hz(self) -> float:
+        """Mean sample rate, Hz ((N-1)/duration; robust to jittery host timestamps)."""
+        if self.n < 2 or self.duration_s <= 0:
+            meta_rate = self.meta.get("rate_hz")
+            return float(meta_rate) if meta_rate else float("nan")
+        return (self.n - 1) / self.duration_s
+
+    @property
+    def dt_s(self) -> np.ndarray:
+        """Per-sample interval, shape (N,), first element = median interval."""
+        d = np.diff(self.t_s)
+        med = float(np.median(d)) if d.size else 0.0
+        return np.concatenate([[med], d])
+
+    def slice(self, start: int, stop: int) -> "Recording":
+        """Rows ``start:stop`` as a new recording."""
+        s = np.s_[start:stop]
+        return replace(
+            self,
+            t_s=self.t_s[s],
+            gyro_rad_s=self.gyro_rad_s[s],
+            accel_m_s2=None if self.accel_m_s2 is None else self.accel_m_s2[s],
+            temp_c=None if self.temp_c is None else self.temp_c[s],
+            ref_rate_rad_s=None if self.ref_rate_rad_s is None else self.ref_rate_rad_s[s],
+            ref_quat_wxyz=None if self.ref_quat_wxyz is None else self.ref_quat_wxyz[s],
+            extra={k: v[s] for k, v in self.extra.items()},
+        )
+
+    def with_gyro(self, gyro_rad_s: np.ndarray, **meta: str) -> "Recording":
+        """Same recording with the gyro column replaced (e.g. after correction)."""
+        m = dict(self.meta)
+        m.update({k: str(v) for k, v in meta.items()})
+        return replace(self, gyro_rad_s=np.asarray(gyro_rad_s, float), meta=m)
+
+
+# ---------------------------------------------------------------------- writing
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "wb", *, overwrite: bool = True, **open_kw):
+    """Open a temporary file beside ``path``; on success fsync it and rename it onto ``path``.
+
+    An exception (or interrupt) inside the ``with`` block removes the temporary file, so the
+    target is either the old file or the complete new one, never partial. With
+    ``overwrite=False`` an existing target is an error.
+    """
+    path = Path(path)
+    if not overwrite and path.exists():
+        raise GyroInputError(f"{path} exists; pass --force to overwrite it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode, **open_kw) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool = True) -> None:
+    """Write ``data`` to ``path`` atomically (temp file in the same folder + rename).
+
+    An interrupted write leaves either the old file or nothing, never a partial file.
+    With ``overwrite=False`` an existing file is an error.
+    """
+    with atomic_open(path, "wb", overwrite=overwrite) as fh:
+        fh.write(data)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, *, overwrite: bool = True) -> None:
+    """Text version of :func:`atomic_write_bytes` (UTF-8)."""
+    atomic_write_bytes(path, text.encode("utf-8"), overwrite=overwrite)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 hex digest of a file, read in 1 MiB chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _columns(rec: Recording) -> tuple[list[str], list[np.ndarray]]:
+    names: list[str] = [TIME_COL, *GYRO_COLS]
+    cols: list[np.ndarray] = [rec.t_s[:, None], rec.gyro_rad_s]
+    if rec.accel_m_s2 is not None:
+        names += ACCEL_COLS
+        cols.append(rec.accel_m_s2)
+    if rec.temp_c is not None:
+        names.append(TEMP_COL)
+        cols.append(rec.temp_c[:, None])
+    if rec.ref_rate_rad_s is not None:
+        names += REF_RATE_COLS
+        cols.append(rec.ref_rate_rad_s)
+    if rec.ref_quat_wxyz is not None:
+        names += REF_QUAT_COLS
+        cols.append(rec.ref_quat_wxyz)
+    for k, v in rec.extra.items():
+        names.append(k)
+        cols.append(v[:, None])
+    return names, cols
+
+
+#: Rows formatted at a time when a long recording is written (bounded text buffer).
+WRITE_CHUNK_ROWS = 65_536
+
+
+def write_csv(rec: Recording, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+    """Write ``rec`` as the DESIGN.md data file, atomically.
+
+    Floats are written with 17 significant digits (``%.17g``) so that a write/read round
+    trip is bit-exact.
+    """
+    if rec.n > WRITE_CHUNK_ROWS:  # streamed, same bytes: no whole-file text in memory
+        write_csv_chunks((rec.slice(i, i + WRITE_CHUNK_ROWS) for i in range(0, rec.n, WRITE_CHUNK_ROWS)), path,
+                         overwrite=overwrite)
+        return
+    names, cols = _columns(rec)
+    data = np.hstack(cols) if cols else np.empty((0, 0))
+    buf = io.StringIO()
+    for k, v in rec.meta.items():
+        buf.write(f"# {k}: {str(v).replace(chr(10), ' ')}\n")
+    buf.write(",".join(names) + "\n")
+    np.savetxt(buf, data, delimiter=",", fmt="%.17g")
+    atomic_write_text(path, buf.getvalue(), overwrite=overwrite)
+
+
+# ---------------------------------------------------------------------- reading
+#: Largest plausible MEMS gyro full scale: ±2000 °/s = 34.9 rad/s (ICM-42688, BMI160, MPU-6050
+#: at their widest range; the fastest parts stop at ±4000 °/s = 69.8 rad/s). Peaks above
+#: :data:`DEG_S_SUSPECT_RAD_S` in a column labelled rad/s are taken as deg/s mislabelled.
+DEG_S_SUSPECT_RAD_S = 70.0
+#: Per-sample noise of a still MEMS gyro is far below 0.05 rad/s (2.9 °/s); a still recording
+#: whose noise exceeds it is reported as probably deg/s labelled rad/s.
+STILL_NOISE_SUSPECT_RAD_S = 0.05
+#: Fraction of the available memory a whole-file read may use before it is refused.
+MEMORY_FRACTION = 0.5
+#: Bytes of memory per parsed value while reading: float64 table + column copies + masks.
+#: Measured: a 1 M-row × 8-column file (164 MB) raised the peak RSS by ≈ 260 MB ≈ 32 B/value.
+_BYTES_PER_VALUE = 32
+
+
+def _available_memory_bytes() -> int:
+    """Available physical memory (psutil); tests monkeypatch this."""
+    import psutil
+
+    return int(psutil.virtual_memory().available)
+
+
+def _check_path(path: str) -> None:
+    """Existence, folder, permission and empty-file checks with one-line errors."""
+    if not os.path.exists(path):
+        raise GyroInputError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise GyroInputError(f"{path}: is a directory, not a data file")
+    if not os.access(path, os.R_OK):
+        raise GyroInputError(f"{path}: not readable (permission denied)")
+    if os.path.getsize(path) == 0:
+        raise GyroInputError(f"{path}: empty file")
+
+
+def _sniff_file(path: str) -> None:
+    """Existence, folder, empty, binary and encoding checks with one-line errors."""
+    _check_path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(8192)
+    if head.startswith(b"\x89HDF") or head.startswith(b"ULog") or head.startswith(b"MATLAB"):
+        raise GyroInputError(f"{path}: binary file (HDF5/MATLAB/ULog); convert it first: gyroharness convert {path} -o OUT.csv")
+    if head.startswith(b"H Product:Blackbox") or head.startswith(b"\xa3\x95\x80"):
+        kind = "blackbox log" if head.startswith(b"H") else "ArduPilot DataFlash log"
+        raise GyroInputError(f"{path}: {kind}, not a data file; convert it first: gyroharness convert {path} -o OUT.csv")
+    if b"\x00" in head:
+        raise GyroInputError(f"{path}: binary file, expected a CSV data file")
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not just a multibyte char cut at the 8 KiB boundary
+            raise GyroInputError(f"{path}: not UTF-8 text (binary file?), expected a CSV data file") from None
+
+
+def locate_bad_value(path: str, *, skiprows: int, delimiter: str | None = ",", ncols: int | None = None) -> str:
+    """One-line description of the first unparseable line of a numeric table.
+
+    Names the file line number (1-based), the column (name when ``header`` known by the
+    caller, else 1-based index) and the offending text.
+    """
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if lineno <= skiprows:
+                continue
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            fields = s.split(delimiter) if delimiter else s.split()
+            if ncols is not None and len(fields) != ncols:
+                return f"{path}: line {lineno}: {len(fields)} values, expected {ncols}"
+            for j, f in enumerate(fields, 1):
+                try:
+                    float(f)
+                except ValueError:
+                    return f"{path}: line {lineno}, column {j}: text in a number ({f.strip()[:40]!r})"
+    return f"{path}: rows have different numbers of values"
+
+
+def _parse_rows(lines: list[str], first_lineno: int, header: list[str], path: str) -> tuple[np.ndarray, int]:
+    """Slow exact parser (used when the fast one fails): empty fields → NaN, else one-line errors.
+
+    Returns the array and the number of empty fields that were read as NaN.
+    """
+    n = len(header)
+    out = []
+    n_empty = 0
+    for k, line in enumerate(lines):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        f = s.split(",")
+        if len(f) != n:
+            raise GyroInputError(f"{path}: line {first_lineno + k}: {len(f)} values but the header names {n} columns")
+        row = []
+        for j, v in enumerate(f):
+            v = v.strip()
+            if v == "":
+                n_empty += 1
+                row.append(np.nan)
+                continue
+            try:
+                row.append(float(v))
+            except ValueError:
+                raise GyroInputError(
+                    f"{path}: line {first_lineno + k}, column {header[j]!r}: text in a number ({v[:40]!r})"
+                ) from None
+        out.append(row)
+    return (np.asarray(out, dtype=float).reshape(-1, n), n_empty)
+
+
+def _slow_parse(lines: list[str], first_lineno: int, header: list[str], path: str) -> np.ndarray:
+    data, n_empty = _parse_rows(lines, first_lineno, header, path)
+    if n_empty:
+        warn_repair(f"{path}: {n_empty} empty fields read as missing values (NaN)")
+    return data
+
+
+# ---------------------------------------------------------------- the C/Arrow parser
+#: Bytes per Arrow CSV block (rounded to whole lines by Arrow). Arrow's streaming reader
+#: reads blocks ahead, so its memory grows with the block size: measured on a 608 MiB file,
+#: peak RSS above the imports 74 MiB at 256 KiB, 100 MiB at 512 KiB, 225 MiB at 4 MiB, for
+#: the same speed (5.3-5.7 s under load 13).
+_MIN_BLOCK_BYTES = 256 << 10
+_MAX_BLOCK_BYTES = 256 << 10
+
+
+class _NotClean(Exception):
+    """The Arrow parser refused the table (or found empty fields): use the exact parser."""
+
+
+def _data_offset(path: str, n_skip: int) -> int | None:
+    """Byte offset of the first data line, or None when the header lines end in a lone CR
+    (old Mac text: the text-mode line count does not match bytes; the exact parser reads it)."""
+    with open(path, "rb") as fh:
+        for _ in range(n_skip):
+            line = fh.readline()
+            if b"\r" in line.rstrip(b"\r\n"):
+                return None
+        return fh.tell()
+
+
+def _arrow_options(header: list[str], want: list[int], block_size: int | None = None):
+    """Arrow CSV options for a clean DESIGN.md table: no quotes, ``,`` only, float64 columns,
+    only empty fields as null (``nan``/``inf`` are numbers, as for ``float``)."""
+    import pyarrow as pa
+    import pyarrow.csv as pc
+
+    names = [f"c{i}" for i in range(len(header))]  # header names were validated already
+    ro = pc.ReadOptions(column_names=names, use_threads=True, **({"block_size": block_size} if block_size else {}))
+    po = pc.ParseOptions(delimiter=",", quote_char=False, double_quote=False, escape_char=False,
+                         newlines_in_values=False, ignore_empty_lines=True)
+    co = pc.ConvertOptions(column_types={names[i]: pa.float64() for i in want},
+                           include_columns=[names[i] for i in want], null_values=[""],
+                           strings_can_be_null=False, quoted_strings_can_be_null=False)
+    return ro, po, co, [names[i] for i in want]
+
+
+def _is_float64_array(col) -> bool:
+    import pyarrow as pa
+
+    return isinstance(col, pa.Array) and pa.types.is_float64(col.type)
+
+
+def _to_numpy(col) -> np.ndarray:
+    """Arrow (chunked) float64 column -> writable numpy array; empty fields -> _NotClean."""
+    if col.null_count:
+        raise _NotClean("empty fields")
+    import pyarrow as pa
+
+    if isinstance(col, pa.Array) and pa.types.is_float64(col.type):
+        # the values buffer read directly and copied: the same bytes as to_numpy(), without
+        # the ~50 MiB that pyarrow's numpy conversion keeps resident once used (measured on a
+        # one-hour 15-column file)
+        return np.frombuffer(col.buffers()[1], dtype=np.float64, count=len(col), offset=col.offset * 8).copy()
+    arr = col.to_numpy()
+    return arr if arr.flags.writeable else arr.copy()
+
+
+class _Moments:
+    """Running per-column mean/variance of columns read only for a check (never held whole);
+    shifted sums (shift = first value) keep the variance exact to rounding."""
+
+    def __init__(self, idx: list[int]) -> None:
+        self.idx = list(idx)
+        self.n = 0
+        self.shift = None
+        self.s1 = np.zeros(len(idx))
+        self.s2 = np.zeros(len(idx))
+
+    def update(self, cols: dict[int, np.ndarray]) -> None:
+        if not self.idx:
+            return
+        x = [cols.pop(i) for i in self.idx]
+        if x[0].size == 0:
+            return
+        if self.shift is None:
+            self.shift = np.array([float(v[0]) for v in x])
+        for j, v in enumerate(x):
+            d = v - self.shift[j]
+            self.s1[j] += float(d.sum())
+            self.s2[j] += float(np.dot(d, d))
+        self.n += x[0].size
+
+    def std(self) -> np.ndarray | None:
+        if not self.idx or self.n < 2:
+            return None
+        m = self.s1 / self.n
+        return np.sqrt(np.maximum(self.s2 / self.n - m * m, 0.0))
+
+
+class _Filler:
+    """The final arrays of a whole read (the Recording's own, SI, groups as (N, k)),
+    preallocated for an upper bound of the row count and filled block by block: the columns
+    are held once — never lists of blocks plus their concatenation (which, with the
+    allocator's fragmentation, measured 2-4x the data). Check-only accel columns are reduced
+    to running moments."""
+
+    def __init__(self, layout: "_Layout", capacity: int) -> None:
+        self.layout = layout
+        self.n = 0
+        cap = max(int(capacity), 1)
+        self.t = np.empty(cap)
+        self.groups = {name: np.empty((cap, len(blk[0])))
+                       for name, blk in (("gyro", layout.gyro), ("accel", layout.accel), ("rref", layout.rref),
+                                         ("qref", layout.qref)) if blk is not None}
+        self.temp = np.empty(cap) if layout.temp is not None else None
+        self.extra = {h: np.empty(cap) for h, _ in layout.extra}
+        self.moments = layout.moments()
+
+    def _arrays(self):
+        yield "t", self.t
+        yield from self.groups.items()
+        if self.temp is not None:
+            yield "temp", self.temp
+        for h, v in self.extra.items():
+            yield "extra:" + h, v
+
+    def _grow(self, need: int) -> None:
+        cap = max(need, int(self.t.shape[0] * 1.5) + 1)
+        for name, old in list(self._arrays()):
+            new = np.empty((cap,) + old.shape[1:])
+            new[: self.n] = old[: self.n]
+            if name == "t":
+                self.t = new
+            elif name == "temp":
+                self.temp = new
+            elif name.startswith("extra:"):
+                self.extra[name[6:]] = new
+            else:
+                self.groups[name] = new
+
+    def add(self, blk: dict[int, np.ndarray]) -> None:
+        L = self.layout
+        self.moments.update(blk)
+        m = len(blk[L.t])
+        if m == 0:
+            return
+        if self.n + m > self.t.shape[0]:
+            self._grow(self.n + m)
+        s = slice(self.n, self.n + m)
+        if L.t_factor == 1.0:
+            self.t[s] = blk[L.t]
+        else:
+            np.multiply(blk[L.t], L.t_factor, out=self.t[s])
+        for name, arr in self.groups.items():
+            idx, fac = getattr(L, {"gyro": "gyro", "accel": "accel", "rref": "rref", "qref": "qref"}[name])
+            for j, (i, f) in enumerate(zip(idx, fac)):
+                if f == 1.0:
+                    arr[s, j] = blk[i]
+                else:
+                    np.multiply(blk[i], f, out=arr[s, j])
+        if self.temp is not None:
+            self.temp[s] = blk[L.temp]
+        for h, i in L.extra:
+            self.extra[h][s] = blk[i]
+        self.n += m
+
+    def columns(self):
+        """(t, gyro, accel, temp, rref, qref, extra) trimmed to the rows read (views)."""
+        n = self.n
+        g = self.groups
+        return (self.t[:n], g["gyro"][:n], g["accel"][:n] if "accel" in g else None,
+                None if self.temp is None else self.temp[:n], g["rref"][:n] if "rref" in g else None,
+                g["qref"][:n] if "qref" in g else None, {h: v[:n] for h, v in self.extra.items()})
+
+
+def _count_lines(path: str, offset: int) -> int:
+    """Newlines after ``offset`` + 1: an upper bound of the data rows (16 MiB at a time)."""
+    n = 1
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        for chunk in iter(lambda: fh.read(16 << 20), b""):
+            n += chunk.count(b"\n")
+    return n
+
+
+def _rechunk(blocks: Iterable[dict[int, np.ndarray]], rows: int) -> Iterator[dict[int, np.ndarray]]:
+    """Blocks of any size -> blocks of exactly ``rows`` rows (the last one shorter)."""
+    pending: list[dict[int, np.ndarray]] = []
+    n_pending = 0
+    for blk in blocks:
+        m = len(next(iter(blk.values()))) if blk else 0
+        if m == 0:
+            continue
+        pending.append(blk)
+        n_pending += m
+        if n_pending < rows:
+            continue
+        cat = {i: np.concatenate([b[i] for b in pending]) for i in pending[0]}
+        k = 0
+        while n_pending - k >= rows:
+            yield {i: v[k:k + rows].copy() for i, v in cat.items()}
+            k += rows
+        pending = [{i: v[k:] for i, v in cat.items()}] if n_pending > k else []
+        n_pending -= k
+    if n_pending:
+        yield {i: np.concatenate([b[i] for b in pending]) for i in pending[0]}
+
+
+def _arrow_stream(path: str, offset: int, header: list[str], want: list[int], block_size: int):
+    import pyarrow as pa
+    import pyarrow.csv as pc
+
+    ro, po, co, names = _arrow_options(header, want, block_size)
+    try:
+        src = pa.OSFile(path)
+        src.seek(offset)
+        reader = pc.open_csv(src, read_options=ro, parse_options=po, convert_options=co)
+        for batch in reader:
+            yield {i: _to_numpy(batch.column(k)) for k, i in enumerate(want)}
+    except (pa.ArrowException, UnicodeDecodeError) as exc:
+        raise _NotClean(str(exc)) from None
+
+
+def _block_size(path: str, offset: int, rows: int, ncols: int) -> int:
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        sample = fh.read(1 << 16)
+    per_line = len(sample) / max(sample.count(b"\n"), 1) if sample else 20.0 * ncols
+    return int(min(max(rows * per_line, _MIN_BLOCK_BYTES), _MAX_BLOCK_BYTES))
+
+
+def _data_lines(fh, skip_rows: int, first_lineno: int) -> int:
+    """Advance ``fh`` past ``skip_rows`` data rows (blank and ``#`` lines not counted);
+    returns the file line number of the next line."""
+    lineno = first_lineno
+    while skip_rows > 0:
+        line = fh.readline()
+        if not line:
+            break
+        lineno += 1
+        s = line.strip()
+        if s and not s.startswith("#"):
+            skip_rows -= 1
+    return lineno
+
+
+def _csv_blocks(path: str, header: list[str], n_skip: int, want: list[int], rows: int) -> Iterator[dict[int, np.ndarray]]:
+    """Data blocks of exactly ``rows`` rows: Arrow's streaming C++ reader while the table is
+    clean; from the first block it refuses (text in a number, wrong value count, empty
+    field, ``#`` line, bad UTF-8) the exact line parser takes over at that data row, so the
+    messages name the file line and column and empty fields are counted as before."""
+    offset = _data_offset(path, n_skip)
+    n_done = 0
+    if offset is not None:
+        try:
+            for blk in _rechunk(_arrow_stream(path, offset, header, want, _block_size(path, offset, rows, len(header))), rows):
+                yield blk
+                n_done += len(blk[want[0]])
+            return
+        except _NotClean:
+            pass
+    yield from _exact_blocks(path, header, n_skip, want, n_done, n_skip + 1, rows)
+
+
+def _check_memory(path: str, n_header_lines: int, ncols: int, *, est_rows: int | None = None) -> None:
+    """Refuse a whole-file read that would not fit comfortably in memory (``ncols``: the
+    columns actually read)."""
+    size = os.path.getsize(path)
+    if est_rows is not None:
+        _refuse_if_large(path, size, est_rows, ncols)
+        return
+    with open(path, "rb") as fh:
+        sample = fh.read(1 << 16)
+    lines = sample.count(b"\n")
+    avg_line = len(sample) / max(lines, 1)
+    _refuse_if_large(path, size, int(size / max(avg_line, 1.0)), ncols)
+
+
+def _refuse_if_large(path: str, size: int, est_rows: int, ncols: int) -> None:
+    need = est_rows * ncols * _BYTES_PER_VALUE
+    avail = _available_memory_bytes()
+    if need > MEMORY_FRACTION * avail:
+        raise GyroInputError(
+            f"{path}: {size / 2**20:.0f} MiB (~{est_rows:,} rows) needs ~{need / 2**20:.0f} MiB to load, more than "
+            f"{MEMORY_FRACTION:.0%} of the {avail / 2**20:.0f} MiB available; read it in chunks "
+            f"(gyrocore.data.recording.iter_csv_chunks, or gyroharness convert which streams CSV files)"
+        )
+
+
+def _header_info(path: str) -> tuple[dict[str, str], list[str], int]:
+    try:
+        with open(path, "r", encoding="utf-8") as fh:
+            meta, header, n_skip = _parse_header(fh, path)
+    except UnicodeDecodeError:
+        raise GyroInputError(f"{path}: not UTF-8 text, expected a CSV data file") from None
+    _check_header(header, path)
+    return meta, header, n_skip
+
+
+def _time_col(header: list[str], path: str) -> tuple[int, float]:
+    """Index of the time column (``t_s`` or one of :data:`TIME_ALTS`) and its factor to seconds."""
+    found = [(h, header.index(h)) for h in TIME_ALTS if h in header]
+    if len(found) > 1:
+        raise GyroInputError(f"{path}: several time columns ({', '.join(h for h, _ in found)}); keep one")
+    if not found:
+        hint = ""
+        if len(header) == 1 and any(c in header[0] for c in ";\t|"):
+            sep = next(c for c in ";\t|" if c in header[0])
+            hint = (f" (the header is one column {header[0][:60]!r}: the file is separated by "
+                    f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)")
+        raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
+    h, i = found[0]
+    return i, TIME_ALTS[h]
+
+
+def _check_header(header: list[str], path: str) -> None:
+    _time_col(header, path)
+    if len(set(header)) != len(header):
+        dup = sorted({h for h in header if header.count(h) > 1})
+        raise GyroInputError(f"{path}: duplicate column names in header ({', '.join(dup)})")
+    if "" in header:
+        raise GyroInputError(f"{path}: empty column name in header")
+
+
+def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int]:
+    """Column groups present in a data file (CSV or Parquet) and its estimated number of rows,
+    from the header and the file size only (no data read).
+
+    Returns
+    -------
+    groups : tuple of str
+        Those of :data:`COLUMN_GROUPS` the header holds (``extra``: any other column).
+    est_rows : int
+        Parquet: the row count of its metadata; CSV: the file size over the mean length of
+        the first 64 KiB of lines.
+    """
+    path = str(path)
+    if is_parquet(path):
+        pf, header, _m = _open_parquet(path)
+        est = int(pf.metadata.num_rows)
+    else:
+        _sniff_file(path)
+        _m, header, _n = _header_info(path)
+        with open(path, "rb") as fh:
+            sample = fh.read(1 << 16)
+        est = int(os.path.getsize(path) / max(len(sample) / max(sample.count(b"\n"), 1), 1.0))
+    lay = _Layout(header, path)
+    present = {"accel": lay.accel is not None, "temp": lay.temp is not None, "ref_rate": lay.rref is not None,
+               "ref_quat": lay.qref is not None, "extra": bool(lay.extra)}
+    return tuple(g for g in COLUMN_GROUPS if present[g]), est
+
+
+#: Column groups a reader can be asked for (``columns=``); ``t_s`` and the gyro are always read.
+COLUMN_GROUPS = ("accel", "temp", "ref_rate", "ref_quat", "extra")
+
+
+class _Layout:
+    """Which header columns go where, with their SI factors; ``keep`` limits the groups read
+    (None: all). Every group of the header is validated either way."""
+
+    def __init__(self, header: list[str], path: str, keep: Iterable[str] | None = None) -> None:
+        self.header = header
+        self.check_accel: list[int] = []
+        self.accel_factor = None
+        self.t, self.t_factor = _time_col(header, path)
+        self.gyro = self._block(GYRO_COLS, path, required=True)
+        self.accel = self._block(ACCEL_COLS, path)
+        self.rref = self._block(REF_RATE_COLS, path)
+        self.qref = self._block(REF_QUAT_COLS, path)
+        self.temp = header.index(TEMP_COL) if TEMP_COL in header else None
+        used = {self.t, *(self.gyro[0] if self.gyro else ()), *(self.accel[0] if self.accel else ()),
+                *(self.rref[0] if self.rref else ()), *(self.qref[0] if self.qref else ())}
+        if self.temp is not None:
+            used.add(self.temp)
+        self.extra = [(h, i) for i, h in enumerate(header) if i not in used]
+        self.gyro_unit_col = header[self.gyro[0][0]]
+        if keep is not None:
+            keep = set(keep)
+            bad = sorted(keep - set(COLUMN_GROUPS))
+            if bad:
+                raise ValueError(f"unknown column group(s) {bad}; choose from {COLUMN_GROUPS}")
+            if "accel" not in keep:
+                # still read for the unit check (accel steady?), as running moments only
+                self.check_accel = list(self.accel[0]) if self.accel is not None else []
+                self.accel_factor = None if self.accel is None else self.accel[1]
+                self.accel = None
+            if "temp" not in keep:
+                self.temp = None
+            if "ref_rate" not in keep:
+                self.rref = None
+            if "ref_quat" not in keep:
+                self.qref = None
+            if "extra" not in keep:
+                self.extra = []
+        want = {self.t, *self.gyro[0]}
+        for blk in (self.accel, self.rref, self.qref):
+            if blk is not None:
+                want.update(blk[0])
+        if self.temp is not None:
+            want.add(self.temp)
+        want.update(i for _, i in self.extra)
+        want.update(self.check_accel)
+        #: header indices to read, in file order (with the check-only accel columns)
+        self.want = sorted(want)
+
+    def moments(self) -> "_Moments":
+        return _Moments(self.check_accel)
+
+    def accel_std(self, moments: "_Moments"):
+        """Per-axis std (m/s²) of accel columns read for the check only, or None."""
+        sd = moments.std()
+        return None if sd is None else sd * self.accel_factor
+
+    def _block(self, names, path, *, required=False):
+        idx, fac = zip(*(_find(self.header, n) for n in names))
+        if all(i is None for i in idx):
+            if required:
+                raise GyroInputError(f"{path}: missing required column(s) {', '.join(names)}")
+            return None
+        if any(i is None for i in idx):
+            missing = [n for n, i in zip(names, idx) if i is None]
+            raise GyroInputError(f"{path}: incomplete column group, missing {', '.join(missing)}")
+        return list(idx), np.asarray(fac)
+
+    def take(self, cols: dict[int, np.ndarray], block, *, pop: bool = False):
+        """(N, k) SI array of a column group from ``{header index: column}`` (a new array)."""
+        if block is None:
+            return None
+        get = cols.pop if pop else cols.__getitem__
+        out = np.empty((cols[block[0][0]].shape[0], len(block[0])))
+        for j, (i, f) in enumerate(zip(block[0], block[1])):
+            c = get(i)  # popped one at a time: the single column is freed once copied
+            if f == 1.0:
+                out[:, j] = c
+            else:
+                np.multiply(c, f, out=out[:, j])
+            del c
+        return out
+
+
+def _find(header: list[str], si_name: str) -> tuple[int | None, float]:
+    """Index of column ``si_name`` or of an accepted alternative unit, and its SI factor."""
+    if si_name in header:
+        return header.index(si_name), 1.0
+    for si_suffix, alts in _ALT_UNITS.items():
+        if si_name.endswith(si_suffix):
+            stem = si_name[: -len(si_suffix)]
+            for suffix, factor in alts:
+                if stem + suffix in header:
+                    return header.index(stem + suffix), factor
+    return None, 1.0
+
+
+def _valid_rows(t, gyro, accel, temp, path, repair, *, t_prev: float = -np.inf) -> tuple[np.ndarray, int, int]:
+    """Mask of rows kept: finite time/gyro/accel/temp, strictly increasing time."""
+    keep = np.isfinite(t) & np.all(np.isfinite(gyro), axis=1)
+    if accel is not None:
+        keep &= np.all(np.isfinite(accel), axis=1)
+    if temp is not None:
+        keep &= np.isfinite(temp)
+    n_bad = int((~keep).sum())
+    if n_bad and not repair:
+        raise GyroInputError(f"{path}: {n_bad} rows with NaN/inf values")
+    all_kept = not n_bad
+    t_k = t if all_kept else t[keep]
+    n_back = 0
+    if t_k.size and all_kept and t_k[0] > t_prev and bool(np.all(t_k[1:] > t_k[:-1])):
+        return keep, n_bad, 0  # strictly increasing (the usual case): no running-max copies
+    if t_k.size:
+        running_max = np.maximum.accumulate(np.concatenate([[t_prev], t_k]))
+        mono = t_k > running_max[:-1]
+        n_back = int((~mono).sum())
+        if n_back:
+            if not repair:
+                raise GyroInputError(f"{path}: {n_back} timestamps go backwards or repeat")
+            idx = np.flatnonzero(keep)
+            keep[idx[~mono]] = False
+    return keep, n_bad, n_back
+
+
+def _robust_noise(x: np.ndarray) -> float:
+    """Per-sample white-noise σ from first differences: 1.4826·MAD(Δx)/√2; the smallest
+    non-zero step when more than half of the differences are exactly zero (coarse quantum)."""
+    d = np.diff(x)
+    if d.size == 0:
+        return 0.0
+    # in place (the median and the MAD do not depend on the order of d, which the partition
+    # permutes): the same values with d as the only temporary
+    med = np.median(d, overwrite_input=True)
+    np.subtract(d, med, out=d)
+    np.abs(d, out=d)
+    mad = float(np.median(d, overwrite_input=True))
+    if mad > 0:
+        return 1.4826 * mad / np.sqrt(2.0)
+    d = np.diff(x)
+    nz = np.abs(d[d != 0])
+    return float(nz.min()) if nz.size else 0.0
+
+
+def _robust_noise_consuming(x: np.ndarray, block: int = 1 << 20) -> float | None:
+    """:func:`_robust_noise` of a fresh 1-D array, overwriting it: the first differences are
+    formed in place block by block (block [a, b) reads x[a..b], none of it overwritten yet),
+    so no second (N,) array is made. None when the MAD is 0 (the fallback needs the data)."""
+    n = x.shape[0]
+    if n < 2:
+        return 0.0
+    for a in range(0, n - 1, block):
+        b = min(a + block, n - 1)
+        x[a:b] = x[a + 1:b + 1] - x[a:b]
+    d = x[: n - 1]
+    med = np.median(d, overwrite_input=True)
+    np.subtract(d, med, out=d)
+    np.abs(d, out=d)
+    mad = float(np.median(d, overwrite_input=True))
+    return 1.4826 * mad / np.sqrt(2.0) if mad > 0 else None
+
+
+def detect_saturation(
+    x: np.ndarray, *, min_run: int = 3, min_clip: np.ndarray | float = 0.0
+) -> tuple[np.ndarray, list[tuple[int, float, int]]]:
+    """Samples clipped at a plateau: runs of identical values at a column's extreme.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, K)
+        Samples (any unit), one column per axis.
+    min_run : int
+        Shortest run of identical extreme values counted as a plateau.
+    min_clip : float or ndarray, shape (K,)
+        Smallest |plateau| that can be a clip level, per column (same unit as ``x``): no
+        sensor clips below its smallest full-scale setting, so a plateau below it (e.g. an
+        exactly constant simulated 1 g at rest) is a steady reading, not saturation.
+
+    Returns
+    -------
+    mask : ndarray of bool, shape (N,)
+        True where any column sits at a detected plateau.
+    found : list of (column, plateau value, sample count)
+
+    Notes
+    -----
+    A clipped signal piles up at its limit: the value at the extreme repeats in runs, and
+    more samples sit exactly at the extreme than in the 3σ band just inside it (a peak
+    passes that band quickly). Gaussian noise about a constant rate (e.g. a rate table)
+    has its maximum in the tail with far fewer samples than the band inside; the extreme
+    must also be 10σ from the median, so a still recording never qualifies. Columns where
+    most consecutive samples are identical (noise-free or coarsely quantized) get no
+    verdict: there a run of equal values is normal.
+    """
+    x = np.asarray(x, float)
+    if x.ndim == 1:
+        x = x[:, None]
+    mask = np.zeros(x.shape[0], bool)
+    found = []
+    floor = np.broadcast_to(np.asarray(min_clip, float), (x.shape[1],))
+    for j in range(x.shape[1]):
+        col = x[:, j]
+        fin = np.isfinite(col)
+        if fin.sum() < 10:
+            continue
+        c = col if fin.all() else col[fin]  # no copy of an all-finite column
+        c_max, c_min = float(c.max()), float(c.min())
+        if int(np.count_nonzero(c == c_max)) < min_run and int(np.count_nonzero(c == c_min)) < min_run:
+            continue  # neither extreme repeats: no plateau possible (skips the medians below)
+        inner = (c != c_max) & (c != c_min)
+        d = np.diff(c)[inner[1:] & inner[:-1]]
+        mad = float(np.median(np.abs(d - np.median(d)))) if d.size >= 10 else 0.0
+        if d.size < 10 or mad == 0.0:
+            # away from the extremes most consecutive samples are identical (noise-free
+            # simulation, or a quantum coarser than the noise): repeated values are normal
+            # there and clipping cannot be told from a constant rate — no verdict
+            continue
+        sigma = 1.4826 * mad / np.sqrt(2.0)
+        med = float(np.median(c))
+        for ext in (float(c.max()), float(c.min())):
+            at = col == ext
+            n_at = int(at.sum())
+            if n_at < min_run or abs(ext - med) <= 10.0 * max(sigma, 1e-300) or abs(ext) < floor[j]:
+                continue
+            # longest run of consecutive samples at the extreme
+            edges = np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))
+            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+            if runs.max() < min_run:
+                continue
+            band = 3.0 * sigma if sigma > 0 else abs(ext - med) * 0.01
+            inside = (np.abs(col - ext) <= band) & ~at
+            if n_at <= int(inside.sum()):
+                continue
+            mask |= at
+            found.append((j, ext, n_at))
+    return mask, found
+
+
+def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
+    """Warn when a column labelled rad/s carries deg/s (magnitude evidence), or error."""
+    if not gyro_col.endswith("_rad_s") or gyro.shape[0] < 2:
+        return
+    peak = max(float(np.max(gyro)), -float(np.min(gyro)))  # = max |gyro|, without an (N, 3) temporary
+    if peak > DEG_S_SUSPECT_RAD_S:
+        raise GyroInputError(
+            f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
+            f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
+        )
+    # still recording (accel steady, std < 0.05 g): a MEMS gyro at rest has per-sample noise
+    # < 0.05 rad/s (2.9 deg/s; even 0.01 deg/s/sqrt(Hz) at 8 kHz is 0.9 deg/s); deg/s numbers
+    # read as rad/s are 57x too big (an MPU-6050's 0.1 deg/s becomes 0.1 "rad/s").
+    # (accel_std: the accel was read for this check only, as running moments)
+    sd = np.std(accel, axis=0) if accel is not None else accel_std
+    if sd is None or not bool(np.all(sd < 0.05 * G0_M_S2)):
+        return
+    med = np.array([np.median(gyro[:, i]) for i in range(3)])  # per column: no (N, 3) copy
+    noise = np.array([_robust_noise(gyro[:, i]) for i in range(3)])
+    # (a large median alone is not evidence: a centred sensor on a turning rate table also has steady accel)
+    if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
+        warn_repair(
+            f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
+            f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
+            f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
+            f"Data left unchanged"
+        )
+
+
+def _time_unit_check(med_dt_s: float, path: str, time_col: str) -> None:
+    """One error line (median interval > :data:`T_S_MAX_MEDIAN_DT_S`) or warning
+    (> :data:`T_S_SUSPECT_MEDIAN_DT_S`) when a column labelled seconds is evidently a counter."""
+    if time_col != TIME_COL or not (med_dt_s > T_S_SUSPECT_MEDIAN_DT_S):
+        return
+    what = (f"{path}: column t_s has a median sample interval of {med_dt_s:.6g} s ({1 / med_dt_s:.3g} Hz)")
+    if med_dt_s > T_S_MAX_MEDIAN_DT_S:
+        raise GyroInputError(
+            f"{what}, slower than any gyro log: the time is probably in ms, us or ns — rename the column "
+            f"t_ms, t_us or t_ns (converted on read)"
+        )
+    warn_repair(f"{what}: if the time is a millisecond counter (a 1 kHz log), rename the column t_ms; data kept as seconds")
+
+
+def _timing_checks(t: np.ndarray, path: str, retime: bool, time_col: str = TIME_COL) -> np.ndarray:
+    """Warn on gaps (dropped samples) and bursty host timestamps; retime on request."""
+    d = np.diff(t)
+    if d.size < 2:
+        return t
+    mean = float((t[-1] - t[0]) / d.size)
+    mx = float(d.max())
+    # the partition permutes d in place; what follows (max, counts, a sum of integers) does
+    # not depend on the order: the same values with d as the only temporary
+    med = float(np.median(d, overwrite_input=True))
+    _time_unit_check(med, path, time_col)
+    if med < 0.5 * mean and mx > 4.0 * mean:
+        if retime:
+            warn_repair(
+                f"{path}: bursty host timestamps (median dt {med * 1e3:.3g} ms, mean {mean * 1e3:.3g} ms, gaps up to "
+                f"{mx:.3g} s) replaced by a uniform grid at the mean rate {1 / mean:.6g} Hz"
+            )
+            return t[0] + np.arange(t.size) * ((t[-1] - t[0]) / (t.size - 1))
+        warn_repair(
+            f"{path}: bursty host timestamps (median dt {med * 1e3:.3g} ms, mean {mean * 1e3:.3g} ms, gaps up to "
+            f"{mx:.3g} s); rates and Allan variance need a uniform grid: use --retime (gyroharness convert)"
+        )
+        return t
+    gaps = d > 1.5 * med
+    if med > 0 and gaps.any():
+        n_missing = int(np.sum(np.round(d[gaps] / med) - 1))
+        warn_repair(
+            f"{path}: {int(gaps.sum())} gaps longer than 1.5x the median interval {med * 1e3:.3g} ms "
+            f"(longest {mx:.3g} s, ~{n_missing} samples missing in all); data kept as recorded"
+        )
+    return t
+
+
+def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool, retime: bool, accel_std=None) -> Recording:
+    """Post-parse checks common to the whole-file and chunked readers."""
+    span = np.subtract(t[-1], t[0], dtype=float) if t.size else 0.0
+    with np.errstate(all="ignore"):
+        if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
+            raise GyroInputError(f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})")
+    if checks:
+        with np.errstate(all="ignore"):  # absurd finite values (1e300) must not print overflow warnings
+            _unit_checks(t, gyro, accel, path, meta.pop("__gyro_col__", "gyro_x_rad_s"), accel_std=accel_std)
+            if meta.get("stream") == "batch":  # ArduPilot batch sampler: windows with gaps by design
+                meta.pop("__time_col__", None)
+            else:
+                t = _timing_checks(t, path, retime, meta.pop("__time_col__", TIME_COL))
+        with np.errstate(all="ignore"):
+            # smallest full scales on the market: gyro ±125 deg/s (BMI088, ICM-42688-P low
+            # ranges), accel ±2 g; a plateau below 90 % of these cannot be clipping.
+            # (gyro and accel separately: no (N, 6) copy of the columns)
+            sat, found = detect_saturation(gyro, min_clip=0.9 * 125.0 * DEG)
+            if accel is not None:
+                sat_a, found_a = detect_saturation(accel, min_clip=0.9 * 2.0 * G0_M_S2)
+                sat |= sat_a
+                found += [(j + 3, v, n) for j, v, n in found_a]
+        if found:
+            names = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
+            desc = ", ".join(f"{names[j]} {n} at {v:.6g}" for j, v, n in found)
+            warn_repair(f"{path}: {int(sat.sum())} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'")
+            prev = extra.get("saturated")
+            extra["saturated"] = (sat | (prev > 0)).astype(float) if prev is not None else sat.astype(float)
+    meta.pop("__gyro_col__", None)
+    meta.pop("__time_col__", None)
+    return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=temp, ref_rate_rad_s=rref,
+                     ref_quat_wxyz=qref, meta=meta, extra=extra)
+
+
+def read_csv(path: str | os.PathLike, *, repair: bool = True, retime: bool = False, checks: bool = True,
+             columns: Iterable[str] | None = None) -> Recording:
+    """Read a DESIGN.md data file.
+
+    The table is parsed by Arrow's C++ CSV reader (``pyarrow.csv``, multithreaded, correctly
+    rounded floats: the ``%.17g`` round trip is bit-exact). A table it refuses — text in a
+    number, a wrong number of values, empty fields, ``#`` lines among the data, bad UTF-8 —
+    is read again by the exact line parser, which names the file line and column (or reads
+    empty fields as NaN with a warning).
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV file.
+    repair : bool
+        When True, fixable defects are repaired with a :class:`RepairWarning` saying what
+        was done (rows with NaN/inf time, gyro, accel or temperature dropped — NaN in the
+        ``ref_`` columns is kept, e.g. tracking lost —, non-increasing timestamps dropped,
+        empty fields read as NaN). When False they raise :class:`GyroInputError`.
+    retime : bool
+        Replace bursty host timestamps (median interval < ½ mean, gaps > 4 × mean) by a
+        uniform grid at the mean rate (N−1)/duration, with a warning. Without it they are
+        only reported.
+    checks : bool
+        Plausibility checks (warnings only, data unchanged unless stated): gaps, bursty
+        timestamps, deg/s labelled rad/s (peaks above 70 rad/s are an error), saturated
+        plateaus (flagged in the extra column ``saturated``, 1.0 = clipped).
+    columns : iterable of str, optional
+        Column groups to read besides ``t_s`` and the gyro, from :data:`COLUMN_GROUPS`
+        (``accel``, ``temp``, ``ref_rate``, ``ref_quat``, ``extra``); None reads all. The
+        others are not parsed (less memory and time); the header is validated either way.
+
+    Raises
+    ------
+    GyroInputError
+        One-line message for anything that cannot be read as a data file (missing, folder,
+        empty, binary, no header, missing column, text in a number with its line and column,
+        too large for memory: use :func:`iter_csv_chunks`).
+    """
+    path = str(path)
+    _sniff_file(path)
+    meta, header, n_skip = _header_info(path)
+    layout = _Layout(header, path, columns)
+    _check_memory(path, n_skip, len(layout.want) - len(layout.check_accel))
+    offset = _data_offset(path, n_skip)
+    fill = None
+    if offset is not None:
+        fill = _Filler(layout, _count_lines(path, offset))
+        try:
+            for blk in _arrow_stream(path, offset, header, layout.want, _MAX_BLOCK_BYTES):
+                fill.add(blk)
+        except _NotClean:
+            fill = None
+    if fill is None:  # not a clean table: the exact parser, chunk by chunk (line numbers, empty fields)
+        fill = _Filler(layout, _count_lines(path, 0))
+        for blk in _exact_blocks(path, header, n_skip, layout.want, 0, n_skip + 1):
+            fill.add(blk)
+    if fill.n == 0:
+        raise GyroInputError(f"{path}: header only, no samples")
+    return _assemble_filled(fill, meta, path, repair=repair, retime=retime, checks=checks)
+
+
+def _assemble_filled(fill: _Filler, meta, path, *, repair, retime, checks, min_rows=2) -> Recording:
+    """Filled columns -> checked :class:`Recording` (rows with NaN or non-increasing time
+    dropped with a warning; copies only when rows are dropped)."""
+    t, gyro, accel, temp, rref, qref, extra = fill.columns()
+    layout = fill.layout
+    keep, n_bad, n_back = _valid_rows(t, gyro, accel, temp, path, repair)
+    if n_bad:
+        warn_repair(f"{path}: dropped {n_bad} rows with NaN/inf time, gyro, accel or temperature")
+    if n_back:
+        warn_repair(f"{path}: dropped {n_back} rows whose timestamp goes backwards or repeats")
+    n_keep = int(keep.sum())
+    if n_keep < min_rows:
+        raise GyroInputError(f"{path}: fewer than {min_rows} valid samples")
+    all_kept = n_keep == keep.size
+
+    def k(a):
+        return None if a is None else (a if all_kept else a[keep])
+
+    meta = dict(meta)
+    meta["__gyro_col__"] = layout.gyro_unit_col
+    meta["__time_col__"] = layout.header[layout.t]
+    accel_std = layout.accel_std(fill.moments)
+    del fill
+    return _finish(k(t), k(gyro), k(accel), k(temp), k(rref), k(qref), meta, {h: k(v) for h, v in extra.items()}, path,
+                   checks=checks, retime=retime, accel_std=accel_std)
+
+
+def _exact_blocks(path, header, n_skip, want, skip_data_rows, first_lineno, rows=200_000):
+    """The exact line parser from data row ``skip_data_rows`` on, ``rows`` lines at a time."""
+    lineno = first_lineno
+    try:
+        with open(path, "r", encoding="utf-8", errors="strict") as fh:
+            for _ in range(n_skip):
+                fh.readline()
+            lineno = _data_lines(fh, skip_data_rows, first_lineno)
+            while True:
+                lines = list(itertools.islice(fh, rows))
+                if not lines:
+                    break
+                data = _slow_parse(lines, lineno, header, path)
+                lineno += len(lines)
+                if data.shape[0]:
+                    yield {i: data[:, i].copy() for i in want}
+    except UnicodeDecodeError as exc:  # found by bench/fuzz_reader.py (atheris)
+        raise GyroInputError(f"{path}: not UTF-8 text after the header near line {lineno} ({exc.reason})") from None
+
+
+def _chunk_records(blocks: Iterable[dict[int, np.ndarray]], layout: _Layout, meta, path: str, repair: bool) -> Iterator[Recording]:
+    """Checked :class:`Recording` chunks from column blocks (NaN rows and non-increasing
+    timestamps dropped across chunk boundaries, one warning each at the end)."""
+    t_prev = -np.inf
+    n_bad_all = n_back_all = n_rows = 0
+    for cols in blocks:
+        for i in layout.check_accel:  # no whole-series checks on chunks
+            cols.pop(i, None)
+        t = cols[layout.t] if layout.t_factor == 1.0 else cols[layout.t] * layout.t_factor
+        gyro = layout.take(cols, layout.gyro)
+        accel = layout.take(cols, layout.accel)
+        temp = cols[layout.temp] if layout.temp is not None else None
+        keep, n_bad, n_back = _valid_rows(t, gyro, accel, temp, path, repair, t_prev=t_prev)
+        n_bad_all += n_bad
+        n_back_all += n_back
+        if not keep.any():
+            continue
+        all_kept = bool(keep.all())
+
+        def k(a):
+            return None if a is None else (a if all_kept else a[keep])
+
+        t_prev = float(t[keep][-1])
+        n_rows += int(keep.sum())
+        yield Recording(
+            t_s=k(t), gyro_rad_s=k(gyro), accel_m_s2=k(accel), temp_c=k(temp),
+            ref_rate_rad_s=k(layout.take(cols, layout.rref)), ref_quat_wxyz=k(layout.take(cols, layout.qref)),
+            meta=dict(meta), extra={h: k(cols[i]) for h, i in layout.extra},
+        )
+    if n_bad_all:
+        warn_repair(f"{path}: dropped {n_bad_all} rows with NaN/inf time, gyro, accel or temperature")
+    if n_back_all:
+        warn_repair(f"{path}: dropped {n_back_all} rows whose timestamp goes backwards or repeats")
+    if n_rows == 0:
+        raise GyroInputError(f"{path}: header only, no samples")
+
+
+def iter_csv_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True,
+                    columns: Iterable[str] | None = None) -> Iterator[Recording]:
+    """Read a data file of any size as consecutive :class:`Recording` chunks of ≤ ``rows`` rows.
+
+    Memory stays O(``rows``). Same parser as :func:`read_csv` (Arrow's streaming reader,
+    the exact line parser from the first block it refuses). Each chunk carries the file's
+    metadata; the timestamps are checked for monotonicity across chunk boundaries
+    (non-increasing rows are dropped with one warning at the end, as are NaN rows).
+    Per-chunk plausibility checks (gaps, saturation) are not run: they need the whole series.
+
+    Parameters
+    ----------
+    rows : int
+        Rows per chunk (≥ 2).
+    columns : iterable of str, optional
+        Column groups to read (see :func:`read_csv`).
+    """
+    path = str(path)
+    if rows < 2:
+        raise GyroInputError(f"rows per chunk must be >= 2, got {rows}")
+    _sniff_file(path)
+    meta, header, n_skip = _header_info(path)
+    layout = _Layout(header, path, columns)
+    return _chunk_records(_csv_blocks(path, header, n_skip, layout.want, rows), layout, meta, path, repair)
+
+
+def _header_name(h: str) -> str:
+    """A header field without surrounding whitespace and double quotes (R's write.csv, MATLAB and
+    spreadsheets quote the header)."""
+    h = h.strip()
+    if len(h) >= 2 and h[0] == h[-1] == '"':
+        h = h[1:-1].replace('""', '"').strip()
+    return h
+
+
+def _parse_header(lines: Iterable[str], path: str) -> tuple[dict[str, str], list[str], int]:
+    """``# key: value`` metadata lines, then the header row; returns (meta, header, lines used)."""
+    meta: dict[str, str] = {}
+    n_skip = 0
+    for line in lines:
+        n_skip += 1
+        s = line.strip().lstrip("\ufeff")
+        if not s:
+            continue
+        if s.startswith("#"):
+            body = s[1:].strip()
+            if ":" in body:
+                k, v = body.split(":", 1)
+                meta[k.strip()] = v.strip()
+            continue
+        header = [_header_name(h) for h in s.split(",")]
+        empty = [i for i, h in enumerate(header) if not h]
+        if empty:
+            # a pandas index written without a name (to_csv() default), R's row names, a trailing
+            # comma: kept as extra columns with a name, said once
+            for i in empty:
+                header[i] = f"unnamed_{i}"
+            warn_repair(f"{path}: {len(empty)} column(s) without a name in the header (a pandas/R index, a trailing "
+                        f"comma?) kept as extra column(s) {', '.join(header[i] for i in empty)}")
+        return meta, header, n_skip
+    raise GyroInputError(f"{path}: no header row (file is empty or only has comments)")
+
+
+#: Rows formatted at a time by :func:`write_csv_chunks` (bounds the text held: ~6 MiB).
+_FORMAT_ROWS = 4096
+
+
+def _format_rows(rec: Recording) -> tuple[list[str], str]:
+    names, cols = _columns(rec)
+    data = np.hstack(cols) if cols else np.empty((0, 0))
+    buf = io.StringIO()
+    np.savetxt(buf, data, delimiter=",", fmt="%.17g")
+    text = buf.getvalue()
+    buf.close()  # release the buffer now: chunked writes otherwise grow until GC (measured 76-124 B/sample)
+    return names, text
+
+
+def write_csv_chunks(chunks: Iterable[Recording], path: str | os.PathLike, *, overwrite: bool = True,
+                     meta: Mapping[str, str] | None = None) -> int:
+    """Write consecutive recording chunks as one data file, streaming, atomically.
+
+    The file is written to a temporary name in the target folder and renamed at the end;
+    an exception (or interrupt) part way leaves no output. The header and metadata come
+    from the first chunk (``meta`` replaces its metadata when given); every chunk must have
+    the same columns. Returns the number of rows written.
+    """
+    n = 0
+    with atomic_open(path, "w", overwrite=overwrite, encoding="utf-8", newline="\n") as fh:
+        names0 = None
+        for rec in chunks:
+            # formatted _FORMAT_ROWS rows at a time (the same text: savetxt formats row by row):
+            # the text of a chunk is ~350 characters a row, held by StringIO at 4 bytes each
+            for i in range(0, max(rec.n, 1), _FORMAT_ROWS):
+                names, body = _format_rows(rec if rec.n <= _FORMAT_ROWS else rec.slice(i, i + _FORMAT_ROWS))
+                if names0 is None:
+                    names0 = names
+                    for k, v in (rec.meta if meta is None else meta).items():
+                        fh.write(f"# {k}: {str(v).replace(chr(10), ' ')}\n")
+                    fh.write(",".join(names) + "\n")
+                elif names != names0:
+                    raise GyroInputError(f"{path}: chunk columns changed ({','.join(names)})")
+                fh.write(body)
+            n += rec.n
+        if names0 is None:
+            raise GyroInputError(f"{path}: nothing to write (no samples)")
+    return n
+
+
+# ---------------------------------------------------------------------- Parquet
+#: Suffixes of Parquet data files (every command chooses the format by the file's name).
+PARQUET_SUFFIXES = (".parquet", ".pq")
+#: Schema metadata key holding the ``#`` metadata lines (JSON object of strings, in order).
+PARQUET_META_KEY = b"gyroharness.meta"
+#: Rows per Parquet row group when a whole recording is written (chunked readers read one
+#: row group at a time, so this bounds their memory).
+PARQUET_ROW_GROUP = 131_072
+
+
+def is_parquet(path: str | os.PathLike) -> bool:
+    """True when ``path`` names a Parquet data file (by suffix, else by its ``PAR1`` magic)."""
+    p = str(path)
+    if p.lower().endswith(PARQUET_SUFFIXES):
+        return True
+    try:
+        with open(p, "rb") as fh:
+            return fh.read(4) == b"PAR1"
+    except OSError:
+        return False
+
+
+def _parquet_table(names: list[str], cols: list[np.ndarray], meta: Mapping[str, str] | None):
+    import json
+
+    import pyarrow as pa
+
+    arrays = []
+    fields = []
+    for name, c in zip(names, cols):
+        # the float64 values as the Arrow array's buffer (zero-copy; the same table, so the same
+        # file): pa.array()'s numpy conversion keeps ~40 MiB resident once used (measured:
+        # writing 22 row groups of 16 384 × 16 columns peaks 57 MiB above the imports with
+        # pa.array, 17 MiB with the buffer), a third of `simulate hover`'s 300 MiB budget
+        v = np.ascontiguousarray(c, dtype=np.float64)
+        arrays.append(pa.Array.from_buffers(pa.float64(), v.shape[0], [None, pa.py_buffer(v)]))
+        fields.append(pa.field(name, pa.float64()))
+    md = None if meta is None else {PARQUET_META_KEY: json.dumps({str(k): str(v) for k, v in meta.items()}).encode()}
+    return pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=md))
+
+
+def _split_columns(rec: Recording) -> tuple[list[str], list[np.ndarray]]:
+    names, blocks = _columns(rec)
+    cols: list[np.ndarray] = []
+    for b in blocks:
+        cols.extend(b[:, j] for j in range(b.shape[1]))
+    return names, cols
+
+
+def write_parquet(rec: Recording, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+    """Write ``rec`` as a Parquet data file (same columns as the CSV, float64; the ``#``
+    metadata in the schema metadata under ``gyroharness.meta``), atomically."""
+    write_parquet_chunks((rec.slice(i, i + PARQUET_ROW_GROUP) for i in range(0, max(rec.n, 1), PARQUET_ROW_GROUP)),
+                         path, overwrite=overwrite)
+
+
+def write_parquet_chunks(chunks: Iterable[Recording], path: str | os.PathLike, *, overwrite: bool = True,
+                         meta: Mapping[str, str] | None = None) -> int:
+    """Parquet version of :func:`write_csv_chunks`: one row group per chunk, streaming, atomic."""
+    import pyarrow.parquet as pq
+
+    n = 0
+    with atomic_open(path, "wb", overwrite=overwrite) as fh:
+        writer = None
+        names0 = None
+        try:
+            for rec in chunks:
+                names, cols = _split_columns(rec)
+                if writer is None:
+                    names0 = names
+                    table = _parquet_table(names, cols, rec.meta if meta is None else meta)
+                    writer = pq.ParquetWriter(fh, table.schema, compression="zstd", use_dictionary=False)
+                elif names != names0:
+                    raise GyroInputError(f"{path}: chunk columns changed ({','.join(names)})")
+                else:
+                    table = _parquet_table(names, cols, None).replace_schema_metadata(writer.schema.metadata)
+                if rec.n:
+                    writer.write_table(table)
+                n += rec.n
+            if writer is None or n == 0:
+                raise GyroInputError(f"{path}: nothing to write (no samples)")
+        finally:
+            if writer is not None:
+                writer.close()
+    return n
+
+
+def _open_parquet(path: str):
+    """(ParquetFile, header, meta) with one-line errors."""
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    _check_path(path)
+    try:
+        # no pre-buffering: with it, iterating row groups kept the file's column chunks
+        # (measured: 343 vs 136 MiB peak for a one-hour 15-column file, 2.6 GiB at ten hours)
+        pf = pq.ParquetFile(path, memory_map=False, pre_buffer=False, buffer_size=1 << 20)
+        schema = pf.schema_arrow
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise GyroInputError(f"{path}: not a readable Parquet file ({first[:160]})") from None
+    header = list(schema.names)
+    _check_header(header, path)
+    for f in schema:
+        if not (pa.types.is_floating(f.type) or pa.types.is_integer(f.type) or pa.types.is_boolean(f.type)):
+            hint = ""
+            if pa.types.is_timestamp(f.type) or pa.types.is_duration(f.type) or pa.types.is_date(f.type):
+                hint = ("; store the time as numbers: seconds in t_s (pandas: df['t_s'] = (df[col] - df[col].iloc[0])"
+                        ".dt.total_seconds()) or a counter in t_ms / t_us / t_ns")
+            raise GyroInputError(f"{path}: column {f.name!r} is not numeric ({f.type}){hint}")
+    meta: dict[str, str] = {}
+    raw = (schema.metadata or {}).get(PARQUET_META_KEY)
+    if raw is not None:
+        try:
+            meta = {str(k): str(v) for k, v in json.loads(raw.decode("utf-8")).items()}
+        except (ValueError, AttributeError, UnicodeDecodeError):
+            raise GyroInputError(f"{path}: schema metadata {PARQUET_META_KEY.decode()} is not a JSON object") from None
+    return pf, header, meta
+
+
+def _parquet_cols(batch_or_table, header: list[str], want: list[int], path: str, counter: list[int]) -> dict[int, np.ndarray]:
+    cols = {}
+    for i in want:
+        c = batch_or_table.column(header[i])
+        counter[0] += c.null_count
+        if not c.null_count and _is_float64_array(c):  # the values buffer, copied (see _to_numpy)
+            cols[i] = np.frombuffer(c.buffers()[1], dtype=np.float64, count=len(c), offset=c.offset * 8).copy()
+            continue
+        arr = np.asarray(c.to_numpy(zero_copy_only=False), dtype=np.float64)
+        cols[i] = arr if arr.flags.writeable else arr.copy()
+    return cols
+
+
+def _parquet_read_error(path: str, exc: Exception) -> GyroInputError:
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return GyroInputError(f"{path}: corrupt Parquet data ({first[:160]})")
+
+
+def read_parquet(path: str | os.PathLike, *, repair: bool = True, retime: bool = False, checks: bool = True,
+                 columns: Iterable[str] | None = None) -> Recording:
+    """Read a Parquet data file (same columns, units and checks as :func:`read_csv`; nulls
+    are read as NaN with a warning, like empty CSV fields)."""
+    import pyarrow as pa
+
+    path = str(path)
+    pf, header, meta = _open_parquet(path)
+    layout = _Layout(header, path, columns)
+    _check_memory(path, 0, len(layout.want) - len(layout.check_accel), est_rows=pf.metadata.num_rows)
+    nulls = [0]
+    fill = _Filler(layout, pf.metadata.num_rows)
+    try:
+        for batch in pf.iter_batches(batch_size=PARQUET_ROW_GROUP, columns=[header[i] for i in layout.want]):
+            fill.add(_parquet_cols(batch, header, layout.want, path, nulls))
+    except (pa.ArrowException, OSError) as exc:
+        raise _parquet_read_error(path, exc) from None
+    if nulls[0]:
+        warn_repair(f"{path}: {nulls[0]} empty fields read as missing values (NaN)")
+    if fill.n == 0:
+        raise GyroInputError(f"{path}: header only, no samples")
+    return _assemble_filled(fill, meta, path, repair=repair, retime=retime, checks=checks)
+
+
+def iter_parquet_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True,
+                        columns: Iterable[str] | None = None) -> Iterator[Recording]:
+    """Parquet version of :func:`iter_csv_chunks` (chunks of exactly ``rows`` rows, the last
+    shorter; memory O(``rows`` + one row group))."""
+    path = str(path)
+    if rows < 2:
+        raise GyroInputError(f"rows per chunk must be >= 2, got {rows}")
+    pf, header, meta = _open_parquet(path)
+    layout = _Layout(header, path, columns)
+
+    def blocks():
+        import pyarrow as pa
+
+        nulls = [0]
+        try:
+            for batch in pf.iter_batches(batch_size=rows, columns=[header[i] for i in layout.want], use_threads=False):
+                yield _parquet_cols(batch, header, layout.want, path, nulls)
+        except (pa.ArrowException, OSError) as exc:
+            raise _parquet_read_error(path, exc) from None
+        if nulls[0]:
+            warn_repair(f"{path}: {nulls[0]} empty fields read as missing values (NaN)")
+
+    return _chunk_records(_rechunk(blocks(), rows), layout, meta, path, repair)
+
+
+# ---------------------------------------------------------------------- by extension
+def read_recording(path: str | os.PathLike, **options) -> Recording:
+    """Read a data file, CSV or Parquet (chosen by :func:`is_parquet`); options as :func:`read_csv`."""
+    return read_parquet(path, **options) if is_parquet(path) else read_csv(path, **options)
+
+
+def iter_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True,
+                columns: Iterable[str] | None = None) -> Iterator[Recording]:
+    """Chunks of a CSV or Parquet data file (see :func:`iter_csv_chunks`)."""
+    fn = iter_parquet_chunks if is_parquet(path) else iter_csv_chunks
+    return fn(path, rows=rows, repair=repair, columns=columns)
+
+
+def write_recording(rec: Recording, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+    """Write a data file, Parquet when ``path`` ends in .parquet/.pq, else CSV; atomically."""
+    if str(path).lower().endswith(PARQUET_SUFFIXES):
+        write_parquet(rec, path, overwrite=overwrite)
+    else:
+        write_csv(rec, path, overwrite=overwrite)
+
+
+def write_chunks(chunks: Iterable[Recording], path: str | os.PathLike, *, overwrite: bool = True,
+                 meta: Mapping[str, str] | None = None) -> int:
+    """Stream chunks into one data file, Parquet or CSV by ``path``'s suffix; atomically."""
+    fn = write_parquet_chunks if str(path).lower().endswith(PARQUET_SUFFIXES) else write_csv_chunks
+    return fn(chunks, path, overwrite=overwrite, meta=meta)
+
+
+def concat_recordings(recs: list[Recording]) -> Recording:
+    """Consecutive pieces of one recording (same columns) joined; metadata of the first."""
+    recs = [r for r in recs if r is not None and r.n]
+    if len(recs) == 1:
+        return recs[0]
+
+    def cat(name):
+        v = [getattr(r, name) for r in recs]
+        return None if v[0] is None else np.concatenate(v)
+
+    return Recording(t_s=cat("t_s"), gyro_rad_s=cat("gyro_rad_s"), accel_m_s2=cat("accel_m_s2"), temp_c=cat("temp_c"),
+                     ref_rate_rad_s=cat("ref_rate_rad_s"), ref_quat_wxyz=cat("ref_quat_wxyz"), meta=recs[0].meta,
+                     extra={k: np.concatenate([r.extra[k] for r in recs]) for k in recs[0].extra})
+
+
+# ---------------------------------------------------------------------- long recordings, one column at a time
+class ColumnSpill:
+    """The checked columns of a long recording kept on disk, loaded one at a time.
+
+    Made by :func:`spill_columns`. ``t_s`` is in memory (it is needed for the rate and the
+    timestamp checks); every other column (SI units, names of :func:`_columns`: e.g.
+    ``gyro_x_rad_s``) is loaded by :meth:`column`. An analysis that needs the whole series of
+    one axis at a time (overlapping ADEV) then holds two columns, not the whole table.
+    """
+
+    def __init__(self, folder: Path, names: list[str], n: int, t_s: np.ndarray, meta: dict[str, str]) -> None:
+        self.folder = folder
+        self.names = names
+        self.n = n
+        self.t_s = t_s
+        self.meta = meta
+
+    def column(self, name: str) -> np.ndarray:
+        """One column, shape (N,), float64 (a fresh array)."""
+        if name not in self.names:
+            raise KeyError(name)
+        return np.fromfile(self.folder / f"{name}.f64", dtype=np.float64, count=self.n)
+
+    def rows(self, name: str, a: int, b: int) -> np.ndarray:
+        """Rows a:b of one column, shape (b − a,), float64 (a fresh array)."""
+        if name not in self.names:
+            raise KeyError(name)
+        a, b = max(0, int(a)), min(self.n, int(b))
+        return np.fromfile(self.folder / f"{name}.f64", dtype=np.float64, count=max(b - a, 0), offset=8 * a)
+
+    def block(self, names, a: int, b: int) -> np.ndarray:
+        """Rows a:b of several columns side by side, shape (b − a, len(names))."""
+        a, b = max(0, int(a)), min(self.n, int(b))
+        out = np.empty((max(b - a, 0), len(names)))
+        for j, nm in enumerate(names):
+            out[:, j] = self.rows(nm, a, b)
+        return out
+
+    def recording(self, gyro_axis: int, *, accel_axis: int | None = None) -> Recording:
+        """A :class:`Recording` holding only gyro axis ``gyro_axis`` (the other two axes are
+        views of the same column: use only that axis), optionally one accel axis likewise."""
+        g = self.column(GYRO_COLS[gyro_axis])
+        a = None if accel_axis is None else self.column(ACCEL_COLS[accel_axis])
+        return Recording(t_s=self.t_s, gyro_rad_s=np.broadcast_to(g[:, None], (self.n, 3)),
+                         accel_m_s2=None if a is None else np.broadcast_to(a[:, None], (self.n, 3)),
+                         meta=self.meta)
+
+
+def _release_arrow_memory() -> None:
+    """Return the memory Arrow's allocator keeps after a read to the system (its pools hold
+    freed blocks for reuse: ~20 MiB after streaming a long CSV)."""
+    import sys
+
+    pa = sys.modules.get("pyarrow")
+    if pa is not None:
+        pa.default_memory_pool().release_unused()
+
+
+def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: bool = False, rows: int = 32_768,
+                  repair: bool = True, groups: Iterable[str] = ()) -> ColumnSpill:
+    """Stream a data file (CSV or Parquet) into per-column files in ``folder``, with the
+    same repairs, checks, warnings and errors as :func:`read_recording` — run one column at
+    a time, so memory stays O(2 columns) instead of O(all columns).
+
+    Columns kept: ``t_s``, the gyro (SI) and, with ``accel``, the accel; ``groups`` adds
+    ``temp`` (``temp_c``), ``ref_rate`` (``ref_*_rad_s``) and ``ref_quat`` (``ref_q*``)
+    when the file has them. The saturation check warns as usual but the ``saturated`` flag
+    column is not kept. No ``retime``.
+    """
+    path = str(path)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    names = [TIME_COL, *GYRO_COLS]
+    if is_parquet(path):
+        _pf, header, _m = _open_parquet(path)
+    else:
+        _sniff_file(path)
+        _m, header, _ = _header_info(path)
+    groups = tuple(groups)
+    bad = sorted(set(groups) - {"temp", "ref_rate", "ref_quat"})
+    if bad:
+        raise ValueError(f"spill_columns: unknown column group(s) {bad}")
+    layout = _Layout(header, path, ("accel", *groups))
+    has_accel = layout.accel is not None
+    if has_accel and accel:
+        names += list(ACCEL_COLS)
+    if layout.temp is not None:
+        names.append(TEMP_COL)
+    if layout.rref is not None:
+        names += list(REF_RATE_COLS)
+    if layout.qref is not None:
+        names += list(REF_QUAT_COLS)
+    read_groups = (("accel",) if has_accel else ()) + groups
+    files = {nm: open(folder / f"{nm}.f64", "wb") for nm in names}
+    n = 0
+    meta: dict[str, str] = {}
+    g_max, g_min = -np.inf, np.inf
+    mom = _Moments([0, 1, 2])
+    try:
+        for ch in iter_chunks(path, rows=rows, repair=repair, columns=read_groups):
+            meta = dict(ch.meta)
+            cols = {TIME_COL: ch.t_s, **{GYRO_COLS[j]: ch.gyro_rad_s[:, j] for j in range(3)}}
+            if layout.temp is not None:
+                cols[TEMP_COL] = ch.temp_c
+            if layout.rref is not None:
+                cols.update({REF_RATE_COLS[j]: ch.ref_rate_rad_s[:, j] for j in range(3)})
+            if layout.qref is not None:
+                cols.update({REF_QUAT_COLS[j]: ch.ref_quat_wxyz[:, j] for j in range(4)})
+            if has_accel:
+                mom.update({j: ch.accel_m_s2[:, j].copy() for j in range(3)})
+                if accel:
+                    cols.update({ACCEL_COLS[j]: ch.accel_m_s2[:, j] for j in range(3)})
+            for nm in names:
+                np.ascontiguousarray(cols[nm], dtype=np.float64).tofile(files[nm])
+            g_max = max(g_max, float(ch.gyro_rad_s.max()))
+            g_min = min(g_min, float(ch.gyro_rad_s.min()))
+            n += ch.n
+    finally:
+        for fh in files.values():
+            fh.close()
+    _release_arrow_memory()
+    if n < 2:
+        raise GyroInputError(f"{path}: fewer than 2 valid samples")
+    t = np.fromfile(folder / f"{TIME_COL}.f64", dtype=np.float64, count=n)
+    store = ColumnSpill(folder, names, n, t, meta)
+    span = np.subtract(t[-1], t[0], dtype=float)
+    with np.errstate(all="ignore"):
+        if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
+            raise GyroInputError(f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})")
+    # the checks of _finish, in its order, one column at a time
+    gyro_col = layout.gyro_unit_col
+    with np.errstate(all="ignore"):
+        if gyro_col.endswith("_rad_s"):
+            peak = max(g_max, -g_min)
+            if peak > DEG_S_SUSPECT_RAD_S:
+                raise GyroInputError(
+                    f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
+                    f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
+                )
+            sd = mom.std() if has_accel else None  # chunks are SI already
+            if sd is not None and bool(np.all(sd < 0.05 * G0_M_S2)):
+                med, noise = [], []
+                for j in range(3):
+                    # one column in memory at a time: the noise from a copy overwritten in place,
+                    # then the median from the column read again (the same values)
+                    c = store.column(GYRO_COLS[j])
+                    v = _robust_noise_consuming(c)
+                    del c
+                    c = store.column(GYRO_COLS[j])
+                    noise.append(_robust_noise(c) if v is None else v)
+                    med.append(float(np.median(c, overwrite_input=True)))  # c is not used again
+                    del c
+                if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
+                    warn_repair(
+                        f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
+                        f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
+                        f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
+                        f"Data left unchanged"
+                    )
+        _timing_checks(t, path, False, layout.header[layout.t])
+        found, n_sat = [], 0
+        sat_any = None
+        for j, nm in enumerate(GYRO_COLS + (ACCEL_COLS if has_accel and accel else ())):
+            c = store.column(nm)
+            clip = 0.9 * 125.0 * DEG if j < 3 else 0.9 * 2.0 * G0_M_S2
+            m, f = detect_saturation(c[:, None], min_clip=clip)
+            if f:
+                sat_any = m if sat_any is None else (sat_any | m)
+                found += [(j, v, cnt) for _, v, cnt in f]
+            del c
+        if found:
+            n_sat = int(sat_any.sum())
+            names6 = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
+            desc = ", ".join(f"{names6[j]} {cnt} at {v:.6g}" for j, v, cnt in found)
+            warn_repair(f"{path}: {n_sat} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'")
+    return store

@@ -1,0 +1,1 @@
+"""The measurement model: the effect registry (catalogue effects, noise terms, open families)."""

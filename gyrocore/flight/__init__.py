@@ -1,0 +1,1 @@
+"""Flight-controller side: vibration analysis, the firmware filter chain and its preview."""

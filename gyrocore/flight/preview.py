@@ -1,0 +1,297 @@
+"""Preview gyro filter chains on a flight's own spectrum, and choose one.
+
+"What would this setting have done to this flight, without flying": every candidate chain is
+built as the firmware runs it (:func:`gyrocore.flight.filters.firmware_stage`: Betaflight's PT1/PT2/
+PT3/biquad/notch coefficients at its loop rate; PX4's and ArduPilot's 2nd-order Butterworth;
+the article's first-order filter) and applied to the flight's gyro spectrum *before* the
+firmware's filters (:mod:`gyrocore.flight.vibration`: logged unfiltered, or the static filters
+undone). The filters are linear and time-invariant, so the spectrum after a chain is
+S_raw(f)·|H(f)|²: the same as filtering the unfiltered gyro at the loop rate and logging it,
+but computable from a decimated log (the time-domain filter would need the un-decimated
+signal). Everything is on one absolute scale, (rad/s)²/Hz (plots: (°/s)²/Hz), so several
+logs and candidates compare directly.
+
+Scores of a chain (first version: an open-loop spectral / delay cost model on the recorded
+gyro; the closed-loop simulator version is ``gyroharness filter-closed-loop``,
+``experiments/flight_filter.py``):
+
+* ``delay_ms`` — mean group delay of the chain over the flight band (default 1–30 Hz);
+* ``phase_deg_at_hz`` — phase lag at the band's upper edge;
+* ``gyro_noise_rad_s`` — RMS of the filtered gyro above 40 Hz (below the reliable limit);
+* ``motor_noise`` — RMS of the *derivative* of the filtered gyro above 40 Hz, rad/s²: what
+  the PID's D term turns into motor-command noise (motor noise = K_d × this);
+* ``attitude_cost`` — attitude error, deg: the delay seen by the rate loop turns the flight's
+  own angular rate into an attitude lag θ_d = τ·ω_rms (ω_rms: RMS of the gyro below 30 Hz
+  over the airborne part), combined (root sum of squares) with the attitude jitter the
+  passed vibration causes if tracked, θ_v = √∫ S_raw|H|²/(2πf)² df.
+
+Recommendation: the least ``attitude_cost`` among the chains whose ``motor_noise`` does not
+exceed the budget: the as-flown chain's motor noise (the pilot flew it and the motors coped),
+else the firmware default's. The Pareto front (cost vs motor noise) is returned too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from gyrocore.errors import GyroInputError
+from .filters import chain_response
+
+__all__ = ["Candidate", "preview", "candidates", "recommend", "betaflight_cli", "CUTOFF_GRID_HZ"]
+
+CUTOFF_GRID_HZ = (40.0, 50.0, 60.0, 70.0, 80.0, 90.0, 100.0, 120.0, 140.0, 160.0, 180.0, 200.0, 250.0, 300.0)
+LP_KINDS = ("pt1", "pt2", "pt3", "biquad")
+FLIGHT_BAND_HZ = (1.0, 30.0)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A gyro filter chain: ``stages`` (firmware stage dicts) and what it is called."""
+
+    name: str
+    stages: tuple
+    family: str = "betaflight"
+    lowpass: str = "none"
+    cutoff_hz: float = float("nan")
+    notches_hz: tuple = ()
+
+
+def _stage(kind, fc, rate, **kw):
+    d = {"kind": kind, "cutoff_hz": float(fc), "rate_hz": float(rate), "dynamic": False, "header": "candidate"}
+    d.update(kw)
+    return d
+
+
+def notch_stage(f0: float, width_hz: float, rate: float) -> dict:
+    """Betaflight static notch covering ``width_hz`` (lower −3 dB edge f0 − width/2)."""
+    cut = max(f0 - width_hz / 2.0, 0.3 * f0)
+    from .filters import betaflight_notch_q
+
+    return _stage("notch", f0, rate, notch_cutoff_hz=float(round(cut)), q=betaflight_notch_q(f0, round(cut)))
+
+
+def candidates(rate_hz: float, *, lines: Sequence[dict] = (), as_flown: Sequence[dict] | None = None,
+               nyquist_hz: float | None = None) -> list[Candidate]:
+    """Candidate chains at the firmware filter rate ``rate_hz``.
+
+    Betaflight low-pass kinds × :data:`CUTOFF_GRID_HZ`; each with static notches at the
+    identified lines that the low-pass leaves above −20 dB (one notch per line, width = the
+    line's frequency span over the throttle bands, at least 40 Hz; at most two, Betaflight has
+    two static notches); the as-flown chain (static part); firmware defaults: Betaflight 4.x
+    static part (LPF1 PT1 at its dynamic minimum 250 Hz + LPF2 PT1 500 Hz; its dynamic notch
+    and RPM filter are dynamic and left out, said in the output), PX4 ``IMU_GYRO_CUTOFF`` 40 Hz
+    (2nd-order Butterworth), ArduPilot ``INS_GYRO_FILTER`` 20 Hz (2nd-order Butterworth
+    biquad); the article's first-order 30 Hz filter.
+    """
+    out: list[Candidate] = [Candidate("none", (), lowpass="none")]
+    for k in LP_KINDS:
+        for fc in CUTOFF_GRID_HZ:
+            if fc * 2.0 >= rate_hz / 2:
+                continue
+            out.append(Candidate(f"{k} {fc:g} Hz", (_stage(k, fc, rate_hz),), lowpass=k, cutoff_hz=fc))
+    # static notches at the identified lines
+    uniq = []
+    for ln in sorted(lines, key=lambda x: -x["amplitude_rad_s"]):
+        f0 = ln.get("unfolded_frequency_hz") if ln.get("aliased") else ln["frequency_hz"]
+        if nyquist_hz and f0 >= nyquist_hz:
+            continue
+        span = [p["frequency_hz"] for p in ln.get("per_band", [])]
+        width = max(40.0, (max(span) - min(span)) if span else 0.0)
+        if all(abs(f0 - u[0]) > 20 for u in uniq):
+            uniq.append((float(f0), float(width)))
+    uniq = uniq[:2]
+    if uniq:
+        base = [c for c in out if c.lowpass != "none"]
+        for c in base:
+            from .filters import firmware_stage
+
+            lp = firmware_stage(c.stages[0])
+            keep = [(f0, w) for f0, w in uniq if lp.magnitude(f0) > 0.1]
+            if not keep:
+                continue
+            st = c.stages + tuple(notch_stage(f0, w, rate_hz) for f0, w in keep)
+            out.append(Candidate(c.name + " + notch " + ",".join(f"{f0:.0f}" for f0, _ in keep), st, lowpass=c.lowpass,
+                                 cutoff_hz=c.cutoff_hz, notches_hz=tuple(f0 for f0, _ in keep)))
+    if as_flown is not None:
+        # each low-pass of the grid with the pilot's own static notches (re-rated to this loop)
+        flown_notches = tuple(dict(s, rate_hz=float(rate_hz), header="as flown") for s in as_flown
+                              if s["kind"] == "notch" and not s.get("dynamic"))
+        if flown_notches:
+            for c in [c for c in out if c.lowpass in LP_KINDS and not c.notches_hz]:
+                out.append(Candidate(c.name + " + flown notch " + ",".join(f"{s['cutoff_hz']:.0f}" for s in flown_notches),
+                                     c.stages + flown_notches, lowpass=c.lowpass, cutoff_hz=c.cutoff_hz,
+                                     notches_hz=tuple(s["cutoff_hz"] for s in flown_notches)))
+        st = tuple(s for s in as_flown if not s.get("dynamic") and s["kind"] != "fir")
+        lp = [s for s in st if s["kind"] in LP_KINDS]
+        out.append(Candidate("as flown", st, family="as_flown", lowpass=lp[0]["kind"] if lp else "none",
+                             cutoff_hz=lp[0]["cutoff_hz"] if lp else float("nan"),
+                             notches_hz=tuple(s["cutoff_hz"] for s in st if s["kind"] == "notch")))
+    if 500.0 * 2 < rate_hz:
+        out.append(Candidate("betaflight 4.x default (static part)", (_stage("pt1", 250, rate_hz), _stage("pt1", 500, rate_hz)),
+                             family="betaflight_default", lowpass="pt1", cutoff_hz=250.0))
+    out.append(Candidate("px4 default IMU_GYRO_CUTOFF 40", (_stage("butter2", 40, rate_hz),), family="px4_default",
+                         lowpass="butter2", cutoff_hz=40.0))
+    out.append(Candidate("ardupilot default INS_GYRO_FILTER 20", (_stage("butter2", 20, rate_hz),), family="ardupilot_default",
+                         lowpass="butter2", cutoff_hz=20.0))
+    out.append(Candidate("article 1st-order 30 Hz", (_stage("article", 30, rate_hz),), family="article",
+                         lowpass="article", cutoff_hz=30.0))
+    return out
+
+
+def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_below_hz: float, omega_rms_rad_s: float,
+            loop_scale: float = 1.0, flight_band_hz=FLIGHT_BAND_HZ, lines: Sequence[dict] = ()) -> dict:
+    """Spectrum after ``cand`` and its scores (see the module docstring).
+
+    Parameters
+    ----------
+    f_hz : ndarray (M,)
+    psd_raw : ndarray (M, 3)
+        Gyro PSD before every firmware filter, (rad/s)²/Hz (one-sided).
+    omega_rms_rad_s : float
+        RMS angular rate of the flight below 30 Hz (all axes), rad/s.
+    """
+    r = chain_response(cand.stages, f_hz, loop_scale=loop_scale)
+    H2 = r.magnitude ** 2
+    after = psd_raw * H2[:, None]
+    df = f_hz[1] - f_hz[0]
+    band = (f_hz >= 40.0) & (f_hz < reliable_below_hz)
+    gyro_noise = np.sqrt(np.nansum(after[band], axis=0) * df)  # NaN: bins not reconstructed (notch holes)
+    w = 2 * np.pi * f_hz
+    motor = np.sqrt(np.nansum(after[band] * (w[band, None] ** 2), axis=0) * df)
+    jitter = np.sqrt(np.nansum(after[band] / (w[band, None] ** 2), axis=0) * df)
+    fb = np.linspace(flight_band_hz[0], flight_band_hz[1], 30)
+    rb = chain_response(cand.stages, np.concatenate([fb, [flight_band_hz[1]]]), loop_scale=loop_scale)
+    tau = float(np.mean(rb.group_delay_s[:-1]))
+    # phase at the band edge from the exact frequency response of the cascade
+    from .filters import chain_filters
+    from scipy import signal as _sig
+
+    ph = 0.0
+    for flt in chain_filters(cand.stages, loop_scale=loop_scale):
+        _, h = _sig.sosfreqz(flt.sos, worN=[flight_band_hz[1]], fs=flt.rate_hz)
+        ph += float(np.angle(h[0], deg=True))
+    theta_d = tau * omega_rms_rad_s
+    theta_v = float(np.sqrt(np.sum(jitter**2)))
+    line_left = []
+    for ln in lines:
+        f0 = ln["frequency_hz"]
+        g = float(np.interp(f0, f_hz, r.magnitude))
+        line_left.append({"axis": ln["axis"], "frequency_hz": f0, "fraction_left": g,
+                          "amplitude_after_rad_s": ln["amplitude_rad_s"] * g})
+    return {
+        "name": cand.name, "family": cand.family, "filter": cand.lowpass, "cutoff_hz": cand.cutoff_hz,
+        "notches_hz": list(cand.notches_hz), "stages": list(cand.stages),
+        "delay_ms": 1e3 * tau, "phase_deg_at_hz": [ph, flight_band_hz[1]],
+        "gyro_noise_rad_s": {a: float(gyro_noise[i]) for i, a in enumerate("xyz")},
+        "motor_noise": float(np.sqrt(np.sum(motor**2))),
+        "attitude_cost": float(np.degrees(math.hypot(theta_d, theta_v))),
+        "attitude_cost_delay_deg": float(np.degrees(theta_d)), "attitude_cost_vibration_deg": float(np.degrees(theta_v)),
+        "lines_left": line_left,
+        "psd_after": after,
+    }
+
+
+def recommend(rows: Sequence[dict]) -> tuple[dict, float, str, list]:
+    """Least attitude cost under the motor-noise budget; returns (row, budget, budget source, Pareto front)."""
+    by = {r["family"]: r for r in rows}
+    if "as_flown" in by:
+        budget, src = by["as_flown"]["motor_noise"], "as flown"
+    elif "betaflight_default" in by:
+        budget, src = by["betaflight_default"]["motor_noise"], "betaflight 4.x default (static part)"
+    else:
+        budget, src = min(r["motor_noise"] for r in rows), "least noise"
+    pool = [r for r in rows if r["family"] in ("betaflight", "as_flown") and r["motor_noise"] <= budget * (1 + 1e-9)]
+    if not pool:
+        pool = [min((r for r in rows if r["family"] == "betaflight"), key=lambda r: r["motor_noise"])]
+    best = min(pool, key=lambda r: (r["attitude_cost"], r["motor_noise"]))
+    front = []
+    for r in sorted((r for r in rows if r["family"] == "betaflight"), key=lambda r: r["motor_noise"]):
+        if not front or r["attitude_cost"] < front[-1]["attitude_cost"]:
+            front.append(r)
+    return best, budget, src, [{"name": r["name"], "motor_noise": r["motor_noise"], "attitude_cost": r["attitude_cost"],
+                                "delay_ms": r["delay_ms"]} for r in front]
+
+
+_BF_TYPE = {"pt1": "PT1", "biquad": "BIQUAD", "pt2": "PT2", "pt3": "PT3"}
+
+
+def betaflight_cli(row: dict, version: tuple | None) -> list[str]:
+    """``set`` lines for Betaflight ``version`` (CLI names read in each tag's cli.c / settings.c).
+
+    3.1.x: gyro_lowpass_type, gyro_lowpass, gyro_notchN_hz, gyro_notchN_cut; 3.2–4.2:
+    gyro_lowpass_type, gyro_lowpass_hz, gyro_notchN_hz, gyro_notchN_cutoff (4.0–4.2: also
+    dyn_lpf_gyro_min_hz = 0 so the static LPF applies; 3.4+: gyro_lowpass2_hz = 0); 4.3+:
+    gyro_lpf1_type, gyro_lpf1_static_hz, gyro_lpf1_dyn_min_hz = 0, gyro_lpf2_static_hz = 0.
+    PT2/PT3 exist from 4.3; an older version gets a comment instead.
+    """
+    v = tuple(version) if version else (4, 5, 0)
+    kind, fc = row["filter"], row["cutoff_hz"]
+    out = []
+    if v >= (4, 3, 0):
+        out += [f"set gyro_lpf1_type = {_BF_TYPE.get(kind, kind.upper())}", f"set gyro_lpf1_static_hz = {fc:.0f}",
+                "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0"]
+        cut = "cutoff"
+    else:
+        if kind in ("pt2", "pt3"):
+            out.append(f"# {kind.upper()} needs Betaflight 4.3+; this firmware has PT1 and BIQUAD")
+        lp = "gyro_lowpass" if v < (3, 2, 0) else "gyro_lowpass_hz"
+        out += [f"set gyro_lowpass_type = {_BF_TYPE.get(kind, kind.upper())}", f"set {lp} = {fc:.0f}"]
+        if (3, 4, 0) <= v:
+            out.append("set gyro_lowpass2_hz = 0")
+        if (4, 0, 0) <= v:
+            out.append("set dyn_lpf_gyro_min_hz = 0")
+        cut = "cut" if v < (3, 2, 0) else "cutoff"
+    notches = [s for s in row["stages"] if s["kind"] == "notch"]
+    for i in range(2):
+        if i < len(notches):
+            out += [f"set gyro_notch{i + 1}_hz = {notches[i]['cutoff_hz']:.0f}",
+                    f"set gyro_notch{i + 1}_{cut} = {notches[i]['notch_cutoff_hz']:.0f}"]
+        else:
+            out.append(f"set gyro_notch{i + 1}_hz = 0")
+    return out
+
+
+#: Betaflight's RPM filter notch Q: ``rpm_filter_q`` / ``gyro_rpm_notch_q`` default 500, used as
+#: Q = value/100 (src/main/flight/rpm_filter.c: ``rpmFilterConfig->rpm_filter_q / 100.0f``).
+RPM_NOTCH_Q = 5.0
+
+
+def preview_tracking(f_hz: np.ndarray, band_psd: np.ndarray, band_weights: np.ndarray, base: Candidate,
+                     track_hz: np.ndarray, *, reliable_below_hz: float, omega_rms_rad_s: float, loop_scale: float = 1.0,
+                     rate_hz: float, q: float = RPM_NOTCH_Q, lines: Sequence[dict] = ()) -> dict:
+    """An RPM-tracking notch (Betaflight's RPM filter, one harmonic) on top of ``base``.
+
+    The notch centre follows the line: in throttle band b it sits at ``track_hz[b, l]`` for
+    each tracked line l (NaN: no notch in that band, e.g. below rpm_filter_min_hz). Each band's
+    spectrum ``band_psd[b]`` (raw domain) is filtered by the chain of that band; the scores
+    combine the bands with ``band_weights`` (their share of the airborne windows): noise
+    powers add with the weights, delay is the weighted mean.
+    """
+    rows = []
+    for b in range(band_psd.shape[0]):
+        st = list(base.stages)
+        for f0 in np.atleast_1d(track_hz[b]):
+            if np.isfinite(f0) and f0 < rate_hz / 2:
+                st.append(_stage("notch", f0, rate_hz, q=q, notch_cutoff_hz=float("nan")))
+        c = Candidate(base.name, tuple(st), family=base.family, lowpass=base.lowpass, cutoff_hz=base.cutoff_hz)
+        rows.append(preview(f_hz, band_psd[b], c, reliable_below_hz=reliable_below_hz, omega_rms_rad_s=omega_rms_rad_s,
+                            loop_scale=loop_scale, lines=lines))
+    w = np.asarray(band_weights, float) / np.sum(band_weights)
+    tau_ms = float(np.sum(w * [r["delay_ms"] for r in rows]))
+    motor = float(np.sqrt(np.sum(w * np.array([r["motor_noise"] for r in rows]) ** 2)))
+    gn = {a: float(np.sqrt(np.sum(w * np.array([r["gyro_noise_rad_s"][a] for r in rows]) ** 2))) for a in "xyz"}
+    th_v = float(np.sqrt(np.sum(w * np.radians([r["attitude_cost_vibration_deg"] for r in rows]) ** 2)))
+    th_d = tau_ms * 1e-3 * omega_rms_rad_s
+    after = np.nansum(w[:, None, None] * np.array([r["psd_after"] for r in rows]), axis=0)
+    name = base.name + f" + RPM notch (Q {q:g})"
+    return {"name": name, "family": "betaflight", "filter": base.lowpass, "cutoff_hz": base.cutoff_hz, "notches_hz": [],
+            "rpm_notch": {"q": q, "tracks_hz": np.asarray(track_hz, float).tolist()},
+            "stages": list(base.stages), "delay_ms": tau_ms,
+            "phase_deg_at_hz": [float(np.sum(w * [r["phase_deg_at_hz"][0] for r in rows])), rows[0]["phase_deg_at_hz"][1]],
+            "gyro_noise_rad_s": gn, "motor_noise": motor, "attitude_cost": float(np.degrees(math.hypot(th_d, th_v))),
+            "attitude_cost_delay_deg": float(np.degrees(th_d)), "attitude_cost_vibration_deg": float(np.degrees(th_v)),
+            "lines_left": [], "psd_after": after}

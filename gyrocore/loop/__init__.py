@@ -1,0 +1,1 @@
+"""The residual loop: residual against a reference, the open search, the add-and-refit loop."""

@@ -1,0 +1,1100 @@
+"""Betaflight / INAV / Cleanflight blackbox logs (.BBL/.BFL/.TXT) as the DESIGN.md data file.
+
+What is ours and what is orangebox's
+    Byte-level decoding (headers, field definitions, the variable-byte and tag encodings, the
+    field predictors) is orangebox's (``orangebox==0.4.0``, pure Python; 0.5.0's wheel declares
+    console scripts ``bb2csv = scripts/bb2csv`` without a callable, which pip refuses to
+    install: "Invalid script entry point ... A callable suffix is required"). The frame loop is
+    ours (:func:`_iter_frames`), because orangebox's own ``Parser.frames`` (a) accepts P frames
+    before the first I frame and after a corrupt frame (their predictions start from garbage:
+    the shared log's first three frames carry timestamps near 0), (b) raises ``TypeError`` when
+    the data stops inside a frame (a truncated log), and (c) mis-sizes a group of TAG8_8SVB
+    fields that ends the frame (``(count-1) - index``: one field short, and zero fields, an
+    endless loop, for a single last field; atomgomba/orangebox#7). Our loop follows
+    blackbox-log-viewer's rules: a P frame is only accepted while the stream is valid (an I
+    frame has been read since the last corrupt frame), a frame must be followed by a valid
+    frame marker, its ``loopIteration`` and ``time`` must move forward, and corrupt frames are
+    skipped (resynchronised byte by byte) and counted. orangebox's stub decoders
+    (``tag8_4s16`` of data version 1, ``tag2_3svariable``) return a string: a log whose fields
+    need them is refused with one error line, never passed on.
+
+What the firmware logged (read in the Betaflight source, tags v3.1.0 … 2026.6.1)
+    * ``gyroADC[i]`` = ``lrintf(gyro.gyroADCf[i])``: the gyro after every software gyro filter,
+      deg/s rounded to 1 °/s (×10 when ``blackbox_high_resolution`` = 1, 4.3+); the header's
+      ``gyro_scale`` is ``1.0f`` in every Betaflight version from 3.1 (src/main/blackbox/blackbox.c).
+    * ``debug[0..3]`` depends on ``debug_mode``, an index into ``debugType_e``
+      (src/main/build/debug.h) whose list changes between releases (:data:`DEBUG_MODE_TABLES`,
+      extracted from each tag). What the gyro debug modes hold (src/main/sensors/gyro.c,
+      gyro_filter_impl.*): :func:`debug_gyro_meaning`.
+    * ``gyroUnfilt[i]`` (4.5+): the gyro before every software filter (same scale as gyroADC).
+    * ``eRPM[i]`` (4.5+): eRPM/100 from bidirectional DShot; rotor Hz = eRPM·100/(poles/2)/60.
+    * ``accSmooth[i]``: accelerometer in LSB, ``acc_1G`` LSB per g.
+    * ``motor[i]``: motor command in the range ``motorOutput`` (low, high).
+    * ``rcCommand[3]``: throttle, 1000–2000 (µs-like); written as unsigned ``throttle −
+      minthrottle`` in 3.x, so a throttle below ``minthrottle`` wraps to ~4.29e9: read as a
+      signed 32-bit value (a repair that is counted).
+INAV 9.0.x (source read: :data:`INAV_READ`)
+    * ``gyroADC[i]`` = ``lrintf(gyro.gyroADCf[i])``, deg/s after every gyro filter; ``gyroRaw[i]``
+      = ``lrintf(gyro.gyroRaw[i])``, deg/s after zero calibration and alignment, before every
+      software filter (sensors/gyro.c ``gyroUpdate``): the less-filtered gyro.
+    * ``accSmooth[i]`` = ``lrintf(acc.accADCf[i] · acc_1G)``; ``motor[i]`` in ``motorOutput``;
+      ``rcCommand[3]`` written as unsigned ``throttle − idle`` (same wrap as Betaflight 3.x).
+    * ``looptime`` is the PID loop period; ``P interval`` is ``num/denom``; the end-of-log event
+      carries "End of log (disarm reason:N)"; event 40 is an IMU failure.
+    * Only some gyro filters are in the header (main LPF ``gyro_lpf_hz``, dynamic notch, RPM
+      filter); the rest (anti-alias LPF, LULU, Kalman, …) are said to be missing in ``lacks``.
+Cleanflight 2.4.0, 2.4.1, 2.5.0, 4.2.0, 4.2.2: read as the Betaflight release whose source they
+equal (:data:`CLEANFLIGHT_AS_BETAFLIGHT`). Every other firmware/version is refused with one error
+line naming it: its units and debug modes have not been read in its source here.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from gyrocore.errors import GyroInputError, warn_repair
+
+__all__ = [
+    "BlackboxLog",
+    "FirmwareInfo",
+    "FilterStage",
+    "read_blackbox_logs",
+    "read_blackbox",
+    "firmware_info",
+    "gyro_filter_chain",
+    "debug_mode_name",
+    "debug_gyro_meaning",
+    "DEBUG_MODE_TABLES",
+    "ORANGEBOX_VERSION",
+    "is_blackbox",
+]
+
+ORANGEBOX_VERSION = "0.4.0"
+DEG = math.pi / 180.0
+G0_M_S2 = 9.80665
+
+from ._betaflight_debug_modes import BETAFLIGHT_DEBUG_MODES
+
+#: ``debugType_e`` per Betaflight release range (generated from each tag's debug.h; see
+#: :mod:`gyrocore.readers._betaflight_debug_modes`).
+DEBUG_MODE_TABLES = BETAFLIGHT_DEBUG_MODES
+
+#: Newest Betaflight release whose source was read for this module.
+NEWEST_KNOWN = (2026, 6, 99)
+
+
+def _version_str(v: Sequence[int]) -> str:
+    return ".".join(str(x) for x in v)
+
+
+def debug_mode_name(version: Sequence[int], index: int) -> str | None:
+    """Name of ``debug_mode`` ``index`` in Betaflight ``version`` (None: version not read).
+
+    A version maps to the release group whose tags were read and that holds it (a patch
+    release of the same major.minor within the group's range; 2025.12.0, tagged only as
+    release candidates whose list equals 2025.12.1's, maps to that group). E.g. (3, 1, 5), 8 →
+    ``"NOTCH"``; (3, 2, 5), 8 → ``"GYRO_NOTCH"``; (3, 3, 0), 6 → ``"GYRO_NOTCH"``;
+    (4, 3, 0), 6 → ``"GYRO_SCALED"``. An index past the list is ``"index N"``.
+    """
+    v = tuple(version)
+    hit = None
+    for lo, hi, names in DEBUG_MODE_TABLES:
+        if (lo <= v or lo[:2] == v[:2]) and v <= hi:
+            hit = names
+    if hit is None:
+        return None
+    return hit[index] if 0 <= index < len(hit) else f"index {index}"
+
+
+@dataclass(frozen=True)
+class FilterStage:
+    """One firmware gyro filter as the firmware runs it.
+
+    Parameters
+    ----------
+    kind : str
+        ``pt1``, ``pt2``, ``pt3``, ``biquad`` (RBJ low-pass, Q = 1/√2), ``notch`` (RBJ notch,
+        Q from ``filterGetNotchQ``), ``fir`` (3.1–3.3's FIR option: response not modelled),
+        or a dynamic filter: ``dyn_lpf``, ``dyn_notch``, ``rpm_notch`` (cannot be undone).
+    cutoff_hz : float
+        Cutoff (low-pass) or centre (notch), Hz; for dynamic filters the lower limit.
+    rate_hz : float
+        Rate the filter runs at (nominal, from the header), Hz.
+    header : str
+        The header entries it comes from.
+    q : float
+        Notch Q (NaN otherwise).
+    dynamic : bool
+        True when the filter moves in flight (its response at each instant is not logged).
+    notch_cutoff_hz : float
+        Betaflight's notch "cutoff" (lower −3 dB edge) the Q comes from (NaN otherwise).
+    """
+
+    kind: str
+    cutoff_hz: float
+    rate_hz: float
+    header: str
+    q: float = float("nan")
+    dynamic: bool = False
+    notch_cutoff_hz: float = float("nan")
+    max_hz: float = float("nan")
+
+    def label(self) -> str:
+        if self.kind == "notch":
+            return f"notch {self.cutoff_hz:g} Hz (cutoff {self.notch_cutoff_hz:g} Hz, Q {self.q:.3f}) @ {self.rate_hz:g} Hz"
+        if self.dynamic:
+            return f"{self.kind} {self.cutoff_hz:g}-{self.max_hz:g} Hz (dynamic) @ {self.rate_hz:g} Hz"
+        return f"{self.kind} {self.cutoff_hz:g} Hz @ {self.rate_hz:g} Hz"
+
+    def to_dict(self) -> dict:
+        d = {"kind": self.kind, "cutoff_hz": self.cutoff_hz, "rate_hz": self.rate_hz, "dynamic": self.dynamic,
+             "header": self.header}
+        if self.kind == "notch":
+            d["q"] = self.q
+            d["notch_cutoff_hz"] = self.notch_cutoff_hz
+        if self.dynamic:
+            d["max_hz"] = self.max_hz if math.isfinite(self.max_hz) else None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FilterStage":
+        return cls(kind=d["kind"], cutoff_hz=float(d["cutoff_hz"]), rate_hz=float(d["rate_hz"]),
+                   header=d.get("header", ""), q=float(d.get("q", float("nan"))), dynamic=bool(d.get("dynamic", False)),
+                   notch_cutoff_hz=float(d.get("notch_cutoff_hz", float("nan"))), max_hz=float(d["max_hz"]) if d.get("max_hz") is not None else float("nan"))
+
+
+def notch_q(center_hz: float, cutoff_hz: float) -> float:
+    """Betaflight ``filterGetNotchQ``: Q = f0·fc/(f0² − fc²) (3.1's octave form is the same value)."""
+    return center_hz * cutoff_hz / (center_hz * center_hz - cutoff_hz * cutoff_hz)
+
+
+@dataclass(frozen=True)
+class FirmwareInfo:
+    """Firmware named by the header.
+
+    ``name`` ("betaflight", "inav", "cleanflight"); ``version``: the version whose source gives
+    the log's meaning — for Cleanflight the Betaflight release its source equals
+    (:data:`CLEANFLIGHT_AS_BETAFLIGHT`), else the firmware's own; ``release``: the firmware's own
+    version as the header names it; revision text; blackbox data version.
+    """
+
+    name: str
+    version: tuple[int, ...]
+    revision: str
+    data_version: int
+    release: tuple[int, ...] | None = None
+
+    @property
+    def version_str(self) -> str:
+        return _version_str(self.version)
+
+    @property
+    def release_str(self) -> str:
+        return _version_str(self.release or self.version)
+
+    @property
+    def label(self) -> str:
+        """E.g. "Betaflight 4.2.0", "INAV 9.0.1", "Cleanflight 2.4.1 (= Betaflight 3.4.1 source)"."""
+        if self.name == "cleanflight":
+            return f"Cleanflight {self.release_str} (= Betaflight {self.version_str} source)"
+        return f"{'INAV' if self.name == 'inav' else 'Betaflight'} {self.version_str}"
+
+
+_REV = re.compile(r"^\s*(Betaflight|INAV|Cleanflight|EmuFlight|Emuflight|Rotorflight|KISS)\s+v?(\d+)\.(\d+)(?:\.(\d+))?", re.I)
+
+
+#: INAV releases whose blackbox writer was read (major, minor) → what was read. The source read is
+#: the stored iNavFlight/inav revision 00b5622b (a development revision after 9.0.1: it already has
+#: the secondary-gyro field gyroRaw2) of src/main/blackbox/blackbox.c, blackbox_fielddefs.h and
+#: src/main/sensors/gyro.c; its header writer (``blackboxWriteSysinfo``: every ``H`` key, in
+#: order) and main-field list agree line by line with a real INAV 9.0.1 log (tests), so 9.0.x is
+#: read; no other INAV release's source was read.
+INAV_READ = {(9, 0): "iNavFlight/inav 00b5622b: blackbox/blackbox.c, blackbox/blackbox_fielddefs.h, sensors/gyro.c"}
+
+
+#: Cleanflight releases read (own version → the Betaflight release whose source it equals).
+#: Read in the cleanflight/cleanflight repository: the first-parent commits during which
+#: src/main/build/version.h named each version; for each, build/debug.h's debugType_e list is one
+#: list over the whole range and equals that Betaflight release's, and blackbox/blackbox.c,
+#: sensors/gyro.c (and gyro_filter_impl.c for 4.2) differ from the Betaflight tag only in licence
+#: comments, includes and (4.2) a cache-flush state of the header writer. Not read: Cleanflight
+#: 1.x (gyro in raw counts), 2.0.0, 2.1.0, 2.3.0 (the debug list changed while that version was
+#: current: ambiguous), 2.2.0 and 2.3.1 (debug lists of their own, matching no Betaflight release).
+CLEANFLIGHT_AS_BETAFLIGHT = {
+    (2, 4, 0): (3, 4, 0), (2, 4, 1): (3, 4, 1), (2, 5, 0): (3, 5, 0), (4, 2, 0): (4, 2, 0), (4, 2, 2): (4, 2, 2),
+}
+
+
+def firmware_info(headers: dict, source: str = "") -> FirmwareInfo:
+    """Identify the firmware; one-line :class:`GyroInputError` for a firmware/data version not read.
+
+    Read: Betaflight 3.1 … 2026.6 (``gyroADC`` in deg/s, ``gyro_scale`` = 1.0 checked) and INAV
+    9.0.x (:data:`INAV_READ`). Betaflight 3.0 and older, other INAV releases, Cleanflight and
+    other forks log units/fields/debug lists that were not read here; blackbox data versions
+    other than 1 and 2 are unknown.
+    """
+    dv = headers.get("Data version")
+    if dv not in (1, 2):
+        raise GyroInputError(f"{source}: blackbox data version {dv!r} is not one this reader knows (1, 2)")
+    rev = str(headers.get("Firmware revision", "")).strip()
+    ftype = str(headers.get("Firmware type", "")).strip()
+    m = _REV.match(rev)
+    if not m:
+        raise GyroInputError(f"{source}: firmware {rev or ftype or 'unnamed'!r} is not one this reader knows "
+                             f"(Betaflight 3.1–2026.6, INAV 9.0, Cleanflight 2.4/2.5/4.2)")
+    name = m.group(1).lower()
+    ver = tuple(int(x) for x in m.groups()[1:] if x is not None)
+    if len(ver) == 2:
+        ver = ver + (0,)
+    if name == "inav":
+        if ver[:2] not in INAV_READ:
+            raise GyroInputError(f"{source}: INAV {_version_str(ver)} logs are not read (its blackbox writer and gyro "
+                                 f"units were not checked in that release's source); INAV 9.0.x and Betaflight 3.1–2026.6 are")
+        return FirmwareInfo(name=name, version=ver, revision=rev, data_version=int(dv))
+    if name == "cleanflight":
+        if ver not in CLEANFLIGHT_AS_BETAFLIGHT:
+            known = ", ".join(_version_str(v) for v in CLEANFLIGHT_AS_BETAFLIGHT)
+            raise GyroInputError(f"{source}: Cleanflight {_version_str(ver)} logs are not read (its debug list and gyro "
+                                 f"fields were not matched to a read source); Cleanflight {known} are")
+        return FirmwareInfo(name=name, version=CLEANFLIGHT_AS_BETAFLIGHT[ver], revision=rev, data_version=int(dv),
+                            release=ver)
+    if name != "betaflight":
+        raise GyroInputError(f"{source}: {m.group(1)} {_version_str(ver)} logs are not read (units and debug modes of that "
+                             f"firmware were not checked in its source); Betaflight 3.1–2026.6, INAV 9.0.x and "
+                             f"Cleanflight 2.4/2.5/4.2 are")
+    if ver < (3, 1, 0):
+        raise GyroInputError(f"{source}: Betaflight {_version_str(ver)} is older than 3.1 (gyro logged in raw counts with a "
+                             f"per-build gyro_scale); this reader knows Betaflight 3.1–2026.6")
+    return FirmwareInfo(name=name, version=ver, revision=rev, data_version=int(dv))
+
+
+def _h(headers: dict, key: str, default=None):
+    return headers.get(key, default)
+
+
+def _hlist(headers: dict, key: str) -> list:
+    v = headers.get(key)
+    if v is None:
+        return []
+    return list(v) if isinstance(v, (list, tuple)) else [v]
+
+
+def _lpf_kind(fw: FirmwareInfo, type_idx) -> str:
+    """lowpassFilterType_e: 0 PT1, 1 BIQUAD, then 2 FIR (3.1–3.3) or 2 PT2, 3 PT3 (4.3+)."""
+    t = int(type_idx or 0)
+    if t == 0:
+        return "pt1"
+    if t == 1:
+        return "biquad"
+    if fw.version >= (4, 3, 0):
+        return {2: "pt2", 3: "pt3"}.get(t, f"type{t}")
+    return "fir" if t == 2 and fw.version < (3, 4, 0) else f"type{t}"
+
+
+def loop_rates(headers: dict, fw: FirmwareInfo) -> dict:
+    """Gyro, PID (gyro-filter) and nominal logged rates from the header, Hz.
+
+    3.1–4.1: ``looptime`` is the gyro loop period (gyro.targetLooptime); gyro filters run
+    there. 4.2+: ``looptime`` is the gyro sampling period (gyro.sampleLooptime); the gyro
+    filters (static notches, LPF1) run at the PID rate = gyro rate / ``pid_process_denom``
+    (gyro_init.c: ``biquadFilterInit(..., gyro.targetLooptime, ...)``), LPF2 at the gyro rate
+    (it is the downsampling filter). ``P interval`` is "num/denom" (3.1–3.2) or an integer
+    count of loops between logged frames (3.3+).
+    """
+    lt = _h(headers, "looptime")
+    if not isinstance(lt, (int, float)) or not lt > 0:
+        raise GyroInputError(f"header 'looptime' is {lt!r}, not a loop period in µs")
+    gyro_hz = 1e6 / float(lt)
+    denom = _h(headers, "pid_process_denom", 1) or 1
+    if fw.version >= (4, 2, 0):
+        pid_hz = gyro_hz / float(denom)
+        filt_hz, lpf2_hz = pid_hz, gyro_hz
+    else:
+        pid_hz = gyro_hz / float(denom)
+        filt_hz, lpf2_hz = gyro_hz, gyro_hz
+    pint = _h(headers, "P interval", 1)
+    if isinstance(pint, str) and "/" in pint:
+        num, den = (int(x) for x in pint.split("/"))
+        log_hz = pid_hz * num / den
+    else:
+        log_hz = pid_hz / float(pint or 1)
+    return {"gyro_hz": gyro_hz, "pid_hz": pid_hz, "filter_hz": filt_hz, "lpf2_hz": lpf2_hz, "log_hz_nominal": log_hz}
+
+
+def gyro_filter_chain(headers: dict, fw: FirmwareInfo) -> list[FilterStage]:
+    """The firmware's software gyro filters from the header, in the firmware's order.
+
+    Header names per version (blackbox.c of each tag): 3.1–3.3 ``gyro_lowpass_hz`` +
+    ``gyro_soft_type``/``gyro_lowpass_type``; 3.4–4.2 adds ``gyro_lowpass2_hz``/``_type``;
+    4.0–4.2 ``gyro_lowpass_dyn_hz`` / ``dyn_lpf_gyro_hz``; 4.3+ ``gyro_lpf1_static_hz``,
+    ``gyro_lpf1_type``, ``gyro_lpf1_dyn_hz``, ``gyro_lpf2_static_hz``, ``gyro_lpf2_type``;
+    all: ``gyro_notch_hz`` / ``gyro_notch_cutoff`` (two static notches, 0 = off); dynamic
+    notch (``dyn_notch_*``, 4.3+ ``dyn_notch_count``) and RPM filter (``gyro_rpm_notch_*``
+    4.0–4.2, ``rpm_filter_*`` 4.3+, active only with ``dshot_bidir`` = 1).
+    Order: 3.1 LPF → notch1 → notch2 (sensors/gyro.c); 3.2+ notches → LPF(s).
+    """
+    r = loop_rates(headers, fw)
+    fr, f2 = r["filter_hz"], r["lpf2_hz"]
+    stages: list[FilterStage] = []
+    # static notches
+    hz = _hlist(headers, "gyro_notch_hz")
+    cut = _hlist(headers, "gyro_notch_cutoff")
+    notches = []
+    for i, f0 in enumerate(hz):
+        c = cut[i] if i < len(cut) else 0
+        if f0 and f0 > 0 and c and 0 < c < f0:
+            notches.append(FilterStage("notch", float(f0), fr, f"gyro_notch_hz[{i}], gyro_notch_cutoff[{i}]",
+                                       q=notch_q(float(f0), float(c)), notch_cutoff_hz=float(c)))
+    # LPF1
+    if fw.version >= (4, 3, 0):
+        f1, t1, k1 = _h(headers, "gyro_lpf1_static_hz", 0), _h(headers, "gyro_lpf1_type", 0), "gyro_lpf1_static_hz"
+        dyn1 = _hlist(headers, "gyro_lpf1_dyn_hz")
+        f2hz, t2, k2 = _h(headers, "gyro_lpf2_static_hz", 0), _h(headers, "gyro_lpf2_type", 0), "gyro_lpf2_static_hz"
+    else:
+        f1 = _h(headers, "gyro_lowpass_hz", 0)
+        t1 = _h(headers, "gyro_lowpass_type", _h(headers, "gyro_soft_type", 0))
+        k1 = "gyro_lowpass_hz"
+        dyn1 = _hlist(headers, "gyro_lowpass_dyn_hz") or _hlist(headers, "dyn_lpf_gyro_hz")
+        f2hz, t2, k2 = _h(headers, "gyro_lowpass2_hz", 0), _h(headers, "gyro_lowpass2_type", 0), "gyro_lowpass2_hz"
+    lpfs = []
+    if len(dyn1) >= 2 and dyn1[0] and dyn1[0] > 0:
+        lpfs.append(FilterStage("dyn_lpf", float(dyn1[0]), fr, k1.replace("static_hz", "dyn_hz") if "lpf1" in k1 else "gyro_lowpass_dyn_hz",
+                                dynamic=True, max_hz=float(dyn1[1])))
+    elif f1 and f1 > 0:
+        lpfs.append(FilterStage(_lpf_kind(fw, t1), float(f1), fr, k1))
+    if f2hz and f2hz > 0:
+        lpfs.append(FilterStage(_lpf_kind(fw, t2), float(f2hz), f2, k2))
+    # dynamic notch / RPM filter
+    dyn = []
+    count = _h(headers, "dyn_notch_count")
+    if (count is not None and count > 0) or (count is None and _dyn_notch_feature(headers, fw)):
+        dyn.append(FilterStage("dyn_notch", float(_h(headers, "dyn_notch_min_hz", 0) or 0), fr, "dyn_notch_*", dynamic=True,
+                               max_hz=float(_h(headers, "dyn_notch_max_hz", 0) or 0)))
+    harm = _h(headers, "rpm_filter_harmonics", _h(headers, "gyro_rpm_notch_harmonics", 0))
+    if harm and _h(headers, "dshot_bidir", 0):
+        dyn.append(FilterStage("rpm_notch", float(_h(headers, "rpm_filter_min_hz", _h(headers, "gyro_rpm_notch_min", 0)) or 0),
+                               fr, "rpm_filter_* / gyro_rpm_notch_*", dynamic=True, max_hz=float("nan")))
+    if fw.version < (3, 2, 0):
+        return lpfs + notches
+    return dyn + notches + lpfs
+
+
+#: Betaflight 3.2–4.2 enable the dynamic notch with FEATURE_DYNAMIC_FILTER = 1 << 29
+#: (src/main/fc/config.h / feature.h of those tags); 4.3+ log ``dyn_notch_count``.
+_FEATURE_DYNAMIC_FILTER = 1 << 29
+
+
+def _dyn_notch_feature(headers: dict, fw: FirmwareInfo) -> bool:
+    if not ((3, 2, 0) <= fw.version < (4, 3, 0)):
+        return False
+    feats = _h(headers, "features", 0)
+    return isinstance(feats, int) and bool(feats & _FEATURE_DYNAMIC_FILTER)
+
+
+def inav_loop_rates(headers: dict) -> dict:
+    """INAV loop and logged rates from the header, Hz (INAV source read: :data:`INAV_READ`).
+
+    ``looptime`` is ``getLooptime()``: the PID/filter loop period in µs (the gyro task's own
+    sampling period is not in the header: ``gyro_hz`` is NaN). ``P interval`` is
+    ``rate_num/rate_denom``: one main frame per ``rate_denom/rate_num`` loops.
+    """
+    lt = _h(headers, "looptime")
+    if not isinstance(lt, (int, float)) or not lt > 0:
+        raise GyroInputError(f"header 'looptime' is {lt!r}, not a loop period in µs")
+    pid_hz = 1e6 / float(lt)
+    pint = _h(headers, "P interval", "1/1")
+    if isinstance(pint, str) and "/" in pint:
+        num, den = (int(x) for x in pint.split("/"))
+    else:
+        num, den = 1, int(pint or 1)
+    return {"gyro_hz": float("nan"), "pid_hz": pid_hz, "filter_hz": pid_hz, "lpf2_hz": pid_hz,
+            "log_hz_nominal": pid_hz * num / den}
+
+
+def inav_filter_chain(headers: dict, rates: dict) -> list[FilterStage]:
+    """The INAV gyro filters the header names, in the firmware's order (sensors/gyro.c ``gyroFilter``).
+
+    Order after the anti-alias PT1 (not in the header): RPM filter (``rpm_gyro_filter_enabled``,
+    dynamic), LULU (not in the header), main LPF = PT1 at ``gyro_lpf_hz`` on the loop period
+    (``initGyroFilter``: ``pt1FilterInit(cutoff, looptime)``; off when gyro_filter_mode is OFF,
+    moved by the adaptive mode — neither is in the header), dynamic notch (``dynamicGyroNotchMinHz``
+    / ``Q`` are logged, its enable flag is not: listed as dynamic), Kalman (not in the header).
+    """
+    fr = rates["filter_hz"]
+    out: list[FilterStage] = []
+    if _h(headers, "rpm_gyro_filter_enabled", 0):
+        out.append(FilterStage("rpm_notch", float(_h(headers, "rpm_gyro_min_hz", 0) or 0), fr,
+                               "rpm_gyro_filter_enabled, rpm_gyro_min_hz", dynamic=True))
+    f_main = _h(headers, "gyro_lpf_hz", 0)
+    if isinstance(f_main, (int, float)) and f_main > 0:
+        out.append(FilterStage("pt1", float(f_main), fr, "gyro_lpf_hz (INAV main gyro LPF, PT1)"))
+    if "dynamicGyroNotchMinHz" in headers:
+        out.append(FilterStage("dyn_notch", float(_h(headers, "dynamicGyroNotchMinHz", 0) or 0), fr,
+                               "dynamicGyroNotchMinHz, dynamicGyroNotchQ (enable flag not logged)", dynamic=True,
+                               max_hz=fr / 2.0))
+    return out
+
+
+@dataclass(frozen=True)
+class DebugGyro:
+    """What ``debug[0..2]`` holds for the gyro: ``kind`` raw/partly_filtered, filters before it."""
+
+    mode: str
+    kind: str
+    before: tuple[int, ...]  # indices into the chain of stages the signal has been through
+    source: str
+
+
+def debug_gyro_meaning(fw: FirmwareInfo, mode: str, chain: Sequence[FilterStage]) -> DebugGyro | None:
+    """What ``debug[0..2]`` holds, for the gyro debug modes, per Betaflight version.
+
+    Read in src/main/sensors/gyro.c (3.1–4.1) and gyro_filter_impl.* (3.5+):
+
+    * 3.1.x ``DEBUG_GYRO`` (3): scaled gyro before the soft LPF (no software filter);
+      ``DEBUG_NOTCH`` (8): after the soft LPF, before the two static notches.
+    * 3.2.x–3.3.x ``DEBUG_GYRO_NOTCH`` (8 / 6): "records the unfiltered gyro output";
+      ``DEBUG_GYRO`` (3): after the dynamic and static notches, before the LPF.
+    * 3.4–4.5 ``DEBUG_GYRO_SCALED`` (6): "the unfiltered, scaled gyro output" (4.2+: the last
+      sample of a downsampling group); ``DEBUG_GYRO_FILTERED`` (3): after all filtering (what
+      gyroADC holds).
+    ``GYRO_RAW`` (sensor counts, not zero-offset nor scaled) is not used: its LSB scale is the
+    sensor's, not in the header. All are ``lrintf`` of deg/s: 1 °/s steps.
+    """
+    v = fw.version
+    idx = list(range(len(chain)))
+    lpf_idx = [i for i, s in enumerate(chain) if s.kind in ("pt1", "pt2", "pt3", "biquad", "fir", "dyn_lpf")]
+    if v < (3, 2, 0):
+        if mode == "GYRO":
+            return DebugGyro(mode, "raw", (), "sensors/gyro.c 3.1: DEBUG_SET(DEBUG_GYRO) before softLpfFilterApplyFn")
+        if mode == "NOTCH":
+            return DebugGyro(mode, "partly_filtered", tuple(lpf_idx),
+                             "sensors/gyro.c 3.1: DEBUG_SET(DEBUG_NOTCH) after the soft LPF, before notchFilter1/2")
+        return None
+    if v < (3, 4, 0):
+        if mode == "GYRO_NOTCH":
+            return DebugGyro(mode, "raw", (), "sensors/gyro.c 3.2/3.3: DEBUG_GYRO_NOTCH 'records the unfiltered gyro output'")
+        if mode == "GYRO":
+            return DebugGyro(mode, "partly_filtered", tuple(i for i in idx if i not in lpf_idx),
+                             "sensors/gyro.c 3.2/3.3: DEBUG_GYRO after dynamic and static notches, before the LPF")
+        return None
+    if v < (2025, 0, 0):
+        if mode == "GYRO_SCALED":
+            return DebugGyro(mode, "raw", (), "gyro.c / gyro_filter_impl: DEBUG_GYRO_SCALED 'the unfiltered, scaled gyro output'")
+        return None
+    return None
+
+
+# ============================================================================ frame loop
+@dataclass(frozen=True)
+class BlackboxLog:
+    """One log of a blackbox file, decoded.
+
+    Attributes
+    ----------
+    index : int
+        1-based index of the log in the file.
+    headers : dict
+        Header values (orangebox's types: int, float, str or list).
+    fields : tuple of str
+        Main-frame field names.
+    data : ndarray, shape (N, F)
+        Main-frame values as logged (float64), accepted frames only.
+    n_corrupt : int
+        Frames (or byte runs) skipped as corrupt.
+    n_unanchored : int
+        P frames dropped because no valid I frame preceded them.
+    truncated : bool
+        The data stops inside a frame or without an end-of-log marker.
+    ended : bool
+        An "End of log" event was read.
+    n_wrapped_throttle : int
+        rcCommand[3] values read back as signed 32-bit (below minthrottle in 3.x).
+    """
+
+    index: int
+    headers: dict
+    fields: tuple[str, ...]
+    data: np.ndarray
+    n_corrupt: int
+    n_unanchored: int
+    truncated: bool
+    ended: bool
+    n_wrapped_throttle: int = 0
+
+    def column(self, name: str) -> np.ndarray | None:
+        try:
+            return self.data[:, self.fields.index(name)]
+        except ValueError:
+            return None
+
+
+def _tag8_8svb_fixed(data, ctx):
+    """TAG8_8SVB with blackbox-log-viewer's group count (orangebox 0.4.0 is one short at the frame end)."""
+    _signed_vb = _SIGNED_VB[0]
+    fdefs = ctx.field_defs[ctx.frame_type]
+    n = ctx.field_def_counts[ctx.frame_type]
+    i0 = ctx.field_index
+    j = i0 + 1
+    while j < i0 + 8 and j < n and fdefs[j].encoding == 6:
+        j += 1
+    group = j - i0
+    if group == 1:
+        return _signed_vb(data, ctx)
+    header = next(data)
+    values = ()
+    for _ in range(group):
+        values += (_signed_vb(data, ctx) if header & 0x01 else 0,)
+        header >>= 1
+    return values
+
+
+_STUB_ENCODINGS = {10: "tag2_3svariable"}
+_SIGNED_VB: list = [None]  # orangebox.decoders._signed_vb, bound on first use (optional dependency)
+
+
+_END_OF_LOG = b"End of log\x00"
+
+
+#: INAV blackbox.c ``blackboxLogEvent(FLIGHT_LOG_EVENT_LOG_END)``: "End of log (disarm reason:%d)" and a 0 byte.
+_INAV_END_OF_LOG = re.compile(rb"End of log \(disarm reason:-?\d+\)\x00")
+
+
+def _read_event(reader, data: bytes, n: int, inav: bool = False) -> str:
+    """Consume one event frame's payload (blackbox-log-viewer's ``parseEventFrame``).
+
+    Events: 0 sync beep (time), 13 in-flight adjustment (function byte; a float when the
+    function ≥ 128, else a signed VB), 14 logging resume (iteration, time), 15 disarm
+    (reason), 30 flight mode (new, old flags), 255 end of log ("End of log\\0" follows).
+    INAV (``inav``): 40 IMU failure (error code), and 255 is followed by "End of log (disarm
+    reason:N)\\0" (blackbox.c / blackbox_fielddefs.h of the INAV source read, :data:`INAV_READ`).
+    Returns "ok", "resume", "end" or "bad" (unknown event type or malformed end marker).
+    orangebox 0.4.0 leaves the payload of events 13 and 14 unread (stubs) and has no 15.
+    """
+    from orangebox.decoders import _signed_vb, _unsigned_vb
+
+    etype = next(reader)
+    if etype is None:
+        raise TypeError("end of data in an event")
+    if etype == 255:
+        p = reader.tell()
+        if data[p:p + len(_END_OF_LOG)] == _END_OF_LOG:
+            reader.seek(p + len(_END_OF_LOG))
+            return "end"
+        m = _INAV_END_OF_LOG.match(data, p, p + 64) if inav else None
+        if m:
+            reader.seek(m.end())
+            return "end"
+        return "bad"
+    if etype == 40 and inav:  # INAV FLIGHT_LOG_EVENT_IMU_FAILURE: errorCode (unsigned VB)
+        _unsigned_vb(reader)
+        return "ok"
+    if etype == 0 or etype == 15:
+        _unsigned_vb(reader)
+        return "ok"
+    if etype == 13:
+        func = next(reader)
+        if func is None:
+            raise TypeError("end of data in an event")
+        if func > 127:
+            for _ in range(4):
+                next(reader)
+        else:
+            _signed_vb(reader)
+        return "ok"
+    if etype == 14:
+        _unsigned_vb(reader)
+        _unsigned_vb(reader)
+        return "resume"
+    if etype == 30:
+        _unsigned_vb(reader)
+        _unsigned_vb(reader)
+        return "ok"
+    return "bad"
+
+
+def _iter_frames(parser, stats: dict) -> Iterator[tuple]:
+    """Accepted main frames of the parser's current log (see the module docstring)."""
+    from orangebox.types import Frame, FrameType
+
+    reader = parser.reader
+    ctx = parser._ctx
+    fdefs = reader.field_defs
+    valid_types = {ft.value for ft in FrameType}
+    n = len(reader)
+    data_bytes = reader._frame_data
+    i_names = ctx._names_to_indices.get(FrameType.INTRA, {})
+    it_idx = i_names.get("loopIteration")
+    t_idx = i_names.get("time")
+    stream_valid = False
+    last_it = last_t = None
+    i_interval = max(1, int(ctx.i_interval))
+    inav = str(parser.headers.get("Firmware revision", "")).strip().upper().startswith("INAV")
+    while True:
+        pos = reader.tell()
+        if pos >= n:
+            stats["truncated"] = not stats["ended"]
+            return
+        b = data_bytes[pos]
+        ch = chr(b)
+        if ch not in valid_types:
+            # resynchronise: skip to the next byte that can start a frame; one corrupt run
+            stats["n_corrupt"] += 1
+            stream_valid = False
+            p = pos + 1
+            while p < n and chr(data_bytes[p]) not in valid_types:
+                p += 1
+            reader.seek(p)
+            continue
+        ftype = FrameType(ch)
+        reader.seek(pos + 1)
+        try:
+            if ftype == FrameType.EVENT:
+                status = _read_event(reader, data_bytes, n, inav=inav)
+                if status == "end":
+                    stats["ended"] = True
+                    stats["truncated"] = False
+                    return
+                if status == "bad":
+                    stats["n_corrupt"] += 1
+                    stream_valid = False
+                    reader.seek(pos + 1)
+                elif status == "resume":
+                    stream_valid = False  # logging resumed after a pause: wait for an I frame
+                continue
+            if ftype not in fdefs:
+                stats["n_corrupt"] += 1
+                stream_valid = False
+                continue
+            ctx.frame_type = ftype
+            frame = parser._parse_frame(fdefs[ftype], reader)
+        except (TypeError, IndexError, StopIteration):
+            # ran past the end of the data inside a frame: truncated (or a corrupt tail)
+            if reader.tell() >= n or n - pos < 256:
+                stats["truncated"] = True
+                return
+            stats["n_corrupt"] += 1
+            stream_valid = False
+            reader.seek(pos + 1)
+            continue
+        end = reader.tell()
+        nxt_ok = end >= n or chr(data_bytes[end]) in valid_types
+        if ftype in (FrameType.SLOW, FrameType.GPS, FrameType.GPS_HOME):
+            if not nxt_ok:
+                stats["n_corrupt"] += 1
+                reader.seek(pos + 1)
+                continue
+            if ftype == FrameType.GPS_HOME:
+                ctx.add_frame(frame)
+            continue
+        if not nxt_ok:
+            stats["n_corrupt"] += 1
+            stream_valid = False
+            reader.seek(pos + 1)
+            continue
+        it = frame.data[it_idx] if it_idx is not None else None
+        t = frame.data[t_idx] if t_idx is not None else None
+        if ftype == FrameType.INTRA:
+            ok = True
+            if last_it is not None and it is not None and stream_valid:
+                ok = (it > last_it) and (t is None or last_t is None or (0 < t - last_t < 10_000_000))
+            if last_t is not None and t is not None and t <= last_t:
+                ok = False
+            if not ok:
+                stats["n_corrupt"] += 1
+                stream_valid = False
+                continue
+            stream_valid = True
+        else:  # INTER
+            if not stream_valid:
+                stats["n_unanchored"] += 1
+                continue
+            ok = (it is None or last_it is None or 0 < it - last_it <= i_interval) and \
+                 (t is None or last_t is None or 0 < t - last_t < 1_000_000)
+            if not ok:
+                stats["n_corrupt"] += 1
+                stream_valid = False
+                continue
+        ctx.add_frame(Frame(ftype, frame.data))
+        ctx.last_iter = it if it is not None else ctx.last_iter
+        last_it, last_t = it, t
+        yield frame.data
+
+
+def _open_parser(path: Path):
+    logging.getLogger("orangebox").setLevel(logging.ERROR)
+    try:
+        from orangebox import Parser
+        from orangebox.decoders import _signed_vb
+
+        _SIGNED_VB[0] = _signed_vb
+    except ImportError:  # pragma: no cover - dependency declared in pyproject
+        raise GyroInputError("reading blackbox logs needs orangebox (pip install orangebox==0.4.0)") from None
+    try:
+        return Parser.load(str(path))
+    except Exception as exc:  # orangebox raises RuntimeError/InvalidHeaderException/UnicodeDecodeError
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise GyroInputError(f"{path}: not a readable blackbox log ({type(exc).__name__}: {msg})") from None
+
+
+def read_blackbox_logs(path: str | os.PathLike, *, log_index: int | None = None) -> list[BlackboxLog]:
+    """Decode every log in a blackbox file (or the 1-based ``log_index`` one).
+
+    Raises
+    ------
+    GyroInputError
+        Not a blackbox file, an unknown data version, a field whose encoding orangebox
+        0.4.0 only stubs, or no complete main frame.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise GyroInputError(f"{p}: no such file")
+    with open(p, "rb") as fh:
+        head = fh.read(64)
+    if not head.startswith(b"H Product:Blackbox"):
+        raise GyroInputError(f"{p}: not a blackbox log (no 'H Product:Blackbox' header)")
+    parser = _open_parser(p)
+    count = parser.reader.log_count
+    indices = range(1, count + 1) if log_index is None else [int(log_index)]
+    logs = []
+    for li in indices:
+        if not 1 <= li <= count:
+            raise GyroInputError(f"{p}: log {li} requested, the file holds {count}")
+        try:
+            parser.set_log_index(li)
+        except Exception as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise GyroInputError(f"{p}: log {li}: unreadable header ({msg})") from None
+        hdr = parser.headers
+        if hdr.get("Data version") not in (1, 2):
+            raise GyroInputError(f"{p}: log {li}: blackbox data version {hdr.get('Data version')!r} is not one this reader knows (1, 2)")
+        fdefs = parser.reader.field_defs
+        for ft, defs in fdefs.items():
+            for d in defs:
+                if d.encoding in _STUB_ENCODINGS or (d.encoding == 8 and hdr.get("Data version") < 2):
+                    enc = _STUB_ENCODINGS.get(d.encoding, "tag8_4s16 (data version 1)")
+                    raise GyroInputError(f"{p}: log {li}: field {d.name} uses encoding {enc}, which orangebox 0.4.0 does not decode")
+                if d.encoding == 6:
+                    d.decoderfun = _tag8_8svb_fixed
+        from orangebox.types import FrameType
+
+        if FrameType.INTRA not in fdefs or FrameType.INTER not in fdefs:
+            raise GyroInputError(f"{p}: log {li}: header has no main-frame field definitions (truncated header?)")
+        names = tuple(d.name for d in fdefs[FrameType.INTRA])
+        stats = {"n_corrupt": 0, "n_unanchored": 0, "truncated": False, "ended": False}
+        rows = list(_iter_frames(parser, stats))
+        arr = np.array(rows, dtype=float) if rows else np.empty((0, len(names)))
+        wrapped = 0
+        if "rcCommand[3]" in names and arr.size:
+            j = names.index("rcCommand[3]")
+            big = arr[:, j] >= 2.0**31
+            wrapped = int(big.sum())
+            arr[big, j] -= 2.0**32
+        logs.append(BlackboxLog(index=li, headers=hdr, fields=names, data=arr, n_corrupt=stats["n_corrupt"],
+                                n_unanchored=stats["n_unanchored"], truncated=bool(stats["truncated"]),
+                                ended=bool(stats["ended"]), n_wrapped_throttle=wrapped))
+    return logs
+
+
+def is_blackbox(path: str | os.PathLike) -> bool:
+    """True when the file starts with a blackbox header line."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(18) == b"H Product:Blackbox"
+    except OSError:
+        return False
+
+
+# ============================================================================ to a Recording
+def _float_header(v) -> float:
+    """``gyro_scale`` is logged as the hex of a float's bits (0x3f800000 = 1.0); orangebox casts it to int."""
+    if isinstance(v, str) and v.startswith("0x"):
+        v = int(v, 16)
+    if isinstance(v, int):
+        return struct.unpack("<f", struct.pack("<I", v & 0xFFFFFFFF))[0]
+    return float(v)
+
+
+def _triplet(log: BlackboxLog, stem: str) -> np.ndarray | None:
+    cols = [log.column(f"{stem}[{i}]") for i in range(3)]
+    return None if any(c is None for c in cols) else np.column_stack(cols)
+
+
+def _indexed(log: BlackboxLog, pattern: str) -> list[tuple[int, np.ndarray]]:
+    rx = re.compile(pattern)
+    out = []
+    for k, name in enumerate(log.fields):
+        m = rx.fullmatch(name)
+        if m:
+            out.append((int(m.group(1)), log.data[:, k]))
+    return sorted(out, key=lambda x: x[0])
+
+
+@dataclass
+class _LogConversion:
+    t_us: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray | None
+    extra: dict
+    meta: dict
+    lacks: list
+    notes: list
+
+
+def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
+    """One decoded log → SI arrays, extra columns and metadata (see :func:`read_blackbox`)."""
+    hdr = log.headers
+    fw = firmware_info(hdr, f"{src} log {log.index}")
+    inav = fw.name == "inav"
+    if not inav and fw.version > NEWEST_KNOWN:
+        raise GyroInputError(f"{src}: Betaflight {fw.version_str} is newer than the newest release read here (2026.6); "
+                             f"its field meanings were not checked")
+    gscale = _float_header(hdr.get("gyro_scale", "0x3f800000"))
+    if not math.isclose(gscale, 1.0, rel_tol=1e-6):
+        raise GyroInputError(f"{src}: gyro_scale {gscale:g} ≠ 1.0: not the deg/s gyroADC of Betaflight 3.1+")
+    hires = bool(hdr.get("blackbox_high_resolution", 0)) and not inav
+    gyro_div = 10.0 if hires else 1.0
+    lacks: list[str] = []
+    notes: list[str] = []
+    if log.data.shape[0] < 2:
+        raise GyroInputError(f"{src}: log {log.index} holds {log.data.shape[0]} complete main frames")
+    t_us = log.column("time")
+    g = _triplet(log, "gyroADC")
+    if t_us is None or g is None:
+        raise GyroInputError(f"{src}: log {log.index} has no time/gyroADC fields")
+    # strictly increasing time (the frame loop already rejects backwards frames)
+    keep = np.concatenate([[True], np.diff(t_us) > 0])
+    rows = np.nonzero(keep)[0]
+    t_us = t_us[rows]
+    gyro_deg_s = g[rows] / gyro_div
+    rates = inav_loop_rates(hdr) if inav else loop_rates(hdr, fw)
+    chain = inav_filter_chain(hdr, rates) if inav else gyro_filter_chain(hdr, fw)
+    it = log.column("loopIteration")
+    dt = np.diff(t_us) * 1e-6
+    log_hz = 1.0 / float(np.median(dt))
+    # loop rate as it ran: logged iterations per second (the gyro clock differs from the nominal)
+    if it is not None and rows.size > 1:
+        di = np.diff(it[rows])
+        ok = di > 0
+        loop_hz_meas = float(np.sum(di[ok]) / np.sum(dt[ok])) if ok.any() else float("nan")
+    else:
+        loop_hz_meas = float("nan")
+    # unit check on the data: full scale and still part
+    full = float(np.max(np.abs(gyro_deg_s)))
+    if full > 4100:
+        raise GyroInputError(f"{src}: |gyroADC| reaches {full:.0f} after scaling: not deg/s (largest MEMS full scale ±4000 °/s)")
+    sat_n = int(np.sum(np.abs(gyro_deg_s) >= 1990)) if full < 2100 else int(np.sum(np.abs(gyro_deg_s) >= 0.995 * full))
+    extra: dict[str, np.ndarray] = {}
+    meta: dict[str, str] = {}
+    # accelerometer
+    a = _triplet(log, "accSmooth")
+    acc_1g = hdr.get("acc_1G")
+    accel = None
+    if a is not None and isinstance(acc_1g, (int, float)) and acc_1g > 0:
+        accel = a[rows] / float(acc_1g) * G0_M_S2
+    else:
+        lacks.append("no accelerometer (accSmooth or acc_1G missing)")
+    # debug gyro / gyroUnfilt
+    dmode_idx = hdr.get("debug_mode")
+    dname = debug_mode_name(fw.version, int(dmode_idx)) if isinstance(dmode_idx, int) and not inav else None
+    unf = _triplet(log, "gyroUnfilt")
+    raw_inav = _triplet(log, "gyroRaw") if inav else None
+    pre_meta = {}
+    if inav:
+        # INAV blackbox.c loadMainState: gyroRaw[i] = lrintf(gyro.gyroRaw[i]); sensors/gyro.c gyroUpdate:
+        # gyro.gyroRaw = deg/s after zero calibration and sensor/board alignment, before the anti-alias
+        # LPF and every later filter ("unfiltered gyro value [deg/s]"). Logged when the blackbox
+        # include flag GYRO_RAW is set (FLIGHT_LOG_FIELD_CONDITION_GYRO_RAW).
+        if raw_inav is not None:
+            extra.update({f"gyro_prefilter_{ax}_rad_s": raw_inav[rows, i] * DEG for i, ax in enumerate("xyz")})
+            pre_meta = {"source": f"gyroRaw[0..2] (INAV {fw.version_str}: gyro before every software filter, "
+                                  "sensors/gyro.c gyroUpdate); rounded to 1 deg/s by lrintf",
+                        "signal": "raw", "filters_before": []}
+        else:
+            lacks.append("no unfiltered gyro: INAV logs gyroRaw only with the blackbox GYRO_RAW field enabled")
+    elif unf is not None:
+        extra.update({f"gyro_prefilter_{ax}_rad_s": unf[rows, i] / gyro_div * DEG for i, ax in enumerate("xyz")})
+        pre_meta = {"source": "gyroUnfilt[0..2] (4.5+: gyro before every software filter)", "signal": "raw", "filters_before": []}
+    else:
+        dbg = _triplet(log, "debug")
+        meaning = debug_gyro_meaning(fw, dname, chain) if dname else None
+        if dbg is not None and meaning is not None:
+            extra.update({f"gyro_prefilter_{ax}_rad_s": dbg[rows, i] * DEG for i, ax in enumerate("xyz")})
+            pre_meta = {"source": f"debug[0..2], debug_mode {dmode_idx} = DEBUG_{meaning.mode} in {fw.label} ({meaning.source}); "
+                                  f"rounded to 1 deg/s by lrintf",
+                        "signal": meaning.kind, "filters_before": [chain[i].to_dict() for i in meaning.before]}
+        else:
+            what = f"DEBUG_{dname}" if dname else ("an index not mapped for this version" if isinstance(dmode_idx, int) else "not in the header")
+            lacks.append(f"no unfiltered gyro: debug_mode {dmode_idx} is {what} (log with debug_mode GYRO_SCALED, or 4.5+ gyroUnfilt)")
+    # motors, throttle, eRPM
+    mot = _indexed(log, r"motor\[(\d+)\]")
+    lo_hi = hdr.get("motorOutput", [0, 0])
+    lo, hi = (float(lo_hi[0]), float(lo_hi[1])) if isinstance(lo_hi, list) and len(lo_hi) == 2 else (float("nan"), float("nan"))
+    if mot:
+        for i, col in mot:
+            extra[f"motor_{i}"] = col[rows]
+            if hi > lo:
+                extra[f"motor_cmd_{i}"] = (col[rows] - lo) / (hi - lo)
+        if hi > lo:
+            extra["motor_cmd_mean"] = np.mean([extra[f"motor_cmd_{i}"] for i, _ in mot], axis=0)
+    else:
+        lacks.append("no motor outputs (motor[i] fields disabled)")
+    thr = log.column("rcCommand[3]")
+    if thr is not None:
+        extra["rc_throttle"] = thr[rows]
+        extra["throttle"] = np.clip((thr[rows] - 1000.0) / 1000.0, 0.0, 1.0)
+    else:
+        lacks.append("no throttle (rcCommand[3] missing)")
+    erpm = _indexed(log, r"eRPM(?:\(/100\))?\[(\d+)\]")
+    poles = hdr.get("motor_poles")
+    if erpm:
+        for i, col in erpm:
+            extra[f"erpm100_{i}"] = col[rows]
+            if isinstance(poles, int) and poles > 0:
+                extra[f"rotor_hz_{i}"] = col[rows] * 100.0 / (poles / 2.0) / 60.0
+        if not (isinstance(poles, int) and poles > 0):
+            lacks.append("eRPM logged but no motor_poles in the header: rotor speed in Hz unknown")
+    elif dname == "RPM_FILTER" and fw.version >= (4, 0, 0) and _triplet(log, "debug") is not None:
+        # 4.0-2026.6 rpm_filter.c: DEBUG_SET(DEBUG_RPM_FILTER, motor, motorFrequency[Hz][motor]) for
+        # motors 0..3: the PT1-smoothed rotor frequency (erpmToHz = 100/60/(poles/2)), integer Hz
+        for i in range(4):
+            col = log.column(f"debug[{i}]")
+            if col is not None:
+                extra[f"rotor_hz_{i}"] = col[rows].astype(float)
+        meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in {fw.label}: "
+                                   "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)")
+    elif inav:
+        lacks.append("no eRPM per motor (INAV logs one escRPM value in slow frames only): line laws from throttle only")
+    else:
+        lacks.append("no eRPM (fields need bidirectional DShot and Betaflight 4.5+, or debug_mode RPM_FILTER in 4.0+): "
+                     "line laws from throttle only")
+    nyq = log_hz / 2.0
+    runs = f"gyro runs at {rates['gyro_hz']:.0f} Hz" if math.isfinite(rates["gyro_hz"]) else \
+        f"PID loop at {rates['pid_hz']:.0f} Hz, gyro sampling rate not in the header"
+    lacks.append(f"logged at {log_hz:.0f} Hz: content above its Nyquist {nyq:.0f} Hz ({runs}, "
+                 f"decimated without anti-alias filter) folds into the band")
+    if inav:
+        lacks.append("INAV header lacks filters that gyroADC has been through (anti-alias PT1 gyro_anti_aliasing_lpf_hz at "
+                     "the gyro rate, LULU, dynamic and secondary dynamic notches, Kalman, the main LPF mode/adaptive "
+                     "cutoff): gyro_filters lists the logged ones only")
+    if log.truncated:
+        notes.append("log ends inside a frame or without an end-of-log marker (flash full or power cut): complete frames kept")
+    meta.update({
+        "firmware": fw.revision,
+        "firmware_version": fw.release_str,
+        "betaflight_equivalent_version": "" if inav else fw.version_str,
+        "blackbox_data_version": str(fw.data_version),
+        "craft_name": str(hdr.get("Craft name", "")),
+        "gyro_rate_hz": f"{rates['gyro_hz']:.6g}",
+        "pid_rate_hz": f"{rates['pid_hz']:.6g}",
+        "gyro_filter_rate_hz": f"{rates['filter_hz']:.6g}",
+        "log_rate_nominal_hz": f"{rates['log_hz_nominal']:.6g}",
+        "log_rate_measured_hz": f"{log_hz:.6g}",
+        "loop_rate_measured_hz": f"{loop_hz_meas:.6g}",
+        "gyro_filters": json.dumps([s.to_dict() for s in chain]),
+        "gyro_signal": "filtered (gyroADC: after every software gyro filter listed in gyro_filters)",
+        "debug_mode": (f"{dmode_idx} (INAV debug list not mapped: gyroRaw carries the unfiltered gyro)" if inav else
+                       f"{dmode_idx} = {('DEBUG_' + dname) if dname else 'unmapped'}"),
+        "gyro_units_check": (f"gyroADC logged in deg/s (gyro_scale 1.0{', high resolution x10' if hires else ''}"
+                             f"{'; INAV blackbox.c: lrintf(gyro.gyroADCf), deg/s' if inav else ''}); max |gyro| "
+                             f"{full:.0f} deg/s, {sat_n} samples at the +-2000 deg/s full scale"),
+        "firmware_name": fw.name,
+        "firmware_source_read": (INAV_READ[fw.version[:2]] if inav else
+                                 ("cleanflight/cleanflight commits of that version (version.h), matched to " if fw.name == "cleanflight" else "")
+                                 + "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"),
+        "motor_output_range": f"{lo:g},{hi:g}",
+        "header_filters": json.dumps({k: v for k, v in hdr.items() if re.match(r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high|dynamicGyroNotch)", k)}),
+    })
+    if pre_meta:
+        meta["gyro_prefilter"] = json.dumps(pre_meta)
+    if sat_n:
+        notes.append(f"{sat_n} gyro samples at full scale (saturated during flips)")
+    return _LogConversion(t_us=t_us, gyro=gyro_deg_s * DEG, accel=accel, extra=extra, meta=meta, lacks=lacks, notes=notes)
+
+
+def read_blackbox(path: str | os.PathLike, *, log_index: int | None = None):
+    """A blackbox file as one :class:`~gyrocore.data.recording.Recording`; several logs become segments.
+
+    Columns: ``gyro_*_rad_s`` = gyroADC (what the flight controller flew on); accel from
+    accSmooth/acc_1G; extra: ``gyro_prefilter_*_rad_s`` (the less-filtered gyro where the
+    debug mode or gyroUnfilt carries it; metadata ``gyro_prefilter`` says what it is),
+    ``motor_i`` (as logged), ``motor_cmd_i`` (0–1 of motorOutput), ``motor_cmd_mean``,
+    ``rc_throttle`` (1000–2000), ``throttle`` (0–1), ``erpm100_i`` / ``rotor_hz_i`` (4.5+),
+    ``log_index`` (1-based log of the file). ``t_s`` is seconds from the first frame of the
+    first log; later logs follow after a gap of one logged interval (each log's own clock
+    restarts at power-up), their spans listed in metadata ``logs``.
+
+    Warnings (one line each): truncated log, corrupt frames skipped, wrapped throttle values.
+    Metadata ``lacks``: what the log lacks for vibration and filter work.
+    """
+    from gyrocore.data.recording import Recording
+
+    p = Path(path)
+    logs = read_blackbox_logs(p, log_index=log_index)
+    convs, spans = [], []
+    for lg in logs:
+        if lg.data.shape[0] < 2:
+            warn_repair(f"{p.name}: log {lg.index} has {lg.data.shape[0]} complete main frames; skipped")
+            continue
+        convs.append((lg, _convert_log(lg, p.name)))
+    if not convs:
+        raise GyroInputError(f"{p}: no log with complete main frames")
+    t_parts, g_parts, a_parts, idx_parts = [], [], [], []
+    extras: dict[str, list] = {}
+    t_next = 0.0
+    for lg, c in convs:
+        t = (c.t_us - c.t_us[0]) * 1e-6 + t_next
+        spans.append({"log": lg.index, "t_start_s": float(t[0]), "t_end_s": float(t[-1]), "frames": int(t.size),
+                      "corrupt_skipped": lg.n_corrupt, "unanchored_p_frames": lg.n_unanchored, "truncated": lg.truncated,
+                      "firmware": c.meta["firmware"], "time_us_first": int(c.t_us[0])})
+        t_parts.append(t)
+        g_parts.append(c.gyro)
+        a_parts.append(c.accel)
+        idx_parts.append(np.full(t.size, float(lg.index)))
+        med = float(np.median(np.diff(t)))
+        t_next = float(t[-1]) + med
+        msgs = []
+        if lg.truncated:
+            msgs.append(f"log {lg.index} is truncated (no end-of-log marker): {t.size} complete frames kept")
+        if lg.n_corrupt:
+            msgs.append(f"log {lg.index}: {lg.n_corrupt} corrupt frame(s) skipped")
+        if lg.n_wrapped_throttle:
+            msgs.append(f"log {lg.index}: {lg.n_wrapped_throttle} rcCommand[3] values below minthrottle read as signed")
+        for m in msgs:
+            warn_repair(f"{p.name}: {m}")
+    keys = set.intersection(*(set(c.extra) for _, c in convs))
+    dropped = set.union(*(set(c.extra) for _, c in convs)) - keys
+    for k in sorted(keys):
+        extras[k] = np.concatenate([c.extra[k] for _, c in convs])
+    if len(convs) > 1:
+        extras["log_index"] = np.concatenate(idx_parts)
+    accel = None if any(a is None for a in a_parts) else np.concatenate(a_parts)
+    first = convs[0][1]
+    meta = {"source": str(p), "format": "blackbox", "sensor": f"{first.meta['firmware']} gyro ({first.meta['craft_name'] or 'craft unnamed'})",
+            "rate_hz": first.meta["log_rate_measured_hz"], "units": "SI (rad/s, m/s^2, s); motor/throttle columns as logged",
+            "frame": "Betaflight body axes as logged (roll, pitch, yaw rates)",
+            "parser": f"orangebox {ORANGEBOX_VERSION} decoders + gyrocore frame validation"}
+    meta.update(first.meta)
+    if len(convs) > 1:
+        meta["segments"] = "several logs: column log_index, spans in 'logs'"
+        for k in ("gyro_filters", "header_filters", "gyro_prefilter", "debug_mode", "log_rate_nominal_hz"):
+            vals = {c.meta.get(k) for _, c in convs}
+            if len(vals) > 1:
+                meta[k + "_per_log"] = json.dumps({lg.index: c.meta.get(k) for lg, c in convs})
+    meta["logs"] = json.dumps(spans)
+    lacks = list(dict.fromkeys(sum((c.lacks for _, c in convs), [])))
+    if dropped:
+        lacks.append(f"columns not in every log, left out: {', '.join(sorted(dropped))}")
+    meta["lacks"] = " | ".join(lacks) if lacks else "nothing for vibration work"
+    notes = list(dict.fromkeys(sum((c.notes for _, c in convs), [])))
+    meta["repairs"] = "; ".join(notes) if notes else "none"
+    return Recording(t_s=np.concatenate(t_parts), gyro_rad_s=np.concatenate(g_parts), accel_m_s2=accel, meta=meta, extra=extras)
