@@ -216,7 +216,8 @@ def stage_allan(a) -> dict:
 
 
 def stage_calibrate(a) -> dict:
-    from gyrocore.calibrator import Calibrator, save_params
+    from gyrocore.calibrator import Calibrator
+    from gyrocore.calib.params import save_params
 
     rec = _gather(a, full=True)
     res = Calibrator(effects=EFFECTS[a.source]).fit(rec)
@@ -232,7 +233,7 @@ def stage_calibrate(a) -> dict:
 def stage_apply(a) -> dict:
     import warnings
 
-    from gyrocore.calibrator import load_params
+    from gyrocore.calib.params import load_params
     from gyrocore.data.recording import iter_chunks, write_chunks
 
     cal = load_params(a.params)

@@ -60,6 +60,8 @@ from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 
+from . import stages as S
+
 __all__ = [
     "CalibrationRoutine",
     "RoutineFailure",
@@ -244,7 +246,7 @@ class CoreParams:
     stages : tuple of dict
         Calibration stages for :func:`experiments.ablation.corrected_gyro`.
     results : tuple
-        The :class:`gyrocore.calibrator.CalibrationResult` of each stage (None where not fitted).
+        The :class:`gyrocore.calib.params.CalibrationResult` of each stage (None where not fitted).
     """
 
     effects: tuple[str, ...]
@@ -299,19 +301,17 @@ class CoreCalibrator:
 
         from gyrocore.calibrator import Calibrator
 
-        from . import ablation as A
-
         recs = list(recordings)
         if not recs:
             raise GyroInputError("core calibrator: no calibration recordings")
         present = self._effects_for(recs[0])
-        kw = self.cal_kw if self.cal_kw is not None else A._CAL_KW
-        tt = [e for e in A.TABLE_EFFECTS if e in present]
-        th = [e for e in A.THERMAL_EFFECTS if e in present]
+        kw = self.cal_kw if self.cal_kw is not None else S._CAL_KW
+        tt = [e for e in S.TABLE_EFFECTS if e in present]
+        th = [e for e in S.THERMAL_EFFECTS if e in present]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             r1 = Calibrator(effects=["bias"] + [e for e in tt if e != "bias"], **kw).fit(recs[0]) if tt else None
-            s1 = A._stage_from(r1, 1)
+            s1 = S._stage_from(r1, 1)
             r2 = None
             if th:
                 if len(recs) < 2:
@@ -319,24 +319,22 @@ class CoreCalibrator:
                 rec2 = recs[1]
                 if s1:
                     inp2 = E.ModelInputs(t_s=rec2.t_s, f_S_m_s2=rec2.accel_m_s2, temp_c=rec2.temp_c)
-                    p1 = {eff: pd for key_, (eff, pd, _) in A._as_stages(s1)[0].items() if eff != "bias"}
+                    p1 = {eff: pd for key_, (eff, pd, _) in S._as_stages(s1)[0].items() if eff != "bias"}
                     rec2 = rec2.with_gyro(E.correct(p1, rec2.gyro_rad_s, inp2) if p1 else rec2.gyro_rad_s)
                 eff2 = ["bias"] + (["scale"] if "scale_thermal" in th else []) + th
-                eff2 += [e for e in A.THERMAL_NUISANCE if e not in eff2]  # fitted, not applied (ablation._stage_from)
+                eff2 += [e for e in S.THERMAL_NUISANCE if e not in eff2]  # fitted, not applied (ablation._stage_from)
                 r2 = Calibrator(effects=eff2, **kw).fit(rec2)
-        return CoreParams(effects=tuple(present), stages=(s1, A._stage_from(r2, 2)), results=(r1, r2))
+        return CoreParams(effects=tuple(present), stages=(s1, S._stage_from(r2, 2)), results=(r1, r2))
 
     def apply(self, recording: Recording, params: CoreParams) -> np.ndarray:
-        from . import ablation as A
-
         rec = recording
         inp = E.ModelInputs(t_s=rec.t_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
                             t_since_power_up_s=_since_power_up(rec))
         sensor = rec.meta.get("sensor")
-        still = A.powerup_windows(rec, datasheet_noise_params(sensor),
-                                  bias_bound_rad_s=A.bias_bound_rad_s(sensor) if sensor else None,
+        still = S.powerup_windows(rec, datasheet_noise_params(sensor),
+                                  bias_bound_rad_s=S.bias_bound_rad_s(sensor) if sensor else None,
                                   window_s=self.powerup_window_s)
-        return A.corrected_gyro(rec.gyro_rad_s, inp, list(params.stages), list(params.effects), still)
+        return S.corrected_gyro(rec.gyro_rad_s, inp, list(params.stages), list(params.effects), still)
 
 
 # ------------------------------------------------------------------------------ the article

@@ -786,7 +786,7 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
                     help="the out-of-sample table of docs/measured.md (BROAD pairs, static halves), JSON")
     a = ap.parse_args()
     if a.out_of_sample:
-        from gyrocore.cli import to_jsonable
+        from gyrocore.data.jsonable import to_jsonable
 
         res = out_of_sample_runs(a.out_of_sample, progress=True)
         text = _json.dumps(to_jsonable(res), indent=1)
@@ -798,7 +798,7 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
             print(text)
         raise SystemExit(0)
     if a.open or a.simulator_null:
-        from gyrocore.cli import to_jsonable
+        from gyrocore.data.jsonable import to_jsonable
 
         if a.open:
             rows = open_search_rates(kinds=a.open_kinds.split(","), sizes=[float(x) for x in a.open_sizes.split(",")],
@@ -813,7 +813,7 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
             atomic_write_text(a.out, _json.dumps(to_jsonable(rows), indent=1))
         raise SystemExit(0)
     if a.measured:
-        from gyrocore.cli import to_jsonable
+        from gyrocore.data.jsonable import to_jsonable
 
         rows = measured_runs(a.measured)
         print(_json.dumps(to_jsonable(rows), indent=1))

@@ -49,7 +49,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from gyrocore.cli import to_jsonable, worker_environment
+from gyrocore.data.jsonable import to_jsonable
+from gyrocore.fleet import worker_environment
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import atomic_write_text
 

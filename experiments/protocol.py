@@ -252,7 +252,7 @@ def load_noise(path) -> NoiseSource:
                                               f"{f' at {rate:g} Hz' if rate else ''})",
                            record_s=dur, rate_hz=rate, kind="noise-json")
     if doc is not None and "noise_model" in doc:
-        from gyrocore.calibrator import result_from_dict
+        from gyrocore.calib.params import result_from_dict
 
         res = result_from_dict(doc, where=path)
         if not res.noise_model:
@@ -683,7 +683,7 @@ def confirm_all(windows: Sequence[float], seeds: Sequence[int], *, airborne_s: f
     from concurrent.futures import ProcessPoolExecutor
 
     from experiments.montecarlo import default_workers
-    from gyrocore.cli import worker_environment
+    from gyrocore.fleet import worker_environment
 
     jobs = [(float(tw), int(sd), float(airborne_s), cache_dir) for tw in windows for sd in seeds]
     n_workers = min(default_workers() if workers is None else int(workers), len(jobs))

@@ -35,7 +35,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from gyrocore.cli import to_jsonable
+from gyrocore.data.jsonable import to_jsonable
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import atomic_write_text
 

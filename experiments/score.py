@@ -417,7 +417,7 @@ def write_report(c: ScoreCampaign, out_dir, check: "CheckResult | None" = None) 
     """``out_dir/score.md`` + ``figures/score.png`` + ``score.json`` (atomic writes)."""
     import json
 
-    from gyrocore.cli import to_jsonable
+    from gyrocore.data.jsonable import to_jsonable
     from gyrocore.data.recording import atomic_write_text
 
     out = Path(out_dir)

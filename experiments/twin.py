@@ -493,7 +493,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
     params: dict[str, dict[str, np.ndarray]] = {}
     given: dict = {}
     if params_file is not None:
-        from gyrocore.calibrator import load_params
+        from gyrocore.calib.params import load_params
 
         given = {e: dict(p) for e, p in load_params(params_file).params.items()}
     det_given = {e: p for e, p in given.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}

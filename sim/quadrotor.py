@@ -42,11 +42,11 @@ from .paths import QUADROTOR_XML, model_path
 from .thermal import TemperatureChunks, ThermalSpec, ThermalState, simulate_temperature
 from .truth import Truth
 from .turntable import physics_steps_per_sample
+from .vehicles import VibrationSpec
 
 __all__ = [
     "GyroLike",
     "PerfectGyro",
-    "VibrationSpec",
     "FlightLog",
     "HoverFlight",
     "fly_hover",
@@ -79,43 +79,6 @@ class PerfectGyro:
              q_SW_wxyz: np.ndarray | None = None) -> np.ndarray:
         """The true rate ``omega_S`` itself (fly_hover passes a view it keeps; no copy needed)."""
         return omega_S
-
-
-@dataclass(frozen=True)
-class VibrationSpec:
-    """Rotor vibration sources (all reach the IMU only through the rigid-body physics).
-
-    Parameters
-    ----------
-    imbalance_kg_m : float
-        Rotating imbalance u = m r of each rotor, kg m. Force u Omega^2 at the rotor frequency:
-        2e-6 kg m (20 mg at the 10 cm prop radius, a poorly balanced hobby prop; ISO 1940 G6.3
-        for a 30 g rotor at 5300 rpm is 3.4e-7) gives 0.62 N per rotor in hover.
-    harmonic2_ratio : float
-        In-plane force at twice the rotor frequency, relative to the imbalance force.
-    blade_pass_ripple : float
-        Axial thrust ripple at the blade-pass frequency (2 blades: 2 x rotor), fraction of thrust.
-    hub_moment_kg_m2 : float
-        Rotating once-per-revolution moment in the rotor plane per Omega², kg m² (N m per
-        (rad/s)²): the couple (dynamic) unbalance U_c of ISO 21940-11 (mass distributed out of the
-        rotor plane; the static unbalance is ``imbalance_kg_m``), and the aerodynamic unbalance of
-        a stiff prop (blade-to-blade thrust or pitch difference dT acting at the blades' thrust
-        radius r_T: dT r_T, also ∝ Omega²) have this one form. It acts on the frame about the
-        body x/y axes, so its line is on roll and pitch, where an in-plane force u Omega² at the
-        arm a mostly yaws the frame (moment u Omega² a about z; about x/y only through the rotor
-        height above the centre of mass). Built as two point masses on the rotor at ±h above and
-        below its plane, opposite each other (``rotor_i_couple_a/b`` in the model): pure MuJoCo
-        dynamics, as the static imbalance. Default 0 (the F450 has none).
-    """
-
-    imbalance_kg_m: float = 2e-6
-    harmonic2_ratio: float = 0.3
-    blade_pass_ripple: float = 0.02
-    hub_moment_kg_m2: float = 0.0
-
-    def __post_init__(self) -> None:
-        if min(self.imbalance_kg_m, self.harmonic2_ratio, self.blade_pass_ripple, self.hub_moment_kg_m2) < 0:
-            raise GyroInputError("vibration amplitudes must be >= 0")
 
 
 NO_VIBRATION = VibrationSpec(imbalance_kg_m=0.0, harmonic2_ratio=0.0, blade_pass_ripple=0.0)

@@ -33,7 +33,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from gyrocore.cli import to_jsonable
+from gyrocore.data.jsonable import to_jsonable
 from gyrocore.effects.registry import EFFECTS, STOCHASTIC, canonical_name, resolve, validate_params
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording, concat_recordings
@@ -562,7 +562,7 @@ def simulate(
     vehicle : str, optional
         ``hover``: vehicle class (:data:`sim.vehicles.VEHICLES`), overriding the scenario's
         ``[hover] vehicle`` (default ``f450``).
-    hover_vibration : sim.quadrotor.VibrationSpec, optional
+    hover_vibration : sim.vehicles.VibrationSpec, optional
         ``hover``: rotor vibration instead of the class's default (e.g. from a measured spec,
         :func:`sim.spec_vibration.vibration_from_spec`); ignored when vibration is off.
     chunk_rows : int, optional

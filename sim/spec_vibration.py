@@ -188,12 +188,12 @@ def _calibration_powers_uncached(veh, vib, *, seed: int, tag: int, calib_s: floa
 
 def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: int = 0, calib_s: float = 3.0,
                         n_calib: int = 32):
-    """The class's :class:`sim.quadrotor.VibrationSpec` with its rotor unbalance set from the spec's rotor line.
+    """The class's :class:`sim.vehicles.VibrationSpec` with its rotor unbalance set from the spec's rotor line.
 
     Two physical sources put a line at the rotor frequency, and they load different axes:
     the static unbalance u (an in-plane force u Omega² at the arm: mostly yaw) and the hub
     moment U (couple and aerodynamic unbalance, a moment U Omega² in the rotor plane: roll and
-    pitch; :class:`sim.quadrotor.VibrationSpec`). Their line powers add in the mean over the
+    pitch; :class:`sim.vehicles.VibrationSpec`). Their line powers add in the mean over the
     rotors' independent random phases (the cross terms average out), and each is ∝ its source
     squared, so with the mean per-axis powers of ``n_calib`` seeded hovers at the class's
     reference u0 alone (A) and at a reference U0 alone (B),
@@ -303,7 +303,7 @@ def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = F
     [--vibration-physics]``, a scenario's ``[vibration]`` section and the experiments.
 
     Returns ``(hover_vibration, overrides, info)``: ``hover_vibration`` is a
-    :class:`sim.quadrotor.VibrationSpec` for the rotor physics (``physics=True``: the spec's
+    :class:`sim.vehicles.VibrationSpec` for the rotor physics (``physics=True``: the spec's
     rotor line through :func:`vibration_from_spec`) or None (the class's default);
     ``overrides`` = ``{"vibration": shaped part}`` for :class:`sim.gyro.SyntheticGyro` (the
     registry effect ``vibration``'s parameters, :func:`gyrocore.flight.vibration.shaped_params`, without

@@ -52,7 +52,7 @@ def command(file, params_file, segments_file, replicas, seed, no_close, out_dir,
     figs = T.plot_twin(r, out)
     d = r.to_json()
     d["figures"] = figs
-    from gyrocore.cli import to_jsonable
+    from gyrocore.data.jsonable import to_jsonable
 
     atomic_write_text(out / "twin.json", json.dumps(to_jsonable(d), indent=2, allow_nan=False) + "\n")
     atomic_write_text(out / "twin.md", T.markdown(r, figs) + "\n")

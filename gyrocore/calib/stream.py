@@ -39,7 +39,7 @@ class SpillRows(lsq.RowSource):
         accel and ``temp_c`` on disk).
     tau_s : float
         Time offset τ, s: the reference rate is taken at t − τ by linear interpolation (the
-        catalogue's ``time_offset`` convention, as ``model._shift_rate``); rows outside the
+        catalogue's ``time_offset`` convention, as ``gyrocore.calibrator._shift_rate``); rows outside the
         record hold the end values (``np.interp``).
     """
 

@@ -9,7 +9,7 @@ model is short of the truth — and the first significant order (p < ``alpha``) 
 effect whose linear term is not significant either gets order 1 (the user declared it) and
 the table says so. T0 (the mean temperature of the fitted data) and the valid range
 [min, max] are recorded; ``effects.deterministic``/``correct`` clamp T to that range and
-:meth:`gyrocore.calibrator.CalibrationResult.apply` warns how many samples were outside.
+:meth:`gyrocore.calib.params.CalibrationResult.apply` warns how many samples were outside.
 
 PX4's thermal compensation (``src/modules/temperature_compensation``) computes per axis
 offset(T) = X0 + X1·dT + X2·dT² + X3·dT³ with dT = clamp(T, TMIN, TMAX) − TREF and

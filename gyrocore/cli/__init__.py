@@ -7,62 +7,19 @@ one ``warning: ...`` line each on stderr.
 
 from __future__ import annotations
 
-import contextlib
 import importlib
 import json
-import math
-import os
 import pkgutil
 import sys
 import warnings
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
 import click
-import numpy as np
 
+from gyrocore.data.jsonable import to_jsonable
 from gyrocore.errors import GyroInputError
 
-__all__ = ["build_group", "run_cli", "emit_json", "to_jsonable", "WORKER_ENV", "worker_environment"]
-
-
-def to_jsonable(obj: Any) -> Any:
-    """Convert numpy types / dataclasses to JSON-compatible values (NaN -> None)."""
-    import dataclasses
-
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return None if not math.isfinite(f) else f
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    return obj
-
-
-#: Thread counts for spawned worker processes (Monte Carlo, batch): one BLAS/OpenMP thread each,
-#: so that N workers on N cores do not oversubscribe (as Dask's nanny does).
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-@contextlib.contextmanager
-def worker_environment(defaults: Mapping[str, str] = WORKER_ENV):
-    """Set the unset variables of ``defaults`` in os.environ for the duration of the block."""
-    added = [k for k in defaults if k not in os.environ]
-    for k in added:
-        os.environ[k] = defaults[k]
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
+__all__ = ["build_group", "run_cli", "emit_json"]
 
 
 def emit_json(obj: Any) -> None:

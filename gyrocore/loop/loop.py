@@ -1764,11 +1764,11 @@ def loop_parameters(result: LoopResult, rec: Recording, *, thermal_order: int = 
 
 def loop_calibration(result: LoopResult, rec: Recording, *, source_path=None, sensor: str | None = None,
                      thermal_order: int = 1):
-    """The loop's final model as a :class:`gyrocore.calibrator.CalibrationResult` (the parameter
+    """The loop's final model as a :class:`gyrocore.calib.params.CalibrationResult` (the parameter
     file ``loop -o`` and ``calibrate`` with a reference attitude write)."""
     from pathlib import Path
 
-    from gyrocore.calibrator import CalibrationResult
+    from gyrocore.calib.params import CalibrationResult
     from gyrocore.data.recording import file_sha256
 
     params, stderr = loop_parameters(result, rec, thermal_order=thermal_order)

@@ -434,8 +434,6 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
     Computed per term (and in sample chunks for long records without rotation), so at most
     one term's per-sample values are held at once.
     """
-    from .residual import CHUNK_SAMPLES
-
     inp = res.inputs
     n, M = inp.n, res.m
     T = len(terms)
@@ -449,7 +447,7 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
         carry = np.zeros(T)
         # chunks with a one-sample overlap each side (derivatives by central differences), of
         # at most ~32 MB of term values
-        chunk = int(max(4096, min(getattr(res, "chunk", CHUNK_SAMPLES), 4_000_000 // max(T, 1))))
+        chunk = int(max(4096, min(res.chunk, 4_000_000 // max(T, 1))))
         for k0 in range(0, n - 1, chunk):
             k1 = min(k0 + chunk, n - 1)
             lo, hi = max(k0, 0), min(k1 + 2, n)  # samples k0 .. k1+1 (derivative neighbours)

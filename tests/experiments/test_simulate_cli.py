@@ -88,7 +88,7 @@ def test_family_terms_from_set_and_sensor_toml_round_trip(tmp_path, capsys):
     the parameter file carries both by name and apply leaves the white noise."""
     import math
 
-    from gyrocore.calibrator import load_params
+    from gyrocore.calib.params import load_params
 
     sigma, rate, dur = 2e-3, 1000.0, 20.0
     toml = tmp_path / "unit.toml"

@@ -11,7 +11,8 @@ import pytest
 
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import RepairWarning
-from gyrocore.calibrator import Calibrator, load_params, save_params
+from gyrocore.calibrator import Calibrator
+from gyrocore.calib.params import load_params, save_params
 from gyrocore.data.recording import Recording, read_csv, read_recording, write_recording
 
 

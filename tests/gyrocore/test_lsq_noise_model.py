@@ -116,7 +116,8 @@ def test_calibrator_noise_model_covariance_identifies_the_noise_and_keeps_it_in_
     # A rate-table recording (6 mounts, ±rate plateaus with 0.2-s raised-cosine ramps) with white
     # + flicker noise: the calibrator identifies N and B on the residual away from the ramps
     # (GMWM), reports noise-model standard errors, and the parameter file round-trips the model.
-    from gyrocore.calibrator import Calibrator, load_params, near_rate_changes, save_params
+    from gyrocore.calibrator import Calibrator, near_rate_changes
+    from gyrocore.calib.params import load_params, save_params
     from gyrocore.data.recording import Recording
 
     rate, n = 200.0, 200 * 180

@@ -8,7 +8,8 @@ import pytest
 
 from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError, RepairWarning, UnobservableError
-from gyrocore.calibrator import Calibrator, CalibrationResult, load_params, save_params
+from gyrocore.calibrator import Calibrator
+from gyrocore.calib.params import CalibrationResult, load_params, save_params
 from gyrocore.data.recording import Recording, write_csv
 
 SIGMA_RAD_S = 0.004

@@ -96,7 +96,7 @@ def test_calibrate_cli_streams_long_files(tmp_path, monkeypatch):
     from click.testing import CliRunner
 
     from gyrocore.cli.commands import calibrate as C
-    from gyrocore.calibrator import load_params
+    from gyrocore.calib.params import load_params
 
     rec = _thermal_rate_record(n=36000, seed=3)  # > max_rows = 30000: block means of 2
     path = tmp_path / "rec.csv"
@@ -316,7 +316,7 @@ def test_calibrate_cli_streamed_path_takes_the_ramp_margin(tmp_path, monkeypatch
     from click.testing import CliRunner
 
     from gyrocore.cli.commands import calibrate as C
-    from gyrocore.calibrator import load_params
+    from gyrocore.calib.params import load_params
 
     rec = _table_steps_record(n=40_000)
     path = tmp_path / "rec.csv"

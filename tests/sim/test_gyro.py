@@ -531,7 +531,8 @@ def test_injected_family_term_is_fitted_saved_and_removed(name, tmp_path):
     """simulate with the term -> Calibrator (least squares) recovers it within its standard error
     -> parameter file round trip -> apply on ANOTHER recording of the unit (held out) leaves
     the pure noise."""
-    from gyrocore.calibrator import Calibrator, load_params, save_params
+    from gyrocore.calibrator import Calibrator
+    from gyrocore.calib.params import load_params, save_params
 
     fit_rec = _add_recording(name, run=0)
     res = Calibrator(effects=["bias", name], covariance="ols").fit(fit_rec)

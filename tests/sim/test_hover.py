@@ -10,7 +10,8 @@ from scipy import signal
 
 from gyrocore.flight.filters import pt1
 from sim.controller import Manoeuvre, QuadParams, small_steps
-from sim.quadrotor import VibrationSpec, fly_hover
+from sim.vehicles import VibrationSpec
+from sim.quadrotor import fly_hover
 from sim.thermal import ThermalSpec, simulate_temperature
 
 QP = QuadParams()

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from gyrocore.cli import to_jsonable
+from gyrocore.data.jsonable import to_jsonable
 from gyrocore.effects.registry import EFFECTS
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import read_csv, write_csv

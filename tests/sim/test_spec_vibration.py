@@ -85,7 +85,7 @@ def test_hub_moment_puts_the_rotor_line_on_roll_and_pitch():
     # 2 U² Omega² / J_i² (rigid body; the rate loop's crossover, 9 rad/s, is far below Omega =
     # 882 rad/s). No yaw: the moment has no z component. Mean over 12 seeded 2-s hovers within
     # 3 Monte Carlo SE (the per-flight power of a 4-phasor sum scatters ~100 %).
-    from sim.quadrotor import VibrationSpec
+    from sim.vehicles import VibrationSpec
     from sim.vehicles import get_vehicle
 
     J = get_vehicle("racing5").params.inertia_kg_m2

@@ -120,7 +120,7 @@ def apply_streaming(res, path: str, output: str, *, power_up_bias: bool = False,
 def command(file, params_path, output, power_up_bias, chunk_rows, force, as_json):
     """Remove the effects in the parameter file from FILE's gyro and write the corrected file."""
     from gyrocore.errors import GyroInputError
-    from gyrocore.calibrator import load_params
+    from gyrocore.calib.params import load_params
 
     if os.path.exists(output) and not force:
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")

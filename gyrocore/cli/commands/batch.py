@@ -39,7 +39,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from gyrocore.cli import emit_json, worker_environment
+from gyrocore.cli import emit_json
+from gyrocore.fleet import worker_environment
 from gyrocore.errors import GyroInputError
 
 #: Commands the batch runs.
@@ -104,7 +105,8 @@ def headline_allan(path: str, options: dict) -> dict:
 
 def headline_calibrate(path: str, options: dict) -> dict:
     from gyrocore.effects.registry import check_effect_names
-    from gyrocore.calibrator import Calibrator, save_params
+    from gyrocore.calibrator import Calibrator
+    from gyrocore.calib.params import save_params
     from .calibrate import _read_any
 
     names = check_effect_names(options.get("effects", "bias").split(","))

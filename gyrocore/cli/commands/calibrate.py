@@ -154,7 +154,8 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     attitude, known-angle segments, or still parts) and write the parameter file."""
     from gyrocore.effects.registry import check_effect_names
     from gyrocore.errors import GyroInputError
-    from gyrocore.calibrator import Calibrator, result_to_dict, save_params
+    from gyrocore.calibrator import Calibrator
+    from gyrocore.calib.params import result_to_dict, save_params
     from gyrocore.data.recording import read_recording
 
     names = check_effect_names(effects.split(","))
@@ -260,7 +261,7 @@ def _warn_unobservable(res) -> None:
 
 def _write_and_report(res, output, px4_params, as_json: bool, *, px4_device_id: int | None = None) -> None:
     """Write the parameter file (and PX4 TC_G parameters), then print the report or the JSON."""
-    from gyrocore.calibrator import result_to_dict, save_params
+    from gyrocore.calib.params import result_to_dict, save_params
 
     save_params(res, output, overwrite=True)
     if px4_params:

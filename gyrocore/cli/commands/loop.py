@@ -242,7 +242,7 @@ def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extr
     payload.update(extra or {})
     if output:
         from gyrocore.loop.loop import loop_calibration
-        from gyrocore.calibrator import save_params
+        from gyrocore.calib.params import save_params
 
         save_params(loop_calibration(result, rec, source_path=path, thermal_order=thermal_order), output,
                     overwrite=True)
