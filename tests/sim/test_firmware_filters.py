@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from scipy.signal import csd, sosfilt, sosfreqz, welch
 
-from gyrocore.filters import betaflight_notch, biquad_notch, pt1
+from gyrocore.flight.filters import betaflight_notch, biquad_notch, pt1
 from sim.firmware.bridge import GYRO_LSB_PER_RAD_S, LOOP_RATE_HZ
 from sim.firmware.replay import replay_gyro
 
