@@ -335,13 +335,16 @@ class BetaflightSITL:
         removed on :meth:`close`.
     skip_unknown : bool
         Settings whose NAME this firmware does not have are skipped with one warning instead of
-        an error (for diffs and log headers from other boards: OSD, VTX, …). A refused VALUE is
-        always an error.
+        an error. A refused VALUE is always an error; a number given for an enum setting (as a
+        blackbox header logs it) is read as the index into the firmware's allowed names.
+    lenient_settings : sequence of str
+        Lines applied before ``settings`` with unknown names skipped (one warning): for diffs and
+        log headers from other boards (OSD, VTX, …) (:mod:`sim.firmware.settings`).
     """
 
     def __init__(self, binary: str | os.PathLike, settings: Sequence[str] = (), *, loop_rate_hz: float = LOOP_RATE_HZ,
                  step_timeout_s: float = 5.0, workdir: str | os.PathLike | None = None, skip_unknown: bool = False,
-                 cli_timeout_s: float = 10.0) -> None:
+                 lenient_settings: Sequence[str] = (), cli_timeout_s: float = 10.0) -> None:
         self.binary = str(binary)
         if not (os.path.isfile(self.binary) and os.access(self.binary, os.X_OK)):
             raise GyroInputError(f"{binary}: no firmware binary there (build it: gyroharness firmware build)")
@@ -356,6 +359,7 @@ class BetaflightSITL:
         self.cli_timeout_s = float(cli_timeout_s)
         self.skip_unknown = bool(skip_unknown)
         self.settings = tuple(s for s in (_normalise_setting(x) for x in settings) if s)
+        self.lenient_settings = tuple(s for s in (_normalise_setting(x) for x in lenient_settings) if s)
         self._own_workdir = workdir is None
         self.workdir = Path(tempfile.mkdtemp(prefix="gyroharness-sitl-")) if workdir is None else Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
@@ -616,16 +620,25 @@ class BetaflightSITL:
                                     f"within {self.cli_timeout_s:g} s: {self.log_tail()}")
 
             send_and_wait(b"#")
-            for line in lines:
+            for line, lenient in lines:
                 out = send_and_wait(line.encode() + b"\r\n")
                 m = re.search(r"###ERROR[^#]*###", out)
                 if m is None:
                     continue
                 err = m.group(0).strip("#").strip()
-                if "INVALID NAME" in err and self.skip_unknown:
+                if "INVALID NAME" in err and (lenient or self.skip_unknown):
                     self.skipped_settings.append(line)
                     continue
                 allowed = re.search(r"Allowed (?:values|range)[^\r\n]*", out)
+                # a blackbox header logs an enum setting's table index: use the name at that index
+                num = re.fullmatch(r"set\s+(\w+)\s*=\s*(\d+)", line.strip())
+                if "INVALID VALUE" in err and num and allowed and allowed.group(0).startswith("Allowed values"):
+                    names = [x.strip() for x in allowed.group(0).split(":", 1)[1].split(",")]
+                    idx = int(num.group(2))
+                    if idx < len(names):
+                        out = send_and_wait(f"set {num.group(1)} = {names[idx]}\r\n".encode())
+                        if re.search(r"###ERROR[^#]*###", out) is None:
+                            continue
                 hint = f" ({allowed.group(0).strip()})" if allowed else ""
                 raise FirmwareError(f"the firmware refused setting {line!r}: {err}{hint}")
             # 'save' writes eeprom.bin and exits (code 0) inside one step, which then never
@@ -662,7 +675,8 @@ class BetaflightSITL:
         if eeprom.exists():
             eeprom.unlink()
         _, tcp = self._spawn()
-        self._cli_session(tcp, (*BASE_SETTINGS, *self.settings))
+        self._cli_session(tcp, [(x, False) for x in BASE_SETTINGS] + [(x, True) for x in self.lenient_settings]
+                          + [(x, False) for x in self.settings])
         if self.skipped_settings:
             warnings.warn(f"skipped {len(self.skipped_settings)} setting(s) this SITL does not have: "
                           + ", ".join(s.split("=")[0].replace("set ", "").strip() for s in self.skipped_settings[:8])
@@ -726,7 +740,7 @@ class BetaflightSITL:
         self.boot_report = BootReport(
             steps=self._k, sim_s=self._k * self.dt_s, firmware_boot_s=fw_boot_s, calibration_steps=int(cal_steps or 0),
             gyro_bias_S_rad_s=r.gyro_bias_S_rad_s, armed=r.armed, wall_s=time.monotonic() - t0,
-            settings=(*BASE_SETTINGS, *self.settings))
+            settings=(*BASE_SETTINGS, *self.lenient_settings, *self.settings))
         return self.boot_report
 
     def disarm(self) -> None:

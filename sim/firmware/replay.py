@@ -14,6 +14,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
+from pathlib import Path
 
 import numpy as np
 
@@ -72,8 +73,8 @@ class ReplayResult:
 
 
 def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str] = (),
-                rotor_rad_s: np.ndarray | None = None, skip_unknown: bool = False,
-                step_timeout_s: float = 5.0) -> ReplayResult:
+                lenient_settings: Sequence[str] = (), rotor_rad_s: np.ndarray | None = None,
+                skip_unknown: bool = False, step_timeout_s: float = 5.0) -> ReplayResult:
     """Run a gyro record, already at the loop rate, through the firmware's filters.
 
     Parameters
@@ -84,6 +85,8 @@ def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str
         Gyro samples at :data:`~sim.firmware.bridge.LOOP_RATE_HZ`, sensor frame, rad/s.
     settings : sequence of str
         Firmware CLI lines (see :class:`~sim.firmware.bridge.BetaflightSITL`).
+    lenient_settings : sequence of str
+        Lines from a diff or log header, applied first; names this firmware lacks are skipped.
     rotor_rad_s : ndarray (N, 4) or None
         Rotor speeds per sample, Betaflight motor order, rad/s (the RPM filter's input).
     skip_unknown : bool
@@ -105,7 +108,8 @@ def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str
             raise GyroInputError(f"rotor speeds must have shape ({g.shape[0]}, 4), got {r.shape}")
         hz = np.abs(r) / (2 * math.pi)
     lsb = gyro_to_lsb(g)
-    with BetaflightSITL(binary, settings, step_timeout_s=step_timeout_s, skip_unknown=skip_unknown) as fc:
+    with BetaflightSITL(binary, settings, step_timeout_s=step_timeout_s, skip_unknown=skip_unknown,
+                        lenient_settings=lenient_settings) as fc:
         boot = fc.boot(arm=False)
         raw = fc.run_open_loop(lsb, motor_hz=hz)
         skipped = tuple(fc.skipped_settings)
@@ -161,3 +165,100 @@ def resample_to_loop_rate(t_s: np.ndarray, x: np.ndarray, rate_hz: float = LOOP_
     t_out = t[0] + np.arange(y.shape[0]) / rate_hz
     return t_out, y, {"method": RESAMPLE_METHOD, "input_rate_hz": in_rate, "up": up, "down": down,
                       "jitter_rel": jitter}
+
+
+@dataclass(frozen=True)
+class ReplayInput:
+    """A record prepared for :func:`replay_gyro`: at the loop rate, with what was done to it."""
+
+    t_s: np.ndarray
+    gyro_S_rad_s: np.ndarray
+    rotor_rad_s: np.ndarray | None
+    resample: dict
+    source: str
+    meta: dict
+
+
+def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: float = 0.0,
+                      duration_s: float | None = None) -> ReplayInput:
+    """Read a data file or a blackbox log and bring its gyro (and rotor speeds) to the loop rate.
+
+    A blackbox log contributes its unfiltered gyro (``gyroUnfilt``, or the debug mode that
+    carries the gyro before every software filter) and its rotor frequencies (``eRPM``, or
+    ``debug_mode RPM_FILTER``) for the RPM filter; its filtered gyro (``gyroADC``) is not an
+    input. A data file contributes ``gyro_*_rad_s`` and, when present, ``rotor_hz_0..3``
+    (Betaflight motor order).
+    """
+    import json
+
+    from gyrocore.blackbox import is_blackbox, read_blackbox
+    from gyrocore.recording import read_recording
+
+    if is_blackbox(path):
+        rec = read_blackbox(path)
+        pre = json.loads(rec.meta.get("gyro_prefilter", "{}") or "{}")
+        if not all(f"gyro_prefilter_{a}_rad_s" in rec.extra for a in "xyz"):
+            raise GyroInputError(f"{path}: the log carries no unfiltered gyro (gyroUnfilt in 4.5+, or debug_mode "
+                                 f"GYRO_SCALED/GYRO_RAW): nothing to replay through the filters")
+        if pre.get("filters_before"):
+            raise GyroInputError(f"{path}: the log's pre-filter gyro already passed {pre['filters_before']}: "
+                                 f"not the unfiltered gyro")
+        g = np.column_stack([rec.extra[f"gyro_prefilter_{a}_rad_s"] for a in "xyz"])
+        source = f"{Path(path).name}: {pre.get('source', 'unfiltered gyro')}"
+    else:
+        rec = read_recording(path)
+        g = rec.gyro_rad_s
+        source = f"{Path(path).name}: gyro_*_rad_s"
+    rot = None
+    if all(f"rotor_hz_{i}" in rec.extra for i in range(4)):
+        rot = np.column_stack([rec.extra[f"rotor_hz_{i}"] for i in range(4)]) * (2 * math.pi)
+    t = rec.t_s - rec.t_s[0]
+    keep = t >= start_s
+    if duration_s is not None:
+        keep &= t <= start_s + duration_s
+    if keep.sum() < 2:
+        raise GyroInputError(f"{path}: fewer than 2 samples in the window from {start_s:g} s"
+                             + (f" for {duration_s:g} s" if duration_s is not None else "")
+                             + f" (the record is {t[-1]:.3g} s long)")
+    ts, g = rec.t_s[keep], g[keep]
+    ok = np.all(np.isfinite(g), axis=1)
+    if not np.all(ok):
+        raise GyroInputError(f"{path}: {int((~ok).sum())} gyro rows are not finite; repair the file first")
+    t_out, g_out, info = resample_to_loop_rate(ts, g, rate_hz)
+    rot_out = None
+    if rot is not None:
+        # rotor speeds are slow, already-smoothed telemetry: linear interpolation onto the loop grid
+        rot_out = np.column_stack([np.interp(t_out, rec.t_s, rot[:, i]) for i in range(4)])
+    if start_s or duration_s is not None:
+        info = {**info, "window_s": [float(ts[0] - rec.t_s[0]), float(ts[-1] - rec.t_s[0])]}
+    return ReplayInput(t_out, g_out, rot_out, info, source, dict(rec.meta))
+
+
+def replay_recording(result: ReplayResult, inp: ReplayInput, *, firmware_label: str, patch_sha256: str):
+    """The OUT data file of ``firmware replay``: input, the firmware's filtered gyro, its D-term input."""
+    import json
+
+    from gyrocore.recording import Recording
+
+    extra = {}
+    for name, arr in (("fw_gyro", result.fw_gyro_S_rad_s), ("fw_gyro_unfiltered", result.fw_gyro_unfiltered_S_rad_s),
+                      ("fw_dterm", result.fw_dterm_S_rad_s)):
+        for i, a in enumerate("xyz"):
+            extra[f"{name}_{a}_rad_s"] = arr[:, i]
+    if inp.rotor_rad_s is not None:
+        for i in range(4):
+            extra[f"rotor_hz_{i}"] = inp.rotor_rad_s[:, i] / (2 * math.pi)
+    meta = {
+        "firmware": firmware_label,
+        "firmware_settings": "; ".join(result.settings),
+        "firmware_patch_sha256": patch_sha256,
+        "firmware_replay": ("open loop, disarmed: one firmware loop per row at 8 kHz; fw_gyro = gyro.gyroADCf, "
+                            "fw_gyro_unfiltered = gyro.gyroADC (the int16 the firmware read), fw_dterm = the gyro "
+                            "after the D-term filters; sensor frame, rad/s"),
+        "resample": json.dumps({k: v for k, v in inp.resample.items()}),
+        "source": inp.source,
+        "rate_hz": f"{LOOP_RATE_HZ:g}",
+    }
+    if result.skipped_settings:
+        meta["firmware_settings_skipped"] = "; ".join(result.skipped_settings)
+    return Recording(t_s=inp.t_s, gyro_rad_s=inp.gyro_S_rad_s, meta=meta, extra=extra)
