@@ -74,9 +74,9 @@ def replay_cmd(file, set_pairs, settings_from, start_s, duration_s, out, as_json
 
     import numpy as np
 
-    from gyrocore.blackbox import is_blackbox
+    from gyrocore.readers.blackbox import is_blackbox
     from gyrocore.errors import GyroInputError
-    from gyrocore.recording import write_recording
+    from gyrocore.data.recording import write_recording
     from sim.firmware.build import ensure_binary
     from sim.firmware.replay import load_replay_input, replay_gyro, replay_recording
 

@@ -191,8 +191,8 @@ def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: floa
     """
     import json
 
-    from gyrocore.blackbox import is_blackbox, read_blackbox
-    from gyrocore.recording import read_recording
+    from gyrocore.readers.blackbox import is_blackbox, read_blackbox
+    from gyrocore.data.recording import read_recording
 
     if is_blackbox(path):
         rec = read_blackbox(path)
@@ -238,7 +238,7 @@ def replay_recording(result: ReplayResult, inp: ReplayInput, *, firmware_label: 
     """The OUT data file of ``firmware replay``: input, the firmware's filtered gyro, its D-term input."""
     import json
 
-    from gyrocore.recording import Recording
+    from gyrocore.data.recording import Recording
 
     extra = {}
     for name, arr in (("fw_gyro", result.fw_gyro_S_rad_s), ("fw_gyro_unfiltered", result.fw_gyro_unfiltered_S_rad_s),

@@ -120,11 +120,11 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
     Parameters
     ----------
     path : path
-        .bbl/.bfl/.txt blackbox file (read with :func:`gyrocore.blackbox.read_blackbox_logs`).
+        .bbl/.bfl/.txt blackbox file (read with :func:`gyrocore.readers.blackbox.read_blackbox_logs`).
     log_index : int or None
         1-based log of the file (default: the first).
     """
-    from gyrocore.blackbox import firmware_info, loop_rates, read_blackbox_logs
+    from gyrocore.readers.blackbox import firmware_info, loop_rates, read_blackbox_logs
 
     p = Path(path)
     logs = read_blackbox_logs(p, log_index=log_index)
@@ -230,7 +230,7 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
     # when the DYNAMIC_FILTER feature is on; older ones had a different analyser: off
     count = h.get("dyn_notch_count")
     if count is None:
-        from gyrocore.blackbox import _dyn_notch_feature
+        from gyrocore.readers.blackbox import _dyn_notch_feature
 
         if v >= (4, 2, 0) and _dyn_notch_feature(h, fw):
             count = 2 if (h.get("dyn_notch_width_percent") or 0) > 0 else 1
@@ -291,7 +291,7 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
 
 def settings_from_file(path: str | os.PathLike) -> FirmwareSettings:
     """A blackbox log (by content) or else a CLI ``diff`` file."""
-    from gyrocore.blackbox import is_blackbox
+    from gyrocore.readers.blackbox import is_blackbox
 
     if not Path(path).exists():
         raise GyroInputError(f"{path}: no such file")

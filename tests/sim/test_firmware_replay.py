@@ -9,7 +9,7 @@ import pytest
 
 from experiments.cli import build_group
 from gyrocore.cli import run_cli
-from gyrocore.recording import Recording, read_recording, write_csv
+from gyrocore.data.recording import Recording, read_recording, write_csv
 from sim.firmware.replay import resample_to_loop_rate
 
 
