@@ -55,6 +55,26 @@ MIXES: dict[str, dict[str, float]] = {
     "N+B+K+GM": {"N": 1e-4, "B": 1.5e-5, "K": 2e-6, "GMs": 3e-5, "GMt": 20.0},
     "N+Q+K": {"N": 1e-4, "Q": 2e-5, "K": 2e-6},
 }
+
+
+def plateau_mix(octaves: float, *, n_rad_per_sqrt_s: float = 1e-4, tau_bk_s: float = 150.0) -> dict[str, float]:
+    """N + B + K whose flicker plateau spans ``octaves`` octaves between N's and K's crossings (issue 25).
+
+    Crossings of the IEEE 952 asymptotes: N²/τ = (2 ln2/π)B² at τ_NB, (2 ln2/π)B² = K²τ/3 at τ_BK;
+    τ_BK is held at ``tau_bk_s`` (K then dominates ≈ 4.5 octaves of a 2-h record) and
+    τ_NB = τ_BK/2^octaves: B = N/√(0.4413·τ_NB), K = B·√(3·0.4413/τ_BK).
+    """
+    f = 2.0 * math.log(2.0) / math.pi
+    tau_nb = tau_bk_s / 2.0**octaves
+    b = n_rad_per_sqrt_s / math.sqrt(f * tau_nb)
+    return {"N": n_rad_per_sqrt_s, "B": b, "K": b * math.sqrt(3.0 * f / tau_bk_s)}
+
+
+# issue 25: B's plateau between N's and K's crossings over 2, 3.5 and 5 octaves (the N+B+K mix
+# above has none: K crosses B at 75 s, before N does at 100 s). Appended, so that the seeds of
+# the mixes above (their index enters the entropy) are unchanged.
+for _oct in (2.0, 3.5, 5.0):
+    MIXES[f"N+B+K-{_oct:g}oct"] = plateau_mix(_oct)
 #: (duration s, rate Hz) cells: the issue's grid is 10 min … 4 h × 50 Hz … 1 kHz; this subset
 #: spans both ends of each axis and runs in minutes on 2 shared cores.
 CELLS: tuple[tuple[float, float], ...] = ((600.0, 100.0), (3600.0, 100.0), (14400.0, 100.0),

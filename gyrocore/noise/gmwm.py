@@ -69,6 +69,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -1329,9 +1330,17 @@ def line_avar(x: np.ndarray, rate_hz: float, m: np.ndarray) -> Lines:
 
     Welch periodogram (Hann, 50 % overlap, 2^k samples per segment, 64 … 1024, ≥ 63 segments:
     a line that wanders over a few tenths of a Hz stays inside ±4 bins):
-    each bin over the floor (median of the bins 5–24 away on either side, divided by the median of
-    χ²_ν/ν) is
-    ~χ²_ν/ν, ν ≈ 2K/1.056 for K segments (Welch 1967, Hann 50 % overlap). Bins above the
+    each bin over the floor is ~χ²_ν/ν, ν ≈ 2K/1.056 for K segments (Welch 1967, Hann 50 %
+    overlap). The floor is the *higher* of the two one-sided floors — the median of the bins 5–24
+    below and of the bins 5–24 above, each divided by the median of χ²_ν/ν: a line stands above
+    the noise on both of its sides, whereas a red spectrum (flicker, random walk: 1/f, 1/f²) stands
+    above its higher-frequency side at every low bin, and a floor from that side alone (or from
+    both pooled, or mirrored at 0 Hz) took the red rise of the lowest bins for a line (issue 25:
+    a "line" at bin 2, 0.039 Hz, on every axis of a 2-h N + B + K record at 20 Hz, whose removal
+    took 20–33 % of the Allan variance off the flicker plateau and put B at 0.6× its truth). Bins 0
+    and 1 (the mean and each segment's linear detrend) enter no floor, and a bin is tested only
+    with ≥ 3 bins on its low side (bin ≥ 10: f ≥ 10·rate/segment; below, the noise model keeps
+    whatever is there). Bins above the
     1 − α/n_bins quantile (family-wise level :data:`ALPHA_LINE`) mark lines; each line's excess
     power (bins within ±4 of a marked bin: the Hann main lobe and a little wander) gives its Allan variance
     Σ_b excess_b·Δf·|H_m(ν_b)|²/2 — subtracted from the measured Allan variance, exact in
@@ -1364,11 +1373,26 @@ def line_avar(x: np.ndarray, rate_hz: float, m: np.ndarray) -> Lines:
     # noise wider than ~10 bins lifts its own ring too and is left to the noise model (PX4 y: a
     # 2–6 Hz bump, 1.4× a ±32-bin running median, was taken for a line and moved N by 9 %)
     inner_r, outer_r = 5, 24
-    pad = np.pad(p, outer_r, mode="reflect")
+    # one-sided rings; bins 0 and 1 (mean, per-segment linear detrend) and bins past Nyquist are
+    # no floor (NaN). The floor is the higher side: never below the pooled median of both rings
+    # (the median of a union lies between the medians of its parts), so this detects a subset
+    # of what a two-sided pooled floor detects; on a flat spectrum the max of two 20-bin medians
+    # is ≈ 1–2 % above the level (their sd ≈ 1.25·√(2/ν)/√20), a slightly conservative test.
+    q = p.astype(float).copy()
+    q[:2] = np.nan
+    pad = np.pad(q, outer_r, mode="constant", constant_values=np.nan)
     win = np.lib.stride_tricks.sliding_window_view(pad, 2 * outer_r + 1)
-    ring = np.r_[0:outer_r - inner_r + 1, outer_r + inner_r:2 * outer_r + 1]
-    floor = np.median(win[:, ring], axis=1) / (scipy.stats.chi2.median(nu) / nu)
-    inner = (f > 0) & (f < rate_hz / 2)
+    low = win[:, 0:outer_r - inner_r + 1]
+    high = win[:, outer_r + inner_r:2 * outer_r + 1]
+    n_low = np.sum(np.isfinite(low), axis=1)
+    n_high = np.sum(np.isfinite(high), axis=1)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rings at the edges
+        f_low = np.where(n_low > 0, np.nanmedian(np.where(n_low[:, None] > 0, low, 0.0), axis=1), np.nan)
+        f_high = np.where(n_high > 0, np.nanmedian(np.where(n_high[:, None] > 0, high, 0.0), axis=1), np.nan)
+    floor = np.fmax(f_low, f_high) / (scipy.stats.chi2.median(nu) / nu)
+    inner = (f > 0) & (f < rate_hz / 2) & (n_low >= 3) & np.isfinite(floor)
+    floor = np.where(np.isfinite(floor), floor, p)
     thr = scipy.stats.chi2.isf(ALPHA_LINE / max(int(inner.sum()), 1), nu) / nu
     hot = inner & (p > thr * floor)
     if not np.any(hot):
