@@ -1265,12 +1265,20 @@ def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: fl
     σ̂²(8 ms)/σ̂²(4 ms) = 0.99; the fit took a flicker floor of 5e-4 rad/s for it and
     reported N at a quarter of its value).
 
-    Test of octave pair (m_k, m_{k+1}): d = log(σ̂²_{k+1}/σ̂²_k) − log(white ratio m_k/m_{k+1}),
+    Test of octave pair (m_k, m_{k+1}): d_k = log(σ̂²_{k+1}/σ̂²_k) − log(white ratio m_k/m_{k+1}),
     Var d = 2/ν_k + 2/ν_{k+1} − 4ρ/√(ν_kν_{k+1}) with the white-noise EDF and correlation;
-    low-pass when d > z_{1−α}·sd (α = :data:`ALPHA_BANDWIDTH`, one-sided). Pairs are tested from
-    the first one up; when the first is flagged, the fit starts above the first pair that is not
-    (at least 6 scales kept), where the remaining low-pass deficit −κN²/τ² is fitted in place of
-    Q (method suffix "+lp"). On white noise the first pair is flagged with probability α.
+    low-pass when d_k > z_{1−α}·sd (α = :data:`ALPHA_BANDWIDTH`, one-sided) **and** d_k fades:
+    d_k − d_{k+1} > z_{1−α}·sd too. A low-pass deficit −κN²/τ² gives d_k ≈ κ/(2m), falling by half
+    per octave; every term of the model that rises above white at the short scales — flicker,
+    random walk, a Gauss–Markov hump (and Q: d < 0 rising to 0) — gives a d_k that *grows* with
+    the octave (its share of σ² doubles per octave or more). Without the second condition a
+    flicker floor 1.5 % of σ² at the first octave (N + B + K with a 5-octave plateau, 2 h at
+    20 Hz: z of d_k = 3.3, 4.6, 5.0, 7.2, …, growing) was taken for a low-pass at *every* pair
+    and the fit started at τ = 100 s, with N reported at 4–9× its truth (issue 25). Pairs are
+    tested from the first one up; when the first is flagged, the fit starts above the first pair
+    that is not (at least 6 scales kept), where the remaining low-pass deficit −κN²/τ² is fitted
+    in place of Q (method suffix "+lp"). On white noise the first pair is flagged with
+    probability ≤ α.
     """
     avar = np.asarray(avar, float)
     m = np.asarray(m, np.int64)
@@ -1283,11 +1291,22 @@ def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: fl
     d_ = np.sqrt(np.diag(C))
     R = C / np.outer(d_, d_)
     z_lim = float(scipy.stats.norm.isf(ALPHA_BANDWIDTH))
+    # log σ̂² has variance 2/ν and covariance 2ρ/√(ν_iν_j) (white-noise EDF and correlation)
+    V = 2.0 * R / np.sqrt(np.outer(edf, edf))
+
+    def d_of(j: int) -> float:
+        return math.log(avar[j + 1] / avar[j]) - math.log(white[j + 1] / white[j])
+
     k = 0
     while k < m.size - 8:
-        d = math.log(avar[k + 1] / avar[k]) - math.log(white[k + 1] / white[k])
-        var = 2.0 / edf[k] + 2.0 / edf[k + 1] - 4.0 * R[k, k + 1] / math.sqrt(edf[k] * edf[k + 1])
+        d = d_of(k)
+        var = V[k, k] + V[k + 1, k + 1] - 2.0 * V[k, k + 1]
         if not d > z_lim * math.sqrt(max(var, 1e-300)):
+            break
+        # fading, not rising: D = d_k − d_{k+1} = 2ℓ_{k+1} − ℓ_k − ℓ_{k+2} (+ const), ℓ = log σ̂²
+        a = np.zeros(m.size)
+        a[[k, k + 1, k + 2]] = (-1.0, 2.0, -1.0)
+        if not d - d_of(k + 1) > z_lim * math.sqrt(max(float(a @ V @ a), 1e-300)):
             break
         k += 1
     # the fit starts above the last pair the test looked at: where the test stops depends on the

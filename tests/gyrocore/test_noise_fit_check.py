@@ -132,6 +132,37 @@ def test_red_spectrum_is_no_line_and_flicker_plateau_is_unbiased():
     assert len(lines.freqs_hz) == 1 and abs(lines.freqs_hz[0] - 1.0) < 0.05
 
 
+def test_flicker_at_the_first_octaves_is_no_low_pass():
+    """Issue 25: N + B + K with a 5-octave flicker plateau (τ_NB = 4.7 s, τ_BK = 150 s), 2 h at
+    20 Hz. Flicker is 1.5 % of σ² at the first octave, which is many standard errors at 1.4·10⁵
+    samples, and its share doubles per octave: the white-null test of the low-pass flagged every
+    pair (z of d_k 3.3, 4.6, 5.0, 7.2, … growing) and the fit started at τ = 100 s, with N at
+    4–9× its truth on such axes. A low-pass makes d_k fade; the growing d_k of the long-τ terms is
+    no low-pass: the whole τ range is kept and N is inside its interval (each fails with ≤ 0.1 %
+    resp. 5 % per axis for a right test/interval; this seed is fixed: the old test cut axis y at
+    τ = 102 s)."""
+    from sim import noise as SN
+
+    rate, T = 20.0, 7200.0
+    n = int(rate * T)
+    f = 2.0 * math.log(2.0) / math.pi
+    N, tau_nb, tau_bk = 1e-4, 150.0 / 2**5, 150.0
+    B = N / math.sqrt(f * tau_nb)
+    K = B * math.sqrt(3.0 * f / tau_bk)
+    rng = np.random.default_rng(np.random.SeedSequence([25, 3]))
+    g = (SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=N) + SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=B)
+         + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=K))
+    m = gmwm.scales(n)
+    for a in range(3):
+        _t, dev, _n = AL.oadev(g[:, a], rate, m)
+        assert gmwm.bandwidth_start(dev**2, m, n, rate) == 0, a
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = AL.identify_noise(g[:, 1:2], rate_hz=rate, check_static=False).axes["x"]
+    lo, hi = r.ci95["arw_rad_per_sqrt_s"]
+    assert r.fit_from_tau_s == r.taus_s[0] and lo <= N <= hi, (r.arw_rad_per_sqrt_s / N, lo / N, hi / N)
+
+
 def test_narrowband_line_is_removed_not_taken_for_quantization():
     """White noise + a 31.4-Hz sinusoid at 100 Hz (the sunsided MPU-6050 z line: its Allan
     variance ~ A²sin⁴(πmν)/(m²sin²πν) falls as 1/τ² beyond the first octaves, i.e. looks like
