@@ -112,6 +112,12 @@ Z_POWER = float(scipy.stats.norm.isf(0.10))
 _Z95 = float(scipy.stats.norm.isf(0.025))
 _Z_WALD = float(scipy.stats.norm.isf(ALPHA))
 _B_FACTOR = 2.0 * math.log(2.0) / math.pi
+#: prior SD (in units of the Kasdin-minus-asymptote shape) of the flicker's Allan-variance shape
+#: at the first octaves (:func:`avar_covariance`): the conventions span θ = −1.1 (averaged
+#: continuous 1/f: the simulator's cascade) … 0 (point-sampled Kasdin–Walter: the model), so
+#: s = 1.5 keeps either within 1σ of the model and costs N at most the information of one
+#: shape direction
+_FLICKER_SHAPE_SD = 1.5
 
 
 # ---------------------------------------------------------------------------- term variances
@@ -361,7 +367,23 @@ def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray
         R = (V * np.maximum(w_, 1e-9)) @ V.T
         dd = np.sqrt(np.diag(R))
         R = R / np.outer(dd, dd)
-    return R * np.outer(sd, sd), edf, alpha
+    C = R * np.outer(sd, sd)
+    if cc[2] > 0 and _FLICKER_SHAPE_SD > 0:
+        # (issue 25) the flicker's Allan variance at the first octaves is a convention of how the
+        # 1/f process reaches the sample rate, not a property of B: point-sampled 1/f up to
+        # Nyquist (Kasdin–Walter, this model's column) is 1.44× the IEEE asymptote at m = 1,
+        # 1.15× at 2, 1.05× at 4; continuous 1/f averaged over each sample interval (a sensor's
+        # decimation; the simulator's cascade within 0.04 of it) has the asymptote at every m.
+        # Where flicker is a notable share of σ² at the first octaves — and these carry the
+        # most samples — the difference biased N (−0.4 % = 2 SE, N covered 60–80 % with a 5-octave
+        # plateau at 20 Hz) and fed a false Q. Model uncertainty: a shape error
+        # θ·B²·v(m), v = the Kasdin factor − 2 ln2/π, θ ~ N(0, s²), added to the covariance
+        # (rank one, fully correlated across octaves) and to the EDF as its variance share.
+        v = np.array([flicker_avar_factor(int(q)) for q in m]) - _B_FACTOR
+        u = _FLICKER_SHAPE_SD * cc[2] * v
+        C = C + np.outer(u, u)
+        edf = np.maximum(2.0 * model**2 / np.diag(C), 1.0)
+    return C, edf, alpha
 
 
 # ---------------------------------------------------------------------------- fitting
