@@ -51,7 +51,8 @@ __all__ = ["VibrationResult", "analyse", "write_spec", "read_spec", "SPEC_FORMAT
            "plot_vibration", "synthesize", "shaped_params", "add_vibration", "fidelity", "spec_band"]
 
 AXES = ("x", "y", "z")
-SPEC_FORMAT_VERSION = "1.0"
+#: 1.1: ``energy_bands`` (whole flight, and per throttle band inside ``bands``; gyrocore.energy_bands)
+SPEC_FORMAT_VERSION = "1.1"
 DEG = math.pi / 180.0
 #: Equivalent-dof correlation of 50 %-overlapped Hann windows (Percival & Walden 1993, Table 292).
 RHO_HANN_50 = 0.167
@@ -367,6 +368,8 @@ class VibrationResult:
     mean_psd: np.ndarray = field(repr=False, default=None)  # (M, 3) over all airborne windows
     n_windows: int = 0
     nperseg: int = 0
+    energy_bands: list = field(default_factory=list)        # gyrocore.energy_bands, whole flight, by share
+    dominant_vibration: dict = field(default_factory=dict)  # per axis: the strongest band or line
 
     def to_json(self) -> dict:
         return {
@@ -378,6 +381,7 @@ class VibrationResult:
             "band_variable": self.band_variable, "frequency_resolution_hz": ENBW_HANN * self.rate_hz / self.nperseg,
             "n_windows": self.n_windows, "window_s": self.nperseg / self.rate_hz,
             "notes": self.notes, "warnings": self.warnings, "format_version": self.format_version,
+            "energy_bands": self.energy_bands, "dominant_vibration": self.dominant_vibration,
         }
 
 
@@ -604,6 +608,10 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         pk = r.pop("_peaks")
         r["peaks_hz"] = {a: sorted(round(p.f_hz, 1) for p in pk if p.axis == i) for i, a in enumerate(AXES)}
     mean_psd = np.nanmean(psd, axis=0)
+    from .energy_bands import attach
+
+    energy, dominant = attach(f, psd, mean_psd, band_psd, band_rows, lines, fmin_hz=fmin_hz, reliable_below_hz=reliable,
+                              rate_hz=rate, has_bv=bv is not None and len(edges) > 2)
     return VibrationResult(
         format_version=SPEC_FORMAT_VERSION, rate_hz=rate, signal=kind if undo or kind == "raw" else sig.kind,
         source=sig.source, filters_before=filters_before, reliable_below_hz=reliable,
@@ -611,7 +619,8 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         rms_above_40hz_interval_rad_s={a: [float(rlo[i]), float(rhi[i])] for i, a in enumerate(AXES)},
         rms_band_hz=[HIGHPASS_HZ, band_hi], accel_rms_above_40hz_m_s2=arms, lines=lines, bands=band_rows,
         band_variable=bv_name, notes=notes, warnings=warns, f_hz=f, band_psd=np.array(band_psd),
-        band_psd_accel=np.array(band_apsd) if band_apsd else None, mean_psd=mean_psd, n_windows=K, nperseg=nper)
+        band_psd_accel=np.array(band_apsd) if band_apsd else None, mean_psd=mean_psd, n_windows=K, nperseg=nper,
+        energy_bands=energy, dominant_vibration=dominant)
 
 
 def _label(s: dict) -> str:
@@ -773,8 +782,9 @@ def write_spec(res: VibrationResult, path: str | os.PathLike, *, source: str = "
     Keys: ``format_version``, ``kind`` = "gyroharness.vibration_spec", ``source``, ``rate_hz``,
     ``signal``, ``filters_before``, ``band_variable``, ``f_hz`` (M,), ``bands`` (each:
     throttle span, median, ``psd_rad2_s2_hz`` {x,y,z: (M,)} in the raw domain, NaN → null
-    where unreliable, accel PSD (m/s²)²/Hz when logged, RMS above 40 Hz), ``lines`` (as
-    :func:`analyse`), ``rms_above_40hz_rad_s``.
+    where unreliable, accel PSD (m/s²)²/Hz when logged, RMS above 40 Hz, ``energy_bands`` of
+    the band), ``lines`` and ``energy_bands`` (as :func:`analyse`), ``rms_above_40hz_rad_s``.
+    Format 1.1 adds the energy bands (1.0 specs still read: the major version is checked).
     """
     def arr(a):
         return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, float)]
@@ -789,7 +799,8 @@ def write_spec(res: VibrationResult, path: str | os.PathLike, *, source: str = "
     spec = {"format_version": SPEC_FORMAT_VERSION, "kind": "gyroharness.vibration_spec", "source": source,
             "rate_hz": res.rate_hz, "signal": res.signal, "filters_before": res.filters_before,
             "reconstructed_reliable_below_hz": res.reliable_below_hz, "band_variable": res.band_variable,
-            "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s, "lines": res.lines, "f_hz": arr(res.f_hz), "bands": bands}
+            "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s, "lines": res.lines, "energy_bands": res.energy_bands,
+            "f_hz": arr(res.f_hz), "bands": bands}
     atomic_write_text(path, json.dumps(spec, indent=1, allow_nan=False) + "\n", overwrite=overwrite)
     return spec
 

@@ -131,7 +131,7 @@ def test_spec_round_trip_and_version_check(res, tmp_path):
     p = tmp_path / "spec.json"
     write_spec(res, p, source="synthetic")
     spec = read_spec(p)
-    assert spec["format_version"] == "1.0" and len(spec["bands"]) == len(LEVELS)
+    assert spec["format_version"] == "1.1" and len(spec["bands"]) == len(LEVELS)
     assert len(spec["f_hz"]) == len(spec["bands"][0]["psd_rad2_s2_hz"]["x"])
     spec["format_version"] = "2.0"
     p.write_text(json.dumps(spec))
