@@ -17,16 +17,24 @@ Method, per axis, on an averaged PSD S(f) of K windows (ν ≈ 2K/(1 + 2ρ²) de
    higher of its two bases (the minima that separate it from higher peaks or the spectrum's
    ends), so a slope or a ripple of the broadband is not a band.
 3. Edges: where S̃ crosses half the prominence above that base (``scipy.signal.peak_widths``,
-   ``rel_height=0.5``): the band's full width at half its height above the floor. For a flat-top
-   band (a line sweeping at a steady rate) blurred by any symmetric kernel (the window, the
-   sweep's own instantaneous bandwidth √|df/dt|) the half-height crossings stay at the true
-   edges.
-4. Energy: power P = Σ S(f_k)·Δf over the bins whose centres lie inside the edges (the
+   ``rel_height=0.5``): the band's full width at half its height above the floor (``edges_hz``,
+   ``width_hz``). For a flat-top band (a line sweeping at a steady rate) blurred by any
+   symmetric kernel (the window, the sweep's own instantaneous bandwidth √|df/dt|) the
+   half-height crossings stay at the true edges. Extent: where S̃ crosses
+   :data:`EXTENT_HEIGHT` = 10 % of that height (−10 dB; ``extent_hz``): the span that holds the
+   band's energy, also when its density is not flat (a line that spends more time at low
+   throttle: the whole flight's band of a line sweeping several throttle bands is a staircase
+   that a half-height cut would split). Two candidates' extents that overlap are cut at S̃'s
+   minimum between their peaks; a candidate whose peak lies inside a stronger band's extent is
+   part of it.
+4. Energy: power P = Σ S(f_k)·Δf over the bins whose centres lie inside the extent (the
    unsmoothed PSD: any line inside the band is part of its energy); the centre is the
-   power-weighted mean frequency Σ f S / Σ S; the peak is S̃'s maximum. The share is P over the
-   band's part of the rms span (40 Hz to the reconstruction's reliable limit, the span of
-   ``rms_above_40hz_rad_s``) divided by the power of that span: shares of disjoint bands add up
-   to at most 1. A band reaching above the reliable limit says how much of its power lies there.
+   power-weighted mean frequency Σ f S / Σ S over the extent (for a constant-amplitude line of
+   wandering frequency: its window-weighted mean instantaneous frequency); the peak is S̃'s
+   maximum. The share is P over the extent's part of the rms span (40 Hz to the
+   reconstruction's reliable limit, the span of ``rms_above_40hz_rad_s``) divided by the power
+   of that span: shares of disjoint bands add up to at most 1. A band reaching above the
+   reliable limit says how much of its power lies there.
 5. Significance: the excess Σ (S − base)·Δf against its standard error
    S̄·Δf·√(2·C·n/ν) (n bins; C = 1 + 2·(4/9) + 2·(1/36) = 1.944 the variance inflation of a sum
    of adjacent Hann-periodogram bins, whose white-noise correlations are (2/3)² and (1/6)²) must
@@ -52,13 +60,16 @@ from scipy.ndimage import median_filter, uniform_filter1d
 
 from .vibration import AXES, ENBW_HANN, _dof
 
-__all__ = ["HANN_SUM_VARIANCE_FACTOR", "MEDIAN_BINS", "MIN_PEAK_TO_BASE", "attach", "band_interval", "dominant_vibration",
+__all__ = ["EXTENT_HEIGHT", "HANN_SUM_VARIANCE_FACTOR", "MEDIAN_BINS", "MIN_PEAK_TO_BASE", "attach", "band_interval", "dominant_vibration",
            "find_bands", "link_bands"]
 
 #: Running-median length, bins: removes features narrower than 6 bins (a line), keeps bands.
 MEDIAN_BINS = 11
 #: A band's smoothed peak over the higher of its bases (3 dB).
 MIN_PEAK_TO_BASE = 2.0
+#: The band's extent (where its power is integrated): where S̃ stands above this fraction of the
+#: band's height over its floor (−10 dB).
+EXTENT_HEIGHT = 0.1
 #: Var(Σ_k Ŝ_k)/(n·Var Ŝ) for a run of adjacent Hann-periodogram bins of white noise: the bin
 #: correlations are |Σw²e^{-2πik n/N}|²/(Σw²)² = (1/4 ÷ 3/8)² = 4/9 at lag 1 and
 #: (1/16 ÷ 3/8)² = 1/36 at lag 2, 0 beyond.
@@ -100,6 +111,7 @@ def _bands_one_axis(f: np.ndarray, s: np.ndarray, *, nu: float, search: np.ndarr
     peaks, prom = peaks[keep], prom[keep]
     lb, rb = props["left_bases"][keep], props["right_bases"][keep]
     _, _, lo_ips, hi_ips = signal.peak_widths(sm, peaks, rel_height=0.5, prominence_data=(prom, lb, rb))
+    _, _, lo_ext, hi_ext = signal.peak_widths(sm, peaks, rel_height=1.0 - EXTENT_HEIGHT, prominence_data=(prom, lb, rb))
     total = float(np.nansum(s[rms_mask]) * df)
     med = float(np.nanmedian(s[rms_mask])) if rms_mask.any() else float("nan")
     z_thr = float(stats.norm.isf(ALPHA / idx.size))
@@ -107,8 +119,8 @@ def _bands_one_axis(f: np.ndarray, s: np.ndarray, *, nu: float, search: np.ndarr
     order = np.argsort(-prom)
     taken: list[tuple[float, float]] = []
     for j in order:
-        lo, hi = float(lo_ips[j]), float(hi_ips[j])
-        # two candidates' half-height spans overlapping (a shoulder): cut at S̃'s minimum between the peaks
+        lo, hi = float(lo_ext[j]), float(hi_ext[j])
+        # two candidates' extents overlapping (a shoulder): cut at S̃'s minimum between the peaks
         for a, b in taken:
             if lo < b and hi > a:
                 if peaks[j] > b:
@@ -134,16 +146,17 @@ def _bands_one_axis(f: np.ndarray, s: np.ndarray, *, nu: float, search: np.ndarr
         taken.append((lo, hi))
         in_rms = rms_mask[idx[k]] & fin
         pw_rms = float(np.sum(sk[in_rms]) * df)
-        f_lo = float(f[idx[0]] + lo * df)
-        f_hi = float(f[idx[0]] + hi * df)
+        f0 = float(f[idx[0]])
+        e_lo, e_hi = max(float(lo_ips[j]), lo), min(float(hi_ips[j]), hi)
         out.append({
             "axis": axis, "peak_hz": float(f[idx[peaks[j]]]),
             "centre_hz": float(np.sum(fk[fin] * sk[fin]) / np.sum(sk[fin])),
-            "edges_hz": [f_lo, f_hi], "width_hz": f_hi - f_lo,
+            "edges_hz": [f0 + e_lo * df, f0 + e_hi * df], "width_hz": (e_hi - e_lo) * df,
+            "extent_hz": [f0 + lo * df, f0 + hi * df],
             "power_rad2_s2": pw, "rms_rad_s": math.sqrt(pw),
             "share_of_power_above_40hz": pw_rms / total if total > 0 else float("nan"),
             "power_above_reliable_fraction": float(1.0 - pw_rms / pw) if pw > 0 else 0.0,
-            "level_reliable": bool(f_hi < reliable_hz),
+            "level_reliable": bool(f0 + hi * df < reliable_hz),
             "peak_over_floor": float(sm[peaks[j]] / b0) if b0 > 0 else float("inf"),
             "peak_over_median_psd": float(sm[peaks[j]] / med) if med > 0 else float("nan"),
             "excess_z": excess / se if se > 0 else float("inf"),
@@ -178,9 +191,10 @@ def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, k_windows: int, fmin_hz: fl
     Returns
     -------
     list of dict
-        ``axis``, ``peak_hz``, ``centre_hz``, ``edges_hz`` [lo, hi], ``width_hz``,
-        ``power_rad2_s2`` (over the edges), ``rms_rad_s``, ``share_of_power_above_40hz`` (the
-        band's part of the rms span over that span's power), ``power_above_reliable_fraction``,
+        ``axis``, ``peak_hz``, ``centre_hz`` (over the extent), ``edges_hz`` [lo, hi] (half
+        height), ``width_hz``, ``extent_hz`` (10 % height), ``power_rad2_s2`` (over the extent),
+        ``rms_rad_s``, ``share_of_power_above_40hz`` (the extent's part of the rms span over that
+        span's power), ``power_above_reliable_fraction``,
         ``level_reliable``, ``peak_over_floor``, ``peak_over_median_psd`` (S̃ at the peak over the
         median PSD of the rms span), ``excess_z``; ordered by share, then power (largest first).
     """
@@ -201,7 +215,7 @@ def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz
                   rms_lo_hz: float, reliable_below_hz: float) -> dict:
     """Standard errors of a band's share and centre from the spread of the per-window values.
 
-    ``psd_windows`` (K, M, 3): the windows' PSDs. Share s = Σ_k N_k / Σ_k D_k (N: band power in
+    ``psd_windows`` (K, M, 3): the windows' PSDs; ``edges_hz``: the span integrated (the extent). Share s = Σ_k N_k / Σ_k D_k (N: band power in
     the rms span, D: power of the span) and centre c = Σ_k Σ f S / Σ_k Σ S are ratio estimators:
     delta-method SE √(Var(N − sD)/K_eff)/D̄ with K_eff = ν/2 (the overlapping windows are not
     independent: ν/2 = K/(1 + 2ρ²) equivalent windows).
@@ -235,19 +249,20 @@ def link_bands(flight: list[dict], per_band: list[list[dict]], band_rows: list[d
     """
     res = ENBW_HANN * df_hz
     for e in flight:
-        lo, hi = e["edges_hz"]
+        lo, hi = e["extent_hz"]
         rows = []
         for bi, bands in enumerate(per_band):
             best, ov_best = None, 0.0
             for b in bands:
                 if b["axis"] != e["axis"]:
                     continue
-                ov = min(hi, b["edges_hz"][1]) - max(lo, b["edges_hz"][0])
+                ov = min(hi, b["extent_hz"][1]) - max(lo, b["extent_hz"][0])
                 if ov > ov_best:
                     best, ov_best = b, ov
             if best is not None:
                 rows.append({"band": bi, "throttle_median": float(band_rows[bi]["median"]), "centre_hz": best["centre_hz"],
                              "peak_hz": best["peak_hz"], "edges_hz": best["edges_hz"], "width_hz": best["width_hz"],
+                             "extent_hz": best["extent_hz"],
                              "power_rad2_s2": best["power_rad2_s2"],
                              "share_of_power_above_40hz": best["share_of_power_above_40hz"]})
         e["per_band"] = rows
@@ -290,12 +305,13 @@ def dominant_vibration(bands: list[dict], lines: list[dict]) -> dict:
     for a in AXES:
         bs = [b for b in bands if b["axis"] == a]
         ls = [ln for ln in lines if ln["axis"] == a
-              and not any(b["edges_hz"][0] <= ln["frequency_hz"] <= b["edges_hz"][1] for b in bs)]
+              and not any(b["extent_hz"][0] <= ln["frequency_hz"] <= b["extent_hz"][1] for b in bs)]
         cand = []
         if bs:
             b = bs[0]
             cand.append(((b["power_rad2_s2"] * (1.0 - b["power_above_reliable_fraction"]), b["power_rad2_s2"]),
                          {"kind": "band", "frequency_hz": b["centre_hz"], "edges_hz": b["edges_hz"],
+                          "extent_hz": b["extent_hz"],
                           "level_reliable": b["level_reliable"], "power_rad2_s2": b["power_rad2_s2"],
                           "share_of_power_above_40hz": b["share_of_power_above_40hz"]}))
         for ln in ls:
@@ -325,12 +341,12 @@ def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band
         row["energy_bands"] = bl
         per.append(bl)
     for e in flight:
-        iv = band_interval(f, psd_windows, AXES.index(e["axis"]), e["edges_hz"], rms_lo_hz=40.0,
+        iv = band_interval(f, psd_windows, AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
                            reliable_below_hz=reliable_below_hz)
         e["share_se"] = iv["share_se"]
         e["centre_se_hz"] = iv["centre_se_hz"]
         e["lines_inside"] = [{"frequency_hz": ln["frequency_hz"], "follows": ln["follows"], "amplitude_rad_s": ln["amplitude_rad_s"]}
-                             for ln in lines if ln["axis"] == e["axis"] and e["edges_hz"][0] <= ln["frequency_hz"] <= e["edges_hz"][1]]
+                             for ln in lines if ln["axis"] == e["axis"] and e["extent_hz"][0] <= ln["frequency_hz"] <= e["extent_hz"][1]]
     if len(band_rows) > 1:
         link_bands(flight, per, band_rows, rate_hz=rate_hz, df_hz=df, has_bv=has_bv)
     else:

@@ -33,7 +33,8 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["RotorLine", "rotor_line", "line_amplitude_in_gyro", "vibration_from_spec", "spec_injection", "line_exclusion_hz"]
+__all__ = ["RotorLine", "carried_bands", "line_amplitude_in_gyro", "line_exclusion_hz", "rotor_line", "spec_injection",
+           "vibration_from_spec"]
 
 #: relative frequency tolerance to call two bands' peaks the same line (as gyrocore.flight.vibration's linker, 6 %)
 _F_TOL = 0.06
@@ -297,6 +298,30 @@ def line_exclusion_hz(spec: dict, line_hz: float) -> tuple[tuple[float, float], 
     return ((float(line_hz) - half, float(line_hz) + half),)
 
 
+def carried_bands(spec_band: dict, shaped: dict) -> list[dict]:
+    """How much of each energy band of a spec band (format 1.1, ``energy_bands``) the shaped part
+    carries: its power over the band's extent on the band's axis, (rad/s)², against the spec's.
+
+    The shaped part is the spec band's PSD (the generator reproduces the grid sum exactly), so a
+    band below the spec's reliable limit is carried whole (ratio 1 up to the ± half-bin at the
+    edges); the part of a band above that limit is not generated (the shaped part stops there),
+    and a rotor line the physics carries is taken out of it only up to its own power.
+    """
+    f = np.asarray(shaped["f_hz"], float)
+    if f.size < 2:
+        return []
+    df = float(f[1] - f[0])
+    out = []
+    for e in spec_band.get("energy_bands") or []:
+        j = "xyz".index(e["axis"])
+        inb = (f >= e["extent_hz"][0]) & (f <= e["extent_hz"][1])
+        carried = float(np.sum(np.asarray(shaped["psd_rad2_s2_hz"])[j, inb]) * df)
+        out.append({"axis": e["axis"], "centre_hz": e["centre_hz"], "extent_hz": e["extent_hz"],
+                    "spec_power_rad2_s2": e["power_rad2_s2"], "shaped_power_rad2_s2": carried,
+                    "carried_fraction": carried / e["power_rad2_s2"] if e["power_rad2_s2"] else None})
+    return out
+
+
 def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = False, seed: int = 0,
                    n_calib: int = 32, calib_s: float = 2.0) -> tuple[object, dict, dict]:
     """How a vibration spec enters a simulation: the one path of ``simulate --vibration SPEC
@@ -323,6 +348,7 @@ def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = F
         sub = ((pinfo["real_line_hz"], {a: v * v / 2.0 for a, v in pinfo["real_line_amplitude_rad_s"].items()}),)
         info["physics"] = pinfo
     shaped = shaped_params(spec, band=band, subtract_lines=sub)
+    info["energy_bands"] = carried_bands(b, shaped)
     info["shaped"] = ("registry effect vibration, shaped part: Gaussian disturbance with the spec band's PSD above 40 Hz"
                       + (f", without the rotor line's power at {sub[0][0]:.1f} Hz (carried by the physics)" if sub else "")
                       + "; added in the gyro's noise stage (sim.noise.ShapedNoise), so a closed loop flies on it")

@@ -41,7 +41,7 @@ import numpy as np
 from gyrocore.errors import GyroInputError
 from .filters import chain_response
 
-__all__ = ["Candidate", "preview", "candidates", "recommend", "betaflight_cli", "CUTOFF_GRID_HZ"]
+__all__ = ["Candidate", "preview", "candidates", "notch_targets", "band_coverage", "recommend", "betaflight_cli", "CUTOFF_GRID_HZ"]
 
 CUTOFF_GRID_HZ = (40.0, 50.0, 60.0, 70.0, 80.0, 90.0, 100.0, 120.0, 140.0, 160.0, 180.0, 200.0, 250.0, 300.0)
 LP_KINDS = ("pt1", "pt2", "pt3", "biquad")
@@ -74,14 +74,53 @@ def notch_stage(f0: float, width_hz: float, rate: float) -> dict:
     return _stage("notch", f0, rate, notch_cutoff_hz=float(round(cut)), q=betaflight_notch_q(f0, round(cut)))
 
 
+#: Smallest share of the rms power above 40 Hz for an energy band to get a static notch candidate.
+BAND_NOTCH_MIN_SHARE = 0.1
+
+
+def notch_targets(lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyquist_hz: float | None = None) -> list[tuple]:
+    """Static-notch targets ``(f0_hz, width_hz, what)``, at most two (Betaflight has two static notches).
+
+    Energy bands first (:mod:`gyrocore.energy_bands`, whole flight, by share; those carrying at
+    least :data:`BAND_NOTCH_MIN_SHARE` of the rms power above 40 Hz): the notch is centred on the
+    band's centre with its −3 dB width the band's width (``notch_stage``: lower edge at
+    centre − width/2), so it sits where the energy is; then the identified lines outside those
+    bands (width = the line's frequency span over the throttle bands, at least 40 Hz), by
+    amplitude; targets closer than 20 Hz to one already taken are skipped.
+    """
+    uniq: list[tuple] = []
+    for b in bands:
+        share = b.get("share_of_power_above_40hz")
+        if share is None or not share >= BAND_NOTCH_MIN_SHARE:
+            continue
+        f0 = float(b["centre_hz"])
+        if nyquist_hz and f0 >= nyquist_hz:
+            continue
+        if all(abs(f0 - u[0]) > 20 for u in uniq):
+            uniq.append((f0, float(b["width_hz"]), f"band {b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz"))
+    inside = [(b["extent_hz"][0], b["extent_hz"][1]) for b in bands
+              if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE]
+    for ln in sorted(lines, key=lambda x: -x["amplitude_rad_s"]):
+        f0 = ln.get("unfolded_frequency_hz") if ln.get("aliased") else ln["frequency_hz"]
+        if nyquist_hz and f0 >= nyquist_hz:
+            continue
+        if any(lo <= f0 <= hi for lo, hi in inside):
+            continue
+        span = [p["frequency_hz"] for p in ln.get("per_band", [])]
+        width = max(40.0, (max(span) - min(span)) if span else 0.0)
+        if all(abs(f0 - u[0]) > 20 for u in uniq):
+            uniq.append((float(f0), float(width), f"line {ln['axis']} {f0:.0f} Hz"))
+    return uniq[:2]
+
+
 def candidates(rate_hz: float, *, lines: Sequence[dict] = (), as_flown: Sequence[dict] | None = None,
-               nyquist_hz: float | None = None) -> list[Candidate]:
+               nyquist_hz: float | None = None, bands: Sequence[dict] = ()) -> list[Candidate]:
     """Candidate chains at the firmware filter rate ``rate_hz``.
 
     Betaflight low-pass kinds × :data:`CUTOFF_GRID_HZ`; each with static notches at the
-    identified lines that the low-pass leaves above −20 dB (one notch per line, width = the
-    line's frequency span over the throttle bands, at least 40 Hz; at most two, Betaflight has
-    two static notches); the as-flown chain (static part); firmware defaults: Betaflight 4.x
+    :func:`notch_targets` (the energy bands ``bands`` first, then the identified lines) that the
+    low-pass leaves above −20 dB (at most two, Betaflight has two static notches); the as-flown
+    chain (static part); firmware defaults: Betaflight 4.x
     static part (LPF1 PT1 at its dynamic minimum 250 Hz + LPF2 PT1 500 Hz; its dynamic notch
     and RPM filter are dynamic and left out, said in the output), PX4 ``IMU_GYRO_CUTOFF`` 40 Hz
     (2nd-order Butterworth), ArduPilot ``INS_GYRO_FILTER`` 20 Hz (2nd-order Butterworth
@@ -93,17 +132,8 @@ def candidates(rate_hz: float, *, lines: Sequence[dict] = (), as_flown: Sequence
             if fc * 2.0 >= rate_hz / 2:
                 continue
             out.append(Candidate(f"{k} {fc:g} Hz", (_stage(k, fc, rate_hz),), lowpass=k, cutoff_hz=fc))
-    # static notches at the identified lines
-    uniq = []
-    for ln in sorted(lines, key=lambda x: -x["amplitude_rad_s"]):
-        f0 = ln.get("unfolded_frequency_hz") if ln.get("aliased") else ln["frequency_hz"]
-        if nyquist_hz and f0 >= nyquist_hz:
-            continue
-        span = [p["frequency_hz"] for p in ln.get("per_band", [])]
-        width = max(40.0, (max(span) - min(span)) if span else 0.0)
-        if all(abs(f0 - u[0]) > 20 for u in uniq):
-            uniq.append((float(f0), float(width)))
-    uniq = uniq[:2]
+    # static notches at the energy bands and the identified lines
+    uniq = [(f0, w) for f0, w, _ in notch_targets(lines, bands, nyquist_hz=nyquist_hz)]
     if uniq:
         base = [c for c in out if c.lowpass != "none"]
         for c in base:
@@ -143,7 +173,8 @@ def candidates(rate_hz: float, *, lines: Sequence[dict] = (), as_flown: Sequence
 
 
 def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_below_hz: float, omega_rms_rad_s: float,
-            loop_scale: float = 1.0, flight_band_hz=FLIGHT_BAND_HZ, lines: Sequence[dict] = ()) -> dict:
+            loop_scale: float = 1.0, flight_band_hz=FLIGHT_BAND_HZ, lines: Sequence[dict] = (),
+            bands: Sequence[dict] = ()) -> dict:
     """Spectrum after ``cand`` and its scores (see the module docstring).
 
     Parameters
@@ -153,6 +184,9 @@ def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_
         Gyro PSD before every firmware filter, (rad/s)²/Hz (one-sided).
     omega_rms_rad_s : float
         RMS angular rate of the flight below 30 Hz (all axes), rad/s.
+    bands : list of dict
+        Energy bands (:mod:`gyrocore.energy_bands`): ``bands_left`` gives, per band, the
+        fraction of its power (over its extent, on its axis) the chain lets through.
     """
     r = chain_response(cand.stages, f_hz, loop_scale=loop_scale)
     H2 = r.magnitude ** 2
@@ -182,6 +216,13 @@ def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_
         g = float(np.interp(f0, f_hz, r.magnitude))
         line_left.append({"axis": ln["axis"], "frequency_hz": f0, "fraction_left": g,
                           "amplitude_after_rad_s": ln["amplitude_rad_s"] * g})
+    bands_left = []
+    for b in bands:
+        j = "xyz".index(b["axis"])
+        inb = (f_hz >= b["extent_hz"][0]) & (f_hz <= b["extent_hz"][1])
+        p0 = float(np.nansum(psd_raw[inb, j]))
+        bands_left.append({"axis": b["axis"], "centre_hz": b["centre_hz"], "extent_hz": b["extent_hz"],
+                           "power_fraction_left": float(np.nansum(after[inb, j]) / p0) if p0 > 0 else float("nan")})
     return {
         "name": cand.name, "family": cand.family, "filter": cand.lowpass, "cutoff_hz": cand.cutoff_hz,
         "notches_hz": list(cand.notches_hz), "stages": list(cand.stages),
@@ -190,7 +231,7 @@ def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_
         "motor_noise": float(np.sqrt(np.sum(motor**2))),
         "attitude_cost": float(np.degrees(math.hypot(theta_d, theta_v))),
         "attitude_cost_delay_deg": float(np.degrees(theta_d)), "attitude_cost_vibration_deg": float(np.degrees(theta_v)),
-        "lines_left": line_left,
+        "lines_left": line_left, "bands_left": bands_left,
         "psd_after": after,
     }
 
@@ -295,3 +336,60 @@ def preview_tracking(f_hz: np.ndarray, band_psd: np.ndarray, band_weights: np.nd
             "gyro_noise_rad_s": gn, "motor_noise": motor, "attitude_cost": float(np.degrees(math.hypot(th_d, th_v))),
             "attitude_cost_delay_deg": float(np.degrees(th_d)), "attitude_cost_vibration_deg": float(np.degrees(th_v)),
             "lines_left": [], "psd_after": after}
+
+
+def band_coverage(band: dict, *, version: tuple | None = None, is_betaflight: bool = True,
+                  hover_throttle: float | None = None) -> dict:
+    """Firmware settings whose notch covers an energy band wherever it wanders.
+
+    ``band``: a whole-flight energy band (:mod:`gyrocore.energy_bands`) with its ``per_band``
+    entries and law. Its range is the lowest lower edge to the highest upper edge over the
+    throttle bands (the whole flight's edges when it has no per-band entries).
+
+    * Betaflight dynamic notch (4.2+, ``dyn_notch_min_hz`` / ``dyn_notch_max_hz``; ranges read in
+      each tag's ``cli/settings.c``: min 60–250 Hz in 4.2–4.3, 20–250 from 4.4; max 200–1000):
+      the tracking range set to the band's range, clamped to the setting's limits (said when
+      clamped). Older versions get a comment.
+    * ArduPilot harmonic notch (``INS_HNTCH_*``, ardupilot.org "Throttle Based Dynamic Notch
+      Setup"): a band that follows the throttle → MODE 1, REF = the hover throttle, FREQ = the
+      law's centre there, BW = max(band width, FREQ/2); one that follows eRPM → MODE 3 (ESC
+      telemetry), FREQ below the band (its range's lower edge), REF 1; a fixed band → MODE 0,
+      FREQ = centre, BW = width.
+    * PX4 static notch (``IMU_GYRO_NF0_FRQ`` / ``IMU_GYRO_NF0_BW``, PX4 1.13+; earlier
+      ``IMU_GYRO_NF_FREQ`` / ``IMU_GYRO_NF_BW``): centre and width (a static notch: it covers
+      the whole-flight band, not its wander).
+    """
+    edges = [band["edges_hz"]] + [p["edges_hz"] for p in band.get("per_band", [])]
+    lo = float(min(e[0] for e in edges))
+    hi = float(max(e[1] for e in edges))
+    c, w = float(band["centre_hz"]), float(band["width_hz"])
+    out = {"band": {"axis": band["axis"], "centre_hz": c, "edges_hz": band["edges_hz"], "width_hz": w,
+                    "share_of_power_above_40hz": band.get("share_of_power_above_40hz"), "follows": band.get("follows")},
+           "range_hz": [lo, hi]}
+    if is_betaflight:
+        v = tuple(version) if version else (4, 5, 0)
+        if v >= (4, 2, 0):
+            mn_lim = (20, 250) if v >= (4, 4, 0) else (60, 250)
+            mn = int(min(max(math.floor(lo), mn_lim[0]), mn_lim[1]))
+            mx = int(min(max(math.ceil(hi), 200), 1000))
+            bf = [f"set dyn_notch_min_hz = {mn}", f"set dyn_notch_max_hz = {mx}"]
+            if mn > lo or mx < hi:
+                bf.insert(0, f"# the band spans {lo:.0f}-{hi:.0f} Hz; dyn_notch_min_hz takes {mn_lim[0]}-{mn_lim[1]}, "
+                             f"dyn_notch_max_hz 200-1000: clamped, the notch cannot follow all of it")
+        else:
+            bf = [f"# Betaflight {'.'.join(map(str, v))} has no dyn_notch_min_hz/dyn_notch_max_hz (4.2+): "
+                  f"the static notch above is the way to cover the band {lo:.0f}-{hi:.0f} Hz"]
+        out["betaflight_dynamic_notch"] = bf
+    fol = band.get("follows")
+    law = band.get("law") or {}
+    if fol == "throttle" and not band.get("aliased") and hover_throttle is not None and "hz_per_unit" in law:
+        f_h = float(law["hz_at_zero"] + law["hz_per_unit"] * hover_throttle)
+        out["ardupilot"] = {"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 1, "INS_HNTCH_REF": round(float(hover_throttle), 3),
+                            "INS_HNTCH_FREQ": round(f_h), "INS_HNTCH_BW": round(max(w, f_h / 2.0))}
+    elif fol == "erpm":
+        out["ardupilot"] = {"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 3, "INS_HNTCH_REF": 1,
+                            "INS_HNTCH_FREQ": round(lo), "INS_HNTCH_BW": round(max(w, lo / 2.0))}
+    else:
+        out["ardupilot"] = {"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 0, "INS_HNTCH_FREQ": round(c), "INS_HNTCH_BW": round(w)}
+    out["px4"] = {"IMU_GYRO_NF0_FRQ": round(c, 1), "IMU_GYRO_NF0_BW": round(w, 1)}
+    return out

@@ -29,7 +29,8 @@ def _public(row: dict) -> dict:
     d["stages"] = row["stages"]
     d.update({"name": row["name"], "phase_deg_at_hz": row["phase_deg_at_hz"], "gyro_noise_rad_s": row["gyro_noise_rad_s"],
               "attitude_cost_delay_deg": row["attitude_cost_delay_deg"],
-              "attitude_cost_vibration_deg": row["attitude_cost_vibration_deg"], "lines_left": row["lines_left"]})
+              "attitude_cost_vibration_deg": row["attitude_cost_vibration_deg"], "lines_left": row["lines_left"],
+              "bands_left": row.get("bands_left", [])})
     return d
 
 
@@ -67,9 +68,17 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
         dyn = [s for s in as_flown if s.get("dynamic")]
         if dyn:
             notes.append("as flown: dynamic filters (" + ", ".join(s["kind"] for s in dyn) + ") not modelled, static part only")
-    cands = P.candidates(rate, lines=res.lines, as_flown=as_flown, nyquist_hz=res.rate_hz / 2)
+    # the energy bands that carry a notch-worthy share of the rms power (gyrocore.energy_bands): the
+    # static-notch candidates sit on them first, each chain says how much of their power it lets through
+    bands = [b for b in res.energy_bands if (b.get("share_of_power_above_40hz") or 0.0) >= P.BAND_NOTCH_MIN_SHARE]
+    cands = P.candidates(rate, lines=res.lines, as_flown=as_flown, nyquist_hz=res.rate_hz / 2, bands=bands)
+    targets = P.notch_targets(res.lines, bands, nyquist_hz=res.rate_hz / 2)
+    if bands:
+        notes.append("static notch candidates at the energy band(s) " + ", ".join(
+            f"{b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz ({100 * b['share_of_power_above_40hz']:.0f} % of the "
+            f"rms power above 40 Hz)" for b in bands) + "; notch targets: " + ", ".join(t[2] for t in targets))
     rows = [P.preview(res.f_hz, res.mean_psd, c, reliable_below_hz=res.reliable_below_hz, omega_rms_rad_s=omega_rms,
-                      loop_scale=loop_scale, lines=res.lines) for c in cands]
+                      loop_scale=loop_scale, lines=res.lines, bands=bands) for c in cands]
     # RPM-tracking notch (needs eRPM telemetry in flight): one notch per moving line, at its
     # frequency in each throttle band, on top of each low-pass of the grid
     moving = [ln for ln in res.lines if ln["follows"] in ("throttle", "erpm") and not ln.get("aliased")]
@@ -110,7 +119,7 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
         st = P._stage("butter2", fc, float(flown_b2[fc].get("rate_hz") or rate)) if fc in flown_b2 else P._stage("butter2", fc, rate)
         c = P.Candidate(f"butter2 {fc:g} Hz", (st,), family="butter2", lowpass="butter2", cutoff_hz=fc)
         b2.append(P.preview(res.f_hz, res.mean_psd, c, reliable_below_hz=res.reliable_below_hz, omega_rms_rad_s=omega_rms,
-                            loop_scale=loop_scale, lines=res.lines))
+                            loop_scale=loop_scale, lines=res.lines, bands=bands))
     ok = [r for r in b2 if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(b2, key=lambda r: r["motor_noise"])]
     b2best = min(ok, key=lambda r: r["attitude_cost"])
     ardu = {"INS_GYRO_FILTER": round(b2best["cutoff_hz"])}
@@ -119,6 +128,11 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
         span = [p["frequency_hz"] for p in top.get("per_band", [])] or [top["frequency_hz"]]
         ardu.update({"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 1, "INS_HNTCH_FREQ": round(min(span)),
                      "INS_HNTCH_BW": round(max(40.0, min(span) / 2))})
+    coverage = None
+    if bands:
+        u_hover = float(np.median([b["median"] for b in res.bands])) if res.bands else None
+        coverage = P.band_coverage(bands[0], version=version, is_betaflight=is_bf, hover_throttle=u_hover)
+        ardu = dict(ardu, **coverage["ardupilot"])  # the harmonic notch on the dominant band, not on a weaker line
     bf_lines = P.betaflight_cli(best, version) if is_bf else [
         f"# {firmware} log: Betaflight CLI names do not apply (this firmware's parameter names were not read)"]
     flown_dyn_lpf = [st for st in (as_flown or []) if st.get("kind") == "dyn_lpf"]
@@ -144,7 +158,7 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
         "with_rpm_filter": _public(rpm_best) if rpm_best else None,
         "firmware": {
             "betaflight": bf_lines,
-            "px4": {"IMU_GYRO_CUTOFF": round(b2best["cutoff_hz"])},
+            "px4": {"IMU_GYRO_CUTOFF": round(b2best["cutoff_hz"]), **(coverage["px4"] if coverage else {})},
             "ardupilot": ardu,
         },
         "defaults": {k: _public(by[k]) for k in ("betaflight_default", "px4_default", "ardupilot_default") if k in by},
@@ -156,7 +170,9 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
                    "motor_noise": "rad/s^2: rms of d/dt(filtered gyro) above 40 Hz (D-term input)",
                    "delay_ms": f"mean group delay {P.FLIGHT_BAND_HZ[0]:g}-{P.FLIGHT_BAND_HZ[1]:g} Hz"},
         "flight_rate_rms_rad_s": omega_rms, "filter_rate_hz": rate, "reliable_below_hz": res.reliable_below_hz,
-        "vibration": {"signal": res.signal, "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s, "lines": res.lines},
+        "vibration": {"signal": res.signal, "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s, "lines": res.lines,
+                      "energy_bands": res.energy_bands, "dominant_vibration": res.dominant_vibration},
+        "band_coverage": coverage,
         "candidates": [{"name": r["name"], "attitude_cost": r["attitude_cost"], "motor_noise": r["motor_noise"],
                         "delay_ms": r["delay_ms"]} for r in rows],
         "notes": notes + ["open-loop spectral/delay cost model on the recorded gyro; closed loop (flown with this "
