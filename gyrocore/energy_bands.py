@@ -213,11 +213,12 @@ def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, k_windows: int, fmin_hz: fl
 
 def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz: Sequence[float], *,
                   rms_lo_hz: float, reliable_below_hz: float) -> dict:
-    """Standard errors of a band's share and centre from the spread of the per-window values.
+    """Standard errors of a band's power, share and centre from the spread of the per-window values.
 
     ``psd_windows`` (K, M, 3): the windows' PSDs; ``edges_hz``: the span integrated (the extent). Share s = Σ_k N_k / Σ_k D_k (N: band power in
     the rms span, D: power of the span) and centre c = Σ_k Σ f S / Σ_k Σ S are ratio estimators:
-    delta-method SE √(Var(N − sD)/K_eff)/D̄ with K_eff = ν/2 (the overlapping windows are not
+    delta-method SE √(Var(N − sD)/K_eff)/D̄; the power B̄ (mean of the windows' band powers) has
+    SE sd(B)/√K_eff; K_eff = ν/2 (the overlapping windows are not
     independent: ν/2 = K/(1 + 2ρ²) equivalent windows).
     """
     f = np.asarray(f_hz, float)
@@ -234,10 +235,12 @@ def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz
     s = N.sum() / D.sum() if D.sum() > 0 else float("nan")
     c = C.sum() / B.sum() if B.sum() > 0 else float("nan")
     if K < 2:
-        return {"share": s, "share_se": float("nan"), "centre_hz": c, "centre_se_hz": float("nan")}
+        return {"power": float(B.mean()), "power_se": float("nan"), "share": s, "share_se": float("nan"), "centre_hz": c,
+                "centre_se_hz": float("nan")}
     se_s = float(np.std(N - s * D, ddof=1) / math.sqrt(k_eff) / D.mean()) if D.mean() > 0 else float("nan")
     se_c = float(np.std(C - c * B, ddof=1) / math.sqrt(k_eff) / B.mean()) if B.mean() > 0 else float("nan")
-    return {"share": float(s), "share_se": se_s, "centre_hz": float(c), "centre_se_hz": se_c}
+    return {"power": float(B.mean()), "power_se": float(np.std(B, ddof=1) / math.sqrt(k_eff)), "share": float(s),
+            "share_se": se_s, "centre_hz": float(c), "centre_se_hz": se_c}
 
 
 def link_bands(flight: list[dict], per_band: list[list[dict]], band_rows: list[dict], *, rate_hz: float, df_hz: float,
@@ -326,11 +329,12 @@ def dominant_vibration(bands: list[dict], lines: list[dict]) -> dict:
 
 def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band_psd: Sequence[np.ndarray],
            band_rows: list[dict], lines: list[dict], *, fmin_hz: float, reliable_below_hz: float, rate_hz: float,
-           has_bv: bool) -> tuple[list[dict], dict]:
+           has_bv: bool, band_windows: Sequence[np.ndarray] | None = None) -> tuple[list[dict], dict]:
     """The energy bands of an analysis: whole flight (``mean_psd`` over the K windows of
-    ``psd_windows`` (K, M, 3)) with share/centre standard errors and their throttle law, and per
-    throttle band (``band_psd[b]``, written into ``band_rows[b]["energy_bands"]``). Returns the
-    whole-flight list and :func:`dominant_vibration`."""
+    ``psd_windows`` (K, M, 3)) with power/share/centre standard errors and their throttle law, and
+    per throttle band (``band_psd[b]``, written into ``band_rows[b]["energy_bands"]``; with
+    ``band_windows[b]``, the boolean (K,) selection of that band's windows, their standard errors
+    too). Returns the whole-flight list and :func:`dominant_vibration`."""
     f = np.asarray(f_hz, float)
     df = float(f[1] - f[0])
     K = int(psd_windows.shape[0])
@@ -340,11 +344,16 @@ def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band
         bl = find_bands(f, pb, k_windows=int(row["n_windows"]), fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz)
         row["energy_bands"] = bl
         per.append(bl)
+    if band_windows is not None:
+        for bl, sel in zip(per, band_windows):
+            for e in bl:
+                iv = band_interval(f, psd_windows[sel], AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
+                                   reliable_below_hz=reliable_below_hz)
+                e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
     for e in flight:
         iv = band_interval(f, psd_windows, AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
                            reliable_below_hz=reliable_below_hz)
-        e["share_se"] = iv["share_se"]
-        e["centre_se_hz"] = iv["centre_se_hz"]
+        e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
         e["lines_inside"] = [{"frequency_hz": ln["frequency_hz"], "follows": ln["follows"], "amplitude_rad_s": ln["amplitude_rad_s"]}
                              for ln in lines if ln["axis"] == e["axis"] and e["extent_hz"][0] <= ln["frequency_hz"] <= e["extent_hz"][1]]
     if len(band_rows) > 1:

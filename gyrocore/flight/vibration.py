@@ -563,7 +563,7 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
             notes.append("no throttle variation: lines have no throttle law")
         else:
             notes.append("no motor or throttle column: one band, lines have no throttle law")
-    band_psd, band_apsd, band_rows = [], [], []
+    band_psd, band_apsd, band_rows, band_sel = [], [], [], []
     dropped: list = []
     for bi in range(len(edges) - 1 if len(edges) > 1 else 1):
         lo_e, hi_e = (edges[bi], edges[bi + 1]) if len(edges) > 1 else (edges[0], edges[0])
@@ -598,6 +598,7 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         row["_peaks"] = peaks
         band_rows.append(row)
         band_psd.append(pb)
+        band_sel.append(sel)
     if dropped:
         notes.append("not analysed (fewer than %d windows): " % MIN_BAND_WINDOWS
                      + ", ".join(f"band {a:.3g}-{b:.3g} ({n} windows)" for a, b, n in dropped)
@@ -611,7 +612,7 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
     from .energy_bands import attach
 
     energy, dominant = attach(f, psd, mean_psd, band_psd, band_rows, lines, fmin_hz=fmin_hz, reliable_below_hz=reliable,
-                              rate_hz=rate, has_bv=bv is not None and len(edges) > 2)
+                              rate_hz=rate, has_bv=bv is not None and len(edges) > 2, band_windows=band_sel)
     return VibrationResult(
         format_version=SPEC_FORMAT_VERSION, rate_hz=rate, signal=kind if undo or kind == "raw" else sig.kind,
         source=sig.source, filters_before=filters_before, reliable_below_hz=reliable,
