@@ -856,11 +856,15 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
                 ax.axvline(ln["frequency_hz"], color="r" if ln["follows"] != "fixed" else "k", ls=":", lw=0.8)
         if res.reliable_below_hz < f[-1]:
             ax.axvspan(res.reliable_below_hz, f[-1], color="0.85", zorder=0, label="undo unreliable (folding)")
+        for eb in res.energy_bands:  # the energy bands (gyrocore.energy_bands): extent shaded, share labelled
+            if eb["axis"] == a and (eb.get("share_of_power_above_40hz") or 0.0) >= 0.05:
+                ax.axvspan(*eb["extent_hz"], color="tab:orange", alpha=0.3, zorder=0.5,
+                           label=f"band {eb['centre_hz']:.0f} Hz: {100 * eb['share_of_power_above_40hz']:.0f} % of rms power")
         ax.set_ylim(vmin / 10, vmax * 3)
         ax.set_title(f"gyro {a} ({res.signal})")
         ax.set_xlabel("frequency, Hz")
         ax.set_ylabel("PSD, (deg/s)^2/Hz")
-        if j == 0:
+        if j == 0 or any(eb["axis"] == a for eb in res.energy_bands):
             ax.legend(title=(res.band_variable or "band").split(" ")[0], fontsize=7)
         ax2 = axs[1, j]
         if B > 1:

@@ -89,5 +89,12 @@ def command(path, spec_out, plot, use, no_undo, window_s, n_bands, t_from_s, t_t
     for ln in res.lines:
         click.echo(f"  line {ln['axis']} {ln['frequency_hz']:7.1f} Hz  {ln['amplitude_rad_s'] * d:6.2f} deg/s  follows {ln['follows']}"
                    + (" (aliased)" if ln.get("aliased") else ""))
+    for e in res.energy_bands[:5]:
+        click.echo(f"  band {e['axis']} {e['edges_hz'][0]:5.0f}-{e['edges_hz'][1]:.0f} Hz (centre {e['centre_hz']:.1f}, extent "
+                   f"{e['extent_hz'][0]:.0f}-{e['extent_hz'][1]:.0f})  {e['rms_rad_s'] * d:6.2f} deg/s  "
+                   f"{100 * (e['share_of_power_above_40hz'] or 0.0):4.1f} % of rms power above 40 Hz  follows {e.get('follows')}"
+                   + ("" if e["level_reliable"] else f" ({100 * e['power_above_reliable_fraction']:.0f} % above the reliable limit)"))
+    for a, dv in res.dominant_vibration.items():
+        click.echo(f"dominant {a}: {dv['kind']} at {dv['frequency_hz']:.1f} Hz")
     for n in res.notes:
         click.echo("note: " + n)
