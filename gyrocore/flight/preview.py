@@ -82,7 +82,7 @@ def notch_targets(lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyq
     """Static-notch targets ``(f0_hz, width_hz, what)``, at most two (Betaflight has two static notches).
 
     Energy bands first (:mod:`gyrocore.energy_bands`, whole flight, by share; those carrying at
-    least :data:`BAND_NOTCH_MIN_SHARE` of the rms power above 40 Hz): the notch is centred on the
+    least :data:`BAND_NOTCH_MIN_SHARE` of the rms power above 40 Hz and not folded): the notch is centred on the
     band's centre with its −3 dB width the band's width (``notch_stage``: lower edge at
     centre − width/2), so it sits where the energy is; then the identified lines outside those
     bands (width = the line's frequency span over the throttle bands, at least 40 Hz), by
@@ -91,15 +91,15 @@ def notch_targets(lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyq
     uniq: list[tuple] = []
     for b in bands:
         share = b.get("share_of_power_above_40hz")
-        if share is None or not share >= BAND_NOTCH_MIN_SHARE:
-            continue
+        if share is None or not share >= BAND_NOTCH_MIN_SHARE or b.get("aliased"):
+            continue  # a folded band's true frequency is above the logged Nyquist (as for lines)
         f0 = float(b["centre_hz"])
         if nyquist_hz and f0 >= nyquist_hz:
             continue
         if all(abs(f0 - u[0]) > 20 for u in uniq):
             uniq.append((f0, float(b["width_hz"]), f"band {b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz"))
     inside = [(b["extent_hz"][0], b["extent_hz"][1]) for b in bands
-              if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE]
+              if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE and not b.get("aliased")]
     for ln in sorted(lines, key=lambda x: -x["amplitude_rad_s"]):
         f0 = ln.get("unfolded_frequency_hz") if ln.get("aliased") else ln["frequency_hz"]
         if nyquist_hz and f0 >= nyquist_hz:

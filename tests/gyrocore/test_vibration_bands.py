@@ -131,6 +131,18 @@ def test_swept_band_is_reported_first_with_its_centre_and_width(swept):
         assert e["edges_hz"][0] < c_true < e["edges_hz"][1]
 
 
+def test_band_following_rotor_speed_is_erpm_with_its_harmonic():
+    """With a rotor-speed column (blackbox eRPM → rotor_hz_i) at half the line's frequency, the
+    swept band follows ``erpm``, harmonic 2: its centre over the rotor frequency is 2 up to the
+    difference between the window-weighted mean and the median of the window means (< 0.1)."""
+    rec = swept_flight(4)
+    u = rec.extra["motor_cmd_mean"]
+    extra = dict(rec.extra, **{f"rotor_hz_{i}": (F0 + K_U * u) / 2.0 for i in range(4)})
+    res = analyse(Recording(t_s=rec.t_s, gyro_rad_s=rec.gyro_rad_s, meta=rec.meta, extra=extra), band_edges=list(EDGES))
+    top = res.energy_bands[0]
+    assert top["axis"] == "y" and top["follows"] == "erpm" and top["harmonic"] == 2
+
+
 def test_a_fixed_line_alone_makes_no_band():
     """White noise and the fixed line only: the running median removes the line, no band is
     reported (the test's Bonferroni level is 0.1 % over the bins), and the dominant vibration of
@@ -225,7 +237,6 @@ def test_dominant_band_of_the_shared_log_agrees_with_welch(shared_data):
         rec = load_any(str(log), format="blackbox")
         res = analyse(rec)
     top = res.energy_bands[0]
-    ax = "xyz".index(top["axis"])
     fs = 1.0 / float(np.median(np.diff(rec.t_s)))
     nper = int(round(fs))
     nper += nper % 2
