@@ -11,7 +11,10 @@ Method, per axis, on an averaged PSD S(f) of K windows (ν ≈ 2K/(1 + 2ρ²) de
 1. Narrow features out: a running median of log S over :data:`MEDIAN_BINS` = 11 bins. A median
    of length L removes any feature narrower than (L + 1)/2 = 6 bins: a line (a Hann main lobe
    is 4 bins wide) goes, a band wider than 6 bins stays with its edges (a median keeps monotone
-   edges). NaN bins (notch holes of undone filters) are bridged log-linearly for this step only.
+   edges); then a running mean of the same length, so the ripple of a periodically swept line
+   (a comb with dips 10× deep every few Hz) averages to the band's level (a symmetric kernel
+   keeps a band's half-height crossings in place). NaN bins (notch holes of undone filters) are
+   bridged log-linearly for this step only.
 2. Candidates: the local maxima of the smoothed spectrum S̃ (``scipy.signal.find_peaks``) with
    their prominence; a band must stand at least :data:`MIN_PEAK_TO_BASE` = 2× (3 dB) above the
    higher of its two bases (the minima that separate it from higher peaks or the spectrum's
@@ -44,9 +47,10 @@ Link to throttle: the whole-flight bands (the mean PSD over every airborne windo
 in each throttle band, to the band on the same axis that overlaps them most; the centres
 against the bands' median command give the law f = a + b·u (Theil–Sen, robust to a band matched
 to another feature, with its 95 % slope interval), ``follows`` = ``throttle`` when the centre
-moves by more than 3 resolutions over the bands and the slope interval excludes 0, ``erpm`` (with its harmonic) when a rotor-speed column
-exists and centre / rotor Hz is within 0.1 of an integer, else ``fixed``; a centre that falls
-with throttle is folded from above the logged Nyquist (``aliased``), as for lines.
+moves by more than 3 resolutions over the bands and the slope interval excludes 0, ``erpm``
+(with its harmonic) when a rotor-speed column exists and centre / rotor Hz is within 0.1 of an
+integer, else ``fixed``; a centre that falls with throttle is folded from above the logged
+Nyquist (``aliased``), as for lines.
 """
 
 from __future__ import annotations
@@ -60,10 +64,10 @@ from scipy.ndimage import median_filter, uniform_filter1d
 
 from .vibration import AXES, ENBW_HANN, _dof
 
-__all__ = ["EXTENT_HEIGHT", "HANN_SUM_VARIANCE_FACTOR", "MEDIAN_BINS", "MIN_PEAK_TO_BASE", "attach", "band_interval", "dominant_vibration",
-           "find_bands", "link_bands"]
+__all__ = ["EXTENT_HEIGHT", "HANN_SUM_VARIANCE_FACTOR", "MEDIAN_BINS", "MIN_PEAK_TO_BASE", "attach", "band_interval",
+           "dominant_vibration", "find_bands", "link_bands"]
 
-#: Running-median length, bins: removes features narrower than 6 bins (a line), keeps bands.
+#: Running-median (then running-mean) length, bins: removes features narrower than 6 bins (a line), keeps bands.
 MEDIAN_BINS = 11
 #: A band's smoothed peak over the higher of its bases (3 dB).
 MIN_PEAK_TO_BASE = 2.0
