@@ -219,7 +219,8 @@ def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz
                   rms_lo_hz: float, reliable_below_hz: float) -> dict:
     """Standard errors of a band's power, share and centre from the spread of the per-window values.
 
-    ``psd_windows`` (K, M, 3): the windows' PSDs; ``edges_hz``: the span integrated (the extent). Share s = Σ_k N_k / Σ_k D_k (N: band power in
+    ``psd_windows`` (K, M, 3): the windows' PSDs; ``edges_hz``: the span integrated (the
+    extent). Share s = Σ_k N_k / Σ_k D_k (N: band power in
     the rms span, D: power of the span) and centre c = Σ_k Σ f S / Σ_k Σ S are ratio estimators:
     delta-method SE √(Var(N − sD)/K_eff)/D̄; the power B̄ (mean of the windows' band powers) has
     SE sd(B)/√K_eff; K_eff = ν/2 (the overlapping windows are not
@@ -358,8 +359,9 @@ def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band
         iv = band_interval(f, psd_windows, AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
                            reliable_below_hz=reliable_below_hz)
         e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
+        lo, hi = e["extent_hz"]
         e["lines_inside"] = [{"frequency_hz": ln["frequency_hz"], "follows": ln["follows"], "amplitude_rad_s": ln["amplitude_rad_s"]}
-                             for ln in lines if ln["axis"] == e["axis"] and e["extent_hz"][0] <= ln["frequency_hz"] <= e["extent_hz"][1]]
+                             for ln in lines if ln["axis"] == e["axis"] and lo <= ln["frequency_hz"] <= hi]
     if len(band_rows) > 1:
         link_bands(flight, per, band_rows, rate_hz=rate_hz, df_hz=df, has_bv=has_bv)
     else:

@@ -41,7 +41,8 @@ import numpy as np
 from gyrocore.errors import GyroInputError
 from .filters import chain_response
 
-__all__ = ["Candidate", "preview", "candidates", "notch_targets", "band_coverage", "recommend", "betaflight_cli", "CUTOFF_GRID_HZ"]
+__all__ = ["Candidate", "preview", "candidates", "notch_targets", "band_coverage", "recommend", "betaflight_cli",
+           "CUTOFF_GRID_HZ"]
 
 CUTOFF_GRID_HZ = (40.0, 50.0, 60.0, 70.0, 80.0, 90.0, 100.0, 120.0, 140.0, 160.0, 180.0, 200.0, 250.0, 300.0)
 LP_KINDS = ("pt1", "pt2", "pt3", "biquad")
