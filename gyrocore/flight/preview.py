@@ -82,7 +82,7 @@ BAND_NOTCH_MIN_SHARE = 0.1
 def notch_targets(lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyquist_hz: float | None = None) -> list[tuple]:
     """Static-notch targets ``(f0_hz, width_hz, what)``, at most two (Betaflight has two static notches).
 
-    Energy bands first (:mod:`gyrocore.energy_bands`, whole flight, by share; those carrying at
+    Energy bands first (:mod:`gyrocore.flight.energy_bands`, whole flight, by share; those carrying at
     least :data:`BAND_NOTCH_MIN_SHARE` of the rms power above 40 Hz and not folded): the notch is centred on the
     band's centre with its −3 dB width the band's width (``notch_stage``: lower edge at
     centre − width/2), so it sits where the energy is; then the identified lines outside those
@@ -186,7 +186,7 @@ def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_
     omega_rms_rad_s : float
         RMS angular rate of the flight below 30 Hz (all axes), rad/s.
     bands : list of dict
-        Energy bands (:mod:`gyrocore.energy_bands`): ``bands_left`` gives, per band, the
+        Energy bands (:mod:`gyrocore.flight.energy_bands`): ``bands_left`` gives, per band, the
         fraction of its power (over its extent, on its axis) the chain lets through.
     """
     r = chain_response(cand.stages, f_hz, loop_scale=loop_scale)
@@ -343,7 +343,7 @@ def band_coverage(band: dict, *, version: tuple | None = None, is_betaflight: bo
                   hover_throttle: float | None = None) -> dict:
     """Firmware settings whose notch covers an energy band wherever it wanders.
 
-    ``band``: a whole-flight energy band (:mod:`gyrocore.energy_bands`) with its ``per_band``
+    ``band``: a whole-flight energy band (:mod:`gyrocore.flight.energy_bands`) with its ``per_band``
     entries and law. Its range is the lowest lower edge to the highest upper edge over the
     throttle bands (the whole flight's edges when it has no per-band entries).
 

@@ -46,12 +46,13 @@ from scipy import signal, stats
 
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording, atomic_write_text
+from gyrocore.flight.energy_bands import attach as attach_energy_bands
 
 __all__ = ["VibrationResult", "analyse", "write_spec", "read_spec", "SPEC_FORMAT_VERSION", "undo_response",
            "plot_vibration", "synthesize", "shaped_params", "add_vibration", "fidelity", "spec_band"]
 
 AXES = ("x", "y", "z")
-#: 1.1: ``energy_bands`` (whole flight, and per throttle band inside ``bands``; gyrocore.energy_bands)
+#: 1.1: ``energy_bands`` (whole flight, and per throttle band inside ``bands``; gyrocore.flight.energy_bands)
 SPEC_FORMAT_VERSION = "1.1"
 DEG = math.pi / 180.0
 #: Equivalent-dof correlation of 50 %-overlapped Hann windows (Percival & Walden 1993, Table 292).
@@ -368,7 +369,7 @@ class VibrationResult:
     mean_psd: np.ndarray = field(repr=False, default=None)  # (M, 3) over all airborne windows
     n_windows: int = 0
     nperseg: int = 0
-    energy_bands: list = field(default_factory=list)        # gyrocore.energy_bands, whole flight, by share
+    energy_bands: list = field(default_factory=list)        # gyrocore.flight.energy_bands, whole flight, by share
     dominant_vibration: dict = field(default_factory=dict)  # per axis: the strongest band or line
 
     def to_json(self) -> dict:
@@ -609,10 +610,10 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         pk = r.pop("_peaks")
         r["peaks_hz"] = {a: sorted(round(p.f_hz, 1) for p in pk if p.axis == i) for i, a in enumerate(AXES)}
     mean_psd = np.nanmean(psd, axis=0)
-    from .energy_bands import attach
-
-    energy, dominant = attach(f, psd, mean_psd, band_psd, band_rows, lines, fmin_hz=fmin_hz, reliable_below_hz=reliable,
-                              rate_hz=rate, has_bv=bv is not None and len(edges) > 2, band_windows=band_sel)
+    energy, dominant = attach_energy_bands(f, psd, mean_psd, band_psd, band_rows, lines, fmin_hz=fmin_hz,
+                                           reliable_below_hz=reliable, rate_hz=rate,
+                                           has_bv=bv is not None and len(edges) > 2, dof=_dof,
+                                           resolution_hz=ENBW_HANN * df, band_windows=band_sel)
     return VibrationResult(
         format_version=SPEC_FORMAT_VERSION, rate_hz=rate, signal=kind if undo or kind == "raw" else sig.kind,
         source=sig.source, filters_before=filters_before, reliable_below_hz=reliable,
@@ -856,7 +857,7 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
                 ax.axvline(ln["frequency_hz"], color="r" if ln["follows"] != "fixed" else "k", ls=":", lw=0.8)
         if res.reliable_below_hz < f[-1]:
             ax.axvspan(res.reliable_below_hz, f[-1], color="0.85", zorder=0, label="undo unreliable (folding)")
-        for eb in res.energy_bands:  # the energy bands (gyrocore.energy_bands): extent shaded, share labelled
+        for eb in res.energy_bands:  # the energy bands (gyrocore.flight.energy_bands): extent shaded, share labelled
             if eb["axis"] == a and (eb.get("share_of_power_above_40hz") or 0.0) >= 0.05:
                 ax.axvspan(*eb["extent_hz"], color="tab:orange", alpha=0.3, zorder=0.5,
                            label=f"band {eb['centre_hz']:.0f} Hz: {100 * eb['share_of_power_above_40hz']:.0f} % of rms power")

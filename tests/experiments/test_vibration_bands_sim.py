@@ -16,8 +16,8 @@ import sys
 
 import pytest
 
-from gyrocore.recording import read_csv
-from gyrocore.vibration import analyse, read_spec, write_spec
+from gyrocore.data.recording import read_csv
+from gyrocore.flight.vibration import analyse, read_spec, write_spec
 from tests.gyrocore.test_vibration_bands import EDGES, swept_flight
 
 BAND = 2

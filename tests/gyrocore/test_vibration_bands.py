@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
-from gyrocore.recording import Recording
-from gyrocore.vibration import ENBW_HANN, analyse, read_spec, write_spec
+from gyrocore.data.recording import Recording
+from gyrocore.flight.vibration import ENBW_HANN, analyse, read_spec, write_spec
 
 RATE = 1000.0
 LEVELS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
@@ -174,8 +174,8 @@ def test_filter_places_the_notch_on_the_band(swept):
     fixed line after it; the coverage block puts ArduPilot's throttle notch and PX4's notch on
     the band; a chain with the band notch leaves less of the band's power than the same low-pass
     without it."""
-    from gyrocore.commands.filter import run_filter
-    from gyrocore.preview import notch_targets
+    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.flight.preview import notch_targets
 
     rec, res = swept
     t = notch_targets(res.lines, res.energy_bands, nyquist_hz=RATE / 2)
@@ -200,7 +200,7 @@ def test_filter_places_the_notch_on_the_band(swept):
 # ---------------------------------------------------------------- the shared Betaflight log
 def _bf_pt1_h2(f_hz: np.ndarray, fc: float, loop_hz: float) -> np.ndarray:
     """|H|² of Betaflight's PT1 (pt1FilterGain: k = ω/(ω+1), ω = 2π·fc/loop; y += k(x − y)) at
-    the real loop rate, from scipy.signal.freqz (independent of gyrocore.filters)."""
+    the real loop rate, from scipy.signal.freqz (independent of gyrocore.flight.filters)."""
     w = 2 * math.pi * fc / loop_hz
     k = w / (w + 1)
     _, h = signal.freqz([k], [1.0, -(1.0 - k)], worN=f_hz, fs=loop_hz)
@@ -225,7 +225,7 @@ def test_dominant_band_of_the_shared_log_agrees_with_welch(shared_data):
     * the band is the dominant vibration: its Welch power exceeds the power A²/2 of every line the
       narrow-line detector reports on that axis.
     """
-    from gyrocore.convert import load_any
+    from gyrocore.readers.convert import load_any
 
     log = shared_data / "betaflight_blackbox" / "better_tune.BBL"
     if not log.exists():

@@ -68,7 +68,7 @@ def run_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0, use:
         dyn = [s for s in as_flown if s.get("dynamic")]
         if dyn:
             notes.append("as flown: dynamic filters (" + ", ".join(s["kind"] for s in dyn) + ") not modelled, static part only")
-    # the energy bands that carry a notch-worthy share of the rms power (gyrocore.energy_bands): the
+    # the energy bands that carry a notch-worthy share of the rms power (gyrocore.flight.energy_bands): the
     # static-notch candidates sit on them first, each chain says how much of their power it lets through
     bands = [b for b in res.energy_bands
              if (b.get("share_of_power_above_40hz") or 0.0) >= P.BAND_NOTCH_MIN_SHARE and not b.get("aliased")]

@@ -2,11 +2,12 @@
 
 A motor line whose frequency follows a throttle that moves within the 1-s analysis window is
 smeared over tens of Hz: no single bin stands out, the narrow-line detector of
-:mod:`gyrocore.vibration` misses it, and a weaker fixed line is reported instead although the
+:mod:`gyrocore.flight.vibration` misses it, and a weaker fixed line is reported instead although the
 smeared band carries most of the power. This module finds the bands by their *energy*.
 
 Method, per axis, on an averaged PSD S(f) of K windows (ν ≈ 2K/(1 + 2ρ²) degrees of freedom,
-:func:`gyrocore.vibration._dof`):
+:func:`gyrocore.flight.vibration._dof`, handed in by the caller: this module imports nothing of
+the vibration analysis, which calls it):
 
 1. Narrow features out: a running median of log S over :data:`MEDIAN_BINS` = 11 bins. A median
    of length L removes any feature narrower than (L + 1)/2 = 6 bins: a line (a Hann main lobe
@@ -56,13 +57,13 @@ Nyquist (``aliased``), as for lines.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy import signal, stats
 from scipy.ndimage import median_filter, uniform_filter1d
 
-from .vibration import AXES, ENBW_HANN, _dof
+from gyrocore.data.jsonable import to_jsonable
 
 __all__ = ["EXTENT_HEIGHT", "HANN_SUM_VARIANCE_FACTOR", "MEDIAN_BINS", "MIN_PEAK_TO_BASE", "attach", "band_interval",
            "dominant_vibration", "find_bands", "link_bands"]
@@ -78,6 +79,7 @@ EXTENT_HEIGHT = 0.1
 #: correlations are |Σw²e^{-2πik n/N}|²/(Σw²)² = (1/4 ÷ 3/8)² = 4/9 at lag 1 and
 #: (1/16 ÷ 3/8)² = 1/36 at lag 2, 0 beyond.
 HANN_SUM_VARIANCE_FACTOR = 1.0 + 2.0 * (4.0 / 9.0) + 2.0 * (1.0 / 36.0)
+AXES = ("x", "y", "z")
 #: False-alarm level of the band test over the bins searched (Bonferroni), as the line detector's.
 ALPHA = 0.001
 
@@ -172,7 +174,7 @@ def _order_key(b: dict):
     return (-b["share_of_power_above_40hz"] if np.isfinite(b["share_of_power_above_40hz"]) else 0.0, -b["power_rad2_s2"])
 
 
-def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, k_windows: int, fmin_hz: float, reliable_below_hz: float,
+def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, nu: float, fmin_hz: float, reliable_below_hz: float,
                rms_lo_hz: float = 40.0) -> list[dict]:
     """Energy bands of an averaged PSD (see the module docstring), all axes, ordered by their share.
 
@@ -182,8 +184,8 @@ def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, k_windows: int, fmin_hz: fl
         Frequencies, Hz (uniform grid).
     psd : ndarray (M, 3)
         Averaged one-sided PSD per axis, (rad/s)²/Hz (NaN: bins with no value).
-    k_windows : int
-        Windows averaged (degrees of freedom).
+    nu : float
+        Degrees of freedom of the averaged PSD (ν ≈ 2K/(1 + 2ρ²) for K windows).
     fmin_hz : float
         Lowest frequency searched, Hz.
     reliable_below_hz : float
@@ -204,7 +206,6 @@ def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, k_windows: int, fmin_hz: fl
     """
     f = np.asarray(f_hz, float)
     df = float(f[1] - f[0])
-    nu = _dof(max(int(k_windows), 1))
     search = (f >= fmin_hz) & (f <= f[-1] - 2 * df)
     rms_mask = (f >= rms_lo_hz) & (f < reliable_below_hz + 0.5 * df)
     out = []
@@ -216,15 +217,15 @@ def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, k_windows: int, fmin_hz: fl
 
 
 def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz: Sequence[float], *,
-                  rms_lo_hz: float, reliable_below_hz: float) -> dict:
+                  rms_lo_hz: float, reliable_below_hz: float, k_eff: float) -> dict:
     """Standard errors of a band's power, share and centre from the spread of the per-window values.
 
     ``psd_windows`` (K, M, 3): the windows' PSDs; ``edges_hz``: the span integrated (the
     extent). Share s = Σ_k N_k / Σ_k D_k (N: band power in
     the rms span, D: power of the span) and centre c = Σ_k Σ f S / Σ_k Σ S are ratio estimators:
     delta-method SE √(Var(N − sD)/K_eff)/D̄; the power B̄ (mean of the windows' band powers) has
-    SE sd(B)/√K_eff; K_eff = ν/2 (the overlapping windows are not
-    independent: ν/2 = K/(1 + 2ρ²) equivalent windows).
+    SE sd(B)/√K_eff; ``k_eff`` = ν/2 (the overlapping windows are not independent:
+    ν/2 = K/(1 + 2ρ²) equivalent windows).
     """
     f = np.asarray(f_hz, float)
     df = float(f[1] - f[0])
@@ -236,7 +237,7 @@ def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz
     D = np.nansum(P[:, span], axis=1) * df
     B = np.nansum(P[:, inb], axis=1) * df
     C = np.nansum(P[:, inb] * f[None, inb], axis=1) * df
-    k_eff = max(_dof(K) / 2.0, 1.0)
+    k_eff = max(float(k_eff), 1.0)
     s = N.sum() / D.sum() if D.sum() > 0 else float("nan")
     c = C.sum() / B.sum() if B.sum() > 0 else float("nan")
     if K < 2:
@@ -248,14 +249,15 @@ def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz
             "share_se": se_s, "centre_hz": float(c), "centre_se_hz": se_c}
 
 
-def link_bands(flight: list[dict], per_band: list[list[dict]], band_rows: list[dict], *, rate_hz: float, df_hz: float,
-               has_bv: bool) -> None:
+def link_bands(flight: list[dict], per_band: list[list[dict]], band_rows: list[dict], *, rate_hz: float,
+               resolution_hz: float, has_bv: bool) -> None:
     """Add ``per_band`` entries and the throttle / eRPM law to each whole-flight band (in place).
 
     ``per_band[b]``: the bands found in throttle band b; ``band_rows[b]``: that band's row
-    (``median``, optional ``rotor_hz_median``).
+    (``median``, optional ``rotor_hz_median``); ``resolution_hz``: the frequency resolution
+    (the window's equivalent noise bandwidth).
     """
-    res = ENBW_HANN * df_hz
+    res = float(resolution_hz)
     for e in flight:
         lo, hi = e["extent_hz"]
         rows = []
@@ -334,53 +336,44 @@ def dominant_vibration(bands: list[dict], lines: list[dict]) -> dict:
 
 def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band_psd: Sequence[np.ndarray],
            band_rows: list[dict], lines: list[dict], *, fmin_hz: float, reliable_below_hz: float, rate_hz: float,
-           has_bv: bool, band_windows: Sequence[np.ndarray] | None = None) -> tuple[list[dict], dict]:
+           has_bv: bool, dof: Callable[[int], float], resolution_hz: float,
+           band_windows: Sequence[np.ndarray] | None = None) -> tuple[list[dict], dict]:
     """The energy bands of an analysis: whole flight (``mean_psd`` over the K windows of
     ``psd_windows`` (K, M, 3)) with power/share/centre standard errors and their throttle law, and
     per throttle band (``band_psd[b]``, written into ``band_rows[b]["energy_bands"]``; with
     ``band_windows[b]``, the boolean (K,) selection of that band's windows, their standard errors
-    too). Returns the whole-flight list and :func:`dominant_vibration`."""
+    too). ``dof(K)``: the degrees of freedom of an average of K windows
+    (:func:`gyrocore.flight.vibration._dof`); ``resolution_hz``: the window's equivalent noise
+    bandwidth. Returns the whole-flight list and :func:`dominant_vibration`."""
     f = np.asarray(f_hz, float)
-    df = float(f[1] - f[0])
     K = int(psd_windows.shape[0])
-    flight = find_bands(f, mean_psd, k_windows=K, fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz)
+    flight = find_bands(f, mean_psd, nu=dof(max(K, 1)), fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz)
     per = []
     for row, pb in zip(band_rows, band_psd):
-        bl = find_bands(f, pb, k_windows=int(row["n_windows"]), fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz)
+        bl = find_bands(f, pb, nu=dof(max(int(row["n_windows"]), 1)), fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz)
         row["energy_bands"] = bl
         per.append(bl)
     if band_windows is not None:
         for bl, sel in zip(per, band_windows):
             for e in bl:
                 iv = band_interval(f, psd_windows[sel], AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
-                                   reliable_below_hz=reliable_below_hz)
+                                   reliable_below_hz=reliable_below_hz, k_eff=dof(int(sel.sum())) / 2.0)
                 e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
     for e in flight:
         iv = band_interval(f, psd_windows, AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
-                           reliable_below_hz=reliable_below_hz)
+                           reliable_below_hz=reliable_below_hz, k_eff=dof(K) / 2.0)
         e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
         lo, hi = e["extent_hz"]
         e["lines_inside"] = [{"frequency_hz": ln["frequency_hz"], "follows": ln["follows"], "amplitude_rad_s": ln["amplitude_rad_s"]}
                              for ln in lines if ln["axis"] == e["axis"] and lo <= ln["frequency_hz"] <= hi]
     if len(band_rows) > 1:
-        link_bands(flight, per, band_rows, rate_hz=rate_hz, df_hz=df, has_bv=has_bv)
+        link_bands(flight, per, band_rows, rate_hz=rate_hz, resolution_hz=resolution_hz, has_bv=has_bv)
     else:
         for e in flight:
             e["follows"] = None
             e["law_note"] = "one throttle band: no law"
+    # non-finite floats → None: the spec is written with allow_nan=False
     for row in band_rows:
-        row["energy_bands"] = _json_safe(row["energy_bands"])
-    return _json_safe(flight), _json_safe(dominant_vibration(flight, lines))
+        row["energy_bands"] = to_jsonable(row["energy_bands"])
+    return to_jsonable(flight), to_jsonable(dominant_vibration(flight, lines))
 
-
-def _json_safe(obj):
-    """Non-finite floats → None (the spec is written with ``allow_nan=False``)."""
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
