@@ -65,6 +65,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -174,9 +175,11 @@ def _acc_to_lsb(accel_S_m_s2: np.ndarray) -> np.ndarray:
     return np.clip(x, -32767, 32767).astype(np.int16)
 
 
-@dataclass(frozen=True, slots=True)
-class StepReply:
+class StepReply(NamedTuple):
     """The firmware's answer to one step (one gyro/filter/PID/mixer pass).
+
+    An immutable named tuple (built once per firmware loop: a tuple is the cheapest immutable
+    record in Python); the vector fields are views into one array, taken when read.
 
     Attributes
     ----------
@@ -204,25 +207,53 @@ class StepReply:
         Firmware clock, µs.
     armed, gyro_calibrated : bool
     arming_disable_flags : int
-    debug : ndarray (8,) int
+    debug : tuple of 8 int
         The firmware's ``debug[]`` (meaning set by ``debug_mode``).
+    values : ndarray (35,)
+        The reply's 35 floats in SI and S (motors, motors_raw_us, unfiltered gyro, filtered
+        gyro, D-term input, P/I/D/F, setpoint, bias), the storage of the fields above.
     """
 
-    motors: np.ndarray
-    motors_raw_us: np.ndarray
-    fw_gyro_S_rad_s: np.ndarray
-    fw_gyro_unfiltered_S_rad_s: np.ndarray
-    fw_dterm_S_rad_s: np.ndarray
-    setpoint_S_rad_s: np.ndarray
-    pid_rpy: np.ndarray
-    gyro_bias_S_rad_s: np.ndarray
+    values: np.ndarray
     loop_count: int
     pid_loop_count: int
     time_us: int
     armed: bool
     gyro_calibrated: bool
     arming_disable_flags: int
-    debug: np.ndarray
+    debug: tuple
+
+    @property
+    def motors(self) -> np.ndarray:
+        return self.values[0:4]
+
+    @property
+    def motors_raw_us(self) -> np.ndarray:
+        return self.values[4:8]
+
+    @property
+    def fw_gyro_unfiltered_S_rad_s(self) -> np.ndarray:
+        return self.values[8:11]
+
+    @property
+    def fw_gyro_S_rad_s(self) -> np.ndarray:
+        return self.values[11:14]
+
+    @property
+    def fw_dterm_S_rad_s(self) -> np.ndarray:
+        return self.values[14:17]
+
+    @property
+    def pid_rpy(self) -> np.ndarray:
+        return self.values[17:29].reshape(4, 3)
+
+    @property
+    def setpoint_S_rad_s(self) -> np.ndarray:
+        return self.values[29:32]
+
+    @property
+    def gyro_bias_S_rad_s(self) -> np.ndarray:
+        return self.values[32:35]
 
 
 _K_DEG = _FLIP * _DEG
@@ -240,14 +271,11 @@ def _clip16(v: int) -> int:
 def _reply_from_tuple(r: tuple) -> StepReply:
     v = np.array(r[5:40], dtype=float)
     v *= _REPLY_SCALE
-    return StepReply(
-        motors=v[0:4], motors_raw_us=v[4:8],
-        fw_gyro_unfiltered_S_rad_s=v[8:11], fw_gyro_S_rad_s=v[11:14],
-        fw_dterm_S_rad_s=v[14:17], pid_rpy=v[17:29].reshape(4, 3),
-        setpoint_S_rad_s=v[29:32], gyro_bias_S_rad_s=v[32:35],
-        loop_count=r[2], pid_loop_count=r[3], time_us=r[4], arming_disable_flags=r[40],
-        armed=bool(r[41]), gyro_calibrated=bool(r[42]), debug=np.array(r[45:53]),
-    )
+    return _new_reply((v, r[2], r[3], r[4], r[41] != 0, r[42] != 0, r[40], r[45:53]))
+
+
+def _new_reply(values: tuple) -> StepReply:
+    return tuple.__new__(StepReply, values)
 
 
 def replies_to_arrays(replies: np.ndarray) -> dict[str, np.ndarray]:
@@ -372,6 +400,7 @@ class BetaflightSITL:
         self._rview = memoryview(self._rbuf)
         self._pbuf = bytearray(IN_STRUCT.size)
         self._rc = [RC_MID_US, RC_MID_US, RC_LOW_US, RC_MID_US] + [RC_LOW_US] * 12
+        self._rc_last: tuple = ()
         self._configured = False
         self.boot_report: BootReport | None = None
 
@@ -496,26 +525,31 @@ class BetaflightSITL:
 
     @staticmethod
     def _inputs(omega_S_rad_s, accel_S_m_s2, q_WB_wxyz, rotor_rad_s):
-        # plain floats: this runs once per firmware loop (numpy per-call overhead would dominate)
+        # plain floats and no helper calls: this runs once per firmware loop (per-call overhead
+        # of numpy or generators would cost more than the firmware's own pass)
         k = GYRO_LSB_PER_RAD_S
-        gx, gy, gz = (float(v) for v in omega_S_rad_s)
-        g = (_clip16(round(gx * k)), _clip16(round(-gy * k)), _clip16(round(-gz * k)))
+        w = omega_S_rad_s.tolist() if type(omega_S_rad_s) is np.ndarray else omega_S_rad_s
+        g0, g1, g2 = round(w[0] * k), round(-w[1] * k), round(-w[2] * k)
+        if not (-32767 <= g0 <= 32767 and -32767 <= g1 <= 32767 and -32767 <= g2 <= 32767):
+            g0, g1, g2 = _clip16(g0), _clip16(g1), _clip16(g2)
         if accel_S_m_s2 is None:
             a = (0, 0, 256)
         else:
-            ax, ay, az = (float(v) for v in accel_S_m_s2)
+            f = accel_S_m_s2.tolist() if type(accel_S_m_s2) is np.ndarray else accel_S_m_s2
             ka = ACC_LSB_PER_M_S2
-            a = (_clip16(round(-ax * ka)), _clip16(round(ay * ka)), _clip16(round(az * ka)))
+            a = (_clip16(round(-f[0] * ka)), _clip16(round(f[1] * ka)), _clip16(round(f[2] * ka)))
         if q_WB_wxyz is None:
             quat = (1.0, 0.0, 0.0, 0.0)
         else:
-            q0, q1, q2, q3 = (float(v) for v in q_WB_wxyz)
-            quat = (q0, q1, -q2, -q3)
+            q = q_WB_wxyz.tolist() if type(q_WB_wxyz) is np.ndarray else q_WB_wxyz
+            quat = (q[0], q[1], -q[2], -q[3])
         if rotor_rad_s is None:
             hz = (0.0, 0.0, 0.0, 0.0)
         else:
-            hz = tuple(abs(float(v)) * _INV_2PI for v in rotor_rad_s)
-        return g, a, quat, hz
+            r = rotor_rad_s.tolist() if type(rotor_rad_s) is np.ndarray else rotor_rad_s
+            c = _INV_2PI
+            hz = (abs(r[0]) * c, abs(r[1]) * c, abs(r[2]) * c, abs(r[3]) * c)
+        return (g0, g1, g2), a, quat, hz
 
     def step(self, omega_S_rad_s: Sequence[float], accel_S_m_s2: Sequence[float] | None = None,
              q_WB_wxyz: Sequence[float] | None = None, rotor_rad_s: Sequence[float] | None = None,
@@ -542,7 +576,7 @@ class BetaflightSITL:
         """
         if self._proc is None:
             raise GyroInputError("step() before boot(): boot the firmware first")
-        if rc is not None:
+        if rc is not None and rc != self._rc_last:
             self._set_rc(rc)
         g, a, q, hz = self._inputs(omega_S_rad_s, accel_S_m_s2, q_WB_wxyz, rotor_rad_s)
         self._exchange(g, a, q, hz, self._rc)
@@ -592,6 +626,7 @@ class BetaflightSITL:
             if not 800 <= v <= 2200:
                 raise GyroInputError(f"rc {name} = {v} µs is outside 800-2200 µs")
         self._rc[0:4] = [roll, pitch, thr, yaw]
+        self._rc_last = tuple(rc)
 
     # ------------------------------------------------------------------ configuration
     def _cli_session(self, tcp_port: int, lines: Sequence[str]) -> None:
@@ -708,6 +743,7 @@ class BetaflightSITL:
             self.configure()
         self._spawn()
         self._rc = [RC_MID_US, RC_MID_US, RC_LOW_US, RC_MID_US] + [RC_LOW_US] * 12
+        self._rc_last = ()
         max_steps = int(round(max_boot_s * self.loop_rate_hz))
         cal_steps = None
         fw_boot_s = float("nan")
