@@ -18,10 +18,10 @@ field          type        meaning
 magic          uint32      0x31494847 ("GHI1")
 flags          uint32      0 (reserved)
 timestamp      double      simulator time of this gyro sample, s (sets the firmware's clock)
-gyro_lsb       int16 × 3   gyro in the firmware's axes, LSB: round((x, −y, −z)_S · 16.4 · 180/π)
-acc_lsb        int16 × 3   specific force in the firmware's axes, LSB: round((−x, y, z)_S · 256/g)
-quat_wxyz      float × 4   attitude for the firmware's IMU: (w, x, −y, −z) of q_WB (FLU/z-up →
-                           FRD/z-down); the SITL takes its attitude from here (no estimator)
+gyro_lsb       int16 × 3   gyro, LSB: round(ω_S · 16.4 · 180/π) (S = the firmware's own axes)
+acc_lsb        int16 × 3   specific force, LSB: round(f_S · 256/g) (level and still: (0, 0, 256))
+quat_wxyz      float × 4   attitude q_WB (body to world, world z up); the SITL takes its attitude
+                           from here (no estimator in the loop)
 motor_hz       float × 4   rotor frequency |ω|/2π, Hz, Betaflight motor order; the firmware
                            turns it into bidirectional-DShot eRPM telemetry (period quantised as
                            the ESC sends it, ``motor_poles``, the ``rpm_filter_lpf_hz`` PT1)
@@ -39,12 +39,20 @@ arming_disable_flags; armed; gyro_calibrated; motor_count; reserved; debug[8] (`
 
 Conventions
 -----------
-* The sensor frame S of the harness is x forward, y left, z up; Betaflight's gyro axes are
-  x forward, y right, z down: the bridge sends (x, −y, −z) and maps every vector it returns back
-  to S, so ``fw_gyro_S_rad_s`` compares with ``omega_S_rad_s`` directly.
+* Axes: Betaflight's body axes are the harness's sensor frame S: x forward, y left, z up, for
+  the gyro and the accelerometer alike (its mixer: a positive roll command lowers the right side,
+  a positive pitch command the nose, a positive yaw command turns the nose left; a still, level
+  board reads +1 g on z). So vectors go in and come back unrotated, rad/s ↔ °/s only. (The stock
+  SITL's (x, −y, −z) converts the Gazebo plugin's x-forward/y-right/z-down packet into these
+  axes; the harness has no such packet.) The sign test in tests/sim/test_firmware_bridge.py
+  checks that a rate about each axis drives the motors that oppose it.
 * Quantisation: the firmware reads int16 LSB at 16.4 LSB/(°/s) (±2000 °/s, 0.061 °/s per LSB),
   as an ICM/MPU gyro's register delivers; the bridge rounds to the nearest LSB (the stock SITL
-  truncated towards zero, a bias of up to one LSB) and clips to ±32767.
+  truncated towards zero, a bias of up to one LSB) and clips to ±32767. The firmware converts
+  counts with its own ``GYRO_SCALE_2000DPS`` = 2000/32768 °/s per LSB, 0.1 % above the
+  datasheet's 1/16.4: a real board's scale error, kept (the replies are the firmware's °/s
+  in rad/s; the boot-calibration offset is converted at the chip's 16.4 LSB/(°/s), so it compares
+  with the simulated bias).
 * Motors: Betaflight quad-X order (as PX4's output numbering is remapped by Betaflight's
   mixer): 1 rear-right, 2 front-right, 3 rear-left, 4 front-left; props-in (1 and 4 CW seen
   from above, 2 and 3 CCW) unless ``yaw_motors_reversed``. :data:`BF_MOTOR_POSITIONS_FLU`
@@ -100,9 +108,6 @@ GYRO_LSB_PER_RAD_S = 16.4 * 180.0 / math.pi
 ACC_LSB_PER_M_S2 = 256.0 / 9.80665
 _G = 9.80665
 _DEG = math.pi / 180.0
-#: (x, −y, −z): S (x fwd, y left, z up) ↔ the firmware's gyro axes (x fwd, y right, z down).
-_FLIP = np.array([1.0, -1.0, -1.0])
-_ACC_MAP = np.array([-1.0, 1.0, 1.0])
 
 MAGIC_IN = 0x31494847
 MAGIC_OUT = 0x314F4847
@@ -156,7 +161,7 @@ def arming_flag_names(flags: int) -> list[str]:
 
 
 def gyro_to_lsb(omega_S_rad_s: np.ndarray) -> np.ndarray:
-    """The int16 LSB the firmware reads for a sensor-frame rate: round((x, −y, −z) · 16.4 · 180/π).
+    """The int16 LSB the firmware reads for a sensor-frame rate: round(ω_S · 16.4 · 180/π), clipped.
 
     Parameters
     ----------
@@ -164,14 +169,14 @@ def gyro_to_lsb(omega_S_rad_s: np.ndarray) -> np.ndarray:
 
     Returns
     -------
-    ndarray (..., 3) int16, firmware axes.
+    ndarray (..., 3) int16 (the firmware's axes are S's).
     """
-    x = np.rint(np.asarray(omega_S_rad_s, float) * (_FLIP * GYRO_LSB_PER_RAD_S))
+    x = np.rint(np.asarray(omega_S_rad_s, float) * GYRO_LSB_PER_RAD_S)
     return np.clip(x, -32767, 32767).astype(np.int16)
 
 
 def _acc_to_lsb(accel_S_m_s2: np.ndarray) -> np.ndarray:
-    x = np.rint(np.asarray(accel_S_m_s2, float) * (_ACC_MAP * ACC_LSB_PER_M_S2))
+    x = np.rint(np.asarray(accel_S_m_s2, float) * ACC_LSB_PER_M_S2)
     return np.clip(x, -32767, 32767).astype(np.int16)
 
 
@@ -256,8 +261,8 @@ class StepReply(NamedTuple):
         return self.values[32:35]
 
 
-_K_DEG = _FLIP * _DEG
-_K_LSB = _FLIP / GYRO_LSB_PER_RAD_S
+_K_DEG = np.full(3, _DEG)
+_K_LSB = np.full(3, 1.0 / GYRO_LSB_PER_RAD_S)
 _INV_2PI = 1.0 / (2.0 * math.pi)
 # one scale vector for the 35 floats of a reply (motors, motor_raw, gyro_adc, gyro_adcf, dterm_in,
 # pid p/i/d/f, setpoint, gyro_zero): one array operation per step
@@ -529,7 +534,7 @@ class BetaflightSITL:
         # of numpy or generators would cost more than the firmware's own pass)
         k = GYRO_LSB_PER_RAD_S
         w = omega_S_rad_s.tolist() if type(omega_S_rad_s) is np.ndarray else omega_S_rad_s
-        g0, g1, g2 = round(w[0] * k), round(-w[1] * k), round(-w[2] * k)
+        g0, g1, g2 = round(w[0] * k), round(w[1] * k), round(w[2] * k)
         if not (-32767 <= g0 <= 32767 and -32767 <= g1 <= 32767 and -32767 <= g2 <= 32767):
             g0, g1, g2 = _clip16(g0), _clip16(g1), _clip16(g2)
         if accel_S_m_s2 is None:
@@ -537,12 +542,12 @@ class BetaflightSITL:
         else:
             f = accel_S_m_s2.tolist() if type(accel_S_m_s2) is np.ndarray else accel_S_m_s2
             ka = ACC_LSB_PER_M_S2
-            a = (_clip16(round(-f[0] * ka)), _clip16(round(f[1] * ka)), _clip16(round(f[2] * ka)))
+            a = (_clip16(round(f[0] * ka)), _clip16(round(f[1] * ka)), _clip16(round(f[2] * ka)))
         if q_WB_wxyz is None:
             quat = (1.0, 0.0, 0.0, 0.0)
         else:
             q = q_WB_wxyz.tolist() if type(q_WB_wxyz) is np.ndarray else q_WB_wxyz
-            quat = (q[0], q[1], -q[2], -q[3])
+            quat = (q[0], q[1], q[2], q[3])
         if rotor_rad_s is None:
             hz = (0.0, 0.0, 0.0, 0.0)
         else:

@@ -19,13 +19,13 @@ from sim.firmware.bridge import (
 
 
 def test_gyro_to_lsb_axes_and_rounding():
-    # (x, −y, −z) × 16.4 LSB/(°/s), nearest LSB, clipped to int16
-    w = np.array([[1.0, 1.0, 1.0], [0.5 / GYRO_LSB_PER_RAD_S, -2.6 / GYRO_LSB_PER_RAD_S, 100.0]])
+    # S axes unchanged, 16.4 LSB/(°/s), nearest LSB, clipped to int16
+    w = np.array([[1.0, 1.0, -1.0], [0.5 / GYRO_LSB_PER_RAD_S, -2.6 / GYRO_LSB_PER_RAD_S, 100.0]])
     got = gyro_to_lsb(w)
     assert got.dtype == np.int16
     k = GYRO_LSB_PER_RAD_S
-    assert got[0].tolist() == [round(k), -round(k), -round(k)]
-    assert got[1].tolist() == [0, 3, -32767]  # 0.5 rounds to even (0); 100 rad/s saturates
+    assert got[0].tolist() == [round(k), round(k), -round(k)]
+    assert got[1].tolist() == [0, -3, 32767]  # 0.5 rounds to even (0); 100 rad/s saturates
 
 
 def test_one_loop_per_step_virtual_clock(firmware_binary):
@@ -46,16 +46,35 @@ def test_one_loop_per_step_virtual_clock(firmware_binary):
         assert r.armed
 
 
-def test_roll_rate_drives_the_right_motors(firmware_binary):
-    # A positive roll rate in S (x forward: right side going down) must be opposed by the
-    # right-side motors (Betaflight 1 rear-right, 2 front-right) speeding up.
+# S = x forward, y left, z up. A rate the vehicle did not ask for must be opposed:
+# +x (right side going down) -> the right motors (1 rear-right, 2 front-right) push harder;
+# +y (nose going down) -> the front motors (2, 4); +z (nose turning left, counter-clockwise
+# seen from above) -> a clockwise reaction torque: the counter-clockwise-spinning motors (2
+# front-right and 3 rear-left in Betaflight's default quad-X) speed up.
+@pytest.mark.parametrize("axis, up, down", [(0, (0, 1), (2, 3)), (1, (1, 3), (0, 2)), (2, (1, 2), (0, 3))])
+def test_a_rate_about_each_axis_drives_the_motors_that_oppose_it(firmware_binary, axis, up, down):
+    w = [0.0, 0.0, 0.0]
+    w[axis] = 0.5
     with BetaflightSITL(firmware_binary) as fc:
         fc.boot()
+        for _ in range(80):  # 10 ms, before the I term saturates the outputs
+            r = fc.step(w, rc=(1400, 1500, 1500, 1500))
+        m = r.motors
+        assert min(m[i] for i in up) > max(m[i] for i in down) + 0.02, (axis, m)
+
+
+def test_fw_gyro_is_the_input_in_s(firmware_binary):
+    with BetaflightSITL(firmware_binary) as fc:
+        fc.boot(arm=False)
+        w = (0.5, -0.25, 0.125)
         for _ in range(800):  # 0.1 s: the dynamic notches (Q 3 at >= 100 Hz) ring out in ~10 ms
-            r = fc.step((0.5, 0.0, 0.0), rc=(1300, 1500, 1500, 1500))
-        assert r.motors[0] > r.motors[2] + 0.1 and r.motors[1] > r.motors[3] + 0.1
-        # the firmware's filtered gyro, mapped back to S, is the input (a constant passes a low-pass)
-        assert r.fw_gyro_S_rad_s == pytest.approx([0.5, 0.0, 0.0], abs=2 / GYRO_LSB_PER_RAD_S)
+            r = fc.step(w)
+        # a constant passes the low-passes and notches unchanged: same axes, same signs
+        assert r.fw_gyro_S_rad_s == pytest.approx(w, abs=2 / GYRO_LSB_PER_RAD_S)
+        # the firmware scales counts by its GYRO_SCALE_2000DPS = 2000/32768 °/s per LSB (0.1 % above
+        # the 1/16.4 the chip's datasheet and the bridge use: a real board's scale error, kept)
+        fw_scale = 2000.0 / 32768.0 * np.pi / 180.0
+        assert r.fw_gyro_unfiltered_S_rad_s == pytest.approx(gyro_to_lsb(w) * fw_scale, rel=1e-6)
 
 
 def test_boot_calibration_measures_the_still_gyro_bias(firmware_binary):
@@ -69,7 +88,7 @@ def test_boot_calibration_measures_the_still_gyro_bias(firmware_binary):
     with BetaflightSITL(firmware_binary) as fc:
         boot = fc.boot(still, arm=False)
         lsb = gyro_to_lsb(bias).astype(float)
-        assert boot.gyro_bias_S_rad_s == pytest.approx(lsb * np.array([1, -1, -1]) / GYRO_LSB_PER_RAD_S, abs=1e-9)
+        assert boot.gyro_bias_S_rad_s == pytest.approx(lsb / GYRO_LSB_PER_RAD_S, abs=1e-9)
         r = fc.step(bias)
         assert r.fw_gyro_unfiltered_S_rad_s == pytest.approx([0, 0, 0], abs=1e-9)
 

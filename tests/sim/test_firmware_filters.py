@@ -52,7 +52,7 @@ def _noise(seed, n=N, sigma=2.0):
 
 
 def _replayed_gains(res, axis=0, skip=0):
-    x = res.gyro_lsb[skip:, axis] * np.array([1, -1, -1])[axis] / GYRO_LSB_PER_RAD_S
+    x = res.gyro_lsb[skip:, axis] / GYRO_LSB_PER_RAD_S
     return x, res.fw_gyro_S_rad_s[skip:, axis]
 
 
