@@ -74,6 +74,8 @@ __all__ = [
     "score_attitude",
     "mahony",
     "floor_sigma_theta_rad",
+    "attitude_rate",
+    "rate_error_vs_attitude",
 ]
 
 _BLOCK = 8  # steps per block of the blockwise prefix product
@@ -512,3 +514,84 @@ def floor_sigma_theta_rad(
         small = x < 1e-4
         gm = np.where(small & (sg > 0), 2 * sg**2 * tc**2 * (x**2 / 2 - x**3 / 6), gm)
     return np.sqrt(var + gm)
+
+
+def _rotations(q_wxyz: np.ndarray):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q_wxyz, float), scalar_first=True)
+
+
+def attitude_rate(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rate of an attitude series, backward hold: ω_k = rotvec(R_{k−1}ᵀ R_k)/Δt_k (S frame).
+
+    Integrating these rates with :func:`integrate_gyro` (backward hold) reproduces the
+    attitude at every sample.
+
+    Parameters
+    ----------
+    t_s : ndarray, shape (N,)
+        Sample times, s, strictly increasing.
+    q_wxyz : ndarray, shape (N, 4)
+        Attitude S→W, w, x, y, z; rows with a NaN (tracking lost) are invalid.
+
+    Returns
+    -------
+    omega_S_rad_s : ndarray, shape (N, 3)
+        Mean rate over (t_{k−1}, t_k], rad/s, sensor frame; NaN where either end is invalid
+        and at k = 0.
+    valid : ndarray, shape (N,), bool
+    """
+    q = np.asarray(q_wxyz, float)
+    n = q.shape[0]
+    ok = np.all(np.isfinite(q), axis=1)
+    R = _rotations(np.where(ok[:, None], q, np.array([1.0, 0.0, 0.0, 0.0])))
+    dt = np.diff(np.asarray(t_s, float))
+    w = np.full((n, 3), np.nan)
+    if n > 1:
+        w[1:] = (R[:-1].inv() * R[1:]).as_rotvec() / dt[:, None]
+    valid = np.zeros(n, bool)
+    valid[1:] = ok[1:] & ok[:-1]
+    w[~valid] = np.nan
+    return w, valid
+
+
+def rate_error_vs_attitude(t_s: np.ndarray, q_wxyz: np.ndarray,
+                           omega_S_rad_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample-level rate error of a gyro against a reference attitude.
+
+    e_k = rotvec(ΔR_kᵀ·exp(ω_k·Δt_k))/Δt_k with ΔR_k = R_{k−1}ᵀR_k the reference's increment
+    over (t_{k−1}, t_k] and ω_k the gyro sample held over it (backward hold, as
+    :func:`integrate_gyro`): the rate error over one interval, exact in the rotation (no
+    small-angle difference of rotation vectors), ≈ ω_k − ω_ref,k for small errors.
+
+    Parameters
+    ----------
+    t_s : ndarray, shape (N,)
+    q_wxyz : ndarray, shape (N, 4)
+        Reference attitude S→W (NaN rows: tracking lost).
+    omega_S_rad_s : ndarray, shape (N, 3)
+        Gyro (corrected), rad/s, sensor frame.
+
+    Returns
+    -------
+    error_rad_s : ndarray, shape (N, 3)
+        NaN where the reference increment is not defined.
+    omega_ref_rad_s : ndarray, shape (N, 3)
+        The reference rate (:func:`attitude_rate`).
+    valid : ndarray, shape (N,), bool
+    """
+    w_ref, valid = attitude_rate(t_s, q_wxyz)
+    g = np.asarray(omega_S_rad_s, float)
+    valid = valid & np.all(np.isfinite(g), axis=1)
+    e = np.full(g.shape, np.nan)
+    if valid.any():
+        from scipy.spatial.transform import Rotation
+
+        dt = np.diff(np.asarray(t_s, float))
+        k = np.flatnonzero(valid)
+        dR = Rotation.from_rotvec(w_ref[k] * dt[k - 1][:, None])
+        G = Rotation.from_rotvec(g[k] * dt[k - 1][:, None])
+        e[k] = (dR.inv() * G).as_rotvec() / dt[k - 1][:, None]
+    w_ref = np.where(valid[:, None], w_ref, np.nan)
+    return e, w_ref, valid

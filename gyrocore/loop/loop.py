@@ -65,7 +65,7 @@ from scipy import signal, stats
 
 from gyrocore.effects import registry as E
 from gyrocore.calib import lsq
-from gyrocore.attitude import error_angle_rad, integrate_gyro
+from gyrocore.attitude import error_angle_rad, integrate_gyro, rate_error_vs_attitude
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from . import search as S
@@ -1351,7 +1351,52 @@ def _line_series(res: Residual, rec: Recording, correction: np.ndarray):
         x = rec.gyro_rad_s[sl] - correction[sl]
         mot = np.nan_to_num(rec.accel_m_s2[sl]) if rec.accel_m_s2 is not None else None
         return x, t[sl], rec.rate_hz, mot, "sample", sl
+    if res.kind == "attitude":
+        return _attitude_line_series(rec, correction)
     return None
+
+
+#: Segments the sample-level attitude residual is cut into for the pooled line test
+#: (:func:`gyrocore.search.even_segments`).
+ATTITUDE_LINE_SEGMENTS = 8
+
+
+def _attitude_line_series(rec: Recording, correction: np.ndarray):
+    """Sample-level residual against a reference attitude, for the line search.
+
+    The reference is differentiated, ω_ref,k = rotvec(R_{k−1}ᵀR_k)/Δt_k, and the residual is
+    e_k = rotvec(ΔR_refᵀ·exp((gyro_k − model_k)·Δt_k))/Δt_k
+    (:func:`gyrocore.attitude.rate_error_vs_attitude`) on the samples whose reference is
+    valid at both ends of a regular interval; those are cut into equal segments
+    (:func:`gyrocore.search.even_segments`) that never straddle a dropout. White attitude
+    noise σ_q of the reference becomes rate noise of one-sided PSD 8σ_q²·fs·sin²(πf/fs)
+    (∝ f² below fs/4): the F-test's local noise estimate carries it, so the test stays
+    valid and only loses power where it dominates the gyro's own noise (docs/loop.md §6).
+    Needs the reference on the gyro's rows (a reference sampled more slowly than the gyro,
+    NaN between its frames, would alias the gyro's lines above its Nyquist frequency onto
+    its grid): None otherwise, and the window-level test alone runs.
+
+    Returns (x (S·L, 3), t (S·L,), fs, motion columns (S·L, 3 or 6), "sample", sample
+    indices, L) or None.
+    """
+    if isinstance(rec, SpilledRecording) or rec.ref_quat_wxyz is None:
+        return None
+    t = rec.t_s
+    e, w_ref, valid = rate_error_vs_attitude(t, rec.ref_quat_wxyz, rec.gyro_rad_s - correction)
+    ok_q = np.all(np.isfinite(rec.ref_quat_wxyz), axis=1)
+    # the reference must be on (nearly) every gyro row where it is tracked: adjacent valid
+    # rows are its own consecutive frames (not every 4th row of a 1-kHz gyro)
+    if valid.sum() < 0.5 * ok_q.sum():
+        return None
+    idx, L = S.even_segments(t, valid, n_target=ATTITUDE_LINE_SEGMENTS)
+    if idx.size == 0:
+        return None
+    tt = t[idx]
+    fs = 1.0 / float(np.median(np.diff(t)[idx[1:] - 1]))
+    mot = [w_ref[idx]]
+    if rec.accel_m_s2 is not None:
+        mot.append(np.nan_to_num(rec.accel_m_s2[idx]))
+    return e[idx], tt, fs, np.concatenate(mot, axis=1), "sample", idx, L
 
 
 def _longest_run(ok: np.ndarray) -> tuple[int, int]:
@@ -1439,25 +1484,31 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
     thr_line = alpha * S.ALPHA_SHARE["periodic"] / 3.0
     corr = model.correction(fit, model_effects)
     ser = _line_series(res, rec, corr) if can_hold else None
+    # against an attitude reference both the sample level (differentiated reference) and the
+    # window level (below the sample level's lowest frequency) are searched: half of α each
+    both = res.kind == "attitude" and ser is not None and ser[0].shape[0] >= 256
+    thr_sample = thr_line / 2 if both else thr_line
     if ser is not None and ser[0].shape[0] >= 256:
-        x, tt, fs, mot, level, sl = ser
+        x, tt, fs, mot, level, sl = ser[:6]
+        seg_len = ser[6] if len(ser) > 6 else S.segment_length(x.shape[0])
         # (axis, frequency) already removed
         done = [(i, float(n[len("periodic["):-1])) for n, ls in held.items() for i in range(3)
                 if any(ax == i and (a_ != 0 or b_ != 0) for ax, _, a_, b_ in ls)]
-        lines = S.screen_lines(x, fs, ref=mot, skip=done)
+        lines = S.screen_lines(x, fs, ref=mot, skip=done, seg_max=seg_len)
         open_last["periodic"] = [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
-                                  "log10_p": l.log10_p, "threshold": thr_line, "n_freq": l.n_freq,
-                                  "bandwidth_hz": l.bandwidth_hz, "masked_by_motion_bins": l.masked_by_motion}
+                                  "log10_p": l.log10_p, "threshold": thr_sample, "n_freq": l.n_freq,
+                                  "bandwidth_hz": l.bandwidth_hz, "masked_by_motion_bins": l.masked_by_motion,
+                                  "level": "sample"}
                                  for l in lines]
         for l in lines:
-            if l.log10_p >= np.log10(thr_line):
+            if l.log10_p >= np.log10(thr_sample):
                 continue
             i = l.axis
             # one axis of the sample-level residual at a time (a recording on disk: read and
             # corrected a window at a time into one (n,) array)
             xi = x.axis(i) if isinstance(x, Rows) else x[:, i]
             # ± one bin of the segment grid (fs/L)
-            f = S.round_frequency(S.refine_frequency(xi, tt, l.frequency_hz, fs / S.segment_length(x.shape[0])))
+            f = S.round_frequency(S.refine_frequency(xi, tt, l.frequency_hz, fs / seg_len))
             cv = S.sinusoid_cv_reduction(xi, tt, f)
             if not cv > 0:
                 continue
@@ -1471,7 +1522,7 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
             a_raw, b_raw = a * np.cos(phi) - b * np.sin(phi), a * np.sin(phi) + b * np.cos(phi)
             corr_full = (i, f, a_raw, b_raw)  # stream.held_correction
             evd = {"statistic": l.statistic, "df1": l.df1, "df2": l.df2, "log10_p": l.log10_p,
-                   "p_value": 10 ** l.log10_p, "threshold": thr_line, "n_frequencies_tested": l.n_freq,
+                   "p_value": 10 ** l.log10_p, "threshold": thr_sample, "n_frequencies_tested": l.n_freq,
                    "bandwidth_hz": l.bandwidth_hz, "grid_frequency_hz": l.frequency_hz,
                    "cv_rms_reduction": cv, "residual": level, "test": "Thomson multitaper harmonic F (NW 4, K 7)",
                    "params": {f"a_cos_rad_s[{i}]": a_raw, f"a_sin_rad_s[{i}]": b_raw},
@@ -1480,17 +1531,21 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
                    "_params": {f"a_cos_rad_s[{i}]": (a_raw, float(se[0, 0])),
                                f"a_sin_rad_s[{i}]": (b_raw, float(se[1, 0]))}}
             fields = {"frequency_hz": f, "amplitude_rad_s": float(np.hypot(a, b))}
-            options.append((l.log10_p - np.log10(thr_line), ("periodic", i, name, fields, evd, corr_full)))
-    elif res.kind == "attitude" and res.m >= 64:
+            if res.kind == "attitude":
+                evd["segments"] = {"n": int(x.shape[0] // seg_len), "length": int(seg_len)}
+            options.append((l.log10_p - np.log10(thr_sample), ("periodic", i, name, fields, evd, corr_full)))
+    if res.kind == "attitude" and res.m >= 64:
+        thr_line = thr_line / 2 if both else thr_line
         x, tt, fs, idx = _window_line_series(res, e)
         if x.shape[0] >= 64:
             mot = res.window_mean(np.asarray(res.inputs.omega_S_rad_s, float))[idx]
             done = [(column_axis("a[" + k.split("@")[1] + "]"), float(k[len("periodic["):k.index("]")]))
                     for k in model_effects if k.startswith("periodic[")]
             lines = S.screen_lines(x, fs, ref=mot, skip=done)
-            open_last["periodic"] = [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
-                                      "log10_p": l.log10_p, "threshold": thr_line, "n_freq": l.n_freq,
-                                      "level": "window"} for l in lines]
+            open_last["periodic"] = open_last.get("periodic", []) if both else []
+            open_last["periodic"] += [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
+                                       "log10_p": l.log10_p, "threshold": thr_line, "n_freq": l.n_freq,
+                                       "level": "window"} for l in lines]
             for l in lines:
                 if l.log10_p >= np.log10(thr_line):
                     continue
