@@ -78,7 +78,7 @@ def optical_recording(*, seed: int, duration_s: float = 60.0, rate_hz: float = R
     ``shared_amp_rad_s``): in the truth, so in both.
     """
     rng = np.random.default_rng(seed)
-    n_fine = int(round(duration_s * rate_hz * _SUB))
+    n_fine = round(duration_s * rate_hz * _SUB)
     t_fine = np.arange(n_fine + 1) / (rate_hz * _SUB)
     freqs = rng.uniform(0.1, 1.5, (3, 3))
     phases = rng.uniform(0, 2 * np.pi, (3, 3))

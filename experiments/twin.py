@@ -62,6 +62,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy import signal, stats as _st
 
+from gyrocore.attitude import attitude_rate
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
 
@@ -154,27 +155,6 @@ def _quat_R(q: np.ndarray):
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_quat(np.asarray(q, float)[:, [1, 2, 3, 0]])
-
-
-def attitude_rate(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rate of an attitude series, backward hold: ω_k = rotvec(R_{k−1}ᵀ R_k)/Δt_k (S frame).
-
-    Integrating these rates with :func:`gyrocore.attitude.integrate_gyro` (backward hold)
-    reproduces the attitude at every sample. Returns (ω (N, 3) rad/s with NaN where either
-    end is NaN and at k = 0, valid (N,) bool).
-    """
-    q = np.asarray(q_wxyz, float)
-    n = q.shape[0]
-    ok = np.all(np.isfinite(q), axis=1)
-    qq = np.where(ok[:, None], q, np.array([1.0, 0, 0, 0]))
-    R = _quat_R(qq)
-    dt = np.diff(np.asarray(t_s, float))
-    w = np.full((n, 3), np.nan)
-    w[1:] = (R[:-1].inv() * R[1:]).as_rotvec() / dt[:, None]
-    valid = np.zeros(n, bool)
-    valid[1:] = ok[1:] & ok[:-1]
-    w[~valid] = np.nan
-    return w, valid
 
 
 def _fill(t: np.ndarray, x: np.ndarray, ok: np.ndarray) -> np.ndarray:

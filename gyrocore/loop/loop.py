@@ -1489,7 +1489,7 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
     both = res.kind == "attitude" and ser is not None and ser[0].shape[0] >= 256
     thr_sample = thr_line / 2 if both else thr_line
     if ser is not None and ser[0].shape[0] >= 256:
-        x, tt, fs, mot, level, sl = ser[:6]
+        x, tt, fs, mot, level, _ = ser[:6]
         seg_len = ser[6] if len(ser) > 6 else S.segment_length(x.shape[0])
         # (axis, frequency) already removed
         done = [(i, float(n[len("periodic["):-1])) for n, ls in held.items() for i in range(3)
@@ -1898,11 +1898,22 @@ def validate_model(rec: Recording, *, params_after: Mapping, params_before: Mapp
     Returns the DESIGN.md ``validation`` keys (``file`` is added by the caller).
     """
     out = {}
+    sample = {}
+    lines = sorted({k for k in params_after if k.startswith("periodic[")})
     for tag, params in (("before", params_before), ("after", params_after)):
         r = rec
+        # narrow-band lines are terms of the measurement's own time (the loop removes them from
+        # the raw gyro, before the time-offset advance): removed here the same way — applied
+        # after the advance they would be off in phase by 2πf·τ
+        per = {k: v for k, v in params.items() if k.startswith("periodic[")}
+        if per:
+            from dataclasses import replace
+
+            r = replace(rec, gyro_rad_s=rec.gyro_rad_s - _periodic_raw(rec.t_s, per))
+            params = {k: v for k, v in params.items() if k not in per}
         tau = float(params.get("time_offset", {}).get("tau_s", 0.0)) if "time_offset" in params else 0.0
         if tau != 0.0:
-            r = _advance(rec, tau)
+            r = _advance(r, tau)
         res = build_residual(r, reference=reference, segments=segments, window_s=window_s)
         corr = model_correction(res, params)
         y = res.y_rad_s - res.window_mean(corr)
@@ -1915,7 +1926,52 @@ def validate_model(rec: Recording, *, params_after: Mapping, params_before: Mapp
         out[f"attitude_error_{tag}_deg"] = attitude_error_deg(res, r, corr)
         out["reference"] = res.kind
         out["n_windows"] = res.m
+        if lines and res.kind in ("rate", "attitude"):
+            sample[tag] = _sample_residual(res.kind, r, corr)
     out["bias"] = "re-estimated on this recording (turn-on bias)" if refit_bias else "transferred"
+    if len(sample) == 2:
+        out["periodic"] = _line_validation(sample, lines)
+    return out
+
+
+def _periodic_raw(t: np.ndarray, per: Mapping) -> np.ndarray:
+    """Σ a_cos·cos(2πft) + a_sin·sin(2πft) of ``periodic[f]`` parameter sets, (N, 3) rad/s."""
+    c = np.zeros((t.shape[0], 3))
+    for name, pd in per.items():
+        f = float(S.parse_family(name)[1])
+        ph = 2 * np.pi * f * np.asarray(t, float)
+        c += np.outer(np.cos(ph), np.asarray(pd["a_cos_rad_s"], float)) + np.outer(
+            np.sin(ph), np.asarray(pd["a_sin_rad_s"], float))
+    return c
+
+
+def _sample_residual(kind: str, rec: Recording, corr: np.ndarray):
+    """Sample-level residual (t, e (n, 3), valid (n,)) of a corrected gyro against the rate
+    reference or the differentiated attitude reference."""
+    g = rec.gyro_rad_s - corr
+    if kind == "rate":
+        e = g - rec.ref_rate_rad_s
+        return rec.t_s, e, np.all(np.isfinite(e), axis=1)
+    e, _, ok = rate_error_vs_attitude(rec.t_s, rec.ref_quat_wxyz, g)
+    return rec.t_s, e, ok
+
+
+def _line_validation(sample: dict, lines: Sequence[str]) -> list[dict]:
+    """Each periodic term on the validation recording: the line's amplitude in the
+    sample-level residual before its removal (the model without the loop's additions) and
+    after (the final model), each with its least-squares standard error (white-noise OLS at
+    that frequency: the local PSD is what the F-test already judged smooth)."""
+    out = []
+    for name in lines:
+        f = float(S.parse_family(name)[1])
+        row = {"effect": name, "frequency_hz": f}
+        for tag in ("before", "after"):
+            t, e, ok = sample[tag]
+            coef, se = S.fit_sinusoid(e[ok], t[ok], f)
+            row[f"amplitude_{tag}_rad_s"] = [float(np.hypot(coef[0, i], coef[1, i])) for i in range(3)]
+            row[f"amplitude_std_error_{tag}_rad_s"] = [float(np.hypot(se[0, i], se[1, i]) / np.sqrt(2))
+                                                       for i in range(3)]
+        out.append(row)
     return out
 
 

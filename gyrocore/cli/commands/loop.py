@@ -103,7 +103,15 @@ def validation_text(v: dict) -> str:
     return (f"validation on {v['file']} ({v['reference']}, {v['n_windows']} windows; bias {v['bias']}): "
             f"residual RMS {_fmt(v['residual_rms_before_rad_s'], '', D)} (declared model) -> "
             f"{_fmt(v['residual_rms_after_rad_s'], ' deg/s', D)} (final model); attitude error "
-            f"{_fmt(v['attitude_error_before_deg'])} -> {_fmt(v['attitude_error_after_deg'], ' deg')}")
+            f"{_fmt(v['attitude_error_before_deg'])} -> {_fmt(v['attitude_error_after_deg'], ' deg')}"
+            + "".join(_line_validation_text(p) for p in v.get("periodic", ())))
+
+
+def _line_validation_text(p: dict) -> str:
+    D = 180.0 / math.pi
+    i = max(range(3), key=lambda k: p["amplitude_before_rad_s"][k])
+    return (f"; {p['effect']} on {'xyz'[i]}: sample-level line amplitude {p['amplitude_before_rad_s'][i] * D:.4g} -> "
+            f"{p['amplitude_after_rad_s'][i] * D:.4g} ± {p['amplitude_std_error_after_rad_s'][i] * D:.2g} deg/s")
 
 
 @click.command("loop")
