@@ -17,7 +17,7 @@ tested. (2|μ̂|²ΣU²/(S fs/2) is χ²₂(λ) per segment with λ = A²ΣU²/(
 segments, λ = z².)
 
 Command: ``python -m experiments.optical_lines --seeds 20`` (a table of described lines per
-seed); docs/loop.md §6.
+seed; ``--null``: no line, what the loop reports); docs/loop.md §6.
 """
 
 from __future__ import annotations
@@ -176,7 +176,20 @@ def main(argv=None) -> None:
     ap.add_argument("--seed-start", type=int, default=0)
     ap.add_argument("--z-min", type=float, default=6.0)
     ap.add_argument("--z-max", type=float, default=16.0)
+    ap.add_argument("--null", action="store_true", help="no line: print what the loop reports on each seed")
     a = ap.parse_args(argv)
+    if a.null:
+        from gyrocore.loop import run_loop
+
+        print("seed reported strongest_sample_line(axis,Hz,log10p) threshold_log10")
+        for s in range(a.seed_start, a.seed_start + a.seeds):
+            r = run_loop(optical_recording(seed=s), declared=["bias", "time_offset"], candidates=["bias_ramp"])
+            per = [p for p in r.open_search.get("periodic", []) if p.get("level") == "sample"]
+            best = min(per, key=lambda p: p["log10_p"]) if per else None
+            print(s, ",".join(u.effect + "@" + u.axis for u in r.unexplained) + ",".join(x.effect for x in r.found)
+                  or "-", (best["axis"], round(best["frequency_hz"], 3), round(best["log10_p"], 2)) if best else "-",
+                  round(float(np.log10(best["threshold"])), 2) if best else "-", flush=True)
+        return
     print("seed axis f_hz amp_deg_s z described f_found_hz others")
     for s in range(a.seed_start, a.seed_start + a.seeds):
         tr = trial(s, z_range=(a.z_min, a.z_max))
