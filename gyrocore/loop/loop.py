@@ -1487,6 +1487,10 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
     # against an attitude reference both the sample level (differentiated reference) and the
     # window level (below the sample level's lowest frequency) are searched: half of α each
     both = res.kind == "attitude" and ser is not None and ser[0].shape[0] >= 256
+    if res.kind == "attitude" and can_hold and not both:
+        open_last["periodic_sample_level"] = (
+            "not run: the reference attitude is not on the gyro's rows (sampled more slowly: the gyro's lines above "
+            "its Nyquist frequency would alias) or has no gap-free run of 512 samples; window level only")
     thr_sample = thr_line / 2 if both else thr_line
     if ser is not None and ser[0].shape[0] >= 256:
         x, tt, fs, mot, level, _ = ser[:6]

@@ -137,3 +137,16 @@ def test_null_optical_recording_reports_no_line():
 def test_taper_efficiency_is_near_one():
     # ΣU_k(0)² over the 7 tapers of NW = 4 captures nearly all of a constant's energy
     assert 0.95 < taper_efficiency(2048) <= 1.0
+
+
+def test_reference_slower_than_the_gyro_is_not_differentiated_against_it():
+    # the reference on every 4th row only (a 60-Hz tracker beside a 240-Hz gyro): the sample
+    # level is not run (aliasing), the window level is, and the JSON says why
+    from dataclasses import replace
+
+    rec = optical_recording(seed=2, line_axis=0, line_hz=40.0, line_amp_rad_s=0.05)
+    q = rec.ref_quat_wxyz.copy()
+    q[np.arange(rec.n) % 4 != 0] = np.nan
+    r = run_loop(replace(rec, ref_quat_wxyz=q), declared=["bias", "time_offset"], candidates=["bias_ramp"])
+    assert "not run" in r.open_search["periodic_sample_level"]
+    assert not [p for p in r.open_search.get("periodic", []) if p.get("level") == "sample"]
