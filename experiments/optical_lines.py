@@ -29,7 +29,7 @@ import numpy as np
 from scipy import signal
 
 from gyrocore.attitude import integrate_gyro
-from gyrocore.recording import Recording
+from gyrocore.data.recording import Recording
 
 DEG = np.pi / 180.0
 
@@ -146,8 +146,8 @@ def trial(seed: int, *, z_range=(6.0, 16.0), duration_s: float = 60.0, declared=
     """One seed: a gyro line at a frequency in [20, 80] Hz of strength z ∈ ``z_range``
     (drawn), run through the loop (declared ``bias``, ``time_offset``: the point-sampled gyro
     leads the reference's interval-mean rate by half a frame)."""
-    from gyrocore.loop import ATTITUDE_LINE_SEGMENTS, run_loop
-    from gyrocore.search import even_segments
+    from gyrocore.loop.loop import ATTITUDE_LINE_SEGMENTS, run_loop
+    from gyrocore.loop.search import even_segments
 
     rng = np.random.default_rng([seed, 25])
     axis = int(rng.integers(0, 3))
@@ -179,7 +179,7 @@ def main(argv=None) -> None:
     ap.add_argument("--null", action="store_true", help="no line: print what the loop reports on each seed")
     a = ap.parse_args(argv)
     if a.null:
-        from gyrocore.loop import run_loop
+        from gyrocore.loop.loop import run_loop
 
         print("seed reported strongest_sample_line(axis,Hz,log10p) threshold_log10")
         for s in range(a.seed_start, a.seed_start + a.seeds):

@@ -14,9 +14,9 @@ from experiments.optical_lines import (
     taper_efficiency,
     trial,
 )
-from gyrocore import search as S
+from gyrocore.loop import search as S
 from gyrocore.attitude import attitude_rate, integrate_gyro, rate_error_vs_attitude
-from gyrocore.loop import _advance, _attitude_line_series, run_loop, split_halves, validate_model
+from gyrocore.loop.loop import _advance, _attitude_line_series, run_loop, split_halves, validate_model
 
 
 def test_attitude_rate_inverts_the_integration_and_skips_dropouts():
@@ -95,7 +95,7 @@ def test_line_amplitude_removed_and_scored_on_the_held_out_half():
     sA = amp / line_z(amp, f, u.evidence["segments"]["n"] * u.evidence["segments"]["length"] / RATE_HZ,
                       u.evidence["segments"]["length"])
     assert abs(u.fields["amplitude_rad_s"] - amp) < 5 * sA
-    from gyrocore.loop import loop_parameters
+    from gyrocore.loop.loop import loop_parameters
 
     p_after, _ = loop_parameters(r, first)
     base = run_loop(first, declared=["bias", "time_offset"], candidates=[], open_search=False)
