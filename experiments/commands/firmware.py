@@ -94,7 +94,7 @@ def replay_cmd(file, set_pairs, settings_from, start_s, duration_s, out, as_json
                       f"rotors (its notches faded out)", stacklevel=1)
     fb = ensure_binary()
     res = replay_gyro(fb.binary, inp.gyro_S_rad_s, settings=strict, lenient_settings=lenient,
-                      rotor_rad_s=inp.rotor_rad_s)
+                      rotor_rad_s=inp.rotor_rad_s, throttle_us=inp.throttle_us)
     label = f"{fb.firmware} {fb.version}"
     rec = replay_recording(res, inp, firmware_label=label, patch_sha256=fb.patch_sha256)
     write_recording(rec, out)
@@ -104,6 +104,7 @@ def replay_cmd(file, set_pairs, settings_from, start_s, duration_s, out, as_json
         "settings": list(res.settings), "settings_sources": sources, "skipped_settings": list(res.skipped_settings),
         "notes": list(notes), "source": inp.source, "resample": inp.resample, "rate_hz": 8000.0,
         "n_samples": int(inp.t_s.size), "rpm_input": inp.rotor_rad_s is not None,
+        "armed_with_throttle": inp.throttle_us is not None,
         "rms_in_rad_s": rms(res.fw_gyro_unfiltered_S_rad_s), "rms_fw_gyro_rad_s": rms(res.fw_gyro_S_rad_s),
         "rms_fw_dterm_rad_s": rms(res.fw_dterm_S_rad_s), "boot_sim_s": res.boot.sim_s,
     }

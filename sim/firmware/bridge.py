@@ -601,8 +601,19 @@ class BetaflightSITL:
         return OUT_STRUCT.unpack_from(self._rbuf)
 
     def run_open_loop(self, gyro_lsb: np.ndarray, motor_hz: np.ndarray | None = None,
-                      rc: Sequence[int] | None = None) -> np.ndarray:
-        """Feed N gyro samples (int16 LSB, firmware axes) one per step; return the N raw replies.
+                      rc: Sequence[int] | None = None, throttle_us: np.ndarray | None = None) -> np.ndarray:
+        """Feed N gyro samples (int16 LSB) one per step; return the N raw replies.
+
+        Parameters
+        ----------
+        gyro_lsb : (N, 3) int16
+        motor_hz : (N, 4) or None
+            Rotor frequencies, Hz, Betaflight motor order (the RPM filter's input).
+        rc : (throttle, roll, pitch, yaw) µs or None
+            Sticks for the whole run.
+        throttle_us : (N,) or None
+            Throttle stick per step, µs (overrides ``rc``'s throttle): the dynamic LPFs and TPA
+            follow it when armed.
 
         Returns
         -------
@@ -618,9 +629,19 @@ class BetaflightSITL:
         gl = g.tolist()
         hl = hz.tolist()
         acc, q, ch = (0, 0, 256), (1.0, 0.0, 0.0, 0.0), self._rc
-        for i in range(n):
-            self._exchange(gl[i], acc, q, hl[i], ch)
-            ob[i] = self._rbuf
+        if throttle_us is None:
+            for i in range(n):
+                self._exchange(gl[i], acc, q, hl[i], ch)
+                ob[i] = self._rbuf
+        else:
+            thr = np.clip(np.rint(np.asarray(throttle_us, float)), 1000, 2000).astype(int).tolist()
+            if len(thr) != n:
+                raise GyroInputError(f"throttle_us has {len(thr)} values for {n} samples")
+            for i in range(n):
+                ch[2] = thr[i]
+                self._exchange(gl[i], acc, q, hl[i], ch)
+                ob[i] = self._rbuf
+            self._rc_last = ()
         return out
 
     def _set_rc(self, rc: Sequence[int]) -> None:

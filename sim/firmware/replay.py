@@ -72,9 +72,15 @@ class ReplayResult:
     skipped_settings: tuple[str, ...]
 
 
+#: Added to a replay that follows a throttle (armed): the open-loop gyro is not the vehicle's
+#: response to the motors, which the runaway-takeoff guard would read as a flyaway and disarm.
+REPLAY_ARMED_SETTINGS = ("set runaway_takeoff_prevention = OFF",)
+
+
 def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str] = (),
                 lenient_settings: Sequence[str] = (), rotor_rad_s: np.ndarray | None = None,
-                skip_unknown: bool = False, step_timeout_s: float = 5.0) -> ReplayResult:
+                throttle_us: np.ndarray | None = None, skip_unknown: bool = False,
+                step_timeout_s: float = 5.0) -> ReplayResult:
     """Run a gyro record, already at the loop rate, through the firmware's filters.
 
     Parameters
@@ -89,6 +95,11 @@ def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str
         Lines from a diff or log header, applied first; names this firmware lacks are skipped.
     rotor_rad_s : ndarray (N, 4) or None
         Rotor speeds per sample, Betaflight motor order, rad/s (the RPM filter's input).
+    throttle_us : ndarray (N,) or None
+        Throttle stick per sample, µs. Given: the firmware is armed (throttle low) after its
+        calibration and the stick follows it, so the throttle-dependent parts (dynamic LPFs,
+        TPA, anti-gravity) move as in flight; None: it stays disarmed (the dynamic LPFs sit at
+        their minimum-throttle cutoffs).
     skip_unknown : bool
         Skip settings this firmware does not have (one warning) instead of failing.
 
@@ -108,10 +119,16 @@ def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str
             raise GyroInputError(f"rotor speeds must have shape ({g.shape[0]}, 4), got {r.shape}")
         hz = np.abs(r) / (2 * math.pi)
     lsb = gyro_to_lsb(g)
+    armed = throttle_us is not None
+    if armed:
+        thr = np.asarray(throttle_us, float)
+        if thr.shape != (g.shape[0],) or not np.all(np.isfinite(thr)):
+            raise GyroInputError(f"throttle must have shape ({g.shape[0]},) and be finite")
+        settings = (*REPLAY_ARMED_SETTINGS, *settings)
     with BetaflightSITL(binary, settings, step_timeout_s=step_timeout_s, skip_unknown=skip_unknown,
                         lenient_settings=lenient_settings) as fc:
-        boot = fc.boot(arm=False)
-        raw = fc.run_open_loop(lsb, motor_hz=hz)
+        boot = fc.boot(arm=armed)
+        raw = fc.run_open_loop(lsb, motor_hz=hz, throttle_us=throttle_us)
         skipped = tuple(fc.skipped_settings)
     cols = replies_to_arrays(raw)
     return ReplayResult(gyro_lsb=lsb, fw_gyro_S_rad_s=cols["fw_gyro_S_rad_s"],
@@ -174,6 +191,7 @@ class ReplayInput:
     t_s: np.ndarray
     gyro_S_rad_s: np.ndarray
     rotor_rad_s: np.ndarray | None
+    throttle_us: np.ndarray | None
     resample: dict
     source: str
     meta: dict
@@ -209,6 +227,7 @@ def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: floa
         rec = read_recording(path)
         g = rec.gyro_rad_s
         source = f"{Path(path).name}: gyro_*_rad_s"
+    thr = rec.extra.get("rc_throttle")
     rot = None
     if all(f"rotor_hz_{i}" in rec.extra for i in range(4)):
         rot = np.column_stack([rec.extra[f"rotor_hz_{i}"] for i in range(4)]) * (2 * math.pi)
@@ -229,9 +248,14 @@ def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: floa
     if rot is not None:
         # rotor speeds are slow, already-smoothed telemetry: linear interpolation onto the loop grid
         rot_out = np.column_stack([np.interp(t_out, rec.t_s, rot[:, i]) for i in range(4)])
+    thr_out = None
+    if thr is not None and np.all(np.isfinite(thr)):
+        # the throttle stick (1000-2000 us), sample-and-hold like an RC link: previous value
+        idx = np.clip(np.searchsorted(rec.t_s, t_out, side="right") - 1, 0, rec.t_s.size - 1)
+        thr_out = np.asarray(thr, float)[idx]
     if start_s or duration_s is not None:
         info = {**info, "window_s": [float(ts[0] - rec.t_s[0]), float(ts[-1] - rec.t_s[0])]}
-    return ReplayInput(t_out, g_out, rot_out, info, source, dict(rec.meta))
+    return ReplayInput(t_out, g_out, rot_out, thr_out, info, source, dict(rec.meta))
 
 
 def replay_recording(result: ReplayResult, inp: ReplayInput, *, firmware_label: str, patch_sha256: str):
@@ -248,11 +272,14 @@ def replay_recording(result: ReplayResult, inp: ReplayInput, *, firmware_label: 
     if inp.rotor_rad_s is not None:
         for i in range(4):
             extra[f"rotor_hz_{i}"] = inp.rotor_rad_s[:, i] / (2 * math.pi)
+    if inp.throttle_us is not None:
+        extra["rc_throttle"] = inp.throttle_us
     meta = {
         "firmware": firmware_label,
         "firmware_settings": "; ".join(result.settings),
         "firmware_patch_sha256": patch_sha256,
-        "firmware_replay": ("open loop, disarmed: one firmware loop per row at 8 kHz; fw_gyro = gyro.gyroADCf, "
+        "firmware_replay": (("open loop, armed, throttle stick from rc_throttle" if inp.throttle_us is not None
+                             else "open loop, disarmed") + ": one firmware loop per row at 8 kHz; fw_gyro = gyro.gyroADCf, "
                             "fw_gyro_unfiltered = gyro.gyroADC (the int16 the firmware read), fw_dterm = the gyro "
                             "after the D-term filters; sensor frame, rad/s"),
         "resample": json.dumps({k: v for k, v in inp.resample.items()}),

@@ -74,6 +74,7 @@ def test_replay_of_a_real_log_uses_its_header(firmware_binary, shared_data, tmp_
     assert "set gyro_lpf1_dyn_min_hz = 240" in d["settings"] and "set dyn_notch_count = 1" in d["settings"]
     assert d["skipped_settings"] == []
     assert "no rotor speeds" in err  # 4.2 debug GYRO_SCALED log: no eRPM for the RPM filter
+    assert d["armed_with_throttle"]  # the log's throttle stick drives the dynamic LPFs
     assert d["resample"]["window_s"][0] == pytest.approx(5.0, abs=0.002) and 7900 < d["n_samples"] < 8100
 
 
@@ -84,3 +85,19 @@ def test_resample_to_loop_rate_is_rational_polyphase():
     assert (info["up"], info["down"]) == (8, 1) and y.shape == (8000, 1)
     # a 10 Hz sine is reproduced between the input samples (away from the record ends)
     assert np.max(np.abs(y[400:-400, 0] - np.sin(2 * np.pi * 10 * t2[400:-400]))) < 1e-3
+
+
+def test_replay_armed_follows_the_throttle(firmware_binary):
+    # dynamic gyro LPF 100-500 Hz: at full throttle its cutoff is 5x higher than at idle, so more
+    # of a white-noise input passes (disarmed it would sit at 100 Hz whatever the stick)
+    from sim.firmware.replay import replay_gyro
+
+    w = np.random.default_rng(3).normal(0.0, 1.0, (4000, 3))
+    off = ("set gyro_lpf2_static_hz = 0", "set dyn_notch_count = 0", "set rpm_filter_harmonics = 0",
+           "set gyro_lpf1_dyn_min_hz = 100", "set gyro_lpf1_dyn_max_hz = 500")
+    rms = {}
+    for thr in (1000.0, 2000.0):
+        r = replay_gyro(firmware_binary, w, settings=off, throttle_us=np.full(w.shape[0], thr))
+        assert r.boot.armed
+        rms[thr] = float(np.std(r.fw_gyro_S_rad_s[800:, 0]))
+    assert rms[2000.0] > 1.5 * rms[1000.0], rms
