@@ -45,28 +45,29 @@ SETTLE_S = 1.0
 FLIGHT_BAND_HZ = 20.0
 
 
-def _gyro(preset: str, seed: int):
+def _gyro(preset: str, seed: int, rate_hz: float = GYRO_RATE_HZ):
     from sim.gyro import SyntheticGyro
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return SyntheticGyro(preset, rate_hz=GYRO_RATE_HZ, seed=seed)
+        return SyntheticGyro(preset, rate_hz=rate_hz, seed=seed)
 
 
-def _fly(preset: str | None, seed: int, kind: str, fc_hz: float, duration_s: float, steps: bool):
+def _fly(preset: str | None, seed: int, kind: str, fc_hz: float, duration_s: float, steps: bool,
+         vehicle: str = "f450", rate_hz: float = GYRO_RATE_HZ):
     """One closed-loop flight (``preset=None``: a perfect gyro, no filter)."""
     from sim.controller import small_steps
     from sim.quadrotor import PerfectGyro, fly_hover
 
-    n = int(math.floor(duration_s * GYRO_RATE_HZ + 1e-9))
+    n = int(math.floor(duration_s * rate_hz + 1e-9))
     if preset is None:
-        gyro, b0, flt = PerfectGyro(), np.zeros(3), make_filter("none", 30.0, GYRO_RATE_HZ)
+        gyro, b0, flt = PerfectGyro(), np.zeros(3), make_filter("none", 30.0, rate_hz)
     else:
-        g = _gyro(preset, seed)
-        gyro, b0, flt = g.stream(n), g.power_up_bias(0), make_filter(kind, fc_hz, GYRO_RATE_HZ)
+        g = _gyro(preset, seed, rate_hz)
+        gyro, b0, flt = g.stream(n), g.power_up_bias(0), make_filter(kind, fc_hz, rate_hz)
     truth, log = fly_hover(duration_s=duration_s, gyro=gyro, pipeline=Pipeline([AffineCorrection(b0), flt]),
                            manoeuvres=small_steps(duration_s) if steps else (), vibration=True, seed=seed,
-                           gyro_rate_hz=GYRO_RATE_HZ)
+                           gyro_rate_hz=rate_hz, vehicle=vehicle)
     return truth, log, b0, flt
 
 
@@ -74,16 +75,17 @@ def _crashed(log) -> bool:
     return (not np.all(np.isfinite(log.q_WB_wxyz))) or float(np.max(log.tilt_rad())) > math.radians(60)
 
 
-def fly_config(preset: str, seed: int, kind: str, fc_hz: float, duration_s: float, ref_steps=None):
+def fly_config(preset: str, seed: int, kind: str, fc_hz: float, duration_s: float, ref_steps=None, *,
+               vehicle: str = "f450", rate_hz: float = GYRO_RATE_HZ):
     """Closed-loop metrics of one configuration: a hover flight and a step flight.
 
     Returns (metrics dict, step-flight Truth, step-flight FlightLog, true power-up bias).
     ``ref_steps`` is the FlightLog of the perfect-gyro step flight (same rotor phases) for the
-    excess tracking error.
+    excess tracking error. ``vehicle``/``rate_hz``: the airframe and the gyro (= rate loop) rate.
     """
     nan = float("nan")
-    _, hov, _, flt = _fly(preset, seed, kind, fc_hz, duration_s, steps=False)
-    truth, stp, b0, _ = _fly(preset, seed, kind, fc_hz, duration_s, steps=True)
+    _, hov, _, flt = _fly(preset, seed, kind, fc_hz, duration_s, steps=False, vehicle=vehicle, rate_hz=rate_hz)
+    truth, stp, b0, _ = _fly(preset, seed, kind, fc_hz, duration_s, steps=True, vehicle=vehicle, rate_hz=rate_hz)
     keep_h = hov.t_s >= SETTLE_S
     keep_s = stp.t_s >= SETTLE_S
     ok_h, ok_s = not _crashed(hov), not _crashed(stp)
@@ -158,8 +160,22 @@ def _median(rows, key):
 
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
         presets: Sequence[str] | None = None, duration_s: float | None = None, seed: int = 0,
-        **_ignored) -> ExperimentResult:
-    """Sweep filter type × cutoff per sensor preset; write plots into ``out_dir``; return the section."""
+        firmware: str | None = None, **options) -> ExperimentResult:
+    """Sweep filter type × cutoff per sensor preset; write plots into ``out_dir``; return the section.
+
+    ``firmware="betaflight"``: the grid flown by the firmware in the loop, beside our controller's
+    verdict on the same airframe (:func:`experiments.firmware_cutoffs.run`; ``options`` go there:
+    ``vehicle``, ``kinds``, ``cutoffs``, ``scheduler``, ``binary``).
+    """
+    if firmware is not None:
+        if firmware != "betaflight":
+            from gyrocore.errors import GyroInputError
+
+            raise GyroInputError(f"--firmware {firmware!r}: the firmware in the loop is betaflight")
+        from .firmware_cutoffs import run as run_firmware
+
+        return run_firmware(out_dir=out_dir, quick=quick, seeds=seeds, workers=workers, presets=presets,
+                            duration_s=duration_s, seed=seed, **options)
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     kinds = ("article", "pt2") if quick else KINDS

@@ -29,6 +29,7 @@ import array
 import inspect
 import math
 from dataclasses import dataclass
+from math import cos, sin
 from typing import Callable, Iterator, Protocol, Sequence
 
 import mujoco
@@ -52,6 +53,7 @@ __all__ = [
     "fly_hover",
     "load_quadrotor_model",
     "hover_bare_step_rate",
+    "rotor_forces",
     "QUICK_HOVER_S",
     "TAKEOFF_CLIMB_S",
 ]
@@ -292,6 +294,34 @@ def _set_couple_imbalance(model, hub_moment_kg_m2: float, ss: np.random.SeedSequ
         model.body_mass[a] = m
         model.body_mass[b] = m
 
+
+
+def rotor_forces(phi: list, om: list, rotor_k) -> tuple:
+    """Rotor forces from the rotors' state: thrust_1..4 then vib2_i_x, vib2_i_y (the model's
+    first 12 actuators), for the current rotor angles ``phi`` (rad) and speeds ``om`` (rad/s).
+
+    Thrust c_T w^2 (1 + r cos(2 phi + psi_b)) (blade-pass ripple); the 2nd-harmonic force
+    h2 u w^2 at angle phi + psi_h in the rotor frame, i.e. turning at 2 Omega in the body frame.
+    ``rotor_k``: per rotor (c_T, r cos psi_b, r sin psi_b, h2 u cos psi_h, h2 u sin psi_h)
+    (:attr:`HoverFlight.rotor_k`). Unrolled over the four rotors (this runs every physics step;
+    the compiled kernel ``sim._fast.aero`` is the same arithmetic).
+    """
+    (k_0, k_1, k_2, k_3) = rotor_k
+    p0, p1, p2, p3 = phi
+    w0, w1, w2, w3 = om
+    c0 = cos(p0); s0 = sin(p0); c1 = cos(p1); s1 = sin(p1)  # noqa: E702
+    c2 = cos(p2); s2 = sin(p2); c3 = cos(p3); s3 = sin(p3)  # noqa: E702
+    q0 = w0 * w0; q1 = w1 * w1; q2 = w2 * w2; q3 = w3 * w3  # noqa: E702
+    return (
+        k_0[0] * q0 * (1.0 + k_0[1] * (c0 * c0 - s0 * s0) - k_0[2] * 2.0 * s0 * c0),
+        k_1[0] * q1 * (1.0 + k_1[1] * (c1 * c1 - s1 * s1) - k_1[2] * 2.0 * s1 * c1),
+        k_2[0] * q2 * (1.0 + k_2[1] * (c2 * c2 - s2 * s2) - k_2[2] * 2.0 * s2 * c2),
+        k_3[0] * q3 * (1.0 + k_3[1] * (c3 * c3 - s3 * s3) - k_3[2] * 2.0 * s3 * c3),
+        q0 * (c0 * k_0[3] - s0 * k_0[4]), q0 * (s0 * k_0[3] + c0 * k_0[4]),
+        q1 * (c1 * k_1[3] - s1 * k_1[4]), q1 * (s1 * k_1[3] + c1 * k_1[4]),
+        q2 * (c2 * k_2[3] - s2 * k_2[4]), q2 * (s2 * k_2[3] + c2 * k_2[4]),
+        q3 * (c3 * k_3[3] - s3 * k_3[4]), q3 * (s3 * k_3[3] + c3 * k_3[4]),
+    )
 
 
 class HoverFlight:
@@ -634,31 +664,12 @@ class HoverFlight:
         rq0, rv0 = self.rq0, self.rv0
         rq1, rv1 = rq0 + 4, rv0 + 4
         step = mujoco.mj_step
-        cos, sin, sqrt = math.cos, math.sin, math.sqrt
-        (k_0, k_1, k_2, k_3) = self.rotor_k
+        sqrt = math.sqrt
+        rotor_k = self.rotor_k
 
         def rotor_aero(om: list) -> tuple:
-            """Rotor forces from the rotors' state now: thrust_1..4 then vib2_i_x, vib2_i_y.
-
-            Thrust c_T w^2 (1 + r cos(2 phi + psi_b)); the 2nd-harmonic force h2 u w^2 at angle
-            phi + psi_h in the rotor frame, i.e. turning at 2 Omega in the body frame. Unrolled over
-            the four rotors (this runs every physics step).
-            """
-            p0, p1, p2, p3 = qpos[rq0:rq1].tolist()
-            w0, w1, w2, w3 = om
-            c0 = cos(p0); s0 = sin(p0); c1 = cos(p1); s1 = sin(p1)  # noqa: E702
-            c2 = cos(p2); s2 = sin(p2); c3 = cos(p3); s3 = sin(p3)  # noqa: E702
-            q0 = w0 * w0; q1 = w1 * w1; q2 = w2 * w2; q3 = w3 * w3  # noqa: E702
-            return (
-                k_0[0] * q0 * (1.0 + k_0[1] * (c0 * c0 - s0 * s0) - k_0[2] * 2.0 * s0 * c0),
-                k_1[0] * q1 * (1.0 + k_1[1] * (c1 * c1 - s1 * s1) - k_1[2] * 2.0 * s1 * c1),
-                k_2[0] * q2 * (1.0 + k_2[1] * (c2 * c2 - s2 * s2) - k_2[2] * 2.0 * s2 * c2),
-                k_3[0] * q3 * (1.0 + k_3[1] * (c3 * c3 - s3 * s3) - k_3[2] * 2.0 * s3 * c3),
-                q0 * (c0 * k_0[3] - s0 * k_0[4]), q0 * (s0 * k_0[3] + c0 * k_0[4]),
-                q1 * (c1 * k_1[3] - s1 * k_1[4]), q1 * (s1 * k_1[3] + c1 * k_1[4]),
-                q2 * (c2 * k_2[3] - s2 * k_2[4]), q2 * (s2 * k_2[3] + c2 * k_2[4]),
-                q3 * (c3 * k_3[3] - s3 * k_3[4]), q3 * (s3 * k_3[3] + c3 * k_3[4]),
-            )
+            """Rotor forces from the rotors' state now (:func:`rotor_forces`)."""
+            return rotor_forces(qpos[rq0:rq1].tolist(), om, rotor_k)
 
         s = self.sens
         s_gyro, s_acc, s_q, s_pos, s_vel = s["gyro"], s["acc"], s["quat"], s["pos"], s["vel"]

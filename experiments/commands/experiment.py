@@ -23,8 +23,14 @@ __all__ = ["command"]
               help="protocol only: the flight's noise model — a JSON of `gyroharness noise --json`, a parameter file "
                    "with a noise_model, or a long still recording (CSV/Parquet) to identify it from "
                    "(default: a simulated still recording of the design unit, 4x the flight).")
+@click.option("--firmware", type=click.Choice(["betaflight"]), default=None,
+              help="cutoffs only: fly the grid with the firmware in the loop (lockstep SITL; `gyroharness firmware "
+                   "build` first), beside our controller's verdict on the same airframe.")
+@click.option("--vehicle", default=None, help="cutoffs --firmware: airframe (default racing5, Betaflight's defaults "
+                                              "are a 5-inch tune).")
+@click.option("--scheduler", default=None, help="cutoffs --firmware: a Dask scheduler address for the Monte Carlo.")
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
-def command(name, out_dir, quick, seeds, workers, force, noise, as_json):
+def command(name, out_dir, quick, seeds, workers, force, noise, firmware, vehicle, scheduler, as_json):
     """Run one experiment NAME (see `gyroharness run --help`; names: article, ablation, cutoffs, close_the_loop,
     twin, protocol).
 
@@ -42,6 +48,18 @@ def command(name, out_dir, quick, seeds, workers, force, noise, as_json):
         from experiments.protocol import load_noise
 
         extra["noise"] = load_noise(noise)  # bad files fail here, before any simulation
+    if firmware is not None or vehicle is not None or scheduler is not None:
+        if name != "cutoffs" or firmware is None:
+            raise GyroInputError("--firmware (with --vehicle, --scheduler) applies to the cutoffs experiment only")
+        from sim.firmware import ensure_binary
+        from sim.vehicles import get_vehicle
+
+        extra["firmware"] = firmware
+        if vehicle is not None:
+            extra["vehicle"] = get_vehicle(vehicle).name
+        if scheduler is not None:
+            extra["scheduler"] = scheduler
+        extra["binary"] = str(ensure_binary())  # a missing build is one error line before the report starts
     t0 = time.perf_counter()
     path, results = build_report([(name, run)], out_dir or f"out/{name}", force=force, quick=quick, seeds=seeds,
                                  workers=workers, title=f"gyroharness experiment {name}", **extra)

@@ -1,0 +1,311 @@
+"""Experiment ``cutoffs`` flown by the firmware (``gyroharness experiment cutoffs --firmware betaflight``).
+
+The grid of :mod:`experiments.cutoffs` (filter kind x cutoff per sensor preset, plus no filter),
+each cell flown twice on the same airframe, gyro instance and rotor phases:
+
+* **firmware**: Betaflight in lockstep (:mod:`sim.fw_flight`): the filter under test is its
+  ``gyro_lpf1`` (``article`` -> PT1, the article's first-order filter; ``pt2`` -> PT2, ``pt3`` ->
+  PT3, ``biquad`` -> BIQUAD; ``butter4`` has no firmware equivalent and is not flown), every other
+  gyro filter off (``gyro_lpf2``, dynamic LPF, dynamic notch, RPM filter), the D-term filters, PIDs,
+  feed-forward and mixer at the firmware's defaults. One flight of the ``steps`` scenario per cell:
+  its steady hover (before the rate pulses) gives the *hover error* and the *motor noise* (RMS of
+  the four motor outputs above 20 Hz, % of full output); the rate pulses give the *step tracking*
+  (RMS attitude error against the pilot's set point), the *excess* (RMS angle between this flight
+  and the same flight with a perfect gyro and no gyro filter: what the gyro and its filter cost the
+  attitude), the measured *delay* of the firmware's filtered gyro behind the true rate (0.2-15 Hz)
+  and the rate step response (rise 10-90 %, overshoot).
+* **our controller** (:func:`experiments.cutoffs.fly_config`): the project's cascaded controller,
+  same vehicle, same gyro rate, its hover and attitude-step flights, the filter in its pipeline.
+
+Best (both): the quietest motors among the cells whose excess is at most
+:data:`experiments.cutoffs.EXCESS_BUDGET` x the unfiltered cell's. Where the two verdicts differ, the
+section says so in a sentence. Instances: Monte Carlo over seeds (:mod:`experiments.montecarlo`:
+serial, local processes or a Dask cluster), medians over instances.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from gyrocore.errors import GyroInputError
+
+from .cutoffs import CUTOFFS_HZ, EXCESS_BUDGET, KINDS, PRESETS
+from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
+
+__all__ = ["FW_LPF_TYPE", "BASE_SETTINGS", "cell_settings", "fw_cell_task", "ours_cell_task", "run", "DEFAULT_VEHICLE"]
+
+#: the grid's filter kinds as the firmware's gyro_lpf1_type
+FW_LPF_TYPE = {"article": "PT1", "pt2": "PT2", "pt3": "PT3", "biquad": "BIQUAD"}
+#: every gyro filter but the one under test off (the D-term chain stays at the firmware's defaults)
+BASE_SETTINGS = (("gyro_lpf2_static_hz", "0"), ("gyro_lpf1_dyn_min_hz", "0"), ("dyn_notch_count", "0"),
+                 ("rpm_filter_harmonics", "0"), ("gyro_notch1_hz", "0"), ("gyro_notch2_hz", "0"))
+#: Betaflight's defaults are a 5-inch tune
+DEFAULT_VEHICLE = "racing5"
+LOOP_RATE_HZ = 8000.0
+SETTLE_S = 1.0
+
+
+def cell_settings(kind: str, fc_hz: float) -> list[tuple[str, str]]:
+    """The firmware's settings for one grid cell (``kind = "none"``: no gyro low-pass)."""
+    s = list(BASE_SETTINGS)
+    if kind == "none":
+        return s + [("gyro_lpf1_static_hz", "0")]
+    if kind not in FW_LPF_TYPE:
+        raise GyroInputError(f"filter kind {kind!r} has no firmware gyro_lpf1_type (firmware kinds: {', '.join(FW_LPF_TYPE)})")
+    return s + [("gyro_lpf1_type", FW_LPF_TYPE[kind]), ("gyro_lpf1_static_hz", str(int(round(fc_hz))))]
+
+
+def _cells(kinds, cutoffs):
+    return [("none", float("nan"))] + [(k, float(fc)) for k in kinds for fc in cutoffs]
+
+
+def _label(kind, fc):
+    return "none" if kind == "none" else f"{kind} {fc:g} Hz"
+
+
+def _angle_rms_deg(qa, qb, mask):
+    d = np.abs(np.einsum("ij,ij->i", qa[mask], qb[mask]))
+    return float(np.degrees(np.sqrt(np.mean((2.0 * np.arccos(np.clip(d, 0.0, 1.0))) ** 2))))
+
+
+def _opt(task, name, default=None):
+    return dict(task.options).get(name, default)
+
+
+def fw_cell_task(task):
+    """Monte Carlo task (:mod:`experiments.montecarlo`): every cell of one (preset, instance) flown
+    by the firmware; metrics ``"<cell>|<metric>"``."""
+    with single_thread_blas():
+        return _fw_cells(task)
+
+
+def _fw_cells(task):
+    from experiments.firmware_fly import fly
+    from experiments.montecarlo import TaskResult
+    from sim.fw_flight import FwFlightOptions
+
+    kinds, cutoffs = _opt(task, "kinds"), _opt(task, "cutoffs")
+    vehicle, binary = _opt(task, "vehicle", DEFAULT_VEHICLE), _opt(task, "binary")
+    dur = float(task.duration_s)
+    base = FwFlightOptions(scenario="steps", vehicle=vehicle, duration_s=dur, seed=int(task.seed), sensor=task.sensor,
+                           loop_rate_hz=LOOP_RATE_HZ, settle_s=SETTLE_S)
+    ref, _ = fly(FwFlightOptions(**{**base.__dict__, "sensor": None}), cell_settings("none", 0.0), binary=binary)
+    metrics: dict[str, float] = {}
+    version = ""
+    for kind, fc in _cells(kinds, cutoffs):
+        log, info = fly(base, cell_settings(kind, fc), binary=binary)
+        version = info["firmware"]
+        sc = log.scores(SETTLE_S)
+        lab = _label(kind, fc)
+        after = log.t_s >= SETTLE_S
+        ok = not sc["crashed"] and not ref.crashed()
+        nan = float("nan")
+        m = {
+            "hover_att_rms_deg": sc.get("hover_att_rms_deg", nan) if ok else nan,
+            "motor_noise_pct": 100.0 * sc["motor_noise_above_20hz"] if ok else nan,
+            "step_track_rms_deg": sc.get("step_track_rms_deg", nan) if ok else nan,
+            "excess_deg": _angle_rms_deg(log.q_WB_wxyz, ref.q_WB_wxyz, after) if ok else nan,
+            "delay_ms": sc.get("gyro_delay_ms", nan) if ok else nan,
+            "rise_ms": sc.get("step_rise_ms", nan) if ok else nan,
+            "overshoot_pct": sc.get("step_overshoot_pct", nan) if ok else nan,
+            "dterm_noise": (sc.get("dterm_noise_above_20hz") if ok and sc.get("dterm_noise_above_20hz") is not None
+                            else nan),
+            "crashed": float(not ok),
+        }
+        for k, v in m.items():
+            metrics[f"{lab}|{k}"] = float(v)
+    res = TaskResult.from_task(task, metrics)
+    return res, version
+
+
+def fw_cell_task_result(task):
+    """:func:`fw_cell_task` without the version (the Monte Carlo runner wants a TaskResult)."""
+    return fw_cell_task(task)[0]
+
+
+def ours_cell_task(task):
+    """Monte Carlo task: every cell of one (preset, instance) flown by our controller
+    (:func:`experiments.cutoffs.fly_config`) on the same vehicle and gyro rate."""
+    from experiments.cutoffs import _fly, fly_config
+    from experiments.montecarlo import TaskResult
+
+    kinds, cutoffs = _opt(task, "kinds"), _opt(task, "cutoffs")
+    vehicle = _opt(task, "vehicle", DEFAULT_VEHICLE)
+    dur = float(task.duration_s)
+    with single_thread_blas():
+        _, ref, _, _ = _fly(None, int(task.seed), "none", 30.0, dur, steps=True, vehicle=vehicle, rate_hz=LOOP_RATE_HZ)
+        metrics = {}
+        for kind, fc in _cells(kinds, cutoffs):
+            m, _, _, _ = fly_config(task.sensor, int(task.seed), kind, fc if kind != "none" else 30.0, dur, ref_steps=ref,
+                                    vehicle=vehicle, rate_hz=LOOP_RATE_HZ)
+            for k in ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed"):
+                metrics[f"{_label(kind, fc)}|{k}"] = float(m[k])
+    return TaskResult.from_task(task, metrics)
+
+
+def _medians(results, cells, keys):
+    out = {}
+    for kind, fc in cells:
+        lab = _label(kind, fc)
+        out[lab] = {}
+        for k in keys:
+            v = np.array([r.metrics_dict.get(f"{lab}|{k}", np.nan) for r in results], float)
+            v = v[np.isfinite(v)]
+            out[lab][k] = float(np.median(v)) if v.size else float("nan")
+    return out
+
+
+def _best(stats: dict, noise_key: str):
+    """Quietest motors among the cells whose excess is within the budget (the cutoffs rule)."""
+    lim = EXCESS_BUDGET * stats["none"]["excess_deg"]
+    ok = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim
+          and np.isfinite(v[noise_key])}
+    best = min(ok, key=lambda k: ok[k][noise_key]) if ok else None
+    finite = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"])}
+    least = min(finite, key=lambda k: finite[k]["excess_deg"]) if finite else None
+    return best, least
+
+
+def _disagreement(p, fw_best, ours_best, fw, ours) -> str:
+    if fw_best == ours_best:
+        return f"Both pick **{fw_best}** for {p}."
+    parts = [f"For {p} they disagree: the firmware picks **{fw_best}**, our controller **{ours_best}**."]
+    if fw_best in ours and ours_best in fw:
+        a, b = fw[fw_best], fw[ours_best]
+        parts.append(f" Flown by the firmware, {ours_best} costs excess {b['excess_deg']:.4f}° at motor noise "
+                     f"{b['motor_noise_pct']:.3f} % against {a['excess_deg']:.4f}° / {a['motor_noise_pct']:.3f} % for "
+                     f"{fw_best} (budget {EXCESS_BUDGET * fw['none']['excess_deg']:.4f}°); by our controller "
+                     f"{fw_best} costs {ours[fw_best]['excess_deg']:.4f}° / {ours[fw_best]['motor_noise_n']:.4f} N against "
+                     f"{ours[ours_best]['excess_deg']:.4f}° / {ours[ours_best]['motor_noise_n']:.4f} N "
+                     f"(budget {EXCESS_BUDGET * ours['none']['excess_deg']:.4f}°).")
+    return "".join(parts)
+
+
+def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
+        presets: Sequence[str] | None = None, duration_s: float | None = None, seed: int = 0,
+        vehicle: str = DEFAULT_VEHICLE, kinds: Sequence[str] | None = None, cutoffs: Sequence[float] | None = None,
+        scheduler: str | None = None, binary=None, with_ours: bool = True, **_ignored) -> ExperimentResult:
+    """The cutoffs grid flown by the firmware, beside our controller's verdict (module docstring)."""
+    from experiments.montecarlo import MonteCarloTask, execute, instance_seeds
+    from sim.firmware import ensure_binary
+    from sim.vehicles import get_vehicle
+
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    get_vehicle(vehicle)
+    kinds = tuple(kinds or (("article", "pt2") if quick else tuple(k for k in KINDS if k in FW_LPF_TYPE)))
+    bad = [k for k in kinds if k not in FW_LPF_TYPE]
+    if bad:
+        raise GyroInputError(f"filter kind {bad[0]!r} has no firmware equivalent (firmware kinds: {', '.join(FW_LPF_TYPE)})")
+    cutoffs = tuple(float(c) for c in (cutoffs or ((30.0, 90.0) if quick else CUTOFFS_HZ)))
+    presets = tuple(presets or (PRESETS[:1] if quick else PRESETS))
+    n_inst = seeds or (1 if quick else 2)
+    dur = float(duration_s or (3.0 if quick else 4.0))
+    binary = str(binary or ensure_binary())
+    inst = instance_seeds(seed, n_inst)
+    opts = (("kinds", kinds), ("cutoffs", cutoffs), ("vehicle", vehicle), ("binary", binary))
+    tasks_fw = [MonteCarloTask(index=i, scenario="cutoffs-firmware", sensor=p, instance=j, seed=s, duration_s=dur,
+                               options=opts)
+                for i, (p, (j, s)) in enumerate((p, js) for p in presets for js in enumerate(inst))]
+    n_work = 1 if workers is None else int(workers)
+    res_fw, backend, nw = execute(fw_cell_task_result, tasks_fw, workers=n_work, scheduler=scheduler)
+    # the firmware's name and version: one short boot-free query (the binary's own --version is the bridge's)
+    version = _firmware_version(binary)
+    res_ours = []
+    if with_ours:
+        tasks_o = [MonteCarloTask(index=t.index, scenario="cutoffs-ours", sensor=t.sensor, instance=t.instance,
+                                  seed=t.seed, duration_s=dur, options=opts[:3]) for t in tasks_fw]
+        res_ours, _, _ = execute(ours_cell_task, tasks_o, workers=n_work, scheduler=scheduler)
+    cells = _cells(kinds, cutoffs)
+    fw_keys = ("hover_att_rms_deg", "motor_noise_pct", "step_track_rms_deg", "excess_deg", "delay_ms", "rise_ms",
+               "overshoot_pct", "dterm_noise", "crashed")
+    ours_keys = ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed")
+    veh = get_vehicle(vehicle)
+    md = [f"**Flown by {version}** (lockstep SITL, one firmware loop per gyro sample at {LOOP_RATE_HZ:g} Hz) on the "
+          f"`{vehicle}` airframe ({veh.description}); beside it the project's own cascaded controller on the same "
+          f"airframe and gyro rate. {dur:g} s flights, {n_inst} sensor instance(s) per preset (medians; every cell flies "
+          "the same instances and rotor phases; Monte Carlo backend "
+          f"{backend}, {nw} worker(s)). Firmware cells: gyro_lpf1 = the filter under test (article → PT1, pt2 → PT2, "
+          "pt3 → PT3, biquad → BIQUAD; butter4 has no firmware equivalent), every other gyro filter off (lpf2, dynamic "
+          "LPF, dynamic notch, RPM), D-term filters, PIDs and feed-forward at the firmware's defaults. One `steps` flight "
+          "per cell: hover error and motor noise (RMS of the motor outputs above 20 Hz, % of full output) over its "
+          "steady hover, then rate pulses (±115 °/s on roll, pitch, yaw): step tracking, excess (RMS angle to the same "
+          "flight with a perfect gyro and no gyro filter), measured gyro delay, rise and overshoot of the rate steps. "
+          f"Best = the quietest motors among the cells whose excess is at most {EXCESS_BUDGET:g}× the unfiltered cell's.\n"]
+    summary = {"firmware": version, "vehicle": vehicle, "loop_rate_hz": LOOP_RATE_HZ, "duration_s": dur,
+               "instances": n_inst, "presets": {}}
+    figs = []
+    for p in presets:
+        fw = _medians([r for r in res_fw if r.sensor == p], cells, fw_keys)
+        ours = _medians([r for r in res_ours if r.sensor == p], cells, ours_keys) if with_ours else {}
+        fw_best, fw_least = _best(fw, "motor_noise_pct")
+        ours_best, ours_least = _best(ours, "motor_noise_n") if with_ours else (None, None)
+        rows = []
+        for kind, fc in cells:
+            lab = _label(kind, fc)
+            f = fw[lab]
+            row = [lab, f["hover_att_rms_deg"], f["motor_noise_pct"], f["step_track_rms_deg"], f["excess_deg"],
+                   f["delay_ms"], f["rise_ms"], f["overshoot_pct"]]
+            if with_ours:
+                o = ours[lab]
+                row += [o["hover_att_rms_deg"], o["motor_noise_n"], o["excess_deg"], o["delay_ms"]]
+            rows.append(tuple(row))
+        head = ["filter", "fw hover error, °", "fw motor noise, %", "fw step tracking, °", "fw excess, °",
+                "fw delay, ms", "fw rise, ms", "fw overshoot, %"]
+        if with_ours:
+            head += ["ours hover error, °", "ours motor noise, N", "ours excess, °", "ours delay, ms"]
+        md.append(f"### {p} ({version})\n")
+        md.append(md_table(head, rows))
+        md.append(f"\nFirmware's best for **{p}**: **{fw_best}** (least attitude cost: {fw_least}); "
+                  f"our controller's: **{ours_best}** (least attitude cost: {ours_least}). "
+                  + (_disagreement(p, fw_best, ours_best, fw, ours) if with_ours else "") + "\n")
+        summary["presets"][p] = {"firmware_best": fw_best, "firmware_least_attitude_cost": fw_least,
+                                 "ours_best": ours_best, "ours_least_attitude_cost": ours_least,
+                                 "agree": fw_best == ours_best, "firmware": fw, "ours": ours}
+        fig = new_figure(figsize=(11, 3.4))
+        plots = (("excess_deg", "excess attitude error, °"), ("motor_noise_pct", "fw motor noise > 20 Hz, %"),
+                 ("delay_ms", "measured gyro delay, ms"))
+        axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
+        for kind in kinds:
+            for ax, (key, _) in zip(axs, plots):
+                ax.plot(cutoffs, [fw[_label(kind, c)][key] for c in cutoffs], marker="o", ms=3, label=f"fw {kind}")
+                if with_ours and key in ("excess_deg", "delay_ms"):
+                    ax.plot(cutoffs, [ours[_label(kind, c)][key] for c in cutoffs], ls="--", marker="x", ms=3,
+                            label=f"ours {kind}")
+        for ax, (key, lab) in zip(axs, plots):
+            ax.axhline(fw["none"][key], color="k", ls=":", lw=1, label="fw none")
+            ax.set_xscale("log")
+            ax.set_xlabel("cutoff, Hz")
+            ax.set_ylabel(lab, fontsize=8)
+            ax.grid(alpha=0.3)
+        axs[0].legend(fontsize=6)
+        fig.suptitle(f"{p}: gyro low-pass flown by {version} ({vehicle})")
+        fig.tight_layout()
+        figs.append(save_figure(fig, out_dir, f"cutoffs_firmware_{p}"))
+        md.append(f"![cutoffs on the firmware {p}]({figs[-1]})\n")
+    line = "; ".join(f"{p}: firmware {v['firmware_best']}, ours {v['ours_best']}" for p, v in summary["presets"].items())
+    md.insert(1, f"**Best filter per preset (quietest motors at ≤ {EXCESS_BUDGET:g}× the raw gyro's attitude cost):** {line}.\n")
+    return ExperimentResult(name="cutoffs", title=f"Filter cutoffs flown by the firmware ({version})",
+                            markdown="\n".join(md), figures=tuple(figs), summary=summary,
+                            wall_s=time.perf_counter() - t0)
+
+
+def _firmware_version(binary) -> str:
+    """``betaflight X.Y.Z`` of a built binary (the bridge's record of the build)."""
+    try:
+        from sim.firmware import binary_info
+
+        info = binary_info(binary)
+        return f"{info.get('firmware', 'betaflight')} {info.get('version', '')}".strip()
+    except Exception:  # the bridge's API names the version elsewhere: fall back on the file name
+        name = Path(str(binary)).name  # betaflight_4.6.0_SITL
+        parts = name.split("_")
+        return f"betaflight {parts[1]}" if len(parts) >= 2 and parts[1][:1].isdigit() else "betaflight"
+
+
+_ = math
