@@ -25,8 +25,8 @@ serial, local processes or a Dask cluster), medians over instances.
 
 from __future__ import annotations
 
-import math
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
@@ -35,9 +35,15 @@ import numpy as np
 from gyrocore.errors import GyroInputError
 
 from .cutoffs import CUTOFFS_HZ, EXCESS_BUDGET, KINDS, PRESETS
-from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
+from .report import (
+    ExperimentResult,
+    md_table,
+    new_figure,
+    save_figure,
+    single_thread_blas,
+)
 
-__all__ = ["FW_LPF_TYPE", "BASE_SETTINGS", "cell_settings", "fw_cell_task", "ours_cell_task", "run", "DEFAULT_VEHICLE"]
+__all__ = ["BASE_SETTINGS", "DEFAULT_VEHICLE", "FW_LPF_TYPE", "cell_settings", "fw_cell_task", "ours_cell_task", "run"]
 
 #: the grid's filter kinds as the firmware's gyro_lpf1_type
 FW_LPF_TYPE = {"article": "PT1", "pt2": "PT2", "pt3": "PT3", "biquad": "BIQUAD"}
@@ -94,12 +100,10 @@ def _fw_cells(task):
     dur = float(task.duration_s)
     base = FwFlightOptions(scenario="steps", vehicle=vehicle, duration_s=dur, seed=int(task.seed), sensor=task.sensor,
                            loop_rate_hz=LOOP_RATE_HZ, settle_s=SETTLE_S)
-    ref, _ = fly(FwFlightOptions(**{**base.__dict__, "sensor": None}), cell_settings("none", 0.0), binary=binary)
+    ref, _ = fly(replace(base, sensor=None), cell_settings("none", 0.0), binary=binary)
     metrics: dict[str, float] = {}
-    version = ""
     for kind, fc in _cells(kinds, cutoffs):
-        log, info = fly(base, cell_settings(kind, fc), binary=binary)
-        version = info["firmware"]
+        log, _ = fly(base, cell_settings(kind, fc), binary=binary)
         sc = log.scores(SETTLE_S)
         lab = _label(kind, fc)
         after = log.t_s >= SETTLE_S
@@ -119,13 +123,7 @@ def _fw_cells(task):
         }
         for k, v in m.items():
             metrics[f"{lab}|{k}"] = float(v)
-    res = TaskResult.from_task(task, metrics)
-    return res, version
-
-
-def fw_cell_task_result(task):
-    """:func:`fw_cell_task` without the version (the Monte Carlo runner wants a TaskResult)."""
-    return fw_cell_task(task)[0]
+    return TaskResult.from_task(task, metrics)
 
 
 def ours_cell_task(task):
@@ -191,8 +189,9 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         vehicle: str = DEFAULT_VEHICLE, kinds: Sequence[str] | None = None, cutoffs: Sequence[float] | None = None,
         scheduler: str | None = None, binary=None, with_ours: bool = True, **_ignored) -> ExperimentResult:
     """The cutoffs grid flown by the firmware, beside our controller's verdict (module docstring)."""
+    from experiments.firmware_fly import _record_of
     from experiments.montecarlo import MonteCarloTask, execute, instance_seeds
-    from sim.firmware import ensure_binary
+    from sim.firmware.build import FirmwareBinary, ensure_binary
     from sim.vehicles import get_vehicle
 
     t0 = time.perf_counter()
@@ -206,16 +205,16 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     presets = tuple(presets or (PRESETS[:1] if quick else PRESETS))
     n_inst = seeds or (1 if quick else 2)
     dur = float(duration_s or (3.0 if quick else 4.0))
-    binary = str(binary or ensure_binary())
+    fb = binary if isinstance(binary, FirmwareBinary) else (ensure_binary() if binary is None else _record_of(binary))
+    binary = fb.binary if fb is not None else str(binary)
+    version = f"{fb.firmware} {fb.version}" if fb is not None else "betaflight"
     inst = instance_seeds(seed, n_inst)
     opts = (("kinds", kinds), ("cutoffs", cutoffs), ("vehicle", vehicle), ("binary", binary))
     tasks_fw = [MonteCarloTask(index=i, scenario="cutoffs-firmware", sensor=p, instance=j, seed=s, duration_s=dur,
                                options=opts)
                 for i, (p, (j, s)) in enumerate((p, js) for p in presets for js in enumerate(inst))]
     n_work = 1 if workers is None else int(workers)
-    res_fw, backend, nw = execute(fw_cell_task_result, tasks_fw, workers=n_work, scheduler=scheduler)
-    # the firmware's name and version: one short boot-free query (the binary's own --version is the bridge's)
-    version = _firmware_version(binary)
+    res_fw, backend, nw = execute(fw_cell_task, tasks_fw, workers=n_work, scheduler=scheduler)
     res_ours = []
     if with_ours:
         tasks_o = [MonteCarloTask(index=t.index, scenario="cutoffs-ours", sensor=t.sensor, instance=t.instance,
@@ -293,19 +292,3 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     return ExperimentResult(name="cutoffs", title=f"Filter cutoffs flown by the firmware ({version})",
                             markdown="\n".join(md), figures=tuple(figs), summary=summary,
                             wall_s=time.perf_counter() - t0)
-
-
-def _firmware_version(binary) -> str:
-    """``betaflight X.Y.Z`` of a built binary (the bridge's record of the build)."""
-    try:
-        from sim.firmware import binary_info
-
-        info = binary_info(binary)
-        return f"{info.get('firmware', 'betaflight')} {info.get('version', '')}".strip()
-    except Exception:  # the bridge's API names the version elsewhere: fall back on the file name
-        name = Path(str(binary)).name  # betaflight_4.6.0_SITL
-        parts = name.split("_")
-        return f"betaflight {parts[1]}" if len(parts) >= 2 and parts[1][:1].isdigit() else "betaflight"
-
-
-_ = math

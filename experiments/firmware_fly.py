@@ -108,9 +108,9 @@ def fly(opts, settings=(), *, binary=None, step_timeout_s: float | None = None, 
     from sim.fw_flight import fly_firmware
 
     lines = _lines(settings)
-    fb = binary if isinstance(binary, FirmwareBinary) else (ensure_binary() if binary is None else None)
+    fb = binary if isinstance(binary, FirmwareBinary) else (ensure_binary() if binary is None else _record_of(binary))
     path = fb.binary if fb is not None else str(binary)
-    label = f"{fb.firmware} {fb.version}" if fb is not None else firmware_label_from_path(path)
+    label = f"{fb.firmware} {fb.version}" if fb is not None else "betaflight"
     opts = _flight_options(opts, _pairs(lines))
     kw = {} if step_timeout_s is None else {"step_timeout_s": step_timeout_s}
     with BetaflightSITL(path, settings=lines, loop_rate_hz=opts.loop_rate_hz, skip_unknown=skip_unknown, **kw) as fw:
@@ -132,9 +132,14 @@ def fly(opts, settings=(), *, binary=None, step_timeout_s: float | None = None, 
     return log, info
 
 
-def firmware_label_from_path(path) -> str:
-    """``betaflight`` (the version is the build record's; a bare path does not carry it)."""
-    return "betaflight"
+def _record_of(path):
+    """The build record (name, version) of a binary given by its path, when it is the cached build."""
+    from pathlib import Path
+
+    from sim.firmware.build import find_binary
+
+    fb = find_binary()
+    return fb if fb is not None and Path(fb.binary).resolve() == Path(str(path)).resolve() else None
 
 
 def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", settings=(), settings_from=None,
