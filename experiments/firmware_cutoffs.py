@@ -7,9 +7,10 @@ each cell flown twice on the same airframe, gyro instance and rotor phases:
   ``gyro_lpf1`` (``article`` -> PT1, the article's first-order filter; ``pt2`` -> PT2, ``pt3`` ->
   PT3, ``biquad`` -> BIQUAD; ``butter4`` has no firmware equivalent and is not flown), every other
   gyro filter off (``gyro_lpf2``, dynamic LPF, dynamic notch, RPM filter), the D-term filters, PIDs,
-  feed-forward and mixer at the firmware's defaults. One flight of the ``steps`` scenario per cell:
-  its steady hover (before the rate pulses) gives the *hover error* and the *motor noise* (RMS of
-  the four motor outputs above 20 Hz, % of full output); the rate pulses give the *step tracking*
+  feed-forward and mixer at the firmware's defaults. Two flights per cell, as the project's
+  experiment: a ``hover`` gives the *hover error* and the *motor noise* (RMS of the four motor
+  outputs above 20 Hz, % of full output) and the *D-term noise* (the firmware's D term above 20 Hz,
+  its units: 1000 = full motor range); a ``steps`` flight's rate pulses give the *step tracking*
   (RMS attitude error against the pilot's set point), the *excess* (RMS angle between this flight
   and the same flight with a perfect gyro and no gyro filter: what the gyro and its filter cost the
   attitude), the measured *delay* of the firmware's filtered gyro behind the true rate (0.2-15 Hz)
@@ -102,25 +103,26 @@ def _fw_cells(task):
                            loop_rate_hz=LOOP_RATE_HZ, settle_s=SETTLE_S)
     ref, _ = fly(replace(base, sensor=None), cell_settings("none", 0.0), binary=binary)
     metrics: dict[str, float] = {}
+    nan = float("nan")
     for kind, fc in _cells(kinds, cutoffs):
-        log, _ = fly(base, cell_settings(kind, fc), binary=binary)
-        sc = log.scores(SETTLE_S)
-        lab = _label(kind, fc)
-        after = log.t_s >= SETTLE_S
-        ok = not sc["crashed"] and not ref.crashed()
-        nan = float("nan")
+        sets = cell_settings(kind, fc)
+        hov, _ = fly(replace(base, scenario="hover"), sets, binary=binary)
+        stp, _ = fly(base, sets, binary=binary)
+        sh, ss = hov.scores(SETTLE_S), stp.scores(SETTLE_S)
+        after = stp.t_s >= SETTLE_S
+        ok = not (sh["crashed"] or ss["crashed"] or ref.crashed())
         m = {
-            "hover_att_rms_deg": sc.get("hover_att_rms_deg", nan) if ok else nan,
-            "motor_noise_pct": 100.0 * sc["motor_noise_above_20hz"] if ok else nan,
-            "step_track_rms_deg": sc.get("step_track_rms_deg", nan) if ok else nan,
-            "excess_deg": _angle_rms_deg(log.q_WB_wxyz, ref.q_WB_wxyz, after) if ok else nan,
-            "delay_ms": sc.get("gyro_delay_ms", nan) if ok else nan,
-            "rise_ms": sc.get("step_rise_ms", nan) if ok else nan,
-            "overshoot_pct": sc.get("step_overshoot_pct", nan) if ok else nan,
-            "dterm_noise": (sc.get("dterm_noise_above_20hz") if ok and sc.get("dterm_noise_above_20hz") is not None
-                            else nan),
+            "hover_att_rms_deg": sh["hover_att_rms_deg"] if ok else nan,
+            "motor_noise_pct": 100.0 * sh["motor_noise_above_20hz"] if ok else nan,
+            "dterm_noise": sh["dterm_noise_above_20hz"] if ok and sh["dterm_noise_above_20hz"] is not None else nan,
+            "step_track_rms_deg": ss["step_track_rms_deg"] if ok else nan,
+            "excess_deg": _angle_rms_deg(stp.q_WB_wxyz, ref.q_WB_wxyz, after) if ok else nan,
+            "delay_ms": ss["gyro_delay_ms"] if ok else nan,
+            "rise_ms": ss["step_rise_ms"] if ok else nan,
+            "overshoot_pct": ss["step_overshoot_pct"] if ok else nan,
             "crashed": float(not ok),
         }
+        lab = _label(kind, fc)
         for k, v in m.items():
             metrics[f"{lab}|{k}"] = float(v)
     return TaskResult.from_task(task, metrics)
@@ -231,9 +233,10 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
           "the same instances and rotor phases; Monte Carlo backend "
           f"{backend}, {nw} worker(s)). Firmware cells: gyro_lpf1 = the filter under test (article → PT1, pt2 → PT2, "
           "pt3 → PT3, biquad → BIQUAD; butter4 has no firmware equivalent), every other gyro filter off (lpf2, dynamic "
-          "LPF, dynamic notch, RPM), D-term filters, PIDs and feed-forward at the firmware's defaults. One `steps` flight "
-          "per cell: hover error and motor noise (RMS of the motor outputs above 20 Hz, % of full output) over its "
-          "steady hover, then rate pulses (±115 °/s on roll, pitch, yaw): step tracking, excess (RMS angle to the same "
+          "LPF, dynamic notch, RPM), D-term filters, PIDs and feed-forward at the firmware's defaults. Two flights per "
+          "cell: a hover (hover error; motor noise = RMS of the motor outputs above 20 Hz, % of full output; D-term "
+          "noise = the firmware's D term above 20 Hz, 1000 = full motor range) and a `steps` flight, rate pulses "
+          "(±115 °/s on roll, pitch, yaw): step tracking, excess (RMS angle to the same "
           "flight with a perfect gyro and no gyro filter), measured gyro delay, rise and overshoot of the rate steps. "
           f"Best = the quietest motors among the cells whose excess is at most {EXCESS_BUDGET:g}× the unfiltered cell's.\n"]
     summary = {"firmware": version, "vehicle": vehicle, "loop_rate_hz": LOOP_RATE_HZ, "duration_s": dur,
@@ -248,14 +251,14 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         for kind, fc in cells:
             lab = _label(kind, fc)
             f = fw[lab]
-            row = [lab, f["hover_att_rms_deg"], f["motor_noise_pct"], f["step_track_rms_deg"], f["excess_deg"],
-                   f["delay_ms"], f["rise_ms"], f["overshoot_pct"]]
+            row = [lab, f["hover_att_rms_deg"], f["motor_noise_pct"], f["dterm_noise"], f["step_track_rms_deg"],
+                   f["excess_deg"], f["delay_ms"], f["rise_ms"], f["overshoot_pct"]]
             if with_ours:
                 o = ours[lab]
                 row += [o["hover_att_rms_deg"], o["motor_noise_n"], o["excess_deg"], o["delay_ms"]]
             rows.append(tuple(row))
-        head = ["filter", "fw hover error, °", "fw motor noise, %", "fw step tracking, °", "fw excess, °",
-                "fw delay, ms", "fw rise, ms", "fw overshoot, %"]
+        head = ["filter", "fw hover error, °", "fw motor noise, %", "fw D-term noise", "fw step tracking, °",
+                "fw excess, °", "fw delay, ms", "fw rise, ms", "fw overshoot, %"]
         if with_ours:
             head += ["ours hover error, °", "ours motor noise, N", "ours excess, °", "ours delay, ms"]
         md.append(f"### {p} ({version})\n")
