@@ -117,3 +117,9 @@ def replay_cmd(file, set_pairs, settings_from, start_s, duration_s, out, as_json
                    + ", ".join(f"{a} {i:.4g}/{o:.4g}" for a, i, o in zip("xyz", d["rms_in_rad_s"], d["rms_fw_gyro_rad_s"])))
         click.echo(f"wrote {out}")
     return 0
+
+
+# ``firmware fly`` lives in its own module (experiments/commands/firmware_fly.py)
+from experiments.commands.firmware_fly import command as _fly  # noqa: E402
+
+command.add_command(_fly)
