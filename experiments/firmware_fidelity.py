@@ -37,7 +37,7 @@ __all__ = ["run", "sim_recording"]
 def sim_recording(log, every: int):
     """The firmware's filtered gyro as the firmware's blackbox would log it: every ``every``-th
     loop (no anti-alias filter), as a data file whose gyro is that signal."""
-    from gyrocore.recording import Recording
+    from gyrocore.data.recording import Recording
 
     k = slice(0, None, int(every))
     return Recording(t_s=log.t_s[k], gyro_rad_s=log.fw_gyro_rad_s[k], meta={"gyro_signal": "filtered (firmware in the loop)"})
@@ -51,10 +51,10 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
     "held_out": fid, "in_sample": fid, "log_rms_above_40hz_rad_s", ...}]}`` with ``fid`` per axis
     as :func:`gyrocore.vibration.fidelity`."""
     from experiments.firmware_fly import fly, settings_lines_from
-    from gyrocore.convert import detect_format, load_any
+    from gyrocore.readers.convert import detect_format, load_any
     from gyrocore.errors import GyroInputError
-    from gyrocore.recording import read_csv
-    from gyrocore.vibration import analyse, fidelity, write_spec
+    from gyrocore.data.recording import read_csv
+    from gyrocore.flight.vibration import analyse, fidelity, write_spec
     from sim.fw_flight import FwFlightOptions
     from sim.spec_vibration import spec_injection
 

@@ -58,7 +58,7 @@ def candidates(fj: dict | None = None, *, extra_pt1=(60.0, 150.0, 250.0)) -> dic
     c["no_rpm_filter"] = ["set rpm_filter_harmonics = 0"]
     rec = (fj or {}).get("recommended")
     if rec and rec.get("filter") in ("pt1", "pt2", "pt3", "biquad") and rec.get("stages") is not None:
-        from gyrocore import preview as P
+        from gyrocore.flight import preview as P
 
         c["open_loop_recommended"] = [x for x in P.betaflight_cli(rec, (4, 6, 0)) if x.startswith("set ")]
     c["none"] = list(_OFF_LPF) + ["set dyn_notch_count = 0", "set rpm_filter_harmonics = 0",
@@ -148,10 +148,10 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
 
     from experiments.firmware_fly import settings_lines_from
     from experiments.montecarlo import MonteCarloTask, execute
-    from gyrocore.commands.filter import run_filter
-    from gyrocore.convert import detect_format, load_any
-    from gyrocore.recording import read_csv
-    from gyrocore.vibration import read_spec, write_spec
+    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.readers.convert import detect_format, load_any
+    from gyrocore.data.recording import read_csv
+    from gyrocore.flight.vibration import read_spec, write_spec
     from sim.firmware.build import FirmwareBinary, ensure_binary
     from sim.spec_vibration import spec_injection
     from sim.vehicles import get_vehicle

@@ -146,7 +146,7 @@ def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", set
         vibration_spec=None, band="middle", sensor: str = "icm42688p", seed: int = 0, duration_s: float = 3.0,
         loop_rate_hz: float = 8000.0, n_calib: int = 16, binary=None) -> dict:
     """The ``fly`` command: fly, write ``out`` (data file), return the JSON dict."""
-    from gyrocore.recording import write_csv
+    from gyrocore.data.recording import write_csv
     from sim.fw_flight import FwFlightOptions, to_recording
     from sim.vehicles import get_vehicle
 
@@ -154,7 +154,7 @@ def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", set
     sets = settings_lines_from(settings_from) + _lines(settings)
     over, hover_vib, vib_info = None, True, None
     if vibration_spec is not None:
-        from gyrocore.vibration import read_spec
+        from gyrocore.flight.vibration import read_spec
         from sim.spec_vibration import spec_injection
 
         hv, over, vib_info = spec_injection(read_spec(vibration_spec), band=band, vehicle=vehicle, physics=True,

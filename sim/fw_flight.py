@@ -724,7 +724,7 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
 def to_recording(log: FwFlightLog):
     """The flight as a DESIGN.md data file (:class:`gyrocore.recording.Recording`): the synthetic
     gyro, the truth in ``ref_*``, specific force, temperature, and the firmware's view."""
-    from gyrocore.recording import Recording
+    from gyrocore.data.recording import Recording
 
     extra = {}
     for i, a in enumerate("xyz"):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gyrocore.errors import GyroInputError
-from gyrocore.recording import write_csv
+from gyrocore.data.recording import write_csv
 from sim.fw_flight import (
     ROTOR_OF_BF_MOTOR,
     FwFlightOptions,
