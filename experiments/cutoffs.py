@@ -33,7 +33,7 @@ from gyrocore.flight.filters import AffineCorrection, Pipeline, make_filter
 
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
-__all__ = ["run", "fly_config", "open_loop_scores", "KINDS", "CUTOFFS_HZ", "PRESETS"]
+__all__ = ["run", "fly_config", "open_loop_scores", "ours_cell_task", "KINDS", "CUTOFFS_HZ", "PRESETS"]
 
 KINDS = ("article", "pt2", "pt3", "biquad", "butter4")
 CUTOFFS_HZ = (20.0, 30.0, 45.0, 60.0, 90.0, 130.0, 180.0)
@@ -152,6 +152,28 @@ def _task_inner(args):
     return out
 
 
+def ours_cell_task(task):
+    """Monte Carlo task (:mod:`experiments.montecarlo`): every cell of one (preset, instance) flown by
+    our controller (:func:`fly_config`) on the vehicle and gyro rate of ``task.options`` (``vehicle``,
+    ``rate_hz``, ``kinds``, ``cutoffs``); metrics ``"<cell>|<metric>"``. The firmware side of
+    ``run(firmware=...)`` flies the same cells (:mod:`experiments.firmware_cutoffs`)."""
+    from experiments.montecarlo import TaskResult
+
+    o = dict(task.options)
+    vehicle, rate = o["vehicle"], float(o.get("rate_hz", 8000.0))
+    dur = float(task.duration_s)
+    with single_thread_blas():
+        _, ref, _, _ = _fly(None, int(task.seed), "none", 30.0, dur, steps=True, vehicle=vehicle, rate_hz=rate)
+        metrics = {}
+        for kind, fc in _configs(o["kinds"], o["cutoffs"]):
+            m, _, _, _ = fly_config(task.sensor, int(task.seed), kind, fc if kind != "none" else 30.0, dur, ref_steps=ref,
+                                    vehicle=vehicle, rate_hz=rate)
+            lab = "none" if kind == "none" else f"{kind} {fc:g} Hz"
+            for k in ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed"):
+                metrics[f"{lab}|{k}"] = float(m[k])
+    return TaskResult.from_task(task, metrics)
+
+
 def _median(rows, key):
     v = np.array([r[key] for r in rows], float)
     v = v[np.isfinite(v)]
@@ -174,8 +196,9 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             raise GyroInputError(f"--firmware {firmware!r}: the firmware in the loop is betaflight")
         from .firmware_cutoffs import run as run_firmware
 
-        return run_firmware(out_dir=out_dir, quick=quick, seeds=seeds, workers=workers, presets=presets,
-                            duration_s=duration_s, seed=seed, **options)
+        grid = {"kinds": KINDS, "cutoffs": CUTOFFS_HZ, "presets": PRESETS, "excess_budget": EXCESS_BUDGET}
+        return run_firmware(out_dir=out_dir, grid=grid, ours_task=ours_cell_task, quick=quick, seeds=seeds,
+                            workers=workers, presets=presets, duration_s=duration_s, seed=seed, **options)
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     kinds = ("article", "pt2") if quick else KINDS

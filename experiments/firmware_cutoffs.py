@@ -15,11 +15,11 @@ each cell flown twice on the same airframe, gyro instance and rotor phases:
   and the same flight with a perfect gyro and no gyro filter: what the gyro and its filter cost the
   attitude), the measured *delay* of the firmware's filtered gyro behind the true rate (0.2-15 Hz)
   and the rate step response (rise 10-90 %, overshoot).
-* **our controller** (:func:`experiments.cutoffs.fly_config`): the project's cascaded controller,
+* **our controller** (:func:`experiments.cutoffs.ours_cell_task`): the project's cascaded controller,
   same vehicle, same gyro rate, its hover and attitude-step flights, the filter in its pipeline.
 
 Best (both): the quietest motors among the cells whose excess is at most
-:data:`experiments.cutoffs.EXCESS_BUDGET` x the unfiltered cell's. Where the two verdicts differ, the
+``experiments.cutoffs.EXCESS_BUDGET`` x the unfiltered cell's. Where the two verdicts differ, the
 section says so in a sentence. Instances: Monte Carlo over seeds (:mod:`experiments.montecarlo`:
 serial, local processes or a Dask cluster), medians over instances.
 """
@@ -35,7 +35,6 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError
 
-from .cutoffs import CUTOFFS_HZ, EXCESS_BUDGET, KINDS, PRESETS
 from .report import (
     ExperimentResult,
     md_table,
@@ -44,7 +43,7 @@ from .report import (
     single_thread_blas,
 )
 
-__all__ = ["BASE_SETTINGS", "DEFAULT_VEHICLE", "FW_LPF_TYPE", "cell_settings", "fw_cell_task", "ours_cell_task", "run"]
+__all__ = ["BASE_SETTINGS", "DEFAULT_VEHICLE", "FW_LPF_TYPE", "cell_settings", "fw_cell_task", "run"]
 
 #: the grid's filter kinds as the firmware's gyro_lpf1_type
 FW_LPF_TYPE = {"article": "PT1", "pt2": "PT2", "pt3": "PT3", "biquad": "BIQUAD"}
@@ -128,26 +127,6 @@ def _fw_cells(task):
     return TaskResult.from_task(task, metrics)
 
 
-def ours_cell_task(task):
-    """Monte Carlo task: every cell of one (preset, instance) flown by our controller
-    (:func:`experiments.cutoffs.fly_config`) on the same vehicle and gyro rate."""
-    from experiments.cutoffs import _fly, fly_config
-    from experiments.montecarlo import TaskResult
-
-    kinds, cutoffs = _opt(task, "kinds"), _opt(task, "cutoffs")
-    vehicle = _opt(task, "vehicle", DEFAULT_VEHICLE)
-    dur = float(task.duration_s)
-    with single_thread_blas():
-        _, ref, _, _ = _fly(None, int(task.seed), "none", 30.0, dur, steps=True, vehicle=vehicle, rate_hz=LOOP_RATE_HZ)
-        metrics = {}
-        for kind, fc in _cells(kinds, cutoffs):
-            m, _, _, _ = fly_config(task.sensor, int(task.seed), kind, fc if kind != "none" else 30.0, dur, ref_steps=ref,
-                                    vehicle=vehicle, rate_hz=LOOP_RATE_HZ)
-            for k in ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed"):
-                metrics[f"{_label(kind, fc)}|{k}"] = float(m[k])
-    return TaskResult.from_task(task, metrics)
-
-
 def _medians(results, cells, keys):
     out = {}
     for kind, fc in cells:
@@ -160,9 +139,9 @@ def _medians(results, cells, keys):
     return out
 
 
-def _best(stats: dict, noise_key: str):
-    """Quietest motors among the cells whose excess is within the budget (the cutoffs rule)."""
-    lim = EXCESS_BUDGET * stats["none"]["excess_deg"]
+def _best(stats: dict, noise_key: str, budget: float):
+    """Quietest motors among the cells whose excess is within ``budget`` x the unfiltered cell's (the cutoffs rule)."""
+    lim = budget * stats["none"]["excess_deg"]
     ok = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim
           and np.isfinite(v[noise_key])}
     best = min(ok, key=lambda k: ok[k][noise_key]) if ok else None
@@ -171,7 +150,7 @@ def _best(stats: dict, noise_key: str):
     return best, least
 
 
-def _disagreement(p, fw_best, ours_best, fw, ours) -> str:
+def _disagreement(p, fw_best, ours_best, fw, ours, budget) -> str:
     if fw_best == ours_best:
         return f"Both pick **{fw_best}** for {p}."
     parts = [f"For {p} they disagree: the firmware picks **{fw_best}**, our controller **{ours_best}**."]
@@ -179,18 +158,25 @@ def _disagreement(p, fw_best, ours_best, fw, ours) -> str:
         a, b = fw[fw_best], fw[ours_best]
         parts.append(f" Flown by the firmware, {ours_best} costs excess {b['excess_deg']:.4f}° at motor noise "
                      f"{b['motor_noise_pct']:.3f} % against {a['excess_deg']:.4f}° / {a['motor_noise_pct']:.3f} % for "
-                     f"{fw_best} (budget {EXCESS_BUDGET * fw['none']['excess_deg']:.4f}°); by our controller "
+                     f"{fw_best} (budget {budget * fw['none']['excess_deg']:.4f}°); by our controller "
                      f"{fw_best} costs {ours[fw_best]['excess_deg']:.4f}° / {ours[fw_best]['motor_noise_n']:.4f} N against "
                      f"{ours[ours_best]['excess_deg']:.4f}° / {ours[ours_best]['motor_noise_n']:.4f} N "
-                     f"(budget {EXCESS_BUDGET * ours['none']['excess_deg']:.4f}°).")
+                     f"(budget {budget * ours['none']['excess_deg']:.4f}°).")
     return "".join(parts)
 
 
-def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
+def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | None = None, workers: int | None = None,
         presets: Sequence[str] | None = None, duration_s: float | None = None, seed: int = 0,
         vehicle: str = DEFAULT_VEHICLE, kinds: Sequence[str] | None = None, cutoffs: Sequence[float] | None = None,
         scheduler: str | None = None, binary=None, with_ours: bool = True, **_ignored) -> ExperimentResult:
-    """The cutoffs grid flown by the firmware, beside our controller's verdict (module docstring)."""
+    """The cutoffs grid flown by the firmware, beside our controller's verdict (module docstring).
+
+    ``grid``: the project experiment's ``kinds``, ``cutoffs``, ``presets`` and ``excess_budget``;
+    ``ours_task``: its Monte Carlo task that flies one (preset, instance) with our controller
+    (:func:`experiments.cutoffs.ours_cell_task`). :func:`experiments.cutoffs.run` passes both.
+    """
+    KINDS, CUTOFFS_HZ, PRESETS = grid["kinds"], grid["cutoffs"], grid["presets"]
+    EXCESS_BUDGET = float(grid["excess_budget"])
     from experiments.firmware_fly import _record_of
     from experiments.montecarlo import MonteCarloTask, execute, instance_seeds
     from sim.firmware.build import FirmwareBinary, ensure_binary
@@ -220,8 +206,8 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     res_ours = []
     if with_ours:
         tasks_o = [MonteCarloTask(index=t.index, scenario="cutoffs-ours", sensor=t.sensor, instance=t.instance,
-                                  seed=t.seed, duration_s=dur, options=opts[:3]) for t in tasks_fw]
-        res_ours, _, _ = execute(ours_cell_task, tasks_o, workers=n_work, scheduler=scheduler)
+                                  seed=t.seed, duration_s=dur, options=opts[:3] + (("rate_hz", LOOP_RATE_HZ),)) for t in tasks_fw]
+        res_ours, _, _ = execute(ours_task, tasks_o, workers=n_work, scheduler=scheduler)
     cells = _cells(kinds, cutoffs)
     fw_keys = ("hover_att_rms_deg", "motor_noise_pct", "step_track_rms_deg", "excess_deg", "delay_ms", "rise_ms",
                "overshoot_pct", "dterm_noise", "crashed")
@@ -245,8 +231,8 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     for p in presets:
         fw = _medians([r for r in res_fw if r.sensor == p], cells, fw_keys)
         ours = _medians([r for r in res_ours if r.sensor == p], cells, ours_keys) if with_ours else {}
-        fw_best, fw_least = _best(fw, "motor_noise_pct")
-        ours_best, ours_least = _best(ours, "motor_noise_n") if with_ours else (None, None)
+        fw_best, fw_least = _best(fw, "motor_noise_pct", EXCESS_BUDGET)
+        ours_best, ours_least = _best(ours, "motor_noise_n", EXCESS_BUDGET) if with_ours else (None, None)
         rows = []
         for kind, fc in cells:
             lab = _label(kind, fc)
@@ -265,7 +251,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         md.append(md_table(head, rows))
         md.append(f"\nFirmware's best for **{p}**: **{fw_best}** (least attitude cost: {fw_least}); "
                   f"our controller's: **{ours_best}** (least attitude cost: {ours_least}). "
-                  + (_disagreement(p, fw_best, ours_best, fw, ours) if with_ours else "") + "\n")
+                  + (_disagreement(p, fw_best, ours_best, fw, ours, EXCESS_BUDGET) if with_ours else "") + "\n")
         summary["presets"][p] = {"firmware_best": fw_best, "firmware_least_attitude_cost": fw_least,
                                  "ours_best": ours_best, "ours_least_attitude_cost": ours_least,
                                  "agree": fw_best == ours_best, "firmware": fw, "ours": ours}

@@ -13,7 +13,6 @@ rest as the gyro's shaped vibration). A candidate is the tune plus a few ``set``
   RPM filter as flown;
 * ``no_gyro_lowpass`` — no gyro low-pass (notches, dynamic notch and RPM filter as flown);
 * ``no_dyn_notch`` / ``no_rpm_filter`` — the tune without its dynamic notch / RPM filter;
-* ``open_loop_recommended`` — ``gyroharness filter``'s static recommendation as Betaflight 4.3+ lines;
 * ``none`` — every gyro filter off (the delay baseline).
 
 Scores per candidate and seed (paired: same seed = same gyro, rotor phases, shaped draw), from two
@@ -47,7 +46,7 @@ SETTLE_S = 1.0
 _OFF_LPF = ("set gyro_lpf1_static_hz = 0", "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0")
 
 
-def candidates(fj: dict | None = None, *, extra_pt1=(60.0, 150.0, 250.0)) -> dict[str, list[str]]:
+def candidates(*, extra_pt1=(60.0, 150.0, 250.0)) -> dict[str, list[str]]:
     """name -> the ``set`` lines a candidate adds to the tune (module docstring)."""
     c: dict[str, list[str]] = {"as_flown": []}
     for fc in extra_pt1:
@@ -56,11 +55,6 @@ def candidates(fj: dict | None = None, *, extra_pt1=(60.0, 150.0, 250.0)) -> dic
     c["no_gyro_lowpass"] = list(_OFF_LPF)
     c["no_dyn_notch"] = ["set dyn_notch_count = 0"]
     c["no_rpm_filter"] = ["set rpm_filter_harmonics = 0"]
-    rec = (fj or {}).get("recommended")
-    if rec and rec.get("filter") in ("pt1", "pt2", "pt3", "biquad") and rec.get("stages") is not None:
-        from gyrocore.flight import preview as P
-
-        c["open_loop_recommended"] = [x for x in P.betaflight_cli(rec, (4, 6, 0)) if x.startswith("set ")]
     c["none"] = list(_OFF_LPF) + ["set dyn_notch_count = 0", "set rpm_filter_harmonics = 0",
                                   "set gyro_notch1_hz = 0", "set gyro_notch2_hz = 0"]
     return c
@@ -148,7 +142,7 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
 
     from experiments.firmware_fly import settings_lines_from
     from experiments.montecarlo import MonteCarloTask, execute
-    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.flight.vibration import analyse
     from gyrocore.readers.convert import detect_format, load_any
     from gyrocore.data.recording import read_csv
     from gyrocore.flight.vibration import read_spec, write_spec
@@ -160,14 +154,15 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
     if rec.meta.get("firmware_name", "betaflight") != "betaflight":
         raise GyroInputError(f"{flight}: a {rec.meta.get('firmware_name')} log; --firmware betaflight flies a Betaflight tune")
-    fj = run_filter(rec)
+    # the flight's vibration spec, as `gyroharness vibration FLIGHT -o SPEC` (before the firmware's filters)
+    res = analyse(rec, undo=True)
     tune = settings_lines_from(flight)
     with tempfile.TemporaryDirectory() as d:
         p = os.path.join(d, "spec.json")
-        write_spec(fj["_res"], p, source=flight)
+        write_spec(res, p, source=flight)
         spec = read_spec(p)
     hv, over, info = spec_injection(spec, band=band, vehicle=vehicle, physics=True, seed=0, n_calib=n_calib, calib_s=calib_s)
-    cands = cands or candidates(fj)
+    cands = cands or candidates()
     fb = binary if isinstance(binary, FirmwareBinary) else ensure_binary()
     label = f"{fb.firmware} {fb.version}"
     opts = (("tune", tuple(tune)), ("candidates", tuple((k, tuple(v)) for k, v in cands.items())),
