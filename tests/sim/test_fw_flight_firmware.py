@@ -8,11 +8,19 @@ import math
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from sim.fw_flight import FwFlightOptions
 
-SHORT_S = 2.5  # 1 s settling + 1.5 s of hover: a few simulated seconds per test
+SHORT_S = 2.5
+
+
+def _cli(argv, capsys):
+    from experiments.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    out = capsys.readouterr()
+    return exc.value.code, out.out, out.err  # 1 s settling + 1.5 s of hover: a few simulated seconds per test
 
 
 def _fly(binary, **kw):
@@ -87,20 +95,19 @@ def test_same_firmware_flight_twice_is_byte_identical(firmware_binary, tmp_path)
         assert c in cols
 
 
-def test_fly_cli_json_and_a_refused_setting(firmware_binary, tmp_path):
-    from experiments.cli import main
-
+def test_fly_cli_json_and_a_refused_setting(firmware_binary, tmp_path, capsys):
     out = tmp_path / "f.csv"
-    r = CliRunner().invoke(main, ["firmware", "fly", "hover", "--duration-s", "1.5", "--set", "gyro_lpf1_static_hz=200",
-                                  "-o", str(out), "--json"])
-    assert r.exit_code == 0, r.output
-    j = json.loads(r.stdout)
+    code, so, se = _cli(["firmware", "fly", "hover", "--duration-s", "1.5", "--set", "gyro_lpf1_static_hz=200",
+                         "-o", str(out), "--json"], capsys)
+    assert code == 0, se
+    j = json.loads(so)
     assert j["firmware"].startswith("betaflight") and "set gyro_lpf1_static_hz = 200" in j["settings"]
     assert j["sim_s_per_wall_s"] > 0 and math.isfinite(j["motor_noise_above_20hz"])
-    r = CliRunner().invoke(main, ["firmware", "fly", "hover", "--duration-s", "1.5", "--set", "gyro_lpf1_static_hz=9999",
-                                  "-o", str(tmp_path / "g.csv")])
-    assert r.exit_code != 0
-    assert "gyro_lpf1_static_hz" in r.output and "Traceback" not in r.output
+    code, so, se = _cli(["firmware", "fly", "hover", "--duration-s", "1.5", "--set", "gyro_lpf1_static_hz=9999",
+                         "-o", str(tmp_path / "g.csv")], capsys)
+    assert code != 0
+    lines = [x for x in se.strip().splitlines() if x.startswith("error:")]
+    assert len(lines) == 1 and "gyro_lpf1_static_hz" in lines[0] and "Traceback" not in se
     assert not (tmp_path / "g.csv").exists()
 
 
@@ -126,12 +133,10 @@ def test_cutoffs_on_the_firmware_short_grid(firmware_binary, tmp_path):
 
 
 @pytest.mark.slow
-def test_experiment_cutoffs_firmware_cli_quick(firmware_binary, tmp_path):
-    from experiments.cli import main
-
-    r = CliRunner().invoke(main, ["experiment", "cutoffs", "--firmware", "betaflight", "--quick", "--out",
-                                  str(tmp_path / "rep"), "--json"])
-    assert r.exit_code == 0, r.output
-    j = json.loads(r.stdout)
+def test_experiment_cutoffs_firmware_cli_quick(firmware_binary, tmp_path, capsys):
+    code, so, se = _cli(["experiment", "cutoffs", "--firmware", "betaflight", "--quick", "--out", str(tmp_path / "rep"),
+                         "--json"], capsys)
+    assert code == 0, se
+    j = json.loads(so)
     assert j["summary"]["firmware"].startswith("betaflight")
     assert (tmp_path / "rep" / "report.md").read_text().count("betaflight") >= 2
