@@ -65,7 +65,8 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
     every = int(round(float(rec.meta.get("gyro_rate_hz", 8000)) / float(rec.meta.get("log_rate_nominal_hz", 1000))))
     t = rec.t_s
     t_mid = float(t[0] + 0.5 * (t[-1] - t[0]))
-    raw_a = analyse(rec, use="prefilter", undo=False, t_to_s=t_mid)
+    # the unfiltered gyro (a partly filtered one with its known filters undone: better_tune.BBL logs after a PT1)
+    raw_a = analyse(rec, use="prefilter", undo=True, t_to_s=t_mid)
     edges = [b["throttle"][0] for b in raw_a.bands] + [raw_a.bands[-1]["throttle"][1]]
     filt_a = analyse(rec, use="gyro", undo=False, t_to_s=t_mid, band_edges=edges)
     filt_b = analyse(rec, use="gyro", undo=False, t_from_s=t_mid, band_edges=edges)

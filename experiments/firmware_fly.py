@@ -177,9 +177,16 @@ def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", set
 
 
 def settings_lines_from(settings_from) -> list[str]:
-    """CLI lines from a blackbox log's header or a ``diff`` file (empty when None)."""
+    """CLI lines from a blackbox log's header or a ``diff`` file (empty when None), through the
+    bridge's translation to the SITL's names (:func:`sim.firmware.settings.settings_from_file`);
+    what it could not carry over is warned about, one line each."""
     if settings_from is None:
         return []
-    from sim.firmware import settings_from_file
+    import warnings
 
-    return list(settings_from_file(settings_from))
+    from sim.firmware.settings import settings_from_file
+
+    fs = settings_from_file(settings_from)
+    for note in fs.notes:
+        warnings.warn(f"{fs.source}: {note}", stacklevel=2)
+    return list(fs.lines)

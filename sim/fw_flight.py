@@ -141,6 +141,7 @@ def motor_law(vehicle, idle_fraction: float) -> MotorLaw:
 
 
 # ----------------------------------------------------------------------------- rates
+#: Betaflight's rate types in its lookup order (cli/settings.c lookupTableRatesType)
 _RATES_TYPES = ("BETAFLIGHT", "RACEFLIGHT", "KISS", "ACTUAL", "QUICK")
 _AXES = ("roll", "pitch", "yaw")
 
@@ -181,7 +182,12 @@ class RateProfile:
                     raise GyroInputError(f"setting {fmt.format(a)} = {v!r}: not a number") from None
             return tuple(out)
 
-        return cls(rates_type=s.get("rates_type", d.rates_type).upper(), rc_rate=trio("{}_rc_rate", d.rc_rate),
+        rt = s.get("rates_type", d.rates_type).upper()
+        if rt.isdigit():  # a log header gives the lookup index (Betaflight's lookupTableRatesType order)
+            if int(rt) >= len(_RATES_TYPES):
+                raise GyroInputError(f"rates_type index {rt}: Betaflight has {len(_RATES_TYPES)} ({', '.join(_RATES_TYPES)})")
+            rt = _RATES_TYPES[int(rt)]
+        return cls(rates_type=rt, rc_rate=trio("{}_rc_rate", d.rc_rate),
                    expo=trio("{}_expo", d.expo), srate=trio("{}_srate", d.srate),
                    rate_limit=trio("{}_rate_limit", d.rate_limit),
                    quick_rc_expo=s.get("quickrates_rc_expo", "OFF").upper() in ("ON", "1"))

@@ -49,6 +49,8 @@ def test_default_rates_are_betaflight_4_6s():
     assert p.deflection(0, 5000.0) == 1.0
     s = RateProfile.from_settings({"rates_type": "betaflight", "roll_rc_rate": "100", "roll_srate": "70"})
     assert s.rates_type == "BETAFLIGHT" and s.rc_rate[0] == 100 and s.srate == (70, 67, 67)
+    assert RateProfile.from_settings({"rates_type": "0"}).rates_type == "BETAFLIGHT"  # a header's lookup index
+    assert RateProfile.from_settings({"rates_type": "3"}).rates_type == "ACTUAL"
     with pytest.raises(GyroInputError):
         RateProfile(rates_type="FAST")
 
