@@ -22,7 +22,10 @@ Scores per candidate and seed (paired: same seed = same gyro, rotor phases, shap
   vibration the chain lets through does to the attitude;
 * ``att_delay_deg`` — √max(RMS_track(B)² − RMS_track(B, none)², 0): what the chain's delay costs
   the tracking of the rate pulses;
-* ``attitude_cost_deg`` = hypot of the two; ``motor_noise_pct`` (A's motor outputs above 20 Hz over
+* ``att_delay_flight_deg`` — the chain's extra gyro delay over ``none`` (measured in A) times the
+  pilot's own flight-band rate (RMS of the log's gyro below 30 Hz, airborne), as
+  :mod:`experiments.flight_filter` prices it: a delay τ on a rate ω lags the attitude by τ·ω;
+* ``attitude_cost_deg`` = hypot of the three; ``motor_noise_pct`` (A's motor outputs above 20 Hz over
   the hover, % of full output); ``dterm_noise`` (A's D term above 20 Hz, firmware units); the
   measured gyro delay, rise and overshoot of the rate steps.
 
@@ -108,6 +111,8 @@ def fw_filter_task(task):
                       "hover_att_rms_deg": sa["hover_att_rms_deg"], "delay_ms": sa["gyro_delay_ms"],
                       "rise_ms": sa["step_rise_ms"], "overshoot_pct": sa["step_overshoot_pct"]}
     t_none = rows.get("none", {}).get("track_rms_deg", float("nan"))
+    d_none = rows.get("none", {}).get("delay_ms", float("nan"))
+    w_rms = float(o["flight_rate_rms_rad_s"])
     metrics = {}
     for name, r in rows.items():
         if r.get("crashed"):
@@ -115,7 +120,10 @@ def fw_filter_task(task):
             continue
         base_t = t_none if np.isfinite(t_none) else r["track_rms_deg"]
         r["att_delay_deg"] = math.sqrt(max(r["track_rms_deg"] ** 2 - base_t**2, 0.0))
-        r["attitude_cost_deg"] = math.hypot(r["att_vibration_deg"], r["att_delay_deg"])
+        extra_s = max(r["delay_ms"] - d_none, 0.0) / 1e3 if np.isfinite(d_none) else 0.0
+        r["att_delay_flight_deg"] = math.degrees(extra_s * w_rms)
+        r["attitude_cost_deg"] = math.sqrt(r["att_vibration_deg"] ** 2 + r["att_delay_deg"] ** 2
+                                           + r["att_delay_flight_deg"] ** 2)
         for k, v in r.items():
             metrics[f"{name}|{k}"] = float(v)
     return TaskResult.from_task(task, metrics)
@@ -163,10 +171,18 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
         spec = read_spec(p)
     hv, over, info = spec_injection(spec, band=band, vehicle=vehicle, physics=True, seed=0, n_calib=n_calib, calib_s=calib_s)
     cands = cands or candidates()
+    # the pilot's flight-band rate (the attitude cost of delay): RMS of the log's gyro below 30 Hz, airborne
+    from scipy import signal
+
+    sos = signal.butter(4, 30.0, fs=res.rate_hz, output="sos")
+    g_lp = signal.sosfiltfilt(sos, rec.gyro_rad_s, axis=0)
+    air = rec.extra["motor_cmd_mean"] >= 0.1 if "motor_cmd_mean" in rec.extra else np.ones(rec.n, bool)
+    w_rms = float(np.sqrt(np.mean(np.sum(g_lp[air] ** 2, axis=1))))
     fb = binary if isinstance(binary, FirmwareBinary) else ensure_binary()
     label = f"{fb.firmware} {fb.version}"
     opts = (("tune", tuple(tune)), ("candidates", tuple((k, tuple(v)) for k, v in cands.items())),
-            ("hover_vibration", hv), ("overrides", tuple(over.items())), ("vehicle", vehicle), ("binary", fb))
+            ("hover_vibration", hv), ("overrides", tuple(over.items())), ("vehicle", vehicle), ("binary", fb),
+            ("flight_rate_rms_rad_s", w_rms))
     tasks = [MonteCarloTask(index=i, scenario="filter-closed-loop-firmware", sensor=sensor, instance=i, seed=int(s),
                             duration_s=float(duration_s), options=opts) for i, s in enumerate(seeds)]
     results, backend, nw = execute(fw_filter_task, tasks, workers=workers, scheduler=scheduler)
@@ -183,7 +199,7 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
         best, budget = _pick(rows)
         picks.append(best)
         per_seed.append({"seed": r.seed, "pick": best, "budget_motor_noise_pct": budget, "rows": rows})
-    keys = ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "motor_noise_pct", "dterm_noise", "delay_ms",
+    keys = ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "att_delay_flight_deg", "motor_noise_pct", "dterm_noise", "delay_ms",
             "rise_ms", "overshoot_pct", "hover_att_rms_deg")
     chains = {}
     for name in cands:
@@ -202,6 +218,7 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
 
     rec_pub = public(mode)
     return {"flight": flight, "vehicle": vehicle, "firmware": label, "band": band, "duration_s": duration_s,
+            "flight_rate_rms_rad_s": w_rms,
             "seeds": [int(s) for s in seeds], "backend": backend, "workers": nw,
             "recommended": rec_pub, "as_flown": public("as_flown"),
             "firmware_lines": {"betaflight": rec_pub["set"] or ["# keep the tune as flown"]},
@@ -209,23 +226,24 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
             "injection": info,
             "scores": {"att_vibration_deg": "RMS angle between the vibrating and the vibration-free flight over the steady hover",
                        "att_delay_deg": "sqrt(max(RMS_track^2 - RMS_track(none)^2, 0)) over the rate pulses, no vibration",
-                       "attitude_cost": "hypot(att_vibration, att_delay), deg",
+                       "att_delay_flight_deg": "(delay - delay(none)) x the log's flight-band rate RMS",
+                       "attitude_cost": "sqrt(att_vibration^2 + att_delay^2 + att_delay_flight^2), deg",
                        "motor_noise": "RMS of the motor outputs above 20 Hz in the vibrating hover, % of full output"}}
 
 
 def print_table(out: dict) -> None:
     print(f"Flown by {out['firmware']} on {out['vehicle']} with the log's tune ({len(out['tune'])} lines) and its "
           f"vibration (band {out['band']}); seeds {out['seeds']}")
-    print("| chain | set lines over the tune | attitude cost, deg | vibration part | delay part | motor noise, % | "
-          "D-term noise | gyro delay, ms | rise, ms | overshoot, % |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| chain | set lines over the tune | attitude cost, deg | vibration part | step delay part | flight-rate delay "
+          "part | motor noise, % | D-term noise | gyro delay, ms | rise, ms | overshoot, % |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for k, m in out["chains"].items():
         def f(key, fmt):
             v = m[key]
             return (fmt % v["mean"]) + (f" ± {fmt % v['sd']}" if np.isfinite(v["sd"]) else "")
         lines = "; ".join(x.replace("set ", "") for x in m["lines"]) or "(as flown)"
         print(f"| {k} | {lines} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
-              f"{f('att_delay_deg', '%.4f')} | {f('motor_noise_pct', '%.3f')} | {f('dterm_noise', '%.2f')} | "
+              f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_pct', '%.3f')} | {f('dterm_noise', '%.2f')} | "
               f"{f('delay_ms', '%.2f')} | {f('rise_ms', '%.1f')} | {f('overshoot_pct', '%.1f')} |")
     print(f"picks per seed {out['seeds']}: {out['picks_per_seed']} (stable: {out['stable']})")
     print("recommended:", out["recommended"]["name"], "| betaflight:", "; ".join(out["firmware_lines"]["betaflight"]))
