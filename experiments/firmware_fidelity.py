@@ -96,7 +96,7 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
             how = "the whole band shaped (no rotor line law in the spec: rotors balanced)"
         opts = FwFlightOptions(scenario="hover", vehicle=vehicle, duration_s=duration_s, seed=seed, settle_s=settle_s,
                                vibration=hv, gyro_overrides=over)
-        log, finfo = fly(opts, settings, binary=binary, skip_unknown=True)
+        log, finfo = fly(opts, lenient=settings, binary=binary)
         label, skipped = finfo["firmware"], finfo["skipped_settings"]
         sps.append(finfo["sim_s_per_wall_s"])
         sim = analyse(sim_recording(log, every), use="gyro", undo=False, t_from_s=settle_s)

@@ -95,10 +95,10 @@ def fw_filter_task(task):
                 sensor=task.sensor, settle_s=SETTLE_S)
     rows = {}
     for name, lines in cands.items():
-        sets = tune + list(lines)
-        a, _ = fly(FwFlightOptions(**base, vibration=hv, gyro_overrides=over), sets, binary=o["binary"], skip_unknown=True)
-        b, _ = fly(FwFlightOptions(**base, vibration=False, gyro_overrides=None), sets, binary=o["binary"],
-                   skip_unknown=True)
+        a, _ = fly(FwFlightOptions(**base, vibration=hv, gyro_overrides=over), list(lines), lenient=tune,
+                   binary=o["binary"])
+        b, _ = fly(FwFlightOptions(**base, vibration=False, gyro_overrides=None), list(lines), lenient=tune,
+                   binary=o["binary"])
         sa, sb = a.scores(SETTLE_S), b.scores(SETTLE_S)
         nan = float("nan")
         if sa["crashed"] or sb["crashed"]:

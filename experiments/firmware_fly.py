@@ -94,10 +94,12 @@ def boot_still_source(opts):
 BOOT_MAX_S = 20.0
 
 
-def fly(opts, settings=(), *, binary=None, step_timeout_s: float | None = None, skip_unknown: bool = False):
+def fly(opts, settings=(), *, lenient=(), binary=None, step_timeout_s: float | None = None):
     """Boot the firmware with ``settings``, fly ``opts`` (:class:`sim.fw_flight.FwFlightOptions`).
 
-    ``settings``: CLI lines or (name, value) pairs. ``binary``: a
+    ``settings``: CLI lines or (name, value) pairs, applied last; a name the firmware does not have
+    is an error. ``lenient``: lines from a log header or a diff (applied first; names this SITL
+    lacks are skipped with a warning). ``binary``: a
     :class:`sim.firmware.build.FirmwareBinary`, a path, or None (the cached build, built if missing).
     Returns ``(FwFlightLog, info)``; ``info`` has ``firmware`` (name and version), ``settings``
     (the ``set`` lines applied), ``boot`` (the firmware's boot: simulated s, its gyro-calibration
@@ -107,15 +109,15 @@ def fly(opts, settings=(), *, binary=None, step_timeout_s: float | None = None, 
     from sim.firmware.build import FirmwareBinary, ensure_binary
     from sim.fw_flight import fly_firmware
 
-    lines = _lines(settings)
+    lines, soft = _lines(settings), _lines(lenient)
     fb = binary if isinstance(binary, FirmwareBinary) else (ensure_binary() if binary is None else _record_of(binary))
     path = fb.binary if fb is not None else str(binary)
     label = f"{fb.firmware} {fb.version}" if fb is not None else "betaflight"
-    opts = _flight_options(opts, _pairs(lines))
+    opts = _flight_options(opts, _pairs(soft + lines))
     kw = {} if step_timeout_s is None else {"step_timeout_s": step_timeout_s}
-    with BetaflightSITL(path, settings=lines, loop_rate_hz=opts.loop_rate_hz, skip_unknown=skip_unknown, **kw) as fw:
+    with BetaflightSITL(path, settings=lines, lenient_settings=soft, loop_rate_hz=opts.loop_rate_hz, **kw) as fw:
         rep = fw.boot(boot_still_source(opts), max_boot_s=BOOT_MAX_S)
-        meta = {"firmware": label, "firmware_settings": "; ".join(lines) or "defaults",
+        meta = {"firmware": label, "firmware_settings": "; ".join(soft + lines) or "defaults",
                 "firmware_boot_s": f"{rep.sim_s:.6g}"}
         log = fly_firmware(opts, fw, fw_meta=meta)
         skipped = list(fw.skipped_settings)
@@ -127,7 +129,7 @@ def fly(opts, settings=(), *, binary=None, step_timeout_s: float | None = None, 
         b0 = SyntheticGyro(opts.sensor, rate_hz=opts.loop_rate_hz, seed=opts.seed).power_up_bias(0)
         boot["true_turn_on_bias_rad_s"] = [float(x) for x in b0]
         boot["bias_estimate_error_rad_s"] = [float(a - b) for a, b in zip(rep.gyro_bias_S_rad_s, b0)]
-    info = {"firmware": label, "settings": lines, "skipped_settings": skipped, "boot": boot,
+    info = {"firmware": label, "settings": soft + lines, "skipped_settings": skipped, "boot": boot,
             "sim_s_per_wall_s": float(opts.duration_s / log.wall_s) if log.wall_s > 0 else math.nan}
     return log, info
 
@@ -151,7 +153,7 @@ def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", set
     from sim.vehicles import get_vehicle
 
     get_vehicle(vehicle)  # an unknown class is one error line before the firmware starts
-    sets = settings_lines_from(settings_from) + _lines(settings)
+    soft = settings_lines_from(settings_from)
     over, hover_vib, vib_info = None, True, None
     if vibration_spec is not None:
         from gyrocore.flight.vibration import read_spec
@@ -162,7 +164,7 @@ def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", set
         hover_vib = hv if hv is not None else True
     opts = FwFlightOptions(scenario=scenario, vehicle=vehicle, duration_s=float(duration_s), seed=int(seed),
                            sensor=sensor, loop_rate_hz=float(loop_rate_hz), vibration=hover_vib, gyro_overrides=over)
-    log, info = fly(opts, sets, binary=binary, skip_unknown=settings_from is not None)
+    log, info = fly(opts, settings, lenient=soft, binary=binary)
     rec = to_recording(log)
     if vib_info is not None:
         rec.meta["vibration_spec"] = f"{vib_info.get('spec', '')} band {band}"
