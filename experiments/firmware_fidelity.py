@@ -51,10 +51,10 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
     "held_out": fid, "in_sample": fid, "log_rms_above_40hz_rad_s", ...}]}`` with ``fid`` per axis
     as :func:`gyrocore.vibration.fidelity`."""
     from experiments.firmware_fly import fly, settings_lines_from
-    from gyrocore.readers.convert import detect_format, load_any
-    from gyrocore.errors import GyroInputError
     from gyrocore.data.recording import read_csv
+    from gyrocore.errors import GyroInputError
     from gyrocore.flight.vibration import analyse, fidelity, write_spec
+    from gyrocore.readers.convert import detect_format, load_any
     from sim.fw_flight import FwFlightOptions
     from sim.spec_vibration import spec_injection
 

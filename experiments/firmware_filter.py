@@ -42,7 +42,7 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["candidates", "run", "print_table", "changed_lines"]
+__all__ = ["candidates", "changed_lines", "print_table", "run"]
 
 SETTLE_S = 1.0
 #: every gyro filter off (Betaflight 4.3+ names)
@@ -150,10 +150,9 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
 
     from experiments.firmware_fly import settings_lines_from
     from experiments.montecarlo import MonteCarloTask, execute
-    from gyrocore.flight.vibration import analyse
-    from gyrocore.readers.convert import detect_format, load_any
     from gyrocore.data.recording import read_csv
-    from gyrocore.flight.vibration import read_spec, write_spec
+    from gyrocore.flight.vibration import analyse, read_spec, write_spec
+    from gyrocore.readers.convert import detect_format, load_any
     from sim.firmware.build import FirmwareBinary, ensure_binary
     from sim.spec_vibration import spec_injection
     from sim.vehicles import get_vehicle

@@ -15,7 +15,7 @@ from typing import Mapping, Sequence
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["FIRMWARES", "fly", "run", "settings_dict", "boot_still_source", "BOOT_MAX_S"]
+__all__ = ["BOOT_MAX_S", "FIRMWARES", "boot_still_source", "fly", "run", "settings_dict"]
 
 FIRMWARES = ("betaflight",)
 

@@ -47,16 +47,16 @@ from gyrocore.errors import GyroInputError
 __all__ = [
     "BF_MOTOR_NAMES",
     "ROTOR_OF_BF_MOTOR",
-    "MotorLaw",
-    "motor_law",
-    "RateProfile",
-    "Pilot",
-    "RatePulse",
-    "rate_pulses",
-    "FwFlightOptions",
-    "FwFlightLog",
-    "fly_firmware",
     "SCENARIOS",
+    "FwFlightLog",
+    "FwFlightOptions",
+    "MotorLaw",
+    "Pilot",
+    "RateProfile",
+    "RatePulse",
+    "fly_firmware",
+    "motor_law",
+    "rate_pulses",
 ]
 
 #: Betaflight quad-X motor positions, motors 1..4

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import write_csv
+from gyrocore.errors import GyroInputError
 from sim.fw_flight import (
     ROTOR_OF_BF_MOTOR,
     FwFlightOptions,
