@@ -355,8 +355,9 @@ def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band
         per.append(bl)
     if band_windows is not None:
         for bl, sel in zip(per, band_windows):
+            pw_sel = psd_windows[sel] if bl else None  # one copy of the band's windows, not one per energy band
             for e in bl:
-                iv = band_interval(f, psd_windows[sel], AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
+                iv = band_interval(f, pw_sel, AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
                                    reliable_below_hz=reliable_below_hz, k_eff=dof(int(sel.sum())) / 2.0)
                 e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
     for e in flight:
