@@ -219,8 +219,9 @@ def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: floa
             raise GyroInputError(f"{path}: the log carries no unfiltered gyro (gyroUnfilt in 4.5+, or debug_mode "
                                  f"GYRO_SCALED/GYRO_RAW): nothing to replay through the filters")
         if pre.get("filters_before"):
-            raise GyroInputError(f"{path}: the log's pre-filter gyro already passed {pre['filters_before']}: "
-                                 f"not the unfiltered gyro")
+            done = ", ".join(f"{f.get('kind', '?')} {f.get('cutoff_hz', float('nan')):g} Hz" for f in pre["filters_before"])
+            raise GyroInputError(f"{path}: the log's least-filtered gyro ({pre.get('source', '?').split(';')[0]}) already "
+                                 f"passed {done}: not the unfiltered gyro the firmware's filters start from")
         g = np.column_stack([rec.extra[f"gyro_prefilter_{a}_rad_s"] for a in "xyz"])
         source = f"{Path(path).name}: {pre.get('source', 'unfiltered gyro')}"
     else:

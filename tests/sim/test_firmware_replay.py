@@ -101,3 +101,14 @@ def test_replay_armed_follows_the_throttle(firmware_binary):
         assert r.boot.armed
         rms[thr] = float(np.std(r.fw_gyro_S_rad_s[800:, 0]))
     assert rms[2000.0] > 1.5 * rms[1000.0], rms
+
+
+def test_replay_refuses_a_log_without_the_unfiltered_gyro(shared_data, tmp_path, capsys):
+    # Betaflight 3.1.5, debug_mode NOTCH: the least-filtered gyro in the log is after the 90 Hz PT1
+    log = shared_data / "betaflight_blackbox" / "better_tune.BBL"
+    if not log.exists():
+        pytest.skip(f"{log} not present")
+    code, out, err = _cli(["firmware", "replay", log, "-o", tmp_path / "o.csv"], capsys)
+    errors = [x for x in err.splitlines() if x.startswith("error:")]
+    assert code == 2 and out == "" and len(errors) == 1
+    assert "pt1 90 Hz" in errors[0] and "not the unfiltered gyro" in errors[0]
