@@ -373,11 +373,15 @@ class BetaflightSITL:
     lenient_settings : sequence of str
         Lines applied before ``settings`` with unknown names skipped (one warning): for diffs and
         log headers from other boards (OSD, VTX, …) (:mod:`sim.firmware.settings`).
+    idle_exit_s : float
+        The SITL exits by itself when no packet arrives for this long (wall clock): no orphan
+        process outlives a caller that died without :meth:`close`. Keep it longer than any pause
+        between :meth:`boot` and the flight's steps.
     """
 
     def __init__(self, binary: str | os.PathLike, settings: Sequence[str] = (), *, loop_rate_hz: float = LOOP_RATE_HZ,
                  step_timeout_s: float = 5.0, workdir: str | os.PathLike | None = None, skip_unknown: bool = False,
-                 lenient_settings: Sequence[str] = (), cli_timeout_s: float = 10.0) -> None:
+                 lenient_settings: Sequence[str] = (), cli_timeout_s: float = 10.0, idle_exit_s: float = 300.0) -> None:
         self.binary = str(binary)
         if not (os.path.isfile(self.binary) and os.access(self.binary, os.X_OK)):
             raise GyroInputError(f"{binary}: no firmware binary there (build it: gyroharness firmware build)")
@@ -390,6 +394,9 @@ class BetaflightSITL:
         self.dt_s = 1.0 / self.loop_rate_hz
         self.step_timeout_s = float(step_timeout_s)
         self.cli_timeout_s = float(cli_timeout_s)
+        if not idle_exit_s > step_timeout_s:
+            raise GyroInputError(f"idle_exit_s ({idle_exit_s}) must exceed step_timeout_s ({step_timeout_s})")
+        self.idle_exit_s = float(idle_exit_s)
         self.skip_unknown = bool(skip_unknown)
         self.settings = tuple(s for s in (_normalise_setting(x) for x in settings) if s)
         self.lenient_settings = tuple(s for s in (_normalise_setting(x) for x in lenient_settings) if s)
@@ -432,7 +439,7 @@ class BetaflightSITL:
         unix = len(str(sitl_sock)) < 100
         link = ["--unix", str(sitl_sock)] if unix else ["--port", "0"]
         self._proc = subprocess.Popen(
-            [self.binary, *link, "--tcp-port", "0", "--idle-exit-s", str(max(30.0, 4 * self.step_timeout_s))],
+            [self.binary, *link, "--tcp-port", "0", "--idle-exit-s", str(self.idle_exit_s)],
             cwd=self.workdir, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             start_new_session=True)
         deadline = time.monotonic() + max(10.0, self.step_timeout_s)
