@@ -443,7 +443,7 @@ class BetaflightSITL:
             cwd=self.workdir, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             start_new_session=True)
         deadline = time.monotonic() + max(10.0, self.step_timeout_s)
-        udp = tcp = None
+        link_addr = tcp = None
         while time.monotonic() < deadline:
             with open(self.log_path, "rb") as fh:
                 fh.seek(mark)
@@ -451,12 +451,12 @@ class BetaflightSITL:
             m = re.search(r"lockstep unix socket (\S+)" if unix else r"lockstep udp port (\d+)", text)
             m2 = re.search(r"UART1 tcp port (\d+)", text)
             if m and m2:
-                udp, tcp = (m.group(1) if unix else int(m.group(1))), int(m2.group(1))
+                link_addr, tcp = (m.group(1) if unix else int(m.group(1))), int(m2.group(1))
                 break
             if self._proc.poll() is not None:
                 raise FirmwareError(f"betaflight SITL exited with code {self._proc.returncode} while starting: {self.log_tail()}")
             time.sleep(0.002)
-        if udp is None:
+        if link_addr is None:
             self._kill()
             raise FirmwareError(f"betaflight SITL did not report its ports within {max(10.0, self.step_timeout_s):.0f} s: {self.log_tail()}")
         if unix:
@@ -465,14 +465,14 @@ class BetaflightSITL:
                 mine.unlink()
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
             self._sock.bind(str(mine))
-            self._sock.connect(udp)
+            self._sock.connect(link_addr)
         else:
             self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._sock.bind(("127.0.0.1", 0))
-            self._sock.connect(("127.0.0.1", udp))
+            self._sock.connect(("127.0.0.1", link_addr))
         self._sock.settimeout(self.step_timeout_s)
         self._k = 0
-        return udp, tcp
+        return link_addr, tcp
 
     def _kill(self) -> None:
         if self._sock is not None:

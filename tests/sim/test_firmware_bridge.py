@@ -169,3 +169,16 @@ def test_bad_arguments_are_one_line(tmp_path, firmware_binary):
         BetaflightSITL(tmp_path / "nope")
     with pytest.raises(GyroInputError, match="8000 Hz"):
         BetaflightSITL(firmware_binary, loop_rate_hz=4000)
+
+
+def test_udp_link_when_the_socket_path_is_too_long(firmware_binary, tmp_path):
+    # a Unix socket path is limited to 107 bytes: a deep working folder falls back to loopback UDP
+    deep = tmp_path / ("d" * 120)
+    with BetaflightSITL(firmware_binary, workdir=deep) as fc:
+        fc.boot(arm=False)
+        assert fc._sock.family.name == "AF_INET"
+        r = fc.step((0.1, 0.0, 0.0))
+        assert r.loop_count > 0
+    with BetaflightSITL(firmware_binary) as fc:
+        fc.boot(arm=False)
+        assert fc._sock.family.name == "AF_UNIX"
