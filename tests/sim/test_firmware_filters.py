@@ -67,9 +67,10 @@ def test_pt1_150hz_matches_discrete_pt1(firmware_binary):
         xa, ya = _replayed_gains(res, axis)
         g = _gain_at(xa, ya, F_CHECK)
         assert g == pytest.approx(np.abs(h_model), rel=0.02), (axis, g, np.abs(h_model))
-    # the estimator itself, on the model's own output from the same input, is within 0.6 %
+    # the estimator itself, on the model's own output from the same input: within its bias
+    # bound from the module docstring (delay 0.2 % + smoothing 0.5 %)
     g_est = _gain_at(x, sosfilt(model.sos, x), F_CHECK)
-    assert g_est == pytest.approx(np.abs(h_model), rel=0.006)
+    assert g_est == pytest.approx(np.abs(h_model), rel=0.007)
 
 
 def test_static_notch_matches_discrete_notch(firmware_binary):
