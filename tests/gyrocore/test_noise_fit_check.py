@@ -163,6 +163,28 @@ def test_flicker_at_the_first_octaves_is_no_low_pass():
     assert r.fit_from_tau_s == r.taus_s[0] and lo <= N <= hi, (r.arw_rad_per_sqrt_s / N, lo / N, hi / N)
 
 
+def test_flicker_shape_at_the_first_octaves_stays_inside_n_interval():
+    """Issue 25: how 1/f reaches the sample rate is a convention — the model's column is
+    point-sampled 1/f to Nyquist (Kasdin–Walter: 1.44× the IEEE asymptote at m = 1), a sensor that
+    averages over each sample (and the simulator's cascade) has the asymptote at every m. Fed the
+    noise-free Allan variance of the averaged convention (N + B + K, 5-octave plateau, 2 h at
+    20 Hz), the whole error of N is this model error; it must stay inside N's interval with room:
+    a bias of b standard errors leaves the 95 % interval P(|Z + b| < 1.96) coverage, ≥ 90 % for
+    |b| ≤ 0.67. Without the shape's model uncertainty in the covariance b = −1.03 (83 %)."""
+    f = 2.0 * math.log(2.0) / math.pi
+    rate, n = 20.0, 144000
+    N, tau_nb, tau_bk = 1e-4, 150.0 / 2**5, 150.0
+    B = N / math.sqrt(f * tau_nb)
+    K = B * math.sqrt(3.0 * f / tau_bk)
+    m = gmwm.scales(n)
+    A = gmwm.term_avar(m, rate)
+    avar = A[:, 1] * N**2 + f * B**2 + A[:, 3] * K**2
+    r = gmwm.fit_noise(m / rate, avar, m, n)
+    lo, hi = r.ci95["arw_rad_per_sqrt_s"]
+    z = (r.terms["arw_rad_per_sqrt_s"] - N) / ((hi - lo) / (2 * 1.959964))
+    assert abs(z) <= 0.67, (z, lo / N, hi / N)
+
+
 def test_narrowband_line_is_removed_not_taken_for_quantization():
     """White noise + a 31.4-Hz sinusoid at 100 Hz (the sunsided MPU-6050 z line: its Allan
     variance ~ A²sin⁴(πmν)/(m²sin²πν) falls as 1/τ² beyond the first octaves, i.e. looks like
