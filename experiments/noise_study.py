@@ -381,6 +381,40 @@ def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, b
             "D_vs_true": stats}
 
 
+def flicker_wv_check(T_s: float, rate_hz: float) -> dict:
+    """Expected overlapping Allan variance of the flicker generators over a finite record, exactly,
+    against the GMWM's flicker column (issue 25: is the fit's flicker WV the generator's?).
+
+    A generator started at rest is y_j = Σ_{l ≤ j} h_{j−l} w_l (impulse response h, unit white w);
+    the Allan difference at position k is Σ_l w_l g_{k+2m−1−l} with g = h ∗ Haar_m, so its
+    variance is Σ_{t ≤ k+2m−1} g_t² and E σ̂²(m) = ½ mean_k of that cumulative sum over the
+    n − 2m + 1 overlapping positions — the start-up transient and the finite record included.
+    Returns, per octave factor m, the ratio to :func:`gyrocore.noise.gmwm.flicker_avar_factor`
+    for the simulator's cascade (:func:`sim.noise.flicker_sos`) and the Kasdin–Walter process.
+    """
+    from scipy import signal
+
+    from gyrocore.noise import gmwm as G
+    from sim import noise as SN
+
+    n = round(T_s * rate_hz)
+    m = G.scales(n)
+    d = np.zeros(n)
+    d[0] = 1.0
+    imp = {"cascade": signal.sosfilt(SN.flicker_sos(rate_hz), d), "kasdin_walter": SN.kasdin_walter_coefficients(n, 1.0)}
+    model = np.array([G.flicker_avar_factor(int(v)) for v in m])
+    out = {"T_s": T_s, "rate_hz": rate_hz, "tau_s": (m / rate_hz).tolist()}
+    for name, h in imp.items():
+        ev = []
+        for mm in m:
+            haar = np.r_[np.full(mm, -1.0 / mm), np.full(mm, 1.0 / mm)]
+            g = signal.fftconvolve(h, haar)[:n]
+            cs = np.cumsum(g * g)
+            ev.append(0.5 * cs[np.arange(n - 2 * mm + 1) + 2 * mm - 1].mean())
+        out[name] = np.round(np.array(ev) / model, 4).tolist()
+    return out
+
+
 def _nu_from_interval(c: float, lo: float, hi: float) -> float:
     """ν of a chi-square interval [cν/χ²₀.₉₇₅(ν), cν/χ²₀.₀₂₅(ν)] from its ends (ratio hi/lo is monotone in ν)."""
     import scipy.optimize
@@ -406,7 +440,13 @@ def main(argv=None) -> None:
     ap.add_argument("--k-seeds", type=int, default=12, help="seeds (x 3 axes) of --k-check")
     ap.add_argument("--census", default=None, help="development census of one cell, MIX:T_s@rate_hz (selection_census)")
     ap.add_argument("--census-seeds", type=int, default=40)
+    ap.add_argument("--flicker-wv", default=None, help="T_s@rate_hz: exact expected AVAR of the flicker generators "
+                    "against the fit's flicker column (flicker_wv_check)")
     a = ap.parse_args(argv)
+    if a.flicker_wv:
+        T, r = (float(v) for v in a.flicker_wv.split("@"))
+        print(json.dumps(flicker_wv_check(T, r)))
+        return
     if a.census:
         mix, cell = a.census.split(":")
         T, r = (float(v) for v in cell.split("@"))

@@ -1289,18 +1289,19 @@ def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: fl
 
     Test of octave pair (m_k, m_{k+1}): d_k = log(σ̂²_{k+1}/σ̂²_k) − log(white ratio m_k/m_{k+1}),
     Var d = 2/ν_k + 2/ν_{k+1} − 4ρ/√(ν_kν_{k+1}) with the white-noise EDF and correlation;
-    low-pass when d_k > z_{1−α}·sd (α = :data:`ALPHA_BANDWIDTH`, one-sided) **and** d_k fades:
-    d_k − d_{k+1} > z_{1−α}·sd too. A low-pass deficit −κN²/τ² gives d_k ≈ κ/(2m), falling by half
-    per octave; every term of the model that rises above white at the short scales — flicker,
-    random walk, a Gauss–Markov hump (and Q: d < 0 rising to 0) — gives a d_k that *grows* with
-    the octave (its share of σ² doubles per octave or more). Without the second condition a
-    flicker floor 1.5 % of σ² at the first octave (N + B + K with a 5-octave plateau, 2 h at
-    20 Hz: z of d_k = 3.3, 4.6, 5.0, 7.2, …, growing) was taken for a low-pass at *every* pair
-    and the fit started at τ = 100 s, with N reported at 4–9× its truth (issue 25). Pairs are
-    tested from the first one up; when the first is flagged, the fit starts above the first pair
-    that is not (at least 6 scales kept), where the remaining low-pass deficit −κN²/τ² is fitted
-    in place of Q (method suffix "+lp"). On white noise the first pair is flagged with
-    probability ≤ α.
+    low-pass when d_k > z_{1−α}·sd (α = :data:`ALPHA_BANDWIDTH`, one-sided) — unless the excess
+    *rises*: a low-pass deficit −κN²/τ² gives d_k ≈ κ/(2m), falling by half per octave, while
+    every term of the model that rises above white at the short scales — flicker, random walk, a
+    Gauss–Markov hump (and Q: d < 0 rising to 0) — gives a d_k that grows with the octave (its
+    share of σ² doubles per octave or more). So nothing is cut when the GLS slope of d_k over the
+    first 5 pairs is significantly positive (level α), and the cut stops at the first pair whose
+    excess exceeds the one before. Without this a flicker floor 1.5 % of σ² at the first octave
+    (N + B + K with a 5-octave plateau, 2 h at 20 Hz: z of d_k = 3.3, 4.6, 5.0, 7.2, …) was taken
+    for a low-pass at *every* pair and the fit started at τ = 100 s, with N reported at 4–9× its
+    truth (issue 25). Pairs are tested from the first one up; when the first is flagged, the fit
+    starts above the first pair that is not (at least 6 scales kept), where the remaining low-pass
+    deficit −κN²/τ² is fitted in place of Q (method suffix "+lp"). On white noise the first pair
+    is flagged with probability ≤ α.
     """
     avar = np.asarray(avar, float)
     m = np.asarray(m, np.int64)
@@ -1319,18 +1320,34 @@ def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: fl
     def d_of(j: int) -> float:
         return math.log(avar[j + 1] / avar[j]) - math.log(white[j + 1] / white[j])
 
+    if m.size - 8 < 1:
+        return 0
+    # Rising, not fading: the excess of the first J pairs regressed on the pair index (GLS with
+    # the covariance of the differences, Cov d = A V Aᵀ); a slope significantly > 0 is the
+    # long-τ terms' growing share, and then nothing is cut. The slope uses J pairs at once: a
+    # pair-by-pair "does it fade" test had too little power on a 50-s record (IMU-TK Xsens:
+    # d = 0.135, 0.073, 0.023, … a low-pass the old test cut and that one kept).
+    J = min(5, m.size - 7)
+    A = np.zeros((J, m.size))
+    for j in range(J):
+        A[j, j], A[j, j + 1] = -1.0, 1.0
+    Vd = A @ V @ A.T
+    dd = np.array([d_of(j) for j in range(J)])
+    X = np.column_stack([np.ones(J), np.arange(J, dtype=float)])
+    Wd = np.linalg.inv(Vd)
+    cov_b = np.linalg.inv(X.T @ Wd @ X)
+    slope = float((cov_b @ X.T @ Wd @ dd)[1])
+    if slope > z_lim * math.sqrt(max(float(cov_b[1, 1]), 1e-300)):
+        return 0
     k = 0
     while k < m.size - 8:
         d = d_of(k)
         var = V[k, k] + V[k + 1, k + 1] - 2.0 * V[k, k + 1]
         if not d > z_lim * math.sqrt(max(var, 1e-300)):
             break
-        # fading, not rising: D = d_k − d_{k+1} = 2ℓ_{k+1} − ℓ_k − ℓ_{k+2} (+ const), ℓ = log σ̂²
-        a = np.zeros(m.size)
-        a[[k, k + 1, k + 2]] = (-1.0, 2.0, -1.0)
-        if not d - d_of(k + 1) > z_lim * math.sqrt(max(float(a @ V @ a), 1e-300)):
-            break
         k += 1
+        if d_of(k) > d:  # the excess stopped fading: the long-τ terms take over from here
+            break
     # the fit starts above the last pair the test looked at: where the test stops depends on the
     # noise of that pair (it stops when σ̂² of its upper octave happens to be low), so fitting
     # that octave biased N low (a first-order filter of 1.5 samples: z of N −1.9 on average)
