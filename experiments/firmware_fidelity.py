@@ -45,7 +45,7 @@ def sim_recording(log, every: int):
 
 def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: float = 6.0, settle_s: float = 1.0,
         n_calib: int = 16, calib_s: float = 2.0, bands=None, binary=None, out_dir: str | None = None,
-        settings=None) -> dict:
+        settings=None, at_band_throttle: bool = False) -> dict:
     """Fidelity per throttle band (module docstring). Returns ``{"flight", "vehicle", "firmware",
     "settings_applied", "settings_skipped", "t_split_s", "bands": [{"band", "throttle",
     "held_out": fid, "in_sample": fid, "log_rms_above_40hz_rad_s", ...}]}`` with ``fid`` per axis
@@ -82,25 +82,35 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
         if bands is not None and i not in bands:
             continue
         j = b_index.get(round(b["throttle"][0], 9))
-        try:
-            hv, over, info = spec_injection(spec_raw, band=i, vehicle=vehicle, physics=True, seed=seed, n_calib=n_calib,
-                                            calib_s=calib_s)
-            how = "rotor line through the rotors' unbalance + the rest of the band shaped"
-        except GyroInputError as exc:
-            if "no line that follows throttle" not in str(exc):
-                raise
-            # no rotor line law in this half (one throttle, no eRPM): the whole band as the gyro's
-            # shaped vibration, the rotors without unbalance (else their default line comes twice)
-            hv, over, info = spec_injection(spec_raw, band=i, vehicle=vehicle, physics=False, seed=seed)
+        hover_u = None
+        if at_band_throttle and b.get("median") is not None and float(b["median"]) > _own_hover_u(vehicle):
+            # fly at the band's own motor command (a payload: the rotors, their line, the RPM filter,
+            # the dynamic notch and LPF where the log had them); the whole band shaped, rotors balanced
+            hover_u = float(b["median"])
+        hv = info = None
+        if hover_u is None:
+            try:
+                hv, over, info = spec_injection(spec_raw, band=i, vehicle=vehicle, physics=True, seed=seed,
+                                                n_calib=n_calib, calib_s=calib_s)
+                how = "rotor line through the rotors' unbalance + the rest of the band shaped"
+            except GyroInputError as exc:
+                if "no line that follows throttle" not in str(exc):
+                    raise
+        if info is None:
+            # at the band's throttle, or no rotor line law in this half (one throttle, no eRPM): the
+            # whole band as the gyro's shaped vibration, the rotors balanced (else a line comes twice)
+            _, over, info = spec_injection(spec_raw, band=i, vehicle=vehicle, physics=False, seed=seed)
             hv = False
-            how = "the whole band shaped (no rotor line law in the spec: rotors balanced)"
+            how = "the whole band shaped, rotors balanced, " + (
+                f"hover at the band's command u = {hover_u:.3f}" if hover_u is not None else "no rotor line law in the spec")
         opts = FwFlightOptions(scenario="hover", vehicle=vehicle, duration_s=duration_s, seed=seed, settle_s=settle_s,
-                               vibration=hv, gyro_overrides=over)
+                               vibration=hv, gyro_overrides=over, hover_command=hover_u)
         log, finfo = fly(opts, lenient=settings, binary=binary)
         label, skipped = finfo["firmware"], finfo["skipped_settings"]
         sps.append(finfo["sim_s_per_wall_s"])
         sim = analyse(sim_recording(log, every), use="gyro", undo=False, t_from_s=settle_s)
-        row = {"band": i, "throttle": b["throttle"], "n_windows_first": b["n_windows"],
+        row = {"band": i, "throttle": b["throttle"], "n_windows_first": b["n_windows"], "hover_command": hover_u,
+               "log_first_vs_second_half": _repeatability(spec_fa, i, spec_fb, j) if j is not None else None,
                "in_sample": fidelity(sim, spec_fa, band=i), "held_out": fidelity(sim, spec_fb, band=j) if j is not None else None,
                "n_windows_second": spec_fb["bands"][j]["n_windows"] if j is not None else 0,
                "sim_mean_motor": float(np.mean(log.motors[log.t_s >= settle_s])),
@@ -115,18 +125,43 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
                       "filtered_second_half": os.path.join(d, "spec_filtered_second_half.json")}}
 
 
+def _own_hover_u(vehicle) -> float:
+    """The class's own hover motor command under its motor law (default idle)."""
+    from sim.fw_flight import motor_law
+    from sim.vehicles import get_vehicle
+
+    v = get_vehicle(vehicle)
+    return motor_law(v, 0.055).command_for_speed(v.hover_rotor_speed_rad_s)
+
+
+def _repeatability(spec_a: dict, i: int, spec_b: dict, j: int) -> dict:
+    """The log against itself: its first half's band i scored as if simulated against the second
+    half's band j (the in-band fraction the data allows; 0.95 for equal spectra)."""
+    from types import SimpleNamespace
+
+    from gyrocore.flight.vibration import fidelity
+
+    b = spec_a["bands"][i]
+    ns = SimpleNamespace(f_hz=np.asarray(spec_a["f_hz"], float), n_windows=int(b["n_windows"]),
+                         mean_psd=np.column_stack([[np.nan if x is None else x for x in b["psd_rad2_s2_hz"][a]]
+                                                   for a in "xyz"]))
+    return fidelity(ns, spec_b, band=j)
+
+
 def summary_table(out: dict) -> str:
     """Markdown: per band and axis, RMS above 40 Hz (log vs firmware in the loop), held out then in sample."""
     lines = ["| band | throttle | axis | log RMS > 40 Hz, °/s (held out) | sim RMS > 40 Hz, °/s | in-band fraction (held out) "
-             "| in-band fraction (in sample) |", "|---|---|---|---|---|---|---|"]
+             "| in-band fraction (in sample) | log half vs half |", "|---|---|---|---|---|---|---|---|"]
     deg = 180.0 / math.pi
     for r in out["bands"]:
         for a in "xyz":
             h = (r["held_out"] or {}).get(a)
             s = r["in_sample"][a]
+            rep = (r.get("log_first_vs_second_half") or {}).get(a)
             lines.append(f"| {r['band']} | {r['throttle'][0]:.2f}–{r['throttle'][1]:.2f} | {a} | "
                          f"{(h['rms_real_rad_s'] * deg) if h else float('nan'):.2f} | {s['rms_sim_rad_s'] * deg:.2f} | "
-                         f"{h['in_band_fraction'] if h else float('nan'):.2f} | {s['in_band_fraction']:.2f} |")
+                         f"{h['in_band_fraction'] if h else float('nan'):.2f} | {s['in_band_fraction']:.2f} | "
+                         f"{rep['in_band_fraction'] if rep else float('nan'):.2f} |")
     return "\n".join(lines)
 
 
@@ -137,10 +172,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--duration-s", type=float, default=6.0)
     ap.add_argument("--bands", default=None, help="comma-separated band indices (default all)")
+    ap.add_argument("--at-band-throttle", action="store_true",
+                    help="fly each band at its own motor command (payload), the band wholly shaped")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     bands = None if a.bands is None else {int(x) for x in a.bands.split(",")}
-    out = run(flight=a.flight, vehicle=a.vehicle, seed=a.seed, duration_s=a.duration_s, bands=bands)
+    out = run(flight=a.flight, vehicle=a.vehicle, seed=a.seed, duration_s=a.duration_s, bands=bands,
+              at_band_throttle=a.at_band_throttle)
     if a.json:
         print(json.dumps(out, indent=1, default=str))
     else:

@@ -394,6 +394,11 @@ class FwFlightOptions:
         measured one).
     settle_s : float
         Start of the scored hover, s.
+    hover_command : float, optional
+        Hover at this motor command u (0..1 of the output range) instead of the class's own: a
+        payload at the centre of mass makes the weight 4 c_T Omega(u)^2 (inertia unchanged), so the
+        rotors spin where a log's throttle band had them (its rotor line, RPM filter, dynamic
+        notch and dynamic LPF at that throttle). Default: the class's weight.
     """
 
     scenario: str = "hover"
@@ -408,6 +413,7 @@ class FwFlightOptions:
     settle_s: float = 1.0
     mincheck_us: int = 1050
     rates: RateProfile = field(default_factory=RateProfile)
+    hover_command: float | None = None
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
@@ -596,6 +602,34 @@ class _SetupOnly:
         return omega_S
 
 
+def _add_payload(model, data, hf, veh, law, u: float):
+    """Make the vehicle hover at motor command ``u`` (``FwFlightOptions.hover_command``): the frame
+    body carries the extra mass (inertia unchanged), the rotors start at the new hover speed.
+    Returns the pilot's :class:`sim.controller.QuadParams` with the new mass."""
+    from dataclasses import replace as _replace
+
+    import mujoco
+
+    if not 0.0 < u <= 1.0:
+        raise GyroInputError(f"hover command must be in (0, 1], got {u}")
+    p = veh.params
+    om = law.speed_rad_s(u)
+    m_new = 4.0 * p.c_t_n_per_rad2_s2 * om * om / p.gravity_m_s2
+    m_old = float(mujoco.mj_getTotalmass(model))
+    if m_new < 0.5 * m_old:
+        raise GyroInputError(f"hover command {u:g} is below the {veh.name}'s own hover: it would need a lighter vehicle")
+    fid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "frame")
+    model.body_mass[fid] += m_new - m_old
+    mujoco.mj_setConst(model, data)
+    rv0 = hf.rv0
+    data.qvel[rv0:rv0 + 4] = [s * om for s in hf.spin]
+    t = p.c_t_n_per_rad2_s2 * om * om
+    data.ctrl[0:4] = t
+    data.ctrl[12:16] = [s * (om + hf.ff * t) for s in hf.spin]
+    mujoco.mj_forward(model, data)
+    return _replace(p, mass_kg=m_new)
+
+
 def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[str, str] | None = None) -> FwFlightLog:
     """Fly ``opts`` with the firmware ``fw`` (booted and armed) in the loop (module docstring).
 
@@ -629,10 +663,13 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
         g = SyntheticGyro(opts.sensor, rate_hz=rate, seed=opts.seed, overrides=dict(opts.gyro_overrides or {}) or None)
         gstep = g.stream(n, t_s=t_all, temp_c=temp).step
     law = motor_law(veh, opts.idle_fraction)
+    params = veh.params
+    if opts.hover_command is not None:
+        params = _add_payload(model, data, hf, veh, law, float(opts.hover_command))
     # the pilot: the hover runner's outer loops (same constants as HoverFlight's own) flying the pulses
-    ctl = _pulse_controller(CascadedController)(veh.params, veh.gains, dt_s=1.0 / rate,
+    ctl = _pulse_controller(CascadedController)(params, veh.gains, dt_s=1.0 / rate,
                                                 pos_sp_W_m=tuple(data.qpos[0:3].tolist()), yaw_sp_rad=0.0, pulses=pulses)
-    pilot = Pilot(ctl, opts.rates, law, veh.params.c_t_n_per_rad2_s2, mincheck_us=opts.mincheck_us)
+    pilot = Pilot(ctl, opts.rates, law, params.c_t_n_per_rad2_s2, mincheck_us=opts.mincheck_us)
     spin, ff, ct = hf.spin, hf.ff, hf.ct
     rotor_k = hf.rotor_k
     rq0, rv0 = hf.rq0, hf.rv0
@@ -713,6 +750,8 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
         "motor_order": "betaflight quad-X: " + ", ".join(f"motor_{j + 1} {nm}" for j, nm in enumerate(BF_MOTOR_NAMES)),
         "motor_law": law.source,
         "motor_idle_fraction": f"{idle:g}",
+        **({"hover_command": f"{opts.hover_command:g} (payload: weight 4 c_T Omega(u)^2)"}
+           if opts.hover_command is not None else {}),
         "pilot": "sim.controller.CascadedController outer loops (250 Hz) on the true state; sticks by the inverse "
                  f"of the firmware's {opts.rates.rates_type} rate curve",
     })
