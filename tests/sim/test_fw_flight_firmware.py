@@ -140,3 +140,30 @@ def test_experiment_cutoffs_firmware_cli_quick(firmware_binary, tmp_path, capsys
     j = json.loads(so)
     assert j["summary"]["firmware"].startswith("betaflight")
     assert (tmp_path / "rep" / "report.md").read_text().count("betaflight") >= 2
+
+
+@pytest.mark.slow
+def test_filter_closed_loop_firmware_cli(firmware_binary, shared_data, capsys):
+    bbl = shared_data / "betaflight_blackbox" / "better_tune.BBL"
+    code, so, se = _cli(["filter-closed-loop", str(bbl), "--firmware", "betaflight", "--seeds", "1", "--duration-s", "3",
+                         "--json"], capsys)
+    assert code == 0, se
+    j = json.loads(so)
+    assert j["firmware"].startswith("betaflight") and j["as_flown"]["name"] == "as_flown"
+    assert j["recommended"]["name"] in j["chains"]
+    assert any(x.startswith("set gyro_lpf1") for x in j["tune"])  # the log's own filters reached the firmware
+    n = j["chains"]["none"]["motor_noise_pct"]["mean"]
+    a = j["chains"]["as_flown"]["motor_noise_pct"]["mean"]
+    assert a < n  # the pilot's filters quiet the motors against no gyro filter at all
+
+
+@pytest.mark.slow
+def test_fidelity_against_the_logs_own_filtered_gyro(firmware_binary, shared_data):
+    from experiments.firmware_fidelity import run
+
+    out = run(flight=str(shared_data / "blackbox_public" / "LOG00037.BFL"), vehicle="racing5", duration_s=3.0, n_calib=4, bands={1}, binary=firmware_binary)
+    r = out["bands"][0]
+    assert out["settings_applied"] and r["held_out"] is not None
+    for a in "xyz":
+        h = r["held_out"][a]
+        assert np.isfinite(h["rms_sim_rad_s"]) and np.isfinite(h["rms_real_rad_s"]) and 0.0 <= h["in_band_fraction"] <= 1.0
