@@ -115,7 +115,8 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
                "n_windows_second": spec_fb["bands"][j]["n_windows"] if j is not None else 0,
                "sim_mean_motor": float(np.mean(log.motors[log.t_s >= settle_s])),
                "sim_rotor_hz": float(np.mean(log.rotor_speed_rad_s[log.t_s >= settle_s]) / (2 * math.pi)),
-               "injection": how, "physics": info.get("physics")}
+               "injection": how, "physics": info.get("physics"),
+               "rms_by_range": _rms_by_range(sim, spec_fb, j) if j is not None else None}
         rows.append(row)
     return {"flight": flight, "vehicle": vehicle, "firmware": label, "seed": seed, "duration_s": duration_s,
             "log_every": every, "t_split_s": t_mid, "settings_applied": settings, "settings_skipped": skipped,
@@ -123,6 +124,29 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
             "specs": {"raw_first_half": os.path.join(d, "spec_raw_first_half.json"),
                       "filtered_first_half": os.path.join(d, "spec_filtered_first_half.json"),
                       "filtered_second_half": os.path.join(d, "spec_filtered_second_half.json")}}
+
+
+#: frequency ranges of :func:`_rms_by_range`, Hz: the flight's low vibration band, the band of
+#: the static notches and rotor lines of a small quad, and the top up to the logged Nyquist
+RANGES_HZ = ((40.0, 150.0), (150.0, 300.0), (300.0, 500.0))
+
+
+def _rms_by_range(sim, spec: dict, band: int) -> dict:
+    """RMS of the simulated and the real (held-out) filtered gyro in :data:`RANGES_HZ`, per axis, rad/s:
+    where the two spectra part."""
+    b = spec["bands"][band]
+    f_r = np.asarray(spec["f_hz"], float)
+    out = {}
+    for lo, hi in RANGES_HZ:
+        key = f"{lo:g}-{hi:g}"
+        out[key] = {}
+        for j, a in enumerate("xyz"):
+            real = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][a]], float)
+            sel_r = (f_r >= lo) & (f_r < hi)
+            sel_s = (sim.f_hz >= lo) & (sim.f_hz < hi)
+            out[key][a] = {"sim": float(np.sqrt(np.nansum(sim.mean_psd[sel_s, j]) * (sim.f_hz[1] - sim.f_hz[0]))),
+                           "real": float(np.sqrt(np.nansum(real[sel_r]) * (f_r[1] - f_r[0])))}
+    return out
 
 
 def _own_hover_u(vehicle) -> float:
