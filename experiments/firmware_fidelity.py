@@ -45,7 +45,7 @@ def sim_recording(log, every: int):
 
 def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: float = 6.0, settle_s: float = 1.0,
         n_calib: int = 16, calib_s: float = 2.0, bands=None, binary=None, out_dir: str | None = None,
-        settings=None, at_band_throttle: bool = False) -> dict:
+        settings=None, at_band_throttle: bool = False, inject_to_nyquist: bool = False) -> dict:
     """Fidelity per throttle band (module docstring). Returns ``{"flight", "vehicle", "firmware",
     "settings_applied", "settings_skipped", "t_split_s", "bands": [{"band", "throttle",
     "held_out": fid, "in_sample": fid, "log_rms_above_40hz_rad_s", ...}]}`` with ``fid`` per axis
@@ -76,6 +76,12 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
     spec_fa = write_spec(filt_a, os.path.join(d, "spec_filtered_first_half.json"), source=f"{flight} gyroADC t < {t_mid:.2f} s")
     spec_fb = write_spec(filt_b, os.path.join(d, "spec_filtered_second_half.json"), source=f"{flight} gyroADC t >= {t_mid:.2f} s")
     settings = settings_lines_from(flight) if settings is None else list(settings)
+    spec_inj = spec_raw
+    if inject_to_nyquist:
+        # trust the reconstruction to the logged Nyquist: the band's PSD above the spec's reliable
+        # limit (where undoing the logged filters also scales content folded from above Nyquist)
+        # enters at the logged frequencies, so the simulated chain filters it where the log shows it
+        spec_inj = dict(spec_raw, reconstructed_reliable_below_hz=float(spec_raw["f_hz"][-1]))
     b_index = {round(b["throttle"][0], 9): j for j, b in enumerate(spec_fb["bands"])}
     rows, label, skipped, sps = [], None, [], []
     for i, b in enumerate(spec_raw["bands"]):
@@ -90,7 +96,7 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
         hv = info = None
         if hover_u is None:
             try:
-                hv, over, info = spec_injection(spec_raw, band=i, vehicle=vehicle, physics=True, seed=seed,
+                hv, over, info = spec_injection(spec_inj, band=i, vehicle=vehicle, physics=True, seed=seed,
                                                 n_calib=n_calib, calib_s=calib_s)
                 how = "rotor line through the rotors' unbalance + the rest of the band shaped"
             except GyroInputError as exc:
@@ -99,7 +105,7 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
         if info is None:
             # at the band's throttle, or no rotor line law in this half (one throttle, no eRPM): the
             # whole band as the gyro's shaped vibration, the rotors balanced (else a line comes twice)
-            _, over, info = spec_injection(spec_raw, band=i, vehicle=vehicle, physics=False, seed=seed)
+            _, over, info = spec_injection(spec_inj, band=i, vehicle=vehicle, physics=False, seed=seed)
             hv = False
             how = "the whole band shaped, rotors balanced, " + (
                 f"hover at the band's command u = {hover_u:.3f}" if hover_u is not None else "no rotor line law in the spec")
@@ -119,6 +125,8 @@ def run(*, flight: str, vehicle: str = "racing5", seed: int = 0, duration_s: flo
                "rms_by_range": _rms_by_range(sim, spec_fb, j) if j is not None else None}
         rows.append(row)
     return {"flight": flight, "vehicle": vehicle, "firmware": label, "seed": seed, "duration_s": duration_s,
+            "inject_to_nyquist": inject_to_nyquist, "at_band_throttle": at_band_throttle,
+            "spec_reliable_below_hz": spec_raw.get("reconstructed_reliable_below_hz"),
             "log_every": every, "t_split_s": t_mid, "settings_applied": settings, "settings_skipped": skipped,
             "sim_s_per_wall_s": float(np.median(sps)) if sps else math.nan, "bands": rows,
             "specs": {"raw_first_half": os.path.join(d, "spec_raw_first_half.json"),
@@ -198,11 +206,13 @@ def main() -> None:
     ap.add_argument("--bands", default=None, help="comma-separated band indices (default all)")
     ap.add_argument("--at-band-throttle", action="store_true",
                     help="fly each band at its own motor command (payload), the band wholly shaped")
+    ap.add_argument("--inject-to-nyquist", action="store_true",
+                    help="inject the band's PSD up to the logged Nyquist (past the spec's reliable limit)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     bands = None if a.bands is None else {int(x) for x in a.bands.split(",")}
     out = run(flight=a.flight, vehicle=a.vehicle, seed=a.seed, duration_s=a.duration_s, bands=bands,
-              at_band_throttle=a.at_band_throttle)
+              at_band_throttle=a.at_band_throttle, inject_to_nyquist=a.inject_to_nyquist)
     if a.json:
         print(json.dumps(out, indent=1, default=str))
     else:
