@@ -18,7 +18,7 @@ For a real flight log that carries its unfiltered gyro (``gyro_prefilter_*``: Be
    fraction (share of the PSD bins 40 Hz .. Nyquist where the simulated PSD is statistically
    indistinguishable from the real one; 0.95 for a perfect match).
 
-    python -m experiments.firmware_fidelity --flight LOG00037.BFL [--vehicle racing5] [--duration-s 6]
+    gyroharness firmware fidelity LOG00037.BFL [--vehicle racing5] [--duration-s 5] [--inject-to-nyquist]
 """
 
 from __future__ import annotations

@@ -121,5 +121,7 @@ def replay_cmd(file, set_pairs, settings_from, start_s, duration_s, out, as_json
 
 # ``firmware fly`` lives in its own module (experiments/commands/firmware_fly.py)
 from experiments.commands.firmware_fly import command as _fly  # noqa: E402
+from experiments.commands.firmware_fly import fidelity_command as _fidelity  # noqa: E402
 
 command.add_command(_fly)
+command.add_command(_fidelity)

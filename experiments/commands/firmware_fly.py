@@ -7,7 +7,7 @@ import click
 
 from gyrocore.cli import emit_json
 
-__all__ = ["command"]
+__all__ = ["command", "fidelity_command"]
 
 
 @click.command("fly")
@@ -64,3 +64,38 @@ def command(scenario, vehicle, sets, settings_from, vibration_spec, vibration_ba
     if out.get("step_rise_ms") is not None and "steps" in out:
         click.echo(f"rate steps: rise {out['step_rise_ms']:.1f} ms, overshoot {out['step_overshoot_pct']:.1f} %; "
                    f"attitude tracking RMS {out['step_track_rms_deg']:.3f} deg")
+
+
+@click.command("fidelity")
+@click.argument("log", metavar="LOG", type=click.Path(dir_okay=False))
+@click.option("--vehicle", default="racing25", show_default=True, help="Vehicle class standing in for the log's quad.")
+@click.option("--bands", default=None, help="Comma-separated throttle band indices (default: all).")
+@click.option("--duration-s", type=float, default=5.0, show_default=True, help="Hover per band, s (1 s settling).")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--at-band-throttle", is_flag=True, help="Fly each band at its own motor command (a payload).")
+@click.option("--inject-to-nyquist", is_flag=True,
+              help="Inject the band's spectrum up to the logged Nyquist (past the spec's reliable limit).")
+@click.option("--json", "as_json", is_flag=True, help="Print the JSON result on stdout.")
+def fidelity_command(log, vehicle, bands, duration_s, seed, at_band_throttle, inject_to_nyquist, as_json):
+    """The firmware's filtered gyro in simulated flight against LOG's own filtered gyro, per throttle band.
+
+    The vibration spec comes from LOG's first half (its unfiltered gyro); the simulated hovers fly LOG's
+    tune with it; held out = against the second half. Per axis: RMS above 40 Hz and the in-band fraction.
+    """
+    from experiments.firmware_fidelity import run, summary_table
+    from gyrocore.errors import GyroInputError
+    from sim.vehicles import get_vehicle
+
+    get_vehicle(vehicle)
+    try:
+        sel = None if bands is None else {int(x) for x in bands.split(",")}
+    except ValueError:
+        raise GyroInputError(f"--bands {bands!r}: expected comma-separated integers") from None
+    out = run(flight=log, vehicle=vehicle, seed=seed, duration_s=duration_s, bands=sel,
+              at_band_throttle=at_band_throttle, inject_to_nyquist=inject_to_nyquist)
+    if as_json:
+        emit_json(out)
+        return
+    click.echo(f"{out['flight']} flown by {out['firmware']} on {vehicle} ({len(out['settings_applied'])} settings from "
+               f"its header); held out = the second half (t >= {out['t_split_s']:.1f} s)")
+    click.echo(summary_table(out))
