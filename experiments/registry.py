@@ -26,6 +26,7 @@ EXPERIMENTS: dict[str, str] = {
     "close_the_loop": "experiments.close_the_loop:run",
     "twin": "experiments.twin:run",
     "protocol": "experiments.protocol:run",
+    "flight": "experiments.flight:run",
 }
 
 
