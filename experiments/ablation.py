@@ -33,7 +33,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -73,6 +73,13 @@ CURVE_FRACTIONS = tuple(np.round(np.linspace(0.0, 1.0, 21), 3))
 #: Sensor instances per scenario in the default run, and the --quick duration, s.
 DEFAULT_INSTANCES = 12
 QUICK_DURATION_S = 20.0
+#: ``gyroharness run`` (standard size): units per scenario and scored durations, s (the accuracy
+#: contract's short runs, the rate-table run cut to 120 s), with the quick calibration runs
+#: (:data:`experiments.calibrators.QUICK_CALIBRATION_S`). With n units the interval [min, max]
+#: holds the median with probability 1 − 2·0.5ⁿ (n = 5: 93.8 %).
+STANDARD_INSTANCES = 5
+STANDARD_DURATIONS_S = {"static": 60.0, "static_bumped": 30.0, "turntable": 120.0, "thermal": 300.0,
+                        "hover": 15.0, "power_cycles": 60.0}
 
 
 def present_effects(params_true: Mapping[str, Mapping[str, np.ndarray]]) -> list[str]:
@@ -753,25 +760,37 @@ def budget_figure(pred: Mapping[str, Mapping], out_dir, name: str = "ablation_bu
 
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
         scenarios: Sequence[str] | None = None, sensors: Sequence[str] | None = None,
-        duration_s: float | None = None, seed: int = 0, **_ignored) -> ExperimentResult:
-    """Monte Carlo ablation over scenarios × sensor instances; tables and curves into ``out_dir``."""
+        duration_s: float | None = None, seed: int = 0, size: str | None = None,
+        progress: Callable[[int, int], None] | None = None, **_ignored) -> ExperimentResult:
+    """Monte Carlo ablation over scenarios × sensor instances; tables and curves into ``out_dir``.
+
+    ``size`` (``gyroharness run``): ``"quick"`` (= ``quick``), ``"standard"`` (:data:`STANDARD_INSTANCES`
+    units, the quick calibration runs, :data:`STANDARD_DURATIONS_S`) or ``"full"`` (default: the
+    scenarios' own durations, full calibration runs, :data:`DEFAULT_INSTANCES` units).
+    """
     from experiments.montecarlo import run_campaign, write_campaign
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
+    size = size or ("quick" if quick else "full")
+    quick = size == "quick"
     scenarios = tuple(scenarios or SCENARIOS)
     sensors = tuple(sensors or DEFAULT_SENSORS)
-    instances = seeds or (2 if quick else DEFAULT_INSTANCES)
+    instances = seeds or {"quick": 2, "standard": STANDARD_INSTANCES}.get(size, DEFAULT_INSTANCES)
     if duration_s is None and quick:
         duration_s = QUICK_DURATION_S
+    durations = tuple(STANDARD_DURATIONS_S.items()) if size == "standard" and duration_s is None else ()
     import shutil
     import tempfile
 
     cache = tempfile.mkdtemp(prefix="gyroharness-calcache-")
     try:
+        opts = {"quick": bool(quick or size == "standard"), "cache_dir": cache}
+        if durations:
+            opts["durations"] = durations
         camp = run_campaign(scenarios=scenarios, sensors=sensors, instances=instances, seed=seed,
                             duration_s=duration_s, workers=workers, task_function=ablation_task,
-                            options={"quick": bool(quick), "cache_dir": cache})
+                            options=opts, progress=progress or False)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
     write_campaign(camp, out_dir / "ablation_montecarlo")
@@ -790,6 +809,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
                 figs.append(f)
                 fig_md.append(f"![{sc} {se}]({f})")
     md = [
+        _units_sentence(instances),
         f"Attitude error of the integrated gyro against the truth, per scenario, over {instances} sensor instances "
         f"of {', '.join(sensors)} (median and 90th percentile). Rows: no correction; all corrections; all but one; one "
         "alone; all with the instance's true parameters; the floor (truth + the recording's own stochastic noise). "
@@ -814,6 +834,18 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     return ExperimentResult(name="ablation", title="Ablation: attitude drift with and without each correction",
                             markdown="\n".join(md), figures=tuple(figs), summary=summary,
                             wall_s=time.perf_counter() - t0)
+
+
+def _units_sentence(n: int) -> str:
+    """What n units support: the distribution-free interval of a median and the sign test of a row pair."""
+    cover = 1.0 - 2.0 * 0.5 ** n
+    return (f"**Units and intervals.** {n} sensor units per scenario (each its own calibration runs and power-up). "
+            f"A median over {n} units lies between the smallest and the largest unit's value with probability "
+            f"{100 * cover:.1f} % (order statistics, no distribution assumed), so a correction whose median is "
+            f"outside the other row's [min, max] differs at that confidence; a row better than another in all "
+            f"{n} units is so at one-sided p = {0.5 ** n:.3g} (sign test). The p90 of {n} units is their "
+            + ("largest value. " if n < 10 else "second largest value. ")
+            + "`gyroharness run --full` runs 12 units at the scenarios' full durations.\n")
 
 
 # ------------------------------------------------------------------ accuracy contract

@@ -182,7 +182,7 @@ def _median(rows, key):
 
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
         presets: Sequence[str] | None = None, duration_s: float | None = None, seed: int = 0,
-        firmware: str | None = None, **options) -> ExperimentResult:
+        firmware: str | None = None, size: str | None = None, **options) -> ExperimentResult:
     """Sweep filter type × cutoff per sensor preset; write plots into ``out_dir``; return the section.
 
     ``firmware="betaflight"``: the grid flown by the firmware in the loop, beside our controller's
@@ -201,11 +201,13 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
                             workers=workers, presets=presets, duration_s=duration_s, seed=seed, **options)
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
+    size = size or ("quick" if quick else "full")
+    quick = size == "quick"
     kinds = ("article", "pt2") if quick else KINDS
     cutoffs = (30.0, 90.0) if quick else CUTOFFS_HZ
     presets = tuple(presets or (PRESETS[:1] if quick else PRESETS))
-    n_inst = seeds or (1 if quick else 2)
-    dur = duration_s or (3.0 if quick else 6.0)
+    n_inst = seeds or (1 if size in ("quick", "standard") else 2)
+    dur = duration_s or (3.0 if size in ("quick", "standard") else 6.0)
     from experiments.montecarlo import instance_seeds
 
     inst = instance_seeds(seed, n_inst)

@@ -281,7 +281,7 @@ def execute(
     *,
     workers: int | None = None,
     scheduler: str | None = None,
-    progress: bool = False,
+    progress: bool | Callable[[int, int], None] = False,
     connect_timeout_s: float = 10.0,
 ) -> tuple[list[TaskResult], str, int]:
     """Run ``fn`` on every task; results in task order.
@@ -297,8 +297,8 @@ def execute(
         Ignored when ``scheduler`` is given (the cluster has its own workers).
     scheduler : str or None
         Address of a running Dask scheduler, e.g. ``tcp://10.0.0.5:8786``.
-    progress : bool
-        Show a tqdm bar on stderr.
+    progress : bool or callable
+        True: show a tqdm bar on stderr; a callable ``(done, total)`` is called as tasks finish.
     connect_timeout_s : float
         How long to try to reach the Dask scheduler, s.
 
@@ -312,14 +312,18 @@ def execute(
     """
     tasks = list(tasks)
     bar = None
-    if progress:
+    done = [0]
+    if progress and not callable(progress):
         from tqdm import tqdm
 
         bar = tqdm(total=len(tasks), unit="task", desc="montecarlo", leave=False)
 
     def tick(r):
+        done[0] += 1
         if bar is not None:
             bar.update(1)
+        elif callable(progress):
+            progress(done[0], len(tasks))
         return r
 
     try:
@@ -445,7 +449,7 @@ def run_campaign(
     scheduler: str | None = None,
     task_function: Callable[[MonteCarloTask], TaskResult] | str | None = None,
     options: Mapping[str, Any] | None = None,
-    progress: bool = False,
+    progress: bool | Callable[[int, int], None] = False,
 ) -> CampaignResult:
     """Build the tasks, run them (serial / local processes / Dask) and summarise.
 

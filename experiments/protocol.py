@@ -124,6 +124,9 @@ TARGETS = (Target("final error ≤ 1° after the hover", final_deg=1.0),
 # ----------------------------------------------------------------------------- noise model
 #: Length of the simulated still recording the default run identifies the flight's noise on,
 #: as a multiple of the flight (and at least :data:`NOISE_RECORD_MIN_S`).
+#: held-out units of the check in the standard size of ``gyroharness run`` (full: 8): the
+#: Student-t 95 % interval of the mean log error then has 3 degrees of freedom
+STANDARD_HELD_OUT = 4
 NOISE_RECORD_FACTOR = 4.0
 NOISE_RECORD_MIN_S = 1200.0
 #: A noise term "matters" for a flight when it raises the flight's floor RMS by this fraction.
@@ -752,7 +755,7 @@ def _unit_floor_var(inp, start: int, segs, tau_c_s: float | None) -> dict:
 
 
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        seed: int = 0, noise=None, **_ignored) -> ExperimentResult:
+        seed: int = 0, noise=None, size: str | None = None, progress=None, **_ignored) -> ExperimentResult:
     """Protocol design for :data:`TARGETS`; tables, figures and the held-out simulation check
     into ``out_dir``.
 
@@ -773,13 +776,24 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
+    # size (gyroharness run): "standard" = the full design (10-min hover, every window and
+    # protocol) on the quick calibration runs, STANDARD_HELD_OUT fresh units for the check
+    size = size or ("quick" if quick else "full")
+    quick = size == "quick"
+
+    def tick(k, n=4):
+        if progress is not None:
+            progress(k, n)
+
+    tick(0)
     airborne = 60.0 if quick else HOVER_S
     unit = instance_seeds(seed, 1)[0]
     res, ground = hover_trajectory(seed=unit, airborne_s=airborne)
     rate = float(res.recording.rate_hz)
     present = A.present_effects(res.params_true)
     with single_thread_blas():
-        core = A.calibrate_core(SENSOR, unit, present, quick=quick)
+        core = A.calibrate_core(SENSOR, unit, present, quick=quick or size == "standard")
+    tick(1)
     stages = list(core.stages)
     groups = A.calibration_groups(stages, present)
     nm_cal = A.identified_noise(core, rate)
@@ -829,11 +843,13 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     with single_thread_blas():
         cand_t, cand_h = candidate_stderr(groups, seed=unit, noise_table=n_tab, noise_thermal=n_th, table=tabs,
                                           thermal=ths, thermal_orders=orders)
+    tick(2)
     rows = evaluate_grid(res, ground, groups, windows=windows, table=cand_t, thermal=cand_h, noise=nm)
     chosen = {t.name: choose(rows, t) for t in TARGETS}
+    tick(3)
     # --- held-out check: fresh units (not the design unit) flown with each chosen window;
     # calibration = each unit's true parameters, so the flight measures the window + noise part
-    n_units = seeds or (1 if quick else 8)
+    n_units = seeds or {"quick": 1, "standard": STANDARD_HELD_OUT}.get(size, 8)
     check_windows = sorted({c["window_s"] for c in chosen.values() if c is not None})
     fresh = instance_seeds(seed + 1, n_units)
     cache = tempfile.mkdtemp(prefix="gyroharness-protocol-")

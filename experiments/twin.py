@@ -89,6 +89,10 @@ DEG = math.pi / 180.0
 #: Default number of replicas: M = N + 1 = 200 exchangeable series, band k = 5 (p0 = 0.05),
 #: smallest attainable p-value 2·(1/200) = 0.01 ≤ α/S = 0.01 (5 statistics, two tests each).
 DEFAULT_REPLICAS = 199
+#: replicas per set in the standard size of ``gyroharness run``: the fewest for which the
+#: two-sided rank band at α = 0.05 exists (k = 1 of 39: the real statistic outside the replicas'
+#: [min, max] with probability 2/40 = 0.05 when the twin is right)
+STANDARD_REPLICAS = 39
 #: Family-wise false-fail rate of the whole twin (Bonferroni over the statistics).
 ALPHA = 0.05
 WINDOW_S = 1.0
@@ -1317,32 +1321,41 @@ def _row(name: str, cmd: str, r: TwinResult, h: dict | None = None) -> list:
 #: The real data beside the checkout (as tests/conftest.py's ``shared_data``).
 DATA_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: ``--quick``: two small sets only.
+#: the standard size of ``gyroharness run``: one set per source (BROAD, sunsided, tomisuarez2,
+#: PX4, imucal); --full adds BROAD 05, 07 and 09
+STANDARD_SETS = ("BROAD 02 slow rotation", "sunsided set-2 static 10 min", "tomisuarez2 static 449 s",
+                 "PX4 sample.ulg (still part)", "imucal Ferraris session")
 QUICK_SETS = ("tomisuarez2 static 449 s", "imucal Ferraris session")
 
 
 def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
         data_dir: str | None = None, replicas: int | None = None, names: Sequence[str] | None = None,
-        seed: int = 0, do_holdout: bool = True, **_ignored):
+        seed: int = 0, do_holdout: bool = True, size: str | None = None, progress=None, **_ignored):
     """The twin on every real set of :data:`SETS` found under ``data_dir`` (one setting for all).
 
-    ``quick``: 39 replicas on :data:`QUICK_SETS` only. Sets whose files are absent are skipped.
+    ``quick``: 39 replicas on :data:`QUICK_SETS` only; ``size="standard"`` (``gyroharness run``):
+    :data:`STANDARD_REPLICAS` on :data:`STANDARD_SETS`; full: :data:`DEFAULT_REPLICAS`. Sets whose files are
+    absent are skipped.
     """
+    size = size or ("quick" if quick else "full")
+    quick = size == "quick"
     if names is None and quick:
         names = QUICK_SETS
+    elif names is None and size == "standard":
+        names = STANDARD_SETS
     data_dir = DATA_DIR if data_dir is None else data_dir
     from experiments.report import ExperimentResult, md_table
     from gyrocore.data.recording import atomic_write_text
 
     t_start = _time.time()
     out = Path(out_dir)
-    n_rep = replicas or (39 if quick else DEFAULT_REPLICAS)
+    n_rep = replicas or (39 if quick else STANDARD_REPLICAS if size == "standard" else DEFAULT_REPLICAS)
     rows, figures, summary = [], [], {}
-    for name, rel in SETS:
-        if names is not None and name not in names:
-            continue
+    todo = [(name, rel) for name, rel in SETS if (names is None or name in names) and (Path(data_dir) / rel).exists()]
+    for i, (name, rel) in enumerate(todo):
+        if progress is not None:
+            progress(i, len(todo))
         p = Path(data_dir) / rel
-        if not p.exists():
-            continue
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             rec, segs = load_recording(p)
@@ -1358,8 +1371,12 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         md = [f"No real set found under {data_dir}: nothing to twin."]
         return ExperimentResult(name="twin", title="Digital twin of the real sensors", markdown="\n".join(md),
                                 figures=(), summary={}, wall_s=_time.time() - t_start)
-    md = [f"Replicas: {n_rep} per set, seed {seed}; band k = {max(1, int(0.025 * (n_rep + 1)))}; "
-          f"α = {ALPHA} family-wise over the statistics.", "",
+    k_band = max(1, int(0.025 * (n_rep + 1)))
+    md = [f"Replicas: {n_rep} per set, seed {seed}; band k = {k_band}: a real statistic outside the k-th smallest "
+          f"to k-th largest replica has probability {2 * k_band}/{n_rep + 1} = {2 * k_band / (n_rep + 1):.3f} when the "
+          f"twin is right (rank test, two-sided 95 % band); α = {ALPHA} family-wise over the statistics."
+          + (" `gyroharness run --full` uses 199 replicas (finer p-values, more power)." if n_rep < DEFAULT_REPLICAS
+             else ""), "",
           md_table(["set", "held out: distance given → after", "statistics as given (in-band fraction)", "distance",
                     "added", "after", "distance after", "command"], rows)]
     text = "\n".join(md)

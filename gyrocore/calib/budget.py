@@ -303,26 +303,54 @@ def make_blocks(t_s: np.ndarray, *, start: int, segments: Sequence[tuple[slice, 
 
 # ============================================================================ noise covariances
 def _second_difference(F, a0, a1, b0, b1):
-    """F(a1, b1) − F(a1, b0) − F(a0, b1) + F(a0, b0) over every pair (rows a, columns b).
-
-    Contiguous blocks (block i ends where block i+1 starts, the usual case) share their edges:
-    F is then evaluated once on the M+1 edges of each side and the four terms are shifted
-    views of it — one (M+1)² evaluation instead of four M² ones. Each entry is the same F value
-    at the same arguments, combined in the same order, so the result is bit-identical to the
-    four-evaluation form used otherwise.
-    """
-    ea, eb = _edges(a0, a1), _edges(b0, b1)
-    if ea is not None and eb is not None:
-        G = F(ea[:, None], eb[None, :])
-        return G[1:, 1:] - G[1:, :-1] - G[:-1, 1:] + G[:-1, :-1]
+    """F(a1, b1) − F(a1, b0) − F(a0, b1) + F(a0, b0) over every pair (rows a, columns b)."""
+    if F is _F_flicker:
+        kernel = _flicker_kernel()
+        if kernel is not None:
+            return kernel(*(np.ascontiguousarray(x, dtype=float) for x in (a0, a1, b0, b1)))
     return F(a1[:, None], b1[None, :]) - F(a1[:, None], b0[None, :]) - F(a0[:, None], b1[None, :]) + F(a0[:, None], b0[None, :])
 
 
-def _edges(x0, x1):
-    """The M+1 edges when block i+1 starts exactly where block i ends, else None."""
-    if x0.size and np.array_equal(x0[1:], x1[:-1]):
-        return np.concatenate([x0, x1[-1:]])
-    return None
+_KERNEL: list = []
+
+
+def _flicker_kernel():
+    """The flicker second difference as one compiled loop (numba), or None without numba.
+
+    The numpy form makes ~15 passes over four M×M temporaries per block covariance (M ≈ 800–1500
+    blocks: it was the largest single cost of a calibration with ``covariance="noise_model"``);
+    the loop evaluates each entry's four F values in registers. Per entry it performs the same
+    IEEE operations in the same order as :func:`_F_flicker` (no fastmath, so no reassociation);
+    only ``log`` comes from the C library instead of numpy's vectorised one, which may differ in
+    the last bit; the second difference's cancellation turns that into ~4e-11 of the largest
+    entry (measured, M = 1500; tests/gyrocore/test_budget.py bounds it at 1e-9).
+    """
+    if not _KERNEL:
+        try:
+            import numba
+        except ImportError:  # pragma: no cover - numba is a dependency
+            _KERNEL.append(None)
+            return None
+        _KERNEL.append(numba.njit(cache=True)(_flicker_second_difference_loop))
+    return _KERNEL[0]
+
+
+def _flicker_second_difference_loop(a0, a1, b0, b1):
+    """Loop form of ``_second_difference(_F_flicker, a0, a1, b0, b1)`` (compiled by :func:`_flicker_kernel`)."""
+    sa0, sa1, sb0, sb1 = np.sqrt(a0), np.sqrt(a1), np.sqrt(b0), np.sqrt(b1)
+    C = np.empty((a0.size, b0.size))
+    for i in range(a0.size):
+        for j in range(b0.size):
+            acc = 0.0
+            for k in range(4):  # + F(a1, b1) − F(a1, b0) − F(a0, b1) + F(a0, b0)
+                x, sx = (a1[i], sa1[i]) if k < 2 else (a0[i], sa0[i])
+                y, sy = (b1[j], sb1[j]) if k % 2 == 0 else (b0[j], sb0[j])
+                d = abs(x - y)
+                lg = d * d / 8.0 * math.log((sx + sy) ** 2 / d) if d > 0 else 0.0
+                f = (4.0 / math.pi) * ((x + y) / 4.0 * sx * sy - lg)
+                acc = acc + f if k == 0 or k == 3 else acc - f
+            C[i, j] = acc
+    return C
 
 
 def _F_flicker(a, c):

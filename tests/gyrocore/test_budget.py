@@ -131,3 +131,25 @@ def test_noise_model_from_catalogue_params():
                                    "quantization": {"lsb_rad_s": np.array(1e-3)}})
     np.testing.assert_allclose(nm.white_n2(1000.0), np.array([1e-4, 2e-4, 3e-4]) ** 2 + 1e-6 / 12e3)
     assert np.all(nm.bias_instability_rad_s == 0) and np.all(np.isinf(nm.gm_tau_c_s))
+
+
+def test_flicker_block_covariance_kernel_matches_the_numpy_form():
+    """The compiled flicker second difference equals the numpy expression: log from libm instead of
+    numpy may differ by one ulp, which the second difference's cancellation (four F values of size
+    ~t², differences of size ~block²) amplifies by about t²/block² ≈ 1e4 here: 1e-9 of the largest
+    entry bounds it with two orders to spare."""
+    import numpy as np
+
+    from gyrocore import budget as B
+
+    rng = np.random.default_rng(7)
+    a0 = np.sort(rng.uniform(0.0, 600.0, 300))
+    a1 = a0 + rng.uniform(0.05, 3.0, 300)
+    k = B._flicker_kernel()
+    assert k is not None
+    ref = (B._F_flicker(a1[:, None], a1[None, :]) - B._F_flicker(a1[:, None], a0[None, :])
+           - B._F_flicker(a0[:, None], a1[None, :]) + B._F_flicker(a0[:, None], a0[None, :]))
+    got = B._second_difference(B._F_flicker, a0, a1, a0, a1)
+    assert np.max(np.abs(got - ref)) <= 1e-9 * np.max(np.abs(ref))
+    # the block covariance of flicker is symmetric positive semi-definite up to that rounding
+    assert np.allclose(got, got.T, rtol=0, atol=1e-9 * np.max(np.abs(ref)))
