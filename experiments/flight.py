@@ -3,13 +3,13 @@
 Where a pilot starts: the shared flight log with an *unfiltered* gyro (Betaflight 4.2.0,
 ``debug_mode`` GYRO_SCALED: the gyro before the firmware's filters, ../shared/data/blackbox_public/
 LOG00037.BFL; the older ../shared/data/betaflight_blackbox/better_tune.BBL logs its gyro after a
-90 Hz PT1 and is the fallback), read by the project's reader (:func:`gyrocore.convert.load_any`),
+90 Hz PT1 and is the fallback), read by the project's reader (:func:`gyrocore.readers.convert.load_any`),
 
-1. its vibration per throttle band (:func:`gyrocore.vibration.analyse`: 1-s Hann windows binned by
+1. its vibration per throttle band (:func:`gyrocore.flight.vibration.analyse`: 1-s Hann windows binned by
    the mean motor command; RMS above 40 Hz per band and axis with its 95 % interval from the
    windows' spread; the lines and how they follow throttle), plotted;
 2. the gyro filter recommendation in Betaflight parameter names beside what was flown
-   (:func:`gyrocore.preview.recommend_filter`: every candidate chain previewed on the flight's own
+   (:func:`gyrocore.flight.preview.recommend_filter`: every candidate chain previewed on the flight's own
    unfiltered spectrum, the least attitude cost under the as-flown chain's motor noise);
 3. the firmware-in-the-loop cutoff comparison (the same cutoff grid flown by Betaflight's own
    filters and PID in lockstep) when the SITL binary is built — :func:`firmware_part`, the hook:
@@ -47,8 +47,8 @@ def find_flight_log(data_dir: Path | None):
     Falls back to the first readable log (its filtered gyro, the static filters undone) when none is
     unfiltered; None when no log is present.
     """
-    from gyrocore.convert import load_any
-    from gyrocore.vibration import analyse
+    from gyrocore.readers.convert import load_any
+    from gyrocore.flight.vibration import analyse
 
     first = None
     for rel in FLIGHT_LOGS:
@@ -162,8 +162,8 @@ def run(*, out_dir, quick: bool = False, size: str | None = None, workers: int |
         find_binary: Callable | None = None, firmware_run: Callable | None = None, **_ignored) -> ExperimentResult:
     """The flight section (module docstring) into ``out_dir``."""
     from experiments.article import shared_data_dir
-    from gyrocore.preview import recommend_filter
-    from gyrocore.vibration import plot_vibration
+    from gyrocore.flight.preview import recommend_filter
+    from gyrocore.flight.vibration import plot_vibration
 
     t0 = time.perf_counter()
     size = size or ("quick" if quick else "full")
@@ -206,7 +206,7 @@ def run(*, out_dir, quick: bool = False, size: str | None = None, workers: int |
             f"blackbox reader; analysed signal: {sig}. Vibration: {res.n_windows} airborne windows of "
             f"{res.nperseg / res.rate_hz:g} s ({airborne_s:.0f} s), Hann, binned into {len(res.bands)} throttle bands of "
             "equal window count by the mean motor command. Each band's RMS above 40 Hz carries a 95 % interval from "
-            "the spread of its windows (`gyrocore.vibration.analyse`); spectra above "
+            "the spread of its windows (`gyrocore.flight.vibration.analyse`); spectra above "
             f"{res.reliable_below_hz:.0f} Hz are folded from above the logged Nyquist and not used. Commands: "
             f"`gyroharness vibration {path} --plot v.png`, `gyroharness filter {path} --json`.\n")
         rows = []

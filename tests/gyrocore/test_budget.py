@@ -140,7 +140,7 @@ def test_flicker_block_covariance_kernel_matches_the_numpy_form():
     entry bounds it with two orders to spare."""
     import numpy as np
 
-    from gyrocore import budget as B
+    from gyrocore.calib import budget as B
 
     rng = np.random.default_rng(7)
     a0 = np.sort(rng.uniform(0.0, 600.0, 300))
