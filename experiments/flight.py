@@ -13,7 +13,7 @@ LOG00037.BFL; the older ../shared/data/betaflight_blackbox/better_tune.BBL logs 
    unfiltered spectrum, the least attitude cost under the as-flown chain's motor noise);
 3. the firmware-in-the-loop cutoff comparison (the same cutoff grid flown by Betaflight's own
    filters and PID in lockstep) when the SITL binary is built — :func:`firmware_part`, the hook:
-   it only *looks* for the binary (``sim.firmware.find_binary``, never builds it) and calls the
+   it only *looks* for the binary (``sim.firmware.build.find_binary``, never builds it) and calls the
    firmware experiment (``experiments.firmware_cutoffs.run``) if both exist; otherwise it says how
    to build it (``gyroharness firmware build``).
 """
@@ -76,10 +76,13 @@ def _optional(module: str, name: str) -> Callable | None:
     return fn if callable(fn) else None
 
 
-#: firmware experiment options per report size: the standard report flies one preset, one unit
+#: firmware experiment options per report size. Lockstep Betaflight flies at ~3x real time on
+#: one core and every cell is flown twice (its filter, and the perfect-gyro reference), so the
+#: standard report (5 min of CPU in all) flies a reduced grid — one preset, one unit, the PT1
+#: (the article's filter) and PT2 at three cutoffs spanning the grid; --full flies the whole grid
 FIRMWARE_SIZES: dict[str, dict[str, Any]] = {
     "quick": {"quick": True},
-    "standard": {"presets": ("icm42688p",), "seeds": 1},
+    "standard": {"presets": ("icm42688p",), "seeds": 1, "kinds": ("article", "pt2"), "cutoffs": (45.0, 90.0, 180.0)},
     "full": {},
 }
 
@@ -88,8 +91,8 @@ def firmware_part(out_dir: Path, *, size: str = "standard", workers: int | None 
                   find_binary: Callable | None = None, firmware_run: Callable | None = None) -> tuple[str, tuple, dict]:
     """The firmware-in-the-loop cutoff comparison, or the line saying how to get it.
 
-    Looks for the built Betaflight SITL binary with ``sim.firmware.find_binary()`` (which never
-    builds) and, if it is there, runs ``experiments.firmware_cutoffs.run(out_dir=..., binary=...)``
+    Looks for the built Betaflight SITL binary with ``sim.firmware.build.find_binary()`` (which
+    never builds) and, if it is there, runs ``experiments.firmware_cutoffs.run(out_dir=..., binary=...)``
     at the report's size (:data:`FIRMWARE_SIZES`). ``find_binary`` / ``firmware_run`` override the
     two for tests.
 
@@ -100,7 +103,7 @@ def firmware_part(out_dir: Path, *, size: str = "standard", workers: int | None 
     summary : dict
         ``{"built": bool, ...}``; with the firmware experiment's summary under ``"cutoffs"``.
     """
-    find = find_binary or _optional("sim.firmware", "find_binary")
+    find = find_binary or _optional("sim.firmware.build", "find_binary") or _optional("sim.firmware", "find_binary")
     fb = find() if find is not None else None
     if fb is None:
         why = ("the Betaflight SITL binary is not built" if find is not None

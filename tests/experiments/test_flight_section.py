@@ -10,6 +10,7 @@ from experiments.report import ExperimentResult
 
 def test_flight_section_on_the_unfiltered_log(shared_data, tmp_path):
     r = flight.run(out_dir=tmp_path, data_dir=str(shared_data), size="standard", find_binary=lambda: None)
+    # (find_binary=None: the "not built" branch whatever this machine's firmware cache holds)
     s = r.summary
     # the log with the unfiltered gyro is picked (LOG00037: debug_mode 6 = GYRO_SCALED), not
     # better_tune.BBL (its debug is after a 90 Hz PT1)
@@ -40,7 +41,7 @@ def test_firmware_hook_calls_the_firmware_experiment_when_the_binary_is_built(tm
 
     md, figs, summ = flight.firmware_part(tmp_path, size="standard", find_binary=lambda: Binary(),
                                           firmware_run=fake_run)
-    assert calls == [(tmp_path, "/cache/betaflight_SITL", {"presets": ("icm42688p",), "seeds": 1})]
+    assert calls == [(tmp_path, "/cache/betaflight_SITL", flight.FIRMWARE_SIZES["standard"])]
     assert "| grid |" in md and "4.6.0" in md and figs == ("figures/fw.png",)
     assert summ["built"] and summ["cutoffs"] == {"best": "pt1 90"}
     # binary absent: one line naming the build command, nothing run
@@ -51,3 +52,13 @@ def test_firmware_hook_calls_the_firmware_experiment_when_the_binary_is_built(tm
 def test_flight_section_without_data(tmp_path):
     r = flight.run(out_dir=tmp_path, data_dir=str(tmp_path / "none"), find_binary=lambda: None)
     assert "No flight log found" in r.markdown and r.figures == ()
+
+
+def test_firmware_hook_binary_built_but_no_firmware_experiment(tmp_path, monkeypatch):
+    """A built binary in a tree without experiments.firmware_cutoffs: said in one line, nothing run."""
+    class Binary:
+        binary, version = "/cache/betaflight_SITL", "4.6.0"
+
+    monkeypatch.setattr(flight, "_optional", lambda module, name: None)
+    md, figs, summ = flight.firmware_part(tmp_path, find_binary=lambda: Binary())
+    assert summ == {"built": True, "binary": "/cache/betaflight_SITL"} and figs == () and "\n" not in md
