@@ -346,7 +346,11 @@ def execute(
                         # read the BLAS/OpenMP thread counts from the environment at start-up.
                         with worker_environment():
                             futures = [pool.submit(fn, t) for t in tasks]
-                        results = [tick(f.result()) for f in futures]
+                        try:
+                            results = [tick(f.result()) for f in futures]
+                        except BaseException:
+                            stop_pool(pool, futures)
+                            raise
                 except BrokenProcessPool:
                     raise RuntimeError(
                         "a Monte Carlo worker process died (out of memory?, or a script that starts a "
@@ -360,6 +364,20 @@ def execute(
         if not isinstance(r, TaskResult) or r.index != t.index:
             raise RuntimeError(f"task function {_function_name(fn)} returned a wrong result for task {t.index}")
     return results, backend, n_workers
+
+
+def stop_pool(pool, futures) -> None:
+    """Cancel the pending tasks and end the running ones of a local process pool at once.
+
+    On Ctrl-C or a failed task the pool's ``shutdown(wait=True)`` (the ``with`` block's exit)
+    would otherwise wait for every running task (minutes for a long flight) before the error
+    or the interrupt reaches the caller; ``gyroharness run`` keeps the finished sections.
+    """
+    for f in futures:
+        f.cancel()
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        if proc.is_alive():
+            proc.terminate()
 
 
 def _execute_dask(fn, tasks, address, tick, timeout_s):

@@ -271,3 +271,26 @@ def test_runner_does_not_import_the_experiments_and_resolves_registered_tasks():
     assert mc.resolve_task(static_bias_task) is static_bias_task
     with pytest.raises(GyroInputError, match="unknown Monte Carlo task"):
         mc.resolve_task("no_such_task")
+
+
+def _fail_or_sleep(task):
+    """Task 0 fails at once, the others would run for 10 minutes."""
+    import time
+
+    if task.index == 0:
+        raise RuntimeError("task 0 fails")
+    time.sleep(600)
+
+
+def test_a_failed_task_ends_the_running_ones_at_once():
+    """The failure reaches the caller without waiting for the running tasks (they are ended):
+    what lets `gyroharness run` keep its finished sections promptly on an error or a Ctrl-C."""
+    import time
+
+    tasks = mc.make_tasks(scenarios=("static",), sensors=("icm42688p",), instances=2, seed=0)
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match="task 0 fails"):
+        mc.execute(_fail_or_sleep, tasks, workers=2)
+    # the sleeping task would hold the pool's shutdown for 600 s; ending it takes the spawn
+    # start-up of two interpreters at most (seconds even on a loaded machine)
+    assert time.monotonic() - t0 < 300
