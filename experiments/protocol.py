@@ -782,9 +782,9 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
-    # size (gyroharness run): "standard" = the 10-min hover of the targets with the quick grid
-    # (4 windows, 2 table and 2 thermal protocols) on the quick calibration runs, and
-    # STANDARD_HELD_OUT fresh units for the held-out check
+    # size (gyroharness run): "standard" = the quick design (a 1-min hover, 4 windows, 2 table
+    # and 2 thermal protocols, the quick calibration runs) checked on STANDARD_HELD_OUT fresh
+    # units; the 10-min hover with the whole grid (--full) costs ~10x the CPU
     size = size or ("quick" if quick else "full")
     quick = size == "quick"
 
@@ -793,7 +793,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             progress(k, n)
 
     tick(0)
-    airborne = 60.0 if quick else HOVER_S
+    airborne = 60.0 if size in ("quick", "standard") else HOVER_S
     unit = instance_seeds(seed, 1)[0]
     res, ground = hover_trajectory(seed=unit, airborne_s=airborne)
     rate = float(res.recording.rate_hz)
@@ -1041,6 +1041,10 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     ax2.legend(fontsize=6)
     figp = save_figure(fig, out_dir, "protocol_hover")
     md = [
+        f"**Size:** a {airborne:g}-s hover, {len(windows)} still windows × {len(tabs)} rate-table × {len(ths)} thermal "
+        f"protocols, {n_units} held-out units (95 % intervals: Student-t on their log errors, {n_units - 1} degrees "
+        "of freedom)" + ("; `gyroharness run --full`: the 10-min hover, the whole grid and 8 held-out units.\n"
+                          if airborne < HOVER_S else ".\n"),
         f"**Noise model of the flight:** {src.label}"
         + (f" — **warning:** {warn_msg}" if warn_msg else " — the record supports the flight (resolvability rule)."),
         "\n#### How long must I calibrate for X°? (held-out figures first)\n",

@@ -16,12 +16,12 @@ __all__ = ["command", "ESTIMATE_CPU_S"]
 #: experiments.md "The main job"). Shown beside each progress bar as the a-priori estimate; the
 #: bar's own ETA takes over once the section reports steps.
 ESTIMATE_CPU_S: dict[str, dict[str, float]] = {
-    "quick": {"article": 2, "ablation": 60, "cutoffs": 5, "close_the_loop": 7, "twin": 20, "protocol": 30,
-              "flight": 8},
-    "standard": {"article": 2, "ablation": 95, "cutoffs": 25, "close_the_loop": 13, "twin": 60, "protocol": 45,
-                 "flight": 12},
-    "full": {"article": 2, "ablation": 520, "cutoffs": 190, "close_the_loop": 13, "twin": 490, "protocol": 280,
-             "flight": 12},
+    "quick": {"article": 1, "ablation": 46, "cutoffs": 2, "close_the_loop": 7, "twin": 14, "protocol": 35,
+              "flight": 3},
+    "standard": {"article": 1, "ablation": 100, "cutoffs": 19, "close_the_loop": 11, "twin": 57, "protocol": 45,
+                 "flight": 3},
+    "full": {"article": 1, "ablation": 511, "cutoffs": 160, "close_the_loop": 11, "twin": 490, "protocol": 278,
+             "flight": 3},
 }
 
 
