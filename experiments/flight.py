@@ -13,8 +13,8 @@ LOG00037.BFL; the older ../shared/data/betaflight_blackbox/better_tune.BBL logs 
    unfiltered spectrum, the least attitude cost under the as-flown chain's motor noise);
 3. the firmware-in-the-loop cutoff comparison (the same cutoff grid flown by Betaflight's own
    filters and PID in lockstep) when the SITL binary is built — :func:`firmware_part`, the hook:
-   it only *looks* for the binary (``sim.firmware.build.find_binary``, never builds it) and calls the
-   firmware experiment (``experiments.firmware_cutoffs.run``) if both exist; otherwise it says how
+   it only *looks* for the binary (``sim.firmware.build.find_binary``, never builds it) and runs the
+   firmware experiment (``experiments.cutoffs.run(firmware="betaflight")``) if both exist; otherwise it says how
    to build it (``gyroharness firmware build``).
 """
 
@@ -92,8 +92,8 @@ def firmware_part(out_dir: Path, *, size: str = "standard", workers: int | None 
     """The firmware-in-the-loop cutoff comparison, or the line saying how to get it.
 
     Looks for the built Betaflight SITL binary with ``sim.firmware.build.find_binary()`` (which
-    never builds) and, if it is there, runs ``experiments.firmware_cutoffs.run(out_dir=..., binary=...)``
-    at the report's size (:data:`FIRMWARE_SIZES`). ``find_binary`` / ``firmware_run`` override the
+    never builds) and, if it is there and ``experiments.firmware_cutoffs`` exists, runs
+    ``experiments.cutoffs.run(firmware="betaflight", out_dir=..., binary=...)`` at the report's size (:data:`FIRMWARE_SIZES`). ``find_binary`` / ``firmware_run`` override the
     two for tests.
 
     Returns
@@ -110,7 +110,7 @@ def firmware_part(out_dir: Path, *, size: str = "standard", workers: int | None 
                else "this tree has no firmware bridge (sim.firmware)")
         return (f"Firmware-in-the-loop cutoff comparison: not run — {why}; build it with `{BUILD_HINT}` "
                 "and run again to add it here.", (), {"built": False})
-    fw_run = firmware_run or _optional("experiments.firmware_cutoffs", "run")
+    fw_run = firmware_run or (_firmware_cutoffs if _optional("experiments.firmware_cutoffs", "run") else None)
     binary = getattr(fb, "binary", fb)
     version = getattr(fb, "version", "")
     if fw_run is None:
@@ -120,6 +120,14 @@ def firmware_part(out_dir: Path, *, size: str = "standard", workers: int | None 
     md = (f"### Firmware in the loop: {r.title}\n\nBetaflight {version} SITL in lockstep (`{binary}`), "
           f"`gyroharness experiment cutoffs --firmware betaflight` at this report's size.\n\n{r.markdown.strip()}")
     return md, tuple(r.figures), {"built": True, "binary": str(binary), "version": version, "cutoffs": r.summary}
+
+
+def _firmware_cutoffs(**kw) -> ExperimentResult:
+    """``gyroharness experiment cutoffs --firmware betaflight``: the cutoffs experiment's own entry,
+    which hands the firmware experiment its grid and our controller's cell task."""
+    from experiments.cutoffs import run as cutoffs_run
+
+    return cutoffs_run(firmware="betaflight", **kw)
 
 
 def _band_figure(res, out_dir: Path) -> str:
