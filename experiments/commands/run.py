@@ -18,8 +18,8 @@ __all__ = ["command", "ESTIMATE_CPU_S"]
 ESTIMATE_CPU_S: dict[str, dict[str, float]] = {
     "quick": {"article": 1, "ablation": 46, "cutoffs": 2, "close_the_loop": 7, "twin": 14, "protocol": 35,
               "flight": 3},
-    "standard": {"article": 1, "ablation": 100, "cutoffs": 19, "close_the_loop": 11, "twin": 57, "protocol": 45,
-                 "flight": 3},
+    "standard": {"article": 1, "ablation": 100, "cutoffs": 19, "close_the_loop": 11, "twin": 57, "protocol": 42,
+                 "flight": 51},
     "full": {"article": 1, "ablation": 511, "cutoffs": 160, "close_the_loop": 11, "twin": 490, "protocol": 278,
              "flight": 3},
 }
