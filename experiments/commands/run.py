@@ -14,14 +14,15 @@ __all__ = ["command", "ESTIMATE_CPU_S"]
 #: CPU seconds (user + system, workers included) each section took at each size on the project's
 #: 2-core machine (`gyroharness run [--quick|--full] --json`, its ``cpu_s`` per section; docs/
 #: experiments.md "The main job"). Shown beside each progress bar as the a-priori estimate; the
-#: bar's own ETA takes over once the section reports steps.
+#: bar's own ETA takes over once the section reports steps. (The flight section's firmware grid at
+#: the quick and full sizes is an extrapolation from the standard one, not a measurement.)
 ESTIMATE_CPU_S: dict[str, dict[str, float]] = {
     "quick": {"article": 1, "ablation": 46, "cutoffs": 2, "close_the_loop": 7, "twin": 14, "protocol": 35,
-              "flight": 3},
+              "flight": 30},
     "standard": {"article": 1, "ablation": 100, "cutoffs": 19, "close_the_loop": 11, "twin": 57, "protocol": 42,
-                 "flight": 51},
+                 "flight": 30},
     "full": {"article": 1, "ablation": 511, "cutoffs": 160, "close_the_loop": 11, "twin": 490, "protocol": 278,
-             "flight": 3},
+             "flight": 600},
 }
 
 
