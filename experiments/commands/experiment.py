@@ -51,7 +51,7 @@ def command(name, out_dir, quick, seeds, workers, force, noise, firmware, vehicl
     if firmware is not None or vehicle is not None or scheduler is not None:
         if name != "cutoffs" or firmware is None:
             raise GyroInputError("--firmware (with --vehicle, --scheduler) applies to the cutoffs experiment only")
-        from sim.firmware import ensure_binary
+        from sim.firmware.build import ensure_binary
         from sim.vehicles import get_vehicle
 
         extra["firmware"] = firmware
@@ -59,7 +59,7 @@ def command(name, out_dir, quick, seeds, workers, force, noise, firmware, vehicl
             extra["vehicle"] = get_vehicle(vehicle).name
         if scheduler is not None:
             extra["scheduler"] = scheduler
-        extra["binary"] = str(ensure_binary())  # a missing build is one error line before the report starts
+        extra["binary"] = ensure_binary().binary  # a missing build is one error line before the report starts
     t0 = time.perf_counter()
     path, results = build_report([(name, run)], out_dir or f"out/{name}", force=force, quick=quick, seeds=seeds,
                                  workers=workers, title=f"gyroharness experiment {name}", **extra)
