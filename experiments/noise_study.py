@@ -122,12 +122,10 @@ def _identify(method: str, g: np.ndarray, rate_hz: float) -> dict[str, dict]:
         elif method == "gmwm_rwcheck":
             # round 6: the default estimator with the block-likelihood check of a claimed K against
             # a GM that turns over inside the record (gyrocore.noise.rwgm; off by default)
-            old = AL.RW_CHECK
-            AL.RW_CHECK = True
-            try:
-                res = AL.identify_noise(g, rate_hz=rate_hz, method="gmwm", check_static=False)
-            finally:
-                AL.RW_CHECK = old
+            from gyrocore.noise.options import NoiseOptions
+
+            res = AL.identify_noise(g, rate_hz=rate_hz, method="gmwm", check_static=False,
+                                    options=NoiseOptions(rw_check=True))
         else:
             res = AL.identify_noise(g, rate_hz=rate_hz, method=method, check_static=False)
     for ax, r in res.axes.items():
@@ -170,16 +168,13 @@ def predicted(mix: dict[str, float], T: float, rate: float, method: str) -> dict
         from gyrocore.noise.gmwm import expected_z
     except ImportError:
         return {}
-    from gyrocore.noise import gmwm as G
+    from gyrocore.noise.options import NoiseOptions
 
     truth = {TERM_KEYS[k]: v for k, v in mix.items()}
     meth = "gmwm" if method.startswith("gmwm") else "adev"
-    old = G.RW_CHECK
-    G.RW_CHECK = method == "gmwm_rwcheck"  # the rule counts the check only where it is applied
-    try:
-        return expected_z(truth, n_samples=int(round(T * rate)), rate_hz=rate, method=meth)
-    finally:
-        G.RW_CHECK = old
+    # the rule counts the check only where it is applied
+    return expected_z(truth, n_samples=int(round(T * rate)), rate_hz=rate, method=meth,
+                      options=NoiseOptions(rw_check=method == "gmwm_rwcheck"))
 
 
 def summarise(rows: list[dict]) -> list[dict]:

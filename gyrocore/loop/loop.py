@@ -632,7 +632,7 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
         F, p, lp = 0.0, 1.0, 0.0
     lp_hac = lp
     lp_mod = float("nan")
-    if q and model.res.kind != "angles" and MODEL_TEST:
+    if q and model.res.kind != "angles":
         lp_mod = _model_wald(model, fit, list(current) + added, idx)
         if np.isfinite(lp_mod) and lp_mod > lp:
             # both tests must reject: the p-value of the intersection is the larger one
@@ -653,7 +653,7 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
         if not np.isfinite(cv_red):
             Xc, _, _ = model.design(added)
             cv_red = 1.0 - _cv_rms(e_current, Xc, min_windows=mw) / max(_rms(e_current), 1e-300)
-        if HALVES_GUARD and model.res.kind != "angles":
+        if model.res.kind != "angles":
             # and across the two contiguous halves: fitted on one half, the model plus the
             # candidate must predict the other half (extrapolation in time) better than the model
             # alone. An effect of the sensor holds over the whole record; a term fitted to slow
@@ -666,7 +666,7 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
             if np.isfinite(b2) and np.isfinite(f2):
                 half = 1.0 - f2 / max(b2, 1e-300)
                 cv_red = half if not np.isfinite(cv_red) else min(cv_red, half)
-            elif SLOW_OPEN_HALVES and _slow_open_term(cand):
+            elif _slow_open_term(cand):
                 # a slow open term (a library product with t) where a half cannot identify
                 # the joint model (a rate table turning one axis per phase): as the interleaved
                 # fallback above, the candidate's own columns fitted to the current residual on
@@ -692,11 +692,6 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
     return ev, fit
 
 
-#: The halves guard's own-columns fallback for slow open terms (:func:`_slow_open_term`);
-#: off only to measure the loop without it (docs/loop.md §4c).
-SLOW_OPEN_HALVES = True
-
-
 def _slow_open_term(cand: str) -> bool:
     """True for an open regressor candidate (``regressor[...]@axis``) with a factor ``t``."""
     if not cand.startswith("regressor["):
@@ -707,18 +702,6 @@ def _slow_open_term(cand: str) -> bool:
     except Exception:
         return False
 
-
-#: Run the second, noise-model-based Wald test of :func:`_model_wald` (both must reject). Off
-#: only to measure the loop as it was before (docs/loop.md §4, "before/after").
-MODEL_TEST = True
-#: Refer the model-based statistic to F(q, ν) with Satterthwaite's ν from the uncertainty of the
-#: random-walk level instead of χ²_q. Measured and not used: 0 of 600 coloured-noise nulls
-#: below p 0.2 for bias_ramp (far too conservative) and no power left for slow effects (a 3×
-#: ramp at log10 p −0.5 against −27 for HAC): 40 s of data cannot bound a random walk at the
-#: record's scale, so the Berger–Boos-type worst case over its uncertainty says nothing.
-MODEL_TEST_DOF = False
-#: The out-of-sample guard also across the two contiguous halves (see :func:`_test`).
-HALVES_GUARD = True
 
 #: Fewest windows for the model-based test (its Allan variance needs octaves up to M/4 ≥ 16).
 _MODEL_TEST_MIN_WINDOWS = 64
@@ -799,8 +782,9 @@ def _model_wald(model: _Model, fit, effects: Sequence[str], idx: Sequence[int]) 
     2.5 % for this test alone and 2.5 % for both; with the contiguous-halves guard of
     :func:`_test` the catalogue's family-wise false claims fall from 13 of 300 to 1 of 300 at
     its share α/2 = 0.005. (Referring W to F(q, ν) with Satterthwaite's ν for the uncertainty
-    of the random-walk level, :data:`MODEL_TEST_DOF`, was measured and dropped: no power left
-    for slow effects.) Lags are counted in windows (gaps between windows are ignored, as in
+    of the random-walk level was measured and dropped: 0 of 600 coloured-noise nulls below p 0.2
+    for bias_ramp and no power left for slow effects — a 3× ramp at log10 p −0.5 against −27 for
+    HAC: 40 s of data cannot bound a random walk at the record's scale.) Lags are counted in windows (gaps between windows are ignored, as in
     the step test).
 
     Returns NaN when the test does not apply (fewer than :data:`_MODEL_TEST_MIN_WINDOWS` windows).
@@ -821,18 +805,16 @@ def _model_wald(model: _Model, fit, effects: Sequence[str], idx: Sequence[int]) 
     Lr = np.einsum("qp,mip,i->imq", Ginv[rows], Xk, w)   # (3, M, q): θ̂ = Σ_a Lr[a]ᵀ y[:, a]
     e = np.asarray(fit.residual_rad_s, float)
     q_dim = len(rows)
-    parts = []   # per axis: (V_white per unit σ², V_rw per unit q, coefficients, their covariance)
     V = np.zeros((q_dim, q_dim))
     for a in range(3):
         U = Lr[a]
         if not np.any(U):
             continue
-        c, cov = _white_rw_noise_model(e[:, a])
+        c, _cov = _white_rw_noise_model(e[:, a])
         Vw = U.T @ U
         Rc = np.cumsum(U[::-1], axis=0)[::-1]
         Vr = Rc.T @ Rc
         V += c[0] * Vw + max(c[1], 0.0) * Vr
-        parts.append((Vw, Vr, cov))
     V = 0.5 * (V + V.T)
     th = np.asarray(fit.theta, float)[list(idx)]
     try:
@@ -842,19 +824,7 @@ def _model_wald(model: _Model, fit, effects: Sequence[str], idx: Sequence[int]) 
     W = float(th @ Vinv @ th)
     if not np.isfinite(W) or W < 0:
         return float("nan")
-    var_s = 0.0
-    for Vw, Vr, cov in parts:
-        g = np.array([np.trace(Vinv @ Vw), np.trace(Vinv @ Vr)]) / q_dim
-        var_s += float(g @ cov @ g)
-    nu = 2.0 / var_s if var_s > 0 and np.isfinite(var_s) else float("inf")
-    if not MODEL_TEST_DOF:
-        nu = float("inf")
-    if MODEL_TEST_DOF and not np.isfinite(var_s):
-        return 0.0  # the slow part cannot be estimated at all: no evidence
-    if nu > 1e6:
-        return _log10_chi2_sf(W, q_dim)
-    lp = float(stats.f.logsf(W / q_dim, q_dim, max(nu, 0.5)) / np.log(10))
-    return lp if np.isfinite(lp) else _log10_chi2_sf(W, q_dim)
+    return _log10_chi2_sf(W, q_dim)
 
 
 def _log10_chi2_sf(W: float, q: int) -> float:

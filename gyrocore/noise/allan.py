@@ -38,6 +38,8 @@ import scipy.optimize
 import scipy.stats
 
 from gyrocore.errors import GyroInputError, warn_repair
+
+from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 from gyrocore.data.recording import AXES, Recording
 
 __all__ = [
@@ -678,17 +680,11 @@ def select_ieee952(
 METHODS = ("gmwm", "adev", "adev_legacy")
 
 
-#: issue 11 round 6: a claimed rate random walk must also reject a Gauss–Markov bias that turns
-#: over inside the record, on the exact likelihood of the block means (gyrocore.noise.rwgm). **Off by
-#: default**: held out (seed 20261124, 6 replicates × 3 axes per cell) it turned 1 of 9 false K
-#: claims for a GM of τc = 20 s in 10-min records into "ambiguous" and 8 true K at 1–4 h as well —
-#: the test's noncentrality is ≈ 7.5 at every record length (docs/noise.md "Round 6"), so it
-#: costs K a fixed share at any length. Kept for the study and the API (``RW_CHECK = True``).
-RW_CHECK = False
+#: Models the random-walk check applies to (``NoiseOptions.rw_check``, off by default: see there)
 _RW_CHECK_MODELS = {"quantization_rad", "arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s"}
 
 
-def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *, low_pass: bool):
+def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *, low_pass: bool, on: bool):
     """K claimed by the GMWM selection, tested against a GM that turns over inside the record.
 
     Applies where the selected model is K with white rate noise (and white angle noise or the
@@ -701,7 +697,7 @@ def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *
     from . import rwgm
 
     k = "rrw_rad_per_s_sqrt_s"
-    if (not RW_CHECK or not f.method.startswith("gmwm") or f.terms.get(k) is None
+    if (not on or not f.method.startswith("gmwm") or f.terms.get(k) is None
             or "correlated_sigma_rad_s" not in f.ci95 or not set(f.selected) <= _RW_CHECK_MODELS):
         return f
     chk = rwgm.random_walk_check(omega, rate_hz, arw_rad_per_sqrt_s=float(f.estimate["arw_rad_per_sqrt_s"]),
@@ -718,7 +714,7 @@ def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *
 
 def _axis_result(
     omega: np.ndarray, rate_hz: float, m: np.ndarray, *, axis: str, signal: str, engine: str,
-    method: str = "gmwm",
+    method: str = "gmwm", options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
 ) -> AllanResult:
     if not np.all(np.isfinite(omega)):
         raise GyroInputError(f"{signal} axis {axis}: non-finite samples; drop or repair them before Allan analysis")
@@ -745,8 +741,8 @@ def _axis_result(
         k0 = gmwm.bandwidth_start(avar, m, n, rate_hz)
         # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
         meth = method + "+lp" if k0 else method
-        f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth)
-        f = _random_walk_check(f, omega, rate_hz, taus[-1], low_pass=bool(k0))
+        f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth, options=options)
+        f = _random_walk_check(f, omega, rate_hz, taus[-1], low_pass=bool(k0), on=options.rw_check)
         sel = [gmwm.LINEAR.index(k) for k in f.selected]
         chk = gmwm.goodness_of_fit(avar[k0:], f.fit_avar, f.cov, f.edf, gmwm._n_params(f.coef, f.tau_c_s, sel))
         fit_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef
@@ -1091,6 +1087,7 @@ def allan_analysis(
     engine: str = "fast",
     method: str = "gmwm",
     check_static: bool = False,
+    options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
 ) -> AllanAnalysis:
     """Overlapping ADEV and the identified noise terms of a static recording, per axis.
 
@@ -1115,6 +1112,9 @@ def allan_analysis(
     check_static : bool
         Refuse a recording whose motion gate rejects more than :data:`MAX_MOVING_FRACTION`
         of its 2-s windows (one ``error:`` line naming the fraction).
+    options : NoiseOptions, optional
+        How the GMWM fit decides (:class:`gyrocore.noise.options.NoiseOptions`; default the
+        project's rule).
 
     Raises
     ------
@@ -1171,7 +1171,8 @@ def allan_analysis(
 
     def run(x, signal):
         return {
-            a: _axis_result(x[:, AXES.index(a)], rate, m, axis=a, signal=signal, engine=engine, method=method)
+            a: _axis_result(x[:, AXES.index(a)], rate, m, axis=a, signal=signal, engine=engine, method=method,
+                            options=options)
             for a in axes
         }
 
@@ -1264,6 +1265,7 @@ def identify_noise(
     signal: str = "gyro",
     check_static: bool = True,
     engine: str = "fast",
+    options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
 ) -> "NoiseResult":
     """Identify the noise terms of a still recording or of rate arrays (the public API, issue 11).
 
@@ -1285,6 +1287,8 @@ def identify_noise(
         Which signal of a Recording (accel: units m/s², read rad as m/s in the term names).
     check_static : bool
         Refuse non-static data (motion gate, see :func:`allan_analysis`).
+    options : NoiseOptions, optional
+        How the GMWM fit decides (:class:`gyrocore.noise.options.NoiseOptions`).
 
     Returns
     -------
@@ -1311,13 +1315,13 @@ def identify_noise(
         if rate_hz is None or not (math.isfinite(float(rate_hz)) and float(rate_hz) > 0):
             raise GyroInputError("identify_noise on an array needs rate_hz > 0")
         return _identify_arrays(x, float(rate_hz), method=method, axes=axes, max_tau_s=max_tau_s,
-                                check_static=check_static and x.shape[1] == 3, engine=engine)
+                                check_static=check_static and x.shape[1] == 3, engine=engine, options=options)
     return allan_analysis(rec, axes=ax, max_tau_s=max_tau_s, engine=engine, method=method,
-                          check_static=check_static)
+                          check_static=check_static, options=options)
 
 
 def _identify_arrays(x: np.ndarray, rate: float, *, method: str, axes, max_tau_s, check_static: bool,
-                     engine: str) -> AllanAnalysis:
+                     engine: str, options: NoiseOptions = DEFAULT_NOISE_OPTIONS) -> AllanAnalysis:
     """:func:`identify_noise` on evenly spaced rate columns without building a Recording (no copy
     of the record, no timestamp checks: the spacing is 1/rate by definition)."""
     if method not in METHODS:
@@ -1351,7 +1355,7 @@ def _identify_arrays(x: np.ndarray, rate: float, *, method: str, axes, max_tau_s
             f"need at least 4 (>= {16 * 2 + 1} samples)"
         )
     res = {a: _axis_result(np.ascontiguousarray(x[:, names.index(a)]), rate, m, axis=a, signal="gyro",
-                           engine=engine, method=method) for a in ax}
+                           engine=engine, method=method, options=options) for a in ax}
     duration = (n - 1) / rate
     if method != "adev_legacy":
         _warn_short(res, duration, n, rate, method)

@@ -77,6 +77,8 @@ import numpy as np
 import scipy.optimize
 import scipy.stats
 
+from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
+
 __all__ = [
     "ALL_TERMS",
     "GM_TERMS",
@@ -558,18 +560,12 @@ def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3, 
     return coef_, tc_, C_, edf_, Lw, chi2, chi2 + 2.0 * float(np.sum(np.log(np.diag(Lc))))
 
 
-#: round 5: subsets the goodness-of-fit test rejects are no candidates (unless all are), and a
-#: term whose removal is rejected by it is not dropped by the Wald step
-GOF_SCREEN = True
-#: level of the screen: stricter than the reported test's ALPHA_GOF, because it overrides the
+#: Level of the goodness-of-fit screen (subsets the test rejects are no candidates unless all
+#: are, and a term whose removal it rejects is not dropped by the Wald step): stricter than the reported test's ALPHA_GOF, because it overrides the
 #: selection (at 1 % it added one absent term in five of the seven 10-min cells of the study's
 #: held-out check, 1 of 12 axes each); the Wald guard uses ALPHA_GOF (it only keeps a term the
 #: selection chose)
 ALPHA_GOF_SCREEN = 0.001
-#: upper bounds of unselected terms from the enlarged model's own iterated fit (round 2)
-UPPER_OWN_WEIGHTS = True
-#: switch of the stand-in check (:func:`_ambiguous`); False only to reproduce the study's "before"
-AMBIGUITY = True
 #: one-sided level of the stand-in check: a term is claimed only when the stand-in world is
 #: rejected at this level (false claims of a stand-in ≤ this rate, the issue's ≤ 5 % goal)
 ALPHA_STANDIN = 0.05
@@ -586,7 +582,6 @@ _NESTED = {frozenset((3, 5))}
 #: the ramp: R is claimed only when the K world (K fitted in R's place) is rejected at
 #: :data:`ALPHA_RAMP`, which bounds R claimed for a true K by that level.
 _EXTRA_CHECKS = {(4, 3)}
-FALLBACK = True
 #: level of the R-against-K check (round 5). At 5 % (round 4) the check is a calibrated 5 % test
 #: — development census, 1 h, K true: R claimed 12/240 (100 Hz), 11/240 (N+Q+K 100 Hz), 7/240
 #: (1 kHz), and on 12/240 axes the check's z = (λ − D)/(2√λ) exceeded z₀.₉₅ = 1.645 — so the false
@@ -651,15 +646,6 @@ def _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) 
     return out
 
 
-#: round 6: the rule counts the block-likelihood check of a claimed K against a GM that turns over
-#: inside the record (gyrocore.noise.rwgm, applied by gyrocore.noise.allan; False reproduces round 5's rule)
-RW_CHECK = False
-#: round 4: intervals of selected long-τ terms robust to an omitted confounder (see _robust_ends)
-ROBUST_CI = True
-#: helper indep: the robust union leaves out a candidate nested with the term (see _robust_ends)
-ROBUST_SKIP_NESTED = True
-
-
 def _robust_ends(i, sub, fits, c, var, lo, hi, cand, m, rate_hz, method, tc_s):
     """Interval ends of selected term i made robust to an unselected candidate X it is confounded with.
 
@@ -675,7 +661,7 @@ def _robust_ends(i, sub, fits, c, var, lo, hi, cand, m, rate_hz, method, tc_s):
     """
     se = math.sqrt(var) if var > 0 and math.isfinite(var) else float("inf")
     for x in cand:
-        if x in sub or (ROBUST_SKIP_NESTED and frozenset((i, x)) in _NESTED):
+        if x in sub or frozenset((i, x)) in _NESTED:
             # a nested pair (K and a GM: a GM whose τc reaches beyond the record *is* a random
             # walk over it) is not identified in the enlarged model — its information matrix is
             # near singular, the pair trades one for the other along a ridge, so "c moves by more
@@ -699,9 +685,6 @@ def _robust_ends(i, sub, fits, c, var, lo, hi, cand, m, rate_hz, method, tc_s):
     return lo, hi
 
 
-#: helper indep: the upper bound of an unselected term from the profile of the selection's own
-#: log-space statistic (see :func:`_upper_profile`) instead of the Wald end at the fit
-UPPER_PROFILE = True
 #: χ²₁ at 0.95: the end of a two-sided 95 % profile interval (one-sided 97.5 %)
 _CHI2_95 = float(scipy.stats.chi2.ppf(0.95, 1))
 
@@ -761,7 +744,7 @@ def _upper_profile(i, s2, cf2, tc, hi_wald, m, rate_hz, avar, L2, W_log, bias_lo
 
 def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: int, *,
               method: str = "gmwm", iterations: int = 3,
-              candidates: Sequence[str] | None = None) -> NoiseFit:
+              candidates: Sequence[str] | None = None, options: NoiseOptions = DEFAULT_NOISE_OPTIONS) -> NoiseFit:
     """Identify the noise terms of one axis from its overlapping Allan variance at octave factors m.
 
     Parameters
@@ -777,6 +760,8 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     method : {"gmwm", "adev"}
     candidates : sequence of str, optional
         Terms allowed (names of :data:`LINEAR`); default all (``adev``: all but GM).
+    options : NoiseOptions, optional
+        ``robust_ci`` (default True): intervals robust to an unselected confounder.
 
     Returns
     -------
@@ -829,9 +814,9 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     # round 5: a subset the data reject (goodness of fit, :func:`goodness_of_fit`, below
     # ALPHA_GOF) is no candidate when some subset is not rejected. The log-space χ² underrates a
     # long-τ point far above the model (thin upper tail of log χ²_ν at ν ≈ 2–6)
-    gof_p = {s_: _fit_check(fits[s_], s_, avar, m, rate_hz, method).p_value for s_ in subsets} if GOF_SCREEN else {}
+    gof_p = {s_: _fit_check(fits[s_], s_, avar, m, rate_hz, method).p_value for s_ in subsets}
     rejected = {s_: p_ < ALPHA_GOF_SCREEN for s_, p_ in gof_p.items()}
-    screen = GOF_SCREEN and not all(rejected[s_] for s_ in subsets
+    screen = not all(rejected[s_] for s_ in subsets
                                     if not np.any(fits[s_][0][[i for i in s_ if i not in lp]] <= 0))
     for sub in subsets:
         res = fits[sub]
@@ -871,7 +856,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
                 continue
             smaller = tuple(k for k in sub if k != i)
             pen_i = _PEN_GM if i == 5 else _PEN_LINEAR
-            if GOF_SCREEN and gof_p.get(smaller, 1.0) < ALPHA_GOF <= gof_p[sub]:
+            if gof_p.get(smaller, 1.0) < ALPHA_GOF <= gof_p[sub]:
                 continue  # round 5: its removal is rejected by the data (the reported test) — not marginal
             if smaller in lchi2 and lchi2[smaller] - lchi2[sub] < 2.0 * pen_i:
                 zw[i] = coef_s[i] / math.sqrt(cov_p[j, j]) if cov_p[j, j] > 0 else float("inf")
@@ -881,7 +866,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
         if zw[worst] >= _Z_WALD or len(sub) == 1:
             break
         sub = tuple(i for i in sub if i != worst)
-    ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) if AMBIGUITY else {}
+    ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log)
     for x, y in list(ambiguous.items()):
         # round 4: a ramp not told from a random walk (see _EXTRA_CHECKS) is the random walk's
         # trend — the random-walk model stands in its place when all its terms are positive
@@ -889,7 +874,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
         # selection; requiring K to be the only stand-in cost 3 of 120 true-K development axes at
         # 1 h and removed no false K in N+GM)
         swap = tuple(sorted((set(sub) - {x}) | {y}))
-        if FALLBACK and (x, y) in _EXTRA_CHECKS and swap in fits and np.all(fits[swap][0][list(swap)] > 0):
+        if (x, y) in _EXTRA_CHECKS and swap in fits and np.all(fits[swap][0][list(swap)] > 0):
             sub = swap
             cov_p = wald(sub)
             ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log)
@@ -905,7 +890,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     for j, i in enumerate(sub):
         name = LINEAR[i]
         c, lo, hi = _interval(float(coef_s[i]), float(cov_p[j, j]))
-        if ROBUST_CI and i != 1:
+        if options.robust_ci and i != 1:
             lo, hi = _robust_ends(i, sub, fits, float(coef_s[i]), float(cov_p[j, j]), lo, hi, cand, m, rate_hz,
                                   method, tc_s)
         est[name] = math.sqrt(max(c, 0.0))
@@ -927,7 +912,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
             continue
         name = LINEAR[i]
         sub2 = tuple(sorted(set(sub) | {i}))
-        if UPPER_OWN_WEIGHTS and sub2 in fits:
+        if sub2 in fits:
             # round 2: the enlarged models with their own iterated weights (the selected model's
             # weights leave the term's own variance out of the long-τ covariance), and the term
             # also in place of each selected term (a selected stand-in — B or R for an
@@ -946,9 +931,8 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
                 except np.linalg.LinAlgError:
                     var = float("inf")
                 hi_ = _interval(float(cf2[i]), var, pivot=False)[2]
-                if UPPER_PROFILE:
-                    hi_ = _upper_profile(i, s2, cf2, tc_2 if tc_2 else (tc_s if i == 5 else None), hi_, m,
-                                         rate_hz, avar, fits[s2][4], W_log, bias_log, method)
+                hi_ = _upper_profile(i, s2, cf2, tc_2 if tc_2 else (tc_s if i == 5 else None), hi_, m,
+                                     rate_hz, avar, fits[s2][4], W_log, bias_log, method)
                 his.append(hi_)
             hi = max(his)
             tc2 = fits[sub2][1]
@@ -1009,17 +993,13 @@ def _penalty(sub) -> float:
     return sum(_PEN_GM if i == 5 else _PEN_LINEAR for i in sub if i != 1)
 
 
-#: combine the alternatives of :func:`expected_z` by the union bound (round 4); False = the
-#: minimum over alternatives (rounds 1–3), kept to reproduce the earlier rule
-UNION = True
-#: simulate the selection between the truth and its near alternatives (round 4): draws and seed
-SIMULATE = True
+#: the selection between the truth and its near alternatives is simulated: draws and seed
 SIM_DRAWS = 400
 SIM_SEED = 20261125
 
 
 def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: float,
-               method: str = "gmwm") -> dict[str, float]:
+               method: str = "gmwm", options: NoiseOptions = DEFAULT_NOISE_OPTIONS) -> dict[str, float]:
     """Predicted resolvability margin of each present term (the resolvability rule).
 
     At the true parameters, with the true covariance Σ of the AVAR estimates on the τ grid
@@ -1036,7 +1016,9 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
     a Gaussian copula, each model refitted with the weights of its fit to the truth, because the
     normal forms ignore the refit — plus Σ Φ(−z) over the stand-in checks; ≤ 0 when p_miss ≥ ½.
     N, in every model the estimator fits, keeps the minimum. **Resolvable when ≥**
-    :data:`Z_POWER`.
+    :data:`Z_POWER`. With ``options.rw_check`` a claimed K must also pass the block-likelihood
+    check against a turning-over GM (:mod:`gyrocore.noise.rwgm`), as ``identify_noise`` then
+    applies it.
     """
     m = scales(int(n_samples))
     if m.size < 4:
@@ -1059,7 +1041,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
     draws = None
 
     def sim(sub_):
-        """log-space χ² of model ``sub_`` refitted to each simulated AVAR vector (see SIMULATE)."""
+        """log-space χ² of model ``sub_`` refitted to each simulated AVAR vector (see SIM_DRAWS)."""
         nonlocal draws
         if draws is None:
             # σ̂²_j = σ²_j χ²_ν/ν (ν = the EDF), correlated between scales through a Gaussian
@@ -1094,7 +1076,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                 # the swap of i for a stand-in y that :func:`_ambiguous` checks
                 swap_y = [y for y in set(sub) - set(true_sub)
                           if len(sub) == len(true_sub) and set(sub) - {y} == set(true_sub) - {i}]
-                check = AMBIGUITY and i != 1 and bool(swap_y) and _checked(i, swap_y[0])
+                check = i != 1 and bool(swap_y) and _checked(i, swap_y[0])
                 if dpen < 0 and not check:
                     continue
                 if sub not in cache:
@@ -1115,7 +1097,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                     # model wins when it exceeds Δpen: z = (λ − Δpen)/(2√λ) (round 2; the √ form
                     # above made K at 1 h look safer than the study shows)
                     z_v = (lam - dpen) / (2.0 * math.sqrt(lam)) if lam > 0 else -math.inf
-                    if AMBIGUITY and FALLBACK and swap_y and (swap_y[0], i) in _EXTRA_CHECKS:
+                    if swap_y and (swap_y[0], i) in _EXTRA_CHECKS:
                         # round 4: the stand-in y (R for a true K) must also reject the world of
                         # term i, fitted to the data ≈ the truth, at distance ≈ λ from y's fit:
                         # claimed when D ≈ N(λ, 4λ) < λ − z_{1−α}·2√λ, i.e. with probability
@@ -1137,7 +1119,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                     thr = lam_y - _z_check(i, swap_y[0]) * 2.0 * math.sqrt(lam_y)
                     z_claim = (thr + lam) / (2.0 * math.sqrt(lam)) if lam > 0 else (math.inf if thr > 0 else -math.inf)
                     zs.append(z_claim)
-        if AMBIGUITY and RW_CHECK and i == 3 and 5 in cand and set(true_sub) <= {0, 1, 3}:
+        if options.rw_check and i == 3 and 5 in cand and set(true_sub) <= {0, 1, 3}:
             # round 6: the claimed K must also reject a GM that turns over inside the record, on the
             # exact likelihood of the block means (gyrocore.noise.rwgm; applied in allan._axis_result)
             from . import rwgm
@@ -1151,7 +1133,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
         # called K resolvable where the study found it on 79 %. margin = Φ⁻¹(1 − Σ Φ(−z_alt)).
         margin = min(zs, default=math.inf)
         near = [a for a, z in sel_alts if z < 5.0]
-        if SIMULATE and near and i != 1:  # N is in every model the estimator fits
+        if near and i != 1:  # N is in every model the estimator fits
             # the selection between the truth and its near alternatives, simulated (round 4): the
             # normal approximations above ignore that each model is refitted to the realisation —
             # with K true at 1 h the flicker model, refitted, beats N + K on 4–5 % of draws where
@@ -1168,7 +1150,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                 0.0 if p_miss >= 0.5 else min(rest, default=math.inf))
             if p_miss >= 0.5:
                 margin = min(margin, min(zs))
-        elif UNION and zs and i != 1:  # N: the minimum, as before (N is never left out)
+        elif zs and i != 1:  # N: the minimum, as before (N is never left out)
             p_miss = float(sum(scipy.stats.norm.sf(z) for z in zs))
             if 0.0 < p_miss < 0.5:
                 margin = min(margin, float(scipy.stats.norm.isf(p_miss)))

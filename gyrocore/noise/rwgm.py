@@ -35,7 +35,7 @@ V = 2 tr((Σ_K*⁻¹Σ_GM − I)²) (K* = the random walk closest to the GM worl
 generalised χ² (:func:`gchi2_draws`), and K is claimed only when D lies below its 5 % quantile (the
 GM world rejected at 5 %, the level of every stand-in check).
 
-**Not applied by default** (``gyrocore.noise.allan.RW_CHECK = False``): held out it removed 1 of 9
+**Not applied by default** (``gyrocore.noise.options.NoiseOptions.rw_check`` is False): held out it removed 1 of 9
 false K claims for a GM of τc = 20 s in 10-min records and cost 8 of 144 true K at 1–4 h. E is
 ≈ 7.5–7.9 at every record length — a GM with τc ≈ T/20–T/30 and a random walk differ only over
 the last ≈ 2 octaves whatever T is — so this most powerful test has a fixed error pair, and the

@@ -11,6 +11,7 @@ import scipy.stats
 
 from gyrocore.noise import allan as AL
 from gyrocore.noise import gmwm as G
+from gyrocore.noise.options import NoiseOptions
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data.recording import Recording, write_csv
@@ -363,7 +364,7 @@ def test_ramp_claimed_at_the_level_of_every_claim():
     assert G.ALPHA_RAMP == G.ALPHA
 
 
-def test_interval_robust_to_an_omitted_confounder(monkeypatch):
+def test_interval_robust_to_an_omitted_confounder():
     """Round 4: a flicker floor B too weak to be selected next to a GM (noise-free N + B + K + GM,
     4 h at 50 Hz) is absorbed by the GM, whose σ moves by more than its own SE when B is added;
     the σ interval is then the union of the selected model's and the enlarged model's (in the
@@ -374,9 +375,8 @@ def test_interval_robust_to_an_omitted_confounder(monkeypatch):
     m = G.scales(n)
 
     def fit(b, robust):
-        monkeypatch.setattr(G, "ROBUST_CI", robust)
         av = G.term_avar(m, rate, tau_c_s=20.0) @ np.array([0, 1e-8, b * b, 4e-12, 0, 9e-10])
-        return G.fit_noise(m / rate, av, m, n)
+        return G.fit_noise(m / rate, av, m, n, options=NoiseOptions(robust_ci=robust))
 
     f0, f1 = fit(1e-5, False), fit(1e-5, True)
     assert "bias_instability_rad_s" not in f1.selected and "correlated_sigma_rad_s" in f1.selected

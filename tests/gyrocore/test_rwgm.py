@@ -126,22 +126,23 @@ def test_too_short_for_the_check():
     assert rwgm.random_walk_check(rng.standard_normal(50), 100.0, arw_rad_per_sqrt_s=0.1, tau_max_s=0.16) is None
 
 
-def test_identify_noise_with_the_check_reports_k_ambiguous_with_a_gm(monkeypatch):
-    """With ``allan.RW_CHECK`` on (off by default, docs/noise.md "Round 6"), a K that the GMWM
+def test_identify_noise_with_the_check_reports_k_ambiguous_with_a_gm():
+    """With ``NoiseOptions(rw_check=True)`` (off by default, docs/noise.md "Round 6"), a K that the GMWM
     selection claims for a GM of τc = 20 s (N+GM, 10 min at 50 Hz, seed [2, 5507], axis z — found
     by scanning seeds for such an axis) is reported null, its upper bound kept, and named as
     ambiguous with the GM; with the check off it is claimed."""
     import warnings
 
     from gyrocore.noise import allan as AL
+    from gyrocore.noise.options import NoiseOptions
     from experiments.noise_study import MIXES, simulate
 
     g = simulate(np.random.default_rng(np.random.SeedSequence([2, 5507])), MIXES["N+GM"], 30000, 50.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         off = AL.identify_noise(g[:, 2:3], rate_hz=50.0, check_static=False).axes["x"]
-        monkeypatch.setattr(AL, "RW_CHECK", True)
-        on = AL.identify_noise(g[:, 2:3], rate_hz=50.0, check_static=False).axes["x"]
+        on = AL.identify_noise(g[:, 2:3], rate_hz=50.0, check_static=False,
+                               options=NoiseOptions(rw_check=True)).axes["x"]
     assert off.rrw_rad_per_s_sqrt_s is not None and "rrw_rad_per_s_sqrt_s" not in off.ambiguous
     assert on.rrw_rad_per_s_sqrt_s is None
     assert on.ambiguous["rrw_rad_per_s_sqrt_s"] == "correlated_sigma_rad_s"
