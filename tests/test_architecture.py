@@ -280,3 +280,18 @@ def test_public_api_resolves():
     assert gyrocore.CalibrationResult is CalibrationResult and gyrocore.analyse_vibration is analyse
     with pytest.raises(AttributeError):
         gyrocore.no_such_name  # noqa: B018
+
+
+def test_no_module_level_boolean_flags_in_gyrocore():
+    # research switches live in options objects passed in (e.g. gyrocore.noise.options.NoiseOptions),
+    # never in module state that callers flip or tests monkeypatch
+    bad = []
+    for m, path in MODULES.items():
+        if not m.startswith("gyrocore"):
+            continue
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+            value = getattr(node, "value", None)
+            if isinstance(value, ast.Constant) and isinstance(value.value, bool):
+                bad += [f"{path.relative_to(REPO)}:{node.lineno} {t.id}" for t in targets if isinstance(t, ast.Name)]
+    assert not bad, "module-level boolean flags: " + ", ".join(bad)
