@@ -38,7 +38,6 @@ import os
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -303,7 +302,6 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
     apart from the selection: z-scores of K² with the standard error at the fitted model (the
     Wald pivot), with the standard error at the true model (is the covariance model right?),
     and the coverage of the Wald and of the chi-square (Satterthwaite) interval."""
-    import scipy.stats
 
     from gyrocore.noise import allan as AL
     from gyrocore.noise import gmwm as G

@@ -60,7 +60,7 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy import signal, stats as _st
+from scipy import signal
 
 from gyrocore.attitude import attitude_rate
 from gyrocore.errors import GyroInputError, warn_repair
@@ -747,7 +747,6 @@ def _extra_noise(model: TwinModel, rng_seed: int, t_s: np.ndarray) -> tuple[np.n
     n = int(np.asarray(t_s).shape[0])
     extra = np.zeros((n, 3))
     ref_noise = None
-    r = model.rate_hz
     if "reference_angle_noise" in model.extra:
         s = np.asarray(model.extra["reference_angle_noise"]["sigma_rad"], float)
         ref_noise = effect_rng(rng_seed, "twin/reference_angle_noise").standard_normal((n, 3)) * s[None, :]
@@ -1389,7 +1388,7 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
 def summary_text(r: TwinResult) -> str:
     """Readable summary of a :class:`TwinResult` (the CLI's default output)."""
     lines = [f"reference: {r.reference.kind} — {r.reference.description}",
-             f"twin: " + "; ".join(f"{e}: {s}" for e, s in r.model.sources.items())]
+             "twin: " + "; ".join(f"{e}: {s}" for e, s in r.model.sources.items())]
     for label, c in (("as given", r.before), ("after", r.after)):
         if c is None:
             continue

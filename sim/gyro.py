@@ -711,7 +711,7 @@ class GyroStream:
         def poly_lines(th, tag, target):
             coef, lo, hi, t0 = th
             env[f"{tag}_lo"], env[f"{tag}_hi"], env[f"{tag}_t0"] = lo, hi, t0
-            out = [f"    Tc = T",
+            out = ["    Tc = T",
                    f"    if Tc < {tag}_lo: Tc = {tag}_lo",
                    f"    if Tc > {tag}_hi: Tc = {tag}_hi",
                    f"    dT = Tc - {tag}_t0"]

@@ -219,7 +219,7 @@ class SensorSpec:
         if d is None:
             raise GyroInputError(f"preset {self.name} has no level for effect {effect}; give its parameters explicitly")
         rng = effect_rng(seed, f"instance/{effect}")
-        t0, full = self.temp_ref_c, self.full_scale_rad_s
+        t0 = self.temp_ref_c
 
         def nrm(shape, sigma):
             return rng.standard_normal(shape) * float(sigma)

@@ -30,7 +30,7 @@ import inspect
 import math
 from dataclasses import dataclass
 from math import cos, sin
-from typing import Callable, Iterator, Protocol, Sequence
+from typing import Iterator, Protocol, Sequence
 
 import mujoco
 import numpy as np
@@ -38,7 +38,7 @@ from scipy import signal
 
 from gyrocore.errors import GyroInputError
 
-from .controller import CascadedController, ControllerGains, Manoeuvre, QuadParams
+from .controller import CascadedController, ControllerGains, Manoeuvre
 from .paths import QUADROTOR_XML, model_path
 from .thermal import TemperatureChunks, ThermalSpec, ThermalState, simulate_temperature
 from .truth import Truth

@@ -34,7 +34,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from gyrocore.data.jsonable import to_jsonable
-from gyrocore.effects.registry import EFFECTS, STOCHASTIC, canonical_name, resolve, validate_params
+from gyrocore.effects.registry import canonical_name, resolve, validate_params
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording, concat_recordings
 

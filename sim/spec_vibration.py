@@ -245,7 +245,7 @@ def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: i
         pb, f_b = _calibration_powers(veh, replace(v0, imbalance_kg_m=0.0, hub_moment_kg_m2=hub0), seed=seed, tag=17,
                                       calib_s=calib_s, n_calib=n_calib)
     except GyroInputError:  # a model without couple-imbalance bodies (the F450): static unbalance alone
-        has_hub, pb, f_b = False, np.zeros_like(pa), f_a
+        has_hub, pb = False, np.zeros_like(pa)
     a = line.amplitude_rad_s
     target = np.array([(a["x"] ** 2 + a["y"] ** 2) / 2.0, a["z"] ** 2 / 2.0])
     A = np.array([pa[:, 0:2].sum(axis=1).mean(), pa[:, 2].mean()])

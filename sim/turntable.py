@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import mujoco
@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from gyrocore.errors import GyroInputError
 
 from .paths import TURNTABLE_XML, model_path
-from .thermal import TemperatureChunks, ThermalSpec, simulate_temperature
+from .thermal import TemperatureChunks, ThermalSpec
 from .truth import Truth
 
 __all__ = [

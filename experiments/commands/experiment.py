@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import click
 
@@ -60,7 +59,6 @@ def command(name, out_dir, quick, seeds, workers, force, noise, firmware, vehicl
         if scheduler is not None:
             extra["scheduler"] = scheduler
         extra["binary"] = ensure_binary().binary  # a missing build is one error line before the report starts
-    t0 = time.perf_counter()
     path, results = build_report([(name, run)], out_dir or f"out/{name}", force=force, quick=quick, seeds=seeds,
                                  workers=workers, title=f"gyroharness experiment {name}", **extra)
     r = results[0]

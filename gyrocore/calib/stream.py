@@ -306,7 +306,7 @@ class SpilledRecording:
 
             names = [f"ref_int_q{c}" for c in "wxyz"]
             files = [open(self.store.folder / f"{nm}.f64", "wb") for nm in names]
-            q_carry = None
+            q_carry = w_last = None
             try:
                 for lo, hi in self.chunks():
                     w = self.ref_rate_rad_s.rows(lo, hi)

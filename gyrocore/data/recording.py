@@ -14,7 +14,6 @@ import io
 import itertools
 import os
 import tempfile
-import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Iterator, Mapping

@@ -33,13 +33,12 @@ else the firmware default's. The Pareto front (cost vs motor noise) is returned 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 from scipy import signal
 
-from gyrocore.errors import GyroInputError
 from .filters import chain_response
 from .vibration import analyse
 

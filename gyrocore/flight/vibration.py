@@ -44,7 +44,7 @@ from typing import Sequence
 import numpy as np
 from scipy import signal, stats
 
-from gyrocore.errors import GyroInputError, warn_repair
+from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording, atomic_write_text
 from gyrocore.flight.energy_bands import attach as attach_energy_bands
 
@@ -540,7 +540,6 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         am, _, _ = rms_stats(accel_psd, f >= HIGHPASS_HZ)
         arms = {a: float(am[i]) for i, a in enumerate(AXES)}
     # throttle bands
-    bands = []
     if band_edges is not None:
         edges = np.asarray(band_edges, float)
         if edges.ndim != 1 or edges.size < 2 or not np.all(np.diff(edges) > 0):
@@ -649,7 +648,6 @@ def _link_lines(bands: list, f: np.ndarray, rate: float, *, has_bv: bool, rotor:
     res = ENBW_HANN * df
     out = []
     nb = len(bands)
-    nyq = rate / 2.0
     for ax in range(3):
         pk = [(bi, p) for bi, b in enumerate(bands) for p in b["_peaks"] if p.axis == ax]
         free = set(range(len(pk)))
@@ -869,7 +867,6 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
             ax.legend(title=(res.band_variable or "band").split(" ")[0], fontsize=7)
         ax2 = axs[1, j]
         if B > 1:
-            edges = [b["throttle"][0] for b in res.bands] + [res.bands[-1]["throttle"][1]]
             Z = np.log10(np.maximum(res.band_psd[:, :, j] * conv, 1e-12))
             ax2.pcolormesh(np.concatenate([f - (f[1] - f[0]) / 2, [f[-1] + (f[1] - f[0]) / 2]]), np.arange(B + 1), Z, shading="flat", vmin=np.log10(vmin), vmax=np.log10(vmax))
             ax2.set_yticks(np.arange(B) + 0.5, [f"{b['median']:.{nd}f}" for b in res.bands])

@@ -56,7 +56,7 @@ Each described term is a registered effect family (BRIEFING contract):
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np

@@ -56,7 +56,7 @@ import math
 import os
 import re
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -345,7 +345,6 @@ def gyro_filter_chain(headers: dict, fw: FirmwareInfo) -> list[FilterStage]:
     """
     r = loop_rates(headers, fw)
     fr, f2 = r["filter_hz"], r["lpf2_hz"]
-    stages: list[FilterStage] = []
     # static notches
     hz = _hlist(headers, "gyro_notch_hz")
     cut = _hlist(headers, "gyro_notch_cutoff")

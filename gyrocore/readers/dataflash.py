@@ -401,7 +401,6 @@ def _batch_recording(p, imu_rec, isb, rcou, ctun, params, imu_instance):
     rate = float(np.median([w[1] for w in wins]))
     lacks, notes = [], []
     extra = _motor_extras(t_us, rcou, ctun, params, lacks, notes)
-    chain = json.loads(imu_rec.meta["gyro_filters"])
     if post:
         pre_meta = None
         signal_txt = "filtered (batch sampler, post-filter: INS_LOG_BAT_OPT bit 1)"

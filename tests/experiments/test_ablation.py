@@ -7,7 +7,6 @@ import pytest
 
 from experiments import ablation as A
 from gyrocore.effects import registry as E
-from gyrocore.attitude import integrate_gyro
 
 
 def _static_case(seed=0, n=6000, rate=200.0):

@@ -136,7 +136,6 @@ def test_attitude_reference_finds_scale():
 
 def test_still_reference_finds_ramp():
     """A still recording (no reference columns): true rate 0 is the reference."""
-    from dataclasses import replace
 
     from gyrocore.data.recording import Recording
 

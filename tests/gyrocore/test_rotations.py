@@ -13,7 +13,6 @@ from gyrocore.calibrator import Calibrator
 from gyrocore.data.recording import Recording
 from gyrocore.calib.rotations import article_worked_example, integral_calibration, still_mask
 
-from ..conftest import SHARED_DATA
 
 # ------------------------------------------------------------------ the article's §5
 def test_article_worked_numbers_and_where_they_fail():

@@ -12,13 +12,12 @@ import json
 import math
 import subprocess
 import sys
-import warnings
 
 import numpy as np
 import pytest
 
 from gyrocore.flight import filters as F
-from gyrocore.errors import GyroInputError, RepairWarning
+from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from gyrocore.flight.vibration import analyse, read_spec, write_spec
 

@@ -155,8 +155,6 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     from gyrocore.effects.registry import check_effect_names
     from gyrocore.errors import GyroInputError
     from gyrocore.calibrator import Calibrator
-    from gyrocore.calib.params import result_to_dict, save_params
-    from gyrocore.data.recording import read_recording
 
     names = check_effect_names(effects.split(","))
     for p in [output] + ([px4_params] if px4_params else []):
