@@ -4,7 +4,7 @@ Run: ``nice python bench/bench_batch.py [--units 24] [--duration-s 120] [--rate-
 [--command allan] [--work DIR] [--json]``.
 
 A fleet of simulated ICM-42688-P units (``static`` scenario, seeds 0..units−1, from the
-preset; written once) is processed by :func:`gyrocore.cli.commands.batch.run_batch` three ways in
+preset; written once) is processed by :func:`gyrocore.fleet.run_batch` three ways in
 one run: in this process (``--workers 0``, no Dask: the reference), on a ``LocalCluster`` of
 1 worker and of 2 workers (single-threaded worker processes). Each is timed twice: the whole
 call (cluster start-up + tasks + table + plot) and the tasks alone (``execute`` on a cluster
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=None)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    from gyrocore.cli.commands.batch import _execute_dask, run_batch
+    from gyrocore.fleet import _execute_dask, run_batch
 
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="bench_batch_"))
     (work / "fleet").mkdir(parents=True, exist_ok=True)

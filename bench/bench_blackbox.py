@@ -22,7 +22,9 @@ import time
 import warnings
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+from experiments.datadir import DEFAULT_DATA_DIR, shared_data_dir
+
+DATA = shared_data_dir() or DEFAULT_DATA_DIR  # GYROHARNESS_DATA, else ../shared/data
 DEFAULT = [DATA / "betaflight_blackbox" / "better_tune.BBL", DATA / "blackbox_public" / "LOG00037.BFL",
            DATA / "blackbox_public" / "blackbox_log_2026-02-21_145057.TXT",
            Path(__file__).resolve().parents[1] / "tests" / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"]

@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import math
-import os
 import time
 from pathlib import Path
 
@@ -28,9 +27,10 @@ import numpy as np
 from gyrocore.attitude import error_angle_rad, integrate_gyro, score_attitude
 from gyrocore.flight.filters import article_lpf, article_lpf_coefficient, make_filter
 
+from .datadir import shared_data_dir
 from .report import ExperimentResult, md_table, new_figure, save_figure
 
-__all__ = ["run", "ARTICLE_B", "ARTICLE_M", "article_m", "gate_sums_counts", "shared_data_dir"]
+__all__ = ["run", "ARTICLE_B", "ARTICLE_M", "article_m", "gate_sums_counts"]
 
 DEG = math.pi / 180.0
 #: The article's integrated-output matrix B (rad), column j = rotation about axis j.
@@ -40,13 +40,6 @@ ARTICLE_M = np.array([[0.9754, -0.0135, 0.0214], [-0.0117, 0.9841, 0.0023], [0.0
 MPU6050_LSB_PER_DPS = 131.0  # ±250 °/s range
 ARTICLE_WINDOW = 200
 ARTICLE_THRESHOLD_COUNTS = 500.0
-
-
-def shared_data_dir() -> Path | None:
-    """The real-data folder (env ``GYROHARNESS_DATA`` or ``<repo>/../shared/data``), or None."""
-    env = os.environ.get("GYROHARNESS_DATA")
-    p = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared" / "data"
-    return p if p.is_dir() else None
 
 
 def article_m(C: np.ndarray, B: np.ndarray = ARTICLE_B) -> np.ndarray:

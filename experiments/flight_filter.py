@@ -158,14 +158,14 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
     import tempfile
 
     from gyrocore.flight import preview as P
-    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.flight.preview import recommend_filter
     from gyrocore.readers.convert import detect_format, load_any
     from gyrocore.data.recording import read_csv
     from gyrocore.flight.vibration import read_spec, write_spec
     from sim.spec_vibration import spec_injection
 
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
-    fj = run_filter(rec)
+    fj = recommend_filter(rec)
     with tempfile.TemporaryDirectory() as d:
         p = os.path.join(d, "spec.json")
         write_spec(fj["_res"], p, source=flight)

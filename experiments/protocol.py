@@ -271,12 +271,13 @@ def load_noise(path) -> NoiseSource:
     # a still data file: identify as `gyroharness noise FILE` does
     from gyrocore.noise.allan import allan_analysis
     from gyrocore.calib.budget import NoiseModel
-    from gyrocore.cli.commands.allan import _long, allan_by_axis
+    from gyrocore.readers.large import is_large
+    from gyrocore.noise.spilled import allan_by_axis
     from gyrocore.data.recording import read_recording
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="no long-tau term resolved")
-        if _long(path):
+        if is_large(path, "allan"):
             an = allan_by_axis(path, axes=["x", "y", "z"], max_tau_s=None, kalibr=False, engine="fast")
         else:
             an = allan_analysis(read_recording(path), axes=["x", "y", "z"], check_static=True)

@@ -1317,8 +1317,6 @@ def _row(name: str, cmd: str, r: TwinResult, h: dict | None = None) -> list:
             _cell(r.after), f"{r.after.twin_distance:.3f}" if r.after is not None else "—", f"`{cmd}`"]
 
 
-#: The real data beside the checkout (as tests/conftest.py's ``shared_data``).
-DATA_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: ``--quick``: two small sets only.
 #: the standard size of ``gyroharness run``: one set per source (BROAD, sunsided, tomisuarez2,
 #: PX4, imucal); --full adds BROAD 05, 07 and 09
@@ -1342,7 +1340,10 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         names = QUICK_SETS
     elif names is None and size == "standard":
         names = STANDARD_SETS
-    data_dir = DATA_DIR if data_dir is None else data_dir
+    if data_dir is None:
+        from experiments.datadir import DEFAULT_DATA_DIR, shared_data_dir
+
+        data_dir = shared_data_dir() or DEFAULT_DATA_DIR  # GYROHARNESS_DATA, else beside the checkout
     from experiments.report import ExperimentResult, md_table
     from gyrocore.data.recording import atomic_write_text
 

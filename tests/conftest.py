@@ -7,12 +7,14 @@ from pathlib import Path
 import pytest
 from threadpoolctl import threadpool_limits
 
+from experiments.datadir import DEFAULT_DATA_DIR, shared_data_dir
+
 # One BLAS thread for the whole suite (as the CLI does): many small fits, where BLAS threads
 # on a 2-core machine only contend.
 threadpool_limits(limits=1, user_api="blas")
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+SHARED_DATA = shared_data_dir() or DEFAULT_DATA_DIR  # GYROHARNESS_DATA, else ../shared/data
 
 
 @pytest.fixture(scope="session")

@@ -28,7 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
-from gyrocore.data.recording import AXES, DEG, G0_M_S2, Recording, atomic_write_text, is_parquet, read_csv, read_parquet
+from gyrocore.data.recording import AXES, DEG, G0_M_S2, Recording, atomic_write_text, is_parquet, read_csv, read_parquet, read_recording
 
 __all__ = [
     "Segment",
@@ -1275,6 +1275,14 @@ def _check_convert_memory(path: Path, fmt: str) -> None:
             f"{path}: {size / 2**20:.0f} MiB of {fmt} data needs ~{need / 2**20:.0f} MiB to convert, more than "
             f"{_rc.MEMORY_FRACTION:.0%} of the {avail / 2**20:.0f} MiB available; split the recording first"
         )
+
+
+def read_any(path: str | os.PathLike) -> Recording:
+    """A DESIGN.md data file (CSV or Parquet), or any set `gyroharness convert` reads (BROAD
+    .hdf5, ULog, ...)."""
+    if detect_format(path) in ("csv", "parquet"):
+        return read_recording(path)
+    return load_with_segments(path).recording
 
 
 def load_any(path: str | os.PathLike, *, format: str = "auto", **options) -> Recording:

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from gyrocore.cli import build_group, run_cli
-from gyrocore.cli.commands import batch as B
+from gyrocore import fleet as B
 from gyrocore.data.recording import Recording, write_csv, write_recording
 
 N_UNITS = 20

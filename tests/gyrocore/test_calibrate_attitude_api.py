@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gyrocore.cli.commands.batch import headline_calibrate
+from gyrocore.fleet import headline_calibrate
 from gyrocore.readers.convert import load_any
 from gyrocore.calibrator import Calibrator
 from gyrocore.data.recording import write_csv

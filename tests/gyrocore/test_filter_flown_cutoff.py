@@ -12,7 +12,7 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from gyrocore.cli.commands.filter import run_filter
+from gyrocore.flight.preview import recommend_filter
 from gyrocore.readers.dataflash import read_dataflash
 
 LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
@@ -22,7 +22,7 @@ def test_ardupilot_lowpass_line_keeps_the_flown_cutoff():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rec = read_dataflash(LOG, stream="batch")
-        out = run_filter(rec, window_s=0.15)
+        out = recommend_filter(rec, window_s=0.15)
     assert out["recommended"]["name"] == "as flown"
     assert out["firmware"]["ardupilot"]["INS_GYRO_FILTER"] == 42
     assert out["px4_ardupilot_lowpass"]["attitude_cost"] <= out["as_flown"]["attitude_cost"] * (1 + 1e-9)

@@ -109,16 +109,16 @@ def test_spilled_residual_rows_equal_the_arrays(tmp_path):
 
 
 def test_loop_cli_streams_long_files_and_falls_back(tmp_path, monkeypatch, capsys):
-    # files longer than the calibrate rule's STREAM_ROWS with reference rates take the disk
+    # large files (gyrocore.readers.large) with reference rates take the disk
     # path; the JSON and parameter file equal the in-memory loop's. A reference with NaN rows
     # is not streamed (NotStreamable): the command reads the file whole instead
     from click.testing import CliRunner
 
-    import gyrocore.cli.commands.calibrate as cal
+    import gyrocore.readers.large as LG
     import gyrocore.loop.loop as L
     from gyrocore.cli.commands.loop import command as main
 
-    monkeypatch.setattr(cal, "STREAM_ROWS", 1000)
+    monkeypatch.setattr(LG, "LARGE_FILE_BYTES", 0)
     seen = []
     real = L.run_loop
 

@@ -58,14 +58,14 @@ def test_spill_same_columns_and_warnings_as_a_whole_read(tmp_path, suffix):
 
 
 def test_allan_by_axis_equals_whole_record(tmp_path, capsys, monkeypatch):
-    import gyrocore.cli.commands.allan as A
+    import gyrocore.readers.large as LG
 
     rec = _still(40_000, gap=True)
     p = tmp_path / "r.csv"
     write_recording(rec, p)
     outs = []
     for limit in (10**12, 0):  # whole record, then one axis at a time
-        monkeypatch.setattr(A, "BY_AXIS_BYTES", limit)
+        monkeypatch.setattr(LG, "LARGE_FILE_BYTES", limit)
         with warnings.catch_warnings():
             s = run_cli(build_group(), ["allan", str(p), "--json"])
         cap = capsys.readouterr()

@@ -89,12 +89,13 @@ def test_streamed_rows_equal_in_memory_rows(tmp_path):
 
 
 def test_calibrate_cli_streams_long_files(tmp_path, monkeypatch):
-    # the command takes the streamed path above STREAM_ROWS rows and writes the same
+    # the command takes the streamed path for a large file (gyrocore.readers.large) and writes the same
     # parameter file as the in-memory fit (thermal order selection, robust pass included)
     import json
 
     from click.testing import CliRunner
 
+    import gyrocore.readers.large as LG
     from gyrocore.cli.commands import calibrate as C
     from gyrocore.calib.params import load_params
 
@@ -102,7 +103,7 @@ def test_calibrate_cli_streams_long_files(tmp_path, monkeypatch):
     path = tmp_path / "rec.csv"
     write_csv(rec, path)
     eff = "bias,scale,bias_thermal"
-    monkeypatch.setattr(C, "STREAM_ROWS", 100)
+    monkeypatch.setattr(LG, "LARGE_FILE_BYTES", 0)  # every file with reference rates is large
     monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", 1000)
     called = []
     orig = Calibrator.fit_spilled
@@ -185,12 +186,12 @@ def test_streamed_bias_with_its_own_blocks_equals_in_memory_to_rounding(tmp_path
 
 
 def test_bias_cli_streams_long_files(tmp_path, capsys, monkeypatch):
-    # above LONG_ROWS the command spills t + gyro and fits from disk: the same JSON, bit for
+    # for a large file the command spills t + gyro and fits from disk: the same JSON, bit for
     # bit, and the same warnings as the whole read
     import json
     import warnings
 
-    import gyrocore.cli.commands.bias as CB
+    import gyrocore.readers.large as LG
     from gyrocore.cli import build_group, run_cli
 
     rng = np.random.default_rng(9)
@@ -206,8 +207,8 @@ def test_bias_cli_streams_long_files(tmp_path, capsys, monkeypatch):
     orig = StaticBiasCalibrator.fit_spilled
     monkeypatch.setattr(StaticBiasCalibrator, "fit_spilled", lambda self, st: called.append(1) or orig(self, st))
     outs = []
-    for limit in (10**12, 100):  # whole read, then from disk
-        monkeypatch.setattr(CB, "LONG_ROWS", limit)
+    for limit in (10**15, 0):  # whole read, then from disk
+        monkeypatch.setattr(LG, "LARGE_FILE_BYTES", limit)
         with warnings.catch_warnings():
             s = run_cli(build_group(), ["bias", str(path), "--json"])
         cap = capsys.readouterr()
@@ -315,13 +316,14 @@ def test_calibrate_cli_streamed_path_takes_the_ramp_margin(tmp_path, monkeypatch
     # the in-memory fit (same windows: 1e-13, as above)
     from click.testing import CliRunner
 
+    import gyrocore.readers.large as LG
     from gyrocore.cli.commands import calibrate as C
     from gyrocore.calib.params import load_params
 
     rec = _table_steps_record(n=40_000)
     path = tmp_path / "rec.csv"
     write_csv(rec, path)
-    monkeypatch.setattr(C, "STREAM_ROWS", 100)
+    monkeypatch.setattr(LG, "LARGE_FILE_BYTES", 0)  # every file with reference rates is large
     monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", 4096)
     called = []
     orig = Calibrator.fit_spilled

@@ -172,7 +172,7 @@ def _flown(seed):
 
 
 def test_filter_recommendation_stable_across_noise_seeds():
-    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.flight.preview import recommend_filter
 
     picks = []
     for seed in (11, 12, 13):
@@ -183,7 +183,7 @@ def test_filter_recommendation_stable_across_noise_seeds():
 
         g = F.pt1(100.0, RATE).apply(rec.gyro_rad_s)
         rec = Recording(t_s=rec.t_s, gyro_rad_s=g, meta=rec.meta, extra=rec.extra)
-        out = run_filter(rec)
+        out = recommend_filter(rec)
         r = out["recommended"]
         assert r["motor_noise"] <= out["budget"]["motor_noise"] * (1 + 1e-9)
         assert r["attitude_cost"] <= out["as_flown"]["attitude_cost"] + 1e-12
@@ -203,13 +203,13 @@ def test_filter_names_betaflight_parameters_only_for_betaflight_logs():
     """An INAV (or other non-Betaflight) log gets no Betaflight `set` lines and no RPM-filter
     recommendation (that firmware's names and filter were not read): one comment instead."""
     from gyrocore.flight import filters as F
-    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.flight.preview import recommend_filter
 
     rec = _flown(11)
     g = F.pt1(100.0, RATE).apply(rec.gyro_rad_s)
     rec = Recording(t_s=rec.t_s, gyro_rad_s=g, meta=dict(rec.meta, firmware_name="inav", firmware_version="9.0.1"),
                     extra=rec.extra)
-    out = run_filter(rec)
+    out = recommend_filter(rec)
     bf = out["firmware"]["betaflight"]
     assert len(bf) == 1 and bf[0].startswith("# inav log") and not any(s.startswith("set ") for s in bf)
     assert "rpm_notch" not in out["recommended"] or out["recommended"]["rpm_notch"] is None

@@ -174,7 +174,7 @@ def test_filter_places_the_notch_on_the_band(swept):
     fixed line after it; the coverage block puts ArduPilot's throttle notch and PX4's notch on
     the band; a chain with the band notch leaves less of the band's power than the same low-pass
     without it."""
-    from gyrocore.cli.commands.filter import run_filter
+    from gyrocore.flight.preview import recommend_filter
     from gyrocore.flight.preview import notch_targets
 
     rec, res = swept
@@ -184,7 +184,7 @@ def test_filter_places_the_notch_on_the_band(swept):
     assert any(abs(f0 - F_FIXED) < 1.0 for f0, _, _ in t[1:])
     g = rec.gyro_rad_s.copy()
     g[:, :2] += 1.0 * np.sin(2 * np.pi * 0.7 * rec.t_s)[:, None]  # flight motion: the delay's cost needs a rate
-    out = run_filter(Recording(t_s=rec.t_s, gyro_rad_s=g, meta=rec.meta, extra=rec.extra))
+    out = recommend_filter(Recording(t_s=rec.t_s, gyro_rad_s=g, meta=rec.meta, extra=rec.extra))
     cov = out["band_coverage"]
     assert cov["band"]["axis"] == "y" and cov["ardupilot"]["INS_HNTCH_MODE"] == 1
     lo, hi = cov["range_hz"]

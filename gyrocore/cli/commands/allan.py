@@ -16,6 +16,8 @@ import click
 import numpy as np
 
 from gyrocore.cli import emit_json
+from gyrocore.noise.spilled import allan_by_axis, t_rows
+from gyrocore.readers.large import is_large
 from gyrocore.errors import GyroInputError
 
 _ASYMPTOTE = {
@@ -233,130 +235,6 @@ def adev_figure(analysis):
 
 
 #: Files whose t + gyro columns would exceed this are analysed one axis at a time
-#: (:func:`allan_by_axis`): same numbers, memory O(2 columns) instead of O(4).
-BY_AXIS_BYTES = 64 * 2**20
-
-
-def _long(file: str) -> bool:
-    import os
-
-    from gyrocore.data.recording import is_parquet
-
-    if not os.path.isfile(file):
-        return False
-    # rows ~ CSV bytes / 150 (a 15-column %.17g row is ~180 B, a 4-column one ~75 B: take the
-    # larger count); Parquet stores ~8 B per value
-    size = os.path.getsize(file)
-    rows = size / (8 * 4) if is_parquet(file) else size / 75
-    return rows * 4 * 8 > BY_AXIS_BYTES
-
-
-def _t_rows(t_s: np.ndarray, t_from_s: float | None, t_to_s: float | None) -> tuple[int, int]:
-    """Rows [a, b) with t_from_s <= t < t_to_s (one ``error:`` line when that leaves too little)."""
-    a = 0 if t_from_s is None else int(np.searchsorted(t_s, t_from_s, side="left"))
-    b = t_s.size if t_to_s is None else int(np.searchsorted(t_s, t_to_s, side="left"))
-    if b - a < 2:
-        raise GyroInputError(
-            f"--t-from-s/--t-to-s select {max(b - a, 0)} samples; the recording spans t = {t_s[0]:.6g}-{t_s[-1]:.6g} s"
-        )
-    return a, b
-
-
-def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, method: str = "gmwm",
-                  check_static: bool = True, t_from_s: float | None = None, t_to_s: float | None = None):
-    """:func:`gyrocore.noise.allan.allan_analysis` of a long recording, one axis at a time.
-
-    The file is streamed once into per-column files in a temporary folder
-    (:func:`gyrocore.data.recording.spill_columns`: the same repairs, checks and warnings as a
-    whole read); each axis is then loaded alone with the time column. The results are
-    identical to the whole-record analysis (same samples, same rate, same kernel); memory
-    holds two columns (t and the axis) plus the ADEV buffers; the motion gate
-    (``check_static``) reads only the windows it judges.
-    """
-    import tempfile
-    import warnings
-
-    from gyrocore.noise.allan import AllanAnalysis, allan_analysis
-    from gyrocore.data.recording import AXES, spill_columns
-
-    with tempfile.TemporaryDirectory(prefix="gyroharness_allan_") as tmp:
-        store = spill_columns(file, tmp, accel=kalibr)
-        has_accel = "accel_x_m_s2" in store.names
-        still = None
-        rows = (0, store.n)
-        span_s = None
-        if t_from_s is not None or t_to_s is not None:
-            rows = _t_rows(store.t_s, t_from_s, t_to_s)
-        if check_static and rows != (0, store.n):
-            # a chosen part: the whole gate of allan_analysis on its three axes (memory O(3 × part))
-            from gyrocore.noise.allan import still_span
-            from gyrocore.data.recording import GYRO_COLS
-
-            from gyrocore.data.recording import Recording
-
-            part = Recording(t_s=store.t_s[rows[0]:rows[1]], gyro_rad_s=store.block(GYRO_COLS, *rows))
-            sp = still_span(part.gyro_rad_s, part.rate_hz, t0_s=float(part.t_s[0]))
-            still = sp.still_fraction
-            if sp.cut:
-                from gyrocore.errors import warn_repair
-
-                warn_repair(sp.message)
-                rows = (rows[0] + sp.start, rows[0] + sp.stop)
-            del part
-        elif check_static:  # the same gate as allan_analysis(check_static=True), on up to 200 windows
-            import math
-
-            import scipy.stats
-
-            from gyrocore.noise.allan import MAX_MOVING_FRACTION, still_fraction_spilled
-
-            still = still_fraction_spilled(store)  # reads only the windows it judges
-            n_win = int(round(2.0 * store.n / max(float(store.t_s[-1] - store.t_s[0]), 1e-300)))
-            w_judged = min(200, store.n // max(n_win, 1))
-            k = int(round((1.0 - still) * w_judged)) if math.isfinite(still) else 0
-            if math.isfinite(still) and ((1.0 - still) > MAX_MOVING_FRACTION or (
-                    k > 0 and scipy.stats.binom.sf(k - 1, w_judged, 1e-3) < 1e-3)):
-                raise GyroInputError(
-                    f"recording is not static: the motion gate rejects {k} of {w_judged} 2-s windows spread over it "
-                    f"(a still sensor: {w_judged * 1e-3:.2g} by chance); a long file is analysed whole: choose its still "
-                    f"part with --t-from-s/--t-to-s"
-                )
-        if rows != (0, store.n):
-            span_s = (float(store.t_s[rows[0]]), float(store.t_s[rows[1] - 1]))
-        per_axis, per_accel = {}, {}
-        seen: set[str] = set()
-        last = None
-        for a in axes:
-            j = AXES.index(a)
-            for kind in ("gyro", "accel") if has_accel else ("gyro",):
-                rec = store.recording(j) if kind == "gyro" else store.recording(j, accel_axis=j)
-                if rows != (0, store.n):
-                    rec = rec.slice(*rows)
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always")
-                    r = allan_analysis(rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine,
-                                       method=method)
-                for w in caught:  # the record-level warnings once, not once per axis
-                    if str(w.message).startswith("no long-tau term resolved"):
-                        continue  # given once below, from all the axes (as allan_analysis does)
-                    if str(w.message) not in seen:
-                        seen.add(str(w.message))
-                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-                if kind == "gyro":
-                    per_axis[a] = r.axes[a]
-                else:
-                    per_accel[a] = r.accel[a]
-                last = r
-                del rec
-    from gyrocore.noise.allan import _warn_short
-
-    if method != "adev_legacy":
-        _warn_short(per_axis, last.duration_s, last.n_samples, last.rate_hz, method)
-    return AllanAnalysis(axes=per_axis, accel=per_accel, rate_hz=last.rate_hz, n_samples=last.n_samples,
-                         duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s, method=method,
-                         still_fraction=still, analysed_span_s=span_s)
-
-
 @click.command("allan")
 @click.argument("file", type=click.Path(dir_okay=False))  # CSV or Parquet
 @click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None, help="write a PNG of the deviation and fit")
@@ -381,7 +259,7 @@ def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, e
     from gyrocore.noise.allan import allan_analysis, kalibr_imu_yaml
     from gyrocore.data.recording import atomic_write_text, read_recording
 
-    if _long(file):
+    if is_large(file, "allan"):
         # long files: one axis at a time (memory); the motion gate loads the three axes once
         res = allan_by_axis(file, axes=_axes(axes), max_tau_s=max_tau_s, kalibr=kalibr_yaml is not None, engine=engine,
                             method=method, check_static=not no_static_check, t_from_s=t_from_s, t_to_s=t_to_s)
@@ -389,7 +267,7 @@ def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, e
         # only the columns the analysis needs (t, gyro; accel for Kalibr)
         rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
         if t_from_s is not None or t_to_s is not None:
-            rec = rec.slice(*_t_rows(rec.t_s, t_from_s, t_to_s))
+            rec = rec.slice(*t_rows(rec.t_s, t_from_s, t_to_s))
         want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
         res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine,
                              method=method, check_static=not no_static_check)

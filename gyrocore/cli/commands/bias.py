@@ -8,6 +8,7 @@ import click
 import numpy as np
 
 from gyrocore.cli import emit_json
+from gyrocore.readers.large import is_large
 
 D = 180.0 / math.pi
 
@@ -28,22 +29,6 @@ def report_text(r) -> str:
         "(a constant rotation is indistinguishable from bias)",
     ]
     return "\n".join(lines)
-
-
-#: Files of more rows than this are read back from disk a block of windows at a time
-#: (:meth:`gyrocore.calib.bias.StaticBiasCalibrator.fit_spilled`; same numbers).
-LONG_ROWS = 1_000_000
-
-
-def _long(file: str) -> bool:
-    import os
-
-    from gyrocore.readers.convert import detect_format
-    from gyrocore.data.recording import file_layout
-
-    if not os.path.isfile(file) or detect_format(file) not in ("csv", "parquet"):
-        return False
-    return file_layout(file)[1] > LONG_ROWS
 
 
 @click.command("bias")
@@ -76,7 +61,7 @@ def command(file, rule, statistic, window_s, window_samples, false_reject_rate, 
         lsb_rad_s=None if lsb_dps is None else lsb_dps / D,
         article_threshold_counts=article_counts,
     )
-    if _long(file):
+    if is_large(file, "bias"):
         # a long file: t and gyro spilled to per-column files (every check and warning of a
         # whole read), then the gate and the estimate a block of windows / one column at a time
         import tempfile

@@ -10,6 +10,7 @@ import click
 import numpy as np
 
 from gyrocore.cli import emit_json
+from gyrocore.readers.large import is_large
 
 D = 180.0 / math.pi
 
@@ -98,17 +99,6 @@ def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str,
     return None
 
 
-def _read_any(path: str):
-    """A DESIGN.md data file (CSV or Parquet), or any set `gyroharness convert` reads (BROAD
-    .hdf5, ULog, ...)."""
-    from gyrocore.readers.convert import detect_format, load_with_segments
-    from gyrocore.data.recording import read_recording
-
-    if detect_format(path) in ("csv", "parquet"):
-        return read_recording(path)
-    return load_with_segments(path).recording
-
-
 @click.command("calibrate")
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment")
@@ -155,6 +145,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     from gyrocore.effects.registry import check_effect_names
     from gyrocore.errors import GyroInputError
     from gyrocore.calibrator import Calibrator
+    from gyrocore.readers.convert import read_any
 
     names = check_effect_names(effects.split(","))
     for p in [output] + ([px4_params] if px4_params else []):
@@ -174,7 +165,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     ext = external_bias(bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz)
     if poses and segments:
         raise GyroInputError("--poses and --segments are two methods: give one")
-    if not segments and not poses and _streamable(file):
+    if not segments and not poses and is_large(file, "calibrate", need=("ref_rate",)):
         # a long data file with reference rates: spilled to per-column files and fitted a
         # window at a time (gyrocore.calib.stream); the same fit as in memory, bounded memory
         import tempfile
@@ -189,7 +180,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
         _warn_unobservable(res)
         _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
         return
-    rec = _read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
+    rec = read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
     # (a reference attitude and no reference rate: Calibrator.fit fits against the attitude)
     if (angle_sigma_deg or axis_sigma_deg) and not segments:
         raise GyroInputError("--angle-sigma-deg/--axis-sigma-deg are for the integral method: give --segments too")
@@ -214,20 +205,6 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
 #: Data files of more rows than this are calibrated from disk, a window at a time
 #: (:meth:`gyrocore.calibrator.Calibrator.fit_spilled`) when they have reference rates: above
 #: 4 × ``lsq.CHUNK_ROWS`` the in-memory fit takes the same chunked path, so the numbers agree.
-STREAM_ROWS = 4 * 32768
-
-
-def _streamable(path: str) -> bool:
-    """A CSV/Parquet data file of more than :data:`STREAM_ROWS` rows with reference rates."""
-    from gyrocore.readers.convert import detect_format
-    from gyrocore.data.recording import file_layout
-
-    if not os.path.isfile(path) or detect_format(path) not in ("csv", "parquet"):
-        return False
-    groups, est_rows = file_layout(path)
-    return "ref_rate" in groups and est_rows > STREAM_ROWS
-
-
 def _warn_sign(res) -> None:
     """A scale below −50 % (K_ii = 1 + s < 0.5, typically ≈ −1) is not a sensitivity error: the
     axis reads against the reference (a flipped axis, or the known angles' sign convention — imucal's

@@ -3,9 +3,8 @@
 JSON: ``{"recommended": {"filter", "cutoff_hz", "notches_hz", "attitude_cost", "delay_ms",
 "motor_noise", ...}, "as_flown": {same keys}, "firmware": {"betaflight": ["set …", ...],
 "px4": {...}, "ardupilot": {...}}, "defaults": {...}, "article": {...}, "pareto": [...], ...}``.
-First version: the open-loop spectral / delay cost model of :mod:`gyrocore.flight.preview` on the
-recorded gyro (before the firmware's filters); the closed-loop comparison (the candidates flown
-with the flight's vibration by the simulator) is ``gyroharness filter-closed-loop``.
+The recommendation is :func:`gyrocore.flight.preview.recommend_filter`; this module parses, plots
+and prints.
 """
 
 from __future__ import annotations
@@ -19,9 +18,6 @@ import numpy as np
 from gyrocore.cli import emit_json
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.flight.preview import recommend_filter
-
-# the recommendation is library code (gyrocore.flight.preview); the name is kept for the callers of this module
-run_filter = recommend_filter
 
 
 def plot_filter(out: dict, path: str) -> None:
@@ -90,7 +86,7 @@ def command(path, loop_hz, window_s, use, log_index, plot, force, as_json):
     if log_index is not None and fmt != "blackbox":
         raise GyroInputError("--log-index applies to blackbox logs only")
     rec = load_any(path, format="blackbox", log_index=log_index) if fmt == "blackbox" else (read_csv(path) if fmt == "csv" else load_any(path))
-    out = run_filter(rec, loop_hz=loop_hz, window_s=window_s, use=use)
+    out = recommend_filter(rec, loop_hz=loop_hz, window_s=window_s, use=use)
     for w in out["_res"].warnings:
         warn_repair(w)
     out["file"] = path

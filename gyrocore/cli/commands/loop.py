@@ -12,6 +12,7 @@ from pathlib import Path
 import click
 
 from gyrocore.cli import emit_json
+from gyrocore.readers.large import is_large
 
 
 def _split(value: str | None) -> list[str] | None:
@@ -172,7 +173,7 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")
     declared = _split(effects) or []
     if (not segments and not validate and not validate_split and reference in ("auto", "rate")
-            and _streamable(path)):
+            and is_large(path, "loop", need=("ref_rate",))):
         # a long data file with reference rates: spilled to per-column files and looped over a
         # window at a time (gyrocore.calib.stream.SpilledRecording); the same loop, bounded memory.
         # What only the in-memory path does (NaN rows in the reference) falls through below.
@@ -267,14 +268,6 @@ def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extr
             click.echo(extra_text)
         if output:
             click.echo(f"wrote {output}")
-
-
-def _streamable(path: str) -> bool:
-    """A CSV/Parquet data file long enough to loop over from disk (the rule of ``calibrate``:
-    more than ``STREAM_ROWS`` rows, with reference rates)."""
-    from .calibrate import _streamable as streamable
-
-    return streamable(path)
 
 
 def validation(result, rec_fit, val_conv, *, declared, opts, validate, validate_segments=None) -> dict:
