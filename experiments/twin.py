@@ -357,82 +357,42 @@ def _loop_params(table: Mapping) -> dict:
     return out
 
 
-_FAMILY_FALLBACK = {"periodic": {"a_cos_rad_s": (3,), "a_sin_rad_s": (3,)}, "step": {"size_rad_s": (3,)}}
-
-
-def _family(name: str) -> tuple[str, float] | None:
-    """(family, argument) of ``periodic[f]`` / ``step[t_s]`` names, else None."""
-    for fam in _FAMILY_FALLBACK:
-        if name.startswith(fam + "[") and name.endswith("]"):
-            try:
-                return fam, float(name[len(fam) + 1:-1])
-            except ValueError:
-                return None
-    return None
-
-
 def _simulated_by_sim(name: str) -> bool:
-    """True when SyntheticGyro itself injects ``name`` (catalogue, or a registry family)."""
+    """True when the effect registry knows ``name`` (catalogue effect, noise term or family
+    instance), so SyntheticGyro injects it."""
     from gyrocore.effects import registry as E
 
-    if name in E.PARAM_SCHEMA:
-        return True
-    resolve = getattr(E, "resolve", None)
-    if resolve is None:
-        return False
     try:
-        resolve(name)
+        E.resolve(name)
         return True
-    except Exception:  # noqa: BLE001
+    except GyroInputError:
         return False
-
-
-def _family_values(name: str, pd: Mapping, t_s: np.ndarray) -> np.ndarray:
-    """The twin's own forward term of a family instance (used until the effect registry is on
-    main; same definitions as the registry contract in BRIEFING.md): periodic[f] =
-    a_cos·cos(2πf t) + a_sin·sin(2πf t), step[t_s] = size·(t ≥ t_s), per axis, rad/s (N, 3)."""
-    fam, arg = _family(name)
-    t = np.asarray(t_s, float)[:, None]
-    if fam == "periodic":
-        w = 2 * np.pi * arg * t
-        return np.cos(w) * np.asarray(pd["a_cos_rad_s"])[None] + np.sin(w) * np.asarray(pd["a_sin_rad_s"])[None]
-    return (t >= arg) * np.asarray(pd["size_rad_s"], float)[None]
 
 
 def _canonical(name: str) -> str:
     from gyrocore.effects import registry as E
 
-    canon = getattr(E, "canonical_name", None)
-    return canon(name) if canon is not None else name
+    return E.canonical_name(name)
 
 
 def _deterministic(det: Mapping, inp) -> np.ndarray:
-    """gyrocore.effects.registry.deterministic of ``det`` plus the twin's own family terms (rad/s, (N, 3))."""
+    """:func:`gyrocore.effects.registry.deterministic` of ``det`` (rad/s, (N, 3))."""
     from gyrocore.effects import registry as E
 
-    own = {e: p for e, p in det.items() if not _simulated_by_sim(e)}
-    cat = {e: p for e, p in det.items() if e not in own}
-    y = E.deterministic(cat, inp) if cat else np.array(inp.omega_S_rad_s, float)
-    for e, p in own.items():
-        y = y + _family_values(e, p, inp.t_s)
-    return y
+    return E.deterministic(dict(det), inp) if det else np.array(inp.omega_S_rad_s, float)
 
 
 def _schema(name: str):
-    """Parameter schema of a catalogue effect or (once the effect registry is on main) of a
-    family instance such as ``periodic[37.5]`` / ``step[9.47]``; None when unknown."""
+    """Parameter schema of a catalogue effect or a family instance such as ``periodic[37.5]`` /
+    ``step[9.47]`` (the registry's); None when the registry does not know the name."""
     from gyrocore.effects import registry as E
 
     if name in E.PARAM_SCHEMA:
         return E.PARAM_SCHEMA[name]
-    resolve = getattr(E, "resolve", None)
-    if resolve is not None:
-        try:
-            return dict(resolve(name).schema)
-        except Exception:  # noqa: BLE001 - an unknown name is simply not replayed
-            return None
-    fam = _family(name)
-    return _FAMILY_FALLBACK[fam[0]] if fam else None
+    try:
+        return dict(E.resolve(name).schema)
+    except GyroInputError:  # an unknown name is simply not replayed
+        return None
 
 
 def _inputs(rec: Recording, ref: Reference, rate_hz: float):
@@ -767,11 +727,8 @@ def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray
     from sim.gyro import SyntheticGyro
 
     params = {e: dict(p) for e, p in model.params.items() if _simulated_by_sim(e)}
-    own = {e: p for e, p in model.params.items() if not _simulated_by_sim(e)}
     g = SyntheticGyro(_spec(model.rate_hz), rate_hz=model.rate_hz, seed=seed, overrides=params)
     extra, ref_noise = _extra_noise(model, seed, truth.t_s)
-    for e, p in own.items():  # family terms the simulator does not know (legacy parameter files)
-        extra = extra + _family_values(e, p, truth.t_s)
     if np.any(extra):
         # legacy line terms join the simulator's own noise before quantization: re-run the output
         # stage with them (same order as sim.gyro: deterministic, DLPF, + noise, saturate, quantize)
