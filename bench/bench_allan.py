@@ -1,4 +1,4 @@
-"""Benchmark: our overlapping-ADEV kernel vs ``allantools.oadev`` on the same 10⁷ samples (issue 6 item 2).
+"""Benchmark: our overlapping-ADEV kernel vs ``allantools.oadev`` on the same 10⁷ samples.
 
 Prints, from one run on the same data and the same octave τ list: the wall time of each
 (best of ``--repeat``), their ratio, the largest relative difference of the deviations, and

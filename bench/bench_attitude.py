@@ -1,4 +1,4 @@
-"""Attitude integration benchmark (issue 6 item 3): vectorised exact integration vs a per-sample loop.
+"""Attitude integration benchmark: vectorised exact integration vs a per-sample loop.
 
 Run: ``nice python bench/bench_attitude.py [--n N] [--loop-n M]``. Prints, from one run on the
 same data, the samples/s of :func:`gyrocore.attitude.integrate_gyro` (vectorised, blockwise

@@ -1,4 +1,4 @@
-"""Benchmark: blackbox parse rate (frames/s) of our reader beside orangebox alone (issue 16 item 6).
+"""Benchmark: blackbox parse rate (frames/s) of our reader beside orangebox alone.
 
 For each file, in one run: (1) orangebox 0.4.0's own ``Parser.frames()`` loop over every log of
 the file, (2) our frame loop (``gyrocore.readers.blackbox.read_blackbox_logs``: orangebox's decoders +

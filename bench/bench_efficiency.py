@@ -1,4 +1,4 @@
-"""Estimator efficiency (issue 6 item 4): Monte Carlo spread of each estimate over its bound.
+"""Estimator efficiency: Monte Carlo spread of each estimate over its bound.
 
 Run: ``nice python bench/bench_efficiency.py [--instances 200] [--seed 0] [--json]``.
 

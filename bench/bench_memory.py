@@ -1,4 +1,4 @@
-"""Memory (issue 6 item 6): a one-hour 1 kHz recording processed end to end; peak RSS per stage.
+"""Memory: a one-hour 1 kHz recording processed end to end; peak RSS per stage.
 
 Run: ``nice python bench/bench_memory.py [--duration-s 3600] [--rate-hz 1000] [--work DIR] [--json]``.
 
@@ -12,13 +12,13 @@ figures are per stage, not cumulative. Stages:
 ``baseline``      python + numpy + ``gyrocore.data.recording`` only (the floor of every other figure)
 ``simulate``      ``gyroharness simulate thermal --duration-s 3600 --rate-hz 1000`` (MuJoCo rate
                   table + thermal model + synthetic gyro with every noise term, generated and
-                  written chunk by chunk: sim.scenarios.simulate_stream, issue 13)
+                  written chunk by chunk: sim.scenarios.simulate_stream)
 ``simulate_parquet`` the same to a Parquet file
 ``simulate_long`` the same for ``--long-duration-s`` (e.g. 36000: ten hours) to Parquet, run once
                   (not at the compare length): completes, and its peak tells bounded from O(N)
 ``simulate_<scenario>``, ``simulate_<scenario>_parquet`` the same for every registered scenario
                   (``sim/scenarios/*.toml``: hover, power_cycles, static, static_bumped, thermal,
-                  turntable — the closed-loop hover flown block by block, issue 13), to CSV /
+                  turntable — the closed-loop hover flown block by block), to CSV /
                   Parquet; ``turntable`` is its own profile's length whatever the duration
 ``simulate_hover_long`` hover for ``--long-duration-s`` to Parquet, run once
 ``synth``         generate and write the CSV chunk by chunk (``write_csv_chunks``)
@@ -293,7 +293,7 @@ STAGES = {
     **{k: _stage_imports(k) for k in IMPORTS},
 }
 STREAMING = {"baseline", "synth", "read_chunks", "apply", "attitude", *IMPORTS}
-#: How each command holds the recording (issue 13).
+#: How each command holds the recording.
 CLI_DESIGN = {
     "cli_convert": "CLI, streamed (chunks)",
     "cli_bias": "CLI, spilled; windows read back a block at a time",

@@ -1,4 +1,4 @@
-"""Monte Carlo speed-up (issue 6 item 5): the same campaign on 1 and on K local workers, side by side.
+"""Monte Carlo speed-up: the same campaign on 1 and on K local workers, side by side.
 
 Run: ``nice python bench/bench_montecarlo.py [--scenarios a,b] [--sensors p] [--instances 8]
 [--duration-s 20] [--workers 2] [--quick] [--dask] [--json]``.

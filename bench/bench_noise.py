@@ -1,4 +1,4 @@
-"""Speed of the full noise identification against the ADEV computation alone (issue 11 goal: ≤ 2×).
+"""Speed of the full noise identification against the ADEV computation alone (goal: ≤ 2×).
 
 Both on the same data (white N + random walk K + flicker B, three axes), timed side by side in
 one run, interleaved, best of ``--repeat`` (single timings on this shared machine vary 3–10×

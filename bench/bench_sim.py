@@ -19,7 +19,7 @@ checkout compiling, the kernels of :mod:`sim._fast`) and the CPU time of the PT1
 
 Each figure is the best of ``--repeat`` runs (the machine is shared; best-of is the least
 disturbed). Besides wall time, CPU time of this process (``time.process_time``) is shown: on a
-loaded machine it is the steadier measure of the same thing. The goal of issue 2 is hover
+loaded machine it is the steadier measure of the same thing. The goal is hover
 >= 0.5 x bare.
 """
 

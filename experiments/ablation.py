@@ -347,7 +347,7 @@ def ablate_instance(
     )
 
 
-# ------------------------------------------------------------------ predicted drift (issue 12)
+# ------------------------------------------------------------------ predicted drift
 #: Effects the calibration never corrects but that are part of every gyro's achievable error
 #: (the on-chip low-pass is not invertible): predicted, not counted against the calibration.
 IRREDUCIBLE = ("lowpass",)
@@ -416,7 +416,7 @@ def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = T
     sensor property at any rate — with ``slow_from_longest`` from the calibration run with the
     longest record (n_samples / rate; the 900-s thermal run against the 387-s table run).
 
-    Why (issue 12): the table fit's residual is a regression residual, r = (I − H)·noise, and
+    Why: the table fit's residual is a regression residual, r = (I − H)·noise, and
     its regressors are piecewise constant over the six ≈ 65-s mounts (bias, and the
     g-sensitivity columns: gravity is fixed in the sensor frame while the table turns about the
     vertical), so the fit absorbs most of the mount-to-mount wander of the slow noise — exactly
@@ -933,7 +933,7 @@ def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
     return out
 
 
-# ------------------------------------------------------------------ drift contract (issue 12)
+# ------------------------------------------------------------------ drift contract
 #: One-sided tail probability of each band of the drift contract (6 scenarios × 3 tails + the
 #: pooled honesty's 2 tails: 20 tails; a fresh, correct calibration fails CI with probability
 #: ≤ 20·α).

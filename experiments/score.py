@@ -1,4 +1,4 @@
-"""Score anyone's calibration: a user's routine beside none, the core and the floor (issue 17).
+"""Score anyone's calibration: a user's routine beside none, the core and the floor.
 
 For each scenario and simulated unit (the ablation's units: same sensor preset, same instance
 seeds, :func:`experiments.montecarlo.instance_seeds`):
@@ -131,8 +131,8 @@ def validate_spec(spec: Mapping[str, Any]) -> None:
 
 
 def _predicted_rms_deg(res, core_params, present, still, start: int) -> float:
-    """The drift prediction of the core's RMS error (``experiments.ablation.predict_instance``,
-    issue 12) with the noise model the core's calibration identified (not the unit's true noise:
+    """The drift prediction of the core's RMS error (``experiments.ablation.predict_instance``)
+    with the noise model the core's calibration identified (not the unit's true noise:
     the same prediction the ablation reports), where it exists; NaN otherwise."""
     from . import ablation as A
 

@@ -1,4 +1,4 @@
-"""Experiment ``twin``: a digital twin of a real sensor (issue 14).
+"""Experiment ``twin``: a digital twin of a real sensor.
 
 Replay a real recording through the simulator and show, statistic by statistic, where the
 simulated sensor matches the real one and where it does not.
@@ -487,7 +487,7 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
         x = _span_concat(e_sig, ref.spans)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            # the project's noise identification (issue 11 default, GMWM with Gauss–Markov
+            # the project's noise identification (the default GMWM with Gauss–Markov
             # terms); the spans are joined, so the motion gate is off (the error signal is
             # what is left after the deterministic model, not a still recording)
             an = identify_noise(x, rate_hz=rate, check_static=False)
@@ -1385,7 +1385,7 @@ def markdown(r: TwinResult, figures: Sequence[str] = ()) -> str:
 
 def preset_claim(rec: Recording, *, segments: Sequence = (), preset: str = "mpu6050", n_replicas: int = DEFAULT_REPLICAS,
                  seed: int = 0, model: TwinModel | None = None, alpha: float = ALPHA) -> dict:
-    """Is the preset's noise a claim the real sensor supports? (issue 14, item 5)
+    """Is the preset's noise a claim the real sensor supports?
 
     The identified twin of ``rec`` with its noise terms (``arw``, ``bias_instability``,
     ``rrw``) replaced by the preset's values (the datasheet's density, the preset's Allan

@@ -178,7 +178,7 @@ class Calibrator:
         reference rate (|Δω_ref|/dt > 1e-2 rad/s²). At rate ramps the gyro's own output
         filter leaves a transient no catalogue effect describes (on the icm42688p table run
         10× the noise); fitted, it biased the g-sensitivity by up to 4 standard errors
-        (issue 12). 0 (default): use every sample.
+        0 (default): use every sample.
     on_unobservable : {"drop", "raise"}
         Report unobservable parameters (fit the rest) or raise
         :class:`~gyrocore.errors.UnobservableError`.

@@ -1,4 +1,4 @@
-"""Still-gyro noise generators written independently of ``sim/`` (issue 11, helper indep).
+"""Still-gyro noise generators written independently of ``sim/`` (a second implementation to check the first).
 
 The noise identification (``gyrocore/noise/gmwm.py``) was studied on the simulator's own generators
 (``sim/noise.py``).  These are the generators *other people* use, re-written here from their

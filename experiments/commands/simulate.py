@@ -140,7 +140,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         from gyrocore.flight.vibration import read_spec
         from sim.spec_vibration import spec_injection
 
-        # issue 16: the spec enters as the registry effect `vibration` (its shaped part, in the gyro's
+        # the spec enters as the registry effect `vibration` (its shaped part, in the gyro's
         # noise stage: a hover's controller flies on it), and with --vibration-physics its rotor line
         # through the vehicle's rotor imbalance
         veh_name = vehicle or str(spec.hover.get("vehicle", "f450"))
@@ -156,7 +156,7 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         rate = rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz
         dur = duration_s or spec.duration_s or 300.0
         progress = sys.stderr.isatty() and (dur * rate > 200_000 or spec.kind == "hover" and dur * rate > 20_000)
-    # issue 13: every scenario generated and written chunk by chunk in bounded memory (the rate table
+    # every scenario generated and written chunk by chunk in bounded memory (the rate table
     # and the closed-loop hover flight alike); the same rows as the whole path S.simulate(...)
     # (16 384-row chunks; Parquet: one row group each, whose ~13 kB of metadata pyarrow's writer keeps
     # until the footer: +30 MiB per 1000 groups, measured — larger chunks cost more than they save)

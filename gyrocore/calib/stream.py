@@ -1,4 +1,4 @@
-"""Fits of long recordings held on disk, a window at a time (issue 13: bounded memory).
+"""Fits of long recordings held on disk, a window at a time (bounded memory).
 
 A long data file is streamed once into per-column files (:func:`gyrocore.data.recording.spill_columns`,
 with every check, repair and warning of a whole read); the least-squares fits then read it

@@ -151,7 +151,7 @@ class BiasNoiseModel:
 
         N is required (resolved on every axis). The bias process: random walk with K where
         K is resolved on every axis; else the identified first-order Gauss–Markov term
-        (``correlated_sigma_rad_s``, ``correlated_tau_c_s`` of the GMWM identification, issue 11)
+        (``correlated_sigma_rad_s``, ``correlated_tau_c_s`` of the GMWM identification)
         where it is resolved on every axis; else a Gauss–Markov process matched to the
         bias-instability floor (σ = 0.6643 B / 0.6178, τc = τ(ADEV minimum)/1.89) where B is
         resolved or fitted but ambiguous with a Gauss–Markov term; else a random walk with K at the upper end of its 95 % interval (what the
@@ -167,7 +167,7 @@ class BiasNoiseModel:
                 raise GyroInputError(f"angle random walk N of axis {r.axis} not resolved; cannot set the measurement noise")
             N.append(r.arw_rad_per_sqrt_s)
         K = [r.rrw_rad_per_s_sqrt_s for r in res]
-        # a flicker floor fitted but not told from a Gauss–Markov term (``ambiguous``, issue 11):
+        # a flicker floor fitted but not told from a Gauss–Markov term (``ambiguous``):
         # either way a Gauss–Markov process matched to the floor is the model to track
         B = [r.bias_instability_rad_s if r.bias_instability_rad_s is not None else
              (r.estimate.get("bias_instability_rad_s") or None

@@ -83,7 +83,7 @@ def test_instance_metrics_flattening():
 
 
 def test_prediction_summary_budget_table_and_rows(tmp_path):
-    """The ablation's JSON block "scenarios" (issue 12): medians over units of measured,
+    """The ablation's JSON block "scenarios": medians over units of measured,
     predicted and floor RMS and of each budget component; prediction metrics are not rows."""
     from types import SimpleNamespace
 
@@ -127,7 +127,7 @@ def test_prediction_summary_budget_table_and_rows(tmp_path):
     assert A.budget_figure({"static": ps}, tmp_path).endswith(".png")
 
 
-# ------------------------------------------------------------------ drift contract statistics (issue 12)
+# ------------------------------------------------------------------ drift contract statistics
 def test_mean_r2_is_unbiased_where_the_median_is_not_and_the_band_holds_its_rate():
     # A calibrated prediction: r² ~ Gamma(k, 1/k) (mean 1; a χ²_ν/ν with ν = 2k). Its mean over
     # units is centred on 1, the median of r is not: √(median χ²_ν/ν) = 0.86 at ν = 3.

@@ -50,7 +50,7 @@ PAYS_OFF = {'static': ['bias'], 'static_bumped': ['bias'], 'turntable': ['bias',
 #: Bands of the drift contract for len(CONTRACT_UNITS) units, from ``drift_thresholds`` on
 #: 17 fresh units: instances 0-8 of campaign seed 31 and 0-7 of campaign seed 32
 #: (experiments.montecarlo.instance_seeds; contract durations, full calibration runs)
-#: (docs/accuracy.md, "The contract"; issue 12, third session: honesty = mean r² with a Gamma
+#: (docs/accuracy.md, "The contract": honesty = mean r² with a Gamma
 #: band around 1, k = "r2_shape" the lower 90 % limit of the Gamma shape; quality with the true
 #: noise); the bands for n units are evaluated by experiments.ablation.drift_bands.
 DRIFT_THRESHOLDS = {

@@ -18,7 +18,7 @@ CAL_S = (40.0, 60.0)
 
 
 def _old_calibration(sensor, seed, present):
-    """The ablation's calibration path before the door (issue 17), verbatim, on un-stripped runs."""
+    """The ablation's calibration path before the calibrator door, verbatim, on un-stripped runs."""
     from gyrocore.calibrator import Calibrator
     from sim import scenarios as S
 
@@ -35,7 +35,7 @@ def _old_calibration(sensor, seed, present):
         p1 = {eff: pd for _, (eff, pd, _) in A._as_stages(stages[0])[0].items() if eff != "bias"}
         rec2 = rec2.with_gyro(E.correct(p1, rec2.gyro_rad_s, inp2))
         eff2 = ["bias"] + (["scale"] if "scale_thermal" in th else []) + th
-        eff2 += [e for e in A.THERMAL_NUISANCE if e not in eff2]  # issue 12: the filter delay as a nuisance
+        eff2 += [e for e in A.THERMAL_NUISANCE if e not in eff2]  # the filter delay as a nuisance
         stages.append(A._stage_from(Calibrator(effects=eff2, **A._CAL_KW).fit(rec2), 2))
     return stages
 

@@ -1,4 +1,4 @@
-"""simulate --vibration SPEC and experiments.vibration_fidelity (issue 16, simulator side)."""
+"""simulate --vibration SPEC and experiments.vibration_fidelity (simulator side)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Noise identification of a record that holds some motion (a new user's logs, issue 11 follow-up).
+"""Noise identification of a record that holds some motion (a new user's logs).
 
 A log that is still for most of its length but handled at the start (PX4 sample.ulg: ~8 s in the
 hand, then 59 s on the bench) or between poses (IMU-TK's multi-pose session) used to pass the

@@ -1,4 +1,4 @@
-"""Blackbox reader on logs it was not developed on (issue 16 done-criterion), and the INAV path.
+"""Blackbox reader on logs it was not developed on, and the INAV path.
 
 Data: ``../shared/data/blackbox_public`` (PROVENANCE.md there): a Betaflight 4.2.0 flight
 (LOG00037.BFL, fc-blackbox test data, MIT/Apache-2.0) and an INAV 9.0.1 file of three ground logs
@@ -41,7 +41,7 @@ def public_dir(request):
     else:
         d = request.getfixturevalue("shared_data") / "blackbox_public"
     if not d.is_dir():
-        pytest.skip(f"public blackbox logs folder {d} absent (see PROVENANCE in the report of issue 16)")
+        pytest.skip(f"public blackbox logs folder {d} absent (see its PROVENANCE.md)")
     return d
 
 

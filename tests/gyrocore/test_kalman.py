@@ -104,7 +104,7 @@ def test_model_from_allan():
     np.testing.assert_allclose(m2.rrw_rad_per_s_sqrt_s, [w.axes[x].ci95["rrw_rad_per_s_sqrt_s"][1] for x in "xyz"])
     with pytest.raises(GyroInputError):
         KF.BiasNoiseModel(np.zeros(3), np.zeros(3))
-    # a flicker floor fitted but ambiguous with a Gauss–Markov term (issue 11 stand-in check):
+    # a flicker floor fitted but ambiguous with a Gauss–Markov term (the GMWM stand-in check):
     # tracked as the Gauss–Markov process matched to the floor, like a resolved B
     import dataclasses
 

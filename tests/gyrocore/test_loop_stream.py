@@ -1,4 +1,4 @@
-"""The residual loop from disk, a window at a time, equals the loop in memory (issue 13).
+"""The residual loop from disk, a window at a time, equals the loop in memory.
 
 The two paths do the same operations on the same numbers except where a window boundary cuts
 a running sum or a recursion: the window sums of the regressors are carried across windows

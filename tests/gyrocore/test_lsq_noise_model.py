@@ -1,4 +1,4 @@
-"""The noise-model covariance of the least-squares fit (issue 12): standard errors from the
+"""The noise-model covariance of the least-squares fit: standard errors from the
 identified noise model (white + flicker + rate random walk + Gauss–Markov), exact against a
 dense covariance, honest by Monte Carlo, and carried in the parameter file."""
 

@@ -237,7 +237,7 @@ def test_monte_carlo_calibrator_standard_errors_are_honest():
     assert 0.7 < np.var(z) < 1.35, np.var(z)
 
 
-# ------------------------------------------------------------------ acceptance (issue 3)
+# ------------------------------------------------------------------ acceptance
 def test_rate_table_calibration_then_independent_run_reaches_noise_floor():
     """Issue 3: `calibrate` on a simulated rate-table run, then `apply` on an INDEPENDENT run of
     the same simulated sensor (same instance seed, new power-up and noise) leaves a residual
@@ -267,7 +267,7 @@ def test_rate_table_calibration_then_independent_run_reaches_noise_floor():
     assert np.all(raw > 1.5 * np.sqrt(np.mean(noise**2, axis=0)))
 
 
-# ------------------------------------------------------------------ property: apply(fit(x)) (issue 7 item 4)
+# ------------------------------------------------------------------ property: apply(fit(x))
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""Streamed (on-disk, window by window) fits and statistics equal the in-memory ones (issue 13)."""
+"""Streamed (on-disk, window by window) fits and statistics equal the in-memory ones."""
 
 from __future__ import annotations
 

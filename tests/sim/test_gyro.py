@@ -582,7 +582,7 @@ def test_family_standard_errors_are_calibrated_over_seeds(name):
     assert lo < z2 < hi, (z2 / dof, lo / dof, hi / dof)
 
 
-# ---------------------------------------------------------------- chunked measurement (issue 13)
+# ---------------------------------------------------------------- chunked measurement (bounded memory)
 def _pieces(tr: Truth, sizes):
     """tr cut into consecutive pieces of the given sizes (cycled), as Truth objects."""
     i, k = 0, 0

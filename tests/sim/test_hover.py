@@ -357,7 +357,7 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
 @pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("case", CASES + ["temp_rate_ramp"])
 def test_flight_in_blocks_is_the_whole_flight_bit_for_bit(case, compiled, monkeypatch):
-    # issue 13: HoverFlight carries every state across blocks (MuJoCo, controller incl. the
+    # HoverFlight carries every state across blocks (MuJoCo, controller incl. the
     # outer-loop row a block starts inside, motor commands, die temperature, the gyro's noise
     # generators, delay history, low-pass, dT/dt) and nothing indexes the whole flight: cut into
     # blocks of 997 samples (one cut) or 7 (cuts at every phase of the 4-sample outer loop, and

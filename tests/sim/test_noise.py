@@ -106,7 +106,7 @@ def test_same_generator_state_same_noise_and_bad_input():
         noise.flicker_noise(np.random.default_rng(5), 10, rate_hz=10.0, b_rad_s=-1.0)
 
 
-# ---------------------------------------------------------------- block generation (issue 13)
+# ---------------------------------------------------------------- block generation (bounded memory)
 def _blocks(make, sizes, n):
     g = make()
     out, k = [], 0

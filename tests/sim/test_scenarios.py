@@ -214,7 +214,7 @@ def test_hover_powers_up_on_the_ground_and_the_static_bias_calibration_finds_it(
     assert "ground_s" not in short.recording.meta and any("no ground phase" in n for n in short.notes)
 
 
-# ---------------------------------------------------------------- chunked simulation (issue 13)
+# ---------------------------------------------------------------- chunked simulation (bounded memory)
 #: Short runs of every registered scenario for the chunked == whole test (a scenario added later
 #: without an entry runs at its own duration, at most 30 s).
 CHUNKED_RUNS = {

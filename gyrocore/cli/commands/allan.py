@@ -1,4 +1,4 @@
-"""``gyroharness allan`` (alias ``gyroharness noise``): noise identification per axis (DESIGN.md, issue 11).
+"""``gyroharness allan`` (alias ``gyroharness noise``): noise identification per axis (DESIGN.md).
 
 JSON: ``{"method": "gmwm", "axes": {"x": {"arw_rad_per_sqrt_s": …, "bias_instability_rad_s": …,
 "rrw_rad_per_s_sqrt_s": …, "quantization_rad": …, "rate_ramp_rad_s2": …,
@@ -153,7 +153,7 @@ def adev_figure(analysis):
         err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
         plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
         tt = np.geomspace(t[0], t[-1], 200)
-        # round 5: the solid line is the sum of the REPORTED terms, over the fitted τ range; a
+        # the solid line is the sum of the REPORTED terms, over the fitted τ range; a
         # stand-in that was fitted but is not reported (ambiguous) shows as the thin grey fit;
         # unresolved terms appear only as their 95 % upper bounds (dotted)
         t0 = r.fit_from_tau_s if np.isfinite(r.fit_from_tau_s) else t[0]
@@ -246,7 +246,7 @@ def adev_figure(analysis):
 @click.option("--engine", type=click.Choice(["fast", "allantools"]), default="fast", show_default=True)
 @click.option("--method", type=click.Choice(["gmwm", "adev", "adev_legacy"]), default="gmwm", show_default=True,
               help="gmwm: wavelet-variance fit with Gauss-Markov terms (default); adev: IEEE 952 joint ADEV fit; "
-                   "adev_legacy: the fit before issue 11")
+                   "adev_legacy: the earlier fit (tau <= T/4, backward elimination), the noise study's baseline")
 @click.option("--no-static-check", is_flag=True,
               help="skip the motion gate (by default a record with motion is cut to its longest still stretch, "
                    "with a warning, or refused)")

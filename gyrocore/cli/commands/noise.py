@@ -1,4 +1,4 @@
-"""``gyroharness noise``: the same command as ``gyroharness allan`` (issue 11: the name now fits better)."""
+"""``gyroharness noise``: the same command as ``gyroharness allan`` (the name fits what it does)."""
 
 from __future__ import annotations
 
