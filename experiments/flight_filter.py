@@ -1,5 +1,5 @@
 """Closed-loop check of ``gyroharness filter``: the candidate chains flown by the simulator with
-the pilot's identified vibration, scored on what the filter changes (issue 16 item 5).
+the pilot's identified vibration, scored on what the filter changes.
 
 The vehicle is a registered class (default ``racing25``: the 2.5-inch quad that flew the shared
 log). The flight's vibration spec (its middle throttle band by default) enters as everywhere

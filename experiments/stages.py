@@ -30,7 +30,7 @@ POWERUP_SEARCH_S = 30.0
 #: model) and the "noise_model" covariance: the sandwich with the row covariance implied by the
 #: noise model identified (GMWM) on the fit's own residual (white + flicker + RRW + GM). The
 #: standard errors feed the drift prediction (:func:`predict_instance`), and the identified
-#: noise model is the prediction's noise. History (issue 12): with "ols" the rate-table
+#: noise model is the prediction's noise. Why not the others: with "ols" the rate-table
 #: g-sensitivity errors were 5–9 standard errors (bias instability drifts between the mounts);
 #: the "auto" HAC (exponential-tail autocovariance) gave |error|/SE RMS 0.82.
 #: Rate ramps (± 0.25 s) are left out of both fits: the on-chip low-pass leaves a transient

@@ -1,4 +1,4 @@
-"""Fidelity of the simulated hover's gyro vibration against a real flight's (issue 16 item 3).
+"""Fidelity of the simulated hover's gyro vibration against a real flight's.
 
 For each throttle band of a vibration spec (``gyroharness vibration FLIGHT -o spec.json``):
 the in-band fraction (:func:`gyrocore.flight.vibration.fidelity`: bins 40 Hz .. the spec's reliable

@@ -1,5 +1,5 @@
 """``gyroharness filter-closed-loop FLIGHT``: the gyro filter chosen by flying the candidates in the
-simulator with the flight's own vibration (issue 16; :mod:`experiments.flight_filter`).
+simulator with the flight's own vibration (:mod:`experiments.flight_filter`).
 
 JSON keys as ``gyroharness filter`` (DESIGN.md "Flight logs and vibration"): ``recommended``,
 ``as_flown``, ``defaults`` ({filter, cutoff_hz, notches_hz, attitude_cost, delay_ms, motor_noise}),

@@ -1,4 +1,4 @@
-"""``gyroharness twin FILE``: a digital twin of a real sensor, compared with the real one (issue 14)."""
+"""``gyroharness twin FILE``: a digital twin of a real sensor, compared with the real one."""
 
 from __future__ import annotations
 
