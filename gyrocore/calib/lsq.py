@@ -768,135 +768,33 @@ def solve(
     r_all = np.asarray(r, float)
     A_all = np.asarray(A, float)
     N, P = r_all.shape[0], A_all.shape[2]
-    if r_all.shape != (N, 3) or A_all.shape[:2] != (N, 3):
-        raise GyroInputError(f"lsq: r has shape {r_all.shape}, A has shape {A_all.shape}; expected (N,3) and (N,3,P)")
-    if len(names) != P:
-        raise GyroInputError(f"lsq: {len(names)} names for {P} columns")
-    if covariance not in ("auto", "ols", "hac", "newey_west", "block", "noise_model"):
-        raise GyroInputError(f"unknown covariance '{covariance}' (auto, ols, hac, newey_west, block, noise_model)")
-    if covariance == "noise_model" and (noise_model is None or (t_s is None and row_t0_s is None)):
-        raise GyroInputError("covariance 'noise_model' needs the noise model and the sample times")
-    if on_unobservable not in ("drop", "raise"):
-        raise GyroInputError(f"on_unobservable must be 'drop' or 'raise', not '{on_unobservable}'")
+    _check_solve_args(r_all, A_all, names, covariance=covariance, noise_model=noise_model, t_s=t_s,
+                      row_t0_s=row_t0_s, on_unobservable=on_unobservable)
     stride = max(1, int(stride))
-    w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(
-        np.asarray(weights, float).reshape(N, -1), (N, 3)).copy()
-    if np.any(~np.isfinite(w_all)) or np.any(w_all < 0):
-        raise GyroInputError("lsq: weights must be finite and non-negative")
-    if not np.all(np.isfinite(r_all)) or not np.all(np.isfinite(A_all)):
-        raise GyroInputError("lsq: non-finite values in the data or regressors")
-    idx = np.arange(0, N, stride)
-    idx = idx[np.any(w_all[idx] > 0, axis=1)]
-    if idx.size < 2:
-        raise GyroInputError("lsq: fewer than 2 samples with non-zero weight")
-    r_, A_, w_ = r_all[idx], A_all[idx], w_all[idx]
     average = max(1, int(average))
-    rows_t = None
+    w_all, idx = _used_rows(r_all, A_all, weights, stride)
+    r_, A_, w_ = r_all[idx], A_all[idx], w_all[idx]
+    rows_t, dt_s = None, float("nan")
     if covariance == "noise_model":
-        t_arr = np.asarray(t_s if t_s is not None else [], float)
-        dt_s = float(np.median(np.diff(t_arr))) if t_arr.size > 1 else float("nan")
-        if row_t0_s is not None:
-            if not np.isfinite(dt_s):  # sample spacing from the rows: the shortest span per sample
-                ne0 = np.asarray(row_n_eff, float).reshape(N, -1)[:, 0]
-                span = np.asarray(row_t1_s, float) - np.asarray(row_t0_s, float)
-                ok = ne0 > 0
-                dt_s = float(np.min(span[ok] / ne0[ok])) if ok.any() else 1.0
-            if average != 1 or stride != 1:
-                raise GyroInputError("lsq: row times are for rows that are already means (average=1, stride=1)")
-            rows_t = (np.asarray(row_t0_s, float)[idx], np.asarray(row_t1_s, float)[idx],
-                      np.broadcast_to(np.asarray(row_n_eff, float).reshape(N, -1), (N, 3))[idx])
-        else:
-            if t_arr.shape != (N,):
-                raise GyroInputError(f"lsq: t_s has shape {t_arr.shape}, expected ({N},)")
-            tt = t_arr[idx]
-            rows_t = (tt, tt + dt_s, np.ones((idx.size, 3)))
+        rows_t, dt_s = _row_times(N, idx, t_s, row_t0_s, row_t1_s, row_n_eff, average=average, stride=stride)
     if average > 1:
-        # weighted block means of `average` consecutive used rows: the linear model holds
-        # exactly for the means, white noise shrinks by sqrt(average)
-        nb = r_.shape[0] // average
-        if nb < 2:
-            raise GyroInputError(f"lsq: average={average} leaves fewer than 2 rows")
-        m = nb * average
-        wb = w_[:m].reshape(nb, average, 3)
-        ws = wb.sum(axis=1)
-        safe = np.where(ws > 0, ws, 1.0)
-        r_ = (r_[:m].reshape(nb, average, 3) * wb).sum(axis=1) / safe
-        A_ = (A_[:m].reshape(nb, average, 3, -1) * wb[..., None]).sum(axis=1) / safe[..., None]
-        if rows_t is not None:  # each row's interval and effective count (Σw)²/Σw²
-            w2 = (wb**2).sum(axis=1)
-            rows_t = (rows_t[0][:m:average], rows_t[1][average - 1 : m : average],
-                      np.where(w2 > 0, ws**2 / np.where(w2 > 0, w2, 1.0), 0.0))
-        w_ = ws / average
+        r_, A_, w_, rows_t = _block_means(r_, A_, w_, rows_t, average)
     n = r_.shape[0]
     plaus = dict(PLAUSIBLE_MAGNITUDE)
     plaus.update(plausible or {})
-    eff_of = {}
-    for eff, sl in slices.items():
-        for p in range(sl.start, sl.stop):
-            eff_of[p] = eff
+    kept, dropped, reasons = _observable_columns(A_, w_, names, rank_rtol=rank_rtol, noisy_effects=noisy_effects,
+                                                 min_excitation_snr=min_excitation_snr)
 
-    # -- observability: sequential rank test on the (unweighted-by-axis) design
-    G_all = np.einsum("nip,ni,niq->pq", A_, w_, A_, optimize=True)
-    kept, dropped = _sequential_rank(G_all, rank_rtol)
-    reasons: dict[str, str] = {}
-    for p, by in dropped.items():
-        if by:
-            reasons[names[p]] = "not separable from " + ", ".join(names[j] for j in by)
-        else:
-            reasons[names[p]] = "regressor is zero in the data (no excitation)"
-
-    # -- columns built from measured inputs (accel, temperature): their independent part
-    #    must stand above the input's own noise, else the fit is to noise (errors in variables)
-    noisy_idx = [p for p in kept if _is_noisy(_column_effect(names[p]), noisy_effects)]
-    if noisy_idx and min_excitation_snr > 0:
-        sw = np.sqrt(w_)
-        drop_noisy = []
-        Gk = G_all[np.ix_(kept, kept)]
-        for p in noisy_idx:
-            j = kept.index(p)
-            oth = [q for q in range(len(kept)) if q != j]
-            R = A_[:, :, p] * sw
-            if oth:
-                c = linalg.lstsq(Gk[np.ix_(oth, oth)], Gk[oth, j])[0]
-                R = R - np.einsum("nip,p->ni", A_[:, :, [kept[q] for q in oth]], c) * sw
-            exc2 = float(np.mean(R**2))
-            noise2 = float(np.mean(np.diff(R, axis=0) ** 2)) / 2.0
-            snr = np.sqrt(exc2 / noise2) if noise2 > 0 else np.inf
-            if snr < min_excitation_snr:
-                drop_noisy.append(p)
-                reasons[names[p]] = (
-                    f"its regressor varies only at the level of its own measurement noise "
-                    f"(excitation/noise {snr:.2g} < {min_excitation_snr:g})"
-                )
-        kept = [p for p in kept if p not in drop_noisy]
-
-    def _wls(cols: list[int], w: np.ndarray):
-        # normal equations of the column-equilibrated problem (the kept columns passed the
-        # rank test, so cond² stays far from 1/eps)
-        Ac = A_[:, :, cols]
-        G = np.einsum("nip,ni,niq->pq", Ac, w, Ac, optimize=True)
-        b = np.einsum("nip,ni,ni->p", Ac, w, r_, optimize=True)
-        cn = np.sqrt(np.diag(G))
-        cn[cn == 0] = 1.0
-        return _solve_pos(G / np.outer(cn, cn), b / cn) / cn
-
+    # fit, weight the axes, estimate the covariance; drop the parameters whose standard error
+    # exceeds their plausible magnitude and refit, until none does
     sigma = np.ones(3)
     for _attempt in range(P + 1):
-        th = _wls(kept, w_)
+        th = _wls(A_, r_, kept, w_)
         e = r_ - np.einsum("nip,p->ni", A_[:, :, kept], th)
         if axis_weighting:
-            sig = np.sqrt(np.sum(w_ * e**2, axis=0) / np.maximum(np.sum(w_ > 0, axis=0), 1))
-            # an exact fit (noise-free data) has nothing to weight: unit weights; otherwise a
-            # relative floor keeps an exactly fitted axis from getting an infinite weight
-            smax = float(sig.max())
-            # ... and so is a residual at the rounding level of the data (64 eps·max|r|) or
-            # below 1e-100 rad/s (no instrument's noise; 1/σ² of the 1e-9 floor then stays
-            # below 1e218, no overflow: hypothesis found b = 1.4e-146 rad/s, σ ~ 1e-150)
-            exact = smax <= max(64.0 * np.finfo(float).eps * float(np.max(np.abs(r_), initial=0.0)), 1e-100)
-            sig = np.ones(3) if smax == 0.0 or exact else np.maximum(sig, 1e-9 * smax)
-            sigma = sig
+            sigma = _axis_sigma(r_, e, w_)
             W = w_ / sigma[None, :] ** 2
-            th = _wls(kept, W)
+            th = _wls(A_, r_, kept, W)
             e = r_ - np.einsum("nip,p->ni", A_[:, :, kept], th)
         else:
             W = w_
@@ -917,38 +815,10 @@ def solve(
             kind = "hac" if coloured else "ols"
         k = len(kept)
         dof = max(int(np.sum(W > 0)) - k, 1)
-        L = float("nan")
-        if kind == "ols":
-            s2 = float(np.sum(ew**2)) / dof
-            cov_k = s2 * bread
-        elif kind == "noise_model":
-            meat = noise_model_meat(Ak * W[:, :, None], rows_t[0], rows_t[1], rows_t[2], noise_model, dt_s=dt_s)
-            cov_k = bread @ meat @ bread
-            cov_k = 0.5 * (cov_k + cov_k.T)
-        else:
-            g = None if kind == "hac" else np.einsum("nip,ni->np", Ak, W * e)  # scores (n, k)
-            if kind == "hac":
-                S, L = residual_sandwich_meat(Ak, W, e)
-                S *= n / max(n - k / 3.0, 1.0)  # dof: k parameters over 3 axes
-            elif kind == "newey_west":
-                S, L = long_run_covariance(g, bandwidth=hac_bandwidth)
-            else:
-                M = int(max(2, min(n_blocks, n // 2)))
-                edges = np.linspace(0, n, M + 1).astype(int)
-                Gb = np.stack([g[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
-                Gb = Gb - Gb.mean(axis=0)
-                S = Gb.T @ Gb * (M / (M - 1))
-            if kind != "hac":
-                S *= (n * 3) / dof  # small-sample correction
-            # a lag-truncated autocovariance sum need not be positive semidefinite; clip its
-            # negative eigenvalues (projection onto the PSD cone) so no variance is negative
-            S = 0.5 * (S + S.T)
-            lam, V = np.linalg.eigh(S)
-            if lam.min() < 0:
-                S = (V * np.clip(lam, 0, None)) @ V.T
-            cov_k = bread @ S @ bread
+        cov_k, L = _parameter_covariance(kind, Ak, W, e, ew, bread, n=n, dof=dof, rows_t=rows_t,
+                                         noise_model=noise_model, dt_s=dt_s, hac_bandwidth=hac_bandwidth,
+                                         n_blocks=n_blocks)
         se_k = np.sqrt(np.clip(np.diag(cov_k), 0, None))
-        # -- parameters whose standard error exceeds their plausible magnitude
         too_wide = [
             (j, p) for j, p in enumerate(kept)
             if se_k[j] > _plausible(plaus, _column_effect(names[p]))
@@ -964,6 +834,17 @@ def solve(
         kept = [p for p in kept if p not in {p for _, p in too_wide}]
         if not kept:
             break
+    return _fit_result(r_all, A_all, idx, w_all, names, slices, kept=kept, th=th, cov_k=cov_k, reasons=reasons,
+                       on_unobservable=on_unobservable, kind=kind, lb_p=lb_p, L=L, sigma=sigma, cond=cond, n=n,
+                       dof=dof)
+
+
+# ---------------------------------------------------------------------------- the steps of solve
+def _fit_result(r_all, A_all, idx, w_all, names, slices, *, kept, th, cov_k, reasons, on_unobservable, kind, lb_p,
+                L, sigma, cond, n, dof) -> LsqFit:
+    """The :class:`LsqFit` of the kept columns (the others: θ = 0, variance ∞), with the
+    residual and its RMS over the used rows."""
+    P = A_all.shape[2]
     unobs = tuple(names[p] for p in range(P) if p not in kept)
     if unobs and on_unobservable == "raise":
         raise UnobservableError(
@@ -1000,6 +881,180 @@ def solve(
         n_rows=int(n),
         dof=int(dof),
     )
+
+
+def _check_solve_args(r_all, A_all, names, *, covariance, noise_model, t_s, row_t0_s, on_unobservable) -> None:
+    """One ``error:`` line for arguments :func:`solve` cannot use."""
+    N, P = r_all.shape[0], A_all.shape[2]
+    if r_all.shape != (N, 3) or A_all.shape[:2] != (N, 3):
+        raise GyroInputError(f"lsq: r has shape {r_all.shape}, A has shape {A_all.shape}; expected (N,3) and (N,3,P)")
+    if len(names) != P:
+        raise GyroInputError(f"lsq: {len(names)} names for {P} columns")
+    if covariance not in ("auto", "ols", "hac", "newey_west", "block", "noise_model"):
+        raise GyroInputError(f"unknown covariance '{covariance}' (auto, ols, hac, newey_west, block, noise_model)")
+    if covariance == "noise_model" and (noise_model is None or (t_s is None and row_t0_s is None)):
+        raise GyroInputError("covariance 'noise_model' needs the noise model and the sample times")
+    if on_unobservable not in ("drop", "raise"):
+        raise GyroInputError(f"on_unobservable must be 'drop' or 'raise', not '{on_unobservable}'")
+
+
+def _used_rows(r_all, A_all, weights, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (N, 3) weights and the indices of the rows used: every ``stride``-th row with a
+    non-zero weight on some axis."""
+    N = r_all.shape[0]
+    w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(
+        np.asarray(weights, float).reshape(N, -1), (N, 3)).copy()
+    if np.any(~np.isfinite(w_all)) or np.any(w_all < 0):
+        raise GyroInputError("lsq: weights must be finite and non-negative")
+    if not np.all(np.isfinite(r_all)) or not np.all(np.isfinite(A_all)):
+        raise GyroInputError("lsq: non-finite values in the data or regressors")
+    idx = np.arange(0, N, stride)
+    idx = idx[np.any(w_all[idx] > 0, axis=1)]
+    if idx.size < 2:
+        raise GyroInputError("lsq: fewer than 2 samples with non-zero weight")
+    return w_all, idx
+
+
+def _row_times(N: int, idx, t_s, row_t0_s, row_t1_s, row_n_eff, *, average: int, stride: int):
+    """For ``covariance="noise_model"``: each used row's interval (s since the power-up) and
+    effective sample count, and the sample spacing dt_s."""
+    t_arr = np.asarray(t_s if t_s is not None else [], float)
+    dt_s = float(np.median(np.diff(t_arr))) if t_arr.size > 1 else float("nan")
+    if row_t0_s is not None:
+        if not np.isfinite(dt_s):  # sample spacing from the rows: the shortest span per sample
+            ne0 = np.asarray(row_n_eff, float).reshape(N, -1)[:, 0]
+            span = np.asarray(row_t1_s, float) - np.asarray(row_t0_s, float)
+            ok = ne0 > 0
+            dt_s = float(np.min(span[ok] / ne0[ok])) if ok.any() else 1.0
+        if average != 1 or stride != 1:
+            raise GyroInputError("lsq: row times are for rows that are already means (average=1, stride=1)")
+        rows_t = (np.asarray(row_t0_s, float)[idx], np.asarray(row_t1_s, float)[idx],
+                  np.broadcast_to(np.asarray(row_n_eff, float).reshape(N, -1), (N, 3))[idx])
+    else:
+        if t_arr.shape != (N,):
+            raise GyroInputError(f"lsq: t_s has shape {t_arr.shape}, expected ({N},)")
+        tt = t_arr[idx]
+        rows_t = (tt, tt + dt_s, np.ones((idx.size, 3)))
+    return rows_t, dt_s
+
+
+def _block_means(r_, A_, w_, rows_t, average: int):
+    """Weighted block means of ``average`` consecutive used rows: the linear model holds
+    exactly for the means, white noise shrinks by sqrt(average)."""
+    nb = r_.shape[0] // average
+    if nb < 2:
+        raise GyroInputError(f"lsq: average={average} leaves fewer than 2 rows")
+    m = nb * average
+    wb = w_[:m].reshape(nb, average, 3)
+    ws = wb.sum(axis=1)
+    safe = np.where(ws > 0, ws, 1.0)
+    r_ = (r_[:m].reshape(nb, average, 3) * wb).sum(axis=1) / safe
+    A_ = (A_[:m].reshape(nb, average, 3, -1) * wb[..., None]).sum(axis=1) / safe[..., None]
+    if rows_t is not None:  # each row's interval and effective count (Σw)²/Σw²
+        w2 = (wb**2).sum(axis=1)
+        rows_t = (rows_t[0][:m:average], rows_t[1][average - 1 : m : average],
+                  np.where(w2 > 0, ws**2 / np.where(w2 > 0, w2, 1.0), 0.0))
+    return r_, A_, ws / average, rows_t
+
+
+def _observable_columns(A_, w_, names, *, rank_rtol: float, noisy_effects, min_excitation_snr: float):
+    """Columns that can be fitted: (kept column indices, {dropped: the columns it is not
+    separable from}, {column name: why it was dropped})."""
+    # sequential rank test on the (unweighted-by-axis) design
+    G_all = np.einsum("nip,ni,niq->pq", A_, w_, A_, optimize=True)
+    kept, dropped = _sequential_rank(G_all, rank_rtol)
+    reasons: dict[str, str] = {}
+    for p, by in dropped.items():
+        if by:
+            reasons[names[p]] = "not separable from " + ", ".join(names[j] for j in by)
+        else:
+            reasons[names[p]] = "regressor is zero in the data (no excitation)"
+
+    # columns built from measured inputs (accel, temperature): their independent part must
+    # stand above the input's own noise, else the fit is to noise (errors in variables)
+    noisy_idx = [p for p in kept if _is_noisy(_column_effect(names[p]), noisy_effects)]
+    if noisy_idx and min_excitation_snr > 0:
+        sw = np.sqrt(w_)
+        drop_noisy = []
+        Gk = G_all[np.ix_(kept, kept)]
+        for p in noisy_idx:
+            j = kept.index(p)
+            oth = [q for q in range(len(kept)) if q != j]
+            R = A_[:, :, p] * sw
+            if oth:
+                c = linalg.lstsq(Gk[np.ix_(oth, oth)], Gk[oth, j])[0]
+                R = R - np.einsum("nip,p->ni", A_[:, :, [kept[q] for q in oth]], c) * sw
+            exc2 = float(np.mean(R**2))
+            noise2 = float(np.mean(np.diff(R, axis=0) ** 2)) / 2.0
+            snr = np.sqrt(exc2 / noise2) if noise2 > 0 else np.inf
+            if snr < min_excitation_snr:
+                drop_noisy.append(p)
+                reasons[names[p]] = (
+                    f"its regressor varies only at the level of its own measurement noise "
+                    f"(excitation/noise {snr:.2g} < {min_excitation_snr:g})"
+                )
+        kept = [p for p in kept if p not in drop_noisy]
+    return kept, dropped, reasons
+
+
+def _wls(A_, r_, cols: list[int], w: np.ndarray) -> np.ndarray:
+    """Weighted least squares of r_ on the columns ``cols``: the normal equations of the
+    column-equilibrated problem (the columns passed the rank test, so cond² stays far from 1/eps)."""
+    Ac = A_[:, :, cols]
+    G = np.einsum("nip,ni,niq->pq", Ac, w, Ac, optimize=True)
+    b = np.einsum("nip,ni,ni->p", Ac, w, r_, optimize=True)
+    cn = np.sqrt(np.diag(G))
+    cn[cn == 0] = 1.0
+    return _solve_pos(G / np.outer(cn, cn), b / cn) / cn
+
+
+def _axis_sigma(r_, e, w_) -> np.ndarray:
+    """Per-axis residual σ̂ of a first pass, for the axis weights 1/σ̂² (feasible WLS)."""
+    sig = np.sqrt(np.sum(w_ * e**2, axis=0) / np.maximum(np.sum(w_ > 0, axis=0), 1))
+    # an exact fit (noise-free data) has nothing to weight: unit weights; otherwise a
+    # relative floor keeps an exactly fitted axis from getting an infinite weight
+    smax = float(sig.max())
+    # ... and so is a residual at the rounding level of the data (64 eps·max|r|) or
+    # below 1e-100 rad/s (no instrument's noise; 1/σ² of the 1e-9 floor then stays
+    # below 1e218, no overflow: hypothesis found b = 1.4e-146 rad/s, σ ~ 1e-150)
+    exact = smax <= max(64.0 * np.finfo(float).eps * float(np.max(np.abs(r_), initial=0.0)), 1e-100)
+    return np.ones(3) if smax == 0.0 or exact else np.maximum(sig, 1e-9 * smax)
+
+
+def _parameter_covariance(kind: str, Ak, W, e, ew, bread, *, n: int, dof: int, rows_t, noise_model, dt_s: float,
+                          hac_bandwidth, n_blocks: int) -> tuple[np.ndarray, float]:
+    """Covariance of the kept parameters of the ``kind`` named in the module docstring, and the
+    HAC bandwidth used (NaN where none)."""
+    k = Ak.shape[2]
+    L = float("nan")
+    if kind == "ols":
+        s2 = float(np.sum(ew**2)) / dof
+        return s2 * bread, L
+    if kind == "noise_model":
+        meat = noise_model_meat(Ak * W[:, :, None], rows_t[0], rows_t[1], rows_t[2], noise_model, dt_s=dt_s)
+        cov_k = bread @ meat @ bread
+        return 0.5 * (cov_k + cov_k.T), L
+    g = None if kind == "hac" else np.einsum("nip,ni->np", Ak, W * e)  # scores (n, k)
+    if kind == "hac":
+        S, L = residual_sandwich_meat(Ak, W, e)
+        S *= n / max(n - k / 3.0, 1.0)  # dof: k parameters over 3 axes
+    elif kind == "newey_west":
+        S, L = long_run_covariance(g, bandwidth=hac_bandwidth)
+    else:
+        M = int(max(2, min(n_blocks, n // 2)))
+        edges = np.linspace(0, n, M + 1).astype(int)
+        Gb = np.stack([g[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
+        Gb = Gb - Gb.mean(axis=0)
+        S = Gb.T @ Gb * (M / (M - 1))
+    if kind != "hac":
+        S *= (n * 3) / dof  # small-sample correction
+    # a lag-truncated autocovariance sum need not be positive semidefinite; clip its
+    # negative eigenvalues (projection onto the PSD cone) so no variance is negative
+    S = 0.5 * (S + S.T)
+    lam, V = np.linalg.eigh(S)
+    if lam.min() < 0:
+        S = (V * np.clip(lam, 0, None)) @ V.T
+    return bread @ S @ bread, L
 
 
 #: Window length of the chunked design in :func:`fit_effects` (rows); records longer than
