@@ -123,6 +123,51 @@ def _swap(r_inp, effects):
     return r_inp[0], effects, r_inp[1]
 
 
+def _outliers(axis_residual, used: np.ndarray, n: int) -> np.ndarray:
+    """Rows whose residual lies more than 6 robust σ (1.4826·MAD) from the median on any axis,
+    among the ``used`` rows; ``axis_residual(i)`` returns a fresh (N,) copy of axis i, worked
+    on in place (the median and the MAD do not depend on the order the partition leaves: the
+    same values as ``np.median(e[used], axis=0)``, one (N,) array at a time)."""
+    med, s_rob = np.zeros(3), np.zeros(3)
+    all_used = bool(used.all())
+    for i in range(3):
+        ei = axis_residual(i)
+        ei = ei if all_used else ei[used]
+        med[i] = np.median(ei, overwrite_input=True)
+        np.subtract(ei, med[i], out=ei)
+        np.abs(ei, out=ei)
+        s_rob[i] = 1.4826 * np.median(ei, overwrite_input=True)
+        del ei
+    thr = 6.0 * np.where(s_rob > 0, s_rob, np.inf)
+    bad = np.zeros(n, bool)  # |e − med| > thr on any axis, one axis at a time
+    for i in range(3):
+        ei = axis_residual(i)
+        np.subtract(ei, med[i], out=ei)
+        np.abs(ei, out=ei)
+        bad |= ei > thr[i]
+        del ei
+    return bad & used
+
+
+def _settle_time_offset(refit):
+    """Gauss–Newton on the time offset τ (the regressor −dω/dt is a linearisation): fit at τ = 0,
+    then refit at the accumulated τ until its step is below 1e-3 standard errors (at most 8
+    steps). Returns the last fit and τ, s. Only one fit is held at a time (each holds a
+    full-resolution residual)."""
+    fit = refit(0.0)
+    tau_total = 0.0
+    for _ in range(8):
+        d = float(fit.effect_theta("time_offset")[0])
+        if not np.isfinite(fit.effect_stderr("time_offset")[0]) or d == 0.0:
+            break
+        tau_total += d
+        fit = None  # free the previous full-resolution residual first
+        fit = refit(tau_total)
+        if abs(float(fit.effect_theta("time_offset")[0])) < 1e-3 * float(fit.effect_stderr("time_offset")[0]):
+            break
+    return fit, tau_total
+
+
 def _external_bias_dict(ext) -> dict:
     """``bias_rad_s``, ``bias_stderr_rad_s``, ``noise_lr_rad2_s`` from a StaticBiasResult or a mapping."""
     if hasattr(ext, "bias_rad_s") and hasattr(ext, "noise_sigma_rad_s"):
@@ -643,43 +688,15 @@ class Calibrator:
         }
         tests = []
         # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
-        fit = lsq.fit_effects(*_swap(lhs(0.0), effects), orders=orders, **first_kw, **opts)
+        def first_fit(tau):
+            return lsq.fit_effects(*_swap(lhs(tau), effects), orders=orders, **first_kw, **opts)
+
         # time_offset: Gauss–Newton on τ (the regressor −dω/dt is a linearisation)
-        if "time_offset" in effects:
-            for _ in range(8):
-                d = float(fit.effect_theta("time_offset")[0])
-                if not np.isfinite(fit.effect_stderr("time_offset")[0]) or d == 0.0:
-                    break
-                tau_total += d
-                fit = None  # free the previous full-resolution residual first
-                fit = lsq.fit_effects(*_swap(lhs(tau_total), effects), orders=orders, **first_kw, **opts)
-                if abs(float(fit.effect_theta("time_offset")[0])) < 1e-3 * float(fit.effect_stderr("time_offset")[0]):
-                    break
+        fit, tau_total = _settle_time_offset(first_fit) if "time_offset" in effects else (first_fit(0.0), 0.0)
         # robust pass: drop transients the model does not describe
         if self.robust and fit.rank:
             used = weights > 0
-            # per axis (same values as np.median(e[used], axis=0)): one (N,) copy at a time
-            med, s_rob = np.zeros(3), np.zeros(3)
-            all_used = bool(used.all())
-            for i in range(3):
-                # in place on a fresh copy of the axis: the median and the MAD do not depend
-                # on the order the partition leaves (the same values, one (N,) array)
-                ei = first_axis(fit, i)
-                ei = ei if all_used else ei[used]
-                med[i] = np.median(ei, overwrite_input=True)
-                np.subtract(ei, med[i], out=ei)
-                np.abs(ei, out=ei)
-                s_rob[i] = 1.4826 * np.median(ei, overwrite_input=True)
-                del ei
-            thr = 6.0 * np.where(s_rob > 0, s_rob, np.inf)
-            bad = np.zeros(n_all, bool)  # |e − med| > thr on any axis, one axis at a time
-            for i in range(3):
-                ei = first_axis(fit, i)
-                np.subtract(ei, med[i], out=ei)
-                np.abs(ei, out=ei)
-                bad |= ei > thr[i]
-                del ei
-            bad &= used
+            bad = _outliers(lambda i: first_axis(fit, i), used, n_all)
             if model_cov and self.noise is None:
                 opts.update(self._identified_noise(lambda i: first_axis(fit, i), bad | ~used, rate_hz, notes,
                                                    ref_at(tau_total)))
