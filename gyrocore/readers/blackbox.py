@@ -849,6 +849,125 @@ class _LogConversion:
     notes: list
 
 
+def _prefilter_gyro(log: BlackboxLog, rows, fw, chain, dmode_idx, dname, gyro_div: float, extra: dict,
+                    lacks: list) -> dict:
+    """The less-filtered gyro (INAV gyroRaw, Betaflight 4.5+ gyroUnfilt, or a debug mode that
+    carries it) into ``extra`` as ``gyro_prefilter_*_rad_s``; returns what it is (metadata
+    ``gyro_prefilter``), ``{}`` when the log has none (then a ``lacks`` entry says why)."""
+    inav = fw.name == "inav"
+    unf = _triplet(log, "gyroUnfilt")
+    raw_inav = _triplet(log, "gyroRaw") if inav else None
+    pre_meta = {}
+    if inav:
+        # INAV blackbox.c loadMainState: gyroRaw[i] = lrintf(gyro.gyroRaw[i]); sensors/gyro.c gyroUpdate:
+        # gyro.gyroRaw = deg/s after zero calibration and sensor/board alignment, before the anti-alias
+        # LPF and every later filter ("unfiltered gyro value [deg/s]"). Logged when the blackbox
+        # include flag GYRO_RAW is set (FLIGHT_LOG_FIELD_CONDITION_GYRO_RAW).
+        if raw_inav is not None:
+            extra.update({f"gyro_prefilter_{ax}_rad_s": raw_inav[rows, i] * DEG for i, ax in enumerate("xyz")})
+            pre_meta = {"source": f"gyroRaw[0..2] (INAV {fw.version_str}: gyro before every software filter, "
+                                  "sensors/gyro.c gyroUpdate); rounded to 1 deg/s by lrintf",
+                        "signal": "raw", "filters_before": []}
+        else:
+            lacks.append("no unfiltered gyro: INAV logs gyroRaw only with the blackbox GYRO_RAW field enabled")
+    elif unf is not None:
+        extra.update({f"gyro_prefilter_{ax}_rad_s": unf[rows, i] / gyro_div * DEG for i, ax in enumerate("xyz")})
+        pre_meta = {"source": "gyroUnfilt[0..2] (4.5+: gyro before every software filter)", "signal": "raw", "filters_before": []}
+    else:
+        dbg = _triplet(log, "debug")
+        meaning = debug_gyro_meaning(fw, dname, chain) if dname else None
+        if dbg is not None and meaning is not None:
+            extra.update({f"gyro_prefilter_{ax}_rad_s": dbg[rows, i] * DEG for i, ax in enumerate("xyz")})
+            pre_meta = {"source": f"debug[0..2], debug_mode {dmode_idx} = DEBUG_{meaning.mode} in {fw.label} ({meaning.source}); "
+                                  f"rounded to 1 deg/s by lrintf",
+                        "signal": meaning.kind, "filters_before": [chain[i].to_dict() for i in meaning.before]}
+        else:
+            what = f"DEBUG_{dname}" if dname else ("an index not mapped for this version" if isinstance(dmode_idx, int) else "not in the header")
+            lacks.append(f"no unfiltered gyro: debug_mode {dmode_idx} is {what} (log with debug_mode GYRO_SCALED, or 4.5+ gyroUnfilt)")
+    return pre_meta
+
+
+def _motor_columns(log: BlackboxLog, rows, hdr, fw, dname, dmode_idx, extra: dict, meta: dict,
+                   lacks: list) -> tuple[float, float]:
+    """Motor outputs, throttle, eRPM / rotor frequency into ``extra`` (what is missing into
+    ``lacks``); returns the header's motorOutput range (lo, hi)."""
+    inav = fw.name == "inav"
+    mot = _indexed(log, r"motor\[(\d+)\]")
+    lo_hi = hdr.get("motorOutput", [0, 0])
+    lo, hi = (float(lo_hi[0]), float(lo_hi[1])) if isinstance(lo_hi, list) and len(lo_hi) == 2 else (float("nan"), float("nan"))
+    if mot:
+        for i, col in mot:
+            extra[f"motor_{i}"] = col[rows]
+            if hi > lo:
+                extra[f"motor_cmd_{i}"] = (col[rows] - lo) / (hi - lo)
+        if hi > lo:
+            extra["motor_cmd_mean"] = np.mean([extra[f"motor_cmd_{i}"] for i, _ in mot], axis=0)
+    else:
+        lacks.append("no motor outputs (motor[i] fields disabled)")
+    thr = log.column("rcCommand[3]")
+    if thr is not None:
+        extra["rc_throttle"] = thr[rows]
+        extra["throttle"] = np.clip((thr[rows] - 1000.0) / 1000.0, 0.0, 1.0)
+    else:
+        lacks.append("no throttle (rcCommand[3] missing)")
+    erpm = _indexed(log, r"eRPM(?:\(/100\))?\[(\d+)\]")
+    poles = hdr.get("motor_poles")
+    if erpm:
+        for i, col in erpm:
+            extra[f"erpm100_{i}"] = col[rows]
+            if isinstance(poles, int) and poles > 0:
+                extra[f"rotor_hz_{i}"] = col[rows] * 100.0 / (poles / 2.0) / 60.0
+        if not (isinstance(poles, int) and poles > 0):
+            lacks.append("eRPM logged but no motor_poles in the header: rotor speed in Hz unknown")
+    elif dname == "RPM_FILTER" and fw.version >= (4, 0, 0) and _triplet(log, "debug") is not None:
+        # 4.0-2026.6 rpm_filter.c: DEBUG_SET(DEBUG_RPM_FILTER, motor, motorFrequency[Hz][motor]) for
+        # motors 0..3: the PT1-smoothed rotor frequency (erpmToHz = 100/60/(poles/2)), integer Hz
+        for i in range(4):
+            col = log.column(f"debug[{i}]")
+            if col is not None:
+                extra[f"rotor_hz_{i}"] = col[rows].astype(float)
+        meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in {fw.label}: "
+                                   "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)")
+    elif inav:
+        lacks.append("no eRPM per motor (INAV logs one escRPM value in slow frames only): line laws from throttle only")
+    else:
+        lacks.append("no eRPM (fields need bidirectional DShot and Betaflight 4.5+, or debug_mode RPM_FILTER in 4.0+): "
+                     "line laws from throttle only")
+    return lo, hi
+
+
+def _log_meta(hdr, fw, rates, chain, *, log_hz: float, loop_hz_meas: float, dmode_idx, dname, hires: bool,
+              full: float, sat_n: int, lo: float, hi: float) -> dict:
+    """The recording metadata of one converted log (firmware, rates, filter chain, units check)."""
+    inav = fw.name == "inav"
+    return {
+        "firmware": fw.revision,
+        "firmware_version": fw.release_str,
+        "betaflight_equivalent_version": "" if inav else fw.version_str,
+        "blackbox_data_version": str(fw.data_version),
+        "craft_name": str(hdr.get("Craft name", "")),
+        "gyro_rate_hz": f"{rates['gyro_hz']:.6g}",
+        "pid_rate_hz": f"{rates['pid_hz']:.6g}",
+        "gyro_filter_rate_hz": f"{rates['filter_hz']:.6g}",
+        "log_rate_nominal_hz": f"{rates['log_hz_nominal']:.6g}",
+        "log_rate_measured_hz": f"{log_hz:.6g}",
+        "loop_rate_measured_hz": f"{loop_hz_meas:.6g}",
+        "gyro_filters": json.dumps([s.to_dict() for s in chain]),
+        "gyro_signal": "filtered (gyroADC: after every software gyro filter listed in gyro_filters)",
+        "debug_mode": (f"{dmode_idx} (INAV debug list not mapped: gyroRaw carries the unfiltered gyro)" if inav else
+                       f"{dmode_idx} = {('DEBUG_' + dname) if dname else 'unmapped'}"),
+        "gyro_units_check": (f"gyroADC logged in deg/s (gyro_scale 1.0{', high resolution x10' if hires else ''}"
+                             f"{'; INAV blackbox.c: lrintf(gyro.gyroADCf), deg/s' if inav else ''}); max |gyro| "
+                             f"{full:.0f} deg/s, {sat_n} samples at the +-2000 deg/s full scale"),
+        "firmware_name": fw.name,
+        "firmware_source_read": (INAV_READ[fw.version[:2]] if inav else
+                                 ("cleanflight/cleanflight commits of that version (version.h), matched to " if fw.name == "cleanflight" else "")
+                                 + "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"),
+        "motor_output_range": f"{lo:g},{hi:g}",
+        "header_filters": json.dumps({k: v for k, v in hdr.items() if re.match(r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high|dynamicGyroNotch)", k)}),
+    }
+
+
 def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     """One decoded log → SI arrays, extra columns and metadata (see :func:`read_blackbox`)."""
     hdr = log.headers
@@ -905,77 +1024,8 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     # debug gyro / gyroUnfilt
     dmode_idx = hdr.get("debug_mode")
     dname = debug_mode_name(fw.version, int(dmode_idx)) if isinstance(dmode_idx, int) and not inav else None
-    unf = _triplet(log, "gyroUnfilt")
-    raw_inav = _triplet(log, "gyroRaw") if inav else None
-    pre_meta = {}
-    if inav:
-        # INAV blackbox.c loadMainState: gyroRaw[i] = lrintf(gyro.gyroRaw[i]); sensors/gyro.c gyroUpdate:
-        # gyro.gyroRaw = deg/s after zero calibration and sensor/board alignment, before the anti-alias
-        # LPF and every later filter ("unfiltered gyro value [deg/s]"). Logged when the blackbox
-        # include flag GYRO_RAW is set (FLIGHT_LOG_FIELD_CONDITION_GYRO_RAW).
-        if raw_inav is not None:
-            extra.update({f"gyro_prefilter_{ax}_rad_s": raw_inav[rows, i] * DEG for i, ax in enumerate("xyz")})
-            pre_meta = {"source": f"gyroRaw[0..2] (INAV {fw.version_str}: gyro before every software filter, "
-                                  "sensors/gyro.c gyroUpdate); rounded to 1 deg/s by lrintf",
-                        "signal": "raw", "filters_before": []}
-        else:
-            lacks.append("no unfiltered gyro: INAV logs gyroRaw only with the blackbox GYRO_RAW field enabled")
-    elif unf is not None:
-        extra.update({f"gyro_prefilter_{ax}_rad_s": unf[rows, i] / gyro_div * DEG for i, ax in enumerate("xyz")})
-        pre_meta = {"source": "gyroUnfilt[0..2] (4.5+: gyro before every software filter)", "signal": "raw", "filters_before": []}
-    else:
-        dbg = _triplet(log, "debug")
-        meaning = debug_gyro_meaning(fw, dname, chain) if dname else None
-        if dbg is not None and meaning is not None:
-            extra.update({f"gyro_prefilter_{ax}_rad_s": dbg[rows, i] * DEG for i, ax in enumerate("xyz")})
-            pre_meta = {"source": f"debug[0..2], debug_mode {dmode_idx} = DEBUG_{meaning.mode} in {fw.label} ({meaning.source}); "
-                                  f"rounded to 1 deg/s by lrintf",
-                        "signal": meaning.kind, "filters_before": [chain[i].to_dict() for i in meaning.before]}
-        else:
-            what = f"DEBUG_{dname}" if dname else ("an index not mapped for this version" if isinstance(dmode_idx, int) else "not in the header")
-            lacks.append(f"no unfiltered gyro: debug_mode {dmode_idx} is {what} (log with debug_mode GYRO_SCALED, or 4.5+ gyroUnfilt)")
-    # motors, throttle, eRPM
-    mot = _indexed(log, r"motor\[(\d+)\]")
-    lo_hi = hdr.get("motorOutput", [0, 0])
-    lo, hi = (float(lo_hi[0]), float(lo_hi[1])) if isinstance(lo_hi, list) and len(lo_hi) == 2 else (float("nan"), float("nan"))
-    if mot:
-        for i, col in mot:
-            extra[f"motor_{i}"] = col[rows]
-            if hi > lo:
-                extra[f"motor_cmd_{i}"] = (col[rows] - lo) / (hi - lo)
-        if hi > lo:
-            extra["motor_cmd_mean"] = np.mean([extra[f"motor_cmd_{i}"] for i, _ in mot], axis=0)
-    else:
-        lacks.append("no motor outputs (motor[i] fields disabled)")
-    thr = log.column("rcCommand[3]")
-    if thr is not None:
-        extra["rc_throttle"] = thr[rows]
-        extra["throttle"] = np.clip((thr[rows] - 1000.0) / 1000.0, 0.0, 1.0)
-    else:
-        lacks.append("no throttle (rcCommand[3] missing)")
-    erpm = _indexed(log, r"eRPM(?:\(/100\))?\[(\d+)\]")
-    poles = hdr.get("motor_poles")
-    if erpm:
-        for i, col in erpm:
-            extra[f"erpm100_{i}"] = col[rows]
-            if isinstance(poles, int) and poles > 0:
-                extra[f"rotor_hz_{i}"] = col[rows] * 100.0 / (poles / 2.0) / 60.0
-        if not (isinstance(poles, int) and poles > 0):
-            lacks.append("eRPM logged but no motor_poles in the header: rotor speed in Hz unknown")
-    elif dname == "RPM_FILTER" and fw.version >= (4, 0, 0) and _triplet(log, "debug") is not None:
-        # 4.0-2026.6 rpm_filter.c: DEBUG_SET(DEBUG_RPM_FILTER, motor, motorFrequency[Hz][motor]) for
-        # motors 0..3: the PT1-smoothed rotor frequency (erpmToHz = 100/60/(poles/2)), integer Hz
-        for i in range(4):
-            col = log.column(f"debug[{i}]")
-            if col is not None:
-                extra[f"rotor_hz_{i}"] = col[rows].astype(float)
-        meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in {fw.label}: "
-                                   "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)")
-    elif inav:
-        lacks.append("no eRPM per motor (INAV logs one escRPM value in slow frames only): line laws from throttle only")
-    else:
-        lacks.append("no eRPM (fields need bidirectional DShot and Betaflight 4.5+, or debug_mode RPM_FILTER in 4.0+): "
-                     "line laws from throttle only")
+    pre_meta = _prefilter_gyro(log, rows, fw, chain, dmode_idx, dname, gyro_div, extra, lacks)
+    lo, hi = _motor_columns(log, rows, hdr, fw, dname, dmode_idx, extra, meta, lacks)
     nyq = log_hz / 2.0
     runs = f"gyro runs at {rates['gyro_hz']:.0f} Hz" if math.isfinite(rates["gyro_hz"]) else \
         f"PID loop at {rates['pid_hz']:.0f} Hz, gyro sampling rate not in the header"
@@ -987,32 +1037,8 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
                      "cutoff): gyro_filters lists the logged ones only")
     if log.truncated:
         notes.append("log ends inside a frame or without an end-of-log marker (flash full or power cut): complete frames kept")
-    meta.update({
-        "firmware": fw.revision,
-        "firmware_version": fw.release_str,
-        "betaflight_equivalent_version": "" if inav else fw.version_str,
-        "blackbox_data_version": str(fw.data_version),
-        "craft_name": str(hdr.get("Craft name", "")),
-        "gyro_rate_hz": f"{rates['gyro_hz']:.6g}",
-        "pid_rate_hz": f"{rates['pid_hz']:.6g}",
-        "gyro_filter_rate_hz": f"{rates['filter_hz']:.6g}",
-        "log_rate_nominal_hz": f"{rates['log_hz_nominal']:.6g}",
-        "log_rate_measured_hz": f"{log_hz:.6g}",
-        "loop_rate_measured_hz": f"{loop_hz_meas:.6g}",
-        "gyro_filters": json.dumps([s.to_dict() for s in chain]),
-        "gyro_signal": "filtered (gyroADC: after every software gyro filter listed in gyro_filters)",
-        "debug_mode": (f"{dmode_idx} (INAV debug list not mapped: gyroRaw carries the unfiltered gyro)" if inav else
-                       f"{dmode_idx} = {('DEBUG_' + dname) if dname else 'unmapped'}"),
-        "gyro_units_check": (f"gyroADC logged in deg/s (gyro_scale 1.0{', high resolution x10' if hires else ''}"
-                             f"{'; INAV blackbox.c: lrintf(gyro.gyroADCf), deg/s' if inav else ''}); max |gyro| "
-                             f"{full:.0f} deg/s, {sat_n} samples at the +-2000 deg/s full scale"),
-        "firmware_name": fw.name,
-        "firmware_source_read": (INAV_READ[fw.version[:2]] if inav else
-                                 ("cleanflight/cleanflight commits of that version (version.h), matched to " if fw.name == "cleanflight" else "")
-                                 + "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"),
-        "motor_output_range": f"{lo:g},{hi:g}",
-        "header_filters": json.dumps({k: v for k, v in hdr.items() if re.match(r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high|dynamicGyroNotch)", k)}),
-    })
+    meta.update(_log_meta(hdr, fw, rates, chain, log_hz=log_hz, loop_hz_meas=loop_hz_meas, dmode_idx=dmode_idx,
+                          dname=dname, hires=hires, full=full, sat_n=sat_n, lo=lo, hi=hi))
     if pre_meta:
         meta["gyro_prefilter"] = json.dumps(pre_meta)
     if sat_n:
