@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 
-import pytest
 
 from experiments.cli import build_group
 from gyrocore.cli import run_cli
