@@ -1,6 +1,7 @@
-"""The correction model: fit any subset of catalogue effects, remove them, save/load them.
+"""The correction model: fit any subset of catalogue effects.
 
-``Calibrator(effects=[...]).fit(recording)`` returns a frozen :class:`CalibrationResult`
+``Calibrator(effects=[...]).fit(recording)`` returns a frozen
+:class:`~gyrocore.calib.params.CalibrationResult`
 (parameters in :data:`gyrocore.effects.registry.PARAM_SCHEMA` form, SI, with standard errors);
 ``result.apply(recording)`` removes the effects with :func:`gyrocore.effects.registry.correct`.
 The references are taken from the file, in this order:
@@ -15,12 +16,7 @@ The references are taken from the file, in this order:
    bias-type effects (bias, thermal bias, ramp, g-sensitivity over several poses); the
    rate-dependent ones are then reported unobservable by name.
 
-Parameter file (DESIGN.md "Parameter file"): JSON, written atomically, ``format_version``
-"1.1"; a file of another major version is refused with a message that says so. 1.1 (a minor
-bump: every 1.0 file still reads) may carry family terms of the registry by their canonical
-name (``periodic[37.5]``, ``step[12.25]``, ``regressor[omega_y*omega_z]``, see
-:func:`gyrocore.effects.registry.resolve`); a name this version does not know is one ``error:`` line
-naming it.
+The result and its parameter file are :mod:`gyrocore.calib.params`.
 
 Article form (ARTICLE.md §5): ω = M·diag(1/s)·(ω̂′ − b), ω̂′ = ω̂ − H·a, which is this
 model with K⁻¹ = M·diag(1/s) (:func:`gyrocore.effects.registry.article_from_k`), b = ``bias`` and
