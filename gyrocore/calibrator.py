@@ -425,7 +425,7 @@ class Calibrator:
         return replace(res, notes=tuple(notes), method="attitude_reference")
 
     def fit_spilled(self, store, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
-        """Fit a long recording held on disk (:func:`gyrocore.data.recording.spill_columns` with
+        """Fit a long recording held on disk (:func:`gyrocore.data.spill.spill_columns` with
         ``groups=("temp", "ref_rate")``), a window at a time (:mod:`gyrocore.calib.stream`).
 
         Reference rates only (method ``rate_reference``); the result equals :meth:`fit` of the

@@ -205,7 +205,7 @@ def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndar
 
 
 def _robust_diff_noise_columns(store) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`robust_diff_noise` of the gyro of a :class:`gyrocore.data.recording.ColumnSpill`,
+    """:func:`robust_diff_noise` of the gyro of a :class:`gyrocore.data.spill.ColumnSpill`,
     one column at a time (the same values as the in-memory long-record path)."""
     from gyrocore.data.recording import GYRO_COLS
 
@@ -278,7 +278,7 @@ def _blocks(W: int, n: int, width: int, block_bytes: int | None = None):
 
 class SpilledWindows:
     """Non-overlapping windows of n samples of a gyro held on disk (a
-    :class:`gyrocore.data.recording.ColumnSpill`), shape (W, n, 3) like ``x[:W*n].reshape(W, n, 3)``,
+    :class:`gyrocore.data.spill.ColumnSpill`), shape (W, n, 3) like ``x[:W*n].reshape(W, n, 3)``,
     read a block of windows at a time (:meth:`block`); the window statistics of this module
     take it in place of the in-memory array and do the same arithmetic on the same blocks."""
 
@@ -623,7 +623,7 @@ class StaticBiasCalibrator:
                          lambda n: (x, x[: (x.shape[0] // n) * n].reshape(x.shape[0] // n, n, 3)))
 
     def fit_spilled(self, store) -> StaticBiasResult:
-        """:meth:`fit` of a long recording held on disk (:func:`gyrocore.data.recording.spill_columns`),
+        """:meth:`fit` of a long recording held on disk (:func:`gyrocore.data.spill.spill_columns`),
         read a block of windows at a time: memory O(one gyro column) for the robust noise
         (one column at a time, as :func:`robust_diff_noise` does for long records) and O(W)
         for the window statistics, instead of the (N, 3) gyro. Same numbers as :meth:`fit`

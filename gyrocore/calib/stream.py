@@ -1,6 +1,6 @@
 """Fits of long recordings held on disk, a window at a time (bounded memory).
 
-A long data file is streamed once into per-column files (:func:`gyrocore.data.recording.spill_columns`,
+A long data file is streamed once into per-column files (:func:`gyrocore.data.spill.spill_columns`,
 with every check, repair and warning of a whole read); the least-squares fits then read it
 back a window of ``lsq.CHUNK_ROWS`` rows at a time through :class:`SpillRows`, a
 :class:`gyrocore.calib.lsq.RowSource`. The chunked path of :func:`gyrocore.calib.lsq.fit_effects` reduces
@@ -22,7 +22,8 @@ import numpy as np
 
 from gyrocore.effects import registry as E
 from . import lsq
-from gyrocore.data.recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, ColumnSpill, Recording
+from gyrocore.data.recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, Recording
+from gyrocore.data.spill import ColumnSpill
 
 __all__ = ["SpillRows", "ResidualFiles", "Rows", "LazyColumn", "LazyRotations", "SpilledRecording", "rows_of",
            "held_correction", "NotStreamable", "release_memory",
@@ -174,7 +175,7 @@ def rows_of(v, lo: int, hi: int):
 
 
 class LazyColumn(Rows):
-    """Columns of a :class:`~gyrocore.data.recording.ColumnSpill` read from disk rows lo:hi at a time
+    """Columns of a :class:`~gyrocore.data.spill.ColumnSpill` read from disk rows lo:hi at a time
     (``squeeze``: one column, shape (N,))."""
 
     def __init__(self, store: ColumnSpill, names, *, squeeze: bool = False) -> None:
@@ -215,7 +216,7 @@ SPLINE_CONTEXT = 64
 
 
 class SpilledRecording:
-    """A long recording held on disk (:func:`gyrocore.data.recording.spill_columns`), with the
+    """A long recording held on disk (:func:`gyrocore.data.spill.spill_columns`), with the
     attributes of :class:`~gyrocore.data.recording.Recording` the residual loop reads: ``t_s`` in
     memory, every other column a :class:`LazyColumn` read a window at a time.
 

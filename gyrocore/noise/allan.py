@@ -886,7 +886,7 @@ def still_fraction(recording: Recording, *, window_s: float = 2.0, false_reject_
 
 
 def still_fraction_spilled(store, **options) -> float:
-    """:func:`still_fraction` of a recording held on disk (:func:`gyrocore.data.recording.spill_columns`):
+    """:func:`still_fraction` of a recording held on disk (:func:`gyrocore.data.spill.spill_columns`):
     only the judged windows are read (the same rows, the same number)."""
     from gyrocore.data.recording import GYRO_COLS
 

@@ -1,6 +1,6 @@
 """Noise identification of a long data file held on disk, one axis at a time (bounded memory).
 
-The file is streamed once into per-column files (:func:`gyrocore.data.recording.spill_columns`:
+The file is streamed once into per-column files (:func:`gyrocore.data.spill.spill_columns`:
 the same repairs, checks and warnings as a whole read); each axis is then loaded alone with the
 time column, so memory holds two columns instead of four; the numbers are those of
 :func:`gyrocore.noise.allan.allan_analysis` on the whole record. ``gyroharness allan`` takes
@@ -32,7 +32,7 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
     """:func:`gyrocore.noise.allan.allan_analysis` of a long recording, one axis at a time.
 
     The file is streamed once into per-column files in a temporary folder
-    (:func:`gyrocore.data.recording.spill_columns`: the same repairs, checks and warnings as a
+    (:func:`gyrocore.data.spill.spill_columns`: the same repairs, checks and warnings as a
     whole read); each axis is then loaded alone with the time column. The results are
     identical to the whole-record analysis (same samples, same rate, same kernel); memory
     holds two columns (t and the axis) plus the ADEV buffers; the motion gate
@@ -42,7 +42,8 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
     import warnings
 
     from gyrocore.noise.allan import AllanAnalysis, allan_analysis
-    from gyrocore.data.recording import AXES, spill_columns
+    from gyrocore.data.recording import AXES
+    from gyrocore.data.spill import spill_columns
 
     with tempfile.TemporaryDirectory(prefix="gyroharness_allan_") as tmp:
         store = spill_columns(file, tmp, accel=kalibr)

@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 
 from gyrocore.loop.loop import run_loop
-from gyrocore.data.recording import read_csv, spill_columns, write_csv
+from gyrocore.data.recording import read_csv, write_csv
+from gyrocore.data.spill import spill_columns
 from gyrocore.calib.stream import NotStreamable, SpilledRecording
 
 RTOL, ATOL = 1e-8, 1e-12

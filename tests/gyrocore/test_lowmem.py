@@ -10,7 +10,8 @@ import pytest
 
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.data.recording import Recording, read_recording, spill_columns, write_recording
+from gyrocore.data.recording import Recording, read_recording, write_recording
+from gyrocore.data.spill import spill_columns
 
 
 def _still(n=20_000, rate_hz=200.0, seed=0, *, gap=False, scale=1.0):

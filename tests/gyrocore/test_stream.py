@@ -8,7 +8,8 @@ import pytest
 from gyrocore.effects import registry as E
 from gyrocore.calib import lsq
 from gyrocore.calibrator import Calibrator
-from gyrocore.data.recording import Recording, read_csv, spill_columns, write_csv
+from gyrocore.data.recording import Recording, read_csv, write_csv
+from gyrocore.data.spill import spill_columns
 
 
 def _thermal_rate_record(n: int = 12000, seed: int = 11, *, outliers: int = 40) -> Recording:

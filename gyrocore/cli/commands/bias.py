@@ -66,7 +66,7 @@ def command(file, rule, statistic, window_s, window_samples, false_reject_rate, 
         # whole read), then the gate and the estimate a block of windows / one column at a time
         import tempfile
 
-        from gyrocore.data.recording import spill_columns
+        from gyrocore.data.spill import spill_columns
 
         with tempfile.TemporaryDirectory(prefix="gyroharness_bias_") as tmp:
             r = cal.fit_spilled(spill_columns(file, tmp))

@@ -170,7 +170,7 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
         # window at a time (gyrocore.calib.stream); the same fit as in memory, bounded memory
         import tempfile
 
-        from gyrocore.data.recording import spill_columns
+        from gyrocore.data.spill import spill_columns
 
         cal = Calibrator(effects=names, thermal_order=thermal_order, covariance=covariance, sensor=sensor,
                          ramp_margin_s=ramp_margin_s)

@@ -180,7 +180,7 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         import tempfile
 
         from gyrocore.effects.registry import check_effect_names
-        from gyrocore.data.recording import spill_columns
+        from gyrocore.data.spill import spill_columns
         from gyrocore.calib.stream import NotStreamable, SpilledRecording, bounded_heap, release_memory
 
         check_effect_names(declared)  # a misspelt effect is one error line before a long spill
