@@ -227,6 +227,47 @@ def _long_run_var(e: np.ndarray) -> float:
     return float(max(g[0] + 2.0 * g[1:].sum(), g[0]))
 
 
+def _segment_integrals(t, y, b, segs):
+    """Per segment k: B[:, k] the integral of y − b over it (rad), C[:, k] its known rotation
+    vector (rad), T[k] its duration (s) and nk[k] its sample count."""
+    nseg = len(segs)
+    B = np.zeros((3, nseg))
+    C = np.zeros((3, nseg))
+    T = np.zeros(nseg)
+    nk = np.zeros(nseg)
+    for k, s in enumerate(segs):
+        m = (t >= s.t_start_s) & (t <= s.t_end_s)
+        if m.sum() < 2:
+            raise GyroInputError(f"segment {s.t_start_s}..{s.t_end_s} s holds fewer than 2 samples of the recording")
+        tk = t[m]
+        B[:, k] = np.trapezoid(y[m] - b, tk, axis=0)
+        T[k] = tk[-1] - tk[0]
+        nk[k] = m.sum()
+        C["xyz".index(s.axis), k] = math.radians(s.angle_deg)
+    return B, C, T, nk
+
+
+def _k_covariance(K, C, Cp, T, nk, *, dt: float, lr, se_b, angle_sigma_rad: float, axis_sigma_rad: float):
+    """Covariance of vec_r(K) (9×9): rows independent across axes, row i = B_i·C⁺ with
+    cov(B_i) = diag(n_k dt² σ²_LR,i) + T Tᵀ se_b,i²; plus the known angles' and axes'
+    uncertainty to first order (see :func:`integral_calibration`)."""
+    cov_K = np.zeros((9, 9))
+    for i in range(3):
+        Sig = np.diag(nk * dt**2 * lr[i]) + np.outer(T, T) * se_b[i] ** 2
+        cov_K[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = Cp.T @ Sig @ Cp
+    sa, sx = float(angle_sigma_rad), float(axis_sigma_rad)
+    if not (math.isfinite(sa) and sa >= 0 and math.isfinite(sx) and sx >= 0):
+        raise GyroInputError(f"angle/axis uncertainty must be >= 0, got {angle_sigma_rad}, {axis_sigma_rad}")
+    if sa > 0 or sx > 0:
+        for k in range(C.shape[1]):
+            theta = float(np.linalg.norm(C[:, k]))
+            a = C[:, k] / theta if theta > 0 else np.zeros(3)
+            P = np.outer(a, a)
+            Sk = sa**2 * P + (theta * sx) ** 2 * (np.eye(3) - P)
+            cov_K += np.kron(K @ Sk @ K.T, np.outer(Cp[k], Cp[k]))
+    return cov_K
+
+
 def integral_calibration(
     recording: Recording,
     segments,
@@ -315,20 +356,7 @@ def integral_calibration(
         e = y[still] - b
         lr = np.array([_long_run_var(e[:, i]) for i in range(3)])  # (rad/s)² per sample, long-run
         se_b = np.sqrt(lr / n_still)
-    nseg = len(segs)
-    B = np.zeros((3, nseg))
-    C = np.zeros((3, nseg))
-    T = np.zeros(nseg)
-    nk = np.zeros(nseg)
-    for k, s in enumerate(segs):
-        m = (t >= s.t_start_s) & (t <= s.t_end_s)
-        if m.sum() < 2:
-            raise GyroInputError(f"segment {s.t_start_s}..{s.t_end_s} s holds fewer than 2 samples of the recording")
-        tk = t[m]
-        B[:, k] = np.trapezoid(y[m] - b, tk, axis=0)
-        T[k] = tk[-1] - tk[0]
-        nk[k] = m.sum()
-        C["xyz".index(s.axis), k] = math.radians(s.angle_deg)
+    B, C, T, nk = _segment_integrals(t, y, b, segs)
     if np.linalg.matrix_rank(C) < 3:
         turned = sorted({s.axis for s in segs})
         raise GyroInputError(
@@ -339,20 +367,8 @@ def integral_calibration(
     M = np.linalg.inv(K)
     # covariance of K (rows independent across axes): row i = B_i·C⁺,
     # cov(B_i) = diag(n_k dt² σ²_LR,i) + T Tᵀ se_b,i²
-    cov_K = np.zeros((9, 9))
-    for i in range(3):
-        Sig = np.diag(nk * dt**2 * lr[i]) + np.outer(T, T) * se_b[i] ** 2
-        cov_K[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = Cp.T @ Sig @ Cp
-    sa, sx = float(angle_sigma_rad), float(axis_sigma_rad)
-    if not (math.isfinite(sa) and sa >= 0 and math.isfinite(sx) and sx >= 0):
-        raise GyroInputError(f"angle/axis uncertainty must be >= 0, got {angle_sigma_rad}, {axis_sigma_rad}")
-    if sa > 0 or sx > 0:
-        for k in range(nseg):
-            theta = float(np.linalg.norm(C[:, k]))
-            a = C[:, k] / theta if theta > 0 else np.zeros(3)
-            P = np.outer(a, a)
-            Sk = sa**2 * P + (theta * sx) ** 2 * (np.eye(3) - P)
-            cov_K += np.kron(K @ Sk @ K.T, np.outer(Cp[k], Cp[k]))
+    cov_K = _k_covariance(K, C, Cp, T, nk, dt=dt, lr=lr, se_b=se_b, angle_sigma_rad=angle_sigma_rad,
+                          axis_sigma_rad=axis_sigma_rad)
     J = -np.kron(M, M.T)  # vec_r(dM) = −(M ⊗ Mᵀ) vec_r(dK)
     cov_M = J @ cov_K @ J.T
     return IntegralResult(
