@@ -81,6 +81,57 @@ def _release_arrow_memory() -> None:
         pa.default_memory_pool().release_unused()
 
 
+def _checks(store: ColumnSpill, path: str, layout, *, accel: bool, has_accel: bool, gyro_peak: float, mom) -> None:
+    """The checks of a whole read (``recording._finish``), in its order, one column at a time:
+    deg/s labelled rad/s (peak, and the noise of a still record), timing, saturation."""
+    t = store.t_s
+    gyro_col = layout.gyro_unit_col
+    with np.errstate(all="ignore"):
+        if gyro_col.endswith("_rad_s"):
+            peak = gyro_peak
+            if peak > DEG_S_SUSPECT_RAD_S:
+                raise GyroInputError(
+                    f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
+                    f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
+                )
+            sd = mom.std() if has_accel else None  # chunks are SI already
+            if sd is not None and bool(np.all(sd < 0.05 * G0_M_S2)):
+                med, noise = [], []
+                for j in range(3):
+                    # one column in memory at a time: the noise from a copy overwritten in place,
+                    # then the median from the column read again (the same values)
+                    c = store.column(GYRO_COLS[j])
+                    v = _robust_noise_consuming(c)
+                    del c
+                    c = store.column(GYRO_COLS[j])
+                    noise.append(_robust_noise(c) if v is None else v)
+                    med.append(float(np.median(c, overwrite_input=True)))  # c is not used again
+                    del c
+                if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
+                    warn_repair(
+                        f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
+                        f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
+                        f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
+                        f"Data left unchanged"
+                    )
+        _timing_checks(t, path, False, layout.header[layout.t])
+        found, n_sat = [], 0
+        sat_any = None
+        for j, nm in enumerate(GYRO_COLS + (ACCEL_COLS if has_accel and accel else ())):
+            c = store.column(nm)
+            clip = 0.9 * 125.0 * DEG if j < 3 else 0.9 * 2.0 * G0_M_S2
+            m, f = detect_saturation(c[:, None], min_clip=clip)
+            if f:
+                sat_any = m if sat_any is None else (sat_any | m)
+                found += [(j, v, cnt) for _, v, cnt in f]
+            del c
+        if found:
+            n_sat = int(sat_any.sum())
+            names6 = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
+            desc = ", ".join(f"{names6[j]} {cnt} at {v:.6g}" for j, v, cnt in found)
+            warn_repair(f"{path}: {n_sat} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'")
+
+
 def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: bool = False, rows: int = 32_768,
                   repair: bool = True, groups: Iterable[str] = ()) -> ColumnSpill:
     """Stream a data file (CSV or Parquet) into per-column files in ``folder``, with the
@@ -152,50 +203,5 @@ def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: 
     with np.errstate(all="ignore"):
         if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
             raise GyroInputError(f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})")
-    # the checks of _finish, in its order, one column at a time
-    gyro_col = layout.gyro_unit_col
-    with np.errstate(all="ignore"):
-        if gyro_col.endswith("_rad_s"):
-            peak = max(g_max, -g_min)
-            if peak > DEG_S_SUSPECT_RAD_S:
-                raise GyroInputError(
-                    f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
-                    f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
-                )
-            sd = mom.std() if has_accel else None  # chunks are SI already
-            if sd is not None and bool(np.all(sd < 0.05 * G0_M_S2)):
-                med, noise = [], []
-                for j in range(3):
-                    # one column in memory at a time: the noise from a copy overwritten in place,
-                    # then the median from the column read again (the same values)
-                    c = store.column(GYRO_COLS[j])
-                    v = _robust_noise_consuming(c)
-                    del c
-                    c = store.column(GYRO_COLS[j])
-                    noise.append(_robust_noise(c) if v is None else v)
-                    med.append(float(np.median(c, overwrite_input=True)))  # c is not used again
-                    del c
-                if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
-                    warn_repair(
-                        f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
-                        f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
-                        f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
-                        f"Data left unchanged"
-                    )
-        _timing_checks(t, path, False, layout.header[layout.t])
-        found, n_sat = [], 0
-        sat_any = None
-        for j, nm in enumerate(GYRO_COLS + (ACCEL_COLS if has_accel and accel else ())):
-            c = store.column(nm)
-            clip = 0.9 * 125.0 * DEG if j < 3 else 0.9 * 2.0 * G0_M_S2
-            m, f = detect_saturation(c[:, None], min_clip=clip)
-            if f:
-                sat_any = m if sat_any is None else (sat_any | m)
-                found += [(j, v, cnt) for _, v, cnt in f]
-            del c
-        if found:
-            n_sat = int(sat_any.sum())
-            names6 = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
-            desc = ", ".join(f"{names6[j]} {cnt} at {v:.6g}" for j, v, cnt in found)
-            warn_repair(f"{path}: {n_sat} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'")
+    _checks(store, path, layout, accel=accel, has_accel=has_accel, gyro_peak=max(g_max, -g_min), mom=mom)
     return store
