@@ -23,7 +23,7 @@ read and write, and integer settings) and ``W`` (float64: constants and state), 
 per-call dispatch cost stays small (numba unboxes every array argument). The address slots
 and the ``W`` offsets are the module constants below; :func:`build` fills both.
 
-Blocks (issue 13): the per-sample arrays (logs, times, temperature, noise, gyro output, tables)
+Blocks (bounded memory): the per-sample arrays (logs, times, temperature, noise, gyro output, tables)
 hold one block of the flight, rows ``A_K0 … A_K0 + A_NB − 1`` (the times and the ambient one row
 more, for the step to ``k + 1``); the kernels index them with ``k − A_K0`` and keep every piece
 of state in ``W``/``A``, so a flight cut into blocks is the same flight bit for bit.
@@ -48,7 +48,7 @@ from numba.extending import intrinsic
  A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_ARMED,
  # registry family terms of time only, precomputed (rows, 3·A_NFAM) (sim.gyro.GyroStream.family_table)
  A_FAM, A_NFAM,
- # the current block (issue 13): global index of its first sample, rows of its arrays
+ # the current block: global index of its first sample, rows of its arrays
  A_K0, A_NB, A_SIZE) = range(57)
 
 
@@ -820,7 +820,7 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
 
 
 def warm_cache_in_child(timeout_s: float = 600.0) -> bool:
-    """Compile (or just load) the kernels' numba cache in a child process (issue 13).
+    """Compile (or just load) the kernels' numba cache in a child process.
 
     The process that compiles the kernels keeps ~50 MiB of LLVM memory resident afterwards
     (measured: one second of hover peaks at 291 MiB with a cold cache, 237 MiB warm); a long

@@ -400,7 +400,7 @@ class SyntheticGyro:
             ``bias_temp_rate`` (its dT/dt is a central difference, which looks one sample
             ahead; gyrocore.effects.registry.ModelInputs.temp_rate_c_s).
         blocks : bool
-            Bounded memory (issue 13): noise and output are held one block at a time; the
+            Bounded memory: noise and output are held one block at a time; the
             caller opens each block with :meth:`GyroStream.next_block` before stepping it.
             The samples are bit-identical to the whole stream's whatever the block sizes.
         thermal : sim.thermal.ThermalSpec, optional
@@ -451,7 +451,7 @@ class GyroStream:
         self.n = n_samples
         self.rate_hz = gyro.rate_hz
         P = gyro.params
-        #: True: noise and output are held one block at a time (:meth:`next_block`, issue 13)
+        #: True: noise and output are held one block at a time (:meth:`next_block`)
         self.blocked = bool(blocks)
         self._k_next = 0
         self._t_pu = None if t_power_up_s is None else float(t_power_up_s)

@@ -325,7 +325,7 @@ def rotor_forces(phi: list, om: list, rotor_k) -> tuple:
 
 
 class HoverFlight:
-    """A closed-loop hover flight, flown block by block in bounded memory (issue 13).
+    """A closed-loop hover flight, flown block by block in bounded memory.
 
     The flight: hover at 1 m (plus manoeuvres) for ``duration_s``. With ``ground_s > 0`` it
     starts on the ground (keyframe ``ground``: resting on its four feet on the floor, contact on,
@@ -382,7 +382,7 @@ class HoverFlight:
         constants, gains (unless ``gains`` is given) and default vibration.
     gyro_blocks : bool
         Open a ``SyntheticGyro`` given as ``gyro`` as a block stream (default; False: one
-        whole-flight stream, as before issue 13).
+        whole-flight stream).
 
     Attributes
     ----------
@@ -521,7 +521,7 @@ class HoverFlight:
             # a sim.gyro.SyntheticGyro: open its per-sample stream over this flight's time base
             if gyro_blocks:
                 gyro = gyro.stream(n, blocks=True, thermal=None if self.stream_thermal else th_spec)
-            else:  # the whole-flight stream (fly_hover in one block: the arrays of before issue 13)
+            else:  # the whole-flight stream (fly_hover in one block: whole-flight arrays)
                 t_all = self._times(0, n)
                 gyro = gyro.stream(n, t_s=t_all, temp_c=None if self.stream_thermal else simulate_temperature(t_all, th_spec))
         if not hasattr(gyro, "step"):

@@ -568,7 +568,7 @@ def simulate(
     chunk_rows : int, optional
         None (default): simulate the whole record in memory and return a :class:`SimResult`
         (truth, noise, draws and flight log as arrays). An int: return a :class:`SimStream`
-        whose :meth:`SimStream.chunks` generates the recording chunk by chunk (issue 13) —
+        whose :meth:`SimStream.chunks` generates the recording chunk by chunk (bounded memory) —
         the rate table (:func:`sim.turntable.stream_table`, ``chunk_rows`` physics steps per
         rollout) or the closed-loop flight (:class:`sim.quadrotor.HoverFlight`, ``chunk_rows``
         gyro samples per block), the die temperature (:class:`sim.thermal.TemperatureChunks`),

@@ -1,4 +1,4 @@
-"""A measured vibration spec, entered through the rotor physics of a vehicle class (issue 16.3).
+"""A measured vibration spec, entered through the rotor physics of a vehicle class.
 
 ``gyroharness vibration FLIGHT -o spec.json`` identifies lines whose frequency follows the
 throttle (or eRPM): the rotor line. The simulator cannot copy that line's frequency — a

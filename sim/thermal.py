@@ -376,7 +376,7 @@ class TempRateBlocks:
     ``take(m)`` returns the next m values of
     ``gyrocore.effects.registry.ModelInputs(t_s=t, temp_c=simulate_temperature(t, spec)).temp_rate_c_s()``
     for the whole clock of ``n_total`` samples, bit for bit, however the record is cut
-    (issue 13: the closed-loop gyro's ``bias_temp_rate`` without the whole trajectory). That
+    (the closed-loop gyro's ``bias_temp_rate`` without the whole trajectory). That
     is ``numpy.gradient(T, t)`` (edge_order 1), transcribed: central differences inside —
     the uniform-spacing formula when every difference of the whole clock equals the first
     (numpy's test; checked block by block before the first block), else the non-uniform

@@ -1,4 +1,4 @@
-"""Vehicle classes as data: the airframes the closed-loop hover can fly (issue 16).
+"""Vehicle classes as data: the airframes the closed-loop hover can fly.
 
 Each :class:`VehicleClass` names its MJCF model (``models/*.xml``, whose header comment cites the
 source of every constant), the constants the controller needs (:class:`sim.controller.QuadParams`,
