@@ -62,9 +62,12 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy import signal
 
-from gyrocore.attitude import attitude_rate
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
+
+from .twin_reference import Reference, _quat_R, reference_of
+from .twin_stats import (WINDOW_S, StatLayout, _attitude_windows, _pooled_adev, _span_concat, error_statistics,
+                         layout_for)
 
 __all__ = [
     "FORMAT_VERSION",
@@ -95,12 +98,6 @@ DEFAULT_REPLICAS = 199
 STANDARD_REPLICAS = 39
 #: Family-wise false-fail rate of the whole twin (Bonferroni over the statistics).
 ALPHA = 0.05
-WINDOW_S = 1.0
-ACF_LAGS = 5
-PSD_NPERSEG = 256
-PSD_BANDS = 16
-MIN_SPAN_S = 5.0
-TAIL_SIGMA = 4.0
 
 #: The real sets of docs/twin.md: (name, path under the data folder).
 SETS: tuple[tuple[str, str], ...] = (
@@ -113,153 +110,6 @@ SETS: tuple[tuple[str, str], ...] = (
     ("PX4 sample.ulg (still part)", "pyulog_samples/sample.ulg"),
     ("imucal Ferraris session", "imucal_ferraris/example_ferraris_session.csv"),
 )
-
-
-# ============================================================================ reference
-@dataclass(frozen=True, eq=False)
-class Reference:
-    """What the twin replays and where its error signal is defined.
-
-    Attributes
-    ----------
-    kind : str
-        ``"rate"``, ``"attitude"`` or ``"still"`` (gyrocore.loop.residual kinds; ``"angles"`` maps
-        to ``"still"``: only the still part is replayed).
-    omega_S_rad_s : ndarray, shape (N, 3)
-        Rate that drives the twin, rad/s, sensor frame (0 on still samples; filled by linear
-        interpolation across uncovered samples, which the statistics never use).
-    covered : ndarray of bool, shape (N,)
-        Samples of the per-sample error signal e = gyro − ω_ref.
-    spans : list of (int, int)
-        Contiguous covered runs [a, b) of at least :data:`MIN_SPAN_S`.
-    q_ref_wxyz : ndarray, shape (N, 4) or None
-        Reference attitude (attitude kind only; NaN where lost).
-    description : str
-    coverage_note : str or None
-        The one-line repair warning when the reference does not cover the whole recording.
-    """
-
-    kind: str
-    omega_S_rad_s: np.ndarray
-    covered: np.ndarray
-    spans: list
-    q_ref_wxyz: np.ndarray | None
-    description: str
-    coverage_note: str | None = None
-
-
-def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
-    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
-    d = np.diff(m.astype(np.int8))
-    a, b = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
-    return [(int(x), int(y)) for x, y in zip(a, b) if y - x >= min_len]
-
-
-def _quat_R(q: np.ndarray):
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat(np.asarray(q, float)[:, [1, 2, 3, 0]])
-
-
-def _fill(t: np.ndarray, x: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    out = np.array(x, float)
-    if ok.all():
-        return out
-    if not ok.any():
-        return np.zeros_like(out)
-    for i in range(out.shape[1]):
-        out[~ok, i] = np.interp(t[~ok], t[ok], out[ok, i])
-    return out
-
-
-def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
-    """The reference of ``rec`` for the twin (see the module docstring).
-
-    Raises
-    ------
-    GyroInputError
-        No reference at all (no ``ref_*`` columns, no still segments or poses, and the
-        recording is not a still log), or a reference that covers less than
-        :data:`MIN_SPAN_S` of contiguous samples.
-    """
-    from gyrocore.loop.residual import as_segment, choose_reference, detect_still
-
-    segs = [as_segment(s) for s in segments]
-    t = np.asarray(rec.t_s, float)
-    n = rec.n
-    fs = rec.rate_hz
-    min_len = max(16, int(round(MIN_SPAN_S * fs)))
-    try:
-        kind = choose_reference(rec, segs)
-    except GyroInputError:
-        raise GyroInputError(
-            "the twin needs a reference: ref_x/y/z_rad_s (a rate), ref_qw/qx/qy/qz (an attitude), still "
-            "segments (--segments) or a still recording; this recording has none"
-        ) from None
-    q_ref = None
-    if kind == "rate":
-        ref = np.asarray(rec.ref_rate_rad_s, float)
-        covered = np.all(np.isfinite(ref), axis=1)
-        omega = _fill(t, ref, covered)
-        desc = "reference rate (ref_*_rad_s)"
-    elif kind == "attitude":
-        q_ref = np.asarray(rec.ref_quat_wxyz, float)
-        w, valid = attitude_rate(t, q_ref)
-        omega = _fill(t, w, valid)
-        still = detect_still(t, rec.gyro_rad_s)
-        covered = still.copy()
-        # a rest must also be a rest of the reference: the attitude changes by < 1° over it
-        for a, b in _runs(still, min_len):
-            qa, qb = q_ref[a], q_ref[b - 1]
-            if np.all(np.isfinite(qa)) and np.all(np.isfinite(qb)):
-                ang = np.linalg.norm((_quat_R(qa[None]).inv() * _quat_R(qb[None])).as_rotvec())
-                if ang > DEG:
-                    covered[a:b] = False
-        omega[covered] = 0.0
-        desc = ("reference attitude (ref_q*): its rate drives the twin; per-sample error signal on the rests "
-                "(zero rate), the loop's 1-s window residual on the whole recording")
-    else:  # still or angles
-        if any(s.kind == "still" for s in segs):
-            covered = np.zeros(n, bool)
-            for s in segs:
-                if s.kind == "still":
-                    covered |= (t >= s.start_s) & (t <= s.stop_s)
-            how = "still segments"
-        elif "static_pose_axis" in rec.extra:
-            covered = np.asarray(rec.extra["static_pose_axis"]) != 0
-            how = "static poses"
-        else:
-            covered = detect_still(t, rec.gyro_rad_s)
-            how = "motion gate"
-        if kind == "angles":
-            for s in segs:
-                if s.kind == "rotation":
-                    covered &= ~((t >= s.start_s) & (t <= s.stop_s))
-        omega = np.zeros((n, 3))
-        desc = f"still ({how}): zero rate" + ("; the known rotations are not replayed (rate profile unknown)"
-                                              if kind == "angles" else "")
-        kind = "still"
-    # a margin at each end: the twin's time offset / filters reach across a span's edge into
-    # samples whose reference rate is a motion (or, for an optical attitude, its noisy derivative)
-    margin = max(8, int(round(0.25 * fs)))
-    spans = [(a + margin, b - margin) for a, b in _runs(covered, min_len + 2 * margin)]
-    used = np.zeros(n, bool)
-    for a, b in spans:
-        used[a:b] = True
-    if not spans:
-        raise GyroInputError(
-            f"the reference covers no contiguous stretch of {MIN_SPAN_S:g} s; the twin needs at least one"
-        )
-    note = None
-    if not covered.all() or (q_ref is not None and not np.all(np.isfinite(q_ref))):
-        parts = [f"reference covers {covered.mean():.0%} of the recording ({len(spans)} span(s) of >= {MIN_SPAN_S:g} s)"]
-        if q_ref is not None:
-            lost = int((~np.all(np.isfinite(q_ref), axis=1)).sum())
-            if lost:
-                parts.append(f"{lost} samples of reference attitude lost (windows touching them dropped)")
-        note = "; ".join(parts) + ": replicas compared over the covered spans only"
-    return Reference(kind=kind, omega_S_rad_s=omega, covered=used, spans=spans, q_ref_wxyz=q_ref,
-                     description=desc, coverage_note=note)
 
 
 # ============================================================================ identification
@@ -408,10 +258,6 @@ def _inputs(rec: Recording, ref: Reference, rate_hz: float):
                        temp_c=np.asarray(temp, float), q_SW_wxyz=np.tile([1.0, 0, 0, 0], (n, 1)))
 
 
-def _span_concat(x: np.ndarray, spans) -> np.ndarray:
-    return np.concatenate([x[a:b] - x[a:b].mean(axis=0) for a, b in spans])
-
-
 def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_file: str | None = None,
              loop_result=None) -> TwinModel:
     """Identify the twin of ``rec`` (see the module docstring, step 2).
@@ -529,71 +375,6 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
 
 
 # ============================================================================ statistics
-def _pooled_adev(e: np.ndarray, spans, m_list: np.ndarray, rate: float) -> np.ndarray:
-    """Overlapping ADEV (3, J) pooled over spans: σ²(τ) = Σ (x_{k+2m} − 2x_{k+m} + x_k)² / (2τ²·count)."""
-    num = np.zeros((3, m_list.size))
-    cnt = np.zeros(m_list.size)
-    tau0 = 1.0 / rate
-    for a, b in spans:
-        x = np.concatenate([np.zeros((1, 3)), np.cumsum(e[a:b], axis=0) * tau0])  # phase, rad
-        L = x.shape[0]
-        for j, m in enumerate(m_list):
-            if L <= 2 * m:
-                continue
-            d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
-            num[:, j] += np.sum(d * d, axis=0)
-            cnt[j] += d.shape[0]
-    tau = m_list * tau0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sqrt(num / (2.0 * tau[None, :] ** 2 * cnt[None, :]))
-
-
-@dataclass(frozen=True, eq=False)
-class StatLayout:
-    """The bins of each statistic, fixed by the real recording so replicas share them."""
-
-    m_list: np.ndarray
-    nperseg: int
-    band_edges_hz: np.ndarray
-    window: int
-    rate_hz: float
-    att_windows: tuple | None = None  # (a, b) index arrays of the attitude windows
-
-    def x(self, name: str) -> tuple[np.ndarray, str]:
-        if name == "adev":
-            return self.m_list / self.rate_hz, "τ, s"
-        if name == "psd":
-            return np.sqrt(self.band_edges_hz[:-1] * self.band_edges_hz[1:]), "frequency, Hz"
-        if name == "distribution":
-            return np.arange(3), "log10 std | excess kurtosis | P(|e|>4σ)"
-        if name == "window_acf":
-            return np.arange(1, ACF_LAGS + 1), f"lag, windows of {self.window / self.rate_hz:g} s"
-        return np.arange(5), "log10 std | excess kurtosis | acf 1 | acf 2 | acf 3"
-
-
-def layout_for(ref: Reference, rate_hz: float, n: int) -> StatLayout:
-    longest = max(b - a for a, b in ref.spans)
-    m_list = 2 ** np.arange(0, 40)
-    m_list = m_list[m_list <= longest // 5]
-    nperseg = int(min(PSD_NPERSEG, 2 ** int(np.floor(np.log2(longest)))))
-    f_lo = rate_hz / nperseg
-    edges = np.geomspace(f_lo * 0.999, rate_hz / 2 * 1.0001, PSD_BANDS + 1)
-    window = max(2, int(round(WINDOW_S * rate_hz)))
-    att = None
-    if ref.kind == "attitude":
-        q = ref.q_ref_wxyz
-        ok = np.all(np.isfinite(q), axis=1)
-        L = window
-        a = np.arange(0, n - L, L)
-        b = a + L
-        # whole window tracked (not only its ends): the twin's replay across a gap is interpolated
-        bad = np.concatenate([[0], np.cumsum(~ok)])
-        keep = (bad[b + 1] - bad[a]) == 0
-        att = (a[keep], b[keep])
-    return StatLayout(m_list=m_list, nperseg=nperseg, band_edges_hz=edges, window=window, rate_hz=rate_hz,
-                      att_windows=att)
-
-
 def model_error(model: "TwinModel", rec: Recording, ref: Reference) -> np.ndarray:
     """The twin's deterministic sensor error at the reference inputs, det(ω_ref) − ω_ref, rad/s (N, 3).
 
@@ -605,80 +386,6 @@ def model_error(model: "TwinModel", rec: Recording, ref: Reference) -> np.ndarra
     det = {e: p for e, p in model.params.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}
     return _deterministic(det, _inputs(rec, ref, model.rate_hz)) - ref.omega_S_rad_s
 
-
-def _acf(series: list[np.ndarray], lags: int) -> np.ndarray:
-    """Pooled autocorrelation (3, lags) of per-span series (each (L, 3), mean removed)."""
-    num = np.zeros((3, lags))
-    den = np.zeros(3)
-    for s in series:
-        s = s - s.mean(axis=0)
-        den += np.sum(s * s, axis=0)
-        for k in range(1, lags + 1):
-            if s.shape[0] > k:
-                num[:, k - 1] += np.sum(s[k:] * s[:-k], axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return num / den[:, None]
-
-
-def _attitude_windows(gyro: np.ndarray, t: np.ndarray, R_ref, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Window residual (M, 3) rad/s: rotvec((R_aᵀR_b)ᵀ·ΔR̂_{a→b})/T (gyrocore.loop.residual, attitude kind)."""
-    from gyrocore.attitude import integrate_gyro
-
-    qh = integrate_gyro(t, gyro, hold="backward")
-    Rh = _quat_R(qh)
-    rel_ref = R_ref[a].inv() * R_ref[b]
-    rel_hat = Rh[a].inv() * Rh[b]
-    return (rel_ref.inv() * rel_hat).as_rotvec() / (t[b] - t[a])[:, None]
-
-
-def error_statistics(e: np.ndarray, spans, layout: StatLayout, *, att_resid: np.ndarray | None = None) -> dict:
-    """The statistics of one error signal: ``{name: ndarray (3, J)}`` (see the module docstring).
-
-    Parameters
-    ----------
-    e : ndarray, shape (N, 3)
-        Error signal, rad/s (measurement − reference rate), valid on ``spans``.
-    spans : list of (a, b)
-    layout : StatLayout
-    att_resid : ndarray, shape (M, 3), optional
-        Attitude window residual (attitude references).
-    """
-    rate = layout.rate_hz
-    out: dict[str, np.ndarray] = {}
-    out["adev"] = np.log10(_pooled_adev(e, spans, layout.m_list, rate))
-    # Welch, averaged over spans by their number of segments
-    acc, wsum = None, 0.0
-    for a, b in spans:
-        if b - a < layout.nperseg:
-            continue
-        f, P = signal.welch(e[a:b], fs=rate, nperseg=layout.nperseg, axis=0, detrend="constant")
-        nseg = 1 + (b - a - layout.nperseg) // (layout.nperseg // 2)
-        acc = P * nseg if acc is None else acc + P * nseg
-        wsum += nseg
-    P = acc / wsum
-    idx = np.digitize(f, layout.band_edges_hz) - 1
-    bands = np.stack([P[idx == j].mean(axis=0) if np.any(idx == j) else np.full(3, np.nan)
-                      for j in range(PSD_BANDS)], axis=1)
-    out["psd"] = np.log10(bands)
-    x = _span_concat(e, spans)
-    sd = x.std(axis=0)
-    kurt = np.mean(x**4, axis=0) / sd**4 - 3.0
-    tail = np.mean(np.abs(x) > TAIL_SIGMA * sd[None, :], axis=0)
-    out["distribution"] = np.stack([np.log10(sd), kurt, tail], axis=1)
-    W = layout.window
-    wins = []
-    for a, b in spans:
-        k = (b - a) // W
-        if k >= 2:
-            wins.append(e[a:a + k * W].reshape(k, W, 3).mean(axis=1))
-    out["window_acf"] = _acf(wins, ACF_LAGS)
-    if att_resid is not None:
-        y = att_resid
-        s = y.std(axis=0)
-        ku = np.mean((y - y.mean(0)) ** 4, axis=0) / s**4 - 3.0
-        ac = _acf([y], 3)
-        out["attitude_residual"] = np.column_stack([np.log10(s), ku, ac])
-    return out
 
 
 # ============================================================================ replicas
