@@ -49,6 +49,7 @@ class Harness:
     """Runs every target on one input and classifies the outcome."""
 
     def __init__(self, crash_dir: Path) -> None:
+        from gyrocore.readers import common as cm
         from gyrocore.readers import convert as cv
         from gyrocore.data import recording as rc
         from gyrocore.errors import GyroInputError
@@ -57,7 +58,7 @@ class Harness:
         self.targets = [
             ("read_csv", rc.read_csv),
             ("iter_csv_chunks", lambda p: list(rc.iter_csv_chunks(p, rows=7))),
-            ("read_segments_csv", cv.read_segments_csv),
+            ("read_segments_csv", cm.read_segments_csv),
             ("read_tomisuarez2", cv.read_tomisuarez2),
             ("read_imucal", cv.read_imucal),
             ("read_imucal_annotated", cv.read_imucal_annotated),

@@ -70,7 +70,7 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
     data = shared_data_dir()
     src = None
     if data is not None and (data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv").exists():
-        from gyrocore.readers.convert import read_tomisuarez2
+        from gyrocore.readers.datasets import read_tomisuarez2
 
         src = data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv"
         rec = read_tomisuarez2(src)

@@ -66,12 +66,12 @@ ARTICLE_M_PRINTED = np.array(
 
 # ---------------------------------------------------------------------------- segments
 def segments_from_any(segments) -> list:
-    """Segments as ``gyrocore.readers.convert.Segment`` (t_start_s, t_end_s, axis, angle_deg).
+    """Segments as ``gyrocore.readers.common.Segment`` (t_start_s, t_end_s, axis, angle_deg).
 
     Accepts a path to a segments CSV (``t_start_s,t_end_s,axis,angle_deg``) or a sequence of
     objects/tuples with those four fields.
     """
-    from gyrocore.readers.convert import Segment, read_segments_csv
+    from gyrocore.readers.common import Segment, read_segments_csv
 
     if isinstance(segments, (str, bytes)) or hasattr(segments, "__fspath__"):
         return read_segments_csv(segments)

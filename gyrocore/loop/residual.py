@@ -144,7 +144,7 @@ class Segment:
 
 
 def as_segment(seg) -> Segment:
-    """A :class:`Segment` from this module's or :class:`gyrocore.readers.convert.Segment`
+    """A :class:`Segment` from this module's or :class:`gyrocore.readers.common.Segment`
     (``t_start_s, t_end_s, axis, angle_deg``: a known rotation about one sensor axis)."""
     if isinstance(seg, Segment):
         return seg
@@ -157,7 +157,7 @@ def as_segment(seg) -> Segment:
 
 def read_segments(path: str | os.PathLike) -> list[Segment]:
     """Read a segments CSV (see module docstring) or the known-rotation file of
-    :func:`gyrocore.readers.convert.write_segments_csv`. Bad files raise :class:`GyroInputError`."""
+    :func:`gyrocore.readers.common.write_segments_csv`. Bad files raise :class:`GyroInputError`."""
     path = str(path)
     if not os.path.isfile(path):
         raise GyroInputError(f"{path}: no such segments file")
@@ -168,7 +168,7 @@ def read_segments(path: str | os.PathLike) -> list[Segment]:
         raise GyroInputError(f"{path}: empty segments file")
     head = [h.strip() for h in rows[0]]
     if head[:4] == ["t_start_s", "t_end_s", "axis", "angle_deg"]:
-        from gyrocore.readers.convert import read_segments_csv
+        from gyrocore.readers.common import read_segments_csv
 
         return [as_segment(s) for s in read_segments_csv(path)]
     for need in ("start_s", "stop_s", "kind"):

@@ -228,7 +228,7 @@ def _sunsided_10min(shared_data) -> Recording:
     p = shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward-10min"
     if not p.exists():
         pytest.skip("sunsided 10-min static log not present")
-    from gyrocore.readers.convert import read_sunsided
+    from gyrocore.readers.datasets import read_sunsided
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RepairWarning)  # bursty timestamps → uniform grid

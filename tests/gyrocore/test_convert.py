@@ -15,6 +15,7 @@ import warnings
 import numpy as np
 import pytest
 
+from gyrocore.readers import common as cm
 from gyrocore.readers import convert as cv
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data.recording import G0_M_S2, read_csv, write_csv
@@ -133,7 +134,7 @@ def test_sunsided_no_retime_keeps_host_times(sun):
     with pytest.warns(RepairWarning, match="kept as recorded"):
         rec = cv.read_sunsided(sun / "set-2" / "rotate-ccw-around-z-pointing-up", retime=False)
     d = np.diff(rec.t_s)
-    rep = cv.timing_report(rec.t_s)
+    rep = cm.timing_report(rec.t_s)
     assert rep.bursty and rep.median_dt_s < 0.003 and d.max() > 0.2  # PROVENANCE: median 1–2 ms, gaps 0.25–0.5 s
 
 
@@ -148,8 +149,8 @@ def test_sunsided_gyro_accel_kinematics_documented(sun):
     from dataclasses import replace
 
     raw = replace(raw, accel_m_s2=raw.accel_m_s2 * np.array([-1.0, 1.0, 1.0]))
-    assert cv.frame_consistency(raw) > 0.8
-    assert cv.frame_consistency(flipped) < 0.0
+    assert cm.frame_consistency(raw) > 0.8
+    assert cm.frame_consistency(flipped) < 0.0
 
 
 # ------------------------------------------------------------------ tomisuarez2
@@ -340,7 +341,7 @@ def test_known_good_sets_are_kinematically_consistent(shared_data):
         cv.load_any(shared_data / "imucal_ferraris" / "example_ferraris_session.csv"),
         cv.load_any(shared_data / "tomisuarez2_mpu6050" / "example_data_calibration.csv"),
     ):
-        assert cv.frame_consistency(rec) > 0.3
+        assert cm.frame_consistency(rec) > 0.3
 
 
 # ------------------------------------------------------------------ dispatcher, CLI, determinism
@@ -370,12 +371,12 @@ def test_option_not_applicable_is_error(shared_data):
 def test_segments_file_round_trip(tmp_path):
     segs = [cv.Segment(1.0, 2.5, "x", 720.0), cv.Segment(3.0, 4.0, "z", -360.0)]
     p = tmp_path / "s.csv"
-    cv.write_segments_csv(segs, p)
+    cm.write_segments_csv(segs, p)
     assert p.read_text().splitlines()[0] == "t_start_s,t_end_s,axis,angle_deg"
-    assert cv.read_segments_csv(p) == segs
+    assert cm.read_segments_csv(p) == segs
     p.write_text("t_start_s,t_end_s,axis,angle_deg\n1,2,w,90\n")
     with pytest.raises(GyroInputError, match="axis must be"):
-        cv.read_segments_csv(p)
+        cm.read_segments_csv(p)
 
 
 def _cli(*args):
@@ -391,7 +392,7 @@ def test_cli_convert_json_segments_force_and_determinism(shared_data, tmp_path):
     assert summary["format"] == "sunsided" and summary["segments"] == 1
     assert [ln for ln in r1.stderr.splitlines() if ln.startswith("warning:")]  # the retiming is announced
     assert "Traceback" not in r1.stderr
-    assert cv.read_segments_csv(seg)[0].axis == "y"
+    assert cm.read_segments_csv(seg)[0].axis == "y"
     # determinism across processes: same input, same bytes
     r2 = _cli("convert", src, "-o", out2)
     assert r2.returncode == 0 and out1.read_bytes() == out2.read_bytes()
@@ -447,7 +448,7 @@ def test_concat_converted_joins_a_session_and_shifts_segments(shared_data, tmp_p
     assert json.loads(res.stdout)["segments"] == 3
     back = read_csv(out)
     np.testing.assert_allclose(back.gyro_rad_s, r.gyro_rad_s, rtol=1e-15, atol=0)
-    assert [s.axis for s in cv.read_segments_csv(seg)] == ["x", "y", "z"]
+    assert [s.axis for s in cm.read_segments_csv(seg)] == ["x", "y", "z"]
 
 
 def test_sunsided_frames_per_set(sun):
@@ -467,8 +468,8 @@ def test_sunsided_frames_per_set(sun):
             raw = replace(flipped, gyro_rad_s=flipped.gyro_rad_s * np.array([-1.0, 1.0, 1.0]))
             turned = replace(raw, gyro_rad_s=raw.gyro_rad_s * np.array(pattern, float))
             # measured: turned +0.57 … +0.88, raw −0.26 … −0.82 (docs/data.md)
-            assert cv.frame_consistency(turned) > 0.2, (setname, name)
-            assert cv.frame_consistency(raw) < -0.2, (setname, name)
-            fc_flipped.append(cv.frame_consistency(flipped))
+            assert cm.frame_consistency(turned) > 0.2, (setname, name)
+            assert cm.frame_consistency(raw) < -0.2, (setname, name)
+            fc_flipped.append(cm.frame_consistency(flipped))
         # the README flip is inconsistent on at least one of them too (set-1 all, set-2 the y turn)
         assert min(fc_flipped) < -0.2, (setname, fc_flipped)

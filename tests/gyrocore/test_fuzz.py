@@ -25,11 +25,12 @@ def _load():
 
 def test_seeds_are_valid_inputs(tmp_path):
     """Each seed is accepted by the reader it was written for (so mutations start deep)."""
+    from gyrocore.readers import common as cm
     from gyrocore.readers import convert as cv
     from gyrocore.data import recording as rc
 
     fz = _load()
-    readers = [rc.read_csv, rc.read_csv, rc.read_csv, cv.read_segments_csv, cv.read_tomisuarez2,
+    readers = [rc.read_csv, rc.read_csv, rc.read_csv, cm.read_segments_csv, cv.read_tomisuarez2,
                cv.read_imucal, cv.read_imucal_annotated, cv.read_fusion]
     assert len(readers) == len(fz.SEEDS)
     for i, (seed, reader) in enumerate(zip(fz.SEEDS, readers)):

@@ -174,7 +174,7 @@ def test_attitude_tracker_on_broad_matches_rest_bias(shared_data):
     if not p.exists():
         pytest.skip("BROAD trial 05 not present")
     from gyrocore.calib.bias import startup_still_slice
-    from gyrocore.readers.convert import read_broad
+    from gyrocore.readers.datasets import read_broad
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RepairWarning)

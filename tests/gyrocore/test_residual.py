@@ -107,7 +107,7 @@ def test_motion_gate():
 
 
 def test_as_segment_from_convert():
-    from gyrocore.readers.convert import Segment as CSeg
+    from gyrocore.readers.common import Segment as CSeg
 
     s = as_segment(CSeg(1.0, 2.0, "z", 90.0))
     assert s.kind == "rotation" and s.angle_S_rad[2] == pytest.approx(np.pi / 2)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gyrocore.effects import registry as E
-from gyrocore.readers.convert import Segment, write_segments_csv
+from gyrocore.readers.common import Segment, write_segments_csv
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.calibrator import Calibrator
 from gyrocore.data.recording import Recording
@@ -135,7 +135,7 @@ def test_imucal_ferraris_session_beside_imucal(shared_data):
     ours: y − b − H·f = K·ω, so K ≡ K_g·R_g, b ≡ b_g, H ≡ K_ga (deg/s → rad/s)."""
     imucal = pytest.importorskip("imucal")
     pd = pytest.importorskip("pandas")
-    from gyrocore.readers.convert import imucal_segments, read_imucal
+    from gyrocore.readers.datasets import imucal_segments, read_imucal
 
     d = shared_data / "imucal_ferraris"
     rec = read_imucal(d / "example_ferraris_session.csv")
@@ -235,7 +235,7 @@ def test_tomisuarez2_multipose_beside_authors(shared_data):
     The session is weak for the gyro: 2 of its 9 motions clip at ±250 °/s and the rest leave a
     gravity misfit of ~5° rms, so σ_K ≈ 0.04–0.07. The test states what the data support:
     the bias (same first-pose average) agrees to 0.001 °/s, and K agrees within 2.5 σ."""
-    from gyrocore.readers.convert import read_tomisuarez2
+    from gyrocore.readers.datasets import read_tomisuarez2
     from gyrocore.calib.rotations import gravity_pose_calibration
 
     d = shared_data / "tomisuarez2_mpu6050"

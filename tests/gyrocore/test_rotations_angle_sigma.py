@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gyrocore.readers.convert import Segment
+from gyrocore.readers.common import Segment
 from gyrocore.data.recording import Recording
 from gyrocore.calib.rotations import integral_calibration
 

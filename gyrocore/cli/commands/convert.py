@@ -9,7 +9,8 @@ from pathlib import Path
 import click
 
 from gyrocore.cli import emit_json
-from gyrocore.readers.convert import FORMATS, concat_converted, load_with_segments, write_segments_csv
+from gyrocore.readers.convert import FORMATS, concat_converted, load_with_segments
+from gyrocore.readers.common import write_segments_csv
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data import recording as _recording
 from gyrocore.data.recording import PARQUET_SUFFIXES, file_sha256, iter_chunks, write_chunks, write_csv, write_parquet

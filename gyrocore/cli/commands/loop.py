@@ -211,7 +211,7 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
     if validate and validate_split:
         raise GyroInputError("give --validate OTHER or --validate-split, not both")
     if validate_split:
-        from gyrocore.readers.convert import Converted
+        from gyrocore.readers.common import Converted
         from gyrocore.loop.loop import split_halves
 
         if segs:
