@@ -177,7 +177,7 @@ def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | Non
     ``ours_task``: its Monte Carlo task that flies one (preset, instance) with our controller
     (:func:`experiments.cutoffs.ours_cell_task`). :func:`experiments.cutoffs.run` passes both.
     """
-    KINDS, CUTOFFS_HZ, PRESETS = grid["kinds"], grid["cutoffs"], grid["presets"]
+    KINDS, PRESETS = grid["kinds"], grid["presets"]
     EXCESS_BUDGET = float(grid["excess_budget"])
     from experiments.firmware_fly import _record_of
     from experiments.montecarlo import MonteCarloTask, execute, instance_seeds
