@@ -282,6 +282,6 @@ def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | Non
         md.append(f"![cutoffs on the firmware {p}]({figs[-1]})\n")
     line = "; ".join(f"{p}: firmware {v['firmware_best']}, ours {v['ours_best']}" for p, v in summary["presets"].items())
     md.insert(1, f"**Best filter per preset (quietest motors at ≤ {EXCESS_BUDGET:g}× the raw gyro's attitude cost):** {line}.\n")
-    return ExperimentResult(name="cutoffs", title=f"Filter cutoffs flown by the firmware ({version})",
+    return ExperimentResult(name="cutoffs_firmware", title=f"Filter cutoffs flown by the firmware ({version})",
                             markdown="\n".join(md), figures=tuple(figs), summary=summary,
                             wall_s=time.perf_counter() - t0)
