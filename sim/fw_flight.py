@@ -742,6 +742,7 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
     meta = dict(hf.meta)
     meta.update({
         "runner": "sim.fw_flight.fly_firmware",
+        "manoeuvres": f"{len(pulses)} rate pulses" if pulses else "0",
         "scenario": opts.scenario,
         "sensor": opts.sensor or "perfect (the true rate)",
         "loop_rate_hz": f"{rate:.10g}",
