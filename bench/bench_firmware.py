@@ -19,7 +19,7 @@ of steps, in one process:
 
 CPU time is this process's plus the SITL process's (``psutil``): the loop is ping-pong, so on
 an unloaded core CPU ≈ wall; on a shared machine the CPU figure is the steadier one. Each figure
-is the best of ``--repeat`` runs. Goal (issue 23): closed loop ≥ 2 simulated s per wall s.
+is the best of ``--repeat`` runs. Goal: closed loop ≥ 2 simulated s per wall s.
 """
 
 from __future__ import annotations

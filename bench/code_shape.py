@@ -3,7 +3,7 @@
 ``python bench/code_shape.py [TOP]`` prints the number of import circles among the project's
 modules (every import, those inside functions included: tests/test_architecture.py's graph),
 then the modules and functions with the most lines of code (not blank, comment or docstring
-lines) in gyrocore, sim and experiments, and how many exceed ~800 / ~100 (issue 24's bounds).
+lines) in gyrocore, sim and experiments, and how many exceed ~800 / ~100 (docs/ARCHITECTURE.md's bounds).
 """
 
 from __future__ import annotations

@@ -102,7 +102,7 @@ CASES = {
         Case("quant_icm42688_2000dps_100Hz_20min", 100, 1200, N=ICM_N, lsb_per_dps=16.4),
         Case("quant_icm42688_2000dps_1kHz_10min", 1000, 600, N=ICM_N, lsb_per_dps=16.4),
         Case("quant_bmi088_2000dps_400Hz_20min_flicker", 400, 1200, N=BMI_N, B=BMI_FLOOR / F, lsb_per_dps=16.384),
-        # issue 25: a flicker plateau of 3.5 octaves between N's crossing (13 s) and K's (150 s),
+        # a flicker plateau of 3.5 octaves between N's crossing (13 s) and K's (150 s),
         # the levels of experiments.noise_study.plateau_mix(3.5); 2 h at 20 Hz, where the lowest
         # periodogram bins are red (the old line detector took bin 2 for a line)
         Case("nbk_plateau_fft_20Hz_2h", 20, 7200, N=1e-4, B=4.134e-5, K=3.884e-6, flicker="fft"),

@@ -1,4 +1,4 @@
-"""The firmware's filtered gyro in simulated flight held against a real log's (issue 23 item 8).
+"""The firmware's filtered gyro in simulated flight held against a real log's.
 
 For a real flight log that carries its unfiltered gyro (``gyro_prefilter_*``: Betaflight's
 ``DEBUG_GYRO_SCALED``) beside the filtered one (``gyroADC``, what its PID used):

@@ -1,5 +1,5 @@
 """``gyroharness filter-closed-loop FLIGHT --firmware betaflight``: the gyro filter chain chosen by
-flying the candidates with the firmware in the loop (issue 23 item 7; the project's-controller
+flying the candidates with the firmware in the loop (the project's-controller
 version is :mod:`experiments.flight_filter`).
 
 The firmware is booted with the pilot's whole tune, read from the log's header through the bridge

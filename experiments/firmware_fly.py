@@ -1,5 +1,5 @@
 """``gyroharness firmware fly``: one closed-loop flight with the firmware in the loop, scored
-(issue 23 item 6; the flight itself is :func:`sim.fw_flight.fly_firmware`).
+(the flight itself is :func:`sim.fw_flight.fly_firmware`).
 
 The firmware is booted with the settings (CLI ``set`` lines, a ``diff`` file or a blackbox log's
 header, through the bridge), armed (boot and arming before t = 0, not scored), and flies the

@@ -1,4 +1,4 @@
-"""Monte Carlo study of noise identification (issue 11): mixes × record lengths × rates.
+"""Monte Carlo study of noise identification: mixes × record lengths × rates.
 
 For every cell (mix, duration, rate) and replicate, three independent axes of noise are drawn
 with the generators of :mod:`sim.noise` directly on numpy arrays (no MuJoCo): white rate
@@ -57,7 +57,7 @@ MIXES: dict[str, dict[str, float]] = {
 
 
 def plateau_mix(octaves: float, *, n_rad_per_sqrt_s: float = 1e-4, tau_bk_s: float = 150.0) -> dict[str, float]:
-    """N + B + K whose flicker plateau spans ``octaves`` octaves between N's and K's crossings (issue 25).
+    """N + B + K whose flicker plateau spans ``octaves`` octaves between N's and K's crossings.
 
     Crossings of the IEEE 952 asymptotes: N²/τ = (2 ln2/π)B² at τ_NB, (2 ln2/π)B² = K²τ/3 at τ_BK;
     τ_BK is held at ``tau_bk_s`` (K then dominates ≈ 4.5 octaves of a 2-h record) and
@@ -69,7 +69,7 @@ def plateau_mix(octaves: float, *, n_rad_per_sqrt_s: float = 1e-4, tau_bk_s: flo
     return {"N": n_rad_per_sqrt_s, "B": b, "K": b * math.sqrt(3.0 * f / tau_bk_s)}
 
 
-# issue 25: B's plateau between N's and K's crossings over 2, 3.5 and 5 octaves (the N+B+K mix
+# B's plateau between N's and K's crossings over 2, 3.5 and 5 octaves (the N+B+K mix
 # above has none: K crosses B at 75 s, before N does at 100 s). Appended, so that the seeds of
 # the mixes above (their index enters the entropy) are unchanged.
 for _oct in (2.0, 3.5, 5.0):
@@ -114,12 +114,12 @@ def _identify(method: str, g: np.ndarray, rate_hz: float) -> dict[str, dict]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         if method == "adev_legacy" and not hasattr(AL, "identify_noise"):
-            # today's code (before issue 11): allan_analysis on a Recording
+            # the earlier fit: allan_analysis on a Recording
             from gyrocore.data.recording import Recording
 
             res = AL.allan_analysis(Recording(t_s=np.arange(g.shape[0]) / rate_hz, gyro_rad_s=g))
         elif method == "gmwm_rwcheck":
-            # round 6: the default estimator with the block-likelihood check of a claimed K against
+            # the default estimator with the block-likelihood check of a claimed K against
             # a GM that turns over inside the record (gyrocore.noise.rwgm; off by default)
             from gyrocore.noise.options import NoiseOptions
 
@@ -338,7 +338,7 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
 
 
 def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, base: int = 4404) -> dict:
-    """Development diagnostics of one cell (round 4 of issue 11): over ``seeds`` × 3 axes drawn with
+    """Development diagnostics of one cell: over ``seeds`` × 3 axes drawn with
     ``SeedSequence([s, base])`` (not the study's seed), how often each (selected subset, ambiguous
     pairs) occurs, and the selection statistic's difference D = χ²_log(alternative) − χ²_log(true
     model) for every alternative of the same size (mean, sd, P(D < 0))."""
@@ -376,7 +376,7 @@ def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, b
 
 def flicker_wv_check(T_s: float, rate_hz: float) -> dict:
     """Expected overlapping Allan variance of the flicker generators over a finite record, exactly,
-    against the GMWM's flicker column (issue 25: is the fit's flicker WV the generator's?).
+    against the GMWM's flicker column (is the fit's flicker WV the generator's?).
 
     A generator started at rest is y_j = Σ_{l ≤ j} h_{j−l} w_l (impulse response h, unit white w);
     the Allan difference at position k is Σ_l w_l g_{k+2m−1−l} with g = h ∗ Haar_m, so its

@@ -1,4 +1,4 @@
-"""Lines under an optical attitude reference (issue 25, part 1): synthetic recordings and the
+"""Lines under an optical attitude reference (part 1): synthetic recordings and the
 Monte Carlo of the loop's sample-level line search against a differentiated attitude.
 
 A motion-capture-like recording: rows at the optical rate (the gyro resampled to it, as

@@ -1,4 +1,4 @@
-"""Closed-loop flight with flight-controller firmware in the loop (issue 23 item 6).
+"""Closed-loop flight with flight-controller firmware in the loop.
 
 The MuJoCo vehicle (:mod:`sim.vehicles`) flies on a real firmware's gyro filters, PID loop and
 mixer (:class:`sim.firmware.BetaflightSITL`, lockstep: one firmware loop per gyro sample). Per

@@ -1,4 +1,4 @@
-"""``gyroharness firmware …``: real Betaflight in the loop (issue 23).
+"""``gyroharness firmware …``: real Betaflight in the loop.
 
 Subcommands register on :data:`command` (a click group); each lives in its own function below so
 more can be added with ``@command.command("name")``.

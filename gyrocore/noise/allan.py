@@ -69,7 +69,7 @@ __all__ = [
     "FORMAT_VERSION",
 ]
 
-FORMAT_VERSION = "2.0"  # 2.0: GM terms, method, resolved flags, τ up to T/2 (issue 11)
+FORMAT_VERSION = "2.0"  # 2.0: GM terms, method, resolved flags, τ up to T/2
 RAD2DEG = 180.0 / math.pi
 
 #: JSON names of the IEEE 952 terms, in the order of the model's coefficient vector.
@@ -494,9 +494,9 @@ class AllanResult:
     chi2: float = float("nan")
     dof: int = 0
     #: terms of the fitted model (``estimate``) not resolved because a stand-in with a higher
-    #: penalty fits as well: {term: stand-in} (``gmwm`` only, issue 11 round 2)
+    #: penalty fits as well: {term: stand-in} (``gmwm`` only)
     ambiguous: Mapping[str, str] = field(default_factory=dict)
-    #: deviation of the sum of the REPORTED terms, rad/s, at ``taus_s`` (round 5): resolved terms and
+    #: deviation of the sum of the REPORTED terms, rad/s, at ``taus_s``: resolved terms and
     #: terms fitted but not told from a stand-in (``ambiguous``); unresolved (null) terms left out.
     #: ``fit_adev_rad_s`` is the selected fit (the same unless the selection kept a null term)
     reported_adev_rad_s: np.ndarray | None = None
@@ -727,7 +727,7 @@ def _axis_result(
 
         n = int(omega.shape[0])
         avar = dev**2
-        # round 5: narrowband lines (vibration, interference) are not sensor noise: their Allan
+        # narrowband lines (vibration, interference) are not sensor noise: their Allan
         # variance is subtracted before the fit (one warning naming them)
         lines = gmwm.line_avar(omega, rate_hz, m)
         if lines.freqs_hz:
@@ -737,7 +737,7 @@ def _axis_result(
                         + " are not sensor noise: their Allan variance (up to "
                         + f"{100 * float(np.max(lines.avar / dev**2)):.0f} % at tau = {taus[int(np.argmax(lines.avar / dev**2))]:.3g} s)"
                         + " is removed before the noise fit")
-        # round 5: the octaves shaped by the sensor's low-pass are left out of the fit
+        # the octaves shaped by the sensor's low-pass are left out of the fit
         k0 = gmwm.bandwidth_start(avar, m, n, rate_hz)
         # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
         meth = method + "+lp" if k0 else method
@@ -1107,7 +1107,7 @@ def allan_analysis(
         ADEV kernel, see :func:`oadev`.
     method : {"gmwm", "adev", "adev_legacy"}
         ``gmwm`` (default): :mod:`gyrocore.noise.gmwm` with Gauss–Markov terms; ``adev``: the IEEE 952
-        joint fit on the same statistic and weights; ``adev_legacy``: the fit before issue 11
+        joint fit on the same statistic and weights; ``adev_legacy``: the earlier fit
         (τ ≤ T/4, backward elimination), kept for the study's baseline.
     check_static : bool
         Refuse a recording whose motion gate rejects more than :data:`MAX_MOVING_FRACTION`
@@ -1267,7 +1267,7 @@ def identify_noise(
     engine: str = "fast",
     options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
 ) -> "NoiseResult":
-    """Identify the noise terms of a still recording or of rate arrays (the public API, issue 11).
+    """Identify the noise terms of a still recording or of rate arrays (the public API).
 
     Parameters
     ----------
@@ -1372,7 +1372,7 @@ def _window_sample(x: np.ndarray, rate: float, *, window_s: float = 2.0, max_win
     return Recording(t_s=np.arange(idx.size) / rate, gyro_rad_s=x[idx])
 
 
-#: Public names of the results (issue 11 API): a per-axis result and the whole analysis.
+#: Public names of the results: a per-axis result and the whole analysis.
 NoiseAxis = AllanResult
 NoiseResult = AllanAnalysis
 

@@ -1,4 +1,4 @@
-"""Noise identification on the Haar wavelet variance: GMWM and the fixed joint ADEV fit (issue 11).
+"""Noise identification on the Haar wavelet variance: GMWM and the fixed joint ADEV fit.
 
 Two estimators share this engine; both take the overlapping Allan variance σ̂²(τ_j) at the
 octave factors m_j = 1, 2, 4, … ≤ (n−1)/2 (the **whole** τ range, not T/4). The Haar MODWT
@@ -54,14 +54,14 @@ Resolvability (predicted, :func:`expected_z`): at the true parameters, every alt
 without the term is fitted to the noise-free truth; the probability that the selection prefers one
 of the near alternatives is simulated (chi-square draws of the Allan variance with its correlation,
 each model refitted), the stand-in checks keep their normal form, and the miss probabilities are
-summed (round 4). Resolvable when the margin Φ⁻¹(1 − p_miss) ≥ z_{0.9} (claimed with ≥ 90 %
+summed. Resolvable when the margin Φ⁻¹(1 − p_miss) ≥ z_{0.9} (claimed with ≥ 90 %
 probability).
 
 Stand-in checks (:func:`_ambiguous`): a selected B, Q or R must reject the world of a GM in its
-place, and (round 4) a selected R the world of K in its place, at 5 %; a ramp not told from a
+place, and a selected R the world of K in its place, at 5 %; a ramp not told from a
 random walk is reported as the random walk. Intervals of selected long-τ terms are widened to
-the enlarged model's where an unselected term moves them by more than their SE (round 4,
-:func:`_robust_ends`).
+the enlarged model's where an unselected term moves them by more than their SE
+(:func:`_robust_ends`).
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ def _base_design(m_key: tuple[int, ...], rate_hz: float, method: str) -> np.ndar
     dt = 1.0 / rate_hz
     t = m * dt
     A = np.zeros((m.size, 6))
-    # "+lp" (round 5): above the sensor's low-pass, white rate noise through any filter with unit
+    # "+lp": above the sensor's low-pass, white rate noise through any filter with unit
     # DC gain has σ² = N²/τ − κN²/τ² (+ terms that vanish beyond the filter's impulse response): the
     # first column is then that signed deficit, −3/τ² (coefficient ≥ 0), instead of white angle
     # noise 3Q²/τ² — the two have one signature, so Q is not identified beside a low-pass
@@ -200,7 +200,7 @@ def _base_design(m_key: tuple[int, ...], rate_hz: float, method: str) -> np.ndar
 
 
 def _base(method: str) -> str:
-    """The estimator of a method name: "gmwm" or "adev" (a "+lp" suffix marks a low-pass, round 5)."""
+    """The estimator of a method name: "gmwm" or "adev" (a "+lp" suffix marks a low-pass)."""
     return method.split("+", 1)[0]
 
 
@@ -322,7 +322,7 @@ def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray
     mm = m.astype(float)[:, None]
     H2 = 4.0 * s4 / (mm**2 * sn2[None, :])  # |H_m|², averaged where fast
     cc = np.where(np.asarray(c) > 0, c, 0.0)
-    if method.endswith("+lp"):  # the low-pass deficit is no spectral term of its own (round 5)
+    if method.endswith("+lp"):  # the low-pass deficit is no spectral term of its own
         cc = cc.copy()
         cc[0] = 0.0
     if not np.any(cc[:4] > 0) and not cc[5] > 0:
@@ -347,7 +347,7 @@ def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray
     mu = np.gradient(lm, lt) if m.size > 1 else np.array([-1.0])
     alpha = _alpha_of_slope(mu)
     edf = np.array([_edf(int(a), int(v), int(n_samples) + 1) for a, v in zip(alpha, m)])
-    # Mixtures (round 3): Greenhall's EDF is that of ONE power law; where two terms share an
+    # Mixtures: Greenhall's EDF is that of ONE power law; where two terms share an
     # octave (white angle Q and white rate N over m = 1…3Q²f_s/N² at 1 kHz) Var σ̂² is not
     # that law's. The large-sample variance Var σ̂²_j ≈ 2∫|H_j|⁴S² dν / M_j (Percival & Walden
     # eq. 308; the diagonal of C above) gives edf_spec = 2σ⁴_j M_j / ∫|H_j|⁴S², which is
@@ -371,7 +371,7 @@ def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray
         R = R / np.outer(dd, dd)
     C = R * np.outer(sd, sd)
     if cc[2] > 0 and _FLICKER_SHAPE_SD > 0:
-        # (issue 25) the flicker's Allan variance at the first octaves is a convention of how the
+        # the flicker's Allan variance at the first octaves is a convention of how the
         # 1/f process reaches the sample rate, not a property of B: point-sampled 1/f up to
         # Nyquist (Kasdin–Walter, this model's column) is 1.44× the IEEE asymptote at m = 1,
         # 1.15× at 2, 1.05× at 4; continuous 1/f averaged over each sample interval (a sensor's
@@ -573,7 +573,7 @@ _Z_STANDIN = float(scipy.stats.norm.isf(ALPHA_STANDIN))
 #: pairs where one term is a limit of the other (GM with τc → ∞ is a random walk over the
 #: record): nested, so the penalty (an LR test) already decides between them
 _NESTED = {frozenset((3, 5))}
-#: stand-in checks beyond "a candidate with a larger penalty" (round 4): the rate ramp R is
+#: stand-in checks beyond "a candidate with a larger penalty": the rate ramp R is
 #: checked against the random walk K. Their penalties are equal, so the selection picks
 #: whichever fits the realisation better, and a random-walk realisation over the record always
 #: carries a linear trend: with K true the ramp won on 8–12 % of the 1-h axes (the Vuong
@@ -582,7 +582,7 @@ _NESTED = {frozenset((3, 5))}
 #: the ramp: R is claimed only when the K world (K fitted in R's place) is rejected at
 #: :data:`ALPHA_RAMP`, which bounds R claimed for a true K by that level.
 _EXTRA_CHECKS = {(4, 3)}
-#: level of the R-against-K check (round 5). At 5 % (round 4) the check is a calibrated 5 % test
+#: level of the R-against-K check. At 5 % the check is a calibrated 5 % test
 #: — development census, 1 h, K true: R claimed 12/240 (100 Hz), 11/240 (N+Q+K 100 Hz), 7/240
 #: (1 kHz), and on 12/240 axes the check's z = (λ − D)/(2√λ) exceeded z₀.₉₅ = 1.645 — so the false
 #: ramp sat *at* the issue's ≤ 5 % bound, and a 24-axis cell showed 2/24 = 8 % a third of the time
@@ -625,7 +625,7 @@ def _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log) 
     """
     out: dict[int, int] = {}
     for x in sub:
-        if x == 1 or (x == 0 and method.endswith("+lp")):  # N; the low-pass deficit (round 5)
+        if x == 1 or (x == 0 and method.endswith("+lp")):  # N; the low-pass deficit
             continue
         for y in sorted({k for s_ in fits for k in s_} - set(sub)):
             if not _checked(x, y):
@@ -666,7 +666,7 @@ def _robust_ends(i, sub, fits, c, var, lo, hi, cand, m, rate_hz, method, tc_s):
             # walk over it) is not identified in the enlarged model — its information matrix is
             # near singular, the pair trades one for the other along a ridge, so "c moves by more
             # than its SE" always holds and the enlarged interval has ν = 2c²/se² → 0 and an
-            # infinite upper end (a resolved K of 4.3e-6 came out [3.5e-6, ∞], helper indep);
+            # infinite upper end (a resolved K of 4.3e-6 came out [3.5e-6, ∞]);
             # between nested terms the penalty decides, as in the selection (_checked)
             continue
         sub2 = tuple(sorted(set(sub) | {x}))
@@ -793,7 +793,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     # likelihood on the variance scale would (log det Σ(θ)) and then favours whichever model
     # predicts the smaller long-τ variance: with edf ≈ 2–6 at the last octaves, a random
     # walk whose realisation sags is taken for a flat flicker floor.
-    # "+lp" (round 5): the low-pass deficit (first column) was established by the bandwidth test
+    # "+lp": the low-pass deficit (first column) was established by the bandwidth test
     # and is in every model, as N (left to the selection, its penalty kept it out where N then
     # absorbed it: N 6 % low, z = −4.7, on a simulated first-order filter of 1.5 samples)
     lp = [0] if (method.endswith("+lp") and 0 in cand) else []
@@ -811,7 +811,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     W_log, bias_log = _log_weights(fits[full][2], fits[full][3])
     best = None
     lchi2 = {}
-    # round 5: a subset the data reject (goodness of fit, :func:`goodness_of_fit`, below
+    # a subset the data reject (goodness of fit, :func:`goodness_of_fit`, below
     # ALPHA_GOF) is no candidate when some subset is not rejected. The log-space χ² underrates a
     # long-τ point far above the model (thin upper tail of log χ²_ν at ν ≈ 2–6)
     gof_p = {s_: _fit_check(fits[s_], s_, avar, m, rate_hz, method).p_value for s_ in subsets}
@@ -857,7 +857,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
             smaller = tuple(k for k in sub if k != i)
             pen_i = _PEN_GM if i == 5 else _PEN_LINEAR
             if gof_p.get(smaller, 1.0) < ALPHA_GOF <= gof_p[sub]:
-                continue  # round 5: its removal is rejected by the data (the reported test) — not marginal
+                continue  # its removal is rejected by the data (the reported test) — not marginal
             if smaller in lchi2 and lchi2[smaller] - lchi2[sub] < 2.0 * pen_i:
                 zw[i] = coef_s[i] / math.sqrt(cov_p[j, j]) if cov_p[j, j] > 0 else float("inf")
         if not zw:
@@ -868,7 +868,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
         sub = tuple(i for i in sub if i != worst)
     ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log)
     for x, y in list(ambiguous.items()):
-        # round 4: a ramp not told from a random walk (see _EXTRA_CHECKS) is the random walk's
+        # a ramp not told from a random walk (see _EXTRA_CHECKS) is the random walk's
         # trend — the random-walk model stands in its place when all its terms are positive
         # (also when a GM is not rejected either: between K and GM the penalty decides, as in the
         # selection; requiring K to be the only stand-in cost 3 of 120 true-K development axes at
@@ -913,7 +913,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
         name = LINEAR[i]
         sub2 = tuple(sorted(set(sub) | {i}))
         if sub2 in fits:
-            # round 2: the enlarged models with their own iterated weights (the selected model's
+            # the enlarged models with their own iterated weights (the selected model's
             # weights leave the term's own variance out of the long-τ covariance), and the term
             # also in place of each selected term (a selected stand-in — B or R for an
             # unresolved K — absorbs the term in the enlarged model): the bound is the largest
@@ -1010,7 +1010,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
     statistic's difference between the true model and that stand-in (B against K or GM, K against R or GM,
     …). The selection prefers the true model when LR > Δpen = penalty(true) − penalty(alt);
     with √LR ≈ N(√λ, 1) it does so with ≥ 90 % probability when √λ_alt − √Δpen ≥ z₀.₉ = 1.28
-    (no condition when Δpen ≤ 0). Round 4: the term is missed when any alternative wins, so the
+    (no condition when Δpen ≤ 0). The term is missed when any alternative wins, so the
     margin is Φ⁻¹(1 − p_miss) with p_miss = P(some near alternative, z < 5, beats the truth in the
     selection) — simulated with :data:`SIM_DRAWS` seeded draws σ̂²_j = σ²_j χ²_ν/ν correlated through
     a Gaussian copula, each model refitted with the weights of its fit to the truth, because the
@@ -1094,11 +1094,11 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                 elif dpen >= 0:
                     # a non-nested stand-in (R or B for K, K for B, …): the difference of the two
                     # fits' statistics is ≈ N(λ, 4λ) (Vuong 1989) and may be negative; the true
-                    # model wins when it exceeds Δpen: z = (λ − Δpen)/(2√λ) (round 2; the √ form
+                    # model wins when it exceeds Δpen: z = (λ − Δpen)/(2√λ) (the √ form
                     # above made K at 1 h look safer than the study shows)
                     z_v = (lam - dpen) / (2.0 * math.sqrt(lam)) if lam > 0 else -math.inf
                     if swap_y and (swap_y[0], i) in _EXTRA_CHECKS:
-                        # round 4: the stand-in y (R for a true K) must also reject the world of
+                        # the stand-in y (R for a true K) must also reject the world of
                         # term i, fitted to the data ≈ the truth, at distance ≈ λ from y's fit:
                         # claimed when D ≈ N(λ, 4λ) < λ − z_{1−α}·2√λ, i.e. with probability
                         # α (z = z_{1−α}, α = ALPHA_RAMP); otherwise i stands in its place
@@ -1120,21 +1120,21 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                     z_claim = (thr + lam) / (2.0 * math.sqrt(lam)) if lam > 0 else (math.inf if thr > 0 else -math.inf)
                     zs.append(z_claim)
         if options.rw_check and i == 3 and 5 in cand and set(true_sub) <= {0, 1, 3}:
-            # round 6: the claimed K must also reject a GM that turns over inside the record, on the
+            # the claimed K must also reject a GM that turns over inside the record, on the
             # exact likelihood of the block means (gyrocore.noise.rwgm; applied in allan._axis_result)
             from . import rwgm
 
             zs.append(rwgm.miss_z(arw_rad_per_sqrt_s=math.sqrt(coef[1]), rrw_rad_per_s_sqrt_s=math.sqrt(coef[3]),
                                   quantization_rad=math.sqrt(coef[0]), n_samples=int(n_samples), rate_hz=rate_hz,
                                   tau_max_s=float(t[-1])))
-        # round 4: the term is missed when ANY alternative wins, so the miss probability is
+        # the term is missed when ANY alternative wins, so the miss probability is
         # bounded by the sum over alternatives (union bound), not the largest one: with K at 1 h
         # both R (Φ(−1.29) ≈ 10 %) and B (≈ 6 %) stand in, and the minimum alone (1.29 ≥ 1.28)
         # called K resolvable where the study found it on 79 %. margin = Φ⁻¹(1 − Σ Φ(−z_alt)).
         margin = min(zs, default=math.inf)
         near = [a for a, z in sel_alts if z < 5.0]
         if near and i != 1:  # N is in every model the estimator fits
-            # the selection between the truth and its near alternatives, simulated (round 4): the
+            # the selection between the truth and its near alternatives, simulated: the
             # normal approximations above ignore that each model is refitted to the realisation —
             # with K true at 1 h the flicker model, refitted, beats N + K on 4–5 % of draws where
             # the Vuong form gives 0.6 % (the study: B selected on 5.8 % of the development axes)
@@ -1160,7 +1160,7 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
     return out
 
 
-# ---------------------------------------------------------------------------- goodness of fit (round 5)
+# ---------------------------------------------------------------------------- goodness of fit
 #: level of the goodness-of-fit test of the selected model (``fit_ok`` false below it)
 ALPHA_GOF = 0.01
 #: one-sided level of the test that the shortest scales are shaped by the sensor's low-pass
@@ -1171,7 +1171,7 @@ ALPHA_BANDWIDTH = 0.001
 
 @dataclass(frozen=True, eq=False)
 class FitCheck:
-    """Goodness of fit of a fitted Allan variance against the measured one (round 5).
+    """Goodness of fit of a fitted Allan variance against the measured one.
 
     Attributes
     ----------
@@ -1215,7 +1215,7 @@ def _pit_z(avar: np.ndarray, model: np.ndarray, edf: np.ndarray) -> np.ndarray:
 
 def goodness_of_fit(avar: np.ndarray, model: np.ndarray, cov: np.ndarray, edf: np.ndarray,
                     n_params: int) -> FitCheck:
-    """Is the measured Allan variance consistent with the fitted model? (round 5)
+    """Is the measured Allan variance consistent with the fitted model?
 
     Why not the selection's log-space χ²: log σ̂² with ν ≈ 2–6 (the last octaves) has a thin
     upper tail, so a model 50× below a long-τ point (tomisuarez2 y, N alone) scored z ≈ 2.8 there;
@@ -1258,7 +1258,7 @@ def _fit_check(fit_entry, sub, avar, m, rate_hz, method) -> FitCheck:
 
 
 def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: float) -> int:
-    """Index of the first scale above the sensor's low-pass (0 when none is seen). (round 5)
+    """Index of the first scale above the sensor's low-pass (0 when none is seen).
 
     A gyro's output is low-pass filtered (digital LPF, anti-aliasing, integration over the
     output interval). Below a few filter time constants its Allan variance falls by less than
@@ -1280,7 +1280,7 @@ def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: fl
     excess exceeds the one before. Without this a flicker floor 1.5 % of σ² at the first octave
     (N + B + K with a 5-octave plateau, 2 h at 20 Hz: z of d_k = 3.3, 4.6, 5.0, 7.2, …) was taken
     for a low-pass at *every* pair and the fit started at τ = 100 s, with N reported at 4–9× its
-    truth (issue 25). Pairs are tested from the first one up; when the first is flagged, the fit
+    truth. Pairs are tested from the first one up; when the first is flagged, the fit
     starts above the first pair that is not (at least 6 scales kept), where the remaining low-pass
     deficit −κN²/τ² is fitted in place of Q (method suffix "+lp"). On white noise the first pair
     is flagged with probability ≤ α.
@@ -1342,7 +1342,7 @@ ALPHA_LINE = 0.001
 
 @dataclass(frozen=True, eq=False)
 class Lines:
-    """Narrowband lines found in a still record (round 5, :func:`line_avar`).
+    """Narrowband lines found in a still record (:func:`line_avar`).
 
     Attributes
     ----------
@@ -1375,8 +1375,8 @@ def line_avar(x: np.ndarray, rate_hz: float, m: np.ndarray) -> Lines:
     below and of the bins 5–24 above, each divided by the median of χ²_ν/ν: a line stands above
     the noise on both of its sides, whereas a red spectrum (flicker, random walk: 1/f, 1/f²) stands
     above its higher-frequency side at every low bin, and a floor from that side alone (or from
-    both pooled, or mirrored at 0 Hz) took the red rise of the lowest bins for a line (issue 25:
-    a "line" at bin 2, 0.039 Hz, on every axis of a 2-h N + B + K record at 20 Hz, whose removal
+    both pooled, or mirrored at 0 Hz) took the red rise of the lowest bins for a line
+    (a "line" at bin 2, 0.039 Hz, on every axis of a 2-h N + B + K record at 20 Hz, whose removal
     took 20–33 % of the Allan variance off the flicker plateau and put B at 0.6× its truth). Bins 0
     and 1 (the mean and each segment's linear detrend) enter no floor, and a bin is tested only
     with ≥ 3 bins on its low side (bin ≥ 10: f ≥ 10·rate/segment; below, the noise model keeps

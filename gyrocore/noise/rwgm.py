@@ -1,4 +1,4 @@
-"""Random walk or a Gauss–Markov bias that turns over inside the record? (issue 11, round 6)
+"""Random walk or a Gauss–Markov bias that turns over inside the record?
 
 A rate random walk K and a first-order Gauss–Markov (GM) bias of correlation time τc have the
 same Allan-variance slope (+½) for τ ≪ τc; the GM's variance turns over at τ ≈ 1.89 τc and then
@@ -39,14 +39,14 @@ GM world rejected at 5 %, the level of every stand-in check).
 false K claims for a GM of τc = 20 s in 10-min records and cost 8 of 144 true K at 1–4 h. E is
 ≈ 7.5–7.9 at every record length — a GM with τc ≈ T/20–T/30 and a random walk differ only over
 the last ≈ 2 octaves whatever T is — so this most powerful test has a fixed error pair, and the
-two goals cannot both be met for that pair (docs/noise.md "Round 6").
+two goals cannot both be met for that pair (docs/noise.md, "K for a Gauss–Markov bias").
 
 The cap: τc ≤ τ_max/8 (τ_max the last Allan averaging time): the GM's hump (1.89 τc) then lies
 at most at τ_max/4, with ≥ 2 octaves of its 1/τ fall inside the record. A GM whose τc reaches
 beyond that *is* a random walk over the record (the nested pair of the selection); this check
 only asks whether the data exclude a GM that turns over where the record can see it.
 
-Measured on development seeds (``SeedSequence([s, 4404])``, docs/noise.md "Round 6"): the
+Measured on development seeds (``SeedSequence([s, 4404])``, docs/noise.md, "K for a Gauss–Markov bias"): the
 check alone (true N) keeps K on 23/24 N+K axes (1 h, 100 Hz) and lets it pass on 4/24 N+GM axes
 (τc = 20 s at the cap, 10 min, 50 Hz); inside :func:`gyrocore.noise.allan.identify_noise`, K claimed
 for the GM 33/216 → 21/216 (10 min, 50/100/1000 Hz) and found with K true 171/180 → 162/180

@@ -1,4 +1,4 @@
-"""Spec round trip of an energy band (issue 25.2): band → ``simulate --vibration SPEC`` → ``vibration`` finds it again.
+"""Spec round trip of an energy band: band → ``simulate --vibration SPEC`` → ``vibration`` finds it again.
 
 The spec is written from the synthetic swept-rotor flight of tests/gyrocore/test_vibration_bands.py
 (a line sweeping ±15 % within each window); its throttle band 2 (command 0.4: the line sweeps

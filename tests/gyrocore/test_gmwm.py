@@ -1,4 +1,4 @@
-"""GMWM / fixed joint ADEV fit (issue 11): exact term variances, covariance model, selection, API, CLI."""
+"""GMWM / fixed joint ADEV fit: exact term variances, covariance model, selection, API, CLI."""
 
 from __future__ import annotations
 
@@ -204,7 +204,7 @@ def test_arw_rrw_monte_carlo_rates():
     ≥ 48 with probability ≥ 99 %, at p = 0.97 it is ≤ 60 (no upper constraint at 60 axes; the
     central 95 % range of the count at p = 0.95 is 53–60). B (absent) claimed ≤ 5 %: at p = 0.05 the
     count is ≤ binom.ppf(0.99, 60, 0.05) = 7 with probability ≥ 99 %. N's interval: same
-    coverage bound as K. (Before issue 11 round 2: K covered 27/36 = 75 %, 45 of 60 expected.)
+    coverage bound as K. (With the selected model's weights for the enlarged fits: K covered 27/36 = 75 %, 45 of 60 expected.)
     The seeds (SeedSequence(900 + s)) were not used to develop the estimator.
     """
     n = 360000
@@ -292,10 +292,10 @@ def test_chi_square_interval_of_a_coefficient():
 
 
 def test_arw_interval_with_quantization_at_1khz_covers():
-    """N's 95 % interval when white angle noise Q shares N's octaves (N+Q+K at 1 kHz, round 3).
+    """N's 95 % interval when white angle noise Q shares N's octaves (N+Q+K at 1 kHz).
 
     Q = 2e-5 rad dominates the AVAR up to τ = 3Q²/N² = 0.12 s (m ≈ 120); N is fitted on the
-    octaves where both terms weigh. Before round 3 the EDF there was the white-PM law's
+    octaves where both terms weigh. With one power law's EDF the EDF there was the white-PM law's
     (≈ n/2 at every m), 3.5× too large at m = 64, and the interval covered ~70 % (30 axes;
     62–79 % in the study). 20 seeds × 3 axes of 10 min at 1 kHz, fixed Q+N+K fit (the
     interval itself, not the selection). Tolerance: covered ≥ 53/60 — for a true 95 %
@@ -325,10 +325,10 @@ def test_arw_interval_with_quantization_at_1khz_covers():
 
 
 def test_ramp_must_reject_the_random_walk_world():
-    """Round 4: R (rate ramp) against K (rate random walk), equal penalties. An Allan variance
+    """R (rate ramp) against K (rate random walk), equal penalties. An Allan variance
     halfway between N + K and the N + R fit to it (noise-free blend, 1 h at 100 Hz) has R
-    selected by a hair; R is claimed only when the K world is rejected (round 4: at 5 %), which a blend
-    cannot do, so the random walk stands in its place (K reported, R null). Before round 4 R
+    selected by a hair; R is claimed only when the K world is rejected, which a blend
+    cannot do, so the random walk stands in its place (K reported, R null). Without the check R
     was claimed here (the study: R for a true K on 8–12 % of the 1-h axes). A pure ramp world
     (the N + R fit itself) is still reported as R."""
     n = 360000
@@ -347,10 +347,10 @@ def test_ramp_must_reject_the_random_walk_world():
 
 
 def test_ramp_claimed_at_the_level_of_every_claim():
-    """Round 5: the R-against-K check at the level α = 1 % of every other claim (ALPHA_RAMP), not
+    """The R-against-K check at the level α = 1 % of every other claim (ALPHA_RAMP), not
     5 %. Noise-free Allan variance 3/4 of the way from N + K (1 h, 100 Hz) to the N + R fit to it:
     R is selected and its check statistic z = (λ − D)/(2√λ) is 2.01, between z₀.₉₅ = 1.645 (R
-    claimed in round 4, a 5 % false ramp per cell) and z₀.₉₉ = 2.33: now the random walk stands in
+    claimed at a 5 % level, a 5 % false ramp per cell) and z₀.₉₉ = 2.33: now the random walk stands in
     (K reported, R null). The pure ramp world (z = 3.2) is still reported as a ramp; the rule's
     margin of K against R is at least z₀.₉₉."""
     n = 360000
@@ -365,7 +365,7 @@ def test_ramp_claimed_at_the_level_of_every_claim():
 
 
 def test_interval_robust_to_an_omitted_confounder():
-    """Round 4: a flicker floor B too weak to be selected next to a GM (noise-free N + B + K + GM,
+    """A flicker floor B too weak to be selected next to a GM (noise-free N + B + K + GM,
     4 h at 50 Hz) is absorbed by the GM, whose σ moves by more than its own SE when B is added;
     the σ interval is then the union of the selected model's and the enlarged model's (in the
     study the conditional interval covered 54 % of the N+B+K+GM 4-h axes). A weaker floor that

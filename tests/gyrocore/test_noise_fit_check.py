@@ -1,4 +1,4 @@
-"""Issue 11 round 5: the reported noise model must fit the measured Allan variance.
+"""The reported noise model must fit the measured Allan variance.
 
 The lead's last new-user check found `gyroharness noise` on the PX4 sample.ulg plotting a
 "fitted sum" 7x above every long-tau ADEV point and reporting N at a quarter of its value: the
@@ -318,8 +318,8 @@ def _analyse(path):
 def test_every_real_still_recording_is_fitted(shared_data):
     """17 recordings, 51 axes (≈ 40 s CPU): each axis's fit passes the goodness-of-fit test and the
     reported sum lies in the chi-square band of every fitted point, Bonferroni over the 51 axes
-    (a right model fails this test with probability ≤ 1 %). On main before round 5 (same test
-    statistic applied to its fits), 21 of 51 axes failed (p < 0.01/51) and 26 had p < 0.01: the PX4
+    (a right model fails this test with probability ≤ 1 %). Before the fit check (same test
+    statistic applied to the earlier fits), 21 of 51 axes failed (p < 0.01/51) and 26 had p < 0.01: the PX4
     low-pass, the 31-Hz line of the sunsided MPU-6050 z axis taken for Q, the long-τ rise of
     tomisuarez2 y dropped by the Wald step."""
     results = {}

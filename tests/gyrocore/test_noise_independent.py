@@ -1,4 +1,4 @@
-"""Noise identification held against generators that are not ours (helper indep, issue 11).
+"""Noise identification held against generators that are not ours.
 
 The generators (``tests/indep_noise.py``) follow other people's published recipes: a Kalibr /
 OpenVINS-style cumulative-sum random walk, allantools' Kasdin power law, FFT 1/f shaping,
@@ -62,7 +62,7 @@ def test_generators_match_their_stated_allan_variance():
 def test_resolved_rrw_interval_is_finite_next_to_a_nested_gm():
     """White + cumulative-sum random walk (Kalibr-style), 2 h at 50 Hz: K is resolved, and its
     95 % interval must be a finite interval containing the truth.  Before the fix the robust
-    interval of round 4 took the union with the enlarged N + K + GM fit, where a GM of τc ≈ 700 s
+    interval took the union with the enlarged N + K + GM fit, where a GM of τc ≈ 700 s
     *is* the random walk (nested, not identified): K there was ≈ 0 with ν = 2c²/se² → 0 and the
     upper end came out ∞ ([2.2e-6, ∞] for a true 4e-6 on this axis; 1 axis of 18 in a scan)."""
     K = 4e-6
@@ -83,7 +83,7 @@ def test_resolved_rrw_interval_is_finite_next_to_a_nested_gm():
 def test_rrw_interval_coverage_independent_random_walk():
     """Coverage of K's 95 % interval on 48 axes of white + cumulative-sum random walk (1 h at
     50 Hz, N = 1e-4 rad/√s, K = 2e-6 rad/s/√s: the issue's sensor, margin 1.36 by the rule) with
-    the nested GM left out of the robust union.  Measured (helper indep, seeds [s, 555],
+    the nested GM left out of the robust union.  Measured (seeds [s, 555],
     s < 16): K found 42/48, interval covers 44/48 (before the fix 45/48, one of them by an
     infinite upper end).  Bounds: K found ≥ 90 % where resolvable is the issue's goal, and at
     p = 0.9 P(X ≤ 37 | 48) = 0.007; coverage at p = 0.95, P(X ≤ 41 | 48) = 0.009 — each

@@ -1,4 +1,4 @@
-"""Lines under an optical attitude reference (issue 25 part 1): the reference differentiated,
+"""Lines under an optical attitude reference: the reference differentiated,
 the sample-level residual, the pooled harmonic F on gap-free segments, a line the gyro
 carries and the reference lacks described as periodic[f], one both carry not reported."""
 

@@ -1,4 +1,4 @@
-"""gyrocore.noise.rwgm: block-mean likelihood of a random walk against a Gauss–Markov bias (issue 11, round 6).
+"""gyrocore.noise.rwgm: block-mean likelihood of a random walk against a Gauss–Markov bias.
 
 The closed-form autocovariances are checked against exact sums over the discrete processes
 (deterministic, no simulation); the likelihood against scipy's multivariate normal; the check's
@@ -127,7 +127,7 @@ def test_too_short_for_the_check():
 
 
 def test_identify_noise_with_the_check_reports_k_ambiguous_with_a_gm():
-    """With ``NoiseOptions(rw_check=True)`` (off by default, docs/noise.md "Round 6"), a K that the GMWM
+    """With ``NoiseOptions(rw_check=True)`` (off by default, docs/noise.md, "K for a Gauss–Markov bias"), a K that the GMWM
     selection claims for a GM of τc = 20 s (N+GM, 10 min at 50 Hz, seed [2, 5507], axis z — found
     by scanning seeds for such an axis) is reported null, its upper bound kept, and named as
     ambiguous with the GM; with the check off it is claimed."""

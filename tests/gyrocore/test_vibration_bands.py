@@ -1,4 +1,4 @@
-"""Energy bands (issue 25.2): the dominant vibration when a motor line wanders inside each window.
+"""Energy bands: the dominant vibration when a motor line wanders inside each window.
 
 Synthetic flights are built here from closed-form signals: a rotor line whose frequency follows a
 motor command that sweeps ±15 % (of the line's frequency) within every 1-s window, a weaker fixed
