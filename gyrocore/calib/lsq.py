@@ -1306,9 +1306,20 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
                 **options)
     del SA
     # pass 2: the residual r − A·θ at full resolution and its RMS over the used rows
-    theta = fit.theta
     in_place = keep_residual and overwrite_r and r_arr is not None and r_arr is r and r_arr.flags.writeable
-    if not keep_residual or r_arr is None:
+    resid, rms = _chunked_residual(fit.theta, effects, src, orders, t0_c, chunk_rows=chunk_rows, keep=keep,
+                                   w_all=w_all, r_arr=r_arr if keep_residual else None, in_place=in_place,
+                                   residual_sink=residual_sink)
+    return dataclasses.replace(fit, residual_rad_s=resid, residual_rms_rad_s=rms)
+
+
+def _chunked_residual(theta, effects, src, orders, t0_c, *, chunk_rows: int, keep, w_all, r_arr, in_place: bool,
+                      residual_sink):
+    """The residual r − A·θ a window at a time: into ``r_arr``'s shape ((0, 3) when ``r_arr`` is
+    None; into ``r_arr`` itself when ``in_place``), to ``residual_sink``, and its weighted RMS
+    over the used rows ``keep`` (rad/s, (3,))."""
+    N = src.n
+    if r_arr is None:
         resid = np.zeros((0, 3))
     else:
         resid = r_arr if in_place else np.empty_like(r_arr)  # window a:b reads only r[a:b]
@@ -1319,7 +1330,7 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
         A, _, _ = _window_design(effects, src, orders, t0_c, a, b, N)
         e = src.r_rows(a, b) - np.einsum("nip,p->ni", A, theta)
         del A
-        if keep_residual and r_arr is not None:
+        if r_arr is not None:
             resid[a:b] = e
         if residual_sink is not None:
             residual_sink(a, b, e)
@@ -1327,5 +1338,4 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
         wu = w_all[a:b][sel]
         num += np.sum(wu * e[sel] ** 2, axis=0)
         den += np.sum(wu, axis=0)
-    rms = np.sqrt(num / np.maximum(den, 1e-300))
-    return dataclasses.replace(fit, residual_rad_s=resid, residual_rms_rad_s=rms)
+    return resid, np.sqrt(num / np.maximum(den, 1e-300))
