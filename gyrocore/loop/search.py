@@ -186,8 +186,7 @@ def canonical(name: str) -> str:
     """The registry's canonical name of a family instance (``gyrocore.effects.registry.canonical_name``)."""
     from gyrocore.effects import registry as _E
 
-    fn = getattr(_E, "canonical_name", None)
-    return fn(name) if fn is not None else name
+    return _E.canonical_name(name)
 
 
 def round_frequency(f_hz: float) -> float:
@@ -251,29 +250,9 @@ def catalogue_equivalent(term: str, axis: int | str) -> str | None:
     one ``time_offset`` shared by the axes; ``omega_i^2`` is even in ω, unlike
     ``scale_nonlinearity`` ω|ω|.)
     """
-    try:
-        from gyrocore.effects import registry as _E
+    from gyrocore.effects import registry as _E
 
-        fn = getattr(_E, "catalogue_equivalent", None)
-        if fn is not None and fn is not catalogue_equivalent:
-            return fn(term, axis)
-    except Exception:  # pragma: no cover - registry variants
-        pass
-    i = _AX.index(axis) if isinstance(axis, str) else int(axis)
-    fs = sorted(term_factors(term), key=BASE_SIGNALS.index)
-    if fs == ["t"]:
-        return "bias_ramp"
-    if all(f == "temp_c" for f in fs):
-        return "bias_thermal"
-    if fs == ["dtemp_dt"]:
-        return "bias_temp_rate"
-    if len(fs) == 1 and fs[0].startswith("omega_"):
-        return "scale" if _AX.index(fs[0][-1]) == i else "misalignment"
-    if len(fs) == 2 and fs[0].startswith("omega_") and fs[1] == "temp_c" and _AX.index(fs[0][-1]) == i:
-        return "scale_thermal"
-    if all(f.startswith("f_") for f in fs):
-        return "g_sensitivity" if len(fs) == 1 else "g2_sensitivity"
-    return None
+    return _E.catalogue_equivalent(term, axis)
 
 
 def library_terms(inp, *, kind: str, chunks=None) -> list[str]:
