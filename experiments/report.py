@@ -263,9 +263,17 @@ def _anchor(title: str) -> str:
 
 
 def _assemble(stage: Path, results: Sequence[ExperimentResult], statuses: Sequence[SectionStatus], *, title: str,
-              preamble: str, total_wall_s: float, total_cpu_s: float) -> None:
-    """report.md (contents with each section's time and state, then the sections) and summary.json."""
-    by = {r.name: r for r in results}
+              preamble: str, total_wall_s: float, total_cpu_s: float,
+              sections: Sequence[str] | None = None) -> None:
+    """report.md (contents with each section's time and state, then the sections) and summary.json.
+
+    ``sections[i]`` is the name of the section that produced ``results[i]`` (a section may name its
+    result otherwise: ``cutoffs`` flown by the firmware is ``cutoffs_firmware``); default: the
+    results' own names.
+    """
+    sections = [r.name for r in results] if sections is None else list(sections)
+    by = dict(zip(sections, results))
+    cpu_of = {s.name: s.cpu_s for s in statuses}
     complete = all(s.state == "done" for s in statuses)
     parts = [f"# {title}\n", preamble.strip() + "\n" if preamble else ""]
     if not complete:
@@ -289,7 +297,7 @@ def _assemble(stage: Path, results: Sequence[ExperimentResult], statuses: Sequen
                         for s in statuses},
            "experiments": {r.name: {"title": r.title, "wall_s": r.wall_s, "cpu_s": by_cpu, "figures": list(r.figures),
                                     "summary": r.summary}
-                           for r, by_cpu in ((r, next(s.cpu_s for s in statuses if s.name == r.name)) for r in results)}}
+                           for r, by_cpu in ((r, cpu_of.get(sec, float("nan"))) for sec, r in zip(sections, results))}}
     atomic_write_text(stage / "summary.json", json.dumps(to_jsonable(doc), indent=2, allow_nan=False))
 
 
@@ -358,6 +366,7 @@ def build_report(
     stage = staging_folder(target)
     results: list[ExperimentResult] = []
     statuses: list[SectionStatus] = []
+    result_sections: list[str] = []
     t0, c0 = time.perf_counter(), cpu_seconds()
     interrupted = False
     try:
@@ -385,13 +394,14 @@ def build_report(
                     r = replace(r, wall_s=wall)
                 _write_section(stage, r, cpu)
                 results.append(r)
+                result_sections.append(name)
                 st = SectionStatus(name, "done", wall, cpu)
             statuses.append(st)
             if on_done is not None:
                 on_done(st)
         total_wall, total_cpu = time.perf_counter() - t0, cpu_seconds() - c0
         _assemble(stage, results, statuses, title=title, preamble=preamble, total_wall_s=total_wall,
-                  total_cpu_s=total_cpu)
+                  total_cpu_s=total_cpu, sections=result_sections)
         bad = [s for s in statuses if s.state != "done"]
         if not bad:
             publish_folder(stage, target, force=force)
