@@ -60,15 +60,21 @@ def main() -> None:
     rec = Recording(t_s=np.arange(args.n) / fs, gyro_rad_s=np.column_stack([y, y, y]))
     t_full, res = best(lambda: AL.allan_analysis(rec, axes=("x",)))
     r = res.axes["x"]
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, numpy {np.__version__}, "
-          f"allantools {allantools.__version__}")
-    print(f"data: {args.n} samples at {fs:g} Hz, {m.size} octave taus ({taus[0]:g} .. {taus[-1]:g} s), "
-          f"best of {args.repeat}, interleaved; both times include the rate-to-angle integration")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, numpy {np.__version__}, "
+        f"allantools {allantools.__version__}"
+    )
+    print(
+        f"data: {args.n} samples at {fs:g} Hz, {m.size} octave taus ({taus[0]:g} .. {taus[-1]:g} s), "
+        f"best of {args.repeat}, interleaved; both times include the rate-to-angle integration"
+    )
     print(f"allantools.oadev          : {t_at:8.3f} s")
     print(f"gyrocore.noise.allan.oadev fast : {t_ours:8.3f} s   speed-up x{t_at / t_ours:.2f}")
     print(f"max relative difference   : {rel:.3e}")
-    print(f"full analysis of one axis (ADEV + EDF + joint fit): {t_full:.3f} s; "
-          f"N = {r.arw_rad_per_sqrt_s} (true {N}), K = {r.rrw_rad_per_s_sqrt_s} (true {K})")
+    print(
+        f"full analysis of one axis (ADEV + EDF + joint fit): {t_full:.3f} s; "
+        f"N = {r.arw_rad_per_sqrt_s} (true {N}), K = {r.rrw_rad_per_s_sqrt_s} (true {K})"
+    )
 
 
 if __name__ == "__main__":

@@ -28,9 +28,11 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     t = np.arange(args.n) / args.rate_hz
     # hover-like motion: slow sinusoidal manoeuvres + rotor-like vibration + noise, rad/s
-    w = (0.5 * np.sin(2 * np.pi * 0.2 * t)[:, None] * np.array([1.0, 0.7, 0.3])
-         + 0.2 * np.sin(2 * np.pi * 150 * t)[:, None]
-         + rng.normal(0.0, 0.05, (args.n, 3)))
+    w = (
+        0.5 * np.sin(2 * np.pi * 0.2 * t)[:, None] * np.array([1.0, 0.7, 0.3])
+        + 0.2 * np.sin(2 * np.pi * 150 * t)[:, None]
+        + rng.normal(0.0, 0.05, (args.n, 3))
+    )
 
     integrate_gyro(t[:1000], w[:1000])  # warm up
     best = np.inf
@@ -43,8 +45,12 @@ def main() -> None:
     q_loop = integrate_gyro_loop(t[:m], w[:m])
     t_loop = time.perf_counter() - t0
     diff = float(np.max(error_angle_rad(q_vec[:m], q_loop)))
-    print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}, numpy {np.__version__}")
-    print(f"vectorised integrate_gyro : {args.n:>9d} samples in {best:7.3f} s = {args.n / best / 1e6:6.2f} M samples/s (best of 3)")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}, numpy {np.__version__}"
+    )
+    print(
+        f"vectorised integrate_gyro : {args.n:>9d} samples in {best:7.3f} s = {args.n / best / 1e6:6.2f} M samples/s (best of 3)"
+    )
     print(f"per-sample loop           : {m:>9d} samples in {t_loop:7.3f} s = {m / t_loop / 1e6:6.2f} M samples/s")
     print(f"speed-up                  : {(args.n / best) / (m / t_loop):.1f}x")
     print(f"max |attitude difference| over the first {m} samples: {diff:.3e} rad (goal < 1e-9)")

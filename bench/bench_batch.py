@@ -72,13 +72,22 @@ def main(argv=None) -> int:
                 table.unlink()
             load0 = os.getloadavg()[0]
             t0 = time.perf_counter()
-            summary = run_batch(a.command, files, table=str(table), plot=None, options={}, workers=workers,
-                                scheduler=None, resume=False)
+            summary = run_batch(
+                a.command, files, table=str(table), plot=None, options={}, workers=workers, scheduler=None, resume=False
+            )
             wall = time.perf_counter() - t0
             tasks = max(wall - startup, 1e-9)
-            runs[label] = {"workers": workers, "wall_s": wall, "startup_s": startup, "tasks_s": tasks,
-                           "files_per_s": len(files) / wall, "files_per_s_tasks": len(files) / tasks,
-                           "failed": summary["n_failed"], "load_start": load0, "load_end": os.getloadavg()[0]}
+            runs[label] = {
+                "workers": workers,
+                "wall_s": wall,
+                "startup_s": startup,
+                "tasks_s": tasks,
+                "files_per_s": len(files) / wall,
+                "files_per_s_tasks": len(files) / tasks,
+                "failed": summary["n_failed"],
+                "load_start": load0,
+                "load_end": os.getloadavg()[0],
+            }
             import pandas as pd
 
             tables[label] = pd.read_csv(table).sort_values("file")
@@ -86,25 +95,39 @@ def main(argv=None) -> int:
         cols = [c for c in ref.columns if c.startswith("arw_") or c.startswith("bias_")]
         same = all(np.array_equal(ref[cols].to_numpy(), t[cols].to_numpy(), equal_nan=True) for t in tables.values())
         base = runs["dask 1 worker"]["files_per_s_tasks"]
-        out = {"units": a.units, "duration_s": a.duration_s, "rate_hz": a.rate_hz, "command": a.command,
-               "fleet_bytes": size, "make_fleet_s": t_make, "runs": runs, "identical_tables": same,
-               "speedup_2_over_1_tasks": runs["dask 2 workers"]["files_per_s_tasks"] / base,
-               "speedup_2_over_1_wall": runs["dask 2 workers"]["files_per_s"] / runs["dask 1 worker"]["files_per_s"],
-               "cores": len(os.sched_getaffinity(0))}
+        out = {
+            "units": a.units,
+            "duration_s": a.duration_s,
+            "rate_hz": a.rate_hz,
+            "command": a.command,
+            "fleet_bytes": size,
+            "make_fleet_s": t_make,
+            "runs": runs,
+            "identical_tables": same,
+            "speedup_2_over_1_tasks": runs["dask 2 workers"]["files_per_s_tasks"] / base,
+            "speedup_2_over_1_wall": runs["dask 2 workers"]["files_per_s"] / runs["dask 1 worker"]["files_per_s"],
+            "cores": len(os.sched_getaffinity(0)),
+        }
     finally:
         if not a.work:
             shutil.rmtree(work, ignore_errors=True)
     if a.json:
         print(json.dumps(out, indent=1))
     else:
-        print(f"batch {a.command}: {a.units} units x {a.duration_s:g} s at {a.rate_hz:g} Hz "
-              f"({size / 2**20:.0f} MiB of CSV; simulated in {t_make:.0f} s); {out['cores']} cores")
+        print(
+            f"batch {a.command}: {a.units} units x {a.duration_s:g} s at {a.rate_hz:g} Hz "
+            f"({size / 2**20:.0f} MiB of CSV; simulated in {t_make:.0f} s); {out['cores']} cores"
+        )
         print(f"{'backend':<16s} {'wall s':>8s} {'start s':>8s} {'files/s':>8s} {'files/s (tasks)':>16s} {'load':>10s}")
         for k, r in runs.items():
-            print(f"{k:<16s} {r['wall_s']:8.1f} {r['startup_s']:8.1f} {r['files_per_s']:8.2f} {r['files_per_s_tasks']:16.2f} "
-                  f"{r['load_start']:4.1f}->{r['load_end']:.1f}")
-        print(f"2 workers over 1: {out['speedup_2_over_1_tasks']:.2f}x (tasks), {out['speedup_2_over_1_wall']:.2f}x (wall); "
-              f"tables identical: {same}")
+            print(
+                f"{k:<16s} {r['wall_s']:8.1f} {r['startup_s']:8.1f} {r['files_per_s']:8.2f} {r['files_per_s_tasks']:16.2f} "
+                f"{r['load_start']:4.1f}->{r['load_end']:.1f}"
+            )
+        print(
+            f"2 workers over 1: {out['speedup_2_over_1_tasks']:.2f}x (tasks), {out['speedup_2_over_1_wall']:.2f}x (wall); "
+            f"tables identical: {same}"
+        )
     return 0
 
 

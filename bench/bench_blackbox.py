@@ -25,9 +25,12 @@ from pathlib import Path
 from experiments.datadir import DEFAULT_DATA_DIR, shared_data_dir
 
 DATA = shared_data_dir() or DEFAULT_DATA_DIR  # GYROHARNESS_DATA, else ../shared/data
-DEFAULT = [DATA / "betaflight_blackbox" / "better_tune.BBL", DATA / "blackbox_public" / "LOG00037.BFL",
-           DATA / "blackbox_public" / "blackbox_log_2026-02-21_145057.TXT",
-           Path(__file__).resolve().parents[1] / "tests" / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"]
+DEFAULT = [
+    DATA / "betaflight_blackbox" / "better_tune.BBL",
+    DATA / "blackbox_public" / "LOG00037.BFL",
+    DATA / "blackbox_public" / "blackbox_log_2026-02-21_145057.TXT",
+    Path(__file__).resolve().parents[1] / "tests" / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN",
+]
 
 
 def _best(fn, repeat):
@@ -49,8 +52,10 @@ def main() -> None:
     from gyrocore.readers import blackbox as bb
 
     logging.getLogger("orangebox").setLevel(logging.ERROR)
-    print(f"python {platform.python_version()}, orangebox {getattr(orangebox, '__version__', bb.ORANGEBOX_VERSION)}; "
-          f"load {os.getloadavg()[0]:.2f}; best of {args.repeat}")
+    print(
+        f"python {platform.python_version()}, orangebox {getattr(orangebox, '__version__', bb.ORANGEBOX_VERSION)}; "
+        f"load {os.getloadavg()[0]:.2f}; best of {args.repeat}"
+    )
     for path in args.files:
         if path.lower().endswith(".bin"):
             _bench_dataflash(path, args.repeat)
@@ -84,13 +89,25 @@ def main() -> None:
         t_us, n_us = _best(ours, args.repeat)
         t_full, n_full = _best(full, args.repeat)
         with open(path, "rb") as fh:
-            rev = next((ln.split(b":", 1)[1].strip().decode(errors="replace") for ln in fh.read(20000).split(b"\n")
-                        if ln.startswith(b"H Firmware revision:")), "?")
+            rev = next(
+                (
+                    ln.split(b":", 1)[1].strip().decode(errors="replace")
+                    for ln in fh.read(20000).split(b"\n")
+                    if ln.startswith(b"H Firmware revision:")
+                ),
+                "?",
+            )
         print(f"file {Path(path).name} ({os.path.getsize(path) / 2**20:.2f} MiB, {rev})")
-        print(f"  orangebox Parser.frames : {n_ob:7d} frames {t_ob:6.2f} s  {n_ob / t_ob:9.0f} frames/s  ratio 1.00"
-              + (f"  (raised in {len(raised)} log(s): {raised[0]})" if raised else ""))
-        print(f"  gyrocore frame loop     : {n_us:7d} frames {t_us:6.2f} s  {n_us / t_us:9.0f} frames/s  ratio {t_us / t_ob:.2f}")
-        print(f"  gyrocore read_blackbox  : {n_full:7d} frames {t_full:6.2f} s  {n_full / t_full:9.0f} frames/s  ratio {t_full / t_ob:.2f}")
+        print(
+            f"  orangebox Parser.frames : {n_ob:7d} frames {t_ob:6.2f} s  {n_ob / t_ob:9.0f} frames/s  ratio 1.00"
+            + (f"  (raised in {len(raised)} log(s): {raised[0]})" if raised else "")
+        )
+        print(
+            f"  gyrocore frame loop     : {n_us:7d} frames {t_us:6.2f} s  {n_us / t_us:9.0f} frames/s  ratio {t_us / t_ob:.2f}"
+        )
+        print(
+            f"  gyrocore read_blackbox  : {n_full:7d} frames {t_full:6.2f} s  {n_full / t_full:9.0f} frames/s  ratio {t_full / t_ob:.2f}"
+        )
 
 
 def _bench_dataflash(path: str, repeat: int) -> None:
@@ -116,8 +133,12 @@ def _bench_dataflash(path: str, repeat: int) -> None:
     t_full, n_imu = _best(full, repeat)
     print(f"file {Path(path).name} ({os.path.getsize(path) / 2**20:.2f} MiB, ArduPilot DataFlash)")
     print(f"  pymavlink every message : {n_all:7d} msgs   {t_all:6.2f} s  {n_all / t_all:9.0f} msgs/s  ratio 1.00")
-    print(f"  pymavlink needed types  : {n_need:7d} msgs   {t_need:6.2f} s  {n_need / t_need:9.0f} msgs/s  ratio {t_need / t_all:.2f}")
-    print(f"  gyrocore read_dataflash : {n_imu:7d} IMU    {t_full:6.2f} s  {n_need / t_full:9.0f} msgs/s  ratio {t_full / t_all:.2f}")
+    print(
+        f"  pymavlink needed types  : {n_need:7d} msgs   {t_need:6.2f} s  {n_need / t_need:9.0f} msgs/s  ratio {t_need / t_all:.2f}"
+    )
+    print(
+        f"  gyrocore read_dataflash : {n_imu:7d} IMU    {t_full:6.2f} s  {n_need / t_full:9.0f} msgs/s  ratio {t_full / t_all:.2f}"
+    )
 
 
 if __name__ == "__main__":

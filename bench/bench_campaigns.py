@@ -66,8 +66,9 @@ print(json.dumps({"replicas": int(sys.argv[1]), "statistics": n_stat, "distance"
 def _tree(commit: str, tmp: Path) -> Path:
     dest = tmp / commit
     dest.mkdir()
-    data = subprocess.run(["git", "-C", str(ROOT), "archive", "--format=tar", commit], check=True,
-                          capture_output=True).stdout
+    data = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", "--format=tar", commit], check=True, capture_output=True
+    ).stdout
     arch = tmp / f"{commit}.tar"
     arch.write_bytes(data)
     with tarfile.open(arch) as tf:
@@ -76,8 +77,13 @@ def _tree(commit: str, tmp: Path) -> Path:
 
 
 def _measure(tree: Path, code: str, *args: str) -> tuple[float, dict]:
-    env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-           "MKL_NUM_THREADS": "1"}
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(tree),
+        "OMP_NUM_THREADS": "1",
+        "OPENBLAS_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+    }
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     p = subprocess.run([sys.executable, "-c", code, *args], cwd=tree, env=env, capture_output=True, text=True)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -101,8 +107,10 @@ def main(argv=None) -> int:
         best: dict = {}
         for _ in range(a.repeat):
             for label, tree in trees.items():
-                for name, code, args in (("ablation", _ABLATION, (str(a.units),)),
-                                         ("twin", _TWIN, (str(a.replicas), a.data))):
+                for name, code, args in (
+                    ("ablation", _ABLATION, (str(a.units),)),
+                    ("twin", _TWIN, (str(a.replicas), a.data)),
+                ):
                     cpu, res = _measure(tree, code, *args)
                     key = (label, name)
                     if key not in best or cpu < best[key][0]:
@@ -114,8 +122,11 @@ def main(argv=None) -> int:
         for label in labels:
             cpu, res = best[(label, name)]
             if name == "ablation":
-                row[label] = {"cpu_s": cpu, "unit_scenarios_per_core_min": res["unit_scenarios"] / cpu * 60.0,
-                              "all_final_deg": res["all_final_deg"]}
+                row[label] = {
+                    "cpu_s": cpu,
+                    "unit_scenarios_per_core_min": res["unit_scenarios"] / cpu * 60.0,
+                    "all_final_deg": res["all_final_deg"],
+                }
             else:
                 n = res["replicas"] * max(res["statistics"], 1)
                 row[label] = {"cpu_s": cpu, "replica_statistics_per_core_s": n / cpu, "statistics": res["statistics"]}
@@ -130,8 +141,12 @@ def main(argv=None) -> int:
         for name in ("ablation", "twin"):
             row = out[name]
             k = "unit_scenarios_per_core_min" if name == "ablation" else "replica_statistics_per_core_s"
-            print(f"{name:9s} " + "  ".join(f"{lab}: {row[lab][k]:.3g} ({row[lab]['cpu_s']:.1f} s CPU)" for lab in labels)
-                  + f"  ratio {row['ratio']:.2f}" + (f"  same results: {row['same_results']}" if "same_results" in row else ""))
+            print(
+                f"{name:9s} "
+                + "  ".join(f"{lab}: {row[lab][k]:.3g} ({row[lab]['cpu_s']:.1f} s CPU)" for lab in labels)
+                + f"  ratio {row['ratio']:.2f}"
+                + (f"  same results: {row['same_results']}" if "same_results" in row else "")
+            )
     return 0
 
 

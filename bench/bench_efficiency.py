@@ -66,8 +66,7 @@ def _ratio_ci(n: int) -> float:
 
 
 # ---------------------------------------------------------------------------- 1. static bias
-def static_bias(instances: int, seed: int, *, rate_hz=200.0, duration_s=10.0, n_rad_per_sqrt_s=1e-3,
-                rule="mean"):
+def static_bias(instances: int, seed: int, *, rate_hz=200.0, duration_s=10.0, n_rad_per_sqrt_s=1e-3, rule="mean"):
     from gyrocore.calib.bias import StaticBiasCalibrator
 
     n = int(round(rate_hz * duration_s))
@@ -140,8 +139,13 @@ def rate_table(instances: int, seed: int, *, rate_hz=100.0, segment_s=5.0, n_rad
             "g_sensitivity": {"h_rad_s_per_m_s2": rng.normal(0, 1e-4, (3, 3))},
         }
         y = E.deterministic(params, inp) + rng.normal(0.0, sigma, (n, 3))
-        rec = Recording(t_s=inp.t_s, gyro_rad_s=y, accel_m_s2=inp.f_S_m_s2, ref_rate_rad_s=inp.omega_S_rad_s,
-                        meta={"sensor": "white", "scenario": "rate_table"})
+        rec = Recording(
+            t_s=inp.t_s,
+            gyro_rad_s=y,
+            accel_m_s2=inp.f_S_m_s2,
+            ref_rate_rad_s=inp.omega_S_rad_s,
+            meta={"sensor": "white", "scenario": "rate_table"},
+        )
         res = Calibrator(effects=RATE_TABLE_EFFECTS).fit(rec)
         if res.unobservable:
             raise RuntimeError(f"rate-table design left {res.unobservable} unobservable")
@@ -237,24 +241,32 @@ def main(argv=None) -> int:
     if a.json:
         print(json.dumps(res, indent=1))
         return 0
-    print(f"estimator efficiency: MC std / bound, {a.instances} instances, seed {a.seed} "
-          f"(MC rel. s.e. of a ratio ≈ 1/sqrt(2(n-1)))")
+    print(
+        f"estimator efficiency: MC std / bound, {a.instances} instances, seed {a.seed} "
+        f"(MC rel. s.e. of a ratio ≈ 1/sqrt(2(n-1)))"
+    )
     for key in ("static_bias", "static_bias_median"):
         if key in res:
             r = res[key]
-            print(f"  {r['estimator']} ({r['duration_s']:g} s at {r['rate_hz']:g} Hz) vs N/sqrt(T): "
-                  f"{r['ratio']:.3f} ± {r['ratio']*r['ratio_mc_rel_se']:.3f} ({r['goal']}); "
-                  f"reported s.e./CRB {r['reported_stderr_over_crb']:.3f}")
+            print(
+                f"  {r['estimator']} ({r['duration_s']:g} s at {r['rate_hz']:g} Hz) vs N/sqrt(T): "
+                f"{r['ratio']:.3f} ± {r['ratio'] * r['ratio_mc_rel_se']:.3f} ({r['goal']}); "
+                f"reported s.e./CRB {r['reported_stderr_over_crb']:.3f}"
+            )
     if "rate_table" in res:
         r = res["rate_table"]
         for g, v in r["groups"].items():
-            print(f"  rate table {g:<24s} vs LS CRB: median {v['ratio_median']:.3f}, max {v['ratio_max']:.3f} "
-                  f"(±{r['ratio_mc_rel_se']:.3f} each); reported s.e./CRB {v['reported_stderr_over_crb_median']:.3f}")
+            print(
+                f"  rate table {g:<24s} vs LS CRB: median {v['ratio_median']:.3f}, max {v['ratio_max']:.3f} "
+                f"(±{r['ratio_mc_rel_se']:.3f} each); reported s.e./CRB {v['reported_stderr_over_crb_median']:.3f}"
+            )
     if "allan_n" in res:
         r = res["allan_n"]
-        print(f"  Allan N ({r['duration_s']:g} s at {r['rate_hz']:g} Hz, {r['n_estimates']} estimates): "
-              f"vs its chi-square interval {r['ratio_to_chi2_interval']:.3f} ± {r['ratio_to_chi2_interval']*r['ratio_mc_rel_se']:.3f}; "
-              f"vs CRB 1/sqrt(2n) {r['ratio_to_crb']:.2f}; mean N/true {r['mean_over_true']:.4f}")
+        print(
+            f"  Allan N ({r['duration_s']:g} s at {r['rate_hz']:g} Hz, {r['n_estimates']} estimates): "
+            f"vs its chi-square interval {r['ratio_to_chi2_interval']:.3f} ± {r['ratio_to_chi2_interval'] * r['ratio_mc_rel_se']:.3f}; "
+            f"vs CRB 1/sqrt(2n) {r['ratio_to_crb']:.2f}; mean N/true {r['mean_over_true']:.4f}"
+        )
     print(f"  wall {res['wall_s']:.1f} s")
     return 0
 

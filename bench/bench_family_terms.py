@@ -45,8 +45,12 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
     _fly({}, True, 1.0)  # load the numba kernels once (not timed)
-    cases = (("(a) catalogue, compiled kernels", {}, True), ("(b) + periodic[37.5], compiled", TERM, True),
-             ("(c) catalogue, Python loop", {}, False), ("(d) + regressor[omega_x*f_z], Python", RATE_TERM, True))
+    cases = (
+        ("(a) catalogue, compiled kernels", {}, True),
+        ("(b) + periodic[37.5], compiled", TERM, True),
+        ("(c) catalogue, Python loop", {}, False),
+        ("(d) + regressor[omega_x*f_z], Python", RATE_TERM, True),
+    )
     best = {}
     for _ in range(a.repeat):
         for label, ov, comp in cases:

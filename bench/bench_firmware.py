@@ -93,8 +93,10 @@ def main() -> None:
     mass = float(np.sum(m.body_mass))
     t_hover = mass * g0 / 4.0
     t_max = 2.5 * t_hover
-    print(f"{fb.firmware} {fb.version} lockstep SITL ({fb.binary}); mujoco {mujoco.__version__}, "
-          f"python {platform.python_version()}, {platform.machine()}; {n} steps at 8 kHz per run, best of {args.repeat}")
+    print(
+        f"{fb.firmware} {fb.version} lockstep SITL ({fb.binary}); mujoco {mujoco.__version__}, "
+        f"python {platform.python_version()}, {platform.machine()}; {n} steps at 8 kHz per run, best of {args.repeat}"
+    )
 
     def reset():
         mujoco.mj_resetDataKeyframe(m, d, 0)
@@ -143,6 +145,7 @@ def main() -> None:
                         for _ in range(n):
                             fc.step((0.0, 0.0, 0.0))
             return c
+
         return run
 
     def closed_loop():
@@ -170,21 +173,31 @@ def main() -> None:
 
     rows = []
     b = min((bare() for _ in range(args.repeat)), key=lambda c: c.wall_s)
-    for label, fn in (("physics + gyro (all effects)", physics_gyro),
-                      ("firmware alone: step()", firmware_only(False)),
-                      ("firmware alone: step_raw()", firmware_only(True)),
-                      ("closed loop: physics + gyro + firmware", closed_loop)):
+    for label, fn in (
+        ("physics + gyro (all effects)", physics_gyro),
+        ("firmware alone: step()", firmware_only(False)),
+        ("firmware alone: step_raw()", firmware_only(True)),
+        ("closed loop: physics + gyro + firmware", closed_loop),
+    ):
         cs = [fn() for _ in range(args.repeat)]
         rows.append((label, min(cs, key=lambda c: c.wall_s), min(cs, key=lambda c: c.cpu_s)))
     w = max(len(r[0]) for r in rows + [("bare mj_step",)])
-    print(f"{'run (8 kHz)':<{w}}  {'sim-s/wall-s':>12}  {'x bare':>6}  {'us/step':>8}  |  {'sim-s/CPU-s':>11}  {'us/step':>8}")
-    print(f"{'bare mj_step':<{w}}  {T / b.wall_s:12.2f}  {1.0:6.2f}  {1e6 * b.wall_s / n:8.1f}  |  "
-          f"{T / b.cpu_s:11.2f}  {1e6 * b.cpu_s / n:8.1f}")
+    print(
+        f"{'run (8 kHz)':<{w}}  {'sim-s/wall-s':>12}  {'x bare':>6}  {'us/step':>8}  |  {'sim-s/CPU-s':>11}  {'us/step':>8}"
+    )
+    print(
+        f"{'bare mj_step':<{w}}  {T / b.wall_s:12.2f}  {1.0:6.2f}  {1e6 * b.wall_s / n:8.1f}  |  "
+        f"{T / b.cpu_s:11.2f}  {1e6 * b.cpu_s / n:8.1f}"
+    )
     for label, cw, cc in rows:
-        print(f"{label:<{w}}  {T / cw.wall_s:12.2f}  {b.wall_s / cw.wall_s:6.2f}  {1e6 * cw.wall_s / n:8.1f}  |  "
-              f"{T / cc.cpu_s:11.2f}  {1e6 * cc.cpu_s / n:8.1f}")
-    print(f"load average {', '.join(f'{x:.1f}' for x in psutil.getloadavg())} on {psutil.cpu_count()} CPUs; "
-          f"goal: closed loop >= 2 simulated s per wall s")
+        print(
+            f"{label:<{w}}  {T / cw.wall_s:12.2f}  {b.wall_s / cw.wall_s:6.2f}  {1e6 * cw.wall_s / n:8.1f}  |  "
+            f"{T / cc.cpu_s:11.2f}  {1e6 * cc.cpu_s / n:8.1f}"
+        )
+    print(
+        f"load average {', '.join(f'{x:.1f}' for x in psutil.getloadavg())} on {psutil.cpu_count()} CPUs; "
+        f"goal: closed loop >= 2 simulated s per wall s"
+    )
 
 
 if __name__ == "__main__":

@@ -49,22 +49,35 @@ def main() -> None:
     ap.add_argument("--stages", default="synth,loop,loop_catalogue")
     a = ap.parse_args()
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    print("| stage | samples | loop wall, s | loop CPU, s | peak RSS, MiB | RSS after the data, MiB | found / unexplained | load (1 min) |")
+    print(
+        "| stage | samples | loop wall, s | loop CPU, s | peak RSS, MiB | RSS after the data, MiB | found / unexplained | load (1 min) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for st in a.stages.split(","):
         t0 = time.time()
-        p = subprocess.run([sys.executable, "-c", CHILD, st, str(a.duration_s), str(a.rate_hz)], env=env,
-                           capture_output=True, text=True)
+        p = subprocess.run(
+            [sys.executable, "-c", CHILD, st, str(a.duration_s), str(a.rate_hz)],
+            env=env,
+            capture_output=True,
+            text=True,
+        )
         if p.returncode != 0:
             print(f"| {st} | failed: {p.stderr.strip().splitlines()[-1] if p.stderr.strip() else p.returncode} |")
             continue
         d = json.loads(p.stdout.strip().splitlines()[-1])
         load = os.getloadavg()[0]
-        fu = "—" if st == "synth" else f"{', '.join(d['found']) or 'nothing'} / {', '.join(d['unexplained']) or 'nothing'}"
+        fu = (
+            "—"
+            if st == "synth"
+            else f"{', '.join(d['found']) or 'nothing'} / {', '.join(d['unexplained']) or 'nothing'}"
+        )
         wall = "—" if st == "synth" else f"{d['wall_s']:.1f}"
         cpu = "—" if st == "synth" else f"{d['cpu_s']:.1f}"
-        print(f"| {st} | {d['n']} | {wall} | {cpu} | {d['peak_rss_mib']:.0f} | {d['rss_after_data_mib']:.0f} | {fu} | "
-              f"{load:.1f} |", flush=True)
+        print(
+            f"| {st} | {d['n']} | {wall} | {cpu} | {d['peak_rss_mib']:.0f} | {d['rss_after_data_mib']:.0f} | {fu} | "
+            f"{load:.1f} |",
+            flush=True,
+        )
         del t0
 
 

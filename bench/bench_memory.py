@@ -75,8 +75,7 @@ T0_C = 25.0
 
 
 #: Effects fitted by the calibrate stages, per source recording.
-EFFECTS = {"synth": ("bias", "bias_thermal"),
-           "sim": ("bias", "bias_thermal", "scale", "scale_thermal", "misalignment")}
+EFFECTS = {"synth": ("bias", "bias_thermal"), "sim": ("bias", "bias_thermal", "scale", "scale_thermal", "misalignment")}
 
 
 def _temp_c(t_s: np.ndarray) -> np.ndarray:
@@ -118,9 +117,15 @@ def _chunks(a):
         gyro = E.deterministic(params, inp) + rng.normal(0.0, sigma, (m, 3))
         accel = f + rng.normal(0.0, 0.02, (m, 3))
         q = np.tile([1.0, 0.0, 0.0, 0.0], (m, 1))
-        yield Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=T + rng.normal(0, 0.01, m),
-                        ref_rate_rad_s=zeros, ref_quat_wxyz=q,
-                        meta={"sensor": "bench_memory", "scenario": "static_thermal", "rate_hz": str(a.rate_hz)})
+        yield Recording(
+            t_s=t,
+            gyro_rad_s=gyro,
+            accel_m_s2=accel,
+            temp_c=T + rng.normal(0, 0.01, m),
+            ref_rate_rad_s=zeros,
+            ref_quat_wxyz=q,
+            meta={"sensor": "bench_memory", "scenario": "static_thermal", "rate_hz": str(a.rate_hz)},
+        )
 
 
 def stage_synth(a) -> dict:
@@ -136,11 +141,24 @@ IMPORTS = {
     "imports_convert": ["gyrocore.readers.convert", "gyrocore.data.recording", "pyarrow.csv", "pyarrow.parquet"],
     "imports_bias": ["gyrocore.calib.bias", "gyrocore.readers.convert", "gyrocore.data.recording", "pyarrow.csv"],
     "imports_allan": ["gyrocore.noise.allan", "gyrocore.noise.gmwm", "gyrocore.data.recording", "pyarrow.csv"],
-    "imports_calibrate": ["gyrocore.calibrator", "gyrocore.calib.lsq", "gyrocore.calib.thermal", "gyrocore.calib.stream", "gyrocore.readers.convert",
-                          "pyarrow.csv"],
+    "imports_calibrate": [
+        "gyrocore.calibrator",
+        "gyrocore.calib.lsq",
+        "gyrocore.calib.thermal",
+        "gyrocore.calib.stream",
+        "gyrocore.readers.convert",
+        "pyarrow.csv",
+    ],
     "imports_apply": ["gyrocore.calibrator", "gyrocore.data.recording", "pyarrow.csv"],
-    "imports_loop": ["gyrocore.loop.loop", "gyrocore.loop.search", "gyrocore.loop.residual", "gyrocore.calibrator", "gyrocore.calib.lsq",
-                     "gyrocore.data.recording", "pyarrow.csv"],
+    "imports_loop": [
+        "gyrocore.loop.loop",
+        "gyrocore.loop.search",
+        "gyrocore.loop.residual",
+        "gyrocore.calibrator",
+        "gyrocore.calib.lsq",
+        "gyrocore.data.recording",
+        "pyarrow.csv",
+    ],
 }
 
 
@@ -204,8 +222,14 @@ def _gather(a, *, full: bool):
         i0 = i1
     if i0 != n:
         raise SystemExit(f"{a.csv}: {i0} rows, expected {n}")
-    return Recording(t_s=cat["t"], gyro_rad_s=cat["g"], accel_m_s2=cat.get("a"), temp_c=cat.get("T"),
-                     ref_rate_rad_s=cat.get("r"), meta=meta)
+    return Recording(
+        t_s=cat["t"],
+        gyro_rad_s=cat["g"],
+        accel_m_s2=cat.get("a"),
+        temp_c=cat.get("T"),
+        ref_rate_rad_s=cat.get("r"),
+        meta=meta,
+    )
 
 
 def stage_allan(a) -> dict:
@@ -335,33 +359,130 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
     csv_path = Path(a.csv)  # one_hour.csv, or one_hour.parquet with --format parquet
     # the checkout this script belongs to (PYTHONPATH), not whatever `gyroharness` is installed
     exe = [sys.executable, "-m", "experiments.cli"]
-    common = ["--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz), "--work", str(work), "--source", a.source,
-              "--format", a.format]
+    common = [
+        "--duration-s",
+        str(duration_s),
+        "--rate-hz",
+        str(a.rate_hz),
+        "--work",
+        str(work),
+        "--source",
+        a.source,
+        "--format",
+        a.format,
+    ]
     sim_path = csv_path if a.source == "sim" else work / "sim_thermal.csv"
     cli = {
-        "simulate": [*exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
-                     "--seed", str(SEED), "-o", str(sim_path), "--force", "--no-progress", "--json"],
-        "simulate_parquet": [*exe, "simulate", "thermal", "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
-                             "--seed", str(SEED), "-o", str(work / "sim_thermal.parquet"), "--force", "--no-progress",
-                             "--json"],
-        "simulate_long": [*exe, "simulate", "thermal", "--duration-s", str(a.long_duration_s), "--rate-hz",
-                          str(a.rate_hz), "--seed", str(SEED), "-o", str(work / "sim_thermal_long.parquet"), "--force",
-                          "--no-progress", "--json"],
-        "simulate_hover_long": [*exe, "simulate", "hover", "--duration-s", str(a.long_duration_s), "--rate-hz",
-                                str(a.rate_hz), "--seed", str(SEED), "-o", str(work / "sim_hover_long.parquet"),
-                                "--force", "--no-progress", "--json"],
-        **{f"simulate_{sc}{suf}": [*exe, "simulate", sc, "--duration-s", str(duration_s), "--rate-hz", str(a.rate_hz),
-                                   "--seed", str(SEED), "-o", str(work / f"scn_{sc}{ext}"), "--force", "--no-progress",
-                                   "--json"]
-           for sc in SCENARIO_NAMES for suf, ext in (("", ".csv"), ("_parquet", ".parquet"))},
+        "simulate": [
+            *exe,
+            "simulate",
+            "thermal",
+            "--duration-s",
+            str(duration_s),
+            "--rate-hz",
+            str(a.rate_hz),
+            "--seed",
+            str(SEED),
+            "-o",
+            str(sim_path),
+            "--force",
+            "--no-progress",
+            "--json",
+        ],
+        "simulate_parquet": [
+            *exe,
+            "simulate",
+            "thermal",
+            "--duration-s",
+            str(duration_s),
+            "--rate-hz",
+            str(a.rate_hz),
+            "--seed",
+            str(SEED),
+            "-o",
+            str(work / "sim_thermal.parquet"),
+            "--force",
+            "--no-progress",
+            "--json",
+        ],
+        "simulate_long": [
+            *exe,
+            "simulate",
+            "thermal",
+            "--duration-s",
+            str(a.long_duration_s),
+            "--rate-hz",
+            str(a.rate_hz),
+            "--seed",
+            str(SEED),
+            "-o",
+            str(work / "sim_thermal_long.parquet"),
+            "--force",
+            "--no-progress",
+            "--json",
+        ],
+        "simulate_hover_long": [
+            *exe,
+            "simulate",
+            "hover",
+            "--duration-s",
+            str(a.long_duration_s),
+            "--rate-hz",
+            str(a.rate_hz),
+            "--seed",
+            str(SEED),
+            "-o",
+            str(work / "sim_hover_long.parquet"),
+            "--force",
+            "--no-progress",
+            "--json",
+        ],
+        **{
+            f"simulate_{sc}{suf}": [
+                *exe,
+                "simulate",
+                sc,
+                "--duration-s",
+                str(duration_s),
+                "--rate-hz",
+                str(a.rate_hz),
+                "--seed",
+                str(SEED),
+                "-o",
+                str(work / f"scn_{sc}{ext}"),
+                "--force",
+                "--no-progress",
+                "--json",
+            ]
+            for sc in SCENARIO_NAMES
+            for suf, ext in (("", ".csv"), ("_parquet", ".parquet"))
+        },
         "cli_convert": [*exe, "convert", str(csv_path), "-o", str(work / "cli_converted.parquet"), "--force", "--json"],
         "cli_bias": [*exe, "bias", str(csv_path), "--json"],
         "cli_loop": [*exe, "loop", str(csv_path), "--effects", ",".join(EFFECTS[a.source]), "--json"],
         "cli_allan": [*exe, "allan", str(csv_path), "--json"],
-        "cli_calibrate": [*exe, "calibrate", str(csv_path), "--effects", ",".join(EFFECTS[a.source]),
-                          "-o", str(work / "cli_params.json"), "--force", "--json"],
-        "cli_apply": [*exe, "apply", str(csv_path), "--params", str(work / "cli_params.json"),
-                      "-o", str(work / "cli_corrected.csv"), "--force", "--json"],
+        "cli_calibrate": [
+            *exe,
+            "calibrate",
+            str(csv_path),
+            "--effects",
+            ",".join(EFFECTS[a.source]),
+            "-o",
+            str(work / "cli_params.json"),
+            "--force",
+            "--json",
+        ],
+        "cli_apply": [
+            *exe,
+            "apply",
+            str(csv_path),
+            "--params",
+            str(work / "cli_params.json"),
+            "-o",
+            str(work / "cli_corrected.csv"),
+            "--force",
+            "--json",
+        ],
     }
     rows = []
     for name in names:
@@ -376,13 +497,33 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
             long_dir.mkdir(exist_ok=True)
             long_file = long_dir / "one_hour.parquet"
             if not long_file.exists():
-                rc, _, _, out = _run_child([sys.executable, __file__, "--stage", "synth", "--duration-s",
-                                            str(a.long_duration_s), "--rate-hz", str(a.rate_hz), "--work", str(long_dir),
-                                            "--format", "parquet"])
+                rc, _, _, out = _run_child(
+                    [
+                        sys.executable,
+                        __file__,
+                        "--stage",
+                        "synth",
+                        "--duration-s",
+                        str(a.long_duration_s),
+                        "--rate-hz",
+                        str(a.rate_hz),
+                        "--work",
+                        str(long_dir),
+                        "--format",
+                        "parquet",
+                    ]
+                )
                 if rc != 0:
                     raise SystemExit(f"cli_loop_long: writing the long recording failed: {out}")
-            cli[name] = [*exe, "loop", str(long_file), "--effects", ",".join(EFFECTS["synth"]), "--json",
-                         *getattr(a, "loop_args", "").split()]
+            cli[name] = [
+                *exe,
+                "loop",
+                str(long_file),
+                "--effects",
+                ",".join(EFFECTS["synth"]),
+                "--json",
+                *getattr(a, "loop_args", "").split(),
+            ]
         argv_c = cli.get(name) or [sys.executable, __file__, "--stage", name, *common]
         rc, wall, rss, out = _run_child(argv_c)
         info = {}
@@ -393,42 +534,79 @@ def _run_stages(a, duration_s: float, work: Path, names: list[str], *, quiet: bo
             info = {k: doc.get(k) for k in ("n_samples", "rate_hz", "duration_s", "effects")}
         elif rc == 0 and name.startswith("cli_loop"):
             doc = json.loads(out)
-            info = {"found": [f["effect"] for f in doc["found"]], "unexplained": [u["effect"] for u in doc["unexplained"]],
-                    "n_windows": doc["n_windows"]}
+            info = {
+                "found": [f["effect"] for f in doc["found"]],
+                "unexplained": [u["effect"] for u in doc["unexplained"]],
+                "n_windows": doc["n_windows"],
+            }
         if name.startswith("simulate") and name != "simulate":
             # the files of the other simulate stages are not read again (1 h at 1 kHz: 1.1 GB of CSV)
             Path(cli[name][cli[name].index("-o") + 1]).unlink(missing_ok=True)
         samples = int(round(a.long_duration_s * a.rate_hz)) if long else n
         if rc == 0 and isinstance(info, dict) and info.get("n_samples"):
             samples = int(info["n_samples"])  # turntable: its profile's own length
-        rows.append({"stage": name, "samples": samples,
-                     "exit": rc, "wall_s": wall, "cpu_s": _run_child.cpu_s, "peak_rss_bytes": rss,
-                     "result": info if rc == 0 else out})
+        rows.append(
+            {
+                "stage": name,
+                "samples": samples,
+                "exit": rc,
+                "wall_s": wall,
+                "cpu_s": _run_child.cpu_s,
+                "peak_rss_bytes": rss,
+                "result": info if rc == 0 else out,
+            }
+        )
         if not quiet:
-            print(f"  [{samples / a.rate_hz:g} s] {name:<22s} exit {rc}  wall {wall:7.1f} s  CPU {_run_child.cpu_s:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB"
-                  + ("" if rc == 0 else f"  FAILED: {out[:300]}"), flush=True)
+            print(
+                f"  [{samples / a.rate_hz:g} s] {name:<22s} exit {rc}  wall {wall:7.1f} s  CPU {_run_child.cpu_s:7.1f} s  peak RSS {rss / 2**20:8.1f} MiB"
+                + ("" if rc == 0 else f"  FAILED: {out[:300]}"),
+                flush=True,
+            )
     return rows
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration-s", type=float, default=3600.0)
-    ap.add_argument("--compare-duration-s", type=float, default=600.0,
-                    help="a shorter run of every stage; the peak's growth between the two lengths, per "
-                         "sample, tells streaming (≈ 0) from whole-column stages (0 = skip)")
+    ap.add_argument(
+        "--compare-duration-s",
+        type=float,
+        default=600.0,
+        help="a shorter run of every stage; the peak's growth between the two lengths, per "
+        "sample, tells streaming (≈ 0) from whole-column stages (0 = skip)",
+    )
     ap.add_argument("--rate-hz", type=float, default=1000.0)
-    ap.add_argument("--long-duration-s", type=float, default=0.0,
-                    help="stage simulate_long: simulate this long to Parquet once (e.g. 36000; 0 = skip)")
-    ap.add_argument("--loop-args", default="",
-                    help="extra options of the cli_loop_long stage, e.g. '--no-open-search' (catalogue only)")
+    ap.add_argument(
+        "--long-duration-s",
+        type=float,
+        default=0.0,
+        help="stage simulate_long: simulate this long to Parquet once (e.g. 36000; 0 = skip)",
+    )
+    ap.add_argument(
+        "--loop-args",
+        default="",
+        help="extra options of the cli_loop_long stage, e.g. '--no-open-search' (catalogue only)",
+    )
     ap.add_argument("--work", default=None, help="folder for the CSV files (default: a temporary folder, removed)")
-    ap.add_argument("--stages", default="baseline,simulate," + ",".join(list(STAGES)[1:])
-                    + ",cli_convert,cli_bias,cli_allan,cli_calibrate,cli_apply,cli_loop")
-    ap.add_argument("--source", choices=("synth", "sim"), default="synth",
-                    help="recording processed by the later stages: 'synth' (still, thermal; default) or "
-                         "'sim' (the simulated thermal rate-table run of the 'simulate' stage)")
-    ap.add_argument("--format", choices=("csv", "parquet"), default="csv",
-                    help="data file the stages write and read (parquet: no text formatting, for long runs)")
+    ap.add_argument(
+        "--stages",
+        default="baseline,simulate,"
+        + ",".join(list(STAGES)[1:])
+        + ",cli_convert,cli_bias,cli_allan,cli_calibrate,cli_apply,cli_loop",
+    )
+    ap.add_argument(
+        "--source",
+        choices=("synth", "sim"),
+        default="synth",
+        help="recording processed by the later stages: 'synth' (still, thermal; default) or "
+        "'sim' (the simulated thermal rate-table run of the 'simulate' stage)",
+    )
+    ap.add_argument(
+        "--format",
+        choices=("csv", "parquet"),
+        default="csv",
+        help="data file the stages write and read (parquet: no text formatting, for long runs)",
+    )
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--stage", help=argparse.SUPPRESS)  # child mode
     a = ap.parse_args(argv)
@@ -459,24 +637,42 @@ def main(argv=None) -> int:
         s = by_small.get(r["stage"])
         if s is not None and s["exit"] == 0 and r["exit"] == 0:
             if r["samples"] != s["samples"]:
-                r["growth_bytes_per_sample"] = (r["peak_rss_bytes"] - s["peak_rss_bytes"]) / (r["samples"] - s["samples"])
-    summary = {"samples": n, "rate_hz": a.rate_hz, "duration_s": a.duration_s,
-               "compare_duration_s": a.compare_duration_s or None,
-               "data_float64_bytes": n * 15 * 8, "csv_bytes": csv_bytes, "chunk_rows": CHUNK_ROWS,
-               "stages": big, "stages_short": small}
+                r["growth_bytes_per_sample"] = (r["peak_rss_bytes"] - s["peak_rss_bytes"]) / (
+                    r["samples"] - s["samples"]
+                )
+    summary = {
+        "samples": n,
+        "rate_hz": a.rate_hz,
+        "duration_s": a.duration_s,
+        "compare_duration_s": a.compare_duration_s or None,
+        "data_float64_bytes": n * 15 * 8,
+        "csv_bytes": csv_bytes,
+        "chunk_rows": CHUNK_ROWS,
+        "stages": big,
+        "stages_short": small,
+    }
     if a.json:
         print(json.dumps(summary, indent=1))
     else:
-        print(f"{n} samples ({a.duration_s:g} s at {a.rate_hz:g} Hz); 15 float64 columns = {n * 120 / 2**20:.0f} MiB"
-              + (f"; CSV {csv_bytes / 2**20:.0f} MiB" if csv_bytes else "") + f"; chunks of {CHUNK_ROWS} rows")
+        print(
+            f"{n} samples ({a.duration_s:g} s at {a.rate_hz:g} Hz); 15 float64 columns = {n * 120 / 2**20:.0f} MiB"
+            + (f"; CSV {csv_bytes / 2**20:.0f} MiB" if csv_bytes else "")
+            + f"; chunks of {CHUNK_ROWS} rows"
+        )
         print(f"{'stage':<22s} {'peak RSS MiB':>12s} {'growth B/sample':>16s}  {'wall s':>7s}  {'CPU s':>7s}  design")
         for r in big:
             g = r.get("growth_bytes_per_sample")
-            design = CLI_DESIGN.get(r["stage"], "CLI") if r["stage"].startswith("cli_") else (
-                f"CLI, chunked ({r['samples']} samples)") if r["stage"].startswith("simulate") else (
-                "streaming" if r["stage"] in STREAMING else "whole columns")
-            print(f"{r['stage']:<22s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
-                  f"  {r['wall_s']:7.1f}  {r['cpu_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED"))
+            design = (
+                CLI_DESIGN.get(r["stage"], "CLI")
+                if r["stage"].startswith("cli_")
+                else (f"CLI, chunked ({r['samples']} samples)")
+                if r["stage"].startswith("simulate")
+                else ("streaming" if r["stage"] in STREAMING else "whole columns")
+            )
+            print(
+                f"{r['stage']:<22s} {r['peak_rss_bytes'] / 2**20:12.1f} {'' if g is None else f'{g:16.1f}'}"
+                f"  {r['wall_s']:7.1f}  {r['cpu_s']:7.1f}  {design}" + ("" if r["exit"] == 0 else "  FAILED")
+            )
     return 0 if all(r["exit"] == 0 for r in big + small) else 1
 
 

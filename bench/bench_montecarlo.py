@@ -67,8 +67,14 @@ def main(argv=None) -> int:
         scenarios=None if a.scenarios is None else a.scenarios.split(","),
         sensors=None if a.sensors is None else a.sensors.split(","),
     )
-    kw = dict(scenarios=scen, sensors=sens, instances=a.instances, seed=a.seed, duration_s=a.duration_s,
-              options={"quick": True} if a.quick else None)
+    kw = dict(
+        scenarios=scen,
+        sensors=sens,
+        instances=a.instances,
+        seed=a.seed,
+        duration_s=a.duration_s,
+        options={"quick": True} if a.quick else None,
+    )
     n_tasks = len(scen) * len(sens) * a.instances
     load0 = _load()
     runs, cpu = {}, {}
@@ -83,8 +89,9 @@ def main(argv=None) -> int:
 
         t0 = time.perf_counter()
         c0 = _cpu_children()
-        with LocalCluster(n_workers=a.workers, threads_per_worker=1, processes=True,
-                          dashboard_address=None, silence_logs=50) as cluster:
+        with LocalCluster(
+            n_workers=a.workers, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=50
+        ) as cluster:
             start_s = time.perf_counter() - t0
             runs[f"dask LocalCluster x{a.workers}"] = mc.run_campaign(scheduler=cluster.scheduler_address, **kw)
         cpu[f"dask LocalCluster x{a.workers}"] = _cpu_children() - c0
@@ -98,9 +105,16 @@ def main(argv=None) -> int:
         "duration_s": a.duration_s,
         "quick": a.quick,
         "runs": {
-            k: {"wall_s": r.wall_s, "speedup_vs_serial": base.wall_s / r.wall_s, "identical_to_serial": _identical(base, r),
-                "cpu_s": cpu[k], "cpu_over_serial_cpu": cpu[k] / cpu["serial"], "cores_obtained": cpu[k] / r.wall_s,
-                "backend": r.backend, "workers": r.workers}
+            k: {
+                "wall_s": r.wall_s,
+                "speedup_vs_serial": base.wall_s / r.wall_s,
+                "identical_to_serial": _identical(base, r),
+                "cpu_s": cpu[k],
+                "cpu_over_serial_cpu": cpu[k] / cpu["serial"],
+                "cores_obtained": cpu[k] / r.wall_s,
+                "backend": r.backend,
+                "workers": r.workers,
+            }
             for k, r in runs.items()
         },
     }
@@ -109,12 +123,16 @@ def main(argv=None) -> int:
     if a.json:
         print(json.dumps(out, indent=1))
     else:
-        print(f"Monte Carlo campaign: {n_tasks} tasks ({len(scen)} scenario(s) x {len(sens)} sensor(s) x "
-              f"{a.instances} instances), duration {a.duration_s or 'default'}")
+        print(
+            f"Monte Carlo campaign: {n_tasks} tasks ({len(scen)} scenario(s) x {len(sens)} sensor(s) x "
+            f"{a.instances} instances), duration {a.duration_s or 'default'}"
+        )
         for k, v in out["runs"].items():
-            print(f"  {k:<26s} wall {v['wall_s']:7.1f} s  speed-up {v['speedup_vs_serial']:.2f}x  "
-                  f"CPU {v['cpu_s']:7.1f} s ({v['cpu_over_serial_cpu']:.2f}x serial, {v['cores_obtained']:.2f} cores obtained)  "
-                  f"identical to serial: {v['identical_to_serial']}")
+            print(
+                f"  {k:<26s} wall {v['wall_s']:7.1f} s  speed-up {v['speedup_vs_serial']:.2f}x  "
+                f"CPU {v['cpu_s']:7.1f} s ({v['cpu_over_serial_cpu']:.2f}x serial, {v['cores_obtained']:.2f} cores obtained)  "
+                f"identical to serial: {v['identical_to_serial']}"
+            )
         print(f"  load average before/after: {load0} / {_load()}")
         if a.dask:
             print(f"  (LocalCluster start-up, not timed above: {start_s:.1f} s)")

@@ -66,8 +66,11 @@ def main(argv=None) -> None:
         c_full.append(time.process_time() - c0)
     # parts of the full identification, once each (CPU s)
     c0 = time.process_time()
-    AL.still_fraction(res_rec := __import__("gyrocore.data.recording", fromlist=["Recording"]).Recording(
-        t_s=np.arange(n) / rate, gyro_rad_s=g))
+    AL.still_fraction(
+        res_rec := __import__("gyrocore.data.recording", fromlist=["Recording"]).Recording(
+            t_s=np.arange(n) / rate, gyro_rad_s=g
+        )
+    )
     c_gate = time.process_time() - c0
     from gyrocore.noise import gmwm as G
 
@@ -82,17 +85,25 @@ def main(argv=None) -> None:
     del res_rec
     ba, bf = min(t_adev), min(t_full)
     ca, cf = min(c_adev), min(c_full)
-    print(f"data: {n} samples x 3 axes at {rate:g} Hz (N = 1e-4, K = 2e-6, B = 1.5e-5), best of {a.repeat}, interleaved; "
-          f"load {os.getloadavg()[0]:.1f}")
-    print("                                                   wall s    CPU s (single-threaded: CPU time is the fair figure on a loaded machine)")
+    print(
+        f"data: {n} samples x 3 axes at {rate:g} Hz (N = 1e-4, K = 2e-6, B = 1.5e-5), best of {a.repeat}, interleaved; "
+        f"load {os.getloadavg()[0]:.1f}"
+    )
+    print(
+        "                                                   wall s    CPU s (single-threaded: CPU time is the fair figure on a loaded machine)"
+    )
     print(f"ADEV alone (fast kernel, {m_old.size} octave taus, 3 axes) : {ba:8.3f}  {ca:8.3f}")
     print(f"full identification ({a.method}, motion gate, 3 axes)    : {bf:8.3f}  {cf:8.3f}")
     print(f"ratio full / ADEV                                  : {bf / ba:8.2f}  {cf / ca:8.2f}   (goal <= 2)")
-    print(f"  parts (CPU s): motion gate {c_gate:.3f}, ADEV at all {m_all.size} octaves {c_adev_all:.3f}, "
-          f"fits (3 axes) {c_fit:.3f}")
+    print(
+        f"  parts (CPU s): motion gate {c_gate:.3f}, ADEV at all {m_all.size} octaves {c_adev_all:.3f}, "
+        f"fits (3 axes) {c_fit:.3f}"
+    )
     for ax, r in res.axes.items():
-        print(f"  {ax}: N = {r.arw_rad_per_sqrt_s}, B = {r.bias_instability_rad_s}, K = {r.rrw_rad_per_s_sqrt_s}, "
-              f"GM = {r.correlated_sigma_rad_s}")
+        print(
+            f"  {ax}: N = {r.arw_rad_per_sqrt_s}, B = {r.bias_instability_rad_s}, K = {r.rrw_rad_per_s_sqrt_s}, "
+            f"GM = {r.correlated_sigma_rad_s}"
+        )
 
 
 if __name__ == "__main__":

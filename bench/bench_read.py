@@ -44,10 +44,15 @@ def make_file(path: Path, rows: int, chunk: int = 200_000) -> None:
             t = np.arange(i0, i0 + m) / 1000.0
             q = rng.normal(size=(m, 4))
             q /= np.linalg.norm(q, axis=1, keepdims=True)
-            yield Recording(t_s=t, gyro_rad_s=rng.normal(0, 0.01, (m, 3)) + [0.01, -0.02, 0.003],
-                            accel_m_s2=rng.normal(0, 0.05, (m, 3)) + [0, 0, 9.80665],
-                            temp_c=25.0 + rng.normal(0, 0.01, m), ref_rate_rad_s=rng.normal(0, 0.5, (m, 3)),
-                            ref_quat_wxyz=q, meta={"sensor": "bench_read", "rate_hz": "1000"})
+            yield Recording(
+                t_s=t,
+                gyro_rad_s=rng.normal(0, 0.01, (m, 3)) + [0.01, -0.02, 0.003],
+                accel_m_s2=rng.normal(0, 0.05, (m, 3)) + [0, 0, 9.80665],
+                temp_c=25.0 + rng.normal(0, 0.01, m),
+                ref_rate_rad_s=rng.normal(0, 0.5, (m, 3)),
+                ref_quat_wxyz=q,
+                meta={"sensor": "bench_read", "rate_hz": "1000"},
+            )
 
     write_chunks(gen(), path)
 
@@ -105,18 +110,26 @@ def main(argv=None) -> int:
             lines = [ln for ln in fh if not ln.startswith("#")][1:20_001]
         ref = np.array([[float(v) for v in ln.split(",")[:4]] for ln in lines])
         exact = bool(np.array_equal(ours[: len(ref)], ref)) and exact_pandas
-        summary = {"rows": a.rows, "csv_bytes": os.path.getsize(csv), "parquet_bytes": os.path.getsize(pq),
-                   "best_wall_s": best, "best_cpu_s": cpu,
-                   "ratio_to_pandas": {k: best[k] / best["pandas"] for k in runs},
-                   "bit_exact": exact, "load": os.getloadavg()}
+        summary = {
+            "rows": a.rows,
+            "csv_bytes": os.path.getsize(csv),
+            "parquet_bytes": os.path.getsize(pq),
+            "best_wall_s": best,
+            "best_cpu_s": cpu,
+            "ratio_to_pandas": {k: best[k] / best["pandas"] for k in runs},
+            "bit_exact": exact,
+            "load": os.getloadavg(),
+        }
     finally:
         if not a.work:
             shutil.rmtree(work, ignore_errors=True)
     if a.json:
         print(json.dumps(summary, indent=1))
     else:
-        print(f"{a.rows} rows x 15 columns, CSV {summary['csv_bytes'] / 2**20:.0f} MiB, Parquet "
-              f"{summary['parquet_bytes'] / 2**20:.0f} MiB; best of {a.repeat}; load {summary['load'][0]:.2f}")
+        print(
+            f"{a.rows} rows x 15 columns, CSV {summary['csv_bytes'] / 2**20:.0f} MiB, Parquet "
+            f"{summary['parquet_bytes'] / 2**20:.0f} MiB; best of {a.repeat}; load {summary['load'][0]:.2f}"
+        )
         print(f"{'reader':<14s} {'wall s':>8s} {'CPU s':>8s} {'/ pandas':>9s}")
         for k in runs:
             print(f"{k:<14s} {best[k]:8.3f} {cpu[k]:8.3f} {summary['ratio_to_pandas'][k]:9.2f}")

@@ -94,8 +94,10 @@ def main() -> None:
     def gyro_all():
         return SyntheticGyro("icm42688p", rate_hz=1000.0, seed=1, overrides=all_effects_overrides())
 
-    print(f"mujoco {mujoco.__version__}, python {platform.python_version()}, {platform.machine()}; "
-          f"best of {args.repeat}; effects on in (b): {', '.join(gyro_all().effects)}")
+    print(
+        f"mujoco {mujoco.__version__}, python {platform.python_version()}, {platform.machine()}; "
+        f"best of {args.repeat}; effects on in (b): {', '.join(gyro_all().effects)}"
+    )
 
     m, d = load_quadrotor_model(1e-3)
 
@@ -108,8 +110,17 @@ def main() -> None:
             g = gyro_factory()
             p = pipeline_factory() if pipeline_factory else None
             with Clock() as c:
-                fly_hover(duration_s=T, gyro=g, pipeline=p, vibration=True, physics_rate_hz=1000.0, gyro_rate_hz=1000.0, seed=0)
+                fly_hover(
+                    duration_s=T,
+                    gyro=g,
+                    pipeline=p,
+                    vibration=True,
+                    physics_rate_hz=1000.0,
+                    gyro_rate_hz=1000.0,
+                    seed=0,
+                )
             return T / c.wall_s, T / c.cpu_s
+
         return run
 
     # the compiled kernels (sim._fast): loaded from numba's cache, or compiled on a fresh checkout
@@ -165,10 +176,14 @@ def main() -> None:
     rows.append(("turntable + SyntheticGyro.measure (all effects)", best(table_measured, args.repeat), b_t))
 
     w = max(len(r[0]) for r in rows)
-    print(f"{'run':<{w}}  {'sim-s/wall-s':>12}  {'bare':>8}  {'ratio':>5}  |  {'sim-s/CPU-s':>11}  {'bare':>8}  {'ratio':>5}  {'CPU us/step':>11}  {'bare':>6}")
+    print(
+        f"{'run':<{w}}  {'sim-s/wall-s':>12}  {'bare':>8}  {'ratio':>5}  |  {'sim-s/CPU-s':>11}  {'bare':>8}  {'ratio':>5}  {'CPU us/step':>11}  {'bare':>6}"
+    )
     for label, (rw, rc), (bw, bc) in rows:
         # per 1 ms physics step: microseconds = 1e3 / (sim-s per s)
-        print(f"{label:<{w}}  {rw:12.1f}  {bw:8.1f}  {rw / bw:5.2f}  |  {rc:11.1f}  {bc:8.1f}  {rc / bc:5.2f}  {1e3 / rc:11.2f}  {1e3 / bc:6.2f}")
+        print(
+            f"{label:<{w}}  {rw:12.1f}  {bw:8.1f}  {rw / bw:5.2f}  |  {rc:11.1f}  {bc:8.1f}  {rc / bc:5.2f}  {1e3 / rc:11.2f}  {1e3 / bc:6.2f}"
+        )
     print(f"hover: {T:g} simulated s per run, physics 1 kHz, gyro 1 kHz, vibration on; goal ratio >= 0.5")
     print(f"PT1 pipeline step alone (gyrocore.flight.filters.SosFilter.step): {pipe_us:.2f} CPU us per call")
 

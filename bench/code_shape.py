@@ -30,8 +30,11 @@ def code_lines(src: str) -> tuple[ast.Module, set[int]]:
     for n in ast.walk(tree):
         if isinstance(n, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and n.body:
             b = n.body[0]
-            if isinstance(b, ast.Expr) and isinstance(getattr(b, "value", None), ast.Constant) \
-                    and isinstance(b.value.value, str):
+            if (
+                isinstance(b, ast.Expr)
+                and isinstance(getattr(b, "value", None), ast.Constant)
+                and isinstance(b.value.value, str)
+            ):
                 doc.update(range(b.lineno, b.end_lineno + 1))
     lines: set[int] = set()
     skip = (tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT, tokenize.ENDMARKER)
@@ -57,8 +60,10 @@ def main(top: int = 15) -> None:
     print(f"import circles: {len(_cycles(project_graph()))}")
     for what, rows, bound in (("modules", mods, MODULE_BOUND), ("functions", funcs, FUNCTION_BOUND)):
         over = [r for r in rows if r[0] > bound]
-        print(f"{what} over {bound} lines of code: {len(over)} "
-              f"(gyrocore {sum(1 for r in over if r[1].startswith('gyrocore'))})")
+        print(
+            f"{what} over {bound} lines of code: {len(over)} "
+            f"(gyrocore {sum(1 for r in over if r[1].startswith('gyrocore'))})"
+        )
         for k, name in rows[:top]:
             print(f"  {k:5d}  {name}")
 

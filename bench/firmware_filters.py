@@ -22,8 +22,15 @@ from sim.firmware.replay import replay_gyro
 
 FS = 8000.0
 F = np.array([50.0, 150.0, 300.0])
-OFF = ("set gyro_lpf1_static_hz = 0", "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0",
-       "set dyn_notch_count = 0", "set rpm_filter_harmonics = 0", "set gyro_notch1_hz = 0", "set gyro_notch2_hz = 0")
+OFF = (
+    "set gyro_lpf1_static_hz = 0",
+    "set gyro_lpf1_dyn_min_hz = 0",
+    "set gyro_lpf2_static_hz = 0",
+    "set dyn_notch_count = 0",
+    "set rpm_filter_harmonics = 0",
+    "set gyro_notch1_hz = 0",
+    "set gyro_notch2_hz = 0",
+)
 
 
 def gain(res, skip=0):
@@ -36,7 +43,9 @@ def gain(res, skip=0):
 
 def main() -> None:
     fb = ensure_binary()
-    print(f"{fb.firmware} {fb.version} lockstep SITL; gains at {', '.join(f'{f:g}' for f in F)} Hz (firmware / discrete model)")
+    print(
+        f"{fb.firmware} {fb.version} lockstep SITL; gains at {', '.join(f'{f:g}' for f in F)} Hz (firmware / discrete model)"
+    )
     n = 32000
     rows = []
     w = np.random.default_rng(11).normal(0, 2.0, (n, 3))
@@ -44,16 +53,32 @@ def main() -> None:
     rows.append(("PT1 150 Hz (gyro_lpf1)", gain(r), np.abs(sosfreqz(pt1(150, FS).sos, worN=F, fs=FS)[1])))
     w = np.random.default_rng(12).normal(0, 2.0, (n, 3))
     r = replay_gyro(fb.binary, w, settings=(*OFF, "set gyro_notch1_hz = 200", "set gyro_notch1_cutoff = 150"))
-    rows.append(("static notch 200/150 Hz", gain(r), np.abs(sosfreqz(betaflight_notch(200, 150, FS).sos, worN=F, fs=FS)[1])))
+    rows.append(
+        ("static notch 200/150 Hz", gain(r), np.abs(sosfreqz(betaflight_notch(200, 150, FS).sos, worN=F, fs=FS)[1]))
+    )
     t = np.arange(n) / FS
     w = np.random.default_rng(13).normal(0, 0.5, (n, 3))
     w[:, 0] += np.sin(2 * np.pi * 250 * t)
-    r = replay_gyro(fb.binary, w, settings=(*OFF, "set dyn_notch_count = 1", "set dyn_notch_q = 300",
-                                            "set dyn_notch_min_hz = 100", "set dyn_notch_max_hz = 600",
-                                            "set debug_mode = FFT_FREQ"))
+    r = replay_gyro(
+        fb.binary,
+        w,
+        settings=(
+            *OFF,
+            "set dyn_notch_count = 1",
+            "set dyn_notch_q = 300",
+            "set dyn_notch_min_hz = 100",
+            "set dyn_notch_max_hz = 600",
+            "set debug_mode = FFT_FREQ",
+        ),
+    )
     c = float(np.median(r.debug[4000:, 1]))
-    rows.append((f"dynamic notch on a 250 Hz tone (centre {c:g} Hz, Q 3)", gain(r, 4000),
-                 np.abs(sosfreqz(biquad_notch(c, FS, q=3.0).sos, worN=F, fs=FS)[1])))
+    rows.append(
+        (
+            f"dynamic notch on a 250 Hz tone (centre {c:g} Hz, Q 3)",
+            gain(r, 4000),
+            np.abs(sosfreqz(biquad_notch(c, FS, q=3.0).sos, worN=F, fs=FS)[1]),
+        )
+    )
     wid = max(len(x[0]) for x in rows)
     for label, g, h in rows:
         print(f"{label:<{wid}}  " + "  ".join(f"{a:.3f}/{b:.3f} ({100 * (a / b - 1):+.1f} %)" for a, b in zip(g, h)))

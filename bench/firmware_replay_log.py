@@ -24,11 +24,19 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def main() -> None:
-    log_path = Path(sys.argv[1]) if len(sys.argv) > 1 else REPO.parent / "shared" / "data" / "blackbox_public" / "LOG00037.BFL"
+    log_path = (
+        Path(sys.argv[1]) if len(sys.argv) > 1 else REPO.parent / "shared" / "data" / "blackbox_public" / "LOG00037.BFL"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         out_path = Path(tmp) / "fw.csv"
-        r = subprocess.run([sys.executable, "-m", "experiments.cli", "firmware", "replay", str(log_path), "-o", str(out_path)],
-                           cwd=REPO, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}, check=False)
+        r = subprocess.run(
+            [sys.executable, "-m", "experiments.cli", "firmware", "replay", str(log_path), "-o", str(out_path)],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+            check=False,
+        )
         sys.stderr.write(r.stderr)
         if r.returncode != 0:
             sys.exit(r.returncode)
@@ -41,8 +49,10 @@ def main() -> None:
     def hp_rms_deg(x):
         return float(np.degrees(np.sqrt(np.mean(sosfiltfilt(sos, x) ** 2))))
 
-    print(f"{log_path.name}: {out.meta.get('firmware')} replay vs the log's own filtered gyro (gyroADC), "
-          f"rms above 40 Hz, deg/s, at the log's {log.rate_hz:.0f} Hz rows")
+    print(
+        f"{log_path.name}: {out.meta.get('firmware')} replay vs the log's own filtered gyro (gyroADC), "
+        f"rms above 40 Hz, deg/s, at the log's {log.rate_hz:.0f} Hz rows"
+    )
     print(f"{'axis':<4}  {'unfiltered':>10}  {'log filtered':>12}  {'firmware replay':>15}  {'ratio':>5}")
     for i, a in enumerate("xyz"):
         pre = hp_rms_deg(log.extra[f"gyro_prefilter_{a}_rad_s"])

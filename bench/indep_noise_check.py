@@ -79,8 +79,14 @@ CASES = {
         Case("white_mpu6050_100Hz_10min", 100, 600, N=MPU_N),
         Case("white_icm42688_1kHz_10min", 1000, 600, N=ICM_N),
         Case("white_bmi088_400Hz_20min", 400, 1200, N=BMI_N),
-        Case("rw_kalibr_200Hz_1h", 200, 3600, N=1.7e-4, K=1.9e-5,
-             note="Kalibr-yaml-like N, K (continuous-time units); cumsum random walk"),
+        Case(
+            "rw_kalibr_200Hz_1h",
+            200,
+            3600,
+            N=1.7e-4,
+            K=1.9e-5,
+            note="Kalibr-yaml-like N, K (continuous-time units); cumsum random walk",
+        ),
         Case("rw_kalibr_200Hz_2h", 200, 7200, N=1.7e-4, K=4e-6),
         Case("flicker_fft_fog_100Hz_2h", 100, 7200, N=FOG_N, B=FOG_FLOOR / F, flicker="fft"),
         Case("flicker_kasdin_fog_100Hz_2h", 100, 7200, N=FOG_N, B=FOG_FLOOR / F, flicker="allantools"),
@@ -89,13 +95,20 @@ CASES = {
         Case("flicker_kasdin_strong_100Hz_1h", 100, 3600, N=1e-4, B=5e-5, flicker="allantools"),
         Case("gm_gnss_ins_sim_100Hz_1h", 100, 3600, N=GIS_N, gms=(GIS_GM,)),
         Case("gm_gnss_ins_sim_100Hz_2h", 100, 7200, N=GIS_N, gms=(GIS_GM,)),
-        Case("gm_sum4_100Hz_2h", 100, 7200, N=1e-4,
-             gms=((2e-5, 3.0), (2e-5, 30.0), (2e-5, 300.0), (2e-5, 3000.0)),
-             note="four GMs a decade apart: ≈ a flicker floor between ~5 s and ~5000 s",
-             # Σ 2σ²τc/(1+(2πfτc)²) over τc log-spaced a decade apart ≈ (2σ²/ln10)∫τc/(1+(2πfτc)²)
-             # dln τc = σ²/(2f ln10) = B²/(2πf) ⇒ B = σ√(π/ln10) between the τc's
-             expect={"bias_instability_rad_s": 2e-5 * math.sqrt(math.pi / math.log(10.0)),
-                     "correlated_sigma_rad_s": "n/a"}),
+        Case(
+            "gm_sum4_100Hz_2h",
+            100,
+            7200,
+            N=1e-4,
+            gms=((2e-5, 3.0), (2e-5, 30.0), (2e-5, 300.0), (2e-5, 3000.0)),
+            note="four GMs a decade apart: ≈ a flicker floor between ~5 s and ~5000 s",
+            # Σ 2σ²τc/(1+(2πfτc)²) over τc log-spaced a decade apart ≈ (2σ²/ln10)∫τc/(1+(2πfτc)²)
+            # dln τc = σ²/(2f ln10) = B²/(2πf) ⇒ B = σ√(π/ln10) between the τc's
+            expect={
+                "bias_instability_rad_s": 2e-5 * math.sqrt(math.pi / math.log(10.0)),
+                "correlated_sigma_rad_s": "n/a",
+            },
+        ),
         Case("flicker_kasdin_bmi088_100Hz_2h", 100, 7200, N=BMI_N, B=BMI_FLOOR / F, flicker="allantools"),
         Case("gm_gnss_ins_sim_100Hz_4h", 100, 14400, N=GIS_N, gms=(GIS_GM,)),
         Case("quant_mpu6050_raw_100Hz_30min", 100, 1800, N=MPU_N, lsb_per_dps=131.0, raw_mpu6050=True),
@@ -137,8 +150,13 @@ def truth(case: Case) -> dict:
         # high in N at σ = 0.46 LSB: the ICM-42688-P at ±2000 dps, 100 Hz)
         lsb = DEG / case.lsb_per_dps
         N = math.sqrt(rounded_gaussian_var(case.N * math.sqrt(case.fs_hz), lsb) / case.fs_hz)
-    t = {"arw_rad_per_sqrt_s": N, "bias_instability_rad_s": case.B or None, "rrw_rad_per_s_sqrt_s": case.K or None,
-         "quantization_rad": None, "rate_ramp_rad_s2": None}
+    t = {
+        "arw_rad_per_sqrt_s": N,
+        "bias_instability_rad_s": case.B or None,
+        "rrw_rad_per_s_sqrt_s": case.K or None,
+        "quantization_rad": None,
+        "rate_ramp_rad_s2": None,
+    }
     t.update(case.expect)
     if len(case.gms) == 1:
         s, tc = case.gms[0]
@@ -167,7 +185,9 @@ def write_file(case: Case, omega: np.ndarray, path: str) -> str:
         acc = np.tile(np.array([[0, 0, 16384]], dtype=np.int64), (n, 1))
         raw = path[:-4] + "_raw.csv"
         with open(raw, "w") as fh:
-            fh.write(f"Fs,{case.fs_hz:g}\nLogging Type,static\nInitialization time,0\nWaiting time,0\nax,ay,az,gx,gy,gz\n")
+            fh.write(
+                f"Fs,{case.fs_hz:g}\nLogging Type,static\nInitialization time,0\nWaiting time,0\nax,ay,az,gx,gy,gz\n"
+            )
             np.savetxt(fh, np.column_stack([acc, counts]), fmt="%d", delimiter=",")
         _cli(["convert", raw, "--format", "tomisuarez2", "-o", path, "--force"])
         return path
@@ -222,18 +242,45 @@ def run_case(case: Case, seed: int, workdir: str, *, plot: bool = False, keep: b
             lo, hi = res["ci95"][name]
             lo = 0.0 if lo is None else lo
             hi = math.inf if hi is None else hi  # JSON null = unbounded (inf is not JSON)
-            rows.append({"case": case.name, "seed": seed, "axis": ax, "term": name, "truth": tv,
-                         "reported": res[name], "estimate": res["estimate"][name], "lo": lo, "hi": hi,
-                         "covered": (tv is None and lo == 0.0) or (tv is not None and lo <= tv <= hi),
-                         "claimed": res[name] is not None, "ambiguous": res.get("ambiguous", {}),
-                         "cpu_s": cpu})
+            rows.append(
+                {
+                    "case": case.name,
+                    "seed": seed,
+                    "axis": ax,
+                    "term": name,
+                    "truth": tv,
+                    "reported": res[name],
+                    "estimate": res["estimate"][name],
+                    "lo": lo,
+                    "hi": hi,
+                    "covered": (tv is None and lo == 0.0) or (tv is not None and lo <= tv <= hi),
+                    "claimed": res[name] is not None,
+                    "ambiguous": res.get("ambiguous", {}),
+                    "cpu_s": cpu,
+                }
+            )
         # what a user reads off the ADEV plot: min ADEV / 0.664
         curve = res.get("curve") or {}
         if curve.get("taus_s"):
             Bf, tmin = G.adev_floor_B(np.asarray(curve["taus_s"]), np.asarray(curve["adev_rad_s"]))
-            rows.append({"case": case.name, "seed": seed, "axis": ax, "term": "adev_floor_B", "truth": tr.get(
-                "bias_instability_rad_s"), "reported": Bf, "estimate": Bf, "lo": None, "hi": None, "covered": None,
-                "claimed": True, "tau_min_s": tmin, "ambiguous": {}, "cpu_s": cpu})
+            rows.append(
+                {
+                    "case": case.name,
+                    "seed": seed,
+                    "axis": ax,
+                    "term": "adev_floor_B",
+                    "truth": tr.get("bias_instability_rad_s"),
+                    "reported": Bf,
+                    "estimate": Bf,
+                    "lo": None,
+                    "hi": None,
+                    "covered": None,
+                    "claimed": True,
+                    "tau_min_s": tmin,
+                    "ambiguous": {},
+                    "cpu_s": cpu,
+                }
+            )
     return rows
 
 
@@ -243,13 +290,18 @@ def summarise(rows: list[dict]) -> str:
     by = defaultdict(list)
     for r in rows:
         by[(r["case"], r["term"])].append(r)
-    out = ["| generator | term | truth | reported (median; range) | claimed | interval covers truth |", "|---|---|---|---|---|---|"]
+    out = [
+        "| generator | term | truth | reported (median; range) | claimed | interval covers truth |",
+        "|---|---|---|---|---|---|",
+    ]
     for (c, t), rs in by.items():
         tv = rs[0]["truth"]
         if t == "adev_floor_B":
             vals = [r["reported"] for r in rs]
-            out.append(f"| {c} | min ADEV/0.664 | {tv if tv is None else f'{tv:.3g}'} | {np.median(vals):.3g}; "
-                       f"{min(vals):.3g}–{max(vals):.3g} (τ_min {np.median([r['tau_min_s'] for r in rs]):.0f} s) | — | — |")
+            out.append(
+                f"| {c} | min ADEV/0.664 | {tv if tv is None else f'{tv:.3g}'} | {np.median(vals):.3g}; "
+                f"{min(vals):.3g}–{max(vals):.3g} (τ_min {np.median([r['tau_min_s'] for r in rs]):.0f} s) | — | — |"
+            )
             continue
         if t == "correlated_tau_c_s" and tv is None:
             continue
@@ -258,8 +310,10 @@ def summarise(rows: list[dict]) -> str:
         est = [r["reported"] for r in rs if r["reported"] is not None]
         est_s = f"{np.median(est):.3g}; {min(est):.3g}–{max(est):.3g}" if est else "null"
         mark = "" if (tv is None) == (claimed == 0) or tv is not None else " **false claim**"
-        out.append(f"| {c} | {t} | {'absent' if tv is None else f'{tv:.3g}'} | {est_s} | {claimed}/{len(rs)}{mark} | "
-                   f"{cov}/{len(rs)} |")
+        out.append(
+            f"| {c} | {t} | {'absent' if tv is None else f'{tv:.3g}'} | {est_s} | {claimed}/{len(rs)}{mark} | "
+            f"{cov}/{len(rs)} |"
+        )
     return "\n".join(out)
 
 
@@ -273,8 +327,12 @@ def main(argv=None) -> None:
     ap.add_argument("--plot", action="store_true")
     ap.add_argument("--keep", action="store_true")
     ap.add_argument("--summarise", default=None, help="print the table of a saved result JSON")
-    ap.add_argument("--drift", default=None, metavar="W,H",
-                    help="instead: heading drift over H s after a W-s bias window, measured vs predicted")
+    ap.add_argument(
+        "--drift",
+        default=None,
+        metavar="W,H",
+        help="instead: heading drift over H s after a W-s bias window, measured vs predicted",
+    )
     a = ap.parse_args(argv)
     if a.drift:
         w, h = (float(v) for v in a.drift.split(","))
@@ -309,12 +367,22 @@ def drift_sd_rad(terms: dict, window_s: float, horizon_s: float) -> float:
 
     t0 = np.array([0.0, window_s])
     t1 = np.array([window_s, window_s + horizon_s])
-    bl = Blocks(i0=np.array([0, 1]), i1=np.array([1, 2]), t0_s=t0, t1_s=t1, scored=np.array([False, True]),
-                segment=np.zeros(2, int), window=np.array([0, -1]))
+    bl = Blocks(
+        i0=np.array([0, 1]),
+        i1=np.array([1, 2]),
+        t0_s=t0,
+        t1_s=t1,
+        scored=np.array([False, True]),
+        segment=np.zeros(2, int),
+        window=np.array([0, -1]),
+    )
     d = np.array([1.0, -1.0])
     var = 0.0
-    for key, term, sq in (("arw_rad_per_sqrt_s", "arw", 1), ("bias_instability_rad_s", "bias_instability", 1),
-                          ("rrw_rad_per_s_sqrt_s", "rrw", 1)):
+    for key, term, sq in (
+        ("arw_rad_per_sqrt_s", "arw", 1),
+        ("bias_instability_rad_s", "bias_instability", 1),
+        ("rrw_rad_per_s_sqrt_s", "rrw", 1),
+    ):
         v = terms.get(key) or 0.0
         if v:
             var += v * v * float(d @ block_covariance(bl, term) @ d)
@@ -339,14 +407,19 @@ def drift_check(case: Case, seeds: int, seed0: int, window_s: float, horizon_s: 
         ih = int(round(horizon_s * case.fs_hz))
         for k, ax in enumerate("xyz"):
             x = omega[:, k]
-            meas.append((x[iw:iw + ih].mean() - x[:iw].mean()) * horizon_s)
+            meas.append((x[iw : iw + ih].mean() - x[:iw].mean()) * horizon_s)
             pred_rep.append(drift_sd_rad(out["axes"][ax], window_s, horizon_s))
     tr = {k: v for k, v in truth(case).items() if isinstance(v, float)}
-    return {"case": case.name, "window_s": window_s, "horizon_s": horizon_s, "axes": len(meas),
-            "measured_rms_deg": math.degrees(math.sqrt(np.mean(np.square(meas)))),
-            "predicted_truth_deg": math.degrees(drift_sd_rad(tr, window_s, horizon_s)),
-            "predicted_reported_deg_median": math.degrees(float(np.median(pred_rep))),
-            "predicted_reported_deg_range": [math.degrees(min(pred_rep)), math.degrees(max(pred_rep))]}
+    return {
+        "case": case.name,
+        "window_s": window_s,
+        "horizon_s": horizon_s,
+        "axes": len(meas),
+        "measured_rms_deg": math.degrees(math.sqrt(np.mean(np.square(meas)))),
+        "predicted_truth_deg": math.degrees(drift_sd_rad(tr, window_s, horizon_s)),
+        "predicted_reported_deg_median": math.degrees(float(np.median(pred_rep))),
+        "predicted_reported_deg_range": [math.degrees(min(pred_rep)), math.degrees(max(pred_rep))],
+    }
 
 
 if __name__ == "__main__":

@@ -41,8 +41,19 @@ from gyrocore.effects import registry as E
 from gyrocore.attitude import AttitudeScore, error_angle_rad, integrate_gyro, score_attitude
 
 from .stages import (  # noqa: F401  (the stage helpers, reached as ablation.X by its callers)
-    _CAL_KW, POWERUP_SEARCH_S, POWERUP_WINDOW_S, SE_SUFFIX, TABLE_EFFECTS, THERMAL_EFFECTS, THERMAL_NUISANCE,
-    _as_stages, _stage_from, bias_bound_rad_s, corrected_gyro, powerup_window, powerup_windows,
+    _CAL_KW,
+    POWERUP_SEARCH_S,
+    POWERUP_WINDOW_S,
+    SE_SUFFIX,
+    TABLE_EFFECTS,
+    THERMAL_EFFECTS,
+    THERMAL_NUISANCE,
+    _as_stages,
+    _stage_from,
+    bias_bound_rad_s,
+    corrected_gyro,
+    powerup_window,
+    powerup_windows,
 )
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
@@ -78,8 +89,14 @@ QUICK_DURATION_S = 20.0
 #: (:data:`experiments.calibrators.QUICK_CALIBRATION_S`). With n units the interval [min, max]
 #: holds the median with probability 1 − 2·0.5ⁿ (n = 5: 93.8 %).
 STANDARD_INSTANCES = 5
-STANDARD_DURATIONS_S = {"static": 60.0, "static_bumped": 30.0, "turntable": 120.0, "thermal": 300.0,
-                        "hover": 15.0, "power_cycles": 60.0}
+STANDARD_DURATIONS_S = {
+    "static": 60.0,
+    "static_bumped": 30.0,
+    "turntable": 120.0,
+    "thermal": 300.0,
+    "hover": 15.0,
+    "power_cycles": 60.0,
+}
 
 
 def present_effects(params_true: Mapping[str, Mapping[str, np.ndarray]]) -> list[str]:
@@ -175,8 +192,15 @@ class InstanceAblation:
     prediction_true_noise: Any = None
 
 
-def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
-                   cache_dir: str | None = None, durations_s: tuple[float, float] | None = None):
+def calibrate_core(
+    sensor: str,
+    seed: int,
+    present: Sequence[str],
+    *,
+    quick: bool = False,
+    cache_dir: str | None = None,
+    durations_s: tuple[float, float] | None = None,
+):
     """The core's calibration of this unit, through the calibrator door.
 
     The unit's calibration recordings (:func:`experiments.calibrators.calibration_recordings`:
@@ -202,8 +226,10 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
     runs = "quick" if quick else "full"
     if durations_s is not None:  # other calibration-run durations (table, thermal), s
         runs = f"{durations_s[0]:g}-{durations_s[1]:g}"
-    key = (f"{safe}_{seed}_{runs}_{'-'.join(tt)}_{'-'.join(th)}_{_CAL_KW['covariance']}"
-           f"_r{_CAL_KW.get('ramp_margin_s', 0):g}")
+    key = (
+        f"{safe}_{seed}_{runs}_{'-'.join(tt)}_{'-'.join(th)}_{_CAL_KW['covariance']}"
+        f"_r{_CAL_KW.get('ramp_margin_s', 0):g}"
+    )
     paths = None
     if cache_dir:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
@@ -212,10 +238,13 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
         if done.exists():
             have = json.loads(done.read_text())
             res = tuple(load_params(p) if have[i] else None for i, p in enumerate(paths))
-            return CoreParams(effects=tuple(present), stages=tuple(_stage_from(r, i + 1) for i, r in enumerate(res)),
-                              results=res)
-    recs = [strip_truth(r, references=True)
-            for r in calibration_recordings(sensor, seed, quick=quick, durations_s=durations_s)]
+            return CoreParams(
+                effects=tuple(present), stages=tuple(_stage_from(r, i + 1) for i, r in enumerate(res)), results=res
+            )
+    recs = [
+        strip_truth(r, references=True)
+        for r in calibration_recordings(sensor, seed, quick=quick, durations_s=durations_s)
+    ]
     params = CoreCalibrator(effects=present).fit(recs)
     if paths:
         from gyrocore.data.recording import atomic_write_text
@@ -227,8 +256,9 @@ def calibrate_core(sensor: str, seed: int, present: Sequence[str], *, quick: boo
     return params
 
 
-def calibrate_instance(sensor: str, seed: int, present: Sequence[str], *, quick: bool = False,
-                       cache_dir: str | None = None) -> list[dict]:
+def calibrate_instance(
+    sensor: str, seed: int, present: Sequence[str], *, quick: bool = False, cache_dir: str | None = None
+) -> list[dict]:
     """What a user would get for this unit: the stages of :func:`calibrate_core` (for :func:`corrected_gyro`)."""
     return list(calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir).stages)
 
@@ -244,8 +274,7 @@ def _tilt_rows(rec, truth, w_all: np.ndarray, start: int, kp: float) -> dict:
     t = rec.t_s[start:]
     q_true = truth.q_SW_wxyz[start:]
     q_int = integrate_gyro(t, w_all[start:], q0_wxyz=q_true[0])
-    q_mah, _ = mahony(t, w_all[start:], rec.accel_m_s2[start:], q0_wxyz=q_true[0], kp_per_s=kp,
-                      accel_gate_m_s2=1.0)
+    q_mah, _ = mahony(t, w_all[start:], rec.accel_m_s2[start:], q0_wxyz=q_true[0], kp_per_s=kp, accel_gate_m_s2=1.0)
     out = {}
     for name, q in (("all (tilt)", q_int), ("all + Mahony (tilt)", q_mah)):
         e = tilt_error_rad(q, q_true)
@@ -289,21 +318,30 @@ def ablate_instance(
         core_params = calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir)
         calibration = list(core_params.stages)
     else:
-        core_params = CoreParams(effects=tuple(present),
-                                 stages=(calibration,) if isinstance(calibration, Mapping) else tuple(calibration))
+        core_params = CoreParams(
+            effects=tuple(present), stages=(calibration,) if isinstance(calibration, Mapping) else tuple(calibration)
+        )
     stages = _as_stages(calibration)
     have = {tog for st in stages for (_, _, tog) in st.values()}
     estimated = tuple(e for e in present if e in have or e == "bias")
     missing = [e for e in present if e not in estimated]
     if missing:
         notes.append(f"not estimated by the calibration runs: {', '.join(missing)}")
-    inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=None, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
-                        q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
+    inp = E.ModelInputs(
+        t_s=rec.t_s,
+        omega_S_rad_s=None,
+        f_S_m_s2=rec.accel_m_s2,
+        temp_c=rec.temp_c,
+        q_SW_wxyz=truth.q_SW_wxyz,
+        t_since_power_up_s=truth.t_since_power_up_s,
+    )
     still = powerup_windows(rec, p_true, bias_bound_rad_s=bias_bound_rad_s(sensor), window_s=powerup_window_s)
     n_missing = sum(w is None for _, w in still)
     if n_missing and "bias" in present:
-        notes.append(f"no still window at {n_missing} of {len(still)} power-up(s): bias there from the calibration "
-                     "run (a stale turn-on draw)")
+        notes.append(
+            f"no still window at {n_missing} of {len(still)} power-up(s): bias there from the calibration "
+            "run (a stale turn-on draw)"
+        )
     variants: dict[str, np.ndarray] = {}
     for row in row_names(present):
         if row == "none":
@@ -312,12 +350,13 @@ def ablate_instance(
             # the power-up window of the prediction's length (a protocol with another window
             # must be scored with it: before, the all row always took a 2-s window)
             variants[row] = CoreCalibrator(effects=present, powerup_window_s=powerup_window_s).apply(
-                strip_truth(rec, references=False), core_params)
+                strip_truth(rec, references=False), core_params
+            )
         elif row.startswith("all but "):
-            x = row[len("all but "):]
+            x = row[len("all but ") :]
             variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, [e for e in present if e != x], still)
         elif row.startswith("only "):
-            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, [row[len("only "):]], still)
+            variants[row] = corrected_gyro(rec.gyro_rad_s, inp, calibration, [row[len("only ") :]], still)
         elif row == "true params":
             ptrue = {e: p_true[e] for e in present if e != "bias"}
             w = E.correct(ptrue, rec.gyro_rad_s, inp) if ptrue else rec.gyro_rad_s.copy()
@@ -340,10 +379,17 @@ def ablate_instance(
         prediction = predict_instance(res, calibration, present, still, start, noise=nm)
         prediction_true = predict_instance(res, calibration, present, still, start) if nm is not None else prediction
     return InstanceAblation(
-        scenario=scenario, sensor=sensor, seed=seed, present=tuple(present), estimated=estimated,
-        scores={k: v[0] for k, v in sc.items()}, t_s=t[idx],
-        errors_deg={k: np.degrees(v[1][idx]) for k, v in sc.items()}, notes=tuple(notes),
-        prediction=prediction, prediction_true_noise=prediction_true,
+        scenario=scenario,
+        sensor=sensor,
+        seed=seed,
+        present=tuple(present),
+        estimated=estimated,
+        scores={k: v[0] for k, v in sc.items()},
+        t_s=t[idx],
+        errors_deg={k: np.degrees(v[1][idx]) for k, v in sc.items()},
+        notes=tuple(notes),
+        prediction=prediction,
+        prediction_true_noise=prediction_true,
     )
 
 
@@ -383,9 +429,14 @@ def uncorrected_rate_errors(res, present: Sequence[str], estimated: Sequence[str
 
     truth, p_true, rec = res.truth, res.params_true, res.recording
     w = np.asarray(truth.omega_S_rad_s, float)
-    inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=w, f_S_m_s2=np.asarray(truth.f_S_m_s2, float),
-                        temp_c=np.asarray(truth.temp_c, float), q_SW_wxyz=truth.q_SW_wxyz,
-                        t_since_power_up_s=truth.t_since_power_up_s)
+    inp = E.ModelInputs(
+        t_s=rec.t_s,
+        omega_S_rad_s=w,
+        f_S_m_s2=np.asarray(truth.f_S_m_s2, float),
+        temp_c=np.asarray(truth.temp_c, float),
+        q_SW_wxyz=truth.q_SW_wxyz,
+        t_since_power_up_s=truth.t_since_power_up_s,
+    )
     out = {}
     for e in present:
         if e in estimated or e == "bias":
@@ -433,6 +484,7 @@ def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = T
     src = at_rate[0] if at_rate else results[0]
     nm = src.noise()
     if slow_from_longest and len(results) > 1:
+
         def record_s(r):
             rate = float(r.noise_model.get("rate_hz", np.nan))
             return float(getattr(r, "n_samples", 0) or 0) / rate if rate > 0 else 0.0
@@ -442,9 +494,13 @@ def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = T
             from dataclasses import replace
 
             slow = longest.noise()
-            nm = replace(nm, bias_instability_rad_s=slow.bias_instability_rad_s,
-                         rrw_rad_s_per_sqrt_s=slow.rrw_rad_s_per_sqrt_s,
-                         gm_sigma_rad_s=slow.gm_sigma_rad_s, gm_tau_c_s=slow.gm_tau_c_s)
+            nm = replace(
+                nm,
+                bias_instability_rad_s=slow.bias_instability_rad_s,
+                rrw_rad_s_per_sqrt_s=slow.rrw_rad_s_per_sqrt_s,
+                gm_sigma_rad_s=slow.gm_sigma_rad_s,
+                gm_tau_c_s=slow.gm_tau_c_s,
+            )
     return nm
 
 
@@ -463,9 +519,14 @@ def predict_instance(res, calibration, present: Sequence[str], still, start: int
     rec, truth, p_true = res.recording, res.truth, res.params_true
     groups = calibration_groups(calibration, present)
     estimated = [g.name for g in groups]
-    inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=np.asarray(truth.omega_S_rad_s, float),
-                        f_S_m_s2=np.asarray(truth.f_S_m_s2, float), temp_c=np.asarray(truth.temp_c, float),
-                        q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
+    inp = E.ModelInputs(
+        t_s=rec.t_s,
+        omega_S_rad_s=np.asarray(truth.omega_S_rad_s, float),
+        f_S_m_s2=np.asarray(truth.f_S_m_s2, float),
+        temp_c=np.asarray(truth.temp_c, float),
+        q_SW_wxyz=truth.q_SW_wxyz,
+        t_since_power_up_s=truth.t_since_power_up_s,
+    )
     stale = None
     if "bias" in p_true:
         stale = np.asarray(p_true["bias"].get("turn_on_sigma_rad_s", np.zeros(3)), float) * math.sqrt(2.0)
@@ -486,10 +547,17 @@ def predict_instance(res, calibration, present: Sequence[str], still, start: int
     e_irr = error_angle_rad(integrate_gyro(t_sc, (w_true + d)[start:], q0_wxyz=q_sc[0]), q_sc)
     if noise is None:
         noise = NoiseModel.from_params(p_true)
-    return predict_error(inp, start=start, segments=still, noise=noise, groups=groups,
-                         uncorrected=unc, stale_bias_sigma_rad_s=stale,
-                         exact_error_rad={"irreducible (low-pass, integration)": e_irr},
-                         floor_exact_error_rad={"integration": e_int})
+    return predict_error(
+        inp,
+        start=start,
+        segments=still,
+        noise=noise,
+        groups=groups,
+        uncorrected=unc,
+        stale_bias_sigma_rad_s=stale,
+        exact_error_rad={"irreducible (low-pass, integration)": e_irr},
+        floor_exact_error_rad={"integration": e_int},
+    )
 
 
 # ------------------------------------------------------------------ Monte Carlo task
@@ -561,8 +629,14 @@ def ablation_task(task) -> "Any":
     dur = task.duration_s if task.duration_s is not None else dict(opts.get("durations", ())).get(task.scenario)
     with warnings.catch_warnings(), single_thread_blas():
         warnings.simplefilter("ignore")
-        ab = ablate_instance(task.scenario, sensor=task.sensor, seed=task.seed, duration_s=dur,
-                             quick=bool(opts.get("quick", False)), cache_dir=opts.get("cache_dir"))
+        ab = ablate_instance(
+            task.scenario,
+            sensor=task.sensor,
+            seed=task.seed,
+            duration_s=dur,
+            quick=bool(opts.get("quick", False)),
+            cache_dir=opts.get("cache_dir"),
+        )
     return TaskResult.from_task(task, instance_metrics(ab))
 
 
@@ -574,8 +648,12 @@ def _rows_in(campaign, scenario: str, sensor: str) -> list[str]:
     """Row keys present in the campaign for (scenario, sensor), table order."""
     keys = []
     for s in campaign.summary:
-        if (s.scenario == scenario and s.sensor == sensor and s.metric.endswith("__final_deg")
-                and not s.metric.startswith("pred")):  # predictions are not correction rows
+        if (
+            s.scenario == scenario
+            and s.sensor == sensor
+            and s.metric.endswith("__final_deg")
+            and not s.metric.startswith("pred")
+        ):  # predictions are not correction rows
             keys.append(s.metric[: -len("__final_deg")])
     order = {"none": 0, "all": 1, "true-params": 96, "floor": 97, "all-(tilt)": 98, "all-+-Mahony-(tilt)": 99}
     return sorted(keys, key=lambda k: (order.get(k, 2 if k.startswith("all-but") else 3), keys.index(k)))
@@ -590,7 +668,9 @@ def campaign_tables(campaign) -> tuple[str, dict]:
             if not tab:
                 continue
             keys = _rows_in(campaign, sc, se)
-            present = [e for e in CORRECTABLE if tab.get(f"present__{e}") is not None and tab[f"present__{e}"].median > 0]
+            present = [
+                e for e in CORRECTABLE if tab.get(f"present__{e}") is not None and tab[f"present__{e}"].median > 0
+            ]
             dur = tab["duration_s"].median if "duration_s" in tab else float("nan")
             n = tab[f"{keys[0]}__final_deg"].n if keys else 0
             md.append(f"### {sc} — {se}\n")
@@ -599,16 +679,45 @@ def campaign_tables(campaign) -> tuple[str, dict]:
             for k in keys:
                 f, r, d = tab[f"{k}__final_deg"], tab[f"{k}__rms_deg"], tab[f"{k}__drift_deg_per_min"]
                 of = tab.get(f"{k}__over_floor")
-                rows.append((_label(k),
-                             f.median, f.p90, r.median, r.p90, d.median, d.p90,
-                             of.median if of else float("nan"), of.p90 if of else float("nan")))
-            md.append(md_table(["correction", "final °, median", "final °, p90", "RMS °, median", "RMS °, p90",
-                                "°/min, median", "°/min, p90", "RMS/floor, median", "RMS/floor, p90"], rows))
+                rows.append(
+                    (
+                        _label(k),
+                        f.median,
+                        f.p90,
+                        r.median,
+                        r.p90,
+                        d.median,
+                        d.p90,
+                        of.median if of else float("nan"),
+                        of.p90 if of else float("nan"),
+                    )
+                )
+            md.append(
+                md_table(
+                    [
+                        "correction",
+                        "final °, median",
+                        "final °, p90",
+                        "RMS °, median",
+                        "RMS °, p90",
+                        "°/min, median",
+                        "°/min, p90",
+                        "RMS/floor, median",
+                        "RMS/floor, p90",
+                    ],
+                    rows,
+                )
+            )
             md.append("")
             summary[f"{sc}/{se}"] = {
-                k: {"final_deg_median": tab[f"{k}__final_deg"].median, "final_deg_p90": tab[f"{k}__final_deg"].p90,
-                    "rms_deg_median": tab[f"{k}__rms_deg"].median, "rms_deg_p90": tab[f"{k}__rms_deg"].p90}
-                for k in keys if k in ("none", "all", "true-params", "floor")
+                k: {
+                    "final_deg_median": tab[f"{k}__final_deg"].median,
+                    "final_deg_p90": tab[f"{k}__final_deg"].p90,
+                    "rms_deg_median": tab[f"{k}__rms_deg"].median,
+                    "rms_deg_p90": tab[f"{k}__rms_deg"].p90,
+                }
+                for k in keys
+                if k in ("none", "all", "true-params", "floor")
             }
             summary[f"{sc}/{se}"]["present"] = present
             summary[f"{sc}/{se}"]["instances"] = n
@@ -677,20 +786,28 @@ def prediction_summary(campaign) -> dict:
             "final_all_deg": med("all__final_deg"),
             "final_predicted_deg": med("pred__final_deg"),
             "measured_over_predicted_median": float(np.median(r)) if r.size else float("nan"),
-            "measured2_over_predicted2_mean": float(np.mean(r ** 2)) if r.size else float("nan"),
-            "measured2_over_predicted2_se": float(np.std(r ** 2, ddof=1) / np.sqrt(r.size)) if r.size > 1 else float("nan"),
+            "measured2_over_predicted2_mean": float(np.mean(r**2)) if r.size else float("nan"),
+            "measured2_over_predicted2_se": float(np.std(r**2, ddof=1) / np.sqrt(r.size))
+            if r.size > 1
+            else float("nan"),
             # simulation only: E[r² | unit] = (prediction with the unit's true noise / with the
             # identified noise)², the expectation of r² given the calibration, free of the χ²
             # scatter of one run's error (docs/accuracy.md, "Is the prediction calibrated?")
             "expected_r2_given_unit_mean": _expected_r2(ms),
-            "budget": {_label(k[len("budget__"):-len("__deg")]): med(k) for k in comps},
+            "budget": {_label(k[len("budget__") : -len("__deg")]): med(k) for k in comps},
         }
     return out
 
 
 def _expected_r2(ms: Sequence[Mapping[str, float]]) -> float:
-    x = np.array([(m["pred-true-noise__rms_deg"] / m["pred__rms_deg"]) ** 2 for m in ms
-                  if m.get("pred__rms_deg", 0) > 0 and m.get("pred-true-noise__rms_deg", 0) > 0], float)
+    x = np.array(
+        [
+            (m["pred-true-noise__rms_deg"] / m["pred__rms_deg"]) ** 2
+            for m in ms
+            if m.get("pred__rms_deg", 0) > 0 and m.get("pred-true-noise__rms_deg", 0) > 0
+        ],
+        float,
+    )
     return float(x.mean()) if x.size else float("nan")
 
 
@@ -705,9 +822,16 @@ def budget_markdown(pred: Mapping[str, Mapping]) -> str:
     head = ["scenario", "measured RMS °", "predicted RMS °", "floor RMS °", "mean (meas/pred)² ± se"] + comps
     rows = []
     for sc, v in pred.items():
-        rows.append([sc, v["rms_all_deg"], v["rms_predicted_deg"], v["rms_floor_deg"],
-                     f"{v['measured2_over_predicted2_mean']:.2f} ± {v['measured2_over_predicted2_se']:.2f}"]
-                    + [_budget_cell(v["budget"].get(c, 0.0)) for c in comps])
+        rows.append(
+            [
+                sc,
+                v["rms_all_deg"],
+                v["rms_predicted_deg"],
+                v["rms_floor_deg"],
+                f"{v['measured2_over_predicted2_mean']:.2f} ± {v['measured2_over_predicted2_se']:.2f}",
+            ]
+            + [_budget_cell(v["budget"].get(c, 0.0)) for c in comps]
+        )
     return md_table(head, rows)
 
 
@@ -745,8 +869,13 @@ def budget_figure(pred: Mapping[str, Mapping], out_dir, name: str = "ablation_bu
         ax.bar(x, v, bottom=base, label=c, width=0.6)
         pos = pos + np.where(v >= 0, v, 0)
         neg = neg + np.where(v < 0, v, 0)
-    ax.plot(x, [100.0 * pred[n]["rms_all_deg"] ** 2 / pred[n]["rms_predicted_deg"] ** 2 for n in names], "k*", ms=10,
-            label="measured RMS² (median) / predicted")
+    ax.plot(
+        x,
+        [100.0 * pred[n]["rms_all_deg"] ** 2 / pred[n]["rms_predicted_deg"] ** 2 for n in names],
+        "k*",
+        ms=10,
+        label="measured RMS² (median) / predicted",
+    )
     ax.axhline(0, color="k", lw=0.6)
     ax.set_xticks(x)
     ax.set_xticklabels([f"{n}\n{pred[n]['rms_predicted_deg']:.3g}°" for n in names], fontsize=8)
@@ -758,10 +887,20 @@ def budget_figure(pred: Mapping[str, Mapping], out_dir, name: str = "ablation_bu
     return save_figure(fig, out_dir, name)
 
 
-def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        scenarios: Sequence[str] | None = None, sensors: Sequence[str] | None = None,
-        duration_s: float | None = None, seed: int = 0, size: str | None = None,
-        progress: Callable[[int, int], None] | None = None, **_ignored) -> ExperimentResult:
+def run(
+    *,
+    out_dir,
+    quick: bool = False,
+    seeds: int | None = None,
+    workers: int | None = None,
+    scenarios: Sequence[str] | None = None,
+    sensors: Sequence[str] | None = None,
+    duration_s: float | None = None,
+    seed: int = 0,
+    size: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    **_ignored,
+) -> ExperimentResult:
     """Monte Carlo ablation over scenarios × sensor instances; tables and curves into ``out_dir``.
 
     ``size`` (``gyroharness run``): ``"quick"`` (= ``quick``), ``"standard"`` (:data:`STANDARD_INSTANCES`
@@ -788,9 +927,17 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         opts = {"quick": bool(quick or size == "standard"), "cache_dir": cache}
         if durations:
             opts["durations"] = durations
-        camp = run_campaign(scenarios=scenarios, sensors=sensors, instances=instances, seed=seed,
-                            duration_s=duration_s, workers=workers, task_function=ablation_task,
-                            options=opts, progress=progress or False)
+        camp = run_campaign(
+            scenarios=scenarios,
+            sensors=sensors,
+            instances=instances,
+            seed=seed,
+            duration_s=duration_s,
+            workers=workers,
+            task_function=ablation_task,
+            options=opts,
+            progress=progress or False,
+        )
     finally:
         shutil.rmtree(cache, ignore_errors=True)
     write_campaign(camp, out_dir / "ablation_montecarlo")
@@ -831,28 +978,41 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         f"\nPer-instance results: `ablation_montecarlo/` (JSON, CSV). Campaign wall time {camp.wall_s:.1f} s on "
         f"{camp.workers} worker(s) ({camp.backend}).",
     ]
-    return ExperimentResult(name="ablation", title="Ablation: attitude drift with and without each correction",
-                            markdown="\n".join(md), figures=tuple(figs), summary=summary,
-                            wall_s=time.perf_counter() - t0)
+    return ExperimentResult(
+        name="ablation",
+        title="Ablation: attitude drift with and without each correction",
+        markdown="\n".join(md),
+        figures=tuple(figs),
+        summary=summary,
+        wall_s=time.perf_counter() - t0,
+    )
 
 
 def _units_sentence(n: int) -> str:
     """What n units support: the distribution-free interval of a median and the sign test of a row pair."""
-    cover = 1.0 - 2.0 * 0.5 ** n
-    return (f"**Units and intervals.** {n} sensor units per scenario (each its own calibration runs and power-up). "
-            f"A median over {n} units lies between the smallest and the largest unit's value with probability "
-            f"{100 * cover:.1f} % (order statistics, no distribution assumed), so a correction whose median is "
-            f"outside the other row's [min, max] differs at that confidence; a row better than another in all "
-            f"{n} units is so at one-sided p = {0.5 ** n:.3g} (sign test). The p90 of {n} units is their "
-            + ("largest value. " if n < 10 else "second largest value. ")
-            + "`gyroharness run --full` runs 12 units at the scenarios' full durations.\n")
+    cover = 1.0 - 2.0 * 0.5**n
+    return (
+        f"**Units and intervals.** {n} sensor units per scenario (each its own calibration runs and power-up). "
+        f"A median over {n} units lies between the smallest and the largest unit's value with probability "
+        f"{100 * cover:.1f} % (order statistics, no distribution assumed), so a correction whose median is "
+        f"outside the other row's [min, max] differs at that confidence; a row better than another in all "
+        f"{n} units is so at one-sided p = {0.5**n:.3g} (sign test). The p90 of {n} units is their "
+        + ("largest value. " if n < 10 else "second largest value. ")
+        + "`gyroharness run --full` runs 12 units at the scenarios' full durations.\n"
+    )
 
 
 # ------------------------------------------------------------------ accuracy contract
 #: Short scored runs of the CI accuracy contract (tests/experiments/test_accuracy_contract.py),
 #: with the quick calibration runs. s.
-CONTRACT_DURATIONS_S = {"static": 60.0, "static_bumped": 30.0, "turntable": 387.0, "thermal": 300.0,
-                        "hover": 15.0, "power_cycles": 60.0}
+CONTRACT_DURATIONS_S = {
+    "static": 60.0,
+    "static_bumped": 30.0,
+    "turntable": 387.0,
+    "thermal": 300.0,
+    "hover": 15.0,
+    "power_cycles": 60.0,
+}
 #: The contract uses the full calibration runs (a quick 300-s thermal run makes scale_thermal
 #: worse than nothing: the contract would then pin a bad calibration).
 CONTRACT_QUICK_CALIBRATION = False
@@ -871,10 +1031,21 @@ def contract_campaign(*, instances: int, seed: int = 1, workers: int | None = No
 
     cache = tempfile.mkdtemp(prefix="gyroharness-calcache-")
     try:
-        return run_campaign(scenarios=SCENARIOS, sensors=(CONTRACT_SENSOR,), instances=instances, seed=seed,
-                            duration_s=None, workers=workers, task_function=ablation_task, progress=progress,
-                            options={"quick": CONTRACT_QUICK_CALIBRATION, "cache_dir": cache,
-                                     "durations": tuple(sorted(CONTRACT_DURATIONS_S.items()))})
+        return run_campaign(
+            scenarios=SCENARIOS,
+            sensors=(CONTRACT_SENSOR,),
+            instances=instances,
+            seed=seed,
+            duration_s=None,
+            workers=workers,
+            task_function=ablation_task,
+            progress=progress,
+            options={
+                "quick": CONTRACT_QUICK_CALIBRATION,
+                "cache_dir": cache,
+                "durations": tuple(sorted(CONTRACT_DURATIONS_S.items())),
+            },
+        )
     finally:
         shutil.rmtree(cache, ignore_errors=True)
 
@@ -923,7 +1094,8 @@ def contract_thresholds(campaign, *, n_sigma: float = 4.0) -> dict:
         out[sc] = {
             "instances": len(tasks),
             "k_all_over_floor": bound(ratio),
-            "ratio_median": float(np.nanmedian(ratio)), "ratio_max": float(np.nanmax(ratio)),
+            "ratio_median": float(np.nanmedian(ratio)),
+            "ratio_max": float(np.nanmax(ratio)),
             "all_final_deg": bound(col("all__final_deg")),
             "all_final_median_deg": float(np.nanmedian(col("all__final_deg"))),
             "all_final_max_deg": float(np.nanmax(col("all__final_deg"))),
@@ -987,17 +1159,21 @@ def drift_statistics(metrics: Sequence[Mapping[str, float]]) -> dict:
     """
     r2 = _r2(metrics)
     q = np.array([_quality(m) for m in metrics if m.get("pred-floor__rms_deg", 0) > 0])
-    c = np.array([m["pred__rms_with_uncorrected_deg"] / m["pred__rms_deg"] for m in metrics
-                  if m.get("pred__rms_deg", 0) > 0])
-    return {"n": int(r2.size),
-            "honesty_r2": float(r2.mean()) if r2.size else float("nan"),
-            "honesty": float(np.mean(0.5 * np.log(r2))) if r2.size else float("nan"),
-            "quality": float(q.mean()) if q.size else float("nan"),
-            "completeness": float(c.max()) if c.size else float("nan")}
+    c = np.array(
+        [m["pred__rms_with_uncorrected_deg"] / m["pred__rms_deg"] for m in metrics if m.get("pred__rms_deg", 0) > 0]
+    )
+    return {
+        "n": int(r2.size),
+        "honesty_r2": float(r2.mean()) if r2.size else float("nan"),
+        "honesty": float(np.mean(0.5 * np.log(r2))) if r2.size else float("nan"),
+        "quality": float(q.mean()) if q.size else float("nan"),
+        "completeness": float(c.max()) if c.size else float("nan"),
+    }
 
 
-def r2_shape(r2: np.ndarray, *, confidence: float = DRIFT_SHAPE_CONFIDENCE, seed: int = 0,
-             replicates: int = 4000) -> tuple[float, float]:
+def r2_shape(
+    r2: np.ndarray, *, confidence: float = DRIFT_SHAPE_CONFIDENCE, seed: int = 0, replicates: int = 4000
+) -> tuple[float, float]:
     """Gamma shape k of one unit's r² (maximum likelihood, location 0) and its lower limit at
     ``confidence`` (parametric bootstrap: ``replicates`` samples of the same size from
     Gamma(k̂), refitted; the limit is k̂ divided by the ``confidence`` quantile of k̂*/k̂).
@@ -1053,9 +1229,12 @@ def drift_thresholds(campaign, *, alpha: float = DRIFT_TAIL_ALPHA) -> dict:
         k_mle, k_lo = r2_shape(r2, seed=i)
         out["scenarios"][sc] = {
             "mc_units": int(r2.size),
-            "r2_mean": float(r2.mean()), "r2_mean_se": float(r2.std(ddof=1) / math.sqrt(r2.size)),
-            "r2_shape_mle": k_mle, "r2_shape": k_lo,
-            "quality_mean": float(y.mean()), "quality_sd": float(y.std(ddof=1)),
+            "r2_mean": float(r2.mean()),
+            "r2_mean_se": float(r2.std(ddof=1) / math.sqrt(r2.size)),
+            "r2_shape_mle": k_mle,
+            "r2_shape": k_lo,
+            "quality_mean": float(y.mean()),
+            "quality_sd": float(y.std(ddof=1)),
             "median_measured_over_predicted": float(np.sqrt(np.median(r2))),
         }
     return out
@@ -1071,10 +1250,12 @@ def drift_bands(thresholds: Mapping, scenario: str, n: int) -> dict:
     M = th["mc_units"]
     t = float(stats.t.ppf(1.0 - a, M - 1))
     nk = n * th["r2_shape"]
-    return {"honesty_r2_lo": float(stats.gamma.ppf(a, nk, scale=1.0 / nk)),
-            "honesty_r2_hi": float(stats.gamma.isf(a, nk, scale=1.0 / nk)),
-            "quality_hi": th["quality_mean"] + max(t * th["quality_sd"] * math.sqrt(1.0 / n + 1.0 / M),
-                                                   DRIFT_QUALITY_MIN_MARGIN)}
+    return {
+        "honesty_r2_lo": float(stats.gamma.ppf(a, nk, scale=1.0 / nk)),
+        "honesty_r2_hi": float(stats.gamma.isf(a, nk, scale=1.0 / nk)),
+        "quality_hi": th["quality_mean"]
+        + max(t * th["quality_sd"] * math.sqrt(1.0 / n + 1.0 / M), DRIFT_QUALITY_MIN_MARGIN),
+    }
 
 
 def pooled_band(thresholds: Mapping, n_by_scenario: Mapping[str, int]) -> tuple[float, float]:
@@ -1083,7 +1264,7 @@ def pooled_band(thresholds: Mapping, n_by_scenario: Mapping[str, int]) -> tuple[
     from scipy import stats
 
     S = len(n_by_scenario)
-    var = sum(1.0 / (n * thresholds["scenarios"][sc]["r2_shape"]) for sc, n in n_by_scenario.items()) / S ** 2
+    var = sum(1.0 / (n * thresholds["scenarios"][sc]["r2_shape"]) for sc, n in n_by_scenario.items()) / S**2
     a = thresholds["alpha"]
     return float(stats.gamma.ppf(a, 1.0 / var, scale=var)), float(stats.gamma.isf(a, 1.0 / var, scale=var))
 
@@ -1096,14 +1277,20 @@ def drift_contract_failures(stats_by_scenario: Mapping[str, Mapping], thresholds
         b = drift_bands(thresholds, sc, st["n"])
         h, q = st["honesty_r2"], st["quality"]
         if not b["honesty_r2_lo"] <= h <= b["honesty_r2_hi"]:
-            fails.append(f"{sc}: mean (measured/predicted RMS)² {h:.3g} outside [{b['honesty_r2_lo']:.3g}, "
-                         f"{b['honesty_r2_hi']:.3g}] (mean over {st['n']} units; 1 if the prediction is calibrated)")
+            fails.append(
+                f"{sc}: mean (measured/predicted RMS)² {h:.3g} outside [{b['honesty_r2_lo']:.3g}, "
+                f"{b['honesty_r2_hi']:.3g}] (mean over {st['n']} units; 1 if the prediction is calibrated)"
+            )
         if not q <= b["quality_hi"]:
-            fails.append(f"{sc}: predicted/floor RMS {math.exp(q):.3g} > {math.exp(b['quality_hi']):.3g} "
-                         "(calibration protocol or standard errors worse)")
+            fails.append(
+                f"{sc}: predicted/floor RMS {math.exp(q):.3g} > {math.exp(b['quality_hi']):.3g} "
+                "(calibration protocol or standard errors worse)"
+            )
         if st.get("completeness", 1.0) > DRIFT_COMPLETENESS_MAX:
-            fails.append(f"{sc}: uncorrected effects add ×{st['completeness']:.3g} to the predicted error "
-                         f"(> {DRIFT_COMPLETENESS_MAX:g}: a present effect was not calibrated)")
+            fails.append(
+                f"{sc}: uncorrected effects add ×{st['completeness']:.3g} to the predicted error "
+                f"(> {DRIFT_COMPLETENESS_MAX:g}: a present effect was not calibrated)"
+            )
     if len(stats_by_scenario) == len(thresholds["scenarios"]) and len(stats_by_scenario) > 1:
         d = float(np.mean([st["honesty_r2"] for st in stats_by_scenario.values()]))
         lo, hi = pooled_band(thresholds, {sc: st["n"] for sc, st in stats_by_scenario.items()})

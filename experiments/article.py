@@ -82,7 +82,7 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
         g = rng.normal(0.0, 1.0, (n, 3)) * (np.array([9.8, 14.6, 12.3]) / MPU6050_LSB_PER_DPS * DEG)
         source = "synthetic white noise with the real log's σ (real data folder not found)"
     if quick:
-        t, g = t[: 12000], g[: 12000]
+        t, g = t[:12000], g[:12000]
     rate = (t.size - 1) / (t[-1] - t[0])
     counts = g / DEG * MPU6050_LSB_PER_DPS
     sigma_counts = counts.std(axis=0, ddof=1)
@@ -133,8 +133,14 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
         from gyrocore.data.recording import Recording
 
         r = StaticBiasCalibrator(window_samples=ARTICLE_WINDOW, statistic="abs_diff", false_reject_rate=1e-3).fit(
-            Recording(t_s=t, gyro_rad_s=g))
-        derived = (r.threshold / DEG * MPU6050_LSB_PER_DPS, r.n_windows_still, r.n_windows_total, r.min_step_rad_s / DEG)
+            Recording(t_s=t, gyro_rad_s=g)
+        )
+        derived = (
+            r.threshold / DEG * MPU6050_LSB_PER_DPS,
+            r.n_windows_still,
+            r.n_windows_total,
+            r.min_step_rad_s / DEG,
+        )
     except Exception:  # noqa: BLE001 - the comparison is optional; the article part stands alone
         derived = None
     fig2 = new_figure(figsize=(7, 3.6))
@@ -147,32 +153,51 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
     ax2.legend(fontsize=8)
     ax2.set_title("Motion gate statistic on a still MPU-6050")
     f2 = save_figure(fig2, out_dir, "article_motion_gate")
-    md = [f"Source: {source}. Gyro σ at rest: "
-          + ", ".join(f"{a} {s:.1f} counts ({s / MPU6050_LSB_PER_DPS:.3f} °/s)" for a, s in zip("xyz", sigma_counts)) + ".\n",
-          "**200-sample bias (§1).** Spread (standard deviation) of n-sample window means against the white-noise "
-          "theory σ/√n; a ratio near 1 means the noise is white at that window length, above 1 means correlated "
-          "noise (bias instability) that averaging cannot remove.\n",
-          md_table(["n", "window, s", "windows", "spread x, °/s", "spread y, °/s", "spread z, °/s",
-                    "ratio x", "ratio y", "ratio z"], rows),
-          "\nAttitude drift left over the rest of the still log by a bias taken from the first n samples "
-          "(the truth is 'still', so the integrated angle is the error):\n",
-          md_table(["n", "window, s", "b̂ x, °/s", "b̂ y, °/s", "b̂ z, °/s", "final error, °", "drift, °/min"], drift_rows),
-          f"\n![bias drift]({f1})\n",
-          f"**Motion gate (§1.4).** Threshold 500 counts per axis over 200 samples. At ±250 °/s the still sensor "
-          f"sums to {', '.join(f'{s:.0f}' for s in sums.mean(axis=0))} counts (theory for white noise "
-          f"199·(2/√π)·σ = {', '.join(f'{e:.0f}' for e in expect)}): **{100 * reject.mean():.0f} % of still windows are "
-          f"rejected**, so the article's calibration never completes on this sensor. The same sensor at ±2000 °/s "
-          f"(16.4 LSB per °/s, 8× fewer counts for the same rate noise) rejects {100 * reject_2000.mean():.0f} %. "
-          f"A steady rotation does not change the statistic at all (it differences the rate): with +0.5 °/s on z the "
-          f"sums are {'identical' if np.allclose(sums_steady, sums) else 'different'}, so a slowly turning vehicle passes the gate and its "
-          f"0.5 °/s goes into the bias — a drift of 30 °/min. A threshold must come from the sensor's own noise "
-          f"(`gyrocore.calib.bias`), and stillness needs a test on the rate itself, not only on its differences.\n",
-          (f"With the threshold derived from the sensor's own noise for a 1e-3 false-reject rate at rest "
-           f"(`gyrocore.calib.bias.StaticBiasCalibrator`, same Σ|Δ| statistic): "
-           f"{', '.join(f'{x:.0f}' for x in derived[0])} counts per axis; {derived[1]} of {derived[2]} still windows "
-           f"accepted; smallest rate step caught with 50 % probability "
-           f"{', '.join(f'{x:.1f}' for x in derived[3])} °/s.\n" if derived else ""),
-          f"![motion gate]({f2})\n"]
+    md = [
+        f"Source: {source}. Gyro σ at rest: "
+        + ", ".join(f"{a} {s:.1f} counts ({s / MPU6050_LSB_PER_DPS:.3f} °/s)" for a, s in zip("xyz", sigma_counts))
+        + ".\n",
+        "**200-sample bias (§1).** Spread (standard deviation) of n-sample window means against the white-noise "
+        "theory σ/√n; a ratio near 1 means the noise is white at that window length, above 1 means correlated "
+        "noise (bias instability) that averaging cannot remove.\n",
+        md_table(
+            [
+                "n",
+                "window, s",
+                "windows",
+                "spread x, °/s",
+                "spread y, °/s",
+                "spread z, °/s",
+                "ratio x",
+                "ratio y",
+                "ratio z",
+            ],
+            rows,
+        ),
+        "\nAttitude drift left over the rest of the still log by a bias taken from the first n samples "
+        "(the truth is 'still', so the integrated angle is the error):\n",
+        md_table(["n", "window, s", "b̂ x, °/s", "b̂ y, °/s", "b̂ z, °/s", "final error, °", "drift, °/min"], drift_rows),
+        f"\n![bias drift]({f1})\n",
+        f"**Motion gate (§1.4).** Threshold 500 counts per axis over 200 samples. At ±250 °/s the still sensor "
+        f"sums to {', '.join(f'{s:.0f}' for s in sums.mean(axis=0))} counts (theory for white noise "
+        f"199·(2/√π)·σ = {', '.join(f'{e:.0f}' for e in expect)}): **{100 * reject.mean():.0f} % of still windows are "
+        f"rejected**, so the article's calibration never completes on this sensor. The same sensor at ±2000 °/s "
+        f"(16.4 LSB per °/s, 8× fewer counts for the same rate noise) rejects {100 * reject_2000.mean():.0f} %. "
+        f"A steady rotation does not change the statistic at all (it differences the rate): with +0.5 °/s on z the "
+        f"sums are {'identical' if np.allclose(sums_steady, sums) else 'different'}, so a slowly turning vehicle passes the gate and its "
+        f"0.5 °/s goes into the bias — a drift of 30 °/min. A threshold must come from the sensor's own noise "
+        f"(`gyrocore.calib.bias`), and stillness needs a test on the rate itself, not only on its differences.\n",
+        (
+            f"With the threshold derived from the sensor's own noise for a 1e-3 false-reject rate at rest "
+            f"(`gyrocore.calib.bias.StaticBiasCalibrator`, same Σ|Δ| statistic): "
+            f"{', '.join(f'{x:.0f}' for x in derived[0])} counts per axis; {derived[1]} of {derived[2]} still windows "
+            f"accepted; smallest rate step caught with 50 % probability "
+            f"{', '.join(f'{x:.1f}' for x in derived[3])} °/s.\n"
+            if derived
+            else ""
+        ),
+        f"![motion gate]({f2})\n",
+    ]
     summary = {
         "bias_window_spread_ratio_200": [float(x) for x in rows[0][6:9]] if rows else None,
         "bias200_drift_deg_per_min": float(drift_rows[0][-1]) if drift_rows else None,
@@ -202,26 +227,48 @@ def _part_filter(out_dir: Path):
         r = flt.response(f)
         a1.plot(f, 20 * np.log10(r.magnitude), label=flt.name)
         a2.plot(f, r.group_delay_s * 1e3, label=flt.name)
-        comp.append((flt.name, flt.delay_s(0.0) * 1e3, flt.delay_s(0.0) * 500.0,
-                     20 * math.log10(flt.magnitude(100.0)), 20 * math.log10(flt.magnitude(200.0))))
+        comp.append(
+            (
+                flt.name,
+                flt.delay_s(0.0) * 1e3,
+                flt.delay_s(0.0) * 500.0,
+                20 * math.log10(flt.magnitude(100.0)),
+                20 * math.log10(flt.magnitude(200.0)),
+            )
+        )
     a2.axhline(2.0, color="k", ls="--", lw=1, label="one sample at 500 Hz")
-    a1.set_xlabel("Hz"); a1.set_ylabel("gain, dB"); a1.set_ylim(-40, 3); a1.grid(alpha=0.3)
-    a2.set_xlabel("Hz"); a2.set_ylabel("group delay, ms"); a2.grid(alpha=0.3); a2.legend(fontsize=7)
+    a1.set_xlabel("Hz")
+    a1.set_ylabel("gain, dB")
+    a1.set_ylim(-40, 3)
+    a1.grid(alpha=0.3)
+    a2.set_xlabel("Hz")
+    a2.set_ylabel("group delay, ms")
+    a2.grid(alpha=0.3)
+    a2.legend(fontsize=7)
     fig.suptitle("30 Hz low-pass filters at 500 Hz")
     fpath = save_figure(fig, out_dir, "article_filters")
     A500 = article_lpf_coefficient(30.0, 500.0)
-    md = [f"**The 0.2739 coefficient (§4).** A = 1/(1 + 1/(2π·T·fc)) at fc = 30 Hz is {A500:.5f} at 500 Hz "
-          f"(the article prints 0.2739; the exact value rounds to 0.2738). It depends on the sample rate, and the "
-          f"filter's low-frequency delay 1/(2π·fc) = {1e3 / (2 * math.pi * 30):.2f} ms does not: it is "
-          f"{500 / (2 * math.pi * 30):.2f} samples at 500 Hz — the article's own budget (delay under one sample "
-          f"period) holds only for fc ≥ rate/(2π) (79.6 Hz at 500 Hz).\n",
-          md_table(["rate, Hz", "A at 30 Hz", "delay, ms", "delay, samples", "fc for 1-sample delay, Hz"], rows),
-          "\nAt 500 Hz and 30 Hz cutoff, the first-order filter against higher-order ones (delay at DC; attenuation "
-          "at 100 and 200 Hz, the band of rotor vibration):\n",
-          md_table(["filter", "delay, ms", "delay, samples", "gain at 100 Hz, dB", "gain at 200 Hz, dB"], comp),
-          f"\n![filters]({fpath})\n"]
-    return "\n".join(md), (fpath,), {"A_30hz_500hz": A500, "delay_ms_30hz": 1e3 / (2 * math.pi * 30),
-                                     "delay_samples_500hz": 500 / (2 * math.pi * 30)}
+    md = [
+        f"**The 0.2739 coefficient (§4).** A = 1/(1 + 1/(2π·T·fc)) at fc = 30 Hz is {A500:.5f} at 500 Hz "
+        f"(the article prints 0.2739; the exact value rounds to 0.2738). It depends on the sample rate, and the "
+        f"filter's low-frequency delay 1/(2π·fc) = {1e3 / (2 * math.pi * 30):.2f} ms does not: it is "
+        f"{500 / (2 * math.pi * 30):.2f} samples at 500 Hz — the article's own budget (delay under one sample "
+        f"period) holds only for fc ≥ rate/(2π) (79.6 Hz at 500 Hz).\n",
+        md_table(["rate, Hz", "A at 30 Hz", "delay, ms", "delay, samples", "fc for 1-sample delay, Hz"], rows),
+        "\nAt 500 Hz and 30 Hz cutoff, the first-order filter against higher-order ones (delay at DC; attenuation "
+        "at 100 and 200 Hz, the band of rotor vibration):\n",
+        md_table(["filter", "delay, ms", "delay, samples", "gain at 100 Hz, dB", "gain at 200 Hz, dB"], comp),
+        f"\n![filters]({fpath})\n",
+    ]
+    return (
+        "\n".join(md),
+        (fpath,),
+        {
+            "A_30hz_500hz": A500,
+            "delay_ms_30hz": 1e3 / (2 * math.pi * 30),
+            "delay_samples_500hz": 500 / (2 * math.pi * 30),
+        },
+    )
 
 
 def _part_m():
@@ -232,23 +279,37 @@ def _part_m():
     rows = []
     for i in range(3):
         for j in range(3):
-            rows.append((f"M[{i},{j}]", ARTICLE_M[i, j], M10[i, j], M20[i, j],
-                         "yes" if abs(M20[i, j] - ARTICLE_M[i, j]) < 6e-4 else "**no**"))
-    md = ["**M = C·B⁻¹ (§5).** With the article's printed B (rad). Its C = 10π·I is 5 turns (1800°), but B's "
-          f"diagonal (≈ {np.mean(np.diag(ARTICLE_B)):.1f} rad) is about 10 turns (20π = 62.83 rad):\n",
-          md_table(["entry", "article", "C = 10π·I", "C = 20π·I", "matches (±6e-4)?"], rows, digits=4),
-          f"\nWith C = 20π·I only M₀₀ matches ({M20[0, 0]:.4f} vs 0.9754); the other diagonal entries "
-          f"({M20[1, 1]:.4f}, {M20[2, 2]:.4f} vs 0.9841, 0.9851) and every off-diagonal entry do not follow from the "
-          f"printed B (e.g. M[2,1] = {M20[2, 1]:.4f}, the article prints 0.107). The scale example: 3600/3500 = {3600 / 3500:.4f}, not 1.02; and 5 turns are 1800°, "
-          "not 3600°. The integral method itself is sound (it is what `gyrocore.calib.rotations` implements); the "
-          "printed example is not self-consistent.\n"]
+            rows.append(
+                (
+                    f"M[{i},{j}]",
+                    ARTICLE_M[i, j],
+                    M10[i, j],
+                    M20[i, j],
+                    "yes" if abs(M20[i, j] - ARTICLE_M[i, j]) < 6e-4 else "**no**",
+                )
+            )
+    md = [
+        "**M = C·B⁻¹ (§5).** With the article's printed B (rad). Its C = 10π·I is 5 turns (1800°), but B's "
+        f"diagonal (≈ {np.mean(np.diag(ARTICLE_B)):.1f} rad) is about 10 turns (20π = 62.83 rad):\n",
+        md_table(["entry", "article", "C = 10π·I", "C = 20π·I", "matches (±6e-4)?"], rows, digits=4),
+        f"\nWith C = 20π·I only M₀₀ matches ({M20[0, 0]:.4f} vs 0.9754); the other diagonal entries "
+        f"({M20[1, 1]:.4f}, {M20[2, 2]:.4f} vs 0.9841, 0.9851) and every off-diagonal entry do not follow from the "
+        f"printed B (e.g. M[2,1] = {M20[2, 1]:.4f}, the article prints 0.107). The scale example: 3600/3500 = {3600 / 3500:.4f}, not 1.02; and 5 turns are 1800°, "
+        "not 3600°. The integral method itself is sound (it is what `gyrocore.calib.rotations` implements); the "
+        "printed example is not self-consistent.\n",
+    ]
     n_match = sum(r[-1] == "yes" for r in rows)
-    return "\n".join(md), {"M_C20_diag": np.diag(M20).tolist(), "M_C10_diag": np.diag(M10).tolist(),
-                           "entries_matching_article": n_match, "scale_3600_3500": 3600 / 3500}
+    return "\n".join(md), {
+        "M_C20_diag": np.diag(M20).tolist(),
+        "M_C10_diag": np.diag(M10).tolist(),
+        "entries_matching_article": n_match,
+        "scale_3600_3500": 3600 / 3500,
+    }
 
 
-def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        seed: int = 0, **_ignored) -> ExperimentResult:
+def run(
+    *, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None, seed: int = 0, **_ignored
+) -> ExperimentResult:
     """Reproduce the article's worked examples into ``out_dir`` (figures) and return the section."""
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -256,9 +317,20 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     md1, figs1, s1 = _part_bias_and_gate(out_dir, quick, rng)
     md2, figs2, s2 = _part_filter(out_dir)
     md3, s3 = _part_m()
-    md = "\n".join([
-        "The article's worked numbers reproduced with the project's code, and where they break. "
-        "(Source digest: ARTICLE.md.)\n", md1, md2, md3])
-    return ExperimentResult(name="article", title="The article's worked examples", markdown=md,
-                            figures=tuple(figs1) + tuple(figs2), summary={**s1, **s2, **s3},
-                            wall_s=time.perf_counter() - t0)
+    md = "\n".join(
+        [
+            "The article's worked numbers reproduced with the project's code, and where they break. "
+            "(Source digest: ARTICLE.md.)\n",
+            md1,
+            md2,
+            md3,
+        ]
+    )
+    return ExperimentResult(
+        name="article",
+        title="The article's worked examples",
+        markdown=md,
+        figures=tuple(figs1) + tuple(figs2),
+        summary={**s1, **s2, **s3},
+        wall_s=time.perf_counter() - t0,
+    )

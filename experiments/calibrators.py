@@ -121,8 +121,9 @@ def load_calibrator(spec: str, **options) -> CalibrationRoutine:
     target = REGISTRY.get(spec, spec)
     mod_name, sep, attr = target.partition(":")
     if not sep or not mod_name or not attr:
-        raise GyroInputError(f"calibrator {spec!r}: expected a registered name ({', '.join(REGISTRY)}) "
-                             "or module:factory")
+        raise GyroInputError(
+            f"calibrator {spec!r}: expected a registered name ({', '.join(REGISTRY)}) or module:factory"
+        )
     if os.getcwd() not in sys.path and "" not in sys.path:  # a module beside the user, as `python -m` does
         sys.path.insert(0, os.getcwd())
     try:
@@ -141,8 +142,20 @@ def load_calibrator(spec: str, **options) -> CalibrationRoutine:
 # ------------------------------------------------------------------------------ what a routine sees
 #: Metadata a routine may see (what a real log or rig file states). Everything else — the
 #: true parameters, seeds, the list of simulated effects, notes — is truth and is dropped.
-TRUTH_FREE_META = ("sensor", "sensor_part", "scenario", "scenario_description", "rate_hz", "duration_s", "accel",
-                   "power_up_t_s", "model", "runner", "physics_rate_hz", "gyro_rate_hz")
+TRUTH_FREE_META = (
+    "sensor",
+    "sensor_part",
+    "scenario",
+    "scenario_description",
+    "rate_hz",
+    "duration_s",
+    "accel",
+    "power_up_t_s",
+    "model",
+    "runner",
+    "physics_rate_hz",
+    "gyro_rate_hz",
+)
 #: Extra metadata kept in *calibration* recordings: the table program is the rig's reference.
 CALIBRATION_META = ("table_phases",)
 
@@ -158,17 +171,25 @@ def strip_truth(rec: Recording, *, references: bool) -> Recording:
     keep = TRUTH_FREE_META + (CALIBRATION_META if references else ())
     meta = {k: v for k, v in rec.meta.items() if k in keep}
     extra = {k: v for k, v in rec.extra.items() if k == "power_up_index"}
-    return Recording(t_s=rec.t_s, gyro_rad_s=rec.gyro_rad_s, accel_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
-                     ref_rate_rad_s=rec.ref_rate_rad_s if references else None,
-                     ref_quat_wxyz=rec.ref_quat_wxyz if references else None, meta=meta, extra=extra)
+    return Recording(
+        t_s=rec.t_s,
+        gyro_rad_s=rec.gyro_rad_s,
+        accel_m_s2=rec.accel_m_s2,
+        temp_c=rec.temp_c,
+        ref_rate_rad_s=rec.ref_rate_rad_s if references else None,
+        ref_quat_wxyz=rec.ref_quat_wxyz if references else None,
+        meta=meta,
+        extra=extra,
+    )
 
 
 #: Durations of the quick calibration runs (``quick=True``), s: table, thermal.
 QUICK_CALIBRATION_S = (120.0, 300.0)
 
 
-def calibration_recordings(sensor: str, seed: int, *, quick: bool = False,
-                           durations_s: tuple[float | None, float | None] | None = None) -> tuple[Recording, Recording]:
+def calibration_recordings(
+    sensor: str, seed: int, *, quick: bool = False, durations_s: tuple[float | None, float | None] | None = None
+) -> tuple[Recording, Recording]:
     """The unit's calibration recordings, as simulated (truth still in them; needs :mod:`sim`).
 
     1. ``turntable`` run ``run=1`` (same unit, another power-up, fresh noise);
@@ -276,8 +297,13 @@ class CoreCalibrator:
 
     name = "core"
 
-    def __init__(self, *, effects: Sequence[str] | None = None, cal_kw: Mapping | None = None,
-                 powerup_window_s: float | None = None) -> None:
+    def __init__(
+        self,
+        *,
+        effects: Sequence[str] | None = None,
+        cal_kw: Mapping | None = None,
+        powerup_window_s: float | None = None,
+    ) -> None:
         self.effects = None if effects is None else tuple(effects)
         self.cal_kw = dict(cal_kw) if cal_kw is not None else None
         # still-window length of the power-up bias in apply(), s (None: ablation.POWERUP_WINDOW_S)
@@ -292,8 +318,9 @@ class CoreCalibrator:
 
             on = load_preset(sensor).effects
         except Exception as exc:  # noqa: BLE001
-            raise GyroInputError(f"core calibrator: no effects given and no known sensor preset ({sensor!r}): "
-                                 f"{exc}") from None
+            raise GyroInputError(
+                f"core calibrator: no effects given and no known sensor preset ({sensor!r}): {exc}"
+            ) from None
         return tuple(e for e in E.CORRECTABLE if e in on)
 
     def fit(self, recordings: Sequence[Recording]) -> CoreParams:
@@ -328,12 +355,16 @@ class CoreCalibrator:
 
     def apply(self, recording: Recording, params: CoreParams) -> np.ndarray:
         rec = recording
-        inp = E.ModelInputs(t_s=rec.t_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
-                            t_since_power_up_s=_since_power_up(rec))
+        inp = E.ModelInputs(
+            t_s=rec.t_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, t_since_power_up_s=_since_power_up(rec)
+        )
         sensor = rec.meta.get("sensor")
-        still = S.powerup_windows(rec, datasheet_noise_params(sensor),
-                                  bias_bound_rad_s=S.bias_bound_rad_s(sensor) if sensor else None,
-                                  window_s=self.powerup_window_s)
+        still = S.powerup_windows(
+            rec,
+            datasheet_noise_params(sensor),
+            bias_bound_rad_s=S.bias_bound_rad_s(sensor) if sensor else None,
+            window_s=self.powerup_window_s,
+        )
         return S.corrected_gyro(rec.gyro_rad_s, inp, list(params.stages), list(params.effects), still)
 
 
@@ -355,8 +386,14 @@ def _lsb_rad_s(rec: Recording, default_lsb_per_dps: float = 131.0) -> float:
         return DEG / default_lsb_per_dps
 
 
-def article_powerup_bias(gyro_rad_s: np.ndarray, lsb_rad_s: float, rate_hz: float, *,
-                         window: int = ARTICLE_WINDOW, threshold_counts: float = ARTICLE_THRESHOLD_COUNTS) -> np.ndarray:
+def article_powerup_bias(
+    gyro_rad_s: np.ndarray,
+    lsb_rad_s: float,
+    rate_hz: float,
+    *,
+    window: int = ARTICLE_WINDOW,
+    threshold_counts: float = ARTICLE_THRESHOLD_COUNTS,
+) -> np.ndarray:
     """The article's power-up bias: mean of the first ``window`` samples whose motion sum passes.
 
     Non-overlapping windows in the first :data:`SEARCH_S`; a window passes when
@@ -367,9 +404,9 @@ def article_powerup_bias(gyro_rad_s: np.ndarray, lsb_rad_s: float, rate_hz: floa
     n_search = int(min(g.shape[0], max(window, SEARCH_S * rate_hz)))
     counts = g[:n_search] / lsb_rad_s
     for a in range(0, n_search - window + 1, window):
-        s = np.abs(np.diff(counts[a:a + window], axis=0)).sum(axis=0)
+        s = np.abs(np.diff(counts[a : a + window], axis=0)).sum(axis=0)
         if np.all(s <= threshold_counts):
-            return g[a:a + window].mean(axis=0)
+            return g[a : a + window].mean(axis=0)
     return g[:window].mean(axis=0)
 
 
@@ -380,8 +417,9 @@ def motion_segments(ref_rate_rad_s: np.ndarray, *, still_rad_s: float = 1e-6) ->
     return [slice(int(a), int(b)) for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]
 
 
-def integral_m(t_s: np.ndarray, gyro_rad_s: np.ndarray, ref_rad_s: np.ndarray, bias_rad_s: np.ndarray, *,
-               pad: int = 50) -> np.ndarray:
+def integral_m(
+    t_s: np.ndarray, gyro_rad_s: np.ndarray, ref_rad_s: np.ndarray, bias_rad_s: np.ndarray, *, pad: int = 50
+) -> np.ndarray:
     """The article's integral method generalised to any number of rotations.
 
     Per motion segment k (padded by ``pad`` still samples each side): B_k = ∫(ω̂ − b) dt and
@@ -453,16 +491,24 @@ class PX4Calibrator:
         thermal = recordings[1] if len(recordings) > 1 else None
         out = {"tref_c": 25.0, "tmin_c": 25.0, "tmax_c": 25.0, "poly": np.zeros((3, 4))}
         if thermal is not None and thermal.temp_c is not None:
-            still = np.ones(thermal.n, bool) if thermal.ref_rate_rad_s is None else \
-                np.linalg.norm(thermal.ref_rate_rad_s, axis=1) <= 1e-6
+            still = (
+                np.ones(thermal.n, bool)
+                if thermal.ref_rate_rad_s is None
+                else np.linalg.norm(thermal.ref_rate_rad_s, axis=1) <= 1e-6
+            )
             T = thermal.temp_c[still]
             tref = float(0.5 * (T.min() + T.max()))
             X = np.vander(T - tref, 4)  # x^3, x^2, x, 1
             coef, *_ = np.linalg.lstsq(X, thermal.gyro_rad_s[still], rcond=None)
             out.update(tref_c=tref, tmin_c=float(T.min()), tmax_c=float(T.max()), poly=coef.T.copy())
-        still = np.ones(table.n, bool) if table.ref_rate_rad_s is None else \
-            np.linalg.norm(table.ref_rate_rad_s, axis=1) <= 1e-6
-        out["offset_rad_s"] = (table.gyro_rad_s[still] - self._poly(out, table.temp_c, int(still.sum()), still)).mean(axis=0)
+        still = (
+            np.ones(table.n, bool)
+            if table.ref_rate_rad_s is None
+            else np.linalg.norm(table.ref_rate_rad_s, axis=1) <= 1e-6
+        )
+        out["offset_rad_s"] = (table.gyro_rad_s[still] - self._poly(out, table.temp_c, int(still.sum()), still)).mean(
+            axis=0
+        )
         return out
 
     @staticmethod
@@ -498,7 +544,7 @@ class ArduPilotCalibrator:
     def startup_offset(self, gyro_rad_s: np.ndarray, rate_hz: float) -> np.ndarray:
         n = max(1, int(round(self.window_s * rate_hz)))
         g = np.asarray(gyro_rad_s, float)
-        means = [g[a:a + n].mean(axis=0) for a in range(0, min(g.shape[0] - n + 1, (self.tries + 1) * n), n)]
+        means = [g[a : a + n].mean(axis=0) for a in range(0, min(g.shape[0] - n + 1, (self.tries + 1) * n), n)]
         if len(means) < 2:
             return g.mean(axis=0)
         best, best_d = None, np.inf
@@ -537,11 +583,14 @@ def split_template(template: str, *, allowed: Sequence[str]) -> list[str]:
     for a in argv:
         for ph in PLACEHOLDERS:
             if ph in a and ph not in allowed:
-                raise GyroInputError(f"command template {template!r}: {ph} is not available here "
-                                     f"(this step offers {', '.join(allowed)})")
+                raise GyroInputError(
+                    f"command template {template!r}: {ph} is not available here (this step offers {', '.join(allowed)})"
+                )
         if "{inputs}" in a and a != "{inputs}":
-            raise GyroInputError(f"command template {template!r}: {{inputs}} must be a word of its own "
-                                 "(it becomes one argument per calibration recording)")
+            raise GyroInputError(
+                f"command template {template!r}: {{inputs}} must be a word of its own "
+                "(it becomes one argument per calibration recording)"
+            )
     return argv
 
 
@@ -572,8 +621,14 @@ def _last_line(text: str) -> str:
 def run_command(argv: Sequence[str], *, cwd: str, timeout_s: float, step: str) -> None:
     """Run one step (no shell), in ``cwd``, killing its whole process group on timeout."""
     try:
-        proc = subprocess.Popen(list(argv), cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, start_new_session=True)
+        proc = subprocess.Popen(
+            list(argv),
+            cwd=cwd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            start_new_session=True,
+        )
     except OSError as exc:
         raise RoutineFailure(f"{step} command {argv[0]!r} cannot be started: {exc.strerror or exc}") from None
     try:
@@ -598,8 +653,9 @@ def run_command(argv: Sequence[str], *, cwd: str, timeout_s: float, step: str) -
 DEG_SLOPE_FACTOR = 1.5
 
 
-def check_output(raw_rad_s: np.ndarray, corrected: np.ndarray, *, t_in: np.ndarray | None = None,
-                 t_out: np.ndarray | None = None) -> np.ndarray:
+def check_output(
+    raw_rad_s: np.ndarray, corrected: np.ndarray, *, t_in: np.ndarray | None = None, t_out: np.ndarray | None = None
+) -> np.ndarray:
     """Validate a routine's corrected gyro against the raw one; one-line :class:`RoutineFailure`.
 
     Checks: shape (N, 3) with N = the input's rows; every value finite; the ``t_s`` column (if
@@ -629,8 +685,10 @@ def check_output(raw_rad_s: np.ndarray, corrected: np.ndarray, *, t_in: np.ndarr
     sxx = float(np.sum(x * x))
     if sxx > 0:
         k = float(np.sum(x * y)) / sxx
-        for unit_k, msg in ((180.0 / math.pi, "deg/s written where rad/s belong"),
-                            (math.pi / 180.0, "rad/s divided by 57.3 (read as deg/s?)")):
+        for unit_k, msg in (
+            (180.0 / math.pi, "deg/s written where rad/s belong"),
+            (math.pi / 180.0, "rad/s divided by 57.3 (read as deg/s?)"),
+        ):
             if unit_k / DEG_SLOPE_FACTOR < abs(k) < unit_k * DEG_SLOPE_FACTOR:
                 raise RoutineFailure(f"corrected rate = {k:.4g} × the raw rate: {msg}")
     return w
@@ -667,8 +725,7 @@ class CommandCalibrator:
 
     def __post_init__(self) -> None:
         self._fit_argv = _resolve_program(split_template(self.fit_cmd, allowed=("{params}", "{inputs}")))
-        self._apply_argv = _resolve_program(split_template(self.apply_cmd,
-                                                           allowed=("{params}", "{input}", "{output}")))
+        self._apply_argv = _resolve_program(split_template(self.apply_cmd, allowed=("{params}", "{input}", "{output}")))
 
     def fit(self, recordings: Sequence[Recording]) -> str:
         from gyrocore.data.recording import write_csv
@@ -683,8 +740,12 @@ class CommandCalibrator:
             write_csv(rec, p)
             paths.append(str(p))
         params = str(d / "params")
-        run_command(expand(self._fit_argv, {"{params}": params, "{inputs}": paths}), cwd=str(d),
-                    timeout_s=self.timeout_s, step="fit")
+        run_command(
+            expand(self._fit_argv, {"{params}": params, "{inputs}": paths}),
+            cwd=str(d),
+            timeout_s=self.timeout_s,
+            step="fit",
+        )
         return params
 
     def apply(self, recording: Recording, params: str) -> np.ndarray:
@@ -700,8 +761,12 @@ class CommandCalibrator:
             if p.exists():
                 p.unlink()
         write_csv(recording, inp)
-        run_command(expand(self._apply_argv, {"{params}": params, "{input}": str(inp), "{output}": str(out)}),
-                    cwd=str(d), timeout_s=self.timeout_s, step="apply")
+        run_command(
+            expand(self._apply_argv, {"{params}": params, "{input}": str(inp), "{output}": str(out)}),
+            cwd=str(d),
+            timeout_s=self.timeout_s,
+            step="apply",
+        )
         if not out.exists():
             raise RoutineFailure("apply command wrote no output file")
         try:
@@ -784,8 +849,9 @@ class IsolatedCalibrator:
         self.close()
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_isolated_worker, args=(child, self.spec), daemon=True,
-                                 name="gyroharness-routine")
+        self._proc = ctx.Process(
+            target=_isolated_worker, args=(child, self.spec), daemon=True, name="gyroharness-routine"
+        )
         self._proc.start()
         child.close()
         self._conn = parent
@@ -843,12 +909,17 @@ def _resolve_program(argv: list[str]) -> list[str]:
     if os.sep in prog and not os.path.isabs(prog):
         argv = [os.path.abspath(prog)] + argv[1:]
     # relative file arguments (a script: "python my_cal.py ...") likewise
-    return [argv[0]] + [os.path.abspath(a) if (not a.startswith("-") and "{" not in a and os.path.isfile(a)
-                                                 and not os.path.isabs(a)) else a for a in argv[1:]]
+    return [argv[0]] + [
+        os.path.abspath(a)
+        if (not a.startswith("-") and "{" not in a and os.path.isfile(a) and not os.path.isabs(a))
+        else a
+        for a in argv[1:]
+    ]
 
 
-def run_routine(routine: CalibrationRoutine, calibration: Sequence[Recording], scored: Sequence[Recording]
-                ) -> list[np.ndarray]:
+def run_routine(
+    routine: CalibrationRoutine, calibration: Sequence[Recording], scored: Sequence[Recording]
+) -> list[np.ndarray]:
     """Fit on the calibration recordings and apply to each scored recording (all truth-free).
 
     Returns the checked corrected gyros. Raises :class:`RoutineFailure` with a one-line reason

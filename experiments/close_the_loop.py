@@ -59,8 +59,12 @@ def effect_params(effect: str, scale: float = 1.0) -> dict[str, np.ndarray]:
     if effect == "bias":
         return {"b_rad_s": v3}
     if effect == "bias_thermal":
-        return {"poly_rad_s": v3[:, None], "t0_c": np.array(25.0), "temp_min_c": np.array(-40.0),
-                "temp_max_c": np.array(85.0)}
+        return {
+            "poly_rad_s": v3[:, None],
+            "t0_c": np.array(25.0),
+            "temp_min_c": np.array(-40.0),
+            "temp_max_c": np.array(85.0),
+        }
     if effect == "bias_temp_rate":
         return {"k_rad_s_per_c_per_s": v3}
     if effect == "bias_ramp":
@@ -68,8 +72,12 @@ def effect_params(effect: str, scale: float = 1.0) -> dict[str, np.ndarray]:
     if effect == "scale":
         return {"s": v3}
     if effect == "scale_thermal":
-        return {"poly_per_c": v3[:, None], "t0_c": np.array(25.0), "temp_min_c": np.array(-40.0),
-                "temp_max_c": np.array(85.0)}
+        return {
+            "poly_per_c": v3[:, None],
+            "t0_c": np.array(25.0),
+            "temp_min_c": np.array(-40.0),
+            "temp_max_c": np.array(85.0),
+        }
     if effect == "scale_asymmetry":
         return {"a": v3}
     if effect == "scale_nonlinearity":
@@ -156,10 +164,17 @@ def synthetic_recording(
 
     omega = omega_at(t)
     q = integrate_gyro(t, omega)
-    up_S = np.stack([2 * (q[:, 1] * q[:, 3] - q[:, 0] * q[:, 2]), 2 * (q[:, 2] * q[:, 3] + q[:, 0] * q[:, 1]),
-                     1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2)], axis=1)
-    f = 9.80665 * up_S + 1.0 * np.sin(2 * np.pi * np.array([0.37, 0.53, 0.29]) * t[:, None]
-                                      + rng.uniform(0, 2 * np.pi, 3))
+    up_S = np.stack(
+        [
+            2 * (q[:, 1] * q[:, 3] - q[:, 0] * q[:, 2]),
+            2 * (q[:, 2] * q[:, 3] + q[:, 0] * q[:, 1]),
+            1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2),
+        ],
+        axis=1,
+    )
+    f = 9.80665 * up_S + 1.0 * np.sin(
+        2 * np.pi * np.array([0.37, 0.53, 0.29]) * t[:, None] + rng.uniform(0, 2 * np.pi, 3)
+    )
     if temp_profile == "warmup":
         temp = 25.0 + 12.0 * (1 - np.exp(-t / (duration_s / 3))) + 2.0 * np.sin(2 * np.pi * t / (duration_s / 4))
     elif temp_profile == "linear":
@@ -184,7 +199,11 @@ def synthetic_recording(
         y = y + noise.gauss_markov(rng, n, rate_hz=rate_hz, sigma_rad_s=gm_sigma_rad_s, tau_c_s=gm_tau_s)
     acc = f + rng.standard_normal((n, 3)) * 0.02
     return Recording(
-        t_s=t, gyro_rad_s=y, accel_m_s2=acc, temp_c=np.round(temp, 3), ref_rate_rad_s=omega,
+        t_s=t,
+        gyro_rad_s=y,
+        accel_m_s2=acc,
+        temp_c=np.round(temp, 3),
+        ref_rate_rad_s=omega,
         ref_quat_wxyz=q if with_quat else None,
         meta={"source": "experiments.close_the_loop.synthetic_recording", "seed": str(seed)},
     )
@@ -242,36 +261,42 @@ def identification_rates(
     effects = list(effects) if effects is not None else ["none"] + [c for c in CANDIDATES if c != "bias"]
     rows = []
     for eff in effects:
-        for sc in (scales if eff not in ("none", "earth_rate") else (1.0,)):
+        for sc in scales if eff not in ("none", "earth_rate") else (1.0,):
             trials = []
             for s in seeds:
                 trials.append(_one_trial(eff, sc, int(s), duration_s, rate_hz, alpha))
                 if progress:
                     print(f"{eff} x{sc} seed {s}: {trials[-1]['found']}", flush=True)
             n = len(trials)
-            rows.append({
-                "effect": eff,
-                "scale": sc,
-                "magnitude_si": None if eff == "none" else DEFAULT_MAGNITUDE[eff] * sc,
-                "n": n,
-                "identification_rate": float(np.mean([t["identified"] for t in trials])) if eff != "none" else None,
-                "exact_rate": float(np.mean([t["exact"] for t in trials])),
-                "false_alarm_rate": float(np.mean([t["false_alarm"] for t in trials])),
-                "att_before_deg_median": float(np.median([t["att_before_deg"] for t in trials])),
-                "att_after_deg_median": float(np.median([t["att_after_deg"] for t in trials])),
-            })
+            rows.append(
+                {
+                    "effect": eff,
+                    "scale": sc,
+                    "magnitude_si": None if eff == "none" else DEFAULT_MAGNITUDE[eff] * sc,
+                    "n": n,
+                    "identification_rate": float(np.mean([t["identified"] for t in trials])) if eff != "none" else None,
+                    "exact_rate": float(np.mean([t["exact"] for t in trials])),
+                    "false_alarm_rate": float(np.mean([t["false_alarm"] for t in trials])),
+                    "att_before_deg_median": float(np.median([t["att_before_deg"] for t in trials])),
+                    "att_after_deg_median": float(np.median([t["att_after_deg"] for t in trials])),
+                }
+            )
     return rows
 
 
 def rates_markdown(rows: Sequence[dict]) -> str:
     """Markdown table of :func:`identification_rates` rows plus the smallest magnitude found."""
-    out = ["| effect | magnitude (×1 size) | magnitude, SI | n | identified | exactly it | false alarm | attitude err. before → after (median, deg) |",
-           "|---|---|---|---|---|---|---|---|"]
+    out = [
+        "| effect | magnitude (×1 size) | magnitude, SI | n | identified | exactly it | false alarm | attitude err. before → after (median, deg) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         ident = "—" if r["identification_rate"] is None else f"{100 * r['identification_rate']:.0f} %"
         mag = "—" if r["magnitude_si"] is None else f"{r['magnitude_si']:.3g}"
-        out.append(f"| {r['effect']} | {r['scale']:g} | {mag} | {r['n']} | {ident} | {100 * r['exact_rate']:.0f} % | "
-                   f"{100 * r['false_alarm_rate']:.0f} % | {r['att_before_deg_median']:.3g} → {r['att_after_deg_median']:.3g} |")
+        out.append(
+            f"| {r['effect']} | {r['scale']:g} | {mag} | {r['n']} | {ident} | {100 * r['exact_rate']:.0f} % | "
+            f"{100 * r['false_alarm_rate']:.0f} % | {r['att_before_deg_median']:.3g} → {r['att_after_deg_median']:.3g} |"
+        )
     # smallest magnitude with identification ≥ 90 %
     out += ["", "| effect | smallest magnitude found in ≥ 90 % of seeds (SI) | × 1 size |", "|---|---|---|"]
     for eff in dict.fromkeys(r["effect"] for r in rows):
@@ -289,8 +314,13 @@ def rates_markdown(rows: Sequence[dict]) -> str:
 # ---------------------------------------------------------------------------- open search Monte Carlo
 #: Coloured noise of the open-search Monte Carlo on the synthetic generator (white + flicker +
 #: RRW + Gauss–Markov), SI: ARW 0.005 °/s/√Hz, B 3 °/h, K 10 °/h/√h, GM 0.002 °/s with τ 20 s.
-OPEN_NOISE = {"arw_rad_per_sqrt_s": 0.005 * DEG, "bias_instability_rad_s": 3.0 / 3600 * DEG,
-              "rrw_rad_s_per_sqrt_s": 10.0 / 3600 / 60 * DEG, "gm_sigma_rad_s": 0.002 * DEG, "gm_tau_s": 20.0}
+OPEN_NOISE = {
+    "arw_rad_per_sqrt_s": 0.005 * DEG,
+    "bias_instability_rad_s": 3.0 / 3600 * DEG,
+    "rrw_rad_s_per_sqrt_s": 10.0 / 3600 / 60 * DEG,
+    "gm_sigma_rad_s": 0.002 * DEG,
+    "gm_tau_s": 20.0,
+}
 
 #: Out-of-catalogue terms injected per kind at size 1 (SI): a product regressor ω_y·ω_z on x
 #: (rad/s per (rad/s)²), a 37.3 Hz line on y (amplitude rad/s), a bias step at 0.43·T (rad/s,
@@ -319,16 +349,21 @@ def inject_open(rec: Recording, kind: str, size: float, *, f_hz: float = 37.3, t
 def _open_trial(kind: str, size: float, seed: int, duration_s: float, rate_hz: float, alpha: float) -> dict:
     from gyrocore.loop.loop import run_loop
 
-    rec = synthetic_recording({"bias": effect_params("bias")}, seed=seed, duration_s=duration_s, rate_hz=rate_hz,
-                              **OPEN_NOISE)
+    rec = synthetic_recording(
+        {"bias": effect_params("bias")}, seed=seed, duration_s=duration_s, rate_hz=rate_hz, **OPEN_NOISE
+    )
     rec = inject_open(rec, kind, size * OPEN_UNIT.get(kind, 0.0))
     r = run_loop(rec, declared=["bias"], alpha=alpha, seed=seed)
     kinds = [u.kind for u in r.unexplained]
-    out = {"kinds": kinds, "found": r.found_effects,
-           "described": kind in kinds,
-           # an open-search claim of another kind is a false alarm of the open search; catalogue
-           # claims (the catalogue's own error rate, docs/loop.md §4) are counted apart
-           "false_alarm": any(k != kind for k in kinds), "catalogue_claim": bool(r.found_effects)}
+    out = {
+        "kinds": kinds,
+        "found": r.found_effects,
+        "described": kind in kinds,
+        # an open-search claim of another kind is a false alarm of the open search; catalogue
+        # claims (the catalogue's own error rate, docs/loop.md §4) are counted apart
+        "false_alarm": any(k != kind for k in kinds),
+        "catalogue_claim": bool(r.found_effects),
+    }
     for u in r.unexplained:
         if u.kind == kind:
             out["rms_before"], out["rms_after"] = u.residual_rms_before_rad_s, u.residual_rms_after_rad_s
@@ -344,10 +379,16 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
     return float(ci.low), float(ci.high)
 
 
-def open_search_rates(*, kinds: Sequence[str] = ("none", "regressor", "periodic", "step"),
-                      sizes: Sequence[float] = (0.5, 1.0, 2.0, 4.0), seeds: Sequence[int] = range(20),
-                      duration_s: float = 40.0, rate_hz: float = 200.0, alpha: float = 0.01,
-                      progress: bool = False) -> list[dict]:
+def open_search_rates(
+    *,
+    kinds: Sequence[str] = ("none", "regressor", "periodic", "step"),
+    sizes: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
+    seeds: Sequence[int] = range(20),
+    duration_s: float = 40.0,
+    rate_hz: float = 200.0,
+    alpha: float = 0.01,
+    progress: bool = False,
+) -> list[dict]:
     """Description (detection) and false-alarm rates of the open search per kind and size, on
     the synthetic tumbling generator with coloured noise (:data:`OPEN_NOISE`).
 
@@ -356,7 +397,7 @@ def open_search_rates(*, kinds: Sequence[str] = ("none", "regressor", "periodic"
     """
     rows = []
     for kind in kinds:
-        for sz in ((1.0,) if kind == "none" else sizes):
+        for sz in (1.0,) if kind == "none" else sizes:
             trials = []
             for s in seeds:
                 trials.append(_open_trial(kind, sz, int(s), duration_s, rate_hz, alpha))
@@ -368,19 +409,34 @@ def open_search_rates(*, kinds: Sequence[str] = ("none", "regressor", "periodic"
             rb = [t["rms_before"] for t in trials if "rms_before" in t]
             ra = [t["rms_after"] for t in trials if "rms_after" in t]
             kc = sum(t["catalogue_claim"] for t in trials)
-            rows.append({"kind": kind, "size": sz, "size_si": sz * OPEN_UNIT.get(kind, 0.0), "n": n,
-                         "catalogue_claims": kc, "catalogue_claims_ci95": clopper_pearson(kc, n),
-                         "described": kd / n if kind != "none" else None,
-                         "described_ci95": clopper_pearson(kd, n) if kind != "none" else None,
-                         "false_alarms": kf, "false_alarm_rate": kf / n, "false_alarm_ci95": clopper_pearson(kf, n),
-                         "rms_before_median_rad_s": float(np.median(rb)) if rb else None,
-                         "rms_after_median_rad_s": float(np.median(ra)) if ra else None})
+            rows.append(
+                {
+                    "kind": kind,
+                    "size": sz,
+                    "size_si": sz * OPEN_UNIT.get(kind, 0.0),
+                    "n": n,
+                    "catalogue_claims": kc,
+                    "catalogue_claims_ci95": clopper_pearson(kc, n),
+                    "described": kd / n if kind != "none" else None,
+                    "described_ci95": clopper_pearson(kd, n) if kind != "none" else None,
+                    "false_alarms": kf,
+                    "false_alarm_rate": kf / n,
+                    "false_alarm_ci95": clopper_pearson(kf, n),
+                    "rms_before_median_rad_s": float(np.median(rb)) if rb else None,
+                    "rms_after_median_rad_s": float(np.median(ra)) if ra else None,
+                }
+            )
     return rows
 
 
-def simulator_null_false_alarms(*, presets: Sequence[str] | None = None,
-                                scenarios: Sequence[tuple[str, float]] = (("turntable", 60.0), ("static", 120.0)),
-                                seeds: Sequence[int] = range(10), alpha: float = 0.01, progress: bool = False) -> dict:
+def simulator_null_false_alarms(
+    *,
+    presets: Sequence[str] | None = None,
+    scenarios: Sequence[tuple[str, float]] = (("turntable", 60.0), ("static", 120.0)),
+    seeds: Sequence[int] = range(10),
+    alpha: float = 0.01,
+    progress: bool = False,
+) -> dict:
     """False alarms of the open search on simulator null recordings: every preset, its whole
     deterministic model declared, its noise with RRW and Gauss–Markov switched on (white +
     flicker + RRW + GM). A false alarm is any ``unexplained`` entry (the catalogue's own finds —
@@ -401,30 +457,56 @@ def simulator_null_false_alarms(*, presets: Sequence[str] | None = None,
                 sim = simulate(sc, sensor=p, duration_s=dur, seed=int(s), overrides=ov)
                 declared = [e for e in sim.params_true if e in CANDIDATES]
                 r = run_loop(sim.recording, declared=declared, alpha=alpha, seed=int(s))
-                runs.append({"preset": p, "scenario": sc, "seed": int(s), "found": r.found_effects,
-                             "unexplained": [u.effect for u in r.unexplained],
-                             "false_alarm": bool(r.unexplained)})
+                runs.append(
+                    {
+                        "preset": p,
+                        "scenario": sc,
+                        "seed": int(s),
+                        "found": r.found_effects,
+                        "unexplained": [u.effect for u in r.unexplained],
+                        "false_alarm": bool(r.unexplained),
+                    }
+                )
                 if progress:
                     print(p, sc, s, r.found_effects, runs[-1]["unexplained"], flush=True)
     k = sum(r["false_alarm"] for r in runs)
-    return {"n": len(runs), "false_alarms": k, "rate": k / max(len(runs), 1),
-            "ci95": clopper_pearson(k, len(runs)), "alpha": alpha, "runs": runs}
+    return {
+        "n": len(runs),
+        "false_alarms": k,
+        "rate": k / max(len(runs), 1),
+        "ci95": clopper_pearson(k, len(runs)),
+        "alpha": alpha,
+        "runs": runs,
+    }
 
 
 def open_rates_markdown(rows: Sequence[dict]) -> str:
     """Markdown table of :func:`open_search_rates` rows."""
     D = 180.0 / np.pi
-    out = ["| kind | size (× unit) | size | n | described (95 % CI) | open-search false alarms (95 % CI) | catalogue claims | residual RMS before → after, median (°/s) |",
-           "|---|---|---|---|---|---|---|---|"]
+    out = [
+        "| kind | size (× unit) | size | n | described (95 % CI) | open-search false alarms (95 % CI) | catalogue claims | residual RMS before → after, median (°/s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     unit = {"regressor": "rad/s per (rad/s)²", "periodic": "rad/s", "step": "rad/s", "none": ""}
     for r in rows:
-        d = "—" if r["described"] is None else (f"{100 * r['described']:.0f} % ({100 * r['described_ci95'][0]:.0f}–"
-                                                f"{100 * r['described_ci95'][1]:.0f} %)")
+        d = (
+            "—"
+            if r["described"] is None
+            else (
+                f"{100 * r['described']:.0f} % ({100 * r['described_ci95'][0]:.0f}–"
+                f"{100 * r['described_ci95'][1]:.0f} %)"
+            )
+        )
         fa = f"{r['false_alarms']}/{r['n']} ({100 * r['false_alarm_ci95'][0]:.1f}–{100 * r['false_alarm_ci95'][1]:.1f} %)"
-        rms = ("—" if r["rms_before_median_rad_s"] is None else
-               f"{r['rms_before_median_rad_s'] * D:.3g} → {r['rms_after_median_rad_s'] * D:.3g}")
+        rms = (
+            "—"
+            if r["rms_before_median_rad_s"] is None
+            else f"{r['rms_before_median_rad_s'] * D:.3g} → {r['rms_after_median_rad_s'] * D:.3g}"
+        )
         size = "—" if r["kind"] == "none" else f"{r['size_si']:.3g} {unit[r['kind']]}"
-        out.append(f"| {r['kind']} | {r['size']:g} | {size} | {r['n']} | {d} | {fa} | {r['catalogue_claims']}/{r['n']} | {rms} |")
+        out.append(
+            f"| {r['kind']} | {r['size']:g} | {size} | {r['n']} | {d} | {fa} | {r['catalogue_claims']}/{r['n']} | {rms} |"
+        )
     return "\n".join(out)
 
 
@@ -435,14 +517,26 @@ MEASURED: tuple[tuple[str, tuple[str, ...], dict], ...] = (
     ("BROAD 07 fast rotation", ("broad/07_undisturbed_fast_rotation_B.hdf5",), {}),
     ("BROAD 09 fast rotation, breaks", ("broad/09_undisturbed_fast_rotation_with_breaks_B.hdf5",), {}),
     ("sunsided set-2 static 10 min", ("sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward-10min",), {}),
-    ("sunsided set-1 session (static + 2 turns about x, y, z)",
-     ("sunsided_mpu6050/set-1/unmoved-x-pointing-forward", "sunsided_mpu6050/set-1/rotate-360ccw-around-x-pointing-forward",
-      "sunsided_mpu6050/set-1/rotate-360ccw-around-y-pointing-left", "sunsided_mpu6050/set-1/rotate-360ccw-around-z-pointing-up"),
-     {"angle_mode": "axis"}),
-    ("sunsided set-2 session (static + 2 turns about x, y, z)",
-     ("sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward", "sunsided_mpu6050/set-2/rotate-ccw-around-x-pointing-forward",
-      "sunsided_mpu6050/set-2/rotate-ccw-around-y-pointing-left", "sunsided_mpu6050/set-2/rotate-ccw-around-z-pointing-up"),
-     {"angle_mode": "axis"}),
+    (
+        "sunsided set-1 session (static + 2 turns about x, y, z)",
+        (
+            "sunsided_mpu6050/set-1/unmoved-x-pointing-forward",
+            "sunsided_mpu6050/set-1/rotate-360ccw-around-x-pointing-forward",
+            "sunsided_mpu6050/set-1/rotate-360ccw-around-y-pointing-left",
+            "sunsided_mpu6050/set-1/rotate-360ccw-around-z-pointing-up",
+        ),
+        {"angle_mode": "axis"},
+    ),
+    (
+        "sunsided set-2 session (static + 2 turns about x, y, z)",
+        (
+            "sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward",
+            "sunsided_mpu6050/set-2/rotate-ccw-around-x-pointing-forward",
+            "sunsided_mpu6050/set-2/rotate-ccw-around-y-pointing-left",
+            "sunsided_mpu6050/set-2/rotate-ccw-around-z-pointing-up",
+        ),
+        {"angle_mode": "axis"},
+    ),
     ("imucal Ferraris session (6 poses + 3 turns)", ("imucal_ferraris/example_ferraris_session.csv",), {}),
     ("tomisuarez2 static 449 s", ("tomisuarez2_mpu6050/imu_static_test.csv",), {}),
     ("tomisuarez2 +90° about X (hand)", ("tomisuarez2_mpu6050/imu_90_x_rot.csv",), {"angle_mode": "axis"}),
@@ -481,28 +575,46 @@ def measured_runs(data_dir, *, names: Sequence[str] | None = None) -> list[dict]
         except GyroInputError as exc:
             rows.append({"name": name, "error": str(exc)})
             continue
-        rows.append({
-            "name": name, "reference": r.reference, "n_windows": r.n_windows,
-            "found": [{"effect": s.effect, "log10_p": s.evidence.log10_p, "ambiguous_with": list(s.evidence.ambiguous_with),
-                       "params": s.evidence.params, "std_errors": s.evidence.std_errors} for s in r.found],
-            "residual_rms_before_dps": r.residual_rms_before_rad_s * 180 / np.pi,
-            "residual_rms_after_dps": r.residual_rms_after_rad_s * 180 / np.pi,
-            "attitude_error_before_deg": r.attitude_error_before_deg,
-            "attitude_error_after_deg": r.attitude_error_after_deg,
-            "ljung_box_p": r.remaining.ljung_box_p, "notes": list(r.notes), "final_params": r.params,
-        })
+        rows.append(
+            {
+                "name": name,
+                "reference": r.reference,
+                "n_windows": r.n_windows,
+                "found": [
+                    {
+                        "effect": s.effect,
+                        "log10_p": s.evidence.log10_p,
+                        "ambiguous_with": list(s.evidence.ambiguous_with),
+                        "params": s.evidence.params,
+                        "std_errors": s.evidence.std_errors,
+                    }
+                    for s in r.found
+                ],
+                "residual_rms_before_dps": r.residual_rms_before_rad_s * 180 / np.pi,
+                "residual_rms_after_dps": r.residual_rms_after_rad_s * 180 / np.pi,
+                "attitude_error_before_deg": r.attitude_error_before_deg,
+                "attitude_error_after_deg": r.attitude_error_after_deg,
+                "ljung_box_p": r.remaining.ljung_box_p,
+                "notes": list(r.notes),
+                "final_params": r.params,
+            }
+        )
     return rows
 
 
 #: BROAD trials of the out-of-sample table (fit on one, score on another: 12 ordered pairs).
-BROAD_TRIALS = (("02", "broad/02_undisturbed_slow_rotation_B.hdf5"),
-                ("05", "broad/05_undisturbed_slow_rotation_with_breaks_B.hdf5"),
-                ("07", "broad/07_undisturbed_fast_rotation_B.hdf5"),
-                ("09", "broad/09_undisturbed_fast_rotation_with_breaks_B.hdf5"))
+BROAD_TRIALS = (
+    ("02", "broad/02_undisturbed_slow_rotation_B.hdf5"),
+    ("05", "broad/05_undisturbed_slow_rotation_with_breaks_B.hdf5"),
+    ("07", "broad/07_undisturbed_fast_rotation_B.hdf5"),
+    ("09", "broad/09_undisturbed_fast_rotation_with_breaks_B.hdf5"),
+)
 #: Long static logs of the out-of-sample table (fit on the first half, score on the second).
-STATIC_LOGS = (("sunsided set-2 static 10 min", "sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward-10min"),
-               ("tomisuarez2 static 449 s", "tomisuarez2_mpu6050/imu_static_test.csv"),
-               ("PX4 sample.ulg (stationary part)", "pyulog_samples/sample.ulg"))
+STATIC_LOGS = (
+    ("sunsided set-2 static 10 min", "sunsided_mpu6050/set-2/unmoved-with-x-pointing-forward-10min"),
+    ("tomisuarez2 static 449 s", "tomisuarez2_mpu6050/imu_static_test.csv"),
+    ("PX4 sample.ulg (stationary part)", "pyulog_samples/sample.ulg"),
+)
 
 
 def _load_quiet(path):
@@ -517,12 +629,19 @@ def _load_quiet(path):
 
 
 def _loop_summary(r) -> dict:
-    return {"reference": r.reference, "n_windows": r.n_windows,
-            "found": [{"effect": s.effect, "log10_p": s.evidence.log10_p} for s in r.found],
-            "unexplained": [u.to_json() for u in r.unexplained], "open_search": r.open_search,
-            "residual_rms_before_rad_s": r.residual_rms_before_rad_s, "residual_rms_after_rad_s": r.residual_rms_after_rad_s,
-            "attitude_error_before_deg": r.attitude_error_before_deg, "attitude_error_after_deg": r.attitude_error_after_deg,
-            "ljung_box_p": r.remaining.ljung_box_p, "params": r.params}
+    return {
+        "reference": r.reference,
+        "n_windows": r.n_windows,
+        "found": [{"effect": s.effect, "log10_p": s.evidence.log10_p} for s in r.found],
+        "unexplained": [u.to_json() for u in r.unexplained],
+        "open_search": r.open_search,
+        "residual_rms_before_rad_s": r.residual_rms_before_rad_s,
+        "residual_rms_after_rad_s": r.residual_rms_after_rad_s,
+        "attitude_error_before_deg": r.attitude_error_before_deg,
+        "attitude_error_after_deg": r.attitude_error_after_deg,
+        "ljung_box_p": r.remaining.ljung_box_p,
+        "params": r.params,
+    }
 
 
 def out_of_sample_runs(data_dir, *, declared: Sequence[str] = ("bias",), progress: bool = False) -> dict:
@@ -567,10 +686,20 @@ def out_of_sample_runs(data_dir, *, declared: Sequence[str] = ("bias",), progres
         first, second = split_halves(rec)
         r = run_loop(first, declared=list(declared))
         base = run_loop(first, declared=list(declared), candidates=[], open_search=False)
-        v = validate_model(second, params_after=loop_parameters(r, first)[0], params_before=loop_parameters(base, first)[0])
+        v = validate_model(
+            second, params_after=loop_parameters(r, first)[0], params_before=loop_parameters(base, first)[0]
+        )
         full = run_loop(rec, declared=list(declared))
-        out["static"].append({"name": name, "path": rel, "first_half": _loop_summary(r), "validation": v,
-                              "whole": _loop_summary(full), "split_t_s": float(second.t_s[0])})
+        out["static"].append(
+            {
+                "name": name,
+                "path": rel,
+                "first_half": _loop_summary(r),
+                "validation": v,
+                "whole": _loop_summary(full),
+                "split_t_s": float(second.t_s[0]),
+            }
+        )
         if progress:
             print("static", name, v, flush=True)
     return out
@@ -579,18 +708,28 @@ def out_of_sample_runs(data_dir, *, declared: Sequence[str] = ("bias",), progres
 def out_of_sample_markdown(res: dict) -> str:
     """The tables of docs/measured.md from :func:`out_of_sample_runs` output."""
     D = 180.0 / np.pi
-    out = ["| fit on → score on | residual RMS, declared model → final model (°/s) | attitude error, declared → final (°) |",
-           "|---|---|---|"]
+    out = [
+        "| fit on → score on | residual RMS, declared model → final model (°/s) | attitude error, declared → final (°) |",
+        "|---|---|---|",
+    ]
     for p in res["broad"]["pairs"]:
-        out.append(f"| BROAD {p['fit']} → {p['score']} | {p['residual_rms_before_rad_s'] * D:.3g} → "
-                   f"{p['residual_rms_after_rad_s'] * D:.3g} | {p['attitude_error_before_deg']:.3g} → "
-                   f"{p['attitude_error_after_deg']:.3g} |")
+        out.append(
+            f"| BROAD {p['fit']} → {p['score']} | {p['residual_rms_before_rad_s'] * D:.3g} → "
+            f"{p['residual_rms_after_rad_s'] * D:.3g} | {p['attitude_error_before_deg']:.3g} → "
+            f"{p['attitude_error_after_deg']:.3g} |"
+        )
     for st in res["static"]:
         v = st["validation"]
-        out.append(f"| {st['name']}: first half → second half (t ≥ {st['split_t_s']:.4g} s) | "
-                   f"{v['residual_rms_before_rad_s'] * D:.3g} → {v['residual_rms_after_rad_s'] * D:.3g} | "
-                   f"{v['attitude_error_before_deg']:.3g} → {v['attitude_error_after_deg']:.3g} |")
-    out += ["", "| fitted on | found (catalogue) | unexplained (open search) | Ljung–Box p after |", "|---|---|---|---|"]
+        out.append(
+            f"| {st['name']}: first half → second half (t ≥ {st['split_t_s']:.4g} s) | "
+            f"{v['residual_rms_before_rad_s'] * D:.3g} → {v['residual_rms_after_rad_s'] * D:.3g} | "
+            f"{v['attitude_error_before_deg']:.3g} → {v['attitude_error_after_deg']:.3g} |"
+        )
+    out += [
+        "",
+        "| fitted on | found (catalogue) | unexplained (open search) | Ljung–Box p after |",
+        "|---|---|---|---|",
+    ]
 
     def desc(f):
         return ", ".join(x["effect"] for x in f["found"]) or "nothing"
@@ -601,17 +740,27 @@ def out_of_sample_markdown(res: dict) -> str:
     for t, f in res["broad"]["fits"].items():
         out.append(f"| BROAD {t} (whole trial) | {desc(f)} | {udesc(f)} | {f['ljung_box_p']:.2g} |")
     for st in res["static"]:
-        out.append(f"| {st['name']}, first half | {desc(st['first_half'])} | {udesc(st['first_half'])} | "
-                   f"{st['first_half']['ljung_box_p']:.2g} |")
-        out.append(f"| {st['name']}, whole | {desc(st['whole'])} | {udesc(st['whole'])} | {st['whole']['ljung_box_p']:.2g} |")
-    out += ["", "| set (whole) | strongest library term: log10 p / threshold | strongest line: Hz, log10 p / threshold | best step: t, p / threshold |",
-            "|---|---|---|---|"]
+        out.append(
+            f"| {st['name']}, first half | {desc(st['first_half'])} | {udesc(st['first_half'])} | "
+            f"{st['first_half']['ljung_box_p']:.2g} |"
+        )
+        out.append(
+            f"| {st['name']}, whole | {desc(st['whole'])} | {udesc(st['whole'])} | {st['whole']['ljung_box_p']:.2g} |"
+        )
+    out += [
+        "",
+        "| set (whole) | strongest library term: log10 p / threshold | strongest line: Hz, log10 p / threshold | best step: t, p / threshold |",
+        "|---|---|---|---|",
+    ]
 
     def os_row(name, f):
         o = f.get("open_search") or {}
         g = o.get("regressor") or {}
-        reg = (f"{g['term']} on {g['axis']}: {g['log10_p']:.2g} / {np.log10(g['threshold']):.2g}" if "term" in g
-               else g.get("skipped", "—"))
+        reg = (
+            f"{g['term']} on {g['axis']}: {g['log10_p']:.2g} / {np.log10(g['threshold']):.2g}"
+            if "term" in g
+            else g.get("skipped", "—")
+        )
         ls = o.get("periodic") or []
         if ls:
             b = min(ls, key=lambda d: d["log10_p"])
@@ -633,15 +782,32 @@ def out_of_sample_markdown(res: dict) -> str:
 #: Undeclared effects injected per scenario (SI; the simulator adds them, the calibration is
 #: not told) — and, for hover, an effect of the preset left out of the declared model.
 CASES: tuple[dict, ...] = (
-    {"scenario": "turntable", "overrides": {"scale_asymmetry": {"a": [0.004, -0.003, 0.002]}},
-     "leave_out": (), "undeclared": ("scale_asymmetry",)},
-    {"scenario": "hover", "overrides": {"scale_nonlinearity": {"s2_s_per_rad": [0.02, 0.02, 0.01]}},
-     "leave_out": ("g_sensitivity",), "undeclared": ("g_sensitivity", "scale_nonlinearity")},
+    {
+        "scenario": "turntable",
+        "overrides": {"scale_asymmetry": {"a": [0.004, -0.003, 0.002]}},
+        "leave_out": (),
+        "undeclared": ("scale_asymmetry",),
+    },
+    {
+        "scenario": "hover",
+        "overrides": {"scale_nonlinearity": {"s2_s_per_rad": [0.02, 0.02, 0.01]}},
+        "leave_out": ("g_sensitivity",),
+        "undeclared": ("g_sensitivity", "scale_nonlinearity"),
+    },
 )
 
 
-def run(*, out_dir, quick: bool = False, seed: int = 0, seeds: int | None = None, workers: int | None = None,
-        sensor: str = "icm42688p", mc_seeds: int = 0, **_ignored):
+def run(
+    *,
+    out_dir,
+    quick: bool = False,
+    seed: int = 0,
+    seeds: int | None = None,
+    workers: int | None = None,
+    sensor: str = "icm42688p",
+    mc_seeds: int = 0,
+    **_ignored,
+):
     """The whole cycle on the turntable and hover scenarios with undeclared effects.
 
     For each case: simulate with :func:`sim.scenarios.simulate` (the undeclared effect in
@@ -665,66 +831,127 @@ def run(*, out_dir, quick: bool = False, seed: int = 0, seeds: int | None = None
     out = Path(out_dir)
     fig_dir = out / "figures"
     D = 180.0 / np.pi
-    md = ["The residual loop starts from the declared effects, traces what the residual still holds to a "
-          "catalogue effect through its physical regressors (HAC Wald tests, Holm-controlled family-wise "
-          "error α = 0.01, out-of-sample guard), adds it, refits, and repeats. Here the simulator puts an "
-          "effect into the sensor that the calibration is not told about.", ""]
+    md = [
+        "The residual loop starts from the declared effects, traces what the residual still holds to a "
+        "catalogue effect through its physical regressors (HAC Wald tests, Holm-controlled family-wise "
+        "error α = 0.01, out-of-sample guard), adds it, refits, and repeats. Here the simulator puts an "
+        "effect into the sensor that the calibration is not told about.",
+        "",
+    ]
     figures: list[str] = []
     summary: dict = {"cases": []}
     for case in CASES:
         dur = {"turntable": 45.0 if quick else 120.0, "hover": 15.0 if quick else 30.0}[case["scenario"]]
         sim = simulate(case["scenario"], sensor=sensor, duration_s=dur, seed=seed, overrides=case["overrides"])
-        declared = [e for e in sim.params_true if e in CANDIDATES and e not in case["overrides"]
-                    and e not in case["leave_out"]]
+        declared = [
+            e for e in sim.params_true if e in CANDIDATES and e not in case["overrides"] and e not in case["leave_out"]
+        ]
         res = run_loop(sim.recording, declared=declared)
         paths = plot_found(res, fig_dir, prefix=f"close_the_loop_{case['scenario']}")
         figures += [str(p.relative_to(out)) for p in paths]
         rows = []
         for k, s in enumerate(res.found, 1):
             ev = s.evidence
-            rows.append([k, s.effect, f"{ev.statistic:.3g} ({ev.df1}, {ev.df2})", f"{ev.log10_p:.3g}",
-                         f"{np.log10(ev.threshold):.3g}", s.residual_rms_before_rad_s * D, s.residual_rms_after_rad_s * D,
-                         s.attitude_error_before_deg, s.attitude_error_after_deg,
-                         ", ".join(ev.ambiguous_with) or "—"])
-        md += [f"### {case['scenario']} ({dur:g} s, sensor {sensor}, seed {seed})", "",
-               f"Undeclared: {', '.join(case['undeclared'])} (injected: {', '.join(case['overrides'])}; "
-               f"left out of the model: {', '.join(case['leave_out']) or 'nothing'}). "
-               f"Declared: {', '.join(declared)}. Reference: {res.reference}, {res.n_windows} windows.", ""]
+            rows.append(
+                [
+                    k,
+                    s.effect,
+                    f"{ev.statistic:.3g} ({ev.df1}, {ev.df2})",
+                    f"{ev.log10_p:.3g}",
+                    f"{np.log10(ev.threshold):.3g}",
+                    s.residual_rms_before_rad_s * D,
+                    s.residual_rms_after_rad_s * D,
+                    s.attitude_error_before_deg,
+                    s.attitude_error_after_deg,
+                    ", ".join(ev.ambiguous_with) or "—",
+                ]
+            )
+        md += [
+            f"### {case['scenario']} ({dur:g} s, sensor {sensor}, seed {seed})",
+            "",
+            f"Undeclared: {', '.join(case['undeclared'])} (injected: {', '.join(case['overrides'])}; "
+            f"left out of the model: {', '.join(case['leave_out']) or 'nothing'}). "
+            f"Declared: {', '.join(declared)}. Reference: {res.reference}, {res.n_windows} windows.",
+            "",
+        ]
         if rows:
-            md.append(md_table(["step", "effect", "F (df)", "log10 p", "log10 threshold", "RMS before, °/s",
-                                "RMS after, °/s", "attitude before, °", "attitude after, °", "ambiguous with"], rows))
+            md.append(
+                md_table(
+                    [
+                        "step",
+                        "effect",
+                        "F (df)",
+                        "log10 p",
+                        "log10 threshold",
+                        "RMS before, °/s",
+                        "RMS after, °/s",
+                        "attitude before, °",
+                        "attitude after, °",
+                        "ambiguous with",
+                    ],
+                    rows,
+                )
+            )
         else:
             md.append("Nothing significant found.")
         missed = [u for u in case["undeclared"] if u not in res.found_effects]
         extra = [f for f in res.found_effects if f not in case["undeclared"]]
-        md += ["", f"Found {', '.join(res.found_effects) or 'nothing'}; missed: {', '.join(missed) or 'none'}; "
-               f"not injected but found: {', '.join(extra) or 'none'}"
-               + (" (time_offset here is the on-chip low-pass filter's group delay — 1/√2 sample for the "
-                  "preset's digital Butterworth at a quarter of the sample rate — which the linear model does not "
-                  "carry: a real effect of the simulated sensor)" if "time_offset" in extra else "") + ".",
-               "", f"Remaining residual: Ljung–Box p = {res.remaining.ljung_box_p:.3g}; Allan slope "
-               + ", ".join(f"{x:.2f}" for x in res.remaining.allan_slope) + " (−½ white).", ""]
+        md += [
+            "",
+            f"Found {', '.join(res.found_effects) or 'nothing'}; missed: {', '.join(missed) or 'none'}; "
+            f"not injected but found: {', '.join(extra) or 'none'}"
+            + (
+                " (time_offset here is the on-chip low-pass filter's group delay — 1/√2 sample for the "
+                "preset's digital Butterworth at a quarter of the sample rate — which the linear model does not "
+                "carry: a real effect of the simulated sensor)"
+                if "time_offset" in extra
+                else ""
+            )
+            + ".",
+            "",
+            f"Remaining residual: Ljung–Box p = {res.remaining.ljung_box_p:.3g}; Allan slope "
+            + ", ".join(f"{x:.2f}" for x in res.remaining.allan_slope)
+            + " (−½ white).",
+            "",
+        ]
         for p in paths:
             md.append(f"![{p.stem}](figures/{p.name})")
         md.append("")
-        summary["cases"].append({"scenario": case["scenario"], "undeclared": list(case["undeclared"]),
-                                 "found": res.found_effects, "missed": missed, "extra": extra,
-                                 "residual_rms_before_rad_s": res.residual_rms_before_rad_s,
-                                 "residual_rms_after_rad_s": res.residual_rms_after_rad_s,
-                                 "attitude_error_before_deg": res.attitude_error_before_deg,
-                                 "attitude_error_after_deg": res.attitude_error_after_deg})
+        summary["cases"].append(
+            {
+                "scenario": case["scenario"],
+                "undeclared": list(case["undeclared"]),
+                "found": res.found_effects,
+                "missed": missed,
+                "extra": extra,
+                "residual_rms_before_rad_s": res.residual_rms_before_rad_s,
+                "residual_rms_after_rad_s": res.residual_rms_after_rad_s,
+                "attitude_error_before_deg": res.attitude_error_before_deg,
+                "attitude_error_after_deg": res.attitude_error_after_deg,
+            }
+        )
     if mc_seeds:
         rows = identification_rates(seeds=range(mc_seeds), scales=(0.3, 1.0))
-        md += ["### Identification and false alarms over seeds (synthetic tumbling reference)", "",
-               rates_markdown(rows), ""]
+        md += [
+            "### Identification and false alarms over seeds (synthetic tumbling reference)",
+            "",
+            rates_markdown(rows),
+            "",
+        ]
         summary["rates"] = rows
     from gyrocore.data.recording import atomic_write_text
 
     text = "\n".join(md)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "close_the_loop.md", "## Closing the loop\n\n" + text + "\n")
-    return ExperimentResult(name="close_the_loop", title="Closing the loop: undeclared effects", markdown=text,
-                            figures=tuple(figures), summary=summary, wall_s=_time.time() - t_start)
+    return ExperimentResult(
+        name="close_the_loop",
+        title="Closing the loop: undeclared effects",
+        markdown=text,
+        figures=tuple(figures),
+        summary=summary,
+        wall_s=_time.time() - t_start,
+    )
 
 
 # ---------------------------------------------------------------------------- measured sets
@@ -780,10 +1007,17 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
     ap.add_argument("--open", action="store_true", help="open-search rates (kinds x sizes, synthetic coloured noise)")
     ap.add_argument("--open-kinds", default="none,regressor,periodic,step")
     ap.add_argument("--open-sizes", default="0.5,1,2,4")
-    ap.add_argument("--simulator-null", action="store_true",
-                    help="open-search false alarms on simulator null recordings, every preset")
-    ap.add_argument("--out-of-sample", default=None, metavar="DATA_DIR",
-                    help="the out-of-sample table of docs/measured.md (BROAD pairs, static halves), JSON")
+    ap.add_argument(
+        "--simulator-null",
+        action="store_true",
+        help="open-search false alarms on simulator null recordings, every preset",
+    )
+    ap.add_argument(
+        "--out-of-sample",
+        default=None,
+        metavar="DATA_DIR",
+        help="the out-of-sample table of docs/measured.md (BROAD pairs, static halves), JSON",
+    )
     a = ap.parse_args()
     if a.out_of_sample:
         from gyrocore.data.jsonable import to_jsonable
@@ -801,8 +1035,12 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
         from gyrocore.data.jsonable import to_jsonable
 
         if a.open:
-            rows = open_search_rates(kinds=a.open_kinds.split(","), sizes=[float(x) for x in a.open_sizes.split(",")],
-                                     seeds=range(a.seed_start, a.seed_start + a.seeds), progress=True)
+            rows = open_search_rates(
+                kinds=a.open_kinds.split(","),
+                sizes=[float(x) for x in a.open_sizes.split(",")],
+                seeds=range(a.seed_start, a.seed_start + a.seeds),
+                progress=True,
+            )
             print(open_rates_markdown(rows))
         else:
             rows = simulator_null_false_alarms(seeds=range(a.seed_start, a.seed_start + a.seeds), progress=True)
@@ -818,8 +1056,12 @@ if __name__ == "__main__":  # pragma: no cover - the Monte Carlo script
         rows = measured_runs(a.measured)
         print(_json.dumps(to_jsonable(rows), indent=1))
         raise SystemExit(0)
-    rows = identification_rates(seeds=range(a.seeds), scales=[float(x) for x in a.scales.split(",")],
-                                effects=a.effects.split(",") if a.effects else None, progress=True)
+    rows = identification_rates(
+        seeds=range(a.seeds),
+        scales=[float(x) for x in a.scales.split(",")],
+        effects=a.effects.split(",") if a.effects else None,
+        progress=True,
+    )
     print(rates_markdown(rows))
     if a.out:
         from gyrocore.data.recording import atomic_write_text

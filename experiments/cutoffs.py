@@ -53,8 +53,16 @@ def _gyro(preset: str, seed: int, rate_hz: float = GYRO_RATE_HZ):
         return SyntheticGyro(preset, rate_hz=rate_hz, seed=seed)
 
 
-def _fly(preset: str | None, seed: int, kind: str, fc_hz: float, duration_s: float, steps: bool,
-         vehicle: str = "f450", rate_hz: float = GYRO_RATE_HZ):
+def _fly(
+    preset: str | None,
+    seed: int,
+    kind: str,
+    fc_hz: float,
+    duration_s: float,
+    steps: bool,
+    vehicle: str = "f450",
+    rate_hz: float = GYRO_RATE_HZ,
+):
     """One closed-loop flight (``preset=None``: a perfect gyro, no filter)."""
     from sim.controller import small_steps
     from sim.quadrotor import PerfectGyro, fly_hover
@@ -65,9 +73,16 @@ def _fly(preset: str | None, seed: int, kind: str, fc_hz: float, duration_s: flo
     else:
         g = _gyro(preset, seed, rate_hz)
         gyro, b0, flt = g.stream(n), g.power_up_bias(0), make_filter(kind, fc_hz, rate_hz)
-    truth, log = fly_hover(duration_s=duration_s, gyro=gyro, pipeline=Pipeline([AffineCorrection(b0), flt]),
-                           manoeuvres=small_steps(duration_s) if steps else (), vibration=True, seed=seed,
-                           gyro_rate_hz=rate_hz, vehicle=vehicle)
+    truth, log = fly_hover(
+        duration_s=duration_s,
+        gyro=gyro,
+        pipeline=Pipeline([AffineCorrection(b0), flt]),
+        manoeuvres=small_steps(duration_s) if steps else (),
+        vibration=True,
+        seed=seed,
+        gyro_rate_hz=rate_hz,
+        vehicle=vehicle,
+    )
     return truth, log, b0, flt
 
 
@@ -75,8 +90,17 @@ def _crashed(log) -> bool:
     return (not np.all(np.isfinite(log.q_WB_wxyz))) or float(np.max(log.tilt_rad())) > math.radians(60)
 
 
-def fly_config(preset: str, seed: int, kind: str, fc_hz: float, duration_s: float, ref_steps=None, *,
-               vehicle: str = "f450", rate_hz: float = GYRO_RATE_HZ):
+def fly_config(
+    preset: str,
+    seed: int,
+    kind: str,
+    fc_hz: float,
+    duration_s: float,
+    ref_steps=None,
+    *,
+    vehicle: str = "f450",
+    rate_hz: float = GYRO_RATE_HZ,
+):
     """Closed-loop metrics of one configuration: a hover flight and a step flight.
 
     Returns (metrics dict, step-flight Truth, step-flight FlightLog, true power-up bias).
@@ -90,9 +114,13 @@ def fly_config(preset: str, seed: int, kind: str, fc_hz: float, duration_s: floa
     keep_s = stp.t_s >= SETTLE_S
     ok_h, ok_s = not _crashed(hov), not _crashed(stp)
     m = {
-        "hover_att_rms_deg": float(np.degrees(np.sqrt(np.mean(hov.attitude_error_rad()[keep_h] ** 2)))) if ok_h else nan,
+        "hover_att_rms_deg": float(np.degrees(np.sqrt(np.mean(hov.attitude_error_rad()[keep_h] ** 2))))
+        if ok_h
+        else nan,
         "motor_noise_n": hov.motor_noise_n(t_from_s=SETTLE_S) if ok_h else nan,
-        "step_track_rms_deg": float(np.degrees(np.sqrt(np.mean(stp.attitude_error_rad()[keep_s] ** 2)))) if ok_s else nan,
+        "step_track_rms_deg": float(np.degrees(np.sqrt(np.mean(stp.attitude_error_rad()[keep_s] ** 2))))
+        if ok_s
+        else nan,
         "excess_deg": nan,
         "delay_ms": 1e3 * stp.gyro_delay_s() if ok_s else nan,
         "filter_delay_ms": 1e3 * flt.delay_s(0.0),
@@ -166,8 +194,16 @@ def ours_cell_task(task):
         _, ref, _, _ = _fly(None, int(task.seed), "none", 30.0, dur, steps=True, vehicle=vehicle, rate_hz=rate)
         metrics = {}
         for kind, fc in _configs(o["kinds"], o["cutoffs"]):
-            m, _, _, _ = fly_config(task.sensor, int(task.seed), kind, fc if kind != "none" else 30.0, dur, ref_steps=ref,
-                                    vehicle=vehicle, rate_hz=rate)
+            m, _, _, _ = fly_config(
+                task.sensor,
+                int(task.seed),
+                kind,
+                fc if kind != "none" else 30.0,
+                dur,
+                ref_steps=ref,
+                vehicle=vehicle,
+                rate_hz=rate,
+            )
             lab = "none" if kind == "none" else f"{kind} {fc:g} Hz"
             for k in ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed"):
                 metrics[f"{lab}|{k}"] = float(m[k])
@@ -180,9 +216,19 @@ def _median(rows, key):
     return float(np.median(v)) if v.size else float("nan")
 
 
-def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        presets: Sequence[str] | None = None, duration_s: float | None = None, seed: int = 0,
-        firmware: str | None = None, size: str | None = None, **options) -> ExperimentResult:
+def run(
+    *,
+    out_dir,
+    quick: bool = False,
+    seeds: int | None = None,
+    workers: int | None = None,
+    presets: Sequence[str] | None = None,
+    duration_s: float | None = None,
+    seed: int = 0,
+    firmware: str | None = None,
+    size: str | None = None,
+    **options,
+) -> ExperimentResult:
     """Sweep filter type × cutoff per sensor preset; write plots into ``out_dir``; return the section.
 
     ``firmware="betaflight"``: the grid flown by the firmware in the loop, beside our controller's
@@ -197,8 +243,18 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         from .firmware_cutoffs import run as run_firmware
 
         grid = {"kinds": KINDS, "cutoffs": CUTOFFS_HZ, "presets": PRESETS, "excess_budget": EXCESS_BUDGET}
-        return run_firmware(out_dir=out_dir, grid=grid, ours_task=ours_cell_task, quick=quick, seeds=seeds,
-                            workers=workers, presets=presets, duration_s=duration_s, seed=seed, **options)
+        return run_firmware(
+            out_dir=out_dir,
+            grid=grid,
+            ours_task=ours_cell_task,
+            quick=quick,
+            seeds=seeds,
+            workers=workers,
+            presets=presets,
+            duration_s=duration_s,
+            seed=seed,
+            **options,
+        )
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     size = size or ("quick" if quick else "full")
@@ -222,23 +278,34 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             results = list(pool.map(_task, jobs))
     rows = [r for chunk in results for r in chunk]
 
-    md = [f"Gyro at {GYRO_RATE_HZ:g} Hz, rotor vibration on, {dur:g} s flights, {n_inst} sensor instance(s) per "
-          "preset (medians; every configuration flies the same instances and rotor phases). Closed loop, two flights "
-          "per configuration: **hover** (no manoeuvres): RMS attitude error against the set point (noise and "
-          "vibration jitter) and *motor noise* = RMS of the thrust commands above 20 Hz; **steps** (5° roll/pitch, "
-          "15° yaw): RMS tracking error against the commanded attitude, the *excess* error = RMS angle between this "
-          "flight and the same flight with a perfect unfiltered gyro (what the gyro and its filter cost), and the "
-          "measured *delay* of the filtered gyro behind the true rate (0.2–15 Hz), beside the filter's own DC "
-          f"group delay. Open loop (raw gyro of the unfiltered step flight, filtered offline): *rate error* = RMS of "
-          f"filtered − true rate in the flight band (true rate zero-phase low-passed at {FLIGHT_BAND_HZ:g} Hz); "
-          "*attitude error* = RMS error of integrating the filtered gyro. (A lower step-tracking RMS under heavy "
-          "filtering is not better control: the delayed rate feedback weakens the damping, the response gets faster "
-          "and overshoots; the excess error against the perfect-gyro flight measures that cost.) Best = the quietest motors among the filters whose attitude cost (excess error) is at most "
-          f"{EXCESS_BUDGET:g}× that of the raw gyro.\n"]
+    md = [
+        f"Gyro at {GYRO_RATE_HZ:g} Hz, rotor vibration on, {dur:g} s flights, {n_inst} sensor instance(s) per "
+        "preset (medians; every configuration flies the same instances and rotor phases). Closed loop, two flights "
+        "per configuration: **hover** (no manoeuvres): RMS attitude error against the set point (noise and "
+        "vibration jitter) and *motor noise* = RMS of the thrust commands above 20 Hz; **steps** (5° roll/pitch, "
+        "15° yaw): RMS tracking error against the commanded attitude, the *excess* error = RMS angle between this "
+        "flight and the same flight with a perfect unfiltered gyro (what the gyro and its filter cost), and the "
+        "measured *delay* of the filtered gyro behind the true rate (0.2–15 Hz), beside the filter's own DC "
+        f"group delay. Open loop (raw gyro of the unfiltered step flight, filtered offline): *rate error* = RMS of "
+        f"filtered − true rate in the flight band (true rate zero-phase low-passed at {FLIGHT_BAND_HZ:g} Hz); "
+        "*attitude error* = RMS error of integrating the filtered gyro. (A lower step-tracking RMS under heavy "
+        "filtering is not better control: the delayed rate feedback weakens the damping, the response gets faster "
+        "and overshoots; the excess error against the perfect-gyro flight measures that cost.) Best = the quietest motors among the filters whose attitude cost (excess error) is at most "
+        f"{EXCESS_BUDGET:g}× that of the raw gyro.\n"
+    ]
     figs = []
     summary: dict = {"presets": {}}
-    keys = ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms",
-            "filter_delay_ms", "rate_err_rms_deg_s", "att_err_rms_deg", "crashed")
+    keys = (
+        "hover_att_rms_deg",
+        "motor_noise_n",
+        "step_track_rms_deg",
+        "excess_deg",
+        "delay_ms",
+        "filter_delay_ms",
+        "rate_err_rms_deg_s",
+        "att_err_rms_deg",
+        "crashed",
+    )
     for p in presets:
         pr = [r for r in rows if r["preset"] == p]
         table, stats = [], {}
@@ -247,54 +314,92 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             v = {k: _median(rr, k) for k in keys}
             label = "none" if kind == "none" else f"{kind} {fc:g} Hz"
             stats[label] = v
-            table.append((label, v["hover_att_rms_deg"], v["motor_noise_n"], v["step_track_rms_deg"], v["excess_deg"],
-                          v["delay_ms"], v["filter_delay_ms"], v["filter_delay_ms"] * GYRO_RATE_HZ / 1e3,
-                          v["rate_err_rms_deg_s"], v["att_err_rms_deg"]))
+            table.append(
+                (
+                    label,
+                    v["hover_att_rms_deg"],
+                    v["motor_noise_n"],
+                    v["step_track_rms_deg"],
+                    v["excess_deg"],
+                    v["delay_ms"],
+                    v["filter_delay_ms"],
+                    v["filter_delay_ms"] * GYRO_RATE_HZ / 1e3,
+                    v["rate_err_rms_deg_s"],
+                    v["att_err_rms_deg"],
+                )
+            )
         # best = quietest motors among the configurations whose attitude cost (excess error
         # against a perfect gyro) stays within EXCESS_BUDGET × that of the raw gyro
         lim = EXCESS_BUDGET * stats["none"]["excess_deg"]
-        ok = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim
-              and np.isfinite(v["motor_noise_n"])}
+        ok = {
+            k: v
+            for k, v in stats.items()
+            if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim and np.isfinite(v["motor_noise_n"])
+        }
         best = min(ok, key=lambda k: ok[k]["motor_noise_n"]) if ok else None
         finite = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"])}
         quiet = min(finite, key=lambda k: finite[k]["excess_deg"]) if finite else None  # least attitude cost
         art = stats.get("article 30 Hz")
         summary["presets"][p] = {
-            "best": best, "least_attitude_cost": quiet,
+            "best": best,
+            "least_attitude_cost": quiet,
             "best_excess_deg": stats[best]["excess_deg"] if best else None,
             "best_motor_noise_n": stats[best]["motor_noise_n"] if best else None,
             "none_step_track_rms_deg": stats["none"]["step_track_rms_deg"],
-            "none_excess_deg": stats["none"]["excess_deg"], "none_motor_noise_n": stats["none"]["motor_noise_n"],
+            "none_excess_deg": stats["none"]["excess_deg"],
+            "none_motor_noise_n": stats["none"]["motor_noise_n"],
             "article30_step_track_rms_deg": art["step_track_rms_deg"] if art else None,
             "article30_motor_noise_n": art["motor_noise_n"] if art else None,
             "article30_delay_samples": art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3 if art else None,
             "best_open_loop_rate": min(stats, key=lambda k: stats[k]["rate_err_rms_deg_s"]),
         }
         md.append(f"### {p}\n")
-        md.append(md_table(["filter", "hover error, °", "motor noise, N", "step tracking, °", "excess, °",
-                            "delay, ms", "filter delay, ms", "filter delay, samples", "rate error, °/s",
-                            "attitude error, °"], table))
+        md.append(
+            md_table(
+                [
+                    "filter",
+                    "hover error, °",
+                    "motor noise, N",
+                    "step tracking, °",
+                    "excess, °",
+                    "delay, ms",
+                    "filter delay, ms",
+                    "filter delay, samples",
+                    "rate error, °/s",
+                    "attitude error, °",
+                ],
+                table,
+            )
+        )
         if best:
             b = stats[best]
             n0 = stats["none"]
-            md.append(f"\nBest for **{p}**: **{best}** — motor noise {b['motor_noise_n']:.4f} N "
-                      f"({n0['motor_noise_n'] / b['motor_noise_n']:.1f}× quieter than unfiltered), excess attitude error "
-                      f"{b['excess_deg']:.4f}° (unfiltered {n0['excess_deg']:.4f}°), measured delay {b['delay_ms']:.2f} ms. "
-                      f"Least attitude cost: **{quiet}** ({stats[quiet]['excess_deg']:.4f}°). Hover attitude error "
-                      f"barely depends on the filter ({min(v['hover_att_rms_deg'] for v in stats.values()):.4f}–"
-                      f"{max(v['hover_att_rms_deg'] for v in stats.values()):.4f}°): vibration moves the airframe "
-                      "itself; the filter decides motor noise and delay.")
+            md.append(
+                f"\nBest for **{p}**: **{best}** — motor noise {b['motor_noise_n']:.4f} N "
+                f"({n0['motor_noise_n'] / b['motor_noise_n']:.1f}× quieter than unfiltered), excess attitude error "
+                f"{b['excess_deg']:.4f}° (unfiltered {n0['excess_deg']:.4f}°), measured delay {b['delay_ms']:.2f} ms. "
+                f"Least attitude cost: **{quiet}** ({stats[quiet]['excess_deg']:.4f}°). Hover attitude error "
+                f"barely depends on the filter ({min(v['hover_att_rms_deg'] for v in stats.values()):.4f}–"
+                f"{max(v['hover_att_rms_deg'] for v in stats.values()):.4f}°): vibration moves the airframe "
+                "itself; the filter decides motor noise and delay."
+            )
         if art:
             d_samp = art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3
-            md.append(f" The article's advice, first-order 30 Hz: excess {art['excess_deg']:.4f}° "
-                      f"({art['excess_deg'] / n0['excess_deg']:.1f}× the raw gyro's), motor noise "
-                      f"{art['motor_noise_n']:.4f} N, filter delay {art['filter_delay_ms']:.2f} ms = {d_samp:.1f} samples at "
-                      f"{GYRO_RATE_HZ:g} Hz — {'over' if d_samp > 1 else 'within'} its one-sample budget (a first-order "
-                      f"filter meets that budget only for fc ≥ {GYRO_RATE_HZ / (2 * math.pi):.0f} Hz at this rate).")
+            md.append(
+                f" The article's advice, first-order 30 Hz: excess {art['excess_deg']:.4f}° "
+                f"({art['excess_deg'] / n0['excess_deg']:.1f}× the raw gyro's), motor noise "
+                f"{art['motor_noise_n']:.4f} N, filter delay {art['filter_delay_ms']:.2f} ms = {d_samp:.1f} samples at "
+                f"{GYRO_RATE_HZ:g} Hz — {'over' if d_samp > 1 else 'within'} its one-sample budget (a first-order "
+                f"filter meets that budget only for fc ≥ {GYRO_RATE_HZ / (2 * math.pi):.0f} Hz at this rate)."
+            )
         md.append("\n")
         fig = new_figure(figsize=(11, 3.4))
-        plots = (("excess_deg", "closed-loop excess attitude error, °"), ("motor_noise_n", "motor noise > 20 Hz, N"),
-                 ("delay_ms", "measured gyro delay, ms"), ("rate_err_rms_deg_s", "open-loop rate error, °/s"))
+        plots = (
+            ("excess_deg", "closed-loop excess attitude error, °"),
+            ("motor_noise_n", "motor noise > 20 Hz, N"),
+            ("delay_ms", "measured gyro delay, ms"),
+            ("rate_err_rms_deg_s", "open-loop rate error, °/s"),
+        )
         axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
         for kind in kinds:
             for ax, (key, _) in zip(axs, plots):
@@ -315,6 +420,15 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         figs.append(save_figure(fig, out_dir, f"cutoffs_{p}"))
         md.append(f"![cutoffs {p}]({figs[-1]})\n")
     best_line = "; ".join(f"{p}: {v['best']}" for p, v in summary["presets"].items())
-    md.insert(1, f"**Best filter per preset (quietest motors at ≤ {EXCESS_BUDGET:g}× the raw gyro's attitude cost):** {best_line}.\n")
-    return ExperimentResult(name="cutoffs", title="Filter cutoffs compared by attitude", markdown="\n".join(md),
-                            figures=tuple(figs), summary=summary, wall_s=time.perf_counter() - t0)
+    md.insert(
+        1,
+        f"**Best filter per preset (quietest motors at ≤ {EXCESS_BUDGET:g}× the raw gyro's attitude cost):** {best_line}.\n",
+    )
+    return ExperimentResult(
+        name="cutoffs",
+        title="Filter cutoffs compared by attitude",
+        markdown="\n".join(md),
+        figures=tuple(figs),
+        summary=summary,
+        wall_s=time.perf_counter() - t0,
+    )

@@ -48,8 +48,14 @@ __all__ = ["BASE_SETTINGS", "DEFAULT_VEHICLE", "FW_LPF_TYPE", "cell_settings", "
 #: the grid's filter kinds as the firmware's gyro_lpf1_type
 FW_LPF_TYPE = {"article": "PT1", "pt2": "PT2", "pt3": "PT3", "biquad": "BIQUAD"}
 #: every gyro filter but the one under test off (the D-term chain stays at the firmware's defaults)
-BASE_SETTINGS = (("gyro_lpf2_static_hz", "0"), ("gyro_lpf1_dyn_min_hz", "0"), ("dyn_notch_count", "0"),
-                 ("rpm_filter_harmonics", "0"), ("gyro_notch1_hz", "0"), ("gyro_notch2_hz", "0"))
+BASE_SETTINGS = (
+    ("gyro_lpf2_static_hz", "0"),
+    ("gyro_lpf1_dyn_min_hz", "0"),
+    ("dyn_notch_count", "0"),
+    ("rpm_filter_harmonics", "0"),
+    ("gyro_notch1_hz", "0"),
+    ("gyro_notch2_hz", "0"),
+)
 #: cutoffs of the default firmware grid (five of the project grid's seven), Hz
 FW_CUTOFFS_HZ = (30.0, 60.0, 90.0, 130.0, 180.0)
 #: Betaflight's defaults are a 5-inch tune
@@ -64,7 +70,9 @@ def cell_settings(kind: str, fc_hz: float) -> list[tuple[str, str]]:
     if kind == "none":
         return s + [("gyro_lpf1_static_hz", "0")]
     if kind not in FW_LPF_TYPE:
-        raise GyroInputError(f"filter kind {kind!r} has no firmware gyro_lpf1_type (firmware kinds: {', '.join(FW_LPF_TYPE)})")
+        raise GyroInputError(
+            f"filter kind {kind!r} has no firmware gyro_lpf1_type (firmware kinds: {', '.join(FW_LPF_TYPE)})"
+        )
     return s + [("gyro_lpf1_type", FW_LPF_TYPE[kind]), ("gyro_lpf1_static_hz", str(int(round(fc_hz))))]
 
 
@@ -100,8 +108,15 @@ def _fw_cells(task):
     kinds, cutoffs = _opt(task, "kinds"), _opt(task, "cutoffs")
     vehicle, binary = _opt(task, "vehicle", DEFAULT_VEHICLE), _opt(task, "binary")
     dur = float(task.duration_s)
-    base = FwFlightOptions(scenario="steps", vehicle=vehicle, duration_s=dur, seed=int(task.seed), sensor=task.sensor,
-                           loop_rate_hz=LOOP_RATE_HZ, settle_s=SETTLE_S)
+    base = FwFlightOptions(
+        scenario="steps",
+        vehicle=vehicle,
+        duration_s=dur,
+        seed=int(task.seed),
+        sensor=task.sensor,
+        loop_rate_hz=LOOP_RATE_HZ,
+        settle_s=SETTLE_S,
+    )
     ref, _ = fly(replace(base, sensor=None), cell_settings("none", 0.0), binary=binary)
     metrics: dict[str, float] = {}
     nan = float("nan")
@@ -144,8 +159,11 @@ def _medians(results, cells, keys):
 def _best(stats: dict, noise_key: str, budget: float):
     """Quietest motors among the cells whose excess is within ``budget`` x the unfiltered cell's (the cutoffs rule)."""
     lim = budget * stats["none"]["excess_deg"]
-    ok = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim
-          and np.isfinite(v[noise_key])}
+    ok = {
+        k: v
+        for k, v in stats.items()
+        if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim and np.isfinite(v[noise_key])
+    }
     best = min(ok, key=lambda k: ok[k][noise_key]) if ok else None
     finite = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"])}
     least = min(finite, key=lambda k: finite[k]["excess_deg"]) if finite else None
@@ -158,19 +176,36 @@ def _disagreement(p, fw_best, ours_best, fw, ours, budget) -> str:
     parts = [f"For {p} they disagree: the firmware picks **{fw_best}**, our controller **{ours_best}**."]
     if fw_best in ours and ours_best in fw:
         a, b = fw[fw_best], fw[ours_best]
-        parts.append(f" Flown by the firmware, {ours_best} costs excess {b['excess_deg']:.4f}° at motor noise "
-                     f"{b['motor_noise_pct']:.3f} % against {a['excess_deg']:.4f}° / {a['motor_noise_pct']:.3f} % for "
-                     f"{fw_best} (budget {budget * fw['none']['excess_deg']:.4f}°); by our controller "
-                     f"{fw_best} costs {ours[fw_best]['excess_deg']:.4f}° / {ours[fw_best]['motor_noise_n']:.4f} N against "
-                     f"{ours[ours_best]['excess_deg']:.4f}° / {ours[ours_best]['motor_noise_n']:.4f} N "
-                     f"(budget {budget * ours['none']['excess_deg']:.4f}°).")
+        parts.append(
+            f" Flown by the firmware, {ours_best} costs excess {b['excess_deg']:.4f}° at motor noise "
+            f"{b['motor_noise_pct']:.3f} % against {a['excess_deg']:.4f}° / {a['motor_noise_pct']:.3f} % for "
+            f"{fw_best} (budget {budget * fw['none']['excess_deg']:.4f}°); by our controller "
+            f"{fw_best} costs {ours[fw_best]['excess_deg']:.4f}° / {ours[fw_best]['motor_noise_n']:.4f} N against "
+            f"{ours[ours_best]['excess_deg']:.4f}° / {ours[ours_best]['motor_noise_n']:.4f} N "
+            f"(budget {budget * ours['none']['excess_deg']:.4f}°)."
+        )
     return "".join(parts)
 
 
-def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        presets: Sequence[str] | None = None, duration_s: float | None = None, seed: int = 0,
-        vehicle: str = DEFAULT_VEHICLE, kinds: Sequence[str] | None = None, cutoffs: Sequence[float] | None = None,
-        scheduler: str | None = None, binary=None, with_ours: bool = True, **_ignored) -> ExperimentResult:
+def run(
+    *,
+    out_dir,
+    grid: dict,
+    ours_task,
+    quick: bool = False,
+    seeds: int | None = None,
+    workers: int | None = None,
+    presets: Sequence[str] | None = None,
+    duration_s: float | None = None,
+    seed: int = 0,
+    vehicle: str = DEFAULT_VEHICLE,
+    kinds: Sequence[str] | None = None,
+    cutoffs: Sequence[float] | None = None,
+    scheduler: str | None = None,
+    binary=None,
+    with_ours: bool = True,
+    **_ignored,
+) -> ExperimentResult:
     """The cutoffs grid flown by the firmware, beside our controller's verdict (module docstring).
 
     ``grid``: the project experiment's ``kinds``, ``cutoffs``, ``presets`` and ``excess_budget``;
@@ -190,7 +225,9 @@ def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | Non
     kinds = tuple(kinds or (("article", "pt2") if quick else tuple(k for k in KINDS if k in FW_LPF_TYPE)))
     bad = [k for k in kinds if k not in FW_LPF_TYPE]
     if bad:
-        raise GyroInputError(f"filter kind {bad[0]!r} has no firmware equivalent (firmware kinds: {', '.join(FW_LPF_TYPE)})")
+        raise GyroInputError(
+            f"filter kind {bad[0]!r} has no firmware equivalent (firmware kinds: {', '.join(FW_LPF_TYPE)})"
+        )
     # every firmware cell is two 8-kHz flights through a second process (~0.5 CPU s per simulated s):
     # the default grid is the project's at five of its cutoffs, on two presets, one instance
     cutoffs = tuple(float(c) for c in (cutoffs or ((30.0, 90.0) if quick else FW_CUTOFFS_HZ)))
@@ -202,35 +239,63 @@ def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | Non
     version = f"{fb.firmware} {fb.version}" if fb is not None else "betaflight"
     inst = instance_seeds(seed, n_inst)
     opts = (("kinds", kinds), ("cutoffs", cutoffs), ("vehicle", vehicle), ("binary", binary))
-    tasks_fw = [MonteCarloTask(index=i, scenario="cutoffs-firmware", sensor=p, instance=j, seed=s, duration_s=dur,
-                               options=opts)
-                for i, (p, (j, s)) in enumerate((p, js) for p in presets for js in enumerate(inst))]
+    tasks_fw = [
+        MonteCarloTask(index=i, scenario="cutoffs-firmware", sensor=p, instance=j, seed=s, duration_s=dur, options=opts)
+        for i, (p, (j, s)) in enumerate((p, js) for p in presets for js in enumerate(inst))
+    ]
     n_work = 1 if workers is None else int(workers)
     res_fw, backend, nw = execute(fw_cell_task, tasks_fw, workers=n_work, scheduler=scheduler)
     res_ours = []
     if with_ours:
-        tasks_o = [MonteCarloTask(index=t.index, scenario="cutoffs-ours", sensor=t.sensor, instance=t.instance,
-                                  seed=t.seed, duration_s=dur, options=opts[:3] + (("rate_hz", LOOP_RATE_HZ),)) for t in tasks_fw]
+        tasks_o = [
+            MonteCarloTask(
+                index=t.index,
+                scenario="cutoffs-ours",
+                sensor=t.sensor,
+                instance=t.instance,
+                seed=t.seed,
+                duration_s=dur,
+                options=opts[:3] + (("rate_hz", LOOP_RATE_HZ),),
+            )
+            for t in tasks_fw
+        ]
         res_ours, _, _ = execute(ours_task, tasks_o, workers=n_work, scheduler=scheduler)
     cells = _cells(kinds, cutoffs)
-    fw_keys = ("hover_att_rms_deg", "motor_noise_pct", "step_track_rms_deg", "excess_deg", "delay_ms", "rise_ms",
-               "overshoot_pct", "dterm_noise", "crashed")
+    fw_keys = (
+        "hover_att_rms_deg",
+        "motor_noise_pct",
+        "step_track_rms_deg",
+        "excess_deg",
+        "delay_ms",
+        "rise_ms",
+        "overshoot_pct",
+        "dterm_noise",
+        "crashed",
+    )
     ours_keys = ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed")
     veh = get_vehicle(vehicle)
-    md = [f"**Flown by {version}** (lockstep SITL, one firmware loop per gyro sample at {LOOP_RATE_HZ:g} Hz) on the "
-          f"`{vehicle}` airframe ({veh.description}); beside it the project's own cascaded controller on the same "
-          f"airframe and gyro rate. {dur:g} s flights, {n_inst} sensor instance(s) per preset (medians; every cell flies "
-          "the same instances and rotor phases; Monte Carlo backend "
-          f"{backend}, {nw} worker(s)). Firmware cells: gyro_lpf1 = the filter under test (article → PT1, pt2 → PT2, "
-          "pt3 → PT3, biquad → BIQUAD; butter4 has no firmware equivalent), every other gyro filter off (lpf2, dynamic "
-          "LPF, dynamic notch, RPM), D-term filters, PIDs and feed-forward at the firmware's defaults. Two flights per "
-          "cell: a hover (hover error; motor noise = RMS of the motor outputs above 20 Hz, % of full output; D-term "
-          "noise = the firmware's D term above 20 Hz, 1000 = full motor range) and a `steps` flight, rate pulses "
-          "(±115 °/s on roll, pitch, yaw): step tracking, excess (RMS angle to the same "
-          "flight with a perfect gyro and no gyro filter), measured gyro delay, rise and overshoot of the rate steps. "
-          f"Best = the quietest motors among the cells whose excess is at most {EXCESS_BUDGET:g}× the unfiltered cell's.\n"]
-    summary = {"firmware": version, "vehicle": vehicle, "loop_rate_hz": LOOP_RATE_HZ, "duration_s": dur,
-               "instances": n_inst, "presets": {}}
+    md = [
+        f"**Flown by {version}** (lockstep SITL, one firmware loop per gyro sample at {LOOP_RATE_HZ:g} Hz) on the "
+        f"`{vehicle}` airframe ({veh.description}); beside it the project's own cascaded controller on the same "
+        f"airframe and gyro rate. {dur:g} s flights, {n_inst} sensor instance(s) per preset (medians; every cell flies "
+        "the same instances and rotor phases; Monte Carlo backend "
+        f"{backend}, {nw} worker(s)). Firmware cells: gyro_lpf1 = the filter under test (article → PT1, pt2 → PT2, "
+        "pt3 → PT3, biquad → BIQUAD; butter4 has no firmware equivalent), every other gyro filter off (lpf2, dynamic "
+        "LPF, dynamic notch, RPM), D-term filters, PIDs and feed-forward at the firmware's defaults. Two flights per "
+        "cell: a hover (hover error; motor noise = RMS of the motor outputs above 20 Hz, % of full output; D-term "
+        "noise = the firmware's D term above 20 Hz, 1000 = full motor range) and a `steps` flight, rate pulses "
+        "(±115 °/s on roll, pitch, yaw): step tracking, excess (RMS angle to the same "
+        "flight with a perfect gyro and no gyro filter), measured gyro delay, rise and overshoot of the rate steps. "
+        f"Best = the quietest motors among the cells whose excess is at most {EXCESS_BUDGET:g}× the unfiltered cell's.\n"
+    ]
+    summary = {
+        "firmware": version,
+        "vehicle": vehicle,
+        "loop_rate_hz": LOOP_RATE_HZ,
+        "duration_s": dur,
+        "instances": n_inst,
+        "presets": {},
+    }
     figs = []
     for p in presets:
         fw = _medians([r for r in res_fw if r.sensor == p], cells, fw_keys)
@@ -241,34 +306,70 @@ def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | Non
         for kind, fc in cells:
             lab = _label(kind, fc)
             f = fw[lab]
-            row = [lab, f["hover_att_rms_deg"], f["motor_noise_pct"], f["dterm_noise"], f["step_track_rms_deg"],
-                   f["excess_deg"], f["delay_ms"], f["rise_ms"], f["overshoot_pct"]]
+            row = [
+                lab,
+                f["hover_att_rms_deg"],
+                f["motor_noise_pct"],
+                f["dterm_noise"],
+                f["step_track_rms_deg"],
+                f["excess_deg"],
+                f["delay_ms"],
+                f["rise_ms"],
+                f["overshoot_pct"],
+            ]
             if with_ours:
                 o = ours[lab]
                 row += [o["hover_att_rms_deg"], o["motor_noise_n"], o["excess_deg"], o["delay_ms"]]
             rows.append(tuple(row))
-        head = ["filter", "fw hover error, °", "fw motor noise, %", "fw D-term noise", "fw step tracking, °",
-                "fw excess, °", "fw delay, ms", "fw rise, ms", "fw overshoot, %"]
+        head = [
+            "filter",
+            "fw hover error, °",
+            "fw motor noise, %",
+            "fw D-term noise",
+            "fw step tracking, °",
+            "fw excess, °",
+            "fw delay, ms",
+            "fw rise, ms",
+            "fw overshoot, %",
+        ]
         if with_ours:
             head += ["ours hover error, °", "ours motor noise, N", "ours excess, °", "ours delay, ms"]
         md.append(f"### {p} ({version})\n")
         md.append(md_table(head, rows))
-        md.append(f"\nFirmware's best for **{p}**: **{fw_best}** (least attitude cost: {fw_least}); "
-                  f"our controller's: **{ours_best}** (least attitude cost: {ours_least}). "
-                  + (_disagreement(p, fw_best, ours_best, fw, ours, EXCESS_BUDGET) if with_ours else "") + "\n")
-        summary["presets"][p] = {"firmware_best": fw_best, "firmware_least_attitude_cost": fw_least,
-                                 "ours_best": ours_best, "ours_least_attitude_cost": ours_least,
-                                 "agree": fw_best == ours_best, "firmware": fw, "ours": ours}
+        md.append(
+            f"\nFirmware's best for **{p}**: **{fw_best}** (least attitude cost: {fw_least}); "
+            f"our controller's: **{ours_best}** (least attitude cost: {ours_least}). "
+            + (_disagreement(p, fw_best, ours_best, fw, ours, EXCESS_BUDGET) if with_ours else "")
+            + "\n"
+        )
+        summary["presets"][p] = {
+            "firmware_best": fw_best,
+            "firmware_least_attitude_cost": fw_least,
+            "ours_best": ours_best,
+            "ours_least_attitude_cost": ours_least,
+            "agree": fw_best == ours_best,
+            "firmware": fw,
+            "ours": ours,
+        }
         fig = new_figure(figsize=(11, 3.4))
-        plots = (("excess_deg", "excess attitude error, °"), ("motor_noise_pct", "fw motor noise > 20 Hz, %"),
-                 ("delay_ms", "measured gyro delay, ms"))
+        plots = (
+            ("excess_deg", "excess attitude error, °"),
+            ("motor_noise_pct", "fw motor noise > 20 Hz, %"),
+            ("delay_ms", "measured gyro delay, ms"),
+        )
         axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
         for kind in kinds:
             for ax, (key, _) in zip(axs, plots):
                 ax.plot(cutoffs, [fw[_label(kind, c)][key] for c in cutoffs], marker="o", ms=3, label=f"fw {kind}")
                 if with_ours and key in ("excess_deg", "delay_ms"):
-                    ax.plot(cutoffs, [ours[_label(kind, c)][key] for c in cutoffs], ls="--", marker="x", ms=3,
-                            label=f"ours {kind}")
+                    ax.plot(
+                        cutoffs,
+                        [ours[_label(kind, c)][key] for c in cutoffs],
+                        ls="--",
+                        marker="x",
+                        ms=3,
+                        label=f"ours {kind}",
+                    )
         for ax, (key, lab) in zip(axs, plots):
             ax.axhline(fw["none"][key], color="k", ls=":", lw=1, label="fw none")
             ax.set_xscale("log")
@@ -280,8 +381,18 @@ def run(*, out_dir, grid: dict, ours_task, quick: bool = False, seeds: int | Non
         fig.tight_layout()
         figs.append(save_figure(fig, out_dir, f"cutoffs_firmware_{p}"))
         md.append(f"![cutoffs on the firmware {p}]({figs[-1]})\n")
-    line = "; ".join(f"{p}: firmware {v['firmware_best']}, ours {v['ours_best']}" for p, v in summary["presets"].items())
-    md.insert(1, f"**Best filter per preset (quietest motors at ≤ {EXCESS_BUDGET:g}× the raw gyro's attitude cost):** {line}.\n")
-    return ExperimentResult(name="cutoffs_firmware", title=f"Filter cutoffs flown by the firmware ({version})",
-                            markdown="\n".join(md), figures=tuple(figs), summary=summary,
-                            wall_s=time.perf_counter() - t0)
+    line = "; ".join(
+        f"{p}: firmware {v['firmware_best']}, ours {v['ours_best']}" for p, v in summary["presets"].items()
+    )
+    md.insert(
+        1,
+        f"**Best filter per preset (quietest motors at ≤ {EXCESS_BUDGET:g}× the raw gyro's attitude cost):** {line}.\n",
+    )
+    return ExperimentResult(
+        name="cutoffs_firmware",
+        title=f"Filter cutoffs flown by the firmware ({version})",
+        markdown="\n".join(md),
+        figures=tuple(figs),
+        summary=summary,
+        wall_s=time.perf_counter() - t0,
+    )

@@ -53,13 +53,21 @@ def candidates(*, extra_pt1=(60.0, 150.0, 250.0)) -> dict[str, list[str]]:
     """name -> the ``set`` lines a candidate adds to the tune (module docstring)."""
     c: dict[str, list[str]] = {"as_flown": []}
     for fc in extra_pt1:
-        c[f"pt1 {fc:g} Hz"] = ["set gyro_lpf1_type = PT1", f"set gyro_lpf1_static_hz = {fc:.0f}",
-                               "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0"]
+        c[f"pt1 {fc:g} Hz"] = [
+            "set gyro_lpf1_type = PT1",
+            f"set gyro_lpf1_static_hz = {fc:.0f}",
+            "set gyro_lpf1_dyn_min_hz = 0",
+            "set gyro_lpf2_static_hz = 0",
+        ]
     c["no_gyro_lowpass"] = list(_OFF_LPF)
     c["no_dyn_notch"] = ["set dyn_notch_count = 0"]
     c["no_rpm_filter"] = ["set rpm_filter_harmonics = 0"]
-    c["none"] = list(_OFF_LPF) + ["set dyn_notch_count = 0", "set rpm_filter_harmonics = 0",
-                                  "set gyro_notch1_hz = 0", "set gyro_notch2_hz = 0"]
+    c["none"] = list(_OFF_LPF) + [
+        "set dyn_notch_count = 0",
+        "set rpm_filter_harmonics = 0",
+        "set gyro_notch1_hz = 0",
+        "set gyro_notch2_hz = 0",
+    ]
     return c
 
 
@@ -91,25 +99,39 @@ def fw_filter_task(task):
     o = dict(task.options)
     tune, cands = list(o["tune"]), dict(o["candidates"])
     hv, over = o["hover_vibration"], dict(o["overrides"])
-    base = dict(scenario="steps", vehicle=o["vehicle"], duration_s=float(task.duration_s), seed=int(task.seed),
-                sensor=task.sensor, settle_s=SETTLE_S)
+    base = dict(
+        scenario="steps",
+        vehicle=o["vehicle"],
+        duration_s=float(task.duration_s),
+        seed=int(task.seed),
+        sensor=task.sensor,
+        settle_s=SETTLE_S,
+    )
     rows = {}
     for name, lines in cands.items():
-        a, _ = fly(FwFlightOptions(**base, vibration=hv, gyro_overrides=over), list(lines), lenient=tune,
-                   binary=o["binary"])
-        b, _ = fly(FwFlightOptions(**base, vibration=False, gyro_overrides=None), list(lines), lenient=tune,
-                   binary=o["binary"])
+        a, _ = fly(
+            FwFlightOptions(**base, vibration=hv, gyro_overrides=over), list(lines), lenient=tune, binary=o["binary"]
+        )
+        b, _ = fly(
+            FwFlightOptions(**base, vibration=False, gyro_overrides=None), list(lines), lenient=tune, binary=o["binary"]
+        )
         sa, sb = a.scores(SETTLE_S), b.scores(SETTLE_S)
         nan = float("nan")
         if sa["crashed"] or sb["crashed"]:
             rows[name] = {"crashed": 1.0}
             continue
         hov = a.hover_mask(SETTLE_S)
-        rows[name] = {"crashed": 0.0, "att_vibration_deg": _angle_rms_deg(a.q_WB_wxyz, b.q_WB_wxyz, hov),
-                      "track_rms_deg": sb["step_track_rms_deg"], "motor_noise_pct": 100.0 * sa["motor_noise_above_20hz"],
-                      "dterm_noise": sa["dterm_noise_above_20hz"] if sa["dterm_noise_above_20hz"] is not None else nan,
-                      "hover_att_rms_deg": sa["hover_att_rms_deg"], "delay_ms": sa["gyro_delay_ms"],
-                      "rise_ms": sa["step_rise_ms"], "overshoot_pct": sa["step_overshoot_pct"]}
+        rows[name] = {
+            "crashed": 0.0,
+            "att_vibration_deg": _angle_rms_deg(a.q_WB_wxyz, b.q_WB_wxyz, hov),
+            "track_rms_deg": sb["step_track_rms_deg"],
+            "motor_noise_pct": 100.0 * sa["motor_noise_above_20hz"],
+            "dterm_noise": sa["dterm_noise_above_20hz"] if sa["dterm_noise_above_20hz"] is not None else nan,
+            "hover_att_rms_deg": sa["hover_att_rms_deg"],
+            "delay_ms": sa["gyro_delay_ms"],
+            "rise_ms": sa["step_rise_ms"],
+            "overshoot_pct": sa["step_overshoot_pct"],
+        }
     t_none = rows.get("none", {}).get("track_rms_deg", float("nan"))
     d_none = rows.get("none", {}).get("delay_ms", float("nan"))
     w_rms = float(o["flight_rate_rms_rad_s"])
@@ -122,8 +144,9 @@ def fw_filter_task(task):
         r["att_delay_deg"] = math.sqrt(max(r["track_rms_deg"] ** 2 - base_t**2, 0.0))
         extra_s = max(r["delay_ms"] - d_none, 0.0) / 1e3 if np.isfinite(d_none) else 0.0
         r["att_delay_flight_deg"] = math.degrees(extra_s * w_rms)
-        r["attitude_cost_deg"] = math.sqrt(r["att_vibration_deg"] ** 2 + r["att_delay_deg"] ** 2
-                                           + r["att_delay_flight_deg"] ** 2)
+        r["attitude_cost_deg"] = math.sqrt(
+            r["att_vibration_deg"] ** 2 + r["att_delay_deg"] ** 2 + r["att_delay_flight_deg"] ** 2
+        )
         for k, v in r.items():
             metrics[f"{name}|{k}"] = float(v)
     return TaskResult.from_task(task, metrics)
@@ -139,9 +162,21 @@ def _pick(rows: dict) -> tuple[str, float]:
     return min(pool, key=lambda k: (pool[k]["attitude_cost_deg"], pool[k]["motor_noise_pct"])), budget
 
 
-def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: float = 4.0, band="middle",
-        sensor: str = "icm42688p", n_calib: int = 16, calib_s: float = 2.0, workers: int = 1,
-        scheduler: str | None = None, binary=None, cands: dict | None = None) -> dict:
+def run(
+    *,
+    flight: str,
+    vehicle: str = "racing25",
+    seeds=(0, 1),
+    duration_s: float = 4.0,
+    band="middle",
+    sensor: str = "icm42688p",
+    n_calib: int = 16,
+    calib_s: float = 2.0,
+    workers: int = 1,
+    scheduler: str | None = None,
+    binary=None,
+    cands: dict | None = None,
+) -> dict:
     """Fly every candidate with the firmware and recommend one (module docstring). Returns the JSON dict:
     ``recommended`` (name, ``set`` lines changed, scores), ``as_flown``, ``chains`` (mean and SD over the
     seeds), ``picks_per_seed``, ``stable``, ``firmware``, ``tune`` (the lines applied)."""
@@ -160,7 +195,9 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
     get_vehicle(vehicle)
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
     if rec.meta.get("firmware_name", "betaflight") != "betaflight":
-        raise GyroInputError(f"{flight}: a {rec.meta.get('firmware_name')} log; --firmware betaflight flies a Betaflight tune")
+        raise GyroInputError(
+            f"{flight}: a {rec.meta.get('firmware_name')} log; --firmware betaflight flies a Betaflight tune"
+        )
     # the flight's vibration spec, as `gyroharness vibration FLIGHT -o SPEC` (before the firmware's filters)
     res = analyse(rec, undo=True)
     tune = settings_lines_from(flight)
@@ -168,7 +205,9 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
         p = os.path.join(d, "spec.json")
         write_spec(res, p, source=flight)
         spec = read_spec(p)
-    hv, over, info = spec_injection(spec, band=band, vehicle=vehicle, physics=True, seed=0, n_calib=n_calib, calib_s=calib_s)
+    hv, over, info = spec_injection(
+        spec, band=band, vehicle=vehicle, physics=True, seed=0, n_calib=n_calib, calib_s=calib_s
+    )
     cands = cands or candidates()
     # the pilot's flight-band rate (the attitude cost of delay): RMS of the log's gyro below 30 Hz, airborne
     from scipy import signal
@@ -179,11 +218,27 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
     w_rms = float(np.sqrt(np.mean(np.sum(g_lp[air] ** 2, axis=1))))
     fb = binary if isinstance(binary, FirmwareBinary) else ensure_binary()
     label = f"{fb.firmware} {fb.version}"
-    opts = (("tune", tuple(tune)), ("candidates", tuple((k, tuple(v)) for k, v in cands.items())),
-            ("hover_vibration", hv), ("overrides", tuple(over.items())), ("vehicle", vehicle), ("binary", fb),
-            ("flight_rate_rms_rad_s", w_rms))
-    tasks = [MonteCarloTask(index=i, scenario="filter-closed-loop-firmware", sensor=sensor, instance=i, seed=int(s),
-                            duration_s=float(duration_s), options=opts) for i, s in enumerate(seeds)]
+    opts = (
+        ("tune", tuple(tune)),
+        ("candidates", tuple((k, tuple(v)) for k, v in cands.items())),
+        ("hover_vibration", hv),
+        ("overrides", tuple(over.items())),
+        ("vehicle", vehicle),
+        ("binary", fb),
+        ("flight_rate_rms_rad_s", w_rms),
+    )
+    tasks = [
+        MonteCarloTask(
+            index=i,
+            scenario="filter-closed-loop-firmware",
+            sensor=sensor,
+            instance=i,
+            seed=int(s),
+            duration_s=float(duration_s),
+            options=opts,
+        )
+        for i, s in enumerate(seeds)
+    ]
     results, backend, nw = execute(fw_filter_task, tasks, workers=workers, scheduler=scheduler)
     per_seed, picks = [], []
     for r in results:
@@ -198,51 +253,95 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1), duration_s: flo
         best, budget = _pick(rows)
         picks.append(best)
         per_seed.append({"seed": r.seed, "pick": best, "budget_motor_noise_pct": budget, "rows": rows})
-    keys = ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "att_delay_flight_deg", "motor_noise_pct", "dterm_noise", "delay_ms",
-            "rise_ms", "overshoot_pct", "hover_att_rms_deg")
+    keys = (
+        "attitude_cost_deg",
+        "att_vibration_deg",
+        "att_delay_deg",
+        "att_delay_flight_deg",
+        "motor_noise_pct",
+        "dterm_noise",
+        "delay_ms",
+        "rise_ms",
+        "overshoot_pct",
+        "hover_att_rms_deg",
+    )
     chains = {}
     for name in cands:
-        vals = {k: [ps["rows"][name].get(k, np.nan) for ps in per_seed if not ps["rows"][name]["crashed"]] for k in keys}
-        chains[name] = {k: {"mean": float(np.mean(v)) if v else float("nan"),
-                            "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")} for k, v in vals.items()}
+        vals = {
+            k: [ps["rows"][name].get(k, np.nan) for ps in per_seed if not ps["rows"][name]["crashed"]] for k in keys
+        }
+        chains[name] = {
+            k: {
+                "mean": float(np.mean(v)) if v else float("nan"),
+                "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan"),
+            }
+            for k, v in vals.items()
+        }
         chains[name]["lines"] = list(cands[name])
         chains[name]["crashed_seeds"] = sum(ps["rows"][name]["crashed"] for ps in per_seed)
     mode = max(set(picks), key=picks.count)
 
     def public(name):
         c = chains[name]
-        return {"name": name, "set": changed_lines(tune, cands[name]), "attitude_cost": c["attitude_cost_deg"]["mean"],
-                "motor_noise": c["motor_noise_pct"]["mean"], "delay_ms": c["delay_ms"]["mean"],
-                "units": {"attitude_cost": "deg", "motor_noise": "% of full motor output above 20 Hz", "delay_ms": "ms"}}
+        return {
+            "name": name,
+            "set": changed_lines(tune, cands[name]),
+            "attitude_cost": c["attitude_cost_deg"]["mean"],
+            "motor_noise": c["motor_noise_pct"]["mean"],
+            "delay_ms": c["delay_ms"]["mean"],
+            "units": {"attitude_cost": "deg", "motor_noise": "% of full motor output above 20 Hz", "delay_ms": "ms"},
+        }
 
     rec_pub = public(mode)
-    return {"flight": flight, "vehicle": vehicle, "firmware": label, "band": band, "duration_s": duration_s,
-            "flight_rate_rms_rad_s": w_rms,
-            "seeds": [int(s) for s in seeds], "backend": backend, "workers": nw,
-            "recommended": rec_pub, "as_flown": public("as_flown"),
-            "firmware_lines": {"betaflight": rec_pub["set"] or ["# keep the tune as flown"]},
-            "picks_per_seed": picks, "stable": len(set(picks)) == 1, "chains": chains, "tune": tune,
-            "injection": info,
-            "scores": {"att_vibration_deg": "RMS angle between the vibrating and the vibration-free flight over the steady hover",
-                       "att_delay_deg": "sqrt(max(RMS_track^2 - RMS_track(none)^2, 0)) over the rate pulses, no vibration",
-                       "att_delay_flight_deg": "(delay - delay(none)) x the log's flight-band rate RMS",
-                       "attitude_cost": "sqrt(att_vibration^2 + att_delay^2 + att_delay_flight^2), deg",
-                       "motor_noise": "RMS of the motor outputs above 20 Hz in the vibrating hover, % of full output"}}
+    return {
+        "flight": flight,
+        "vehicle": vehicle,
+        "firmware": label,
+        "band": band,
+        "duration_s": duration_s,
+        "flight_rate_rms_rad_s": w_rms,
+        "seeds": [int(s) for s in seeds],
+        "backend": backend,
+        "workers": nw,
+        "recommended": rec_pub,
+        "as_flown": public("as_flown"),
+        "firmware_lines": {"betaflight": rec_pub["set"] or ["# keep the tune as flown"]},
+        "picks_per_seed": picks,
+        "stable": len(set(picks)) == 1,
+        "chains": chains,
+        "tune": tune,
+        "injection": info,
+        "scores": {
+            "att_vibration_deg": "RMS angle between the vibrating and the vibration-free flight over the steady hover",
+            "att_delay_deg": "sqrt(max(RMS_track^2 - RMS_track(none)^2, 0)) over the rate pulses, no vibration",
+            "att_delay_flight_deg": "(delay - delay(none)) x the log's flight-band rate RMS",
+            "attitude_cost": "sqrt(att_vibration^2 + att_delay^2 + att_delay_flight^2), deg",
+            "motor_noise": "RMS of the motor outputs above 20 Hz in the vibrating hover, % of full output",
+        },
+    }
 
 
 def print_table(out: dict) -> None:
-    print(f"Flown by {out['firmware']} on {out['vehicle']} with the log's tune ({len(out['tune'])} lines) and its "
-          f"vibration (band {out['band']}); seeds {out['seeds']}")
-    print("| chain | set lines over the tune | attitude cost, deg | vibration part | step delay part | flight-rate delay "
-          "part | motor noise, % | D-term noise | gyro delay, ms | rise, ms | overshoot, % |")
+    print(
+        f"Flown by {out['firmware']} on {out['vehicle']} with the log's tune ({len(out['tune'])} lines) and its "
+        f"vibration (band {out['band']}); seeds {out['seeds']}"
+    )
+    print(
+        "| chain | set lines over the tune | attitude cost, deg | vibration part | step delay part | flight-rate delay "
+        "part | motor noise, % | D-term noise | gyro delay, ms | rise, ms | overshoot, % |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for k, m in out["chains"].items():
+
         def f(key, fmt):
             v = m[key]
             return (fmt % v["mean"]) + (f" ± {fmt % v['sd']}" if np.isfinite(v["sd"]) else "")
+
         lines = "; ".join(x.replace("set ", "") for x in m["lines"]) or "(as flown)"
-        print(f"| {k} | {lines} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
-              f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_pct', '%.3f')} | {f('dterm_noise', '%.2f')} | "
-              f"{f('delay_ms', '%.2f')} | {f('rise_ms', '%.1f')} | {f('overshoot_pct', '%.1f')} |")
+        print(
+            f"| {k} | {lines} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
+            f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_pct', '%.3f')} | {f('dterm_noise', '%.2f')} | "
+            f"{f('delay_ms', '%.2f')} | {f('rise_ms', '%.1f')} | {f('overshoot_pct', '%.1f')} |"
+        )
     print(f"picks per seed {out['seeds']}: {out['picks_per_seed']} (stable: {out['stable']})")
     print("recommended:", out["recommended"]["name"], "| betaflight:", "; ".join(out["firmware_lines"]["betaflight"]))

@@ -77,8 +77,12 @@ def boot_still_source(opts):
 
     from sim.gyro import SyntheticGyro
 
-    g = SyntheticGyro(opts.sensor, rate_hz=opts.loop_rate_hz, seed=opts.seed,
-                      overrides={k: v for k, v in dict(opts.gyro_overrides or {}).items() if k != "vibration"} or None)
+    g = SyntheticGyro(
+        opts.sensor,
+        rate_hz=opts.loop_rate_hz,
+        seed=opts.seed,
+        overrides={k: v for k, v in dict(opts.gyro_overrides or {}).items() if k != "vibration"} or None,
+    )
     n = int(round(BOOT_MAX_S * opts.loop_rate_hz))
     st = g.stream(n)
     zero, f = np.zeros(3), np.array([0.0, 0.0, 9.80665])
@@ -117,20 +121,31 @@ def fly(opts, settings=(), *, lenient=(), binary=None, step_timeout_s: float | N
     kw = {} if step_timeout_s is None else {"step_timeout_s": step_timeout_s}
     with BetaflightSITL(path, settings=lines, lenient_settings=soft, loop_rate_hz=opts.loop_rate_hz, **kw) as fw:
         rep = fw.boot(boot_still_source(opts), max_boot_s=BOOT_MAX_S)
-        meta = {"firmware": label, "firmware_settings": "; ".join(soft + lines) or "defaults",
-                "firmware_boot_s": f"{rep.sim_s:.6g}"}
+        meta = {
+            "firmware": label,
+            "firmware_settings": "; ".join(soft + lines) or "defaults",
+            "firmware_boot_s": f"{rep.sim_s:.6g}",
+        }
         log = fly_firmware(opts, fw, fw_meta=meta)
         skipped = list(fw.skipped_settings)
-    boot = {"sim_s": rep.sim_s, "calibration_steps": rep.calibration_steps,
-            "fw_gyro_bias_estimate_rad_s": [float(x) for x in rep.gyro_bias_S_rad_s]}
+    boot = {
+        "sim_s": rep.sim_s,
+        "calibration_steps": rep.calibration_steps,
+        "fw_gyro_bias_estimate_rad_s": [float(x) for x in rep.gyro_bias_S_rad_s],
+    }
     if opts.sensor is not None:
         from sim.gyro import SyntheticGyro
 
         b0 = SyntheticGyro(opts.sensor, rate_hz=opts.loop_rate_hz, seed=opts.seed).power_up_bias(0)
         boot["true_turn_on_bias_rad_s"] = [float(x) for x in b0]
         boot["bias_estimate_error_rad_s"] = [float(a - b) for a, b in zip(rep.gyro_bias_S_rad_s, b0)]
-    info = {"firmware": label, "settings": soft + lines, "skipped_settings": skipped, "boot": boot,
-            "sim_s_per_wall_s": float(opts.duration_s / log.wall_s) if log.wall_s > 0 else math.nan}
+    info = {
+        "firmware": label,
+        "settings": soft + lines,
+        "skipped_settings": skipped,
+        "boot": boot,
+        "sim_s_per_wall_s": float(opts.duration_s / log.wall_s) if log.wall_s > 0 else math.nan,
+    }
     return log, info
 
 
@@ -144,9 +159,22 @@ def _record_of(path):
     return fb if fb is not None and Path(fb.binary).resolve() == Path(str(path)).resolve() else None
 
 
-def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", settings=(), settings_from=None,
-        vibration_spec=None, band="middle", sensor: str = "icm42688p", seed: int = 0, duration_s: float = 3.0,
-        loop_rate_hz: float = 8000.0, n_calib: int = 16, binary=None) -> dict:
+def run(
+    *,
+    scenario: str,
+    out: str | os.PathLike,
+    vehicle: str = "racing25",
+    settings=(),
+    settings_from=None,
+    vibration_spec=None,
+    band="middle",
+    sensor: str = "icm42688p",
+    seed: int = 0,
+    duration_s: float = 3.0,
+    loop_rate_hz: float = 8000.0,
+    n_calib: int = 16,
+    binary=None,
+) -> dict:
     """The ``fly`` command: fly, write ``out`` (data file), return the JSON dict."""
     from gyrocore.data.recording import write_csv
     from sim.fw_flight import FwFlightOptions, to_recording
@@ -159,23 +187,43 @@ def run(*, scenario: str, out: str | os.PathLike, vehicle: str = "racing25", set
         from gyrocore.flight.vibration import read_spec
         from sim.spec_vibration import spec_injection
 
-        hv, over, vib_info = spec_injection(read_spec(vibration_spec), band=band, vehicle=vehicle, physics=True,
-                                            seed=int(seed), n_calib=n_calib)
+        hv, over, vib_info = spec_injection(
+            read_spec(vibration_spec), band=band, vehicle=vehicle, physics=True, seed=int(seed), n_calib=n_calib
+        )
         hover_vib = hv if hv is not None else True
-    opts = FwFlightOptions(scenario=scenario, vehicle=vehicle, duration_s=float(duration_s), seed=int(seed),
-                           sensor=sensor, loop_rate_hz=float(loop_rate_hz), vibration=hover_vib, gyro_overrides=over)
+    opts = FwFlightOptions(
+        scenario=scenario,
+        vehicle=vehicle,
+        duration_s=float(duration_s),
+        seed=int(seed),
+        sensor=sensor,
+        loop_rate_hz=float(loop_rate_hz),
+        vibration=hover_vib,
+        gyro_overrides=over,
+    )
     log, info = fly(opts, settings, lenient=soft, binary=binary)
     rec = to_recording(log)
     if vib_info is not None:
         rec.meta["vibration_spec"] = f"{vib_info.get('spec', '')} band {band}"
     write_csv(rec, out)
     scores = log.scores(opts.settle_s)
-    return {"out": str(out), "scenario": scenario, "vehicle": vehicle, "sensor": sensor, "seed": int(seed),
-            "duration_s": float(duration_s), "loop_rate_hz": float(loop_rate_hz), **info, **scores,
-            "units": {"motor_noise_above_20hz": "fraction of full motor output (RMS above 20 Hz, hover)",
-                      "hover_att_rms_deg": "deg, true vs commanded attitude over the steady hover",
-                      "step_rise_ms": "ms, 10-90 % of the rate steps (roll/pitch median)",
-                      "dterm_noise_above_20hz": "the bridge's D-term unit, RMS above 20 Hz in hover"}}
+    return {
+        "out": str(out),
+        "scenario": scenario,
+        "vehicle": vehicle,
+        "sensor": sensor,
+        "seed": int(seed),
+        "duration_s": float(duration_s),
+        "loop_rate_hz": float(loop_rate_hz),
+        **info,
+        **scores,
+        "units": {
+            "motor_noise_above_20hz": "fraction of full motor output (RMS above 20 Hz, hover)",
+            "hover_att_rms_deg": "deg, true vs commanded attitude over the steady hover",
+            "step_rise_ms": "ms, 10-90 % of the rate steps (roll/pitch median)",
+            "dterm_noise_above_20hz": "the bridge's D-term unit, RMS above 20 Hz in hover",
+        },
+    }
 
 
 def settings_lines_from(settings_from) -> list[str]:

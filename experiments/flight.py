@@ -89,8 +89,14 @@ FIRMWARE_SIZES: dict[str, dict[str, Any]] = {
 }
 
 
-def firmware_part(out_dir: Path, *, size: str = "standard", workers: int | None = None,
-                  find_binary: Callable | None = None, firmware_run: Callable | None = None) -> tuple[str, tuple, dict]:
+def firmware_part(
+    out_dir: Path,
+    *,
+    size: str = "standard",
+    workers: int | None = None,
+    find_binary: Callable | None = None,
+    firmware_run: Callable | None = None,
+) -> tuple[str, tuple, dict]:
     """The firmware-in-the-loop cutoff comparison, or the line saying how to get it.
 
     Looks for the built Betaflight SITL binary with ``sim.firmware.build.find_binary()`` (which
@@ -108,19 +114,32 @@ def firmware_part(out_dir: Path, *, size: str = "standard", workers: int | None 
     find = find_binary or _optional("sim.firmware.build", "find_binary") or _optional("sim.firmware", "find_binary")
     fb = find() if find is not None else None
     if fb is None:
-        why = ("the Betaflight SITL binary is not built" if find is not None
-               else "this tree has no firmware bridge (sim.firmware)")
-        return (f"Firmware-in-the-loop cutoff comparison: not run — {why}; build it with `{BUILD_HINT}` "
-                "and run again to add it here.", (), {"built": False})
+        why = (
+            "the Betaflight SITL binary is not built"
+            if find is not None
+            else "this tree has no firmware bridge (sim.firmware)"
+        )
+        return (
+            f"Firmware-in-the-loop cutoff comparison: not run — {why}; build it with `{BUILD_HINT}` "
+            "and run again to add it here.",
+            (),
+            {"built": False},
+        )
     fw_run = firmware_run or (_firmware_cutoffs if _optional("experiments.firmware_cutoffs", "run") else None)
     binary = getattr(fb, "binary", fb)
     version = getattr(fb, "version", "")
     if fw_run is None:
-        return (f"Firmware-in-the-loop cutoff comparison: the SITL binary is built ({binary}) but this tree has no "
-                "firmware cutoff experiment (experiments.firmware_cutoffs).", (), {"built": True, "binary": str(binary)})
+        return (
+            f"Firmware-in-the-loop cutoff comparison: the SITL binary is built ({binary}) but this tree has no "
+            "firmware cutoff experiment (experiments.firmware_cutoffs).",
+            (),
+            {"built": True, "binary": str(binary)},
+        )
     r = fw_run(out_dir=out_dir, workers=workers, binary=binary, **FIRMWARE_SIZES.get(size, {}))
-    md = (f"### Firmware in the loop: {r.title}\n\nBetaflight {version} SITL in lockstep (`{binary}`), "
-          f"`gyroharness experiment cutoffs --firmware betaflight` at this report's size.\n\n{r.markdown.strip()}")
+    md = (
+        f"### Firmware in the loop: {r.title}\n\nBetaflight {version} SITL in lockstep (`{binary}`), "
+        f"`gyroharness experiment cutoffs --firmware betaflight` at this report's size.\n\n{r.markdown.strip()}"
+    )
     return md, tuple(r.figures), {"built": True, "binary": str(binary), "version": version, "cutoffs": r.summary}
 
 
@@ -145,8 +164,12 @@ def _band_figure(res, out_dir: Path) -> str:
         ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt="o-", color=col, capsize=3, lw=1, ms=4, label=f"gyro {a}")
     ax.set_xlabel("throttle band (median mean motor command, 0-1)")
     ax.set_ylabel("RMS above 40 Hz, deg/s (95 % interval)")
-    ax.set_title("vibration per throttle band (unfiltered gyro)" if res.signal == "raw"
-                 else f"vibration per throttle band ({res.signal} signal, static filters undone)", fontsize=9)
+    ax.set_title(
+        "vibration per throttle band (unfiltered gyro)"
+        if res.signal == "raw"
+        else f"vibration per throttle band ({res.signal} signal, static filters undone)",
+        fontsize=9,
+    )
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     return save_figure(fig, out_dir, "flight_vibration_bands")
@@ -158,8 +181,22 @@ def _flown_settings(meta: dict) -> list[str]:
         h = json.loads(meta.get("header_filters", "{}"))
     except ValueError:
         return []
-    keys = [k for k in h if k.startswith(("gyro_lowpass", "gyro_notch", "dyn_notch", "gyro_rpm", "dshot_bidir",
-                                           "rpm_filter", "dyn_lpf_gyro", "gyro_lpf"))]
+    keys = [
+        k
+        for k in h
+        if k.startswith(
+            (
+                "gyro_lowpass",
+                "gyro_notch",
+                "dyn_notch",
+                "gyro_rpm",
+                "dshot_bidir",
+                "rpm_filter",
+                "dyn_lpf_gyro",
+                "gyro_lpf",
+            )
+        )
+    ]
     return [f"{k} = {','.join(str(x) for x in h[k]) if isinstance(h[k], list) else h[k]}" for k in keys]
 
 
@@ -170,9 +207,18 @@ def _chain_row(label: str, row: dict | None) -> tuple:
     return (label, row["name"], notches, row["delay_ms"], row["motor_noise"], row["attitude_cost"])
 
 
-def run(*, out_dir, quick: bool = False, size: str | None = None, workers: int | None = None,
-        data_dir: str | None = None, progress: Callable[[int, int], None] | None = None,
-        find_binary: Callable | None = None, firmware_run: Callable | None = None, **_ignored) -> ExperimentResult:
+def run(
+    *,
+    out_dir,
+    quick: bool = False,
+    size: str | None = None,
+    workers: int | None = None,
+    data_dir: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    find_binary: Callable | None = None,
+    firmware_run: Callable | None = None,
+    **_ignored,
+) -> ExperimentResult:
     """The flight section (module docstring) into ``out_dir``."""
     from experiments.article import shared_data_dir
     from gyrocore.flight.preview import recommend_filter
@@ -195,24 +241,30 @@ def run(*, out_dir, quick: bool = False, size: str | None = None, workers: int |
     figures: list[str] = []
     summary: dict[str, Any] = {}
     if found is None:
-        md.append(f"No flight log found under {ddir} (looked for {', '.join(FLIGHT_LOGS)}): "
-                  "`gyroharness vibration YOUR_LOG.BBL` and `gyroharness filter YOUR_LOG.BBL` run the same analysis "
-                  "on your own log.")
+        md.append(
+            f"No flight log found under {ddir} (looked for {', '.join(FLIGHT_LOGS)}): "
+            "`gyroharness vibration YOUR_LOG.BBL` and `gyroharness filter YOUR_LOG.BBL` run the same analysis "
+            "on your own log."
+        )
     else:
         path, rec, res = found
         rel = f"{path.parent.name}/{path.name}"
         meta = rec.meta
         fig_rel = "figures/flight_vibration.png"
         (out_dir / "figures").mkdir(parents=True, exist_ok=True)
-        plot_vibration(res, out_dir / fig_rel, title=f"{rel}: {meta.get('firmware', '')}, gyro spectrum per throttle band")
+        plot_vibration(
+            res, out_dir / fig_rel, title=f"{rel}: {meta.get('firmware', '')}, gyro spectrum per throttle band"
+        )
         figures += [fig_rel, _band_figure(res, out_dir)]
         tick(2)
         fj = recommend_filter(rec)
         tick(3)
         airborne_s = res.n_windows * res.nperseg / res.rate_hz
-        sig = ("the unfiltered gyro (" + json.loads(meta["gyro_prefilter"])["source"].split(";")[0] + ")"
-               if res.signal == "raw" and "gyro_prefilter" in meta
-               else f"the {res.signal} gyro with the static firmware filters undone")
+        sig = (
+            "the unfiltered gyro (" + json.loads(meta["gyro_prefilter"])["source"].split(";")[0] + ")"
+            if res.signal == "raw" and "gyro_prefilter" in meta
+            else f"the {res.signal} gyro with the static firmware filters undone"
+        )
         md.append(
             f"`{rel}` ({meta.get('firmware', '?')}, craft {meta.get('craft_name', '?')}; "
             f"{rec.n} samples at {res.rate_hz:.0f} Hz, {rec.t_s[-1] - rec.t_s[0]:.1f} s): read with the project's "
@@ -221,60 +273,105 @@ def run(*, out_dir, quick: bool = False, size: str | None = None, workers: int |
             "equal window count by the mean motor command. Each band's RMS above 40 Hz carries a 95 % interval from "
             "the spread of its windows (`gyrocore.flight.vibration.analyse`); spectra above "
             f"{res.reliable_below_hz:.0f} Hz are folded from above the logged Nyquist and not used. Commands: "
-            f"`gyroharness vibration {path} --plot v.png`, `gyroharness filter {path} --json`.\n")
+            f"`gyroharness vibration {path} --plot v.png`, `gyroharness filter {path} --json`.\n"
+        )
         rows = []
         for b in res.bands:
             r = b["rms_above_40hz_rad_s"]
             iv = b["rms_above_40hz_interval_rad_s"]
-            rows.append((f"{b['throttle'][0]:.3f}–{b['throttle'][1]:.3f}", b["n_windows"],
-                         *(f"{r[a] * DEG:.2f} [{iv[a][0] * DEG:.2f}, {iv[a][1] * DEG:.2f}]" for a in "xyz")))
+            rows.append(
+                (
+                    f"{b['throttle'][0]:.3f}–{b['throttle'][1]:.3f}",
+                    b["n_windows"],
+                    *(f"{r[a] * DEG:.2f} [{iv[a][0] * DEG:.2f}, {iv[a][1] * DEG:.2f}]" for a in "xyz"),
+                )
+            )
         whole = res.rms_above_40hz_rad_s
         wiv = res.rms_above_40hz_interval_rad_s
-        rows.append(("whole flight", res.n_windows,
-                     *(f"{whole[a] * DEG:.2f} [{wiv[a][0] * DEG:.2f}, {wiv[a][1] * DEG:.2f}]" for a in "xyz")))
+        rows.append(
+            (
+                "whole flight",
+                res.n_windows,
+                *(f"{whole[a] * DEG:.2f} [{wiv[a][0] * DEG:.2f}, {wiv[a][1] * DEG:.2f}]" for a in "xyz"),
+            )
+        )
         md.append("#### Vibration per throttle band\n")
         md.append(md_table(["motor command band", "windows", "x, °/s RMS > 40 Hz [95 %]", "y", "z"], rows))
         if res.lines:
-            lrows = [(ln["axis"], ln["frequency_hz"], ln["amplitude_rad_s"] * DEG, ln["follows"],
-                      "yes" if ln.get("aliased") else "no") for ln in res.lines[:8]]
-            md.append("Lines (largest first): axis, frequency at the median throttle, amplitude, and what it follows "
-                      "(a throttle-linked line is a rotor line).\n")
+            lrows = [
+                (
+                    ln["axis"],
+                    ln["frequency_hz"],
+                    ln["amplitude_rad_s"] * DEG,
+                    ln["follows"],
+                    "yes" if ln.get("aliased") else "no",
+                )
+                for ln in res.lines[:8]
+            ]
+            md.append(
+                "Lines (largest first): axis, frequency at the median throttle, amplitude, and what it follows "
+                "(a throttle-linked line is a rotor line).\n"
+            )
             md.append(md_table(["axis", "Hz", "amplitude °/s", "follows", "aliased"], lrows))
         md.append(f"![vibration per throttle band]({figures[1]})\n\n![spectra per throttle band]({figures[0]})\n")
         md.append("#### Gyro filter: recommendation beside what was flown\n")
-        md.append("Each candidate chain is built as the firmware runs it (coefficients at the "
-                  f"{fj['filter_rate_hz']:g} Hz filter rate) and applied to this flight's spectrum before the filters: "
-                  "*delay* = mean group delay 1–30 Hz, *motor noise* = RMS of the filtered gyro's derivative above 40 Hz "
-                  "(what the D term passes to the motors, rad/s²), *attitude cost* = the delay times the flight-band rate "
-                  "combined with the vibration jitter (degrees). Recommended: the least attitude cost whose motor noise "
-                  f"stays within the budget ({fj['budget']['from']}: {fj['budget']['motor_noise']:.0f} rad/s²). "
-                  "An open-loop spectral model on one flight: deterministic given the log (no sampling interval); "
-                  "the spectrum itself carries the per-band intervals above.\n")
+        md.append(
+            "Each candidate chain is built as the firmware runs it (coefficients at the "
+            f"{fj['filter_rate_hz']:g} Hz filter rate) and applied to this flight's spectrum before the filters: "
+            "*delay* = mean group delay 1–30 Hz, *motor noise* = RMS of the filtered gyro's derivative above 40 Hz "
+            "(what the D term passes to the motors, rad/s²), *attitude cost* = the delay times the flight-band rate "
+            "combined with the vibration jitter (degrees). Recommended: the least attitude cost whose motor noise "
+            f"stays within the budget ({fj['budget']['from']}: {fj['budget']['motor_noise']:.0f} rad/s²). "
+            "An open-loop spectral model on one flight: deterministic given the log (no sampling interval); "
+            "the spectrum itself carries the per-band intervals above.\n"
+        )
         crow = [_chain_row("recommended", fj["recommended"]), _chain_row("as flown (static part)", fj["as_flown"])]
         crow += [_chain_row(k.replace("_", " "), v) for k, v in fj["defaults"].items()]
         if fj.get("with_rpm_filter"):
             crow.append(_chain_row("best with RPM filter", fj["with_rpm_filter"]))
-        md.append(md_table(["chain", "filters", "notches Hz", "delay ms", "motor noise rad/s²", "attitude cost °"], crow))
+        md.append(
+            md_table(["chain", "filters", "notches Hz", "delay ms", "motor noise rad/s²", "attitude cost °"], crow)
+        )
         flown = _flown_settings(meta)
         md.append("Betaflight settings — flown (log header) | recommended (`set` lines for the CLI):\n")
-        md.append("```\n# flown\n" + "\n".join(flown or ["(header has no gyro filter settings)"]) + "\n\n# recommended\n"
-                  + "\n".join(fj["firmware"]["betaflight"]) + "\n```\n")
-        md.append(f"PX4: `{json.dumps(fj['firmware']['px4'])}`; ArduPilot: `{json.dumps(fj['firmware']['ardupilot'])}`.\n")
+        md.append(
+            "```\n# flown\n"
+            + "\n".join(flown or ["(header has no gyro filter settings)"])
+            + "\n\n# recommended\n"
+            + "\n".join(fj["firmware"]["betaflight"])
+            + "\n```\n"
+        )
+        md.append(
+            f"PX4: `{json.dumps(fj['firmware']['px4'])}`; ArduPilot: `{json.dumps(fj['firmware']['ardupilot'])}`.\n"
+        )
         notes = [n for n in fj["notes"] if not n.startswith("open-loop spectral")]
         if notes:
             md.append("Notes: " + " ".join(f"({i + 1}) {n}." for i, n in enumerate(notes)) + "\n")
-        summary = {"log": rel, "signal": res.signal, "firmware": meta.get("firmware"), "bands": len(res.bands),
-                   "windows": res.n_windows,
-                   "rms_above_40hz_deg_s": {a: whole[a] * DEG for a in "xyz"},
-                   "band_rms_above_40hz_deg_s": [{a: b["rms_above_40hz_rad_s"][a] * DEG for a in "xyz"} for b in res.bands],
-                   "recommended": fj["recommended"]["name"],
-                   "as_flown": fj["as_flown"]["name"] if fj["as_flown"] else None,
-                   "betaflight_set": fj["firmware"]["betaflight"], "flown_settings": flown}
-    fw_md, fw_figs, fw_sum = firmware_part(out_dir, size=size, workers=workers, find_binary=find_binary,
-                                           firmware_run=firmware_run)
+        summary = {
+            "log": rel,
+            "signal": res.signal,
+            "firmware": meta.get("firmware"),
+            "bands": len(res.bands),
+            "windows": res.n_windows,
+            "rms_above_40hz_deg_s": {a: whole[a] * DEG for a in "xyz"},
+            "band_rms_above_40hz_deg_s": [{a: b["rms_above_40hz_rad_s"][a] * DEG for a in "xyz"} for b in res.bands],
+            "recommended": fj["recommended"]["name"],
+            "as_flown": fj["as_flown"]["name"] if fj["as_flown"] else None,
+            "betaflight_set": fj["firmware"]["betaflight"],
+            "flown_settings": flown,
+        }
+    fw_md, fw_figs, fw_sum = firmware_part(
+        out_dir, size=size, workers=workers, find_binary=find_binary, firmware_run=firmware_run
+    )
     md.append(fw_md)
     figures += list(fw_figs)
     summary["firmware_in_the_loop"] = fw_sum
     tick(4)
-    return ExperimentResult(name="flight", title="A real flight: vibration and gyro filter", markdown="\n".join(md),
-                            figures=tuple(figures), summary=summary, wall_s=time.perf_counter() - t0)
+    return ExperimentResult(
+        name="flight",
+        title="A real flight: vibration and gyro filter",
+        markdown="\n".join(md),
+        figures=tuple(figures),
+        summary=summary,
+        wall_s=time.perf_counter() - t0,
+    )

@@ -56,8 +56,18 @@ def _rerated(stages, rate_hz):
     return out
 
 
-def fly(stages, *, duration_s: float, seed: int, vehicle: str = "racing25", preset: str = "icm42688p",
-        vibration=True, shaped: dict | None = None, rpm: bool = False, manoeuvres: bool = True):
+def fly(
+    stages,
+    *,
+    duration_s: float,
+    seed: int,
+    vehicle: str = "racing25",
+    preset: str = "icm42688p",
+    vibration=True,
+    shaped: dict | None = None,
+    rpm: bool = False,
+    manoeuvres: bool = True,
+):
     """One closed-loop flight of a chain; returns (FlightLog, chain stage names).
 
     ``vibration``: the rotor physics (True = the class's default, False = none, or a
@@ -77,9 +87,16 @@ def fly(stages, *, duration_s: float, seed: int, vehicle: str = "racing25", pres
     if rpm:
         flts = [RpmNotch(GYRO_RATE_HZ), *flts]
     pipe = Pipeline([AffineCorrection(g.power_up_bias(0)), *flts])
-    _, log = fly_hover(duration_s=duration_s, gyro=g.stream(n), pipeline=pipe,
-                       manoeuvres=small_steps(duration_s) if manoeuvres else (), vibration=vibration, seed=seed,
-                       gyro_rate_hz=GYRO_RATE_HZ, vehicle=vehicle)
+    _, log = fly_hover(
+        duration_s=duration_s,
+        gyro=g.stream(n),
+        pipeline=pipe,
+        manoeuvres=small_steps(duration_s) if manoeuvres else (),
+        vibration=vibration,
+        seed=seed,
+        gyro_rate_hz=GYRO_RATE_HZ,
+        vehicle=vehicle,
+    )
     return log, [f.name for f in flts]
 
 
@@ -88,23 +105,69 @@ def _angle_between_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
     return np.degrees(2.0 * np.arccos(np.clip(d, 0.0, 1.0)))
 
 
-def score_chain(stages, *, hover_vib, shaped, seed: int, duration_s: float, vehicle: str, rpm: bool = False,
-                track_none_deg: float | None = None, delay_none_ms: float | None = None,
-                flight_rate_rms_rad_s: float = 0.0) -> dict:
+def score_chain(
+    stages,
+    *,
+    hover_vib,
+    shaped,
+    seed: int,
+    duration_s: float,
+    vehicle: str,
+    rpm: bool = False,
+    track_none_deg: float | None = None,
+    delay_none_ms: float | None = None,
+    flight_rate_rms_rad_s: float = 0.0,
+) -> dict:
     """The paired flights of one chain (module docstring) -> scores."""
     keep_s = SETTLE_S
-    log_v, chain = fly(stages, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=hover_vib or True,
-                       shaped=shaped, rpm=rpm, manoeuvres=False)
-    log_r, _ = fly(stages, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=False, shaped=None, rpm=rpm,
-                   manoeuvres=False)
-    log_m, _ = fly(stages, duration_s=duration_s, seed=seed, vehicle=vehicle, vibration=False, shaped=None, rpm=rpm,
-                   manoeuvres=True)
+    log_v, chain = fly(
+        stages,
+        duration_s=duration_s,
+        seed=seed,
+        vehicle=vehicle,
+        vibration=hover_vib or True,
+        shaped=shaped,
+        rpm=rpm,
+        manoeuvres=False,
+    )
+    log_r, _ = fly(
+        stages,
+        duration_s=duration_s,
+        seed=seed,
+        vehicle=vehicle,
+        vibration=False,
+        shaped=None,
+        rpm=rpm,
+        manoeuvres=False,
+    )
+    log_m, _ = fly(
+        stages,
+        duration_s=duration_s,
+        seed=seed,
+        vehicle=vehicle,
+        vibration=False,
+        shaped=None,
+        rpm=rpm,
+        manoeuvres=True,
+    )
     k = log_v.t_s >= keep_s
-    ok = all(np.all(np.isfinite(lg.q_WB_wxyz)) and float(np.max(lg.tilt_rad())) < math.radians(60) for lg in (log_v, log_r, log_m))
+    ok = all(
+        np.all(np.isfinite(lg.q_WB_wxyz)) and float(np.max(lg.tilt_rad())) < math.radians(60)
+        for lg in (log_v, log_r, log_m)
+    )
     nan = float("nan")
     if not ok:
-        return {"crashed": True, "chain": chain, "att_vibration_deg": nan, "att_delay_deg": nan, "att_delay_flight_deg": nan,
-                "attitude_cost_deg": nan, "motor_noise_n": nan, "delay_ms": nan, "track_rms_deg": nan}
+        return {
+            "crashed": True,
+            "chain": chain,
+            "att_vibration_deg": nan,
+            "att_delay_deg": nan,
+            "att_delay_flight_deg": nan,
+            "attitude_cost_deg": nan,
+            "motor_noise_n": nan,
+            "delay_ms": nan,
+            "track_rms_deg": nan,
+        }
     att_vib = float(np.sqrt(np.mean(_angle_between_deg(log_v.q_WB_wxyz[k], log_r.q_WB_wxyz[k]) ** 2)))
     track = float(np.degrees(np.sqrt(np.mean(log_m.attitude_error_rad()[k] ** 2))))
     base = track if track_none_deg is None else track_none_deg
@@ -112,9 +175,17 @@ def score_chain(stages, *, hover_vib, shaped, seed: int, duration_s: float, vehi
     delay_ms = 1e3 * log_m.gyro_delay_s()
     extra_s = max(delay_ms - (delay_ms if delay_none_ms is None else delay_none_ms), 0.0) / 1e3
     att_flight = math.degrees(extra_s * float(flight_rate_rms_rad_s))
-    return {"crashed": False, "chain": chain, "att_vibration_deg": att_vib, "att_delay_deg": att_delay,
-            "att_delay_flight_deg": att_flight, "attitude_cost_deg": math.sqrt(att_vib**2 + att_delay**2 + att_flight**2),
-            "motor_noise_n": log_v.motor_noise_n(t_from_s=keep_s), "delay_ms": delay_ms, "track_rms_deg": track}
+    return {
+        "crashed": False,
+        "chain": chain,
+        "att_vibration_deg": att_vib,
+        "att_delay_deg": att_delay,
+        "att_delay_flight_deg": att_flight,
+        "attitude_cost_deg": math.sqrt(att_vib**2 + att_delay**2 + att_flight**2),
+        "motor_noise_n": log_v.motor_noise_n(t_from_s=keep_s),
+        "delay_ms": delay_ms,
+        "track_rms_deg": track,
+    }
 
 
 def _candidates(fj: dict, *, physics: bool, extra_pt1=(60.0, 150.0, 250.0)) -> dict:
@@ -149,8 +220,18 @@ def _pick(rows: dict) -> tuple[str, float]:
     return best, budget
 
 
-def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: float = 8.0, band="middle",
-        physics: bool = True, n_calib: int = 16, calib_s: float = 2.0, candidates: dict | None = None) -> dict:
+def run(
+    *,
+    flight: str,
+    vehicle: str = "racing25",
+    seeds=(0, 1, 2),
+    duration_s: float = 8.0,
+    band="middle",
+    physics: bool = True,
+    n_calib: int = 16,
+    calib_s: float = 2.0,
+    candidates: dict | None = None,
+) -> dict:
     """The closed-loop recommendation for a flight log (module docstring). Returns the JSON dict
     (DESIGN.md keys ``recommended``, ``as_flown``, ``firmware``, ``defaults``; plus per-seed picks,
     ``stable`` and every chain's scores per seed)."""
@@ -170,8 +251,9 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
         p = os.path.join(d, "spec.json")
         write_spec(fj["_res"], p, source=flight)
         spec = read_spec(p)
-    hv, shaped, info = spec_injection(spec, band=band, vehicle=vehicle, physics=physics, seed=0, n_calib=n_calib,
-                                      calib_s=calib_s)
+    hv, shaped, info = spec_injection(
+        spec, band=band, vehicle=vehicle, physics=physics, seed=0, n_calib=n_calib, calib_s=calib_s
+    )
     cands = candidates or _candidates(fj, physics=physics)
     per_seed, picks = [], []
     for s in seeds:
@@ -181,75 +263,134 @@ def run(*, flight: str, vehicle: str = "racing25", seeds=(0, 1, 2), duration_s: 
         for name, (st, rpm) in cands.items():
             if name == "none":
                 continue
-            rows[name] = score_chain(st, hover_vib=hv, shaped=shaped, seed=int(s), duration_s=duration_s, vehicle=vehicle,
-                                     rpm=rpm, track_none_deg=none["track_rms_deg"], delay_none_ms=none["delay_ms"],
-                                     flight_rate_rms_rad_s=w_rms)
+            rows[name] = score_chain(
+                st,
+                hover_vib=hv,
+                shaped=shaped,
+                seed=int(s),
+                duration_s=duration_s,
+                vehicle=vehicle,
+                rpm=rpm,
+                track_none_deg=none["track_rms_deg"],
+                delay_none_ms=none["delay_ms"],
+                flight_rate_rms_rad_s=w_rms,
+            )
         best, budget = _pick(rows)
         picks.append(best)
         per_seed.append({"seed": int(s), "pick": best, "budget_motor_noise_n": budget, "rows": rows})
     names = list(per_seed[0]["rows"])
     summary = {}
     for name in names:
-        vals = {k: [ps["rows"][name][k] for ps in per_seed] for k in
-                ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "att_delay_flight_deg", "motor_noise_n", "delay_ms")}
-        summary[name] = {k: {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")}
-                         for k, v in vals.items()}
+        vals = {
+            k: [ps["rows"][name][k] for ps in per_seed]
+            for k in (
+                "attitude_cost_deg",
+                "att_vibration_deg",
+                "att_delay_deg",
+                "att_delay_flight_deg",
+                "motor_noise_n",
+                "delay_ms",
+            )
+        }
+        summary[name] = {
+            k: {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")}
+            for k, v in vals.items()
+        }
         summary[name]["chain"] = per_seed[0]["rows"][name]["chain"]
     mode = max(set(picks), key=picks.count)
-    version = tuple(int(x) for x in rec.meta["firmware_version"].split(".")) \
-        if rec.meta.get("firmware_name", "betaflight") == "betaflight" and "firmware_version" in rec.meta else None
-    by_open = {"as_flown": fj.get("as_flown"), "recommended": fj.get("recommended"), "article": fj.get("article"),
-               "px4_ardupilot_lowpass": fj.get("px4_ardupilot_lowpass"), "with_rpm_filter": fj.get("with_rpm_filter"),
-               **(fj.get("defaults") or {})}
+    version = (
+        tuple(int(x) for x in rec.meta["firmware_version"].split("."))
+        if rec.meta.get("firmware_name", "betaflight") == "betaflight" and "firmware_version" in rec.meta
+        else None
+    )
+    by_open = {
+        "as_flown": fj.get("as_flown"),
+        "recommended": fj.get("recommended"),
+        "article": fj.get("article"),
+        "px4_ardupilot_lowpass": fj.get("px4_ardupilot_lowpass"),
+        "with_rpm_filter": fj.get("with_rpm_filter"),
+        **(fj.get("defaults") or {}),
+    }
 
     def public(name):
         st, rpm = cands.get(name, ([], False))
         lp = [x for x in st if x["kind"] in ("pt1", "pt2", "pt3", "biquad", "butter2", "article")]
         m = summary[name]
-        return {"filter": lp[0]["kind"] if lp else "none", "cutoff_hz": float(lp[0]["cutoff_hz"]) if lp else None,
-                "notches_hz": [float(x["cutoff_hz"]) for x in st if x["kind"] == "notch"],
-                "attitude_cost": m["attitude_cost_deg"]["mean"], "delay_ms": m["delay_ms"]["mean"],
-                "motor_noise": m["motor_noise_n"]["mean"], "rpm_filter": bool(rpm), "name": name,
-                "chain_flown": m["chain"], "units": {"attitude_cost": "deg", "delay_ms": "ms", "motor_noise": "N"}}
+        return {
+            "filter": lp[0]["kind"] if lp else "none",
+            "cutoff_hz": float(lp[0]["cutoff_hz"]) if lp else None,
+            "notches_hz": [float(x["cutoff_hz"]) for x in st if x["kind"] == "notch"],
+            "attitude_cost": m["attitude_cost_deg"]["mean"],
+            "delay_ms": m["delay_ms"]["mean"],
+            "motor_noise": m["motor_noise_n"]["mean"],
+            "rpm_filter": bool(rpm),
+            "name": name,
+            "chain_flown": m["chain"],
+            "units": {"attitude_cost": "deg", "delay_ms": "ms", "motor_noise": "N"},
+        }
 
     rec_pub = public(mode)
     st = cands[mode][0]
     bf = []
     if rec.meta.get("firmware_name", "betaflight") == "betaflight":
         if rec_pub["filter"] in ("pt1", "pt2", "pt3", "biquad"):
-            bf = P.betaflight_cli({"filter": rec_pub["filter"], "cutoff_hz": rec_pub["cutoff_hz"], "stages": st}, version)
+            bf = P.betaflight_cli(
+                {"filter": rec_pub["filter"], "cutoff_hz": rec_pub["cutoff_hz"], "stages": st}, version
+            )
         elif rec_pub["filter"] == "none":
             bf = ["# no static gyro low-pass recommended"]
         else:
             bf = [f"# {rec_pub['filter']} is not a Betaflight gyro filter: see the px4/ardupilot names"]
         if cands[mode][1]:
             v = version or (4, 5, 0)
-            bf += (["# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)"] if v < (4, 0, 0) else
-                   ["set dshot_bidir = ON"] + (["set gyro_rpm_notch_harmonics = 3"] if v < (4, 3, 0) else ["set rpm_filter_harmonics = 3"]))
+            bf += (
+                ["# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)"]
+                if v < (4, 0, 0)
+                else ["set dshot_bidir = ON"]
+                + (["set gyro_rpm_notch_harmonics = 3"] if v < (4, 3, 0) else ["set rpm_filter_harmonics = 3"])
+            )
     else:
         bf = [f"# {rec.meta.get('firmware_name')} log: Betaflight CLI names do not apply"]
-    b2 = {k: summary[k]["attitude_cost_deg"]["mean"] for k in ("px4_default", "ardupilot_default", "px4_ardupilot_lowpass")
-          if k in summary}
+    b2 = {
+        k: summary[k]["attitude_cost_deg"]["mean"]
+        for k in ("px4_default", "ardupilot_default", "px4_ardupilot_lowpass")
+        if k in summary
+    }
     b2best = min(b2, key=b2.get) if b2 else None
     b2fc = public(b2best)["cutoff_hz"] if b2best else None
     out = {
-        "flight": flight, "vehicle": vehicle, "flight_rate_rms_rad_s": float(fj["flight_rate_rms_rad_s"]), "band": band, "duration_s": duration_s, "seeds": [int(s) for s in seeds],
+        "flight": flight,
+        "vehicle": vehicle,
+        "flight_rate_rms_rad_s": float(fj["flight_rate_rms_rad_s"]),
+        "band": band,
+        "duration_s": duration_s,
+        "seeds": [int(s) for s in seeds],
         "recommended": rec_pub,
         "as_flown": public("as_flown") if "as_flown" in summary else None,
         "defaults": {k: public(k) for k in ("betaflight_default", "px4_default", "ardupilot_default") if k in summary},
         "open_loop_recommended": public("recommended") if "recommended" in summary else None,
-        "firmware": {"betaflight": bf, "px4": {"IMU_GYRO_CUTOFF": round(b2fc)} if b2fc else {},
-                     "ardupilot": {"INS_GYRO_FILTER": round(b2fc)} if b2fc else {}},
-        "picks_per_seed": picks, "stable": len(set(picks)) == 1,
-        "chains": summary, "per_seed": per_seed, "injection": info,
+        "firmware": {
+            "betaflight": bf,
+            "px4": {"IMU_GYRO_CUTOFF": round(b2fc)} if b2fc else {},
+            "ardupilot": {"INS_GYRO_FILTER": round(b2fc)} if b2fc else {},
+        },
+        "picks_per_seed": picks,
+        "stable": len(set(picks)) == 1,
+        "chains": summary,
+        "per_seed": per_seed,
+        "injection": info,
         "open_loop": {k: (v["name"] if v else None) for k, v in by_open.items()},
-        "scores": {"att_vibration_deg": "RMS angle between the vibrating and the vibration-free steady hover (same chain, seed)",
-                   "att_delay_deg": "sqrt(max(RMS_track^2 - RMS_track(none)^2, 0)) on attitude steps without vibration",
-                   "att_delay_flight_deg": "(delay - delay(none)) x the log's flight-band rate RMS",
-                   "attitude_cost": "sqrt(att_vibration^2 + att_delay^2 + att_delay_flight^2), deg",
-                   "motor_noise": "RMS of the motor thrust commands above 20 Hz in the vibrating hover, N"},
-        "notes": [f"chains re-rated to the simulator's {GYRO_RATE_HZ:g}-Hz gyro (stages at or above its Nyquist dropped)",
-                  f"vehicle {vehicle}: motor time constant {1e3 * _tau(vehicle):.0f} ms (estimate); the delay cost depends on it"],
+        "scores": {
+            "att_vibration_deg": "RMS angle between the vibrating and the vibration-free steady hover (same chain, seed)",
+            "att_delay_deg": "sqrt(max(RMS_track^2 - RMS_track(none)^2, 0)) on attitude steps without vibration",
+            "att_delay_flight_deg": "(delay - delay(none)) x the log's flight-band rate RMS",
+            "attitude_cost": "sqrt(att_vibration^2 + att_delay^2 + att_delay_flight^2), deg",
+            "motor_noise": "RMS of the motor thrust commands above 20 Hz in the vibrating hover, N",
+        },
+        "notes": [
+            f"chains re-rated to the simulator's {GYRO_RATE_HZ:g}-Hz gyro (stages at or above its Nyquist dropped)",
+            f"vehicle {vehicle}: motor time constant {1e3 * _tau(vehicle):.0f} ms (estimate); the delay cost depends on it",
+        ],
     }
     return out
 
@@ -261,19 +402,33 @@ def _tau(vehicle):
 
 
 def print_table(out: dict) -> None:
-    print("| chain | flown as | attitude cost, deg | vibration part | step-tracking delay part | flight-rate delay part | "
-          "motor noise, N | gyro delay, ms |")
+    print(
+        "| chain | flown as | attitude cost, deg | vibration part | step-tracking delay part | flight-rate delay part | "
+        "motor noise, N | gyro delay, ms |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for k, m in out["chains"].items():
+
         def f(key, fmt):
             v = m[key]
             return (fmt % v["mean"]) + (f" ± {fmt % v['sd']}" if np.isfinite(v["sd"]) else "")
-        print(f"| {k} | {' -> '.join(m['chain']) or 'none'} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
-              f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_n', '%.4f')} | "
-              f"{f('delay_ms', '%.2f')} |")
+
+        print(
+            f"| {k} | {' -> '.join(m['chain']) or 'none'} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
+            f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_n', '%.4f')} | "
+            f"{f('delay_ms', '%.2f')} |"
+        )
     print(f"picks per seed {out['seeds']}: {out['picks_per_seed']} (stable: {out['stable']})")
-    print("recommended:", out["recommended"]["name"], "| betaflight:", "; ".join(out["firmware"]["betaflight"]),
-          "| px4:", out["firmware"]["px4"], "| ardupilot:", out["firmware"]["ardupilot"])
+    print(
+        "recommended:",
+        out["recommended"]["name"],
+        "| betaflight:",
+        "; ".join(out["firmware"]["betaflight"]),
+        "| px4:",
+        out["firmware"]["px4"],
+        "| ardupilot:",
+        out["firmware"]["ardupilot"],
+    )
 
 
 def main() -> None:

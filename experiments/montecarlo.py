@@ -398,9 +398,7 @@ def _execute_dask(fn, tasks, address, tick, timeout_s):
     return results, n_workers
 
 
-def resolve_names(
-    *, scenarios: Sequence[str] | None, sensors: Sequence[str] | None
-) -> tuple[list[str], list[str]]:
+def resolve_names(*, scenarios: Sequence[str] | None, sensors: Sequence[str] | None) -> tuple[list[str], list[str]]:
     """Check scenario and sensor names against the simulator's registries.
 
     ``None`` means all of them (``sim.scenarios.SCENARIOS``, ``sim.presets.PRESETS``). A sensor
@@ -477,13 +475,15 @@ def run_campaign(
     """
     task_function = resolve_task(task_function)
     tasks = make_tasks(
-        scenarios=scenarios, sensors=sensors, instances=instances, seed=seed,
-        duration_s=duration_s, options=options,
+        scenarios=scenarios,
+        sensors=sensors,
+        instances=instances,
+        seed=seed,
+        duration_s=duration_s,
+        options=options,
     )
     t0 = time.perf_counter()
-    results, backend, n_workers = execute(
-        task_function, tasks, workers=workers, scheduler=scheduler, progress=progress
-    )
+    results, backend, n_workers = execute(task_function, tasks, workers=workers, scheduler=scheduler, progress=progress)
     wall_s = time.perf_counter() - t0
     return CampaignResult(
         format_version=FORMAT_VERSION,
@@ -554,7 +554,9 @@ def _csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(header)
     for row in rows:
-        w.writerow(["nan" if isinstance(v, float) and math.isnan(v) else (repr(v) if isinstance(v, float) else v) for v in row])
+        w.writerow(
+            ["nan" if isinstance(v, float) and math.isnan(v) else (repr(v) if isinstance(v, float) else v) for v in row]
+        )
     return buf.getvalue()
 
 
@@ -576,9 +578,7 @@ def write_campaign(result: CampaignResult, out_dir: str | os.PathLike) -> dict[s
     for r in result.tasks:
         m = r.metrics_dict
         task_rows.append([r.scenario, r.sensor, r.instance, r.seed, *[m.get(k, math.nan) for k in names]])
-    atomic_write_text(
-        paths["tasks_csv"], _csv_text(["scenario", "sensor", "instance", "seed", *names], task_rows)
-    )
+    atomic_write_text(paths["tasks_csv"], _csv_text(["scenario", "sensor", "instance", "seed", *names], task_rows))
     atomic_write_text(
         paths["summary_csv"],
         _csv_text(
@@ -588,8 +588,10 @@ def write_campaign(result: CampaignResult, out_dir: str | os.PathLike) -> dict[s
     )
     doc = to_jsonable(result)
     doc["tasks"] = [
-        {**{k: getattr(r, k) for k in ("index", "scenario", "sensor", "instance", "seed")},
-         "metrics": {k: to_jsonable(v) for k, v in r.metrics}}
+        {
+            **{k: getattr(r, k) for k in ("index", "scenario", "sensor", "instance", "seed")},
+            "metrics": {k: to_jsonable(v) for k, v in r.metrics},
+        }
         for r in result.tasks
     ]
     doc["options"] = {k: to_jsonable(v) for k, v in result.options}
@@ -619,16 +621,25 @@ def read_campaign(path: str | os.PathLike) -> CampaignResult:
     try:
         tasks = tuple(
             TaskResult(
-                index=int(t["index"]), scenario=t["scenario"], sensor=t["sensor"],
-                instance=int(t["instance"]), seed=int(t["seed"]),
+                index=int(t["index"]),
+                scenario=t["scenario"],
+                sensor=t["sensor"],
+                instance=int(t["instance"]),
+                seed=int(t["seed"]),
                 metrics=tuple((k, _f(v)) for k, v in t["metrics"].items()),
             )
             for t in doc["tasks"]
         )
         summary = tuple(
             MetricSummary(
-                scenario=s["scenario"], sensor=s["sensor"], metric=s["metric"], n=int(s["n"]),
-                median=_f(s["median"]), p90=_f(s["p90"]), mean=_f(s["mean"]), std=_f(s["std"]),
+                scenario=s["scenario"],
+                sensor=s["sensor"],
+                metric=s["metric"],
+                n=int(s["n"]),
+                median=_f(s["median"]),
+                p90=_f(s["p90"]),
+                mean=_f(s["mean"]),
+                std=_f(s["std"]),
             )
             for s in doc["summary"]
         )

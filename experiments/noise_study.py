@@ -76,8 +76,13 @@ for _oct in (2.0, 3.5, 5.0):
     MIXES[f"N+B+K-{_oct:g}oct"] = plateau_mix(_oct)
 #: (duration s, rate Hz) cells: the issue's grid is 10 min … 4 h × 50 Hz … 1 kHz; this subset
 #: spans both ends of each axis and runs in minutes on 2 shared cores.
-CELLS: tuple[tuple[float, float], ...] = ((600.0, 100.0), (3600.0, 100.0), (14400.0, 100.0),
-                                         (600.0, 1000.0), (14400.0, 50.0))
+CELLS: tuple[tuple[float, float], ...] = (
+    (600.0, 100.0),
+    (3600.0, 100.0),
+    (14400.0, 100.0),
+    (600.0, 1000.0),
+    (14400.0, 50.0),
+)
 TERM_KEYS = {
     "Q": "quantization_rad",
     "N": "arw_rad_per_sqrt_s",
@@ -123,8 +128,9 @@ def _identify(method: str, g: np.ndarray, rate_hz: float) -> dict[str, dict]:
             # a GM that turns over inside the record (gyrocore.noise.rwgm; off by default)
             from gyrocore.noise.options import NoiseOptions
 
-            res = AL.identify_noise(g, rate_hz=rate_hz, method="gmwm", check_static=False,
-                                    options=NoiseOptions(rw_check=True))
+            res = AL.identify_noise(
+                g, rate_hz=rate_hz, method="gmwm", check_static=False, options=NoiseOptions(rw_check=True)
+            )
         else:
             res = AL.identify_noise(g, rate_hz=rate_hz, method=method, check_static=False)
     for ax, r in res.axes.items():
@@ -150,8 +156,18 @@ def _task(job) -> list[dict]:
         res = _identify(method, g, rate)
         cpu = time.process_time() - t0
         for ax, d in res.items():
-            rows.append({"mix": mix_name, "T_s": T, "rate_hz": rate, "rep": rep, "axis": ax,
-                         "method": method, "cpu_s": cpu / 3, "terms": d})
+            rows.append(
+                {
+                    "mix": mix_name,
+                    "T_s": T,
+                    "rate_hz": rate,
+                    "rep": rep,
+                    "axis": ax,
+                    "method": method,
+                    "cpu_s": cpu / 3,
+                    "terms": d,
+                }
+            )
     return rows
 
 
@@ -172,15 +188,22 @@ def predicted(mix: dict[str, float], T: float, rate: float, method: str) -> dict
     truth = {TERM_KEYS[k]: v for k, v in mix.items()}
     meth = "gmwm" if method.startswith("gmwm") else "adev"
     # the rule counts the check only where it is applied
-    return expected_z(truth, n_samples=int(round(T * rate)), rate_hz=rate, method=meth,
-                      options=NoiseOptions(rw_check=method == "gmwm_rwcheck"))
+    return expected_z(
+        truth,
+        n_samples=int(round(T * rate)),
+        rate_hz=rate,
+        method=meth,
+        options=NoiseOptions(rw_check=method == "gmwm_rwcheck"),
+    )
 
 
 def summarise(rows: list[dict]) -> list[dict]:
     """Per (method, mix, cell, term): rates, bias, RMSE, coverage and the predicted z."""
     out = []
-    keys = sorted({(r["method"], r["mix"], r["T_s"], r["rate_hz"]) for r in rows},
-                  key=lambda k: (k[0], list(MIXES).index(k[1]), k[3], k[2]))
+    keys = sorted(
+        {(r["method"], r["mix"], r["T_s"], r["rate_hz"]) for r in rows},
+        key=lambda k: (k[0], list(MIXES).index(k[1]), k[3], k[2]),
+    )
     for method, mix_name, T, rate in keys:
         rr = [r for r in rows if (r["method"], r["mix"], r["T_s"], r["rate_hz"]) == (method, mix_name, T, rate)]
         mix = MIXES[mix_name]
@@ -194,9 +217,17 @@ def summarise(rows: list[dict]) -> list[dict]:
             lo = np.array([h[2] for h in have], float)
             hi = np.array([h[3] for h in have], float)
             true = mix.get(short, 0.0)
-            row = {"method": method, "mix": mix_name, "T_s": T, "rate_hz": rate, "term": short,
-                   "present": bool(true), "runs": len(have), "claimed": float(res.mean()),
-                   "cpu_s_axis": float(np.mean([r["cpu_s"] for r in rr]))}
+            row = {
+                "method": method,
+                "mix": mix_name,
+                "T_s": T,
+                "rate_hz": rate,
+                "term": short,
+                "present": bool(true),
+                "runs": len(have),
+                "claimed": float(res.mean()),
+                "cpu_s_axis": float(np.mean([r["cpu_s"] for r in rr])),
+            }
             if true:
                 row["bias_rel"] = float(np.mean(est) / true - 1)
                 row["rmse_rel"] = float(np.sqrt(np.mean((est - true) ** 2)) / true)
@@ -208,17 +239,23 @@ def summarise(rows: list[dict]) -> list[dict]:
 
 
 def markdown(summary: list[dict]) -> str:
-    lines = ["| method | mix | T | rate | term | runs | claimed | z_pred | bias | RMSE | cover95 |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| method | mix | T | rate | term | runs | claimed | z_pred | bias | RMSE | cover95 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for s in summary:
         if s["present"]:
             zp = s.get("z_pred", float("nan"))
-            lines.append(f"| {s['method']} | {s['mix']} | {s['T_s'] / 60:g} min | {s['rate_hz']:g} Hz | {s['term']} | "
-                         f"{s['runs']} | **{s['claimed']:.2f}** | {zp:.1f}{'' if not math.isfinite(zp) else (' ✓' if zp >= z_threshold(s['term']) else ' ✗')} | "
-                         f"{s['bias_rel']:+.2f} | {s['rmse_rel']:.2f} | {s['coverage']:.2f} |")
+            lines.append(
+                f"| {s['method']} | {s['mix']} | {s['T_s'] / 60:g} min | {s['rate_hz']:g} Hz | {s['term']} | "
+                f"{s['runs']} | **{s['claimed']:.2f}** | {zp:.1f}{'' if not math.isfinite(zp) else (' ✓' if zp >= z_threshold(s['term']) else ' ✗')} | "
+                f"{s['bias_rel']:+.2f} | {s['rmse_rel']:.2f} | {s['coverage']:.2f} |"
+            )
         elif s["claimed"] > 0:
-            lines.append(f"| {s['method']} | {s['mix']} | {s['T_s'] / 60:g} min | {s['rate_hz']:g} Hz | {s['term']} (absent) | "
-                         f"{s['runs']} | false {s['claimed']:.2f} | | | | |")
+            lines.append(
+                f"| {s['method']} | {s['mix']} | {s['T_s'] / 60:g} min | {s['rate_hz']:g} Hz | {s['term']} (absent) | "
+                f"{s['runs']} | false {s['claimed']:.2f} | | | | |"
+            )
     return "\n".join(lines)
 
 
@@ -233,20 +270,31 @@ def goals(summary: list[dict]) -> dict:
         out[method] = {
             "identified_where_resolvable_min": min((s["claimed"] for s in resolvable), default=float("nan")),
             "cells_resolvable": len(resolvable),
-            "cells_resolvable_below_0.9": [(s["mix"], s["T_s"], s["rate_hz"], s["term"], s["claimed"])
-                                           for s in resolvable if s["claimed"] < 0.9],
+            "cells_resolvable_below_0.9": [
+                (s["mix"], s["T_s"], s["rate_hz"], s["term"], s["claimed"]) for s in resolvable if s["claimed"] < 0.9
+            ],
             "false_claim_max": max((s["claimed"] for s in absent), default=float("nan")),
-            "false_claims_above_0.05": [(s["mix"], s["T_s"], s["rate_hz"], s["term"], s["claimed"])
-                                        for s in absent if s["claimed"] > 0.05],
-            "coverage_of_resolvable": [(s["mix"], s["T_s"], s["rate_hz"], s["term"], s["coverage"]) for s in resolvable],
+            "false_claims_above_0.05": [
+                (s["mix"], s["T_s"], s["rate_hz"], s["term"], s["claimed"]) for s in absent if s["claimed"] > 0.05
+            ],
+            "coverage_of_resolvable": [
+                (s["mix"], s["T_s"], s["rate_hz"], s["term"], s["coverage"]) for s in resolvable
+            ],
             "cpu_s_axis_mean": float(np.mean([s["cpu_s_axis"] for s in ss])),
         }
     return out
 
 
-def run(*, methods: Sequence[str] = ("adev", "gmwm"), replicates: int = 12, seed: int = 20261124,
-        mixes: Sequence[str] | None = None, cells: Sequence[tuple[float, float]] | None = None,
-        workers: int | None = None, out: str | None = None) -> dict:
+def run(
+    *,
+    methods: Sequence[str] = ("adev", "gmwm"),
+    replicates: int = 12,
+    seed: int = 20261124,
+    mixes: Sequence[str] | None = None,
+    cells: Sequence[tuple[float, float]] | None = None,
+    workers: int | None = None,
+    out: str | None = None,
+) -> dict:
     """Run the study; returns {"rows", "summary", "goals", "timing"}; writes JSON if ``out``."""
     mixes = list(mixes or MIXES)
     cells = [tuple(c) for c in (cells or CELLS)]
@@ -266,10 +314,20 @@ def run(*, methods: Sequence[str] = ("adev", "gmwm"), replicates: int = 12, seed
         # rows of the replicates completed so far (jobs run replicate by replicate), so that a
         # run cut short still leaves a complete, seed-ordered subset
         summ = summarise(rows)
-        res = {"rows": rows, "summary": summ, "goals": goals(summ),
-               "timing": {"wall_s": time.perf_counter() - t0, "cpu_s_fits": float(sum(r["cpu_s"] for r in rows)),
-                          "jobs_done": done, "jobs": len(jobs), "workers": n_work, "load": os.getloadavg()},
-               "options": options}
+        res = {
+            "rows": rows,
+            "summary": summ,
+            "goals": goals(summ),
+            "timing": {
+                "wall_s": time.perf_counter() - t0,
+                "cpu_s_fits": float(sum(r["cpu_s"] for r in rows)),
+                "jobs_done": done,
+                "jobs": len(jobs),
+                "workers": n_work,
+                "load": os.getloadavg(),
+            },
+            "options": options,
+        }
         if out:
             from gyrocore.data.recording import atomic_write_text
 
@@ -317,8 +375,9 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
     z_fit, z_true, chi2_cover = [], [], []
     for s in range(seeds):
         rng = np.random.default_rng(np.random.SeedSequence(seed0 + s))
-        g = (SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=1e-4)
-             + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=2e-6))
+        g = SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=1e-4) + SN.rate_random_walk(
+            rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=2e-6
+        )
         for ax in range(3):
             t, d, _ = AL.oadev(g[:, ax], rate, m)
             f = G.fit_noise(t, d**2, m, n, candidates=("arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s"))
@@ -331,10 +390,21 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
             z_fit.append((c - k2) / se)
             z_true.append((c - k2) / se_true)
     z, zt = np.array(z_fit), np.array(z_true)
-    return {"axes": int(z.size), "nu_true": 2 * k2**2 / se_true**2,
-            "z_fitted_se": {"mean": float(z.mean()), "sd": float(z.std()), "wald_coverage": float(np.mean(np.abs(z) < 1.959964))},
-            "z_true_se": {"mean": float(zt.mean()), "sd": float(zt.std()), "coverage": float(np.mean(np.abs(zt) < 1.959964))},
-            "chi2_interval_coverage": float(np.mean(chi2_cover))}
+    return {
+        "axes": int(z.size),
+        "nu_true": 2 * k2**2 / se_true**2,
+        "z_fitted_se": {
+            "mean": float(z.mean()),
+            "sd": float(z.std()),
+            "wald_coverage": float(np.mean(np.abs(z) < 1.959964)),
+        },
+        "z_true_se": {
+            "mean": float(zt.mean()),
+            "sd": float(zt.std()),
+            "coverage": float(np.mean(np.abs(zt) < 1.959964)),
+        },
+        "chi2_interval_coverage": float(np.mean(chi2_cover)),
+    }
 
 
 def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, base: int = 4404) -> dict:
@@ -362,16 +432,27 @@ def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, b
                 warnings.simplefilter("ignore")
                 f = G.fit_noise(t, d**2, m, n)
             short = lambda k: [s_ for s_, v in TERM_KEYS.items() if v == k][0]  # noqa: E731
-            census[(" ".join(short(k) for k in f.selected),
-                    " ".join(f"{short(a)}~{short(b)}" for a, b in f.ambiguous.items()))] += 1
+            census[
+                (
+                    " ".join(short(k) for k in f.selected),
+                    " ".join(f"{short(a)}~{short(b)}" for a, b in f.ambiguous.items()),
+                )
+            ] += 1
             for alt, v in f.criteria.items():
                 if len(alt) == len(true_sub) and alt != true_sub and true_sub in f.criteria:
                     diffs.setdefault(" ".join(short(k) for k in alt), []).append(v - f.criteria[true_sub])
-    stats = {a: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "p_below_0": float(np.mean(np.array(v) < 0))}
-             for a, v in diffs.items()}
-    return {"mix": mix, "T_s": T_s, "rate_hz": rate_hz, "axes": 3 * seeds,
-            "selected": [{"selected": k[0], "ambiguous": k[1], "axes": c} for k, c in census.most_common()],
-            "D_vs_true": stats}
+    stats = {
+        a: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "p_below_0": float(np.mean(np.array(v) < 0))}
+        for a, v in diffs.items()
+    }
+    return {
+        "mix": mix,
+        "T_s": T_s,
+        "rate_hz": rate_hz,
+        "axes": 3 * seeds,
+        "selected": [{"selected": k[0], "ambiguous": k[1], "axes": c} for k, c in census.most_common()],
+        "D_vs_true": stats,
+    }
 
 
 def flicker_wv_check(T_s: float, rate_hz: float) -> dict:
@@ -394,7 +475,10 @@ def flicker_wv_check(T_s: float, rate_hz: float) -> dict:
     m = G.scales(n)
     d = np.zeros(n)
     d[0] = 1.0
-    imp = {"cascade": signal.sosfilt(SN.flicker_sos(rate_hz), d), "kasdin_walter": SN.kasdin_walter_coefficients(n, 1.0)}
+    imp = {
+        "cascade": signal.sosfilt(SN.flicker_sos(rate_hz), d),
+        "kasdin_walter": SN.kasdin_walter_coefficients(n, 1.0),
+    }
     model = np.array([G.flicker_avar_factor(int(v)) for v in m])
     out = {"T_s": T_s, "rate_hz": rate_hz, "tau_s": (m / rate_hz).tolist()}
     for name, h in imp.items():
@@ -433,8 +517,12 @@ def main(argv=None) -> None:
     ap.add_argument("--k-seeds", type=int, default=12, help="seeds (x 3 axes) of --k-check")
     ap.add_argument("--census", default=None, help="development census of one cell, MIX:T_s@rate_hz (selection_census)")
     ap.add_argument("--census-seeds", type=int, default=40)
-    ap.add_argument("--flicker-wv", default=None, help="T_s@rate_hz: exact expected AVAR of the flicker generators "
-                    "against the fit's flicker column (flicker_wv_check)")
+    ap.add_argument(
+        "--flicker-wv",
+        default=None,
+        help="T_s@rate_hz: exact expected AVAR of the flicker generators "
+        "against the fit's flicker column (flicker_wv_check)",
+    )
     a = ap.parse_args(argv)
     if a.flicker_wv:
         T, r = (float(v) for v in a.flicker_wv.split("@"))
@@ -451,8 +539,15 @@ def main(argv=None) -> None:
     cells = None
     if a.cells:
         cells = [tuple(float(v) for v in c.split("@")) for c in a.cells.split(",")]
-    res = run(methods=a.methods.split(","), replicates=a.replicates, seed=a.seed,
-              mixes=a.mixes.split(",") if a.mixes else None, cells=cells, workers=a.workers, out=a.out)
+    res = run(
+        methods=a.methods.split(","),
+        replicates=a.replicates,
+        seed=a.seed,
+        mixes=a.mixes.split(",") if a.mixes else None,
+        cells=cells,
+        workers=a.workers,
+        out=a.out,
+    )
     print(markdown(res["summary"]))
     print(json.dumps(res["goals"], indent=1, default=float))
     print(json.dumps(res["timing"], default=float))
@@ -466,8 +561,9 @@ def compact(summaries: Sequence[list[dict]], methods: Sequence[str]) -> str:
     """One row per (mix, cell): per method, each present term as claimed % (coverage %) with the
     prediction (✓ resolvable / ✗ not, from the gmwm rule), then the absent terms claimed."""
     allrows = [s for summ in summaries for s in summ]
-    cells = sorted({(s["mix"], s["T_s"], s["rate_hz"]) for s in allrows},
-                   key=lambda k: (list(MIXES).index(k[0]), k[2], k[1]))
+    cells = sorted(
+        {(s["mix"], s["T_s"], s["rate_hz"]) for s in allrows}, key=lambda k: (list(MIXES).index(k[0]), k[2], k[1])
+    )
     head = "| mix | T, rate | " + " | ".join(methods) + " |"
     lines = [head, "|---|---|" + "---|" * len(methods)]
     for mix, T, rate in cells:
@@ -485,8 +581,12 @@ def compact(summaries: Sequence[list[dict]], methods: Sequence[str]) -> str:
                     parts.append(f"{s['term']}{mark} {100 * s['claimed']:.0f} ({100 * s['coverage']:.0f})")
             n_cov = [s for s in ss if s["term"] == "N"]
             if n_cov:
-                parts.insert(0, f"N 100 ({100 * n_cov[0]['coverage']:.0f})" if n_cov[0]["claimed"] == 1 else
-                             f"N {100 * n_cov[0]['claimed']:.0f} ({100 * n_cov[0]['coverage']:.0f})")
+                parts.insert(
+                    0,
+                    f"N 100 ({100 * n_cov[0]['coverage']:.0f})"
+                    if n_cov[0]["claimed"] == 1
+                    else f"N {100 * n_cov[0]['claimed']:.0f} ({100 * n_cov[0]['coverage']:.0f})",
+                )
             fc = [f"{s['term']} {100 * s['claimed']:.0f}" for s in ss if not s["present"] and s["claimed"] > 0]
             if fc:
                 parts.append("**false: " + ", ".join(fc) + "**")

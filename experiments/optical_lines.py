@@ -41,8 +41,9 @@ RATE_HZ = 240.0
 _SUB = 20  # fine integration steps per frame
 
 
-def residual_psd(f_hz, *, rate_hz: float = RATE_HZ, sigma_q_rad: float = SIGMA_Q_RAD,
-                 arw_rad_per_sqrt_s: float = ARW_RAD_PER_SQRT_S):
+def residual_psd(
+    f_hz, *, rate_hz: float = RATE_HZ, sigma_q_rad: float = SIGMA_Q_RAD, arw_rad_per_sqrt_s: float = ARW_RAD_PER_SQRT_S
+):
     """One-sided PSD of the sample-level residual gyro − d/dt(reference), (rad/s)²/Hz.
 
     White attitude noise ε_k (σ_q per axis) differenced, (ε_k − ε_{k−1})/Δt: |1 − e^{−i2πfΔt}|²
@@ -65,11 +66,21 @@ def line_z(amp_rad_s: float, f_hz: float, t_eff_s: float, L: int, **psd) -> floa
     return float(amp_rad_s * np.sqrt(taper_efficiency(L) * t_eff_s / residual_psd(f_hz, **psd)))
 
 
-def optical_recording(*, seed: int, duration_s: float = 60.0, rate_hz: float = RATE_HZ,
-                      sigma_q_rad: float = SIGMA_Q_RAD, arw_rad_per_sqrt_s: float = ARW_RAD_PER_SQRT_S,
-                      line_axis: int = 0, line_hz: float = 0.0, line_amp_rad_s: float = 0.0,
-                      shared_hz: float = 0.0, shared_amp_rad_s: float = 0.0,
-                      bias_rad_s=(0.004, -0.003, 0.002), dropouts: bool = True) -> Recording:
+def optical_recording(
+    *,
+    seed: int,
+    duration_s: float = 60.0,
+    rate_hz: float = RATE_HZ,
+    sigma_q_rad: float = SIGMA_Q_RAD,
+    arw_rad_per_sqrt_s: float = ARW_RAD_PER_SQRT_S,
+    line_axis: int = 0,
+    line_hz: float = 0.0,
+    line_amp_rad_s: float = 0.0,
+    shared_hz: float = 0.0,
+    shared_amp_rad_s: float = 0.0,
+    bias_rad_s=(0.004, -0.003, 0.002),
+    dropouts: bool = True,
+) -> Recording:
     """A gyro beside a motion-capture attitude (module docstring). Rows at ``rate_hz``.
 
     The gyro is a point sample of the true rate at each row's time (plus bias, line, noise),
@@ -85,8 +96,13 @@ def optical_recording(*, seed: int, duration_s: float = 60.0, rate_hz: float = R
     amps = rng.uniform(0.3, 0.8, (3, 3))
 
     def omega(t):
-        w = np.stack([np.sum(amps[i][:, None] * np.sin(2 * np.pi * freqs[i][:, None] * t[None] + phases[i][:, None]),
-                             axis=0) for i in range(3)], axis=1)
+        w = np.stack(
+            [
+                np.sum(amps[i][:, None] * np.sin(2 * np.pi * freqs[i][:, None] * t[None] + phases[i][:, None]), axis=0)
+                for i in range(3)
+            ],
+            axis=1,
+        )
         if shared_amp_rad_s:
             w[:, 0] += shared_amp_rad_s * np.cos(2 * np.pi * shared_hz * t + 0.3)
         return w
@@ -100,7 +116,7 @@ def optical_recording(*, seed: int, duration_s: float = 60.0, rate_hz: float = R
     if dropouts:
         for _ in range(5):  # dropped frames: timestamp gaps of 1-3 frames
             a = int(rng.integers(100, k_idx.size - 100))
-            keep[a:a + int(rng.integers(1, 4))] = False
+            keep[a : a + int(rng.integers(1, 4))] = False
     k_idx = k_idx[keep]
     t = t_fine[k_idx]
     q = q_fine[k_idx]
@@ -119,14 +135,15 @@ def optical_recording(*, seed: int, duration_s: float = 60.0, rate_hz: float = R
         while lost < 0.03 * n:
             a = int(rng.integers(0, n - 100))
             m = int(rng.integers(10, 101))
-            q_ref[a:a + m] = np.nan
+            q_ref[a : a + m] = np.nan
             lost += m
     gyro = omega(t) + np.asarray(bias_rad_s, float)
     if line_amp_rad_s:
         gyro[:, line_axis] += line_amp_rad_s * np.cos(2 * np.pi * line_hz * t + 1.1)
     gyro += rng.normal(0.0, arw_rad_per_sqrt_s * np.sqrt(rate_hz), gyro.shape)
-    return Recording(t_s=t - t[0], gyro_rad_s=gyro, ref_quat_wxyz=q_ref,
-                     meta={"scenario": "optical_lines", "seed": str(seed)})
+    return Recording(
+        t_s=t - t[0], gyro_rad_s=gyro, ref_quat_wxyz=q_ref, meta={"scenario": "optical_lines", "seed": str(seed)}
+    )
 
 
 @dataclass(frozen=True)
@@ -141,8 +158,14 @@ class LineTrial:
     others: tuple
 
 
-def trial(seed: int, *, z_range=(6.0, 16.0), duration_s: float = 60.0, declared=("bias", "time_offset"),
-          candidates=("bias_ramp",)) -> LineTrial:
+def trial(
+    seed: int,
+    *,
+    z_range=(6.0, 16.0),
+    duration_s: float = 60.0,
+    declared=("bias", "time_offset"),
+    candidates=("bias_ramp",),
+) -> LineTrial:
     """One seed: a gyro line at a frequency in [20, 80] Hz of strength z ∈ ``z_range``
     (drawn), run through the loop (declared ``bias``, ``time_offset``: the point-sampled gyro
     leads the reference's interval-mean rate by half a frame)."""
@@ -163,11 +186,26 @@ def trial(seed: int, *, z_range=(6.0, 16.0), duration_s: float = 60.0, declared=
     amp = z / line_z(1.0, f, t_eff, L)
     rec = optical_recording(seed=seed, duration_s=duration_s, line_axis=axis, line_hz=f, line_amp_rad_s=amp)
     r = run_loop(rec, declared=list(declared), candidates=list(candidates))
-    hit = [u for u in r.unexplained if u.kind == "periodic" and u.axis == "xyz"[axis]
-           and abs(u.fields["frequency_hz"] - f) <= 1.0 / (rec.t_s[-1] - rec.t_s[0])]
-    others = tuple(u.effect + "@" + u.axis for u in r.unexplained if all(u is not h for h in hit)) + tuple(s.effect for s in r.found)
-    return LineTrial(seed=seed, axis=axis, f_hz=f, amp_rad_s=amp, z=z, described=bool(hit),
-                     f_found_hz=float(hit[0].fields["frequency_hz"]) if hit else None, others=others)
+    hit = [
+        u
+        for u in r.unexplained
+        if u.kind == "periodic"
+        and u.axis == "xyz"[axis]
+        and abs(u.fields["frequency_hz"] - f) <= 1.0 / (rec.t_s[-1] - rec.t_s[0])
+    ]
+    others = tuple(u.effect + "@" + u.axis for u in r.unexplained if all(u is not h for h in hit)) + tuple(
+        s.effect for s in r.found
+    )
+    return LineTrial(
+        seed=seed,
+        axis=axis,
+        f_hz=f,
+        amp_rad_s=amp,
+        z=z,
+        described=bool(hit),
+        f_found_hz=float(hit[0].fields["frequency_hz"]) if hit else None,
+        others=others,
+    )
 
 
 def main(argv=None) -> None:
@@ -186,16 +224,22 @@ def main(argv=None) -> None:
             r = run_loop(optical_recording(seed=s), declared=["bias", "time_offset"], candidates=["bias_ramp"])
             per = [p for p in r.open_search.get("periodic", []) if p.get("level") == "sample"]
             best = min(per, key=lambda p: p["log10_p"]) if per else None
-            print(s, ",".join(u.effect + "@" + u.axis for u in r.unexplained) + ",".join(x.effect for x in r.found)
-                  or "-", (best["axis"], round(best["frequency_hz"], 3), round(best["log10_p"], 2)) if best else "-",
-                  round(float(np.log10(best["threshold"])), 2) if best else "-", flush=True)
+            print(
+                s,
+                ",".join(u.effect + "@" + u.axis for u in r.unexplained) + ",".join(x.effect for x in r.found) or "-",
+                (best["axis"], round(best["frequency_hz"], 3), round(best["log10_p"], 2)) if best else "-",
+                round(float(np.log10(best["threshold"])), 2) if best else "-",
+                flush=True,
+            )
         return
     print("seed axis f_hz amp_deg_s z described f_found_hz others")
     for s in range(a.seed_start, a.seed_start + a.seeds):
         tr = trial(s, z_range=(a.z_min, a.z_max))
-        print(f"{tr.seed} {'xyz'[tr.axis]} {tr.f_hz:.4f} {tr.amp_rad_s / DEG:.4g} {tr.z:.2f} {tr.described} "
-              f"{tr.f_found_hz if tr.f_found_hz is None else round(tr.f_found_hz, 4)} {','.join(tr.others) or '-'}",
-              flush=True)
+        print(
+            f"{tr.seed} {'xyz'[tr.axis]} {tr.f_hz:.4f} {tr.amp_rad_s / DEG:.4g} {tr.z:.2f} {tr.described} "
+            f"{tr.f_found_hz if tr.f_found_hz is None else round(tr.f_found_hz, 4)} {','.join(tr.others) or '-'}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -40,10 +40,26 @@ from gyrocore.effects import registry as E
 
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
-__all__ = ["Target", "TARGETS", "TableProtocol", "ThermalProtocol", "TABLE_PROTOCOLS", "THERMAL_PROTOCOLS",
-           "NoiseSource", "load_noise", "simulated_still_noise", "record_support",
-           "hover_trajectory", "design_stderr", "candidate_stderr", "evaluate_grid", "choose", "confirm", "confirm_all",
-           "run"]
+__all__ = [
+    "Target",
+    "TARGETS",
+    "TableProtocol",
+    "ThermalProtocol",
+    "TABLE_PROTOCOLS",
+    "THERMAL_PROTOCOLS",
+    "NoiseSource",
+    "load_noise",
+    "simulated_still_noise",
+    "record_support",
+    "hover_trajectory",
+    "design_stderr",
+    "candidate_stderr",
+    "evaluate_grid",
+    "choose",
+    "confirm",
+    "confirm_all",
+    "run",
+]
 
 SENSOR = "icm42688p"
 #: Reference protocol times (the ablation's calibration runs), s.
@@ -114,11 +130,13 @@ class Target:
 
 #: Default targets: "how long must I calibrate for X°" (expected final error after the hover,
 #: √E|ε(T)|², for X = 1, 1.5, 2, 3°) and "within 1.3 × the floor" (RMS over the hover).
-TARGETS = (Target("final error ≤ 1° after the hover", final_deg=1.0),
-           Target("final error ≤ 1.5° after the hover", final_deg=1.5),
-           Target("final error ≤ 2° after the hover", final_deg=2.0),
-           Target("final error ≤ 3° after the hover", final_deg=3.0),
-           Target("RMS error ≤ 1.3 × floor over the hover", floor_ratio=1.3))
+TARGETS = (
+    Target("final error ≤ 1° after the hover", final_deg=1.0),
+    Target("final error ≤ 1.5° after the hover", final_deg=1.5),
+    Target("final error ≤ 2° after the hover", final_deg=2.0),
+    Target("final error ≤ 3° after the hover", final_deg=3.0),
+    Target("RMS error ≤ 1.3 × floor over the hover", floor_ratio=1.3),
+)
 
 
 # ----------------------------------------------------------------------------- noise model
@@ -134,8 +152,11 @@ SUPPORT_RISE = 0.10
 #: Longest still recording the support search considers, s (24 h).
 SUPPORT_MAX_RECORD_S = 86400.0
 _SLOW_TERMS = ("bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "correlated_sigma_rad_s")
-_TERM_LABEL = {"bias_instability_rad_s": "flicker (bias instability) B", "rrw_rad_per_s_sqrt_s": "rate random walk K",
-               "correlated_sigma_rad_s": "Gauss–Markov σ"}
+_TERM_LABEL = {
+    "bias_instability_rad_s": "flicker (bias instability) B",
+    "rrw_rad_per_s_sqrt_s": "rate random walk K",
+    "correlated_sigma_rad_s": "Gauss–Markov σ",
+}
 
 
 @dataclass(frozen=True)
@@ -177,11 +198,13 @@ class NoiseSource:
         sig = np.asarray(m.gm_sigma_rad_s, float)
         tau = np.asarray(m.gm_tau_c_s, float)
         has = (sig > 0) & np.isfinite(tau)
-        return {"arw_rad_per_sqrt_s": float(np.mean(m.arw_rad_per_sqrt_s)),
-                "bias_instability_rad_s": float(np.mean(m.bias_instability_rad_s)),
-                "rrw_rad_per_s_sqrt_s": float(np.mean(m.rrw_rad_s_per_sqrt_s)),
-                "correlated_sigma_rad_s": float(np.mean(sig[has])) if has.any() else 0.0,
-                "correlated_tau_c_s": float(np.mean(tau[has])) if has.any() else None}
+        return {
+            "arw_rad_per_sqrt_s": float(np.mean(m.arw_rad_per_sqrt_s)),
+            "bias_instability_rad_s": float(np.mean(m.bias_instability_rad_s)),
+            "rrw_rad_per_s_sqrt_s": float(np.mean(m.rrw_rad_s_per_sqrt_s)),
+            "correlated_sigma_rad_s": float(np.mean(sig[has])) if has.any() else 0.0,
+            "correlated_tau_c_s": float(np.mean(tau[has])) if has.any() else None,
+        }
 
 
 def _noise_from_allan_json(doc: dict, where: str):
@@ -194,9 +217,16 @@ def _noise_from_allan_json(doc: dict, where: str):
 
     axes = doc.get("axes")
     if not isinstance(axes, dict) or not axes:
-        raise GyroInputError(f"{where}: no 'axes' in the noise JSON (expected the output of `gyroharness noise --json`)")
-    keys = ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "correlated_sigma_rad_s",
-            "correlated_tau_c_s")
+        raise GyroInputError(
+            f"{where}: no 'axes' in the noise JSON (expected the output of `gyroharness noise --json`)"
+        )
+    keys = (
+        "arw_rad_per_sqrt_s",
+        "bias_instability_rad_s",
+        "rrw_rad_per_s_sqrt_s",
+        "correlated_sigma_rad_s",
+        "correlated_tau_c_s",
+    )
     ns = {}
     for a, d in axes.items():
         if a not in ("x", "y", "z") or not isinstance(d, dict):
@@ -207,7 +237,9 @@ def _noise_from_allan_json(doc: dict, where: str):
             raise GyroInputError(f"{where}: axis {a}: a noise term is not a number") from None
         if vals["arw_rad_per_sqrt_s"] is None or not (vals["arw_rad_per_sqrt_s"] > 0):
             raise GyroInputError(f"{where}: axis {a} has no white rate noise (arw_rad_per_sqrt_s)")
-        ns[a] = SimpleNamespace(**vals, ambiguous=dict(d.get("ambiguous") or {}), estimate=dict(d.get("estimate") or {}))
+        ns[a] = SimpleNamespace(
+            **vals, ambiguous=dict(d.get("ambiguous") or {}), estimate=dict(d.get("estimate") or {})
+        )
     if not ns:
         raise GyroInputError(f"{where}: no gyro axis x, y or z in the noise JSON")
     return NoiseModel.from_identified(SimpleNamespace(axes=ns))
@@ -251,21 +283,33 @@ def load_noise(path) -> NoiseSource:
         dur = float(dur) if isinstance(dur, (int, float)) and dur > 0 else None
         rate = float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
         what = f"{dur:.0f}-s" if dur else "a"
-        return NoiseSource(model=model, label=f"{os.path.basename(path)} (noise JSON: GMWM on {what} still record"
-                                              f"{f' at {rate:g} Hz' if rate else ''})",
-                           record_s=dur, rate_hz=rate, kind="noise-json")
+        return NoiseSource(
+            model=model,
+            label=f"{os.path.basename(path)} (noise JSON: GMWM on {what} still record"
+            f"{f' at {rate:g} Hz' if rate else ''})",
+            record_s=dur,
+            rate_hz=rate,
+            kind="noise-json",
+        )
     if doc is not None and "noise_model" in doc:
         from gyrocore.calib.params import result_from_dict
 
         res = result_from_dict(doc, where=path)
         if not res.noise_model:
-            raise GyroInputError(f"{path}: the parameter file has no noise_model (calibrate with --covariance noise_model)")
+            raise GyroInputError(
+                f"{path}: the parameter file has no noise_model (calibrate with --covariance noise_model)"
+            )
         rate = float(res.noise_model.get("rate_hz", float("nan")))
         rate = rate if np.isfinite(rate) and rate > 0 else None
         dur = float(res.n_samples) / rate if rate and res.n_samples else None
-        return NoiseSource(model=res.noise(), label=f"{os.path.basename(path)} (calibration residual, "
-                                                    f"{res.n_samples} samples{f' at {rate:g} Hz' if rate else ''})",
-                           record_s=dur, rate_hz=rate, kind="parameter-file")
+        return NoiseSource(
+            model=res.noise(),
+            label=f"{os.path.basename(path)} (calibration residual, "
+            f"{res.n_samples} samples{f' at {rate:g} Hz' if rate else ''})",
+            record_s=dur,
+            rate_hz=rate,
+            kind="parameter-file",
+        )
     if doc is not None:
         raise GyroInputError(f"{path}: JSON is neither a noise JSON (`gyroharness noise --json`) nor a parameter file")
     # a still data file: identify as `gyroharness noise FILE` does
@@ -281,9 +325,13 @@ def load_noise(path) -> NoiseSource:
             an = allan_by_axis(path, axes=["x", "y", "z"], max_tau_s=None, kalibr=False, engine="fast")
         else:
             an = allan_analysis(read_recording(path), axes=["x", "y", "z"], check_static=True)
-    return NoiseSource(model=NoiseModel.from_identified(an),
-                       label=f"{os.path.basename(path)} (GMWM on its {an.duration_s:.0f}-s still record at {an.rate_hz:g} Hz)",
-                       record_s=float(an.duration_s), rate_hz=float(an.rate_hz), kind="recording")
+    return NoiseSource(
+        model=NoiseModel.from_identified(an),
+        label=f"{os.path.basename(path)} (GMWM on its {an.duration_s:.0f}-s still record at {an.rate_hz:g} Hz)",
+        record_s=float(an.duration_s),
+        rate_hz=float(an.rate_hz),
+        kind="recording",
+    )
 
 
 def simulated_still_noise(*, seed: int, duration_s: float) -> NoiseSource:
@@ -301,13 +349,24 @@ def simulated_still_noise(*, seed: int, duration_s: float) -> NoiseSource:
         rec = S.simulate("static", sensor=SENSOR, seed=int(seed), run=3, duration_s=float(duration_s)).recording
         an = allan_analysis(rec, axes=["x", "y", "z"])
     del rec
-    return NoiseSource(model=NoiseModel.from_identified(an),
-                       label=f"GMWM on a simulated {an.duration_s:.0f}-s still recording of the unit (static, run 3)",
-                       record_s=float(an.duration_s), rate_hz=float(an.rate_hz), kind="simulated-still")
+    return NoiseSource(
+        model=NoiseModel.from_identified(an),
+        label=f"GMWM on a simulated {an.duration_s:.0f}-s still recording of the unit (static, run 3)",
+        record_s=float(an.duration_s),
+        rate_hz=float(an.rate_hz),
+        kind="simulated-still",
+    )
 
 
-def record_support(terms: dict, *, n_samples: int | None, rate_hz: float | None, unit_var: dict,
-                   rise: float = SUPPORT_RISE, max_record_s: float = SUPPORT_MAX_RECORD_S) -> list[dict]:
+def record_support(
+    terms: dict,
+    *,
+    n_samples: int | None,
+    rate_hz: float | None,
+    unit_var: dict,
+    rise: float = SUPPORT_RISE,
+    max_record_s: float = SUPPORT_MAX_RECORD_S,
+) -> list[dict]:
     """Does the noise record support the flight? The resolvability rule, term by term.
 
     A flight's floor is set by the slow terms (flicker B, rate random walk K, a Gauss–Markov
@@ -359,10 +418,19 @@ def record_support(terms: dict, *, n_samples: int | None, rate_hz: float | None,
         if v_of[x] <= 0 or v_rest <= 0:
             continue
         level = lev[x] if present else math.sqrt(q * v_rest / v_of[x])
-        rise_x = math.sqrt(1.0 + level ** 2 * v_of[x] / v_rest) - 1.0
-        row = {"term": x, "label": _TERM_LABEL[x], "level": level, "present": present, "floor_rise": rise_x,
-               "matters": rise_x >= rise * (1 - 1e-9), "margin": None, "resolvable": True, "needed_record_s": None,
-               "warn": False}
+        rise_x = math.sqrt(1.0 + level**2 * v_of[x] / v_rest) - 1.0
+        row = {
+            "term": x,
+            "label": _TERM_LABEL[x],
+            "level": level,
+            "present": present,
+            "floor_rise": rise_x,
+            "matters": rise_x >= rise * (1 - 1e-9),
+            "margin": None,
+            "resolvable": True,
+            "needed_record_s": None,
+            "warn": False,
+        }
         if row["matters"]:
             tt = {**{k: (lev[k] or None) for k in lev}, x: level, "correlated_tau_c_s": tau}
 
@@ -401,11 +469,17 @@ def _support_message(rows: list[dict], src: NoiseSource, flight_s: float) -> str
             return "a record of unknown length" if n is not None and np.isnan(n) else f"> {SUPPORT_MAX_RECORD_S:.0f} s"
         return f"≥ {n:.0f} s"
 
-    parts = [f"{r['label']} {r['level']:.2g} ({'identified' if r['present'] else 'smallest that matters'}, "
-             f"+{100 * r['floor_rise']:.0f} % on the floor) needs {need(r)}" for r in bad]
-    return (f"the noise record {rec} does not support a {flight_s:g}-s flight (resolvability rule, "
-            f"gyrocore.noise.gmwm.expected_z, 90 % power): " + "; ".join(parts)
-            + " — the floor may be under-predicted; give --noise a longer still recording")
+    parts = [
+        f"{r['label']} {r['level']:.2g} ({'identified' if r['present'] else 'smallest that matters'}, "
+        f"+{100 * r['floor_rise']:.0f} % on the floor) needs {need(r)}"
+        for r in bad
+    ]
+    return (
+        f"the noise record {rec} does not support a {flight_s:g}-s flight (resolvability rule, "
+        f"gyrocore.noise.gmwm.expected_z, 90 % power): "
+        + "; ".join(parts)
+        + " — the floor may be under-predicted; give --noise a longer still recording"
+    )
 
 
 def hover_trajectory(*, seed: int, airborne_s: float):
@@ -436,11 +510,17 @@ def _prefixed_inputs(res, ground_s: float, window_s: float):
 
     def pre(x):
         x = np.asarray(x, float)
-        return np.concatenate([np.repeat(x[i_to - 1:i_to], nw, axis=0), x[i_to:]], axis=0)
+        return np.concatenate([np.repeat(x[i_to - 1 : i_to], nw, axis=0), x[i_to:]], axis=0)
 
     t = np.arange(n) / rate
-    inp = E.ModelInputs(t_s=t, omega_S_rad_s=np.concatenate([np.zeros((nw, 3)), w]), f_S_m_s2=pre(tr.f_S_m_s2),
-                        temp_c=pre(tr.temp_c), q_SW_wxyz=pre(tr.q_SW_wxyz), t_since_power_up_s=t)
+    inp = E.ModelInputs(
+        t_s=t,
+        omega_S_rad_s=np.concatenate([np.zeros((nw, 3)), w]),
+        f_S_m_s2=pre(tr.f_S_m_s2),
+        temp_c=pre(tr.temp_c),
+        q_SW_wxyz=pre(tr.q_SW_wxyz),
+        t_since_power_up_s=t,
+    )
     return inp, [(slice(0, n), slice(0, nw))], nw
 
 
@@ -452,8 +532,9 @@ class _Pred:
     final_floor_deg: float
 
 
-def design_stderr(spec, *, seed: int, effects: Sequence[str], noise, orders=None, run: int = 1,
-                  duration_s: float | None = None) -> dict:
+def design_stderr(
+    spec, *, seed: int, effects: Sequence[str], noise, orders=None, run: int = 1, duration_s: float | None = None
+) -> dict:
     """Standard errors a calibration run *would* report, predicted from its design alone.
 
     Simulates the candidate run's reference trajectory (rate, specific force, temperature of
@@ -484,12 +565,26 @@ def design_stderr(spec, *, seed: int, effects: Sequence[str], noise, orders=None
     wts = (~near_rate_changes(t, w, float(A._CAL_KW.get("ramp_margin_s", 0.0)))).astype(float)
     avg = max(1, int(math.ceil(float(np.count_nonzero(wts)) / float(A._CAL_KW.get("max_rows", 30000)))))
     inp = E.ModelInputs(t_s=t, omega_S_rad_s=w, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
-    fit = lsq.fit_effects(np.zeros((t.size, 3)), list(effects), inp, orders=orders, weights=wts, average=avg,
-                          covariance="noise_model", noise_model=noise, t_s=t - t[0], axis_weighting=False,
-                          keep_residual=False)
+    fit = lsq.fit_effects(
+        np.zeros((t.size, 3)),
+        list(effects),
+        inp,
+        orders=orders,
+        weights=wts,
+        average=avg,
+        covariance="noise_model",
+        noise_model=noise,
+        t_s=t - t[0],
+        axis_weighting=False,
+        keep_residual=False,
+    )
     t0 = float(np.mean(rec.temp_c)) if rec.temp_c is not None else float("nan")
-    return {"se": {e: fit.effect_stderr(e).copy() for e in effects}, "unobservable": tuple(fit.unobservable),
-            "t0_c": t0, "duration_s": float(rec.duration_s)}
+    return {
+        "se": {e: fit.effect_stderr(e).copy() for e in effects},
+        "unobservable": tuple(fit.unobservable),
+        "t0_c": t0,
+        "duration_s": float(rec.duration_s),
+    }
 
 
 def table_spec(p: TableProtocol):
@@ -497,8 +592,15 @@ def table_spec(p: TableProtocol):
     from sim import scenarios as S
 
     spec = S.load_scenario("turntable")
-    return dataclasses.replace(spec, table={**dict(spec.table), "mounts": list(p.mounts),
-                                            "rates_dps": list(p.rates_dps), "revolutions": float(p.revolutions)})
+    return dataclasses.replace(
+        spec,
+        table={
+            **dict(spec.table),
+            "mounts": list(p.mounts),
+            "rates_dps": list(p.rates_dps),
+            "revolutions": float(p.revolutions),
+        },
+    )
 
 
 def thermal_spec(p: ThermalProtocol):
@@ -519,8 +621,16 @@ def _is_table(name: str, groups) -> bool:
     return name in TABLE_GROUPS
 
 
-def candidate_stderr(groups, *, seed: int, noise_table, noise_thermal, table=TABLE_PROTOCOLS,
-                     thermal=THERMAL_PROTOCOLS, thermal_orders=None) -> tuple[list[dict], list[dict]]:
+def candidate_stderr(
+    groups,
+    *,
+    seed: int,
+    noise_table,
+    noise_thermal,
+    table=TABLE_PROTOCOLS,
+    thermal=THERMAL_PROTOCOLS,
+    thermal_orders=None,
+) -> tuple[list[dict], list[dict]]:
     """Predicted standard errors of every table and thermal candidate (:func:`design_stderr`).
 
     Returns (table candidates, thermal candidates): dicts with ``label``, ``cost_s``,
@@ -532,13 +642,28 @@ def candidate_stderr(groups, *, seed: int, noise_table, noise_thermal, table=TAB
     out_t, out_h = [], []
     for p in table:
         d = design_stderr(table_spec(p), seed=seed, effects=tab_eff, noise=noise_table)
-        out_t.append({"label": p.label, "cost_s": d["duration_s"], "se": d["se"], "t0_c": d["t0_c"],
-                      "unobservable": d["unobservable"], "protocol": dataclasses.asdict(p)})
+        out_t.append(
+            {
+                "label": p.label,
+                "cost_s": d["duration_s"],
+                "se": d["se"],
+                "t0_c": d["t0_c"],
+                "unobservable": d["unobservable"],
+                "protocol": dataclasses.asdict(p),
+            }
+        )
     for p in thermal:
-        d = design_stderr(thermal_spec(p), seed=seed, effects=th_eff, noise=noise_thermal, run=2,
-                          orders=thermal_orders)
-        out_h.append({"label": p.label, "cost_s": d["duration_s"], "se": d["se"], "t0_c": d["t0_c"],
-                      "unobservable": d["unobservable"], "protocol": dataclasses.asdict(p)})
+        d = design_stderr(thermal_spec(p), seed=seed, effects=th_eff, noise=noise_thermal, run=2, orders=thermal_orders)
+        out_h.append(
+            {
+                "label": p.label,
+                "cost_s": d["duration_s"],
+                "se": d["se"],
+                "t0_c": d["t0_c"],
+                "unobservable": d["unobservable"],
+                "protocol": dataclasses.asdict(p),
+            }
+        )
     return out_t, out_h
 
 
@@ -552,8 +677,9 @@ def _recentred(g, t0_c: float):
     return ParameterGroup(name=g.name, params=params, stderr=g.stderr)
 
 
-def evaluate_grid(res, ground_s: float, groups, *, windows=WINDOWS_S, table=None, thermal=None,
-                  noise=None) -> list[dict]:
+def evaluate_grid(
+    res, ground_s: float, groups, *, windows=WINDOWS_S, table=None, thermal=None, noise=None
+) -> list[dict]:
     """Predicted hover error for every protocol of the grid (window × table × thermal).
 
     One budget per window length (its trajectory) for the noise and the window
@@ -566,9 +692,12 @@ def evaluate_grid(res, ground_s: float, groups, *, windows=WINDOWS_S, table=None
 
     if noise is None:
         noise = NoiseModel.from_params(res.params_true)
-    table = table or [{"label": "reference", "cost_s": TABLE_REF_S, "se": None, "t0_c": float("nan"), "unobservable": ()}]
-    thermal = thermal or [{"label": "reference", "cost_s": THERMAL_REF_S, "se": None, "t0_c": float("nan"),
-                           "unobservable": ()}]
+    table = table or [
+        {"label": "reference", "cost_s": TABLE_REF_S, "se": None, "t0_c": float("nan"), "unobservable": ()}
+    ]
+    thermal = thermal or [
+        {"label": "reference", "cost_s": THERMAL_REF_S, "se": None, "t0_c": float("nan"), "unobservable": ()}
+    ]
     rows = []
     for tw in windows:
         inp, segs, start = _prefixed_inputs(res, ground_s, tw)
@@ -583,7 +712,7 @@ def evaluate_grid(res, ground_s: float, groups, *, windows=WINDOWS_S, table=None
             key = (g.name, round(float(t0), 6) if np.isfinite(t0) else None)
             if key not in cache:
                 _, S, se = sensitivity(inp, R, blocks, segs, _recentred(g, t0))
-                cache[key] = (np.sum(S ** 2, axis=1)[sc], np.where(np.isfinite(se), se, 0.0))
+                cache[key] = (np.sum(S**2, axis=1)[sc], np.where(np.isfinite(se), se, 0.0))
             return cache[key]
 
         def var(cand, tab: bool):
@@ -601,21 +730,33 @@ def evaluate_grid(res, ground_s: float, groups, *, windows=WINDOWS_S, table=None
         for c1, a in zip(table, vt):
             for c2, b in zip(thermal, vh):
                 v = base + a + b
-                p = _Pred(final_predicted_deg=math.degrees(math.sqrt(max(v[-1], 0.0))),
-                          rms_predicted_deg=math.degrees(math.sqrt(max(pr._mean(v), 0.0))),
-                          rms_floor_deg=pr.rms_floor_deg, final_floor_deg=pr.final_floor_deg)
-                rows.append({"window_s": tw, "table": c1["label"], "thermal": c2["label"],
-                             "table_s": c1["cost_s"], "thermal_s": c2["cost_s"],
-                             "eligible": not (c1["unobservable"] or c2["unobservable"]),
-                             "cost_s": tw + c1["cost_s"] + c2["cost_s"],
-                             "final_deg": p.final_predicted_deg, "rms_deg": p.rms_predicted_deg,
-                             "floor_rms_deg": p.rms_floor_deg, "floor_final_deg": p.final_floor_deg,
-                             "table_deg": math.degrees(math.sqrt(max(pr._mean(a), 0.0))),
-                             "thermal_deg": math.degrees(math.sqrt(max(pr._mean(b), 0.0))),
-                             # the noise + window part alone (what a true-parameter flight measures)
-                             "noise_final_deg": math.degrees(math.sqrt(max(base[-1], 0.0))),
-                             "noise_rms_deg": math.degrees(math.sqrt(max(pr._mean(base), 0.0))),
-                             "pred": p})
+                p = _Pred(
+                    final_predicted_deg=math.degrees(math.sqrt(max(v[-1], 0.0))),
+                    rms_predicted_deg=math.degrees(math.sqrt(max(pr._mean(v), 0.0))),
+                    rms_floor_deg=pr.rms_floor_deg,
+                    final_floor_deg=pr.final_floor_deg,
+                )
+                rows.append(
+                    {
+                        "window_s": tw,
+                        "table": c1["label"],
+                        "thermal": c2["label"],
+                        "table_s": c1["cost_s"],
+                        "thermal_s": c2["cost_s"],
+                        "eligible": not (c1["unobservable"] or c2["unobservable"]),
+                        "cost_s": tw + c1["cost_s"] + c2["cost_s"],
+                        "final_deg": p.final_predicted_deg,
+                        "rms_deg": p.rms_predicted_deg,
+                        "floor_rms_deg": p.rms_floor_deg,
+                        "floor_final_deg": p.final_floor_deg,
+                        "table_deg": math.degrees(math.sqrt(max(pr._mean(a), 0.0))),
+                        "thermal_deg": math.degrees(math.sqrt(max(pr._mean(b), 0.0))),
+                        # the noise + window part alone (what a true-parameter flight measures)
+                        "noise_final_deg": math.degrees(math.sqrt(max(base[-1], 0.0))),
+                        "noise_rms_deg": math.degrees(math.sqrt(max(pr._mean(base), 0.0))),
+                        "pred": p,
+                    }
+                )
     return rows
 
 
@@ -643,8 +784,9 @@ def true_calibration(sensor: str, seed: int) -> list[dict]:
     return [{e: {k: np.asarray(v, float) for k, v in pt[e].items()} for e in A.present_effects(pt) if e != "bias"}]
 
 
-def confirm(window_s: float, seeds: Sequence[int], *, airborne_s: float, cache_dir: str | None = None,
-            calibration: str = "true") -> list[dict]:
+def confirm(
+    window_s: float, seeds: Sequence[int], *, airborne_s: float, cache_dir: str | None = None, calibration: str = "true"
+) -> list[dict]:
     """Fly ``seeds`` units with a ground phase of ``window_s`` + 1 s, power-up bias from a
     ``window_s`` still window; measured vs predicted error. ``calibration``: ``"true"``
     (:func:`true_calibration`, isolates the window) or ``"reference"`` (the unit's own
@@ -663,13 +805,27 @@ def confirm(window_s: float, seeds: Sequence[int], *, airborne_s: float, cache_d
         cal = true_calibration(SENSOR, int(sd)) if calibration == "true" else None
         with warnings.catch_warnings(), single_thread_blas():
             warnings.simplefilter("ignore")
-            ab = A.ablate_instance(spec, sensor=SENSOR, seed=int(sd), duration_s=ground + 3.0 + airborne_s,
-                                   powerup_window_s=window_s, mahony_kp_per_s=None, cache_dir=cache_dir,
-                                   calibration=cal)
-        out.append({"seed": int(sd), "final_deg": ab.scores["all"].final_error_deg,
-                    "rms_deg": ab.scores["all"].rms_error_deg, "floor_rms_deg": ab.scores["floor"].rms_error_deg,
-                    "pred_final_deg": ab.prediction.final_predicted_deg, "pred_rms_deg": ab.prediction.rms_predicted_deg,
-                    "pred_floor_rms_deg": ab.prediction.rms_floor_deg})
+            ab = A.ablate_instance(
+                spec,
+                sensor=SENSOR,
+                seed=int(sd),
+                duration_s=ground + 3.0 + airborne_s,
+                powerup_window_s=window_s,
+                mahony_kp_per_s=None,
+                cache_dir=cache_dir,
+                calibration=cal,
+            )
+        out.append(
+            {
+                "seed": int(sd),
+                "final_deg": ab.scores["all"].final_error_deg,
+                "rms_deg": ab.scores["all"].rms_error_deg,
+                "floor_rms_deg": ab.scores["floor"].rms_error_deg,
+                "pred_final_deg": ab.prediction.final_predicted_deg,
+                "pred_rms_deg": ab.prediction.rms_predicted_deg,
+                "pred_floor_rms_deg": ab.prediction.rms_floor_deg,
+            }
+        )
     return out
 
 
@@ -678,8 +834,14 @@ def _confirm_one(args) -> dict:
     return confirm(window_s, [sd], airborne_s=airborne_s, cache_dir=cache_dir)[0]
 
 
-def confirm_all(windows: Sequence[float], seeds: Sequence[int], *, airborne_s: float, cache_dir: str | None = None,
-                workers: int | None = None) -> dict:
+def confirm_all(
+    windows: Sequence[float],
+    seeds: Sequence[int],
+    *,
+    airborne_s: float,
+    cache_dir: str | None = None,
+    workers: int | None = None,
+) -> dict:
     """:func:`confirm` for every window × unit, on ``workers`` processes (None: the cores of
     this machine; spawned, as :mod:`experiments.montecarlo`). Each flight is seeded by its unit
     alone, so the results do not depend on ``workers``. Returns {window: [unit dicts]}."""
@@ -750,19 +912,35 @@ def _unit_floor_var(inp, start: int, segs, tau_c_s: float | None) -> dict:
     from gyrocore.calib.budget import NoiseModel
 
     z, one = np.zeros(3), np.ones(3)
-    out = {"arw_rad_per_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=one)),
-           "bias_instability_rad_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z,
-                                                                            bias_instability_rad_s=one)),
-           "rrw_rad_per_s_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z,
-                                                                          rrw_rad_s_per_sqrt_s=one))}
+    out = {
+        "arw_rad_per_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=one)),
+        "bias_instability_rad_s": _floor_ms(
+            inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z, bias_instability_rad_s=one)
+        ),
+        "rrw_rad_per_s_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z, rrw_rad_s_per_sqrt_s=one)),
+    }
     if tau_c_s is not None and np.isfinite(tau_c_s):
-        out["correlated_sigma_rad_s"] = _floor_ms(inp, start, segs, NoiseModel(
-            arw_rad_per_sqrt_s=z, gm_sigma_rad_s=one, gm_tau_c_s=np.full(3, float(tau_c_s))))
+        out["correlated_sigma_rad_s"] = _floor_ms(
+            inp,
+            start,
+            segs,
+            NoiseModel(arw_rad_per_sqrt_s=z, gm_sigma_rad_s=one, gm_tau_c_s=np.full(3, float(tau_c_s))),
+        )
     return out
 
 
-def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        seed: int = 0, noise=None, size: str | None = None, progress=None, **_ignored) -> ExperimentResult:
+def run(
+    *,
+    out_dir,
+    quick: bool = False,
+    seeds: int | None = None,
+    workers: int | None = None,
+    seed: int = 0,
+    noise=None,
+    size: str | None = None,
+    progress=None,
+    **_ignored,
+) -> ExperimentResult:
     """Protocol design for :data:`TARGETS`; tables, figures and the held-out simulation check
     into ``out_dir``.
 
@@ -810,13 +988,19 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     n_th = r2.noise() if r2 is not None and r2.noise_model else nm_cal
     orders = dict(r2.thermal_order) if r2 is not None else None
     # the calibration runs' residual records (the longest bounds what the model can have seen)
-    cal_recs = [(float(r.n_samples) / float(r.noise_model["rate_hz"]), float(r.noise_model["rate_hz"]))
-                for r in (r1, r2) if r is not None and r.noise_model and r.n_samples
-                and np.isfinite(float(r.noise_model.get("rate_hz", np.nan)))]
+    cal_recs = [
+        (float(r.n_samples) / float(r.noise_model["rate_hz"]), float(r.noise_model["rate_hz"]))
+        for r in (r1, r2)
+        if r is not None and r.noise_model and r.n_samples and np.isfinite(float(r.noise_model.get("rate_hz", np.nan)))
+    ]
     cal_rec_s, cal_rate = max(cal_recs) if cal_recs else (None, None)
-    cal_src = NoiseSource(model=nm_cal, label="the reference calibration's residual model "
-                                              "(experiments.ablation.identified_noise)",
-                          record_s=cal_rec_s, rate_hz=cal_rate, kind="calibration")
+    cal_src = NoiseSource(
+        model=nm_cal,
+        label="the reference calibration's residual model (experiments.ablation.identified_noise)",
+        record_s=cal_rec_s,
+        rate_hz=cal_rate,
+        kind="calibration",
+    )
     # --- the flight's noise model and whether its record supports the flight
     if isinstance(noise, NoiseSource):
         src = noise
@@ -835,9 +1019,11 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     if warn_msg:
         warnings.warn(warn_msg, UserWarning, stacklevel=2)
     floors = []
-    for name, model in (("flight noise model used: " + src.label, nm),
-                        ("reference calibration's residual model", nm_cal),
-                        ("the unit's true noise (simulation only)", NoiseModel.from_params(res.params_true))):
+    for name, model in (
+        ("flight noise model used: " + src.label, nm),
+        ("reference calibration's residual model", nm_cal),
+        ("the unit's true noise (simulation only)", NoiseModel.from_params(res.params_true)),
+    ):
         if model is None:
             continue
         from gyrocore.calib.budget import predict_error
@@ -850,8 +1036,9 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     tabs = TABLE_PROTOCOLS[:2] if small else TABLE_PROTOCOLS
     ths = THERMAL_PROTOCOLS[:2] if small else THERMAL_PROTOCOLS
     with single_thread_blas():
-        cand_t, cand_h = candidate_stderr(groups, seed=unit, noise_table=n_tab, noise_thermal=n_th, table=tabs,
-                                          thermal=ths, thermal_orders=orders)
+        cand_t, cand_h = candidate_stderr(
+            groups, seed=unit, noise_table=n_tab, noise_thermal=n_th, table=tabs, thermal=ths, thermal_orders=orders
+        )
     tick(2)
     rows = evaluate_grid(res, ground, groups, windows=windows, table=cand_t, thermal=cand_h, noise=nm)
     chosen = {t.name: choose(rows, t) for t in TARGETS}
@@ -873,11 +1060,23 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     for t in TARGETS:
         c = chosen[t.name]
         if c is None:
-            best = min((r for r in rows if r["eligible"]), key=lambda r: r["final_deg"] if t.final_deg is not None
-                       else r["rms_deg"] / r["floor_rms_deg"])
-            how_rows.append((t.name, "not reachable on the grid", "", "", "", "", "",
-                             f"best: {best['final_deg']:.2f}° final, RMS/floor {best['rms_deg'] / best['floor_rms_deg']:.2f} "
-                             f"({best['window_s']:g}-s window); floor final {best['floor_final_deg']:.2f}°"))
+            best = min(
+                (r for r in rows if r["eligible"]),
+                key=lambda r: r["final_deg"] if t.final_deg is not None else r["rms_deg"] / r["floor_rms_deg"],
+            )
+            how_rows.append(
+                (
+                    t.name,
+                    "not reachable on the grid",
+                    "",
+                    "",
+                    "",
+                    "",
+                    "",
+                    f"best: {best['final_deg']:.2f}° final, RMS/floor {best['rms_deg'] / best['floor_rms_deg']:.2f} "
+                    f"({best['window_s']:g}-s window); floor final {best['floor_final_deg']:.2f}°",
+                )
+            )
             how_json[t.name] = None
             continue
         lst = conf[c["window_s"]]
@@ -897,28 +1096,59 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             held = f"RMS/floor {g:.2f} [{glo:.2f}, {ghi:.2f}]"
             within = f"{int(np.sum(mr / fl <= t.floor_ratio))}/{len(lst)}"
             verdict = "yes" if g <= t.floor_ratio else "no"
-        how_rows.append((t.name, c["cost_s"], f"{c['window_s']:g} s window; {c['table']}; {c['thermal']}",
-                         held, within, verdict,
-                         c["final_deg"] if t.final_deg is not None else c["rms_deg"] / c["floor_rms_deg"],
-                         f"window + noise part: predicted {c['noise_final_deg']:.2f}° final, measured "
-                         f"√mean {math.sqrt(m2):.2f}° [{math.sqrt(lo2):.2f}, {math.sqrt(hi2):.2f}]"))
-        how_json[t.name] = {"window_s": c["window_s"], "table": c["table"], "thermal": c["thermal"],
-                            "cost_s": c["cost_s"], "predicted_final_deg": c["final_deg"],
-                            "predicted_rms_over_floor": c["rms_deg"] / c["floor_rms_deg"],
-                            "predicted_noise_final_deg": c["noise_final_deg"], "parameter_final_deg": math.sqrt(par2),
-                            "heldout_final_deg": est, "heldout_final_ci95_deg": list(ci),
-                            "heldout_noise_final_deg": math.sqrt(m2),
-                            "heldout_noise_final_ci95_deg": [math.sqrt(lo2), math.sqrt(hi2)],
-                            "heldout_rms_over_floor": g, "heldout_rms_over_floor_ci95": [glo, ghi],
-                            "units_within": within, "met": verdict == "yes"}
-    how = md_table(["target", "total calibration time, s", "shortest protocol (budget)",
-                    f"held-out: {n_units} fresh units, final ° √mean [95 % CI] (or RMS/floor)", "units within target",
-                    "met on fresh units", "predicted (budget)", "detail"], how_rows)
+        how_rows.append(
+            (
+                t.name,
+                c["cost_s"],
+                f"{c['window_s']:g} s window; {c['table']}; {c['thermal']}",
+                held,
+                within,
+                verdict,
+                c["final_deg"] if t.final_deg is not None else c["rms_deg"] / c["floor_rms_deg"],
+                f"window + noise part: predicted {c['noise_final_deg']:.2f}° final, measured "
+                f"√mean {math.sqrt(m2):.2f}° [{math.sqrt(lo2):.2f}, {math.sqrt(hi2):.2f}]",
+            )
+        )
+        how_json[t.name] = {
+            "window_s": c["window_s"],
+            "table": c["table"],
+            "thermal": c["thermal"],
+            "cost_s": c["cost_s"],
+            "predicted_final_deg": c["final_deg"],
+            "predicted_rms_over_floor": c["rms_deg"] / c["floor_rms_deg"],
+            "predicted_noise_final_deg": c["noise_final_deg"],
+            "parameter_final_deg": math.sqrt(par2),
+            "heldout_final_deg": est,
+            "heldout_final_ci95_deg": list(ci),
+            "heldout_noise_final_deg": math.sqrt(m2),
+            "heldout_noise_final_ci95_deg": [math.sqrt(lo2), math.sqrt(hi2)],
+            "heldout_rms_over_floor": g,
+            "heldout_rms_over_floor_ci95": [glo, ghi],
+            "units_within": within,
+            "met": verdict == "yes",
+        }
+    how = md_table(
+        [
+            "target",
+            "total calibration time, s",
+            "shortest protocol (budget)",
+            f"held-out: {n_units} fresh units, final ° √mean [95 % CI] (or RMS/floor)",
+            "units within target",
+            "met on fresh units",
+            "predicted (budget)",
+            "detail",
+        ],
+        how_rows,
+    )
 
     ref = [r for r in rows if r["table"] == ref_t and r["thermal"] == ref_h]
-    tab = md_table(["still window, s", "predicted final °", "predicted RMS °", "floor RMS °", "RMS / floor"],
-                   [(r["window_s"], r["final_deg"], r["rms_deg"], r["floor_rms_deg"], r["rms_deg"] / r["floor_rms_deg"])
-                    for r in ref])
+    tab = md_table(
+        ["still window, s", "predicted final °", "predicted RMS °", "floor RMS °", "RMS / floor"],
+        [
+            (r["window_s"], r["final_deg"], r["rms_deg"], r["floor_rms_deg"], r["rms_deg"] / r["floor_rms_deg"])
+            for r in ref
+        ],
+    )
     w_show = 2.0 if 2.0 in windows else windows[0]
 
     def se_med(c, g):
@@ -927,22 +1157,68 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         return float(np.median(v)) if v.size else float("inf")
 
     def at(label_t=None, label_h=None):
-        return next(r for r in rows if r["window_s"] == w_show and r["table"] == (label_t or ref_t)
-                    and r["thermal"] == (label_h or ref_h))
+        return next(
+            r
+            for r in rows
+            if r["window_s"] == w_show and r["table"] == (label_t or ref_t) and r["thermal"] == (label_h or ref_h)
+        )
 
-    tt_rows = [(c["label"], c["cost_s"], se_med(c, "g_sensitivity") if "g_sensitivity" in c["se"] else "",
-                se_med(c, "misalignment") if "misalignment" in c["se"] else "",
-                ", ".join(c["unobservable"][:3]) + (" …" if len(c["unobservable"]) > 3 else "") or "—",
-                at(label_t=c["label"])["table_deg"], at(label_t=c["label"])["final_deg"]) for c in cand_t]
-    t_tab = md_table(["table run", "duration, s", "g-sens SE (median), rad/s/(m/s²)", "misalignment SE, rad",
-                      "unobservable", f"table params' hover RMS ° ({w_show:g}-s window)", "predicted final °"], tt_rows)
-    th_rows = [(c["label"], c["cost_s"], se_med(c, "bias_thermal") if "bias_thermal" in c["se"] else "",
-                ", ".join(c["unobservable"][:3]) or "—", at(label_h=c["label"])["thermal_deg"],
-                at(label_h=c["label"])["final_deg"]) for c in cand_h]
-    h_tab = md_table(["thermal run", "duration, s", "bias_thermal SE (median), SI", "unobservable",
-                      f"thermal params' hover RMS ° ({w_show:g}-s window)", "predicted final °"], th_rows)
-    fl_tab = md_table(["noise model", "floor RMS °", "floor final °", "predicted RMS ° (2-s window)",
-                       "predicted final ° (2-s window)"], floors)
+    tt_rows = [
+        (
+            c["label"],
+            c["cost_s"],
+            se_med(c, "g_sensitivity") if "g_sensitivity" in c["se"] else "",
+            se_med(c, "misalignment") if "misalignment" in c["se"] else "",
+            ", ".join(c["unobservable"][:3]) + (" …" if len(c["unobservable"]) > 3 else "") or "—",
+            at(label_t=c["label"])["table_deg"],
+            at(label_t=c["label"])["final_deg"],
+        )
+        for c in cand_t
+    ]
+    t_tab = md_table(
+        [
+            "table run",
+            "duration, s",
+            "g-sens SE (median), rad/s/(m/s²)",
+            "misalignment SE, rad",
+            "unobservable",
+            f"table params' hover RMS ° ({w_show:g}-s window)",
+            "predicted final °",
+        ],
+        tt_rows,
+    )
+    th_rows = [
+        (
+            c["label"],
+            c["cost_s"],
+            se_med(c, "bias_thermal") if "bias_thermal" in c["se"] else "",
+            ", ".join(c["unobservable"][:3]) or "—",
+            at(label_h=c["label"])["thermal_deg"],
+            at(label_h=c["label"])["final_deg"],
+        )
+        for c in cand_h
+    ]
+    h_tab = md_table(
+        [
+            "thermal run",
+            "duration, s",
+            "bias_thermal SE (median), SI",
+            "unobservable",
+            f"thermal params' hover RMS ° ({w_show:g}-s window)",
+            "predicted final °",
+        ],
+        th_rows,
+    )
+    fl_tab = md_table(
+        [
+            "noise model",
+            "floor RMS °",
+            "floor final °",
+            "predicted RMS ° (2-s window)",
+            "predicted final ° (2-s window)",
+        ],
+        floors,
+    )
 
     def _need(r):
         n = r["needed_record_s"]
@@ -952,11 +1228,29 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             return "record length unknown"
         return f"≥ {n:.0f} s" if np.isfinite(n) else f"> {SUPPORT_MAX_RECORD_S:.0f} s"
 
-    sup_tab = md_table(["term", "level (axis mean)", "in the model", "raises the flight floor RMS by",
-                        "margin at the record (resolvable ≥ 1.28)", "record needed", "warning"],
-                       [(r["label"], f"{r['level']:.3g}", "yes" if r["present"] else "no (smallest level that matters)",
-                         f"{100 * r['floor_rise']:.0f} %", "" if r["margin"] is None else f"{r['margin']:.2f}", _need(r),
-                         "yes" if r["warn"] else ("assumed absent" if not r["resolvable"] else "")) for r in support])
+    sup_tab = md_table(
+        [
+            "term",
+            "level (axis mean)",
+            "in the model",
+            "raises the flight floor RMS by",
+            "margin at the record (resolvable ≥ 1.28)",
+            "record needed",
+            "warning",
+        ],
+        [
+            (
+                r["label"],
+                f"{r['level']:.3g}",
+                "yes" if r["present"] else "no (smallest level that matters)",
+                f"{100 * r['floor_rise']:.0f} %",
+                "" if r["margin"] is None else f"{r['margin']:.2f}",
+                _need(r),
+                "yes" if r["warn"] else ("assumed absent" if not r["resolvable"] else ""),
+            )
+            for r in support
+        ],
+    )
     cf_rows = []
     summary_conf = {}
     for tw, lst in conf.items():
@@ -967,16 +1261,39 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         se2 = float(np.std(r2v, ddof=1) / math.sqrt(r2v.size)) if r2v.size > 1 else float("nan")
         g, lo, hi = _interval(mr / fl)
         budget_row = next(r for r in ref if r["window_s"] == tw)
-        cf_rows.append((tw, len(lst), float(np.sqrt(np.mean(np.array([x["final_deg"] for x in lst]) ** 2))),
-                        budget_row["noise_final_deg"], float(np.median(mr)), float(np.median(prr)),
-                        f"{np.mean(r2v):.2f} ± {se2:.2f}", f"{g:.2f} [{lo:.2f}, {hi:.2f}]"))
-        summary_conf[str(tw)] = {"units": lst, "measured_over_floor_geomean": g, "ci95": [lo, hi],
-                                 "mean_r2": float(np.mean(r2v)), "mean_r2_se": se2,
-                                 "budget_noise_final_deg": budget_row["noise_final_deg"]}
-    cf = md_table(["still window, s", "fresh units", "measured final ° (√mean of squares)",
-                   "budget final ° (window + noise, flight noise model)", "measured RMS ° (median)",
-                   "predicted RMS ° (median, unit's true noise)", "mean (meas/pred RMS)² ± se",
-                   "measured RMS/floor: geo-mean [95 % CI]"], cf_rows)
+        cf_rows.append(
+            (
+                tw,
+                len(lst),
+                float(np.sqrt(np.mean(np.array([x["final_deg"] for x in lst]) ** 2))),
+                budget_row["noise_final_deg"],
+                float(np.median(mr)),
+                float(np.median(prr)),
+                f"{np.mean(r2v):.2f} ± {se2:.2f}",
+                f"{g:.2f} [{lo:.2f}, {hi:.2f}]",
+            )
+        )
+        summary_conf[str(tw)] = {
+            "units": lst,
+            "measured_over_floor_geomean": g,
+            "ci95": [lo, hi],
+            "mean_r2": float(np.mean(r2v)),
+            "mean_r2_se": se2,
+            "budget_noise_final_deg": budget_row["noise_final_deg"],
+        }
+    cf = md_table(
+        [
+            "still window, s",
+            "fresh units",
+            "measured final ° (√mean of squares)",
+            "budget final ° (window + noise, flight noise model)",
+            "measured RMS ° (median)",
+            "predicted RMS ° (median, unit's true noise)",
+            "mean (meas/pred RMS)² ± se",
+            "measured RMS/floor: geo-mean [95 % CI]",
+        ],
+        cf_rows,
+    )
 
     # --- figures: how long (cost vs predicted final, held-out points) and the grid by knob
     fig0 = new_figure(figsize=(6.4, 4.2))
@@ -989,8 +1306,13 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         if r["final_deg"] < best:
             best = r["final_deg"]
             front.append(r)
-    ax0.step([r["cost_s"] for r in front], [r["final_deg"] for r in front], where="post", color="C0",
-             label="shortest protocol for a target (budget)")
+    ax0.step(
+        [r["cost_s"] for r in front],
+        [r["final_deg"] for r in front],
+        where="post",
+        color="C0",
+        label="shortest protocol for a target (budget)",
+    )
     for t in TARGETS:
         if t.final_deg is None:
             continue
@@ -998,9 +1320,14 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         j = how_json.get(t.name)
         if j:
             lo_, hi_ = j["heldout_final_ci95_deg"]
-            ax0.errorbar([j["cost_s"]], [j["heldout_final_deg"]], yerr=[[j["heldout_final_deg"] - lo_],
-                                                                         [hi_ - j["heldout_final_deg"]]],
-                         fmt="kx", ms=6, capsize=3)
+            ax0.errorbar(
+                [j["cost_s"]],
+                [j["heldout_final_deg"]],
+                yerr=[[j["heldout_final_deg"] - lo_], [hi_ - j["heldout_final_deg"]]],
+                fmt="kx",
+                ms=6,
+                capsize=3,
+            )
     ax0.plot([], [], "kx", label=f"held out: {n_units} fresh units (95 % CI)")
     ax0.axhline(ref[0]["floor_final_deg"], color="k", lw=0.8, ls="--", label="floor (final)")
     ax0.set_xscale("log")
@@ -1015,8 +1342,13 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     ax = fig.add_subplot(121)
     for c in cand_t:
         rr = [r for r in rows if r["table"] == c["label"] and r["thermal"] == ref_h]
-        ax.plot([r["window_s"] for r in rr], [r["final_deg"] for r in rr], marker=".",
-                ls="-" if not c["unobservable"] else ":", label=c["label"])
+        ax.plot(
+            [r["window_s"] for r in rr],
+            [r["final_deg"] for r in rr],
+            marker=".",
+            ls="-" if not c["unobservable"] else ":",
+            label=c["label"],
+        )
     ax.plot([r["window_s"] for r in ref], [r["floor_final_deg"] for r in ref], "k--", label="floor (final)")
     for tw, lst in conf.items():
         ax.plot([tw] * len(lst), [x["final_deg"] for x in lst], "kx", ms=5)
@@ -1031,8 +1363,9 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     ax2 = fig.add_subplot(122)
     for c in cand_h:
         rr = [r for r in rows if r["thermal"] == c["label"] and r["table"] == ref_t]
-        ax2.plot([r["window_s"] for r in rr], [r["rms_deg"] / r["floor_rms_deg"] for r in rr], marker=".",
-                 label=c["label"])
+        ax2.plot(
+            [r["window_s"] for r in rr], [r["rms_deg"] / r["floor_rms_deg"] for r in rr], marker=".", label=c["label"]
+        )
     ax2.axhline(1.3, color="r", lw=0.8)
     ax2.set_xscale("log")
     ax2.set_xlabel("power-up still window, s")
@@ -1044,8 +1377,12 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
     md = [
         f"**Size:** a {airborne:g}-s hover, {len(windows)} still windows × {len(tabs)} rate-table × {len(ths)} thermal "
         f"protocols, {n_units} held-out units (95 % intervals: Student-t on their log errors, {n_units - 1} degrees "
-        "of freedom)" + ("; `gyroharness run --full`: the 10-min hover, the whole grid and 8 held-out units.\n"
-                          if airborne < HOVER_S else ".\n"),
+        "of freedom)"
+        + (
+            "; `gyroharness run --full`: the 10-min hover, the whole grid and 8 held-out units.\n"
+            if airborne < HOVER_S
+            else ".\n"
+        ),
         f"**Noise model of the flight:** {src.label}"
         + (f" — **warning:** {warn_msg}" if warn_msg else " — the record supports the flight (resolvability rule)."),
         "\n#### How long must I calibrate for X°? (held-out figures first)\n",
@@ -1054,32 +1391,57 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         "true parameters (so the flight measures the window + noise part), plus the budget's parameter share "
         "(the table/thermal runs' standard errors, whose honesty the z-score Monte Carlo of docs/accuracy.md "
         "checks). The target is on the expected error √E|ε(T)|² over units; a single unit's final error "
-        "scatters around it (χ²-like).\n", how,
+        "scatters around it (χ²-like).\n",
+        how,
         f"\n![how long]({fig0p})\n",
-        "#### Held-out simulation, per window\n", cf,
-        "\n#### The flight's noise model and its record\n", fl_tab,
+        "#### Held-out simulation, per window\n",
+        cf,
+        "\n#### The flight's noise model and its record\n",
+        fl_tab,
         "\nDoes the record support the flight? (`experiments.protocol.record_support`: each slow term that raises "
         f"the flight's floor RMS by ≥ {100 * SUPPORT_RISE:.0f} % must be resolvable from the record, "
-        "`gyrocore.noise.gmwm.expected_z` ≥ 1.28, i.e. claimed by GMWM with ≥ 90 % probability)\n", sup_tab,
+        "`gyrocore.noise.gmwm.expected_z` ≥ 1.28, i.e. claimed by GMWM with ≥ 90 % probability)\n",
+        sup_tab,
         f"\n#### Predicted error after {airborne:g} s of hover (sensor {SENSOR}, unit seed {unit})\n",
         "Grid: power-up still window × rate-table run (mounts, rates, revolutions) × thermal run (ambient span, "
         "duration = ramp rate). The table and thermal runs' standard errors are predicted from each candidate's "
         "design with the noise-model covariance (experiments.protocol.design_stderr; noise: the model each "
         "reference calibration identified on its own residual, a record as long as the run); the window and the "
         "floor use the flight's noise model above.\n",
-        "#### Still window (reference table and thermal runs)\n", tab,
-        "\n#### Rate-table run candidates (reference thermal run)\n", t_tab,
-        "\n#### Thermal run candidates (reference table run)\n", h_tab,
+        "#### Still window (reference table and thermal runs)\n",
+        tab,
+        "\n#### Rate-table run candidates (reference thermal run)\n",
+        t_tab,
+        "\n#### Thermal run candidates (reference table run)\n",
+        h_tab,
         f"\n![protocol]({figp})",
     ]
     summary = {
-        "noise_source": {"label": src.label, "kind": src.kind, "record_s": src.record_s, "rate_hz": src.rate_hz,
-                         "terms": terms, "supported": warn_msg is None, "warning": warn_msg, "support": support},
-        "floors": [{"noise": f[0], "floor_rms_deg": f[1], "floor_final_deg": f[2], "pred_rms_deg_2s": f[3],
-                    "pred_final_deg_2s": f[4]} for f in floors],
+        "noise_source": {
+            "label": src.label,
+            "kind": src.kind,
+            "record_s": src.record_s,
+            "rate_hz": src.rate_hz,
+            "terms": terms,
+            "supported": warn_msg is None,
+            "warning": warn_msg,
+            "support": support,
+        },
+        "floors": [
+            {
+                "noise": f[0],
+                "floor_rms_deg": f[1],
+                "floor_final_deg": f[2],
+                "pred_rms_deg_2s": f[3],
+                "pred_final_deg_2s": f[4],
+            }
+            for f in floors
+        ],
         "how_long": how_json,
-        "targets": {t.name: (None if chosen[t.name] is None else
-                             {k: v for k, v in chosen[t.name].items() if k != "pred"}) for t in TARGETS},
+        "targets": {
+            t.name: (None if chosen[t.name] is None else {k: v for k, v in chosen[t.name].items() if k != "pred"})
+            for t in TARGETS
+        },
         "grid": [{k: v for k, v in r.items() if k != "pred"} for r in rows],
         "table_candidates": [{k: v for k, v in c.items() if k != "se"} for c in cand_t],
         "thermal_candidates": [{k: v for k, v in c.items() if k != "se"} for c in cand_h],
@@ -1088,6 +1450,11 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
         "design_unit_seed": int(unit),
         "airborne_s": airborne,
     }
-    return ExperimentResult(name="protocol", title="Protocol design: how long to calibrate for a drift target",
-                            markdown="\n".join(md), figures=(fig0p, figp), summary=summary,
-                            wall_s=time.perf_counter() - t0)
+    return ExperimentResult(
+        name="protocol",
+        title="Protocol design: how long to calibrate for a drift target",
+        markdown="\n".join(md),
+        figures=(fig0p, figp),
+        summary=summary,
+        wall_s=time.perf_counter() - t0,
+    )

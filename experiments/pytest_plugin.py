@@ -22,10 +22,13 @@ import pytest
 
 def pytest_addoption(parser):
     group = parser.getgroup("gyroharness", "gyroharness calibration contract")
-    group.addoption("--gyroharness-workers", type=int, default=1,
-                    help="worker processes for the gyroharness_check fixture (default 1)")
-    group.addoption("--gyroharness-junit", default=None,
-                    help="also write the gate's JUnit XML to this file")
+    group.addoption(
+        "--gyroharness-workers",
+        type=int,
+        default=1,
+        help="worker processes for the gyroharness_check fixture (default 1)",
+    )
+    group.addoption("--gyroharness-junit", default=None, help="also write the gate's JUnit XML to this file")
 
 
 @pytest.fixture
@@ -36,8 +39,7 @@ def gyroharness_check(request):
     workers = request.config.getoption("--gyroharness-workers")
     junit = request.config.getoption("--gyroharness-junit")
 
-    def check(contract, *, calibrator=None, fit_cmd=None, apply_cmd=None, timeout_s=None, units=None,
-              expect_pass=True):
+    def check(contract, *, calibrator=None, fit_cmd=None, apply_cmd=None, timeout_s=None, units=None, expect_pass=True):
         from experiments import score as SC
         from gyrocore.data.recording import atomic_write_text
 

@@ -100,7 +100,7 @@ def fmt(v: Any, digits: int = 3) -> str:
         f = float(v)
         if not math.isfinite(f):
             return "—"
-        if f != 0 and (abs(f) < 10 ** -(digits) or abs(f) >= 10 ** (digits + 3)):
+        if f != 0 and (abs(f) < 10**-(digits) or abs(f) >= 10 ** (digits + 3)):
             return f"{f:.{digits - 1}e}"
         return f"{f:.{digits}g}" if abs(f) < 10**digits else f"{f:.0f}"
     return str(v)
@@ -228,8 +228,7 @@ class ReportIncomplete(GyroInputError):
     status table); the previous report at the target was not touched.
     """
 
-    def __init__(self, message: str, *, partial: Path | None, statuses: Sequence[SectionStatus],
-                 interrupted: bool):
+    def __init__(self, message: str, *, partial: Path | None, statuses: Sequence[SectionStatus], interrupted: bool):
         super().__init__(message)
         self.partial = partial
         self.statuses = tuple(statuses)
@@ -252,9 +251,23 @@ def _write_section(stage: Path, r: ExperimentResult, cpu_s: float) -> None:
     d = stage / SECTIONS_DIR
     d.mkdir(exist_ok=True)
     atomic_write_text(d / f"{r.name}.md", f"## {r.title}\n\n{r.markdown.strip()}\n")
-    atomic_write_text(d / f"{r.name}.json", json.dumps(to_jsonable(
-        {"name": r.name, "title": r.title, "wall_s": r.wall_s, "cpu_s": cpu_s, "figures": list(r.figures),
-         "summary": r.summary}), indent=2, allow_nan=False))
+    atomic_write_text(
+        d / f"{r.name}.json",
+        json.dumps(
+            to_jsonable(
+                {
+                    "name": r.name,
+                    "title": r.title,
+                    "wall_s": r.wall_s,
+                    "cpu_s": cpu_s,
+                    "figures": list(r.figures),
+                    "summary": r.summary,
+                }
+            ),
+            indent=2,
+            allow_nan=False,
+        ),
+    )
 
 
 def _anchor(title: str) -> str:
@@ -262,9 +275,17 @@ def _anchor(title: str) -> str:
     return "".join(c for c in a if c.isalnum() or c in "-_")
 
 
-def _assemble(stage: Path, results: Sequence[ExperimentResult], statuses: Sequence[SectionStatus], *, title: str,
-              preamble: str, total_wall_s: float, total_cpu_s: float,
-              sections: Sequence[str] | None = None) -> None:
+def _assemble(
+    stage: Path,
+    results: Sequence[ExperimentResult],
+    statuses: Sequence[SectionStatus],
+    *,
+    title: str,
+    preamble: str,
+    total_wall_s: float,
+    total_cpu_s: float,
+    sections: Sequence[str] | None = None,
+) -> None:
     """report.md (contents with each section's time and state, then the sections) and summary.json.
 
     ``sections[i]`` is the name of the section that produced ``results[i]`` (a section may name its
@@ -277,9 +298,13 @@ def _assemble(stage: Path, results: Sequence[ExperimentResult], statuses: Sequen
     complete = all(s.state == "done" for s in statuses)
     parts = [f"# {title}\n", preamble.strip() + "\n" if preamble else ""]
     if not complete:
-        parts.append("**Incomplete run**: " + "; ".join(
-            f"`{s.name}` {s.state}" + (f" ({s.error})" if s.error else "") for s in statuses if s.state != "done")
-            + ". The finished sections follow.\n")
+        parts.append(
+            "**Incomplete run**: "
+            + "; ".join(
+                f"`{s.name}` {s.state}" + (f" ({s.error})" if s.error else "") for s in statuses if s.state != "done"
+            )
+            + ". The finished sections follow.\n"
+        )
     parts.append("## Contents\n")
     for s in statuses:
         r = by.get(s.name)
@@ -287,17 +312,30 @@ def _assemble(stage: Path, results: Sequence[ExperimentResult], statuses: Sequen
             parts.append(f"- [{r.title}](#{_anchor(r.title)}) — `{r.name}`, {s.wall_s:.1f} s wall, {s.cpu_s:.1f} s CPU")
         else:
             parts.append(f"- `{s.name}` — {s.state}" + (f": {s.error}" if s.error else ""))
-    parts.append(f"\nTotal {total_wall_s:.1f} s wall, {total_cpu_s:.1f} s CPU (user + system, worker processes "
-                 "included).\n")
+    parts.append(
+        f"\nTotal {total_wall_s:.1f} s wall, {total_cpu_s:.1f} s CPU (user + system, worker processes included).\n"
+    )
     for r in results:
         parts.append(f"## {r.title}\n\n{r.markdown.strip()}\n")
     atomic_write_text(stage / "report.md", "\n".join(parts))
-    doc = {"complete": complete, "wall_s": total_wall_s, "cpu_s": total_cpu_s,
-           "sections": {s.name: {"state": s.state, "wall_s": s.wall_s, "cpu_s": s.cpu_s, "error": s.error}
-                        for s in statuses},
-           "experiments": {r.name: {"title": r.title, "wall_s": r.wall_s, "cpu_s": by_cpu, "figures": list(r.figures),
-                                    "summary": r.summary}
-                           for r, by_cpu in ((r, cpu_of.get(sec, float("nan"))) for sec, r in zip(sections, results))}}
+    doc = {
+        "complete": complete,
+        "wall_s": total_wall_s,
+        "cpu_s": total_cpu_s,
+        "sections": {
+            s.name: {"state": s.state, "wall_s": s.wall_s, "cpu_s": s.cpu_s, "error": s.error} for s in statuses
+        },
+        "experiments": {
+            r.name: {
+                "title": r.title,
+                "wall_s": r.wall_s,
+                "cpu_s": by_cpu,
+                "figures": list(r.figures),
+                "summary": r.summary,
+            }
+            for r, by_cpu in ((r, cpu_of.get(sec, float("nan"))) for sec, r in zip(sections, results))
+        },
+    }
     atomic_write_text(stage / "summary.json", json.dumps(to_jsonable(doc), indent=2, allow_nan=False))
 
 
@@ -400,8 +438,16 @@ def build_report(
             if on_done is not None:
                 on_done(st)
         total_wall, total_cpu = time.perf_counter() - t0, cpu_seconds() - c0
-        _assemble(stage, results, statuses, title=title, preamble=preamble, total_wall_s=total_wall,
-                  total_cpu_s=total_cpu, sections=result_sections)
+        _assemble(
+            stage,
+            results,
+            statuses,
+            title=title,
+            preamble=preamble,
+            total_wall_s=total_wall,
+            total_cpu_s=total_cpu,
+            sections=result_sections,
+        )
         bad = [s for s in statuses if s.state != "done"]
         if not bad:
             publish_folder(stage, target, force=force)
@@ -417,7 +463,10 @@ def build_report(
     head = "; ".join(f"section {s.name} {s.state}" + (f": {s.error}" if s.error else "") for s in failed)
     not_run = [s.name for s in bad if s.state == "not run"]
     done = [s.name for s in statuses if s.state == "done"]
-    msg = (head + (f"; not run: {', '.join(not_run)}" if not_run else "")
-           + f"; finished sections ({', '.join(done) or 'none'}) kept in {partial}"
-           + (f"; the previous report in {target} is unchanged" if target.exists() else ""))
+    msg = (
+        head
+        + (f"; not run: {', '.join(not_run)}" if not_run else "")
+        + f"; finished sections ({', '.join(done) or 'none'}) kept in {partial}"
+        + (f"; the previous report in {target} is unchanged" if target.exists() else "")
+    )
     raise ReportIncomplete(msg, partial=partial, statuses=statuses, interrupted=interrupted)

@@ -111,8 +111,11 @@ def make_routine(spec: Mapping[str, Any]):
             return load_calibrator(name)
         return IsolatedCalibrator(name, timeout_s=float(spec.get("timeout_s", 120.0)))
     if spec.get("fit_cmd") and spec.get("apply_cmd"):
-        return CommandCalibrator(fit_cmd=str(spec["fit_cmd"]), apply_cmd=str(spec["apply_cmd"]),
-                                 timeout_s=float(spec.get("timeout_s", 120.0)))
+        return CommandCalibrator(
+            fit_cmd=str(spec["fit_cmd"]),
+            apply_cmd=str(spec["apply_cmd"]),
+            timeout_s=float(spec.get("timeout_s", 120.0)),
+        )
     raise GyroInputError("give a calibrator: --calibrator NAME|module:factory, or both --fit-cmd and --apply-cmd")
 
 
@@ -146,10 +149,18 @@ def _predicted_rms_deg(res, core_params, present, still, start: int) -> float:
         return float("nan")
 
 
-def score_unit(scenario: str, *, routine_spec: Mapping[str, Any], sensor: str = "icm42688p", seed: int = 0,
-               instance: int = 0, duration_s: float | None = None, quick: bool = True,
-               calibration_durations_s: tuple[float | None, float | None] | None = None,
-               cache_dir: str | None = None) -> UnitScore:
+def score_unit(
+    scenario: str,
+    *,
+    routine_spec: Mapping[str, Any],
+    sensor: str = "icm42688p",
+    seed: int = 0,
+    instance: int = 0,
+    duration_s: float | None = None,
+    quick: bool = True,
+    calibration_durations_s: tuple[float | None, float | None] | None = None,
+    cache_dir: str | None = None,
+) -> UnitScore:
     """Score the user's routine on one unit in one scenario (needs :mod:`sim`).
 
     ``quick`` uses the quick calibration runs (120-s table, 300-s thermal; the ablation's
@@ -161,8 +172,7 @@ def score_unit(scenario: str, *, routine_spec: Mapping[str, Any], sensor: str = 
     from sim import scenarios as S
 
     from . import ablation as A
-    from .calibrators import (CoreCalibrator, RoutineFailure, calibration_recordings, run_routine,
-                              strip_truth)
+    from .calibrators import CoreCalibrator, RoutineFailure, calibration_recordings, run_routine, strip_truth
 
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -173,11 +183,14 @@ def score_unit(scenario: str, *, routine_spec: Mapping[str, Any], sensor: str = 
     cal_raw = calibration_recordings(sensor, seed, quick=quick, durations_s=calibration_durations_s)
     cal = [strip_truth(r, references=True) for r in cal_raw]
     scored = strip_truth(rec, references=False)
-    core_params = A.calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir,
-                                   durations_s=calibration_durations_s)
-    variants = {"none": rec.gyro_rad_s,
-                "core": CoreCalibrator(effects=present).apply(scored, core_params),
-                "floor": S.floor_gyro(res)}
+    core_params = A.calibrate_core(
+        sensor, seed, present, quick=quick, cache_dir=cache_dir, durations_s=calibration_durations_s
+    )
+    variants = {
+        "none": rec.gyro_rad_s,
+        "core": CoreCalibrator(effects=present).apply(scored, core_params),
+        "floor": S.floor_gyro(res),
+    }
     failed = None
     try:
         variants["user"] = run_routine(make_routine(routine_spec), cal, [scored])[0]
@@ -192,11 +205,16 @@ def score_unit(scenario: str, *, routine_spec: Mapping[str, Any], sensor: str = 
     idx = np.clip(np.round(np.asarray(CURVE_FRACTIONS) * (t.size - 1)).astype(int), 0, t.size - 1)
     nan = float("nan")
     return UnitScore(
-        scenario=scenario, sensor=sensor, instance=int(instance), seed=int(seed),
+        scenario=scenario,
+        sensor=sensor,
+        instance=int(instance),
+        seed=int(seed),
         rms_deg={r: (sc[r][0].rms_error_deg if r in sc else nan) for r in ROWS},
         final_deg={r: (sc[r][0].final_error_deg if r in sc else nan) for r in ROWS},
         rms_predicted_deg=_predicted_rms_deg(res, core_params, present, still, start),
-        failed=failed, wall_s=time.perf_counter() - t0, t_s=tuple(float(x) for x in t[idx]),
+        failed=failed,
+        wall_s=time.perf_counter() - t0,
+        t_s=tuple(float(x) for x in t[idx]),
         curves_deg={r: tuple(float(x) for x in np.degrees(sc[r][1][idx])) for r in ROWS if r in sc},
     )
 
@@ -241,11 +259,19 @@ def describe_spec(spec: Mapping[str, Any]) -> str:
     return f"fit: {spec.get('fit_cmd')} | apply: {spec.get('apply_cmd')}"
 
 
-def score_campaign(*, routine_spec: Mapping[str, Any], scenarios: Sequence[str] = DEFAULT_SCENARIOS,
-                   sensor: str = "icm42688p", units: int = DEFAULT_UNITS, seed: int = 0,
-                   durations_s: Mapping[str, float | None] | None = None, quick: bool = True,
-                   calibration_durations_s: tuple[float | None, float | None] | None = None,
-                   workers: int | None = 1, progress: bool = False) -> ScoreCampaign:
+def score_campaign(
+    *,
+    routine_spec: Mapping[str, Any],
+    scenarios: Sequence[str] = DEFAULT_SCENARIOS,
+    sensor: str = "icm42688p",
+    units: int = DEFAULT_UNITS,
+    seed: int = 0,
+    durations_s: Mapping[str, float | None] | None = None,
+    quick: bool = True,
+    calibration_durations_s: tuple[float | None, float | None] | None = None,
+    workers: int | None = 1,
+    progress: bool = False,
+) -> ScoreCampaign:
     """Score a routine over ``units`` units × ``scenarios`` (worker processes if ``workers`` > 1)."""
     import shutil
     import tempfile
@@ -262,9 +288,23 @@ def score_campaign(*, routine_spec: Mapping[str, Any], scenarios: Sequence[str] 
     seeds = instance_seeds(int(seed), int(units))
     t0 = time.perf_counter()
     cache = tempfile.mkdtemp(prefix="gyroharness-score-cache-")
-    jobs = [(sc, dict(routine_spec=dict(routine_spec), sensor=sensor, seed=s, instance=i, duration_s=durations[sc],
-                      quick=quick, calibration_durations_s=calibration_durations_s, cache_dir=cache))
-            for sc in scenarios for i, s in enumerate(seeds)]
+    jobs = [
+        (
+            sc,
+            dict(
+                routine_spec=dict(routine_spec),
+                sensor=sensor,
+                seed=s,
+                instance=i,
+                duration_s=durations[sc],
+                quick=quick,
+                calibration_durations_s=calibration_durations_s,
+                cache_dir=cache,
+            ),
+        )
+        for sc in scenarios
+        for i, s in enumerate(seeds)
+    ]
     n_workers = max(1, min(int(workers or os.cpu_count() or 1), len(jobs)))
     try:
         if n_workers == 1:
@@ -273,8 +313,15 @@ def score_campaign(*, routine_spec: Mapping[str, Any], scenarios: Sequence[str] 
                 results.append(_score_task(j))
                 if progress:
                     u = results[-1]
-                    print(f"{u.scenario} unit {u.instance}: " + (f"FAILED {u.failed}" if u.failed else
-                          f"user {u.rms_deg['user']:.4g}°, core {u.rms_deg['core']:.4g}°"), flush=True)
+                    print(
+                        f"{u.scenario} unit {u.instance}: "
+                        + (
+                            f"FAILED {u.failed}"
+                            if u.failed
+                            else f"user {u.rms_deg['user']:.4g}°, core {u.rms_deg['core']:.4g}°"
+                        ),
+                        flush=True,
+                    )
         else:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
@@ -283,10 +330,19 @@ def score_campaign(*, routine_spec: Mapping[str, Any], scenarios: Sequence[str] 
                 results = list(ex.map(_score_task, jobs))
     finally:
         shutil.rmtree(cache, ignore_errors=True)
-    return ScoreCampaign(calibrator=describe_spec(routine_spec), sensor=sensor, seed=int(seed), units=int(units),
-                         scenarios=scenarios, durations_s=durations, quick=bool(quick), results=tuple(results),
-                         calibration_s=None if calibration_durations_s is None else tuple(calibration_durations_s),
-                         wall_s=time.perf_counter() - t0, workers=n_workers)
+    return ScoreCampaign(
+        calibrator=describe_spec(routine_spec),
+        sensor=sensor,
+        seed=int(seed),
+        units=int(units),
+        scenarios=scenarios,
+        durations_s=durations,
+        quick=bool(quick),
+        results=tuple(results),
+        calibration_s=None if calibration_durations_s is None else tuple(calibration_durations_s),
+        wall_s=time.perf_counter() - t0,
+        workers=n_workers,
+    )
 
 
 def _med(x) -> float:
@@ -329,12 +385,25 @@ def campaign_json(c: ScoreCampaign) -> dict:
     """``gyroharness score --json``: DESIGN.md's ``{"scenarios": {NAME: {...}}}`` plus the run's setup."""
     return {
         "format_version": c.format_version,
-        "calibrator": c.calibrator, "sensor": c.sensor, "seed": c.seed, "units": c.units, "quick": c.quick,
+        "calibrator": c.calibrator,
+        "sensor": c.sensor,
+        "seed": c.seed,
+        "units": c.units,
+        "quick": c.quick,
         "calibration_s": None if c.calibration_s is None else list(c.calibration_s),
         "scenarios": {sc: scenario_summary(c.of(sc)) for sc in c.scenarios},
-        "per_unit": [{"scenario": u.scenario, "unit": u.instance, "seed": u.seed,
-                      **{f"rms_{r}_deg": u.rms_deg[r] for r in ROWS}, "failed": u.failed} for u in c.results],
-        "wall_s": c.wall_s, "workers": c.workers,
+        "per_unit": [
+            {
+                "scenario": u.scenario,
+                "unit": u.instance,
+                "seed": u.seed,
+                **{f"rms_{r}_deg": u.rms_deg[r] for r in ROWS},
+                "failed": u.failed,
+            }
+            for u in c.results
+        ],
+        "wall_s": c.wall_s,
+        "workers": c.workers,
     }
 
 
@@ -353,13 +422,20 @@ def score_figure(c: ScoreCampaign, out_dir) -> str:
             v = v[np.isfinite(v) & (v > 0)]
             x = i - 0.4 + (j + 0.5) * width
             if v.size:
-                ax.scatter(np.full(v.size, x), v, s=12, color=colors[r], alpha=0.7,
-                           label=r if i == 0 else None)
+                ax.scatter(np.full(v.size, x), v, s=12, color=colors[r], alpha=0.7, label=r if i == 0 else None)
                 ax.hlines(np.median(v), x - width / 2, x + width / 2, color=colors[r])
             nf = sum(1 for u in c.of(sc) if u.failed) if r == "user" else 0
             if nf:
-                ax.annotate(f"{nf} failed", (x, 1.0), xycoords=("data", "axes fraction"), ha="center", va="top",
-                            fontsize=7, color=colors[r], rotation=90)
+                ax.annotate(
+                    f"{nf} failed",
+                    (x, 1.0),
+                    xycoords=("data", "axes fraction"),
+                    ha="center",
+                    va="top",
+                    fontsize=7,
+                    color=colors[r],
+                    rotation=90,
+                )
     ax.set_xticks(range(len(c.scenarios)), c.scenarios, rotation=20)
     ax.set_yscale("log")
     ax.set_ylabel("RMS attitude error, deg")
@@ -384,22 +460,46 @@ def report_markdown(c: ScoreCampaign, figure: str | None = None, check: "CheckRe
     for sc in c.scenarios:
         s = scenario_summary(c.of(sc))
         have_pred |= "rms_predicted_deg" in s
-        rows.append((sc, s["units"], len(s["failed_units"]), s["rms_none_deg"], s["rms_core_deg"],
-                     s["rms_user_deg"], f"{s['rms_user_deg_p10']:.3g}–{s['rms_user_deg_p90']:.3g}",
-                     s["rms_floor_deg"], s.get("rms_predicted_deg", float("nan")), s["ratio_to_floor"],
-                     s["ratio_to_core"]))
-    hdr = ["scenario", "units", "failed", "none, °", "core, °", "user, °", "user p10–p90, °", "floor, °",
-           "predicted (core), °", "user/floor", "user/core"]
+        rows.append(
+            (
+                sc,
+                s["units"],
+                len(s["failed_units"]),
+                s["rms_none_deg"],
+                s["rms_core_deg"],
+                s["rms_user_deg"],
+                f"{s['rms_user_deg_p10']:.3g}–{s['rms_user_deg_p90']:.3g}",
+                s["rms_floor_deg"],
+                s.get("rms_predicted_deg", float("nan")),
+                s["ratio_to_floor"],
+                s["ratio_to_core"],
+            )
+        )
+    hdr = [
+        "scenario",
+        "units",
+        "failed",
+        "none, °",
+        "core, °",
+        "user, °",
+        "user p10–p90, °",
+        "floor, °",
+        "predicted (core), °",
+        "user/floor",
+        "user/core",
+    ]
     if not have_pred:
         hdr = hdr[:8] + hdr[9:]
         rows = [r[:8] + r[9:] for r in rows]
-    md = [f"## Score: {c.calibrator}\n",
-          f"Sensor {c.sensor}, {c.units} units per scenario (campaign seed {c.seed}, the ablation's units), "
-          f"{_cal_text(c)} calibration runs. RMS attitude error against the truth, median over units, "
-          "integrated from the true attitude at the end of the power-up still window: no correction, the "
-          "gyroharness core through the same door, the user's routine, the floor (truth + the unit's own noise). "
-          "Ratios are medians of per-unit ratios.\n",
-          md_table(hdr, rows)]
+    md = [
+        f"## Score: {c.calibrator}\n",
+        f"Sensor {c.sensor}, {c.units} units per scenario (campaign seed {c.seed}, the ablation's units), "
+        f"{_cal_text(c)} calibration runs. RMS attitude error against the truth, median over units, "
+        "integrated from the true attitude at the end of the power-up still window: no correction, the "
+        "gyroharness core through the same door, the user's routine, the floor (truth + the unit's own noise). "
+        "Ratios are medians of per-unit ratios.\n",
+        md_table(hdr, rows),
+    ]
     fails = [u for u in c.results if u.failed]
     if fails:
         md.append("\nFailed units:\n")
@@ -433,8 +533,12 @@ def write_report(c: ScoreCampaign, out_dir, check: "CheckResult | None" = None) 
 
 # ------------------------------------------------------------------------------ the contract (CI gate)
 BOUND_KEYS = ("max_rms_deg", "max_ratio_to_floor", "max_ratio_to_none", "max_ratio_to_core")
-_METRIC_OF = {"max_rms_deg": ("rms_user_deg", "RMS error", "°"), "max_ratio_to_floor": ("ratio_to_floor", "RMS/floor", ""),
-              "max_ratio_to_none": ("ratio_to_none", "RMS/none", ""), "max_ratio_to_core": ("ratio_to_core", "RMS/core", "")}
+_METRIC_OF = {
+    "max_rms_deg": ("rms_user_deg", "RMS error", "°"),
+    "max_ratio_to_floor": ("ratio_to_floor", "RMS/floor", ""),
+    "max_ratio_to_none": ("ratio_to_none", "RMS/none", ""),
+    "max_ratio_to_core": ("ratio_to_core", "RMS/core", ""),
+}
 
 
 @dataclass(frozen=True)
@@ -495,8 +599,10 @@ def load_contract(path) -> Contract:
             raise GyroInputError(f"{path}: scenario.{name} must be a table of bounds")
         bad = set(b) - set(BOUND_KEYS) - {"duration_s"}
         if bad:
-            raise GyroInputError(f"{path}: scenario.{name}: unknown key(s) {', '.join(sorted(bad))}; "
-                                 f"bounds are {', '.join(BOUND_KEYS)} (and duration_s)")
+            raise GyroInputError(
+                f"{path}: scenario.{name}: unknown key(s) {', '.join(sorted(bad))}; "
+                f"bounds are {', '.join(BOUND_KEYS)} (and duration_s)"
+            )
         bb = {}
         for k in BOUND_KEYS:
             if k in b:
@@ -518,11 +624,13 @@ def load_contract(path) -> Contract:
             raise GyroInputError(f"{path}: {k} must be an integer >= {1 if k == 'units' else 0}, got {v!r}")
     cal = d.get("calibration", "quick")
     if cal not in ("quick", "full"):
-        raise GyroInputError(f"{path}: calibration must be \"quick\" or \"full\", got {cal!r}")
+        raise GyroInputError(f'{path}: calibration must be "quick" or "full", got {cal!r}')
     cal_s = d.get("calibration_s")
-    if cal_s is not None and not (isinstance(cal_s, list) and len(cal_s) == 2
-                                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0
-                                          for v in cal_s)):
+    if cal_s is not None and not (
+        isinstance(cal_s, list)
+        and len(cal_s) == 2
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in cal_s)
+    ):
         raise GyroInputError(f"{path}: calibration_s must be [table_s, thermal_s], got {cal_s!r}")
     c = d.get("calibrator", {}) or {}
     if not isinstance(c, dict) or set(c) - {"fit_cmd", "apply_cmd", "python"}:
@@ -531,14 +639,22 @@ def load_contract(path) -> Contract:
     timeout = d.get("timeout_s", 120.0)
     if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
         raise GyroInputError(f"{path}: timeout_s must be a positive number, got {timeout!r}")
-    return Contract(path=str(path), sensor=str(d.get("sensor", "icm42688p")), units=int(units), seed=int(seed),
-                    quick=(cal == "quick"), timeout_s=float(timeout),
-                    calibration_s=None if cal_s is None else (float(cal_s[0]), float(cal_s[1])),
-                    calibrator={k: v for k, v in spec.items() if v}, scenarios=bounds, durations_s=durations)
+    return Contract(
+        path=str(path),
+        sensor=str(d.get("sensor", "icm42688p")),
+        units=int(units),
+        seed=int(seed),
+        quick=(cal == "quick"),
+        timeout_s=float(timeout),
+        calibration_s=None if cal_s is None else (float(cal_s[0]), float(cal_s[1])),
+        calibrator={k: v for k, v in spec.items() if v},
+        scenarios=bounds,
+        durations_s=durations,
+    )
 
 
 def _binom_tail(n: int, p: float, k_min: int) -> float:
-    return float(sum(math.comb(n, k) * p ** k * (1 - p) ** (n - k) for k in range(k_min, n + 1)))
+    return float(sum(math.comb(n, k) * p**k * (1 - p) ** (n - k) for k in range(k_min, n + 1)))
 
 
 def _median_exceed_k(n: int) -> int:
@@ -594,8 +710,9 @@ class BoundCheck:
 
     def line(self) -> str:
         metric, label, unit = _METRIC_OF[self.bound]
-        return (f"{self.scenario}: {label} {self.value:.4g}{unit} > {self.bound} {self.limit:.4g}{unit} "
-                f"(median over units)")
+        return (
+            f"{self.scenario}: {label} {self.value:.4g}{unit} > {self.bound} {self.limit:.4g}{unit} (median over units)"
+        )
 
 
 @dataclass(frozen=True)
@@ -620,21 +737,38 @@ class CheckResult:
     def markdown(self) -> str:
         from .report import md_table
 
-        rows = [(c.scenario, c.bound, c.limit, c.value, "pass" if c.passed else "**FAIL**",
-                 f"{c.false_failure_rate:.2g}" if math.isfinite(c.false_failure_rate) else "n/a") for c in self.checks]
+        rows = [
+            (
+                c.scenario,
+                c.bound,
+                c.limit,
+                c.value,
+                "pass" if c.passed else "**FAIL**",
+                f"{c.false_failure_rate:.2g}" if math.isfinite(c.false_failure_rate) else "n/a",
+            )
+            for c in self.checks
+        ]
         verdict = "PASSED" if self.passed else "FAILED"
-        return (f"Contract `{self.contract}`: **{verdict}**.\n\n"
-                + md_table(["scenario", "bound", "limit", "median over units", "verdict",
-                            "false-failure rate (fresh units)"], rows)
-                + "\nFalse-failure rate: probability that the median over as many fresh units exceeds the bound if "
-                  "the routine is as measured here (log-normal over units, plug-in mean/sd; see docs/score.md). With "
-                  "the contract's fixed seed the gate itself is deterministic.\n")
+        return (
+            f"Contract `{self.contract}`: **{verdict}**.\n\n"
+            + md_table(
+                ["scenario", "bound", "limit", "median over units", "verdict", "false-failure rate (fresh units)"], rows
+            )
+            + "\nFalse-failure rate: probability that the median over as many fresh units exceeds the bound if "
+            "the routine is as measured here (log-normal over units, plug-in mean/sd; see docs/score.md). With "
+            "the contract's fixed seed the gate itself is deterministic.\n"
+        )
 
     def to_json(self) -> dict:
-        return {"contract": self.contract, "passed": self.passed, "lines": self.lines(),
-                "checks": [asdict(c) for c in self.checks],
-                "failed_units": [{"scenario": sc, "unit": i, "seed": s, "reason": why}
-                                 for sc, i, s, why in self.failed_units]}
+        return {
+            "contract": self.contract,
+            "passed": self.passed,
+            "lines": self.lines(),
+            "checks": [asdict(c) for c in self.checks],
+            "failed_units": [
+                {"scenario": sc, "unit": i, "seed": s, "reason": why} for sc, i, s, why in self.failed_units
+            ],
+        }
 
 
 def evaluate(contract: Contract, campaign: ScoreCampaign) -> CheckResult:
@@ -647,17 +781,28 @@ def evaluate(contract: Contract, campaign: ScoreCampaign) -> CheckResult:
         for k, limit in bounds.items():
             metric = _METRIC_OF[k][0]
             value = s[metric]
-            per_unit = [u.rms_deg["user"] if k == "max_rms_deg" else u.ratio(metric[len("ratio_to_"):]) for u in ok]
+            per_unit = [u.rms_deg["user"] if k == "max_rms_deg" else u.ratio(metric[len("ratio_to_") :]) for u in ok]
             passed = bool(math.isfinite(value) and value <= limit)
-            checks.append(BoundCheck(sc, k, limit, value, passed,
-                                     false_failure_rate(per_unit, limit, contract.units)))
+            checks.append(BoundCheck(sc, k, limit, value, passed, false_failure_rate(per_unit, limit, contract.units)))
     failed = tuple((u.scenario, u.instance, u.seed, u.failed) for u in campaign.results if u.failed)
-    return CheckResult(contract=contract.path, checks=tuple(checks), failed_units=failed, campaign=campaign,
-                       contract_units=contract.units)
+    return CheckResult(
+        contract=contract.path,
+        checks=tuple(checks),
+        failed_units=failed,
+        campaign=campaign,
+        contract_units=contract.units,
+    )
 
 
-def check_contract(contract, *, routine_spec: Mapping[str, Any] | None = None, workers: int | None = 1,
-                   units: int | None = None, seed: int | None = None, progress: bool = False) -> CheckResult:
+def check_contract(
+    contract,
+    *,
+    routine_spec: Mapping[str, Any] | None = None,
+    workers: int | None = 1,
+    units: int | None = None,
+    seed: int | None = None,
+    progress: bool = False,
+) -> CheckResult:
     """Run the contract's campaign for a routine and check every bound (``gyroharness check``).
 
     ``routine_spec`` (``{"calibrator": …}`` or ``{"fit_cmd": …, "apply_cmd": …}``) overrides the
@@ -668,12 +813,22 @@ def check_contract(contract, *, routine_spec: Mapping[str, Any] | None = None, w
     spec = dict(routine_spec or {})
     spec = {k: v for k, v in spec.items() if v} or dict(c.calibrator)
     if not spec:
-        raise GyroInputError(f"{c.path}: no calibrator: give --calibrator or --fit-cmd/--apply-cmd, "
-                             "or a [calibrator] section")
+        raise GyroInputError(
+            f"{c.path}: no calibrator: give --calibrator or --fit-cmd/--apply-cmd, or a [calibrator] section"
+        )
     spec.setdefault("timeout_s", c.timeout_s)
-    camp = score_campaign(routine_spec=spec, scenarios=tuple(c.scenarios), sensor=c.sensor,
-                          units=units or c.units, seed=c.seed if seed is None else int(seed), durations_s=c.durations_s, quick=c.quick,
-                          calibration_durations_s=c.calibration_s, workers=workers, progress=progress)
+    camp = score_campaign(
+        routine_spec=spec,
+        scenarios=tuple(c.scenarios),
+        sensor=c.sensor,
+        units=units or c.units,
+        seed=c.seed if seed is None else int(seed),
+        durations_s=c.durations_s,
+        quick=c.quick,
+        calibration_durations_s=c.calibration_s,
+        workers=workers,
+        progress=progress,
+    )
     return evaluate(c, camp)
 
 
@@ -683,17 +838,30 @@ def junit_xml(result: CheckResult) -> str:
 
     cases = []
     for c in result.checks:
-        cases.append((f"{c.scenario}.{c.bound}", None if c.passed else c.line(),
-                      f"median {c.value:.6g} vs limit {c.limit:.6g}; false-failure rate {c.false_failure_rate:.3g}"))
+        cases.append(
+            (
+                f"{c.scenario}.{c.bound}",
+                None if c.passed else c.line(),
+                f"median {c.value:.6g} vs limit {c.limit:.6g}; false-failure rate {c.false_failure_rate:.3g}",
+            )
+        )
     for sc, i, s, why in result.failed_units:
         cases.append((f"{sc}.unit{i}", f"{sc}: unit {i} (seed {s}) failed: {why}", ""))
     n_fail = sum(1 for _, f, _ in cases if f)
     wall = result.campaign.wall_s if result.campaign else 0.0
-    suite = ET.Element("testsuite", name="gyroharness-check", tests=str(len(cases)), failures=str(n_fail),
-                       errors="0", skipped="0", time=f"{wall:.3f}")
+    suite = ET.Element(
+        "testsuite",
+        name="gyroharness-check",
+        tests=str(len(cases)),
+        failures=str(n_fail),
+        errors="0",
+        skipped="0",
+        time=f"{wall:.3f}",
+    )
     for name, failure, info in cases:
-        tc = ET.SubElement(suite, "testcase", classname=f"gyroharness.{Path(result.contract).stem}", name=name,
-                           time="0")
+        tc = ET.SubElement(
+            suite, "testcase", classname=f"gyroharness.{Path(result.contract).stem}", name=name, time="0"
+        )
         if failure:
             f = ET.SubElement(tc, "failure", message=failure, type="BoundBroken")
             f.text = failure
@@ -715,6 +883,6 @@ def suggestions(result: CheckResult, rate: float) -> dict:
     for c in result.checks:
         ok = [u for u in camp.of(c.scenario) if not u.failed]
         metric = _METRIC_OF[c.bound][0]
-        vals = [u.rms_deg["user"] if c.bound == "max_rms_deg" else u.ratio(metric[len("ratio_to_"):]) for u in ok]
+        vals = [u.rms_deg["user"] if c.bound == "max_rms_deg" else u.ratio(metric[len("ratio_to_") :]) for u in ok]
         out.setdefault(c.scenario, {})[c.bound] = suggest_bound(vals, n, rate)
     return out

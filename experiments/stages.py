@@ -15,13 +15,31 @@ import numpy as np
 
 from gyrocore.effects import registry as E
 
-__all__ = ["TABLE_EFFECTS", "THERMAL_EFFECTS", "THERMAL_NUISANCE", "POWERUP_WINDOW_S", "POWERUP_SEARCH_S",
-           "SE_SUFFIX", "corrected_gyro", "powerup_window", "powerup_windows", "bias_bound_rad_s"]
+__all__ = [
+    "TABLE_EFFECTS",
+    "THERMAL_EFFECTS",
+    "THERMAL_NUISANCE",
+    "POWERUP_WINDOW_S",
+    "POWERUP_SEARCH_S",
+    "SE_SUFFIX",
+    "corrected_gyro",
+    "powerup_window",
+    "powerup_windows",
+    "bias_bound_rad_s",
+]
 
 
 #: Effects fitted on the rate-table run (constant temperature) and on the thermal run.
-TABLE_EFFECTS = ("bias", "scale", "misalignment", "g_sensitivity", "scale_asymmetry", "scale_nonlinearity",
-                 "g2_sensitivity", "time_offset")
+TABLE_EFFECTS = (
+    "bias",
+    "scale",
+    "misalignment",
+    "g_sensitivity",
+    "scale_asymmetry",
+    "scale_nonlinearity",
+    "g2_sensitivity",
+    "time_offset",
+)
 THERMAL_EFFECTS = ("bias_thermal", "scale_thermal", "bias_temp_rate", "bias_ramp")
 #: Power-up still window (s) and how far into the recording it may be searched (s).
 POWERUP_WINDOW_S = 2.0
@@ -123,8 +141,9 @@ def _stage_from(result, stage: int) -> dict:
 SE_SUFFIX = "__se"
 
 
-def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s: float | None = None,
-                   window_s: float | None = None) -> slice | None:
+def powerup_window(
+    rec, params_true: Mapping | None = None, *, bias_bound_rad_s: float | None = None, window_s: float | None = None
+) -> slice | None:
     """The first still :data:`POWERUP_WINDOW_S` window in the first :data:`POWERUP_SEARCH_S`.
 
     Motion-gated static calibration (:class:`gyrocore.calib.bias.StaticBiasCalibrator`, variance
@@ -149,8 +168,7 @@ def powerup_window(rec, params_true: Mapping | None = None, *, bias_bound_rad_s:
         sigma = np.sqrt(var)
     win_s = POWERUP_WINDOW_S if window_s is None else float(window_s)
     n_search = max(n_search, int(min(rec.n, 2 * win_s * rate)))
-    cal = StaticBiasCalibrator(window_s=win_s, rule="mean", statistic="variance",
-                               noise_sigma_rad_s=sigma)
+    cal = StaticBiasCalibrator(window_s=win_s, rule="mean", statistic="variance", noise_sigma_rad_s=sigma)
     start = 0
     while n_search - start >= win_s * rate:
         try:
@@ -179,9 +197,9 @@ def bias_bound_rad_s(sensor: str) -> float | None:
     return 5.0 * v if v > 0 else None
 
 
-def powerup_windows(rec, params_true: Mapping | None = None, *,
-                    bias_bound_rad_s: float | None = None,
-                    window_s: float | None = None) -> list[tuple[slice, slice | None]]:
+def powerup_windows(
+    rec, params_true: Mapping | None = None, *, bias_bound_rad_s: float | None = None, window_s: float | None = None
+) -> list[tuple[slice, slice | None]]:
     """One (segment, still window) per power-up (extra column ``power_up_index``; else one).
 
     ``window_s``: still-window length, s (default :data:`POWERUP_WINDOW_S`)."""

@@ -66,8 +66,15 @@ from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
 
 from .twin_reference import Reference, _quat_R, reference_of
-from .twin_stats import (WINDOW_S, StatLayout, _attitude_windows, _pooled_adev, _span_concat, error_statistics,
-                         layout_for)
+from .twin_stats import (
+    WINDOW_S,
+    StatLayout,
+    _attitude_windows,
+    _pooled_adev,
+    _span_concat,
+    error_statistics,
+    layout_for,
+)
 
 __all__ = [
     "FORMAT_VERSION",
@@ -174,9 +181,14 @@ class TwinModel:
         def js(pd):
             return {k: np.asarray(v).tolist() for k, v in pd.items()}
 
-        return {"rate_hz": self.rate_hz, "params": {e: js(p) for e, p in self.params.items()},
-                "extra": {e: js(p) for e, p in self.extra.items()}, "sources": dict(self.sources),
-                "notes": list(self.notes), "format_version": self.format_version}
+        return {
+            "rate_hz": self.rate_hz,
+            "params": {e: js(p) for e, p in self.params.items()},
+            "extra": {e: js(p) for e, p in self.extra.items()},
+            "sources": dict(self.sources),
+            "notes": list(self.notes),
+            "format_version": self.format_version,
+        }
 
 
 _DETERMINISTIC_SKIP = {"bias_thermal", "scale_thermal"}  # need t0/range the loop table lacks
@@ -254,12 +266,18 @@ def _inputs(rec: Recording, ref: Reference, rate_hz: float):
     t = float(rec.t_s[0]) + np.arange(n) / rate_hz
     f = rec.accel_m_s2 if rec.accel_m_s2 is not None else np.tile([0.0, 0.0, 9.80665], (n, 1))
     temp = rec.temp_c if rec.temp_c is not None else np.full(n, 25.0)
-    return ModelInputs(t_s=t, omega_S_rad_s=ref.omega_S_rad_s, f_S_m_s2=np.asarray(f, float),
-                       temp_c=np.asarray(temp, float), q_SW_wxyz=np.tile([1.0, 0, 0, 0], (n, 1)))
+    return ModelInputs(
+        t_s=t,
+        omega_S_rad_s=ref.omega_S_rad_s,
+        f_S_m_s2=np.asarray(f, float),
+        temp_c=np.asarray(temp, float),
+        q_SW_wxyz=np.tile([1.0, 0, 0, 0], (n, 1)),
+    )
 
 
-def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_file: str | None = None,
-             loop_result=None) -> TwinModel:
+def identify(
+    rec: Recording, ref: Reference, *, segments: Sequence = (), params_file: str | None = None, loop_result=None
+) -> TwinModel:
     """Identify the twin of ``rec`` (see the module docstring, step 2).
 
     Parameters
@@ -286,7 +304,9 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
         from gyrocore.calib.params import load_params
 
         given = {e: dict(p) for e, p in load_params(params_file).params.items()}
-    det_given = {e: p for e, p in given.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}
+    det_given = {
+        e: p for e, p in given.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")
+    }
     if det_given:
         params.update(det_given)
         for e in det_given:
@@ -318,8 +338,10 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
             sources["quantization"] = f"lattice of first differences: LSB {lsb / DEG:.5g} °/s"
         else:
             sources["quantization"] = "none: the differences are not on a lattice (float output)"
-    notes.append("no on-chip low-pass in the twin: the simulator adds its noise after the DLPF, which would shape "
-                 "only the motion; its delay is the loop's time_offset where one was found")
+    notes.append(
+        "no on-chip low-pass in the twin: the simulator adds its noise after the DLPF, which would shape "
+        "only the motion; its delay is the loop's time_offset where one was found"
+    )
     # noise: Allan of the per-sample error signal after the deterministic model, covered spans
     noise_given = {e: p for e, p in given.items() if E.is_stochastic(e)}
     if noise_given:
@@ -358,7 +380,9 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
                 notes.append("white noise at or below the LSB rounding noise on some axis: arw set to 0 there")
             N = np.sqrt(np.clip(n2, 0.0, None))
         params["arw"] = {"n_rad_per_sqrt_s": N}
-        sources["arw"] = "identify_noise N of the covered spans" + (" (less LSB²/12 of rounding)" if lsb is not None else "")
+        sources["arw"] = "identify_noise N of the covered spans" + (
+            " (less LSB²/12 of rounding)" if lsb is not None else ""
+        )
         if np.any(B > 0):
             params["bias_instability"] = {"b_rad_s": B}
             sources["bias_instability"] = "identify_noise B (unresolved axes 0)"
@@ -369,8 +393,11 @@ def identify(rec: Recording, ref: Reference, *, segments: Sequence = (), params_
             params["correlated"] = {"sigma_rad_s": GMs, "tau_c_s": GMt}
             sources["correlated"] = "identified Gauss–Markov σ, τc (unresolved axes σ = 0)"
         if np.any(Q > 0):
-            notes.append("Allan resolves white angle noise Q = " + ", ".join(f"{q:.3g}" for q in Q)
-                         + " rad, which the catalogue simulator does not carry")
+            notes.append(
+                "Allan resolves white angle noise Q = "
+                + ", ".join(f"{q:.3g}" for q in Q)
+                + " rad, which the catalogue simulator does not carry"
+            )
     return TwinModel(rate_hz=rate, params=params, sources=sources, notes=tuple(notes))
 
 
@@ -383,17 +410,29 @@ def model_error(model: "TwinModel", rec: Recording, ref: Reference) -> np.ndarra
     """
     from gyrocore.effects import registry as E
 
-    det = {e: p for e, p in model.params.items() if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")}
+    det = {
+        e: p
+        for e, p in model.params.items()
+        if not E.is_stochastic(e) and e not in ("quantization", "saturation", "lowpass")
+    }
     return _deterministic(det, _inputs(rec, ref, model.rate_hz)) - ref.omega_S_rad_s
-
 
 
 # ============================================================================ replicas
 def _spec(rate_hz: float):
     from sim.presets import SensorSpec
 
-    return SensorSpec(name="twin", part="digital twin", datasheet="identified from data", rate_hz=rate_hz,
-                      full_scale_rad_s=1e6, lsb_rad_s=1e-9, temp_ref_c=25.0, effects={}, disabled={})
+    return SensorSpec(
+        name="twin",
+        part="digital twin",
+        datasheet="identified from data",
+        rate_hz=rate_hz,
+        full_scale_rad_s=1e6,
+        lsb_rad_s=1e-9,
+        temp_ref_c=25.0,
+        effects={},
+        disabled={},
+    )
 
 
 def _truth(rec: Recording, ref: Reference, rate_hz: float):
@@ -401,9 +440,15 @@ def _truth(rec: Recording, ref: Reference, rate_hz: float):
 
     inp = _inputs(rec, ref, rate_hz)
     n = rec.n
-    return Truth(t_s=inp.t_s, omega_S_rad_s=ref.omega_S_rad_s, f_S_m_s2=inp.f_S_m_s2,
-                 q_SW_wxyz=inp.q_SW_wxyz, temp_c=inp.temp_c, t_since_power_up_s=inp.t_s - inp.t_s[0],
-                 power_up_index=np.zeros(n, int))
+    return Truth(
+        t_s=inp.t_s,
+        omega_S_rad_s=ref.omega_S_rad_s,
+        f_S_m_s2=inp.f_S_m_s2,
+        q_SW_wxyz=inp.q_SW_wxyz,
+        temp_c=inp.temp_c,
+        t_since_power_up_s=inp.t_s - inp.t_s[0],
+        power_up_index=np.zeros(n, int),
+    )
 
 
 def _extra_noise(model: TwinModel, rng_seed: int, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
@@ -443,8 +488,14 @@ def _replica(model: TwinModel, truth, seed: int) -> tuple[np.ndarray, np.ndarray
 
         noise, _ = g.noise(truth.n)
         p = g._model_params(g.power_up_bias(0))
-        inp = ModelInputs(t_s=truth.t_s, omega_S_rad_s=truth.omega_S_rad_s, f_S_m_s2=truth.f_S_m_s2,
-                          temp_c=truth.temp_c, q_SW_wxyz=truth.q_SW_wxyz, t_since_power_up_s=truth.t_since_power_up_s)
+        inp = ModelInputs(
+            t_s=truth.t_s,
+            omega_S_rad_s=truth.omega_S_rad_s,
+            f_S_m_s2=truth.f_S_m_s2,
+            temp_c=truth.temp_c,
+            q_SW_wxyz=truth.q_SW_wxyz,
+            t_since_power_up_s=truth.t_since_power_up_s,
+        )
         y = output_stage(deterministic(p, inp), p, rate_hz=model.rate_hz, noise_rad_s=noise + extra)
         return y, ref_noise
     return g.measure(truth).gyro_rad_s, ref_noise
@@ -458,8 +509,13 @@ def shaped_white_noise_terms(N: np.ndarray, *, fc_hz: float = float("inf"), nu=N
     N = np.asarray(N, float)
     fc = float(fc_hz)
     if nu is not None:
-        return {"arw_student": {"n_rad_per_sqrt_s": N, "nu": np.asarray(nu, float),
-                                "bandwidth_hz": np.asarray(fc if np.isfinite(fc) else 0.0)}}
+        return {
+            "arw_student": {
+                "n_rad_per_sqrt_s": N,
+                "nu": np.asarray(nu, float),
+                "bandwidth_hz": np.asarray(fc if np.isfinite(fc) else 0.0),
+            }
+        }
     if np.isfinite(fc):
         return {"arw_lowpass": {"n_rad_per_sqrt_s": N, "bandwidth_hz": np.asarray(fc)}}
     return {"arw": {"n_rad_per_sqrt_s": N}}
@@ -474,13 +530,24 @@ def _white_term(params: Mapping) -> tuple[np.ndarray | None, float, np.ndarray |
         if e in params:
             pd = params[e]
             fc = float(pd.get("bandwidth_hz", 0.0)) if e != "arw" else 0.0
-            return (np.asarray(pd["n_rad_per_sqrt_s"], float), fc if fc > 0 else float("inf"),
-                    np.asarray(pd["nu"], float) if "nu" in pd else None)
+            return (
+                np.asarray(pd["n_rad_per_sqrt_s"], float),
+                fc if fc > 0 else float("inf"),
+                np.asarray(pd["nu"], float) if "nu" in pd else None,
+            )
     return None, float("inf"), None
 
 
-def replica_statistics(model: TwinModel, rec: Recording, ref: Reference, layout: StatLayout, *,
-                       n_replicas: int, seed: int, det_err: np.ndarray | None = None) -> list[dict]:
+def replica_statistics(
+    model: TwinModel,
+    rec: Recording,
+    ref: Reference,
+    layout: StatLayout,
+    *,
+    n_replicas: int,
+    seed: int,
+    det_err: np.ndarray | None = None,
+) -> list[dict]:
     """Statistics of ``n_replicas`` replicas, seeds ``SeedSequence(seed).spawn(n_replicas)``.
 
     ``det_err`` (default: :func:`model_error` of ``model``) is what is taken off every error
@@ -557,9 +624,15 @@ class Comparison:
         return {
             "twin_distance": self.twin_distance,
             "null_out_rate": self.null_out_rate,
-            "statistics": {n: {"in_band_fraction": self.in_band_fraction[n], "pass": bool(self.passed[n]),
-                               "p_value": self.p_value[n], "n_bins": int(np.isfinite(self.real[n]).sum())}
-                           for n in self.real},
+            "statistics": {
+                n: {
+                    "in_band_fraction": self.in_band_fraction[n],
+                    "pass": bool(self.passed[n]),
+                    "p_value": self.p_value[n],
+                    "n_bins": int(np.isfinite(self.real[n]).sum()),
+                }
+                for n in self.real
+            },
         }
 
 
@@ -621,9 +694,21 @@ def compare(real: dict, reps: Sequence[dict], *, alpha: float = ALPHA, seed: int
         res["p"][nm] = p
         res["pass"][nm] = p > a_stat
     dist = float(np.mean([1.0 - res["frac"][nm] for nm in names]))
-    return Comparison(real=dict(real), lo=res["lo"], hi=res["hi"], median=res["median"], out=res["out"],
-                      in_band_fraction=res["frac"], p_value=res["p"], passed=res["pass"], twin_distance=dist,
-                      null_out_rate=2.0 * k / M, k=k, n_replicas=N, alpha_per_statistic=a_stat)
+    return Comparison(
+        real=dict(real),
+        lo=res["lo"],
+        hi=res["hi"],
+        median=res["median"],
+        out=res["out"],
+        in_band_fraction=res["frac"],
+        p_value=res["p"],
+        passed=res["pass"],
+        twin_distance=dist,
+        null_out_rate=2.0 * k / M,
+        k=k,
+        n_replicas=N,
+        alpha_per_statistic=a_stat,
+    )
 
 
 # ============================================================================ closing
@@ -720,8 +805,14 @@ def fit_noise_family(e: np.ndarray, spans, rate: float, *, lsb_rad_s: float = 0.
         if best is None or cost < best[0] - 1e-12:
             best = (cost, fc, np.array(coefs))
     _, fc, C = best
-    return {"fc_hz": float(fc), "N": np.sqrt(C[:, 0]), "Q": np.sqrt(C[:, 1]), "B": np.sqrt(C[:, 2]),
-            "K": np.sqrt(C[:, 3]), "cost": float(best[0])}
+    return {
+        "fc_hz": float(fc),
+        "N": np.sqrt(C[:, 0]),
+        "Q": np.sqrt(C[:, 1]),
+        "B": np.sqrt(C[:, 2]),
+        "K": np.sqrt(C[:, 3]),
+        "cost": float(best[0]),
+    }
 
 
 def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison) -> tuple[TwinModel, list[str]]:
@@ -763,7 +854,9 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
                 cov = np.zeros(rec.n, bool)
                 for a, b in ref.spans:
                     cov[a:b] = True
-                A = np.column_stack([np.cos(2 * np.pi * fz * t[cov]), np.sin(2 * np.pi * fz * t[cov]), np.ones(cov.sum())])
+                A = np.column_stack(
+                    [np.cos(2 * np.pi * fz * t[cov]), np.sin(2 * np.pi * fz * t[cov]), np.ones(cov.sum())]
+                )
                 coef, *_ = np.linalg.lstsq(A, e_sig[cov], rcond=None)
                 fam = _canonical(f"periodic[{fz:.6g}]")
                 if _schema(fam) is not None:  # the effect registry simulates it
@@ -771,15 +864,24 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
                     sources[fam] = "closing: a line of the real PSD, least squares on the covered spans"
                 else:
                     extra["periodic"][f"{fz:.6g}"] = coef[:2]  # (2, 3): a_cos, a_sin per axis
-                e_sig = e_sig - (np.cos(2 * np.pi * fz * t)[:, None] * coef[0][None, :]
-                                 + np.sin(2 * np.pi * fz * t)[:, None] * coef[1][None, :])
-                added.append(f"line periodic[{fz:.4g}] amplitude "
-                             + ", ".join(f"{np.hypot(*coef[:2, i]):.3g}" for i in range(3)) + " rad/s")
+                e_sig = e_sig - (
+                    np.cos(2 * np.pi * fz * t)[:, None] * coef[0][None, :]
+                    + np.sin(2 * np.pi * fz * t)[:, None] * coef[1][None, :]
+                )
+                added.append(
+                    f"line periodic[{fz:.4g}] amplitude "
+                    + ", ".join(f"{np.hypot(*coef[:2, i]):.3g}" for i in range(3))
+                    + " rad/s"
+                )
         x = _span_concat(e_sig, ref.spans)
     if failed & {"adev", "window_acf"} or ("psd" in failed and not lines_found):
         lsb = float(params["quantization"]["lsb_rad_s"]) if "quantization" in params else 0.0
         fit = fit_noise_family(e_sig, ref.spans, rate, lsb_rad_s=lsb)
-        old = {k: np.asarray(v.get(list(v)[0]), float) for k, v in params.items() if k in ("arw", "bias_instability", "rrw")}
+        old = {
+            k: np.asarray(v.get(list(v)[0]), float)
+            for k, v in params.items()
+            if k in ("arw", "bias_instability", "rrw")
+        }
         for eff in ("arw", "bias_instability", "rrw", "angle_white") + _WHITE_TERMS:
             params.pop(eff, None)
         # the white part through the registry: arw, or arw_lowpass when the chip's filter shapes it
@@ -793,16 +895,25 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
             sources[k] = "noise refit over the extended family (ADEV of the covered spans)"
         what = []
         if np.isfinite(fit["fc_hz"]):
-            sources["arw_lowpass"] = "noise refit: the white noise passes a 2nd-order low-pass (registered term arw_lowpass)"
-            what.append(f"white noise through a 2nd-order low-pass at {fit['fc_hz']:.3g} Hz (coloured noise; arw_lowpass)")
+            sources["arw_lowpass"] = (
+                "noise refit: the white noise passes a 2nd-order low-pass (registered term arw_lowpass)"
+            )
+            what.append(
+                f"white noise through a 2nd-order low-pass at {fit['fc_hz']:.3g} Hz (coloured noise; arw_lowpass)"
+            )
         if np.any(fit["Q"] > 0):
             params["angle_white"] = {"q_rad": fit["Q"]}
             sources["angle_white"] = "noise refit: white angle noise (Allan Q; registered term angle_white)"
             what.append("white angle noise Q = " + ", ".join(f"{q:.3g}" for q in fit["Q"]) + " rad")
         ob = old.get("bias_instability", np.zeros(3))
         if np.any(np.abs(fit["B"] - ob) > 0.2 * np.maximum(ob, 1e-12)):
-            what.append("bias instability B " + ", ".join(f"{a:.2g}" for a in ob) + " -> "
-                        + ", ".join(f"{b:.2g}" for b in fit["B"]) + " rad/s")
+            what.append(
+                "bias instability B "
+                + ", ".join(f"{a:.2g}" for a in ob)
+                + " -> "
+                + ", ".join(f"{b:.2g}" for b in fit["B"])
+                + " rad/s"
+            )
         if what:
             added.append("noise refit: " + "; ".join(what))
     if "distribution" in failed:
@@ -829,8 +940,11 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
         if np.any(sig > 0):
             extra["reference_angle_noise"] = {"sigma_rad": sig}
             sources["reference_angle_noise"] = "lag-1 autocovariance of the window residual (reference term)"
-            added.append("reference (optical) angle noise σθ = " + ", ".join(f"{s / DEG:.3g}" for s in sig)
-                         + "° per sample — a term of the reference, not the sensor")
+            added.append(
+                "reference (optical) angle noise σθ = "
+                + ", ".join(f"{s / DEG:.3g}" for s in sig)
+                + "° per sample — a term of the reference, not the sensor"
+            )
     new = replace(model, params=params, extra=extra, sources=sources)
     return new, added
 
@@ -853,11 +967,20 @@ class TwinResult:
 
     def to_json(self) -> dict:
         d = self.before.to_json()
-        d.update({"format_version": self.format_version, "file": self.file, "reference": self.reference.kind,
-                  "reference_description": self.reference.description,
-                  "n_replicas": self.before.n_replicas, "band_k": self.before.k,
-                  "alpha_per_statistic": self.before.alpha_per_statistic,
-                  "model": self.model.to_json(), "added": list(self.added), "wall_s": self.wall_s})
+        d.update(
+            {
+                "format_version": self.format_version,
+                "file": self.file,
+                "reference": self.reference.kind,
+                "reference_description": self.reference.description,
+                "n_replicas": self.before.n_replicas,
+                "band_k": self.before.k,
+                "alpha_per_statistic": self.before.alpha_per_statistic,
+                "model": self.model.to_json(),
+                "added": list(self.added),
+                "wall_s": self.wall_s,
+            }
+        )
         if self.after is not None:
             d["after"] = self.after.to_json()
             # the closing is adopted only when it brings the twin closer to the real sensor
@@ -877,9 +1000,18 @@ def _real_stats(rec: Recording, ref: Reference, layout: StatLayout, model: TwinM
     return error_statistics(e, ref.spans, layout, att_resid=att)
 
 
-def twin(rec: Recording, *, segments: Sequence = (), params_file: str | None = None,
-         n_replicas: int = DEFAULT_REPLICAS, seed: int = 0, close: bool = True, alpha: float = ALPHA,
-         model: TwinModel | None = None, file: str = "") -> TwinResult:
+def twin(
+    rec: Recording,
+    *,
+    segments: Sequence = (),
+    params_file: str | None = None,
+    n_replicas: int = DEFAULT_REPLICAS,
+    seed: int = 0,
+    close: bool = True,
+    alpha: float = ALPHA,
+    model: TwinModel | None = None,
+    file: str = "",
+) -> TwinResult:
     """Build, replay and compare the twin of ``rec``; close it when ``close``.
 
     Parameters
@@ -915,13 +1047,29 @@ def twin(rec: Recording, *, segments: Sequence = (), params_file: str | None = N
     if close and not all(before.passed.values()):
         model_after, added = close_twin(model, rec, ref, before)
         if added:
-            reps2 = replica_statistics(model_after, rec, ref, layout, n_replicas=n_replicas, seed=seed + 1,
-                                       det_err=model_error(model, rec, ref))
+            reps2 = replica_statistics(
+                model_after,
+                rec,
+                ref,
+                layout,
+                n_replicas=n_replicas,
+                seed=seed + 1,
+                det_err=model_error(model, rec, ref),
+            )
             after = compare(real, reps2, alpha=alpha, seed=seed + 1)
         else:
             model_after = None
-    return TwinResult(file=file, reference=ref, model=model, before=before, after=after, model_after=model_after,
-                      added=tuple(added), layout=layout, wall_s=_time.perf_counter() - t0)
+    return TwinResult(
+        file=file,
+        reference=ref,
+        model=model,
+        before=before,
+        after=after,
+        model_after=model_after,
+        added=tuple(added),
+        layout=layout,
+        wall_s=_time.perf_counter() - t0,
+    )
 
 
 # ============================================================================ plots and run
@@ -939,11 +1087,18 @@ def plot_twin(result: TwinResult, out_dir, *, prefix: str = "twin") -> list[str]
         for i, ax in enumerate(axs):
             c = result.before
             base = c.median[nm][i] if rel else 0.0
-            ax.fill_between(x, c.lo[nm][i] - base, c.hi[nm][i] - base, color="0.75",
-                            label=f"twin as given, {c.n_replicas} replicas")
+            ax.fill_between(
+                x, c.lo[nm][i] - base, c.hi[nm][i] - base, color="0.75", label=f"twin as given, {c.n_replicas} replicas"
+            )
             if result.after is not None:
-                ax.fill_between(x, result.after.lo[nm][i] - base, result.after.hi[nm][i] - base, color="tab:blue",
-                                alpha=0.3, label="twin after closing")
+                ax.fill_between(
+                    x,
+                    result.after.lo[nm][i] - base,
+                    result.after.hi[nm][i] - base,
+                    color="tab:blue",
+                    alpha=0.3,
+                    label="twin after closing",
+                )
             ax.plot(x, c.real[nm][i] - base, "k.-", label="real")
             o = c.out[nm][i]
             ax.plot(np.asarray(x)[o], (c.real[nm][i] - base)[o], "rx", label="outside band")
@@ -951,8 +1106,12 @@ def plot_twin(result: TwinResult, out_dir, *, prefix: str = "twin") -> list[str]
                 ax.set_xscale("log")
             ax.set_title(f"{nm}, axis {'xyz'[i]}")
             ax.set_xlabel(xlabel)
-        axs[0].set_ylabel({"adev": "log10(ADEV / median of replicas as given)",
-                           "psd": "log10(PSD / median of replicas as given)"}.get(nm, "value"))
+        axs[0].set_ylabel(
+            {
+                "adev": "log10(ADEV / median of replicas as given)",
+                "psd": "log10(PSD / median of replicas as given)",
+            }.get(nm, "value")
+        )
         axs[-1].legend(fontsize=7)
         paths.append(save_figure(fig, out_dir, f"{prefix}_{nm}"))
     return paths
@@ -975,23 +1134,57 @@ def _cell(c: Comparison | None) -> str:
 def _row(name: str, cmd: str, r: TwinResult, h: dict | None = None) -> list:
     hb = h.get("_before") if h else None
     ha = h.get("_after") if h else None
-    held = ("—" if not h else (h["error"] if h.get("error") else
-            f"{hb.twin_distance:.3f} → {ha.twin_distance:.3f}" if ha is not None else f"{hb.twin_distance:.3f}"))
-    return [name, held, _cell(r.before), f"{r.before.twin_distance:.3f}", "; ".join(r.added) or "nothing",
-            _cell(r.after), f"{r.after.twin_distance:.3f}" if r.after is not None else "—", f"`{cmd}`"]
+    held = (
+        "—"
+        if not h
+        else (
+            h["error"]
+            if h.get("error")
+            else f"{hb.twin_distance:.3f} → {ha.twin_distance:.3f}"
+            if ha is not None
+            else f"{hb.twin_distance:.3f}"
+        )
+    )
+    return [
+        name,
+        held,
+        _cell(r.before),
+        f"{r.before.twin_distance:.3f}",
+        "; ".join(r.added) or "nothing",
+        _cell(r.after),
+        f"{r.after.twin_distance:.3f}" if r.after is not None else "—",
+        f"`{cmd}`",
+    ]
 
 
 #: ``--quick``: two small sets only.
 #: the standard size of ``gyroharness run``: one set per source (BROAD, sunsided, tomisuarez2,
 #: PX4, imucal); --full adds BROAD 05, 07 and 09
-STANDARD_SETS = ("BROAD 02 slow rotation", "sunsided set-2 static 10 min", "tomisuarez2 static 449 s",
-                 "PX4 sample.ulg (still part)", "imucal Ferraris session")
+STANDARD_SETS = (
+    "BROAD 02 slow rotation",
+    "sunsided set-2 static 10 min",
+    "tomisuarez2 static 449 s",
+    "PX4 sample.ulg (still part)",
+    "imucal Ferraris session",
+)
 QUICK_SETS = ("tomisuarez2 static 449 s", "imucal Ferraris session")
 
 
-def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int | None = None,
-        data_dir: str | None = None, replicas: int | None = None, names: Sequence[str] | None = None,
-        seed: int = 0, do_holdout: bool = True, size: str | None = None, progress=None, **_ignored):
+def run(
+    *,
+    out_dir,
+    quick: bool = False,
+    seeds: int | None = None,
+    workers: int | None = None,
+    data_dir: str | None = None,
+    replicas: int | None = None,
+    names: Sequence[str] | None = None,
+    seed: int = 0,
+    do_holdout: bool = True,
+    size: str | None = None,
+    progress=None,
+    **_ignored,
+):
     """The twin on every real set of :data:`SETS` found under ``data_dir`` (one setting for all).
 
     ``quick``: 39 replicas on :data:`QUICK_SETS` only; ``size="standard"`` (``gyroharness run``):
@@ -1033,35 +1226,70 @@ def run(*, out_dir, quick: bool = False, seeds: int | None = None, workers: int 
             summary[name]["holdout"] = {k: v for k, v in h.items() if not k.startswith("_")}
     if not rows:
         md = [f"No real set found under {data_dir}: nothing to twin."]
-        return ExperimentResult(name="twin", title="Digital twin of the real sensors", markdown="\n".join(md),
-                                figures=(), summary={}, wall_s=_time.time() - t_start)
+        return ExperimentResult(
+            name="twin",
+            title="Digital twin of the real sensors",
+            markdown="\n".join(md),
+            figures=(),
+            summary={},
+            wall_s=_time.time() - t_start,
+        )
     k_band = max(1, int(0.025 * (n_rep + 1)))
-    md = [f"Replicas: {n_rep} per set, seed {seed}; band k = {k_band}: a real statistic outside the k-th smallest "
-          f"to k-th largest replica has probability {2 * k_band}/{n_rep + 1} = {2 * k_band / (n_rep + 1):.3f} when the "
-          f"twin is right (rank test, two-sided 95 % band); α = {ALPHA} family-wise over the statistics."
-          + (" `gyroharness run --full` uses 199 replicas (finer p-values, more power)." if n_rep < DEFAULT_REPLICAS
-             else ""), "",
-          md_table(["set", "held out: distance given → after", "statistics as given (in-band fraction)", "distance",
-                    "added", "after", "distance after", "command"], rows)]
+    md = [
+        f"Replicas: {n_rep} per set, seed {seed}; band k = {k_band}: a real statistic outside the k-th smallest "
+        f"to k-th largest replica has probability {2 * k_band}/{n_rep + 1} = {2 * k_band / (n_rep + 1):.3f} when the "
+        f"twin is right (rank test, two-sided 95 % band); α = {ALPHA} family-wise over the statistics."
+        + (
+            " `gyroharness run --full` uses 199 replicas (finer p-values, more power)."
+            if n_rep < DEFAULT_REPLICAS
+            else ""
+        ),
+        "",
+        md_table(
+            [
+                "set",
+                "held out: distance given → after",
+                "statistics as given (in-band fraction)",
+                "distance",
+                "added",
+                "after",
+                "distance after",
+                "command",
+            ],
+            rows,
+        ),
+    ]
     text = "\n".join(md)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "twin.md", "## Digital twin\n\n" + text + "\n")
-    return ExperimentResult(name="twin", title="Digital twin of the real sensors", markdown=text,
-                            figures=tuple(figures), summary=summary, wall_s=_time.time() - t_start)
+    return ExperimentResult(
+        name="twin",
+        title="Digital twin of the real sensors",
+        markdown=text,
+        figures=tuple(figures),
+        summary=summary,
+        wall_s=_time.time() - t_start,
+    )
 
 
 def summary_text(r: TwinResult) -> str:
     """Readable summary of a :class:`TwinResult` (the CLI's default output)."""
-    lines = [f"reference: {r.reference.kind} — {r.reference.description}",
-             "twin: " + "; ".join(f"{e}: {s}" for e, s in r.model.sources.items())]
+    lines = [
+        f"reference: {r.reference.kind} — {r.reference.description}",
+        "twin: " + "; ".join(f"{e}: {s}" for e, s in r.model.sources.items()),
+    ]
     for label, c in (("as given", r.before), ("after", r.after)):
         if c is None:
             continue
-        lines.append(f"{label}: twin distance {c.twin_distance:.3f} (null {c.null_out_rate:.3f}, {c.n_replicas} replicas, "
-                     f"k = {c.k}, α per statistic {c.alpha_per_statistic:.3g})")
+        lines.append(
+            f"{label}: twin distance {c.twin_distance:.3f} (null {c.null_out_rate:.3f}, {c.n_replicas} replicas, "
+            f"k = {c.k}, α per statistic {c.alpha_per_statistic:.3g})"
+        )
         for n in c.real:
-            lines.append(f"  {n:18s} in band {c.in_band_fraction[n]:.2f}  p = {c.p_value[n]:.3g}  "
-                         + ("pass" if c.passed[n] else "FAIL"))
+            lines.append(
+                f"  {n:18s} in band {c.in_band_fraction[n]:.2f}  p = {c.p_value[n]:.3g}  "
+                + ("pass" if c.passed[n] else "FAIL")
+            )
     if r.added:
         lines.append("added: " + "; ".join(r.added))
     for n in r.model.notes:
@@ -1076,22 +1304,45 @@ def markdown(r: TwinResult, figures: Sequence[str] = ()) -> str:
     rows = []
     for n in r.before.real:
         a = r.after
-        rows.append([n, f"{r.before.in_band_fraction[n]:.2f}", f"{r.before.p_value[n]:.3g}",
-                     "pass" if r.before.passed[n] else "**fail**",
-                     f"{a.in_band_fraction[n]:.2f}" if a else "—", f"{a.p_value[n]:.3g}" if a else "—",
-                     ("pass" if a.passed[n] else "**fail**") if a else "—"])
-    md = [f"# Twin of {r.file}", "", f"Reference: {r.reference.kind} — {r.reference.description}.", "",
-          "Twin parameters: " + "; ".join(f"`{e}` from {s}" for e, s in r.model.sources.items()) + ".", "",
-          md_table(["statistic", "in band (given)", "p", "verdict", "in band (after)", "p", "verdict"], rows), "",
-          f"Twin distance {r.before.twin_distance:.3f} as given"
-          + (f", {r.after.twin_distance:.3f} after adding: {'; '.join(r.added)}" if r.after else "")
-          + f" (null level {r.before.null_out_rate:.3f} = 2k/(N+1), N = {r.before.n_replicas}).", ""]
+        rows.append(
+            [
+                n,
+                f"{r.before.in_band_fraction[n]:.2f}",
+                f"{r.before.p_value[n]:.3g}",
+                "pass" if r.before.passed[n] else "**fail**",
+                f"{a.in_band_fraction[n]:.2f}" if a else "—",
+                f"{a.p_value[n]:.3g}" if a else "—",
+                ("pass" if a.passed[n] else "**fail**") if a else "—",
+            ]
+        )
+    md = [
+        f"# Twin of {r.file}",
+        "",
+        f"Reference: {r.reference.kind} — {r.reference.description}.",
+        "",
+        "Twin parameters: " + "; ".join(f"`{e}` from {s}" for e, s in r.model.sources.items()) + ".",
+        "",
+        md_table(["statistic", "in band (given)", "p", "verdict", "in band (after)", "p", "verdict"], rows),
+        "",
+        f"Twin distance {r.before.twin_distance:.3f} as given"
+        + (f", {r.after.twin_distance:.3f} after adding: {'; '.join(r.added)}" if r.after else "")
+        + f" (null level {r.before.null_out_rate:.3f} = 2k/(N+1), N = {r.before.n_replicas}).",
+        "",
+    ]
     md += [f"![{Path(f).stem}]({f})" for f in figures]
     return "\n".join(md)
 
 
-def preset_claim(rec: Recording, *, segments: Sequence = (), preset: str = "mpu6050", n_replicas: int = DEFAULT_REPLICAS,
-                 seed: int = 0, model: TwinModel | None = None, alpha: float = ALPHA) -> dict:
+def preset_claim(
+    rec: Recording,
+    *,
+    segments: Sequence = (),
+    preset: str = "mpu6050",
+    n_replicas: int = DEFAULT_REPLICAS,
+    seed: int = 0,
+    model: TwinModel | None = None,
+    alpha: float = ALPHA,
+) -> dict:
     """Is the preset's noise a claim the real sensor supports?
 
     The identified twin of ``rec`` with its noise terms (``arw``, ``bias_instability``,
@@ -1107,7 +1358,11 @@ def preset_claim(rec: Recording, *, segments: Sequence = (), preset: str = "mpu6
     ref = reference_of(rec, segments)
     if model is None:
         model = identify(rec, ref, segments=segments)
-    params = {e: dict(p) for e, p in model.params.items() if e not in ("bias_instability", "rrw", "angle_white") + _WHITE_TERMS}
+    params = {
+        e: dict(p)
+        for e, p in model.params.items()
+        if e not in ("bias_instability", "rrw", "angle_white") + _WHITE_TERMS
+    }
     terms = {}
     for eff in ("arw", "bias_instability", "rrw"):
         if eff in spec.effects:
@@ -1119,12 +1374,18 @@ def preset_claim(rec: Recording, *, segments: Sequence = (), preset: str = "mpu6
     c_preset = compare(real, replica_statistics(pm, rec, ref, layout, n_replicas=n_replicas, seed=seed), alpha=alpha)
     c_twin = compare(real, replica_statistics(model, rec, ref, layout, n_replicas=n_replicas, seed=seed), alpha=alpha)
     ratio = 10 ** (c_preset.real["adev"][:, 0] - c_preset.median["adev"][:, 0])
-    return {"preset": preset, "terms": terms, "comparison": c_preset.to_json(), "twin": c_twin.to_json(),
-            "real_over_preset_adev_tau0": ratio}
+    return {
+        "preset": preset,
+        "terms": terms,
+        "comparison": c_preset.to_json(),
+        "twin": c_twin.to_json(),
+        "real_over_preset_adev_tau0": ratio,
+    }
 
 
-def holdout(rec: Recording, *, segments: Sequence = (), n_replicas: int = DEFAULT_REPLICAS, seed: int = 0,
-            alpha: float = ALPHA) -> dict:
+def holdout(
+    rec: Recording, *, segments: Sequence = (), n_replicas: int = DEFAULT_REPLICAS, seed: int = 0, alpha: float = ALPHA
+) -> dict:
     """The held-out figure: the noise model and the closing terms are identified on the first
     half of the recording and compared with the second half.
 
@@ -1165,18 +1426,36 @@ def holdout(rec: Recording, *, segments: Sequence = (), n_replicas: int = DEFAUL
         det = {e: p for e, p in mb.params.items() if e not in noise_keys}
         noise = {e: p for e, p in src.params.items() if e in noise_keys}
         lines = {e: p for e, p in src.params.items() if e.startswith("periodic[") and e not in mb.params}
-        return replace(mb, params={**det, **noise, **lines}, extra=dict(src.extra),
-                       sources={**mb.sources, **{e: "first half" for e in noise}})
+        return replace(
+            mb,
+            params={**det, **noise, **lines},
+            extra=dict(src.extra),
+            sources={**mb.sources, **{e: "first half" for e in noise}},
+        )
 
     layout = layout_for(ref_b, mb.rate_hz, rec_b.n)
     given = transplant(ra.model)
     real = _real_stats(rec_b, ref_b, layout, given)
     det_err = model_error(given, rec_b, ref_b)
-    before = compare(real, replica_statistics(given, rec_b, ref_b, layout, n_replicas=n_replicas, seed=seed + 2,
-                                              det_err=det_err), alpha=alpha)
+    before = compare(
+        real,
+        replica_statistics(given, rec_b, ref_b, layout, n_replicas=n_replicas, seed=seed + 2, det_err=det_err),
+        alpha=alpha,
+    )
     after = None
     if ra.model_after is not None:
-        after = compare(real, replica_statistics(transplant(ra.model_after), rec_b, ref_b, layout,
-                                                 n_replicas=n_replicas, seed=seed + 3, det_err=det_err), alpha=alpha)
-    return {"before": before.to_json(), "after": after.to_json() if after else None, "added": list(ra.added),
-            "error": None, "_before": before, "_after": after}
+        after = compare(
+            real,
+            replica_statistics(
+                transplant(ra.model_after), rec_b, ref_b, layout, n_replicas=n_replicas, seed=seed + 3, det_err=det_err
+            ),
+            alpha=alpha,
+        )
+    return {
+        "before": before.to_json(),
+        "after": after.to_json() if after else None,
+        "added": list(ra.added),
+        "error": None,
+        "_before": before,
+        "_after": after,
+    }

@@ -17,6 +17,7 @@ DEG = math.pi / 180.0
 #: Shortest span of the reference the statistics use, s.
 MIN_SPAN_S = 5.0
 
+
 @dataclass(frozen=True, eq=False)
 class Reference:
     """What the twin replays and where its error signal is defined.
@@ -117,8 +118,10 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
                 if ang > DEG:
                     covered[a:b] = False
         omega[covered] = 0.0
-        desc = ("reference attitude (ref_q*): its rate drives the twin; per-sample error signal on the rests "
-                "(zero rate), the loop's 1-s window residual on the whole recording")
+        desc = (
+            "reference attitude (ref_q*): its rate drives the twin; per-sample error signal on the rests "
+            "(zero rate), the loop's 1-s window residual on the whole recording"
+        )
     else:  # still or angles
         if any(s.kind == "still" for s in segs):
             covered = np.zeros(n, bool)
@@ -137,8 +140,9 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
                 if s.kind == "rotation":
                     covered &= ~((t >= s.start_s) & (t <= s.stop_s))
         omega = np.zeros((n, 3))
-        desc = f"still ({how}): zero rate" + ("; the known rotations are not replayed (rate profile unknown)"
-                                              if kind == "angles" else "")
+        desc = f"still ({how}): zero rate" + (
+            "; the known rotations are not replayed (rate profile unknown)" if kind == "angles" else ""
+        )
         kind = "still"
     # a margin at each end: the twin's time offset / filters reach across a span's edge into
     # samples whose reference rate is a motion (or, for an optical attitude, its noisy derivative)
@@ -153,11 +157,20 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
         )
     note = None
     if not covered.all() or (q_ref is not None and not np.all(np.isfinite(q_ref))):
-        parts = [f"reference covers {covered.mean():.0%} of the recording ({len(spans)} span(s) of >= {MIN_SPAN_S:g} s)"]
+        parts = [
+            f"reference covers {covered.mean():.0%} of the recording ({len(spans)} span(s) of >= {MIN_SPAN_S:g} s)"
+        ]
         if q_ref is not None:
             lost = int((~np.all(np.isfinite(q_ref), axis=1)).sum())
             if lost:
                 parts.append(f"{lost} samples of reference attitude lost (windows touching them dropped)")
         note = "; ".join(parts) + ": replicas compared over the covered spans only"
-    return Reference(kind=kind, omega_S_rad_s=omega, covered=used, spans=spans, q_ref_wxyz=q_ref,
-                     description=desc, coverage_note=note)
+    return Reference(
+        kind=kind,
+        omega_S_rad_s=omega,
+        covered=used,
+        spans=spans,
+        q_ref_wxyz=q_ref,
+        description=desc,
+        coverage_note=note,
+    )

@@ -36,7 +36,7 @@ def _pooled_adev(e: np.ndarray, spans, m_list: np.ndarray, rate: float) -> np.nd
         for j, m in enumerate(m_list):
             if L <= 2 * m:
                 continue
-            d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
+            d = x[2 * m :] - 2 * x[m:-m] + x[: -2 * m]
             num[:, j] += np.sum(d * d, axis=0)
             cnt[j] += d.shape[0]
     tau = m_list * tau0
@@ -86,8 +86,9 @@ def layout_for(ref: Reference, rate_hz: float, n: int) -> StatLayout:
         bad = np.concatenate([[0], np.cumsum(~ok)])
         keep = (bad[b + 1] - bad[a]) == 0
         att = (a[keep], b[keep])
-    return StatLayout(m_list=m_list, nperseg=nperseg, band_edges_hz=edges, window=window, rate_hz=rate_hz,
-                      att_windows=att)
+    return StatLayout(
+        m_list=m_list, nperseg=nperseg, band_edges_hz=edges, window=window, rate_hz=rate_hz, att_windows=att
+    )
 
 
 def _acf(series: list[np.ndarray], lags: int) -> np.ndarray:
@@ -141,8 +142,9 @@ def error_statistics(e: np.ndarray, spans, layout: StatLayout, *, att_resid: np.
         wsum += nseg
     P = acc / wsum
     idx = np.digitize(f, layout.band_edges_hz) - 1
-    bands = np.stack([P[idx == j].mean(axis=0) if np.any(idx == j) else np.full(3, np.nan)
-                      for j in range(PSD_BANDS)], axis=1)
+    bands = np.stack(
+        [P[idx == j].mean(axis=0) if np.any(idx == j) else np.full(3, np.nan) for j in range(PSD_BANDS)], axis=1
+    )
     out["psd"] = np.log10(bands)
     x = _span_concat(e, spans)
     sd = x.std(axis=0)
@@ -154,7 +156,7 @@ def error_statistics(e: np.ndarray, spans, layout: StatLayout, *, att_resid: np.
     for a, b in spans:
         k = (b - a) // W
         if k >= 2:
-            wins.append(e[a:a + k * W].reshape(k, W, 3).mean(axis=1))
+            wins.append(e[a : a + k * W].reshape(k, W, 3).mean(axis=1))
     out["window_acf"] = _acf(wins, ACF_LAGS)
     if att_resid is not None:
         y = att_resid

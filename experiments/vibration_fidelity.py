@@ -51,8 +51,9 @@ def _vehicle_hover(spec: dict, band: int, *, vehicle: str, duration_s: float, se
 
     hv, over, info = spec_injection(spec, band=band, vehicle=vehicle, physics=True, seed=seed)
     phys = S.simulate("hover", duration_s=duration_s, seed=seed, vehicle=vehicle, hover_vibration=hv).recording
-    shaped = S.simulate("hover", duration_s=duration_s, seed=seed, vehicle=vehicle, hover_vibration=hv,
-                        overrides=over).recording
+    shaped = S.simulate(
+        "hover", duration_s=duration_s, seed=seed, vehicle=vehicle, hover_vibration=hv, overrides=over
+    ).recording
     return phys, shaped, info["physics"]
 
 
@@ -67,18 +68,35 @@ def _with_spec_band(rec, spec: dict, band: int, *, seed: int):
 
     m = rec.meta
     try:
-        res = S.simulate(m["scenario"], sensor=m.get("sensor", "icm42688p"), duration_s=float(m["duration_s"]),
-                         seed=int(m["seed"]), run=int(m.get("run", 0)), gyro_rate_hz=float(m["rate_hz"]),
-                         vehicle=m.get("vehicle") if m.get("vehicle") else None,
-                         overrides={"vibration": shaped_params(spec, band=band)})
+        res = S.simulate(
+            m["scenario"],
+            sensor=m.get("sensor", "icm42688p"),
+            duration_s=float(m["duration_s"]),
+            seed=int(m["seed"]),
+            run=int(m.get("run", 0)),
+            gyro_rate_hz=float(m["rate_hz"]),
+            vehicle=m.get("vehicle") if m.get("vehicle") else None,
+            overrides={"vibration": shaped_params(spec, band=band)},
+        )
         return res.recording, "registry effect vibration (re-simulated from the recording's metadata)"
     except (KeyError, ValueError, GyroInputError):
-        return (add_vibration(rec, spec, seed=int(np.random.SeedSequence([seed, band]).generate_state(1)[0]), band=band),
-                "open loop (add_vibration: not a simulated recording)")
+        return (
+            add_vibration(rec, spec, seed=int(np.random.SeedSequence([seed, band]).generate_state(1)[0]), band=band),
+            "open loop (add_vibration: not a simulated recording)",
+        )
 
 
-def run(*, spec_path: str, hover_path: str, t_from_s: float = 8.0, seed: int = 0, vehicle: str | None = None,
-        vehicle_duration_s: float = 12.0, plot: str | None = None, plot_bands=(0, 4, 7)) -> dict:
+def run(
+    *,
+    spec_path: str,
+    hover_path: str,
+    t_from_s: float = 8.0,
+    seed: int = 0,
+    vehicle: str | None = None,
+    vehicle_duration_s: float = 12.0,
+    plot: str | None = None,
+    plot_bands=(0, 4, 7),
+) -> dict:
     """Table rows per band: in-band fraction and rms above 40 Hz, before and after (and the vehicle class's)."""
     from gyrocore.data.recording import read_csv
     from gyrocore.flight.vibration import analyse, fidelity, read_spec
@@ -99,7 +117,11 @@ def run(*, spec_path: str, hover_path: str, t_from_s: float = 8.0, seed: int = 0
             row["physics"] = fidelity(a_ph, spec, band=i)
             row["physics_shaped"] = fidelity(a_ps, spec, band=i)
             if plot and i in plot_bands:
-                curves[i] = {"F450 defaults": before, f"{vehicle} + spec physics": a_ph, f"{vehicle} + physics + shaped": a_ps}
+                curves[i] = {
+                    "F450 defaults": before,
+                    f"{vehicle} + spec physics": a_ph,
+                    f"{vehicle} + physics + shaped": a_ps,
+                }
             row["physics_info"] = info
         rows.append(row)
     if plot and curves:
@@ -125,14 +147,29 @@ def _plot(spec: dict, curves: dict, path: str) -> None:
             ax = axs[r, c]
             real = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][ax_name]], float)
             ax.semilogy(f_r, real * d2, "k", lw=1.6, label="real flight (2.5-inch, before firmware filters)")
-            _finish_psd_axis(ax, curves[i], ax_name, f_r, lim,
-                             title=f"band {i} (motor cmd {b['throttle'][0]:.2f}-{b['throttle'][1]:.2f}), gyro {ax_name}",
-                             xlabel="frequency, Hz (grey: above the spec's reliable limit)" if r == len(bands) - 1 else None)
+            _finish_psd_axis(
+                ax,
+                curves[i],
+                ax_name,
+                f_r,
+                lim,
+                title=f"band {i} (motor cmd {b['throttle'][0]:.2f}-{b['throttle'][1]:.2f}), gyro {ax_name}",
+                xlabel="frequency, Hz (grey: above the spec's reliable limit)" if r == len(bands) - 1 else None,
+            )
     _save_png(fig, axs, path)
 
 
-def _finish_psd_axis(ax, sims: dict, ax_name: str, f_r: np.ndarray, lim: float, *, title: str,
-                     xlabel: str | None, title_fontsize: float | None = None) -> None:
+def _finish_psd_axis(
+    ax,
+    sims: dict,
+    ax_name: str,
+    f_r: np.ndarray,
+    lim: float,
+    *,
+    title: str,
+    xlabel: str | None,
+    title_fontsize: float | None = None,
+) -> None:
     """One PSD panel of the fidelity plots: the simulated curves ((°/s)²/Hz), the band above the
     spec's reliable limit greyed, title and labels."""
     d2 = (180 / math.pi) ** 2
@@ -166,7 +203,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spec", default=None)
     ap.add_argument("--hover", default=None)
-    ap.add_argument("--flight", default=None, help="out of sample: spec from the first half of this flight, compared on the second")
+    ap.add_argument(
+        "--flight", default=None, help="out of sample: spec from the first half of this flight, compared on the second"
+    )
     ap.add_argument("--out-dir", default=None, help="--flight: where the two half specs are written")
     ap.add_argument("--duration-s", type=float, default=12.0, help="--flight: hover length, s")
     ap.add_argument("--t-from-s", type=float, default=8.0)
@@ -177,8 +216,14 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     if a.flight:
-        out = run_split(flight=a.flight, vehicle=a.vehicle or "racing25", seed=a.seed, duration_s=a.duration_s,
-                        out_dir=a.out_dir, plot=a.plot)
+        out = run_split(
+            flight=a.flight,
+            vehicle=a.vehicle or "racing25",
+            seed=a.seed,
+            duration_s=a.duration_s,
+            out_dir=a.out_dir,
+            plot=a.plot,
+        )
         if a.json:
             print(json.dumps(out, indent=1, default=str))
         else:
@@ -186,52 +231,78 @@ def main() -> None:
         return
     if not (a.spec and a.hover):
         ap.error("give --flight, or --spec and --hover")
-    out = run(spec_path=a.spec, hover_path=a.hover, t_from_s=a.t_from_s, seed=a.seed, vehicle=a.vehicle,
-              vehicle_duration_s=a.vehicle_duration_s, plot=a.plot)
+    out = run(
+        spec_path=a.spec,
+        hover_path=a.hover,
+        t_from_s=a.t_from_s,
+        seed=a.seed,
+        vehicle=a.vehicle,
+        vehicle_duration_s=a.vehicle_duration_s,
+        plot=a.plot,
+    )
     if a.json:
         print(json.dumps(out, indent=1))
         return
     d = 180 / math.pi
     if a.vehicle:
         v = a.vehicle
-        print(f"| band (motor cmd) | axis | in-band: F450 defaults | F450 + shaped (open loop) | {v} + spec physics | "
-              f"{v} + physics + shaped | rms >40 Hz, deg/s: F450 / {v} physics / {v} physics+shaped / real |")
+        print(
+            f"| band (motor cmd) | axis | in-band: F450 defaults | F450 + shaped (open loop) | {v} + spec physics | "
+            f"{v} + physics + shaped | rms >40 Hz, deg/s: F450 / {v} physics / {v} physics+shaped / real |"
+        )
         print("|---|---|---|---|---|---|---|")
     else:
-        print("| band (motor cmd) | axis | in-band before | in-band after | rms >40 Hz sim before / after / real, deg/s |")
+        print(
+            "| band (motor cmd) | axis | in-band before | in-band after | rms >40 Hz sim before / after / real, deg/s |"
+        )
         print("|---|---|---|---|---|")
     for r in out["rows"]:
         for ax in "xyz":
             b, af = r["before"][ax], r["after"][ax]
             if a.vehicle:
                 ph, ps = r["physics"][ax], r["physics_shaped"][ax]
-                print(f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | "
-                      f"{af['in_band_fraction']:.2f} | {ph['in_band_fraction']:.2f} | {ps['in_band_fraction']:.2f} | "
-                      f"{b['rms_sim_rad_s'] * d:.2f} / {ph['rms_sim_rad_s'] * d:.2f} / {ps['rms_sim_rad_s'] * d:.2f} / "
-                      f"{b['rms_real_rad_s'] * d:.2f} |")
+                print(
+                    f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | "
+                    f"{af['in_band_fraction']:.2f} | {ph['in_band_fraction']:.2f} | {ps['in_band_fraction']:.2f} | "
+                    f"{b['rms_sim_rad_s'] * d:.2f} / {ph['rms_sim_rad_s'] * d:.2f} / {ps['rms_sim_rad_s'] * d:.2f} / "
+                    f"{b['rms_real_rad_s'] * d:.2f} |"
+                )
             else:
-                print(f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | {af['in_band_fraction']:.2f} | "
-                      f"{b['rms_sim_rad_s'] * d:.2f} / {af['rms_sim_rad_s'] * d:.2f} / {b['rms_real_rad_s'] * d:.2f} |")
-
+                print(
+                    f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | {af['in_band_fraction']:.2f} | "
+                    f"{b['rms_sim_rad_s'] * d:.2f} / {af['rms_sim_rad_s'] * d:.2f} / {b['rms_real_rad_s'] * d:.2f} |"
+                )
 
 
 # ---------------------------------------------------------------------------- out of sample
-def _hover_result(spec, band, *, vehicle: str, duration_s: float, seed: int, n_calib: int, calib_s: float,
-                  t_from_s: float):
+def _hover_result(
+    spec, band, *, vehicle: str, duration_s: float, seed: int, n_calib: int, calib_s: float, t_from_s: float
+):
     """Analysis of a hover of ``vehicle`` with the spec band injected (physics + registry shaped part)."""
     from gyrocore.flight.vibration import analyse
     from sim import scenarios as S
     from sim.spec_vibration import spec_injection
 
-    hv, over, info = spec_injection(spec, band=band, vehicle=vehicle, physics=True, seed=seed, n_calib=n_calib,
-                                    calib_s=calib_s)
+    hv, over, info = spec_injection(
+        spec, band=band, vehicle=vehicle, physics=True, seed=seed, n_calib=n_calib, calib_s=calib_s
+    )
     res = S.simulate("hover", duration_s=duration_s, seed=seed, vehicle=vehicle, overrides=over, hover_vibration=hv)
     return analyse(res.recording, t_from_s=t_from_s), info
 
 
-def run_split(*, flight: str, vehicle: str = "racing25", seed: int = 0, duration_s: float = 12.0, t_from_s: float = 2.0,
-              n_calib: int = 16, calib_s: float = 2.0, out_dir: str | None = None, plot: str | None = None,
-              plot_bands=(0, 3, 7)) -> dict:
+def run_split(
+    *,
+    flight: str,
+    vehicle: str = "racing25",
+    seed: int = 0,
+    duration_s: float = 12.0,
+    t_from_s: float = 2.0,
+    n_calib: int = 16,
+    calib_s: float = 2.0,
+    out_dir: str | None = None,
+    plot: str | None = None,
+    plot_bands=(0, 3, 7),
+) -> dict:
     """Fidelity per throttle band, out of sample (spec from the first half, compared on the second).
 
     Returns ``{"t_split_s", "bands": [{"band", "throttle", "out_of_sample": {"before": fid, "after": fid},
@@ -264,25 +335,48 @@ def run_split(*, flight: str, vehicle: str = "racing25", seed: int = 0, duration
         j = b_index.get(round(b["throttle"][0], 9))
         if j is None:
             continue  # the second half has too few windows in this band
-        after, info = _hover_result(spec_a, i, vehicle=vehicle, duration_s=duration_s, seed=seed, n_calib=n_calib,
-                                    calib_s=calib_s, t_from_s=t_from_s)
+        after, info = _hover_result(
+            spec_a,
+            i,
+            vehicle=vehicle,
+            duration_s=duration_s,
+            seed=seed,
+            n_calib=n_calib,
+            calib_s=calib_s,
+            t_from_s=t_from_s,
+        )
         # the data's own repeatability: the first half's band against the second half's, same test
-        half_a = SimpleNamespace(f_hz=np.asarray(spec_a["f_hz"], float), n_windows=int(b["n_windows"]),
-                                 mean_psd=np.column_stack([[np.nan if x is None else x for x in b["psd_rad2_s2_hz"][a]]
-                                                           for a in "xyz"]))
-        rows.append({"band": i, "throttle": b["throttle"], "n_windows_first": b["n_windows"],
-                     "first_vs_second_half": fidelity(half_a, spec_b, band=j),
-                     "n_windows_second": spec_b["bands"][j]["n_windows"],
-                     "out_of_sample": {"before": fidelity(before, spec_b, band=j), "after": fidelity(after, spec_b, band=j)},
-                     "in_sample": {"before": fidelity(before, spec_a, band=i), "after": fidelity(after, spec_a, band=i)},
-                     "physics": info.get("physics")})
+        half_a = SimpleNamespace(
+            f_hz=np.asarray(spec_a["f_hz"], float),
+            n_windows=int(b["n_windows"]),
+            mean_psd=np.column_stack([[np.nan if x is None else x for x in b["psd_rad2_s2_hz"][a]] for a in "xyz"]),
+        )
+        rows.append(
+            {
+                "band": i,
+                "throttle": b["throttle"],
+                "n_windows_first": b["n_windows"],
+                "first_vs_second_half": fidelity(half_a, spec_b, band=j),
+                "n_windows_second": spec_b["bands"][j]["n_windows"],
+                "out_of_sample": {"before": fidelity(before, spec_b, band=j), "after": fidelity(after, spec_b, band=j)},
+                "in_sample": {"before": fidelity(before, spec_a, band=i), "after": fidelity(after, spec_a, band=i)},
+                "physics": info.get("physics"),
+            }
+        )
         if plot and i in plot_bands:
             curves[i] = (j, {"F450 defaults": before, f"{vehicle}, first-half spec (physics + shaped)": after})
     if plot and curves:
         _plot_split(spec_a, spec_b, curves, plot)
-    return {"flight": flight, "t_split_s": t_mid, "vehicle": vehicle, "seed": seed, "duration_s": duration_s,
-            "spec_first_half": os.path.join(d, "spec_first_half.json"),
-            "spec_second_half": os.path.join(d, "spec_second_half.json"), "bands": rows}
+    return {
+        "flight": flight,
+        "t_split_s": t_mid,
+        "vehicle": vehicle,
+        "seed": seed,
+        "duration_s": duration_s,
+        "spec_first_half": os.path.join(d, "spec_first_half.json"),
+        "spec_second_half": os.path.join(d, "spec_second_half.json"),
+        "bands": rows,
+    }
 
 
 def _plot_split(spec_a: dict, spec_b: dict, curves: dict, path: str) -> None:
@@ -305,9 +399,16 @@ def _plot_split(spec_a: dict, spec_b: dict, curves: dict, path: str) -> None:
             for b, lab, sty in ((bb, "real, second half (held out)", "k"), (ba, "real, first half (spec)", "0.6")):
                 v = np.array([np.nan if x is None else x for x in b["psd_rad2_s2_hz"][ax_name]], float)
                 ax.semilogy(f_r, v * d2, sty, lw=1.4, label=lab)
-            _finish_psd_axis(ax, sims, ax_name, f_r, lim, title_fontsize=9,
-                             title=f"band {i} (motor cmd {ba['throttle'][0]:.2f}-{ba['throttle'][1]:.2f}), gyro {ax_name}",
-                             xlabel="Hz (grey: above the spec's reliable limit)" if r == len(bands) - 1 else None)
+            _finish_psd_axis(
+                ax,
+                sims,
+                ax_name,
+                f_r,
+                lim,
+                title_fontsize=9,
+                title=f"band {i} (motor cmd {ba['throttle'][0]:.2f}-{ba['throttle'][1]:.2f}), gyro {ax_name}",
+                xlabel="Hz (grey: above the spec's reliable limit)" if r == len(bands) - 1 else None,
+            )
     _save_png(fig, axs, path)
 
 
@@ -315,25 +416,40 @@ def _print_split(out: dict) -> None:
     d = 180 / math.pi
     v = out["vehicle"]
     for which in ("out_of_sample", "in_sample"):
-        title = ("OUT OF SAMPLE: spec from t < %.1f s, compared with the second half" % out["t_split_s"]
-                 if which == "out_of_sample" else "IN SAMPLE: the same hovers against the first half (the spec's own data)")
+        title = (
+            "OUT OF SAMPLE: spec from t < %.1f s, compared with the second half" % out["t_split_s"]
+            if which == "out_of_sample"
+            else "IN SAMPLE: the same hovers against the first half (the spec's own data)"
+        )
         print(title)
         oos = which == "out_of_sample"
-        print(f"| band (motor cmd) | axis | in-band: F450 defaults | in-band: {v} + spec |"
-              + (" real first half vs second half |" if oos else "") + f" rms >40 Hz, deg/s: F450 / {v} / real |")
+        print(
+            f"| band (motor cmd) | axis | in-band: F450 defaults | in-band: {v} + spec |"
+            + (" real first half vs second half |" if oos else "")
+            + f" rms >40 Hz, deg/s: F450 / {v} / real |"
+        )
         print("|---|---|---|---|" + ("---|" if oos else "") + "---|")
         for r in out["bands"]:
             for ax in "xyz":
                 b, a = r[which]["before"][ax], r[which]["after"][ax]
-                print(f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | "
-                      f"{a['in_band_fraction']:.2f} |" + (f" {r['first_vs_second_half'][ax]['in_band_fraction']:.2f} |" if oos else "")
-                      + f" {b['rms_sim_rad_s'] * d:.2f} / {a['rms_sim_rad_s'] * d:.2f} / {b['rms_real_rad_s'] * d:.2f} |")
+                print(
+                    f"| {r['throttle'][0]:.2f}-{r['throttle'][1]:.2f} | {ax} | {b['in_band_fraction']:.2f} | "
+                    f"{a['in_band_fraction']:.2f} |"
+                    + (f" {r['first_vs_second_half'][ax]['in_band_fraction']:.2f} |" if oos else "")
+                    + f" {b['rms_sim_rad_s'] * d:.2f} / {a['rms_sim_rad_s'] * d:.2f} / {b['rms_real_rad_s'] * d:.2f} |"
+                )
         fr = [r[which]["after"][ax]["in_band_fraction"] for r in out["bands"] for ax in "xyz"]
         fb = [r[which]["before"][ax]["in_band_fraction"] for r in out["bands"] for ax in "xyz"]
-        print(f"in-band fraction, median over bands and axes: before {np.median(fb):.2f}, after {np.median(fr):.2f} "
-              f"(range {min(fr):.2f}-{max(fr):.2f})"
-              + (f"; real first half vs second half {np.median([r['first_vs_second_half'][ax]['in_band_fraction'] for r in out['bands'] for ax in 'xyz']):.2f}"
-                 if oos else "") + "\n")
+        print(
+            f"in-band fraction, median over bands and axes: before {np.median(fb):.2f}, after {np.median(fr):.2f} "
+            f"(range {min(fr):.2f}-{max(fr):.2f})"
+            + (
+                f"; real first half vs second half {np.median([r['first_vs_second_half'][ax]['in_band_fraction'] for r in out['bands'] for ax in 'xyz']):.2f}"
+                if oos
+                else ""
+            )
+            + "\n"
+        )
 
 
 if __name__ == "__main__":

@@ -556,8 +556,9 @@ def attitude_rate(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, np.n
     return w, valid
 
 
-def rate_error_vs_attitude(t_s: np.ndarray, q_wxyz: np.ndarray,
-                           omega_S_rad_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rate_error_vs_attitude(
+    t_s: np.ndarray, q_wxyz: np.ndarray, omega_S_rad_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sample-level rate error of a gyro against a reference attitude.
 
     e_k = rotvec(ΔR_kᵀ·exp(ω_k·Δt_k))/Δt_k with ΔR_k = R_{k−1}ᵀR_k the reference's increment

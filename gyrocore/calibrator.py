@@ -58,8 +58,9 @@ def _unflatten(effect: str, vec: np.ndarray, order: int) -> dict[str, np.ndarray
     return E.resolve(effect).unflatten(vec, order)
 
 
-def near_rate_changes(t_s: np.ndarray, w_ref_rad_s, margin_s: float,
-                      *, threshold_rad_s2: float = 1e-2, chunk_rows: int = 1 << 20) -> np.ndarray:
+def near_rate_changes(
+    t_s: np.ndarray, w_ref_rad_s, margin_s: float, *, threshold_rad_s2: float = 1e-2, chunk_rows: int = 1 << 20
+) -> np.ndarray:
     """Boolean (N,): samples within ``margin_s`` of a change of the reference rate
     (|Δω_ref|/Δt > ``threshold_rad_s2`` on any axis) — rate ramps and their filter transients.
 
@@ -96,14 +97,14 @@ def near_rate_changes(t_s: np.ndarray, w_ref_rad_s, margin_s: float,
     k = int(round(margin_s / float(np.median(np.diff(t)))))
     near = np.zeros(n, bool)
     for a in range(0, n, step):  # runs of ramp samples, window by window (a run may span two)
-        idx = np.flatnonzero(ramp[a:a + step])
+        idx = np.flatnonzero(ramp[a : a + step])
         if idx.size == 0:
             continue
         cut = np.flatnonzero(np.diff(idx) > 1)
         starts = idx[np.r_[0, cut + 1]] + a
         ends = idx[np.r_[cut, idx.size - 1]] + a
         for s0, e0 in zip(starts, ends):
-            near[max(s0 - k, 0):min(e0 + k + 1, n)] = True
+            near[max(s0 - k, 0) : min(e0 + k + 1, n)] = True
     return near
 
 
@@ -170,8 +171,11 @@ def _external_bias_dict(ext) -> dict:
         # StaticBiasResult: long-run variance σ²·VIF per sample → (rad/s)²·s with the window's rate
         rate = ext.window_samples / ext.window_s
         lr = np.asarray(ext.noise_sigma_rad_s, float) ** 2 * np.asarray(ext.vif, float) / rate
-        return {"bias_rad_s": np.asarray(ext.bias_rad_s, float), "bias_stderr_rad_s": np.asarray(ext.bias_se_rad_s, float),
-                "noise_lr_rad2_s": lr}
+        return {
+            "bias_rad_s": np.asarray(ext.bias_rad_s, float),
+            "bias_stderr_rad_s": np.asarray(ext.bias_se_rad_s, float),
+            "noise_lr_rad2_s": lr,
+        }
     try:
         d = {k: np.asarray(ext[k], float) for k in ("bias_rad_s", "bias_stderr_rad_s", "noise_lr_rad2_s")}
     except (KeyError, TypeError):
@@ -292,7 +296,9 @@ class Calibrator:
             if segments is None:
                 raise GyroInputError("an external bias is used by the integral method only (give a segments file)")
             if "g_sensitivity" in effs:
-                raise GyroInputError("g_sensitivity with an external bias is not supported (it is fitted on the still poses with the bias)")
+                raise GyroInputError(
+                    "g_sensitivity with an external bias is not supported (it is fitted on the still poses with the bias)"
+                )
             external_bias = _external_bias_dict(external_bias)
         if noise is not None and not hasattr(noise, "arw_rad_per_sqrt_s"):
             from gyrocore.calib.budget import NoiseModel
@@ -326,7 +332,8 @@ class Calibrator:
             if bad or segments is not None or external_bias is not None:
                 raise GyroInputError(
                     "the multi-pose method (poses) fits bias, scale and misalignment only, without segments or an "
-                    "external bias" + (f", not {', '.join(bad)}" if bad else ""))
+                    "external bias" + (f", not {', '.join(bad)}" if bad else "")
+                )
         #: multi-pose method (gravity directions of still poses as the reference; Tedaldi et al. 2014)
         self.poses = bool(poses)
         if not (np.isfinite(pose_std_factor) and pose_std_factor >= 1):
@@ -351,8 +358,12 @@ class Calibrator:
     # ------------------------------------------------------------------ public
     def fit(self, recording: Recording, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
         """Fit the effects; ``source_path`` (the data file) is recorded by name and SHA-256."""
-        common = self._common(recording.meta, source_path, has_accel=recording.accel_m_s2 is not None,
-                              has_temp=recording.temp_c is not None)
+        common = self._common(
+            recording.meta,
+            source_path,
+            has_accel=recording.accel_m_s2 is not None,
+            has_temp=recording.temp_c is not None,
+        )
         if self.segments is not None:
             return self._fit_integral(recording, common)
         if self.poses:
@@ -375,17 +386,26 @@ class Calibrator:
             raise GyroInputError("the multi-pose method needs the accel_*_m_s2 columns (gravity is the reference)")
         r = gravity_pose_calibration(rec, pose_std_factor=self.pose_std_factor)
         K, Kse = np.asarray(r.K, float), np.asarray(r.K_stderr, float)
-        params: dict = {"bias": {"b_rad_s": r.bias_rad_s}, "scale": {"s": np.diag(K) - 1.0},
-                        "misalignment": {"m_rad": np.array([K[i, j] for i, j in E._MIS_IDX])}}
-        stderr: dict = {"bias": {"b_rad_s": r.bias_stderr_rad_s}, "scale": {"s": np.diag(Kse).copy()},
-                        "misalignment": {"m_rad": np.array([Kse[i, j] for i, j in E._MIS_IDX])}}
+        params: dict = {
+            "bias": {"b_rad_s": r.bias_rad_s},
+            "scale": {"s": np.diag(K) - 1.0},
+            "misalignment": {"m_rad": np.array([K[i, j] for i, j in E._MIS_IDX])},
+        }
+        stderr: dict = {
+            "bias": {"b_rad_s": r.bias_stderr_rad_s},
+            "scale": {"s": np.diag(Kse).copy()},
+            "misalignment": {"m_rad": np.array([Kse[i, j] for i, j in E._MIS_IDX])},
+        }
         n_used = int(r.residual_rad.shape[0])
-        notes = [f"multi-pose method (Tedaldi et al. 2014): {len(r.intervals)} still poses, {n_used} motions between "
-                 f"them used" + (f" ({r.n_motions_saturated} through clipped samples dropped)" if r.n_motions_saturated else "")
-                 + f"; gravity-direction misfit after calibration {np.degrees(r.rms_residual_rad):.2f} deg RMS; "
-                 f"Jacobian condition {r.condition:.3g}; bias from the first pose",
-                 "residual_rms_rad_s: the still poses' scatter is not a rate residual here (the reference is the "
-                 "gravity direction); see the misfit above"]
+        notes = [
+            f"multi-pose method (Tedaldi et al. 2014): {len(r.intervals)} still poses, {n_used} motions between "
+            f"them used"
+            + (f" ({r.n_motions_saturated} through clipped samples dropped)" if r.n_motions_saturated else "")
+            + f"; gravity-direction misfit after calibration {np.degrees(r.rms_residual_rad):.2f} deg RMS; "
+            f"Jacobian condition {r.condition:.3g}; bias from the first pose",
+            "residual_rms_rad_s: the still poses' scatter is not a rate residual here (the reference is the "
+            "gravity direction); see the misfit above",
+        ]
         if "scale" in self.effects and "misalignment" not in self.effects:
             notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
         if "bias" not in self.effects:
@@ -393,9 +413,15 @@ class Calibrator:
         params = {e: params[e] for e in self.effects}
         stderr = {e: stderr[e] for e in self.effects}
         return CalibrationResult(
-            effects=self.effects, params=params, stderr=stderr, residual_rms_rad_s=np.full(3, np.nan),
-            method="gravity_poses", covariance="jacobian", n_samples=int(sum(b - a for a, b in r.intervals)),
-            notes=tuple(notes), **common,
+            effects=self.effects,
+            params=params,
+            stderr=stderr,
+            residual_rms_rad_s=np.full(3, np.nan),
+            method="gravity_poses",
+            covariance="jacobian",
+            n_samples=int(sum(b - a for a, b in r.intervals)),
+            notes=tuple(notes),
+            **common,
         )
 
     # ------------------------------------------------------------------ reference attitude
@@ -412,14 +438,24 @@ class Calibrator:
 
         bad = [e for e in self.effects if e not in LOOP_FITTABLE]
         if bad:
-            raise GyroInputError(f"against a reference attitude {', '.join(bad)} cannot be fitted "
-                                 f"(fittable: {', '.join(LOOP_FITTABLE)})")
+            raise GyroInputError(
+                f"against a reference attitude {', '.join(bad)} cannot be fitted (fittable: {', '.join(LOOP_FITTABLE)})"
+            )
         order = 1 if self.thermal_order == "auto" else int(self.thermal_order)
-        r = run_loop(rec, declared=list(self.effects), candidates=[], reference="attitude", thermal_order=order,
-                     open_search=False)
+        r = run_loop(
+            rec,
+            declared=list(self.effects),
+            candidates=[],
+            reference="attitude",
+            thermal_order=order,
+            open_search=False,
+        )
         res = loop_calibration(r, rec, source_path=source_path, sensor=common["sensor"], thermal_order=order)
-        notes = list(res.notes) + [f"calibrated against the reference attitude (ref_q*): {r.description}, "
-                                   f"{r.n_windows} windows"] + list(r.notes)
+        notes = (
+            list(res.notes)
+            + [f"calibrated against the reference attitude (ref_q*): {r.description}, {r.n_windows} windows"]
+            + list(r.notes)
+        )
         if self.thermal_order == "auto" and any(e in self.effects for e in ("bias_thermal", "scale_thermal")):
             notes.append("thermal order 1 (order selection is not done against an attitude reference)")
         return replace(res, notes=tuple(notes), method="attitude_reference")
@@ -439,8 +475,9 @@ class Calibrator:
             raise GyroInputError("the integral method (segments) needs the recording in memory")
         if not all(c in store.names for c in REF_RATE_COLS):
             raise GyroInputError("a streamed fit needs reference rates (ref_*_rad_s)")
-        common = self._common(store.meta, source_path, has_accel="accel_x_m_s2" in store.names,
-                              has_temp=TEMP_COL in store.names)
+        common = self._common(
+            store.meta, source_path, has_accel="accel_x_m_s2" in store.names, has_temp=TEMP_COL in store.names
+        )
         return self._fit_lsq(None, common, store=store)
 
     # ------------------------------------------------------------------ integral method
@@ -454,8 +491,12 @@ class Calibrator:
         if self.external_bias is not None:
             still = None  # no still part needed: the bias comes from elsewhere
         else:
-            still = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate,
-                               exclude=[(s_.t_start_s, s_.t_end_s) for s_ in segs])
+            still = still_mask(
+                rec,
+                window_s=self.still_window_s,
+                false_reject_rate=self.still_false_reject_rate,
+                exclude=[(s_.t_start_s, s_.t_end_s) for s_ in segs],
+            )
         params: dict = {}
         stderr: dict = {}
         notes = []
@@ -466,21 +507,39 @@ class Calibrator:
             # H from the still poses (rate 0, gravity in different directions), jointly with
             # the bias; then removed before integrating (imucal's Ferraris does the same)
             inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=np.zeros((rec.n, 3)), f_S_m_s2=rec.accel_m_s2)
-            fit = lsq.fit_effects(rec.gyro_rad_s, ["bias", "g_sensitivity"], inp, weights=still.astype(float),
-                                  covariance=self.covariance, on_unobservable=self.on_unobservable)
+            fit = lsq.fit_effects(
+                rec.gyro_rad_s,
+                ["bias", "g_sensitivity"],
+                inp,
+                weights=still.astype(float),
+                covariance=self.covariance,
+                on_unobservable=self.on_unobservable,
+            )
             H = fit.effect_theta("g_sensitivity").reshape(3, 3)
             params["g_sensitivity"] = {"h_rad_s_per_m_s2": H}
             stderr["g_sensitivity"] = {"h_rad_s_per_m_s2": fit.effect_stderr("g_sensitivity").reshape(3, 3)}
             unobs, reasons = fit.unobservable, dict(fit.unobservable_reason)
-            notes.append(f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}")
-        res = integral_calibration(rec, segs, still=still, h_rad_s_per_m_s2=H, **(self.external_bias or {}),
-                                   angle_sigma_rad=np.radians(self.angle_sigma_deg),
-                                   axis_sigma_rad=np.radians(self.axis_sigma_deg))
+            notes.append(
+                f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}"
+            )
+        res = integral_calibration(
+            rec,
+            segs,
+            still=still,
+            h_rad_s_per_m_s2=H,
+            **(self.external_bias or {}),
+            angle_sigma_rad=np.radians(self.angle_sigma_deg),
+            axis_sigma_rad=np.radians(self.axis_sigma_deg),
+        )
         if self.angle_sigma_deg or self.axis_sigma_deg:
-            notes.append(f"standard errors include the known angles' uncertainty: angle {self.angle_sigma_deg:g} deg, "
-                         f"axis {self.axis_sigma_deg:g} deg per segment")
+            notes.append(
+                f"standard errors include the known angles' uncertainty: angle {self.angle_sigma_deg:g} deg, "
+                f"axis {self.axis_sigma_deg:g} deg per segment"
+            )
         if self.external_bias is not None:
-            notes.append("bias taken from outside the data (external bias; its standard error is propagated into K and M)")
+            notes.append(
+                "bias taken from outside the data (external bias; its standard error is propagated into K and M)"
+            )
         if "bias" in self.effects:
             params["bias"] = {"b_rad_s": res.bias_rad_s}
             stderr["bias"] = {"b_rad_s": res.bias_stderr_rad_s}
@@ -495,19 +554,33 @@ class Calibrator:
         if "bias" not in self.effects:
             notes.append("bias not requested but still removed before integrating (the integral method needs it)")
         integral = {
-            "M": res.M, "M_stderr": res.M_stderr, "K": res.K, "K_stderr": res.K_stderr,
-            "B_rad": res.B_rad, "C_rad": res.C_rad, "angle_residual_rad": res.angle_residual_rad,
-            "noise_lr_rad2_s": res.noise_lr_rad2_s, "n_still": res.n_still,
+            "M": res.M,
+            "M_stderr": res.M_stderr,
+            "K": res.K,
+            "K_stderr": res.K_stderr,
+            "B_rad": res.B_rad,
+            "C_rad": res.C_rad,
+            "angle_residual_rad": res.angle_residual_rad,
+            "noise_lr_rad2_s": res.noise_lr_rad2_s,
+            "n_still": res.n_still,
             "segment_duration_s": res.segment_duration_s,
         }
         rms = res.still_rms_rad_s
         params = {e: params[e] for e in self.effects if e in params}
         stderr = {e: stderr[e] for e in self.effects if e in stderr}
         return CalibrationResult(
-            effects=self.effects, params=params, stderr=stderr, residual_rms_rad_s=rms,
-            unobservable=unobs, unobservable_reason=reasons,
-            method="integral", covariance="integral", n_samples=int(res.n_still),
-            notes=tuple(notes), integral=integral, **common,
+            effects=self.effects,
+            params=params,
+            stderr=stderr,
+            residual_rms_rad_s=rms,
+            unobservable=unobs,
+            unobservable_reason=reasons,
+            method="integral",
+            covariance="integral",
+            n_samples=int(res.n_still),
+            notes=tuple(notes),
+            integral=integral,
+            **common,
         )
 
     # ------------------------------------------------------------------ least squares
@@ -521,8 +594,9 @@ class Calibrator:
     RAMP_RATE_RAD_S2 = 1e-2
 
     @classmethod
-    def _identified_noise(cls, axis, bad: np.ndarray, rate_hz: float, notes: list,
-                          w_ref=None, t_s: np.ndarray | None = None) -> dict:
+    def _identified_noise(
+        cls, axis, bad: np.ndarray, rate_hz: float, notes: list, w_ref=None, t_s: np.ndarray | None = None
+    ) -> dict:
         """solve() options of the noise-model covariance, the model identified (GMWM, per axis)
         on the residual — ``axis(i)`` returns axis i as a fresh (N,) array — without the
         ``bad`` samples and, with a reference rate ``w_ref`` ((N, 3), or a window reader
@@ -542,9 +616,13 @@ class Calibrator:
             if np.count_nonzero(keep & ~near) >= 0.25 * n:
                 keep &= ~near
         if not keep.all():
-            notes.append(f"noise identified on {100.0 * keep.mean():.0f} % of the samples (rate ramps and outliers left out)")
-        vals = {k: np.zeros(3) for k in ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s",
-                                         "correlated_sigma_rad_s")}
+            notes.append(
+                f"noise identified on {100.0 * keep.mean():.0f} % of the samples (rate ramps and outliers left out)"
+            )
+        vals = {
+            k: np.zeros(3)
+            for k in ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "correlated_sigma_rad_s")
+        }
         tau = np.full(3, np.inf)
         for i in range(3):
             x = axis(i)
@@ -559,9 +637,13 @@ class Calibrator:
                 vals[k][i] = identified_term(ax, k)
             if vals["correlated_sigma_rad_s"][i] > 0:
                 tau[i] = identified_term(ax, "correlated_tau_c_s") or np.inf
-        nm = NoiseModel(arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"], bias_instability_rad_s=vals["bias_instability_rad_s"],
-                        rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"], gm_sigma_rad_s=vals["correlated_sigma_rad_s"],
-                        gm_tau_c_s=tau)
+        nm = NoiseModel(
+            arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"],
+            bias_instability_rad_s=vals["bias_instability_rad_s"],
+            rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"],
+            gm_sigma_rad_s=vals["correlated_sigma_rad_s"],
+            gm_tau_c_s=tau,
+        )
 
         def fmt(a):
             return "/".join(f"{v:.3g}" for v in np.asarray(a, float))
@@ -570,7 +652,8 @@ class Calibrator:
             "standard errors: noise-model sandwich, noise identified on the fit residual (GMWM): "
             f"N {fmt(nm.arw_rad_per_sqrt_s)} rad/sqrt(s), B {fmt(nm.bias_instability_rad_s)} rad/s, "
             f"K {fmt(nm.rrw_rad_s_per_sqrt_s)} rad/s/sqrt(s), GM sigma {fmt(nm.gm_sigma_rad_s)} rad/s "
-            f"tau {fmt(nm.gm_tau_c_s)} s")
+            f"tau {fmt(nm.gm_tau_c_s)} s"
+        )
         return dict(covariance="noise_model", noise_model=nm)
 
     def _ramp_weights(self, t_s: np.ndarray, w_ref, notes: list) -> np.ndarray:
@@ -582,8 +665,10 @@ class Calibrator:
         if self.ramp_margin_s > 0:
             near = near_rate_changes(t_s, w_ref, self.ramp_margin_s)
             if near.any() and np.count_nonzero(~near) >= 0.25 * n:
-                notes.append(f"left out {int(near.sum())} samples within {self.ramp_margin_s:g} s of a reference-rate "
-                             "change (rate ramps: the gyro's own filter transient)")
+                notes.append(
+                    f"left out {int(near.sum())} samples within {self.ramp_margin_s:g} s of a reference-rate "
+                    "change (rate ramps: the gyro's own filter transient)"
+                )
                 return (~near).astype(float)
         return np.broadcast_to(1.0, (n,))
 
@@ -596,7 +681,9 @@ class Calibrator:
 
         m = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
         if m.sum() < 10:
-            raise GyroInputError("no reference rates (ref_*_rad_s) and no still part in the data: nothing to calibrate against")
+            raise GyroInputError(
+                "no reference rates (ref_*_rad_s) and no still part in the data: nothing to calibrate against"
+            )
         notes.append(
             f"no reference rates: fitted against rate 0 on {int(m.sum())} still samples "
             f"({100.0 * m.mean():.0f} % of the file); Earth rate is absorbed in the bias"
@@ -608,7 +695,8 @@ class Calibrator:
             notes.append(
                 f"{', '.join(rate_effects)} need a reference for the motion: reference rates (ref_*_rad_s), a "
                 "reference attitude (ref_q*), known rotations (--segments), or, for a multi-pose session (still "
-                "poses joined by turns, IMU-TK), the poses' gravity directions (--poses)")
+                "poses joined by turns, IMU-TK), the poses' gravity directions (--poses)"
+            )
         return np.zeros((rec.n, 3)), m.astype(float), "still", notes
 
     def _fit_lsq(self, rec: Recording, common: dict, *, store=None) -> CalibrationResult:
@@ -646,7 +734,8 @@ class Calibrator:
             def lhs(tau):
                 # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
                 return y - _shift_rate(t, w_ref, tau), E.ModelInputs(
-                    t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau), f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
+                    t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau), f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c
+                )
 
             first_kw = dict(overwrite_r=True)
 
@@ -672,8 +761,12 @@ class Calibrator:
         # with the noise-model covariance the first fits (time offset, robust pass) use OLS
         # standard errors; the model is identified on their residual, then used from the
         # thermal order tests on
-        opts = dict(weights=weights, average=average, covariance="ols" if model_cov else self.covariance,
-                    on_unobservable=self.on_unobservable)
+        opts = dict(
+            weights=weights,
+            average=average,
+            covariance="ols" if model_cov else self.covariance,
+            on_unobservable=self.on_unobservable,
+        )
         effects = list(self.effects)
         thermal = [e for e in effects if e in E.POLYNOMIAL]
         tau_total = 0.0
@@ -683,6 +776,7 @@ class Calibrator:
             e: (self.max_thermal_order if self.thermal_order == "auto" else int(self.thermal_order)) for e in thermal
         }
         tests = []
+
         # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
         def first_fit(tau):
             return lsq.fit_effects(*_swap(lhs(tau), effects), orders=orders, **first_kw, **opts)
@@ -694,8 +788,9 @@ class Calibrator:
             used = weights > 0
             bad = _outliers(lambda i: first_axis(fit, i), used, n_all)
             if model_cov and self.noise is None:
-                opts.update(self._identified_noise(lambda i: first_axis(fit, i), bad | ~used, rate_hz, notes,
-                                                   ref_at(tau_total)))
+                opts.update(
+                    self._identified_noise(lambda i: first_axis(fit, i), bad | ~used, rate_hz, notes, ref_at(tau_total))
+                )
             nb = int(bad.sum())
             # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
             if 0 < nb < 0.05 * used.sum():
@@ -707,8 +802,11 @@ class Calibrator:
                 opts.update(covariance="noise_model", noise_model=self.noise, t_s=t_since)
                 notes.append("standard errors: noise-model sandwich (noise model given)")
             else:
-                opts.update(self._identified_noise(lambda i: first_axis(fit, i), ~(weights > 0), rate_hz, notes,
-                                                   ref_at(tau_total)))
+                opts.update(
+                    self._identified_noise(
+                        lambda i: first_axis(fit, i), ~(weights > 0), rate_hz, notes, ref_at(tau_total)
+                    )
+                )
         if model_cov:
             opts["t_s"] = t_since
         # 2) thermal order from the data, then the final fit (the first fit's full-resolution
@@ -718,8 +816,12 @@ class Calibrator:
             from gyrocore.calib.thermal import select_thermal_orders
 
             orders, tests = select_thermal_orders(
-                *lhs(tau_total), effects, max_order=self.max_thermal_order,
-                alpha=self.thermal_alpha, **dict(opts, on_unobservable="drop", keep_residual=False))
+                *lhs(tau_total),
+                effects,
+                max_order=self.max_thermal_order,
+                alpha=self.thermal_alpha,
+                **dict(opts, on_unobservable="drop", keep_residual=False),
+            )
         # only θ, its standard errors and the residual RMS are kept from the final fit
         fit = lsq.fit_effects(*_swap(lhs(tau_total), effects), orders=orders, keep_residual=False, **opts)
         if "time_offset" in effects and np.isfinite(fit.effect_stderr("time_offset")[0]):
@@ -736,18 +838,30 @@ class Calibrator:
                 used_rows = opts["weights"] > 0
                 # design() centres the polynomial on the mean temperature of all rows it gets;
                 # the range over the rows used, without a copy of them (min/max are exact)
-                params[eff].update(t0_c=np.asarray(float(np.mean(T))),
-                                   temp_min_c=np.asarray(float(np.min(T, where=used_rows, initial=np.inf))),
-                                   temp_max_c=np.asarray(float(np.max(T, where=used_rows, initial=-np.inf))))
+                params[eff].update(
+                    t0_c=np.asarray(float(np.mean(T))),
+                    temp_min_c=np.asarray(float(np.min(T, where=used_rows, initial=np.inf))),
+                    temp_max_c=np.asarray(float(np.max(T, where=used_rows, initial=-np.inf))),
+                )
                 del T, used_rows
                 stderr[eff].update({k: np.asarray(np.nan) for k in _THERMAL_META})
         if "time_offset" in effects:
-            params["time_offset"]["tau_s"] = np.asarray(tau_total if np.isfinite(fit.effect_stderr("time_offset")[0]) else 0.0)
+            params["time_offset"]["tau_s"] = np.asarray(
+                tau_total if np.isfinite(fit.effect_stderr("time_offset")[0]) else 0.0
+            )
         return CalibrationResult(
-            effects=tuple(effects), params=params, stderr=stderr,
+            effects=tuple(effects),
+            params=params,
+            stderr=stderr,
             residual_rms_rad_s=np.asarray(fit.residual_rms_rad_s, float),
-            unobservable=fit.unobservable, unobservable_reason=dict(fit.unobservable_reason),
-            method=method, covariance=fit.cov_kind, n_samples=int(np.sum(opts["weights"] > 0)),
-            thermal_order=orders, thermal_tests=tuple(t_.__dict__ for t_ in tests),
-            notes=tuple(notes), noise_model=noise_model_dict(opts.get("noise_model"), rate_hz), **common,
+            unobservable=fit.unobservable,
+            unobservable_reason=dict(fit.unobservable_reason),
+            method=method,
+            covariance=fit.cov_kind,
+            n_samples=int(np.sum(opts["weights"] > 0)),
+            thermal_order=orders,
+            thermal_tests=tuple(t_.__dict__ for t_ in tests),
+            notes=tuple(notes),
+            noise_model=noise_model_dict(opts.get("noise_model"), rate_hz),
+            **common,
         )

@@ -34,8 +34,21 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["WORKER_ENV", "worker_environment", "COMMANDS", "run_batch", "run_one", "find_inputs", "robust_z",
-           "mark_outliers", "plot_fleet", "read_table", "write_table", "execute", "default_workers"]
+__all__ = [
+    "WORKER_ENV",
+    "worker_environment",
+    "COMMANDS",
+    "run_batch",
+    "run_one",
+    "find_inputs",
+    "robust_z",
+    "mark_outliers",
+    "plot_fleet",
+    "read_table",
+    "write_table",
+    "execute",
+    "default_workers",
+]
 
 
 #: Thread counts for spawned worker processes (Monte Carlo, batch): one BLAS/OpenMP thread each,
@@ -149,12 +162,16 @@ def headline_loop(path: str, options: dict) -> dict:
     declared = [e for e in options.get("effects", "bias").split(",") if e]
     r = run_loop(conv.recording, declared=declared, segments=list(conv.segments))
     found = [s.effect for s in r.found]
-    out = {"n_samples": conv.recording.n, "duration_s": conv.recording.duration_s,
-           "found": ";".join(found), "n_found": len(found),
-           "residual_rms_before_rad_s": _num(r.residual_rms_before_rad_s),
-           "residual_rms_after_rad_s": _num(r.residual_rms_after_rad_s),
-           "attitude_error_before_deg": _num(r.attitude_error_before_deg),
-           "attitude_error_after_deg": _num(r.attitude_error_after_deg)}
+    out = {
+        "n_samples": conv.recording.n,
+        "duration_s": conv.recording.duration_s,
+        "found": ";".join(found),
+        "n_found": len(found),
+        "residual_rms_before_rad_s": _num(r.residual_rms_before_rad_s),
+        "residual_rms_after_rad_s": _num(r.residual_rms_after_rad_s),
+        "attitude_error_before_deg": _num(r.attitude_error_before_deg),
+        "attitude_error_after_deg": _num(r.attitude_error_after_deg),
+    }
     for s in r.found:
         for name, v in s.evidence.params.items():
             out[f"{s.effect}.{name}"] = _num(v)
@@ -166,7 +183,14 @@ HEADLINE = {"bias": headline_bias, "allan": headline_allan, "calibrate": headlin
 #: The headline numbers the fleet summary (plot, outliers) is about, per command: a
 #: prefix/suffix match on the table's columns.
 FLEET_METRICS = {
-    "bias": ("bias_x_rad_s", "bias_y_rad_s", "bias_z_rad_s", "noise_sigma_x_rad_s", "noise_sigma_y_rad_s", "noise_sigma_z_rad_s"),
+    "bias": (
+        "bias_x_rad_s",
+        "bias_y_rad_s",
+        "bias_z_rad_s",
+        "noise_sigma_x_rad_s",
+        "noise_sigma_y_rad_s",
+        "noise_sigma_z_rad_s",
+    ),
     "allan": tuple(f"{t}_{a}_{u}" for t, u in (("arw", "rad_per_sqrt_s"), ("bias_instability", "rad_s")) for a in AX),
     "calibrate": None,  # every fitted parameter value (not the standard errors) and the residual RMS
     "loop": ("n_found", "residual_rms_after_rad_s", "attitude_error_after_deg"),
@@ -191,8 +215,9 @@ def run_one(command: str, path: str, sha256: str, options: dict) -> dict:
         except Exception as exc:  # a bug or an unexpected file: a row, not the end of the batch
             msg = str(exc).splitlines()[0] if str(exc) else ""
             row["error"] = f"{type(exc).__name__}: {msg}"
-    row["warnings"] = " | ".join(dict.fromkeys(str(w.message).replace("\n", " ") for w in caught
-                                               if issubclass(w.category, UserWarning)))
+    row["warnings"] = " | ".join(
+        dict.fromkeys(str(w.message).replace("\n", " ") for w in caught if issubclass(w.category, UserWarning))
+    )
     row["wall_s"] = time.perf_counter() - t0
     return row
 
@@ -244,7 +269,8 @@ def fleet_metrics(command: str, columns) -> list[str]:
     want = FLEET_METRICS[command]
     if want is None:
         return [c for c in columns if "." in c and not c.endswith("_se") and not c.startswith("options")] + [
-            c for c in columns if c.startswith("residual_rms_")]
+            c for c in columns if c.startswith("residual_rms_")
+        ]
     return [c for c in want if c in columns]
 
 
@@ -274,8 +300,9 @@ def plot_fleet(df, command: str, path: str) -> None:
     from gyrocore.data.recording import atomic_write_bytes
 
     ok = df["error"].fillna("") == ""
-    metrics = [m for m in fleet_metrics(command, df.columns)
-               if np.isfinite(np.asarray(df.loc[ok, m], dtype=float)).any()][:12]  # unresolved everywhere: no panel
+    metrics = [
+        m for m in fleet_metrics(command, df.columns) if np.isfinite(np.asarray(df.loc[ok, m], dtype=float)).any()
+    ][:12]  # unresolved everywhere: no panel
     extra = command == "loop"
     n = max(len(metrics) + (1 if extra else 0), 1)
     ncol = min(3, n)
@@ -295,8 +322,14 @@ def plot_fleet(df, command: str, path: str) -> None:
         if out.any():
             ax.scatter(jit[out], x[out], s=22, color="r", label=f"outlier (|robust z| > {OUTLIER_Z:g})")
             for j in np.flatnonzero(out):
-                ax.annotate(Path(files[j]).stem, (jit[j], x[j]), fontsize=7, color="r", xytext=(4, 0),
-                            textcoords="offset points")
+                ax.annotate(
+                    Path(files[j]).stem,
+                    (jit[j], x[j]),
+                    fontsize=7,
+                    color="r",
+                    xytext=(4, 0),
+                    textcoords="offset points",
+                )
         fin = x[np.isfinite(x)]
         if fin.size:
             med = float(np.median(fin))
@@ -319,8 +352,9 @@ def plot_fleet(df, command: str, path: str) -> None:
     for j in range(k, nrow * ncol):
         axes.flat[j].axis("off")
     n_fail = int((~ok).sum())
-    fig.suptitle(f"gyroharness batch {command}: {int(ok.sum())} files" + (f", {n_fail} failed" if n_fail else ""),
-                 fontsize=10)
+    fig.suptitle(
+        f"gyroharness batch {command}: {int(ok.sum())} files" + (f", {n_fail} failed" if n_fail else ""), fontsize=10
+    )
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
@@ -339,8 +373,10 @@ def read_table(path: str):
             return pd.read_parquet(path)
         return pd.read_csv(path, keep_default_na=False, na_values=[""], dtype={"error": str, "sha256": str})
     except Exception as exc:  # a table we cannot read is not silently replaced
-        raise GyroInputError(f"{path}: existing results table is unreadable ({str(exc).splitlines()[0][:120]}); "
-                             f"move it away or pass --no-resume") from None
+        raise GyroInputError(
+            f"{path}: existing results table is unreadable ({str(exc).splitlines()[0][:120]}); "
+            f"move it away or pass --no-resume"
+        ) from None
 
 
 def write_table(df, path: str) -> None:
@@ -356,12 +392,16 @@ def write_table(df, path: str) -> None:
             data = df.to_csv(index=False, lineterminator="\n").encode("utf-8")
         atomic_write_bytes(path, data)
     except OSError as exc:
-        raise GyroInputError(f"{path}: cannot write the results table ({exc.strerror or exc}); "
-                             f"nothing was written, the previous table (if any) is unchanged") from None
+        raise GyroInputError(
+            f"{path}: cannot write the results table ({exc.strerror or exc}); "
+            f"nothing was written, the previous table (if any) is unchanged"
+        ) from None
 
 
 # ------------------------------------------------------------------ execution
-def execute(tasks: list[tuple], *, workers: int, scheduler: str | None, progress: bool = False) -> tuple[list[dict], dict]:
+def execute(
+    tasks: list[tuple], *, workers: int, scheduler: str | None, progress: bool = False
+) -> tuple[list[dict], dict]:
     """Run ``run_one(*task)`` for every task; rows in task order, and backend info.
 
     ``scheduler``: address of a running Dask scheduler; else a ``LocalCluster`` of
@@ -398,8 +438,13 @@ def _execute_dask(tasks, workers, scheduler, tick):
     cluster = None
     if scheduler is None:
         with worker_environment():  # workers are spawned now and read their thread counts at start-up
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )
         client = Client(cluster, set_as_default=False)
     else:
         try:
@@ -419,9 +464,16 @@ def _execute_dask(tasks, workers, scheduler, tick):
             except Exception as exc:  # the worker died (KilledWorker) or could not run the task
                 command, path, sha, options = tasks[i]
                 msg = str(exc).splitlines()[0] if str(exc) else ""
-                rows[i] = tick({"file": path, "sha256": sha, "command": command,
-                                "options": json.dumps(options, sort_keys=True),
-                                "error": f"worker failed: {type(exc).__name__}: {msg}"[:300], "warnings": ""})
+                rows[i] = tick(
+                    {
+                        "file": path,
+                        "sha256": sha,
+                        "command": command,
+                        "options": json.dumps(options, sort_keys=True),
+                        "error": f"worker failed: {type(exc).__name__}: {msg}"[:300],
+                        "warnings": "",
+                    }
+                )
     finally:
         client.close()
         if cluster is not None:
@@ -429,8 +481,18 @@ def _execute_dask(tasks, workers, scheduler, tick):
     return rows, {"backend": "dask-local" if scheduler is None else "dask", "workers": n_workers}
 
 
-def run_batch(command: str, inputs: list[str], *, table: str, plot: str | None, options: dict, workers: int,
-              scheduler: str | None, resume: bool = True, progress: bool = False) -> dict:
+def run_batch(
+    command: str,
+    inputs: list[str],
+    *,
+    table: str,
+    plot: str | None,
+    options: dict,
+    workers: int,
+    scheduler: str | None,
+    resume: bool = True,
+    progress: bool = False,
+) -> dict:
     """The batch: hash, skip what the table already has, run the rest, write table and plot."""
     import pandas as pd
 
@@ -444,7 +506,9 @@ def run_batch(command: str, inputs: list[str], *, table: str, plot: str | None, 
     if old is not None and len(old):
         for col in ("sha256", "command", "options", "error", "file"):
             if col not in old.columns:
-                raise GyroInputError(f"{table}: not a batch results table (no column {col!r}); move it away or pass --no-resume")
+                raise GyroInputError(
+                    f"{table}: not a batch results table (no column {col!r}); move it away or pass --no-resume"
+                )
         good = (old["error"].fillna("") == "") & (old["command"] == command) & (old["options"] == opt_key)
         done = set(old.loc[good, "sha256"].astype(str))
         # keep the successful rows (of any command/options); files rerun now replace their old failed rows
@@ -452,10 +516,15 @@ def run_batch(command: str, inputs: list[str], *, table: str, plot: str | None, 
     tasks = [(command, f, h, options) for f, h in zip(inputs, hashes) if h not in done]
     unreadable = [t for t in tasks if t[2].startswith("unreadable")]
     tasks = [t for t in tasks if not t[2].startswith("unreadable")]
-    rows, info = execute(tasks, workers=workers, scheduler=scheduler, progress=progress) if tasks else ([], {"backend": "none", "workers": 0})
+    rows, info = (
+        execute(tasks, workers=workers, scheduler=scheduler, progress=progress)
+        if tasks
+        else ([], {"backend": "none", "workers": 0})
+    )
     for command_, f, h, o in unreadable:
-        rows.append({"file": f, "sha256": "", "command": command_, "options": opt_key,
-                     "error": f"{f}: {h}", "warnings": ""})
+        rows.append(
+            {"file": f, "sha256": "", "command": command_, "options": opt_key, "error": f"{f}: {h}", "warnings": ""}
+        )
     new = pd.DataFrame(rows)
     if keep_old is not None and len(keep_old):
         new_files = set(new["file"]) if len(new) else set()
@@ -481,10 +550,18 @@ def run_batch(command: str, inputs: list[str], *, table: str, plot: str | None, 
         plot_fleet(df.loc[this], command, plot)
     failed = df.loc[this & (df["error"] != "") & df["file"].isin(inputs), ["file", "error"]]
     return {
-        "command": command, "options": options, "table": table, "plot": plot,
-        "n_inputs": len(inputs), "n_run": len(tasks) + len(unreadable), "n_skipped": len(inputs) - len(tasks) - len(unreadable),
-        "n_failed": int(len(failed)), "failed": failed.to_dict("records"), "outliers": outliers,
-        "backend": info["backend"], "workers": info["workers"],
+        "command": command,
+        "options": options,
+        "table": table,
+        "plot": plot,
+        "n_inputs": len(inputs),
+        "n_run": len(tasks) + len(unreadable),
+        "n_skipped": len(inputs) - len(tasks) - len(unreadable),
+        "n_failed": int(len(failed)),
+        "failed": failed.to_dict("records"),
+        "outliers": outliers,
+        "backend": info["backend"],
+        "workers": info["workers"],
     }
 
 

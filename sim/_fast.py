@@ -40,16 +40,68 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 # ---------------------------------------------------------------------------- A (int64) slots
-(A_QPOS, A_QVEL, A_SD, A_CTRL, A_SDLOG, A_REC, A_OUTLOG, A_GOUT, A_NOISE, A_TS, A_TEMP, A_TR,
- A_MAN, A_STH, A_BTH, A_HIST,
- # integers
- A_RQ0, A_RV0, A_NSD, A_SGYRO, A_SACC, A_SQ, A_SPOS, A_SVEL, A_OUTER_EVERY, A_N, A_NMAN, A_STREAM,
- A_EARTH, A_TAU, A_STH_P, A_ASYM, A_NL, A_BIAS, A_BTH_P, A_KTR, A_RAMP, A_H, A_G, A_LP, A_SAT, A_Q,
- A_HCAP, A_HLEN, A_PREV, A_NQPOS, A_NQVEL, A_NU, A_THERM, A_AMB, A_HEATER, A_ARMED,
- # registry family terms of time only, precomputed (rows, 3·A_NFAM) (sim.gyro.GyroStream.family_table)
- A_FAM, A_NFAM,
- # the current block: global index of its first sample, rows of its arrays
- A_K0, A_NB, A_SIZE) = range(57)
+(
+    A_QPOS,
+    A_QVEL,
+    A_SD,
+    A_CTRL,
+    A_SDLOG,
+    A_REC,
+    A_OUTLOG,
+    A_GOUT,
+    A_NOISE,
+    A_TS,
+    A_TEMP,
+    A_TR,
+    A_MAN,
+    A_STH,
+    A_BTH,
+    A_HIST,
+    # integers
+    A_RQ0,
+    A_RV0,
+    A_NSD,
+    A_SGYRO,
+    A_SACC,
+    A_SQ,
+    A_SPOS,
+    A_SVEL,
+    A_OUTER_EVERY,
+    A_N,
+    A_NMAN,
+    A_STREAM,
+    A_EARTH,
+    A_TAU,
+    A_STH_P,
+    A_ASYM,
+    A_NL,
+    A_BIAS,
+    A_BTH_P,
+    A_KTR,
+    A_RAMP,
+    A_H,
+    A_G,
+    A_LP,
+    A_SAT,
+    A_Q,
+    A_HCAP,
+    A_HLEN,
+    A_PREV,
+    A_NQPOS,
+    A_NQVEL,
+    A_NU,
+    A_THERM,
+    A_AMB,
+    A_HEATER,
+    A_ARMED,
+    # registry family terms of time only, precomputed (rows, 3·A_NFAM) (sim.gyro.GyroStream.family_table)
+    A_FAM,
+    A_NFAM,
+    # the current block: global index of its first sample, rows of its arrays
+    A_K0,
+    A_NB,
+    A_SIZE,
+) = range(57)
 
 
 def _layout(*fields):
@@ -62,34 +114,158 @@ def _layout(*fields):
 
 _W, W_SIZE = _layout(
     # rotors, motors
-    ("RK", 20), ("SPIN", 4), ("FF", 1), ("CT", 1),
+    ("RK", 20),
+    ("SPIN", 4),
+    ("FF", 1),
+    ("CT", 1),
     # controller constants
-    ("POS_SP", 3), ("YAW_SP", 1), ("DT", 1), ("DT_OUTER", 1), ("IL", 1), ("ALT_KP", 1), ("ALT_KI", 1),
-    ("ALT_KD", 1), ("XY_KP", 1), ("XY_KD", 1), ("AMAX", 1), ("TMAX", 1), ("LIM", 1), ("ATT_K", 3),
-    ("MASS", 1), ("GRAV", 1), ("TM", 1), ("JKP", 3), ("JKI", 3), ("JKD", 3), ("AINV", 16),
+    ("POS_SP", 3),
+    ("YAW_SP", 1),
+    ("DT", 1),
+    ("DT_OUTER", 1),
+    ("IL", 1),
+    ("ALT_KP", 1),
+    ("ALT_KI", 1),
+    ("ALT_KD", 1),
+    ("XY_KP", 1),
+    ("XY_KD", 1),
+    ("AMAX", 1),
+    ("TMAX", 1),
+    ("LIM", 1),
+    ("ATT_K", 3),
+    ("MASS", 1),
+    ("GRAV", 1),
+    ("TM", 1),
+    ("JKP", 3),
+    ("JKI", 3),
+    ("JKD", 3),
+    ("AINV", 16),
     # gyro constants
-    ("K", 9), ("EARTH", 3), ("TAUV", 1), ("ASYMV", 3), ("NLV", 3), ("BV", 3), ("STH_LIM", 3), ("BTH_LIM", 3),
-    ("KTRV", 3), ("RAMPV", 3), ("HV", 9), ("GV", 18), ("LPV", 5), ("ZI", 2), ("SATV", 1), ("LSB", 1), ("T_PU", 1),
+    ("K", 9),
+    ("EARTH", 3),
+    ("TAUV", 1),
+    ("ASYMV", 3),
+    ("NLV", 3),
+    ("BV", 3),
+    ("STH_LIM", 3),
+    ("BTH_LIM", 3),
+    ("KTRV", 3),
+    ("RAMPV", 3),
+    ("HV", 9),
+    ("GV", 18),
+    ("LPV", 5),
+    ("ZI", 2),
+    ("SATV", 1),
+    ("LSB", 1),
+    ("T_PU", 1),
     # controller state
-    ("I_RATE", 3), ("I_ALT", 1), ("PREV_G", 3), ("Q_SP", 4), ("RATE_SP", 3), ("COLL", 1), ("THRUST", 4),
-    ("MOT", 4), ("OM", 4),
+    ("I_RATE", 3),
+    ("I_ALT", 1),
+    ("PREV_G", 3),
+    ("Q_SP", 4),
+    ("RATE_SP", 3),
+    ("COLL", 1),
+    ("THRUST", 4),
+    ("MOT", 4),
+    ("OM", 4),
     # gyro state
-    ("LPZ", 6), ("W_FIRST", 3), ("GOUT3", 3),
+    ("LPZ", 6),
+    ("W_FIRST", 3),
+    ("GOUT3", 3),
     # streamed (motor-heated) die temperature: constants, then the ThermalState
-    ("TH_TAU", 1), ("TH_SELF", 1), ("TH_MOTOR", 1), ("TH_KC", 1), ("TH_TEMP", 1), ("TH_T", 1), ("TH_AMB", 1),
+    ("TH_TAU", 1),
+    ("TH_SELF", 1),
+    ("TH_MOTOR", 1),
+    ("TH_KC", 1),
+    ("TH_TEMP", 1),
+    ("TH_T", 1),
+    ("TH_AMB", 1),
     # heater PI (sim.thermal.ThermalState._update_heater): constants, then its state
-    ("HT_KP", 1), ("HT_KI", 1), ("HT_SP", 1), ("HT_MAXW", 1), ("HT_CPW", 1), ("HT_INTEG", 1), ("HT_W", 1),
+    ("HT_KP", 1),
+    ("HT_KI", 1),
+    ("HT_SP", 1),
+    ("HT_MAXW", 1),
+    ("HT_CPW", 1),
+    ("HT_INTEG", 1),
+    ("HT_W", 1),
     # take-off from the ground (CascadedController arm_at_s, climb_s, z_start_m)
-    ("T_ARM", 1), ("CLIMB", 1), ("Z0", 1),
+    ("T_ARM", 1),
+    ("CLIMB", 1),
+    ("Z0", 1),
 )
-(W_RK, W_SPIN, W_FF, W_CT, W_POS_SP, W_YAW_SP, W_DT, W_DT_OUTER, W_IL, W_ALT_KP, W_ALT_KI,
- W_ALT_KD, W_XY_KP, W_XY_KD, W_AMAX, W_TMAX, W_LIM, W_ATT_K, W_MASS, W_GRAV, W_TM, W_JKP,
- W_JKI, W_JKD, W_AINV, W_K, W_EARTH, W_TAUV, W_ASYMV, W_NLV, W_BV, W_STH_LIM, W_BTH_LIM,
- W_KTRV, W_RAMPV, W_HV, W_GV, W_LPV, W_ZI, W_SATV, W_LSB, W_T_PU, W_I_RATE, W_I_ALT, W_PREV_G,
- W_Q_SP, W_RATE_SP, W_COLL, W_THRUST, W_MOT, W_OM, W_LPZ, W_W_FIRST, W_GOUT3, W_TH_TAU, W_TH_SELF,
- W_TH_MOTOR, W_TH_KC, W_TH_TEMP, W_TH_T, W_TH_AMB, W_HT_KP, W_HT_KI, W_HT_SP, W_HT_MAXW, W_HT_CPW,
- W_HT_INTEG, W_HT_W, W_T_ARM, W_CLIMB, W_Z0) = (
-    _W[_k] for _k in _W)
+(
+    W_RK,
+    W_SPIN,
+    W_FF,
+    W_CT,
+    W_POS_SP,
+    W_YAW_SP,
+    W_DT,
+    W_DT_OUTER,
+    W_IL,
+    W_ALT_KP,
+    W_ALT_KI,
+    W_ALT_KD,
+    W_XY_KP,
+    W_XY_KD,
+    W_AMAX,
+    W_TMAX,
+    W_LIM,
+    W_ATT_K,
+    W_MASS,
+    W_GRAV,
+    W_TM,
+    W_JKP,
+    W_JKI,
+    W_JKD,
+    W_AINV,
+    W_K,
+    W_EARTH,
+    W_TAUV,
+    W_ASYMV,
+    W_NLV,
+    W_BV,
+    W_STH_LIM,
+    W_BTH_LIM,
+    W_KTRV,
+    W_RAMPV,
+    W_HV,
+    W_GV,
+    W_LPV,
+    W_ZI,
+    W_SATV,
+    W_LSB,
+    W_T_PU,
+    W_I_RATE,
+    W_I_ALT,
+    W_PREV_G,
+    W_Q_SP,
+    W_RATE_SP,
+    W_COLL,
+    W_THRUST,
+    W_MOT,
+    W_OM,
+    W_LPZ,
+    W_W_FIRST,
+    W_GOUT3,
+    W_TH_TAU,
+    W_TH_SELF,
+    W_TH_MOTOR,
+    W_TH_KC,
+    W_TH_TEMP,
+    W_TH_T,
+    W_TH_AMB,
+    W_HT_KP,
+    W_HT_KI,
+    W_HT_SP,
+    W_HT_MAXW,
+    W_HT_CPW,
+    W_HT_INTEG,
+    W_HT_W,
+    W_T_ARM,
+    W_CLIMB,
+    W_Z0,
+) = (_W[_k] for _k in _W)
 assert all(globals()["W_" + _k] == _v for _k, _v in _W.items())  # names follow the layout
 
 
@@ -328,8 +504,12 @@ def _log_and_gyro(k, A, W):
         ff5 = f1 * f2
         G = W_GV
         a0 = a0 + (ff0 * W[G] + ff1 * W[G + 1] + ff2 * W[G + 2] + ff3 * W[G + 3] + ff4 * W[G + 4] + ff5 * W[G + 5])
-        a1 = a1 + (ff0 * W[G + 6] + ff1 * W[G + 7] + ff2 * W[G + 8] + ff3 * W[G + 9] + ff4 * W[G + 10] + ff5 * W[G + 11])
-        a2 = a2 + (ff0 * W[G + 12] + ff1 * W[G + 13] + ff2 * W[G + 14] + ff3 * W[G + 15] + ff4 * W[G + 16] + ff5 * W[G + 17])
+        a1 = a1 + (
+            ff0 * W[G + 6] + ff1 * W[G + 7] + ff2 * W[G + 8] + ff3 * W[G + 9] + ff4 * W[G + 10] + ff5 * W[G + 11]
+        )
+        a2 = a2 + (
+            ff0 * W[G + 12] + ff1 * W[G + 13] + ff2 * W[G + 14] + ff3 * W[G + 15] + ff4 * W[G + 16] + ff5 * W[G + 17]
+        )
     m = A[A_NFAM]
     if m > 0:
         # registry family terms (gyrocore.effects.registry: periodic, step, regressor[t]), each added
@@ -635,10 +815,21 @@ class Kernel:
         self.A, self.W, self._keep = A, W, keep
         self._block: list = []
 
-    def set_block(self, k0: int, *, t_s: np.ndarray, temp_c: np.ndarray, sd_log: np.ndarray, outer_log: np.ndarray,
-                  rec: np.ndarray, ambient_c: np.ndarray | None = None, gyro_out: np.ndarray | None = None,
-                  noise: np.ndarray | None = None, temp_rate: np.ndarray | None = None,
-                  family: np.ndarray | None = None) -> None:
+    def set_block(
+        self,
+        k0: int,
+        *,
+        t_s: np.ndarray,
+        temp_c: np.ndarray,
+        sd_log: np.ndarray,
+        outer_log: np.ndarray,
+        rec: np.ndarray,
+        ambient_c: np.ndarray | None = None,
+        gyro_out: np.ndarray | None = None,
+        noise: np.ndarray | None = None,
+        temp_rate: np.ndarray | None = None,
+        family: np.ndarray | None = None,
+    ) -> None:
         """Point the kernels at the arrays of samples ``k0 … k0 + m − 1``.
 
         Parameters
@@ -666,8 +857,13 @@ class Kernel:
         A = self.A
         m = int(temp_c.shape[0])
         oe = int(A[A_OUTER_EVERY])
-        checks = [(t_s, (m + 1,)), (temp_c, (m,)), (sd_log, (m, int(A[A_NSD]))), (rec, (m, 14)),
-                  (outer_log, ((k0 + m - 1) // oe - k0 // oe + 1, 7))]
+        checks = [
+            (t_s, (m + 1,)),
+            (temp_c, (m,)),
+            (sd_log, (m, int(A[A_NSD]))),
+            (rec, (m, 14)),
+            (outer_log, ((k0 + m - 1) // oe - k0 // oe + 1, 7)),
+        ]
         if A[A_THERM] != 0:
             checks.append((ambient_c, (m + 1,)))
         if A[A_STREAM] != 0:
@@ -680,7 +876,9 @@ class Kernel:
             if arr is None or arr.shape != shape:
                 raise ValueError(f"kernel block array of shape {None if arr is None else arr.shape}, expected {shape}")
         A[A_K0], A[A_NB] = int(k0), m
-        A[A_TS], A[A_TEMP], A[A_SDLOG], A[A_REC], A[A_OUTLOG] = (_addr(x) for x in (t_s, temp_c, sd_log, rec, outer_log))
+        A[A_TS], A[A_TEMP], A[A_SDLOG], A[A_REC], A[A_OUTLOG] = (
+            _addr(x) for x in (t_s, temp_c, sd_log, rec, outer_log)
+        )
         block = [t_s, temp_c, sd_log, rec, outer_log]
         for arr, slot in ((ambient_c, A_AMB), (gyro_out, A_GOUT), (noise, A_NOISE), (temp_rate, A_TR), (family, A_FAM)):
             if arr is not None and arr.size:
@@ -695,8 +893,23 @@ def _addr(a: np.ndarray) -> int:
     return int(a.ctypes.data)
 
 
-def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct: float, ctl, n: int,
-          t_power_up_s: float, stream=None, thermal=None, kappa_ct: float = 0.0) -> Kernel:
+def build(
+    *,
+    data,
+    rq0: int,
+    rv0: int,
+    sens: dict,
+    rotor_k,
+    spin,
+    ff: float,
+    ct: float,
+    ctl,
+    n: int,
+    t_power_up_s: float,
+    stream=None,
+    thermal=None,
+    kappa_ct: float = 0.0,
+) -> Kernel:
     """Fill the kernel arrays for one flight (the per-sample arrays: :meth:`Kernel.set_block`).
 
     Parameters
@@ -735,33 +948,36 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
     A[A_RQ0], A[A_RV0], A[A_N] = rq0, rv0, n
     A[A_SGYRO], A[A_SACC], A[A_SQ], A[A_SPOS], A[A_SVEL] = (sens[x] for x in ("gyro", "acc", "quat", "pos", "vel"))
     A[A_OUTER_EVERY] = ctl.outer_every
-    W[W_RK:W_RK + 20] = np.asarray(rotor_k, float).ravel()
-    W[W_SPIN:W_SPIN + 4] = spin
+    W[W_RK : W_RK + 20] = np.asarray(rotor_k, float).ravel()
+    W[W_SPIN : W_SPIN + 4] = spin
     W[W_FF], W[W_CT] = ff, ct
-    W[W_MOT:W_MOT + 4] = data.ctrl[12:16]
+    W[W_MOT : W_MOT + 4] = data.ctrl[12:16]
     # --- controller
     g, p = ctl.g, ctl.p
-    W[W_POS_SP:W_POS_SP + 3] = ctl.pos_sp
+    W[W_POS_SP : W_POS_SP + 3] = ctl.pos_sp
     W[W_YAW_SP], W[W_DT], W[W_DT_OUTER], W[W_IL] = ctl.yaw_sp, ctl.dt, ctl.dt_outer, g.integrator_limit
     W[W_ALT_KP], W[W_ALT_KI], W[W_ALT_KD] = g.alt_kp_per_s2, g.alt_ki_per_s3, g.alt_kd_per_s
     W[W_XY_KP], W[W_XY_KD], W[W_AMAX], W[W_TMAX] = g.xy_kp_per_s2, g.xy_kd_per_s, g.max_horiz_accel_m_s2, g.max_tilt_rad
     W[W_LIM] = g.rate_limit_rad_s
-    W[W_ATT_K:W_ATT_K + 3] = g.att_kp_per_s
+    W[W_ATT_K : W_ATT_K + 3] = g.att_kp_per_s
     W[W_MASS], W[W_GRAV], W[W_TM] = p.mass_kg, p.gravity_m_s2, p.max_thrust_n
-    W[W_JKP:W_JKP + 3], W[W_JKI:W_JKI + 3], W[W_JKD:W_JKD + 3] = ctl._jkp, ctl._jki, ctl._jkd
-    W[W_AINV:W_AINV + 16] = np.asarray(ctl.alloc_inv, float).ravel()
-    W[W_I_RATE:W_I_RATE + 3], W[W_I_ALT] = ctl.i_rate, ctl.i_alt
+    W[W_JKP : W_JKP + 3], W[W_JKI : W_JKI + 3], W[W_JKD : W_JKD + 3] = ctl._jkp, ctl._jki, ctl._jkd
+    W[W_AINV : W_AINV + 16] = np.asarray(ctl.alloc_inv, float).ravel()
+    W[W_I_RATE : W_I_RATE + 3], W[W_I_ALT] = ctl.i_rate, ctl.i_alt
     if ctl.prev_gyro is not None:
-        W[W_PREV_G:W_PREV_G + 3] = ctl.prev_gyro
+        W[W_PREV_G : W_PREV_G + 3] = ctl.prev_gyro
         A[A_PREV] = 1
-    W[W_Q_SP:W_Q_SP + 4], W[W_RATE_SP:W_RATE_SP + 3] = ctl.q_sp, ctl.rate_sp
-    W[W_COLL], W[W_THRUST:W_THRUST + 4] = ctl.collective_n, ctl.thrust_cmd
+    W[W_Q_SP : W_Q_SP + 4], W[W_RATE_SP : W_RATE_SP + 3] = ctl.q_sp, ctl.rate_sp
+    W[W_COLL], W[W_THRUST : W_THRUST + 4] = ctl.collective_n, ctl.thrust_cmd
     W[W_T_ARM], W[W_CLIMB], W[W_Z0] = ctl.arm_at_s, ctl.climb_s, ctl.z_start_m
     A[A_ARMED] = 1 if ctl.armed else 0
     if thermal is not None:
         A[A_THERM] = 1
-        W[W_TH_TAU], W[W_TH_SELF], W[W_TH_MOTOR] = (thermal.spec.time_constant_s, thermal.spec.self_heating_c,
-                                                    thermal.spec.motor_c_per_w)
+        W[W_TH_TAU], W[W_TH_SELF], W[W_TH_MOTOR] = (
+            thermal.spec.time_constant_s,
+            thermal.spec.self_heating_c,
+            thermal.spec.motor_c_per_w,
+        )
         W[W_TH_KC], W[W_TH_TEMP], W[W_TH_T], W[W_TH_AMB] = kappa_ct, thermal.temp_c, thermal.t_s, thermal._amb_c
         ht = thermal.spec.heater
         if ht is not None:
@@ -769,7 +985,9 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
             W[W_HT_KP], W[W_HT_KI] = ht.gains(thermal.spec.time_constant_s)
             W[W_HT_SP], W[W_HT_MAXW], W[W_HT_CPW] = ht.setpoint_c, ht.max_power_w, ht.heater_c_per_w
             W[W_HT_INTEG], W[W_HT_W] = thermal.integ_w, thermal.heater_w
-    man = np.array([(m.t_start_s, m.duration_s, m.roll_rad, m.pitch_rad, m.yaw_rad) for m in ctl.manoeuvres], float).reshape(-1, 5)
+    man = np.array(
+        [(m.t_start_s, m.duration_s, m.roll_rad, m.pitch_rad, m.yaw_rad) for m in ctl.manoeuvres], float
+    ).reshape(-1, 5)
     keep.append(man)
     A[A_NMAN] = man.shape[0]
     A[A_MAN] = _addr(man) if man.shape[0] else 0
@@ -783,31 +1001,37 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
         W[W_T_PU] = S._t_pu if S._t_pu is not None else float(t_power_up_s)
         if S._earth is not None:
             A[A_EARTH] = 1
-            W[W_EARTH:W_EARTH + 3] = S._earth
+            W[W_EARTH : W_EARTH + 3] = S._earth
         if S._tau != 0.0:
             A[A_TAU] = 1
             W[W_TAUV] = S._tau
             hist = np.zeros((S._hist_len, 4))
             keep.append(hist)
             A[A_HIST], A[A_HCAP], A[A_HLEN] = _addr(hist), S._hist_len, 0
-        W[W_K:W_K + 9] = np.asarray(S._K, float).ravel()
+        W[W_K : W_K + 9] = np.asarray(S._K, float).ravel()
         for th, flag, coef_slot, lim in ((S._sth, A_STH_P, A_STH, W_STH_LIM), (S._bth, A_BTH_P, A_BTH, W_BTH_LIM)):
             if th is not None:
                 coef, lo, hi, t0 = th
                 c = np.ascontiguousarray(np.asarray(coef, float).reshape(3, -1))
                 keep.append(c)
                 A[flag], A[coef_slot] = c.shape[1], _addr(c)
-                W[lim:lim + 3] = (lo, hi, t0)
-        for val, flag, slot, size in ((S._asym, A_ASYM, W_ASYMV, 3), (S._nl, A_NL, W_NLV, 3), (S._b, A_BIAS, W_BV, 3),
-                                      (S._ktr, A_KTR, W_KTRV, 3), (S._ramp, A_RAMP, W_RAMPV, 3),
-                                      (S._H, A_H, W_HV, 9), (S._G, A_G, W_GV, 18)):
+                W[lim : lim + 3] = (lo, hi, t0)
+        for val, flag, slot, size in (
+            (S._asym, A_ASYM, W_ASYMV, 3),
+            (S._nl, A_NL, W_NLV, 3),
+            (S._b, A_BIAS, W_BV, 3),
+            (S._ktr, A_KTR, W_KTRV, 3),
+            (S._ramp, A_RAMP, W_RAMPV, 3),
+            (S._H, A_H, W_HV, 9),
+            (S._G, A_G, W_GV, 18),
+        ):
             if val is not None:
                 A[flag] = 1
-                W[slot:slot + size] = np.asarray(val, float).ravel()
+                W[slot : slot + size] = np.asarray(val, float).ravel()
         if S._lp is not None:
             A[A_LP] = 1
-            W[W_LPV:W_LPV + 5] = S._lp
-            W[W_ZI:W_ZI + 2] = [float(v) for v in S._lp_zi]
+            W[W_LPV : W_LPV + 5] = S._lp
+            W[W_ZI : W_ZI + 2] = [float(v) for v in S._lp_zi]
         if S._fam:
             A[A_NFAM] = len(S._fam)
         if S._sat is not None:
@@ -815,8 +1039,6 @@ def build(*, data, rq0: int, rv0: int, sens: dict, rotor_k, spin, ff: float, ct:
         if S._q is not None:
             A[A_Q], W[W_LSB] = 1, S._q
     return Kernel(A, W, keep)
-
-
 
 
 def warm_cache_in_child(timeout_s: float = 600.0) -> bool:
@@ -833,14 +1055,17 @@ def warm_cache_in_child(timeout_s: float = 600.0) -> bool:
     import subprocess
     import sys
 
-    code = ("from sim.quadrotor import fly_hover\n"
-            "fly_hover(duration_s=0.01)\n"
-            "fly_hover(duration_s=0.02, gyro_rate_hz=500.0, pipeline=lambda g: g)\n")
+    code = (
+        "from sim.quadrotor import fly_hover\n"
+        "fly_hover(duration_s=0.01)\n"
+        "fly_hover(duration_s=0.02, gyro_rate_hz=500.0, pipeline=lambda g: g)\n"
+    )
     try:
         # the child resolves `sim` as this process does (its sys.path as PYTHONPATH)
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
-        r = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=timeout_s, env=env,
-                           cwd=os.getcwd())
+        r = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, timeout=timeout_s, env=env, cwd=os.getcwd()
+        )
     except (OSError, subprocess.SubprocessError):
         return False
     return r.returncode == 0

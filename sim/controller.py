@@ -73,7 +73,10 @@ class QuadParams:
     kappa_m: float = 0.0161
     spin: tuple[int, int, int, int] = (1, 1, -1, -1)
     rotor_xy_m: tuple[tuple[float, float], ...] = (
-        (0.159099, -0.159099), (-0.159099, 0.159099), (0.159099, 0.159099), (-0.159099, -0.159099),
+        (0.159099, -0.159099),
+        (-0.159099, 0.159099),
+        (0.159099, 0.159099),
+        (-0.159099, -0.159099),
     )
     motor_kv_n_m_s: float = 0.003
     max_thrust_n: float = 8.5
@@ -129,7 +132,9 @@ class Manoeuvre:
     yaw_rad: float = 0.0
 
 
-def small_steps(duration_s: float, *, angle_rad: float = math.radians(5.0), yaw_rad: float = math.radians(15.0)) -> tuple[Manoeuvre, ...]:
+def small_steps(
+    duration_s: float, *, angle_rad: float = math.radians(5.0), yaw_rad: float = math.radians(15.0)
+) -> tuple[Manoeuvre, ...]:
     """A sequence of small steps fitted into ``duration_s``: roll +, roll −, pitch +, pitch −, yaw.
 
     The first 20 % of the flight is plain hover; each step lasts 1/10 of the flight (max 2 s).
@@ -201,10 +206,20 @@ class CascadedController:
         Start of the height ramp (the height on the ground), m.
     """
 
-    def __init__(self, params: QuadParams, gains: ControllerGains, *, dt_s: float,
-                 pos_sp_W_m=(0.0, 0.0, 1.0), yaw_sp_rad: float = 0.0, manoeuvres=(),
-                 outer_rate_hz: float = 250.0, arm_at_s: float = 0.0, climb_s: float = 0.0,
-                 z_start_m: float = 0.0) -> None:
+    def __init__(
+        self,
+        params: QuadParams,
+        gains: ControllerGains,
+        *,
+        dt_s: float,
+        pos_sp_W_m=(0.0, 0.0, 1.0),
+        yaw_sp_rad: float = 0.0,
+        manoeuvres=(),
+        outer_rate_hz: float = 250.0,
+        arm_at_s: float = 0.0,
+        climb_s: float = 0.0,
+        z_start_m: float = 0.0,
+    ) -> None:
         if not dt_s > 0 or not outer_rate_hz > 0:
             raise GyroInputError("controller dt_s and outer_rate_hz must be > 0")
         if not (math.isfinite(arm_at_s) and arm_at_s >= 0 and math.isfinite(climb_s) and climb_s >= 0):

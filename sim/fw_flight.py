@@ -70,7 +70,7 @@ BF_MOTOR_OF_ROTOR = (1, 2, 3, 0)
 SCENARIOS = {
     "hover": "steady hover at 1 m, no manoeuvres",
     "steps": "hover, then rate steps: on roll, pitch and yaw in turn a pulse of +R then one of -R (R = 2 rad/s, "
-             "up to 0.15 s each: the attitude set point ramps with it and comes back level)",
+    "up to 0.15 s each: the attitude set point ramps with it and comes back level)",
 }
 
 #: firmware stick range, us (Betaflight PWM_RANGE_MIN/MAX, midrc)
@@ -130,14 +130,20 @@ def motor_law(vehicle, idle_fraction: float) -> MotorLaw:
     veh = get_vehicle(vehicle)
     if veh.name == "racing25":
         two_pi = 2.0 * math.pi
-        return MotorLaw(two_pi * 242.5, two_pi * (242.5 + 401.6),
-                        "the log's rotor line law f = 242.5 + 401.6 u Hz (models/racing25.xml)")
+        return MotorLaw(
+            two_pi * 242.5,
+            two_pi * (242.5 + 401.6),
+            "the log's rotor line law f = 242.5 + 401.6 u Hz (models/racing25.xml)",
+        )
     p = veh.params
     w_max = math.sqrt(p.max_thrust_n / p.c_t_n_per_rad2_s2)
     i = float(idle_fraction)
-    return MotorLaw(w_max * i, w_max,
-                    f"rotor speed proportional to the ESC output, {w_max:.1f} rad/s at full output "
-                    f"(sqrt(T_max / c_T), T_max {p.max_thrust_n:g} N; estimate), idle {100 * i:g} %")
+    return MotorLaw(
+        w_max * i,
+        w_max,
+        f"rotor speed proportional to the ESC output, {w_max:.1f} rad/s at full output "
+        f"(sqrt(T_max / c_T), T_max {p.max_thrust_n:g} N; estimate), idle {100 * i:g} %",
+    )
 
 
 # ----------------------------------------------------------------------------- rates
@@ -169,7 +175,10 @@ class RateProfile:
     @classmethod
     def from_settings(cls, settings: Mapping[str, str] | Sequence[tuple[str, str]]) -> RateProfile:
         """The profile from firmware settings (CLI names; missing ones keep their defaults)."""
-        s = {str(k).strip().lower(): str(v).strip() for k, v in (settings.items() if isinstance(settings, Mapping) else settings)}
+        s = {
+            str(k).strip().lower(): str(v).strip()
+            for k, v in (settings.items() if isinstance(settings, Mapping) else settings)
+        }
         d = cls()
 
         def trio(fmt, default):
@@ -185,12 +194,18 @@ class RateProfile:
         rt = s.get("rates_type", d.rates_type).upper()
         if rt.isdigit():  # a log header gives the lookup index (Betaflight's lookupTableRatesType order)
             if int(rt) >= len(_RATES_TYPES):
-                raise GyroInputError(f"rates_type index {rt}: Betaflight has {len(_RATES_TYPES)} ({', '.join(_RATES_TYPES)})")
+                raise GyroInputError(
+                    f"rates_type index {rt}: Betaflight has {len(_RATES_TYPES)} ({', '.join(_RATES_TYPES)})"
+                )
             rt = _RATES_TYPES[int(rt)]
-        return cls(rates_type=rt, rc_rate=trio("{}_rc_rate", d.rc_rate),
-                   expo=trio("{}_expo", d.expo), srate=trio("{}_srate", d.srate),
-                   rate_limit=trio("{}_rate_limit", d.rate_limit),
-                   quick_rc_expo=s.get("quickrates_rc_expo", "OFF").upper() in ("ON", "1"))
+        return cls(
+            rates_type=rt,
+            rc_rate=trio("{}_rc_rate", d.rc_rate),
+            expo=trio("{}_expo", d.expo),
+            srate=trio("{}_srate", d.srate),
+            rate_limit=trio("{}_rate_limit", d.rate_limit),
+            quick_rc_expo=s.get("quickrates_rc_expo", "OFF").upper() in ("ON", "1"),
+        )
 
     def rate_deg_s(self, axis: int, d: float) -> float:
         """Rate set point (deg/s) for stick deflection ``d`` in [-1, 1] on ``axis`` (0 roll, 1 pitch,
@@ -523,8 +538,9 @@ class FwFlightLog:
 
         from .quadrotor import FlightLog
 
-        view = SimpleNamespace(rate_hz=self.rate_hz, omega_true_rad_s=self.omega_true_rad_s,
-                               gyro_filt_rad_s=self.fw_gyro_rad_s)
+        view = SimpleNamespace(
+            rate_hz=self.rate_hz, omega_true_rad_s=self.omega_true_rad_s, gyro_filt_rad_s=self.fw_gyro_rad_s
+        )
         return FlightLog.gyro_delay_s(view)
 
     def step_responses(self) -> list[dict]:
@@ -545,10 +561,17 @@ class FwFlightLog:
             k10 = np.flatnonzero(r >= 0.1)
             k90 = np.flatnonzero(r >= 0.9)
             rise = float((k90[0] - k10[0]) * dt) if k10.size and k90.size else float("nan")
-            half = r[r.size // 2:]
-            out.append({"axis": _AXES[p.axis], "t_start_s": p.t_start_s, "rate_deg_s": math.degrees(p.rate_rad_s),
-                        "rise_s": rise, "overshoot_pct": float(100.0 * max(np.max(r) - 1.0, 0.0)),
-                        "tracking_error_pct": float(100.0 * np.sqrt(np.mean((half - 1.0) ** 2)))})
+            half = r[r.size // 2 :]
+            out.append(
+                {
+                    "axis": _AXES[p.axis],
+                    "t_start_s": p.t_start_s,
+                    "rate_deg_s": math.degrees(p.rate_rad_s),
+                    "rise_s": rise,
+                    "overshoot_pct": float(100.0 * max(np.max(r) - 1.0, 0.0)),
+                    "tracking_error_pct": float(100.0 * np.sqrt(np.mean((half - 1.0) ** 2))),
+                }
+            )
         return out
 
     def scores(self, settle_s: float) -> dict:
@@ -570,10 +593,14 @@ class FwFlightLog:
             "gyro_delay_ms": 1e3 * self.gyro_delay_s() if self.manoeuvres else None,
             "fw_gyro_noise_above_20hz_rad_s": self.highpass_rms(self.fw_gyro_rad_s, hov if hov.any() else after),
             "raw_gyro_noise_above_20hz_rad_s": self.highpass_rms(self.gyro_meas_rad_s, hov if hov.any() else after),
-            "dterm_noise_above_20hz": (self.highpass_rms(self.fw_pid_d, hov if hov.any() else after)
-                                       if self.fw_pid_d is not None else None),
-            "dterm_input_noise_above_20hz_rad_s": (self.highpass_rms(self.fw_dterm_rad_s, hov if hov.any() else after)
-                                                   if self.fw_dterm_rad_s is not None else None),
+            "dterm_noise_above_20hz": (
+                self.highpass_rms(self.fw_pid_d, hov if hov.any() else after) if self.fw_pid_d is not None else None
+            ),
+            "dterm_input_noise_above_20hz_rad_s": (
+                self.highpass_rms(self.fw_dterm_rad_s, hov if hov.any() else after)
+                if self.fw_dterm_rad_s is not None
+                else None
+            ),
             "mean_motor": float(np.mean(self.motors[after])),
             "altitude_error_rms_m": float(np.sqrt(np.mean((self.pos_W_m[after, 2] - 1.0) ** 2))),
         }
@@ -588,7 +615,7 @@ class FwFlightLog:
 
 
 def _settings_value(settings, name: str, default: str) -> str:
-    for k, v in (settings.items() if isinstance(settings, Mapping) else settings):
+    for k, v in settings.items() if isinstance(settings, Mapping) else settings:
         if str(k).strip().lower() == name:
             return str(v).strip()
     return default
@@ -617,12 +644,14 @@ def _add_payload(model, data, hf, veh, law, u: float):
     m_new = 4.0 * p.c_t_n_per_rad2_s2 * om * om / p.gravity_m_s2
     m_old = float(mujoco.mj_getTotalmass(model))
     if m_new < 0.5 * m_old:
-        raise GyroInputError(f"hover command {u:g} is below the {veh.name}'s own hover: it would need a lighter vehicle")
+        raise GyroInputError(
+            f"hover command {u:g} is below the {veh.name}'s own hover: it would need a lighter vehicle"
+        )
     fid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "frame")
     model.body_mass[fid] += m_new - m_old
     mujoco.mj_setConst(model, data)
     rv0 = hf.rv0
-    data.qvel[rv0:rv0 + 4] = [s * om for s in hf.spin]
+    data.qvel[rv0 : rv0 + 4] = [s * om for s in hf.spin]
     t = p.c_t_n_per_rad2_s2 * om * om
     data.ctrl[0:4] = t
     data.ctrl[12:16] = [s * (om + hf.ff * t) for s in hf.spin]
@@ -649,14 +678,22 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
     pulses = rate_pulses(opts.duration_s, opts.settle_s) if opts.scenario == "steps" else ()
     # the physics at an integer multiple >= 1 of the loop rate, at least the class's own rate
     phys = max(float(veh.physics_rate_hz), rate)
-    hf = HoverFlight(duration_s=opts.duration_s, gyro=_SetupOnly(), vibration=opts.vibration, physics_rate_hz=phys,
-                     gyro_rate_hz=rate, seed=opts.seed, vehicle=veh)
+    hf = HoverFlight(
+        duration_s=opts.duration_s,
+        gyro=_SetupOnly(),
+        vibration=opts.vibration,
+        physics_rate_hz=phys,
+        gyro_rate_hz=rate,
+        seed=opts.seed,
+        vehicle=veh,
+    )
     n, m_per = hf.n, hf.m_per
     model, data = hf.model, hf.data
     t_all = np.arange(n) / rate
     th = ThermalSpec.constant(25.0)
     temp = simulate_temperature(t_all, th)
     if opts.sensor is None:
+
         def gstep(k, t_s, omega_S, f_S, temp_c):
             return omega_S
     else:
@@ -667,8 +704,9 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
     if opts.hover_command is not None:
         params = _add_payload(model, data, hf, veh, law, float(opts.hover_command))
     # the pilot: the hover runner's outer loops (same constants as HoverFlight's own) flying the pulses
-    ctl = _pulse_controller(CascadedController)(params, veh.gains, dt_s=1.0 / rate,
-                                                pos_sp_W_m=tuple(data.qpos[0:3].tolist()), yaw_sp_rad=0.0, pulses=pulses)
+    ctl = _pulse_controller(CascadedController)(
+        params, veh.gains, dt_s=1.0 / rate, pos_sp_W_m=tuple(data.qpos[0:3].tolist()), yaw_sp_rad=0.0, pulses=pulses
+    )
     pilot = Pilot(ctl, opts.rates, law, params.c_t_n_per_rad2_s2, mincheck_us=opts.mincheck_us)
     spin, ff, ct = hf.spin, hf.ff, hf.ct
     rotor_k = hf.rotor_k
@@ -696,21 +734,23 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
     oe = ctl.outer_every
     t0 = time.perf_counter()
     for k in range(n):
-        om = qvel[rv0:rv0 + 4].tolist()
-        ctrl[:] = rotor_forces(qpos[rq0:rq0 + 4].tolist(), om, rotor_k) + mot_cmd
+        om = qvel[rv0 : rv0 + 4].tolist()
+        ctrl[:] = rotor_forces(qpos[rq0 : rq0 + 4].tolist(), om, rotor_k) + mot_cmd
         step(model, data)
         row = sd_log[k]
         row[:] = sd  # the state at t_k (MuJoCo's sensors are computed at the start of the step)
         tk = float(t_all[k])
-        gm = gstep(k, tk, row[s_g:s_g + 3], row[s_a:s_a + 3], float(temp[k]))
+        gm = gstep(k, tk, row[s_g : s_g + 3], row[s_a : s_a + 3], float(temp[k]))
         gyro_log[k] = gm
         if k % oe == 0:
             rl = row.tolist()
-            ctl.update_outer(tk, rl[s_p:s_p + 3], rl[s_v:s_v + 3], rl[s_q:s_q + 4])
+            ctl.update_outer(tk, rl[s_p : s_p + 3], rl[s_v : s_v + 3], rl[s_q : s_q + 4])
             sticks = pilot.sticks(tk)
-        w = [abs(v) for v in qvel[rv0:rv0 + 4].tolist()]  # rotor speeds after this step, as telemetry reports them
+        w = [abs(v) for v in qvel[rv0 : rv0 + 4].tolist()]  # rotor speeds after this step, as telemetry reports them
         rpm_bf = [w[ROTOR_OF_BF_MOTOR[j]] for j in range(4)]
-        rep = fw.step(np.array(gm, float), row[s_a:s_a + 3].copy(), row[s_q:s_q + 4].copy(), np.array(rpm_bf), sticks)
+        rep = fw.step(
+            np.array(gm, float), row[s_a : s_a + 3].copy(), row[s_q : s_q + 4].copy(), np.array(rpm_bf), sticks
+        )
         v = [float(x) for x in rep.motors]
         mot[k] = v
         rot[k] = rpm_bf
@@ -736,34 +776,54 @@ def fly_firmware(opts: FwFlightOptions, fw: FirmwareLike, *, fw_meta: Mapping[st
             cmds.append(spin[i] * (om_ss + ff * ct * om_ss * om_ss))
         mot_cmd = tuple(cmds)
         for _ in range(m_per - 1):
-            ctrl[:] = rotor_forces(qpos[rq0:rq0 + 4].tolist(), qvel[rv0:rv0 + 4].tolist(), rotor_k) + mot_cmd
+            ctrl[:] = rotor_forces(qpos[rq0 : rq0 + 4].tolist(), qvel[rv0 : rv0 + 4].tolist(), rotor_k) + mot_cmd
             step(model, data)
     wall = time.perf_counter() - t0
     meta = dict(hf.meta)
-    meta.update({
-        "runner": "sim.fw_flight.fly_firmware",
-        "manoeuvres": f"{len(pulses)} rate pulses" if pulses else "0",
-        "scenario": opts.scenario,
-        "sensor": opts.sensor or "perfect (the true rate)",
-        "loop_rate_hz": f"{rate:.10g}",
-        "gyro": "SyntheticGyro",
-        "pipeline": "firmware",
-        "motor_order": "betaflight quad-X: " + ", ".join(f"motor_{j + 1} {nm}" for j, nm in enumerate(BF_MOTOR_NAMES)),
-        "motor_law": law.source,
-        "motor_idle_fraction": f"{idle:g}",
-        **({"hover_command": f"{opts.hover_command:g} (payload: weight 4 c_T Omega(u)^2)"}
-           if opts.hover_command is not None else {}),
-        "pilot": "sim.controller.CascadedController outer loops (250 Hz) on the true state; sticks by the inverse "
-                 f"of the firmware's {opts.rates.rates_type} rate curve",
-    })
+    meta.update(
+        {
+            "runner": "sim.fw_flight.fly_firmware",
+            "manoeuvres": f"{len(pulses)} rate pulses" if pulses else "0",
+            "scenario": opts.scenario,
+            "sensor": opts.sensor or "perfect (the true rate)",
+            "loop_rate_hz": f"{rate:.10g}",
+            "gyro": "SyntheticGyro",
+            "pipeline": "firmware",
+            "motor_order": "betaflight quad-X: "
+            + ", ".join(f"motor_{j + 1} {nm}" for j, nm in enumerate(BF_MOTOR_NAMES)),
+            "motor_law": law.source,
+            "motor_idle_fraction": f"{idle:g}",
+            **(
+                {"hover_command": f"{opts.hover_command:g} (payload: weight 4 c_T Omega(u)^2)"}
+                if opts.hover_command is not None
+                else {}
+            ),
+            "pilot": "sim.controller.CascadedController outer loops (250 Hz) on the true state; sticks by the inverse "
+            f"of the firmware's {opts.rates.rates_type} rate curve",
+        }
+    )
     meta.update(dict(fw_meta or {}))
     return FwFlightLog(
-        t_s=t_all, omega_true_rad_s=sd_log[:, s_g:s_g + 3].copy(), f_S_m_s2=sd_log[:, s_a:s_a + 3].copy(),
-        q_WB_wxyz=sd_log[:, s_q:s_q + 4].copy(), q_sp_wxyz=qsp, pos_W_m=sd_log[:, s_p:s_p + 3].copy(),
-        vel_W_m_s=sd_log[:, s_v:s_v + 3].copy(), gyro_meas_rad_s=gyro_log, fw_gyro_rad_s=fwg,
-        fw_dterm_rad_s=fwd if have_dterm else None, fw_pid_d=fwp if have_dterm else None,
-        fw_setpoint_rad_s=fws if have_dterm else None, motors=mot, rotor_speed_rad_s=rot, rate_sp_rad_s=rsp, sticks_us=stk,
-        temp_c=temp, manoeuvres=pulses, meta=meta, wall_s=wall,
+        t_s=t_all,
+        omega_true_rad_s=sd_log[:, s_g : s_g + 3].copy(),
+        f_S_m_s2=sd_log[:, s_a : s_a + 3].copy(),
+        q_WB_wxyz=sd_log[:, s_q : s_q + 4].copy(),
+        q_sp_wxyz=qsp,
+        pos_W_m=sd_log[:, s_p : s_p + 3].copy(),
+        vel_W_m_s=sd_log[:, s_v : s_v + 3].copy(),
+        gyro_meas_rad_s=gyro_log,
+        fw_gyro_rad_s=fwg,
+        fw_dterm_rad_s=fwd if have_dterm else None,
+        fw_pid_d=fwp if have_dterm else None,
+        fw_setpoint_rad_s=fws if have_dterm else None,
+        motors=mot,
+        rotor_speed_rad_s=rot,
+        rate_sp_rad_s=rsp,
+        sticks_us=stk,
+        temp_c=temp,
+        manoeuvres=pulses,
+        meta=meta,
+        wall_s=wall,
     )
 
 
@@ -795,10 +855,20 @@ def to_recording(log: FwFlightLog):
     for i, a in enumerate("xyz"):
         extra[f"pos_{a}_m"] = log.pos_W_m[:, i]
     meta = dict(log.meta)
-    meta["columns_firmware"] = ("fw_gyro_*_rad_s: the firmware's filtered gyro (PID input), S; fw_dterm_*_rad_s: the gyro "
-                                "after its D-term filters (D input), S; fw_pid_d_*: its D term (1000 = full motor range); "
-                                "fw_setpoint_*_rad_s: its rate set point, S; motor_1..4: outputs 0-1 "
-                                "(motor_order); rotor_1..4_rad_s: true rotor speeds, same order; rate_sp_*: the pilot's "
-                                "body rate set point; att_sp_q*: its attitude set point; rc_*_us: sticks sent")
-    return Recording(t_s=log.t_s, gyro_rad_s=log.gyro_meas_rad_s, accel_m_s2=log.f_S_m_s2, temp_c=log.temp_c,
-                     ref_rate_rad_s=log.omega_true_rad_s, ref_quat_wxyz=log.q_WB_wxyz, meta=meta, extra=extra)
+    meta["columns_firmware"] = (
+        "fw_gyro_*_rad_s: the firmware's filtered gyro (PID input), S; fw_dterm_*_rad_s: the gyro "
+        "after its D-term filters (D input), S; fw_pid_d_*: its D term (1000 = full motor range); "
+        "fw_setpoint_*_rad_s: its rate set point, S; motor_1..4: outputs 0-1 "
+        "(motor_order); rotor_1..4_rad_s: true rotor speeds, same order; rate_sp_*: the pilot's "
+        "body rate set point; att_sp_q*: its attitude set point; rc_*_us: sticks sent"
+    )
+    return Recording(
+        t_s=log.t_s,
+        gyro_rad_s=log.gyro_meas_rad_s,
+        accel_m_s2=log.f_S_m_s2,
+        temp_c=log.temp_c,
+        ref_rate_rad_s=log.omega_true_rad_s,
+        ref_quat_wxyz=log.q_WB_wxyz,
+        meta=meta,
+        extra=extra,
+    )

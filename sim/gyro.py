@@ -124,10 +124,17 @@ def _complete_override(eff: str, given: Mapping, base: Mapping | None, temp_ref_
             try:
                 v = np.broadcast_to(v, shape).copy()
             except ValueError:
-                raise GyroInputError(f"effect {eff}: {pname} has shape {v.shape}, expected {shape} (or a scalar)") from None
+                raise GyroInputError(
+                    f"effect {eff}: {pname} has shape {v.shape}, expected {shape} (or a scalar)"
+                ) from None
         out[pname] = v
-    defaults = {"t0_c": temp_ref_c, "temp_min_c": -40.0, "temp_max_c": 85.0, "heading_rad": 0.0,
-                **resolve(eff).defaults}  # family terms: unspecified coefficients are 0
+    defaults = {
+        "t0_c": temp_ref_c,
+        "temp_min_c": -40.0,
+        "temp_max_c": 85.0,
+        "heading_rad": 0.0,
+        **resolve(eff).defaults,
+    }  # family terms: unspecified coefficients are 0
     for pname in schema:
         if pname not in out and pname in defaults:
             out[pname] = np.asarray(defaults[pname])
@@ -135,7 +142,9 @@ def _complete_override(eff: str, given: Mapping, base: Mapping | None, temp_ref_
         out["turn_on_sigma_rad_s"] = np.zeros(3)
     missing = [p for p in schema if p not in out]
     if missing:
-        raise GyroInputError(f"effect {eff} is not in the preset: give {', '.join(missing)} (e.g. --set {eff}.{missing[0]}=...)")
+        raise GyroInputError(
+            f"effect {eff} is not in the preset: give {', '.join(missing)} (e.g. --set {eff}.{missing[0]}=...)"
+        )
     return out
 
 
@@ -228,7 +237,9 @@ class SyntheticGyro:
             if fc >= _LOWPASS_MAX_FRACTION * self.rate_hz:
                 # as the chips' DLPF tables do when the ODR is lowered: bandwidth ≈ ODR/4
                 new = _LOWPASS_REPAIR_FRACTION * self.rate_hz
-                self.notes.append(f"lowpass {fc:g} Hz is above 0.45 x the {self.rate_hz:g} Hz output rate; set to {new:g} Hz (rate/4)")
+                self.notes.append(
+                    f"lowpass {fc:g} Hz is above 0.45 x the {self.rate_hz:g} Hz output rate; set to {new:g} Hz (rate/4)"
+                )
                 params["lowpass"] = {"bandwidth_hz": np.asarray(new)}
         self.params = validate_params({e: params[e] for e in ordered_effects(params)})
         self.overridden = tuple(ordered_effects(overrides))
@@ -412,8 +423,9 @@ class SyntheticGyro:
         -------
         GyroStream
         """
-        return GyroStream(self, int(n_samples), t_power_up_s=t_power_up_s, t_s=t_s, temp_c=temp_c, blocks=blocks,
-                          thermal=thermal)
+        return GyroStream(
+            self, int(n_samples), t_power_up_s=t_power_up_s, t_s=t_s, temp_c=temp_c, blocks=blocks, thermal=thermal
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -444,8 +456,17 @@ class GyroStream:
     any other family term flies the Python loop.
     """
 
-    def __init__(self, gyro: SyntheticGyro, n_samples: int, *, t_power_up_s=None, t_s=None, temp_c=None,
-                 blocks: bool = False, thermal=None) -> None:
+    def __init__(
+        self,
+        gyro: SyntheticGyro,
+        n_samples: int,
+        *,
+        t_power_up_s=None,
+        t_s=None,
+        temp_c=None,
+        blocks: bool = False,
+        thermal=None,
+    ) -> None:
         if n_samples < 1:
             raise GyroInputError(f"n_samples must be >= 1, got {n_samples}")
         self.n = n_samples
@@ -460,7 +481,9 @@ class GyroStream:
             raise GyroInputError("GyroStream: thermal= goes with blocks=True (else pass t_s= and temp_c=)")
         # dT/dt of the die temperature (bias_temp_rate, dtemp_dt terms): a central difference,
         # one sample ahead; whole (from t_s/temp_c) or block by block (from thermal)
-        need_rate = "bias_temp_rate" in P or any("dtemp" in resolve(e).inputs for e in P if resolve(e).family is not None)
+        need_rate = "bias_temp_rate" in P or any(
+            "dtemp" in resolve(e).inputs for e in P if resolve(e).family is not None
+        )
         self._temp_rate_all = None
         self._temp_rate_blocks = None
         if need_rate and self.blocked and thermal is not None:
@@ -474,13 +497,18 @@ class GyroStream:
         # --- earth rate
         self._earth = None
         if "earth_rate" in P:
-            self._earth = [float(v) for v in earth_rate_W(float(P["earth_rate"]["latitude_rad"]), float(P["earth_rate"]["heading_rad"]))]
+            self._earth = [
+                float(v)
+                for v in earth_rate_W(float(P["earth_rate"]["latitude_rad"]), float(P["earth_rate"]["heading_rad"]))
+            ]
         # --- time offset (history of the rate after the earth term)
         self._tau = 0.0
         if "time_offset" in P:
             self._tau = float(P["time_offset"]["tau_s"])
             if self._tau < 0:
-                raise GyroInputError("a leading gyro (time_offset tau_s < 0) needs future truth: not possible in closed loop")
+                raise GyroInputError(
+                    "a leading gyro (time_offset tau_s < 0) needs future truth: not possible in closed loop"
+                )
         self._hist_t: list[float] = []
         self._hist_w: list[list[float]] = []
         self._hist_len = int(math.ceil(self._tau * self.rate_hz * 1.5)) + 4
@@ -497,8 +525,10 @@ class GyroStream:
         self._ktr = None
         if "bias_temp_rate" in P:
             if self._temp_rate_all is None and self._temp_rate_blocks is None:
-                raise GyroInputError("bias_temp_rate in a stream needs the temperature trajectory: pass t_s= and temp_c= "
-                                     "(or, with blocks=True, thermal=) to stream()")
+                raise GyroInputError(
+                    "bias_temp_rate in a stream needs the temperature trajectory: pass t_s= and temp_c= "
+                    "(or, with blocks=True, thermal=) to stream()"
+                )
             self._ktr = P["bias_temp_rate"]["k_rad_s_per_c_per_s"].tolist()
         self._ramp = P["bias_ramp"]["ramp_rad_s2"].tolist() if "bias_ramp" in P else None
         self._H = P["g_sensitivity"]["h_rad_s_per_m_s2"].tolist() if "g_sensitivity" in P else None
@@ -508,17 +538,23 @@ class GyroStream:
         self._fam = [(resolve(e), P[e]) for e in ordered_effects(P) if resolve(e).family is not None]
         for eff, _ in self._fam:
             if "alpha" in eff.inputs:
-                raise GyroInputError(f"effect {eff.name} needs the rate derivative (a central difference of "
-                                     "future truth): not possible in a stream")
+                raise GyroInputError(
+                    f"effect {eff.name} needs the rate derivative (a central difference of "
+                    "future truth): not possible in a stream"
+                )
             if "dtemp" in eff.inputs and self._temp_rate_all is None and self._temp_rate_blocks is None:
-                raise GyroInputError(f"effect {eff.name} in a stream needs the temperature trajectory: "
-                                     "pass t_s= and temp_c= (or, with blocks=True, thermal=) to stream()")
+                raise GyroInputError(
+                    f"effect {eff.name} in a stream needs the temperature trajectory: "
+                    "pass t_s= and temp_c= (or, with blocks=True, thermal=) to stream()"
+                )
         # --- output stage
         self._lp = None
         if "lowpass" in P:
             fc = float(P["lowpass"]["bandwidth_hz"])
             if not 0 < fc < self.rate_hz / 2:
-                raise GyroInputError(f"lowpass bandwidth {fc} Hz must be in (0, {self.rate_hz / 2}) Hz at {self.rate_hz} Hz")
+                raise GyroInputError(
+                    f"lowpass bandwidth {fc} Hz must be in (0, {self.rate_hz / 2}) Hz at {self.rate_hz} Hz"
+                )
             b, a = signal.butter(2, fc, fs=self.rate_hz)
             b = b / a[0]
             a = a / a[0]
@@ -575,9 +611,13 @@ class GyroStream:
             raise GyroInputError("GyroStream.next_block: the stream holds the whole run (blocks=False)")
         m = int(m)
         if self._k_next != self._blk_end:
-            raise GyroInputError(f"GyroStream.next_block: samples {self._k_next}…{self._blk_end - 1} of the block were not stepped")
+            raise GyroInputError(
+                f"GyroStream.next_block: samples {self._k_next}…{self._blk_end - 1} of the block were not stepped"
+            )
         if m < 1 or self._blk_end + m > self.n:
-            raise GyroInputError(f"GyroStream.next_block: {m} samples from {self._blk_end} exceed the {self.n} allocated")
+            raise GyroInputError(
+                f"GyroStream.next_block: {m} samples from {self._blk_end} exceed the {self.n} allocated"
+            )
         tr = self._temp_rate_blocks.take(m) if self._temp_rate_blocks is not None else None
         self._set_block(self._blk_end, self._noise_gen.take(m), tr)
 
@@ -623,7 +663,12 @@ class GyroStream:
         if eff not in P:
             return None
         pd = P[eff]
-        return (np.asarray(pd[pname], float).tolist(), float(pd["temp_min_c"]), float(pd["temp_max_c"]), float(pd["t0_c"]))
+        return (
+            np.asarray(pd[pname], float).tolist(),
+            float(pd["temp_min_c"]),
+            float(pd["temp_max_c"]),
+            float(pd["t0_c"]),
+        )
 
     def _shifted(self, k: int, t: float, w0: float, w1: float, w2: float) -> tuple[float, float, float]:
         """Push (t, ω) into the history and return ω(t − τ) as np.interp would.
@@ -672,35 +717,39 @@ class GyroStream:
         bit-identical to the batch path; the generated source is kept in ``self.step_source``.
         """
         env: dict = {"S": self, "_nd": np.ndarray, "GyroInputError": GyroInputError, "_sqrt": math.sqrt}
-        L = ["def step(k, t_s, omega_S, f_S, temp_c, q_SW_wxyz=None):",
-             "    if k != S._k_next or k >= S._blk_end or k == 0:",
-             "        S._start(k, float(t_s))",
-             "    S._k_next = k + 1",
-             "    t = float(t_s)",
-             "    if type(omega_S) is _nd:",
-             "        w0, w1, w2 = omega_S.tolist()",
-             "    else:",
-             "        w0, w1, w2 = omega_S",
-             "        w0 = float(w0); w1 = float(w1); w2 = float(w2)"]
+        L = [
+            "def step(k, t_s, omega_S, f_S, temp_c, q_SW_wxyz=None):",
+            "    if k != S._k_next or k >= S._blk_end or k == 0:",
+            "        S._start(k, float(t_s))",
+            "    S._k_next = k + 1",
+            "    t = float(t_s)",
+            "    if type(omega_S) is _nd:",
+            "        w0, w1, w2 = omega_S.tolist()",
+            "    else:",
+            "        w0, w1, w2 = omega_S",
+            "        w0 = float(w0); w1 = float(w1); w2 = float(w2)",
+        ]
         need_T = self._sth is not None or self._bth is not None
         if need_T:
             L.append("    T = float(temp_c)")
         if self._earth is not None:
             env["e0"], env["e1"], env["e2"] = self._earth
-            L += ["    if q_SW_wxyz is None: raise GyroInputError('earth_rate in a stream needs q_SW_wxyz at every step')",
-                  "    if type(q_SW_wxyz) is _nd:",
-                  "        qw, qx, qy, qz = q_SW_wxyz.tolist()",
-                  "    else:",
-                  "        qw, qx, qy, qz = q_SW_wxyz",
-                  "        qw = float(qw); qx = float(qx); qy = float(qy); qz = float(qz)",
-                  "    nq = _sqrt(qw * qw + qx * qx + qy * qy + qz * qz)",
-                  "    qw = qw / nq; qx = qx / nq; qy = qy / nq; qz = qz / nq",
-                  "    r00 = 1 - 2 * (qy * qy + qz * qz); r01 = 2 * (qx * qy - qw * qz); r02 = 2 * (qx * qz + qw * qy)",
-                  "    r10 = 2 * (qx * qy + qw * qz); r11 = 1 - 2 * (qx * qx + qz * qz); r12 = 2 * (qy * qz - qw * qx)",
-                  "    r20 = 2 * (qx * qz - qw * qy); r21 = 2 * (qy * qz + qw * qx); r22 = 1 - 2 * (qx * qx + qy * qy)",
-                  "    w0 = w0 + (r00 * e0 + r10 * e1 + r20 * e2)",
-                  "    w1 = w1 + (r01 * e0 + r11 * e1 + r21 * e2)",
-                  "    w2 = w2 + (r02 * e0 + r12 * e1 + r22 * e2)"]
+            L += [
+                "    if q_SW_wxyz is None: raise GyroInputError('earth_rate in a stream needs q_SW_wxyz at every step')",
+                "    if type(q_SW_wxyz) is _nd:",
+                "        qw, qx, qy, qz = q_SW_wxyz.tolist()",
+                "    else:",
+                "        qw, qx, qy, qz = q_SW_wxyz",
+                "        qw = float(qw); qx = float(qx); qy = float(qy); qz = float(qz)",
+                "    nq = _sqrt(qw * qw + qx * qx + qy * qy + qz * qz)",
+                "    qw = qw / nq; qx = qx / nq; qy = qy / nq; qz = qz / nq",
+                "    r00 = 1 - 2 * (qy * qy + qz * qz); r01 = 2 * (qx * qy - qw * qz); r02 = 2 * (qx * qz + qw * qy)",
+                "    r10 = 2 * (qx * qy + qw * qz); r11 = 1 - 2 * (qx * qx + qz * qz); r12 = 2 * (qy * qz - qw * qx)",
+                "    r20 = 2 * (qx * qz - qw * qy); r21 = 2 * (qy * qz + qw * qx); r22 = 1 - 2 * (qx * qx + qy * qy)",
+                "    w0 = w0 + (r00 * e0 + r10 * e1 + r20 * e2)",
+                "    w1 = w1 + (r01 * e0 + r11 * e1 + r21 * e2)",
+                "    w2 = w2 + (r02 * e0 + r12 * e1 + r22 * e2)",
+            ]
         if self._tau != 0.0:
             L.append("    w0, w1, w2 = S._shifted(k, t, w0, w1, w2)")
         K = self._K
@@ -711,10 +760,12 @@ class GyroStream:
         def poly_lines(th, tag, target):
             coef, lo, hi, t0 = th
             env[f"{tag}_lo"], env[f"{tag}_hi"], env[f"{tag}_t0"] = lo, hi, t0
-            out = ["    Tc = T",
-                   f"    if Tc < {tag}_lo: Tc = {tag}_lo",
-                   f"    if Tc > {tag}_hi: Tc = {tag}_hi",
-                   f"    dT = Tc - {tag}_t0"]
+            out = [
+                "    Tc = T",
+                f"    if Tc < {tag}_lo: Tc = {tag}_lo",
+                f"    if Tc > {tag}_hi: Tc = {tag}_hi",
+                f"    dT = Tc - {tag}_t0",
+            ]
             p = len(coef[0])
             out.append("    pw1 = dT")
             for kk in range(2, p + 1):
@@ -758,11 +809,13 @@ class GyroStream:
                 env[f"rp{i}"] = self._ramp[i]
                 L.append(f"    a{i} = a{i} + ts * rp{i}")
         if self._H is not None or self._G is not None:
-            L += ["    if type(f_S) is _nd:",
-                  "        f0, f1, f2 = f_S.tolist()",
-                  "    else:",
-                  "        f0, f1, f2 = f_S",
-                  "        f0 = float(f0); f1 = float(f1); f2 = float(f2)"]
+            L += [
+                "    if type(f_S) is _nd:",
+                "        f0, f1, f2 = f_S.tolist()",
+                "    else:",
+                "        f0, f1, f2 = f_S",
+                "        f0 = float(f0); f1 = float(f1); f2 = float(f2)",
+            ]
         if self._H is not None:
             for i in range(3):
                 for j in range(3):
@@ -790,10 +843,12 @@ class GyroStream:
             for i in range(3):
                 L.append(f"        Z[{2 * i}] = zi0 * x{i}; Z[{2 * i + 1}] = zi1 * x{i}")
             for i in range(3):
-                L += [f"    yn = Z[{2 * i}] + lb0 * x{i}",
-                      f"    Z[{2 * i}] = Z[{2 * i + 1}] + x{i} * lb1 - yn * la1",
-                      f"    Z[{2 * i + 1}] = x{i} * lb2 - yn * la2",
-                      f"    x{i} = yn"]
+                L += [
+                    f"    yn = Z[{2 * i}] + lb0 * x{i}",
+                    f"    Z[{2 * i}] = Z[{2 * i + 1}] + x{i} * lb1 - yn * la1",
+                    f"    Z[{2 * i + 1}] = x{i} * lb2 - yn * la2",
+                    f"    x{i} = yn",
+                ]
         # the current block's rows (the whole run unless blocked): row j = sample k0 + j
         L.append("    j = k - S._k0")
         L.append("    NZ = S._nz")
@@ -982,11 +1037,17 @@ class _ChunkedMeasure:
                 q_SW_wxyz=buf["q_SW_wxyz"][a0:a1].astype(float, copy=False),
                 t_since_power_up_s=buf["t_since_power_up_s"][a0:a1].astype(float, copy=False),
             )
-            x = deterministic(self.params, inp)[self.emit - lo:stop - lo]
+            x = deterministic(self.params, inp)[self.emit - lo : stop - lo]
             y = self._output(x, stop - self.emit)
-            rows = {k: buf[k][j:j + (stop - self.emit)].copy() for k in _TRUTH_FIELDS}
-            yield GyroChunk(start=self.emit, t_s=rows["t_s"].astype(float, copy=False), gyro_rad_s=y[0], noise_rad_s=y[1],
-                            power_up_bias_rad_s=dict(self.biases), truth=Truth(**rows))
+            rows = {k: buf[k][j : j + (stop - self.emit)].copy() for k in _TRUTH_FIELDS}
+            yield GyroChunk(
+                start=self.emit,
+                t_s=rows["t_s"].astype(float, copy=False),
+                gyro_rad_s=y[0],
+                noise_rad_s=y[1],
+                power_up_bias_rad_s=dict(self.biases),
+                truth=Truth(**rows),
+            )
             self.emit = stop
         keep = max(self.b0, self.emit - c)  # rows an unfinished piece may still read
         if keep > self.b0:

@@ -320,9 +320,7 @@ class GaussMarkovBlocks(_Blocks):
         return out
 
 
-def white_rate_noise(
-    rng: np.random.Generator, n_samples: int, *, rate_hz: float, n_rad_per_sqrt_s
-) -> np.ndarray:
+def white_rate_noise(rng: np.random.Generator, n_samples: int, *, rate_hz: float, n_rad_per_sqrt_s) -> np.ndarray:
     """White rate noise (angle random walk), ``n_samples`` × 3, rad/s: :class:`WhiteRateBlocks` in one block."""
     n, _ = _check(n_samples, rate_hz)
     return WhiteRateBlocks(rng, rate_hz=rate_hz, n_rad_per_sqrt_s=n_rad_per_sqrt_s).take(n)
@@ -338,9 +336,7 @@ def kasdin_walter_coefficients(n: int, alpha: float) -> np.ndarray:
     return np.concatenate([[1.0], np.cumprod((k - 1.0 + alpha / 2.0) / k)])
 
 
-def kasdin_walter_flicker(
-    rng: np.random.Generator, n_samples: int, *, rate_hz: float, b_rad_s
-) -> np.ndarray:
+def kasdin_walter_flicker(rng: np.random.Generator, n_samples: int, *, rate_hz: float, b_rad_s) -> np.ndarray:
     """The exact discrete flicker process of Kasdin & Walter (whole record, FFT convolution).
 
     Reference only (tests of models that assume this discretisation, e.g. the GMWM's exact
@@ -360,9 +356,7 @@ def kasdin_walter_flicker(
     return signal.fftconvolve(w, h[:, None], mode="full", axes=0)[:n]
 
 
-def flicker_noise(
-    rng: np.random.Generator, n_samples: int, *, rate_hz: float, b_rad_s
-) -> np.ndarray:
+def flicker_noise(rng: np.random.Generator, n_samples: int, *, rate_hz: float, b_rad_s) -> np.ndarray:
     """Bias instability as flicker (1/f) rate noise, ``n_samples`` × 3, rad/s: :class:`FlickerBlocks` in one block.
 
     B per axis in rad/s (IEEE 952); Allan floor B·sqrt(2 ln2/π) ≈ 0.664·B over the band of
@@ -372,17 +366,13 @@ def flicker_noise(
     return FlickerBlocks(rng, rate_hz=rate_hz, b_rad_s=b_rad_s).take(n)
 
 
-def rate_random_walk(
-    rng: np.random.Generator, n_samples: int, *, rate_hz: float, k_rad_s_per_sqrt_s
-) -> np.ndarray:
+def rate_random_walk(rng: np.random.Generator, n_samples: int, *, rate_hz: float, k_rad_s_per_sqrt_s) -> np.ndarray:
     """Rate random walk, ``n_samples`` × 3, rad/s: :class:`RateRandomWalkBlocks` in one block."""
     n, _ = _check(n_samples, rate_hz)
     return RateRandomWalkBlocks(rng, rate_hz=rate_hz, k_rad_s_per_sqrt_s=k_rad_s_per_sqrt_s).take(n)
 
 
-def gauss_markov(
-    rng: np.random.Generator, n_samples: int, *, rate_hz: float, sigma_rad_s, tau_c_s
-) -> np.ndarray:
+def gauss_markov(rng: np.random.Generator, n_samples: int, *, rate_hz: float, sigma_rad_s, tau_c_s) -> np.ndarray:
     """First-order Gauss–Markov bias, ``n_samples`` × 3, rad/s: :class:`GaussMarkovBlocks` in one block."""
     n, _ = _check(n_samples, rate_hz)
     return GaussMarkovBlocks(rng, rate_hz=rate_hz, sigma_rad_s=sigma_rad_s, tau_c_s=tau_c_s).take(n)
@@ -421,7 +411,9 @@ class LowpassWhiteNoise(_Blocks):
         self._scale = _per_axis(n_rad_per_sqrt_s, "n_rad_per_sqrt_s") * np.sqrt(r)
         fc = float(bandwidth_hz)
         if not np.isfinite(fc) or fc < 0 or fc >= r / 2:
-            raise GyroInputError(f"noise low-pass bandwidth_hz must be 0 (none) or in (0, {r / 2:g}) Hz at {r:g} Hz, got {fc:g}")
+            raise GyroInputError(
+                f"noise low-pass bandwidth_hz must be 0 (none) or in (0, {r / 2:g}) Hz at {r:g} Hz, got {fc:g}"
+            )
         self._ba = signal.butter(2, fc, fs=r) if fc > 0 else None
         self._zi = None
         if nu is None:
@@ -429,7 +421,9 @@ class LowpassWhiteNoise(_Blocks):
         else:
             v = np.broadcast_to(np.asarray(nu, float), (3,)).copy()
             if not np.all(np.isfinite(v)) or np.any(v <= 2):
-                raise GyroInputError(f"nu (Student-t degrees of freedom) must be finite and > 2 per axis, got {v.tolist()}")
+                raise GyroInputError(
+                    f"nu (Student-t degrees of freedom) must be finite and > 2 per axis, got {v.tolist()}"
+                )
             self._nu = v
 
     def _take(self, m):
@@ -474,11 +468,17 @@ def noise_term_generator(name: str, pd, rng: np.random.Generator, *, rate_hz: fl
     """The block generator of a registered noise term outside the catalogue
     (:data:`gyrocore.effects.registry.NOISE_TERMS`) from its parameters ``pd``."""
     if name == "arw_lowpass":
-        return LowpassWhiteNoise(rng, rate_hz=rate_hz, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"],
-                                 bandwidth_hz=float(pd["bandwidth_hz"]))
+        return LowpassWhiteNoise(
+            rng, rate_hz=rate_hz, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"], bandwidth_hz=float(pd["bandwidth_hz"])
+        )
     if name == "arw_student":
-        return LowpassWhiteNoise(rng, rate_hz=rate_hz, n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"],
-                                 bandwidth_hz=float(pd.get("bandwidth_hz", 0.0)), nu=pd["nu"])
+        return LowpassWhiteNoise(
+            rng,
+            rate_hz=rate_hz,
+            n_rad_per_sqrt_s=pd["n_rad_per_sqrt_s"],
+            bandwidth_hz=float(pd.get("bandwidth_hz", 0.0)),
+            nu=pd["nu"],
+        )
     if name == "angle_white":
         return AngleWhiteNoise(rng, rate_hz=rate_hz, q_rad=pd["q_rad"])
     raise GyroInputError(f"no noise generator for '{name}'")
@@ -539,7 +539,9 @@ def shaped_taps(f_hz, psd_rad2_s2_hz, *, rate_hz: float, grid_hz: float | None =
     S = np.asarray(psd_rad2_s2_hz, float)
     r = float(rate_hz)
     if f.ndim != 1 or f.size < 2 or S.shape != (3, f.size) or not np.all(np.diff(f) > 0):
-        raise GyroInputError(f"shaped vibration: f_hz must be an increasing grid (n,) and psd (3, n); got {f.shape}, {S.shape}")
+        raise GyroInputError(
+            f"shaped vibration: f_hz must be an increasing grid (n,) and psd (3, n); got {f.shape}, {S.shape}"
+        )
     if not (np.all(np.isfinite(S)) and np.all(S >= 0)):
         raise GyroInputError("shaped vibration: psd_rad2_s2_hz must be finite and >= 0")
     if not (np.isfinite(r) and r > 0):
@@ -590,13 +592,13 @@ class ShapedNoise:
         self._chunks: list[np.ndarray] = []
         self._have = 0
         first = self._block()
-        self._push(first[self.L - 1:])
+        self._push(first[self.L - 1 :])
 
     def _block(self) -> np.ndarray:
         w = self._rng.standard_normal((self.B, 3))
         y = np.fft.irfft(np.fft.rfft(w, self._nfft, axis=0) * self._H, self._nfft, axis=0)[: self.B + self.L - 1]
         y[: self.L - 1] += self._tail
-        self._tail = y[self.B:].copy()
+        self._tail = y[self.B :].copy()
         return y[: self.B]
 
     def _push(self, x: np.ndarray) -> None:
@@ -611,7 +613,11 @@ class ShapedNoise:
             raise GyroInputError(f"n_samples must be >= 0, got {n_samples}")
         while self._have < n:
             self._push(self._block())
-        buf = np.concatenate(self._chunks, axis=0) if len(self._chunks) > 1 else (self._chunks[0] if self._chunks else np.zeros((0, 3)))
+        buf = (
+            np.concatenate(self._chunks, axis=0)
+            if len(self._chunks) > 1
+            else (self._chunks[0] if self._chunks else np.zeros((0, 3)))
+        )
         out, rest = buf[:n].copy(), buf[n:]
         self._chunks = [rest] if rest.shape[0] else []
         self._have = rest.shape[0]

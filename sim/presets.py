@@ -238,8 +238,10 @@ class SensorSpec:
             }
 
         if effect == "bias":
-            return {"b_rad_s": nrm(3, d["b_sigma_rad_s"]),
-                    "turn_on_sigma_rad_s": np.full(3, float(d.get("turn_on_sigma_rad_s", 0.0)))}
+            return {
+                "b_rad_s": nrm(3, d["b_sigma_rad_s"]),
+                "turn_on_sigma_rad_s": np.full(3, float(d.get("turn_on_sigma_rad_s", 0.0))),
+            }
         if effect == "bias_thermal":
             return {"poly_rad_s": poly("c1_sigma_rad_s_per_c", "c2_sigma_rad_s_per_c2"), **trange()}
         if effect == "bias_temp_rate":
@@ -263,8 +265,10 @@ class SensorSpec:
         if effect == "time_offset":
             return {"tau_s": np.asarray(float(d["tau_s"]))}
         if effect == "earth_rate":
-            return {"latitude_rad": np.asarray(float(d["latitude_rad"])),
-                    "heading_rad": np.asarray(float(d.get("heading_rad", 0.0)))}
+            return {
+                "latitude_rad": np.asarray(float(d["latitude_rad"])),
+                "heading_rad": np.asarray(float(d.get("heading_rad", 0.0))),
+            }
         if effect in ("quantization", "saturation", "lowpass"):
             (k,) = PARAM_SCHEMA[effect]
             return {k: np.asarray(float(d[k]))}
@@ -392,7 +396,9 @@ def _vibration_section(table: Mapping, path: str) -> dict[str, tuple]:
 
     unknown = set(table) - {"spec", "band", "enabled"}
     if unknown:
-        raise GyroInputError(f"preset {path}: unknown key(s) in [vibration]: {', '.join(sorted(unknown))}; accepted: spec, band, enabled")
+        raise GyroInputError(
+            f"preset {path}: unknown key(s) in [vibration]: {', '.join(sorted(unknown))}; accepted: spec, band, enabled"
+        )
     enabled = table.get("enabled", True)
     if not isinstance(enabled, bool):
         raise GyroInputError(f"preset {path}: [vibration] enabled must be true or false")
@@ -402,7 +408,10 @@ def _vibration_section(table: Mapping, path: str) -> dict[str, tuple]:
     if not sp.is_absolute():
         sp = Path(path).resolve().parent / sp
     pd = shaped_params(read_spec(sp), band=table.get("band", "middle"))
-    return {"f_hz": tuple(pd["f_hz"].tolist()), "psd_rad2_s2_hz": tuple(tuple(r) for r in pd["psd_rad2_s2_hz"].tolist())}
+    return {
+        "f_hz": tuple(pd["f_hz"].tolist()),
+        "psd_rad2_s2_hz": tuple(tuple(r) for r in pd["psd_rad2_s2_hz"].tolist()),
+    }
 
 
 def _family_section(eff: str, table, path: str):
@@ -421,15 +430,20 @@ def _family_section(eff: str, table, path: str):
         if key == "enabled":
             continue
         if key not in effect.schema:
-            raise GyroInputError(f"preset {path}: unknown key {key} in [{eff}]; accepted: {', '.join(effect.schema)} (SI)")
+            raise GyroInputError(
+                f"preset {path}: unknown key {key} in [{eff}]; accepted: {', '.join(effect.schema)} (SI)"
+            )
         vals = val if isinstance(val, list) else [val]
         if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in vals):
             raise GyroInputError(f"preset {path}: [{eff}] {key} must be a finite number or a list of 3, got {val!r}")
         try:
-            arr = np.broadcast_to(np.asarray(vals if isinstance(val, list) else float(val), float),
-                                  effect.schema[key]).copy()
+            arr = np.broadcast_to(
+                np.asarray(vals if isinstance(val, list) else float(val), float), effect.schema[key]
+            ).copy()
         except ValueError:
-            raise GyroInputError(f"preset {path}: [{eff}] {key} needs shape {effect.schema[key]} (or a scalar)") from None
+            raise GyroInputError(
+                f"preset {path}: [{eff}] {key} needs shape {effect.schema[key]} (or a scalar)"
+            ) from None
         pd[key] = tuple(arr.tolist()) if arr.ndim else float(arr)
     for key, d in effect.defaults.items():
         d = np.asarray(d, float)

@@ -77,8 +77,15 @@ class GyroLike(Protocol):
 class PerfectGyro:
     """A gyro without errors: returns the true rate (same protocol as the synthetic gyro stream)."""
 
-    def step(self, k: int, t_s: float, omega_S: np.ndarray, f_S: np.ndarray, temp_c: float,
-             q_SW_wxyz: np.ndarray | None = None) -> np.ndarray:
+    def step(
+        self,
+        k: int,
+        t_s: float,
+        omega_S: np.ndarray,
+        f_S: np.ndarray,
+        temp_c: float,
+        q_SW_wxyz: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The true rate ``omega_S`` itself (fly_hover passes a view it keeps; no copy needed)."""
         return omega_S
 
@@ -187,7 +194,9 @@ class FlightLog:
         return float((lags[i] + frac) / fs)
 
 
-def load_quadrotor_model(timestep_s: float = 1e-3, *, model_xml: str = QUADROTOR_XML) -> tuple[mujoco.MjModel, mujoco.MjData]:
+def load_quadrotor_model(
+    timestep_s: float = 1e-3, *, model_xml: str = QUADROTOR_XML
+) -> tuple[mujoco.MjModel, mujoco.MjData]:
     """Compile ``models/<model_xml>`` (default the F450, ``quadrotor.xml``) with the given physics step (s)."""
     model = mujoco.MjModel.from_xml_path(str(model_path(model_xml)))
     model.opt.timestep = timestep_s
@@ -262,7 +271,7 @@ def _fly_compiled(model, data, *, kern, gyro_view, filt, k0: int, k1: int, n: in
             after(k, A, W)
         else:
             gyro_k(k, A, W)
-            g = gyro_view[k - k0] if gyro_view is not None else sd_log[k - k0, s_g:s_g + 3]
+            g = gyro_view[k - k0] if gyro_view is not None else sd_log[k - k0, s_g : s_g + 3]
             y = filt(g)
             yl = y.tolist() if type(y) is nd else [float(v) for v in y]
             control(k, A, W, yl[0], yl[1], yl[2])
@@ -278,11 +287,18 @@ def _set_couple_imbalance(model, hub_moment_kg_m2: float, ss: np.random.SeedSequ
     to a seeded phase on its rotor (a 4th child of the flight's SeedSequence, so the other phases are
     unchanged). The model's ``rotor_i_couple_a`` sits at (r, 0, +h) on the rotor, ``_b`` at (−r, 0, −h):
     mass m each gives the couple 2 m r h Omega² and no net force."""
-    ids = [(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_couple_a"),
-            mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_couple_b")) for i in range(1, 5)]
+    ids = [
+        (
+            mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_couple_a"),
+            mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"rotor_{i}_couple_b"),
+        )
+        for i in range(1, 5)
+    ]
     if any(a < 0 or b < 0 for a, b in ids):
         if hub_moment_kg_m2 > 0:
-            raise GyroInputError(f"{model_xml} has no couple-imbalance bodies (rotor_i_couple_a/b): hub_moment_kg_m2 needs them")
+            raise GyroInputError(
+                f"{model_xml} has no couple-imbalance bodies (rotor_i_couple_a/b): hub_moment_kg_m2 needs them"
+            )
         return
     (theta,) = (np.random.default_rng(s).uniform(0.0, 2 * math.pi, 4) for s in ss.spawn(1))
     for (a, b), th in zip(ids, theta):
@@ -293,7 +309,6 @@ def _set_couple_imbalance(model, hub_moment_kg_m2: float, ss: np.random.SeedSequ
         model.body_pos[b] = (-r * math.cos(th), -r * math.sin(th), -h)
         model.body_mass[a] = m
         model.body_mass[b] = m
-
 
 
 def rotor_forces(phi: list, om: list, rotor_k) -> tuple:
@@ -309,18 +324,31 @@ def rotor_forces(phi: list, om: list, rotor_k) -> tuple:
     (k_0, k_1, k_2, k_3) = rotor_k
     p0, p1, p2, p3 = phi
     w0, w1, w2, w3 = om
-    c0 = cos(p0); s0 = sin(p0); c1 = cos(p1); s1 = sin(p1)  # noqa: E702
-    c2 = cos(p2); s2 = sin(p2); c3 = cos(p3); s3 = sin(p3)  # noqa: E702
-    q0 = w0 * w0; q1 = w1 * w1; q2 = w2 * w2; q3 = w3 * w3  # noqa: E702
+    c0 = cos(p0)
+    s0 = sin(p0)
+    c1 = cos(p1)
+    s1 = sin(p1)  # noqa: E702
+    c2 = cos(p2)
+    s2 = sin(p2)
+    c3 = cos(p3)
+    s3 = sin(p3)  # noqa: E702
+    q0 = w0 * w0
+    q1 = w1 * w1
+    q2 = w2 * w2
+    q3 = w3 * w3  # noqa: E702
     return (
         k_0[0] * q0 * (1.0 + k_0[1] * (c0 * c0 - s0 * s0) - k_0[2] * 2.0 * s0 * c0),
         k_1[0] * q1 * (1.0 + k_1[1] * (c1 * c1 - s1 * s1) - k_1[2] * 2.0 * s1 * c1),
         k_2[0] * q2 * (1.0 + k_2[1] * (c2 * c2 - s2 * s2) - k_2[2] * 2.0 * s2 * c2),
         k_3[0] * q3 * (1.0 + k_3[1] * (c3 * c3 - s3 * s3) - k_3[2] * 2.0 * s3 * c3),
-        q0 * (c0 * k_0[3] - s0 * k_0[4]), q0 * (s0 * k_0[3] + c0 * k_0[4]),
-        q1 * (c1 * k_1[3] - s1 * k_1[4]), q1 * (s1 * k_1[3] + c1 * k_1[4]),
-        q2 * (c2 * k_2[3] - s2 * k_2[4]), q2 * (s2 * k_2[3] + c2 * k_2[4]),
-        q3 * (c3 * k_3[3] - s3 * k_3[4]), q3 * (s3 * k_3[3] + c3 * k_3[4]),
+        q0 * (c0 * k_0[3] - s0 * k_0[4]),
+        q0 * (s0 * k_0[3] + c0 * k_0[4]),
+        q1 * (c1 * k_1[3] - s1 * k_1[4]),
+        q1 * (s1 * k_1[3] + c1 * k_1[4]),
+        q2 * (c2 * k_2[3] - s2 * k_2[4]),
+        q2 * (s2 * k_2[3] + c2 * k_2[4]),
+        q3 * (c3 * k_3[3] - s3 * k_3[4]),
+        q3 * (s3 * k_3[3] + c3 * k_3[4]),
     )
 
 
@@ -461,15 +489,27 @@ class HoverFlight:
         data.qpos[rq0 : rq0 + 4] = phi0
         mujoco.mj_forward(model, data)
         names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, i) for i in range(model.nu)]
-        expect = [f"thrust_{i}" for i in range(1, 5)] + [f"vib2_{i}_{a}" for i in range(1, 5) for a in "xy"] + [f"motor_{i}" for i in range(1, 5)]
+        expect = (
+            [f"thrust_{i}" for i in range(1, 5)]
+            + [f"vib2_{i}_{a}" for i in range(1, 5) for a in "xy"]
+            + [f"motor_{i}" for i in range(1, 5)]
+        )
         if names != expect:
             raise GyroInputError("quadrotor.xml actuator order changed (thrust_1..4, vib2_*_x/y, motor_1..4)")
 
         def sens(name: str) -> int:
             return int(model.sensor_adr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)])
 
-        self.sens = {k: sens(x) for k, x in (("gyro", "imu_gyro"), ("acc", "imu_accel"), ("quat", "imu_quat"),
-                                              ("pos", "body_pos"), ("vel", "body_linvel"))}
+        self.sens = {
+            k: sens(x)
+            for k, x in (
+                ("gyro", "imu_gyro"),
+                ("acc", "imu_accel"),
+                ("quat", "imu_quat"),
+                ("pos", "body_pos"),
+                ("vel", "body_linvel"),
+            )
+        }
         self.nsd = model.nsensordata
 
         # --- per-step constants (Python floats: cheaper than numpy for 4 rotors) ----------------
@@ -490,15 +530,18 @@ class HoverFlight:
         elif hasattr(pipeline, "step"):
             filt = pipeline.step
             # an RPM filter in the pipeline follows the simulator's rotor speeds (as Betaflight's from eRPM)
-            rpm_cbs = [s.set_rotor_hz for s in ([pipeline] + list(getattr(pipeline, "stages", ())))
-                       if callable(getattr(s, "set_rotor_hz", None))]
+            rpm_cbs = [
+                s.set_rotor_hz
+                for s in ([pipeline] + list(getattr(pipeline, "stages", ())))
+                if callable(getattr(s, "set_rotor_hz", None))
+            ]
             if rpm_cbs:
                 inner = filt
                 qv = data.qvel
                 two_pi = 2.0 * math.pi
 
                 def filt(g, _inner=inner, _cbs=tuple(rpm_cbs)):
-                    hz = [abs(w) / two_pi for w in qv[rv0:rv0 + 4].tolist()]  # rotor speeds after this physics step
+                    hz = [abs(w) / two_pi for w in qv[rv0 : rv0 + 4].tolist()]  # rotor speeds after this physics step
                     for cb in _cbs:
                         cb(hz)
                     return _inner(g)
@@ -523,7 +566,9 @@ class HoverFlight:
                 gyro = gyro.stream(n, blocks=True, thermal=None if self.stream_thermal else th_spec)
             else:  # the whole-flight stream (fly_hover in one block: whole-flight arrays)
                 t_all = self._times(0, n)
-                gyro = gyro.stream(n, t_s=t_all, temp_c=None if self.stream_thermal else simulate_temperature(t_all, th_spec))
+                gyro = gyro.stream(
+                    n, t_s=t_all, temp_c=None if self.stream_thermal else simulate_temperature(t_all, th_spec)
+                )
         if not hasattr(gyro, "step"):
             raise GyroInputError("gyro must have .step(k, t_s, omega_S, f_S, temp_c) (or .stream(n))")
         self.gyro = gyro
@@ -537,12 +582,21 @@ class HoverFlight:
             self.pass_q = False
         s_pos = self.sens["pos"]
         if ground_s > 0.0:
-            ctl = CascadedController(qp, gains, dt_s=self.dt_c, pos_sp_W_m=tuple(model.key_qpos[key_hover, 0:3].tolist()),
-                                     yaw_sp_rad=0.0, manoeuvres=manoeuvres, arm_at_s=float(ground_s),
-                                     climb_s=TAKEOFF_CLIMB_S, z_start_m=float(data.sensordata[s_pos + 2]))
+            ctl = CascadedController(
+                qp,
+                gains,
+                dt_s=self.dt_c,
+                pos_sp_W_m=tuple(model.key_qpos[key_hover, 0:3].tolist()),
+                yaw_sp_rad=0.0,
+                manoeuvres=manoeuvres,
+                arm_at_s=float(ground_s),
+                climb_s=TAKEOFF_CLIMB_S,
+                z_start_m=float(data.sensordata[s_pos + 2]),
+            )
         else:
-            ctl = CascadedController(qp, gains, dt_s=self.dt_c, pos_sp_W_m=tuple(data.qpos[0:3]), yaw_sp_rad=0.0,
-                                     manoeuvres=manoeuvres)
+            ctl = CascadedController(
+                qp, gains, dt_s=self.dt_c, pos_sp_W_m=tuple(data.qpos[0:3]), yaw_sp_rad=0.0, manoeuvres=manoeuvres
+            )
         self.ctl = ctl
         self.outer_every = ctl.outer_every
         self.progress = progress
@@ -553,9 +607,21 @@ class HoverFlight:
             from . import _fast
 
             self.kern = _fast.build(
-                data=data, rq0=rq0, rv0=rv0, sens=self.sens, rotor_k=self.rotor_k, spin=self.spin, ff=self.ff, ct=ct,
-                ctl=ctl, n=n, t_power_up_s=float(self._times(0, 1)[0]), stream=self._gstream,
-                thermal=self.th_state, kappa_ct=self.kappa * ct)
+                data=data,
+                rq0=rq0,
+                rv0=rv0,
+                sens=self.sens,
+                rotor_k=self.rotor_k,
+                spin=self.spin,
+                ff=self.ff,
+                ct=ct,
+                ctl=ctl,
+                n=n,
+                t_power_up_s=float(self._times(0, 1)[0]),
+                stream=self._gstream,
+                thermal=self.th_state,
+                kappa_ct=self.kappa * ct,
+            )
         self.meta = {
             "model": veh.model_xml,
             "vehicle": veh.name,
@@ -564,7 +630,7 @@ class HoverFlight:
             "gyro_rate_hz": f"{gyro_rate_hz:.10g}",
             "seed": str(seed),
             "vibration": f"imbalance_kg_m={vib.imbalance_kg_m:g},harmonic2_ratio={vib.harmonic2_ratio:g},blade_pass_ripple={vib.blade_pass_ripple:g}"
-                         + (f",hub_moment_kg_m2={vib.hub_moment_kg_m2:g}" if vib.hub_moment_kg_m2 > 0 else ""),
+            + (f",hub_moment_kg_m2={vib.hub_moment_kg_m2:g}" if vib.hub_moment_kg_m2 > 0 else ""),
             "manoeuvres": str(len(tuple(manoeuvres))),
             "gyro": type(gyro).__name__,
             "pipeline": type(pipeline).__name__ if pipeline is not None else "none",
@@ -580,8 +646,9 @@ class HoverFlight:
         """Gyro sample times t_k = k · dt, s, for k0 ≤ k < k1 (the elements of ``np.arange(n) * dt``)."""
         return np.arange(k0, k1) * self.dt_c
 
-    def blocks(self, block_samples: int | None = None, *, flight_log: bool = True
-               ) -> Iterator[tuple[Truth, FlightLog | None]]:
+    def blocks(
+        self, block_samples: int | None = None, *, flight_log: bool = True
+    ) -> Iterator[tuple[Truth, FlightLog | None]]:
         """Fly the flight; yield ``(Truth, FlightLog)`` for each block of at most ``block_samples``
         consecutive gyro samples (default: the whole flight in one block). Runs once.
 
@@ -628,18 +695,39 @@ class HoverFlight:
             gout = noise = tr = fam = gview = None
             if st is not None:
                 j0 = k0 - st.block_start
-                gout, gview = st.gyro_rad_s[j0:j0 + m], st._view[j0:j0 + m]
-                noise = np.ascontiguousarray(st.noise_rad_s[j0:j0 + m], dtype=np.float64)
-                tr = None if st._tr is None else st._tr[j0:j0 + m]
+                gout, gview = st.gyro_rad_s[j0 : j0 + m], st._view[j0 : j0 + m]
+                noise = np.ascontiguousarray(st.noise_rad_s[j0 : j0 + m], dtype=np.float64)
+                tr = None if st._tr is None else st._tr[j0 : j0 + m]
                 if st._fam:
                     from . import _fast
 
                     fam = np.ascontiguousarray(st.family_table(t_b[:m], float(self.kern.W[_fast.W_T_PU])))
             rec = np.empty((m, 14))
-            self.kern.set_block(k0, t_s=t_b, temp_c=temp, sd_log=sd_log, outer_log=outer_log, rec=rec, ambient_c=amb,
-                                gyro_out=gout, noise=noise, temp_rate=tr, family=fam)
-            _fly_compiled(self.model, self.data, kern=self.kern, gyro_view=gview, filt=self.filt, k0=k0, k1=k1, n=n,
-                          m_per=self.m_per, bar=bar)
+            self.kern.set_block(
+                k0,
+                t_s=t_b,
+                temp_c=temp,
+                sd_log=sd_log,
+                outer_log=outer_log,
+                rec=rec,
+                ambient_c=amb,
+                gyro_out=gout,
+                noise=noise,
+                temp_rate=tr,
+                family=fam,
+            )
+            _fly_compiled(
+                self.model,
+                self.data,
+                kern=self.kern,
+                gyro_view=gview,
+                filt=self.filt,
+                k0=k0,
+                k1=k1,
+                n=n,
+                m_per=self.m_per,
+                bar=bar,
+            )
             if st is not None:
                 from . import _fast
 
@@ -649,7 +737,7 @@ class HoverFlight:
                 if st._t_pu is None:
                     st._t_pu = float(self._times(0, 1)[0])
                 if st._lp is not None:
-                    st._lp_state[:] = W[_fast.W_LPZ:_fast.W_LPZ + 6].tolist()
+                    st._lp_state[:] = W[_fast.W_LPZ : _fast.W_LPZ + 6].tolist()
         else:
             rec = self._fly_python(k0, k1, t_b, temp, amb, sd_log, outer_log, bar)
         self._outer_last = outer_log[-1].copy()
@@ -774,13 +862,36 @@ def _concat_flight(pieces: list[tuple[Truth, FlightLog]]) -> tuple[Truth, Flight
 
     t_s = cat(ts, "t_s")
     omega = cat(ts, "omega_S_rad_s")
-    truth = Truth(t_s=t_s, omega_S_rad_s=omega, f_S_m_s2=cat(ts, "f_S_m_s2"), q_SW_wxyz=cat(ts, "q_SW_wxyz"),
-                  temp_c=cat(ts, "temp_c"), t_since_power_up_s=cat(ts, "t_since_power_up_s"),
-                  power_up_index=cat(ts, "power_up_index"), meta=ts[0].meta)
-    log = FlightLog(t_s=t_s, omega_true_rad_s=omega, pos_sp_W_m=ls[-1].pos_sp_W_m, meta=ls[0].meta,
-                    **{f: cat(ls, f) for f in ("q_WB_wxyz", "q_sp_wxyz", "pos_W_m", "vel_W_m_s", "rate_sp_rad_s",
-                                                "gyro_meas_rad_s", "gyro_filt_rad_s", "motor_thrust_cmd_n",
-                                                "rotor_speed_rad_s")})
+    truth = Truth(
+        t_s=t_s,
+        omega_S_rad_s=omega,
+        f_S_m_s2=cat(ts, "f_S_m_s2"),
+        q_SW_wxyz=cat(ts, "q_SW_wxyz"),
+        temp_c=cat(ts, "temp_c"),
+        t_since_power_up_s=cat(ts, "t_since_power_up_s"),
+        power_up_index=cat(ts, "power_up_index"),
+        meta=ts[0].meta,
+    )
+    log = FlightLog(
+        t_s=t_s,
+        omega_true_rad_s=omega,
+        pos_sp_W_m=ls[-1].pos_sp_W_m,
+        meta=ls[0].meta,
+        **{
+            f: cat(ls, f)
+            for f in (
+                "q_WB_wxyz",
+                "q_sp_wxyz",
+                "pos_W_m",
+                "vel_W_m_s",
+                "rate_sp_rad_s",
+                "gyro_meas_rad_s",
+                "gyro_filt_rad_s",
+                "motor_thrust_cmd_n",
+                "rotor_speed_rad_s",
+            )
+        },
+    )
     return truth, log
 
 

@@ -63,8 +63,19 @@ __all__ = [
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 DEG = math.pi / 180.0
 _KINDS = ("table", "hover")
-_TOP_KEYS = {"name", "description", "kind", "duration_s", "gyro_rate_hz", "table", "bumps", "power", "hover", "thermal",
-             "vibration"}
+_TOP_KEYS = {
+    "name",
+    "description",
+    "kind",
+    "duration_s",
+    "gyro_rate_hz",
+    "table",
+    "bumps",
+    "power",
+    "hover",
+    "thermal",
+    "vibration",
+}
 
 
 @dataclass(frozen=True)
@@ -187,12 +198,12 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
         get_vehicle(str(veh))  # an unknown class is one error line at load time
     vsec = raw.get("vibration", {})
     if not isinstance(vsec, Mapping) or set(vsec) - {"spec", "band", "physics"} or ("spec" not in vsec and vsec):
-        raise GyroInputError(f"scenario {path}: [vibration] takes spec = \"SPEC.json\" and optional band, physics")
+        raise GyroInputError(f'scenario {path}: [vibration] takes spec = "SPEC.json" and optional band, physics')
     if vsec:
         sp = Path(str(vsec["spec"]))
         vsec = dict(vsec, spec=str(sp if sp.is_absolute() else Path(path).resolve().parent / sp))
         if vsec.get("physics") and kind != "hover":
-            raise GyroInputError(f"scenario {path}: [vibration] physics = true needs kind = \"hover\"")
+            raise GyroInputError(f'scenario {path}: [vibration] physics = true needs kind = "hover"')
     gs = raw.get("hover", {}).get("ground_s", 0.0)
     if isinstance(gs, bool) or not isinstance(gs, (int, float)) or not (math.isfinite(gs) and gs >= 0):
         raise GyroInputError(f"scenario {path}: [hover] ground_s must be a number >= 0")
@@ -228,8 +239,10 @@ def build_thermal(section: Mapping, duration_s: float):
         r = dict(sec.pop("ramps"))
         try:
             kw["ambient_c"] = ambient_ramps(
-                start_c=float(r["start_c"]), peak_c=float(r["peak_c"]),
-                start_s=float(r["start_frac"]) * duration_s, ramp_s=float(r["ramp_frac"]) * duration_s,
+                start_c=float(r["start_c"]),
+                peak_c=float(r["peak_c"]),
+                start_s=float(r["start_frac"]) * duration_s,
+                ramp_s=float(r["ramp_frac"]) * duration_s,
                 hold_s=float(r.get("hold_frac", 0.0)) * duration_s,
                 end_c=None if "end_c" not in r else float(r["end_c"]),
             )
@@ -268,9 +281,11 @@ def _turns(t: Mapping, *, revolutions: float, rates, rest_s: float, mounts, repo
     from .turntable import table_profile_turns
 
     return table_profile_turns(
-        mounts=tuple(_mount(m) for m in mounts), revolutions=revolutions,
+        mounts=tuple(_mount(m) for m in mounts),
+        revolutions=revolutions,
         rates_rad_s=tuple(float(r) * DEG for r in rates),
-        directions=tuple(int(d) for d in t.get("directions", (1, -1))), rest_s=rest_s,
+        directions=tuple(int(d) for d in t.get("directions", (1, -1))),
+        rest_s=rest_s,
         ramp_s=float(t.get("ramp_s", 0.5)),
         repose_s=float(t.get("repose_s", 2.0)) if repose_s is None else repose_s,
         settle_s=float(t.get("settle_s", 1.0)) if settle_s is None else settle_s,
@@ -296,9 +311,13 @@ def _fit_turns(t: Mapping, duration_s: float | None):
         return full
     axes = ["+x", "+y", "+z"]
     # (rates, rest, mounts, repose, settle, min revolutions)
-    options = [(rates, rest, mounts, None, None, 1.0), (rates[:1], rest, mounts, None, None, 1.0),
-               (rates[:1], min(rest, 1.0), mounts, None, None, 1.0), (rates[:1], min(rest, 1.0), axes, None, None, 1.0),
-               ([max(rates)], min(rest, 0.5), axes, 1.0, 0.5, 0.25)]
+    options = [
+        (rates, rest, mounts, None, None, 1.0),
+        (rates[:1], rest, mounts, None, None, 1.0),
+        (rates[:1], min(rest, 1.0), mounts, None, None, 1.0),
+        (rates[:1], min(rest, 1.0), axes, None, None, 1.0),
+        ([max(rates)], min(rest, 0.5), axes, 1.0, 0.5, 0.25),
+    ]
 
     def prof(r_, rest_, m_, rp, st, n_rev):
         return _turns(t, revolutions=n_rev, rates=r_, rest_s=rest_, mounts=m_, repose_s=rp, settle_s=st)
@@ -333,8 +352,14 @@ def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator)
     max_tilt = float(b.get("max_tilt_deg", 15.0)) * DEG
     gap = float(b.get("gap_s", 0.3))
     # draw every bump first (the draws do not depend on how many are used)
-    draws = [(rng.uniform(max_rate / 3, max_rate) * rng.choice([-1.0, 1.0]), rng.uniform(max_tilt / 3, max_tilt),
-              rng.uniform(0, 2 * math.pi)) for _ in range(max(count, 1))]
+    draws = [
+        (
+            rng.uniform(max_rate / 3, max_rate) * rng.choice([-1.0, 1.0]),
+            rng.uniform(max_tilt / 3, max_tilt),
+            rng.uniform(0, 2 * math.pi),
+        )
+        for _ in range(max(count, 1))
+    ]
     qb = Rotation.from_quat([q_base[1], q_base[2], q_base[3], q_base[0]])
 
     def segments(k: int) -> list:
@@ -346,7 +371,9 @@ def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator)
             else:  # picked up and tilted about a random horizontal axis, then put back
                 tilt = Rotation.from_rotvec(ang * np.array([math.cos(az), math.sin(az), 0.0]))
                 x, y, z, w = (tilt * qb).as_quat()
-                segs.append(TableSegment(mount=(float(w), float(x), float(y), float(z)), rate_rad_s=0.0, duration_s=gap))
+                segs.append(
+                    TableSegment(mount=(float(w), float(x), float(y), float(z)), rate_rad_s=0.0, duration_s=gap)
+                )
                 segs.append(TableSegment(mount=base, rate_rad_s=0.0, duration_s=gap))
         return segs
 
@@ -360,8 +387,11 @@ def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator)
     rest = duration_s - busy
     if rest <= 0:
         raise GyroInputError(f"static_bumped needs more than {busy:.1f} s (one bump); got {duration_s:g} s")
-    return TableProfile(segments=tuple(segs) + (TableSegment(mount=base, rate_rad_s=0.0, duration_s=rest),),
-                        repose_s=bump_s, settle_s=0.0)
+    return TableProfile(
+        segments=tuple(segs) + (TableSegment(mount=base, rate_rad_s=0.0, duration_s=rest),),
+        repose_s=bump_s,
+        settle_s=0.0,
+    )
 
 
 def _cycle(t: Mapping, duration_s: float):
@@ -442,9 +472,21 @@ def _params_true_from(gyro: SyntheticGyro, bias_draws: Mapping | None) -> dict:
     return validate_params(p)
 
 
-def _recording_meta(spec: ScenarioSpec, sensor_spec, gyro: SyntheticGyro, *, seed: int, run: int, rate: float,
-                    n: int, starts: list[float], params_true: Mapping, notes: list[str], truth_meta: Mapping,
-                    vib_info: Mapping | None = None) -> dict:
+def _recording_meta(
+    spec: ScenarioSpec,
+    sensor_spec,
+    gyro: SyntheticGyro,
+    *,
+    seed: int,
+    run: int,
+    rate: float,
+    n: int,
+    starts: list[float],
+    params_true: Mapping,
+    notes: list[str],
+    truth_meta: Mapping,
+    vib_info: Mapping | None = None,
+) -> dict:
     """The ``#`` metadata of a simulated recording (shared by :func:`simulate` and :func:`simulate_stream`)."""
     meta = {
         "sensor": sensor_spec.name,
@@ -496,15 +538,22 @@ def _scenario_vibration(spec: ScenarioSpec, overrides, without, vehicle, hover_v
     (overrides, hover_vibration, vib_info); unchanged when the scenario has none or the caller
     overrides or removes ``vibration``."""
     vib_info = None
-    if spec.vibration and not any(canonical_name(e) == "vibration" for e in (overrides or {})) \
-            and "vibration" not in [canonical_name(w) for w in without]:
+    if (
+        spec.vibration
+        and not any(canonical_name(e) == "vibration" for e in (overrides or {}))
+        and "vibration" not in [canonical_name(w) for w in without]
+    ):
         from gyrocore.flight.vibration import read_spec
 
         from .spec_vibration import spec_injection
 
-        hv, vib_over, vib_info = spec_injection(read_spec(spec.vibration["spec"]), band=spec.vibration.get("band", "middle"),
-                                                vehicle=vehicle or str(spec.hover.get("vehicle", "f450")),
-                                                physics=bool(spec.vibration.get("physics", False)), seed=int(seed))
+        hv, vib_over, vib_info = spec_injection(
+            read_spec(spec.vibration["spec"]),
+            band=spec.vibration.get("band", "middle"),
+            vehicle=vehicle or str(spec.hover.get("vehicle", "f450")),
+            physics=bool(spec.vibration.get("physics", False)),
+            seed=int(seed),
+        )
         overrides = {**(overrides or {}), **vib_over}
         if hover_vibration is None:
             hover_vibration = hv
@@ -582,9 +631,19 @@ def simulate(
     -------
     SimResult, or SimStream when ``chunk_rows`` is given
     """
-    setup = _Setup(name, sensor=sensor, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
-                   without=without, gyro_rate_hz=gyro_rate_hz, progress=progress, vehicle=vehicle,
-                   hover_vibration=hover_vibration)
+    setup = _Setup(
+        name,
+        sensor=sensor,
+        duration_s=duration_s,
+        seed=seed,
+        run=run,
+        overrides=overrides,
+        without=without,
+        gyro_rate_hz=gyro_rate_hz,
+        progress=progress,
+        vehicle=vehicle,
+        hover_vibration=hover_vibration,
+    )
     if chunk_rows is None:
         return setup.whole()
     if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, (int, np.integer)) or int(chunk_rows) < 1:
@@ -603,22 +662,43 @@ class _Setup:
     table profile or the flight, the thermal model, the notes), shared by the whole path
     (:meth:`whole`) and the chunked one (:meth:`chunked`)."""
 
-    def __init__(self, name, *, sensor, duration_s, seed, run, overrides, without, gyro_rate_hz, progress, vehicle,
-                 hover_vibration) -> None:
+    def __init__(
+        self,
+        name,
+        *,
+        sensor,
+        duration_s,
+        seed,
+        run,
+        overrides,
+        without,
+        gyro_rate_hz,
+        progress,
+        vehicle,
+        hover_vibration,
+    ) -> None:
         spec = load_scenario(name)
         sensor_spec = load_preset(sensor)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise GyroInputError(f"seed must be an integer >= 0, got {seed!r}")
         if duration_s is not None and not (math.isfinite(float(duration_s)) and float(duration_s) > 0):
             raise GyroInputError(f"duration must be > 0 s, got {duration_s}")
-        self.spec, self.sensor_spec, self.seed, self.run, self.progress = spec, sensor_spec, int(seed), int(run), progress
+        self.spec, self.sensor_spec, self.seed, self.run, self.progress = (
+            spec,
+            sensor_spec,
+            int(seed),
+            int(run),
+            progress,
+        )
         self.rate = rate = float(gyro_rate_hz or spec.gyro_rate_hz or sensor_spec.rate_hz)
         dur = float(duration_s) if duration_s is not None else spec.duration_s
         without = list(without)
-        overrides, hover_vibration, self.vib_info = _scenario_vibration(spec, overrides, without, vehicle, hover_vibration,
-                                                                        seed)
-        self.gyro = gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=self.seed, run=self.run, without=without,
-                                         overrides=overrides)
+        overrides, hover_vibration, self.vib_info = _scenario_vibration(
+            spec, overrides, without, vehicle, hover_vibration, seed
+        )
+        self.gyro = gyro = SyntheticGyro(
+            sensor_spec, rate_hz=rate, seed=self.seed, run=self.run, without=without, overrides=overrides
+        )
         self.notes = list(gyro.notes)
         if spec.kind == "table":
             self.prof = build_table_profile(spec, dur, seed=self.seed, run=self.run)
@@ -633,31 +713,61 @@ class _Setup:
         unsupported = _closed_loop_unsupported(gyro, thermal)
         self.fly_gyro = gyro
         if unsupported:
-            self.notes.append(f"the controller flew on the gyro without {', '.join(unsupported)} (not possible in closed "
-                              "loop); the recording has them")
-            self.fly_gyro = SyntheticGyro(sensor_spec, rate_hz=rate, seed=self.seed, run=self.run,
-                                          without=without + unsupported,
-                                          overrides={e: v for e, v in (overrides or {}).items()
-                                                     if canonical_name(e) not in unsupported})
+            self.notes.append(
+                f"the controller flew on the gyro without {', '.join(unsupported)} (not possible in closed "
+                "loop); the recording has them"
+            )
+            self.fly_gyro = SyntheticGyro(
+                sensor_spec,
+                rate_hz=rate,
+                seed=self.seed,
+                run=self.run,
+                without=without + unsupported,
+                overrides={e: v for e, v in (overrides or {}).items() if canonical_name(e) not in unsupported},
+            )
         ground = hover_ground_s(spec, dur)
         if ground == 0.0 and float(spec.hover.get("ground_s", 0.0)) > 0.0:
-            self.notes.append(f"no ground phase: {dur:g} s is shorter than ground_s + take-off + {MIN_AIRBORNE_S:g} s of "
-                              "hover (the flight starts airborne)")
+            self.notes.append(
+                f"no ground phase: {dur:g} s is shorter than ground_s + take-off + {MIN_AIRBORNE_S:g} s of "
+                "hover (the flight starts airborne)"
+            )
         t_air = ground + (TAKEOFF_CLIMB_S if ground > 0.0 else 0.0)  # manoeuvres after the take-off
-        man = (tuple(replace(m, t_start_s=m.t_start_s + t_air) for m in small_steps(dur - t_air))
-               if spec.hover.get("manoeuvres", True) else ())
+        man = (
+            tuple(replace(m, t_start_s=m.t_start_s + t_air) for m in small_steps(dur - t_air))
+            if spec.hover.get("manoeuvres", True)
+            else ()
+        )
         vib = bool(spec.hover.get("vibration", True)) and "vibration" not in gyro.without
         if vib and hover_vibration is not None:
             vib = hover_vibration
         #: fly_hover / HoverFlight options (the gyro apart)
-        self.flight = dict(duration_s=dur, vibration=vib, manoeuvres=man, gyro_rate_hz=rate, thermal=thermal,
-                           seed=self.seed + 1000003 * self.run, progress=progress, ground_s=ground,
-                           vehicle=vehicle or str(spec.hover.get("vehicle", "f450")))
+        self.flight = dict(
+            duration_s=dur,
+            vibration=vib,
+            manoeuvres=man,
+            gyro_rate_hz=rate,
+            thermal=thermal,
+            seed=self.seed + 1000003 * self.run,
+            progress=progress,
+            ground_s=ground,
+            vehicle=vehicle or str(spec.hover.get("vehicle", "f450")),
+        )
 
     def _meta(self, params_true, n: int, starts: list[float], truth_meta) -> dict:
-        return _recording_meta(self.spec, self.sensor_spec, self.gyro, seed=self.seed, run=self.run, rate=self.rate, n=n,
-                               starts=starts, params_true=params_true, notes=self.notes, truth_meta=truth_meta,
-                               vib_info=self.vib_info)
+        return _recording_meta(
+            self.spec,
+            self.sensor_spec,
+            self.gyro,
+            seed=self.seed,
+            run=self.run,
+            rate=self.rate,
+            n=n,
+            starts=starts,
+            params_true=params_true,
+            notes=self.notes,
+            truth_meta=truth_meta,
+            vib_info=self.vib_info,
+        )
 
     # ------------------------------------------------------------------ whole
     def whole(self) -> SimResult:
@@ -666,8 +776,9 @@ class _Setup:
         if self.spec.kind == "table":
             from .turntable import run_table
 
-            truth = run_table(self.prof, gyro_rate_hz=self.rate, thermal=self.thermal, seed=self.seed,
-                              progress=self.progress)
+            truth = run_table(
+                self.prof, gyro_rate_hz=self.rate, thermal=self.thermal, seed=self.seed, progress=self.progress
+            )
             if self.cycles > 1:
                 truth = _split_power_ups(truth, self.cycles, self.thermal)
         else:
@@ -696,9 +807,19 @@ class _Setup:
             meta=meta,
             extra={"power_up_index": pu.astype(float)},
         )
-        return SimResult(scenario=self.spec.name, sensor=self.sensor_spec.name, seed=self.seed, run=self.run,
-                         recording=rec, truth=truth, params_true=params_true, draws=out.draws,
-                         noise_rad_s=out.noise_rad_s, flight_log=flight_log, notes=tuple(self.notes))
+        return SimResult(
+            scenario=self.spec.name,
+            sensor=self.sensor_spec.name,
+            seed=self.seed,
+            run=self.run,
+            recording=rec,
+            truth=truth,
+            params_true=params_true,
+            draws=out.draws,
+            noise_rad_s=out.noise_rad_s,
+            flight_log=flight_log,
+            notes=tuple(self.notes),
+        )
 
     # ------------------------------------------------------------------ chunked
     def chunked(self, chunk_rows: int) -> "SimStream":
@@ -708,8 +829,14 @@ class _Setup:
         if self.spec.kind == "table":
             from .turntable import stream_table
 
-            table = stream_table(self.prof, gyro_rate_hz=rate, thermal=self.thermal, seed=self.seed,
-                                 progress=self.progress, chunk_steps=block)
+            table = stream_table(
+                self.prof,
+                gyro_rate_hz=rate,
+                thermal=self.thermal,
+                seed=self.seed,
+                progress=self.progress,
+                chunk_steps=block,
+            )
             n, cycles, truth_meta = table.n_samples, self.cycles, table.meta
             if cycles < 1:
                 raise GyroInputError("[power] cycles must be >= 1")
@@ -731,6 +858,7 @@ class _Setup:
 
             def truths():
                 return (tr for tr, _log in flight.blocks(block, flight_log=False))
+
         pd = gyro.params.get("bias")
         bias_draws = None
         if pd is not None:
@@ -744,15 +872,33 @@ class _Setup:
         meta = self._meta(params_true, n, starts, truth_meta)
 
         def chunks():
-            pieces = (Recording(t_s=gc.t_s, gyro_rad_s=gc.gyro_rad_s, accel_m_s2=gc.truth.f_S_m_s2,
-                                temp_c=gc.truth.temp_c, ref_rate_rad_s=gc.truth.omega_S_rad_s,
-                                ref_quat_wxyz=gc.truth.q_SW_wxyz, meta=meta,
-                                extra={"power_up_index": np.asarray(gc.truth.power_up_index, int).astype(float)})
-                      for gc in gyro.measure_chunks(truths()))
+            pieces = (
+                Recording(
+                    t_s=gc.t_s,
+                    gyro_rad_s=gc.gyro_rad_s,
+                    accel_m_s2=gc.truth.f_S_m_s2,
+                    temp_c=gc.truth.temp_c,
+                    ref_rate_rad_s=gc.truth.omega_S_rad_s,
+                    ref_quat_wxyz=gc.truth.q_SW_wxyz,
+                    meta=meta,
+                    extra={"power_up_index": np.asarray(gc.truth.power_up_index, int).astype(float)},
+                )
+                for gc in gyro.measure_chunks(truths())
+            )
             yield from _rechunk_recordings(pieces, chunk_rows)
 
-        st = SimStream(scenario=self.spec.name, sensor=self.sensor_spec.name, seed=self.seed, run=self.run, rate_hz=rate,
-                       n_samples=n, meta=meta, params_true=params_true, notes=tuple(self.notes), bounded=True)
+        st = SimStream(
+            scenario=self.spec.name,
+            sensor=self.sensor_spec.name,
+            seed=self.seed,
+            run=self.run,
+            rate_hz=rate,
+            n_samples=n,
+            meta=meta,
+            params_true=params_true,
+            notes=tuple(self.notes),
+            bounded=True,
+        )
         st._chunks = chunks
         return st
 

@@ -33,8 +33,15 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["RotorLine", "carried_bands", "line_amplitude_in_gyro", "line_exclusion_hz", "rotor_line", "spec_injection",
-           "vibration_from_spec"]
+__all__ = [
+    "RotorLine",
+    "carried_bands",
+    "line_amplitude_in_gyro",
+    "line_exclusion_hz",
+    "rotor_line",
+    "spec_injection",
+    "vibration_from_spec",
+]
 
 #: relative frequency tolerance to call two bands' peaks the same line (as gyrocore.flight.vibration's linker, 6 %)
 _F_TOL = 0.06
@@ -90,8 +97,11 @@ def rotor_line(spec: dict, band="middle") -> RotorLine:
     """
     i = _band_index(spec, band)
     lines = spec.get("lines") or []
-    cands = [ln for ln in lines if ln.get("follows") in ("throttle", "erpm") and not ln.get("aliased")
-             and ln.get("harmonic") in (None, 1)]
+    cands = [
+        ln
+        for ln in lines
+        if ln.get("follows") in ("throttle", "erpm") and not ln.get("aliased") and ln.get("harmonic") in (None, 1)
+    ]
     if not cands:
         bands = [b for b in (spec.get("bands") or []) if len(b.get("throttle") or ()) == 2]
         why = ""
@@ -99,13 +109,19 @@ def rotor_line(spec: dict, band="middle") -> RotorLine:
             lo = min(float(b["throttle"][0]) for b in bands)
             hi = max(float(b["throttle"][1]) for b in bands)
             erpm = any("rotor_hz_median" in b for b in bands)
-            why = (f": its {len(bands)} band(s) span motor command {lo:.2f}-{hi:.2f}"
-                   + ("" if erpm else " and the log has no rotor speed (eRPM)")
-                   + ("; a flight that holds one throttle (a hover) gives no throttle law: use a log with "
-                      "throttle changes" + ("" if erpm else " or with eRPM (bidirectional DShot telemetry)")
-                      if hi - lo < 0.2 else ""))
-        raise GyroInputError("vibration spec has no line that follows throttle or eRPM (no rotor line to put into "
-                             "the physics)" + why)
+            why = (
+                f": its {len(bands)} band(s) span motor command {lo:.2f}-{hi:.2f}"
+                + ("" if erpm else " and the log has no rotor speed (eRPM)")
+                + (
+                    "; a flight that holds one throttle (a hover) gives no throttle law: use a log with "
+                    "throttle changes" + ("" if erpm else " or with eRPM (bidirectional DShot telemetry)")
+                    if hi - lo < 0.2
+                    else ""
+                )
+            )
+        raise GyroInputError(
+            "vibration spec has no line that follows throttle or eRPM (no rotor line to put into the physics)" + why
+        )
     main = max(cands, key=lambda ln: ln["amplitude_rad_s"])
     own = {p["band"]: p for p in main.get("per_band", [])}
     if i in own:
@@ -130,7 +146,9 @@ def rotor_line(spec: dict, band="middle") -> RotorLine:
     return RotorLine(band=i, frequency_hz=f, amplitude_rad_s=amp, total_rad_s=tot, source="; ".join(used))
 
 
-def line_amplitude_in_gyro(omega_rad_s: np.ndarray, rate_hz: float, f_hz: float, *, nperseg: int | None = None) -> np.ndarray:
+def line_amplitude_in_gyro(
+    omega_rad_s: np.ndarray, rate_hz: float, f_hz: float, *, nperseg: int | None = None
+) -> np.ndarray:
     """Sinusoid amplitude per axis of the line at ``f_hz`` in a rate signal (N, 3), rad/s.
 
     Welch (Hann, 1-Hz bins by default); line power = PSD summed over ±3 bins around ``f_hz``
@@ -145,7 +163,7 @@ def line_amplitude_in_gyro(omega_rad_s: np.ndarray, rate_hz: float, f_hz: float,
     df = f[1] - f[0]
     k = int(round(f_hz / df))
     lo, hi = max(k - 3, 0), min(k + 4, f.size)
-    side = np.r_[max(k - 30, 0):max(k - 10, 0), min(k + 11, f.size):min(k + 31, f.size)]
+    side = np.r_[max(k - 30, 0) : max(k - 10, 0), min(k + 11, f.size) : min(k + 31, f.size)]
     base = np.median(p[side], axis=0) if side.size else 0.0
     pw = np.maximum(p[lo:hi].sum(axis=0) - base * (hi - lo), 0.0) * df
     return np.sqrt(2.0 * pw)
@@ -187,8 +205,9 @@ def _calibration_powers_uncached(veh, vib, *, seed: int, tag: int, calib_s: floa
     return np.asarray(p_axes), float(np.mean(f_rots))
 
 
-def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: int = 0, calib_s: float = 3.0,
-                        n_calib: int = 32):
+def vibration_from_spec(
+    spec: dict, vehicle="racing5", *, band="middle", seed: int = 0, calib_s: float = 3.0, n_calib: int = 32
+):
     """The class's :class:`sim.vehicles.VibrationSpec` with its rotor unbalance set from the spec's rotor line.
 
     Two physical sources put a line at the rotor frequency, and they load different axes:
@@ -239,11 +258,19 @@ def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: i
         raise GyroInputError("n_calib must be >= 1")
     u0 = v0.imbalance_kg_m
     hub0 = v0.hub_moment_kg_m2 if v0.hub_moment_kg_m2 > 0 else u0 * 0.01
-    pa, f_a = _calibration_powers(veh, replace(v0, hub_moment_kg_m2=0.0), seed=seed, tag=16, calib_s=calib_s, n_calib=n_calib)
+    pa, f_a = _calibration_powers(
+        veh, replace(v0, hub_moment_kg_m2=0.0), seed=seed, tag=16, calib_s=calib_s, n_calib=n_calib
+    )
     has_hub = True
     try:
-        pb, f_b = _calibration_powers(veh, replace(v0, imbalance_kg_m=0.0, hub_moment_kg_m2=hub0), seed=seed, tag=17,
-                                      calib_s=calib_s, n_calib=n_calib)
+        pb, f_b = _calibration_powers(
+            veh,
+            replace(v0, imbalance_kg_m=0.0, hub_moment_kg_m2=hub0),
+            seed=seed,
+            tag=17,
+            calib_s=calib_s,
+            n_calib=n_calib,
+        )
     except GyroInputError:  # a model without couple-imbalance bodies (the F450): static unbalance alone
         has_hub, pb = False, np.zeros_like(pa)
     a = line.amplitude_rad_s
@@ -265,8 +292,14 @@ def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: i
     # target from the linear solve alone.
     a_z_op = None
     if has_hub and alpha > 0 and beta > 0 and target[1] > 0:
-        pz, _ = _calibration_powers(veh, replace(v0, imbalance_kg_m=u0 * math.sqrt(alpha), hub_moment_kg_m2=hub0 * math.sqrt(beta)),
-                                    seed=seed, tag=18, calib_s=calib_s, n_calib=n_calib)
+        pz, _ = _calibration_powers(
+            veh,
+            replace(v0, imbalance_kg_m=u0 * math.sqrt(alpha), hub_moment_kg_m2=hub0 * math.sqrt(beta)),
+            seed=seed,
+            tag=18,
+            calib_s=calib_s,
+            n_calib=n_calib,
+        )
         a_z_op = float(pz[:, 2].mean()) - beta * B[1]
         if a_z_op > 0:
             alpha = alpha * target[1] / a_z_op
@@ -274,19 +307,34 @@ def vibration_from_spec(spec: dict, vehicle="racing5", *, band="middle", seed: i
 
     def se_rel(p):
         tot = p.sum(axis=1)
-        return float(np.std(tot, ddof=1) / math.sqrt(tot.size) / np.mean(tot)) if tot.size > 1 and np.mean(tot) > 0 else float("nan")
+        return (
+            float(np.std(tot, ddof=1) / math.sqrt(tot.size) / np.mean(tot))
+            if tot.size > 1 and np.mean(tot) > 0
+            else float("nan")
+        )
 
     pred = alpha * A + beta * B
-    info = {"vehicle": veh.name, "band": line.band, "real_line_hz": line.frequency_hz,
-            "real_line_amplitude_rad_s": line.amplitude_rad_s, "real_line_total_rad_s": line.total_rad_s,
-            "real_line_source": line.source, "sim_rotor_hz": f_a,
-            "calibration_power_xy_z_static": A.tolist(), "calibration_power_xy_z_hub": B.tolist(),
-            "calibration_imbalance_kg_m": u0, "calibration_hub_moment_kg_m2": hub0 if has_hub else 0.0,
-            "target_power_xy_z": target.tolist(), "fitted_power_xy_z": pred.tolist(),
-            "calibration_power_z_at_stage1_solution": a_z_op,
-            "n_calib": int(n_calib), "calibration_power_se_rel": max(se_rel(pa), se_rel(pb) if has_hub else 0.0),
-            "imbalance_kg_m": u, "hub_moment_kg_m2": hub,
-            "model_has_hub_moment": has_hub}
+    info = {
+        "vehicle": veh.name,
+        "band": line.band,
+        "real_line_hz": line.frequency_hz,
+        "real_line_amplitude_rad_s": line.amplitude_rad_s,
+        "real_line_total_rad_s": line.total_rad_s,
+        "real_line_source": line.source,
+        "sim_rotor_hz": f_a,
+        "calibration_power_xy_z_static": A.tolist(),
+        "calibration_power_xy_z_hub": B.tolist(),
+        "calibration_imbalance_kg_m": u0,
+        "calibration_hub_moment_kg_m2": hub0 if has_hub else 0.0,
+        "target_power_xy_z": target.tolist(),
+        "fitted_power_xy_z": pred.tolist(),
+        "calibration_power_z_at_stage1_solution": a_z_op,
+        "n_calib": int(n_calib),
+        "calibration_power_se_rel": max(se_rel(pa), se_rel(pb) if has_hub else 0.0),
+        "imbalance_kg_m": u,
+        "hub_moment_kg_m2": hub,
+        "model_has_hub_moment": has_hub,
+    }
     return replace(v0, imbalance_kg_m=u, hub_moment_kg_m2=hub), info
 
 
@@ -316,14 +364,29 @@ def carried_bands(spec_band: dict, shaped: dict) -> list[dict]:
         j = "xyz".index(e["axis"])
         inb = (f >= e["extent_hz"][0]) & (f <= e["extent_hz"][1])
         carried = float(np.sum(np.asarray(shaped["psd_rad2_s2_hz"])[j, inb]) * df)
-        out.append({"axis": e["axis"], "centre_hz": e["centre_hz"], "extent_hz": e["extent_hz"],
-                    "spec_power_rad2_s2": e["power_rad2_s2"], "shaped_power_rad2_s2": carried,
-                    "carried_fraction": carried / e["power_rad2_s2"] if e["power_rad2_s2"] else None})
+        out.append(
+            {
+                "axis": e["axis"],
+                "centre_hz": e["centre_hz"],
+                "extent_hz": e["extent_hz"],
+                "spec_power_rad2_s2": e["power_rad2_s2"],
+                "shaped_power_rad2_s2": carried,
+                "carried_fraction": carried / e["power_rad2_s2"] if e["power_rad2_s2"] else None,
+            }
+        )
     return out
 
 
-def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = False, seed: int = 0,
-                   n_calib: int = 32, calib_s: float = 2.0) -> tuple[object, dict, dict]:
+def spec_injection(
+    spec: dict,
+    *,
+    band="middle",
+    vehicle=None,
+    physics: bool = False,
+    seed: int = 0,
+    n_calib: int = 32,
+    calib_s: float = 2.0,
+) -> tuple[object, dict, dict]:
     """How a vibration spec enters a simulation: the one path of ``simulate --vibration SPEC
     [--vibration-physics]``, a scenario's ``[vibration]`` section and the experiments.
 
@@ -337,19 +400,31 @@ def spec_injection(spec: dict, *, band="middle", vehicle=None, physics: bool = F
     from gyrocore.flight.vibration import shaped_params, spec_band
 
     b = spec_band(spec, band)  # a bad band is one error line before anything runs
-    hover_vib, sub, info = None, (), {"spec": str(spec.get("source", "")), "band": band,
-                                      "band_throttle": b.get("throttle"), "band_median": b.get("median")}
+    hover_vib, sub, info = (
+        None,
+        (),
+        {
+            "spec": str(spec.get("source", "")),
+            "band": band,
+            "band_throttle": b.get("throttle"),
+            "band_median": b.get("median"),
+        },
+    )
     if physics:
         if vehicle is None:
             raise GyroInputError("the spec's rotor line through the physics needs a hover vehicle class")
-        hover_vib, pinfo = vibration_from_spec(spec, vehicle, band=band, seed=int(seed), n_calib=n_calib, calib_s=calib_s)
+        hover_vib, pinfo = vibration_from_spec(
+            spec, vehicle, band=band, seed=int(seed), n_calib=n_calib, calib_s=calib_s
+        )
         # the physics carries the rotor line's power (at the vehicle's own rotor speed): take that
         # power, per axis, out of the shaped part at the real line; the broadband under it stays
         sub = ((pinfo["real_line_hz"], {a: v * v / 2.0 for a, v in pinfo["real_line_amplitude_rad_s"].items()}),)
         info["physics"] = pinfo
     shaped = shaped_params(spec, band=band, subtract_lines=sub)
     info["energy_bands"] = carried_bands(b, shaped)
-    info["shaped"] = ("registry effect vibration, shaped part: Gaussian disturbance with the spec band's PSD above 40 Hz"
-                      + (f", without the rotor line's power at {sub[0][0]:.1f} Hz (carried by the physics)" if sub else "")
-                      + "; added in the gyro's noise stage (sim.noise.ShapedNoise), so a closed loop flies on it")
+    info["shaped"] = (
+        "registry effect vibration, shaped part: Gaussian disturbance with the spec band's PSD above 40 Hz"
+        + (f", without the rotor line's power at {sub[0][0]:.1f} Hz (carried by the physics)" if sub else "")
+        + "; added in the gyro's noise stage (sim.noise.ShapedNoise), so a closed loop flies on it"
+    )
     return hover_vib, {"vibration": shaped}, info

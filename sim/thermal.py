@@ -125,7 +125,12 @@ class ThermalSpec:
 
 
 def ambient_ramps(
-    *, start_c: float, peak_c: float, start_s: float, ramp_s: float, hold_s: float,
+    *,
+    start_c: float,
+    peak_c: float,
+    start_s: float,
+    ramp_s: float,
+    hold_s: float,
     end_c: float | None = None,
 ) -> tuple[tuple[float, float], ...]:
     """Break points of a warm-up / hold / cool-down ambient profile.
@@ -216,9 +221,7 @@ def _rounding_atol(t_first: float, t_last: float) -> float:
     return 4.0 * float(np.spacing(max(abs(float(t_first)), abs(float(t_last)))))
 
 
-def simulate_temperature(
-    t_s: np.ndarray, spec: ThermalSpec, *, motor_power_w: np.ndarray | None = None
-) -> np.ndarray:
+def simulate_temperature(t_s: np.ndarray, spec: ThermalSpec, *, motor_power_w: np.ndarray | None = None) -> np.ndarray:
     """Die temperature at the sample times.
 
     Parameters
@@ -437,12 +440,12 @@ class TempRateBlocks:
         self._generate(min(k1 + 1, self.n))
         w0 = self._generated - self._t.shape[0]  # global index of the held window's row 0
         lo = max(k0 - 1, 0)
-        t = self._t[lo - w0:]
-        f = self._T[lo - w0:]
+        t = self._t[lo - w0 :]
+        f = self._T[lo - w0 :]
         out = np.empty(f.shape[0])
         if f.shape[0] > 2:
             if self._dx0 is not None:
-                out[1:-1] = (f[2:] - f[:-2]) / (2. * self._dx0)
+                out[1:-1] = (f[2:] - f[:-2]) / (2.0 * self._dx0)
             else:
                 dx = np.diff(t)
                 dx1 = dx[0:-1]
@@ -455,10 +458,10 @@ class TempRateBlocks:
             out[0] = (f[1] - f[0]) / (self._dx0 if self._dx0 is not None else t[1] - t[0])
         if k1 == self.n:
             out[-1] = (f[-1] - f[-2]) / (self._dx0 if self._dx0 is not None else t[-1] - t[-2])
-        res = out[(k0 - lo):(k0 - lo) + m].copy()
+        res = out[(k0 - lo) : (k0 - lo) + m].copy()
         # keep the last sample of this block and the one ahead (the next block's neighbours)
         keep = max(k1 - 1, 0)
-        self._t = self._t[keep - w0:].copy()
-        self._T = self._T[keep - w0:].copy()
+        self._t = self._t[keep - w0 :].copy()
+        self._T = self._T[keep - w0 :].copy()
         self.position = k1
         return res

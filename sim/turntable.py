@@ -331,8 +331,17 @@ class TableStream:
     full physics state is exact across cuts; tested).
     """
 
-    def __init__(self, profile: TableProfile, *, gyro_rate_hz: float, physics_rate_hz: float,
-                 thermal: ThermalSpec | None, seed: int, progress: bool, chunk_steps: int) -> None:
+    def __init__(
+        self,
+        profile: TableProfile,
+        *,
+        gyro_rate_hz: float,
+        physics_rate_hz: float,
+        thermal: ThermalSpec | None,
+        seed: int,
+        progress: bool,
+        chunk_steps: int,
+    ) -> None:
         if int(chunk_steps) < 1:
             raise GyroInputError("chunk_steps must be >= 1")
         self.profile = profile
@@ -371,16 +380,31 @@ class TableStream:
                 axis = rotvec / ang
                 n = int(math.ceil((profile.repose_s + profile.settle_s) * phys_hz - 1e-9))
                 plan.append(("repose", n, (lambda tk, _a=ang: _raised_cosine_angle(tk, profile.repose_s, _a)), axis))
-                phases.append({"kind": "repose", "t_start_s": step0 * dt, "t_end_s": step0 * dt + profile.repose_s,
-                               "mount": _mount_label(seg.mount), "rate_rad_s": 0.0, "angle_rad": ang,
-                               "axis_S": [float(v) for v in axis]})
+                phases.append(
+                    {
+                        "kind": "repose",
+                        "t_start_s": step0 * dt,
+                        "t_end_s": step0 * dt + profile.repose_s,
+                        "mount": _mount_label(seg.mount),
+                        "rate_rad_s": 0.0,
+                        "angle_rad": ang,
+                        "axis_S": [float(v) for v in axis],
+                    }
+                )
                 step0 += n
                 q_cur = q_new
             n = int(math.ceil(seg.duration_s * phys_hz - 1e-9))
             plan.append(("segment", n, seg.theta_rad, None))
-            phases.append({"kind": "segment", "t_start_s": step0 * dt, "t_end_s": step0 * dt + seg.duration_s,
-                           "mount": _mount_label(seg.mount), "rate_rad_s": float(seg.rate_rad_s),
-                           "angle_rad": float(seg.angle_rad)})
+            phases.append(
+                {
+                    "kind": "segment",
+                    "t_start_s": step0 * dt,
+                    "t_end_s": step0 * dt + seg.duration_s,
+                    "mount": _mount_label(seg.mount),
+                    "rate_rad_s": float(seg.rate_rad_s),
+                    "angle_rad": float(seg.angle_rad),
+                }
+            )
             step0 += n
         self._plan = plan
         self.phases = tuple(phases)
@@ -430,7 +454,9 @@ class TableStream:
                     # along the new re-pose axis (pose and servo error unchanged; hinge at rest).
                     mujoco.mj_setState(model, data, state, spec)
                     phi = float(data.qpos[q_adr_fix])
-                    r_mount = _wxyz_to_rot(model.body_quat[fixture_id]) * Rotation.from_rotvec(phi * model.jnt_axis[repose_jid])
+                    r_mount = _wxyz_to_rot(model.body_quat[fixture_id]) * Rotation.from_rotvec(
+                        phi * model.jnt_axis[repose_jid]
+                    )
                     model.body_quat[fixture_id] = _rot_to_wxyz(r_mount)
                     data.qpos[q_adr_fix] = 0.0
                     data.act[act_fix] -= phi
@@ -487,8 +513,15 @@ def stream_table(
 ) -> TableStream:
     """The table run of :func:`run_table` as a :class:`TableStream` (chunks of at most
     ``chunk_steps`` physics steps; bit-identical to the whole run)."""
-    return TableStream(profile, gyro_rate_hz=gyro_rate_hz, physics_rate_hz=physics_rate_hz, thermal=thermal,
-                       seed=seed, progress=progress, chunk_steps=chunk_steps)
+    return TableStream(
+        profile,
+        gyro_rate_hz=gyro_rate_hz,
+        physics_rate_hz=physics_rate_hz,
+        thermal=thermal,
+        seed=seed,
+        progress=progress,
+        chunk_steps=chunk_steps,
+    )
 
 
 def run_table_detailed(
@@ -502,8 +535,15 @@ def run_table_detailed(
     chunk_steps: int = 200_000,
 ) -> TableRun:
     """Run a table profile; see :func:`run_table` (this also returns the phase bookkeeping)."""
-    ts = stream_table(profile, gyro_rate_hz=gyro_rate_hz, physics_rate_hz=physics_rate_hz, thermal=thermal,
-                      seed=seed, progress=progress, chunk_steps=chunk_steps)
+    ts = stream_table(
+        profile,
+        gyro_rate_hz=gyro_rate_hz,
+        physics_rate_hz=physics_rate_hz,
+        thermal=thermal,
+        seed=seed,
+        progress=progress,
+        chunk_steps=chunk_steps,
+    )
     n_samples = ts.n_samples
     omega = np.empty((n_samples, 3))
     f_S = np.empty((n_samples, 3))
@@ -568,6 +608,10 @@ def run_table(
         list of the phases (start/end times, mount, commanded angle) for rotation calibration.
     """
     return run_table_detailed(
-        profile, gyro_rate_hz=gyro_rate_hz, physics_rate_hz=physics_rate_hz,
-        thermal=thermal, seed=seed, progress=progress,
+        profile,
+        gyro_rate_hz=gyro_rate_hz,
+        physics_rate_hz=physics_rate_hz,
+        thermal=thermal,
+        seed=seed,
+        progress=progress,
     ).truth

@@ -47,7 +47,16 @@ from gyrocore.errors import GyroInputError
 from .controller import ControllerGains, QuadParams
 from .paths import QUADROTOR_XML
 
-__all__ = ["VibrationSpec", "VehicleClass", "VEHICLES", "get_vehicle", "derive_gains", "yaw_coupling", "RACING5_XML", "RACING25_XML"]
+__all__ = [
+    "VibrationSpec",
+    "VehicleClass",
+    "VEHICLES",
+    "get_vehicle",
+    "derive_gains",
+    "yaw_coupling",
+    "RACING5_XML",
+    "RACING25_XML",
+]
 
 RACING5_XML = "racing5.xml"
 RACING25_XML = "racing25.xml"
@@ -264,8 +273,9 @@ def _build() -> dict[str, VehicleClass]:
         model_xml=RACING25_XML,
         params=p25,
         gains=derive_gains(motor_tau_s=tau25, yaw_coupling_ratio=yaw_coupling(p25, omega_h25)),
-        vibration=VibrationSpec(imbalance_kg_m=6.5e-8, harmonic2_ratio=0.3, blade_pass_ripple=0.02,
-                                hub_moment_kg_m2=1.04e-11),
+        vibration=VibrationSpec(
+            imbalance_kg_m=6.5e-8, harmonic2_ratio=0.3, blade_pass_ripple=0.02, hub_moment_kg_m2=1.04e-11
+        ),
         rotor_spin_inertia_kg_m2=j_r25,
         hover_rotor_speed_rad_s=omega_h25,
         physics_rate_hz=8000.0,

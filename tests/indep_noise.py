@@ -92,7 +92,9 @@ def flicker_fft(n: int, fs_hz: float, B: float, rng: np.random.Generator) -> np.
     return np.fft.irfft(X, n)
 
 
-def gauss_markov_gnss_ins_sim(n: int, fs_hz: float, sigma: float, tau_c_s: float, rng: np.random.Generator) -> np.ndarray:
+def gauss_markov_gnss_ins_sim(
+    n: int, fs_hz: float, sigma: float, tau_c_s: float, rng: np.random.Generator
+) -> np.ndarray:
     """First-order Gauss–Markov "bias drift/instability" as gnss-ins-sim's ``bias_drift``
     (Aceinna/gnss-ins-sim, ``gnss_ins_sim/pathgen/pathgen.py``): x[0] = 0,
     x[k] = a·x[k−1] + b·w[k−1] with a = 1 − 1/(fs·τc) and b = σ·√(1 − exp(−2/(fs·τc))) — σ is the

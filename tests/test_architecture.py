@@ -187,7 +187,9 @@ def test_gyrocore_layers():
             if unit == mine:
                 continue
             if _layer(unit) >= _layer(mine):
-                bad.append(f"{m} imports {tgt} ({sorted(where)[0]}): layer {_layer(mine)} may not import layer {_layer(unit)}")
+                bad.append(
+                    f"{m} imports {tgt} ({sorted(where)[0]}): layer {_layer(mine)} may not import layer {_layer(unit)}"
+                )
     assert not bad, "\n".join(bad)
 
 
@@ -242,19 +244,26 @@ print(len(names))
 
 def test_every_gyrocore_module_imports_without_sim_and_mujoco():
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    r = subprocess.run([sys.executable, "-c", _BLOCKER], cwd=REPO, env=env, capture_output=True, text=True,
-                       timeout=300)
+    r = subprocess.run([sys.executable, "-c", _BLOCKER], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert int(r.stdout.strip()) == sum(1 for m in MODULES if m.startswith("gyrocore."))
 
 
 @pytest.mark.parametrize("mod", ["gyrocore"])
 def test_importing_gyrocore_is_cheap(mod):
-    code = (f"import sys; import {mod}; "
-            "heavy = [m for m in ('matplotlib', 'dask', 'distributed', 'scipy', 'mujoco', 'numba', 'pandas', 'pyarrow') "
-            "if m in sys.modules]; print(','.join(heavy))")
-    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    code = (
+        f"import sys; import {mod}; "
+        "heavy = [m for m in ('matplotlib', 'dask', 'distributed', 'scipy', 'mujoco', 'numba', 'pandas', 'pyarrow') "
+        "if m in sys.modules]; print(','.join(heavy))"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip() == "", f"import {mod} loads {r.stdout.strip()}"
 
@@ -281,7 +290,13 @@ def test_no_module_level_boolean_flags_in_gyrocore():
         if not m.startswith("gyrocore"):
             continue
         for node in ast.parse(path.read_text(encoding="utf-8")).body:
-            targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+            targets = (
+                node.targets
+                if isinstance(node, ast.Assign)
+                else [node.target]
+                if isinstance(node, ast.AnnAssign)
+                else []
+            )
             value = getattr(node, "value", None)
             if isinstance(value, ast.Constant) and isinstance(value.value, bool):
                 bad += [f"{path.relative_to(REPO)}:{node.lineno} {t.id}" for t in targets if isinstance(t, ast.Name)]

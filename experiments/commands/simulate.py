@@ -32,8 +32,10 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
         key, _, text = item.partition("=")
         m = re.match(r"^\s*([^.\[\]=]+\[[^\]]*\]|[^.\[\]=]+)\s*\.\s*([^.]+?)\s*$", key) if _ else None
         if m is None:
-            raise GyroInputError(f"--set expects effect.param=value (e.g. scale.s=0.01 or "
-                                 f"periodic[37.5].a_cos_rad_s=0.01,0,0), got '{item}'")
+            raise GyroInputError(
+                f"--set expects effect.param=value (e.g. scale.s=0.01 or "
+                f"periodic[37.5].a_cos_rad_s=0.01,0,0), got '{item}'"
+            )
         (eff,) = check_effect_names([m.group(1)])
         pname = m.group(2)
         schema = PARAM_SCHEMA[eff]
@@ -52,7 +54,9 @@ def parse_set(items) -> dict[str, dict[str, np.ndarray]]:
             v = np.asarray(vals[0])
         elif "p" in shape:
             if len(vals) % 3:
-                raise GyroInputError(f"--set {key}: a thermal polynomial needs 3·p values (axis-major), got {len(vals)}")
+                raise GyroInputError(
+                    f"--set {key}: a thermal polynomial needs 3·p values (axis-major), got {len(vals)}"
+                )
             v = np.asarray(vals).reshape(3, len(vals) // 3)
         else:
             size = int(np.prod(shape)) if shape else 1
@@ -71,40 +75,100 @@ _WARM_IN_CHILD_SAMPLES = 1_000_000
 
 @click.command("simulate")
 @click.argument("scenario")
-@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="Data file to write (.parquet: Parquet, else CSV).")
-@click.option("--sensor", default="icm42688p", show_default=True, metavar="PRESET|FILE.toml",
-              help="Sensor preset name or preset TOML file.")
+@click.option(
+    "-o",
+    "--output",
+    "output",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Data file to write (.parquet: Parquet, else CSV).",
+)
+@click.option(
+    "--sensor",
+    default="icm42688p",
+    show_default=True,
+    metavar="PRESET|FILE.toml",
+    help="Sensor preset name or preset TOML file.",
+)
 @click.option("--duration-s", type=float, default=None, help="Length in seconds (default: the scenario's).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Sensor-unit and scenario seed (>= 0).")
-@click.option("--run", type=int, default=0, show_default=True,
-              help="Session of the same unit: same parameters, new turn-on bias and noise.")
+@click.option(
+    "--run",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Session of the same unit: same parameters, new turn-on bias and noise.",
+)
 @click.option("--rate-hz", type=float, default=None, help="Gyro output rate, Hz (default: scenario, else preset).")
-@click.option("--set", "sets", multiple=True, metavar="EFFECT.PARAM=VALUE",
-              help="Put an effect in with these SI values (even if the preset has it off); repeatable. "
-                   "VALUE is a number or a comma list, e.g. --set scale.s=0.01,0.02,-0.01. EFFECT may be a "
-                   "term outside the catalogue: --set 'periodic[37.5].a_cos_rad_s=0.01,0,0', "
-                   "'step[12.25].size_rad_s=2e-3,0,0', 'regressor[omega_y*omega_z].coef=1e-3,0,0'")
-@click.option("--without", "without", multiple=True, metavar="EFFECT",
-              help="Switch an effect off; repeatable or comma-separated.")
-@click.option("--vibration", "vibration_spec", default=None, type=click.Path(dir_okay=False),
-              help="Vibration spec (gyroharness vibration -o): its band's measured gyro PSD enters as the registry effect "
-                   "`vibration` (shaped part, in the gyro's noise stage; a hover flies on it in closed loop).")
+@click.option(
+    "--set",
+    "sets",
+    multiple=True,
+    metavar="EFFECT.PARAM=VALUE",
+    help="Put an effect in with these SI values (even if the preset has it off); repeatable. "
+    "VALUE is a number or a comma list, e.g. --set scale.s=0.01,0.02,-0.01. EFFECT may be a "
+    "term outside the catalogue: --set 'periodic[37.5].a_cos_rad_s=0.01,0,0', "
+    "'step[12.25].size_rad_s=2e-3,0,0', 'regressor[omega_y*omega_z].coef=1e-3,0,0'",
+)
+@click.option(
+    "--without", "without", multiple=True, metavar="EFFECT", help="Switch an effect off; repeatable or comma-separated."
+)
+@click.option(
+    "--vibration",
+    "vibration_spec",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Vibration spec (gyroharness vibration -o): its band's measured gyro PSD enters as the registry effect "
+    "`vibration` (shaped part, in the gyro's noise stage; a hover flies on it in closed loop).",
+)
 @click.option("--vibration-band", default="middle", show_default=True, help="Spec band: index or 'middle'.")
-@click.option("--vibration-physics", is_flag=True,
-              help="hover + --vibration: the spec's rotor line enters through the rotor imbalance of the vehicle class "
-                   "(closed loop, at the commanded rotor speed; sim/spec_vibration.py) and only the rest of the spectrum "
-                   "(broadband, frame) is added as the shaped disturbance.")
-@click.option("--vehicle", default=None, metavar="CLASS",
-              help="hover: vehicle class (f450, racing5; sim/vehicles.py), overriding the scenario's [hover] vehicle.")
-@click.option("--chunk-rows", type=click.IntRange(min=1), default=16_384, show_default=True,
-              help="Rows generated and written per chunk (memory does not grow with --duration-s; the file is the "
-                   "same for any value).")
+@click.option(
+    "--vibration-physics",
+    is_flag=True,
+    help="hover + --vibration: the spec's rotor line enters through the rotor imbalance of the vehicle class "
+    "(closed loop, at the commanded rotor speed; sim/spec_vibration.py) and only the rest of the spectrum "
+    "(broadband, frame) is added as the shaped disturbance.",
+)
+@click.option(
+    "--vehicle",
+    default=None,
+    metavar="CLASS",
+    help="hover: vehicle class (f450, racing5; sim/vehicles.py), overriding the scenario's [hover] vehicle.",
+)
+@click.option(
+    "--chunk-rows",
+    type=click.IntRange(min=1),
+    default=16_384,
+    show_default=True,
+    help="Rows generated and written per chunk (memory does not grow with --duration-s; the file is the "
+    "same for any value).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
-@click.option("--progress/--no-progress", default=None,
-              help="Progress bar on stderr (default: for long runs when stderr is a terminal).")
+@click.option(
+    "--progress/--no-progress",
+    default=None,
+    help="Progress bar on stderr (default: for long runs when stderr is a terminal).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")
-def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, without, vibration_spec, vibration_band,
-            vibration_physics, vehicle, chunk_rows, force, progress, as_json):
+def command(
+    scenario,
+    output,
+    sensor,
+    duration_s,
+    seed,
+    run,
+    rate_hz,
+    sets,
+    without,
+    vibration_spec,
+    vibration_band,
+    vibration_physics,
+    vehicle,
+    chunk_rows,
+    force,
+    progress,
+    as_json,
+):
     """Simulate SCENARIO with one sensor unit and write the recording (truth in the ref_ columns).
 
     Scenarios: static, static_bumped, turntable, thermal, hover, power_cycles (or a
@@ -144,8 +208,9 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
         # noise stage: a hover's controller flies on it), and with --vibration-physics its rotor line
         # through the vehicle's rotor imbalance
         veh_name = vehicle or str(spec.hover.get("vehicle", "f450"))
-        hover_vib, vib_over, vib_info = spec_injection(read_spec(vibration_spec), band=vibration_band, vehicle=veh_name,
-                                                       physics=vibration_physics, seed=int(seed))
+        hover_vib, vib_over, vib_info = spec_injection(
+            read_spec(vibration_spec), band=vibration_band, vehicle=veh_name, physics=vibration_physics, seed=int(seed)
+        )
     wo = check_effect_names([w for item in without for w in item.split(",")])
     overrides = parse_set(sets)
     if vib_over:
@@ -167,15 +232,28 @@ def command(scenario, output, sensor, duration_s, seed, run, rate_hz, sets, with
             from sim._fast import warm_cache_in_child
 
             warm_cache_in_child()
-    res = S.simulate(spec, sensor=sensor_spec, duration_s=duration_s, seed=seed, run=run, overrides=overrides,
-                     without=wo, gyro_rate_hz=rate_hz, progress=bool(progress), vehicle=vehicle,
-                     hover_vibration=hover_vib, chunk_rows=chunk_rows)
+    res = S.simulate(
+        spec,
+        sensor=sensor_spec,
+        duration_s=duration_s,
+        seed=seed,
+        run=run,
+        overrides=overrides,
+        without=wo,
+        gyro_rate_hz=rate_hz,
+        progress=bool(progress),
+        vehicle=vehicle,
+        hover_vibration=hover_vib,
+        chunk_rows=chunk_rows,
+    )
     meta = dict(res.meta)
     if vib_info is not None:
         import json as _json
 
-        meta.update(vibration_spec=str(vibration_spec),
-                    vibration_injection=_json.dumps(vib_info, separators=(",", ":"), default=str))
+        meta.update(
+            vibration_spec=str(vibration_spec),
+            vibration_injection=_json.dumps(vib_info, separators=(",", ":"), default=str),
+        )
     n_samples = write_chunks(res.chunks(), out, overwrite=force, meta=meta)
     power_ups = len(json.loads(meta["power_up_t_s"]))
     summary = {

@@ -15,16 +15,36 @@ __all__ = ["command"]
 
 @click.command("twin")
 @click.argument("file", type=click.Path(exists=False))
-@click.option("--params", "params_file", default=None, type=click.Path(dir_okay=False),
-              help="Parameter file of the declared model (default: the residual loop identifies it).")
-@click.option("--segments", "segments_file", default=None, type=click.Path(dir_okay=False),
-              help="Still / known-rotation segments CSV (gyrocore.loop.residual.read_segments).")
-@click.option("--replicas", type=int, default=None,
-              help="Number of replicas N (default 199: the smallest p-value 1/(N+1) must be below α/5).")
+@click.option(
+    "--params",
+    "params_file",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Parameter file of the declared model (default: the residual loop identifies it).",
+)
+@click.option(
+    "--segments",
+    "segments_file",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Still / known-rotation segments CSV (gyrocore.loop.residual.read_segments).",
+)
+@click.option(
+    "--replicas",
+    type=int,
+    default=None,
+    help="Number of replicas N (default 199: the smallest p-value 1/(N+1) must be below α/5).",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Root seed of the replicas (SeedSequence.spawn).")
 @click.option("--no-close", is_flag=True, help="Only compare the twin as given; do not add what it lacks.")
-@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Folder for twin.json, twin.md and the plots.")
+@click.option(
+    "-o",
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Folder for twin.json, twin.md and the plots.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON result on stdout.")
 def command(file, params_file, segments_file, replicas, seed, no_close, out_dir, as_json):
     """Replay FILE's reference motion through the simulator with the sensor's identified
@@ -44,8 +64,9 @@ def command(file, params_file, segments_file, replicas, seed, no_close, out_dir,
 
         segs = read_segments(segments_file)
     n_rep = T.DEFAULT_REPLICAS if replicas is None else replicas
-    r = T.twin(rec, segments=segs, params_file=params_file, n_replicas=n_rep, seed=seed, close=not no_close,
-               file=str(file))
+    r = T.twin(
+        rec, segments=segs, params_file=params_file, n_replicas=n_rep, seed=seed, close=not no_close, file=str(file)
+    )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = T.plot_twin(r, out)

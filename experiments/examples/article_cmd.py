@@ -40,8 +40,8 @@ def powerup_bias(g, lsb_rad_s, rate_hz):
     n_search = int(min(g.shape[0], max(WINDOW, SEARCH_S * rate_hz)))
     counts = g[:n_search] / lsb_rad_s
     for a in range(0, n_search - WINDOW + 1, WINDOW):
-        if np.all(np.abs(np.diff(counts[a:a + WINDOW], axis=0)).sum(axis=0) <= THRESHOLD_COUNTS):
-            return g[a:a + WINDOW].mean(axis=0)
+        if np.all(np.abs(np.diff(counts[a : a + WINDOW], axis=0)).sum(axis=0) <= THRESHOLD_COUNTS):
+            return g[a : a + WINDOW].mean(axis=0)
     return g[:WINDOW].mean(axis=0)
 
 

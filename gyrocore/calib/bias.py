@@ -44,7 +44,14 @@ import scipy.stats
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
 
-__all__ = ["StaticBiasCalibrator", "StaticBiasResult", "startup_still_slice", "abs_diff_moments", "robust_diff_noise", "FORMAT_VERSION"]
+__all__ = [
+    "StaticBiasCalibrator",
+    "StaticBiasResult",
+    "startup_still_slice",
+    "abs_diff_moments",
+    "robust_diff_noise",
+    "FORMAT_VERSION",
+]
 
 FORMAT_VERSION = "1.0"
 _MAD = 1.482602218505602  # 1/Φ⁻¹(3/4): MAD → σ for Gaussian data
@@ -137,7 +144,8 @@ def _refuse_constant(noise: tuple[np.ndarray, np.ndarray], x: np.ndarray | None 
         raise GyroInputError(
             f"gyro axis {', '.join('xyz'[i] for i in flat)} never changes over the record{vals}: its output is "
             "quantized more coarsely than its noise (e.g. a filtered gyro rounded to 1 deg/s), so no noise, gate or "
-            "bias error can be measured from this record (a finer output is needed)")
+            "bias error can be measured from this record (a finer output is needed)"
+        )
     return noise
 
 
@@ -200,7 +208,7 @@ def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndar
     n = x.shape[0] - lag
     for a in range(0, max(n, 0), block):
         b = min(a + block, n)
-        x[a:b] = x[a + lag:b + lag] - x[a:b]
+        x[a:b] = x[a + lag : b + lag] - x[a:b]
     return x[: max(n, 0)]
 
 
@@ -518,8 +526,16 @@ class StaticBiasCalibrator:
             return s * math.sqrt(2.0), np.full(3, -0.5)
         return _refuse_constant(robust_diff_noise(x), x)
 
-    def gate(self, n: int, sigma_diff: np.ndarray, rho: np.ndarray, dt_s: float, *,
-             sigma2: np.ndarray | None = None, dof: np.ndarray | None = None):
+    def gate(
+        self,
+        n: int,
+        sigma_diff: np.ndarray,
+        rho: np.ndarray,
+        dt_s: float,
+        *,
+        sigma2: np.ndarray | None = None,
+        dof: np.ndarray | None = None,
+    ):
         """Threshold (3,), its units, α used, min step (3,) and min ramp (3,) for windows of n.
 
         For the variance statistic, ``sigma2`` (per-sample variance) and ``dof`` (effective
@@ -619,8 +635,13 @@ class StaticBiasCalibrator:
             every window tried (one line, with the threshold and how many windows were tried).
         """
         x = np.asarray(recording.gyro_rad_s, float)
-        return self._fit(recording, x.shape[0], recording.rate_hz, lambda: self._noise(x),
-                         lambda n: (x, x[: (x.shape[0] // n) * n].reshape(x.shape[0] // n, n, 3)))
+        return self._fit(
+            recording,
+            x.shape[0],
+            recording.rate_hz,
+            lambda: self._noise(x),
+            lambda n: (x, x[: (x.shape[0] // n) * n].reshape(x.shape[0] // n, n, 3)),
+        )
 
     def fit_spilled(self, store) -> StaticBiasResult:
         """:meth:`fit` of a long recording held on disk (:func:`gyrocore.data.spill.spill_columns`),
@@ -651,9 +672,7 @@ class StaticBiasCalibrator:
         W = N // n
         need = 2 if self.rule == "converge" else 1
         if W < need:
-            raise GyroInputError(
-                f"recording has {N} samples, shorter than {need} window(s) of {n} samples"
-            )
+            raise GyroInputError(f"recording has {N} samples, shorter than {need} window(s) of {n} samples")
         sigma_diff, rho = noise()
         x, xw = windows(n)  # the (N, 3) gyro and its (W, n, 3) windows (or both SpilledWindows)
         sigma2 = dof = None
@@ -665,8 +684,12 @@ class StaticBiasCalibrator:
         if self.rule == "converge":
             # the convergence test is the rule's own motion check; σ and the VIF are estimated
             # on the windows the (default) variance gate calls still, so motion cannot inflate them
-            est = StaticBiasCalibrator(window_samples=n, false_reject_rate=self.false_reject_rate,
-                                       noise_sigma_rad_s=self.noise_sigma_rad_s, max_lag=self.max_lag)
+            est = StaticBiasCalibrator(
+                window_samples=n,
+                false_reject_rate=self.false_reject_rate,
+                noise_sigma_rad_s=self.noise_sigma_rad_s,
+                max_lag=self.max_lag,
+            )
             s2v, dofv = est._variance_noise(xw, rho)
             s2v, dofv, inflated = _plausible_or_differences(s2v, dofv, sigma_diff, rho)
             thr_v = est.gate(n, sigma_diff, rho, dt, sigma2=s2v, dof=dofv)[0]
@@ -676,8 +699,10 @@ class StaticBiasCalibrator:
             still = np.all(stats <= thr[None, :], axis=1)
         n_still = int(still.sum())
         if inflated and n_still:
-            warn_repair("motion in most windows: " + inflated + "; the gate uses the noise of the sample-to-sample "
-                        "differences instead")
+            warn_repair(
+                "motion in most windows: " + inflated + "; the gate uses the noise of the sample-to-sample "
+                "differences instead"
+            )
         if self.correlation == "white" or n_still == 0:
             vif = np.ones(3)
         else:
@@ -713,12 +738,28 @@ class StaticBiasCalibrator:
                 if ok(means[k] - means[k - 1]):
                     bias = 0.5 * (means[k] + means[k - 1])
                     se = sigma * np.sqrt(vif / (2 * n))
-                    return self._result(bias, se, recording, (k - 1) * n, 2 * n, k - 1, W, n_still,
-                                        alpha, thr, units, sigma, rho, vif, step, ramp)
+                    return self._result(
+                        bias,
+                        se,
+                        recording,
+                        (k - 1) * n,
+                        2 * n,
+                        k - 1,
+                        W,
+                        n_still,
+                        alpha,
+                        thr,
+                        units,
+                        sigma,
+                        rho,
+                        vif,
+                        step,
+                        ramp,
+                    )
             raise GyroInputError(
                 f"motion detected throughout: no two consecutive {n}-sample window means agreed "
-                f"within tolerance over {last} windows" + (f"; {inflated}: the recording moves smoothly the whole "
-                                                            f"time" if inflated else "")
+                f"within tolerance over {last} windows"
+                + (f"; {inflated}: the recording moves smoothly the whole time" if inflated else "")
             )
 
         for k in range(last):
@@ -730,8 +771,9 @@ class StaticBiasCalibrator:
                 else:
                     bias = w.mean(axis=0)
                     se = sigma * np.sqrt(vif / n)
-                return self._result(bias, se, recording, k * n, n, k, W, n_still,
-                                    alpha, thr, units, sigma, rho, vif, step, ramp)
+                return self._result(
+                    bias, se, recording, k * n, n, k, W, n_still, alpha, thr, units, sigma, rho, vif, step, ramp
+                )
         if self.rule == "article":
             rest = abs_diff_moments(n - 1, sigma_diff, rho)[0] / float(self.lsb_rad_s)
             raise GyroInputError(
@@ -742,7 +784,8 @@ class StaticBiasCalibrator:
         if inflated:
             raise GyroInputError(
                 f"motion detected throughout: all {last} windows of {n} samples rejected; {inflated}: the recording "
-                f"moves smoothly the whole time; if it is really still, give the sensor's noise (--noise-dps)")
+                f"moves smoothly the whole time; if it is really still, give the sensor's noise (--noise-dps)"
+            )
         raise GyroInputError(
             f"motion detected throughout: all {last} windows of {n} samples rejected "
             f"({self.rule} rule, {self.statistic} gate, threshold {np.array2string(thr, precision=4)} "
@@ -755,8 +798,9 @@ class StaticBiasCalibrator:
             bias_rad_s=np.asarray(bias, float),
             bias_se_rad_s=np.asarray(se, float),
             rule=self.rule,
-            statistic="mean_difference" if self.rule == "converge" else (
-                "abs_diff" if self.rule == "article" else self.statistic),
+            statistic="mean_difference"
+            if self.rule == "converge"
+            else ("abs_diff" if self.rule == "article" else self.statistic),
             window_start_index=int(start),
             window_samples=int(length),
             window_start_s=float(rec.t_s[start] - rec.t_s[0]),
@@ -796,8 +840,12 @@ def startup_still_slice(
     quantile of the window variances (so at least that fraction of the recording must be
     still, e.g. 10 %); pass the sensor's σ (N·√rate) for flight logs that are mostly moving.
     """
-    cal = StaticBiasCalibrator(window_samples=window_samples, false_reject_rate=false_reject_rate,
-                               statistic=statistic, noise_sigma_rad_s=noise_sigma_rad_s)
+    cal = StaticBiasCalibrator(
+        window_samples=window_samples,
+        false_reject_rate=false_reject_rate,
+        statistic=statistic,
+        noise_sigma_rad_s=noise_sigma_rad_s,
+    )
     x = np.asarray(recording.gyro_rad_s, float)
     rate = recording.rate_hz
     n = int(window_samples)

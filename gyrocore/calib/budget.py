@@ -125,7 +125,6 @@ def identified_term(axis, name: str) -> float:
     return 0.0
 
 
-
 @dataclass(frozen=True)
 class NoiseModel:
     """Identified (or datasheet) noise of one gyro, per axis.
@@ -156,18 +155,21 @@ class NoiseModel:
     def from_params(cls, params: Mapping[str, Mapping[str, np.ndarray]]) -> "NoiseModel":
         """From catalogue parameters (``arw``, ``bias_instability``, ``rrw``, ``correlated``,
         ``quantization``); absent terms are zero."""
+
         def v(eff, name, default=0.0):
             if eff not in params:
                 return np.full(3, default)
             return np.broadcast_to(np.asarray(params[eff][name], float), (3,)).copy()
 
         lsb = float(np.asarray(params["quantization"]["lsb_rad_s"])) if "quantization" in params else 0.0
-        return cls(arw_rad_per_sqrt_s=v("arw", "n_rad_per_sqrt_s"),
-                   bias_instability_rad_s=v("bias_instability", "b_rad_s"),
-                   rrw_rad_s_per_sqrt_s=v("rrw", "k_rad_s_per_sqrt_s"),
-                   gm_sigma_rad_s=v("correlated", "sigma_rad_s"),
-                   gm_tau_c_s=v("correlated", "tau_c_s", np.inf),
-                   quantization_lsb_rad_s=lsb)
+        return cls(
+            arw_rad_per_sqrt_s=v("arw", "n_rad_per_sqrt_s"),
+            bias_instability_rad_s=v("bias_instability", "b_rad_s"),
+            rrw_rad_s_per_sqrt_s=v("rrw", "k_rad_s_per_sqrt_s"),
+            gm_sigma_rad_s=v("correlated", "sigma_rad_s"),
+            gm_tau_c_s=v("correlated", "tau_c_s", np.inf),
+            quantization_lsb_rad_s=lsb,
+        )
 
     @classmethod
     def from_identified(cls, result, *, quantization_lsb_rad_s: float = 0.0) -> "NoiseModel":
@@ -178,8 +180,13 @@ class NoiseModel:
         angle noise: its rate-mean variance 2·Q²/T² is negligible beyond a few samples; R is a
         deterministic drift, fitted where it matters as ``bias_ramp``). A missing axis takes the
         mean of the others."""
-        names = ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s",
-                 "correlated_sigma_rad_s", "correlated_tau_c_s")
+        names = (
+            "arw_rad_per_sqrt_s",
+            "bias_instability_rad_s",
+            "rrw_rad_per_s_sqrt_s",
+            "correlated_sigma_rad_s",
+            "correlated_tau_c_s",
+        )
         vals = {k: np.full(3, np.nan) for k in names}
         for i, a in enumerate("xyz"):
             ax = result.axes.get(a) if hasattr(result, "axes") else None
@@ -194,19 +201,26 @@ class NoiseModel:
             have = ~np.isnan(v)
             if not have.any():
                 raise GyroInputError("identified noise model has no axis")
-            fill = float(np.mean(v[have & ok])) if np.any(have & ok & np.isfinite(v)) else (np.inf if k == "correlated_tau_c_s" else 0.0)
+            fill = (
+                float(np.mean(v[have & ok]))
+                if np.any(have & ok & np.isfinite(v))
+                else (np.inf if k == "correlated_tau_c_s" else 0.0)
+            )
             vals[k] = np.where(have, v, fill)
         sig = vals["correlated_sigma_rad_s"]
         tau = np.where(sig > 0, vals["correlated_tau_c_s"], np.inf)
-        return cls(arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"],
-                   bias_instability_rad_s=vals["bias_instability_rad_s"],
-                   rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"],
-                   gm_sigma_rad_s=sig, gm_tau_c_s=tau,
-                   quantization_lsb_rad_s=float(quantization_lsb_rad_s))
+        return cls(
+            arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"],
+            bias_instability_rad_s=vals["bias_instability_rad_s"],
+            rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"],
+            gm_sigma_rad_s=sig,
+            gm_tau_c_s=tau,
+            quantization_lsb_rad_s=float(quantization_lsb_rad_s),
+        )
 
     def white_n2(self, rate_hz: float) -> np.ndarray:
         """N² + LSB²/(12·rate) per axis, rad²/s."""
-        return np.asarray(self.arw_rad_per_sqrt_s, float) ** 2 + self.quantization_lsb_rad_s ** 2 / (12.0 * rate_hz)
+        return np.asarray(self.arw_rad_per_sqrt_s, float) ** 2 + self.quantization_lsb_rad_s**2 / (12.0 * rate_hz)
 
 
 @dataclass(frozen=True)
@@ -256,8 +270,9 @@ class Blocks:
         return int(self.i0.size)
 
 
-def make_blocks(t_s: np.ndarray, *, start: int, segments: Sequence[tuple[slice, slice | None]],
-                max_blocks: int = 800) -> Blocks:
+def make_blocks(
+    t_s: np.ndarray, *, start: int, segments: Sequence[tuple[slice, slice | None]], max_blocks: int = 800
+) -> Blocks:
     """Cut [0, N) into blocks: edges at ``start``, every segment and window edge, and a
     uniform grid of about ``max_blocks`` blocks over the scored part. Blocks before
     ``start`` are kept only inside windows.
@@ -308,7 +323,12 @@ def _second_difference(F, a0, a1, b0, b1):
         kernel = _flicker_kernel()
         if kernel is not None:
             return kernel(*(np.ascontiguousarray(x, dtype=float) for x in (a0, a1, b0, b1)))
-    return F(a1[:, None], b1[None, :]) - F(a1[:, None], b0[None, :]) - F(a0[:, None], b1[None, :]) + F(a0[:, None], b0[None, :])
+    return (
+        F(a1[:, None], b1[None, :])
+        - F(a1[:, None], b0[None, :])
+        - F(a0[:, None], b1[None, :])
+        + F(a0[:, None], b0[None, :])
+    )
 
 
 _KERNEL: list = []
@@ -380,7 +400,7 @@ def _F_flicker(a, c):
 
 def _F_rrw(a, c):
     lo, hi = np.minimum(a, c), np.maximum(a, c)
-    return lo * lo * hi / 2.0 - lo ** 3 / 6.0
+    return lo * lo * hi / 2.0 - lo**3 / 6.0
 
 
 def block_covariance(blocks: Blocks, term: str, *, tau_c_s: float = np.inf) -> np.ndarray:
@@ -405,8 +425,12 @@ def block_covariance(blocks: Blocks, term: str, *, tau_c_s: float = np.inf) -> n
             x = np.abs(x)
             return tc * tc * (x / tc - 1.0 + np.exp(-x / tc))
 
-        C = (phi(a1[:, None] - a0[None, :]) + phi(a0[:, None] - a1[None, :])
-             - phi(a1[:, None] - a1[None, :]) - phi(a0[:, None] - a0[None, :]))
+        C = (
+            phi(a1[:, None] - a0[None, :])
+            + phi(a0[:, None] - a1[None, :])
+            - phi(a1[:, None] - a1[None, :])
+            - phi(a0[:, None] - a0[None, :])
+        )
     else:
         raise GyroInputError(f"unknown noise term {term}")
     C = 0.5 * (C + C.T)
@@ -469,8 +493,9 @@ def _pj(P: np.ndarray, blocks: Blocks, n_seg: int) -> np.ndarray:
     return out
 
 
-def _sensitivity_from(design_fn, n: int, dt: float, R_WS: np.ndarray, blocks: Blocks, n_seg: int,
-                      chunk: int = 50_000) -> np.ndarray:
+def _sensitivity_from(
+    design_fn, n: int, dt: float, R_WS: np.ndarray, blocks: Blocks, n_seg: int, chunk: int = 50_000
+) -> np.ndarray:
     """S(t_m) (M, 3, P) for regressors ``design_fn(slice) -> A (n, 3, P)``."""
     Z = Asum = None
     for a in range(0, n, chunk):
@@ -494,8 +519,9 @@ def _sensitivity_from(design_fn, n: int, dt: float, R_WS: np.ndarray, blocks: Bl
     return S
 
 
-def sensitivity(inp: E.ModelInputs, R_WS: np.ndarray, blocks: Blocks, segments, group: ParameterGroup,
-                *, chunk: int = 50_000) -> tuple[list[str], np.ndarray, np.ndarray]:
+def sensitivity(
+    inp: E.ModelInputs, R_WS: np.ndarray, blocks: Blocks, segments, group: ParameterGroup, *, chunk: int = 50_000
+) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Linear sensitivity S(t_m) of the attitude error (W, rad) to each parameter of a group.
 
     ε(t_m) = −S(t_m)·δθ at the block ends t_m (see the module docstring).
@@ -609,7 +635,7 @@ class ErrorPrediction:
         win = np.zeros_like(self.t_s)
         for k, v in self.var_rad2.items():
             if k.startswith("noise:"):
-                term = k[len("noise:"):]
+                term = k[len("noise:") :]
                 fl = self.floor_var_rad2.get(term, np.zeros_like(v))
                 comps[f"floor:{term}"] = fl
                 win = win + (v - fl)
@@ -624,8 +650,16 @@ class ErrorPrediction:
         return out
 
 
-def _noise_var(blocks: Blocks, P: np.ndarray, Pj: np.ndarray, wins: list[np.ndarray], C: np.ndarray,
-               levels2: np.ndarray, *, white: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _noise_var(
+    blocks: Blocks,
+    P: np.ndarray,
+    Pj: np.ndarray,
+    wins: list[np.ndarray],
+    C: np.ndarray,
+    levels2: np.ndarray,
+    *,
+    white: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """E|ε(t_m)|² of one noise term (with windows) and of its floor (without); and the
     final 3×3 covariance. ``C`` unit block-mean covariance, ``levels2`` (3,) per-axis level²."""
     M = blocks.m
@@ -773,9 +807,9 @@ def predict_error(
     for g in groups:
         names, S, se = sensitivity(inp, R, blocks, segments, g)
         se = np.where(np.isfinite(se), se, 0.0)
-        v = np.einsum("mip,p->m", S ** 2, se ** 2)
+        v = np.einsum("mip,p->m", S**2, se**2)
         var[f"param:{g.name}"] = v[sc]
-        cov_final += np.einsum("ip,jp,p->ij", S[-1], S[-1], se ** 2)
+        cov_final += np.einsum("ip,jp,p->ij", S[-1], S[-1], se**2)
     for label, dw in (uncorrected or {}).items():
         dw = np.asarray(dw, float)
         e = _sensitivity_from(lambda sl, dw=dw: dw[sl][:, :, None], n, dt, R, blocks, J)[:, :, 0]
@@ -796,6 +830,9 @@ def predict_error(
         var[label] = np.asarray(e, float)[at] ** 2
     for label, e in (floor_exact_error_rad or {}).items():
         floor[label] = np.asarray(e, float)[at] ** 2
-    predicted = tuple(k for k in var if not k.startswith("uncorrected:") or k[len("uncorrected:"):] in expected_uncorrected)
-    return ErrorPrediction(t_s=t_m, var_rad2=var, floor_var_rad2=floor, predicted=predicted,
-                           final_cov_rad2=cov_final, notes=tuple(notes))
+    predicted = tuple(
+        k for k in var if not k.startswith("uncorrected:") or k[len("uncorrected:") :] in expected_uncorrected
+    )
+    return ErrorPrediction(
+        t_s=t_m, var_rad2=var, floor_var_rad2=floor, predicted=predicted, final_cov_rad2=cov_final, notes=tuple(notes)
+    )

@@ -79,7 +79,9 @@ PLAUSIBLE_MAGNITUDE: dict[str, float] = {
     # misalignment 0.2 rad (11 deg), g_sensitivity 5e-3 rad/s per m/s² (2.8 deg/s/g),
     # g2_sensitivity 1e-3 rad/s per (m/s²)², time_offset 1 s. Family terms: periodic/step
     # 1 rad/s, regressor unbounded (its unit depends on the signal).
-    e.name: e.plausible for e in E.REGISTRY.values() if e.fittable
+    e.name: e.plausible
+    for e in E.REGISTRY.values()
+    if e.fittable
 }
 
 
@@ -409,8 +411,13 @@ def low_frequency_excess(x: np.ndarray, *, alpha: float = 1e-3, n_direct: int = 
 
 
 def residual_autocov_model(
-    x: np.ndarray, *, n_direct: int = 5, max_lag: int | None = None, tail_floor: float = 1e-4,
-    low_freq_check: bool = True, alpha: float = 1e-3,
+    x: np.ndarray,
+    *,
+    n_direct: int = 5,
+    max_lag: int | None = None,
+    tail_floor: float = 1e-4,
+    low_freq_check: bool = True,
+    alpha: float = 1e-3,
 ) -> np.ndarray:
     """Autocovariance model of a stationary residual: sample values, an exponential tail, and
     a slow component when block means say there is more low-frequency power.
@@ -605,8 +612,9 @@ def noise_model_meat(
     bt0, bt1 = t0[lo], t1[hi - 1]
     bt1 = np.maximum(bt1, bt0 + 1e-12)
     Kb = lo.size
-    blk = Blocks(i0=lo, i1=hi, t0_s=bt0, t1_s=bt1, scored=np.ones(Kb, bool), segment=np.zeros(Kb, int),
-                 window=np.full(Kb, -1))
+    blk = Blocks(
+        i0=lo, i1=hi, t0_s=bt0, t1_s=bt1, scored=np.ones(Kb, bool), segment=np.zeros(Kb, int), window=np.full(Kb, -1)
+    )
     terms = []
     if np.any(B2 > 0):
         terms.append((block_covariance(blk, "bias_instability"), B2))
@@ -768,8 +776,16 @@ def solve(
     r_all = np.asarray(r, float)
     A_all = np.asarray(A, float)
     N, P = r_all.shape[0], A_all.shape[2]
-    _check_solve_args(r_all, A_all, names, covariance=covariance, noise_model=noise_model, t_s=t_s,
-                      row_t0_s=row_t0_s, on_unobservable=on_unobservable)
+    _check_solve_args(
+        r_all,
+        A_all,
+        names,
+        covariance=covariance,
+        noise_model=noise_model,
+        t_s=t_s,
+        row_t0_s=row_t0_s,
+        on_unobservable=on_unobservable,
+    )
     stride = max(1, int(stride))
     average = max(1, int(average))
     w_all, idx = _used_rows(r_all, A_all, weights, stride)
@@ -782,8 +798,9 @@ def solve(
     n = r_.shape[0]
     plaus = dict(PLAUSIBLE_MAGNITUDE)
     plaus.update(plausible or {})
-    kept, dropped, reasons = _observable_columns(A_, w_, names, rank_rtol=rank_rtol, noisy_effects=noisy_effects,
-                                                 min_excitation_snr=min_excitation_snr)
+    kept, dropped, reasons = _observable_columns(
+        A_, w_, names, rank_rtol=rank_rtol, noisy_effects=noisy_effects, min_excitation_snr=min_excitation_snr
+    )
 
     # fit, weight the axes, estimate the covariance; drop the parameters whose standard error
     # exceeds their plausible magnitude and refit, until none does
@@ -811,18 +828,28 @@ def solve(
         kind = covariance
         if kind == "auto":
             coloured = (np.isfinite(lb_p) and lb_p < 0.01) or any(
-                low_frequency_excess(ew[:, i][W[:, i] > 0]) for i in range(3))
+                low_frequency_excess(ew[:, i][W[:, i] > 0]) for i in range(3)
+            )
             kind = "hac" if coloured else "ols"
         k = len(kept)
         dof = max(int(np.sum(W > 0)) - k, 1)
-        cov_k, L = _parameter_covariance(kind, Ak, W, e, ew, bread, n=n, dof=dof, rows_t=rows_t,
-                                         noise_model=noise_model, dt_s=dt_s, hac_bandwidth=hac_bandwidth,
-                                         n_blocks=n_blocks)
+        cov_k, L = _parameter_covariance(
+            kind,
+            Ak,
+            W,
+            e,
+            ew,
+            bread,
+            n=n,
+            dof=dof,
+            rows_t=rows_t,
+            noise_model=noise_model,
+            dt_s=dt_s,
+            hac_bandwidth=hac_bandwidth,
+            n_blocks=n_blocks,
+        )
         se_k = np.sqrt(np.clip(np.diag(cov_k), 0, None))
-        too_wide = [
-            (j, p) for j, p in enumerate(kept)
-            if se_k[j] > _plausible(plaus, _column_effect(names[p]))
-        ]
+        too_wide = [(j, p) for j, p in enumerate(kept) if se_k[j] > _plausible(plaus, _column_effect(names[p]))]
         if not too_wide:
             break
         for j, p in too_wide:
@@ -834,22 +861,56 @@ def solve(
         kept = [p for p in kept if p not in {p for _, p in too_wide}]
         if not kept:
             break
-    return _fit_result(r_all, A_all, idx, w_all, names, slices, kept=kept, th=th, cov_k=cov_k, reasons=reasons,
-                       on_unobservable=on_unobservable, kind=kind, lb_p=lb_p, L=L, sigma=sigma, cond=cond, n=n,
-                       dof=dof)
+    return _fit_result(
+        r_all,
+        A_all,
+        idx,
+        w_all,
+        names,
+        slices,
+        kept=kept,
+        th=th,
+        cov_k=cov_k,
+        reasons=reasons,
+        on_unobservable=on_unobservable,
+        kind=kind,
+        lb_p=lb_p,
+        L=L,
+        sigma=sigma,
+        cond=cond,
+        n=n,
+        dof=dof,
+    )
 
 
 # ---------------------------------------------------------------------------- the steps of solve
-def _fit_result(r_all, A_all, idx, w_all, names, slices, *, kept, th, cov_k, reasons, on_unobservable, kind, lb_p,
-                L, sigma, cond, n, dof) -> LsqFit:
+def _fit_result(
+    r_all,
+    A_all,
+    idx,
+    w_all,
+    names,
+    slices,
+    *,
+    kept,
+    th,
+    cov_k,
+    reasons,
+    on_unobservable,
+    kind,
+    lb_p,
+    L,
+    sigma,
+    cond,
+    n,
+    dof,
+) -> LsqFit:
     """The :class:`LsqFit` of the kept columns (the others: θ = 0, variance ∞), with the
     residual and its RMS over the used rows."""
     P = A_all.shape[2]
     unobs = tuple(names[p] for p in range(P) if p not in kept)
     if unobs and on_unobservable == "raise":
-        raise UnobservableError(
-            "unobservable parameters: " + "; ".join(f"{u} ({reasons.get(u, '')})" for u in unobs)
-        )
+        raise UnobservableError("unobservable parameters: " + "; ".join(f"{u} ({reasons.get(u, '')})" for u in unobs))
     theta = np.zeros(P)
     cov = np.full((P, P), np.nan)
     if kept:
@@ -902,8 +963,11 @@ def _used_rows(r_all, A_all, weights, stride: int) -> tuple[np.ndarray, np.ndarr
     """The (N, 3) weights and the indices of the rows used: every ``stride``-th row with a
     non-zero weight on some axis."""
     N = r_all.shape[0]
-    w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(
-        np.asarray(weights, float).reshape(N, -1), (N, 3)).copy()
+    w_all = (
+        np.ones((N, 3))
+        if weights is None
+        else np.broadcast_to(np.asarray(weights, float).reshape(N, -1), (N, 3)).copy()
+    )
     if np.any(~np.isfinite(w_all)) or np.any(w_all < 0):
         raise GyroInputError("lsq: weights must be finite and non-negative")
     if not np.all(np.isfinite(r_all)) or not np.all(np.isfinite(A_all)):
@@ -928,8 +992,11 @@ def _row_times(N: int, idx, t_s, row_t0_s, row_t1_s, row_n_eff, *, average: int,
             dt_s = float(np.min(span[ok] / ne0[ok])) if ok.any() else 1.0
         if average != 1 or stride != 1:
             raise GyroInputError("lsq: row times are for rows that are already means (average=1, stride=1)")
-        rows_t = (np.asarray(row_t0_s, float)[idx], np.asarray(row_t1_s, float)[idx],
-                  np.broadcast_to(np.asarray(row_n_eff, float).reshape(N, -1), (N, 3))[idx])
+        rows_t = (
+            np.asarray(row_t0_s, float)[idx],
+            np.asarray(row_t1_s, float)[idx],
+            np.broadcast_to(np.asarray(row_n_eff, float).reshape(N, -1), (N, 3))[idx],
+        )
     else:
         if t_arr.shape != (N,):
             raise GyroInputError(f"lsq: t_s has shape {t_arr.shape}, expected ({N},)")
@@ -952,8 +1019,11 @@ def _block_means(r_, A_, w_, rows_t, average: int):
     A_ = (A_[:m].reshape(nb, average, 3, -1) * wb[..., None]).sum(axis=1) / safe[..., None]
     if rows_t is not None:  # each row's interval and effective count (Σw)²/Σw²
         w2 = (wb**2).sum(axis=1)
-        rows_t = (rows_t[0][:m:average], rows_t[1][average - 1 : m : average],
-                  np.where(w2 > 0, ws**2 / np.where(w2 > 0, w2, 1.0), 0.0))
+        rows_t = (
+            rows_t[0][:m:average],
+            rows_t[1][average - 1 : m : average],
+            np.where(w2 > 0, ws**2 / np.where(w2 > 0, w2, 1.0), 0.0),
+        )
     return r_, A_, ws / average, rows_t
 
 
@@ -1021,8 +1091,9 @@ def _axis_sigma(r_, e, w_) -> np.ndarray:
     return np.ones(3) if smax == 0.0 or exact else np.maximum(sig, 1e-9 * smax)
 
 
-def _parameter_covariance(kind: str, Ak, W, e, ew, bread, *, n: int, dof: int, rows_t, noise_model, dt_s: float,
-                          hac_bandwidth, n_blocks: int) -> tuple[np.ndarray, float]:
+def _parameter_covariance(
+    kind: str, Ak, W, e, ew, bread, *, n: int, dof: int, rows_t, noise_model, dt_s: float, hac_bandwidth, n_blocks: int
+) -> tuple[np.ndarray, float]:
     """Covariance of the kept parameters of the ``kind`` named in the module docstring, and the
     HAC bandwidth used (NaN where none)."""
     k = Ak.shape[2]
@@ -1115,15 +1186,31 @@ def fit_effects(
     average = max(1, int(options.get("average", 1)))
     if isinstance(r, RowSource):
         if average > 1 or residual_sink is not None:
-            return _fit_effects_chunked(r, effects, None, orders=orders, chunk_rows=int(chunk_rows or CHUNK_ROWS),
-                                        keep_residual=keep_residual, residual_sink=residual_sink, **options)
+            return _fit_effects_chunked(
+                r,
+                effects,
+                None,
+                orders=orders,
+                chunk_rows=int(chunk_rows or CHUNK_ROWS),
+                keep_residual=keep_residual,
+                residual_sink=residual_sink,
+                **options,
+            )
         # no block means (few rows with a weight): the whole-array path on the rows read back
         r, inp = r.r_rows(0, r.n), r.inputs(0, r.n)
     n = int(np.shape(r)[0]) if np.ndim(r) >= 1 else 0
     if residual_sink is not None or (chunk_rows and average > 1 and n > 4 * int(chunk_rows)):
-        return _fit_effects_chunked(r, effects, inp, orders=orders, chunk_rows=int(chunk_rows or CHUNK_ROWS),
-                                    keep_residual=keep_residual, overwrite_r=overwrite_r,
-                                    residual_sink=residual_sink, **options)
+        return _fit_effects_chunked(
+            r,
+            effects,
+            inp,
+            orders=orders,
+            chunk_rows=int(chunk_rows or CHUNK_ROWS),
+            keep_residual=keep_residual,
+            overwrite_r=overwrite_r,
+            residual_sink=residual_sink,
+            **options,
+        )
     A, names, slices = build_design(effects, inp, orders=orders)
     fit = solve(r, A, names, slices, **options)
     if not keep_residual:
@@ -1212,9 +1299,21 @@ def _window_design(effects, src: RowSource, orders, t0_c, a: int, b: int, n: int
     return A, names, slices
 
 
-def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_residual: bool = True,
-                         overwrite_r: bool = False, residual_sink=None, weights=None, stride: int = 1,
-                         average: int = 1, **options) -> LsqFit:
+def _fit_effects_chunked(
+    r,
+    effects,
+    inp,
+    *,
+    orders,
+    chunk_rows: int,
+    keep_residual: bool = True,
+    overwrite_r: bool = False,
+    residual_sink=None,
+    weights=None,
+    stride: int = 1,
+    average: int = 1,
+    **options,
+) -> LsqFit:
     """:func:`fit_effects` for long records: block means built window by window (see there).
 
     ``r`` is an (N, 3) array (with ``inp``) or a :class:`RowSource` (``inp`` unused)."""
@@ -1233,8 +1332,7 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
     N = src.n
     stride = max(1, int(stride))
     average = max(1, int(average))
-    w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(
-        np.asarray(weights, float).reshape(N, -1), (N, 3))
+    w_all = np.ones((N, 3)) if weights is None else np.broadcast_to(np.asarray(weights, float).reshape(N, -1), (N, 3))
     if np.any(~np.isfinite(w_all)) or np.any(w_all < 0):
         raise GyroInputError("lsq: weights must be finite and non-negative")
     keep = np.zeros(N, bool)  # the rows solve() uses: every stride-th with a non-zero weight
@@ -1300,21 +1398,35 @@ def _fit_effects_chunked(r, effects, inp, *, orders, chunk_rows: int, keep_resid
     safe = np.where(Sw > 0, Sw, 1.0)
     if options.get("covariance") == "noise_model":
         dt = (float(src.t_rows(N - 1, N)[0]) - t_first) / max(N - 1, 1)
-        options = dict(options, row_t0_s=T0, row_t1_s=T1 + dt,
-                       row_n_eff=np.where(Sw2 > 0, Sw**2 / np.where(Sw2 > 0, Sw2, 1.0), 0.0))
-    fit = solve(Sr / safe, SA / safe[..., None], names, slices, weights=Sw / average, stride=1, average=1,
-                **options)
+        options = dict(
+            options,
+            row_t0_s=T0,
+            row_t1_s=T1 + dt,
+            row_n_eff=np.where(Sw2 > 0, Sw**2 / np.where(Sw2 > 0, Sw2, 1.0), 0.0),
+        )
+    fit = solve(Sr / safe, SA / safe[..., None], names, slices, weights=Sw / average, stride=1, average=1, **options)
     del SA
     # pass 2: the residual r − A·θ at full resolution and its RMS over the used rows
     in_place = keep_residual and overwrite_r and r_arr is not None and r_arr is r and r_arr.flags.writeable
-    resid, rms = _chunked_residual(fit.theta, effects, src, orders, t0_c, chunk_rows=chunk_rows, keep=keep,
-                                   w_all=w_all, r_arr=r_arr if keep_residual else None, in_place=in_place,
-                                   residual_sink=residual_sink)
+    resid, rms = _chunked_residual(
+        fit.theta,
+        effects,
+        src,
+        orders,
+        t0_c,
+        chunk_rows=chunk_rows,
+        keep=keep,
+        w_all=w_all,
+        r_arr=r_arr if keep_residual else None,
+        in_place=in_place,
+        residual_sink=residual_sink,
+    )
     return dataclasses.replace(fit, residual_rad_s=resid, residual_rms_rad_s=rms)
 
 
-def _chunked_residual(theta, effects, src, orders, t0_c, *, chunk_rows: int, keep, w_all, r_arr, in_place: bool,
-                      residual_sink):
+def _chunked_residual(
+    theta, effects, src, orders, t0_c, *, chunk_rows: int, keep, w_all, r_arr, in_place: bool, residual_sink
+):
     """The residual r − A·θ a window at a time: into ``r_arr``'s shape ((0, 3) when ``r_arr`` is
     None; into ``r_arr`` itself when ``in_place``), to ``residual_sink``, and its weighted RMS
     over the used rows ``keep`` (rad/s, (3,))."""

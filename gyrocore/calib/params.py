@@ -41,7 +41,6 @@ def needs_temp(eff: str) -> bool:
     return any(i in ("temp", "dtemp") for i in E.resolve(eff).inputs)
 
 
-
 # ============================================================================ result
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:
@@ -126,8 +125,15 @@ class CalibrationResult:
             need.append("temp_c")
         return need
 
-    def apply(self, recording: Recording, *, iterations: int = 4, power_up_bias: bool = False,
-              still_max_s: float = 10.0, t_since_power_up_s: np.ndarray | None = None) -> Recording:
+    def apply(
+        self,
+        recording: Recording,
+        *,
+        iterations: int = 4,
+        power_up_bias: bool = False,
+        still_max_s: float = 10.0,
+        t_since_power_up_s: np.ndarray | None = None,
+    ) -> Recording:
         """Remove the fitted effects from ``recording``'s gyro (rad/s, S frame).
 
         Temperatures outside the fitted range are clamped to it (``effects.correct``) and
@@ -148,7 +154,9 @@ class CalibrationResult:
         """
         for eff in self.params:
             if needs_accel(eff) and recording.accel_m_s2 is None:
-                raise GyroInputError(f"the parameters include {eff}, which needs the accel_*_m_s2 columns; the data lack them")
+                raise GyroInputError(
+                    f"the parameters include {eff}, which needs the accel_*_m_s2 columns; the data lack them"
+                )
             if needs_temp(eff) and recording.temp_c is None:
                 raise GyroInputError(f"the parameters include {eff}, which needs the temp_c column; the data lack it")
         for eff in E.POLYNOMIAL:  # thermal polynomials: clamped to the fitted range
@@ -162,8 +170,12 @@ class CalibrationResult:
                         f"{n_out} of {T.size} samples have a temperature outside the calibrated range "
                         f"{lo:.2f}..{hi:.2f} C; {eff} is held at the range edge there"
                     )
-        inp = E.ModelInputs(t_s=recording.t_s, f_S_m_s2=recording.accel_m_s2, temp_c=recording.temp_c,
-                            t_since_power_up_s=t_since_power_up_s)  # a chunk of a longer file: from the file's start
+        inp = E.ModelInputs(
+            t_s=recording.t_s,
+            f_S_m_s2=recording.accel_m_s2,
+            temp_c=recording.temp_c,
+            t_since_power_up_s=t_since_power_up_s,
+        )  # a chunk of a longer file: from the file's start
         omega = E.correct(self.params, recording.gyro_rad_s, inp, iterations=iterations)
         extra_meta = {}
         if power_up_bias:
@@ -171,13 +183,16 @@ class CalibrationResult:
 
             sl = startup_still_slice(recording, max_duration_s=still_max_s)
             if sl is None or sl.stop - sl.start < 8:
-                raise GyroInputError("power-up bias: the recording does not start still, so its bias cannot be re-estimated")
+                raise GyroInputError(
+                    "power-up bias: the recording does not start still, so its bias cannot be re-estimated"
+                )
             d = omega[sl].mean(axis=0)
             omega = omega - d[None, :]
             extra_meta["power_up_bias_rad_s"] = " ".join(f"{v:.6g}" for v in d)
             extra_meta["power_up_bias_samples"] = str(sl.stop - sl.start)
         return recording.with_gyro(
-            omega, **extra_meta,
+            omega,
+            **extra_meta,
             calibrated_effects=",".join(self.effects),
             calibration_source=f"{self.source_file or '?'} sha256:{(self.source_sha256 or '?')[:16]}",
         )
@@ -205,7 +220,9 @@ class CalibrationResult:
         K = E.k_from_article(np.asarray(M, float), np.asarray(s, float))
         out = {
             "scale": {"s": np.diag(K) - 1.0},
-            "misalignment": {"m_rad": np.array([K["xyz".index(p[0]), "xyz".index(p[1])] for p in E.MISALIGNMENT_ORDER])},
+            "misalignment": {
+                "m_rad": np.array([K["xyz".index(p[0]), "xyz".index(p[1])] for p in E.MISALIGNMENT_ORDER])
+            },
         }
         if b_rad_s is not None:
             out["bias"] = {"b_rad_s": np.asarray(b_rad_s, float)}
@@ -229,7 +246,9 @@ def noise_model_dict(nm, rate_hz: float) -> dict | None:
 # ============================================================================ parameter file
 def result_to_dict(res: CalibrationResult) -> dict:
     """The parameter file as a dict (DESIGN.md "Parameter file")."""
-    art = res.article_form() if any(e in res.params for e in ("scale", "misalignment", "bias", "g_sensitivity")) else None
+    art = (
+        res.article_form() if any(e in res.params for e in ("scale", "misalignment", "bias", "g_sensitivity")) else None
+    )
     d = {
         "format_version": res.format_version,
         "sensor": res.sensor,
@@ -248,9 +267,18 @@ def result_to_dict(res: CalibrationResult) -> dict:
         "source": {"file": res.source_file, "sha256": res.source_sha256},
         "article_form": to_jsonable(art) if art is not None else None,
         "integral": to_jsonable(res.integral) if res.integral is not None else None,
-        "noise_model": ({k: ([None if not np.isfinite(x) else float(x) for x in np.asarray(v, float).reshape(-1)]
-                             if k != "rate_hz" else float(v)) for k, v in res.noise_model.items()}
-                        if res.noise_model else None),
+        "noise_model": (
+            {
+                k: (
+                    [None if not np.isfinite(x) else float(x) for x in np.asarray(v, float).reshape(-1)]
+                    if k != "rate_hz"
+                    else float(v)
+                )
+                for k, v in res.noise_model.items()
+            }
+            if res.noise_model
+            else None
+        ),
         "created_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "units": "SI: rad, s, m/s^2, degC; parameter names carry their unit",
     }
@@ -290,22 +318,39 @@ def result_from_dict(d: Mapping, *, where: str = "parameter file") -> Calibratio
     except GyroInputError as exc:
         raise GyroInputError(f"{where}: {exc}") from None
     except (KeyError, TypeError, ValueError) as exc:
-        raise GyroInputError(f"{where}: malformed parameter file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise GyroInputError(
+            f"{where}: malformed parameter file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
     src = d.get("source") or {}
     return CalibrationResult(
-        effects=effects, params=params, stderr=stderr, residual_rms_rad_s=rms,
+        effects=effects,
+        params=params,
+        stderr=stderr,
+        residual_rms_rad_s=rms,
         unobservable=tuple(d.get("unobservable") or ()),
         unobservable_reason=dict(d.get("unobservable_reason") or {}),
-        method=str(d.get("method", "")), covariance=str(d.get("covariance", "")),
-        sensor=str(d.get("sensor", "unknown")), source_file=src.get("file"), source_sha256=src.get("sha256"),
-        n_samples=int(d.get("n_samples") or 0), thermal_order=dict(d.get("thermal_order") or {}),
-        thermal_tests=tuple(d.get("thermal_tests") or ()), notes=tuple(d.get("notes") or ()),
-        integral=d.get("integral"), noise_model=_noise_model_from(d.get("noise_model"), where),
+        method=str(d.get("method", "")),
+        covariance=str(d.get("covariance", "")),
+        sensor=str(d.get("sensor", "unknown")),
+        source_file=src.get("file"),
+        source_sha256=src.get("sha256"),
+        n_samples=int(d.get("n_samples") or 0),
+        thermal_order=dict(d.get("thermal_order") or {}),
+        thermal_tests=tuple(d.get("thermal_tests") or ()),
+        notes=tuple(d.get("notes") or ()),
+        integral=d.get("integral"),
+        noise_model=_noise_model_from(d.get("noise_model"), where),
         format_version=ver,
     )
 
 
-_NOISE_MODEL_KEYS = ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_s_per_sqrt_s", "gm_sigma_rad_s", "gm_tau_c_s")
+_NOISE_MODEL_KEYS = (
+    "arw_rad_per_sqrt_s",
+    "bias_instability_rad_s",
+    "rrw_rad_s_per_sqrt_s",
+    "gm_sigma_rad_s",
+    "gm_tau_c_s",
+)
 
 
 def _noise_model_from(d, where: str) -> dict | None:
@@ -316,7 +361,9 @@ def _noise_model_from(d, where: str) -> dict | None:
         out = {k: _arr(d[k], null=np.inf if k == "gm_tau_c_s" else 0.0).reshape(3) for k in _NOISE_MODEL_KEYS}
         out["rate_hz"] = float(d.get("rate_hz") or np.nan)
     except (KeyError, TypeError, ValueError):
-        raise GyroInputError(f"{where}: malformed noise_model entry (needs {', '.join(_NOISE_MODEL_KEYS)}, 3 values each)") from None
+        raise GyroInputError(
+            f"{where}: malformed noise_model entry (needs {', '.join(_NOISE_MODEL_KEYS)}, 3 values each)"
+        ) from None
     return out
 
 

@@ -215,7 +215,9 @@ class IntegralResult:
 def _vec3(what: str, v, *, positive: bool = False) -> np.ndarray:
     a = np.broadcast_to(np.asarray(v, float), (3,)).copy() if np.ndim(v) == 0 else np.asarray(v, float)
     if a.shape != (3,) or not np.all(np.isfinite(a)) or (positive and not np.all(a >= 0)):
-        raise GyroInputError(f"integral method: {what} must be 3 finite{' non-negative' if positive else ''} numbers, got {v!r}")
+        raise GyroInputError(
+            f"integral method: {what} must be 3 finite{' non-negative' if positive else ''} numbers, got {v!r}"
+        )
     return a
 
 
@@ -334,8 +336,13 @@ def integral_calibration(
         lr = _vec3("long-run noise variance", noise_lr_rad2_s, positive=True) / dt  # (rad/s)² per sample
         still = np.zeros(t.size, bool) if still is None else np.asarray(still, bool)
     elif still is None:
-        still = still_mask(recording, window_s=window_s, false_reject_rate=false_reject_rate,
-                           exclude=[(s.t_start_s, s.t_end_s) for s in segs], margin_s=margin_s)
+        still = still_mask(
+            recording,
+            window_s=window_s,
+            false_reject_rate=false_reject_rate,
+            exclude=[(s.t_start_s, s.t_end_s) for s in segs],
+            margin_s=margin_s,
+        )
     still = np.asarray(still, bool)
     n_still = int(still.sum())
     if not external and n_still < 10:
@@ -367,8 +374,9 @@ def integral_calibration(
     M = np.linalg.inv(K)
     # covariance of K (rows independent across axes): row i = B_i·C⁺,
     # cov(B_i) = diag(n_k dt² σ²_LR,i) + T Tᵀ se_b,i²
-    cov_K = _k_covariance(K, C, Cp, T, nk, dt=dt, lr=lr, se_b=se_b, angle_sigma_rad=angle_sigma_rad,
-                          axis_sigma_rad=axis_sigma_rad)
+    cov_K = _k_covariance(
+        K, C, Cp, T, nk, dt=dt, lr=lr, se_b=se_b, angle_sigma_rad=angle_sigma_rad, axis_sigma_rad=axis_sigma_rad
+    )
     J = -np.kron(M, M.T)  # vec_r(dM) = −(M ⊗ Mᵀ) vec_r(dK)
     cov_M = J @ cov_K @ J.T
     return IntegralResult(
@@ -514,8 +522,13 @@ def gravity_pose_calibration(
     rate = recording.rate_hz
     if intervals is None:
         if still is None:
-            still = still_mask(recording, window_s=window_s, false_reject_rate=false_reject_rate, margin_s=0.0,
-                               std_factor=pose_std_factor)
+            still = still_mask(
+                recording,
+                window_s=window_s,
+                false_reject_rate=false_reject_rate,
+                margin_s=0.0,
+                std_factor=pose_std_factor,
+            )
         runs = [(a, b) for a, b in _runs(np.asarray(still, bool)) if (b - a) >= min_pose_s * rate]
     else:
         runs = [(int(a), int(b)) for a, b in intervals]
@@ -536,25 +549,33 @@ def gravity_pose_calibration(
     # a motion through a clipped (saturated) sample cannot be integrated: drop it
     absy = np.abs(y)
     top = absy.max(axis=0)
-    clipped = np.any((absy >= top[None, :] * (1 - 1e-9)) & (np.sum(absy >= top * (1 - 1e-9), axis=0) >= 3)[None, :], axis=1)
+    clipped = np.any(
+        (absy >= top[None, :] * (1 - 1e-9)) & (np.sum(absy >= top * (1 - 1e-9), axis=0) >= 3)[None, :], axis=1
+    )
     moves = [(k, a, b_) for k, a, b_ in moves_all if not clipped[a:b_].any()]
     n_sat = len(moves_all) - len(moves)
     if n_sat:
-        warn_repair(f"multi-pose calibration: {n_sat} of {len(moves_all)} motions pass through clipped (saturated) gyro samples and are not used")
+        warn_repair(
+            f"multi-pose calibration: {n_sat} of {len(moves_all)} motions pass through clipped (saturated) gyro samples and are not used"
+        )
     if 3 * len(moves) < 12:
-        raise GyroInputError(f"multi-pose calibration: only {len(moves)} usable motions between poses, need at least 4 "
-                             f"({len(runs)} still poses found at {pose_std_factor:g}x the rest noise; hand-held poses "
-                             "tremble: a larger factor, calibrate --pose-std-factor 10, admits them)")
+        raise GyroInputError(
+            f"multi-pose calibration: only {len(moves)} usable motions between poses, need at least 4 "
+            f"({len(runs)} still poses found at {pose_std_factor:g}x the rest noise; hand-held poses "
+            "tremble: a larger factor, calibrate --pose-std-factor 10, admits them)"
+        )
     yb = y - bias
 
     def rot_of(M, a, b_):
         q = integrate_gyro(t[a:b_], yb[a:b_] @ M.T)[-1]
         w, x, yy, z = q
-        return np.array([
-            [1 - 2 * (yy * yy + z * z), 2 * (x * yy - w * z), 2 * (x * z + w * yy)],
-            [2 * (x * yy + w * z), 1 - 2 * (x * x + z * z), 2 * (yy * z - w * x)],
-            [2 * (x * z - w * yy), 2 * (yy * z + w * x), 1 - 2 * (x * x + yy * yy)],
-        ])
+        return np.array(
+            [
+                [1 - 2 * (yy * yy + z * z), 2 * (x * yy - w * z), 2 * (x * z + w * yy)],
+                [2 * (x * yy + w * z), 1 - 2 * (x * x + z * z), 2 * (yy * z - w * x)],
+                [2 * (x * z - w * yy), 2 * (yy * z + w * x), 1 - 2 * (x * x + yy * yy)],
+            ]
+        )
 
     def resid(p):
         M = p.reshape(3, 3)
@@ -578,7 +599,14 @@ def gravity_pose_calibration(
     cov_K = Jk @ cov_M @ Jk.T
     r = sol.fun.reshape(-1, 3)
     return GravityPoseResult(
-        K=K, K_stderr=np.sqrt(np.clip(np.diag(cov_K), 0, None)).reshape(3, 3), M=M,
-        bias_rad_s=bias, bias_stderr_rad_s=se_b, intervals=np.array(runs), residual_rad=r,
-        rms_residual_rad=float(np.sqrt(np.mean(r**2))), condition=cond, n_motions_saturated=n_sat,
+        K=K,
+        K_stderr=np.sqrt(np.clip(np.diag(cov_K), 0, None)).reshape(3, 3),
+        M=M,
+        bias_rad_s=bias,
+        bias_stderr_rad_s=se_b,
+        intervals=np.array(runs),
+        residual_rad=r,
+        rms_residual_rad=float(np.sqrt(np.mean(r**2))),
+        condition=cond,
+        n_motions_saturated=n_sat,
     )

@@ -25,9 +25,19 @@ from . import lsq
 from gyrocore.data.recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, Recording
 from gyrocore.data.spill import ColumnSpill
 
-__all__ = ["SpillRows", "ResidualFiles", "Rows", "LazyColumn", "LazyRotations", "SpilledRecording", "rows_of",
-           "held_correction", "NotStreamable", "release_memory",
-           "bounded_heap"]
+__all__ = [
+    "SpillRows",
+    "ResidualFiles",
+    "Rows",
+    "LazyColumn",
+    "LazyRotations",
+    "SpilledRecording",
+    "rows_of",
+    "held_correction",
+    "NotStreamable",
+    "release_memory",
+    "bounded_heap",
+]
 
 
 class SpillRows(lsq.RowSource):
@@ -80,7 +90,8 @@ class SpillRows(lsq.RowSource):
     def inputs(self, lo: int, hi: int) -> E.ModelInputs:
         t = self.t
         return E.ModelInputs(
-            t_s=t[lo:hi], omega_S_rad_s=self._ref(lo, hi),
+            t_s=t[lo:hi],
+            omega_S_rad_s=self._ref(lo, hi),
             f_S_m_s2=self.store.block(ACCEL_COLS, lo, hi) if self.has_accel else None,
             temp_c=self.store.rows(TEMP_COL, lo, hi) if self.has_temp else None,
             t_since_power_up_s=t[lo:hi] - t[0],
@@ -226,8 +237,15 @@ class SpilledRecording:
     gyro(t + τ), cubic spline; see :data:`SPLINE_CONTEXT`).
     """
 
-    def __init__(self, store: ColumnSpill, *, held: dict | None = None, tau_s: float = 0.0,
-                 chunk_rows: int | None = None, q_integrated: Rows | None = None) -> None:
+    def __init__(
+        self,
+        store: ColumnSpill,
+        *,
+        held: dict | None = None,
+        tau_s: float = 0.0,
+        chunk_rows: int | None = None,
+        q_integrated: Rows | None = None,
+    ) -> None:
         self.store = store
         self.t_s = store.t_s
         self.n = int(store.n)
@@ -253,9 +271,13 @@ class SpilledRecording:
 
     def with_ops(self, *, held: dict | None = None, tau_s: float | None = None) -> "SpilledRecording":
         """The same file with other lines removed and/or another time offset."""
-        return SpilledRecording(self.store, held=self.held if held is None else held,
-                                tau_s=self.tau_s if tau_s is None else tau_s, chunk_rows=self.chunk_rows,
-                                q_integrated=self._q_integrated)
+        return SpilledRecording(
+            self.store,
+            held=self.held if held is None else held,
+            tau_s=self.tau_s if tau_s is None else tau_s,
+            chunk_rows=self.chunk_rows,
+            q_integrated=self._q_integrated,
+        )
 
     def chunks(self):
         """(lo, hi) of consecutive windows of ``chunk_rows`` rows."""
@@ -314,8 +336,9 @@ class SpilledRecording:
                     if q_carry is None:
                         q = integrate_gyro(self.t_s[lo:hi], w, hold="backward")
                     else:
-                        q = integrate_gyro(self.t_s[lo - 1:hi], np.vstack([w_last, w]), q0_wxyz=q_carry,
-                                           hold="backward")[1:]
+                        q = integrate_gyro(
+                            self.t_s[lo - 1 : hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward"
+                        )[1:]
                     for j in range(4):
                         np.ascontiguousarray(q[:, j]).tofile(files[j])
                     q_carry, w_last = q[-1], w[-1:]
@@ -373,7 +396,7 @@ def held_correction(t: np.ndarray, held: dict) -> np.ndarray | float:
     total = 0
     for lines in held.values():
         acc = 0.0
-        for (i, f, a, b) in lines:
+        for i, f, a, b in lines:
             c = np.zeros((t.size, 3))
             c[:, i] = a * np.cos(2 * np.pi * f * t) + b * np.sin(2 * np.pi * f * t)
             acc = acc + c

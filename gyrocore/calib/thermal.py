@@ -133,8 +133,9 @@ def select_thermal_orders(
 
 
 # ---------------------------------------------------------------------------- PX4 export
-def px4_tc_params(params: Mapping[str, Mapping[str, np.ndarray]], *, instance: int = 0,
-                  device_id: int = 0, legacy_scale: bool = False) -> dict[str, float]:
+def px4_tc_params(
+    params: Mapping[str, Mapping[str, np.ndarray]], *, instance: int = 0, device_id: int = 0, legacy_scale: bool = False
+) -> dict[str, float]:
     """PX4 ``TC_G<instance>_*`` parameters from fitted catalogue parameters.
 
     Parameters
@@ -179,8 +180,9 @@ def px4_tc_params(params: Mapping[str, Mapping[str, np.ndarray]], *, instance: i
     return out
 
 
-def write_px4_params(path, params: Mapping[str, Mapping[str, np.ndarray]], *, overwrite: bool = False,
-                     **options) -> dict[str, float]:
+def write_px4_params(
+    path, params: Mapping[str, Mapping[str, np.ndarray]], *, overwrite: bool = False, **options
+) -> dict[str, float]:
     """Write :func:`px4_tc_params` as a QGroundControl parameter file (tab separated:
     vehicle id, component id, name, value, MAV_PARAM_TYPE — 9 = REAL32, 6 = INT32),
     atomically. Returns the parameters."""
@@ -200,7 +202,10 @@ def write_px4_params(path, params: Mapping[str, Mapping[str, np.ndarray]], *, ov
     if not int(p[f"TC_G{options.get('instance', 0)}_ID"]):
         # PX4's TemperatureCompensation::set_sensor_id_gyro applies slot i only to the gyro whose
         # device id equals TC_G<i>_ID: 0 matches none, the set would be loaded and never used
-        lines.insert(2, f"# NOTE: TC_G{options.get('instance', 0)}_ID is 0 and matches no gyro: set it to your gyro's "
-                        "device id (CAL_GYRO0_ID) or PX4 will not apply this set.")
+        lines.insert(
+            2,
+            f"# NOTE: TC_G{options.get('instance', 0)}_ID is 0 and matches no gyro: set it to your gyro's "
+            "device id (CAL_GYRO0_ID) or PX4 will not apply this set.",
+        )
     atomic_write_text(path, "\n".join(lines) + "\n", overwrite=overwrite)
     return p

@@ -70,9 +70,7 @@ def run_cli(group: click.Group, argv: Sequence[str] | None = None) -> int:
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency
         pass
     try:
-        rv = group.main(
-            args=list(argv) if argv is not None else None, prog_name="gyroharness", standalone_mode=False
-        )
+        rv = group.main(args=list(argv) if argv is not None else None, prog_name="gyroharness", standalone_mode=False)
         return int(rv) if isinstance(rv, int) else 0
     except click.exceptions.Exit as exc:
         return int(exc.exit_code)

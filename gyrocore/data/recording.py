@@ -261,8 +261,9 @@ def write_csv(rec: Recording, path: str | os.PathLike, *, overwrite: bool = True
     trip is bit-exact.
     """
     if rec.n > WRITE_CHUNK_ROWS:  # streamed, same bytes: no whole-file text in memory
-        write_csv_chunks((rec.slice(i, i + WRITE_CHUNK_ROWS) for i in range(0, rec.n, WRITE_CHUNK_ROWS)), path,
-                         overwrite=overwrite)
+        write_csv_chunks(
+            (rec.slice(i, i + WRITE_CHUNK_ROWS) for i in range(0, rec.n, WRITE_CHUNK_ROWS)), path, overwrite=overwrite
+        )
         return
     names, cols = _columns(rec)
     data = np.hstack(cols) if cols else np.empty((0, 0))
@@ -314,10 +315,14 @@ def _sniff_file(path: str) -> None:
     with open(path, "rb") as fh:
         head = fh.read(8192)
     if head.startswith(b"\x89HDF") or head.startswith(b"ULog") or head.startswith(b"MATLAB"):
-        raise GyroInputError(f"{path}: binary file (HDF5/MATLAB/ULog); convert it first: gyroharness convert {path} -o OUT.csv")
+        raise GyroInputError(
+            f"{path}: binary file (HDF5/MATLAB/ULog); convert it first: gyroharness convert {path} -o OUT.csv"
+        )
     if head.startswith(b"H Product:Blackbox") or head.startswith(b"\xa3\x95\x80"):
         kind = "blackbox log" if head.startswith(b"H") else "ArduPilot DataFlash log"
-        raise GyroInputError(f"{path}: {kind}, not a data file; convert it first: gyroharness convert {path} -o OUT.csv")
+        raise GyroInputError(
+            f"{path}: {kind}, not a data file; convert it first: gyroharness convert {path} -o OUT.csv"
+        )
     if b"\x00" in head:
         raise GyroInputError(f"{path}: binary file, expected a CSV data file")
     try:
@@ -422,11 +427,21 @@ def _arrow_options(header: list[str], want: list[int], block_size: int | None = 
 
     names = [f"c{i}" for i in range(len(header))]  # header names were validated already
     ro = pc.ReadOptions(column_names=names, use_threads=True, **({"block_size": block_size} if block_size else {}))
-    po = pc.ParseOptions(delimiter=",", quote_char=False, double_quote=False, escape_char=False,
-                         newlines_in_values=False, ignore_empty_lines=True)
-    co = pc.ConvertOptions(column_types={names[i]: pa.float64() for i in want},
-                           include_columns=[names[i] for i in want], null_values=[""],
-                           strings_can_be_null=False, quoted_strings_can_be_null=False)
+    po = pc.ParseOptions(
+        delimiter=",",
+        quote_char=False,
+        double_quote=False,
+        escape_char=False,
+        newlines_in_values=False,
+        ignore_empty_lines=True,
+    )
+    co = pc.ConvertOptions(
+        column_types={names[i]: pa.float64() for i in want},
+        include_columns=[names[i] for i in want],
+        null_values=[""],
+        strings_can_be_null=False,
+        quoted_strings_can_be_null=False,
+    )
     return ro, po, co, [names[i] for i in want]
 
 
@@ -495,9 +510,16 @@ class _Filler:
         self.n = 0
         cap = max(int(capacity), 1)
         self.t = np.empty(cap)
-        self.groups = {name: np.empty((cap, len(blk[0])))
-                       for name, blk in (("gyro", layout.gyro), ("accel", layout.accel), ("rref", layout.rref),
-                                         ("qref", layout.qref)) if blk is not None}
+        self.groups = {
+            name: np.empty((cap, len(blk[0])))
+            for name, blk in (
+                ("gyro", layout.gyro),
+                ("accel", layout.accel),
+                ("rref", layout.rref),
+                ("qref", layout.qref),
+            )
+            if blk is not None
+        }
         self.temp = np.empty(cap) if layout.temp is not None else None
         self.extra = {h: np.empty(cap) for h, _ in layout.extra}
         self.moments = layout.moments()
@@ -554,9 +576,15 @@ class _Filler:
         """(t, gyro, accel, temp, rref, qref, extra) trimmed to the rows read (views)."""
         n = self.n
         g = self.groups
-        return (self.t[:n], g["gyro"][:n], g["accel"][:n] if "accel" in g else None,
-                None if self.temp is None else self.temp[:n], g["rref"][:n] if "rref" in g else None,
-                g["qref"][:n] if "qref" in g else None, {h: v[:n] for h, v in self.extra.items()})
+        return (
+            self.t[:n],
+            g["gyro"][:n],
+            g["accel"][:n] if "accel" in g else None,
+            None if self.temp is None else self.temp[:n],
+            g["rref"][:n] if "rref" in g else None,
+            g["qref"][:n] if "qref" in g else None,
+            {h: v[:n] for h, v in self.extra.items()},
+        )
 
 
 def _count_lines(path: str, offset: int) -> int:
@@ -584,7 +612,7 @@ def _rechunk(blocks: Iterable[dict[int, np.ndarray]], rows: int) -> Iterator[dic
         cat = {i: np.concatenate([b[i] for b in pending]) for i in pending[0]}
         k = 0
         while n_pending - k >= rows:
-            yield {i: v[k:k + rows].copy() for i, v in cat.items()}
+            yield {i: v[k : k + rows].copy() for i, v in cat.items()}
             k += rows
         pending = [{i: v[k:] for i, v in cat.items()}] if n_pending > k else []
         n_pending -= k
@@ -630,7 +658,9 @@ def _data_lines(fh, skip_rows: int, first_lineno: int) -> int:
     return lineno
 
 
-def _csv_blocks(path: str, header: list[str], n_skip: int, want: list[int], rows: int) -> Iterator[dict[int, np.ndarray]]:
+def _csv_blocks(
+    path: str, header: list[str], n_skip: int, want: list[int], rows: int
+) -> Iterator[dict[int, np.ndarray]]:
     """Data blocks of exactly ``rows`` rows: Arrow's streaming C++ reader while the table is
     clean; from the first block it refuses (text in a number, wrong value count, empty
     field, ``#`` line, bad UTF-8) the exact line parser takes over at that data row, so the
@@ -639,7 +669,9 @@ def _csv_blocks(path: str, header: list[str], n_skip: int, want: list[int], rows
     n_done = 0
     if offset is not None:
         try:
-            for blk in _rechunk(_arrow_stream(path, offset, header, want, _block_size(path, offset, rows, len(header))), rows):
+            for blk in _rechunk(
+                _arrow_stream(path, offset, header, want, _block_size(path, offset, rows, len(header))), rows
+            ):
                 yield blk
                 n_done += len(blk[want[0]])
             return
@@ -692,8 +724,10 @@ def _time_col(header: list[str], path: str) -> tuple[int, float]:
         hint = ""
         if len(header) == 1 and any(c in header[0] for c in ";\t|"):
             sep = next(c for c in ";\t|" if c in header[0])
-            hint = (f" (the header is one column {header[0][:60]!r}: the file is separated by "
-                    f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)")
+            hint = (
+                f" (the header is one column {header[0][:60]!r}: the file is separated by "
+                f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)"
+            )
         raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
     h, i = found[0]
     return i, TIME_ALTS[h]
@@ -731,8 +765,13 @@ def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int]:
             sample = fh.read(1 << 16)
         est = int(os.path.getsize(path) / max(len(sample) / max(sample.count(b"\n"), 1), 1.0))
     lay = _Layout(header, path)
-    present = {"accel": lay.accel is not None, "temp": lay.temp is not None, "ref_rate": lay.rref is not None,
-               "ref_quat": lay.qref is not None, "extra": bool(lay.extra)}
+    present = {
+        "accel": lay.accel is not None,
+        "temp": lay.temp is not None,
+        "ref_rate": lay.rref is not None,
+        "ref_quat": lay.qref is not None,
+        "extra": bool(lay.extra),
+    }
     return tuple(g for g in COLUMN_GROUPS if present[g]), est
 
 
@@ -754,8 +793,13 @@ class _Layout:
         self.rref = self._block(REF_RATE_COLS, path)
         self.qref = self._block(REF_QUAT_COLS, path)
         self.temp = header.index(TEMP_COL) if TEMP_COL in header else None
-        used = {self.t, *(self.gyro[0] if self.gyro else ()), *(self.accel[0] if self.accel else ()),
-                *(self.rref[0] if self.rref else ()), *(self.qref[0] if self.qref else ())}
+        used = {
+            self.t,
+            *(self.gyro[0] if self.gyro else ()),
+            *(self.accel[0] if self.accel else ()),
+            *(self.rref[0] if self.rref else ()),
+            *(self.qref[0] if self.qref else ()),
+        }
         if self.temp is not None:
             used.add(self.temp)
         self.extra = [(h, i) for i, h in enumerate(header) if i not in used]
@@ -892,7 +936,7 @@ def _robust_noise_consuming(x: np.ndarray, block: int = 1 << 20) -> float | None
         return 0.0
     for a in range(0, n - 1, block):
         b = min(a + block, n - 1)
-        x[a:b] = x[a + 1:b + 1] - x[a:b]
+        x[a:b] = x[a + 1 : b + 1] - x[a:b]
     d = x[: n - 1]
     med = np.median(d, overwrite_input=True)
     np.subtract(d, med, out=d)
@@ -1011,13 +1055,15 @@ def _time_unit_check(med_dt_s: float, path: str, time_col: str) -> None:
     (> :data:`T_S_SUSPECT_MEDIAN_DT_S`) when a column labelled seconds is evidently a counter."""
     if time_col != TIME_COL or not (med_dt_s > T_S_SUSPECT_MEDIAN_DT_S):
         return
-    what = (f"{path}: column t_s has a median sample interval of {med_dt_s:.6g} s ({1 / med_dt_s:.3g} Hz)")
+    what = f"{path}: column t_s has a median sample interval of {med_dt_s:.6g} s ({1 / med_dt_s:.3g} Hz)"
     if med_dt_s > T_S_MAX_MEDIAN_DT_S:
         raise GyroInputError(
             f"{what}, slower than any gyro log: the time is probably in ms, us or ns — rename the column "
             f"t_ms, t_us or t_ns (converted on read)"
         )
-    warn_repair(f"{what}: if the time is a millisecond counter (a 1 kHz log), rename the column t_ms; data kept as seconds")
+    warn_repair(
+        f"{what}: if the time is a millisecond counter (a 1 kHz log), rename the column t_ms; data kept as seconds"
+    )
 
 
 def _timing_checks(t: np.ndarray, path: str, retime: bool, time_col: str = TIME_COL) -> np.ndarray:
@@ -1053,12 +1099,16 @@ def _timing_checks(t: np.ndarray, path: str, retime: bool, time_col: str = TIME_
     return t
 
 
-def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool, retime: bool, accel_std=None) -> Recording:
+def _finish(
+    t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool, retime: bool, accel_std=None
+) -> Recording:
     """Post-parse checks common to the whole-file and chunked readers."""
     span = np.subtract(t[-1], t[0], dtype=float) if t.size else 0.0
     with np.errstate(all="ignore"):
         if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
-            raise GyroInputError(f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})")
+            raise GyroInputError(
+                f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})"
+            )
     if checks:
         with np.errstate(all="ignore"):  # absurd finite values (1e300) must not print overflow warnings
             _unit_checks(t, gyro, accel, path, meta.pop("__gyro_col__", "gyro_x_rad_s"), accel_std=accel_std)
@@ -1078,17 +1128,33 @@ def _finish(t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool
         if found:
             names = [f"gyro_{a}" for a in AXES] + [f"accel_{a}" for a in AXES]
             desc = ", ".join(f"{names[j]} {n} at {v:.6g}" for j, v, n in found)
-            warn_repair(f"{path}: {int(sat.sum())} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'")
+            warn_repair(
+                f"{path}: {int(sat.sum())} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'"
+            )
             prev = extra.get("saturated")
             extra["saturated"] = (sat | (prev > 0)).astype(float) if prev is not None else sat.astype(float)
     meta.pop("__gyro_col__", None)
     meta.pop("__time_col__", None)
-    return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=temp, ref_rate_rad_s=rref,
-                     ref_quat_wxyz=qref, meta=meta, extra=extra)
+    return Recording(
+        t_s=t,
+        gyro_rad_s=gyro,
+        accel_m_s2=accel,
+        temp_c=temp,
+        ref_rate_rad_s=rref,
+        ref_quat_wxyz=qref,
+        meta=meta,
+        extra=extra,
+    )
 
 
-def read_csv(path: str | os.PathLike, *, repair: bool = True, retime: bool = False, checks: bool = True,
-             columns: Iterable[str] | None = None) -> Recording:
+def read_csv(
+    path: str | os.PathLike,
+    *,
+    repair: bool = True,
+    retime: bool = False,
+    checks: bool = True,
+    columns: Iterable[str] | None = None,
+) -> Recording:
     """Read a DESIGN.md data file.
 
     The table is parsed by Arrow's C++ CSV reader (``pyarrow.csv``, multithreaded, correctly
@@ -1172,8 +1238,20 @@ def _assemble_filled(fill: _Filler, meta, path, *, repair, retime, checks, min_r
     meta["__time_col__"] = layout.header[layout.t]
     accel_std = layout.accel_std(fill.moments)
     del fill
-    return _finish(k(t), k(gyro), k(accel), k(temp), k(rref), k(qref), meta, {h: k(v) for h, v in extra.items()}, path,
-                   checks=checks, retime=retime, accel_std=accel_std)
+    return _finish(
+        k(t),
+        k(gyro),
+        k(accel),
+        k(temp),
+        k(rref),
+        k(qref),
+        meta,
+        {h: k(v) for h, v in extra.items()},
+        path,
+        checks=checks,
+        retime=retime,
+        accel_std=accel_std,
+    )
 
 
 def _exact_blocks(path, header, n_skip, want, skip_data_rows, first_lineno, rows=200_000):
@@ -1196,7 +1274,9 @@ def _exact_blocks(path, header, n_skip, want, skip_data_rows, first_lineno, rows
         raise GyroInputError(f"{path}: not UTF-8 text after the header near line {lineno} ({exc.reason})") from None
 
 
-def _chunk_records(blocks: Iterable[dict[int, np.ndarray]], layout: _Layout, meta, path: str, repair: bool) -> Iterator[Recording]:
+def _chunk_records(
+    blocks: Iterable[dict[int, np.ndarray]], layout: _Layout, meta, path: str, repair: bool
+) -> Iterator[Recording]:
     """Checked :class:`Recording` chunks from column blocks (NaN rows and non-increasing
     timestamps dropped across chunk boundaries, one warning each at the end)."""
     t_prev = -np.inf
@@ -1221,9 +1301,14 @@ def _chunk_records(blocks: Iterable[dict[int, np.ndarray]], layout: _Layout, met
         t_prev = float(t[keep][-1])
         n_rows += int(keep.sum())
         yield Recording(
-            t_s=k(t), gyro_rad_s=k(gyro), accel_m_s2=k(accel), temp_c=k(temp),
-            ref_rate_rad_s=k(layout.take(cols, layout.rref)), ref_quat_wxyz=k(layout.take(cols, layout.qref)),
-            meta=dict(meta), extra={h: k(cols[i]) for h, i in layout.extra},
+            t_s=k(t),
+            gyro_rad_s=k(gyro),
+            accel_m_s2=k(accel),
+            temp_c=k(temp),
+            ref_rate_rad_s=k(layout.take(cols, layout.rref)),
+            ref_quat_wxyz=k(layout.take(cols, layout.qref)),
+            meta=dict(meta),
+            extra={h: k(cols[i]) for h, i in layout.extra},
         )
     if n_bad_all:
         warn_repair(f"{path}: dropped {n_bad_all} rows with NaN/inf time, gyro, accel or temperature")
@@ -1233,8 +1318,9 @@ def _chunk_records(blocks: Iterable[dict[int, np.ndarray]], layout: _Layout, met
         raise GyroInputError(f"{path}: header only, no samples")
 
 
-def iter_csv_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True,
-                    columns: Iterable[str] | None = None) -> Iterator[Recording]:
+def iter_csv_chunks(
+    path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True, columns: Iterable[str] | None = None
+) -> Iterator[Recording]:
     """Read a data file of any size as consecutive :class:`Recording` chunks of ≤ ``rows`` rows.
 
     Memory stays O(``rows``). Same parser as :func:`read_csv` (Arrow's streaming reader,
@@ -1290,8 +1376,10 @@ def _parse_header(lines: Iterable[str], path: str) -> tuple[dict[str, str], list
             # comma: kept as extra columns with a name, said once
             for i in empty:
                 header[i] = f"unnamed_{i}"
-            warn_repair(f"{path}: {len(empty)} column(s) without a name in the header (a pandas/R index, a trailing "
-                        f"comma?) kept as extra column(s) {', '.join(header[i] for i in empty)}")
+            warn_repair(
+                f"{path}: {len(empty)} column(s) without a name in the header (a pandas/R index, a trailing "
+                f"comma?) kept as extra column(s) {', '.join(header[i] for i in empty)}"
+            )
         return meta, header, n_skip
     raise GyroInputError(f"{path}: no header row (file is empty or only has comments)")
 
@@ -1310,8 +1398,13 @@ def _format_rows(rec: Recording) -> tuple[list[str], str]:
     return names, text
 
 
-def write_csv_chunks(chunks: Iterable[Recording], path: str | os.PathLike, *, overwrite: bool = True,
-                     meta: Mapping[str, str] | None = None) -> int:
+def write_csv_chunks(
+    chunks: Iterable[Recording],
+    path: str | os.PathLike,
+    *,
+    overwrite: bool = True,
+    meta: Mapping[str, str] | None = None,
+) -> int:
     """Write consecutive recording chunks as one data file, streaming, atomically.
 
     The file is written to a temporary name in the target folder and renamed at the end;
@@ -1393,12 +1486,20 @@ def _split_columns(rec: Recording) -> tuple[list[str], list[np.ndarray]]:
 def write_parquet(rec: Recording, path: str | os.PathLike, *, overwrite: bool = True) -> None:
     """Write ``rec`` as a Parquet data file (same columns as the CSV, float64; the ``#``
     metadata in the schema metadata under ``gyroharness.meta``), atomically."""
-    write_parquet_chunks((rec.slice(i, i + PARQUET_ROW_GROUP) for i in range(0, max(rec.n, 1), PARQUET_ROW_GROUP)),
-                         path, overwrite=overwrite)
+    write_parquet_chunks(
+        (rec.slice(i, i + PARQUET_ROW_GROUP) for i in range(0, max(rec.n, 1), PARQUET_ROW_GROUP)),
+        path,
+        overwrite=overwrite,
+    )
 
 
-def write_parquet_chunks(chunks: Iterable[Recording], path: str | os.PathLike, *, overwrite: bool = True,
-                         meta: Mapping[str, str] | None = None) -> int:
+def write_parquet_chunks(
+    chunks: Iterable[Recording],
+    path: str | os.PathLike,
+    *,
+    overwrite: bool = True,
+    meta: Mapping[str, str] | None = None,
+) -> int:
     """Parquet version of :func:`write_csv_chunks`: one row group per chunk, streaming, atomic."""
     import pyarrow.parquet as pq
 
@@ -1450,8 +1551,10 @@ def _open_parquet(path: str):
         if not (pa.types.is_floating(f.type) or pa.types.is_integer(f.type) or pa.types.is_boolean(f.type)):
             hint = ""
             if pa.types.is_timestamp(f.type) or pa.types.is_duration(f.type) or pa.types.is_date(f.type):
-                hint = ("; store the time as numbers: seconds in t_s (pandas: df['t_s'] = (df[col] - df[col].iloc[0])"
-                        ".dt.total_seconds()) or a counter in t_ms / t_us / t_ns")
+                hint = (
+                    "; store the time as numbers: seconds in t_s (pandas: df['t_s'] = (df[col] - df[col].iloc[0])"
+                    ".dt.total_seconds()) or a counter in t_ms / t_us / t_ns"
+                )
             raise GyroInputError(f"{path}: column {f.name!r} is not numeric ({f.type}){hint}")
     meta: dict[str, str] = {}
     raw = (schema.metadata or {}).get(PARQUET_META_KEY)
@@ -1463,7 +1566,9 @@ def _open_parquet(path: str):
     return pf, header, meta
 
 
-def _parquet_cols(batch_or_table, header: list[str], want: list[int], path: str, counter: list[int]) -> dict[int, np.ndarray]:
+def _parquet_cols(
+    batch_or_table, header: list[str], want: list[int], path: str, counter: list[int]
+) -> dict[int, np.ndarray]:
     cols = {}
     for i in want:
         c = batch_or_table.column(header[i])
@@ -1481,8 +1586,14 @@ def _parquet_read_error(path: str, exc: Exception) -> GyroInputError:
     return GyroInputError(f"{path}: corrupt Parquet data ({first[:160]})")
 
 
-def read_parquet(path: str | os.PathLike, *, repair: bool = True, retime: bool = False, checks: bool = True,
-                 columns: Iterable[str] | None = None) -> Recording:
+def read_parquet(
+    path: str | os.PathLike,
+    *,
+    repair: bool = True,
+    retime: bool = False,
+    checks: bool = True,
+    columns: Iterable[str] | None = None,
+) -> Recording:
     """Read a Parquet data file (same columns, units and checks as :func:`read_csv`; nulls
     are read as NaN with a warning, like empty CSV fields)."""
     import pyarrow as pa
@@ -1505,8 +1616,9 @@ def read_parquet(path: str | os.PathLike, *, repair: bool = True, retime: bool =
     return _assemble_filled(fill, meta, path, repair=repair, retime=retime, checks=checks)
 
 
-def iter_parquet_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True,
-                        columns: Iterable[str] | None = None) -> Iterator[Recording]:
+def iter_parquet_chunks(
+    path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True, columns: Iterable[str] | None = None
+) -> Iterator[Recording]:
     """Parquet version of :func:`iter_csv_chunks` (chunks of exactly ``rows`` rows, the last
     shorter; memory O(``rows`` + one row group))."""
     path = str(path)
@@ -1536,8 +1648,9 @@ def read_recording(path: str | os.PathLike, **options) -> Recording:
     return read_parquet(path, **options) if is_parquet(path) else read_csv(path, **options)
 
 
-def iter_chunks(path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True,
-                columns: Iterable[str] | None = None) -> Iterator[Recording]:
+def iter_chunks(
+    path: str | os.PathLike, *, rows: int = 200_000, repair: bool = True, columns: Iterable[str] | None = None
+) -> Iterator[Recording]:
     """Chunks of a CSV or Parquet data file (see :func:`iter_csv_chunks`)."""
     fn = iter_parquet_chunks if is_parquet(path) else iter_csv_chunks
     return fn(path, rows=rows, repair=repair, columns=columns)
@@ -1551,8 +1664,13 @@ def write_recording(rec: Recording, path: str | os.PathLike, *, overwrite: bool 
         write_csv(rec, path, overwrite=overwrite)
 
 
-def write_chunks(chunks: Iterable[Recording], path: str | os.PathLike, *, overwrite: bool = True,
-                 meta: Mapping[str, str] | None = None) -> int:
+def write_chunks(
+    chunks: Iterable[Recording],
+    path: str | os.PathLike,
+    *,
+    overwrite: bool = True,
+    meta: Mapping[str, str] | None = None,
+) -> int:
     """Stream chunks into one data file, Parquet or CSV by ``path``'s suffix; atomically."""
     fn = write_parquet_chunks if str(path).lower().endswith(PARQUET_SUFFIXES) else write_csv_chunks
     return fn(chunks, path, overwrite=overwrite, meta=meta)
@@ -1568,6 +1686,13 @@ def concat_recordings(recs: list[Recording]) -> Recording:
         v = [getattr(r, name) for r in recs]
         return None if v[0] is None else np.concatenate(v)
 
-    return Recording(t_s=cat("t_s"), gyro_rad_s=cat("gyro_rad_s"), accel_m_s2=cat("accel_m_s2"), temp_c=cat("temp_c"),
-                     ref_rate_rad_s=cat("ref_rate_rad_s"), ref_quat_wxyz=cat("ref_quat_wxyz"), meta=recs[0].meta,
-                     extra={k: np.concatenate([r.extra[k] for r in recs]) for k in recs[0].extra})
+    return Recording(
+        t_s=cat("t_s"),
+        gyro_rad_s=cat("gyro_rad_s"),
+        accel_m_s2=cat("accel_m_s2"),
+        temp_c=cat("temp_c"),
+        ref_rate_rad_s=cat("ref_rate_rad_s"),
+        ref_quat_wxyz=cat("ref_quat_wxyz"),
+        meta=recs[0].meta,
+        extra={k: np.concatenate([r.extra[k] for r in recs]) for k in recs[0].extra},
+    )

@@ -17,12 +17,33 @@ import numpy as np
 from gyrocore.errors import GyroInputError, warn_repair
 
 from .recording import (
-    ACCEL_COLS, AXES, DEG, DEG_S_SUSPECT_RAD_S, G0_M_S2, GYRO_COLS, REF_QUAT_COLS, REF_RATE_COLS,
-    STILL_NOISE_SUSPECT_RAD_S, TEMP_COL, TIME_COL, Recording, _header_info, _Layout, _Moments, _open_parquet,
-    _robust_noise, _robust_noise_consuming, _sniff_file, _timing_checks, detect_saturation, is_parquet, iter_chunks,
+    ACCEL_COLS,
+    AXES,
+    DEG,
+    DEG_S_SUSPECT_RAD_S,
+    G0_M_S2,
+    GYRO_COLS,
+    REF_QUAT_COLS,
+    REF_RATE_COLS,
+    STILL_NOISE_SUSPECT_RAD_S,
+    TEMP_COL,
+    TIME_COL,
+    Recording,
+    _header_info,
+    _Layout,
+    _Moments,
+    _open_parquet,
+    _robust_noise,
+    _robust_noise_consuming,
+    _sniff_file,
+    _timing_checks,
+    detect_saturation,
+    is_parquet,
+    iter_chunks,
 )
 
 __all__ = ["ColumnSpill", "spill_columns"]
+
 
 class ColumnSpill:
     """The checked columns of a long recording kept on disk, loaded one at a time.
@@ -66,9 +87,12 @@ class ColumnSpill:
         views of the same column: use only that axis), optionally one accel axis likewise."""
         g = self.column(GYRO_COLS[gyro_axis])
         a = None if accel_axis is None else self.column(ACCEL_COLS[accel_axis])
-        return Recording(t_s=self.t_s, gyro_rad_s=np.broadcast_to(g[:, None], (self.n, 3)),
-                         accel_m_s2=None if a is None else np.broadcast_to(a[:, None], (self.n, 3)),
-                         meta=self.meta)
+        return Recording(
+            t_s=self.t_s,
+            gyro_rad_s=np.broadcast_to(g[:, None], (self.n, 3)),
+            accel_m_s2=None if a is None else np.broadcast_to(a[:, None], (self.n, 3)),
+            meta=self.meta,
+        )
 
 
 def _release_arrow_memory() -> None:
@@ -132,8 +156,15 @@ def _checks(store: ColumnSpill, path: str, layout, *, accel: bool, has_accel: bo
             warn_repair(f"{path}: {n_sat} saturated samples (clipped plateaus: {desc}); flagged in column 'saturated'")
 
 
-def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: bool = False, rows: int = 32_768,
-                  repair: bool = True, groups: Iterable[str] = ()) -> ColumnSpill:
+def spill_columns(
+    path: str | os.PathLike,
+    folder: str | os.PathLike,
+    *,
+    accel: bool = False,
+    rows: int = 32_768,
+    repair: bool = True,
+    groups: Iterable[str] = (),
+) -> ColumnSpill:
     """Stream a data file (CSV or Parquet) into per-column files in ``folder``, with the
     same repairs, checks, warnings and errors as :func:`read_recording` — run one column at
     a time, so memory stays O(2 columns) instead of O(all columns).
@@ -202,6 +233,8 @@ def spill_columns(path: str | os.PathLike, folder: str | os.PathLike, *, accel: 
     span = np.subtract(t[-1], t[0], dtype=float)
     with np.errstate(all="ignore"):
         if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
-            raise GyroInputError(f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})")
+            raise GyroInputError(
+                f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})"
+            )
     _checks(store, path, layout, accel=accel, has_accel=has_accel, gyro_peak=max(g_max, -g_min), mom=mom)
     return store

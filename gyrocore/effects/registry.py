@@ -166,8 +166,9 @@ class ModelInputs:
     def _need(self, name: str, effect: str) -> np.ndarray:
         v = getattr(self, name)
         if v is None:
-            col = {"temp_c": "temp_c", "f_S_m_s2": "accel_*", "omega_S_rad_s": "ref_*_rad_s",
-                   "q_SW_wxyz": "ref_q*"}[name]
+            col = {"temp_c": "temp_c", "f_S_m_s2": "accel_*", "omega_S_rad_s": "ref_*_rad_s", "q_SW_wxyz": "ref_q*"}[
+                name
+            ]
             raise GyroInputError(f"effect {effect} needs the {col} column(s), which the data lack")
         return np.asarray(v, float)
 
@@ -182,8 +183,15 @@ KINDS = ("correctable", "output", "stochastic", "physics")
 STAGES = ("rate", "k", "scale", "additive", "filter", "clip")
 #: Model inputs an effect can need (``ModelInputs`` fields / derived signals).
 INPUTS = ("omega", "alpha", "f", "temp", "dtemp", "t", "q")
-_INPUT_COLUMNS = {"omega": "ref_*_rad_s", "alpha": "ref_*_rad_s", "f": "accel_*", "temp": "temp_c",
-                  "dtemp": "temp_c", "q": "ref_q*", "t": "t_s"}
+_INPUT_COLUMNS = {
+    "omega": "ref_*_rad_s",
+    "alpha": "ref_*_rad_s",
+    "f": "accel_*",
+    "temp": "temp_c",
+    "dtemp": "temp_c",
+    "q": "ref_q*",
+    "t": "t_s",
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -274,8 +282,14 @@ class Effect:
         """Data columns the effect needs besides the gyro (``accel``, ``temp_c``, ``ref``...)."""
         out = []
         for i in self.inputs:
-            c = {"f": "accel", "temp": "temp_c", "dtemp": "temp_c", "omega": "ref_rate", "alpha": "ref_rate",
-                 "q": "ref_attitude"}.get(i)
+            c = {
+                "f": "accel",
+                "temp": "temp_c",
+                "dtemp": "temp_c",
+                "omega": "ref_rate",
+                "alpha": "ref_rate",
+                "q": "ref_attitude",
+            }.get(i)
             if c and c not in out:
                 out.append(c)
         return out
@@ -293,7 +307,7 @@ class Effect:
         for pname in self.fit_params:
             shp = tuple(int(order) if d == "p" else d for d in self.schema[pname])
             size = int(np.prod(shp)) if shp else 1
-            part = vec[k:k + size]
+            part = vec[k : k + size]
             out[pname] = part.reshape(shp) if shp else np.asarray(float(part[0]))
             k += size
         if k != vec.size:
@@ -399,8 +413,6 @@ def _shift(t: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
     return np.stack([np.interp(t - tau_s, t, x[:, i]) for i in range(x.shape[1])], axis=1)
 
 
-
-
 # ---------------------------------------------------------------------------- catalogue terms
 def _poly_design(inp: ModelInputs, order: int, t0_c, effect: str, pname: str, rate: bool):
     T = inp._need("temp_c", effect)
@@ -477,76 +489,186 @@ def _earth_inverse(pd, inp, t, omega):
 _C = "correctable"
 #: The catalogue, DESIGN.md order. Each entry is the whole definition of that effect.
 _CATALOGUE: tuple[Effect, ...] = (
-    Effect("bias", _C, {"b_rad_s": (3,)}, "additive", (),
-           term=lambda pd, inp, w: np.asarray(pd["b_rad_s"], float)[None, :],
-           regressors=lambda inp, order, t0: _diag_design(np.ones(inp.n)[:, None] * np.ones(3)[None, :], "b_rad_s"),
-           plausible=1.0, description="constant offset; redrawn at every power-up"),
-    Effect("bias_thermal", _C, {"poly_rad_s": (3, "p"), "t0_c": (), "temp_min_c": (), "temp_max_c": ()},
-           "additive", ("temp",),
-           term=lambda pd, inp, w: _poly(np.asarray(pd["poly_rad_s"], float),
-                                         _clamped_dT(pd, inp._need("temp_c", "bias_thermal"))),
-           regressors=lambda inp, order, t0: _poly_design(inp, order, t0, "bias_thermal", "poly_rad_s", False),
-           plausible=0.05, description="bias polynomial in T − T0 (clamped to the fitted range)"),
-    Effect("bias_temp_rate", _C, {"k_rad_s_per_c_per_s": (3,)}, "additive", ("dtemp",),
-           term=lambda pd, inp, w: inp.temp_rate_c_s()[:, None] * np.asarray(pd["k_rad_s_per_c_per_s"])[None, :],
-           regressors=lambda inp, order, t0: _diag_design(inp.temp_rate_c_s()[:, None] * np.ones(3)[None, :],
-                                                          "k_rad_s_per_c_per_s"),
-           plausible=1.0, description="bias proportional to dT/dt"),
-    Effect("bias_ramp", _C, {"ramp_rad_s2": (3,)}, "additive", ("t",),
-           term=lambda pd, inp, w: inp.since_power_up()[:, None] * np.asarray(pd["ramp_rad_s2"])[None, :],
-           regressors=lambda inp, order, t0: _diag_design(inp.since_power_up()[:, None] * np.ones(3)[None, :],
-                                                          "ramp_rad_s2"),
-           plausible=1e-2, description="bias linear in time since power-up"),
-    Effect("scale", _C, {"s": (3,)}, "k", ("omega",),
-           term=lambda pd: np.diag(np.asarray(pd["s"], float)),
-           regressors=lambda inp, order, t0: _diag_design(inp._need("omega_S_rad_s", "scale"), "s"),
-           plausible=0.5, description="scale-factor error K_ii = 1 + s_i"),
-    Effect("scale_thermal", _C, {"poly_per_c": (3, "p"), "t0_c": (), "temp_min_c": (), "temp_max_c": ()},
-           "scale", ("omega", "temp"),
-           term=lambda pd, inp, w: _poly(np.asarray(pd["poly_per_c"], float),
-                                         _clamped_dT(pd, inp._need("temp_c", "scale_thermal"))),
-           regressors=lambda inp, order, t0: _poly_design(inp, order, t0, "scale_thermal", "poly_per_c", True),
-           plausible=0.01, description="scale polynomial in T − T0"),
-    Effect("scale_asymmetry", _C, {"a": (3,)}, "scale", ("omega",),
-           term=lambda pd, inp, w: np.sign(w) * np.asarray(pd["a"])[None, :],
-           regressors=lambda inp, order, t0: _diag_design(np.abs(inp._need("omega_S_rad_s", "scale_asymmetry")), "a"),
-           plausible=0.2, description="a_i·sign(ω_i)·ω_i"),
-    Effect("scale_nonlinearity", _C, {"s2_s_per_rad": (3,)}, "scale", ("omega",),
-           term=lambda pd, inp, w: np.abs(w) * np.asarray(pd["s2_s_per_rad"])[None, :],
-           regressors=lambda inp, order, t0: _diag_design(
-               (lambda w: w * np.abs(w))(inp._need("omega_S_rad_s", "scale_nonlinearity")), "s2_s_per_rad"),
-           plausible=0.2, description="s2_i·ω_i·|ω_i|"),
-    Effect("misalignment", _C, {"m_rad": (6,)}, "k", ("omega",),
-           term=lambda pd: misalignment_matrix(pd["m_rad"]), regressors=_misalignment_design,
-           plausible=0.2, description="off-diagonal K_ij"),
-    Effect("g_sensitivity", _C, {"h_rad_s_per_m_s2": (3, 3)}, "additive", ("f",),
-           term=lambda pd, inp, w: _rows_times(inp._need("f_S_m_s2", "g_sensitivity"),
-                                               np.asarray(pd["h_rad_s_per_m_s2"])),
-           regressors=_g_design, plausible=5e-3, description="H·f"),
-    Effect("g2_sensitivity", _C, {"g_rad_s_per_m2_s4": (3, 6)}, "additive", ("f",),
-           term=lambda pd, inp, w: _rows_times(_ff(inp._need("f_S_m_s2", "g2_sensitivity")),
-                                               np.asarray(pd["g_rad_s_per_m2_s4"])),
-           regressors=_g2_design, plausible=1e-3, description="G·(f⊗f)"),
-    Effect("time_offset", _C, {"tau_s": ()}, "rate", ("omega", "alpha"),
-           term=lambda pd, inp, t, w: _shift(t, w, float(pd["tau_s"])),
-           inverse=lambda pd, inp, t, w: _shift(t, w, -float(pd["tau_s"])),
-           regressors=_time_offset_design, plausible=1.0, description="ω(t − τ)"),
-    Effect("earth_rate", _C, {"latitude_rad": (), "heading_rad": ()}, "rate", ("q",),
-           term=lambda pd, inp, t, w: w + earth_rate_S(float(pd["latitude_rad"]), float(pd["heading_rad"]),
-                                                       inp._need("q_SW_wxyz", "earth_rate")),
-           inverse=_earth_inverse, priority=-1, description="Earth's rotation seen by the sensor"),
+    Effect(
+        "bias",
+        _C,
+        {"b_rad_s": (3,)},
+        "additive",
+        (),
+        term=lambda pd, inp, w: np.asarray(pd["b_rad_s"], float)[None, :],
+        regressors=lambda inp, order, t0: _diag_design(np.ones(inp.n)[:, None] * np.ones(3)[None, :], "b_rad_s"),
+        plausible=1.0,
+        description="constant offset; redrawn at every power-up",
+    ),
+    Effect(
+        "bias_thermal",
+        _C,
+        {"poly_rad_s": (3, "p"), "t0_c": (), "temp_min_c": (), "temp_max_c": ()},
+        "additive",
+        ("temp",),
+        term=lambda pd, inp, w: _poly(
+            np.asarray(pd["poly_rad_s"], float), _clamped_dT(pd, inp._need("temp_c", "bias_thermal"))
+        ),
+        regressors=lambda inp, order, t0: _poly_design(inp, order, t0, "bias_thermal", "poly_rad_s", False),
+        plausible=0.05,
+        description="bias polynomial in T − T0 (clamped to the fitted range)",
+    ),
+    Effect(
+        "bias_temp_rate",
+        _C,
+        {"k_rad_s_per_c_per_s": (3,)},
+        "additive",
+        ("dtemp",),
+        term=lambda pd, inp, w: inp.temp_rate_c_s()[:, None] * np.asarray(pd["k_rad_s_per_c_per_s"])[None, :],
+        regressors=lambda inp, order, t0: _diag_design(
+            inp.temp_rate_c_s()[:, None] * np.ones(3)[None, :], "k_rad_s_per_c_per_s"
+        ),
+        plausible=1.0,
+        description="bias proportional to dT/dt",
+    ),
+    Effect(
+        "bias_ramp",
+        _C,
+        {"ramp_rad_s2": (3,)},
+        "additive",
+        ("t",),
+        term=lambda pd, inp, w: inp.since_power_up()[:, None] * np.asarray(pd["ramp_rad_s2"])[None, :],
+        regressors=lambda inp, order, t0: _diag_design(
+            inp.since_power_up()[:, None] * np.ones(3)[None, :], "ramp_rad_s2"
+        ),
+        plausible=1e-2,
+        description="bias linear in time since power-up",
+    ),
+    Effect(
+        "scale",
+        _C,
+        {"s": (3,)},
+        "k",
+        ("omega",),
+        term=lambda pd: np.diag(np.asarray(pd["s"], float)),
+        regressors=lambda inp, order, t0: _diag_design(inp._need("omega_S_rad_s", "scale"), "s"),
+        plausible=0.5,
+        description="scale-factor error K_ii = 1 + s_i",
+    ),
+    Effect(
+        "scale_thermal",
+        _C,
+        {"poly_per_c": (3, "p"), "t0_c": (), "temp_min_c": (), "temp_max_c": ()},
+        "scale",
+        ("omega", "temp"),
+        term=lambda pd, inp, w: _poly(
+            np.asarray(pd["poly_per_c"], float), _clamped_dT(pd, inp._need("temp_c", "scale_thermal"))
+        ),
+        regressors=lambda inp, order, t0: _poly_design(inp, order, t0, "scale_thermal", "poly_per_c", True),
+        plausible=0.01,
+        description="scale polynomial in T − T0",
+    ),
+    Effect(
+        "scale_asymmetry",
+        _C,
+        {"a": (3,)},
+        "scale",
+        ("omega",),
+        term=lambda pd, inp, w: np.sign(w) * np.asarray(pd["a"])[None, :],
+        regressors=lambda inp, order, t0: _diag_design(np.abs(inp._need("omega_S_rad_s", "scale_asymmetry")), "a"),
+        plausible=0.2,
+        description="a_i·sign(ω_i)·ω_i",
+    ),
+    Effect(
+        "scale_nonlinearity",
+        _C,
+        {"s2_s_per_rad": (3,)},
+        "scale",
+        ("omega",),
+        term=lambda pd, inp, w: np.abs(w) * np.asarray(pd["s2_s_per_rad"])[None, :],
+        regressors=lambda inp, order, t0: _diag_design(
+            (lambda w: w * np.abs(w))(inp._need("omega_S_rad_s", "scale_nonlinearity")), "s2_s_per_rad"
+        ),
+        plausible=0.2,
+        description="s2_i·ω_i·|ω_i|",
+    ),
+    Effect(
+        "misalignment",
+        _C,
+        {"m_rad": (6,)},
+        "k",
+        ("omega",),
+        term=lambda pd: misalignment_matrix(pd["m_rad"]),
+        regressors=_misalignment_design,
+        plausible=0.2,
+        description="off-diagonal K_ij",
+    ),
+    Effect(
+        "g_sensitivity",
+        _C,
+        {"h_rad_s_per_m_s2": (3, 3)},
+        "additive",
+        ("f",),
+        term=lambda pd, inp, w: _rows_times(inp._need("f_S_m_s2", "g_sensitivity"), np.asarray(pd["h_rad_s_per_m_s2"])),
+        regressors=_g_design,
+        plausible=5e-3,
+        description="H·f",
+    ),
+    Effect(
+        "g2_sensitivity",
+        _C,
+        {"g_rad_s_per_m2_s4": (3, 6)},
+        "additive",
+        ("f",),
+        term=lambda pd, inp, w: _rows_times(
+            _ff(inp._need("f_S_m_s2", "g2_sensitivity")), np.asarray(pd["g_rad_s_per_m2_s4"])
+        ),
+        regressors=_g2_design,
+        plausible=1e-3,
+        description="G·(f⊗f)",
+    ),
+    Effect(
+        "time_offset",
+        _C,
+        {"tau_s": ()},
+        "rate",
+        ("omega", "alpha"),
+        term=lambda pd, inp, t, w: _shift(t, w, float(pd["tau_s"])),
+        inverse=lambda pd, inp, t, w: _shift(t, w, -float(pd["tau_s"])),
+        regressors=_time_offset_design,
+        plausible=1.0,
+        description="ω(t − τ)",
+    ),
+    Effect(
+        "earth_rate",
+        _C,
+        {"latitude_rad": (), "heading_rad": ()},
+        "rate",
+        ("q",),
+        term=lambda pd, inp, t, w: (
+            w + earth_rate_S(float(pd["latitude_rad"]), float(pd["heading_rad"]), inp._need("q_SW_wxyz", "earth_rate"))
+        ),
+        inverse=_earth_inverse,
+        priority=-1,
+        description="Earth's rotation seen by the sensor",
+    ),
     Effect("quantization", "output", {"lsb_rad_s": ()}, "clip", term=_quantize, description="output in LSB steps"),
     Effect("saturation", "output", {"range_rad_s": ()}, "clip", term=_saturate, description="clipping at ±range"),
-    Effect("lowpass", "output", {"bandwidth_hz": ()}, "filter", term=_lowpass,
-           description="on-chip 2nd-order Butterworth low-pass"),
+    Effect(
+        "lowpass",
+        "output",
+        {"bandwidth_hz": ()},
+        "filter",
+        term=_lowpass,
+        description="on-chip 2nd-order Butterworth low-pass",
+    ),
     Effect("arw", "stochastic", {"n_rad_per_sqrt_s": (3,)}, description="white rate noise"),
     Effect("bias_instability", "stochastic", {"b_rad_s": (3,)}, description="flicker bias noise"),
     Effect("rrw", "stochastic", {"k_rad_s_per_sqrt_s": (3,)}, description="rate random walk"),
     Effect("correlated", "stochastic", {"sigma_rad_s": (3,), "tau_c_s": (3,)}, description="Gauss–Markov bias"),
-    Effect("vibration", "physics", {"f_hz": ("n",), "psd_rad2_s2_hz": (3, "n")},
-           description="rotor-driven vibration: from the physics (hover), plus an optional shaped part, a Gaussian "
-                       "disturbance with the one-sided PSD psd_rad2_s2_hz (per axis, (rad/s)²/Hz) on the grid f_hz "
-                       "(sim.noise.ShapedNoise; gyrocore.flight.vibration.shaped_params builds it from a vibration spec)"),
+    Effect(
+        "vibration",
+        "physics",
+        {"f_hz": ("n",), "psd_rad2_s2_hz": (3, "n")},
+        description="rotor-driven vibration: from the physics (hover), plus an optional shaped part, a Gaussian "
+        "disturbance with the one-sided PSD psd_rad2_s2_hz (per axis, (rad/s)²/Hz) on the grid f_hz "
+        "(sim.noise.ShapedNoise; gyrocore.flight.vibration.shaped_params builds it from a vibration spec)",
+    ),
 )
 
 #: Catalogue name -> :class:`Effect` (DESIGN.md order).
@@ -558,18 +680,30 @@ _S = "stochastic"
 #: additive noise with its own stream ``noise/<name>`` in the simulator (``sim.gyro``), injected
 #: by ``--set`` or a sensor TOML ``[terms."<name>"]`` like a family term; no preset sets them.
 _NOISE_TERMS: tuple[Effect, ...] = (
-    Effect("arw_lowpass", _S, {"n_rad_per_sqrt_s": (3,), "bandwidth_hz": ()},
-           description="white rate noise of density N (rad/√s, below the corner) generated before the chip's "
-                       "2nd-order Butterworth low-pass at bandwidth_hz: the filter shapes the noise "
-                       "(the catalogue's lowpass acts on the signal only; its noise is added after it)"),
-    Effect("arw_student", _S, {"n_rad_per_sqrt_s": (3,), "nu": (3,), "bandwidth_hz": ()},
-           defaults={"bandwidth_hz": np.asarray(0.0)},
-           description="heavy-tailed white rate noise: Student t with nu > 2 degrees of freedom scaled to the "
-                       "variance of density N (N²·rate per sample); through the 2nd-order low-pass at "
-                       "bandwidth_hz when > 0"),
-    Effect("angle_white", _S, {"q_rad": (3,)},
-           description="white angle noise (IEEE 952's 'quantization noise' Q, Allan σ² = 3Q²/τ²): an angle "
-                       "sequence of σ = Q per sample, differentiated (rate = Δθ·rate)"),
+    Effect(
+        "arw_lowpass",
+        _S,
+        {"n_rad_per_sqrt_s": (3,), "bandwidth_hz": ()},
+        description="white rate noise of density N (rad/√s, below the corner) generated before the chip's "
+        "2nd-order Butterworth low-pass at bandwidth_hz: the filter shapes the noise "
+        "(the catalogue's lowpass acts on the signal only; its noise is added after it)",
+    ),
+    Effect(
+        "arw_student",
+        _S,
+        {"n_rad_per_sqrt_s": (3,), "nu": (3,), "bandwidth_hz": ()},
+        defaults={"bandwidth_hz": np.asarray(0.0)},
+        description="heavy-tailed white rate noise: Student t with nu > 2 degrees of freedom scaled to the "
+        "variance of density N (N²·rate per sample); through the 2nd-order low-pass at "
+        "bandwidth_hz when > 0",
+    ),
+    Effect(
+        "angle_white",
+        _S,
+        {"q_rad": (3,)},
+        description="white angle noise (IEEE 952's 'quantization noise' Q, Allan σ² = 3Q²/τ²): an angle "
+        "sequence of σ = Q per sample, differentiated (rate = Δθ·rate)",
+    ),
 )
 #: Noise-term name -> :class:`Effect` (registered outside the catalogue; see :data:`_NOISE_TERMS`).
 NOISE_TERMS: dict[str, Effect] = {e.name: e for e in _NOISE_TERMS}
@@ -594,8 +728,20 @@ OUTPUT_STAGE: tuple[str, ...] = ("lowpass", "saturation", "quantization")
 #: Signal names of ``regressor[<expr>]`` (DESIGN.md "Effects outside the catalogue"), in the
 #: canonical order of a product: reference rate ω (S, rad/s), its time derivative α (rad/s²),
 #: specific force f (m/s²), temperature (°C), its rate (°C/s), time since power-up (s).
-SIGNALS: tuple[str, ...] = ("omega_x", "omega_y", "omega_z", "alpha_x", "alpha_y", "alpha_z",
-                            "f_x", "f_y", "f_z", "temp_c", "dtemp_dt", "t")
+SIGNALS: tuple[str, ...] = (
+    "omega_x",
+    "omega_y",
+    "omega_z",
+    "alpha_x",
+    "alpha_y",
+    "alpha_z",
+    "f_x",
+    "f_y",
+    "f_z",
+    "temp_c",
+    "dtemp_dt",
+    "t",
+)
 _SIGNAL_INPUT = {"omega": "omega", "alpha": "alpha", "f": "f", "temp_c": "temp", "dtemp_dt": "dtemp", "t": "t"}
 #: Highest total degree of a regressor expression.
 MAX_DEGREE = 3
@@ -635,15 +781,18 @@ def parse_expr(text: str, *, name: str | None = None) -> tuple[tuple[str, int], 
     label = name or f"regressor[{text}]"
     parts = [p.strip() for p in str(text).split("*")]
     if not parts or any(not p for p in parts):
-        raise GyroInputError(f"effect '{label}': expected a product of signals like omega_y*omega_z or f_x^2 "
-                             f"(signals: {', '.join(SIGNALS)})")
+        raise GyroInputError(
+            f"effect '{label}': expected a product of signals like omega_y*omega_z or f_x^2 "
+            f"(signals: {', '.join(SIGNALS)})"
+        )
     powers: dict[str, int] = {}
     for p in parts:
         p = re.sub(r"\s*\^\s*", "^", p)
         m = _FACTOR_RE.match(p)
         if not m:
-            raise GyroInputError(f"effect '{label}': cannot read '{p}' (a signal, optionally ^k; "
-                                 f"signals: {', '.join(SIGNALS)})")
+            raise GyroInputError(
+                f"effect '{label}': cannot read '{p}' (a signal, optionally ^k; signals: {', '.join(SIGNALS)})"
+            )
         sig, k = m.group(1), int(m.group(2) or 1)
         if sig not in SIGNALS:
             raise GyroInputError(f"effect '{label}': unknown signal '{sig}'; signals: {', '.join(SIGNALS)}")
@@ -702,7 +851,10 @@ def _periodic_effect(name: str, f_hz: float) -> Effect:
 
     def term(pd, inp, omega):
         c, s = cs(inp)
-        return c[:, None] * np.asarray(pd["a_cos_rad_s"], float)[None, :] + s[:, None] * np.asarray(pd["a_sin_rad_s"], float)[None, :]
+        return (
+            c[:, None] * np.asarray(pd["a_cos_rad_s"], float)[None, :]
+            + s[:, None] * np.asarray(pd["a_sin_rad_s"], float)[None, :]
+        )
 
     def regs(inp, order, t0):
         c, s = cs(inp)
@@ -712,10 +864,20 @@ def _periodic_effect(name: str, f_hz: float) -> Effect:
             A[:, i, 3 + i] = s
         return [f"a_cos_rad_s[{i}]" for i in range(3)] + [f"a_sin_rad_s[{i}]" for i in range(3)], A
 
-    return Effect(name, _C, {"a_cos_rad_s": (3,), "a_sin_rad_s": (3,)}, "additive", ("t",), term=term,
-                  regressors=regs, family="periodic", arg=f_hz, plausible=1.0,
-                  defaults={"a_cos_rad_s": np.zeros(3), "a_sin_rad_s": np.zeros(3)},
-                  description=f"a_cos·cos(2π·{_fmt_float(f_hz)} Hz·t_s) + a_sin·sin(…) per axis")
+    return Effect(
+        name,
+        _C,
+        {"a_cos_rad_s": (3,), "a_sin_rad_s": (3,)},
+        "additive",
+        ("t",),
+        term=term,
+        regressors=regs,
+        family="periodic",
+        arg=f_hz,
+        plausible=1.0,
+        defaults={"a_cos_rad_s": np.zeros(3), "a_sin_rad_s": np.zeros(3)},
+        description=f"a_cos·cos(2π·{_fmt_float(f_hz)} Hz·t_s) + a_sin·sin(…) per axis",
+    )
 
 
 def _step_effect(name: str, t_step_s: float) -> Effect:
@@ -725,15 +887,26 @@ def _step_effect(name: str, t_step_s: float) -> Effect:
     def term(pd, inp, omega):
         return g(inp)[:, None] * np.asarray(pd["size_rad_s"], float)[None, :]
 
-    return Effect(name, _C, {"size_rad_s": (3,)}, "additive", ("t",), term=term,
-                  regressors=lambda inp, order, t0: _diag_design(g(inp)[:, None] * np.ones(3)[None, :], "size_rad_s"),
-                  family="step", arg=t_step_s, plausible=1.0, defaults={"size_rad_s": np.zeros(3)},
-                  description=f"bias step of size_rad_s at t_s ≥ {_fmt_float(t_step_s)} s")
+    return Effect(
+        name,
+        _C,
+        {"size_rad_s": (3,)},
+        "additive",
+        ("t",),
+        term=term,
+        regressors=lambda inp, order, t0: _diag_design(g(inp)[:, None] * np.ones(3)[None, :], "size_rad_s"),
+        family="step",
+        arg=t_step_s,
+        plausible=1.0,
+        defaults={"size_rad_s": np.zeros(3)},
+        description=f"bias step of size_rad_s at t_s ≥ {_fmt_float(t_step_s)} s",
+    )
 
 
 def _regressor_effect(name: str, factors) -> Effect:
-    inputs = tuple(dict.fromkeys(_SIGNAL_INPUT[s.rsplit("_", 1)[0] if s[-2:] in ("_x", "_y", "_z") else s]
-                                 for s, _ in factors))
+    inputs = tuple(
+        dict.fromkeys(_SIGNAL_INPUT[s.rsplit("_", 1)[0] if s[-2:] in ("_x", "_y", "_z") else s] for s, _ in factors)
+    )
 
     def term(pd, inp, omega):
         return _expr_value(factors, inp, omega, name)[:, None] * np.asarray(pd["coef"], float)[None, :]
@@ -742,9 +915,19 @@ def _regressor_effect(name: str, factors) -> Effect:
         g = _expr_value(factors, inp, None, name)
         return _diag_design(g[:, None] * np.ones(3)[None, :], "coef")
 
-    return Effect(name, _C, {"coef": (3,)}, "additive", inputs, term=term, regressors=regs,
-                  family="regressor", arg=factors, defaults={"coef": np.zeros(3)},
-                  description=f"coef (rad/s per unit) × {_expr_text(factors)} per axis")
+    return Effect(
+        name,
+        _C,
+        {"coef": (3,)},
+        "additive",
+        inputs,
+        term=term,
+        regressors=regs,
+        family="regressor",
+        arg=factors,
+        defaults={"coef": np.zeros(3)},
+        description=f"coef (rad/s per unit) × {_expr_text(factors)} per axis",
+    )
 
 
 #: Open families: family name -> (argument parser -> canonical text and value, Effect factory).
@@ -768,8 +951,10 @@ def is_family(name: str) -> bool:
 
 
 def _unknown(name: str) -> GyroInputError:
-    return GyroInputError(f"unknown effect '{name}'; known effects: {', '.join(EFFECTS)}; "
-                          f"noise terms: {', '.join(NOISE_TERMS)}; families: periodic[<f_hz>], step[<t_s>], regressor[<expr>]")
+    return GyroInputError(
+        f"unknown effect '{name}'; known effects: {', '.join(EFFECTS)}; "
+        f"noise terms: {', '.join(NOISE_TERMS)}; families: periodic[<f_hz>], step[<t_s>], regressor[<expr>]"
+    )
 
 
 @lru_cache(maxsize=4096)
@@ -848,7 +1033,13 @@ def catalogue_equivalent(term: str, axis) -> str | None:
         by the three axes, a single column across them) and ``omega_i^2`` (even in ω;
         ``scale_nonlinearity``'s ω|ω| is odd).
     """
-    i = axis if isinstance(axis, (int, np.integer)) else "xyz".index(str(axis)) if str(axis) in ("x", "y", "z") else None
+    i = (
+        axis
+        if isinstance(axis, (int, np.integer))
+        else "xyz".index(str(axis))
+        if str(axis) in ("x", "y", "z")
+        else None
+    )
     if i is None or not 0 <= int(i) <= 2:
         raise GyroInputError(f"axis must be x, y, z or 0..2, got {axis!r}")
     ax = "xyz"[int(i)]
@@ -951,9 +1142,7 @@ def validate_params(params: Params) -> dict[str, dict[str, np.ndarray]]:
             if pname not in pdict:
                 raise GyroInputError(f"effect {eff}: missing parameter {pname}")
             v = np.asarray(pdict[pname], float)
-            if len(v.shape) != len(shape) or any(
-                s not in ("p", "n") and s != d for s, d in zip(shape, v.shape)
-            ):
+            if len(v.shape) != len(shape) or any(s not in ("p", "n") and s != d for s, d in zip(shape, v.shape)):
                 raise GyroInputError(f"effect {eff}: parameter {pname} has shape {v.shape}, expected {shape}")
             if not np.all(np.isfinite(v)):
                 raise GyroInputError(f"effect {eff}: parameter {pname} is not finite")
@@ -987,8 +1176,7 @@ def k_matrix(params: Params) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- forward
-def _additive(params: Params, inp: ModelInputs, omega: np.ndarray | None = None, *,
-              which: str = "all") -> np.ndarray:
+def _additive(params: Params, inp: ModelInputs, omega: np.ndarray | None = None, *, which: str = "all") -> np.ndarray:
     """Additive terms b(T, t) + H·f + G·(f⊗f) + family terms, shape (N, 3).
 
     ``which``: ``"all"``, ``"static"`` (terms that do not depend on ω) or ``"rate"`` (those
@@ -1133,14 +1321,18 @@ def correct(params: Params, gyro_rad_s: np.ndarray, inp: ModelInputs, *, iterati
         def inp_at(w):
             return _replace(base_inp, alpha_S_rad_s2=_smooth_derivative(np.asarray(base_inp.t_s, float), w))
     else:
+
         def inp_at(w):
             return inp
+
     z = y - (_additive(params, inp, which="static") if rate_add else _additive(params, inp))
     Kinv = np.linalg.inv(k_matrix(params))
     omega = z @ Kinv.T
     if rate_add:
         for _ in range(iterations):
-            omega = (z - _scale_diag(params, inp, omega) * omega - _additive(params, inp_at(omega), omega, which="rate")) @ Kinv.T
+            omega = (
+                z - _scale_diag(params, inp, omega) * omega - _additive(params, inp_at(omega), omega, which="rate")
+            ) @ Kinv.T
     elif _stage(params, "scale"):
         for _ in range(iterations):
             omega = (z - _scale_diag(params, inp, omega) * omega) @ Kinv.T
@@ -1151,8 +1343,7 @@ def correct(params: Params, gyro_rad_s: np.ndarray, inp: ModelInputs, *, iterati
 
 
 # ---------------------------------------------------------------------------- regressors
-def design(effect: str, inp: ModelInputs, *, order: int = 1,
-           t0_c: float | None = None) -> tuple[list[str], np.ndarray]:
+def design(effect: str, inp: ModelInputs, *, order: int = 1, t0_c: float | None = None) -> tuple[list[str], np.ndarray]:
     """Regressors of one effect: ∂(measurement)/∂(parameters), linearised at zero error.
 
     Parameters

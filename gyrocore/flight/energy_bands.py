@@ -65,8 +65,17 @@ from scipy.ndimage import median_filter, uniform_filter1d
 
 from gyrocore.data.jsonable import to_jsonable
 
-__all__ = ["EXTENT_HEIGHT", "HANN_SUM_VARIANCE_FACTOR", "MEDIAN_BINS", "MIN_PEAK_TO_BASE", "attach", "band_interval",
-           "dominant_vibration", "find_bands", "link_bands"]
+__all__ = [
+    "EXTENT_HEIGHT",
+    "HANN_SUM_VARIANCE_FACTOR",
+    "MEDIAN_BINS",
+    "MIN_PEAK_TO_BASE",
+    "attach",
+    "band_interval",
+    "dominant_vibration",
+    "find_bands",
+    "link_bands",
+]
 
 #: Running-median (then running-mean) length, bins: removes features narrower than 6 bins (a line), keeps bands.
 MEDIAN_BINS = 11
@@ -96,8 +105,9 @@ def _smooth(x: np.ndarray) -> np.ndarray | None:
     return uniform_filter1d(m, size=MEDIAN_BINS, mode="nearest")
 
 
-def _bands_one_axis(f: np.ndarray, s: np.ndarray, *, nu: float, search: np.ndarray, rms_mask: np.ndarray,
-                    reliable_hz: float, axis: str) -> list[dict]:
+def _bands_one_axis(
+    f: np.ndarray, s: np.ndarray, *, nu: float, search: np.ndarray, rms_mask: np.ndarray, reliable_hz: float, axis: str
+) -> list[dict]:
     df = float(f[1] - f[0])
     idx = np.flatnonzero(search)
     if idx.size < 3 * MEDIAN_BINS:
@@ -130,9 +140,9 @@ def _bands_one_axis(f: np.ndarray, s: np.ndarray, *, nu: float, search: np.ndarr
         for a, b in taken:
             if lo < b and hi > a:
                 if peaks[j] > b:
-                    lo = max(lo, float(np.argmin(sm[int(b):peaks[j] + 1]) + int(b)))
+                    lo = max(lo, float(np.argmin(sm[int(b) : peaks[j] + 1]) + int(b)))
                 elif peaks[j] < a:
-                    hi = min(hi, float(np.argmin(sm[peaks[j]:math.ceil(a) + 1]) + peaks[j]))
+                    hi = min(hi, float(np.argmin(sm[peaks[j] : math.ceil(a) + 1]) + peaks[j]))
                 else:
                     lo = hi  # its peak inside a stronger band: part of it
         if hi - lo < 1.0:
@@ -154,28 +164,37 @@ def _bands_one_axis(f: np.ndarray, s: np.ndarray, *, nu: float, search: np.ndarr
         pw_rms = float(np.sum(sk[in_rms]) * df)
         f0 = float(f[idx[0]])
         e_lo, e_hi = max(float(lo_ips[j]), lo), min(float(hi_ips[j]), hi)
-        out.append({
-            "axis": axis, "peak_hz": float(f[idx[peaks[j]]]),
-            "centre_hz": float(np.sum(fk[fin] * sk[fin]) / np.sum(sk[fin])),
-            "edges_hz": [f0 + e_lo * df, f0 + e_hi * df], "width_hz": (e_hi - e_lo) * df,
-            "extent_hz": [f0 + lo * df, f0 + hi * df],
-            "power_rad2_s2": pw, "rms_rad_s": math.sqrt(pw),
-            "share_of_power_above_40hz": pw_rms / total if total > 0 else float("nan"),
-            "power_above_reliable_fraction": float(1.0 - pw_rms / pw) if pw > 0 else 0.0,
-            "level_reliable": bool(f0 + hi * df < reliable_hz),
-            "peak_over_floor": float(sm[peaks[j]] / b0) if b0 > 0 else float("inf"),
-            "peak_over_median_psd": float(sm[peaks[j]] / med) if med > 0 else float("nan"),
-            "excess_z": excess / se if se > 0 else float("inf"),
-        })
+        out.append(
+            {
+                "axis": axis,
+                "peak_hz": float(f[idx[peaks[j]]]),
+                "centre_hz": float(np.sum(fk[fin] * sk[fin]) / np.sum(sk[fin])),
+                "edges_hz": [f0 + e_lo * df, f0 + e_hi * df],
+                "width_hz": (e_hi - e_lo) * df,
+                "extent_hz": [f0 + lo * df, f0 + hi * df],
+                "power_rad2_s2": pw,
+                "rms_rad_s": math.sqrt(pw),
+                "share_of_power_above_40hz": pw_rms / total if total > 0 else float("nan"),
+                "power_above_reliable_fraction": float(1.0 - pw_rms / pw) if pw > 0 else 0.0,
+                "level_reliable": bool(f0 + hi * df < reliable_hz),
+                "peak_over_floor": float(sm[peaks[j]] / b0) if b0 > 0 else float("inf"),
+                "peak_over_median_psd": float(sm[peaks[j]] / med) if med > 0 else float("nan"),
+                "excess_z": excess / se if se > 0 else float("inf"),
+            }
+        )
     return out
 
 
 def _order_key(b: dict):
-    return (-b["share_of_power_above_40hz"] if np.isfinite(b["share_of_power_above_40hz"]) else 0.0, -b["power_rad2_s2"])
+    return (
+        -b["share_of_power_above_40hz"] if np.isfinite(b["share_of_power_above_40hz"]) else 0.0,
+        -b["power_rad2_s2"],
+    )
 
 
-def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, nu: float, fmin_hz: float, reliable_below_hz: float,
-               rms_lo_hz: float = 40.0) -> list[dict]:
+def find_bands(
+    f_hz: np.ndarray, psd: np.ndarray, *, nu: float, fmin_hz: float, reliable_below_hz: float, rms_lo_hz: float = 40.0
+) -> list[dict]:
     """Energy bands of an averaged PSD (see the module docstring), all axes, ordered by their share.
 
     Parameters
@@ -210,14 +229,29 @@ def find_bands(f_hz: np.ndarray, psd: np.ndarray, *, nu: float, fmin_hz: float, 
     rms_mask = (f >= rms_lo_hz) & (f < reliable_below_hz + 0.5 * df)
     out = []
     for j, a in enumerate(AXES):
-        out += _bands_one_axis(f, np.asarray(psd[:, j], float), nu=nu, search=search, rms_mask=rms_mask,
-                               reliable_hz=reliable_below_hz, axis=a)
+        out += _bands_one_axis(
+            f,
+            np.asarray(psd[:, j], float),
+            nu=nu,
+            search=search,
+            rms_mask=rms_mask,
+            reliable_hz=reliable_below_hz,
+            axis=a,
+        )
     out.sort(key=_order_key)
     return out
 
 
-def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz: Sequence[float], *,
-                  rms_lo_hz: float, reliable_below_hz: float, k_eff: float) -> dict:
+def band_interval(
+    f_hz: np.ndarray,
+    psd_windows: np.ndarray,
+    axis: int,
+    edges_hz: Sequence[float],
+    *,
+    rms_lo_hz: float,
+    reliable_below_hz: float,
+    k_eff: float,
+) -> dict:
     """Standard errors of a band's power, share and centre from the spread of the per-window values.
 
     ``psd_windows`` (K, M, 3): the windows' PSDs; ``edges_hz``: the span integrated (the
@@ -241,16 +275,35 @@ def band_interval(f_hz: np.ndarray, psd_windows: np.ndarray, axis: int, edges_hz
     s = N.sum() / D.sum() if D.sum() > 0 else float("nan")
     c = C.sum() / B.sum() if B.sum() > 0 else float("nan")
     if K < 2:
-        return {"power": float(B.mean()), "power_se": float("nan"), "share": s, "share_se": float("nan"), "centre_hz": c,
-                "centre_se_hz": float("nan")}
+        return {
+            "power": float(B.mean()),
+            "power_se": float("nan"),
+            "share": s,
+            "share_se": float("nan"),
+            "centre_hz": c,
+            "centre_se_hz": float("nan"),
+        }
     se_s = float(np.std(N - s * D, ddof=1) / math.sqrt(k_eff) / D.mean()) if D.mean() > 0 else float("nan")
     se_c = float(np.std(C - c * B, ddof=1) / math.sqrt(k_eff) / B.mean()) if B.mean() > 0 else float("nan")
-    return {"power": float(B.mean()), "power_se": float(np.std(B, ddof=1) / math.sqrt(k_eff)), "share": float(s),
-            "share_se": se_s, "centre_hz": float(c), "centre_se_hz": se_c}
+    return {
+        "power": float(B.mean()),
+        "power_se": float(np.std(B, ddof=1) / math.sqrt(k_eff)),
+        "share": float(s),
+        "share_se": se_s,
+        "centre_hz": float(c),
+        "centre_se_hz": se_c,
+    }
 
 
-def link_bands(flight: list[dict], per_band: list[list[dict]], band_rows: list[dict], *, rate_hz: float,
-               resolution_hz: float, has_bv: bool) -> None:
+def link_bands(
+    flight: list[dict],
+    per_band: list[list[dict]],
+    band_rows: list[dict],
+    *,
+    rate_hz: float,
+    resolution_hz: float,
+    has_bv: bool,
+) -> None:
     """Add ``per_band`` entries and the throttle / eRPM law to each whole-flight band (in place).
 
     ``per_band[b]``: the bands found in throttle band b; ``band_rows[b]``: that band's row
@@ -270,11 +323,19 @@ def link_bands(flight: list[dict], per_band: list[list[dict]], band_rows: list[d
                 if ov > ov_best:
                     best, ov_best = b, ov
             if best is not None:
-                rows.append({"band": bi, "throttle_median": float(band_rows[bi]["median"]), "centre_hz": best["centre_hz"],
-                             "peak_hz": best["peak_hz"], "edges_hz": best["edges_hz"], "width_hz": best["width_hz"],
-                             "extent_hz": best["extent_hz"],
-                             "power_rad2_s2": best["power_rad2_s2"],
-                             "share_of_power_above_40hz": best["share_of_power_above_40hz"]})
+                rows.append(
+                    {
+                        "band": bi,
+                        "throttle_median": float(band_rows[bi]["median"]),
+                        "centre_hz": best["centre_hz"],
+                        "peak_hz": best["peak_hz"],
+                        "edges_hz": best["edges_hz"],
+                        "width_hz": best["width_hz"],
+                        "extent_hz": best["extent_hz"],
+                        "power_rad2_s2": best["power_rad2_s2"],
+                        "share_of_power_above_40hz": best["share_of_power_above_40hz"],
+                    }
+                )
         e["per_band"] = rows
         e["follows"] = None if not has_bv else "fixed"
         if not has_bv or len(rows) < 3:
@@ -290,8 +351,12 @@ def link_bands(flight: list[dict], per_band: list[list[dict]], band_rows: list[d
         # feature (a folded line at high throttle) does not drag the law; 95 % interval of the slope
         slope, icpt, s_lo, s_hi = stats.theilslopes(c, u, alpha=0.95)
         slope, icpt = float(slope), float(icpt)
-        e["law"] = {"kind": "centre = hz_at_zero + hz_per_unit * band variable (Theil-Sen)", "hz_at_zero": icpt,
-                    "hz_per_unit": slope, "hz_per_unit_interval": [float(s_lo), float(s_hi)]}
+        e["law"] = {
+            "kind": "centre = hz_at_zero + hz_per_unit * band variable (Theil-Sen)",
+            "hz_at_zero": icpt,
+            "hz_per_unit": slope,
+            "hz_per_unit_interval": [float(s_lo), float(s_hi)],
+        }
         moving = abs(slope) * np.ptp(u) > 3 * res and not (s_lo <= 0.0 <= s_hi)
         if moving:
             e["follows"] = "throttle"
@@ -314,30 +379,64 @@ def dominant_vibration(bands: list[dict], lines: list[dict]) -> dict:
     out = {}
     for a in AXES:
         bs = [b for b in bands if b["axis"] == a]
-        ls = [ln for ln in lines if ln["axis"] == a
-              and not any(b["extent_hz"][0] <= ln["frequency_hz"] <= b["extent_hz"][1] for b in bs)]
+        ls = [
+            ln
+            for ln in lines
+            if ln["axis"] == a and not any(b["extent_hz"][0] <= ln["frequency_hz"] <= b["extent_hz"][1] for b in bs)
+        ]
         cand = []
         if bs:
             b = bs[0]
-            cand.append(((b["power_rad2_s2"] * (1.0 - b["power_above_reliable_fraction"]), b["power_rad2_s2"]),
-                         {"kind": "band", "frequency_hz": b["centre_hz"], "edges_hz": b["edges_hz"],
-                          "extent_hz": b["extent_hz"],
-                          "level_reliable": b["level_reliable"], "power_rad2_s2": b["power_rad2_s2"],
-                          "share_of_power_above_40hz": b["share_of_power_above_40hz"]}))
+            cand.append(
+                (
+                    (b["power_rad2_s2"] * (1.0 - b["power_above_reliable_fraction"]), b["power_rad2_s2"]),
+                    {
+                        "kind": "band",
+                        "frequency_hz": b["centre_hz"],
+                        "edges_hz": b["edges_hz"],
+                        "extent_hz": b["extent_hz"],
+                        "level_reliable": b["level_reliable"],
+                        "power_rad2_s2": b["power_rad2_s2"],
+                        "share_of_power_above_40hz": b["share_of_power_above_40hz"],
+                    },
+                )
+            )
         for ln in ls:
             p = ln["amplitude_rad_s"] ** 2 / 2.0
             rel = bool(ln.get("level_reliable", True))
-            cand.append(((p if rel else 0.0, p), {"kind": "line", "frequency_hz": ln["frequency_hz"], "power_rad2_s2": p,
-                                                  "follows": ln.get("follows"), "level_reliable": rel}))
+            cand.append(
+                (
+                    (p if rel else 0.0, p),
+                    {
+                        "kind": "line",
+                        "frequency_hz": ln["frequency_hz"],
+                        "power_rad2_s2": p,
+                        "follows": ln.get("follows"),
+                        "level_reliable": rel,
+                    },
+                )
+            )
         if cand:
             out[a] = max(cand, key=lambda c: c[0])[1]
     return out
 
 
-def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band_psd: Sequence[np.ndarray],
-           band_rows: list[dict], lines: list[dict], *, fmin_hz: float, reliable_below_hz: float, rate_hz: float,
-           has_bv: bool, dof: Callable[[int], float], resolution_hz: float,
-           band_windows: Sequence[np.ndarray] | None = None) -> tuple[list[dict], dict]:
+def attach(
+    f_hz: np.ndarray,
+    psd_windows: np.ndarray,
+    mean_psd: np.ndarray,
+    band_psd: Sequence[np.ndarray],
+    band_rows: list[dict],
+    lines: list[dict],
+    *,
+    fmin_hz: float,
+    reliable_below_hz: float,
+    rate_hz: float,
+    has_bv: bool,
+    dof: Callable[[int], float],
+    resolution_hz: float,
+    band_windows: Sequence[np.ndarray] | None = None,
+) -> tuple[list[dict], dict]:
     """The energy bands of an analysis: whole flight (``mean_psd`` over the K windows of
     ``psd_windows`` (K, M, 3)) with power/share/centre standard errors and their throttle law, and
     per throttle band (``band_psd[b]``, written into ``band_rows[b]["energy_bands"]``; with
@@ -350,23 +449,42 @@ def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band
     flight = find_bands(f, mean_psd, nu=dof(max(K, 1)), fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz)
     per = []
     for row, pb in zip(band_rows, band_psd):
-        bl = find_bands(f, pb, nu=dof(max(int(row["n_windows"]), 1)), fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz)
+        bl = find_bands(
+            f, pb, nu=dof(max(int(row["n_windows"]), 1)), fmin_hz=fmin_hz, reliable_below_hz=reliable_below_hz
+        )
         row["energy_bands"] = bl
         per.append(bl)
     if band_windows is not None:
         for bl, sel in zip(per, band_windows):
             pw_sel = psd_windows[sel] if bl else None  # one copy of the band's windows, not one per energy band
             for e in bl:
-                iv = band_interval(f, pw_sel, AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
-                                   reliable_below_hz=reliable_below_hz, k_eff=dof(int(sel.sum())) / 2.0)
+                iv = band_interval(
+                    f,
+                    pw_sel,
+                    AXES.index(e["axis"]),
+                    e["extent_hz"],
+                    rms_lo_hz=40.0,
+                    reliable_below_hz=reliable_below_hz,
+                    k_eff=dof(int(sel.sum())) / 2.0,
+                )
                 e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
     for e in flight:
-        iv = band_interval(f, psd_windows, AXES.index(e["axis"]), e["extent_hz"], rms_lo_hz=40.0,
-                           reliable_below_hz=reliable_below_hz, k_eff=dof(K) / 2.0)
+        iv = band_interval(
+            f,
+            psd_windows,
+            AXES.index(e["axis"]),
+            e["extent_hz"],
+            rms_lo_hz=40.0,
+            reliable_below_hz=reliable_below_hz,
+            k_eff=dof(K) / 2.0,
+        )
         e.update(power_se=iv["power_se"], share_se=iv["share_se"], centre_se_hz=iv["centre_se_hz"])
         lo, hi = e["extent_hz"]
-        e["lines_inside"] = [{"frequency_hz": ln["frequency_hz"], "follows": ln["follows"], "amplitude_rad_s": ln["amplitude_rad_s"]}
-                             for ln in lines if ln["axis"] == e["axis"] and lo <= ln["frequency_hz"] <= hi]
+        e["lines_inside"] = [
+            {"frequency_hz": ln["frequency_hz"], "follows": ln["follows"], "amplitude_rad_s": ln["amplitude_rad_s"]}
+            for ln in lines
+            if ln["axis"] == e["axis"] and lo <= ln["frequency_hz"] <= hi
+        ]
     if len(band_rows) > 1:
         link_bands(flight, per, band_rows, rate_hz=rate_hz, resolution_hz=resolution_hz, has_bv=has_bv)
     else:
@@ -377,4 +495,3 @@ def attach(f_hz: np.ndarray, psd_windows: np.ndarray, mean_psd: np.ndarray, band
     for row in band_rows:
         row["energy_bands"] = to_jsonable(row["energy_bands"])
     return to_jsonable(flight), to_jsonable(dominant_vibration(flight, lines))
-

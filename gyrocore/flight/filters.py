@@ -123,8 +123,16 @@ class SosFilter:
         Channels of the streaming path (3 for a gyro).
     """
 
-    def __init__(self, sos, *, rate_hz: float, name: str, cutoff_hz: float = float("nan"),
-                 start: str = "steady", n_channels: int = 3) -> None:
+    def __init__(
+        self,
+        sos,
+        *,
+        rate_hz: float,
+        name: str,
+        cutoff_hz: float = float("nan"),
+        start: str = "steady",
+        n_channels: int = 3,
+    ) -> None:
         sos = np.atleast_2d(np.asarray(sos, float))
         if sos.ndim != 2 or sos.shape[1] != 6 or sos.shape[0] < 1:
             raise GyroInputError(f"sos must have shape (S, 6), got {sos.shape}")
@@ -239,19 +247,23 @@ def _first_order_row(k: float) -> list[float]:
 def article_lpf(fc_hz: float, rate_hz: float, *, start: str = "steady") -> SosFilter:
     """The article's first-order low-pass, A = 1/(1 + 1/(2π·T·fc)) (same as Betaflight PT1)."""
     A = article_lpf_coefficient(fc_hz, rate_hz)
-    return SosFilter([_first_order_row(A)], rate_hz=rate_hz, name=f"article 1st-order {fc_hz:g} Hz",
-                     cutoff_hz=fc_hz, start=start)
+    return SosFilter(
+        [_first_order_row(A)], rate_hz=rate_hz, name=f"article 1st-order {fc_hz:g} Hz", cutoff_hz=fc_hz, start=start
+    )
 
 
 def _ptn(order: int, fc_hz: float, rate_hz: float, start: str) -> SosFilter:
     _check_fc(fc_hz, rate_hz)
     fc_sec = fc_hz * pt_cutoff_correction(order)
     if fc_sec >= rate_hz / 2:
-        raise GyroInputError(f"PT{order} at {fc_hz} Hz needs sections at {fc_sec:.1f} Hz, above Nyquist at {rate_hz:g} Hz")
+        raise GyroInputError(
+            f"PT{order} at {fc_hz} Hz needs sections at {fc_sec:.1f} Hz, above Nyquist at {rate_hz:g} Hz"
+        )
     w = 2.0 * math.pi * fc_sec / rate_hz
     k = w / (w + 1.0)
-    return SosFilter([_first_order_row(k)] * order, rate_hz=rate_hz, name=f"pt{order} {fc_hz:g} Hz",
-                     cutoff_hz=fc_hz, start=start)
+    return SosFilter(
+        [_first_order_row(k)] * order, rate_hz=rate_hz, name=f"pt{order} {fc_hz:g} Hz", cutoff_hz=fc_hz, start=start
+    )
 
 
 def pt1(fc_hz: float, rate_hz: float, *, start: str = "steady") -> SosFilter:
@@ -285,14 +297,20 @@ def _rbj(kind: str, f0_hz: float, rate_hz: float, q: float) -> list[float]:
 
 def biquad_lowpass(fc_hz: float, rate_hz: float, *, q: float = 1 / math.sqrt(2), start: str = "steady") -> SosFilter:
     """RBJ cookbook biquad low-pass (Q = 1/√2: 2nd-order Butterworth, Betaflight's default)."""
-    return SosFilter([_rbj("lowpass", fc_hz, rate_hz, q)], rate_hz=rate_hz, name=f"biquad {fc_hz:g} Hz",
-                     cutoff_hz=fc_hz, start=start)
+    return SosFilter(
+        [_rbj("lowpass", fc_hz, rate_hz, q)], rate_hz=rate_hz, name=f"biquad {fc_hz:g} Hz", cutoff_hz=fc_hz, start=start
+    )
 
 
 def biquad_notch(f0_hz: float, rate_hz: float, *, q: float = 3.0, start: str = "steady") -> SosFilter:
     """RBJ cookbook notch at ``f0_hz`` (bandwidth f0/Q)."""
-    return SosFilter([_rbj("notch", f0_hz, rate_hz, q)], rate_hz=rate_hz, name=f"notch {f0_hz:g} Hz Q{q:g}",
-                     cutoff_hz=f0_hz, start=start)
+    return SosFilter(
+        [_rbj("notch", f0_hz, rate_hz, q)],
+        rate_hz=rate_hz,
+        name=f"notch {f0_hz:g} Hz Q{q:g}",
+        cutoff_hz=f0_hz,
+        start=start,
+    )
 
 
 def butterworth(fc_hz: float, rate_hz: float, *, order: int = 2, start: str = "steady") -> SosFilter:
@@ -451,7 +469,11 @@ def firmware_stage(stage: dict, *, loop_scale: float = 1.0, start: str = "steady
     if stage.get("dynamic") or kind in ("fir", "dyn_notch", "rpm_notch", "dyn_lpf"):
         return None
     if kind == "notch":
-        q = float(stage["q"]) if "q" in stage and stage["q"] == stage["q"] else betaflight_notch_q(fc, float(stage["notch_cutoff_hz"]))
+        q = (
+            float(stage["q"])
+            if "q" in stage and stage["q"] == stage["q"]
+            else betaflight_notch_q(fc, float(stage["notch_cutoff_hz"]))
+        )
         flt = biquad_notch(fc, rate, q=q, start=start)
     else:
         flt = make_filter(kind, fc, rate, start=start)

@@ -42,8 +42,17 @@ from scipy import signal
 from .filters import chain_response
 from .vibration import analyse
 
-__all__ = ["Candidate", "preview", "candidates", "recommend_filter", "notch_targets", "band_coverage", "recommend", "betaflight_cli",
-           "CUTOFF_GRID_HZ"]
+__all__ = [
+    "Candidate",
+    "preview",
+    "candidates",
+    "recommend_filter",
+    "notch_targets",
+    "band_coverage",
+    "recommend",
+    "betaflight_cli",
+    "CUTOFF_GRID_HZ",
+]
 
 CUTOFF_GRID_HZ = (40.0, 50.0, 60.0, 70.0, 80.0, 90.0, 100.0, 120.0, 140.0, 160.0, 180.0, 200.0, 250.0, 300.0)
 LP_KINDS = ("pt1", "pt2", "pt3", "biquad")
@@ -80,7 +89,9 @@ def notch_stage(f0: float, width_hz: float, rate: float) -> dict:
 BAND_NOTCH_MIN_SHARE = 0.1
 
 
-def notch_targets(lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyquist_hz: float | None = None) -> list[tuple]:
+def notch_targets(
+    lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyquist_hz: float | None = None
+) -> list[tuple]:
     """Static-notch targets ``(f0_hz, width_hz, what)``, at most two (Betaflight has two static notches).
 
     Energy bands first (:mod:`gyrocore.flight.energy_bands`, whole flight, by share; those carrying at
@@ -99,9 +110,14 @@ def notch_targets(lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyq
         if nyquist_hz and f0 >= nyquist_hz:
             continue
         if all(abs(f0 - u[0]) > 20 for u in uniq):
-            uniq.append((f0, float(b["width_hz"]), f"band {b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz"))
-    inside = [(b["extent_hz"][0], b["extent_hz"][1]) for b in bands
-              if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE and not b.get("aliased")]
+            uniq.append(
+                (f0, float(b["width_hz"]), f"band {b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz")
+            )
+    inside = [
+        (b["extent_hz"][0], b["extent_hz"][1])
+        for b in bands
+        if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE and not b.get("aliased")
+    ]
     for ln in sorted(lines, key=lambda x: -x["amplitude_rad_s"]):
         f0 = ln.get("unfolded_frequency_hz") if ln.get("aliased") else ln["frequency_hz"]
         if nyquist_hz and f0 >= nyquist_hz:
@@ -115,8 +131,14 @@ def notch_targets(lines: Sequence[dict] = (), bands: Sequence[dict] = (), *, nyq
     return uniq[:2]
 
 
-def candidates(rate_hz: float, *, lines: Sequence[dict] = (), as_flown: Sequence[dict] | None = None,
-               nyquist_hz: float | None = None, bands: Sequence[dict] = ()) -> list[Candidate]:
+def candidates(
+    rate_hz: float,
+    *,
+    lines: Sequence[dict] = (),
+    as_flown: Sequence[dict] | None = None,
+    nyquist_hz: float | None = None,
+    bands: Sequence[dict] = (),
+) -> list[Candidate]:
     """Candidate chains at the firmware filter rate ``rate_hz``.
 
     Betaflight low-pass kinds × :data:`CUTOFF_GRID_HZ`; each with static notches at the
@@ -146,37 +168,97 @@ def candidates(rate_hz: float, *, lines: Sequence[dict] = (), as_flown: Sequence
             if not keep:
                 continue
             st = c.stages + tuple(notch_stage(f0, w, rate_hz) for f0, w in keep)
-            out.append(Candidate(c.name + " + notch " + ",".join(f"{f0:.0f}" for f0, _ in keep), st, lowpass=c.lowpass,
-                                 cutoff_hz=c.cutoff_hz, notches_hz=tuple(f0 for f0, _ in keep)))
+            out.append(
+                Candidate(
+                    c.name + " + notch " + ",".join(f"{f0:.0f}" for f0, _ in keep),
+                    st,
+                    lowpass=c.lowpass,
+                    cutoff_hz=c.cutoff_hz,
+                    notches_hz=tuple(f0 for f0, _ in keep),
+                )
+            )
     if as_flown is not None:
         # each low-pass of the grid with the pilot's own static notches (re-rated to this loop)
-        flown_notches = tuple(dict(s, rate_hz=float(rate_hz), header="as flown") for s in as_flown
-                              if s["kind"] == "notch" and not s.get("dynamic"))
+        flown_notches = tuple(
+            dict(s, rate_hz=float(rate_hz), header="as flown")
+            for s in as_flown
+            if s["kind"] == "notch" and not s.get("dynamic")
+        )
         if flown_notches:
             for c in [c for c in out if c.lowpass in LP_KINDS and not c.notches_hz]:
-                out.append(Candidate(c.name + " + flown notch " + ",".join(f"{s['cutoff_hz']:.0f}" for s in flown_notches),
-                                     c.stages + flown_notches, lowpass=c.lowpass, cutoff_hz=c.cutoff_hz,
-                                     notches_hz=tuple(s["cutoff_hz"] for s in flown_notches)))
+                out.append(
+                    Candidate(
+                        c.name + " + flown notch " + ",".join(f"{s['cutoff_hz']:.0f}" for s in flown_notches),
+                        c.stages + flown_notches,
+                        lowpass=c.lowpass,
+                        cutoff_hz=c.cutoff_hz,
+                        notches_hz=tuple(s["cutoff_hz"] for s in flown_notches),
+                    )
+                )
         st = tuple(s for s in as_flown if not s.get("dynamic") and s["kind"] != "fir")
         lp = [s for s in st if s["kind"] in LP_KINDS]
-        out.append(Candidate("as flown", st, family="as_flown", lowpass=lp[0]["kind"] if lp else "none",
-                             cutoff_hz=lp[0]["cutoff_hz"] if lp else float("nan"),
-                             notches_hz=tuple(s["cutoff_hz"] for s in st if s["kind"] == "notch")))
+        out.append(
+            Candidate(
+                "as flown",
+                st,
+                family="as_flown",
+                lowpass=lp[0]["kind"] if lp else "none",
+                cutoff_hz=lp[0]["cutoff_hz"] if lp else float("nan"),
+                notches_hz=tuple(s["cutoff_hz"] for s in st if s["kind"] == "notch"),
+            )
+        )
     if 500.0 * 2 < rate_hz:
-        out.append(Candidate("betaflight 4.x default (static part)", (_stage("pt1", 250, rate_hz), _stage("pt1", 500, rate_hz)),
-                             family="betaflight_default", lowpass="pt1", cutoff_hz=250.0))
-    out.append(Candidate("px4 default IMU_GYRO_CUTOFF 40", (_stage("butter2", 40, rate_hz),), family="px4_default",
-                         lowpass="butter2", cutoff_hz=40.0))
-    out.append(Candidate("ardupilot default INS_GYRO_FILTER 20", (_stage("butter2", 20, rate_hz),), family="ardupilot_default",
-                         lowpass="butter2", cutoff_hz=20.0))
-    out.append(Candidate("article 1st-order 30 Hz", (_stage("article", 30, rate_hz),), family="article",
-                         lowpass="article", cutoff_hz=30.0))
+        out.append(
+            Candidate(
+                "betaflight 4.x default (static part)",
+                (_stage("pt1", 250, rate_hz), _stage("pt1", 500, rate_hz)),
+                family="betaflight_default",
+                lowpass="pt1",
+                cutoff_hz=250.0,
+            )
+        )
+    out.append(
+        Candidate(
+            "px4 default IMU_GYRO_CUTOFF 40",
+            (_stage("butter2", 40, rate_hz),),
+            family="px4_default",
+            lowpass="butter2",
+            cutoff_hz=40.0,
+        )
+    )
+    out.append(
+        Candidate(
+            "ardupilot default INS_GYRO_FILTER 20",
+            (_stage("butter2", 20, rate_hz),),
+            family="ardupilot_default",
+            lowpass="butter2",
+            cutoff_hz=20.0,
+        )
+    )
+    out.append(
+        Candidate(
+            "article 1st-order 30 Hz",
+            (_stage("article", 30, rate_hz),),
+            family="article",
+            lowpass="article",
+            cutoff_hz=30.0,
+        )
+    )
     return out
 
 
-def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_below_hz: float, omega_rms_rad_s: float,
-            loop_scale: float = 1.0, flight_band_hz=FLIGHT_BAND_HZ, lines: Sequence[dict] = (),
-            bands: Sequence[dict] = ()) -> dict:
+def preview(
+    f_hz: np.ndarray,
+    psd_raw: np.ndarray,
+    cand: Candidate,
+    *,
+    reliable_below_hz: float,
+    omega_rms_rad_s: float,
+    loop_scale: float = 1.0,
+    flight_band_hz=FLIGHT_BAND_HZ,
+    lines: Sequence[dict] = (),
+    bands: Sequence[dict] = (),
+) -> dict:
     """Spectrum after ``cand`` and its scores (see the module docstring).
 
     Parameters
@@ -191,7 +273,7 @@ def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_
         fraction of its power (over its extent, on its axis) the chain lets through.
     """
     r = chain_response(cand.stages, f_hz, loop_scale=loop_scale)
-    H2 = r.magnitude ** 2
+    H2 = r.magnitude**2
     after = psd_raw * H2[:, None]
     df = f_hz[1] - f_hz[0]
     band = (f_hz >= 40.0) & (f_hz < reliable_below_hz)
@@ -216,24 +298,43 @@ def preview(f_hz: np.ndarray, psd_raw: np.ndarray, cand: Candidate, *, reliable_
     for ln in lines:
         f0 = ln["frequency_hz"]
         g = float(np.interp(f0, f_hz, r.magnitude))
-        line_left.append({"axis": ln["axis"], "frequency_hz": f0, "fraction_left": g,
-                          "amplitude_after_rad_s": ln["amplitude_rad_s"] * g})
+        line_left.append(
+            {
+                "axis": ln["axis"],
+                "frequency_hz": f0,
+                "fraction_left": g,
+                "amplitude_after_rad_s": ln["amplitude_rad_s"] * g,
+            }
+        )
     bands_left = []
     for b in bands:
         j = "xyz".index(b["axis"])
         inb = (f_hz >= b["extent_hz"][0]) & (f_hz <= b["extent_hz"][1])
         p0 = float(np.nansum(psd_raw[inb, j]))
-        bands_left.append({"axis": b["axis"], "centre_hz": b["centre_hz"], "extent_hz": b["extent_hz"],
-                           "power_fraction_left": float(np.nansum(after[inb, j]) / p0) if p0 > 0 else float("nan")})
+        bands_left.append(
+            {
+                "axis": b["axis"],
+                "centre_hz": b["centre_hz"],
+                "extent_hz": b["extent_hz"],
+                "power_fraction_left": float(np.nansum(after[inb, j]) / p0) if p0 > 0 else float("nan"),
+            }
+        )
     return {
-        "name": cand.name, "family": cand.family, "filter": cand.lowpass, "cutoff_hz": cand.cutoff_hz,
-        "notches_hz": list(cand.notches_hz), "stages": list(cand.stages),
-        "delay_ms": 1e3 * tau, "phase_deg_at_hz": [ph, flight_band_hz[1]],
+        "name": cand.name,
+        "family": cand.family,
+        "filter": cand.lowpass,
+        "cutoff_hz": cand.cutoff_hz,
+        "notches_hz": list(cand.notches_hz),
+        "stages": list(cand.stages),
+        "delay_ms": 1e3 * tau,
+        "phase_deg_at_hz": [ph, flight_band_hz[1]],
         "gyro_noise_rad_s": {a: float(gyro_noise[i]) for i, a in enumerate("xyz")},
         "motor_noise": float(np.sqrt(np.sum(motor**2))),
         "attitude_cost": float(np.degrees(math.hypot(theta_d, theta_v))),
-        "attitude_cost_delay_deg": float(np.degrees(theta_d)), "attitude_cost_vibration_deg": float(np.degrees(theta_v)),
-        "lines_left": line_left, "bands_left": bands_left,
+        "attitude_cost_delay_deg": float(np.degrees(theta_d)),
+        "attitude_cost_vibration_deg": float(np.degrees(theta_v)),
+        "lines_left": line_left,
+        "bands_left": bands_left,
         "psd_after": after,
     }
 
@@ -255,8 +356,20 @@ def recommend(rows: Sequence[dict]) -> tuple[dict, float, str, list]:
     for r in sorted((r for r in rows if r["family"] == "betaflight"), key=lambda r: r["motor_noise"]):
         if not front or r["attitude_cost"] < front[-1]["attitude_cost"]:
             front.append(r)
-    return best, budget, src, [{"name": r["name"], "motor_noise": r["motor_noise"], "attitude_cost": r["attitude_cost"],
-                                "delay_ms": r["delay_ms"]} for r in front]
+    return (
+        best,
+        budget,
+        src,
+        [
+            {
+                "name": r["name"],
+                "motor_noise": r["motor_noise"],
+                "attitude_cost": r["attitude_cost"],
+                "delay_ms": r["delay_ms"],
+            }
+            for r in front
+        ],
+    )
 
 
 _BF_TYPE = {"pt1": "PT1", "biquad": "BIQUAD", "pt2": "PT2", "pt3": "PT3"}
@@ -275,8 +388,12 @@ def betaflight_cli(row: dict, version: tuple | None) -> list[str]:
     kind, fc = row["filter"], row["cutoff_hz"]
     out = []
     if v >= (4, 3, 0):
-        out += [f"set gyro_lpf1_type = {_BF_TYPE.get(kind, kind.upper())}", f"set gyro_lpf1_static_hz = {fc:.0f}",
-                "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0"]
+        out += [
+            f"set gyro_lpf1_type = {_BF_TYPE.get(kind, kind.upper())}",
+            f"set gyro_lpf1_static_hz = {fc:.0f}",
+            "set gyro_lpf1_dyn_min_hz = 0",
+            "set gyro_lpf2_static_hz = 0",
+        ]
         cut = "cutoff"
     else:
         if kind in ("pt2", "pt3"):
@@ -291,8 +408,10 @@ def betaflight_cli(row: dict, version: tuple | None) -> list[str]:
     notches = [s for s in row["stages"] if s["kind"] == "notch"]
     for i in range(2):
         if i < len(notches):
-            out += [f"set gyro_notch{i + 1}_hz = {notches[i]['cutoff_hz']:.0f}",
-                    f"set gyro_notch{i + 1}_{cut} = {notches[i]['notch_cutoff_hz']:.0f}"]
+            out += [
+                f"set gyro_notch{i + 1}_hz = {notches[i]['cutoff_hz']:.0f}",
+                f"set gyro_notch{i + 1}_{cut} = {notches[i]['notch_cutoff_hz']:.0f}",
+            ]
         else:
             out.append(f"set gyro_notch{i + 1}_hz = 0")
     return out
@@ -303,9 +422,20 @@ def betaflight_cli(row: dict, version: tuple | None) -> list[str]:
 RPM_NOTCH_Q = 5.0
 
 
-def preview_tracking(f_hz: np.ndarray, band_psd: np.ndarray, band_weights: np.ndarray, base: Candidate,
-                     track_hz: np.ndarray, *, reliable_below_hz: float, omega_rms_rad_s: float, loop_scale: float = 1.0,
-                     rate_hz: float, q: float = RPM_NOTCH_Q, lines: Sequence[dict] = ()) -> dict:
+def preview_tracking(
+    f_hz: np.ndarray,
+    band_psd: np.ndarray,
+    band_weights: np.ndarray,
+    base: Candidate,
+    track_hz: np.ndarray,
+    *,
+    reliable_below_hz: float,
+    omega_rms_rad_s: float,
+    loop_scale: float = 1.0,
+    rate_hz: float,
+    q: float = RPM_NOTCH_Q,
+    lines: Sequence[dict] = (),
+) -> dict:
     """An RPM-tracking notch (Betaflight's RPM filter, one harmonic) on top of ``base``.
 
     The notch centre follows the line: in throttle band b it sits at ``track_hz[b, l]`` for
@@ -321,8 +451,17 @@ def preview_tracking(f_hz: np.ndarray, band_psd: np.ndarray, band_weights: np.nd
             if np.isfinite(f0) and f0 < rate_hz / 2:
                 st.append(_stage("notch", f0, rate_hz, q=q, notch_cutoff_hz=float("nan")))
         c = Candidate(base.name, tuple(st), family=base.family, lowpass=base.lowpass, cutoff_hz=base.cutoff_hz)
-        rows.append(preview(f_hz, band_psd[b], c, reliable_below_hz=reliable_below_hz, omega_rms_rad_s=omega_rms_rad_s,
-                            loop_scale=loop_scale, lines=lines))
+        rows.append(
+            preview(
+                f_hz,
+                band_psd[b],
+                c,
+                reliable_below_hz=reliable_below_hz,
+                omega_rms_rad_s=omega_rms_rad_s,
+                loop_scale=loop_scale,
+                lines=lines,
+            )
+        )
     w = np.asarray(band_weights, float) / np.sum(band_weights)
     tau_ms = float(np.sum(w * [r["delay_ms"] for r in rows]))
     motor = float(np.sqrt(np.sum(w * np.array([r["motor_noise"] for r in rows]) ** 2)))
@@ -331,17 +470,29 @@ def preview_tracking(f_hz: np.ndarray, band_psd: np.ndarray, band_weights: np.nd
     th_d = tau_ms * 1e-3 * omega_rms_rad_s
     after = np.nansum(w[:, None, None] * np.array([r["psd_after"] for r in rows]), axis=0)
     name = base.name + f" + RPM notch (Q {q:g})"
-    return {"name": name, "family": "betaflight", "filter": base.lowpass, "cutoff_hz": base.cutoff_hz, "notches_hz": [],
-            "rpm_notch": {"q": q, "tracks_hz": np.asarray(track_hz, float).tolist()},
-            "stages": list(base.stages), "delay_ms": tau_ms,
-            "phase_deg_at_hz": [float(np.sum(w * [r["phase_deg_at_hz"][0] for r in rows])), rows[0]["phase_deg_at_hz"][1]],
-            "gyro_noise_rad_s": gn, "motor_noise": motor, "attitude_cost": float(np.degrees(math.hypot(th_d, th_v))),
-            "attitude_cost_delay_deg": float(np.degrees(th_d)), "attitude_cost_vibration_deg": float(np.degrees(th_v)),
-            "lines_left": [], "psd_after": after}
+    return {
+        "name": name,
+        "family": "betaflight",
+        "filter": base.lowpass,
+        "cutoff_hz": base.cutoff_hz,
+        "notches_hz": [],
+        "rpm_notch": {"q": q, "tracks_hz": np.asarray(track_hz, float).tolist()},
+        "stages": list(base.stages),
+        "delay_ms": tau_ms,
+        "phase_deg_at_hz": [float(np.sum(w * [r["phase_deg_at_hz"][0] for r in rows])), rows[0]["phase_deg_at_hz"][1]],
+        "gyro_noise_rad_s": gn,
+        "motor_noise": motor,
+        "attitude_cost": float(np.degrees(math.hypot(th_d, th_v))),
+        "attitude_cost_delay_deg": float(np.degrees(th_d)),
+        "attitude_cost_vibration_deg": float(np.degrees(th_v)),
+        "lines_left": [],
+        "psd_after": after,
+    }
 
 
-def band_coverage(band: dict, *, version: tuple | None = None, is_betaflight: bool = True,
-                  hover_throttle: float | None = None) -> dict:
+def band_coverage(
+    band: dict, *, version: tuple | None = None, is_betaflight: bool = True, hover_throttle: float | None = None
+) -> dict:
     """Firmware settings whose notch covers an energy band wherever it wanders.
 
     ``band``: a whole-flight energy band (:mod:`gyrocore.flight.energy_bands`) with its ``per_band``
@@ -365,9 +516,17 @@ def band_coverage(band: dict, *, version: tuple | None = None, is_betaflight: bo
     lo = float(min(e[0] for e in edges))
     hi = float(max(e[1] for e in edges))
     c, w = float(band["centre_hz"]), float(band["width_hz"])
-    out = {"band": {"axis": band["axis"], "centre_hz": c, "edges_hz": band["edges_hz"], "width_hz": w,
-                    "share_of_power_above_40hz": band.get("share_of_power_above_40hz"), "follows": band.get("follows")},
-           "range_hz": [lo, hi]}
+    out = {
+        "band": {
+            "axis": band["axis"],
+            "centre_hz": c,
+            "edges_hz": band["edges_hz"],
+            "width_hz": w,
+            "share_of_power_above_40hz": band.get("share_of_power_above_40hz"),
+            "follows": band.get("follows"),
+        },
+        "range_hz": [lo, hi],
+    }
     if is_betaflight:
         v = tuple(version) if version else (4, 5, 0)
         if v >= (4, 2, 0):
@@ -376,23 +535,43 @@ def band_coverage(band: dict, *, version: tuple | None = None, is_betaflight: bo
             mx = int(min(max(math.ceil(hi), 200), 1000))
             bf = [f"set dyn_notch_min_hz = {mn}", f"set dyn_notch_max_hz = {mx}"]
             if mn > lo or mx < hi:
-                bf.insert(0, f"# the band spans {lo:.0f}-{hi:.0f} Hz; dyn_notch_min_hz takes {mn_lim[0]}-{mn_lim[1]}, "
-                             f"dyn_notch_max_hz 200-1000: clamped, the notch cannot follow all of it")
+                bf.insert(
+                    0,
+                    f"# the band spans {lo:.0f}-{hi:.0f} Hz; dyn_notch_min_hz takes {mn_lim[0]}-{mn_lim[1]}, "
+                    f"dyn_notch_max_hz 200-1000: clamped, the notch cannot follow all of it",
+                )
         else:
-            bf = [f"# Betaflight {'.'.join(map(str, v))} has no dyn_notch_min_hz/dyn_notch_max_hz (4.2+): "
-                  f"the static notch above is the way to cover the band {lo:.0f}-{hi:.0f} Hz"]
+            bf = [
+                f"# Betaflight {'.'.join(map(str, v))} has no dyn_notch_min_hz/dyn_notch_max_hz (4.2+): "
+                f"the static notch above is the way to cover the band {lo:.0f}-{hi:.0f} Hz"
+            ]
         out["betaflight_dynamic_notch"] = bf
     fol = band.get("follows")
     law = band.get("law") or {}
     if fol == "throttle" and not band.get("aliased") and hover_throttle is not None and "hz_per_unit" in law:
         f_h = float(law["hz_at_zero"] + law["hz_per_unit"] * hover_throttle)
-        out["ardupilot"] = {"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 1, "INS_HNTCH_REF": round(float(hover_throttle), 3),
-                            "INS_HNTCH_FREQ": round(f_h), "INS_HNTCH_BW": round(max(w, f_h / 2.0))}
+        out["ardupilot"] = {
+            "INS_HNTCH_ENABLE": 1,
+            "INS_HNTCH_MODE": 1,
+            "INS_HNTCH_REF": round(float(hover_throttle), 3),
+            "INS_HNTCH_FREQ": round(f_h),
+            "INS_HNTCH_BW": round(max(w, f_h / 2.0)),
+        }
     elif fol == "erpm":
-        out["ardupilot"] = {"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 3, "INS_HNTCH_REF": 1,
-                            "INS_HNTCH_FREQ": round(lo), "INS_HNTCH_BW": round(max(w, lo / 2.0))}
+        out["ardupilot"] = {
+            "INS_HNTCH_ENABLE": 1,
+            "INS_HNTCH_MODE": 3,
+            "INS_HNTCH_REF": 1,
+            "INS_HNTCH_FREQ": round(lo),
+            "INS_HNTCH_BW": round(max(w, lo / 2.0)),
+        }
     else:
-        out["ardupilot"] = {"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 0, "INS_HNTCH_FREQ": round(c), "INS_HNTCH_BW": round(w)}
+        out["ardupilot"] = {
+            "INS_HNTCH_ENABLE": 1,
+            "INS_HNTCH_MODE": 0,
+            "INS_HNTCH_FREQ": round(c),
+            "INS_HNTCH_BW": round(w),
+        }
     out["px4"] = {"IMU_GYRO_NF0_FRQ": round(c, 1), "IMU_GYRO_NF0_BW": round(w, 1)}
     return out
 
@@ -406,10 +585,17 @@ def _public_row(row: dict) -> dict:
     if "rpm_notch" in row:
         d["rpm_notch"] = row["rpm_notch"]
     d["stages"] = row["stages"]
-    d.update({"name": row["name"], "phase_deg_at_hz": row["phase_deg_at_hz"], "gyro_noise_rad_s": row["gyro_noise_rad_s"],
-              "attitude_cost_delay_deg": row["attitude_cost_delay_deg"],
-              "attitude_cost_vibration_deg": row["attitude_cost_vibration_deg"], "lines_left": row["lines_left"],
-              "bands_left": row.get("bands_left", [])})
+    d.update(
+        {
+            "name": row["name"],
+            "phase_deg_at_hz": row["phase_deg_at_hz"],
+            "gyro_noise_rad_s": row["gyro_noise_rad_s"],
+            "attitude_cost_delay_deg": row["attitude_cost_delay_deg"],
+            "attitude_cost_vibration_deg": row["attitude_cost_vibration_deg"],
+            "lines_left": row["lines_left"],
+            "bands_left": row.get("bands_left", []),
+        }
+    )
     return d
 
 
@@ -468,19 +654,42 @@ def recommend_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0
         as_flown = json.loads(meta["gyro_filters"])
         dyn = [s for s in as_flown if s.get("dynamic")]
         if dyn:
-            notes.append("as flown: dynamic filters (" + ", ".join(s["kind"] for s in dyn) + ") not modelled, static part only")
+            notes.append(
+                "as flown: dynamic filters (" + ", ".join(s["kind"] for s in dyn) + ") not modelled, static part only"
+            )
     # the energy bands that carry a notch-worthy share of the rms power (gyrocore.flight.energy_bands): the
     # static-notch candidates sit on them first, each chain says how much of their power it lets through
-    bands = [b for b in res.energy_bands
-             if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE and not b.get("aliased")]
+    bands = [
+        b
+        for b in res.energy_bands
+        if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE and not b.get("aliased")
+    ]
     cands = candidates(rate, lines=res.lines, as_flown=as_flown, nyquist_hz=res.rate_hz / 2, bands=bands)
     targets = notch_targets(res.lines, bands, nyquist_hz=res.rate_hz / 2)
     if bands:
-        notes.append("static notch candidates at the energy band(s) " + ", ".join(
-            f"{b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz ({100 * b['share_of_power_above_40hz']:.0f} % of the "
-            f"rms power above 40 Hz)" for b in bands) + "; notch targets: " + ", ".join(t[2] for t in targets))
-    rows = [preview(res.f_hz, res.mean_psd, c, reliable_below_hz=res.reliable_below_hz, omega_rms_rad_s=omega_rms,
-                      loop_scale=loop_scale, lines=res.lines, bands=bands) for c in cands]
+        notes.append(
+            "static notch candidates at the energy band(s) "
+            + ", ".join(
+                f"{b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz ({100 * b['share_of_power_above_40hz']:.0f} % of the "
+                f"rms power above 40 Hz)"
+                for b in bands
+            )
+            + "; notch targets: "
+            + ", ".join(t[2] for t in targets)
+        )
+    rows = [
+        preview(
+            res.f_hz,
+            res.mean_psd,
+            c,
+            reliable_below_hz=res.reliable_below_hz,
+            omega_rms_rad_s=omega_rms,
+            loop_scale=loop_scale,
+            lines=res.lines,
+            bands=bands,
+        )
+        for c in cands
+    ]
     # RPM-tracking notch (needs eRPM telemetry in flight): one notch per moving line, at its
     # frequency in each throttle band, on top of each low-pass of the grid
     moving = [ln for ln in res.lines if ln["follows"] in ("throttle", "erpm") and not ln.get("aliased")]
@@ -490,60 +699,116 @@ def recommend_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0
         track[track < 100.0] = np.nan  # rpm_filter_min_hz default 100
         weights = np.array([b["n_windows"] for b in res.bands], float)
         for c in [c for c in cands if c.family == "betaflight" and c.lowpass in LP_KINDS and not c.notches_hz]:
-            rows.append(preview_tracking(res.f_hz, res.band_psd, weights, c, track, reliable_below_hz=res.reliable_below_hz,
-                                           omega_rms_rad_s=omega_rms, loop_scale=loop_scale, rate_hz=rate, lines=res.lines))
-        notes.append(f"RPM-tracking notch candidates: Q {RPM_NOTCH_Q:g} notches following " + ", ".join(
-            f"{ln['axis']} {ln['frequency_hz']:.0f} Hz" for ln in moving[:3]) + " per throttle band (needs bidirectional DShot / eRPM)")
+            rows.append(
+                preview_tracking(
+                    res.f_hz,
+                    res.band_psd,
+                    weights,
+                    c,
+                    track,
+                    reliable_below_hz=res.reliable_below_hz,
+                    omega_rms_rad_s=omega_rms,
+                    loop_scale=loop_scale,
+                    rate_hz=rate,
+                    lines=res.lines,
+                )
+            )
+        notes.append(
+            f"RPM-tracking notch candidates: Q {RPM_NOTCH_Q:g} notches following "
+            + ", ".join(f"{ln['axis']} {ln['frequency_hz']:.0f} Hz" for ln in moving[:3])
+            + " per throttle band (needs bidirectional DShot / eRPM)"
+        )
     firmware = str(meta.get("firmware_name", "betaflight")).lower()
     is_bf = firmware == "betaflight"
-    version = tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta and is_bf else None
+    version = (
+        tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta and is_bf else None
+    )
     rpm_rows = [r for r in rows if "rpm_notch" in r]
     # another firmware's RPM filter (INAV's) was not read here: its candidates are reported, not recommended
     can_rpm = is_bf and (version is None or version >= (4, 0, 0))
     best, budget, src, front = recommend(rows if can_rpm else [r for r in rows if "rpm_notch" not in r])
     rpm_best = None
     if rpm_rows:
-        ok_r = [r for r in rpm_rows if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(rpm_rows, key=lambda r: r["motor_noise"])]
+        ok_r = [r for r in rpm_rows if r["motor_noise"] <= budget * (1 + 1e-9)] or [
+            min(rpm_rows, key=lambda r: r["motor_noise"])
+        ]
         rpm_best = min(ok_r, key=lambda r: r["attitude_cost"])
         if not can_rpm:
-            notes.append((f"RPM filter: Betaflight {meta['firmware_version']} has none (4.0+ with bidirectional DShot); "
-                          if is_bf else f"RPM filter: {firmware}'s was not read here; ")
-                         + "its best candidate is reported under 'with_rpm_filter', not recommended")
+            notes.append(
+                (
+                    f"RPM filter: Betaflight {meta['firmware_version']} has none (4.0+ with bidirectional DShot); "
+                    if is_bf
+                    else f"RPM filter: {firmware}'s was not read here; "
+                )
+                + "its best candidate is reported under 'with_rpm_filter', not recommended"
+            )
     by = {r["family"]: r for r in rows}
     # PX4 / ArduPilot: their LPF is a 2nd-order Butterworth; best cutoff under the same budget
     b2 = []
     # the grid, plus the flown 2nd-order Butterworth cutoff (ArduPilot INS_GYRO_FILTER, PX4
     # IMU_GYRO_CUTOFF): without it an ArduPilot log whose own 42 Hz was best was told "40"
     # (at the flown stage's own rate, the same chain as the "as flown" row)
-    flown_b2 = {float(st["cutoff_hz"]): st for st in (as_flown or [])
-                if st.get("kind") == "butter2" and not st.get("dynamic") and st.get("cutoff_hz")}
+    flown_b2 = {
+        float(st["cutoff_hz"]): st
+        for st in (as_flown or [])
+        if st.get("kind") == "butter2" and not st.get("dynamic") and st.get("cutoff_hz")
+    }
     for fc in sorted(set(CUTOFF_GRID_HZ + (20.0, 30.0)) | set(flown_b2)):
-        st = _stage("butter2", fc, float(flown_b2[fc].get("rate_hz") or rate)) if fc in flown_b2 else _stage("butter2", fc, rate)
+        st = (
+            _stage("butter2", fc, float(flown_b2[fc].get("rate_hz") or rate))
+            if fc in flown_b2
+            else _stage("butter2", fc, rate)
+        )
         c = Candidate(f"butter2 {fc:g} Hz", (st,), family="butter2", lowpass="butter2", cutoff_hz=fc)
-        b2.append(preview(res.f_hz, res.mean_psd, c, reliable_below_hz=res.reliable_below_hz, omega_rms_rad_s=omega_rms,
-                            loop_scale=loop_scale, lines=res.lines, bands=bands))
+        b2.append(
+            preview(
+                res.f_hz,
+                res.mean_psd,
+                c,
+                reliable_below_hz=res.reliable_below_hz,
+                omega_rms_rad_s=omega_rms,
+                loop_scale=loop_scale,
+                lines=res.lines,
+                bands=bands,
+            )
+        )
     ok = [r for r in b2 if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(b2, key=lambda r: r["motor_noise"])]
     b2best = min(ok, key=lambda r: r["attitude_cost"])
     ardu = {"INS_GYRO_FILTER": round(b2best["cutoff_hz"])}
     if moving:
         top = max(moving, key=lambda ln: ln["amplitude_rad_s"])
         span = [p["frequency_hz"] for p in top.get("per_band", [])] or [top["frequency_hz"]]
-        ardu.update({"INS_HNTCH_ENABLE": 1, "INS_HNTCH_MODE": 1, "INS_HNTCH_FREQ": round(min(span)),
-                     "INS_HNTCH_BW": round(max(40.0, min(span) / 2))})
+        ardu.update(
+            {
+                "INS_HNTCH_ENABLE": 1,
+                "INS_HNTCH_MODE": 1,
+                "INS_HNTCH_FREQ": round(min(span)),
+                "INS_HNTCH_BW": round(max(40.0, min(span) / 2)),
+            }
+        )
     coverage = None
     if bands:
         u_hover = float(np.median([b["median"] for b in res.bands])) if res.bands else None
         coverage = band_coverage(bands[0], version=version, is_betaflight=is_bf, hover_throttle=u_hover)
         ardu = dict(ardu, **coverage["ardupilot"])  # the harmonic notch on the dominant band, not on a weaker line
-    bf_lines = betaflight_cli(best, version) if is_bf else [
-        f"# {firmware} log: Betaflight CLI names do not apply (this firmware's parameter names were not read)"]
+    bf_lines = (
+        betaflight_cli(best, version)
+        if is_bf
+        else [f"# {firmware} log: Betaflight CLI names do not apply (this firmware's parameter names were not read)"]
+    )
     flown_dyn_lpf = [st for st in (as_flown or []) if st.get("kind") == "dyn_lpf"]
-    if is_bf and flown_dyn_lpf and any(ln.endswith("dyn_min_hz = 0") or ln == "set dyn_lpf_gyro_min_hz = 0" for ln in bf_lines):
+    if (
+        is_bf
+        and flown_dyn_lpf
+        and any(ln.endswith("dyn_min_hz = 0") or ln == "set dyn_lpf_gyro_min_hz = 0" for ln in bf_lines)
+    ):
         d = flown_dyn_lpf[0]
-        msg = (f"the set lines turn off the dynamic gyro low-pass you flew ({d['cutoff_hz']:g}-{d.get('max_hz') or float('nan'):g} Hz), "
-               f"which the figures above do not model (the 'as flown' row and the motor-noise budget are its static part "
-               f"only, so the recommendation may filter less than you fly now): keep your dyn_lpf settings unless you "
-               f"mean to change them")
+        msg = (
+            f"the set lines turn off the dynamic gyro low-pass you flew ({d['cutoff_hz']:g}-{d.get('max_hz') or float('nan'):g} Hz), "
+            f"which the figures above do not model (the 'as flown' row and the motor-noise budget are its static part "
+            f"only, so the recommendation may filter less than you fly now): keep your dyn_lpf settings unless you "
+            f"mean to change them"
+        )
         notes.append(msg)
         bf_lines.insert(0, "# " + msg)
     if "rpm_notch" in best and is_bf:
@@ -551,9 +816,17 @@ def recommend_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0
         if v < (4, 0, 0):
             bf_lines.append("# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)")
         elif v < (4, 3, 0):
-            bf_lines += ["set dshot_bidir = ON", "set gyro_rpm_notch_harmonics = 1", f"set gyro_rpm_notch_q = {RPM_NOTCH_Q * 100:.0f}"]
+            bf_lines += [
+                "set dshot_bidir = ON",
+                "set gyro_rpm_notch_harmonics = 1",
+                f"set gyro_rpm_notch_q = {RPM_NOTCH_Q * 100:.0f}",
+            ]
         else:
-            bf_lines += ["set dshot_bidir = ON", "set rpm_filter_harmonics = 1", f"set rpm_filter_q = {RPM_NOTCH_Q * 100:.0f}"]
+            bf_lines += [
+                "set dshot_bidir = ON",
+                "set rpm_filter_harmonics = 1",
+                f"set rpm_filter_q = {RPM_NOTCH_Q * 100:.0f}",
+            ]
     out = {
         "recommended": _public_row(best),
         "as_flown": _public_row(by["as_flown"]) if "as_flown" in by else None,
@@ -563,23 +836,45 @@ def recommend_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0
             "px4": {"IMU_GYRO_CUTOFF": round(b2best["cutoff_hz"]), **(coverage["px4"] if coverage else {})},
             "ardupilot": ardu,
         },
-        "defaults": {k: _public_row(by[k]) for k in ("betaflight_default", "px4_default", "ardupilot_default") if k in by},
+        "defaults": {
+            k: _public_row(by[k]) for k in ("betaflight_default", "px4_default", "ardupilot_default") if k in by
+        },
         "article": _public_row(by["article"]),
         "px4_ardupilot_lowpass": _public_row(b2best),
         "budget": {"motor_noise": budget, "from": src},
         "pareto": front,
-        "scores": {"attitude_cost": "deg: hypot(delay x flight-band rate rms, vibration jitter)",
-                   "motor_noise": "rad/s^2: rms of d/dt(filtered gyro) above 40 Hz (D-term input)",
-                   "delay_ms": f"mean group delay {FLIGHT_BAND_HZ[0]:g}-{FLIGHT_BAND_HZ[1]:g} Hz"},
-        "flight_rate_rms_rad_s": omega_rms, "filter_rate_hz": rate, "reliable_below_hz": res.reliable_below_hz,
-        "vibration": {"signal": res.signal, "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s, "lines": res.lines,
-                      "energy_bands": res.energy_bands, "dominant_vibration": res.dominant_vibration},
+        "scores": {
+            "attitude_cost": "deg: hypot(delay x flight-band rate rms, vibration jitter)",
+            "motor_noise": "rad/s^2: rms of d/dt(filtered gyro) above 40 Hz (D-term input)",
+            "delay_ms": f"mean group delay {FLIGHT_BAND_HZ[0]:g}-{FLIGHT_BAND_HZ[1]:g} Hz",
+        },
+        "flight_rate_rms_rad_s": omega_rms,
+        "filter_rate_hz": rate,
+        "reliable_below_hz": res.reliable_below_hz,
+        "vibration": {
+            "signal": res.signal,
+            "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s,
+            "lines": res.lines,
+            "energy_bands": res.energy_bands,
+            "dominant_vibration": res.dominant_vibration,
+        },
         "band_coverage": coverage,
-        "candidates": [{"name": r["name"], "attitude_cost": r["attitude_cost"], "motor_noise": r["motor_noise"],
-                        "delay_ms": r["delay_ms"]} for r in rows],
-        "notes": notes + ["open-loop spectral/delay cost model on the recorded gyro; closed loop (flown with this "
-                          "flight's vibration): gyroharness filter-closed-loop",
-                          "Betaflight 4.x default: static part only (dynamic LPF at its 250 Hz minimum + LPF2 500 Hz; dynamic notch and RPM filter not modelled)"],
-        "_rows": rows, "_res": res,
+        "candidates": [
+            {
+                "name": r["name"],
+                "attitude_cost": r["attitude_cost"],
+                "motor_noise": r["motor_noise"],
+                "delay_ms": r["delay_ms"],
+            }
+            for r in rows
+        ],
+        "notes": notes
+        + [
+            "open-loop spectral/delay cost model on the recorded gyro; closed loop (flown with this "
+            "flight's vibration): gyroharness filter-closed-loop",
+            "Betaflight 4.x default: static part only (dynamic LPF at its 250 Hz minimum + LPF2 500 Hz; dynamic notch and RPM filter not modelled)",
+        ],
+        "_rows": rows,
+        "_res": res,
     }
     return out

@@ -48,8 +48,20 @@ from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording, atomic_write_text
 from gyrocore.flight.energy_bands import attach as attach_energy_bands
 
-__all__ = ["VibrationResult", "analyse", "write_spec", "read_spec", "SPEC_FORMAT_VERSION", "undo_response",
-           "plot_vibration", "synthesize", "shaped_params", "add_vibration", "fidelity", "spec_band"]
+__all__ = [
+    "VibrationResult",
+    "analyse",
+    "write_spec",
+    "read_spec",
+    "SPEC_FORMAT_VERSION",
+    "undo_response",
+    "plot_vibration",
+    "synthesize",
+    "shaped_params",
+    "add_vibration",
+    "fidelity",
+    "spec_band",
+]
 
 AXES = ("x", "y", "z")
 #: 1.1: ``energy_bands`` (whole flight, and per throttle band inside ``bands``; gyrocore.flight.energy_bands)
@@ -84,7 +96,9 @@ def _stage_filter(stage: dict, loop_scale: float):
     return F.SosFilter(flt.sos, rate_hz=rate * loop_scale, name=flt.name, cutoff_hz=fc)
 
 
-def undo_response(stages: Sequence[dict], f_hz: np.ndarray, *, loop_scale: float = 1.0, log_rate_hz: float | None = None):
+def undo_response(
+    stages: Sequence[dict], f_hz: np.ndarray, *, loop_scale: float = 1.0, log_rate_hz: float | None = None
+):
     """|H(f)|² of the undoable (static) stages, the stages that cannot be undone, and the reliable band.
 
     Parameters
@@ -141,8 +155,12 @@ class _Signal:
 
 #: Metadata a multi-log blackbox file carries per log when its logs differ (gyrocore.readers.blackbox):
 #: one spectrum cannot undo two filter chains, mix two debug signals or two log rates.
-_PER_LOG_KEYS = {"gyro_filters": "gyro filters", "gyro_prefilter": "less-filtered gyro signal",
-                 "debug_mode": "debug mode", "log_rate_nominal_hz": "log rate"}
+_PER_LOG_KEYS = {
+    "gyro_filters": "gyro filters",
+    "gyro_prefilter": "less-filtered gyro signal",
+    "debug_mode": "debug mode",
+    "log_rate_nominal_hz": "log rate",
+}
 
 
 def _describe_setting(key: str, value) -> str:
@@ -192,16 +210,20 @@ def _choose_signal(rec: Recording, *, use: str, undo: bool) -> _Signal:
     if use == "prefilter":
         raise GyroInputError("the recording holds no less-filtered gyro (gyro_prefilter_* columns)")
     if fw_chain is not None:
-        return _Signal(rec.gyro_rad_s, "filtered", "gyro columns (" + meta.get("gyro_signal", "as flown") + ")", fw_chain, undo)
-    return _Signal(rec.gyro_rad_s, "raw", "gyro columns (no firmware filter metadata: a simulated or raw recording)", [], undo)
+        return _Signal(
+            rec.gyro_rad_s, "filtered", "gyro columns (" + meta.get("gyro_signal", "as flown") + ")", fw_chain, undo
+        )
+    return _Signal(
+        rec.gyro_rad_s, "raw", "gyro columns (no firmware filter metadata: a simulated or raw recording)", [], undo
+    )
 
 
 # ------------------------------------------------------------------ windows
 @dataclass(frozen=True)
 class _Windows:
-    f_hz: np.ndarray          # (M,)
-    psd: np.ndarray           # (K, M, 3)   (unit)²/Hz
-    band_var: np.ndarray      # (K,) mean of the band variable in each window
+    f_hz: np.ndarray  # (M,)
+    psd: np.ndarray  # (K, M, 3)   (unit)²/Hz
+    band_var: np.ndarray  # (K,) mean of the band variable in each window
     rotor_hz: np.ndarray | None  # (K,) mean rotor frequency, Hz
     rate_hz: float
     nperseg: int
@@ -229,7 +251,7 @@ def _windows(t_s, x, band_var, rotor_hz, airborne, *, nperseg: int, rate_hz: flo
         if n < nperseg:
             continue
         for a in range(s0, e0 - nperseg + 1, step):
-            seg = x[a:a + nperseg]
+            seg = x[a : a + nperseg]
             seg = seg - seg.mean(axis=0)
             X = np.fft.rfft(seg * win[:, None], axis=0)
             p = (np.abs(X) ** 2) * scale
@@ -237,14 +259,22 @@ def _windows(t_s, x, band_var, rotor_hz, airborne, *, nperseg: int, rate_hz: flo
             if nperseg % 2:
                 p[1:] *= 2.0
             psds.append(p)
-            bvs.append(float(np.mean(band_var[a:a + nperseg])) if band_var is not None else 0.0)
+            bvs.append(float(np.mean(band_var[a : a + nperseg])) if band_var is not None else 0.0)
             if rotor_hz is not None:
-                rhs.append(float(np.mean(rotor_hz[a:a + nperseg])))
+                rhs.append(float(np.mean(rotor_hz[a : a + nperseg])))
     if not psds:
-        raise GyroInputError(f"no gap-free airborne stretch of {nperseg} samples ({nperseg / rate_hz:.2f} s) to analyse")
+        raise GyroInputError(
+            f"no gap-free airborne stretch of {nperseg} samples ({nperseg / rate_hz:.2f} s) to analyse"
+        )
     f = np.fft.rfftfreq(nperseg, d=1.0 / rate_hz)
-    return _Windows(f_hz=f, psd=np.array(psds), band_var=np.array(bvs), rotor_hz=np.array(rhs) if rhs else None,
-                    rate_hz=rate_hz, nperseg=nperseg)
+    return _Windows(
+        f_hz=f,
+        psd=np.array(psds),
+        band_var=np.array(bvs),
+        rotor_hz=np.array(rhs) if rhs else None,
+        rate_hz=rate_hz,
+        nperseg=nperseg,
+    )
 
 
 #: Fewest windows a throttle band is analysed with (its averaged PSD has ν ≈ 2·K·(overlap
@@ -257,8 +287,10 @@ def _band_counts(band_var: np.ndarray, edges: np.ndarray) -> list[int]:
     loop of :func:`_analyse` selects them."""
     if len(edges) < 2:
         return [int(band_var.size)]
-    return [int(((band_var >= edges[i]) & ((band_var < edges[i + 1]) | (i == len(edges) - 2))).sum())
-            for i in range(len(edges) - 1)]
+    return [
+        int(((band_var >= edges[i]) & ((band_var < edges[i + 1]) | (i == len(edges) - 2))).sum())
+        for i in range(len(edges) - 1)
+    ]
 
 
 # ------------------------------------------------------------------ lines
@@ -280,7 +312,7 @@ _MEDIAN_LOG_BIAS = 1.0
 class _Peak:
     axis: int
     f_hz: float
-    power: float          # (unit)² (line power = mean square)
+    power: float  # (unit)² (line power = mean square)
     power_se: float
     psd_peak: float
     ratio: float
@@ -293,7 +325,7 @@ def _hann_capture(d: float, k_lo: int, k_hi: int, n: int = 4096) -> float:
     tone = w * np.exp(2j * np.pi * (64 + d) * t / n)
     X = np.abs(np.fft.fft(tone)) ** 2
     tot = X.sum()
-    return float(X[64 + k_lo:64 + k_hi].sum() / tot)
+    return float(X[64 + k_lo : 64 + k_hi].sum() / tot)
 
 
 def _find_peaks(f, pbar, pwin, k_windows: int, *, fmin: float, fmax: float, df_res: float) -> list[_Peak]:
@@ -364,25 +396,36 @@ class VibrationResult:
     notes: list
     warnings: list
     f_hz: np.ndarray = field(repr=False)
-    band_psd: np.ndarray = field(repr=False)        # (B, M, 3) raw-domain PSD, (rad/s)²/Hz
+    band_psd: np.ndarray = field(repr=False)  # (B, M, 3) raw-domain PSD, (rad/s)²/Hz
     band_psd_accel: np.ndarray | None = field(repr=False, default=None)
     mean_psd: np.ndarray = field(repr=False, default=None)  # (M, 3) over all airborne windows
     n_windows: int = 0
     nperseg: int = 0
-    energy_bands: list = field(default_factory=list)        # gyrocore.flight.energy_bands, whole flight, by share
+    energy_bands: list = field(default_factory=list)  # gyrocore.flight.energy_bands, whole flight, by share
     dominant_vibration: dict = field(default_factory=dict)  # per axis: the strongest band or line
 
     def to_json(self) -> dict:
         return {
-            "rate_hz": self.rate_hz, "signal": self.signal, "filters_before": self.filters_before,
-            "rms_above_40hz_rad_s": self.rms_above_40hz_rad_s, "lines": self.lines, "bands": self.bands,
-            "rms_above_40hz_interval_rad_s": self.rms_above_40hz_interval_rad_s, "rms_band_hz": self.rms_band_hz,
+            "rate_hz": self.rate_hz,
+            "signal": self.signal,
+            "filters_before": self.filters_before,
+            "rms_above_40hz_rad_s": self.rms_above_40hz_rad_s,
+            "lines": self.lines,
+            "bands": self.bands,
+            "rms_above_40hz_interval_rad_s": self.rms_above_40hz_interval_rad_s,
+            "rms_band_hz": self.rms_band_hz,
             "accel_rms_above_40hz_m_s2": self.accel_rms_above_40hz_m_s2,
-            "signal_source": self.source, "reconstructed_reliable_below_hz": self.reliable_below_hz,
-            "band_variable": self.band_variable, "frequency_resolution_hz": ENBW_HANN * self.rate_hz / self.nperseg,
-            "n_windows": self.n_windows, "window_s": self.nperseg / self.rate_hz,
-            "notes": self.notes, "warnings": self.warnings, "format_version": self.format_version,
-            "energy_bands": self.energy_bands, "dominant_vibration": self.dominant_vibration,
+            "signal_source": self.source,
+            "reconstructed_reliable_below_hz": self.reliable_below_hz,
+            "band_variable": self.band_variable,
+            "frequency_resolution_hz": ENBW_HANN * self.rate_hz / self.nperseg,
+            "n_windows": self.n_windows,
+            "window_s": self.nperseg / self.rate_hz,
+            "notes": self.notes,
+            "warnings": self.warnings,
+            "format_version": self.format_version,
+            "energy_bands": self.energy_bands,
+            "dominant_vibration": self.dominant_vibration,
         }
 
 
@@ -401,9 +444,19 @@ def _rotor_hz(rec: Recording):
     return np.mean([rec.extra[k] for k in cols], axis=0)
 
 
-def analyse(rec: Recording, *, use: str = "auto", undo: bool = True, window_s: float = 1.0, n_bands: int = 8,
-            t_from_s: float | None = None, airborne_min_cmd: float = 0.1, fmin_hz: float = 40.0,
-            t_to_s: float | None = None, band_edges: Sequence[float] | None = None) -> VibrationResult:
+def analyse(
+    rec: Recording,
+    *,
+    use: str = "auto",
+    undo: bool = True,
+    window_s: float = 1.0,
+    n_bands: int = 8,
+    t_from_s: float | None = None,
+    airborne_min_cmd: float = 0.1,
+    fmin_hz: float = 40.0,
+    t_to_s: float | None = None,
+    band_edges: Sequence[float] | None = None,
+) -> VibrationResult:
     """Vibration of a recording: PSD per throttle band, broadband RMS above 40 Hz, lines and their laws.
 
     Parameters
@@ -434,12 +487,23 @@ def analyse(rec: Recording, *, use: str = "auto", undo: bool = True, window_s: f
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Mean of empty slice", category=RuntimeWarning)
-        return _analyse(rec, use=use, undo=undo, window_s=window_s, n_bands=n_bands, t_from_s=t_from_s,
-                        airborne_min_cmd=airborne_min_cmd, fmin_hz=fmin_hz, t_to_s=t_to_s, band_edges=band_edges)
+        return _analyse(
+            rec,
+            use=use,
+            undo=undo,
+            window_s=window_s,
+            n_bands=n_bands,
+            t_from_s=t_from_s,
+            airborne_min_cmd=airborne_min_cmd,
+            fmin_hz=fmin_hz,
+            t_to_s=t_to_s,
+            band_edges=band_edges,
+        )
 
 
-def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, fmin_hz, t_to_s=None,
-             band_edges=None) -> VibrationResult:
+def _analyse(
+    rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, fmin_hz, t_to_s=None, band_edges=None
+) -> VibrationResult:
     if use not in ("auto", "prefilter", "gyro"):
         raise GyroInputError(f"signal must be auto, prefilter or gyro, got {use!r}")
     notes, warns = [], []
@@ -468,15 +532,19 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         if not in_span.any():
             raise GyroInputError(f"--t-from-s/--t-to-s select 0 samples; the recording spans t = {t[0]:g}-{t[-1]:g} s")
     if not airborne.any():
-        raise GyroInputError("no airborne samples (band variable below the airborne threshold everywhere"
-                             + (" in the selected time span)" if t_from_s is not None or t_to_s is not None else ")"))
+        raise GyroInputError(
+            "no airborne samples (band variable below the airborne threshold everywhere"
+            + (" in the selected time span)" if t_from_s is not None or t_to_s is not None else ")")
+        )
     try:
         W = _windows(t, sig.gyro, bv, _rotor_hz(rec), airborne, nperseg=nper, rate_hz=rate)
     except GyroInputError as exc:
         if rec.meta.get("stream") == "batch" and rec.meta.get("batch_window_s"):
             wb = float(rec.meta["batch_window_s"])
-            raise GyroInputError(f"{exc}: the batch sampler's windows are {wb:.3g} s long; use --window-s "
-                                 f"{math.floor(wb * 0.95 * 100) / 100:g} or less") from None
+            raise GyroInputError(
+                f"{exc}: the batch sampler's windows are {wb:.3g} s long; use --window-s "
+                f"{math.floor(wb * 0.95 * 100) / 100:g} or less"
+            ) from None
         raise
     f = W.f_hz
     # undo the firmware filters in the spectral domain
@@ -496,25 +564,40 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         filters_before = done + not_done
         kind = "raw" if not not_done else "partly_filtered"
         if done:
-            notes.append("undone in the spectrum (|H|^2 divided out): " + ", ".join(_label(s) for s in done)
-                         + f"; reliable below {reliable:.0f} Hz (folding from above the logged Nyquist {rate / 2:.0f} Hz)")
+            notes.append(
+                "undone in the spectrum (|H|^2 divided out): "
+                + ", ".join(_label(s) for s in done)
+                + f"; reliable below {reliable:.0f} Hz (folding from above the logged Nyquist {rate / 2:.0f} Hz)"
+            )
         if not_done:
-            warns.append("the spectrum has been through " + ", ".join(_label(s) for s in not_done)
-                         + " (dynamic: response not logged, cannot be undone)")
+            warns.append(
+                "the spectrum has been through "
+                + ", ".join(_label(s) for s in not_done)
+                + " (dynamic: response not logged, cannot be undone)"
+            )
     elif sig.stages_before:
-        warns.append("no unfiltered gyro analysed: the spectrum has been through " + ", ".join(_label(s) for s in sig.stages_before))
+        warns.append(
+            "no unfiltered gyro analysed: the spectrum has been through "
+            + ", ".join(_label(s) for s in sig.stages_before)
+        )
     if sig.kind == "filtered" and "gyro_prefilter" not in rec.meta and sig.stages_before:
         why = [x for x in rec.meta.get("lacks", "").split(" | ") if x.startswith("no unfiltered gyro")]
-        warns.append("no unfiltered gyro in the log" + (f" ({why[0].split(': ', 1)[1].split(' (')[0]})" if why else "")
-                     + ": the spectrum has been through " + ", ".join(_label(s) for s in sig.stages_before)
-                     + ("; the static ones are undone in the spectrum" if undo else ""))
+        warns.append(
+            "no unfiltered gyro in the log"
+            + (f" ({why[0].split(': ', 1)[1].split(' (')[0]})" if why else "")
+            + ": the spectrum has been through "
+            + ", ".join(_label(s) for s in sig.stages_before)
+            + ("; the static ones are undone in the spectrum" if undo else "")
+        )
     psd = W.psd / H2[None, :, None]  # above ``reliable`` kept for the plot/spec, flagged, not integrated
     hole = H2 < H2_FLOOR
     psd[:, hole, :] = np.nan
     if hole.any():
         edges_h = np.flatnonzero(np.diff(np.concatenate([[0], hole.astype(int), [0]])))
         spans = [(float(f[a]), float(f[b - 1])) for a, b in zip(edges_h[::2], edges_h[1::2])]
-        notes.append("not reconstructed (undone filters below -20 dB): " + ", ".join(f"{a:.0f}-{b:.0f} Hz" for a, b in spans))
+        notes.append(
+            "not reconstructed (undone filters below -20 dB): " + ", ".join(f"{a:.0f}-{b:.0f} Hz" for a, b in spans)
+        )
     # accel windows (as logged)
     accel_psd = None
     if rec.accel_m_s2 is not None:
@@ -555,8 +638,10 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
             if min(_band_counts(W.band_var, edges)) >= MIN_BAND_WINDOWS:
                 break
         if len(edges) - 1 < n_bands:
-            notes.append(f"{len(edges) - 1} throttle band(s) instead of {n_bands}: {K} windows of {window_s:g} s, "
-                         f"each band needs at least {MIN_BAND_WINDOWS}")
+            notes.append(
+                f"{len(edges) - 1} throttle band(s) instead of {n_bands}: {K} windows of {window_s:g} s, "
+                f"each band needs at least {MIN_BAND_WINDOWS}"
+            )
     else:
         edges = np.array([W.band_var.min(), W.band_var.max()]) if bv is not None else np.array([0.0, 0.0])
         if bv is not None:
@@ -567,15 +652,23 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
     dropped: list = []
     for bi in range(len(edges) - 1 if len(edges) > 1 else 1):
         lo_e, hi_e = (edges[bi], edges[bi + 1]) if len(edges) > 1 else (edges[0], edges[0])
-        sel = (W.band_var >= lo_e) & ((W.band_var < hi_e) | (bi == len(edges) - 2)) if len(edges) > 1 else np.ones(K, bool)
+        sel = (
+            (W.band_var >= lo_e) & ((W.band_var < hi_e) | (bi == len(edges) - 2))
+            if len(edges) > 1
+            else np.ones(K, bool)
+        )
         if sel.sum() < MIN_BAND_WINDOWS:
             dropped.append((float(lo_e), float(hi_e), int(sel.sum())))
             continue
         pb = np.nanmean(psd[sel], axis=0)
         b_rms, b_lo, b_hi = rms_stats(psd[sel], hp)
-        row = {"throttle": [float(lo_e), float(hi_e)], "median": float(np.median(W.band_var[sel])), "n_windows": int(sel.sum()),
-               "rms_above_40hz_rad_s": {a: float(b_rms[i]) for i, a in enumerate(AXES)},
-               "rms_above_40hz_interval_rad_s": {a: [float(b_lo[i]), float(b_hi[i])] for i, a in enumerate(AXES)}}
+        row = {
+            "throttle": [float(lo_e), float(hi_e)],
+            "median": float(np.median(W.band_var[sel])),
+            "n_windows": int(sel.sum()),
+            "rms_above_40hz_rad_s": {a: float(b_rms[i]) for i, a in enumerate(AXES)},
+            "rms_above_40hz_interval_rad_s": {a: [float(b_lo[i]), float(b_hi[i])] for i, a in enumerate(AXES)},
+        }
         if W.rotor_hz is not None:
             row["rotor_hz_median"] = float(np.median(W.rotor_hz[sel]))
         if accel_psd is not None:
@@ -583,8 +676,15 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
             band_apsd.append(pa)
             am_, _, _ = rms_stats(accel_psd[sel], f >= HIGHPASS_HZ)
             row["accel_rms_above_40hz_m_s2"] = {a: float(am_[i]) for i, a in enumerate(AXES)}
-        peaks = _find_peaks(f, np.nanmean(W.psd[sel], axis=0), W.psd[sel], int(sel.sum()), fmin=fmin_hz, fmax=f[-1] - 2 * df,
-                            df_res=ENBW_HANN * df)
+        peaks = _find_peaks(
+            f,
+            np.nanmean(W.psd[sel], axis=0),
+            W.psd[sel],
+            int(sel.sum()),
+            fmin=fmin_hz,
+            fmax=f[-1] - 2 * df,
+            df_res=ENBW_HANN * df,
+        )
         # line power in the raw domain: scale by 1/|H|² at the line (smooth across ±2 bins)
         kept = []
         for p in peaks:
@@ -600,28 +700,58 @@ def _analyse(rec, *, use, undo, window_s, n_bands, t_from_s, airborne_min_cmd, f
         band_psd.append(pb)
         band_sel.append(sel)
     if dropped:
-        notes.append("not analysed (fewer than %d windows): " % MIN_BAND_WINDOWS
-                     + ", ".join(f"band {a:.3g}-{b:.3g} ({n} windows)" for a, b, n in dropped)
-                     + ("" if band_rows else "; no band spectra or lines, the rms is over all windows"))
-    lines = _link_lines(band_rows, f, rate, has_bv=bv is not None and len(edges) > 2, rotor=W.rotor_hz is not None,
-                        reliable_hz=reliable)
+        notes.append(
+            "not analysed (fewer than %d windows): " % MIN_BAND_WINDOWS
+            + ", ".join(f"band {a:.3g}-{b:.3g} ({n} windows)" for a, b, n in dropped)
+            + ("" if band_rows else "; no band spectra or lines, the rms is over all windows")
+        )
+    lines = _link_lines(
+        band_rows, f, rate, has_bv=bv is not None and len(edges) > 2, rotor=W.rotor_hz is not None, reliable_hz=reliable
+    )
     for r in band_rows:
         pk = r.pop("_peaks")
         r["peaks_hz"] = {a: sorted(round(p.f_hz, 1) for p in pk if p.axis == i) for i, a in enumerate(AXES)}
     mean_psd = np.nanmean(psd, axis=0)
-    energy, dominant = attach_energy_bands(f, psd, mean_psd, band_psd, band_rows, lines, fmin_hz=fmin_hz,
-                                           reliable_below_hz=reliable, rate_hz=rate,
-                                           has_bv=bv is not None and len(edges) > 2, dof=_dof,
-                                           resolution_hz=ENBW_HANN * df, band_windows=band_sel)
+    energy, dominant = attach_energy_bands(
+        f,
+        psd,
+        mean_psd,
+        band_psd,
+        band_rows,
+        lines,
+        fmin_hz=fmin_hz,
+        reliable_below_hz=reliable,
+        rate_hz=rate,
+        has_bv=bv is not None and len(edges) > 2,
+        dof=_dof,
+        resolution_hz=ENBW_HANN * df,
+        band_windows=band_sel,
+    )
     return VibrationResult(
-        format_version=SPEC_FORMAT_VERSION, rate_hz=rate, signal=kind if undo or kind == "raw" else sig.kind,
-        source=sig.source, filters_before=filters_before, reliable_below_hz=reliable,
+        format_version=SPEC_FORMAT_VERSION,
+        rate_hz=rate,
+        signal=kind if undo or kind == "raw" else sig.kind,
+        source=sig.source,
+        filters_before=filters_before,
+        reliable_below_hz=reliable,
         rms_above_40hz_rad_s={a: float(rms[i]) for i, a in enumerate(AXES)},
         rms_above_40hz_interval_rad_s={a: [float(rlo[i]), float(rhi[i])] for i, a in enumerate(AXES)},
-        rms_band_hz=[HIGHPASS_HZ, band_hi], accel_rms_above_40hz_m_s2=arms, lines=lines, bands=band_rows,
-        band_variable=bv_name, notes=notes, warnings=warns, f_hz=f, band_psd=np.array(band_psd),
-        band_psd_accel=np.array(band_apsd) if band_apsd else None, mean_psd=mean_psd, n_windows=K, nperseg=nper,
-        energy_bands=energy, dominant_vibration=dominant)
+        rms_band_hz=[HIGHPASS_HZ, band_hi],
+        accel_rms_above_40hz_m_s2=arms,
+        lines=lines,
+        bands=band_rows,
+        band_variable=bv_name,
+        notes=notes,
+        warnings=warns,
+        f_hz=f,
+        band_psd=np.array(band_psd),
+        band_psd_accel=np.array(band_apsd) if band_apsd else None,
+        mean_psd=mean_psd,
+        n_windows=K,
+        nperseg=nper,
+        energy_bands=energy,
+        dominant_vibration=dominant,
+    )
 
 
 def _label(s: dict) -> str:
@@ -693,7 +823,9 @@ def _link_lines(bands: list, f: np.ndarray, rate: float, *, has_bv: bool, rotor:
             members = best[1]
             us = np.array([bands[b]["median"] for b in members])
             fs_ = np.array([pk[k][1].f_hz for k in members.values()])
-            coef, cov = np.polyfit(us, fs_, 1, cov=True) if len(us) > 3 else (np.polyfit(us, fs_, 1), np.full((2, 2), np.inf))
+            coef, cov = (
+                np.polyfit(us, fs_, 1, cov=True) if len(us) > 3 else (np.polyfit(us, fs_, 1), np.full((2, 2), np.inf))
+            )
             moving = abs(coef[0]) * np.ptp(us) > 3 * res and abs(coef[0]) > 2 * math.sqrt(max(cov[0, 0], 0.0))
             if not moving and abs(coef[0]) * np.ptp(us) > 3 * res:
                 free -= {members[max(members, key=lambda b: 0)]} if False else set()
@@ -725,16 +857,30 @@ def _link_lines(bands: list, f: np.ndarray, rate: float, *, has_bv: bool, rotor:
                 f_med = float(coef[0] + coef[1] * t_med)
                 i_med = int(np.argmin(np.abs(thr - t_med)))
                 aliased = slope < 0
-                entry.update({
-                    "frequency_hz": f_med, "follows": "throttle",
-                    "amplitude_rad_s": float(math.sqrt(2 * pw[i_med])),
-                    "amplitude_interval_rad_s": _amp_interval(pw[i_med], se[i_med]),
-                    "law": {"kind": "f = hz_at_zero + hz_per_unit * band variable", "hz_at_zero": float(coef[0]),
-                            "hz_per_unit": slope, "hz_per_unit_se": slope_se},
-                    "per_band": [{"band": int(b), "throttle_median": float(bands[b]["median"]), "frequency_hz": float(ff),
-                                  "amplitude_rad_s": float(math.sqrt(2 * pp))} for b, ff, pp in zip(bidx, fs_, pw)],
-                    "aliased": bool(aliased),
-                })
+                entry.update(
+                    {
+                        "frequency_hz": f_med,
+                        "follows": "throttle",
+                        "amplitude_rad_s": float(math.sqrt(2 * pw[i_med])),
+                        "amplitude_interval_rad_s": _amp_interval(pw[i_med], se[i_med]),
+                        "law": {
+                            "kind": "f = hz_at_zero + hz_per_unit * band variable",
+                            "hz_at_zero": float(coef[0]),
+                            "hz_per_unit": slope,
+                            "hz_per_unit_se": slope_se,
+                        },
+                        "per_band": [
+                            {
+                                "band": int(b),
+                                "throttle_median": float(bands[b]["median"]),
+                                "frequency_hz": float(ff),
+                                "amplitude_rad_s": float(math.sqrt(2 * pp)),
+                            }
+                            for b, ff, pp in zip(bidx, fs_, pw)
+                        ],
+                        "aliased": bool(aliased),
+                    }
+                )
                 if aliased:
                     entry["unfolded_frequency_hz"] = float(rate - f_med)
                     entry["note"] = "apparent frequency falls as throttle rises: folded from above the logged Nyquist"
@@ -746,10 +892,17 @@ def _link_lines(bands: list, f: np.ndarray, rate: float, *, has_bv: bool, rotor:
                         entry["follows"] = "erpm"
                         entry["harmonic"] = int(round(h))
             else:
-                entry.update({"frequency_hz": float(np.average(fs_, weights=pw) if pw.sum() > 0 else fs_.mean()),
-                              "follows": law, "amplitude_rad_s": float(math.sqrt(2 * np.mean(pw))),
-                              "amplitude_interval_rad_s": _amp_interval(float(np.mean(pw)), float(np.sqrt(np.sum(se**2)) / len(se))),
-                              "n_bands": int(len(idx))})
+                entry.update(
+                    {
+                        "frequency_hz": float(np.average(fs_, weights=pw) if pw.sum() > 0 else fs_.mean()),
+                        "follows": law,
+                        "amplitude_rad_s": float(math.sqrt(2 * np.mean(pw))),
+                        "amplitude_interval_rad_s": _amp_interval(
+                            float(np.mean(pw)), float(np.sqrt(np.sum(se**2)) / len(se))
+                        ),
+                        "n_bands": int(len(idx)),
+                    }
+                )
                 if law is None:
                     entry["law_note"] = "no throttle variation: law not identifiable"
             entry["frequency_interval_hz"] = [entry["frequency_hz"] - res / 2, entry["frequency_hz"] + res / 2]
@@ -786,6 +939,7 @@ def write_spec(res: VibrationResult, path: str | os.PathLike, *, source: str = "
     the band), ``lines`` and ``energy_bands`` (as :func:`analyse`), ``rms_above_40hz_rad_s``.
     Format 1.1 adds the energy bands (1.0 specs still read: the major version is checked).
     """
+
     def arr(a):
         return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, float)]
 
@@ -796,11 +950,21 @@ def write_spec(res: VibrationResult, path: str | os.PathLike, *, source: str = "
         if res.band_psd_accel is not None:
             d["accel_psd_m2_s4_hz"] = {a: arr(res.band_psd_accel[i][:, j]) for j, a in enumerate(AXES)}
         bands.append(d)
-    spec = {"format_version": SPEC_FORMAT_VERSION, "kind": "gyroharness.vibration_spec", "source": source,
-            "rate_hz": res.rate_hz, "signal": res.signal, "filters_before": res.filters_before,
-            "reconstructed_reliable_below_hz": res.reliable_below_hz, "band_variable": res.band_variable,
-            "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s, "lines": res.lines, "energy_bands": res.energy_bands,
-            "f_hz": arr(res.f_hz), "bands": bands}
+    spec = {
+        "format_version": SPEC_FORMAT_VERSION,
+        "kind": "gyroharness.vibration_spec",
+        "source": source,
+        "rate_hz": res.rate_hz,
+        "signal": res.signal,
+        "filters_before": res.filters_before,
+        "reconstructed_reliable_below_hz": res.reliable_below_hz,
+        "band_variable": res.band_variable,
+        "rms_above_40hz_rad_s": res.rms_above_40hz_rad_s,
+        "lines": res.lines,
+        "energy_bands": res.energy_bands,
+        "f_hz": arr(res.f_hz),
+        "bands": bands,
+    }
     atomic_write_text(path, json.dumps(spec, indent=1, allow_nan=False) + "\n", overwrite=overwrite)
     return spec
 
@@ -816,7 +980,9 @@ def read_spec(path: str | os.PathLike) -> dict:
         raise GyroInputError(f"{path}: not a gyroharness vibration spec")
     major = str(spec.get("format_version", "")).split(".")[0]
     if major != SPEC_FORMAT_VERSION.split(".")[0]:
-        raise GyroInputError(f"{path}: vibration spec format_version {spec.get('format_version')!r}; this build reads {SPEC_FORMAT_VERSION}")
+        raise GyroInputError(
+            f"{path}: vibration spec format_version {spec.get('format_version')!r}; this build reads {SPEC_FORMAT_VERSION}"
+        )
     return spec
 
 
@@ -846,8 +1012,13 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
         ax = axs[0, j]
         for i in range(B):
             thr = res.bands[i]["throttle"]
-            ax.semilogy(f, res.band_psd[i][:, j] * conv, color=cmap(i / max(B - 1, 1)), lw=0.8,
-                        label=f"{thr[0]:.{nd}f}-{thr[1]:.{nd}f}")
+            ax.semilogy(
+                f,
+                res.band_psd[i][:, j] * conv,
+                color=cmap(i / max(B - 1, 1)),
+                lw=0.8,
+                label=f"{thr[0]:.{nd}f}-{thr[1]:.{nd}f}",
+            )
         if B == 0:  # too few windows for a band: the mean over every window analysed
             ax.semilogy(f, res.mean_psd[:, j] * conv, color="k", lw=0.8, label=f"all {res.n_windows} windows")
         for ln in res.lines:
@@ -857,8 +1028,13 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
             ax.axvspan(res.reliable_below_hz, f[-1], color="0.85", zorder=0, label="undo unreliable (folding)")
         for eb in res.energy_bands:  # the energy bands (gyrocore.flight.energy_bands): extent shaded, share labelled
             if eb["axis"] == a and (eb.get("share_of_power_above_40hz") or 0.0) >= 0.05:
-                ax.axvspan(*eb["extent_hz"], color="tab:orange", alpha=0.3, zorder=0.5,
-                           label=f"band {eb['centre_hz']:.0f} Hz: {100 * eb['share_of_power_above_40hz']:.0f} % of rms power")
+                ax.axvspan(
+                    *eb["extent_hz"],
+                    color="tab:orange",
+                    alpha=0.3,
+                    zorder=0.5,
+                    label=f"band {eb['centre_hz']:.0f} Hz: {100 * eb['share_of_power_above_40hz']:.0f} % of rms power",
+                )
         ax.set_ylim(vmin / 10, vmax * 3)
         ax.set_title(f"gyro {a} ({res.signal})")
         ax.set_xlabel("frequency, Hz")
@@ -868,20 +1044,39 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
         ax2 = axs[1, j]
         if B > 1:
             Z = np.log10(np.maximum(res.band_psd[:, :, j] * conv, 1e-12))
-            ax2.pcolormesh(np.concatenate([f - (f[1] - f[0]) / 2, [f[-1] + (f[1] - f[0]) / 2]]), np.arange(B + 1), Z, shading="flat", vmin=np.log10(vmin), vmax=np.log10(vmax))
+            ax2.pcolormesh(
+                np.concatenate([f - (f[1] - f[0]) / 2, [f[-1] + (f[1] - f[0]) / 2]]),
+                np.arange(B + 1),
+                Z,
+                shading="flat",
+                vmin=np.log10(vmin),
+                vmax=np.log10(vmax),
+            )
             ax2.set_yticks(np.arange(B) + 0.5, [f"{b['median']:.{nd}f}" for b in res.bands])
             for ln in res.lines:
                 if ln["axis"] == a:
                     if "per_band" in ln:
-                        ax2.plot([p["frequency_hz"] for p in ln["per_band"]], [p["band"] + 0.5 for p in ln["per_band"]], "r.-", lw=0.8)
+                        ax2.plot(
+                            [p["frequency_hz"] for p in ln["per_band"]],
+                            [p["band"] + 0.5 for p in ln["per_band"]],
+                            "r.-",
+                            lw=0.8,
+                        )
                     else:
                         ax2.axvline(ln["frequency_hz"], color="w", ls=":", lw=0.8)
             ax2.set_ylabel("band (median " + (res.band_variable or "").split(" ")[0] + ")")
             ax2.set_xlabel("frequency, Hz")
         else:
             ax2.set_axis_off()
-            ax2.text(0.5, 0.5, f"{B} throttle band{'s' if B != 1 else ''}: no band x frequency map",
-                     ha="center", va="center", transform=ax2.transAxes, color="0.4")
+            ax2.text(
+                0.5,
+                0.5,
+                f"{B} throttle band{'s' if B != 1 else ''}: no band x frequency map",
+                ha="center",
+                va="center",
+                transform=ax2.transAxes,
+                color="0.4",
+            )
     fig.suptitle(title or "vibration")
     from gyrocore.data.recording import atomic_open
 
@@ -904,8 +1099,14 @@ def spec_band(spec: dict, band: int | str = "middle") -> dict:
         raise GyroInputError(f"vibration band {band!r}: the spec has bands 0..{len(bands) - 1} (or 'middle')") from None
 
 
-def shaped_params(spec: dict, *, band: int | str = "middle", fmin_hz: float = HIGHPASS_HZ,
-                  exclude_hz: Sequence[tuple[float, float]] = (), subtract_lines: Sequence[tuple[float, dict]] = ()) -> dict:
+def shaped_params(
+    spec: dict,
+    *,
+    band: int | str = "middle",
+    fmin_hz: float = HIGHPASS_HZ,
+    exclude_hz: Sequence[tuple[float, float]] = (),
+    subtract_lines: Sequence[tuple[float, dict]] = (),
+) -> dict:
     """The shaped part of the registry effect ``vibration`` from one band of a spec.
 
     Returns ``{"f_hz": (n,), "psd_rad2_s2_hz": (3, n)}`` (the effect's schema, SI): the spec
@@ -939,7 +1140,7 @@ def shaped_params(spec: dict, *, band: int | str = "middle", fmin_hz: float = HI
             if not p_line > 0:
                 continue
             k = int(round((float(f0) - f_spec[0]) / dfs))
-            side = np.r_[max(k - 30, 0):max(k - 10, 0), min(k + 11, f_spec.size):min(k + 31, f_spec.size)]
+            side = np.r_[max(k - 30, 0) : max(k - 10, 0), min(k + 11, f_spec.size) : min(k + 31, f_spec.size)]
             floor = float(np.median(S[side])) if side.size else 0.0
             lo_k, hi_k = max(k - 3, 0), min(k + 4, f_spec.size)
             excess = np.maximum(S[lo_k:hi_k] - floor, 0.0)
@@ -952,8 +1153,16 @@ def shaped_params(spec: dict, *, band: int | str = "middle", fmin_hz: float = HI
     return {"f_hz": f_spec[keep].copy(), "psd_rad2_s2_hz": P[:, keep].copy()}
 
 
-def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str = "middle",
-               fmin_hz: float = HIGHPASS_HZ, exclude_hz: Sequence[tuple[float, float]] = ()) -> np.ndarray:
+def synthesize(
+    spec: dict,
+    *,
+    n: int,
+    rate_hz: float,
+    seed: int,
+    band: int | str = "middle",
+    fmin_hz: float = HIGHPASS_HZ,
+    exclude_hz: Sequence[tuple[float, float]] = (),
+) -> np.ndarray:
     """A gyro vibration disturbance (n, 3), rad/s, whose PSD is the spec band's raw-domain PSD.
 
     Random-phase synthesis: for each rfft bin k of length n at ``rate_hz``,
@@ -987,19 +1196,22 @@ def synthesize(spec: dict, *, n: int, rate_hz: float, seed: int, band: int | str
     return out
 
 
-def add_vibration(rec: Recording, spec: dict, *, seed: int, band: int | str = "middle",
-                  exclude_hz: Sequence[tuple[float, float]] = ()) -> Recording:
+def add_vibration(
+    rec: Recording, spec: dict, *, seed: int, band: int | str = "middle", exclude_hz: Sequence[tuple[float, float]] = ()
+) -> Recording:
     """``rec`` with :func:`synthesize`'s disturbance added to its gyro (open loop: the truth and
     any controller that flew the recording did not see it); metadata says so. ``exclude_hz`` as
     :func:`synthesize`."""
     d = synthesize(spec, n=rec.n, rate_hz=rec.rate_hz, seed=seed, band=band, exclude_hz=exclude_hz)
     b = spec_band(spec, band)
-    return rec.with_gyro(rec.gyro_rad_s + d, vibration_spec=str(spec.get("source", "")),
-                         vibration_band=json.dumps({"throttle": b.get("throttle"), "median": b.get("median")}),
-                         vibration_injection="shaped Gaussian disturbance added to the measured gyro (open loop), seed "
-                                             f"{seed}; PSD of the spec band above {HIGHPASS_HZ:g} Hz"
-                                             + (f", without {', '.join(f'{lo:g}-{hi:g} Hz' for lo, hi in exclude_hz)}"
-                                                if exclude_hz else ""))
+    return rec.with_gyro(
+        rec.gyro_rad_s + d,
+        vibration_spec=str(spec.get("source", "")),
+        vibration_band=json.dumps({"throttle": b.get("throttle"), "median": b.get("median")}),
+        vibration_injection="shaped Gaussian disturbance added to the measured gyro (open loop), seed "
+        f"{seed}; PSD of the spec band above {HIGHPASS_HZ:g} Hz"
+        + (f", without {', '.join(f'{lo:g}-{hi:g} Hz' for lo, hi in exclude_hz)}" if exclude_hz else ""),
+    )
 
 
 def fidelity(sim: VibrationResult, spec: dict, *, band: int | str = "middle", fmin_hz: float = HIGHPASS_HZ) -> dict:
@@ -1027,8 +1239,11 @@ def fidelity(sim: VibrationResult, spec: dict, *, band: int | str = "middle", fm
         ok = np.isfinite(R) & np.isfinite(S) & (R > 0)
         ratio = S[ok] / R[ok]
         dfr = fs[1] - fs[0]
-        out[a] = {"in_band_fraction": float(np.mean((ratio >= lo_q) & (ratio <= hi_q))) if ok.any() else float("nan"),
-                  "median_ratio_sim_to_real": float(np.median(ratio)) if ok.any() else float("nan"),
-                  "rms_sim_rad_s": float(np.sqrt(np.nansum(S) * dfr)), "rms_real_rad_s": float(np.sqrt(np.nansum(R) * dfr)),
-                  "band_hz": [fmin_hz, float(lim)]}
+        out[a] = {
+            "in_band_fraction": float(np.mean((ratio >= lo_q) & (ratio <= hi_q))) if ok.any() else float("nan"),
+            "median_ratio_sim_to_real": float(np.median(ratio)) if ok.any() else float("nan"),
+            "rms_sim_rad_s": float(np.sqrt(np.nansum(S) * dfr)),
+            "rms_real_rad_s": float(np.sqrt(np.nansum(R) * dfr)),
+            "band_hz": [fmin_hz, float(lim)],
+        }
     return out

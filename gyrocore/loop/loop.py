@@ -223,8 +223,10 @@ class Remaining:
             "ljung_box_p": self.ljung_box_p,
             "white": bool(np.isfinite(self.ljung_box_p) and self.ljung_box_p >= 0.01),
             "window_s": self.window_s,
-            "welch_peak_hz": [float(self.welch_freq_hz[1:][np.argmax(self.welch_psd[1:, i])])
-                              if self.welch_freq_hz.size > 2 else None for i in range(3)],
+            "welch_peak_hz": [
+                float(self.welch_freq_hz[1:][np.argmax(self.welch_psd[1:, i])]) if self.welch_freq_hz.size > 2 else None
+                for i in range(3)
+            ],
             "allan_tau_s": self.allan_tau_s,
             "allan_adev_rad_s": self.allan_adev_rad_s,
             "allan_slope": self.allan_slope,
@@ -303,13 +305,22 @@ class LoopResult:
 
         def ev(e: Evidence) -> dict:
             return {
-                "statistic": e.statistic, "df1": e.df1, "df2": e.df2, "p_value": e.p_value,
-                "log10_p": e.log10_p, "threshold": e.threshold, "params": e.params,
-                "std_errors": e.std_errors, "unobservable": list(e.unobservable),
-                "rms_reduction": e.rms_reduction, "attitude_reduction": e.attitude_reduction,
-                "hac_bandwidth_windows": e.hac_bandwidth, "ambiguous_with": list(e.ambiguous_with),
+                "statistic": e.statistic,
+                "df1": e.df1,
+                "df2": e.df2,
+                "p_value": e.p_value,
+                "log10_p": e.log10_p,
+                "threshold": e.threshold,
+                "params": e.params,
+                "std_errors": e.std_errors,
+                "unobservable": list(e.unobservable),
+                "rms_reduction": e.rms_reduction,
+                "attitude_reduction": e.attitude_reduction,
+                "hac_bandwidth_windows": e.hac_bandwidth,
+                "ambiguous_with": list(e.ambiguous_with),
                 "cv_rms_reduction": e.cv_rms_reduction,
-                "hac_log10_p": e.hac_log10_p, "model_log10_p": e.model_log10_p,
+                "hac_log10_p": e.hac_log10_p,
+                "model_log10_p": e.model_log10_p,
             }
 
         return {
@@ -383,11 +394,19 @@ class _Model:
                 # a few known angles among still windows: weighted least squares with the known
                 # angle uncertainty on the rotation windows and the still windows' own scatter;
                 # the covariance is s²(AᵀWA)⁻¹ (s² ≈ 1 when the weights are right)
-                f = lsq.solve(y, X, names, slices, weights=self.angle_weights(), covariance="ols",
-                              axis_weighting=False, on_unobservable="drop", min_excitation_snr=0.0)
+                f = lsq.solve(
+                    y,
+                    X,
+                    names,
+                    slices,
+                    weights=self.angle_weights(),
+                    covariance="ols",
+                    axis_weighting=False,
+                    on_unobservable="drop",
+                    min_excitation_snr=0.0,
+                )
             else:
-                f = lsq.solve(y, X, names, slices, covariance="hac", on_unobservable="drop",
-                              min_excitation_snr=0.0)
+                f = lsq.solve(y, X, names, slices, covariance="hac", on_unobservable="drop", min_excitation_snr=0.0)
         return f, f.residual_rad_s
 
     def angle_weights(self) -> np.ndarray:
@@ -542,7 +561,7 @@ def _attitude_error_spilled(res: Residual, rec: SpilledRecording, correction) ->
         if q_carry is None:
             q = integrate_gyro(t[lo:hi], w, q0_wxyz=qr[0], hold="backward")
         else:
-            q = integrate_gyro(t[lo - 1:hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward")[1:]
+            q = integrate_gyro(t[lo - 1 : hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward")[1:]
         e = error_angle_rad(q, qr)
         s2 += float(np.sum(e * e))
         cnt += e.size
@@ -579,17 +598,30 @@ def _remaining(res: Residual, e: np.ndarray) -> Remaining:
             adev.append(d)
         adev = np.stack(adev, axis=1)
         ok = np.all(adev > 0, axis=1)
-        slope = (np.polyfit(np.log(taus[ok]), np.log(adev[ok]), 1)[0]
-                 if ok.sum() >= 2 else np.full(3, np.nan))
+        slope = np.polyfit(np.log(taus[ok]), np.log(adev[ok]), 1)[0] if ok.sum() >= 2 else np.full(3, np.nan)
     else:
         f, P = np.zeros(0), np.zeros((0, 3))
         taus, adev, slope = np.zeros(0), np.zeros((0, 3)), np.full(3, np.nan)
-    return Remaining(ljung_box_p=float(lb), window_s=win, welch_freq_hz=f, welch_psd=P,
-                     allan_tau_s=np.asarray(taus), allan_adev_rad_s=adev, allan_slope=np.asarray(slope))
+    return Remaining(
+        ljung_box_p=float(lb),
+        window_s=win,
+        welch_freq_hz=f,
+        welch_psd=P,
+        allan_tau_s=np.asarray(taus),
+        allan_adev_rad_s=adev,
+        allan_slope=np.asarray(slope),
+    )
 
 
-def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rms_before: float,
-          e_current: np.ndarray | None = None, cv_base: float | None = None):
+def _test(
+    model: _Model,
+    current: Sequence[str],
+    cand: str,
+    threshold: float,
+    rms_before: float,
+    e_current: np.ndarray | None = None,
+    cv_base: float | None = None,
+):
     """Fit current + cand and Wald-test cand's observable parameters.
 
     ``e_current`` is the current model's window residual (M, 3) and ``cv_base`` its
@@ -612,8 +644,9 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
         # declared: 9 residuals, 3 + 6 misalignment parameters): no residual is left to judge
         # the fit by, so the candidate is not testable (a floor of 1 used to turn the exact fit
         # into F ~ 1e26 and a 'found' misalignment of 6 rad)
-        unobs = (f"no residual degrees of freedom left ({3 * model.res.m} window residuals, "
-                 f"{fit.rank} parameters with it)",)
+        unobs = (
+            f"no residual degrees of freedom left ({3 * model.res.m} window residuals, {fit.rank} parameters with it)",
+        )
         idx, q = [], 0
     df2 = max(df2, 1)
     if q:
@@ -679,7 +712,12 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
                     half = 1.0 - h2 / max(_rms(e_current), 1e-300)
                     cv_red = half if not np.isfinite(cv_red) else min(cv_red, half)
     ev = Evidence(
-        statistic=F, df1=q, df2=df2, p_value=p, log10_p=lp, threshold=threshold,
+        statistic=F,
+        df1=q,
+        df2=df2,
+        p_value=p,
+        log10_p=lp,
+        threshold=threshold,
         params={n: float(fit.theta[p_]) for n, p_ in zip(names, cols)},
         std_errors={n: float(fit.stderr[p_]) for n, p_ in zip(names, cols)},
         unobservable=unobs,
@@ -687,7 +725,8 @@ def _test(model: _Model, current: Sequence[str], cand: str, threshold: float, rm
         cv_rms_reduction=cv_red,
         attitude_reduction=float("nan"),
         hac_bandwidth=float(fit.hac_bandwidth),
-        hac_log10_p=lp_hac, model_log10_p=lp_mod,
+        hac_log10_p=lp_hac,
+        model_log10_p=lp_mod,
     )
     return ev, fit
 
@@ -696,7 +735,7 @@ def _slow_open_term(cand: str) -> bool:
     """True for an open regressor candidate (``regressor[...]@axis``) with a factor ``t``."""
     if not cand.startswith("regressor["):
         return False
-    expr = cand[len("regressor["): cand.rindex("]")]
+    expr = cand[len("regressor[") : cand.rindex("]")]
     try:
         return "t" in S.term_factors(expr)
     except Exception:
@@ -717,8 +756,8 @@ def _avar_octaves(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Ls, av, edf = [], [], []
     L = 1
     while L <= M // 4:
-        mean = (c[L:] - c[:-L]) / L          # all L-window means
-        d = mean[L:] - mean[:-L]             # adjacent, overlapping
+        mean = (c[L:] - c[:-L]) / L  # all L-window means
+        d = mean[L:] - mean[:-L]  # adjacent, overlapping
         Ls.append(L)
         av.append(0.5 * float(np.mean(d**2)))
         edf.append(max(M / L - 1.0, 1.0))
@@ -802,7 +841,7 @@ def _model_wald(model: _Model, fit, effects: Sequence[str], idx: Sequence[int]) 
     cn = np.sqrt(np.diag(G))
     cn[cn == 0] = 1.0
     Ginv = np.linalg.pinv(G / np.outer(cn, cn)) / np.outer(cn, cn)
-    Lr = np.einsum("qp,mip,i->imq", Ginv[rows], Xk, w)   # (3, M, q): θ̂ = Σ_a Lr[a]ᵀ y[:, a]
+    Lr = np.einsum("qp,mip,i->imq", Ginv[rows], Xk, w)  # (3, M, q): θ̂ = Σ_a Lr[a]ᵀ y[:, a]
     e = np.asarray(fit.residual_rad_s, float)
     q_dim = len(rows)
     V = np.zeros((q_dim, q_dim))
@@ -886,8 +925,12 @@ def _params_table(fit, effects) -> dict:
     for e in effects:
         sl = fit.slices[e]
         base, _ = split_axis(e)
-        out.setdefault(base, {}).update({fit.names[p].rsplit(".", 1)[1]: [float(fit.theta[p]), float(fit.stderr[p])]
-                                         for p in range(sl.start, sl.stop)})
+        out.setdefault(base, {}).update(
+            {
+                fit.names[p].rsplit(".", 1)[1]: [float(fit.theta[p]), float(fit.stderr[p])]
+                for p in range(sl.start, sl.stop)
+            }
+        )
         if e == "earth_rate":
             om = fit.theta[sl]
             mag = float(np.linalg.norm(om))
@@ -916,8 +959,11 @@ def _input_check(res: Residual, effect: str) -> str | None:
     """Reason why a candidate cannot be tested on these data, or None."""
     inp = res.inputs
     needs = {
-        "bias_thermal": "temp", "bias_temp_rate": "temp", "scale_thermal": "temp",
-        "g_sensitivity": "accel", "g2_sensitivity": "accel",
+        "bias_thermal": "temp",
+        "bias_temp_rate": "temp",
+        "scale_thermal": "temp",
+        "g_sensitivity": "accel",
+        "g2_sensitivity": "accel",
     }.get(effect)
     if needs == "temp" and inp.temp_c is None:
         return "no temp_c column"
@@ -929,17 +975,23 @@ def _input_check(res: Residual, effect: str) -> str | None:
         fs = f[~rot]
         poses = _n_poses(fs)
         if poses < 2:
-            return ("one static pose: the specific force hardly changes, so g-sensitivity is a bias here "
-                    "(and small changes of f mean the sensor moved)")
+            return (
+                "one static pose: the specific force hardly changes, so g-sensitivity is a bias here "
+                "(and small changes of f mean the sensor moved)"
+            )
         if poses < 3:
-            return ("two static poses: a bias change between them (drift, warm-up) explains the same step; "
-                    "g-sensitivity needs three or more poses")
+            return (
+                "two static poses: a bias change between them (drift, warm-up) explains the same step; "
+                "g-sensitivity needs three or more poses"
+            )
     if effect == "earth_rate" and res.R_WS is None:
         return "no attitude to resolve the Earth rate (it is a bias in a fixed pose)"
     if effect == "time_offset" and res.kind == "angles":
         return "known angles carry no timing: a lag between gyro and reference needs a time-resolved reference"
-    if effect in ("scale", "scale_thermal", "scale_asymmetry", "scale_nonlinearity", "misalignment",
-                  "time_offset") and res.kind == "still":
+    if (
+        effect in ("scale", "scale_thermal", "scale_asymmetry", "scale_nonlinearity", "misalignment", "time_offset")
+        and res.kind == "still"
+    ):
         return "still data: the true rate is zero, rate-proportional errors are invisible"
     return None
 
@@ -997,8 +1049,10 @@ def loop_residual(
     cands = [c for c in cand_all if c not in untestable]
     do_open = bool(open_search) and res.kind != "angles"
     if open_search and not do_open:
-        notes.append("open search not run: a known-angle reference has a few rotation windows, too few to "
-                     "describe effects outside the catalogue")
+        notes.append(
+            "open search not run: a known-angle reference has a few rotation windows, too few to "
+            "describe effects outside the catalogue"
+        )
     # family-wise error: a weighted Bonferroni/Holm split of alpha between the catalogue and the
     # three open-search kinds (search.ALPHA_SHARE); without the open search the catalogue has all of it
     alpha_cat = alpha * (S.ALPHA_SHARE["catalogue"] if do_open else 1.0)
@@ -1057,7 +1111,8 @@ def loop_residual(
         # predict the other folds; and of a size that matters, in the residual or in the
         # attitude
         size = ev.rms_reduction >= min_rms_reduction or (
-            np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction)
+            np.isfinite(ev.attitude_reduction) and ev.attitude_reduction >= min_attitude_reduction
+        )
         held_ = ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)
         if res.kind == "angles" and np.isfinite(ev.attitude_reduction):
             # the known angles are the reference: an effect that makes them worse by more
@@ -1083,18 +1138,47 @@ def loop_residual(
         sig = fit.axis_sigma_rad_s if fit is not None else np.maximum(np.std(e, axis=0), 1e-12)
         return S.screen_step(res, X0, e, sig, threshold=thr_step, rng=rng)
 
-    def add_open(kind: str, axis: int, name: str, fields: dict, evidence: dict, before: float, after: float,
-                 att_b: float, att_a: float) -> None:
-        unexplained.append(Unexplained(kind=kind, axis="xyz"[axis], effect=name, fields=fields, evidence=evidence,
-                                       residual_rms_before_rad_s=before, residual_rms_after_rad_s=after,
-                                       attitude_error_before_deg=att_b, attitude_error_after_deg=att_a))
+    def add_open(
+        kind: str,
+        axis: int,
+        name: str,
+        fields: dict,
+        evidence: dict,
+        before: float,
+        after: float,
+        att_b: float,
+        att_a: float,
+    ) -> None:
+        unexplained.append(
+            Unexplained(
+                kind=kind,
+                axis="xyz"[axis],
+                effect=name,
+                fields=fields,
+                evidence=evidence,
+                residual_rms_before_rad_s=before,
+                residual_rms_after_rad_s=after,
+                attitude_error_before_deg=att_b,
+                attitude_error_after_deg=att_a,
+            )
+        )
 
     def ev_dict(ev: Evidence) -> dict:
-        return {"statistic": ev.statistic, "df1": ev.df1, "df2": ev.df2, "p_value": ev.p_value, "log10_p": ev.log10_p,
-                "threshold": ev.threshold, "cv_rms_reduction": ev.cv_rms_reduction,
-                "rms_reduction": ev.rms_reduction, "attitude_reduction": ev.attitude_reduction,
-                "params": ev.params, "std_errors": ev.std_errors,
-                "hac_log10_p": ev.hac_log10_p, "model_log10_p": ev.model_log10_p}
+        return {
+            "statistic": ev.statistic,
+            "df1": ev.df1,
+            "df2": ev.df2,
+            "p_value": ev.p_value,
+            "log10_p": ev.log10_p,
+            "threshold": ev.threshold,
+            "cv_rms_reduction": ev.cv_rms_reduction,
+            "rms_reduction": ev.rms_reduction,
+            "attitude_reduction": ev.attitude_reduction,
+            "params": ev.params,
+            "std_errors": ev.std_errors,
+            "hac_log10_p": ev.hac_log10_p,
+            "model_log10_p": ev.model_log10_p,
+        }
 
     for _ in range(max_steps + max_open_steps):
         remaining = [c for c in cands if c not in model_effects]
@@ -1149,10 +1233,12 @@ def loop_residual(
                     name = S.canonical(f"step[{S._fmt_num(st.t_s)}]")
                     ev_s, f_s = open_term_test(name, thr_step, cv_base)
                     X0 = model.design(model_effects)[0]
-                    cv_step = _cv_rms(res.y_rad_s, np.concatenate([X0, model.block(name)[1]], axis=2),
-                                      min_windows=_cv_min(res))
-                    cv_ramp = _cv_rms(res.y_rad_s, np.concatenate([X0, model.block("bias_ramp")[1]], axis=2),
-                                      min_windows=_cv_min(res))
+                    cv_step = _cv_rms(
+                        res.y_rad_s, np.concatenate([X0, model.block(name)[1]], axis=2), min_windows=_cv_min(res)
+                    )
+                    cv_ramp = _cv_rms(
+                        res.y_rad_s, np.concatenate([X0, model.block("bias_ramp")[1]], axis=2), min_windows=_cv_min(res)
+                    )
                     if cv_step < cv_ramp and ev_s.df1 > 0 and practical(ev_s):
                         model_effects.append(name)
                         res, model, rec, tau_acc, fit, e = refit(res, model, rec, tau_acc)
@@ -1162,16 +1248,37 @@ def loop_residual(
                         se = np.array([fit.effect_stderr(name)[i] for i in range(3)])
                         ax = int(np.argmax(np.abs(size) / np.where(se > 0, se, np.inf)))
                         evd = ev_dict(ev_s)
-                        evd.update({"sup_statistic": st.statistic, "bootstrap_p": st.p_value, "n_boot": st.n_boot,
-                                    "n_candidates": st.n_candidates, "log10_p_step": st.log10_p,
-                                    "threshold_step": thr_step,
-                                    "vs_ramp": {"cv_rms_step_rad_s": cv_step, "cv_rms_ramp_rad_s": cv_ramp,
-                                                "chosen": "step"},
-                                    "size_std_errors_rad_s": se})
-                        add_open("step", ax, name, {"t_s": st.t_s, "size_rad_s": size}, evd, rms_cur, rms_new,
-                                 att_cur, att_new)
-                        notes.append(f"a bias step at t = {st.t_s:.6g} s explains the residual better than "
-                                     f"bias_ramp (out-of-sample RMS {cv_step:.3g} vs {cv_ramp:.3g} rad/s)")
+                        evd.update(
+                            {
+                                "sup_statistic": st.statistic,
+                                "bootstrap_p": st.p_value,
+                                "n_boot": st.n_boot,
+                                "n_candidates": st.n_candidates,
+                                "log10_p_step": st.log10_p,
+                                "threshold_step": thr_step,
+                                "vs_ramp": {
+                                    "cv_rms_step_rad_s": cv_step,
+                                    "cv_rms_ramp_rad_s": cv_ramp,
+                                    "chosen": "step",
+                                },
+                                "size_std_errors_rad_s": se,
+                            }
+                        )
+                        add_open(
+                            "step",
+                            ax,
+                            name,
+                            {"t_s": st.t_s, "size_rad_s": size},
+                            evd,
+                            rms_cur,
+                            rms_new,
+                            att_cur,
+                            att_new,
+                        )
+                        notes.append(
+                            f"a bias step at t = {st.t_s:.6g} s explains the residual better than "
+                            f"bias_ramp (out-of-sample RMS {cv_step:.3g} vs {cv_ramp:.3g} rad/s)"
+                        )
                         history.append(e)
                         rms_cur, att_cur = rms_new, att_new
                         last_tests = {}
@@ -1184,12 +1291,16 @@ def loop_residual(
             rms_new = _rms(e)
             att_new = attitude_error_deg(res, rec, model.correction(fit, model_effects))
             evb = evs[best]
-            steps.append(Step(
-                effect=best,
-                evidence=Evidence(**{**evb.__dict__, "ambiguous_with": tuple(ambiguous)}),
-                residual_rms_before_rad_s=rms_cur, residual_rms_after_rad_s=rms_new,
-                attitude_error_before_deg=att_cur, attitude_error_after_deg=att_new,
-            ))
+            steps.append(
+                Step(
+                    effect=best,
+                    evidence=Evidence(**{**evb.__dict__, "ambiguous_with": tuple(ambiguous)}),
+                    residual_rms_before_rad_s=rms_cur,
+                    residual_rms_after_rad_s=rms_new,
+                    attitude_error_before_deg=att_cur,
+                    attitude_error_after_deg=att_new,
+                )
+            )
             n_cat += 1
             last_tests = {}
             rms_cur, att_cur = rms_new, att_new
@@ -1198,10 +1309,25 @@ def loop_residual(
         if not do_open or len(unexplained) >= max_open_steps:
             break
         took = _open_step(
-            res=res, rec=rec, model=model, model_effects=model_effects, fit=fit, e=e, alpha=alpha,
-            rms_cur=rms_cur, att_cur=att_cur, cv_base=cv_base, open_term_test=open_term_test, practical=practical,
-            step_screen_now=step_screen_now, ev_dict=ev_dict, untestable=untestable, held=held, tau_acc=tau_acc,
-            can_hold=rebuild is not None, open_last=open_last,
+            res=res,
+            rec=rec,
+            model=model,
+            model_effects=model_effects,
+            fit=fit,
+            e=e,
+            alpha=alpha,
+            rms_cur=rms_cur,
+            att_cur=att_cur,
+            cv_base=cv_base,
+            open_term_test=open_term_test,
+            practical=practical,
+            step_screen_now=step_screen_now,
+            ev_dict=ev_dict,
+            untestable=untestable,
+            held=held,
+            tau_acc=tau_acc,
+            can_hold=rebuild is not None,
+            open_last=open_last,
         )
         if took is None:
             break
@@ -1243,8 +1369,10 @@ def loop_residual(
     if tau_acc != 0.0 and "time_offset" in params:
         v, se = params["time_offset"]["tau_s"]
         params["time_offset"]["tau_s"] = [tau_acc + v, se]
-        notes.append(f"time_offset re-linearised (Gauss-Newton): the gyro was advanced by {tau_acc:.6g} s and "
-                     "the fit repeated; tau_s is the total")
+        notes.append(
+            f"time_offset re-linearised (Gauss-Newton): the gyro was advanced by {tau_acc:.6g} s and "
+            "the fit repeated; tau_s is the total"
+        )
     t0_c = res.temp_mean_c()
     return LoopResult(
         declared=tuple(declared),
@@ -1291,11 +1419,20 @@ def _line_series(res: Residual, rec: Recording, correction: np.ndarray):
             return rec.gyro_rad_s.rows(a, b) - ref.rows(a, b) - rows_of(correction, a, b)
 
         def m_rows(a, b):
-            return ref.rows(a, b) if acc is None else np.concatenate([ref.rows(a, b), np.nan_to_num(acc.rows(a, b))],
-                                                                     axis=1)
+            return (
+                ref.rows(a, b)
+                if acc is None
+                else np.concatenate([ref.rows(a, b), np.nan_to_num(acc.rows(a, b))], axis=1)
+            )
 
-        return (Rows(x_rows, rec.n, 3), t, rec.rate_hz, Rows(m_rows, rec.n, 3 if acc is None else 6), "sample",
-                slice(0, rec.n))
+        return (
+            Rows(x_rows, rec.n, 3),
+            t,
+            rec.rate_hz,
+            Rows(m_rows, rec.n, 3 if acc is None else 6),
+            "sample",
+            slice(0, rec.n),
+        )
     if res.kind == "rate":
         ref = rec.ref_rate_rad_s
         ok = np.all(np.isfinite(ref), axis=1)
@@ -1383,8 +1520,9 @@ def _window_line_series(res: Residual, e: np.ndarray):
     """Longest evenly spaced run of windows of the window residual: (x, t_mid, fs, idx)."""
     T = res.duration_s
     win = float(np.median(T))
-    even = np.concatenate([[False], (np.abs(np.diff(res.t_mid_s) - win) <= 0.05 * win)
-                           & (np.abs(T[1:] - win) <= 0.05 * win)])
+    even = np.concatenate(
+        [[False], (np.abs(np.diff(res.t_mid_s) - win) <= 0.05 * win) & (np.abs(T[1:] - win) <= 0.05 * win)]
+    )
     best, cur, st, bst = 0, 0, 0, 0
     for k in range(res.m):
         if k > 0 and even[k]:
@@ -1397,8 +1535,28 @@ def _window_line_series(res: Residual, e: np.ndarray):
     return e[idx], res.t_mid_s[idx], 1.0 / win, idx
 
 
-def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cur, cv_base, open_term_test,
-               practical, step_screen_now, ev_dict, untestable, held, tau_acc, can_hold, open_last):
+def _open_step(
+    *,
+    res,
+    rec,
+    model,
+    model_effects,
+    fit,
+    e,
+    alpha,
+    rms_cur,
+    att_cur,
+    cv_base,
+    open_term_test,
+    practical,
+    step_screen_now,
+    ev_dict,
+    untestable,
+    held,
+    tau_acc,
+    can_hold,
+    open_last,
+):
     """One step of the open search: the strongest significant description among the regressor
     library, lines and a bias step, or None. See :mod:`gyrocore.loop.search`.
 
@@ -1409,8 +1567,7 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
     X0 = model.design(model_effects)[0]
     n_par = fit.rank if fit is not None else 0
     # ---------------- regressor library
-    terms = S.library_terms(res.inputs, kind=res.kind,
-                            chunks=(res.iter_inputs(context=1) if res.chunked() else None))
+    terms = S.library_terms(res.inputs, kind=res.kind, chunks=(res.iter_inputs(context=1) if res.chunked() else None))
     exclude = set()
     for term in terms:
         for i in range(3):
@@ -1428,26 +1585,41 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
                 continue
             exclude.add((term, i))
             cat = S.catalogue_equivalent(simple, i)
-            equiv[f"{term}@{'xyz'[i]}"] = (f"{cat} (tested in the catalogue step)" if cat is not None
-                                           else f"regressor[{simple}]")
+            equiv[f"{term}@{'xyz'[i]}"] = (
+                f"{cat} (tested in the catalogue step)" if cat is not None else f"regressor[{simple}]"
+            )
     lib = S.screen_library(res, X0, e, sig, terms, exclude, n_par, Xlib) if terms else None
     if lib is not None:
         thr = alpha * S.ALPHA_SHARE["regressor"] / lib.n_tested
-        open_last["regressor"] = {"term": lib.term, "axis": "xyz"[lib.axis], "score_F": lib.statistic,
-                                  "log10_p": lib.log10_p, "threshold": thr, "n_tested": lib.n_tested}
+        open_last["regressor"] = {
+            "term": lib.term,
+            "axis": "xyz"[lib.axis],
+            "score_F": lib.statistic,
+            "log10_p": lib.log10_p,
+            "threshold": thr,
+            "n_tested": lib.n_tested,
+        }
         if equiv:
             open_last["regressor"]["collinear_with_simpler"] = equiv
         if lib.p_value < thr:
             name = S.canonical(f"regressor[{lib.term}]")
             ev, _ = open_term_test(f"{name}@{lib.axis}", thr, cv_base)
-            open_last["regressor"].update({"wald_log10_p": ev.log10_p, "cv_rms_reduction": ev.cv_rms_reduction,
-                                           "rms_reduction": ev.rms_reduction})
+            open_last["regressor"].update(
+                {"wald_log10_p": ev.log10_p, "cv_rms_reduction": ev.cv_rms_reduction, "rms_reduction": ev.rms_reduction}
+            )
             if ev.df1 > 0 and ev.p_value < thr and practical(ev):
                 evd = ev_dict(ev)
-                evd.update({"score_F": lib.statistic, "score_log10_p": lib.log10_p, "n_tested": lib.n_tested,
-                            "residual": "window"})
-                options.append((ev.log10_p - np.log10(thr),
-                                ("regressor", lib.axis, name, {"term": lib.term}, evd, None)))
+                evd.update(
+                    {
+                        "score_F": lib.statistic,
+                        "score_log10_p": lib.log10_p,
+                        "n_tested": lib.n_tested,
+                        "residual": "window",
+                    }
+                )
+                options.append(
+                    (ev.log10_p - np.log10(thr), ("regressor", lib.axis, name, {"term": lib.term}, evd, None))
+                )
     elif not terms:
         open_last["regressor"] = {"skipped": "no signal varies in the data"}
     # ---------------- lines
@@ -1460,20 +1632,34 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
     if res.kind == "attitude" and can_hold and not both:
         open_last["periodic_sample_level"] = (
             "not run: the reference attitude is not on the gyro's rows (sampled more slowly: the gyro's lines above "
-            "its Nyquist frequency would alias) or has no gap-free run of 512 samples; window level only")
+            "its Nyquist frequency would alias) or has no gap-free run of 512 samples; window level only"
+        )
     thr_sample = thr_line / 2 if both else thr_line
     if ser is not None and ser[0].shape[0] >= 256:
         x, tt, fs, mot, level, _ = ser[:6]
         seg_len = ser[6] if len(ser) > 6 else S.segment_length(x.shape[0])
         # (axis, frequency) already removed
-        done = [(i, float(n[len("periodic["):-1])) for n, ls in held.items() for i in range(3)
-                if any(ax == i and (a_ != 0 or b_ != 0) for ax, _, a_, b_ in ls)]
+        done = [
+            (i, float(n[len("periodic[") : -1]))
+            for n, ls in held.items()
+            for i in range(3)
+            if any(ax == i and (a_ != 0 or b_ != 0) for ax, _, a_, b_ in ls)
+        ]
         lines = S.screen_lines(x, fs, ref=mot, skip=done, seg_max=seg_len)
-        open_last["periodic"] = [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
-                                  "log10_p": l.log10_p, "threshold": thr_sample, "n_freq": l.n_freq,
-                                  "bandwidth_hz": l.bandwidth_hz, "masked_by_motion_bins": l.masked_by_motion,
-                                  "level": "sample"}
-                                 for l in lines]
+        open_last["periodic"] = [
+            {
+                "axis": "xyz"[l.axis],
+                "frequency_hz": l.frequency_hz,
+                "F": l.statistic,
+                "log10_p": l.log10_p,
+                "threshold": thr_sample,
+                "n_freq": l.n_freq,
+                "bandwidth_hz": l.bandwidth_hz,
+                "masked_by_motion_bins": l.masked_by_motion,
+                "level": "sample",
+            }
+            for l in lines
+        ]
         for l in lines:
             if l.log10_p >= np.log10(thr_sample):
                 continue
@@ -1495,15 +1681,28 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
             phi = 2 * np.pi * f * tau_acc
             a_raw, b_raw = a * np.cos(phi) - b * np.sin(phi), a * np.sin(phi) + b * np.cos(phi)
             corr_full = (i, f, a_raw, b_raw)  # stream.held_correction
-            evd = {"statistic": l.statistic, "df1": l.df1, "df2": l.df2, "log10_p": l.log10_p,
-                   "p_value": 10 ** l.log10_p, "threshold": thr_sample, "n_frequencies_tested": l.n_freq,
-                   "bandwidth_hz": l.bandwidth_hz, "grid_frequency_hz": l.frequency_hz,
-                   "cv_rms_reduction": cv, "residual": level, "test": "Thomson multitaper harmonic F (NW 4, K 7)",
-                   "params": {f"a_cos_rad_s[{i}]": a_raw, f"a_sin_rad_s[{i}]": b_raw},
-                   "std_errors": {f"a_cos_rad_s[{i}]": float(se[0, 0]), f"a_sin_rad_s[{i}]": float(se[1, 0])},
-                   "_sample_rms_before": before, "_sample_rms_after": after,
-                   "_params": {f"a_cos_rad_s[{i}]": (a_raw, float(se[0, 0])),
-                               f"a_sin_rad_s[{i}]": (b_raw, float(se[1, 0]))}}
+            evd = {
+                "statistic": l.statistic,
+                "df1": l.df1,
+                "df2": l.df2,
+                "log10_p": l.log10_p,
+                "p_value": 10**l.log10_p,
+                "threshold": thr_sample,
+                "n_frequencies_tested": l.n_freq,
+                "bandwidth_hz": l.bandwidth_hz,
+                "grid_frequency_hz": l.frequency_hz,
+                "cv_rms_reduction": cv,
+                "residual": level,
+                "test": "Thomson multitaper harmonic F (NW 4, K 7)",
+                "params": {f"a_cos_rad_s[{i}]": a_raw, f"a_sin_rad_s[{i}]": b_raw},
+                "std_errors": {f"a_cos_rad_s[{i}]": float(se[0, 0]), f"a_sin_rad_s[{i}]": float(se[1, 0])},
+                "_sample_rms_before": before,
+                "_sample_rms_after": after,
+                "_params": {
+                    f"a_cos_rad_s[{i}]": (a_raw, float(se[0, 0])),
+                    f"a_sin_rad_s[{i}]": (b_raw, float(se[1, 0])),
+                },
+            }
             fields = {"frequency_hz": f, "amplitude_rad_s": float(np.hypot(a, b))}
             if res.kind == "attitude":
                 evd["segments"] = {"n": int(x.shape[0] // seg_len), "length": int(seg_len)}
@@ -1513,13 +1712,25 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
         x, tt, fs, idx = _window_line_series(res, e)
         if x.shape[0] >= 64:
             mot = res.window_mean(np.asarray(res.inputs.omega_S_rad_s, float))[idx]
-            done = [(column_axis("a[" + k.split("@")[1] + "]"), float(k[len("periodic["):k.index("]")]))
-                    for k in model_effects if k.startswith("periodic[")]
+            done = [
+                (column_axis("a[" + k.split("@")[1] + "]"), float(k[len("periodic[") : k.index("]")]))
+                for k in model_effects
+                if k.startswith("periodic[")
+            ]
             lines = S.screen_lines(x, fs, ref=mot, skip=done)
             open_last["periodic"] = open_last.get("periodic", []) if both else []
-            open_last["periodic"] += [{"axis": "xyz"[l.axis], "frequency_hz": l.frequency_hz, "F": l.statistic,
-                                       "log10_p": l.log10_p, "threshold": thr_line, "n_freq": l.n_freq,
-                                       "level": "window"} for l in lines]
+            open_last["periodic"] += [
+                {
+                    "axis": "xyz"[l.axis],
+                    "frequency_hz": l.frequency_hz,
+                    "F": l.statistic,
+                    "log10_p": l.log10_p,
+                    "threshold": thr_line,
+                    "n_freq": l.n_freq,
+                    "level": "window",
+                }
+                for l in lines
+            ]
             for l in lines:
                 if l.log10_p >= np.log10(thr_line):
                     continue
@@ -1529,37 +1740,76 @@ def _open_step(*, res, rec, model, model_effects, fit, e, alpha, rms_cur, att_cu
                 # the harmonic F decided significance; the window refit must hold out of sample
                 if ev.df1 > 0 and (ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)):
                     evd = ev_dict(ev)
-                    evd.update({"line_F": l.statistic, "line_log10_p": l.log10_p, "threshold": thr_line,
-                                "residual": "window", "n_frequencies_tested": l.n_freq})
+                    evd.update(
+                        {
+                            "line_F": l.statistic,
+                            "line_log10_p": l.log10_p,
+                            "threshold": thr_line,
+                            "residual": "window",
+                            "n_frequencies_tested": l.n_freq,
+                        }
+                    )
                     a = ev.params.get(f"a_cos_rad_s[{l.axis}]", 0.0)
                     b = ev.params.get(f"a_sin_rad_s[{l.axis}]", 0.0)
-                    options.append((l.log10_p - np.log10(thr_line),
-                                    ("periodic", l.axis, name, {"frequency_hz": f, "amplitude_rad_s": float(np.hypot(a, b))},
-                                     evd, None)))
+                    options.append(
+                        (
+                            l.log10_p - np.log10(thr_line),
+                            (
+                                "periodic",
+                                l.axis,
+                                name,
+                                {"frequency_hz": f, "amplitude_rad_s": float(np.hypot(a, b))},
+                                evd,
+                                None,
+                            ),
+                        )
+                    )
     # ---------------- step
     thr_step = alpha * S.ALPHA_SHARE["step"]
     st = step_screen_now(thr_step)
     if st is not None:
-        open_last["step"] = {"t_s": st.t_s, "sup_statistic": st.statistic, "bootstrap_p": st.p_value,
-                             "threshold": thr_step, "n_boot": st.n_boot, "n_candidates": st.n_candidates}
+        open_last["step"] = {
+            "t_s": st.t_s,
+            "sup_statistic": st.statistic,
+            "bootstrap_p": st.p_value,
+            "threshold": thr_step,
+            "n_boot": st.n_boot,
+            "n_candidates": st.n_candidates,
+        }
         if st.p_value < thr_step:
             name = S.canonical(f"step[{S._fmt_num(st.t_s)}]")
             if name not in model_effects:
                 ev, _ = open_term_test(name, thr_step, cv_base)
                 if ev.df1 > 0 and practical(ev):
                     X0c = model.design(model_effects)[0]
-                    cv_step = _cv_rms(res.y_rad_s, np.concatenate([X0c, model.block(name)[1]], axis=2),
-                                      min_windows=_cv_min(res))
+                    cv_step = _cv_rms(
+                        res.y_rad_s, np.concatenate([X0c, model.block(name)[1]], axis=2), min_windows=_cv_min(res)
+                    )
                     evd = ev_dict(ev)
-                    evd.update({"sup_statistic": st.statistic, "bootstrap_p": st.p_value, "n_boot": st.n_boot,
-                                "n_candidates": st.n_candidates, "threshold_step": thr_step, "residual": "window"})
+                    evd.update(
+                        {
+                            "sup_statistic": st.statistic,
+                            "bootstrap_p": st.p_value,
+                            "n_boot": st.n_boot,
+                            "n_candidates": st.n_candidates,
+                            "threshold_step": thr_step,
+                            "residual": "window",
+                        }
+                    )
                     if "bias_ramp" not in model_effects:
-                        cv_ramp = _cv_rms(res.y_rad_s, np.concatenate([X0c, model.block("bias_ramp")[1]], axis=2),
-                                          min_windows=_cv_min(res))
-                        evd["vs_ramp"] = {"cv_rms_step_rad_s": cv_step, "cv_rms_ramp_rad_s": cv_ramp,
-                                          "chosen": "step" if cv_step <= cv_ramp else "ramp"}
-                    options.append((np.log10(st.p_value) - np.log10(thr_step),
-                                    ("step", 0, name, {"t_s": st.t_s}, evd, None)))
+                        cv_ramp = _cv_rms(
+                            res.y_rad_s,
+                            np.concatenate([X0c, model.block("bias_ramp")[1]], axis=2),
+                            min_windows=_cv_min(res),
+                        )
+                        evd["vs_ramp"] = {
+                            "cv_rms_step_rad_s": cv_step,
+                            "cv_rms_ramp_rad_s": cv_ramp,
+                            "chosen": "step" if cv_step <= cv_ramp else "ramp",
+                        }
+                    options.append(
+                        (np.log10(st.p_value) - np.log10(thr_step), ("step", 0, name, {"t_s": st.t_s}, evd, None))
+                    )
     if not options:
         return None
     options.sort(key=lambda o: o[0])
@@ -1632,33 +1882,65 @@ def run_loop(
     if not 0 < alpha < 1:
         raise GyroInputError(f"alpha must be in (0, 1), not {alpha}")
     with _single_thread():
-        res = build_residual(rec, reference=reference, segments=segments, window_s=window_s,
-                             angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg,
-                             angle_mode=angle_mode)
+        res = build_residual(
+            rec,
+            reference=reference,
+            segments=segments,
+            window_s=window_s,
+            angle_sigma_deg=angle_sigma_deg,
+            axis_sigma_deg=axis_sigma_deg,
+            angle_mode=angle_mode,
+        )
+
         def rebuild(r: Recording) -> Residual:
-            return build_residual(r, reference=res.kind, segments=segments, window_s=window_s,
-                                  angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg,
-                             angle_mode=angle_mode)
+            return build_residual(
+                r,
+                reference=res.kind,
+                segments=segments,
+                window_s=window_s,
+                angle_sigma_deg=angle_sigma_deg,
+                axis_sigma_deg=axis_sigma_deg,
+                angle_mode=angle_mode,
+            )
 
         return loop_residual(
-            res, rec, declared=declared, candidates=candidates, alpha=alpha, thermal_order=thermal_order, rebuild=rebuild,
-            min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,
-            max_steps=max_steps, open_search=open_search, seed=seed,
+            res,
+            rec,
+            declared=declared,
+            candidates=candidates,
+            alpha=alpha,
+            thermal_order=thermal_order,
+            rebuild=rebuild,
+            min_rms_reduction=min_rms_reduction,
+            min_attitude_reduction=min_attitude_reduction,
+            max_steps=max_steps,
+            open_search=open_search,
+            seed=seed,
         )
 
 
 # ---------------------------------------------------------------------------- plots
 _NATURAL = {
     "bias_ramp": ("time since start, s", lambda r: np.repeat(r.t_mid_s[:, None] - r.inputs.t_s[0], 3, axis=1)),
-    "bias_thermal": ("temperature, °C", lambda r: np.repeat(r.window_mean(
-        np.repeat(np.asarray(r.inputs.temp_c, float)[:, None], 3, axis=1))[:, :1], 3, axis=1)),
-    "bias_temp_rate": ("dT/dt, °C/s", lambda r: np.repeat(r.window_mean(
-        np.repeat(r.inputs.temp_rate_c_s()[:, None], 3, axis=1))[:, :1], 3, axis=1)),
+    "bias_thermal": (
+        "temperature, °C",
+        lambda r: np.repeat(
+            r.window_mean(np.repeat(np.asarray(r.inputs.temp_c, float)[:, None], 3, axis=1))[:, :1], 3, axis=1
+        ),
+    ),
+    "bias_temp_rate": (
+        "dT/dt, °C/s",
+        lambda r: np.repeat(r.window_mean(np.repeat(r.inputs.temp_rate_c_s()[:, None], 3, axis=1))[:, :1], 3, axis=1),
+    ),
     "scale": ("reference rate, rad/s", lambda r: r.window_mean(_as_rows(r.inputs.omega_S_rad_s))),
     "scale_asymmetry": ("reference rate, rad/s", lambda r: r.window_mean(_as_rows(r.inputs.omega_S_rad_s))),
     "scale_nonlinearity": ("reference rate, rad/s", lambda r: r.window_mean(_as_rows(r.inputs.omega_S_rad_s))),
-    "time_offset": ("rate derivative dω/dt, rad/s²", lambda r: r.window_mean(
-        np.gradient(np.asarray(r.inputs.omega_S_rad_s, float), np.asarray(r.inputs.t_s, float), axis=0))),
+    "time_offset": (
+        "rate derivative dω/dt, rad/s²",
+        lambda r: r.window_mean(
+            np.gradient(np.asarray(r.inputs.omega_S_rad_s, float), np.asarray(r.inputs.t_s, float), axis=0)
+        ),
+    ),
 }
 
 
@@ -1702,8 +1984,13 @@ def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000, prefix: s
             x = fx(res)
         else:
             names, X = res.regressors(eff, order=1) if eff not in ("bias_thermal", "scale_thermal") else (None, None)
-            th = np.array([step.evidence.params[n] for n in step.evidence.params if not n.startswith("bias.")
-                           and not n.startswith("scale.")])
+            th = np.array(
+                [
+                    step.evidence.params[n]
+                    for n in step.evidence.params
+                    if not n.startswith("bias.") and not n.startswith("scale.")
+                ]
+            )
             if X is not None and X.shape[2] == th.size:
                 x = np.einsum("mip,p->mi", X, th) * D
                 xlabel = f"fitted {eff} contribution X·θ, deg/s"
@@ -1720,8 +2007,10 @@ def plot_found(result: LoopResult, out_dir, *, max_points: int = 4000, prefix: s
         axes[0].set_ylabel(f"window residual, deg/s ({res.kind})")
         axes[0].legend(loc="best", markerscale=4)
         ev = step.evidence
-        fig.suptitle(f"step {k + 1}: {eff} (F = {ev.statistic:.3g}, log10 p = {ev.log10_p:.3g}); "
-                     f"RMS {step.residual_rms_before_rad_s * D:.3g} -> {step.residual_rms_after_rad_s * D:.3g} deg/s")
+        fig.suptitle(
+            f"step {k + 1}: {eff} (F = {ev.statistic:.3g}, log10 p = {ev.log10_p:.3g}); "
+            f"RMS {step.residual_rms_before_rad_s * D:.3g} -> {step.residual_rms_after_rad_s * D:.3g} deg/s"
+        )
         fig.tight_layout()
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=90)
@@ -1785,14 +2074,18 @@ def loop_parameters(result: LoopResult, rec: Recording, *, thermal_order: int = 
                 stderr[eff].setdefault(pname, np.full(3, np.nan))
         if eff in ("bias_thermal", "scale_thermal"):
             T = np.asarray(rec.temp_c, float)
-            params[eff].update(t0_c=np.asarray(result.t0_c if result.t0_c is not None else float(np.mean(T))),
-                               temp_min_c=np.asarray(float(np.nanmin(T))), temp_max_c=np.asarray(float(np.nanmax(T))))
+            params[eff].update(
+                t0_c=np.asarray(result.t0_c if result.t0_c is not None else float(np.mean(T))),
+                temp_min_c=np.asarray(float(np.nanmin(T))),
+                temp_max_c=np.asarray(float(np.nanmax(T))),
+            )
             stderr[eff].update(t0_c=np.asarray(np.nan), temp_min_c=np.asarray(np.nan), temp_max_c=np.asarray(np.nan))
     return params, stderr
 
 
-def loop_calibration(result: LoopResult, rec: Recording, *, source_path=None, sensor: str | None = None,
-                     thermal_order: int = 1):
+def loop_calibration(
+    result: LoopResult, rec: Recording, *, source_path=None, sensor: str | None = None, thermal_order: int = 1
+):
     """The loop's final model as a :class:`gyrocore.calib.params.CalibrationResult` (the parameter
     file ``loop -o`` and ``calibrate`` with a reference attitude write)."""
     from pathlib import Path
@@ -1807,23 +2100,37 @@ def loop_calibration(result: LoopResult, rec: Recording, *, source_path=None, se
     elif source_path is not None:
         src_name = Path(source_path).name
     rms = np.full(3, result.residual_rms_after_rad_s)
-    notes = [f"fitted by the residual loop against the {result.reference} reference ({result.description}); "
-             f"residual_rms_rad_s is the RMS of the window residual over all axes"]
+    notes = [
+        f"fitted by the residual loop against the {result.reference} reference ({result.description}); "
+        f"residual_rms_rad_s is the RMS of the window residual over all axes"
+    ]
     notes += [f"found: {s.effect}" for s in result.found]
     notes += [f"unexplained ({u.kind}, axis {u.axis}): {u.effect}" for u in result.unexplained]
     thermal = {e: thermal_order for e in params if e in ("bias_thermal", "scale_thermal")}
     return CalibrationResult(
-        effects=tuple(params), params=params, stderr=stderr, residual_rms_rad_s=rms,
-        method=f"loop_{result.reference}", covariance="hac", sensor=sensor or str(rec.meta.get("sensor", "unknown")),
-        source_file=src_name, source_sha256=src_sha, n_samples=int(rec.n), thermal_order=thermal,
+        effects=tuple(params),
+        params=params,
+        stderr=stderr,
+        residual_rms_rad_s=rms,
+        method=f"loop_{result.reference}",
+        covariance="hac",
+        sensor=sensor or str(rec.meta.get("sensor", "unknown")),
+        source_file=src_name,
+        source_sha256=src_sha,
+        n_samples=int(rec.n),
+        thermal_order=thermal,
         notes=tuple(notes),
     )
 
 
 def _param_theta(res: Residual, effect: str, pd: Mapping[str, np.ndarray]) -> np.ndarray:
     """Flatten one effect's parameters in the column order of its regressors."""
-    names, _ = res.regressors(effect, order=int(np.shape(pd.get("poly_rad_s", pd.get("poly_per_c", np.zeros((3, 1)))))[1])
-                              if effect in ("bias_thermal", "scale_thermal") else 1)
+    names, _ = res.regressors(
+        effect,
+        order=int(np.shape(pd.get("poly_rad_s", pd.get("poly_per_c", np.zeros((3, 1)))))[1])
+        if effect in ("bias_thermal", "scale_thermal")
+        else 1,
+    )
     th = np.zeros(len(names))
     for p, n in enumerate(names):
         pname, _, idx = n.partition("[")
@@ -1859,8 +2166,16 @@ def model_correction(res: Residual, params: Mapping[str, Mapping[str, np.ndarray
     return c
 
 
-def validate_model(rec: Recording, *, params_after: Mapping, params_before: Mapping, reference: str = "auto",
-                   segments=None, window_s: float | None = None, refit_bias: bool = True) -> dict:
+def validate_model(
+    rec: Recording,
+    *,
+    params_after: Mapping,
+    params_before: Mapping,
+    reference: str = "auto",
+    segments=None,
+    window_s: float | None = None,
+    refit_bias: bool = True,
+) -> dict:
     """Score two parameter sets on a recording not used to fit them (the honest "after").
 
     ``time_offset`` is applied exactly (the gyro advanced by τ), every other effect through
@@ -1915,7 +2230,8 @@ def _periodic_raw(t: np.ndarray, per: Mapping) -> np.ndarray:
         f = float(S.parse_family(name)[1])
         ph = 2 * np.pi * f * np.asarray(t, float)
         c += np.outer(np.cos(ph), np.asarray(pd["a_cos_rad_s"], float)) + np.outer(
-            np.sin(ph), np.asarray(pd["a_sin_rad_s"], float))
+            np.sin(ph), np.asarray(pd["a_sin_rad_s"], float)
+        )
     return c
 
 
@@ -1943,8 +2259,9 @@ def _line_validation(sample: dict, lines: Sequence[str]) -> list[dict]:
             t, e, ok = sample[tag]
             coef, se = S.fit_sinusoid(e[ok], t[ok], f)
             row[f"amplitude_{tag}_rad_s"] = [float(np.hypot(coef[0, i], coef[1, i])) for i in range(3)]
-            row[f"amplitude_std_error_{tag}_rad_s"] = [float(np.hypot(se[0, i], se[1, i]) / np.sqrt(2))
-                                                       for i in range(3)]
+            row[f"amplitude_std_error_{tag}_rad_s"] = [
+                float(np.hypot(se[0, i], se[1, i]) / np.sqrt(2)) for i in range(3)
+            ]
         out.append(row)
     return out
 
@@ -1963,12 +2280,15 @@ def check_compatible(rec_fit: Recording, rec_val: Recording, *, fit_name: str, v
     sensor, sample rate (> 2 % apart) or units."""
     s1, s2 = rec_fit.meta.get("sensor"), rec_val.meta.get("sensor")
     if s1 and s2 and str(s1).strip().lower() != str(s2).strip().lower() and "unknown" not in (s1, s2):
-        raise GyroInputError(f"--validate {val_name}: sensor '{s2}' differs from the fitted file's '{s1}' "
-                             "(a model of one sensor does not transfer to another)")
+        raise GyroInputError(
+            f"--validate {val_name}: sensor '{s2}' differs from the fitted file's '{s1}' "
+            "(a model of one sensor does not transfer to another)"
+        )
     r1, r2 = rec_fit.rate_hz, rec_val.rate_hz
     if not (abs(r1 - r2) <= 0.02 * max(r1, r2)):
-        raise GyroInputError(f"--validate {val_name}: sample rate {r2:.6g} Hz differs from the fitted file's "
-                             f"{r1:.6g} Hz")
+        raise GyroInputError(
+            f"--validate {val_name}: sample rate {r2:.6g} Hz differs from the fitted file's {r1:.6g} Hz"
+        )
     u1, u2 = rec_fit.meta.get("units"), rec_val.meta.get("units")
     if u1 and u2 and u1 != u2:
         raise GyroInputError(f"--validate {val_name}: units '{u2}' differ from the fitted file's '{u1}'")

@@ -85,8 +85,19 @@ _TARGET_WINDOWS = 1500
 #: Recordings longer than this are regressed in chunks of this many samples (memory).
 CHUNK_SAMPLES = 200_000
 #: Effects whose regressor at a sample depends only on that sample's inputs.
-_POINTWISE = frozenset({"bias", "bias_ramp", "scale", "scale_asymmetry", "scale_nonlinearity", "misalignment",
-                        "g_sensitivity", "g2_sensitivity", "earth_rate"})
+_POINTWISE = frozenset(
+    {
+        "bias",
+        "bias_ramp",
+        "scale",
+        "scale_asymmetry",
+        "scale_nonlinearity",
+        "misalignment",
+        "g_sensitivity",
+        "g2_sensitivity",
+        "earth_rate",
+    }
+)
 
 
 def is_pointwise(effect: str) -> bool:
@@ -309,11 +320,15 @@ class Residual:
         """Model inputs of samples lo:hi (time since power-up counted from the record's start)."""
         inp = self.inputs
         t = np.asarray(inp.t_s)
-        sp = (rows_of(inp.t_since_power_up_s, lo, hi) if inp.t_since_power_up_s is not None
-              else t[lo:hi] - t[0])
-        return E.ModelInputs(t_s=t[lo:hi], omega_S_rad_s=rows_of(inp.omega_S_rad_s, lo, hi),
-                             f_S_m_s2=rows_of(inp.f_S_m_s2, lo, hi), temp_c=rows_of(inp.temp_c, lo, hi),
-                             q_SW_wxyz=rows_of(inp.q_SW_wxyz, lo, hi), t_since_power_up_s=sp)
+        sp = rows_of(inp.t_since_power_up_s, lo, hi) if inp.t_since_power_up_s is not None else t[lo:hi] - t[0]
+        return E.ModelInputs(
+            t_s=t[lo:hi],
+            omega_S_rad_s=rows_of(inp.omega_S_rad_s, lo, hi),
+            f_S_m_s2=rows_of(inp.f_S_m_s2, lo, hi),
+            temp_c=rows_of(inp.temp_c, lo, hi),
+            q_SW_wxyz=rows_of(inp.q_SW_wxyz, lo, hi),
+            t_since_power_up_s=sp,
+        )
 
     def temp_mean_c(self) -> float | None:
         """Mean temperature of the record, °C (the T0 of the thermal regressors), or None."""
@@ -341,7 +356,7 @@ class Residual:
             names, A = E.design(effect, inp, order=order, t0_c=self.temp_mean_c())
         else:
             names, A = E.design(effect, inp, order=order)
-        A = A[a - lo: a - lo + (b - a)]
+        A = A[a - lo : a - lo + (b - a)]
         if not np.all(np.isfinite(A)):
             A = np.nan_to_num(A, nan=0.0, posinf=0.0, neginf=0.0)
         return names, A
@@ -482,7 +497,7 @@ class Residual:
             A = rows_fn(k0 + 1, k1 + 1)
             if self.R_GS is not None:
                 A = np.einsum("nij,njp->nip", rows_of(self.R_GS, k0 + 1, k1 + 1), A)
-            A = A * np.diff(t[k0:k1 + 1])[:, None, None]
+            A = A * np.diff(t[k0 : k1 + 1])[:, None, None]
             np.cumsum(A, axis=0, out=A)
             if carry is None:
                 carry = np.zeros(A.shape[1:])
@@ -554,7 +569,7 @@ def detect_still(t: np.ndarray, gyro_rad_s: np.ndarray, *, window_s: float = 0.5
         med = np.median(mean[ok], axis=0)
         ok &= np.all(np.abs(mean - med) <= factor * lvl + np.radians(0.5), axis=1)
     ok[: L // 2] = ok[L // 2] if n > L else False
-    ok[-(L // 2):] = ok[-(L // 2) - 1]
+    ok[-(L // 2) :] = ok[-(L // 2) - 1]
     return ok
 
 
@@ -752,11 +767,20 @@ def build_residual(
                     f"{int((~good).sum())} windows dropped as reference glitches (|residual| > median + {outlier_mad:g}·MAD)"
                 )
             a, b, y = a[good], b[good], y[good]
-        inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
-                               q_SW_wxyz=None)
-        return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=0.5 * (t[a] + t[b]),
-                        inputs=inputs, R_GS=R_GS, R_WS=R_WS, gyro_rad_s=gyro, description=desc,
-                        notes=tuple(notes))
+        inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None)
+        return Residual(
+            kind=kind,
+            y_rad_s=y,
+            win_start=a,
+            win_stop=b,
+            t_mid_s=0.5 * (t[a] + t[b]),
+            inputs=inputs,
+            R_GS=R_GS,
+            R_WS=R_WS,
+            gyro_rad_s=gyro,
+            description=desc,
+            notes=tuple(notes),
+        )
     else:  # angles
         rots = [s for s in segs if s.kind == "rotation"]
         if not rots:
@@ -775,7 +799,7 @@ def build_residual(
         # still windows outside the rotations: they pin the bias (and g-sensitivity across poses)
         in_rot = np.zeros(n, bool)
         for ia, ib in zip(a, b):
-            in_rot[ia:ib + 1] = True
+            in_rot[ia : ib + 1] = True
         if any(s.kind == "still" for s in segs):
             still = _segment_mask(t, segs, "still")
             how = "still segments"
@@ -803,12 +827,27 @@ def build_residual(
             raise GyroInputError(f"angle mode must be 'rotation' or 'axis', not '{angle_mode}'")
         R_GS = _R(integrate_gyro(t, gyro - b0, hold="backward")) if angle_mode == "rotation" else None
         inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
-        res = Residual(kind=kind, y_rad_s=np.zeros((a.size, 3)), win_start=a, win_stop=b,
-                       t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=R_GS, R_WS=None, gyro_rad_s=gyro,
-                       description=(f"{n_rot} known rotation(s): "
-                                    + ("integrated gyro rotation vs known rotation" if angle_mode == "rotation"
-                                       else "integrated angle about each axis vs known angle")
-                                    + f"; {sa.size} still windows ({how})"), notes=())
+        res = Residual(
+            kind=kind,
+            y_rad_s=np.zeros((a.size, 3)),
+            win_start=a,
+            win_stop=b,
+            t_mid_s=0.5 * (t[a] + t[b]),
+            inputs=inputs,
+            R_GS=R_GS,
+            R_WS=None,
+            gyro_rad_s=gyro,
+            description=(
+                f"{n_rot} known rotation(s): "
+                + (
+                    "integrated gyro rotation vs known rotation"
+                    if angle_mode == "rotation"
+                    else "integrated angle about each axis vs known angle"
+                )
+                + f"; {sa.size} still windows ({how})"
+            ),
+            notes=(),
+        )
         T = t[b] - t[a]
         y = res.window_mean(gyro)  # still windows: the mean rate (true rate 0)
         # rotation windows: E = exp(φ)ᵀ·(R̂_aᵀ·R̂_b) — compared as rotations, so the path (wobble,
@@ -820,29 +859,67 @@ def build_residual(
             Em = np.einsum("mji,mjk->mik", Rk, rel_hat)
             b0_win = res.window_mean(np.broadcast_to(b0, gyro.shape).copy())
             y[:n_rot] = Rotation.from_matrix(Em).as_rotvec() / T[:n_rot, None] + b0_win[:n_rot]
-            notes.append("known rotations are compared as rotations (start vs end attitude); by hand they are "
-                         "good to a few degrees (see angle_sigma/axis_sigma)")
+            notes.append(
+                "known rotations are compared as rotations (start vs end attitude); by hand they are "
+                "good to a few degrees (see angle_sigma/axis_sigma)"
+            )
         else:
             # only the total angle about the axis is known (hand turns whose start and end
             # poses differ): ∫ω dt along the axis; the cross-axis components get zero weight
             y[:n_rot] = y[:n_rot] - phi_all[:n_rot] / T[:n_rot, None]
-            notes.append("angle mode 'axis': only the total angle about each rotation axis is used "
-                         "(∫ω dt along the axis; the start and end poses are not assumed known)")
-        return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
-                        R_GS=R_GS, R_WS=None, gyro_rad_s=gyro, description=res.description, notes=tuple(notes),
-                        is_rotation=np.arange(a.size) < n_rot, angle_sigma_rad=np.radians(angle_sigma_deg),
-                        axis_sigma_rad=np.radians(axis_sigma_deg), angle_S_rad=phi_all, angle_mode=angle_mode)
+            notes.append(
+                "angle mode 'axis': only the total angle about each rotation axis is used "
+                "(∫ω dt along the axis; the start and end poses are not assumed known)"
+            )
+        return Residual(
+            kind=kind,
+            y_rad_s=y,
+            win_start=a,
+            win_stop=b,
+            t_mid_s=res.t_mid_s,
+            inputs=inputs,
+            R_GS=R_GS,
+            R_WS=None,
+            gyro_rad_s=gyro,
+            description=res.description,
+            notes=tuple(notes),
+            is_rotation=np.arange(a.size) < n_rot,
+            angle_sigma_rad=np.radians(angle_sigma_deg),
+            axis_sigma_rad=np.radians(axis_sigma_deg),
+            angle_S_rad=phi_all,
+            angle_mode=angle_mode,
+        )
 
     if a.size < 3:
         raise GyroInputError(f"fewer than 3 observation windows for reference '{kind}'")
-    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
-                           q_SW_wxyz=None)
-    res = Residual(kind=kind, y_rad_s=np.zeros((a.size, 3)), win_start=a, win_stop=b,
-                   t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=None, R_WS=R_WS, gyro_rad_s=gyro,
-                   description=desc, notes=tuple(notes))
+    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None)
+    res = Residual(
+        kind=kind,
+        y_rad_s=np.zeros((a.size, 3)),
+        win_start=a,
+        win_stop=b,
+        t_mid_s=0.5 * (t[a] + t[b]),
+        inputs=inputs,
+        R_GS=None,
+        R_WS=R_WS,
+        gyro_rad_s=gyro,
+        description=desc,
+        notes=tuple(notes),
+    )
     y = res.window_mean(np.where(np.isfinite(r), r, 0.0))
-    return Residual(kind=kind, y_rad_s=y, win_start=a, win_stop=b, t_mid_s=res.t_mid_s, inputs=inputs,
-                    R_GS=None, R_WS=R_WS, gyro_rad_s=gyro, description=desc, notes=tuple(notes))
+    return Residual(
+        kind=kind,
+        y_rad_s=y,
+        win_start=a,
+        win_stop=b,
+        t_mid_s=res.t_mid_s,
+        inputs=inputs,
+        R_GS=None,
+        R_WS=R_WS,
+        gyro_rad_s=gyro,
+        description=desc,
+        notes=tuple(notes),
+    )
 
 
 def _build_spilled(rec, *, reference: str, segments, window_s: float | None) -> Residual:
@@ -875,10 +952,22 @@ def _build_spilled(rec, *, reference: str, segments, window_s: float | None) -> 
     q = rec.reference_quaternions()
     R_WS = LazyRotations(q) if q is not None else None
     desc = "reference rate (ref_*_rad_s), block means"
-    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=rec.ref_rate_rad_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c,
-                           q_SW_wxyz=None)
-    kw = dict(kind="rate", win_start=a, win_stop=b, t_mid_s=0.5 * (t[a] + t[b]), inputs=inputs, R_GS=None,
-              R_WS=R_WS, gyro_rad_s=rec.gyro_rad_s, description=desc, notes=(), chunk_rows=rec.chunk_rows)
+    inputs = E.ModelInputs(
+        t_s=t, omega_S_rad_s=rec.ref_rate_rad_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None
+    )
+    kw = dict(
+        kind="rate",
+        win_start=a,
+        win_stop=b,
+        t_mid_s=0.5 * (t[a] + t[b]),
+        inputs=inputs,
+        R_GS=None,
+        R_WS=R_WS,
+        gyro_rad_s=rec.gyro_rad_s,
+        description=desc,
+        notes=(),
+        chunk_rows=rec.chunk_rows,
+    )
     res = Residual(y_rad_s=np.zeros((a.size, 3)), **kw)
 
     def r_rows(lo, hi):

@@ -91,8 +91,20 @@ __all__ = [
 #: A weighted Bonferroni/Holm split: under the complete null P(any false claim) ≤ Σ shares·α = α.
 ALPHA_SHARE = {"catalogue": 0.5, "regressor": 1.0 / 6, "periodic": 1.0 / 6, "step": 1.0 / 6}
 
-BASE_SIGNALS = ("omega_x", "omega_y", "omega_z", "alpha_x", "alpha_y", "alpha_z", "f_x", "f_y", "f_z",
-                "temp_c", "dtemp_dt", "t")
+BASE_SIGNALS = (
+    "omega_x",
+    "omega_y",
+    "omega_z",
+    "alpha_x",
+    "alpha_y",
+    "alpha_z",
+    "f_x",
+    "f_y",
+    "f_z",
+    "temp_c",
+    "dtemp_dt",
+    "t",
+)
 _AX = "xyz"
 
 
@@ -237,7 +249,7 @@ def family_design(name: str, inp) -> tuple[list[str], np.ndarray]:
 
 def column_axis(pname: str) -> int:
     """Axis of a family parameter column name (``coef[1]`` -> 1)."""
-    return int(pname[pname.index("[") + 1: pname.index("]")])
+    return int(pname[pname.index("[") + 1 : pname.index("]")])
 
 
 def catalogue_equivalent(term: str, axis: int | str) -> str | None:
@@ -286,7 +298,7 @@ def library_terms(inp, *, kind: str, chunks=None) -> list[str]:
                 if s in bad:
                     continue
                 try:
-                    v = _base_values(s, sub, cache)[a - lo: b - lo]
+                    v = _base_values(s, sub, cache)[a - lo : b - lo]
                 except GyroInputError:
                     bad.add(s)
                     continue
@@ -348,11 +360,16 @@ class Unexplained:
     def to_json(self) -> dict:
         d = {"kind": self.kind, "axis": self.axis}
         d.update(self.fields)
-        d.update({"effect": self.effect, "evidence": self.evidence,
-                  "residual_rms_before_rad_s": self.residual_rms_before_rad_s,
-                  "residual_rms_after_rad_s": self.residual_rms_after_rad_s,
-                  "attitude_error_before_deg": self.attitude_error_before_deg,
-                  "attitude_error_after_deg": self.attitude_error_after_deg})
+        d.update(
+            {
+                "effect": self.effect,
+                "evidence": self.evidence,
+                "residual_rms_before_rad_s": self.residual_rms_before_rad_s,
+                "residual_rms_after_rad_s": self.residual_rms_after_rad_s,
+                "attitude_error_before_deg": self.attitude_error_before_deg,
+                "attitude_error_after_deg": self.attitude_error_after_deg,
+            }
+        )
         return d
 
 
@@ -373,11 +390,12 @@ def _gamma_apply(U: np.ndarray, g: np.ndarray) -> np.ndarray:
     # the complex spectra of all 900 step columns at once are ~0.3 GB
     K = U.shape[1]
     if K <= _GAMMA_BLOCK:
-        return _signal.fftconvolve(U, ker[:, None], mode="full", axes=0)[L: L + M]
+        return _signal.fftconvolve(U, ker[:, None], mode="full", axes=0)[L : L + M]
     out = np.empty(U.shape)
     for c in range(0, K, _GAMMA_BLOCK):
-        out[:, c:c + _GAMMA_BLOCK] = _signal.fftconvolve(U[:, c:c + _GAMMA_BLOCK], ker[:, None], mode="full",
-                                                         axes=0)[L: L + M]
+        out[:, c : c + _GAMMA_BLOCK] = _signal.fftconvolve(
+            U[:, c : c + _GAMMA_BLOCK], ker[:, None], mode="full", axes=0
+        )[L : L + M]
     return out
 
 
@@ -395,7 +413,7 @@ def _project_off(Xw: np.ndarray, C: np.ndarray, *, overwrite: bool = False) -> n
     Q = Q[:, keep]
     if overwrite:  # in blocks of columns: a (R, 64) temporary instead of (R, ·)
         for c in range(0, C.shape[1], _GAMMA_BLOCK):
-            blk = C[:, c:c + _GAMMA_BLOCK]
+            blk = C[:, c : c + _GAMMA_BLOCK]
             blk -= Q @ (Q.T @ blk)
         return C
     return C - Q @ (Q.T @ C)
@@ -434,7 +452,7 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
             cache: dict = {}
             V = np.empty((k1 - k0, T))
             for j, term in enumerate(terms):
-                V[:, j] = term_values(term, sub, cache)[k0 + 1 - lo: k1 + 1 - lo]
+                V[:, j] = term_values(term, sub, cache)[k0 + 1 - lo : k1 + 1 - lo]
             V *= dt[k0:k1, None]
             np.cumsum(V, axis=0, out=V)
             sel = (need > k0) & (need <= k1)
@@ -454,7 +472,7 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
         A = np.zeros((n, 3, 3))
         for i in range(3):
             A[:, i, i] = g
-        out[:, :, 3 * k: 3 * k + 3] = res.window_mean(A)
+        out[:, :, 3 * k : 3 * k + 3] = res.window_mean(A)
     return out
 
 
@@ -464,9 +482,14 @@ def _slice_inputs(inp, lo: int, hi: int):
     def cut(v):
         return None if v is None else np.asarray(v)[lo:hi]
 
-    return E.ModelInputs(t_s=np.asarray(inp.t_s)[lo:hi], omega_S_rad_s=cut(inp.omega_S_rad_s),
-                         f_S_m_s2=cut(inp.f_S_m_s2), temp_c=cut(inp.temp_c), q_SW_wxyz=cut(inp.q_SW_wxyz),
-                         t_since_power_up_s=inp.since_power_up()[lo:hi])
+    return E.ModelInputs(
+        t_s=np.asarray(inp.t_s)[lo:hi],
+        omega_S_rad_s=cut(inp.omega_S_rad_s),
+        f_S_m_s2=cut(inp.f_S_m_s2),
+        temp_c=cut(inp.temp_c),
+        q_SW_wxyz=cut(inp.q_SW_wxyz),
+        t_since_power_up_s=inp.since_power_up()[lo:hi],
+    )
 
 
 #: A product term whose window column, projected off the current model, has less than this
@@ -479,8 +502,9 @@ def _slice_inputs(inp, lo: int, hi: int):
 COLLINEAR_DELTA = 0.01
 
 
-def collinear_simpler(res, X0: np.ndarray, sigma: np.ndarray, terms: Sequence[str],
-                      Xlib: np.ndarray | None = None) -> dict:
+def collinear_simpler(
+    res, X0: np.ndarray, sigma: np.ndarray, terms: Sequence[str], Xlib: np.ndarray | None = None
+) -> dict:
     """Product terms that are numerically one of their factors on this recording.
 
     Parameters
@@ -570,7 +594,7 @@ def score_tests(X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, C: np.ndarray)
     gs = _autocovs(np.stack([e[:, i] * sw[i] for i in range(3)], axis=1))
     var = np.zeros(C.shape[2])
     for i in range(3):
-        U = Cp[i * M:(i + 1) * M]
+        U = Cp[i * M : (i + 1) * M]
         var += np.einsum("mk,mk->k", U, _gamma_apply(U, gs[i]))
     nrm = np.einsum("rk,rk->k", Cp, Cp)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -582,8 +606,16 @@ def score_tests(X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, C: np.ndarray)
     return F, coef
 
 
-def screen_library(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, terms: Sequence[str],
-                   exclude: set, n_params: int, Xlib: np.ndarray | None = None) -> LibraryScreen | None:
+def screen_library(
+    res,
+    X0: np.ndarray,
+    e: np.ndarray,
+    sigma: np.ndarray,
+    terms: Sequence[str],
+    exclude: set,
+    n_params: int,
+    Xlib: np.ndarray | None = None,
+) -> LibraryScreen | None:
     """Score-test every (term, axis) of the library not excluded; the best one.
 
     ``exclude`` holds (term, axis) pairs already in the model or equivalent to a catalogue
@@ -602,8 +634,9 @@ def screen_library(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, terms:
     if not np.isfinite(lp):
         lp = float(stats.chi2.logsf(F[j], 1) / np.log(10))
     k, i = cols[j]
-    return LibraryScreen(term=terms[k], axis=i, statistic=float(F[j]), p_value=float(10 ** lp), log10_p=lp,
-                         n_tested=len(cols), df2=df2)
+    return LibraryScreen(
+        term=terms[k], axis=i, statistic=float(F[j]), p_value=float(10**lp), log10_p=lp, n_tested=len(cols), df2=df2
+    )
 
 
 # ---------------------------------------------------------------------------- lines
@@ -636,15 +669,16 @@ class HarmonicF:
     """Pooled multitaper harmonic F-test on a grid (see :func:`harmonic_f_test`)."""
 
     freq_hz: np.ndarray
-    F: np.ndarray          # (F,) or (F, C)
+    F: np.ndarray  # (F,) or (F, C)
     df1: int
     df2: int
-    bandwidth_hz: float    # W
+    bandwidth_hz: float  # W
     amplitude: np.ndarray  # 2|μ̂| pooled (RMS over segments), same shape as F
 
 
-def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None = None,
-                    seg_max: int = _SEG_MAX, pad: int = 4) -> HarmonicF:
+def harmonic_f_test(
+    x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None = None, seg_max: int = _SEG_MAX, pad: int = 4
+) -> HarmonicF:
     """Thomson's harmonic F-test for a sinusoid in coloured noise, per column of x.
 
     Parameters
@@ -687,7 +721,7 @@ def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None 
     S = int(np.ceil(N / seg_max))
     L = N // S
     tapers = _signal.windows.dpss(L, nw, K)  # (K, L), unit energy
-    U0 = tapers.sum(axis=1)                    # U_k(0)
+    U0 = tapers.sum(axis=1)  # U_k(0)
     sU2 = float(np.sum(U0**2))
     nfft = int(pad) * L
     nf = nfft // 2 + 1
@@ -705,7 +739,7 @@ def harmonic_f_test(x: np.ndarray, fs: float, *, nw: float = 4.0, k: int | None 
     Y = np.empty((K, nf, nc), dtype=complex)
     r2 = np.empty((K, nf, nc))
     for s in range(S):
-        seg = np.asarray(x[s * L:(s + 1) * L], float)
+        seg = np.asarray(x[s * L : (s + 1) * L], float)
         seg = seg - seg.mean(axis=0)
         for cs in cols:
             np.multiply(tapers[:, :, None], seg[None, :, cs], out=prod)
@@ -742,14 +776,15 @@ class LineScreen:
     statistic: float
     df1: int
     df2: int
-    log10_p: float     # Bonferroni over the frequencies tested
+    log10_p: float  # Bonferroni over the frequencies tested
     n_freq: int
     bandwidth_hz: float
     masked_by_motion: int
 
 
-def _motion_mask(ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, p_mask: float = 1e-4,
-                 seg_max: int = _SEG_MAX) -> np.ndarray:
+def _motion_mask(
+    ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, p_mask: float = 1e-4, seg_max: int = _SEG_MAX
+) -> np.ndarray:
     """Bins within ±2W of a line in any reference-motion column (p < p_mask per bin)."""
     mask = np.zeros(f.size, bool)
     if ref is None or int(np.prod(ref.shape)) == 0:
@@ -763,9 +798,9 @@ def _motion_mask(ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, 
         # long records: one motion column per test (harmonic_f_test transforms them one at a
         # time anyway — the same numbers — and its accumulators are then (nf, 1), not (nf, 6))
         if isinstance(ref, Rows):
-            cols = [Rows(lambda a, b, c=c: ref.rows(a, b)[:, c:c + 1], n_r, 1) for c in range(C)]
+            cols = [Rows(lambda a, b, c=c: ref.rows(a, b)[:, c : c + 1], n_r, 1) for c in range(C)]
         else:
-            cols = [ref[:, c:c + 1] for c in range(C)]
+            cols = [ref[:, c : c + 1] for c in range(C)]
     else:
         cols = [ref]
     hit = None
@@ -784,9 +819,16 @@ def _motion_mask(ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, 
     return mask
 
 
-def screen_lines(x: np.ndarray, fs: float, *, ref: np.ndarray | None = None, f_min_hz: float | None = None,
-                 nw: float = 4.0, skip: Sequence[tuple[int, float]] = (),
-                 seg_max: int = _SEG_MAX) -> list[LineScreen]:
+def screen_lines(
+    x: np.ndarray,
+    fs: float,
+    *,
+    ref: np.ndarray | None = None,
+    f_min_hz: float | None = None,
+    nw: float = 4.0,
+    skip: Sequence[tuple[int, float]] = (),
+    seg_max: int = _SEG_MAX,
+) -> list[LineScreen]:
     """Strongest line per axis of x (N, 3) and its Bonferroni p-value over frequencies.
 
     Frequencies below ``f_min_hz`` (default 10·W) and bins within ±2W of a line of the
@@ -803,7 +845,7 @@ def screen_lines(x: np.ndarray, fs: float, *, ref: np.ndarray | None = None, f_m
     out = []
     for i in range(x.shape[1]):
         oki = ok & ~mm
-        for (ax, f0) in skip:
+        for ax, f0 in skip:
             if ax == i:
                 oki &= np.abs(h.freq_hz - f0) > 2 * W
         n = int(oki.sum())
@@ -812,14 +854,31 @@ def screen_lines(x: np.ndarray, fs: float, *, ref: np.ndarray | None = None, f_m
         Fi = np.where(oki, h.F[:, i], -np.inf)
         j = int(np.argmax(Fi))
         lp1 = float(stats.f.logsf(Fi[j], h.df1, h.df2) / np.log(10))
-        out.append(LineScreen(axis=i, frequency_hz=float(h.freq_hz[j]), statistic=float(Fi[j]), df1=h.df1,
-                              df2=h.df2, log10_p=min(0.0, lp1 + np.log10(n)), n_freq=n, bandwidth_hz=W,
-                              masked_by_motion=int((ok & mm).sum())))
+        out.append(
+            LineScreen(
+                axis=i,
+                frequency_hz=float(h.freq_hz[j]),
+                statistic=float(Fi[j]),
+                df1=h.df1,
+                df2=h.df2,
+                log10_p=min(0.0, lp1 + np.log10(n)),
+                n_freq=n,
+                bandwidth_hz=W,
+                masked_by_motion=int((ok & mm).sum()),
+            )
+        )
     return out
 
 
-def even_segments(t: np.ndarray, valid: np.ndarray, *, n_target: int = 8, min_len: int = 512,
-                  seg_max: int = _SEG_MAX, dt_tol: float = 0.5) -> tuple[np.ndarray, int]:
+def even_segments(
+    t: np.ndarray,
+    valid: np.ndarray,
+    *,
+    n_target: int = 8,
+    min_len: int = 512,
+    seg_max: int = _SEG_MAX,
+    dt_tol: float = 0.5,
+) -> tuple[np.ndarray, int]:
     """Equal, evenly sampled segments of a series with gaps, for a pooled harmonic F-test.
 
     A sample k belongs to a run when it is valid and Δt_k = t_k − t_{k−1} is within
@@ -905,8 +964,12 @@ def refine_frequency(x: np.ndarray, t: np.ndarray, f0: float, half_width_hz: flo
     vals = np.array([power(f) for f in grid])
     j = int(np.argmin(vals))
     step = grid[1] - grid[0]
-    r = minimize_scalar(power, bounds=(grid[max(j - 1, 0)], grid[min(j + 1, npts - 1)]), method="bounded",
-                        options={"xatol": step * 1e-3})
+    r = minimize_scalar(
+        power,
+        bounds=(grid[max(j - 1, 0)], grid[min(j + 1, npts - 1)]),
+        method="bounded",
+        options={"xatol": step * 1e-3},
+    )
     return float(r.x) if r.fun <= vals[j] else float(grid[j])
 
 
@@ -1080,7 +1143,7 @@ def step_noise_model(x: np.ndarray) -> dict:
     D = np.array([np.median((x[l:] - x[:-l]) ** 2) / 0.45494 for l in Ls])
     taus = np.asarray([t for t in _GM_TAUS if t <= 4 * M])
     phis = np.exp(-1.0 / taus)
-    B = np.column_stack([np.full(Ls.size, 2.0), Ls.astype(float)] + [2 * (1 - ph ** Ls) for ph in phis])
+    B = np.column_stack([np.full(Ls.size, 2.0), Ls.astype(float)] + [2 * (1 - ph**Ls) for ph in phis])
     w = 1.0 / np.maximum(D, 1e-300)
     coef, _ = nnls(B * w[:, None], D * w)
     return {"white_var": float(coef[0]), "rw_var": float(coef[1]), "gm_var": coef[2:], "gm_phi": phis}
@@ -1094,7 +1157,7 @@ def simulate_noise_model(model: dict, n: int, size: int, rng: np.random.Generato
     g[0] = model["white_var"]
     for v, ph in zip(model["gm_var"], model["gm_phi"]):
         if v > 0:
-            g += v * ph ** lag
+            g += v * ph**lag
     x = simulate_gaussian(g, n, size, rng) if g.any() else np.zeros((n, size))
     if model["rw_var"] > 0:
         x = x + np.cumsum(rng.standard_normal((n, size)) * np.sqrt(model["rw_var"]), axis=0)
@@ -1103,10 +1166,10 @@ def simulate_noise_model(model: dict, n: int, size: int, rng: np.random.Generato
 
 @dataclass(frozen=True, eq=False)
 class StepScreen:
-    index: int            # first window after the step
-    t_s: float            # step time (start of that window), s
-    statistic: float      # sup_τ χ²₃ statistic
-    p_value: float        # bootstrap p-value of the supremum
+    index: int  # first window after the step
+    t_s: float  # step time (start of that window), s
+    statistic: float  # sup_τ χ²₃ statistic
+    p_value: float  # bootstrap p-value of the supremum
     log10_p: float
     n_boot: int
     n_candidates: int
@@ -1134,7 +1197,7 @@ def step_columns(res, idx: np.ndarray) -> np.ndarray:
             A = np.zeros((t.size, 3, 3))
             for i in range(3):
                 A[:, i, i] = s
-            C[:, :, 3 * j: 3 * j + 3] = res.window_mean(A)
+            C[:, :, 3 * j : 3 * j + 3] = res.window_mean(A)
     return C
 
 
@@ -1150,7 +1213,7 @@ def _weighted_step_columns(res, idx: np.ndarray, sw: np.ndarray) -> np.ndarray:
     for j in range(J):
         g = (t0 >= ts[j]).astype(float)
         for i in range(3):
-            Cw[i * M:(i + 1) * M, 3 * j + i] = g * sw[i]
+            Cw[i * M : (i + 1) * M, 3 * j + i] = g * sw[i]
     return Cw
 
 
@@ -1180,9 +1243,19 @@ def _refine_step(res, X0, e, sw, idx, jbest) -> int:
     return int(fine[int(np.argmax(gain))])
 
 
-def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, threshold: float,
-                rng: np.random.Generator, max_candidates: int = 300, edge: int | None = None,
-                max_boot: int = 4000, noise_from: str = STEP_NOISE_FROM) -> StepScreen | None:
+def screen_step(
+    res,
+    X0: np.ndarray,
+    e: np.ndarray,
+    sigma: np.ndarray,
+    *,
+    threshold: float,
+    rng: np.random.Generator,
+    max_candidates: int = 300,
+    edge: int | None = None,
+    max_boot: int = 4000,
+    noise_from: str = STEP_NOISE_FROM,
+) -> StepScreen | None:
     """Change-point test for a bias step (all three axes) on the window residual.
 
     Statistic: T(τ) = zᵀV⁻¹z with z the scores of the three *local contrast* columns (mean of
@@ -1222,7 +1295,7 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
         th = np.linalg.solve(Gjj + 1e-300 * np.eye(3), z[:, :, None])[:, :, 0]
     gain = np.einsum("ji,ji->j", z, th)
     jb = int(np.nanargmax(gain))
-    e_alt = ew - Cp[:, 3 * jb: 3 * jb + 3] @ th[jb]
+    e_alt = ew - Cp[:, 3 * jb : 3 * jb + 3] @ th[jb]
     # the full-step scores z (= Cpᵀ·ew) are all that is needed of Cp below (the size
     # estimate): Cp is released before the contrast columns are built (memory)
     zf = z.copy()
@@ -1240,14 +1313,14 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     for i in range(3):
         up, down = (1.0 / h) * sw[i], (-1.0 / h) * sw[i]
         for j, k in enumerate(idx):
-            Clw[i * M + k: i * M + k + h, 3 * j + i] = up
-            Clw[i * M + k - h: i * M + k, 3 * j + i] = down
+            Clw[i * M + k : i * M + k + h, 3 * j + i] = up
+            Clw[i * M + k - h : i * M + k, 3 * j + i] = down
     Clp = _project_off(Xw, Clw, overwrite=True)
     del Clw
     z = (Clp.T @ ew).reshape(J, 3)
     V = np.zeros((J, 3, 3))
     for a in range(3):
-        U = Clp[a * M:(a + 1) * M]
+        U = Clp[a * M : (a + 1) * M]
         GU = _gamma_apply(U, gs[a])
         V += np.einsum("mja,mjb->jab", U.reshape(M, J, 3), GU.reshape(M, J, 3))
         del GU
@@ -1258,7 +1331,7 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     # straddle it, while random walk and flicker move them all. (The levels' own
     # autocovariance model either absorbs a real step — no power — or, fitted after removing
     # the best step, under-represents random-walk wander: 3 false alarms in 35 nulls, measured.)
-    models = [step_noise_model(ew[a * M:(a + 1) * M]) for a in range(3)]
+    models = [step_noise_model(ew[a * M : (a + 1) * M]) for a in range(3)]
     jbest = int(np.argmax(Tobs))
     Tsup = float(Tobs[jbest])
     j_fine = _refine_step(res, X0, e, sw, idx, jbest)
@@ -1281,5 +1354,13 @@ def screen_step(res, X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, *, thresh
     # weighted columns against the weighted residual: the coefficient is the step in rad/s
     size = np.linalg.lstsq(Gjj[jbest], zf[jbest], rcond=None)[0]
     t_step = float(res.inputs.t_s[res.win_start[j_fine]])
-    return StepScreen(index=int(j_fine), t_s=t_step, statistic=Tsup, p_value=float(p), log10_p=float(np.log10(p)),
-                      n_boot=done, n_candidates=J, size_rad_s=size)
+    return StepScreen(
+        index=int(j_fine),
+        t_s=t_step,
+        statistic=Tsup,
+        p_value=float(p),
+        log10_p=float(np.log10(p)),
+        n_boot=done,
+        n_candidates=J,
+        size_rad_s=size,
+    )

@@ -196,9 +196,7 @@ def oadev(
 def ieee952_design(taus_s: np.ndarray) -> np.ndarray:
     """Columns of σ²(τ) for coefficients c = (Q², N², B², K², R²); shape (M, 5)."""
     t = np.asarray(taus_s, float)
-    return np.column_stack(
-        [3.0 / t**2, 1.0 / t, np.full_like(t, _B_FACTOR), t / 3.0, t**2 / 2.0]
-    )
+    return np.column_stack([3.0 / t**2, 1.0 / t, np.full_like(t, _B_FACTOR), t / 3.0, t**2 / 2.0])
 
 
 def ieee952_avar(taus_s: np.ndarray, terms: Mapping[str, float | None]) -> np.ndarray:
@@ -212,8 +210,9 @@ def _edf(alpha: int, m: int, n_phase: int) -> float:
     import allantools
 
     try:
-        e = float(allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase),
-                                           overlapping=True, modified=False))
+        e = float(
+            allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase), overlapping=True, modified=False)
+        )
     except Exception:  # pragma: no cover - Greenhall's tables cover α in 2..-2
         e = float("nan")
     if not math.isfinite(e) or e <= 0:
@@ -539,7 +538,8 @@ class AllanResult:
         if self.fit_check:
             out["fit_ok"] = bool(self.fit_check["ok"])
             out["fit_check"] = {k: v for k, v in self.fit_check.items() if k != "z"} | {
-                "fitted_from_tau_s": self.fit_from_tau_s}
+                "fitted_from_tau_s": self.fit_from_tau_s
+            }
         if self.method != "adev_legacy":
             out["lines"] = [{"freq_hz": fq, "rms": a} for fq, a in zip(self.lines_hz, self.lines_rms)]
         out["curve"] = {
@@ -630,6 +630,7 @@ def select_ieee952(
     upper end of its 95 % interval when it replaces the kept terms of its τ family (B, K, R
     stand in for each other over a short record), or next to the final terms if larger.
     """
+
     def z_of(fit_: _Fit, name: str) -> float:
         c, _lo, hi = _term_interval(fit_, TERM_NAMES.index(name))
         se = (hi - c) / _Z95
@@ -697,12 +698,21 @@ def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *
     from . import rwgm
 
     k = "rrw_rad_per_s_sqrt_s"
-    if (not on or not f.method.startswith("gmwm") or f.terms.get(k) is None
-            or "correlated_sigma_rad_s" not in f.ci95 or not set(f.selected) <= _RW_CHECK_MODELS):
+    if (
+        not on
+        or not f.method.startswith("gmwm")
+        or f.terms.get(k) is None
+        or "correlated_sigma_rad_s" not in f.ci95
+        or not set(f.selected) <= _RW_CHECK_MODELS
+    ):
         return f
-    chk = rwgm.random_walk_check(omega, rate_hz, arw_rad_per_sqrt_s=float(f.estimate["arw_rad_per_sqrt_s"]),
-                                 quantization_rad=0.0 if low_pass else float(f.estimate["quantization_rad"]),
-                                 tau_max_s=float(tau_max_s))
+    chk = rwgm.random_walk_check(
+        omega,
+        rate_hz,
+        arw_rad_per_sqrt_s=float(f.estimate["arw_rad_per_sqrt_s"]),
+        quantization_rad=0.0 if low_pass else float(f.estimate["quantization_rad"]),
+        tau_max_s=float(tau_max_s),
+    )
     if chk is None or chk.claimed:
         return f
     terms = dict(f.terms)
@@ -713,8 +723,15 @@ def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *
 
 
 def _axis_result(
-    omega: np.ndarray, rate_hz: float, m: np.ndarray, *, axis: str, signal: str, engine: str,
-    method: str = "gmwm", options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
+    omega: np.ndarray,
+    rate_hz: float,
+    m: np.ndarray,
+    *,
+    axis: str,
+    signal: str,
+    engine: str,
+    method: str = "gmwm",
+    options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
 ) -> AllanResult:
     if not np.all(np.isfinite(omega)):
         raise GyroInputError(f"{signal} axis {axis}: non-finite samples; drop or repair them before Allan analysis")
@@ -732,11 +749,13 @@ def _axis_result(
         lines = gmwm.line_avar(omega, rate_hz, m)
         if lines.freqs_hz:
             avar = np.maximum(avar - lines.avar, 0.05 * avar)
-            warn_repair(f"{signal} axis {axis}: narrowband line(s) at "
-                        + ", ".join(f"{fq:.4g} Hz (rms {a:.2g})" for fq, a in zip(lines.freqs_hz, lines.rms))
-                        + " are not sensor noise: their Allan variance (up to "
-                        + f"{100 * float(np.max(lines.avar / dev**2)):.0f} % at tau = {taus[int(np.argmax(lines.avar / dev**2))]:.3g} s)"
-                        + " is removed before the noise fit")
+            warn_repair(
+                f"{signal} axis {axis}: narrowband line(s) at "
+                + ", ".join(f"{fq:.4g} Hz (rms {a:.2g})" for fq, a in zip(lines.freqs_hz, lines.rms))
+                + " are not sensor noise: their Allan variance (up to "
+                + f"{100 * float(np.max(lines.avar / dev**2)):.0f} % at tau = {taus[int(np.argmax(lines.avar / dev**2))]:.3g} s)"
+                + " is removed before the noise fit"
+            )
         # the octaves shaped by the sensor's low-pass are left out of the fit
         k0 = gmwm.bandwidth_start(avar, m, n, rate_hz)
         # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
@@ -748,11 +767,14 @@ def _axis_result(
         fit_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef
         edf = f.edf
         if k0:
-            edf = gmwm.avar_covariance(m, n, rate_hz, f.coef, f.tau_c_s, np.where(fit_all > 0, fit_all, avar),
-                                       method=meth)[1]
-            warn_repair(f"{signal} axis {axis}: the Allan variance below tau = {taus[k0]:.3g} s is shaped by the sensor's "
-                        f"low-pass (over the first octave it falls to {avar[1] / avar[0]:.2f} of its value; white noise: 0.5): "
-                        f"the noise model is fitted from tau = {taus[k0]:.3g} s")
+            edf = gmwm.avar_covariance(
+                m, n, rate_hz, f.coef, f.tau_c_s, np.where(fit_all > 0, fit_all, avar), method=meth
+            )[1]
+            warn_repair(
+                f"{signal} axis {axis}: the Allan variance below tau = {taus[k0]:.3g} s is shaped by the sensor's "
+                f"low-pass (over the first octave it falls to {avar[1] / avar[0]:.2f} of its value; white noise: 0.5): "
+                f"the noise model is fitted from tau = {taus[k0]:.3g} s"
+            )
         # the sum of what is reported: unresolved terms (null, bounds only) left out. A term fitted
         # but not told from a stand-in (``ambiguous``: reported as "fitted X, not told from Y") stays
         # in: the data reject the model without it, only its name is open (sunsided 10-min x: without
@@ -764,10 +786,12 @@ def _axis_result(
         rep_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ c_rep
         if not chk.ok:
             j = int(np.argmax(np.abs(chk.z)))
-            warn_repair(f"{signal} axis {axis}: the fitted noise model does not fit its Allan variance (goodness of fit "
-                        f"p = {chk.p_value:.2g}; {chk.misses} of {chk.z.size} points outside their 95 % interval, worst "
-                        f"at tau = {taus[k0 + j]:.3g} s, {math.sqrt(avar[k0 + j] / f.fit_avar[j]):.2g}x the fitted "
-                        "deviation): its terms are not to be trusted")
+            warn_repair(
+                f"{signal} axis {axis}: the fitted noise model does not fit its Allan variance (goodness of fit "
+                f"p = {chk.p_value:.2g}; {chk.misses} of {chk.z.size} points outside their 95 % interval, worst "
+                f"at tau = {taus[k0 + j]:.3g} s, {math.sqrt(avar[k0 + j] / f.fit_avar[j]):.2g}x the fitted "
+                "deviation): its terms are not to be trusted"
+            )
         lo_q = scipy.stats.chi2.ppf(0.025, edf)
         hi_q = scipy.stats.chi2.ppf(0.975, edf)
         ci_dev = np.column_stack([dev * np.sqrt(edf / hi_q), dev * np.sqrt(edf / lo_q)])
@@ -781,15 +805,37 @@ def _axis_result(
             ci["quantization_rad"] = (0.0, float("inf"))
         resolved = {k: terms[k] is not None for k in names}
         return AllanResult(
-            axis=axis, signal=signal, taus_s=taus, adev_rad_s=dev, adev_ci95_rad_s=ci_dev, edf=edf,
-            fit_adev_rad_s=np.sqrt(np.maximum(fit_all, 0.0)), estimate=est, ci95=ci, rate_hz=rate_hz,
-            n_samples=int(omega.shape[0]), method=method, resolved=resolved, chi2=f.chi2, dof=f.dof,
-            ambiguous=dict(f.ambiguous), reported_adev_rad_s=np.sqrt(np.maximum(rep_all, 0.0)),
-            fit_from_tau_s=float(taus[k0]), lines_hz=tuple(lines.freqs_hz), lines_rms=tuple(lines.rms),
+            axis=axis,
+            signal=signal,
+            taus_s=taus,
+            adev_rad_s=dev,
+            adev_ci95_rad_s=ci_dev,
+            edf=edf,
+            fit_adev_rad_s=np.sqrt(np.maximum(fit_all, 0.0)),
+            estimate=est,
+            ci95=ci,
+            rate_hz=rate_hz,
+            n_samples=int(omega.shape[0]),
+            method=method,
+            resolved=resolved,
+            chi2=f.chi2,
+            dof=f.dof,
+            ambiguous=dict(f.ambiguous),
+            reported_adev_rad_s=np.sqrt(np.maximum(rep_all, 0.0)),
+            fit_from_tau_s=float(taus[k0]),
+            lines_hz=tuple(lines.freqs_hz),
+            lines_rms=tuple(lines.rms),
             lines_adev_rad_s=np.sqrt(lines.avar),
-            fit_check={"ok": chk.ok, "p_value": chk.p_value, "stat": chk.stat, "dof": chk.dof,
-                       "misses": chk.misses, "points": int(chk.z.size), "p_misses": chk.p_misses,
-                       "z": [float(v) for v in chk.z]},
+            fit_check={
+                "ok": chk.ok,
+                "p_value": chk.p_value,
+                "stat": chk.stat,
+                "dof": chk.dof,
+                "misses": chk.misses,
+                "points": int(chk.z.size),
+                "p_misses": chk.p_misses,
+                "z": [float(v) for v in chk.z],
+            },
             **terms,
         )
     fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
@@ -869,8 +915,9 @@ def _check_timestamps(rec: Recording) -> float:
 MAX_MOVING_FRACTION = 0.5
 
 
-def still_fraction(recording: Recording, *, window_s: float = 2.0, false_reject_rate: float = 1e-3,
-                   max_windows: int = 200) -> float:
+def still_fraction(
+    recording: Recording, *, window_s: float = 2.0, false_reject_rate: float = 1e-3, max_windows: int = 200
+) -> float:
     """Fraction of ``window_s`` windows the variance motion gate of :mod:`gyrocore.calib.bias` calls still.
 
     The gate (window variance against χ² quantiles of the record's own robust noise level,
@@ -880,9 +927,15 @@ def still_fraction(recording: Recording, *, window_s: float = 2.0, false_reject_
     binomial standard error ≤ 3.5 %, ample against the 50 % limit; the gate costs
     O(max_windows · window), not O(n)).
     """
-    return _still_fraction(recording.n, recording.rate_hz, lambda idx, starts, n_win: np.asarray(recording.gyro_rad_s)[idx],
-                           lambda: recording, window_s=window_s, false_reject_rate=false_reject_rate,
-                           max_windows=max_windows)
+    return _still_fraction(
+        recording.n,
+        recording.rate_hz,
+        lambda idx, starts, n_win: np.asarray(recording.gyro_rad_s)[idx],
+        lambda: recording,
+        window_s=window_s,
+        false_reject_rate=false_reject_rate,
+        max_windows=max_windows,
+    )
 
 
 def still_fraction_spilled(store, **options) -> float:
@@ -901,8 +954,16 @@ def still_fraction_spilled(store, **options) -> float:
     return _still_fraction(store.n, head.rate_hz, rows, whole, **options)
 
 
-def _still_fraction(n: int, rate_hz: float, gyro_rows, whole, *, window_s: float = 2.0,
-                    false_reject_rate: float = 1e-3, max_windows: int = 200) -> float:
+def _still_fraction(
+    n: int,
+    rate_hz: float,
+    gyro_rows,
+    whole,
+    *,
+    window_s: float = 2.0,
+    false_reject_rate: float = 1e-3,
+    max_windows: int = 200,
+) -> float:
     from gyrocore.calib.bias import StaticBiasCalibrator
 
     n_win = int(round(window_s * rate_hz))
@@ -980,8 +1041,9 @@ class StillSpan:
     message: str = ""
 
 
-def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, window_s: float = 2.0,
-               false_reject_rate: float = 1e-3) -> StillSpan:
+def still_span(
+    gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, window_s: float = 2.0, false_reject_rate: float = 1e-3
+) -> StillSpan:
     """The part of a record that a noise identification may use: all of it, or its longest still stretch.
 
     Every ``window_s`` window is judged by the variance gate of
@@ -1033,7 +1095,8 @@ def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, win
     dt = 1.0 / rate_hz
     thr = cal.gate(n_win, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)[0]
     strict = StaticBiasCalibrator(window_samples=n_win, false_reject_rate=STRICT_FALSE_REJECT_RATE).gate(
-        n_win, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)[0]
+        n_win, sigma_diff, rho, dt, sigma2=sigma2, dof=dof
+    )[0]
     stats = _window_stats(x, n_win, "variance")
     still = np.all(stats <= thr[None, :], axis=1)
     quiet = np.all(stats <= strict[None, :], axis=1)
@@ -1043,7 +1106,8 @@ def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, win
     # motion: more windows over the gate than its false-reject rate explains, or any window over
     # the strict gate that its 1e-6 rate does not explain (one 2-s turn in a 10-min log)
     if (k == 0 or scipy.stats.binom.sf(k - 1, W, false_reject_rate) >= 1e-3) and (
-            k_strict == 0 or scipy.stats.binom.sf(k_strict - 1, W, STRICT_FALSE_REJECT_RATE) >= 1e-3):
+        k_strict == 0 or scipy.stats.binom.sf(k_strict - 1, W, STRICT_FALSE_REJECT_RATE) >= 1e-3
+    ):
         return StillSpan(0, N, frac, W, k)
     # runs of quiet windows [a, b), less one window at an end that borders motion
     best = (0, 0)
@@ -1073,8 +1137,10 @@ def still_span(gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, win
             f"({where}) and {longest}; noise identification needs a still sensor for >= {MIN_STILL_STRETCH_S:g} s "
             f"(choose one with --t-from-s/--t-to-s)"
         )
-    msg = (f"motion in {k} of {W} {window_s:g}-s windows ({where}; the gate's false-reject rate explains "
-           f"{W * false_reject_rate:.2g}): noise identified on the longest still stretch, {desc}, {100 * (stop - a * n_win) / N:.0f} % of the record")
+    msg = (
+        f"motion in {k} of {W} {window_s:g}-s windows ({where}; the gate's false-reject rate explains "
+        f"{W * false_reject_rate:.2g}): noise identified on the longest still stretch, {desc}, {100 * (stop - a * n_win) / N:.0f} % of the record"
+    )
     return StillSpan(a * n_win, stop, frac, W, k, True, msg)
 
 
@@ -1171,8 +1237,9 @@ def allan_analysis(
 
     def run(x, signal):
         return {
-            a: _axis_result(x[:, AXES.index(a)], rate, m, axis=a, signal=signal, engine=engine, method=method,
-                            options=options)
+            a: _axis_result(
+                x[:, AXES.index(a)], rate, m, axis=a, signal=signal, engine=engine, method=method, options=options
+            )
             for a in axes
         }
 
@@ -1197,8 +1264,12 @@ def allan_analysis(
     )
 
 
-_LONG = {"bias_instability_rad_s": "B", "rrw_rad_per_s_sqrt_s": "K", "rate_ramp_rad_s2": "R",
-         "correlated_sigma_rad_s": "GM"}
+_LONG = {
+    "bias_instability_rad_s": "B",
+    "rrw_rad_per_s_sqrt_s": "K",
+    "rate_ramp_rad_s2": "R",
+    "correlated_sigma_rad_s": "GM",
+}
 
 
 def needed_duration_s(result: AllanResult, name: str, *, level_factor: float = 0.5, max_factor: int = 4096) -> float:
@@ -1222,8 +1293,9 @@ def needed_duration_s(result: AllanResult, name: str, *, level_factor: float = 0
     n = result.n_samples
     f = 1
     while f <= max_factor:
-        z = fisher_margin(base, name, n_samples=n * f, rate_hz=result.rate_hz,
-                          method="adev" if result.method != "gmwm" else "gmwm")
+        z = fisher_margin(
+            base, name, n_samples=n * f, rate_hz=result.rate_hz, method="adev" if result.method != "gmwm" else "gmwm"
+        )
         if z >= Z_POWER:
             return n * f / result.rate_hz
         f *= 2
@@ -1246,8 +1318,10 @@ def _warn_short(axes: Mapping[str, AllanResult], duration_s: float, n: int, rate
         vals = [v for v in vals if math.isfinite(v)]
         if vals:
             need[k] = min(vals)
+
     def fmt(t):
         return f"{t / 3600:.3g} h" if t >= 7200 else (f"{t / 60:.3g} min" if t >= 120 else f"{t:.3g} s")
+
     parts = [f"{_LONG[k]} at half its upper bound needs >= {fmt(v)}" for k, v in need.items()]
     warn_repair(
         f"no long-tau term resolved in {fmt(duration_s)}: bias instability, random walks and correlated terms are "
@@ -1314,14 +1388,32 @@ def identify_noise(
             raise GyroInputError(f"rate array must have shape (n,) or (n, k<=3), got {np.shape(data)}")
         if rate_hz is None or not (math.isfinite(float(rate_hz)) and float(rate_hz) > 0):
             raise GyroInputError("identify_noise on an array needs rate_hz > 0")
-        return _identify_arrays(x, float(rate_hz), method=method, axes=axes, max_tau_s=max_tau_s,
-                                check_static=check_static and x.shape[1] == 3, engine=engine, options=options)
-    return allan_analysis(rec, axes=ax, max_tau_s=max_tau_s, engine=engine, method=method,
-                          check_static=check_static, options=options)
+        return _identify_arrays(
+            x,
+            float(rate_hz),
+            method=method,
+            axes=axes,
+            max_tau_s=max_tau_s,
+            check_static=check_static and x.shape[1] == 3,
+            engine=engine,
+            options=options,
+        )
+    return allan_analysis(
+        rec, axes=ax, max_tau_s=max_tau_s, engine=engine, method=method, check_static=check_static, options=options
+    )
 
 
-def _identify_arrays(x: np.ndarray, rate: float, *, method: str, axes, max_tau_s, check_static: bool,
-                     engine: str, options: NoiseOptions = DEFAULT_NOISE_OPTIONS) -> AllanAnalysis:
+def _identify_arrays(
+    x: np.ndarray,
+    rate: float,
+    *,
+    method: str,
+    axes,
+    max_tau_s,
+    check_static: bool,
+    engine: str,
+    options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
+) -> AllanAnalysis:
     """:func:`identify_noise` on evenly spaced rate columns without building a Recording (no copy
     of the record, no timestamp checks: the spacing is 1/rate by definition)."""
     if method not in METHODS:
@@ -1334,8 +1426,9 @@ def _identify_arrays(x: np.ndarray, rate: float, *, method: str, axes, max_tau_s
         raise GyroInputError(f"unknown axis {','.join(bad) or '(none)'} for {k} column(s)")
     still = None
     if check_static:
-        still = still_fraction(Recording(t_s=np.arange(n) / rate, gyro_rad_s=x) if n <= 200 * int(2 * rate) else
-                               _window_sample(x, rate))
+        still = still_fraction(
+            Recording(t_s=np.arange(n) / rate, gyro_rad_s=x) if n <= 200 * int(2 * rate) else _window_sample(x, rate)
+        )
         if math.isfinite(still) and (1.0 - still) > MAX_MOVING_FRACTION:
             raise GyroInputError(
                 f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "
@@ -1354,13 +1447,23 @@ def _identify_arrays(x: np.ndarray, rate: float, *, method: str, axes, max_tau_s
             f"recording too short for Allan analysis: {n} samples give {octave_m(n).size} averaging times, "
             f"need at least 4 (>= {16 * 2 + 1} samples)"
         )
-    res = {a: _axis_result(np.ascontiguousarray(x[:, names.index(a)]), rate, m, axis=a, signal="gyro",
-                           engine=engine, method=method, options=options) for a in ax}
+    res = {
+        a: _axis_result(
+            np.ascontiguousarray(x[:, names.index(a)]),
+            rate,
+            m,
+            axis=a,
+            signal="gyro",
+            engine=engine,
+            method=method,
+            options=options,
+        )
+        for a in ax
+    }
     duration = (n - 1) / rate
     if method != "adev_legacy":
         _warn_short(res, duration, n, rate, method)
-    return AllanAnalysis(axes=res, rate_hz=rate, n_samples=n, duration_s=duration, method=method,
-                         still_fraction=still)
+    return AllanAnalysis(axes=res, rate_hz=rate, n_samples=n, duration_s=duration, method=method, still_fraction=still)
 
 
 def _window_sample(x: np.ndarray, rate: float, *, window_s: float = 2.0, max_windows: int = 200) -> Recording:
@@ -1464,9 +1567,7 @@ def _kalibr_value(r: Mapping[str, AllanResult], name: str) -> tuple[float, bool]
     return float(max(vals)), upper
 
 
-def kalibr_imu_yaml(
-    analysis: AllanAnalysis, *, rostopic: str = "/imu0", inflate: float = 1.0
-) -> str:
+def kalibr_imu_yaml(analysis: AllanAnalysis, *, rostopic: str = "/imu0", inflate: float = 1.0) -> str:
     """Kalibr ``imu.yaml`` text from an Allan analysis.
 
     Kalibr's ``gyroscope_noise_density`` is the white-noise density N (rad/s/√Hz = rad/√s),

@@ -96,8 +96,14 @@ __all__ = [
 
 #: Coefficient names, in the order of the linear coefficient vector (variance scale):
 #: Q² (rad²), N² (rad²/s), B² (rad²/s²), K² (rad²/s³), R² (rad²/s⁴), σ_GM² (rad²/s²).
-LINEAR = ("quantization_rad", "arw_rad_per_sqrt_s", "bias_instability_rad_s",
-          "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2", "correlated_sigma_rad_s")
+LINEAR = (
+    "quantization_rad",
+    "arw_rad_per_sqrt_s",
+    "bias_instability_rad_s",
+    "rrw_rad_per_s_sqrt_s",
+    "rate_ramp_rad_s2",
+    "correlated_sigma_rad_s",
+)
 GM_TERMS = ("correlated_sigma_rad_s", "correlated_tau_c_s")
 ALL_TERMS = LINEAR[:5] + GM_TERMS
 #: level of the one-sided test behind each term's penalty
@@ -246,7 +252,9 @@ def _pair_factor(m_key: tuple[int, ...]) -> np.ndarray:
     mm = np.array(m_key, float)
     ratio = mm[:, None] / mm[None, :]
     ratio = np.maximum(ratio, 1.0 / ratio)
-    return np.where(np.isclose(ratio, 1.0), (35 / 128) / (9 / 64), np.where(np.isclose(ratio, 2.0), (7 / 64) / (9 / 64), 1.0))
+    return np.where(
+        np.isclose(ratio, 1.0), (35 / 128) / (9 / 64), np.where(np.isclose(ratio, 2.0), (7 / 64) / (9 / 64), 1.0)
+    )
 
 
 def _spectrum(nu: np.ndarray, rate_hz: float, c: np.ndarray, tau_c_s: float | None) -> np.ndarray:
@@ -270,8 +278,9 @@ def _edf(alpha: int, m: int, n_phase: int) -> float:
     import allantools
 
     try:
-        e = float(allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase),
-                                           overlapping=True, modified=False))
+        e = float(
+            allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase), overlapping=True, modified=False)
+        )
     except Exception:  # pragma: no cover
         e = float("nan")
     if not math.isfinite(e) or e <= 0:
@@ -306,8 +315,16 @@ def _pure_spec_edf(m_key: tuple[int, ...], n: int) -> np.ndarray:
     return out
 
 
-def avar_covariance(m: np.ndarray, n_samples: int, rate_hz: float, c: np.ndarray, tau_c_s: float | None,
-                    model: np.ndarray, *, method: str = "gmwm") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def avar_covariance(
+    m: np.ndarray,
+    n_samples: int,
+    rate_hz: float,
+    c: np.ndarray,
+    tau_c_s: float | None,
+    model: np.ndarray,
+    *,
+    method: str = "gmwm",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Covariance (M, M) of the overlapping AVAR estimates under the model; also edf (M,), α (M,).
 
     Diagonal 2·model²/edf (Greenhall EDF for the local power law of the model); correlation
@@ -475,8 +492,9 @@ def _fit_subset(m, rate_hz, avar, L, use: Sequence[int], method: str, tc_grid: n
     i = int(np.argmin(vals))
     lo, hi = tc_grid[max(i - 1, 0)], tc_grid[min(i + 1, len(tc_grid) - 1)]
     if hi > lo:
-        r = scipy.optimize.minimize_scalar(lambda u: at(math.exp(u))[1], bounds=(math.log(lo), math.log(hi)),
-                                           method="bounded", options={"xatol": 1e-2})
+        r = scipy.optimize.minimize_scalar(
+            lambda u: at(math.exp(u))[1], bounds=(math.log(lo), math.log(hi)), method="bounded", options={"xatol": 1e-2}
+        )
         if r.fun < best[2]:
             c, chi2 = at(math.exp(r.x))
             best = (c, math.exp(r.x), chi2)
@@ -502,8 +520,7 @@ def _interval(c: float, var: float, *, pivot: bool = True) -> tuple[float, float
         nu = 2.0 * c * c / (se * se)
         if nu < 1e6:
             q_lo, q_hi = scipy.stats.chi2.ppf(0.025, nu), scipy.stats.chi2.isf(0.025, nu)
-            return (c, c * nu / q_hi if q_hi > 0 else 0.0,
-                    c * nu / q_lo if q_lo > c * nu / 1e300 else float("inf"))
+            return (c, c * nu / q_hi if q_hi > 0 else 0.0, c * nu / q_lo if q_lo > c * nu / 1e300 else float("inf"))
     return c, c - _Z95 * se, c + _Z95 * se
 
 
@@ -742,9 +759,17 @@ def _upper_profile(i, s2, cf2, tc, hi_wald, m, rate_hz, avar, L2, W_log, bias_lo
     return float("inf")
 
 
-def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: int, *,
-              method: str = "gmwm", iterations: int = 3,
-              candidates: Sequence[str] | None = None, options: NoiseOptions = DEFAULT_NOISE_OPTIONS) -> NoiseFit:
+def fit_noise(
+    taus_s: np.ndarray,
+    avar: np.ndarray,
+    m: np.ndarray,
+    n_samples: int,
+    *,
+    method: str = "gmwm",
+    iterations: int = 3,
+    candidates: Sequence[str] | None = None,
+    options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
+) -> NoiseFit:
     """Identify the noise terms of one axis from its overlapping Allan variance at octave factors m.
 
     Parameters
@@ -816,8 +841,7 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
     # long-τ point far above the model (thin upper tail of log χ²_ν at ν ≈ 2–6)
     gof_p = {s_: _fit_check(fits[s_], s_, avar, m, rate_hz, method).p_value for s_ in subsets}
     rejected = {s_: p_ < ALPHA_GOF_SCREEN for s_, p_ in gof_p.items()}
-    screen = not all(rejected[s_] for s_ in subsets
-                                    if not np.any(fits[s_][0][[i for i in s_ if i not in lp]] <= 0))
+    screen = not all(rejected[s_] for s_ in subsets if not np.any(fits[s_][0][[i for i in s_ if i not in lp]] <= 0))
     for sub in subsets:
         res = fits[sub]
         mod = term_avar(m, rate_hz, method=method, tau_c_s=res[1]) @ res[0]
@@ -891,8 +915,9 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
         name = LINEAR[i]
         c, lo, hi = _interval(float(coef_s[i]), float(cov_p[j, j]))
         if options.robust_ci and i != 1:
-            lo, hi = _robust_ends(i, sub, fits, float(coef_s[i]), float(cov_p[j, j]), lo, hi, cand, m, rate_hz,
-                                  method, tc_s)
+            lo, hi = _robust_ends(
+                i, sub, fits, float(coef_s[i]), float(cov_p[j, j]), lo, hi, cand, m, rate_hz, method, tc_s
+            )
         est[name] = math.sqrt(max(c, 0.0))
         terms[name] = est[name]
         ci[name] = (math.sqrt(max(lo, 0.0)), math.sqrt(hi) if math.isfinite(hi) else float("inf"))
@@ -931,8 +956,20 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
                 except np.linalg.LinAlgError:
                     var = float("inf")
                 hi_ = _interval(float(cf2[i]), var, pivot=False)[2]
-                hi_ = _upper_profile(i, s2, cf2, tc_2 if tc_2 else (tc_s if i == 5 else None), hi_, m,
-                                     rate_hz, avar, fits[s2][4], W_log, bias_log, method)
+                hi_ = _upper_profile(
+                    i,
+                    s2,
+                    cf2,
+                    tc_2 if tc_2 else (tc_s if i == 5 else None),
+                    hi_,
+                    m,
+                    rate_hz,
+                    avar,
+                    fits[s2][4],
+                    W_log,
+                    bias_log,
+                    method,
+                )
                 his.append(hi_)
             hi = max(his)
             tc2 = fits[sub2][1]
@@ -957,16 +994,28 @@ def fit_noise(taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_samples: in
             ci.setdefault(LINEAR[i], (0.0, float("inf")))
     if 5 not in cand:
         ci.pop("correlated_sigma_rad_s", None)
-    return NoiseFit(method=method, terms=terms, estimate=est, ci95=ci, coef=coef_s, tau_c_s=tc_s if 5 in sub else None,
-                    cov=C, edf=edf, chi2=chi2, dof=int(m.size - len(sub) - (1 if 5 in sub else 0)),
-                    fit_avar=model_s, selected=tuple(LINEAR[i] for i in sub),
-                    tau_c_range_s=(float(t[0]), float(t[-1])),
-                    criteria={tuple(LINEAR[i] for i in k): v for k, v in lchi2.items()},
-                    ambiguous={LINEAR[i]: LINEAR[j] for i, j in ambiguous.items()})
+    return NoiseFit(
+        method=method,
+        terms=terms,
+        estimate=est,
+        ci95=ci,
+        coef=coef_s,
+        tau_c_s=tc_s if 5 in sub else None,
+        cov=C,
+        edf=edf,
+        chi2=chi2,
+        dof=int(m.size - len(sub) - (1 if 5 in sub else 0)),
+        fit_avar=model_s,
+        selected=tuple(LINEAR[i] for i in sub),
+        tau_c_range_s=(float(t[0]), float(t[-1])),
+        criteria={tuple(LINEAR[i] for i in k): v for k, v in lchi2.items()},
+        ambiguous={LINEAR[i]: LINEAR[j] for i, j in ambiguous.items()},
+    )
 
 
-def fisher_margin(terms: Mapping[str, float | None], name: str, *, n_samples: int, rate_hz: float,
-                  method: str = "gmwm") -> float:
+def fisher_margin(
+    terms: Mapping[str, float | None], name: str, *, n_samples: int, rate_hz: float, method: str = "gmwm"
+) -> float:
     """Cheap resolvability margin of one term: Fisher z = c/se(c) at the true model minus
     √penalty (the term against its mere absence, no stand-in). ≥ :data:`Z_POWER` ⇒ claimed
     with ≥ 90 % probability when nothing else can stand in for it."""
@@ -998,8 +1047,14 @@ SIM_DRAWS = 400
 SIM_SEED = 20261125
 
 
-def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: float,
-               method: str = "gmwm", options: NoiseOptions = DEFAULT_NOISE_OPTIONS) -> dict[str, float]:
+def expected_z(
+    terms: Mapping[str, float | None],
+    *,
+    n_samples: int,
+    rate_hz: float,
+    method: str = "gmwm",
+    options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
+) -> dict[str, float]:
     """Predicted resolvability margin of each present term (the resolvability rule).
 
     At the true parameters, with the true covariance Σ of the AVAR estimates on the τ grid
@@ -1074,8 +1129,11 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                     continue
                 dpen = pen_true - _penalty(sub)
                 # the swap of i for a stand-in y that :func:`_ambiguous` checks
-                swap_y = [y for y in set(sub) - set(true_sub)
-                          if len(sub) == len(true_sub) and set(sub) - {y} == set(true_sub) - {i}]
+                swap_y = [
+                    y
+                    for y in set(sub) - set(true_sub)
+                    if len(sub) == len(true_sub) and set(sub) - {y} == set(true_sub) - {i}
+                ]
                 check = i != 1 and bool(swap_y) and _checked(i, swap_y[0])
                 if dpen < 0 and not check:
                     continue
@@ -1114,8 +1172,12 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                     # term is claimed when D ≈ N(−λ_X, 4λ_X) < λ_Y − z_{1−α}·2√λ_Y
                     mod_y = cache[sub][1]
                     cb, tcb = _fit_model(m, rate_hz, mod_y, int(n_samples), true_sub, method, tc_grid)[:2]
-                    lam_y = max(_log_chi2(mod_y, term_avar(m, rate_hz, method=method, tau_c_s=tcb) @ cb, W_log,
-                                          np.zeros(m.size)), 0.0)
+                    lam_y = max(
+                        _log_chi2(
+                            mod_y, term_avar(m, rate_hz, method=method, tau_c_s=tcb) @ cb, W_log, np.zeros(m.size)
+                        ),
+                        0.0,
+                    )
                     thr = lam_y - _z_check(i, swap_y[0]) * 2.0 * math.sqrt(lam_y)
                     z_claim = (thr + lam) / (2.0 * math.sqrt(lam)) if lam > 0 else (math.inf if thr > 0 else -math.inf)
                     zs.append(z_claim)
@@ -1124,9 +1186,16 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
             # exact likelihood of the block means (gyrocore.noise.rwgm; applied in allan._axis_result)
             from . import rwgm
 
-            zs.append(rwgm.miss_z(arw_rad_per_sqrt_s=math.sqrt(coef[1]), rrw_rad_per_s_sqrt_s=math.sqrt(coef[3]),
-                                  quantization_rad=math.sqrt(coef[0]), n_samples=int(n_samples), rate_hz=rate_hz,
-                                  tau_max_s=float(t[-1])))
+            zs.append(
+                rwgm.miss_z(
+                    arw_rad_per_sqrt_s=math.sqrt(coef[1]),
+                    rrw_rad_per_s_sqrt_s=math.sqrt(coef[3]),
+                    quantization_rad=math.sqrt(coef[0]),
+                    n_samples=int(n_samples),
+                    rate_hz=rate_hz,
+                    tau_max_s=float(t[-1]),
+                )
+            )
         # the term is missed when ANY alternative wins, so the miss probability is
         # bounded by the sum over alternatives (union bound), not the largest one: with K at 1 h
         # both R (Φ(−1.29) ≈ 10 %) and B (≈ 6 %) stand in, and the minimum alone (1.29 ≥ 1.28)
@@ -1146,8 +1215,11 @@ def expected_z(terms: Mapping[str, float | None], *, n_samples: int, rate_hz: fl
                 if _a in near:
                     rest.remove(za)
             p_miss = p_sel + float(sum(scipy.stats.norm.sf(z) for z in rest))
-            margin = float(scipy.stats.norm.isf(p_miss)) if 0.0 < p_miss < 0.5 else (
-                0.0 if p_miss >= 0.5 else min(rest, default=math.inf))
+            margin = (
+                float(scipy.stats.norm.isf(p_miss))
+                if 0.0 < p_miss < 0.5
+                else (0.0 if p_miss >= 0.5 else min(rest, default=math.inf))
+            )
             if p_miss >= 0.5:
                 margin = min(margin, min(zs))
         elif zs and i != 1:  # N: the minimum, as before (N is never left out)
@@ -1213,8 +1285,7 @@ def _pit_z(avar: np.ndarray, model: np.ndarray, edf: np.ndarray) -> np.ndarray:
     return np.clip(z, -37.0, 37.0)
 
 
-def goodness_of_fit(avar: np.ndarray, model: np.ndarray, cov: np.ndarray, edf: np.ndarray,
-                    n_params: int) -> FitCheck:
+def goodness_of_fit(avar: np.ndarray, model: np.ndarray, cov: np.ndarray, edf: np.ndarray, n_params: int) -> FitCheck:
     """Is the measured Allan variance consistent with the fitted model?
 
     Why not the selection's log-space χ²: log σ̂² with ν ≈ 2–6 (the last octaves) has a thin
@@ -1403,8 +1474,7 @@ def line_avar(x: np.ndarray, rate_hz: float, m: np.ndarray) -> Lines:
     if n < 32 * 64:
         return none
     seg = min(1 << int(math.floor(math.log2(n // 32))), 1024)
-    f, p = scipy.signal.welch(x - x.mean(), fs=rate_hz, window="hann", nperseg=seg, noverlap=seg // 2,
-                              detrend="linear")
+    f, p = scipy.signal.welch(x - x.mean(), fs=rate_hz, window="hann", nperseg=seg, noverlap=seg // 2, detrend="linear")
     k_seg = (n - seg) // (seg // 2) + 1
     nu = 2.0 * k_seg / 1.056
     # the floor beside each bin: median of the bins 5 … 24 away on both sides (40 bins). A line
@@ -1422,8 +1492,8 @@ def line_avar(x: np.ndarray, rate_hz: float, m: np.ndarray) -> Lines:
     q[:2] = np.nan
     pad = np.pad(q, outer_r, mode="constant", constant_values=np.nan)
     win = np.lib.stride_tricks.sliding_window_view(pad, 2 * outer_r + 1)
-    low = win[:, 0:outer_r - inner_r + 1]
-    high = win[:, outer_r + inner_r:2 * outer_r + 1]
+    low = win[:, 0 : outer_r - inner_r + 1]
+    high = win[:, outer_r + inner_r : 2 * outer_r + 1]
     n_low = np.sum(np.isfinite(low), axis=1)
     n_high = np.sum(np.isfinite(high), axis=1)
     with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -1434,8 +1504,7 @@ def line_avar(x: np.ndarray, rate_hz: float, m: np.ndarray) -> Lines:
         # level between its two sides; on a sloped spectrum — a sensor low-pass — the higher side
         # alone overstates it and understates the line: the 31-Hz line of the sunsided MPU-6050 z
         # lost 7 % of its rms and its Allan variance then failed the fit's goodness-of-fit test)
-        pooled = np.nanmedian(np.where((n_low + n_high)[:, None] > 0, np.concatenate([low, high], axis=1), 0.0),
-                              axis=1)
+        pooled = np.nanmedian(np.where((n_low + n_high)[:, None] > 0, np.concatenate([low, high], axis=1), 0.0), axis=1)
     median_factor = scipy.stats.chi2.median(nu) / nu
     # detection: the higher side (a line stands above the noise on both of its sides)
     floor = np.fmax(f_low, f_high) / median_factor

@@ -90,8 +90,9 @@ def steady_state_variance(phi: float, q: float, r: float) -> tuple[float, float]
     """
     if q <= 0:
         return 0.0, 0.0
-    Pm = float(scipy.linalg.solve_discrete_are(np.array([[phi]]), np.array([[1.0]]),
-                                               np.array([[q]]), np.array([[r]]))[0, 0])
+    Pm = float(
+        scipy.linalg.solve_discrete_are(np.array([[phi]]), np.array([[1.0]]), np.array([[q]]), np.array([[r]]))[0, 0]
+    )
     return Pm, Pm * r / (Pm + r)
 
 
@@ -164,27 +165,43 @@ class BiasNoiseModel:
         N = []
         for r in res:
             if r.arw_rad_per_sqrt_s is None:
-                raise GyroInputError(f"angle random walk N of axis {r.axis} not resolved; cannot set the measurement noise")
+                raise GyroInputError(
+                    f"angle random walk N of axis {r.axis} not resolved; cannot set the measurement noise"
+                )
             N.append(r.arw_rad_per_sqrt_s)
         K = [r.rrw_rad_per_s_sqrt_s for r in res]
         # a flicker floor fitted but not told from a Gauss–Markov term (``ambiguous``):
         # either way a Gauss–Markov process matched to the floor is the model to track
-        B = [r.bias_instability_rad_s if r.bias_instability_rad_s is not None else
-             (r.estimate.get("bias_instability_rad_s") or None
-              if "bias_instability_rad_s" in getattr(r, "ambiguous", {}) else None) for r in res]
+        B = [
+            r.bias_instability_rad_s
+            if r.bias_instability_rad_s is not None
+            else (
+                r.estimate.get("bias_instability_rad_s") or None
+                if "bias_instability_rad_s" in getattr(r, "ambiguous", {})
+                else None
+            )
+            for r in res
+        ]
         if all(k is not None for k in K):
             return cls(np.array(N), np.array(K), source="allan: N, K")
         gs = [getattr(r, "correlated_sigma_rad_s", None) for r in res]
         gt = [getattr(r, "correlated_tau_c_s", None) for r in res]
         if all(v is not None for v in gs) and all(v is not None for v in gt):
-            return cls(np.array(N), np.zeros(3), gm_sigma_rad_s=np.array(gs, float), gm_tau_s=np.array(gt, float),
-                       source="noise: N, Gauss-Markov (identified)")
+            return cls(
+                np.array(N),
+                np.zeros(3),
+                gm_sigma_rad_s=np.array(gs, float),
+                gm_tau_s=np.array(gt, float),
+                source="noise: N, Gauss-Markov (identified)",
+            )
         if all(b is not None for b in B):
             sig = np.array(B) * _B_FLOOR / _GM_PEAK
             tau = np.array([r.taus_s[int(np.argmin(r.adev_rad_s))] / _GM_TAU for r in res])
             return cls(np.array(N), np.zeros(3), gm_sigma_rad_s=sig, gm_tau_s=tau, source="allan: N, B -> Gauss-Markov")
         Kub = np.array([k if k is not None else r.ci95["rrw_rad_per_s_sqrt_s"][1] for k, r in zip(K, res)])
-        warn_repair("rate random walk K not resolved on every axis: bias tracked as a random walk with K at its 95 % upper bound")
+        warn_repair(
+            "rate random walk K not resolved on every axis: bias tracked as a random walk with K at its 95 % upper bound"
+        )
         return cls(np.array(N), Kub, source="allan: N, K (upper bound where unresolved)")
 
 
@@ -284,8 +301,12 @@ class StillBiasTracker:
         For the Gauss–Markov model this is the limit once the turn-on constant is learned
         (its variance decays like 1/time): the scalar Riccati solution of the g part.
         """
-        return np.array([math.sqrt(steady_state_variance(float(p), float(q), float(r))[1])
-                         for p, q, r in zip(self.phi, self.q, self.r)])
+        return np.array(
+            [
+                math.sqrt(steady_state_variance(float(p), float(q), float(r))[1])
+                for p, q, r in zip(self.phi, self.q, self.r)
+            ]
+        )
 
 
 # ---------------------------------------------------------------------------- quaternions
@@ -293,12 +314,15 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product p ⊗ q, w,x,y,z, batched."""
     pw, px, py, pz = np.moveaxis(np.asarray(p, float), -1, 0)
     qw, qx, qy, qz = np.moveaxis(np.asarray(q, float), -1, 0)
-    return np.stack([
-        pw * qw - px * qx - py * qy - pz * qz,
-        pw * qx + px * qw + py * qz - pz * qy,
-        pw * qy - px * qz + py * qw + pz * qx,
-        pw * qz + px * qy - py * qx + pz * qw,
-    ], axis=-1)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
 
 
 def quat_exp(v: np.ndarray) -> np.ndarray:
@@ -355,8 +379,16 @@ class AttitudeBiasTracker:
         Initial bias, its σ, initial attitude σ.
     """
 
-    def __init__(self, model: BiasNoiseModel, *, ref_sigma_rad: float, q0_wxyz=(1.0, 0.0, 0.0, 0.0),
-                 bias0_rad_s=0.0, bias0_sigma_rad_s=0.1, att0_sigma_rad=0.01) -> None:
+    def __init__(
+        self,
+        model: BiasNoiseModel,
+        *,
+        ref_sigma_rad: float,
+        q0_wxyz=(1.0, 0.0, 0.0, 0.0),
+        bias0_rad_s=0.0,
+        bias0_sigma_rad_s=0.1,
+        att0_sigma_rad=0.01,
+    ) -> None:
         from filterpy.kalman import KalmanFilter
 
         if not (ref_sigma_rad > 0):
@@ -367,8 +399,14 @@ class AttitudeBiasTracker:
         self.b = np.broadcast_to(np.asarray(bias0_rad_s, float), (3,)).copy()
         kf = KalmanFilter(dim_x=6, dim_z=3)
         kf.x = np.zeros(6)
-        kf.P = np.diag(np.concatenate([np.broadcast_to(att0_sigma_rad, (3,)) ** 2,
-                                       np.broadcast_to(np.asarray(bias0_sigma_rad_s, float), (3,)) ** 2]))
+        kf.P = np.diag(
+            np.concatenate(
+                [
+                    np.broadcast_to(att0_sigma_rad, (3,)) ** 2,
+                    np.broadcast_to(np.asarray(bias0_sigma_rad_s, float), (3,)) ** 2,
+                ]
+            )
+        )
         kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
         kf.R = np.eye(3) * ref_sigma_rad**2
         self.kf = kf
@@ -382,8 +420,11 @@ class AttitudeBiasTracker:
         Q = np.zeros((6, 6))
         # Gauss–Markov bias: tracked as a random walk with the same short-term diffusion
         # K² = 2σ²/τc (keeps the turn-on constant; conservative beyond τc).
-        K2 = (2.0 * self.model.gm_sigma_rad_s**2 / self.model.gm_tau_s if self.model.gauss_markov
-              else self.model.rrw_rad_per_s_sqrt_s**2)
+        K2 = (
+            2.0 * self.model.gm_sigma_rad_s**2 / self.model.gm_tau_s
+            if self.model.gauss_markov
+            else self.model.rrw_rad_per_s_sqrt_s**2
+        )
         # Farrenkopf's discrete noise of the (angle, random-walk bias) pair
         Q[:3, :3] = np.diag(N2 * dt + K2 * dt**3 / 3.0)
         Q[:3, 3:] = Q[3:, :3] = np.diag(-K2 * dt**2 / 2.0)
@@ -408,7 +449,9 @@ class AttitudeBiasTracker:
         self.b = self.b + dx[3:]
         self.kf.x = np.zeros(6)
 
-    def run(self, t_s: np.ndarray, gyro_rad_s: np.ndarray, q_ref_wxyz: np.ndarray | None, *, update_every: int = 1) -> BiasTrack:
+    def run(
+        self, t_s: np.ndarray, gyro_rad_s: np.ndarray, q_ref_wxyz: np.ndarray | None, *, update_every: int = 1
+    ) -> BiasTrack:
         """Filter a recording: gyro (N, 3) rad/s, reference (N, 4) w,x,y,z S→W (NaN rows skipped).
 
         Sample k propagates over [t_k, t_k+1) with gyro k (zero-order hold) and is then

@@ -243,17 +243,20 @@ def gchi2_draws(gamma_data: np.ndarray, gamma_k: np.ndarray, gamma_g: np.ndarray
 def _fit_rw(objective, k2_guess: float) -> float:
     """K² minimising ``objective(K²)`` (bounded scalar search in log K²)."""
     lo, hi = math.log(max(k2_guess, 1e-300)) - 25.0, math.log(max(k2_guess, 1e-300)) + 12.0
-    r = scipy.optimize.minimize_scalar(lambda u: objective(math.exp(u)), bounds=(lo, hi), method="bounded",
-                                       options={"xatol": 1e-3})
+    r = scipy.optimize.minimize_scalar(
+        lambda u: objective(math.exp(u)), bounds=(lo, hi), method="bounded", options={"xatol": 1e-3}
+    )
     return math.exp(float(r.x)) if r.fun <= objective(0.0) else 0.0
 
 
 def _fit_gm(objective, s2_guess: float, tc_lo: float, tc_hi: float) -> tuple[float, float]:
     """(σ², τc) minimising ``objective(σ², τc)``: τc profiled on a log grid and refined, σ² bounded."""
+
     def prof(tc):
         lo, hi = math.log(max(s2_guess, 1e-300)) - 20.0, math.log(max(s2_guess, 1e-300)) + 10.0
-        r = scipy.optimize.minimize_scalar(lambda u: objective(math.exp(u), tc), bounds=(lo, hi), method="bounded",
-                                           options={"xatol": 1e-3})
+        r = scipy.optimize.minimize_scalar(
+            lambda u: objective(math.exp(u), tc), bounds=(lo, hi), method="bounded", options={"xatol": 1e-3}
+        )
         return float(r.fun), math.exp(float(r.x))
 
     grid = np.geomspace(tc_lo, tc_hi, 9) if tc_hi > tc_lo else np.array([tc_lo])
@@ -262,8 +265,9 @@ def _fit_gm(objective, s2_guess: float, tc_lo: float, tc_hi: float) -> tuple[flo
     best = (vals[i][0], vals[i][1], float(grid[i]))
     if grid.size > 1:
         a, b = math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, grid.size - 1)])
-        r = scipy.optimize.minimize_scalar(lambda u: prof(math.exp(u))[0], bounds=(a, b), method="bounded",
-                                           options={"xatol": 0.05})
+        r = scipy.optimize.minimize_scalar(
+            lambda u: prof(math.exp(u))[0], bounds=(a, b), method="bounded", options={"xatol": 0.05}
+        )
         if r.fun < best[0]:
             best = (float(r.fun), prof(math.exp(float(r.x)))[1], math.exp(float(r.x)))
     return best[1], best[2]
@@ -300,9 +304,15 @@ def _threshold(gam_g: np.ndarray, base: np.ndarray, gk: np.ndarray, k2_guess: fl
     return float(np.quantile(gchi2_draws(gam_g, base + k2s * gk, gam_g), ALPHA)), k2s
 
 
-def random_walk_check(omega_rad_s: np.ndarray, rate_hz: float, *, arw_rad_per_sqrt_s: float,
-                      quantization_rad: float = 0.0, tau_max_s: float,
-                      n_blocks: int = N_BLOCKS) -> RandomWalkCheck | None:
+def random_walk_check(
+    omega_rad_s: np.ndarray,
+    rate_hz: float,
+    *,
+    arw_rad_per_sqrt_s: float,
+    quantization_rad: float = 0.0,
+    tau_max_s: float,
+    n_blocks: int = N_BLOCKS,
+) -> RandomWalkCheck | None:
     """Is a random walk K told from a Gauss–Markov bias that turns over inside the record?
 
     Parameters
@@ -344,8 +354,16 @@ def random_walk_check(omega_rad_s: np.ndarray, rate_hz: float, *, arw_rad_per_sq
     return RandomWalkCheck(claimed, D, E, math.sqrt(max(V, 0.0)), math.sqrt(k2), math.sqrt(s2), tc, cap, block_s)
 
 
-def miss_z(*, arw_rad_per_sqrt_s: float, rrw_rad_per_s_sqrt_s: float, quantization_rad: float = 0.0,
-           n_samples: int, rate_hz: float, tau_max_s: float, n_blocks: int = N_BLOCKS) -> float:
+def miss_z(
+    *,
+    arw_rad_per_sqrt_s: float,
+    rrw_rad_per_s_sqrt_s: float,
+    quantization_rad: float = 0.0,
+    n_samples: int,
+    rate_hz: float,
+    tau_max_s: float,
+    n_blocks: int = N_BLOCKS,
+) -> float:
     """The resolvability rule's z for this check with K true (used by :func:`gyrocore.noise.gmwm.expected_z`).
 
     With the true N, Q, K: G* = the GM world (τc ≤ cap) closest to the truth, K* = the random
@@ -358,8 +376,9 @@ def miss_z(*, arw_rad_per_sqrt_s: float, rrw_rad_per_s_sqrt_s: float, quantizati
         return math.inf
     n, block_s, cap, tc_lo, gk, base = got
     gam_t = base + rrw_rad_per_s_sqrt_s**2 * gk
-    s2, tc = _fit_gm(lambda v, t: kl2(gam_t, base + v * acov_gm(n, block_s, t))[0], rrw_rad_per_s_sqrt_s**2 * cap,
-                     tc_lo, cap)
+    s2, tc = _fit_gm(
+        lambda v, t: kl2(gam_t, base + v * acov_gm(n, block_s, t))[0], rrw_rad_per_s_sqrt_s**2 * cap, tc_lo, cap
+    )
     if s2 <= 0.0:
         return math.inf
     gam_g = base + s2 * acov_gm(n, block_s, tc)

@@ -27,8 +27,18 @@ def t_rows(t_s: np.ndarray, t_from_s: float | None, t_to_s: float | None) -> tup
     return a, b
 
 
-def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, method: str = "gmwm",
-                  check_static: bool = True, t_from_s: float | None = None, t_to_s: float | None = None):
+def allan_by_axis(
+    file: str,
+    *,
+    axes,
+    max_tau_s,
+    kalibr: bool,
+    engine: str,
+    method: str = "gmwm",
+    check_static: bool = True,
+    t_from_s: float | None = None,
+    t_to_s: float | None = None,
+):
     """:func:`gyrocore.noise.allan.allan_analysis` of a long recording, one axis at a time.
 
     The file is streamed once into per-column files in a temporary folder
@@ -60,7 +70,7 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
 
             from gyrocore.data.recording import Recording
 
-            part = Recording(t_s=store.t_s[rows[0]:rows[1]], gyro_rad_s=store.block(GYRO_COLS, *rows))
+            part = Recording(t_s=store.t_s[rows[0] : rows[1]], gyro_rad_s=store.block(GYRO_COLS, *rows))
             sp = still_span(part.gyro_rad_s, part.rate_hz, t0_s=float(part.t_s[0]))
             still = sp.still_fraction
             if sp.cut:
@@ -80,8 +90,9 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
             n_win = int(round(2.0 * store.n / max(float(store.t_s[-1] - store.t_s[0]), 1e-300)))
             w_judged = min(200, store.n // max(n_win, 1))
             k = int(round((1.0 - still) * w_judged)) if math.isfinite(still) else 0
-            if math.isfinite(still) and ((1.0 - still) > MAX_MOVING_FRACTION or (
-                    k > 0 and scipy.stats.binom.sf(k - 1, w_judged, 1e-3) < 1e-3)):
+            if math.isfinite(still) and (
+                (1.0 - still) > MAX_MOVING_FRACTION or (k > 0 and scipy.stats.binom.sf(k - 1, w_judged, 1e-3) < 1e-3)
+            ):
                 raise GyroInputError(
                     f"recording is not static: the motion gate rejects {k} of {w_judged} 2-s windows spread over it "
                     f"(a still sensor: {w_judged * 1e-3:.2g} by chance); a long file is analysed whole: choose its still "
@@ -100,8 +111,9 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
                     rec = rec.slice(*rows)
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    r = allan_analysis(rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine,
-                                       method=method)
+                    r = allan_analysis(
+                        rec, axes=[a], max_tau_s=max_tau_s, accel=kind == "accel", engine=engine, method=method
+                    )
                 for w in caught:  # the record-level warnings once, not once per axis
                     if str(w.message).startswith("no long-tau term resolved"):
                         continue  # given once below, from all the axes (as allan_analysis does)
@@ -118,6 +130,14 @@ def allan_by_axis(file: str, *, axes, max_tau_s, kalibr: bool, engine: str, meth
 
     if method != "adev_legacy":
         _warn_short(per_axis, last.duration_s, last.n_samples, last.rate_hz, method)
-    return AllanAnalysis(axes=per_axis, accel=per_accel, rate_hz=last.rate_hz, n_samples=last.n_samples,
-                         duration_s=last.duration_s, dropped_taus_s=last.dropped_taus_s, method=method,
-                         still_fraction=still, analysed_span_s=span_s)
+    return AllanAnalysis(
+        axes=per_axis,
+        accel=per_accel,
+        rate_hz=last.rate_hz,
+        n_samples=last.n_samples,
+        duration_s=last.duration_s,
+        dropped_taus_s=last.dropped_taus_s,
+        method=method,
+        still_fraction=still,
+        analysed_span_s=span_s,
+    )

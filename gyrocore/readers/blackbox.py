@@ -157,8 +157,13 @@ class FilterStage:
         return f"{self.kind} {self.cutoff_hz:g} Hz @ {self.rate_hz:g} Hz"
 
     def to_dict(self) -> dict:
-        d = {"kind": self.kind, "cutoff_hz": self.cutoff_hz, "rate_hz": self.rate_hz, "dynamic": self.dynamic,
-             "header": self.header}
+        d = {
+            "kind": self.kind,
+            "cutoff_hz": self.cutoff_hz,
+            "rate_hz": self.rate_hz,
+            "dynamic": self.dynamic,
+            "header": self.header,
+        }
         if self.kind == "notch":
             d["q"] = self.q
             d["notch_cutoff_hz"] = self.notch_cutoff_hz
@@ -168,9 +173,16 @@ class FilterStage:
 
     @classmethod
     def from_dict(cls, d: dict) -> "FilterStage":
-        return cls(kind=d["kind"], cutoff_hz=float(d["cutoff_hz"]), rate_hz=float(d["rate_hz"]),
-                   header=d.get("header", ""), q=float(d.get("q", float("nan"))), dynamic=bool(d.get("dynamic", False)),
-                   notch_cutoff_hz=float(d.get("notch_cutoff_hz", float("nan"))), max_hz=float(d["max_hz"]) if d.get("max_hz") is not None else float("nan"))
+        return cls(
+            kind=d["kind"],
+            cutoff_hz=float(d["cutoff_hz"]),
+            rate_hz=float(d["rate_hz"]),
+            header=d.get("header", ""),
+            q=float(d.get("q", float("nan"))),
+            dynamic=bool(d.get("dynamic", False)),
+            notch_cutoff_hz=float(d.get("notch_cutoff_hz", float("nan"))),
+            max_hz=float(d["max_hz"]) if d.get("max_hz") is not None else float("nan"),
+        )
 
 
 def notch_q(center_hz: float, cutoff_hz: float) -> float:
@@ -210,7 +222,9 @@ class FirmwareInfo:
         return f"{'INAV' if self.name == 'inav' else 'Betaflight'} {self.version_str}"
 
 
-_REV = re.compile(r"^\s*(Betaflight|INAV|Cleanflight|EmuFlight|Emuflight|Rotorflight|KISS)\s+v?(\d+)\.(\d+)(?:\.(\d+))?", re.I)
+_REV = re.compile(
+    r"^\s*(Betaflight|INAV|Cleanflight|EmuFlight|Emuflight|Rotorflight|KISS)\s+v?(\d+)\.(\d+)(?:\.(\d+))?", re.I
+)
 
 
 #: INAV releases whose blackbox writer was read (major, minor) → what was read. The source read is
@@ -231,7 +245,11 @@ INAV_READ = {(9, 0): "iNavFlight/inav 00b5622b: blackbox/blackbox.c, blackbox/bl
 #: 1.x (gyro in raw counts), 2.0.0, 2.1.0, 2.3.0 (the debug list changed while that version was
 #: current: ambiguous), 2.2.0 and 2.3.1 (debug lists of their own, matching no Betaflight release).
 CLEANFLIGHT_AS_BETAFLIGHT = {
-    (2, 4, 0): (3, 4, 0), (2, 4, 1): (3, 4, 1), (2, 5, 0): (3, 5, 0), (4, 2, 0): (4, 2, 0), (4, 2, 2): (4, 2, 2),
+    (2, 4, 0): (3, 4, 0),
+    (2, 4, 1): (3, 4, 1),
+    (2, 5, 0): (3, 5, 0),
+    (4, 2, 0): (4, 2, 0),
+    (4, 2, 2): (4, 2, 2),
 }
 
 
@@ -250,31 +268,42 @@ def firmware_info(headers: dict, source: str = "") -> FirmwareInfo:
     ftype = str(headers.get("Firmware type", "")).strip()
     m = _REV.match(rev)
     if not m:
-        raise GyroInputError(f"{source}: firmware {rev or ftype or 'unnamed'!r} is not one this reader knows "
-                             f"(Betaflight 3.1–2026.6, INAV 9.0, Cleanflight 2.4/2.5/4.2)")
+        raise GyroInputError(
+            f"{source}: firmware {rev or ftype or 'unnamed'!r} is not one this reader knows "
+            f"(Betaflight 3.1–2026.6, INAV 9.0, Cleanflight 2.4/2.5/4.2)"
+        )
     name = m.group(1).lower()
     ver = tuple(int(x) for x in m.groups()[1:] if x is not None)
     if len(ver) == 2:
         ver = ver + (0,)
     if name == "inav":
         if ver[:2] not in INAV_READ:
-            raise GyroInputError(f"{source}: INAV {_version_str(ver)} logs are not read (its blackbox writer and gyro "
-                                 f"units were not checked in that release's source); INAV 9.0.x and Betaflight 3.1–2026.6 are")
+            raise GyroInputError(
+                f"{source}: INAV {_version_str(ver)} logs are not read (its blackbox writer and gyro "
+                f"units were not checked in that release's source); INAV 9.0.x and Betaflight 3.1–2026.6 are"
+            )
         return FirmwareInfo(name=name, version=ver, revision=rev, data_version=int(dv))
     if name == "cleanflight":
         if ver not in CLEANFLIGHT_AS_BETAFLIGHT:
             known = ", ".join(_version_str(v) for v in CLEANFLIGHT_AS_BETAFLIGHT)
-            raise GyroInputError(f"{source}: Cleanflight {_version_str(ver)} logs are not read (its debug list and gyro "
-                                 f"fields were not matched to a read source); Cleanflight {known} are")
-        return FirmwareInfo(name=name, version=CLEANFLIGHT_AS_BETAFLIGHT[ver], revision=rev, data_version=int(dv),
-                            release=ver)
+            raise GyroInputError(
+                f"{source}: Cleanflight {_version_str(ver)} logs are not read (its debug list and gyro "
+                f"fields were not matched to a read source); Cleanflight {known} are"
+            )
+        return FirmwareInfo(
+            name=name, version=CLEANFLIGHT_AS_BETAFLIGHT[ver], revision=rev, data_version=int(dv), release=ver
+        )
     if name != "betaflight":
-        raise GyroInputError(f"{source}: {m.group(1)} {_version_str(ver)} logs are not read (units and debug modes of that "
-                             f"firmware were not checked in its source); Betaflight 3.1–2026.6, INAV 9.0.x and "
-                             f"Cleanflight 2.4/2.5/4.2 are")
+        raise GyroInputError(
+            f"{source}: {m.group(1)} {_version_str(ver)} logs are not read (units and debug modes of that "
+            f"firmware were not checked in its source); Betaflight 3.1–2026.6, INAV 9.0.x and "
+            f"Cleanflight 2.4/2.5/4.2 are"
+        )
     if ver < (3, 1, 0):
-        raise GyroInputError(f"{source}: Betaflight {_version_str(ver)} is older than 3.1 (gyro logged in raw counts with a "
-                             f"per-build gyro_scale); this reader knows Betaflight 3.1–2026.6")
+        raise GyroInputError(
+            f"{source}: Betaflight {_version_str(ver)} is older than 3.1 (gyro logged in raw counts with a "
+            f"per-build gyro_scale); this reader knows Betaflight 3.1–2026.6"
+        )
     return FirmwareInfo(name=name, version=ver, revision=rev, data_version=int(dv))
 
 
@@ -352,8 +381,16 @@ def gyro_filter_chain(headers: dict, fw: FirmwareInfo) -> list[FilterStage]:
     for i, f0 in enumerate(hz):
         c = cut[i] if i < len(cut) else 0
         if f0 and f0 > 0 and c and 0 < c < f0:
-            notches.append(FilterStage("notch", float(f0), fr, f"gyro_notch_hz[{i}], gyro_notch_cutoff[{i}]",
-                                       q=notch_q(float(f0), float(c)), notch_cutoff_hz=float(c)))
+            notches.append(
+                FilterStage(
+                    "notch",
+                    float(f0),
+                    fr,
+                    f"gyro_notch_hz[{i}], gyro_notch_cutoff[{i}]",
+                    q=notch_q(float(f0), float(c)),
+                    notch_cutoff_hz=float(c),
+                )
+            )
     # LPF1
     if fw.version >= (4, 3, 0):
         f1, t1, k1 = _h(headers, "gyro_lpf1_static_hz", 0), _h(headers, "gyro_lpf1_type", 0), "gyro_lpf1_static_hz"
@@ -367,8 +404,16 @@ def gyro_filter_chain(headers: dict, fw: FirmwareInfo) -> list[FilterStage]:
         f2hz, t2, k2 = _h(headers, "gyro_lowpass2_hz", 0), _h(headers, "gyro_lowpass2_type", 0), "gyro_lowpass2_hz"
     lpfs = []
     if len(dyn1) >= 2 and dyn1[0] and dyn1[0] > 0:
-        lpfs.append(FilterStage("dyn_lpf", float(dyn1[0]), fr, k1.replace("static_hz", "dyn_hz") if "lpf1" in k1 else "gyro_lowpass_dyn_hz",
-                                dynamic=True, max_hz=float(dyn1[1])))
+        lpfs.append(
+            FilterStage(
+                "dyn_lpf",
+                float(dyn1[0]),
+                fr,
+                k1.replace("static_hz", "dyn_hz") if "lpf1" in k1 else "gyro_lowpass_dyn_hz",
+                dynamic=True,
+                max_hz=float(dyn1[1]),
+            )
+        )
     elif f1 and f1 > 0:
         lpfs.append(FilterStage(_lpf_kind(fw, t1), float(f1), fr, k1))
     if f2hz and f2hz > 0:
@@ -377,12 +422,28 @@ def gyro_filter_chain(headers: dict, fw: FirmwareInfo) -> list[FilterStage]:
     dyn = []
     count = _h(headers, "dyn_notch_count")
     if (count is not None and count > 0) or (count is None and _dyn_notch_feature(headers, fw)):
-        dyn.append(FilterStage("dyn_notch", float(_h(headers, "dyn_notch_min_hz", 0) or 0), fr, "dyn_notch_*", dynamic=True,
-                               max_hz=float(_h(headers, "dyn_notch_max_hz", 0) or 0)))
+        dyn.append(
+            FilterStage(
+                "dyn_notch",
+                float(_h(headers, "dyn_notch_min_hz", 0) or 0),
+                fr,
+                "dyn_notch_*",
+                dynamic=True,
+                max_hz=float(_h(headers, "dyn_notch_max_hz", 0) or 0),
+            )
+        )
     harm = _h(headers, "rpm_filter_harmonics", _h(headers, "gyro_rpm_notch_harmonics", 0))
     if harm and _h(headers, "dshot_bidir", 0):
-        dyn.append(FilterStage("rpm_notch", float(_h(headers, "rpm_filter_min_hz", _h(headers, "gyro_rpm_notch_min", 0)) or 0),
-                               fr, "rpm_filter_* / gyro_rpm_notch_*", dynamic=True, max_hz=float("nan")))
+        dyn.append(
+            FilterStage(
+                "rpm_notch",
+                float(_h(headers, "rpm_filter_min_hz", _h(headers, "gyro_rpm_notch_min", 0)) or 0),
+                fr,
+                "rpm_filter_* / gyro_rpm_notch_*",
+                dynamic=True,
+                max_hz=float("nan"),
+            )
+        )
     if fw.version < (3, 2, 0):
         return lpfs + notches
     return dyn + notches + lpfs
@@ -416,8 +477,13 @@ def inav_loop_rates(headers: dict) -> dict:
         num, den = (int(x) for x in pint.split("/"))
     else:
         num, den = 1, int(pint or 1)
-    return {"gyro_hz": float("nan"), "pid_hz": pid_hz, "filter_hz": pid_hz, "lpf2_hz": pid_hz,
-            "log_hz_nominal": pid_hz * num / den}
+    return {
+        "gyro_hz": float("nan"),
+        "pid_hz": pid_hz,
+        "filter_hz": pid_hz,
+        "lpf2_hz": pid_hz,
+        "log_hz_nominal": pid_hz * num / den,
+    }
 
 
 def inav_filter_chain(headers: dict, rates: dict) -> list[FilterStage]:
@@ -432,15 +498,29 @@ def inav_filter_chain(headers: dict, rates: dict) -> list[FilterStage]:
     fr = rates["filter_hz"]
     out: list[FilterStage] = []
     if _h(headers, "rpm_gyro_filter_enabled", 0):
-        out.append(FilterStage("rpm_notch", float(_h(headers, "rpm_gyro_min_hz", 0) or 0), fr,
-                               "rpm_gyro_filter_enabled, rpm_gyro_min_hz", dynamic=True))
+        out.append(
+            FilterStage(
+                "rpm_notch",
+                float(_h(headers, "rpm_gyro_min_hz", 0) or 0),
+                fr,
+                "rpm_gyro_filter_enabled, rpm_gyro_min_hz",
+                dynamic=True,
+            )
+        )
     f_main = _h(headers, "gyro_lpf_hz", 0)
     if isinstance(f_main, (int, float)) and f_main > 0:
         out.append(FilterStage("pt1", float(f_main), fr, "gyro_lpf_hz (INAV main gyro LPF, PT1)"))
     if "dynamicGyroNotchMinHz" in headers:
-        out.append(FilterStage("dyn_notch", float(_h(headers, "dynamicGyroNotchMinHz", 0) or 0), fr,
-                               "dynamicGyroNotchMinHz, dynamicGyroNotchQ (enable flag not logged)", dynamic=True,
-                               max_hz=fr / 2.0))
+        out.append(
+            FilterStage(
+                "dyn_notch",
+                float(_h(headers, "dynamicGyroNotchMinHz", 0) or 0),
+                fr,
+                "dynamicGyroNotchMinHz, dynamicGyroNotchQ (enable flag not logged)",
+                dynamic=True,
+                max_hz=fr / 2.0,
+            )
+        )
     return out
 
 
@@ -476,19 +556,31 @@ def debug_gyro_meaning(fw: FirmwareInfo, mode: str, chain: Sequence[FilterStage]
         if mode == "GYRO":
             return DebugGyro(mode, "raw", (), "sensors/gyro.c 3.1: DEBUG_SET(DEBUG_GYRO) before softLpfFilterApplyFn")
         if mode == "NOTCH":
-            return DebugGyro(mode, "partly_filtered", tuple(lpf_idx),
-                             "sensors/gyro.c 3.1: DEBUG_SET(DEBUG_NOTCH) after the soft LPF, before notchFilter1/2")
+            return DebugGyro(
+                mode,
+                "partly_filtered",
+                tuple(lpf_idx),
+                "sensors/gyro.c 3.1: DEBUG_SET(DEBUG_NOTCH) after the soft LPF, before notchFilter1/2",
+            )
         return None
     if v < (3, 4, 0):
         if mode == "GYRO_NOTCH":
-            return DebugGyro(mode, "raw", (), "sensors/gyro.c 3.2/3.3: DEBUG_GYRO_NOTCH 'records the unfiltered gyro output'")
+            return DebugGyro(
+                mode, "raw", (), "sensors/gyro.c 3.2/3.3: DEBUG_GYRO_NOTCH 'records the unfiltered gyro output'"
+            )
         if mode == "GYRO":
-            return DebugGyro(mode, "partly_filtered", tuple(i for i in idx if i not in lpf_idx),
-                             "sensors/gyro.c 3.2/3.3: DEBUG_GYRO after dynamic and static notches, before the LPF")
+            return DebugGyro(
+                mode,
+                "partly_filtered",
+                tuple(i for i in idx if i not in lpf_idx),
+                "sensors/gyro.c 3.2/3.3: DEBUG_GYRO after dynamic and static notches, before the LPF",
+            )
         return None
     if v < (2025, 0, 0):
         if mode == "GYRO_SCALED":
-            return DebugGyro(mode, "raw", (), "gyro.c / gyro_filter_impl: DEBUG_GYRO_SCALED 'the unfiltered, scaled gyro output'")
+            return DebugGyro(
+                mode, "raw", (), "gyro.c / gyro_filter_impl: DEBUG_GYRO_SCALED 'the unfiltered, scaled gyro output'"
+            )
         return None
     return None
 
@@ -586,7 +678,7 @@ def _read_event(reader, data: bytes, n: int, inav: bool = False) -> str:
         raise TypeError("end of data in an event")
     if etype == 255:
         p = reader.tell()
-        if data[p:p + len(_END_OF_LOG)] == _END_OF_LOG:
+        if data[p : p + len(_END_OF_LOG)] == _END_OF_LOG:
             reader.seek(p + len(_END_OF_LOG))
             return "end"
         m = _INAV_END_OF_LOG.match(data, p, p + 64) if inav else None
@@ -717,8 +809,9 @@ def _iter_frames(parser, stats: dict) -> Iterator[tuple]:
             if not stream_valid:
                 stats["n_unanchored"] += 1
                 continue
-            ok = (it is None or last_it is None or 0 < it - last_it <= i_interval) and \
-                 (t is None or last_t is None or 0 < t - last_t < 1_000_000)
+            ok = (it is None or last_it is None or 0 < it - last_it <= i_interval) and (
+                t is None or last_t is None or 0 < t - last_t < 1_000_000
+            )
             if not ok:
                 stats["n_corrupt"] += 1
                 stream_valid = False
@@ -775,13 +868,17 @@ def read_blackbox_logs(path: str | os.PathLike, *, log_index: int | None = None)
             raise GyroInputError(f"{p}: log {li}: unreadable header ({msg})") from None
         hdr = parser.headers
         if hdr.get("Data version") not in (1, 2):
-            raise GyroInputError(f"{p}: log {li}: blackbox data version {hdr.get('Data version')!r} is not one this reader knows (1, 2)")
+            raise GyroInputError(
+                f"{p}: log {li}: blackbox data version {hdr.get('Data version')!r} is not one this reader knows (1, 2)"
+            )
         fdefs = parser.reader.field_defs
         for ft, defs in fdefs.items():
             for d in defs:
                 if d.encoding in _STUB_ENCODINGS or (d.encoding == 8 and hdr.get("Data version") < 2):
                     enc = _STUB_ENCODINGS.get(d.encoding, "tag8_4s16 (data version 1)")
-                    raise GyroInputError(f"{p}: log {li}: field {d.name} uses encoding {enc}, which orangebox 0.4.0 does not decode")
+                    raise GyroInputError(
+                        f"{p}: log {li}: field {d.name} uses encoding {enc}, which orangebox 0.4.0 does not decode"
+                    )
                 if d.encoding == 6:
                     d.decoderfun = _tag8_8svb_fixed
         from orangebox.types import FrameType
@@ -798,9 +895,19 @@ def read_blackbox_logs(path: str | os.PathLike, *, log_index: int | None = None)
             big = arr[:, j] >= 2.0**31
             wrapped = int(big.sum())
             arr[big, j] -= 2.0**32
-        logs.append(BlackboxLog(index=li, headers=hdr, fields=names, data=arr, n_corrupt=stats["n_corrupt"],
-                                n_unanchored=stats["n_unanchored"], truncated=bool(stats["truncated"]),
-                                ended=bool(stats["ended"]), n_wrapped_throttle=wrapped))
+        logs.append(
+            BlackboxLog(
+                index=li,
+                headers=hdr,
+                fields=names,
+                data=arr,
+                n_corrupt=stats["n_corrupt"],
+                n_unanchored=stats["n_unanchored"],
+                truncated=bool(stats["truncated"]),
+                ended=bool(stats["ended"]),
+                n_wrapped_throttle=wrapped,
+            )
+        )
     return logs
 
 
@@ -849,8 +956,9 @@ class _LogConversion:
     notes: list
 
 
-def _prefilter_gyro(log: BlackboxLog, rows, fw, chain, dmode_idx, dname, gyro_div: float, extra: dict,
-                    lacks: list) -> dict:
+def _prefilter_gyro(
+    log: BlackboxLog, rows, fw, chain, dmode_idx, dname, gyro_div: float, extra: dict, lacks: list
+) -> dict:
     """The less-filtered gyro (INAV gyroRaw, Betaflight 4.5+ gyroUnfilt, or a debug mode that
     carries it) into ``extra`` as ``gyro_prefilter_*_rad_s``; returns what it is (metadata
     ``gyro_prefilter``), ``{}`` when the log has none (then a ``lacks`` entry says why)."""
@@ -865,36 +973,57 @@ def _prefilter_gyro(log: BlackboxLog, rows, fw, chain, dmode_idx, dname, gyro_di
         # include flag GYRO_RAW is set (FLIGHT_LOG_FIELD_CONDITION_GYRO_RAW).
         if raw_inav is not None:
             extra.update({f"gyro_prefilter_{ax}_rad_s": raw_inav[rows, i] * DEG for i, ax in enumerate("xyz")})
-            pre_meta = {"source": f"gyroRaw[0..2] (INAV {fw.version_str}: gyro before every software filter, "
-                                  "sensors/gyro.c gyroUpdate); rounded to 1 deg/s by lrintf",
-                        "signal": "raw", "filters_before": []}
+            pre_meta = {
+                "source": f"gyroRaw[0..2] (INAV {fw.version_str}: gyro before every software filter, "
+                "sensors/gyro.c gyroUpdate); rounded to 1 deg/s by lrintf",
+                "signal": "raw",
+                "filters_before": [],
+            }
         else:
             lacks.append("no unfiltered gyro: INAV logs gyroRaw only with the blackbox GYRO_RAW field enabled")
     elif unf is not None:
         extra.update({f"gyro_prefilter_{ax}_rad_s": unf[rows, i] / gyro_div * DEG for i, ax in enumerate("xyz")})
-        pre_meta = {"source": "gyroUnfilt[0..2] (4.5+: gyro before every software filter)", "signal": "raw", "filters_before": []}
+        pre_meta = {
+            "source": "gyroUnfilt[0..2] (4.5+: gyro before every software filter)",
+            "signal": "raw",
+            "filters_before": [],
+        }
     else:
         dbg = _triplet(log, "debug")
         meaning = debug_gyro_meaning(fw, dname, chain) if dname else None
         if dbg is not None and meaning is not None:
             extra.update({f"gyro_prefilter_{ax}_rad_s": dbg[rows, i] * DEG for i, ax in enumerate("xyz")})
-            pre_meta = {"source": f"debug[0..2], debug_mode {dmode_idx} = DEBUG_{meaning.mode} in {fw.label} ({meaning.source}); "
-                                  f"rounded to 1 deg/s by lrintf",
-                        "signal": meaning.kind, "filters_before": [chain[i].to_dict() for i in meaning.before]}
+            pre_meta = {
+                "source": f"debug[0..2], debug_mode {dmode_idx} = DEBUG_{meaning.mode} in {fw.label} ({meaning.source}); "
+                f"rounded to 1 deg/s by lrintf",
+                "signal": meaning.kind,
+                "filters_before": [chain[i].to_dict() for i in meaning.before],
+            }
         else:
-            what = f"DEBUG_{dname}" if dname else ("an index not mapped for this version" if isinstance(dmode_idx, int) else "not in the header")
-            lacks.append(f"no unfiltered gyro: debug_mode {dmode_idx} is {what} (log with debug_mode GYRO_SCALED, or 4.5+ gyroUnfilt)")
+            what = (
+                f"DEBUG_{dname}"
+                if dname
+                else ("an index not mapped for this version" if isinstance(dmode_idx, int) else "not in the header")
+            )
+            lacks.append(
+                f"no unfiltered gyro: debug_mode {dmode_idx} is {what} (log with debug_mode GYRO_SCALED, or 4.5+ gyroUnfilt)"
+            )
     return pre_meta
 
 
-def _motor_columns(log: BlackboxLog, rows, hdr, fw, dname, dmode_idx, extra: dict, meta: dict,
-                   lacks: list) -> tuple[float, float]:
+def _motor_columns(
+    log: BlackboxLog, rows, hdr, fw, dname, dmode_idx, extra: dict, meta: dict, lacks: list
+) -> tuple[float, float]:
     """Motor outputs, throttle, eRPM / rotor frequency into ``extra`` (what is missing into
     ``lacks``); returns the header's motorOutput range (lo, hi)."""
     inav = fw.name == "inav"
     mot = _indexed(log, r"motor\[(\d+)\]")
     lo_hi = hdr.get("motorOutput", [0, 0])
-    lo, hi = (float(lo_hi[0]), float(lo_hi[1])) if isinstance(lo_hi, list) and len(lo_hi) == 2 else (float("nan"), float("nan"))
+    lo, hi = (
+        (float(lo_hi[0]), float(lo_hi[1]))
+        if isinstance(lo_hi, list) and len(lo_hi) == 2
+        else (float("nan"), float("nan"))
+    )
     if mot:
         for i, col in mot:
             extra[f"motor_{i}"] = col[rows]
@@ -926,18 +1055,36 @@ def _motor_columns(log: BlackboxLog, rows, hdr, fw, dname, dmode_idx, extra: dic
             col = log.column(f"debug[{i}]")
             if col is not None:
                 extra[f"rotor_hz_{i}"] = col[rows].astype(float)
-        meta["rotor_hz_source"] = (f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in {fw.label}: "
-                                   "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)")
+        meta["rotor_hz_source"] = (
+            f"debug[0..3], debug_mode {dmode_idx} = DEBUG_RPM_FILTER in {fw.label}: "
+            "rotor frequency per motor, Hz (PT1-smoothed eRPM telemetry, rounded)"
+        )
     elif inav:
         lacks.append("no eRPM per motor (INAV logs one escRPM value in slow frames only): line laws from throttle only")
     else:
-        lacks.append("no eRPM (fields need bidirectional DShot and Betaflight 4.5+, or debug_mode RPM_FILTER in 4.0+): "
-                     "line laws from throttle only")
+        lacks.append(
+            "no eRPM (fields need bidirectional DShot and Betaflight 4.5+, or debug_mode RPM_FILTER in 4.0+): "
+            "line laws from throttle only"
+        )
     return lo, hi
 
 
-def _log_meta(hdr, fw, rates, chain, *, log_hz: float, loop_hz_meas: float, dmode_idx, dname, hires: bool,
-              full: float, sat_n: int, lo: float, hi: float) -> dict:
+def _log_meta(
+    hdr,
+    fw,
+    rates,
+    chain,
+    *,
+    log_hz: float,
+    loop_hz_meas: float,
+    dmode_idx,
+    dname,
+    hires: bool,
+    full: float,
+    sat_n: int,
+    lo: float,
+    hi: float,
+) -> dict:
     """The recording metadata of one converted log (firmware, rates, filter chain, units check)."""
     inav = fw.name == "inav"
     return {
@@ -954,17 +1101,38 @@ def _log_meta(hdr, fw, rates, chain, *, log_hz: float, loop_hz_meas: float, dmod
         "loop_rate_measured_hz": f"{loop_hz_meas:.6g}",
         "gyro_filters": json.dumps([s.to_dict() for s in chain]),
         "gyro_signal": "filtered (gyroADC: after every software gyro filter listed in gyro_filters)",
-        "debug_mode": (f"{dmode_idx} (INAV debug list not mapped: gyroRaw carries the unfiltered gyro)" if inav else
-                       f"{dmode_idx} = {('DEBUG_' + dname) if dname else 'unmapped'}"),
-        "gyro_units_check": (f"gyroADC logged in deg/s (gyro_scale 1.0{', high resolution x10' if hires else ''}"
-                             f"{'; INAV blackbox.c: lrintf(gyro.gyroADCf), deg/s' if inav else ''}); max |gyro| "
-                             f"{full:.0f} deg/s, {sat_n} samples at the +-2000 deg/s full scale"),
+        "debug_mode": (
+            f"{dmode_idx} (INAV debug list not mapped: gyroRaw carries the unfiltered gyro)"
+            if inav
+            else f"{dmode_idx} = {('DEBUG_' + dname) if dname else 'unmapped'}"
+        ),
+        "gyro_units_check": (
+            f"gyroADC logged in deg/s (gyro_scale 1.0{', high resolution x10' if hires else ''}"
+            f"{'; INAV blackbox.c: lrintf(gyro.gyroADCf), deg/s' if inav else ''}); max |gyro| "
+            f"{full:.0f} deg/s, {sat_n} samples at the +-2000 deg/s full scale"
+        ),
         "firmware_name": fw.name,
-        "firmware_source_read": (INAV_READ[fw.version[:2]] if inav else
-                                 ("cleanflight/cleanflight commits of that version (version.h), matched to " if fw.name == "cleanflight" else "")
-                                 + "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"),
+        "firmware_source_read": (
+            INAV_READ[fw.version[:2]]
+            if inav
+            else (
+                "cleanflight/cleanflight commits of that version (version.h), matched to "
+                if fw.name == "cleanflight"
+                else ""
+            )
+            + "betaflight/betaflight tags v3.1.0-2026.6.1: build/debug.h, blackbox/blackbox.c, sensors/gyro*.c"
+        ),
         "motor_output_range": f"{lo:g},{hi:g}",
-        "header_filters": json.dumps({k: v for k, v in hdr.items() if re.match(r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high|dynamicGyroNotch)", k)}),
+        "header_filters": json.dumps(
+            {
+                k: v
+                for k, v in hdr.items()
+                if re.match(
+                    r"(gyro_|dyn_|rpm_|dterm_|dshot_bidir|motor_poles|looptime|pid_process_denom|P interval|I interval|debug_mode|blackbox_high|dynamicGyroNotch)",
+                    k,
+                )
+            }
+        ),
     }
 
 
@@ -974,8 +1142,10 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     fw = firmware_info(hdr, f"{src} log {log.index}")
     inav = fw.name == "inav"
     if not inav and fw.version > NEWEST_KNOWN:
-        raise GyroInputError(f"{src}: Betaflight {fw.version_str} is newer than the newest release read here (2026.6); "
-                             f"its field meanings were not checked")
+        raise GyroInputError(
+            f"{src}: Betaflight {fw.version_str} is newer than the newest release read here (2026.6); "
+            f"its field meanings were not checked"
+        )
     gscale = _float_header(hdr.get("gyro_scale", "0x3f800000"))
     if not math.isclose(gscale, 1.0, rel_tol=1e-6):
         raise GyroInputError(f"{src}: gyro_scale {gscale:g} ≠ 1.0: not the deg/s gyroADC of Betaflight 3.1+")
@@ -1009,7 +1179,9 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     # unit check on the data: full scale and still part
     full = float(np.max(np.abs(gyro_deg_s)))
     if full > 4100:
-        raise GyroInputError(f"{src}: |gyroADC| reaches {full:.0f} after scaling: not deg/s (largest MEMS full scale ±4000 °/s)")
+        raise GyroInputError(
+            f"{src}: |gyroADC| reaches {full:.0f} after scaling: not deg/s (largest MEMS full scale ±4000 °/s)"
+        )
     sat_n = int(np.sum(np.abs(gyro_deg_s) >= 1990)) if full < 2100 else int(np.sum(np.abs(gyro_deg_s) >= 0.995 * full))
     extra: dict[str, np.ndarray] = {}
     meta: dict[str, str] = {}
@@ -1027,23 +1199,49 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     pre_meta = _prefilter_gyro(log, rows, fw, chain, dmode_idx, dname, gyro_div, extra, lacks)
     lo, hi = _motor_columns(log, rows, hdr, fw, dname, dmode_idx, extra, meta, lacks)
     nyq = log_hz / 2.0
-    runs = f"gyro runs at {rates['gyro_hz']:.0f} Hz" if math.isfinite(rates["gyro_hz"]) else \
-        f"PID loop at {rates['pid_hz']:.0f} Hz, gyro sampling rate not in the header"
-    lacks.append(f"logged at {log_hz:.0f} Hz: content above its Nyquist {nyq:.0f} Hz ({runs}, "
-                 f"decimated without anti-alias filter) folds into the band")
+    runs = (
+        f"gyro runs at {rates['gyro_hz']:.0f} Hz"
+        if math.isfinite(rates["gyro_hz"])
+        else f"PID loop at {rates['pid_hz']:.0f} Hz, gyro sampling rate not in the header"
+    )
+    lacks.append(
+        f"logged at {log_hz:.0f} Hz: content above its Nyquist {nyq:.0f} Hz ({runs}, "
+        f"decimated without anti-alias filter) folds into the band"
+    )
     if inav:
-        lacks.append("INAV header lacks filters that gyroADC has been through (anti-alias PT1 gyro_anti_aliasing_lpf_hz at "
-                     "the gyro rate, LULU, dynamic and secondary dynamic notches, Kalman, the main LPF mode/adaptive "
-                     "cutoff): gyro_filters lists the logged ones only")
+        lacks.append(
+            "INAV header lacks filters that gyroADC has been through (anti-alias PT1 gyro_anti_aliasing_lpf_hz at "
+            "the gyro rate, LULU, dynamic and secondary dynamic notches, Kalman, the main LPF mode/adaptive "
+            "cutoff): gyro_filters lists the logged ones only"
+        )
     if log.truncated:
-        notes.append("log ends inside a frame or without an end-of-log marker (flash full or power cut): complete frames kept")
-    meta.update(_log_meta(hdr, fw, rates, chain, log_hz=log_hz, loop_hz_meas=loop_hz_meas, dmode_idx=dmode_idx,
-                          dname=dname, hires=hires, full=full, sat_n=sat_n, lo=lo, hi=hi))
+        notes.append(
+            "log ends inside a frame or without an end-of-log marker (flash full or power cut): complete frames kept"
+        )
+    meta.update(
+        _log_meta(
+            hdr,
+            fw,
+            rates,
+            chain,
+            log_hz=log_hz,
+            loop_hz_meas=loop_hz_meas,
+            dmode_idx=dmode_idx,
+            dname=dname,
+            hires=hires,
+            full=full,
+            sat_n=sat_n,
+            lo=lo,
+            hi=hi,
+        )
+    )
     if pre_meta:
         meta["gyro_prefilter"] = json.dumps(pre_meta)
     if sat_n:
         notes.append(f"{sat_n} gyro samples at full scale (saturated during flips)")
-    return _LogConversion(t_us=t_us, gyro=gyro_deg_s * DEG, accel=accel, extra=extra, meta=meta, lacks=lacks, notes=notes)
+    return _LogConversion(
+        t_us=t_us, gyro=gyro_deg_s * DEG, accel=accel, extra=extra, meta=meta, lacks=lacks, notes=notes
+    )
 
 
 def read_blackbox(path: str | os.PathLike, *, log_index: int | None = None):
@@ -1078,9 +1276,19 @@ def read_blackbox(path: str | os.PathLike, *, log_index: int | None = None):
     t_next = 0.0
     for lg, c in convs:
         t = (c.t_us - c.t_us[0]) * 1e-6 + t_next
-        spans.append({"log": lg.index, "t_start_s": float(t[0]), "t_end_s": float(t[-1]), "frames": int(t.size),
-                      "corrupt_skipped": lg.n_corrupt, "unanchored_p_frames": lg.n_unanchored, "truncated": lg.truncated,
-                      "firmware": c.meta["firmware"], "time_us_first": int(c.t_us[0])})
+        spans.append(
+            {
+                "log": lg.index,
+                "t_start_s": float(t[0]),
+                "t_end_s": float(t[-1]),
+                "frames": int(t.size),
+                "corrupt_skipped": lg.n_corrupt,
+                "unanchored_p_frames": lg.n_unanchored,
+                "truncated": lg.truncated,
+                "firmware": c.meta["firmware"],
+                "time_us_first": int(c.t_us[0]),
+            }
+        )
         t_parts.append(t)
         g_parts.append(c.gyro)
         a_parts.append(c.accel)
@@ -1104,10 +1312,15 @@ def read_blackbox(path: str | os.PathLike, *, log_index: int | None = None):
         extras["log_index"] = np.concatenate(idx_parts)
     accel = None if any(a is None for a in a_parts) else np.concatenate(a_parts)
     first = convs[0][1]
-    meta = {"source": str(p), "format": "blackbox", "sensor": f"{first.meta['firmware']} gyro ({first.meta['craft_name'] or 'craft unnamed'})",
-            "rate_hz": first.meta["log_rate_measured_hz"], "units": "SI (rad/s, m/s^2, s); motor/throttle columns as logged",
-            "frame": "Betaflight body axes as logged (roll, pitch, yaw rates)",
-            "parser": f"orangebox {ORANGEBOX_VERSION} decoders + gyrocore frame validation"}
+    meta = {
+        "source": str(p),
+        "format": "blackbox",
+        "sensor": f"{first.meta['firmware']} gyro ({first.meta['craft_name'] or 'craft unnamed'})",
+        "rate_hz": first.meta["log_rate_measured_hz"],
+        "units": "SI (rad/s, m/s^2, s); motor/throttle columns as logged",
+        "frame": "Betaflight body axes as logged (roll, pitch, yaw rates)",
+        "parser": f"orangebox {ORANGEBOX_VERSION} decoders + gyrocore frame validation",
+    }
     meta.update(first.meta)
     if len(convs) > 1:
         meta["segments"] = "several logs: column log_index, spans in 'logs'"
@@ -1122,4 +1335,6 @@ def read_blackbox(path: str | os.PathLike, *, log_index: int | None = None):
     meta["lacks"] = " | ".join(lacks) if lacks else "nothing for vibration work"
     notes = list(dict.fromkeys(sum((c.notes for _, c in convs), [])))
     meta["repairs"] = "; ".join(notes) if notes else "none"
-    return Recording(t_s=np.concatenate(t_parts), gyro_rad_s=np.concatenate(g_parts), accel_m_s2=accel, meta=meta, extra=extras)
+    return Recording(
+        t_s=np.concatenate(t_parts), gyro_rad_s=np.concatenate(g_parts), accel_m_s2=accel, meta=meta, extra=extras
+    )

@@ -20,7 +20,18 @@ from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import AXES, Recording, atomic_write_text
 
 
-__all__ = ["Segment", "Converted", "write_segments_csv", "read_segments_csv", "TimingReport", "timing_report", "retime_uniform", "motion_span", "frame_consistency"]
+__all__ = [
+    "Segment",
+    "Converted",
+    "write_segments_csv",
+    "read_segments_csv",
+    "TimingReport",
+    "timing_report",
+    "retime_uniform",
+    "motion_span",
+    "frame_consistency",
+]
+
 
 # ============================================================================ segments
 @dataclass(frozen=True)
@@ -223,7 +234,13 @@ class _Repairs:
 
 
 def _meta(source: str, fmt: str, sensor: str, rate_hz: float, repairs: _Repairs, **more: str) -> dict[str, str]:
-    m = {"source": source, "format": fmt, "sensor": sensor, "rate_hz": f"{rate_hz:.6g}", "units": "SI (rad/s, m/s^2, degC, s)"}
+    m = {
+        "source": source,
+        "format": fmt,
+        "sensor": sensor,
+        "rate_hz": f"{rate_hz:.6g}",
+        "units": "SI (rad/s, m/s^2, degC, s)",
+    }
     m.update({k: str(v) for k, v in more.items()})
     m["repairs"] = repairs.meta()
     return m
@@ -282,5 +299,3 @@ def _loadtxt(path: Path, *, skiprows: int, ncols: int, delimiter: str | None = "
     if data.shape[1] != ncols:
         raise GyroInputError(f"{path}: rows have {data.shape[1]} values, expected {ncols}")
     return data
-
-

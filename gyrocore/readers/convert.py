@@ -29,17 +29,42 @@ from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording, is_parquet, read_csv, read_parquet, read_recording
 
 from .common import Converted, Segment, _positive
-from .datasets import (_sunsided_dir, imucal_segments, read_broad, read_fusion, read_gnss_ins_sim, read_imucal,
-                       read_imucal_annotated, read_imutk, read_sunsided, read_tomisuarez2, sunsided_segments,
-                       tomisuarez2_segments)
+from .datasets import (
+    _sunsided_dir,
+    imucal_segments,
+    read_broad,
+    read_fusion,
+    read_gnss_ins_sim,
+    read_imucal,
+    read_imucal_annotated,
+    read_imutk,
+    read_sunsided,
+    read_tomisuarez2,
+    sunsided_segments,
+    tomisuarez2_segments,
+)
 from .ulog import read_ulog
 
 __all__ = ["FORMATS", "detect_format", "load_with_segments", "load_any", "read_any", "concat_converted"]
 
 
-
 # ============================================================================ dispatcher
-FORMATS = ("auto", "blackbox", "dataflash", "ulog", "sunsided", "tomisuarez2", "imucal", "imucal_annotated", "broad", "imutk", "gnss_ins_sim", "fusion", "csv", "parquet")
+FORMATS = (
+    "auto",
+    "blackbox",
+    "dataflash",
+    "ulog",
+    "sunsided",
+    "tomisuarez2",
+    "imucal",
+    "imucal_annotated",
+    "broad",
+    "imutk",
+    "gnss_ins_sim",
+    "fusion",
+    "csv",
+    "parquet",
+)
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -132,8 +157,10 @@ def concat_converted(parts: Sequence[Converted], *, gap_s: float | None = None) 
         ref_rate_rad_s=cat(lambda r: r.ref_rate_rad_s),
         ref_quat_wxyz=cat(lambda r: r.ref_quat_wxyz),
         meta=meta,
-        extra={k: np.concatenate([r.extra[k] + (sh if k.startswith("t_") and k.endswith("_s") else 0.0) for r, sh in recs])
-               for k in sorted(extra_keys)},
+        extra={
+            k: np.concatenate([r.extra[k] + (sh if k.startswith("t_") and k.endswith("_s") else 0.0) for r, sh in recs])
+            for k in sorted(extra_keys)
+        },
     )
     fmts = {c.format for c in parts}
     return Converted(recording=rec, segments=tuple(segs), format=fmts.pop() if len(fmts) == 1 else "mixed")
@@ -172,7 +199,10 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
         "parquet": read_parquet,
     }
     reader = readers[fmt]
-    if fmt not in ("csv", "parquet"):  # read_csv/read_parquet check memory themselves (and the CLI streams large CSV files)
+    if fmt not in (
+        "csv",
+        "parquet",
+    ):  # read_csv/read_parquet check memory themselves (and the CLI streams large CSV files)
         _check_convert_memory(Path(path), fmt)
     import inspect
 
@@ -214,7 +244,13 @@ _BLACKBOX_BYTES_PER_BYTE = 50.0
 #: Memory needed per byte of source file while converting (parsed float64 arrays, copies,
 #: the Recording and the text written out): text ≈ 4 (a value takes ≥ 5 characters and ends
 #: up in ≈ 3 float64 copies), binary (HDF5 / ULog) ≈ 6 (pyulog/h5py hold every topic/dataset).
-_BYTES_PER_SOURCE_BYTE = {"ulog": 6.0, "broad": 6.0, "sunsided": 6.0, "blackbox": _BLACKBOX_BYTES_PER_BYTE, "dataflash": 6.0}
+_BYTES_PER_SOURCE_BYTE = {
+    "ulog": 6.0,
+    "broad": 6.0,
+    "sunsided": 6.0,
+    "blackbox": _BLACKBOX_BYTES_PER_BYTE,
+    "dataflash": 6.0,
+}
 
 
 def _check_convert_memory(path: Path, fmt: str) -> None:

@@ -101,7 +101,9 @@ def _captured_output():
 def _bytes_after_last_message(log, size: int) -> int:
     """Bytes after the end of the last complete message (pymavlink's index of message offsets)."""
     try:
-        ends = [o + log.formats[t].len for t, offs in enumerate(log.offsets) if offs and t in log.formats for o in offs[-2:]]
+        ends = [
+            o + log.formats[t].len for t, offs in enumerate(log.offsets) if offs and t in log.formats for o in offs[-2:]
+        ]
     except Exception:  # noqa: BLE001 - index layout differs: no truncation check
         return 0
     ok = [e for e in ends if e <= size]
@@ -142,8 +144,9 @@ def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0, stream: st
     # pymavlink reports skipped bad bytes with print() on stdout/stderr: captured, counted, and
     # said in one warning (stdout is the CLI's JSON channel)
     with _captured_output() as chatter:
-        log, imu, rcou, ctun, params, msgs, isb, imu_units, stopped = _scan(p, DFReader, imu_instance, size,
-                                                                            want_isb=(stream == "batch"))
+        log, imu, rcou, ctun, params, msgs, isb, imu_units, stopped = _scan(
+            p, DFReader, imu_instance, size, want_isb=(stream == "batch")
+        )
     for msg in stopped:
         warn_repair(msg)
     rest = _bytes_after_last_message(log, size)
@@ -155,8 +158,10 @@ def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0, stream: st
     skipped = [int(m.group(1)) for m in re.finditer(r"Skipped (\d+) bad bytes", text)]
     bad_hdr = len(re.findall(r"bad header|unknown msg type", text))
     if skipped or bad_hdr:
-        warn_repair(f"{p.name}: corrupt data skipped: {len(skipped)} stretch(es), {sum(skipped)} bytes"
-                    + (f" ({bad_hdr} bad message headers while indexing)" if bad_hdr else ""))
+        warn_repair(
+            f"{p.name}: corrupt data skipped: {len(skipped)} stretch(es), {sum(skipped)} bytes"
+            + (f" ({bad_hdr} bad message headers while indexing)" if bad_hdr else "")
+        )
     rec = _to_recording(p, log, imu, rcou, ctun, params, msgs, len(isb["hdr"]), imu_units, rest, imu_instance)
     if stream == "batch":
         return _batch_recording(p, rec, isb, rcou, ctun, params, imu_instance)
@@ -169,7 +174,9 @@ def _scan(p, DFReader, imu_instance, size, want_isb=False):
     try:
         log = DFReader.DFReader_binary(str(p), zero_time_base=False)
     except Exception as exc:  # pymavlink raises plain Exceptions on a bad file
-        raise GyroInputError(f"{p}: not a readable DataFlash log ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise GyroInputError(
+            f"{p}: not a readable DataFlash log ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
     imu, rcou, ctun, params, msgs = [], [], [], {}, []
     isb = {"hdr": {}, "data": {}}
     imu_units = None
@@ -178,8 +185,10 @@ def _scan(p, DFReader, imu_instance, size, want_isb=False):
         try:
             m = log.recv_match(type=["IMU", "RCOU", "CTUN", "PARM", "MSG", "ISBH"] + (["ISBD"] if want_isb else []))
         except Exception as exc:  # a damaged message pymavlink cannot skip
-            stopped.append(f"{p.name}: DataFlash decoding stopped at byte {log.offset} of {size} "
-                           f"({type(exc).__name__}); messages before it kept")
+            stopped.append(
+                f"{p.name}: DataFlash decoding stopped at byte {log.offset} of {size} "
+                f"({type(exc).__name__}); messages before it kept"
+            )
             break
         if m is None:
             break
@@ -199,10 +208,18 @@ def _scan(p, DFReader, imu_instance, size, want_isb=False):
         elif ty == "MSG":
             msgs.append(str(m.Message))
         elif ty == "ISBH":
-            isb["hdr"][int(m.N)] = (int(m.type), int(m.instance), float(m.mul), int(m.smp_cnt), float(m.SampleUS), float(m.smp_rate))
+            isb["hdr"][int(m.N)] = (
+                int(m.type),
+                int(m.instance),
+                float(m.mul),
+                int(m.smp_cnt),
+                float(m.SampleUS),
+                float(m.smp_rate),
+            )
         elif ty == "ISBD":
-            isb["data"].setdefault(int(m.N), []).append((int(m.seqno), np.asarray(m.x, float), np.asarray(m.y, float),
-                                                         np.asarray(m.z, float)))
+            isb["data"].setdefault(int(m.N), []).append(
+                (int(m.seqno), np.asarray(m.x, float), np.asarray(m.y, float), np.asarray(m.z, float))
+            )
     return log, imu, rcou, ctun, params, msgs, isb, imu_units, stopped
 
 
@@ -217,7 +234,7 @@ def _motor_extras(t_us, rcou, ctun, params, lacks, notes) -> dict:
             n_mot = 4
             notes.append(f"FRAME_CLASS {frame_class} not in the motor table: motors taken as RCOU C1-C4")
         lo, hi = params.get("MOT_PWM_MIN", float("nan")), params.get("MOT_PWM_MAX", float("nan"))
-        held = _hold(r[:, 0], r[:, 1:1 + n_mot], t_us)
+        held = _hold(r[:, 0], r[:, 1 : 1 + n_mot], t_us)
         cmds = []
         for i in range(n_mot):
             extra[f"motor_{i}"] = held[:, i]
@@ -250,8 +267,10 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
     if not imu:
         raise GyroInputError(f"{p}: no IMU messages of instance {imu_instance}")
     if rest > 0:
-        warn_repair(f"{p.name}: the log ends with {rest} bytes that do not form a complete message (truncated): "
-                    f"the complete messages are kept")
+        warn_repair(
+            f"{p.name}: the log ends with {rest} bytes that do not form a complete message (truncated): "
+            f"the complete messages are kept"
+        )
     if not imu_units:
         raise GyroInputError(f"{p}: the log has no FMTU units for IMU: gyro/accel units cannot be checked")
     bad = {k: imu_units.get(k) for k in ("GyrX", "GyrY", "GyrZ") if imu_units.get(k) != "rad/s"}
@@ -271,46 +290,84 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
     lacks: list[str] = []
     notes: list[str] = []
     fw = next((s for s in msgs if _FW.match(s)), "")
-    board = next((s for s in msgs if re.match(r"^(CubeOrange|Cube|Pixhawk|Matek|SpeedyBee|Kakute|MatekH7|\w+ [0-9A-F]{8} )", s)), "")
+    board = next(
+        (s for s in msgs if re.match(r"^(CubeOrange|Cube|Pixhawk|Matek|SpeedyBee|Kakute|MatekH7|\w+ [0-9A-F]{8} )", s)),
+        "",
+    )
     extra = _motor_extras(t_us, rcou, ctun, params, lacks, notes)
     ghz = float(np.nanmedian(a[:, 7])) if np.isfinite(a[:, 7]).any() else float("nan")
     chain = []
     f_lpf = params.get("INS_GYRO_FILTER", 0.0)
     if f_lpf > 0 and math.isfinite(ghz):
-        chain.append({"kind": "butter2", "cutoff_hz": f_lpf, "rate_hz": ghz, "dynamic": False,
-                      "header": "INS_GYRO_FILTER (LowPassFilter2p: 2nd-order Butterworth at the gyro rate IMU.GHz)"})
+        chain.append(
+            {
+                "kind": "butter2",
+                "cutoff_hz": f_lpf,
+                "rate_hz": ghz,
+                "dynamic": False,
+                "header": "INS_GYRO_FILTER (LowPassFilter2p: 2nd-order Butterworth at the gyro rate IMU.GHz)",
+            }
+        )
     for pre in ("INS_HNTCH", "INS_HNTC2"):
         if params.get(f"{pre}_ENABLE", 0) >= 1:
-            chain.append({"kind": "dyn_notch", "cutoff_hz": params.get(f"{pre}_FREQ", 0.0), "rate_hz": ghz if math.isfinite(ghz) else log_hz,
-                          "dynamic": True, "max_hz": None,
-                          "header": f"{pre}_* (harmonic notch, mode {params.get(f'{pre}_MODE', float('nan')):g}, "
-                                    f"{params.get(f'{pre}_HMNCS', float('nan')):g} harmonics bitmask, BW {params.get(f'{pre}_BW', float('nan')):g} Hz)"})
-    lacks.append(f"gyro logged at {log_hz:.0f} Hz (IMU messages): Nyquist {log_hz / 2:.1f} Hz, far below the motor lines "
-                 f"(gyro sampled at {ghz:.0f} Hz)")
-    lacks.append("no unfiltered gyro stream: IMU holds the gyro after INS_GYRO_FILTER and the notches"
-                 + (f"; the batch sampler's {isb} ISBH windows are in the log: convert --stream batch" if isb else
-                    " (INS_LOG_BAT_* batch sampler not logged)"))
+            chain.append(
+                {
+                    "kind": "dyn_notch",
+                    "cutoff_hz": params.get(f"{pre}_FREQ", 0.0),
+                    "rate_hz": ghz if math.isfinite(ghz) else log_hz,
+                    "dynamic": True,
+                    "max_hz": None,
+                    "header": f"{pre}_* (harmonic notch, mode {params.get(f'{pre}_MODE', float('nan')):g}, "
+                    f"{params.get(f'{pre}_HMNCS', float('nan')):g} harmonics bitmask, BW {params.get(f'{pre}_BW', float('nan')):g} Hz)",
+                }
+            )
+    lacks.append(
+        f"gyro logged at {log_hz:.0f} Hz (IMU messages): Nyquist {log_hz / 2:.1f} Hz, far below the motor lines "
+        f"(gyro sampled at {ghz:.0f} Hz)"
+    )
+    lacks.append(
+        "no unfiltered gyro stream: IMU holds the gyro after INS_GYRO_FILTER and the notches"
+        + (
+            f"; the batch sampler's {isb} ISBH windows are in the log: convert --stream batch"
+            if isb
+            else " (INS_LOG_BAT_* batch sampler not logged)"
+        )
+    )
     lacks.append("no per-motor RPM converted (ESC telemetry not read)")
     if n_back:
         warn_repair(f"{p.name}: {n_back} IMU samples whose time did not move forward dropped")
-    hdr = {k: v for k, v in sorted(params.items()) if k.startswith(("INS_GYRO", "INS_HNTC", "INS_FAST", "INS_LOG_BAT", "SCHED_LOOP",
-                                                                     "MOT_PWM", "FRAME_", "INS_ACCEL_FILTER"))}
+    hdr = {
+        k: v
+        for k, v in sorted(params.items())
+        if k.startswith(
+            ("INS_GYRO", "INS_HNTC", "INS_FAST", "INS_LOG_BAT", "SCHED_LOOP", "MOT_PWM", "FRAME_", "INS_ACCEL_FILTER")
+        )
+    }
     full = float(np.degrees(np.abs(a[:, 1:4]).max()))
     still = extra["motor_cmd_mean"] <= 0.0 if "motor_cmd_mean" in extra else np.zeros(t_s.size, bool)
     g_still = float(np.median(np.linalg.norm(a[still, 4:7], axis=1))) if still.sum() >= 10 else float("nan")
     meta = {
-        "source": str(p), "format": "dataflash", "sensor": f"{fw or 'ArduPilot'} IMU{imu_instance} ({board or 'board unnamed'})",
-        "rate_hz": f"{log_hz:.6g}", "units": "SI (rad/s, m/s^2, s); motor columns PWM us and 0-1",
+        "source": str(p),
+        "format": "dataflash",
+        "sensor": f"{fw or 'ArduPilot'} IMU{imu_instance} ({board or 'board unnamed'})",
+        "rate_hz": f"{log_hz:.6g}",
+        "units": "SI (rad/s, m/s^2, s); motor columns PWM us and 0-1",
         "frame": "ArduPilot body frame as logged (x forward, y right, z down)",
         "parser": "pymavlink DFReader (units from the log's FMTU messages)",
-        "firmware": fw, "firmware_name": "ardupilot", "firmware_version": ".".join(_FW.match(fw).groups()[1:]) if fw else "",
-        "board": board, "imu_instance": str(imu_instance),
-        "log_rate_measured_hz": f"{log_hz:.6g}", "gyro_sample_rate_hz": f"{ghz:.6g}",
+        "firmware": fw,
+        "firmware_name": "ardupilot",
+        "firmware_version": ".".join(_FW.match(fw).groups()[1:]) if fw else "",
+        "board": board,
+        "imu_instance": str(imu_instance),
+        "log_rate_measured_hz": f"{log_hz:.6g}",
+        "gyro_sample_rate_hz": f"{ghz:.6g}",
         "loop_rate_hz": f"{params.get('SCHED_LOOP_RATE', float('nan')):.6g}",
         "gyro_filters": json.dumps(chain),
         "gyro_signal": "filtered (IMU: ins.get_gyro after INS_GYRO_FILTER and the harmonic notches)",
-        "gyro_units_check": (f"FMTU units GyrX/Y/Z rad/s, AccX/Y/Z m/s/s; max |gyro| {full:.0f} deg/s; "
-                             f"median |accel| with motors at MOT_PWM_MIN or below {g_still:.3f} m/s^2"),
+        "gyro_units_check": (
+            f"FMTU units GyrX/Y/Z rad/s, AccX/Y/Z m/s/s; max |gyro| {full:.0f} deg/s; "
+            f"median |accel| with motors at MOT_PWM_MIN or below {g_still:.3f} m/s^2"
+        ),
         "header_filters": json.dumps(hdr),
         "batch_sampler_windows": str(isb),
         "lacks": " | ".join(lacks),
@@ -364,25 +421,33 @@ def _batch_recording(p, imu_rec, isb, rcou, ctun, params, imu_instance):
         g = np.column_stack([np.concatenate([r[k] for r in seg]) for k in (1, 2, 3)]) / mul
         by_inst.setdefault(inst, []).append((t0_us, rate, g))
     if not by_inst:
-        raise GyroInputError(f"{p}: no complete gyro batch (ISBH/ISBD) in the log: the batch sampler was off "
-                             f"(INS_LOG_BAT_MASK) or its batches are incomplete")
+        raise GyroInputError(
+            f"{p}: no complete gyro batch (ISBH/ISBD) in the log: the batch sampler was off "
+            f"(INS_LOG_BAT_MASK) or its batches are incomplete"
+        )
     f_lpf = float(params.get("INS_GYRO_FILTER", 0.0) or 0.0)
     post = bool(opt & BATCH_OPT_POST_FILTER) and not opt & BATCH_OPT_PRE_POST_FILTER
     check = ""
     inst = imu_instance
     if opt & BATCH_OPT_PRE_POST_FILTER:
         if inst not in by_inst or len(by_inst) < 2 or f_lpf <= 0:
-            raise GyroInputError(f"{p}: INS_LOG_BAT_OPT {opt} (pre and post filter) but the gyro batches of IMU "
-                                 f"{imu_instance} and their counterpart are not both in the log")
+            raise GyroInputError(
+                f"{p}: INS_LOG_BAT_OPT {opt} (pre and post filter) but the gyro batches of IMU "
+                f"{imu_instance} and their counterpart are not both in the log"
+            )
         f_lo = 4.0 * f_lpf
         hf = {k: _hf_rms(v, f_lo) for k, v in by_inst.items()}
         others = [k for k in hf if k != inst]
         ratio = hf[inst] / max(min(hf[k] for k in others), 1e-12)
         if ratio < 3.0:
-            raise GyroInputError(f"{p}: cannot tell the pre-filter gyro batches of IMU {imu_instance} from the "
-                                 f"post-filter ones (rms above {f_lo:.0f} Hz only {ratio:.1f}x the quietest instance)")
-        check = (f"INS_LOG_BAT_OPT {opt}: batch instances {sorted(hf)}; instance {inst} taken as pre-filter on the data: rms above "
-                 f"{f_lo:.0f} Hz " + ", ".join(f"instance {k} {np.degrees(v):.2f} deg/s" for k, v in sorted(hf.items())))
+            raise GyroInputError(
+                f"{p}: cannot tell the pre-filter gyro batches of IMU {imu_instance} from the "
+                f"post-filter ones (rms above {f_lo:.0f} Hz only {ratio:.1f}x the quietest instance)"
+            )
+        check = (
+            f"INS_LOG_BAT_OPT {opt}: batch instances {sorted(hf)}; instance {inst} taken as pre-filter on the data: rms above "
+            f"{f_lo:.0f} Hz " + ", ".join(f"instance {k} {np.degrees(v):.2f} deg/s" for k, v in sorted(hf.items()))
+        )
     elif inst not in by_inst:
         raise GyroInputError(f"{p}: no gyro batch of IMU {imu_instance} (instances {sorted(by_inst)})")
     wins = sorted(by_inst[inst], key=lambda w: w[0])
@@ -407,23 +472,37 @@ def _batch_recording(p, imu_rec, isb, rcou, ctun, params, imu_instance):
     else:
         for i, ax in enumerate("xyz"):
             extra[f"gyro_prefilter_{ax}_rad_s"] = gyro[:, i]
-        pre_meta = {"source": f"ISBH/ISBD gyro batches of IMU {imu_instance} (pre-filter: INS_LOG_BAT_OPT {opt}), "
-                              f"value/mul in rad/s", "signal": "raw", "filters_before": []}
+        pre_meta = {
+            "source": f"ISBH/ISBD gyro batches of IMU {imu_instance} (pre-filter: INS_LOG_BAT_OPT {opt}), "
+            f"value/mul in rad/s",
+            "signal": "raw",
+            "filters_before": [],
+        }
         signal_txt = "raw (batch sampler, before INS_GYRO_FILTER and the notches)"
     if dropped:
         warn_repair(f"{p.name}: {dropped} incomplete or overlapping gyro batch(es) dropped")
     meta = dict(imu_rec.meta)
     meta.pop("_t0_us", None)
-    meta.update({
-        "stream": "batch", "rate_hz": f"{rate:.6g}", "log_rate_measured_hz": f"{rate:.6g}",
-        "sensor": meta["sensor"] + " batch sampler",
-        "gyro_signal": signal_txt, "batch_windows": str(len(wins)),
-        "batch_window_s": f"{wins[0][2].shape[0] / rate:.6g}",
-        "batch_prepost_check": check or "n/a",
-        "lacks": " | ".join([f"gyro in {len(wins)} batch windows of {wins[0][2].shape[0]} samples ({wins[0][2].shape[0] / rate:.3f} s) "
-                             f"at {rate:.0f} Hz with gaps between them; no accelerometer columns (its batches are at other times)"]
-                            + [x for x in meta["lacks"].split(" | ") if not x.startswith(("gyro logged at", "no unfiltered gyro"))] + lacks),
-    })
+    meta.update(
+        {
+            "stream": "batch",
+            "rate_hz": f"{rate:.6g}",
+            "log_rate_measured_hz": f"{rate:.6g}",
+            "sensor": meta["sensor"] + " batch sampler",
+            "gyro_signal": signal_txt,
+            "batch_windows": str(len(wins)),
+            "batch_window_s": f"{wins[0][2].shape[0] / rate:.6g}",
+            "batch_prepost_check": check or "n/a",
+            "lacks": " | ".join(
+                [
+                    f"gyro in {len(wins)} batch windows of {wins[0][2].shape[0]} samples ({wins[0][2].shape[0] / rate:.3f} s) "
+                    f"at {rate:.0f} Hz with gaps between them; no accelerometer columns (its batches are at other times)"
+                ]
+                + [x for x in meta["lacks"].split(" | ") if not x.startswith(("gyro logged at", "no unfiltered gyro"))]
+                + lacks
+            ),
+        }
+    )
     if pre_meta:
         meta["gyro_prefilter"] = json.dumps(pre_meta)
     meta["time_us_first"] = f"{t_us[0]:.0f}"

@@ -16,10 +16,33 @@ import numpy as np
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import AXES, DEG, G0_M_S2, Recording
 
-from .common import (Segment, _check_finite, _h5, _loadtxt, _meta, _positive, _Repairs, _require_file, motion_span,
-                     retime_uniform, timing_report)
+from .common import (
+    Segment,
+    _check_finite,
+    _h5,
+    _loadtxt,
+    _meta,
+    _positive,
+    _Repairs,
+    _require_file,
+    motion_span,
+    retime_uniform,
+    timing_report,
+)
 
-__all__ = ["read_sunsided", "read_tomisuarez2", "read_imucal", "read_imucal_annotated", "read_broad", "read_imutk", "read_gnss_ins_sim", "read_fusion", "sunsided_segments", "tomisuarez2_segments", "imucal_segments"]
+__all__ = [
+    "read_sunsided",
+    "read_tomisuarez2",
+    "read_imucal",
+    "read_imucal_annotated",
+    "read_broad",
+    "read_imutk",
+    "read_gnss_ins_sim",
+    "read_fusion",
+    "sunsided_segments",
+    "tomisuarez2_segments",
+    "imucal_segments",
+]
 
 
 #: MPU-6050 datasheet sensitivities at the ±250 °/s and ±2 g settings (tomisuarez2 defaults).
@@ -34,7 +57,6 @@ IMUCAL_RAW_LSB_PER_G = 2048.0
 IMUTK_ADC_OFFSET = 32768.0
 IMUTK_LSB_PER_RAD_S = 6258.0
 IMUTK_STATIC_S = 50.0
-
 
 
 # ============================================================================ sunsided
@@ -121,7 +143,9 @@ def read_sunsided(path: str | os.PathLike, *, retime: bool = True, flip_gyro_x: 
     gyro = g[keep, 1:] * DEG
     if flip_gyro_x:
         gyro[:, 0] *= -1.0
-        repairs.note("gyro X negated (README: X positive = clockwise) to make it counter-clockwise-positive like Y and Z")
+        repairs.note(
+            "gyro X negated (README: X positive = clockwise) to make it counter-clockwise-positive like Y and Z"
+        )
     accel = None
     set_name = d.parent.name
     if a is not None:
@@ -155,13 +179,20 @@ def read_sunsided(path: str | os.PathLike, *, retime: bool = True, flip_gyro_x: 
     extra = {"t_host_s": t_host} if (rep.bursty and retime) else {}
     rate = (t.size - 1) / (t[-1] - t[0])
     meta = _meta(
-        f"sunsided/sensor-fusion data/{set_name}/{d.name}", "sunsided", "InvenSense MPU-6050 (+-250 dps, +-2 g)", rate, repairs,
+        f"sunsided/sensor-fusion data/{set_name}/{d.name}",
+        "sunsided",
+        "InvenSense MPU-6050 (+-250 dps, +-2 g)",
+        rate,
+        repairs,
         recording=f"{set_name}/{d.name}",
-        timing="uniform grid at the mean rate (host times in t_host_s)" if (rep.bursty and retime) else "host receive times",
+        timing="uniform grid at the mean rate (host times in t_host_s)"
+        if (rep.bursty and retime)
+        else "host receive times",
         frame_note=(
             "gyro X flip follows the README; the raw gyro/accel pair is kinematically right-handed in set-1, "
             "so with the flip gyro and accel are mirror-consistent only: see docs/data.md"
-            if flip_gyro_x else "raw gyro axes (no X flip)"
+            if flip_gyro_x
+            else "raw gyro axes (no X flip)"
         ),
     )
     return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=temp, meta=meta, extra=extra)
@@ -220,7 +251,9 @@ def read_tomisuarez2(
         header[k.strip()] = v.strip()
     cols = [c.strip() for c in lines[4].strip().split(",")]
     if "Fs" not in header or cols != ["ax", "ay", "az", "gx", "gy", "gz"]:
-        raise GyroInputError(f"{p}: not a tomisuarez2 file (expected 'Fs,...' and the header ax,ay,az,gx,gy,gz on line 5)")
+        raise GyroInputError(
+            f"{p}: not a tomisuarez2 file (expected 'Fs,...' and the header ax,ay,az,gx,gy,gz on line 5)"
+        )
     if rate_hz is None:
         try:
             rate_hz = float(header["Fs"])
@@ -238,7 +271,11 @@ def read_tomisuarez2(
     gyro = data[:, 3:6] / lsb_per_dps * DEG
     accel = data[:, 0:3] / lsb_per_g * G0_M_S2
     meta = _meta(
-        str(p), "tomisuarez2", "InvenSense MPU-6050 (raw LSB)", rate_hz, repairs,
+        str(p),
+        "tomisuarez2",
+        "InvenSense MPU-6050 (raw LSB)",
+        rate_hz,
+        repairs,
         scale=f"gyro {lsb_per_dps:g} LSB/(deg/s), accel {lsb_per_g:g} LSB/g (nominal, not calibrated)",
         timing=f"no timestamps in file: t = index / {rate_hz:g} Hz",
         logging_type=header.get("Logging Type", ""),
@@ -311,7 +348,11 @@ def read_imucal(
         desc.append(f"{name}={s0}-{s1}")
     extra = {"static_pose_axis": pose} if sec else {}
     meta = _meta(
-        str(p), "imucal", "likely Bosch BMI160 (NilsPod), +-2000 dps", rate_hz, repairs,
+        str(p),
+        "imucal",
+        "likely Bosch BMI160 (NilsPod), +-2000 dps",
+        rate_hz,
+        repairs,
         timing=f"no timestamps in file: t = n_samples / {rate_hz:g} Hz",
         sections=", ".join(desc) if desc else "none",
         static_pose_axis="extra column: +-1/2/3 = +-x/y/z axis up (reads +-1 g), 0 = not a static section",
@@ -339,7 +380,9 @@ def imucal_segments(rec: Recording) -> list[Segment]:
     out = []
     for m in re.finditer(r"\b([xyz])_rot=(\d+)-(\d+)", rec.meta.get("sections", "")):
         s0, s1 = int(m.group(2)), int(m.group(3))
-        out.append(Segment(s0 / rate, s1 / rate, m.group(1), IMUCAL_EXPECTED_ANGLE_DEG, label=f"imucal {m.group(1)}_rot"))
+        out.append(
+            Segment(s0 / rate, s1 / rate, m.group(1), IMUCAL_EXPECTED_ANGLE_DEG, label=f"imucal {m.group(1)}_rot")
+        )
     return out
 
 
@@ -402,7 +445,11 @@ def read_imucal_annotated(
         idx = data[part == name, 0]
         sec[name] = (int(idx.min()), int(idx.max()))
     meta = _meta(
-        str(p), "imucal_annotated", "likely Bosch BMI160 (NilsPod), raw LSB", rate_hz, repairs,
+        str(p),
+        "imucal_annotated",
+        "likely Bosch BMI160 (NilsPod), raw LSB",
+        rate_hz,
+        repairs,
         scale=f"gyro {lsb_per_dps:g} LSB/(deg/s), accel {lsb_per_g:g} LSB/g (datasheet-nominal, not calibrated)",
         timing=f"t = samples / {rate_hz:g} Hz; only annotated parts kept, joined without gaps",
         sections=", ".join(f"{k}={a}-{b}" for k, (a, b) in sec.items()),
@@ -453,16 +500,28 @@ def read_broad(path: str | os.PathLike) -> Recording:
         for i, a in enumerate(AXES):
             extra[f"mag_{a}_uT"] = mag[keep, i]
     n_nan = int(np.count_nonzero(~np.all(np.isfinite(quat), axis=1))) if quat is not None else 0
-    trial = str(info).splitlines()[2].replace("Trial: ", "") if isinstance(info, str) and len(str(info).splitlines()) > 2 else p.stem
+    trial = (
+        str(info).splitlines()[2].replace("Trial: ", "")
+        if isinstance(info, str) and len(str(info).splitlines()) > 2
+        else p.stem
+    )
     meta = _meta(
-        str(p), "broad", "myon aktos-t", rate_hz, repairs,
+        str(p),
+        "broad",
+        "myon aktos-t",
+        rate_hz,
+        repairs,
         trial=trial,
         reference=f"ref_q* = OptiTrack opt_quat, S->W with W = ENU; {n_nan} rows NaN (tracking lost)",
         citation="Laidig et al., BROAD, Data 6(7):72, 2021, doi:10.3390/data6070072 (CC BY 4.0)",
     )
     return Recording(
-        t_s=idx / rate_hz, gyro_rad_s=gyro[keep], accel_m_s2=accel[keep],
-        ref_quat_wxyz=None if quat is None else quat[keep], meta=meta, extra=extra,
+        t_s=idx / rate_hz,
+        gyro_rad_s=gyro[keep],
+        accel_m_s2=accel[keep],
+        ref_quat_wxyz=None if quat is None else quat[keep],
+        meta=meta,
+        extra=extra,
     )
 
 
@@ -509,13 +568,19 @@ def read_imutk(
         if lsb_per_g is None:
             still = t < IMUTK_STATIC_S
             lsb_per_g = float(np.mean(np.linalg.norm(araw[still], axis=1)))
-            repairs.add(f"accel scale estimated as {lsb_per_g:.1f} LSB/g from |ADC - 32768| over the initial {IMUTK_STATIC_S:g} s static phase")
+            repairs.add(
+                f"accel scale estimated as {lsb_per_g:.1f} LSB/g from |ADC - 32768| over the initial {IMUTK_STATIC_S:g} s static phase"
+            )
         lsb_per_g = _positive("--lsb-per-g", lsb_per_g)
         accel = araw / lsb_per_g * G0_M_S2
         ascale = f"(ADC - 32768) / {lsb_per_g:.6g} LSB/g"
     rate = (t.size - 1) / t[-1]
     meta = _meta(
-        str(p), "imutk", "Xsens (raw 16-bit ADC)", rate, repairs,
+        str(p),
+        "imutk",
+        "Xsens (raw 16-bit ADC)",
+        rate,
+        repairs,
         scale=f"gyro {gscale}; accel {ascale}; nominal, biases not removed",
         t0_s=repr(float(g[0, 0])),
     )
@@ -546,7 +611,11 @@ def read_gnss_ins_sim(path: str | os.PathLike) -> Recording:
     a = a[keep] if a is not None else None
     rate = (t.size - 1) / (t[-1] - t[0])
     meta = _meta(
-        str(d), "gnss_ins_sim", f"{d.name} (part undocumented; Aceinna OpenIMU context)", rate, repairs,
+        str(d),
+        "gnss_ins_sim",
+        f"{d.name} (part undocumented; Aceinna OpenIMU context)",
+        rate,
+        repairs,
         note="about one turn about Z (inferred from the integral, not a documented reference); bias apparently already removed",
     )
     return Recording(t_s=t, gyro_rad_s=g * DEG, accel_m_s2=a, meta=meta)
@@ -586,9 +655,11 @@ def read_fusion(path: str | os.PathLike) -> Recording:
     rep = timing_report(t)
     rate = (t.size - 1) / (t[-1] - t[0])
     meta = _meta(
-        str(p), "fusion", "x-io Technologies device (model unstated)", rate, repairs,
+        str(p),
+        "fusion",
+        "x-io Technologies device (model unstated)",
+        rate,
+        repairs,
         timing=f"jittery timestamps kept: median dt {rep.median_dt_s * 1e3:.2f} ms, max {rep.max_dt_s * 1e3:.1f} ms, {rep.n_gaps} intervals > 1.5 x median",
     )
     return Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=accel, meta=meta, extra=extra)
-
-

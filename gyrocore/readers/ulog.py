@@ -15,7 +15,6 @@ from .common import _check_finite, _meta, _Repairs, _require_file
 __all__ = ["read_ulog", "ULOG_MIN_GYRO_RATE_HZ", "ULOG_NOISE_GYRO_RATE_HZ"]
 
 
-
 # ============================================================================ PX4 ULog
 #: A ``sensor_gyro`` instance logged slower than this is a housekeeping stream (PX4's default
 #: profile: 1 Hz); its thermal-calibration and sensor-comparison profiles log every instance at
@@ -61,7 +60,9 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0, gyro_instance: int 
     try:
         ulog = ULog(str(p))
     except Exception as exc:  # pyulog raises bare Exceptions on corrupt files
-        raise GyroInputError(f"{p}: not a readable ULog file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise GyroInputError(
+            f"{p}: not a readable ULog file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
     if gyro_instance is not None:
         return _read_ulog_sensor_gyro(ulog, p, int(gyro_instance))
     repairs = _Repairs(p.name)
@@ -94,7 +95,9 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0, gyro_instance: int 
             temp = np.interp(ts_us.astype(float), tt, tv)
             n_out = int(np.count_nonzero((ts_us < tt[0]) | (ts_us > tt[-1])))
             if n_out:
-                repairs.add(f"temperature (sensor_gyro, {tt.size} samples) held at its nearest value for {n_out} gyro samples outside its span")
+                repairs.add(
+                    f"temperature (sensor_gyro, {tt.size} samples) held at its nearest value for {n_out} gyro samples outside its span"
+                )
             temp_note = f"sensor_gyro[{inst}].temperature ({tt.size} samples, interpolated; {inst_note})"
     except (KeyError, IndexError, ValueError):
         pass
@@ -113,7 +116,11 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0, gyro_instance: int 
     sensor = f"PX4 {info.get('ver_hw', 'unknown hardware')} sensor_combined[{multi_id}]"
     rate = (t_s.size - 1) / t_s[-1] if t_s.size > 1 and t_s[-1] > 0 else float("nan")
     meta = _meta(
-        str(p), "ulog", sensor, rate, repairs,
+        str(p),
+        "ulog",
+        sensor,
+        rate,
+        repairs,
         t0_us=str(int(ts_us[0])),
         calibration="gyro already calibrated (CAL_GYRO offsets) and board-rotated by PX4",
         temperature=temp_note,
@@ -126,8 +133,9 @@ def _read_ulog_sensor_gyro(ulog, p: Path, inst: int) -> Recording:
     """``sensor_gyro`` instance ``inst`` of a ULog as a recording (see :func:`read_ulog`)."""
     have = sorted(int(d.multi_id) for d in ulog.data_list if d.name == "sensor_gyro")
     if inst not in have:
-        raise GyroInputError(f"{p}: no sensor_gyro instance {inst} in the log (instances: "
-                             f"{', '.join(map(str, have)) or 'none'})")
+        raise GyroInputError(
+            f"{p}: no sensor_gyro instance {inst} in the log (instances: {', '.join(map(str, have)) or 'none'})"
+        )
     sg = ulog.get_dataset("sensor_gyro", inst)
     key = "timestamp_sample" if "timestamp_sample" in sg.data else "timestamp"
     ts_us = np.asarray(sg.data[key], dtype=np.int64)
@@ -148,8 +156,10 @@ def _read_ulog_sensor_gyro(ulog, p: Path, inst: int) -> Recording:
         )
     repairs = _Repairs(p.name)
     if rate < ULOG_NOISE_GYRO_RATE_HZ:
-        repairs.add(f"sensor_gyro[{inst}] is logged at {rate:.3g} Hz: enough for bias against temperature, "
-                    f"not for noise identification or vibration")
+        repairs.add(
+            f"sensor_gyro[{inst}] is logged at {rate:.3g} Hz: enough for bias against temperature, "
+            f"not for noise identification or vibration"
+        )
     gyro = np.column_stack([np.asarray(sg.data[a], float) for a in "xyz"])
     temp = np.asarray(sg.data["temperature"], float) if "temperature" in sg.data else None
     keep = _check_finite(p.name, {"g": gyro}, repairs)
@@ -166,8 +176,11 @@ def _read_ulog_sensor_gyro(ulog, p: Path, inst: int) -> Recording:
     sel, how = _ulog_selected_gyro_instance(ulog)
     info = ulog.msg_info_dict
     meta = _meta(
-        str(p), "ulog", f"PX4 {info.get('ver_hw', 'unknown hardware')} sensor_gyro[{inst}] (device {dev})",
-        (t_s.size - 1) / t_s[-1], repairs,
+        str(p),
+        "ulog",
+        f"PX4 {info.get('ver_hw', 'unknown hardware')} sensor_gyro[{inst}] (device {dev})",
+        (t_s.size - 1) / t_s[-1],
+        repairs,
         t0_us=str(int(ts_us[0])),
         calibration="sensor_gyro as the driver published it: board-rotated, before PX4's CAL_GYRO offsets/scale",
         temperature=f"sensor_gyro[{inst}].temperature" if temp is not None else "none logged",
@@ -207,5 +220,3 @@ def _ulog_selected_gyro_instance(ulog) -> tuple[int, str]:
             if ids.size and int(ids[0]) == dev:
                 return int(d.multi_id), f"device {dev} = {how}"
     return 0, f"instance 0: no sensor_gyro instance has the selected device {dev} ({how})"
-
-

@@ -114,13 +114,32 @@ MAGIC_OUT = 0x314F4847
 IN_STRUCT = struct.Struct("<IId3h3h4f4f16H")
 OUT_STRUCT = struct.Struct("<IIIIQ4f4f3f3f3f3f3f3f3f3f3fIBBBB8h")
 #: The reply as a numpy structured dtype (same layout as :data:`OUT_STRUCT`).
-REPLY_DTYPE = np.dtype([
-    ("magic", "<u4"), ("step", "<u4"), ("gyro_loops", "<u4"), ("pid_loops", "<u4"), ("time_us", "<u8"),
-    ("motor", "<f4", 4), ("motor_raw", "<f4", 4), ("gyro_adc", "<f4", 3), ("gyro_adcf", "<f4", 3),
-    ("dterm_in", "<f4", 3), ("pid_p", "<f4", 3), ("pid_i", "<f4", 3), ("pid_d", "<f4", 3), ("pid_f", "<f4", 3),
-    ("setpoint", "<f4", 3), ("gyro_zero", "<f4", 3), ("arming_disable_flags", "<u4"), ("armed", "u1"),
-    ("gyro_calibrated", "u1"), ("motor_count", "u1"), ("reserved", "u1"), ("debug", "<i2", 8),
-])
+REPLY_DTYPE = np.dtype(
+    [
+        ("magic", "<u4"),
+        ("step", "<u4"),
+        ("gyro_loops", "<u4"),
+        ("pid_loops", "<u4"),
+        ("time_us", "<u8"),
+        ("motor", "<f4", 4),
+        ("motor_raw", "<f4", 4),
+        ("gyro_adc", "<f4", 3),
+        ("gyro_adcf", "<f4", 3),
+        ("dterm_in", "<f4", 3),
+        ("pid_p", "<f4", 3),
+        ("pid_i", "<f4", 3),
+        ("pid_d", "<f4", 3),
+        ("pid_f", "<f4", 3),
+        ("setpoint", "<f4", 3),
+        ("gyro_zero", "<f4", 3),
+        ("arming_disable_flags", "<u4"),
+        ("armed", "u1"),
+        ("gyro_calibrated", "u1"),
+        ("motor_count", "u1"),
+        ("reserved", "u1"),
+        ("debug", "<i2", 8),
+    ]
+)
 assert IN_STRUCT.size == 92 and OUT_STRUCT.size == 188 == REPLY_DTYPE.itemsize
 
 #: Betaflight quad-X motor positions in the body frame (x fwd, y left), unit arm: motor 1..4.
@@ -133,10 +152,35 @@ PX4_FROM_BF = np.array([1, 2, 3, 0])
 BF_FROM_PX4 = np.array([3, 0, 1, 2])
 
 _ARMING_FLAGS = (
-    "NO_GYRO", "FAILSAFE", "RX_FAILSAFE", "NOT_DISARMED", "BOXFAILSAFE", "RUNAWAY_TAKEOFF",
-    "CRASH_DETECTED", "THROTTLE", "ANGLE", "BOOT_GRACE_TIME", "NOPREARM", "LOAD", "CALIBRATING",
-    "CLI", "CMS_MENU", "BST", "MSP", "PARALYZE", "GPS", "RESC", "DSHOT_TELEM", "REBOOT_REQUIRED",
-    "DSHOT_BITBANG", "ACC_CALIBRATION", "MOTOR_PROTOCOL", "CRASHFLIP", "ALTHOLD", "POSHOLD", "ARM_SWITCH",
+    "NO_GYRO",
+    "FAILSAFE",
+    "RX_FAILSAFE",
+    "NOT_DISARMED",
+    "BOXFAILSAFE",
+    "RUNAWAY_TAKEOFF",
+    "CRASH_DETECTED",
+    "THROTTLE",
+    "ANGLE",
+    "BOOT_GRACE_TIME",
+    "NOPREARM",
+    "LOAD",
+    "CALIBRATING",
+    "CLI",
+    "CMS_MENU",
+    "BST",
+    "MSP",
+    "PARALYZE",
+    "GPS",
+    "RESC",
+    "DSHOT_TELEM",
+    "REBOOT_REQUIRED",
+    "DSHOT_BITBANG",
+    "ACC_CALIBRATION",
+    "MOTOR_PROTOCOL",
+    "CRASHFLIP",
+    "ALTHOLD",
+    "POSHOLD",
+    "ARM_SWITCH",
 )
 _ARM_SWITCH_FLAG = 1 << 28
 _CALIBRATING_FLAG = 1 << 12
@@ -291,14 +335,21 @@ def replies_to_arrays(replies: np.ndarray) -> dict[str, np.ndarray]:
     r = np.asarray(replies)
     f = lambda k, s: r[k].astype(float) * s
     return {
-        "motors": r["motor"].astype(float), "motors_raw_us": r["motor_raw"].astype(float),
-        "fw_gyro_S_rad_s": f("gyro_adcf", _K_DEG), "fw_gyro_unfiltered_S_rad_s": f("gyro_adc", _K_DEG),
-        "fw_dterm_S_rad_s": f("dterm_in", _K_DEG), "setpoint_S_rad_s": f("setpoint", _K_DEG),
+        "motors": r["motor"].astype(float),
+        "motors_raw_us": r["motor_raw"].astype(float),
+        "fw_gyro_S_rad_s": f("gyro_adcf", _K_DEG),
+        "fw_gyro_unfiltered_S_rad_s": f("gyro_adc", _K_DEG),
+        "fw_dterm_S_rad_s": f("dterm_in", _K_DEG),
+        "setpoint_S_rad_s": f("setpoint", _K_DEG),
         "pid_rpy": np.stack([r["pid_p"], r["pid_i"], r["pid_d"], r["pid_f"]], axis=1).astype(float),
-        "gyro_bias_S_rad_s": f("gyro_zero", _K_LSB), "loop_count": r["gyro_loops"].astype(np.int64),
-        "pid_loop_count": r["pid_loops"].astype(np.int64), "time_us": r["time_us"].astype(np.int64),
-        "armed": r["armed"].astype(bool), "gyro_calibrated": r["gyro_calibrated"].astype(bool),
-        "arming_disable_flags": r["arming_disable_flags"].astype(np.int64), "debug": r["debug"].astype(np.int64),
+        "gyro_bias_S_rad_s": f("gyro_zero", _K_LSB),
+        "loop_count": r["gyro_loops"].astype(np.int64),
+        "pid_loop_count": r["pid_loops"].astype(np.int64),
+        "time_us": r["time_us"].astype(np.int64),
+        "armed": r["armed"].astype(bool),
+        "gyro_calibrated": r["gyro_calibrated"].astype(bool),
+        "arming_disable_flags": r["arming_disable_flags"].astype(np.int64),
+        "debug": r["debug"].astype(np.int64),
     }
 
 
@@ -341,8 +392,23 @@ def _normalise_setting(line: str) -> str:
     if not s:
         return s
     head = s.split(None, 1)[0].lower()
-    if "=" in s and head not in {"set", "aux", "feature", "profile", "rateprofile", "beeper", "map",
-                                 "serial", "adjrange", "rxrange", "vtx", "mixer", "mmix", "smix", "dshotprog"}:
+    if "=" in s and head not in {
+        "set",
+        "aux",
+        "feature",
+        "profile",
+        "rateprofile",
+        "beeper",
+        "map",
+        "serial",
+        "adjrange",
+        "rxrange",
+        "vtx",
+        "mixer",
+        "mmix",
+        "smix",
+        "dshotprog",
+    }:
         k, v = s.split("=", 1)
         return f"set {k.strip()} = {v.strip()}"
     return s
@@ -379,15 +445,27 @@ class BetaflightSITL:
         between :meth:`boot` and the flight's steps.
     """
 
-    def __init__(self, binary: str | os.PathLike, settings: Sequence[str] = (), *, loop_rate_hz: float = LOOP_RATE_HZ,
-                 step_timeout_s: float = 5.0, workdir: str | os.PathLike | None = None, skip_unknown: bool = False,
-                 lenient_settings: Sequence[str] = (), cli_timeout_s: float = 10.0, idle_exit_s: float = 300.0) -> None:
+    def __init__(
+        self,
+        binary: str | os.PathLike,
+        settings: Sequence[str] = (),
+        *,
+        loop_rate_hz: float = LOOP_RATE_HZ,
+        step_timeout_s: float = 5.0,
+        workdir: str | os.PathLike | None = None,
+        skip_unknown: bool = False,
+        lenient_settings: Sequence[str] = (),
+        cli_timeout_s: float = 10.0,
+        idle_exit_s: float = 300.0,
+    ) -> None:
         self.binary = str(binary)
         if not (os.path.isfile(self.binary) and os.access(self.binary, os.X_OK)):
             raise GyroInputError(f"{binary}: no firmware binary there (build it: gyroharness firmware build)")
         if abs(float(loop_rate_hz) - LOOP_RATE_HZ) > 1e-9:
-            raise GyroInputError(f"loop_rate_hz={loop_rate_hz}: the SITL's virtual gyro samples at "
-                                 f"{LOOP_RATE_HZ:.0f} Hz (set pid_process_denom for a slower PID loop)")
+            raise GyroInputError(
+                f"loop_rate_hz={loop_rate_hz}: the SITL's virtual gyro samples at "
+                f"{LOOP_RATE_HZ:.0f} Hz (set pid_process_denom for a slower PID loop)"
+            )
         if not step_timeout_s > 0:
             raise GyroInputError(f"step_timeout_s must be > 0, got {step_timeout_s}")
         self.loop_rate_hz = float(loop_rate_hz)
@@ -440,8 +518,12 @@ class BetaflightSITL:
         link = ["--unix", str(sitl_sock)] if unix else ["--port", "0"]
         self._proc = subprocess.Popen(
             [self.binary, *link, "--tcp-port", "0", "--idle-exit-s", str(self.idle_exit_s)],
-            cwd=self.workdir, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True)
+            cwd=self.workdir,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         deadline = time.monotonic() + max(10.0, self.step_timeout_s)
         link_addr = tcp = None
         while time.monotonic() < deadline:
@@ -454,11 +536,15 @@ class BetaflightSITL:
                 link_addr, tcp = (m.group(1) if unix else int(m.group(1))), int(m2.group(1))
                 break
             if self._proc.poll() is not None:
-                raise FirmwareError(f"betaflight SITL exited with code {self._proc.returncode} while starting: {self.log_tail()}")
+                raise FirmwareError(
+                    f"betaflight SITL exited with code {self._proc.returncode} while starting: {self.log_tail()}"
+                )
             time.sleep(0.002)
         if link_addr is None:
             self._kill()
-            raise FirmwareError(f"betaflight SITL did not report its ports within {max(10.0, self.step_timeout_s):.0f} s: {self.log_tail()}")
+            raise FirmwareError(
+                f"betaflight SITL did not report its ports within {max(10.0, self.step_timeout_s):.0f} s: {self.log_tail()}"
+            )
         if unix:
             mine = self.workdir / "bridge.sock"
             if mine.exists():
@@ -524,15 +610,18 @@ class BetaflightSITL:
             how = f"was killed by signal {-rc}" if rc < 0 else f"exited with code {rc}"
             msg = f"betaflight SITL (pid {proc.pid}) {how} at step {self._k} ({what})"
         else:
-            msg = (f"betaflight SITL (pid {proc.pid}) did not answer step {self._k} within "
-                   f"{self.step_timeout_s:g} s: hung or stopped ({what}); killed it")
+            msg = (
+                f"betaflight SITL (pid {proc.pid}) did not answer step {self._k} within "
+                f"{self.step_timeout_s:g} s: hung or stopped ({what}); killed it"
+            )
         tail = self.log_tail()
         self._kill()
         return FirmwareError(f"{msg}; last log lines: {tail}")
 
     def _exchange(self, gyro_lsb, acc_lsb, quat, motor_hz, channels) -> memoryview:
-        IN_STRUCT.pack_into(self._pbuf, 0, MAGIC_IN, 0, self._k * self.dt_s, *gyro_lsb, *acc_lsb, *quat,
-                            *motor_hz, *channels)
+        IN_STRUCT.pack_into(
+            self._pbuf, 0, MAGIC_IN, 0, self._k * self.dt_s, *gyro_lsb, *acc_lsb, *quat, *motor_hz, *channels
+        )
         sock = self._sock
         if sock is None:
             raise self._fail("no connection")
@@ -577,9 +666,14 @@ class BetaflightSITL:
             hz = (abs(r[0]) * c, abs(r[1]) * c, abs(r[2]) * c, abs(r[3]) * c)
         return (g0, g1, g2), a, quat, hz
 
-    def step(self, omega_S_rad_s: Sequence[float], accel_S_m_s2: Sequence[float] | None = None,
-             q_WB_wxyz: Sequence[float] | None = None, rotor_rad_s: Sequence[float] | None = None,
-             rc: Sequence[int] | None = None) -> StepReply:
+    def step(
+        self,
+        omega_S_rad_s: Sequence[float],
+        accel_S_m_s2: Sequence[float] | None = None,
+        q_WB_wxyz: Sequence[float] | None = None,
+        rotor_rad_s: Sequence[float] | None = None,
+        rc: Sequence[int] | None = None,
+    ) -> StepReply:
         """One firmware loop at the next gyro sample.
 
         Parameters
@@ -608,9 +702,14 @@ class BetaflightSITL:
         self._exchange(g, a, q, hz, self._rc)
         return _reply_from_tuple(OUT_STRUCT.unpack_from(self._rbuf))
 
-    def step_raw(self, gyro_lsb: Sequence[int], acc_lsb: Sequence[int] = (0, 0, 256),
-                 quat_fw_wxyz: Sequence[float] = (1.0, 0.0, 0.0, 0.0), motor_hz: Sequence[float] = (0.0,) * 4,
-                 rc: Sequence[int] | None = None) -> tuple:
+    def step_raw(
+        self,
+        gyro_lsb: Sequence[int],
+        acc_lsb: Sequence[int] = (0, 0, 256),
+        quat_fw_wxyz: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
+        motor_hz: Sequence[float] = (0.0,) * 4,
+        rc: Sequence[int] | None = None,
+    ) -> tuple:
         """One firmware loop with inputs already in the firmware's axes and units (see packet table).
 
         Returns the raw reply tuple (:data:`OUT_STRUCT` field order); for fast loops that convert
@@ -621,8 +720,13 @@ class BetaflightSITL:
         self._exchange(gyro_lsb, acc_lsb, quat_fw_wxyz, motor_hz, self._rc)
         return OUT_STRUCT.unpack_from(self._rbuf)
 
-    def run_open_loop(self, gyro_lsb: np.ndarray, motor_hz: np.ndarray | None = None,
-                      rc: Sequence[int] | None = None, throttle_us: np.ndarray | None = None) -> np.ndarray:
+    def run_open_loop(
+        self,
+        gyro_lsb: np.ndarray,
+        motor_hz: np.ndarray | None = None,
+        rc: Sequence[int] | None = None,
+        throttle_us: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Feed N gyro samples (int16 LSB) one per step; return the N raw replies.
 
         Parameters
@@ -683,6 +787,7 @@ class BetaflightSITL:
         conn = socket.create_connection(("127.0.0.1", tcp_port), timeout=self.cli_timeout_s)
         conn.setblocking(False)
         try:
+
             def send_and_wait(text: bytes) -> str:
                 conn.sendall(text)
                 buf = b""
@@ -698,8 +803,10 @@ class BetaflightSITL:
                         pass
                     if buf.endswith(b"\r\n# "):
                         return buf.decode(errors="replace")
-                raise FirmwareError(f"betaflight CLI did not answer {text.decode(errors='replace').strip()!r} "
-                                    f"within {self.cli_timeout_s:g} s: {self.log_tail()}")
+                raise FirmwareError(
+                    f"betaflight CLI did not answer {text.decode(errors='replace').strip()!r} "
+                    f"within {self.cli_timeout_s:g} s: {self.log_tail()}"
+                )
 
             send_and_wait(b"#")
             for line, lenient in lines:
@@ -732,8 +839,28 @@ class BetaflightSITL:
             assert sock is not None
             sock.settimeout(0.02)
             while proc.poll() is None and time.monotonic() < deadline:
-                IN_STRUCT.pack_into(self._pbuf, 0, MAGIC_IN, 0, self._k * self.dt_s, 0, 0, 0, 0, 0, 256,
-                                    1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *self._rc)
+                IN_STRUCT.pack_into(
+                    self._pbuf,
+                    0,
+                    MAGIC_IN,
+                    0,
+                    self._k * self.dt_s,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    256,
+                    1.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    *self._rc,
+                )
                 try:
                     sock.send(self._pbuf)
                     sock.recv_into(self._rbuf)
@@ -757,12 +884,19 @@ class BetaflightSITL:
         if eeprom.exists():
             eeprom.unlink()
         _, tcp = self._spawn()
-        self._cli_session(tcp, [(x, False) for x in BASE_SETTINGS] + [(x, True) for x in self.lenient_settings]
-                          + [(x, False) for x in self.settings])
+        self._cli_session(
+            tcp,
+            [(x, False) for x in BASE_SETTINGS]
+            + [(x, True) for x in self.lenient_settings]
+            + [(x, False) for x in self.settings],
+        )
         if self.skipped_settings:
-            warnings.warn(f"skipped {len(self.skipped_settings)} setting(s) this SITL does not have: "
-                          + ", ".join(s.split("=")[0].replace("set ", "").strip() for s in self.skipped_settings[:8])
-                          + (" …" if len(self.skipped_settings) > 8 else ""), stacklevel=2)
+            warnings.warn(
+                f"skipped {len(self.skipped_settings)} setting(s) this SITL does not have: "
+                + ", ".join(s.split("=")[0].replace("set ", "").strip() for s in self.skipped_settings[:8])
+                + (" …" if len(self.skipped_settings) > 8 else ""),
+                stacklevel=2,
+            )
         self._configured = True
 
     def boot(self, still: StillSource | None = None, *, arm: bool = True, max_boot_s: float = 20.0) -> BootReport:
@@ -816,14 +950,23 @@ class BetaflightSITL:
                 self._rc[4] = ARM_ON_US
         else:
             flags = arming_flag_names(r.arming_disable_flags) if r is not None else []
-            what = "the gyro calibration did not complete (vehicle not still? gyro_calib_noise_limit)" \
-                if cal_steps is None else f"it did not arm (arming disabled by: {', '.join(flags) or 'nothing reported'})"
+            what = (
+                "the gyro calibration did not complete (vehicle not still? gyro_calib_noise_limit)"
+                if cal_steps is None
+                else f"it did not arm (arming disabled by: {', '.join(flags) or 'nothing reported'})"
+            )
             raise FirmwareError(f"betaflight SITL boot failed within {max_boot_s:g} s simulated: {what}")
         assert r is not None
         self.boot_report = BootReport(
-            steps=self._k, sim_s=self._k * self.dt_s, firmware_boot_s=fw_boot_s, calibration_steps=int(cal_steps or 0),
-            gyro_bias_S_rad_s=r.gyro_bias_S_rad_s, armed=r.armed, wall_s=time.monotonic() - t0,
-            settings=(*BASE_SETTINGS, *self.lenient_settings, *self.settings))
+            steps=self._k,
+            sim_s=self._k * self.dt_s,
+            firmware_boot_s=fw_boot_s,
+            calibration_steps=int(cal_steps or 0),
+            gyro_bias_S_rad_s=r.gyro_bias_S_rad_s,
+            armed=r.armed,
+            wall_s=time.monotonic() - t0,
+            settings=(*BASE_SETTINGS, *self.lenient_settings, *self.settings),
+        )
         return self.boot_report
 
     def disarm(self) -> None:

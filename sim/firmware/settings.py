@@ -22,8 +22,7 @@ from typing import Sequence
 
 from gyrocore.errors import GyroInputError
 
-__all__ = ["FirmwareSettings", "parse_set_args", "settings_from_diff", "settings_from_blackbox",
-           "settings_from_file"]
+__all__ = ["FirmwareSettings", "parse_set_args", "settings_from_diff", "settings_from_blackbox", "settings_from_file"]
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _AXES = ("roll", "pitch", "yaw")
@@ -56,7 +55,9 @@ def parse_set_args(pairs: Sequence[str]) -> FirmwareSettings:
     lines = []
     for p in pairs:
         if "=" not in p:
-            raise GyroInputError(f"--set {p!r}: expected NAME=VALUE (a Betaflight setting, e.g. gyro_lpf1_static_hz=150)")
+            raise GyroInputError(
+                f"--set {p!r}: expected NAME=VALUE (a Betaflight setting, e.g. gyro_lpf1_static_hz=150)"
+            )
         k, v = (s.strip() for s in p.split("=", 1))
         if not _NAME.match(k) or not v:
             raise GyroInputError(f"--set {p!r}: expected NAME=VALUE with a lower-case setting name")
@@ -67,10 +68,12 @@ def parse_set_args(pairs: Sequence[str]) -> FirmwareSettings:
 #: CLI commands of a ``diff``/``dump`` that configure flight behaviour (kept); board- and
 #: hardware-specific ones (resource, timer, dma, serial, board_name, mcu_id, …) are dropped.
 _DIFF_KEEP = ("set ", "feature ", "aux ", "profile ", "rateprofile ", "adjrange ", "rxrange ")
-_DIFF_DROP_SET = re.compile(r"^set\s+(osd_|vtx_|serialrx_|gyro_\d_|acc_\d_|mag_|baro_|blackbox_device|"
-                            r"motor_pwm_protocol|motor_pwm_rate|dshot_burst|dshot_bitbang|gyro_to_use|"
-                            r"gyro_hardware_lpf|align_board|current_meter|battery_meter|ibata_|vbat_|"
-                            r"pinio_|ledstrip_|beeper_|name\b|craft_name|pilot_name|display_name)")
+_DIFF_DROP_SET = re.compile(
+    r"^set\s+(osd_|vtx_|serialrx_|gyro_\d_|acc_\d_|mag_|baro_|blackbox_device|"
+    r"motor_pwm_protocol|motor_pwm_rate|dshot_burst|dshot_bitbang|gyro_to_use|"
+    r"gyro_hardware_lpf|align_board|current_meter|battery_meter|ibata_|vbat_|"
+    r"pinio_|ledstrip_|beeper_|name\b|craft_name|pilot_name|display_name)"
+)
 
 
 def settings_from_diff(path: str | os.PathLike) -> FirmwareSettings:
@@ -92,8 +95,14 @@ def settings_from_diff(path: str | os.PathLike) -> FirmwareSettings:
             dropped += 1
     if not lines:
         raise GyroInputError(f"{path}: no 'set'/'feature'/'aux'/'profile' lines: not a Betaflight diff")
-    notes = (f"{dropped} board/hardware line(s) of the diff not applied (resources, serial, OSD, "
-             f"motor protocol, batch/save …)",) if dropped else ()
+    notes = (
+        (
+            f"{dropped} board/hardware line(s) of the diff not applied (resources, serial, OSD, "
+            f"motor protocol, batch/save …)",
+        )
+        if dropped
+        else ()
+    )
     return FirmwareSettings(tuple(lines), f"diff {p.name}", notes, lenient=True)
 
 
@@ -153,8 +162,9 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
         else:
             notes.append(f"PID rate {pid_hz:g} Hz is not 8 kHz / an integer: pid_process_denom left at 1")
     if gyro_hz == gyro_hz and abs(gyro_hz - 8000.0) > 1:
-        notes.append(f"the log's gyro ran at {gyro_hz:g} Hz; the SITL's virtual gyro runs at 8 kHz "
-                     f"(filters run at 8 kHz)")
+        notes.append(
+            f"the log's gyro ran at {gyro_hz:g} Hz; the SITL's virtual gyro runs at 8 kHz (filters run at 8 kHz)"
+        )
 
     # --- PIDs, D-min/D-max, feedforward
     pids = {ax: _as_list(h.get(f"{ax}PID")) for ax in _AXES}
@@ -193,14 +203,22 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
         put("d_max_advance", h.get("d_min_advance"))
 
     # --- rates
-    for key, fmt in (("rc_rates", "{}_rc_rate"), ("rc_expo", "{}_expo"), ("rates", "{}_srate"),
-                     ("rate_limits", "{}_rate_limit")):
+    for key, fmt in (
+        ("rc_rates", "{}_rc_rate"),
+        ("rc_expo", "{}_expo"),
+        ("rates", "{}_srate"),
+        ("rate_limits", "{}_rate_limit"),
+    ):
         vals = _as_list(h.get(key))
         if vals and len(vals) == 3:
             for ax, val in zip(_AXES, vals):
                 put(fmt.format(ax), val)
     if "rc_rates" not in h and "rcRate" in h:  # 3.1-3.2 headers: roll/pitch shared, yaw separate
-        for ax, rk, ek in (("roll", "rcRate", "rcExpo"), ("pitch", "rcRate", "rcExpo"), ("yaw", "rcYawRate", "rcYawExpo")):
+        for ax, rk, ek in (
+            ("roll", "rcRate", "rcExpo"),
+            ("pitch", "rcRate", "rcExpo"),
+            ("yaw", "rcYawRate", "rcYawExpo"),
+        ):
             put(f"{ax}_rc_rate", h.get(rk))
             put(f"{ax}_expo", h.get(ek))
     put("rates_type", h.get("rates_type"))
@@ -237,8 +255,10 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
         else:
             count = 0
             if _dyn_notch_feature(h, fw):
-                notes.append(f"Betaflight {fw.version_str}'s dynamic notch (a different analyser) is not "
-                             f"reproduced: dynamic notch off")
+                notes.append(
+                    f"Betaflight {fw.version_str}'s dynamic notch (a different analyser) is not "
+                    f"reproduced: dynamic notch off"
+                )
     put("dyn_notch_count", count)
     for k in ("dyn_notch_q", "dyn_notch_min_hz", "dyn_notch_max_hz"):
         put(k, h.get(k))
@@ -275,17 +295,41 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
 
     # --- loop behaviour with the same meaning across 4.x
     if v >= (4, 3, 0):
-        for k in ("iterm_relax", "iterm_relax_type", "iterm_relax_cutoff", "iterm_windup", "anti_gravity_gain",
-                  "anti_gravity_cutoff_hz", "anti_gravity_p_gain", "abs_control_gain", "pidsum_limit",
-                  "pidsum_limit_yaw", "acc_limit", "acc_limit_yaw", "feedforward_transition",
-                  "feedforward_averaging", "feedforward_smooth_factor", "feedforward_jitter_factor",
-                  "feedforward_boost", "feedforward_max_rate_limit", "motor_idle", "thrust_linearization",
-                  "throttle_boost", "throttle_boost_cutoff", "motor_output_limit", "tpa_mode", "tpa_low_rate",
-                  "tpa_low_breakpoint", "tpa_low_always"):
+        for k in (
+            "iterm_relax",
+            "iterm_relax_type",
+            "iterm_relax_cutoff",
+            "iterm_windup",
+            "anti_gravity_gain",
+            "anti_gravity_cutoff_hz",
+            "anti_gravity_p_gain",
+            "abs_control_gain",
+            "pidsum_limit",
+            "pidsum_limit_yaw",
+            "acc_limit",
+            "acc_limit_yaw",
+            "feedforward_transition",
+            "feedforward_averaging",
+            "feedforward_smooth_factor",
+            "feedforward_jitter_factor",
+            "feedforward_boost",
+            "feedforward_max_rate_limit",
+            "motor_idle",
+            "thrust_linearization",
+            "throttle_boost",
+            "throttle_boost_cutoff",
+            "motor_output_limit",
+            "tpa_mode",
+            "tpa_low_rate",
+            "tpa_low_breakpoint",
+            "tpa_low_always",
+        ):
             put(k, h.get(k))
     else:
-        notes.append(f"Betaflight {fw.version_str}: I-term relax, anti-gravity, feedforward shaping and idle "
-                     f"(scales changed in 4.3) left at the 4.6.0 defaults; PIDs, rates and filters carried over")
+        notes.append(
+            f"Betaflight {fw.version_str}: I-term relax, anti-gravity, feedforward shaping and idle "
+            f"(scales changed in 4.3) left at the 4.6.0 defaults; PIDs, rates and filters carried over"
+        )
     return FirmwareSettings(tuple(out), f"blackbox {p.name} ({fw.label})", tuple(notes), lenient=True)
 
 

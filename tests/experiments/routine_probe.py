@@ -35,13 +35,17 @@ def main(argv):
     if "--mode" in argv:
         i = argv.index("--mode")
         mode = argv[i + 1]
-        argv = argv[:i] + argv[i + 2:]
+        argv = argv[:i] + argv[i + 2 :]
     step, files = argv[0], argv[1:]
     if os.environ.get("PROBE_OUT"):
         csvs = [describe(f) for f in files if f.endswith(".csv") and os.path.isfile(f)]
         with open(os.environ["PROBE_OUT"], "a", encoding="utf-8") as fh:
-            fh.write(json.dumps({"step": step, "argv": argv, "cwd": os.getcwd(), "listing": sorted(os.listdir(".")),
-                                 "csvs": csvs}) + "\n")
+            fh.write(
+                json.dumps(
+                    {"step": step, "argv": argv, "cwd": os.getcwd(), "listing": sorted(os.listdir(".")), "csvs": csvs}
+                )
+                + "\n"
+            )
     if step == "fit":
         if mode == "fit-crash":
             print("cannot fit: table run has no still part", file=sys.stderr)

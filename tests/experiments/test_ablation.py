@@ -25,13 +25,24 @@ def _static_case(seed=0, n=6000, rate=200.0):
 
 
 def test_present_effects_and_rows():
-    p = {"bias": {"b_rad_s": np.zeros(3), "turn_on_sigma_rad_s": np.full(3, 1e-3)},
-         "scale": {"s": np.zeros(3)}, "misalignment": {"m_rad": np.full(6, 1e-3)},
-         "arw": {"n_rad_per_sqrt_s": np.full(3, 1e-4)}}
+    p = {
+        "bias": {"b_rad_s": np.zeros(3), "turn_on_sigma_rad_s": np.full(3, 1e-3)},
+        "scale": {"s": np.zeros(3)},
+        "misalignment": {"m_rad": np.full(6, 1e-3)},
+        "arw": {"n_rad_per_sqrt_s": np.full(3, 1e-4)},
+    }
     assert A.present_effects(p) == ["bias", "misalignment"]  # zero scale is absent, noise is not a correction
     rows = A.row_names(["bias", "misalignment"])
-    assert rows == ["none", "all", "all but bias", "all but misalignment", "only bias", "only misalignment",
-                    "true params", "floor"]
+    assert rows == [
+        "none",
+        "all",
+        "all but bias",
+        "all but misalignment",
+        "only bias",
+        "only misalignment",
+        "true params",
+        "floor",
+    ]
     assert A.row_names(["bias"]) == ["none", "all", "true params", "floor"]
 
 
@@ -73,9 +84,16 @@ def test_instance_metrics_flattening():
 
     s = AttitudeScore(1.0, 0.5, 1.2, 0.1, 600.0, 100)
     f = AttitudeScore(0.1, 0.05, 0.12, 0.01, 600.0, 100)
-    ab = A.InstanceAblation("static", "x", 1, ("bias",), ("bias",), {"none": s, "all": f, "floor": f},
-                            np.linspace(0, 600, len(A.CURVE_FRACTIONS)),
-                            {"none": np.ones(len(A.CURVE_FRACTIONS))})
+    ab = A.InstanceAblation(
+        "static",
+        "x",
+        1,
+        ("bias",),
+        ("bias",),
+        {"none": s, "all": f, "floor": f},
+        np.linspace(0, 600, len(A.CURVE_FRACTIONS)),
+        {"none": np.ones(len(A.CURVE_FRACTIONS))},
+    )
     m = A.instance_metrics(ab)
     assert m["none__final_deg"] == 1.0 and m["all__over_floor"] == 1.0 and m["none__over_floor"] == 10.0
     assert m["present__bias"] == 1.0 and m["present__scale"] == 0.0
@@ -91,16 +109,28 @@ def test_prediction_summary_budget_table_and_rows(tmp_path):
     from experiments.montecarlo import MetricSummary, TaskResult
 
     def task(i, all_rms, pred):
-        m = {"all__final_deg": 2 * all_rms, "all__rms_deg": all_rms, "all__drift_deg_per_min": 1.0,
-             "floor__final_deg": 0.1, "floor__rms_deg": 0.05, "floor__drift_deg_per_min": 0.1,
-             "pred__rms_deg": pred, "pred__final_deg": 2 * pred, "pred-floor__rms_deg": 0.05,
-             "pred-floor__final_deg": 0.1, "all__over_pred": all_rms / pred,
-             "budget__floor:arw__deg": 0.03, "budget__powerup-window__deg": 0.04}
+        m = {
+            "all__final_deg": 2 * all_rms,
+            "all__rms_deg": all_rms,
+            "all__drift_deg_per_min": 1.0,
+            "floor__final_deg": 0.1,
+            "floor__rms_deg": 0.05,
+            "floor__drift_deg_per_min": 0.1,
+            "pred__rms_deg": pred,
+            "pred__final_deg": 2 * pred,
+            "pred-floor__rms_deg": 0.05,
+            "pred-floor__final_deg": 0.1,
+            "all__over_pred": all_rms / pred,
+            "budget__floor:arw__deg": 0.03,
+            "budget__powerup-window__deg": 0.04,
+        }
         return TaskResult(index=i, scenario="static", sensor="s", instance=i, seed=i, metrics=tuple(m.items()))
 
     tasks = [task(0, 0.10, 0.1), task(1, 0.20, 0.1), task(2, 0.05, 0.1)]
-    summ = tuple(MetricSummary("static", "s", k, 3, float(np.median([t.metrics_dict[k] for t in tasks])), 0.0, 0.0, 0.0)
-                 for k in tasks[0].metrics_dict)
+    summ = tuple(
+        MetricSummary("static", "s", k, 3, float(np.median([t.metrics_dict[k] for t in tasks])), 0.0, 0.0, 0.0)
+        for k in tasks[0].metrics_dict
+    )
     camp = SimpleNamespace(scenarios=("static",), sensors=("s",), tasks=tasks, summary=summ)
     ps = A.prediction_summary(camp)["static"]
     assert ps["rms_all_deg"] == 0.10 and ps["rms_predicted_deg"] == 0.1 and ps["rms_floor_deg"] == 0.05
@@ -110,19 +140,25 @@ def test_prediction_summary_budget_table_and_rows(tmp_path):
     import dataclasses
 
     # E[r² | unit] = (true-noise / identified prediction)²
-    camp.tasks = [dataclasses.replace(t, metrics=t.metrics + (("pred-true-noise__rms_deg", tn),))
-                  for t, tn in zip(tasks, (0.1, 0.12, 0.09))]
+    camp.tasks = [
+        dataclasses.replace(t, metrics=t.metrics + (("pred-true-noise__rms_deg", tn),))
+        for t, tn in zip(tasks, (0.1, 0.12, 0.09))
+    ]
     assert A.prediction_summary(camp)["static"]["expected_r2_given_unit_mean"] == pytest.approx(
-        np.mean([1.0, 1.44, 0.81]))
+        np.mean([1.0, 1.44, 0.81])
+    )
     camp.tasks = tasks
     assert A._rows_in(camp, "static", "s") == ["all", "floor"]
     assert "powerup window" in A.budget_markdown({"static": ps})
     # a share that is float64 rounding of an unexcited parameter (1e-14 °) prints as 0, a real
     # small share (2e-4 °, above the 1e-6 ° cut) keeps its value
-    tiny = {**ps, "budget": {"floor:arw": 0.03, "param:g_sensitivity": 2.07e-14, "param:scale": 2e-4,
-                             "powerup window": 0.04}}
-    table = A.budget_markdown({"static": tiny, "turntable": {**tiny, "budget": {**tiny["budget"],
-                                                                               "param:g_sensitivity": 0.12}}})
+    tiny = {
+        **ps,
+        "budget": {"floor:arw": 0.03, "param:g_sensitivity": 2.07e-14, "param:scale": 2e-4, "powerup window": 0.04},
+    }
+    table = A.budget_markdown(
+        {"static": tiny, "turntable": {**tiny, "budget": {**tiny["budget"], "param:g_sensitivity": 0.12}}}
+    )
     assert "e-14" not in table and "0.12" in table
     assert A.budget_figure({"static": ps}, tmp_path).endswith(".png")
 
@@ -146,6 +182,7 @@ def test_mean_r2_is_unbiased_where_the_median_is_not_and_the_band_holds_its_rate
     # pooled band over scenarios of equal shape: the mean of S·n such draws (Gamma(S·n·k) exactly)
     lo, hi = A.pooled_band({"alpha": 1e-3, "scenarios": {"a": {"r2_shape": k}, "b": {"r2_shape": k}}}, {"a": n, "b": n})
     from scipy import stats
+
     assert lo == pytest.approx(stats.gamma.ppf(1e-3, 2 * n * k, scale=1 / (2 * n * k)), rel=1e-9)
     assert hi == pytest.approx(stats.gamma.isf(1e-3, 2 * n * k, scale=1 / (2 * n * k)), rel=1e-9)
 

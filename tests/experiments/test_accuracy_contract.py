@@ -44,8 +44,14 @@ CONTRACT_UNITS = (20240607, 20240608)
 
 #: Effects that must keep paying off per scenario (omitting them raised the RMS error by ≥ 5 %
 #: in every unit of the Monte Carlo; contract_thresholds(...)["pays_off"]).
-PAYS_OFF = {'static': ['bias'], 'static_bumped': ['bias'], 'turntable': ['bias', 'scale', 'misalignment', 'g_sensitivity'],
-            'thermal': ['bias', 'bias_thermal'], 'hover': ['bias'], 'power_cycles': ['bias']}
+PAYS_OFF = {
+    "static": ["bias"],
+    "static_bumped": ["bias"],
+    "turntable": ["bias", "scale", "misalignment", "g_sensitivity"],
+    "thermal": ["bias", "bias_thermal"],
+    "hover": ["bias"],
+    "power_cycles": ["bias"],
+}
 
 #: Bands of the drift contract for len(CONTRACT_UNITS) units, from ``drift_thresholds`` on
 #: 17 fresh units: instances 0-8 of campaign seed 31 and 0-7 of campaign seed 32
@@ -56,12 +62,60 @@ PAYS_OFF = {'static': ['bias'], 'static_bumped': ['bias'], 'turntable': ['bias',
 DRIFT_THRESHOLDS = {
     "alpha": 0.0001,
     "scenarios": {
-        "static": {"mc_units": 17, "r2_mean": 0.92887, "r2_mean_se": 0.21124, "r2_shape_mle": 1.3761, "r2_shape": 0.79742, "quality_mean": 0.6022, "quality_sd": 5.216e-06},
-        "static_bumped": {"mc_units": 17, "r2_mean": 1.2017, "r2_mean_se": 0.20086, "r2_shape_mle": 1.8394, "r2_shape": 1.0422, "quality_mean": 0.4532, "quality_sd": 8.3414e-07},
-        "turntable": {"mc_units": 17, "r2_mean": 0.9111, "r2_mean_se": 0.095828, "r2_shape_mle": 5.0544, "r2_shape": 2.8106, "quality_mean": 0.49525, "quality_sd": 0.032234},
-        "thermal": {"mc_units": 17, "r2_mean": 0.9902, "r2_mean_se": 0.16294, "r2_shape_mle": 2.8824, "r2_shape": 1.6454, "quality_mean": 0.30019, "quality_sd": 0.0046555},
-        "hover": {"mc_units": 17, "r2_mean": 1.2186, "r2_mean_se": 0.28964, "r2_shape_mle": 1.1207, "r2_shape": 0.64125, "quality_mean": 0.44902, "quality_sd": 3.8112e-05},
-        "power_cycles": {"mc_units": 17, "r2_mean": 1.0335, "r2_mean_se": 0.18012, "r2_shape_mle": 2.2236, "r2_shape": 1.2748, "quality_mean": -0.1799, "quality_sd": 5.0627e-06},
+        "static": {
+            "mc_units": 17,
+            "r2_mean": 0.92887,
+            "r2_mean_se": 0.21124,
+            "r2_shape_mle": 1.3761,
+            "r2_shape": 0.79742,
+            "quality_mean": 0.6022,
+            "quality_sd": 5.216e-06,
+        },
+        "static_bumped": {
+            "mc_units": 17,
+            "r2_mean": 1.2017,
+            "r2_mean_se": 0.20086,
+            "r2_shape_mle": 1.8394,
+            "r2_shape": 1.0422,
+            "quality_mean": 0.4532,
+            "quality_sd": 8.3414e-07,
+        },
+        "turntable": {
+            "mc_units": 17,
+            "r2_mean": 0.9111,
+            "r2_mean_se": 0.095828,
+            "r2_shape_mle": 5.0544,
+            "r2_shape": 2.8106,
+            "quality_mean": 0.49525,
+            "quality_sd": 0.032234,
+        },
+        "thermal": {
+            "mc_units": 17,
+            "r2_mean": 0.9902,
+            "r2_mean_se": 0.16294,
+            "r2_shape_mle": 2.8824,
+            "r2_shape": 1.6454,
+            "quality_mean": 0.30019,
+            "quality_sd": 0.0046555,
+        },
+        "hover": {
+            "mc_units": 17,
+            "r2_mean": 1.2186,
+            "r2_mean_se": 0.28964,
+            "r2_shape_mle": 1.1207,
+            "r2_shape": 0.64125,
+            "quality_mean": 0.44902,
+            "quality_sd": 3.8112e-05,
+        },
+        "power_cycles": {
+            "mc_units": 17,
+            "r2_mean": 1.0335,
+            "r2_mean_se": 0.18012,
+            "r2_shape_mle": 2.2236,
+            "r2_shape": 1.2748,
+            "quality_mean": -0.1799,
+            "quality_sd": 5.0627e-06,
+        },
     },
 }
 
@@ -70,9 +124,15 @@ def _score(scenario, seed, cache, **kw):
     from experiments.report import single_thread_blas
 
     with single_thread_blas():
-        return A.ablate_instance(scenario, sensor=A.CONTRACT_SENSOR, seed=seed,
-                                 duration_s=A.CONTRACT_DURATIONS_S[scenario],
-                                 quick=A.CONTRACT_QUICK_CALIBRATION, cache_dir=cache, **kw)
+        return A.ablate_instance(
+            scenario,
+            sensor=A.CONTRACT_SENSOR,
+            seed=seed,
+            duration_s=A.CONTRACT_DURATIONS_S[scenario],
+            quick=A.CONTRACT_QUICK_CALIBRATION,
+            cache_dir=cache,
+            **kw,
+        )
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +165,9 @@ def test_each_correction_pays_off(results, scenario):
             assert eff in ab.present, f"{scenario}: {eff} no longer present in the unit"
             worse = ab.scores[f"all but {eff}"].rms_error_deg
             best = ab.scores["all"].rms_error_deg
-            assert worse > best, f"{scenario}: omitting {eff} no longer raises the error ({worse:.4g} <= {best:.4g} deg)"
+            assert worse > best, (
+                f"{scenario}: omitting {eff} no longer raises the error ({worse:.4g} <= {best:.4g} deg)"
+            )
         # and the corrections together beat no correction by a wide margin
         assert ab.scores["all"].rms_error_deg < 0.5 * ab.scores["none"].rms_error_deg
 
@@ -127,15 +189,20 @@ def _calibration(seed, cache):
     from sim import scenarios as S
 
     pt = S.simulate("static", sensor=A.CONTRACT_SENSOR, seed=seed, duration_s=2.0).params_true
-    return A.calibrate_instance(A.CONTRACT_SENSOR, seed, A.present_effects(pt),
-                                quick=A.CONTRACT_QUICK_CALIBRATION, cache_dir=cache)
+    return A.calibrate_instance(
+        A.CONTRACT_SENSOR, seed, A.present_effects(pt), quick=A.CONTRACT_QUICK_CALIBRATION, cache_dir=cache
+    )
 
 
 def test_mutation_half_power_up_window_fails(results, cache):
     # 1-s still window instead of 2 s: the power-up bias error doubles its variance; the
     # prediction sees it (quality band), whatever the noise draw.
-    mut = {sc: [_score(sc, u, cache, mahony_kp_per_s=None, powerup_window_s=A.POWERUP_WINDOW_S / 2)
-                for u in CONTRACT_UNITS] for sc in ("static",)}
+    mut = {
+        sc: [
+            _score(sc, u, cache, mahony_kp_per_s=None, powerup_window_s=A.POWERUP_WINDOW_S / 2) for u in CONTRACT_UNITS
+        ]
+        for sc in ("static",)
+    }
     fails = _failures(mut)
     assert any(f.startswith("static:") for f in fails), fails
 
@@ -145,9 +212,18 @@ def test_mutation_dropped_scale_fails(results, cache):
     # uncorrected term (completeness: ×6.0 > 1.05) and, on the rate table, the measured error
     # against what the calibration claims (honesty: mean r² 22 against a band of [0.11, 3.4])
     # both say so.
-    mut = {"turntable": [_score("turntable", u, cache, mahony_kp_per_s=None,
-                                calibration=_mutated(_calibration(u, cache), drop=("scale",)))
-                         for u in CONTRACT_UNITS]}
+    mut = {
+        "turntable": [
+            _score(
+                "turntable",
+                u,
+                cache,
+                mahony_kp_per_s=None,
+                calibration=_mutated(_calibration(u, cache), drop=("scale",)),
+            )
+            for u in CONTRACT_UNITS
+        ]
+    }
     fails = _failures(mut)
     assert any(f.startswith("turntable:") for f in fails), fails
 
@@ -157,9 +233,14 @@ def test_mutation_inflated_standard_errors_fail(results, cache, scenario):
     # every reported standard error × 3: the calibration claims a worse result than it has
     # (quality band; on the thermal run, whose order selection spreads predicted/floor over
     # units, the bound is ×1.55 and a ×3 inflation sits at it — docs/accuracy.md).
-    mut = {scenario: [_score(scenario, u, cache, mahony_kp_per_s=None,
-                             calibration=_mutated(_calibration(u, cache), se_factor=3.0))
-                      for u in CONTRACT_UNITS]}
+    mut = {
+        scenario: [
+            _score(
+                scenario, u, cache, mahony_kp_per_s=None, calibration=_mutated(_calibration(u, cache), se_factor=3.0)
+            )
+            for u in CONTRACT_UNITS
+        ]
+    }
     fails = _failures(mut)
     assert any(f.startswith(f"{scenario}:") for f in fails), fails
 
@@ -181,8 +262,6 @@ def test_integration_reproduces_simulated_truth():
     assert np.max(error_angle_rad(q, r.truth.q_SW_wxyz)) < 1e-7
     qf = integrate_gyro(r.truth.t_s, r.truth.omega_S_rad_s, q0_wxyz=r.truth.q_SW_wxyz[0], hold="forward")
     assert np.max(error_angle_rad(qf, r.truth.q_SW_wxyz)) > 1e-3
-
-
 
 
 @pytest.mark.slow
@@ -219,8 +298,15 @@ def test_mutation_wrong_thermal_order_fails(tmp_path, monkeypatch):
         from experiments.report import single_thread_blas
 
         with single_thread_blas():
-            ab = A.ablate_instance("thermal", sensor=sensor, seed=unit, duration_s=A.CONTRACT_DURATIONS_S["thermal"],
-                                   quick=A.CONTRACT_QUICK_CALIBRATION, cache_dir=cache, mahony_kp_per_s=None)
+            ab = A.ablate_instance(
+                "thermal",
+                sensor=sensor,
+                seed=unit,
+                duration_s=A.CONTRACT_DURATIONS_S["thermal"],
+                quick=A.CONTRACT_QUICK_CALIBRATION,
+                cache_dir=cache,
+                mahony_kp_per_s=None,
+            )
         return A.drift_contract_failures({"thermal": A.drift_statistics([A.instance_metrics(ab)])}, DRIFT_THRESHOLDS)
 
     # the unit is outside the Monte Carlo's population (the preset has no quadratic term): the

@@ -35,8 +35,9 @@ def test_gate_statistic_white_noise_theory():
     assert s.shape == (500, 3)
     assert np.allclose(s.mean(axis=0), 199 * 2 * sigma / math.sqrt(math.pi), atol=2 * sigma)
     # a constant rate offset does not change the statistic at all
-    assert np.array_equal(X.gate_sums_counts(g + 65.5), X.gate_sums_counts(g)) or \
-        np.allclose(X.gate_sums_counts(g + 65.5), s, rtol=1e-12)
+    assert np.array_equal(X.gate_sums_counts(g + 65.5), X.gate_sums_counts(g)) or np.allclose(
+        X.gate_sums_counts(g + 65.5), s, rtol=1e-12
+    )
 
 
 def test_run_writes_section(tmp_path):

@@ -50,8 +50,11 @@ def calibrations():
     from sim.presets import load_preset
 
     present = [e for e in E.CORRECTABLE if e in load_preset("icm42688p").effects]
-    return present, _old_calibration("icm42688p", SEED, present), A.calibrate_core("icm42688p", SEED, present,
-                                                                                     durations_s=CAL_S)
+    return (
+        present,
+        _old_calibration("icm42688p", SEED, present),
+        A.calibrate_core("icm42688p", SEED, present, durations_s=CAL_S),
+    )
 
 
 @pytest.mark.parametrize("scenario,duration_s", [("static", 20.0), ("power_cycles", 30.0)])
@@ -72,16 +75,28 @@ def test_core_through_the_door_is_bit_identical_to_the_old_ablation(scenario, du
         for k in so:
             for name in so[k]:
                 np.testing.assert_array_equal(so[k][name], sn[k][name])
-    inp = E.ModelInputs(t_s=rec.t_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=truth.q_SW_wxyz,
-                        t_since_power_up_s=truth.t_since_power_up_s)
+    inp = E.ModelInputs(
+        t_s=rec.t_s,
+        f_S_m_s2=rec.accel_m_s2,
+        temp_c=rec.temp_c,
+        q_SW_wxyz=truth.q_SW_wxyz,
+        t_since_power_up_s=truth.t_since_power_up_s,
+    )
     still = A.powerup_windows(rec, p_true, bias_bound_rad_s=A.bias_bound_rad_s("icm42688p"))
     w_old = A.corrected_gyro(rec.gyro_rad_s, inp, old_stages, present, still)
     stripped = C.strip_truth(rec, references=False)
     w_new = C.CoreCalibrator(effects=present).apply(stripped, new)
     np.testing.assert_array_equal(w_old, w_new)
     # and the ablation's 'all' row is that gyro
-    ab = A.ablate_instance(scenario, seed=SEED, duration_s=duration_s, quick=True, calibration=old_stages,
-                           mahony_kp_per_s=None, predict=False)
+    ab = A.ablate_instance(
+        scenario,
+        seed=SEED,
+        duration_s=duration_s,
+        quick=True,
+        calibration=old_stages,
+        mahony_kp_per_s=None,
+        predict=False,
+    )
     start = int(still[0][1].stop)
     sc = A.score_variants(rec.t_s, truth.q_SW_wxyz, {"all": w_old}, start=start)["all"][0]
     assert ab.scores["all"].rms_error_deg == sc.rms_error_deg

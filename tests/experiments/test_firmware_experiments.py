@@ -12,8 +12,13 @@ from gyrocore.errors import GyroInputError
 
 
 def test_recommendation_lines_change_only_what_they_must():
-    tune = ["set gyro_lpf1_type = PT1", "set gyro_lpf1_static_hz = 90", "set gyro_lpf2_static_hz = 0",
-            "set dyn_notch_count = 0", "aux 0 0 0 1700 2100 0 0"]
+    tune = [
+        "set gyro_lpf1_type = PT1",
+        "set gyro_lpf1_static_hz = 90",
+        "set gyro_lpf2_static_hz = 0",
+        "set dyn_notch_count = 0",
+        "aux 0 0 0 1700 2100 0 0",
+    ]
     c = candidates()
     # the tune already has PT1 and no lpf2: only the cutoff and the dynamic-LPF switch are new
     assert changed_lines(tune, c["pt1 150 Hz"]) == ["set gyro_lpf1_static_hz = 150", "set gyro_lpf1_dyn_min_hz = 0"]

@@ -36,11 +36,17 @@ def test_firmware_hook_calls_the_firmware_experiment_when_the_binary_is_built(tm
 
     def fake_run(*, out_dir, binary, workers=None, **kw):
         calls.append((Path(out_dir), binary, kw))
-        return ExperimentResult(name="cutoffs_firmware", title="Cutoffs flown by Betaflight", markdown="| grid |",
-                                figures=("figures/fw.png",), summary={"best": "pt1 90"})
+        return ExperimentResult(
+            name="cutoffs_firmware",
+            title="Cutoffs flown by Betaflight",
+            markdown="| grid |",
+            figures=("figures/fw.png",),
+            summary={"best": "pt1 90"},
+        )
 
-    md, figs, summ = flight.firmware_part(tmp_path, size="standard", find_binary=lambda: Binary(),
-                                          firmware_run=fake_run)
+    md, figs, summ = flight.firmware_part(
+        tmp_path, size="standard", find_binary=lambda: Binary(), firmware_run=fake_run
+    )
     assert calls == [(tmp_path, "/cache/betaflight_SITL", flight.FIRMWARE_SIZES["standard"])]
     assert "| grid |" in md and "4.6.0" in md and figs == ("figures/fw.png",)
     assert summ["built"] and summ["cutoffs"] == {"best": "pt1 90"}
@@ -56,6 +62,7 @@ def test_flight_section_without_data(tmp_path):
 
 def test_firmware_hook_binary_built_but_no_firmware_experiment(tmp_path, monkeypatch):
     """A built binary in a tree without experiments.firmware_cutoffs: said in one line, nothing run."""
+
     class Binary:
         binary, version = "/cache/betaflight_SITL", "4.6.0"
 

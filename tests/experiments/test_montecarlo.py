@@ -94,8 +94,7 @@ def test_bad_campaign_options_are_one_line_errors(kwargs):
 
 
 def test_serial_and_local_processes_are_identical_and_statistics_are_right():
-    kw = dict(scenarios=["still"], sensors=["p"], instances=40, seed=3, duration_s=2.0,
-              task_function=static_bias_task)
+    kw = dict(scenarios=["still"], sensors=["p"], instances=40, seed=3, duration_s=2.0, task_function=static_bias_task)
     serial = mc.run_campaign(workers=1, **kw)
     procs = mc.run_campaign(workers=2, **kw)
     assert serial.backend == "serial" and procs.backend == "processes" and procs.workers == 2
@@ -116,12 +115,22 @@ def test_serial_and_local_processes_are_identical_and_statistics_are_right():
 
 def test_dask_local_cluster_matches_serial_and_processes():
     distributed = pytest.importorskip("dask.distributed")
-    kw = dict(scenarios=["still", "still2"], sensors=["p"], instances=6, seed=11, duration_s=1.0,
-              task_function=static_bias_task, options={"scale": 2.0})
+    kw = dict(
+        scenarios=["still", "still2"],
+        sensors=["p"],
+        instances=6,
+        seed=11,
+        duration_s=1.0,
+        task_function=static_bias_task,
+        options={"scale": 2.0},
+    )
     serial = mc.run_campaign(workers=1, **kw)
     procs = mc.run_campaign(workers=2, **kw)
     with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
         silence_logs=50,
     ) as cluster:
         on_dask = mc.run_campaign(scheduler=cluster.scheduler_address, **kw)
@@ -154,8 +163,15 @@ def test_summary_handles_metrics_missing_in_some_tasks():
 
 
 def test_files_round_trip(tmp_path):
-    res = mc.run_campaign(scenarios=["still"], sensors=["p", "q"], instances=4, seed=0,
-                          duration_s=0.5, workers=1, task_function=static_bias_task)
+    res = mc.run_campaign(
+        scenarios=["still"],
+        sensors=["p", "q"],
+        instances=4,
+        seed=0,
+        duration_s=0.5,
+        workers=1,
+        task_function=static_bias_task,
+    )
     paths = mc.write_campaign(res, tmp_path / "mc")
     back = mc.read_campaign(tmp_path / "mc")
     _same(res.tasks, back.tasks)
@@ -217,9 +233,27 @@ def test_command_bad_options_are_one_line_errors(argv, message, tmp_path):
 
 @pytest.mark.slow
 def test_command_runs_a_real_campaign_and_writes_the_tables(tmp_path):
-    rc, out, err = _cli(["montecarlo", "--scenarios", "static", "--sensors", "icm42688p", "--instances", "2",
-                         "--duration-s", "20", "--quick", "--workers", "1", "--seed", "4",
-                         "--out", str(tmp_path / "mc"), "--json"])
+    rc, out, err = _cli(
+        [
+            "montecarlo",
+            "--scenarios",
+            "static",
+            "--sensors",
+            "icm42688p",
+            "--instances",
+            "2",
+            "--duration-s",
+            "20",
+            "--quick",
+            "--workers",
+            "1",
+            "--seed",
+            "4",
+            "--out",
+            str(tmp_path / "mc"),
+            "--json",
+        ]
+    )
     assert rc == 0, err
     doc = json.loads(out)
     assert doc["backend"] == "serial" and doc["instances"] == 2
@@ -238,12 +272,14 @@ def test_real_ablation_task_is_identical_on_every_backend():
     """The default task (simulate, calibrate, score) gives bit-identical results serially, on
     2 local processes and on a 2-worker Dask LocalCluster."""
     distributed = pytest.importorskip("dask.distributed")
-    kw = dict(scenarios=["static"], sensors=["icm42688p"], instances=2, seed=9, duration_s=20.0,
-              options={"quick": True})
+    kw = dict(
+        scenarios=["static"], sensors=["icm42688p"], instances=2, seed=9, duration_s=20.0, options={"quick": True}
+    )
     serial = mc.run_campaign(workers=1, **kw)
     procs = mc.run_campaign(workers=2, **kw)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None, silence_logs=50) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=50
+    ) as cluster:
         on_dask = mc.run_campaign(scheduler=cluster.scheduler_address, **kw)
     assert serial.task_function == "experiments.ablation:ablation_task"
     _same(serial.tasks, procs.tasks)

@@ -16,11 +16,12 @@ def _fake_hover(rate=100.0, ground_s=3.0, flight_s=60.0):
     n = int((ground_s + flight_s) * rate)
     t = np.arange(n) / rate
     w = np.zeros((n, 3))
-    w[int(ground_s * rate):, 2] = 0.2 * np.sin(0.5 * t[int(ground_s * rate):])  # gentle yaw
+    w[int(ground_s * rate) :, 2] = 0.2 * np.sin(0.5 * t[int(ground_s * rate) :])  # gentle yaw
     ang = np.concatenate([[0.0], np.cumsum(w[1:, 2]) / rate])
     q = np.stack([np.cos(ang / 2), 0 * ang, 0 * ang, np.sin(ang / 2)], axis=1)
-    truth = SimpleNamespace(omega_S_rad_s=w, f_S_m_s2=np.tile([0, 0, 9.81], (n, 1)), temp_c=np.full(n, 30.0),
-                            q_SW_wxyz=q)
+    truth = SimpleNamespace(
+        omega_S_rad_s=w, f_S_m_s2=np.tile([0, 0, 9.81], (n, 1)), temp_c=np.full(n, 30.0), q_SW_wxyz=q
+    )
     params = {"arw": {"n_rad_per_sqrt_s": np.full(3, 5e-5)}, "bias_instability": {"b_rad_s": np.full(3, 3e-5)}}
     return SimpleNamespace(truth=truth, recording=SimpleNamespace(rate_hz=rate), params_true=params), ground_s
 
@@ -32,8 +33,11 @@ def _cand(label, cost, se=None, unobservable=()):
 def test_longer_window_and_longer_runs_predict_less_drift_and_choose_is_cheapest():
     res, ground = _fake_hover()
     groups = [ParameterGroup("scale", {"scale": {"s": np.zeros(3)}}, {"scale": {"s": np.full(3, 1e-3)}})]
-    table = [_cand("ref", 387.0), _cand("quarter", 97.0, {"scale": np.full(3, 2e-3)}),
-             _cand("3 mounts", 50.0, {"scale": np.full(3, 1e-3)}, ("g_sensitivity.h_rad_s_per_m_s2[1]",))]
+    table = [
+        _cand("ref", 387.0),
+        _cand("quarter", 97.0, {"scale": np.full(3, 2e-3)}),
+        _cand("3 mounts", 50.0, {"scale": np.full(3, 1e-3)}, ("g_sensitivity.h_rad_s_per_m_s2[1]",)),
+    ]
     rows = P.evaluate_grid(res, ground, groups, windows=(0.5, 2.0, 8.0), table=table)
     ref = {r["window_s"]: r for r in rows if r["table"] == "ref"}
     # white noise of the window: σ_b² = N²/T_w; a longer window always helps at this noise level
@@ -90,12 +94,19 @@ def test_record_support_follows_the_resolvability_rule():
 
     res, ground = _fake_hover(rate=100.0, ground_s=3.0, flight_s=600.0)
     inp, segs, start = P._prefixed_inputs(res, ground, 2.0)
-    both = P._floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=np.full(3, 5e-5),
-                                                    bias_instability_rad_s=np.full(3, 2.9e-5)))
-    np.testing.assert_allclose(both, 5e-5 ** 2 * uv["arw_rad_per_sqrt_s"] + 2.9e-5 ** 2 * uv["bias_instability_rad_s"],
-                               rtol=1e-9)
-    terms = {"arw_rad_per_sqrt_s": 5e-5, "bias_instability_rad_s": 2.9e-5, "rrw_rad_per_s_sqrt_s": 0.0,
-             "correlated_sigma_rad_s": 0.0, "correlated_tau_c_s": None}
+    both = P._floor_ms(
+        inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=np.full(3, 5e-5), bias_instability_rad_s=np.full(3, 2.9e-5))
+    )
+    np.testing.assert_allclose(
+        both, 5e-5**2 * uv["arw_rad_per_sqrt_s"] + 2.9e-5**2 * uv["bias_instability_rad_s"], rtol=1e-9
+    )
+    terms = {
+        "arw_rad_per_sqrt_s": 5e-5,
+        "bias_instability_rad_s": 2.9e-5,
+        "rrw_rad_per_s_sqrt_s": 0.0,
+        "correlated_sigma_rad_s": 0.0,
+        "correlated_tau_c_s": None,
+    }
     short = P.record_support(terms, n_samples=387_001, rate_hz=1000.0, unit_var=uv, max_record_s=20000.0)
     b = next(r for r in short if r["term"] == "bias_instability_rad_s")
     assert b["present"] and b["matters"] and not b["resolvable"] and b["warn"]
@@ -104,8 +115,9 @@ def test_record_support_follows_the_resolvability_rule():
     k = next(r for r in short if r["term"] == "rrw_rad_per_s_sqrt_s")
     # an absent random walk at the smallest level that matters (+10 % floor RMS) is an assumption, not a warning
     assert not k["present"] and abs(k["floor_rise"] - P.SUPPORT_RISE) < 1e-9 and not k["warn"]
-    msg = P._support_message(short, P.NoiseSource(model=None, label="x", record_s=387.0, rate_hz=1000.0,
-                                                  kind="calibration"), 600.0)
+    msg = P._support_message(
+        short, P.NoiseSource(model=None, label="x", record_s=387.0, rate_hz=1000.0, kind="calibration"), 600.0
+    )
     assert msg is not None and "387 s" in msg and "600-s flight" in msg and "\n" not in msg
     long = P.record_support(terms, n_samples=2_400_001, rate_hz=1000.0, unit_var=uv, max_record_s=20000.0)
     assert not any(r["warn"] for r in long)
@@ -143,8 +155,11 @@ def test_load_noise_from_json_recording_and_bad_files(tmp_path):
     np.testing.assert_allclose(a.model.arw_rad_per_sqrt_s, b.model.arw_rad_per_sqrt_s, rtol=1e-12)
     # white noise of 200 s at 1 kHz: N within 5 σ of its relative SE 1/√(n/2) ≈ 0.32 % -> 1.6 %
     np.testing.assert_allclose(a.model.arw_rad_per_sqrt_s, N, rtol=0.016)
-    for bad, msg in [("missing.json", "no such noise file"), ("junk.json", "not a noise JSON"),
-                     ("other.json", "neither a noise JSON")]:
+    for bad, msg in [
+        ("missing.json", "no such noise file"),
+        ("junk.json", "not a noise JSON"),
+        ("other.json", "neither a noise JSON"),
+    ]:
         if bad == "junk.json":
             (tmp_path / bad).write_text("{not json")
         if bad == "other.json":
@@ -178,8 +193,18 @@ def test_protocol_quick_with_noise_file_says_which_model_and_warns_once(tmp_path
     rc, out, err = _cli(["noise", str(tmp_path / "still.csv"), "--json"])
     assert rc == 0
     (tmp_path / "still.json").write_text(out)
-    rc, out, err = _cli(["experiment", "protocol", "--quick", "--noise", str(tmp_path / "still.json"),
-                         "--out", str(tmp_path / "o"), "--json"])
+    rc, out, err = _cli(
+        [
+            "experiment",
+            "protocol",
+            "--quick",
+            "--noise",
+            str(tmp_path / "still.json"),
+            "--out",
+            str(tmp_path / "o"),
+            "--json",
+        ]
+    )
     assert rc == 0, err
     warn = [ln for ln in err.splitlines() if ln.startswith("warning:")]
     assert len(warn) == 1 and "does not support a 60-s flight" in warn[0] and "flicker" in warn[0], err

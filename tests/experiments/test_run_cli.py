@@ -21,8 +21,13 @@ from gyrocore.errors import GyroInputError
 def _ok(*, out_dir, **kw):
     (out_dir / "figures").mkdir(exist_ok=True)
     (out_dir / "figures" / "a.png").write_bytes(b"x")
-    return ExperimentResult(name="ok", title="OK section", markdown="hello ![a](figures/a.png)",
-                            figures=("figures/a.png",), summary={"v": 1.5})
+    return ExperimentResult(
+        name="ok",
+        title="OK section",
+        markdown="hello ![a](figures/a.png)",
+        figures=("figures/a.png",),
+        summary={"v": 1.5},
+    )
 
 
 def _ok2(*, out_dir, **kw):
@@ -43,7 +48,9 @@ def test_build_report_and_replace_policy(tmp_path):
     # a failing section names itself in one line, the others still run, the finished ones are kept
     # in out.incomplete, and the old report is untouched
     before = (p / "report.md").read_text()
-    with pytest.raises(ReportIncomplete, match=r"^section bad failed: RuntimeError: boom; finished sections \(ok, ok2\)") as ei:
+    with pytest.raises(
+        ReportIncomplete, match=r"^section bad failed: RuntimeError: boom; finished sections \(ok, ok2\)"
+    ) as ei:
         build_report([("ok", _ok), ("bad", _fail), ("ok2", _ok2)], out)
     assert (p / "report.md").read_text() == before
     assert not [q for q in tmp_path.iterdir() if q.name.startswith(".out.tmp")]
@@ -127,8 +134,9 @@ def test_sigint_after_two_sections_keeps_them(tmp_path):
     before = (out / "report.md").read_text()
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(root)}
-    proc = subprocess.Popen([sys.executable, "-c", _SLOW_SECTIONS, str(out)], cwd=root, env=env,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _SLOW_SECTIONS, str(out)], cwd=root, env=env, stderr=subprocess.PIPE, text=True
+    )
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:  # wait until section two is saved in the staging folder
         if any((d / "sections" / "two.json").exists() for d in tmp_path.glob(".out.tmp-*")):
@@ -145,7 +153,11 @@ def test_sigint_after_two_sections_keeps_them(tmp_path):
     part = tmp_path / "out.incomplete"
     doc = json.loads((part / "summary.json").read_text())
     assert {k: v["state"] for k, v in doc["sections"].items()} == {
-        "one": "done", "two": "done", "three": "interrupted", "four": "not run"}
+        "one": "done",
+        "two": "done",
+        "three": "interrupted",
+        "four": "not run",
+    }
     assert (part / "sections" / "two.md").read_text().startswith("## TWO")
     assert not list(tmp_path.glob(".out.tmp-*"))
 

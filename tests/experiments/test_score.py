@@ -51,8 +51,11 @@ def unit():
 
 
 def _probe(mode="ok", **kw):
-    return C.CommandCalibrator(fit_cmd=f"{PY} {PROBE} fit {{params}} {{inputs}} --mode {mode}",
-                               apply_cmd=f"{PY} {PROBE} apply {{params}} {{input}} {{output}} --mode {mode}", **kw)
+    return C.CommandCalibrator(
+        fit_cmd=f"{PY} {PROBE} fit {{params}} {{inputs}} --mode {mode}",
+        apply_cmd=f"{PY} {PROBE} apply {{params}} {{input}} {{output}} --mode {mode}",
+        **kw,
+    )
 
 
 # ------------------------------------------------------------------ templates: never a shell
@@ -61,8 +64,12 @@ def test_split_template_placeholders_are_whole_arguments():
     assert argv == ["./cal", "fit now", "--out={params}", "{inputs}"]
     vals = {"{params}": "/tmp/a b;rm -rf x/p", "{inputs}": ["/t/x y.csv", "/t/$(id).csv"]}
     assert C.expand(argv, vals) == ["./cal", "fit now", "--out=/tmp/a b;rm -rf x/p", "/t/x y.csv", "/t/$(id).csv"]
-    for bad, allowed in (("cal {output}", ("{params}", "{inputs}")), ("cal x{inputs}", ("{inputs}",)),
-                         ("", ("{params}",)), ("cal 'unclosed", ("{params}",))):
+    for bad, allowed in (
+        ("cal {output}", ("{params}", "{inputs}")),
+        ("cal x{inputs}", ("{inputs}",)),
+        ("", ("{params}",)),
+        ("cal 'unclosed", ("{params}",)),
+    ):
         with pytest.raises(GyroInputError):
             C.split_template(bad, allowed=allowed)
 
@@ -95,14 +102,17 @@ def test_command_sees_no_truth_gets_literal_paths_and_the_folder_is_removed(unit
 
 
 # ------------------------------------------------------------------ faults: one line each
-@pytest.mark.parametrize("mode,reason", [
-    ("crash", "apply command exited with status 3: ZeroDivisionError: division by zero"),
-    ("fit-crash", "fit command exited with status 4: cannot fit: table run has no still part"),
-    ("nothing", "apply command wrote no output file"),
-    ("nan", "output file rejected: output.csv: 1 rows with NaN/inf values"),
-    ("rows", "rows, the input has"),
-    ("degs", "× the raw rate: deg/s written where rad/s belong"),
-])
+@pytest.mark.parametrize(
+    "mode,reason",
+    [
+        ("crash", "apply command exited with status 3: ZeroDivisionError: division by zero"),
+        ("fit-crash", "fit command exited with status 4: cannot fit: table run has no still part"),
+        ("nothing", "apply command wrote no output file"),
+        ("nan", "output file rejected: output.csv: 1 rows with NaN/inf values"),
+        ("rows", "rows, the input has"),
+        ("degs", "× the raw rate: deg/s written where rad/s belong"),
+    ],
+)
 def test_faults_end_in_one_line(unit, mode, reason):
     cal, scored = unit
     with pytest.raises(C.RoutineFailure) as ei:
@@ -168,8 +178,9 @@ def test_python_routine_runs_isolated_with_a_timeout(unit):
 
 
 def test_make_routine_isolates_user_modules_only():
-    assert isinstance(SC.make_routine({"calibrator": "tests.experiments.python_routine_probe:ok"}),
-                      C.IsolatedCalibrator)
+    assert isinstance(
+        SC.make_routine({"calibrator": "tests.experiments.python_routine_probe:ok"}), C.IsolatedCalibrator
+    )
     assert isinstance(SC.make_routine({"calibrator": "core"}), C.CoreCalibrator)
 
 
@@ -186,8 +197,10 @@ def test_units_check_accepts_real_calibrations():
 def test_article_script_equals_the_registered_article_method(unit):
     cal, scored = unit
     script = EXAMPLES / "article_cmd.py"
-    cmd = C.CommandCalibrator(fit_cmd=f"{PY} {script} fit {{params}} {{inputs}} --lsb-per-dps 16.4",
-                              apply_cmd=f"{PY} {script} apply {{params}} {{input}} {{output}} --lsb-per-dps 16.4")
+    cmd = C.CommandCalibrator(
+        fit_cmd=f"{PY} {script} fit {{params}} {{inputs}} --lsb-per-dps 16.4",
+        apply_cmd=f"{PY} {script} apply {{params}} {{input}} {{output}} --lsb-per-dps 16.4",
+    )
     w_cmd = C.run_routine(cmd, cal, [scored])[0]
     w_py = C.run_routine(C.ArticleCalibrator(), cal, [scored])[0]
     # same algorithm, same float64 operations; the only difference is the CSV round trip (%.17g: exact)
@@ -197,22 +210,45 @@ def test_article_script_equals_the_registered_article_method(unit):
 # ------------------------------------------------------------------ score / check end to end
 def _contract(tmp_path, body, name="contract.toml"):
     p = tmp_path / name
-    p.write_text(f'units = 2\nseed = 0\ncalibration_s = [{CAL_S[0]}, {CAL_S[1]}]\ntimeout_s = 60\n' + body)
+    p.write_text(f"units = 2\nseed = 0\ncalibration_s = [{CAL_S[0]}, {CAL_S[1]}]\ntimeout_s = 60\n" + body)
     return p
 
 
 def test_score_cli_records_failed_units_and_completes(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("PROBE_STATE", str(tmp_path / "state"))
-    rc, out, err = _cli(["score", "--fit-cmd", f"{PY} {PROBE} fit {{params}} {{inputs}}",
-                         "--apply-cmd", f"{PY} {PROBE} apply {{params}} {{input}} {{output}} --mode every-second-crash",
-                         "--scenarios", "static", "--units", "2", "--duration-s", "10",
-                         "--calibration-s", "40,60", "--workers", "1", "--json", "--out", str(tmp_path / "rep")],
-                        capsys)
+    rc, out, err = _cli(
+        [
+            "score",
+            "--fit-cmd",
+            f"{PY} {PROBE} fit {{params}} {{inputs}}",
+            "--apply-cmd",
+            f"{PY} {PROBE} apply {{params}} {{input}} {{output}} --mode every-second-crash",
+            "--scenarios",
+            "static",
+            "--units",
+            "2",
+            "--duration-s",
+            "10",
+            "--calibration-s",
+            "40,60",
+            "--workers",
+            "1",
+            "--json",
+            "--out",
+            str(tmp_path / "rep"),
+        ],
+        capsys,
+    )
     assert rc == 1, err
     d = json.loads(out)
     s = d["scenarios"]["static"]
-    assert set(SC.scenario_summary([])) >= {"rms_user_deg", "rms_none_deg", "rms_core_deg", "rms_floor_deg",
-                                            "failed_units"}
+    assert set(SC.scenario_summary([])) >= {
+        "rms_user_deg",
+        "rms_none_deg",
+        "rms_core_deg",
+        "rms_floor_deg",
+        "failed_units",
+    }
     assert [f["unit"] for f in s["failed_units"]] == [1]
     assert "apply command exited with status 139: segfault-like failure" in s["failed_units"][0]["reason"]
     assert math.isfinite(s["rms_user_deg"]) and s["rms_core_deg"] < s["rms_none_deg"]
@@ -221,18 +257,36 @@ def test_score_cli_records_failed_units_and_completes(tmp_path, capsys, monkeypa
 
 
 def test_check_passes_the_core_fails_the_wrong_sign_and_writes_junit(tmp_path, capsys):
-    bounds = ('[scenario.static]\nduration_s = 10\nmax_ratio_to_none = 0.5\nmax_ratio_to_floor = 10\n'
-              'max_ratio_to_core = 1.5\n')
+    bounds = (
+        "[scenario.static]\nduration_s = 10\nmax_ratio_to_none = 0.5\nmax_ratio_to_floor = 10\n"
+        "max_ratio_to_core = 1.5\n"
+    )
     contract = _contract(tmp_path, bounds)
-    rc, out, err = _cli(["check", "--contract", str(contract), "--calibrator", "core", "--workers", "1",
-                         "--units", "1"], capsys)
+    rc, out, err = _cli(
+        ["check", "--contract", str(contract), "--calibrator", "core", "--workers", "1", "--units", "1"], capsys
+    )
     assert rc == 0, out + err
     assert "passed (3 of 3 bounds hold)" in out
     wrong = EXAMPLES / "wrong_calibrator.py"
     junit = tmp_path / "junit.xml"
-    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "1", "--junit", str(junit), "--units", "1",
-                         "--fit-cmd", f"{PY} {wrong} fit {{params}} {{inputs}}",
-                         "--apply-cmd", f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign"], capsys)
+    rc, out, err = _cli(
+        [
+            "check",
+            "--contract",
+            str(contract),
+            "--workers",
+            "1",
+            "--junit",
+            str(junit),
+            "--units",
+            "1",
+            "--fit-cmd",
+            f"{PY} {wrong} fit {{params}} {{inputs}}",
+            "--apply-cmd",
+            f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign",
+        ],
+        capsys,
+    )
     assert rc == 1, out + err
     lines = out.strip().splitlines()
     broken = [ln for ln in lines if "(median over units)" in ln]
@@ -245,26 +299,45 @@ def test_check_passes_the_core_fails_the_wrong_sign_and_writes_junit(tmp_path, c
 
 
 def test_check_bad_contract_is_one_line(tmp_path, capsys):
-    for body, why in (('[scenario.static]\nmax_rms = 1\n', "unknown key"),
-                      ('[scenario.static]\nmax_rms_deg = -1\n', "positive number"),
-                      ('units = 2\n', "no [scenario.NAME]"),
-                      ('[scenario.nosuch]\nmax_rms_deg = 1\n', "nosuch")):
+    for body, why in (
+        ("[scenario.static]\nmax_rms = 1\n", "unknown key"),
+        ("[scenario.static]\nmax_rms_deg = -1\n", "positive number"),
+        ("units = 2\n", "no [scenario.NAME]"),
+        ("[scenario.nosuch]\nmax_rms_deg = 1\n", "nosuch"),
+    ):
         p = tmp_path / "c.toml"
         p.write_text(body)
         rc, out, err = _cli(["check", "--contract", str(p), "--calibrator", "core"], capsys)
         assert rc == 2 and err.startswith("error:") and len(err.strip().splitlines()) == 1 and why in err, err
 
 
-@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
-                    reason="no C compiler (cc/gcc) on this machine: the C example cannot be built")
+@pytest.mark.skipif(
+    shutil.which("cc") is None and shutil.which("gcc") is None,
+    reason="no C compiler (cc/gcc) on this machine: the C example cannot be built",
+)
 def test_c_calibrator_compiled_at_test_time_passes_its_contract(tmp_path, capsys):
     compiler = shutil.which("cc") or shutil.which("gcc")
     exe = tmp_path / "bias_scale"
-    subprocess.run([compiler, "-O2", "-std=c99", "-Wall", "-Werror", "-o", str(exe), str(EXAMPLES / "bias_scale.c"), "-lm"], check=True)
-    contract = _contract(tmp_path, '[scenario.static]\nduration_s = 10\nmax_ratio_to_none = 0.5\n')
-    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "1", "--json",
-                         "--fit-cmd", f"{exe} fit {{params}} {{inputs}}",
-                         "--apply-cmd", f"{exe} apply {{params}} {{input}} {{output}}"], capsys)
+    subprocess.run(
+        [compiler, "-O2", "-std=c99", "-Wall", "-Werror", "-o", str(exe), str(EXAMPLES / "bias_scale.c"), "-lm"],
+        check=True,
+    )
+    contract = _contract(tmp_path, "[scenario.static]\nduration_s = 10\nmax_ratio_to_none = 0.5\n")
+    rc, out, err = _cli(
+        [
+            "check",
+            "--contract",
+            str(contract),
+            "--workers",
+            "1",
+            "--json",
+            "--fit-cmd",
+            f"{exe} fit {{params}} {{inputs}}",
+            "--apply-cmd",
+            f"{exe} apply {{params}} {{input}} {{output}}",
+        ],
+        capsys,
+    )
     d = json.loads(out)
     assert rc == 0 and d["passed"], d["lines"]
     assert d["scenarios"]["static"]["failed_units"] == []
@@ -289,9 +362,10 @@ def test_false_failure_rate_matches_monte_carlo():
 
 # ------------------------------------------------------------------ pytest plugin
 def test_pytest_plugin_fixture(pytester, tmp_path, monkeypatch):
-    contract = _contract(tmp_path, '[scenario.static]\nduration_s = 10\nmax_ratio_to_none = 0.5\n')
+    contract = _contract(tmp_path, "[scenario.static]\nduration_s = 10\nmax_ratio_to_none = 0.5\n")
     wrong = EXAMPLES / "wrong_calibrator.py"
-    pytester.makepyfile(test_user=f'''
+    pytester.makepyfile(
+        test_user=f"""
 def test_core_holds(gyroharness_check):
     res = gyroharness_check({str(contract)!r}, calibrator="core", units=1)
     assert res.passed
@@ -300,7 +374,8 @@ def test_wrong_sign_breaks(gyroharness_check):
     gyroharness_check({str(contract)!r}, units=1,
                       fit_cmd={f"{PY} {wrong} fit {{params}} {{inputs}}"!r},
                       apply_cmd={f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign"!r})
-''')
+"""
+    )
     # the entry point may or may not be installed here: load the plugin explicitly, once
     monkeypatch.setenv("PYTEST_DISABLE_PLUGIN_AUTOLOAD", "1")
     res = pytester.runpytest("-p", "experiments.pytest_plugin", "-p", "no:cacheprovider")
@@ -317,8 +392,14 @@ def test_score_core_equals_the_ablation_all_row_in_every_scenario():
     from experiments.montecarlo import instance_seeds
 
     seed = instance_seeds(0, 1)[0]
-    durations = {"static": 30.0, "static_bumped": 30.0, "turntable": 60.0, "thermal": 120.0, "hover": 15.0,
-                 "power_cycles": 60.0}
+    durations = {
+        "static": 30.0,
+        "static_bumped": 30.0,
+        "turntable": 60.0,
+        "thermal": 120.0,
+        "hover": 15.0,
+        "power_cycles": 60.0,
+    }
     for sc, dur in durations.items():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -332,24 +413,52 @@ def test_score_core_equals_the_ablation_all_row_in_every_scenario():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
-                    reason="no C compiler (cc/gcc) on this machine: the C example cannot be built")
+@pytest.mark.skipif(
+    shutil.which("cc") is None and shutil.which("gcc") is None,
+    reason="no C compiler (cc/gcc) on this machine: the C example cannot be built",
+)
 def test_example_contract_passes_the_c_calibrator_and_fails_the_wrong_one(tmp_path, capsys):
     """The shipped contract (bounds from 16 other units at a 1e-3 false-failure rate each) holds
     for the C example on its own 4 units and breaks for the sign error."""
     compiler = shutil.which("cc") or shutil.which("gcc")
     exe = tmp_path / "bias_scale"
-    subprocess.run([compiler, "-O2", "-std=c99", "-Wall", "-Werror", "-o", str(exe),
-                    str(EXAMPLES / "bias_scale.c"), "-lm"], check=True)
+    subprocess.run(
+        [compiler, "-O2", "-std=c99", "-Wall", "-Werror", "-o", str(exe), str(EXAMPLES / "bias_scale.c"), "-lm"],
+        check=True,
+    )
     contract = EXAMPLES / "contract_c.toml"
-    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "2",
-                         "--fit-cmd", f"{exe} fit {{params}} {{inputs}}",
-                         "--apply-cmd", f"{exe} apply {{params}} {{input}} {{output}}"], capsys)
+    rc, out, err = _cli(
+        [
+            "check",
+            "--contract",
+            str(contract),
+            "--workers",
+            "2",
+            "--fit-cmd",
+            f"{exe} fit {{params}} {{inputs}}",
+            "--apply-cmd",
+            f"{exe} apply {{params}} {{input}} {{output}}",
+        ],
+        capsys,
+    )
     assert rc == 0, out + err
     wrong = EXAMPLES / "wrong_calibrator.py"
-    rc, out, err = _cli(["check", "--contract", str(contract), "--workers", "2", "--units", "1",
-                         "--fit-cmd", f"{PY} {wrong} fit {{params}} {{inputs}}",
-                         "--apply-cmd", f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign"], capsys)
+    rc, out, err = _cli(
+        [
+            "check",
+            "--contract",
+            str(contract),
+            "--workers",
+            "2",
+            "--units",
+            "1",
+            "--fit-cmd",
+            f"{PY} {wrong} fit {{params}} {{inputs}}",
+            "--apply-cmd",
+            f"{PY} {wrong} apply {{params}} {{input}} {{output}} --mistake sign",
+        ],
+        capsys,
+    )
     assert rc == 1 and "max_ratio_to_none" in out, out + err
 
 
@@ -374,13 +483,24 @@ def test_predicted_column_appears_when_the_drift_prediction_exists(monkeypatch, 
     res = SimpleNamespace(recording=SimpleNamespace(rate_hz=100.0))
     assert SC._predicted_rms_deg(res, SimpleNamespace(stages=(), results=(other, stage)), [], [], 0) == 0.25
     assert seen["noise"] is identified
-    units = [SC.UnitScore("static", "icm42688p", i, i, {"none": 2.0, "core": 0.2, "user": 0.4, "floor": 0.1},
-                          {r: 1.0 for r in SC.ROWS}, rms_predicted_deg=0.25) for i in range(3)]
+    units = [
+        SC.UnitScore(
+            "static",
+            "icm42688p",
+            i,
+            i,
+            {"none": 2.0, "core": 0.2, "user": 0.4, "floor": 0.1},
+            {r: 1.0 for r in SC.ROWS},
+            rms_predicted_deg=0.25,
+        )
+        for i in range(3)
+    ]
     s = SC.scenario_summary(units)
     assert s["rms_predicted_deg"] == 0.25 and s["ratio_to_core"] == 2.0 and s["ratio_to_floor"] == 4.0
     camp = SC.ScoreCampaign("x", "icm42688p", 0, 3, ("static",), {"static": None}, True, tuple(units), 1.0, 1)
     assert "predicted (core), °" in SC.report_markdown(camp)
     monkeypatch.delattr(A, "predict_instance", raising=False)
     assert math.isnan(SC._predicted_rms_deg(None, None, [], [], 0))
-    assert "rms_predicted_deg" not in SC.scenario_summary([SC.UnitScore(
-        "static", "icm42688p", 0, 0, {r: 1.0 for r in SC.ROWS}, {r: 1.0 for r in SC.ROWS})])
+    assert "rms_predicted_deg" not in SC.scenario_summary(
+        [SC.UnitScore("static", "icm42688p", 0, 0, {r: 1.0 for r in SC.ROWS}, {r: 1.0 for r in SC.ROWS})]
+    )

@@ -22,8 +22,14 @@ LSB = DEG / 131.0  # ±250 °/s
 def _true_model(*, t_nu=None) -> T.TwinModel:
     # the white noise: arw, or the registered Student-t term arw_student (same variance)
     white = T.shaped_white_noise_terms(np.full(3, N_ARW), nu=None if t_nu is None else np.full(3, float(t_nu)))
-    return T.TwinModel(rate_hz=RATE, params={"bias": {"b_rad_s": np.array([0.01, -0.02, 0.005])},
-                                             "quantization": {"lsb_rad_s": np.asarray(LSB)}, **white})
+    return T.TwinModel(
+        rate_hz=RATE,
+        params={
+            "bias": {"b_rad_s": np.array([0.01, -0.02, 0.005])},
+            "quantization": {"lsb_rad_s": np.asarray(LSB)},
+            **white,
+        },
+    )
 
 
 def _recording(seed: int, *, n: int = 6000, line=None, t_nu=None, gaps: bool = False) -> Recording:
@@ -105,7 +111,9 @@ def test_heavier_tails_fail_distribution_and_closing_adds_them():
     assert r.before.passed["psd"] and r.before.passed["adev"]
     assert any("heavy-tailed" in a for a in r.added), r.added
     assert r.after.passed["distribution"], r.after.to_json()
-    nu = r.model_after.params["arw_student"]["nu"]  # a registered simulator term (gyrocore.effects.registry.NOISE_TERMS)
+    nu = r.model_after.params["arw_student"][
+        "nu"
+    ]  # a registered simulator term (gyrocore.effects.registry.NOISE_TERMS)
     assert np.all((nu > 4.2) & (nu < 9.0)), nu  # kurtosis estimate from 6000 samples is rough
 
 
@@ -217,11 +225,19 @@ def test_cli_params_file_is_the_declared_model(tmp_path):
     f = tmp_path / "rec.csv"
     write_csv(rec, f)
     pf = tmp_path / "params.json"
-    pf.write_text(json.dumps({"format_version": "1.1", "sensor": "test", "effects": ["bias", "arw"],
-                              "parameters": {"bias": {"b_rad_s": [0.01, -0.02, 0.005]},
-                                             "arw": {"n_rad_per_sqrt_s": [N_ARW] * 3}}}))
-    res = CliRunner().invoke(command, [str(f), "--params", str(pf), "--replicas", "19", "--no-close",
-                                       "-o", str(tmp_path / "out"), "--json"])
+    pf.write_text(
+        json.dumps(
+            {
+                "format_version": "1.1",
+                "sensor": "test",
+                "effects": ["bias", "arw"],
+                "parameters": {"bias": {"b_rad_s": [0.01, -0.02, 0.005]}, "arw": {"n_rad_per_sqrt_s": [N_ARW] * 3}},
+            }
+        )
+    )
+    res = CliRunner().invoke(
+        command, [str(f), "--params", str(pf), "--replicas", "19", "--no-close", "-o", str(tmp_path / "out"), "--json"]
+    )
     assert res.exit_code == 0, res.output
     d = json.loads(res.output)
     assert "parameter file" in d["model"]["sources"]["bias"] and d["model"]["sources"]["arw"] == "parameter file"

@@ -30,9 +30,29 @@ def test_energy_band_survives_the_spec_round_trip(tmp_path):
     spec_band = read_spec(p)["bands"][BAND]["energy_bands"][0]
     assert spec_band["axis"] == "y"
     out = tmp_path / "sim.csv"
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "simulate", "static", "-o", str(out), "--duration-s", "40",
-                         "--seed", "2", "--vibration", str(p), "--vibration-band", str(BAND), "--json"],
-                        capture_output=True, text=True, timeout=600)
+    cp = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.cli",
+            "simulate",
+            "static",
+            "-o",
+            str(out),
+            "--duration-s",
+            "40",
+            "--seed",
+            "2",
+            "--vibration",
+            str(p),
+            "--vibration-band",
+            str(BAND),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp.returncode == 0, cp.stderr
     rec = read_csv(out)
     # the injection says it carries the whole band (below the spec's reliable limit)
@@ -47,7 +67,11 @@ def test_energy_band_survives_the_spec_round_trip(tmp_path):
     # white noise adds < 0.1 % of the band's power inside its extent (icm42688p ARW against the
     # band's density, 200x the floor)
     se_c = math.hypot(top["centre_se_hz"], spec_band["centre_se_hz"])
-    assert abs(top["centre_hz"] - spec_band["centre_hz"]) <= 1.96 * se_c, (top["centre_hz"], spec_band["centre_hz"], se_c)
+    assert abs(top["centre_hz"] - spec_band["centre_hz"]) <= 1.96 * se_c, (
+        top["centre_hz"],
+        spec_band["centre_hz"],
+        se_c,
+    )
     se_p = math.hypot(top["power_se"], spec_band["power_se"])
     assert abs(top["power_rad2_s2"] - spec_band["power_rad2_s2"]) <= 1.96 * se_p + 1e-3 * spec_band["power_rad2_s2"]
     # edges: both are the half-height crossings of the same expected spectrum; a crossing moves by

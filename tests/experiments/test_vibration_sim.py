@@ -28,8 +28,27 @@ def _spec(tmp_path):
 def test_simulate_with_vibration_spec_and_fidelity(tmp_path):
     spec, res = _spec(tmp_path)
     out = tmp_path / "static.csv"
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "simulate", "static", "-o", str(out), "--duration-s", "40",
-                         "--seed", "2", "--vibration", str(spec), "--json"], capture_output=True, text=True, timeout=600)
+    cp = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.cli",
+            "simulate",
+            "static",
+            "-o",
+            str(out),
+            "--duration-s",
+            "40",
+            "--seed",
+            "2",
+            "--vibration",
+            str(spec),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp.returncode == 0, cp.stderr
     rec = read_csv(out)
     assert "vibration_injection" in rec.meta
@@ -37,8 +56,24 @@ def test_simulate_with_vibration_spec_and_fidelity(tmp_path):
 
     # the still recording without the spec has no vibration; with it, the spec's band is met
     plain = tmp_path / "plain.csv"
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "simulate", "static", "-o", str(plain), "--duration-s", "40",
-                         "--seed", "2"], capture_output=True, text=True, timeout=600)
+    cp = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.cli",
+            "simulate",
+            "static",
+            "-o",
+            str(plain),
+            "--duration-s",
+            "40",
+            "--seed",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp.returncode == 0, cp.stderr
     fid = run(spec_path=str(spec), hover_path=str(plain), t_from_s=0.0)
     row = fid["rows"][0]
@@ -52,9 +87,26 @@ def test_simulate_with_vibration_spec_and_fidelity(tmp_path):
 
 def test_simulate_vibration_bad_band_is_one_error(tmp_path):
     spec, _ = _spec(tmp_path)
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "simulate", "static", "-o", str(tmp_path / "x.csv"),
-                         "--duration-s", "5", "--vibration", str(spec), "--vibration-band", "7"], capture_output=True,
-                        text=True, timeout=600)
+    cp = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.cli",
+            "simulate",
+            "static",
+            "-o",
+            str(tmp_path / "x.csv"),
+            "--duration-s",
+            "5",
+            "--vibration",
+            str(spec),
+            "--vibration-band",
+            "7",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp.returncode != 0 and cp.stderr.strip().startswith("error:") and len(cp.stderr.strip().splitlines()) == 1
 
 
@@ -70,8 +122,9 @@ def test_closed_loop_flight_filter_with_measured_vibration(tmp_path):
     spec, _ = _spec(tmp_path)
     _, shaped, _ = spec_injection(read_spec(spec))
     none, _ = fly([], duration_s=8.0, seed=1, vehicle="f450", shaped=shaped)
-    pt1, chain = fly([{"kind": "pt1", "cutoff_hz": 60.0, "rate_hz": 8000.0}], duration_s=8.0, seed=1, vehicle="f450",
-                     shaped=shaped)
+    pt1, chain = fly(
+        [{"kind": "pt1", "cutoff_hz": 60.0, "rate_hz": 8000.0}], duration_s=8.0, seed=1, vehicle="f450", shaped=shaped
+    )
     assert chain == ["pt1 60 Hz"]
     assert np.all(np.isfinite(none.q_WB_wxyz)) and np.all(np.isfinite(pt1.q_WB_wxyz))
     assert pt1.motor_noise_n() < none.motor_noise_n()
@@ -126,8 +179,10 @@ def test_simulated_hover_with_a_known_spec_is_recovered(tmp_path):
 
     spec_path, spec_res = _spec(tmp_path)
     toml = tmp_path / "hover_spec.toml"
-    toml.write_text(f'name = "hover_spec"\nkind = "hover"\nduration_s = 40.0\n[hover]\nvibration = false\n'
-                    f'manoeuvres = false\n[vibration]\nspec = "{spec_path.name}"\nband = 0\n')
+    toml.write_text(
+        f'name = "hover_spec"\nkind = "hover"\nduration_s = 40.0\n[hover]\nvibration = false\n'
+        f'manoeuvres = false\n[vibration]\nspec = "{spec_path.name}"\nband = 0\n'
+    )
     res = S.simulate(str(toml), seed=3)
     rec = res.recording
     assert "vibration" in rec.meta["effects"].split(",") and "vibration_injection" in rec.meta
@@ -188,8 +243,10 @@ def test_sensor_preset_carries_the_shaped_vibration(tmp_path):
     from sim.scenarios import load_scenario
 
     spec_path, _ = _spec(tmp_path)
-    base = ('name = "vib"\n[output]\nrate_hz = 1000.0\nfull_scale_dps = 2000.0\nsensitivity_lsb_per_dps = 16.4\n'
-            '[arw]\ndensity_dps_per_sqrt_hz = 0.0028\n')
+    base = (
+        'name = "vib"\n[output]\nrate_hz = 1000.0\nfull_scale_dps = 2000.0\nsensitivity_lsb_per_dps = 16.4\n'
+        "[arw]\ndensity_dps_per_sqrt_hz = 0.0028\n"
+    )
     p = tmp_path / "vib.toml"
     p.write_text(base + f'[vibration]\nspec = "{spec_path.name}"\nband = 0\n')
     g = SyntheticGyro(load_preset(str(p)), seed=1)
@@ -200,6 +257,8 @@ def test_sensor_preset_carries_the_shaped_vibration(tmp_path):
     with pytest.raises(GyroInputError, match=r"unknown key\(s\) in \[vibration\]: bnd"):
         load_preset(str(p))
     sc = tmp_path / "s.toml"
-    sc.write_text(f'kind = "table"\nduration_s = 5.0\n[table]\nprofile = "static"\n[vibration]\nspec = "{spec_path.name}"\nphysics = true\n')
+    sc.write_text(
+        f'kind = "table"\nduration_s = 5.0\n[table]\nprofile = "static"\n[vibration]\nspec = "{spec_path.name}"\nphysics = true\n'
+    )
     with pytest.raises(GyroInputError, match="physics = true needs kind"):
         load_scenario(str(sc))

@@ -281,12 +281,16 @@ def test_avar_correlation_model_matches_monte_carlo():
     m = AL.octave_m(n)
     np.testing.assert_allclose(
         AL.avar_correlation_model(m, n + 1, fs, np.array([0, 1e-4, 0, 0, 0])),
-        AL.avar_correlation_white(m, n + 1), atol=2e-3)
+        AL.avar_correlation_white(m, n + 1),
+        atol=2e-3,
+    )
     N, K, Q = 0.003, 1e-2, 3e-4  # Q dominates at τ = 0.01 s, N up to ≈ 0.05 s, K beyond
     rng = np.random.default_rng(31)
-    y = (N * math.sqrt(fs) * rng.standard_normal((S, n))
-         + np.cumsum(rng.standard_normal((S, n)), axis=1) * K / math.sqrt(fs)
-         + np.diff(Q * rng.standard_normal((S, n + 1)), axis=1) * fs)
+    y = (
+        N * math.sqrt(fs) * rng.standard_normal((S, n))
+        + np.cumsum(rng.standard_normal((S, n)), axis=1) * K / math.sqrt(fs)
+        + np.diff(Q * rng.standard_normal((S, n + 1)), axis=1) * fs
+    )
     av = np.array([AL.oadev(row, fs, m)[1] ** 2 for row in y])
     R_mc = np.corrcoef(av.T)
     R = AL.avar_correlation_model(m, n + 1, fs, np.array([Q**2, N**2, 0, K**2, 0]))

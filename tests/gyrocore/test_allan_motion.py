@@ -56,7 +56,9 @@ def test_handled_start_and_end_are_cut_and_n_matches_the_still_part():
     g[moving, 0] += hand[moving]
     g[moving, 2] -= 0.5 * hand[moving]
     rec = Recording(t_s=t, gyro_rad_s=g)
-    with pytest.warns(UserWarning, match=r"motion in \d+ of \d+ 2-s windows.*noise identified on the longest still stretch"):
+    with pytest.warns(
+        UserWarning, match=r"motion in \d+ of \d+ 2-s windows.*noise identified on the longest still stretch"
+    ):
         res = AL.allan_analysis(rec, check_static=True)
     lo_s, hi_s = res.analysed_span_s
     assert 20.0 <= lo_s <= 24.5 and 285.5 <= hi_s <= 290.0  # one margin window at each end
@@ -151,8 +153,9 @@ def test_batch_allan_cuts_a_moving_start(tmp_path, capsys):
     g = _white(rng, n, sigma)
     g[t < 15.0, 0] += np.deg2rad(40.0) * np.sin(2 * np.pi * 0.3 * t[t < 15.0])
     write_csv(Recording(t_s=t, gyro_rad_s=g), tmp_path / "a.csv")
-    status, out, err = _gh(capsys, "batch", "allan", str(tmp_path / "a.csv"), "-o", str(tmp_path / "fleet.csv"),
-                           "--workers", "0", "--json")
+    status, out, err = _gh(
+        capsys, "batch", "allan", str(tmp_path / "a.csv"), "-o", str(tmp_path / "fleet.csv"), "--workers", "0", "--json"
+    )
     assert status == 0, err
     import pandas as pd
 
@@ -198,7 +201,7 @@ def test_paused_log_uses_the_rate_of_its_samples_not_the_wall_span(shared_data, 
     rec = load_any(shared_data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv")
     ref = AL.allan_analysis(rec)
     t = rec.t_s.copy()
-    t[t.size // 2:] += 300.0
+    t[t.size // 2 :] += 300.0
     p = tmp_path / "paused.csv"
     write_csv(Recording(t_s=t, gyro_rad_s=rec.gyro_rad_s), p)
     status, out, err = _gh(capsys, "noise", str(p), "--json")

@@ -49,8 +49,10 @@ def test_streamed_apply_is_bit_identical_to_whole_record(tmp_path, capsys, suffi
         warnings.simplefilter("ignore", RepairWarning)
         whole = res.apply(read_recording(src, checks=False))
     out = tmp_path / f"out{suffix}"
-    s = run_cli(build_group(), ["apply", str(src), "--params", str(tmp_path / "p.json"), "-o", str(out),
-                                "--chunk-rows", "137", "--json"])
+    s = run_cli(
+        build_group(),
+        ["apply", str(src), "--params", str(tmp_path / "p.json"), "-o", str(out), "--chunk-rows", "137", "--json"],
+    )
     cap = capsys.readouterr()
     assert s == 0, cap.err
     warn = [ln for ln in cap.err.splitlines() if ln.startswith("warning:")]
@@ -60,7 +62,9 @@ def test_streamed_apply_is_bit_identical_to_whole_record(tmp_path, capsys, suffi
     assert np.array_equal(got.t_s, rec.t_s) and np.array_equal(got.temp_c, rec.temp_c)
     d = json.loads(cap.out)
     assert d["n_samples"] == rec.n
-    assert np.allclose(d["mean_correction_rad_s"], np.mean(rec.gyro_rad_s - whole.gyro_rad_s, axis=0), rtol=1e-9, atol=0)
+    assert np.allclose(
+        d["mean_correction_rad_s"], np.mean(rec.gyro_rad_s - whole.gyro_rad_s, axis=0), rtol=1e-9, atol=0
+    )
 
 
 def _csv(tmp_path, rec):
@@ -81,8 +85,21 @@ def test_streamed_power_up_bias_matches_whole(tmp_path, capsys):
     save_params(res, tmp_path / "p.json")
     res = load_params(tmp_path / "p.json")
     whole = res.apply(rec, power_up_bias=True)
-    s = run_cli(build_group(), ["apply", str(tmp_path / "a.csv"), "--params", str(tmp_path / "p.json"), "-o",
-                                str(tmp_path / "o.csv"), "--power-up-bias", "--chunk-rows", "2500", "--json"])
+    s = run_cli(
+        build_group(),
+        [
+            "apply",
+            str(tmp_path / "a.csv"),
+            "--params",
+            str(tmp_path / "p.json"),
+            "-o",
+            str(tmp_path / "o.csv"),
+            "--power-up-bias",
+            "--chunk-rows",
+            "2500",
+            "--json",
+        ],
+    )
     cap = capsys.readouterr()
     assert s == 0, cap.err
     got = read_csv(tmp_path / "o.csv", checks=False)
@@ -110,7 +127,8 @@ def test_streamed_apply_with_family_terms_is_bit_identical(tmp_path, capsys):
     res = load_params(tmp_path / "p.json")
     whole = res.apply(read_recording(src, checks=False))
     out = tmp_path / "out.csv"
-    s = run_cli(build_group(), ["apply", str(src), "--params", str(tmp_path / "p.json"), "-o", str(out),
-                                "--chunk-rows", "137"])
+    s = run_cli(
+        build_group(), ["apply", str(src), "--params", str(tmp_path / "p.json"), "-o", str(out), "--chunk-rows", "137"]
+    )
     assert s == 0, capsys.readouterr().err
     assert np.array_equal(read_recording(out, checks=False).gyro_rad_s, whole.gyro_rad_s)

@@ -56,7 +56,9 @@ def _csv(tmp_path, text, name="in.csv"):
 
 
 def _rows(t, g, extra_cols=()):
-    return "\n".join(",".join(repr(float(v)) for v in (ti, *gi, *(c[i] for c in extra_cols))) for i, (ti, gi) in enumerate(zip(t, g)))
+    return "\n".join(
+        ",".join(repr(float(v)) for v in (ti, *gi, *(c[i] for c in extra_cols))) for i, (ti, gi) in enumerate(zip(t, g))
+    )
 
 
 def _still(n=3000, rate_hz=200.0, seed=0):
@@ -78,7 +80,9 @@ def test_header_only(tmp_path, capsys):
 
 
 def test_missing_required_column(tmp_path, capsys):
-    s, _, err = gh(capsys, "convert", _csv(tmp_path, "t_s,gyro_x_rad_s,gyro_y_rad_s\n0,0,0\n"), "-o", tmp_path / "o.csv")
+    s, _, err = gh(
+        capsys, "convert", _csv(tmp_path, "t_s,gyro_x_rad_s,gyro_y_rad_s\n0,0,0\n"), "-o", tmp_path / "o.csv"
+    )
     assert_error(s, err, "incomplete column group, missing gyro_z_rad_s")
     s, _, err = gh(capsys, "convert", _csv(tmp_path, "time,a\n0,0\n"), "-o", tmp_path / "o.csv")
     assert_error(s, err, "missing required column t_s")
@@ -216,25 +220,54 @@ def test_bad_cli_flags(capsys, argv, pattern):
 
 
 def test_flag_that_does_not_apply(tmp_path, capsys, shared_data):
-    s, _, err = gh(capsys, "convert", shared_data / "broad" / "02_undisturbed_slow_rotation_B.hdf5",
-                   "-o", tmp_path / "o.csv", "--lsb-per-dps", "131")
+    s, _, err = gh(
+        capsys,
+        "convert",
+        shared_data / "broad" / "02_undisturbed_slow_rotation_B.hdf5",
+        "-o",
+        tmp_path / "o.csv",
+        "--lsb-per-dps",
+        "131",
+    )
     assert_error(s, err, "option --lsb-per-dps does not apply to format broad")
-    s, _, err = gh(capsys, "convert", shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv",
-                   "-o", tmp_path / "o.csv", "--lsb-per-dps", "-5")
+    s, _, err = gh(
+        capsys,
+        "convert",
+        shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv",
+        "-o",
+        tmp_path / "o.csv",
+        "--lsb-per-dps",
+        "-5",
+    )
     assert_error(s, err, "--lsb-per-dps must be a positive number")
 
 
 # ------------------------------------------------------------------ the real console script
 def test_console_script_one_line_error_and_json_only_stdout(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(tmp_path / "nope.csv"), "-o",
-                        str(tmp_path / "o.csv"), "--json"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.cli",
+            "convert",
+            str(tmp_path / "nope.csv"),
+            "-o",
+            str(tmp_path / "o.csv"),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [f"error: {tmp_path / 'nope.csv'}: no such file or folder"]
     t, g = _still(300)
     g[5, 0] = np.nan
     src = _csv(tmp_path, HEADER + "\n" + _rows(t, g))
-    r = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(src), "-o", str(tmp_path / "o.csv"),
-                        "--json"], capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "convert", str(src), "-o", str(tmp_path / "o.csv"), "--json"],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)  # nothing but JSON on stdout
     assert summary["n_samples"] == 299 and any("dropped 1 rows" in w for w in summary["warnings"])

@@ -100,14 +100,29 @@ def test_batch_bias_serial_equals_command_and_glob(fleet, tmp_path, capsys):
 
 
 def test_batch_calibrate_and_loop_rows(fleet, tmp_path, capsys):
-    s, out, err = _gh(capsys, "batch", "calibrate", str(fleet / "unit1[0-2].*"), "-o", tmp_path / "c.csv",
-                      "--effects", "bias", "--params-dir", tmp_path / "params", "--workers", "0", "--json", "--no-plot")
+    s, out, err = _gh(
+        capsys,
+        "batch",
+        "calibrate",
+        str(fleet / "unit1[0-2].*"),
+        "-o",
+        tmp_path / "c.csv",
+        "--effects",
+        "bias",
+        "--params-dir",
+        tmp_path / "params",
+        "--workers",
+        "0",
+        "--json",
+        "--no-plot",
+    )
     assert s == 0, err
     df = pd.read_csv(tmp_path / "c.csv")
     assert {"bias.b_rad_s_x", "bias.b_rad_s_x_se", "residual_rms_x_rad_s"} <= set(df.columns)
     assert len(list((tmp_path / "params").glob("*.json"))) == 3
-    s, out, err = _gh(capsys, "batch", "loop", str(fleet / "unit1[0-1].*"), "-o", tmp_path / "l.csv",
-                      "--workers", "0", "--json")
+    s, out, err = _gh(
+        capsys, "batch", "loop", str(fleet / "unit1[0-1].*"), "-o", tmp_path / "l.csv", "--workers", "0", "--json"
+    )
     assert s == 0, err
     df = pd.read_csv(tmp_path / "l.csv", keep_default_na=False)
     assert {"found", "n_found", "residual_rms_after_rad_s"} <= set(df.columns) and (df["error"] == "").all()
@@ -124,8 +139,9 @@ def test_disk_full_while_writing_the_table_is_one_error_line(fleet, tmp_path, ca
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(rc.os, "fsync", full)
-    s, out, err = _gh(capsys, "batch", "bias", str(fleet / "unit01.csv"), "-o", table, "--workers", "0",
-                      "--no-resume", "--no-plot")
+    s, out, err = _gh(
+        capsys, "batch", "bias", str(fleet / "unit01.csv"), "-o", table, "--workers", "0", "--no-resume", "--no-plot"
+    )
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert s == 2 and len(lines) == 1 and lines[0].startswith("error:") and "No space left on device" in lines[0]
     assert table.read_text() == "precious"  # nothing half-written

@@ -253,8 +253,10 @@ def test_real_static_logs_pass_the_noise_bound(shared_data):
     from gyrocore.readers.convert import load_any
     from gyrocore.errors import RepairWarning
 
-    paths = [shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward",
-             shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv"]
+    paths = [
+        shared_data / "sunsided_mpu6050" / "set-2" / "unmoved-with-x-pointing-forward",
+        shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv",
+    ]
     if not all(p.exists() for p in paths):
         pytest.skip("static logs absent")
     for p in paths:

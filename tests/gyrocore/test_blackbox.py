@@ -123,7 +123,7 @@ def test_corrupt_bytes_are_skipped_and_counted(log_path, full, tmp_path):
     rng = np.random.default_rng(16)
     spots = rng.integers(50_000, PREFIX_BYTES - 50_000, size=5)
     for s in spots:
-        data[s:s + 7] = b"\x00\x81\xff\x13\x99\x00\x42"
+        data[s : s + 7] = b"\x00\x81\xff\x13\x99\x00\x42"
     bad = tmp_path / "corrupt.BBL"
     bad.write_bytes(bytes(data))
     rec, warns = _read(bad)
@@ -151,12 +151,15 @@ def _patched_header(log_path, tmp_path, old: bytes, new: bytes):
     return p
 
 
-@pytest.mark.parametrize("old,new,needle", [
-    (b"H Data version:2", b"H Data version:7", "data version 7"),
-    (b"Betaflight 3.1.5", b"INAV 2.6.0", "INAV 2.6.0"),
-    (b"Betaflight 3.1.5", b"Betaflight 2.9.1", "Betaflight 2.9.1"),
-    (b"Betaflight 3.1.5", b"Betaflight 9999.1", "newer than"),
-])
+@pytest.mark.parametrize(
+    "old,new,needle",
+    [
+        (b"H Data version:2", b"H Data version:7", "data version 7"),
+        (b"Betaflight 3.1.5", b"INAV 2.6.0", "INAV 2.6.0"),
+        (b"Betaflight 3.1.5", b"Betaflight 2.9.1", "Betaflight 2.9.1"),
+        (b"Betaflight 3.1.5", b"Betaflight 9999.1", "newer than"),
+    ],
+)
 def test_unknown_firmware_or_data_version_is_one_error(log_path, tmp_path, old, new, needle):
     p = _patched_header(log_path, tmp_path, old, new)
     with pytest.raises(GyroInputError) as e:
@@ -202,11 +205,17 @@ def test_betaflight_44_header_names_and_gyro_scaled(log_path, tmp_path):
     dyn_notch_count, RPM filter from rpm_filter_harmonics with dshot_bidir, integer P interval,
     and blackbox_high_resolution: gyroADC ×10 (debug fields are not scaled)."""
     data = log_path.read_bytes()[:PREFIX_BYTES]
-    extra = (b"H gyro_lpf1_static_hz:90\nH gyro_lpf1_type:2\nH gyro_lpf1_dyn_hz:0,0\nH gyro_lpf2_static_hz:0\n"
-             b"H dyn_notch_count:3\nH dyn_notch_min_hz:100\nH dyn_notch_max_hz:600\nH rpm_filter_harmonics:3\n"
-             b"H dshot_bidir:1\nH motor_poles:14\nH blackbox_high_resolution:1\n")
-    s = (data.replace(b"Betaflight 3.1.5", b"Betaflight 4.4.2").replace(b"H debug_mode:8", b"H debug_mode:6")
-         .replace(b"H gyro_lowpass_hz:90\n", extra).replace(b"H P interval:1/8", b"H P interval:8"))
+    extra = (
+        b"H gyro_lpf1_static_hz:90\nH gyro_lpf1_type:2\nH gyro_lpf1_dyn_hz:0,0\nH gyro_lpf2_static_hz:0\n"
+        b"H dyn_notch_count:3\nH dyn_notch_min_hz:100\nH dyn_notch_max_hz:600\nH rpm_filter_harmonics:3\n"
+        b"H dshot_bidir:1\nH motor_poles:14\nH blackbox_high_resolution:1\n"
+    )
+    s = (
+        data.replace(b"Betaflight 3.1.5", b"Betaflight 4.4.2")
+        .replace(b"H debug_mode:8", b"H debug_mode:6")
+        .replace(b"H gyro_lowpass_hz:90\n", extra)
+        .replace(b"H P interval:1/8", b"H P interval:8")
+    )
     p = tmp_path / "bf44.BBL"
     p.write_bytes(s)
     rec, _ = _read(p)
@@ -246,8 +255,12 @@ def test_convert_cli_writes_data_file_with_metadata(log_path, tmp_path):
     cut = tmp_path / "cut.BBL"
     cut.write_bytes(log_path.read_bytes()[:80_000])
     out = tmp_path / "f.csv"
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(cut), "-o", str(out), "--json", "--log-index", "1"],
-                        capture_output=True, text=True, timeout=300)
+    cp = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "convert", str(cut), "-o", str(out), "--json", "--log-index", "1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert cp.returncode == 0, cp.stderr
     d = json.loads(cp.stdout)
     assert d["format"] == "blackbox" and "gyro_prefilter_x_rad_s" in d["columns"]["extra"]
@@ -255,6 +268,20 @@ def test_convert_cli_writes_data_file_with_metadata(log_path, tmp_path):
     assert any("truncated" in w for w in warn)
     rec = read_csv(out)
     assert rec.n == d["n_samples"] and json.loads(rec.meta["gyro_filters"])[0]["kind"] == "pt1"
-    bad = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(cut), "-o", str(tmp_path / "g.csv"),
-                          "--log-index", "3"], capture_output=True, text=True, timeout=300)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.cli",
+            "convert",
+            str(cut),
+            "-o",
+            str(tmp_path / "g.csv"),
+            "--log-index",
+            "3",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert bad.returncode != 0 and bad.stderr.strip().startswith("error:") and "holds 1" in bad.stderr

@@ -64,22 +64,82 @@ def _read(path, **kw):
 #: (USE_ADC, USE_BARO, USE_MAG, USE_DYNAMIC_FILTERS, USE_RPM_FILTER targets; currentMeter only
 #: with FEATURE_CURRENT_METER).
 INAV_SYSINFO_KEYS = (
-    "Firmware type", "Firmware revision", "Firmware date", "Log start datetime", "Craft name", "P interval",
-    "minthrottle", "maxthrottle", "gyro_scale", "motorOutput", "acc_1G", "vbat_scale", "vbatcellvoltage", "vbatref",
-    "currentMeter", "looptime", "rc_rate", "rc_expo", "rc_yaw_expo", "thr_mid", "thr_expo", "tpa_rate", "tpa_breakpoint",
-    "rates", "rollPID", "pitchPID", "yawPID", "altPID", "posPID", "posrPID", "levelPID", "magPID", "velPID",
-    "yaw_lpf_hz", "dterm_lpf_hz", "dterm_lpf_type", "deadband", "yaw_deadband", "gyro_lpf", "gyro_lpf_hz",
-    "dynamicGyroNotchQ", "dynamicGyroNotchMinHz", "acc_lpf_hz", "acc_hardware", "baro_hardware", "mag_hardware",
-    "serialrx_provider", "motor_pwm_protocol", "motor_pwm_rate", "debug_mode", "features", "waypoints",
-    "acc_notch_hz", "acc_notch_cutoff", "axisAccelerationLimitYaw", "axisAccelerationLimitRollPitch",
-    "rpm_gyro_filter_enabled", "rpm_gyro_harmonics", "rpm_gyro_min_hz", "rpm_gyro_q",
+    "Firmware type",
+    "Firmware revision",
+    "Firmware date",
+    "Log start datetime",
+    "Craft name",
+    "P interval",
+    "minthrottle",
+    "maxthrottle",
+    "gyro_scale",
+    "motorOutput",
+    "acc_1G",
+    "vbat_scale",
+    "vbatcellvoltage",
+    "vbatref",
+    "currentMeter",
+    "looptime",
+    "rc_rate",
+    "rc_expo",
+    "rc_yaw_expo",
+    "thr_mid",
+    "thr_expo",
+    "tpa_rate",
+    "tpa_breakpoint",
+    "rates",
+    "rollPID",
+    "pitchPID",
+    "yawPID",
+    "altPID",
+    "posPID",
+    "posrPID",
+    "levelPID",
+    "magPID",
+    "velPID",
+    "yaw_lpf_hz",
+    "dterm_lpf_hz",
+    "dterm_lpf_type",
+    "deadband",
+    "yaw_deadband",
+    "gyro_lpf",
+    "gyro_lpf_hz",
+    "dynamicGyroNotchQ",
+    "dynamicGyroNotchMinHz",
+    "acc_lpf_hz",
+    "acc_hardware",
+    "baro_hardware",
+    "mag_hardware",
+    "serialrx_provider",
+    "motor_pwm_protocol",
+    "motor_pwm_rate",
+    "debug_mode",
+    "features",
+    "waypoints",
+    "acc_notch_hz",
+    "acc_notch_cutoff",
+    "axisAccelerationLimitYaw",
+    "axisAccelerationLimitRollPitch",
+    "rpm_gyro_filter_enabled",
+    "rpm_gyro_harmonics",
+    "rpm_gyro_min_hz",
+    "rpm_gyro_q",
 )
 
 
 def _inav_header(rev="INAV 9.0.1 (d44f2cf6) IFLIGHT_BLITZ_F722", **kw):
-    h = {"Data version": 2, "Firmware revision": rev, "Firmware type": "Cleanflight", "looptime": 500,
-         "P interval": "1/2", "gyro_lpf_hz": 30, "dynamicGyroNotchMinHz": 50, "dynamicGyroNotchQ": 250,
-         "rpm_gyro_filter_enabled": 0, "rpm_gyro_min_hz": 100}
+    h = {
+        "Data version": 2,
+        "Firmware revision": rev,
+        "Firmware type": "Cleanflight",
+        "looptime": 500,
+        "P interval": "1/2",
+        "gyro_lpf_hz": 30,
+        "dynamicGyroNotchMinHz": 50,
+        "dynamicGyroNotchQ": 250,
+        "rpm_gyro_filter_enabled": 0,
+        "rpm_gyro_min_hz": 100,
+    }
     h.update(kw)
     return h
 
@@ -134,7 +194,9 @@ def test_betaflight_420_flight_matches_an_independent_parser(public_dir):
     # header: 8 kHz loop (looptime 125), P interval 8 → 1 kHz; 4.2: debug_mode 6 = GYRO_SCALED = raw gyro
     assert rec.meta["firmware_name"] == "betaflight" and rec.meta["firmware_version"] == "4.2.0"
     assert float(rec.meta["gyro_rate_hz"]) == 8000 and float(rec.meta["log_rate_nominal_hz"]) == 1000
-    assert rec.meta["debug_mode"] == "6 = DEBUG_GYRO_SCALED" and json.loads(rec.meta["gyro_prefilter"])["signal"] == "raw"
+    assert (
+        rec.meta["debug_mode"] == "6 = DEBUG_GYRO_SCALED" and json.loads(rec.meta["gyro_prefilter"])["signal"] == "raw"
+    )
     chain = [(s["kind"], s["cutoff_hz"]) for s in json.loads(rec.meta["gyro_filters"])]
     assert chain == [("dyn_notch", 125), ("rpm_notch", 100), ("dyn_lpf", 240), ("pt1", 300)]
     # accSmooth / acc_1G (2048 LSB/g): |a| median within 0.5–3 g over a flight
@@ -149,8 +211,12 @@ def test_vibration_on_betaflight_420_flight(public_dir, tmp_path):
     from scipy import signal as ss
 
     p = _path(public_dir, BF42)
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "vibration", str(p), "--json", "-o", str(tmp_path / "spec.json")],
-                        capture_output=True, text=True, timeout=600)
+    cp = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "vibration", str(p), "--json", "-o", str(tmp_path / "spec.json")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp.returncode == 0, cp.stderr
     d = json.loads(cp.stdout)
     assert d["signal"] == "raw" and abs(d["rate_hz"] - 1000) < 1 and (tmp_path / "spec.json").exists()
@@ -161,8 +227,12 @@ def test_vibration_on_betaflight_420_flight(public_dir, tmp_path):
     for i, ax in enumerate("xyz"):
         lo, hi = d["rms_above_40hz_interval_rad_s"][ax]
         assert lo <= welch[i] <= hi, (ax, lo, welch[i], hi)
-    cp2 = subprocess.run([sys.executable, "-m", "experiments.cli", "vibration", str(p), "--json", "--signal", "gyro", "--no-undo"],
-                         capture_output=True, text=True, timeout=600)
+    cp2 = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "vibration", str(p), "--json", "--signal", "gyro", "--no-undo"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp2.returncode == 0, cp2.stderr
     flown = json.loads(cp2.stdout)["rms_above_40hz_rad_s"]
     assert all(flown[a] < d["rms_above_40hz_rad_s"][a] for a in "xyz")
@@ -173,7 +243,7 @@ def test_inav_901_logs_header_layout_units_and_gyro_raw(public_dir):
     p = _path(public_dir, INAV)
     data = p.read_bytes()
     # the header writer of the source read: every sysinfo key, in the source's order
-    first = data[:data.index(b"H Product", 10)] if data.count(b"H Product") > 1 else data
+    first = data[: data.index(b"H Product", 10)] if data.count(b"H Product") > 1 else data
     keys = [ln[2:].split(b":", 1)[0].decode() for ln in first.split(b"\n") if ln.startswith(b"H ")]
     sysinfo = [k for k in keys if not k.startswith("Field ") and k not in ("Product", "Data version", "I interval")]
     assert tuple(sysinfo) == INAV_SYSINFO_KEYS
@@ -190,12 +260,15 @@ def test_inav_901_logs_header_layout_units_and_gyro_raw(public_dir):
     assert abs(float(rec.meta["log_rate_measured_hz"]) / 1000 - 1) < 0.03
     pre = json.loads(rec.meta["gyro_prefilter"])
     assert pre["signal"] == "raw" and "gyroRaw" in pre["source"]
-    assert [(s["kind"], s["cutoff_hz"]) for s in json.loads(rec.meta["gyro_filters"])] == [("pt1", 30), ("dyn_notch", 50)]
+    assert [(s["kind"], s["cutoff_hz"]) for s in json.loads(rec.meta["gyro_filters"])] == [
+        ("pt1", 30),
+        ("dyn_notch", 50),
+    ]
     # units on the data: the quad sits on the ground (motors at idle), so |a| = 1 g
     # (accSmooth = lrintf(acc.accADCf · acc_1G), acc_1G 2048) and the gyro in deg/s stays within
     # a few deg/s of zero (a count unit, 16.4 LSB per deg/s, would not)
     li = rec.extra["log_index"]
-    still = (li == 1)
+    still = li == 1
     assert abs(np.median(np.linalg.norm(rec.accel_m_s2[still], axis=1)) / 9.80665 - 1) < 0.02
     raw = np.column_stack([rec.extra[f"gyro_prefilter_{a}_rad_s"] for a in "xyz"])
     assert np.max(np.abs(np.degrees(raw[still]))) <= 3
@@ -206,8 +279,12 @@ def test_inav_901_logs_header_layout_units_and_gyro_raw(public_dir):
 
 def test_inav_ground_log_vibration_says_no_airborne_stretch(public_dir):
     p = _path(public_dir, INAV)
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "vibration", str(p), "--log-index", "2"],
-                        capture_output=True, text=True, timeout=600)
+    cp = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "vibration", str(p), "--log-index", "2"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp.returncode != 0
     err = [ln for ln in cp.stderr.splitlines() if ln.startswith("error:")]
     assert len(err) == 1 and "airborne" in err[0] and "Traceback" not in cp.stderr
@@ -218,7 +295,7 @@ def test_inav_truncated_and_corrupt(public_dir, tmp_path):
     full, _ = _read(p, log_index=2)
     data = p.read_bytes()
     starts = [i for i in range(len(data)) if data.startswith(b"H Product:Blackbox", i)]
-    log2 = data[starts[1]:starts[2]]
+    log2 = data[starts[1] : starts[2]]
     cut = tmp_path / "cut.TXT"
     cut.write_bytes(log2[: len(log2) // 2])
     rec, warns = _read(cut)
@@ -227,7 +304,7 @@ def test_inav_truncated_and_corrupt(public_dir, tmp_path):
     bad = bytearray(log2)
     rng = np.random.default_rng(1601)
     for s in rng.integers(len(log2) // 4, 3 * len(log2) // 4, size=4):
-        bad[s:s + 5] = b"\x00\xff\x13\x99\x42"
+        bad[s : s + 5] = b"\x00\xff\x13\x99\x42"
     q = tmp_path / "bad.TXT"
     q.write_bytes(bytes(bad))
     rec2, warns2 = _read(q)
@@ -241,8 +318,9 @@ def test_inav_truncated_and_corrupt(public_dir, tmp_path):
 
 
 # ----------------------------------------------------------------------------- Cleanflight
-@pytest.mark.parametrize("rev,equiv", [("Cleanflight 2.4.1", (3, 4, 1)), ("Cleanflight 2.5.0", (3, 5, 0)),
-                                       ("Cleanflight 4.2.2", (4, 2, 2))])
+@pytest.mark.parametrize(
+    "rev,equiv", [("Cleanflight 2.4.1", (3, 4, 1)), ("Cleanflight 2.5.0", (3, 5, 0)), ("Cleanflight 4.2.2", (4, 2, 2))]
+)
 def test_cleanflight_release_reads_as_its_betaflight_source(rev, equiv):
     """Cleanflight's debug list per release, read in cleanflight/cleanflight (see
     CLEANFLIGHT_AS_BETAFLIGHT): 2.4.x = Betaflight 3.4, 2.5.0 = 3.5.0, 4.2.x = 4.2.x."""
@@ -267,8 +345,11 @@ def test_cleanflight_header_on_the_shared_log(shared_data, tmp_path):
         pytest.skip("shared blackbox log absent")
     data = p.read_bytes()[:200_000]
     q = tmp_path / "cf.BFL"
-    q.write_bytes(data.replace(b"Betaflight 3.1.5", b"Cleanflight 2.4.1", 1).replace(b"H debug_mode:8", b"H debug_mode:6", 1)
-                  .replace(b"H P interval:1/8", b"H P interval:8", 1))
+    q.write_bytes(
+        data.replace(b"Betaflight 3.1.5", b"Cleanflight 2.4.1", 1)
+        .replace(b"H debug_mode:8", b"H debug_mode:6", 1)
+        .replace(b"H P interval:1/8", b"H P interval:8", 1)
+    )
     rec, _ = _read(q)
     assert rec.meta["firmware_name"] == "cleanflight" and rec.meta["firmware_version"] == "2.4.1"
     assert rec.meta["betaflight_equivalent_version"] == "3.4.1"

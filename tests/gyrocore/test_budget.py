@@ -25,11 +25,18 @@ def test_floor_matches_the_closed_form_for_white_rrw_and_gauss_markov():
     rate, n = 100.0, 6000
     t, q = _still(n, rate)
     N, K, sg, tc = 1e-4, 3e-6, 2e-4, 7.0
-    nm = B.NoiseModel(arw_rad_per_sqrt_s=np.full(3, N), rrw_rad_s_per_sqrt_s=np.full(3, K),
-                      gm_sigma_rad_s=np.full(3, sg), gm_tau_c_s=np.full(3, tc))
+    nm = B.NoiseModel(
+        arw_rad_per_sqrt_s=np.full(3, N),
+        rrw_rad_s_per_sqrt_s=np.full(3, K),
+        gm_sigma_rad_s=np.full(3, sg),
+        gm_tau_c_s=np.full(3, tc),
+    )
     pr = B.predict_error(E.ModelInputs(t_s=t, q_SW_wxyz=q), start=0, segments=[(slice(0, n), None)], noise=nm)
-    want = np.sum(floor_sigma_theta_rad(pr.t_s, arw_rad_per_sqrt_s=N, rrw_rad_s_per_sqrt_s=K,
-                                        gm_sigma_rad_s=sg, gm_tau_c_s=tc) ** 2, axis=1)
+    want = np.sum(
+        floor_sigma_theta_rad(pr.t_s, arw_rad_per_sqrt_s=N, rrw_rad_s_per_sqrt_s=K, gm_sigma_rad_s=sg, gm_tau_c_s=tc)
+        ** 2,
+        axis=1,
+    )
     got = sum(pr.floor_var_rad2.values())
     np.testing.assert_allclose(got, want, rtol=1e-9)
     # no window: the prediction is the floor
@@ -59,7 +66,7 @@ def test_window_and_flicker_against_monte_carlo_rotating():
     N, Bf = 1e-4, 3e-5
     nm = B.NoiseModel(arw_rad_per_sqrt_s=np.full(3, N), bias_instability_rad_s=np.full(3, Bf))
     pr = B.predict_error(E.ModelInputs(t_s=t, q_SW_wxyz=q), start=win.stop, segments=[(slice(0, n), win)], noise=nm)
-    R = B.rotation_matrices(q)[win.stop:]
+    R = B.rotation_matrices(q)[win.stop :]
     M = 300
     e2 = np.zeros(n - win.stop)
     f2 = np.zeros(n - win.stop)
@@ -67,9 +74,9 @@ def test_window_and_flicker_against_monte_carlo_rotating():
     for _ in range(M):
         x = rng.standard_normal((n, 3)) * N * np.sqrt(rate) + _kasdin_walter(rng, n, Bf)
         y = x - x[win].mean(axis=0)
-        e2 += np.sum((np.cumsum(np.einsum("nij,nj->ni", R, y[win.stop:]), 0) / rate) ** 2, 1) / M
-        f2 += np.sum((np.cumsum(np.einsum("nij,nj->ni", R, x[win.stop:]), 0) / rate) ** 2, 1) / M
-    tt = t[win.stop:] - t[win.stop]
+        e2 += np.sum((np.cumsum(np.einsum("nij,nj->ni", R, y[win.stop :]), 0) / rate) ** 2, 1) / M
+        f2 += np.sum((np.cumsum(np.einsum("nij,nj->ni", R, x[win.stop :]), 0) / rate) ** 2, 1) / M
+    tt = t[win.stop :] - t[win.stop]
     for tq in (3.0, 15.0, 37.0):
         i = np.searchsorted(tt, tq)
         j = np.searchsorted(pr.t_s, tq)
@@ -93,8 +100,11 @@ def test_sensitivity_of_scale_and_bias_on_a_turn_about_z():
     segs = [(slice(0, n), slice(0, 200))]
     blocks = B.make_blocks(t, start=200, segments=segs, max_blocks=100)
     R = B.rotation_matrices(q)
-    g = B.ParameterGroup("x", {"scale": {"s": np.zeros(3)}, "bias": {"b_rad_s": np.zeros(3)}},
-                         {"scale": {"s": np.full(3, 1e-3)}, "bias": {"b_rad_s": np.full(3, 1e-4)}})
+    g = B.ParameterGroup(
+        "x",
+        {"scale": {"s": np.zeros(3)}, "bias": {"b_rad_s": np.zeros(3)}},
+        {"scale": {"s": np.full(3, 1e-3)}, "bias": {"b_rad_s": np.full(3, 1e-4)}},
+    )
     names, S, se = B.sensitivity(inp, R, blocks, segs, g)
     assert names[2] == "scale.s[2]" and names[5] == "bias.b_rad_s[2]"
     tm = blocks.t1_s - 2.0
@@ -102,8 +112,7 @@ def test_sensitivity_of_scale_and_bias_on_a_turn_about_z():
     np.testing.assert_allclose(S[sc, 2, 2], 0.5 * tm[sc], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(S[:, :, 3:], 0.0, atol=1e-12)
     np.testing.assert_allclose(se, [1e-3] * 3 + [1e-4] * 3)
-    pr = B.predict_error(inp, start=200, segments=segs, noise=B.NoiseModel(arw_rad_per_sqrt_s=np.zeros(3)),
-                         groups=[g])
+    pr = B.predict_error(inp, start=200, segments=segs, noise=B.NoiseModel(arw_rad_per_sqrt_s=np.zeros(3)), groups=[g])
     np.testing.assert_allclose(pr.var_rad2["param:x"][-1], (0.5 * (t[-1] + 0.01 - 2.0) * 1e-3) ** 2, rtol=1e-9)
     b = pr.budget_deg()
     assert set(b) == {"param:x"}
@@ -116,8 +125,14 @@ def test_budget_squares_add_up_and_uncorrected_is_reported_not_predicted():
     nm = B.NoiseModel(arw_rad_per_sqrt_s=np.full(3, 1e-4), bias_instability_rad_s=np.full(3, 2e-5))
     dw = np.zeros((n, 3))
     dw[:, 0] = 1e-5 * t  # a ramp: not removed by the window mean
-    pr = B.predict_error(E.ModelInputs(t_s=t, q_SW_wxyz=q), start=200, segments=segs, noise=nm,
-                         uncorrected={"ramp": dw, "lp": 0.1 * dw}, expected_uncorrected=("lp",))
+    pr = B.predict_error(
+        E.ModelInputs(t_s=t, q_SW_wxyz=q),
+        start=200,
+        segments=segs,
+        noise=nm,
+        uncorrected={"ramp": dw, "lp": 0.1 * dw},
+        expected_uncorrected=("lp",),
+    )
     b = pr.budget_deg()
     tot = sum(np.sign(v) * v * v for v in b.values())
     assert np.degrees(np.sqrt(pr._mean(pr.total_var_rad2(list(pr.var_rad2))))) ** 2 == pytest.approx(tot, rel=1e-9)
@@ -127,8 +142,9 @@ def test_budget_squares_add_up_and_uncorrected_is_reported_not_predicted():
 
 
 def test_noise_model_from_catalogue_params():
-    nm = B.NoiseModel.from_params({"arw": {"n_rad_per_sqrt_s": np.array([1e-4, 2e-4, 3e-4])},
-                                   "quantization": {"lsb_rad_s": np.array(1e-3)}})
+    nm = B.NoiseModel.from_params(
+        {"arw": {"n_rad_per_sqrt_s": np.array([1e-4, 2e-4, 3e-4])}, "quantization": {"lsb_rad_s": np.array(1e-3)}}
+    )
     np.testing.assert_allclose(nm.white_n2(1000.0), np.array([1e-4, 2e-4, 3e-4]) ** 2 + 1e-6 / 12e3)
     assert np.all(nm.bias_instability_rad_s == 0) and np.all(np.isinf(nm.gm_tau_c_s))
 
@@ -147,8 +163,12 @@ def test_flicker_block_covariance_kernel_matches_the_numpy_form():
     a1 = a0 + rng.uniform(0.05, 3.0, 300)
     k = B._flicker_kernel()
     assert k is not None
-    ref = (B._F_flicker(a1[:, None], a1[None, :]) - B._F_flicker(a1[:, None], a0[None, :])
-           - B._F_flicker(a0[:, None], a1[None, :]) + B._F_flicker(a0[:, None], a0[None, :]))
+    ref = (
+        B._F_flicker(a1[:, None], a1[None, :])
+        - B._F_flicker(a1[:, None], a0[None, :])
+        - B._F_flicker(a0[:, None], a1[None, :])
+        + B._F_flicker(a0[:, None], a0[None, :])
+    )
     got = B._second_difference(B._F_flicker, a0, a1, a0, a1)
     assert np.max(np.abs(got - ref)) <= 1e-9 * np.max(np.abs(ref))
     # the block covariance of flicker is symmetric positive semi-definite up to that rounding

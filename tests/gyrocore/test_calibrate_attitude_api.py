@@ -75,6 +75,8 @@ def test_rate_effects_without_a_motion_reference_say_what_would_excite_them():
     rec = Recording(t_s=t, gyro_rad_s=0.01 + rng.normal(0, 1e-3, (t.size, 3)), meta={})
     res = Calibrator(effects=["bias", "scale"]).fit(rec)
     assert res.method == "still" and len(res.unobservable) == 3
-    assert any("scale need a reference for the motion" in n and "--segments" in n and "--poses" in n for n in res.notes), res.notes
+    assert any(
+        "scale need a reference for the motion" in n and "--segments" in n and "--poses" in n for n in res.notes
+    ), res.notes
     only_bias = Calibrator(effects=["bias"]).fit(rec)
     assert not any("reference for the motion" in n for n in only_bias.notes)

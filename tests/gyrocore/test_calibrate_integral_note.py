@@ -12,16 +12,30 @@ def _convert_and_calibrate(src, tmp_path, capsys):
     """``convert`` an imucal session with its segments, then ``calibrate --segments`` it (bias,
     scale, misalignment; parameter file p.json); returns the exit status and captured output."""
     g = build_group(["gyrocore.cli.commands"])
-    assert run_cli(g, ["convert", str(src), "-o", str(tmp_path / "f.csv"), "--segments-out", str(tmp_path / "s.csv")]) == 0
+    assert (
+        run_cli(g, ["convert", str(src), "-o", str(tmp_path / "f.csv"), "--segments-out", str(tmp_path / "s.csv")]) == 0
+    )
     capsys.readouterr()
-    status = run_cli(g, ["calibrate", str(tmp_path / "f.csv"), "--segments", str(tmp_path / "s.csv"),
-                         "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")])
+    status = run_cli(
+        g,
+        [
+            "calibrate",
+            str(tmp_path / "f.csv"),
+            "--segments",
+            str(tmp_path / "s.csv"),
+            "--effects",
+            "bias,scale,misalignment",
+            "-o",
+            str(tmp_path / "p.json"),
+        ],
+    )
     return status, capsys.readouterr()
 
 
 def test_hand_turn_standard_errors_say_what_they_leave_out(shared_data, tmp_path, capsys):
-    status, cap = _convert_and_calibrate(shared_data / "imucal_ferraris" / "example_ferraris_session.csv",
-                                         tmp_path, capsys)
+    status, cap = _convert_and_calibrate(
+        shared_data / "imucal_ferraris" / "example_ferraris_session.csv", tmp_path, capsys
+    )
     out = cap.out
     assert status == 0 and "angles taken as exact" in out
     assert "reads against the reference" not in cap.err  # this session's turns agree with -360 deg

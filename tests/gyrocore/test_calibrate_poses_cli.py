@@ -34,15 +34,29 @@ def test_calibrate_poses_on_tomisuarez2_beside_the_authors(shared_data, tmp_path
     # default pose gate (5x the rest noise): too few poses, and the error says what to do
     s, _, err = gh(capsys, "calibrate", f, "--poses", "--effects", "bias,scale,misalignment", "-o", out)
     assert_error(s, err, r"usable motions between poses.*--pose-std-factor 10")
-    s, stdout, err = gh(capsys, "calibrate", f, "--poses", "--pose-std-factor", "10", "--effects",
-                        "bias,scale,misalignment", "-o", out, "--json")
+    s, stdout, err = gh(
+        capsys,
+        "calibrate",
+        f,
+        "--poses",
+        "--pose-std-factor",
+        "10",
+        "--effects",
+        "bias,scale,misalignment",
+        "-o",
+        out,
+        "--json",
+    )
     assert s == 0, err
     js = json.loads(stdout)
     assert js["method"] == "gravity_poses"
     K_auth = _k_authors(d)
     s_, se = np.array(js["parameters"]["scale"]["s"]), np.array(js["standard_errors"]["scale"]["s"])
     assert np.all(np.abs(s_ - (np.diag(K_auth) - 1.0)) < 2.5 * se), (s_, se)
-    m, mse = np.array(js["parameters"]["misalignment"]["m_rad"]), np.array(js["standard_errors"]["misalignment"]["m_rad"])
+    m, mse = (
+        np.array(js["parameters"]["misalignment"]["m_rad"]),
+        np.array(js["standard_errors"]["misalignment"]["m_rad"]),
+    )
     idx = {"x": 0, "y": 1, "z": 2}
     m_auth = np.array([K_auth[idx[o[0]], idx[o[1]]] for o in MISALIGNMENT_ORDER])
     assert np.all(np.abs(m - m_auth) < 2.5 * mse), (m, m_auth, mse)

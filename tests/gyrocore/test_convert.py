@@ -127,7 +127,9 @@ def test_sunsided_rotations_integrate_to_plus_720_after_flip(sun, setname, name,
     raw = _quiet(cv.load_with_segments, sun / setname / name, flip_gyro_x=False)
     assert raw.segments[0].angle_deg == (-720.0 if axis == "x" else 720.0)
     bias_raw = bias * np.array([-1.0, 1.0, 1.0])
-    assert _integral_deg(raw.recording, raw.segments[0], bias_raw)[i] == pytest.approx(raw.segments[0].angle_deg, rel=0.04)
+    assert _integral_deg(raw.recording, raw.segments[0], bias_raw)[i] == pytest.approx(
+        raw.segments[0].angle_deg, rel=0.04
+    )
 
 
 def test_sunsided_no_retime_keeps_host_times(sun):
@@ -398,7 +400,9 @@ def test_cli_convert_json_segments_force_and_determinism(shared_data, tmp_path):
     assert r2.returncode == 0 and out1.read_bytes() == out2.read_bytes()
     # no silent overwrite
     r3 = _cli("convert", src, "-o", out1)
-    assert r3.returncode != 0 and r3.stderr.strip().splitlines() == [f"error: {out1} exists; pass --force to overwrite it"]
+    assert r3.returncode != 0 and r3.stderr.strip().splitlines() == [
+        f"error: {out1} exists; pass --force to overwrite it"
+    ]
     r4 = _cli("convert", src, "-o", out1, "--force")
     assert r4.returncode == 0
 
@@ -417,8 +421,11 @@ def test_concat_converted_joins_a_session_and_shifts_segments(shared_data, tmp_p
     """Three sunsided rotate-* runs → one recording with three segments on its time axis;
     the CLI's --append gives the same file."""
     base = shared_data / "sunsided_mpu6050" / "set-1"
-    names = ["rotate-360ccw-around-x-pointing-forward", "rotate-360ccw-around-y-pointing-left",
-             "rotate-360ccw-around-z-pointing-up"]
+    names = [
+        "rotate-360ccw-around-x-pointing-forward",
+        "rotate-360ccw-around-y-pointing-left",
+        "rotate-360ccw-around-z-pointing-up",
+    ]
     parts = [_quiet(cv.load_with_segments, base / n) for n in names]
     c = cv.concat_converted(parts)
     r = c.recording
@@ -442,8 +449,19 @@ def test_concat_converted_joins_a_session_and_shifts_segments(shared_data, tmp_p
         cv.concat_converted([])
     # CLI
     out, seg = tmp_path / "rot.csv", tmp_path / "seg.csv"
-    res = _cli("convert", base / names[0], "--append", base / names[1], "--append", base / names[2], "-o", out,
-               "--segments-out", seg, "--json")
+    res = _cli(
+        "convert",
+        base / names[0],
+        "--append",
+        base / names[1],
+        "--append",
+        base / names[2],
+        "-o",
+        out,
+        "--segments-out",
+        seg,
+        "--json",
+    )
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["segments"] == 3
     back = read_csv(out)
@@ -459,7 +477,10 @@ def test_sunsided_frames_per_set(sun):
 
     cases = {
         "set-1": (["rotate-360ccw-around-y-pointing-left", "tilt-around-y-pointing-left", "tilt-sphere"], (1, -1, -1)),
-        "set-2": (["rotate-ccw-around-x-pointing-forward", "rotate-ccw-around-y-pointing-left", "full-sphere"], (-1, -1, 1)),
+        "set-2": (
+            ["rotate-ccw-around-x-pointing-forward", "rotate-ccw-around-y-pointing-left", "full-sphere"],
+            (-1, -1, 1),
+        ),
     }
     for setname, (names, pattern) in cases.items():
         fc_flipped = []

@@ -49,7 +49,9 @@ def test_real_arducopter_log_units_rates_and_header():
     assert abs(np.median(np.linalg.norm(rec.accel_m_s2[still], axis=1)) / G0 - 1) < 0.01
     assert np.degrees(np.abs(rec.gyro_rad_s[still])).max() < 0.5
     # motors: RCOU C1..C4 (QUAD), normalised by MOT_PWM_MIN 1100 / MOT_PWM_MAX 1900
-    assert [k for k in sorted(rec.extra) if k.startswith("motor_cmd_") and k[-1].isdigit()] == [f"motor_cmd_{i}" for i in range(4)]
+    assert [k for k in sorted(rec.extra) if k.startswith("motor_cmd_") and k[-1].isdigit()] == [
+        f"motor_cmd_{i}" for i in range(4)
+    ]
     assert rec.extra["motor_0"].min() == 1100 and 0 < rec.extra["motor_cmd_mean"].max() <= 1
     chain = json.loads(rec.meta["gyro_filters"])
     assert [(c["kind"], c["cutoff_hz"], c["dynamic"]) for c in chain][0] == ("butter2", 42.0, False)
@@ -79,8 +81,12 @@ def test_not_dataflash_or_no_units_is_one_error(tmp_path):
 
 def test_convert_cli_and_vibration_refusal(tmp_path):
     out = tmp_path / "ap.csv"
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(LOG), "-o", str(out), "--json"],
-                        capture_output=True, text=True, timeout=300)
+    cp = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "convert", str(LOG), "-o", str(out), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert cp.returncode == 0, cp.stderr
     d = json.loads(cp.stdout)
     assert d["format"] == "dataflash" and d["n_samples"] == 318
@@ -88,7 +94,9 @@ def test_convert_cli_and_vibration_refusal(tmp_path):
         warnings.simplefilter("ignore", RepairWarning)
         assert load_any(LOG).meta["format"] == "dataflash"
     # 25 Hz IMU data cannot show vibration above 40 Hz: one error line, no traceback
-    cp2 = subprocess.run([sys.executable, "-m", "experiments.cli", "vibration", str(out)], capture_output=True, text=True, timeout=300)
+    cp2 = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "vibration", str(out)], capture_output=True, text=True, timeout=300
+    )
     assert cp2.returncode != 0 and "Traceback" not in cp2.stderr
     assert len([ln for ln in cp2.stderr.splitlines() if ln.startswith("error:")]) == 1
 
@@ -102,7 +110,7 @@ def test_corrupt_headers_are_skipped_and_counted_in_one_warning(tmp_path):
     starts = [i for i in range(len(data) // 3, 2 * len(data) // 3) if data[i] == 0xA3 and data[i + 1] == 0x95]
     rng = np.random.default_rng(1603)
     for s in rng.choice(starts, size=3, replace=False):
-        data[s:s + 2] = b"\x00\x00"
+        data[s : s + 2] = b"\x00\x00"
     bad = tmp_path / "bad.BIN"
     bad.write_bytes(bytes(data))
     rec, warns = _read(bad)
@@ -128,11 +136,19 @@ def test_batch_sampler_stream_and_vibration_on_it(tmp_path):
     dt = np.diff(rec.t_s)
     assert np.allclose(dt[dt < 0.01], 1 / float(rec.meta["rate_hz"]), rtol=1e-6) and (dt > 1).sum() == 2
     out = tmp_path / "isb.csv"
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "convert", str(LOG), "--stream", "batch", "-o", str(out)],
-                        capture_output=True, text=True, timeout=300)
+    cp = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "convert", str(LOG), "--stream", "batch", "-o", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert cp.returncode == 0, cp.stderr
-    cp2 = subprocess.run([sys.executable, "-m", "experiments.cli", "vibration", str(out), "--window-s", "0.15", "--json"],
-                         capture_output=True, text=True, timeout=600)
+    cp2 = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "vibration", str(out), "--window-s", "0.15", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert cp2.returncode == 0, cp2.stderr
     d = json.loads(cp2.stdout)
     assert d["signal"] == "raw" and abs(d["rate_hz"] - float(rec.meta["rate_hz"])) < 1 and d["n_windows"] >= 2

@@ -36,8 +36,9 @@ def test_misalignment_and_g_sensitivity_formula():
 def test_nonlinear_and_asymmetry_formula():
     inp = _inputs()
     w = inp.omega_S_rad_s
-    y = E.deterministic({"scale_asymmetry": {"a": [1e-3, 2e-3, 3e-3]},
-                         "scale_nonlinearity": {"s2_s_per_rad": [1e-3, 0, -1e-3]}}, inp)
+    y = E.deterministic(
+        {"scale_asymmetry": {"a": [1e-3, 2e-3, 3e-3]}, "scale_nonlinearity": {"s2_s_per_rad": [1e-3, 0, -1e-3]}}, inp
+    )
     expect = w + np.array([1e-3, 2e-3, 3e-3]) * np.abs(w) + np.array([1e-3, 0, -1e-3]) * w * np.abs(w)
     np.testing.assert_allclose(y, expect, atol=1e-15)
 
@@ -62,8 +63,16 @@ def test_design_matches_finite_difference():
     """A·θ equals deterministic(θ) − ω for effects linear in their parameters."""
     inp = _inputs(500)
     rng = np.random.default_rng(1)
-    for eff in ("bias", "scale", "misalignment", "g_sensitivity", "g2_sensitivity",
-                "scale_asymmetry", "scale_nonlinearity", "bias_ramp"):
+    for eff in (
+        "bias",
+        "scale",
+        "misalignment",
+        "g_sensitivity",
+        "g2_sensitivity",
+        "scale_asymmetry",
+        "scale_nonlinearity",
+        "bias_ramp",
+    ):
         names, A = E.design(eff, inp)
         theta = rng.normal(size=len(names)) * 1e-3
         pname = next(iter(E.PARAM_SCHEMA[eff]))
@@ -94,15 +103,25 @@ def test_earth_rate_magnitude_and_vertical_component():
 
 
 # ---------------------------------------------------------------- the registry
-FAMILY_EXAMPLES = ("periodic[37.5]", "step[1.25]", "regressor[omega_y*omega_z]", "regressor[f_x^2]",
-                   "regressor[alpha_x]", "regressor[temp_c]", "regressor[dtemp_dt]", "regressor[t]",
-                   "regressor[omega_x*temp_c]")
+FAMILY_EXAMPLES = (
+    "periodic[37.5]",
+    "step[1.25]",
+    "regressor[omega_y*omega_z]",
+    "regressor[f_x^2]",
+    "regressor[alpha_x]",
+    "regressor[temp_c]",
+    "regressor[dtemp_dt]",
+    "regressor[t]",
+    "regressor[omega_x*temp_c]",
+)
 
 
 def _smooth_inputs(n=1500, rate=200.0):
     """Smooth signals (np.gradient is exact to O(dt²) on them)."""
     t = np.arange(n) / rate
-    w = np.stack([np.sin(2 * np.pi * 0.3 * t), 0.7 * np.cos(2 * np.pi * 0.17 * t), 0.4 * np.sin(2 * np.pi * 0.11 * t + 1)], 1)
+    w = np.stack(
+        [np.sin(2 * np.pi * 0.3 * t), 0.7 * np.cos(2 * np.pi * 0.17 * t), 0.4 * np.sin(2 * np.pi * 0.11 * t + 1)], 1
+    )
     f = np.array([0.5, -0.3, 9.8]) + np.stack([np.sin(0.5 * t), np.cos(0.3 * t), 0.2 * np.sin(0.2 * t)], 1)
     T = 25 + 5 * np.sin(2 * np.pi * 0.05 * t)
     return E.ModelInputs(t_s=t, omega_S_rad_s=w, f_S_m_s2=f, temp_c=T)
@@ -146,19 +165,26 @@ def test_family_round_trip(name):
         # O(m^2 dt^2 max|d3w/dt3|) (Taylor remainder); ends (one-sided differences) excluded
         dt = float(inp.t_s[1] - inp.t_s[0])
         m = max(2, round(E.ALPHA_HALF_WINDOW_S / dt))
-        w3 = np.max(np.abs(np.gradient(np.gradient(np.gradient(inp.omega_S_rad_s, dt, axis=0), dt, axis=0), dt, axis=0)))
+        w3 = np.max(
+            np.abs(np.gradient(np.gradient(np.gradient(inp.omega_S_rad_s, dt, axis=0), dt, axis=0), dt, axis=0))
+        )
         bound = np.max(np.abs(theta)) * m**2 * dt**2 * w3
-        assert np.max(np.abs(back - inp.omega_S_rad_s)[m + 1:-m - 1]) < bound
+        assert np.max(np.abs(back - inp.omega_S_rad_s)[m + 1 : -m - 1]) < bound
     else:
         np.testing.assert_allclose(back, inp.omega_S_rad_s, rtol=0, atol=1e-12)
 
 
 def test_family_with_catalogue_effects_inverts():
     inp = _smooth_inputs()
-    p = {"bias": {"b_rad_s": [0.01, 0.02, -0.01]}, "scale": {"s": [0.01, -0.02, 0.003]},
-         "scale_nonlinearity": {"s2_s_per_rad": [1e-3, 0, -2e-3]}, "time_offset": {"tau_s": 0.004},
-         "periodic[2.5]": {"a_cos_rad_s": [1e-3, 0, 0], "a_sin_rad_s": [0, -2e-3, 0]},
-         "regressor[omega_y*omega_z]": {"coef": [3e-3, 0, -1e-3]}, "step[3]": {"size_rad_s": [0, 0, 5e-3]}}
+    p = {
+        "bias": {"b_rad_s": [0.01, 0.02, -0.01]},
+        "scale": {"s": [0.01, -0.02, 0.003]},
+        "scale_nonlinearity": {"s2_s_per_rad": [1e-3, 0, -2e-3]},
+        "time_offset": {"tau_s": 0.004},
+        "periodic[2.5]": {"a_cos_rad_s": [1e-3, 0, 0], "a_sin_rad_s": [0, -2e-3, 0]},
+        "regressor[omega_y*omega_z]": {"coef": [3e-3, 0, -1e-3]},
+        "step[3]": {"size_rad_s": [0, 0, 5e-3]},
+    }
     y = E.deterministic(p, inp)
     back = E.correct(p, y, E.ModelInputs(t_s=inp.t_s), iterations=10)
     # time_offset is applied and undone by linear interpolation: each costs at most dt²/8·max|ω''|
@@ -172,29 +198,52 @@ def test_family_with_catalogue_effects_inverts():
     np.testing.assert_allclose(back, inp.omega_S_rad_s, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("given, canonical", [
-    ("periodic[37.50]", "periodic[37.5]"), ("periodic[ 50 ]", "periodic[50]"), ("periodic[5e1]", "periodic[50]"),
-    ("periodic[0.001]", "periodic[0.001]"), ("step[12.250]", "step[12.25]"), ("step[-0.0]", "step[0]"),
-    ("step[+3]", "step[3]"), ("regressor[omega_z*omega_y]", "regressor[omega_y*omega_z]"),
-    ("regressor[omega_x*omega_x]", "regressor[omega_x^2]"), ("regressor[ f_x ^ 2 ]", "regressor[f_x^2]"),
-    ("regressor[temp_c*omega_x]", "regressor[omega_x*temp_c]"), ("regressor[t^1]", "regressor[t]"),
-    ("regressor[omega_x*omega_x*f_y]", "regressor[omega_x^2*f_y]"),
-])
+@pytest.mark.parametrize(
+    "given, canonical",
+    [
+        ("periodic[37.50]", "periodic[37.5]"),
+        ("periodic[ 50 ]", "periodic[50]"),
+        ("periodic[5e1]", "periodic[50]"),
+        ("periodic[0.001]", "periodic[0.001]"),
+        ("step[12.250]", "step[12.25]"),
+        ("step[-0.0]", "step[0]"),
+        ("step[+3]", "step[3]"),
+        ("regressor[omega_z*omega_y]", "regressor[omega_y*omega_z]"),
+        ("regressor[omega_x*omega_x]", "regressor[omega_x^2]"),
+        ("regressor[ f_x ^ 2 ]", "regressor[f_x^2]"),
+        ("regressor[temp_c*omega_x]", "regressor[omega_x*temp_c]"),
+        ("regressor[t^1]", "regressor[t]"),
+        ("regressor[omega_x*omega_x*f_y]", "regressor[omega_x^2*f_y]"),
+    ],
+)
 def test_names_are_canonical(given, canonical):
     assert E.canonical_name(given) == canonical
     assert E.check_effect_names([given, "bias"]) == [canonical, "bias"]
     assert E.validate_params({given: E.resolve(canonical).defaults}).keys() == {canonical}
 
 
-@pytest.mark.parametrize("bad, msg", [
-    ("periodic[abc]", "decimal number"), ("periodic[-2]", "> 0 Hz"), ("periodic[0]", "> 0 Hz"),
-    ("periodic[nan]", "decimal number"), ("periodic[inf]", "decimal number"), ("step[]", "decimal number"),
-    ("step[1e999]", "finite"), ("regressor[]", "product of signals"), ("regressor[omega_w]", "unknown signal 'omega_w'"),
-    ("regressor[omega_x+1]", "cannot read"), ("regressor[omega_x^4]", "degree 4"), ("regressor[omega_x^0]", "cannot read|>= 1"),
-    ("regressor[omega_x**2]", "product of signals"), ("regressor[2*omega_x]", "cannot read"),
-    ("regressor[omega_x*omega_x*omega_x*omega_x]", "degree 4"), ("wobble[3]", "unknown effect 'wobble\\[3\\]'"),
-    ("periodic37.5", "unknown effect"),
-])
+@pytest.mark.parametrize(
+    "bad, msg",
+    [
+        ("periodic[abc]", "decimal number"),
+        ("periodic[-2]", "> 0 Hz"),
+        ("periodic[0]", "> 0 Hz"),
+        ("periodic[nan]", "decimal number"),
+        ("periodic[inf]", "decimal number"),
+        ("step[]", "decimal number"),
+        ("step[1e999]", "finite"),
+        ("regressor[]", "product of signals"),
+        ("regressor[omega_w]", "unknown signal 'omega_w'"),
+        ("regressor[omega_x+1]", "cannot read"),
+        ("regressor[omega_x^4]", "degree 4"),
+        ("regressor[omega_x^0]", "cannot read|>= 1"),
+        ("regressor[omega_x**2]", "product of signals"),
+        ("regressor[2*omega_x]", "cannot read"),
+        ("regressor[omega_x*omega_x*omega_x*omega_x]", "degree 4"),
+        ("wobble[3]", "unknown effect 'wobble\\[3\\]'"),
+        ("periodic37.5", "unknown effect"),
+    ],
+)
 def test_bad_family_names_are_one_line_errors(bad, msg):
     with pytest.raises(GyroInputError, match=msg) as ei:
         E.resolve(bad)
@@ -206,16 +255,34 @@ def test_twice_under_two_spellings_is_an_error():
         E.validate_params({"step[1]": {"size_rad_s": np.zeros(3)}, "step[1.0]": {"size_rad_s": np.zeros(3)}})
 
 
-@pytest.mark.parametrize("term, axis, expect", [
-    ("omega_x", "x", "scale"), ("regressor[omega_x]", 0, "scale"), ("omega_y", "x", "misalignment"),
-    ("alpha_z", "z", None), ("alpha_z", "x", None), ("f_y", "x", "g_sensitivity"),
-    ("regressor[f_y]", "z", "g_sensitivity"), ("f_x*f_z", "y", "g2_sensitivity"), ("f_y^2", "y", "g2_sensitivity"),
-    ("t", "y", "bias_ramp"), ("dtemp_dt", "x", "bias_temp_rate"), ("temp_c", "z", "bias_thermal"),
-    ("temp_c^2", "z", "bias_thermal"), ("temp_c^3", "x", "bias_thermal"), ("omega_x*temp_c", "x", "scale_thermal"),
-    ("omega_x*temp_c", "y", None), ("omega_x*omega_x", "x", None), ("omega_y*omega_z", "x", None),
-    ("f_x*omega_x", "x", None), ("periodic[37.5]", "x", None), ("step[2]", "y", None), ("t*temp_c", "x", None),
-    ("f_x^2*f_y", "x", None),
-])
+@pytest.mark.parametrize(
+    "term, axis, expect",
+    [
+        ("omega_x", "x", "scale"),
+        ("regressor[omega_x]", 0, "scale"),
+        ("omega_y", "x", "misalignment"),
+        ("alpha_z", "z", None),
+        ("alpha_z", "x", None),
+        ("f_y", "x", "g_sensitivity"),
+        ("regressor[f_y]", "z", "g_sensitivity"),
+        ("f_x*f_z", "y", "g2_sensitivity"),
+        ("f_y^2", "y", "g2_sensitivity"),
+        ("t", "y", "bias_ramp"),
+        ("dtemp_dt", "x", "bias_temp_rate"),
+        ("temp_c", "z", "bias_thermal"),
+        ("temp_c^2", "z", "bias_thermal"),
+        ("temp_c^3", "x", "bias_thermal"),
+        ("omega_x*temp_c", "x", "scale_thermal"),
+        ("omega_x*temp_c", "y", None),
+        ("omega_x*omega_x", "x", None),
+        ("omega_y*omega_z", "x", None),
+        ("f_x*omega_x", "x", None),
+        ("periodic[37.5]", "x", None),
+        ("step[2]", "y", None),
+        ("t*temp_c", "x", None),
+        ("f_x^2*f_y", "x", None),
+    ],
+)
 def test_catalogue_equivalent(term, axis, expect):
     assert E.catalogue_equivalent(term, axis) == expect
 
@@ -231,8 +298,20 @@ def test_catalogue_equivalent_is_the_catalogue_regressor():
     axis, 0 on the others), in the span of that effect's design (+ its constant companion):
     reporting it again would double count. A term mapped to None is not."""
     inp = _smooth_inputs()
-    for term in ("omega_x", "omega_z", "alpha_x", "f_y", "f_x*f_z", "t", "dtemp_dt", "temp_c", "temp_c^2",
-                 "omega_x*temp_c", "omega_x^2", "omega_y*omega_z"):
+    for term in (
+        "omega_x",
+        "omega_z",
+        "alpha_x",
+        "f_y",
+        "f_x*f_z",
+        "t",
+        "dtemp_dt",
+        "temp_c",
+        "temp_c^2",
+        "omega_x*temp_c",
+        "omega_x^2",
+        "omega_y*omega_z",
+    ):
         _, g = E.design(f"regressor[{term}]", inp)
         for i in range(3):
             y = g[:, :, i].ravel()  # coef[i] column: the signal on axis i, 0 elsewhere
@@ -266,8 +345,13 @@ def test_catalogue_registry_round_trip(name):
     eff = E.resolve(name)
     assert eff.name == name and eff.correctable and E.canonical_name(name) == name
     inp = _smooth_inputs()
-    inp = E.ModelInputs(t_s=inp.t_s, omega_S_rad_s=inp.omega_S_rad_s, f_S_m_s2=inp.f_S_m_s2, temp_c=inp.temp_c,
-                        q_SW_wxyz=np.tile([0.9, 0.1, -0.3, 0.2], (inp.n, 1)))
+    inp = E.ModelInputs(
+        t_s=inp.t_s,
+        omega_S_rad_s=inp.omega_S_rad_s,
+        f_S_m_s2=inp.f_S_m_s2,
+        temp_c=inp.temp_c,
+        q_SW_wxyz=np.tile([0.9, 0.1, -0.3, 0.2], (inp.n, 1)),
+    )
     rng = np.random.default_rng(5)
     if eff.fittable:
         order = 2 if eff.polynomial else 1
@@ -275,7 +359,9 @@ def test_catalogue_registry_round_trip(name):
         theta = rng.normal(size=len(cols)) * (1e-4 if name != "time_offset" else 1e-3)
         pd = eff.unflatten(theta, order)
         if eff.polynomial:
-            pd.update(t0_c=np.asarray(float(np.mean(inp.temp_c))), temp_min_c=np.asarray(-50.0), temp_max_c=np.asarray(150.0))
+            pd.update(
+                t0_c=np.asarray(float(np.mean(inp.temp_c))), temp_min_c=np.asarray(-50.0), temp_max_c=np.asarray(150.0)
+            )
     else:  # earth_rate: no regressors (a known input, not fitted)
         pd = {"latitude_rad": np.asarray(0.8), "heading_rad": np.asarray(0.3)}
     p = {name: pd}
@@ -284,9 +370,14 @@ def test_catalogue_registry_round_trip(name):
     sl = slice(3, -3) if name == "time_offset" else slice(None)  # the shift holds the edge values
     if eff.fittable:
         # linear-in-θ effects exactly; time_offset's shift is linear to O(τ²·|ω''|) ≤ 1e-6·4: 1e-5
-        np.testing.assert_allclose((y - inp.omega_S_rad_s)[sl], (A @ theta)[sl], rtol=0,
-                                   atol=1e-5 if name == "time_offset" else 1e-12)
-    back = E.correct(p, y, E.ModelInputs(t_s=inp.t_s, f_S_m_s2=inp.f_S_m_s2, temp_c=inp.temp_c, q_SW_wxyz=inp.q_SW_wxyz),
-                     iterations=8)
+        np.testing.assert_allclose(
+            (y - inp.omega_S_rad_s)[sl], (A @ theta)[sl], rtol=0, atol=1e-5 if name == "time_offset" else 1e-12
+        )
+    back = E.correct(
+        p,
+        y,
+        E.ModelInputs(t_s=inp.t_s, f_S_m_s2=inp.f_S_m_s2, temp_c=inp.temp_c, q_SW_wxyz=inp.q_SW_wxyz),
+        iterations=8,
+    )
     # time_offset: two linear interpolations at dt = 5 ms, dt²/4·max|ω''| ≤ 2.5e-5 (see above)
     np.testing.assert_allclose(back[sl], inp.omega_S_rad_s[sl], rtol=0, atol=2.5e-5 if name == "time_offset" else 1e-12)

@@ -18,7 +18,9 @@ DATAFLASH = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCo
 @pytest.mark.parametrize("cmd", ["bias", "noise"])
 def test_blackbox_log_names_convert(capsys, shared_data, cmd):
     s, _, err = gh(capsys, cmd, shared_data / "betaflight_blackbox" / "better_tune.BBL")
-    assert_error(s, err, r"blackbox log, not a data file; convert it first: gyroharness convert .*better_tune\.BBL -o OUT\.csv")
+    assert_error(
+        s, err, r"blackbox log, not a data file; convert it first: gyroharness convert .*better_tune\.BBL -o OUT\.csv"
+    )
 
 
 def test_dataflash_log_names_convert(capsys):

@@ -30,8 +30,16 @@ def test_seeds_are_valid_inputs(tmp_path):
     from gyrocore.data import recording as rc
 
     fz = _load()
-    readers = [rc.read_csv, rc.read_csv, rc.read_csv, cm.read_segments_csv, cv.read_tomisuarez2,
-               cv.read_imucal, cv.read_imucal_annotated, cv.read_fusion]
+    readers = [
+        rc.read_csv,
+        rc.read_csv,
+        rc.read_csv,
+        cm.read_segments_csv,
+        cv.read_tomisuarez2,
+        cv.read_imucal,
+        cv.read_imucal_annotated,
+        cv.read_fusion,
+    ]
     assert len(readers) == len(fz.SEEDS)
     for i, (seed, reader) in enumerate(zip(fz.SEEDS, readers)):
         p = tmp_path / f"seed{i}.csv"

@@ -75,8 +75,9 @@ def test_spectral_correlation_matches_exact_white_plus_random_walk():
 
 
 def _nk(rng, n):
-    return (SN.white_rate_noise(rng, n, rate_hz=RATE, n_rad_per_sqrt_s=1e-4)
-            + SN.rate_random_walk(rng, n, rate_hz=RATE, k_rad_s_per_sqrt_s=2e-6))
+    return SN.white_rate_noise(rng, n, rate_hz=RATE, n_rad_per_sqrt_s=1e-4) + SN.rate_random_walk(
+        rng, n, rate_hz=RATE, k_rad_s_per_sqrt_s=2e-6
+    )
 
 
 @pytest.mark.parametrize("method", ["gmwm", "adev"])
@@ -87,7 +88,9 @@ def test_arw_plus_rrw_is_not_reported_as_bias_instability(method):
     Two seeds × 3 axes; the study (docs/noise.md) gives the rates over 24 axes.
     """
     n = 360000
-    zs = G.expected_z({"arw_rad_per_sqrt_s": 1e-4, "rrw_rad_per_s_sqrt_s": 2e-6}, n_samples=n, rate_hz=RATE, method=method)
+    zs = G.expected_z(
+        {"arw_rad_per_sqrt_s": 1e-4, "rrw_rad_per_s_sqrt_s": 2e-6}, n_samples=n, rate_hz=RATE, method=method
+    )
     assert zs["rrw_rad_per_s_sqrt_s"] > G.Z_POWER
     for seed in (11, 12):
         g = _nk(np.random.default_rng(seed), n)
@@ -102,8 +105,10 @@ def test_arw_plus_rrw_is_not_reported_as_bias_instability(method):
     misses = 0
     for seed in (11, 12):
         res = AL.identify_noise(_nk(np.random.default_rng(seed), n), rate_hz=RATE, method=method, check_static=False)
-        misses += sum(not (r.ci95["rrw_rad_per_s_sqrt_s"][0] <= 2e-6 <= r.ci95["rrw_rad_per_s_sqrt_s"][1])
-                      for r in res.axes.values())
+        misses += sum(
+            not (r.ci95["rrw_rad_per_s_sqrt_s"][0] <= 2e-6 <= r.ci95["rrw_rad_per_s_sqrt_s"][1])
+            for r in res.axes.values()
+        )
     assert misses <= 1
 
 
@@ -114,8 +119,9 @@ def test_gauss_markov_identified_with_its_correlation_time():
     truth = {"arw_rad_per_sqrt_s": 1e-4, "correlated_sigma_rad_s": 3e-5, "correlated_tau_c_s": 20.0}
     assert G.expected_z(truth, n_samples=n, rate_hz=50.0)["correlated_sigma_rad_s"] > G.Z_POWER
     rng = np.random.default_rng(21)
-    g = (SN.white_rate_noise(rng, n, rate_hz=50.0, n_rad_per_sqrt_s=1e-4)
-         + SN.gauss_markov(rng, n, rate_hz=50.0, sigma_rad_s=3e-5, tau_c_s=20.0))
+    g = SN.white_rate_noise(rng, n, rate_hz=50.0, n_rad_per_sqrt_s=1e-4) + SN.gauss_markov(
+        rng, n, rate_hz=50.0, sigma_rad_s=3e-5, tau_c_s=20.0
+    )
     res = AL.identify_noise(g, rate_hz=50.0, check_static=False)
     cov_s = cov_t = 0
     for r in res.axes.values():
@@ -213,8 +219,9 @@ def test_arw_rrw_monte_carlo_rates():
     b = k = cov_k = cov_n = 0
     axes = 0
     for seed in range(20):
-        res = AL.identify_noise(_nk(np.random.default_rng(np.random.SeedSequence(900 + seed)), n), rate_hz=RATE,
-                                check_static=False)
+        res = AL.identify_noise(
+            _nk(np.random.default_rng(np.random.SeedSequence(900 + seed)), n), rate_hz=RATE, check_static=False
+        )
         for r in res.axes.values():
             axes += 1
             b += r.bias_instability_rad_s is not None
@@ -260,6 +267,7 @@ def test_stand_in_check_flicker_floor_against_gauss_markov():
     blend, N = 1e-4, B = 1.5e-5 / GM 3e-5, 20 s): over 1 h B is selected (cheaper penalty) but
     a GM fits as well, so B is fitted and reported unresolved, ambiguous with GM — the rule
     predicts B unresolvable at 1 h; over 4 h a blend dominated by the floor has B resolved."""
+
     def blend(T, w):
         n = int(T * RATE)
         m = G.scales(n)
@@ -307,13 +315,16 @@ def test_arw_interval_with_quantization_at_1khz_covers():
     covered = 0
     for s in range(20):
         rng = np.random.default_rng(np.random.SeedSequence([1103, s]))
-        g = (SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=1e-4)
-             + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=2e-6)
-             + np.diff(rng.standard_normal((n + 1, 3)) * 2e-5, axis=0) * rate)
+        g = (
+            SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=1e-4)
+            + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=2e-6)
+            + np.diff(rng.standard_normal((n + 1, 3)) * 2e-5, axis=0) * rate
+        )
         for ax in range(3):
             t, d, _ = AL.oadev(g[:, ax], rate, m)
-            f = G.fit_noise(t, d**2, m, n, candidates=("quantization_rad", "arw_rad_per_sqrt_s",
-                                                       "rrw_rad_per_s_sqrt_s"))
+            f = G.fit_noise(
+                t, d**2, m, n, candidates=("quantization_rad", "arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s")
+            )
             lo, hi = f.ci95["arw_rad_per_sqrt_s"]
             covered += lo <= 1e-4 <= hi
     assert covered >= 53, covered

@@ -65,7 +65,9 @@ def test_filterpy_tracker_equals_pure_steps():
     np.testing.assert_allclose(out.bias_rad_s[-1], x, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(out.bias_sigma_rad_s[-1], np.sqrt(np.diag(P)), rtol=1e-9)
     # steady state reported from the Riccati equation
-    np.testing.assert_allclose(tr.steady_state_sigma(), math.sqrt(KF.steady_state_variance(1.0, K**2 * DT, N**2 * RATE_HZ)[1]))
+    np.testing.assert_allclose(
+        tr.steady_state_sigma(), math.sqrt(KF.steady_state_variance(1.0, K**2 * DT, N**2 * RATE_HZ)[1])
+    )
 
 
 def test_gauss_markov_model_steady_state():
@@ -92,13 +94,17 @@ def test_model_from_allan():
     rng = np.random.default_rng(23)
     n = 60000
     # K = 2e-3 dominates from τ ≈ 1 s: resolved on every axis
-    g = N * math.sqrt(RATE_HZ) * rng.standard_normal((n, 3)) + np.cumsum(rng.standard_normal((n, 3)), axis=0) * 2e-3 / math.sqrt(RATE_HZ)
+    g = N * math.sqrt(RATE_HZ) * rng.standard_normal((n, 3)) + np.cumsum(
+        rng.standard_normal((n, 3)), axis=0
+    ) * 2e-3 / math.sqrt(RATE_HZ)
     a = AL.allan_analysis(Recording(t_s=np.arange(n) / RATE_HZ, gyro_rad_s=g))
     m = KF.BiasNoiseModel.from_allan(a)
     assert m.source == "allan: N, K" and not m.gauss_markov
     np.testing.assert_allclose(m.arw_rad_per_sqrt_s, [a.axes[x].arw_rad_per_sqrt_s for x in "xyz"])
     np.testing.assert_allclose(m.rrw_rad_per_s_sqrt_s, [a.axes[x].rrw_rad_per_s_sqrt_s for x in "xyz"])
-    w = AL.allan_analysis(Recording(t_s=np.arange(20000) / RATE_HZ, gyro_rad_s=N * 10 * rng.standard_normal((20000, 3))))
+    w = AL.allan_analysis(
+        Recording(t_s=np.arange(20000) / RATE_HZ, gyro_rad_s=N * 10 * rng.standard_normal((20000, 3)))
+    )
     with pytest.warns(RepairWarning, match="upper bound"):
         m2 = KF.BiasNoiseModel.from_allan(w)
     np.testing.assert_allclose(m2.rrw_rad_per_s_sqrt_s, [w.axes[x].ci95["rrw_rad_per_s_sqrt_s"][1] for x in "xyz"])
@@ -108,10 +114,15 @@ def test_model_from_allan():
     # tracked as the Gauss–Markov process matched to the floor, like a resolved B
     import dataclasses
 
-    amb = {x: dataclasses.replace(r, bias_instability_rad_s=None,
-                                  estimate={**r.estimate, "bias_instability_rad_s": 3e-5},
-                                  ambiguous={"bias_instability_rad_s": "correlated_sigma_rad_s"})
-           for x, r in w.axes.items()}
+    amb = {
+        x: dataclasses.replace(
+            r,
+            bias_instability_rad_s=None,
+            estimate={**r.estimate, "bias_instability_rad_s": 3e-5},
+            ambiguous={"bias_instability_rad_s": "correlated_sigma_rad_s"},
+        )
+        for x, r in w.axes.items()
+    }
     m3 = KF.BiasNoiseModel.from_allan(amb)
     assert m3.source == "allan: N, B -> Gauss-Markov" and m3.gauss_markov
     np.testing.assert_allclose(m3.gm_sigma_rad_s, 3e-5 * KF._B_FLOOR / KF._GM_PEAK)
@@ -135,8 +146,9 @@ def _attitude_run(seed: int, n: int, ref_sigma: float):
     g = omega + b + N * math.sqrt(RATE_HZ) * rng.standard_normal((n, 3))
     q_ref = KF.quat_mul(q_true, KF.quat_exp(ref_sigma * rng.standard_normal((n, 3))))
     model = KF.BiasNoiseModel(np.full(3, N), np.full(3, K))
-    tr = KF.AttitudeBiasTracker(model, ref_sigma_rad=ref_sigma, q0_wxyz=q_ref[0], bias0_sigma_rad_s=0.05,
-                                att0_sigma_rad=ref_sigma)
+    tr = KF.AttitudeBiasTracker(
+        model, ref_sigma_rad=ref_sigma, q0_wxyz=q_ref[0], bias0_sigma_rad_s=0.05, att0_sigma_rad=ref_sigma
+    )
     out = tr.run(t, g, q_ref)
     # bias acting over the last interval [t_n−2, t_n−1) is b[n−2]
     return out, b[-2], q_true, tr
@@ -184,12 +196,13 @@ def test_attitude_tracker_on_broad_matches_rest_bias(shared_data):
         model = KF.BiasNoiseModel.from_allan(AL.allan_analysis(rest))
     b_rest = rest.gyro_rad_s.mean(axis=0)
     se_rest = rest.gyro_rad_s.std(axis=0, ddof=1) / math.sqrt(rest.n)
-    t, g, q = rec.t_s[sl.stop:], rec.gyro_rad_s[sl.stop:], rec.ref_quat_wxyz[sl.stop:]
+    t, g, q = rec.t_s[sl.stop :], rec.gyro_rad_s[sl.stop :], rec.ref_quat_wxyz[sl.stop :]
     first = int(np.flatnonzero(np.all(np.isfinite(q), axis=1))[0])
     t, g, q = t[first:], g[first:], q[first:]
     ref_sigma = math.radians(0.5)
-    tr = KF.AttitudeBiasTracker(model, ref_sigma_rad=ref_sigma, q0_wxyz=q[0],
-                                bias0_sigma_rad_s=math.radians(2.0), att0_sigma_rad=ref_sigma)
+    tr = KF.AttitudeBiasTracker(
+        model, ref_sigma_rad=ref_sigma, q0_wxyz=q[0], bias0_sigma_rad_s=math.radians(2.0), att0_sigma_rad=ref_sigma
+    )
     out = tr.run(t, g, q)
     s = np.sqrt(out.bias_sigma_rad_s[-1] ** 2 + se_rest**2)
     assert np.all(np.abs(out.bias_rad_s[-1] - b_rest) < 4 * s)

@@ -144,7 +144,9 @@ def test_still_reference_finds_ramp():
     t = np.arange(n) / 100.0
     ramp = np.array([3e-6, -2e-6, 1e-6])  # rad/s² (≈ 0.6 °/s/h)
     gyro = 0.01 + ramp * t[:, None] + rng.standard_normal((n, 3)) * 0.002
-    rec = Recording(t_s=t, gyro_rad_s=gyro, accel_m_s2=np.tile([0, 0, 9.81], (n, 1)) + rng.standard_normal((n, 3)) * 0.01)
+    rec = Recording(
+        t_s=t, gyro_rad_s=gyro, accel_m_s2=np.tile([0, 0, 9.81], (n, 1)) + rng.standard_normal((n, 3)) * 0.01
+    )
     r = run_loop(rec, declared=["bias"], reference="still")
     assert r.reference == "still"
     assert r.found_effects == ["bias_ramp"]
@@ -166,8 +168,14 @@ def test_cli_json_contract(tmp_path):
     res = CliRunner().invoke(loop_command, [str(f), "--effects", "bias", "--json", "--plot-dir", str(tmp_path / "p")])
     assert res.exit_code == 0, res.output
     out = json.loads(res.output)
-    for k in ("declared", "found", "residual_rms_before_rad_s", "residual_rms_after_rad_s",
-              "attitude_error_before_deg", "attitude_error_after_deg"):
+    for k in (
+        "declared",
+        "found",
+        "residual_rms_before_rad_s",
+        "residual_rms_after_rad_s",
+        "attitude_error_before_deg",
+        "attitude_error_after_deg",
+    ):
         assert k in out
     assert out["declared"] == ["bias"]
     assert [f["effect"] for f in out["found"]] == ["scale"]
@@ -241,13 +249,18 @@ def test_measured_imucal_ferraris(shared_data):
 
 
 def test_measured_static_logs(shared_data):
-    for p in (shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv", shared_data / "pyulog_samples" / "sample.ulg"):
+    for p in (
+        shared_data / "tomisuarez2_mpu6050" / "imu_static_test.csv",
+        shared_data / "pyulog_samples" / "sample.ulg",
+    ):
         c = _load(p)
         r = run_loop(c.recording, declared=["bias"])
         assert r.reference == "still"
         assert r.residual_rms_after_rad_s <= r.residual_rms_before_rad_s
-        assert all(f in ("bias_ramp", "bias_thermal", "bias_temp_rate", "g_sensitivity", "g2_sensitivity")
-                   for f in r.found_effects)
+        assert all(
+            f in ("bias_ramp", "bias_thermal", "bias_temp_rate", "g_sensitivity", "g2_sensitivity")
+            for f in r.found_effects
+        )
 
 
 def test_still_log_drift_is_not_a_product_in_disguise(shared_data):
@@ -272,8 +285,12 @@ def test_measured_sunsided_session_hand_turns(shared_data):
     from experiments.close_the_loop import concat_session
 
     base = shared_data / "sunsided_mpu6050" / "set-2"
-    names = ["unmoved-with-x-pointing-forward", "rotate-ccw-around-x-pointing-forward",
-             "rotate-ccw-around-y-pointing-left", "rotate-ccw-around-z-pointing-up"]
+    names = [
+        "unmoved-with-x-pointing-forward",
+        "rotate-ccw-around-x-pointing-forward",
+        "rotate-ccw-around-y-pointing-left",
+        "rotate-ccw-around-z-pointing-up",
+    ]
     if not all((base / n).exists() for n in names):
         pytest.skip("sunsided set-2 absent")
     import warnings

@@ -14,10 +14,24 @@ def test_exactly_determined_candidate_is_not_testable(shared_data, tmp_path, cap
     g = build_group(["gyrocore.cli.commands"])
     s = shared_data / "sunsided_mpu6050" / "set-1"
     rot, seg = tmp_path / "rot.csv", tmp_path / "seg.csv"
-    assert run_cli(g, ["convert", str(s / "rotate-360ccw-around-x-pointing-forward"),
-                       "--append", str(s / "rotate-360ccw-around-y-pointing-left"),
-                       "--append", str(s / "rotate-360ccw-around-z-pointing-up"),
-                       "-o", str(rot), "--segments-out", str(seg)]) == 0
+    assert (
+        run_cli(
+            g,
+            [
+                "convert",
+                str(s / "rotate-360ccw-around-x-pointing-forward"),
+                "--append",
+                str(s / "rotate-360ccw-around-y-pointing-left"),
+                "--append",
+                str(s / "rotate-360ccw-around-z-pointing-up"),
+                "-o",
+                str(rot),
+                "--segments-out",
+                str(seg),
+            ],
+        )
+        == 0
+    )
     capsys.readouterr()
     status = run_cli(g, ["loop", str(rot), "--segments", str(seg), "--effects", "bias", "--json"])
     j = json.loads(capsys.readouterr().out)

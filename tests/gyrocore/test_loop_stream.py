@@ -35,8 +35,12 @@ RTOL, ATOL = 1e-8, 1e-12
 def _record(kind: str, seed: int = 3, duration_s: float = 40.0, rate_hz: float = 200.0):
     from experiments.close_the_loop import OPEN_NOISE, effect_params, inject_open, synthetic_recording
 
-    eff = {"bias": effect_params("bias"), "time_offset": effect_params("time_offset"),
-           "scale": effect_params("scale"), "bias_thermal": effect_params("bias_thermal", 3.0)}
+    eff = {
+        "bias": effect_params("bias"),
+        "time_offset": effect_params("time_offset"),
+        "scale": effect_params("scale"),
+        "bias_thermal": effect_params("bias_thermal", 3.0),
+    }
     rec = synthetic_recording(eff, seed=seed, duration_s=duration_s, rate_hz=rate_hz, **OPEN_NOISE)
     return inject_open(rec, kind, 2e-3)
 
@@ -53,8 +57,9 @@ def _same(x, y, path="", rtol=RTOL, atol=ATOL):
     elif isinstance(x, (bool, str)) or x is None:
         assert x == y, f"{path}: {x!r} != {y!r}"
     else:
-        np.testing.assert_allclose(np.asarray(y, float), np.asarray(x, float), rtol=rtol, atol=atol,
-                                   equal_nan=True, err_msg=path)
+        np.testing.assert_allclose(
+            np.asarray(y, float), np.asarray(x, float), rtol=rtol, atol=atol, equal_nan=True, err_msg=path
+        )
 
 
 @pytest.mark.parametrize("kind, chunk", [("periodic", 997), ("step", 1500)])
@@ -182,10 +187,22 @@ def test_loop_memory_grows_sublinearly(tmp_path):
     for dur in (short, long_):
         work = tmp_path / f"d{int(dur * 1000)}"
         work.mkdir()
-        rows = B._run_stages(argparse.Namespace(
-            duration_s=dur, rate_hz=1000.0, csv=str(work / "one_hour.parquet"), params=str(work / "p.json"),
-            corrected=str(work / "c.csv"), source="synth", format="parquet", long_duration_s=0.0),
-            dur, work, ["synth", "cli_loop"], quiet=True)
+        rows = B._run_stages(
+            argparse.Namespace(
+                duration_s=dur,
+                rate_hz=1000.0,
+                csv=str(work / "one_hour.parquet"),
+                params=str(work / "p.json"),
+                corrected=str(work / "c.csv"),
+                source="synth",
+                format="parquet",
+                long_duration_s=0.0,
+            ),
+            dur,
+            work,
+            ["synth", "cli_loop"],
+            quiet=True,
+        )
         assert all(r["exit"] == 0 for r in rows), rows
         peaks[dur] = next(r["peak_rss_bytes"] for r in rows if r["stage"] == "cli_loop")
     growth = (peaks[long_] - peaks[short]) / (9 * 65536)

@@ -18,7 +18,7 @@ def _still(n=20_000, rate_hz=200.0, seed=0, *, gap=False, scale=1.0):
     rng = np.random.default_rng(seed)
     t = np.arange(n) / rate_hz
     if gap:
-        t = np.concatenate([t[: n // 2], t[n // 2:] + 0.5])
+        t = np.concatenate([t[: n // 2], t[n // 2 :] + 0.5])
     g = (rng.normal(0, 0.002, (n, 3)) + [0.01, -0.02, 0.005]) * scale
     a = rng.normal(0, 0.01, (n, 3)) + [0, 0, 9.81]
     return Recording(t_s=t, gyro_rad_s=g, accel_m_s2=a, temp_c=np.full(n, 25.0), meta={"sensor": "u"})
@@ -93,7 +93,10 @@ def test_bias_blockwise_statistics_equal_whole_array(monkeypatch):
         monkeypatch.setattr(B, "_BLOCK_BYTES", 50_000)  # ~10 windows per block
         blocks = B.StaticBiasCalibrator(rule=rule).fit(rec)
         monkeypatch.undo()
-        assert np.array_equal(whole.bias_rad_s, blocks.bias_rad_s) and whole.window_start_index == blocks.window_start_index
+        assert (
+            np.array_equal(whole.bias_rad_s, blocks.bias_rad_s)
+            and whole.window_start_index == blocks.window_start_index
+        )
         for f in ("bias_se_rad_s", "noise_sigma_rad_s", "threshold", "vif"):
             assert np.allclose(getattr(whole, f), getattr(blocks, f), rtol=1e-12, atol=0), (rule, f)
 
@@ -103,8 +106,13 @@ def test_write_csv_streams_long_recordings_byte_identically(tmp_path, monkeypatc
 
     rng = np.random.default_rng(0)
     n = 5001
-    rec = Recording(t_s=np.arange(n) / 1000, gyro_rad_s=rng.normal(size=(n, 3)), temp_c=rng.normal(size=n),
-                    meta={"a": "b", "c": "d\ne"}, extra={"f": rng.normal(size=n)})
+    rec = Recording(
+        t_s=np.arange(n) / 1000,
+        gyro_rad_s=rng.normal(size=(n, 3)),
+        temp_c=rng.normal(size=n),
+        meta={"a": "b", "c": "d\ne"},
+        extra={"f": rng.normal(size=n)},
+    )
     rc.write_csv(rec, tmp_path / "whole.csv")
     monkeypatch.setattr(rc, "WRITE_CHUNK_ROWS", 700)
     rc.write_csv(rec, tmp_path / "chunked.csv")

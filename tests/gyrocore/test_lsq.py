@@ -87,8 +87,9 @@ def test_g_sensitivity_observable_with_varied_gravity():
     rng = np.random.default_rng(4)
     n = 12000
     # six static poses (each axis up and down) then the table turns: f changes in steps
-    poses = np.repeat(np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]]) * 9.81,
-                      n // 6, axis=0)
+    poses = np.repeat(
+        np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]]) * 9.81, n // 6, axis=0
+    )
     f = poses + rng.normal(0, 0.02, (n, 3))
     H = np.array([[1e-3, 2e-4, -3e-4], [0, 5e-4, 1e-4], [2e-4, 0, -8e-4]])
     t, w = _table(n=n)
@@ -103,9 +104,11 @@ def test_g_sensitivity_observable_with_varied_gravity():
 
 def _ar1_noise(phi, sigma):
     """AR(1) noise with marginal σ (a first-order Gauss–Markov bias sampled at the rate)."""
+
     def make(rng, n):
         e = rng.normal(0, sigma * np.sqrt(1 - phi**2), (n, 3))
         return signal.lfilter([1.0], [1.0, -phi], e, axis=0, zi=rng.normal(0, sigma, (1, 3)))[0]
+
     return make
 
 
@@ -189,16 +192,27 @@ def _chunk_case(seed: int, n: int = 6000):
     bias_temp_rate), the whole-record T0 (bias_thermal) and power-up time (bias_ramp)."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) / 200.0 + 1e-4 * rng.random(n).cumsum()  # slightly uneven sampling
-    w = np.stack([0.8 * np.sin(2 * np.pi * t / 7.0), 0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
-                  0.5 * np.sin(2 * np.pi * t / 11.0 + 2)], 1)
+    w = np.stack(
+        [
+            0.8 * np.sin(2 * np.pi * t / 7.0),
+            0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
+            0.5 * np.sin(2 * np.pi * t / 11.0 + 2),
+        ],
+        1,
+    )
     T = 25 + 20 * (1 - np.exp(-t / 10.0)) + 0.01 * rng.standard_normal(n)
-    params = {"bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
-              "scale": {"s": np.array([0.01, -0.02, 0.005])},
-              "bias_thermal": {"poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
-                               "t0_c": np.asarray(30.0), "temp_min_c": np.asarray(0.0),
-                               "temp_max_c": np.asarray(100.0)},
-              "bias_ramp": {"ramp_rad_s2": np.array([1e-5, -2e-5, 0.0])},
-              "time_offset": {"tau_s": np.asarray(0.003)}}
+    params = {
+        "bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
+        "scale": {"s": np.array([0.01, -0.02, 0.005])},
+        "bias_thermal": {
+            "poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
+            "t0_c": np.asarray(30.0),
+            "temp_min_c": np.asarray(0.0),
+            "temp_max_c": np.asarray(100.0),
+        },
+        "bias_ramp": {"ramp_rad_s2": np.array([1e-5, -2e-5, 0.0])},
+        "time_offset": {"tau_s": np.asarray(0.003)},
+    }
     inp = E.ModelInputs(t_s=t, omega_S_rad_s=w, temp_c=T)
     r = E.deterministic(params, inp) + 2e-3 * rng.standard_normal((n, 3))
     wts = np.ones(n)

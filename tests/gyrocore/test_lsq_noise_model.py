@@ -28,7 +28,7 @@ def _design(n, rate_hz):
     A = np.zeros((n, 3, 15))
     for i in range(3):
         A[:, i, 5 * i] = 1.0
-        A[:, i, 5 * i + 1:5 * i + 4] = g
+        A[:, i, 5 * i + 1 : 5 * i + 4] = g
         A[:, i, 5 * i + 4] = w[:, i]
     names = [f"x.p[{j}]" for j in range(15)]
     return t, A, names, {"x": slice(0, 15)}
@@ -51,18 +51,36 @@ def test_meat_equals_dense_sandwich_when_every_bin_is_a_row():
     U = rng.standard_normal((n, 3, 5))
     t0 = np.arange(n) * avg * dt + 5.0  # rows of 4 samples, 5 s after the power-up
     t1 = t0 + avg * dt
-    nm = NoiseModel(arw_rad_per_sqrt_s=np.array([1e-4, 2e-4, 3e-4]), bias_instability_rad_s=np.array([3e-5, 0, 1e-5]),
-                    rrw_rad_s_per_sqrt_s=np.array([0, 1e-6, 2e-6]), gm_sigma_rad_s=np.array([5e-5, 0, 0]),
-                    gm_tau_c_s=np.array([2.0, np.inf, np.inf]))
+    nm = NoiseModel(
+        arw_rad_per_sqrt_s=np.array([1e-4, 2e-4, 3e-4]),
+        bias_instability_rad_s=np.array([3e-5, 0, 1e-5]),
+        rrw_rad_s_per_sqrt_s=np.array([0, 1e-6, 2e-6]),
+        gm_sigma_rad_s=np.array([5e-5, 0, 0]),
+        gm_tau_c_s=np.array([2.0, np.inf, np.inf]),
+    )
     S = lsq.noise_model_meat(U, t0, t1, np.full(n, avg), nm, dt_s=dt)
-    blk = Blocks(i0=np.arange(n), i1=np.arange(n) + 1, t0_s=t0, t1_s=t1, scored=np.ones(n, bool),
-                 segment=np.zeros(n, int), window=np.full(n, -1))
-    Cf, Ck, Cg = (block_covariance(blk, "bias_instability"), block_covariance(blk, "rrw"),
-                  block_covariance(blk, "correlated", tau_c_s=2.0))
+    blk = Blocks(
+        i0=np.arange(n),
+        i1=np.arange(n) + 1,
+        t0_s=t0,
+        t1_s=t1,
+        scored=np.ones(n, bool),
+        segment=np.zeros(n, int),
+        window=np.full(n, -1),
+    )
+    Cf, Ck, Cg = (
+        block_covariance(blk, "bias_instability"),
+        block_covariance(blk, "rrw"),
+        block_covariance(blk, "correlated", tau_c_s=2.0),
+    )
     ref = np.zeros((5, 5))
     for i in range(3):
-        C = (nm.arw_rad_per_sqrt_s[i] ** 2 / (avg * dt)) * np.eye(n) + nm.bias_instability_rad_s[i] ** 2 * Cf \
-            + nm.rrw_rad_s_per_sqrt_s[i] ** 2 * Ck + nm.gm_sigma_rad_s[i] ** 2 * Cg
+        C = (
+            (nm.arw_rad_per_sqrt_s[i] ** 2 / (avg * dt)) * np.eye(n)
+            + nm.bias_instability_rad_s[i] ** 2 * Cf
+            + nm.rrw_rad_s_per_sqrt_s[i] ** 2 * Ck
+            + nm.gm_sigma_rad_s[i] ** 2 * Cg
+        )
         ref += U[:, i, :].T @ C @ U[:, i, :]
     np.testing.assert_allclose(S, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
 
@@ -126,8 +144,11 @@ def test_calibrator_noise_model_covariance_identifies_the_noise_and_keeps_it_in_
     ker = np.hanning(int(0.2 * rate))
     w = signal.fftconvolve(w, (ker / ker.sum())[:, None], mode="same", axes=0)  # ramps instead of steps
     f = A[:, 0, 1:4]
-    true = {"bias": {"b_rad_s": np.array([0.01, -0.02, 0.005])}, "scale": {"s": np.array([0.01, -0.02, 0.003])},
-            "g_sensitivity": {"h_rad_s_per_m_s2": np.full((3, 3), 2e-4)}}
+    true = {
+        "bias": {"b_rad_s": np.array([0.01, -0.02, 0.005])},
+        "scale": {"s": np.array([0.01, -0.02, 0.003])},
+        "g_sensitivity": {"h_rad_s_per_m_s2": np.full((3, 3), 2e-4)},
+    }
     inp = E.ModelInputs(t_s=t, omega_S_rad_s=w, f_S_m_s2=f)
     rng = np.random.default_rng(7)
     N, B = 1e-3, 6e-4  # Allan floor 0.664·B = 4e-4 rad/s above the white 1e-3/√τ beyond τ ≈ 6 s

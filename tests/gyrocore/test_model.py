@@ -59,8 +59,12 @@ def test_rate_table_recovers_truth_within_4_sigma():
     res = Calibrator(effects=["bias", "scale", "misalignment", "g_sensitivity"]).fit(rec)
     assert res.method == "rate_reference"
     assert res.unobservable == ()
-    for eff, pname in [("bias", "b_rad_s"), ("scale", "s"), ("misalignment", "m_rad"),
-                       ("g_sensitivity", "h_rad_s_per_m_s2")]:
+    for eff, pname in [
+        ("bias", "b_rad_s"),
+        ("scale", "s"),
+        ("misalignment", "m_rad"),
+        ("g_sensitivity", "h_rad_s_per_m_s2"),
+    ]:
         z = _z(res, eff, pname)
         # each z ~ N(0,1) under the LS covariance; P(|z| > 4) = 6e-5 per entry
         assert np.all(np.abs(z) < 4), (eff, z)
@@ -72,8 +76,14 @@ def test_only_one_axis_rotated_names_unobservable_parameters():
     rec = table_run(1, axes="z")
     res = Calibrator(effects=["bias", "scale", "misalignment"]).fit(rec)
     # ω_x = ω_y = 0 throughout: their scales and every K term driven by them are null
-    assert set(res.unobservable) == {"scale.s[0]", "scale.s[1]", "misalignment.m_rad[0]",
-                                     "misalignment.m_rad[2]", "misalignment.m_rad[4]", "misalignment.m_rad[5]"}
+    assert set(res.unobservable) == {
+        "scale.s[0]",
+        "scale.s[1]",
+        "misalignment.m_rad[0]",
+        "misalignment.m_rad[2]",
+        "misalignment.m_rad[4]",
+        "misalignment.m_rad[5]",
+    }
     assert res.params["scale"]["s"][0] == 0.0 and np.isinf(res.stderr["scale"]["s"][0])
     with pytest.raises(UnobservableError, match=r"scale\.s\[0\]"):
         Calibrator(effects=["bias", "scale", "misalignment"], on_unobservable="raise").fit(rec)
@@ -144,8 +154,12 @@ def test_unknown_and_unfittable_effects_are_one_line_errors():
 
 
 def test_article_form_round_trip():
-    res = CalibrationResult(effects=("bias", "scale", "misalignment", "g_sensitivity"),
-                            params={k: dict(v) for k, v in TRUE.items()}, stderr={}, residual_rms_rad_s=np.zeros(3))
+    res = CalibrationResult(
+        effects=("bias", "scale", "misalignment", "g_sensitivity"),
+        params={k: dict(v) for k, v in TRUE.items()},
+        stderr={},
+        residual_rms_rad_s=np.zeros(3),
+    )
     art = res.article_form()
     K = E.k_matrix(TRUE)
     # ω = M·diag(1/s)·(ω̂ − H·a − b) must equal K⁻¹(y − b − H f): same linear map
@@ -181,7 +195,9 @@ def test_cli_calibrate_apply(tmp_path, capsys):
     write_csv(table_run(7), tmp_path / "a.csv")
     write_csv(table_run(8), tmp_path / "b.csv")
     p = tmp_path / "p.json"
-    rc = _run_cli(["calibrate", str(tmp_path / "a.csv"), "--effects", "bias,scale,misalignment", "-o", str(p), "--json"])
+    rc = _run_cli(
+        ["calibrate", str(tmp_path / "a.csv"), "--effects", "bias,scale,misalignment", "-o", str(p), "--json"]
+    )
     out = capsys.readouterr()
     assert rc == 0, out.err
     d = json.loads(out.out)
@@ -208,14 +224,29 @@ def test_cli_names_unobservable(tmp_path, capsys):
     cap = capsys.readouterr()
     out = cap.out
     assert rc == 0
-    assert "UNOBSERVABLE" in out and "scale.s[0]" in out and "scale.s[1]" in out and "scale.s[2]" not in out.split("UNOBSERVABLE")[1]
+    assert (
+        "UNOBSERVABLE" in out
+        and "scale.s[0]" in out
+        and "scale.s[1]" in out
+        and "scale.s[2]" not in out.split("UNOBSERVABLE")[1]
+    )
     # and one warning line on stderr naming them
     warn_lines = [ln for ln in cap.err.splitlines() if ln.startswith("warning:")]
     assert len(warn_lines) == 1 and "unobservable" in warn_lines[0], cap.err
     assert "scale.s[0]" in warn_lines[0] and "scale.s[1]" in warn_lines[0] and "scale.s[2]" not in warn_lines[0]
     # --json: stdout stays pure JSON, the warning still goes to stderr
-    rc = _run_cli(["calibrate", str(tmp_path / "z.csv"), "--effects", "bias,scale", "-o", str(tmp_path / "p.json"),
-                   "--force", "--json"])
+    rc = _run_cli(
+        [
+            "calibrate",
+            str(tmp_path / "z.csv"),
+            "--effects",
+            "bias,scale",
+            "-o",
+            str(tmp_path / "p.json"),
+            "--force",
+            "--json",
+        ]
+    )
     cap = capsys.readouterr()
     assert rc == 0
     d = json.loads(cap.out)
@@ -296,12 +327,14 @@ def _vec(n, bound):
     return st.lists(st.floats(-bound, bound, allow_nan=False), min_size=n, max_size=n).map(np.array)
 
 
-_PARAMS = st.fixed_dictionaries({
-    "bias": st.fixed_dictionaries({"b_rad_s": _vec(3, 0.05)}),
-    "scale": st.fixed_dictionaries({"s": _vec(3, 0.02)}),
-    "misalignment": st.fixed_dictionaries({"m_rad": _vec(6, 0.01)}),
-    "g_sensitivity": st.fixed_dictionaries({"h_rad_s_per_m_s2": _vec(9, 1e-3).map(lambda a: a.reshape(3, 3))}),
-})
+_PARAMS = st.fixed_dictionaries(
+    {
+        "bias": st.fixed_dictionaries({"b_rad_s": _vec(3, 0.05)}),
+        "scale": st.fixed_dictionaries({"s": _vec(3, 0.02)}),
+        "misalignment": st.fixed_dictionaries({"m_rad": _vec(6, 0.01)}),
+        "g_sensitivity": st.fixed_dictionaries({"h_rad_s_per_m_s2": _vec(9, 1e-3).map(lambda a: a.reshape(3, 3))}),
+    }
+)
 _EFFS = ["bias", "scale", "misalignment", "g_sensitivity"]
 
 
@@ -361,15 +394,26 @@ def test_long_record_chunked_fit_equals_whole_array_fit(monkeypatch):
     rng = np.random.default_rng(11)
     n = 12000
     t = np.arange(n) / 200.0
-    w = np.stack([0.8 * np.sin(2 * np.pi * t / 7.0), 0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
-                  0.5 * np.sin(2 * np.pi * t / 11.0 + 2)], 1)
+    w = np.stack(
+        [
+            0.8 * np.sin(2 * np.pi * t / 7.0),
+            0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
+            0.5 * np.sin(2 * np.pi * t / 11.0 + 2),
+        ],
+        1,
+    )
     T = 25 + 20 * (1 - np.exp(-t / 20.0))
-    params = {"bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
-              "scale": {"s": np.array([0.01, -0.02, 0.005])},
-              "bias_thermal": {"poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
-                               "t0_c": np.asarray(30.0), "temp_min_c": np.asarray(0.0),
-                               "temp_max_c": np.asarray(100.0)},
-              "time_offset": {"tau_s": np.asarray(0.004)}}
+    params = {
+        "bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
+        "scale": {"s": np.array([0.01, -0.02, 0.005])},
+        "bias_thermal": {
+            "poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
+            "t0_c": np.asarray(30.0),
+            "temp_min_c": np.asarray(0.0),
+            "temp_max_c": np.asarray(100.0),
+        },
+        "time_offset": {"tau_s": np.asarray(0.004)},
+    }
     y = w + E.deterministic(params, E.ModelInputs(t_s=t, omega_S_rad_s=w, temp_c=T))
     y = y + 2e-3 * rng.standard_normal((n, 3))
     y[rng.choice(n, 40, replace=False)] += 0.5  # transients for the robust pass
@@ -395,13 +439,18 @@ def test_parameter_file_with_family_terms_and_unknown_terms(tmp_path):
     know (or a malformed family term) is one error line naming it; a 1.0 file still reads."""
     res = CalibrationResult(
         effects=("bias", "periodic[37.5]", "regressor[omega_y*omega_z]"),
-        params={"bias": {"b_rad_s": np.array([1e-3, 0, 0])},
-                "periodic[37.5]": {"a_cos_rad_s": np.array([1e-3, 0, 0]), "a_sin_rad_s": np.zeros(3)},
-                "regressor[omega_y*omega_z]": {"coef": np.array([0, 2e-3, 0])}},
-        stderr={"bias": {"b_rad_s": np.full(3, 1e-5)},
-                "periodic[37.5]": {"a_cos_rad_s": np.full(3, 1e-5), "a_sin_rad_s": np.full(3, 1e-5)},
-                "regressor[omega_y*omega_z]": {"coef": np.full(3, 1e-5)}},
-        residual_rms_rad_s=np.full(3, 1e-3))
+        params={
+            "bias": {"b_rad_s": np.array([1e-3, 0, 0])},
+            "periodic[37.5]": {"a_cos_rad_s": np.array([1e-3, 0, 0]), "a_sin_rad_s": np.zeros(3)},
+            "regressor[omega_y*omega_z]": {"coef": np.array([0, 2e-3, 0])},
+        },
+        stderr={
+            "bias": {"b_rad_s": np.full(3, 1e-5)},
+            "periodic[37.5]": {"a_cos_rad_s": np.full(3, 1e-5), "a_sin_rad_s": np.full(3, 1e-5)},
+            "regressor[omega_y*omega_z]": {"coef": np.full(3, 1e-5)},
+        },
+        residual_rms_rad_s=np.full(3, 1e-3),
+    )
     p = tmp_path / "p.json"
     save_params(res, p)
     d = json.loads(p.read_text())
@@ -415,8 +464,11 @@ def test_parameter_file_with_family_terms_and_unknown_terms(tmp_path):
     d2["parameters"]["periodic[37.50]"] = d2["parameters"].pop("periodic[37.5]")
     (tmp_path / "spelled.json").write_text(json.dumps(d2))
     assert load_params(tmp_path / "spelled.json").effects == res.effects
-    for bad, needle in (("wobble[3]", "unknown effect 'wobble[3]'"), ("periodic[abc]", "periodic[abc]"),
-                        ("regressor[omega_q]", "unknown signal 'omega_q'")):
+    for bad, needle in (
+        ("wobble[3]", "unknown effect 'wobble[3]'"),
+        ("periodic[abc]", "periodic[abc]"),
+        ("regressor[omega_q]", "unknown signal 'omega_q'"),
+    ):
         d3 = json.loads(p.read_text())
         d3["effects"][1] = bad
         d3["parameters"][bad] = d3["parameters"].pop("periodic[37.5]")
@@ -435,13 +487,21 @@ def test_chunked_fit_with_family_terms_equals_whole_array_fit(monkeypatch):
     rng = np.random.default_rng(12)
     n = 12000
     t = 3.0 + np.arange(n) / 200.0
-    w = np.stack([0.8 * np.sin(2 * np.pi * t / 7.0), 0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
-                  0.5 * np.sin(2 * np.pi * t / 11.0 + 2)], 1)
-    params = {"bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
-              "periodic[7.25]": {"a_cos_rad_s": np.array([2e-3, 0, 0]), "a_sin_rad_s": np.array([0, -1e-3, 0])},
-              "step[40]": {"size_rad_s": np.array([0, 0, 3e-3])},
-              "regressor[omega_x*omega_y]": {"coef": np.array([0, 0, 4e-3])},
-              "regressor[alpha_z]": {"coef": np.array([5e-3, 0, 0])}}
+    w = np.stack(
+        [
+            0.8 * np.sin(2 * np.pi * t / 7.0),
+            0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
+            0.5 * np.sin(2 * np.pi * t / 11.0 + 2),
+        ],
+        1,
+    )
+    params = {
+        "bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
+        "periodic[7.25]": {"a_cos_rad_s": np.array([2e-3, 0, 0]), "a_sin_rad_s": np.array([0, -1e-3, 0])},
+        "step[40]": {"size_rad_s": np.array([0, 0, 3e-3])},
+        "regressor[omega_x*omega_y]": {"coef": np.array([0, 0, 4e-3])},
+        "regressor[alpha_z]": {"coef": np.array([5e-3, 0, 0])},
+    }
     y = w + E.deterministic(params, E.ModelInputs(t_s=t, omega_S_rad_s=w))
     y = y + 2e-3 * rng.standard_normal((n, 3))
     rec = Recording(t_s=t, gyro_rad_s=y, ref_rate_rad_s=w)
@@ -470,7 +530,9 @@ def test_cli_apply_with_a_term_this_version_does_not_know(tmp_path, capsys):
     d["parameters"]["wobble[3]"] = d["parameters"].pop("step[3]")
     (tmp_path / "w.json").write_text(json.dumps(d))
     capsys.readouterr()
-    rc = _run_cli(["apply", str(tmp_path / "a.csv"), "--params", str(tmp_path / "w.json"), "-o", str(tmp_path / "c.csv")])
+    rc = _run_cli(
+        ["apply", str(tmp_path / "a.csv"), "--params", str(tmp_path / "w.json"), "-o", str(tmp_path / "c.csv")]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("error:") and "unknown effect 'wobble[3]'" in err and err.count("\n") == 1
     assert not (tmp_path / "c.csv").exists()

@@ -111,8 +111,11 @@ def test_red_spectrum_is_no_line_and_flicker_plateau_is_unbiased():
     B = N / math.sqrt(f * tau_nb)
     K = B * math.sqrt(3.0 * f / tau_bk)
     rng = np.random.default_rng(np.random.SeedSequence([25, 3]))
-    g = (SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=N) + SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=B)
-         + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=K))
+    g = (
+        SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=N)
+        + SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=B)
+        + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=K)
+    )
     m = gmwm.scales(n)
     for a in range(3):
         assert gmwm.line_avar(g[:, a], rate, m).freqs_hz == (), a
@@ -150,8 +153,11 @@ def test_flicker_at_the_first_octaves_is_no_low_pass():
     B = N / math.sqrt(f * tau_nb)
     K = B * math.sqrt(3.0 * f / tau_bk)
     rng = np.random.default_rng(np.random.SeedSequence([25, 3]))
-    g = (SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=N) + SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=B)
-         + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=K))
+    g = (
+        SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=N)
+        + SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=B)
+        + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=K)
+    )
     m = gmwm.scales(n)
     for a in range(3):
         _t, dev, _n = AL.oadev(g[:, a], rate, m)
@@ -292,9 +298,13 @@ REAL = [
 ]
 #: refused by `noise` (no still stretch of 20 s): listed so that a change of the gate shows here
 REFUSED = [
-    "tomisuarez2_mpu6050/imu_90_x_rot.csv", "imucal_ferraris/example_ferraris_session.csv",
-    "pyulog_samples/sample_log_small.ulg", "pyulog_samples/sample_appended_multiple.ulg",
-    "gnss_ins_sim_logged_360z/bosch", "gnss_ins_sim_logged_360z/nxp", "fusion_xio/sensor_data.csv",
+    "tomisuarez2_mpu6050/imu_90_x_rot.csv",
+    "imucal_ferraris/example_ferraris_session.csv",
+    "pyulog_samples/sample_log_small.ulg",
+    "pyulog_samples/sample_appended_multiple.ulg",
+    "gnss_ins_sim_logged_360z/bosch",
+    "gnss_ins_sim_logged_360z/nxp",
+    "fusion_xio/sensor_data.csv",
     "betaflight_blackbox/better_tune.BBL",
 ]
 

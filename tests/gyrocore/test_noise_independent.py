@@ -52,7 +52,7 @@ def test_generators_match_their_stated_allan_variance():
         "random_walk": (lambda: G.random_walk(n, fs, 1e-3, rng), 1e-6 * tau / 3.0),
         "flicker_fft": (lambda: G.flicker_fft(n, fs, 1e-3, rng), np.full(3, G.FLICKER_FLOOR**2 * 1e-6)),
         "flicker_kasdin": (lambda: G.flicker_allantools(n, fs, 1e-3, rng), np.full(3, G.FLICKER_FLOOR**2 * 1e-6)),
-        "gm": (lambda: G.gauss_markov_gnss_ins_sim(n, fs, 1e-3, 5.0, rng)[n // 8:], G.gm_avar(tau, 1e-3, 5.0)),
+        "gm": (lambda: G.gauss_markov_gnss_ins_sim(n, fs, 1e-3, 5.0, rng)[n // 8 :], G.gm_avar(tau, 1e-3, 5.0)),
     }
     for name, (gen, truth) in checks.items():
         ratio = avar(gen) / truth

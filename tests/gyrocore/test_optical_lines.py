@@ -47,7 +47,7 @@ def test_even_segments_never_straddle_a_gap():
     idx, L = S.even_segments(t, ok, n_target=4, min_len=128)
     assert idx.size % L == 0 and idx.size >= 0.75 * 2980
     for s in range(idx.size // L):
-        seg = idx[s * L:(s + 1) * L]
+        seg = idx[s * L : (s + 1) * L]
         assert np.all(np.diff(seg) == 1) and ok[seg].all()
         assert np.allclose(np.diff(t[seg]), 1 / 200.0)
         assert seg[0] > 0 and not (seg[0] <= 1500 <= seg[-1] and seg[0] != 1500)
@@ -92,8 +92,12 @@ def test_line_amplitude_removed_and_scored_on_the_held_out_half():
     assert u.kind == "periodic" and u.axis == "x"
     assert u.evidence["residual"] == "sample" and u.evidence["segments"]["n"] >= 4
     # amplitude within 5 σ_A of the truth (σ_A from the derivation, on the half record)
-    sA = amp / line_z(amp, f, u.evidence["segments"]["n"] * u.evidence["segments"]["length"] / RATE_HZ,
-                      u.evidence["segments"]["length"])
+    sA = amp / line_z(
+        amp,
+        f,
+        u.evidence["segments"]["n"] * u.evidence["segments"]["length"] / RATE_HZ,
+        u.evidence["segments"]["length"],
+    )
     assert abs(u.fields["amplitude_rad_s"] - amp) < 5 * sA
     from gyrocore.loop.loop import loop_parameters
 

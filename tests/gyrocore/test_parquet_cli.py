@@ -13,9 +13,13 @@ from gyrocore.data.recording import Recording, is_parquet, read_csv, read_record
 def _still(n=6000, rate_hz=200.0, seed=0):
     rng = np.random.default_rng(seed)
     t = np.arange(n) / rate_hz
-    return Recording(t_s=t, gyro_rad_s=rng.normal(0, 0.002, (n, 3)) + [0.01, -0.02, 0.005],
-                     accel_m_s2=rng.normal(0, 0.01, (n, 3)) + [0, 0, 9.81], temp_c=np.full(n, 25.0),
-                     meta={"sensor": "unit 7", "rate_hz": "200"})
+    return Recording(
+        t_s=t,
+        gyro_rad_s=rng.normal(0, 0.002, (n, 3)) + [0.01, -0.02, 0.005],
+        accel_m_s2=rng.normal(0, 0.01, (n, 3)) + [0, 0, 9.81],
+        temp_c=np.full(n, 25.0),
+        meta={"sensor": "unit 7", "rate_hz": "200"},
+    )
 
 
 def _gh(capsys, *argv):

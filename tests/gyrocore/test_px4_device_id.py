@@ -22,13 +22,27 @@ def test_px4_device_id_written_or_warned(tmp_path, capsys):
     f = tmp_path / "thermal.csv"
     write_csv(rec, f)
     tc = tmp_path / "tc.params"
-    s, _, err = gh(capsys, "calibrate", f, "--effects", "bias,bias_thermal", "-o", tmp_path / "p.json", "--px4-params", tc)
+    s, _, err = gh(
+        capsys, "calibrate", f, "--effects", "bias,bias_thermal", "-o", tmp_path / "p.json", "--px4-params", tc
+    )
     assert s == 0, err
     assert _ids(tc)["TC_G0_ID"] == "0"
     assert "TC_G0_ID is 0 and matches no gyro" in tc.read_text()
     assert any(ln.startswith("warning:") and "PX4 will not apply" in ln for ln in err), err
-    s, _, err = gh(capsys, "calibrate", f, "--effects", "bias,bias_thermal", "-o", tmp_path / "p.json", "--px4-params", tc,
-                   "--px4-device-id", "2162688", "--force")
+    s, _, err = gh(
+        capsys,
+        "calibrate",
+        f,
+        "--effects",
+        "bias,bias_thermal",
+        "-o",
+        tmp_path / "p.json",
+        "--px4-params",
+        tc,
+        "--px4-device-id",
+        "2162688",
+        "--force",
+    )
     assert s == 0, err
     assert _ids(tc)["TC_G0_ID"] == "2162688" and "matches no gyro" not in tc.read_text()
     assert not any("PX4 will not apply" in ln for ln in err), err

@@ -107,8 +107,10 @@ def test_arbitrary_bytes_only_gyroinputerror(tmp_path, data):
     _read_any(p)
 
 
-_alphabet = st.sampled_from(list("0123456789.,-+eE \n#:naifNI\t\r") + ["t_s", "gyro_x_rad_s", "gyro_y_rad_s",
-                                                                       "gyro_z_rad_s", "accel_x_g", "temp_c", "ref_qw"])
+_alphabet = st.sampled_from(
+    list("0123456789.,-+eE \n#:naifNI\t\r")
+    + ["t_s", "gyro_x_rad_s", "gyro_y_rad_s", "gyro_z_rad_s", "accel_x_g", "temp_c", "ref_qw"]
+)
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -201,8 +203,13 @@ def test_missing_and_incomplete_columns(tmp_path):
 
 
 def test_nan_rows_repaired_and_ref_nan_kept(tmp_path):
-    text = HEADER + ",ref_qw,ref_qx,ref_qy,ref_qz\n" + "\n".join(
-        f"{k * 0.01},{'nan' if k == 3 else 0},{'inf' if k == 5 else 0},0,{'nan' if k == 7 else 1},0,0,0" for k in range(10)
+    text = (
+        HEADER
+        + ",ref_qw,ref_qx,ref_qy,ref_qz\n"
+        + "\n".join(
+            f"{k * 0.01},{'nan' if k == 3 else 0},{'inf' if k == 5 else 0},0,{'nan' if k == 7 else 1},0,0,0"
+            for k in range(10)
+        )
     )
     with pytest.warns(RepairWarning, match="dropped 2 rows with NaN/inf"):
         rec = read_csv(_write(tmp_path, text))
@@ -231,7 +238,9 @@ def test_backwards_and_repeated_timestamps(tmp_path):
 def test_gap_warning_counts_missing_samples(tmp_path):
     t = np.concatenate([np.arange(100), np.arange(110, 200)]) * 0.01
     text = HEADER + "\n" + "\n".join(f"{float(x)!r},0,0,0" for x in t)
-    with pytest.warns(RepairWarning, match=r"1 gaps longer than 1.5x the median interval 10 ms \(longest 0.11 s, ~10 samples missing"):
+    with pytest.warns(
+        RepairWarning, match=r"1 gaps longer than 1.5x the median interval 10 ms \(longest 0.11 s, ~10 samples missing"
+    ):
         rec = read_csv(_write(tmp_path, text))
     assert rec.n == 190  # reported, not changed
 
@@ -355,8 +364,11 @@ def test_multi_hundred_mb_file_streams(tmp_path):
         rng = np.random.default_rng(0)
         for k in range(n_chunks):
             t = (k * n_chunk + np.arange(n_chunk)) * 1e-3
-            yield Recording(t_s=t, gyro_rad_s=rng.normal(0, 0.01, (n_chunk, 3)),
-                            accel_m_s2=rng.normal(0, 0.1, (n_chunk, 3)) + [0, 0, 9.81])
+            yield Recording(
+                t_s=t,
+                gyro_rad_s=rng.normal(0, 0.01, (n_chunk, 3)),
+                accel_m_s2=rng.normal(0, 0.1, (n_chunk, 3)) + [0, 0, 9.81],
+            )
 
     write_csv_chunks(gen(), p)
     assert os.path.getsize(p) > 300 * 2**20
@@ -532,7 +544,12 @@ def test_parquet_bad_input_one_line_errors(tmp_path):
     with pytest.raises(GyroInputError, match="incomplete column group, missing gyro_y_rad_s"):
         rc.read_recording(tmp_path / "m.parquet")
     # nulls are read as NaN and those rows dropped, with the same warnings as empty CSV fields
-    cols = {"t_s": [0.0, 0.1, 0.2], "gyro_x_rad_s": [0.0, None, 0.0], "gyro_y_rad_s": [0.0] * 3, "gyro_z_rad_s": [0.0] * 3}
+    cols = {
+        "t_s": [0.0, 0.1, 0.2],
+        "gyro_x_rad_s": [0.0, None, 0.0],
+        "gyro_y_rad_s": [0.0] * 3,
+        "gyro_z_rad_s": [0.0] * 3,
+    }
     pq.write_table(pa.table(cols), tmp_path / "n.parquet")
     with pytest.warns(RepairWarning) as w:
         r = rc.read_recording(tmp_path / "n.parquet", checks=False)
@@ -545,8 +562,11 @@ def test_still_check_without_reading_the_accel_columns(tmp_path):
     asked for (the accel is reduced to running moments, never held)."""
     rng = np.random.default_rng(3)
     n = 2000
-    rec = Recording(t_s=np.arange(n) * 0.01, gyro_rad_s=rng.normal(0, 0.1, (n, 3)) + [4.5, 0.1, 1.0],
-                    accel_m_s2=rng.normal(0, 0.02, (n, 3)) + [0, 0, 9.81])
+    rec = Recording(
+        t_s=np.arange(n) * 0.01,
+        gyro_rad_s=rng.normal(0, 0.1, (n, 3)) + [4.5, 0.1, 1.0],
+        accel_m_s2=rng.normal(0, 0.02, (n, 3)) + [0, 0, 9.81],
+    )
     for name in ("s.csv", "s.parquet"):
         rc.write_recording(rec, tmp_path / name)
         with pytest.warns(RepairWarning, match="is it deg/s labelled rad/s"):
@@ -555,5 +575,5 @@ def test_still_check_without_reading_the_accel_columns(tmp_path):
     m = rc._Moments([0])
     x = rec.accel_m_s2[:, 2]
     for k in range(0, n, 300):
-        m.update({0: x[k:k + 300].copy()})
+        m.update({0: x[k : k + 300].copy()})
     assert m.std()[0] == pytest.approx(np.std(x), rel=1e-12)

@@ -29,8 +29,13 @@ def frame():
     t = np.arange(N) / RATE
     g = 2e-3 * rng.standard_normal((N, 3)) + [0.01, -0.02, 0.005]
     a = np.tile([0.0, 0.0, 9.81], (N, 1)) + 0.02 * rng.standard_normal((N, 3))
-    return pd.DataFrame({"t_s": t, **{f"gyro_{c}_rad_s": g[:, i] for i, c in enumerate("xyz")},
-                         **{f"accel_{c}_m_s2": a[:, i] for i, c in enumerate("xyz")}})
+    return pd.DataFrame(
+        {
+            "t_s": t,
+            **{f"gyro_{c}_rad_s": g[:, i] for i, c in enumerate("xyz")},
+            **{f"accel_{c}_m_s2": a[:, i] for i, c in enumerate("xyz")},
+        }
+    )
 
 
 @pytest.mark.parametrize("col, factor", [("t_ms", 1e3), ("t_us", 1e6), ("t_ns", 1e9)])
@@ -64,7 +69,9 @@ def test_millisecond_counter_at_1khz_labelled_seconds_warns(tmp_path):
     t_ms = np.arange(3000)  # a 1 kHz logger's millis(): dt = 1 "s" if read as seconds
     g = 1e-3 * np.random.default_rng(1).standard_normal((3000, 3))
     p = tmp_path / "millis.csv"
-    pd.DataFrame({"t_s": t_ms, "gyro_x_rad_s": g[:, 0], "gyro_y_rad_s": g[:, 1], "gyro_z_rad_s": g[:, 2]}).to_csv(p, index=False)
+    pd.DataFrame({"t_s": t_ms, "gyro_x_rad_s": g[:, 0], "gyro_y_rad_s": g[:, 1], "gyro_z_rad_s": g[:, 2]}).to_csv(
+        p, index=False
+    )
     with pytest.warns(UserWarning, match="rename the column t_ms"):
         read_csv(p)
 
@@ -95,7 +102,9 @@ def test_bom_crlf_reordered_extra_columns_and_pandas_parquet_read_the_same(tmp_p
     for name, kw in variants.items():
         frame.to_csv(tmp_path / name, index=False, **kw)
     cols = list(frame.columns)
-    frame.assign(temp_c=25.0)[["temp_c", cols[3], "t_s", cols[1], cols[2], *cols[4:]]].to_csv(tmp_path / "order.csv", index=False)
+    frame.assign(temp_c=25.0)[["temp_c", cols[3], "t_s", cols[1], cols[2], *cols[4:]]].to_csv(
+        tmp_path / "order.csv", index=False
+    )
     frame.to_parquet(tmp_path / "pandas.parquet")  # with pandas' index metadata
     frame.set_index("t_s").to_parquet(tmp_path / "pandas_idx.parquet")  # t_s stored as the index
     ref = None

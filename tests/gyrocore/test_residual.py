@@ -20,14 +20,16 @@ def _still_rec(n=6000, rate=100.0, seed=0):
 
 
 def test_rate_kind_window_mean_of_a_constant_is_exact():
-    rec = synthetic_recording({"bias": effect_params("bias")}, seed=1, duration_s=10.0, bias_instability_rad_s=0.0,
-                              arw_rad_per_sqrt_s=0.0)
+    rec = synthetic_recording(
+        {"bias": effect_params("bias")}, seed=1, duration_s=10.0, bias_instability_rad_s=0.0, arw_rad_per_sqrt_s=0.0
+    )
     res = build_residual(rec)
     assert res.kind == "rate"
     # noise-free: gyro − ref = b exactly; the block mean comes from differences of a running
     # sum over N = 2001 samples, so its rounding error is ≤ N·eps·|b| ≈ 2000·2.2e-16·0.009 ≈ 4e-15
-    np.testing.assert_allclose(res.y_rad_s, np.broadcast_to(effect_params("bias")["b_rad_s"], res.y_rad_s.shape),
-                               rtol=0, atol=1e-14)
+    np.testing.assert_allclose(
+        res.y_rad_s, np.broadcast_to(effect_params("bias")["b_rad_s"], res.y_rad_s.shape), rtol=0, atol=1e-14
+    )
     names, X = res.regressors("bias")
     np.testing.assert_allclose(X[:, 0, 0], 1.0, atol=1e-12)
 
@@ -40,8 +42,14 @@ def test_attitude_kind_is_first_order_window_mean():
     ≤ |b|²·T/2 = (0.0087)²·1/2 ≈ 4e-5 rad/s for T = 1 s windows.
     """
     b = effect_params("bias")["b_rad_s"]
-    rec = synthetic_recording({"bias": effect_params("bias")}, seed=2, duration_s=20.0, bias_instability_rad_s=0.0,
-                              arw_rad_per_sqrt_s=0.0, with_quat=True)
+    rec = synthetic_recording(
+        {"bias": effect_params("bias")},
+        seed=2,
+        duration_s=20.0,
+        bias_instability_rad_s=0.0,
+        arw_rad_per_sqrt_s=0.0,
+        with_quat=True,
+    )
     rec = replace(rec, ref_rate_rad_s=None)
     res = build_residual(rec)
     assert res.kind == "attitude" and res.m >= 15

@@ -78,7 +78,9 @@ def test_integral_method_recovers_K_within_4_sigma(tmp_path):
     # z ~ N(0,1) if the propagated errors (ARW·√T per integral + bias error·T) are right
     assert np.all(np.abs(z) < 4), z
     # the article's M = C·B⁻¹ is K⁻¹ (three segments: exact)
-    np.testing.assert_allclose(res.integral["M"], res.integral["C_rad"] @ np.linalg.inv(res.integral["B_rad"]), rtol=1e-12)
+    np.testing.assert_allclose(
+        res.integral["M"], res.integral["C_rad"] @ np.linalg.inv(res.integral["B_rad"]), rtol=1e-12
+    )
     # theory for a diagonal entry: σ_K ≈ sqrt(n_k)·dt·σ / |angle| = sqrt(600)·0.01·0.001/2π
     # (600 samples per 6-s segment; the bias term T·σ/sqrt(n_still) adds ~ 6·1e-3/sqrt(~3000) ≈ 1e-4 rad,
     # i.e. ~ 1.3 %: combined σ_K ≈ 3.9e-5 ... 4.2e-5 depending on the still count)
@@ -146,8 +148,9 @@ def test_imucal_ferraris_session_beside_imucal(shared_data):
     data = pd.read_csv(d / "example_ferraris_session.csv").set_index("n_samples")
     sl = pd.read_json(d / "example_ferraris_session_list.json").T
     regions = imucal.ferraris_regions_from_section_list(data, sl)
-    cal = imucal.FerrarisCalibration().compute(regions, sampling_rate_hz=102.4, from_acc_unit="m/s^2",
-                                              from_gyr_unit="deg/s")
+    cal = imucal.FerrarisCalibration().compute(
+        regions, sampling_rate_hz=102.4, from_acc_unit="m/s^2", from_gyr_unit="deg/s"
+    )
     K_imucal = cal.K_g @ cal.R_g
     K = np.asarray(res.integral["K"])
     K_se = np.asarray(res.integral["K_stderr"])
@@ -169,8 +172,14 @@ def test_imucal_ferraris_session_beside_imucal(shared_data):
     np.set_printoptions(precision=5, suppress=True)
     print("\nimucal K_g@R_g\n", K_imucal, "\nours K\n", K, "\nours sigma_K\n", K_se)
     print("imucal b_g deg/s", cal.b_g, "ours", b, "+-", np.degrees(res.stderr["bias"]["b_rad_s"]))
-    print("imucal K_ga deg/s/(m/s2)\n", cal.K_ga, "\nours H\n", H, "\nours sigma_H\n",
-          np.degrees(res.stderr["g_sensitivity"]["h_rad_s_per_m_s2"]))
+    print(
+        "imucal K_ga deg/s/(m/s2)\n",
+        cal.K_ga,
+        "\nours H\n",
+        H,
+        "\nours sigma_H\n",
+        np.degrees(res.stderr["g_sensitivity"]["h_rad_s_per_m_s2"]),
+    )
 
 
 # ------------------------------------------------------------------ multi-pose (gravity reference)
@@ -184,8 +193,20 @@ def pose_session(seed, K, *, clip_rad_s=None):
     rng = np.random.default_rng(seed)
     rate = 100.0
     ws = [np.zeros((3000, 3))]
-    axes = [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [0, 1, 1], [1, 0, 1], [1, -1, 0], [0, 1, -1],
-            [-1, 0, 1], [1, 1, 1], [1, 0, 0], [0, 1, 0]]
+    axes = [
+        [1, 0, 0],
+        [0, 1, 0],
+        [0, 0, 1],
+        [1, 1, 0],
+        [0, 1, 1],
+        [1, 0, 1],
+        [1, -1, 0],
+        [0, 1, -1],
+        [-1, 0, 1],
+        [1, 1, 1],
+        [1, 0, 0],
+        [0, 1, 0],
+    ]
     for a in axes:
         a = np.asarray(a, float) / np.linalg.norm(a)
         u = np.arange(200) / 200
@@ -251,9 +272,22 @@ def test_tomisuarez2_multipose_beside_authors(shared_data):
     np.testing.assert_allclose(np.degrees(r.bias_rad_s), b_lsb / 131.0, atol=1e-3)
     assert np.all(np.abs(r.K - K_auth) < 2.5 * r.K_stderr), (r.K - K_auth) / r.K_stderr
     np.set_printoptions(precision=4, suppress=True)
-    print("\nours K\n", r.K, "\nsigma\n", r.K_stderr, "\nauthors K\n", K_auth,
-          "\nbias ours deg/s", np.degrees(r.bias_rad_s), "authors", b_lsb / 131.0,
-          "\nrms gravity misfit deg", np.degrees(r.rms_residual_rad), "poses", len(r.intervals))
+    print(
+        "\nours K\n",
+        r.K,
+        "\nsigma\n",
+        r.K_stderr,
+        "\nauthors K\n",
+        K_auth,
+        "\nbias ours deg/s",
+        np.degrees(r.bias_rad_s),
+        "authors",
+        b_lsb / 131.0,
+        "\nrms gravity misfit deg",
+        np.degrees(r.rms_residual_rad),
+        "poses",
+        len(r.intervals),
+    )
 
 
 # ------------------------------------------------------------------ external bias (no still part)
@@ -292,7 +326,9 @@ def test_external_bias_errors_are_propagated_montecarlo():
         rng = np.random.default_rng(10_000 + seed)
         b_ext = TRUE["bias"]["b_rad_s"] + se_b * rng.standard_normal(3)
         noise_lr = np.full(3, SIGMA_RAD_S**2 / 100.0)  # white noise: N² = σ²·dt
-        r = integral_calibration(rec, segs, bias_rad_s=b_ext, bias_stderr_rad_s=np.full(3, se_b), noise_lr_rad2_s=noise_lr)
+        r = integral_calibration(
+            rec, segs, bias_rad_s=b_ext, bias_stderr_rad_s=np.full(3, se_b), noise_lr_rad2_s=noise_lr
+        )
         r0 = integral_calibration(rec, segs, bias_rad_s=b_ext, bias_stderr_rad_s=np.zeros(3), noise_lr_rad2_s=noise_lr)
         assert r.n_still == 0 and np.array_equal(r.bias_rad_s, b_ext)
         z_ok.append(((r.K - K_true) / r.K_stderr).ravel())
@@ -308,9 +344,14 @@ def test_external_bias_options_and_errors(tmp_path):
     with pytest.raises(GyroInputError, match="standard error"):
         integral_calibration(rec, segs, bias_rad_s=np.zeros(3))
     with pytest.raises(GyroInputError, match="3 finite"):
-        integral_calibration(rec, segs, bias_rad_s=np.zeros(2), bias_stderr_rad_s=np.zeros(3), noise_lr_rad2_s=np.zeros(3))
-    ext = {"bias_rad_s": TRUE["bias"]["b_rad_s"], "bias_stderr_rad_s": np.full(3, 1e-4),
-           "noise_lr_rad2_s": np.full(3, SIGMA_RAD_S**2 / 100.0)}
+        integral_calibration(
+            rec, segs, bias_rad_s=np.zeros(2), bias_stderr_rad_s=np.zeros(3), noise_lr_rad2_s=np.zeros(3)
+        )
+    ext = {
+        "bias_rad_s": TRUE["bias"]["b_rad_s"],
+        "bias_stderr_rad_s": np.full(3, 1e-4),
+        "noise_lr_rad2_s": np.full(3, SIGMA_RAD_S**2 / 100.0),
+    }
     with pytest.raises(GyroInputError, match="integral method only"):
         Calibrator(effects=["bias", "scale"], external_bias=ext)
     res = Calibrator(effects=["bias", "scale", "misalignment"], segments=segs, external_bias=ext).fit(rec)
@@ -330,14 +371,34 @@ def test_cli_calibrate_with_external_bias(tmp_path, capsys):
     rec, segs, _ = _no_still_session(6)
     write_csv(rec, tmp_path / "rot.csv")
     write_segments_csv(segs, tmp_path / "seg.csv")
-    base = ["calibrate", str(tmp_path / "rot.csv"), "--effects", "bias,scale,misalignment", "-o", str(tmp_path / "p.json")]
+    base = [
+        "calibrate",
+        str(tmp_path / "rot.csv"),
+        "--effects",
+        "bias,scale,misalignment",
+        "-o",
+        str(tmp_path / "p.json"),
+    ]
     assert run_cli(build_group(), base + ["--segments", str(tmp_path / "seg.csv")]) == 2
     assert "--bias-from" in capsys.readouterr().err
     assert run_cli(build_group(), base + ["--bias-dps", "1,2,3"]) == 2
     assert "give --segments too" in capsys.readouterr().err
     b_dps = ",".join(f"{v:.9f}" for v in np.degrees(TRUE["bias"]["b_rad_s"]))
-    rc = run_cli(build_group(), base + ["--segments", str(tmp_path / "seg.csv"), "--bias-dps", b_dps, "--bias-se-dps",
-                                        "0.001,0.001,0.001", "--arw-dps-rt-hz", f"{np.degrees(SIGMA_RAD_S) / 10:.9f}", "--json"])
+    rc = run_cli(
+        build_group(),
+        base
+        + [
+            "--segments",
+            str(tmp_path / "seg.csv"),
+            "--bias-dps",
+            b_dps,
+            "--bias-se-dps",
+            "0.001,0.001,0.001",
+            "--arw-dps-rt-hz",
+            f"{np.degrees(SIGMA_RAD_S) / 10:.9f}",
+            "--json",
+        ],
+    )
     out = capsys.readouterr()
     assert rc == 0, out.err
     d = json.loads(out.out)
@@ -359,8 +420,11 @@ def test_sunsided_set1_turns_with_bias_from_the_static_recording(shared_data):
     from gyrocore.readers.convert import concat_converted, load_with_segments
 
     base = shared_data / "sunsided_mpu6050" / "set-1"
-    names = ["rotate-360ccw-around-x-pointing-forward", "rotate-360ccw-around-y-pointing-left",
-             "rotate-360ccw-around-z-pointing-up"]
+    names = [
+        "rotate-360ccw-around-x-pointing-forward",
+        "rotate-360ccw-around-y-pointing-left",
+        "rotate-360ccw-around-z-pointing-up",
+    ]
     if not (base / "unmoved-x-pointing-forward").exists():
         pytest.skip("sunsided set-1 absent")
     with warnings.catch_warnings():
@@ -370,7 +434,9 @@ def test_sunsided_set1_turns_with_bias_from_the_static_recording(shared_data):
     with pytest.raises(GyroInputError, match="no still part"):
         Calibrator(effects=["bias", "scale", "misalignment"], segments=conv.segments).fit(conv.recording)
     sb = StaticBiasCalibrator().fit(static)
-    res = Calibrator(effects=["bias", "scale", "misalignment"], segments=conv.segments, external_bias=sb).fit(conv.recording)
+    res = Calibrator(effects=["bias", "scale", "misalignment"], segments=conv.segments, external_bias=sb).fit(
+        conv.recording
+    )
     K = np.asarray(res.integral["K"])
     Ks = np.asarray(res.integral["K_stderr"])
     hand = 5.0 / 720.0

@@ -18,7 +18,7 @@ def _run(f_tone, rotor_hz, n=4000, rate=1000.0):
     t = np.arange(n) / rate
     x = np.cos(2 * math.pi * f_tone * t)
     y = np.array([flt.step(np.array([v, 0.0, -v]))[0] for v in x])
-    return x[n // 2:], y[n // 2:]  # steady state (Q 5 notch at >= 100 Hz settles in < 20 ms)
+    return x[n // 2 :], y[n // 2 :]  # steady state (Q 5 notch at >= 100 Hz settles in < 20 ms)
 
 
 def test_notches_rotor_and_harmonics():

@@ -29,7 +29,7 @@ def _rw_diff_cov(lags: int) -> np.ndarray:
     W = np.zeros((lags + 1, n_j))
     for k in range(lags + 1):
         for a in range(M):
-            W[k, k * M + a + 1:(k + 1) * M + a + 1] += 1.0 / M
+            W[k, k * M + a + 1 : (k + 1) * M + a + 1] += 1.0 / M
     G = W @ W.T * DT
     return G[0]
 
@@ -74,7 +74,9 @@ def test_likelihood_equals_multivariate_normal():
     rng = np.random.default_rng(np.random.SeedSequence([1, 5505]))
     g = 1e-8 * rwgm.acov_white(40, 0.5) + 4e-12 * rwgm.acov_rw(40, 0.5) + 1e-10 * rwgm.acov_gm(40, 0.5, 3.0)
     d = rng.multivariate_normal(np.zeros(40), scipy.linalg.toeplitz(g))
-    ref = -2.0 * scipy.stats.multivariate_normal(np.zeros(40), scipy.linalg.toeplitz(g)).logpdf(d) - 40 * math.log(2 * math.pi)
+    ref = -2.0 * scipy.stats.multivariate_normal(np.zeros(40), scipy.linalg.toeplitz(g)).logpdf(d) - 40 * math.log(
+        2 * math.pi
+    )
     assert rwgm.neg2_loglik(d, g) == pytest.approx(ref, rel=1e-10)
     mean, var = rwgm.kl2(g, g)
     assert abs(mean) < 1e-8 and var < 1e-8
@@ -141,8 +143,9 @@ def test_identify_noise_with_the_check_reports_k_ambiguous_with_a_gm():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         off = AL.identify_noise(g[:, 2:3], rate_hz=50.0, check_static=False).axes["x"]
-        on = AL.identify_noise(g[:, 2:3], rate_hz=50.0, check_static=False,
-                               options=NoiseOptions(rw_check=True)).axes["x"]
+        on = AL.identify_noise(g[:, 2:3], rate_hz=50.0, check_static=False, options=NoiseOptions(rw_check=True)).axes[
+            "x"
+        ]
     assert off.rrw_rad_per_s_sqrt_s is not None and "rrw_rad_per_s_sqrt_s" not in off.ambiguous
     assert on.rrw_rad_per_s_sqrt_s is None
     assert on.ambiguous["rrw_rad_per_s_sqrt_s"] == "correlated_sigma_rad_s"

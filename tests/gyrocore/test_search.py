@@ -62,7 +62,7 @@ def test_harmonic_f_is_calibrated_in_coloured_noise():
     for k in range(1, n):
         x[k] = 0.95 * x[k - 1] + e[k]
     h = S.harmonic_f_test(x, 100.0)
-    sel = (h.freq_hz > 10 * h.bandwidth_hz)
+    sel = h.freq_hz > 10 * h.bandwidth_hz
     F = h.F[sel][:: 4 * 8][:400]
     p = stats.f.sf(F, h.df1, h.df2)
     assert abs(np.mean(p < 0.05) - 0.05) < 0.036
@@ -161,8 +161,12 @@ def test_null_open_search_claims_nothing(seed):
 def test_unexplained_is_never_a_catalogue_effect():
     """An undeclared catalogue effect is named by the catalogue, and no unexplained entry
     describes it again (misalignment = omega_j on axis i)."""
-    rec = synthetic_recording({"bias": effect_params("bias"), "misalignment": effect_params("misalignment")},
-                              seed=34, duration_s=DUR_S, rate_hz=RATE_HZ)
+    rec = synthetic_recording(
+        {"bias": effect_params("bias"), "misalignment": effect_params("misalignment")},
+        seed=34,
+        duration_s=DUR_S,
+        rate_hz=RATE_HZ,
+    )
     r = run_loop(rec, declared=["bias"])
     assert r.found_effects == ["misalignment"]
     for u in r.unexplained:
@@ -179,15 +183,24 @@ def test_cli_output_and_validation(tmp_path):
     write_csv(_with(rec_a, add(w_a)), fa)
     write_csv(_with(rec_b, add(w_b)), fb)
     out = tmp_path / "p.json"
-    res = CliRunner().invoke(loop_command, [str(fa), "--effects", "bias", "-o", str(out), "--validate", str(fb), "--json"])
+    res = CliRunner().invoke(
+        loop_command, [str(fa), "--effects", "bias", "-o", str(out), "--validate", str(fb), "--json"]
+    )
     assert res.exit_code == 0, res.output
     js = json.loads(res.output)
     assert [u["kind"] for u in js["unexplained"]] == ["regressor"]
     u = js["unexplained"][0]
-    assert {"kind", "axis", "term", "coef", "evidence", "residual_rms_before_rad_s", "residual_rms_after_rad_s"} <= set(u)
+    assert {"kind", "axis", "term", "coef", "evidence", "residual_rms_before_rad_s", "residual_rms_after_rad_s"} <= set(
+        u
+    )
     v = js["validation"]
-    assert set(v) >= {"file", "residual_rms_before_rad_s", "residual_rms_after_rad_s", "attitude_error_before_deg",
-                      "attitude_error_after_deg"}
+    assert set(v) >= {
+        "file",
+        "residual_rms_before_rad_s",
+        "residual_rms_after_rad_s",
+        "attitude_error_before_deg",
+        "attitude_error_after_deg",
+    }
     # the product term transfers: out of sample the residual falls (in-sample it fell by > 30 %)
     assert v["residual_rms_after_rad_s"] < 0.8 * v["residual_rms_before_rad_s"]
     pf = json.loads(out.read_text())
@@ -228,8 +241,13 @@ def test_calibrate_uses_a_reference_attitude(tmp_path, capsys):
     loop's attitude increments), not against a still part (there is none: it tumbles)."""
     from tests.gyrocore.test_bad_input import gh
 
-    rec = synthetic_recording({"bias": effect_params("bias"), "scale": effect_params("scale")}, seed=38,
-                              duration_s=DUR_S, rate_hz=RATE_HZ, with_quat=True)
+    rec = synthetic_recording(
+        {"bias": effect_params("bias"), "scale": effect_params("scale")},
+        seed=38,
+        duration_s=DUR_S,
+        rate_hz=RATE_HZ,
+        with_quat=True,
+    )
     f = tmp_path / "att.csv"
     write_csv(replace(rec, ref_rate_rad_s=None), f)
     out = tmp_path / "p.json"
@@ -307,8 +325,9 @@ def test_constant_factor_product_is_its_simpler_term():
     n = 120 * 100
     t = np.arange(n) / 100.0
     gyro = 0.01 + np.array([0.0, 0.0, 1e-5]) * t[:, None] + rng.standard_normal((n, 3)) * 0.002
-    rec = Recording(t_s=t, gyro_rad_s=gyro,
-                    accel_m_s2=np.tile([9.81, 0, 0], (n, 1)) + rng.standard_normal((n, 3)) * 0.01)
+    rec = Recording(
+        t_s=t, gyro_rad_s=gyro, accel_m_s2=np.tile([9.81, 0, 0], (n, 1)) + rng.standard_normal((n, 3)) * 0.01
+    )
     # bias_ramp left out of the catalogue step so the drift reaches the open search
     r = run_loop(rec, declared=["bias"], reference="still", candidates=["g_sensitivity"])
     eq = r.open_search["regressor"]["collinear_with_simpler"]

@@ -15,15 +15,26 @@ from gyrocore.data.spill import spill_columns
 def _thermal_rate_record(n: int = 12000, seed: int = 11, *, outliers: int = 40) -> Recording:
     rng = np.random.default_rng(seed)
     t = np.arange(n) / 200.0
-    w = np.stack([0.8 * np.sin(2 * np.pi * t / 7.0), 0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
-                  0.5 * np.sin(2 * np.pi * t / 11.0 + 2)], 1)
+    w = np.stack(
+        [
+            0.8 * np.sin(2 * np.pi * t / 7.0),
+            0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
+            0.5 * np.sin(2 * np.pi * t / 11.0 + 2),
+        ],
+        1,
+    )
     T = 25 + 20 * (1 - np.exp(-t / 20.0))
-    params = {"bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
-              "scale": {"s": np.array([0.01, -0.02, 0.005])},
-              "bias_thermal": {"poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
-                               "t0_c": np.asarray(30.0), "temp_min_c": np.asarray(0.0),
-                               "temp_max_c": np.asarray(100.0)},
-              "time_offset": {"tau_s": np.asarray(0.004)}}
+    params = {
+        "bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
+        "scale": {"s": np.array([0.01, -0.02, 0.005])},
+        "bias_thermal": {
+            "poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
+            "t0_c": np.asarray(30.0),
+            "temp_min_c": np.asarray(0.0),
+            "temp_max_c": np.asarray(100.0),
+        },
+        "time_offset": {"tau_s": np.asarray(0.004)},
+    }
     y = w + E.deterministic(params, E.ModelInputs(t_s=t, omega_S_rad_s=w, temp_c=T))
     y = y + 2e-3 * rng.standard_normal((n, 3))
     if outliers:
@@ -118,9 +129,16 @@ def test_calibrate_cli_streams_long_files(tmp_path, monkeypatch):
     _assert_same(mem, streamed, rtol=1e-9)
 
 
-@pytest.mark.parametrize("kw", [dict(rule="mean"), dict(rule="median", statistic="abs_diff"), dict(rule="converge"),
-                                dict(rule="article", lsb_rad_s=1e-4, article_threshold_counts=5000.0),
-                                dict(rule="mean", noise_sigma_rad_s=2e-3)])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(rule="mean"),
+        dict(rule="median", statistic="abs_diff"),
+        dict(rule="converge"),
+        dict(rule="article", lsb_rad_s=1e-4, article_threshold_counts=5000.0),
+        dict(rule="mean", noise_sigma_rad_s=2e-3),
+    ],
+)
 def test_streamed_bias_equals_in_memory(tmp_path, monkeypatch, kw):
     # StaticBiasCalibrator.fit_spilled reads windows back from disk a block at a time and the
     # noise one column at a time: the same blocks and operations as the in-memory path of a
@@ -329,8 +347,21 @@ def test_calibrate_cli_streamed_path_takes_the_ramp_margin(tmp_path, monkeypatch
     called = []
     orig = Calibrator.fit_spilled
     monkeypatch.setattr(Calibrator, "fit_spilled", lambda self, *a, **k: called.append(1) or orig(self, *a, **k))
-    r = CliRunner().invoke(C.command, [str(path), "--effects", "bias,scale", "--covariance", "noise_model",
-                                       "--ramp-margin-s", "0.25", "-o", str(tmp_path / "p.json"), "--json"])
+    r = CliRunner().invoke(
+        C.command,
+        [
+            str(path),
+            "--effects",
+            "bias,scale",
+            "--covariance",
+            "noise_model",
+            "--ramp-margin-s",
+            "0.25",
+            "-o",
+            str(tmp_path / "p.json"),
+            "--json",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert called
     streamed = load_params(tmp_path / "p.json")

@@ -67,7 +67,8 @@ def test_fixed_order_and_bad_order():
         Calibrator(effects=["bias", "bias_thermal"], thermal_order=4)
     with pytest.raises(GyroInputError, match="temp_c"):
         Calibrator(effects=["bias", "bias_thermal"]).fit(
-            Recording(t_s=rec.t_s, gyro_rad_s=rec.gyro_rad_s, ref_rate_rad_s=rec.ref_rate_rad_s))
+            Recording(t_s=rec.t_s, gyro_rad_s=rec.gyro_rad_s, ref_rate_rad_s=rec.ref_rate_rad_s)
+        )
 
 
 def test_apply_warns_outside_the_calibrated_range():

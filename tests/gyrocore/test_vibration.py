@@ -24,8 +24,8 @@ from gyrocore.flight.vibration import analyse, read_spec, write_spec
 RATE = 1000.0
 LEVELS = (0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55)
 HOLD_S = 16.0
-N_WHITE = 0.004          # rad/s per sample (white), PSD 2σ²/fs one-sided
-F_FIXED, A_FIXED = 137.0, 0.02       # frame resonance on x, rad/s amplitude
+N_WHITE = 0.004  # rad/s per sample (white), PSD 2σ²/fs one-sided
+F_FIXED, A_FIXED = 137.0, 0.02  # frame resonance on x, rad/s amplitude
 F0, K_U, A_MOV = 100.0, 400.0, 0.03  # y: f = F0 + K_U·u (a motor line following throttle)
 
 
@@ -81,8 +81,11 @@ def test_broadband_rms_within_interval(res):
     # truth over the integration band [40, band_hi]: white σ²·(band/(fs/2)) plus the line power A²/2
     lo_hz, hi_hz = res.rms_band_hz
     frac = (hi_hz - lo_hz) / (RATE / 2)
-    truth = {"x": math.sqrt(N_WHITE**2 * frac + A_FIXED**2 / 2), "y": math.sqrt(N_WHITE**2 * frac + A_MOV**2 / 2),
-             "z": N_WHITE * math.sqrt(frac)}
+    truth = {
+        "x": math.sqrt(N_WHITE**2 * frac + A_FIXED**2 / 2),
+        "y": math.sqrt(N_WHITE**2 * frac + A_MOV**2 / 2),
+        "z": N_WHITE * math.sqrt(frac),
+    }
     for a in "xyz":
         lo, hi = res.rms_above_40hz_interval_rad_s[a]
         # the Hann leakage of the DC-removed windows and the bin at the band edge: ±1 bin of
@@ -111,10 +114,15 @@ def test_undo_firmware_pt1_recovers_the_line_before_the_filter():
     x[:, 0] += a_true * np.sin(2 * np.pi * f_line * t)
     y = F.pt1(90.0, loop).apply(x)[::8]
     stage = {"kind": "pt1", "cutoff_hz": 90.0, "rate_hz": loop, "dynamic": False, "header": "gyro_lowpass_hz"}
-    meta = {"gyro_prefilter": json.dumps({"source": "test", "signal": "partly_filtered", "filters_before": [stage]}),
-            "loop_rate_measured_hz": str(loop), "pid_rate_hz": str(loop), "gyro_rate_hz": str(loop)}
-    rec = Recording(t_s=t[::8], gyro_rad_s=y, meta=meta,
-                    extra={f"gyro_prefilter_{a}_rad_s": y[:, i] for i, a in enumerate("xyz")})
+    meta = {
+        "gyro_prefilter": json.dumps({"source": "test", "signal": "partly_filtered", "filters_before": [stage]}),
+        "loop_rate_measured_hz": str(loop),
+        "pid_rate_hz": str(loop),
+        "gyro_rate_hz": str(loop),
+    }
+    rec = Recording(
+        t_s=t[::8], gyro_rad_s=y, meta=meta, extra={f"gyro_prefilter_{a}_rad_s": y[:, i] for i, a in enumerate("xyz")}
+    )
     r = analyse(rec)
     assert r.signal == "raw" and r.filters_before[0]["undone"] is True
     ln = _line(r, "x", None)
@@ -143,8 +151,12 @@ def test_cli_on_shared_blackbox(shared_data, tmp_path):
     if not log.exists():
         pytest.skip("shared blackbox log absent")
     spec, png = tmp_path / "s.json", tmp_path / "v.png"
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "vibration", str(log), "--json", "-o", str(spec),
-                         "--plot", str(png)], capture_output=True, text=True, timeout=300)
+    cp = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "vibration", str(log), "--json", "-o", str(spec), "--plot", str(png)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert cp.returncode == 0, cp.stderr
     d = json.loads(cp.stdout)
     for k in ("rate_hz", "signal", "filters_before", "rms_above_40hz_rad_s", "lines", "bands"):
@@ -166,8 +178,12 @@ def _flown(seed):
     g = r.gyro_rad_s.copy()
     g[:, :2] += 1.0 * np.sin(2 * np.pi * 0.7 * r.t_s)[:, None]
     r = Recording(t_s=r.t_s, gyro_rad_s=g, meta=r.meta, extra=r.extra)
-    meta = dict(r.meta, gyro_filters=json.dumps([{"kind": "pt1", "cutoff_hz": 100.0, "rate_hz": RATE, "dynamic": False,
-                                                   "header": "gyro_lowpass_hz"}]))
+    meta = dict(
+        r.meta,
+        gyro_filters=json.dumps(
+            [{"kind": "pt1", "cutoff_hz": 100.0, "rate_hz": RATE, "dynamic": False, "header": "gyro_lowpass_hz"}]
+        ),
+    )
     return Recording(t_s=r.t_s, gyro_rad_s=r.gyro_rad_s, meta=meta, extra=r.extra)
 
 
@@ -195,7 +211,10 @@ def test_filter_recommendation_stable_across_noise_seeds():
         assert rp is not None and rp["motor_noise"] <= out["budget"]["motor_noise"] * (1 + 1e-9)
         assert rp["attitude_cost"] < r["attitude_cost"] or r["name"] == rp["name"]
         assert set(out["firmware"]) == {"betaflight", "px4", "ardupilot"}
-        assert any(s.startswith("set gyro_lowpass_type") or s.startswith("set gyro_lpf1_type") for s in out["firmware"]["betaflight"])
+        assert any(
+            s.startswith("set gyro_lowpass_type") or s.startswith("set gyro_lpf1_type")
+            for s in out["firmware"]["betaflight"]
+        )
     assert len(set(picks)) == 1, picks
 
 
@@ -207,8 +226,9 @@ def test_filter_names_betaflight_parameters_only_for_betaflight_logs():
 
     rec = _flown(11)
     g = F.pt1(100.0, RATE).apply(rec.gyro_rad_s)
-    rec = Recording(t_s=rec.t_s, gyro_rad_s=g, meta=dict(rec.meta, firmware_name="inav", firmware_version="9.0.1"),
-                    extra=rec.extra)
+    rec = Recording(
+        t_s=rec.t_s, gyro_rad_s=g, meta=dict(rec.meta, firmware_name="inav", firmware_version="9.0.1"), extra=rec.extra
+    )
     out = recommend_filter(rec)
     bf = out["firmware"]["betaflight"]
     assert len(bf) == 1 and bf[0].startswith("# inav log") and not any(s.startswith("set ") for s in bf)
@@ -219,8 +239,12 @@ def test_filter_cli_on_shared_blackbox(shared_data):
     log = shared_data / "betaflight_blackbox" / "better_tune.BBL"
     if not log.exists():
         pytest.skip("shared blackbox log absent")
-    cp = subprocess.run([sys.executable, "-m", "experiments.cli", "filter", str(log), "--json"], capture_output=True,
-                        text=True, timeout=300)
+    cp = subprocess.run(
+        [sys.executable, "-m", "experiments.cli", "filter", str(log), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert cp.returncode == 0, cp.stderr
     d = json.loads(cp.stdout)
     for k in ("filter", "cutoff_hz", "notches_hz", "attitude_cost", "delay_ms", "motor_noise"):
@@ -241,8 +265,10 @@ def test_firmware_chain_response_matches_betaflight_formulas():
     # PT1 (pt1FilterGain k = ω/(ω+1), ω = 2π·fc·dT): DC group delay (1−k)/k samples
     w = 2 * math.pi * 90.0 / 8000.0
     k = w / (w + 1)
-    st = [{"kind": "pt1", "cutoff_hz": 90.0, "rate_hz": 8000.0},
-          {"kind": "notch", "cutoff_hz": 305.0, "rate_hz": 8000.0, "notch_cutoff_hz": 205.0}]
+    st = [
+        {"kind": "pt1", "cutoff_hz": 90.0, "rate_hz": 8000.0},
+        {"kind": "notch", "cutoff_hz": 305.0, "rate_hz": 8000.0, "notch_cutoff_hz": 205.0},
+    ]
     r = F.chain_response(st[:1], [0.0])
     assert r.group_delay_s[0] == pytest.approx((1 - k) / k / 8000.0, rel=1e-9)
     # the notch: zero at its centre, −3 dB at Betaflight's 'cutoff' (its Q definition)

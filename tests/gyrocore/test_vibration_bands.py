@@ -24,9 +24,9 @@ RATE = 1000.0
 LEVELS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
 EDGES = (0.15, 0.25, 0.35, 0.45, 0.55, 0.65, 0.75)  # midway between the levels
 HOLD_S = 16.0
-F0, K_U = 100.0, 400.0          # rotor line f = F0 + K_U·u (Hz, u the motor command)
-SWEEP = 0.15                    # ±15 % of the line's frequency within each window
-T_SWEEP_S = 0.9                 # triangle period: every 1-s window sees the whole sweep
+F0, K_U = 100.0, 400.0  # rotor line f = F0 + K_U·u (Hz, u the motor command)
+SWEEP = 0.15  # ±15 % of the line's frequency within each window
+T_SWEEP_S = 0.9  # triangle period: every 1-s window sees the whole sweep
 A_SWEPT, A_FIXED, F_FIXED = 0.03, 0.015, 130.0  # rad/s; the fixed line carries 1/4 of the swept power
 N_WHITE = 0.004
 GAP_S = 1.0
@@ -66,7 +66,7 @@ def _expected_band(rec: Recording, lo_u: float, hi_u: float, nper: int = 1000):
     fmin, fmax = np.inf, -np.inf
     for r0, r1 in zip(run[:-1], run[1:]):
         for a in range(r0, r1 - nper + 1, nper // 2):
-            seg = u[a:a + nper]
+            seg = u[a : a + nper]
             if lo_u <= seg.mean() < hi_u:
                 f = F0 + K_U * seg
                 num += float(np.sum(w2 * f))
@@ -246,8 +246,16 @@ def test_dominant_band_of_the_shared_log_agrees_with_welch(shared_data):
     segs = []
     for a, b in zip(edges[::2], edges[1::2]):
         if b - a >= nper:
-            f, _, S = signal.spectrogram(x[a:b], fs=fs, window="hann", nperseg=nper, noverlap=nper // 2,
-                                         detrend="constant", scaling="density", mode="psd")
+            f, _, S = signal.spectrogram(
+                x[a:b],
+                fs=fs,
+                window="hann",
+                nperseg=nper,
+                noverlap=nper // 2,
+                detrend="constant",
+                scaling="density",
+                mode="psd",
+            )
             segs.append(S.T)
     P = np.concatenate(segs)  # (K, M)
     loop_hz = 8000.0 * float(rec.meta["loop_rate_measured_hz"]) / float(rec.meta["pid_rate_hz"])

@@ -23,8 +23,16 @@ _MIX = ((1.0, -1.0, 1.0, -1.0), (1.0, -1.0, -1.0, 1.0), (1.0, 1.0, 1.0, 1.0), (1
 
 
 class FakeBetaflight:
-    def __init__(self, *, loop_rate_hz=8000.0, pid=((45, 80, 30), (47, 84, 34), (45, 80, 0)), lpf_hz=150.0,
-                 idle=0.055, mincheck=1050, rates=None):
+    def __init__(
+        self,
+        *,
+        loop_rate_hz=8000.0,
+        pid=((45, 80, 30), (47, 84, 34), (45, 80, 0)),
+        lpf_hz=150.0,
+        idle=0.055,
+        mincheck=1050,
+        rates=None,
+    ):
         self.dt = 1.0 / loop_rate_hz
         self.pid = pid
         self.a = self.dt / (self.dt + 1.0 / (2 * math.pi * lpf_hz))
@@ -42,8 +50,13 @@ class FakeBetaflight:
         g_deg = np.degrees(np.asarray(omega_S_rad_s, float))  # Betaflight's gyro frame: roll x, pitch y, yaw z (FLU)
         g_deg = np.trunc(g_deg * 16.4) / 16.4  # int16 at 16.4 LSB per deg/s
         self.y = self.y + self.a * (g_deg - self.y)
-        sp = np.array([self.rates.rate_deg_s(0, (r_us - 1500) / 500.0), self.rates.rate_deg_s(1, (p_us - 1500) / 500.0),
-                       -self.rates.rate_deg_s(2, (y_us - 1500) / 500.0)])
+        sp = np.array(
+            [
+                self.rates.rate_deg_s(0, (r_us - 1500) / 500.0),
+                self.rates.rate_deg_s(1, (p_us - 1500) / 500.0),
+                -self.rates.rate_deg_s(2, (y_us - 1500) / 500.0),
+            ]
+        )
         e = sp - self.y
         prev = self.y.copy() if self.prev is None else self.prev
         out = np.zeros(3)

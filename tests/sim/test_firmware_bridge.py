@@ -39,9 +39,9 @@ def test_one_loop_per_step_virtual_clock(firmware_binary):
         for _ in range(400):
             r = fc.step((0.0, 0.0, 0.0), rc=(1000, 1500, 1500, 1500))
             if prev is not None:
-                assert r.loop_count == prev.loop_count + 1      # exactly one gyro pass
+                assert r.loop_count == prev.loop_count + 1  # exactly one gyro pass
                 assert r.pid_loop_count == prev.pid_loop_count + 1  # and one PID/mixer pass
-                assert r.time_us == prev.time_us + 125           # 8 kHz of virtual time
+                assert r.time_us == prev.time_us + 125  # 8 kHz of virtual time
             prev = r
         assert r.armed
 
@@ -149,8 +149,9 @@ def test_refused_setting_names_it(firmware_binary):
 
 def test_unknown_setting_skipped_when_asked(firmware_binary):
     with pytest.warns(UserWarning, match="osd_vbat_pos"):
-        with BetaflightSITL(firmware_binary, ["set osd_vbat_pos = 2404", "set gyro_lpf1_static_hz = 100"],
-                            skip_unknown=True) as fc:
+        with BetaflightSITL(
+            firmware_binary, ["set osd_vbat_pos = 2404", "set gyro_lpf1_static_hz = 100"], skip_unknown=True
+        ) as fc:
             fc.boot(arm=False)
             assert fc.skipped_settings == ["set osd_vbat_pos = 2404"]
 

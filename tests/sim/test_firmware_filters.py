@@ -31,9 +31,15 @@ F_CHECK = np.array([50.0, 150.0, 300.0])
 NPERSEG = 4096
 N = 32000  # 4 s: see the module docstring
 #: every gyro filter off (the dynamic LPF is off when its min is 0)
-ALL_OFF = ("set gyro_lpf1_static_hz = 0", "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0",
-           "set dyn_notch_count = 0", "set rpm_filter_harmonics = 0", "set gyro_notch1_hz = 0",
-           "set gyro_notch2_hz = 0")
+ALL_OFF = (
+    "set gyro_lpf1_static_hz = 0",
+    "set gyro_lpf1_dyn_min_hz = 0",
+    "set gyro_lpf2_static_hz = 0",
+    "set dyn_notch_count = 0",
+    "set rpm_filter_harmonics = 0",
+    "set gyro_notch1_hz = 0",
+    "set gyro_notch2_hz = 0",
+)
 
 
 def _h1(x, y):
@@ -57,8 +63,9 @@ def _replayed_gains(res, axis=0, skip=0):
 
 
 def test_pt1_150hz_matches_discrete_pt1(firmware_binary):
-    res = replay_gyro(firmware_binary, _noise(11),
-                      settings=(*ALL_OFF, "set gyro_lpf1_type = PT1", "set gyro_lpf1_static_hz = 150"))
+    res = replay_gyro(
+        firmware_binary, _noise(11), settings=(*ALL_OFF, "set gyro_lpf1_type = PT1", "set gyro_lpf1_static_hz = 150")
+    )
     assert np.all(np.diff(res.loop_count) == 1)
     model = pt1(150.0, FS)
     _, h_model = sosfreqz(model.sos, worN=F_CHECK, fs=FS)
@@ -74,8 +81,9 @@ def test_pt1_150hz_matches_discrete_pt1(firmware_binary):
 
 
 def test_static_notch_matches_discrete_notch(firmware_binary):
-    res = replay_gyro(firmware_binary, _noise(12),
-                      settings=(*ALL_OFF, "set gyro_notch1_hz = 200", "set gyro_notch1_cutoff = 150"))
+    res = replay_gyro(
+        firmware_binary, _noise(12), settings=(*ALL_OFF, "set gyro_notch1_hz = 200", "set gyro_notch1_cutoff = 150")
+    )
     _, h_model = sosfreqz(betaflight_notch(200.0, 150.0, FS).sos, worN=F_CHECK, fs=FS)
     x, y = _replayed_gains(res)
     g = _gain_at(x, y, F_CHECK)
@@ -90,9 +98,18 @@ def test_dynamic_notch_tracks_a_tone(firmware_binary):
     t = np.arange(n) / FS
     w = _noise(13, n, sigma=0.5)
     w[:, 0] += 1.0 * np.sin(2 * np.pi * 250.0 * t)
-    res = replay_gyro(firmware_binary, w, settings=(*ALL_OFF, "set dyn_notch_count = 1", "set dyn_notch_q = 300",
-                                                    "set dyn_notch_min_hz = 100", "set dyn_notch_max_hz = 600",
-                                                    "set debug_mode = FFT_FREQ"))
+    res = replay_gyro(
+        firmware_binary,
+        w,
+        settings=(
+            *ALL_OFF,
+            "set dyn_notch_count = 1",
+            "set dyn_notch_q = 300",
+            "set dyn_notch_min_hz = 100",
+            "set dyn_notch_max_hz = 600",
+            "set debug_mode = FFT_FREQ",
+        ),
+    )
     skip = 4000  # 0.5 s to lock on
     centre = res.debug[skip:, 1].astype(float)
     assert np.median(centre) == pytest.approx(250.0, abs=4.0)

@@ -35,8 +35,21 @@ def test_replay_writes_the_firmware_view_byte_identically(firmware_binary, gyro_
     outs = []
     for k in range(2):
         out = tmp_path / f"out{k}.csv"
-        code, stdout, err = _cli(["firmware", "replay", gyro_file, "--set", "gyro_lpf1_static_hz=100",
-                                  "--set", "gyro_lpf1_dyn_min_hz=0", "-o", out, "--json"], capsys)
+        code, stdout, err = _cli(
+            [
+                "firmware",
+                "replay",
+                gyro_file,
+                "--set",
+                "gyro_lpf1_static_hz=100",
+                "--set",
+                "gyro_lpf1_dyn_min_hz=0",
+                "-o",
+                out,
+                "--json",
+            ],
+            capsys,
+        )
         assert code == 0, err
         outs.append(out.read_bytes())
     assert outs[0] == outs[1]
@@ -55,8 +68,9 @@ def test_replay_writes_the_firmware_view_byte_identically(firmware_binary, gyro_
 
 
 def test_replay_refused_setting_is_one_line(firmware_binary, gyro_file, tmp_path, capsys):
-    code, out, err = _cli(["firmware", "replay", gyro_file, "--set", "gyro_lpf1_type=NOPE", "-o", tmp_path / "o.csv"],
-                          capsys)
+    code, out, err = _cli(
+        ["firmware", "replay", gyro_file, "--set", "gyro_lpf1_type=NOPE", "-o", tmp_path / "o.csv"], capsys
+    )
     assert code == 2 and out == "" and not (tmp_path / "o.csv").exists()
     lines = [x for x in err.splitlines() if x.startswith("error:")]
     assert len(lines) == 1 and "gyro_lpf1_type = NOPE" in lines[0] and "Allowed values" in lines[0]
@@ -67,8 +81,9 @@ def test_replay_of_a_real_log_uses_its_header(firmware_binary, shared_data, tmp_
     if not log.exists():
         pytest.skip(f"{log} not present")
     out = tmp_path / "o.csv"
-    code, stdout, err = _cli(["firmware", "replay", log, "--start-s", "5", "--duration-s", "1", "-o", out, "--json"],
-                             capsys)
+    code, stdout, err = _cli(
+        ["firmware", "replay", log, "--start-s", "5", "--duration-s", "1", "-o", out, "--json"], capsys
+    )
     assert code == 0, err
     d = json.loads(stdout)
     assert "set gyro_lpf1_dyn_min_hz = 240" in d["settings"] and "set dyn_notch_count = 1" in d["settings"]
@@ -93,8 +108,13 @@ def test_replay_armed_follows_the_throttle(firmware_binary):
     from sim.firmware.replay import replay_gyro
 
     w = np.random.default_rng(3).normal(0.0, 1.0, (4000, 3))
-    off = ("set gyro_lpf2_static_hz = 0", "set dyn_notch_count = 0", "set rpm_filter_harmonics = 0",
-           "set gyro_lpf1_dyn_min_hz = 100", "set gyro_lpf1_dyn_max_hz = 500")
+    off = (
+        "set gyro_lpf2_static_hz = 0",
+        "set dyn_notch_count = 0",
+        "set rpm_filter_harmonics = 0",
+        "set gyro_lpf1_dyn_min_hz = 100",
+        "set gyro_lpf1_dyn_max_hz = 500",
+    )
     rms = {}
     for thr in (1000.0, 2000.0):
         r = replay_gyro(firmware_binary, w, settings=off, throttle_us=np.full(w.shape[0], thr))

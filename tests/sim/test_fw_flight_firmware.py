@@ -97,14 +97,39 @@ def test_same_firmware_flight_twice_is_byte_identical(firmware_binary, tmp_path)
 
 def test_fly_cli_json_and_a_refused_setting(firmware_binary, tmp_path, capsys):
     out = tmp_path / "f.csv"
-    code, so, se = _cli(["firmware", "fly", "hover", "--duration-s", "1.5", "--set", "gyro_lpf1_static_hz=200",
-                         "-o", str(out), "--json"], capsys)
+    code, so, se = _cli(
+        [
+            "firmware",
+            "fly",
+            "hover",
+            "--duration-s",
+            "1.5",
+            "--set",
+            "gyro_lpf1_static_hz=200",
+            "-o",
+            str(out),
+            "--json",
+        ],
+        capsys,
+    )
     assert code == 0, se
     j = json.loads(so)
     assert j["firmware"].startswith("betaflight") and "set gyro_lpf1_static_hz = 200" in j["settings"]
     assert j["sim_s_per_wall_s"] > 0 and math.isfinite(j["motor_noise_above_20hz"])
-    code, so, se = _cli(["firmware", "fly", "hover", "--duration-s", "1.5", "--set", "gyro_lpf1_static_hz=9999",
-                         "-o", str(tmp_path / "g.csv")], capsys)
+    code, so, se = _cli(
+        [
+            "firmware",
+            "fly",
+            "hover",
+            "--duration-s",
+            "1.5",
+            "--set",
+            "gyro_lpf1_static_hz=9999",
+            "-o",
+            str(tmp_path / "g.csv"),
+        ],
+        capsys,
+    )
     assert code != 0
     lines = [x for x in se.strip().splitlines() if x.startswith("error:")]
     assert len(lines) == 1 and "gyro_lpf1_static_hz" in lines[0] and "Traceback" not in se
@@ -114,8 +139,17 @@ def test_fly_cli_json_and_a_refused_setting(firmware_binary, tmp_path, capsys):
 def test_cutoffs_on_the_firmware_short_grid(firmware_binary, tmp_path):
     from experiments.cutoffs import run
 
-    r = run(out_dir=tmp_path, firmware="betaflight", presets=("icm42688p",), seeds=1, duration_s=2.6,
-            kinds=("article",), cutoffs=(90.0,), binary=firmware_binary, vehicle="racing25")
+    r = run(
+        out_dir=tmp_path,
+        firmware="betaflight",
+        presets=("icm42688p",),
+        seeds=1,
+        duration_s=2.6,
+        kinds=("article",),
+        cutoffs=(90.0,),
+        binary=firmware_binary,
+        vehicle="racing25",
+    )
     s = r.summary
     assert s["firmware"].startswith("betaflight")
     p = s["presets"]["icm42688p"]
@@ -134,8 +168,10 @@ def test_cutoffs_on_the_firmware_short_grid(firmware_binary, tmp_path):
 
 @pytest.mark.slow
 def test_experiment_cutoffs_firmware_cli_quick(firmware_binary, tmp_path, capsys):
-    code, so, se = _cli(["experiment", "cutoffs", "--firmware", "betaflight", "--quick", "--out", str(tmp_path / "rep"),
-                         "--json"], capsys)
+    code, so, se = _cli(
+        ["experiment", "cutoffs", "--firmware", "betaflight", "--quick", "--out", str(tmp_path / "rep"), "--json"],
+        capsys,
+    )
     assert code == 0, se
     j = json.loads(so)
     assert j["summary"]["firmware"].startswith("betaflight")
@@ -145,8 +181,10 @@ def test_experiment_cutoffs_firmware_cli_quick(firmware_binary, tmp_path, capsys
 @pytest.mark.slow
 def test_filter_closed_loop_firmware_cli(firmware_binary, shared_data, capsys):
     bbl = shared_data / "betaflight_blackbox" / "better_tune.BBL"
-    code, so, se = _cli(["filter-closed-loop", str(bbl), "--firmware", "betaflight", "--seeds", "1", "--duration-s", "3",
-                         "--json"], capsys)
+    code, so, se = _cli(
+        ["filter-closed-loop", str(bbl), "--firmware", "betaflight", "--seeds", "1", "--duration-s", "3", "--json"],
+        capsys,
+    )
     assert code == 0, se
     j = json.loads(so)
     assert j["firmware"].startswith("betaflight") and j["as_flown"]["name"] == "as_flown"
@@ -161,9 +199,18 @@ def test_filter_closed_loop_firmware_cli(firmware_binary, shared_data, capsys):
 def test_fidelity_against_the_logs_own_filtered_gyro(firmware_binary, shared_data):
     from experiments.firmware_fidelity import run
 
-    out = run(flight=str(shared_data / "blackbox_public" / "LOG00037.BFL"), vehicle="racing5", duration_s=3.0, n_calib=4, bands={1}, binary=firmware_binary)
+    out = run(
+        flight=str(shared_data / "blackbox_public" / "LOG00037.BFL"),
+        vehicle="racing5",
+        duration_s=3.0,
+        n_calib=4,
+        bands={1},
+        binary=firmware_binary,
+    )
     r = out["bands"][0]
     assert out["settings_applied"] and r["held_out"] is not None
     for a in "xyz":
         h = r["held_out"][a]
-        assert np.isfinite(h["rms_sim_rad_s"]) and np.isfinite(h["rms_real_rad_s"]) and 0.0 <= h["in_band_fraction"] <= 1.0
+        assert (
+            np.isfinite(h["rms_sim_rad_s"]) and np.isfinite(h["rms_real_rad_s"]) and 0.0 <= h["in_band_fraction"] <= 1.0
+        )

@@ -32,8 +32,9 @@ def make_truth(n=2000, rate=RATE, *, seed=0, power_ups=None, omega=None, temp=No
     for k in np.unique(pu):
         m = pu == k
         since[m] = t[m] - t[m][0]
-    return Truth(t_s=t, omega_S_rad_s=omega, f_S_m_s2=f, q_SW_wxyz=q, temp_c=temp,
-                 t_since_power_up_s=since, power_up_index=pu)
+    return Truth(
+        t_s=t, omega_S_rad_s=omega, f_S_m_s2=f, q_SW_wxyz=q, temp_c=temp, t_since_power_up_s=since, power_up_index=pu
+    )
 
 
 def only(effect, values=None, *, seed=1, rate=RATE, spec="icm42688p"):
@@ -135,11 +136,14 @@ def test_misalignment():
     tr = make_truth()
     m = np.array([1e-3, 2e-3, -3e-3, 4e-3, -5e-3, 6e-3])  # xy, xz, yx, yz, zx, zy
     w = tr.omega_S_rad_s
-    expect = np.stack([
-        w[:, 0] + m[0] * w[:, 1] + m[1] * w[:, 2],
-        w[:, 1] + m[2] * w[:, 0] + m[3] * w[:, 2],
-        w[:, 2] + m[4] * w[:, 0] + m[5] * w[:, 1],
-    ], axis=1)
+    expect = np.stack(
+        [
+            w[:, 0] + m[0] * w[:, 1] + m[1] * w[:, 2],
+            w[:, 1] + m[2] * w[:, 0] + m[3] * w[:, 2],
+            w[:, 2] + m[4] * w[:, 0] + m[5] * w[:, 1],
+        ],
+        axis=1,
+    )
     assert np.allclose(_y("misalignment", {"m_rad": m}, tr), expect, rtol=RTOL)
 
 
@@ -150,7 +154,9 @@ def test_g_sensitivity_and_g2():
     y = _y("g_sensitivity", {"h_rad_s_per_m_s2": H}, tr)
     assert np.allclose(y, tr.omega_S_rad_s + np.einsum("ij,nj->ni", H, f), rtol=RTOL)
     G = (np.arange(18).reshape(3, 6) - 9) * 1e-6
-    ff = np.stack([f[:, 0] ** 2, f[:, 1] ** 2, f[:, 2] ** 2, f[:, 0] * f[:, 1], f[:, 0] * f[:, 2], f[:, 1] * f[:, 2]], 1)
+    ff = np.stack(
+        [f[:, 0] ** 2, f[:, 1] ** 2, f[:, 2] ** 2, f[:, 0] * f[:, 1], f[:, 0] * f[:, 2], f[:, 1] * f[:, 2]], 1
+    )
     y2 = _y("g2_sensitivity", {"g_rad_s_per_m2_s4": G}, tr)
     assert np.allclose(y2, tr.omega_S_rad_s + ff @ G.T, rtol=RTOL)
 
@@ -237,13 +243,17 @@ def test_vibration_enters_as_the_registry_effect():
     nv, dv = vib.noise(tr.n)
     assert np.array_equal(nb, npx)
     pd = vib.params["vibration"]
-    expect = N.ShapedNoise(N.effect_rng(5, "noise/vibration"), N.shaped_taps(pd["f_hz"], pd["psd_rad2_s2_hz"], rate_hz=RATE)).next(tr.n)
+    expect = N.ShapedNoise(
+        N.effect_rng(5, "noise/vibration"), N.shaped_taps(pd["f_hz"], pd["psd_rad2_s2_hz"], rate_hz=RATE)
+    ).next(tr.n)
     assert np.array_equal(nv, nb + expect)
     assert "vibration" in dv and np.all(dv["vibration"]["std_rad_s"][:2] > 0) and dv["vibration"]["std_rad_s"][2] == 0
     ob, ov = base.measure(tr), vib.measure(tr)
     assert np.array_equal(ob.noise_rad_s, nb) and "vibration" in ov.params
     with pytest.raises(GyroInputError, match="'n' dimensions differ"):
-        SyntheticGyro("icm42688p", seed=0, overrides={"vibration": {"f_hz": np.arange(5.0), "psd_rad2_s2_hz": np.zeros((3, 4))}})
+        SyntheticGyro(
+            "icm42688p", seed=0, overrides={"vibration": {"f_hz": np.arange(5.0), "psd_rad2_s2_hz": np.zeros((3, 4))}}
+        )
 
 
 def test_shaped_noise_is_block_friendly_and_has_the_spec_psd():
@@ -276,8 +286,12 @@ def test_shaped_noise_is_block_friendly_and_has_the_spec_psd():
 def test_adding_effects_leaves_other_draws_unchanged():
     tr = make_truth()
     base = SyntheticGyro("icm42688p", rate_hz=RATE, seed=5)
-    more = SyntheticGyro("icm42688p", rate_hz=RATE, seed=5,
-                         overrides={"rrw": {}, "correlated": {}, "scale_asymmetry": {}, "bias_ramp": {}})
+    more = SyntheticGyro(
+        "icm42688p",
+        rate_hz=RATE,
+        seed=5,
+        overrides={"rrw": {}, "correlated": {}, "scale_asymmetry": {}, "bias_ramp": {}},
+    )
     fewer = SyntheticGyro("icm42688p", rate_hz=RATE, seed=5, without=["arw", "scale", "misalignment"])
     ob, om, of = base.measure(tr), more.measure(tr), fewer.measure(tr)
     for eff in base.effects:
@@ -342,7 +356,10 @@ def test_stream_bit_identical_to_batch_all_effects():
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     tr = make_truth(n, q=q)
-    ov = {e: {} for e in ("bias_temp_rate", "bias_ramp", "scale_asymmetry", "g2_sensitivity", "earth_rate", "rrw", "correlated")}
+    ov = {
+        e: {}
+        for e in ("bias_temp_rate", "bias_ramp", "scale_asymmetry", "g2_sensitivity", "earth_rate", "rrw", "correlated")
+    }
     ov["time_offset"] = {"tau_s": 0.0051}
     ov["bias_thermal"] = {"poly_rad_s": rng.normal(0, 1e-4, (3, 3))}
     ov["scale_thermal"] = {"poly_per_c": rng.normal(0, 1e-4, (3, 2))}
@@ -399,11 +416,14 @@ def test_run_is_a_new_session_of_the_same_unit():
     assert not np.array_equal(a.measure(tr).noise_rad_s, b.measure(tr).noise_rad_s)
 
 
-@pytest.mark.parametrize("effect, values", [
-    ("bias_instability", {"b_rad_s": 1e-4}),
-    ("rrw", {"k_rad_s_per_sqrt_s": 1e-4}),
-    ("correlated", {"sigma_rad_s": 1e-3, "tau_c_s": 0.5}),
-])
+@pytest.mark.parametrize(
+    "effect, values",
+    [
+        ("bias_instability", {"b_rad_s": 1e-4}),
+        ("rrw", {"k_rad_s_per_sqrt_s": 1e-4}),
+        ("correlated", {"sigma_rad_s": 1e-3, "tau_c_s": 0.5}),
+    ],
+)
 def test_stochastic_effects_are_purely_additive(effect, values):
     # the levels themselves are checked against IEEE 952 in test_noise.py; here: the gyro adds
     # exactly its realisation (y − ω = noise) and reports its summary
@@ -437,8 +457,13 @@ def test_family_term_is_its_formula(name):
     g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=1, without=ALL_BUT_VIB, overrides={name: FAMILY_TERMS[name]})
     assert g.effects == (name,)
     y = g.measure(tr).gyro_rad_s
-    inp = ModelInputs(t_s=tr.t_s, omega_S_rad_s=tr.omega_S_rad_s, f_S_m_s2=tr.f_S_m_s2, temp_c=tr.temp_c,
-                      t_since_power_up_s=tr.t_since_power_up_s)
+    inp = ModelInputs(
+        t_s=tr.t_s,
+        omega_S_rad_s=tr.omega_S_rad_s,
+        f_S_m_s2=tr.f_S_m_s2,
+        temp_c=tr.temp_c,
+        t_since_power_up_s=tr.t_since_power_up_s,
+    )
     eff = resolve(name)
     term = eff.term(g.params[name], inp, tr.omega_S_rad_s)
     assert np.array_equal(y, tr.omega_S_rad_s + term)
@@ -446,14 +471,22 @@ def test_family_term_is_its_formula(name):
     t = tr.t_s
     p = {k: np.asarray(v) for k, v in FAMILY_TERMS[name].items()}
     if name.startswith("periodic"):
-        ref = np.cos(2 * np.pi * 37.5 * t)[:, None] * p["a_cos_rad_s"] + np.sin(2 * np.pi * 37.5 * t)[:, None] * p["a_sin_rad_s"]
+        ref = (
+            np.cos(2 * np.pi * 37.5 * t)[:, None] * p["a_cos_rad_s"]
+            + np.sin(2 * np.pi * 37.5 * t)[:, None] * p["a_sin_rad_s"]
+        )
     elif name.startswith("step"):
         ref = (t >= 0.7)[:, None] * p["size_rad_s"]
     else:
         w, f, T = tr.omega_S_rad_s, tr.f_S_m_s2, tr.temp_c
-        sig = {"regressor[omega_y*omega_z]": w[:, 1] * w[:, 2], "regressor[f_x^2]": f[:, 0] ** 2,
-               "regressor[temp_c]": T, "regressor[dtemp_dt]": np.gradient(T, t), "regressor[t]": t,
-               "regressor[omega_x*temp_c]": w[:, 0] * T}[name]
+        sig = {
+            "regressor[omega_y*omega_z]": w[:, 1] * w[:, 2],
+            "regressor[f_x^2]": f[:, 0] ** 2,
+            "regressor[temp_c]": T,
+            "regressor[dtemp_dt]": np.gradient(T, t),
+            "regressor[t]": t,
+            "regressor[omega_x*temp_c]": w[:, 0] * T,
+        }[name]
         ref = sig[:, None] * p["coef"]
     # same formula in another operation order (2π·f·t grouping, powers): a few ulp of the phase
     np.testing.assert_allclose(y - tr.omega_S_rad_s, ref, rtol=0, atol=1e-12)
@@ -507,23 +540,50 @@ ADD_CASES = {
 def _add_truth(seed):
     """Smooth, well-excited truth (the family regressors are far above their own sample noise)."""
     t = np.arange(N_ADD) / RATE
-    w = np.stack([0.8 * np.sin(2 * np.pi * 0.31 * t), 1.1 * np.sin(2 * np.pi * 0.23 * t + 0.4),
-                  0.9 * np.cos(2 * np.pi * 0.17 * t)], 1)
-    f = np.array([0.4, -0.2, 9.81]) + np.stack([3 * np.sin(2 * np.pi * 0.07 * t), np.cos(0.3 * t), 0.5 * np.sin(0.2 * t)], 1)
+    w = np.stack(
+        [
+            0.8 * np.sin(2 * np.pi * 0.31 * t),
+            1.1 * np.sin(2 * np.pi * 0.23 * t + 0.4),
+            0.9 * np.cos(2 * np.pi * 0.17 * t),
+        ],
+        1,
+    )
+    f = np.array([0.4, -0.2, 9.81]) + np.stack(
+        [3 * np.sin(2 * np.pi * 0.07 * t), np.cos(0.3 * t), 0.5 * np.sin(0.2 * t)], 1
+    )
     temp = 25.0 + 0.1 * t
-    return Truth(t_s=t, omega_S_rad_s=w, f_S_m_s2=f, q_SW_wxyz=np.tile([1.0, 0, 0, 0], (N_ADD, 1)), temp_c=temp,
-                 t_since_power_up_s=t.copy(), power_up_index=np.zeros(N_ADD, int))
+    return Truth(
+        t_s=t,
+        omega_S_rad_s=w,
+        f_S_m_s2=f,
+        q_SW_wxyz=np.tile([1.0, 0, 0, 0], (N_ADD, 1)),
+        temp_c=temp,
+        t_since_power_up_s=t.copy(),
+        power_up_index=np.zeros(N_ADD, int),
+    )
 
 
 def _add_recording(name, run):
     from gyrocore.data.recording import Recording
 
-    g = SyntheticGyro("icm42688p", rate_hz=RATE, seed=21, run=run, without=[e for e in ALL_BUT_VIB if e != "arw"],
-                      overrides={"arw": {"n_rad_per_sqrt_s": SIGMA_ADD / math.sqrt(RATE)}, name: ADD_CASES[name]})
+    g = SyntheticGyro(
+        "icm42688p",
+        rate_hz=RATE,
+        seed=21,
+        run=run,
+        without=[e for e in ALL_BUT_VIB if e != "arw"],
+        overrides={"arw": {"n_rad_per_sqrt_s": SIGMA_ADD / math.sqrt(RATE)}, name: ADD_CASES[name]},
+    )
     tr = _add_truth(run)
     out = g.measure(tr)
-    return Recording(t_s=tr.t_s, gyro_rad_s=out.gyro_rad_s, accel_m_s2=tr.f_S_m_s2, temp_c=tr.temp_c,
-                     ref_rate_rad_s=tr.omega_S_rad_s, meta={"sensor": "icm42688p"})
+    return Recording(
+        t_s=tr.t_s,
+        gyro_rad_s=out.gyro_rad_s,
+        accel_m_s2=tr.f_S_m_s2,
+        temp_c=tr.temp_c,
+        ref_rate_rad_s=tr.omega_S_rad_s,
+        meta={"sensor": "icm42688p"},
+    )
 
 
 @pytest.mark.parametrize("name", sorted(ADD_CASES))
@@ -545,7 +605,9 @@ def test_injected_family_term_is_fitted_saved_and_removed(name, tmp_path):
     save_params(res, tmp_path / "p.json")
     back = load_params(tmp_path / "p.json")
     assert back.effects == ("bias", name) and back.format_version == "1.1"
-    np.testing.assert_array_equal(back.params[name][next(iter(ADD_CASES[name]))], res.params[name][next(iter(ADD_CASES[name]))])
+    np.testing.assert_array_equal(
+        back.params[name][next(iter(ADD_CASES[name]))], res.params[name][next(iter(ADD_CASES[name]))]
+    )
     held = _add_recording(name, run=1)  # other noise realisation: the "after" is out of sample
     e_after = back.apply(held).gyro_rad_s - held.ref_rate_rad_s
     e_before = held.gyro_rad_s - held.ref_rate_rad_s
@@ -590,9 +652,15 @@ def _pieces(tr: Truth, sizes):
         m = sizes[k % len(sizes)]
         k += 1
         j = min(tr.n, i + m)
-        yield Truth(t_s=tr.t_s[i:j], omega_S_rad_s=tr.omega_S_rad_s[i:j], f_S_m_s2=tr.f_S_m_s2[i:j],
-                    q_SW_wxyz=tr.q_SW_wxyz[i:j], temp_c=tr.temp_c[i:j],
-                    t_since_power_up_s=tr.t_since_power_up_s[i:j], power_up_index=tr.power_up_index[i:j])
+        yield Truth(
+            t_s=tr.t_s[i:j],
+            omega_S_rad_s=tr.omega_S_rad_s[i:j],
+            f_S_m_s2=tr.f_S_m_s2[i:j],
+            q_SW_wxyz=tr.q_SW_wxyz[i:j],
+            temp_c=tr.temp_c[i:j],
+            t_since_power_up_s=tr.t_since_power_up_s[i:j],
+            power_up_index=tr.power_up_index[i:j],
+        )
         i = j
 
 
@@ -608,8 +676,10 @@ def test_chunked_measure_is_bit_identical_to_batch(sizes, tau_s):
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     pu = (np.arange(n) * 3) // n
     tr = make_truth(n, q=q, power_ups=pu)
-    ov = {e: {} for e in ("bias_temp_rate", "bias_ramp", "scale_asymmetry", "g2_sensitivity", "earth_rate", "rrw",
-                          "correlated")}
+    ov = {
+        e: {}
+        for e in ("bias_temp_rate", "bias_ramp", "scale_asymmetry", "g2_sensitivity", "earth_rate", "rrw", "correlated")
+    }
     ov["time_offset"] = {"tau_s": tau_s}
     ov["bias_thermal"] = {"poly_rad_s": rng.normal(0, 1e-4, (3, 3))}
     ov.update(FAMILY_TERMS)

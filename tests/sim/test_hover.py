@@ -121,8 +121,10 @@ def test_filter_delay_seen_by_the_rate_loop():
 
 
 def test_manoeuvres_are_flown():
-    man = (Manoeuvre(t_start_s=1.0, duration_s=1.5, roll_rad=math.radians(5.0)),
-           Manoeuvre(t_start_s=3.0, duration_s=1.5, yaw_rad=math.radians(15.0)))
+    man = (
+        Manoeuvre(t_start_s=1.0, duration_s=1.5, roll_rad=math.radians(5.0)),
+        Manoeuvre(t_start_s=3.0, duration_s=1.5, yaw_rad=math.radians(15.0)),
+    )
     _, log = fly_hover(duration_s=5.0, vibration=True, manoeuvres=man)
     q = log.q_WB_wxyz
     roll = np.degrees(np.arctan2(2 * (q[:, 0] * q[:, 1] + q[:, 2] * q[:, 3]), 1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2)))
@@ -151,7 +153,11 @@ def test_custom_vibration_scales_the_imbalance_line():
     k0 = 1000
     amps = []
     for u in (1e-6, 2e-6):
-        truth, _ = fly_hover(duration_s=3.0, seed=2, vibration=VibrationSpec(imbalance_kg_m=u, harmonic2_ratio=0.0, blade_pass_ripple=0.0))
+        truth, _ = fly_hover(
+            duration_s=3.0,
+            seed=2,
+            vibration=VibrationSpec(imbalance_kg_m=u, harmonic2_ratio=0.0, blade_pass_ripple=0.0),
+        )
         x = truth.f_S_m_s2[k0:, :2]
         n = x.shape[0]
         w = np.hanning(n)[:, None]
@@ -221,9 +227,14 @@ def _unnamed_elements(model) -> list[str]:
     import mujoco
 
     out = []
-    for objtype, count in ((mujoco.mjtObj.mjOBJ_BODY, model.nbody), (mujoco.mjtObj.mjOBJ_JOINT, model.njnt),
-                           (mujoco.mjtObj.mjOBJ_GEOM, model.ngeom), (mujoco.mjtObj.mjOBJ_SITE, model.nsite),
-                           (mujoco.mjtObj.mjOBJ_ACTUATOR, model.nu), (mujoco.mjtObj.mjOBJ_SENSOR, model.nsensor)):
+    for objtype, count in (
+        (mujoco.mjtObj.mjOBJ_BODY, model.nbody),
+        (mujoco.mjtObj.mjOBJ_JOINT, model.njnt),
+        (mujoco.mjtObj.mjOBJ_GEOM, model.ngeom),
+        (mujoco.mjtObj.mjOBJ_SITE, model.nsite),
+        (mujoco.mjtObj.mjOBJ_ACTUATOR, model.nu),
+        (mujoco.mjtObj.mjOBJ_SENSOR, model.nsensor),
+    ):
         start = 1 if objtype == mujoco.mjtObj.mjOBJ_BODY else 0  # body 0 is the world
         out += [f"{objtype.name}[{i}]" for i in range(start, count) if not mujoco.mj_id2name(model, objtype, i)]
     return out
@@ -265,12 +276,18 @@ def _all_effects_gyro(rate_hz: float, without: tuple = ()):
 
     deg = math.pi / 180.0
     overrides = {
-        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg}, "bias_ramp": {"ramp_rad_s2": 1e-6},
-        "scale_asymmetry": {"a": 1e-3}, "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
-        "time_offset": {"tau_s": 2e-4}, "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
-        "rrw": {"k_rad_s_per_sqrt_s": 1e-5}, "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
+        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg},
+        "bias_ramp": {"ramp_rad_s2": 1e-6},
+        "scale_asymmetry": {"a": 1e-3},
+        "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
+        "time_offset": {"tau_s": 2e-4},
+        "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
+        "rrw": {"k_rad_s_per_sqrt_s": 1e-5},
+        "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
     }
-    return SyntheticGyro("icm42688p", rate_hz=rate_hz, seed=1, overrides={e: v for e, v in overrides.items() if e not in without})
+    return SyntheticGyro(
+        "icm42688p", rate_hz=rate_hz, seed=1, overrides={e: v for e, v in overrides.items() if e not in without}
+    )
 
 
 def _bits(x) -> np.ndarray:
@@ -282,14 +299,31 @@ def _assert_same_flight(a, b) -> None:
     (ta, la), (tb, lb) = a, b
     for f in ("omega_S_rad_s", "f_S_m_s2", "q_SW_wxyz", "temp_c"):
         np.testing.assert_array_equal(_bits(getattr(ta, f)), _bits(getattr(tb, f)), err_msg=f)
-    for f in ("q_WB_wxyz", "q_sp_wxyz", "pos_W_m", "vel_W_m_s", "rate_sp_rad_s", "gyro_meas_rad_s",
-              "gyro_filt_rad_s", "motor_thrust_cmd_n", "rotor_speed_rad_s"):
+    for f in (
+        "q_WB_wxyz",
+        "q_sp_wxyz",
+        "pos_W_m",
+        "vel_W_m_s",
+        "rate_sp_rad_s",
+        "gyro_meas_rad_s",
+        "gyro_filt_rad_s",
+        "motor_thrust_cmd_n",
+        "rotor_speed_rad_s",
+    ):
         np.testing.assert_array_equal(_bits(getattr(la, f)), _bits(getattr(lb, f)), err_msg=f)
     assert la.meta == lb.meta
 
 
-CASES = ["all_effects_pt1_manoeuvres", "perfect_gyro_500hz", "preset_no_pipeline", "motor_heating", "heater",
-         "ground_all_effects_pt1", "ground_preset_no_pipeline_500hz", "family_terms_of_time"]
+CASES = [
+    "all_effects_pt1_manoeuvres",
+    "perfect_gyro_500hz",
+    "preset_no_pipeline",
+    "motor_heating",
+    "heater",
+    "ground_all_effects_pt1",
+    "ground_preset_no_pipeline_500hz",
+    "family_terms_of_time",
+]
 
 
 def _flight(case: str, **kw):
@@ -297,39 +331,68 @@ def _flight(case: str, **kw):
     from sim.gyro import SyntheticGyro
 
     if case == "all_effects_pt1_manoeuvres":
-        return fly_hover(duration_s=1.2, seed=2, gyro=_all_effects_gyro(1000.0), pipeline=pt1(30.0, 1000.0),
-                         manoeuvres=(Manoeuvre(0.2, 0.6, roll_rad=0.05, yaw_rad=0.1),), **kw)
+        return fly_hover(
+            duration_s=1.2,
+            seed=2,
+            gyro=_all_effects_gyro(1000.0),
+            pipeline=pt1(30.0, 1000.0),
+            manoeuvres=(Manoeuvre(0.2, 0.6, roll_rad=0.05, yaw_rad=0.1),),
+            **kw,
+        )
     if case == "ground_all_effects_pt1":  # disarmed on the floor (contact), arming, take-off ramp; motor heating
         spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.05)
-        return fly_hover(duration_s=1.6, ground_s=0.5, seed=2, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)),
-                         pipeline=pt1(30.0, 1000.0), thermal=spec,
-                         manoeuvres=(Manoeuvre(1.0, 0.4, roll_rad=0.05, yaw_rad=0.1),), **kw)
+        return fly_hover(
+            duration_s=1.6,
+            ground_s=0.5,
+            seed=2,
+            gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)),
+            pipeline=pt1(30.0, 1000.0),
+            thermal=spec,
+            manoeuvres=(Manoeuvre(1.0, 0.4, roll_rad=0.05, yaw_rad=0.1),),
+            **kw,
+        )
     if case == "ground_preset_no_pipeline_500hz":  # kernel entry without a pipeline, m = 2
-        return fly_hover(duration_s=1.5, ground_s=0.3, seed=4, gyro_rate_hz=500.0,
-                         gyro=SyntheticGyro("icm42688p", rate_hz=500.0, seed=4), **kw)
+        return fly_hover(
+            duration_s=1.5,
+            ground_s=0.3,
+            seed=4,
+            gyro_rate_hz=500.0,
+            gyro=SyntheticGyro("icm42688p", rate_hz=500.0, seed=4),
+            **kw,
+        )
     if case == "family_terms_of_time":  # registry terms of time alone: tabulated for the kernels
         g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=7, overrides=FAMILY_OF_TIME)
         return fly_hover(duration_s=1.0, seed=7, gyro=g, pipeline=pt1(30.0, 1000.0), **kw)
     if case == "perfect_gyro_500hz":
         return fly_hover(duration_s=1.0, seed=5, gyro_rate_hz=500.0, manoeuvres=small_steps(1.0), **kw)
     if case == "motor_heating":  # the die temperature streamed from the rotor power, thermal effects on
-        spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0), (1.0, 22.0)), motor_c_per_w=0.05,
-                           self_heating_c=1.0)
-        g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=3,
-                          overrides={"bias_thermal": {"poly_rad_s": [[1e-4, 2e-6]] * 3}, "scale_thermal": {"poly_per_c": [1e-4] * 3}})
+        spec = ThermalSpec(
+            time_constant_s=0.5, ambient_c=((0.0, 20.0), (1.0, 22.0)), motor_c_per_w=0.05, self_heating_c=1.0
+        )
+        g = SyntheticGyro(
+            "icm42688p",
+            rate_hz=1000.0,
+            seed=3,
+            overrides={"bias_thermal": {"poly_rad_s": [[1e-4, 2e-6]] * 3}, "scale_thermal": {"poly_per_c": [1e-4] * 3}},
+        )
         return fly_hover(duration_s=1.0, seed=6, gyro=g, thermal=spec, **kw)
     if case == "heater":  # PI heater to 23 °C, saturating at first (anti-windup), plus motor heating
         from sim.thermal import HeaterSpec
 
-        spec = ThermalSpec(time_constant_s=0.5, ambient_c=((0.0, 20.0),), motor_c_per_w=0.01,
-                           heater=HeaterSpec(setpoint_c=23.0, max_power_w=2.0, heater_c_per_w=2.0,
-                                             closed_loop_time_constant_s=0.2))
-        return fly_hover(duration_s=1.0, seed=6, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)), thermal=spec,
-                         **kw)
+        spec = ThermalSpec(
+            time_constant_s=0.5,
+            ambient_c=((0.0, 20.0),),
+            motor_c_per_w=0.01,
+            heater=HeaterSpec(setpoint_c=23.0, max_power_w=2.0, heater_c_per_w=2.0, closed_loop_time_constant_s=0.2),
+        )
+        return fly_hover(
+            duration_s=1.0, seed=6, gyro=_all_effects_gyro(1000.0, without=("bias_temp_rate",)), thermal=spec, **kw
+        )
     if case == "temp_rate_ramp":  # bias_temp_rate on a warming die (no motor heating): dT/dt block by block
         spec = ThermalSpec(time_constant_s=0.3, ambient_c=((0.0, 20.0), (0.6, 30.0)), self_heating_c=1.0)
-        return fly_hover(duration_s=1.0, seed=9, gyro=_all_effects_gyro(1000.0), thermal=spec,
-                         pipeline=pt1(30.0, 1000.0), **kw)
+        return fly_hover(
+            duration_s=1.0, seed=9, gyro=_all_effects_gyro(1000.0), thermal=spec, pipeline=pt1(30.0, 1000.0), **kw
+        )
     assert case == "preset_no_pipeline"
     return fly_hover(duration_s=1.0, seed=4, gyro=SyntheticGyro("icm42688p", rate_hz=1000.0, seed=4), **kw)
 
@@ -390,8 +453,11 @@ def test_hover_flight_blocks_hold_one_block():
         next(HoverFlight(duration_s=0.1).blocks(0))
 
 
-FAMILY_OF_TIME = {"periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, -0.004], "a_sin_rad_s": [0.0, 0.003, 0.0]},
-                  "step[0.4]": {"size_rad_s": [0.02, 0.0, 0.0]}, "regressor[t]": {"coef": [0.0, 1e-3, 0.0]}}
+FAMILY_OF_TIME = {
+    "periodic[37.5]": {"a_cos_rad_s": [0.01, 0.0, -0.004], "a_sin_rad_s": [0.0, 0.003, 0.0]},
+    "step[0.4]": {"size_rad_s": [0.02, 0.0, 0.0]},
+    "regressor[t]": {"coef": [0.0, 1e-3, 0.0]},
+}
 
 
 @pytest.mark.parametrize("extra", [{}, {"regressor[omega_x*f_z]": {"coef": [0.0, 1e-3, 0.0]}}])
@@ -453,8 +519,9 @@ def test_ground_phase_is_still_with_gravity_only(from_ground):
     # Specific force = gravity only, +z in S (S = B, level on the ground): the settling
     # transient is measured < 6e-5 m/s^2; bound 1e-3 m/s^2 (= 0.1 mrad of tilt to the
     # accelerometer, far below any still-detector threshold).
-    np.testing.assert_allclose(truth.f_S_m_s2[g], np.broadcast_to([0.0, 0.0, QP.gravity_m_s2], truth.f_S_m_s2[g].shape),
-                               rtol=0, atol=1e-3)
+    np.testing.assert_allclose(
+        truth.f_S_m_s2[g], np.broadcast_to([0.0, 0.0, QP.gravity_m_s2], truth.f_S_m_s2[g].shape), rtol=0, atol=1e-3
+    )
     assert np.degrees(log.tilt_rad()[g]).max() < 1e-3  # level on four equal feet
     # the gyro is powered up from t = 0, on the ground
     np.testing.assert_array_equal(truth.t_since_power_up_s, truth.t_s)

@@ -118,20 +118,35 @@ def _blocks(make, sizes, n):
 
 
 GENERATORS = {
-    "arw": lambda: noise.WhiteRateBlocks(np.random.default_rng(21), rate_hz=1000.0, n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4]),
+    "arw": lambda: noise.WhiteRateBlocks(
+        np.random.default_rng(21), rate_hz=1000.0, n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4]
+    ),
     "flicker": lambda: noise.FlickerBlocks(np.random.default_rng(22), rate_hz=1000.0, b_rad_s=[1e-4, 3e-4, 5e-5]),
-    "rrw": lambda: noise.RateRandomWalkBlocks(np.random.default_rng(23), rate_hz=1000.0, k_rad_s_per_sqrt_s=[1e-4, 2e-4, 5e-5]),
-    "gm": lambda: noise.GaussMarkovBlocks(np.random.default_rng(24), rate_hz=1000.0, sigma_rad_s=[1e-3, 2e-3, 5e-4],
-                                          tau_c_s=[0.1, 1.0, 30.0]),
+    "rrw": lambda: noise.RateRandomWalkBlocks(
+        np.random.default_rng(23), rate_hz=1000.0, k_rad_s_per_sqrt_s=[1e-4, 2e-4, 5e-5]
+    ),
+    "gm": lambda: noise.GaussMarkovBlocks(
+        np.random.default_rng(24), rate_hz=1000.0, sigma_rad_s=[1e-3, 2e-3, 5e-4], tau_c_s=[0.1, 1.0, 30.0]
+    ),
     # registered noise terms outside the catalogue (gyrocore.effects.registry.NOISE_TERMS)
-    "arw_lowpass": lambda: noise.LowpassWhiteNoise(np.random.default_rng(25), rate_hz=1000.0,
-                                                   n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4], bandwidth_hz=90.0),
-    "arw_student": lambda: noise.LowpassWhiteNoise(np.random.default_rng(26), rate_hz=1000.0,
-                                                   n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4], bandwidth_hz=90.0, nu=[5.0, 6.0, 30.0]),
+    "arw_lowpass": lambda: noise.LowpassWhiteNoise(
+        np.random.default_rng(25), rate_hz=1000.0, n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4], bandwidth_hz=90.0
+    ),
+    "arw_student": lambda: noise.LowpassWhiteNoise(
+        np.random.default_rng(26),
+        rate_hz=1000.0,
+        n_rad_per_sqrt_s=[1e-3, 2e-3, 5e-4],
+        bandwidth_hz=90.0,
+        nu=[5.0, 6.0, 30.0],
+    ),
     "angle_white": lambda: noise.AngleWhiteNoise(np.random.default_rng(27), rate_hz=1000.0, q_rad=[1e-5, 2e-5, 3e-6]),
     # the shaped vibration (fixed internal FFT blocks, served in the caller's blocks)
-    "shaped": lambda: noise.ShapedNoise(np.random.default_rng(28), noise.shaped_taps(
-        50.0 + np.arange(60.0), np.vstack([np.full(60, 1e-4), np.full(60, 2e-4), np.zeros(60)]), rate_hz=1000.0)),
+    "shaped": lambda: noise.ShapedNoise(
+        np.random.default_rng(28),
+        noise.shaped_taps(
+            50.0 + np.arange(60.0), np.vstack([np.full(60, 1e-4), np.full(60, 2e-4), np.zeros(60)]), rate_hz=1000.0
+        ),
+    ),
 }
 
 
@@ -146,8 +161,9 @@ def test_blocks_bit_identical_across_block_sizes(term, sizes):
 def test_functions_are_one_block():
     """The plain functions are the generators in one block; ARW, RRW and Gauss–Markov draw
     exactly what the whole-record functions drew before blocks (only the flicker changed)."""
-    x = noise.gauss_markov(np.random.default_rng(24), 5000, rate_hz=1000.0, sigma_rad_s=[1e-3, 2e-3, 5e-4],
-                           tau_c_s=[0.1, 1.0, 30.0])
+    x = noise.gauss_markov(
+        np.random.default_rng(24), 5000, rate_hz=1000.0, sigma_rad_s=[1e-3, 2e-3, 5e-4], tau_c_s=[0.1, 1.0, 30.0]
+    )
     assert np.array_equal(x, GENERATORS["gm"]().take(5000))
     # the pre-block Gauss–Markov: lfilter over the whole record with a stationary first sample
     w = np.random.default_rng(24).standard_normal((5000, 3))
@@ -187,7 +203,10 @@ def test_flicker_design_band(rate_hz):
         x = np.pi * fg * m / rate_hz
         avar = np.trapezoid(2 * sg * np.sin(x) ** 4 / (m * np.sin(np.pi * fg / rate_hz)) ** 2, fg)
         tol = 3e-3 if m < 16 else 1e-3
-        assert abs(np.sqrt(avar) / noise.ALLAN_FLICKER_FACTOR - 1) < tol, (m, np.sqrt(avar) / noise.ALLAN_FLICKER_FACTOR)
+        assert abs(np.sqrt(avar) / noise.ALLAN_FLICKER_FACTOR - 1) < tol, (
+            m,
+            np.sqrt(avar) / noise.ALLAN_FLICKER_FACTOR,
+        )
 
 
 def test_flicker_floor_over_long_tau_in_blocks():

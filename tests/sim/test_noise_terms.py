@@ -94,7 +94,7 @@ def test_lowpass_noise_level_and_shape():
     b, a = signal.butter(2, fc, fs=rate)
     h = signal.lfilter(b, a, np.r_[1.0, np.zeros(2000)])
     s2 = N**2 * rate
-    gam = s2 * np.correlate(h, h, "full")[h.size - 1:]
+    gam = s2 * np.correlate(h, h, "full")[h.size - 1 :]
     var_th = gam[0]
     se = np.sqrt(2.0 / n * (gam[0] ** 2 + 2 * np.sum(gam[1:] ** 2)))
     v = x.var(axis=0)
@@ -125,7 +125,7 @@ def test_student_tails_and_angle_white_allan():
     m = 10
     y = SN.AngleWhiteNoise(SN.effect_rng(8, "a"), rate_hz=rate, q_rad=q).take(n)
     th = np.cumsum(y, axis=0) / rate  # θ_k − θ_0
-    d = th[2 * m:] - 2 * th[m:-m] + th[:-2 * m]
+    d = th[2 * m :] - 2 * th[m:-m] + th[: -2 * m]
     avar = np.mean(d**2, axis=0) / (2 * (m / rate) ** 2)
     avar_th = 6 * q**2 / (2 * (m / rate) ** 2)
     edf = n / (3 * m)
@@ -136,22 +136,43 @@ def test_student_tails_and_angle_white_allan():
 def test_set_and_toml_inject(tmp_path, capsys):
     f = tmp_path / "s.csv"
     with pytest.raises(SystemExit) as exc:
-        main(["simulate", "static", "-o", str(f), "--duration-s", "2", "--rate-hz", "200", "--seed", "1",
-              "--set", "arw_lowpass.n_rad_per_sqrt_s=1e-4", "--set", "arw_lowpass.bandwidth_hz=40",
-              "--set", "angle_white.q_rad=1e-5", "--json"])
+        main(
+            [
+                "simulate",
+                "static",
+                "-o",
+                str(f),
+                "--duration-s",
+                "2",
+                "--rate-hz",
+                "200",
+                "--seed",
+                "1",
+                "--set",
+                "arw_lowpass.n_rad_per_sqrt_s=1e-4",
+                "--set",
+                "arw_lowpass.bandwidth_hz=40",
+                "--set",
+                "angle_white.q_rad=1e-5",
+                "--json",
+            ]
+        )
     out = capsys.readouterr()
     assert exc.value.code == 0, out.err
     js = json.loads(out.out)
     assert {"arw_lowpass", "angle_white"} <= set(js["effects"])
     assert js["params_true"]["arw_lowpass"]["bandwidth_hz"] == 40.0
     toml = tmp_path / "s.toml"
-    toml.write_text('name = "t"\n[output]\nrate_hz = 200.0\nfull_scale_dps = 2000.0\nsensitivity_lsb_per_dps = 16.4\n'
-                    '[arw_student]\nn_rad_per_sqrt_s = 2e-4\nnu = [5.0, 6.0, 7.0]\n')
+    toml.write_text(
+        'name = "t"\n[output]\nrate_hz = 200.0\nfull_scale_dps = 2000.0\nsensitivity_lsb_per_dps = 16.4\n'
+        "[arw_student]\nn_rad_per_sqrt_s = 2e-4\nnu = [5.0, 6.0, 7.0]\n"
+    )
     g = SyntheticGyro(str(toml), seed=0)
     assert g.params["arw_student"]["nu"].tolist() == [5.0, 6.0, 7.0]
     assert float(g.params["arw_student"]["bandwidth_hz"]) == 0.0
     with pytest.raises(GyroInputError, match="nu"):
         SyntheticGyro("icm42688p", seed=0, overrides={"arw_student": {"n_rad_per_sqrt_s": 1e-4, "nu": 2.0}}).noise(10)
     with pytest.raises(GyroInputError, match="bandwidth"):
-        SyntheticGyro("icm42688p", seed=0, overrides={"arw_lowpass": {"n_rad_per_sqrt_s": 1e-4,
-                                                                     "bandwidth_hz": 500.0}}).noise(10)
+        SyntheticGyro(
+            "icm42688p", seed=0, overrides={"arw_lowpass": {"n_rad_per_sqrt_s": 1e-4, "bandwidth_hz": 500.0}}
+        ).noise(10)

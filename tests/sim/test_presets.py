@@ -109,20 +109,28 @@ def test_include_switches_on_disabled_effect_without_changing_others():
 
 def test_load_from_path_and_errors(tmp_path):
     p = tmp_path / "mine.toml"
-    p.write_text(PRESETS["bmi088"].read_text(encoding="utf-8").replace('name = "bmi088"', 'name = "mine"'), encoding="utf-8")
+    p.write_text(
+        PRESETS["bmi088"].read_text(encoding="utf-8").replace('name = "bmi088"', 'name = "mine"'), encoding="utf-8"
+    )
     assert load_preset(str(p)).name == "mine"
     with pytest.raises(GyroInputError, match="unknown sensor preset"):
         load_preset("nope")
     bad = tmp_path / "bad.toml"
-    bad.write_text('[output]\nrate_hz = 100\nfull_scale_dps = 250\nsensitivity_lsb_per_dps = 131\n[warp]\nx = 1\n', encoding="utf-8")
+    bad.write_text(
+        "[output]\nrate_hz = 100\nfull_scale_dps = 250\nsensitivity_lsb_per_dps = 131\n[warp]\nx = 1\n",
+        encoding="utf-8",
+    )
     with pytest.raises(GyroInputError, match="unknown effect section"):
         load_preset(str(bad))
-    bad.write_text('[output]\nrate_hz = 100\nfull_scale_dps = 250\nsensitivity_lsb_per_dps = 131\n[arw]\nfoo_dps = 1\n', encoding="utf-8")
+    bad.write_text(
+        "[output]\nrate_hz = 100\nfull_scale_dps = 250\nsensitivity_lsb_per_dps = 131\n[arw]\nfoo_dps = 1\n",
+        encoding="utf-8",
+    )
     with pytest.raises(GyroInputError, match="unknown key"):
         load_preset(str(bad))
-    bad.write_text('[output]\nrate_hz = 100\n', encoding="utf-8")
+    bad.write_text("[output]\nrate_hz = 100\n", encoding="utf-8")
     with pytest.raises(GyroInputError, match="full_scale_dps"):
         load_preset(str(bad))
-    bad.write_text('not toml [', encoding="utf-8")
+    bad.write_text("not toml [", encoding="utf-8")
     with pytest.raises(GyroInputError, match="not valid TOML"):
         load_preset(str(bad))

@@ -17,12 +17,18 @@ def _spec(lo, hi, erpm=False):
     for i in range(3):
         a, b = lo + (hi - lo) * i / 3, lo + (hi - lo) * (i + 1) / 3
         bands.append({"throttle": [a, b], "median": (a + b) / 2, **({"rotor_hz_median": 500.0} if erpm else {})})
-    return {"bands": bands, "lines": [{"axis": "y", "frequency_hz": 47.0, "follows": "fixed", "amplitude_rad_s": 0.005}]}
+    return {
+        "bands": bands,
+        "lines": [{"axis": "y", "frequency_hz": 47.0, "follows": "fixed", "amplitude_rad_s": 0.005}],
+    }
 
 
 def test_hover_without_erpm_names_the_throttle_span_and_erpm():
-    with pytest.raises(GyroInputError, match=r"span motor command 0\.29-0\.38 and the log has no rotor speed \(eRPM\); "
-                                             r"a flight that holds one throttle \(a hover\) gives no throttle law"):
+    with pytest.raises(
+        GyroInputError,
+        match=r"span motor command 0\.29-0\.38 and the log has no rotor speed \(eRPM\); "
+        r"a flight that holds one throttle \(a hover\) gives no throttle law",
+    ):
         rotor_line(_spec(0.29, 0.38))
 
 

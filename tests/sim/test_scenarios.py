@@ -16,8 +16,14 @@ from sim import scenarios as S
 
 ALL_BUT_VIB = [e for e in EFFECTS if e != "vibration"]
 # short, cheap versions of every scenario (duration s, gyro rate Hz)
-SHORT = {"static": (3.0, 200.0), "static_bumped": (6.0, 200.0), "turntable": (45.0, 100.0),
-         "thermal": (120.0, 50.0), "hover": (1.5, 500.0), "power_cycles": (4.0, 200.0)}
+SHORT = {
+    "static": (3.0, 200.0),
+    "static_bumped": (6.0, 200.0),
+    "turntable": (45.0, 100.0),
+    "thermal": (120.0, 50.0),
+    "hover": (1.5, 500.0),
+    "power_cycles": (4.0, 200.0),
+}
 
 
 def test_registry_has_the_required_scenarios():
@@ -61,9 +67,14 @@ def test_same_seed_bit_identical_file(tmp_path):
 
 def test_power_cycles_redraw_turn_on_bias_and_restart_cold():
     sig = 0.01
-    res = S.simulate("power_cycles", duration_s=5.0, gyro_rate_hz=200.0, seed=2,
-                     without=[e for e in ALL_BUT_VIB if e != "bias"],
-                     overrides={"bias": {"turn_on_sigma_rad_s": sig}})
+    res = S.simulate(
+        "power_cycles",
+        duration_s=5.0,
+        gyro_rate_hz=200.0,
+        seed=2,
+        without=[e for e in ALL_BUT_VIB if e != "bias"],
+        overrides={"bias": {"turn_on_sigma_rad_s": sig}},
+    )
     tr = res.truth
     pu = tr.power_up_index
     assert list(np.unique(pu)) == [0, 1, 2, 3, 4]
@@ -141,8 +152,9 @@ def test_hover_gyro_in_the_loop_is_the_recording():
     assert rotor_line(res.truth, log) > 30 * rotor_line(calm, calm_log)
     # earth rate rides in the loop (fly_hover passes the attitude); a temperature-rate bias
     # cannot (motor heating makes dT/dt depend on the flight): flown without, recorded with
-    r2 = S.simulate("hover", duration_s=0.5, gyro_rate_hz=500.0, seed=0,
-                    overrides={"earth_rate": {}, "bias_temp_rate": {}})
+    r2 = S.simulate(
+        "hover", duration_s=0.5, gyro_rate_hz=500.0, seed=0, overrides={"earth_rate": {}, "bias_temp_rate": {}}
+    )
     assert "earth_rate" in r2.params_true and "bias_temp_rate" in r2.params_true
     assert any("bias_temp_rate" in n for n in r2.notes) and not any("earth_rate" in n for n in r2.notes)
     assert not np.array_equal(r2.flight_log.gyro_meas_rad_s, r2.recording.gyro_rad_s)
@@ -151,8 +163,14 @@ def test_hover_gyro_in_the_loop_is_the_recording():
 
 
 def test_overrides_reach_the_recording_and_floor():
-    res = S.simulate("static", duration_s=2.0, gyro_rate_hz=200.0, seed=0,
-                     overrides={"bias_ramp": {"ramp_rad_s2": [1e-3, 0, 0]}}, without=["quantization"])
+    res = S.simulate(
+        "static",
+        duration_s=2.0,
+        gyro_rate_hz=200.0,
+        seed=0,
+        overrides={"bias_ramp": {"ramp_rad_s2": [1e-3, 0, 0]}},
+        without=["quantization"],
+    )
     assert "bias_ramp" in res.params_true and res.recording.meta["overridden"] == "bias_ramp"
     assert "quantization" not in res.params_true and "quantization" in res.recording.meta["without"]
     assert np.array_equal(S.floor_gyro(res), res.truth.omega_S_rad_s + res.noise_rad_s)
@@ -222,8 +240,9 @@ CHUNKED_RUNS = {
     "static_bumped": dict(duration_s=20.0, seed=3, run=1),
     "power_cycles": dict(duration_s=30.0, seed=2),
     "thermal": dict(duration_s=200.0, gyro_rate_hz=200.0),
-    "turntable": dict(duration_s=90.0, sensor="adis16448",
-                      overrides={"time_offset": {"tau_s": -0.003}, "rrw": {}, "correlated": {}}),
+    "turntable": dict(
+        duration_s=90.0, sensor="adis16448", overrides={"time_offset": {"tau_s": -0.003}, "rrw": {}, "correlated": {}}
+    ),
     # 16 s: the ground phase (5 s), take-off (3 s) and the manoeuvres are flown
     "hover": dict(duration_s=16.0, seed=5, run=1),
 }
@@ -267,8 +286,10 @@ def test_chunked_hover_with_temperature_rate_and_a_leading_gyro(tmp_path):
     sim.thermal.TempRateBlocks); a leading time offset is left out of the loop and put in the
     recording (a note); both paths agree bit for bit."""
     toml = tmp_path / "warm_hover.toml"
-    toml.write_text('kind = "hover"\nduration_s = 3.0\n[hover]\nvibration = true\n'
-                    '[thermal]\ntime_constant_s = 1.0\nambient_c = [[0.0, 20.0], [2.0, 35.0]]\n')
+    toml.write_text(
+        'kind = "hover"\nduration_s = 3.0\n[hover]\nvibration = true\n'
+        "[thermal]\ntime_constant_s = 1.0\nambient_c = [[0.0, 20.0], [2.0, 35.0]]\n"
+    )
     deg = math.pi / 180.0
     kw = dict(seed=2, overrides={"bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg}, "rrw": {}})
     res = S.simulate(str(toml), **kw)
@@ -291,8 +312,10 @@ def test_simulate_stream_is_simulate_with_chunk_rows():
             S.simulate("static", duration_s=3.0, chunk_rows=bad)
 
 
-@pytest.mark.parametrize("name, kw", [("static", dict(duration_s=2.0, gyro_rate_hz=200.0)),
-                                      ("power_cycles", dict(duration_s=3.0, gyro_rate_hz=100.0))])
+@pytest.mark.parametrize(
+    "name, kw",
+    [("static", dict(duration_s=2.0, gyro_rate_hz=200.0)), ("power_cycles", dict(duration_s=3.0, gyro_rate_hz=100.0))],
+)
 def test_stream_with_one_row_chunks(name, kw):
     """Chunks shorter than the physics-to-gyro ratio (one physics step per rollout, most with no
     gyro sample) and single-sample temperature chunks still give simulate()'s rows."""

@@ -16,17 +16,45 @@ def _spec(amp_x=0.05, amp_y=0.08) -> dict:
     """A minimal spec (the keys ``gyroharness vibration -o`` writes that rotor_line reads)."""
     bands = [{"median": m} for m in (0.2, 0.3, 0.4)]
     lines = [
-        {"axis": "x", "frequency_hz": 300.0, "follows": "throttle", "aliased": False, "harmonic": None,
-         "amplitude_rad_s": amp_x, "law": {"hz_at_zero": 180.0, "hz_per_unit": 400.0},
-         "per_band": [{"band": 0, "frequency_hz": 260.0, "amplitude_rad_s": amp_x}]},
+        {
+            "axis": "x",
+            "frequency_hz": 300.0,
+            "follows": "throttle",
+            "aliased": False,
+            "harmonic": None,
+            "amplitude_rad_s": amp_x,
+            "law": {"hz_at_zero": 180.0, "hz_per_unit": 400.0},
+            "per_band": [{"band": 0, "frequency_hz": 260.0, "amplitude_rad_s": amp_x}],
+        },
         # the same line seen on y in band 0 (within 6 %), flagged aliased on its own: still counted there
-        {"axis": "y", "frequency_hz": 250.0, "follows": "throttle", "aliased": True, "harmonic": None,
-         "amplitude_rad_s": 0.2, "per_band": [{"band": 0, "frequency_hz": 265.0, "amplitude_rad_s": amp_y}]},
+        {
+            "axis": "y",
+            "frequency_hz": 250.0,
+            "follows": "throttle",
+            "aliased": True,
+            "harmonic": None,
+            "amplitude_rad_s": 0.2,
+            "per_band": [{"band": 0, "frequency_hz": 265.0, "amplitude_rad_s": amp_y}],
+        },
         # a weaker throttle line and a fixed one: not the rotor line
-        {"axis": "z", "frequency_hz": 420.0, "follows": "throttle", "aliased": False, "harmonic": None,
-         "amplitude_rad_s": 0.01, "per_band": []},
-        {"axis": "z", "frequency_hz": 150.0, "follows": "fixed", "aliased": False, "harmonic": None,
-         "amplitude_rad_s": 0.5, "per_band": []},
+        {
+            "axis": "z",
+            "frequency_hz": 420.0,
+            "follows": "throttle",
+            "aliased": False,
+            "harmonic": None,
+            "amplitude_rad_s": 0.01,
+            "per_band": [],
+        },
+        {
+            "axis": "z",
+            "frequency_hz": 150.0,
+            "follows": "fixed",
+            "aliased": False,
+            "harmonic": None,
+            "amplitude_rad_s": 0.5,
+            "per_band": [],
+        },
     ]
     return {"bands": bands, "lines": lines}
 
@@ -144,10 +172,14 @@ def _spec_file(tmp_path, *, with_rotor_line=True):
     if not with_rotor_line:
         s["lines"] = [ln for ln in s["lines"] if ln["follows"] == "fixed"]
     for i, b in enumerate(s["bands"]):
-        b.update(throttle=[0.1 * i, 0.1 * i + 0.1], n_windows=20,
-                 psd_rad2_s2_hz={a: [1e-4] * f.size for a in "xyz"})
-    s.update(kind="gyroharness.vibration_spec", format_version="1.0", source="synthetic", f_hz=f.tolist(),
-             reconstructed_reliable_below_hz=450.0)
+        b.update(throttle=[0.1 * i, 0.1 * i + 0.1], n_windows=20, psd_rad2_s2_hz={a: [1e-4] * f.size for a in "xyz"})
+    s.update(
+        kind="gyroharness.vibration_spec",
+        format_version="1.0",
+        source="synthetic",
+        f_hz=f.tolist(),
+        reconstructed_reliable_below_hz=450.0,
+    )
     p = tmp_path / "spec.json"
     p.write_text(json.dumps(s))
     return p
@@ -169,8 +201,24 @@ def test_simulate_vibration_physics_cli(tmp_path, capsys):
 
     spec = _spec_file(tmp_path)
     out = tmp_path / "r.csv"
-    code, _, err = _run(["simulate", "hover", "--vehicle", "racing5", "--vibration", str(spec), "--vibration-physics",
-                         "--vibration-band", "0", "--duration-s", "3", "-o", str(out)], capsys)
+    code, _, err = _run(
+        [
+            "simulate",
+            "hover",
+            "--vehicle",
+            "racing5",
+            "--vibration",
+            str(spec),
+            "--vibration-physics",
+            "--vibration-band",
+            "0",
+            "--duration-s",
+            "3",
+            "-o",
+            str(out),
+        ],
+        capsys,
+    )
     assert code == 0, err
     rec = read_recording(out)
     capsys.readouterr()  # the reader's own notes on the recording are not this command's output
@@ -180,16 +228,35 @@ def test_simulate_vibration_physics_cli(tmp_path, capsys):
     # the real line's power (260 Hz) is taken out of the shaped part (the physics carries it)
     assert "without the rotor line's power at 260.0 Hz" in inj["shaped"]
     # the shaped part is the registry effect `vibration`, in the sensor's parameters
-    assert "vibration" in rec.meta["effects"].split(",") and "psd_rad2_s2_hz" in json.loads(rec.meta["params_true"])["vibration"]
+    assert (
+        "vibration" in rec.meta["effects"].split(",")
+        and "psd_rad2_s2_hz" in json.loads(rec.meta["params_true"])["vibration"]
+    )
     assert rec.meta["vehicle"] == "racing5"
     # no rotor line in the spec, or no --vibration: one error line
     sub = tmp_path / "b"
     sub.mkdir()
     bad = _spec_file(sub, with_rotor_line=False)
-    code, _, err = _run(["simulate", "hover", "--vehicle", "racing5", "--vibration", str(bad), "--vibration-physics",
-                         "--duration-s", "3", "-o", str(tmp_path / "x.csv")], capsys)
+    code, _, err = _run(
+        [
+            "simulate",
+            "hover",
+            "--vehicle",
+            "racing5",
+            "--vibration",
+            str(bad),
+            "--vibration-physics",
+            "--duration-s",
+            "3",
+            "-o",
+            str(tmp_path / "x.csv"),
+        ],
+        capsys,
+    )
     assert code != 0 and "no line that follows throttle or eRPM" in err and err.count("\n") == 1
-    code, _, err = _run(["simulate", "hover", "--vibration-physics", "--duration-s", "3", "-o", str(tmp_path / "y.csv")], capsys)
+    code, _, err = _run(
+        ["simulate", "hover", "--vibration-physics", "--duration-s", "3", "-o", str(tmp_path / "y.csv")], capsys
+    )
     assert code != 0 and "--vibration-physics needs --vibration SPEC" in err and err.count("\n") == 1
 
 
@@ -198,9 +265,13 @@ def test_shaped_part_without_the_line_keeps_the_floor():
     broadband around and under it stays (a flat 1e-4 floor plus a 7-bin bump of 0.02 (rad/s)²)."""
     from gyrocore.flight.vibration import shaped_params
 
-    s = {"f_hz": list(np.arange(0.0, 400.5, 1.0)), "reconstructed_reliable_below_hz": 380.0,
-         "bands": [{"throttle": [0, 1], "median": 0.5, "n_windows": 20,
-                    "psd_rad2_s2_hz": {a: [1e-4] * 401 for a in "xyz"}}]}
+    s = {
+        "f_hz": list(np.arange(0.0, 400.5, 1.0)),
+        "reconstructed_reliable_below_hz": 380.0,
+        "bands": [
+            {"throttle": [0, 1], "median": 0.5, "n_windows": 20, "psd_rad2_s2_hz": {a: [1e-4] * 401 for a in "xyz"}}
+        ],
+    }
     s["bands"][0]["psd_rad2_s2_hz"]["y"] = [1e-4 + (0.02 / 7 if abs(f - 260) <= 3 else 0.0) for f in s["f_hz"]]
     pd = shaped_params(s, band=0, subtract_lines=((260.0, {"x": 0.0, "y": 0.02, "z": 0.0}),))
     f, P = pd["f_hz"], pd["psd_rad2_s2_hz"]

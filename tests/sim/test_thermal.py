@@ -86,9 +86,13 @@ def test_bad_inputs():
 def test_temperature_chunks_bit_identical_to_whole(heater, sizes):
     """Issue 13: the die temperature of a long record in chunks equals the whole-series
     evaluation bit for bit (motor power held, ambient ramps, optional heater)."""
-    spec = ThermalSpec(ambient_c=ambient_ramps(start_c=10.0, peak_c=40.0, start_s=1.0, ramp_s=5.0, hold_s=2.0, end_c=20.0),
-                       time_constant_s=3.0, self_heating_c=0.7, motor_c_per_w=0.01,
-                       heater=HeaterSpec(setpoint_c=45.0) if heater else None)
+    spec = ThermalSpec(
+        ambient_c=ambient_ramps(start_c=10.0, peak_c=40.0, start_s=1.0, ramp_s=5.0, hold_s=2.0, end_c=20.0),
+        time_constant_s=3.0,
+        self_heating_c=0.7,
+        motor_c_per_w=0.01,
+        heater=HeaterSpec(setpoint_c=45.0) if heater else None,
+    )
     n = 12_000
     t = np.arange(n) / 1000.0
     p = 50.0 + 10.0 * np.sin(t)

@@ -135,9 +135,14 @@ def test_table_model_named_and_scene_includes_it():
 
     model, _ = load_table_model()
     unnamed = []
-    for objtype, count in ((mujoco.mjtObj.mjOBJ_BODY, model.nbody), (mujoco.mjtObj.mjOBJ_JOINT, model.njnt),
-                           (mujoco.mjtObj.mjOBJ_GEOM, model.ngeom), (mujoco.mjtObj.mjOBJ_SITE, model.nsite),
-                           (mujoco.mjtObj.mjOBJ_ACTUATOR, model.nu), (mujoco.mjtObj.mjOBJ_SENSOR, model.nsensor)):
+    for objtype, count in (
+        (mujoco.mjtObj.mjOBJ_BODY, model.nbody),
+        (mujoco.mjtObj.mjOBJ_JOINT, model.njnt),
+        (mujoco.mjtObj.mjOBJ_GEOM, model.ngeom),
+        (mujoco.mjtObj.mjOBJ_SITE, model.nsite),
+        (mujoco.mjtObj.mjOBJ_ACTUATOR, model.nu),
+        (mujoco.mjtObj.mjOBJ_SENSOR, model.nsensor),
+    ):
         start = 1 if objtype == mujoco.mjtObj.mjOBJ_BODY else 0
         unnamed += [i for i in range(start, count) if not mujoco.mj_id2name(model, objtype, i)]
     assert unnamed == []

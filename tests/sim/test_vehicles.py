@@ -122,15 +122,18 @@ def test_rotor_line_at_the_hover_rotor_frequency(hover):
 
 def test_gain_rule_returns_the_f450_gains_on_its_constants():
     f450 = get_vehicle("f450")
-    g = derive_gains(motor_tau_s=f450.motor_tau_s, yaw_coupling_ratio=yaw_coupling(f450.params, f450.hover_rotor_speed_rad_s))
+    g = derive_gains(
+        motor_tau_s=f450.motor_tau_s, yaw_coupling_ratio=yaw_coupling(f450.params, f450.hover_rotor_speed_rad_s)
+    )
     ref = ControllerGains()
     for fld in ("rate_kp_per_s", "rate_ki_per_s2", "rate_kd", "att_kp_per_s"):
         np.testing.assert_allclose(getattr(g, fld), getattr(ref, fld), rtol=1e-12)
     # racing5: slower motors (33 ms) -> proportionally lower rate crossover, same Kp tau_m = 0.3
     r5 = get_vehicle("racing5")
     assert r5.gains.rate_kp_per_s[0] * r5.motor_tau_s == pytest.approx(0.3, rel=1e-12)
-    assert r5.gains == derive_gains(motor_tau_s=r5.motor_tau_s,
-                                    yaw_coupling_ratio=yaw_coupling(r5.params, r5.hover_rotor_speed_rad_s))
+    assert r5.gains == derive_gains(
+        motor_tau_s=r5.motor_tau_s, yaw_coupling_ratio=yaw_coupling(r5.params, r5.hover_rotor_speed_rad_s)
+    )
 
 
 def _run(argv, capsys):
@@ -150,7 +153,9 @@ def test_simulate_cli_flies_the_racing_class(tmp_path, capsys):
     assert code == 0, err
     rec = read_recording(out)
     assert rec.meta["vehicle"] == "racing5" and rec.meta["model"] == "racing5.xml"
-    code, _, err = _run(["simulate", "static", "--vehicle", "racing5", "--duration-s", "2", "-o", str(tmp_path / "s.csv")], capsys)
+    code, _, err = _run(
+        ["simulate", "static", "--vehicle", "racing5", "--duration-s", "2", "-o", str(tmp_path / "s.csv")], capsys
+    )
     assert code != 0 and "--vehicle applies to hover scenarios" in err and err.count("\n") == 1
 
 

@@ -28,8 +28,14 @@ _ASYMPTOTE = {
     "rrw_rad_per_s_sqrt_s": ("K", lambda t, v: v * np.sqrt(t / 3.0)),
     "rate_ramp_rad_s2": ("R", lambda t, v: v * t / math.sqrt(2.0)),
 }
-_COLORS = {"quantization_rad": "tab:purple", "arw_rad_per_sqrt_s": "tab:blue", "bias_instability_rad_s": "tab:orange",
-           "rrw_rad_per_s_sqrt_s": "tab:green", "rate_ramp_rad_s2": "tab:brown", "correlated_sigma_rad_s": "tab:pink"}
+_COLORS = {
+    "quantization_rad": "tab:purple",
+    "arw_rad_per_sqrt_s": "tab:blue",
+    "bias_instability_rad_s": "tab:orange",
+    "rrw_rad_per_s_sqrt_s": "tab:green",
+    "rate_ramp_rad_s2": "tab:brown",
+    "correlated_sigma_rad_s": "tab:pink",
+}
 
 
 def _term_adev(r, name: str, value: float, tt: np.ndarray) -> np.ndarray:
@@ -64,11 +70,13 @@ def report_text(analysis) -> str:
     lines = [
         f"method {getattr(analysis, 'method', 'gmwm')}; "
         f"{analysis.n_samples} samples, {analysis.duration_s:.1f} s sampled, rate {analysis.rate_hz:.6g} Hz"
-        + (f"; dropped tau {', '.join(f'{t:g}' for t in analysis.dropped_taus_s)} s" if analysis.dropped_taus_s else ""),
+        + (
+            f"; dropped tau {', '.join(f'{t:g}' for t in analysis.dropped_taus_s)} s" if analysis.dropped_taus_s else ""
+        ),
         f"{'axis':4} {'term':24} {'value (SI)':>12} {'95% interval (SI)':>27} {'datasheet':>22}",
     ]
     for ax, r in analysis.axes.items():
-        for name in (ALL_TERM_NAMES if r.method == "gmwm" else TERM_NAMES):
+        for name in ALL_TERM_NAMES if r.method == "gmwm" else TERM_NAMES:
             v = getattr(r, name)
             lo, hi = r.ci95[name]
             ds, unit = to_datasheet_units(name, v)
@@ -79,27 +87,41 @@ def report_text(analysis) -> str:
                 continue
             if v is None:
                 ub, unit_u = to_datasheet_units(name, hi)
-                lines.append(f"{ax:4} {name:24} {'unresolved':>12} "
-                             f"{('< ' + format(hi, '.3e')) if math.isfinite(hi) else 'no bound from this record':>27} "
-                             f"{('< ' + format(ub, '.3g') + ' ' + unit_u) if math.isfinite(hi) else '':>22}")
+                lines.append(
+                    f"{ax:4} {name:24} {'unresolved':>12} "
+                    f"{('< ' + format(hi, '.3e')) if math.isfinite(hi) else 'no bound from this record':>27} "
+                    f"{('< ' + format(ub, '.3g') + ' ' + unit_u) if math.isfinite(hi) else '':>22}"
+                )
             else:
                 lines.append(f"{ax:4} {name:24} {v:12.4e} {f'[{lo:.3e}, {hi:.3e}]':>27} {f'{ds:.4g} {unit}':>22}")
         for name, other in getattr(r, "ambiguous", {}).items():
-            lines.append(f"{ax:4} {'(' + name + ')':24} fitted {r.estimate.get(name, float('nan')):.3e} but not told "
-                         f"from {other} (stand-in check): unresolved")
+            lines.append(
+                f"{ax:4} {'(' + name + ')':24} fitted {r.estimate.get(name, float('nan')):.3e} but not told "
+                f"from {other} (stand-in check): unresolved"
+            )
         chk = getattr(r, "fit_check", None)
         if chk:
             verdict = "fits" if chk["ok"] else "DOES NOT FIT (terms not to be trusted)"
             first = getattr(r, "fit_from_tau_s", float("nan"))
-            lines.append(f"{ax:4} {'(model fit)':24} {verdict}: p = {chk['p_value']:.2g}, {chk['misses']} of "
-                         f"{chk['points']} points outside their 95 % interval"
-                         + (f"; fitted from tau = {first:.3g} s (sensor low-pass below)"
-                            if np.isfinite(first) and first > r.taus_s[0] * (1 + 1e-9) else "")
-                         + ("; lines removed at " + ", ".join(f"{fq:.4g}" for fq in r.lines_hz) + " Hz"
-                            if getattr(r, "lines_hz", ()) else ""))
+            lines.append(
+                f"{ax:4} {'(model fit)':24} {verdict}: p = {chk['p_value']:.2g}, {chk['misses']} of "
+                f"{chk['points']} points outside their 95 % interval"
+                + (
+                    f"; fitted from tau = {first:.3g} s (sensor low-pass below)"
+                    if np.isfinite(first) and first > r.taus_s[0] * (1 + 1e-9)
+                    else ""
+                )
+                + (
+                    "; lines removed at " + ", ".join(f"{fq:.4g}" for fq in r.lines_hz) + " Hz"
+                    if getattr(r, "lines_hz", ())
+                    else ""
+                )
+            )
         i_min = int(np.argmin(r.adev_rad_s))
-        lines.append(f"{ax:4} {'(ADEV minimum)':24} {r.adev_rad_s[i_min]:12.4e} {f'at tau = {r.taus_s[i_min]:.4g} s':>27} "
-                     f"{f'{r.adev_rad_s[i_min] * 180 / math.pi * 3600:.4g} deg/h':>22}")
+        lines.append(
+            f"{ax:4} {'(ADEV minimum)':24} {r.adev_rad_s[i_min]:12.4e} {f'at tau = {r.taus_s[i_min]:.4g} s':>27} "
+            f"{f'{r.adev_rad_s[i_min] * 180 / math.pi * 3600:.4g} deg/h':>22}"
+        )
     return "\n".join(lines)
 
 
@@ -160,23 +182,48 @@ def adev_figure(analysis):
         fitted = t >= t0 * (1 - 1e-9)
         rep = r.reported_adev_rad_s if r.reported_adev_rad_s is not None else r.fit_adev_rad_s
         chk = r.fit_check or {}
-        fit_note = ("" if not chk else (f"; fit p = {chk['p_value']:.2g}" if chk["ok"]
-                                         else f"; MODEL DOES NOT FIT (p = {chk['p_value']:.1g})"))
+        fit_note = (
+            ""
+            if not chk
+            else (
+                f"; fit p = {chk['p_value']:.2g}" if chk["ok"] else f"; MODEL DOES NOT FIT (p = {chk['p_value']:.1g})"
+            )
+        )
         plot_ax.loglog(t[fitted], rep[fitted], "r-", lw=1.8, label=f"sum of reported terms ({r.method}{fit_note})")
         for k, v in (getattr(r, "ambiguous", None) or {}).items():
             # fitted, needed by the data, but not told from a stand-in: in the sum, named as open
             val = r.estimate.get(k, float("nan"))
             if k in _ASYMPTOTE and np.isfinite(val) and val > 0:
-                plot_ax.loglog(tt, _term_adev(r, k, val, tt), "-.", lw=1, color=_COLORS.get(k, "0.4"),
-                               label=f"{_label(k)} = {val:.2g} or {_label(v)} (fitted, not told apart: unresolved)")
+                plot_ax.loglog(
+                    tt,
+                    _term_adev(r, k, val, tt),
+                    "-.",
+                    lw=1,
+                    color=_COLORS.get(k, "0.4"),
+                    label=f"{_label(k)} = {val:.2g} or {_label(v)} (fitted, not told apart: unresolved)",
+                )
         if getattr(r, "lines_hz", ()) and r.lines_adev_rad_s is not None:
-            plot_ax.loglog(t, np.sqrt(rep**2 + r.lines_adev_rad_s**2), "--", color="tab:red", lw=0.9, alpha=0.7,
-                           label="with narrowband line(s) at " + ", ".join(f"{fq:.3g}" for fq in r.lines_hz)
-                                 + " Hz (not noise, removed before the fit)")
+            plot_ax.loglog(
+                t,
+                np.sqrt(rep**2 + r.lines_adev_rad_s**2),
+                "--",
+                color="tab:red",
+                lw=0.9,
+                alpha=0.7,
+                label="with narrowband line(s) at "
+                + ", ".join(f"{fq:.3g}" for fq in r.lines_hz)
+                + " Hz (not noise, removed before the fit)",
+            )
         if np.any(~fitted):
             plot_ax.axvspan(t[0] / 1.2, t0 / np.sqrt(2), color="0.6", alpha=0.15, lw=0)
-            plot_ax.loglog(t[~fitted], rep[~fitted], ":", color="r", lw=1,
-                           label=f"below tau = {t0:.2g} s: sensor low-pass, not fitted (grey)")
+            plot_ax.loglog(
+                t[~fitted],
+                rep[~fitted],
+                ":",
+                color="r",
+                lw=1,
+                label=f"below tau = {t0:.2g} s: sensor low-pass, not fitted (grey)",
+            )
         lo_y = float(np.min(r.adev_ci95_rad_s[:, 0])) / 3
         hi_y = float(np.max(r.adev_ci95_rad_s[:, 1])) * 3
         for term in ("quantization_rad", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2"):
@@ -188,8 +235,15 @@ def adev_figure(analysis):
             yb = _term_adev(r, term, ub, tt)
             keep = (yb >= lo_y) & (yb <= hi_y)
             if np.any(keep):
-                plot_ax.loglog(tt[keep], yb[keep], ":", lw=0.9, color=_COLORS[term], alpha=0.8,
-                               label=f"{_ASYMPTOTE[term][0]} < {ub:.2g} (95 % bound, unresolved)")
+                plot_ax.loglog(
+                    tt[keep],
+                    yb[keep],
+                    ":",
+                    lw=0.9,
+                    color=_COLORS[term],
+                    alpha=0.8,
+                    label=f"{_ASYMPTOTE[term][0]} < {ub:.2g} (95 % bound, unresolved)",
+                )
         for term in ALL_TERM_NAMES:
             if term == "correlated_tau_c_s":
                 continue
@@ -200,14 +254,28 @@ def adev_figure(analysis):
             c = _COLORS[term]
             y = _term_adev(r, term, v, tt)
             lo_v, hi_v = r.ci95[term]
-            plot_ax.fill_between(tt, _term_adev(r, term, lo_v, tt), _term_adev(r, term, hi_v, tt), color=c, alpha=0.15, lw=0)
+            plot_ax.fill_between(
+                tt, _term_adev(r, term, lo_v, tt), _term_adev(r, term, hi_v, tt), color=c, alpha=0.15, lw=0
+            )
             extra = f", tc = {r.correlated_tau_c_s:.3g} s" if term == "correlated_sigma_rad_s" else ""
             ds, ds_unit = _datasheet(term, v)
-            unit = {"quantization_rad": "rad", "arw_rad_per_sqrt_s": "rad/√s", "bias_instability_rad_s": "rad/s",
-                    "rrw_rad_per_s_sqrt_s": "rad/s/√s", "rate_ramp_rad_s2": "rad/s²", "correlated_sigma_rad_s": "rad/s"}[term]
-            plot_ax.loglog(tt, y, "--", lw=1, color=c,
-                           label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}] {unit}{extra}"
-                                 + (f" = {ds:.3g} {ds_unit}" if ds_unit else ""))
+            unit = {
+                "quantization_rad": "rad",
+                "arw_rad_per_sqrt_s": "rad/√s",
+                "bias_instability_rad_s": "rad/s",
+                "rrw_rad_per_s_sqrt_s": "rad/s/√s",
+                "rate_ramp_rad_s2": "rad/s²",
+                "correlated_sigma_rad_s": "rad/s",
+            }[term]
+            plot_ax.loglog(
+                tt,
+                y,
+                "--",
+                lw=1,
+                color=c,
+                label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}] {unit}{extra}"
+                + (f" = {ds:.3g} {ds_unit}" if ds_unit else ""),
+            )
             # resolvable region: where this term is the largest of the fitted terms
             others = np.zeros_like(tt)
             for o in ALL_TERM_NAMES:
@@ -221,8 +289,10 @@ def adev_figure(analysis):
         plot_ax.set_ylim(lo_y, hi_y)
         plot_ax.set_xscale("log")
         plot_ax.set_yscale("log")
-        plot_ax.set_xlabel("averaging time tau [s]" + (f"; shaded: where {', '.join(shaded)} dominates" if shaded
-                                                       else "; no long-tau term resolved"))
+        plot_ax.set_xlabel(
+            "averaging time tau [s]"
+            + (f"; shaded: where {', '.join(shaded)} dominates" if shaded else "; no long-tau term resolved")
+        )
         plot_ax.set_ylabel("Allan deviation [rad/s]")
         # the datasheet unit beside the SI one (flight-controller and navigation users read deg/h)
         sec = plot_ax.secondary_yaxis("right", functions=(lambda y: y * _RAD_S_TO_DEG_H, lambda y: y / _RAD_S_TO_DEG_H))
@@ -237,23 +307,41 @@ def adev_figure(analysis):
 #: Files whose t + gyro columns would exceed this are analysed one axis at a time
 @click.command("allan")
 @click.argument("file", type=click.Path(dir_okay=False))  # CSV or Parquet
-@click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None, help="write a PNG of the deviation and fit")
+@click.option(
+    "--plot", "plot", type=click.Path(dir_okay=False), default=None, help="write a PNG of the deviation and fit"
+)
 @click.option("--json", "as_json", is_flag=True, help="print JSON only")
 @click.option("--kalibr-yaml", type=click.Path(dir_okay=False), default=None, help="write Kalibr imu.yaml")
 @click.option("--axes", "axes", default="x,y,z", show_default=True, help="comma list of axes")
-@click.option("--max-tau-s", type=float, default=None, help="largest averaging time, s (default: half the record; adev_legacy: a quarter)")
-@click.option("--kalibr-inflate", type=float, default=1.0, show_default=True, help="factor applied to the Kalibr values")
+@click.option(
+    "--max-tau-s",
+    type=float,
+    default=None,
+    help="largest averaging time, s (default: half the record; adev_legacy: a quarter)",
+)
+@click.option(
+    "--kalibr-inflate", type=float, default=1.0, show_default=True, help="factor applied to the Kalibr values"
+)
 @click.option("--engine", type=click.Choice(["fast", "allantools"]), default="fast", show_default=True)
-@click.option("--method", type=click.Choice(["gmwm", "adev", "adev_legacy"]), default="gmwm", show_default=True,
-              help="gmwm: wavelet-variance fit with Gauss-Markov terms (default); adev: IEEE 952 joint ADEV fit; "
-                   "adev_legacy: the earlier fit (tau <= T/4, backward elimination), the noise study's baseline")
-@click.option("--no-static-check", is_flag=True,
-              help="skip the motion gate (by default a record with motion is cut to its longest still stretch, "
-                   "with a warning, or refused)")
+@click.option(
+    "--method",
+    type=click.Choice(["gmwm", "adev", "adev_legacy"]),
+    default="gmwm",
+    show_default=True,
+    help="gmwm: wavelet-variance fit with Gauss-Markov terms (default); adev: IEEE 952 joint ADEV fit; "
+    "adev_legacy: the earlier fit (tau <= T/4, backward elimination), the noise study's baseline",
+)
+@click.option(
+    "--no-static-check",
+    is_flag=True,
+    help="skip the motion gate (by default a record with motion is cut to its longest still stretch, "
+    "with a warning, or refused)",
+)
 @click.option("--t-from-s", type=float, default=None, help="analyse only t >= this, s (e.g. the still part of a log)")
 @click.option("--t-to-s", type=float, default=None, help="analyse only t < this, s")
-def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine, method, no_static_check,
-            t_from_s, t_to_s):
+def command(
+    file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, engine, method, no_static_check, t_from_s, t_to_s
+):
     """Noise identification per axis of a still recording: Allan deviation and the terms Q, N, B, K, R and a
     Gauss-Markov bias (sigma, tau_c), each with its 95 % interval (null = not resolved)."""
     from gyrocore.noise.allan import allan_analysis, kalibr_imu_yaml
@@ -261,16 +349,32 @@ def command(file, plot, as_json, kalibr_yaml, axes, max_tau_s, kalibr_inflate, e
 
     if is_large(file, "allan"):
         # long files: one axis at a time (memory); the motion gate loads the three axes once
-        res = allan_by_axis(file, axes=_axes(axes), max_tau_s=max_tau_s, kalibr=kalibr_yaml is not None, engine=engine,
-                            method=method, check_static=not no_static_check, t_from_s=t_from_s, t_to_s=t_to_s)
+        res = allan_by_axis(
+            file,
+            axes=_axes(axes),
+            max_tau_s=max_tau_s,
+            kalibr=kalibr_yaml is not None,
+            engine=engine,
+            method=method,
+            check_static=not no_static_check,
+            t_from_s=t_from_s,
+            t_to_s=t_to_s,
+        )
     else:
         # only the columns the analysis needs (t, gyro; accel for Kalibr)
         rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
         if t_from_s is not None or t_to_s is not None:
             rec = rec.slice(*t_rows(rec.t_s, t_from_s, t_to_s))
         want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None
-        res = allan_analysis(rec, axes=_axes(axes), max_tau_s=max_tau_s, accel=want_accel, engine=engine,
-                             method=method, check_static=not no_static_check)
+        res = allan_analysis(
+            rec,
+            axes=_axes(axes),
+            max_tau_s=max_tau_s,
+            accel=want_accel,
+            engine=engine,
+            method=method,
+            check_static=not no_static_check,
+        )
     if plot:
         plot_png(res, plot)
     if kalibr_yaml:

@@ -47,10 +47,20 @@ def apply_streaming(res, path: str, output: str, *, power_up_bias: bool = False,
     if power_up_bias:  # (lazy: scipy.stats/optimize, ~40 MiB, only for the power-up bias)
         from gyrocore.calib.bias import startup_still_slice
 
-    stats = {"n": 0, "s_corr": np.zeros(3), "s2_corr": np.zeros(3), "s2_before": np.zeros(3), "s2_after": np.zeros(3),
-             "has_ref": None, "pub": None}
-    ranges = {e: (float(res.params[e]["temp_min_c"]), float(res.params[e]["temp_max_c"]))
-              for e in ("bias_thermal", "scale_thermal") if e in res.params}
+    stats = {
+        "n": 0,
+        "s_corr": np.zeros(3),
+        "s2_corr": np.zeros(3),
+        "s2_before": np.zeros(3),
+        "s2_after": np.zeros(3),
+        "has_ref": None,
+        "pub": None,
+    }
+    ranges = {
+        e: (float(res.params[e]["temp_min_c"]), float(res.params[e]["temp_max_c"]))
+        for e in ("bias_thermal", "scale_thermal")
+        if e in res.params
+    }
     n_out = {e: 0 for e in ranges}
     state = {"t0": None, "d": None}
 
@@ -76,13 +86,18 @@ def apply_streaming(res, path: str, output: str, *, power_up_bias: bool = False,
             if power_up_bias and state["d"] is None:  # from the file's still start (the first chunk)
                 sl = startup_still_slice(out)
                 if sl is None or sl.stop - sl.start < 8:
-                    raise GyroInputError("power-up bias: the recording does not start still, so its bias cannot be re-estimated")
+                    raise GyroInputError(
+                        "power-up bias: the recording does not start still, so its bias cannot be re-estimated"
+                    )
                 state["d"] = out.gyro_rad_s[sl].mean(axis=0)
                 stats["pub"] = (state["d"], sl.stop - sl.start)
             if state["d"] is not None:
                 d = state["d"]
-                out = out.with_gyro(out.gyro_rad_s - d[None, :], power_up_bias_rad_s=" ".join(f"{v:.6g}" for v in d),
-                                    power_up_bias_samples=str(stats["pub"][1]))
+                out = out.with_gyro(
+                    out.gyro_rad_s - d[None, :],
+                    power_up_bias_rad_s=" ".join(f"{v:.6g}" for v in d),
+                    power_up_bias_samples=str(stats["pub"][1]),
+                )
             for e, (lo, hi) in ranges.items():
                 n_out[e] += int(np.sum((cur.temp_c < lo) | (cur.temp_c > hi))) if cur.temp_c is not None else 0
             corr = cur.gyro_rad_s - out.gyro_rad_s
@@ -100,20 +115,38 @@ def apply_streaming(res, path: str, output: str, *, power_up_bias: bool = False,
     write_chunks(corrected(), output, overwrite=True)
     for e, (lo, hi) in ranges.items():
         if n_out[e]:
-            warn_repair(f"{n_out[e]} of {stats['n']} samples have a temperature outside the calibrated range "
-                        f"{lo:.2f}..{hi:.2f} C; {e} is held at the range edge there")
+            warn_repair(
+                f"{n_out[e]} of {stats['n']} samples have a temperature outside the calibrated range "
+                f"{lo:.2f}..{hi:.2f} C; {e} is held at the range edge there"
+            )
     return stats
 
 
 @click.command("apply")
 @click.argument("file", type=click.Path(dir_okay=False))
-@click.option("--params", "params_path", required=True, type=click.Path(dir_okay=False), help="parameter file from calibrate")
-@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False),
-              help="corrected data file to write (.parquet: Parquet, else CSV)")
-@click.option("--power-up-bias", is_flag=True,
-              help="re-estimate the constant bias from FILE's still start (the bias changes at every power-up)")
-@click.option("--chunk-rows", type=click.IntRange(min=16), default=50_000, show_default=True,
-              help="rows corrected at a time (memory O(chunk); the result does not depend on it)")
+@click.option(
+    "--params", "params_path", required=True, type=click.Path(dir_okay=False), help="parameter file from calibrate"
+)
+@click.option(
+    "-o",
+    "--output",
+    "output",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="corrected data file to write (.parquet: Parquet, else CSV)",
+)
+@click.option(
+    "--power-up-bias",
+    is_flag=True,
+    help="re-estimate the constant bias from FILE's still start (the bias changes at every power-up)",
+)
+@click.option(
+    "--chunk-rows",
+    type=click.IntRange(min=16),
+    default=50_000,
+    show_default=True,
+    help="rows corrected at a time (memory O(chunk); the result does not depend on it)",
+)
 @click.option("--force", is_flag=True, help="overwrite an existing output file")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only")
 def command(file, params_path, output, power_up_bias, chunk_rows, force, as_json):
@@ -147,5 +180,7 @@ def command(file, params_path, output, power_up_bias, chunk_rows, force, as_json
         click.echo(f"removed {', '.join(res.effects)} (fitted on {res.source_file}) from {n} samples -> {output}")
         if "rms_error_before_rad_s" in summary:
             f = lambda v: ", ".join(f"{x * D:.4g}" for x in v)  # noqa: E731
-            click.echo(f"RMS error vs reference: before [{f(summary['rms_error_before_rad_s'])}] deg/s, "
-                       f"after [{f(summary['rms_error_after_rad_s'])}] deg/s")
+            click.echo(
+                f"RMS error vs reference: before [{f(summary['rms_error_before_rad_s'])}] deg/s, "
+                f"after [{f(summary['rms_error_after_rad_s'])}] deg/s"
+            )

@@ -40,25 +40,58 @@ from gyrocore.fleet import COMMANDS, MAX_EXIT, default_workers, find_inputs, run
 @click.command("batch")
 @click.argument("command_name", metavar="COMMAND", type=click.Choice(COMMANDS))
 @click.argument("inputs", metavar="DIR|GLOB")
-@click.option("-o", "--output", "table", default=None, type=click.Path(dir_okay=False),
-              help="results table (.csv, or .parquet); default batch_COMMAND.csv here. Rerunning with the same "
-                   "table skips files whose input hash already has a result")
-@click.option("--plot", "plot", default=None, type=click.Path(dir_okay=False),
-              help="summary plot (PNG); default: the table's name with .png")
+@click.option(
+    "-o",
+    "--output",
+    "table",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="results table (.csv, or .parquet); default batch_COMMAND.csv here. Rerunning with the same "
+    "table skips files whose input hash already has a result",
+)
+@click.option(
+    "--plot",
+    "plot",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="summary plot (PNG); default: the table's name with .png",
+)
 @click.option("--no-plot", is_flag=True, help="write no plot")
-@click.option("--effects", default="bias", show_default=True,
-              help="calibrate: the effects to fit; loop: the declared effects")
-@click.option("--params-dir", type=click.Path(file_okay=False), default=None,
-              help="calibrate: also write each file's parameter file here")
-@click.option("--workers", type=click.IntRange(min=0), default=None,
-              help="local worker processes (default: one per core; 0: in this process, no Dask)")
+@click.option(
+    "--effects", default="bias", show_default=True, help="calibrate: the effects to fit; loop: the declared effects"
+)
+@click.option(
+    "--params-dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="calibrate: also write each file's parameter file here",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=0),
+    default=None,
+    help="local worker processes (default: one per core; 0: in this process, no Dask)",
+)
 @click.option("--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler, e.g. tcp://host:8786")
 @click.option("--no-resume", is_flag=True, help="rerun every file even if the table has its result")
 @click.option("--progress/--no-progress", default=None, help="progress bar on stderr (default: when a terminal)")
 @click.option("--json", "as_json", is_flag=True, help="print the JSON summary only")
 @click.pass_context
-def command(ctx, command_name, inputs, table, plot, no_plot, effects, params_dir, workers, scheduler, no_resume,
-            progress, as_json):
+def command(
+    ctx,
+    command_name,
+    inputs,
+    table,
+    plot,
+    no_plot,
+    effects,
+    params_dir,
+    workers,
+    scheduler,
+    no_resume,
+    progress,
+    as_json,
+):
     """Run COMMAND (bias, allan, calibrate, loop) on every data file of DIR (or matching GLOB);
     one results table and a fleet summary plot. Exit status: the number of failed files
     (at most 100)."""
@@ -82,15 +115,25 @@ def command(ctx, command_name, inputs, table, plot, no_plot, effects, params_dir
         options["params_dir"] = str(params_dir)
     if workers is None:
         workers = default_workers()
-    summary = run_batch(command_name, files, table=table, plot=plot, options=options, workers=workers,
-                        scheduler=scheduler, resume=not no_resume,
-                        progress=sys.stderr.isatty() if progress is None else progress)
+    summary = run_batch(
+        command_name,
+        files,
+        table=table,
+        plot=plot,
+        options=options,
+        workers=workers,
+        scheduler=scheduler,
+        resume=not no_resume,
+        progress=sys.stderr.isatty() if progress is None else progress,
+    )
     if as_json:
         emit_json(summary)
     else:
-        click.echo(f"batch {command_name}: {summary['n_inputs']} files, {summary['n_run']} run, "
-                   f"{summary['n_skipped']} skipped (result in the table), {summary['n_failed']} failed "
-                   f"[{summary['backend']}, {summary['workers']} workers] -> {table}" + (f", {plot}" if plot else ""))
+        click.echo(
+            f"batch {command_name}: {summary['n_inputs']} files, {summary['n_run']} run, "
+            f"{summary['n_skipped']} skipped (result in the table), {summary['n_failed']} failed "
+            f"[{summary['backend']}, {summary['workers']} workers] -> {table}" + (f", {plot}" if plot else "")
+        )
         for f in summary["failed"]:
             e = str(f["error"])
             click.echo(f"failed: {e}" if e.startswith(str(f["file"])) else f"failed: {f['file']}: {e}")

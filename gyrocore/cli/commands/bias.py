@@ -34,19 +34,42 @@ def report_text(r) -> str:
 @click.command("bias")
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--rule", type=click.Choice(["mean", "median", "converge", "article"]), default="mean", show_default=True)
-@click.option("--statistic", type=click.Choice(["variance", "abs_diff"]), default="variance", show_default=True,
-              help="motion-gate statistic (mean/median rules)")
+@click.option(
+    "--statistic",
+    type=click.Choice(["variance", "abs_diff"]),
+    default="variance",
+    show_default=True,
+    help="motion-gate statistic (mean/median rules)",
+)
 @click.option("--window-s", type=float, default=None, help="window length, s (default 200 samples)")
 @click.option("--window-samples", type=int, default=200, show_default=True)
-@click.option("--false-reject-rate", type=float, default=1e-3, show_default=True,
-              help="probability that a still window is refused")
+@click.option(
+    "--false-reject-rate",
+    type=float,
+    default=1e-3,
+    show_default=True,
+    help="probability that a still window is refused",
+)
 @click.option("--max-retries", type=int, default=None, help="windows to try after the first (default: all)")
-@click.option("--noise-dps", type=float, default=None, help="sensor white-noise sigma per sample, deg/s (default: from the data)")
+@click.option(
+    "--noise-dps", type=float, default=None, help="sensor white-noise sigma per sample, deg/s (default: from the data)"
+)
 @click.option("--lsb-dps", type=float, default=None, help="raw count size, deg/s (article rule; 1/131 at ±250 dps)")
 @click.option("--article-counts", type=float, default=500.0, show_default=True, help="article rule threshold, counts")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only")
-def command(file, rule, statistic, window_s, window_samples, false_reject_rate, max_retries, noise_dps,
-            lsb_dps, article_counts, as_json):
+def command(
+    file,
+    rule,
+    statistic,
+    window_s,
+    window_samples,
+    false_reject_rate,
+    max_retries,
+    noise_dps,
+    lsb_dps,
+    article_counts,
+    as_json,
+):
     """Static bias of a still start, refusing windows with motion and retrying on the next."""
     from gyrocore.calib.bias import StaticBiasCalibrator
 

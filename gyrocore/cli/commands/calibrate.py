@@ -25,8 +25,11 @@ def report_text(res, params_path: str, px4_path: str | None) -> str:
         # n_samples of the integral method is the still samples the bias came from (0 with a bias
         # from outside the data): say what it counts
         nseg = int(np.asarray(res.integral.get("C_rad", np.zeros((3, 0)))).shape[1])
-        what = (f"{nseg} known rotations, bias from {res.n_samples} still samples" if res.n_samples
-                else f"{nseg} known rotations, bias from outside the data")
+        what = (
+            f"{nseg} known rotations, bias from {res.n_samples} still samples"
+            if res.n_samples
+            else f"{nseg} known rotations, bias from outside the data"
+        )
     else:
         what = f"{res.n_samples} samples"
     lines = [
@@ -43,8 +46,11 @@ def report_text(res, params_path: str, px4_path: str | None) -> str:
     else:
         lines.append(f"residual RMS {_fmt(res.residual_rms_rad_s, D, 4)} deg/s")
     if res.thermal_order:
-        lines.append("thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items()) + " (chosen from the data)"
-                     if res.thermal_tests else "thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items()))
+        lines.append(
+            "thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items()) + " (chosen from the data)"
+            if res.thermal_tests
+            else "thermal order " + ", ".join(f"{k}: {v}" for k, v in res.thermal_order.items())
+        )
     if res.unobservable:
         lines.append(f"UNOBSERVABLE (not fitted, left uncorrected): {len(res.unobservable)} parameter(s)")
         for u in res.unobservable:
@@ -94,52 +100,128 @@ def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str,
         se = _three(bias_se_dps, "--bias-se-dps")
         if np.any(se < 0):
             raise GyroInputError("--bias-se-dps must be >= 0")
-        return {"bias_rad_s": _three(bias_dps, "--bias-dps") / D, "bias_stderr_rad_s": se / D,
-                "noise_lr_rad2_s": np.full(3, (arw_dps_rt_hz / D) ** 2)}
+        return {
+            "bias_rad_s": _three(bias_dps, "--bias-dps") / D,
+            "bias_stderr_rad_s": se / D,
+            "noise_lr_rad2_s": np.full(3, (arw_dps_rt_hz / D) ** 2),
+        }
     return None
 
 
 @click.command("calibrate")
 @click.argument("file", type=click.Path(dir_okay=False))
-@click.option("--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment")
-@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="parameter file (JSON) to write")
-@click.option("--segments", type=click.Path(dir_okay=False), default=None,
-              help="known rotations t_start_s,t_end_s,axis,angle_deg -> the integral method M = C·B⁻¹")
-@click.option("--bias-from", type=click.Path(dir_okay=False), default=None,
-              help="integral method: take the bias (and its standard error, and the noise) from this static recording "
-                   "of the same session (gyrocore.calib.bias.StaticBiasCalibrator) — for turns without a still part")
+@click.option(
+    "--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment"
+)
+@click.option(
+    "-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="parameter file (JSON) to write"
+)
+@click.option(
+    "--segments",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="known rotations t_start_s,t_end_s,axis,angle_deg -> the integral method M = C·B⁻¹",
+)
+@click.option(
+    "--bias-from",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="integral method: take the bias (and its standard error, and the noise) from this static recording "
+    "of the same session (gyrocore.calib.bias.StaticBiasCalibrator) — for turns without a still part",
+)
 @click.option("--bias-dps", default=None, help="integral method: the bias x,y,z in deg/s, known from elsewhere")
-@click.option("--bias-se-dps", default="0,0,0", show_default=True, help="with --bias-dps: its standard error x,y,z, deg/s")
-@click.option("--arw-dps-rt-hz", type=float, default=0.0, show_default=True,
-              help="with --bias-dps: white rate noise density N, deg/s/sqrt(Hz), for the noise of each integral")
-@click.option("--angle-sigma-deg", type=float, default=0.0, show_default=True,
-              help="integral method: uncertainty of each known rotation's angle, deg (a turn by hand: 2-5), "
-                   "propagated into the standard errors")
-@click.option("--axis-sigma-deg", type=float, default=0.0, show_default=True,
-              help="integral method: uncertainty of each known rotation's axis direction, deg (by hand: ~5)")
-@click.option("--poses", is_flag=True,
-              help="multi-pose method (Tedaldi et al. 2014, IMU-TK): bias, scale, misalignment from the turns between "
-                   "still poses, each pose's gravity direction (accel) as the reference; no rate reference needed")
-@click.option("--pose-std-factor", type=float, default=5.0, show_default=True,
-              help="with --poses: a still pose may scatter up to this many times the rest noise (hand-held poses "
-                   "tremble: 10)")
+@click.option(
+    "--bias-se-dps", default="0,0,0", show_default=True, help="with --bias-dps: its standard error x,y,z, deg/s"
+)
+@click.option(
+    "--arw-dps-rt-hz",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="with --bias-dps: white rate noise density N, deg/s/sqrt(Hz), for the noise of each integral",
+)
+@click.option(
+    "--angle-sigma-deg",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="integral method: uncertainty of each known rotation's angle, deg (a turn by hand: 2-5), "
+    "propagated into the standard errors",
+)
+@click.option(
+    "--axis-sigma-deg",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="integral method: uncertainty of each known rotation's axis direction, deg (by hand: ~5)",
+)
+@click.option(
+    "--poses",
+    is_flag=True,
+    help="multi-pose method (Tedaldi et al. 2014, IMU-TK): bias, scale, misalignment from the turns between "
+    "still poses, each pose's gravity direction (accel) as the reference; no rate reference needed",
+)
+@click.option(
+    "--pose-std-factor",
+    type=float,
+    default=5.0,
+    show_default=True,
+    help="with --poses: a still pose may scatter up to this many times the rest noise (hand-held poses tremble: 10)",
+)
 @click.option("--thermal-order", default="auto", show_default=True, help="auto (chosen from the data, up to 3) or 1..3")
-@click.option("--covariance", type=click.Choice(["auto", "ols", "hac", "newey_west", "block", "noise_model"]),
-              default="auto", show_default=True,
-              help="standard errors: auto switches to hac when the residual is coloured; noise_model: sandwich with "
-                   "the noise model identified (GMWM) on the fit residual")
-@click.option("--ramp-margin-s", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
-              help="leave out samples within this time of a reference-rate change (the gyro filter's transient)")
-@click.option("--px4-params", type=click.Path(dir_okay=False), default=None,
-              help="also write PX4 TC_G0_* thermal parameters (QGC .params) — needs bias_thermal")
-@click.option("--px4-device-id", type=click.IntRange(min=1), default=None,
-              help="with --px4-params: TC_G0_ID, the gyro's PX4 device id (CAL_GYRO0_ID in the vehicle's parameters); "
-                   "PX4 applies the TC_G0 set only to the gyro with that id")
+@click.option(
+    "--covariance",
+    type=click.Choice(["auto", "ols", "hac", "newey_west", "block", "noise_model"]),
+    default="auto",
+    show_default=True,
+    help="standard errors: auto switches to hac when the residual is coloured; noise_model: sandwich with "
+    "the noise model identified (GMWM) on the fit residual",
+)
+@click.option(
+    "--ramp-margin-s",
+    type=click.FloatRange(min=0.0),
+    default=0.0,
+    show_default=True,
+    help="leave out samples within this time of a reference-rate change (the gyro filter's transient)",
+)
+@click.option(
+    "--px4-params",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="also write PX4 TC_G0_* thermal parameters (QGC .params) — needs bias_thermal",
+)
+@click.option(
+    "--px4-device-id",
+    type=click.IntRange(min=1),
+    default=None,
+    help="with --px4-params: TC_G0_ID, the gyro's PX4 device id (CAL_GYRO0_ID in the vehicle's parameters); "
+    "PX4 applies the TC_G0 set only to the gyro with that id",
+)
 @click.option("--sensor", default=None, help="sensor name for the parameter file (default: file metadata)")
 @click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--json", "as_json", is_flag=True, help="print JSON only (the parameter file's content)")
-def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz, angle_sigma_deg, axis_sigma_deg,
-            poses, pose_std_factor, thermal_order, covariance, ramp_margin_s, px4_params, px4_device_id, sensor, force, as_json):
+def command(
+    file,
+    effects,
+    output,
+    segments,
+    bias_from,
+    bias_dps,
+    bias_se_dps,
+    arw_dps_rt_hz,
+    angle_sigma_deg,
+    axis_sigma_deg,
+    poses,
+    pose_std_factor,
+    thermal_order,
+    covariance,
+    ramp_margin_s,
+    px4_params,
+    px4_device_id,
+    sensor,
+    force,
+    as_json,
+):
     """Fit the named effects against the references in FILE (reference rates, a reference
     attitude, known-angle segments, or still parts) and write the parameter file."""
     from gyrocore.effects.registry import check_effect_names
@@ -159,7 +241,9 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     if px4_device_id is not None and not px4_params:
         raise GyroInputError("--px4-device-id goes with --px4-params")
     if px4_params and "bias_thermal" not in names:
-        raise GyroInputError("--px4-params needs bias_thermal among the effects (PX4 TC_G is a bias polynomial of temperature)")
+        raise GyroInputError(
+            "--px4-params needs bias_thermal among the effects (PX4 TC_G is a bias polynomial of temperature)"
+        )
     if (bias_from or bias_dps) and not segments:
         raise GyroInputError("--bias-from/--bias-dps are for the integral method: give --segments too")
     ext = external_bias(bias_from, bias_dps, bias_se_dps, arw_dps_rt_hz)
@@ -172,8 +256,13 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
 
         from gyrocore.data.spill import spill_columns
 
-        cal = Calibrator(effects=names, thermal_order=thermal_order, covariance=covariance, sensor=sensor,
-                         ramp_margin_s=ramp_margin_s)
+        cal = Calibrator(
+            effects=names,
+            thermal_order=thermal_order,
+            covariance=covariance,
+            sensor=sensor,
+            ramp_margin_s=ramp_margin_s,
+        )
         with tempfile.TemporaryDirectory(prefix="gyroharness_calibrate_") as tmp:
             store = spill_columns(file, tmp, accel=True, groups=("temp", "ref_rate"))
             res = cal.fit_spilled(store, source_path=file)
@@ -184,20 +273,34 @@ def command(file, effects, output, segments, bias_from, bias_dps, bias_se_dps, a
     # (a reference attitude and no reference rate: Calibrator.fit fits against the attitude)
     if (angle_sigma_deg or axis_sigma_deg) and not segments:
         raise GyroInputError("--angle-sigma-deg/--axis-sigma-deg are for the integral method: give --segments too")
-    cal = Calibrator(effects=names, thermal_order=thermal_order, segments=segments, covariance=covariance, sensor=sensor,
-                     external_bias=ext, ramp_margin_s=ramp_margin_s, angle_sigma_deg=angle_sigma_deg,
-                     axis_sigma_deg=axis_sigma_deg, poses=poses,
-                     pose_std_factor=pose_std_factor)
+    cal = Calibrator(
+        effects=names,
+        thermal_order=thermal_order,
+        segments=segments,
+        covariance=covariance,
+        sensor=sensor,
+        external_bias=ext,
+        ramp_margin_s=ramp_margin_s,
+        angle_sigma_deg=angle_sigma_deg,
+        axis_sigma_deg=axis_sigma_deg,
+        poses=poses,
+        pose_std_factor=pose_std_factor,
+    )
     res = cal.fit(rec, source_path=file)
     if segments and res.integral is not None and not (angle_sigma_deg or axis_sigma_deg):
         from dataclasses import replace
 
         # the integral method's covariance propagates gyro noise and bias (rotations.integral_calibration);
         # the known angles enter as exact unless their uncertainty is given
-        res = replace(res, notes=tuple(res.notes) + (
-            "standard errors: gyro noise and bias only, the segments' angles taken as exact; a turn by hand "
-            "(±2-5 deg over 360-720 deg, 0.3-1.4 %) is far less certain than the scale SEs above: give "
-            "--angle-sigma-deg/--axis-sigma-deg to include it",))
+        res = replace(
+            res,
+            notes=tuple(res.notes)
+            + (
+                "standard errors: gyro noise and bias only, the segments' angles taken as exact; a turn by hand "
+                "(±2-5 deg over 360-720 deg, 0.3-1.4 %) is far less certain than the scale SEs above: give "
+                "--angle-sigma-deg/--axis-sigma-deg to include it",
+            ),
+        )
     _warn_unobservable(res)
     _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
 
@@ -218,7 +321,8 @@ def _warn_sign(res) -> None:
         warnings.warn(
             f"scale {', '.join(bad)}: K_ii = 1 + s is negative, i.e. the axis reads against the reference — a flipped "
             f"axis or the reference's sign convention (segments' angle signs, frame), not a sensitivity error",
-            UserWarning, stacklevel=3,
+            UserWarning,
+            stacklevel=3,
         )
 
 
@@ -244,9 +348,12 @@ def _write_and_report(res, output, px4_params, as_json: bool, *, px4_device_id: 
 
         write_px4_params(px4_params, res.params, overwrite=True, device_id=px4_device_id or 0)
         if not px4_device_id:
-            warnings.warn(f"{px4_params}: TC_G0_ID is 0, which matches no gyro: PX4 will not apply these parameters "
-                          "until TC_G0_ID is your gyro's device id (CAL_GYRO0_ID; or calibrate --px4-device-id ID)",
-                          UserWarning, stacklevel=2)
+            warnings.warn(
+                f"{px4_params}: TC_G0_ID is 0, which matches no gyro: PX4 will not apply these parameters "
+                "until TC_G0_ID is your gyro's device id (CAL_GYRO0_ID; or calibrate --px4-device-id ID)",
+                UserWarning,
+                stacklevel=2,
+            )
     if as_json:
         emit_json(result_to_dict(res))
     else:

@@ -56,20 +56,28 @@ def report_text(result) -> str:
             lines.append(f"        {name} = {v:.4g} ± {e.std_errors.get(name, float('nan')):.2g} (SI)")
     for u in result.unexplained:
         ev = u.evidence
-        what = {"regressor": lambda f: f"term {f['term']}, coef {f['coef']:.4g} (SI)",
-                "periodic": lambda f: f"{f['frequency_hz']:.6g} Hz, amplitude {f['amplitude_rad_s'] * D:.4g} deg/s",
-                "step": lambda f: f"at t = {f['t_s']:.6g} s, size [{', '.join(f'{v * D:.4g}' for v in f['size_rad_s'])}] deg/s",
-                }[u.kind](u.fields)
+        what = {
+            "regressor": lambda f: f"term {f['term']}, coef {f['coef']:.4g} (SI)",
+            "periodic": lambda f: f"{f['frequency_hz']:.6g} Hz, amplitude {f['amplitude_rad_s'] * D:.4g} deg/s",
+            "step": lambda f: (
+                f"at t = {f['t_s']:.6g} s, size [{', '.join(f'{v * D:.4g}' for v in f['size_rad_s'])}] deg/s"
+            ),
+        }[u.kind](u.fields)
         lines.append(
             f"unexplained: {u.kind} on axis {u.axis}: {what}; log10 p = {ev.get('log10_p', float('nan')):.3g} "
             f"< log10 threshold {math.log10(ev['threshold']):.3g}; residual RMS "
             f"{_fmt(u.residual_rms_before_rad_s, '', D)} -> {_fmt(u.residual_rms_after_rad_s, ' deg/s', D)} "
-            f"({ev.get('residual', 'window')} level); added as {u.effect}")
+            f"({ev.get('residual', 'window')} level); added as {u.effect}"
+        )
     if result.tested:
         top = sorted(result.tested.items(), key=lambda kv: kv[1].log10_p)[:4]
-        lines.append("strongest not taken: " + "; ".join(
-            f"{c} (log10 p {ev.log10_p:.2g}, threshold {math.log10(ev.threshold):.2g}, out-of-sample RMS {-100 * ev.cv_rms_reduction:+.2g} %)"
-            for c, ev in top))
+        lines.append(
+            "strongest not taken: "
+            + "; ".join(
+                f"{c} (log10 p {ev.log10_p:.2g}, threshold {math.log10(ev.threshold):.2g}, out-of-sample RMS {-100 * ev.cv_rms_reduction:+.2g} %)"
+                for c, ev in top
+            )
+        )
     if result.untestable:
         lines.append("not testable: " + "; ".join(f"{c}: {why}" for c, why in result.untestable.items()))
     rem = result.remaining.summary()
@@ -83,15 +91,21 @@ def report_text(result) -> str:
         parts = []
         if "regressor" in os_ and "term" in os_["regressor"]:
             g = os_["regressor"]
-            parts.append(f"best library term {g['term']} on {g['axis']} (log10 p {g['log10_p']:.2g}, threshold "
-                         f"{math.log10(g['threshold']):.2g}, {g['n_tested']} tested)")
+            parts.append(
+                f"best library term {g['term']} on {g['axis']} (log10 p {g['log10_p']:.2g}, threshold "
+                f"{math.log10(g['threshold']):.2g}, {g['n_tested']} tested)"
+            )
         if os_.get("periodic"):
             g = min(os_["periodic"], key=lambda d: d["log10_p"])
-            parts.append(f"strongest line {g['frequency_hz']:.4g} Hz on {g['axis']} (log10 p {g['log10_p']:.2g}, "
-                         f"threshold {math.log10(g['threshold']):.2g})")
+            parts.append(
+                f"strongest line {g['frequency_hz']:.4g} Hz on {g['axis']} (log10 p {g['log10_p']:.2g}, "
+                f"threshold {math.log10(g['threshold']):.2g})"
+            )
         if "step" in os_:
             g = os_["step"]
-            parts.append(f"best step at {g['t_s']:.5g} s (bootstrap p {g['bootstrap_p']:.2g}, threshold {g['threshold']:.2g})")
+            parts.append(
+                f"best step at {g['t_s']:.5g} s (bootstrap p {g['bootstrap_p']:.2g}, threshold {g['threshold']:.2g})"
+            )
         if parts:
             lines.append("open search, nothing significant: " + "; ".join(parts))
     for n in result.notes:
@@ -101,66 +115,161 @@ def report_text(result) -> str:
 
 def validation_text(v: dict) -> str:
     D = 180.0 / math.pi
-    return (f"validation on {v['file']} ({v['reference']}, {v['n_windows']} windows; bias {v['bias']}): "
-            f"residual RMS {_fmt(v['residual_rms_before_rad_s'], '', D)} (declared model) -> "
-            f"{_fmt(v['residual_rms_after_rad_s'], ' deg/s', D)} (final model); attitude error "
-            f"{_fmt(v['attitude_error_before_deg'])} -> {_fmt(v['attitude_error_after_deg'], ' deg')}"
-            + "".join(_line_validation_text(p) for p in v.get("periodic", ())))
+    return (
+        f"validation on {v['file']} ({v['reference']}, {v['n_windows']} windows; bias {v['bias']}): "
+        f"residual RMS {_fmt(v['residual_rms_before_rad_s'], '', D)} (declared model) -> "
+        f"{_fmt(v['residual_rms_after_rad_s'], ' deg/s', D)} (final model); attitude error "
+        f"{_fmt(v['attitude_error_before_deg'])} -> {_fmt(v['attitude_error_after_deg'], ' deg')}"
+        + "".join(_line_validation_text(p) for p in v.get("periodic", ()))
+    )
 
 
 def _line_validation_text(p: dict) -> str:
     D = 180.0 / math.pi
     i = max(range(3), key=lambda k: p["amplitude_before_rad_s"][k])
-    return (f"; {p['effect']} on {'xyz'[i]}: sample-level line amplitude {p['amplitude_before_rad_s'][i] * D:.4g} -> "
-            f"{p['amplitude_after_rad_s'][i] * D:.4g} ± {p['amplitude_std_error_after_rad_s'][i] * D:.2g} deg/s")
+    return (
+        f"; {p['effect']} on {'xyz'[i]}: sample-level line amplitude {p['amplitude_before_rad_s'][i] * D:.4g} -> "
+        f"{p['amplitude_after_rad_s'][i] * D:.4g} ± {p['amplitude_std_error_after_rad_s'][i] * D:.2g} deg/s"
+    )
 
 
 @click.command("loop")
 @click.argument("path", metavar="FILE", type=click.Path(path_type=str))
-@click.option("--effects", "effects", default="bias", show_default=True,
-              help="Declared effects (comma-separated catalogue names) the model starts from.")
-@click.option("--segments", type=click.Path(path_type=str), default=None,
-              help="Segments CSV: still segments and/or known rotations (start_s,stop_s,kind,angle_x/y/z_rad, "
-                   "or t_start_s,t_end_s,axis,angle_deg).")
+@click.option(
+    "--effects",
+    "effects",
+    default="bias",
+    show_default=True,
+    help="Declared effects (comma-separated catalogue names) the model starts from.",
+)
+@click.option(
+    "--segments",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Segments CSV: still segments and/or known rotations (start_s,stop_s,kind,angle_x/y/z_rad, "
+    "or t_start_s,t_end_s,axis,angle_deg).",
+)
 @click.option("--candidates", default=None, help="Effects to trace (default: every traceable effect not declared).")
-@click.option("--reference", type=click.Choice(["auto", "rate", "attitude", "still", "angles"]), default="auto",
-              show_default=True, help="Which reference to build the residual against.")
+@click.option(
+    "--reference",
+    type=click.Choice(["auto", "rate", "attitude", "still", "angles"]),
+    default="auto",
+    show_default=True,
+    help="Which reference to build the residual against.",
+)
 @click.option("--window-s", type=float, default=None, help="Observation window length, s.")
-@click.option("--alpha", type=float, default=0.01, show_default=True,
-              help="Family-wise false-discovery rate over all candidates and steps (Holm).")
-@click.option("--thermal-order", type=click.IntRange(1, 3), default=1, show_default=True,
-              help="Polynomial order of the thermal candidates.")
-@click.option("--min-rms-reduction", type=float, default=0.005, show_default=True,
-              help="Practical significance: fraction of the residual RMS a new effect must remove "
-                   "(or --min-attitude-reduction of the attitude error); it must also predict the other half "
-                   "of the recording (2-fold by time).")
+@click.option(
+    "--alpha",
+    type=float,
+    default=0.01,
+    show_default=True,
+    help="Family-wise false-discovery rate over all candidates and steps (Holm).",
+)
+@click.option(
+    "--thermal-order",
+    type=click.IntRange(1, 3),
+    default=1,
+    show_default=True,
+    help="Polynomial order of the thermal candidates.",
+)
+@click.option(
+    "--min-rms-reduction",
+    type=float,
+    default=0.005,
+    show_default=True,
+    help="Practical significance: fraction of the residual RMS a new effect must remove "
+    "(or --min-attitude-reduction of the attitude error); it must also predict the other half "
+    "of the recording (2-fold by time).",
+)
 @click.option("--min-attitude-reduction", type=float, default=0.05, show_default=True)
-@click.option("--angle-sigma-deg", type=float, default=2.0, show_default=True,
-              help="Uncertainty of each known rotation angle (hand: a few degrees; rate table: 0.01).")
-@click.option("--axis-sigma-deg", type=float, default=5.0, show_default=True,
-              help="Uncertainty of the known rotations' axis (hand: ~5 degrees; rate table: 0.01).")
-@click.option("--angle-mode", type=click.Choice(["rotation", "axis"]), default="rotation", show_default=True,
-              help="Known rotations: whole rotations (start/end poses known: table, box edge) or only the "
-                   "total angle about the axis (free hand turns).")
-@click.option("--plot-dir", type=click.Path(path_type=str), default=None,
-              help="Write residual-vs-regressor plots (before/after) per found effect here.")
-@click.option("--open-search/--no-open-search", default=True, show_default=True,
-              help="After the catalogue, describe what is still significant outside it (regressor library, "
-                   "narrow-band lines, bias steps); alpha is split between the catalogue and the open search.")
+@click.option(
+    "--angle-sigma-deg",
+    type=float,
+    default=2.0,
+    show_default=True,
+    help="Uncertainty of each known rotation angle (hand: a few degrees; rate table: 0.01).",
+)
+@click.option(
+    "--axis-sigma-deg",
+    type=float,
+    default=5.0,
+    show_default=True,
+    help="Uncertainty of the known rotations' axis (hand: ~5 degrees; rate table: 0.01).",
+)
+@click.option(
+    "--angle-mode",
+    type=click.Choice(["rotation", "axis"]),
+    default="rotation",
+    show_default=True,
+    help="Known rotations: whole rotations (start/end poses known: table, box edge) or only the "
+    "total angle about the axis (free hand turns).",
+)
+@click.option(
+    "--plot-dir",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Write residual-vs-regressor plots (before/after) per found effect here.",
+)
+@click.option(
+    "--open-search/--no-open-search",
+    default=True,
+    show_default=True,
+    help="After the catalogue, describe what is still significant outside it (regressor library, "
+    "narrow-band lines, bias steps); alpha is split between the catalogue and the open search.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the step test's bootstrap.")
-@click.option("-o", "--output", "output", type=click.Path(dir_okay=False, path_type=str), default=None,
-              help="Write the final model as a parameter file (readable by apply).")
-@click.option("--validate", "validate", type=click.Path(path_type=str), default=None,
-              help="Score the final model (and the declared model fitted on FILE) on this other recording.")
-@click.option("--validate-segments", type=click.Path(path_type=str), default=None,
-              help="Segments CSV of the --validate recording.")
-@click.option("--validate-split", is_flag=True,
-              help="Fit on the first half of FILE and score on the second half (long logs without a second file).")
+@click.option(
+    "-o",
+    "--output",
+    "output",
+    type=click.Path(dir_okay=False, path_type=str),
+    default=None,
+    help="Write the final model as a parameter file (readable by apply).",
+)
+@click.option(
+    "--validate",
+    "validate",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Score the final model (and the declared model fitted on FILE) on this other recording.",
+)
+@click.option(
+    "--validate-segments",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Segments CSV of the --validate recording.",
+)
+@click.option(
+    "--validate-split",
+    is_flag=True,
+    help="Fit on the first half of FILE and score on the second half (long logs without a second file).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing -o file.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the JSON result on stdout.")
-def command(path, effects, segments, candidates, reference, window_s, alpha, thermal_order, min_rms_reduction,
-            min_attitude_reduction, angle_sigma_deg, axis_sigma_deg, angle_mode, plot_dir, open_search, seed, output,
-            validate, validate_segments, validate_split, force, as_json):
+def command(
+    path,
+    effects,
+    segments,
+    candidates,
+    reference,
+    window_s,
+    alpha,
+    thermal_order,
+    min_rms_reduction,
+    min_attitude_reduction,
+    angle_sigma_deg,
+    axis_sigma_deg,
+    angle_mode,
+    plot_dir,
+    open_search,
+    seed,
+    output,
+    validate,
+    validate_segments,
+    validate_split,
+    force,
+    as_json,
+):
     """The residual loop on FILE (a data file or any real set `gyroharness convert` reads)."""
     import os
 
@@ -172,8 +281,13 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
     if output and os.path.exists(output) and not force:
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")
     declared = _split(effects) or []
-    if (not segments and not validate and not validate_split and reference in ("auto", "rate")
-            and is_large(path, "loop", need=("ref_rate",))):
+    if (
+        not segments
+        and not validate
+        and not validate_split
+        and reference in ("auto", "rate")
+        and is_large(path, "loop", need=("ref_rate",))
+    ):
         # a long data file with reference rates: spilled to per-column files and looped over a
         # window at a time (gyrocore.calib.stream.SpilledRecording); the same loop, bounded memory.
         # What only the in-memory path does (NaN rows in the reference) falls through below.
@@ -192,16 +306,34 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
             store = spill_columns(path, tmp, accel=True, groups=("temp", "ref_rate", "ref_quat"))
             release_memory()
             try:
-                result = run_loop(SpilledRecording(store), declared=declared, candidates=_split(candidates),
-                                  min_rms_reduction=min_rms_reduction, min_attitude_reduction=min_attitude_reduction,
-                                  open_search=open_search, seed=seed, reference=reference, window_s=window_s,
-                                  alpha=alpha, thermal_order=thermal_order, angle_sigma_deg=angle_sigma_deg,
-                                  axis_sigma_deg=axis_sigma_deg, angle_mode=angle_mode)
+                result = run_loop(
+                    SpilledRecording(store),
+                    declared=declared,
+                    candidates=_split(candidates),
+                    min_rms_reduction=min_rms_reduction,
+                    min_attitude_reduction=min_attitude_reduction,
+                    open_search=open_search,
+                    seed=seed,
+                    reference=reference,
+                    window_s=window_s,
+                    alpha=alpha,
+                    thermal_order=thermal_order,
+                    angle_sigma_deg=angle_sigma_deg,
+                    axis_sigma_deg=axis_sigma_deg,
+                    angle_mode=angle_mode,
+                )
             except NotStreamable:
                 result = None
             if result is not None:
-                _finish(result, SpilledRecording(store), path=path, output=output, plot_dir=plot_dir,
-                        thermal_order=thermal_order, as_json=as_json)
+                _finish(
+                    result,
+                    SpilledRecording(store),
+                    path=path,
+                    output=output,
+                    plot_dir=plot_dir,
+                    thermal_order=thermal_order,
+                    as_json=as_json,
+                )
                 return
     conv = load_with_segments(path)
     segs = list(conv.segments)
@@ -215,8 +347,10 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
         from gyrocore.loop.loop import split_halves
 
         if segs:
-            raise GyroInputError("--validate-split cuts a recording in time; known-rotation segments would be cut too "
-                                 "(use --validate OTHER)")
+            raise GyroInputError(
+                "--validate-split cuts a recording in time; known-rotation segments would be cut too "
+                "(use --validate OTHER)"
+            )
         first, second = split_halves(conv.recording)
         conv = Converted(recording=first, segments=())
         val_conv = Converted(recording=second, segments=())
@@ -226,21 +360,50 @@ def command(path, effects, segments, candidates, reference, window_s, alpha, the
 
         val_conv = load_with_segments(validate)
         check_compatible(conv.recording, val_conv.recording, fit_name=path, val_name=validate)
-    opts = dict(segments=segs, reference=reference, window_s=window_s, alpha=alpha, thermal_order=thermal_order,
-                angle_sigma_deg=angle_sigma_deg, axis_sigma_deg=axis_sigma_deg, angle_mode=angle_mode)
+    opts = dict(
+        segments=segs,
+        reference=reference,
+        window_s=window_s,
+        alpha=alpha,
+        thermal_order=thermal_order,
+        angle_sigma_deg=angle_sigma_deg,
+        axis_sigma_deg=axis_sigma_deg,
+        angle_mode=angle_mode,
+    )
     result = run_loop(
-        conv.recording, declared=declared, candidates=_split(candidates), min_rms_reduction=min_rms_reduction,
-        min_attitude_reduction=min_attitude_reduction, open_search=open_search, seed=seed, **opts,
+        conv.recording,
+        declared=declared,
+        candidates=_split(candidates),
+        min_rms_reduction=min_rms_reduction,
+        min_attitude_reduction=min_attitude_reduction,
+        open_search=open_search,
+        seed=seed,
+        **opts,
     )
     extra: dict = {}
     if validate_split:
         extra["fitted_on"] = f"{path} (first half, t < {conv.recording.t_s[-1]:.6g} s)"
     if validate:
-        extra["validation"] = validation(result, conv.recording, val_conv, declared=declared, opts=opts,
-                                         validate=validate, validate_segments=validate_segments)
-    _finish(result, conv.recording, path=path, output=output, plot_dir=plot_dir, thermal_order=thermal_order,
-            as_json=as_json, extra=extra,
-            extra_text=validation_text(extra["validation"]) if validate else None)
+        extra["validation"] = validation(
+            result,
+            conv.recording,
+            val_conv,
+            declared=declared,
+            opts=opts,
+            validate=validate,
+            validate_segments=validate_segments,
+        )
+    _finish(
+        result,
+        conv.recording,
+        path=path,
+        output=output,
+        plot_dir=plot_dir,
+        thermal_order=thermal_order,
+        as_json=as_json,
+        extra=extra,
+        extra_text=validation_text(extra["validation"]) if validate else None,
+    )
 
 
 def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extra=None, extra_text=None) -> None:
@@ -253,8 +416,9 @@ def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extr
         from gyrocore.loop.loop import loop_calibration
         from gyrocore.calib.params import save_params
 
-        save_params(loop_calibration(result, rec, source_path=path, thermal_order=thermal_order), output,
-                    overwrite=True)
+        save_params(
+            loop_calibration(result, rec, source_path=path, thermal_order=thermal_order), output, overwrite=True
+        )
         payload["params_file"] = output
     if plot_dir:
         from gyrocore.loop.loop import plot_found
@@ -282,8 +446,13 @@ def validation(result, rec_fit, val_conv, *, declared, opts, validate, validate_
     p_after, _ = loop_parameters(result, rec_fit, thermal_order=opts.get("thermal_order", 1))
     vsegs = read_segments(validate_segments) if validate_segments else list(val_conv.segments)
     try:
-        v = validate_model(val_conv.recording, params_after=p_after, params_before=p_before, segments=vsegs,
-                           window_s=opts.get("window_s"))
+        v = validate_model(
+            val_conv.recording,
+            params_after=p_after,
+            params_before=p_before,
+            segments=vsegs,
+            window_s=opts.get("window_s"),
+        )
     except GyroInputError as exc:
         raise GyroInputError(f"--validate {validate}: {exc}") from None
     return {"file": validate, **v}
