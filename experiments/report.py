@@ -412,28 +412,35 @@ def build_report(
             if interrupted:
                 statuses.append(SectionStatus(name, "not run"))
                 continue
-            prog = on_start(name) if on_start is not None else None
             t1, c1 = time.perf_counter(), cpu_seconds()
-            kw = dict(options)
-            if prog is not None:
-                kw["progress"] = prog
+            # an interrupt anywhere in a section's turn (its progress bar, its run, the writing of its
+            # files) interrupts that section; the finished ones are kept either way
             try:
-                r = fn(out_dir=stage, **kw)
+                prog = on_start(name) if on_start is not None else None
+                kw = dict(options)
+                if prog is not None:
+                    kw["progress"] = prog
+                try:
+                    r = fn(out_dir=stage, **kw)
+                except KeyboardInterrupt:
+                    raise
+                except Exception as exc:  # noqa: BLE001 - recorded as one line naming the section
+                    st = SectionStatus(name, "failed", time.perf_counter() - t1, cpu_seconds() - c1, _one_line(exc))
+                else:
+                    wall, cpu = time.perf_counter() - t1, cpu_seconds() - c1
+                    if r.wall_s != r.wall_s:  # NaN: fill in
+                        from dataclasses import replace
+
+                        r = replace(r, wall_s=wall)
+                    _write_section(stage, r, cpu)
+                    results.append(r)
+                    result_sections.append(name)
+                    st = SectionStatus(name, "done", wall, cpu)
             except KeyboardInterrupt:
                 interrupted = True
-                st = SectionStatus(name, "interrupted", time.perf_counter() - t1, cpu_seconds() - c1)
-            except Exception as exc:  # noqa: BLE001 - recorded as one line naming the section
-                st = SectionStatus(name, "failed", time.perf_counter() - t1, cpu_seconds() - c1, _one_line(exc))
-            else:
                 wall, cpu = time.perf_counter() - t1, cpu_seconds() - c1
-                if r.wall_s != r.wall_s:  # NaN: fill in
-                    from dataclasses import replace
-
-                    r = replace(r, wall_s=wall)
-                _write_section(stage, r, cpu)
-                results.append(r)
-                result_sections.append(name)
-                st = SectionStatus(name, "done", wall, cpu)
+                finished = bool(result_sections) and result_sections[-1] == name  # its files are written
+                st = SectionStatus(name, "done" if finished else "interrupted", wall, cpu)
             statuses.append(st)
             if on_done is not None:
                 on_done(st)

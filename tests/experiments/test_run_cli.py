@@ -104,8 +104,12 @@ def test_cli_unknown_experiment(capsys):
 
 
 _SLOW_SECTIONS = """
-import sys, time
+import signal, sys, time
 from experiments.report import ExperimentResult, build_report, ReportIncomplete
+
+# Ctrl-C as a terminal delivers it: a process started in the background of a non-interactive shell
+# (as CI may start the suite) inherits SIGINT ignored, and Python then installs no handler for it
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 def make(name, sleep_s):
     def run(*, out_dir, progress=None, **kw):
