@@ -321,16 +321,16 @@ def run(
     }
 
 
-def print_table(out: dict) -> None:
-    print(
+def format_table(out: dict) -> str:
+    """The flown candidates as a Markdown table with the recommendation (what ``print_table`` prints)."""
+    rows = [
         f"Flown by {out['firmware']} on {out['vehicle']} with the log's tune ({len(out['tune'])} lines) and its "
-        f"vibration (band {out['band']}); seeds {out['seeds']}"
-    )
-    print(
+        f"vibration (band {out['band']}); seeds {out['seeds']}",
+        "",
         "| chain | set lines over the tune | attitude cost, deg | vibration part | step delay part | flight-rate delay "
-        "part | motor noise, % | D-term noise | gyro delay, ms | rise, ms | overshoot, % |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+        "part | motor noise, % | D-term noise | gyro delay, ms | rise, ms | overshoot, % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for k, m in out["chains"].items():
 
         def f(key, fmt):
@@ -338,10 +338,21 @@ def print_table(out: dict) -> None:
             return (fmt % v["mean"]) + (f" ± {fmt % v['sd']}" if np.isfinite(v["sd"]) else "")
 
         lines = "; ".join(x.replace("set ", "") for x in m["lines"]) or "(as flown)"
-        print(
+        rows.append(
             f"| {k} | {lines} | {f('attitude_cost_deg', '%.4f')} | {f('att_vibration_deg', '%.4f')} | "
-            f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_pct', '%.3f')} | {f('dterm_noise', '%.2f')} | "
-            f"{f('delay_ms', '%.2f')} | {f('rise_ms', '%.1f')} | {f('overshoot_pct', '%.1f')} |"
+            f"{f('att_delay_deg', '%.4f')} | {f('att_delay_flight_deg', '%.4f')} | {f('motor_noise_pct', '%.3f')} | "
+            f"{f('dterm_noise', '%.2f')} | {f('delay_ms', '%.2f')} | {f('rise_ms', '%.1f')} | {f('overshoot_pct', '%.1f')} |"
         )
-    print(f"picks per seed {out['seeds']}: {out['picks_per_seed']} (stable: {out['stable']})")
-    print("recommended:", out["recommended"]["name"], "| betaflight:", "; ".join(out["firmware_lines"]["betaflight"]))
+    rows.append("")
+    rows.append(f"picks per seed {out['seeds']}: {out['picks_per_seed']} (stable: {out['stable']})")
+    rows.append(
+        "recommended: "
+        + out["recommended"]["name"]
+        + " | betaflight: "
+        + "; ".join(out["firmware_lines"]["betaflight"])
+    )
+    return "\n".join(rows)
+
+
+def print_table(out: dict) -> None:
+    print(format_table(out))

@@ -31,7 +31,7 @@ import numpy as np
 
 from .report import ExperimentResult, md_table, new_figure, save_figure
 
-__all__ = ["FLIGHT_LOGS", "find_flight_log", "firmware_part", "run"]
+__all__ = ["FLIGHT_LOGS", "find_flight_log", "firmware_filter_part", "firmware_part", "run"]
 
 #: Candidate logs under the shared data folder, in order of preference: the first whose analysed
 #: signal is the unfiltered gyro ("raw") is used.
@@ -141,6 +141,77 @@ def firmware_part(
         f"`gyroharness experiment cutoffs --firmware betaflight` at this report's size.\n\n{r.markdown.strip()}"
     )
     return md, tuple(r.figures), {"built": True, "binary": str(binary), "version": version, "cutoffs": r.summary}
+
+
+#: the log whose whole tune the firmware flies in the filter-closed-loop part (its airframe class is
+#: known: the racing25 vehicle's rotor-line law was fitted to it; see docs/firmware.md)
+FIRMWARE_FILTER_LOG = "betaflight_blackbox/better_tune.BBL"
+#: filter-closed-loop --firmware options per report size: every candidate chain is flown twice per
+#: seed (vibrating and vibration-free) at 8 kHz, minutes of CPU, so only the research size flies it
+FIRMWARE_FILTER_SIZES: dict[str, dict[str, Any] | None] = {
+    "quick": None,
+    "standard": None,
+    "full": {"seeds": (0, 1), "duration_s": 4.0},
+}
+
+
+def firmware_filter_part(
+    data_dir: Path | None,
+    *,
+    size: str = "standard",
+    workers: int | None = None,
+    find_binary: Callable | None = None,
+    filter_run: Callable | None = None,
+) -> tuple[str, dict]:
+    """The pilot's whole tune and each candidate gyro filter chain flown by the firmware
+    (``gyroharness filter-closed-loop LOG --firmware betaflight``) on :data:`FIRMWARE_FILTER_LOG`, at
+    the research size only (:data:`FIRMWARE_FILTER_SIZES`); otherwise the line that runs it.
+
+    Returns
+    -------
+    markdown : str
+    summary : dict
+        ``{"run": bool, ...}``; with the recommendation, the as-flown row and the seeds when flown.
+    """
+    log = None if data_dir is None else Path(data_dir) / FIRMWARE_FILTER_LOG
+    cmd = f"`gyroharness filter-closed-loop {log or FIRMWARE_FILTER_LOG} --firmware betaflight`"
+    opts = FIRMWARE_FILTER_SIZES.get(size)
+    if log is None or not log.is_file():
+        return f"Candidate filter chains flown by the firmware: not run — {FIRMWARE_FILTER_LOG} not found.", {
+            "run": False
+        }
+    if opts is None:
+        return (
+            f"Candidate filter chains flown by the firmware with the pilot's whole tune: flown at the research "
+            f"size (`gyroharness run --full`), or on its own with {cmd}.",
+            {"run": False, "command": cmd.strip("`")},
+        )
+    find = find_binary or _optional("sim.firmware.build", "find_binary")
+    fb = find() if find is not None else None
+    if fb is None:
+        return (
+            f"Candidate filter chains flown by the firmware: not run — the Betaflight SITL binary is not built; "
+            f"build it with `{BUILD_HINT}`.",
+            {"run": False},
+        )
+    from experiments import firmware_filter as F
+
+    fn = filter_run or F.run
+    out = fn(flight=str(log), binary=getattr(fb, "binary", fb), workers=workers or 1, **opts)
+    md = (
+        f"### Firmware in the loop: the pilot's tune and candidate filter chains\n\n{cmd} at this report's size "
+        f"(seeds {list(opts['seeds'])}, {opts['duration_s']:g}-s flights).\n\n{F.format_table(out)}\n"
+    )
+    summ = {
+        "run": True,
+        "flight": FIRMWARE_FILTER_LOG,
+        "firmware": out["firmware"],
+        "recommended": out["recommended"],
+        "as_flown": out["as_flown"],
+        "stable": out["stable"],
+        "seeds": out["seeds"],
+    }
+    return md, summ
 
 
 def _firmware_cutoffs(**kw) -> ExperimentResult:
@@ -366,6 +437,9 @@ def run(
     md.append(fw_md)
     figures += list(fw_figs)
     summary["firmware_in_the_loop"] = fw_sum
+    ff_md, ff_sum = firmware_filter_part(ddir, size=size, workers=workers, find_binary=find_binary)
+    md.append(ff_md)
+    summary["firmware_filter_closed_loop"] = ff_sum
     tick(4)
     return ExperimentResult(
         name="flight",

@@ -69,3 +69,59 @@ def test_firmware_hook_binary_built_but_no_firmware_experiment(tmp_path, monkeyp
     monkeypatch.setattr(flight, "_optional", lambda module, name: None)
     md, figs, summ = flight.firmware_part(tmp_path, find_binary=lambda: Binary())
     assert summ == {"built": True, "binary": "/cache/betaflight_SITL"} and figs == () and "\n" not in md
+
+
+def _fw_filter_out(seeds):
+    """The shape of ``experiments.firmware_filter.run``'s JSON (two chains, as flown kept)."""
+    stat = {"mean": 0.3, "sd": float("nan")}
+    keys = ("attitude_cost_deg", "att_vibration_deg", "att_delay_deg", "att_delay_flight_deg", "motor_noise_pct")
+    keys += ("dterm_noise", "delay_ms", "rise_ms", "overshoot_pct")
+    chain = {k: stat for k in keys}
+    pub = {"name": "as_flown", "set": [], "attitude_cost": 0.3, "motor_noise": 1.5, "delay_ms": 3.0}
+    return {
+        "firmware": "betaflight 4.6.0",
+        "vehicle": "racing25",
+        "band": "middle",
+        "tune": ["set gyro_lowpass_hz = 90"],
+        "seeds": list(seeds),
+        "chains": {
+            "as_flown": {**chain, "lines": []},
+            "pt1 60 Hz": {**chain, "lines": ["set gyro_lpf1_static_hz = 60"]},
+        },
+        "picks_per_seed": ["as_flown"] * len(seeds),
+        "stable": True,
+        "recommended": pub,
+        "as_flown": pub,
+        "firmware_lines": {"betaflight": ["# keep the tune as flown"]},
+    }
+
+
+def test_firmware_filter_part_flies_the_tune_at_the_research_size_only(shared_data, tmp_path):
+    class Binary:
+        binary, version = "/cache/betaflight_SITL", "4.6.0"
+
+    calls = []
+
+    def fake_run(*, flight, binary, workers, seeds, duration_s):
+        calls.append((flight, binary, seeds, duration_s))
+        return _fw_filter_out(seeds)
+
+    # the default report names the command instead of flying it (its flights cost minutes of CPU)
+    md, summ = flight.firmware_filter_part(
+        shared_data, size="standard", find_binary=lambda: Binary(), filter_run=fake_run
+    )
+    assert calls == [] and not summ["run"] and "--firmware betaflight" in md and "--full" in md
+    # --full flies the pilot's tune and the candidates on better_tune.BBL with the firmware
+    md, summ = flight.firmware_filter_part(shared_data, size="full", find_binary=lambda: Binary(), filter_run=fake_run)
+    opts = flight.FIRMWARE_FILTER_SIZES["full"]
+    assert calls == [
+        (str(shared_data / flight.FIRMWARE_FILTER_LOG), "/cache/betaflight_SITL", opts["seeds"], opts["duration_s"])
+    ]
+    assert summ["run"] and summ["recommended"]["name"] == "as_flown" and summ["firmware"] == "betaflight 4.6.0"
+    assert "| pt1 60 Hz | gyro_lpf1_static_hz = 60 |" in md and "recommended: as_flown" in md
+    # no binary: one line naming the build command, nothing flown
+    md, summ = flight.firmware_filter_part(shared_data, size="full", find_binary=lambda: None, filter_run=fake_run)
+    assert len(calls) == 1 and not summ["run"] and "`gyroharness firmware build`" in md and "\n" not in md
+    # no log: says which one is missing
+    md, summ = flight.firmware_filter_part(tmp_path, size="full", find_binary=lambda: Binary(), filter_run=fake_run)
+    assert len(calls) == 1 and not summ["run"] and flight.FIRMWARE_FILTER_LOG in md
