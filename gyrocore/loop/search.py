@@ -65,6 +65,7 @@ from scipy import stats
 
 from gyrocore.calib import lsq
 from gyrocore.errors import GyroInputError
+from gyrocore.effects.registry import SIGNALS
 
 __all__ = [
     "ALPHA_SHARE",
@@ -91,20 +92,8 @@ __all__ = [
 #: A weighted Bonferroni/Holm split: under the complete null P(any false claim) ≤ Σ shares·α = α.
 ALPHA_SHARE = {"catalogue": 0.5, "regressor": 1.0 / 6, "periodic": 1.0 / 6, "step": 1.0 / 6}
 
-BASE_SIGNALS = (
-    "omega_x",
-    "omega_y",
-    "omega_z",
-    "alpha_x",
-    "alpha_y",
-    "alpha_z",
-    "f_x",
-    "f_y",
-    "f_z",
-    "temp_c",
-    "dtemp_dt",
-    "t",
-)
+#: the signal names of regressor terms: the registry's, in its canonical order
+BASE_SIGNALS = SIGNALS
 _AX = "xyz"
 
 
