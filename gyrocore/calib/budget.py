@@ -343,7 +343,7 @@ def _flicker_kernel():
     IEEE operations in the same order as :func:`_F_flicker` (no fastmath, so no reassociation);
     only ``log`` comes from the C library instead of numpy's vectorised one, which may differ in
     the last bit; the second difference's cancellation turns that into ~4e-11 of the largest
-    entry (measured, M = 1500; tests/gyrocore/test_budget.py bounds it at 1e-9).
+    entry (measured, M = 1500; tests/gyrocore/calib/test_budget.py bounds it at 1e-9).
     """
     if not _KERNEL:
         try:

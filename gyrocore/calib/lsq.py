@@ -20,7 +20,7 @@ user row weights). Standard errors come from one of three covariances:
   residuals (on-chip low-pass, Gauss–Markov bias, bias instability over the record), and
   honest even when the correlation time is long, where kernel estimators on the score
   (Newey–West) truncate the tail and understate the error (checked by Monte Carlo in
-  tests/gyrocore/test_lsq.py);
+  tests/gyrocore/calib/test_lsq.py);
 * ``"newey_west"`` — the Newey & West (1987) Bartlett-kernel sandwich on the score series,
   AR(1) pre-whitened with the Andrews (1991) plug-in bandwidth (Andrews & Monahan 1992);
 * ``"block"`` — batch means over ``n_blocks`` contiguous blocks (cluster-robust by time).

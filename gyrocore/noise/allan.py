@@ -232,7 +232,7 @@ def avar_correlation_white(m: np.ndarray, n_phase: int) -> np.ndarray:
     Cov(Σ_k d_i(k)², Σ_l d_j(l)²) = 2 Σ_k Σ_l g_ij(k−l)², g_ij the cross-correlation of h_i
     and h_j (exact count of (k, l) pairs per lag). Octave-spaced points are far from
     independent (ρ ≈ 0.5–0.7 between neighbours); ignoring it makes the term intervals about
-    1.6× too narrow (measured by Monte Carlo, tests/gyrocore/test_allan.py).
+    1.6× too narrow (measured by Monte Carlo, tests/gyrocore/noise/test_allan.py).
     """
     import scipy.signal
 

@@ -4,7 +4,7 @@ A CSV/Parquet data file is *large* for an analysis when its estimated rows
 (:func:`gyrocore.data.recording.file_layout`: the Parquet row count, or the CSV size over its
 mean line length) times the analysis' in-memory bytes per row exceed :data:`LARGE_FILE_BYTES`.
 A large file is analysed from disk (spilled columns read back a window or an axis at a time),
-with the same numbers as in memory (tests/gyrocore/test_stream.py, test_lowmem.py,
+with the same numbers as in memory (tests/gyrocore/calib/test_stream.py, test_lowmem.py,
 test_loop_stream.py compare the two paths bit for bit); only the memory differs.
 """
 

@@ -1,6 +1,6 @@
 """Spec round trip of an energy band: band → ``simulate --vibration SPEC`` → ``vibration`` finds it again.
 
-The spec is written from the synthetic swept-rotor flight of tests/gyrocore/test_vibration_bands.py
+The spec is written from the synthetic swept-rotor flight of tests/gyrocore/flight/test_vibration_bands.py
 (a line sweeping ±15 % within each window); its throttle band 2 (command 0.4: the line sweeps
 221-299 Hz) is simulated by ``gyroharness simulate static --vibration SPEC --vibration-band 2`` (the
 registry effect ``vibration``'s shaped part, a Gaussian disturbance with the band's PSD) and the
@@ -18,7 +18,7 @@ import pytest
 
 from gyrocore.data.recording import read_csv
 from gyrocore.flight.vibration import analyse, read_spec, write_spec
-from tests.gyrocore.test_vibration_bands import EDGES, swept_flight
+from tests.gyrocore.flight.test_vibration_bands import EDGES, swept_flight
 
 BAND = 2
 

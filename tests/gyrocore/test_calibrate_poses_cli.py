@@ -4,7 +4,7 @@
 its authors) but no command ran it: `calibrate` on a multi-pose session fitted the still parts
 against rate 0 and reported scale and misalignment unobservable. Expected values come from
 outside the code: the authors' own params_gyro.csv (their model ω = T·diag(k)·(raw − b)),
-converted as in tests/gyrocore/test_rotations.py; tolerance 2.5 of our standard errors (the
+converted as in tests/gyrocore/calib/test_rotations.py; tolerance 2.5 of our standard errors (the
 session supports no better: 2 of 9 motions clip, the hand poses tremble).
 """
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from gyrocore.flight.vibration import MIN_BAND_WINDOWS, analyse, plot_vibration
-from tests.gyrocore.test_vibration import A_FIXED, F_FIXED, LEVELS, N_WHITE, RATE, _line
+from tests.gyrocore.flight.test_vibration import A_FIXED, F_FIXED, LEVELS, N_WHITE, RATE, _line
 
 
 def _short_flight(hold_s: float, seed: int = 5):

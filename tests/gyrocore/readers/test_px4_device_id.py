@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from gyrocore.data.recording import write_csv
 from tests.gyrocore.test_bad_input import gh
-from tests.gyrocore.test_thermal import CUBIC, thermal_run
+from tests.gyrocore.calib.test_thermal import CUBIC, thermal_run
 
 
 def _ids(path):

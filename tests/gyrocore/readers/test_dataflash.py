@@ -22,7 +22,7 @@ from gyrocore.readers.convert import detect_format, load_any  # noqa: E402
 from gyrocore.readers.dataflash import read_dataflash  # noqa: E402
 from gyrocore.errors import GyroInputError, RepairWarning  # noqa: E402
 
-LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
+LOG = Path(__file__).resolve().parents[2] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
 G0 = 9.80665
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from tests.gyrocore.test_bad_input import assert_error, gh
 
-DATAFLASH = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
+DATAFLASH = Path(__file__).resolve().parents[2] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
 
 
 @pytest.mark.parametrize("cmd", ["bias", "noise"])

@@ -186,7 +186,7 @@ def test_short_flight_log_is_refused(tmp_path, capsys):
     2-s windows used to skip the gate, and the flight's motion was identified as noise."""
     from pathlib import Path
 
-    src = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
+    src = Path(__file__).resolve().parents[2] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
     p = tmp_path / "df.csv"
     write_csv(load_any(src), p)
     status, _o, err = _gh(capsys, "noise", str(p))

@@ -15,7 +15,7 @@ from pathlib import Path
 from gyrocore.flight.preview import recommend_filter
 from gyrocore.readers.dataflash import read_dataflash
 
-LOG = Path(__file__).resolve().parents[1] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
+LOG = Path(__file__).resolve().parents[2] / "data" / "dataflash" / "ArduCopter-4.5.7_00000081_first650k.BIN"
 
 
 def test_ardupilot_lowpass_line_keeps_the_flown_cutoff():

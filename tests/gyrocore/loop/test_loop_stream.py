@@ -179,7 +179,7 @@ def test_loop_memory_grows_sublinearly(tmp_path):
     # both: at 200 s and 800 s the segments are 50 000 and 61 538 samples and the slope was
     # 54 B/sample — the segment's growth, not the record's. Measured at these lengths: 216 →
     # 224 MiB, 13.4 and 15.7 B/sample in two runs (t plus the transient temperature column)
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "bench"))
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "..", "bench"))
     import bench_memory as B
 
     peaks = {}
