@@ -32,7 +32,7 @@ out = {"stage": stage, "n": rec.n, "rss_after_data_mib": rss_data}
 if stage != "synth":
     from threadpoolctl import threadpool_limits
     threadpool_limits(limits=1, user_api="blas")
-    from gyrocore.loop import run_loop
+    from gyrocore.loop.loop import run_loop
     t0, c0 = time.perf_counter(), time.process_time()
     r = run_loop(rec, declared=["bias"], open_search=(stage == "loop"))
     out.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, found=r.found_effects,

@@ -211,7 +211,8 @@ def synthetic_recording(
 
 # ---------------------------------------------------------------------------- Monte Carlo
 def _one_trial(effect: str, scale: float, seed: int, duration_s: float, rate_hz: float, alpha: float) -> dict:
-    from gyrocore.loop.loop import COMPANION, run_loop
+    from gyrocore.loop.loop import run_loop
+    from gyrocore.loop.model import COMPANION
 
     params = {"bias": effect_params("bias")}
     if effect != "none":
@@ -256,7 +257,7 @@ def identification_rates(
         constant companion of a thermal effect (``scale`` for ``scale_thermal``) is not
         counted as a false alarm.
     """
-    from gyrocore.loop.loop import CANDIDATES
+    from gyrocore.loop.model import CANDIDATES
 
     effects = list(effects) if effects is not None else ["none"] + [c for c in CANDIDATES if c != "bias"]
     rows = []
@@ -442,7 +443,8 @@ def simulator_null_false_alarms(
     flicker + RRW + GM). A false alarm is any ``unexplained`` entry (the catalogue's own finds —
     e.g. ``time_offset``, the on-chip filter's group delay — are listed, not counted).
     """
-    from gyrocore.loop.loop import CANDIDATES, run_loop
+    from gyrocore.loop.loop import run_loop
+    from gyrocore.loop.model import CANDIDATES
     from sim.presets import PRESETS, load_preset
     from sim.scenarios import simulate
 
@@ -648,13 +650,14 @@ def out_of_sample_runs(data_dir, *, declared: Sequence[str] = ("bias",), progres
     """The out-of-sample table of docs/measured.md, one setting for every set (the loop's
     defaults, declared ``bias``, open search on): BROAD fit-on-A / score-on-B for all 12 ordered
     pairs, and the long static logs first half → second half
-    (:func:`gyrocore.loop.loop.validate_model`: the turn-on bias re-estimated on the scored part,
+    (:func:`gyrocore.loop.validate.validate_model`: the turn-on bias re-estimated on the scored part,
     everything else transferred; "before" = the declared model fitted on the same data).
 
     Same numbers as ``gyroharness loop A --effects bias --validate B --json`` and
     ``gyroharness loop LOG --effects bias --validate-split --json``.
     """
-    from gyrocore.loop.loop import loop_parameters, run_loop, split_halves, validate_model
+    from gyrocore.loop.loop import run_loop
+    from gyrocore.loop.validate import loop_parameters, split_halves, validate_model
 
     data = Path(data_dir)
     out: dict = {"broad": {"fits": {}, "pairs": []}, "static": []}
@@ -813,7 +816,7 @@ def run(
     For each case: simulate with :func:`sim.scenarios.simulate` (the undeclared effect in
     ``overrides``; the preset's other deterministic effects declared, minus ``leave_out``),
     run :func:`gyrocore.loop.loop.run_loop`, plot the residual against each found effect's
-    regressor before and after (:func:`gyrocore.loop.loop.plot_found`), and tabulate the steps.
+    regressor before and after (:func:`gyrocore.loop.plots.plot_found`), and tabulate the steps.
     ``mc_seeds`` > 0 adds the synthetic identification / false-alarm table
     (:func:`identification_rates`).
 
@@ -824,7 +827,9 @@ def run(
     import time as _time
 
     from experiments.report import ExperimentResult, md_table
-    from gyrocore.loop.loop import CANDIDATES, plot_found, run_loop
+    from gyrocore.loop.loop import run_loop
+    from gyrocore.loop.model import CANDIDATES
+    from gyrocore.loop.plots import plot_found
     from sim.scenarios import simulate
 
     t_start = _time.time()

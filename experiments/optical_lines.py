@@ -169,7 +169,8 @@ def trial(
     """One seed: a gyro line at a frequency in [20, 80] Hz of strength z ∈ ``z_range``
     (drawn), run through the loop (declared ``bias``, ``time_offset``: the point-sampled gyro
     leads the reference's interval-mean rate by half a frame)."""
-    from gyrocore.loop.loop import ATTITUDE_LINE_SEGMENTS, run_loop
+    from gyrocore.loop.loop import run_loop
+    from gyrocore.loop.open_step import ATTITUDE_LINE_SEGMENTS
     from gyrocore.loop.search import even_segments
 
     rng = np.random.default_rng([seed, 25])

@@ -44,7 +44,7 @@ _EXPORTS: dict[str, str | tuple[str, str]] = {
     # noise, loop, attitude, vibration
     "identify_noise": "gyrocore.noise.allan",
     "run_loop": "gyrocore.loop.loop",
-    "validate_model": "gyrocore.loop.loop",
+    "validate_model": "gyrocore.loop.validate",
     "integrate_gyro": "gyrocore.attitude",
     "analyse_vibration": ("gyrocore.flight.vibration", "analyse"),
     # errors

@@ -434,7 +434,9 @@ class Calibrator:
         fitted against rate 0 and every rate-dependent effect reported unobservable."""
         from dataclasses import replace
 
-        from gyrocore.loop.loop import FITTABLE as LOOP_FITTABLE, loop_calibration, run_loop
+        from gyrocore.loop.loop import run_loop
+        from gyrocore.loop.model import FITTABLE as LOOP_FITTABLE
+        from gyrocore.loop.validate import loop_calibration
 
         bad = [e for e in self.effects if e not in LOOP_FITTABLE]
         if bad:

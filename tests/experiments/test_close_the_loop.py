@@ -34,7 +34,8 @@ def test_loop_on_the_simulated_turntable(inject):
     its on-chip 250-Hz low-pass filter (a group delay of 0.707 ms, which the loop names
     `time_offset`) and, when injected, a scale asymmetry the calibration is not told about.
     """
-    from gyrocore.loop.loop import CANDIDATES, run_loop
+    from gyrocore.loop.loop import run_loop
+    from gyrocore.loop.model import CANDIDATES
     from sim.scenarios import simulate
 
     overrides = {inject: {"a": [0.004, -0.003, 0.002]}} if inject else None

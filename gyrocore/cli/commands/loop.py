@@ -31,7 +31,7 @@ D = 180.0 / math.pi
 
 
 def report_text(result) -> str:
-    """The readable report of a :class:`gyrocore.loop.loop.LoopResult`."""
+    """The readable report of a :class:`gyrocore.loop.result.LoopResult`."""
     lines = [
         f"reference: {result.reference} — {result.description} ({result.n_windows} windows)",
         f"declared: {', '.join(result.declared) or '(none)'}",
@@ -344,7 +344,7 @@ def command(
         raise GyroInputError("give --validate OTHER or --validate-split, not both")
     if validate_split:
         from gyrocore.readers.common import Converted
-        from gyrocore.loop.loop import split_halves
+        from gyrocore.loop.validate import split_halves
 
         if segs:
             raise GyroInputError(
@@ -356,7 +356,7 @@ def command(
         val_conv = Converted(recording=second, segments=())
         validate = f"{path} (second half, t >= {second.t_s[0]:.6g} s)"
     elif validate:
-        from gyrocore.loop.loop import check_compatible
+        from gyrocore.loop.validate import check_compatible
 
         val_conv = load_with_segments(validate)
         check_compatible(conv.recording, val_conv.recording, fit_name=path, val_name=validate)
@@ -413,7 +413,7 @@ def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extr
     payload = result.to_json()
     payload.update(extra or {})
     if output:
-        from gyrocore.loop.loop import loop_calibration
+        from gyrocore.loop.validate import loop_calibration
         from gyrocore.calib.params import save_params
 
         save_params(
@@ -421,7 +421,7 @@ def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extr
         )
         payload["params_file"] = output
     if plot_dir:
-        from gyrocore.loop.loop import plot_found
+        from gyrocore.loop.plots import plot_found
 
         plot_found(result, Path(plot_dir))
     if as_json:
@@ -436,9 +436,10 @@ def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extr
 
 def validation(result, rec_fit, val_conv, *, declared, opts, validate, validate_segments=None) -> dict:
     """The ``validation`` block: the final model and the declared model fitted on FILE, scored
-    on the other recording (:func:`gyrocore.loop.loop.validate_model`)."""
+    on the other recording (:func:`gyrocore.loop.validate.validate_model`)."""
     from gyrocore.errors import GyroInputError
-    from gyrocore.loop.loop import loop_parameters, run_loop, validate_model
+    from gyrocore.loop.loop import run_loop
+    from gyrocore.loop.validate import loop_parameters, validate_model
     from gyrocore.loop.residual import read_segments
 
     base = run_loop(rec_fit, declared=declared, candidates=[], open_search=False, **opts)

@@ -24,7 +24,8 @@ from click.testing import CliRunner
 from experiments.close_the_loop import effect_params, identification_rates, synthetic_recording
 from gyrocore.cli.commands.loop import command as loop_command
 from gyrocore.errors import GyroInputError
-from gyrocore.loop.loop import CANDIDATES, COMPANION, run_loop
+from gyrocore.loop.loop import run_loop
+from gyrocore.loop.model import CANDIDATES, COMPANION
 from gyrocore.data.recording import write_csv
 
 DURATION_S = 40.0

@@ -16,7 +16,10 @@ from experiments.optical_lines import (
 )
 from gyrocore.loop import search as S
 from gyrocore.attitude import attitude_rate, integrate_gyro, rate_error_vs_attitude
-from gyrocore.loop.loop import _advance, _attitude_line_series, run_loop, split_halves, validate_model
+from gyrocore.loop.loop import run_loop
+from gyrocore.loop.model import advance
+from gyrocore.loop.open_step import attitude_line_series
+from gyrocore.loop.validate import split_halves, validate_model
 
 
 def test_attitude_rate_inverts_the_integration_and_skips_dropouts():
@@ -99,7 +102,7 @@ def test_line_amplitude_removed_and_scored_on_the_held_out_half():
         u.evidence["segments"]["length"],
     )
     assert abs(u.fields["amplitude_rad_s"] - amp) < 5 * sA
-    from gyrocore.loop.loop import loop_parameters
+    from gyrocore.loop.validate import loop_parameters
 
     p_after, _ = loop_parameters(r, first)
     base = run_loop(first, declared=["bias", "time_offset"], candidates=[], open_search=False)
@@ -126,7 +129,7 @@ def test_line_the_reference_also_carries_is_not_reported():
     # control: the same residual screened without the motion mask has the line, far past the
     # threshold — so the test above can fail
     tau = r.params["time_offset"]["tau_s"][0]
-    x, tt, fs, mot, _, _, L = _attitude_line_series(_advance(rec, tau), np.zeros((rec.n, 3)))
+    x, tt, fs, mot, _, _, L = attitude_line_series(advance(rec, tau), np.zeros((rec.n, 3)))
     bare = S.screen_lines(x, fs, seg_max=L)
     assert bare[0].axis == 0 and abs(bare[0].frequency_hz - 47.3) < 0.5
     assert bare[0].log10_p < np.log10(per[0]["threshold"]) - 3
