@@ -14,7 +14,7 @@ For a real flight log that carries its unfiltered gyro (``gyro_prefilter_*``: Be
 3. the firmware's filtered gyro is logged as the log logs it (every ``P interval``-th loop, no
    anti-alias filter) and compared with the log's filtered gyro of the same band — **held out**:
    the second half (the spec never saw it) first, in sample (the first half) second — by
-   :func:`gyrocore.vibration.fidelity`: per axis the RMS above 40 Hz of both and the in-band
+   :func:`gyrocore.flight.synthesis.fidelity`: per axis the RMS above 40 Hz of both and the in-band
    fraction (share of the PSD bins 40 Hz .. Nyquist where the simulated PSD is statistically
    indistinguishable from the real one; 0.95 for a perfect match).
 
@@ -64,11 +64,12 @@ def run(
     """Fidelity per throttle band (module docstring). Returns ``{"flight", "vehicle", "firmware",
     "settings_applied", "settings_skipped", "t_split_s", "bands": [{"band", "throttle",
     "held_out": fid, "in_sample": fid, "log_rms_above_40hz_rad_s", ...}]}`` with ``fid`` per axis
-    as :func:`gyrocore.vibration.fidelity`."""
+    as :func:`gyrocore.flight.synthesis.fidelity`."""
     from experiments.firmware_fly import fly, settings_lines_from
     from gyrocore.data.recording import read_csv
     from gyrocore.errors import GyroInputError
-    from gyrocore.flight.vibration import analyse, fidelity, write_spec
+    from gyrocore.flight.synthesis import fidelity
+    from gyrocore.flight.vibration import analyse, write_spec
     from gyrocore.readers.convert import detect_format, load_any
     from sim.fw_flight import FwFlightOptions
     from sim.spec_vibration import spec_injection
@@ -226,7 +227,7 @@ def _repeatability(spec_a: dict, i: int, spec_b: dict, j: int) -> dict:
     half's band j (the in-band fraction the data allows; 0.95 for equal spectra)."""
     from types import SimpleNamespace
 
-    from gyrocore.flight.vibration import fidelity
+    from gyrocore.flight.synthesis import fidelity
 
     b = spec_a["bands"][i]
     ns = SimpleNamespace(

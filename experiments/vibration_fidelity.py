@@ -1,14 +1,14 @@
 """Fidelity of the simulated hover's gyro vibration against a real flight's.
 
 For each throttle band of a vibration spec (``gyroharness vibration FLIGHT -o spec.json``):
-the in-band fraction (:func:`gyrocore.flight.vibration.fidelity`: bins 40 Hz .. the spec's reliable
+the in-band fraction (:func:`gyrocore.flight.synthesis.fidelity`: bins 40 Hz .. the spec's reliable
 limit where the simulated gyro PSD is statistically indistinguishable from the real band's;
 0.95 expected for a perfect match) of
 
 * *before*: the simulated hover as it is (today's F450 vibration, physics only), and
 * *after*: the same simulation (re-run from the recording's metadata) with the band's measured
   PSD as the registry effect ``vibration``'s shaped part (a hover's controller flies on it); a
-  recording that is not a simulation's gets it open loop (:func:`gyrocore.flight.vibration.add_vibration`).
+  recording that is not a simulation's gets it open loop (:func:`gyrocore.flight.synthesis.add_vibration`).
 
 With ``--vehicle racing5`` two more columns per band, from a closed-loop hover of that vehicle
 class (``--vehicle-duration-s``, airborne start, analysed after 2 s):
@@ -61,9 +61,9 @@ def _with_spec_band(rec, spec: dict, band: int, *, seed: int):
     """``rec`` again with the spec band's shaped part, the way every effect enters: re-simulated from
     its own metadata (scenario, sensor, seed, run, duration, vehicle) with the registry effect
     ``vibration`` switched on. A recording that is not a simulation's is given the disturbance
-    open loop (:func:`gyrocore.flight.vibration.add_vibration`), said in the returned note."""
+    open loop (:func:`gyrocore.flight.synthesis.add_vibration`), said in the returned note."""
     from gyrocore.errors import GyroInputError
-    from gyrocore.flight.vibration import add_vibration, shaped_params
+    from gyrocore.flight.synthesis import add_vibration, shaped_params
     from sim import scenarios as S
 
     m = rec.meta
@@ -99,7 +99,8 @@ def run(
 ) -> dict:
     """Table rows per band: in-band fraction and rms above 40 Hz, before and after (and the vehicle class's)."""
     from gyrocore.data.recording import read_csv
-    from gyrocore.flight.vibration import analyse, fidelity, read_spec
+    from gyrocore.flight.synthesis import fidelity
+    from gyrocore.flight.vibration import analyse, read_spec
 
     spec = read_spec(spec_path)
     hover = read_csv(hover_path)
@@ -306,7 +307,7 @@ def run_split(
     """Fidelity per throttle band, out of sample (spec from the first half, compared on the second).
 
     Returns ``{"t_split_s", "bands": [{"band", "throttle", "out_of_sample": {"before": fid, "after": fid},
-    "in_sample": {...}, "physics": info}]}`` with ``fid`` = :func:`gyrocore.flight.vibration.fidelity` per axis.
+    "in_sample": {...}, "physics": info}]}`` with ``fid`` = :func:`gyrocore.flight.synthesis.fidelity` per axis.
     """
     import os
     import tempfile
@@ -314,7 +315,8 @@ def run_split(
 
     from gyrocore.readers.convert import detect_format, load_any
     from gyrocore.data.recording import read_csv
-    from gyrocore.flight.vibration import analyse, fidelity, write_spec
+    from gyrocore.flight.synthesis import fidelity
+    from gyrocore.flight.vibration import analyse, write_spec
     from sim import scenarios as S
 
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)

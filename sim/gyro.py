@@ -222,7 +222,7 @@ class SyntheticGyro:
         for eff, given in overrides.items():
             if eff == "vibration":
                 # the physics part comes from the hover; an override carries only the shaped part
-                # (f_hz, psd_rad2_s2_hz: gyrocore.flight.vibration.shaped_params), or {} for none
+                # (f_hz, psd_rad2_s2_hz: gyrocore.flight.synthesis.shaped_params), or {} for none
                 if not isinstance(given, Mapping):
                     raise GyroInputError("override of vibration must map parameter names to values")
                 params[eff] = validate_params({eff: dict(given)})[eff]

@@ -180,7 +180,7 @@ class SensorSpec:
         (the same for every unit; see the module docstring).
     shaped_vibration : mapping
         The shaped part of ``vibration`` (``{"f_hz": tuple, "psd_rad2_s2_hz": tuple of 3
-        tuples}``, :func:`gyrocore.flight.vibration.shaped_params`) from a ``[vibration]`` section with
+        tuples}``, :func:`gyrocore.flight.synthesis.shaped_params`) from a ``[vibration]`` section with
         ``spec = "SPEC.json"`` (path relative to the TOML) and optional ``band`` (index or
         ``"middle"``); empty = none (the physics part alone).
     """
@@ -392,7 +392,8 @@ def _convert(raw: Mapping, path: str) -> SensorSpec:
 
 def _vibration_section(table: Mapping, path: str) -> dict[str, tuple]:
     """``[vibration] spec = "SPEC.json", band = N|"middle", enabled = bool`` -> the shaped part's SI parameters."""
-    from gyrocore.flight.vibration import read_spec, shaped_params
+    from gyrocore.flight.synthesis import shaped_params
+    from gyrocore.flight.vibration import read_spec
 
     unknown = set(table) - {"spec", "band", "enabled"}
     if unknown:

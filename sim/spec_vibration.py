@@ -21,7 +21,7 @@ The mean line power of flights with other seeds then matches the spec within the
 Monte Carlo error (relative SE of the mean power, reported); one flight's line scatters around it
 (as the real quad's, one draw of its phases).
 What the physics cannot give — the real frame's resonances and broadband — stays a shaped
-disturbance (:func:`gyrocore.flight.vibration.synthesize`).
+disturbance (:func:`gyrocore.flight.synthesis.synthesize`).
 """
 
 from __future__ import annotations
@@ -394,10 +394,10 @@ def spec_injection(
     :class:`sim.vehicles.VibrationSpec` for the rotor physics (``physics=True``: the spec's
     rotor line through :func:`vibration_from_spec`) or None (the class's default);
     ``overrides`` = ``{"vibration": shaped part}`` for :class:`sim.gyro.SyntheticGyro` (the
-    registry effect ``vibration``'s parameters, :func:`gyrocore.flight.vibration.shaped_params`, without
+    registry effect ``vibration``'s parameters, :func:`gyrocore.flight.synthesis.shaped_params`, without
     the rotor line when the physics carries it); ``info`` for the recording's metadata.
     """
-    from gyrocore.flight.vibration import shaped_params, spec_band
+    from gyrocore.flight.synthesis import shaped_params, spec_band
 
     b = spec_band(spec, band)  # a bad band is one error line before anything runs
     hover_vib, sub, info = (

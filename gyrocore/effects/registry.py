@@ -35,7 +35,7 @@ Parameters are a mapping ``{effect_name: {param_name: ndarray}}`` in SI units (s
 ``correlated``) have parameters here but are generated in ``sim`` and identified by
 ``gyrocore.noise.allan``. ``vibration`` (kind ``physics``) comes from the hover's rotor physics;
 its optional shaped part (``f_hz`` (n,), ``psd_rad2_s2_hz`` (3, n): a measured spectrum,
-:func:`gyrocore.flight.vibration.shaped_params`) is generated in ``sim`` as one more noise term
+:func:`gyrocore.flight.synthesis.shaped_params`) is generated in ``sim`` as one more noise term
 (``sim.noise.ShapedNoise``), so a spec enters the simulator as every effect does.
 
 Adding a catalogue effect: write its :class:`Effect` below (schema, stage, inputs, term,
@@ -667,7 +667,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         {"f_hz": ("n",), "psd_rad2_s2_hz": (3, "n")},
         description="rotor-driven vibration: from the physics (hover), plus an optional shaped part, a Gaussian "
         "disturbance with the one-sided PSD psd_rad2_s2_hz (per axis, (rad/s)²/Hz) on the grid f_hz "
-        "(sim.noise.ShapedNoise; gyrocore.flight.vibration.shaped_params builds it from a vibration spec)",
+        "(sim.noise.ShapedNoise; gyrocore.flight.synthesis.shaped_params builds it from a vibration spec)",
     ),
 )
 

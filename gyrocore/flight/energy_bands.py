@@ -6,7 +6,7 @@ smeared over tens of Hz: no single bin stands out, the narrow-line detector of
 smeared band carries most of the power. This module finds the bands by their *energy*.
 
 Method, per axis, on an averaged PSD S(f) of K windows (ν ≈ 2K/(1 + 2ρ²) degrees of freedom,
-:func:`gyrocore.flight.vibration._dof`, handed in by the caller: this module imports nothing of
+:func:`gyrocore.flight.spectra.dof`, handed in by the caller: this module imports nothing of
 the vibration analysis, which calls it):
 
 1. Narrow features out: a running median of log S over :data:`MEDIAN_BINS` = 11 bins. A median
@@ -442,7 +442,7 @@ def attach(
     per throttle band (``band_psd[b]``, written into ``band_rows[b]["energy_bands"]``; with
     ``band_windows[b]``, the boolean (K,) selection of that band's windows, their standard errors
     too). ``dof(K)``: the degrees of freedom of an average of K windows
-    (:func:`gyrocore.flight.vibration._dof`); ``resolution_hz``: the window's equivalent noise
+    (:func:`gyrocore.flight.spectra.dof`); ``resolution_hz``: the window's equivalent noise
     bandwidth. Returns the whole-flight list and :func:`dominant_vibration`."""
     f = np.asarray(f_hz, float)
     K = int(psd_windows.shape[0])

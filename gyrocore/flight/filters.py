@@ -38,6 +38,7 @@ from gyrocore.errors import GyroInputError
 
 __all__ = [
     "RpmNotch",
+    "loop_scale",
     "article_lpf_coefficient",
     "pt_cutoff_correction",
     "SosFilter",
@@ -60,6 +61,17 @@ __all__ = [
     "chain_filters",
     "chain_response",
 ]
+
+
+def loop_scale(meta: dict) -> float:
+    """Measured / nominal loop rate of a flight log (``loop_rate_measured_hz`` / ``pid_rate_hz``
+    of its metadata): the firmware designs its filters for the nominal loop period and they run
+    on the real clock. 1 when the header lacks either or the ratio is outside 0.5-2 (implausible)."""
+    try:
+        ls = float(meta["loop_rate_measured_hz"]) / float(meta["pid_rate_hz"])
+    except (KeyError, ValueError, ZeroDivisionError):
+        return 1.0
+    return ls if np.isfinite(ls) and 0.5 < ls < 2 else 1.0
 
 
 def _check_fc(fc_hz: float, rate_hz: float) -> None:

@@ -32,6 +32,7 @@ else the firmware default's. The Pareto front (cost vs motor noise) is returned 
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -39,8 +40,8 @@ from typing import Sequence
 import numpy as np
 from scipy import signal
 
-from .filters import chain_response
-from .vibration import analyse
+from gyrocore.flight.filters import betaflight_notch_q, chain_filters, chain_response, loop_scale
+from gyrocore.flight.vibration import analyse
 
 __all__ = [
     "Candidate",
@@ -80,8 +81,6 @@ def _stage(kind, fc, rate, **kw):
 def notch_stage(f0: float, width_hz: float, rate: float) -> dict:
     """Betaflight static notch covering ``width_hz`` (lower −3 dB edge f0 − width/2)."""
     cut = max(f0 - width_hz / 2.0, 0.3 * f0)
-    from .filters import betaflight_notch_q
-
     return _stage("notch", f0, rate, notch_cutoff_hz=float(round(cut)), q=betaflight_notch_q(f0, round(cut)))
 
 
@@ -161,7 +160,7 @@ def candidates(
     if uniq:
         base = [c for c in out if c.lowpass != "none"]
         for c in base:
-            from .filters import firmware_stage
+            from gyrocore.flight.filters import firmware_stage
 
             lp = firmware_stage(c.stages[0])
             keep = [(f0, w) for f0, w in uniq if lp.magnitude(f0) > 0.1]
@@ -285,12 +284,9 @@ def preview(
     rb = chain_response(cand.stages, np.concatenate([fb, [flight_band_hz[1]]]), loop_scale=loop_scale)
     tau = float(np.mean(rb.group_delay_s[:-1]))
     # phase at the band edge from the exact frequency response of the cascade
-    from .filters import chain_filters
-    from scipy import signal as _sig
-
     ph = 0.0
     for flt in chain_filters(cand.stages, loop_scale=loop_scale):
-        _, h = _sig.sosfreqz(flt.sos, worN=[flight_band_hz[1]], fs=flt.rate_hz)
+        _, h = signal.sosfreqz(flt.sos, worN=[flight_band_hz[1]], fs=flt.rate_hz)
         ph += float(np.angle(h[0], deg=True))
     theta_d = tau * omega_rms_rad_s
     theta_v = float(np.sqrt(np.sum(jitter**2)))
@@ -627,207 +623,34 @@ def recommend_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0
         JSON, plus ``_rows`` (every previewed chain) and ``_res`` (the
         :class:`~gyrocore.flight.vibration.VibrationResult`).
     """
-
     res = analyse(rec, use=use, undo=True, window_s=window_s)
     notes = list(res.notes)
     if res.signal != "raw":
         notes.append("spectrum not fully before the firmware filters (" + res.signal + "): previews start from it")
     meta = rec.meta
     rate = loop_hz or (float(meta["gyro_filter_rate_hz"]) if "gyro_filter_rate_hz" in meta else res.rate_hz)
-    loop_scale = 1.0
-    try:
-        ls = float(meta["loop_rate_measured_hz"]) / float(meta["pid_rate_hz"])
-        loop_scale = ls if np.isfinite(ls) and 0.5 < ls < 2 else 1.0
-    except (KeyError, ValueError):
-        pass
-    # flight-band angular rate (the attitude cost of delay): RMS of the gyro below 30 Hz, airborne
-    sos = signal.butter(4, FLIGHT_BAND_HZ[1], fs=res.rate_hz, output="sos")
-    g_lp = signal.sosfiltfilt(sos, rec.gyro_rad_s, axis=0)
-    air = np.ones(rec.n, bool)
-    if "motor_cmd_mean" in rec.extra:
-        air = rec.extra["motor_cmd_mean"] >= 0.1
-    omega_rms = float(np.sqrt(np.mean(np.sum(g_lp[air] ** 2, axis=1))))
-    as_flown = None
-    if "gyro_filters" in meta:
-        import json
-
-        as_flown = json.loads(meta["gyro_filters"])
-        dyn = [s for s in as_flown if s.get("dynamic")]
-        if dyn:
-            notes.append(
-                "as flown: dynamic filters (" + ", ".join(s["kind"] for s in dyn) + ") not modelled, static part only"
-            )
-    # the energy bands that carry a notch-worthy share of the rms power (gyrocore.flight.energy_bands): the
-    # static-notch candidates sit on them first, each chain says how much of their power it lets through
-    bands = [
-        b
-        for b in res.energy_bands
-        if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE and not b.get("aliased")
-    ]
+    ctx = _PreviewContext(res, _flight_rate_rms(rec, res.rate_hz), loop_scale(meta), rate)
+    as_flown = _as_flown(meta, notes)
+    bands = _notch_bands(res, notes)
     cands = candidates(rate, lines=res.lines, as_flown=as_flown, nyquist_hz=res.rate_hz / 2, bands=bands)
-    targets = notch_targets(res.lines, bands, nyquist_hz=res.rate_hz / 2)
-    if bands:
-        notes.append(
-            "static notch candidates at the energy band(s) "
-            + ", ".join(
-                f"{b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz ({100 * b['share_of_power_above_40hz']:.0f} % of the "
-                f"rms power above 40 Hz)"
-                for b in bands
-            )
-            + "; notch targets: "
-            + ", ".join(t[2] for t in targets)
-        )
-    rows = [
-        preview(
-            res.f_hz,
-            res.mean_psd,
-            c,
-            reliable_below_hz=res.reliable_below_hz,
-            omega_rms_rad_s=omega_rms,
-            loop_scale=loop_scale,
-            lines=res.lines,
-            bands=bands,
-        )
-        for c in cands
-    ]
-    # RPM-tracking notch (needs eRPM telemetry in flight): one notch per moving line, at its
-    # frequency in each throttle band, on top of each low-pass of the grid
+    rows = [ctx.preview(c, bands) for c in cands]
     moving = [ln for ln in res.lines if ln["follows"] in ("throttle", "erpm") and not ln.get("aliased")]
-    if moving and res.band_psd.shape[0] > 1:
-        us = np.array([b["median"] for b in res.bands])
-        track = np.column_stack([ln["law"]["hz_at_zero"] + ln["law"]["hz_per_unit"] * us for ln in moving[:3]])
-        track[track < 100.0] = np.nan  # rpm_filter_min_hz default 100
-        weights = np.array([b["n_windows"] for b in res.bands], float)
-        for c in [c for c in cands if c.family == "betaflight" and c.lowpass in LP_KINDS and not c.notches_hz]:
-            rows.append(
-                preview_tracking(
-                    res.f_hz,
-                    res.band_psd,
-                    weights,
-                    c,
-                    track,
-                    reliable_below_hz=res.reliable_below_hz,
-                    omega_rms_rad_s=omega_rms,
-                    loop_scale=loop_scale,
-                    rate_hz=rate,
-                    lines=res.lines,
-                )
-            )
-        notes.append(
-            f"RPM-tracking notch candidates: Q {RPM_NOTCH_Q:g} notches following "
-            + ", ".join(f"{ln['axis']} {ln['frequency_hz']:.0f} Hz" for ln in moving[:3])
-            + " per throttle band (needs bidirectional DShot / eRPM)"
-        )
-    firmware = str(meta.get("firmware_name", "betaflight")).lower()
-    is_bf = firmware == "betaflight"
-    version = (
-        tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta and is_bf else None
-    )
-    rpm_rows = [r for r in rows if "rpm_notch" in r]
+    rows += _rpm_tracking_rows(ctx, cands, moving, notes)
+    fw = _Firmware.of(meta)
     # another firmware's RPM filter (INAV's) was not read here: its candidates are reported, not recommended
-    can_rpm = is_bf and (version is None or version >= (4, 0, 0))
+    can_rpm = fw.is_betaflight and (fw.version is None or fw.version >= (4, 0, 0))
     best, budget, src, front = recommend(rows if can_rpm else [r for r in rows if "rpm_notch" not in r])
-    rpm_best = None
-    if rpm_rows:
-        ok_r = [r for r in rpm_rows if r["motor_noise"] <= budget * (1 + 1e-9)] or [
-            min(rpm_rows, key=lambda r: r["motor_noise"])
-        ]
-        rpm_best = min(ok_r, key=lambda r: r["attitude_cost"])
-        if not can_rpm:
-            notes.append(
-                (
-                    f"RPM filter: Betaflight {meta['firmware_version']} has none (4.0+ with bidirectional DShot); "
-                    if is_bf
-                    else f"RPM filter: {firmware}'s was not read here; "
-                )
-                + "its best candidate is reported under 'with_rpm_filter', not recommended"
-            )
+    rpm_best = _rpm_best(rows, budget, fw, can_rpm=can_rpm, notes=notes)
     by = {r["family"]: r for r in rows}
-    # PX4 / ArduPilot: their LPF is a 2nd-order Butterworth; best cutoff under the same budget
-    b2 = []
-    # the grid, plus the flown 2nd-order Butterworth cutoff (ArduPilot INS_GYRO_FILTER, PX4
-    # IMU_GYRO_CUTOFF): without it an ArduPilot log whose own 42 Hz was best was told "40"
-    # (at the flown stage's own rate, the same chain as the "as flown" row)
-    flown_b2 = {
-        float(st["cutoff_hz"]): st
-        for st in (as_flown or [])
-        if st.get("kind") == "butter2" and not st.get("dynamic") and st.get("cutoff_hz")
-    }
-    for fc in sorted(set(CUTOFF_GRID_HZ + (20.0, 30.0)) | set(flown_b2)):
-        st = (
-            _stage("butter2", fc, float(flown_b2[fc].get("rate_hz") or rate))
-            if fc in flown_b2
-            else _stage("butter2", fc, rate)
-        )
-        c = Candidate(f"butter2 {fc:g} Hz", (st,), family="butter2", lowpass="butter2", cutoff_hz=fc)
-        b2.append(
-            preview(
-                res.f_hz,
-                res.mean_psd,
-                c,
-                reliable_below_hz=res.reliable_below_hz,
-                omega_rms_rad_s=omega_rms,
-                loop_scale=loop_scale,
-                lines=res.lines,
-                bands=bands,
-            )
-        )
-    ok = [r for r in b2 if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(b2, key=lambda r: r["motor_noise"])]
-    b2best = min(ok, key=lambda r: r["attitude_cost"])
-    ardu = {"INS_GYRO_FILTER": round(b2best["cutoff_hz"])}
-    if moving:
-        top = max(moving, key=lambda ln: ln["amplitude_rad_s"])
-        span = [p["frequency_hz"] for p in top.get("per_band", [])] or [top["frequency_hz"]]
-        ardu.update(
-            {
-                "INS_HNTCH_ENABLE": 1,
-                "INS_HNTCH_MODE": 1,
-                "INS_HNTCH_FREQ": round(min(span)),
-                "INS_HNTCH_BW": round(max(40.0, min(span) / 2)),
-            }
-        )
+    b2best = _butter2_best(ctx, as_flown, bands, budget)
+    ardu = _ardupilot_params(b2best, moving)
     coverage = None
     if bands:
         u_hover = float(np.median([b["median"] for b in res.bands])) if res.bands else None
-        coverage = band_coverage(bands[0], version=version, is_betaflight=is_bf, hover_throttle=u_hover)
+        coverage = band_coverage(bands[0], version=fw.version, is_betaflight=fw.is_betaflight, hover_throttle=u_hover)
         ardu = dict(ardu, **coverage["ardupilot"])  # the harmonic notch on the dominant band, not on a weaker line
-    bf_lines = (
-        betaflight_cli(best, version)
-        if is_bf
-        else [f"# {firmware} log: Betaflight CLI names do not apply (this firmware's parameter names were not read)"]
-    )
-    flown_dyn_lpf = [st for st in (as_flown or []) if st.get("kind") == "dyn_lpf"]
-    if (
-        is_bf
-        and flown_dyn_lpf
-        and any(ln.endswith("dyn_min_hz = 0") or ln == "set dyn_lpf_gyro_min_hz = 0" for ln in bf_lines)
-    ):
-        d = flown_dyn_lpf[0]
-        msg = (
-            f"the set lines turn off the dynamic gyro low-pass you flew ({d['cutoff_hz']:g}-{d.get('max_hz') or float('nan'):g} Hz), "
-            f"which the figures above do not model (the 'as flown' row and the motor-noise budget are its static part "
-            f"only, so the recommendation may filter less than you fly now): keep your dyn_lpf settings unless you "
-            f"mean to change them"
-        )
-        notes.append(msg)
-        bf_lines.insert(0, "# " + msg)
-    if "rpm_notch" in best and is_bf:
-        v = version or (4, 5, 0)
-        if v < (4, 0, 0):
-            bf_lines.append("# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)")
-        elif v < (4, 3, 0):
-            bf_lines += [
-                "set dshot_bidir = ON",
-                "set gyro_rpm_notch_harmonics = 1",
-                f"set gyro_rpm_notch_q = {RPM_NOTCH_Q * 100:.0f}",
-            ]
-        else:
-            bf_lines += [
-                "set dshot_bidir = ON",
-                "set rpm_filter_harmonics = 1",
-                f"set rpm_filter_q = {RPM_NOTCH_Q * 100:.0f}",
-            ]
-    out = {
+    bf_lines = _betaflight_lines(best, fw, as_flown, notes)
+    return {
         "recommended": _public_row(best),
         "as_flown": _public_row(by["as_flown"]) if "as_flown" in by else None,
         "with_rpm_filter": _public_row(rpm_best) if rpm_best else None,
@@ -848,7 +671,7 @@ def recommend_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0
             "motor_noise": "rad/s^2: rms of d/dt(filtered gyro) above 40 Hz (D-term input)",
             "delay_ms": f"mean group delay {FLIGHT_BAND_HZ[0]:g}-{FLIGHT_BAND_HZ[1]:g} Hz",
         },
-        "flight_rate_rms_rad_s": omega_rms,
+        "flight_rate_rms_rad_s": ctx.omega_rms_rad_s,
         "filter_rate_hz": rate,
         "reliable_below_hz": res.reliable_below_hz,
         "vibration": {
@@ -877,4 +700,224 @@ def recommend_filter(rec, *, loop_hz: float | None = None, window_s: float = 1.0
         "_rows": rows,
         "_res": res,
     }
-    return out
+
+
+# ------------------------------------------------------------------ the steps of recommend_filter
+@dataclass(frozen=True)
+class _PreviewContext:
+    """What every candidate of one flight is previewed against."""
+
+    res: object  # the flight's VibrationResult
+    omega_rms_rad_s: float  # flight-band angular rate RMS (:func:`_flight_rate_rms`)
+    loop_scale: float  # measured / nominal loop rate
+    rate_hz: float  # rate the gyro filters run at
+
+    def preview(self, c: Candidate, bands: list) -> dict:
+        return preview(
+            self.res.f_hz,
+            self.res.mean_psd,
+            c,
+            reliable_below_hz=self.res.reliable_below_hz,
+            omega_rms_rad_s=self.omega_rms_rad_s,
+            loop_scale=self.loop_scale,
+            lines=self.res.lines,
+            bands=bands,
+        )
+
+
+def _flight_rate_rms(rec, rate_hz: float) -> float:
+    """Flight-band angular rate (the attitude cost of delay): RMS of the gyro below 30 Hz, airborne, rad/s."""
+    sos = signal.butter(4, FLIGHT_BAND_HZ[1], fs=rate_hz, output="sos")
+    g_lp = signal.sosfiltfilt(sos, rec.gyro_rad_s, axis=0)
+    air = np.ones(rec.n, bool)
+    if "motor_cmd_mean" in rec.extra:
+        air = rec.extra["motor_cmd_mean"] >= 0.1
+    return float(np.sqrt(np.mean(np.sum(g_lp[air] ** 2, axis=1))))
+
+
+def _as_flown(meta: dict, notes: list) -> list | None:
+    """The filter chain the flight was flown with (its header's), or None; its dynamic stages said in ``notes``."""
+    if "gyro_filters" not in meta:
+        return None
+    as_flown = json.loads(meta["gyro_filters"])
+    dyn = [s for s in as_flown if s.get("dynamic")]
+    if dyn:
+        notes.append(
+            "as flown: dynamic filters (" + ", ".join(s["kind"] for s in dyn) + ") not modelled, static part only"
+        )
+    return as_flown
+
+
+def _notch_bands(res, notes: list) -> list:
+    """The energy bands that carry a notch-worthy share of the rms power (gyrocore.flight.energy_bands):
+    the static-notch candidates sit on them first, each chain says how much of their power it lets through."""
+    bands = [
+        b
+        for b in res.energy_bands
+        if (b.get("share_of_power_above_40hz") or 0.0) >= BAND_NOTCH_MIN_SHARE and not b.get("aliased")
+    ]
+    if bands:
+        targets = notch_targets(res.lines, bands, nyquist_hz=res.rate_hz / 2)
+        notes.append(
+            "static notch candidates at the energy band(s) "
+            + ", ".join(
+                f"{b['axis']} {b['edges_hz'][0]:.0f}-{b['edges_hz'][1]:.0f} Hz ({100 * b['share_of_power_above_40hz']:.0f} % of the "
+                f"rms power above 40 Hz)"
+                for b in bands
+            )
+            + "; notch targets: "
+            + ", ".join(t[2] for t in targets)
+        )
+    return bands
+
+
+def _rpm_tracking_rows(ctx: _PreviewContext, cands: list, moving: list, notes: list) -> list:
+    """RPM-tracking notch (needs eRPM telemetry in flight): one notch per moving line, at its
+    frequency in each throttle band, on top of each low-pass of the grid."""
+    res = ctx.res
+    if not moving or res.band_psd.shape[0] <= 1:
+        return []
+    us = np.array([b["median"] for b in res.bands])
+    track = np.column_stack([ln["law"]["hz_at_zero"] + ln["law"]["hz_per_unit"] * us for ln in moving[:3]])
+    track[track < 100.0] = np.nan  # rpm_filter_min_hz default 100
+    weights = np.array([b["n_windows"] for b in res.bands], float)
+    rows = [
+        preview_tracking(
+            res.f_hz,
+            res.band_psd,
+            weights,
+            c,
+            track,
+            reliable_below_hz=res.reliable_below_hz,
+            omega_rms_rad_s=ctx.omega_rms_rad_s,
+            loop_scale=ctx.loop_scale,
+            rate_hz=ctx.rate_hz,
+            lines=res.lines,
+        )
+        for c in cands
+        if c.family == "betaflight" and c.lowpass in LP_KINDS and not c.notches_hz
+    ]
+    notes.append(
+        f"RPM-tracking notch candidates: Q {RPM_NOTCH_Q:g} notches following "
+        + ", ".join(f"{ln['axis']} {ln['frequency_hz']:.0f} Hz" for ln in moving[:3])
+        + " per throttle band (needs bidirectional DShot / eRPM)"
+    )
+    return rows
+
+
+@dataclass(frozen=True)
+class _Firmware:
+    """The firmware that flew the log: its name, whether it is Betaflight, its Betaflight version."""
+
+    name: str
+    is_betaflight: bool
+    version: tuple | None
+    version_str: str
+
+    @classmethod
+    def of(cls, meta: dict) -> _Firmware:
+        name = str(meta.get("firmware_name", "betaflight")).lower()
+        is_bf = name == "betaflight"
+        version = (
+            tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta and is_bf else None
+        )
+        return cls(name, is_bf, version, str(meta.get("firmware_version", "")))
+
+
+def _rpm_best(rows: list, budget: float, fw: _Firmware, *, can_rpm: bool, notes: list) -> dict | None:
+    """The best RPM-filter chain under the motor-noise budget (the quietest when none meets it);
+    where the firmware cannot fly it, said in ``notes``."""
+    rpm_rows = [r for r in rows if "rpm_notch" in r]
+    if not rpm_rows:
+        return None
+    ok_r = [r for r in rpm_rows if r["motor_noise"] <= budget * (1 + 1e-9)] or [
+        min(rpm_rows, key=lambda r: r["motor_noise"])
+    ]
+    if not can_rpm:
+        notes.append(
+            (
+                f"RPM filter: Betaflight {fw.version_str} has none (4.0+ with bidirectional DShot); "
+                if fw.is_betaflight
+                else f"RPM filter: {fw.name}'s was not read here; "
+            )
+            + "its best candidate is reported under 'with_rpm_filter', not recommended"
+        )
+    return min(ok_r, key=lambda r: r["attitude_cost"])
+
+
+def _butter2_best(ctx: _PreviewContext, as_flown: list | None, bands: list, budget: float) -> dict:
+    """PX4 / ArduPilot: their LPF is a 2nd-order Butterworth; the best cutoff under the same budget.
+
+    The grid, plus the flown 2nd-order Butterworth cutoff (ArduPilot INS_GYRO_FILTER, PX4
+    IMU_GYRO_CUTOFF): without it an ArduPilot log whose own 42 Hz was best was told "40" (at
+    the flown stage's own rate, the same chain as the "as flown" row).
+    """
+    flown_b2 = {
+        float(st["cutoff_hz"]): st
+        for st in (as_flown or [])
+        if st.get("kind") == "butter2" and not st.get("dynamic") and st.get("cutoff_hz")
+    }
+    b2 = []
+    for fc in sorted(set(CUTOFF_GRID_HZ + (20.0, 30.0)) | set(flown_b2)):
+        st = (
+            _stage("butter2", fc, float(flown_b2[fc].get("rate_hz") or ctx.rate_hz))
+            if fc in flown_b2
+            else _stage("butter2", fc, ctx.rate_hz)
+        )
+        c = Candidate(f"butter2 {fc:g} Hz", (st,), family="butter2", lowpass="butter2", cutoff_hz=fc)
+        b2.append(ctx.preview(c, bands))
+    ok = [r for r in b2 if r["motor_noise"] <= budget * (1 + 1e-9)] or [min(b2, key=lambda r: r["motor_noise"])]
+    return min(ok, key=lambda r: r["attitude_cost"])
+
+
+def _ardupilot_params(b2best: dict, moving: list) -> dict:
+    """ArduPilot's gyro low-pass and, with a moving line, its harmonic notch on the strongest."""
+    ardu = {"INS_GYRO_FILTER": round(b2best["cutoff_hz"])}
+    if moving:
+        top = max(moving, key=lambda ln: ln["amplitude_rad_s"])
+        span = [p["frequency_hz"] for p in top.get("per_band", [])] or [top["frequency_hz"]]
+        ardu.update(
+            {
+                "INS_HNTCH_ENABLE": 1,
+                "INS_HNTCH_MODE": 1,
+                "INS_HNTCH_FREQ": round(min(span)),
+                "INS_HNTCH_BW": round(max(40.0, min(span) / 2)),
+            }
+        )
+    return ardu
+
+
+def _betaflight_lines(best: dict, fw: _Firmware, as_flown: list | None, notes: list) -> list[str]:
+    """The Betaflight CLI ``set`` lines of the pick (a comment for another firmware), with a
+    warning where they turn off the dynamic low-pass that was flown, and the RPM filter's lines."""
+    if not fw.is_betaflight:
+        return [f"# {fw.name} log: Betaflight CLI names do not apply (this firmware's parameter names were not read)"]
+    bf_lines = betaflight_cli(best, fw.version)
+    flown_dyn_lpf = [st for st in (as_flown or []) if st.get("kind") == "dyn_lpf"]
+    if flown_dyn_lpf and any(ln.endswith("dyn_min_hz = 0") or ln == "set dyn_lpf_gyro_min_hz = 0" for ln in bf_lines):
+        d = flown_dyn_lpf[0]
+        msg = (
+            f"the set lines turn off the dynamic gyro low-pass you flew ({d['cutoff_hz']:g}-{d.get('max_hz') or float('nan'):g} Hz), "
+            f"which the figures above do not model (the 'as flown' row and the motor-noise budget are its static part "
+            f"only, so the recommendation may filter less than you fly now): keep your dyn_lpf settings unless you "
+            f"mean to change them"
+        )
+        notes.append(msg)
+        bf_lines.insert(0, "# " + msg)
+    if "rpm_notch" in best:
+        v = fw.version or (4, 5, 0)
+        if v < (4, 0, 0):
+            bf_lines.append("# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)")
+        elif v < (4, 3, 0):
+            bf_lines += [
+                "set dshot_bidir = ON",
+                "set gyro_rpm_notch_harmonics = 1",
+                f"set gyro_rpm_notch_q = {RPM_NOTCH_Q * 100:.0f}",
+            ]
+        else:
+            bf_lines += [
+                "set dshot_bidir = ON",
+                "set rpm_filter_harmonics = 1",
+                f"set rpm_filter_q = {RPM_NOTCH_Q * 100:.0f}",
+            ]
+    return bf_lines

@@ -38,15 +38,26 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from scipy import signal, stats
 
 from gyrocore.errors import GyroInputError
-from gyrocore.data.recording import Recording, atomic_write_text
+from gyrocore.data.recording import Recording, atomic_open, atomic_write_text
 from gyrocore.flight.energy_bands import attach as attach_energy_bands
+from gyrocore.flight.filters import SosFilter, biquad_notch, loop_scale, make_filter
+from gyrocore.flight.spectra import (
+    AXES,
+    ENBW_HANN,
+    MIN_BAND_WINDOWS,
+    Windows,
+    band_counts,
+    dof,
+    find_peaks,
+    hann_windows,
+)
 
 __all__ = [
     "VibrationResult",
@@ -56,44 +67,26 @@ __all__ = [
     "SPEC_FORMAT_VERSION",
     "undo_response",
     "plot_vibration",
-    "synthesize",
-    "shaped_params",
-    "add_vibration",
-    "fidelity",
-    "spec_band",
 ]
-
-AXES = ("x", "y", "z")
 #: 1.1: ``energy_bands`` (whole flight, and per throttle band inside ``bands``; gyrocore.flight.energy_bands)
 SPEC_FORMAT_VERSION = "1.1"
-DEG = math.pi / 180.0
-#: Equivalent-dof correlation of 50 %-overlapped Hann windows (Percival & Walden 1993, Table 292).
-RHO_HANN_50 = 0.167
-#: Hann window equivalent noise bandwidth, bins.
-ENBW_HANN = 1.5
 HIGHPASS_HZ = 40.0
 #: Bins where the undone filters' |H|² is below −20 dB (around a notch) are not reconstructed:
 #: dividing by it would amplify the logged noise floor and quantisation 100-fold.
 H2_FLOOR = 1e-2
 
 
-def _dof(k: int) -> float:
-    return 2.0 * k / (1.0 + 2.0 * RHO_HANN_50**2)
-
-
 # ------------------------------------------------------------------ signal choice
 def _stage_filter(stage: dict, loop_scale: float):
     """SosFilter of a static firmware stage (gyrocore.flight.filters), at its nominal rate scaled to the measured clock."""
-    from . import filters as F
-
     kind, fc, rate = stage["kind"], float(stage["cutoff_hz"]), float(stage["rate_hz"])
     if kind == "notch":
-        flt = F.biquad_notch(fc, rate, q=float(stage["q"]))
+        flt = biquad_notch(fc, rate, q=float(stage["q"]))
     elif kind in ("pt1", "pt2", "pt3", "biquad"):
-        flt = F.make_filter(kind, fc, rate)
+        flt = make_filter(kind, fc, rate)
     else:
         return None
-    return F.SosFilter(flt.sos, rate_hz=rate * loop_scale, name=flt.name, cutoff_hz=fc)
+    return SosFilter(flt.sos, rate_hz=rate * loop_scale, name=flt.name, cutoff_hz=fc)
 
 
 def undo_response(
@@ -218,164 +211,6 @@ def _choose_signal(rec: Recording, *, use: str, undo: bool) -> _Signal:
     )
 
 
-# ------------------------------------------------------------------ windows
-@dataclass(frozen=True)
-class _Windows:
-    f_hz: np.ndarray  # (M,)
-    psd: np.ndarray  # (K, M, 3)   (unit)²/Hz
-    band_var: np.ndarray  # (K,) mean of the band variable in each window
-    rotor_hz: np.ndarray | None  # (K,) mean rotor frequency, Hz
-    rate_hz: float
-    nperseg: int
-
-
-def _windows(t_s, x, band_var, rotor_hz, airborne, *, nperseg: int, rate_hz: float) -> _Windows:
-    """Hann windows (50 % overlap) over gap-free airborne runs; one-sided PSD per window."""
-    dt = np.diff(t_s)
-    med = float(np.median(dt))
-    gap = np.concatenate([[False], np.abs(dt - med) > 0.5 * med])
-    # runs of consecutive usable samples
-    usable = airborne.copy()
-    breaks = np.nonzero(gap | ~usable)[0]
-    starts = np.concatenate([[0], breaks])
-    ends = np.concatenate([breaks, [t_s.size]])
-    step = nperseg // 2
-    win = signal.windows.hann(nperseg, sym=False)
-    scale = 1.0 / (rate_hz * np.sum(win**2))
-    psds, bvs, rhs = [], [], []
-    for s0, e0 in zip(starts, ends):
-        s0 = s0 if (s0 == 0 or not gap[s0]) else s0  # a gap sample starts a new run
-        if not usable[s0]:
-            s0 += 1
-        n = e0 - s0
-        if n < nperseg:
-            continue
-        for a in range(s0, e0 - nperseg + 1, step):
-            seg = x[a : a + nperseg]
-            seg = seg - seg.mean(axis=0)
-            X = np.fft.rfft(seg * win[:, None], axis=0)
-            p = (np.abs(X) ** 2) * scale
-            p[1:-1] *= 2.0 if nperseg % 2 == 0 else 1.0
-            if nperseg % 2:
-                p[1:] *= 2.0
-            psds.append(p)
-            bvs.append(float(np.mean(band_var[a : a + nperseg])) if band_var is not None else 0.0)
-            if rotor_hz is not None:
-                rhs.append(float(np.mean(rotor_hz[a : a + nperseg])))
-    if not psds:
-        raise GyroInputError(
-            f"no gap-free airborne stretch of {nperseg} samples ({nperseg / rate_hz:.2f} s) to analyse"
-        )
-    f = np.fft.rfftfreq(nperseg, d=1.0 / rate_hz)
-    return _Windows(
-        f_hz=f,
-        psd=np.array(psds),
-        band_var=np.array(bvs),
-        rotor_hz=np.array(rhs) if rhs else None,
-        rate_hz=rate_hz,
-        nperseg=nperseg,
-    )
-
-
-#: Fewest windows a throttle band is analysed with (its averaged PSD has ν ≈ 2·K·(overlap
-#: factor) degrees of freedom; below 4 windows the χ² line threshold exceeds 8× the baseline).
-MIN_BAND_WINDOWS = 4
-
-
-def _band_counts(band_var: np.ndarray, edges: np.ndarray) -> list[int]:
-    """Windows per band for the half-open bands of ``edges`` (the last one closed), as the band
-    loop of :func:`_analyse` selects them."""
-    if len(edges) < 2:
-        return [int(band_var.size)]
-    return [
-        int(((band_var >= edges[i]) & ((band_var < edges[i + 1]) | (i == len(edges) - 2))).sum())
-        for i in range(len(edges) - 1)
-    ]
-
-
-# ------------------------------------------------------------------ lines
-def _baseline(p: np.ndarray, half_bins: int) -> np.ndarray:
-    """Running median of log PSD over ±half_bins (robust to the lines themselves)."""
-    from scipy.ndimage import median_filter
-
-    lp = np.log(np.maximum(p, 1e-300))
-    return np.exp(median_filter(lp, size=2 * half_bins + 1, mode="nearest")) / _MEDIAN_LOG_BIAS
-
-
-#: E[log χ²₂/2] = −γ: the median of log periodogram bins sits below log of the mean; for an
-#: average of K windows the bias shrinks. A running median of the *averaged* log PSD (ν ≥ 20)
-#: is within ~5 % of the mean level: taken as 1 (documented bias, not a tuned factor).
-_MEDIAN_LOG_BIAS = 1.0
-
-
-@dataclass
-class _Peak:
-    axis: int
-    f_hz: float
-    power: float  # (unit)² (line power = mean square)
-    power_se: float
-    psd_peak: float
-    ratio: float
-
-
-def _hann_capture(d: float, k_lo: int, k_hi: int, n: int = 4096) -> float:
-    """Fraction of a tone's windowed power (Hann, offset ``d`` bins from bin 0) in bins k_lo..k_hi-1."""
-    w = signal.windows.hann(n, sym=False)
-    t = np.arange(n)
-    tone = w * np.exp(2j * np.pi * (64 + d) * t / n)
-    X = np.abs(np.fft.fft(tone)) ** 2
-    tot = X.sum()
-    return float(X[64 + k_lo : 64 + k_hi].sum() / tot)
-
-
-def _find_peaks(f, pbar, pwin, k_windows: int, *, fmin: float, fmax: float, df_res: float) -> list[_Peak]:
-    """Peaks of the band-averaged PSD ``pbar`` (M, 3) above the χ² threshold."""
-    nu = _dof(k_windows)
-    sel = (f >= fmin) & (f <= fmax)
-    m = int(sel.sum())
-    if m < 10:
-        return []
-    thr = stats.chi2.ppf(1.0 - 0.001 / m, nu) / nu
-    df = f[1] - f[0]
-    half = max(5, int(round(15.0 / df)))
-    peaks = []
-    for ax in range(3):
-        p = pbar[:, ax]
-        base = _baseline(p, half)
-        ratio = p / base
-        cand = np.nonzero(sel & (ratio > thr))[0]
-        # local maxima only, merge neighbours
-        taken = []
-        for i in cand:
-            if i <= 0 or i >= f.size - 1:
-                continue
-            if p[i] < p[i - 1] or p[i] < p[i + 1]:
-                continue
-            if taken and i - taken[-1] <= 2:
-                if p[i] > p[taken[-1]]:
-                    taken[-1] = i
-                continue
-            taken.append(i)
-        for i in taken:
-            a, b, c = np.log(p[i - 1]), np.log(p[i]), np.log(p[i + 1])
-            den = a - 2 * b + c
-            d = 0.5 * (a - c) / den if den < 0 else 0.0
-            fi = f[i] + float(np.clip(d, -0.5, 0.5)) * df
-            lo, hi = max(i - 2, 0), min(i + 3, f.size)
-            # Hann leakage: fraction of a tone's power at offset d bins that lands in bins
-            # i-2..i+2 (|W(k - d)|², W the Hann kernel); the line power is divided by it
-            cap = _hann_capture(float(np.clip(d, -0.5, 0.5)), lo - i, hi - i)
-            exc_w = np.clip(pwin[:, lo:hi, ax] - base[lo:hi][None, :], 0.0, None).sum(axis=1) * df / cap  # per window
-            pw = float(np.clip(p[lo:hi] - base[lo:hi], 0.0, None).sum() * df / cap)
-            k_eff = max(nu / 2.0, 1.0)
-            se_spread = float(np.std(exc_w, ddof=1) / math.sqrt(k_eff)) if exc_w.size > 1 else float("nan")
-            # the baseline (noise) power under the line is itself a χ²_ν estimate: SE = P_b·√(2/ν)
-            se_base = float(base[lo:hi].sum() * df / cap * math.sqrt(2.0 / nu))
-            se = math.hypot(se_spread, se_base)
-            peaks.append(_Peak(ax, float(fi), pw, se, float(p[i]), float(ratio[i])))
-    return peaks
-
-
 @dataclass(frozen=True)
 class VibrationResult:
     """Result of :func:`analyse` (JSON form: :meth:`to_json`, DESIGN.md keys first)."""
@@ -483,8 +318,6 @@ def analyse(
     fmin_hz : float
         Lowest line frequency searched, Hz.
     """
-    import warnings
-
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Mean of empty slice", category=RuntimeWarning)
         return _analyse(
@@ -509,35 +342,112 @@ def _analyse(
     notes, warns = [], []
     _check_logs_alike(rec, t_from_s, t_to_s)
     sig = _choose_signal(rec, use=use, undo=undo)
-    t = rec.t_s
-    rate = 1.0 / float(np.median(np.diff(t)))
+    rate, nper = _window_samples(rec.t_s, window_s)
+    bv, bv_name = _band_variable(rec)
+    airborne = _airborne(rec, bv, airborne_min_cmd=airborne_min_cmd, t_from_s=t_from_s, t_to_s=t_to_s)
+    W = _signal_windows(rec, sig.gyro, bv, airborne, nperseg=nper, rate_hz=rate)
+    f = W.f_hz
+    und = _undo_filters(rec, sig, f, rate_hz=rate, undo=undo, notes=notes, warns=warns)
+    psd = _reconstruct(W.psd, und.H2, f, notes)
+    accel_psd = None
+    if rec.accel_m_s2 is not None:
+        accel_psd = hann_windows(rec.t_s, rec.accel_m_s2, bv, None, airborne, nperseg=nper, rate_hz=rate).psd
+    df = f[1] - f[0]
+    hp = (f >= HIGHPASS_HZ) & (f < und.reliable_hz + 0.5 * df)
+    band_hi = float(f[hp][-1]) if hp.any() else float("nan")
+    rms, rlo, rhi = _rms_stats(psd, hp, df)
+    arms = None
+    if accel_psd is not None:
+        am, _, _ = _rms_stats(accel_psd, f >= HIGHPASS_HZ, df)
+        arms = {a: float(am[i]) for i, a in enumerate(AXES)}
+    edges = _throttle_edges(W.band_var, bv, band_edges=band_edges, n_bands=n_bands, window_s=window_s, notes=notes)
+    bands = _throttle_bands(W, psd, accel_psd, und.H2, edges, hp=hp, fmin_hz=fmin_hz, notes=notes)
+    has_law = bv is not None and len(edges) > 2
+    lines = _link_lines(bands.rows, f, rate, has_bv=has_law, rotor=W.rotor_hz is not None, reliable_hz=und.reliable_hz)
+    for r in bands.rows:
+        pk = r.pop("_peaks")
+        r["peaks_hz"] = {a: sorted(round(p.f_hz, 1) for p in pk if p.axis == i) for i, a in enumerate(AXES)}
+    mean_psd = np.nanmean(psd, axis=0)
+    energy, dominant = attach_energy_bands(
+        f,
+        psd,
+        mean_psd,
+        bands.psd,
+        bands.rows,
+        lines,
+        fmin_hz=fmin_hz,
+        reliable_below_hz=und.reliable_hz,
+        rate_hz=rate,
+        has_bv=has_law,
+        dof=dof,
+        resolution_hz=ENBW_HANN * df,
+        band_windows=bands.windows,
+    )
+    return VibrationResult(
+        format_version=SPEC_FORMAT_VERSION,
+        rate_hz=rate,
+        signal=und.kind if undo or und.kind == "raw" else sig.kind,
+        source=sig.source,
+        filters_before=und.filters_before,
+        reliable_below_hz=und.reliable_hz,
+        rms_above_40hz_rad_s={a: float(rms[i]) for i, a in enumerate(AXES)},
+        rms_above_40hz_interval_rad_s={a: [float(rlo[i]), float(rhi[i])] for i, a in enumerate(AXES)},
+        rms_band_hz=[HIGHPASS_HZ, band_hi],
+        accel_rms_above_40hz_m_s2=arms,
+        lines=lines,
+        bands=bands.rows,
+        band_variable=bv_name,
+        notes=notes,
+        warnings=warns,
+        f_hz=f,
+        band_psd=np.array(bands.psd),
+        band_psd_accel=np.array(bands.psd_accel) if bands.psd_accel else None,
+        mean_psd=mean_psd,
+        n_windows=psd.shape[0],
+        nperseg=nper,
+        energy_bands=energy,
+        dominant_vibration=dominant,
+    )
+
+
+# ------------------------------------------------------------------ the steps of analyse
+def _window_samples(t_s: np.ndarray, window_s: float) -> tuple[float, int]:
+    """The data rate, Hz, and the (even) samples per Hann window of ``window_s`` seconds."""
+    rate = 1.0 / float(np.median(np.diff(t_s)))
     nper = int(round(window_s * rate))
     if nper < 32:
         raise GyroInputError(f"window of {window_s} s holds {nper} samples at {rate:.0f} Hz; use a longer --window-s")
-    nper += nper % 2
-    bv, bv_name = _band_variable(rec)
+    return rate, nper + nper % 2
+
+
+def _airborne(rec: Recording, bv, *, airborne_min_cmd: float, t_from_s, t_to_s) -> np.ndarray:
+    """(N,) bool: the samples analysed (band variable at or above the airborne threshold, inside
+    the time span); one ``error:`` line when the span or the airborne part is empty."""
+    t = rec.t_s
     airborne = np.ones(rec.n, bool)
     if bv is not None:
         airborne &= np.isfinite(bv) & (bv >= airborne_min_cmd)
+    spanned = t_from_s is not None or t_to_s is not None
+    in_span = np.ones(rec.n, bool)
     if t_from_s is not None:
-        airborne &= t >= t_from_s
+        in_span &= t >= t_from_s
     if t_to_s is not None:
-        airborne &= t < t_to_s
-    if t_from_s is not None or t_to_s is not None:
-        in_span = np.ones(rec.n, bool)
-        if t_from_s is not None:
-            in_span &= t >= t_from_s
-        if t_to_s is not None:
-            in_span &= t < t_to_s
-        if not in_span.any():
-            raise GyroInputError(f"--t-from-s/--t-to-s select 0 samples; the recording spans t = {t[0]:g}-{t[-1]:g} s")
+        in_span &= t < t_to_s
+    airborne &= in_span
+    if spanned and not in_span.any():
+        raise GyroInputError(f"--t-from-s/--t-to-s select 0 samples; the recording spans t = {t[0]:g}-{t[-1]:g} s")
     if not airborne.any():
         raise GyroInputError(
             "no airborne samples (band variable below the airborne threshold everywhere"
-            + (" in the selected time span)" if t_from_s is not None or t_to_s is not None else ")")
+            + (" in the selected time span)" if spanned else ")")
         )
+    return airborne
+
+
+def _signal_windows(rec: Recording, x, bv, airborne, *, nperseg: int, rate_hz: float) -> Windows:
+    """:func:`~gyrocore.flight.spectra.hann_windows` of the analysed gyro; a batch-sampled recording's error names the longest window it holds."""
     try:
-        W = _windows(t, sig.gyro, bv, _rotor_hz(rec), airborne, nperseg=nper, rate_hz=rate)
+        return hann_windows(rec.t_s, x, bv, _rotor_hz(rec), airborne, nperseg=nperseg, rate_hz=rate_hz)
     except GyroInputError as exc:
         if rec.meta.get("stream") == "batch" and rec.meta.get("batch_window_s"):
             wb = float(rec.meta["batch_window_s"])
@@ -546,28 +456,34 @@ def _analyse(
                 f"{math.floor(wb * 0.95 * 100) / 100:g} or less"
             ) from None
         raise
-    f = W.f_hz
-    # undo the firmware filters in the spectral domain
-    loop_scale = 1.0
-    if "loop_rate_measured_hz" in rec.meta and "gyro_rate_hz" in rec.meta:
-        try:
-            ls = float(rec.meta["loop_rate_measured_hz"]) / float(rec.meta["pid_rate_hz"])
-            loop_scale = ls if np.isfinite(ls) and 0.5 < ls < 2 else 1.0
-        except (KeyError, ValueError):
-            loop_scale = 1.0
+
+
+@dataclass(frozen=True)
+class _Undone:
+    H2: np.ndarray  # (M,) |H(f)|² of the undone stages (1 where none)
+    filters_before: list  # the stages before the analysed signal, each with "undone"
+    kind: str  # raw / partly_filtered / filtered
+    reliable_hz: float  # reconstruction reliable below this
+
+
+def _undo_filters(rec: Recording, sig: _Signal, f: np.ndarray, *, rate_hz: float, undo: bool, notes, warns) -> _Undone:
+    """The firmware filters the analysed signal went through, undone in the spectral domain where
+    they are static (``undo``); what was and was not undone goes to ``notes`` / ``warns``."""
     kind = sig.kind
     filters_before = [dict(s, undone=False) for s in sig.stages_before]
     H2 = np.ones_like(f)
     reliable = float(f[-1])
     if sig.stages_before and undo:
-        H2, done, not_done, reliable = undo_response(sig.stages_before, f, loop_scale=loop_scale, log_rate_hz=rate)
+        H2, done, not_done, reliable = undo_response(
+            sig.stages_before, f, loop_scale=loop_scale(rec.meta), log_rate_hz=rate_hz
+        )
         filters_before = done + not_done
         kind = "raw" if not not_done else "partly_filtered"
         if done:
             notes.append(
                 "undone in the spectrum (|H|^2 divided out): "
                 + ", ".join(_label(s) for s in done)
-                + f"; reliable below {reliable:.0f} Hz (folding from above the logged Nyquist {rate / 2:.0f} Hz)"
+                + f"; reliable below {reliable:.0f} Hz (folding from above the logged Nyquist {rate_hz / 2:.0f} Hz)"
             )
         if not_done:
             warns.append(
@@ -589,7 +505,13 @@ def _analyse(
             + ", ".join(_label(s) for s in sig.stages_before)
             + ("; the static ones are undone in the spectrum" if undo else "")
         )
-    psd = W.psd / H2[None, :, None]  # above ``reliable`` kept for the plot/spec, flagged, not integrated
+    return _Undone(H2, filters_before, kind, reliable)
+
+
+def _reconstruct(psd_w: np.ndarray, H2: np.ndarray, f: np.ndarray, notes: list) -> np.ndarray:
+    """(K, M, 3) per-window PSD divided by |H|²; NaN where |H|² < H2_FLOOR (said in ``notes``).
+    Above the reliable limit it is kept for the plot and the spec, flagged, not integrated."""
+    psd = psd_w / H2[None, :, None]
     hole = H2 < H2_FLOOR
     psd[:, hole, :] = np.nan
     if hole.any():
@@ -598,57 +520,67 @@ def _analyse(
         notes.append(
             "not reconstructed (undone filters below -20 dB): " + ", ".join(f"{a:.0f}-{b:.0f} Hz" for a, b in spans)
         )
-    # accel windows (as logged)
-    accel_psd = None
-    if rec.accel_m_s2 is not None:
-        Wa = _windows(t, rec.accel_m_s2, bv, None, airborne, nperseg=nper, rate_hz=rate)
-        accel_psd = Wa.psd
-    K = psd.shape[0]
-    df = f[1] - f[0]
-    hp = (f >= HIGHPASS_HZ) & (f < reliable + 0.5 * df)
-    band_hi = float(f[hp][-1]) if hp.any() else float("nan")
+    return psd
 
-    def rms_stats(P, mask):
-        pw = np.nansum(P[:, mask, :], axis=1) * df  # (K, 3) per-window band power
-        m = pw.mean(axis=0)
-        k_eff = max(_dof(P.shape[0]) / 2.0, 1.0)
-        se = pw.std(axis=0, ddof=1) / math.sqrt(k_eff) if P.shape[0] > 1 else np.full(3, np.nan)
-        lo = np.sqrt(np.clip(m - 1.96 * se, 0, None))
-        hi = np.sqrt(m + 1.96 * se)
-        return np.sqrt(m), lo, hi
 
-    rms, rlo, rhi = rms_stats(psd, hp)
-    arms = None
-    if accel_psd is not None:
-        am, _, _ = rms_stats(accel_psd, f >= HIGHPASS_HZ)
-        arms = {a: float(am[i]) for i, a in enumerate(AXES)}
-    # throttle bands
+def _rms_stats(P: np.ndarray, mask: np.ndarray, df: float):
+    """RMS over the ``mask`` bins of the window-averaged PSD ``P`` (K, M, 3) and its 95 % interval
+    from the spread of the per-window band power (K_eff = ν/2 windows): three (3,) arrays."""
+    pw = np.nansum(P[:, mask, :], axis=1) * df  # (K, 3) per-window band power
+    m = pw.mean(axis=0)
+    k_eff = max(dof(P.shape[0]) / 2.0, 1.0)
+    se = pw.std(axis=0, ddof=1) / math.sqrt(k_eff) if P.shape[0] > 1 else np.full(3, np.nan)
+    lo = np.sqrt(np.clip(m - 1.96 * se, 0, None))
+    hi = np.sqrt(m + 1.96 * se)
+    return np.sqrt(m), lo, hi
+
+
+def _throttle_edges(band_var: np.ndarray, bv, *, band_edges, n_bands: int, window_s: float, notes: list) -> np.ndarray:
+    """The throttle band edges: the given ones, else equal-count quantiles of the windows' band
+    variable (as many bands as asked while each keeps MIN_BAND_WINDOWS), else one band."""
+    K = band_var.size
     if band_edges is not None:
         edges = np.asarray(band_edges, float)
         if edges.ndim != 1 or edges.size < 2 or not np.all(np.diff(edges) > 0):
             raise GyroInputError(f"band edges must be an increasing list of at least 2 values, got {list(band_edges)}")
         if bv is None:
             raise GyroInputError("band edges need a motor or throttle column")
-    elif bv is not None and np.ptp(W.band_var) > 0.02:
-        # equal-count bands, as many as asked for while every band keeps MIN_BAND_WINDOWS
-        # windows (a band with fewer is not analysed: on a 17-s flight 8 bands of 3 windows
-        # had dropped 18 of 26 windows, and the flight's motor line with them)
+        return edges
+    if bv is not None and np.ptp(band_var) > 0.02:
+        # a band with fewer windows is not analysed: on a 17-s flight 8 bands of 3 windows
+        # had dropped 18 of 26 windows, and the flight's motor line with them
         for nb in range(max(1, min(int(n_bands), K // MIN_BAND_WINDOWS)), 0, -1):
-            edges = np.unique(np.quantile(W.band_var, np.linspace(0, 1, nb + 1)))
-            if min(_band_counts(W.band_var, edges)) >= MIN_BAND_WINDOWS:
+            edges = np.unique(np.quantile(band_var, np.linspace(0, 1, nb + 1)))
+            if min(band_counts(band_var, edges)) >= MIN_BAND_WINDOWS:
                 break
         if len(edges) - 1 < n_bands:
             notes.append(
                 f"{len(edges) - 1} throttle band(s) instead of {n_bands}: {K} windows of {window_s:g} s, "
                 f"each band needs at least {MIN_BAND_WINDOWS}"
             )
-    else:
-        edges = np.array([W.band_var.min(), W.band_var.max()]) if bv is not None else np.array([0.0, 0.0])
-        if bv is not None:
-            notes.append("no throttle variation: lines have no throttle law")
-        else:
-            notes.append("no motor or throttle column: one band, lines have no throttle law")
-    band_psd, band_apsd, band_rows, band_sel = [], [], [], []
+        return edges
+    if bv is not None:
+        notes.append("no throttle variation: lines have no throttle law")
+        return np.array([band_var.min(), band_var.max()])
+    notes.append("no motor or throttle column: one band, lines have no throttle law")
+    return np.array([0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class _Bands:
+    rows: list  # one dict per analysed band (its peaks under "_peaks" until the lines are linked)
+    psd: list  # (M, 3) raw-domain PSD per band
+    psd_accel: list  # (M, 3) accel PSD per band (empty without accel)
+    windows: list  # (K,) bool: the windows of each band
+
+
+def _throttle_bands(W: Windows, psd, accel_psd, H2, edges, *, hp, fmin_hz: float, notes: list) -> _Bands:
+    """Per throttle band with at least MIN_BAND_WINDOWS windows: its PSD, RMS, accel RMS and
+    peaks (line power in the raw domain); the bands left out are said in ``notes``."""
+    f = W.f_hz
+    df = f[1] - f[0]
+    K = psd.shape[0]
+    out = _Bands([], [], [], [])
     dropped: list = []
     for bi in range(len(edges) - 1 if len(edges) > 1 else 1):
         lo_e, hi_e = (edges[bi], edges[bi + 1]) if len(edges) > 1 else (edges[0], edges[0])
@@ -660,8 +592,7 @@ def _analyse(
         if sel.sum() < MIN_BAND_WINDOWS:
             dropped.append((float(lo_e), float(hi_e), int(sel.sum())))
             continue
-        pb = np.nanmean(psd[sel], axis=0)
-        b_rms, b_lo, b_hi = rms_stats(psd[sel], hp)
+        b_rms, b_lo, b_hi = _rms_stats(psd[sel], hp, df)
         row = {
             "throttle": [float(lo_e), float(hi_e)],
             "median": float(np.median(W.band_var[sel])),
@@ -672,86 +603,45 @@ def _analyse(
         if W.rotor_hz is not None:
             row["rotor_hz_median"] = float(np.median(W.rotor_hz[sel]))
         if accel_psd is not None:
-            pa = np.nanmean(accel_psd[sel], axis=0)
-            band_apsd.append(pa)
-            am_, _, _ = rms_stats(accel_psd[sel], f >= HIGHPASS_HZ)
+            out.psd_accel.append(np.nanmean(accel_psd[sel], axis=0))
+            am_, _, _ = _rms_stats(accel_psd[sel], f >= HIGHPASS_HZ, df)
             row["accel_rms_above_40hz_m_s2"] = {a: float(am_[i]) for i, a in enumerate(AXES)}
-        peaks = _find_peaks(
-            f,
-            np.nanmean(W.psd[sel], axis=0),
-            W.psd[sel],
-            int(sel.sum()),
-            fmin=fmin_hz,
-            fmax=f[-1] - 2 * df,
-            df_res=ENBW_HANN * df,
-        )
-        # line power in the raw domain: scale by 1/|H|² at the line (smooth across ±2 bins)
-        kept = []
-        for p in peaks:
-            g = float(np.interp(p.f_hz, f, H2))
-            if g < H2_FLOOR:
-                continue
-            p.power /= g
-            p.power_se /= g
-            kept.append(p)
-        peaks = kept
-        row["_peaks"] = peaks
-        band_rows.append(row)
-        band_psd.append(pb)
-        band_sel.append(sel)
+        row["_peaks"] = _raw_domain_peaks(W, sel, H2, fmin_hz=fmin_hz)
+        out.rows.append(row)
+        out.psd.append(np.nanmean(psd[sel], axis=0))
+        out.windows.append(sel)
     if dropped:
         notes.append(
             "not analysed (fewer than %d windows): " % MIN_BAND_WINDOWS
             + ", ".join(f"band {a:.3g}-{b:.3g} ({n} windows)" for a, b, n in dropped)
-            + ("" if band_rows else "; no band spectra or lines, the rms is over all windows")
+            + ("" if out.rows else "; no band spectra or lines, the rms is over all windows")
         )
-    lines = _link_lines(
-        band_rows, f, rate, has_bv=bv is not None and len(edges) > 2, rotor=W.rotor_hz is not None, reliable_hz=reliable
-    )
-    for r in band_rows:
-        pk = r.pop("_peaks")
-        r["peaks_hz"] = {a: sorted(round(p.f_hz, 1) for p in pk if p.axis == i) for i, a in enumerate(AXES)}
-    mean_psd = np.nanmean(psd, axis=0)
-    energy, dominant = attach_energy_bands(
+    return out
+
+
+def _raw_domain_peaks(W: Windows, sel: np.ndarray, H2: np.ndarray, *, fmin_hz: float) -> list:
+    """The peaks of the ``sel`` windows' logged PSD, their power scaled by 1/|H|² at the line
+    (smooth across ±2 bins); a peak inside a notch hole is dropped."""
+    f = W.f_hz
+    df = f[1] - f[0]
+    peaks = find_peaks(
         f,
-        psd,
-        mean_psd,
-        band_psd,
-        band_rows,
-        lines,
-        fmin_hz=fmin_hz,
-        reliable_below_hz=reliable,
-        rate_hz=rate,
-        has_bv=bv is not None and len(edges) > 2,
-        dof=_dof,
-        resolution_hz=ENBW_HANN * df,
-        band_windows=band_sel,
+        np.nanmean(W.psd[sel], axis=0),
+        W.psd[sel],
+        int(sel.sum()),
+        fmin=fmin_hz,
+        fmax=f[-1] - 2 * df,
+        df_res=ENBW_HANN * df,
     )
-    return VibrationResult(
-        format_version=SPEC_FORMAT_VERSION,
-        rate_hz=rate,
-        signal=kind if undo or kind == "raw" else sig.kind,
-        source=sig.source,
-        filters_before=filters_before,
-        reliable_below_hz=reliable,
-        rms_above_40hz_rad_s={a: float(rms[i]) for i, a in enumerate(AXES)},
-        rms_above_40hz_interval_rad_s={a: [float(rlo[i]), float(rhi[i])] for i, a in enumerate(AXES)},
-        rms_band_hz=[HIGHPASS_HZ, band_hi],
-        accel_rms_above_40hz_m_s2=arms,
-        lines=lines,
-        bands=band_rows,
-        band_variable=bv_name,
-        notes=notes,
-        warnings=warns,
-        f_hz=f,
-        band_psd=np.array(band_psd),
-        band_psd_accel=np.array(band_apsd) if band_apsd else None,
-        mean_psd=mean_psd,
-        n_windows=K,
-        nperseg=nper,
-        energy_bands=energy,
-        dominant_vibration=dominant,
-    )
+    kept = []
+    for p in peaks:
+        g = float(np.interp(p.f_hz, f, H2))
+        if g < H2_FLOOR:
+            continue
+        p.power /= g
+        p.power_se /= g
+        kept.append(p)
+    return kept
 
 
 def _label(s: dict) -> str:
@@ -774,137 +664,19 @@ def _link_lines(bands: list, f: np.ndarray, rate: float, *, has_bv: bool, rotor:
     and moves by more than 3 resolutions over their span; refitted by least squares, its peaks
     removed, repeated. A falling line is folded from above the logged Nyquist.
     """
-    df = f[1] - f[0]
-    res = ENBW_HANN * df
+    res = ENBW_HANN * (f[1] - f[0])
     out = []
-    nb = len(bands)
     for ax in range(3):
         pk = [(bi, p) for bi, b in enumerate(bands) for p in b["_peaks"] if p.axis == ax]
         free = set(range(len(pk)))
-        groups = []
-        # (1) fixed lines
-        order = sorted(free, key=lambda i: -pk[i][1].power)
-        for i in order:
-            if i not in free:
-                continue
-            bi, p = pk[i]
-            members = {bi: i}
-            for j in free:
-                bj, q = pk[j]
-                if bj != bi and abs(q.f_hz - p.f_hz) <= 2 * res:
-                    if bj not in members or abs(q.f_hz - p.f_hz) < abs(pk[members[bj]][1].f_hz - p.f_hz):
-                        members[bj] = j
-            if nb == 1 or (has_bv and len(members) >= max(2, math.ceil(nb / 2))):
-                groups.append(("fixed" if has_bv else None, sorted(members.values(), key=lambda k: pk[k][0])))
-                free -= set(members.values())
-        # (2) moving lines
-        while has_bv and nb >= 3 and len(free) >= 3:
-            fl = sorted(free)
-            best = None
-            for ii in range(len(fl)):
-                for jj in range(ii + 1, len(fl)):
-                    (b1, p1), (b2, p2) = pk[fl[ii]], pk[fl[jj]]
-                    u1, u2 = bands[b1]["median"], bands[b2]["median"]
-                    if b1 == b2 or u1 == u2:
-                        continue
-                    slope = (p2.f_hz - p1.f_hz) / (u2 - u1)
-                    members = {}
-                    for k in fl:
-                        bk, q = pk[k]
-                        pred = p1.f_hz + slope * (bands[bk]["median"] - u1)
-                        tol = max(3 * res, 0.06 * pred)
-                        if abs(q.f_hz - pred) <= tol and (bk not in members or q.power > pk[members[bk]][1].power):
-                            members[bk] = k
-                    score = (len(members), sum(pk[k][1].power for k in members.values()))
-                    if best is None or score > best[0]:
-                        best = (score, members)
-            if best is None or best[0][0] < max(3, math.ceil(0.4 * nb)):
-                break
-            members = best[1]
-            us = np.array([bands[b]["median"] for b in members])
-            fs_ = np.array([pk[k][1].f_hz for k in members.values()])
-            coef, cov = (
-                np.polyfit(us, fs_, 1, cov=True) if len(us) > 3 else (np.polyfit(us, fs_, 1), np.full((2, 2), np.inf))
-            )
-            moving = abs(coef[0]) * np.ptp(us) > 3 * res and abs(coef[0]) > 2 * math.sqrt(max(cov[0, 0], 0.0))
-            if not moving and abs(coef[0]) * np.ptp(us) > 3 * res:
-                free -= {members[max(members, key=lambda b: 0)]} if False else set()
-                # a slope not significant against the scatter: not a line, drop the seed pair's weakest peak
-                weakest = min(members.values(), key=lambda k: pk[k][1].power)
-                free.discard(weakest)
-                continue
-            if not moving:
-                # a flat line that was not in half the bands: a fixed line seen in fewer bands
-                groups.append(("fixed", sorted(members.values(), key=lambda k: pk[k][0])))
-            else:
-                groups.append(("moving", sorted(members.values(), key=lambda k: pk[k][0])))
-            free -= set(members.values())
+        groups = _fixed_lines(pk, free, n_bands=len(bands), has_bv=has_bv, res_hz=res)
+        if has_bv:
+            groups += _moving_lines(pk, free, bands, res_hz=res)
         for law, idx in groups:
-            bidx = np.array([pk[k][0] for k in idx])
-            fs_ = np.array([pk[k][1].f_hz for k in idx])
-            pw = np.array([pk[k][1].power for k in idx])
-            se = np.array([pk[k][1].power_se for k in idx])
-            thr = np.array([bands[b]["median"] for b in bidx])
-            entry = {"axis": AXES[ax]}
             if law == "moving":
-                A = np.column_stack([np.ones_like(thr), thr])
-                coef, *_ = np.linalg.lstsq(A, fs_, rcond=None)
-                resid = fs_ - A @ coef
-                s2 = float(resid @ resid / max(len(fs_) - 2, 1))
-                cov = s2 * np.linalg.inv(A.T @ A)
-                slope, slope_se = float(coef[1]), float(math.sqrt(max(cov[1, 1], 0.0)))
-                t_med = float(np.median([b["median"] for b in bands]))
-                f_med = float(coef[0] + coef[1] * t_med)
-                i_med = int(np.argmin(np.abs(thr - t_med)))
-                aliased = slope < 0
-                entry.update(
-                    {
-                        "frequency_hz": f_med,
-                        "follows": "throttle",
-                        "amplitude_rad_s": float(math.sqrt(2 * pw[i_med])),
-                        "amplitude_interval_rad_s": _amp_interval(pw[i_med], se[i_med]),
-                        "law": {
-                            "kind": "f = hz_at_zero + hz_per_unit * band variable",
-                            "hz_at_zero": float(coef[0]),
-                            "hz_per_unit": slope,
-                            "hz_per_unit_se": slope_se,
-                        },
-                        "per_band": [
-                            {
-                                "band": int(b),
-                                "throttle_median": float(bands[b]["median"]),
-                                "frequency_hz": float(ff),
-                                "amplitude_rad_s": float(math.sqrt(2 * pp)),
-                            }
-                            for b, ff, pp in zip(bidx, fs_, pw)
-                        ],
-                        "aliased": bool(aliased),
-                    }
-                )
-                if aliased:
-                    entry["unfolded_frequency_hz"] = float(rate - f_med)
-                    entry["note"] = "apparent frequency falls as throttle rises: folded from above the logged Nyquist"
-                if rotor:
-                    rh = np.array([bands[b].get("rotor_hz_median", np.nan) for b in bidx])
-                    fu = fs_ if not aliased else rate - fs_
-                    h = float(np.nanmedian(fu / rh))
-                    if np.isfinite(h) and round(h) >= 1 and abs(h - round(h)) < 0.1:
-                        entry["follows"] = "erpm"
-                        entry["harmonic"] = int(round(h))
+                entry = _moving_line(pk, idx, bands, axis=ax, rate=rate, rotor=rotor)
             else:
-                entry.update(
-                    {
-                        "frequency_hz": float(np.average(fs_, weights=pw) if pw.sum() > 0 else fs_.mean()),
-                        "follows": law,
-                        "amplitude_rad_s": float(math.sqrt(2 * np.mean(pw))),
-                        "amplitude_interval_rad_s": _amp_interval(
-                            float(np.mean(pw)), float(np.sqrt(np.sum(se**2)) / len(se))
-                        ),
-                        "n_bands": int(len(idx)),
-                    }
-                )
-                if law is None:
-                    entry["law_note"] = "no throttle variation: law not identifiable"
+                entry = _fixed_line(pk, idx, law, axis=ax)
             entry["frequency_interval_hz"] = [entry["frequency_hz"] - res / 2, entry["frequency_hz"] + res / 2]
             entry["level_reliable"] = bool(entry["frequency_hz"] < reliable_hz)
             out.append(entry)
@@ -918,6 +690,149 @@ def _link_lines(bands: list, f: np.ndarray, rate: float, *, has_bv: bool, rotor:
                 e["harmonic"] = int(round(h)) if abs(h - round(h)) < 0.08 else None
     out.sort(key=lambda e: (e["axis"], -e["amplitude_rad_s"]))
     return out
+
+
+def _fixed_lines(pk: list, free: set, *, n_bands: int, has_bv: bool, res_hz: float) -> list:
+    """Groups ``(law, peak indices)`` of the peaks ``pk`` ((band, Peak) of one axis) at one
+    frequency (±2 resolutions) in at least half the bands, strongest first; their peaks leave ``free``."""
+    groups = []
+    for i in sorted(free, key=lambda i: -pk[i][1].power):
+        if i not in free:
+            continue
+        bi, p = pk[i]
+        members = {bi: i}
+        for j in free:
+            bj, q = pk[j]
+            if bj != bi and abs(q.f_hz - p.f_hz) <= 2 * res_hz:
+                if bj not in members or abs(q.f_hz - p.f_hz) < abs(pk[members[bj]][1].f_hz - p.f_hz):
+                    members[bj] = j
+        if n_bands == 1 or (has_bv and len(members) >= max(2, math.ceil(n_bands / 2))):
+            groups.append(("fixed" if has_bv else None, sorted(members.values(), key=lambda k: pk[k][0])))
+            free -= set(members.values())
+    return groups
+
+
+def _best_straight_line(pk: list, fl: list, bands: list, res_hz: float):
+    """The straight line f = a + b·u through two peaks of ``fl`` that collects the most bands
+    within ±max(3 resolutions, 6 %) (ties: the larger total power): ``((n, power), {band: peak})``."""
+    best = None
+    for ii in range(len(fl)):
+        for jj in range(ii + 1, len(fl)):
+            (b1, p1), (b2, p2) = pk[fl[ii]], pk[fl[jj]]
+            u1, u2 = bands[b1]["median"], bands[b2]["median"]
+            if b1 == b2 or u1 == u2:
+                continue
+            slope = (p2.f_hz - p1.f_hz) / (u2 - u1)
+            members = {}
+            for k in fl:
+                bk, q = pk[k]
+                pred = p1.f_hz + slope * (bands[bk]["median"] - u1)
+                tol = max(3 * res_hz, 0.06 * pred)
+                if abs(q.f_hz - pred) <= tol and (bk not in members or q.power > pk[members[bk]][1].power):
+                    members[bk] = k
+            score = (len(members), sum(pk[k][1].power for k in members.values()))
+            if best is None or score > best[0]:
+                best = (score, members)
+    return best
+
+
+def _moving_lines(pk: list, free: set, bands: list, *, res_hz: float) -> list:
+    """Groups ``(law, peak indices)`` of the lines that move with the band variable, taken one
+    at a time from the ``free`` peaks (a straight line too flat to move over its span is a fixed
+    line seen in fewer than half the bands)."""
+    groups = []
+    nb = len(bands)
+    while nb >= 3 and len(free) >= 3:
+        best = _best_straight_line(pk, sorted(free), bands, res_hz)
+        if best is None or best[0][0] < max(3, math.ceil(0.4 * nb)):
+            break
+        members = best[1]
+        us = np.array([bands[b]["median"] for b in members])
+        fs_ = np.array([pk[k][1].f_hz for k in members.values()])
+        coef, cov = (
+            np.polyfit(us, fs_, 1, cov=True) if len(us) > 3 else (np.polyfit(us, fs_, 1), np.full((2, 2), np.inf))
+        )
+        moving = abs(coef[0]) * np.ptp(us) > 3 * res_hz and abs(coef[0]) > 2 * math.sqrt(max(cov[0, 0], 0.0))
+        if not moving and abs(coef[0]) * np.ptp(us) > 3 * res_hz:
+            # a slope not significant against the scatter: not a line, drop the seed pair's weakest peak
+            free.discard(min(members.values(), key=lambda k: pk[k][1].power))
+            continue
+        groups.append(("moving" if moving else "fixed", sorted(members.values(), key=lambda k: pk[k][0])))
+        free -= set(members.values())
+    return groups
+
+
+def _moving_line(pk: list, idx: list, bands: list, *, axis: int, rate: float, rotor: bool) -> dict:
+    """The JSON entry of a line that follows the band variable: its least-squares law, its level
+    at the median band, per band, folded (falling) or not, an eRPM harmonic when a rotor column exists."""
+    bidx = np.array([pk[k][0] for k in idx])
+    fs_ = np.array([pk[k][1].f_hz for k in idx])
+    pw = np.array([pk[k][1].power for k in idx])
+    se = np.array([pk[k][1].power_se for k in idx])
+    thr = np.array([bands[b]["median"] for b in bidx])
+    A = np.column_stack([np.ones_like(thr), thr])
+    coef, *_ = np.linalg.lstsq(A, fs_, rcond=None)
+    resid = fs_ - A @ coef
+    s2 = float(resid @ resid / max(len(fs_) - 2, 1))
+    cov = s2 * np.linalg.inv(A.T @ A)
+    slope, slope_se = float(coef[1]), float(math.sqrt(max(cov[1, 1], 0.0)))
+    t_med = float(np.median([b["median"] for b in bands]))
+    f_med = float(coef[0] + coef[1] * t_med)
+    i_med = int(np.argmin(np.abs(thr - t_med)))
+    aliased = slope < 0
+    entry = {
+        "axis": AXES[axis],
+        "frequency_hz": f_med,
+        "follows": "throttle",
+        "amplitude_rad_s": float(math.sqrt(2 * pw[i_med])),
+        "amplitude_interval_rad_s": _amp_interval(pw[i_med], se[i_med]),
+        "law": {
+            "kind": "f = hz_at_zero + hz_per_unit * band variable",
+            "hz_at_zero": float(coef[0]),
+            "hz_per_unit": slope,
+            "hz_per_unit_se": slope_se,
+        },
+        "per_band": [
+            {
+                "band": int(b),
+                "throttle_median": float(bands[b]["median"]),
+                "frequency_hz": float(ff),
+                "amplitude_rad_s": float(math.sqrt(2 * pp)),
+            }
+            for b, ff, pp in zip(bidx, fs_, pw)
+        ],
+        "aliased": bool(aliased),
+    }
+    if aliased:
+        entry["unfolded_frequency_hz"] = float(rate - f_med)
+        entry["note"] = "apparent frequency falls as throttle rises: folded from above the logged Nyquist"
+    if rotor:
+        rh = np.array([bands[b].get("rotor_hz_median", np.nan) for b in bidx])
+        fu = fs_ if not aliased else rate - fs_
+        h = float(np.nanmedian(fu / rh))
+        if np.isfinite(h) and round(h) >= 1 and abs(h - round(h)) < 0.1:
+            entry["follows"] = "erpm"
+            entry["harmonic"] = int(round(h))
+    return entry
+
+
+def _fixed_line(pk: list, idx: list, law: str | None, *, axis: int) -> dict:
+    """The JSON entry of a line at one frequency: power-weighted frequency, mean level over its
+    bands (``law`` None: no throttle variation to tell fixed from moving)."""
+    fs_ = np.array([pk[k][1].f_hz for k in idx])
+    pw = np.array([pk[k][1].power for k in idx])
+    se = np.array([pk[k][1].power_se for k in idx])
+    entry = {
+        "axis": AXES[axis],
+        "frequency_hz": float(np.average(fs_, weights=pw) if pw.sum() > 0 else fs_.mean()),
+        "follows": law,
+        "amplitude_rad_s": float(math.sqrt(2 * np.mean(pw))),
+        "amplitude_interval_rad_s": _amp_interval(float(np.mean(pw)), float(np.sqrt(np.sum(se**2)) / len(se))),
+        "n_bands": int(len(idx)),
+    }
+    if law is None:
+        entry["law_note"] = "no throttle variation: law not identifiable"
+    return entry
 
 
 def _amp_interval(power: float, se: float) -> list:
@@ -1078,172 +993,6 @@ def plot_vibration(res: VibrationResult, path: str | os.PathLike, *, title: str 
                 color="0.4",
             )
     fig.suptitle(title or "vibration")
-    from gyrocore.data.recording import atomic_open
-
     with atomic_open(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=110)
     plt.close(fig)
-
-
-# ------------------------------------------------------------------ synthesis (simulator side)
-def spec_band(spec: dict, band: int | str = "middle") -> dict:
-    """One band of a vibration spec: an index, or "middle" (the band with the median command)."""
-    bands = spec.get("bands") or []
-    if not bands:
-        raise GyroInputError("vibration spec has no bands")
-    if band == "middle":
-        return bands[len(bands) // 2]
-    try:
-        return bands[int(band)]
-    except (ValueError, IndexError):
-        raise GyroInputError(f"vibration band {band!r}: the spec has bands 0..{len(bands) - 1} (or 'middle')") from None
-
-
-def shaped_params(
-    spec: dict,
-    *,
-    band: int | str = "middle",
-    fmin_hz: float = HIGHPASS_HZ,
-    exclude_hz: Sequence[tuple[float, float]] = (),
-    subtract_lines: Sequence[tuple[float, dict]] = (),
-) -> dict:
-    """The shaped part of the registry effect ``vibration`` from one band of a spec.
-
-    Returns ``{"f_hz": (n,), "psd_rad2_s2_hz": (3, n)}`` (the effect's schema, SI): the spec
-    band's raw-domain gyro PSD per axis on the spec's grid, set to 0 below ``fmin_hz`` (the
-    flight's own motion is not vibration), at and above the spec's reliable limit, in notch
-    holes (no value) and inside the ``exclude_hz`` intervals (a line the simulator's physics
-    already carries). The grid is cut to [first bin ≥ fmin − one bin, reliable limit + one bin]
-    so the zeros at its ends are kept (linear interpolation then falls to 0 within one bin).
-    ``subtract_lines``: ``(f_hz, {axis: power (rad/s)²})`` of lines the simulator's physics
-    carries: within ± 3 bins of f_hz (a Hann window's main lobe and first side lobes hold > 99.9 %
-    of a tone's power) the PSD's excess over the local floor (median of the bins 10..30 away) is
-    removed up to the line's power, so the broadband under the line and any power the line
-    detector did not attribute to the line (e.g. the line smeared by the throttle moving within
-    the band) stay.
-    ``sim.noise.ShapedNoise`` generates it; ``simulate --vibration SPEC`` and a preset's
-    ``[vibration] spec = ...`` put it into ``SyntheticGyro`` as this effect's parameters.
-    """
-    b = spec_band(spec, band)
-    f_spec = np.asarray(spec["f_hz"], float)
-    lim = min(float(spec.get("reconstructed_reliable_below_hz") or f_spec[-1]), f_spec[-1])
-    P = np.zeros((3, f_spec.size))
-    for j, a in enumerate(AXES):
-        s = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][a]], float)
-        S = np.nan_to_num(s, nan=0.0)
-        S[(f_spec < fmin_hz) | (f_spec >= lim) | np.isnan(s)] = 0.0
-        for lo, hi in exclude_hz:
-            S[(f_spec >= lo) & (f_spec <= hi)] = 0.0
-        dfs = float(f_spec[1] - f_spec[0])
-        for f0, pw in subtract_lines:
-            p_line = float(pw.get(a, 0.0)) if isinstance(pw, dict) else float(pw[j])
-            if not p_line > 0:
-                continue
-            k = int(round((float(f0) - f_spec[0]) / dfs))
-            side = np.r_[max(k - 30, 0) : max(k - 10, 0), min(k + 11, f_spec.size) : min(k + 31, f_spec.size)]
-            floor = float(np.median(S[side])) if side.size else 0.0
-            lo_k, hi_k = max(k - 3, 0), min(k + 4, f_spec.size)
-            excess = np.maximum(S[lo_k:hi_k] - floor, 0.0)
-            tot = float(excess.sum()) * dfs
-            if tot > 0:
-                S[lo_k:hi_k] -= excess * min(1.0, p_line / tot)
-        P[j] = np.maximum(S, 0.0)
-    df = float(f_spec[1] - f_spec[0])
-    keep = (f_spec >= fmin_hz - 1.01 * df) & (f_spec <= lim + 1.01 * df)
-    return {"f_hz": f_spec[keep].copy(), "psd_rad2_s2_hz": P[:, keep].copy()}
-
-
-def synthesize(
-    spec: dict,
-    *,
-    n: int,
-    rate_hz: float,
-    seed: int,
-    band: int | str = "middle",
-    fmin_hz: float = HIGHPASS_HZ,
-    exclude_hz: Sequence[tuple[float, float]] = (),
-) -> np.ndarray:
-    """A gyro vibration disturbance (n, 3), rad/s, whose PSD is the spec band's raw-domain PSD.
-
-    Random-phase synthesis: for each rfft bin k of length n at ``rate_hz``,
-    X_k = √(S(f_k)·fs·n/2)·(g₁ + i g₂)/√2 with g ~ N(0, 1), so that the one-sided periodogram
-    2|X_k|²/(fs·n) has expectation S(f_k); x = irfft(X). S is the spec's PSD interpolated
-    linearly in f; zero below ``fmin_hz`` (the flight's own motion is not vibration), above
-    the spec's reliable limit and its Nyquist, and where the spec has no value (notch holes).
-    Gaussian: the lines come out as narrow-band noise of the measured power, not as
-    phase-coherent sinusoids. ``seed``: ``np.random.default_rng(seed)``. ``exclude_hz``: (lo, hi)
-    intervals, Hz, where S is set to 0 (a line the simulator's physics already carries).
-    """
-    b = spec_band(spec, band)
-    f_spec = np.asarray(spec["f_hz"], float)
-    lim = min(float(spec.get("reconstructed_reliable_below_hz") or f_spec[-1]), f_spec[-1])
-    rng = np.random.default_rng(seed)
-    f = np.fft.rfftfreq(n, d=1.0 / rate_hz)
-    out = np.empty((n, 3))
-    for j, a in enumerate(AXES):
-        s = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][a]], float)
-        S = np.interp(f, f_spec, np.nan_to_num(s, nan=0.0), left=0.0, right=0.0)
-        S[(f < fmin_hz) | (f >= lim)] = 0.0
-        S[np.interp(f, f_spec, np.isnan(s).astype(float)) > 0] = 0.0
-        for lo, hi in exclude_hz:
-            S[(f >= lo) & (f <= hi)] = 0.0
-        amp = np.sqrt(S * rate_hz * n / 2.0)
-        X = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) / math.sqrt(2.0)
-        X[0] = 0.0
-        if n % 2 == 0:
-            X[-1] = 0.0
-        out[:, j] = np.fft.irfft(X, n)
-    return out
-
-
-def add_vibration(
-    rec: Recording, spec: dict, *, seed: int, band: int | str = "middle", exclude_hz: Sequence[tuple[float, float]] = ()
-) -> Recording:
-    """``rec`` with :func:`synthesize`'s disturbance added to its gyro (open loop: the truth and
-    any controller that flew the recording did not see it); metadata says so. ``exclude_hz`` as
-    :func:`synthesize`."""
-    d = synthesize(spec, n=rec.n, rate_hz=rec.rate_hz, seed=seed, band=band, exclude_hz=exclude_hz)
-    b = spec_band(spec, band)
-    return rec.with_gyro(
-        rec.gyro_rad_s + d,
-        vibration_spec=str(spec.get("source", "")),
-        vibration_band=json.dumps({"throttle": b.get("throttle"), "median": b.get("median")}),
-        vibration_injection="shaped Gaussian disturbance added to the measured gyro (open loop), seed "
-        f"{seed}; PSD of the spec band above {HIGHPASS_HZ:g} Hz"
-        + (f", without {', '.join(f'{lo:g}-{hi:g} Hz' for lo, hi in exclude_hz)}" if exclude_hz else ""),
-    )
-
-
-def fidelity(sim: VibrationResult, spec: dict, *, band: int | str = "middle", fmin_hz: float = HIGHPASS_HZ) -> dict:
-    """In-band fraction: bins (fmin .. min(Nyquists, reliable limit)) where the simulated gyro's
-    PSD is statistically indistinguishable from the real flight's band PSD.
-
-    Under equal spectra the ratio of two averaged periodograms is F(ν_sim, ν_real)-distributed
-    (ν from each one's window count, :func:`_dof`); a bin is in band when the ratio lies in the
-    central 95 % of that F distribution, so a perfect match gives 0.95 on average.
-    Also returns the median ratio (sim/real) and the RMS above fmin of both.
-    """
-    b = spec_band(spec, band)
-    f_r = np.asarray(spec["f_hz"], float)
-    lim = min(float(spec.get("reconstructed_reliable_below_hz") or f_r[-1]), f_r[-1], sim.f_hz[-1])
-    nu_r = _dof(int(b["n_windows"]))
-    nu_s = _dof(int(sim.n_windows))
-    lo_q, hi_q = stats.f.ppf([0.025, 0.975], nu_s, nu_r)
-    out = {}
-    fs = sim.f_hz
-    sel = (fs >= fmin_hz) & (fs < lim)
-    for j, a in enumerate(AXES):
-        real = np.array([np.nan if v is None else v for v in b["psd_rad2_s2_hz"][a]], float)
-        R = np.interp(fs[sel], f_r, real)
-        S = sim.mean_psd[sel, j]
-        ok = np.isfinite(R) & np.isfinite(S) & (R > 0)
-        ratio = S[ok] / R[ok]
-        dfr = fs[1] - fs[0]
-        out[a] = {
-            "in_band_fraction": float(np.mean((ratio >= lo_q) & (ratio <= hi_q))) if ok.any() else float("nan"),
-            "median_ratio_sim_to_real": float(np.median(ratio)) if ok.any() else float("nan"),
-            "rms_sim_rad_s": float(np.sqrt(np.nansum(S) * dfr)),
-            "rms_real_rad_s": float(np.sqrt(np.nansum(R) * dfr)),
-            "band_hz": [fmin_hz, float(lim)],
-        }
-    return out

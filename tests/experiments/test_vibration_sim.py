@@ -174,7 +174,8 @@ def test_simulated_hover_with_a_known_spec_is_recovered(tmp_path):
     quantization q²/12 over the band's share of 0..fs/2."""
     import math as _m
 
-    from gyrocore.flight.vibration import read_spec, shaped_params
+    from gyrocore.flight.synthesis import shaped_params
+    from gyrocore.flight.vibration import read_spec
     from sim import scenarios as S
 
     spec_path, spec_res = _spec(tmp_path)
@@ -237,7 +238,8 @@ def test_sensor_preset_carries_the_shaped_vibration(tmp_path):
     band's shaped part into every unit of that sensor, as the registry effect's parameters; a bad
     key or a bad scenario [vibration] section is one error line."""
     from gyrocore.errors import GyroInputError
-    from gyrocore.flight.vibration import read_spec, shaped_params
+    from gyrocore.flight.synthesis import shaped_params
+    from gyrocore.flight.vibration import read_spec
     from sim.gyro import SyntheticGyro
     from sim.presets import load_preset
     from sim.scenarios import load_scenario

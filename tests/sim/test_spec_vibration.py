@@ -263,7 +263,7 @@ def test_simulate_vibration_physics_cli(tmp_path, capsys):
 def test_shaped_part_without_the_line_keeps_the_floor():
     """shaped_params(subtract_lines=...): the line's power leaves the band's PSD at the line, the
     broadband around and under it stays (a flat 1e-4 floor plus a 7-bin bump of 0.02 (rad/s)²)."""
-    from gyrocore.flight.vibration import shaped_params
+    from gyrocore.flight.synthesis import shaped_params
 
     s = {
         "f_hz": list(np.arange(0.0, 400.5, 1.0)),

@@ -285,7 +285,7 @@ def test_firmware_chain_response_matches_betaflight_formulas():
 
 # ---------------------------------------------------------------- simulator side: synthesis and fidelity
 def test_synthesized_vibration_reproduces_the_spec_band(res, tmp_path):
-    from gyrocore.flight.vibration import fidelity, synthesize
+    from gyrocore.flight.synthesis import fidelity, synthesize
 
     p = tmp_path / "spec.json"
     write_spec(res, p, source="synthetic")

@@ -18,7 +18,8 @@ import pytest
 from scipy import signal, stats
 
 from gyrocore.data.recording import Recording
-from gyrocore.flight.vibration import ENBW_HANN, analyse, read_spec, write_spec
+from gyrocore.flight.spectra import ENBW_HANN
+from gyrocore.flight.vibration import analyse, read_spec, write_spec
 
 RATE = 1000.0
 LEVELS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7)

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gyrocore.flight.vibration import MIN_BAND_WINDOWS, analyse, plot_vibration
+from gyrocore.flight.spectra import MIN_BAND_WINDOWS
+from gyrocore.flight.vibration import analyse, plot_vibration
 from tests.gyrocore.flight.test_vibration import A_FIXED, F_FIXED, LEVELS, N_WHITE, RATE, _line
 
 
