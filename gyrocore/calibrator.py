@@ -12,7 +12,7 @@ The references are taken from the file, in this order:
    ``g_sensitivity`` (fitted on the still poses first, as in imucal's Ferraris method);
 2. reference rates (``ref_*_rad_s`` columns, rate table or simulation) → joint least squares
    of all effects against y − ω_ref (:mod:`gyrocore.calib.lsq`);
-3. neither → still parts (:func:`gyrocore.calib.rotations.still_mask`) with reference rate 0:
+3. neither → still parts (:data:`gyrocore.calib.rotations.STILL_GATE`) with reference rate 0:
    bias-type effects (bias, thermal bias, ramp, g-sensitivity over several poses); the
    rate-dependent ones are then reported unobservable by name.
 
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace as _replace
 from pathlib import Path
 from typing import Sequence
 
@@ -36,6 +37,7 @@ from gyrocore.calib.params import CalibrationResult, needs_accel, needs_temp, no
 from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording, file_sha256
+from gyrocore.data.still import still_samples
 
 __all__ = ["FITTABLE", "Calibrator", "near_rate_changes", "has_reference_attitude"]
 
@@ -487,17 +489,17 @@ class Calibrator:
         from gyrocore.calib import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
         from gyrocore.calib.rotations import integral_calibration
 
-        from gyrocore.calib.rotations import segments_from_any, still_mask
+        from gyrocore.calib.rotations import STILL_GATE, segments_from_any
 
         segs = segments_from_any(self.segments)
         if self.external_bias is not None:
             still = None  # no still part needed: the bias comes from elsewhere
         else:
-            still = still_mask(
+            still = still_samples(
                 rec,
-                window_s=self.still_window_s,
-                false_reject_rate=self.still_false_reject_rate,
-                exclude=[(s_.t_start_s, s_.t_end_s) for s_ in segs],
+                _replace(STILL_GATE, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate),
+                exclude_s=[(s_.t_start_s, s_.t_end_s) for s_ in segs],
+                margin_s=0.5,
             )
         params: dict = {}
         stderr: dict = {}
@@ -679,9 +681,10 @@ class Calibrator:
         notes: list[str] = []
         if rec.ref_rate_rad_s is not None:
             return rec.ref_rate_rad_s, self._ramp_weights(rec.t_s, rec.ref_rate_rad_s, notes), "rate_reference", notes
-        from gyrocore.calib.rotations import still_mask
+        from gyrocore.calib.rotations import STILL_GATE
 
-        m = still_mask(rec, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
+        gate = _replace(STILL_GATE, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
+        m = still_samples(rec, gate)
         if m.sum() < 10:
             raise GyroInputError(
                 "no reference rates (ref_*_rad_s) and no still part in the data: nothing to calibrate against"

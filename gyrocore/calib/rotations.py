@@ -23,18 +23,18 @@ and M to first order.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
-from scipy import stats
 
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
+from gyrocore.data.still import StillGate, still_samples
 
 __all__ = [
     "IntegralResult",
-    "still_mask",
+    "STILL_GATE",
     "integral_calibration",
     "article_worked_example",
     "ARTICLE_B_RAD",
@@ -93,55 +93,14 @@ def segments_from_any(segments) -> list:
 
 
 # ---------------------------------------------------------------------------- still parts
-def still_mask(
-    recording: Recording,
-    *,
-    window_s: float = 1.0,
-    false_reject_rate: float = 1e-3,
-    exclude: Sequence[tuple[float, float]] = (),
-    margin_s: float = 0.5,
-    std_factor: float = 1.0,
-) -> np.ndarray:
-    """Samples that belong to still windows, shape (N,) bool.
-
-    The recording is cut into windows of ``window_s``; a window is still when, on every axis,
-    its sample variance s² passes the χ² test (n−1)·s²/σ² ≤ χ²_{n−1}(1 − α_axis), with
-    α_axis = 1 − (1 − α)^(1/3) and α = ``false_reject_rate``. The still-noise variance σ² is
-    estimated from the data as the lower quartile of the window variances divided by the
-    lower quartile of χ²_{n−1}/(n−1) — consistent as long as a quarter of the windows are
-    still, and it includes coloured noise up to the window length (an on-chip low-pass makes
-    first-difference estimates too small). Spans in ``exclude`` (e.g. the rotation segments)
-    widened by ``margin_s`` are never still. A constant rotation rate has no variance and is
-    not caught by any gyro-only test; the segments file must cover every rotation.
-    ``std_factor`` > 1 widens the threshold on the window standard deviation by that factor
-    (hand-held "still" poses: the gravity direction is steady although the hand trembles).
-    """
-    x = np.asarray(recording.gyro_rad_s, float)
-    t = recording.t_s
-    N = x.shape[0]
-    rate = recording.rate_hz
-    if not (math.isfinite(rate) and rate > 0):
-        raise GyroInputError("cannot find still parts: unknown sample rate")
-    n = max(8, int(round(window_s * rate)))
-    mask = np.zeros(N, bool)
-    if N < 2 * n:
-        raise GyroInputError(f"recording too short ({N} samples) for still windows of {n} samples")
-    nw = N // n
-    xw = x[: nw * n].reshape(nw, n, 3)
-    var = xw.var(axis=1, ddof=1)  # (nw, 3)
-    excl = np.zeros(N, bool)
-    for a, b in exclude:
-        excl |= (t >= a - margin_s) & (t <= b + margin_s)
-    win_excl = excl[: nw * n].reshape(nw, n).any(axis=1)
-    cand = var[~win_excl] if np.any(~win_excl) else var
-    q25 = stats.chi2.ppf(0.25, n - 1) / (n - 1)
-    sigma2 = np.quantile(cand, 0.25, axis=0) / q25
-    sigma2 = np.where(sigma2 > 0, sigma2, np.max(sigma2) if np.max(sigma2) > 0 else 1e-30)
-    a_axis = 1.0 - (1.0 - false_reject_rate) ** (1.0 / 3.0)
-    thr = sigma2 * stats.chi2.ppf(1.0 - a_axis, n - 1) / (n - 1) * float(std_factor) ** 2
-    still_w = np.all(var <= thr[None, :], axis=1) & ~win_excl
-    mask[: nw * n] = np.repeat(still_w, n)
-    return mask
+#: The still gate of the rotation calibrations (:func:`gyrocore.data.still.still_windows`): window
+#: variance against its χ²_{n−1} quantile, σ² always from the lower quartile of the window variances
+#: outside the known rotations (most of what is left is still, and it includes coloured noise up to
+#: the window length: an on-chip low-pass makes first-difference estimates too small), ν = n − 1.
+#: ``variance_factor`` = f² lets a hand-held "still" pose tremble f × the still noise (the gravity
+#: direction is steady although the hand trembles). A constant rotation rate has no variance and is
+#: not caught by any gyro-only test: the segments file must cover every rotation.
+STILL_GATE = StillGate(window_s=1.0, false_reject_rate=1e-3, noise_from="windows", dof="white")
 
 
 # ---------------------------------------------------------------------------- integral method
@@ -295,7 +254,7 @@ def integral_calibration(
         Known rotations (``t_start_s, t_end_s, axis, angle_deg``); each segment must contain
         the whole motion (still at both ends) and the three axes must all be turned.
     still : ndarray of bool, shape (N,), optional
-        Samples to take the bias from; default :func:`still_mask` outside the segments.
+        Samples to take the bias from; default :data:`STILL_GATE` outside the segments.
     h_rad_s_per_m_s2 : ndarray, shape (3, 3), optional
         A known g-sensitivity H (e.g. fitted on the still poses): H·f is removed from the
         gyro before the bias is taken and before integrating (as imucal's Ferraris does).
@@ -336,11 +295,10 @@ def integral_calibration(
         lr = _vec3("long-run noise variance", noise_lr_rad2_s, positive=True) / dt  # (rad/s)² per sample
         still = np.zeros(t.size, bool) if still is None else np.asarray(still, bool)
     elif still is None:
-        still = still_mask(
+        still = still_samples(
             recording,
-            window_s=window_s,
-            false_reject_rate=false_reject_rate,
-            exclude=[(s.t_start_s, s.t_end_s) for s in segs],
+            replace(STILL_GATE, window_s=window_s, false_reject_rate=false_reject_rate),
+            exclude_s=[(s.t_start_s, s.t_end_s) for s in segs],
             margin_s=margin_s,
         )
     still = np.asarray(still, bool)
@@ -497,7 +455,7 @@ def gravity_pose_calibration(
     recording : Recording
         Gyro (rad/s) and accel (m/s²), sensor frame S.
     still : ndarray of bool, shape (N,), optional
-        Still samples (default :func:`still_mask` with ``window_s``).
+        Still samples (default :data:`STILL_GATE` with ``window_s``).
     intervals : sequence of (start, stop), optional
         Still poses as sample ranges (overrides ``still``), e.g. the authors' own list.
     min_pose_s : float
@@ -522,12 +480,14 @@ def gravity_pose_calibration(
     rate = recording.rate_hz
     if intervals is None:
         if still is None:
-            still = still_mask(
+            still = still_samples(
                 recording,
-                window_s=window_s,
-                false_reject_rate=false_reject_rate,
-                margin_s=0.0,
-                std_factor=pose_std_factor,
+                replace(
+                    STILL_GATE,
+                    window_s=window_s,
+                    false_reject_rate=false_reject_rate,
+                    variance_factor=float(pose_std_factor) ** 2,
+                ),
             )
         runs = [(a, b) for a, b in _runs(np.asarray(still, bool)) if (b - a) >= min_pose_s * rate]
     else:

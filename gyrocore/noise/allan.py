@@ -41,6 +41,7 @@ from gyrocore.errors import GyroInputError, warn_repair
 
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 from gyrocore.data.recording import AXES, Recording
+from gyrocore.data.still import SpilledGyro, StillGate, still_windows
 
 __all__ = [
     "TERM_NAMES",
@@ -50,7 +51,6 @@ __all__ = [
     "NoiseAxis",
     "NoiseResult",
     "identify_noise",
-    "still_fraction",
     "needed_duration_s",
     "ALL_TERM_NAMES",
     "METHODS",
@@ -915,75 +915,29 @@ def _check_timestamps(rec: Recording) -> float:
 MAX_MOVING_FRACTION = 0.5
 
 
-def still_fraction(
-    recording: Recording, *, window_s: float = 2.0, false_reject_rate: float = 1e-3, max_windows: int = 200
-) -> float:
-    """Fraction of ``window_s`` windows the variance motion gate of :mod:`gyrocore.calib.bias` calls still.
+def _judged_windows(gyro, rate_hz: float, *, window_s: float = 2.0, max_windows: int = 200):
+    """The still gate (:func:`gyrocore.data.still.still_windows`, variance statistic, α = 10⁻³
+    per window) on up to ``max_windows`` whole ``window_s`` windows evenly spread over the record.
 
-    The gate (window variance against χ² quantiles of the record's own robust noise level,
-    false-reject rate ``false_reject_rate`` per still window) is blind to slow bias wander
-    (B, K, GM change a 2-s window's variance by far less than its χ² spread). A long record
-    is judged on ``max_windows`` whole windows evenly spread over it (the fraction then has a
-    binomial standard error ≤ 3.5 %, ample against the 50 % limit; the gate costs
-    O(max_windows · window), not O(n)).
+    The gate is blind to slow bias wander (B, K, GM change a 2-s window's variance by far less
+    than its χ² spread). Judging a long record on 200 windows gives its still fraction with a
+    binomial standard error ≤ 3.5 %, ample against the 50 % limit, at a cost of
+    O(max_windows · window), not O(n); only those windows are read (``gyro`` an (N, 3) array or
+    a :class:`gyrocore.data.still.SpilledGyro`). None when the record is shorter than ten windows.
     """
-    return _still_fraction(
-        recording.n,
-        recording.rate_hz,
-        lambda idx, starts, n_win: np.asarray(recording.gyro_rad_s)[idx],
-        lambda: recording,
-        window_s=window_s,
-        false_reject_rate=false_reject_rate,
-        max_windows=max_windows,
-    )
-
-
-def still_fraction_spilled(store, **options) -> float:
-    """:func:`still_fraction` of a recording held on disk (:func:`gyrocore.data.spill.spill_columns`):
-    only the judged windows are read (the same rows, the same number)."""
-    from gyrocore.data.recording import GYRO_COLS
-
-    head = Recording(t_s=store.t_s, gyro_rad_s=np.broadcast_to(0.0, (store.n, 3)), meta=store.meta)
-
-    def rows(idx, starts, n_win):  # the picked windows, read one at a time
-        return np.concatenate([store.block(GYRO_COLS, int(a), int(a) + n_win) for a in starts])
-
-    def whole():
-        return Recording(t_s=store.t_s, gyro_rad_s=store.block(GYRO_COLS, 0, store.n), meta=store.meta)
-
-    return _still_fraction(store.n, head.rate_hz, rows, whole, **options)
-
-
-def _still_fraction(
-    n: int,
-    rate_hz: float,
-    gyro_rows,
-    whole,
-    *,
-    window_s: float = 2.0,
-    false_reject_rate: float = 1e-3,
-    max_windows: int = 200,
-) -> float:
-    from gyrocore.calib.bias import StaticBiasCalibrator
-
+    src = gyro if isinstance(gyro, SpilledGyro) else np.asarray(gyro, float)
+    n = src.n if isinstance(src, SpilledGyro) else src.shape[0]
     n_win = int(round(window_s * rate_hz))
     if n < 10 * max(n_win, 8):
-        return float("nan")  # too short to judge
+        return None  # too short to judge
     W = n // n_win
     if W > max_windows:
         pick = np.linspace(0, W - 1, max_windows).round().astype(np.int64)
-        idx = (pick[:, None] * n_win + np.arange(n_win)[None, :]).ravel()
-        g = gyro_rows(idx, pick * n_win, n_win)
-        recording = Recording(t_s=np.arange(idx.size) / rate_hz, gyro_rad_s=g)
-    else:
-        recording = whole()
-    try:
-        r = StaticBiasCalibrator(window_s=window_s, false_reject_rate=false_reject_rate).fit(recording)
-    except GyroInputError as exc:
-        if "motion detected" in str(exc):
-            return 0.0
-        raise
-    return r.n_windows_still / max(r.n_windows_total, 1)
+        if isinstance(src, SpilledGyro):  # the picked windows, read one at a time
+            src = np.concatenate([src.block(int(k) * n_win, (int(k) + 1) * n_win) for k in pick])
+        else:
+            src = src[(pick[:, None] * n_win + np.arange(n_win)[None, :]).ravel()]
+    return still_windows(src, rate_hz, StillGate(window_samples=n_win, false_reject_rate=1e-3))
 
 
 def _check_rest_noise(recording: Recording) -> None:
@@ -1016,7 +970,7 @@ STRICT_FALSE_REJECT_RATE = 1e-6
 
 @dataclass(frozen=True)
 class StillSpan:
-    """Where a recording is still, from the motion gate of :mod:`gyrocore.calib.bias` on every 2-s window.
+    """Where a recording is still, from the still gate (:mod:`gyrocore.data.still`) on every 2-s window.
 
     Attributes
     ----------
@@ -1041,14 +995,14 @@ class StillSpan:
     message: str = ""
 
 
-def still_span(
+def analysed_span(
     gyro_rad_s: np.ndarray, rate_hz: float, *, t0_s: float = 0.0, window_s: float = 2.0, false_reject_rate: float = 1e-3
 ) -> StillSpan:
     """The part of a record that a noise identification may use: all of it, or its longest still stretch.
 
-    Every ``window_s`` window is judged by the variance gate of
-    :class:`gyrocore.calib.bias.StaticBiasCalibrator` (threshold from the record's own robust noise
-    level, false-reject rate ``false_reject_rate`` per still window). When the number of
+    Every ``window_s`` window is judged by the still gate :func:`gyrocore.data.still.still_windows`
+    (window variance against the χ² quantile of the record's own noise level, false-reject rate
+    ``false_reject_rate`` per still window). When the number of
     rejected windows k is one the false-reject rate explains (binomial tail
     P(X ≥ k | W, α) ≥ 10⁻³), and so is the number over the strict gate
     (:data:`STRICT_FALSE_REJECT_RATE`: a single 2-s turn in a long still log is not a false
@@ -1074,32 +1028,15 @@ def still_span(
     GyroInputError
         Mostly moving, or no still stretch of :data:`MIN_STILL_STRETCH_S`.
     """
-    from gyrocore.calib.bias import StaticBiasCalibrator, _check_noise_plausible, _window_stats
-
     x = np.asarray(gyro_rad_s, float)
     N = x.shape[0]
     n_win = int(round(window_s * rate_hz))
     if n_win < 8 or N < 2 * n_win:
         return StillSpan(0, N, float("nan"))
-    W = N // n_win
-    cal = StaticBiasCalibrator(window_samples=n_win, false_reject_rate=false_reject_rate)
-    sigma_diff, rho = cal._noise(x)
-    xw = x[: W * n_win].reshape(W, n_win, x.shape[1])
-    sigma2, dof = cal._variance_noise(xw, rho)
-    try:
-        _check_noise_plausible(sigma2, sigma_diff, rho)
-    except GyroInputError:
-        # motion in most windows inflated the window-variance quantile: gate with the noise of
-        # the sample-to-sample differences instead (smooth motion barely changes them)
-        sigma2 = dof = None
-    dt = 1.0 / rate_hz
-    thr = cal.gate(n_win, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)[0]
-    strict = StaticBiasCalibrator(window_samples=n_win, false_reject_rate=STRICT_FALSE_REJECT_RATE).gate(
-        n_win, sigma_diff, rho, dt, sigma2=sigma2, dof=dof
-    )[0]
-    stats = _window_stats(x, n_win, "variance")
-    still = np.all(stats <= thr[None, :], axis=1)
-    quiet = np.all(stats <= strict[None, :], axis=1)
+    sw = still_windows(x, rate_hz, StillGate(window_samples=n_win, false_reject_rate=false_reject_rate))
+    W = sw.n_windows
+    still = sw.still
+    quiet = sw.still_at(STRICT_FALSE_REJECT_RATE)
     k = int(W - still.sum())
     k_strict = int(W - quiet.sum())
     frac = float(still.mean())
@@ -1201,7 +1138,7 @@ def allan_analysis(
     still = None
     span_s = None
     if check_static:
-        sp = still_span(recording.gyro_rad_s, rate, t0_s=float(recording.t_s[0]))
+        sp = analysed_span(recording.gyro_rad_s, rate, t0_s=float(recording.t_s[0]))
         still = sp.still_fraction
         if sp.cut:
             warn_repair(sp.message)
@@ -1426,9 +1363,8 @@ def _identify_arrays(
         raise GyroInputError(f"unknown axis {','.join(bad) or '(none)'} for {k} column(s)")
     still = None
     if check_static:
-        still = still_fraction(
-            Recording(t_s=np.arange(n) / rate, gyro_rad_s=x) if n <= 200 * int(2 * rate) else _window_sample(x, rate)
-        )
+        sw = _judged_windows(x, rate)
+        still = sw.fraction if sw is not None else float("nan")
         if math.isfinite(still) and (1.0 - still) > MAX_MOVING_FRACTION:
             raise GyroInputError(
                 f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "
@@ -1464,15 +1400,6 @@ def _identify_arrays(
     if method != "adev_legacy":
         _warn_short(res, duration, n, rate, method)
     return AllanAnalysis(axes=res, rate_hz=rate, n_samples=n, duration_s=duration, method=method, still_fraction=still)
-
-
-def _window_sample(x: np.ndarray, rate: float, *, window_s: float = 2.0, max_windows: int = 200) -> Recording:
-    """A Recording of ``max_windows`` whole windows evenly spread over ``x`` (for the motion gate)."""
-    n_win = int(round(window_s * rate))
-    W = x.shape[0] // n_win
-    pick = np.linspace(0, W - 1, min(max_windows, W)).round().astype(np.int64)
-    idx = (pick[:, None] * n_win + np.arange(n_win)[None, :]).ravel()
-    return Recording(t_s=np.arange(idx.size) / rate, gyro_rad_s=x[idx])
 
 
 #: Public names of the results: a per-axis result and the whole analysis.

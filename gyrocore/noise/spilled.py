@@ -65,13 +65,13 @@ def allan_by_axis(
             rows = t_rows(store.t_s, t_from_s, t_to_s)
         if check_static and rows != (0, store.n):
             # a chosen part: the whole gate of allan_analysis on its three axes (memory O(3 × part))
-            from gyrocore.noise.allan import still_span
+            from gyrocore.noise.allan import analysed_span
             from gyrocore.data.recording import GYRO_COLS
 
             from gyrocore.data.recording import Recording
 
             part = Recording(t_s=store.t_s[rows[0] : rows[1]], gyro_rad_s=store.block(GYRO_COLS, *rows))
-            sp = still_span(part.gyro_rad_s, part.rate_hz, t0_s=float(part.t_s[0]))
+            sp = analysed_span(part.gyro_rad_s, part.rate_hz, t0_s=float(part.t_s[0]))
             still = sp.still_fraction
             if sp.cut:
                 from gyrocore.errors import warn_repair
@@ -80,17 +80,18 @@ def allan_by_axis(
                 rows = (rows[0] + sp.start, rows[0] + sp.stop)
             del part
         elif check_static:  # the same gate as allan_analysis(check_static=True), on up to 200 windows
-            import math
-
             import scipy.stats
 
-            from gyrocore.noise.allan import MAX_MOVING_FRACTION, still_fraction_spilled
+            from gyrocore.data.recording import Recording
+            from gyrocore.data.still import SpilledGyro
+            from gyrocore.noise.allan import MAX_MOVING_FRACTION, _judged_windows
 
-            still = still_fraction_spilled(store)  # reads only the windows it judges
-            n_win = int(round(2.0 * store.n / max(float(store.t_s[-1] - store.t_s[0]), 1e-300)))
-            w_judged = min(200, store.n // max(n_win, 1))
-            k = int(round((1.0 - still) * w_judged)) if math.isfinite(still) else 0
-            if math.isfinite(still) and (
+            rate = Recording(t_s=store.t_s, gyro_rad_s=np.broadcast_to(0.0, (store.n, 3))).rate_hz
+            sw = _judged_windows(SpilledGyro(store), rate)  # reads only the windows it judges
+            still = sw.fraction if sw is not None else float("nan")
+            w_judged = sw.n_windows if sw is not None else 0
+            k = int((~sw.still).sum()) if sw is not None else 0
+            if sw is not None and (
                 (1.0 - still) > MAX_MOVING_FRACTION or (k > 0 and scipy.stats.binom.sf(k - 1, w_judged, 1e-3) < 1e-3)
             ):
                 raise GyroInputError(

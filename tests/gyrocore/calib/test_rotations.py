@@ -11,7 +11,8 @@ from gyrocore.readers.common import Segment, write_segments_csv
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.calibrator import Calibrator
 from gyrocore.data.recording import Recording
-from gyrocore.calib.rotations import article_worked_example, integral_calibration, still_mask
+from gyrocore.calib.rotations import STILL_GATE, article_worked_example, integral_calibration
+from gyrocore.data.still import still_samples
 
 
 # ------------------------------------------------------------------ the article's §5
@@ -109,7 +110,7 @@ def test_integral_method_needs_all_three_axes_and_still_data():
 
 def test_still_mask_finds_the_still_parts():
     rec, segs, w = hand_session(2)
-    m = still_mask(rec, exclude=[(s.t_start_s, s.t_end_s) for s in segs])
+    m = still_samples(rec, STILL_GATE, exclude_s=[(s.t_start_s, s.t_end_s) for s in segs], margin_s=0.5)
     moving = np.any(w != 0, axis=1)
     assert not np.any(m & moving)
     # nearly all truly still time outside the segment margins is found (1-s windows, α = 1e-3)

@@ -170,7 +170,8 @@ def test_streamed_bias_equals_in_memory(tmp_path, monkeypatch, kw):
 
 def test_still_fraction_from_disk_reads_the_same_windows(tmp_path):
     # the allan motion gate of a long file reads only the 200 windows it judges from disk
-    from gyrocore.noise.allan import still_fraction, still_fraction_spilled
+    from gyrocore.data.still import SpilledGyro
+    from gyrocore.noise.allan import _judged_windows
 
     rng = np.random.default_rng(8)
     n = 60_000  # 300 windows of 2 s at 100 Hz: 200 of them picked
@@ -179,9 +180,12 @@ def test_still_fraction_from_disk_reads_the_same_windows(tmp_path):
     y[20_000:35_000] += 0.2 * np.sin(2 * np.pi * 0.7 * t[20_000:35_000])[:, None]  # a quarter moving
     path = tmp_path / "r.csv"
     write_csv(Recording(t_s=t, gyro_rad_s=y), path)
-    f_mem = still_fraction(read_csv(path, columns=()))
-    f_disk = still_fraction_spilled(spill_columns(path, tmp_path / "spill"))
-    assert 0.6 < f_mem < 0.85 and f_disk == f_mem
+    rec = read_csv(path, columns=())
+    mem = _judged_windows(rec.gyro_rad_s, rec.rate_hz)
+    disk = _judged_windows(SpilledGyro(spill_columns(path, tmp_path / "spill")), rec.rate_hz)
+    assert mem.n_windows == disk.n_windows == 200
+    assert 0.6 < mem.fraction < 0.85 and disk.fraction == mem.fraction
+    np.testing.assert_array_equal(disk.statistic, mem.statistic)
 
 
 def test_streamed_bias_with_its_own_blocks_equals_in_memory_to_rounding(tmp_path, monkeypatch):

@@ -72,7 +72,7 @@ def test_still_record_with_a_false_reject_is_analysed_whole():
     rng = np.random.default_rng(3)
     n = int(600 * RATE)
     rec = Recording(t_s=np.arange(n) / RATE, gyro_rad_s=_white(rng, n, 1e-3))
-    sp = AL.still_span(rec.gyro_rad_s, RATE)
+    sp = AL.analysed_span(rec.gyro_rad_s, RATE)
     assert not sp.cut and (sp.start, sp.stop) == (0, n)
     import warnings
 
