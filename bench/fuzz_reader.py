@@ -1,7 +1,8 @@
 """Fuzz the data-file readers: any bytes must give a Recording, or one-line GyroInputError.
 
 Targets, run on every input (written to a temporary file): ``read_csv``, ``iter_csv_chunks``
-(7-row chunks, to cross chunk boundaries), ``read_segments_csv`` and the text-format
+(7-row chunks, to cross chunk boundaries), ``read_segments`` (the segments file, current and older
+layouts) and the text-format
 converters (tomisuarez2, imucal session, imucal annotated, x-io Fusion). A *crash* is any
 other exception, or an error message that is empty or spans several lines. Crashing inputs
 are saved to ``--crash-dir`` and counted; the run continues.
@@ -35,6 +36,8 @@ SEEDS = [
     b"t_s,gyro_x_deg_s,gyro_y_deg_s,gyro_z_deg_s,accel_x_g,accel_y_g,accel_z_g,temp_c\n0,1,2,3,0,0,1,25\n0.01,1,2,3,0,0,1,25\n0.03,nan,2,3,0,0,1,25\n",
     b"t_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s,ref_qw,ref_qx,ref_qy,ref_qz,ref_x_rad_s,ref_y_rad_s,ref_z_rad_s,flag\n"
     b"0,0,0,0,1,0,0,0,0,0,0,1\n0.005,0,0,0,nan,nan,nan,nan,0,0,0,0\n0.01,4.3633,4.3633,4.3633,1,0,0,0,0,0,0,1\n0.015,4.3633,4.3633,4.3633,1,0,0,0,0,0,0,1\n",
+    b't_start_s,t_end_s,kind,angle_x_deg,angle_y_deg,angle_z_deg,label\n0.5,2.5,rotation,720,0,0,"two turns, x"\n'
+    b"3,4,still,,,,\n4.5,6,rotation,0,-90.5,1e-3,\n",
     b"t_start_s,t_end_s,axis,angle_deg\n0.5,2.5,x,720\n3,4,z,-360\n",
     b"Fs,100\nLogging Type,1\nInitialization time,-1\nWaiting time,-1\nax,ay,az,gx,gy,gz\n748,244,15708,-480,193,-83\n724,56,14772,-439,189,-56\n",
     b"n_samples,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z\n0,-0.61,-0.30,0.06,10.33,-0.57,0.51\n1,-0.54,-0.36,0.12,10.33,-0.56,0.50\n",
@@ -49,16 +52,16 @@ class Harness:
     """Runs every target on one input and classifies the outcome."""
 
     def __init__(self, crash_dir: Path) -> None:
-        from gyrocore.readers import common as cm
         from gyrocore.readers import convert as cv
         from gyrocore.data import recording as rc
+        from gyrocore.data.segments import read_segments
         from gyrocore.errors import GyroInputError
 
         self.GyroInputError = GyroInputError
         self.targets = [
             ("read_csv", rc.read_csv),
             ("iter_csv_chunks", lambda p: list(rc.iter_csv_chunks(p, rows=7))),
-            ("read_segments_csv", cm.read_segments_csv),
+            ("read_segments", read_segments),
             ("read_tomisuarez2", cv.read_tomisuarez2),
             ("read_imucal", cv.read_imucal),
             ("read_imucal_annotated", cv.read_imucal_annotated),

@@ -970,13 +970,12 @@ def concat_session(paths: Sequence, *, gap_s: float = 1.0):
 
     Returns
     -------
-    (Recording, list of gyrocore.loop.residual.Segment)
+    (Recording, list of gyrocore.data.segments.Segment)
     """
     import warnings
 
     from gyrocore.readers.convert import load_with_segments
     from gyrocore.errors import RepairWarning
-    from gyrocore.loop.residual import Segment, as_segment
 
     recs, segs, t0 = [], [], 0.0
     for p in paths:
@@ -986,9 +985,7 @@ def concat_session(paths: Sequence, *, gap_s: float = 1.0):
         r = c.recording
         shift = t0 - r.t_s[0]
         recs.append((r, shift))
-        for s in c.segments:
-            s = as_segment(s)
-            segs.append(Segment(s.start_s + shift, s.stop_s + shift, s.kind, s.angle_S_rad))
+        segs.extend(s.shifted(shift) for s in c.segments)
         t0 = r.t_s[-1] + shift + gap_s
     t = np.concatenate([r.t_s + sh for r, sh in recs])
     gyro = np.concatenate([r.gyro_rad_s for r, _ in recs])

@@ -64,6 +64,7 @@ from scipy import signal
 
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
+from gyrocore.data.segments import Segment, as_segments
 
 from .twin_reference import Reference, _quat_R, reference_of
 from .twin_stats import (
@@ -1395,20 +1396,18 @@ def holdout(
     first half only. Returns ``{"before": Comparison.to_json() | None, "after": … | None,
     "added": [...], "error": str | None}`` for the second half.
     """
-    from gyrocore.loop.residual import Segment, as_segment
-
     n = rec.n
     rec_a, rec_b = rec.slice(0, n // 2), rec.slice(n // 2, n)
 
     def cut(r: Recording) -> list:
         t0, t1 = float(r.t_s[0]), float(r.t_s[-1])
         out = []
-        for s in map(as_segment, segments):
+        for s in as_segments(segments):
             if s.kind == "rotation":
-                if s.start_s >= t0 and s.stop_s <= t1:
+                if s.t_start_s >= t0 and s.t_end_s <= t1:
                     out.append(s)
-            elif min(s.stop_s, t1) - max(s.start_s, t0) > 0:
-                out.append(Segment(max(s.start_s, t0), min(s.stop_s, t1), "still"))
+            elif min(s.t_end_s, t1) - max(s.t_start_s, t0) > 0:
+                out.append(Segment.still(max(s.t_start_s, t0), min(s.t_end_s, t1), s.label))
         return out
 
     seg_a, seg_b = cut(rec_a), cut(rec_b)

@@ -11,6 +11,7 @@ import numpy as np
 
 from gyrocore.attitude import attitude_rate
 from gyrocore.data.recording import Recording
+from gyrocore.data.segments import as_segments
 from gyrocore.errors import GyroInputError
 
 DEG = math.pi / 180.0
@@ -84,9 +85,9 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
         recording is not a still log), or a reference that covers less than
         :data:`MIN_SPAN_S` of contiguous samples.
     """
-    from gyrocore.loop.residual import as_segment, choose_reference, detect_still
+    from gyrocore.loop.residual import choose_reference, detect_still
 
-    segs = [as_segment(s) for s in segments]
+    segs = as_segments(segments)
     t = np.asarray(rec.t_s, float)
     n = rec.n
     fs = rec.rate_hz
@@ -127,7 +128,7 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
             covered = np.zeros(n, bool)
             for s in segs:
                 if s.kind == "still":
-                    covered |= (t >= s.start_s) & (t <= s.stop_s)
+                    covered |= (t >= s.t_start_s) & (t <= s.t_end_s)
             how = "still segments"
         elif "static_pose_axis" in rec.extra:
             covered = np.asarray(rec.extra["static_pose_axis"]) != 0
@@ -138,7 +139,7 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
         if kind == "angles":
             for s in segs:
                 if s.kind == "rotation":
-                    covered &= ~((t >= s.start_s) & (t <= s.stop_s))
+                    covered &= ~((t >= s.t_start_s) & (t <= s.t_end_s))
         omega = np.zeros((n, 3))
         desc = f"still ({how}): zero rate" + (
             "; the known rotations are not replayed (rate profile unknown)" if kind == "angles" else ""

@@ -32,6 +32,10 @@ _EXPORTS: dict[str, str | tuple[str, str]] = {
     "read_parquet": "gyrocore.data.recording",
     "write_parquet": "gyrocore.data.recording",
     "load_any": "gyrocore.readers.convert",
+    # still spans and known rotations, and their file
+    "Segment": "gyrocore.data.segments",
+    "read_segments": "gyrocore.data.segments",
+    "write_segments": "gyrocore.data.segments",
     # the measurement model
     "REGISTRY": "gyrocore.effects.registry",
     "Effect": "gyrocore.effects.registry",

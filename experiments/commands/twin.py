@@ -27,7 +27,7 @@ __all__ = ["command"]
     "segments_file",
     default=None,
     type=click.Path(dir_okay=False),
-    help="Still / known-rotation segments CSV (gyrocore.loop.residual.read_segments).",
+    help="Still / known-rotation segments file (gyrocore.data.segments.read_segments).",
 )
 @click.option(
     "--replicas",
@@ -60,7 +60,7 @@ def command(file, params_file, segments_file, replicas, seed, no_close, out_dir,
         raise GyroInputError(f"--seed must be >= 0, got {seed}")
     rec, segs = T.load_recording(file)
     if segments_file is not None:
-        from gyrocore.loop.residual import read_segments
+        from gyrocore.data.segments import read_segments
 
         segs = read_segments(segments_file)
     n_rep = T.DEFAULT_REPLICAS if replicas is None else replicas

@@ -30,6 +30,7 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
+from gyrocore.data.segments import Segment, as_segments
 from gyrocore.data.still import StillGate, still_samples
 
 __all__ = [
@@ -43,8 +44,6 @@ __all__ = [
     "GravityPoseResult",
     "gravity_pose_calibration",
 ]
-
-AXES = ("x", "y", "z")
 
 #: The article's integrated outputs B (rad), §5 (column j = rotation about axis j).
 ARTICLE_B_RAD = np.array(
@@ -65,31 +64,26 @@ ARTICLE_M_PRINTED = np.array(
 
 
 # ---------------------------------------------------------------------------- segments
-def segments_from_any(segments) -> list:
-    """Segments as ``gyrocore.readers.common.Segment`` (t_start_s, t_end_s, axis, angle_deg).
+def segments_from_any(segments) -> list[Segment]:
+    """The known rotations the integral method uses, from a segments file path or a sequence of
+    :class:`gyrocore.data.segments.Segment`.
 
-    Accepts a path to a segments CSV (``t_start_s,t_end_s,axis,angle_deg``) or a sequence of
-    objects/tuples with those four fields.
+    Raises
+    ------
+    GyroInputError
+        An unreadable file, an item that is not a Segment, or a still segment (the integral
+        method takes its bias from the still parts it finds outside the rotations, or from an
+        external bias; it does not take still spans).
     """
-    from gyrocore.readers.common import Segment, read_segments_csv
-
-    if isinstance(segments, (str, bytes)) or hasattr(segments, "__fspath__"):
-        return read_segments_csv(segments)
-    out = []
-    for s in segments:
-        if isinstance(s, Segment):
-            out.append(s)
-        elif hasattr(s, "t_start_s"):
-            out.append(Segment(float(s.t_start_s), float(s.t_end_s), str(s.axis), float(s.angle_deg)))
-        else:
-            t0, t1, ax, ang = s
-            out.append(Segment(float(t0), float(t1), str(ax), float(ang)))
-    for s in out:
-        if s.axis not in AXES:
-            raise GyroInputError(f"segment axis must be x, y or z, got {s.axis!r}")
-        if not s.t_end_s > s.t_start_s:
-            raise GyroInputError(f"segment {s.t_start_s}..{s.t_end_s} s is empty")
-    return out
+    segs = as_segments(segments)
+    still = [s for s in segs if s.kind != "rotation"]
+    if still:
+        s = still[0]
+        raise GyroInputError(
+            f"integral method: segment {s.t_start_s}..{s.t_end_s} s is still; the method takes known rotations "
+            "only (its bias comes from the still parts outside them, or --bias-from / --bias-dps)"
+        )
+    return segs
 
 
 # ---------------------------------------------------------------------------- still parts
@@ -204,7 +198,7 @@ def _segment_integrals(t, y, b, segs):
         B[:, k] = np.trapezoid(y[m] - b, tk, axis=0)
         T[k] = tk[-1] - tk[0]
         nk[k] = m.sum()
-        C["xyz".index(s.axis), k] = math.radians(s.angle_deg)
+        C[:, k] = s.angle_S_rad
     return B, C, T, nk
 
 
@@ -251,8 +245,9 @@ def integral_calibration(
     recording : Recording
         Gyro in rad/s, sensor frame S.
     segments : path or sequence
-        Known rotations (``t_start_s, t_end_s, axis, angle_deg``); each segment must contain
-        the whole motion (still at both ends) and the three axes must all be turned.
+        Known rotations (a segments file or :class:`gyrocore.data.segments.Segment` rows, any
+        rotation vector); each segment must contain the whole motion (still at both ends) and
+        the rotation vectors must span all three axes.
     still : ndarray of bool, shape (N,), optional
         Samples to take the bias from; default :data:`STILL_GATE` outside the segments.
     h_rad_s_per_m_s2 : ndarray, shape (3, 3), optional
@@ -323,7 +318,7 @@ def integral_calibration(
         se_b = np.sqrt(lr / n_still)
     B, C, T, nk = _segment_integrals(t, y, b, segs)
     if np.linalg.matrix_rank(C) < 3:
-        turned = sorted({s.axis for s in segs})
+        turned = sorted({s.axis or "an oblique axis" for s in segs})
         raise GyroInputError(
             f"integral method: rotations about {', '.join(turned)} only; K and M need turns about all three axes"
         )

@@ -65,8 +65,9 @@ from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from gyrocore.calib.stream import SpilledRecording, held_correction
+from gyrocore.data.segments import Segment
 from . import search as S
-from .residual import Residual, Segment, build_residual
+from .residual import Residual, build_residual
 from .search import Unexplained
 from .result import Evidence, LoopResult, Step
 from .model import CANDIDATES, Model, advance, fittable, input_check, params_table, with_companion

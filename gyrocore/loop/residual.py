@@ -44,15 +44,12 @@ Reference kinds
 
 Segments
 --------
-:class:`Segment` marks still intervals and known rotations. :func:`read_segments` reads a CSV
-with columns ``start_s, stop_s, kind`` (``still`` or ``rotation``) and, for rotations,
-``angle_x_rad, angle_y_rad, angle_z_rad`` (the rotation vector in S; ``_deg`` accepted).
+Still intervals and known rotations are :class:`gyrocore.data.segments.Segment` (the segments
+file: :func:`gyrocore.data.segments.read_segments`).
 """
 
 from __future__ import annotations
 
-import csv
-import os
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -64,14 +61,12 @@ from gyrocore.effects import registry as E
 from gyrocore.attitude import integrate_gyro
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
+from gyrocore.data.segments import Segment, as_segments
 from gyrocore.calib.stream import Rows, rows_of
 
 __all__ = [
     "REFERENCE_KINDS",
-    "Segment",
     "Residual",
-    "read_segments",
-    "as_segment",
     "detect_still",
     "build_residual",
     "choose_reference",
@@ -123,86 +118,6 @@ def family_design(effect: str, inp) -> tuple[list[str], np.ndarray]:
         from .search import family_design as _fd
 
         return _fd(effect, inp)
-
-
-@dataclass(frozen=True)
-class Segment:
-    """A stretch of a recording with a known reference.
-
-    Parameters
-    ----------
-    start_s, stop_s : float
-        Segment bounds, s (same clock as ``t_s``).
-    kind : str
-        ``"still"`` (true rate 0 relative to W) or ``"rotation"``.
-    angle_S_rad : tuple of 3 floats or None
-        For rotations: the known rotation vector in S, rad (e.g. (4π, 0, 0) for two turns
-        about +x).
-    """
-
-    start_s: float
-    stop_s: float
-    kind: str
-    angle_S_rad: tuple[float, float, float] | None = None
-
-    def __post_init__(self) -> None:
-        if self.kind not in ("still", "rotation"):
-            raise GyroInputError(f"segment kind must be 'still' or 'rotation', not '{self.kind}'")
-        if not self.stop_s > self.start_s:
-            raise GyroInputError(f"segment {self.start_s}..{self.stop_s} s is empty")
-        if self.kind == "rotation" and self.angle_S_rad is None:
-            raise GyroInputError("a rotation segment needs its angle (angle_x/y/z)")
-
-
-def as_segment(seg) -> Segment:
-    """A :class:`Segment` from this module's or :class:`gyrocore.readers.common.Segment`
-    (``t_start_s, t_end_s, axis, angle_deg``: a known rotation about one sensor axis)."""
-    if isinstance(seg, Segment):
-        return seg
-    if hasattr(seg, "axis") and hasattr(seg, "angle_deg"):
-        v = np.zeros(3)
-        v["xyz".index(seg.axis)] = np.radians(float(seg.angle_deg))
-        return Segment(float(seg.t_start_s), float(seg.t_end_s), "rotation", tuple(float(x) for x in v))
-    raise GyroInputError(f"not a segment: {seg!r}")
-
-
-def read_segments(path: str | os.PathLike) -> list[Segment]:
-    """Read a segments CSV (see module docstring) or the known-rotation file of
-    :func:`gyrocore.readers.common.write_segments_csv`. Bad files raise :class:`GyroInputError`."""
-    path = str(path)
-    if not os.path.isfile(path):
-        raise GyroInputError(f"{path}: no such segments file")
-    out: list[Segment] = []
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = [r for r in csv.reader(l for l in fh if l.strip() and not l.lstrip().startswith("#"))]
-    if not rows:
-        raise GyroInputError(f"{path}: empty segments file")
-    head = [h.strip() for h in rows[0]]
-    if head[:4] == ["t_start_s", "t_end_s", "axis", "angle_deg"]:
-        from gyrocore.readers.common import read_segments_csv
-
-        return [as_segment(s) for s in read_segments_csv(path)]
-    for need in ("start_s", "stop_s", "kind"):
-        if need not in head:
-            raise GyroInputError(f"{path}: segments file needs a '{need}' column")
-    ang_cols, fac = None, 1.0
-    if all(f"angle_{a}_rad" in head for a in "xyz"):
-        ang_cols = [head.index(f"angle_{a}_rad") for a in "xyz"]
-    elif all(f"angle_{a}_deg" in head for a in "xyz"):
-        ang_cols, fac = [head.index(f"angle_{a}_deg") for a in "xyz"], np.pi / 180.0
-    for ln, r in enumerate(rows[1:], start=2):
-        try:
-            rec = {h: r[i].strip() for i, h in enumerate(head) if i < len(r)}
-            kind = rec["kind"]
-            ang = None
-            if kind == "rotation":
-                if ang_cols is None:
-                    raise GyroInputError(f"{path}: rotation segments need angle_x/y/z_rad (or _deg) columns")
-                ang = tuple(float(r[i]) * fac for i in ang_cols)
-            out.append(Segment(float(rec["start_s"]), float(rec["stop_s"]), kind, ang))
-        except (KeyError, ValueError, IndexError):
-            raise GyroInputError(f"{path}: line {ln} is not a valid segment") from None
-    return out
 
 
 def earth_rate_design(R_WS: np.ndarray) -> tuple[list[str], np.ndarray]:
@@ -600,12 +515,11 @@ def choose_reference(rec: Recording, segments: Sequence[Segment] | None = None) 
     Without reference columns or segments, a recording that a motion gate finds ≥ 80 % still
     (or that has a ``static_pose_axis`` column) is taken as ``"still"``.
     """
-    segments = [as_segment(x) for x in (segments or [])]
+    segs = as_segments(segments)
     if rec.ref_rate_rad_s is not None and np.isfinite(rec.ref_rate_rad_s).any():
         return "rate"
     if rec.ref_quat_wxyz is not None and np.isfinite(rec.ref_quat_wxyz).all(axis=1).sum() >= 2:
         return "attitude"
-    segs = list(segments or [])
     if any(s.kind == "rotation" for s in segs):
         return "angles"
     if any(s.kind == "still" for s in segs):
@@ -622,7 +536,7 @@ def _segment_mask(t: np.ndarray, segs: Sequence[Segment], kind: str) -> np.ndarr
     m = np.zeros(t.shape[0], bool)
     for s in segs:
         if s.kind == kind:
-            m |= (t >= s.start_s) & (t <= s.stop_s)
+            m |= (t >= s.t_start_s) & (t <= s.t_end_s)
     return m
 
 
@@ -668,7 +582,7 @@ def build_residual(
     -------
     Residual
     """
-    segs = [as_segment(x) for x in (segments or [])]
+    segs = as_segments(segments)
     from gyrocore.calib.stream import SpilledRecording
 
     if isinstance(rec, SpilledRecording):
@@ -787,10 +701,10 @@ def build_residual(
             raise GyroInputError("reference 'angles' needs rotation segments (--segments)")
         a_l, b_l, phi = [], [], []
         for s in rots:
-            ia = int(np.searchsorted(t, s.start_s, side="left"))
-            ib = int(np.searchsorted(t, s.stop_s, side="right")) - 1
+            ia = int(np.searchsorted(t, s.t_start_s, side="left"))
+            ib = int(np.searchsorted(t, s.t_end_s, side="right")) - 1
             if ib - ia < 2:
-                raise GyroInputError(f"rotation segment {s.start_s}..{s.stop_s} s covers fewer than 3 samples")
+                raise GyroInputError(f"rotation segment {s.t_start_s}..{s.t_end_s} s covers fewer than 3 samples")
             a_l.append(ia)
             b_l.append(ib)
             phi.append(s.angle_S_rad)

@@ -1,30 +1,24 @@
-"""What every reader shares: the known-rotation :class:`Segment` and its segments file
-(``t_start_s,t_end_s,axis,angle_deg``, used by the integral calibration method, article §2,
-M = C·B⁻¹), the :class:`Converted` result, timing diagnostics, and the helpers that record
-repairs in the metadata.
+"""What every reader shares: the :class:`Converted` result (a recording and its known-rotation
+segments, :class:`gyrocore.data.segments.Segment`), timing diagnostics, and the helpers that
+record repairs in the metadata.
 """
 
 from __future__ import annotations
 
-import io
 import math
-import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
-from gyrocore.data.recording import AXES, Recording, atomic_write_text
+from gyrocore.data.recording import Recording
+from gyrocore.data.segments import Segment
 
 
 __all__ = [
-    "Segment",
     "Converted",
-    "write_segments_csv",
-    "read_segments_csv",
     "TimingReport",
     "timing_report",
     "retime_uniform",
@@ -33,80 +27,14 @@ __all__ = [
 ]
 
 
-# ============================================================================ segments
-@dataclass(frozen=True)
-class Segment:
-    """A time span with a known total rotation about one sensor axis.
-
-    Parameters
-    ----------
-    t_start_s, t_end_s : float
-        Span on the recording's time axis, s.
-    axis : str
-        ``"x"``, ``"y"`` or ``"z"`` (sensor frame S).
-    angle_deg : float
-        Total rotation of S about ``axis`` over the span, degrees, right-hand positive.
-    label : str
-        Where it comes from (not written to the segments file).
-    """
-
-    t_start_s: float
-    t_end_s: float
-    axis: str
-    angle_deg: float
-    label: str = ""
-
-
+# ============================================================================ converted
 @dataclass(frozen=True)
 class Converted:
-    """A converted recording and its known-rotation segments."""
+    """A converted recording and its known-reference segments (:class:`gyrocore.data.segments.Segment`)."""
 
     recording: Recording
     segments: tuple[Segment, ...] = ()
     format: str = ""
-
-
-def write_segments_csv(segments: Sequence[Segment], path: str | os.PathLike, *, overwrite: bool = True) -> None:
-    """Write the segments file ``t_start_s,t_end_s,axis,angle_deg`` atomically."""
-    buf = io.StringIO()
-    buf.write("t_start_s,t_end_s,axis,angle_deg\n")
-    for s in segments:
-        buf.write(f"{s.t_start_s!r},{s.t_end_s!r},{s.axis},{s.angle_deg!r}\n")
-    atomic_write_text(path, buf.getvalue(), overwrite=overwrite)
-
-
-def read_segments_csv(path: str | os.PathLike) -> list[Segment]:
-    """Read a segments file written by :func:`write_segments_csv` (``#`` lines ignored)."""
-    path = str(path)
-    if not os.path.isfile(path):
-        raise GyroInputError(f"{path}: no such segments file")
-    out: list[Segment] = []
-    header_seen = False
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = [p.strip() for p in s.split(",")]
-            if not header_seen:
-                if parts[:4] != ["t_start_s", "t_end_s", "axis", "angle_deg"]:
-                    raise GyroInputError(f"{path}: header must be t_start_s,t_end_s,axis,angle_deg")
-                header_seen = True
-                continue
-            if len(parts) < 4:
-                raise GyroInputError(f"{path}: line {lineno}: expected 4 values")
-            try:
-                t0, t1, ang = float(parts[0]), float(parts[1]), float(parts[3])
-            except ValueError:
-                raise GyroInputError(f"{path}: line {lineno}: not a number") from None
-            if parts[2] not in AXES:
-                raise GyroInputError(f"{path}: line {lineno}: axis must be x, y or z, got {parts[2]!r}")
-            if not (math.isfinite(t0) and math.isfinite(t1) and math.isfinite(ang)) or t1 <= t0:
-                raise GyroInputError(f"{path}: line {lineno}: need finite t_start_s < t_end_s and angle")
-            out.append(Segment(t0, t1, parts[2], ang))
-    if not header_seen:
-        raise GyroInputError(f"{path}: empty segments file")
-    return out
 
 
 # ============================================================================ timing

@@ -9,8 +9,8 @@ padding rows dropped, an axis sign flipped, host timestamps replaced by a unifor
 repair is also announced once with :func:`gyrocore.errors.warn_repair`.
 
 Known total rotation angles (hand-rotation sessions) are returned as
-:class:`~gyrocore.readers.common.Segment` rows (the segments file of
-:func:`~gyrocore.readers.common.write_segments_csv`).
+:class:`~gyrocore.data.segments.Segment` rows (the segments file of
+:func:`~gyrocore.data.segments.write_segments`).
 
 The sources and their quirks are documented in ``docs/data.md`` and in each folder's
 PROVENANCE.md under ``../shared/data``.
@@ -28,7 +28,9 @@ import numpy as np
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording, is_parquet, read_csv, read_parquet, read_recording
 
-from .common import Converted, Segment, _positive
+from gyrocore.data.segments import Segment
+
+from .common import Converted, _positive
 from .datasets import (
     _sunsided_dir,
     imucal_segments,
@@ -137,7 +139,7 @@ def concat_converted(parts: Sequence[Converted], *, gap_s: float | None = None) 
         shift = 0.0 if t0 is None else t0 + gap - float(r.t_s[0])
         gap = gap_s if gap_s is not None else 1.0 / r.rate_hz
         recs.append((r, shift))
-        segs.extend(Segment(s.t_start_s + shift, s.t_end_s + shift, s.axis, s.angle_deg, s.label) for s in c.segments)
+        segs.extend(s.shifted(shift) for s in c.segments)
         t0 = float(r.t_s[-1]) + shift
 
     def cat(get):

@@ -2,7 +2,7 @@
 ``../shared/data``): sunsided, tomisuarez2, imucal, BROAD, imu_tk, gnss-ins-sim, x-io Fusion.
 Each returns SI arrays in the DESIGN.md columns with metadata ``source``, ``format``,
 ``sensor``, ``rate_hz`` and ``repairs``; the hand-rotation sessions also give their known
-rotations as :class:`~gyrocore.readers.common.Segment` rows."""
+rotations as :class:`~gyrocore.data.segments.Segment` rows."""
 
 from __future__ import annotations
 
@@ -16,8 +16,9 @@ import numpy as np
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import AXES, DEG, G0_M_S2, Recording
 
+from gyrocore.data.segments import Segment
+
 from .common import (
-    Segment,
     _check_finite,
     _h5,
     _loadtxt,
@@ -214,7 +215,7 @@ def sunsided_segments(rec: Recording, recording_dir: str | os.PathLike) -> list[
     if axis == "x" and "gyro X negated" not in rec.meta.get("repairs", ""):
         angle = -720.0
     t0, t1 = motion_span(rec.t_s, rec.gyro_rad_s)
-    return [Segment(t0, t1, axis, angle, label=f"{name}: two CCW 360 deg turns (README)")]
+    return [Segment.about_axis(t0, t1, axis, angle, label=f"{name}: two CCW 360 deg turns (README)")]
 
 
 # ============================================================================ tomisuarez2
@@ -290,7 +291,7 @@ def tomisuarez2_segments(rec: Recording, path: str | os.PathLike) -> list[Segmen
     if Path(path).name != "imu_90_x_rot.csv":
         return []
     t0, t1 = motion_span(rec.t_s, rec.gyro_rad_s)
-    return [Segment(t0, t1, "x", 90.0, label="imu_90_x_rot: +90 deg about X (README)")]
+    return [Segment.about_axis(t0, t1, "x", 90.0, label="imu_90_x_rot: +90 deg about X (README)")]
 
 
 # ============================================================================ imucal
@@ -381,7 +382,9 @@ def imucal_segments(rec: Recording) -> list[Segment]:
     for m in re.finditer(r"\b([xyz])_rot=(\d+)-(\d+)", rec.meta.get("sections", "")):
         s0, s1 = int(m.group(2)), int(m.group(3))
         out.append(
-            Segment(s0 / rate, s1 / rate, m.group(1), IMUCAL_EXPECTED_ANGLE_DEG, label=f"imucal {m.group(1)}_rot")
+            Segment.about_axis(
+                s0 / rate, s1 / rate, m.group(1), IMUCAL_EXPECTED_ANGLE_DEG, label=f"imucal {m.group(1)}_rot"
+            )
         )
     return out
 

@@ -120,7 +120,8 @@ def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str,
     "--segments",
     type=click.Path(dir_okay=False),
     default=None,
-    help="known rotations t_start_s,t_end_s,axis,angle_deg -> the integral method M = C·B⁻¹",
+    help="segments file of known rotations (t_start_s,t_end_s,kind,angle_x_deg,angle_y_deg,angle_z_deg) "
+    "-> the integral method M = C·B⁻¹",
 )
 @click.option(
     "--bias-from",

@@ -10,7 +10,7 @@ import click
 
 from gyrocore.cli import emit_json
 from gyrocore.readers.convert import FORMATS, concat_converted, load_with_segments
-from gyrocore.readers.common import write_segments_csv
+from gyrocore.data.segments import write_segments
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data import recording as _recording
 from gyrocore.data.recording import PARQUET_SUFFIXES, file_sha256, iter_chunks, write_chunks, write_csv, write_parquet
@@ -99,7 +99,7 @@ STREAM_BYTES = 96 * 2**20
     "--segments-out",
     type=click.Path(path_type=str),
     default=None,
-    help="Write the known-rotation segments (t_start_s,t_end_s,axis,angle_deg).",
+    help="Write the known-rotation segments file (t_start_s,t_end_s,kind,angle_x_deg,angle_y_deg,angle_z_deg,label).",
 )
 @click.option(
     "--append",
@@ -238,7 +238,7 @@ def command(
             raise GyroInputError(
                 f"{input_path}: a streamed CSV has no known rotations; --segments-out needs a rotation session"
             )
-        write_segments_csv(segs, segments_out, overwrite=True)
+        write_segments(segs, segments_out, overwrite=True)
         summary["segments_file"] = segments_out
     summary["warnings"] = repairs
     summary["sha256"] = file_sha256(output)

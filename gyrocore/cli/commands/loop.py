@@ -146,8 +146,8 @@ def _line_validation_text(p: dict) -> str:
     "--segments",
     type=click.Path(path_type=str),
     default=None,
-    help="Segments CSV: still segments and/or known rotations (start_s,stop_s,kind,angle_x/y/z_rad, "
-    "or t_start_s,t_end_s,axis,angle_deg).",
+    help="Segments file: still segments and/or known rotations "
+    "(t_start_s,t_end_s,kind,angle_x_deg,angle_y_deg,angle_z_deg; gyrocore.data.segments).",
 )
 @click.option("--candidates", default=None, help="Effects to trace (default: every traceable effect not declared).")
 @click.option(
@@ -276,7 +276,7 @@ def command(
     from gyrocore.readers.convert import load_with_segments
     from gyrocore.errors import GyroInputError
     from gyrocore.loop.loop import run_loop
-    from gyrocore.loop.residual import read_segments
+    from gyrocore.data.segments import read_segments
 
     if output and os.path.exists(output) and not force:
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")
@@ -440,7 +440,7 @@ def validation(result, rec_fit, val_conv, *, declared, opts, validate, validate_
     from gyrocore.errors import GyroInputError
     from gyrocore.loop.loop import run_loop
     from gyrocore.loop.validate import loop_parameters, validate_model
-    from gyrocore.loop.residual import read_segments
+    from gyrocore.data.segments import read_segments
 
     base = run_loop(rec_fit, declared=declared, candidates=[], open_search=False, **opts)
     p_before, _ = loop_parameters(base, rec_fit, thermal_order=opts.get("thermal_order", 1))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gyrocore.effects import registry as E
-from gyrocore.readers.common import Segment, write_segments_csv
+from gyrocore.data.segments import Segment, write_segments
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.calibrator import Calibrator
 from gyrocore.data.recording import Recording
@@ -45,7 +45,7 @@ TRUE = {
 SIGMA_RAD_S = 0.001
 
 
-def hand_session(seed, *, rate_hz=100.0, turns=(-1.0, -1.0, -1.0), still_s=20.0, rest_s=8.0):
+def hand_session(seed, *, rate_hz=100.0, turns=(-1.0, -1.0, -1.0), still_s=20.0, rest_s=8.0, axes_S=None):
     """Still, then one rotation about each axis (smooth, 4 s, `turns` turns), rests between.
 
     Returns the recording and the segments (each covers its rotation plus 1 s either side)."""
@@ -57,9 +57,14 @@ def hand_session(seed, *, rate_hz=100.0, turns=(-1.0, -1.0, -1.0), still_s=20.0,
         n_rot = int(rot_s * rate_hz)
         u = np.arange(n_rot) / n_rot
         w = np.zeros((n_rot, 3))
-        w[:, i] = k * 2 * np.pi / rot_s * (1 - np.cos(2 * np.pi * u))  # integrates to k turns
+        profile = k * 2 * np.pi / rot_s * (1 - np.cos(2 * np.pi * u))  # integrates to k turns
         pieces += [w, np.zeros((int(rest_s * rate_hz), 3))]
-        segs.append(Segment(t_cur - 1.0, t_cur + rot_s + 1.0, "xyz"[i], 360.0 * k))
+        if axes_S is None:
+            w[:, i] = profile
+            segs.append(Segment.about_axis(t_cur - 1.0, t_cur + rot_s + 1.0, "xyz"[i], 360.0 * k))
+        else:  # about the unit vector axes_S[:, i] (a fixed axis in S: the rotation vector is angle·axis)
+            w[:] = profile[:, None] * axes_S[:, i]
+            segs.append(Segment(t_cur - 1.0, t_cur + rot_s + 1.0, "rotation", tuple(360.0 * k * axes_S[:, i])))
         t_cur += rot_s + rest_s
     w = np.vstack(pieces)
     n = len(w)
@@ -70,7 +75,7 @@ def hand_session(seed, *, rate_hz=100.0, turns=(-1.0, -1.0, -1.0), still_s=20.0,
 
 def test_integral_method_recovers_K_within_4_sigma(tmp_path):
     rec, segs, w = hand_session(0)
-    write_segments_csv(segs, tmp_path / "seg.csv")
+    write_segments(segs, tmp_path / "seg.csv")
     res = Calibrator(effects=["bias", "scale", "misalignment"], segments=tmp_path / "seg.csv").fit(rec)
     assert res.method == "integral"
     K_true = E.k_matrix(TRUE)
@@ -95,9 +100,28 @@ def test_integral_method_recovers_K_within_4_sigma(tmp_path):
     for s in segs:
         m = (rec.t_s >= s.t_start_s) & (rec.t_s <= s.t_end_s)
         ang = np.trapezoid(out.gyro_rad_s[m], rec.t_s[m], axis=0)
-        want = np.zeros(3)
-        want["xyz".index(s.axis)] = np.radians(s.angle_deg)
+        want = np.asarray(s.angle_S_rad)
         assert np.all(np.abs(ang - want) < 4 * 6 * 2 * np.pi * base)  # 4σ of the angle ≈ 4·|angle|·σ_K·√(3 terms)
+
+
+def test_integral_method_takes_rotations_about_oblique_axes():
+    """K = B·C⁺ holds for any known rotation vectors c_k that span S: turns about three oblique
+    axes give K within 4 σ of its propagated standard error, as turns about x, y, z do."""
+    from scipy.spatial.transform import Rotation
+
+    Q = Rotation.from_euler("xyz", [30.0, -20.0, 45.0], degrees=True).as_matrix()
+    rec, segs, _ = hand_session(3, axes_S=Q)
+    assert all(s.axis is None for s in segs)
+    r = integral_calibration(rec, segs)
+    z = (r.K - E.k_matrix(TRUE)) / r.K_stderr
+    assert np.all(np.abs(z) < 4), z
+    np.testing.assert_allclose(r.C_rad, -2 * np.pi * Q, rtol=1e-12)
+
+
+def test_integral_method_refuses_still_segments():
+    rec, segs, _ = hand_session(1)
+    with pytest.raises(GyroInputError, match="is still; the method takes known rotations only"):
+        integral_calibration(rec, [*segs, Segment.still(0.0, 10.0)])
 
 
 def test_integral_method_needs_all_three_axes_and_still_data():
@@ -305,7 +329,7 @@ def _no_still_session(seed, *, rate_hz=100.0):
         w = np.zeros((n_rot, 3))
         w[:, i] = -2 * np.pi / rot_s * (1 - np.cos(2 * np.pi * u))  # −1 turn
         pieces += [w, np.zeros((n_rest, 3))]
-        segs.append(Segment(t_cur - 0.1, t_cur + rot_s + 0.1, "xyz"[i], -360.0))
+        segs.append(Segment.about_axis(t_cur - 0.1, t_cur + rot_s + 0.1, "xyz"[i], -360.0))
         t_cur += rot_s + rest_s
     w = np.vstack(pieces)
     t = np.arange(len(w)) / rate_hz
@@ -371,7 +395,7 @@ def test_cli_calibrate_with_external_bias(tmp_path, capsys):
 
     rec, segs, _ = _no_still_session(6)
     write_csv(rec, tmp_path / "rot.csv")
-    write_segments_csv(segs, tmp_path / "seg.csv")
+    write_segments(segs, tmp_path / "seg.csv")
     base = [
         "calibrate",
         str(tmp_path / "rot.csv"),

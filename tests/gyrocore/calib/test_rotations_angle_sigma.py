@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gyrocore.readers.common import Segment
+from gyrocore.data.segments import Segment
 from gyrocore.data.recording import Recording
 from gyrocore.calib.rotations import integral_calibration
 
@@ -32,7 +32,7 @@ def _session(rng, K_true):
         axis /= np.linalg.norm(axis)
         theta = 2 * np.pi + SIG_ANGLE * rng.standard_normal()
         w = np.tile(axis * theta / (n_turn / RATE), (n_turn, 1))
-        segs.append(Segment(t0 - 0.5 / RATE, t0 + n_turn / RATE - 0.5 / RATE, "xyz"[j], 360.0))
+        segs.append(Segment.about_axis(t0 - 0.5 / RATE, t0 + n_turn / RATE - 0.5 / RATE, "xyz"[j], 360.0))
         pieces.append(w)
         t0 += n_turn / RATE
     pieces.append(np.zeros((n_still, 3)))

@@ -155,7 +155,8 @@ def test_loop_cli_streams_long_files_and_falls_back(tmp_path, monkeypatch, capsy
 
 
 def test_spilled_residual_refuses_what_it_cannot_stream(tmp_path):
-    from gyrocore.loop.residual import Segment, build_residual
+    from gyrocore.data.segments import Segment
+    from gyrocore.loop.residual import build_residual
 
     path = tmp_path / "rec.csv"
     write_csv(_record("none", duration_s=10.0), path)
@@ -164,7 +165,7 @@ def test_spilled_residual_refuses_what_it_cannot_stream(tmp_path):
     with pytest.raises(NotStreamable):
         build_residual(sp, reference="still")
     with pytest.raises(NotStreamable):
-        build_residual(sp, segments=[Segment(0.0, 1.0, "still")])
+        build_residual(sp, segments=[Segment.still(0.0, 1.0)])
 
 
 @pytest.mark.slow

@@ -10,7 +10,8 @@ import pytest
 from experiments.close_the_loop import effect_params, synthetic_recording
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
-from gyrocore.loop.residual import Segment, as_segment, build_residual, detect_still, read_segments
+from gyrocore.data.segments import Segment, read_segments, write_segments
+from gyrocore.loop.residual import build_residual, detect_still
 
 
 def _still_rec(n=6000, rate=100.0, seed=0):
@@ -74,26 +75,10 @@ def test_still_kind_auto_and_segments(tmp_path):
     assert res.kind == "still"
     np.testing.assert_allclose(res.y_rad_s.mean(axis=0), 0.01, atol=5 * 0.002 / np.sqrt(rec.n))  # 5σ of a mean
     seg = tmp_path / "seg.csv"
-    seg.write_text("start_s,stop_s,kind\n0,20,still\n")
+    write_segments([Segment.still(0.0, 20.0)], seg)
     segs = read_segments(seg)
     res2 = build_residual(rec, reference="still", segments=segs)
     assert rec.t_s[res2.win_stop].max() <= 20.0 + 1e-9
-
-
-def test_segments_files_both_formats(tmp_path):
-    f = tmp_path / "a.csv"
-    f.write_text("start_s,stop_s,kind,angle_x_deg,angle_y_deg,angle_z_deg\n1,5,rotation,720,0,0\n6,9,still,,,\n")
-    s = read_segments(f)
-    assert s[0].kind == "rotation" and s[0].angle_S_rad[0] == pytest.approx(4 * np.pi)
-    assert s[1].kind == "still"
-    g = tmp_path / "b.csv"
-    g.write_text("t_start_s,t_end_s,axis,angle_deg\n1.0,5.0,y,-360\n")
-    s2 = read_segments(g)
-    assert s2[0].angle_S_rad[1] == pytest.approx(-2 * np.pi)
-    bad = tmp_path / "c.csv"
-    bad.write_text("start_s,stop_s,kind\n1,0,still\n")
-    with pytest.raises(GyroInputError):
-        read_segments(bad)
 
 
 def test_angles_kind_needs_more_than_one_rotation():
@@ -103,7 +88,7 @@ def test_angles_kind_needs_more_than_one_rotation():
     gyro[:, 0] += 2 * np.pi * 2 / 10.0  # two turns about x over the whole recording
     rec = Recording(t_s=t, gyro_rad_s=gyro)
     with pytest.raises(GyroInputError, match="too poor"):
-        build_residual(rec, segments=[Segment(0.0, 9.99, "rotation", (4 * np.pi, 0.0, 0.0))])
+        build_residual(rec, segments=[Segment.about_axis(0.0, 9.99, "x", 720.0)])
 
 
 def test_motion_gate():
@@ -112,13 +97,6 @@ def test_motion_gate():
     g[2000:3000, 2] += 1.0  # 10 s of rotation about z
     m = detect_still(rec.t_s, g)
     assert m[:1900].mean() > 0.95 and m[2100:2900].mean() == 0.0 and m[3100:].mean() > 0.95
-
-
-def test_as_segment_from_convert():
-    from gyrocore.readers.common import Segment as CSeg
-
-    s = as_segment(CSeg(1.0, 2.0, "z", 90.0))
-    assert s.kind == "rotation" and s.angle_S_rad[2] == pytest.approx(np.pi / 2)
 
 
 @pytest.mark.parametrize("kind", ["rate", "attitude"])

@@ -19,6 +19,7 @@ from gyrocore.readers import common as cm
 from gyrocore.readers import convert as cv
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data.recording import G0_M_S2, read_csv, write_csv
+from gyrocore.data.segments import read_segments
 
 DEG = np.pi / 180.0
 
@@ -119,16 +120,16 @@ def test_sunsided_rotations_integrate_to_plus_720_after_flip(sun, setname, name,
     conv = _quiet(cv.load_with_segments, sun / setname / name)
     assert conv.format == "sunsided"
     (seg,) = conv.segments
-    assert seg.axis == axis and seg.angle_deg == 720.0
-    ang = _integral_deg(conv.recording, seg, bias)
     i = "xyz".index(axis)
+    assert seg.axis == axis and seg.angle_S_deg[i] == 720.0
+    ang = _integral_deg(conv.recording, seg, bias)
     assert ang[i] == pytest.approx(720.0, rel=0.04)
     # and the raw X sign is really opposite (the flip is not a no-op)
     raw = _quiet(cv.load_with_segments, sun / setname / name, flip_gyro_x=False)
-    assert raw.segments[0].angle_deg == (-720.0 if axis == "x" else 720.0)
+    assert raw.segments[0].angle_S_deg[i] == (-720.0 if axis == "x" else 720.0)
     bias_raw = bias * np.array([-1.0, 1.0, 1.0])
     assert _integral_deg(raw.recording, raw.segments[0], bias_raw)[i] == pytest.approx(
-        raw.segments[0].angle_deg, rel=0.04
+        raw.segments[0].angle_S_deg[i], rel=0.04
     )
 
 
@@ -179,7 +180,7 @@ def test_tomisuarez2_scale_override_and_segment(tomi):
     assert np.allclose(b.gyro_rad_s, a.gyro_rad_s * 2.0) and np.allclose(b.accel_m_s2, a.accel_m_s2 * 2.0)
     conv = cv.load_with_segments(tomi / "imu_90_x_rot.csv")
     (seg,) = conv.segments
-    assert seg.axis == "x" and seg.angle_deg == 90.0
+    assert seg.angle_S_deg == (90.0, 0.0, 0.0)
     # README: rotation 15.2–23.3 s; the segment brackets it
     assert seg.t_start_s <= 15.2 and seg.t_end_s >= 22.0
     rec = conv.recording
@@ -225,7 +226,7 @@ def test_imucal_ferraris_session(imucal):
     std_dps = np.rad2deg(rec.gyro_rad_s[still & (pose == 1)].std(axis=0))
     assert np.all((std_dps > 0.035) & (std_dps < 0.07))  # PROVENANCE: ≈0.045–0.06 °/s
     assert [s.axis for s in conv.segments] == ["x", "y", "z"]
-    assert all(s.angle_deg == -360.0 for s in conv.segments)  # imucal expected_angle
+    assert all(sum(s.angle_S_deg) == -360.0 for s in conv.segments)  # imucal expected_angle
     # PROVENANCE (raw, bias not removed, fs = 102.4): −371.9°, −354.8°, −359.2°
     got = [_integral_deg(rec, s)["xyz".index(s.axis)] for s in conv.segments]
     assert np.allclose(got, [-371.9, -354.8, -359.2], atol=0.6)  # one extra sample ≤ 0.5°
@@ -370,17 +371,6 @@ def test_option_not_applicable_is_error(shared_data):
         cv.load_any(shared_data / "broad" / "02_undisturbed_slow_rotation_B.hdf5", lsb_per_dps=131.0)
 
 
-def test_segments_file_round_trip(tmp_path):
-    segs = [cv.Segment(1.0, 2.5, "x", 720.0), cv.Segment(3.0, 4.0, "z", -360.0)]
-    p = tmp_path / "s.csv"
-    cm.write_segments_csv(segs, p)
-    assert p.read_text().splitlines()[0] == "t_start_s,t_end_s,axis,angle_deg"
-    assert cm.read_segments_csv(p) == segs
-    p.write_text("t_start_s,t_end_s,axis,angle_deg\n1,2,w,90\n")
-    with pytest.raises(GyroInputError, match="axis must be"):
-        cm.read_segments_csv(p)
-
-
 def _cli(*args):
     return subprocess.run([sys.executable, "-m", "experiments.cli", *map(str, args)], capture_output=True, text=True)
 
@@ -394,7 +384,7 @@ def test_cli_convert_json_segments_force_and_determinism(shared_data, tmp_path):
     assert summary["format"] == "sunsided" and summary["segments"] == 1
     assert [ln for ln in r1.stderr.splitlines() if ln.startswith("warning:")]  # the retiming is announced
     assert "Traceback" not in r1.stderr
-    assert cm.read_segments_csv(seg)[0].axis == "y"
+    assert read_segments(seg)[0].axis == "y"
     # determinism across processes: same input, same bytes
     r2 = _cli("convert", src, "-o", out2)
     assert r2.returncode == 0 and out1.read_bytes() == out2.read_bytes()
@@ -442,7 +432,7 @@ def test_concat_converted_joins_a_session_and_shifts_segments(shared_data, tmp_p
         m = (r.t_s >= s.t_start_s) & (r.t_s <= s.t_end_s)
         assert m.sum() == m0.sum()
         np.testing.assert_array_equal(r.gyro_rad_s[m], p.recording.gyro_rad_s[m0])
-        assert s.angle_deg == s0.angle_deg
+        assert s.angle_S_deg == s0.angle_S_deg
     assert "t_host_s" in r.extra and np.all(np.diff(r.extra["t_host_s"]) > 0)
     assert c.format == "sunsided" and "3 recordings" in r.meta["concatenated"]
     with pytest.raises(GyroInputError):
@@ -466,7 +456,7 @@ def test_concat_converted_joins_a_session_and_shifts_segments(shared_data, tmp_p
     assert json.loads(res.stdout)["segments"] == 3
     back = read_csv(out)
     np.testing.assert_allclose(back.gyro_rad_s, r.gyro_rad_s, rtol=1e-15, atol=0)
-    assert [s.axis for s in cm.read_segments_csv(seg)] == ["x", "y", "z"]
+    assert [s.axis for s in read_segments(seg)] == ["x", "y", "z"]
 
 
 def test_sunsided_frames_per_set(sun):
