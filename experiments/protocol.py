@@ -29,15 +29,21 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shutil
+import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from experiments.montecarlo import instance_seeds
+from gyrocore.calib.budget import NoiseModel, predict_error
 from gyrocore.effects import registry as E
 
+from . import ablation as A
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
 __all__ = [
@@ -950,15 +956,6 @@ def run(
     a path (:func:`load_noise`) or a :class:`NoiseSource`. One ``warning:`` line when the
     record does not support the flight (:func:`record_support`).
     """
-    import shutil
-    import tempfile
-    import warnings
-
-    from experiments.montecarlo import instance_seeds
-    from gyrocore.calib.budget import NoiseModel
-
-    from . import ablation as A
-
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     # size (gyroharness run): "standard" = the quick design (a 1-min hover, 4 windows, 2 table
@@ -973,13 +970,154 @@ def run(
 
     tick(0)
     airborne = 60.0 if size in ("quick", "standard") else HOVER_S
+    d = _design_unit(seed, airborne_s=airborne, quick=quick or size == "standard")
+    tick(1)
+    src = _flight_noise(noise, d, airborne_s=airborne)
+    fn = _flight_noise_support(src, d, airborne_s=airborne)
+    g = _design_grid(d, size=size, noise=src.model, tick=tick)
+    tick(3)
+    # --- held-out check: fresh units (not the design unit) flown with each chosen window;
+    # calibration = each unit's true parameters, so the flight measures the window + noise part
+    n_units = seeds or {"quick": 1, "standard": STANDARD_HELD_OUT}.get(size, 8)
+    check_windows = sorted({c["window_s"] for c in g.chosen.values() if c is not None})
+    fresh = instance_seeds(seed + 1, n_units)
+    cache = tempfile.mkdtemp(prefix="gyroharness-protocol-")
+    try:
+        conf = confirm_all(check_windows, fresh, airborne_s=airborne, cache_dir=cache, workers=workers)
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+    how_rows, how_json = _how_long(g, conf)
+    summary_conf, cf = _confirmation_table(g, conf)
+    fig0p = _how_long_figure(g, how_json, n_units=n_units, airborne_s=airborne, noise_kind=src.kind, out_dir=out_dir)
+    figp = _grid_figure(g, conf, airborne_s=airborne, out_dir=out_dir)
+    t_tab, h_tab = _candidate_tables(g)
+    md = [
+        f"**Size:** a {airborne:g}-s hover, {len(g.windows)} still windows × {len(g.tabs)} rate-table × {len(g.ths)} thermal "
+        f"protocols, {n_units} held-out units (95 % intervals: Student-t on their log errors, {n_units - 1} degrees "
+        "of freedom)"
+        + (
+            "; `gyroharness run --full`: the 10-min hover, the whole grid and 8 held-out units.\n"
+            if airborne < HOVER_S
+            else ".\n"
+        ),
+        f"**Noise model of the flight:** {src.label}"
+        + (
+            f" — **warning:** {fn.warning}" if fn.warning else " — the record supports the flight (resolvability rule)."
+        ),
+        "\n#### How long must I calibrate for X°? (held-out figures first)\n",
+        f"Shortest protocol per target by the budget on the design unit (seed {d.unit}); held out: {n_units} fresh "
+        f"units (campaign seed {seed + 1}, not the design unit) flown with that protocol's still window and their "
+        "true parameters (so the flight measures the window + noise part), plus the budget's parameter share "
+        "(the table/thermal runs' standard errors, whose honesty the z-score Monte Carlo of docs/accuracy.md "
+        "checks). The target is on the expected error √E|ε(T)|² over units; a single unit's final error "
+        "scatters around it (χ²-like).\n",
+        _how_long_table(how_rows, n_units),
+        f"\n![how long]({fig0p})\n",
+        "#### Held-out simulation, per window\n",
+        cf,
+        "\n#### The flight's noise model and its record\n",
+        _floors_table(fn.floors),
+        "\nDoes the record support the flight? (`experiments.protocol.record_support`: each slow term that raises "
+        f"the flight's floor RMS by ≥ {100 * SUPPORT_RISE:.0f} % must be resolvable from the record, "
+        "`gyrocore.noise.gmwm.expected_z` ≥ 1.28, i.e. claimed by GMWM with ≥ 90 % probability)\n",
+        _support_table(fn.support),
+        f"\n#### Predicted error after {airborne:g} s of hover (sensor {SENSOR}, unit seed {d.unit})\n",
+        "Grid: power-up still window × rate-table run (mounts, rates, revolutions) × thermal run (ambient span, "
+        "duration = ramp rate). The table and thermal runs' standard errors are predicted from each candidate's "
+        "design with the noise-model covariance (experiments.protocol.design_stderr; noise: the model each "
+        "reference calibration identified on its own residual, a record as long as the run); the window and the "
+        "floor use the flight's noise model above.\n",
+        "#### Still window (reference table and thermal runs)\n",
+        _window_table(g),
+        "\n#### Rate-table run candidates (reference thermal run)\n",
+        t_tab,
+        "\n#### Thermal run candidates (reference table run)\n",
+        h_tab,
+        f"\n![protocol]({figp})",
+    ]
+    summary = _summary(src, fn, g, how_json=how_json, confirmation=summary_conf, fresh=fresh, d=d, airborne_s=airborne)
+    return ExperimentResult(
+        name="protocol",
+        title="Protocol design: how long to calibrate for a drift target",
+        markdown="\n".join(md),
+        figures=(fig0p, figp),
+        summary=summary,
+        wall_s=time.perf_counter() - t0,
+    )
+
+
+def _summary(
+    src: NoiseSource,
+    fn: _FlightNoise,
+    g: _Grid,
+    *,
+    how_json: dict,
+    confirmation: dict,
+    fresh,
+    d: _Design,
+    airborne_s: float,
+) -> dict:
+    """The experiment's JSON summary."""
+    return {
+        "noise_source": {
+            "label": src.label,
+            "kind": src.kind,
+            "record_s": src.record_s,
+            "rate_hz": src.rate_hz,
+            "terms": fn.terms,
+            "supported": fn.warning is None,
+            "warning": fn.warning,
+            "support": fn.support,
+        },
+        "floors": [
+            {
+                "noise": f[0],
+                "floor_rms_deg": f[1],
+                "floor_final_deg": f[2],
+                "pred_rms_deg_2s": f[3],
+                "pred_final_deg_2s": f[4],
+            }
+            for f in fn.floors
+        ],
+        "how_long": how_json,
+        "targets": {
+            t.name: (None if g.chosen[t.name] is None else {k: v for k, v in g.chosen[t.name].items() if k != "pred"})
+            for t in TARGETS
+        },
+        "grid": [{k: v for k, v in r.items() if k != "pred"} for r in g.rows],
+        "table_candidates": [{k: v for k, v in c.items() if k != "se"} for c in g.cand_t],
+        "thermal_candidates": [{k: v for k, v in c.items() if k != "se"} for c in g.cand_h],
+        "confirmation": confirmation,
+        "fresh_seeds": [int(s) for s in fresh],
+        "design_unit_seed": int(d.unit),
+        "airborne_s": airborne_s,
+    }
+
+
+# ------------------------------------------------------------------ the steps of run
+@dataclass(frozen=True)
+class _Design:
+    """The design unit: its hover, its reference calibration and the noise models it identified."""
+
+    unit: int  # the design unit's seed
+    res: object  # the hover (simulated)
+    ground: float  # ground phase before take-off, s
+    groups: dict  # calibration groups (experiments.ablation.calibration_groups)
+    nm_cal: object  # the reference calibration's residual noise model
+    n_tab: object  # noise model of the rate-table run
+    n_th: object  # noise model of the thermal run
+    orders: dict | None  # the thermal run's polynomial orders
+    cal_src: NoiseSource  # nm_cal as a noise source (``--noise calibration``)
+
+
+def _design_unit(seed: int, *, airborne_s: float, quick: bool) -> _Design:
+    """The design unit's hover and reference calibration (table and thermal runs)."""
     unit = instance_seeds(seed, 1)[0]
-    res, ground = hover_trajectory(seed=unit, airborne_s=airborne)
+    res, ground = hover_trajectory(seed=unit, airborne_s=airborne_s)
     rate = float(res.recording.rate_hz)
     present = A.present_effects(res.params_true)
     with single_thread_blas():
-        core = A.calibrate_core(SENSOR, unit, present, quick=quick or size == "standard")
-    tick(1)
+        core = A.calibrate_core(SENSOR, unit, present, quick=quick)
     stages = list(core.stages)
     groups = A.calibration_groups(stages, present)
     nm_cal = A.identified_noise(core, rate)
@@ -1001,67 +1139,110 @@ def run(
         rate_hz=cal_rate,
         kind="calibration",
     )
-    # --- the flight's noise model and whether its record supports the flight
+    return _Design(unit, res, ground, groups, nm_cal, n_tab, n_th, orders, cal_src)
+
+
+def _flight_noise(noise, d: _Design, *, airborne_s: float) -> NoiseSource:
+    """The flight's noise model (see :func:`run`'s ``noise``)."""
     if isinstance(noise, NoiseSource):
-        src = noise
-    elif noise is None:
-        src = simulated_still_noise(seed=unit, duration_s=max(NOISE_RECORD_FACTOR * airborne, NOISE_RECORD_MIN_S))
-    elif str(noise) == "calibration":
-        src = cal_src
-    else:
-        src = load_noise(noise)
-    nm = src.model
-    inp2, segs2, start2 = _prefixed_inputs(res, ground, 2.0)
+        return noise
+    if noise is None:
+        return simulated_still_noise(seed=d.unit, duration_s=max(NOISE_RECORD_FACTOR * airborne_s, NOISE_RECORD_MIN_S))
+    if str(noise) == "calibration":
+        return d.cal_src
+    return load_noise(noise)
+
+
+@dataclass(frozen=True)
+class _FlightNoise:
+    """What the flight's noise model says about the flight and whether its record supports it."""
+
+    terms: dict  # axis means of its terms (NoiseSource.terms)
+    support: list  # record_support's rows
+    warning: str | None  # the one warning line when the record does not support the flight
+    floors: list  # (noise model, floor RMS °, floor final °, predicted RMS °, predicted final °) on a 2-s window
+
+
+def _flight_noise_support(src: NoiseSource, d: _Design, *, airborne_s: float) -> _FlightNoise:
+    """Whether the record supports the flight (one ``warning:``), and the flight's floor under
+    the flight's model, the reference calibration's and the unit's true noise."""
+    inp2, segs2, start2 = _prefixed_inputs(d.res, d.ground, 2.0)
     terms = src.terms()
     unit_var = _unit_floor_var(inp2, start2, segs2, terms.get("correlated_tau_c_s"))
     support = record_support(terms, n_samples=src.n_samples, rate_hz=src.rate_hz, unit_var=unit_var)
-    warn_msg = _support_message(support, src, airborne)
+    warn_msg = _support_message(support, src, airborne_s)
     if warn_msg:
-        warnings.warn(warn_msg, UserWarning, stacklevel=2)
+        warnings.warn(warn_msg, UserWarning, stacklevel=3)
     floors = []
     for name, model in (
-        ("flight noise model used: " + src.label, nm),
-        ("reference calibration's residual model", nm_cal),
-        ("the unit's true noise (simulation only)", NoiseModel.from_params(res.params_true)),
+        ("flight noise model used: " + src.label, src.model),
+        ("reference calibration's residual model", d.nm_cal),
+        ("the unit's true noise (simulation only)", NoiseModel.from_params(d.res.params_true)),
     ):
         if model is None:
             continue
-        from gyrocore.calib.budget import predict_error
-
         pr = predict_error(inp2, start=start2, segments=segs2, noise=model, groups=(), max_blocks=400)
         floors.append((name, pr.rms_floor_deg, pr.final_floor_deg, pr.rms_predicted_deg, pr.final_predicted_deg))
+    return _FlightNoise(terms, support, warn_msg, floors)
 
+
+@dataclass(frozen=True)
+class _Grid:
+    """The protocol grid evaluated on the design unit and the protocol chosen per target."""
+
+    windows: tuple  # still windows, s
+    tabs: tuple  # rate-table protocols
+    ths: tuple  # thermal protocols
+    cand_t: list  # table candidates (candidate_stderr)
+    cand_h: list  # thermal candidates
+    rows: list  # evaluate_grid's rows
+    chosen: dict  # {target name: row or None}
+
+    @property
+    def ref_t(self) -> str:
+        return self.cand_t[0]["label"]
+
+    @property
+    def ref_h(self) -> str:
+        return self.cand_h[0]["label"]
+
+    @property
+    def ref(self) -> list:
+        """The rows of the reference table and thermal runs (one per still window)."""
+        return [r for r in self.rows if r["table"] == self.ref_t and r["thermal"] == self.ref_h]
+
+
+def _design_grid(d: _Design, *, size: str, noise, tick) -> _Grid:
+    """The candidates' standard errors, the grid's predicted errors and the choice per target."""
     small = size in ("quick", "standard")  # the standard report: the quick grid, the full hover
     windows = (0.5, 2.0, 8.0, 30.0) if small else WINDOWS_S
     tabs = TABLE_PROTOCOLS[:2] if small else TABLE_PROTOCOLS
     ths = THERMAL_PROTOCOLS[:2] if small else THERMAL_PROTOCOLS
     with single_thread_blas():
         cand_t, cand_h = candidate_stderr(
-            groups, seed=unit, noise_table=n_tab, noise_thermal=n_th, table=tabs, thermal=ths, thermal_orders=orders
+            d.groups,
+            seed=d.unit,
+            noise_table=d.n_tab,
+            noise_thermal=d.n_th,
+            table=tabs,
+            thermal=ths,
+            thermal_orders=d.orders,
         )
     tick(2)
-    rows = evaluate_grid(res, ground, groups, windows=windows, table=cand_t, thermal=cand_h, noise=nm)
+    rows = evaluate_grid(d.res, d.ground, d.groups, windows=windows, table=cand_t, thermal=cand_h, noise=noise)
     chosen = {t.name: choose(rows, t) for t in TARGETS}
-    tick(3)
-    # --- held-out check: fresh units (not the design unit) flown with each chosen window;
-    # calibration = each unit's true parameters, so the flight measures the window + noise part
-    n_units = seeds or {"quick": 1, "standard": STANDARD_HELD_OUT}.get(size, 8)
-    check_windows = sorted({c["window_s"] for c in chosen.values() if c is not None})
-    fresh = instance_seeds(seed + 1, n_units)
-    cache = tempfile.mkdtemp(prefix="gyroharness-protocol-")
-    try:
-        conf = confirm_all(check_windows, fresh, airborne_s=airborne, cache_dir=cache, workers=workers)
-    finally:
-        shutil.rmtree(cache, ignore_errors=True)
+    return _Grid(windows, tabs, ths, cand_t, cand_h, rows, chosen)
 
-    ref_t, ref_h = cand_t[0]["label"], cand_h[0]["label"]
-    # --- "how long must I calibrate for X°": held-out figures first
+
+def _how_long(g: _Grid, conf: dict) -> tuple[list, dict]:
+    """How long must I calibrate for X°? Per target, the chosen protocol's held-out figures
+    first (table rows and JSON)."""
     how_rows, how_json = [], {}
     for t in TARGETS:
-        c = chosen[t.name]
+        c = g.chosen[t.name]
         if c is None:
             best = min(
-                (r for r in rows if r["eligible"]),
+                (r for r in g.rows if r["eligible"]),
                 key=lambda r: r["final_deg"] if t.final_deg is not None else r["rms_deg"] / r["floor_rms_deg"],
             )
             how_rows.append(
@@ -1087,15 +1268,15 @@ def run(
         ci = (math.sqrt(lo2 + par2), math.sqrt(hi2 + par2)) if np.isfinite(hi2) else (float("nan"), float("nan"))
         mr = np.array([x["rms_deg"] for x in lst])
         fl = np.array([x["floor_rms_deg"] for x in lst])
-        g, glo, ghi = _interval(mr / fl)
+        gm, glo, ghi = _interval(mr / fl)
         if t.final_deg is not None:
             held = f"{est:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]"
             within = f"{int(np.sum(np.sqrt(fin2 + par2) <= t.final_deg))}/{len(lst)}"
             verdict = "yes" if est <= t.final_deg else "no"
         else:
-            held = f"RMS/floor {g:.2f} [{glo:.2f}, {ghi:.2f}]"
+            held = f"RMS/floor {gm:.2f} [{glo:.2f}, {ghi:.2f}]"
             within = f"{int(np.sum(mr / fl <= t.floor_ratio))}/{len(lst)}"
-            verdict = "yes" if g <= t.floor_ratio else "no"
+            verdict = "yes" if gm <= t.floor_ratio else "no"
         how_rows.append(
             (
                 t.name,
@@ -1122,12 +1303,16 @@ def run(
             "heldout_final_ci95_deg": list(ci),
             "heldout_noise_final_deg": math.sqrt(m2),
             "heldout_noise_final_ci95_deg": [math.sqrt(lo2), math.sqrt(hi2)],
-            "heldout_rms_over_floor": g,
+            "heldout_rms_over_floor": gm,
             "heldout_rms_over_floor_ci95": [glo, ghi],
             "units_within": within,
             "met": verdict == "yes",
         }
-    how = md_table(
+    return how_rows, how_json
+
+
+def _how_long_table(how_rows: list, n_units: int) -> str:
+    return md_table(
         [
             "target",
             "total calibration time, s",
@@ -1141,26 +1326,32 @@ def run(
         how_rows,
     )
 
-    ref = [r for r in rows if r["table"] == ref_t and r["thermal"] == ref_h]
-    tab = md_table(
+
+def _window_table(g: _Grid) -> str:
+    return md_table(
         ["still window, s", "predicted final °", "predicted RMS °", "floor RMS °", "RMS / floor"],
         [
             (r["window_s"], r["final_deg"], r["rms_deg"], r["floor_rms_deg"], r["rms_deg"] / r["floor_rms_deg"])
-            for r in ref
+            for r in g.ref
         ],
     )
-    w_show = 2.0 if 2.0 in windows else windows[0]
 
-    def se_med(c, g):
-        v = np.asarray(c["se"].get(g, [np.nan]), float)
+
+def _candidate_tables(g: _Grid) -> tuple[str, str]:
+    """The rate-table and thermal candidates: their cost, standard errors, what they cannot
+    observe and their share of the hover error at the 2-s window (reference other run)."""
+    w_show = 2.0 if 2.0 in g.windows else g.windows[0]
+
+    def se_med(c, grp):
+        v = np.asarray(c["se"].get(grp, [np.nan]), float)
         v = v[np.isfinite(v)]
         return float(np.median(v)) if v.size else float("inf")
 
     def at(label_t=None, label_h=None):
         return next(
             r
-            for r in rows
-            if r["window_s"] == w_show and r["table"] == (label_t or ref_t) and r["thermal"] == (label_h or ref_h)
+            for r in g.rows
+            if r["window_s"] == w_show and r["table"] == (label_t or g.ref_t) and r["thermal"] == (label_h or g.ref_h)
         )
 
     tt_rows = [
@@ -1173,7 +1364,7 @@ def run(
             at(label_t=c["label"])["table_deg"],
             at(label_t=c["label"])["final_deg"],
         )
-        for c in cand_t
+        for c in g.cand_t
     ]
     t_tab = md_table(
         [
@@ -1196,7 +1387,7 @@ def run(
             at(label_h=c["label"])["thermal_deg"],
             at(label_h=c["label"])["final_deg"],
         )
-        for c in cand_h
+        for c in g.cand_h
     ]
     h_tab = md_table(
         [
@@ -1209,7 +1400,11 @@ def run(
         ],
         th_rows,
     )
-    fl_tab = md_table(
+    return t_tab, h_tab
+
+
+def _floors_table(floors: list) -> str:
+    return md_table(
         [
             "noise model",
             "floor RMS °",
@@ -1220,6 +1415,8 @@ def run(
         floors,
     )
 
+
+def _support_table(support: list) -> str:
     def _need(r):
         n = r["needed_record_s"]
         if n is None:
@@ -1228,7 +1425,7 @@ def run(
             return "record length unknown"
         return f"≥ {n:.0f} s" if np.isfinite(n) else f"> {SUPPORT_MAX_RECORD_S:.0f} s"
 
-    sup_tab = md_table(
+    return md_table(
         [
             "term",
             "level (axis mean)",
@@ -1251,6 +1448,10 @@ def run(
             for r in support
         ],
     )
+
+
+def _confirmation_table(g: _Grid, conf: dict) -> tuple[dict, str]:
+    """Per still window: the fresh units measured against the budget (JSON and table)."""
     cf_rows = []
     summary_conf = {}
     for tw, lst in conf.items():
@@ -1259,8 +1460,8 @@ def run(
         fl = np.array([x["floor_rms_deg"] for x in lst])
         r2v = (mr / prr) ** 2
         se2 = float(np.std(r2v, ddof=1) / math.sqrt(r2v.size)) if r2v.size > 1 else float("nan")
-        g, lo, hi = _interval(mr / fl)
-        budget_row = next(r for r in ref if r["window_s"] == tw)
+        gm, lo, hi = _interval(mr / fl)
+        budget_row = next(r for r in g.ref if r["window_s"] == tw)
         cf_rows.append(
             (
                 tw,
@@ -1270,12 +1471,12 @@ def run(
                 float(np.median(mr)),
                 float(np.median(prr)),
                 f"{np.mean(r2v):.2f} ± {se2:.2f}",
-                f"{g:.2f} [{lo:.2f}, {hi:.2f}]",
+                f"{gm:.2f} [{lo:.2f}, {hi:.2f}]",
             )
         )
         summary_conf[str(tw)] = {
             "units": lst,
-            "measured_over_floor_geomean": g,
+            "measured_over_floor_geomean": gm,
             "ci95": [lo, hi],
             "mean_r2": float(np.mean(r2v)),
             "mean_r2_se": se2,
@@ -1294,11 +1495,14 @@ def run(
         ],
         cf_rows,
     )
+    return summary_conf, cf
 
-    # --- figures: how long (cost vs predicted final, held-out points) and the grid by knob
+
+def _how_long_figure(g: _Grid, how_json: dict, *, n_units: int, airborne_s: float, noise_kind: str, out_dir) -> str:
+    """Cost against predicted final error of the grid, the shortest protocol per target and the held-out points."""
     fig0 = new_figure(figsize=(6.4, 4.2))
     ax0 = fig0.add_subplot(111)
-    elig = [r for r in rows if r["eligible"]]
+    elig = [r for r in g.rows if r["eligible"]]
     ax0.scatter([r["cost_s"] for r in elig], [r["final_deg"] for r in elig], s=6, c="0.7", label="grid protocols")
     order = sorted(elig, key=lambda r: (r["cost_s"], r["final_deg"]))
     front, best = [], math.inf
@@ -1329,19 +1533,23 @@ def run(
                 capsize=3,
             )
     ax0.plot([], [], "kx", label=f"held out: {n_units} fresh units (95 % CI)")
-    ax0.axhline(ref[0]["floor_final_deg"], color="k", lw=0.8, ls="--", label="floor (final)")
+    ax0.axhline(g.ref[0]["floor_final_deg"], color="k", lw=0.8, ls="--", label="floor (final)")
     ax0.set_xscale("log")
     ax0.set_xlabel("total calibration time (still window + table + thermal run), s")
-    ax0.set_ylabel(f"final attitude error after {airborne:g} s of hover, deg")
-    ax0.set_title(f"How long must I calibrate? (noise: {src.kind})", fontsize=8)
+    ax0.set_ylabel(f"final attitude error after {airborne_s:g} s of hover, deg")
+    ax0.set_title(f"How long must I calibrate? (noise: {noise_kind})", fontsize=8)
     ax0.grid(alpha=0.3, which="both")
     ax0.legend(fontsize=6)
-    fig0p = save_figure(fig0, out_dir, "protocol_how_long")
+    return save_figure(fig0, out_dir, "protocol_how_long")
 
+
+def _grid_figure(g: _Grid, conf: dict, *, airborne_s: float, out_dir) -> str:
+    """The grid by knob: final error per table run against the still window (fresh units as
+    crosses), RMS / floor per thermal run."""
     fig = new_figure(figsize=(10.0, 3.8))
     ax = fig.add_subplot(121)
-    for c in cand_t:
-        rr = [r for r in rows if r["table"] == c["label"] and r["thermal"] == ref_h]
+    for c in g.cand_t:
+        rr = [r for r in g.rows if r["table"] == c["label"] and r["thermal"] == g.ref_h]
         ax.plot(
             [r["window_s"] for r in rr],
             [r["final_deg"] for r in rr],
@@ -1349,20 +1557,20 @@ def run(
             ls="-" if not c["unobservable"] else ":",
             label=c["label"],
         )
-    ax.plot([r["window_s"] for r in ref], [r["floor_final_deg"] for r in ref], "k--", label="floor (final)")
+    ax.plot([r["window_s"] for r in g.ref], [r["floor_final_deg"] for r in g.ref], "k--", label="floor (final)")
     for tw, lst in conf.items():
         ax.plot([tw] * len(lst), [x["final_deg"] for x in lst], "kx", ms=5)
     ax.axhline(1.0, color="r", lw=0.8)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("power-up still window, s")
-    ax.set_ylabel(f"final error after {airborne:g} s of hover, deg")
+    ax.set_ylabel(f"final error after {airborne_s:g} s of hover, deg")
     ax.set_title("table runs (reference thermal run); x: fresh simulated units", fontsize=8)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=6)
     ax2 = fig.add_subplot(122)
-    for c in cand_h:
-        rr = [r for r in rows if r["thermal"] == c["label"] and r["table"] == ref_t]
+    for c in g.cand_h:
+        rr = [r for r in g.rows if r["thermal"] == c["label"] and r["table"] == g.ref_t]
         ax2.plot(
             [r["window_s"] for r in rr], [r["rms_deg"] / r["floor_rms_deg"] for r in rr], marker=".", label=c["label"]
         )
@@ -1373,88 +1581,4 @@ def run(
     ax2.set_title("thermal runs (reference table run)", fontsize=8)
     ax2.grid(alpha=0.3, which="both")
     ax2.legend(fontsize=6)
-    figp = save_figure(fig, out_dir, "protocol_hover")
-    md = [
-        f"**Size:** a {airborne:g}-s hover, {len(windows)} still windows × {len(tabs)} rate-table × {len(ths)} thermal "
-        f"protocols, {n_units} held-out units (95 % intervals: Student-t on their log errors, {n_units - 1} degrees "
-        "of freedom)"
-        + (
-            "; `gyroharness run --full`: the 10-min hover, the whole grid and 8 held-out units.\n"
-            if airborne < HOVER_S
-            else ".\n"
-        ),
-        f"**Noise model of the flight:** {src.label}"
-        + (f" — **warning:** {warn_msg}" if warn_msg else " — the record supports the flight (resolvability rule)."),
-        "\n#### How long must I calibrate for X°? (held-out figures first)\n",
-        f"Shortest protocol per target by the budget on the design unit (seed {unit}); held out: {n_units} fresh "
-        f"units (campaign seed {seed + 1}, not the design unit) flown with that protocol's still window and their "
-        "true parameters (so the flight measures the window + noise part), plus the budget's parameter share "
-        "(the table/thermal runs' standard errors, whose honesty the z-score Monte Carlo of docs/accuracy.md "
-        "checks). The target is on the expected error √E|ε(T)|² over units; a single unit's final error "
-        "scatters around it (χ²-like).\n",
-        how,
-        f"\n![how long]({fig0p})\n",
-        "#### Held-out simulation, per window\n",
-        cf,
-        "\n#### The flight's noise model and its record\n",
-        fl_tab,
-        "\nDoes the record support the flight? (`experiments.protocol.record_support`: each slow term that raises "
-        f"the flight's floor RMS by ≥ {100 * SUPPORT_RISE:.0f} % must be resolvable from the record, "
-        "`gyrocore.noise.gmwm.expected_z` ≥ 1.28, i.e. claimed by GMWM with ≥ 90 % probability)\n",
-        sup_tab,
-        f"\n#### Predicted error after {airborne:g} s of hover (sensor {SENSOR}, unit seed {unit})\n",
-        "Grid: power-up still window × rate-table run (mounts, rates, revolutions) × thermal run (ambient span, "
-        "duration = ramp rate). The table and thermal runs' standard errors are predicted from each candidate's "
-        "design with the noise-model covariance (experiments.protocol.design_stderr; noise: the model each "
-        "reference calibration identified on its own residual, a record as long as the run); the window and the "
-        "floor use the flight's noise model above.\n",
-        "#### Still window (reference table and thermal runs)\n",
-        tab,
-        "\n#### Rate-table run candidates (reference thermal run)\n",
-        t_tab,
-        "\n#### Thermal run candidates (reference table run)\n",
-        h_tab,
-        f"\n![protocol]({figp})",
-    ]
-    summary = {
-        "noise_source": {
-            "label": src.label,
-            "kind": src.kind,
-            "record_s": src.record_s,
-            "rate_hz": src.rate_hz,
-            "terms": terms,
-            "supported": warn_msg is None,
-            "warning": warn_msg,
-            "support": support,
-        },
-        "floors": [
-            {
-                "noise": f[0],
-                "floor_rms_deg": f[1],
-                "floor_final_deg": f[2],
-                "pred_rms_deg_2s": f[3],
-                "pred_final_deg_2s": f[4],
-            }
-            for f in floors
-        ],
-        "how_long": how_json,
-        "targets": {
-            t.name: (None if chosen[t.name] is None else {k: v for k, v in chosen[t.name].items() if k != "pred"})
-            for t in TARGETS
-        },
-        "grid": [{k: v for k, v in r.items() if k != "pred"} for r in rows],
-        "table_candidates": [{k: v for k, v in c.items() if k != "se"} for c in cand_t],
-        "thermal_candidates": [{k: v for k, v in c.items() if k != "se"} for c in cand_h],
-        "confirmation": summary_conf,
-        "fresh_seeds": [int(s) for s in fresh],
-        "design_unit_seed": int(unit),
-        "airborne_s": airborne,
-    }
-    return ExperimentResult(
-        name="protocol",
-        title="Protocol design: how long to calibrate for a drift target",
-        markdown="\n".join(md),
-        figures=(fig0p, figp),
-        summary=summary,
-        wall_s=time.perf_counter() - t0,
-    )
+    return save_figure(fig, out_dir, "protocol_hover")
