@@ -68,9 +68,10 @@ def main(argv=None) -> None:
     c0 = time.process_time()
     AL._judged_windows(g, rate)
     c_gate = time.process_time() - c0
+    from gyrocore.noise import avar as V
     from gyrocore.noise import gmwm as G
 
-    m_all = G.scales(n)
+    m_all = V.scales(n)
     c0 = time.process_time()
     curves = [AL.oadev(g[:, ax], rate, m_all) for ax in range(3)]
     c_adev_all = time.process_time() - c0

@@ -362,15 +362,16 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
     and the coverage of the Wald and of the chi-square (Satterthwaite) interval."""
 
     from gyrocore.noise import allan as AL
+    from gyrocore.noise import avar as V
     from gyrocore.noise import gmwm as G
     from sim import noise as SN
 
     n, rate, k2 = 360000, 100.0, 4e-12
-    m = G.scales(n)
+    m = V.scales(n)
     truth = np.array([0.0, 1e-8, 0.0, k2, 0.0, 0.0])
-    model = G.term_avar(m, rate) @ truth
-    C, _edf, _a = G.avar_covariance(m, n, rate, truth, None, model)
-    J = G.term_avar(m, rate)[:, [1, 3]]
+    model = V.term_avar(m, rate) @ truth
+    C, _edf, _a = V.avar_covariance(m, n, rate, truth, None, model)
+    J = V.term_avar(m, rate)[:, [1, 3]]
     se_true = float(np.sqrt(np.linalg.inv(J.T @ np.linalg.solve(C, J))[1, 1]))
     z_fit, z_true, chi2_cover = [], [], []
     for s in range(seeds):
@@ -415,12 +416,13 @@ def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, b
     from collections import Counter
 
     from gyrocore.noise import allan as AL
+    from gyrocore.noise import avar as V
     from gyrocore.noise import gmwm as G
 
     n = int(round(T_s * rate_hz))
-    m = G.scales(n)
+    m = V.scales(n)
     true_sub = tuple(TERM_KEYS[k] for k in TERM_KEYS if k in MIXES[mix] and k != "GMt")
-    true_sub = tuple(k for k in G.LINEAR if k in true_sub)
+    true_sub = tuple(k for k in V.LINEAR if k in true_sub)
     census: Counter = Counter()
     diffs: dict[tuple, list] = {}
     for s in range(seeds):
@@ -463,23 +465,23 @@ def flicker_wv_check(T_s: float, rate_hz: float) -> dict:
     the Allan difference at position k is Σ_l w_l g_{k+2m−1−l} with g = h ∗ Haar_m, so its
     variance is Σ_{t ≤ k+2m−1} g_t² and E σ̂²(m) = ½ mean_k of that cumulative sum over the
     n − 2m + 1 overlapping positions — the start-up transient and the finite record included.
-    Returns, per octave factor m, the ratio to :func:`gyrocore.noise.gmwm.flicker_avar_factor`
+    Returns, per octave factor m, the ratio to :func:`gyrocore.noise.avar.flicker_avar_factor`
     for the simulator's cascade (:func:`sim.noise.flicker_sos`) and the Kasdin–Walter process.
     """
     from scipy import signal
 
-    from gyrocore.noise import gmwm as G
+    from gyrocore.noise import avar as V
     from sim import noise as SN
 
     n = round(T_s * rate_hz)
-    m = G.scales(n)
+    m = V.scales(n)
     d = np.zeros(n)
     d[0] = 1.0
     imp = {
         "cascade": signal.sosfilt(SN.flicker_sos(rate_hz), d),
         "kasdin_walter": SN.kasdin_walter_coefficients(n, 1.0),
     }
-    model = np.array([G.flicker_avar_factor(int(v)) for v in m])
+    model = np.array([V.flicker_avar_factor(int(v)) for v in m])
     out = {"T_s": T_s, "rate_hz": rate_hz, "tau_s": (m / rate_hz).tolist()}
     for name, h in imp.items():
         ev = []

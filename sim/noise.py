@@ -340,7 +340,7 @@ def kasdin_walter_flicker(rng: np.random.Generator, n_samples: int, *, rate_hz: 
     """The exact discrete flicker process of Kasdin & Walter (whole record, FFT convolution).
 
     Reference only (tests of models that assume this discretisation, e.g. the GMWM's exact
-    discrete flicker AVAR, :func:`gyrocore.noise.gmwm.flicker_avar_factor`); the simulator uses
+    discrete flicker AVAR, :func:`gyrocore.noise.avar.flicker_avar_factor`); the simulator uses
     :class:`FlickerBlocks`, which equals it in Allan deviation within 0.3 % for m ≥ 8 and in
     impulse response within 0.2 % for lags ≥ 100 samples, but is lower at m < 8 (this process
     is 1.44× the IEEE asymptote in AVAR at m = 1; :class:`FlickerBlocks` 0.68–0.96×, depending

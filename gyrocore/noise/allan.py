@@ -39,6 +39,7 @@ import scipy.stats
 
 from gyrocore.errors import GyroInputError, warn_repair
 
+from . import avar as AV, diagnostics, gmwm
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 from gyrocore.data.recording import AXES, Recording
 from gyrocore.data.still import SpilledGyro, StillGate, still_windows
@@ -500,12 +501,12 @@ class AllanResult:
     #: ``fit_adev_rad_s`` is the selected fit (the same unless the selection kept a null term)
     reported_adev_rad_s: np.ndarray | None = None
     #: shortest τ of the fit, s: shorter τ are shaped by the sensor's low-pass and not fitted
-    #: (:func:`gyrocore.noise.gmwm.bandwidth_start`)
+    #: (:func:`gyrocore.noise.diagnostics.bandwidth_start`)
     fit_from_tau_s: float = float("nan")
-    #: goodness of fit of the selected model on the fitted scales (:func:`gyrocore.noise.gmwm.goodness_of_fit`):
+    #: goodness of fit of the selected model on the fitted scales (:func:`gyrocore.noise.diagnostics.goodness_of_fit`):
     #: ok, p_value, stat, dof, misses (points outside their 95 % interval), points, p_misses, z
     fit_check: Mapping[str, object] = field(default_factory=dict)
-    #: narrowband lines found and removed before the fit (:func:`gyrocore.noise.gmwm.line_avar`): Hz, rms
+    #: narrowband lines found and removed before the fit (:func:`gyrocore.noise.diagnostics.line_avar`): Hz, rms
     #: (signal units) and their deviation at ``taus_s``
     lines_hz: tuple[float, ...] = ()
     lines_rms: tuple[float, ...] = ()
@@ -740,13 +741,11 @@ def _axis_result(
         raise GyroInputError(f"{signal} axis {axis}: constant signal (zero Allan deviation), nothing to identify")
     n_phase = omega.shape[0] + 1
     if method != "adev_legacy":
-        from . import gmwm
-
         n = int(omega.shape[0])
         avar = dev**2
         # narrowband lines (vibration, interference) are not sensor noise: their Allan
         # variance is subtracted before the fit (one warning naming them)
-        lines = gmwm.line_avar(omega, rate_hz, m)
+        lines = diagnostics.line_avar(omega, rate_hz, m)
         if lines.freqs_hz:
             avar = np.maximum(avar - lines.avar, 0.05 * avar)
             warn_repair(
@@ -757,17 +756,19 @@ def _axis_result(
                 + " is removed before the noise fit"
             )
         # the octaves shaped by the sensor's low-pass are left out of the fit
-        k0 = gmwm.bandwidth_start(avar, m, n, rate_hz)
+        k0 = diagnostics.bandwidth_start(avar, m, n, rate_hz)
         # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
         meth = method + "+lp" if k0 else method
         f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth, options=options)
         f = _random_walk_check(f, omega, rate_hz, taus[-1], low_pass=bool(k0), on=options.rw_check)
-        sel = [gmwm.LINEAR.index(k) for k in f.selected]
-        chk = gmwm.goodness_of_fit(avar[k0:], f.fit_avar, f.cov, f.edf, gmwm._n_params(f.coef, f.tau_c_s, sel))
-        fit_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef
+        sel = [AV.LINEAR.index(k) for k in f.selected]
+        chk = diagnostics.goodness_of_fit(
+            avar[k0:], f.fit_avar, f.cov, f.edf, diagnostics.n_params(f.coef, f.tau_c_s, sel)
+        )
+        fit_all = AV.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef
         edf = f.edf
         if k0:
-            edf = gmwm.avar_covariance(
+            edf = AV.avar_covariance(
                 m, n, rate_hz, f.coef, f.tau_c_s, np.where(fit_all > 0, fit_all, avar), method=meth
             )[1]
             warn_repair(
@@ -780,10 +781,10 @@ def _axis_result(
         # in: the data reject the model without it, only its name is open (sunsided 10-min x: without
         # it the sum is 7 σ below the last points)
         c_rep = np.array(f.coef, float).copy()
-        for i, name in enumerate(gmwm.LINEAR):
+        for i, name in enumerate(AV.LINEAR):
             if f.terms.get(name) is None and name not in f.ambiguous and not (k0 and i == 0):
                 c_rep[i] = 0.0  # (the low-pass deficit, column 0 under "+lp", is N's shape)
-        rep_all = gmwm.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ c_rep
+        rep_all = AV.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ c_rep
         if not chk.ok:
             j = int(np.argmax(np.abs(chk.z)))
             warn_repair(
@@ -1163,7 +1164,7 @@ def allan_analysis(
     elif method == "adev_legacy":
         m = octave_m(n)
     else:
-        from .gmwm import scales
+        from .avar import scales
 
         m = scales(n)
     if m.size < 4 or octave_m(n).size < 4:
@@ -1370,7 +1371,7 @@ def _identify_arrays(
                 f"recording is not static: the motion gate rejects {100 * (1 - still):.0f} % of its 2-s windows "
                 f"(more than {100 * MAX_MOVING_FRACTION:.0f} %); noise identification needs a still sensor"
             )
-    from .gmwm import scales
+    from .avar import scales
 
     if max_tau_s is not None:
         if not (max_tau_s > 0):

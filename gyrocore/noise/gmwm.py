@@ -22,19 +22,6 @@ same model selection. (The fix of the old fit: whole τ range, EDF and correlati
 fitted model including flicker, information-criterion selection instead of backward
 elimination.)
 
-Covariance of the Allan-variance estimates
-------------------------------------------
-Var σ̂²_j = 2σ_j⁴/edf_j with Greenhall's EDF (``allantools.edf_greenhall``; exact for power
-laws at any m ≤ (n−1)/2, including the last octaves where edf ≈ 1–5) for the power law that
-has the local log–log slope of the fitted model at τ_j. The correlation between scales is the
-large-sample Gaussian form (Percival & Walden eq. 308 generalised to two scales):
-Cov(σ̂²_i, σ̂²_j) ∝ ∫|H_i(ν)|²|H_j(ν)|² S(ν)² dν / max(M_i, M_j), with |H_m(ν)|² =
-4 sin⁴(πmν)/(m² sin²(πν)) the Haar (Allan) filter, S the model's two-sided spectrum (white
-N²·f_s, flicker B²/|2 sin πν|, random walk K²τ0/(4 sin²πν), white angle 4Q²f_s² sin²πν,
-AR(1) σ²(1−φ²)/|1−φe^{−2πiν}|²) and M_j = n − 2m_j terms. Integrated on a log-spaced ν grid
-(64 points per e-fold); where a filter oscillates faster than the grid, sin⁴ is replaced by
-its average (3/8; products of two such by their exact averages 35/128, 7/64, 9/64).
-
 Model selection
 ---------------
 Every subset of the candidate terms is fitted (non-negative GLS, the GM τc profiled on a
@@ -66,10 +53,8 @@ the enlarged model's where an unselected term moves them by more than their SE
 
 from __future__ import annotations
 
-import functools
 import itertools
 import math
-import warnings
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -77,6 +62,8 @@ import numpy as np
 import scipy.optimize
 import scipy.stats
 
+from .avar import LINEAR, avar_covariance, base_method, gm_avar, greenhall_edf, scales, term_avar
+from .diagnostics import ALPHA_GOF, FitCheck, goodness_of_fit, n_params
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 
 __all__ = [
@@ -85,25 +72,11 @@ __all__ = [
     "ALPHA",
     "Z_RESOLVABLE",
     "NoiseFit",
-    "term_avar",
-    "flicker_avar_factor",
-    "model_avar",
-    "avar_covariance",
     "fit_noise",
+    "fisher_margin",
     "expected_z",
-    "scales",
 ]
 
-#: Coefficient names, in the order of the linear coefficient vector (variance scale):
-#: Q² (rad²), N² (rad²/s), B² (rad²/s²), K² (rad²/s³), R² (rad²/s⁴), σ_GM² (rad²/s²).
-LINEAR = (
-    "quantization_rad",
-    "arw_rad_per_sqrt_s",
-    "bias_instability_rad_s",
-    "rrw_rad_per_s_sqrt_s",
-    "rate_ramp_rad_s2",
-    "correlated_sigma_rad_s",
-)
 GM_TERMS = ("correlated_sigma_rad_s", "correlated_tau_c_s")
 ALL_TERMS = LINEAR[:5] + GM_TERMS
 #: level of the one-sided test behind each term's penalty
@@ -119,290 +92,6 @@ Z_RESOLVABLE_GM = float(math.sqrt(_PEN_GM) + scipy.stats.norm.isf(0.10))
 Z_POWER = float(scipy.stats.norm.isf(0.10))
 _Z95 = float(scipy.stats.norm.isf(0.025))
 _Z_WALD = float(scipy.stats.norm.isf(ALPHA))
-_B_FACTOR = 2.0 * math.log(2.0) / math.pi
-#: prior SD (in units of the Kasdin-minus-asymptote shape) of the flicker's Allan-variance shape
-#: at the first octaves (:func:`avar_covariance`): the conventions span θ = −1.1 (averaged
-#: continuous 1/f: the simulator's cascade) … 0 (point-sampled Kasdin–Walter: the model), so
-#: s = 1.5 keeps either within 1σ of the model and costs N at most the information of one
-#: shape direction
-_FLICKER_SHAPE_SD = 1.5
-
-
-# ---------------------------------------------------------------------------- term variances
-@functools.lru_cache(maxsize=256)
-def flicker_avar_factor(m: int) -> float:
-    """Allan variance of unit Kasdin–Walter flicker (α = 1, innovation σ = 1) at factor m.
-
-    (2/(π m²)) ∫₀^{π/2} sin⁴(mx)/sin³(x) dx (two-sided spectrum 1/|2 sin πν| through the
-    Haar filter); → 2 ln2/π for m → ∞ with an O(ln m/m²) correction, used beyond m = 4096.
-    """
-    m = int(m)
-    if m > 4096:
-        return _B_FACTOR
-    # ∫ sin⁴(mx)(1/sin³x − 1/x³) dx numerically + m²∫₀^{mπ/2} sin⁴u/u³ du in closed-ish form
-    n_pts = max(4001, 200 * m + 1)
-    x = np.linspace(0.0, math.pi / 2, n_pts)
-    x[0] = 1e-300
-    s4 = np.sin(m * x) ** 4
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        g = np.where(x > 1e-3, 1.0 / np.sin(x) ** 3 - 1.0 / x**3, 0.5 / x + 17.0 * x / 120.0)
-    g[0] = 0.0
-    part1 = float(np.trapezoid(s4 * g, x))
-    U = m * math.pi / 2
-    u = np.linspace(1e-9, U, max(20001, 400 * m + 1))
-    part2 = m * m * float(np.trapezoid(np.sin(u) ** 4 / u**3, u))
-    return 2.0 / (math.pi * m * m) * (part1 + part2)
-
-
-def _gm_avar(m: np.ndarray, dt_s: float, tau_c_s: float) -> np.ndarray:
-    """Allan variance of a unit-variance AR(1) with φ = exp(−dt/τc) at factors m (exact, discrete).
-
-    AVAR = Var(ȳ_m) − Cov(ȳ₁, ȳ₂): Var(ȳ_m) = [m + 2φ(m(1−φ) − (1−φᵐ))/(1−φ)²]/m²,
-    Cov = φ(1−φᵐ)²/((1−φ)² m²).
-    """
-    m = np.asarray(m, float)
-    a = dt_s / tau_c_s
-    omp = -math.expm1(-a)  # 1 − φ
-    phi = 1.0 - omp
-    ompm = -np.expm1(-a * m)  # 1 − φ^m
-    var = (m + 2.0 * phi * (m * omp - ompm) / omp**2) / m**2
-    cov = phi * ompm**2 / (omp**2 * m**2)
-    return np.maximum(var - cov, 0.0)
-
-
-def term_avar(m: np.ndarray, rate_hz: float, *, method: str = "gmwm", tau_c_s: float | None = None) -> np.ndarray:
-    """Design matrix: Allan variance of each unit term at factors m; shape (M, 6).
-
-    Columns Q², N², B², K², R², σ_GM² (units so that AVAR = A @ c in rad²/s²). ``method``
-    "gmwm": exact discrete forms; "adev": IEEE 952 continuous asymptotes (GM column zero).
-    """
-    A = _base_design(tuple(int(v) for v in np.asarray(m).ravel()), float(rate_hz), method).copy()
-    if _base(method) != "adev" and tau_c_s is not None:
-        A[:, 5] = _gm_avar(np.asarray(m, float), 1.0 / rate_hz, tau_c_s)
-    return A
-
-
-@functools.lru_cache(maxsize=256)
-def _base_design(m_key: tuple[int, ...], rate_hz: float, method: str) -> np.ndarray:
-    m = np.array(m_key, float)
-    dt = 1.0 / rate_hz
-    t = m * dt
-    A = np.zeros((m.size, 6))
-    # "+lp": above the sensor's low-pass, white rate noise through any filter with unit
-    # DC gain has σ² = N²/τ − κN²/τ² (+ terms that vanish beyond the filter's impulse response): the
-    # first column is then that signed deficit, −3/τ² (coefficient ≥ 0), instead of white angle
-    # noise 3Q²/τ² — the two have one signature, so Q is not identified beside a low-pass
-    A[:, 0] = (-3.0 if method.endswith("+lp") else 3.0) / t**2
-    A[:, 1] = 1.0 / t
-    A[:, 4] = t**2 / 2.0
-    if _base(method) == "adev":
-        A[:, 2] = _B_FACTOR
-        A[:, 3] = t / 3.0
-    else:
-        A[:, 2] = [flicker_avar_factor(int(v)) for v in m]
-        A[:, 3] = t / 3.0 + dt * dt / (6.0 * t)
-    A.setflags(write=False)
-    return A
-
-
-def _base(method: str) -> str:
-    """The estimator of a method name: "gmwm" or "adev" (a "+lp" suffix marks a low-pass)."""
-    return method.split("+", 1)[0]
-
-
-def model_avar(m: np.ndarray, rate_hz: float, terms: Mapping[str, float | None], *, method: str = "gmwm") -> np.ndarray:
-    """Allan variance of a set of terms (SI values, None/absent = 0) at factors m."""
-    tc = terms.get("correlated_tau_c_s")
-    A = term_avar(m, rate_hz, method=method, tau_c_s=tc if tc else None)
-    c = np.array([(terms.get(k) or 0.0) ** 2 for k in LINEAR])
-    return A @ c
-
-
-# ---------------------------------------------------------------------------- covariance
-_GRID_PER_EFOLD = 64
-
-
-@functools.lru_cache(maxsize=64)
-def _grid(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Log-spaced ν grid (cycles/sample) from 1/(64 n) to 1/2 and its trapezoid weights."""
-    lo = 1.0 / (64.0 * n)
-    k = int(math.ceil(_GRID_PER_EFOLD * math.log(0.5 / lo)))
-    nu = np.geomspace(lo, 0.5, k + 1)
-    w = np.zeros_like(nu)
-    d = np.diff(nu)
-    w[:-1] += d / 2
-    w[1:] += d / 2
-    w[0] += lo  # the sliver (0, lo): integrand taken constant
-    return nu, w
-
-
-@functools.lru_cache(maxsize=64)
-def _filters(m_key: tuple[int, ...], n: int):
-    """sin⁴(π m ν) on the grid, exact where resolved and its mean 3/8 elsewhere; flags."""
-    nu, w = _grid(n)
-    dnu = np.gradient(nu)
-    m = np.array(m_key, float)[:, None]
-    fast = m * dnu[None, :] > 0.25
-    s4 = np.where(fast, 0.375, np.sin(np.pi * m * nu[None, :]) ** 4)
-    return s4, fast
-
-
-@functools.lru_cache(maxsize=64)
-def _pair_factor(m_key: tuple[int, ...]) -> np.ndarray:
-    mm = np.array(m_key, float)
-    ratio = mm[:, None] / mm[None, :]
-    ratio = np.maximum(ratio, 1.0 / ratio)
-    return np.where(
-        np.isclose(ratio, 1.0), (35 / 128) / (9 / 64), np.where(np.isclose(ratio, 2.0), (7 / 64) / (9 / 64), 1.0)
-    )
-
-
-def _spectrum(nu: np.ndarray, rate_hz: float, c: np.ndarray, tau_c_s: float | None) -> np.ndarray:
-    """Two-sided spectrum (rad²/s² per cycle/sample) of the stochastic terms c = (Q², N², B², K², R², σ²)."""
-    s = np.sin(np.pi * nu)
-    S = c[1] * rate_hz + c[0] * rate_hz**2 * 4.0 * s * s + c[2] / (2.0 * s) + c[3] / rate_hz / (4.0 * s * s)
-    if tau_c_s and c[5] > 0:
-        phi = math.exp(-1.0 / (rate_hz * tau_c_s))
-        S = S + c[5] * (1.0 - phi * phi) / (1.0 + phi * phi - 2.0 * phi * np.cos(2.0 * np.pi * nu))
-    return S
-
-
-def _alpha_of_slope(mu: np.ndarray) -> np.ndarray:
-    """Power-law α (S ∝ f^α) with the Allan-variance slope μ (AVAR ∝ τ^μ): α = −μ − 1, μ ≤ −1.5 → α = 2."""
-    a = np.rint(np.clip(-mu - 1.0, -2.0, 1.0)).astype(int)
-    return np.where(mu <= -1.5, 2, np.where(a == 1, 0, a))
-
-
-@functools.lru_cache(maxsize=8192)
-def _edf(alpha: int, m: int, n_phase: int) -> float:
-    import allantools
-
-    try:
-        e = float(
-            allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase), overlapping=True, modified=False)
-        )
-    except Exception:  # pragma: no cover
-        e = float("nan")
-    if not math.isfinite(e) or e <= 0:
-        n = n_phase - 1
-        e = (3 * (n - 1) / (2 * m) - 2 * (n - 2) / n) * 4 * m * m / (4 * m * m + 5)
-    return max(e, 1.0)
-
-
-_ALPHAS = np.array([-2, -1, 0, 2])
-
-
-@functools.lru_cache(maxsize=64)
-def _pure_spec_edf(m_key: tuple[int, ...], n: int) -> np.ndarray:
-    """edf_spec (without the 1/M factor, as in :func:`avar_covariance`) of each pure power law
-    α = −2 (K), −1 (B), 0 (N), 2 (Q) at factors m; shape (4, M). Scale-free, so unit levels
-    at rate 1 Hz."""
-    nu, w = _grid(n)
-    s4, fast = _filters(m_key, n)
-    sn2 = np.sin(np.pi * nu) ** 2
-    mm = np.array(m_key, float)[:, None]
-    H2 = 4.0 * s4 / (mm**2 * sn2[None, :])
-    pf = np.diag(_pair_factor(m_key))[:, None]
-    out = np.empty((4, len(m_key)))
-    for k, idx in enumerate((3, 2, 1, 0)):  # K, B, N, Q columns of the coefficient vector
-        c = np.zeros(6)
-        c[idx] = 1.0
-        G = H2 * _spectrum(nu, 1.0, c, None)[None, :]
-        d = (G * G * w[None, :]).sum(axis=1) + (np.where(fast, G, 0.0) ** 2 * w[None, :]).sum(axis=1) * (pf[:, 0] - 1.0)
-        lv = (G * w[None, :]).sum(axis=1)
-        out[k] = 2.0 * lv**2 / np.maximum(d, np.finfo(float).tiny)
-    out.setflags(write=False)
-    return out
-
-
-def avar_covariance(
-    m: np.ndarray,
-    n_samples: int,
-    rate_hz: float,
-    c: np.ndarray,
-    tau_c_s: float | None,
-    model: np.ndarray,
-    *,
-    method: str = "gmwm",
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Covariance (M, M) of the overlapping AVAR estimates under the model; also edf (M,), α (M,).
-
-    Diagonal 2·model²/edf (Greenhall EDF for the local power law of the model); correlation
-    from the spectral integral of the module docstring, including the finite-M factor
-    √(min(M_i, M_j)/max(M_i, M_j)).
-    """
-    m = np.asarray(m, np.int64)
-    key = tuple(int(v) for v in m)
-    nu, w = _grid(int(n_samples))
-    s4, fast = _filters(key, int(n_samples))
-    sn2 = np.sin(np.pi * nu) ** 2
-    mm = m.astype(float)[:, None]
-    H2 = 4.0 * s4 / (mm**2 * sn2[None, :])  # |H_m|², averaged where fast
-    cc = np.where(np.asarray(c) > 0, c, 0.0)
-    if method.endswith("+lp"):  # the low-pass deficit is no spectral term of its own
-        cc = cc.copy()
-        cc[0] = 0.0
-    if not np.any(cc[:4] > 0) and not cc[5] > 0:
-        cc = cc.copy()
-        cc[1] = 1.0
-    S = _spectrum(nu, rate_hz, cc, tau_c_s)
-    G = H2 * S[None, :]
-    C = (G * w[None, :]) @ G.T
-    # products of two fast-oscillating sin⁴ terms: replace (3/8)² by their exact mean
-    # (35/128 for equal m, 7/64 for m_j = 2 m_i, 9/64 otherwise)
-    Gf = np.where(fast, G, 0.0)
-    C = C + ((Gf * w[None, :]) @ Gf.T) * (_pair_factor(key) - 1.0)
-    lvl = (G * w[None, :]).sum(axis=1)  # the model's AVAR from the same integral
-    d = np.sqrt(np.diag(C))
-    R = C / np.outer(d, d)
-    Mt = (n_samples - 2 * m).astype(float)
-    R = R * np.sqrt(np.minimum.outer(Mt, Mt) / np.maximum.outer(Mt, Mt))
-    np.fill_diagonal(R, 1.0)
-    # EDF from the local slope of the model
-    lt = np.log(m.astype(float))
-    lm = np.log(np.maximum(model, np.finfo(float).tiny))
-    mu = np.gradient(lm, lt) if m.size > 1 else np.array([-1.0])
-    alpha = _alpha_of_slope(mu)
-    edf = np.array([_edf(int(a), int(v), int(n_samples) + 1) for a, v in zip(alpha, m)])
-    # Mixtures: Greenhall's EDF is that of ONE power law; where two terms share an
-    # octave (white angle Q and white rate N over m = 1…3Q²f_s/N² at 1 kHz) Var σ̂² is not
-    # that law's. The large-sample variance Var σ̂²_j ≈ 2∫|H_j|⁴S² dν / M_j (Percival & Walden
-    # eq. 308; the diagonal of C above) gives edf_spec = 2σ⁴_j M_j / ∫|H_j|⁴S², which is
-    # Greenhall's for a pure law within 1 % over the middle octaves (m = 64 … n/2¹⁰ at
-    # n = 6·10⁵; off by up to 30 % at m ≤ 4 from the grid and by far at the last octaves).
-    # The EDF used is Greenhall's times the mixture's edf_spec over the pure law's edf_spec
-    # at the same m: unchanged for a pure law, Greenhall's finite-M form kept at the last
-    # octaves, the mixture's variance in the shared octaves (white-PM EDF ≈ n/2 at m = 64
-    # became 3.5× too large with Q + N at 1 kHz: N's interval covered 62–79 %).
-    e_mix = 2.0 * lvl**2 / np.maximum(np.diag(C), np.finfo(float).tiny)
-    e_pure = _pure_spec_edf(key, int(n_samples))
-    ratio = e_mix / e_pure[np.searchsorted(_ALPHAS, alpha), np.arange(m.size)]
-    edf = np.maximum(edf * np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0), 1.0)
-    sd = np.sqrt(2.0 / edf) * model
-    try:  # positive definite (the usual case): no eigen-decomposition needed
-        np.linalg.cholesky(R - 1e-9 * np.eye(R.shape[0]))
-    except np.linalg.LinAlgError:
-        w_, V = np.linalg.eigh(R)
-        R = (V * np.maximum(w_, 1e-9)) @ V.T
-        dd = np.sqrt(np.diag(R))
-        R = R / np.outer(dd, dd)
-    C = R * np.outer(sd, sd)
-    if cc[2] > 0 and _FLICKER_SHAPE_SD > 0:
-        # the flicker's Allan variance at the first octaves is a convention of how the
-        # 1/f process reaches the sample rate, not a property of B: point-sampled 1/f up to
-        # Nyquist (Kasdin–Walter, this model's column) is 1.44× the IEEE asymptote at m = 1,
-        # 1.15× at 2, 1.05× at 4; continuous 1/f averaged over each sample interval (a sensor's
-        # decimation; the simulator's cascade within 0.04 of it) has the asymptote at every m.
-        # Where flicker is a notable share of σ² at the first octaves — and these carry the
-        # most samples — the difference biased N (−0.4 % = 2 SE, N covered 60–80 % with a 5-octave
-        # plateau at 20 Hz) and fed a false Q. Model uncertainty: a shape error
-        # θ·B²·v(m), v = the Kasdin factor − 2 ln2/π, θ ~ N(0, s²), added to the covariance
-        # (rank one, fully correlated across octaves) and to the EDF as its variance share.
-        v = np.array([flicker_avar_factor(int(q)) for q in m]) - _B_FACTOR
-        u = _FLICKER_SHAPE_SD * cc[2] * v
-        C = C + np.outer(u, u)
-        edf = np.maximum(2.0 * model**2 / np.diag(C), 1.0)
-    return C, edf, alpha
 
 
 # ---------------------------------------------------------------------------- fitting
@@ -447,14 +136,6 @@ class NoiseFit:
     tau_c_range_s: tuple[float, float] = (float("nan"), float("nan"))
     criteria: Mapping[tuple[str, ...], float] = field(default_factory=dict)
     ambiguous: Mapping[str, str] = field(default_factory=dict)
-
-
-def scales(n_samples: int, *, max_m: int | None = None) -> np.ndarray:
-    """Octave factors m = 1, 2, 4, … ≤ (n−1)/2 (or ``max_m``): the whole Haar-scale range."""
-    top = (n_samples - 1) // 2 if max_m is None else min(int(max_m), (n_samples - 1) // 2)
-    if top < 1:
-        return np.zeros(0, np.int64)
-    return 2 ** np.arange(int(math.floor(math.log2(top))) + 1, dtype=np.int64)
 
 
 def _nnls_gls(A: np.ndarray, y: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, float]:
@@ -506,7 +187,7 @@ def _jacobian(m, rate_hz, coef, tc, use: Sequence[int], method: str) -> np.ndarr
     A = term_avar(m, rate_hz, method=method, tau_c_s=tc)[:, list(use)]
     if 5 in use and tc:
         h = 1e-4
-        d = (_gm_avar(m, 1.0 / rate_hz, tc * math.exp(h)) - _gm_avar(m, 1.0 / rate_hz, tc * math.exp(-h))) / (2 * h)
+        d = (gm_avar(m, 1.0 / rate_hz, tc * math.exp(h)) - gm_avar(m, 1.0 / rate_hz, tc * math.exp(-h))) / (2 * h)
         A = np.column_stack([A, coef[5] * d])
     return A
 
@@ -551,7 +232,7 @@ def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3, 
     ``iterations`` rounds with the model covariance (τc re-profiled near its value).
     Returns coef (6,), τc, C, edf, whitening L = chol(C)⁻¹, χ², −2 log L (Gaussian).
     """
-    edf0 = np.array([_edf(0, int(v), int(n_samples) + 1) for v in m])
+    edf0 = np.array([greenhall_edf(0, int(v), int(n_samples) + 1) for v in m])
     L0 = np.diag(1.0 / (avar * np.sqrt(2.0 / edf0)))
     c_use, tc_, _ = _fit_subset(m, rate_hz, avar, L0, sub, method, tc_grid)
     coef_ = np.zeros(6)
@@ -575,6 +256,13 @@ def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3, 
     r_ = Lw @ (avar - mod)
     chi2 = float(r_ @ r_)
     return coef_, tc_, C_, edf_, Lw, chi2, chi2 + 2.0 * float(np.sum(np.log(np.diag(Lc))))
+
+
+def _fit_check(fit_entry, sub, avar, m, rate_hz, method) -> FitCheck:
+    """:func:`goodness_of_fit` of one stored subset fit (coef, τc, C, edf, …) of ``fit_noise``."""
+    coef_, tc_, C_, edf_ = fit_entry[:4]
+    mod = term_avar(m, rate_hz, method=method, tau_c_s=tc_) @ coef_
+    return goodness_of_fit(avar, mod, C_, edf_, n_params(coef_, tc_, sub))
 
 
 #: Level of the goodness-of-fit screen (subsets the test rejects are no candidates unless all
@@ -759,6 +447,41 @@ def _upper_profile(i, s2, cf2, tc, hi_wald, m, rate_hz, avar, L2, W_log, bias_lo
     return float("inf")
 
 
+@dataclass(eq=False)
+class _Problem:
+    """One axis' fit: the data, the candidate terms and every subset fitted (shared by the steps of
+    :func:`fit_noise`). ``fits[sub]`` = (coef (6,), τc, C, edf, whitening L, χ², −2 log L)."""
+
+    m: np.ndarray
+    avar: np.ndarray
+    rate_hz: float
+    n_samples: int
+    method: str
+    cand: list[int]
+    tc_grid: np.ndarray
+    lp: list[int]
+    base: list[int]
+    fits: dict = field(default_factory=dict)
+    subsets: list = field(default_factory=list)
+    lchi2: dict = field(default_factory=dict)
+    gof_p: dict = field(default_factory=dict)
+    W_log: np.ndarray | None = None
+    bias_log: np.ndarray | None = None
+
+    def jacobian(self, coef, tc, sub) -> np.ndarray:
+        return _jacobian(self.m, self.rate_hz, coef, tc, sub, self.method)
+
+    def wald(self, sub) -> np.ndarray:
+        """Covariance of the parameters of subset ``sub`` (inverse Fisher information at its fit)."""
+        coef_, tc_, _C, _edf, L_ = self.fits[sub][:5]
+        J_ = self.jacobian(coef_, tc_, sub)
+        info = J_.T @ (L_.T @ L_) @ J_
+        try:
+            return np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            return np.linalg.pinv(info)
+
+
 def fit_noise(
     taus_s: np.ndarray,
     avar: np.ndarray,
@@ -771,6 +494,13 @@ def fit_noise(
     options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
 ) -> NoiseFit:
     """Identify the noise terms of one axis from its overlapping Allan variance at octave factors m.
+
+    The steps, each a function below: fit every subset of the candidate terms
+    (:func:`_fit_subsets`), select one (:func:`_select`), drop a term claimed on marginal
+    evidence whose Wald z is low (:func:`_drop_marginal`), the stand-in checks and a ramp not told
+    from a random walk reported as the random walk (:func:`_stand_ins`), the intervals of the
+    selected terms (:func:`_selected_intervals`) and the upper bounds of the others
+    (:func:`_unselected_bounds`).
 
     Parameters
     ----------
@@ -792,11 +522,40 @@ def fit_noise(
     -------
     NoiseFit
     """
+    p = _problem(taus_s, avar, m, n_samples, method, candidates)
+    _fit_subsets(p, iterations)
+    sub = _select(p)
+    sub, cov_p = _drop_marginal(p, sub)
+    sub, cov_p, ambiguous = _stand_ins(p, sub, cov_p)
+    coef_s, tc_s, C, edf, _L, chi2, _m2ll = p.fits[sub]
+    terms, est, ci = _selected_intervals(p, sub, cov_p, ambiguous, robust=options.robust_ci)
+    _unselected_bounds(p, sub, ambiguous, est, ci)
+    return NoiseFit(
+        method=method,
+        terms=terms,
+        estimate=est,
+        ci95=ci,
+        coef=coef_s,
+        tau_c_s=tc_s if 5 in sub else None,
+        cov=C,
+        edf=edf,
+        chi2=chi2,
+        dof=int(p.m.size - len(sub) - (1 if 5 in sub else 0)),
+        fit_avar=term_avar(p.m, p.rate_hz, method=method, tau_c_s=tc_s) @ coef_s,
+        selected=tuple(LINEAR[i] for i in sub),
+        tau_c_range_s=(float(p.m[0] / p.rate_hz), float(p.m[-1] / p.rate_hz)),
+        criteria={tuple(LINEAR[i] for i in k): v for k, v in p.lchi2.items()},
+        ambiguous={LINEAR[i]: LINEAR[j] for i, j in ambiguous.items()},
+    )
+
+
+def _problem(taus_s, avar, m, n_samples, method, candidates) -> _Problem:
+    """The candidate terms and the τc grid of one axis."""
     m = np.asarray(m, np.int64)
     avar = np.asarray(avar, float)
     rate_hz = float(m[0] / taus_s[0])
     if candidates is None:
-        candidates = LINEAR if _base(method) == "gmwm" else LINEAR[:5]
+        candidates = LINEAR if base_method(method) == "gmwm" else LINEAR[:5]
     cand = [LINEAR.index(k) for k in candidates]
     if m.size < 6:
         cand = [i for i in cand if i != 5]  # GM needs a turnover inside the τ range
@@ -804,109 +563,117 @@ def fit_noise(
     # τc from the first τ to a quarter of the last: the hump (peak at 1.89 τc) and its 1/τ
     # fall must both be inside the range, else a GM is a white or random-walk term
     tc_grid = np.geomspace(t[0], t[-1] / 4.0, 21) if 5 in cand else np.zeros(0)
-
-    def full_cov(coef, tc, model):
-        C, edf, _alpha = avar_covariance(m, n_samples, rate_hz, coef, tc, model, method=method)
-        return C, edf
-
-    def fit_model(sub):
-        return _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations)
-
-    # Every subset (N always in: a gyro always has white rate noise) is fitted with its own
-    # iterated weights; the subsets are compared on ONE generalised χ² in log space (see
-    # :func:`_log_chi2`), whose weights do not scale with the model level — a Gaussian
-    # likelihood on the variance scale would (log det Σ(θ)) and then favours whichever model
-    # predicts the smaller long-τ variance: with edf ≈ 2–6 at the last octaves, a random
-    # walk whose realisation sags is taken for a flat flicker floor.
     # "+lp": the low-pass deficit (first column) was established by the bandwidth test
     # and is in every model, as N (left to the selection, its penalty kept it out where N then
     # absorbed it: N 6 % low, z = −4.7, on a simulated first-order filter of 1.5 samples)
     lp = [0] if (method.endswith("+lp") and 0 in cand) else []
-    others = [i for i in cand if i != 1 and i not in lp]
     base = lp + ([1] if 1 in cand else [])
-    fits = {}
-    subsets = []
+    return _Problem(m, avar, rate_hz, int(n_samples), method, cand, tc_grid, lp, base)
+
+
+def _fit_subsets(p: _Problem, iterations: int) -> None:
+    """Fit every subset of the candidates (N always in: a gyro always has white rate noise), each
+    with its own iterated weights; its log-space χ² and goodness-of-fit p-value.
+
+    The subsets are compared on ONE generalised χ² in log space (see :func:`_log_chi2`, with the
+    weights of the full model), whose weights do not scale with the model level — a Gaussian
+    likelihood on the variance scale would (log det Σ(θ)) and then favours whichever model
+    predicts the smaller long-τ variance: with edf ≈ 2–6 at the last octaves, a random walk
+    whose realisation sags is taken for a flat flicker floor."""
+    others = [i for i in p.cand if i != 1 and i not in p.lp]
     for k in range(0, len(others) + 1):
         for extra in itertools.combinations(others, k):
-            sub = tuple(sorted(base + list(extra)))
+            sub = tuple(sorted(p.base + list(extra)))
             if sub:
-                subsets.append(sub)
-                fits[sub] = fit_model(sub)
-    full = subsets[-1]
-    W_log, bias_log = _log_weights(fits[full][2], fits[full][3])
+                p.subsets.append(sub)
+                p.fits[sub] = _fit_model(p.m, p.rate_hz, p.avar, p.n_samples, sub, p.method, p.tc_grid, iterations)
+    full = p.subsets[-1]
+    p.W_log, p.bias_log = _log_weights(p.fits[full][2], p.fits[full][3])
+    p.gof_p = {s_: _fit_check(p.fits[s_], s_, p.avar, p.m, p.rate_hz, p.method).p_value for s_ in p.subsets}
+    for sub in p.subsets:
+        res = p.fits[sub]
+        mod = term_avar(p.m, p.rate_hz, method=p.method, tau_c_s=res[1]) @ res[0]
+        p.lchi2[sub] = _log_chi2(p.avar, mod, p.W_log, p.bias_log)
+
+
+def _select(p: _Problem) -> tuple[int, ...]:
+    """The subset with the least log-space χ² + Σ penalties.
+
+    A subset the data reject (goodness of fit, :func:`goodness_of_fit`, below
+    :data:`ALPHA_GOF_SCREEN`) is no candidate when some subset is not rejected: the log-space χ²
+    underrates a long-τ point far above the model (thin upper tail of log χ²_ν at ν ≈ 2–6). A
+    subset with a term pinned at zero is the same model as a smaller subset and is skipped."""
+    rejected = {s_: p_ < ALPHA_GOF_SCREEN for s_, p_ in p.gof_p.items()}
+
+    def pinned(s_):
+        return np.any(p.fits[s_][0][[i for i in s_ if i not in p.lp]] <= 0)
+
+    screen = not all(rejected[s_] for s_ in p.subsets if not pinned(s_))
     best = None
-    lchi2 = {}
-    # a subset the data reject (goodness of fit, :func:`goodness_of_fit`, below
-    # ALPHA_GOF) is no candidate when some subset is not rejected. The log-space χ² underrates a
-    # long-τ point far above the model (thin upper tail of log χ²_ν at ν ≈ 2–6)
-    gof_p = {s_: _fit_check(fits[s_], s_, avar, m, rate_hz, method).p_value for s_ in subsets}
-    rejected = {s_: p_ < ALPHA_GOF_SCREEN for s_, p_ in gof_p.items()}
-    screen = not all(rejected[s_] for s_ in subsets if not np.any(fits[s_][0][[i for i in s_ if i not in lp]] <= 0))
-    for sub in subsets:
-        res = fits[sub]
-        mod = term_avar(m, rate_hz, method=method, tau_c_s=res[1]) @ res[0]
-        lchi2[sub] = _log_chi2(avar, mod, W_log, bias_log)
-        if np.any(res[0][[i for i in sub if i not in lp]] <= 0):
-            continue  # a term pinned at zero: the same model as a smaller subset
-        if screen and rejected[sub]:
+    for sub in p.subsets:
+        if pinned(sub) or (screen and rejected[sub]):
             continue
-        crit = lchi2[sub] + _penalty(sub)
+        crit = p.lchi2[sub] + _penalty(sub)
         if best is None or crit < best[0]:
             best = (crit, sub)
-    sub = best[1] if best else tuple(base or cand[:1])
+    return best[1] if best else tuple(p.base or p.cand[:1])
 
-    def wald(sub_):
-        coef_, tc_, C_, edf_, L_, chi2_, _m = fits[sub_]
-        Ci_ = L_.T @ L_
-        J_ = _jacobian(m, rate_hz, coef_, tc_, sub_, method)
-        try:
-            cov_ = np.linalg.inv(J_.T @ Ci_ @ J_)
-        except np.linalg.LinAlgError:
-            cov_ = np.linalg.pinv(J_.T @ Ci_ @ J_)
-        return cov_
 
-    # A term claimed on marginal evidence (its removal raises the selection χ² by less than
-    # twice its penalty) must also stand on its own interval: drop the weakest such term while
-    # its Wald z = c/se(c) at the final weights is below z_{1−α} (the level of its penalty).
-    # Stand-ins (B for an unresolvable K, R for B, …) are claimed on marginal evidence; a term
-    # whose removal wrecks the fit (a random walk whose long-τ points sag) is kept even when
-    # its variance-scale interval, symmetric at edf ≈ 2–6, reaches zero.
+def _drop_marginal(p: _Problem, sub: tuple[int, ...]) -> tuple[tuple[int, ...], np.ndarray]:
+    """Drop the weakest term claimed on marginal evidence while its Wald z is below z_{1−α}.
+
+    A term claimed on marginal evidence (its removal raises the selection χ² by less than twice
+    its penalty) must also stand on its own interval: its Wald z = c/se(c) at the final weights
+    must reach z_{1−α} (the level of its penalty). Stand-ins (B for an unresolvable K, R for B, …)
+    are claimed on marginal evidence; a term whose removal wrecks the fit (a random walk whose
+    long-τ points sag) is kept even when its variance-scale interval, symmetric at edf ≈ 2–6,
+    reaches zero. Returns the subset and its parameter covariance."""
     while True:
-        cov_p = wald(sub)
-        coef_s = fits[sub][0]
+        cov_p = p.wald(sub)
+        coef_s = p.fits[sub][0]
         zw = {}
         for j, i in enumerate(sub):
-            if i == 1 or i in lp:
+            if i == 1 or i in p.lp:
                 continue
             smaller = tuple(k for k in sub if k != i)
             pen_i = _PEN_GM if i == 5 else _PEN_LINEAR
-            if gof_p.get(smaller, 1.0) < ALPHA_GOF <= gof_p[sub]:
+            if p.gof_p.get(smaller, 1.0) < ALPHA_GOF <= p.gof_p[sub]:
                 continue  # its removal is rejected by the data (the reported test) — not marginal
-            if smaller in lchi2 and lchi2[smaller] - lchi2[sub] < 2.0 * pen_i:
+            if smaller in p.lchi2 and p.lchi2[smaller] - p.lchi2[sub] < 2.0 * pen_i:
                 zw[i] = coef_s[i] / math.sqrt(cov_p[j, j]) if cov_p[j, j] > 0 else float("inf")
         if not zw:
-            break
+            return sub, cov_p
         worst = min(zw, key=zw.get)
         if zw[worst] >= _Z_WALD or len(sub) == 1:
-            break
+            return sub, cov_p
         sub = tuple(i for i in sub if i != worst)
-    ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log)
-    for x, y in list(ambiguous.items()):
-        # a ramp not told from a random walk (see _EXTRA_CHECKS) is the random walk's
-        # trend — the random-walk model stands in its place when all its terms are positive
-        # (also when a GM is not rejected either: between K and GM the penalty decides, as in the
-        # selection; requiring K to be the only stand-in cost 3 of 120 true-K development axes at
-        # 1 h and removed no false K in N+GM)
-        swap = tuple(sorted((set(sub) - {x}) | {y}))
-        if (x, y) in _EXTRA_CHECKS and swap in fits and np.all(fits[swap][0][list(swap)] > 0):
-            sub = swap
-            cov_p = wald(sub)
-            ambiguous = _ambiguous(sub, fits, lchi2, m, rate_hz, n_samples, method, tc_grid, W_log)
-            break
-    coef_s, tc_s, C, edf, L, chi2, _m2ll = fits[sub]
-    Ci = L.T @ L
-    model_s = term_avar(m, rate_hz, method=method, tau_c_s=tc_s) @ coef_s
 
+
+def _stand_ins(p: _Problem, sub, cov_p):
+    """The stand-in checks (:func:`_ambiguous`): {selected term: stand-in not rejected}.
+
+    A ramp not told from a random walk (see :data:`_EXTRA_CHECKS`) is the random walk's trend —
+    the random-walk model stands in its place when all its terms are positive (also when a GM is
+    not rejected either: between K and GM the penalty decides, as in the selection; requiring K to
+    be the only stand-in cost 3 of 120 true-K development axes at 1 h and removed no false K in
+    N+GM). Returns the subset, its parameter covariance and the ambiguous terms."""
+    ambiguous = _ambiguous(sub, p.fits, p.lchi2, p.m, p.rate_hz, p.n_samples, p.method, p.tc_grid, p.W_log)
+    for x, y in list(ambiguous.items()):
+        swap = tuple(sorted((set(sub) - {x}) | {y}))
+        if (x, y) in _EXTRA_CHECKS and swap in p.fits and np.all(p.fits[swap][0][list(swap)] > 0):
+            sub = swap
+            cov_p = p.wald(sub)
+            ambiguous = _ambiguous(sub, p.fits, p.lchi2, p.m, p.rate_hz, p.n_samples, p.method, p.tc_grid, p.W_log)
+            break
+    return sub, cov_p, ambiguous
+
+
+def _selected_intervals(p: _Problem, sub, cov_p, ambiguous, *, robust: bool):
+    """Values, estimates and 95 % intervals of the selected terms (chi-square pivot on the
+    variance scale; with ``robust``, widened where an unselected confounder moves them,
+    :func:`_robust_ends`). A term fitted but not told from a stand-in (``ambiguous``) is
+    reported unresolved (None) with [0, its upper end]. Returns (terms, estimate, ci95)."""
+    coef_s, tc_s = p.fits[sub][0], p.fits[sub][1]
     terms: dict[str, float | None] = {k: None for k in ALL_TERMS}
     est: dict[str, float] = {k: 0.0 for k in ALL_TERMS}
     ci: dict[str, tuple[float, float]] = {}
@@ -914,9 +681,9 @@ def fit_noise(
     for j, i in enumerate(sub):
         name = LINEAR[i]
         c, lo, hi = _interval(float(coef_s[i]), float(cov_p[j, j]))
-        if options.robust_ci and i != 1:
+        if robust and i != 1:
             lo, hi = _robust_ends(
-                i, sub, fits, float(coef_s[i]), float(cov_p[j, j]), lo, hi, cand, m, rate_hz, method, tc_s
+                i, sub, p.fits, float(coef_s[i]), float(cov_p[j, j]), lo, hi, p.cand, p.m, p.rate_hz, p.method, tc_s
             )
         est[name] = math.sqrt(max(c, 0.0))
         terms[name] = est[name]
@@ -931,28 +698,38 @@ def fit_noise(
         if 5 not in ambiguous:
             terms["correlated_tau_c_s"] = float(tc_s)
         ci["correlated_tau_c_s"] = (tc_s * math.exp(-_Z95 * se), tc_s * math.exp(_Z95 * se))
-    # upper bounds of the unselected terms: the term added to the selected model
-    for i in cand:
+    return terms, est, ci
+
+
+def _unselected_bounds(p: _Problem, sub, ambiguous, est, ci) -> None:
+    """Upper bounds (in ``ci``) of the unselected candidate terms: the term added to the selected
+    model.
+
+    The enlarged models with their own iterated weights (the selected model's weights leave the
+    term's own variance out of the long-τ covariance), and the term also in place of each selected
+    term (a selected stand-in — B or R for an unresolved K — absorbs the term in the enlarged
+    model): the bound is the largest upper end over these models (:func:`_upper_profile`), valid
+    whichever of them is right."""
+    tc_s = p.fits[sub][1]
+    L = p.fits[sub][4]
+    t = p.m / p.rate_hz
+    for i in p.cand:
         if i in sub:
             continue
         name = LINEAR[i]
         sub2 = tuple(sorted(set(sub) | {i}))
-        if sub2 in fits:
-            # the enlarged models with their own iterated weights (the selected model's
-            # weights leave the term's own variance out of the long-τ covariance), and the term
-            # also in place of each selected term (a selected stand-in — B or R for an
-            # unresolved K — absorbs the term in the enlarged model): the bound is the largest
-            # upper end over these models, valid whichever of them is right
+        tc_fallback = tc_s if i == 5 else None
+        if sub2 in p.fits:
             alts = [sub2] + [tuple(sorted((set(sub) - {j}) | {i})) for j in sub if j != 1]
             his = []
             for s2 in alts:
-                if s2 not in fits:
+                if s2 not in p.fits:
                     continue
-                cf2, tc_2 = fits[s2][0], fits[s2][1]
-                J2 = _jacobian(m, rate_hz, cf2, tc_2 if tc_2 else (tc_s if i == 5 else None), s2, method)
+                cf2, tc_2 = p.fits[s2][0], p.fits[s2][1]
+                L2 = p.fits[s2][4]
+                J2 = p.jacobian(cf2, tc_2 if tc_2 else tc_fallback, s2)
                 try:
-                    cv = np.linalg.inv(J2.T @ (fits[s2][4].T @ fits[s2][4]) @ J2)
-                    var = float(cv[s2.index(i), s2.index(i)])
+                    var = float(np.linalg.inv(J2.T @ (L2.T @ L2) @ J2)[s2.index(i), s2.index(i)])
                 except np.linalg.LinAlgError:
                     var = float("inf")
                 hi_ = _interval(float(cf2[i]), var, pivot=False)[2]
@@ -960,57 +737,39 @@ def fit_noise(
                     i,
                     s2,
                     cf2,
-                    tc_2 if tc_2 else (tc_s if i == 5 else None),
+                    tc_2 if tc_2 else tc_fallback,
                     hi_,
-                    m,
-                    rate_hz,
-                    avar,
-                    fits[s2][4],
-                    W_log,
-                    bias_log,
-                    method,
+                    p.m,
+                    p.rate_hz,
+                    p.avar,
+                    L2,
+                    p.W_log,
+                    p.bias_log,
+                    p.method,
                 )
                 his.append(hi_)
             hi = max(his)
-            tc2 = fits[sub2][1]
+            tc2 = p.fits[sub2][1]
         else:
-            c2, tc2, _ = _fit_subset(m, rate_hz, avar, L, sub2, method, tc_grid)
+            c2, tc2, _ = _fit_subset(p.m, p.rate_hz, p.avar, L, sub2, p.method, p.tc_grid)
             cf = np.zeros(6)
             cf[list(sub2)] = c2
-            J2 = _jacobian(m, rate_hz, cf, tc2 if tc2 else (tc_s if i == 5 else None), sub2, method)
+            J2 = p.jacobian(cf, tc2 if tc2 else tc_fallback, sub2)
             try:
-                cv = np.linalg.inv(J2.T @ Ci @ J2)
-                var = float(cv[sub2.index(i), sub2.index(i)])
+                var = float(np.linalg.inv(J2.T @ (L.T @ L) @ J2)[sub2.index(i), sub2.index(i)])
             except np.linalg.LinAlgError:
                 var = float("inf")
             _c, _lo, hi = _interval(float(cf[i]), var, pivot=False)
         ci[name] = (0.0, math.sqrt(max(hi, 0.0)) if math.isfinite(hi) else float("inf"))
         if i == 5:
             est["correlated_tau_c_s"] = float(tc2) if tc2 else float("nan")
-    if 5 in cand and (5 not in sub or 5 in ambiguous):
+    if 5 in p.cand and (5 not in sub or 5 in ambiguous):
         ci["correlated_tau_c_s"] = (float(t[0]), float(t[-1] / 4.0))
     for i in range(5):
-        if i not in cand:
+        if i not in p.cand:
             ci.setdefault(LINEAR[i], (0.0, float("inf")))
-    if 5 not in cand:
+    if 5 not in p.cand:
         ci.pop("correlated_sigma_rad_s", None)
-    return NoiseFit(
-        method=method,
-        terms=terms,
-        estimate=est,
-        ci95=ci,
-        coef=coef_s,
-        tau_c_s=tc_s if 5 in sub else None,
-        cov=C,
-        edf=edf,
-        chi2=chi2,
-        dof=int(m.size - len(sub) - (1 if 5 in sub else 0)),
-        fit_avar=model_s,
-        selected=tuple(LINEAR[i] for i in sub),
-        tau_c_range_s=(float(t[0]), float(t[-1])),
-        criteria={tuple(LINEAR[i] for i in k): v for k, v in lchi2.items()},
-        ambiguous={LINEAR[i]: LINEAR[j] for i, j in ambiguous.items()},
-    )
 
 
 def fisher_margin(
@@ -1230,308 +989,3 @@ def expected_z(
                 margin = min(margin, 0.0)
         out[LINEAR[i]] = margin
     return out
-
-
-# ---------------------------------------------------------------------------- goodness of fit
-#: level of the goodness-of-fit test of the selected model (``fit_ok`` false below it)
-ALPHA_GOF = 0.01
-#: one-sided level of the test that the shortest scales are shaped by the sensor's low-pass
-#: (anti-aliasing/DLPF, integration): a white-noise octave pair whose Allan variance falls by
-#: significantly less than the factor 2 of white rate noise (white angle noise only steepens it)
-ALPHA_BANDWIDTH = 0.001
-
-
-@dataclass(frozen=True, eq=False)
-class FitCheck:
-    """Goodness of fit of a fitted Allan variance against the measured one.
-
-    Attributes
-    ----------
-    stat : float
-        zᵀR⁻¹z with z_j = Φ⁻¹(F_{χ²(ν_j)}(ν_j σ̂²_j / σ²_j)) (probability-integral transform of
-        each point with its exact chi-square law, ν_j the model's EDF) and R the model
-        correlation between scales; ≈ χ²(dof) when the model holds.
-    dof : int
-        Scales fitted minus free parameters (positive coefficients, and τc).
-    p_value : float
-        P(χ²(dof) ≥ stat).
-    z : ndarray (M,)
-        Per-scale normal scores (positive: the data above the model).
-    misses : int
-        Scales outside their 95 % chi-square interval (|z| > 1.96).
-    p_misses : float
-        P(Binomial(M, 0.05) ≥ misses) — the per-point view of the same question (points are
-        correlated, so this is indicative; ``p_value`` is the test).
-    ok : bool
-        ``p_value ≥`` :data:`ALPHA_GOF`.
-    """
-
-    stat: float
-    dof: int
-    p_value: float
-    z: np.ndarray
-    misses: int
-    p_misses: float
-    ok: bool
-
-
-def _pit_z(avar: np.ndarray, model: np.ndarray, edf: np.ndarray) -> np.ndarray:
-    """Normal scores of σ̂²_j under σ̂²_j ~ σ²_j χ²_ν/ν (each tail from its own side: exact far out)."""
-    x = np.asarray(edf, float) * np.asarray(avar, float) / np.maximum(np.asarray(model, float), np.finfo(float).tiny)
-    lo = scipy.stats.chi2.cdf(x, edf)
-    hi = scipy.stats.chi2.sf(x, edf)
-    with np.errstate(divide="ignore"):
-        z = np.where(lo < hi, scipy.stats.norm.ppf(lo), scipy.stats.norm.isf(hi))
-    return np.clip(z, -37.0, 37.0)
-
-
-def goodness_of_fit(avar: np.ndarray, model: np.ndarray, cov: np.ndarray, edf: np.ndarray, n_params: int) -> FitCheck:
-    """Is the measured Allan variance consistent with the fitted model?
-
-    Why not the selection's log-space χ²: log σ̂² with ν ≈ 2–6 (the last octaves) has a thin
-    upper tail, so a model 50× below a long-τ point (tomisuarez2 y, N alone) scored z ≈ 2.8 there;
-    its exact chi-square tail puts it beyond z = 10. The probability-integral transform keeps each
-    point's exact marginal law and the Gaussian-copula correlation of the model (as the
-    simulations of :func:`expected_z`), so zᵀR⁻¹z ≈ χ²(M − p) under the model (p fitted
-    parameters; the selection, which picks the best-fitting subset, only makes it conservative).
-
-    Parameters
-    ----------
-    avar, model : ndarray (M,)
-        Measured and fitted Allan variance, (rad/s)².
-    cov : ndarray (M, M)
-        Model covariance of the estimates (:func:`avar_covariance`); only its correlation is used.
-    edf : ndarray (M,)
-        EDF of each scale under the model.
-    n_params : int
-        Free parameters of the fit.
-    """
-    z = _pit_z(avar, model, edf)
-    d = np.sqrt(np.diag(cov))
-    R = cov / np.outer(d, d)
-    stat = float(z @ np.linalg.solve(R, z))
-    dof = max(int(z.size - n_params), 1)
-    p = float(scipy.stats.chi2.sf(stat, dof))
-    misses = int(np.sum(np.abs(z) > _Z95))
-    p_m = float(scipy.stats.binom.sf(misses - 1, z.size, 0.05)) if misses else 1.0
-    return FitCheck(stat=stat, dof=dof, p_value=p, z=z, misses=misses, p_misses=p_m, ok=bool(p >= ALPHA_GOF))
-
-
-def _n_params(coef: np.ndarray, tc: float | None, sub: Sequence[int]) -> int:
-    return int(sum(1 for i in sub if coef[i] > 0) + (1 if (5 in sub and tc and coef[5] > 0) else 0))
-
-
-def _fit_check(fit_entry, sub, avar, m, rate_hz, method) -> FitCheck:
-    """:func:`goodness_of_fit` of one stored subset fit (coef, τc, C, edf, …) of ``fit_noise``."""
-    coef_, tc_, C_, edf_ = fit_entry[:4]
-    mod = term_avar(m, rate_hz, method=method, tau_c_s=tc_) @ coef_
-    return goodness_of_fit(avar, mod, C_, edf_, _n_params(coef_, tc_, sub))
-
-
-def bandwidth_start(avar: np.ndarray, m: np.ndarray, n_samples: int, rate_hz: float) -> int:
-    """Index of the first scale above the sensor's low-pass (0 when none is seen).
-
-    A gyro's output is low-pass filtered (digital LPF, anti-aliasing, integration over the
-    output interval). Below a few filter time constants its Allan variance falls by less than
-    the factor 2 per octave of white rate noise (a first-order filter of time constant τf:
-    σ²(τ) ≈ N²/τ · (1 − 1.5 τf/τ)); none of the model's terms has that shape — white angle
-    noise Q steepens the fall, the long-τ terms are negligible at the sample scale — so a fit
-    over those octaves is misspecified where the EDF is largest (PX4 sample.ulg at 250 Hz:
-    σ̂²(8 ms)/σ̂²(4 ms) = 0.99; the fit took a flicker floor of 5e-4 rad/s for it and
-    reported N at a quarter of its value).
-
-    Test of octave pair (m_k, m_{k+1}): d_k = log(σ̂²_{k+1}/σ̂²_k) − log(white ratio m_k/m_{k+1}),
-    Var d = 2/ν_k + 2/ν_{k+1} − 4ρ/√(ν_kν_{k+1}) with the white-noise EDF and correlation;
-    low-pass when d_k > z_{1−α}·sd (α = :data:`ALPHA_BANDWIDTH`, one-sided) — unless the excess
-    *rises*: a low-pass deficit −κN²/τ² gives d_k ≈ κ/(2m), falling by half per octave, while
-    every term of the model that rises above white at the short scales — flicker, random walk, a
-    Gauss–Markov hump (and Q: d < 0 rising to 0) — gives a d_k that grows with the octave (its
-    share of σ² doubles per octave or more). So nothing is cut when the GLS slope of d_k over the
-    first 5 pairs is significantly positive (level α), and the cut stops at the first pair whose
-    excess exceeds the one before. Without this a flicker floor 1.5 % of σ² at the first octave
-    (N + B + K with a 5-octave plateau, 2 h at 20 Hz: z of d_k = 3.3, 4.6, 5.0, 7.2, …) was taken
-    for a low-pass at *every* pair and the fit started at τ = 100 s, with N reported at 4–9× its
-    truth. Pairs are tested from the first one up; when the first is flagged, the fit
-    starts above the first pair that is not (at least 6 scales kept), where the remaining low-pass
-    deficit −κN²/τ² is fitted in place of Q (method suffix "+lp"). On white noise the first pair
-    is flagged with probability ≤ α.
-    """
-    avar = np.asarray(avar, float)
-    m = np.asarray(m, np.int64)
-    if m.size < 8:
-        return 0
-    coef = np.zeros(6)
-    coef[1] = float(avar[0]) * m[0] / rate_hz  # white level; only the shape matters
-    white = term_avar(m, rate_hz) @ coef
-    C, edf, _a = avar_covariance(m, int(n_samples), rate_hz, coef, None, white)
-    d_ = np.sqrt(np.diag(C))
-    R = C / np.outer(d_, d_)
-    z_lim = float(scipy.stats.norm.isf(ALPHA_BANDWIDTH))
-    # log σ̂² has variance 2/ν and covariance 2ρ/√(ν_iν_j) (white-noise EDF and correlation)
-    V = 2.0 * R / np.sqrt(np.outer(edf, edf))
-
-    def d_of(j: int) -> float:
-        return math.log(avar[j + 1] / avar[j]) - math.log(white[j + 1] / white[j])
-
-    if m.size - 8 < 1:
-        return 0
-    # Rising, not fading: the excess of the first J pairs regressed on the pair index (GLS with
-    # the covariance of the differences, Cov d = A V Aᵀ); a slope significantly > 0 is the
-    # long-τ terms' growing share, and then nothing is cut. The slope uses J pairs at once: a
-    # pair-by-pair "does it fade" test had too little power on a 50-s record (IMU-TK Xsens:
-    # d = 0.135, 0.073, 0.023, … a low-pass the old test cut and that one kept).
-    J = min(5, m.size - 7)
-    A = np.zeros((J, m.size))
-    for j in range(J):
-        A[j, j], A[j, j + 1] = -1.0, 1.0
-    Vd = A @ V @ A.T
-    dd = np.array([d_of(j) for j in range(J)])
-    X = np.column_stack([np.ones(J), np.arange(J, dtype=float)])
-    Wd = np.linalg.inv(Vd)
-    cov_b = np.linalg.inv(X.T @ Wd @ X)
-    slope = float((cov_b @ X.T @ Wd @ dd)[1])
-    if slope > z_lim * math.sqrt(max(float(cov_b[1, 1]), 1e-300)):
-        return 0
-    k = 0
-    while k < m.size - 8:
-        d = d_of(k)
-        var = V[k, k] + V[k + 1, k + 1] - 2.0 * V[k, k + 1]
-        if not d > z_lim * math.sqrt(max(var, 1e-300)):
-            break
-        k += 1
-        if d_of(k) > d:  # the excess stopped fading: the long-τ terms take over from here
-            break
-    # the fit starts above the last pair the test looked at: where the test stops depends on the
-    # noise of that pair (it stops when σ̂² of its upper octave happens to be low), so fitting
-    # that octave biased N low (a first-order filter of 1.5 samples: z of N −1.9 on average)
-    return k + 2 if k > 0 else 0
-
-
-#: family-wise level (over the periodogram's bins) at which a narrowband line is detected
-ALPHA_LINE = 0.001
-
-
-@dataclass(frozen=True, eq=False)
-class Lines:
-    """Narrowband lines found in a still record (:func:`line_avar`).
-
-    Attributes
-    ----------
-    freqs_hz : tuple of float
-        Peak frequency of each line, Hz.
-    rms : tuple of float
-        RMS of each line (√ of its excess power over the noise floor), signal units (rad/s).
-    avar : ndarray (M,)
-        Their Allan variance at the requested factors, (rad/s)².
-    """
-
-    freqs_hz: tuple[float, ...]
-    rms: tuple[float, ...]
-    avar: np.ndarray
-
-
-def line_avar(x: np.ndarray, rate_hz: float, m: np.ndarray) -> Lines:
-    """Narrowband lines (vibration, interference) of a still rate signal and their Allan variance.
-
-    A sinusoid is not sensor noise, yet it has an Allan variance: A²sin⁴(πmν)/(m²sin²πν) for
-    amplitude A at ν cycles/sample (the Haar filter |H_m(ν)|²/2 = 2sin⁴(πmν)/(m²sin²πν) times its
-    variance A²/2), whose envelope falls as 1/τ² — it passes for white angle noise Q at long τ and
-    breaks the fit at the short scales (the sunsided MPU-6050 logs: a 31.4-Hz line on z, 30–280×
-    the floor, put the second octave 5.7 σ above the fitted model and was reported as Q).
-
-    Welch periodogram (Hann, 50 % overlap, 2^k samples per segment, 64 … 1024, ≥ 63 segments:
-    a line that wanders over a few tenths of a Hz stays inside ±4 bins):
-    each bin over the floor is ~χ²_ν/ν, ν ≈ 2K/1.056 for K segments (Welch 1967, Hann 50 %
-    overlap). The floor is the *higher* of the two one-sided floors — the median of the bins 5–24
-    below and of the bins 5–24 above, each divided by the median of χ²_ν/ν: a line stands above
-    the noise on both of its sides, whereas a red spectrum (flicker, random walk: 1/f, 1/f²) stands
-    above its higher-frequency side at every low bin, and a floor from that side alone (or from
-    both pooled, or mirrored at 0 Hz) took the red rise of the lowest bins for a line
-    (a "line" at bin 2, 0.039 Hz, on every axis of a 2-h N + B + K record at 20 Hz, whose removal
-    took 20–33 % of the Allan variance off the flicker plateau and put B at 0.6× its truth). Bins 0
-    and 1 (the mean and each segment's linear detrend) enter no floor, and a bin is tested only
-    with ≥ 3 bins on its low side (bin ≥ 10: f ≥ 10·rate/segment; below, the noise model keeps
-    whatever is there). Bins above the
-    1 − α/n_bins quantile (family-wise level :data:`ALPHA_LINE`) mark lines; each line's excess
-    power (bins within ±4 of a marked bin: the Hann main lobe and a little wander) gives its Allan variance
-    Σ_b excess_b·Δf·|H_m(ν_b)|²/2 — subtracted from the measured Allan variance, exact in
-    expectation because line and noise are independent.
-
-    Parameters
-    ----------
-    x : ndarray (n,)
-        Rate samples (rad/s), evenly spaced.
-    rate_hz : float
-    m : ndarray (M,) of int
-        Averaging factors.
-    """
-    import scipy.signal
-
-    x = np.asarray(x, float)
-    m = np.asarray(m, float)
-    none = Lines((), (), np.zeros(m.size))
-    n = x.size
-    if n < 32 * 64:
-        return none
-    seg = min(1 << int(math.floor(math.log2(n // 32))), 1024)
-    f, p = scipy.signal.welch(x - x.mean(), fs=rate_hz, window="hann", nperseg=seg, noverlap=seg // 2, detrend="linear")
-    k_seg = (n - seg) // (seg // 2) + 1
-    nu = 2.0 * k_seg / 1.056
-    # the floor beside each bin: median of the bins 5 … 24 away on both sides (40 bins). A line
-    # (its Hann main lobe ±2 bins, plus a wander of ±2 bins: the sunsided 31.4-Hz line moves over
-    # ±0.2 Hz in 10 min) stands above it and its power is summed over ±4 bins; a bump of coloured
-    # noise wider than ~10 bins lifts its own ring too and is left to the noise model (PX4 y: a
-    # 2–6 Hz bump, 1.4× a ±32-bin running median, was taken for a line and moved N by 9 %)
-    inner_r, outer_r = 5, 24
-    # one-sided rings; bins 0 and 1 (mean, per-segment linear detrend) and bins past Nyquist are
-    # no floor (NaN). The floor is the higher side: never below the pooled median of both rings
-    # (the median of a union lies between the medians of its parts), so this detects a subset
-    # of what a two-sided pooled floor detects; on a flat spectrum the max of two 20-bin medians
-    # is ≈ 1–2 % above the level (their sd ≈ 1.25·√(2/ν)/√20), a slightly conservative test.
-    q = p.astype(float).copy()
-    q[:2] = np.nan
-    pad = np.pad(q, outer_r, mode="constant", constant_values=np.nan)
-    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * outer_r + 1)
-    low = win[:, 0 : outer_r - inner_r + 1]
-    high = win[:, outer_r + inner_r : 2 * outer_r + 1]
-    n_low = np.sum(np.isfinite(low), axis=1)
-    n_high = np.sum(np.isfinite(high), axis=1)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rings at the edges
-        f_low = np.where(n_low > 0, np.nanmedian(np.where(n_low[:, None] > 0, low, 0.0), axis=1), np.nan)
-        f_high = np.where(n_high > 0, np.nanmedian(np.where(n_high[:, None] > 0, high, 0.0), axis=1), np.nan)
-        # the noise level UNDER a line: the pooled median of both rings where both exist (the
-        # level between its two sides; on a sloped spectrum — a sensor low-pass — the higher side
-        # alone overstates it and understates the line: the 31-Hz line of the sunsided MPU-6050 z
-        # lost 7 % of its rms and its Allan variance then failed the fit's goodness-of-fit test)
-        pooled = np.nanmedian(np.where((n_low + n_high)[:, None] > 0, np.concatenate([low, high], axis=1), 0.0), axis=1)
-    median_factor = scipy.stats.chi2.median(nu) / nu
-    # detection: the higher side (a line stands above the noise on both of its sides)
-    floor = np.fmax(f_low, f_high) / median_factor
-    inner = (f > 0) & (f < rate_hz / 2) & (n_low >= 3) & np.isfinite(floor)
-    floor = np.where(np.isfinite(floor), floor, p)
-    level = np.where((n_low > 0) & (n_high > 0), pooled / median_factor, floor)
-    thr = scipy.stats.chi2.isf(ALPHA_LINE / max(int(inner.sum()), 1), nu) / nu
-    hot = inner & (p > thr * floor)
-    if not np.any(hot):
-        return none
-    near = np.convolve(hot.astype(int), np.ones(2 * inner_r - 1, int), mode="same") > 0
-    near &= inner
-    df = f[1] - f[0]
-    excess = np.where(near, p - level, 0.0) * df  # unbiased (no clipping of the bins' noise)
-    v = f / rate_hz
-    s = np.sin(np.pi * v)
-    H2 = np.zeros((m.size, f.size))
-    ok = s > 0
-    H2[:, ok] = 4.0 * np.sin(np.pi * m[:, None] * v[None, ok]) ** 4 / (m[:, None] ** 2 * s[None, ok] ** 2)
-    avar = np.maximum(0.5 * H2 @ excess, 0.0)
-    # one entry per contiguous group of marked bins
-    freqs, rms = [], []
-    idx = np.flatnonzero(near)
-    groups = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
-    for g_ in groups:
-        if not np.any(hot[g_]):
-            continue
-        freqs.append(float(f[g_][np.argmax(p[g_])]))
-        rms.append(float(math.sqrt(max(excess[g_].sum(), 0.0))))
-    return Lines(tuple(freqs), tuple(rms), avar)

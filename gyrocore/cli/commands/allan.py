@@ -41,13 +41,13 @@ _COLORS = {
 def _term_adev(r, name: str, value: float, tt: np.ndarray) -> np.ndarray:
     """ADEV of one term at value ``value`` on a continuous τ grid: the IEEE 952 asymptote, and
     the exact AR(1) Allan variance for the Gauss–Markov term (at the fitted τc)."""
-    from gyrocore.noise.gmwm import _gm_avar
+    from gyrocore.noise.avar import gm_avar
 
     if name == "correlated_sigma_rad_s":
         tc = r.estimate.get("correlated_tau_c_s")
         if not tc or not np.isfinite(tc):
             return np.full_like(tt, np.nan)
-        return value * np.sqrt(_gm_avar(np.maximum(tt * r.rate_hz, 1.0), 1.0 / r.rate_hz, float(tc)))
+        return value * np.sqrt(gm_avar(np.maximum(tt * r.rate_hz, 1.0), 1.0 / r.rate_hz, float(tc)))
     return np.abs(_ASYMPTOTE[name][1](tt, value))
 
 

@@ -10,6 +10,7 @@ import pytest
 import scipy.stats
 
 from gyrocore.noise import allan as AL
+from gyrocore.noise import avar as V
 from gyrocore.noise import gmwm as G
 from gyrocore.noise.options import NoiseOptions
 from gyrocore.cli import build_group, run_cli
@@ -46,15 +47,15 @@ def test_exact_discrete_term_avar_matches_simulation(kind):
         # the GMWM models the exact Kasdin–Walter discretisation; the simulator's block flicker
         # (sim.noise.FlickerBlocks) equals it for m >= 8 but is lower at m < 8 (tests/sim/test_noise.py)
         gen = lambda rng, n_: SN.kasdin_walter_flicker(rng, n_, rate_hz=RATE, b_rad_s=1.0)  # noqa: E731
-        theory = G.term_avar(m, RATE)[:, 2]
+        theory = V.term_avar(m, RATE)[:, 2]
         # at m = 1 the exact value is 1.44× the IEEE asymptote (2 ln2/π)B²
         assert theory[0] / (2 * math.log(2) / math.pi) == pytest.approx(1.4427, rel=1e-3)
     elif kind == "gm":
         gen = lambda rng, n_: SN.gauss_markov(rng, n_, rate_hz=RATE, sigma_rad_s=1.0, tau_c_s=0.3)  # noqa: E731
-        theory = G.term_avar(m, RATE, tau_c_s=0.3)[:, 5]
+        theory = V.term_avar(m, RATE, tau_c_s=0.3)[:, 5]
     else:
         gen = lambda rng, n_: SN.rate_random_walk(rng, n_, rate_hz=RATE, k_rad_s_per_sqrt_s=1.0)  # noqa: E731
-        theory = G.term_avar(m, RATE)[:, 3]
+        theory = V.term_avar(m, RATE)[:, 3]
     mean, se = _mean_avar(gen, n, m, 8, 7)
     z = (mean - theory) / se
     assert np.all(np.abs(z) < 4.0), (kind, np.round(z, 2))
@@ -68,8 +69,8 @@ def test_spectral_correlation_matches_exact_white_plus_random_walk():
     m = AL.octave_m(n)
     coef = np.array([0.0, 1e-8, 0.0, 4e-12, 0.0])
     R_exact = AL.avar_correlation_model(m, n + 1, RATE, coef)
-    model = G.term_avar(m, RATE) @ np.r_[coef, 0.0]
-    C, _edf, _a = G.avar_covariance(m, n, RATE, np.r_[coef, 0.0], None, model)
+    model = V.term_avar(m, RATE) @ np.r_[coef, 0.0]
+    C, _edf, _a = V.avar_covariance(m, n, RATE, np.r_[coef, 0.0], None, model)
     d = np.sqrt(np.diag(C))
     assert np.max(np.abs(C / np.outer(d, d) - R_exact)) < 0.05
 
@@ -270,9 +271,9 @@ def test_stand_in_check_flicker_floor_against_gauss_markov():
 
     def blend(T, w):
         n = int(T * RATE)
-        m = G.scales(n)
-        b = G.term_avar(m, RATE) @ np.array([0, 1e-8, 2.25e-10, 0, 0, 0])
-        g = G.term_avar(m, RATE, tau_c_s=20.0) @ np.array([0, 1e-8, 0, 0, 0, 9e-10])
+        m = V.scales(n)
+        b = V.term_avar(m, RATE) @ np.array([0, 1e-8, 2.25e-10, 0, 0, 0])
+        g = V.term_avar(m, RATE, tau_c_s=20.0) @ np.array([0, 1e-8, 0, 0, 0, 9e-10])
         return G.fit_noise(m / RATE, w * b + (1 - w) * g, m, n)
 
     truth_b = {"arw_rad_per_sqrt_s": 1e-4, "bias_instability_rad_s": 1.5e-5}
@@ -311,7 +312,7 @@ def test_arw_interval_with_quantization_at_1khz_covers():
     The edf of a pure law is unchanged by the mixture correction (ratio exactly 1).
     """
     rate, n = 1000.0, 600_000
-    m = G.scales(n)
+    m = V.scales(n)
     covered = 0
     for s in range(20):
         rng = np.random.default_rng(np.random.SeedSequence([1103, s]))
@@ -330,9 +331,9 @@ def test_arw_interval_with_quantization_at_1khz_covers():
     assert covered >= 53, covered
     # pure white rate noise: Greenhall's EDF untouched
     c = np.array([0.0, 1e-8, 0.0, 0.0, 0.0, 0.0])
-    model = G.term_avar(m, rate) @ c
-    _C, edf, alpha = G.avar_covariance(m, n, rate, c, None, model)
-    assert np.allclose(edf, [G._edf(0, int(v), n + 1) for v in m], rtol=1e-9)
+    model = V.term_avar(m, rate) @ c
+    _C, edf, alpha = V.avar_covariance(m, n, rate, c, None, model)
+    assert np.allclose(edf, [V.greenhall_edf(0, int(v), n + 1) for v in m], rtol=1e-9)
 
 
 def test_ramp_must_reject_the_random_walk_world():
@@ -343,8 +344,8 @@ def test_ramp_must_reject_the_random_walk_world():
     was claimed here (the study: R for a true K on 8–12 % of the 1-h axes). A pure ramp world
     (the N + R fit itself) is still reported as R."""
     n = 360000
-    m = G.scales(n)
-    k_world = G.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 4e-12, 0, 0])
+    m = V.scales(n)
+    k_world = V.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 4e-12, 0, 0])
     r_world = G.fit_noise(m / RATE, k_world, m, n, candidates=("arw_rad_per_sqrt_s", "rate_ramp_rad_s2")).fit_avar
     f = G.fit_noise(m / RATE, 0.5 * k_world + 0.5 * r_world, m, n)
     assert f.selected == ("arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s"), f.selected
@@ -365,8 +366,8 @@ def test_ramp_claimed_at_the_level_of_every_claim():
     (K reported, R null). The pure ramp world (z = 3.2) is still reported as a ramp; the rule's
     margin of K against R is at least z₀.₉₉."""
     n = 360000
-    m = G.scales(n)
-    k_world = G.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 4e-12, 0, 0])
+    m = V.scales(n)
+    k_world = V.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 4e-12, 0, 0])
     r_world = G.fit_noise(m / RATE, k_world, m, n, candidates=("arw_rad_per_sqrt_s", "rate_ramp_rad_s2")).fit_avar
     f = G.fit_noise(m / RATE, 0.25 * k_world + 0.75 * r_world, m, n)
     assert f.terms["rate_ramp_rad_s2"] is None and f.terms["rrw_rad_per_s_sqrt_s"] is not None, f.selected
@@ -383,10 +384,10 @@ def test_interval_robust_to_an_omitted_confounder():
     moves σ by less than its SE leaves the interval as it was."""
     rate = 50.0
     n = int(14400 * rate)
-    m = G.scales(n)
+    m = V.scales(n)
 
     def fit(b, robust):
-        av = G.term_avar(m, rate, tau_c_s=20.0) @ np.array([0, 1e-8, b * b, 4e-12, 0, 9e-10])
+        av = V.term_avar(m, rate, tau_c_s=20.0) @ np.array([0, 1e-8, b * b, 4e-12, 0, 9e-10])
         return G.fit_noise(m / rate, av, m, n, options=NoiseOptions(robust_ci=robust))
 
     f0, f1 = fit(1e-5, False), fit(1e-5, True)

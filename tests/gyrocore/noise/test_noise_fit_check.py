@@ -21,7 +21,8 @@ import scipy.signal
 import scipy.stats
 
 from gyrocore.noise import allan as AL
-from gyrocore.noise import gmwm
+from gyrocore.noise import avar as V
+from gyrocore.noise import diagnostics, gmwm
 from gyrocore.cli import build_group, run_cli
 from gyrocore.readers.convert import load_any
 from gyrocore.errors import GyroInputError
@@ -41,7 +42,7 @@ def _reported_z(r: AL.AllanResult) -> np.ndarray:
     if r.lines_adev_rad_s is not None:
         avar = np.maximum(avar - r.lines_adev_rad_s**2, 0.05 * avar)
     keep = r.taus_s >= r.fit_from_tau_s * (1 - 1e-9)
-    return gmwm._pit_z(avar[keep], r.reported_adev_rad_s[keep] ** 2, r.edf[keep])
+    return diagnostics._pit_z(avar[keep], r.reported_adev_rad_s[keep] ** 2, r.edf[keep])
 
 
 def _assert_fits(results: dict[str, AL.AllanResult], n_tests: int, alpha: float = 0.01) -> None:
@@ -87,11 +88,11 @@ def test_white_noise_keeps_every_octave_and_has_no_line():
     rng = np.random.default_rng(7)
     rate, n = 100.0, 60000
     g = rng.standard_normal((n, 3)) * 1e-4 * math.sqrt(rate)
-    avar_m = gmwm.scales(n)
+    avar_m = V.scales(n)
     for a in range(3):
         _t, dev, _n = AL.oadev(g[:, a], rate, avar_m)
-        assert gmwm.bandwidth_start(dev**2, avar_m, n, rate) == 0
-        assert gmwm.line_avar(g[:, a], rate, avar_m).freqs_hz == ()
+        assert diagnostics.bandwidth_start(dev**2, avar_m, n, rate) == 0
+        assert diagnostics.line_avar(g[:, a], rate, avar_m).freqs_hz == ()
 
 
 def test_red_spectrum_is_no_line_and_flicker_plateau_is_unbiased():
@@ -116,9 +117,9 @@ def test_red_spectrum_is_no_line_and_flicker_plateau_is_unbiased():
         + SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=B)
         + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=K)
     )
-    m = gmwm.scales(n)
+    m = V.scales(n)
     for a in range(3):
-        assert gmwm.line_avar(g[:, a], rate, m).freqs_hz == (), a
+        assert diagnostics.line_avar(g[:, a], rate, m).freqs_hz == (), a
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = AL.identify_noise(g, rate_hz=rate, check_static=False)
@@ -131,7 +132,7 @@ def test_red_spectrum_is_no_line_and_flicker_plateau_is_unbiased():
     # (8.5×; the family-wise threshold is ≈ 1.6× the floor)
     t = np.arange(n) / rate
     x = g[:, 0] + 1e-4 * np.sin(2 * np.pi * 1.0 * t)
-    lines = gmwm.line_avar(x, rate, m)
+    lines = diagnostics.line_avar(x, rate, m)
     assert len(lines.freqs_hz) == 1 and abs(lines.freqs_hz[0] - 1.0) < 0.05
 
 
@@ -158,10 +159,10 @@ def test_flicker_at_the_first_octaves_is_no_low_pass():
         + SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=B)
         + SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=K)
     )
-    m = gmwm.scales(n)
+    m = V.scales(n)
     for a in range(3):
         _t, dev, _n = AL.oadev(g[:, a], rate, m)
-        assert gmwm.bandwidth_start(dev**2, m, n, rate) == 0, a
+        assert diagnostics.bandwidth_start(dev**2, m, n, rate) == 0, a
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         r = AL.identify_noise(g[:, 1:2], rate_hz=rate, check_static=False).axes["x"]
@@ -182,8 +183,8 @@ def test_flicker_shape_at_the_first_octaves_stays_inside_n_interval():
     N, tau_nb, tau_bk = 1e-4, 150.0 / 2**5, 150.0
     B = N / math.sqrt(f * tau_nb)
     K = B * math.sqrt(3.0 * f / tau_bk)
-    m = gmwm.scales(n)
-    A = gmwm.term_avar(m, rate)
+    m = V.scales(n)
+    A = V.term_avar(m, rate)
     avar = A[:, 1] * N**2 + f * B**2 + A[:, 3] * K**2
     r = gmwm.fit_noise(m / rate, avar, m, n)
     lo, hi = r.ci95["arw_rad_per_sqrt_s"]
@@ -236,11 +237,11 @@ def test_goodness_of_fit_is_calibrated_on_the_model():
     assert sum(p < 0.01 for p in ps) <= 3, sorted(ps)[:6]
     # N alone fitted to 1-h N+K data (K clearly present): the test rejects it
     g = simulate(np.random.default_rng(np.random.SeedSequence([0, 5503])), MIXES["N+K"], 360000, rate)
-    m = gmwm.scales(g.shape[0])
+    m = V.scales(g.shape[0])
     for a in range(3):
         taus, dev, _n = AL.oadev(g[:, a], rate, m)
         f = gmwm.fit_noise(taus, dev**2, m, g.shape[0], candidates=("arw_rad_per_sqrt_s",))
-        chk = gmwm.goodness_of_fit(dev**2, f.fit_avar, f.cov, f.edf, 1)
+        chk = diagnostics.goodness_of_fit(dev**2, f.fit_avar, f.cov, f.edf, 1)
         assert chk.p_value < 1e-3 and not chk.ok
 
 
