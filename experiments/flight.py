@@ -14,13 +14,12 @@ LOG00037.BFL; the older ../shared/data/betaflight_blackbox/better_tune.BBL logs 
 3. the firmware-in-the-loop cutoff comparison (the same cutoff grid flown by Betaflight's own
    filters and PID in lockstep) when the SITL binary is built — :func:`firmware_part`, the hook:
    it only *looks* for the binary (``sim.firmware.build.find_binary``, never builds it) and runs the
-   firmware experiment (``experiments.cutoffs.run(firmware="betaflight")``) if both exist; otherwise it says how
+   firmware experiment (``experiments.cutoffs.run(firmware="betaflight")``) if it is there; otherwise it says how
    to build it (``gyroharness firmware build``).
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import time
@@ -28,6 +27,14 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+
+from experiments import firmware_filter as F
+from experiments.cutoffs import run as cutoffs_run
+from experiments.datadir import shared_data_dir
+from gyrocore.flight.preview import recommend_filter
+from gyrocore.flight.vibration import analyse, plot_vibration
+from gyrocore.readers.convert import load_any
+from sim.firmware import build
 
 from .report import ExperimentResult, md_table, new_figure, save_figure
 
@@ -47,9 +54,6 @@ def find_flight_log(data_dir: Path | None):
     Falls back to the first readable log (its filtered gyro, the static filters undone) when none is
     unfiltered; None when no log is present.
     """
-    from gyrocore.readers.convert import load_any
-    from gyrocore.flight.vibration import analyse
-
     first = None
     for rel in FLIGHT_LOGS:
         p = None if data_dir is None else Path(data_dir) / rel
@@ -61,19 +65,6 @@ def find_flight_log(data_dir: Path | None):
             return p, rec, res
         first = first or (p, rec, res)
     return first
-
-
-def _optional(module: str, name: str) -> Callable | None:
-    """``module.name`` if that module is in this tree and has it, else None (never raises ImportError
-    for the module itself; an error inside an existing module propagates)."""
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name is not None and (module == exc.name or module.startswith(exc.name + ".")):
-            return None
-        raise
-    fn = getattr(mod, name, None)
-    return fn if callable(fn) else None
 
 
 #: firmware experiment options per report size. Lockstep Betaflight flies at ~3x real time on
@@ -100,7 +91,7 @@ def firmware_part(
     """The firmware-in-the-loop cutoff comparison, or the line saying how to get it.
 
     Looks for the built Betaflight SITL binary with ``sim.firmware.build.find_binary()`` (which
-    never builds) and, if it is there and ``experiments.firmware_cutoffs`` exists, runs
+    never builds) and, if it is there, runs
     ``experiments.cutoffs.run(firmware="betaflight", out_dir=..., binary=...)`` at the report's size (:data:`FIRMWARE_SIZES`). ``find_binary`` / ``firmware_run`` override the
     two for tests.
 
@@ -111,30 +102,17 @@ def firmware_part(
     summary : dict
         ``{"built": bool, ...}``; with the firmware experiment's summary under ``"cutoffs"``.
     """
-    find = find_binary or _optional("sim.firmware.build", "find_binary") or _optional("sim.firmware", "find_binary")
-    fb = find() if find is not None else None
+    fb = (find_binary or build.find_binary)()
     if fb is None:
-        why = (
-            "the Betaflight SITL binary is not built"
-            if find is not None
-            else "this tree has no firmware bridge (sim.firmware)"
-        )
         return (
-            f"Firmware-in-the-loop cutoff comparison: not run — {why}; build it with `{BUILD_HINT}` "
-            "and run again to add it here.",
+            "Firmware-in-the-loop cutoff comparison: not run — the Betaflight SITL binary is not built; "
+            f"build it with `{BUILD_HINT}` and run again to add it here.",
             (),
             {"built": False},
         )
-    fw_run = firmware_run or (_firmware_cutoffs if _optional("experiments.firmware_cutoffs", "run") else None)
+    fw_run = firmware_run or _firmware_cutoffs
     binary = getattr(fb, "binary", fb)
     version = getattr(fb, "version", "")
-    if fw_run is None:
-        return (
-            f"Firmware-in-the-loop cutoff comparison: the SITL binary is built ({binary}) but this tree has no "
-            "firmware cutoff experiment (experiments.firmware_cutoffs).",
-            (),
-            {"built": True, "binary": str(binary)},
-        )
     r = fw_run(out_dir=out_dir, workers=workers, binary=binary, **FIRMWARE_SIZES.get(size, {}))
     md = (
         f"### Firmware in the loop: {r.title}\n\nBetaflight {version} SITL in lockstep (`{binary}`), "
@@ -186,16 +164,13 @@ def firmware_filter_part(
             f"size (`gyroharness run --full`), or on its own with {cmd}.",
             {"run": False, "command": cmd.strip("`")},
         )
-    find = find_binary or _optional("sim.firmware.build", "find_binary")
-    fb = find() if find is not None else None
+    fb = (find_binary or build.find_binary)()
     if fb is None:
         return (
             f"Candidate filter chains flown by the firmware: not run — the Betaflight SITL binary is not built; "
             f"build it with `{BUILD_HINT}`.",
             {"run": False},
         )
-    from experiments import firmware_filter as F
-
     fn = filter_run or F.run
     out = fn(flight=str(log), binary=getattr(fb, "binary", fb), workers=workers or 1, **opts)
     md = (
@@ -217,8 +192,6 @@ def firmware_filter_part(
 def _firmware_cutoffs(**kw) -> ExperimentResult:
     """``gyroharness experiment cutoffs --firmware betaflight``: the cutoffs experiment's own entry,
     which hands the firmware experiment its grid and our controller's cell task."""
-    from experiments.cutoffs import run as cutoffs_run
-
     return cutoffs_run(firmware="betaflight", **kw)
 
 
@@ -291,10 +264,6 @@ def run(
     **_ignored,
 ) -> ExperimentResult:
     """The flight section (module docstring) into ``out_dir``."""
-    from experiments.article import shared_data_dir
-    from gyrocore.flight.preview import recommend_filter
-    from gyrocore.flight.vibration import plot_vibration
-
     t0 = time.perf_counter()
     size = size or ("quick" if quick else "full")
     out_dir = Path(out_dir)
@@ -319,118 +288,14 @@ def run(
         )
     else:
         path, rec, res = found
-        rel = f"{path.parent.name}/{path.name}"
-        meta = rec.meta
-        fig_rel = "figures/flight_vibration.png"
-        (out_dir / "figures").mkdir(parents=True, exist_ok=True)
-        plot_vibration(
-            res, out_dir / fig_rel, title=f"{rel}: {meta.get('firmware', '')}, gyro spectrum per throttle band"
-        )
-        figures += [fig_rel, _band_figure(res, out_dir)]
+        figures += _vibration_figures(path, rec, res, out_dir)
         tick(2)
         fj = recommend_filter(rec)
         tick(3)
-        airborne_s = res.n_windows * res.nperseg / res.rate_hz
-        sig = (
-            "the unfiltered gyro (" + json.loads(meta["gyro_prefilter"])["source"].split(";")[0] + ")"
-            if res.signal == "raw" and "gyro_prefilter" in meta
-            else f"the {res.signal} gyro with the static firmware filters undone"
-        )
-        md.append(
-            f"`{rel}` ({meta.get('firmware', '?')}, craft {meta.get('craft_name', '?')}; "
-            f"{rec.n} samples at {res.rate_hz:.0f} Hz, {rec.t_s[-1] - rec.t_s[0]:.1f} s): read with the project's "
-            f"blackbox reader; analysed signal: {sig}. Vibration: {res.n_windows} airborne windows of "
-            f"{res.nperseg / res.rate_hz:g} s ({airborne_s:.0f} s), Hann, binned into {len(res.bands)} throttle bands of "
-            "equal window count by the mean motor command. Each band's RMS above 40 Hz carries a 95 % interval from "
-            "the spread of its windows (`gyrocore.flight.vibration.analyse`); spectra above "
-            f"{res.reliable_below_hz:.0f} Hz are folded from above the logged Nyquist and not used. Commands: "
-            f"`gyroharness vibration {path} --plot v.png`, `gyroharness filter {path} --json`.\n"
-        )
-        rows = []
-        for b in res.bands:
-            r = b["rms_above_40hz_rad_s"]
-            iv = b["rms_above_40hz_interval_rad_s"]
-            rows.append(
-                (
-                    f"{b['throttle'][0]:.3f}–{b['throttle'][1]:.3f}",
-                    b["n_windows"],
-                    *(f"{r[a] * DEG:.2f} [{iv[a][0] * DEG:.2f}, {iv[a][1] * DEG:.2f}]" for a in "xyz"),
-                )
-            )
-        whole = res.rms_above_40hz_rad_s
-        wiv = res.rms_above_40hz_interval_rad_s
-        rows.append(
-            (
-                "whole flight",
-                res.n_windows,
-                *(f"{whole[a] * DEG:.2f} [{wiv[a][0] * DEG:.2f}, {wiv[a][1] * DEG:.2f}]" for a in "xyz"),
-            )
-        )
-        md.append("#### Vibration per throttle band\n")
-        md.append(md_table(["motor command band", "windows", "x, °/s RMS > 40 Hz [95 %]", "y", "z"], rows))
-        if res.lines:
-            lrows = [
-                (
-                    ln["axis"],
-                    ln["frequency_hz"],
-                    ln["amplitude_rad_s"] * DEG,
-                    ln["follows"],
-                    "yes" if ln.get("aliased") else "no",
-                )
-                for ln in res.lines[:8]
-            ]
-            md.append(
-                "Lines (largest first): axis, frequency at the median throttle, amplitude, and what it follows "
-                "(a throttle-linked line is a rotor line).\n"
-            )
-            md.append(md_table(["axis", "Hz", "amplitude °/s", "follows", "aliased"], lrows))
-        md.append(f"![vibration per throttle band]({figures[1]})\n\n![spectra per throttle band]({figures[0]})\n")
-        md.append("#### Gyro filter: recommendation beside what was flown\n")
-        md.append(
-            "Each candidate chain is built as the firmware runs it (coefficients at the "
-            f"{fj['filter_rate_hz']:g} Hz filter rate) and applied to this flight's spectrum before the filters: "
-            "*delay* = mean group delay 1–30 Hz, *motor noise* = RMS of the filtered gyro's derivative above 40 Hz "
-            "(what the D term passes to the motors, rad/s²), *attitude cost* = the delay times the flight-band rate "
-            "combined with the vibration jitter (degrees). Recommended: the least attitude cost whose motor noise "
-            f"stays within the budget ({fj['budget']['from']}: {fj['budget']['motor_noise']:.0f} rad/s²). "
-            "An open-loop spectral model on one flight: deterministic given the log (no sampling interval); "
-            "the spectrum itself carries the per-band intervals above.\n"
-        )
-        crow = [_chain_row("recommended", fj["recommended"]), _chain_row("as flown (static part)", fj["as_flown"])]
-        crow += [_chain_row(k.replace("_", " "), v) for k, v in fj["defaults"].items()]
-        if fj.get("with_rpm_filter"):
-            crow.append(_chain_row("best with RPM filter", fj["with_rpm_filter"]))
-        md.append(
-            md_table(["chain", "filters", "notches Hz", "delay ms", "motor noise rad/s²", "attitude cost °"], crow)
-        )
-        flown = _flown_settings(meta)
-        md.append("Betaflight settings — flown (log header) | recommended (`set` lines for the CLI):\n")
-        md.append(
-            "```\n# flown\n"
-            + "\n".join(flown or ["(header has no gyro filter settings)"])
-            + "\n\n# recommended\n"
-            + "\n".join(fj["firmware"]["betaflight"])
-            + "\n```\n"
-        )
-        md.append(
-            f"PX4: `{json.dumps(fj['firmware']['px4'])}`; ArduPilot: `{json.dumps(fj['firmware']['ardupilot'])}`.\n"
-        )
-        notes = [n for n in fj["notes"] if not n.startswith("open-loop spectral")]
-        if notes:
-            md.append("Notes: " + " ".join(f"({i + 1}) {n}." for i, n in enumerate(notes)) + "\n")
-        summary = {
-            "log": rel,
-            "signal": res.signal,
-            "firmware": meta.get("firmware"),
-            "bands": len(res.bands),
-            "windows": res.n_windows,
-            "rms_above_40hz_deg_s": {a: whole[a] * DEG for a in "xyz"},
-            "band_rms_above_40hz_deg_s": [{a: b["rms_above_40hz_rad_s"][a] * DEG for a in "xyz"} for b in res.bands],
-            "recommended": fj["recommended"]["name"],
-            "as_flown": fj["as_flown"]["name"] if fj["as_flown"] else None,
-            "betaflight_set": fj["firmware"]["betaflight"],
-            "flown_settings": flown,
-        }
+        flown = _flown_settings(rec.meta)
+        md += _vibration_markdown(path, rec, res, figures)
+        md += _filter_markdown(fj, flown)
+        summary = _log_summary(path, rec, res, fj, flown)
     fw_md, fw_figs, fw_sum = firmware_part(
         out_dir, size=size, workers=workers, find_binary=find_binary, firmware_run=firmware_run
     )
@@ -449,3 +314,126 @@ def run(
         summary=summary,
         wall_s=time.perf_counter() - t0,
     )
+
+
+def _vibration_figures(path: Path, rec, res, out_dir: Path) -> list[str]:
+    """The spectra per throttle band and the RMS per band (paths relative to ``out_dir``)."""
+    rel = f"{path.parent.name}/{path.name}"
+    fig_rel = "figures/flight_vibration.png"
+    (out_dir / "figures").mkdir(parents=True, exist_ok=True)
+    plot_vibration(
+        res, out_dir / fig_rel, title=f"{rel}: {rec.meta.get('firmware', '')}, gyro spectrum per throttle band"
+    )
+    return [fig_rel, _band_figure(res, out_dir)]
+
+
+def _vibration_markdown(path: Path, rec, res, figures: list[str]) -> list[str]:
+    """The log, the analysed signal and its vibration per throttle band, with the lines."""
+    rel = f"{path.parent.name}/{path.name}"
+    meta = rec.meta
+    airborne_s = res.n_windows * res.nperseg / res.rate_hz
+    sig = (
+        "the unfiltered gyro (" + json.loads(meta["gyro_prefilter"])["source"].split(";")[0] + ")"
+        if res.signal == "raw" and "gyro_prefilter" in meta
+        else f"the {res.signal} gyro with the static firmware filters undone"
+    )
+    md = [
+        f"`{rel}` ({meta.get('firmware', '?')}, craft {meta.get('craft_name', '?')}; "
+        f"{rec.n} samples at {res.rate_hz:.0f} Hz, {rec.t_s[-1] - rec.t_s[0]:.1f} s): read with the project's "
+        f"blackbox reader; analysed signal: {sig}. Vibration: {res.n_windows} airborne windows of "
+        f"{res.nperseg / res.rate_hz:g} s ({airborne_s:.0f} s), Hann, binned into {len(res.bands)} throttle bands of "
+        "equal window count by the mean motor command. Each band's RMS above 40 Hz carries a 95 % interval from "
+        "the spread of its windows (`gyrocore.flight.vibration.analyse`); spectra above "
+        f"{res.reliable_below_hz:.0f} Hz are folded from above the logged Nyquist and not used. Commands: "
+        f"`gyroharness vibration {path} --plot v.png`, `gyroharness filter {path} --json`.\n"
+    ]
+    rows = []
+    for b in res.bands:
+        r = b["rms_above_40hz_rad_s"]
+        iv = b["rms_above_40hz_interval_rad_s"]
+        rows.append(
+            (
+                f"{b['throttle'][0]:.3f}–{b['throttle'][1]:.3f}",
+                b["n_windows"],
+                *(f"{r[a] * DEG:.2f} [{iv[a][0] * DEG:.2f}, {iv[a][1] * DEG:.2f}]" for a in "xyz"),
+            )
+        )
+    whole = res.rms_above_40hz_rad_s
+    wiv = res.rms_above_40hz_interval_rad_s
+    rows.append(
+        (
+            "whole flight",
+            res.n_windows,
+            *(f"{whole[a] * DEG:.2f} [{wiv[a][0] * DEG:.2f}, {wiv[a][1] * DEG:.2f}]" for a in "xyz"),
+        )
+    )
+    md.append("#### Vibration per throttle band\n")
+    md.append(md_table(["motor command band", "windows", "x, °/s RMS > 40 Hz [95 %]", "y", "z"], rows))
+    if res.lines:
+        lrows = [
+            (
+                ln["axis"],
+                ln["frequency_hz"],
+                ln["amplitude_rad_s"] * DEG,
+                ln["follows"],
+                "yes" if ln.get("aliased") else "no",
+            )
+            for ln in res.lines[:8]
+        ]
+        md.append(
+            "Lines (largest first): axis, frequency at the median throttle, amplitude, and what it follows "
+            "(a throttle-linked line is a rotor line).\n"
+        )
+        md.append(md_table(["axis", "Hz", "amplitude °/s", "follows", "aliased"], lrows))
+    md.append(f"![vibration per throttle band]({figures[1]})\n\n![spectra per throttle band]({figures[0]})\n")
+    return md
+
+
+def _filter_markdown(fj: dict, flown: list) -> list[str]:
+    """The gyro filter recommendation (:func:`recommend_filter`'s JSON) beside what was flown."""
+    md = ["#### Gyro filter: recommendation beside what was flown\n"]
+    md.append(
+        "Each candidate chain is built as the firmware runs it (coefficients at the "
+        f"{fj['filter_rate_hz']:g} Hz filter rate) and applied to this flight's spectrum before the filters: "
+        "*delay* = mean group delay 1–30 Hz, *motor noise* = RMS of the filtered gyro's derivative above 40 Hz "
+        "(what the D term passes to the motors, rad/s²), *attitude cost* = the delay times the flight-band rate "
+        "combined with the vibration jitter (degrees). Recommended: the least attitude cost whose motor noise "
+        f"stays within the budget ({fj['budget']['from']}: {fj['budget']['motor_noise']:.0f} rad/s²). "
+        "An open-loop spectral model on one flight: deterministic given the log (no sampling interval); "
+        "the spectrum itself carries the per-band intervals above.\n"
+    )
+    crow = [_chain_row("recommended", fj["recommended"]), _chain_row("as flown (static part)", fj["as_flown"])]
+    crow += [_chain_row(k.replace("_", " "), v) for k, v in fj["defaults"].items()]
+    if fj.get("with_rpm_filter"):
+        crow.append(_chain_row("best with RPM filter", fj["with_rpm_filter"]))
+    md.append(md_table(["chain", "filters", "notches Hz", "delay ms", "motor noise rad/s²", "attitude cost °"], crow))
+    md.append("Betaflight settings — flown (log header) | recommended (`set` lines for the CLI):\n")
+    md.append(
+        "```\n# flown\n"
+        + "\n".join(flown or ["(header has no gyro filter settings)"])
+        + "\n\n# recommended\n"
+        + "\n".join(fj["firmware"]["betaflight"])
+        + "\n```\n"
+    )
+    md.append(f"PX4: `{json.dumps(fj['firmware']['px4'])}`; ArduPilot: `{json.dumps(fj['firmware']['ardupilot'])}`.\n")
+    notes = [n for n in fj["notes"] if not n.startswith("open-loop spectral")]
+    if notes:
+        md.append("Notes: " + " ".join(f"({i + 1}) {n}." for i, n in enumerate(notes)) + "\n")
+    return md
+
+
+def _log_summary(path: Path, rec, res, fj: dict, flown: list) -> dict[str, Any]:
+    whole = res.rms_above_40hz_rad_s
+    return {
+        "log": f"{path.parent.name}/{path.name}",
+        "signal": res.signal,
+        "firmware": rec.meta.get("firmware"),
+        "bands": len(res.bands),
+        "windows": res.n_windows,
+        "rms_above_40hz_deg_s": {a: whole[a] * DEG for a in "xyz"},
+        "band_rms_above_40hz_deg_s": [{a: b["rms_above_40hz_rad_s"][a] * DEG for a in "xyz"} for b in res.bands],
+        "recommended": fj["recommended"]["name"],
+        "as_flown": fj["as_flown"]["name"] if fj["as_flown"] else None,
+        "betaflight_set": fj["firmware"]["betaflight"],
+        "flown_settings": flown,
+    }

@@ -60,17 +60,6 @@ def test_flight_section_without_data(tmp_path):
     assert "No flight log found" in r.markdown and r.figures == ()
 
 
-def test_firmware_hook_binary_built_but_no_firmware_experiment(tmp_path, monkeypatch):
-    """A built binary in a tree without experiments.firmware_cutoffs: said in one line, nothing run."""
-
-    class Binary:
-        binary, version = "/cache/betaflight_SITL", "4.6.0"
-
-    monkeypatch.setattr(flight, "_optional", lambda module, name: None)
-    md, figs, summ = flight.firmware_part(tmp_path, find_binary=lambda: Binary())
-    assert summ == {"built": True, "binary": "/cache/betaflight_SITL"} and figs == () and "\n" not in md
-
-
 def _fw_filter_out(seeds):
     """The shape of ``experiments.firmware_filter.run``'s JSON (two chains, as flown kept)."""
     stat = {"mean": 0.3, "sd": float("nan")}
