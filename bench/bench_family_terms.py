@@ -9,7 +9,7 @@ call (the batch path's numpy term on a one-sample input; bit-identical to
 ``SyntheticGyro.measure`` either way). Four flights of the same unit (ICM-42688-P preset,
 physics and gyro 1 kHz, vibration on), side by side in one run: (a) the preset's catalogue
 effects on the compiled kernels, (b) (a) plus ``periodic[37.5]`` (compiled, tabulated),
-(c) the catalogue on the Python loop (``sim.quadrotor.USE_COMPILED = False``), (d) (a) plus
+(c) the catalogue on the Python loop (``fly_hover(compiled=False)``), (d) (a) plus
 ``regressor[omega_x*f_z]`` (Python loop, by necessity). (c)/(a) is the price of leaving the
 kernels, (d)/(c) the per-step family call's own.
 Best of ``--repeat``, CPU time of this process (steadier than wall time on a shared machine).
@@ -30,13 +30,9 @@ RATE_TERM = {"regressor[omega_x*f_z]": {"coef": [0.0, 1e-3, 0.0]}}
 def _fly(overrides: dict, compiled: bool, hover_s: float) -> tuple[float, float]:
     g = SyntheticGyro("icm42688p", rate_hz=1000.0, seed=1, overrides=overrides)
     st = g.stream(int(round(hover_s * 1000.0)))
-    Q.USE_COMPILED = compiled
-    try:
-        c0, w0 = time.process_time(), time.perf_counter()
-        Q.fly_hover(duration_s=hover_s, gyro=st, seed=1)
-        return time.process_time() - c0, time.perf_counter() - w0
-    finally:
-        Q.USE_COMPILED = True
+    c0, w0 = time.process_time(), time.perf_counter()
+    Q.fly_hover(duration_s=hover_s, gyro=st, seed=1, compiled=compiled)
+    return time.process_time() - c0, time.perf_counter() - w0
 
 
 def main() -> None:

@@ -6,7 +6,7 @@ Run: ``python bench/bench_sim.py [--hover-s 20] [--repeat 3]`` (prints one table
   (a) the error-free ``PerfectGyro`` (the harness alone), (b) ``sim.gyro.SyntheticGyro``
   (ICM-42688-P preset) with EVERY catalogue effect switched on (the preset's plus overrides
   for the rest), (c) as (b) plus a PT1 30 Hz pipeline (``gyrocore.flight.filters.pt1``); (b) and (c)
-  again on the Python reference loop (``sim.quadrotor.USE_COMPILED = False``: the loop before
+  again on the Python reference loop (``fly_hover(compiled=False)``: the loop before
   the compiled kernels of :mod:`sim._fast`, bit-identical results);
 * turntable: ``sim.turntable.run_table`` (mujoco.rollout in C, open loop), six mounts x 1 turn
   each way at 180 deg/s;
@@ -84,7 +84,6 @@ def main() -> None:
 
     from gyrocore.flight.filters import pt1
     from sim.gyro import SyntheticGyro
-    import sim.quadrotor as Q
     from sim.quadrotor import PerfectGyro, fly_hover, load_quadrotor_model
     from sim.turntable import load_table_model, run_table, table_profile_turns
 
@@ -105,7 +104,7 @@ def main() -> None:
         mujoco.mj_resetDataKeyframe(m, d, 0)
         return bare_rate(m, d, int(T * 1000))
 
-    def hover(gyro_factory, pipeline_factory):
+    def hover(gyro_factory, pipeline_factory, compiled):
         def run():
             g = gyro_factory()
             p = pipeline_factory() if pipeline_factory else None
@@ -118,6 +117,7 @@ def main() -> None:
                     physics_rate_hz=1000.0,
                     gyro_rate_hz=1000.0,
                     seed=0,
+                    compiled=compiled,
                 )
             return T / c.wall_s, T / c.cpu_s
 
@@ -136,11 +136,7 @@ def main() -> None:
         ("hover (b) Python reference loop", gyro_all, None, False),
         ("hover (c) Python reference loop", gyro_all, lambda: pt1(30.0, 1000.0), False),
     ):
-        Q.USE_COMPILED = compiled
-        try:
-            r = best(hover(gf, pf), args.repeat)
-        finally:
-            Q.USE_COMPILED = True
+        r = best(hover(gf, pf, compiled), args.repeat)
         rows.append((label, r, b_h))
 
     # the pipeline's own step, alone (gyrocore.flight.filters, called once per gyro sample in (c))

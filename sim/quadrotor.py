@@ -20,7 +20,7 @@ controller that runs the loop right after the gyro sample. The attitude/position
 Speed: with :class:`PerfectGyro` or a :class:`sim.gyro.GyroStream`, everything but ``mj_step`` runs in compiled kernels (:mod:`sim._fast`, numba):
 one call per physics step, two around a Python ``pipeline``. They transcribe the Python loop
 below operation by operation and give the same flight bit for bit (``tests/sim/test_hover.py``);
-``USE_COMPILED = False`` runs the Python loop (the reference) everywhere.
+``compiled=False`` (:class:`HoverFlight`, :func:`fly_hover`) runs the Python loop (the reference).
 """
 
 from __future__ import annotations
@@ -216,15 +216,10 @@ def hover_bare_step_rate(n_steps: int = 20_000) -> float:
     return n_steps * model.opt.timestep / (time.perf_counter() - t0)
 
 
-#: Use the compiled per-step kernels (:mod:`sim._fast`) when they cover the flight; False = the
-#: Python reference loop everywhere (tests compare the two bit for bit).
-USE_COMPILED = True
-
-
-def _compiled_path(gyro, n: int) -> bool:
-    """Whether :mod:`sim._fast` covers this flight: PerfectGyro or a fresh, long enough
-    GyroStream; other gyro objects run the Python loop."""
-    if not USE_COMPILED:
+def _compiled_path(gyro, n: int, compiled: bool = True) -> bool:
+    """Whether :mod:`sim._fast` flies this flight: asked for (``compiled``) and covered
+    (PerfectGyro or a fresh, long enough GyroStream; other gyro objects run the Python loop)."""
+    if not compiled:
         return False
     try:
         import numba  # noqa: F401
@@ -411,6 +406,9 @@ class HoverFlight:
     gyro_blocks : bool
         Open a ``SyntheticGyro`` given as ``gyro`` as a block stream (default; False: one
         whole-flight stream).
+    compiled : bool
+        Fly with the compiled per-step kernels (:mod:`sim._fast`) where they cover the flight
+        (default); False: the Python reference loop (the same flight bit for bit, slower).
 
     Attributes
     ----------
@@ -439,6 +437,7 @@ class HoverFlight:
         ground_s: float = 0.0,
         vehicle: str | object = "f450",
         gyro_blocks: bool = True,
+        compiled: bool = True,
     ) -> None:
         if not (duration_s > 0 and math.isfinite(duration_s)):
             raise GyroInputError(f"duration_s must be > 0, got {duration_s}")
@@ -601,7 +600,7 @@ class HoverFlight:
         self.outer_every = ctl.outer_every
         self.progress = progress
         self.mot_cmd = tuple(data.ctrl[12:16].tolist())  # the keyframe's motor commands until the first update
-        self.fast = _compiled_path(gyro, n)
+        self.fast = _compiled_path(gyro, n, compiled)
         self.kern = None
         if self.fast:
             from . import _fast
@@ -900,7 +899,7 @@ def fly_hover(*, block_samples: int | None = None, **options) -> tuple[Truth, Fl
 
     ``options`` are :class:`HoverFlight`'s (``duration_s``, ``gyro``, ``pipeline``,
     ``manoeuvres``, ``vibration``, ``physics_rate_hz``, ``gyro_rate_hz``, ``thermal``, ``seed``,
-    ``progress``, ``gains``, ``ground_s``, ``vehicle``: see there); the whole flight is returned.
+    ``progress``, ``gains``, ``ground_s``, ``vehicle``, ``compiled``: see there); the whole flight is returned.
 
     Parameters
     ----------

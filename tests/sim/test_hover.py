@@ -411,26 +411,22 @@ def test_compiled_loop_is_the_python_loop_bit_for_bit(case, monkeypatch):
     monkeypatch.setattr(Q, "_fly_compiled", lambda *a, **kw: calls.append(1) or compiled(*a, **kw))
     fast = _flight(case)
     assert calls == [1]  # the compiled path did fly
-    monkeypatch.setattr(Q, "USE_COMPILED", False)
-    slow = _flight(case)
+    slow = _flight(case, compiled=False)
     assert calls == [1]
     _assert_same_flight(fast, slow)
 
 
 @pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("case", CASES + ["temp_rate_ramp"])
-def test_flight_in_blocks_is_the_whole_flight_bit_for_bit(case, compiled, monkeypatch):
+def test_flight_in_blocks_is_the_whole_flight_bit_for_bit(case, compiled):
     # HoverFlight carries every state across blocks (MuJoCo, controller incl. the
     # outer-loop row a block starts inside, motor commands, die temperature, the gyro's noise
     # generators, delay history, low-pass, dT/dt) and nothing indexes the whole flight: cut into
     # blocks of 997 samples (one cut) or 7 (cuts at every phase of the 4-sample outer loop, and
     # of the 2 physics steps per sample at 500 Hz) the flight is the same in every bit.
-    import sim.quadrotor as Q
-
-    monkeypatch.setattr(Q, "USE_COMPILED", compiled)
-    whole = _flight(case)
+    whole = _flight(case, compiled=compiled)
     for b in (997, 7):
-        _assert_same_flight(_flight(case, block_samples=b), whole)
+        _assert_same_flight(_flight(case, block_samples=b, compiled=compiled), whole)
 
 
 def test_hover_flight_blocks_hold_one_block():
