@@ -62,6 +62,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy import signal
 
+from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment, as_segments
@@ -223,8 +224,6 @@ def _loop_params(table: Mapping) -> dict:
 def _simulated_by_sim(name: str) -> bool:
     """True when the effect registry knows ``name`` (catalogue effect, noise term or family
     instance), so SyntheticGyro injects it."""
-    from gyrocore.effects import registry as E
-
     try:
         E.resolve(name)
         return True
@@ -232,24 +231,14 @@ def _simulated_by_sim(name: str) -> bool:
         return False
 
 
-def _canonical(name: str) -> str:
-    from gyrocore.effects import registry as E
-
-    return E.canonical_name(name)
-
-
 def _deterministic(det: Mapping, inp) -> np.ndarray:
     """:func:`gyrocore.effects.registry.deterministic` of ``det`` (rad/s, (N, 3))."""
-    from gyrocore.effects import registry as E
-
     return E.deterministic(dict(det), inp) if det else np.array(inp.omega_S_rad_s, float)
 
 
 def _schema(name: str):
     """Parameter schema of a catalogue effect or a family instance such as ``periodic[37.5]`` /
     ``step[9.47]`` (the registry's); None when the registry does not know the name."""
-    from gyrocore.effects import registry as E
-
     if name in E.PARAM_SCHEMA:
         return E.PARAM_SCHEMA[name]
     try:
@@ -293,7 +282,6 @@ def identify(
     loop_result : LoopResult, optional
         A loop already run on ``rec`` (saves the run).
     """
-    from gyrocore.effects import registry as E
     from gyrocore.noise.allan import identify_noise
 
     rate = float(rec.rate_hz)
@@ -409,8 +397,6 @@ def model_error(model: "TwinModel", rec: Recording, ref: Reference) -> np.ndarra
     The error signal of the real recording and of every replica is the measurement less
     det(ω_ref) (the loop's residual form): what is left is what the noise model must explain.
     """
-    from gyrocore.effects import registry as E
-
     det = {
         e: p
         for e, p in model.params.items()
@@ -838,8 +824,6 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
     sources = dict(model.sources)
     rate = model.rate_hz
     inp = _inputs(rec, ref, rate)
-    from gyrocore.effects import registry as E
-
     det = {e: p for e, p in params.items() if not E.is_stochastic(e) and e != "quantization"}
     e_sig = rec.gyro_rad_s - _deterministic(det, inp)
     x = _span_concat(e_sig, ref.spans)
@@ -859,7 +843,7 @@ def close_twin(model: TwinModel, rec: Recording, ref: Reference, cmp: Comparison
                     [np.cos(2 * np.pi * fz * t[cov]), np.sin(2 * np.pi * fz * t[cov]), np.ones(cov.sum())]
                 )
                 coef, *_ = np.linalg.lstsq(A, e_sig[cov], rcond=None)
-                fam = _canonical(f"periodic[{fz:.6g}]")
+                fam = E.canonical_name(f"periodic[{fz:.6g}]")
                 if _schema(fam) is not None:  # the effect registry simulates it
                     params[fam] = {"a_cos_rad_s": coef[0], "a_sin_rad_s": coef[1]}
                     sources[fam] = "closing: a line of the real PSD, least squares on the covered spans"

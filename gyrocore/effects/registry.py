@@ -27,8 +27,10 @@ instance's name carries its definition, so it is saved, loaded and injected by n
   products ``a*b`` and powers ``a^2``; see :func:`parse_expr`).
 
 :func:`resolve` returns the :class:`Effect` of any name (catalogue or family; family names are
-canonicalised, so one term has one name), :func:`catalogue_equivalent` maps a regressor term
-that some catalogue effect already contains to that effect's name.
+canonicalised, so one term has one name; :func:`family_name` builds one), :func:`catalogue_equivalent`
+maps a regressor term that some catalogue effect already contains to that effect's name, and
+:func:`expr_values` evaluates a regressor expression on the data. This is the one grammar of the
+family terms: the loop's open search and the twin use it.
 
 Parameters are a mapping ``{effect_name: {param_name: ndarray}}`` in SI units (see
 :data:`PARAM_SCHEMA`). Stochastic effects (``arw``, ``bias_instability``, ``rrw``,
@@ -65,7 +67,10 @@ __all__ = [
     "is_family",
     "catalogue_equivalent",
     "parse_expr",
+    "canonical_expr",
+    "expr_values",
     "canonical_name",
+    "family_name",
     "ordered_effects",
     "context_rows",
     "EFFECTS",
@@ -809,8 +814,16 @@ def _expr_text(factors: tuple[tuple[str, int], ...]) -> str:
     return "*".join(s if k == 1 else f"{s}^{k}" for s, k in factors)
 
 
+def canonical_expr(text: str) -> str:
+    """The one form of a regressor expression: ``"omega_z*omega_y"`` -> ``"omega_y*omega_z"``,
+    ``"f_x*f_x"`` -> ``"f_x^2"`` (see :func:`parse_expr`)."""
+    return _expr_text(parse_expr(text))
+
+
 def _signal(sig: str, inp: ModelInputs, omega: np.ndarray | None, effect: str) -> np.ndarray:
-    """Value of one signal, shape (N,). ``omega`` (N, 3) overrides ``inp.omega_S_rad_s``."""
+    """Value of one signal, shape (N,). ``omega`` (N, 3) overrides ``inp.omega_S_rad_s``.
+    The derivatives (``alpha_*``, ``dtemp_dt``) of a single sample are 0."""
+    one = inp.n < 2
     if sig.startswith(("omega_", "alpha_")):
         j = "xyz".index(sig[-1])
         if sig.startswith("alpha_") and inp.alpha_S_rad_s2 is not None:
@@ -818,28 +831,57 @@ def _signal(sig: str, inp: ModelInputs, omega: np.ndarray | None, effect: str) -
         w = inp._need("omega_S_rad_s", effect) if omega is None else omega
         if sig.startswith("omega_"):
             return w[:, j]
-        return np.gradient(w[:, j], np.asarray(inp.t_s, float))
+        return np.zeros(inp.n) if one else np.gradient(w[:, j], np.asarray(inp.t_s, float))
     if sig.startswith("f_"):
         return inp._need("f_S_m_s2", effect)[:, "xyz".index(sig[-1])]
     if sig == "temp_c":
         return inp._need("temp_c", effect)
     if sig == "dtemp_dt":
+        if one:
+            return np.zeros_like(inp._need("temp_c", effect))
         return inp.temp_rate_c_s(effect)
     if sig == "t":
         return inp.since_power_up()
     raise GyroInputError(f"unknown signal {sig}")  # pragma: no cover (parse_expr checks)
 
 
-def _expr_value(factors, inp: ModelInputs, omega, effect: str) -> np.ndarray:
-    """Π signal^k, shape (N,), by repeated multiplication in canonical order."""
+def _expr_value(factors, inp: ModelInputs, omega, effect: str, cache: dict | None = None) -> np.ndarray:
+    """Π signal^k, shape (N,), by repeated multiplication in canonical order; ``cache`` (a dict
+    kept by the caller for one ``inp``) holds each signal's values once."""
     g = None
     for sig, k in factors:
-        s = _signal(sig, inp, omega, effect)
+        if cache is None:
+            s = _signal(sig, inp, omega, effect)
+        elif sig in cache:
+            s = cache[sig]
+        else:
+            s = cache[sig] = _signal(sig, inp, omega, effect)
         pw = s
         for _ in range(k - 1):
             pw = pw * s
         g = pw if g is None else g * pw
     return np.asarray(g, float)
+
+
+def expr_values(expr: str, inp: ModelInputs, *, cache: dict | None = None) -> np.ndarray:
+    """Per-sample value of a regressor expression (``"omega_y*omega_z"``, ``"t"``), shape (N,),
+    in the SI units of its signals: the signal ``g`` of ``regressor[expr]``.
+
+    Parameters
+    ----------
+    expr : str
+        A regressor expression (:func:`parse_expr`).
+    inp : ModelInputs
+    cache : dict, optional
+        Signal values already computed on ``inp`` (filled in here; pass one dict per ``inp``
+        when evaluating many expressions on the same inputs).
+
+    Raises
+    ------
+    GyroInputError
+        A bad expression, or a signal whose input ``inp`` lacks.
+    """
+    return _expr_value(parse_expr(expr), inp, None, f"regressor[{expr}]", cache)
 
 
 def _periodic_effect(name: str, f_hz: float) -> Effect:
@@ -1007,6 +1049,15 @@ def is_stochastic(name: str) -> bool:
 def canonical_name(name: str) -> str:
     """The one name of an effect (see :func:`resolve`)."""
     return resolve(name).name
+
+
+def family_name(family: str, arg: float | str) -> str:
+    """The canonical name of a family instance from its argument: ``family_name("periodic", 37.5)``
+    -> ``"periodic[37.5]"``, ``family_name("step", 9.47)`` -> ``"step[9.47]"``,
+    ``family_name("regressor", "omega_z*omega_y")`` -> ``"regressor[omega_y*omega_z]"``. A number
+    is written as the shortest decimal that reads back to it (never an exponent)."""
+    text = arg if isinstance(arg, str) else _fmt_float(arg)
+    return canonical_name(f"{family}[{text}]")
 
 
 def catalogue_equivalent(term: str, axis) -> str | None:

@@ -14,9 +14,9 @@ from typing import Sequence
 import numpy as np
 from scipy import stats
 
-from . import search as S
+from gyrocore.effects import registry as E
 from .residual import Residual
-from .model import Model, with_companion
+from .model import Model, split_axis, with_companion
 from .result import Evidence
 
 __all__ = ["rms", "cv_rms", "cv_min", "candidate_test"]
@@ -185,13 +185,11 @@ def candidate_test(
 
 def _slow_open_term(cand: str) -> bool:
     """True for an open regressor candidate (``regressor[...]@axis``) with a factor ``t``."""
-    if not cand.startswith("regressor["):
+    name, _ = split_axis(cand)
+    if not E.is_family(name):
         return False
-    expr = cand[len("regressor[") : cand.rindex("]")]
-    try:
-        return "t" in S.term_factors(expr)
-    except Exception:
-        return False
+    eff = E.resolve(name)
+    return eff.family == "regressor" and "t" in dict(eff.arg)
 
 
 #: Fewest windows for the model-based test (its Allan variance needs octaves up to M/4 ≥ 16).

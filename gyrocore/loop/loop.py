@@ -328,7 +328,7 @@ def loop_residual(
                 thr_step = alpha * S.ALPHA_SHARE["step"]
                 st = step_screen_now(thr_step)
                 if st is not None and st.p_value < thr_step:
-                    name = S.canonical(f"step[{S._fmt_num(st.t_s)}]")
+                    name = E.family_name("step", st.t_s)
                     ev_s, f_s = open_term_test(name, thr_step, cv_base)
                     X0 = model.design(model_effects)[0]
                     cv_step = cv_rms(

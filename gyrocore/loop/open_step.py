@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from gyrocore.effects import registry as E
 from gyrocore.attitude import rate_error_vs_attitude
 from gyrocore.data.recording import Recording
 from gyrocore.calib.stream import Rows, SpilledRecording, rows_of
 from . import search as S
 from .residual import Residual
-from .search import column_axis
+from .model import split_axis
 from .evidence import cv_min, cv_rms
 from .scoring import window_line_series
 
@@ -173,7 +174,7 @@ def open_step(
     exclude = set()
     for term in terms:
         for i in range(3):
-            eq = S.catalogue_equivalent(term, i)
+            eq = E.catalogue_equivalent(term, i)
             if eq is not None or f"regressor[{term}]@{i}" in model_effects:
                 exclude.add((term, i))
     Xlib = S.library_windows(res, terms) if terms else None
@@ -186,7 +187,7 @@ def open_step(
             if (term, i) in exclude:
                 continue
             exclude.add((term, i))
-            cat = S.catalogue_equivalent(simple, i)
+            cat = E.catalogue_equivalent(simple, i)
             equiv[f"{term}@{'xyz'[i]}"] = (
                 f"{cat} (tested in the catalogue step)" if cat is not None else f"regressor[{simple}]"
             )
@@ -204,7 +205,7 @@ def open_step(
         if equiv:
             open_last["regressor"]["collinear_with_simpler"] = equiv
         if lib.p_value < thr:
-            name = S.canonical(f"regressor[{lib.term}]")
+            name = E.family_name("regressor", lib.term)
             ev, _ = open_term_test(f"{name}@{lib.axis}", thr, cv_base)
             open_last["regressor"].update(
                 {"wald_log10_p": ev.log10_p, "cv_rms_reduction": ev.cv_rms_reduction, "rms_reduction": ev.rms_reduction}
@@ -242,7 +243,7 @@ def open_step(
         seg_len = ser[6] if len(ser) > 6 else S.segment_length(x.shape[0])
         # (axis, frequency) already removed
         done = [
-            (i, float(n[len("periodic[") : -1]))
+            (i, E.resolve(n).arg)
             for n, ls in held.items()
             for i in range(3)
             if any(ax == i and (a_ != 0 or b_ != 0) for ax, _, a_, b_ in ls)
@@ -274,7 +275,7 @@ def open_step(
             cv = S.sinusoid_cv_reduction(xi, tt, f)
             if not cv > 0:
                 continue
-            name = S.canonical(f"periodic[{S._fmt_num(f)}]")
+            name = E.family_name("periodic", f)
             coef, se = S.fit_sinusoid(xi, tt, f)
             a, b = float(coef[0, 0]), float(coef[1, 0])
             before, after = S.sinusoid_rms(xi, tt, f, a, b)
@@ -315,9 +316,7 @@ def open_step(
         if x.shape[0] >= 64:
             mot = res.window_mean(np.asarray(res.inputs.omega_S_rad_s, float))[idx]
             done = [
-                (column_axis("a[" + k.split("@")[1] + "]"), float(k[len("periodic[") : k.index("]")]))
-                for k in model_effects
-                if k.startswith("periodic[")
+                (ax, E.resolve(base).arg) for base, ax in map(split_axis, model_effects) if base.startswith("periodic[")
             ]
             lines = S.screen_lines(x, fs, ref=mot, skip=done)
             open_last["periodic"] = open_last.get("periodic", []) if both else []
@@ -337,7 +336,7 @@ def open_step(
                 if l.log10_p >= np.log10(thr_line):
                     continue
                 f = S.round_frequency(S.refine_frequency(x[:, l.axis], tt, l.frequency_hz, 2 * l.bandwidth_hz))
-                name = S.canonical(f"periodic[{S._fmt_num(f)}]")
+                name = E.family_name("periodic", f)
                 ev, _ = open_term_test(f"{name}@{l.axis}", thr_line, cv_base)
                 # the harmonic F decided significance; the window refit must hold out of sample
                 if ev.df1 > 0 and (ev.cv_rms_reduction > 0 or not np.isfinite(ev.cv_rms_reduction)):
@@ -379,7 +378,7 @@ def open_step(
             "n_candidates": st.n_candidates,
         }
         if st.p_value < thr_step:
-            name = S.canonical(f"step[{S._fmt_num(st.t_s)}]")
+            name = E.family_name("step", st.t_s)
             if name not in model_effects:
                 ev, _ = open_term_test(name, thr_step, cv_base)
                 if ev.df1 > 0 and practical(ev):

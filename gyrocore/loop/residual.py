@@ -101,23 +101,10 @@ def is_pointwise(effect: str) -> bool:
     is unless it holds a derivative (``alpha_*``, ``dtemp_dt``)."""
     if effect in _POINTWISE:
         return True
-    if effect.startswith(("step[", "periodic[")):
-        return True
-    if effect.startswith("regressor["):
-        return "alpha_" not in effect and "dtemp_dt" not in effect
-    return False
-
-
-def family_design(effect: str, inp) -> tuple[list[str], np.ndarray]:
-    """Regressors of an open-world family effect (``regressor[..]``, ``periodic[..]``,
-    ``step[..]``): the registry's :func:`gyrocore.effects.registry.design` when it knows the family,
-    else :func:`gyrocore.loop.search.family_design` (same contract)."""
-    try:
-        return E.design(effect, inp)
-    except GyroInputError:
-        from .search import family_design as _fd
-
-        return _fd(effect, inp)
+    if not E.is_family(effect):
+        return False
+    eff = E.resolve(effect)
+    return eff.family != "regressor" or not {"alpha", "dtemp"} & set(eff.inputs)
 
 
 def earth_rate_design(R_WS: np.ndarray) -> tuple[list[str], np.ndarray]:
@@ -265,8 +252,6 @@ class Residual:
             if self.R_WS is None:
                 raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
             names, A = earth_rate_design(rows_of(self.R_WS, lo, hi))
-        elif "[" in effect:
-            names, A = family_design(effect, inp)
         elif effect in ("bias_thermal", "scale_thermal"):
             names, A = E.design(effect, inp, order=order, t0_c=self.temp_mean_c())
         else:
@@ -304,8 +289,6 @@ class Residual:
             if self.R_WS is None:
                 raise GyroInputError("earth_rate needs the attitude (ref_q* or reference rates)")
             names, A = earth_rate_design(self.R_WS)
-        elif "[" in effect:
-            names, A = family_design(effect, inp)
         else:
             names, A = E.design(effect, inp, order=order)
         if not np.all(np.isfinite(A)):

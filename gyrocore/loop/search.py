@@ -8,7 +8,7 @@ family-wise error control (a weighted Holm/Bonferroni split of α, see :data:`AL
   the data — reference rate ``omega_*`` (S, rad/s), its derivative ``alpha_*`` (rad/s²),
   specific force ``f_*`` (m/s²), ``temp_c``, ``dtemp_dt`` (°C/s), ``t`` (s since the start)
   — and their products and squares (degree 2, across axes), each on each gyro axis. A term
-  that a catalogue effect already spans (:func:`catalogue_equivalent`: ``omega_y`` on x is
+  that a catalogue effect already spans (:func:`gyrocore.effects.registry.catalogue_equivalent`: ``omega_y`` on x is
   ``misalignment``, ``f_x*f_z`` is ``g2_sensitivity``, ``t`` is ``bias_ramp`` ...) is not in
   the library: it was tested under its catalogue name; nor is a product that is numerically
   one of its factors on the recording (:func:`collinear_simpler`: ``f_x*t`` in a still log is
@@ -49,13 +49,13 @@ family-wise error control (a weighted Holm/Bonferroni split of α, see :data:`AL
 
 Each described term is a registered effect family (BRIEFING contract):
 ``regressor[<expr>]`` (``coef`` (3,)), ``periodic[<f_hz>]`` (``a_cos_rad_s``, ``a_sin_rad_s``
-(3,)), ``step[<t_s>]`` (``size_rad_s`` (3,)). :func:`family_design` gives their regressors
-(the registry's :func:`gyrocore.effects.registry.design` when it knows the family).
+(3,)), ``step[<t_s>]`` (``size_rad_s`` (3,)); their grammar, names, values and regressors are
+the registry's (:func:`gyrocore.effects.registry.resolve`, :func:`~gyrocore.effects.registry.family_name`,
+:func:`~gyrocore.effects.registry.expr_values`, :func:`~gyrocore.effects.registry.design`).
 """
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -65,16 +65,11 @@ from scipy import stats
 
 from gyrocore.calib import lsq
 from gyrocore.errors import GyroInputError
-from gyrocore.effects.registry import SIGNALS
+from gyrocore.effects import registry as E
 
 __all__ = [
     "ALPHA_SHARE",
-    "BASE_SIGNALS",
     "Unexplained",
-    "parse_family",
-    "term_values",
-    "family_design",
-    "catalogue_equivalent",
     "collinear_simpler",
     "library_terms",
     "screen_library",
@@ -92,168 +87,17 @@ __all__ = [
 #: A weighted Bonferroni/Holm split: under the complete null P(any false claim) ≤ Σ shares·α = α.
 ALPHA_SHARE = {"catalogue": 0.5, "regressor": 1.0 / 6, "periodic": 1.0 / 6, "step": 1.0 / 6}
 
-#: the signal names of regressor terms: the registry's, in its canonical order
-BASE_SIGNALS = SIGNALS
-_AX = "xyz"
-
 
 # ---------------------------------------------------------------------------- terms
-def parse_family(name: str) -> tuple[str, str] | None:
-    """``"periodic[37.5]"`` -> ("periodic", "37.5"); catalogue names -> None."""
-    m = re.fullmatch(r"(regressor|periodic|step)\[(.+)\]", name.strip())
-    return (m.group(1), m.group(2)) if m else None
-
-
-def term_factors(expr: str) -> list[str]:
-    """``"omega_y*omega_z"`` -> [omega_y, omega_z]; ``"f_x^2"`` -> [f_x, f_x]."""
-    out = []
-    for part in expr.replace(" ", "").split("*"):
-        base, _, pw = part.partition("^")
-        if base not in BASE_SIGNALS:
-            raise GyroInputError(f"unknown signal '{base}' in term '{expr}' (signals: {', '.join(BASE_SIGNALS)})")
-        try:
-            k = int(pw) if pw else 1
-        except ValueError:
-            raise GyroInputError(f"bad power in term '{expr}'") from None
-        if not 1 <= k <= 3:
-            raise GyroInputError(f"bad power in term '{expr}'")
-        out += [base] * k
-    if not out:
-        raise GyroInputError(f"empty term '{expr}'")
-    return out
-
-
-def term_name(factors: Sequence[str]) -> str:
-    """Canonical expression: sorted by BASE_SIGNALS order, squares as ``a^2``."""
-    fs = sorted(factors, key=BASE_SIGNALS.index)
-    if len(fs) == 2 and fs[0] == fs[1]:
-        return f"{fs[0]}^2"
-    return "*".join(fs)
-
-
-def _base_values(name: str, inp, cache: dict) -> np.ndarray:
-    if name in cache:
-        return cache[name]
-    t = np.asarray(inp.t_s, float)
-    if name.startswith("omega_") or name.startswith("alpha_"):
-        w = inp.omega_S_rad_s
-        if w is None:
-            raise GyroInputError(f"signal {name} needs the reference rate (ref_*_rad_s or an attitude)")
-        w = np.asarray(w, float)
-        i = _AX.index(name[-1])
-        if name.startswith("omega_"):
-            v = w[:, i]
-        else:
-            if "alpha" not in cache:
-                cache["alpha"] = np.gradient(w, t, axis=0) if w.shape[0] > 1 else np.zeros_like(w)
-            v = cache["alpha"][:, i]
-    elif name.startswith("f_"):
-        if inp.f_S_m_s2 is None:
-            raise GyroInputError(f"signal {name} needs the accel_* columns")
-        v = np.asarray(inp.f_S_m_s2, float)[:, _AX.index(name[-1])]
-    elif name == "temp_c":
-        if inp.temp_c is None:
-            raise GyroInputError("signal temp_c needs the temp_c column")
-        v = np.asarray(inp.temp_c, float)
-    elif name == "dtemp_dt":
-        if inp.temp_c is None:
-            raise GyroInputError("signal dtemp_dt needs the temp_c column")
-        v = np.gradient(np.asarray(inp.temp_c, float), t) if t.size > 1 else np.zeros_like(t)
-    elif name == "t":
-        v = inp.since_power_up()
-    else:  # pragma: no cover - guarded by term_factors
-        raise GyroInputError(f"unknown signal {name}")
-    cache[name] = v
-    return v
-
-
-def term_values(expr: str, inp, cache: dict | None = None) -> np.ndarray:
-    """Per-sample value of a library term, shape (N,) (SI units of its signals)."""
-    cache = {} if cache is None else cache
-    v = None
-    for f in term_factors(expr):
-        b = _base_values(f, inp, cache)
-        v = b.copy() if v is None else v * b
-    return v
-
-
-def _fmt_num(x: float) -> str:
-    """Shortest round-trip decimal, never an exponent (the registry's canonical form)."""
-    s = np.format_float_positional(float(x), trim="-")
-    return "0" if s in ("-0", "0") else s
-
-
-def canonical(name: str) -> str:
-    """The registry's canonical name of a family instance (``gyrocore.effects.registry.canonical_name``)."""
-    from gyrocore.effects import registry as _E
-
-    return _E.canonical_name(name)
-
-
 def round_frequency(f_hz: float) -> float:
     """A line's frequency as carried in its name: 1 µHz resolution (a phase error below
     2π·0.5e-6·3600 s = 0.011 rad over an hour)."""
     return round(float(f_hz), 6)
 
 
-def family_design(name: str, inp) -> tuple[list[str], np.ndarray]:
-    """Regressors of a family effect instance, (names, A (N, 3, P)) (BRIEFING contract).
-
-    ``regressor[expr]``: A[:, i, i] = term(t) (``coef[i]``); ``periodic[f]``: cos(2πf·t_s) in
-    column i and sin in column 3 + i (``a_cos_rad_s[i]``, ``a_sin_rad_s[i]``); ``step[t0]``:
-    1 for t_s ≥ t0 (``size_rad_s[i]``).
-    """
-    fam = parse_family(name)
-    if fam is None:
-        raise GyroInputError(f"{name} is not an open-world family effect")
-    kind, arg = fam
-    t = np.asarray(inp.t_s, float)
-    n = t.shape[0]
-    if kind == "regressor":
-        g = term_values(arg, inp)
-        A = np.zeros((n, 3, 3))
-        for i in range(3):
-            A[:, i, i] = g
-        return [f"coef[{i}]" for i in range(3)], A
-    try:
-        x = float(arg)
-    except ValueError:
-        raise GyroInputError(f"{name}: '{arg}' is not a number") from None
-    if kind == "periodic":
-        if not (np.isfinite(x) and x > 0):
-            raise GyroInputError(f"{name}: frequency must be > 0 Hz")
-        ph = 2 * np.pi * x * t
-        c, s = np.cos(ph), np.sin(ph)
-        A = np.zeros((n, 3, 6))
-        for i in range(3):
-            A[:, i, i] = c
-            A[:, i, 3 + i] = s
-        return [f"a_cos_rad_s[{i}]" for i in range(3)] + [f"a_sin_rad_s[{i}]" for i in range(3)], A
-    g = (t >= x).astype(float)
-    A = np.zeros((n, 3, 3))
-    for i in range(3):
-        A[:, i, i] = g
-    return [f"size_rad_s[{i}]" for i in range(3)], A
-
-
 def column_axis(pname: str) -> int:
     """Axis of a family parameter column name (``coef[1]`` -> 1)."""
     return int(pname[pname.index("[") + 1 : pname.index("]")])
-
-
-def catalogue_equivalent(term: str, axis: int | str) -> str | None:
-    """The catalogue effect whose regressors span ``term`` on gyro ``axis``, or None.
-
-    ``t`` → bias_ramp; ``temp_c``, ``temp_c^2``, ``temp_c^3`` → bias_thermal; ``dtemp_dt`` →
-    bias_temp_rate; ``omega_i`` on i → scale, on j ≠ i → misalignment;
-    ``temp_c*omega_i`` on i → scale_thermal; ``f_j`` → g_sensitivity; ``f_j*f_k`` →
-    g2_sensitivity. (``alpha_i`` alone on axis i is a per-axis delay, not the catalogue's
-    one ``time_offset`` shared by the axes; ``omega_i^2`` is even in ω, unlike
-    ``scale_nonlinearity`` ω|ω|.)
-    """
-    from gyrocore.effects import registry as _E
-
-    return _E.catalogue_equivalent(term, axis)
 
 
 def library_terms(inp, *, kind: str, chunks=None) -> list[str]:
@@ -268,7 +112,7 @@ def library_terms(inp, *, kind: str, chunks=None) -> list[str]:
     max − min > 0).
     """
     cands = []
-    for s in BASE_SIGNALS:
+    for s in E.SIGNALS:
         if s[:6] in ("omega_", "alpha_") and (kind == "still" or inp.omega_S_rad_s is None):
             continue
         if s.startswith("f_") and inp.f_S_m_s2 is None:
@@ -287,7 +131,7 @@ def library_terms(inp, *, kind: str, chunks=None) -> list[str]:
                 if s in bad:
                     continue
                 try:
-                    v = _base_values(s, sub, cache)[a - lo : b - lo]
+                    v = E.expr_values(s, sub, cache=cache)[a - lo : b - lo]
                 except GyroInputError:
                     bad.add(s)
                     continue
@@ -299,16 +143,16 @@ def library_terms(inp, *, kind: str, chunks=None) -> list[str]:
         avail = [s for s in cands if s not in bad and hi_v[s] - lo_v[s] > 0]
     for s in cands if chunks is None else ():
         try:
-            v = _base_values(s, inp, {})
+            v = E.expr_values(s, inp)
         except GyroInputError:
             continue
         if not np.all(np.isfinite(v)) or np.ptp(v) <= 0:
             continue
         avail.append(s)
-    terms = [term_name([a]) for a in avail]
+    terms = list(avail)
     for j, a in enumerate(avail):
         for b in avail[j:]:
-            terms.append(term_name([a, b]))
+            terms.append(E.canonical_expr(f"{a}*{b}"))
     return terms
 
 
@@ -441,7 +285,7 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
             cache: dict = {}
             V = np.empty((k1 - k0, T))
             for j, term in enumerate(terms):
-                V[:, j] = term_values(term, sub, cache)[k0 + 1 - lo : k1 + 1 - lo]
+                V[:, j] = E.expr_values(term, sub, cache=cache)[k0 + 1 - lo : k1 + 1 - lo]
             V *= dt[k0:k1, None]
             np.cumsum(V, axis=0, out=V)
             sel = (need > k0) & (need <= k1)
@@ -457,7 +301,7 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
         return out
     cache = {}
     for k, term in enumerate(terms):
-        g = term_values(term, inp, cache)
+        g = E.expr_values(term, inp, cache=cache)
         A = np.zeros((n, 3, 3))
         for i in range(3):
             A[:, i, i] = g
@@ -466,8 +310,6 @@ def library_windows(res, terms: Sequence[str]) -> np.ndarray:
 
 
 def _slice_inputs(inp, lo: int, hi: int):
-    from gyrocore.effects import registry as E
-
     def cut(v):
         return None if v is None else np.asarray(v)[lo:hi]
 
@@ -515,7 +357,7 @@ def collinear_simpler(
         projected off X0 (Frisch–Waugh–Lovell, axis weights 1/σ), has a fraction
         1 − ρ² < :data:`COLLINEAR_DELTA` of its norm² outside the span of one factor's column
         (the factor with the largest ρ²). The caller reports such a term as the simpler one
-        (or as its catalogue equivalent, :func:`catalogue_equivalent`), never under the
+        (or as its catalogue equivalent, :func:`gyrocore.effects.registry.catalogue_equivalent`), never under the
         product's name.
     """
     Xlib = library_windows(res, terms) if Xlib is None else Xlib
@@ -524,9 +366,10 @@ def collinear_simpler(
     pos = {t: k for k, t in enumerate(terms)}
     out = {}
     for k, term in enumerate(terms):
-        fs = sorted(set(term_factors(term)), key=BASE_SIGNALS.index)
-        if len(term_factors(term)) < 2:
+        factors = E.parse_expr(term)
+        if sum(k for _, k in factors) < 2:
             continue
+        fs = [f for f, _ in factors]
         subs = [(f, pos[f]) for f in fs if f in pos]
         if not subs:
             continue

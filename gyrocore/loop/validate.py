@@ -233,7 +233,7 @@ def _periodic_raw(t: np.ndarray, per: Mapping) -> np.ndarray:
     """Σ a_cos·cos(2πft) + a_sin·sin(2πft) of ``periodic[f]`` parameter sets, (N, 3) rad/s."""
     c = np.zeros((t.shape[0], 3))
     for name, pd in per.items():
-        f = float(S.parse_family(name)[1])
+        f = E.resolve(name).arg
         ph = 2 * np.pi * f * np.asarray(t, float)
         c += np.outer(np.cos(ph), np.asarray(pd["a_cos_rad_s"], float)) + np.outer(
             np.sin(ph), np.asarray(pd["a_sin_rad_s"], float)
@@ -259,7 +259,7 @@ def _line_validation(sample: dict, lines: Sequence[str]) -> list[dict]:
     that frequency: the local PSD is what the F-test already judged smooth)."""
     out = []
     for name in lines:
-        f = float(S.parse_family(name)[1])
+        f = E.resolve(name).arg
         row = {"effect": name, "frequency_hz": f}
         for tag in ("before", "after"):
             t, e, ok = sample[tag]

@@ -250,6 +250,40 @@ def test_bad_family_names_are_one_line_errors(bad, msg):
     assert "\n" not in str(ei.value) and bad.strip()[:8] in str(ei.value)
 
 
+def test_family_name_and_canonical_expr():
+    assert E.family_name("periodic", 37.5) == "periodic[37.5]"
+    assert E.family_name("periodic", 1e-7) == "periodic[0.0000001]"  # never an exponent
+    assert E.family_name("step", 12.0) == "step[12]"
+    assert E.family_name("step", -0.0) == "step[0]"
+    assert E.family_name("regressor", "omega_z*omega_y") == "regressor[omega_y*omega_z]"
+    f = 0.1 + 0.2  # a frequency that is not a short decimal reads back to the same float
+    assert E.resolve(E.family_name("periodic", f)).arg == f
+    assert E.canonical_expr("f_x*f_x") == "f_x^2" and E.canonical_expr(" t ") == "t"
+    with pytest.raises(GyroInputError, match="unknown signal"):
+        E.canonical_expr("omega_q")
+    with pytest.raises(GyroInputError, match="> 0 Hz"):
+        E.family_name("periodic", -1.0)
+
+
+def test_expr_values_are_the_regressor_signal():
+    """expr_values is the signal g of regressor[expr]: its design has g on the diagonal; a
+    cache shared across expressions gives the same values; a single sample's derivatives are 0."""
+    inp = _inputs()
+    cache: dict = {}
+    for expr in ("omega_y*omega_z", "f_x^2", "alpha_z", "temp_c*omega_x", "dtemp_dt", "t", "omega_x^2*f_y"):
+        g = E.expr_values(expr, inp, cache=cache)
+        _, A = E.design(f"regressor[{expr}]", inp)
+        for i in range(3):
+            np.testing.assert_array_equal(A[:, i, i], g)
+        np.testing.assert_array_equal(E.expr_values(expr, inp), g)
+    assert {"omega_y", "omega_z", "f_x", "alpha_z"} <= set(cache)
+    np.testing.assert_array_equal(E.expr_values("alpha_x", inp), np.gradient(inp.omega_S_rad_s[:, 0], inp.t_s))
+    one = E.ModelInputs(t_s=np.array([0.0]), omega_S_rad_s=np.ones((1, 3)), temp_c=np.array([20.0]))
+    assert E.expr_values("alpha_x", one).tolist() == [0.0] and E.expr_values("dtemp_dt", one).tolist() == [0.0]
+    with pytest.raises(GyroInputError, match="accel"):
+        E.expr_values("f_x", E.ModelInputs(t_s=inp.t_s))
+
+
 def test_twice_under_two_spellings_is_an_error():
     with pytest.raises(GyroInputError, match="given twice"):
         E.validate_params({"step[1]": {"size_rad_s": np.zeros(3)}, "step[1.0]": {"size_rad_s": np.zeros(3)}})

@@ -19,6 +19,7 @@ from click.testing import CliRunner
 from scipy import stats
 
 from experiments.close_the_loop import effect_params, synthetic_recording
+from gyrocore.effects import registry as E
 from gyrocore.loop import search as S
 from gyrocore.cli.commands.loop import command as loop_command
 from gyrocore.loop.loop import run_loop
@@ -36,17 +37,15 @@ def _with(rec: Recording, add: np.ndarray) -> Recording:
 
 
 # ---------------------------------------------------------------------------- building blocks
-def test_terms_and_catalogue_equivalence():
-    assert S.term_factors("f_x^2") == ["f_x", "f_x"]
-    assert S.term_name(["omega_z", "omega_y"]) == "omega_y*omega_z"
-    assert S.catalogue_equivalent("omega_y", "x") == "misalignment"
-    assert S.catalogue_equivalent("omega_x", 0) == "scale"
-    assert S.catalogue_equivalent("f_x*f_z", 2) == "g2_sensitivity"
-    assert S.catalogue_equivalent("t", 1) == "bias_ramp"
-    assert S.catalogue_equivalent("omega_x*temp_c", 0) == "scale_thermal"
-    assert S.catalogue_equivalent("omega_y*omega_z", 0) is None
-    with pytest.raises(Exception, match="unknown signal"):
-        S.term_factors("omega_q")
+def test_library_terms_are_canonical_registry_expressions():
+    """The library's names are the registry's one form of each product (degree ≤ 2), none a
+    catalogue effect in disguise only by name: each parses and canonicalises to itself."""
+    rec = _rec(0)
+    inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=rec.ref_rate_rad_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
+    terms = S.library_terms(inp, kind="rate")
+    assert terms and all(E.canonical_expr(t) == t for t in terms)
+    assert "omega_x^2" in terms and "omega_x*omega_y" in terms and "omega_y*omega_x" not in terms
+    assert all(sum(k for _, k in E.parse_expr(t)) <= 2 for t in terms)
 
 
 def test_harmonic_f_is_calibrated_in_coloured_noise():
@@ -170,7 +169,7 @@ def test_unexplained_is_never_a_catalogue_effect():
     r = run_loop(rec, declared=["bias"])
     assert r.found_effects == ["misalignment"]
     for u in r.unexplained:
-        assert u.kind != "regressor" or S.catalogue_equivalent(u.fields["term"], u.axis) is None
+        assert u.kind != "regressor" or E.catalogue_equivalent(u.fields["term"], u.axis) is None
 
 
 # ---------------------------------------------------------------------------- CLI: -o, --validate
