@@ -13,7 +13,7 @@ Protocol knobs and how each enters the budget
   standard errors are *predicted from the design*, before any data: the candidate run's
   reference trajectory (rate, specific force, temperature; simulated), the calibration's
   own rows (ramps left out, block means) and the noise-model covariance
-  (:func:`gyrocore.calib.lsq.noise_model_meat`, the same sandwich the calibration reports; its
+  (:func:`gyrocore.calib.covariance.noise_model_meat`, the same sandwich the calibration reports; its
   honesty is checked by Monte Carlo in docs/accuracy.md) — :func:`design_stderr`. A
   parameter the candidate cannot observe (three mounts: g-sensitivity not separable from the
   bias) makes the candidate ineligible.

@@ -214,7 +214,7 @@ class Calibrator:
         ``"auto"`` (Ljung–Box switch), ``"ols"``, ``"hac"``, ``"newey_west"``, ``"block"``, or
         ``"noise_model"``: the sandwich with the row covariance implied by the gyro's noise
         model (white + flicker + rate random walk + Gauss–Markov, started at the power-up =
-        the first sample; :func:`gyrocore.calib.lsq.noise_model_meat`). The model is ``noise`` if
+        the first sample; :func:`gyrocore.calib.covariance.noise_model_meat`). The model is ``noise`` if
         given, else identified (:func:`gyrocore.noise.allan.identify_noise`, GMWM) on the residual
         of the first fit (outliers of the robust pass set to 0). Least-squares method only.
     noise : gyrocore.calib.budget.NoiseModel or NoiseResult, optional

@@ -33,6 +33,8 @@ from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment, as_segments
 from gyrocore.data.still import StillGate, still_samples
 
+from .covariance import residual_autocov_model
+
 __all__ = [
     "IntegralResult",
     "STILL_GATE",
@@ -175,9 +177,7 @@ def _vec3(what: str, v, *, positive: bool = False) -> np.ndarray:
 
 
 def _long_run_var(e: np.ndarray) -> float:
-    """σ²_LR = γ(0) + 2Σγ(l) of one still residual series (model of gyrocore.calib.lsq)."""
-    from .lsq import residual_autocov_model
-
+    """σ²_LR = γ(0) + 2Σγ(l) of one still residual series (model of gyrocore.calib.covariance)."""
     g = residual_autocov_model(e)
     return float(max(g[0] + 2.0 * g[1:].sum(), g[0]))
 

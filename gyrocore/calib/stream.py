@@ -2,10 +2,10 @@
 
 A long data file is streamed once into per-column files (:func:`gyrocore.data.spill.spill_columns`,
 with every check, repair and warning of a whole read); the least-squares fits then read it
-back a window of ``lsq.CHUNK_ROWS`` rows at a time through :class:`SpillRows`, a
-:class:`gyrocore.calib.lsq.RowSource`. The chunked path of :func:`gyrocore.calib.lsq.fit_effects` reduces
-each window to the weighted block means that :func:`gyrocore.calib.lsq.solve` fits (an exact
-reduction for the linear model, see ``solve(average=)``), so the fit, its rank test, axis
+back a window of ``rows.CHUNK_ROWS`` rows at a time through :class:`SpillRows`, a
+:class:`gyrocore.calib.rows.RowSource`. :func:`gyrocore.calib.lsq.fit_effects` reduces
+each window to the weighted block means it fits (an exact reduction for the linear model,
+:class:`gyrocore.calib.rows.BlockMeans`), so the fit, its rank test, axis
 weights, covariance (OLS/HAC/...) and standard errors are computed by the same function on
 the same numbers as for a record in memory; a second pass gives the full-resolution residual
 (its RMS, or per axis on disk for the robust pass). Memory: the time column, one (N,) weight
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from gyrocore.effects import registry as E
-from . import lsq
+from .rows import RowSource
 from gyrocore.data.recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, Recording
 from gyrocore.data.spill import ColumnSpill
 
@@ -40,7 +40,7 @@ __all__ = [
 ]
 
 
-class SpillRows(lsq.RowSource):
+class SpillRows(RowSource):
     """r = y − ω_ref(t − τ) and the model inputs of a spilled recording, a window at a time.
 
     Parameters

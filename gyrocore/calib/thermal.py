@@ -28,6 +28,7 @@ from scipy import stats
 
 from gyrocore.effects import registry as E
 from . import lsq
+from .rows import RowSource
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import atomic_write_text
 
@@ -88,7 +89,7 @@ def select_thermal_orders(
 
     Parameters
     ----------
-    r : ndarray, shape (N, 3), or lsq.RowSource
+    r : ndarray, shape (N, 3), or gyrocore.calib.rows.RowSource
         Measured minus reference rate, rad/s (or a source of it and of the inputs, a window
         at a time: see :func:`gyrocore.calib.lsq.fit_effects`).
     inp : ModelInputs or None
@@ -111,7 +112,7 @@ def select_thermal_orders(
     """
     if not 1 <= max_order <= 3:
         raise GyroInputError(f"thermal order must be 1, 2 or 3, got {max_order}")
-    has_temp = r.has_temp if isinstance(r, lsq.RowSource) else inp.temp_c is not None
+    has_temp = r.has_temp if isinstance(r, RowSource) else inp.temp_c is not None
     if not has_temp:
         raise GyroInputError("thermal effects need the temp_c column, which the data lack")
     orders = {e: max_order for e in effects if e in THERMAL_EFFECTS}

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
-from gyrocore.calib import lsq
+from gyrocore.calib import covariance
 from gyrocore.attitude import error_angle_rad, integrate_gyro
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
@@ -102,7 +102,7 @@ def _still_runs_error(res: Residual, q: np.ndarray) -> float:
 
 def describe_remaining(res: Residual, e: np.ndarray) -> Remaining:
     win = float(np.median(res.duration_s))
-    lb = lsq.ljung_box_p(e)
+    lb = covariance.ljung_box_p(e)
     # spectrum and Allan deviation on the longest run of evenly spaced windows (still
     # segments, dropped windows and known-rotation windows break the spacing)
     e_run, _, fs, _ = window_line_series(res, e)

@@ -16,7 +16,7 @@ family-wise error control (a weighted Holm/Bonferroni split of α, see :data:`AL
   the same HAC statistics as the catalogue**: every column is screened by a score (Lagrange
   multiplier) test — the column is projected off the current model (Frisch–Waugh–Lovell),
   its inner product with the residual is referred to its variance under the residual's
-  autocovariance model (:func:`gyrocore.calib.lsq.residual_autocov_model`: short lags, a
+  autocovariance model (:func:`gyrocore.calib.covariance.residual_autocov_model`: short lags, a
   Gauss–Markov tail and a flicker/low-frequency component) — with a Bonferroni threshold
   over the library; the winner is then refitted jointly and Wald-tested on the HAC
   covariance exactly as a catalogue candidate, and must pass the blocked out-of-sample guard.
@@ -63,7 +63,7 @@ import numpy as np
 from scipy import signal as _signal
 from scipy import stats
 
-from gyrocore.calib import lsq
+from gyrocore.calib import covariance
 from gyrocore.errors import GyroInputError
 from gyrocore.effects import registry as E
 
@@ -209,7 +209,7 @@ class Unexplained:
 # ---------------------------------------------------------------------------- noise model helpers
 def _autocovs(e_w: np.ndarray) -> list[np.ndarray]:
     """The HAC autocovariance model of each column of e_w (M, 3)."""
-    return [lsq.residual_autocov_model(e_w[:, i]) for i in range(e_w.shape[1])]
+    return [covariance.residual_autocov_model(e_w[:, i]) for i in range(e_w.shape[1])]
 
 
 def _gamma_apply(U: np.ndarray, g: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ import pytest
 from scipy import signal
 
 from gyrocore.effects import registry as E
-from gyrocore.calib import lsq
+from gyrocore.calib import covariance, lsq
 from gyrocore.errors import GyroInputError, UnobservableError
 
 TRUE = {
@@ -172,17 +172,17 @@ def test_slow_noise_invisible_to_ljung_box_is_caught_by_block_means():
     n = 40000
     white = rng.normal(0, 1.0, n)
     x = white + _ar1_noise(np.exp(-1 / 2000), 0.05)(rng, n)[:, 0]
-    assert lsq.ljung_box_p(x) > 0.01
-    assert lsq.low_frequency_excess(x)
-    assert not lsq.low_frequency_excess(white)
-    g = lsq.residual_autocov_model(x)
+    assert covariance.ljung_box_p(x) > 0.01
+    assert covariance.low_frequency_excess(x)
+    assert not covariance.low_frequency_excess(white)
+    g = covariance.residual_autocov_model(x)
     lr_model = g[0] + 2 * g[1:].sum()
     lr_true = 1.0 + 0.05**2 * (1 + np.exp(-1 / 2000)) / (1 - np.exp(-1 / 2000))  # = 11
     # Only part of that is visible in 20 correlation times (block variances at L ≥ 2048 rest
     # on 19 and 9 blocks, relative sd 0.33 and 0.5, and the mean is removed); the model must
     # add the visible part — above the short-lag model's own long-run variance (≈ 1.0 + its
     # sampling noise 2·5·1/sqrt(N) ≈ 0.05) — and must not exceed the truth by much.
-    g0 = lsq._short_and_tail(x, 5, None, 1e-4)
+    g0 = covariance._short_and_tail(x, 5, None, 1e-4)
     assert lr_model > 1.5 * (g0[0] + 2 * g0[1:].sum())
     assert lr_model < 1.5 * lr_true
 

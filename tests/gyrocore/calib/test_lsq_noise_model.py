@@ -7,7 +7,7 @@ import pytest
 from scipy import signal
 
 from gyrocore.effects import registry as E
-from gyrocore.calib import lsq
+from gyrocore.calib import covariance, lsq
 from gyrocore.calib.budget import Blocks, NoiseModel, block_covariance
 from gyrocore.errors import GyroInputError
 
@@ -58,7 +58,7 @@ def test_meat_equals_dense_sandwich_when_every_bin_is_a_row():
         gm_sigma_rad_s=np.array([5e-5, 0, 0]),
         gm_tau_c_s=np.array([2.0, np.inf, np.inf]),
     )
-    S = lsq.noise_model_meat(U, t0, t1, np.full(n, avg), nm, dt_s=dt)
+    S = covariance.noise_model_meat(U, t0, t1, np.full(n, avg), nm, dt_s=dt)
     blk = Blocks(
         i0=np.arange(n),
         i1=np.arange(n) + 1,
