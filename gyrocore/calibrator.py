@@ -36,10 +36,21 @@ import numpy as np
 from gyrocore.calib.params import CalibrationResult, needs_accel, needs_temp, noise_model_dict
 from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
-from gyrocore.data.recording import Recording, file_sha256
+from gyrocore.calib.rows import ReferenceRows
+from gyrocore.data.columns import columns_of
+from gyrocore.data.recording import ACCEL_COLS, REF_RATE_COLS, TEMP_COL, Recording, file_sha256
 from gyrocore.data.still import still_samples
 
-__all__ = ["FITTABLE", "Calibrator", "near_rate_changes", "has_reference_attitude"]
+__all__ = [
+    "FITTABLE",
+    "Calibrator",
+    "IntegralMethod",
+    "PosesMethod",
+    "AttitudeMethod",
+    "LeastSquaresMethod",
+    "near_rate_changes",
+    "has_reference_attitude",
+]
 
 #: Catalogue effects that ``calibrate`` can fit (those with least-squares regressors); every
 #: family term (``periodic[...]``, ``step[...]``, ``regressor[...]``) is fittable too.
@@ -67,7 +78,7 @@ def near_rate_changes(
     (|Δω_ref|/Δt > ``threshold_rad_s2`` on any axis) — rate ramps and their filter transients.
 
     ``w_ref_rad_s``: the (N, 3) reference rate, or a callable ``(a, b) -> rows a:b`` (a spilled
-    record read a window at a time, :class:`gyrocore.calib.stream.SpillRows`); windows of
+    record read a window at a time, :meth:`gyrocore.calib.rows.ReferenceRows.ref_rows`); windows of
     ``chunk_rows`` rows, each read with one row either side. Sample i is a ramp sample when the
     rate changes faster than the threshold between i−1 and i or between i and i+1; every sample
     within k = round(margin_s / median Δt) samples of a ramp sample is near (the dilation
@@ -108,18 +119,6 @@ def near_rate_changes(
         for s0, e0 in zip(starts, ends):
             near[max(s0 - k, 0) : min(e0 + k + 1, n)] = True
     return near
-
-
-def _shift_rate(t: np.ndarray, w: np.ndarray, tau_s: float) -> np.ndarray:
-    """w(t − τ) by linear interpolation (the catalogue's time_offset convention)."""
-    if tau_s == 0.0:
-        return w
-    return np.stack([np.interp(t - tau_s, t, w[:, i]) for i in range(3)], axis=1)
-
-
-def _swap(r_inp, effects):
-    """(r, inp), effects -> the positional arguments (r, effects, inp) of ``lsq.fit_effects``."""
-    return r_inp[0], effects, r_inp[1]
 
 
 def _outliers(axis_residual, used: np.ndarray, n: int) -> np.ndarray:
@@ -358,24 +357,166 @@ class Calibrator:
         return dict(sensor=sensor, source_file=src_name, source_sha256=src_sha)
 
     # ------------------------------------------------------------------ public
-    def fit(self, recording: Recording, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
-        """Fit the effects; ``source_path`` (the data file) is recorded by name and SHA-256."""
-        common = self._common(
-            recording.meta,
-            source_path,
-            has_accel=recording.accel_m_s2 is not None,
-            has_temp=recording.temp_c is not None,
-        )
-        if self.segments is not None:
-            return self._fit_integral(recording, common)
-        if self.poses:
-            return self._fit_poses(recording, common)
-        if recording.ref_rate_rad_s is None and has_reference_attitude(recording):
-            return self._fit_attitude(recording, source_path, common)
-        return self._fit_lsq(recording, common)
+    def fit(self, recording, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
+        """Fit the effects; ``source_path`` (the data file) is recorded by name and SHA-256.
 
-    # ------------------------------------------------------------------ multi-pose (gravity)
-    def _fit_poses(self, rec: Recording, common: dict) -> CalibrationResult:
+        ``recording``: a :class:`~gyrocore.data.recording.Recording`, or the columns of one held on
+        disk (a :class:`gyrocore.data.spill.ColumnSpill`, e.g. ``spill_columns(path, folder,
+        accel=True, groups=("temp", "ref_rate"))``: a long file fitted a window at a time by the
+        least-squares method, with the numbers of the same fit in memory). The method is
+        :meth:`strategy`'s."""
+        cols = columns_of(recording)
+        common = self._common(
+            cols.meta,
+            source_path,
+            has_accel=all(c in cols.names for c in ACCEL_COLS),
+            has_temp=TEMP_COL in cols.names,
+        )
+        return self.strategy(cols).fit(cols, common, source_path)
+
+    def strategy(self, cols):
+        """The method for the references in the data (the module docstring's order): known
+        rotations (:class:`IntegralMethod`), gravity poses (:class:`PosesMethod`), a reference
+        attitude without reference rates (:class:`AttitudeMethod`), else reference rates or the
+        still parts (:class:`LeastSquaresMethod`)."""
+        if self.segments is not None:
+            return IntegralMethod(self)
+        if self.poses:
+            return PosesMethod(self)
+        rec = getattr(cols, "recording", None)
+        if not all(c in cols.names for c in REF_RATE_COLS) and rec is not None and has_reference_attitude(rec):
+            return AttitudeMethod(self)
+        return LeastSquaresMethod(self)
+
+
+def _in_memory(cols, what: str) -> Recording:
+    """The recording in memory behind a chunk source, or one error line for a recording on disk."""
+    rec = getattr(cols, "recording", None)
+    if rec is None:
+        raise GyroInputError(
+            f"{what} needs the recording in memory (a long file on disk is fitted against its reference rates only)"
+        )
+    return rec
+
+
+# ============================================================================ the four methods
+class IntegralMethod:
+    """Known rotations (a segments file): the article's integral method."""
+
+    def __init__(self, options: "Calibrator") -> None:
+        self.o = options
+
+    def fit(self, cols, common: dict, source_path=None) -> CalibrationResult:
+        from gyrocore.calib import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
+        from gyrocore.calib.rotations import integral_calibration
+
+        from gyrocore.calib.rotations import STILL_GATE, segments_from_any
+
+        rec = _in_memory(cols, "the integral method (segments)")
+        segs = segments_from_any(self.o.segments)
+        if self.o.external_bias is not None:
+            still = None  # no still part needed: the bias comes from elsewhere
+        else:
+            still = still_samples(
+                rec,
+                _replace(STILL_GATE, window_s=self.o.still_window_s, false_reject_rate=self.o.still_false_reject_rate),
+                exclude_s=[(s_.t_start_s, s_.t_end_s) for s_ in segs],
+                margin_s=0.5,
+            )
+        params: dict = {}
+        stderr: dict = {}
+        notes = []
+        H = None
+        unobs: tuple = ()
+        reasons: dict = {}
+        if "g_sensitivity" in self.o.effects:
+            # H from the still poses (rate 0, gravity in different directions), jointly with
+            # the bias; then removed before integrating (imucal's Ferraris does the same)
+            inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=np.zeros((rec.n, 3)), f_S_m_s2=rec.accel_m_s2)
+            fit = lsq.fit_effects(
+                rec.gyro_rad_s,
+                ["bias", "g_sensitivity"],
+                inp,
+                weights=still.astype(float),
+                covariance=self.o.covariance,
+                on_unobservable=self.o.on_unobservable,
+            )
+            H = fit.effect_theta("g_sensitivity").reshape(3, 3)
+            params["g_sensitivity"] = {"h_rad_s_per_m_s2": H}
+            stderr["g_sensitivity"] = {"h_rad_s_per_m_s2": fit.effect_stderr("g_sensitivity").reshape(3, 3)}
+            unobs, reasons = fit.unobservable, dict(fit.unobservable_reason)
+            notes.append(
+                f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}"
+            )
+        res = integral_calibration(
+            rec,
+            segs,
+            still=still,
+            h_rad_s_per_m_s2=H,
+            **(self.o.external_bias or {}),
+            angle_sigma_rad=np.radians(self.o.angle_sigma_deg),
+            axis_sigma_rad=np.radians(self.o.axis_sigma_deg),
+        )
+        if self.o.angle_sigma_deg or self.o.axis_sigma_deg:
+            notes.append(
+                f"standard errors include the known angles' uncertainty: angle {self.o.angle_sigma_deg:g} deg, "
+                f"axis {self.o.axis_sigma_deg:g} deg per segment"
+            )
+        if self.o.external_bias is not None:
+            notes.append(
+                "bias taken from outside the data (external bias; its standard error is propagated into K and M)"
+            )
+        if "bias" in self.o.effects:
+            params["bias"] = {"b_rad_s": res.bias_rad_s}
+            stderr["bias"] = {"b_rad_s": res.bias_stderr_rad_s}
+        if "scale" in self.o.effects:
+            params["scale"] = {"s": res.scale}
+            stderr["scale"] = {"s": res.scale_stderr}
+        if "misalignment" in self.o.effects:
+            params["misalignment"] = {"m_rad": res.misalignment_rad}
+            stderr["misalignment"] = {"m_rad": res.misalignment_stderr_rad}
+        elif "scale" in self.o.effects:
+            notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
+        if "bias" not in self.o.effects:
+            notes.append("bias not requested but still removed before integrating (the integral method needs it)")
+        integral = {
+            "M": res.M,
+            "M_stderr": res.M_stderr,
+            "K": res.K,
+            "K_stderr": res.K_stderr,
+            "B_rad": res.B_rad,
+            "C_rad": res.C_rad,
+            "angle_residual_rad": res.angle_residual_rad,
+            "noise_lr_rad2_s": res.noise_lr_rad2_s,
+            "n_still": res.n_still,
+            "segment_duration_s": res.segment_duration_s,
+        }
+        rms = res.still_rms_rad_s
+        params = {e: params[e] for e in self.o.effects if e in params}
+        stderr = {e: stderr[e] for e in self.o.effects if e in stderr}
+        return CalibrationResult(
+            effects=self.o.effects,
+            params=params,
+            stderr=stderr,
+            residual_rms_rad_s=rms,
+            unobservable=unobs,
+            unobservable_reason=reasons,
+            method="integral",
+            covariance="integral",
+            n_samples=int(res.n_still),
+            notes=tuple(notes),
+            integral=integral,
+            **common,
+        )
+
+
+class PosesMethod:
+    """Still poses joined by turns, gravity as the reference (IMU-TK)."""
+
+    def __init__(self, options: "Calibrator") -> None:
+        self.o = options
+
+    def fit(self, cols, common: dict, source_path=None) -> CalibrationResult:
         """The multi-pose method (:func:`gyrocore.calib.rotations.gravity_pose_calibration`, Tedaldi
         et al. 2014, IMU-TK): K from the turns between still poses, each pose's measured
         gravity direction carried through the corrected, integrated gyro onto the next pose's;
@@ -384,9 +525,10 @@ class Calibrator:
         scaled by its residual (the hand-held poses' tremble included)."""
         from gyrocore.calib.rotations import gravity_pose_calibration
 
+        rec = _in_memory(cols, "the multi-pose method (poses)")
         if rec.accel_m_s2 is None:
             raise GyroInputError("the multi-pose method needs the accel_*_m_s2 columns (gravity is the reference)")
-        r = gravity_pose_calibration(rec, pose_std_factor=self.pose_std_factor)
+        r = gravity_pose_calibration(rec, pose_std_factor=self.o.pose_std_factor)
         K, Kse = np.asarray(r.K, float), np.asarray(r.K_stderr, float)
         params: dict = {
             "bias": {"b_rad_s": r.bias_rad_s},
@@ -408,14 +550,14 @@ class Calibrator:
             "residual_rms_rad_s: the still poses' scatter is not a rate residual here (the reference is the "
             "gravity direction); see the misfit above",
         ]
-        if "scale" in self.effects and "misalignment" not in self.effects:
+        if "scale" in self.o.effects and "misalignment" not in self.o.effects:
             notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
-        if "bias" not in self.effects:
+        if "bias" not in self.o.effects:
             notes.append("bias not requested but still removed before integrating (the method needs it)")
-        params = {e: params[e] for e in self.effects}
-        stderr = {e: stderr[e] for e in self.effects}
+        params = {e: params[e] for e in self.o.effects}
+        stderr = {e: stderr[e] for e in self.o.effects}
         return CalibrationResult(
-            effects=self.effects,
+            effects=self.o.effects,
             params=params,
             stderr=stderr,
             residual_rms_rad_s=np.full(3, np.nan),
@@ -426,8 +568,14 @@ class Calibrator:
             **common,
         )
 
-    # ------------------------------------------------------------------ reference attitude
-    def _fit_attitude(self, rec: Recording, source_path, common: dict) -> CalibrationResult:
+
+class AttitudeMethod:
+    """A reference attitude without reference rates: the residual loop's fit of the named effects."""
+
+    def __init__(self, options: "Calibrator") -> None:
+        self.o = options
+
+    def fit(self, cols, common: dict, source_path=None) -> CalibrationResult:
         """A reference attitude (e.g. optical motion capture) and no reference rate: the
         residual loop's machinery — attitude increments over 1-s windows, the optical attitude
         never differentiated (:func:`gyrocore.loop.residual.build_residual`, reference
@@ -440,15 +588,16 @@ class Calibrator:
         from gyrocore.loop.model import FITTABLE as LOOP_FITTABLE
         from gyrocore.loop.validate import loop_calibration
 
-        bad = [e for e in self.effects if e not in LOOP_FITTABLE]
+        rec = cols.recording  # chosen only for a recording in memory (Calibrator._strategy)
+        bad = [e for e in self.o.effects if e not in LOOP_FITTABLE]
         if bad:
             raise GyroInputError(
                 f"against a reference attitude {', '.join(bad)} cannot be fitted (fittable: {', '.join(LOOP_FITTABLE)})"
             )
-        order = 1 if self.thermal_order == "auto" else int(self.thermal_order)
+        order = 1 if self.o.thermal_order == "auto" else int(self.o.thermal_order)
         r = run_loop(
             rec,
-            declared=list(self.effects),
+            declared=list(self.o.effects),
             candidates=[],
             reference="attitude",
             thermal_order=order,
@@ -460,134 +609,17 @@ class Calibrator:
             + [f"calibrated against the reference attitude (ref_q*): {r.description}, {r.n_windows} windows"]
             + list(r.notes)
         )
-        if self.thermal_order == "auto" and any(e in self.effects for e in ("bias_thermal", "scale_thermal")):
+        if self.o.thermal_order == "auto" and any(e in self.o.effects for e in ("bias_thermal", "scale_thermal")):
             notes.append("thermal order 1 (order selection is not done against an attitude reference)")
         return replace(res, notes=tuple(notes), method="attitude_reference")
 
-    def fit_spilled(self, store, *, source_path: str | os.PathLike | None = None) -> CalibrationResult:
-        """Fit a long recording held on disk (:func:`gyrocore.data.spill.spill_columns` with
-        ``groups=("temp", "ref_rate")``), a window at a time (:mod:`gyrocore.calib.stream`).
 
-        Reference rates only (method ``rate_reference``); the result equals :meth:`fit` of the
-        same recording in memory (the same windows and block sums: the same numbers, see
-        :func:`gyrocore.calib.lsq.fit_effects`). Memory: the time column, one weight column and one
-        residual axis at a time, not the recording.
-        """
-        from gyrocore.data.recording import REF_RATE_COLS, TEMP_COL
+class LeastSquaresMethod:
+    """Reference rates (or the still parts against rate 0): joint least squares, window by window."""
 
-        if self.segments is not None:
-            raise GyroInputError("the integral method (segments) needs the recording in memory")
-        if not all(c in store.names for c in REF_RATE_COLS):
-            raise GyroInputError("a streamed fit needs reference rates (ref_*_rad_s)")
-        common = self._common(
-            store.meta, source_path, has_accel="accel_x_m_s2" in store.names, has_temp=TEMP_COL in store.names
-        )
-        return self._fit_lsq(None, common, store=store)
+    def __init__(self, options: "Calibrator") -> None:
+        self.o = options
 
-    # ------------------------------------------------------------------ integral method
-    def _fit_integral(self, rec: Recording, common: dict) -> CalibrationResult:
-        from gyrocore.calib import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
-        from gyrocore.calib.rotations import integral_calibration
-
-        from gyrocore.calib.rotations import STILL_GATE, segments_from_any
-
-        segs = segments_from_any(self.segments)
-        if self.external_bias is not None:
-            still = None  # no still part needed: the bias comes from elsewhere
-        else:
-            still = still_samples(
-                rec,
-                _replace(STILL_GATE, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate),
-                exclude_s=[(s_.t_start_s, s_.t_end_s) for s_ in segs],
-                margin_s=0.5,
-            )
-        params: dict = {}
-        stderr: dict = {}
-        notes = []
-        H = None
-        unobs: tuple = ()
-        reasons: dict = {}
-        if "g_sensitivity" in self.effects:
-            # H from the still poses (rate 0, gravity in different directions), jointly with
-            # the bias; then removed before integrating (imucal's Ferraris does the same)
-            inp = E.ModelInputs(t_s=rec.t_s, omega_S_rad_s=np.zeros((rec.n, 3)), f_S_m_s2=rec.accel_m_s2)
-            fit = lsq.fit_effects(
-                rec.gyro_rad_s,
-                ["bias", "g_sensitivity"],
-                inp,
-                weights=still.astype(float),
-                covariance=self.covariance,
-                on_unobservable=self.on_unobservable,
-            )
-            H = fit.effect_theta("g_sensitivity").reshape(3, 3)
-            params["g_sensitivity"] = {"h_rad_s_per_m_s2": H}
-            stderr["g_sensitivity"] = {"h_rad_s_per_m_s2": fit.effect_stderr("g_sensitivity").reshape(3, 3)}
-            unobs, reasons = fit.unobservable, dict(fit.unobservable_reason)
-            notes.append(
-                f"g_sensitivity fitted on {int(still.sum())} still samples (poses), standard errors: {fit.cov_kind}"
-            )
-        res = integral_calibration(
-            rec,
-            segs,
-            still=still,
-            h_rad_s_per_m_s2=H,
-            **(self.external_bias or {}),
-            angle_sigma_rad=np.radians(self.angle_sigma_deg),
-            axis_sigma_rad=np.radians(self.axis_sigma_deg),
-        )
-        if self.angle_sigma_deg or self.axis_sigma_deg:
-            notes.append(
-                f"standard errors include the known angles' uncertainty: angle {self.angle_sigma_deg:g} deg, "
-                f"axis {self.axis_sigma_deg:g} deg per segment"
-            )
-        if self.external_bias is not None:
-            notes.append(
-                "bias taken from outside the data (external bias; its standard error is propagated into K and M)"
-            )
-        if "bias" in self.effects:
-            params["bias"] = {"b_rad_s": res.bias_rad_s}
-            stderr["bias"] = {"b_rad_s": res.bias_stderr_rad_s}
-        if "scale" in self.effects:
-            params["scale"] = {"s": res.scale}
-            stderr["scale"] = {"s": res.scale_stderr}
-        if "misalignment" in self.effects:
-            params["misalignment"] = {"m_rad": res.misalignment_rad}
-            stderr["misalignment"] = {"m_rad": res.misalignment_stderr_rad}
-        elif "scale" in self.effects:
-            notes.append("misalignment not requested: K's off-diagonal terms are left in the data")
-        if "bias" not in self.effects:
-            notes.append("bias not requested but still removed before integrating (the integral method needs it)")
-        integral = {
-            "M": res.M,
-            "M_stderr": res.M_stderr,
-            "K": res.K,
-            "K_stderr": res.K_stderr,
-            "B_rad": res.B_rad,
-            "C_rad": res.C_rad,
-            "angle_residual_rad": res.angle_residual_rad,
-            "noise_lr_rad2_s": res.noise_lr_rad2_s,
-            "n_still": res.n_still,
-            "segment_duration_s": res.segment_duration_s,
-        }
-        rms = res.still_rms_rad_s
-        params = {e: params[e] for e in self.effects if e in params}
-        stderr = {e: stderr[e] for e in self.effects if e in stderr}
-        return CalibrationResult(
-            effects=self.effects,
-            params=params,
-            stderr=stderr,
-            residual_rms_rad_s=rms,
-            unobservable=unobs,
-            unobservable_reason=reasons,
-            method="integral",
-            covariance="integral",
-            n_samples=int(res.n_still),
-            notes=tuple(notes),
-            integral=integral,
-            **common,
-        )
-
-    # ------------------------------------------------------------------ least squares
     #: Noise identification for ``covariance="noise_model"`` uses only samples farther than
     #: this from a change of the reference rate (|Δω_ref|/dt > :data:`RAMP_RATE_RAD_S2`): at rate
     #: ramps the residual holds the on-chip low-pass's transient (deterministic, ≈ 10× the
@@ -666,24 +698,35 @@ class Calibrator:
         record). ``w_ref``: (N, 3) or a window reader ``(a, b) -> rows`` (a spilled record:
         :func:`near_rate_changes` reads it a window at a time, the same mask)."""
         n = int(np.asarray(t_s).size)
-        if self.ramp_margin_s > 0:
-            near = near_rate_changes(t_s, w_ref, self.ramp_margin_s)
+        if self.o.ramp_margin_s > 0:
+            near = near_rate_changes(t_s, w_ref, self.o.ramp_margin_s)
             if near.any() and np.count_nonzero(~near) >= 0.25 * n:
                 notes.append(
-                    f"left out {int(near.sum())} samples within {self.ramp_margin_s:g} s of a reference-rate "
+                    f"left out {int(near.sum())} samples within {self.o.ramp_margin_s:g} s of a reference-rate "
                     "change (rate ramps: the gyro's own filter transient)"
                 )
                 return (~near).astype(float)
         return np.broadcast_to(1.0, (n,))
 
-    def _references(self, rec: Recording):
-        """(omega_ref (N,3), weights (N,), method, notes)."""
+    def fit(self, cols, common: dict, source_path=None) -> CalibrationResult:
+        """Reference rates, or the still parts against rate 0: the joint least squares of
+        :func:`gyrocore.calib.lsq.fit_effects`, read a window at a time from ``cols`` (a recording
+        in memory or its columns on disk: the same path, the same numbers)."""
+        lhs, weights, method, notes = self._references(cols)
+        fit, tau_total, opts, orders, tests = self._fits(cols, lhs, weights, notes)
+        return self._result(cols, fit, tau_total, opts, orders, tests, method, notes, common)
+
+    def _references(self, cols):
+        """(lhs(τ) → the fit's rows r = y − ω_ref(t − τ) and inputs, weights (N,), method,
+        notes): the reference rates with their ramps left out, or the still parts against rate 0."""
         notes: list[str] = []
-        if rec.ref_rate_rad_s is not None:
-            return rec.ref_rate_rad_s, self._ramp_weights(rec.t_s, rec.ref_rate_rad_s, notes), "rate_reference", notes
+        if all(c in cols.names for c in REF_RATE_COLS):
+            weights = self._ramp_weights(cols.t_s, ReferenceRows(cols).ref_rows, notes)
+            return (lambda tau: ReferenceRows(cols, tau_s=tau)), weights, "rate_reference", notes
+        rec = _in_memory(cols, "a fit without reference rates (the still parts)")
         from gyrocore.calib.rotations import STILL_GATE
 
-        gate = _replace(STILL_GATE, window_s=self.still_window_s, false_reject_rate=self.still_false_reject_rate)
+        gate = _replace(STILL_GATE, window_s=self.o.still_window_s, false_reject_rate=self.o.still_false_reject_rate)
         m = still_samples(rec, gate)
         if m.sum() < 10:
             raise GyroInputError(
@@ -693,7 +736,7 @@ class Calibrator:
             f"no reference rates: fitted against rate 0 on {int(m.sum())} still samples "
             f"({100.0 * m.mean():.0f} % of the file); Earth rate is absorbed in the bias"
         )
-        rate_effects = [e for e in self.effects if {"omega", "alpha"} & set(E.resolve(e).inputs)]
+        rate_effects = [e for e in self.o.effects if {"omega", "alpha"} & set(E.resolve(e).inputs)]
         if rate_effects:
             # against rate 0 their regressors are zero: say what would excite them (a multi-pose
             # session such as IMU-TK's turns between poses without a rate reference)
@@ -702,66 +745,32 @@ class Calibrator:
                 "reference attitude (ref_q*), known rotations (--segments), or, for a multi-pose session (still "
                 "poses joined by turns, IMU-TK), the poses' gravity directions (--poses)"
             )
-        return np.zeros((rec.n, 3)), m.astype(float), "still", notes
+        return (lambda tau: ReferenceRows(cols, tau_s=tau)), m.astype(float), "still", notes
 
-    def _fit_lsq(self, rec: Recording, common: dict, *, store=None) -> CalibrationResult:
+    def _fits(self, cols, lhs, weights, notes: list):
+        """The fits: at the highest thermal order (time offset settled by Gauss–Newton, the
+        robust pass, the noise model identified), the thermal orders from the data, the final
+        fit. Returns (final fit, τ, solver options, orders, order tests)."""
         from gyrocore.calib import lsq  # (lazy: scipy.stats is ~40 MiB that applying a calibration does not need)
 
-        if store is not None:  # a long recording on disk (gyrocore.calib.stream): same fit, window by window
-            from gyrocore.calib.stream import ResidualFiles, SpillRows
+        o = self.o
+        n_all = cols.n
+        has_ref = all(c in cols.names for c in REF_RATE_COLS)
 
-            n_all = store.n
-            w_ref = None
-            method, notes = "rate_reference", []
-            # ramps left out as in memory: the mask from the reference rate read window by window
-            weights = self._ramp_weights(store.t_s, SpillRows(store).ref_rows, notes)
+        def ref_at(tau):  # ω_ref(t − τ) as a window reader (the noise identification's ramp mask)
+            return ReferenceRows(cols, tau_s=tau).ref_rows if has_ref else None
 
-            def ref_at(tau):  # ω_ref(t − τ) as a window reader (the noise identification's ramp mask)
-                return SpillRows(store, tau_s=tau).ref_rows
-
-            def lhs(tau):
-                return SpillRows(store, tau_s=tau), None
-
-            sink = ResidualFiles(store.folder, n_all)
-            first_kw = dict(residual_sink=sink, keep_residual=False)
-
-            def first_axis(fit, i):  # a fresh array: the robust pass works on it in place
-                return sink.axis(i)
-
-            def temp_column():
-                return store.column("temp_c")
-        else:
-            w_ref, weights, method, notes = self._references(rec)
-            n_all = rec.n
-            y = rec.gyro_rad_s
-            t = rec.t_s
-
-            def lhs(tau):
-                # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
-                return y - _shift_rate(t, w_ref, tau), E.ModelInputs(
-                    t_s=t, omega_S_rad_s=_shift_rate(t, w_ref, tau), f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c
-                )
-
-            first_kw = dict(overwrite_r=True)
-
-            def ref_at(tau):
-                return None if w_ref is None else _shift_rate(t, w_ref, tau)
-
-            def first_axis(fit, i):  # a fresh array: the robust pass works on it in place
-                return fit.residual_rad_s[:, i].copy()
-
-            def temp_column():
-                return np.asarray(rec.temp_c, float)
-
+        # the first fits' full-resolution residual, a scratch column of the source's kind (in
+        # memory, or a file per axis beside a spill), read back one axis at a time
+        residual = cols.scratch("residual", 3)
         n_used = int(np.sum(weights > 0))
-        average = max(1, int(math.ceil(n_used / self.max_rows)))
+        average = max(1, int(math.ceil(n_used / o.max_rows)))
         if average > 1:
             notes.append(f"fitted block means of {average} samples ({n_used} samples)")
-        model_cov = self.covariance == "noise_model"
-        t_all = np.asarray(rec.t_s if store is None else store.t_s, float)
+        model_cov = o.covariance == "noise_model"
+        t_all = np.asarray(cols.t_s, float)
         rate_hz = float((n_all - 1) / max(float(t_all[-1] - t_all[0]), 1e-300)) if n_all > 1 else float("nan")
-        # sample times since the first sample (flicker and random walk start there); a
-        # streamed record's fit gets the row intervals from the chunked path (t_s: only dt)
+        # sample times since the first sample (flicker and random walk start there)
         t_since = t_all - float(t_all[0])
         # with the noise-model covariance the first fits (time offset, robust pass) use OLS
         # standard errors; the model is identified on their residual, then used from the
@@ -769,33 +778,30 @@ class Calibrator:
         opts = dict(
             weights=weights,
             average=average,
-            covariance="ols" if model_cov else self.covariance,
-            on_unobservable=self.on_unobservable,
+            covariance="ols" if model_cov else o.covariance,
+            on_unobservable=o.on_unobservable,
         )
-        effects = list(self.effects)
+        effects = list(o.effects)
         thermal = [e for e in effects if e in E.POLYNOMIAL]
-        tau_total = 0.0
-
         # 1) fit at the highest thermal order (or the fixed one) to settle τ and transients
         orders: dict[str, int] = {
-            e: (self.max_thermal_order if self.thermal_order == "auto" else int(self.thermal_order)) for e in thermal
+            e: (o.max_thermal_order if o.thermal_order == "auto" else int(o.thermal_order)) for e in thermal
         }
         tests = []
 
-        # (the residual r is a fresh array: a long record's fit may overwrite it, see lsq)
         def first_fit(tau):
-            return lsq.fit_effects(*_swap(lhs(tau), effects), orders=orders, **first_kw, **opts)
+            return lsq.fit_effects(
+                lhs(tau), effects, None, orders=orders, residual_sink=residual.write, keep_residual=False, **opts
+            )
 
         # time_offset: Gauss–Newton on τ (the regressor −dω/dt is a linearisation)
         fit, tau_total = _settle_time_offset(first_fit) if "time_offset" in effects else (first_fit(0.0), 0.0)
         # robust pass: drop transients the model does not describe
-        if self.robust and fit.rank:
+        if o.robust and fit.rank:
             used = weights > 0
-            bad = _outliers(lambda i: first_axis(fit, i), used, n_all)
-            if model_cov and self.noise is None:
-                opts.update(
-                    self._identified_noise(lambda i: first_axis(fit, i), bad | ~used, rate_hz, notes, ref_at(tau_total))
-                )
+            bad = _outliers(residual.axis, used, n_all)
+            if model_cov and o.noise is None:
+                opts.update(self._identified_noise(residual.axis, bad | ~used, rate_hz, notes, ref_at(tau_total)))
             nb = int(bad.sum())
             # only when outliers are rare (< 5 %): otherwise the model is wrong, not the samples
             if 0 < nb < 0.05 * used.sum():
@@ -803,34 +809,40 @@ class Calibrator:
                 opts["weights"] = weights
                 notes.append(f"excluded {nb} samples with residual > 6 robust sigma (transients)")
         if model_cov and "noise_model" not in opts:
-            if self.noise is not None:
-                opts.update(covariance="noise_model", noise_model=self.noise, t_s=t_since)
+            if o.noise is not None:
+                opts.update(covariance="noise_model", noise_model=o.noise, t_s=t_since)
                 notes.append("standard errors: noise-model sandwich (noise model given)")
             else:
-                opts.update(
-                    self._identified_noise(
-                        lambda i: first_axis(fit, i), ~(weights > 0), rate_hz, notes, ref_at(tau_total)
-                    )
-                )
+                opts.update(self._identified_noise(residual.axis, ~(weights > 0), rate_hz, notes, ref_at(tau_total)))
         if model_cov:
             opts["t_s"] = t_since
-        # 2) thermal order from the data, then the final fit (the first fit's full-resolution
-        #    residual is no longer needed: free it before the next fits)
+        opts["rate_hz"] = rate_hz
+        # 2) thermal order from the data, then the final fit (the scratch residual is no
+        #    longer needed: free it before the next fits)
+        residual.close()
         fit = None
-        if thermal and self.thermal_order == "auto":
+        solve_opts = {k: v for k, v in opts.items() if k != "rate_hz"}
+        if thermal and o.thermal_order == "auto":
             from gyrocore.calib.thermal import select_thermal_orders
 
             orders, tests = select_thermal_orders(
-                *lhs(tau_total),
+                lhs(tau_total),
+                None,
                 effects,
-                max_order=self.max_thermal_order,
-                alpha=self.thermal_alpha,
-                **dict(opts, on_unobservable="drop", keep_residual=False),
+                max_order=o.max_thermal_order,
+                alpha=o.thermal_alpha,
+                **dict(solve_opts, on_unobservable="drop", keep_residual=False),
             )
         # only θ, its standard errors and the residual RMS are kept from the final fit
-        fit = lsq.fit_effects(*_swap(lhs(tau_total), effects), orders=orders, keep_residual=False, **opts)
+        fit = lsq.fit_effects(lhs(tau_total), effects, None, orders=orders, keep_residual=False, **solve_opts)
         if "time_offset" in effects and np.isfinite(fit.effect_stderr("time_offset")[0]):
             tau_total += float(fit.effect_theta("time_offset")[0])
+        return fit, tau_total, opts, orders, tests
+
+    def _result(self, cols, fit, tau_total, opts, orders, tests, method, notes, common) -> CalibrationResult:
+        """The :class:`CalibrationResult` of the final fit (thermal polynomials with their
+        centre and the temperature range of the rows used)."""
+        effects = list(self.o.effects)
         params: dict = {}
         stderr: dict = {}
         for eff in effects:
@@ -839,7 +851,7 @@ class Calibrator:
             params[eff] = _unflatten(eff, fit.theta[sl], order)
             stderr[eff] = _unflatten(eff, fit.stderr[sl], order)
             if eff in E.POLYNOMIAL:
-                T = temp_column()
+                T = cols.column(TEMP_COL)
                 used_rows = opts["weights"] > 0
                 # design() centres the polynomial on the mean temperature of all rows it gets;
                 # the range over the rows used, without a copy of them (min/max are exact)
@@ -867,6 +879,6 @@ class Calibrator:
             thermal_order=orders,
             thermal_tests=tuple(t_.__dict__ for t_ in tests),
             notes=tuple(notes),
-            noise_model=noise_model_dict(opts.get("noise_model"), rate_hz),
+            noise_model=noise_model_dict(opts.get("noise_model"), opts["rate_hz"]),
             **common,
         )

@@ -42,7 +42,8 @@ import scipy.optimize
 import scipy.stats
 
 from gyrocore.errors import GyroInputError, warn_repair
-from gyrocore.data.recording import Recording
+from gyrocore.data.columns import columns_of
+from gyrocore.data.recording import GYRO_COLS, Recording
 
 __all__ = [
     "StaticBiasCalibrator",
@@ -213,10 +214,8 @@ def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndar
 
 
 def _robust_diff_noise_columns(store) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`robust_diff_noise` of the gyro of a :class:`gyrocore.data.spill.ColumnSpill`,
-    one column at a time (the same values as the in-memory long-record path)."""
-    from gyrocore.data.recording import GYRO_COLS
-
+    """:func:`robust_diff_noise` of the gyro of a chunk source (:mod:`gyrocore.data.columns`),
+    one column at a time (the same values as the whole array: medians are exact)."""
     if store.n < 4:
         raise GyroInputError(f"need at least 4 samples to estimate the noise, got {store.n}")
     s1, s2 = np.empty(3), np.empty(3)
@@ -269,11 +268,6 @@ def _solve_increasing(f, target: float, hi0: float) -> float:
 _BLOCK_BYTES = 32 * 2**20
 
 
-#: Block of windows read at a time from disk (:class:`SpilledWindows`): small, since each
-#: block is a fresh array (the in-memory path's blocks are views of the record).
-_SPILL_BLOCK_BYTES = 4 * 2**20
-
-
 def _blocks(W: int, n: int, width: int, block_bytes: int | None = None):
     """Window ranges [a, b) of about ``block_bytes`` (default _BLOCK_BYTES) each (one range
     when the record is small)."""
@@ -284,27 +278,22 @@ def _blocks(W: int, n: int, width: int, block_bytes: int | None = None):
     return [(a, min(a + per, W)) for a in range(0, W, per)]
 
 
-class SpilledWindows:
-    """Non-overlapping windows of n samples of a gyro held on disk (a
-    :class:`gyrocore.data.spill.ColumnSpill`), shape (W, n, 3) like ``x[:W*n].reshape(W, n, 3)``,
-    read a block of windows at a time (:meth:`block`); the window statistics of this module
-    take it in place of the in-memory array and do the same arithmetic on the same blocks."""
+class GyroWindows:
+    """Non-overlapping windows of n samples of the gyro of a chunk source
+    (:mod:`gyrocore.data.columns`: a recording in memory or its columns on disk), shape (W, n, 3)
+    like ``x[:W*n].reshape(W, n, 3)``, read a block of windows at a time (:meth:`block`, blocks
+    of the source's ``block_bytes``); the window statistics of this module take it in place
+    of an in-memory array and do the same arithmetic on the same blocks."""
 
-    def __init__(self, store, n: int) -> None:
-        from gyrocore.data.recording import GYRO_COLS
-
-        self.store = store
-        self.cols = GYRO_COLS
-        self.shape = (store.n // n, n, 3)
-
-    @property
-    def block_bytes(self) -> int:
-        return _SPILL_BLOCK_BYTES
+    def __init__(self, cols, n: int) -> None:
+        self.cols = cols
+        self.shape = (cols.n // n, n, 3)
+        self.block_bytes = cols.block_bytes
 
     def block(self, a: int, b: int) -> np.ndarray:
-        """Windows a:b, shape (b − a, n, 3) (a fresh array)."""
+        """Windows a:b, shape (b − a, n, 3) (a view in memory, a fresh array from disk)."""
         n = self.shape[1]
-        return self.store.block(self.cols, a * n, b * n).reshape(b - a, n, 3)
+        return self.cols.block(GYRO_COLS, a * n, b * n).reshape(b - a, n, 3)
 
     def __getitem__(self, k: int) -> np.ndarray:
         return self.block(k, k + 1)[0]
@@ -317,7 +306,7 @@ def _wblock(xw, a: int, b: int) -> np.ndarray:
 def _window_stats(x, n: int, statistic: str) -> np.ndarray:
     """Per-window statistic, shape (W, 3), for non-overlapping windows of n samples.
 
-    ``x`` : (N, C) array, or a :class:`SpilledWindows` of windows of n samples."""
+    ``x`` : (N, C) array, or a :class:`GyroWindows` of windows of n samples."""
     if isinstance(x, np.ndarray):
         W = x.shape[0] // n
         xw = x[: W * n].reshape(W, n, x.shape[1])
@@ -625,8 +614,14 @@ class StaticBiasCalibrator:
         return sigma2, dof
 
     # ------------------------------------------------------------------ fit
-    def fit(self, recording: Recording) -> StaticBiasResult:
+    def fit(self, recording) -> StaticBiasResult:
         """Estimate the static bias of ``recording`` (gyro rad/s, sensor frame S).
+
+        ``recording``: a :class:`Recording`, or the columns of one held on disk (a
+        :class:`gyrocore.data.spill.ColumnSpill`). Either is read through the chunk source of
+        :mod:`gyrocore.data.columns` a block of windows at a time (views of memory; fresh small
+        reads from disk) and the robust noise one gyro column at a time: memory O(one column)
+        + O(W) window statistics, the same numbers in memory and from disk.
 
         Raises
         ------
@@ -634,33 +629,16 @@ class StaticBiasCalibrator:
             Recording shorter than one window (two for "converge"), or motion detected in
             every window tried (one line, with the threshold and how many windows were tried).
         """
-        x = np.asarray(recording.gyro_rad_s, float)
-        return self._fit(
-            recording,
-            x.shape[0],
-            recording.rate_hz,
-            lambda: self._noise(x),
-            lambda n: (x, x[: (x.shape[0] // n) * n].reshape(x.shape[0] // n, n, 3)),
-        )
-
-    def fit_spilled(self, store) -> StaticBiasResult:
-        """:meth:`fit` of a long recording held on disk (:func:`gyrocore.data.spill.spill_columns`),
-        read a block of windows at a time: memory O(one gyro column) for the robust noise
-        (one column at a time, as :func:`robust_diff_noise` does for long records) and O(W)
-        for the window statistics, instead of the (N, 3) gyro. Same numbers as :meth:`fit`
-        of the recording in memory (same blocks, same order of operations)."""
-        from gyrocore.data.recording import Recording
-
+        cols = columns_of(recording)
         # what _result reads (the rate, the start time): t with a zero-stride stand-in gyro
-        head = Recording(t_s=store.t_s, gyro_rad_s=np.broadcast_to(0.0, (store.n, 3)), meta=store.meta)
-        rate = head.rate_hz
+        head = Recording(t_s=cols.t_s, gyro_rad_s=np.broadcast_to(0.0, (cols.n, 3)), meta=cols.meta)
 
         def noise():
             if self.noise_sigma_rad_s is not None:
                 return self._noise(None)
-            return _refuse_constant(_robust_diff_noise_columns(store))
+            return _refuse_constant(_robust_diff_noise_columns(cols), cols.block(GYRO_COLS, 0, 1))
 
-        return self._fit(head, store.n, rate, noise, lambda n: (SpilledWindows(store, n),) * 2)
+        return self._fit(head, cols.n, head.rate_hz, noise, lambda n: (GyroWindows(cols, n),) * 2)
 
     def _fit(self, recording, N: int, rate: float, noise, windows) -> StaticBiasResult:
         if not (math.isfinite(rate) and rate > 0):
@@ -674,7 +652,7 @@ class StaticBiasCalibrator:
         if W < need:
             raise GyroInputError(f"recording has {N} samples, shorter than {need} window(s) of {n} samples")
         sigma_diff, rho = noise()
-        x, xw = windows(n)  # the (N, 3) gyro and its (W, n, 3) windows (or both SpilledWindows)
+        x, xw = windows(n)  # the gyro's (W, n, 3) windows (GyroWindows), twice
         sigma2 = dof = None
         inflated = ""  # why the window variances were not used (motion in most windows), else ""
         if self.statistic == "variance" and self.rule in ("mean", "median"):

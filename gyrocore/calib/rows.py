@@ -6,8 +6,9 @@ left-hand side r = y − ω_ref and the model inputs of rows a:b — and reduces
 used rows (:class:`BlockMeans`), window by window. The linear model holds exactly for the
 means, so the solver sees at most N/``average`` rows whatever the record's length: memory is
 bounded by the window (``CHUNK_ROWS`` × 3 × P) and the block means (N/``average`` × 3 × P).
-A record in memory is an :class:`ArrayRows`; a record on disk is
-:class:`gyrocore.calib.stream.SpillRows` — the same windows, the same sums, the same numbers.
+Arrays in memory are an :class:`ArrayRows`; a recording's columns (in memory or on disk,
+:mod:`gyrocore.data.columns`) against its reference rate are a :class:`ReferenceRows` — the
+same windows, the same sums, the same numbers.
 With ``average`` = 1 a block is one row and its "mean" is the row itself (no arithmetic).
 """
 
@@ -18,10 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gyrocore.data.recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL
 from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 
-__all__ = ["RowSource", "ArrayRows", "BlockMeans", "BlockRows", "window_ranges", "CHUNK_ROWS"]
+__all__ = ["RowSource", "ArrayRows", "ReferenceRows", "BlockMeans", "BlockRows", "window_ranges", "CHUNK_ROWS"]
 
 #: Window length (rows) of the design built by :func:`gyrocore.calib.lsq.fit_effects`; a record of
 #: at most four windows is one window (its design, ≤ 4·CHUNK_ROWS rows, is within the same bound).
@@ -107,6 +109,72 @@ class ArrayRows(RowSource):
 
     def temp_mean_c(self) -> float | None:
         return None if self.inp.temp_c is None else float(np.mean(np.asarray(self.inp.temp_c, float)))
+
+
+class ReferenceRows(RowSource):
+    """r = y − ω_ref(t − τ) and the model inputs of a recording, a window at a time.
+
+    Parameters
+    ----------
+    store : chunk source
+        The recording's columns (:mod:`gyrocore.data.columns`: a recording in memory, or a
+        :class:`gyrocore.data.spill.ColumnSpill` on disk): ``t_s``, the gyro and, when present,
+        ``ref_*_rad_s`` (zeros without: the still parts' rate 0), accel and ``temp_c``.
+    tau_s : float
+        Time offset τ, s: the reference rate is taken at t − τ by linear interpolation (the
+        catalogue's ``time_offset`` convention); rows outside the record hold the end values
+        (``np.interp``).
+    """
+
+    def __init__(self, store, *, tau_s: float = 0.0) -> None:
+        self.store = store
+        self.tau_s = float(tau_s)
+        self.n = int(store.n)
+        self.t = store.t_s
+        self.has_ref = all(c in store.names for c in REF_RATE_COLS)
+        self.has_accel = all(c in store.names for c in ACCEL_COLS)
+        self.has_temp = TEMP_COL in store.names
+        self._temp_mean = None
+
+    def _ref(self, a: int, b: int) -> np.ndarray:
+        """ω_ref(t − τ) on rows a:b, shape (b − a, 3)."""
+        if not self.has_ref:
+            return np.zeros((b - a, 3))
+        if self.tau_s == 0.0:
+            return self.store.block(REF_RATE_COLS, a, b)
+        t = self.t
+        tq = t[a:b] - self.tau_s
+        # the rows of the reference that bracket every query point (np.interp uses only the
+        # bracketing pair, and the end values beyond the record): the same numbers as on the
+        # whole column
+        i0 = max(int(np.searchsorted(t, tq[0], side="left")) - 1, 0)
+        i1 = min(int(np.searchsorted(t, tq[-1], side="right")) + 1, self.n)
+        w = self.store.block(REF_RATE_COLS, i0, i1)
+        return np.stack([np.interp(tq, t[i0:i1], w[:, i]) for i in range(3)], axis=1)
+
+    def ref_rows(self, a: int, b: int) -> np.ndarray:
+        """ω_ref(t − τ) on rows a:b, shape (b − a, 3) (zeros without reference columns)."""
+        return self._ref(a, b)
+
+    def r_rows(self, a: int, b: int) -> np.ndarray:
+        return self.store.block(GYRO_COLS, a, b) - self._ref(a, b)
+
+    def inputs(self, lo: int, hi: int) -> E.ModelInputs:
+        t = self.t
+        return E.ModelInputs(
+            t_s=t[lo:hi],
+            omega_S_rad_s=self._ref(lo, hi),
+            f_S_m_s2=self.store.block(ACCEL_COLS, lo, hi) if self.has_accel else None,
+            temp_c=self.store.rows(TEMP_COL, lo, hi) if self.has_temp else None,
+            t_since_power_up_s=t[lo:hi] - t[0],
+        )
+
+    def temp_mean_c(self) -> float | None:
+        if not self.has_temp:
+            return None
+        if self._temp_mean is None:  # np.mean of the whole column: the same number as in memory
+            self._temp_mean = float(np.mean(self.store.column(TEMP_COL)))
+        return self._temp_mean
 
 
 @dataclass(frozen=True, eq=False)

@@ -742,9 +742,9 @@ def _check_header(header: list[str], path: str) -> None:
         raise GyroInputError(f"{path}: empty column name in header")
 
 
-def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int]:
-    """Column groups present in a data file (CSV or Parquet) and its estimated number of rows,
-    from the header and the file size only (no data read).
+def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int, int]:
+    """Column groups present in a data file (CSV or Parquet), its estimated number of rows and
+    its number of columns, from the header and the file size only (no data read).
 
     Returns
     -------
@@ -753,6 +753,8 @@ def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int]:
     est_rows : int
         Parquet: the row count of its metadata; CSV: the file size over the mean length of
         the first 64 KiB of lines.
+    n_columns : int
+        Columns of the header.
     """
     path = str(path)
     if is_parquet(path):
@@ -772,7 +774,7 @@ def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int]:
         "ref_quat": lay.qref is not None,
         "extra": bool(lay.extra),
     }
-    return tuple(g for g in COLUMN_GROUPS if present[g]), est
+    return tuple(g for g in COLUMN_GROUPS if present[g]), est, len(header)
 
 
 #: Column groups a reader can be asked for (``columns=``); ``t_s`` and the gyro are always read.

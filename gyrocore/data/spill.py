@@ -16,6 +16,7 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
 
+from .columns import DISK_BLOCK_BYTES, ScratchFiles
 from .recording import (
     ACCEL_COLS,
     AXES,
@@ -51,8 +52,12 @@ class ColumnSpill:
     Made by :func:`spill_columns`. ``t_s`` is in memory (it is needed for the rate and the
     timestamp checks); every other column (SI units, names of :func:`_columns`: e.g.
     ``gyro_x_rad_s``) is loaded by :meth:`column`. An analysis that needs the whole series of
-    one axis at a time (overlapping ADEV) then holds two columns, not the whole table.
+    one axis at a time (overlapping ADEV) then holds two columns, not the whole table. It is the
+    on-disk chunk source of :mod:`gyrocore.data.columns` (``rows``, ``block``, ``column``,
+    ``scratch``, ``block_bytes``).
     """
+
+    block_bytes = DISK_BLOCK_BYTES
 
     def __init__(self, folder: Path, names: list[str], n: int, t_s: np.ndarray, meta: dict[str, str]) -> None:
         self.folder = folder
@@ -81,6 +86,10 @@ class ColumnSpill:
         for j, nm in enumerate(names):
             out[:, j] = self.rows(nm, a, b)
         return out
+
+    def scratch(self, name: str, ncol: int) -> ScratchFiles:
+        """A writable (N, ncol) work column on disk beside the spill (one file per column)."""
+        return ScratchFiles(self.folder, name, self.n, ncol)
 
     def recording(self, gyro_axis: int, *, accel_axis: int | None = None) -> Recording:
         """A :class:`Recording` holding only gyro axis ``gyro_axis`` (the other two axes are

@@ -92,7 +92,7 @@ def command(
         from gyrocore.data.spill import spill_columns
 
         with tempfile.TemporaryDirectory(prefix="gyroharness_bias_") as tmp:
-            r = cal.fit_spilled(spill_columns(file, tmp))
+            r = cal.fit(spill_columns(file, tmp))
     else:
         from gyrocore.data.recording import read_recording
 

@@ -252,7 +252,7 @@ def command(
         raise GyroInputError("--poses and --segments are two methods: give one")
     if not segments and not poses and is_large(file, "calibrate", need=("ref_rate",)):
         # a long data file with reference rates: spilled to per-column files and fitted a
-        # window at a time (gyrocore.calib.stream); the same fit as in memory, bounded memory
+        # window at a time (the least-squares method's one path); the same fit as in memory
         import tempfile
 
         from gyrocore.data.spill import spill_columns
@@ -266,7 +266,7 @@ def command(
         )
         with tempfile.TemporaryDirectory(prefix="gyroharness_calibrate_") as tmp:
             store = spill_columns(file, tmp, accel=True, groups=("temp", "ref_rate"))
-            res = cal.fit_spilled(store, source_path=file)
+            res = cal.fit(store, source_path=file)
         _warn_unobservable(res)
         _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
         return
@@ -306,9 +306,6 @@ def command(
     _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
 
 
-#: Data files of more rows than this are calibrated from disk, a window at a time
-#: (:meth:`gyrocore.calibrator.Calibrator.fit_spilled`) when they have reference rates: above
-#: 4 × ``lsq.CHUNK_ROWS`` the in-memory fit takes the same chunked path, so the numbers agree.
 def _warn_sign(res) -> None:
     """A scale below −50 % (K_ii = 1 + s < 0.5, typically ≈ −1) is not a sensitivity error: the
     axis reads against the reference (a flipped axis, or the known angles' sign convention — imucal's

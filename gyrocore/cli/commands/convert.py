@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import warnings
-from pathlib import Path
 
 import click
 
@@ -12,17 +11,8 @@ from gyrocore.cli import emit_json
 from gyrocore.readers.convert import FORMATS, concat_converted, load_with_segments
 from gyrocore.data.segments import write_segments
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.data import recording as _recording
+from gyrocore.readers.large import is_large
 from gyrocore.data.recording import PARQUET_SUFFIXES, file_sha256, iter_chunks, write_chunks, write_csv, write_parquet
-
-#: Data-file inputs (CSV or Parquet) larger than this fraction of the available memory are
-#: streamed in chunks ...
-STREAM_FRACTION = 0.1
-#: ... and so are those whose whole read would take more than this (bounded memory: one
-#: hour at 1 kHz with 15 columns is ~600 MB of CSV). A streamed conversion runs the per-row
-#: repairs (NaN rows, time going backwards) but not the whole-series checks (gaps, units,
-#: saturation), which need the whole record.
-STREAM_BYTES = 96 * 2**20
 
 
 @click.command("convert")
@@ -175,7 +165,7 @@ def command(
         from gyrocore.readers.convert import detect_format
 
         actual = detect_format(input_path) if fmt == "auto" else fmt
-        if actual in ("csv", "parquet") and _is_large(input_path) and not retime and not append:
+        if actual in ("csv", "parquet") and is_large(input_path, "convert") and not retime and not append:
             unsupported = [k for k, v in opts.items() if v is not None and k != "retime"]
             if unsupported:
                 raise GyroInputError(f"option --{unsupported[0].replace('_', '-')} does not apply to format {actual}")
@@ -248,15 +238,6 @@ def command(
         n = summary["n_samples"]
         extra = f", {len(segs)} segments -> {segments_out}" if segments_out else ""
         click.echo(f"{input_path} ({summary['format']}) -> {output}: {n} samples{extra}")
-
-
-def _is_large(path: str) -> bool:
-    """Data-file inputs above STREAM_BYTES, or above STREAM_FRACTION of the available memory, are streamed."""
-    p = Path(path)
-    if not p.is_file():
-        return False
-    size = p.stat().st_size * (4 if _recording.is_parquet(p) else 1)  # Parquet: ~4x denser than CSV text
-    return size > STREAM_BYTES or size * 3 > STREAM_FRACTION * _recording._available_memory_bytes()
 
 
 def _write_chunks_as(fmt: str, chunks, output: str) -> int:

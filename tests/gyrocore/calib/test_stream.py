@@ -9,7 +9,18 @@ from gyrocore.effects import registry as E
 from gyrocore.calib import lsq
 from gyrocore.calibrator import Calibrator
 from gyrocore.data.recording import Recording, read_csv, write_csv
-from gyrocore.data.spill import spill_columns
+from gyrocore.data.columns import RecordingColumns
+from gyrocore.data.spill import ColumnSpill, spill_columns
+
+
+def _spy_spill(monkeypatch) -> list:
+    """Count the commands' spills (the streamed path) through gyrocore.data.spill.spill_columns."""
+    import gyrocore.data.spill as SP
+
+    called: list = []
+    orig = SP.spill_columns
+    monkeypatch.setattr(SP, "spill_columns", lambda *a, **k: called.append(1) or orig(*a, **k))
+    return called
 
 
 def _thermal_rate_record(n: int = 12000, seed: int = 11, *, outliers: int = 40) -> Recording:
@@ -57,9 +68,9 @@ def _assert_same(a, b, rtol):
 
 @pytest.mark.parametrize("chunk", [1500, 4096, 7001])
 def test_streamed_calibration_equals_in_memory(tmp_path, monkeypatch, chunk):
-    # Calibrator.fit_spilled reads the record back from per-column files a window at a time
-    # (gyrocore.calib.stream.SpillRows); with the same windows it does exactly the in-memory chunked
-    # path's arithmetic (bit for bit), and against the whole-array fit (chunk_rows=None) it
+    # Calibrator.fit of the spilled columns reads the record back from per-column files a window
+    # at a time (gyrocore.calib.rows.ReferenceRows); with the same windows it does exactly the
+    # in-memory arithmetic (bit for bit), and against one window (chunk_rows=None) it
     # differs only by the float-addition order where blocks straddle windows: relative
     # rounding ~average·eps ≈ 1e-14 times the normal-equation condition (< 1e3 here) → 1e-9.
     rec = _thermal_rate_record()
@@ -72,24 +83,26 @@ def test_streamed_calibration_equals_in_memory(tmp_path, monkeypatch, chunk):
     monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", chunk)
     in_memory = Calibrator(effects=eff, max_rows=1000).fit(rec)
     store = spill_columns(path, tmp_path / "spill", accel=True, groups=("temp", "ref_rate"))
-    streamed = Calibrator(effects=eff, max_rows=1000).fit_spilled(store)
+    streamed = Calibrator(effects=eff, max_rows=1000).fit(store)
     assert any("excluded" in s for s in streamed.notes)
     _assert_same(in_memory, streamed, rtol=1e-13)
     _assert_same(whole, streamed, rtol=1e-9)
 
 
 def test_streamed_rows_equal_in_memory_rows(tmp_path):
-    # SpillRows gives the same r and inputs as the arrays, also with a time offset (the
-    # reference interpolated at t − τ reads only the bracketing rows of the window)
-    from gyrocore.calibrator import _shift_rate
-    from gyrocore.calib.stream import SpillRows
+    # ReferenceRows of the spilled columns gives the same r and inputs as the arrays, also with a
+    # time offset (the reference interpolated at t − τ reads only the bracketing rows of the window)
+    from gyrocore.calib.rows import ReferenceRows
+
+    def _shift_rate(t, w, tau):  # w(t − τ) by linear interpolation over the whole column
+        return np.stack([np.interp(t - tau, t, w[:, i]) for i in range(3)], axis=1)
 
     rec = _thermal_rate_record(n=3000, outliers=0)
     path = tmp_path / "rec.csv"
     write_csv(rec, path)
     store = spill_columns(path, tmp_path / "spill", accel=True, groups=("temp", "ref_rate"))
     for tau in (0.0, 0.0123, -0.05, 20.0):
-        src = SpillRows(store, tau_s=tau)
+        src = ReferenceRows(store, tau_s=tau)
         w = _shift_rate(rec.t_s, rec.ref_rate_rad_s, tau)
         for a, b in [(0, 17), (1000, 1777), (2990, 3000), (0, 3000)]:
             np.testing.assert_array_equal(src.r_rows(a, b), (rec.gyro_rad_s - w)[a:b])
@@ -115,11 +128,9 @@ def test_calibrate_cli_streams_long_files(tmp_path, monkeypatch):
     path = tmp_path / "rec.csv"
     write_csv(rec, path)
     eff = "bias,scale,bias_thermal"
-    monkeypatch.setattr(LG, "LARGE_FILE_BYTES", 0)  # every file with reference rates is large
+    monkeypatch.setitem(LG.RULES, "calibrate", LG.MemoryRule(bytes_per_row=512, budget_bytes=0))  # every file is large
     monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", 1000)
-    called = []
-    orig = Calibrator.fit_spilled
-    monkeypatch.setattr(Calibrator, "fit_spilled", lambda self, *a, **k: called.append(1) or orig(self, *a, **k))
+    called = _spy_spill(monkeypatch)
     r = CliRunner().invoke(C.command, [str(path), "--effects", eff, "-o", str(tmp_path / "p.json"), "--json"])
     assert r.exit_code == 0, r.output
     assert called
@@ -140,9 +151,9 @@ def test_calibrate_cli_streams_long_files(tmp_path, monkeypatch):
     ],
 )
 def test_streamed_bias_equals_in_memory(tmp_path, monkeypatch, kw):
-    # StaticBiasCalibrator.fit_spilled reads windows back from disk a block at a time and the
-    # noise one column at a time: the same blocks and operations as the in-memory path of a
-    # long record, so the same numbers (checked bit for bit, with blocks of 7 windows)
+    # StaticBiasCalibrator.fit reads the windows through the chunk source a block at a time and
+    # the noise one column at a time, in memory or from disk: the same blocks and operations,
+    # so the same numbers (checked bit for bit, with blocks of 7 windows)
     from gyrocore.calib import bias as B
 
     rng = np.random.default_rng(5)
@@ -153,10 +164,10 @@ def test_streamed_bias_equals_in_memory(tmp_path, monkeypatch, kw):
     rec = Recording(t_s=t, gyro_rad_s=y, meta={"sensor": "s"})
     path = tmp_path / "still.csv"
     write_csv(rec, path)
-    monkeypatch.setattr(B, "_BLOCK_BYTES", 7 * 200 * 3 * 8)  # long-record paths, several blocks
-    monkeypatch.setattr(B, "_SPILL_BLOCK_BYTES", 7 * 200 * 3 * 8)  # the same blocks from disk
+    monkeypatch.setattr(RecordingColumns, "block_bytes", 7 * 200 * 3 * 8)  # several blocks in memory
+    monkeypatch.setattr(ColumnSpill, "block_bytes", 7 * 200 * 3 * 8)  # the same blocks from disk
     mem = B.StaticBiasCalibrator(**kw).fit(read_csv(path, columns=()))
-    streamed = B.StaticBiasCalibrator(**kw).fit_spilled(spill_columns(path, tmp_path / "spill"))
+    streamed = B.StaticBiasCalibrator(**kw).fit(spill_columns(path, tmp_path / "spill"))
     assert mem.n_rejected_windows > 0 or kw["rule"] == "converge"
     for f in mem.__dataclass_fields__:
         a, b = getattr(mem, f), getattr(streamed, f)
@@ -199,10 +210,10 @@ def test_streamed_bias_with_its_own_blocks_equals_in_memory_to_rounding(tmp_path
     y = np.array([0.01, -0.02, 0.003]) + 2e-3 * rng.standard_normal((n, 3))
     path = tmp_path / "still.csv"
     write_csv(Recording(t_s=np.arange(n) / 400.0, gyro_rad_s=y), path)
-    monkeypatch.setattr(B, "_BLOCK_BYTES", 7 * 200 * 3 * 8)
-    monkeypatch.setattr(B, "_SPILL_BLOCK_BYTES", 3 * 200 * 3 * 8)
+    monkeypatch.setattr(RecordingColumns, "block_bytes", 7 * 200 * 3 * 8)
+    monkeypatch.setattr(ColumnSpill, "block_bytes", 3 * 200 * 3 * 8)
     mem = B.StaticBiasCalibrator().fit(read_csv(path, columns=()))
-    streamed = B.StaticBiasCalibrator().fit_spilled(spill_columns(path, tmp_path / "spill"))
+    streamed = B.StaticBiasCalibrator().fit(spill_columns(path, tmp_path / "spill"))
     assert streamed.window_start_index == mem.window_start_index
     for f in ("bias_rad_s", "bias_se_rad_s", "vif", "threshold", "noise_sigma_rad_s", "min_step_rad_s"):
         np.testing.assert_allclose(getattr(streamed, f), getattr(mem, f), rtol=1e-12, err_msg=f)
@@ -224,14 +235,10 @@ def test_bias_cli_streams_long_files(tmp_path, capsys, monkeypatch):
     t[20_000:] += 0.5  # a gap: one warning, from either path
     path = tmp_path / "still.csv"
     write_csv(Recording(t_s=t, gyro_rad_s=y), path)
-    from gyrocore.calib.bias import StaticBiasCalibrator
-
-    called = []
-    orig = StaticBiasCalibrator.fit_spilled
-    monkeypatch.setattr(StaticBiasCalibrator, "fit_spilled", lambda self, st: called.append(1) or orig(self, st))
+    called = _spy_spill(monkeypatch)
     outs = []
     for limit in (10**15, 0):  # whole read, then from disk
-        monkeypatch.setattr(LG, "LARGE_FILE_BYTES", limit)
+        monkeypatch.setitem(LG.RULES, "bias", LG.MemoryRule(bytes_per_row=64, budget_bytes=limit))
         with warnings.catch_warnings():
             s = run_cli(build_group(), ["bias", str(path), "--json"])
         cap = capsys.readouterr()
@@ -290,7 +297,7 @@ def test_streamed_noise_model_fit_leaves_ramps_out_like_in_memory(tmp_path, monk
     monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", chunk)
     in_memory = Calibrator(**kw).fit(rec)
     store = spill_columns(path, tmp_path / "spill", accel=True, groups=("ref_rate",))
-    streamed = Calibrator(**kw).fit_spilled(store)
+    streamed = Calibrator(**kw).fit(store)
     assert any(s.startswith("left out") for s in streamed.notes)
     assert any("noise identified on" in s for s in streamed.notes)
     assert streamed.covariance == "noise_model" and streamed.n_samples < rec.n
@@ -301,7 +308,7 @@ def test_streamed_noise_model_fit_leaves_ramps_out_like_in_memory(tmp_path, monk
     # sample and the transient biases the scale by many standard errors (z −7, −9 on this
     # record); with the ramps out z is N(0, 1) if the noise-model standard errors are honest,
     # so |z| < 5 on all three fails with probability 3·6e-7
-    no_margin = Calibrator(**dict(kw, ramp_margin_s=0.0)).fit_spilled(store)
+    no_margin = Calibrator(**dict(kw, ramp_margin_s=0.0)).fit(store)
     assert no_margin.n_samples == rec.n
     s_true = np.array([0.01, -0.02, 0.005])
     z_out = (streamed.params["scale"]["s"] - s_true) / streamed.stderr["scale"]["s"]
@@ -346,11 +353,9 @@ def test_calibrate_cli_streamed_path_takes_the_ramp_margin(tmp_path, monkeypatch
     rec = _table_steps_record(n=40_000)
     path = tmp_path / "rec.csv"
     write_csv(rec, path)
-    monkeypatch.setattr(LG, "LARGE_FILE_BYTES", 0)  # every file with reference rates is large
+    monkeypatch.setitem(LG.RULES, "calibrate", LG.MemoryRule(bytes_per_row=512, budget_bytes=0))  # every file is large
     monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", 4096)
-    called = []
-    orig = Calibrator.fit_spilled
-    monkeypatch.setattr(Calibrator, "fit_spilled", lambda self, *a, **k: called.append(1) or orig(self, *a, **k))
+    called = _spy_spill(monkeypatch)
     r = CliRunner().invoke(
         C.command,
         [

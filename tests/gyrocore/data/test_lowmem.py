@@ -11,6 +11,7 @@ import pytest
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data.recording import Recording, read_recording, write_recording
+from gyrocore.data.columns import RecordingColumns
 from gyrocore.data.spill import spill_columns
 
 
@@ -66,7 +67,7 @@ def test_allan_by_axis_equals_whole_record(tmp_path, capsys, monkeypatch):
     write_recording(rec, p)
     outs = []
     for limit in (10**12, 0):  # whole record, then one axis at a time
-        monkeypatch.setattr(LG, "LARGE_FILE_BYTES", limit)
+        monkeypatch.setitem(LG.RULES, "allan", LG.MemoryRule(bytes_per_row=32, budget_bytes=limit))
         with warnings.catch_warnings():
             s = run_cli(build_group(), ["allan", str(p), "--json"])
         cap = capsys.readouterr()
@@ -90,7 +91,7 @@ def test_bias_blockwise_statistics_equal_whole_array(monkeypatch):
     rec = Recording(t_s=np.arange(n) / 1000.0, gyro_rad_s=g)
     for rule in ("mean", "median", "converge"):
         whole = B.StaticBiasCalibrator(rule=rule).fit(rec)
-        monkeypatch.setattr(B, "_BLOCK_BYTES", 50_000)  # ~10 windows per block
+        monkeypatch.setattr(RecordingColumns, "block_bytes", 50_000)  # ~10 windows per block
         blocks = B.StaticBiasCalibrator(rule=rule).fit(rec)
         monkeypatch.undo()
         assert (

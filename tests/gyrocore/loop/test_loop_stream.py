@@ -124,7 +124,7 @@ def test_loop_cli_streams_long_files_and_falls_back(tmp_path, monkeypatch, capsy
     import gyrocore.loop.loop as L
     from gyrocore.cli.commands.loop import command as main
 
-    monkeypatch.setattr(LG, "LARGE_FILE_BYTES", 0)
+    monkeypatch.setitem(LG.RULES, "loop", LG.MemoryRule(bytes_per_row=512, budget_bytes=0))
     seen = []
     real = L.run_loop
 
