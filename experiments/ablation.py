@@ -56,6 +56,13 @@ from .stages import (  # noqa: F401  (the stage helpers, reached as ablation.X b
     powerup_windows,
 )
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
+from .calibrators import calibration_recordings, CoreCalibrator, CoreParams, strip_truth
+from .montecarlo import run_campaign, TaskResult, write_campaign
+from gyrocore.attitude import mahony, tilt_error_rad
+from gyrocore.calib.budget import NoiseModel, ParameterGroup, predict_error
+from gyrocore.calib.params import load_params, save_params
+from gyrocore.data.recording import atomic_write_text
+from sim import scenarios as S
 
 __all__ = [
     "SCENARIOS",
@@ -214,10 +221,6 @@ def calibrate_core(
     """
     import json
 
-    from gyrocore.calib.params import load_params, save_params
-
-    from .calibrators import CoreCalibrator, CoreParams, calibration_recordings, strip_truth
-
     tt = [e for e in TABLE_EFFECTS if e in present]
     th = [e for e in THERMAL_EFFECTS if e in present]
     # a sensor may be a TOML path: keep the key a plain file name inside cache_dir (a path with
@@ -247,8 +250,6 @@ def calibrate_core(
     ]
     params = CoreCalibrator(effects=present).fit(recs)
     if paths:
-        from gyrocore.data.recording import atomic_write_text
-
         for p, r in zip(paths, params.results):
             if r is not None:
                 save_params(r, p)
@@ -269,8 +270,6 @@ MAHONY_KP_PER_S = 1.0
 
 
 def _tilt_rows(rec, truth, w_all: np.ndarray, start: int, kp: float) -> dict:
-    from gyrocore.attitude import mahony, tilt_error_rad
-
     t = rec.t_s[start:]
     q_true = truth.q_SW_wxyz[start:]
     q_int = integrate_gyro(t, w_all[start:], q0_wxyz=q_true[0])
@@ -304,15 +303,12 @@ def ablate_instance(
     """
     import warnings
 
-    from sim import scenarios as S
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = S.simulate(scenario, sensor=sensor, duration_s=duration_s, seed=seed, run=0)
     rec, truth, p_true = res.recording, res.truth, res.params_true
     present = present_effects(p_true)
     notes: list[str] = list(res.notes)
-    from .calibrators import CoreCalibrator, CoreParams, strip_truth
 
     if calibration is None:
         core_params = calibrate_core(sensor, seed, present, quick=quick, cache_dir=cache_dir)
@@ -407,8 +403,6 @@ def calibration_groups(calibration, present: Sequence[str]) -> list:
     re-referenced by the thermal run) is superseded: the later fit estimates the residual left
     by the earlier one, so only its error remains (to first order).
     """
-    from gyrocore.calib.budget import ParameterGroup
-
     last: dict[str, tuple[dict, dict]] = {}
     for st in _as_stages(calibration):
         for key, (eff, pd, tog) in st.items():
@@ -514,8 +508,6 @@ def predict_instance(res, calibration, present: Sequence[str], still, start: int
     windows actually used. Uncorrected: present effects the calibration did not estimate
     (reported, not predicted) and the low-pass (predicted: no correction removes it).
     """
-    from gyrocore.calib.budget import NoiseModel, predict_error
-
     rec, truth, p_true = res.recording, res.truth, res.params_true
     groups = calibration_groups(calibration, present)
     estimated = [g.name for g in groups]
@@ -622,8 +614,6 @@ def ablation_task(task) -> "Any":
     ``durations`` (tuple of (scenario, seconds), used when the task has no duration).
     """
     import warnings
-
-    from experiments.montecarlo import TaskResult
 
     opts = dict(task.options)
     dur = task.duration_s if task.duration_s is not None else dict(opts.get("durations", ())).get(task.scenario)
@@ -907,8 +897,6 @@ def run(
     units, the quick calibration runs, :data:`STANDARD_DURATIONS_S`) or ``"full"`` (default: the
     scenarios' own durations, full calibration runs, :data:`DEFAULT_INSTANCES` units).
     """
-    from experiments.montecarlo import run_campaign, write_campaign
-
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     size = size or ("quick" if quick else "full")
@@ -1026,8 +1014,6 @@ def contract_campaign(*, instances: int, seed: int = 1, workers: int | None = No
     """The Monte Carlo behind the accuracy contract: every scenario, short runs, quick calibration."""
     import shutil
     import tempfile
-
-    from experiments.montecarlo import run_campaign
 
     cache = tempfile.mkdtemp(prefix="gyroharness-calcache-")
     try:

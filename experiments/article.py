@@ -29,6 +29,9 @@ from gyrocore.flight.filters import article_lpf, article_lpf_coefficient, make_f
 
 from .datadir import shared_data_dir
 from .report import ExperimentResult, md_table, new_figure, save_figure
+from gyrocore.calib.bias import StaticBiasCalibrator
+from gyrocore.data.recording import Recording
+from gyrocore.readers.datasets import read_tomisuarez2
 
 __all__ = ["run", "ARTICLE_B", "ARTICLE_M", "article_m", "gate_sums_counts"]
 
@@ -70,8 +73,6 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
     data = shared_data_dir()
     src = None
     if data is not None and (data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv").exists():
-        from gyrocore.readers.datasets import read_tomisuarez2
-
         src = data / "tomisuarez2_mpu6050" / "example_data_tinit_calc.csv"
         rec = read_tomisuarez2(src)
         t, g = rec.t_s, rec.gyro_rad_s
@@ -129,9 +130,6 @@ def _part_bias_and_gate(out_dir: Path, quick: bool, rng: np.random.Generator):
     # the gate derived from the sensor's own noise (gyrocore.calib.bias), same statistic and window
     derived = None
     try:
-        from gyrocore.calib.bias import StaticBiasCalibrator
-        from gyrocore.data.recording import Recording
-
         r = StaticBiasCalibrator(window_samples=ARTICLE_WINDOW, statistic="abs_diff", false_reject_rate=1e-3).fit(
             Recording(t_s=t, gyro_rad_s=g)
         )

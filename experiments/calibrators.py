@@ -61,6 +61,9 @@ from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 
 from . import stages as S
+from gyrocore.calibrator import Calibrator
+from gyrocore.data.recording import read_csv, write_csv
+from sim.presets import load_preset
 
 __all__ = [
     "CalibrationRoutine",
@@ -220,8 +223,6 @@ def datasheet_noise_params(sensor: str | None) -> dict | None:
     if not sensor:
         return None
     try:
-        from sim.presets import load_preset
-
         p = load_preset(sensor)
     except Exception:  # noqa: BLE001 - an unknown part: the gate estimates σ from the data
         return None
@@ -314,8 +315,6 @@ class CoreCalibrator:
             return self.effects
         sensor = rec.meta.get("sensor")
         try:
-            from sim.presets import load_preset
-
             on = load_preset(sensor).effects
         except Exception as exc:  # noqa: BLE001
             raise GyroInputError(
@@ -325,8 +324,6 @@ class CoreCalibrator:
 
     def fit(self, recordings: Sequence[Recording]) -> CoreParams:
         import warnings
-
-        from gyrocore.calibrator import Calibrator
 
         recs = list(recordings)
         if not recs:
@@ -379,8 +376,6 @@ SEARCH_S = 30.0
 def _lsb_rad_s(rec: Recording, default_lsb_per_dps: float = 131.0) -> float:
     """Count size of the sensor (datasheet), rad/s; the article's MPU-6050 ±250 °/s if unknown."""
     try:
-        from sim.presets import load_preset
-
         return float(load_preset(rec.meta.get("sensor")).lsb_rad_s)
     except Exception:  # noqa: BLE001 - no preset: the article's own sensor
         return DEG / default_lsb_per_dps
@@ -728,8 +723,6 @@ class CommandCalibrator:
         self._apply_argv = _resolve_program(split_template(self.apply_cmd, allowed=("{params}", "{input}", "{output}")))
 
     def fit(self, recordings: Sequence[Recording]) -> str:
-        from gyrocore.data.recording import write_csv
-
         self.close()
         self._tmp = tempfile.TemporaryDirectory(prefix="gyroharness-routine-", dir=self.workdir)
         d = Path(self._tmp.name)
@@ -750,8 +743,6 @@ class CommandCalibrator:
 
     def apply(self, recording: Recording, params: str) -> np.ndarray:
         import warnings
-
-        from gyrocore.data.recording import read_csv, write_csv
 
         if self._tmp is None:
             raise RoutineFailure("apply before fit")

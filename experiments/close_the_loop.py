@@ -22,6 +22,16 @@ import numpy as np
 from gyrocore.effects import registry as E
 from gyrocore.attitude import integrate_gyro
 from gyrocore.data.recording import Recording
+from experiments.report import ExperimentResult, md_table
+from gyrocore.errors import GyroInputError, RepairWarning
+from gyrocore.loop.loop import run_loop
+from gyrocore.loop.model import CANDIDATES, COMPANION
+from gyrocore.loop.plots import plot_found
+from gyrocore.loop.validate import loop_parameters, split_halves, validate_model
+from gyrocore.readers.convert import load_with_segments
+from sim import noise
+from sim.presets import load_preset, PRESETS
+from sim.scenarios import simulate
 
 __all__ = [
     "DEFAULT_EFFECT_PARAMS",
@@ -145,8 +155,6 @@ def synthetic_recording(
         gyro (measured), accel (true specific force + 0.02 m/s² noise), temp_c, the true
         world-relative rate in ``ref_*_rad_s`` (and attitude when asked).
     """
-    from sim import noise
-
     rng = np.random.default_rng(seed)
     n = int(round(duration_s * rate_hz)) + 1
     t = np.arange(n) / rate_hz
@@ -211,9 +219,6 @@ def synthetic_recording(
 
 # ---------------------------------------------------------------------------- Monte Carlo
 def _one_trial(effect: str, scale: float, seed: int, duration_s: float, rate_hz: float, alpha: float) -> dict:
-    from gyrocore.loop.loop import run_loop
-    from gyrocore.loop.model import COMPANION
-
     params = {"bias": effect_params("bias")}
     if effect != "none":
         params[effect] = effect_params(effect, scale)
@@ -257,8 +262,6 @@ def identification_rates(
         constant companion of a thermal effect (``scale`` for ``scale_thermal``) is not
         counted as a false alarm.
     """
-    from gyrocore.loop.model import CANDIDATES
-
     effects = list(effects) if effects is not None else ["none"] + [c for c in CANDIDATES if c != "bias"]
     rows = []
     for eff in effects:
@@ -348,8 +351,6 @@ def inject_open(rec: Recording, kind: str, size: float, *, f_hz: float = 37.3, t
 
 
 def _open_trial(kind: str, size: float, seed: int, duration_s: float, rate_hz: float, alpha: float) -> dict:
-    from gyrocore.loop.loop import run_loop
-
     rec = synthetic_recording(
         {"bias": effect_params("bias")}, seed=seed, duration_s=duration_s, rate_hz=rate_hz, **OPEN_NOISE
     )
@@ -443,11 +444,6 @@ def simulator_null_false_alarms(
     flicker + RRW + GM). A false alarm is any ``unexplained`` entry (the catalogue's own finds —
     e.g. ``time_offset``, the on-chip filter's group delay — are listed, not counted).
     """
-    from gyrocore.loop.loop import run_loop
-    from gyrocore.loop.model import CANDIDATES
-    from sim.presets import PRESETS, load_preset
-    from sim.scenarios import simulate
-
     presets = list(presets) if presets is not None else sorted(PRESETS)
     runs = []
     for p in presets:
@@ -554,10 +550,6 @@ def measured_runs(data_dir, *, names: Sequence[str] | None = None) -> list[dict]
     """
     import warnings
 
-    from gyrocore.readers.convert import load_with_segments
-    from gyrocore.errors import GyroInputError, RepairWarning
-    from gyrocore.loop.loop import run_loop
-
     rows = []
     for name, paths, opts in MEASURED:
         if names is not None and name not in names:
@@ -622,9 +614,6 @@ STATIC_LOGS = (
 def _load_quiet(path):
     import warnings
 
-    from gyrocore.readers.convert import load_with_segments
-    from gyrocore.errors import RepairWarning
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RepairWarning)
         return load_with_segments(path)
@@ -656,9 +645,6 @@ def out_of_sample_runs(data_dir, *, declared: Sequence[str] = ("bias",), progres
     Same numbers as ``gyroharness loop A --effects bias --validate B --json`` and
     ``gyroharness loop LOG --effects bias --validate-split --json``.
     """
-    from gyrocore.loop.loop import run_loop
-    from gyrocore.loop.validate import loop_parameters, split_halves, validate_model
-
     data = Path(data_dir)
     out: dict = {"broad": {"fits": {}, "pairs": []}, "static": []}
     fits = {}
@@ -826,12 +812,6 @@ def run(
     """
     import time as _time
 
-    from experiments.report import ExperimentResult, md_table
-    from gyrocore.loop.loop import run_loop
-    from gyrocore.loop.model import CANDIDATES
-    from gyrocore.loop.plots import plot_found
-    from sim.scenarios import simulate
-
     t_start = _time.time()
     out = Path(out_dir)
     fig_dir = out / "figures"
@@ -944,7 +924,6 @@ def run(
             "",
         ]
         summary["rates"] = rows
-    from gyrocore.data.recording import atomic_write_text
 
     text = "\n".join(md)
     out.mkdir(parents=True, exist_ok=True)
@@ -973,9 +952,6 @@ def concat_session(paths: Sequence, *, gap_s: float = 1.0):
     (Recording, list of gyrocore.data.segments.Segment)
     """
     import warnings
-
-    from gyrocore.readers.convert import load_with_segments
-    from gyrocore.errors import RepairWarning
 
     recs, segs, t0 = [], [], 0.0
     for p in paths:

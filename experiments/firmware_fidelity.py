@@ -30,6 +30,15 @@ import os
 import tempfile
 
 import numpy as np
+from experiments.firmware_fly import fly, settings_lines_from
+from gyrocore.data.recording import read_csv, Recording
+from gyrocore.errors import GyroInputError
+from gyrocore.flight.synthesis import fidelity
+from gyrocore.flight.vibration import analyse, write_spec
+from gyrocore.readers.convert import detect_format, load_any
+from sim.fw_flight import FwFlightOptions, motor_law
+from sim.spec_vibration import spec_injection
+from sim.vehicles import get_vehicle
 
 __all__ = ["run", "sim_recording"]
 
@@ -37,8 +46,6 @@ __all__ = ["run", "sim_recording"]
 def sim_recording(log, every: int):
     """The firmware's filtered gyro as the firmware's blackbox would log it: every ``every``-th
     loop (no anti-alias filter), as a data file whose gyro is that signal."""
-    from gyrocore.data.recording import Recording
-
     k = slice(0, None, int(every))
     return Recording(
         t_s=log.t_s[k], gyro_rad_s=log.fw_gyro_rad_s[k], meta={"gyro_signal": "filtered (firmware in the loop)"}
@@ -65,15 +72,6 @@ def run(
     "settings_applied", "settings_skipped", "t_split_s", "bands": [{"band", "throttle",
     "held_out": fid, "in_sample": fid, "log_rms_above_40hz_rad_s", ...}]}`` with ``fid`` per axis
     as :func:`gyrocore.flight.synthesis.fidelity`."""
-    from experiments.firmware_fly import fly, settings_lines_from
-    from gyrocore.data.recording import read_csv
-    from gyrocore.errors import GyroInputError
-    from gyrocore.flight.synthesis import fidelity
-    from gyrocore.flight.vibration import analyse, write_spec
-    from gyrocore.readers.convert import detect_format, load_any
-    from sim.fw_flight import FwFlightOptions
-    from sim.spec_vibration import spec_injection
-
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
     if "gyro_prefilter_x_rad_s" not in rec.extra:
         raise GyroInputError(
@@ -215,9 +213,6 @@ def _rms_by_range(sim, spec: dict, band: int) -> dict:
 
 def _own_hover_u(vehicle) -> float:
     """The class's own hover motor command under its motor law (default idle)."""
-    from sim.fw_flight import motor_law
-    from sim.vehicles import get_vehicle
-
     v = get_vehicle(vehicle)
     return motor_law(v, 0.055).command_for_speed(v.hover_rotor_speed_rad_s)
 
@@ -226,8 +221,6 @@ def _repeatability(spec_a: dict, i: int, spec_b: dict, j: int) -> dict:
     """The log against itself: its first half's band i scored as if simulated against the second
     half's band j (the in-band fraction the data allows; 0.95 for equal spectra)."""
     from types import SimpleNamespace
-
-    from gyrocore.flight.synthesis import fidelity
 
     b = spec_a["bands"][i]
     ns = SimpleNamespace(

@@ -41,6 +41,15 @@ import math
 import numpy as np
 
 from gyrocore.errors import GyroInputError
+from experiments.firmware_fly import fly, settings_lines_from
+from experiments.montecarlo import execute, MonteCarloTask, TaskResult
+from gyrocore.data.recording import read_csv
+from gyrocore.flight.vibration import analyse, read_spec, write_spec
+from gyrocore.readers.convert import detect_format, load_any
+from sim.firmware.build import ensure_binary, FirmwareBinary
+from sim.fw_flight import FwFlightOptions
+from sim.spec_vibration import spec_injection
+from sim.vehicles import get_vehicle
 
 __all__ = ["candidates", "changed_lines", "print_table", "run"]
 
@@ -92,10 +101,6 @@ def _angle_rms_deg(qa, qb, mask) -> float:
 def fw_filter_task(task):
     """Monte Carlo task (:mod:`experiments.montecarlo`): every candidate of one seed; metrics
     ``"<candidate>|<metric>"``."""
-    from experiments.firmware_fly import fly
-    from experiments.montecarlo import TaskResult
-    from sim.fw_flight import FwFlightOptions
-
     o = dict(task.options)
     tune, cands = list(o["tune"]), dict(o["candidates"])
     hv, over = o["hover_vibration"], dict(o["overrides"])
@@ -182,15 +187,6 @@ def run(
     seeds), ``picks_per_seed``, ``stable``, ``firmware``, ``tune`` (the lines applied)."""
     import os
     import tempfile
-
-    from experiments.firmware_fly import settings_lines_from
-    from experiments.montecarlo import MonteCarloTask, execute
-    from gyrocore.data.recording import read_csv
-    from gyrocore.flight.vibration import analyse, read_spec, write_spec
-    from gyrocore.readers.convert import detect_format, load_any
-    from sim.firmware.build import FirmwareBinary, ensure_binary
-    from sim.spec_vibration import spec_injection
-    from sim.vehicles import get_vehicle
 
     get_vehicle(vehicle)
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)

@@ -14,6 +14,15 @@ from dataclasses import replace
 from typing import Mapping, Sequence
 
 from gyrocore.errors import GyroInputError
+from gyrocore.data.recording import write_csv
+from gyrocore.flight.vibration import read_spec
+from sim.firmware.bridge import BetaflightSITL
+from sim.firmware.build import ensure_binary, find_binary, FirmwareBinary
+from sim.firmware.settings import settings_from_file
+from sim.fw_flight import fly_firmware, FwFlightOptions, RateProfile, to_recording
+from sim.gyro import SyntheticGyro
+from sim.spec_vibration import spec_injection
+from sim.vehicles import get_vehicle
 
 __all__ = ["BOOT_MAX_S", "FIRMWARES", "boot_still_source", "fly", "run", "settings_dict"]
 
@@ -28,8 +37,6 @@ def settings_dict(settings: Sequence[tuple[str, str]] | Mapping[str, str]) -> di
 
 def _flight_options(opts, settings: Mapping[str, str]):
     """``opts`` with the pilot's view of the firmware's settings: its rate curve, idle, min_check."""
-    from sim.fw_flight import RateProfile
-
     s = settings_dict(settings)
     try:
         idle = float(s.get("dshot_idle_value", "550")) / 10000.0
@@ -75,8 +82,6 @@ def boot_still_source(opts):
         return None
     import numpy as np
 
-    from sim.gyro import SyntheticGyro
-
     g = SyntheticGyro(
         opts.sensor,
         rate_hz=opts.loop_rate_hz,
@@ -109,10 +114,6 @@ def fly(opts, settings=(), *, lenient=(), binary=None, step_timeout_s: float | N
     (the ``set`` lines applied), ``boot`` (the firmware's boot: simulated s, its gyro-calibration
     bias estimate against the unit's true turn-on bias) and ``sim_s_per_wall_s`` of the flight loop.
     """
-    from sim.firmware.bridge import BetaflightSITL
-    from sim.firmware.build import FirmwareBinary, ensure_binary
-    from sim.fw_flight import fly_firmware
-
     lines, soft = _lines(settings), _lines(lenient)
     fb = binary if isinstance(binary, FirmwareBinary) else (ensure_binary() if binary is None else _record_of(binary))
     path = fb.binary if fb is not None else str(binary)
@@ -134,8 +135,6 @@ def fly(opts, settings=(), *, lenient=(), binary=None, step_timeout_s: float | N
         "fw_gyro_bias_estimate_rad_s": [float(x) for x in rep.gyro_bias_S_rad_s],
     }
     if opts.sensor is not None:
-        from sim.gyro import SyntheticGyro
-
         b0 = SyntheticGyro(opts.sensor, rate_hz=opts.loop_rate_hz, seed=opts.seed).power_up_bias(0)
         boot["true_turn_on_bias_rad_s"] = [float(x) for x in b0]
         boot["bias_estimate_error_rad_s"] = [float(a - b) for a, b in zip(rep.gyro_bias_S_rad_s, b0)]
@@ -152,8 +151,6 @@ def fly(opts, settings=(), *, lenient=(), binary=None, step_timeout_s: float | N
 def _record_of(path):
     """The build record (name, version) of a binary given by its path, when it is the cached build."""
     from pathlib import Path
-
-    from sim.firmware.build import find_binary
 
     fb = find_binary()
     return fb if fb is not None and Path(fb.binary).resolve() == Path(str(path)).resolve() else None
@@ -176,17 +173,10 @@ def run(
     binary=None,
 ) -> dict:
     """The ``fly`` command: fly, write ``out`` (data file), return the JSON dict."""
-    from gyrocore.data.recording import write_csv
-    from sim.fw_flight import FwFlightOptions, to_recording
-    from sim.vehicles import get_vehicle
-
     get_vehicle(vehicle)  # an unknown class is one error line before the firmware starts
     soft = settings_lines_from(settings_from)
     over, hover_vib, vib_info = None, True, None
     if vibration_spec is not None:
-        from gyrocore.flight.vibration import read_spec
-        from sim.spec_vibration import spec_injection
-
         hv, over, vib_info = spec_injection(
             read_spec(vibration_spec), band=band, vehicle=vehicle, physics=True, seed=int(seed), n_calib=n_calib
         )
@@ -233,8 +223,6 @@ def settings_lines_from(settings_from) -> list[str]:
     if settings_from is None:
         return []
     import warnings
-
-    from sim.firmware.settings import settings_from_file
 
     fs = settings_from_file(settings_from)
     for note in fs.notes:

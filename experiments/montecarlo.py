@@ -53,6 +53,9 @@ from gyrocore.data.jsonable import to_jsonable
 from gyrocore.fleet import worker_environment
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import atomic_write_text
+from experiments.registry import get_task
+from sim.presets import PRESETS
+from sim.scenarios import SCENARIOS
 
 __all__ = [
     "FORMAT_VERSION",
@@ -255,8 +258,6 @@ def resolve_task(task: Callable[[MonteCarloTask], TaskResult] | str | None) -> C
     if task is None:
         task = DEFAULT_TASK
     if isinstance(task, str):
-        from experiments.registry import get_task
-
         return get_task(task)
     if not callable(task):
         raise GyroInputError(f"task_function must be callable or a registered task name, got {task!r}")
@@ -404,9 +405,6 @@ def resolve_names(*, scenarios: Sequence[str] | None, sensors: Sequence[str] | N
     ``None`` means all of them (``sim.scenarios.SCENARIOS``, ``sim.presets.PRESETS``). A sensor
     may also be a path to a TOML preset file. Unknown names -> one-line :class:`GyroInputError`.
     """
-    from sim.presets import PRESETS
-    from sim.scenarios import SCENARIOS
-
     scen = list(SCENARIOS) if scenarios is None else [s.strip() for s in scenarios if s.strip()]
     sens = list(PRESETS) if sensors is None else [s.strip() for s in sensors if s.strip()]
     bad = [s for s in scen if s not in SCENARIOS]

@@ -41,6 +41,7 @@ import numpy as np
 from gyrocore.data.jsonable import to_jsonable
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import atomic_write_text
+from gyrocore.data.recording import atomic_write_bytes
 
 __all__ = [
     "ExperimentResult",
@@ -133,7 +134,6 @@ def save_figure(fig, out_dir: str | os.PathLike, name: str) -> str:
     rel = f"{FIG_DIR}/{name}.png"
     path = Path(out_dir) / rel
     path.parent.mkdir(parents=True, exist_ok=True)
-    from gyrocore.data.recording import atomic_write_bytes
 
     atomic_write_bytes(path, buf.getvalue())
     return rel

@@ -31,6 +31,24 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from gyrocore.errors import GyroInputError
+from experiments import ablation as A
+from experiments.calibrators import (
+    calibration_recordings,
+    CommandCalibrator,
+    CoreCalibrator,
+    IsolatedCalibrator,
+    load_calibrator,
+    REGISTRY,
+    RoutineFailure,
+    run_routine,
+    strip_truth,
+)
+from experiments.montecarlo import instance_seeds
+from experiments.report import md_table, new_figure, save_figure, single_thread_blas
+from gyrocore.data.jsonable import to_jsonable
+from gyrocore.data.recording import atomic_write_text
+from sim import scenarios as S
+from sim.scenarios import load_scenario
 
 __all__ = [
     "FORMAT_VERSION",
@@ -103,8 +121,6 @@ class UnitScore:
 
 def make_routine(spec: Mapping[str, Any]):
     """A routine from a picklable spec: ``{"calibrator": SPEC}`` or ``{"fit_cmd", "apply_cmd", "timeout_s"}``."""
-    from .calibrators import REGISTRY, CommandCalibrator, IsolatedCalibrator, load_calibrator
-
     if spec.get("calibrator"):
         name = str(spec["calibrator"])
         if name in REGISTRY or not spec.get("isolate", True):
@@ -126,8 +142,6 @@ def validate_spec(spec: Mapping[str, Any]) -> None:
     if bool(spec.get("fit_cmd")) != bool(spec.get("apply_cmd")):
         raise GyroInputError("the command form needs both --fit-cmd and --apply-cmd")
     if spec.get("calibrator"):
-        from .calibrators import load_calibrator
-
         load_calibrator(str(spec["calibrator"]))  # import errors: one line now, not per unit
     else:
         make_routine(spec)
@@ -137,8 +151,6 @@ def _predicted_rms_deg(res, core_params, present, still, start: int) -> float:
     """The drift prediction of the core's RMS error (``experiments.ablation.predict_instance``)
     with the noise model the core's calibration identified (not the unit's true noise:
     the same prediction the ablation reports), where it exists; NaN otherwise."""
-    from . import ablation as A
-
     fn = getattr(A, "predict_instance", None)
     if fn is None:
         return float("nan")
@@ -168,11 +180,6 @@ def score_unit(
     same shortened runs). ``cache_dir`` caches the core's calibration per unit.
     """
     import warnings
-
-    from sim import scenarios as S
-
-    from . import ablation as A
-    from .calibrators import CoreCalibrator, RoutineFailure, calibration_recordings, run_routine, strip_truth
 
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -221,7 +228,6 @@ def score_unit(
 
 def _score_task(args: tuple) -> UnitScore:
     scenario, kw = args
-    from .report import single_thread_blas
 
     with single_thread_blas():
         return score_unit(scenario, **kw)
@@ -275,10 +281,6 @@ def score_campaign(
     """Score a routine over ``units`` units × ``scenarios`` (worker processes if ``workers`` > 1)."""
     import shutil
     import tempfile
-
-    from sim.scenarios import load_scenario
-
-    from .montecarlo import instance_seeds
 
     validate_spec(routine_spec)
     scenarios = tuple(scenarios)
@@ -410,8 +412,6 @@ def campaign_json(c: ScoreCampaign) -> dict:
 # ------------------------------------------------------------------------------ report
 def score_figure(c: ScoreCampaign, out_dir) -> str:
     """Per-unit RMS attitude error per scenario: none, core, user, floor (log scale)."""
-    from .report import new_figure, save_figure
-
     fig = new_figure(figsize=(max(6.0, 1.3 * len(c.scenarios) + 2), 3.8))
     ax = fig.add_subplot(111)
     colors = {"none": "tab:red", "core": "tab:blue", "user": "tab:green", "floor": "0.4"}
@@ -453,8 +453,6 @@ def _cal_text(c: ScoreCampaign) -> str:
 
 def report_markdown(c: ScoreCampaign, figure: str | None = None, check: "CheckResult | None" = None) -> str:
     """The report section: one table per run, failures listed, the plot linked."""
-    from .report import md_table
-
     rows = []
     have_pred = False
     for sc in c.scenarios:
@@ -516,9 +514,6 @@ def report_markdown(c: ScoreCampaign, figure: str | None = None, check: "CheckRe
 def write_report(c: ScoreCampaign, out_dir, check: "CheckResult | None" = None) -> Path:
     """``out_dir/score.md`` + ``figures/score.png`` + ``score.json`` (atomic writes)."""
     import json
-
-    from gyrocore.data.jsonable import to_jsonable
-    from gyrocore.data.recording import atomic_write_text
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -735,8 +730,6 @@ class CheckResult:
         return out + [c.line() for c in self.checks if not c.passed]
 
     def markdown(self) -> str:
-        from .report import md_table
-
         rows = [
             (
                 c.scenario,

@@ -14,6 +14,9 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from gyrocore.effects import registry as E
+from gyrocore.calib.bias import StaticBiasCalibrator
+from gyrocore.errors import GyroInputError
+from sim.presets import load_preset
 
 __all__ = [
     "TABLE_EFFECTS",
@@ -154,9 +157,6 @@ def powerup_window(
     mean exceeds ``bias_bound_rad_s`` (a plausible bias: 5× the datasheet bias spread) is
     refused too and the search goes on after it. None if the start never goes still.
     """
-    from gyrocore.calib.bias import StaticBiasCalibrator
-    from gyrocore.errors import GyroInputError
-
     rate = rec.rate_hz
     n_search = int(min(rec.n, POWERUP_SEARCH_S * rate))
     sigma = None
@@ -186,8 +186,6 @@ def powerup_window(
 def bias_bound_rad_s(sensor: str) -> float | None:
     """5× the datasheet bias spread √(σ_b² + σ_turn-on²) of a preset, rad/s (None if unknown)."""
     try:
-        from sim.presets import load_preset
-
         d = load_preset(sensor).distribution("bias") or {}
     except Exception:  # noqa: BLE001 - a sensor file without a bias level: no bound
         return None

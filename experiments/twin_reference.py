@@ -13,6 +13,7 @@ from gyrocore.attitude import attitude_rate
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import as_segments
 from gyrocore.errors import GyroInputError
+from gyrocore.loop.residual import choose_reference, detect_still
 
 DEG = math.pi / 180.0
 #: Shortest span of the reference the statistics use, s.
@@ -85,8 +86,6 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
         recording is not a still log), or a reference that covers less than
         :data:`MIN_SPAN_S` of contiguous samples.
     """
-    from gyrocore.loop.residual import choose_reference, detect_still
-
     segs = as_segments(segments)
     t = np.asarray(rec.t_s, float)
     n = rec.n

@@ -9,6 +9,7 @@ import numpy as np
 from scipy import signal
 
 from .twin_reference import Reference, _quat_R
+from gyrocore.attitude import integrate_gyro
 
 #: Window of the per-window statistics, s.
 WINDOW_S = 1.0
@@ -107,8 +108,6 @@ def _acf(series: list[np.ndarray], lags: int) -> np.ndarray:
 
 def _attitude_windows(gyro: np.ndarray, t: np.ndarray, R_ref, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Window residual (M, 3) rad/s: rotvec((R_aᵀR_b)ᵀ·ΔR̂_{a→b})/T (gyrocore.loop.residual, attitude kind)."""
-    from gyrocore.attitude import integrate_gyro
-
     qh = integrate_gyro(t, gyro, hold="backward")
     Rh = _quat_R(qh)
     rel_ref = R_ref[a].inv() * R_ref[b]

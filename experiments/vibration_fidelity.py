@@ -41,14 +41,18 @@ import json
 import math
 
 import numpy as np
+from gyrocore.data.recording import atomic_write_bytes, read_csv
+from gyrocore.errors import GyroInputError
+from gyrocore.flight.synthesis import add_vibration, fidelity, shaped_params
+from gyrocore.flight.vibration import analyse, read_spec, write_spec
+from gyrocore.readers.convert import detect_format, load_any
+from sim import scenarios as S
+from sim.spec_vibration import spec_injection
 
 
 def _vehicle_hover(spec: dict, band: int, *, vehicle: str, duration_s: float, seed: int):
     """(physics-only recording, physics + shaped recording) of one band, as ``simulate --vibration-physics``
     (both through :func:`sim.spec_vibration.spec_injection`, the registry effect ``vibration``)."""
-    from sim import scenarios as S
-    from sim.spec_vibration import spec_injection
-
     hv, over, info = spec_injection(spec, band=band, vehicle=vehicle, physics=True, seed=seed)
     phys = S.simulate("hover", duration_s=duration_s, seed=seed, vehicle=vehicle, hover_vibration=hv).recording
     shaped = S.simulate(
@@ -62,10 +66,6 @@ def _with_spec_band(rec, spec: dict, band: int, *, seed: int):
     its own metadata (scenario, sensor, seed, run, duration, vehicle) with the registry effect
     ``vibration`` switched on. A recording that is not a simulation's is given the disturbance
     open loop (:func:`gyrocore.flight.synthesis.add_vibration`), said in the returned note."""
-    from gyrocore.errors import GyroInputError
-    from gyrocore.flight.synthesis import add_vibration, shaped_params
-    from sim import scenarios as S
-
     m = rec.meta
     try:
         res = S.simulate(
@@ -98,10 +98,6 @@ def run(
     plot_bands=(0, 4, 7),
 ) -> dict:
     """Table rows per band: in-band fraction and rms above 40 Hz, before and after (and the vehicle class's)."""
-    from gyrocore.data.recording import read_csv
-    from gyrocore.flight.synthesis import fidelity
-    from gyrocore.flight.vibration import analyse, read_spec
-
     spec = read_spec(spec_path)
     hover = read_csv(hover_path)
     before = analyse(hover, t_from_s=t_from_s)
@@ -189,8 +185,6 @@ def _save_png(fig, axs, path: str) -> None:
     import io
 
     import matplotlib.pyplot as plt
-
-    from gyrocore.data.recording import atomic_write_bytes
 
     axs[0, 0].legend(fontsize=7)
     fig.tight_layout()
@@ -280,10 +274,6 @@ def _hover_result(
     spec, band, *, vehicle: str, duration_s: float, seed: int, n_calib: int, calib_s: float, t_from_s: float
 ):
     """Analysis of a hover of ``vehicle`` with the spec band injected (physics + registry shaped part)."""
-    from gyrocore.flight.vibration import analyse
-    from sim import scenarios as S
-    from sim.spec_vibration import spec_injection
-
     hv, over, info = spec_injection(
         spec, band=band, vehicle=vehicle, physics=True, seed=seed, n_calib=n_calib, calib_s=calib_s
     )
@@ -312,12 +302,6 @@ def run_split(
     import os
     import tempfile
     from types import SimpleNamespace
-
-    from gyrocore.readers.convert import detect_format, load_any
-    from gyrocore.data.recording import read_csv
-    from gyrocore.flight.synthesis import fidelity
-    from gyrocore.flight.vibration import analyse, write_spec
-    from sim import scenarios as S
 
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
     t = rec.t_s

@@ -33,6 +33,14 @@ from typing import Mapping
 import numpy as np
 
 from gyrocore.errors import GyroInputError
+from gyrocore.calib.bias import StaticBiasCalibrator
+from gyrocore.calib.params import save_params
+from gyrocore.calibrator import Calibrator
+from gyrocore.data.recording import atomic_write_bytes, file_sha256, read_recording
+from gyrocore.effects.registry import check_effect_names
+from gyrocore.loop.loop import run_loop
+from gyrocore.noise.allan import allan_analysis
+from gyrocore.readers.convert import load_with_segments, read_any
 
 __all__ = [
     "WORKER_ENV",
@@ -98,9 +106,6 @@ def _num(x) -> float:
 
 
 def headline_bias(path: str, options: dict) -> dict:
-    from gyrocore.calib.bias import StaticBiasCalibrator
-    from gyrocore.data.recording import read_recording
-
     rec = read_recording(path, columns=())
     r = StaticBiasCalibrator().fit(rec)
     out = {"n_samples": rec.n, "duration_s": rec.duration_s, "rate_hz": rec.rate_hz}
@@ -112,9 +117,6 @@ def headline_bias(path: str, options: dict) -> dict:
 
 
 def headline_allan(path: str, options: dict) -> dict:
-    from gyrocore.noise.allan import allan_analysis
-    from gyrocore.data.recording import read_recording
-
     rec = read_recording(path, columns=())
     # the motion gate as `gyroharness allan` runs it: a record with motion is cut to its
     # longest still stretch (warning) or refused (one error line, the row marked failed)
@@ -130,11 +132,6 @@ def headline_allan(path: str, options: dict) -> dict:
 
 
 def headline_calibrate(path: str, options: dict) -> dict:
-    from gyrocore.effects.registry import check_effect_names
-    from gyrocore.calibrator import Calibrator
-    from gyrocore.calib.params import save_params
-    from gyrocore.readers.convert import read_any
-
     names = check_effect_names(options.get("effects", "bias").split(","))
     rec = read_any(path)  # as `gyroharness calibrate`: a data file or any set `convert` reads (BROAD .hdf5, ...)
     res = Calibrator(effects=names).fit(rec, source_path=path)
@@ -155,9 +152,6 @@ def headline_calibrate(path: str, options: dict) -> dict:
 
 
 def headline_loop(path: str, options: dict) -> dict:
-    from gyrocore.readers.convert import load_with_segments
-    from gyrocore.loop.loop import run_loop
-
     conv = load_with_segments(path)
     declared = [e for e in options.get("effects", "bias").split(",") if e]
     r = run_loop(conv.recording, declared=declared, segments=list(conv.segments))
@@ -242,8 +236,6 @@ def find_inputs(spec: str) -> list[str]:
 
 
 def _hash(path: str) -> str:
-    from gyrocore.data.recording import file_sha256
-
     try:
         return file_sha256(path)
     except OSError as exc:
@@ -296,8 +288,6 @@ def plot_fleet(df, command: str, path: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from gyrocore.data.recording import atomic_write_bytes
 
     ok = df["error"].fillna("") == ""
     metrics = [
@@ -381,8 +371,6 @@ def read_table(path: str):
 
 def write_table(df, path: str) -> None:
     """CSV or Parquet by name; atomic (a full disk leaves the old table, one error line)."""
-    from gyrocore.data.recording import atomic_write_bytes
-
     try:
         if path.lower().endswith((".parquet", ".pq")):
             buf = io.BytesIO()

@@ -42,6 +42,21 @@ from .gyro import GyroOutput, SyntheticGyro
 from .noise import effect_rng
 from .presets import load_preset, read_registered_toml
 from .truth import Truth
+from .controller import small_steps
+from .quadrotor import fly_hover, HoverFlight, TAKEOFF_CLIMB_S
+from .spec_vibration import spec_injection
+from .thermal import ambient_ramps, HeaterSpec, simulate_temperature, TemperatureChunks, ThermalSpec
+from .turntable import (
+    mount_quat_wxyz,
+    run_table,
+    stream_table,
+    table_profile_static,
+    table_profile_turns,
+    TableProfile,
+    TableSegment,
+)
+from .vehicles import get_vehicle
+from gyrocore.flight.vibration import read_spec
 
 __all__ = [
     "SCENARIOS",
@@ -193,8 +208,6 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
         raise GyroInputError(f"scenario {path}: needs duration_s")
     veh = raw.get("hover", {}).get("vehicle", "f450")
     if kind == "hover":
-        from .vehicles import get_vehicle
-
         get_vehicle(str(veh))  # an unknown class is one error line at load time
     vsec = raw.get("vibration", {})
     if not isinstance(vsec, Mapping) or set(vsec) - {"spec", "band", "physics"} or ("spec" not in vsec and vsec):
@@ -226,8 +239,6 @@ def load_scenario(name_or_path: str | Path | ScenarioSpec) -> ScenarioSpec:
 # ---------------------------------------------------------------------------- builders
 def build_thermal(section: Mapping, duration_s: float):
     """:class:`sim.thermal.ThermalSpec` from a ``[thermal]`` section (ramps scale with the duration)."""
-    from .thermal import HeaterSpec, ThermalSpec, ambient_ramps
-
     sec = dict(section)
     kw: dict = {}
     for k in ("time_constant_s", "self_heating_c", "motor_c_per_w", "initial_temp_c"):
@@ -264,8 +275,6 @@ def _mount(m):
 
 
 def _segment_from(d: Mapping):
-    from .turntable import TableSegment
-
     rate = float(d.get("rate_dps", 0.0)) * DEG
     ramp = float(d.get("ramp_s", 0.5))
     if "revolutions" in d:
@@ -278,8 +287,6 @@ def _segment_from(d: Mapping):
 
 
 def _turns(t: Mapping, *, revolutions: float, rates, rest_s: float, mounts, repose_s=None, settle_s=None):
-    from .turntable import table_profile_turns
-
     return table_profile_turns(
         mounts=tuple(_mount(m) for m in mounts),
         revolutions=revolutions,
@@ -341,8 +348,6 @@ def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator)
     """
     from scipy.spatial.transform import Rotation
 
-    from .turntable import TableProfile, TableSegment, mount_quat_wxyz
-
     base = _mount(t.get("mount", "+z"))
     q_base = mount_quat_wxyz(base)
     start = float(b.get("start_s", 0.3))
@@ -396,8 +401,6 @@ def _bumped(t: Mapping, b: Mapping, duration_s: float, rng: np.random.Generator)
 
 def _cycle(t: Mapping, duration_s: float):
     """Repeat the segment pattern while it fits, then stay still until the end."""
-    from .turntable import TableProfile, TableSegment
-
     pattern = [_segment_from(d) for d in t.get("segments", ())]
     if not pattern:
         raise GyroInputError("[table] profile = cycle needs [[table.segments]]")
@@ -418,8 +421,6 @@ def _cycle(t: Mapping, duration_s: float):
 
 def build_table_profile(spec: ScenarioSpec, duration_s: float | None, *, seed: int = 0, run: int = 0):
     """The :class:`sim.turntable.TableProfile` of a table scenario."""
-    from .turntable import table_profile_static
-
     t = spec.table
     prof = t.get("profile")
     if prof == "turns":
@@ -435,8 +436,6 @@ def build_table_profile(spec: ScenarioSpec, duration_s: float | None, *, seed: i
 
 def _split_power_ups(truth: Truth, cycles: int, thermal) -> Truth:
     """``cycles`` equal power-ups: index, time since power-up, and a cold die at each start."""
-    from .thermal import simulate_temperature
-
     if cycles < 1:
         raise GyroInputError("[power] cycles must be >= 1")
     n = truth.n
@@ -543,10 +542,6 @@ def _scenario_vibration(spec: ScenarioSpec, overrides, without, vehicle, hover_v
         and not any(canonical_name(e) == "vibration" for e in (overrides or {}))
         and "vibration" not in [canonical_name(w) for w in without]
     ):
-        from gyrocore.flight.vibration import read_spec
-
-        from .spec_vibration import spec_injection
-
         hv, vib_over, vib_info = spec_injection(
             read_spec(spec.vibration["spec"]),
             band=spec.vibration.get("band", "middle"),
@@ -705,8 +700,6 @@ class _Setup:
             self.thermal = build_thermal(spec.thermal, self.prof.duration_s)
             self.cycles = int(spec.power.get("cycles", 1))
             return
-        from .controller import small_steps
-        from .quadrotor import TAKEOFF_CLIMB_S
 
         self.dur = dur
         self.thermal = thermal = build_thermal(spec.thermal, dur)
@@ -774,17 +767,12 @@ class _Setup:
         """Truth whole (``run_table`` / ``fly_hover``), ``SyntheticGyro.measure``, one :class:`SimResult`."""
         gyro, flight_log = self.gyro, None
         if self.spec.kind == "table":
-            from .turntable import run_table
-
             truth = run_table(
                 self.prof, gyro_rate_hz=self.rate, thermal=self.thermal, seed=self.seed, progress=self.progress
             )
             if self.cycles > 1:
                 truth = _split_power_ups(truth, self.cycles, self.thermal)
         else:
-            from .quadrotor import fly_hover
-            from .thermal import simulate_temperature
-
             fly_gyro, rate = self.fly_gyro, self.rate
             n = int(math.floor(self.dur * rate + 1e-9))  # fly_hover's sample count
             kw = {}
@@ -827,8 +815,6 @@ class _Setup:
         gyro, rate = self.gyro, self.rate
         block = min(chunk_rows, SIM_BLOCK_ROWS)
         if self.spec.kind == "table":
-            from .turntable import stream_table
-
             table = stream_table(
                 self.prof,
                 gyro_rate_hz=rate,
@@ -849,8 +835,6 @@ class _Setup:
                 tr = (tr for tr, _ang in table.chunks())
                 return _power_cycle_chunks(tr, n, cycles, self.thermal) if cycles > 1 else tr
         else:
-            from .quadrotor import HoverFlight
-
             # the flight block by block: a block stream of the gyro in the loop (noise drawn per block)
             flight = HoverFlight(gyro=self.fly_gyro, gyro_blocks=True, **self.flight)
             n, cycles, truth_meta = flight.n, 1, flight.meta
@@ -958,8 +942,6 @@ def _rechunk_recordings(pieces, rows: int):
 def _power_cycle_chunks(truths, n: int, cycles: int, thermal):
     """:func:`_split_power_ups` on a truth arriving in chunks (same index, time since power-up and
     cold-start temperature per cycle, bit for bit)."""
-    from .thermal import TemperatureChunks
-
     if cycles < 1:
         raise GyroInputError("[power] cycles must be >= 1")
     if n < 2 * cycles:
@@ -996,8 +978,6 @@ def hover_ground_s(spec: ScenarioSpec, duration_s: float) -> float:
     (:data:`sim.quadrotor.TAKEOFF_CLIMB_S`) and :data:`MIN_AIRBORNE_S` of hover after it; else 0
     (airborne start: short test flights keep the plain hover).
     """
-    from .quadrotor import TAKEOFF_CLIMB_S
-
     ground = float(spec.hover.get("ground_s", 0.0))
     if ground > 0.0 and duration_s >= ground + TAKEOFF_CLIMB_S + MIN_AIRBORNE_S:
         return ground
