@@ -13,7 +13,8 @@ from gyrocore.attitude import attitude_rate
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import as_segments
 from gyrocore.errors import GyroInputError
-from gyrocore.loop.residual import choose_reference, detect_still
+from gyrocore.data.still import still_samples
+from gyrocore.loop.residual import STILL_GATE, choose_reference
 
 DEG = math.pi / 180.0
 #: Shortest span of the reference the statistics use, s.
@@ -108,7 +109,7 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
         q_ref = np.asarray(rec.ref_quat_wxyz, float)
         w, valid = attitude_rate(t, q_ref)
         omega = _fill(t, w, valid)
-        still = detect_still(t, rec.gyro_rad_s)
+        still = still_samples(rec, STILL_GATE)
         covered = still.copy()
         # a rest must also be a rest of the reference: the attitude changes by < 1° over it
         for a, b in _runs(still, min_len):
@@ -133,7 +134,7 @@ def reference_of(rec: Recording, segments: Sequence = ()) -> Reference:
             covered = np.asarray(rec.extra["static_pose_axis"]) != 0
             how = "static poses"
         else:
-            covered = detect_still(t, rec.gyro_rad_s)
+            covered = still_samples(rec, STILL_GATE)
             how = "motion gate"
         if kind == "angles":
             for s in segs:

@@ -35,7 +35,7 @@ Rules: ``"mean"`` (the article), ``"median"`` (PX4-like, robust to spikes), ``"c
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.optimize
@@ -44,18 +44,16 @@ import scipy.stats
 from gyrocore.errors import GyroInputError, warn_repair
 from gyrocore.data.columns import columns_of
 from gyrocore.data.recording import GYRO_COLS, Recording
+from gyrocore.data.still import StillGate, abs_diff_moments, gate_threshold, still_windows
 
 __all__ = [
     "StaticBiasCalibrator",
     "StaticBiasResult",
     "startup_still_slice",
-    "abs_diff_moments",
-    "robust_diff_noise",
     "FORMAT_VERSION",
 ]
 
 FORMAT_VERSION = "1.0"
-_MAD = 1.482602218505602  # 1/Φ⁻¹(3/4): MAD → σ for Gaussian data
 RULES = ("mean", "median", "converge", "article")
 STATISTICS = ("abs_diff", "variance")
 
@@ -127,122 +125,6 @@ class StaticBiasResult:
 
 
 # ---------------------------------------------------------------------------- pure helpers
-def _refuse_constant(noise: tuple[np.ndarray, np.ndarray], x: np.ndarray | None = None):
-    """Pass ``(sigma_diff, rho)`` through, or one error line when a gyro axis never changes.
-
-    An axis with σ_Δ = 0 holds one value over the whole record: its output is quantized more
-    coarsely than its noise (INAV logs gyroADC, after a 30-Hz low-pass, rounded to 1 deg/s: a
-    quad at rest reads exactly 0 on every axis). No gate, noise or bias standard error can be
-    derived from it (the gate divided by σ² = 0: a ZeroDivisionError traceback in ``noise``,
-    "motion detected throughout ... threshold [nan nan nan]" in ``bias``).
-    """
-    sigma_diff = np.asarray(noise[0], float)
-    flat = [i for i in range(min(3, sigma_diff.size)) if not sigma_diff[i] > 0]
-    if flat:
-        vals = ""
-        if x is not None:
-            vals = " (" + ", ".join(f"{'xyz'[i]} = {float(x[0, i]):.6g} rad/s" for i in flat) + ")"
-        raise GyroInputError(
-            f"gyro axis {', '.join('xyz'[i] for i in flat)} never changes over the record{vals}: its output is "
-            "quantized more coarsely than its noise (e.g. a filtered gyro rounded to 1 deg/s), so no noise, gate or "
-            "bias error can be measured from this record (a finer output is needed)"
-        )
-    return noise
-
-
-def robust_diff_noise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Robust σ_Δ (std of first differences) and ρ = corr(Δ_k, Δ_k+1) per column.
-
-    σ_Δ = 1.4826·MAD(Δ); Var(x[k+2] − x[k]) = 2σ_Δ²(1 + ρ) gives ρ from the MAD of lag-2
-    differences. Falls back to the plain standard deviation when the data are so coarsely
-    quantized that the MAD is zero.
-
-    Parameters
-    ----------
-    x : ndarray, shape (N, C)
-
-    Returns
-    -------
-    sigma_diff : ndarray, shape (C,)
-    rho : ndarray, shape (C,), clipped to [−0.95, 0.95]
-    """
-    x = np.asarray(x, float)
-    if x.shape[0] < 4:
-        raise GyroInputError(f"need at least 4 samples to estimate the noise, got {x.shape[0]}")
-
-    def rsd(v):
-        med = np.median(v, axis=0)
-        s = _MAD * np.median(np.abs(v - med), axis=0)
-        return np.where(s > 0, s, v.std(axis=0))
-
-    if x.nbytes > _BLOCK_BYTES:  # long record: one column at a time (same values, 1/3 of the temporaries)
-        s1, s2 = np.empty(x.shape[1]), np.empty(x.shape[1])
-        for j in range(x.shape[1]):
-            c = x[:, j]
-            s1[j] = rsd(np.diff(c))
-            s2[j] = rsd(c[2:] - c[:-2])
-            del c
-        if not (np.all(s1 > 0) and np.all(s2 > 0)):  # the std fallback exactly as for the whole array
-            s1 = rsd(np.diff(x, axis=0))
-            s2 = rsd(x[2:] - x[:-2])
-    else:
-        s1 = rsd(np.diff(x, axis=0))
-        s2 = rsd(x[2:] - x[:-2])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
-    return s1, np.clip(rho, -0.95, 0.95)
-
-
-def _rsd_consuming(v: np.ndarray) -> float:
-    """The ``rsd`` of :func:`robust_diff_noise` for one fresh 1-D array, overwriting it (one
-    temporary instead of three; the same value). Falls back to nan when the MAD is 0."""
-    med = np.median(v, overwrite_input=True)  # permutes v; the MAD does not depend on the order
-    np.subtract(v, med, out=v)
-    np.abs(v, out=v)
-    s = _MAD * float(np.median(v, overwrite_input=True))
-    return s if s > 0 else float("nan")
-
-
-def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndarray:
-    """x[k + lag] − x[k] written over x[k] block by block (block [a, b) reads x[a .. b + lag),
-    none of it overwritten yet); returns the view x[:N − lag]."""
-    n = x.shape[0] - lag
-    for a in range(0, max(n, 0), block):
-        b = min(a + block, n)
-        x[a:b] = x[a + lag : b + lag] - x[a:b]
-    return x[: max(n, 0)]
-
-
-def _robust_diff_noise_columns(store) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`robust_diff_noise` of the gyro of a chunk source (:mod:`gyrocore.data.columns`),
-    one column at a time (the same values as the whole array: medians are exact)."""
-    if store.n < 4:
-        raise GyroInputError(f"need at least 4 samples to estimate the noise, got {store.n}")
-    s1, s2 = np.empty(3), np.empty(3)
-    for j, nm in enumerate(GYRO_COLS):
-        # the lag-1 and lag-2 differences each formed in place in a fresh read of the column
-        # (one (N,) array at a time; the same values as np.diff(c) and c[2:] − c[:-2])
-        s1[j] = _rsd_consuming(_lag_diff_in_place(store.column(nm), 1))
-        s2[j] = _rsd_consuming(_lag_diff_in_place(store.column(nm), 2))
-    if not (np.all(s1 > 0) and np.all(s2 > 0)):  # a MAD of 0 (coarse quantization): the whole-array rule
-        x = np.stack([store.column(nm) for nm in GYRO_COLS], axis=1)
-        return robust_diff_noise(x)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
-    return s1, np.clip(rho, -0.95, 0.95)
-
-
-def abs_diff_moments(m: int, sigma_diff: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and variance of S = Σ_{k=1}^{m} |Δ_k| for Gaussian Δ (σ_Δ, lag-1 correlation ρ)."""
-    sd = np.asarray(sigma_diff, float)
-    rho = np.asarray(rho, float)
-    mean = m * sd * math.sqrt(2.0 / math.pi)
-    v1 = sd**2 * (1.0 - 2.0 / math.pi)
-    c1 = (2.0 / math.pi) * sd**2 * (np.sqrt(1.0 - rho**2) + rho * np.arcsin(rho) - 1.0)
-    var = m * v1 + 2.0 * max(m - 1, 0) * c1
-    return mean, var
-
-
 def _folded_mean(mu: float, s: float) -> float:
     """E|X| for X ~ N(mu, s²)."""
     return s * math.sqrt(2 / math.pi) * math.exp(-mu * mu / (2 * s * s)) + mu * (1 - 2 * scipy.stats.norm.cdf(-mu / s))
@@ -303,39 +185,6 @@ def _wblock(xw, a: int, b: int) -> np.ndarray:
     return xw[a:b] if isinstance(xw, np.ndarray) else xw.block(a, b)
 
 
-def _window_stats(x, n: int, statistic: str) -> np.ndarray:
-    """Per-window statistic, shape (W, 3), for non-overlapping windows of n samples.
-
-    ``x`` : (N, C) array, or a :class:`GyroWindows` of windows of n samples."""
-    if isinstance(x, np.ndarray):
-        W = x.shape[0] // n
-        xw = x[: W * n].reshape(W, n, x.shape[1])
-    else:
-        xw = x
-        W = xw.shape[0]
-    C = xw.shape[2]
-    out = np.empty((W, C))
-    for a, b in _blocks(W, n, C, getattr(xw, "block_bytes", None)):
-        blk = _wblock(xw, a, b)
-        if statistic == "abs_diff":
-            out[a:b] = np.abs(np.diff(blk, axis=1)).sum(axis=1)
-        else:
-            out[a:b] = blk.var(axis=1, ddof=1)
-        del blk
-    return out
-
-
-def _window_means(xw) -> np.ndarray:
-    """Mean of every window, shape (W, C), block by block."""
-    W, n, C = xw.shape
-    if isinstance(xw, np.ndarray):
-        return xw.mean(axis=1)
-    out = np.empty((W, C))
-    for a, b in _blocks(W, n, C, xw.block_bytes):
-        out[a:b] = xw.block(a, b).mean(axis=1)
-    return out
-
-
 def _lag_sums(xw, sel: np.ndarray, L: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """c0 and the lag-k cross sums of the demeaned selected windows, block by block."""
     W, n, C = xw.shape
@@ -369,60 +218,6 @@ def _vif(xw: np.ndarray, max_lag: int, sel: np.ndarray | None = None) -> np.ndar
     for _ in range(3):  # demeaning bias of r_k is −VIF/n: fixed-point correction
         vif = 1.0 + sum(2.0 * (1.0 - k / n) * (r[k - 1] + vif / n) for k in range(1, L + 1))
     return np.maximum(vif, 0.05)
-
-
-NOISE_RATIO_BOUND = 4.0
-"""Largest accepted ratio of the window-variance σ² to the AR(1) prediction from differences."""
-
-
-def _check_noise_plausible(sigma2: np.ndarray | None, sigma_diff: np.ndarray, rho: np.ndarray) -> None:
-    """Refuse a self-estimated noise that smooth motion has inflated (one-line GyroInputError).
-
-    The variance gate estimates σ² from a low quantile of the window variances; a recording
-    that moves the whole time (e.g. a slow ±29 °/s sine) inflates every window variance, so
-    the gate would accept it with its motion as "noise". Smooth (low-frequency) motion barely
-    changes the first differences Δ, whose robust σ_Δ (MAD) therefore still measures the
-    noise. For stationary noise σ² = σ_Δ² / (2 (1 − r₁)); for AR(1) noise (an on-chip
-    low-pass, coefficient φ) r₁ = φ and ρ = corr(Δ_k, Δ_k+1) = −(1 − φ)/2, so the expected
-    ratio is σ²/(σ_Δ²/2) = −1/(2ρ) (1 for white noise, ρ = −0.5). ρ is clipped to ≤ −0.1
-    (φ ≤ 0.8: a low-pass at ≳ rate/30) so that motion, which drives the measured ρ towards 0,
-    cannot raise the allowance without bound. A still recording passes unless the variance σ²
-    exceeds that prediction by :data:`NOISE_RATIO_BOUND` = 4 — at W ≥ 10 windows of n ≥ 8
-    samples the 25 %-quantile estimate has a relative error of a few tens of per cent at
-    most, and the real static MPU-6050 and PX4 logs give 0.85…1.5 (docs/calibration.md).
-    """
-    if sigma2 is None:
-        return
-    expected = np.asarray(sigma_diff, float) ** 2 / 2.0 * np.maximum(1.0, -1.0 / (2.0 * np.minimum(rho, -0.1)))
-    ratio = np.asarray(sigma2, float) / expected
-    if np.any(ratio > NOISE_RATIO_BOUND):
-        i = int(np.argmax(ratio))
-        raise GyroInputError(
-            f"motion detected throughout: the window variances imply a noise sigma of "
-            f"{math.degrees(math.sqrt(float(sigma2[i]))):.3g} deg/s on axis {'xyz'[i]} but its sample-to-sample "
-            f"differences only {math.degrees(math.sqrt(float(expected[i]))):.3g} deg/s (variance ratio "
-            f"{ratio[i]:.3g} > {NOISE_RATIO_BOUND:g}): the recording moves smoothly the whole time; "
-            f"if it is really still, give the sensor's noise (--noise-dps)"
-        )
-
-
-def _plausible_or_differences(sigma2, dof, sigma_diff, rho):
-    """``(sigma2, dof, "")`` when the window-variance noise passes :func:`_check_noise_plausible`;
-    else ``(None, None, why)``: the gate then uses the noise of the sample-to-sample differences
-    (smooth motion barely changes them), as :func:`gyrocore.noise.allan.still_span` does.
-
-    The window-variance noise is a 25 % quantile: with fewer than a quarter of the windows
-    still it holds motion. BROAD trial 05 with 20-s windows (the first of its ten is still,
-    35 s of rest) was refused as "moves smoothly the whole time"; gated with the differences'
-    noise its still window is found and the moving ones are refused. A record that really moves
-    the whole time has every window refused, and the error keeps the explanation."""
-    try:
-        _check_noise_plausible(sigma2, sigma_diff, rho)
-    except GyroInputError as exc:
-        msg = str(exc)
-        why = msg.split("the window variances ", 1)[-1].split(": the recording", 1)[0]
-        return None, None, "the window variances " + why
-    return sigma2, dof, ""
 
 
 # ---------------------------------------------------------------------------- calibrator
@@ -507,13 +302,22 @@ class StaticBiasCalibrator:
         self.correlation = correlation
 
     # ------------------------------------------------------------------ gate
-    def _noise(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if self.noise_sigma_rad_s is not None:
-            s = np.broadcast_to(np.asarray(self.noise_sigma_rad_s, float), (3,)).copy()
-            if not np.all(s > 0):
-                raise GyroInputError("noise_sigma_rad_s must be positive")
-            return s * math.sqrt(2.0), np.full(3, -0.5)
-        return _refuse_constant(robust_diff_noise(x), x)
+    def still_gate(self, n: int, statistic: str | None = None) -> StillGate:
+        """The options of the one still gate (:mod:`gyrocore.data.still`) for windows of n samples:
+        this calibrator's statistic (the article's Σ|Δ| with its fixed threshold for ``"article"``),
+        false-reject rate, noise σ and autocorrelation lags."""
+        article = self.rule == "article"
+        sigma = self.noise_sigma_rad_s
+        return StillGate(
+            window_samples=int(n),
+            false_reject_rate=self.false_reject_rate,
+            statistic="abs_diff" if article else (statistic or self.statistic),
+            noise_sigma_rad_s=None
+            if sigma is None
+            else tuple(np.broadcast_to(np.asarray(sigma, float), (3,)).tolist()),
+            max_lag=self.max_lag,
+            threshold=self.article_threshold_counts * float(self.lsb_rad_s) if article else None,
+        )
 
     def gate(
         self,
@@ -539,15 +343,12 @@ class StaticBiasCalibrator:
         m = n - 1
         step = np.full(3, np.nan)
         ramp = np.full(3, np.nan)
-        if self.rule in ("article",) or (self.rule != "converge" and self.statistic == "abs_diff"):
+        if self.rule == "converge":
+            return None, "", self.false_reject_rate, step, ramp
+        thr = gate_threshold(self.still_gate(n), n, sigma_diff, rho, sigma2=sigma2, dof=dof)
+        if self.rule == "article" or self.statistic == "abs_diff":
             mean, var = abs_diff_moments(m, sigma_diff, rho)
-            if self.rule == "article":
-                thr = np.full(3, self.article_threshold_counts * float(self.lsb_rad_s))
-                alpha = float("nan")
-            else:
-                k = mean**2 / var
-                thr = scipy.stats.gamma.isf(alpha_axis, k, scale=var / mean)
-                alpha = self.false_reject_rate
+            alpha = float("nan") if self.rule == "article" else self.false_reject_rate
             for i in range(3):
                 sd = float(sigma_diff[i])
                 base = sd * math.sqrt(2 / math.pi)
@@ -556,15 +357,11 @@ class StaticBiasCalibrator:
                 # a ramp a shifts every difference by a·dt: E S = m·E|N(a dt, σΔ²)|
                 ramp[i] = _solve_increasing(lambda a: m * _folded_mean(a * dt_s, sd), thr[i], sd / dt_s)
             return thr, "rad/s (sum of |diff| over the window)", alpha, step, ramp
-        if self.rule == "converge":
-            return None, "", self.false_reject_rate, step, ramp
         sigma2 = sigma_diff**2 / 2.0 if sigma2 is None else np.asarray(sigma2, float)
         dof = np.full(3, float(m)) if dof is None else np.asarray(dof, float)
-        thr = np.empty(3)
         for i in range(3):
             s2, nu = float(sigma2[i]), float(dof[i])
             q = scipy.stats.chi2.isf(alpha_axis, nu)
-            thr[i] = s2 * q / nu
             # (ν/σ²)·s² ~ χ²(ν) at rest; a deterministic motion adds the noncentrality
             # λ = Σ(x − x̄)²/σ² · ν/m: step at mid-window Σ = n h²/4, ramp (a dt)² n(n²−1)/12
             det = lambda lam: scipy.stats.ncx2.sf(q, nu, lam * nu / m)  # noqa: E731
@@ -573,45 +370,6 @@ class StaticBiasCalibrator:
                 lambda a: det((a * dt_s) ** 2 * n * (n * n - 1) / 12 / s2), 0.5, math.sqrt(s2) / (n * dt_s)
             )
         return thr, "(rad/s)^2 (window variance)", self.false_reject_rate, step, ramp
-
-    def _variance_noise(self, xw: np.ndarray, rho: np.ndarray, quantile: float = 0.25):
-        """Per-sample variance and effective dof of a window variance, for the variance gate.
-
-        With ≥ 10 windows and no σ given: σ² = p-quantile of the window variances /
-        (χ²_ν,p / ν) (robust to a fraction 1 − p of the windows moving, and right for
-        coloured noise, where σ_Δ²/2 is not the sample variance),
-        ν = (n − 1)/(1 + 2 Σ_k (1 − k/n) r_k²) (Bartlett's variance of a sample variance),
-        r_k pooled over the windows whose variance is below 4σ². Otherwise the white-noise values (None, None) and a warning if the
-        differences say the noise is not white.
-        """
-        W, n, _ = xw.shape
-        if self.noise_sigma_rad_s is not None:
-            return None, None
-        if W < 10:
-            if np.any(np.abs(rho + 0.5) > 0.1):
-                warn_repair(
-                    "gyro noise is not white (lag-1 correlation of differences "
-                    + ", ".join(f"{r:.2f}" for r in rho)
-                    + ", white = -0.50) and the recording is too short to measure its correlation: "
-                    "the variance gate's false-reject rate is approximate"
-                )
-            return None, None
-        s2w = _window_stats(xw.reshape(W * n, -1) if isinstance(xw, np.ndarray) else xw, n, "variance")
-        qv = np.quantile(s2w, quantile, axis=0)
-        dof = np.full(3, float(n - 1))
-        for _ in range(2):  # white start, then with the measured correlation
-            sigma2 = qv / (scipy.stats.chi2.ppf(quantile, dof) / dof)
-            quiet = np.all(s2w <= 4.0 * sigma2[None, :], axis=1)
-            c0, ck = _lag_sums(xw, quiet, min(self.max_lag, n - 2))
-            corr = np.zeros(3)
-            vif = np.ones(3)
-            r = [c / c0 for c in ck]
-            for _ in range(3):
-                vif = 1.0 + sum(2.0 * (1.0 - k / n) * (rk + vif / n) for k, rk in enumerate(r, 1))
-            corr = sum(2.0 * (1.0 - k / n) * (rk + vif / n) ** 2 for k, rk in enumerate(r, 1))
-            dof = (n - 1) / (1.0 + corr)
-        sigma2 = qv / (scipy.stats.chi2.ppf(quantile, dof) / dof)
-        return sigma2, dof
 
     # ------------------------------------------------------------------ fit
     def fit(self, recording) -> StaticBiasResult:
@@ -633,14 +391,9 @@ class StaticBiasCalibrator:
         # what _result reads (the rate, the start time): t with a zero-stride stand-in gyro
         head = Recording(t_s=cols.t_s, gyro_rad_s=np.broadcast_to(0.0, (cols.n, 3)), meta=cols.meta)
 
-        def noise():
-            if self.noise_sigma_rad_s is not None:
-                return self._noise(None)
-            return _refuse_constant(_robust_diff_noise_columns(cols), cols.block(GYRO_COLS, 0, 1))
+        return self._fit(head, cols.n, head.rate_hz, cols, lambda n: GyroWindows(cols, n))
 
-        return self._fit(head, cols.n, head.rate_hz, noise, lambda n: (GyroWindows(cols, n),) * 2)
-
-    def _fit(self, recording, N: int, rate: float, noise, windows) -> StaticBiasResult:
+    def _fit(self, recording, N: int, rate: float, cols, windows) -> StaticBiasResult:
         if not (math.isfinite(rate) and rate > 0):
             raise GyroInputError("static bias needs a sample rate (at least 2 timestamps)")
         dt = 1.0 / rate
@@ -651,30 +404,15 @@ class StaticBiasCalibrator:
         need = 2 if self.rule == "converge" else 1
         if W < need:
             raise GyroInputError(f"recording has {N} samples, shorter than {need} window(s) of {n} samples")
-        sigma_diff, rho = noise()
-        x, xw = windows(n)  # the gyro's (W, n, 3) windows (GyroWindows), twice
-        sigma2 = dof = None
-        inflated = ""  # why the window variances were not used (motion in most windows), else ""
-        if self.statistic == "variance" and self.rule in ("mean", "median"):
-            sigma2, dof = self._variance_noise(xw, rho)
-            sigma2, dof, inflated = _plausible_or_differences(sigma2, dof, sigma_diff, rho)
-        thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt, sigma2=sigma2, dof=dof)
-        if self.rule == "converge":
-            # the convergence test is the rule's own motion check; σ and the VIF are estimated
-            # on the windows the (default) variance gate calls still, so motion cannot inflate them
-            est = StaticBiasCalibrator(
-                window_samples=n,
-                false_reject_rate=self.false_reject_rate,
-                noise_sigma_rad_s=self.noise_sigma_rad_s,
-                max_lag=self.max_lag,
-            )
-            s2v, dofv = est._variance_noise(xw, rho)
-            s2v, dofv, inflated = _plausible_or_differences(s2v, dofv, sigma_diff, rho)
-            thr_v = est.gate(n, sigma_diff, rho, dt, sigma2=s2v, dof=dofv)[0]
-            still = np.all(_window_stats(x, n, "variance") <= thr_v[None, :], axis=1)
-        else:
-            stats = _window_stats(x, n, "abs_diff" if self.rule == "article" else self.statistic)
-            still = np.all(stats <= thr[None, :], axis=1)
+        # the one still gate; "converge" takes σ and the VIF from the windows the (default)
+        # variance gate calls still, so that motion cannot inflate them
+        gate = self.still_gate(n, "variance" if self.rule == "converge" else None)
+        sw = still_windows(cols, rate, gate, block_bytes=cols.block_bytes)
+        sigma_diff, rho = sw.sigma_diff_rad_s, sw.diff_corr
+        xw = windows(n)  # the gyro's (W, n, 3) windows (GyroWindows), for the VIF and the chosen window
+        inflated = sw.noise_note  # why the window variances were not used (motion in most windows), else ""
+        thr, units, alpha, step, ramp = self.gate(n, sigma_diff, rho, dt, sigma2=sw.sigma2, dof=sw.dof)
+        still = sw.still
         n_still = int(still.sum())
         if inflated and n_still:
             warn_repair(
@@ -690,8 +428,7 @@ class StaticBiasCalibrator:
         if self.noise_sigma_rad_s is not None:
             sigma = sigma_diff / math.sqrt(2.0)
         else:
-            wv = _window_stats(x[: W * n] if isinstance(x, np.ndarray) else x, n, "variance")  # block by block
-            sigma = np.sqrt((wv[still] if n_still else wv).mean(axis=0))
+            sigma = np.sqrt((sw.variance[still] if n_still else sw.variance).mean(axis=0))
         last = W if self.max_retries is None else min(W, 1 + int(self.max_retries) + (need - 1))
 
         if self.rule == "converge":
@@ -711,7 +448,7 @@ class StaticBiasCalibrator:
             # a ramp a moves it by a·n·dt.
             step = thr.copy()
             ramp = thr / (n * dt)
-            means = _window_means(xw)
+            means = sw.means
             for k in range(1, last):
                 if ok(means[k] - means[k - 1]):
                     bias = 0.5 * (means[k] + means[k - 1])
@@ -818,26 +555,17 @@ def startup_still_slice(
     quantile of the window variances (so at least that fraction of the recording must be
     still, e.g. 10 %); pass the sensor's σ (N·√rate) for flight logs that are mostly moving.
     """
-    cal = StaticBiasCalibrator(
-        window_samples=window_samples,
-        false_reject_rate=false_reject_rate,
-        statistic=statistic,
-        noise_sigma_rad_s=noise_sigma_rad_s,
-    )
     x = np.asarray(recording.gyro_rad_s, float)
     rate = recording.rate_hz
     n = int(window_samples)
     if x.shape[0] < n or not (math.isfinite(rate) and rate > 0):
         return None
-    W_max = max(1, min(x.shape[0] // n, int(math.floor(max_duration_s * rate / n))))
-    sigma_diff, rho = cal._noise(x)
-    sigma2 = dof = None
-    if statistic == "variance":
-        W_all = x.shape[0] // n
-        sigma2, dof = cal._variance_noise(x[: W_all * n].reshape(W_all, n, 3), rho, quantile=noise_quantile)
-    thr, *_ = cal.gate(n, sigma_diff, rho, 1.0 / rate, sigma2=sigma2, dof=dof)
-    stats = _window_stats(x[: W_max * n], n, statistic)
-    still = np.all(stats <= thr[None, :], axis=1)
+    gate = StaticBiasCalibrator(
+        window_samples=n, false_reject_rate=false_reject_rate, statistic=statistic, noise_sigma_rad_s=noise_sigma_rad_s
+    ).still_gate(n)
+    still = still_windows(x, rate, replace(gate, noise_quantile=noise_quantile)).still
+    W_max = max(1, min(still.size, int(math.floor(max_duration_s * rate / n))))
+    still = still[:W_max]
     if not still[0]:
         return None
     k = int(np.argmin(still)) if not still.all() else W_max

@@ -33,8 +33,8 @@ motion than the variance. ``threshold`` fixes the threshold instead of deriving 
 500 raw counts).
 
 :func:`still_windows` reads the record a block of windows at a time from any source with
-``n``, ``block(a, b)`` and ``column(j)`` (an (N, 3) array, or :class:`SpilledGyro` over a
-:class:`gyrocore.data.spill.ColumnSpill`): the same arithmetic on the same windows, so a record on
+an (N, 3) array or a chunk source of the file's columns (``n``, ``block(names, a, b)``,
+``column(name)``: a :class:`gyrocore.data.spill.ColumnSpill` on disk): the same arithmetic on the same windows, so a record on
 disk gets exactly the numbers of the same record in memory, with memory O(block + one column).
 """
 
@@ -54,7 +54,6 @@ from .recording import GYRO_COLS
 __all__ = [
     "StillGate",
     "StillWindows",
-    "SpilledGyro",
     "still_windows",
     "gate_threshold",
     "robust_diff_noise",
@@ -187,6 +186,8 @@ class StillWindows:
         Windows the caller excluded (never still, not used for the noise).
     means : ndarray, shape (W, 3)
         Window means, rad/s.
+    variance : ndarray, shape (W, 3)
+        Window sample variances, (rad/s)² (the statistic itself for ``"variance"``).
     gate : StillGate
         The options that made it.
     """
@@ -206,6 +207,7 @@ class StillWindows:
     noise_note: str = ""
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     means: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    variance: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     gate: StillGate = StillGate()
 
     @property
@@ -252,42 +254,58 @@ class _ArrayGyro:
         return np.array(self.x[:, j], float)
 
 
-class SpilledGyro:
-    """The gyro of a :class:`gyrocore.data.spill.ColumnSpill` as a source of
-    :func:`still_windows` (rows read a block at a time, a column at a time for the noise)."""
+class _ColumnsGyro:
+    """The gyro of a chunk source (a :class:`gyrocore.data.spill.ColumnSpill`, or any object with
+    ``n``, ``block(names, a, b)`` and ``column(name)`` over the file format's column names)."""
 
-    def __init__(self, store) -> None:
-        self.store = store
-        self.n = int(store.n)
+    def __init__(self, cols) -> None:
+        self.cols = cols
+        self.n = int(cols.n)
 
     def block(self, a: int, b: int) -> np.ndarray:
-        return self.store.block(GYRO_COLS, a, b)
+        return self.cols.block(GYRO_COLS, a, b)
 
     def column(self, j: int) -> np.ndarray:
-        return self.store.column(GYRO_COLS[j])
+        return self.cols.column(GYRO_COLS[j])
 
 
 def _source(gyro):
-    return gyro if hasattr(gyro, "block") and hasattr(gyro, "column") else _ArrayGyro(gyro)
+    if isinstance(gyro, (_ArrayGyro, _ColumnsGyro)):
+        return gyro
+    return _ColumnsGyro(gyro) if hasattr(gyro, "block") and hasattr(gyro, "column") else _ArrayGyro(gyro)
 
 
 # ---------------------------------------------------------------------------- noise
-def _rsd(v: np.ndarray) -> float:
-    """Robust σ (1.4826·MAD) of a 1-D array, the plain std when the MAD is 0 (coarse quantization)."""
-    med = np.median(v)
-    s = _MAD * float(np.median(np.abs(v - med)))
-    return s if s > 0 else float(v.std())
+def _rsd_consuming(v: np.ndarray) -> float:
+    """Robust σ (1.4826·MAD) of a fresh 1-D array, computed in place (it is overwritten); 0 when
+    the MAD is 0."""
+    med = np.median(v, overwrite_input=True)  # permutes v; the MAD does not depend on the order
+    np.subtract(v, med, out=v)
+    np.abs(v, out=v)
+    return _MAD * float(np.median(v, overwrite_input=True))
+
+
+def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndarray:
+    """x[k + lag] − x[k] written over x[k] block by block (block [a, b) reads x[a .. b + lag),
+    none of it overwritten yet); returns the view x[:N − lag]."""
+    n = x.shape[0] - lag
+    for a in range(0, max(n, 0), block):
+        b = min(a + block, n)
+        x[a:b] = x[a + lag : b + lag] - x[a:b]
+    return x[: max(n, 0)]
 
 
 def robust_diff_noise(x) -> tuple[np.ndarray, np.ndarray]:
     """Robust σ_Δ (std of first differences) and ρ = corr(Δ_k, Δ_k+1) per column.
 
     σ_Δ = 1.4826·MAD(Δ); Var(x[k+2] − x[k]) = 2σ_Δ²(1 + ρ) gives ρ from the MAD of lag-2
-    differences (insensitive to sparse motion). One column at a time (memory: one column).
+    differences (insensitive to sparse motion). The plain standard deviation when the MAD is 0
+    (output quantized more coarsely than its noise). One column at a time, each difference formed
+    in place in a fresh copy of the column: memory one column.
 
     Parameters
     ----------
-    x : ndarray, shape (N, C), or a source (``n``, ``column(j)``)
+    x : ndarray, shape (N, C), or a chunk source of the gyro columns
 
     Returns
     -------
@@ -300,10 +318,9 @@ def robust_diff_noise(x) -> tuple[np.ndarray, np.ndarray]:
     C = src.x.shape[1] if isinstance(src, _ArrayGyro) else 3
     s1, s2 = np.empty(C), np.empty(C)
     for j in range(C):
-        c = src.column(j)
-        s1[j] = _rsd(np.diff(c))
-        s2[j] = _rsd(c[2:] - c[:-2])
-        del c
+        for lag, out in ((1, s1), (2, s2)):
+            s = _rsd_consuming(_lag_diff_in_place(src.column(j), lag))
+            out[j] = s if s > 0 else float(_lag_diff_in_place(src.column(j), lag).std())
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
     return s1, np.clip(rho, -0.95, 0.95)
@@ -458,9 +475,10 @@ def still_windows(
 
     Parameters
     ----------
-    gyro : ndarray (N, 3), or a source with ``n``, ``block(a, b)`` and ``column(j)``
-        Rate, rad/s, sensor frame S, evenly spaced at ``rate_hz`` (:class:`SpilledGyro` for a
-        record on disk: the same numbers as in memory, read a block of windows at a time).
+    gyro : ndarray (N, 3), or a chunk source of the columns (``n``, ``block(names, a, b)``,
+        ``column(name)``: a :class:`gyrocore.data.spill.ColumnSpill` for a record on disk)
+        Rate, rad/s, sensor frame S, evenly spaced at ``rate_hz``; from disk the same numbers
+        as in memory, read a block of windows at a time.
     rate_hz : float
     gate : StillGate
     exclude : ndarray of bool, shape (W,), optional
@@ -552,6 +570,7 @@ def still_windows(
         noise_note=note,
         excluded=excl,
         means=means,
+        variance=var,
         gate=gate,
     )
 
@@ -577,12 +596,23 @@ def windows_touching(
     return hit[: W * n].reshape(W, n).any(axis=1)
 
 
-def still_samples(recording, gate: StillGate, *, exclude_s: Sequence[tuple[float, float]] = (), margin_s: float = 0.0):
+def still_samples(
+    recording,
+    gate: StillGate,
+    *,
+    exclude_s: Sequence[tuple[float, float]] = (),
+    margin_s: float = 0.0,
+    min_windows: int = 2,
+) -> np.ndarray:
     """Per-sample still mask (N,) of an in-memory :class:`gyrocore.data.recording.Recording`:
     :func:`still_windows` at its mean rate, the windows touching any span of ``exclude_s``
-    (s, widened by ``margin_s``) excluded."""
+    (s, widened by ``margin_s``) excluded. All False when the record holds fewer than
+    ``min_windows`` windows (too short to judge: the caller says what no still part means)."""
     rate = recording.rate_hz
     if not (math.isfinite(rate) and rate > 0):
         raise GyroInputError("cannot find still parts: unknown sample rate")
-    excl = windows_touching(recording.t_s, gate.samples(rate), exclude_s, margin_s) if len(exclude_s) else None
+    n = gate.samples(rate)
+    if recording.n < max(int(min_windows), 1) * max(n, 1):
+        return np.zeros(recording.n, bool)
+    excl = windows_touching(recording.t_s, n, exclude_s, margin_s) if len(exclude_s) else None
     return still_windows(recording.gyro_rad_s, rate, gate, exclude=excl).sample_mask()

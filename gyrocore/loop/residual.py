@@ -62,18 +62,35 @@ from gyrocore.attitude import integrate_gyro
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment, as_segments
+from gyrocore.data.still import StillGate, still_samples
 from gyrocore.calib.stream import Rows, rows_of
 
 __all__ = [
     "REFERENCE_KINDS",
     "Residual",
-    "detect_still",
+    "STILL_GATE",
     "build_residual",
     "choose_reference",
     "earth_rate_design",
 ]
 
 REFERENCE_KINDS = ("rate", "attitude", "still", "angles")
+
+#: The still gate (:func:`gyrocore.data.still.still_windows`) that finds a rate-0 reference in the
+#: data: 0.5-s windows; σ² from the 10 % quantile of the window variances (at least a tenth of the
+#: record still); a window is still when its variance is under 4 × the χ²_{n−1} quantile at α =
+#: 10⁻³ (a hand-held rest may tremble 2 × the sensor's σ: it averages out of the rate-0 residual)
+#: and its mean within 0.5 °/s + 3σ of the still windows' median (a constant turn adds no variance;
+#: 0.5 °/s allows a turn-on bias drift).
+STILL_GATE = StillGate(
+    window_s=0.5,
+    noise_from="windows",
+    noise_quantile=0.1,
+    dof="white",
+    variance_factor=4.0,
+    mean_tolerance_rad_s=float(np.radians(0.5)),
+    mean_tolerance_sigmas=3.0,
+)
 
 #: Target number of observation windows for the rate/still kinds (block means).
 _TARGET_WINDOWS = 1500
@@ -444,33 +461,6 @@ def _blocks(mask: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(starts, int), np.asarray(stops, int)
 
 
-def detect_still(t: np.ndarray, gyro_rad_s: np.ndarray, *, window_s: float = 0.5, factor: float = 3.0) -> np.ndarray:
-    """Motion gate: True where the sensor looks still, shape (N,).
-
-    The moving standard deviation of each gyro axis over ``window_s`` is compared with
-    ``factor`` × its 10th percentile (the still-noise level when at least 10 % of the data are
-    still); all axes must pass, and the moving mean must stay within
-    ``factor`` × that level (+ 0.5 °/s for a turn-on bias) of the still median.
-    """
-    n = t.shape[0]
-    fs = (n - 1) / (t[-1] - t[0])
-    L = max(3, int(round(window_s * fs)))
-    if n < 2 * L:
-        return np.zeros(n, bool)
-    k = np.ones(L) / L
-    mean = np.stack([np.convolve(gyro_rad_s[:, i], k, mode="same") for i in range(3)], axis=1)
-    sq = np.stack([np.convolve(gyro_rad_s[:, i] ** 2, k, mode="same") for i in range(3)], axis=1)
-    sd = np.sqrt(np.clip(sq - mean**2, 0, None))
-    lvl = np.percentile(sd, 10, axis=0)
-    ok = np.all(sd <= factor * np.maximum(lvl, 1e-12), axis=1)
-    if ok.any():
-        med = np.median(mean[ok], axis=0)
-        ok &= np.all(np.abs(mean - med) <= factor * lvl + np.radians(0.5), axis=1)
-    ok[: L // 2] = ok[L // 2] if n > L else False
-    ok[-(L // 2) :] = ok[-(L // 2) - 1]
-    return ok
-
-
 def _smooth(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Zero-phase low-pass of a proxy rate at min(0.1·fs, 20 Hz) (regressor inputs only)."""
     fs = (t.shape[0] - 1) / (t[-1] - t[0])
@@ -507,7 +497,7 @@ def choose_reference(rec: Recording, segments: Sequence[Segment] | None = None) 
         return "angles"
     if any(s.kind == "still" for s in segs):
         return "still"
-    if "static_pose_axis" in rec.extra or (rec.n > 100 and detect_still(rec.t_s, rec.gyro_rad_s).mean() >= 0.8):
+    if "static_pose_axis" in rec.extra or (rec.n > 100 and still_samples(rec, STILL_GATE).mean() >= 0.8):
         return "still"
     raise GyroInputError(
         "no reference in the data: need ref_*_rad_s, ref_q* columns, or a segments file (--segments) "
@@ -616,7 +606,7 @@ def build_residual(
             mask = rec.extra["static_pose_axis"] != 0
             desc = "static poses (static_pose_axis column): true rate 0"
         else:
-            mask = detect_still(t, gyro)
+            mask = still_samples(rec, STILL_GATE)
             desc = f"still samples found by a motion gate ({mask.mean():.0%} of the recording): true rate 0"
         omega = np.zeros((n, 3))
         a, b = _blocks(mask, n_block(_TARGET_WINDOWS))
@@ -704,7 +694,7 @@ def build_residual(
             still = rec.extra["static_pose_axis"] != 0
             how = "static poses"
         else:
-            still = detect_still(t, gyro)
+            still = still_samples(rec, STILL_GATE)
             how = "motion gate"
         still &= ~in_rot
         sa, sb = _blocks(still, max(2, int(round((window_s or 0.5) * fs))))

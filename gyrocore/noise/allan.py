@@ -41,8 +41,8 @@ from gyrocore.errors import GyroInputError, warn_repair
 
 from . import avar as AV, diagnostics, gmwm
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
-from gyrocore.data.recording import AXES, Recording
-from gyrocore.data.still import SpilledGyro, StillGate, still_windows
+from gyrocore.data.recording import AXES, GYRO_COLS, Recording
+from gyrocore.data.still import StillGate, still_windows
 
 __all__ = [
     "TERM_NAMES",
@@ -924,18 +924,20 @@ def _judged_windows(gyro, rate_hz: float, *, window_s: float = 2.0, max_windows:
     than its χ² spread). Judging a long record on 200 windows gives its still fraction with a
     binomial standard error ≤ 3.5 %, ample against the 50 % limit, at a cost of
     O(max_windows · window), not O(n); only those windows are read (``gyro`` an (N, 3) array or
-    a :class:`gyrocore.data.still.SpilledGyro`). None when the record is shorter than ten windows.
+    chunk source of the columns such as a :class:`gyrocore.data.spill.ColumnSpill`). None when the
+    record is shorter than ten windows.
     """
-    src = gyro if isinstance(gyro, SpilledGyro) else np.asarray(gyro, float)
-    n = src.n if isinstance(src, SpilledGyro) else src.shape[0]
+    on_disk = hasattr(gyro, "block")
+    src = gyro if on_disk else np.asarray(gyro, float)
+    n = src.n if on_disk else src.shape[0]
     n_win = int(round(window_s * rate_hz))
     if n < 10 * max(n_win, 8):
         return None  # too short to judge
     W = n // n_win
     if W > max_windows:
         pick = np.linspace(0, W - 1, max_windows).round().astype(np.int64)
-        if isinstance(src, SpilledGyro):  # the picked windows, read one at a time
-            src = np.concatenate([src.block(int(k) * n_win, (int(k) + 1) * n_win) for k in pick])
+        if on_disk:  # the picked windows, read one at a time
+            src = np.concatenate([src.block(GYRO_COLS, int(k) * n_win, (int(k) + 1) * n_win) for k in pick])
         else:
             src = src[(pick[:, None] * n_win + np.arange(n_win)[None, :]).ravel()]
     return still_windows(src, rate_hz, StillGate(window_samples=n_win, false_reject_rate=1e-3))

@@ -83,11 +83,10 @@ def allan_by_axis(
             import scipy.stats
 
             from gyrocore.data.recording import Recording
-            from gyrocore.data.still import SpilledGyro
             from gyrocore.noise.allan import MAX_MOVING_FRACTION, _judged_windows
 
             rate = Recording(t_s=store.t_s, gyro_rad_s=np.broadcast_to(0.0, (store.n, 3))).rate_hz
-            sw = _judged_windows(SpilledGyro(store), rate)  # reads only the windows it judges
+            sw = _judged_windows(store, rate)  # reads only the windows it judges
             still = sw.fraction if sw is not None else float("nan")
             w_judged = sw.n_windows if sw is not None else 0
             k = int((~sw.still).sum()) if sw is not None else 0

@@ -9,13 +9,8 @@ import pytest
 import scipy.signal
 import scipy.stats
 
-from gyrocore.calib.bias import (
-    StaticBiasCalibrator,
-    _window_stats,
-    abs_diff_moments,
-    robust_diff_noise,
-    startup_still_slice,
-)
+from gyrocore.calib.bias import StaticBiasCalibrator, startup_still_slice
+from gyrocore.data.still import abs_diff_moments, robust_diff_noise
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 
@@ -134,7 +129,7 @@ def test_smallest_motion_is_caught_half_of_the_time():
         k = np.arange(n)
         sig = np.where(k >= n // 2, size, 0.0) if kind == "step" else size * k / RATE_HZ
         x[:, 0] += np.tile(sig, W)
-        caught = int(np.any(_window_stats(x, n, "variance") > thr, axis=1).sum())
+        caught = int(np.any(x.reshape(W, n, 3).var(axis=1, ddof=1) > thr, axis=1).sum())
         # P(caught) = 1 − 0.5·(1 − α_axis)² ≈ 0.5003 (other two axes at rest)
         p = 1 - 0.5 * (1 - (1 - (1 - 1e-3) ** (1 / 3))) ** 2
         assert _binom_ok(caught, W, p), (kind, caught)
@@ -231,7 +226,7 @@ def test_noise_bound_keeps_still_recordings_at_the_stated_rate():
     recordings (10 windows of 200 samples, the smallest that self-estimates σ from window
     variances) per noise; refused windows ~ Binomial(60·10, 1e-3) ⇒ ≤ 3 at the 0.1 % level.
     Theory: the bound is 4× the AR(1) prediction, the ratio's sampling spread here is ~10 %."""
-    from gyrocore.calib.bias import NOISE_RATIO_BOUND
+    from gyrocore.data.still import NOISE_RATIO_BOUND
 
     for phi in (0.0, 0.5, 0.8):
         refused = 0

@@ -181,7 +181,6 @@ def test_streamed_bias_equals_in_memory(tmp_path, monkeypatch, kw):
 
 def test_still_fraction_from_disk_reads_the_same_windows(tmp_path):
     # the allan motion gate of a long file reads only the 200 windows it judges from disk
-    from gyrocore.data.still import SpilledGyro
     from gyrocore.noise.allan import _judged_windows
 
     rng = np.random.default_rng(8)
@@ -193,7 +192,7 @@ def test_still_fraction_from_disk_reads_the_same_windows(tmp_path):
     write_csv(Recording(t_s=t, gyro_rad_s=y), path)
     rec = read_csv(path, columns=())
     mem = _judged_windows(rec.gyro_rad_s, rec.rate_hz)
-    disk = _judged_windows(SpilledGyro(spill_columns(path, tmp_path / "spill")), rec.rate_hz)
+    disk = _judged_windows(spill_columns(path, tmp_path / "spill"), rec.rate_hz)
     assert mem.n_windows == disk.n_windows == 200
     assert 0.6 < mem.fraction < 0.85 and disk.fraction == mem.fraction
     np.testing.assert_array_equal(disk.statistic, mem.statistic)

@@ -11,7 +11,7 @@ import scipy.stats
 
 from gyrocore.data.recording import Recording, read_csv, write_csv
 from gyrocore.data.spill import spill_columns
-from gyrocore.data.still import SpilledGyro, StillGate, robust_diff_noise, runs, still_windows
+from gyrocore.data.still import StillGate, robust_diff_noise, runs, still_windows
 from gyrocore.errors import GyroInputError
 
 RATE_HZ = 100.0
@@ -70,7 +70,7 @@ def test_constant_rotation_needs_the_mean_test():
 
 
 def test_chunked_equals_in_memory_exactly(tmp_path):
-    """A record on disk (SpilledGyro, blocks of a few windows) and the same record in memory
+    """A record on disk (a ColumnSpill, blocks of a few windows) and the same record in memory
     (one block) give bit-identical statistics, noise and verdicts."""
     g, _ = _session(seed=7)
     path = tmp_path / "r.csv"
@@ -80,7 +80,7 @@ def test_chunked_equals_in_memory_exactly(tmp_path):
     for gate in (StillGate(window_s=1.0), StillGate(window_s=0.5, statistic="abs_diff"), StillGate(window_s=2.0)):
         mem = still_windows(rec.gyro_rad_s, RATE_HZ, gate)
         for block_bytes in (7 * 100 * 3 * 8, 1):  # 7 windows per block; one window per block
-            disk = still_windows(SpilledGyro(store), RATE_HZ, gate, block_bytes=block_bytes)
+            disk = still_windows(store, RATE_HZ, gate, block_bytes=block_bytes)
             for f in ("still", "statistic", "threshold", "sigma2", "dof", "sigma_diff_rad_s", "diff_corr", "means"):
                 np.testing.assert_array_equal(getattr(disk, f), getattr(mem, f), err_msg=f)
 

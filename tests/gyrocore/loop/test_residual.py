@@ -11,7 +11,8 @@ from experiments.close_the_loop import effect_params, synthetic_recording
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment, read_segments, write_segments
-from gyrocore.loop.residual import build_residual, detect_still
+from gyrocore.data.still import still_samples
+from gyrocore.loop.residual import STILL_GATE, build_residual
 
 
 def _still_rec(n=6000, rate=100.0, seed=0):
@@ -95,7 +96,7 @@ def test_motion_gate():
     rec = _still_rec()
     g = rec.gyro_rad_s.copy()
     g[2000:3000, 2] += 1.0  # 10 s of rotation about z
-    m = detect_still(rec.t_s, g)
+    m = still_samples(Recording(t_s=rec.t_s, gyro_rad_s=g), STILL_GATE)
     assert m[:1900].mean() > 0.95 and m[2100:2900].mean() == 0.0 and m[3100:].mean() > 0.95
 
 
