@@ -32,10 +32,13 @@ that mean and variance. It reacts to high-frequency vibration but is ~50× less 
 motion than the variance. ``threshold`` fixes the threshold instead of deriving it (the article's
 500 raw counts).
 
-:func:`still_windows` reads the record a block of windows at a time from any source with
-an (N, 3) array or a chunk source of the file's columns (``n``, ``block(names, a, b)``,
-``column(name)``: a :class:`gyrocore.data.spill.ColumnSpill` on disk): the same arithmetic on the same windows, so a record on
-disk gets exactly the numbers of the same record in memory, with memory O(block + one column).
+:func:`still_windows` reads the record a block of windows at a time, from an (N, 3) array or
+from a chunk source of the file's columns (``n``, ``block(names, a, b)``, ``column(name)``: a
+:class:`gyrocore.data.spill.ColumnSpill` on disk, :class:`gyrocore.data.columns.RecordingColumns`):
+the same arithmetic on the same windows, so a record on disk gets exactly the numbers of the same
+record in memory, with memory O(block + one column). Every caller passes its own
+:class:`StillGate`: ``calib.bias.StaticBiasCalibrator.still_gate``, ``calib.rotations.STILL_GATE``,
+``loop.residual.STILL_GATE``, and the noise analysis's 2-s gate (``noise.allan``).
 """
 
 from __future__ import annotations
