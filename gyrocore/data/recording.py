@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
-import itertools
 import os
 import tempfile
 from dataclasses import dataclass, field, replace
@@ -21,6 +20,26 @@ from typing import Iterable, Iterator, Mapping
 import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
+
+from .checks import DEG, G0_M_S2, _timing_checks, _unit_checks, _valid_rows, detect_saturation
+from .csvtext import (
+    _MAX_BLOCK_BYTES,
+    _Filler,
+    _Moments,
+    _NotClean,
+    _arrow_stream,
+    _check_header,
+    _check_path,
+    _count_lines,
+    _csv_blocks,
+    _data_offset,
+    _exact_blocks,
+    _header_info,
+    _is_float64_array,
+    _rechunk,
+    _sniff_file,
+    _time_col,
+)
 
 __all__ = [
     "Recording",
@@ -44,32 +63,16 @@ __all__ = [
     "COLUMN_GROUPS",
     "concat_recordings",
     "file_layout",
-    "detect_saturation",
-    "locate_bad_value",
     "AXES",
 ]
 
 AXES = ("x", "y", "z")
-DEG = np.pi / 180.0
-G0_M_S2 = 9.80665
-
 GYRO_COLS = tuple(f"gyro_{a}_rad_s" for a in AXES)
 ACCEL_COLS = tuple(f"accel_{a}_m_s2" for a in AXES)
 REF_RATE_COLS = tuple(f"ref_{a}_rad_s" for a in AXES)
 REF_QUAT_COLS = ("ref_qw", "ref_qx", "ref_qy", "ref_qz")
 TEMP_COL = "temp_c"
 TIME_COL = "t_s"
-#: Time columns accepted in place of ``t_s`` (converted to seconds on read): a logger's
-#: millisecond, microsecond or nanosecond counter (Arduino millis(), PX4 timestamp, ROS stamps).
-TIME_ALTS = {"t_s": 1.0, "t_ms": 1e-3, "t_us": 1e-6, "t_ns": 1e-9}
-#: A t_s column whose median interval is above this is not seconds (no gyro recording is
-#: sampled slower than 0.5 Hz; a millisecond counter at <= 500 Hz, or any microsecond or
-#: nanosecond counter, lands above it): one error line naming t_ms / t_us / t_ns.
-T_S_MAX_MEDIAN_DT_S = 2.0
-#: ... and above this (but not above the limit) a warning: a millisecond counter at 1 kHz has
-#: dt = 1 "s" — as would a genuine 1-Hz log, hence only a warning.
-T_S_SUSPECT_MEDIAN_DT_S = 0.5
-
 # Accepted alternative unit suffixes, converted on read: (suffix, factor to SI suffix).
 _ALT_UNITS = {"_rad_s": [("_deg_s", DEG)], "_m_s2": [("_g", G0_M_S2)]}
 
@@ -276,13 +279,6 @@ def write_csv(rec: Recording, path: str | os.PathLike, *, overwrite: bool = True
 
 
 # ---------------------------------------------------------------------- reading
-#: Largest plausible MEMS gyro full scale: ±2000 °/s = 34.9 rad/s (ICM-42688, BMI160, MPU-6050
-#: at their widest range; the fastest parts stop at ±4000 °/s = 69.8 rad/s). Peaks above
-#: :data:`DEG_S_SUSPECT_RAD_S` in a column labelled rad/s are taken as deg/s mislabelled.
-DEG_S_SUSPECT_RAD_S = 70.0
-#: Per-sample noise of a still MEMS gyro is far below 0.05 rad/s (2.9 °/s); a still recording
-#: whose noise exceeds it is reported as probably deg/s labelled rad/s.
-STILL_NOISE_SUSPECT_RAD_S = 0.05
 #: Fraction of the available memory a whole-file read may use before it is refused.
 MEMORY_FRACTION = 0.5
 #: Bytes of memory per parsed value while reading: float64 table + column copies + masks.
@@ -295,389 +291,6 @@ def _available_memory_bytes() -> int:
     import psutil
 
     return int(psutil.virtual_memory().available)
-
-
-def _check_path(path: str) -> None:
-    """Existence, folder, permission and empty-file checks with one-line errors."""
-    if not os.path.exists(path):
-        raise GyroInputError(f"{path}: no such file")
-    if os.path.isdir(path):
-        raise GyroInputError(f"{path}: is a directory, not a data file")
-    if not os.access(path, os.R_OK):
-        raise GyroInputError(f"{path}: not readable (permission denied)")
-    if os.path.getsize(path) == 0:
-        raise GyroInputError(f"{path}: empty file")
-
-
-def _sniff_file(path: str) -> None:
-    """Existence, folder, empty, binary and encoding checks with one-line errors."""
-    _check_path(path)
-    with open(path, "rb") as fh:
-        head = fh.read(8192)
-    if head.startswith(b"\x89HDF") or head.startswith(b"ULog") or head.startswith(b"MATLAB"):
-        raise GyroInputError(
-            f"{path}: binary file (HDF5/MATLAB/ULog); convert it first: gyroharness convert {path} -o OUT.csv"
-        )
-    if head.startswith(b"H Product:Blackbox") or head.startswith(b"\xa3\x95\x80"):
-        kind = "blackbox log" if head.startswith(b"H") else "ArduPilot DataFlash log"
-        raise GyroInputError(
-            f"{path}: {kind}, not a data file; convert it first: gyroharness convert {path} -o OUT.csv"
-        )
-    if b"\x00" in head:
-        raise GyroInputError(f"{path}: binary file, expected a CSV data file")
-    try:
-        head.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        if exc.start < len(head) - 4:  # not just a multibyte char cut at the 8 KiB boundary
-            raise GyroInputError(f"{path}: not UTF-8 text (binary file?), expected a CSV data file") from None
-
-
-def locate_bad_value(path: str, *, skiprows: int, delimiter: str | None = ",", ncols: int | None = None) -> str:
-    """One-line description of the first unparseable line of a numeric table.
-
-    Names the file line number (1-based), the column (name when ``header`` known by the
-    caller, else 1-based index) and the offending text.
-    """
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            if lineno <= skiprows:
-                continue
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            fields = s.split(delimiter) if delimiter else s.split()
-            if ncols is not None and len(fields) != ncols:
-                return f"{path}: line {lineno}: {len(fields)} values, expected {ncols}"
-            for j, f in enumerate(fields, 1):
-                try:
-                    float(f)
-                except ValueError:
-                    return f"{path}: line {lineno}, column {j}: text in a number ({f.strip()[:40]!r})"
-    return f"{path}: rows have different numbers of values"
-
-
-def _parse_rows(lines: list[str], first_lineno: int, header: list[str], path: str) -> tuple[np.ndarray, int]:
-    """Slow exact parser (used when the fast one fails): empty fields → NaN, else one-line errors.
-
-    Returns the array and the number of empty fields that were read as NaN.
-    """
-    n = len(header)
-    out = []
-    n_empty = 0
-    for k, line in enumerate(lines):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        f = s.split(",")
-        if len(f) != n:
-            raise GyroInputError(f"{path}: line {first_lineno + k}: {len(f)} values but the header names {n} columns")
-        row = []
-        for j, v in enumerate(f):
-            v = v.strip()
-            if v == "":
-                n_empty += 1
-                row.append(np.nan)
-                continue
-            try:
-                row.append(float(v))
-            except ValueError:
-                raise GyroInputError(
-                    f"{path}: line {first_lineno + k}, column {header[j]!r}: text in a number ({v[:40]!r})"
-                ) from None
-        out.append(row)
-    return (np.asarray(out, dtype=float).reshape(-1, n), n_empty)
-
-
-def _slow_parse(lines: list[str], first_lineno: int, header: list[str], path: str) -> np.ndarray:
-    data, n_empty = _parse_rows(lines, first_lineno, header, path)
-    if n_empty:
-        warn_repair(f"{path}: {n_empty} empty fields read as missing values (NaN)")
-    return data
-
-
-# ---------------------------------------------------------------- the C/Arrow parser
-#: Bytes per Arrow CSV block (rounded to whole lines by Arrow). Arrow's streaming reader
-#: reads blocks ahead, so its memory grows with the block size: measured on a 608 MiB file,
-#: peak RSS above the imports 74 MiB at 256 KiB, 100 MiB at 512 KiB, 225 MiB at 4 MiB, for
-#: the same speed (5.3-5.7 s under load 13).
-_MIN_BLOCK_BYTES = 256 << 10
-_MAX_BLOCK_BYTES = 256 << 10
-
-
-class _NotClean(Exception):
-    """The Arrow parser refused the table (or found empty fields): use the exact parser."""
-
-
-def _data_offset(path: str, n_skip: int) -> int | None:
-    """Byte offset of the first data line, or None when the header lines end in a lone CR
-    (old Mac text: the text-mode line count does not match bytes; the exact parser reads it)."""
-    with open(path, "rb") as fh:
-        for _ in range(n_skip):
-            line = fh.readline()
-            if b"\r" in line.rstrip(b"\r\n"):
-                return None
-        return fh.tell()
-
-
-def _arrow_options(header: list[str], want: list[int], block_size: int | None = None):
-    """Arrow CSV options for a clean DESIGN.md table: no quotes, ``,`` only, float64 columns,
-    only empty fields as null (``nan``/``inf`` are numbers, as for ``float``)."""
-    import pyarrow as pa
-    import pyarrow.csv as pc
-
-    names = [f"c{i}" for i in range(len(header))]  # header names were validated already
-    ro = pc.ReadOptions(column_names=names, use_threads=True, **({"block_size": block_size} if block_size else {}))
-    po = pc.ParseOptions(
-        delimiter=",",
-        quote_char=False,
-        double_quote=False,
-        escape_char=False,
-        newlines_in_values=False,
-        ignore_empty_lines=True,
-    )
-    co = pc.ConvertOptions(
-        column_types={names[i]: pa.float64() for i in want},
-        include_columns=[names[i] for i in want],
-        null_values=[""],
-        strings_can_be_null=False,
-        quoted_strings_can_be_null=False,
-    )
-    return ro, po, co, [names[i] for i in want]
-
-
-def _is_float64_array(col) -> bool:
-    import pyarrow as pa
-
-    return isinstance(col, pa.Array) and pa.types.is_float64(col.type)
-
-
-def _to_numpy(col) -> np.ndarray:
-    """Arrow (chunked) float64 column -> writable numpy array; empty fields -> _NotClean."""
-    if col.null_count:
-        raise _NotClean("empty fields")
-    import pyarrow as pa
-
-    if isinstance(col, pa.Array) and pa.types.is_float64(col.type):
-        # the values buffer read directly and copied: the same bytes as to_numpy(), without
-        # the ~50 MiB that pyarrow's numpy conversion keeps resident once used (measured on a
-        # one-hour 15-column file)
-        return np.frombuffer(col.buffers()[1], dtype=np.float64, count=len(col), offset=col.offset * 8).copy()
-    arr = col.to_numpy()
-    return arr if arr.flags.writeable else arr.copy()
-
-
-class _Moments:
-    """Running per-column mean/variance of columns read only for a check (never held whole);
-    shifted sums (shift = first value) keep the variance exact to rounding."""
-
-    def __init__(self, idx: list[int]) -> None:
-        self.idx = list(idx)
-        self.n = 0
-        self.shift = None
-        self.s1 = np.zeros(len(idx))
-        self.s2 = np.zeros(len(idx))
-
-    def update(self, cols: dict[int, np.ndarray]) -> None:
-        if not self.idx:
-            return
-        x = [cols.pop(i) for i in self.idx]
-        if x[0].size == 0:
-            return
-        if self.shift is None:
-            self.shift = np.array([float(v[0]) for v in x])
-        for j, v in enumerate(x):
-            d = v - self.shift[j]
-            self.s1[j] += float(d.sum())
-            self.s2[j] += float(np.dot(d, d))
-        self.n += x[0].size
-
-    def std(self) -> np.ndarray | None:
-        if not self.idx or self.n < 2:
-            return None
-        m = self.s1 / self.n
-        return np.sqrt(np.maximum(self.s2 / self.n - m * m, 0.0))
-
-
-class _Filler:
-    """The final arrays of a whole read (the Recording's own, SI, groups as (N, k)),
-    preallocated for an upper bound of the row count and filled block by block: the columns
-    are held once — never lists of blocks plus their concatenation (which, with the
-    allocator's fragmentation, measured 2-4x the data). Check-only accel columns are reduced
-    to running moments."""
-
-    def __init__(self, layout: "_Layout", capacity: int) -> None:
-        self.layout = layout
-        self.n = 0
-        cap = max(int(capacity), 1)
-        self.t = np.empty(cap)
-        self.groups = {
-            name: np.empty((cap, len(blk[0])))
-            for name, blk in (
-                ("gyro", layout.gyro),
-                ("accel", layout.accel),
-                ("rref", layout.rref),
-                ("qref", layout.qref),
-            )
-            if blk is not None
-        }
-        self.temp = np.empty(cap) if layout.temp is not None else None
-        self.extra = {h: np.empty(cap) for h, _ in layout.extra}
-        self.moments = layout.moments()
-
-    def _arrays(self):
-        yield "t", self.t
-        yield from self.groups.items()
-        if self.temp is not None:
-            yield "temp", self.temp
-        for h, v in self.extra.items():
-            yield "extra:" + h, v
-
-    def _grow(self, need: int) -> None:
-        cap = max(need, int(self.t.shape[0] * 1.5) + 1)
-        for name, old in list(self._arrays()):
-            new = np.empty((cap,) + old.shape[1:])
-            new[: self.n] = old[: self.n]
-            if name == "t":
-                self.t = new
-            elif name == "temp":
-                self.temp = new
-            elif name.startswith("extra:"):
-                self.extra[name[6:]] = new
-            else:
-                self.groups[name] = new
-
-    def add(self, blk: dict[int, np.ndarray]) -> None:
-        L = self.layout
-        self.moments.update(blk)
-        m = len(blk[L.t])
-        if m == 0:
-            return
-        if self.n + m > self.t.shape[0]:
-            self._grow(self.n + m)
-        s = slice(self.n, self.n + m)
-        if L.t_factor == 1.0:
-            self.t[s] = blk[L.t]
-        else:
-            np.multiply(blk[L.t], L.t_factor, out=self.t[s])
-        for name, arr in self.groups.items():
-            idx, fac = getattr(L, {"gyro": "gyro", "accel": "accel", "rref": "rref", "qref": "qref"}[name])
-            for j, (i, f) in enumerate(zip(idx, fac)):
-                if f == 1.0:
-                    arr[s, j] = blk[i]
-                else:
-                    np.multiply(blk[i], f, out=arr[s, j])
-        if self.temp is not None:
-            self.temp[s] = blk[L.temp]
-        for h, i in L.extra:
-            self.extra[h][s] = blk[i]
-        self.n += m
-
-    def columns(self):
-        """(t, gyro, accel, temp, rref, qref, extra) trimmed to the rows read (views)."""
-        n = self.n
-        g = self.groups
-        return (
-            self.t[:n],
-            g["gyro"][:n],
-            g["accel"][:n] if "accel" in g else None,
-            None if self.temp is None else self.temp[:n],
-            g["rref"][:n] if "rref" in g else None,
-            g["qref"][:n] if "qref" in g else None,
-            {h: v[:n] for h, v in self.extra.items()},
-        )
-
-
-def _count_lines(path: str, offset: int) -> int:
-    """Newlines after ``offset`` + 1: an upper bound of the data rows (16 MiB at a time)."""
-    n = 1
-    with open(path, "rb") as fh:
-        fh.seek(offset)
-        for chunk in iter(lambda: fh.read(16 << 20), b""):
-            n += chunk.count(b"\n")
-    return n
-
-
-def _rechunk(blocks: Iterable[dict[int, np.ndarray]], rows: int) -> Iterator[dict[int, np.ndarray]]:
-    """Blocks of any size -> blocks of exactly ``rows`` rows (the last one shorter)."""
-    pending: list[dict[int, np.ndarray]] = []
-    n_pending = 0
-    for blk in blocks:
-        m = len(next(iter(blk.values()))) if blk else 0
-        if m == 0:
-            continue
-        pending.append(blk)
-        n_pending += m
-        if n_pending < rows:
-            continue
-        cat = {i: np.concatenate([b[i] for b in pending]) for i in pending[0]}
-        k = 0
-        while n_pending - k >= rows:
-            yield {i: v[k : k + rows].copy() for i, v in cat.items()}
-            k += rows
-        pending = [{i: v[k:] for i, v in cat.items()}] if n_pending > k else []
-        n_pending -= k
-    if n_pending:
-        yield {i: np.concatenate([b[i] for b in pending]) for i in pending[0]}
-
-
-def _arrow_stream(path: str, offset: int, header: list[str], want: list[int], block_size: int):
-    import pyarrow as pa
-    import pyarrow.csv as pc
-
-    ro, po, co, names = _arrow_options(header, want, block_size)
-    try:
-        src = pa.OSFile(path)
-        src.seek(offset)
-        reader = pc.open_csv(src, read_options=ro, parse_options=po, convert_options=co)
-        for batch in reader:
-            yield {i: _to_numpy(batch.column(k)) for k, i in enumerate(want)}
-    except (pa.ArrowException, UnicodeDecodeError) as exc:
-        raise _NotClean(str(exc)) from None
-
-
-def _block_size(path: str, offset: int, rows: int, ncols: int) -> int:
-    with open(path, "rb") as fh:
-        fh.seek(offset)
-        sample = fh.read(1 << 16)
-    per_line = len(sample) / max(sample.count(b"\n"), 1) if sample else 20.0 * ncols
-    return int(min(max(rows * per_line, _MIN_BLOCK_BYTES), _MAX_BLOCK_BYTES))
-
-
-def _data_lines(fh, skip_rows: int, first_lineno: int) -> int:
-    """Advance ``fh`` past ``skip_rows`` data rows (blank and ``#`` lines not counted);
-    returns the file line number of the next line."""
-    lineno = first_lineno
-    while skip_rows > 0:
-        line = fh.readline()
-        if not line:
-            break
-        lineno += 1
-        s = line.strip()
-        if s and not s.startswith("#"):
-            skip_rows -= 1
-    return lineno
-
-
-def _csv_blocks(
-    path: str, header: list[str], n_skip: int, want: list[int], rows: int
-) -> Iterator[dict[int, np.ndarray]]:
-    """Data blocks of exactly ``rows`` rows: Arrow's streaming C++ reader while the table is
-    clean; from the first block it refuses (text in a number, wrong value count, empty
-    field, ``#`` line, bad UTF-8) the exact line parser takes over at that data row, so the
-    messages name the file line and column and empty fields are counted as before."""
-    offset = _data_offset(path, n_skip)
-    n_done = 0
-    if offset is not None:
-        try:
-            for blk in _rechunk(
-                _arrow_stream(path, offset, header, want, _block_size(path, offset, rows, len(header))), rows
-            ):
-                yield blk
-                n_done += len(blk[want[0]])
-            return
-        except _NotClean:
-            pass
-    yield from _exact_blocks(path, header, n_skip, want, n_done, n_skip + 1, rows)
 
 
 def _check_memory(path: str, n_header_lines: int, ncols: int, *, est_rows: int | None = None) -> None:
@@ -703,43 +316,6 @@ def _refuse_if_large(path: str, size: int, est_rows: int, ncols: int) -> None:
             f"{MEMORY_FRACTION:.0%} of the {avail / 2**20:.0f} MiB available; read it in chunks "
             f"(gyrocore.data.recording.iter_csv_chunks, or gyroharness convert which streams CSV files)"
         )
-
-
-def _header_info(path: str) -> tuple[dict[str, str], list[str], int]:
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            meta, header, n_skip = _parse_header(fh, path)
-    except UnicodeDecodeError:
-        raise GyroInputError(f"{path}: not UTF-8 text, expected a CSV data file") from None
-    _check_header(header, path)
-    return meta, header, n_skip
-
-
-def _time_col(header: list[str], path: str) -> tuple[int, float]:
-    """Index of the time column (``t_s`` or one of :data:`TIME_ALTS`) and its factor to seconds."""
-    found = [(h, header.index(h)) for h in TIME_ALTS if h in header]
-    if len(found) > 1:
-        raise GyroInputError(f"{path}: several time columns ({', '.join(h for h, _ in found)}); keep one")
-    if not found:
-        hint = ""
-        if len(header) == 1 and any(c in header[0] for c in ";\t|"):
-            sep = next(c for c in ";\t|" if c in header[0])
-            hint = (
-                f" (the header is one column {header[0][:60]!r}: the file is separated by "
-                f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)"
-            )
-        raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
-    h, i = found[0]
-    return i, TIME_ALTS[h]
-
-
-def _check_header(header: list[str], path: str) -> None:
-    _time_col(header, path)
-    if len(set(header)) != len(header):
-        dup = sorted({h for h in header if header.count(h) > 1})
-        raise GyroInputError(f"{path}: duplicate column names in header ({', '.join(dup)})")
-    if "" in header:
-        raise GyroInputError(f"{path}: empty column name in header")
 
 
 def file_layout(path: str | os.PathLike) -> tuple[tuple[str, ...], int, int]:
@@ -881,224 +457,6 @@ def _find(header: list[str], si_name: str) -> tuple[int | None, float]:
                 if stem + suffix in header:
                     return header.index(stem + suffix), factor
     return None, 1.0
-
-
-def _valid_rows(t, gyro, accel, temp, path, repair, *, t_prev: float = -np.inf) -> tuple[np.ndarray, int, int]:
-    """Mask of rows kept: finite time/gyro/accel/temp, strictly increasing time."""
-    keep = np.isfinite(t) & np.all(np.isfinite(gyro), axis=1)
-    if accel is not None:
-        keep &= np.all(np.isfinite(accel), axis=1)
-    if temp is not None:
-        keep &= np.isfinite(temp)
-    n_bad = int((~keep).sum())
-    if n_bad and not repair:
-        raise GyroInputError(f"{path}: {n_bad} rows with NaN/inf values")
-    all_kept = not n_bad
-    t_k = t if all_kept else t[keep]
-    n_back = 0
-    if t_k.size and all_kept and t_k[0] > t_prev and bool(np.all(t_k[1:] > t_k[:-1])):
-        return keep, n_bad, 0  # strictly increasing (the usual case): no running-max copies
-    if t_k.size:
-        running_max = np.maximum.accumulate(np.concatenate([[t_prev], t_k]))
-        mono = t_k > running_max[:-1]
-        n_back = int((~mono).sum())
-        if n_back:
-            if not repair:
-                raise GyroInputError(f"{path}: {n_back} timestamps go backwards or repeat")
-            idx = np.flatnonzero(keep)
-            keep[idx[~mono]] = False
-    return keep, n_bad, n_back
-
-
-def _robust_noise(x: np.ndarray) -> float:
-    """Per-sample white-noise σ from first differences: 1.4826·MAD(Δx)/√2; the smallest
-    non-zero step when more than half of the differences are exactly zero (coarse quantum)."""
-    d = np.diff(x)
-    if d.size == 0:
-        return 0.0
-    # in place (the median and the MAD do not depend on the order of d, which the partition
-    # permutes): the same values with d as the only temporary
-    med = np.median(d, overwrite_input=True)
-    np.subtract(d, med, out=d)
-    np.abs(d, out=d)
-    mad = float(np.median(d, overwrite_input=True))
-    if mad > 0:
-        return 1.4826 * mad / np.sqrt(2.0)
-    d = np.diff(x)
-    nz = np.abs(d[d != 0])
-    return float(nz.min()) if nz.size else 0.0
-
-
-def _robust_noise_consuming(x: np.ndarray, block: int = 1 << 20) -> float | None:
-    """:func:`_robust_noise` of a fresh 1-D array, overwriting it: the first differences are
-    formed in place block by block (block [a, b) reads x[a..b], none of it overwritten yet),
-    so no second (N,) array is made. None when the MAD is 0 (the fallback needs the data)."""
-    n = x.shape[0]
-    if n < 2:
-        return 0.0
-    for a in range(0, n - 1, block):
-        b = min(a + block, n - 1)
-        x[a:b] = x[a + 1 : b + 1] - x[a:b]
-    d = x[: n - 1]
-    med = np.median(d, overwrite_input=True)
-    np.subtract(d, med, out=d)
-    np.abs(d, out=d)
-    mad = float(np.median(d, overwrite_input=True))
-    return 1.4826 * mad / np.sqrt(2.0) if mad > 0 else None
-
-
-def detect_saturation(
-    x: np.ndarray, *, min_run: int = 3, min_clip: np.ndarray | float = 0.0
-) -> tuple[np.ndarray, list[tuple[int, float, int]]]:
-    """Samples clipped at a plateau: runs of identical values at a column's extreme.
-
-    Parameters
-    ----------
-    x : ndarray, shape (N, K)
-        Samples (any unit), one column per axis.
-    min_run : int
-        Shortest run of identical extreme values counted as a plateau.
-    min_clip : float or ndarray, shape (K,)
-        Smallest |plateau| that can be a clip level, per column (same unit as ``x``): no
-        sensor clips below its smallest full-scale setting, so a plateau below it (e.g. an
-        exactly constant simulated 1 g at rest) is a steady reading, not saturation.
-
-    Returns
-    -------
-    mask : ndarray of bool, shape (N,)
-        True where any column sits at a detected plateau.
-    found : list of (column, plateau value, sample count)
-
-    Notes
-    -----
-    A clipped signal piles up at its limit: the value at the extreme repeats in runs, and
-    more samples sit exactly at the extreme than in the 3σ band just inside it (a peak
-    passes that band quickly). Gaussian noise about a constant rate (e.g. a rate table)
-    has its maximum in the tail with far fewer samples than the band inside; the extreme
-    must also be 10σ from the median, so a still recording never qualifies. Columns where
-    most consecutive samples are identical (noise-free or coarsely quantized) get no
-    verdict: there a run of equal values is normal.
-    """
-    x = np.asarray(x, float)
-    if x.ndim == 1:
-        x = x[:, None]
-    mask = np.zeros(x.shape[0], bool)
-    found = []
-    floor = np.broadcast_to(np.asarray(min_clip, float), (x.shape[1],))
-    for j in range(x.shape[1]):
-        col = x[:, j]
-        fin = np.isfinite(col)
-        if fin.sum() < 10:
-            continue
-        c = col if fin.all() else col[fin]  # no copy of an all-finite column
-        c_max, c_min = float(c.max()), float(c.min())
-        if int(np.count_nonzero(c == c_max)) < min_run and int(np.count_nonzero(c == c_min)) < min_run:
-            continue  # neither extreme repeats: no plateau possible (skips the medians below)
-        inner = (c != c_max) & (c != c_min)
-        d = np.diff(c)[inner[1:] & inner[:-1]]
-        mad = float(np.median(np.abs(d - np.median(d)))) if d.size >= 10 else 0.0
-        if d.size < 10 or mad == 0.0:
-            # away from the extremes most consecutive samples are identical (noise-free
-            # simulation, or a quantum coarser than the noise): repeated values are normal
-            # there and clipping cannot be told from a constant rate — no verdict
-            continue
-        sigma = 1.4826 * mad / np.sqrt(2.0)
-        med = float(np.median(c))
-        for ext in (float(c.max()), float(c.min())):
-            at = col == ext
-            n_at = int(at.sum())
-            if n_at < min_run or abs(ext - med) <= 10.0 * max(sigma, 1e-300) or abs(ext) < floor[j]:
-                continue
-            # longest run of consecutive samples at the extreme
-            edges = np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))
-            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
-            if runs.max() < min_run:
-                continue
-            band = 3.0 * sigma if sigma > 0 else abs(ext - med) * 0.01
-            inside = (np.abs(col - ext) <= band) & ~at
-            if n_at <= int(inside.sum()):
-                continue
-            mask |= at
-            found.append((j, ext, n_at))
-    return mask, found
-
-
-def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
-    """Warn when a column labelled rad/s carries deg/s (magnitude evidence), or error."""
-    if not gyro_col.endswith("_rad_s") or gyro.shape[0] < 2:
-        return
-    peak = max(float(np.max(gyro)), -float(np.min(gyro)))  # = max |gyro|, without an (N, 3) temporary
-    if peak > DEG_S_SUSPECT_RAD_S:
-        raise GyroInputError(
-            f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
-            f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
-        )
-    # still recording (accel steady, std < 0.05 g): a MEMS gyro at rest has per-sample noise
-    # < 0.05 rad/s (2.9 deg/s; even 0.01 deg/s/sqrt(Hz) at 8 kHz is 0.9 deg/s); deg/s numbers
-    # read as rad/s are 57x too big (an MPU-6050's 0.1 deg/s becomes 0.1 "rad/s").
-    # (accel_std: the accel was read for this check only, as running moments)
-    sd = np.std(accel, axis=0) if accel is not None else accel_std
-    if sd is None or not bool(np.all(sd < 0.05 * G0_M_S2)):
-        return
-    med = np.array([np.median(gyro[:, i]) for i in range(3)])  # per column: no (N, 3) copy
-    noise = np.array([_robust_noise(gyro[:, i]) for i in range(3)])
-    # (a large median alone is not evidence: a centred sensor on a turning rate table also has steady accel)
-    if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
-        warn_repair(
-            f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
-            f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
-            f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
-            f"Data left unchanged"
-        )
-
-
-def _time_unit_check(med_dt_s: float, path: str, time_col: str) -> None:
-    """One error line (median interval > :data:`T_S_MAX_MEDIAN_DT_S`) or warning
-    (> :data:`T_S_SUSPECT_MEDIAN_DT_S`) when a column labelled seconds is evidently a counter."""
-    if time_col != TIME_COL or not (med_dt_s > T_S_SUSPECT_MEDIAN_DT_S):
-        return
-    what = f"{path}: column t_s has a median sample interval of {med_dt_s:.6g} s ({1 / med_dt_s:.3g} Hz)"
-    if med_dt_s > T_S_MAX_MEDIAN_DT_S:
-        raise GyroInputError(
-            f"{what}, slower than any gyro log: the time is probably in ms, us or ns — rename the column "
-            f"t_ms, t_us or t_ns (converted on read)"
-        )
-    warn_repair(
-        f"{what}: if the time is a millisecond counter (a 1 kHz log), rename the column t_ms; data kept as seconds"
-    )
-
-
-def _timing_checks(t: np.ndarray, path: str, retime: bool, time_col: str = TIME_COL) -> np.ndarray:
-    """Warn on gaps (dropped samples) and bursty host timestamps; retime on request."""
-    d = np.diff(t)
-    if d.size < 2:
-        return t
-    mean = float((t[-1] - t[0]) / d.size)
-    mx = float(d.max())
-    # the partition permutes d in place; what follows (max, counts, a sum of integers) does
-    # not depend on the order: the same values with d as the only temporary
-    med = float(np.median(d, overwrite_input=True))
-    _time_unit_check(med, path, time_col)
-    if med < 0.5 * mean and mx > 4.0 * mean:
-        if retime:
-            warn_repair(
-                f"{path}: bursty host timestamps (median dt {med * 1e3:.3g} ms, mean {mean * 1e3:.3g} ms, gaps up to "
-                f"{mx:.3g} s) replaced by a uniform grid at the mean rate {1 / mean:.6g} Hz"
-            )
-            return t[0] + np.arange(t.size) * ((t[-1] - t[0]) / (t.size - 1))
-        warn_repair(
-            f"{path}: bursty host timestamps (median dt {med * 1e3:.3g} ms, mean {mean * 1e3:.3g} ms, gaps up to "
-            f"{mx:.3g} s); rates and Allan variance need a uniform grid: use --retime (gyroharness convert)"
-        )
-        return t
-    gaps = d > 1.5 * med
-    if med > 0 and gaps.any():
-        n_missing = int(np.sum(np.round(d[gaps] / med) - 1))
-        warn_repair(
-            f"{path}: {int(gaps.sum())} gaps longer than 1.5x the median interval {med * 1e3:.3g} ms "
-            f"(longest {mx:.3g} s, ~{n_missing} samples missing in all); data kept as recorded"
-        )
-    return t
 
 
 def _finish(
@@ -1256,26 +614,6 @@ def _assemble_filled(fill: _Filler, meta, path, *, repair, retime, checks, min_r
     )
 
 
-def _exact_blocks(path, header, n_skip, want, skip_data_rows, first_lineno, rows=200_000):
-    """The exact line parser from data row ``skip_data_rows`` on, ``rows`` lines at a time."""
-    lineno = first_lineno
-    try:
-        with open(path, "r", encoding="utf-8", errors="strict") as fh:
-            for _ in range(n_skip):
-                fh.readline()
-            lineno = _data_lines(fh, skip_data_rows, first_lineno)
-            while True:
-                lines = list(itertools.islice(fh, rows))
-                if not lines:
-                    break
-                data = _slow_parse(lines, lineno, header, path)
-                lineno += len(lines)
-                if data.shape[0]:
-                    yield {i: data[:, i].copy() for i in want}
-    except UnicodeDecodeError as exc:  # found by bench/fuzz_reader.py (atheris)
-        raise GyroInputError(f"{path}: not UTF-8 text after the header near line {lineno} ({exc.reason})") from None
-
-
 def _chunk_records(
     blocks: Iterable[dict[int, np.ndarray]], layout: _Layout, meta, path: str, repair: bool
 ) -> Iterator[Recording]:
@@ -1345,45 +683,6 @@ def iter_csv_chunks(
     meta, header, n_skip = _header_info(path)
     layout = _Layout(header, path, columns)
     return _chunk_records(_csv_blocks(path, header, n_skip, layout.want, rows), layout, meta, path, repair)
-
-
-def _header_name(h: str) -> str:
-    """A header field without surrounding whitespace and double quotes (R's write.csv, MATLAB and
-    spreadsheets quote the header)."""
-    h = h.strip()
-    if len(h) >= 2 and h[0] == h[-1] == '"':
-        h = h[1:-1].replace('""', '"').strip()
-    return h
-
-
-def _parse_header(lines: Iterable[str], path: str) -> tuple[dict[str, str], list[str], int]:
-    """``# key: value`` metadata lines, then the header row; returns (meta, header, lines used)."""
-    meta: dict[str, str] = {}
-    n_skip = 0
-    for line in lines:
-        n_skip += 1
-        s = line.strip().lstrip("\ufeff")
-        if not s:
-            continue
-        if s.startswith("#"):
-            body = s[1:].strip()
-            if ":" in body:
-                k, v = body.split(":", 1)
-                meta[k.strip()] = v.strip()
-            continue
-        header = [_header_name(h) for h in s.split(",")]
-        empty = [i for i, h in enumerate(header) if not h]
-        if empty:
-            # a pandas index written without a name (to_csv() default), R's row names, a trailing
-            # comma: kept as extra columns with a name, said once
-            for i in empty:
-                header[i] = f"unnamed_{i}"
-            warn_repair(
-                f"{path}: {len(empty)} column(s) without a name in the header (a pandas/R index, a trailing "
-                f"comma?) kept as extra column(s) {', '.join(header[i] for i in empty)}"
-            )
-        return meta, header, n_skip
-    raise GyroInputError(f"{path}: no header row (file is empty or only has comments)")
 
 
 #: Rows formatted at a time by :func:`write_csv_chunks` (bounds the text held: ~6 MiB).

@@ -17,28 +17,28 @@ import numpy as np
 from gyrocore.errors import GyroInputError, warn_repair
 
 from .columns import DISK_BLOCK_BYTES, ScratchFiles
-from .recording import (
-    ACCEL_COLS,
-    AXES,
+from .checks import (
     DEG,
     DEG_S_SUSPECT_RAD_S,
     G0_M_S2,
+    STILL_NOISE_SUSPECT_RAD_S,
+    _robust_noise,
+    _robust_noise_consuming,
+    _timing_checks,
+    detect_saturation,
+)
+from .csvtext import _header_info, _Moments, _sniff_file
+from .recording import (
+    ACCEL_COLS,
+    AXES,
     GYRO_COLS,
     REF_QUAT_COLS,
     REF_RATE_COLS,
-    STILL_NOISE_SUSPECT_RAD_S,
     TEMP_COL,
     TIME_COL,
     Recording,
-    _header_info,
     _Layout,
-    _Moments,
     _open_parquet,
-    _robust_noise,
-    _robust_noise_consuming,
-    _sniff_file,
-    _timing_checks,
-    detect_saturation,
     is_parquet,
     iter_chunks,
 )

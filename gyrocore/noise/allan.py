@@ -949,7 +949,7 @@ def _check_rest_noise(recording: Recording) -> None:
     rad/s header. The reader makes this check only when accel columns say the sensor is at rest;
     a gyro-only file (an MPU-6050's 0.1 deg/s read as 0.1 rad/s) reached the analysis silently
     with N 57x too large."""
-    from gyrocore.data.recording import STILL_NOISE_SUSPECT_RAD_S, _robust_noise
+    from gyrocore.data.checks import STILL_NOISE_SUSPECT_RAD_S, _robust_noise
 
     g = np.asarray(recording.gyro_rad_s)
     noise = np.array([_robust_noise(np.array(g[:, i], float)) for i in range(3)])

@@ -219,7 +219,7 @@ def _loadtxt(path: Path, *, skiprows: int, ncols: int, delimiter: str | None = "
             warnings.simplefilter("ignore")
             data = np.loadtxt(path, delimiter=delimiter, skiprows=skiprows, ndmin=2, dtype=float)
     except (ValueError, UnicodeDecodeError):
-        from gyrocore.data.recording import locate_bad_value
+        from gyrocore.data.csvtext import locate_bad_value
 
         raise GyroInputError(locate_bad_value(str(path), skiprows=skiprows, delimiter=delimiter)) from None
     if data.size == 0:

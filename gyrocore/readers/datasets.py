@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
-from gyrocore.data.recording import AXES, DEG, G0_M_S2, Recording
+from gyrocore.data.checks import DEG, G0_M_S2
+from gyrocore.data.recording import AXES, Recording
 
 from gyrocore.data.segments import Segment
 

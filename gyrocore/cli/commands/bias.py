@@ -97,7 +97,7 @@ def command(
         from gyrocore.data.recording import read_recording
 
         r = cal.fit(read_recording(file, columns=()))  # t and gyro only (the gate and the estimate use nothing else)
-    from gyrocore.data.recording import STILL_NOISE_SUSPECT_RAD_S
+    from gyrocore.data.checks import STILL_NOISE_SUSPECT_RAD_S
 
     if noise_dps is None and np.any(np.asarray(r.noise_sigma_rad_s) > STILL_NOISE_SUSPECT_RAD_S):
         # the still windows' own noise: beyond any MEMS gyro at rest (the reader checks this only

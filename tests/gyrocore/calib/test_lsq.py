@@ -243,6 +243,22 @@ def test_chunked_design_equals_whole_array_fit(stride, average, chunk):
     assert chunked.residual_rad_s.shape == r.shape
 
 
+@pytest.mark.parametrize("stride,average", [(1, 1), (1, 7), (2, 5)])
+def test_solve_is_fit_effects_over_one_window(stride, average):
+    # one code path: solve(r, A, average=) is the block reduction of fit_effects over a single
+    # window (the design of the whole record), so the two are bit-identical, not merely close
+    r, inp, wts = _chunk_case(3)
+    eff = ["bias", "scale", "bias_thermal", "bias_ramp", "bias_temp_rate", "time_offset"]
+    orders = {"bias_thermal": 2}
+    kw = dict(weights=wts, stride=stride, average=average, covariance="hac")
+    A, names, slices = lsq.build_design(eff, inp, orders=orders)
+    whole = lsq.solve(r, A, names, slices, **kw)
+    one = lsq.fit_effects(r, eff, inp, orders=orders, chunk_rows=None, **kw)
+    for f in ("theta", "stderr", "residual_rad_s", "residual_rms_rad_s", "axis_sigma_rad_s"):
+        np.testing.assert_array_equal(getattr(one, f), getattr(whole, f), err_msg=f)
+    assert one.cov_kind == whole.cov_kind and one.n_rows == whole.n_rows and one.unobservable == whole.unobservable
+
+
 def test_chunked_fit_never_holds_the_whole_design(monkeypatch):
     # every design the chunked path builds has at most chunk_rows + 2 rows (one-sample overlap)
     r, inp, wts = _chunk_case(4)

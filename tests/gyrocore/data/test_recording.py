@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from gyrocore.data import recording as rc
+from gyrocore.data import csvtext, recording as rc
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data.recording import Recording, iter_csv_chunks, read_csv, write_csv, write_csv_chunks
 
@@ -428,7 +428,7 @@ def test_exact_one_g_plateau_is_not_saturation():
     No accelerometer clips below ±2 g (the smallest full scale sold), so a plateau at 1 g is a
     steady reading: it must not be flagged. A gyro plateau at a real full scale still is.
     """
-    from gyrocore.data.recording import detect_saturation
+    from gyrocore.data.checks import detect_saturation
 
     rng = np.random.default_rng(7)
     n = 2000
@@ -572,7 +572,7 @@ def test_still_check_without_reading_the_accel_columns(tmp_path):
         with pytest.warns(RepairWarning, match="is it deg/s labelled rad/s"):
             got = rc.read_recording(tmp_path / name, columns=())
         assert got.accel_m_s2 is None
-    m = rc._Moments([0])
+    m = csvtext._Moments([0])
     x = rec.accel_m_s2[:, 2]
     for k in range(0, n, 300):
         m.update({0: x[k : k + 300].copy()})

@@ -18,7 +18,8 @@ import pytest
 from gyrocore.readers import common as cm
 from gyrocore.readers import convert as cv
 from gyrocore.errors import GyroInputError, RepairWarning
-from gyrocore.data.recording import G0_M_S2, read_csv, write_csv
+from gyrocore.data.checks import G0_M_S2
+from gyrocore.data.recording import read_csv, write_csv
 from gyrocore.data.segments import read_segments
 
 DEG = np.pi / 180.0

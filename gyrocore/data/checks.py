@@ -1,0 +1,255 @@
+"""Units of the data file and the checks and repairs of a parsed recording.
+
+SI units (``DEG``, ``G0_M_S2``); the rows kept (finite, strictly increasing time:
+:func:`_valid_rows`); deg/s written as rad/s (:func:`_unit_checks`); a time column that is not
+seconds, gaps and uneven sampling (:func:`_timing_checks`); clipped plateaus
+(:func:`detect_saturation`). Each says what it repaired in a ``warning:`` line or refuses in
+one ``error:`` line.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gyrocore.errors import GyroInputError, warn_repair
+
+from .csvtext import TIME_ALTS
+
+__all__ = ["DEG", "G0_M_S2", "DEG_S_SUSPECT_RAD_S", "STILL_NOISE_SUSPECT_RAD_S", "detect_saturation"]
+
+DEG = np.pi / 180.0
+G0_M_S2 = 9.80665
+
+#: A t_s column whose median interval is above this is not seconds (no gyro recording is
+#: sampled slower than 0.5 Hz; a millisecond counter at <= 500 Hz, or any microsecond or
+#: nanosecond counter, lands above it): one error line naming t_ms / t_us / t_ns.
+T_S_MAX_MEDIAN_DT_S = 2.0
+#: ... and above this (but not above the limit) a warning: a millisecond counter at 1 kHz has
+#: dt = 1 "s" — as would a genuine 1-Hz log, hence only a warning.
+T_S_SUSPECT_MEDIAN_DT_S = 0.5
+
+#: Largest plausible MEMS gyro full scale: ±2000 °/s = 34.9 rad/s (ICM-42688, BMI160, MPU-6050
+#: at their widest range; the fastest parts stop at ±4000 °/s = 69.8 rad/s). Peaks above
+#: :data:`DEG_S_SUSPECT_RAD_S` in a column labelled rad/s are taken as deg/s mislabelled.
+DEG_S_SUSPECT_RAD_S = 70.0
+#: Per-sample noise of a still MEMS gyro is far below 0.05 rad/s (2.9 °/s); a still recording
+#: whose noise exceeds it is reported as probably deg/s labelled rad/s.
+STILL_NOISE_SUSPECT_RAD_S = 0.05
+
+
+def _valid_rows(t, gyro, accel, temp, path, repair, *, t_prev: float = -np.inf) -> tuple[np.ndarray, int, int]:
+    """Mask of rows kept: finite time/gyro/accel/temp, strictly increasing time."""
+    keep = np.isfinite(t) & np.all(np.isfinite(gyro), axis=1)
+    if accel is not None:
+        keep &= np.all(np.isfinite(accel), axis=1)
+    if temp is not None:
+        keep &= np.isfinite(temp)
+    n_bad = int((~keep).sum())
+    if n_bad and not repair:
+        raise GyroInputError(f"{path}: {n_bad} rows with NaN/inf values")
+    all_kept = not n_bad
+    t_k = t if all_kept else t[keep]
+    n_back = 0
+    if t_k.size and all_kept and t_k[0] > t_prev and bool(np.all(t_k[1:] > t_k[:-1])):
+        return keep, n_bad, 0  # strictly increasing (the usual case): no running-max copies
+    if t_k.size:
+        running_max = np.maximum.accumulate(np.concatenate([[t_prev], t_k]))
+        mono = t_k > running_max[:-1]
+        n_back = int((~mono).sum())
+        if n_back:
+            if not repair:
+                raise GyroInputError(f"{path}: {n_back} timestamps go backwards or repeat")
+            idx = np.flatnonzero(keep)
+            keep[idx[~mono]] = False
+    return keep, n_bad, n_back
+
+
+def _robust_noise(x: np.ndarray) -> float:
+    """Per-sample white-noise σ from first differences: 1.4826·MAD(Δx)/√2; the smallest
+    non-zero step when more than half of the differences are exactly zero (coarse quantum)."""
+    d = np.diff(x)
+    if d.size == 0:
+        return 0.0
+    # in place (the median and the MAD do not depend on the order of d, which the partition
+    # permutes): the same values with d as the only temporary
+    med = np.median(d, overwrite_input=True)
+    np.subtract(d, med, out=d)
+    np.abs(d, out=d)
+    mad = float(np.median(d, overwrite_input=True))
+    if mad > 0:
+        return 1.4826 * mad / np.sqrt(2.0)
+    d = np.diff(x)
+    nz = np.abs(d[d != 0])
+    return float(nz.min()) if nz.size else 0.0
+
+
+def _robust_noise_consuming(x: np.ndarray, block: int = 1 << 20) -> float | None:
+    """:func:`_robust_noise` of a fresh 1-D array, overwriting it: the first differences are
+    formed in place block by block (block [a, b) reads x[a..b], none of it overwritten yet),
+    so no second (N,) array is made. None when the MAD is 0 (the fallback needs the data)."""
+    n = x.shape[0]
+    if n < 2:
+        return 0.0
+    for a in range(0, n - 1, block):
+        b = min(a + block, n - 1)
+        x[a:b] = x[a + 1 : b + 1] - x[a:b]
+    d = x[: n - 1]
+    med = np.median(d, overwrite_input=True)
+    np.subtract(d, med, out=d)
+    np.abs(d, out=d)
+    mad = float(np.median(d, overwrite_input=True))
+    return 1.4826 * mad / np.sqrt(2.0) if mad > 0 else None
+
+
+def detect_saturation(
+    x: np.ndarray, *, min_run: int = 3, min_clip: np.ndarray | float = 0.0
+) -> tuple[np.ndarray, list[tuple[int, float, int]]]:
+    """Samples clipped at a plateau: runs of identical values at a column's extreme.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, K)
+        Samples (any unit), one column per axis.
+    min_run : int
+        Shortest run of identical extreme values counted as a plateau.
+    min_clip : float or ndarray, shape (K,)
+        Smallest |plateau| that can be a clip level, per column (same unit as ``x``): no
+        sensor clips below its smallest full-scale setting, so a plateau below it (e.g. an
+        exactly constant simulated 1 g at rest) is a steady reading, not saturation.
+
+    Returns
+    -------
+    mask : ndarray of bool, shape (N,)
+        True where any column sits at a detected plateau.
+    found : list of (column, plateau value, sample count)
+
+    Notes
+    -----
+    A clipped signal piles up at its limit: the value at the extreme repeats in runs, and
+    more samples sit exactly at the extreme than in the 3σ band just inside it (a peak
+    passes that band quickly). Gaussian noise about a constant rate (e.g. a rate table)
+    has its maximum in the tail with far fewer samples than the band inside; the extreme
+    must also be 10σ from the median, so a still recording never qualifies. Columns where
+    most consecutive samples are identical (noise-free or coarsely quantized) get no
+    verdict: there a run of equal values is normal.
+    """
+    x = np.asarray(x, float)
+    if x.ndim == 1:
+        x = x[:, None]
+    mask = np.zeros(x.shape[0], bool)
+    found = []
+    floor = np.broadcast_to(np.asarray(min_clip, float), (x.shape[1],))
+    for j in range(x.shape[1]):
+        col = x[:, j]
+        fin = np.isfinite(col)
+        if fin.sum() < 10:
+            continue
+        c = col if fin.all() else col[fin]  # no copy of an all-finite column
+        c_max, c_min = float(c.max()), float(c.min())
+        if int(np.count_nonzero(c == c_max)) < min_run and int(np.count_nonzero(c == c_min)) < min_run:
+            continue  # neither extreme repeats: no plateau possible (skips the medians below)
+        inner = (c != c_max) & (c != c_min)
+        d = np.diff(c)[inner[1:] & inner[:-1]]
+        mad = float(np.median(np.abs(d - np.median(d)))) if d.size >= 10 else 0.0
+        if d.size < 10 or mad == 0.0:
+            # away from the extremes most consecutive samples are identical (noise-free
+            # simulation, or a quantum coarser than the noise): repeated values are normal
+            # there and clipping cannot be told from a constant rate — no verdict
+            continue
+        sigma = 1.4826 * mad / np.sqrt(2.0)
+        med = float(np.median(c))
+        for ext in (float(c.max()), float(c.min())):
+            at = col == ext
+            n_at = int(at.sum())
+            if n_at < min_run or abs(ext - med) <= 10.0 * max(sigma, 1e-300) or abs(ext) < floor[j]:
+                continue
+            # longest run of consecutive samples at the extreme
+            edges = np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))
+            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+            if runs.max() < min_run:
+                continue
+            band = 3.0 * sigma if sigma > 0 else abs(ext - med) * 0.01
+            inside = (np.abs(col - ext) <= band) & ~at
+            if n_at <= int(inside.sum()):
+                continue
+            mask |= at
+            found.append((j, ext, n_at))
+    return mask, found
+
+
+def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
+    """Warn when a column labelled rad/s carries deg/s (magnitude evidence), or error."""
+    if not gyro_col.endswith("_rad_s") or gyro.shape[0] < 2:
+        return
+    peak = max(float(np.max(gyro)), -float(np.min(gyro)))  # = max |gyro|, without an (N, 3) temporary
+    if peak > DEG_S_SUSPECT_RAD_S:
+        raise GyroInputError(
+            f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
+            f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
+        )
+    # still recording (accel steady, std < 0.05 g): a MEMS gyro at rest has per-sample noise
+    # < 0.05 rad/s (2.9 deg/s; even 0.01 deg/s/sqrt(Hz) at 8 kHz is 0.9 deg/s); deg/s numbers
+    # read as rad/s are 57x too big (an MPU-6050's 0.1 deg/s becomes 0.1 "rad/s").
+    # (accel_std: the accel was read for this check only, as running moments)
+    sd = np.std(accel, axis=0) if accel is not None else accel_std
+    if sd is None or not bool(np.all(sd < 0.05 * G0_M_S2)):
+        return
+    med = np.array([np.median(gyro[:, i]) for i in range(3)])  # per column: no (N, 3) copy
+    noise = np.array([_robust_noise(gyro[:, i]) for i in range(3)])
+    # (a large median alone is not evidence: a centred sensor on a turning rate table also has steady accel)
+    if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
+        warn_repair(
+            f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
+            f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
+            f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
+            f"Data left unchanged"
+        )
+
+
+def _time_unit_check(med_dt_s: float, path: str, time_col: str) -> None:
+    """One error line (median interval > :data:`T_S_MAX_MEDIAN_DT_S`) or warning
+    (> :data:`T_S_SUSPECT_MEDIAN_DT_S`) when a column labelled seconds is evidently a counter."""
+    if TIME_ALTS.get(time_col) != 1.0 or not (med_dt_s > T_S_SUSPECT_MEDIAN_DT_S):  # not labelled seconds
+        return
+    what = f"{path}: column t_s has a median sample interval of {med_dt_s:.6g} s ({1 / med_dt_s:.3g} Hz)"
+    if med_dt_s > T_S_MAX_MEDIAN_DT_S:
+        raise GyroInputError(
+            f"{what}, slower than any gyro log: the time is probably in ms, us or ns — rename the column "
+            f"t_ms, t_us or t_ns (converted on read)"
+        )
+    warn_repair(
+        f"{what}: if the time is a millisecond counter (a 1 kHz log), rename the column t_ms; data kept as seconds"
+    )
+
+
+def _timing_checks(t: np.ndarray, path: str, retime: bool, time_col: str) -> np.ndarray:
+    """Warn on gaps (dropped samples) and bursty host timestamps; retime on request."""
+    d = np.diff(t)
+    if d.size < 2:
+        return t
+    mean = float((t[-1] - t[0]) / d.size)
+    mx = float(d.max())
+    # the partition permutes d in place; what follows (max, counts, a sum of integers) does
+    # not depend on the order: the same values with d as the only temporary
+    med = float(np.median(d, overwrite_input=True))
+    _time_unit_check(med, path, time_col)
+    if med < 0.5 * mean and mx > 4.0 * mean:
+        if retime:
+            warn_repair(
+                f"{path}: bursty host timestamps (median dt {med * 1e3:.3g} ms, mean {mean * 1e3:.3g} ms, gaps up to "
+                f"{mx:.3g} s) replaced by a uniform grid at the mean rate {1 / mean:.6g} Hz"
+            )
+            return t[0] + np.arange(t.size) * ((t[-1] - t[0]) / (t.size - 1))
+        warn_repair(
+            f"{path}: bursty host timestamps (median dt {med * 1e3:.3g} ms, mean {mean * 1e3:.3g} ms, gaps up to "
+            f"{mx:.3g} s); rates and Allan variance need a uniform grid: use --retime (gyroharness convert)"
+        )
+        return t
+    gaps = d > 1.5 * med
+    if med > 0 and gaps.any():
+        n_missing = int(np.sum(np.round(d[gaps] / med) - 1))
+        warn_repair(
+            f"{path}: {int(gaps.sum())} gaps longer than 1.5x the median interval {med * 1e3:.3g} ms "
+            f"(longest {mx:.3g} s, ~{n_missing} samples missing in all); data kept as recorded"
+        )
+    return t

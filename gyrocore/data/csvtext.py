@@ -1,0 +1,503 @@
+"""CSV text of the data file: sniffing, the ``#`` header, and the two parsers.
+
+The data rows are parsed by Arrow's streaming C++ reader while the table is clean; from the
+first block it refuses (text in a number, a wrong value count, an empty field, a ``#`` line,
+bad UTF-8) the exact line parser takes over at that data row, so the messages name the file
+line and column (:func:`_csv_blocks`). :mod:`gyrocore.data.recording` builds the
+:class:`~gyrocore.data.recording.Recording` from the blocks.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from gyrocore.errors import GyroInputError, warn_repair
+
+__all__ = ["locate_bad_value", "TIME_ALTS"]
+
+#: Time columns accepted in place of ``t_s`` (converted to seconds on read): a logger's
+#: millisecond, microsecond or nanosecond counter (Arduino millis(), PX4 timestamp, ROS stamps).
+TIME_ALTS = {"t_s": 1.0, "t_ms": 1e-3, "t_us": 1e-6, "t_ns": 1e-9}
+
+
+def _check_path(path: str) -> None:
+    """Existence, folder, permission and empty-file checks with one-line errors."""
+    if not os.path.exists(path):
+        raise GyroInputError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise GyroInputError(f"{path}: is a directory, not a data file")
+    if not os.access(path, os.R_OK):
+        raise GyroInputError(f"{path}: not readable (permission denied)")
+    if os.path.getsize(path) == 0:
+        raise GyroInputError(f"{path}: empty file")
+
+
+def _sniff_file(path: str) -> None:
+    """Existence, folder, empty, binary and encoding checks with one-line errors."""
+    _check_path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(8192)
+    if head.startswith(b"\x89HDF") or head.startswith(b"ULog") or head.startswith(b"MATLAB"):
+        raise GyroInputError(
+            f"{path}: binary file (HDF5/MATLAB/ULog); convert it first: gyroharness convert {path} -o OUT.csv"
+        )
+    if head.startswith(b"H Product:Blackbox") or head.startswith(b"\xa3\x95\x80"):
+        kind = "blackbox log" if head.startswith(b"H") else "ArduPilot DataFlash log"
+        raise GyroInputError(
+            f"{path}: {kind}, not a data file; convert it first: gyroharness convert {path} -o OUT.csv"
+        )
+    if b"\x00" in head:
+        raise GyroInputError(f"{path}: binary file, expected a CSV data file")
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not just a multibyte char cut at the 8 KiB boundary
+            raise GyroInputError(f"{path}: not UTF-8 text (binary file?), expected a CSV data file") from None
+
+
+def locate_bad_value(path: str, *, skiprows: int, delimiter: str | None = ",", ncols: int | None = None) -> str:
+    """One-line description of the first unparseable line of a numeric table.
+
+    Names the file line number (1-based), the column (name when ``header`` known by the
+    caller, else 1-based index) and the offending text.
+    """
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if lineno <= skiprows:
+                continue
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            fields = s.split(delimiter) if delimiter else s.split()
+            if ncols is not None and len(fields) != ncols:
+                return f"{path}: line {lineno}: {len(fields)} values, expected {ncols}"
+            for j, f in enumerate(fields, 1):
+                try:
+                    float(f)
+                except ValueError:
+                    return f"{path}: line {lineno}, column {j}: text in a number ({f.strip()[:40]!r})"
+    return f"{path}: rows have different numbers of values"
+
+
+def _parse_rows(lines: list[str], first_lineno: int, header: list[str], path: str) -> tuple[np.ndarray, int]:
+    """Slow exact parser (used when the fast one fails): empty fields → NaN, else one-line errors.
+
+    Returns the array and the number of empty fields that were read as NaN.
+    """
+    n = len(header)
+    out = []
+    n_empty = 0
+    for k, line in enumerate(lines):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        f = s.split(",")
+        if len(f) != n:
+            raise GyroInputError(f"{path}: line {first_lineno + k}: {len(f)} values but the header names {n} columns")
+        row = []
+        for j, v in enumerate(f):
+            v = v.strip()
+            if v == "":
+                n_empty += 1
+                row.append(np.nan)
+                continue
+            try:
+                row.append(float(v))
+            except ValueError:
+                raise GyroInputError(
+                    f"{path}: line {first_lineno + k}, column {header[j]!r}: text in a number ({v[:40]!r})"
+                ) from None
+        out.append(row)
+    return (np.asarray(out, dtype=float).reshape(-1, n), n_empty)
+
+
+def _slow_parse(lines: list[str], first_lineno: int, header: list[str], path: str) -> np.ndarray:
+    data, n_empty = _parse_rows(lines, first_lineno, header, path)
+    if n_empty:
+        warn_repair(f"{path}: {n_empty} empty fields read as missing values (NaN)")
+    return data
+
+
+# ---------------------------------------------------------------- the C/Arrow parser
+#: Bytes per Arrow CSV block (rounded to whole lines by Arrow). Arrow's streaming reader
+#: reads blocks ahead, so its memory grows with the block size: measured on a 608 MiB file,
+#: peak RSS above the imports 74 MiB at 256 KiB, 100 MiB at 512 KiB, 225 MiB at 4 MiB, for
+#: the same speed (5.3-5.7 s under load 13).
+_MIN_BLOCK_BYTES = 256 << 10
+_MAX_BLOCK_BYTES = 256 << 10
+
+
+class _NotClean(Exception):
+    """The Arrow parser refused the table (or found empty fields): use the exact parser."""
+
+
+def _data_offset(path: str, n_skip: int) -> int | None:
+    """Byte offset of the first data line, or None when the header lines end in a lone CR
+    (old Mac text: the text-mode line count does not match bytes; the exact parser reads it)."""
+    with open(path, "rb") as fh:
+        for _ in range(n_skip):
+            line = fh.readline()
+            if b"\r" in line.rstrip(b"\r\n"):
+                return None
+        return fh.tell()
+
+
+def _arrow_options(header: list[str], want: list[int], block_size: int | None = None):
+    """Arrow CSV options for a clean DESIGN.md table: no quotes, ``,`` only, float64 columns,
+    only empty fields as null (``nan``/``inf`` are numbers, as for ``float``)."""
+    import pyarrow as pa
+    import pyarrow.csv as pc
+
+    names = [f"c{i}" for i in range(len(header))]  # header names were validated already
+    ro = pc.ReadOptions(column_names=names, use_threads=True, **({"block_size": block_size} if block_size else {}))
+    po = pc.ParseOptions(
+        delimiter=",",
+        quote_char=False,
+        double_quote=False,
+        escape_char=False,
+        newlines_in_values=False,
+        ignore_empty_lines=True,
+    )
+    co = pc.ConvertOptions(
+        column_types={names[i]: pa.float64() for i in want},
+        include_columns=[names[i] for i in want],
+        null_values=[""],
+        strings_can_be_null=False,
+        quoted_strings_can_be_null=False,
+    )
+    return ro, po, co, [names[i] for i in want]
+
+
+def _is_float64_array(col) -> bool:
+    import pyarrow as pa
+
+    return isinstance(col, pa.Array) and pa.types.is_float64(col.type)
+
+
+def _to_numpy(col) -> np.ndarray:
+    """Arrow (chunked) float64 column -> writable numpy array; empty fields -> _NotClean."""
+    if col.null_count:
+        raise _NotClean("empty fields")
+    import pyarrow as pa
+
+    if isinstance(col, pa.Array) and pa.types.is_float64(col.type):
+        # the values buffer read directly and copied: the same bytes as to_numpy(), without
+        # the ~50 MiB that pyarrow's numpy conversion keeps resident once used (measured on a
+        # one-hour 15-column file)
+        return np.frombuffer(col.buffers()[1], dtype=np.float64, count=len(col), offset=col.offset * 8).copy()
+    arr = col.to_numpy()
+    return arr if arr.flags.writeable else arr.copy()
+
+
+class _Moments:
+    """Running per-column mean/variance of columns read only for a check (never held whole);
+    shifted sums (shift = first value) keep the variance exact to rounding."""
+
+    def __init__(self, idx: list[int]) -> None:
+        self.idx = list(idx)
+        self.n = 0
+        self.shift = None
+        self.s1 = np.zeros(len(idx))
+        self.s2 = np.zeros(len(idx))
+
+    def update(self, cols: dict[int, np.ndarray]) -> None:
+        if not self.idx:
+            return
+        x = [cols.pop(i) for i in self.idx]
+        if x[0].size == 0:
+            return
+        if self.shift is None:
+            self.shift = np.array([float(v[0]) for v in x])
+        for j, v in enumerate(x):
+            d = v - self.shift[j]
+            self.s1[j] += float(d.sum())
+            self.s2[j] += float(np.dot(d, d))
+        self.n += x[0].size
+
+    def std(self) -> np.ndarray | None:
+        if not self.idx or self.n < 2:
+            return None
+        m = self.s1 / self.n
+        return np.sqrt(np.maximum(self.s2 / self.n - m * m, 0.0))
+
+
+class _Filler:
+    """The final arrays of a whole read (the Recording's own, SI, groups as (N, k)),
+    preallocated for an upper bound of the row count and filled block by block: the columns
+    are held once — never lists of blocks plus their concatenation (which, with the
+    allocator's fragmentation, measured 2-4x the data). Check-only accel columns are reduced
+    to running moments."""
+
+    def __init__(self, layout, capacity: int) -> None:
+        self.layout = layout
+        self.n = 0
+        cap = max(int(capacity), 1)
+        self.t = np.empty(cap)
+        self.groups = {
+            name: np.empty((cap, len(blk[0])))
+            for name, blk in (
+                ("gyro", layout.gyro),
+                ("accel", layout.accel),
+                ("rref", layout.rref),
+                ("qref", layout.qref),
+            )
+            if blk is not None
+        }
+        self.temp = np.empty(cap) if layout.temp is not None else None
+        self.extra = {h: np.empty(cap) for h, _ in layout.extra}
+        self.moments = layout.moments()
+
+    def _arrays(self):
+        yield "t", self.t
+        yield from self.groups.items()
+        if self.temp is not None:
+            yield "temp", self.temp
+        for h, v in self.extra.items():
+            yield "extra:" + h, v
+
+    def _grow(self, need: int) -> None:
+        cap = max(need, int(self.t.shape[0] * 1.5) + 1)
+        for name, old in list(self._arrays()):
+            new = np.empty((cap,) + old.shape[1:])
+            new[: self.n] = old[: self.n]
+            if name == "t":
+                self.t = new
+            elif name == "temp":
+                self.temp = new
+            elif name.startswith("extra:"):
+                self.extra[name[6:]] = new
+            else:
+                self.groups[name] = new
+
+    def add(self, blk: dict[int, np.ndarray]) -> None:
+        L = self.layout
+        self.moments.update(blk)
+        m = len(blk[L.t])
+        if m == 0:
+            return
+        if self.n + m > self.t.shape[0]:
+            self._grow(self.n + m)
+        s = slice(self.n, self.n + m)
+        if L.t_factor == 1.0:
+            self.t[s] = blk[L.t]
+        else:
+            np.multiply(blk[L.t], L.t_factor, out=self.t[s])
+        for name, arr in self.groups.items():
+            idx, fac = getattr(L, {"gyro": "gyro", "accel": "accel", "rref": "rref", "qref": "qref"}[name])
+            for j, (i, f) in enumerate(zip(idx, fac)):
+                if f == 1.0:
+                    arr[s, j] = blk[i]
+                else:
+                    np.multiply(blk[i], f, out=arr[s, j])
+        if self.temp is not None:
+            self.temp[s] = blk[L.temp]
+        for h, i in L.extra:
+            self.extra[h][s] = blk[i]
+        self.n += m
+
+    def columns(self):
+        """(t, gyro, accel, temp, rref, qref, extra) trimmed to the rows read (views)."""
+        n = self.n
+        g = self.groups
+        return (
+            self.t[:n],
+            g["gyro"][:n],
+            g["accel"][:n] if "accel" in g else None,
+            None if self.temp is None else self.temp[:n],
+            g["rref"][:n] if "rref" in g else None,
+            g["qref"][:n] if "qref" in g else None,
+            {h: v[:n] for h, v in self.extra.items()},
+        )
+
+
+def _count_lines(path: str, offset: int) -> int:
+    """Newlines after ``offset`` + 1: an upper bound of the data rows (16 MiB at a time)."""
+    n = 1
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        for chunk in iter(lambda: fh.read(16 << 20), b""):
+            n += chunk.count(b"\n")
+    return n
+
+
+def _rechunk(blocks: Iterable[dict[int, np.ndarray]], rows: int) -> Iterator[dict[int, np.ndarray]]:
+    """Blocks of any size -> blocks of exactly ``rows`` rows (the last one shorter)."""
+    pending: list[dict[int, np.ndarray]] = []
+    n_pending = 0
+    for blk in blocks:
+        m = len(next(iter(blk.values()))) if blk else 0
+        if m == 0:
+            continue
+        pending.append(blk)
+        n_pending += m
+        if n_pending < rows:
+            continue
+        cat = {i: np.concatenate([b[i] for b in pending]) for i in pending[0]}
+        k = 0
+        while n_pending - k >= rows:
+            yield {i: v[k : k + rows].copy() for i, v in cat.items()}
+            k += rows
+        pending = [{i: v[k:] for i, v in cat.items()}] if n_pending > k else []
+        n_pending -= k
+    if n_pending:
+        yield {i: np.concatenate([b[i] for b in pending]) for i in pending[0]}
+
+
+def _arrow_stream(path: str, offset: int, header: list[str], want: list[int], block_size: int):
+    import pyarrow as pa
+    import pyarrow.csv as pc
+
+    ro, po, co, names = _arrow_options(header, want, block_size)
+    try:
+        src = pa.OSFile(path)
+        src.seek(offset)
+        reader = pc.open_csv(src, read_options=ro, parse_options=po, convert_options=co)
+        for batch in reader:
+            yield {i: _to_numpy(batch.column(k)) for k, i in enumerate(want)}
+    except (pa.ArrowException, UnicodeDecodeError) as exc:
+        raise _NotClean(str(exc)) from None
+
+
+def _block_size(path: str, offset: int, rows: int, ncols: int) -> int:
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        sample = fh.read(1 << 16)
+    per_line = len(sample) / max(sample.count(b"\n"), 1) if sample else 20.0 * ncols
+    return int(min(max(rows * per_line, _MIN_BLOCK_BYTES), _MAX_BLOCK_BYTES))
+
+
+def _data_lines(fh, skip_rows: int, first_lineno: int) -> int:
+    """Advance ``fh`` past ``skip_rows`` data rows (blank and ``#`` lines not counted);
+    returns the file line number of the next line."""
+    lineno = first_lineno
+    while skip_rows > 0:
+        line = fh.readline()
+        if not line:
+            break
+        lineno += 1
+        s = line.strip()
+        if s and not s.startswith("#"):
+            skip_rows -= 1
+    return lineno
+
+
+def _csv_blocks(
+    path: str, header: list[str], n_skip: int, want: list[int], rows: int
+) -> Iterator[dict[int, np.ndarray]]:
+    """Data blocks of exactly ``rows`` rows: Arrow's streaming C++ reader while the table is
+    clean; from the first block it refuses (text in a number, wrong value count, empty
+    field, ``#`` line, bad UTF-8) the exact line parser takes over at that data row, so the
+    messages name the file line and column and empty fields are counted as before."""
+    offset = _data_offset(path, n_skip)
+    n_done = 0
+    if offset is not None:
+        try:
+            for blk in _rechunk(
+                _arrow_stream(path, offset, header, want, _block_size(path, offset, rows, len(header))), rows
+            ):
+                yield blk
+                n_done += len(blk[want[0]])
+            return
+        except _NotClean:
+            pass
+    yield from _exact_blocks(path, header, n_skip, want, n_done, n_skip + 1, rows)
+
+
+def _header_info(path: str) -> tuple[dict[str, str], list[str], int]:
+    try:
+        with open(path, "r", encoding="utf-8") as fh:
+            meta, header, n_skip = _parse_header(fh, path)
+    except UnicodeDecodeError:
+        raise GyroInputError(f"{path}: not UTF-8 text, expected a CSV data file") from None
+    _check_header(header, path)
+    return meta, header, n_skip
+
+
+def _time_col(header: list[str], path: str) -> tuple[int, float]:
+    """Index of the time column (``t_s`` or one of :data:`TIME_ALTS`) and its factor to seconds."""
+    found = [(h, header.index(h)) for h in TIME_ALTS if h in header]
+    if len(found) > 1:
+        raise GyroInputError(f"{path}: several time columns ({', '.join(h for h, _ in found)}); keep one")
+    if not found:
+        hint = ""
+        if len(header) == 1 and any(c in header[0] for c in ";\t|"):
+            sep = next(c for c in ";\t|" if c in header[0])
+            hint = (
+                f" (the header is one column {header[0][:60]!r}: the file is separated by "
+                f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)"
+            )
+        raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
+    h, i = found[0]
+    return i, TIME_ALTS[h]
+
+
+def _check_header(header: list[str], path: str) -> None:
+    _time_col(header, path)
+    if len(set(header)) != len(header):
+        dup = sorted({h for h in header if header.count(h) > 1})
+        raise GyroInputError(f"{path}: duplicate column names in header ({', '.join(dup)})")
+    if "" in header:
+        raise GyroInputError(f"{path}: empty column name in header")
+
+
+def _exact_blocks(path, header, n_skip, want, skip_data_rows, first_lineno, rows=200_000):
+    """The exact line parser from data row ``skip_data_rows`` on, ``rows`` lines at a time."""
+    lineno = first_lineno
+    try:
+        with open(path, "r", encoding="utf-8", errors="strict") as fh:
+            for _ in range(n_skip):
+                fh.readline()
+            lineno = _data_lines(fh, skip_data_rows, first_lineno)
+            while True:
+                lines = list(itertools.islice(fh, rows))
+                if not lines:
+                    break
+                data = _slow_parse(lines, lineno, header, path)
+                lineno += len(lines)
+                if data.shape[0]:
+                    yield {i: data[:, i].copy() for i in want}
+    except UnicodeDecodeError as exc:  # found by bench/fuzz_reader.py (atheris)
+        raise GyroInputError(f"{path}: not UTF-8 text after the header near line {lineno} ({exc.reason})") from None
+
+
+def _header_name(h: str) -> str:
+    """A header field without surrounding whitespace and double quotes (R's write.csv, MATLAB and
+    spreadsheets quote the header)."""
+    h = h.strip()
+    if len(h) >= 2 and h[0] == h[-1] == '"':
+        h = h[1:-1].replace('""', '"').strip()
+    return h
+
+
+def _parse_header(lines: Iterable[str], path: str) -> tuple[dict[str, str], list[str], int]:
+    """``# key: value`` metadata lines, then the header row; returns (meta, header, lines used)."""
+    meta: dict[str, str] = {}
+    n_skip = 0
+    for line in lines:
+        n_skip += 1
+        s = line.strip().lstrip("\ufeff")
+        if not s:
+            continue
+        if s.startswith("#"):
+            body = s[1:].strip()
+            if ":" in body:
+                k, v = body.split(":", 1)
+                meta[k.strip()] = v.strip()
+            continue
+        header = [_header_name(h) for h in s.split(",")]
+        empty = [i for i, h in enumerate(header) if not h]
+        if empty:
+            # a pandas index written without a name (to_csv() default), R's row names, a trailing
+            # comma: kept as extra columns with a name, said once
+            for i in empty:
+                header[i] = f"unnamed_{i}"
+            warn_repair(
+                f"{path}: {len(empty)} column(s) without a name in the header (a pandas/R index, a trailing "
+                f"comma?) kept as extra column(s) {', '.join(header[i] for i in empty)}"
+            )
+        return meta, header, n_skip
+    raise GyroInputError(f"{path}: no header row (file is empty or only has comments)")
