@@ -465,7 +465,7 @@ def betaflight_notch(center_hz: float, cutoff_hz: float, rate_hz: float, *, star
 
 
 def firmware_stage(stage: dict, *, loop_scale: float = 1.0, start: str = "steady") -> SosFilter | None:
-    """One static firmware gyro stage (dict of ``gyrocore.readers.blackbox.FilterStage.to_dict``) as an SosFilter.
+    """One static firmware gyro stage (dict of ``gyrocore.readers.blackbox_firmware.FilterStage.to_dict``) as an SosFilter.
 
     The coefficients are Betaflight's (``pt1FilterGain`` k = ω/(ω+1), ω = 2π·fc·dT;
     PT2/PT3 with the cutoff correction; RBJ biquad low-pass Q = 1/√2; RBJ notch) for the

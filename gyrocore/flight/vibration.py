@@ -97,7 +97,7 @@ def undo_response(
     Parameters
     ----------
     stages : list of dict
-        Firmware stages (``gyrocore.readers.blackbox.FilterStage.to_dict``).
+        Firmware stages (``gyrocore.readers.blackbox_firmware.FilterStage.to_dict``).
     f_hz : ndarray (M,)
         Frequencies, Hz.
     loop_scale : float

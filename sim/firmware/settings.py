@@ -133,7 +133,8 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
     log_index : int or None
         1-based log of the file (default: the first).
     """
-    from gyrocore.readers.blackbox import firmware_info, loop_rates, read_blackbox_logs
+    from gyrocore.readers.blackbox import read_blackbox_logs
+    from gyrocore.readers.blackbox_firmware import firmware_info, loop_rates
 
     p = Path(path)
     logs = read_blackbox_logs(p, log_index=log_index)
@@ -248,13 +249,13 @@ def settings_from_blackbox(path: str | os.PathLike, *, log_index: int | None = N
     # when the DYNAMIC_FILTER feature is on; older ones had a different analyser: off
     count = h.get("dyn_notch_count")
     if count is None:
-        from gyrocore.readers.blackbox import _dyn_notch_feature
+        from gyrocore.readers.blackbox_firmware import dyn_notch_feature
 
-        if v >= (4, 2, 0) and _dyn_notch_feature(h, fw):
+        if v >= (4, 2, 0) and dyn_notch_feature(h, fw):
             count = 2 if (h.get("dyn_notch_width_percent") or 0) > 0 else 1
         else:
             count = 0
-            if _dyn_notch_feature(h, fw):
+            if dyn_notch_feature(h, fw):
                 notes.append(
                     f"Betaflight {fw.version_str}'s dynamic notch (a different analyser) is not "
                     f"reproduced: dynamic notch off"

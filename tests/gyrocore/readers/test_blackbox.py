@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from gyrocore.readers import blackbox as bb
+from gyrocore.readers import blackbox_firmware as bf
 from gyrocore.readers.convert import detect_format, load_any
 from gyrocore.errors import GyroInputError, RepairWarning
 
@@ -83,13 +84,13 @@ def test_shared_log_frames_span_units_and_header(full):
 
 def test_debug_mode_index_changes_meaning_between_versions():
     # betaflight/betaflight#5211: NOTCH was 8 in 3.2.5 and 6 in 3.3; in 4.3, 6 is GYRO_SCALED.
-    assert bb.debug_mode_name((3, 1, 5), 8) == "NOTCH"
-    assert bb.debug_mode_name((3, 2, 5), 8) == "GYRO_NOTCH"
-    assert bb.debug_mode_name((3, 3, 0), 6) == "GYRO_NOTCH"
-    assert bb.debug_mode_name((4, 3, 0), 6) == "GYRO_SCALED"
-    assert bb.debug_mode_name((2025, 12, 0), 6) == "RC_INTERPOLATION"  # GYRO_SCALED removed (gyroUnfilt)
-    assert bb.debug_mode_name((4, 5, 9), 6) is None  # a release not read: no guess
-    assert bb.debug_mode_name((3, 0, 1), 3) is None
+    assert bf.debug_mode_name((3, 1, 5), 8) == "NOTCH"
+    assert bf.debug_mode_name((3, 2, 5), 8) == "GYRO_NOTCH"
+    assert bf.debug_mode_name((3, 3, 0), 6) == "GYRO_NOTCH"
+    assert bf.debug_mode_name((4, 3, 0), 6) == "GYRO_SCALED"
+    assert bf.debug_mode_name((2025, 12, 0), 6) == "RC_INTERPOLATION"  # GYRO_SCALED removed (gyroUnfilt)
+    assert bf.debug_mode_name((4, 5, 9), 6) is None  # a release not read: no guess
+    assert bf.debug_mode_name((3, 0, 1), 3) is None
 
 
 def test_detect_and_load_through_convert(log_path, tmp_path):
@@ -232,9 +233,9 @@ def test_betaflight_44_header_names_and_gyro_scaled(log_path, tmp_path):
 
 def test_rpm_filter_debug_mode_gives_rotor_frequency(log_path, tmp_path):
     """4.x debug_mode RPM_FILTER: debug[0..3] = rotor frequency per motor in Hz (rpm_filter.c)."""
-    from gyrocore.readers._betaflight_debug_modes import BETAFLIGHT_DEBUG_MODES
+    from gyrocore.readers.blackbox_firmware import DEBUG_MODE_TABLES
 
-    names = [n for lo, hi, n in BETAFLIGHT_DEBUG_MODES if lo <= (4, 2, 0) <= hi][0]
+    names = [n for lo, hi, n in DEBUG_MODE_TABLES if lo <= (4, 2, 0) <= hi][0]
     idx = names.index("RPM_FILTER")
     data = log_path.read_bytes()[:PREFIX_BYTES]
     s = data.replace(b"Betaflight 3.1.5", b"Betaflight 4.2.0").replace(b"H debug_mode:8", b"H debug_mode:%d" % idx)

@@ -8,7 +8,7 @@ The tests that need no data (INAV header handling, version refusal) always run.
 
 Expected figures come from outside this reader: the Rust parser blackbox-log's snapshot of
 LOG00037.BFL (frame count, field extremes), INAV's blackbox.c / blackbox_fielddefs.h /
-sensors/gyro.c (revision named in ``gyrocore.readers.blackbox.INAV_READ``), and an independent Welch
+sensors/gyro.c (revision named in ``gyrocore.readers.blackbox_firmware.INAV_READ``), and an independent Welch
 estimate with scipy.
 """
 
@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from gyrocore.readers import blackbox as bb
+from gyrocore.readers import blackbox_firmware as bf
 from gyrocore.errors import GyroInputError, RepairWarning
 
 DEG = math.pi / 180.0
@@ -147,21 +148,21 @@ def _inav_header(rev="INAV 9.0.1 (d44f2cf6) IFLIGHT_BLITZ_F722", **kw):
 @pytest.mark.parametrize("rev", ["INAV 8.0.1 (abc) X", "INAV 7.1.2 (4e1e59eb) Y", "INAV 9.1.0 (1) Z"])
 def test_inav_release_not_read_is_one_error_naming_it(rev):
     with pytest.raises(GyroInputError) as e:
-        bb.firmware_info(_inav_header(rev=rev), "f.TXT")
+        bf.firmware_info(_inav_header(rev=rev), "f.TXT")
     msg = str(e.value)
     assert rev.split(" (")[0] in msg and "\n" not in msg and "9.0" in msg
 
 
 def test_inav_rates_and_filters_from_header():
-    fw = bb.firmware_info(_inav_header(), "f.TXT")
+    fw = bf.firmware_info(_inav_header(), "f.TXT")
     assert (fw.name, fw.version) == ("inav", (9, 0, 1))
-    r = bb.inav_loop_rates(_inav_header())
+    r = bf.inav_loop_rates(_inav_header())
     # looptime 500 µs → 2 kHz loop; P interval 1/2 → one frame per two loops
     assert r["pid_hz"] == 2000 and r["log_hz_nominal"] == 1000 and math.isnan(r["gyro_hz"])
-    chain = bb.inav_filter_chain(_inav_header(rpm_gyro_filter_enabled=1), r)
+    chain = bf.inav_filter_chain(_inav_header(rpm_gyro_filter_enabled=1), r)
     assert [(s.kind, s.dynamic) for s in chain] == [("rpm_notch", True), ("pt1", False), ("dyn_notch", True)]
     assert chain[1].cutoff_hz == 30 and chain[1].rate_hz == 2000
-    assert [s.kind for s in bb.inav_filter_chain(_inav_header(gyro_lpf_hz=0), r)] == ["dyn_notch"]
+    assert [s.kind for s in bf.inav_filter_chain(_inav_header(gyro_lpf_hz=0), r)] == ["dyn_notch"]
 
 
 def test_inav_end_of_log_marker():
@@ -324,16 +325,16 @@ def test_inav_truncated_and_corrupt(public_dir, tmp_path):
 def test_cleanflight_release_reads_as_its_betaflight_source(rev, equiv):
     """Cleanflight's debug list per release, read in cleanflight/cleanflight (see
     CLEANFLIGHT_AS_BETAFLIGHT): 2.4.x = Betaflight 3.4, 2.5.0 = 3.5.0, 4.2.x = 4.2.x."""
-    fw = bb.firmware_info({"Data version": 2, "Firmware revision": f"{rev} (abc) OMNIBUSF4"}, "f.BFL")
+    fw = bf.firmware_info({"Data version": 2, "Firmware revision": f"{rev} (abc) OMNIBUSF4"}, "f.BFL")
     assert fw.name == "cleanflight" and fw.version == equiv and fw.release_str == rev.split()[1]
     # debug_mode 6 is GYRO_SCALED (the unfiltered gyro) in Betaflight 3.4-4.2 and so in these
-    assert bb.debug_mode_name(fw.version, 6) == "GYRO_SCALED"
+    assert bf.debug_mode_name(fw.version, 6) == "GYRO_SCALED"
 
 
 @pytest.mark.parametrize("rev", ["Cleanflight 2.2.0", "Cleanflight 2.3.1", "Cleanflight 1.14.2", "Cleanflight 2.1.0"])
 def test_cleanflight_release_not_read_is_one_error(rev):
     with pytest.raises(GyroInputError) as e:
-        bb.firmware_info({"Data version": 2, "Firmware revision": f"{rev} (abc) X"}, "f.BFL")
+        bf.firmware_info({"Data version": 2, "Firmware revision": f"{rev} (abc) X"}, "f.BFL")
     assert rev in str(e.value) and "\n" not in str(e.value)
 
 
