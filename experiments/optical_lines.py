@@ -30,6 +30,7 @@ from scipy import signal
 
 from gyrocore.attitude import integrate_gyro
 from gyrocore.data.recording import Recording
+from gyrocore.loop.search import AttitudeLineOptions
 
 DEG = np.pi / 180.0
 
@@ -146,6 +147,69 @@ def optical_recording(
     )
 
 
+def slow_reference_recording(
+    *,
+    seed: int,
+    duration_s: float = 60.0,
+    gyro_rate_hz: float = 1000.0,
+    ref_rate_hz: float = 120.0,
+    sigma_q_rad: float = SIGMA_Q_RAD,
+    arw_rad_per_sqrt_s: float = ARW_RAD_PER_SQRT_S,
+    line_axis: int = 0,
+    line_hz: float = 0.0,
+    line_amp_rad_s: float = 0.0,
+    bias_rad_s=(0.004, -0.003, 0.002),
+) -> Recording:
+    """A gyro at ``gyro_rate_hz`` beside an optical attitude at ``ref_rate_hz`` (slower): rows
+    at the gyro's rate, the reference on the row nearest each of its frames (NaN between them:
+    frame intervals of ⌊fs/f_ref⌋ or ⌈fs/f_ref⌉ rows, as a tracker stamped on the IMU's clock),
+    tracking lost in ≈ 3 % of the frames. Motion, noise and line as :func:`optical_recording`.
+    """
+    from gyrocore.attitude import qmul, qnormalize
+
+    rng = np.random.default_rng([seed, 120])
+    sub = 4
+    n = int(duration_s * gyro_rate_hz)
+    t_fine = np.arange(n * sub + 1) / (gyro_rate_hz * sub)
+    freqs = rng.uniform(0.1, 1.5, (3, 3))
+    phases = rng.uniform(0, 2 * np.pi, (3, 3))
+    amps = rng.uniform(0.3, 0.8, (3, 3))
+
+    def omega(t):
+        return np.stack(
+            [
+                np.sum(amps[i][:, None] * np.sin(2 * np.pi * freqs[i][:, None] * t[None] + phases[i][:, None]), axis=0)
+                for i in range(3)
+            ],
+            axis=1,
+        )
+
+    q_fine = integrate_gyro(t_fine, omega(t_fine - 0.5 / (gyro_rate_hz * sub)))
+    rows = np.arange(n) * sub
+    t = t_fine[rows]
+    frames = np.unique(np.rint(np.arange(0, duration_s, 1.0 / ref_rate_hz) * gyro_rate_hz).astype(int))
+    frames = frames[frames < n]
+    eps = rng.normal(0.0, sigma_q_rad, (frames.size, 3))
+    ang = np.linalg.norm(eps, axis=1)
+    s_ = np.where(ang > 0, np.sin(0.5 * ang) / np.where(ang > 0, ang, 1), 0.5)
+    q_frames = qnormalize(qmul(q_fine[rows[frames]], np.column_stack([np.cos(0.5 * ang), eps * s_[:, None]])))
+    lost = 0
+    while lost < 0.03 * frames.size:
+        a = int(rng.integers(0, frames.size - 100))
+        m = int(rng.integers(10, 101))
+        q_frames[a : a + m] = np.nan
+        lost += m
+    q_ref = np.full((n, 4), np.nan)
+    q_ref[frames] = q_frames
+    gyro = omega(t) + np.asarray(bias_rad_s, float)
+    if line_amp_rad_s:
+        gyro[:, line_axis] += line_amp_rad_s * np.cos(2 * np.pi * line_hz * t + 1.1)
+    gyro += rng.normal(0.0, arw_rad_per_sqrt_s * np.sqrt(gyro_rate_hz), gyro.shape)
+    return Recording(
+        t_s=t, gyro_rad_s=gyro, ref_quat_wxyz=q_ref, meta={"scenario": "optical_lines_slow_ref", "seed": str(seed)}
+    )
+
+
 @dataclass(frozen=True)
 class LineTrial:
     seed: int
@@ -156,6 +220,7 @@ class LineTrial:
     described: bool
     f_found_hz: float | None
     others: tuple
+    amp_found_rad_s: float | None = None
 
 
 def trial(
@@ -165,28 +230,28 @@ def trial(
     duration_s: float = 60.0,
     declared=("bias", "time_offset"),
     candidates=("bias_ramp",),
+    options: AttitudeLineOptions | None = None,
 ) -> LineTrial:
     """One seed: a gyro line at a frequency in [20, 80] Hz of strength z ∈ ``z_range``
     (drawn), run through the loop (declared ``bias``, ``time_offset``: the point-sampled gyro
     leads the reference's interval-mean rate by half a frame)."""
     from gyrocore.loop.loop import run_loop
-    from gyrocore.loop.open_step import ATTITUDE_LINE_SEGMENTS
-    from gyrocore.loop.search import even_segments
+    from gyrocore.loop.open_step import attitude_line_series
 
+    opts = options or AttitudeLineOptions()
     rng = np.random.default_rng([seed, 25])
     axis = int(rng.integers(0, 3))
     f = float(rng.uniform(20.0, 80.0))
     z = float(rng.uniform(*z_range))
-    # T_eff and L of the recording without the line (same seed: same times and dropouts)
+    # T_eff and L of the segments the loop's test runs on (its own series, on the recording
+    # without the line: same seed, same times and dropouts)
     base = optical_recording(seed=seed, duration_s=duration_s)
-    ok = np.zeros(base.n, bool)
-    okq = np.all(np.isfinite(base.ref_quat_wxyz), axis=1)
-    ok[1:] = okq[1:] & okq[:-1]
-    idx, L = even_segments(base.t_s, ok, n_target=ATTITUDE_LINE_SEGMENTS)
+    ser = attitude_line_series(base, np.zeros((base.n, 3)), opts)
+    idx, L = ser[5], ser[6]
     t_eff = idx.size / RATE_HZ
     amp = z / line_z(1.0, f, t_eff, L)
     rec = optical_recording(seed=seed, duration_s=duration_s, line_axis=axis, line_hz=f, line_amp_rad_s=amp)
-    r = run_loop(rec, declared=list(declared), candidates=list(candidates))
+    r = run_loop(rec, declared=list(declared), candidates=list(candidates), attitude_lines=opts)
     hit = [
         u
         for u in r.unexplained
@@ -206,6 +271,7 @@ def trial(
         described=bool(hit),
         f_found_hz=float(hit[0].fields["frequency_hz"]) if hit else None,
         others=others,
+        amp_found_rad_s=float(hit[0].fields["amplitude_rad_s"]) if hit else None,
     )
 
 
@@ -233,12 +299,14 @@ def main(argv=None) -> None:
                 flush=True,
             )
         return
-    print("seed axis f_hz amp_deg_s z described f_found_hz others")
+    print("seed axis f_hz amp_deg_s z described f_found_hz amp_found/amp others")
     for s in range(a.seed_start, a.seed_start + a.seeds):
         tr = trial(s, z_range=(a.z_min, a.z_max))
         print(
             f"{tr.seed} {'xyz'[tr.axis]} {tr.f_hz:.4f} {tr.amp_rad_s / DEG:.4g} {tr.z:.2f} {tr.described} "
-            f"{tr.f_found_hz if tr.f_found_hz is None else round(tr.f_found_hz, 4)} {','.join(tr.others) or '-'}",
+            f"{tr.f_found_hz if tr.f_found_hz is None else round(tr.f_found_hz, 4)} "
+            f"{'-' if tr.amp_found_rad_s is None else round(tr.amp_found_rad_s / tr.amp_rad_s, 3)} "
+            f"{','.join(tr.others) or '-'}",
             flush=True,
         )
 

@@ -110,6 +110,7 @@ def loop_residual(
     open_search: bool = True,
     max_open_steps: int = 8,
     seed: int = 0,
+    attitude_lines: S.AttitudeLineOptions | None = None,
 ) -> LoopResult:
     """Run the loop on a prepared :class:`~gyrocore.loop.residual.Residual` (see :func:`run_loop`).
 
@@ -426,6 +427,8 @@ def loop_residual(
             tau_acc=tau_acc,
             can_hold=rebuild is not None,
             open_last=open_last,
+            line_options=attitude_lines or S.AttitudeLineOptions(),
+            raw_rec=base_rec,
         )
         if took is None:
             break
@@ -514,6 +517,7 @@ def run_loop(
     angle_mode: str = "rotation",
     open_search: bool = True,
     seed: int = 0,
+    attitude_lines: S.AttitudeLineOptions | None = None,
 ) -> LoopResult:
     """Close the loop on one recording.
 
@@ -554,6 +558,9 @@ def run_loop(
         between the catalogue (½) and the three open kinds (⅙ each).
     seed : int
         Seed of the step test's parametric bootstrap.
+    attitude_lines : gyrocore.loop.search.AttitudeLineOptions, optional
+        The sample-level line test against a reference attitude (segments, its statistic,
+        the reference's line mask); default ``AttitudeLineOptions()``.
 
     Returns
     -------
@@ -596,4 +603,5 @@ def run_loop(
             max_steps=max_steps,
             open_search=open_search,
             seed=seed,
+            attitude_lines=attitude_lines,
         )

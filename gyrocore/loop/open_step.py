@@ -17,17 +17,24 @@ from .model import split_axis
 from .evidence import cv_min, cv_rms
 from .scoring import window_line_series
 
-__all__ = ["ATTITUDE_LINE_SEGMENTS", "line_series", "attitude_line_series", "open_step"]
+__all__ = ["line_series", "attitude_line_series", "open_step"]
 
 
-def line_series(res: Residual, rec: Recording, correction: np.ndarray):
+def line_series(
+    res: Residual,
+    rec: Recording,
+    correction: np.ndarray,
+    options: S.AttitudeLineOptions | None = None,
+    raw: tuple[Recording, float] | None = None,
+):
     """The series the line search runs on: (x (n, 3), t (n,), fs, reference motion (n, R) or
     None, level, sample slice or None).
 
     ``rate``: the sample-level residual gyro − ω_ref − model (longest run with a finite
     reference); ``still``: gyro − model over the longest contiguous run of still windows;
-    ``attitude``: the window residual (no sample-level reference: the optical attitude is
-    never differentiated), longest evenly spaced run.
+    ``attitude``: the residual against the differentiated reference on equal gap-free
+    segments (:func:`attitude_line_series`; ``options``, ``raw`` are passed to it), or None
+    when the reference is not on the gyro's rows.
     """
     t = rec.t_s
     if isinstance(rec, SpilledRecording):
@@ -81,16 +88,16 @@ def line_series(res: Residual, rec: Recording, correction: np.ndarray):
         mot = np.nan_to_num(rec.accel_m_s2[sl]) if rec.accel_m_s2 is not None else None
         return x, t[sl], rec.rate_hz, mot, "sample", sl
     if res.kind == "attitude":
-        return attitude_line_series(rec, correction)
+        return attitude_line_series(rec, correction, options or S.AttitudeLineOptions(), raw=raw)
     return None
 
 
-#: Segments the sample-level attitude residual is cut into for the pooled line test
-#: (:func:`gyrocore.search.even_segments`).
-ATTITUDE_LINE_SEGMENTS = 8
-
-
-def attitude_line_series(rec: Recording, correction: np.ndarray):
+def attitude_line_series(
+    rec: Recording,
+    correction: np.ndarray,
+    options: S.AttitudeLineOptions | None = None,
+    raw: tuple[Recording, float] | None = None,
+):
     """Sample-level residual against a reference attitude, for the line search.
 
     The reference is differentiated, ω_ref,k = rotvec(R_{k−1}ᵀR_k)/Δt_k, and the residual is
@@ -105,27 +112,58 @@ def attitude_line_series(rec: Recording, correction: np.ndarray):
     NaN between its frames, would alias the gyro's lines above its Nyquist frequency onto
     its grid): None otherwise, and the window-level test alone runs.
 
+    ``raw`` = (the recording before the time-offset advance, τ): the gyro is advanced by τ
+    with a band-limited interpolator (:func:`gyrocore.loop.search.band_limited_advance`; the
+    cubic spline of ``rec`` is kept only within 16 samples of a gap), whose gain stays 1 up to
+    0.4·fs where the spline's falls to 0.875 at fs/3. ``options`` (default
+    ``AttitudeLineOptions()``): ``segments``, the target number of segments; ``mask_accel``,
+    the specific force among the motion columns (off: only the reference's own lines are
+    excluded).
+
     Returns (x (S·L, 3), t (S·L,), fs, motion columns (S·L, 3 or 6), "sample", sample
     indices, L) or None.
     """
     if isinstance(rec, SpilledRecording) or rec.ref_quat_wxyz is None:
         return None
+    options = options or S.AttitudeLineOptions()
     t = rec.t_s
-    e, w_ref, valid = rate_error_vs_attitude(t, rec.ref_quat_wxyz, rec.gyro_rad_s - correction)
+    gyro = rec.gyro_rad_s
+    if raw is not None and raw[1] != 0.0 and not isinstance(raw[0], SpilledRecording):
+        g_bl = S.band_limited_advance(t, raw[0].gyro_rad_s, raw[1])
+        gyro = np.where(np.isfinite(g_bl), g_bl, gyro)
+    e, w_ref, valid = rate_error_vs_attitude(t, rec.ref_quat_wxyz, gyro - correction)
     ok_q = np.all(np.isfinite(rec.ref_quat_wxyz), axis=1)
     # the reference must be on (nearly) every gyro row where it is tracked: adjacent valid
     # rows are its own consecutive frames (not every 4th row of a 1-kHz gyro)
     if valid.sum() < 0.5 * ok_q.sum():
         return None
-    idx, L = S.even_segments(t, valid, n_target=ATTITUDE_LINE_SEGMENTS)
+    idx, L = S.even_segments(t, valid, n_target=options.segments)
     if idx.size == 0:
         return None
     tt = t[idx]
     fs = 1.0 / float(np.median(np.diff(t)[idx[1:] - 1]))
     mot = [w_ref[idx]]
-    if rec.accel_m_s2 is not None:
+    if options.mask_accel and rec.accel_m_s2 is not None:
         mot.append(np.nan_to_num(rec.accel_m_s2[idx]))
     return e[idx], tt, fs, np.concatenate(mot, axis=1), "sample", idx, L
+
+
+def _sample_level_not_run(rec: Recording) -> str:
+    """Why the sample-level line test did not run against a reference attitude (JSON note)."""
+    if isinstance(rec, SpilledRecording) or rec.ref_quat_wxyz is None:
+        return "not run: no reference attitude in memory; window level only"
+    ok = np.all(np.isfinite(rec.ref_quat_wxyz), axis=1)
+    d = np.diff(rec.t_s[ok])
+    # the frame rate: mean interval between consecutive frames, tracking losses left out
+    f_ref = 1.0 / float(np.mean(d[d <= 1.5 * np.median(d)])) if d.size else 0.0
+    if ok.sum() and (ok[1:] & ok[:-1]).sum() < 0.5 * ok.sum():
+        return (
+            f"not run: the reference attitude is on {ok.mean():.1%} of the gyro's rows ({f_ref:.0f} frames/s beside a "
+            f"{rec.rate_hz:.0f}-Hz gyro): differentiated on its own frames it would see the gyro only below its Nyquist "
+            f"frequency {f_ref / 2:.0f} Hz, and a gyro line above that aliases onto its grid (a line there cannot be "
+            "told from the reference); window level only (below 0.5 Hz)"
+        )
+    return "not run: the reference attitude has no gap-free run of 512 samples; window level only"
 
 
 def _longest_run(ok: np.ndarray) -> tuple[int, int]:
@@ -159,6 +197,8 @@ def open_step(
     tau_acc,
     can_hold,
     open_last,
+    line_options=None,
+    raw_rec=None,
 ):
     """One step of the open search: the strongest significant description among the regressor
     library, lines and a bias step, or None. See :mod:`gyrocore.loop.search`.
@@ -228,15 +268,14 @@ def open_step(
     # ---------------- lines
     thr_line = alpha * S.ALPHA_SHARE["periodic"] / 3.0
     corr = model.correction(fit, model_effects)
-    ser = line_series(res, rec, corr) if can_hold else None
+    line_options = line_options or S.AttitudeLineOptions()
+    raw = (raw_rec(), tau_acc) if (raw_rec is not None and res.kind == "attitude" and tau_acc != 0.0) else None
+    ser = line_series(res, rec, corr, line_options, raw) if can_hold else None
     # against an attitude reference both the sample level (differentiated reference) and the
     # window level (below the sample level's lowest frequency) are searched: half of α each
     both = res.kind == "attitude" and ser is not None and ser[0].shape[0] >= 256
     if res.kind == "attitude" and can_hold and not both:
-        open_last["periodic_sample_level"] = (
-            "not run: the reference attitude is not on the gyro's rows (sampled more slowly: the gyro's lines above "
-            "its Nyquist frequency would alias) or has no gap-free run of 512 samples; window level only"
-        )
+        open_last["periodic_sample_level"] = _sample_level_not_run(rec)
     thr_sample = thr_line / 2 if both else thr_line
     if ser is not None and ser[0].shape[0] >= 256:
         x, tt, fs, mot, level, _ = ser[:6]
@@ -248,7 +287,21 @@ def open_step(
             for i in range(3)
             if any(ax == i and (a_ != 0 or b_ != 0) for ax, _, a_, b_ in ls)
         ]
-        lines = S.screen_lines(x, fs, ref=mot, skip=done, seg_max=seg_len)
+        if res.kind == "attitude":
+            # the segments' start times carry the line's phase across them (coherent statistic)
+            lines = S.screen_lines(
+                x,
+                fs,
+                ref=mot,
+                skip=done,
+                seg_max=seg_len,
+                seg_start_s=tt[::seg_len],
+                statistics=("pooled", "coherent") if line_options.statistic == "both" else (line_options.statistic,),
+                mask_level=line_options.mask_level,
+                mask_family_wise=True,
+            )
+        else:
+            lines = S.screen_lines(x, fs, ref=mot, skip=done, seg_max=seg_len)
         open_last["periodic"] = [
             {
                 "axis": "xyz"[l.axis],
@@ -260,6 +313,7 @@ def open_step(
                 "bandwidth_hz": l.bandwidth_hz,
                 "masked_by_motion_bins": l.masked_by_motion,
                 "level": "sample",
+                "statistic": l.test,
             }
             for l in lines
         ]
@@ -271,7 +325,7 @@ def open_step(
             # corrected a window at a time into one (n,) array)
             xi = x.axis(i) if isinstance(x, Rows) else x[:, i]
             # ± one bin of the segment grid (fs/L)
-            f = S.round_frequency(S.refine_frequency(xi, tt, l.frequency_hz, fs / seg_len))
+            f = S.round_frequency(S.refine_frequency(xi, tt, l.frequency_hz, l.resolution_hz or fs / seg_len))
             cv = S.sinusoid_cv_reduction(xi, tt, f)
             if not cv > 0:
                 continue
@@ -296,7 +350,8 @@ def open_step(
                 "grid_frequency_hz": l.frequency_hz,
                 "cv_rms_reduction": cv,
                 "residual": level,
-                "test": "Thomson multitaper harmonic F (NW 4, K 7)",
+                "test": "Thomson multitaper harmonic F (NW 4, K 7)"
+                + (", phase-coherent across segments" if l.test == "coherent" else ""),
                 "params": {f"a_cos_rad_s[{i}]": a_raw, f"a_sin_rad_s[{i}]": b_raw},
                 "std_errors": {f"a_cos_rad_s[{i}]": float(se[0, 0]), f"a_sin_rad_s[{i}]": float(se[1, 0])},
                 "_sample_rms_before": before,

@@ -74,6 +74,8 @@ __all__ = [
     "library_terms",
     "screen_library",
     "harmonic_f_test",
+    "coherent_harmonic_f",
+    "AttitudeLineOptions",
     "screen_lines",
     "fit_sinusoid",
     "refine_frequency",
@@ -506,6 +508,9 @@ class HarmonicF:
     df2: int
     bandwidth_hz: float  # W
     amplitude: np.ndarray  # 2|μ̂| pooled (RMS over segments), same shape as F
+    #: local noise power per real degree of freedom, Σ_s Σ_k |Y_sk − μ̂_s U_k(0)|² / df2 (the F
+    #: denominator), same shape as F
+    noise: np.ndarray | None = None
 
 
 def harmonic_f_test(
@@ -593,12 +598,104 @@ def harmonic_f_test(
     np.divide(num, den, out=num, where=ok)
     num[~ok] = 0.0
     F = num
-    del den, ok
+    del ok
     f = np.fft.rfftfreq(nfft, 1.0 / fs)
-    F, f, amp = F[1:], f[1:], np.sqrt(amp2[1:] / S)
+    F, f, amp, den = F[1:], f[1:], np.sqrt(amp2[1:] / S), den[1:]
     if squeeze:
-        F, amp = F[:, 0], amp[:, 0]
-    return HarmonicF(freq_hz=f, F=F, df1=df1, df2=df2, bandwidth_hz=nw * fs / L, amplitude=amp)
+        F, amp, den = F[:, 0], amp[:, 0], den[:, 0]
+    return HarmonicF(freq_hz=f, F=F, df1=df1, df2=df2, bandwidth_hz=nw * fs / L, amplitude=amp, noise=den)
+
+
+def coherent_harmonic_f(
+    x: np.ndarray,
+    fs: float,
+    seg_start_s: np.ndarray,
+    *,
+    nw: float = 4.0,
+    k: int | None = None,
+    pad: int = 4,
+    pooled: HarmonicF | None = None,
+) -> HarmonicF:
+    """Harmonic F-test of one sinusoid, phase-coherent across S equal segments cut from one record.
+
+    A line of fixed frequency, amplitude and phase (what a ``periodic[f]`` term is),
+    (A/2)e^{i(2πft + φ)} + c.c., has in segment s starting at t_s the eigencoefficient mean
+    μ_s(f) = μ·e^{i2πf t_s}: the segments' estimates μ̂_s (:func:`harmonic_f_test`) are
+    combined with their phases, μ̂(f) = (1/S) Σ_s μ̂_s(f)·e^{−i2πf(t_s − t_0)}, on a grid ``pad`` times finer than 1/T_span
+    (T_span from the first segment's start to the last one's end). Against the same local
+    noise estimate as the pooled test (each segment's eigencoefficient residuals, 2S(K − 1)
+    degrees of freedom, independent of the μ̂_s):
+
+        F = S·|μ̂|²·ΣU_k(0)² / 2 / (Σ_s Σ_k |Y_sk − μ̂_s U_k(0)|² / (2S(K − 1))) ~ F(2, 2S(K − 1); λ)
+
+    with the same noncentrality λ = (A/σ_A)² as the pooled F(2S, 2S(K − 1)) — the line's
+    whole strength in 2 numerator degrees of freedom instead of 2S. At √λ = 10 and a
+    Bonferroni level of 1e-9 over the fine grid this has power ≈ 0.999 (the pooled test with
+    S = 17: ≈ 0.9; scipy.stats.ncf). A line whose frequency wanders by more than 1/T_span
+    loses coherence: the pooled test (which :func:`screen_lines` runs beside this one) keeps it.
+
+    μ̂_s is linear in the segment, μ̂_s(f) = Σ_n h_n x_n e^{−i2πfn/fs} with
+    h = Σ_k U_k(0)·v_k/ΣU_k(0)²: one FFT per segment and column. The local noise of the
+    pooled test is taken at the nearest frequency of its grid (pad·L points: within 1/(2·pad)
+    of a Rayleigh bin 1/L of the line, where the noise spectrum is smooth over ±W by the test's
+    assumption).
+
+    Parameters
+    ----------
+    x : ndarray, shape (S·L, C)
+        The S segments of L samples, one after the other (:func:`even_segments`).
+    fs : float
+        Sample rate, Hz.
+    seg_start_s : ndarray, shape (S,)
+        Time of each segment's first sample, s.
+    pooled : HarmonicF, optional
+        :func:`harmonic_f_test` (x, fs, nw=nw, seg_max=L) if already computed.
+
+    Returns
+    -------
+    HarmonicF
+        On the fine grid (DC excluded); df1 = 2; amplitude 2|μ̂|, rad/s.
+    """
+    x = np.asarray(x, float)
+    squeeze = x.ndim == 1
+    if squeeze:
+        x = x[:, None]
+    t0 = np.asarray(seg_start_s, float)
+    S = t0.shape[0]
+    N, C = x.shape
+    L = N // S
+    K = int(k or max(1, int(2 * nw - 1)))
+    if pooled is None:
+        pooled = harmonic_f_test(x, fs, nw=nw, k=K, seg_max=L, pad=pad)
+    tapers = _signal.windows.dpss(L, nw, K)
+    U0 = tapers.sum(axis=1)
+    sU2 = float(np.sum(U0**2))
+    h = U0 @ tapers / sU2  # (L,)
+    span = float(t0[-1] - t0[0]) + L / fs
+    from scipy.fft import next_fast_len
+
+    nfft = next_fast_len(int(pad * np.ceil(span * fs)))
+    f = np.fft.rfftfreq(nfft, 1.0 / fs)
+    acc = np.zeros((f.size, C), complex)
+    for s in range(S):
+        seg = x[s * L : (s + 1) * L]
+        M = np.fft.rfft(h[:, None] * (seg - seg.mean(axis=0)), n=nfft, axis=0)
+        M *= np.exp(-2j * np.pi * f * (t0[s] - t0[0]))[:, None]
+        acc += M
+    acc /= S
+    num = np.abs(acc) ** 2 * (S * sU2 / 2.0)
+    amp = 2 * np.abs(acc)
+    del acc
+    noise = pooled.noise if pooled.noise.ndim == 2 else pooled.noise[:, None]
+    # nearest frequency of the pooled grid (its DC dropped: index 0 is fs/(pad·L))
+    step = pooled.freq_hz[0]
+    j = np.clip(np.rint(f / step).astype(int) - 1, 0, noise.shape[0] - 1)
+    den = noise[j]
+    F = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
+    F, amp, den, f = F[1:], amp[1:], den[1:], f[1:]
+    if squeeze:
+        F, amp, den = F[:, 0], amp[:, 0], den[:, 0]
+    return HarmonicF(freq_hz=f, F=F, df1=2, df2=pooled.df2, bandwidth_hz=pooled.bandwidth_hz, amplitude=amp, noise=den)
 
 
 @dataclass(frozen=True)
@@ -612,12 +709,71 @@ class LineScreen:
     n_freq: int
     bandwidth_hz: float
     masked_by_motion: int
+    #: "pooled" (:func:`harmonic_f_test`) or "coherent" (:func:`coherent_harmonic_f`): the
+    #: statistic whose Bonferroni p-value was the smaller
+    test: str = "pooled"
+    #: half-width of the frequency refinement around ``frequency_hz`` (one bin of its grid's
+    #: resolution: fs/L pooled, 1/T_span coherent), Hz
+    resolution_hz: float = 0.0
+
+
+@dataclass(frozen=True)
+class AttitudeLineOptions:
+    """The sample-level line test against a differentiated reference attitude.
+
+    Attributes
+    ----------
+    segments : int
+        Target number of equal gap-free segments (:func:`even_segments` ``n_target``).
+    statistic : {"coherent", "pooled", "both"}
+        The line test: phase-coherent across the segments (:func:`coherent_harmonic_f`,
+        F(2, 2S(K − 1)): a stable line needs √λ ≈ 8.5 for 99 % power), the segments' pooled
+        statistic (F(2S, 2S(K − 1)): √λ ≈ 11–12 with 8–18 segments), or both with α split in
+        halves. A ``periodic[f]`` term is one phase-stable sinusoid over the record: narrow-band
+        energy whose phase wanders between segments (what only the pooled statistic sees) is
+        not one — its fitted amplitude is within its standard error.
+    mask_level : float
+        Probability that a given frequency is masked by the differentiated reference's noise
+        alone (:func:`_motion_mask` ``family_wise``: Bonferroni over the reference's bins
+        within ±2W and its columns).
+    mask_accel : bool
+        Mask lines of the specific force too. Off: an accelerometer shares the vibration of a
+        vibrating attachment (the very line the gyro carries and the optical reference lacks);
+        the reference's own lines are what the test must exclude.
+    """
+
+    segments: int = 8
+    statistic: str = "coherent"
+    mask_level: float = 1e-3
+    mask_accel: bool = False
+
+    def __post_init__(self):
+        if self.statistic not in ("coherent", "pooled", "both"):
+            raise GyroInputError(f"line statistic must be coherent, pooled or both, not {self.statistic!r}")
+        if self.segments < 1:
+            raise GyroInputError(f"line segments must be >= 1, not {self.segments}")
+        if not 0.0 < self.mask_level < 1.0:
+            raise GyroInputError(f"line mask level must be in (0, 1), not {self.mask_level}")
 
 
 def _motion_mask(
-    ref: np.ndarray | None, fs: float, f: np.ndarray, W: float, *, p_mask: float = 1e-4, seg_max: int = _SEG_MAX
+    ref: np.ndarray | None,
+    fs: float,
+    f: np.ndarray,
+    W: float,
+    *,
+    p_mask: float = 1e-4,
+    seg_max: int = _SEG_MAX,
+    family_wise: bool = False,
 ) -> np.ndarray:
-    """Bins within ±2W of a line in any reference-motion column (p < p_mask per bin)."""
+    """Bins within ±2W of a line in any reference-motion column: p < p_mask per bin, or with
+    ``family_wise`` p < p_mask/(bins within ±2W × columns) — Bonferroni over the motion bins
+    that can mask one frequency, so that P(a given frequency is masked by the motion's noise
+    alone) ≤ p_mask. (Per bin, a frequency is masked by noise with probability ≈
+    p_mask·64·C: 2 % at p_mask = 1e-4 with the 64 padded bins of ±2W and 3 columns — a line the
+    motion lacks lost on one record in 50.) A line of the motion that leaks into the residual
+    is at least as significant in the motion column as in the residual, where the line test's
+    own level is far lower still: the local level masks it."""
     mask = np.zeros(f.size, bool)
     if ref is None or int(np.prod(ref.shape)) == 0:
         return mask
@@ -641,14 +797,52 @@ def _motion_mask(
         Fm = h.F if h.F.ndim == 2 else h.F[:, None]
         if hit is None:
             hit = np.zeros(Fm.shape[0], bool)
+        # the padded motion bins within ±2·max(W, W_m) of one frequency: 4·nw·pad·max(1, W/W_m)
+        n_local = 4 * 4.0 * 4 * max(1.0, W / h.bandwidth_hz)
+        level = p_mask / (n_local * C) if family_wise else p_mask
         for c in range(Fm.shape[1]):  # one column at a time (scipy's temporaries of 6 columns × 2¹⁷ bins)
-            hit |= stats.f.sf(Fm[:, c], h.df1, h.df2) < p_mask
+            hit |= stats.f.sf(Fm[:, c], h.df1, h.df2) < level
         del Fm
     # the reference also must carry power there: a line of the motion, not of its noise
     fl = h.freq_hz[hit]
     for f0 in fl:
         mask |= np.abs(f - f0) <= 2 * max(W, h.bandwidth_hz)
     return mask
+
+
+def _motion_mask_coherent(
+    ref: np.ndarray | None, fs: float, seg_start_s: np.ndarray, f: np.ndarray, W: float, *, p_mask: float = 1e-3
+) -> np.ndarray:
+    """Bins of the coherent grid ``f`` within ±2W of a phase-stable line of any reference-motion
+    column (:func:`coherent_harmonic_f` on the same segments and grid), at a level Bonferroni
+    over the grid's bins within ±2W and the columns: P(a given frequency masked by the motion's
+    noise alone) ≤ ``p_mask``. A line of the reference that leaks into the residual is at
+    least as strong in the reference (a reference-only line: the same line; a motion line the
+    gyro shares: ≥ 1/0.36 of its residual, |1 − sinc(f/fs)| ≤ 0.36 below fs/2 − 2W) and is
+    measured there by the same statistic, so it is masked wherever the residual's test could
+    see it; a noise peak of the pooled statistic 1.4 Hz away no longer hides a line."""
+    mask = np.zeros(f.size, bool)
+    if ref is None or int(np.prod(ref.shape)) == 0:
+        return mask
+    r = np.asarray(ref, float)
+    if r.ndim == 1:
+        r = r[:, None]
+    C = r.shape[1]
+    hm = coherent_harmonic_f(r, fs, seg_start_s)
+    df = float(hm.freq_hz[1] - hm.freq_hz[0])
+    k = int(np.ceil(2 * max(W, hm.bandwidth_hz) / df))
+    level = np.log(p_mask / ((2 * k + 1) * C))
+    hit = np.zeros(hm.freq_hz.size, bool)
+    for c in range(C):
+        hit |= stats.f.logsf(hm.F[:, c], hm.df1, hm.df2) < level
+    if not hit.any():
+        return mask
+    from scipy.ndimage import binary_dilation
+
+    near = binary_dilation(hit, structure=np.ones(2 * k + 1, bool))
+    # the same grid as the residual's (same segments, fs, pad): index by frequency
+    j = np.clip(np.rint(f / df).astype(int) - 1, 0, near.size - 1)
+    return near[j]
 
 
 def screen_lines(
@@ -660,6 +854,10 @@ def screen_lines(
     nw: float = 4.0,
     skip: Sequence[tuple[int, float]] = (),
     seg_max: int = _SEG_MAX,
+    seg_start_s: np.ndarray | None = None,
+    statistics: Sequence[str] = ("pooled",),
+    mask_level: float = 1e-4,
+    mask_family_wise: bool = False,
 ) -> list[LineScreen]:
     """Strongest line per axis of x (N, 3) and its Bonferroni p-value over frequencies.
 
@@ -668,37 +866,65 @@ def screen_lines(
     ``skip`` (lines already in the model, ±2W). ``seg_max``: segment length of
     :func:`harmonic_f_test` (a series of S equal segments of L samples cut from separate runs,
     :func:`even_segments`, is passed with ``seg_max = L``: no segment straddles a gap).
+    ``statistics``: ``"pooled"`` (:func:`harmonic_f_test`) and/or ``"coherent"``
+    (:func:`coherent_harmonic_f`, needs ``seg_start_s`` (S,), the segments' start times); with
+    both, each axis reports the one with the smaller Bonferroni p, doubled (α split in halves
+    between the two families).
+    ``mask_level``, ``mask_family_wise``: the motion mask's level (:func:`_motion_mask`).
     """
     h = harmonic_f_test(x, fs, nw=nw, seg_max=seg_max)
     W = h.bandwidth_hz
     fmin = 10 * W if f_min_hz is None else max(f_min_hz, 2 * W)
-    ok = (h.freq_hz >= fmin) & (h.freq_hz <= 0.5 * fs - 2 * W)
-    mm = _motion_mask(ref, fs, h.freq_hz, W, seg_max=seg_max)
+    grids = []
+    if "pooled" in statistics or seg_start_s is None or len(seg_start_s) < 2:
+        grids.append(("pooled", h, fs / segment_length(x.shape[0], seg_max)))
+    if "coherent" in statistics and seg_start_s is not None and len(seg_start_s) > 1:
+        hc = coherent_harmonic_f(x, fs, seg_start_s, nw=nw, pooled=h)
+        grids.append(("coherent", hc, 2 * (hc.freq_hz[1] - hc.freq_hz[0])))
+    # the motion mask of each grid: the coherent grid's from the motion's own coherent statistic
+    # (a phase-stable line of the reference is seen there with the power the residual's test
+    # has), the pooled grid's from the pooled statistic
+    masks = []
+    for name, g, _ in grids:
+        if name == "coherent" and mask_family_wise:
+            masks.append(_motion_mask_coherent(ref, fs, seg_start_s, g.freq_hz, W, p_mask=mask_level))
+        else:
+            masks.append(
+                _motion_mask(ref, fs, g.freq_hz, W, seg_max=seg_max, p_mask=mask_level, family_wise=mask_family_wise)
+            )
     out = []
     for i in range(x.shape[1]):
-        oki = ok & ~mm
-        for ax, f0 in skip:
-            if ax == i:
-                oki &= np.abs(h.freq_hz - f0) > 2 * W
-        n = int(oki.sum())
-        if n == 0:
-            continue
-        Fi = np.where(oki, h.F[:, i], -np.inf)
-        j = int(np.argmax(Fi))
-        lp1 = float(stats.f.logsf(Fi[j], h.df1, h.df2) / np.log(10))
-        out.append(
-            LineScreen(
+        best = None
+        for (name, g, res_hz), mm in zip(grids, masks):
+            f = g.freq_hz
+            ok = (f >= fmin) & (f <= 0.5 * fs - 2 * W)
+            oki = ok & ~mm
+            for ax, f0 in skip:
+                if ax == i:
+                    oki &= np.abs(f - f0) > 2 * W
+            n = int(oki.sum())
+            if n == 0:
+                continue
+            Fi = np.where(oki, g.F[:, i], -np.inf)
+            j = int(np.argmax(Fi))
+            lp1 = float(stats.f.logsf(Fi[j], g.df1, g.df2) / np.log(10))
+            cand = LineScreen(
                 axis=i,
-                frequency_hz=float(h.freq_hz[j]),
+                frequency_hz=float(f[j]),
                 statistic=float(Fi[j]),
-                df1=h.df1,
-                df2=h.df2,
-                log10_p=min(0.0, lp1 + np.log10(n)),
+                df1=g.df1,
+                df2=g.df2,
+                log10_p=min(0.0, lp1 + np.log10(n) + np.log10(len(grids))),
                 n_freq=n,
                 bandwidth_hz=W,
                 masked_by_motion=int((ok & mm).sum()),
+                test=name,
+                resolution_hz=float(res_hz),
             )
-        )
+            if best is None or cand.log10_p < best.log10_p:
+                best = cand
+        if best is not None:
+            out.append(best)
     return out
 
 
@@ -766,6 +992,62 @@ def even_segments(
         return np.zeros(0, int), 0
     idx = [np.arange(a_ + j * L, a_ + (j + 1) * L) for a_, r in zip(a, runs) for j in range(r // L)]
     return np.concatenate(idx), L
+
+
+def band_limited_advance(
+    t: np.ndarray, x: np.ndarray, tau_s: float, *, half_width: int = 16, beta: float = 8.0, dt_tol: float = 0.5
+) -> np.ndarray:
+    """x(t_k + τ) by Kaiser-windowed sinc interpolation on the evenly sampled runs of t.
+
+    A cubic spline shifted by a fraction of a sample is a low-pass: by half a sample its gain
+    is 0.996 / 0.97 / 0.875 / 0.58 at 0.17 / 0.25 / 0.33 / 0.42·fs, which takes a line near the
+    Nyquist frequency down with it while the reference's noise beside it stays (the line test
+    loses that factor of its √λ, and the fitted amplitude is that much short). The windowed
+    sinc (2·``half_width`` taps, Kaiser β = 8) has gain 1 ± 1e-4 up to 0.4·fs (0.94 at
+    0.45·fs) at every fraction. The taps must lie in one run of intervals within ``dt_tol``
+    of the median (the segments' own rule, :func:`even_segments`): NaN elsewhere (within
+    ``half_width`` samples of a gap, a NaN, or an end) — the caller falls back there.
+
+    Parameters
+    ----------
+    t : ndarray, shape (N,)
+        Sample times, s.
+    x : ndarray, shape (N, C)
+    tau_s : float
+        Advance, s (x'(t) = x(t + τ)).
+
+    Returns
+    -------
+    ndarray, shape (N, C)
+    """
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    N = t.shape[0]
+    out = np.full(x.shape, np.nan)
+    if N < 2 * half_width + 2:
+        return out
+    dt = np.diff(t)
+    dt_med = float(np.median(dt))
+    brk = np.flatnonzero(np.abs(dt - dt_med) > dt_tol * dt_med) + 1  # a run starts at each
+    starts = np.concatenate([[0], brk])
+    stops = np.concatenate([brk, [N]])
+    d = tau_s / dt_med
+    n0 = int(np.floor(d))
+    frac = d - n0
+    j = np.arange(-half_width + 1, half_width + 1)
+    xp = j - frac  # tap positions relative to the interpolation point, samples
+    h = np.sinc(xp) * np.i0(beta * np.sqrt(np.clip(1 - (xp / half_width) ** 2, 0, None))) / np.i0(beta)
+    h /= h.sum()  # unit gain at DC
+    M = half_width
+    for a, b in zip(starts, stops):
+        if b - a < 2 * M:
+            continue
+        # c[m] = Σ_i h[i]·x[a + m + i]: the value at row k = a + m + M − 1 − n0
+        c = np.stack([np.correlate(x[a:b, col], h, mode="valid") for col in range(x.shape[1])], axis=1)
+        k = a + np.arange(c.shape[0]) + M - 1 - n0
+        keep = (k >= a) & (k < b)
+        out[k[keep]] = c[keep]
+    return out
 
 
 def refine_frequency(x: np.ndarray, t: np.ndarray, f0: float, half_width_hz: float) -> float:

@@ -219,6 +219,21 @@ def _line_validation_text(p: dict) -> str:
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the step test's bootstrap.")
 @click.option(
+    "--line-segments",
+    type=int,
+    default=8,
+    show_default=True,
+    help="Against a reference attitude: target number of gap-free segments of the sample-level line test.",
+)
+@click.option(
+    "--line-statistic",
+    type=click.Choice(["coherent", "pooled", "both"]),
+    default="coherent",
+    show_default=True,
+    help="Against a reference attitude: the line test's statistic — phase-coherent across the segments "
+    "(a periodic[f] term), pooled over them, or both (alpha split).",
+)
+@click.option(
     "-o",
     "--output",
     "output",
@@ -263,6 +278,8 @@ def command(
     plot_dir,
     open_search,
     seed,
+    line_segments,
+    line_statistic,
     output,
     validate,
     validate_segments,
@@ -360,7 +377,10 @@ def command(
 
         val_conv = load_with_segments(validate)
         check_compatible(conv.recording, val_conv.recording, fit_name=path, val_name=validate)
+    from gyrocore.loop.search import AttitudeLineOptions
+
     opts = dict(
+        attitude_lines=AttitudeLineOptions(segments=line_segments, statistic=line_statistic),
         segments=segs,
         reference=reference,
         window_s=window_s,
