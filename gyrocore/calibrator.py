@@ -533,12 +533,12 @@ class PosesMethod:
         params: dict = {
             "bias": {"b_rad_s": r.bias_rad_s},
             "scale": {"s": np.diag(K) - 1.0},
-            "misalignment": {"m_rad": np.array([K[i, j] for i, j in E._MIS_IDX])},
+            "misalignment": {"m_rad": np.array([K[i, j] for i, j in E.MIS_IDX])},
         }
         stderr: dict = {
             "bias": {"b_rad_s": r.bias_stderr_rad_s},
             "scale": {"s": np.diag(Kse).copy()},
-            "misalignment": {"m_rad": np.array([Kse[i, j] for i, j in E._MIS_IDX])},
+            "misalignment": {"m_rad": np.array([Kse[i, j] for i, j in E.MIS_IDX])},
         }
         n_used = int(r.residual_rad.shape[0])
         notes = [

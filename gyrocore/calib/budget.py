@@ -86,6 +86,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from gyrocore.effects import registry as E
+from gyrocore.effects.effect import quat_to_R
 from gyrocore.errors import GyroInputError
 
 __all__ = [
@@ -440,7 +441,7 @@ def block_covariance(blocks: Blocks, term: str, *, tau_c_s: float = np.inf) -> n
 # ============================================================================ trajectory sums
 def rotation_matrices(q_SW_wxyz: np.ndarray) -> np.ndarray:
     """R_WS (S → W) from quaternions w, x, y, z, shape (N, 3, 3)."""
-    return E._quat_to_R(np.asarray(q_SW_wxyz, float))
+    return quat_to_R(np.asarray(q_SW_wxyz, float))
 
 
 def _block_sums(x: np.ndarray, blocks: Blocks) -> np.ndarray:

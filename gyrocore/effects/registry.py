@@ -48,14 +48,46 @@ one place".
 from __future__ import annotations
 
 import math
-import re
-from dataclasses import dataclass, field
 from dataclasses import replace as _replace
 from functools import lru_cache
-from typing import Callable, Iterable, Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 
+from gyrocore.effects.effect import (
+    EARTH_RATE_RAD_S,
+    FF_ORDER,
+    MIS_IDX,
+    MISALIGNMENT_ORDER,
+    THERMAL_META,
+    Effect,
+    ModelInputs,
+    Params,
+    clamped_dT,
+    diag_design,
+    earth_rate_S,
+    earth_rate_W,
+    ff_products,
+    misalignment_matrix,
+    poly_dT,
+    rows_times,
+    time_shift,
+)
+from gyrocore.effects.families import (
+    FAMILIES,
+    SIGNALS,
+    canonical_expr,
+    expr_text,
+    expr_values,
+    family_parts,
+    fmt_float,
+    is_family,
+    parse_expr,
+    parse_float,
+    periodic_effect,
+    regressor_effect,
+    step_effect,
+)
 from gyrocore.errors import GyroInputError
 
 __all__ = [
@@ -99,323 +131,8 @@ __all__ = [
     "k_from_article",
     "FF_ORDER",
     "MISALIGNMENT_ORDER",
+    "THERMAL_META",
 ]
-
-EARTH_RATE_RAD_S = 7.2921150e-5  # WGS-84 Earth rotation rate, rad/s
-
-#: Misalignment angles order: K[0,1], K[0,2], K[1,0], K[1,2], K[2,0], K[2,1].
-MISALIGNMENT_ORDER = ("xy", "xz", "yx", "yz", "zx", "zy")
-_MIS_IDX = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
-#: Order of the products f⊗f used by ``g2_sensitivity``.
-FF_ORDER = ("xx", "yy", "zz", "xy", "xz", "yz")
-_FF_IDX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-#: Parameters of the thermal polynomials that are metadata, not fitted.
-THERMAL_META = ("t0_c", "temp_min_c", "temp_max_c")
-
-Params = Mapping[str, Mapping[str, np.ndarray]]
-
-
-@dataclass(frozen=True, eq=False)
-class ModelInputs:
-    """Physical inputs of the measurement model.
-
-    Parameters
-    ----------
-    t_s : ndarray, shape (N,)
-        Sample times, s.
-    omega_S_rad_s : ndarray, shape (N, 3) or None
-        True angular rate of S relative to the world frame W, in S, rad/s (for
-        :func:`deterministic`/:func:`design`; not needed by :func:`correct`).
-    f_S_m_s2 : ndarray, shape (N, 3) or None
-        Specific force in S, m/s².
-    temp_c : ndarray, shape (N,) or None
-        Sensor temperature, °C.
-    q_SW_wxyz : ndarray, shape (N, 4) or None
-        Attitude S→W (for ``earth_rate``).
-    t_since_power_up_s : ndarray, shape (N,) or None
-        Time since the last power-up (for ``bias_ramp`` and the signal ``t``); defaults to
-        ``t_s - t_s[0]``.
-    alpha_S_rad_s2 : ndarray, shape (N, 3) or None
-        Rate derivative for the ``alpha_*`` signals; default the central difference of the
-        rate (:func:`correct` sets a smoothed one, see there).
-    """
-
-    t_s: np.ndarray
-    omega_S_rad_s: np.ndarray | None = None
-    f_S_m_s2: np.ndarray | None = None
-    temp_c: np.ndarray | None = None
-    q_SW_wxyz: np.ndarray | None = None
-    t_since_power_up_s: np.ndarray | None = None
-    alpha_S_rad_s2: np.ndarray | None = None
-
-    @property
-    def n(self) -> int:
-        return int(np.asarray(self.t_s).shape[0])
-
-    def since_power_up(self) -> np.ndarray:
-        if self.t_since_power_up_s is not None:
-            return np.asarray(self.t_since_power_up_s, float)
-        t = np.asarray(self.t_s, float)
-        return t - t[0]
-
-    def temp_rate_c_s(self, effect: str = "bias_temp_rate") -> np.ndarray:
-        """dT/dt by central differences, °C/s, shape (N,)."""
-        T = self._need("temp_c", effect)
-        return np.gradient(T, np.asarray(self.t_s, float))
-
-    def rate_derivative(self, effect: str = "regressor") -> np.ndarray:
-        """dω/dt of ``omega_S_rad_s`` by central differences (one-sided at the ends), rad/s², (N, 3)."""
-        w = self._need("omega_S_rad_s", effect)
-        return np.gradient(w, np.asarray(self.t_s, float), axis=0)
-
-    def _need(self, name: str, effect: str) -> np.ndarray:
-        v = getattr(self, name)
-        if v is None:
-            col = {"temp_c": "temp_c", "f_S_m_s2": "accel_*", "omega_S_rad_s": "ref_*_rad_s", "q_SW_wxyz": "ref_q*"}[
-                name
-            ]
-            raise GyroInputError(f"effect {effect} needs the {col} column(s), which the data lack")
-        return np.asarray(v, float)
-
-
-# ---------------------------------------------------------------------------- the Effect object
-#: Kinds of effect.
-KINDS = ("correctable", "output", "stochastic", "physics")
-#: Stages of a correctable effect, in the order the model applies them: ``rate`` transforms
-#: ω (earth rate, delay), ``k`` adds to the constant K, ``scale`` adds to the rate-dependent
-#: diagonal scale d(ω, T) (term d·ω), ``additive`` adds rad/s directly. Output effects:
-#: ``filter`` (before the noise) and ``clip`` (after it).
-STAGES = ("rate", "k", "scale", "additive", "filter", "clip")
-#: Model inputs an effect can need (``ModelInputs`` fields / derived signals).
-INPUTS = ("omega", "alpha", "f", "temp", "dtemp", "t", "q")
-_INPUT_COLUMNS = {
-    "omega": "ref_*_rad_s",
-    "alpha": "ref_*_rad_s",
-    "f": "accel_*",
-    "temp": "temp_c",
-    "dtemp": "temp_c",
-    "q": "ref_q*",
-    "t": "t_s",
-}
-
-
-@dataclass(frozen=True, eq=False)
-class Effect:
-    """One effect of the measurement model (catalogue entry or family instance).
-
-    Attributes
-    ----------
-    name : str
-        Canonical name (``"scale"``, ``"periodic[37.5]"``, ``"regressor[omega_y*omega_z]"``).
-    kind : str
-        ``"correctable"`` (deterministic, removed by :func:`correct`), ``"output"`` (the
-        non-invertible output stage), ``"stochastic"`` (noise; generated by ``sim``,
-        identified by ``gyrocore.noise.allan``) or ``"physics"`` (``vibration``).
-    schema : mapping
-        Parameter name -> shape (``"p"`` = polynomial order chosen by the estimator, ``"n"`` =
-        a grid length set by the data, the same for every parameter of the effect), SI
-        units in the names.
-    stage : str or None
-        Where the term enters (:data:`STAGES`).
-    inputs : tuple of str
-        Model inputs the term needs (:data:`INPUTS`): omega (reference rate), alpha (its
-        derivative), f (specific force), temp, dtemp (dT/dt), t (time), q (attitude).
-    term : callable or None
-        Forward term; signature by stage — ``rate``: ``(pd, inp, t_s, omega) -> omega'``;
-        ``k``: ``(pd) -> (3, 3)`` added to K; ``scale``/``additive``:
-        ``(pd, inp, omega) -> (N, 3)``; ``filter``/``clip``: ``(pd, y, rate_hz) -> y'``.
-    regressors : callable or None
-        ``(inp, order, t0_c) -> (column names, A (N, 3, P))``: ∂y/∂θ at zero error (the
-        least-squares design); None = not fitted by least squares.
-    inverse : callable or None
-        For ``rate`` effects: ``(pd, inp, t_s, omega) -> omega`` undoing ``term``. Other
-        correctable effects use the generic inverse of :func:`correct`.
-    family : str or None
-        ``"periodic"``, ``"step"`` or ``"regressor"`` for a family instance.
-    arg : object
-        The family argument (frequency in Hz, step time in s, or the parsed expression).
-    plausible : float
-        Largest physically plausible |θ| (SI), for the observability test of ``gyrocore.calib.lsq``.
-    defaults : mapping
-        Parameter values the simulator uses when an injected term omits them.
-    description : str
-    priority : int
-        Order within a stage (lower first; ties: catalogue order, then family names sorted).
-        ``earth_rate`` (−1) is added to ω before the delay of ``time_offset`` is applied.
-    """
-
-    name: str
-    kind: str
-    schema: Mapping[str, tuple]
-    stage: str | None = None
-    inputs: tuple[str, ...] = ()
-    term: Callable | None = None
-    regressors: Callable | None = None
-    inverse: Callable | None = None
-    family: str | None = None
-    arg: object = None
-    plausible: float = math.inf
-    defaults: Mapping[str, object] = field(default_factory=dict)
-    description: str = ""
-    priority: int = 0
-
-    @property
-    def fittable(self) -> bool:
-        """Has least-squares regressors (``calibrate`` and the loop can fit it)."""
-        return self.regressors is not None
-
-    @property
-    def correctable(self) -> bool:
-        return self.kind == "correctable"
-
-    @property
-    def noisy(self) -> bool:
-        """Its regressors are built from measured, noisy inputs (accel, temperature)."""
-        return any(i in ("f", "temp", "dtemp") for i in self.inputs)
-
-    @property
-    def polynomial(self) -> bool:
-        """Has a polynomial parameter of estimator-chosen order (``"p"`` in a shape: the thermal ones)."""
-        return any("p" in shape for shape in self.schema.values())
-
-    @property
-    def fit_params(self) -> tuple[str, ...]:
-        """Parameters estimated by least squares, in design-column order (metadata excluded)."""
-        return tuple(k for k in self.schema if k not in THERMAL_META)
-
-    def columns(self) -> list[str]:
-        """Data columns the effect needs besides the gyro (``accel``, ``temp_c``, ``ref``...)."""
-        out = []
-        for i in self.inputs:
-            c = {
-                "f": "accel",
-                "temp": "temp_c",
-                "dtemp": "temp_c",
-                "omega": "ref_rate",
-                "alpha": "ref_rate",
-                "q": "ref_attitude",
-            }.get(i)
-            if c and c not in out:
-                out.append(c)
-        return out
-
-    def design(self, inp: ModelInputs, *, order: int = 1, t0_c: float | None = None) -> tuple[list[str], np.ndarray]:
-        """Regressors ∂y/∂θ, shape (N, 3, P) (see :func:`design`)."""
-        if self.regressors is None:
-            raise GyroInputError(f"effect {self.name} has no least-squares regressors (it is not fitted by calibrate)")
-        return self.regressors(inp, int(order), t0_c)
-
-    def unflatten(self, vec: np.ndarray, order: int = 1) -> dict[str, np.ndarray]:
-        """Flat design-order parameter vector -> ``{param: array}`` in schema shapes."""
-        vec = np.asarray(vec, float).ravel()
-        out, k = {}, 0
-        for pname in self.fit_params:
-            shp = tuple(int(order) if d == "p" else d for d in self.schema[pname])
-            size = int(np.prod(shp)) if shp else 1
-            part = vec[k : k + size]
-            out[pname] = part.reshape(shp) if shp else np.asarray(float(part[0]))
-            k += size
-        if k != vec.size:
-            raise GyroInputError(f"effect {self.name}: {vec.size} values for {k} parameters")
-        return out
-
-
-def _diag_design(g: np.ndarray, pname: str) -> tuple[list[str], np.ndarray]:
-    """Per-axis regressor g (N, 3) on the diagonal: A[:, i, i] = g[:, i]."""
-    n = g.shape[0]
-    A = np.zeros((n, 3, 3))
-    for i in range(3):
-        A[:, i, i] = g[:, i]
-    return [f"{pname}[{i}]" for i in range(3)], A
-
-
-# ---------------------------------------------------------------------------- helpers
-def _rows_times(x: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """``x @ M.T`` per sample in a fixed order, without BLAS: Σ_j x[:, j]·M[:, j], j = 0, 1, …
-
-    BLAS kernels (FMA, blocking) round differently from build to build; this elementwise
-    form gives the same bits on every machine, and a per-sample scalar implementation
-    (``sim.gyro.GyroStream``) that accumulates in the same order reproduces it exactly.
-    x (N, J), M (I, J) -> (N, I).
-    """
-    out = x[:, 0:1] * M[None, :, 0]
-    for j in range(1, M.shape[1]):
-        out = out + x[:, j : j + 1] * M[None, :, j]
-    return out
-
-
-def _poly(coef: np.ndarray, dT: np.ndarray) -> np.ndarray:
-    """Σ_k coef[:, k-1]·dT^k for k = 1..p; coef (3, p), dT (N,) -> (N, 3).
-
-    Powers by repeated multiplication (dT, dT·dT, dT·dT·dT, …), summed in order k = 1..p.
-    """
-    p = coef.shape[1]
-    powers = np.empty((dT.shape[0], p))
-    pw = dT
-    for k in range(p):
-        if k:
-            pw = pw * dT
-        powers[:, k] = pw
-    return _rows_times(powers, coef)
-
-
-def _clamped_dT(pd: Mapping[str, np.ndarray], T: np.ndarray) -> np.ndarray:
-    lo, hi = float(pd["temp_min_c"]), float(pd["temp_max_c"])
-    return np.clip(T, lo, hi) - float(pd["t0_c"])
-
-
-def misalignment_matrix(m_rad: np.ndarray) -> np.ndarray:
-    """Off-diagonal 3×3 matrix from the 6 misalignment angles (MISALIGNMENT_ORDER)."""
-    M = np.zeros((3, 3))
-    for (i, j), v in zip(_MIS_IDX, np.asarray(m_rad, float)):
-        M[i, j] = v
-    return M
-
-
-def _ff(f: np.ndarray) -> np.ndarray:
-    return np.stack([f[:, i] * f[:, j] for i, j in _FF_IDX], axis=1)
-
-
-def _quat_to_R(q: np.ndarray) -> np.ndarray:
-    nq = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3])
-    q = q / nq[:, None]
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-
-
-def earth_rate_S(latitude_rad: float, heading_rad: float, q_SW_wxyz: np.ndarray) -> np.ndarray:
-    """Earth's rotation seen in S, rad/s, shape (N, 3).
-
-    W is East-North-Up rotated about Up by ``heading_rad`` (W's x axis points
-    ``heading_rad`` counter-clockwise from East). In ENU the Earth rate is
-    Ω·(0, cos φ, sin φ).
-    """
-    w_W = earth_rate_W(latitude_rad, heading_rad)
-    R_WS = _quat_to_R(np.asarray(q_SW_wxyz, float))  # S -> W
-    # ω_S[:, i] = Σ_j R_WS[:, j, i]·ω_W[j], summed in order j = 0, 1, 2 (no BLAS/einsum)
-    return R_WS[:, 0, :] * w_W[0] + R_WS[:, 1, :] * w_W[1] + R_WS[:, 2, :] * w_W[2]
-
-
-def earth_rate_W(latitude_rad: float, heading_rad: float) -> np.ndarray:
-    """Earth's rotation in W, rad/s, shape (3,) (W = ENU rotated by ``heading_rad`` about Up)."""
-    w_enu = EARTH_RATE_RAD_S * np.array([0.0, np.cos(latitude_rad), np.sin(latitude_rad)])
-    c, s = np.cos(heading_rad), np.sin(heading_rad)
-    R_ENU_W = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return R_ENU_W.T @ w_enu
-
-
-def _shift(t: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
-    """x(t − τ) by linear interpolation (edges held), x shape (N, 3)."""
-    if tau_s == 0.0:
-        return x
-    return np.stack([np.interp(t - tau_s, t, x[:, i]) for i in range(x.shape[1])], axis=1)
 
 
 # ---------------------------------------------------------------------------- catalogue terms
@@ -435,7 +152,7 @@ def _poly_design(inp: ModelInputs, order: int, t0_c, effect: str, pname: str, ra
 def _misalignment_design(inp, order, t0_c):
     w = inp._need("omega_S_rad_s", "misalignment")
     A = np.zeros((inp.n, 3, 6))
-    for p, (i, j) in enumerate(_MIS_IDX):
+    for p, (i, j) in enumerate(MIS_IDX):
         A[:, i, p] = w[:, j]
     return [f"m_rad[{p}]" for p in range(6)], A
 
@@ -455,7 +172,7 @@ def _g_design(inp, order, t0_c):
 
 
 def _g2_design(inp, order, t0_c):
-    return _matrix_design(_ff(inp._need("f_S_m_s2", "g2_sensitivity")), "g_rad_s_per_m2_s4")
+    return _matrix_design(ff_products(inp._need("f_S_m_s2", "g2_sensitivity")), "g_rad_s_per_m2_s4")
 
 
 def _time_offset_design(inp, order, t0_c):
@@ -501,7 +218,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         "additive",
         (),
         term=lambda pd, inp, w: np.asarray(pd["b_rad_s"], float)[None, :],
-        regressors=lambda inp, order, t0: _diag_design(np.ones(inp.n)[:, None] * np.ones(3)[None, :], "b_rad_s"),
+        regressors=lambda inp, order, t0: diag_design(np.ones(inp.n)[:, None] * np.ones(3)[None, :], "b_rad_s"),
         plausible=1.0,
         description="constant offset; redrawn at every power-up",
     ),
@@ -511,8 +228,8 @@ _CATALOGUE: tuple[Effect, ...] = (
         {"poly_rad_s": (3, "p"), "t0_c": (), "temp_min_c": (), "temp_max_c": ()},
         "additive",
         ("temp",),
-        term=lambda pd, inp, w: _poly(
-            np.asarray(pd["poly_rad_s"], float), _clamped_dT(pd, inp._need("temp_c", "bias_thermal"))
+        term=lambda pd, inp, w: poly_dT(
+            np.asarray(pd["poly_rad_s"], float), clamped_dT(pd, inp._need("temp_c", "bias_thermal"))
         ),
         regressors=lambda inp, order, t0: _poly_design(inp, order, t0, "bias_thermal", "poly_rad_s", False),
         plausible=0.05,
@@ -525,7 +242,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         "additive",
         ("dtemp",),
         term=lambda pd, inp, w: inp.temp_rate_c_s()[:, None] * np.asarray(pd["k_rad_s_per_c_per_s"])[None, :],
-        regressors=lambda inp, order, t0: _diag_design(
+        regressors=lambda inp, order, t0: diag_design(
             inp.temp_rate_c_s()[:, None] * np.ones(3)[None, :], "k_rad_s_per_c_per_s"
         ),
         plausible=1.0,
@@ -538,7 +255,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         "additive",
         ("t",),
         term=lambda pd, inp, w: inp.since_power_up()[:, None] * np.asarray(pd["ramp_rad_s2"])[None, :],
-        regressors=lambda inp, order, t0: _diag_design(
+        regressors=lambda inp, order, t0: diag_design(
             inp.since_power_up()[:, None] * np.ones(3)[None, :], "ramp_rad_s2"
         ),
         plausible=1e-2,
@@ -551,7 +268,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         "k",
         ("omega",),
         term=lambda pd: np.diag(np.asarray(pd["s"], float)),
-        regressors=lambda inp, order, t0: _diag_design(inp._need("omega_S_rad_s", "scale"), "s"),
+        regressors=lambda inp, order, t0: diag_design(inp._need("omega_S_rad_s", "scale"), "s"),
         plausible=0.5,
         description="scale-factor error K_ii = 1 + s_i",
     ),
@@ -561,8 +278,8 @@ _CATALOGUE: tuple[Effect, ...] = (
         {"poly_per_c": (3, "p"), "t0_c": (), "temp_min_c": (), "temp_max_c": ()},
         "scale",
         ("omega", "temp"),
-        term=lambda pd, inp, w: _poly(
-            np.asarray(pd["poly_per_c"], float), _clamped_dT(pd, inp._need("temp_c", "scale_thermal"))
+        term=lambda pd, inp, w: poly_dT(
+            np.asarray(pd["poly_per_c"], float), clamped_dT(pd, inp._need("temp_c", "scale_thermal"))
         ),
         regressors=lambda inp, order, t0: _poly_design(inp, order, t0, "scale_thermal", "poly_per_c", True),
         plausible=0.01,
@@ -575,7 +292,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         "scale",
         ("omega",),
         term=lambda pd, inp, w: np.sign(w) * np.asarray(pd["a"])[None, :],
-        regressors=lambda inp, order, t0: _diag_design(np.abs(inp._need("omega_S_rad_s", "scale_asymmetry")), "a"),
+        regressors=lambda inp, order, t0: diag_design(np.abs(inp._need("omega_S_rad_s", "scale_asymmetry")), "a"),
         plausible=0.2,
         description="a_i·sign(ω_i)·ω_i",
     ),
@@ -586,7 +303,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         "scale",
         ("omega",),
         term=lambda pd, inp, w: np.abs(w) * np.asarray(pd["s2_s_per_rad"])[None, :],
-        regressors=lambda inp, order, t0: _diag_design(
+        regressors=lambda inp, order, t0: diag_design(
             (lambda w: w * np.abs(w))(inp._need("omega_S_rad_s", "scale_nonlinearity")), "s2_s_per_rad"
         ),
         plausible=0.2,
@@ -609,7 +326,7 @@ _CATALOGUE: tuple[Effect, ...] = (
         {"h_rad_s_per_m_s2": (3, 3)},
         "additive",
         ("f",),
-        term=lambda pd, inp, w: _rows_times(inp._need("f_S_m_s2", "g_sensitivity"), np.asarray(pd["h_rad_s_per_m_s2"])),
+        term=lambda pd, inp, w: rows_times(inp._need("f_S_m_s2", "g_sensitivity"), np.asarray(pd["h_rad_s_per_m_s2"])),
         regressors=_g_design,
         plausible=5e-3,
         description="H·f",
@@ -620,8 +337,8 @@ _CATALOGUE: tuple[Effect, ...] = (
         {"g_rad_s_per_m2_s4": (3, 6)},
         "additive",
         ("f",),
-        term=lambda pd, inp, w: _rows_times(
-            _ff(inp._need("f_S_m_s2", "g2_sensitivity")), np.asarray(pd["g_rad_s_per_m2_s4"])
+        term=lambda pd, inp, w: rows_times(
+            ff_products(inp._need("f_S_m_s2", "g2_sensitivity")), np.asarray(pd["g_rad_s_per_m2_s4"])
         ),
         regressors=_g2_design,
         plausible=1e-3,
@@ -633,8 +350,8 @@ _CATALOGUE: tuple[Effect, ...] = (
         {"tau_s": ()},
         "rate",
         ("omega", "alpha"),
-        term=lambda pd, inp, t, w: _shift(t, w, float(pd["tau_s"])),
-        inverse=lambda pd, inp, t, w: _shift(t, w, -float(pd["tau_s"])),
+        term=lambda pd, inp, t, w: time_shift(t, w, float(pd["tau_s"])),
+        inverse=lambda pd, inp, t, w: time_shift(t, w, -float(pd["tau_s"])),
         regressors=_time_offset_design,
         plausible=1.0,
         description="ω(t − τ)",
@@ -729,269 +446,6 @@ POLYNOMIAL: tuple[str, ...] = tuple(e.name for e in _CATALOGUE if e.polynomial)
 OUTPUT_STAGE: tuple[str, ...] = ("lowpass", "saturation", "quantization")
 
 
-# ---------------------------------------------------------------------------- open families
-#: Signal names of ``regressor[<expr>]`` (DESIGN.md "Effects outside the catalogue"), in the
-#: canonical order of a product: reference rate ω (S, rad/s), its time derivative α (rad/s²),
-#: specific force f (m/s²), temperature (°C), its rate (°C/s), time since power-up (s).
-SIGNALS: tuple[str, ...] = (
-    "omega_x",
-    "omega_y",
-    "omega_z",
-    "alpha_x",
-    "alpha_y",
-    "alpha_z",
-    "f_x",
-    "f_y",
-    "f_z",
-    "temp_c",
-    "dtemp_dt",
-    "t",
-)
-_SIGNAL_INPUT = {"omega": "omega", "alpha": "alpha", "f": "f", "temp_c": "temp", "dtemp_dt": "dtemp", "t": "t"}
-#: Highest total degree of a regressor expression.
-MAX_DEGREE = 3
-_FAMILY_RE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*\[(.*)\]\s*$", re.S)
-_FACTOR_RE = re.compile(r"^([a-z_]+)(?:\^([0-9]+))?$")
-
-
-def _fmt_float(x: float) -> str:
-    """Shortest round-trip decimal, never scientific, no trailing '.0' (37.5, 50, 0.001)."""
-    s = np.format_float_positional(float(x), trim="-")
-    return "0" if s in ("-0", "0") else s
-
-
-def _parse_float(text: str, what: str, name: str) -> float:
-    t = text.strip()
-    if not re.fullmatch(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?", t):
-        raise GyroInputError(f"effect '{name}': {what} must be a decimal number, got '{text}'")
-    v = float(t)
-    if not math.isfinite(v):
-        raise GyroInputError(f"effect '{name}': {what} must be finite, got '{text}'")
-    return v
-
-
-def parse_expr(text: str, *, name: str | None = None) -> tuple[tuple[str, int], ...]:
-    """Parse a regressor expression into canonical factors ``((signal, power), ...)``.
-
-    Grammar (strict): ``factor ('*' factor)*`` with ``factor = SIGNAL ['^' k]``, SIGNAL one of
-    :data:`SIGNALS`, k an integer ≥ 1, total degree ≤ :data:`MAX_DEGREE`; spaces allowed
-    around tokens. Repeated signals are merged (``omega_x*omega_x`` = ``omega_x^2``) and the
-    factors sorted in :data:`SIGNALS` order, so one term has one form.
-
-    Raises
-    ------
-    GyroInputError
-        One line naming what is wrong.
-    """
-    label = name or f"regressor[{text}]"
-    parts = [p.strip() for p in str(text).split("*")]
-    if not parts or any(not p for p in parts):
-        raise GyroInputError(
-            f"effect '{label}': expected a product of signals like omega_y*omega_z or f_x^2 "
-            f"(signals: {', '.join(SIGNALS)})"
-        )
-    powers: dict[str, int] = {}
-    for p in parts:
-        p = re.sub(r"\s*\^\s*", "^", p)
-        m = _FACTOR_RE.match(p)
-        if not m:
-            raise GyroInputError(
-                f"effect '{label}': cannot read '{p}' (a signal, optionally ^k; signals: {', '.join(SIGNALS)})"
-            )
-        sig, k = m.group(1), int(m.group(2) or 1)
-        if sig not in SIGNALS:
-            raise GyroInputError(f"effect '{label}': unknown signal '{sig}'; signals: {', '.join(SIGNALS)}")
-        if k < 1:
-            raise GyroInputError(f"effect '{label}': power of {sig} must be >= 1, got {k}")
-        powers[sig] = powers.get(sig, 0) + k
-    deg = sum(powers.values())
-    if deg > MAX_DEGREE:
-        raise GyroInputError(f"effect '{label}': degree {deg} > {MAX_DEGREE}")
-    return tuple((s, powers[s]) for s in SIGNALS if s in powers)
-
-
-def _expr_text(factors: tuple[tuple[str, int], ...]) -> str:
-    return "*".join(s if k == 1 else f"{s}^{k}" for s, k in factors)
-
-
-def canonical_expr(text: str) -> str:
-    """The one form of a regressor expression: ``"omega_z*omega_y"`` -> ``"omega_y*omega_z"``,
-    ``"f_x*f_x"`` -> ``"f_x^2"`` (see :func:`parse_expr`)."""
-    return _expr_text(parse_expr(text))
-
-
-def _signal(sig: str, inp: ModelInputs, omega: np.ndarray | None, effect: str) -> np.ndarray:
-    """Value of one signal, shape (N,). ``omega`` (N, 3) overrides ``inp.omega_S_rad_s``.
-    The derivatives (``alpha_*``, ``dtemp_dt``) of a single sample are 0."""
-    one = inp.n < 2
-    if sig.startswith(("omega_", "alpha_")):
-        j = "xyz".index(sig[-1])
-        if sig.startswith("alpha_") and inp.alpha_S_rad_s2 is not None:
-            return np.asarray(inp.alpha_S_rad_s2, float)[:, j]
-        w = inp._need("omega_S_rad_s", effect) if omega is None else omega
-        if sig.startswith("omega_"):
-            return w[:, j]
-        return np.zeros(inp.n) if one else np.gradient(w[:, j], np.asarray(inp.t_s, float))
-    if sig.startswith("f_"):
-        return inp._need("f_S_m_s2", effect)[:, "xyz".index(sig[-1])]
-    if sig == "temp_c":
-        return inp._need("temp_c", effect)
-    if sig == "dtemp_dt":
-        if one:
-            return np.zeros_like(inp._need("temp_c", effect))
-        return inp.temp_rate_c_s(effect)
-    if sig == "t":
-        return inp.since_power_up()
-    raise GyroInputError(f"unknown signal {sig}")  # pragma: no cover (parse_expr checks)
-
-
-def _expr_value(factors, inp: ModelInputs, omega, effect: str, cache: dict | None = None) -> np.ndarray:
-    """Π signal^k, shape (N,), by repeated multiplication in canonical order; ``cache`` (a dict
-    kept by the caller for one ``inp``) holds each signal's values once."""
-    g = None
-    for sig, k in factors:
-        if cache is None:
-            s = _signal(sig, inp, omega, effect)
-        elif sig in cache:
-            s = cache[sig]
-        else:
-            s = cache[sig] = _signal(sig, inp, omega, effect)
-        pw = s
-        for _ in range(k - 1):
-            pw = pw * s
-        g = pw if g is None else g * pw
-    return np.asarray(g, float)
-
-
-def expr_values(expr: str, inp: ModelInputs, *, cache: dict | None = None) -> np.ndarray:
-    """Per-sample value of a regressor expression (``"omega_y*omega_z"``, ``"t"``), shape (N,),
-    in the SI units of its signals: the signal ``g`` of ``regressor[expr]``.
-
-    Parameters
-    ----------
-    expr : str
-        A regressor expression (:func:`parse_expr`).
-    inp : ModelInputs
-    cache : dict, optional
-        Signal values already computed on ``inp`` (filled in here; pass one dict per ``inp``
-        when evaluating many expressions on the same inputs).
-
-    Raises
-    ------
-    GyroInputError
-        A bad expression, or a signal whose input ``inp`` lacks.
-    """
-    return _expr_value(parse_expr(expr), inp, None, f"regressor[{expr}]", cache)
-
-
-def _periodic_effect(name: str, f_hz: float) -> Effect:
-    w = 2.0 * math.pi * f_hz
-
-    def cs(inp):
-        ph = w * np.asarray(inp.t_s, float)
-        return np.cos(ph), np.sin(ph)
-
-    def term(pd, inp, omega):
-        c, s = cs(inp)
-        return (
-            c[:, None] * np.asarray(pd["a_cos_rad_s"], float)[None, :]
-            + s[:, None] * np.asarray(pd["a_sin_rad_s"], float)[None, :]
-        )
-
-    def regs(inp, order, t0):
-        c, s = cs(inp)
-        A = np.zeros((inp.n, 3, 6))
-        for i in range(3):
-            A[:, i, i] = c
-            A[:, i, 3 + i] = s
-        return [f"a_cos_rad_s[{i}]" for i in range(3)] + [f"a_sin_rad_s[{i}]" for i in range(3)], A
-
-    return Effect(
-        name,
-        _C,
-        {"a_cos_rad_s": (3,), "a_sin_rad_s": (3,)},
-        "additive",
-        ("t",),
-        term=term,
-        regressors=regs,
-        family="periodic",
-        arg=f_hz,
-        plausible=1.0,
-        defaults={"a_cos_rad_s": np.zeros(3), "a_sin_rad_s": np.zeros(3)},
-        description=f"a_cos·cos(2π·{_fmt_float(f_hz)} Hz·t_s) + a_sin·sin(…) per axis",
-    )
-
-
-def _step_effect(name: str, t_step_s: float) -> Effect:
-    def g(inp):
-        return (np.asarray(inp.t_s, float) >= t_step_s).astype(float)
-
-    def term(pd, inp, omega):
-        return g(inp)[:, None] * np.asarray(pd["size_rad_s"], float)[None, :]
-
-    return Effect(
-        name,
-        _C,
-        {"size_rad_s": (3,)},
-        "additive",
-        ("t",),
-        term=term,
-        regressors=lambda inp, order, t0: _diag_design(g(inp)[:, None] * np.ones(3)[None, :], "size_rad_s"),
-        family="step",
-        arg=t_step_s,
-        plausible=1.0,
-        defaults={"size_rad_s": np.zeros(3)},
-        description=f"bias step of size_rad_s at t_s ≥ {_fmt_float(t_step_s)} s",
-    )
-
-
-def _regressor_effect(name: str, factors) -> Effect:
-    inputs = tuple(
-        dict.fromkeys(_SIGNAL_INPUT[s.rsplit("_", 1)[0] if s[-2:] in ("_x", "_y", "_z") else s] for s, _ in factors)
-    )
-
-    def term(pd, inp, omega):
-        return _expr_value(factors, inp, omega, name)[:, None] * np.asarray(pd["coef"], float)[None, :]
-
-    def regs(inp, order, t0):
-        g = _expr_value(factors, inp, None, name)
-        return _diag_design(g[:, None] * np.ones(3)[None, :], "coef")
-
-    return Effect(
-        name,
-        _C,
-        {"coef": (3,)},
-        "additive",
-        inputs,
-        term=term,
-        regressors=regs,
-        family="regressor",
-        arg=factors,
-        defaults={"coef": np.zeros(3)},
-        description=f"coef (rad/s per unit) × {_expr_text(factors)} per axis",
-    )
-
-
-#: Open families: family name -> (argument parser -> canonical text and value, Effect factory).
-FAMILIES: dict[str, str] = {
-    "periodic": "periodic[<f_hz>]: a_cos_rad_s (3,), a_sin_rad_s (3,)",
-    "step": "step[<t_s>]: size_rad_s (3,)",
-    "regressor": "regressor[<expr>]: coef (3,); expr over " + ", ".join(SIGNALS) + " with * and ^k",
-}
-
-
-def _family_parts(name: str):
-    m = _FAMILY_RE.match(name)
-    if not m or m.group(1) not in FAMILIES:
-        return None
-    return m.group(1), m.group(2)
-
-
-def is_family(name: str) -> bool:
-    """Whether ``name`` has the form of a family instance (``periodic[...]`` etc.)."""
-    return isinstance(name, str) and _family_parts(name) is not None
-
-
 def _unknown(name: str) -> GyroInputError:
     return GyroInputError(
         f"unknown effect '{name}'; known effects: {', '.join(EFFECTS)}; "
@@ -1001,20 +455,20 @@ def _unknown(name: str) -> GyroInputError:
 
 @lru_cache(maxsize=4096)
 def _family_effect(name: str) -> Effect:
-    parts = _family_parts(name)
+    parts = family_parts(name)
     if parts is None:
         raise _unknown(name)
     fam, arg = parts
     if fam == "periodic":
-        f = _parse_float(arg, "the frequency (Hz)", name)
+        f = parse_float(arg, "the frequency (Hz)", name)
         if not f > 0:
             raise GyroInputError(f"effect '{name}': the frequency must be > 0 Hz, got {arg.strip()}")
-        return _periodic_effect(f"periodic[{_fmt_float(f)}]", f)
+        return periodic_effect(f"periodic[{fmt_float(f)}]", f)
     if fam == "step":
-        t = _parse_float(arg, "the step time (s)", name)
-        return _step_effect(f"step[{_fmt_float(t)}]", t)
+        t = parse_float(arg, "the step time (s)", name)
+        return step_effect(f"step[{fmt_float(t)}]", t)
     factors = parse_expr(arg, name=name)
-    return _regressor_effect(f"regressor[{_expr_text(factors)}]", factors)
+    return regressor_effect(f"regressor[{expr_text(factors)}]", factors)
 
 
 def resolve(name: str) -> Effect:
@@ -1056,7 +510,7 @@ def family_name(family: str, arg: float | str) -> str:
     -> ``"periodic[37.5]"``, ``family_name("step", 9.47)`` -> ``"step[9.47]"``,
     ``family_name("regressor", "omega_z*omega_y")`` -> ``"regressor[omega_y*omega_z]"``. A number
     is written as the shortest decimal that reads back to it (never an exponent)."""
-    text = arg if isinstance(arg, str) else _fmt_float(arg)
+    text = arg if isinstance(arg, str) else fmt_float(arg)
     return canonical_name(f"{family}[{text}]")
 
 
@@ -1268,7 +722,7 @@ def deterministic(params: Params, inp: ModelInputs) -> np.ndarray:
     for eff, pd in _stage(params, "rate"):
         omega = eff.term(pd, inp, t, omega)
     K = k_matrix(params)
-    y = _rows_times(omega, K) + _scale_diag(params, inp, omega) * omega
+    y = rows_times(omega, K) + _scale_diag(params, inp, omega) * omega
     return y + _additive(params, inp, omega)
 
 

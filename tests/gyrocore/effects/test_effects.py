@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from gyrocore.effects import effect as EF
 from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 
@@ -134,8 +135,8 @@ def test_registry_derives_the_old_tuples():
     assert set(E.CORRECTABLE) == set(E.DETERMINISTIC) - {"quantization", "saturation", "lowpass"}
     for name, eff in E.REGISTRY.items():
         assert eff.name == name and E.resolve(name) is eff and E.PARAM_SCHEMA[name] == dict(eff.schema)
-        assert eff.kind in E.KINDS and (eff.stage in E.STAGES or eff.kind in ("stochastic", "physics"))
-        assert set(eff.inputs) <= set(E.INPUTS)
+        assert eff.kind in EF.KINDS and (eff.stage in EF.STAGES or eff.kind in ("stochastic", "physics"))
+        assert set(eff.inputs) <= set(EF.INPUTS)
     # fittable = the catalogue effects with regressors (earth_rate has none)
     assert [e for e in E.CORRECTABLE if E.resolve(e).fittable] == [e for e in E.CORRECTABLE if e != "earth_rate"]
 
