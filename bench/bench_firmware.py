@@ -25,53 +25,16 @@ is the best of ``--repeat`` runs. Goal: closed loop ≥ 2 simulated s per wall s
 from __future__ import annotations
 
 import argparse
-import math
 import platform
-import time
 
 import mujoco
 import numpy as np
 import psutil
+from timing import Clock
+
+from sim.presets import all_effects_overrides
 
 RATE_HZ = 8000.0
-
-
-def all_effects_overrides() -> dict:
-    """SI overrides switching on the catalogue effects the ICM-42688-P preset leaves off
-    (as ``bench_sim.py``; ``bias_temp_rate`` gets its temperature trajectory below)."""
-    deg = math.pi / 180.0
-    return {
-        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg},
-        "bias_ramp": {"ramp_rad_s2": 1e-6},
-        "scale_asymmetry": {"a": 1e-3},
-        "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
-        "time_offset": {"tau_s": 2e-4},
-        "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
-        "rrw": {"k_rad_s_per_sqrt_s": 1e-5},
-        "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
-    }
-
-
-class Clock:
-    """Wall and CPU seconds of a block: this process + the SITL child (if given)."""
-
-    def __init__(self, child_pid: int | None = None):
-        self.child = psutil.Process(child_pid) if child_pid else None
-
-    def _cpu(self) -> float:
-        c = time.process_time()
-        if self.child is not None:
-            t = self.child.cpu_times()
-            c += t.user + t.system
-        return c
-
-    def __enter__(self):
-        self.w0, self.c0 = time.perf_counter(), self._cpu()
-        return self
-
-    def __exit__(self, *exc):
-        self.wall_s = time.perf_counter() - self.w0
-        self.cpu_s = self._cpu() - self.c0
 
 
 def main() -> None:

@@ -28,37 +28,12 @@ from __future__ import annotations
 import argparse
 import math
 import platform
-import time
 
 import mujoco
 import numpy as np
+from timing import Clock
 
-
-def all_effects_overrides() -> dict:
-    """SI overrides switching on the catalogue effects the ICM-42688-P preset leaves off."""
-    deg = math.pi / 180.0
-    return {
-        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg},
-        "bias_ramp": {"ramp_rad_s2": 1e-6},
-        "scale_asymmetry": {"a": 1e-3},
-        "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
-        "time_offset": {"tau_s": 2e-4},
-        "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
-        "rrw": {"k_rad_s_per_sqrt_s": 1e-5},
-        "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
-    }
-
-
-class Clock:
-    """Wall (perf_counter) and CPU (process_time) seconds of one run."""
-
-    def __enter__(self):
-        self.w0, self.c0 = time.perf_counter(), time.process_time()
-        return self
-
-    def __exit__(self, *exc):
-        self.wall_s = time.perf_counter() - self.w0
-        self.cpu_s = time.process_time() - self.c0
+from sim.presets import all_effects_overrides
 
 
 def bare_rate(model: mujoco.MjModel, data: mujoco.MjData, n_steps: int) -> tuple[float, float]:

@@ -49,7 +49,15 @@ from gyrocore.errors import GyroInputError
 
 from .noise import ALLAN_FLICKER_FACTOR, effect_rng
 
-__all__ = ["SensorSpec", "load_preset", "PRESETS", "PRESET_DIR", "TOL_SIGMAS", "NL_MINIMAX_FACTOR"]
+__all__ = [
+    "SensorSpec",
+    "load_preset",
+    "all_effects_overrides",
+    "PRESETS",
+    "PRESET_DIR",
+    "TOL_SIGMAS",
+    "NL_MINIMAX_FACTOR",
+]
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 DEG = math.pi / 180.0
@@ -498,3 +506,22 @@ def load_preset(name_or_path: str | Path | SensorSpec) -> SensorSpec:
     if key in PRESETS:  # registry files are cached; a user's file is re-read every time
         _CACHE[key] = spec
     return spec
+
+
+def all_effects_overrides(without: tuple[str, ...] = ()) -> dict[str, dict]:
+    """SI overrides (``SyntheticGyro(..., overrides=...)``) that switch on the catalogue effects
+    the ICM-42688-P preset leaves off, at representative levels, so a gyro flies every effect
+    (the benches' and the compiled-path tests' "all effects" gyro); ``without``: effects left off.
+    """
+    deg = math.pi / 180.0
+    overrides = {
+        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg},
+        "bias_ramp": {"ramp_rad_s2": 1e-6},
+        "scale_asymmetry": {"a": 1e-3},
+        "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
+        "time_offset": {"tau_s": 2e-4},
+        "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
+        "rrw": {"k_rad_s_per_sqrt_s": 1e-5},
+        "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
+    }
+    return {e: v for e, v in overrides.items() if e not in without}

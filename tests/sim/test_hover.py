@@ -273,21 +273,9 @@ def test_quadrotor_model_matches_its_sources():
 def _all_effects_gyro(rate_hz: float, without: tuple = ()):
     """ICM-42688-P with every catalogue effect on (as bench/bench_sim.py's hover (b)), less ``without``."""
     from sim.gyro import SyntheticGyro
+    from sim.presets import all_effects_overrides
 
-    deg = math.pi / 180.0
-    overrides = {
-        "bias_temp_rate": {"k_rad_s_per_c_per_s": 0.01 * deg},
-        "bias_ramp": {"ramp_rad_s2": 1e-6},
-        "scale_asymmetry": {"a": 1e-3},
-        "g2_sensitivity": {"g_rad_s_per_m2_s4": 1e-6},
-        "time_offset": {"tau_s": 2e-4},
-        "earth_rate": {"latitude_rad": 48.0 * deg, "heading_rad": 0.0},
-        "rrw": {"k_rad_s_per_sqrt_s": 1e-5},
-        "correlated": {"sigma_rad_s": 0.005 * deg, "tau_c_s": 30.0},
-    }
-    return SyntheticGyro(
-        "icm42688p", rate_hz=rate_hz, seed=1, overrides={e: v for e, v in overrides.items() if e not in without}
-    )
+    return SyntheticGyro("icm42688p", rate_hz=rate_hz, seed=1, overrides=all_effects_overrides(without))
 
 
 def _bits(x) -> np.ndarray:
