@@ -139,7 +139,9 @@ def _identify(method: str, g: np.ndarray, rate_hz: float) -> dict[str, dict]:
             if key not in r.ci95:
                 continue
             lo, hi = r.ci95[key]
-            d[short] = (getattr(r, key) is not None, float(r.estimate[key]), float(lo), float(hi))
+            # 5th: the fit declared the term not resolvable at this length (its fitted level)
+            nr = getattr(r, "not_resolvable", {}) or {}
+            d[short] = (getattr(r, key) is not None, float(r.estimate[key]), float(lo), float(hi), key in nr)
         out[ax] = d
     return out
 
@@ -226,6 +228,8 @@ def summarise(rows: list[dict]) -> list[dict]:
                 "present": bool(true),
                 "runs": len(have),
                 "claimed": float(res.mean()),
+                # unclaimed and declared "not resolvable at this length" by the fit itself
+                "declared": float(np.mean([(not h[0]) and bool(h[4]) for h in have])) if len(have[0]) > 4 else 0.0,
                 "cpu_s_axis": float(np.mean([r["cpu_s"] for r in rr])),
             }
             if true:
@@ -551,12 +555,9 @@ def main(argv=None) -> None:
         out=a.out,
     )
     print(markdown(res["summary"]))
+    print(compact([res["summary"]], sorted({s["method"] for s in res["summary"]})))
     print(json.dumps(res["goals"], indent=1, default=float))
     print(json.dumps(res["timing"], default=float))
-
-
-if __name__ == "__main__":
-    main()
 
 
 def compact(summaries: Sequence[list[dict]], methods: Sequence[str]) -> str:
@@ -580,7 +581,11 @@ def compact(summaries: Sequence[list[dict]], methods: Sequence[str]) -> str:
                 if s["present"] and s["term"] != "GMt" and s["term"] != "N":
                     zp = s.get("z_pred", float("nan"))
                     mark = "" if not math.isfinite(zp) else ("✓" if zp >= z_threshold(s["term"]) else "✗")
-                    parts.append(f"{s['term']}{mark} {100 * s['claimed']:.0f} ({100 * s['coverage']:.0f})")
+                    nr = s.get("declared", 0.0)
+                    parts.append(
+                        f"{s['term']}{mark} {100 * s['claimed']:.0f} ({100 * s['coverage']:.0f})"
+                        + (f" nr {100 * nr:.0f}" if nr else "")
+                    )
             n_cov = [s for s in ss if s["term"] == "N"]
             if n_cov:
                 parts.insert(
@@ -595,3 +600,7 @@ def compact(summaries: Sequence[list[dict]], methods: Sequence[str]) -> str:
             cols.append("; ".join(parts) + f" [{ss[0]['runs']}]")
         lines.append(f"| {mix} | {T / 60:g} min, {rate:g} Hz | " + " | ".join(cols) + " |")
     return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

@@ -511,6 +511,9 @@ class AllanResult:
     lines_hz: tuple[float, ...] = ()
     lines_rms: tuple[float, ...] = ()
     lines_adev_rad_s: np.ndarray | None = None
+    #: unclaimed long-τ terms this record is too short to resolve at their fitted level
+    #: (:func:`gyrocore.noise.gmwm.not_resolvable`): {term: {expected_z, threshold, record_s, needed_s}}
+    not_resolvable: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
     @property
     def fit_ok(self) -> bool | None:
@@ -536,6 +539,7 @@ class AllanResult:
         out["chi2"] = self.chi2
         out["dof"] = self.dof
         out["ambiguous"] = dict(self.ambiguous)
+        out["not_resolvable"] = {k: dict(v) for k, v in self.not_resolvable.items()}
         if self.fit_check:
             out["fit_ok"] = bool(self.fit_check["ok"])
             out["fit_check"] = {k: v for k, v in self.fit_check.items() if k != "z"} | {
@@ -822,6 +826,7 @@ def _axis_result(
             chi2=f.chi2,
             dof=f.dof,
             ambiguous=dict(f.ambiguous),
+            not_resolvable={k: dict(v) for k, v in f.not_resolvable.items()},
             reported_adev_rad_s=np.sqrt(np.maximum(rep_all, 0.0)),
             fit_from_tau_s=float(taus[k0]),
             lines_hz=tuple(lines.freqs_hz),

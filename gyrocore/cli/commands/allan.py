@@ -63,6 +63,10 @@ def _axes(value: str) -> list[str]:
     return axes
 
 
+def _dur(t_s: float) -> str:
+    return f"{t_s / 3600:.3g} h" if t_s >= 5400 else (f"{t_s / 60:.3g} min" if t_s >= 90 else f"{t_s:.3g} s")
+
+
 def report_text(analysis) -> str:
     """Readable table in SI and datasheet units."""
     from gyrocore.noise.allan import ALL_TERM_NAMES, TERM_NAMES, to_datasheet_units
@@ -98,6 +102,13 @@ def report_text(analysis) -> str:
             lines.append(
                 f"{ax:4} {'(' + name + ')':24} fitted {r.estimate.get(name, float('nan')):.3e} but not told "
                 f"from {other} (stand-in check): unresolved"
+            )
+        for name, v in (getattr(r, "not_resolvable", None) or {}).items():
+            need = v["needed_s"]
+            lines.append(
+                f"{ax:4} {'(' + name + ')':24} not resolvable at {_dur(v['record_s'])}: expected z "
+                f"{v['expected_z']:.2f} < {v['threshold']:.2f} (z0.99 + z0.9) at its fitted level"
+                + (f"; ≈ {_dur(need)} needed" if math.isfinite(need) else "")
             )
         chk = getattr(r, "fit_check", None)
         if chk:
