@@ -21,7 +21,7 @@ import numpy as np
 
 from gyrocore.effects import registry as E
 from gyrocore.attitude import integrate_gyro
-from gyrocore.data.recording import Recording
+from gyrocore.data.recording import atomic_write_text, Recording
 from experiments.report import ExperimentResult, md_table
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.loop.loop import run_loop
