@@ -10,11 +10,14 @@ motion itself that both see (``shared_hz``, ``shared_amp_rad_s``).
 
 The line's strength is its noncentrality in the harmonic F statistic the loop uses
 (``line_z``): z = A/σ_A with σ_A² = (ΣU_k(0)²/L)⁻¹·S(f)/T_eff, the standard error of each
-quadrature of the line's complex amplitude estimate μ̂ (Thomson's, pooled over the
-segments), S(f) the one-sided noise PSD of the residual at f — the gyro's 2N² plus the
+quadrature of the line's complex amplitude estimate μ̂ (Thomson's, combined phase-coherently
+over the segments), S(f) the one-sided noise PSD of the residual at f — the gyro's 2N² plus the
 differentiated reference's 8σ_q²·fs·sin²(πf/fs) — and T_eff the duration of the segments
-tested. (2|μ̂|²ΣU²/(S fs/2) is χ²₂(λ) per segment with λ = A²ΣU²/(S·fs); summed over
-segments, λ = z².)
+tested: the loop's own segments (``attitude_line_series`` on the recording without the line),
+so z is the σ of the test's statistic. (2|μ̂_s|²ΣU²/(S fs/2) is χ²₂(λ_s) per segment with
+λ_s = A²ΣU²/(S·fs); over the segments λ = z², the noncentrality of the coherent F(2, 12S; λ)
+the loop decides with, and of the pooled F(2S, 12S; λ).) ``slow_reference_recording``: a
+reference slower than the gyro (120 Hz beside 1 kHz), where the sample level is not run.
 
 Command: ``python -m experiments.optical_lines --seeds 20`` (a table of described lines per
 seed; ``--null``: no line, what the loop reports); docs/loop.md §6.
