@@ -20,6 +20,7 @@ same sensor instances and rotor phases (paired comparison); medians over instanc
 from __future__ import annotations
 
 import math
+import multiprocessing
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -30,6 +31,9 @@ import numpy as np
 
 from gyrocore.attitude import error_angle_rad, integrate_gyro
 from gyrocore.flight.filters import AffineCorrection, Pipeline, make_filter
+
+from . import cutoff_grid as G
+from experiments.montecarlo import instance_seeds
 
 from .report import ExperimentResult, md_table, new_figure, save_figure, single_thread_blas
 
@@ -154,10 +158,6 @@ def open_loop_scores(truth, gyro_meas_rad_s: np.ndarray, b0: np.ndarray, kind: s
     return {"rate_err_rms_deg_s": float(rate_err), "att_err_rms_deg": float(np.sqrt(np.mean(att**2)))}
 
 
-def _configs(kinds, cutoffs):
-    return [("none", float("nan"))] + [(k, fc) for k in kinds for fc in cutoffs]
-
-
 def _task(args):
     """All configurations for one (preset, seed): closed-loop flights + open-loop on the raw flight."""
     with single_thread_blas():
@@ -169,7 +169,7 @@ def _task_inner(args):
     _, ref, _, _ = _fly(None, seed, "none", 30.0, duration_s, steps=True)
     out = []
     raw = None
-    for kind, fc in _configs(kinds, cutoffs):
+    for kind, fc in G.cells(kinds, cutoffs):
         m, truth, log, b0 = fly_config(preset, seed, kind, fc if kind != "none" else 30.0, duration_s, ref_steps=ref)
         if kind == "none":
             raw = (truth, log.gyro_meas_rad_s.copy(), b0)
@@ -193,7 +193,7 @@ def ours_cell_task(task):
     with single_thread_blas():
         _, ref, _, _ = _fly(None, int(task.seed), "none", 30.0, dur, steps=True, vehicle=vehicle, rate_hz=rate)
         metrics = {}
-        for kind, fc in _configs(o["kinds"], o["cutoffs"]):
+        for kind, fc in G.cells(o["kinds"], o["cutoffs"]):
             m, _, _, _ = fly_config(
                 task.sensor,
                 int(task.seed),
@@ -204,16 +204,10 @@ def ours_cell_task(task):
                 vehicle=vehicle,
                 rate_hz=rate,
             )
-            lab = "none" if kind == "none" else f"{kind} {fc:g} Hz"
+            lab = G.label(kind, fc)
             for k in ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed"):
                 metrics[f"{lab}|{k}"] = float(m[k])
     return TaskResult.from_task(task, metrics)
-
-
-def _median(rows, key):
-    v = np.array([r[key] for r in rows], float)
-    v = v[np.isfinite(v)]
-    return float(np.median(v)) if v.size else float("nan")
 
 
 def run(
@@ -264,19 +258,7 @@ def run(
     presets = tuple(presets or (PRESETS[:1] if quick else PRESETS))
     n_inst = seeds or (1 if size in ("quick", "standard") else 2)
     dur = duration_s or (3.0 if size in ("quick", "standard") else 6.0)
-    from experiments.montecarlo import instance_seeds
-
-    inst = instance_seeds(seed, n_inst)
-    jobs = [(p, s, kinds, cutoffs, dur) for p in presets for s in inst]
-    n_work = 1 if workers == 1 or len(jobs) == 1 else (workers or None)
-    if n_work == 1:
-        results = [_task(j) for j in jobs]
-    else:
-        import multiprocessing
-
-        with ProcessPoolExecutor(max_workers=n_work, mp_context=multiprocessing.get_context("spawn")) as pool:
-            results = list(pool.map(_task, jobs))
-    rows = [r for chunk in results for r in chunk]
+    rows = _fly_grid(presets, instance_seeds(seed, n_inst), kinds, cutoffs, dur, workers=workers)
 
     md = [
         f"Gyro at {GYRO_RATE_HZ:g} Hz, rotor vibration on, {dur:g} s flights, {n_inst} sensor instance(s) per "
@@ -295,129 +277,11 @@ def run(
     ]
     figs = []
     summary: dict = {"presets": {}}
-    keys = (
-        "hover_att_rms_deg",
-        "motor_noise_n",
-        "step_track_rms_deg",
-        "excess_deg",
-        "delay_ms",
-        "filter_delay_ms",
-        "rate_err_rms_deg_s",
-        "att_err_rms_deg",
-        "crashed",
-    )
     for p in presets:
-        pr = [r for r in rows if r["preset"] == p]
-        table, stats = [], {}
-        for kind, fc in _configs(kinds, cutoffs):
-            rr = [r for r in pr if r["kind"] == kind and (kind == "none" or r["fc_hz"] == fc)]
-            v = {k: _median(rr, k) for k in keys}
-            label = "none" if kind == "none" else f"{kind} {fc:g} Hz"
-            stats[label] = v
-            table.append(
-                (
-                    label,
-                    v["hover_att_rms_deg"],
-                    v["motor_noise_n"],
-                    v["step_track_rms_deg"],
-                    v["excess_deg"],
-                    v["delay_ms"],
-                    v["filter_delay_ms"],
-                    v["filter_delay_ms"] * GYRO_RATE_HZ / 1e3,
-                    v["rate_err_rms_deg_s"],
-                    v["att_err_rms_deg"],
-                )
-            )
-        # best = quietest motors among the configurations whose attitude cost (excess error
-        # against a perfect gyro) stays within EXCESS_BUDGET × that of the raw gyro
-        lim = EXCESS_BUDGET * stats["none"]["excess_deg"]
-        ok = {
-            k: v
-            for k, v in stats.items()
-            if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim and np.isfinite(v["motor_noise_n"])
-        }
-        best = min(ok, key=lambda k: ok[k]["motor_noise_n"]) if ok else None
-        finite = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"])}
-        quiet = min(finite, key=lambda k: finite[k]["excess_deg"]) if finite else None  # least attitude cost
-        art = stats.get("article 30 Hz")
-        summary["presets"][p] = {
-            "best": best,
-            "least_attitude_cost": quiet,
-            "best_excess_deg": stats[best]["excess_deg"] if best else None,
-            "best_motor_noise_n": stats[best]["motor_noise_n"] if best else None,
-            "none_step_track_rms_deg": stats["none"]["step_track_rms_deg"],
-            "none_excess_deg": stats["none"]["excess_deg"],
-            "none_motor_noise_n": stats["none"]["motor_noise_n"],
-            "article30_step_track_rms_deg": art["step_track_rms_deg"] if art else None,
-            "article30_motor_noise_n": art["motor_noise_n"] if art else None,
-            "article30_delay_samples": art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3 if art else None,
-            "best_open_loop_rate": min(stats, key=lambda k: stats[k]["rate_err_rms_deg_s"]),
-        }
-        md.append(f"### {p}\n")
-        md.append(
-            md_table(
-                [
-                    "filter",
-                    "hover error, °",
-                    "motor noise, N",
-                    "step tracking, °",
-                    "excess, °",
-                    "delay, ms",
-                    "filter delay, ms",
-                    "filter delay, samples",
-                    "rate error, °/s",
-                    "attitude error, °",
-                ],
-                table,
-            )
-        )
-        if best:
-            b = stats[best]
-            n0 = stats["none"]
-            md.append(
-                f"\nBest for **{p}**: **{best}** — motor noise {b['motor_noise_n']:.4f} N "
-                f"({n0['motor_noise_n'] / b['motor_noise_n']:.1f}× quieter than unfiltered), excess attitude error "
-                f"{b['excess_deg']:.4f}° (unfiltered {n0['excess_deg']:.4f}°), measured delay {b['delay_ms']:.2f} ms. "
-                f"Least attitude cost: **{quiet}** ({stats[quiet]['excess_deg']:.4f}°). Hover attitude error "
-                f"barely depends on the filter ({min(v['hover_att_rms_deg'] for v in stats.values()):.4f}–"
-                f"{max(v['hover_att_rms_deg'] for v in stats.values()):.4f}°): vibration moves the airframe "
-                "itself; the filter decides motor noise and delay."
-            )
-        if art:
-            d_samp = art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3
-            md.append(
-                f" The article's advice, first-order 30 Hz: excess {art['excess_deg']:.4f}° "
-                f"({art['excess_deg'] / n0['excess_deg']:.1f}× the raw gyro's), motor noise "
-                f"{art['motor_noise_n']:.4f} N, filter delay {art['filter_delay_ms']:.2f} ms = {d_samp:.1f} samples at "
-                f"{GYRO_RATE_HZ:g} Hz — {'over' if d_samp > 1 else 'within'} its one-sample budget (a first-order "
-                f"filter meets that budget only for fc ≥ {GYRO_RATE_HZ / (2 * math.pi):.0f} Hz at this rate)."
-            )
-        md.append("\n")
-        fig = new_figure(figsize=(11, 3.4))
-        plots = (
-            ("excess_deg", "closed-loop excess attitude error, °"),
-            ("motor_noise_n", "motor noise > 20 Hz, N"),
-            ("delay_ms", "measured gyro delay, ms"),
-            ("rate_err_rms_deg_s", "open-loop rate error, °/s"),
-        )
-        axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
-        for kind in kinds:
-            for ax, (key, _) in zip(axs, plots):
-                ys = [stats[f"{kind} {fc:g} Hz"][key] for fc in cutoffs]
-                ax.plot(cutoffs, ys, marker="o", ms=3, label=kind)
-        for ax, (key, lab) in zip(axs, plots):
-            ax.axhline(stats["none"][key], color="k", ls=":", lw=1, label="none")
-            ax.set_xscale("log")
-            ax.set_xticks(list(cutoffs))
-            ax.set_xticklabels([f"{c:g}" for c in cutoffs], fontsize=7)
-            ax.minorticks_off()
-            ax.set_xlabel("cutoff, Hz")
-            ax.set_ylabel(lab, fontsize=8)
-            ax.grid(alpha=0.3)
-        axs[0].legend(fontsize=7)
-        fig.suptitle(f"{p}: filter type and cutoff")
-        fig.tight_layout()
-        figs.append(save_figure(fig, out_dir, f"cutoffs_{p}"))
+        stats = _preset_stats([r for r in rows if r["preset"] == p], kinds, cutoffs)
+        summary["presets"][p] = _preset_summary(stats)
+        md += _preset_markdown(p, stats, summary["presets"][p])
+        figs.append(_preset_figure(p, stats, kinds, cutoffs, out_dir))
         md.append(f"![cutoffs {p}]({figs[-1]})\n")
     best_line = "; ".join(f"{p}: {v['best']}" for p, v in summary["presets"].items())
     md.insert(
@@ -432,3 +296,149 @@ def run(
         summary=summary,
         wall_s=time.perf_counter() - t0,
     )
+
+
+#: The per-configuration metrics the section reports (medians over the instances).
+_KEYS = (
+    "hover_att_rms_deg",
+    "motor_noise_n",
+    "step_track_rms_deg",
+    "excess_deg",
+    "delay_ms",
+    "filter_delay_ms",
+    "rate_err_rms_deg_s",
+    "att_err_rms_deg",
+    "crashed",
+)
+
+
+def _fly_grid(presets, instances, kinds, cutoffs, duration_s: float, *, workers: int | None) -> list[dict]:
+    """Every configuration flown for every (preset, instance): one row per flight pair (:func:`_task`)."""
+    jobs = [(p, s, kinds, cutoffs, duration_s) for p in presets for s in instances]
+    n_work = 1 if workers == 1 or len(jobs) == 1 else (workers or None)
+    if n_work == 1:
+        results = [_task(j) for j in jobs]
+    else:
+        with ProcessPoolExecutor(max_workers=n_work, mp_context=multiprocessing.get_context("spawn")) as pool:
+            results = list(pool.map(_task, jobs))
+    return [r for chunk in results for r in chunk]
+
+
+def _preset_stats(pr: list[dict], kinds, cutoffs) -> dict:
+    """{configuration label: {metric: median over the instances}} of one preset's rows."""
+    stats = {}
+    for kind, fc in G.cells(kinds, cutoffs):
+        rr = [r for r in pr if r["kind"] == kind and (kind == "none" or r["fc_hz"] == fc)]
+        stats[G.label(kind, fc)] = {k: G.finite_median(r[k] for r in rr) for k in _KEYS}
+    return stats
+
+
+def _preset_summary(stats: dict) -> dict:
+    """The preset's best filter (quietest motors within EXCESS_BUDGET × the raw gyro's attitude
+    cost), its least attitude cost, and the raw gyro's and the article's figures."""
+    best, quiet = G.best_within_budget(stats, "motor_noise_n", EXCESS_BUDGET)
+    art = stats.get("article 30 Hz")
+    return {
+        "best": best,
+        "least_attitude_cost": quiet,
+        "best_excess_deg": stats[best]["excess_deg"] if best else None,
+        "best_motor_noise_n": stats[best]["motor_noise_n"] if best else None,
+        "none_step_track_rms_deg": stats["none"]["step_track_rms_deg"],
+        "none_excess_deg": stats["none"]["excess_deg"],
+        "none_motor_noise_n": stats["none"]["motor_noise_n"],
+        "article30_step_track_rms_deg": art["step_track_rms_deg"] if art else None,
+        "article30_motor_noise_n": art["motor_noise_n"] if art else None,
+        "article30_delay_samples": art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3 if art else None,
+        "best_open_loop_rate": min(stats, key=lambda k: stats[k]["rate_err_rms_deg_s"]),
+    }
+
+
+def _preset_markdown(p: str, stats: dict, summ: dict) -> list[str]:
+    """The preset's table, its best filter and the article's advice against it."""
+    table = [
+        (
+            label,
+            v["hover_att_rms_deg"],
+            v["motor_noise_n"],
+            v["step_track_rms_deg"],
+            v["excess_deg"],
+            v["delay_ms"],
+            v["filter_delay_ms"],
+            v["filter_delay_ms"] * GYRO_RATE_HZ / 1e3,
+            v["rate_err_rms_deg_s"],
+            v["att_err_rms_deg"],
+        )
+        for label, v in stats.items()
+    ]
+    md = [f"### {p}\n"]
+    md.append(
+        md_table(
+            [
+                "filter",
+                "hover error, °",
+                "motor noise, N",
+                "step tracking, °",
+                "excess, °",
+                "delay, ms",
+                "filter delay, ms",
+                "filter delay, samples",
+                "rate error, °/s",
+                "attitude error, °",
+            ],
+            table,
+        )
+    )
+    best, quiet = summ["best"], summ["least_attitude_cost"]
+    n0 = stats["none"]
+    if best:
+        b = stats[best]
+        md.append(
+            f"\nBest for **{p}**: **{best}** — motor noise {b['motor_noise_n']:.4f} N "
+            f"({n0['motor_noise_n'] / b['motor_noise_n']:.1f}× quieter than unfiltered), excess attitude error "
+            f"{b['excess_deg']:.4f}° (unfiltered {n0['excess_deg']:.4f}°), measured delay {b['delay_ms']:.2f} ms. "
+            f"Least attitude cost: **{quiet}** ({stats[quiet]['excess_deg']:.4f}°). Hover attitude error "
+            f"barely depends on the filter ({min(v['hover_att_rms_deg'] for v in stats.values()):.4f}–"
+            f"{max(v['hover_att_rms_deg'] for v in stats.values()):.4f}°): vibration moves the airframe "
+            "itself; the filter decides motor noise and delay."
+        )
+    art = stats.get("article 30 Hz")
+    if art:
+        d_samp = art["filter_delay_ms"] * GYRO_RATE_HZ / 1e3
+        md.append(
+            f" The article's advice, first-order 30 Hz: excess {art['excess_deg']:.4f}° "
+            f"({art['excess_deg'] / n0['excess_deg']:.1f}× the raw gyro's), motor noise "
+            f"{art['motor_noise_n']:.4f} N, filter delay {art['filter_delay_ms']:.2f} ms = {d_samp:.1f} samples at "
+            f"{GYRO_RATE_HZ:g} Hz — {'over' if d_samp > 1 else 'within'} its one-sample budget (a first-order "
+            f"filter meets that budget only for fc ≥ {GYRO_RATE_HZ / (2 * math.pi):.0f} Hz at this rate)."
+        )
+    md.append("\n")
+    return md
+
+
+def _preset_figure(p: str, stats: dict, kinds, cutoffs, out_dir) -> str:
+    """Excess error, motor noise, measured delay and open-loop rate error against the cutoff, per kind."""
+    fig = new_figure(figsize=(11, 3.4))
+    plots = (
+        ("excess_deg", "closed-loop excess attitude error, °"),
+        ("motor_noise_n", "motor noise > 20 Hz, N"),
+        ("delay_ms", "measured gyro delay, ms"),
+        ("rate_err_rms_deg_s", "open-loop rate error, °/s"),
+    )
+    axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
+    for kind in kinds:
+        for ax, (key, _) in zip(axs, plots):
+            ys = [stats[f"{kind} {fc:g} Hz"][key] for fc in cutoffs]
+            ax.plot(cutoffs, ys, marker="o", ms=3, label=kind)
+    for ax, (key, lab) in zip(axs, plots):
+        ax.axhline(stats["none"][key], color="k", ls=":", lw=1, label="none")
+        ax.set_xscale("log")
+        ax.set_xticks(list(cutoffs))
+        ax.set_xticklabels([f"{c:g}" for c in cutoffs], fontsize=7)
+        ax.minorticks_off()
+        ax.set_xlabel("cutoff, Hz")
+        ax.set_ylabel(lab, fontsize=8)
+        ax.grid(alpha=0.3)
+    axs[0].legend(fontsize=7)
+    fig.suptitle(f"{p}: filter type and cutoff")
+    fig.tight_layout()
+    return save_figure(fig, out_dir, f"cutoffs_{p}")

@@ -35,6 +35,9 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError
 
+from experiments.montecarlo import MonteCarloTask, execute, instance_seeds
+
+from . import cutoff_grid as G
 from .report import (
     ExperimentResult,
     md_table,
@@ -76,14 +79,6 @@ def cell_settings(kind: str, fc_hz: float) -> list[tuple[str, str]]:
     return s + [("gyro_lpf1_type", FW_LPF_TYPE[kind]), ("gyro_lpf1_static_hz", str(int(round(fc_hz))))]
 
 
-def _cells(kinds, cutoffs):
-    return [("none", float("nan"))] + [(k, float(fc)) for k in kinds for fc in cutoffs]
-
-
-def _label(kind, fc):
-    return "none" if kind == "none" else f"{kind} {fc:g} Hz"
-
-
 def _angle_rms_deg(qa, qb, mask):
     d = np.abs(np.einsum("ij,ij->i", qa[mask], qb[mask]))
     return float(np.degrees(np.sqrt(np.mean((2.0 * np.arccos(np.clip(d, 0.0, 1.0))) ** 2))))
@@ -120,7 +115,7 @@ def _fw_cells(task):
     ref, _ = fly(replace(base, sensor=None), cell_settings("none", 0.0), binary=binary)
     metrics: dict[str, float] = {}
     nan = float("nan")
-    for kind, fc in _cells(kinds, cutoffs):
+    for kind, fc in G.cells(kinds, cutoffs):
         sets = cell_settings(kind, fc)
         hov, _ = fly(replace(base, scenario="hover"), sets, binary=binary)
         stp, _ = fly(base, sets, binary=binary)
@@ -138,7 +133,7 @@ def _fw_cells(task):
             "overshoot_pct": ss["step_overshoot_pct"] if ok else nan,
             "crashed": float(not ok),
         }
-        lab = _label(kind, fc)
+        lab = G.label(kind, fc)
         for k, v in m.items():
             metrics[f"{lab}|{k}"] = float(v)
     return TaskResult.from_task(task, metrics)
@@ -147,27 +142,11 @@ def _fw_cells(task):
 def _medians(results, cells, keys):
     out = {}
     for kind, fc in cells:
-        lab = _label(kind, fc)
+        lab = G.label(kind, fc)
         out[lab] = {}
         for k in keys:
-            v = np.array([r.metrics_dict.get(f"{lab}|{k}", np.nan) for r in results], float)
-            v = v[np.isfinite(v)]
-            out[lab][k] = float(np.median(v)) if v.size else float("nan")
+            out[lab][k] = G.finite_median(r.metrics_dict.get(f"{lab}|{k}", np.nan) for r in results)
     return out
-
-
-def _best(stats: dict, noise_key: str, budget: float):
-    """Quietest motors among the cells whose excess is within ``budget`` x the unfiltered cell's (the cutoffs rule)."""
-    lim = budget * stats["none"]["excess_deg"]
-    ok = {
-        k: v
-        for k, v in stats.items()
-        if np.isfinite(v["excess_deg"]) and v["excess_deg"] <= lim and np.isfinite(v[noise_key])
-    }
-    best = min(ok, key=lambda k: ok[k][noise_key]) if ok else None
-    finite = {k: v for k, v in stats.items() if np.isfinite(v["excess_deg"])}
-    least = min(finite, key=lambda k: finite[k]["excess_deg"]) if finite else None
-    return best, least
 
 
 def _disagreement(p, fw_best, ours_best, fw, ours, budget) -> str:
@@ -215,7 +194,6 @@ def run(
     KINDS, PRESETS = grid["kinds"], grid["presets"]
     EXCESS_BUDGET = float(grid["excess_budget"])
     from experiments.firmware_fly import _record_of
-    from experiments.montecarlo import MonteCarloTask, execute, instance_seeds
     from sim.firmware.build import FirmwareBinary, ensure_binary
     from sim.vehicles import get_vehicle
 
@@ -237,30 +215,11 @@ def run(
     fb = binary if isinstance(binary, FirmwareBinary) else (ensure_binary() if binary is None else _record_of(binary))
     binary = fb.binary if fb is not None else str(binary)
     version = f"{fb.firmware} {fb.version}" if fb is not None else "betaflight"
-    inst = instance_seeds(seed, n_inst)
     opts = (("kinds", kinds), ("cutoffs", cutoffs), ("vehicle", vehicle), ("binary", binary))
-    tasks_fw = [
-        MonteCarloTask(index=i, scenario="cutoffs-firmware", sensor=p, instance=j, seed=s, duration_s=dur, options=opts)
-        for i, (p, (j, s)) in enumerate((p, js) for p in presets for js in enumerate(inst))
-    ]
-    n_work = 1 if workers is None else int(workers)
-    res_fw, backend, nw = execute(fw_cell_task, tasks_fw, workers=n_work, scheduler=scheduler)
-    res_ours = []
-    if with_ours:
-        tasks_o = [
-            MonteCarloTask(
-                index=t.index,
-                scenario="cutoffs-ours",
-                sensor=t.sensor,
-                instance=t.instance,
-                seed=t.seed,
-                duration_s=dur,
-                options=opts[:3] + (("rate_hz", LOOP_RATE_HZ),),
-            )
-            for t in tasks_fw
-        ]
-        res_ours, _, _ = execute(ours_task, tasks_o, workers=n_work, scheduler=scheduler)
-    cells = _cells(kinds, cutoffs)
+    res_fw, res_ours, backend, nw = _fly_cells(
+        presets, instance_seeds(seed, n_inst), dur, opts, ours_task if with_ours else None, workers, scheduler
+    )
+    cells = G.cells(kinds, cutoffs)
     fw_keys = (
         "hover_att_rms_deg",
         "motor_noise_pct",
@@ -300,86 +259,9 @@ def run(
     for p in presets:
         fw = _medians([r for r in res_fw if r.sensor == p], cells, fw_keys)
         ours = _medians([r for r in res_ours if r.sensor == p], cells, ours_keys) if with_ours else {}
-        fw_best, fw_least = _best(fw, "motor_noise_pct", EXCESS_BUDGET)
-        ours_best, ours_least = _best(ours, "motor_noise_n", EXCESS_BUDGET) if with_ours else (None, None)
-        rows = []
-        for kind, fc in cells:
-            lab = _label(kind, fc)
-            f = fw[lab]
-            row = [
-                lab,
-                f["hover_att_rms_deg"],
-                f["motor_noise_pct"],
-                f["dterm_noise"],
-                f["step_track_rms_deg"],
-                f["excess_deg"],
-                f["delay_ms"],
-                f["rise_ms"],
-                f["overshoot_pct"],
-            ]
-            if with_ours:
-                o = ours[lab]
-                row += [o["hover_att_rms_deg"], o["motor_noise_n"], o["excess_deg"], o["delay_ms"]]
-            rows.append(tuple(row))
-        head = [
-            "filter",
-            "fw hover error, °",
-            "fw motor noise, %",
-            "fw D-term noise",
-            "fw step tracking, °",
-            "fw excess, °",
-            "fw delay, ms",
-            "fw rise, ms",
-            "fw overshoot, %",
-        ]
-        if with_ours:
-            head += ["ours hover error, °", "ours motor noise, N", "ours excess, °", "ours delay, ms"]
-        md.append(f"### {p} ({version})\n")
-        md.append(md_table(head, rows))
-        md.append(
-            f"\nFirmware's best for **{p}**: **{fw_best}** (least attitude cost: {fw_least}); "
-            f"our controller's: **{ours_best}** (least attitude cost: {ours_least}). "
-            + (_disagreement(p, fw_best, ours_best, fw, ours, EXCESS_BUDGET) if with_ours else "")
-            + "\n"
-        )
-        summary["presets"][p] = {
-            "firmware_best": fw_best,
-            "firmware_least_attitude_cost": fw_least,
-            "ours_best": ours_best,
-            "ours_least_attitude_cost": ours_least,
-            "agree": fw_best == ours_best,
-            "firmware": fw,
-            "ours": ours,
-        }
-        fig = new_figure(figsize=(11, 3.4))
-        plots = (
-            ("excess_deg", "excess attitude error, °"),
-            ("motor_noise_pct", "fw motor noise > 20 Hz, %"),
-            ("delay_ms", "measured gyro delay, ms"),
-        )
-        axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
-        for kind in kinds:
-            for ax, (key, _) in zip(axs, plots):
-                ax.plot(cutoffs, [fw[_label(kind, c)][key] for c in cutoffs], marker="o", ms=3, label=f"fw {kind}")
-                if with_ours and key in ("excess_deg", "delay_ms"):
-                    ax.plot(
-                        cutoffs,
-                        [ours[_label(kind, c)][key] for c in cutoffs],
-                        ls="--",
-                        marker="x",
-                        ms=3,
-                        label=f"ours {kind}",
-                    )
-        for ax, (key, lab) in zip(axs, plots):
-            ax.axhline(fw["none"][key], color="k", ls=":", lw=1, label="fw none")
-            ax.set_xscale("log")
-            ax.set_xlabel("cutoff, Hz")
-            ax.set_ylabel(lab, fontsize=8)
-            ax.grid(alpha=0.3)
-        axs[0].legend(fontsize=6)
-        fig.suptitle(f"{p}: gyro low-pass flown by {version} ({vehicle})")
-        fig.tight_layout()
-        figs.append(save_figure(fig, out_dir, f"cutoffs_firmware_{p}"))
+        summary["presets"][p] = _preset_summary(fw, ours, EXCESS_BUDGET, with_ours=with_ours)
+        md += _preset_markdown(p, fw, ours, summary["presets"][p], cells, version, EXCESS_BUDGET, with_ours=with_ours)
+        figs.append(_preset_figure(p, fw, ours, kinds, cutoffs, version, vehicle, out_dir, with_ours=with_ours))
         md.append(f"![cutoffs on the firmware {p}]({figs[-1]})\n")
     line = "; ".join(
         f"{p}: firmware {v['firmware_best']}, ours {v['ours_best']}" for p, v in summary["presets"].items()
@@ -396,3 +278,123 @@ def run(
         summary=summary,
         wall_s=time.perf_counter() - t0,
     )
+
+
+def _fly_cells(presets, instances, dur: float, opts: tuple, ours_task, workers, scheduler):
+    """Every cell of every (preset, instance) flown by the firmware and, with ``ours_task``, by our
+    controller on the same airframe and gyro rate: (firmware results, ours, backend, workers)."""
+    tasks_fw = [
+        MonteCarloTask(index=i, scenario="cutoffs-firmware", sensor=p, instance=j, seed=s, duration_s=dur, options=opts)
+        for i, (p, (j, s)) in enumerate((p, js) for p in presets for js in enumerate(instances))
+    ]
+    n_work = 1 if workers is None else int(workers)
+    res_fw, backend, nw = execute(fw_cell_task, tasks_fw, workers=n_work, scheduler=scheduler)
+    res_ours = []
+    if ours_task is not None:
+        tasks_o = [
+            MonteCarloTask(
+                index=t.index,
+                scenario="cutoffs-ours",
+                sensor=t.sensor,
+                instance=t.instance,
+                seed=t.seed,
+                duration_s=dur,
+                options=opts[:3] + (("rate_hz", LOOP_RATE_HZ),),
+            )
+            for t in tasks_fw
+        ]
+        res_ours, _, _ = execute(ours_task, tasks_o, workers=n_work, scheduler=scheduler)
+    return res_fw, res_ours, backend, nw
+
+
+def _preset_summary(fw: dict, ours: dict, budget: float, *, with_ours: bool) -> dict:
+    """Each side's best cell and least attitude cost (the cutoffs rule), and whether they agree."""
+    fw_best, fw_least = G.best_within_budget(fw, "motor_noise_pct", budget)
+    ours_best, ours_least = G.best_within_budget(ours, "motor_noise_n", budget) if with_ours else (None, None)
+    return {
+        "firmware_best": fw_best,
+        "firmware_least_attitude_cost": fw_least,
+        "ours_best": ours_best,
+        "ours_least_attitude_cost": ours_least,
+        "agree": fw_best == ours_best,
+        "firmware": fw,
+        "ours": ours,
+    }
+
+
+def _preset_markdown(p, fw, ours, summ, cells, version, budget, *, with_ours: bool) -> list[str]:
+    """The preset's table (firmware, then ours) and the two verdicts."""
+    rows = []
+    for kind, fc in cells:
+        lab = G.label(kind, fc)
+        f = fw[lab]
+        row = [
+            lab,
+            f["hover_att_rms_deg"],
+            f["motor_noise_pct"],
+            f["dterm_noise"],
+            f["step_track_rms_deg"],
+            f["excess_deg"],
+            f["delay_ms"],
+            f["rise_ms"],
+            f["overshoot_pct"],
+        ]
+        if with_ours:
+            o = ours[lab]
+            row += [o["hover_att_rms_deg"], o["motor_noise_n"], o["excess_deg"], o["delay_ms"]]
+        rows.append(tuple(row))
+    head = [
+        "filter",
+        "fw hover error, °",
+        "fw motor noise, %",
+        "fw D-term noise",
+        "fw step tracking, °",
+        "fw excess, °",
+        "fw delay, ms",
+        "fw rise, ms",
+        "fw overshoot, %",
+    ]
+    if with_ours:
+        head += ["ours hover error, °", "ours motor noise, N", "ours excess, °", "ours delay, ms"]
+    fw_best, ours_best = summ["firmware_best"], summ["ours_best"]
+    return [
+        f"### {p} ({version})\n",
+        md_table(head, rows),
+        f"\nFirmware's best for **{p}**: **{fw_best}** (least attitude cost: {summ['firmware_least_attitude_cost']}); "
+        f"our controller's: **{ours_best}** (least attitude cost: {summ['ours_least_attitude_cost']}). "
+        + (_disagreement(p, fw_best, ours_best, fw, ours, budget) if with_ours else "")
+        + "\n",
+    ]
+
+
+def _preset_figure(p, fw, ours, kinds, cutoffs, version, vehicle, out_dir, *, with_ours: bool) -> str:
+    """Excess error, firmware motor noise and measured delay against the cutoff, firmware and ours."""
+    fig = new_figure(figsize=(11, 3.4))
+    plots = (
+        ("excess_deg", "excess attitude error, °"),
+        ("motor_noise_pct", "fw motor noise > 20 Hz, %"),
+        ("delay_ms", "measured gyro delay, ms"),
+    )
+    axs = [fig.add_subplot(1, len(plots), i + 1) for i in range(len(plots))]
+    for kind in kinds:
+        for ax, (key, _) in zip(axs, plots):
+            ax.plot(cutoffs, [fw[G.label(kind, c)][key] for c in cutoffs], marker="o", ms=3, label=f"fw {kind}")
+            if with_ours and key in ("excess_deg", "delay_ms"):
+                ax.plot(
+                    cutoffs,
+                    [ours[G.label(kind, c)][key] for c in cutoffs],
+                    ls="--",
+                    marker="x",
+                    ms=3,
+                    label=f"ours {kind}",
+                )
+    for ax, (key, lab) in zip(axs, plots):
+        ax.axhline(fw["none"][key], color="k", ls=":", lw=1, label="fw none")
+        ax.set_xscale("log")
+        ax.set_xlabel("cutoff, Hz")
+        ax.set_ylabel(lab, fontsize=8)
+        ax.grid(alpha=0.3)
+    axs[0].legend(fontsize=6)
+    fig.suptitle(f"{p}: gyro low-pass flown by {version} ({vehicle})")
+    fig.tight_layout()
+    return save_figure(fig, out_dir, f"cutoffs_firmware_{p}")
