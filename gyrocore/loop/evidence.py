@@ -19,7 +19,7 @@ from .residual import Residual
 from .model import Model, split_axis, with_companion
 from .result import Evidence
 
-__all__ = ["rms", "cv_rms", "cv_min", "candidate_test"]
+__all__ = ["rms", "cv_rms", "cv_rms_with", "cv_min", "candidate_test"]
 
 
 def cv_rms(y: np.ndarray, X: np.ndarray, *, min_windows: int = 40, n_blocks: int = 10) -> float:
@@ -54,6 +54,12 @@ def cv_rms(y: np.ndarray, X: np.ndarray, *, min_windows: int = 40, n_blocks: int
         th, *_ = np.linalg.lstsq(A / cn, y[tr].reshape(-1), rcond=1e-10)
         out.append(y[te] - np.einsum("mip,p->mi", X[te], th / cn))
     return rms(np.concatenate(out))
+
+
+def cv_rms_with(model: Model, effects: Sequence[str], extra: str) -> float:
+    """:func:`cv_rms` of the window residual with the model ``effects`` plus the columns of ``extra``."""
+    X0 = model.design(effects)[0]
+    return cv_rms(model.res.y_rad_s, np.concatenate([X0, model.block(extra)[1]], axis=2), min_windows=cv_min(model.res))
 
 
 def cv_min(res: Residual) -> int:

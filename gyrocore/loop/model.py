@@ -16,7 +16,7 @@ import numpy as np
 from gyrocore.effects import registry as E
 from gyrocore.calib import lsq
 from gyrocore.data.recording import Recording
-from gyrocore.calib.stream import SpilledRecording
+from . import source
 from .residual import Residual
 from .search import column_axis
 
@@ -146,17 +146,9 @@ class Model:
 
 def advance(rec: Recording, tau_s: float) -> Recording:
     """The recording with the gyro advanced by τ: gyro'(t) = gyro(t + τ) (cubic spline, ends
-    held), which undoes a lag τ of the gyro behind the reference exactly (no linearisation)."""
-    from dataclasses import replace
-
-    from scipy.interpolate import CubicSpline
-
-    if isinstance(rec, SpilledRecording):  # advanced a window at a time where it is read
-        return rec.with_ops(tau_s=tau_s)
-    t = rec.t_s
-    tq = np.clip(t + tau_s, t[0], t[-1])
-    g = CubicSpline(t, rec.gyro_rad_s, axis=0)(tq)
-    return replace(rec, gyro_rad_s=g)
+    held), which undoes a lag τ of the gyro behind the reference exactly (no linearisation); a
+    recording on disk is advanced a window at a time as it is read (:mod:`gyrocore.loop.source`)."""
+    return source.of(rec).advance(tau_s)
 
 
 def fittable(effect: str) -> bool:

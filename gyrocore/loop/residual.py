@@ -63,7 +63,8 @@ from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment, as_segments
 from gyrocore.data.still import StillGate, still_samples
-from gyrocore.calib.stream import Rows, rows_of
+from gyrocore.calib.stream import NotStreamable, Rows, rows_of
+from . import source
 
 __all__ = [
     "REFERENCE_KINDS",
@@ -556,294 +557,110 @@ def build_residual(
     Residual
     """
     segs = as_segments(segments)
-    from gyrocore.calib.stream import SpilledRecording
-
-    if isinstance(rec, SpilledRecording):
-        return _build_spilled(rec, reference=reference, segments=segs, window_s=window_s)
-    kind = choose_reference(rec, segs) if reference == "auto" else reference
+    src = source.of(rec)
+    if src.on_disk:
+        _check_streamable(rec, reference, segs)
+        kind = "rate"
+    else:
+        kind = choose_reference(rec, segs) if reference == "auto" else reference
     if kind not in REFERENCE_KINDS:
         raise GyroInputError(f"unknown reference '{reference}' ({', '.join(REFERENCE_KINDS)}, auto)")
-    t = rec.t_s
-    n = rec.n
-    if n < 3:
+    if rec.n < 3:
         raise GyroInputError("too few samples for a residual")
-    gyro = rec.gyro_rad_s
-    fs = rec.rate_hz
-    notes: list[str] = []
-
-    def n_block(default_windows: int) -> int:
-        if window_s is not None:
-            return max(1, int(round(window_s * fs)))
-        return max(2, int(np.ceil(n / default_windows)))
-
-    R_GS = None
-    R_WS = None
-    q_ref = rec.ref_quat_wxyz
     if kind == "rate":
-        if rec.ref_rate_rad_s is None:
-            raise GyroInputError("reference 'rate' needs the ref_x/y/z_rad_s columns")
-        ref = rec.ref_rate_rad_s
-        ok = np.all(np.isfinite(ref), axis=1)
-        if ok.sum() < 3:
-            raise GyroInputError("the reference rate is NaN almost everywhere")
-        if not ok.all():
-            notes.append(f"{int((~ok).sum())} samples with NaN reference rate excluded")
-        omega = _fill_nan_rows(t, ref)
-        a, b = _blocks(ok, n_block(_TARGET_WINDOWS))
-        if q_ref is not None and np.all(np.isfinite(q_ref)):
-            R_WS = _R(q_ref)
-        else:
-            R_WS = _R(integrate_gyro(t, omega, hold="backward"))  # W' = S at t0, a fixed frame
-        r = gyro - omega
-        desc = "reference rate (ref_*_rad_s), block means"
-    elif kind == "still":
-        if segs:
-            mask = _segment_mask(t, segs, "still")
-            if not mask.any():
-                raise GyroInputError("no still segment covers any sample")
-            desc = f"{sum(s.kind == 'still' for s in segs)} still segment(s): true rate 0"
-        elif "static_pose_axis" in rec.extra:
-            mask = rec.extra["static_pose_axis"] != 0
-            desc = "static poses (static_pose_axis column): true rate 0"
-        else:
-            mask = still_samples(rec, STILL_GATE)
-            desc = f"still samples found by a motion gate ({mask.mean():.0%} of the recording): true rate 0"
-        omega = np.zeros((n, 3))
-        a, b = _blocks(mask, n_block(_TARGET_WINDOWS))
-        if q_ref is not None and np.all(np.isfinite(q_ref)):
-            R_WS = _R(q_ref)
-        r = gyro
-    elif kind == "attitude":
-        if q_ref is None:
-            raise GyroInputError("reference 'attitude' needs the ref_qw/qx/qy/qz columns")
-        ok = np.all(np.isfinite(q_ref), axis=1)
-        L = max(2, int(round((window_s or 1.0) * fs)))
-        idx = np.arange(0, n - L, L)
-        a_all, b_all = idx, idx + L
-        keep = ok[a_all] & ok[b_all]
-        a, b = a_all[keep], b_all[keep]
-        if a.size < 3:
-            raise GyroInputError("fewer than 3 windows with a valid reference attitude at both ends")
-        n_lost = int((~keep).sum())
-        if n_lost:
-            notes.append(f"{n_lost} of {keep.size} windows dropped: reference attitude NaN at an end")
-        q_hat = integrate_gyro(t, gyro, hold="backward")
-        R_GS = _R(q_hat)
-        R_ref = np.full((n, 3, 3), np.nan)
-        R_ref[ok] = _R(q_ref[ok])
-        # E = (R_a^T R_b)^T · (R̂_a^T R̂_b)
-        rel_ref = np.einsum("mji,mjk->mik", R_ref[a], R_ref[b])
-        rel_hat = np.einsum("mji,mjk->mik", R_GS[a], R_GS[b])
-        Em = np.einsum("mji,mjk->mik", rel_ref, rel_hat)
-        T = t[b] - t[a]
-        y = Rotation.from_matrix(Em).as_rotvec() / T[:, None]
-        # attitude S->W per sample: anchored at the latest valid reference sample
-        vi = np.flatnonzero(ok)
-        anchor = vi[np.clip(np.searchsorted(vi, np.arange(n), side="right") - 1, 0, None)]
-        R_WS = np.einsum("nij,nkj,nkl->nil", R_ref[anchor], R_GS[anchor], R_GS)
-        omega = _smooth(t, gyro)
-        desc = f"reference attitude (ref_q*), {L / fs:.3g} s windows of integrated gyro vs reference rotation"
-        # glitches of the optical reference (marker swaps): robust outlier rejection
-        nrm = np.linalg.norm(y, axis=1)
-        med = float(np.median(nrm))
-        mad = float(np.median(np.abs(nrm - med))) * 1.4826
-        if mad > 0 and outlier_mad > 0:
-            good = nrm <= med + outlier_mad * mad
-            if (~good).any():
-                notes.append(
-                    f"{int((~good).sum())} windows dropped as reference glitches (|residual| > median + {outlier_mad:g}·MAD)"
-                )
-            a, b, y = a[good], b[good], y[good]
-        inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None)
-        return Residual(
-            kind=kind,
-            y_rad_s=y,
-            win_start=a,
-            win_stop=b,
-            t_mid_s=0.5 * (t[a] + t[b]),
-            inputs=inputs,
-            R_GS=R_GS,
-            R_WS=R_WS,
-            gyro_rad_s=gyro,
-            description=desc,
-            notes=tuple(notes),
-        )
-    else:  # angles
-        rots = [s for s in segs if s.kind == "rotation"]
-        if not rots:
-            raise GyroInputError("reference 'angles' needs rotation segments (--segments)")
-        a_l, b_l, phi = [], [], []
-        for s in rots:
-            ia = int(np.searchsorted(t, s.t_start_s, side="left"))
-            ib = int(np.searchsorted(t, s.t_end_s, side="right")) - 1
-            if ib - ia < 2:
-                raise GyroInputError(f"rotation segment {s.t_start_s}..{s.t_end_s} s covers fewer than 3 samples")
-            a_l.append(ia)
-            b_l.append(ib)
-            phi.append(s.angle_S_rad)
-        a, b = np.asarray(a_l), np.asarray(b_l)
-        n_rot = a.size
-        # still windows outside the rotations: they pin the bias (and g-sensitivity across poses)
-        in_rot = np.zeros(n, bool)
-        for ia, ib in zip(a, b):
-            in_rot[ia : ib + 1] = True
-        if any(s.kind == "still" for s in segs):
-            still = _segment_mask(t, segs, "still")
-            how = "still segments"
-        elif "static_pose_axis" in rec.extra:
-            still = rec.extra["static_pose_axis"] != 0
-            how = "static poses"
-        else:
-            still = still_samples(rec, STILL_GATE)
-            how = "motion gate"
-        still &= ~in_rot
-        sa, sb = _blocks(still, max(2, int(round((window_s or 0.5) * fs))))
-        if n_rot + sa.size < 2:
-            raise GyroInputError(
-                "reference too poor: one known rotation and no still part give only 3 numbers "
-                "(record still periods before/after, or several rotations)"
-            )
-        phi_all = np.vstack([np.asarray(phi, float), np.zeros((sa.size, 3))])
-        a, b = np.concatenate([a, sa]), np.concatenate([b, sb])
-        omega = _smooth(t, gyro)
-        omega[still] = 0.0
-        # a first bias from the still windows is removed before integrating, so that the error
-        # rotation of each known rotation stays small (first order); it is added back below
-        b0 = gyro[still].mean(axis=0) if still.any() else np.zeros(3)
-        if angle_mode not in ("rotation", "axis"):
-            raise GyroInputError(f"angle mode must be 'rotation' or 'axis', not '{angle_mode}'")
-        R_GS = _R(integrate_gyro(t, gyro - b0, hold="backward")) if angle_mode == "rotation" else None
-        inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
-        res = Residual(
-            kind=kind,
-            y_rad_s=np.zeros((a.size, 3)),
-            win_start=a,
-            win_stop=b,
-            t_mid_s=0.5 * (t[a] + t[b]),
-            inputs=inputs,
-            R_GS=R_GS,
-            R_WS=None,
-            gyro_rad_s=gyro,
-            description=(
-                f"{n_rot} known rotation(s): "
-                + (
-                    "integrated gyro rotation vs known rotation"
-                    if angle_mode == "rotation"
-                    else "integrated angle about each axis vs known angle"
-                )
-                + f"; {sa.size} still windows ({how})"
-            ),
-            notes=(),
-        )
-        T = t[b] - t[a]
-        y = res.window_mean(gyro)  # still windows: the mean rate (true rate 0)
-        # rotation windows: E = exp(φ)ᵀ·(R̂_aᵀ·R̂_b) — compared as rotations, so the path (wobble,
-        # coning of a hand rotation) does not matter, only the start and end attitudes
-        if angle_mode == "rotation":
-            ra, rb = a[:n_rot], b[:n_rot]
-            rel_hat = np.einsum("mji,mjk->mik", R_GS[ra], R_GS[rb])
-            Rk = Rotation.from_rotvec(phi_all[:n_rot]).as_matrix()
-            Em = np.einsum("mji,mjk->mik", Rk, rel_hat)
-            b0_win = res.window_mean(np.broadcast_to(b0, gyro.shape).copy())
-            y[:n_rot] = Rotation.from_matrix(Em).as_rotvec() / T[:n_rot, None] + b0_win[:n_rot]
-            notes.append(
-                "known rotations are compared as rotations (start vs end attitude); by hand they are "
-                "good to a few degrees (see angle_sigma/axis_sigma)"
-            )
-        else:
-            # only the total angle about the axis is known (hand turns whose start and end
-            # poses differ): ∫ω dt along the axis; the cross-axis components get zero weight
-            y[:n_rot] = y[:n_rot] - phi_all[:n_rot] / T[:n_rot, None]
-            notes.append(
-                "angle mode 'axis': only the total angle about each rotation axis is used "
-                "(∫ω dt along the axis; the start and end poses are not assumed known)"
-            )
-        return Residual(
-            kind=kind,
-            y_rad_s=y,
-            win_start=a,
-            win_stop=b,
-            t_mid_s=res.t_mid_s,
-            inputs=inputs,
-            R_GS=R_GS,
-            R_WS=None,
-            gyro_rad_s=gyro,
-            description=res.description,
-            notes=tuple(notes),
-            is_rotation=np.arange(a.size) < n_rot,
-            angle_sigma_rad=np.radians(angle_sigma_deg),
-            axis_sigma_rad=np.radians(axis_sigma_deg),
-            angle_S_rad=phi_all,
-            angle_mode=angle_mode,
-        )
-
-    if a.size < 3:
-        raise GyroInputError(f"fewer than 3 observation windows for reference '{kind}'")
-    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None)
-    res = Residual(
-        kind=kind,
-        y_rad_s=np.zeros((a.size, 3)),
-        win_start=a,
-        win_stop=b,
-        t_mid_s=0.5 * (t[a] + t[b]),
-        inputs=inputs,
-        R_GS=None,
-        R_WS=R_WS,
-        gyro_rad_s=gyro,
-        description=desc,
-        notes=tuple(notes),
-    )
-    y = res.window_mean(np.where(np.isfinite(r), r, 0.0))
-    return Residual(
-        kind=kind,
-        y_rad_s=y,
-        win_start=a,
-        win_stop=b,
-        t_mid_s=res.t_mid_s,
-        inputs=inputs,
-        R_GS=None,
-        R_WS=R_WS,
-        gyro_rad_s=gyro,
-        description=desc,
-        notes=tuple(notes),
-    )
+        return _rate_residual(src, window_s)
+    if kind == "still":
+        return _still_residual(rec, segs, window_s)
+    if kind == "attitude":
+        return _attitude_residual(rec, window_s, outlier_mad)
+    return _angles_residual(rec, segs, window_s, angle_sigma_deg, axis_sigma_deg, angle_mode)
 
 
-def _build_spilled(rec, *, reference: str, segments, window_s: float | None) -> Residual:
-    """:func:`build_residual` of a recording held on disk (:class:`gyrocore.calib.stream.SpilledRecording`):
-    the ``rate`` reference, window means read a window at a time; the same windows, values
-    and notes as the in-memory path (equal to rounding: sums carried across windows).
+def _n_block(rec: Recording, window_s: float | None) -> int:
+    """Samples per block-mean window: ``window_s`` at the sample rate, else ≈ :data:`_TARGET_WINDOWS`
+    windows of at least 2 samples."""
+    if window_s is not None:
+        return max(1, int(round(window_s * rec.rate_hz)))
+    return max(2, int(np.ceil(rec.n / _TARGET_WINDOWS)))
 
-    Raises :class:`gyrocore.calib.stream.NotStreamable` for what only the in-memory path does (other
-    references, segments, a reference rate with NaN rows): the caller reads the file whole.
-    """
-    from gyrocore.calib.stream import LazyRotations, NotStreamable
 
-    if segments or reference not in ("auto", "rate"):
+def _check_streamable(rec, reference: str, segs: Sequence[Segment]) -> None:
+    """What a recording on disk (:class:`gyrocore.calib.stream.SpilledRecording`) can be built
+    against: the ``rate`` reference without segments and without NaN rows in the reference rate.
+    Raises :class:`gyrocore.calib.stream.NotStreamable` for what only a recording in memory offers
+    (the motion gate, the attitude reference's integration, the filled NaN rows all need the whole
+    record): the caller reads the file whole instead."""
+    if segs or reference not in ("auto", "rate"):
         raise NotStreamable("only the rate reference without segments is built from disk")
     if rec.ref_rate_rad_s is None:
         if reference == "rate":
             raise GyroInputError("reference 'rate' needs the ref_x/y/z_rad_s columns")
         raise NotStreamable("no reference rate")
-    n = rec.n
-    if n < 3:
+    if rec.n < 3:
         raise GyroInputError("too few samples for a residual")
     if not rec.all_finite("ref_rate"):
         raise NotStreamable("NaN rows in the reference rate")
+
+
+def _rate_residual(src, window_s: float | None) -> Residual:
+    """``"rate"``: block means of r = y − ω_ref over the runs of samples with a finite reference,
+    a window of rows at a time (:mod:`gyrocore.loop.source`: a recording in memory is one window)."""
+    rec = src.rec
+    if rec.ref_rate_rad_s is None:
+        raise GyroInputError("reference 'rate' needs the ref_x/y/z_rad_s columns")
     t = rec.t_s
-    fs = rec.rate_hz
-    block = max(1, int(round(window_s * fs))) if window_s is not None else max(2, int(np.ceil(n / _TARGET_WINDOWS)))
-    a, b = _blocks(np.ones(n, bool), block)
-    if a.size < 3:
-        raise GyroInputError("fewer than 3 observation windows for reference 'rate'")
-    q = rec.reference_quaternions()
-    R_WS = LazyRotations(q) if q is not None else None
+    ref = rec.ref_rate_rad_s
+    ok = src.finite_rows(ref)
+    if ok.sum() < 3:
+        raise GyroInputError("the reference rate is NaN almost everywhere")
+    notes = []
+    if not ok.all():
+        notes.append(f"{int((~ok).sum())} samples with NaN reference rate excluded")
+    # the regressors' rate: NaN rows filled (in memory only: a recording on disk has none)
+    omega = ref if ok.all() else _fill_nan_rows(t, ref)
+    a, b = _blocks(ok, _n_block(rec, window_s))
+    # S->W from ref_q*, else the reference rate integrated (W' = S at t0, a fixed frame)
+    R_WS = src.rotations(src.reference_attitude(omega))
+
+    def r_rows(lo, hi):
+        r = rows_of(rec.gyro_rad_s, lo, hi) - rows_of(omega, lo, hi)
+        return np.where(np.isfinite(r), r, 0.0)
+
     desc = "reference rate (ref_*_rad_s), block means"
-    inputs = E.ModelInputs(
-        t_s=t, omega_S_rad_s=rec.ref_rate_rad_s, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None
-    )
+    r = src.per_sample(r_rows, 3)
+    return _block_means_residual("rate", rec, r, omega, a, b, R_WS, desc, notes, chunk_rows=src.chunk_rows)
+
+
+def _still_residual(rec: Recording, segs: Sequence[Segment], window_s: float | None) -> Residual:
+    """``"still"``: block means of the gyro (true rate 0) inside the still samples."""
+    t, gyro = rec.t_s, rec.gyro_rad_s
+    if segs:
+        mask = _segment_mask(t, segs, "still")
+        if not mask.any():
+            raise GyroInputError("no still segment covers any sample")
+        desc = f"{sum(s.kind == 'still' for s in segs)} still segment(s): true rate 0"
+    elif "static_pose_axis" in rec.extra:
+        mask = rec.extra["static_pose_axis"] != 0
+        desc = "static poses (static_pose_axis column): true rate 0"
+    else:
+        mask = still_samples(rec, STILL_GATE)
+        desc = f"still samples found by a motion gate ({mask.mean():.0%} of the recording): true rate 0"
+    a, b = _blocks(mask, _n_block(rec, window_s))
+    q_ref = rec.ref_quat_wxyz
+    R_WS = _R(q_ref) if q_ref is not None and np.all(np.isfinite(q_ref)) else None
+    r = np.where(np.isfinite(gyro), gyro, 0.0)
+    return _block_means_residual("still", rec, r, np.zeros((rec.n, 3)), a, b, R_WS, desc, [])
+
+
+def _block_means_residual(kind, rec, r, omega, a, b, R_WS, desc: str, notes: list, chunk_rows: int = 0) -> Residual:
+    """The residual of block-mean windows [a, b): y = the window means of r (finite per-sample
+    values, an array or :class:`~gyrocore.calib.stream.Rows`); no rotation within a window."""
+    if a.size < 3:
+        raise GyroInputError(f"fewer than 3 observation windows for reference '{kind}'")
+    t = rec.t_s
+    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None)
     kw = dict(
-        kind="rate",
+        kind=kind,
         win_start=a,
         win_stop=b,
         t_mid_s=0.5 * (t[a] + t[b]),
@@ -852,14 +669,188 @@ def _build_spilled(rec, *, reference: str, segments, window_s: float | None) -> 
         R_WS=R_WS,
         gyro_rad_s=rec.gyro_rad_s,
         description=desc,
-        notes=(),
-        chunk_rows=rec.chunk_rows,
+        notes=tuple(notes),
+        chunk_rows=chunk_rows,
     )
-    res = Residual(y_rad_s=np.zeros((a.size, 3)), **kw)
-
-    def r_rows(lo, hi):
-        r = rec.gyro_rad_s.rows(lo, hi) - rec.ref_rate_rad_s.rows(lo, hi)
-        return np.where(np.isfinite(r), r, 0.0)
-
-    y = res.window_mean(Rows(r_rows, n, 3))
+    y = Residual(y_rad_s=np.zeros((a.size, 3)), **kw).window_mean(r)
     return Residual(y_rad_s=y, **kw)
+
+
+def _attitude_residual(rec: Recording, window_s: float | None, outlier_mad: float) -> Residual:
+    """``"attitude"``: windows of the integrated gyro's rotation against the reference rotation."""
+    t, n, fs, gyro = rec.t_s, rec.n, rec.rate_hz, rec.gyro_rad_s
+    q_ref = rec.ref_quat_wxyz
+    if q_ref is None:
+        raise GyroInputError("reference 'attitude' needs the ref_qw/qx/qy/qz columns")
+    ok = np.all(np.isfinite(q_ref), axis=1)
+    L = max(2, int(round((window_s or 1.0) * fs)))
+    idx = np.arange(0, n - L, L)
+    a_all, b_all = idx, idx + L
+    keep = ok[a_all] & ok[b_all]
+    a, b = a_all[keep], b_all[keep]
+    if a.size < 3:
+        raise GyroInputError("fewer than 3 windows with a valid reference attitude at both ends")
+    notes = []
+    n_lost = int((~keep).sum())
+    if n_lost:
+        notes.append(f"{n_lost} of {keep.size} windows dropped: reference attitude NaN at an end")
+    q_hat = integrate_gyro(t, gyro, hold="backward")
+    R_GS = _R(q_hat)
+    R_ref = np.full((n, 3, 3), np.nan)
+    R_ref[ok] = _R(q_ref[ok])
+    # E = (R_a^T R_b)^T · (R̂_a^T R̂_b)
+    rel_ref = np.einsum("mji,mjk->mik", R_ref[a], R_ref[b])
+    rel_hat = np.einsum("mji,mjk->mik", R_GS[a], R_GS[b])
+    Em = np.einsum("mji,mjk->mik", rel_ref, rel_hat)
+    T = t[b] - t[a]
+    y = Rotation.from_matrix(Em).as_rotvec() / T[:, None]
+    # attitude S->W per sample: anchored at the latest valid reference sample
+    vi = np.flatnonzero(ok)
+    anchor = vi[np.clip(np.searchsorted(vi, np.arange(n), side="right") - 1, 0, None)]
+    R_WS = np.einsum("nij,nkj,nkl->nil", R_ref[anchor], R_GS[anchor], R_GS)
+    omega = _smooth(t, gyro)
+    desc = f"reference attitude (ref_q*), {L / fs:.3g} s windows of integrated gyro vs reference rotation"
+    # glitches of the optical reference (marker swaps): robust outlier rejection
+    nrm = np.linalg.norm(y, axis=1)
+    med = float(np.median(nrm))
+    mad = float(np.median(np.abs(nrm - med))) * 1.4826
+    if mad > 0 and outlier_mad > 0:
+        good = nrm <= med + outlier_mad * mad
+        if (~good).any():
+            notes.append(
+                f"{int((~good).sum())} windows dropped as reference glitches (|residual| > median + {outlier_mad:g}·MAD)"
+            )
+        a, b, y = a[good], b[good], y[good]
+    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c, q_SW_wxyz=None)
+    return Residual(
+        kind="attitude",
+        y_rad_s=y,
+        win_start=a,
+        win_stop=b,
+        t_mid_s=0.5 * (t[a] + t[b]),
+        inputs=inputs,
+        R_GS=R_GS,
+        R_WS=R_WS,
+        gyro_rad_s=gyro,
+        description=desc,
+        notes=tuple(notes),
+    )
+
+
+def _angles_residual(
+    rec: Recording,
+    segs: Sequence[Segment],
+    window_s: float | None,
+    angle_sigma_deg: float,
+    axis_sigma_deg: float,
+    angle_mode: str,
+) -> Residual:
+    """``"angles"``: each known rotation segment is one window (its gyro rotation against the
+    known rotation, or the angle about its axis), with still windows outside the rotations."""
+    t, n, fs, gyro = rec.t_s, rec.n, rec.rate_hz, rec.gyro_rad_s
+    rots = [s for s in segs if s.kind == "rotation"]
+    if not rots:
+        raise GyroInputError("reference 'angles' needs rotation segments (--segments)")
+    a, b, phi = _rotation_windows(t, rots)
+    n_rot = a.size
+    # still windows outside the rotations: they pin the bias (and g-sensitivity across poses)
+    in_rot = np.zeros(n, bool)
+    for ia, ib in zip(a, b):
+        in_rot[ia : ib + 1] = True
+    if any(s.kind == "still" for s in segs):
+        still = _segment_mask(t, segs, "still")
+        how = "still segments"
+    elif "static_pose_axis" in rec.extra:
+        still = rec.extra["static_pose_axis"] != 0
+        how = "static poses"
+    else:
+        still = still_samples(rec, STILL_GATE)
+        how = "motion gate"
+    still &= ~in_rot
+    sa, sb = _blocks(still, max(2, int(round((window_s or 0.5) * fs))))
+    if n_rot + sa.size < 2:
+        raise GyroInputError(
+            "reference too poor: one known rotation and no still part give only 3 numbers "
+            "(record still periods before/after, or several rotations)"
+        )
+    phi_all = np.vstack([phi, np.zeros((sa.size, 3))])
+    a, b = np.concatenate([a, sa]), np.concatenate([b, sb])
+    omega = _smooth(t, gyro)
+    omega[still] = 0.0
+    # a first bias from the still windows is removed before integrating, so that the error
+    # rotation of each known rotation stays small (first order); it is added back below
+    b0 = gyro[still].mean(axis=0) if still.any() else np.zeros(3)
+    if angle_mode not in ("rotation", "axis"):
+        raise GyroInputError(f"angle mode must be 'rotation' or 'axis', not '{angle_mode}'")
+    R_GS = _R(integrate_gyro(t, gyro - b0, hold="backward")) if angle_mode == "rotation" else None
+    inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
+    how_compared = (
+        "integrated gyro rotation vs known rotation"
+        if angle_mode == "rotation"
+        else "integrated angle about each axis vs known angle"
+    )
+    kw = dict(
+        kind="angles",
+        win_start=a,
+        win_stop=b,
+        t_mid_s=0.5 * (t[a] + t[b]),
+        inputs=inputs,
+        R_GS=R_GS,
+        R_WS=None,
+        gyro_rad_s=gyro,
+        description=f"{n_rot} known rotation(s): {how_compared}; {sa.size} still windows ({how})",
+    )
+    y, note = _angle_errors(Residual(y_rad_s=np.zeros((a.size, 3)), notes=(), **kw), phi_all, n_rot, b0, angle_mode)
+    return Residual(
+        y_rad_s=y,
+        notes=(note,),
+        is_rotation=np.arange(a.size) < n_rot,
+        angle_sigma_rad=np.radians(angle_sigma_deg),
+        axis_sigma_rad=np.radians(axis_sigma_deg),
+        angle_S_rad=phi_all,
+        angle_mode=angle_mode,
+        **kw,
+    )
+
+
+def _rotation_windows(t: np.ndarray, rots: Sequence[Segment]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample indices (a, b) of each known rotation segment and its rotation vector (K, 3), rad."""
+    a_l, b_l, phi = [], [], []
+    for s in rots:
+        ia = int(np.searchsorted(t, s.t_start_s, side="left"))
+        ib = int(np.searchsorted(t, s.t_end_s, side="right")) - 1
+        if ib - ia < 2:
+            raise GyroInputError(f"rotation segment {s.t_start_s}..{s.t_end_s} s covers fewer than 3 samples")
+        a_l.append(ia)
+        b_l.append(ib)
+        phi.append(s.angle_S_rad)
+    return np.asarray(a_l), np.asarray(b_l), np.asarray(phi, float)
+
+
+def _angle_errors(res: Residual, phi_all: np.ndarray, n_rot: int, b0: np.ndarray, angle_mode: str):
+    """The ``"angles"`` residual y (M, 3) of the windows of ``res`` (the first ``n_rot`` are the
+    known rotations, the others still) and the note that says how the rotations were compared."""
+    a, b = res.win_start, res.win_stop
+    gyro = res.gyro_rad_s
+    T = res.duration_s
+    y = res.window_mean(gyro)  # still windows: the mean rate (true rate 0)
+    if angle_mode == "rotation":
+        # rotation windows: E = exp(φ)ᵀ·(R̂_aᵀ·R̂_b) — compared as rotations, so the path (wobble,
+        # coning of a hand rotation) does not matter, only the start and end attitudes
+        ra, rb = a[:n_rot], b[:n_rot]
+        rel_hat = np.einsum("mji,mjk->mik", res.R_GS[ra], res.R_GS[rb])
+        Rk = Rotation.from_rotvec(phi_all[:n_rot]).as_matrix()
+        Em = np.einsum("mji,mjk->mik", Rk, rel_hat)
+        b0_win = res.window_mean(np.broadcast_to(b0, gyro.shape).copy())
+        y[:n_rot] = Rotation.from_matrix(Em).as_rotvec() / T[:n_rot, None] + b0_win[:n_rot]
+        return y, (
+            "known rotations are compared as rotations (start vs end attitude); by hand they are "
+            "good to a few degrees (see angle_sigma/axis_sigma)"
+        )
+    # only the total angle about the axis is known (hand turns whose start and end
+    # poses differ): ∫ω dt along the axis; the cross-axis components get zero weight
+    y[:n_rot] = y[:n_rot] - phi_all[:n_rot] / T[:n_rot, None]
+    return y, (
+        "angle mode 'axis': only the total angle about each rotation axis is used "
+        "(∫ω dt along the axis; the start and end poses are not assumed known)"
+    )

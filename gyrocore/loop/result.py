@@ -8,7 +8,7 @@ import numpy as np
 
 from .residual import Residual
 
-__all__ = ["FORMAT_VERSION", "Evidence", "Step", "Remaining", "LoopResult"]
+__all__ = ["FORMAT_VERSION", "Evidence", "Step", "Remaining", "LoopResult", "evidence_dict"]
 
 
 FORMAT_VERSION = "1.0"
@@ -76,6 +76,51 @@ class Evidence:
     @property
     def significant(self) -> bool:
         return self.df1 > 0 and self.p_value < self.threshold
+
+    def to_json(self) -> dict:
+        """The DESIGN.md JSON of the evidence (``found[i].evidence``, ``not_taken``)."""
+        return {
+            "statistic": self.statistic,
+            "df1": self.df1,
+            "df2": self.df2,
+            "p_value": self.p_value,
+            "log10_p": self.log10_p,
+            "threshold": self.threshold,
+            "params": self.params,
+            "std_errors": self.std_errors,
+            "unobservable": list(self.unobservable),
+            "rms_reduction": self.rms_reduction,
+            "attitude_reduction": self.attitude_reduction,
+            "hac_bandwidth_windows": self.hac_bandwidth,
+            "ambiguous_with": list(self.ambiguous_with),
+            "cv_rms_reduction": self.cv_rms_reduction,
+            "hac_log10_p": self.hac_log10_p,
+            "model_log10_p": self.model_log10_p,
+        }
+
+
+#: The evidence keys an open-search description carries (``unexplained[i].evidence``), in order.
+_OPEN_EVIDENCE_KEYS = (
+    "statistic",
+    "df1",
+    "df2",
+    "p_value",
+    "log10_p",
+    "threshold",
+    "cv_rms_reduction",
+    "rms_reduction",
+    "attitude_reduction",
+    "params",
+    "std_errors",
+    "hac_log10_p",
+    "model_log10_p",
+)
+
+
+def evidence_dict(ev: Evidence) -> dict:
+    """The evidence of an open-search term refitted with the model (its Wald tests and sizes)."""
+    full = ev.to_json()
+    return {k: full[k] for k in _OPEN_EVIDENCE_KEYS}
 
 
 @dataclass(frozen=True)
@@ -206,33 +251,13 @@ class LoopResult:
     def to_json(self) -> dict:
         """The DESIGN.md JSON (plus extra keys)."""
 
-        def ev(e: Evidence) -> dict:
-            return {
-                "statistic": e.statistic,
-                "df1": e.df1,
-                "df2": e.df2,
-                "p_value": e.p_value,
-                "log10_p": e.log10_p,
-                "threshold": e.threshold,
-                "params": e.params,
-                "std_errors": e.std_errors,
-                "unobservable": list(e.unobservable),
-                "rms_reduction": e.rms_reduction,
-                "attitude_reduction": e.attitude_reduction,
-                "hac_bandwidth_windows": e.hac_bandwidth,
-                "ambiguous_with": list(e.ambiguous_with),
-                "cv_rms_reduction": e.cv_rms_reduction,
-                "hac_log10_p": e.hac_log10_p,
-                "model_log10_p": e.model_log10_p,
-            }
-
         return {
             "format_version": self.format_version,
             "declared": list(self.declared),
             "found": [
                 {
                     "effect": s.effect,
-                    "evidence": ev(s.evidence),
+                    "evidence": s.evidence.to_json(),
                     "residual_rms_before_rad_s": s.residual_rms_before_rad_s,
                     "residual_rms_after_rad_s": s.residual_rms_after_rad_s,
                     "attitude_error_before_deg": s.attitude_error_before_deg,
@@ -249,7 +274,7 @@ class LoopResult:
             "n_windows": self.n_windows,
             "alpha": self.alpha,
             "params": self.params,
-            "not_taken": {k: ev(v) for k, v in self.tested.items()},
+            "not_taken": {k: v.to_json() for k, v in self.tested.items()},
             "untestable": dict(self.untestable),
             "unexplained": [u.to_json() for u in self.unexplained],
             "open_search": self.open_search,

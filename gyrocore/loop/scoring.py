@@ -9,26 +9,26 @@ from scipy import signal
 
 from gyrocore.calib import covariance
 from gyrocore.attitude import error_angle_rad, integrate_gyro
-from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
-from gyrocore.calib.stream import SpilledRecording, rows_of
+from gyrocore.calib.stream import rows_of
+from . import source
 from .residual import Residual
 from .result import Remaining
 from .evidence import rms
 
-__all__ = ["attitude_error_deg", "describe_remaining", "window_line_series"]
+__all__ = ["attitude_error_deg", "describe_remaining", "window_line_series", "longest_chain"]
 
 
 def attitude_error_deg(res: Residual, rec: Recording, correction_rad_s: np.ndarray) -> float:
     """RMS attitude error of the corrected gyro against the reference, deg (NaN if undefined).
 
     ``rate``: integrate from the reference's first attitude (``ref_q*`` or the integrated
-    reference rate) and compare over the recording. ``attitude``: same against ``ref_q*``
+    reference rate) and compare over the recording (in memory or on disk, a window at a time). ``attitude``: same against ``ref_q*``
     where valid. ``still``: the integrated angle from each still window's start. ``angles``:
     RMS over the known-rotation segments of |∫ω dt − φ|.
     """
-    if isinstance(rec, SpilledRecording):
-        return _attitude_error_spilled(res, rec, correction_rad_s)
+    if res.kind == "rate":
+        return _rate_attitude_error(rec, correction_rad_s)
     t = rec.t_s
     w = rec.gyro_rad_s - correction_rad_s
     if res.kind == "angles":
@@ -45,15 +45,6 @@ def attitude_error_deg(res: Residual, rec: Recording, correction_rad_s: np.ndarr
     if res.kind == "still":
         # windows are contiguous blocks: the angle accumulates inside each still run
         return _still_runs_error(res, integrate_gyro(t, w, hold="backward"))
-    if res.kind == "rate":
-        q_ref = rec.ref_quat_wxyz
-        if q_ref is None or not np.all(np.isfinite(q_ref)):
-            ref = rec.ref_rate_rad_s
-            if ref is None or not np.all(np.isfinite(ref)):
-                return float("nan")
-            q_ref = integrate_gyro(t, ref, hold="backward")
-        q = integrate_gyro(t, w, q0_wxyz=q_ref[0], hold="backward")
-        return float(np.degrees(rms(error_angle_rad(q, q_ref))))
     # attitude
     q_ref = rec.ref_quat_wxyz
     ok = np.all(np.isfinite(q_ref), axis=1)
@@ -63,30 +54,21 @@ def attitude_error_deg(res: Residual, rec: Recording, correction_rad_s: np.ndarr
     return float(np.degrees(rms(e)))
 
 
-def _attitude_error_spilled(res: Residual, rec: SpilledRecording, correction) -> float:
-    """:func:`attitude_error_deg` (``rate`` reference) of a recording on disk: the corrected
-    gyro integrated a window at a time, the attitude carried across windows (each window
-    starts from the previous one's last attitude and sample: the backward-hold step across the
-    cut is taken once), the squared error angles summed."""
-    if res.kind != "rate":  # pragma: no cover - _build_spilled makes only rate residuals
-        raise GyroInputError("a recording on disk has only the rate reference")
-    q_ref = rec.reference_quaternions()
+def _rate_attitude_error(rec, correction) -> float:
+    """The ``rate`` reference's attitude error: the corrected gyro integrated from the reference's
+    first attitude a window at a time (a recording in memory is one window; on disk the attitude
+    is carried across windows, :func:`gyrocore.loop.source.integrated_windows`), the squared error
+    angles against the reference attitude summed over the windows."""
+    src = source.of(rec)
+    q_ref = src.reference_attitude()
     if q_ref is None:
         return float("nan")
-    t = rec.t_s
-    q_carry = w_last = None
+    w = src.per_sample(lambda lo, hi: rows_of(rec.gyro_rad_s, lo, hi) - rows_of(correction, lo, hi), 3)
     s2, cnt = 0.0, 0
-    for lo, hi in rec.chunks():
-        w = rec.gyro_rad_s.rows(lo, hi) - rows_of(correction, lo, hi)
-        qr = q_ref.rows(lo, hi)
-        if q_carry is None:
-            q = integrate_gyro(t[lo:hi], w, q0_wxyz=qr[0], hold="backward")
-        else:
-            q = integrate_gyro(t[lo - 1 : hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward")[1:]
-        e = error_angle_rad(q, qr)
+    for lo, hi, q in source.integrated_windows(src, w, q0_wxyz=rows_of(q_ref, 0, 1)[0]):
+        e = error_angle_rad(q, rows_of(q_ref, lo, hi))
         s2 += float(np.sum(e * e))
         cnt += e.size
-        q_carry, w_last = q[-1], w[-1:]
     return float(np.degrees(np.sqrt(s2 / cnt)))
 
 
@@ -141,13 +123,20 @@ def window_line_series(res: Residual, e: np.ndarray):
     even = np.concatenate(
         [[False], (np.abs(np.diff(res.t_mid_s) - win) <= 0.05 * win) & (np.abs(T[1:] - win) <= 0.05 * win)]
     )
+    bst, best = longest_chain(even)
+    idx = np.arange(bst, bst + best)
+    return e[idx], res.t_mid_s[idx], 1.0 / win, idx
+
+
+def longest_chain(cont: np.ndarray) -> tuple[int, int]:
+    """Start and length of the longest chain of windows each continuing the previous one
+    (``cont[k]``: window k continues window k − 1; ``cont[0]`` is not read); the first on a tie."""
     best, cur, st, bst = 0, 0, 0, 0
-    for k in range(res.m):
-        if k > 0 and even[k]:
+    for k in range(cont.shape[0]):
+        if k > 0 and cont[k]:
             cur += 1
         else:
             cur, st = 1, k
         if cur > best:
             best, bst = cur, st
-    idx = np.arange(bst, bst + best)
-    return e[idx], res.t_mid_s[idx], 1.0 / win, idx
+    return bst, best

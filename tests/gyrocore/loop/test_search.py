@@ -21,6 +21,7 @@ from scipy import stats
 from experiments.close_the_loop import effect_params, synthetic_recording
 from gyrocore.effects import registry as E
 from gyrocore.loop import search as S
+from gyrocore.loop.bias_step import simulate_gaussian
 from gyrocore.cli.commands.loop import command as loop_command
 from gyrocore.loop.loop import run_loop
 from gyrocore.data.recording import Recording, write_csv
@@ -71,7 +72,7 @@ def test_simulated_noise_has_the_autocovariance():
     # circulant embedding: sample autocovariance of 2000 draws at lag 0 and 3 within 5 % (σ of a
     # variance estimate over 2000·256 correlated values is < 1 %)
     g = 2.0 * 0.8 ** np.arange(40)
-    X = S.simulate_gaussian(g, 256, 2000, np.random.default_rng(2))
+    X = simulate_gaussian(g, 256, 2000, np.random.default_rng(2))
     assert abs(np.mean(X**2) / g[0] - 1) < 0.05
     assert abs(np.mean(X[3:] * X[:-3]) / g[3] - 1) < 0.05
 
