@@ -33,6 +33,7 @@ from typing import Sequence
 
 import numpy as np
 
+from sim.quadrotor import quat_angle_rad
 from gyrocore.errors import GyroInputError
 
 from experiments.montecarlo import MonteCarloTask, execute, instance_seeds
@@ -80,8 +81,7 @@ def cell_settings(kind: str, fc_hz: float) -> list[tuple[str, str]]:
 
 
 def _angle_rms_deg(qa, qb, mask):
-    d = np.abs(np.einsum("ij,ij->i", qa[mask], qb[mask]))
-    return float(np.degrees(np.sqrt(np.mean((2.0 * np.arccos(np.clip(d, 0.0, 1.0))) ** 2))))
+    return float(np.degrees(np.sqrt(np.mean(quat_angle_rad(qa[mask], qb[mask]) ** 2))))
 
 
 def _opt(task, name, default=None):

@@ -40,6 +40,7 @@ import math
 
 import numpy as np
 
+from sim.quadrotor import quat_angle_rad
 from gyrocore.errors import GyroInputError
 from experiments.firmware_fly import fly, settings_lines_from
 from experiments.montecarlo import execute, MonteCarloTask, TaskResult
@@ -94,8 +95,7 @@ def changed_lines(tune: list[str], lines: list[str]) -> list[str]:
 
 
 def _angle_rms_deg(qa, qb, mask) -> float:
-    d = np.abs(np.einsum("ij,ij->i", qa[mask], qb[mask]))
-    return float(np.degrees(np.sqrt(np.mean((2.0 * np.arccos(np.clip(d, 0.0, 1.0))) ** 2))))
+    return float(np.degrees(np.sqrt(np.mean(quat_angle_rad(qa[mask], qb[mask]) ** 2))))
 
 
 def fw_filter_task(task):

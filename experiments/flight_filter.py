@@ -43,6 +43,8 @@ import warnings
 
 import numpy as np
 
+from sim.quadrotor import quat_angle_rad
+
 GYRO_RATE_HZ = 1000.0
 SETTLE_S = 1.0
 
@@ -101,8 +103,7 @@ def fly(
 
 
 def _angle_between_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
-    d = np.abs(np.einsum("ij,ij->i", qa, qb))
-    return np.degrees(2.0 * np.arccos(np.clip(d, 0.0, 1.0)))
+    return np.degrees(quat_angle_rad(qa, qb))
 
 
 def score_chain(

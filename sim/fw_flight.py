@@ -44,6 +44,8 @@ from scipy import signal
 
 from gyrocore.errors import GyroInputError
 
+from .quadrotor import quat_angle_rad, tilt_rad
+
 __all__ = [
     "BF_MOTOR_NAMES",
     "ROTOR_OF_BF_MOTOR",
@@ -508,12 +510,11 @@ class FwFlightLog:
 
     def attitude_error_rad(self) -> np.ndarray:
         """Angle between the true and the commanded attitude, rad (N,)."""
-        d = np.abs(np.einsum("ij,ij->i", self.q_WB_wxyz, self.q_sp_wxyz))
-        return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+        return quat_angle_rad(self.q_WB_wxyz, self.q_sp_wxyz)
 
     def tilt_rad(self) -> np.ndarray:
-        q = self.q_WB_wxyz
-        return np.arccos(np.clip(1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2), -1.0, 1.0))
+        """Tilt of the body z axis from the vertical, rad (N,)."""
+        return tilt_rad(self.q_WB_wxyz)
 
     def crashed(self) -> bool:
         """Non-finite state or a tilt beyond 60 deg (the pilot's steps are 5 deg)."""

@@ -54,6 +54,8 @@ __all__ = [
     "load_quadrotor_model",
     "hover_bare_step_rate",
     "rotor_forces",
+    "quat_angle_rad",
+    "tilt_rad",
     "QUICK_HOVER_S",
     "TAKEOFF_CLIMB_S",
 ]
@@ -91,6 +93,22 @@ class PerfectGyro:
 
 
 NO_VIBRATION = VibrationSpec(imbalance_kg_m=0.0, harmonic2_ratio=0.0, blade_pass_ripple=0.0)
+
+
+def quat_angle_rad(q_a_wxyz: np.ndarray, q_b_wxyz: np.ndarray) -> np.ndarray:
+    """Angle between two attitude series, rad, shape (N,): 2·arccos|q_a·q_b| (q and −q the same).
+
+    The flights' scores (hover and tracking error, the excess against a perfect-gyro flight) use
+    this one formula."""
+    d = np.abs(np.einsum("ij,ij->i", q_a_wxyz, q_b_wxyz))
+    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+
+
+def tilt_rad(q_WB_wxyz: np.ndarray) -> np.ndarray:
+    """Tilt of the body z axis from the vertical, rad, shape (N,)."""
+    q = q_WB_wxyz
+    r33 = 1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2)
+    return np.arccos(np.clip(r33, -1.0, 1.0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,14 +162,11 @@ class FlightLog:
 
     def attitude_error_rad(self) -> np.ndarray:
         """Angle between true and commanded attitude, rad, shape (N,)."""
-        d = np.abs(np.einsum("ij,ij->i", self.q_WB_wxyz, self.q_sp_wxyz))
-        return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+        return quat_angle_rad(self.q_WB_wxyz, self.q_sp_wxyz)
 
     def tilt_rad(self) -> np.ndarray:
         """Tilt of the body z axis from the vertical, rad, shape (N,)."""
-        q = self.q_WB_wxyz
-        r33 = 1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2)
-        return np.arccos(np.clip(r33, -1.0, 1.0))
+        return tilt_rad(self.q_WB_wxyz)
 
     def altitude_error_m(self) -> np.ndarray:
         """Height minus the set point, m, shape (N,)."""
