@@ -166,6 +166,21 @@ def _disagreement(p, fw_best, ours_best, fw, ours, budget) -> str:
     return "".join(parts)
 
 
+#: The metrics of a firmware cell and of our controller's cell (medians over the instances).
+_FW_KEYS = (
+    "hover_att_rms_deg",
+    "motor_noise_pct",
+    "step_track_rms_deg",
+    "excess_deg",
+    "delay_ms",
+    "rise_ms",
+    "overshoot_pct",
+    "dterm_noise",
+    "crashed",
+)
+_OURS_KEYS = ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed")
+
+
 def run(
     *,
     out_dir,
@@ -220,18 +235,6 @@ def run(
         presets, instance_seeds(seed, n_inst), dur, opts, ours_task if with_ours else None, workers, scheduler
     )
     cells = G.cells(kinds, cutoffs)
-    fw_keys = (
-        "hover_att_rms_deg",
-        "motor_noise_pct",
-        "step_track_rms_deg",
-        "excess_deg",
-        "delay_ms",
-        "rise_ms",
-        "overshoot_pct",
-        "dterm_noise",
-        "crashed",
-    )
-    ours_keys = ("hover_att_rms_deg", "motor_noise_n", "step_track_rms_deg", "excess_deg", "delay_ms", "crashed")
     veh = get_vehicle(vehicle)
     md = [
         f"**Flown by {version}** (lockstep SITL, one firmware loop per gyro sample at {LOOP_RATE_HZ:g} Hz) on the "
@@ -257,8 +260,8 @@ def run(
     }
     figs = []
     for p in presets:
-        fw = _medians([r for r in res_fw if r.sensor == p], cells, fw_keys)
-        ours = _medians([r for r in res_ours if r.sensor == p], cells, ours_keys) if with_ours else {}
+        fw = _medians([r for r in res_fw if r.sensor == p], cells, _FW_KEYS)
+        ours = _medians([r for r in res_ours if r.sensor == p], cells, _OURS_KEYS) if with_ours else {}
         summary["presets"][p] = _preset_summary(fw, ours, EXCESS_BUDGET, with_ours=with_ours)
         md += _preset_markdown(p, fw, ours, summary["presets"][p], cells, version, EXCESS_BUDGET, with_ours=with_ours)
         figs.append(_preset_figure(p, fw, ours, kinds, cutoffs, version, vehicle, out_dir, with_ours=with_ours))
