@@ -39,11 +39,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import tempfile
 import warnings
 
 import numpy as np
 
+from gyrocore.data.recording import read_csv
+from gyrocore.flight import preview as P
+from gyrocore.flight.preview import recommend_filter
+from gyrocore.flight.vibration import read_spec, write_spec
+from gyrocore.readers.convert import detect_format, load_any
 from sim.quadrotor import quat_angle_rad
+from sim.spec_vibration import spec_injection
 
 GYRO_RATE_HZ = 1000.0
 SETTLE_S = 1.0
@@ -191,8 +199,6 @@ def score_chain(
 
 def _candidates(fj: dict, *, physics: bool, extra_pt1=(60.0, 150.0, 250.0)) -> dict:
     """name -> (stages, rpm, open-loop row key) from ``gyroharness filter``'s result."""
-    from gyrocore.flight import preview as P
-
     rate = float(fj.get("filter_rate_hz", 8000.0))
     cands = {"none": ([], False)}
     for key in ("as_flown", "recommended", "article", "px4_ardupilot_lowpass"):
@@ -236,74 +242,20 @@ def run(
     """The closed-loop recommendation for a flight log (module docstring). Returns the JSON dict
     (DESIGN.md keys ``recommended``, ``as_flown``, ``firmware``, ``defaults``; plus per-seed picks,
     ``stable`` and every chain's scores per seed)."""
-    import os
-    import tempfile
-
-    from gyrocore.flight import preview as P
-    from gyrocore.flight.preview import recommend_filter
-    from gyrocore.readers.convert import detect_format, load_any
-    from gyrocore.data.recording import read_csv
-    from gyrocore.flight.vibration import read_spec, write_spec
-    from sim.spec_vibration import spec_injection
-
     rec = read_csv(flight) if detect_format(flight) == "csv" else load_any(flight)
     fj = recommend_filter(rec)
-    with tempfile.TemporaryDirectory() as d:
-        p = os.path.join(d, "spec.json")
-        write_spec(fj["_res"], p, source=flight)
-        spec = read_spec(p)
-    hv, shaped, info = spec_injection(
-        spec, band=band, vehicle=vehicle, physics=physics, seed=0, n_calib=n_calib, calib_s=calib_s
+    hv, shaped, info = _flight_vibration(
+        fj, flight, band=band, vehicle=vehicle, physics=physics, n_calib=n_calib, calib_s=calib_s
     )
     cands = candidates or _candidates(fj, physics=physics)
-    per_seed, picks = [], []
-    for s in seeds:
-        w_rms = float(fj["flight_rate_rms_rad_s"])
-        none = score_chain([], hover_vib=hv, shaped=shaped, seed=int(s), duration_s=duration_s, vehicle=vehicle)
-        rows = {"none": none}
-        for name, (st, rpm) in cands.items():
-            if name == "none":
-                continue
-            rows[name] = score_chain(
-                st,
-                hover_vib=hv,
-                shaped=shaped,
-                seed=int(s),
-                duration_s=duration_s,
-                vehicle=vehicle,
-                rpm=rpm,
-                track_none_deg=none["track_rms_deg"],
-                delay_none_ms=none["delay_ms"],
-                flight_rate_rms_rad_s=w_rms,
-            )
-        best, budget = _pick(rows)
-        picks.append(best)
-        per_seed.append({"seed": int(s), "pick": best, "budget_motor_noise_n": budget, "rows": rows})
-    names = list(per_seed[0]["rows"])
-    summary = {}
-    for name in names:
-        vals = {
-            k: [ps["rows"][name][k] for ps in per_seed]
-            for k in (
-                "attitude_cost_deg",
-                "att_vibration_deg",
-                "att_delay_deg",
-                "att_delay_flight_deg",
-                "motor_noise_n",
-                "delay_ms",
-            )
-        }
-        summary[name] = {
-            k: {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")}
-            for k, v in vals.items()
-        }
-        summary[name]["chain"] = per_seed[0]["rows"][name]["chain"]
+    w_rms = float(fj["flight_rate_rms_rad_s"])
+    per_seed = [
+        _score_seed(int(s), cands, hover_vib=hv, shaped=shaped, duration_s=duration_s, vehicle=vehicle, w_rms=w_rms)
+        for s in seeds
+    ]
+    picks = [ps["pick"] for ps in per_seed]
+    summary = _chain_summary(per_seed)
     mode = max(set(picks), key=picks.count)
-    version = (
-        tuple(int(x) for x in rec.meta["firmware_version"].split("."))
-        if rec.meta.get("firmware_name", "betaflight") == "betaflight" and "firmware_version" in rec.meta
-        else None
-    )
     by_open = {
         "as_flown": fj.get("as_flown"),
         "recommended": fj.get("recommended"),
@@ -314,44 +266,9 @@ def run(
     }
 
     def public(name):
-        st, rpm = cands.get(name, ([], False))
-        lp = [x for x in st if x["kind"] in ("pt1", "pt2", "pt3", "biquad", "butter2", "article")]
-        m = summary[name]
-        return {
-            "filter": lp[0]["kind"] if lp else "none",
-            "cutoff_hz": float(lp[0]["cutoff_hz"]) if lp else None,
-            "notches_hz": [float(x["cutoff_hz"]) for x in st if x["kind"] == "notch"],
-            "attitude_cost": m["attitude_cost_deg"]["mean"],
-            "delay_ms": m["delay_ms"]["mean"],
-            "motor_noise": m["motor_noise_n"]["mean"],
-            "rpm_filter": bool(rpm),
-            "name": name,
-            "chain_flown": m["chain"],
-            "units": {"attitude_cost": "deg", "delay_ms": "ms", "motor_noise": "N"},
-        }
+        return _public(name, cands, summary)
 
     rec_pub = public(mode)
-    st = cands[mode][0]
-    bf = []
-    if rec.meta.get("firmware_name", "betaflight") == "betaflight":
-        if rec_pub["filter"] in ("pt1", "pt2", "pt3", "biquad"):
-            bf = P.betaflight_cli(
-                {"filter": rec_pub["filter"], "cutoff_hz": rec_pub["cutoff_hz"], "stages": st}, version
-            )
-        elif rec_pub["filter"] == "none":
-            bf = ["# no static gyro low-pass recommended"]
-        else:
-            bf = [f"# {rec_pub['filter']} is not a Betaflight gyro filter: see the px4/ardupilot names"]
-        if cands[mode][1]:
-            v = version or (4, 5, 0)
-            bf += (
-                ["# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)"]
-                if v < (4, 0, 0)
-                else ["set dshot_bidir = ON"]
-                + (["set gyro_rpm_notch_harmonics = 3"] if v < (4, 3, 0) else ["set rpm_filter_harmonics = 3"])
-            )
-    else:
-        bf = [f"# {rec.meta.get('firmware_name')} log: Betaflight CLI names do not apply"]
     b2 = {
         k: summary[k]["attitude_cost_deg"]["mean"]
         for k in ("px4_default", "ardupilot_default", "px4_ardupilot_lowpass")
@@ -359,7 +276,7 @@ def run(
     }
     b2best = min(b2, key=b2.get) if b2 else None
     b2fc = public(b2best)["cutoff_hz"] if b2best else None
-    out = {
+    return {
         "flight": flight,
         "vehicle": vehicle,
         "flight_rate_rms_rad_s": float(fj["flight_rate_rms_rad_s"]),
@@ -371,7 +288,7 @@ def run(
         "defaults": {k: public(k) for k in ("betaflight_default", "px4_default", "ardupilot_default") if k in summary},
         "open_loop_recommended": public("recommended") if "recommended" in summary else None,
         "firmware": {
-            "betaflight": bf,
+            "betaflight": _betaflight_lines(rec.meta, rec_pub, cands[mode]),
             "px4": {"IMU_GYRO_CUTOFF": round(b2fc)} if b2fc else {},
             "ardupilot": {"INS_GYRO_FILTER": round(b2fc)} if b2fc else {},
         },
@@ -393,7 +310,104 @@ def run(
             f"vehicle {vehicle}: motor time constant {1e3 * _tau(vehicle):.0f} ms (estimate); the delay cost depends on it",
         ],
     }
-    return out
+
+
+def _flight_vibration(fj: dict, flight: str, *, band, vehicle: str, physics: bool, n_calib: int, calib_s: float):
+    """The flight's vibration spec (from the filter recommendation's analysis) as the simulator's
+    injection: (hover vibration, shaped part, info) of :func:`sim.spec_vibration.spec_injection`."""
+    with tempfile.TemporaryDirectory() as d:
+        p = os.path.join(d, "spec.json")
+        write_spec(fj["_res"], p, source=flight)
+        spec = read_spec(p)
+    return spec_injection(spec, band=band, vehicle=vehicle, physics=physics, seed=0, n_calib=n_calib, calib_s=calib_s)
+
+
+def _score_seed(seed: int, cands: dict, *, hover_vib, shaped, duration_s: float, vehicle: str, w_rms: float) -> dict:
+    """Every candidate chain flown on one seed (:func:`score_chain`, the unfiltered gyro first) and that seed's pick."""
+    none = score_chain([], hover_vib=hover_vib, shaped=shaped, seed=seed, duration_s=duration_s, vehicle=vehicle)
+    rows = {"none": none}
+    for name, (st, rpm) in cands.items():
+        if name == "none":
+            continue
+        rows[name] = score_chain(
+            st,
+            hover_vib=hover_vib,
+            shaped=shaped,
+            seed=seed,
+            duration_s=duration_s,
+            vehicle=vehicle,
+            rpm=rpm,
+            track_none_deg=none["track_rms_deg"],
+            delay_none_ms=none["delay_ms"],
+            flight_rate_rms_rad_s=w_rms,
+        )
+    best, budget = _pick(rows)
+    return {"seed": seed, "pick": best, "budget_motor_noise_n": budget, "rows": rows}
+
+
+def _chain_summary(per_seed: list[dict]) -> dict:
+    """Per chain: mean and SD over the seeds of each score, and the chain flown."""
+    summary = {}
+    for name in per_seed[0]["rows"]:
+        vals = {
+            k: [ps["rows"][name][k] for ps in per_seed]
+            for k in (
+                "attitude_cost_deg",
+                "att_vibration_deg",
+                "att_delay_deg",
+                "att_delay_flight_deg",
+                "motor_noise_n",
+                "delay_ms",
+            )
+        }
+        summary[name] = {
+            k: {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan")}
+            for k, v in vals.items()
+        }
+        summary[name]["chain"] = per_seed[0]["rows"][name]["chain"]
+    return summary
+
+
+def _public(name: str, cands: dict, summary: dict) -> dict:
+    """A chain in the filter JSON's public form (its low-pass, notches, mean scores)."""
+    st, rpm = cands.get(name, ([], False))
+    lp = [x for x in st if x["kind"] in ("pt1", "pt2", "pt3", "biquad", "butter2", "article")]
+    m = summary[name]
+    return {
+        "filter": lp[0]["kind"] if lp else "none",
+        "cutoff_hz": float(lp[0]["cutoff_hz"]) if lp else None,
+        "notches_hz": [float(x["cutoff_hz"]) for x in st if x["kind"] == "notch"],
+        "attitude_cost": m["attitude_cost_deg"]["mean"],
+        "delay_ms": m["delay_ms"]["mean"],
+        "motor_noise": m["motor_noise_n"]["mean"],
+        "rpm_filter": bool(rpm),
+        "name": name,
+        "chain_flown": m["chain"],
+        "units": {"attitude_cost": "deg", "delay_ms": "ms", "motor_noise": "N"},
+    }
+
+
+def _betaflight_lines(meta: dict, rec_pub: dict, cand: tuple) -> list[str]:
+    """The Betaflight ``set`` lines of the recommended chain (a comment for another firmware)."""
+    if meta.get("firmware_name", "betaflight") != "betaflight":
+        return [f"# {meta.get('firmware_name')} log: Betaflight CLI names do not apply"]
+    version = tuple(int(x) for x in meta["firmware_version"].split(".")) if "firmware_version" in meta else None
+    st, rpm = cand
+    if rec_pub["filter"] in ("pt1", "pt2", "pt3", "biquad"):
+        bf = P.betaflight_cli({"filter": rec_pub["filter"], "cutoff_hz": rec_pub["cutoff_hz"], "stages": st}, version)
+    elif rec_pub["filter"] == "none":
+        bf = ["# no static gyro low-pass recommended"]
+    else:
+        bf = [f"# {rec_pub['filter']} is not a Betaflight gyro filter: see the px4/ardupilot names"]
+    if rpm:
+        v = version or (4, 5, 0)
+        bf += (
+            ["# the RPM filter needs Betaflight 4.0+ with bidirectional DShot (eRPM telemetry)"]
+            if v < (4, 0, 0)
+            else ["set dshot_bidir = ON"]
+            + (["set gyro_rpm_notch_harmonics = 3"] if v < (4, 3, 0) else ["set rpm_filter_harmonics = 3"])
+        )
+    return bf
 
 
 def _tau(vehicle):
