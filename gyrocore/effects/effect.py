@@ -75,8 +75,10 @@ class ModelInputs:
         return t - t[0]
 
     def temp_rate_c_s(self, effect: str = "bias_temp_rate") -> np.ndarray:
-        """dT/dt by central differences, °C/s, shape (N,)."""
+        """dT/dt by central differences, °C/s, shape (N,) (0 for a single sample)."""
         T = self._need("temp_c", effect)
+        if T.shape[0] < 2:
+            return np.zeros_like(T)
         return np.gradient(T, np.asarray(self.t_s, float))
 
     def rate_derivative(self, effect: str = "regressor") -> np.ndarray:

@@ -125,8 +125,7 @@ def _signal(sig: str, inp: ModelInputs, omega: np.ndarray | None, effect: str) -
     if sig == "temp_c":
         return inp._need("temp_c", effect)
     if sig == "dtemp_dt":
-        if one:
-            return np.zeros_like(inp._need("temp_c", effect))
+        # the inputs' own rate: a stream's one-sample inputs carry it from the temperature trajectory
         return inp.temp_rate_c_s(effect)
     if sig == "t":
         return inp.since_power_up()
