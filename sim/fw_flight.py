@@ -44,7 +44,7 @@ from scipy import signal
 
 from gyrocore.errors import GyroInputError
 
-from .quadrotor import quat_angle_rad, tilt_rad
+from .quadrotor import AttitudeLog
 
 __all__ = [
     "BF_MOTOR_NAMES",
@@ -444,7 +444,7 @@ class FwFlightOptions:
 
 
 @dataclass(frozen=True, eq=False)
-class FwFlightLog:
+class FwFlightLog(AttitudeLog):
     """A firmware flight at the firmware loop's samples (N rows).
 
     Frames: S = B (FLU); W world (z up). Motor columns in Betaflight's motor order.
@@ -503,18 +503,6 @@ class FwFlightLog:
     manoeuvres: tuple
     meta: dict
     wall_s: float = float("nan")
-
-    @property
-    def rate_hz(self) -> float:
-        return float(1.0 / (self.t_s[1] - self.t_s[0]))
-
-    def attitude_error_rad(self) -> np.ndarray:
-        """Angle between the true and the commanded attitude, rad (N,)."""
-        return quat_angle_rad(self.q_WB_wxyz, self.q_sp_wxyz)
-
-    def tilt_rad(self) -> np.ndarray:
-        """Tilt of the body z axis from the vertical, rad (N,)."""
-        return tilt_rad(self.q_WB_wxyz)
 
     def crashed(self) -> bool:
         """Non-finite state or a tilt beyond 60 deg (the pilot's steps are 5 deg)."""

@@ -55,6 +55,7 @@ __all__ = [
     "hover_bare_step_rate",
     "rotor_forces",
     "quat_angle_rad",
+    "AttitudeLog",
     "tilt_rad",
     "QUICK_HOVER_S",
     "TAKEOFF_CLIMB_S",
@@ -111,8 +112,25 @@ def tilt_rad(q_WB_wxyz: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(r33, -1.0, 1.0))
 
 
+class AttitudeLog:
+    """What every flight log (:class:`FlightLog`, :class:`sim.fw_flight.FwFlightLog`) says about its
+    attitude: the sample rate and, from ``q_WB_wxyz`` and ``q_sp_wxyz``, the attitude error and tilt."""
+
+    @property
+    def rate_hz(self) -> float:
+        return float(1.0 / (self.t_s[1] - self.t_s[0]))
+
+    def attitude_error_rad(self) -> np.ndarray:
+        """Angle between true and commanded attitude, rad, shape (N,)."""
+        return quat_angle_rad(self.q_WB_wxyz, self.q_sp_wxyz)
+
+    def tilt_rad(self) -> np.ndarray:
+        """Tilt of the body z axis from the vertical, rad, shape (N,)."""
+        return tilt_rad(self.q_WB_wxyz)
+
+
 @dataclass(frozen=True, eq=False)
-class FlightLog:
+class FlightLog(AttitudeLog):
     """What the flight did, at the gyro sample times.
 
     Parameters
@@ -155,18 +173,6 @@ class FlightLog:
     motor_thrust_cmd_n: np.ndarray
     rotor_speed_rad_s: np.ndarray
     meta: dict
-
-    @property
-    def rate_hz(self) -> float:
-        return float(1.0 / (self.t_s[1] - self.t_s[0]))
-
-    def attitude_error_rad(self) -> np.ndarray:
-        """Angle between true and commanded attitude, rad, shape (N,)."""
-        return quat_angle_rad(self.q_WB_wxyz, self.q_sp_wxyz)
-
-    def tilt_rad(self) -> np.ndarray:
-        """Tilt of the body z axis from the vertical, rad, shape (N,)."""
-        return tilt_rad(self.q_WB_wxyz)
 
     def altitude_error_m(self) -> np.ndarray:
         """Height minus the set point, m, shape (N,)."""
