@@ -73,7 +73,7 @@ def main() -> None:
     print(f"max relative difference   : {rel:.3e}")
     print(
         f"full analysis of one axis (ADEV + EDF + joint fit): {t_full:.3f} s; "
-        f"N = {r.arw_rad_per_sqrt_s} (true {N}), K = {r.rrw_rad_per_s_sqrt_s} (true {K})"
+        f"N = {r.all_terms()['arw_rad_per_sqrt_s']} (true {N}), K = {r.all_terms()['rrw_rad_per_s_sqrt_s']} (true {K})"
     )
 
 

@@ -190,11 +190,11 @@ def allan_n(instances: int, seed: int, *, rate_hz=100.0, duration_s=1000.0, n_ra
         rec = Recording(t_s=t, gyro_rad_s=rng.normal(0.0, sigma, (n, 3)))
         res = allan_analysis(rec)
         for ax in res.axes.values():
-            nhat = ax.arw_rad_per_sqrt_s
+            nhat = ax.all_terms()["arw_rad_per_sqrt_s"]
             if nhat is None:
                 unresolved += 1
                 continue
-            lo, hi = ax.ci95["arw_rad_per_sqrt_s"]
+            lo, hi = ax.interval("arw_rad_per_sqrt_s")
             sigma_c = (hi**2 - lo**2) / (2 * Z95)  # on c = N²
             est.append(nhat)
             implied.append(sigma_c / (2 * nhat))  # delta method: σ_N = σ_c/(2N)

@@ -236,7 +236,7 @@ def stage_allan(a) -> dict:
     from gyrocore.noise.allan import allan_analysis
 
     res = allan_analysis(_gather(a, full=False))
-    return {"arw_rad_per_sqrt_s": {k: v.arw_rad_per_sqrt_s for k, v in res.axes.items()}}
+    return {"arw_rad_per_sqrt_s": {k: v.all_terms()["arw_rad_per_sqrt_s"] for k, v in res.axes.items()}}
 
 
 def stage_calibrate(a) -> dict:

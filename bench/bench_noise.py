@@ -96,9 +96,10 @@ def main(argv=None) -> None:
         f"fits (3 axes) {c_fit:.3f}"
     )
     for ax, r in res.axes.items():
+        t = r.all_terms()
         print(
-            f"  {ax}: N = {r.arw_rad_per_sqrt_s}, B = {r.bias_instability_rad_s}, K = {r.rrw_rad_per_s_sqrt_s}, "
-            f"GM = {r.correlated_sigma_rad_s}"
+            f"  {ax}: N = {t['arw_rad_per_sqrt_s']}, B = {t['bias_instability_rad_s']}, "
+            f"K = {t['rrw_rad_per_s_sqrt_s']}, GM = {t['correlated_sigma_rad_s']}"
         )
 
 

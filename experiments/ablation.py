@@ -59,7 +59,7 @@ from .report import ExperimentResult, md_table, new_figure, save_figure, single_
 from .calibrators import calibration_recordings, CoreCalibrator, CoreParams, strip_truth
 from .montecarlo import run_campaign, TaskResult, write_campaign
 from gyrocore.attitude import mahony, tilt_error_rad
-from gyrocore.calib.budget import NoiseModel, ParameterGroup, predict_error
+from gyrocore.calib.budget import ParameterGroup, predict_error
 from gyrocore.calib.params import load_params, save_params
 from gyrocore.data.recording import atomic_write_text
 from sim import scenarios as S
@@ -452,7 +452,7 @@ def uncorrected_rate_errors(res, present: Sequence[str], estimated: Sequence[str
 
 
 def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = True):
-    """The noise model identified by the calibration (:class:`gyrocore.calib.budget.NoiseModel`), None
+    """The noise model identified by the calibration (:class:`gyrocore.noise.model.NoiseModel`), None
     when the calibration carries none.
 
     White level: that of the calibration run whose sample rate is ``rate_hz`` (it includes that
@@ -491,9 +491,9 @@ def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = T
             nm = replace(
                 nm,
                 bias_instability_rad_s=slow.bias_instability_rad_s,
-                rrw_rad_s_per_sqrt_s=slow.rrw_rad_s_per_sqrt_s,
-                gm_sigma_rad_s=slow.gm_sigma_rad_s,
-                gm_tau_c_s=slow.gm_tau_c_s,
+                rrw_rad_per_s_sqrt_s=slow.rrw_rad_per_s_sqrt_s,
+                correlated_sigma_rad_s=slow.correlated_sigma_rad_s,
+                correlated_tau_c_s=slow.correlated_tau_c_s,
             )
     return nm
 
@@ -501,7 +501,7 @@ def identified_noise(core_params, rate_hz: float, *, slow_from_longest: bool = T
 def predict_instance(res, calibration, present: Sequence[str], still, start: int, *, noise=None):
     """Predicted attitude error of the ``all`` row (:func:`gyrocore.calib.budget.predict_error`).
 
-    Noise: ``noise`` (a :class:`gyrocore.calib.budget.NoiseModel`: the model the calibration
+    Noise: ``noise`` (a :class:`gyrocore.noise.model.NoiseModel`: the model the calibration
     identified on its own residual, :func:`identified_noise`); None: the unit's true noise
     terms (simulation only).
     Parameter errors: the calibration's standard errors (diagonal). Power-up bias: the still

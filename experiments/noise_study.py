@@ -136,12 +136,12 @@ def _identify(method: str, g: np.ndarray, rate_hz: float) -> dict[str, dict]:
     for ax, r in res.axes.items():
         d = {}
         for short, key in TERM_KEYS.items():
-            if key not in r.ci95:
+            if key not in r.model.ci95:
                 continue
-            lo, hi = r.ci95[key]
+            lo, hi = r.interval(key)
             # 5th: the fit declared the term not resolvable at this length (its fitted level)
-            nr = getattr(r, "not_resolvable", {}) or {}
-            d[short] = (getattr(r, key) is not None, float(r.estimate[key]), float(lo), float(hi), key in nr)
+            nr = r.not_resolvable or {}
+            d[short] = (r.all_terms()[key] is not None, float(r.estimate[key]), float(lo), float(hi), key in nr)
         out[ax] = d
     return out
 

@@ -40,7 +40,8 @@ from typing import Sequence
 import numpy as np
 
 from experiments.montecarlo import instance_seeds
-from gyrocore.calib.budget import NoiseModel, predict_error
+from gyrocore.calib.budget import predict_error
+from gyrocore.noise.model import NoiseModel, model_value
 from gyrocore.effects import registry as E
 
 from . import ablation as A
@@ -171,8 +172,8 @@ class NoiseSource:
 
     Attributes
     ----------
-    model : gyrocore.calib.budget.NoiseModel
-        Per-axis noise (rad/√s, rad/s, rad/s/√s; Gauss–Markov σ rad/s, τc s).
+    model : gyrocore.noise.model.NoiseModel
+        The noise model of axes x, y, z.
     label : str
         Where it comes from (said in the report and the JSON).
     record_s : float or None
@@ -186,7 +187,7 @@ class NoiseSource:
         residual).
     """
 
-    model: object
+    model: NoiseModel
     label: str
     record_s: float | None
     rate_hz: float | None
@@ -198,27 +199,12 @@ class NoiseSource:
             return None
         return int(round(self.record_s * self.rate_hz)) + 1
 
-    def terms(self) -> dict:
-        """Axis means of the model's terms (the keys of :func:`gyrocore.noise.gmwm.expected_z`)."""
-        m = self.model
-        sig = np.asarray(m.gm_sigma_rad_s, float)
-        tau = np.asarray(m.gm_tau_c_s, float)
-        has = (sig > 0) & np.isfinite(tau)
-        return {
-            "arw_rad_per_sqrt_s": float(np.mean(m.arw_rad_per_sqrt_s)),
-            "bias_instability_rad_s": float(np.mean(m.bias_instability_rad_s)),
-            "rrw_rad_per_s_sqrt_s": float(np.mean(m.rrw_rad_s_per_sqrt_s)),
-            "correlated_sigma_rad_s": float(np.mean(sig[has])) if has.any() else 0.0,
-            "correlated_tau_c_s": float(np.mean(tau[has])) if has.any() else None,
-        }
-
 
 def _noise_from_allan_json(doc: dict, where: str):
-    """NoiseModel from the JSON of ``gyroharness allan/noise --json`` (per-axis terms, null =
-    not resolved, ``ambiguous`` and ``estimate``: :meth:`gyrocore.calib.budget.NoiseModel.from_identified`)."""
-    from types import SimpleNamespace
-
-    from gyrocore.calib.budget import NoiseModel
+    """NoiseModel of axes x, y, z from the JSON of ``gyroharness allan/noise --json`` (per-axis
+    terms, null = not resolved, ``ambiguous`` and ``estimate``: each term's model value as the
+    identification gives it, :func:`gyrocore.noise.model.model_value`; a missing axis takes the
+    mean of the others)."""
     from gyrocore.errors import GyroInputError
 
     axes = doc.get("axes")
@@ -233,7 +219,7 @@ def _noise_from_allan_json(doc: dict, where: str):
         "correlated_sigma_rad_s",
         "correlated_tau_c_s",
     )
-    ns = {}
+    models = []
     for a, d in axes.items():
         if a not in ("x", "y", "z") or not isinstance(d, dict):
             continue
@@ -243,12 +229,11 @@ def _noise_from_allan_json(doc: dict, where: str):
             raise GyroInputError(f"{where}: axis {a}: a noise term is not a number") from None
         if vals["arw_rad_per_sqrt_s"] is None or not (vals["arw_rad_per_sqrt_s"] > 0):
             raise GyroInputError(f"{where}: axis {a} has no white rate noise (arw_rad_per_sqrt_s)")
-        ns[a] = SimpleNamespace(
-            **vals, ambiguous=dict(d.get("ambiguous") or {}), estimate=dict(d.get("estimate") or {})
-        )
-    if not ns:
+        amb, est = dict(d.get("ambiguous") or {}), dict(d.get("estimate") or {})
+        models.append(NoiseModel(**{k: model_value(k, vals[k], amb, est) for k in keys}, axes=(a,), source=where))
+    if not models:
         raise GyroInputError(f"{where}: no gyro axis x, y or z in the noise JSON")
-    return NoiseModel.from_identified(SimpleNamespace(axes=ns))
+    return NoiseModel.stack(models).complete(("x", "y", "z"))
 
 
 def load_noise(path) -> NoiseSource:
@@ -320,7 +305,6 @@ def load_noise(path) -> NoiseSource:
         raise GyroInputError(f"{path}: JSON is neither a noise JSON (`gyroharness noise --json`) nor a parameter file")
     # a still data file: identify as `gyroharness noise FILE` does
     from gyrocore.noise.allan import allan_analysis
-    from gyrocore.calib.budget import NoiseModel
     from gyrocore.readers.large import is_large
     from gyrocore.noise.spilled import allan_by_axis
     from gyrocore.data.recording import read_recording
@@ -332,7 +316,7 @@ def load_noise(path) -> NoiseSource:
         else:
             an = allan_analysis(read_recording(path), axes=["x", "y", "z"], check_static=True)
     return NoiseSource(
-        model=NoiseModel.from_identified(an),
+        model=an.noise_model(("x", "y", "z")),
         label=f"{os.path.basename(path)} (GMWM on its {an.duration_s:.0f}-s still record at {an.rate_hz:g} Hz)",
         record_s=float(an.duration_s),
         rate_hz=float(an.rate_hz),
@@ -347,7 +331,6 @@ def simulated_still_noise(*, seed: int, duration_s: float) -> NoiseSource:
     import warnings
 
     from gyrocore.noise.allan import allan_analysis
-    from gyrocore.calib.budget import NoiseModel
     from sim import scenarios as S
 
     with warnings.catch_warnings():
@@ -356,7 +339,7 @@ def simulated_still_noise(*, seed: int, duration_s: float) -> NoiseSource:
         an = allan_analysis(rec, axes=["x", "y", "z"])
     del rec
     return NoiseSource(
-        model=NoiseModel.from_identified(an),
+        model=an.noise_model(("x", "y", "z")),
         label=f"GMWM on a simulated {an.duration_s:.0f}-s still recording of the unit (static, run 3)",
         record_s=float(an.duration_s),
         rate_hz=float(an.rate_hz),
@@ -694,7 +677,7 @@ def evaluate_grid(
     candidate's standard errors. ``table``/``thermal``: candidates of
     :func:`candidate_stderr` (None: one "reference" candidate with the groups' own standard
     errors). ``noise``: the noise model (None: the unit's true noise)."""
-    from gyrocore.calib.budget import NoiseModel, make_blocks, predict_error, rotation_matrices, sensitivity
+    from gyrocore.calib.budget import make_blocks, predict_error, rotation_matrices, sensitivity
 
     if noise is None:
         noise = NoiseModel.from_params(res.params_true)
@@ -915,7 +898,6 @@ def _floor_ms(inp, start: int, segs, model) -> float:
 def _unit_floor_var(inp, start: int, segs, tau_c_s: float | None) -> dict:
     """{term: the flight floor's mean variance at unit level of that term alone} (linear in
     each term's variance coefficient: :func:`record_support`)."""
-    from gyrocore.calib.budget import NoiseModel
 
     z, one = np.zeros(3), np.ones(3)
     out = {
@@ -923,14 +905,14 @@ def _unit_floor_var(inp, start: int, segs, tau_c_s: float | None) -> dict:
         "bias_instability_rad_s": _floor_ms(
             inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z, bias_instability_rad_s=one)
         ),
-        "rrw_rad_per_s_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z, rrw_rad_s_per_sqrt_s=one)),
+        "rrw_rad_per_s_sqrt_s": _floor_ms(inp, start, segs, NoiseModel(arw_rad_per_sqrt_s=z, rrw_rad_per_s_sqrt_s=one)),
     }
     if tau_c_s is not None and np.isfinite(tau_c_s):
         out["correlated_sigma_rad_s"] = _floor_ms(
             inp,
             start,
             segs,
-            NoiseModel(arw_rad_per_sqrt_s=z, gm_sigma_rad_s=one, gm_tau_c_s=np.full(3, float(tau_c_s))),
+            NoiseModel(arw_rad_per_sqrt_s=z, correlated_sigma_rad_s=one, correlated_tau_c_s=np.full(3, float(tau_c_s))),
         )
     return out
 
@@ -1157,7 +1139,7 @@ def _flight_noise(noise, d: _Design, *, airborne_s: float) -> NoiseSource:
 class _FlightNoise:
     """What the flight's noise model says about the flight and whether its record supports it."""
 
-    terms: dict  # axis means of its terms (NoiseSource.terms)
+    terms: dict  # axis means of its terms (NoiseModel.mean_terms)
     support: list  # record_support's rows
     warning: str | None  # the one warning line when the record does not support the flight
     floors: list  # (noise model, floor RMS °, floor final °, predicted RMS °, predicted final °) on a 2-s window
@@ -1167,7 +1149,7 @@ def _flight_noise_support(src: NoiseSource, d: _Design, *, airborne_s: float) ->
     """Whether the record supports the flight (one ``warning:``), and the flight's floor under
     the flight's model, the reference calibration's and the unit's true noise."""
     inp2, segs2, start2 = _prefixed_inputs(d.res, d.ground, 2.0)
-    terms = src.terms()
+    terms = src.model.mean_terms()
     unit_var = _unit_floor_var(inp2, start2, segs2, terms.get("correlated_tau_c_s"))
     support = record_support(terms, n_samples=src.n_samples, rate_hz=src.rate_hz, unit_var=unit_var)
     warn_msg = _support_message(support, src, airborne_s)

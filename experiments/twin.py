@@ -355,14 +355,14 @@ def identify(
         GMs = np.zeros(3)
         GMt = np.ones(3)
         for i, a in enumerate("xyz"):
-            r = an.axes[a]
-            N[i] = r.arw_rad_per_sqrt_s or 0.0
-            B[i] = r.bias_instability_rad_s or 0.0
-            K[i] = r.rrw_rad_per_s_sqrt_s or 0.0
-            Q[i] = r.quantization_rad or 0.0
-            if r.correlated_sigma_rad_s is not None and r.correlated_tau_c_s:
-                GMs[i] = r.correlated_sigma_rad_s
-                GMt[i] = r.correlated_tau_c_s
+            t = an.axes[a].all_terms()  # the resolved terms (None: unresolved)
+            N[i] = t["arw_rad_per_sqrt_s"] or 0.0
+            B[i] = t["bias_instability_rad_s"] or 0.0
+            K[i] = t["rrw_rad_per_s_sqrt_s"] or 0.0
+            Q[i] = t["quantization_rad"] or 0.0
+            if t["correlated_sigma_rad_s"] is not None and t["correlated_tau_c_s"]:
+                GMs[i] = t["correlated_sigma_rad_s"]
+                GMt[i] = t["correlated_tau_c_s"]
         if lsb is not None:
             n2 = N**2 - lsb**2 / (12.0 * rate)
             if np.any(n2 <= 0):

@@ -40,6 +40,7 @@ from gyrocore.calib.rows import ReferenceRows
 from gyrocore.data.columns import columns_of
 from gyrocore.data.recording import ACCEL_COLS, REF_RATE_COLS, TEMP_COL, Recording, file_sha256
 from gyrocore.data.still import still_samples
+from gyrocore.noise.model import NoiseModel
 
 __all__ = [
     "FITTABLE",
@@ -216,7 +217,7 @@ class Calibrator:
         the first sample; :func:`gyrocore.calib.covariance.noise_model_meat`). The model is ``noise`` if
         given, else identified (:func:`gyrocore.noise.allan.identify_noise`, GMWM) on the residual
         of the first fit (outliers of the robust pass set to 0). Least-squares method only.
-    noise : gyrocore.calib.budget.NoiseModel or NoiseResult, optional
+    noise : gyrocore.noise.model.NoiseModel or gyrocore.noise.allan.AllanAnalysis, optional
         The noise model for ``covariance="noise_model"`` (e.g. identified on a still
         recording of the same session); default: identified from the fit's residual.
     ramp_margin_s : float
@@ -301,10 +302,8 @@ class Calibrator:
                     "g_sensitivity with an external bias is not supported (it is fitted on the still poses with the bias)"
                 )
             external_bias = _external_bias_dict(external_bias)
-        if noise is not None and not hasattr(noise, "arw_rad_per_sqrt_s"):
-            from gyrocore.calib.budget import NoiseModel
-
-            noise = NoiseModel.from_identified(noise)
+        if noise is not None and not isinstance(noise, NoiseModel):
+            noise = noise.noise_model(("x", "y", "z"))  # an identification (identify_noise)
         self.noise = noise
         if not (np.isfinite(ramp_margin_s) and ramp_margin_s >= 0):
             raise GyroInputError(f"ramp margin must be >= 0 s, got {ramp_margin_s}")
@@ -642,7 +641,6 @@ class LeastSquaresMethod:
         import warnings
 
         from gyrocore.noise.allan import identify_noise
-        from gyrocore.calib.budget import NoiseModel
 
         keep = ~np.asarray(bad, bool)
         n = keep.size
@@ -655,30 +653,28 @@ class LeastSquaresMethod:
             notes.append(
                 f"noise identified on {100.0 * keep.mean():.0f} % of the samples (rate ramps and outliers left out)"
             )
-        vals = {
-            k: np.zeros(3)
-            for k in ("arw_rad_per_sqrt_s", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "correlated_sigma_rad_s")
-        }
-        tau = np.full(3, np.inf)
+        models = []
         for i in range(3):
             x = axis(i)
             x = x[keep] if not keep.all() else x
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # the short-record note of identify_noise
-                ax = identify_noise(x, rate_hz=rate_hz, check_static=False).axes["x"]
+                models.append(identify_noise(x, rate_hz=rate_hz, check_static=False).axes["x"].model)
             del x
-            from gyrocore.calib.budget import identified_term
-
-            for k in vals:
-                vals[k][i] = identified_term(ax, k)
-            if vals["correlated_sigma_rad_s"][i] > 0:
-                tau[i] = identified_term(ax, "correlated_tau_c_s") or np.inf
+        # the residual's N, B, K and Gauss-Markov pair, one identification per axis (Q and R are
+        # no terms of the sandwich, :func:`gyrocore.calib.lsq.noise_model_meat`)
         nm = NoiseModel(
-            arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"],
-            bias_instability_rad_s=vals["bias_instability_rad_s"],
-            rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"],
-            gm_sigma_rad_s=vals["correlated_sigma_rad_s"],
-            gm_tau_c_s=tau,
+            **{
+                k: np.array([float(getattr(m_, k)[0]) for m_ in models])
+                for k in (
+                    "arw_rad_per_sqrt_s",
+                    "bias_instability_rad_s",
+                    "rrw_rad_per_s_sqrt_s",
+                    "correlated_sigma_rad_s",
+                    "correlated_tau_c_s",
+                )
+            },
+            source="GMWM on the fit residual",
         )
 
         def fmt(a):
@@ -687,8 +683,8 @@ class LeastSquaresMethod:
         notes.append(
             "standard errors: noise-model sandwich, noise identified on the fit residual (GMWM): "
             f"N {fmt(nm.arw_rad_per_sqrt_s)} rad/sqrt(s), B {fmt(nm.bias_instability_rad_s)} rad/s, "
-            f"K {fmt(nm.rrw_rad_s_per_sqrt_s)} rad/s/sqrt(s), GM sigma {fmt(nm.gm_sigma_rad_s)} rad/s "
-            f"tau {fmt(nm.gm_tau_c_s)} s"
+            f"K {fmt(nm.rrw_rad_per_s_sqrt_s)} rad/s/sqrt(s), GM sigma {fmt(nm.correlated_sigma_rad_s)} rad/s "
+            f"tau {fmt(nm.correlated_tau_c_s)} s"
         )
         return dict(covariance="noise_model", noise_model=nm)
 

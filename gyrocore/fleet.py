@@ -123,11 +123,12 @@ def headline_allan(path: str, options: dict) -> dict:
     res = allan_analysis(rec, check_static=True)
     out = {"n_samples": res.n_samples, "duration_s": res.duration_s, "rate_hz": rec.rate_hz}
     for ax, r in res.axes.items():
-        out[f"arw_{ax}_rad_per_sqrt_s"] = _num(r.arw_rad_per_sqrt_s)
-        out[f"bias_instability_{ax}_rad_s"] = _num(r.bias_instability_rad_s)
-        out[f"rrw_{ax}_rad_per_s_sqrt_s"] = _num(r.rrw_rad_per_s_sqrt_s)
-        out[f"quantization_{ax}_rad"] = _num(r.quantization_rad)
-        out[f"rate_ramp_{ax}_rad_s2"] = _num(r.rate_ramp_rad_s2)
+        t = r.all_terms()
+        out[f"arw_{ax}_rad_per_sqrt_s"] = _num(t["arw_rad_per_sqrt_s"])
+        out[f"bias_instability_{ax}_rad_s"] = _num(t["bias_instability_rad_s"])
+        out[f"rrw_{ax}_rad_per_s_sqrt_s"] = _num(t["rrw_rad_per_s_sqrt_s"])
+        out[f"quantization_{ax}_rad"] = _num(t["quantization_rad"])
+        out[f"rate_ramp_{ax}_rad_s2"] = _num(t["rate_ramp_rad_s2"])
     return out
 
 

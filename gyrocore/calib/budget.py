@@ -80,7 +80,7 @@ eigenvalues of C: mean tr C, variance 2·tr C². ``final_sd_rad2`` reports that 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -88,10 +88,10 @@ import numpy as np
 from gyrocore.effects import registry as E
 from gyrocore.effects.effect import quat_to_R
 from gyrocore.errors import GyroInputError
+from gyrocore.noise.model import NoiseModel
 
 __all__ = [
     "FORMAT_VERSION",
-    "NoiseModel",
     "ParameterGroup",
     "Blocks",
     "ErrorPrediction",
@@ -100,7 +100,6 @@ __all__ = [
     "sensitivity",
     "predict_error",
     "rotation_matrices",
-    "identified_term",
 ]
 
 FORMAT_VERSION = "1.0"
@@ -108,122 +107,6 @@ _NOISE_TERMS = ("arw", "bias_instability", "rrw", "correlated")
 
 
 # ============================================================================ inputs
-def identified_term(axis, name: str) -> float:
-    """One noise term of an identified axis (:class:`gyrocore.noise.allan.NoiseAxis`) for a noise
-    *model*: the resolved value; for a term fitted but *ambiguous* (GMWM's stand-in check:
-    flicker and a Gauss–Markov term fit equally well, ``axis.ambiguous``) its fitted estimate —
-    the slow noise is there, only its name is uncertain, and dropping it made the standard
-    errors too small; else 0."""
-    v = getattr(axis, name, None)
-    if v is not None:
-        return float(v)
-    amb = getattr(axis, "ambiguous", None) or {}
-    est = getattr(axis, "estimate", None) or {}
-    tau_of = {"correlated_tau_c_s": "correlated_sigma_rad_s"}
-    key = tau_of.get(name, name)
-    if key in amb and est.get(name) is not None and np.isfinite(est.get(name)):
-        return float(est[name])
-    return 0.0
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """Identified (or datasheet) noise of one gyro, per axis.
-
-    Attributes
-    ----------
-    arw_rad_per_sqrt_s : ndarray (3,)
-        White rate noise density N, rad/√s.
-    bias_instability_rad_s : ndarray (3,)
-        Bias-instability coefficient B (IEEE 952; Allan floor 0.664·B), rad/s.
-    rrw_rad_s_per_sqrt_s : ndarray (3,)
-        Rate random walk K, rad/s/√s.
-    gm_sigma_rad_s, gm_tau_c_s : ndarray (3,)
-        First-order Gauss–Markov σ, rad/s, and correlation time, s (σ = 0: absent).
-    quantization_lsb_rad_s : float
-        Output LSB, rad/s (0: none); adds LSB²/(12·rate) to N².
-    """
-
-    arw_rad_per_sqrt_s: np.ndarray
-    bias_instability_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    rrw_rad_s_per_sqrt_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    gm_sigma_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    gm_tau_c_s: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))
-    quantization_lsb_rad_s: float = 0.0
-    format_version: str = FORMAT_VERSION
-
-    @classmethod
-    def from_params(cls, params: Mapping[str, Mapping[str, np.ndarray]]) -> "NoiseModel":
-        """From catalogue parameters (``arw``, ``bias_instability``, ``rrw``, ``correlated``,
-        ``quantization``); absent terms are zero."""
-
-        def v(eff, name, default=0.0):
-            if eff not in params:
-                return np.full(3, default)
-            return np.broadcast_to(np.asarray(params[eff][name], float), (3,)).copy()
-
-        lsb = float(np.asarray(params["quantization"]["lsb_rad_s"])) if "quantization" in params else 0.0
-        return cls(
-            arw_rad_per_sqrt_s=v("arw", "n_rad_per_sqrt_s"),
-            bias_instability_rad_s=v("bias_instability", "b_rad_s"),
-            rrw_rad_s_per_sqrt_s=v("rrw", "k_rad_s_per_sqrt_s"),
-            gm_sigma_rad_s=v("correlated", "sigma_rad_s"),
-            gm_tau_c_s=v("correlated", "tau_c_s", np.inf),
-            quantization_lsb_rad_s=lsb,
-        )
-
-    @classmethod
-    def from_identified(cls, result, *, quantization_lsb_rad_s: float = 0.0) -> "NoiseModel":
-        """From an identified noise model (:func:`gyrocore.noise.allan.identify_noise`, a
-        ``NoiseResult`` with axes x, y, z): the *selected* terms N, B, K and Gauss–Markov (σ, τc)
-        per axis; a term the identification did not resolve is 0 (the model selection found
-        no evidence for it), an *ambiguous* one its fitted estimate (:func:`identified_term`). Angle quantization Q and the rate ramp R are not used (Q is white
-        angle noise: its rate-mean variance 2·Q²/T² is negligible beyond a few samples; R is a
-        deterministic drift, fitted where it matters as ``bias_ramp``). A missing axis takes the
-        mean of the others."""
-        names = (
-            "arw_rad_per_sqrt_s",
-            "bias_instability_rad_s",
-            "rrw_rad_per_s_sqrt_s",
-            "correlated_sigma_rad_s",
-            "correlated_tau_c_s",
-        )
-        vals = {k: np.full(3, np.nan) for k in names}
-        for i, a in enumerate("xyz"):
-            ax = result.axes.get(a) if hasattr(result, "axes") else None
-            if ax is None:
-                continue
-            for k in names:
-                v = identified_term(ax, k)
-                vals[k][i] = v if (v > 0 or k != "correlated_tau_c_s") else np.inf
-        for k in names:
-            v = vals[k]
-            ok = np.isfinite(v) | (k == "correlated_tau_c_s")
-            have = ~np.isnan(v)
-            if not have.any():
-                raise GyroInputError("identified noise model has no axis")
-            fill = (
-                float(np.mean(v[have & ok]))
-                if np.any(have & ok & np.isfinite(v))
-                else (np.inf if k == "correlated_tau_c_s" else 0.0)
-            )
-            vals[k] = np.where(have, v, fill)
-        sig = vals["correlated_sigma_rad_s"]
-        tau = np.where(sig > 0, vals["correlated_tau_c_s"], np.inf)
-        return cls(
-            arw_rad_per_sqrt_s=vals["arw_rad_per_sqrt_s"],
-            bias_instability_rad_s=vals["bias_instability_rad_s"],
-            rrw_rad_s_per_sqrt_s=vals["rrw_rad_per_s_sqrt_s"],
-            gm_sigma_rad_s=sig,
-            gm_tau_c_s=tau,
-            quantization_lsb_rad_s=float(quantization_lsb_rad_s),
-        )
-
-    def white_n2(self, rate_hz: float) -> np.ndarray:
-        """N² + LSB²/(12·rate) per axis, rad²/s."""
-        return np.asarray(self.arw_rad_per_sqrt_s, float) ** 2 + self.quantization_lsb_rad_s**2 / (12.0 * rate_hz)
-
-
 @dataclass(frozen=True)
 class ParameterGroup:
     """Fitted effects whose errors are propagated together.
@@ -779,9 +662,9 @@ def predict_error(
     notes: list[str] = []
     cov_final = np.zeros((3, 3))
     levels = {
-        "arw": noise.white_n2(rate),
+        "arw": noise.white_var_rad2_s(rate),
         "bias_instability": np.asarray(noise.bias_instability_rad_s, float) ** 2,
-        "rrw": np.asarray(noise.rrw_rad_s_per_sqrt_s, float) ** 2,
+        "rrw": np.asarray(noise.rrw_rad_per_s_sqrt_s, float) ** 2,
     }
     for term, L2 in levels.items():
         if not np.any(L2 > 0):
@@ -791,7 +674,7 @@ def predict_error(
         var[f"noise:{term}"] = tot[sc]
         floor[term] = fl[sc]
         cov_final += cov
-    gs, gt = np.asarray(noise.gm_sigma_rad_s, float), np.asarray(noise.gm_tau_c_s, float)
+    gs, gt = np.asarray(noise.correlated_sigma_rad_s, float), np.asarray(noise.correlated_tau_c_s, float)
     if np.any(gs > 0):
         tot = np.zeros(blocks.m)
         fl = np.zeros(blocks.m)

@@ -374,8 +374,8 @@ def noise_model_meat(
         Interval each row averages, s since the power-up (non-decreasing rows).
     row_n_eff : ndarray, shape (n,) or (n, 3)
         Effective number of samples of each row's mean, (Σw)²/Σw² (the count for 0/1 weights).
-    noise : gyrocore.calib.budget.NoiseModel
-        Per-axis noise levels (:meth:`gyrocore.calib.budget.NoiseModel.from_identified` for an
+    noise : gyrocore.noise.model.NoiseModel
+        Per-axis noise levels (:meth:`gyrocore.noise.allan.AllanAnalysis.noise_model` for an
         identified model).
     dt_s : float
         Sample spacing, s.
@@ -400,9 +400,9 @@ def noise_model_meat(
         S += U[:, i, :].T @ (U[:, i, :] * v[:, None])
     # -- slow terms on coarse time bins
     B2 = np.asarray(noise.bias_instability_rad_s, float) ** 2
-    K2 = np.asarray(noise.rrw_rad_s_per_sqrt_s, float) ** 2
-    gs = np.asarray(noise.gm_sigma_rad_s, float)
-    gt = np.asarray(noise.gm_tau_c_s, float)
+    K2 = np.asarray(noise.rrw_rad_per_s_sqrt_s, float) ** 2
+    gs = np.asarray(noise.correlated_sigma_rad_s, float)
+    gt = np.asarray(noise.correlated_tau_c_s, float)
     if not (np.any(B2 > 0) or np.any(K2 > 0) or np.any(gs > 0)):
         return (S + S.T) / 2
     K = int(min(n, max(1, max_bins)))

@@ -321,7 +321,7 @@ def solve(
         first-difference noise level must reach this, else the parameter is unobservable;
         5 → errors-in-variables attenuation below 4 %), ``noisy_effects`` (effects whose
         regressors come from measured inputs), ``noise_model`` (the gyro's noise,
-        :class:`gyrocore.calib.budget.NoiseModel`, for ``covariance="noise_model"``: the
+        :class:`gyrocore.noise.model.NoiseModel`, for ``covariance="noise_model"``: the
         sandwich (AᵀWA)⁻¹·(Σ_i U_iᵀ C_i U_i)·(AᵀWA)⁻¹, U = W·A,
         :func:`gyrocore.calib.covariance.noise_model_meat`).
 

@@ -27,6 +27,7 @@ from gyrocore.data.jsonable import to_jsonable
 from gyrocore.data.recording import Recording, atomic_write_text
 from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError, warn_repair
+from gyrocore.noise.model import NoiseModel
 
 __all__ = ["FORMAT_VERSION", "CalibrationResult", "save_params", "load_params", "result_to_dict", "result_from_dict"]
 
@@ -82,7 +83,7 @@ class CalibrationResult:
         The noise model behind ``covariance="noise_model"`` standard errors, per axis (3,):
         ``arw_rad_per_sqrt_s``, ``bias_instability_rad_s``, ``rrw_rad_s_per_sqrt_s``,
         ``gm_sigma_rad_s``, ``gm_tau_c_s`` (inf = no Gauss–Markov term)
-        (:class:`gyrocore.calib.budget.NoiseModel` fields; :meth:`noise` rebuilds it), and
+        (the terms of a :class:`gyrocore.noise.model.NoiseModel`; :meth:`noise` rebuilds it), and
         ``rate_hz``, the sample rate of the data it describes (its white level includes that
         rate's quantization noise).
     format_version : str
@@ -108,12 +109,13 @@ class CalibrationResult:
     format_version: str = FORMAT_VERSION
 
     def noise(self):
-        """The :class:`gyrocore.calib.budget.NoiseModel` of the standard errors, or None."""
+        """The :class:`gyrocore.noise.model.NoiseModel` of the standard errors, or None."""
         if not self.noise_model:
             return None
-        from gyrocore.calib.budget import NoiseModel
-
-        return NoiseModel(**{k: np.asarray(self.noise_model[k], float) for k in _NOISE_MODEL_KEYS})
+        return NoiseModel(
+            **{term: np.asarray(self.noise_model[k], float) for k, term in _NOISE_MODEL_KEYS.items()},
+            source="parameter file",
+        )
 
     # ------------------------------------------------------------------ apply
     def required_columns(self) -> list[str]:
@@ -236,9 +238,13 @@ class CalibrationResult:
 
 
 def noise_model_dict(nm, rate_hz: float) -> dict | None:
+    """The parameter file's ``noise_model`` entry of a :class:`~gyrocore.noise.model.NoiseModel`
+    (its N, B, K and Gauss–Markov pair per axis; ``rate_hz`` the rate of the data it describes)."""
     if nm is None:
         return None
-    out: dict = {k: np.broadcast_to(np.asarray(getattr(nm, k), float), (3,)).copy() for k in _NOISE_MODEL_KEYS}
+    out: dict = {
+        k: np.broadcast_to(np.asarray(getattr(nm, term), float), (3,)).copy() for k, term in _NOISE_MODEL_KEYS.items()
+    }
     out["rate_hz"] = float(rate_hz)
     return out
 
@@ -344,13 +350,15 @@ def result_from_dict(d: Mapping, *, where: str = "parameter file") -> Calibratio
     )
 
 
-_NOISE_MODEL_KEYS = (
-    "arw_rad_per_sqrt_s",
-    "bias_instability_rad_s",
-    "rrw_rad_s_per_sqrt_s",
-    "gm_sigma_rad_s",
-    "gm_tau_c_s",
-)
+#: The parameter file's ``noise_model`` keys (DESIGN.md "Parameter file") and the
+#: :class:`~gyrocore.noise.model.NoiseModel` term each one holds.
+_NOISE_MODEL_KEYS = {
+    "arw_rad_per_sqrt_s": "arw_rad_per_sqrt_s",
+    "bias_instability_rad_s": "bias_instability_rad_s",
+    "rrw_rad_s_per_sqrt_s": "rrw_rad_per_s_sqrt_s",
+    "gm_sigma_rad_s": "correlated_sigma_rad_s",
+    "gm_tau_c_s": "correlated_tau_c_s",
+}
 
 
 def _noise_model_from(d, where: str) -> dict | None:

@@ -16,8 +16,6 @@ What is here
   (Q angle quantization [rad], N angle random walk [rad/√s], B bias instability [rad/s],
   K rate random walk [rad/s/√s], R rate ramp [rad/s²]; IEEE Std 952-1997 annex C).
   A term the data cannot resolve (its 95 % interval reaches zero) is ``None``, not a guess.
-- :func:`simple_noise_model` — the seed article's model (§2.2): rate = truth + β + X,
-  X ~ N(0, σ²) per axis.
 - :func:`kalibr_imu_yaml` — Kalibr's ``imu.yaml`` (noise density = N, random walk = K).
 
 Conventions: rate signals are rad/s in the sensor frame S; the sample rate is the mean rate
@@ -27,7 +25,6 @@ must not enter the Allan variance, DESIGN.md "Noise density convention").
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, field, replace as _replace
 from typing import Mapping, Sequence
@@ -40,22 +37,20 @@ import scipy.stats
 from gyrocore.errors import GyroInputError, warn_repair
 
 from . import avar as AV, diagnostics, gmwm
+from .model import IEEE_TERMS, TERM_UNITS, TERMS, NoiseModel, model_value
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 from gyrocore.data.recording import AXES, GYRO_COLS, Recording
 from gyrocore.data.still import StillGate, still_windows
 
 __all__ = [
-    "TERM_NAMES",
+    "IEEE_TERMS",
     "TERM_UNITS",
     "AllanResult",
     "AllanAnalysis",
-    "NoiseAxis",
-    "NoiseResult",
     "identify_noise",
     "needed_duration_s",
-    "ALL_TERM_NAMES",
+    "TERMS",
     "METHODS",
-    "SimpleNoiseModel",
     "oadev",
     "octave_m",
     "allan_analysis",
@@ -63,8 +58,6 @@ __all__ = [
     "select_ieee952",
     "avar_correlation_white",
     "avar_correlation_model",
-    "ieee952_avar",
-    "simple_noise_model",
     "kalibr_imu_yaml",
     "to_datasheet_units",
     "FORMAT_VERSION",
@@ -73,25 +66,6 @@ __all__ = [
 FORMAT_VERSION = "2.0"  # 2.0: GM terms, method, resolved flags, τ up to T/2
 RAD2DEG = 180.0 / math.pi
 
-#: JSON names of the IEEE 952 terms, in the order of the model's coefficient vector.
-TERM_NAMES = (
-    "quantization_rad",
-    "arw_rad_per_sqrt_s",
-    "bias_instability_rad_s",
-    "rrw_rad_per_s_sqrt_s",
-    "rate_ramp_rad_s2",
-)
-#: The IEEE terms plus the first-order Gauss–Markov pair (``correlated`` in the catalogue).
-ALL_TERM_NAMES = TERM_NAMES + ("correlated_sigma_rad_s", "correlated_tau_c_s")
-TERM_UNITS = {
-    "correlated_sigma_rad_s": "rad/s",
-    "correlated_tau_c_s": "s",
-    "quantization_rad": "rad",
-    "arw_rad_per_sqrt_s": "rad/s/sqrt(Hz) = rad/sqrt(s)",
-    "bias_instability_rad_s": "rad/s",
-    "rrw_rad_per_s_sqrt_s": "rad/s/sqrt(s) = rad/s^2/sqrt(Hz)",
-    "rate_ramp_rad_s2": "rad/s^2",
-}
 # Noise type α (S_y ∝ f^α) that dominates where each term dominates; used for the EDF.
 # Q: white phase (angle) noise α=2; N: white rate α=0; B: flicker rate α=−1;
 # K: random-walk rate α=−2; R: drift, treated as α=−2 (Greenhall needs α > −3 for AVAR).
@@ -198,29 +172,6 @@ def ieee952_design(taus_s: np.ndarray) -> np.ndarray:
     """Columns of σ²(τ) for coefficients c = (Q², N², B², K², R²); shape (M, 5)."""
     t = np.asarray(taus_s, float)
     return np.column_stack([3.0 / t**2, 1.0 / t, np.full_like(t, _B_FACTOR), t / 3.0, t**2 / 2.0])
-
-
-def ieee952_avar(taus_s: np.ndarray, terms: Mapping[str, float | None]) -> np.ndarray:
-    """Allan variance of the IEEE 952 model, σ²(τ), for the terms given (None = 0)."""
-    c = np.array([(terms.get(k) or 0.0) ** 2 for k in TERM_NAMES])
-    return ieee952_design(taus_s) @ c
-
-
-@functools.lru_cache(maxsize=4096)
-def _edf(alpha: int, m: int, n_phase: int) -> float:
-    import allantools
-
-    try:
-        e = float(
-            allantools.edf_greenhall(alpha=int(alpha), d=2, m=int(m), N=int(n_phase), overlapping=True, modified=False)
-        )
-    except Exception:  # pragma: no cover - Greenhall's tables cover α in 2..-2
-        e = float("nan")
-    if not math.isfinite(e) or e <= 0:
-        # SP 1065 eq. (47) simple approximation for white FM, as a fallback.
-        n = n_phase - 1
-        e = (3 * (n - 1) / (2 * m) - 2 * (n - 2) / n) * 4 * m * m / (4 * m * m + 5)
-    return max(e, 1.0)
 
 
 _CORR_CACHE: dict[tuple, np.ndarray] = {}
@@ -374,7 +325,7 @@ def fit_ieee952(
     n_phase: int,
     *,
     iterations: int = 4,
-    terms: Sequence[str] = TERM_NAMES,
+    terms: Sequence[str] = IEEE_TERMS,
 ) -> _Fit:
     """Joint non-negative generalised least-squares fit of the IEEE 952 terms.
 
@@ -391,7 +342,7 @@ def fit_ieee952(
     without the sign constraint so that a term pinned at zero still gets an upper bound.
     """
     A_full = ieee952_design(taus_s)
-    use = np.array([k in terms for k in TERM_NAMES])
+    use = np.array([k in terms for k in IEEE_TERMS])
     A = A_full[:, use]
     m = np.asarray(m, dtype=np.int64)
     avar = np.asarray(avar, float)
@@ -403,7 +354,7 @@ def fit_ieee952(
 
     def whitened(model_, alpha_):
         R = avar_correlation_model(m, n_phase, rate_hz, coef)
-        edf_ = np.array([_edf(int(a_), int(mm), int(n_phase)) for a_, mm in zip(alpha_, m)])
+        edf_ = np.array([AV.greenhall_edf(int(a_), int(mm), int(n_phase)) for a_, mm in zip(alpha_, m)])
         sd = np.sqrt(2.0 / edf_) * np.maximum(model_, tiny)
         L = np.linalg.cholesky(R * np.outer(sd, sd))
         # np.linalg.solve rather than scipy's solve_triangular: on these ~20×5 systems the
@@ -439,7 +390,7 @@ def fit_ieee952(
 # ---------------------------------------------------------------------------- results
 @dataclass(frozen=True, eq=False)
 class AllanResult:
-    """Allan deviation and IEEE 952 terms of one axis.
+    """The noise identification of one axis: its noise model and the estimator's diagnostics.
 
     Attributes
     ----------
@@ -448,6 +399,10 @@ class AllanResult:
     signal : str
         ``"gyro"`` (units rad/s) or ``"accel"`` (units m/s², then read every ``rad`` in the
         term names as ``m/s``).
+    model : NoiseModel
+        The identified terms of this axis (:class:`gyrocore.noise.model.NoiseModel`, one axis):
+        values, 95 % intervals (``model.ci95``; [0, upper bound] when unresolved) and ``resolved``
+        flags; :meth:`all_terms` gives the JSON values (None = unresolved).
     taus_s : ndarray, shape (M,)
         Averaging times, s.
     adev_rad_s : ndarray, shape (M,)
@@ -458,13 +413,8 @@ class AllanResult:
         Equivalent degrees of freedom used.
     fit_adev_rad_s : ndarray, shape (M,)
         Deviation of the fitted model at ``taus_s``.
-    quantization_rad, arw_rad_per_sqrt_s, bias_instability_rad_s, rrw_rad_per_s_sqrt_s, rate_ramp_rad_s2 : float or None
-        The IEEE 952 terms Q, N, B, K, R; ``None`` when the data cannot resolve the term
-        (its 95 % interval reaches zero).
     estimate : dict
-        Point estimate of every term (also the unresolved ones, for plotting / upper bounds).
-    ci95 : dict
-        95 % interval (lo, hi) of every term; lo = 0 for unresolved terms, hi is an upper bound.
+        The fit's point estimate of every term (also the unresolved ones, for plotting / upper bounds).
     rate_hz : float
         Sample rate used (mean rate).
     n_samples : int
@@ -472,25 +422,16 @@ class AllanResult:
 
     axis: str
     signal: str
+    model: NoiseModel
     taus_s: np.ndarray
     adev_rad_s: np.ndarray
     adev_ci95_rad_s: np.ndarray
     edf: np.ndarray
     fit_adev_rad_s: np.ndarray
-    quantization_rad: float | None
-    arw_rad_per_sqrt_s: float | None
-    bias_instability_rad_s: float | None
-    rrw_rad_per_s_sqrt_s: float | None
-    rate_ramp_rad_s2: float | None
     estimate: Mapping[str, float] = field(default_factory=dict)
-    ci95: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     rate_hz: float = float("nan")
     n_samples: int = 0
-    units: Mapping[str, str] = field(default_factory=lambda: dict(TERM_UNITS))
-    correlated_sigma_rad_s: float | None = None
-    correlated_tau_c_s: float | None = None
     method: str = "gmwm"
-    resolved: Mapping[str, bool] = field(default_factory=dict)
     chi2: float = float("nan")
     dof: int = 0
     #: terms of the fitted model (``estimate``) not resolved because a stand-in with a higher
@@ -521,21 +462,26 @@ class AllanResult:
         return self.fit_check.get("ok") if self.fit_check else None
 
     def terms(self) -> dict[str, float | None]:
-        """The five IEEE terms as DESIGN.md's JSON dict (None = unresolved)."""
-        return {k: getattr(self, k) for k in TERM_NAMES}
+        """The five IEEE terms of the model as DESIGN.md's JSON dict (None = unresolved)."""
+        return {k: self.model.reported(k)[0] for k in IEEE_TERMS}
 
     def all_terms(self) -> dict[str, float | None]:
-        """The five IEEE terms and the Gauss–Markov pair (None = unresolved / absent)."""
-        return {k: getattr(self, k) for k in ALL_TERM_NAMES}
+        """The five IEEE terms and the Gauss–Markov pair of the model (None = unresolved / absent)."""
+        return {k: self.model.reported(k)[0] for k in TERMS}
+
+    def interval(self, name: str) -> tuple[float, float]:
+        """95 % interval (lo, hi) of a term of the model; [0, upper bound] when unresolved."""
+        lo, hi = self.model.ci95[name][0]
+        return float(lo), float(hi)
 
     def to_json(self) -> dict:
         """The DESIGN.md keys (+ ``correlated_sigma_rad_s``, ``correlated_tau_c_s``), ``ci95``, ``estimate``, the curve."""
         out: dict = self.all_terms()
         out["method"] = self.method
-        out["resolved"] = {k: bool(v) for k, v in self.resolved.items()}
-        out["ci95"] = {k: [float(a), float(b)] for k, (a, b) in self.ci95.items()}
+        out["resolved"] = {k: bool(v[0]) for k, v in self.model.resolved.items()}
+        out["ci95"] = {k: [float(a), float(b)] for k, (a, b) in ((k, v[0]) for k, v in self.model.ci95.items())}
         out["estimate"] = dict(self.estimate)
-        out["units"] = dict(self.units)
+        out["units"] = dict(TERM_UNITS)
         out["chi2"] = self.chi2
         out["dof"] = self.dof
         out["ambiguous"] = dict(self.ambiguous)
@@ -592,6 +538,12 @@ class AllanAnalysis:
     #: (t_first_s, t_last_s) of the still stretch analysed when the record held motion, else None
     analysed_span_s: tuple[float, float] | None = None
 
+    def noise_model(self, axes: Sequence[str] | None = None) -> NoiseModel:
+        """The gyro axes' noise models as one :class:`~gyrocore.noise.model.NoiseModel`; with
+        ``axes`` (e.g. x, y, z for a budget), an axis not analysed takes the mean of the others."""
+        m = NoiseModel.stack([r.model for r in self.axes.values()])
+        return m if axes is None else m.complete(axes)
+
     def to_json(self) -> dict:
         out = {
             "method": self.method,
@@ -637,13 +589,13 @@ def select_ieee952(
     """
 
     def z_of(fit_: _Fit, name: str) -> float:
-        c, _lo, hi = _term_interval(fit_, TERM_NAMES.index(name))
+        c, _lo, hi = _term_interval(fit_, IEEE_TERMS.index(name))
         se = (hi - c) / _Z95
         return c / se if (c > 0 and se > 0 and math.isfinite(se)) else 0.0
 
-    active = list(TERM_NAMES)
+    active = list(IEEE_TERMS)
     upper: dict[str, float] = {}
-    for _round in range(2 * len(TERM_NAMES)):
+    for _round in range(2 * len(IEEE_TERMS)):
         # backward: drop the least significant term while one is below keep_z
         while True:
             fit = fit_ieee952(taus_s, avar, m, n_phase, terms=active)
@@ -651,24 +603,24 @@ def select_ieee952(
             worst = min(zs, key=zs.get)
             if zs[worst] >= keep_z or len(active) == 1:
                 break
-            upper[worst] = _term_interval(fit, TERM_NAMES.index(worst))[2]
+            upper[worst] = _term_interval(fit, IEEE_TERMS.index(worst))[2]
             active.remove(worst)
         # forward: a dropped term that is significant next to the kept ones comes back
         # (collinear neighbours dropped together in the backward pass, e.g. B, K and R)
         best, best_chi2, best_hi = None, float("inf"), {}
-        for name in TERM_NAMES:
+        for name in IEEE_TERMS:
             if name in active:
                 continue
             trial = fit_ieee952(taus_s, avar, m, n_phase, terms=active + [name])
             z = z_of(trial, name)
-            best_hi[name] = _term_interval(trial, TERM_NAMES.index(name))[2]
+            best_hi[name] = _term_interval(trial, IEEE_TERMS.index(name))[2]
             if z > keep_z and all(z_of(trial, k) >= keep_z for k in active) and trial.chi2 < best_chi2:
                 best, best_chi2 = name, trial.chi2
         if best is None:
             # Upper bound of each dropped term: fitted in place of the kept terms of its own
             # τ family (long: B, K, R, which can stand in for each other over a short record;
             # short: Q), so that a neighbour does not absorb its signal.
-            for name in TERM_NAMES:
+            for name in IEEE_TERMS:
                 if name in active:
                     continue
                 if name in _LONG_TERMS:
@@ -676,9 +628,9 @@ def select_ieee952(
                 else:
                     trial_terms = active + [name]
                 trial = fit_ieee952(taus_s, avar, m, n_phase, terms=trial_terms)
-                upper[name] = max(_term_interval(trial, TERM_NAMES.index(name))[2], best_hi.get(name, 0.0))
+                upper[name] = max(_term_interval(trial, IEEE_TERMS.index(name))[2], best_hi.get(name, 0.0))
             return fit, active, upper
-        active = [k for k in TERM_NAMES if k in active or k == best]
+        active = [k for k in IEEE_TERMS if k in active or k == best]
         upper.pop(best, None)
     return fit, active, upper
 
@@ -800,29 +752,27 @@ def _axis_result(
         lo_q = scipy.stats.chi2.ppf(0.025, edf)
         hi_q = scipy.stats.chi2.ppf(0.975, edf)
         ci_dev = np.column_stack([dev * np.sqrt(edf / hi_q), dev * np.sqrt(edf / lo_q)])
-        names = ALL_TERM_NAMES if method == "gmwm" else TERM_NAMES
-        terms = {k: f.terms.get(k) for k in ALL_TERM_NAMES}
+        names = TERMS if method == "gmwm" else IEEE_TERMS
+        terms = {k: f.terms.get(k) for k in TERMS}
         est = {k: float(f.estimate[k]) for k in names}
         ci = {k: (float(f.ci95[k][0]), float(f.ci95[k][1])) for k in names}
         if k0:  # beside a low-pass, Q is not identified (its column is the filter's deficit)
             terms["quantization_rad"] = None
             est["quantization_rad"] = 0.0
             ci["quantization_rad"] = (0.0, float("inf"))
-        resolved = {k: terms[k] is not None for k in names}
         return AllanResult(
             axis=axis,
             signal=signal,
+            model=_axis_model(axis, terms, ci, names, f.ambiguous, est),
             taus_s=taus,
             adev_rad_s=dev,
             adev_ci95_rad_s=ci_dev,
             edf=edf,
             fit_adev_rad_s=np.sqrt(np.maximum(fit_all, 0.0)),
             estimate=est,
-            ci95=ci,
             rate_hz=rate_hz,
             n_samples=int(omega.shape[0]),
             method=method,
-            resolved=resolved,
             chi2=f.chi2,
             dof=f.dof,
             ambiguous=dict(f.ambiguous),
@@ -842,7 +792,6 @@ def _axis_result(
                 "p_misses": chk.p_misses,
                 "z": [float(v) for v in chk.z],
             },
-            **terms,
         )
     fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
     lo_q = scipy.stats.chi2.ppf(0.025, fit.edf)
@@ -852,7 +801,7 @@ def _axis_result(
     terms: dict[str, float | None] = {}
     est: dict[str, float] = {}
     ci: dict[str, tuple[float, float]] = {}
-    for i, name in enumerate(TERM_NAMES):
+    for i, name in enumerate(IEEE_TERMS):
         if name in active:
             c, lo, hi = _term_interval(fit, i)
             est[name] = math.sqrt(max(c, 0.0))
@@ -866,19 +815,30 @@ def _axis_result(
     return AllanResult(
         axis=axis,
         signal=signal,
+        model=_axis_model(axis, terms, ci, IEEE_TERMS, {}, est),
         taus_s=taus,
         adev_rad_s=dev,
         adev_ci95_rad_s=ci_dev,
         edf=fit.edf,
         fit_adev_rad_s=fit_dev,
         estimate=est,
-        ci95=ci,
         rate_hz=rate_hz,
         n_samples=int(omega.shape[0]),
         method=method,
-        resolved={k: terms[k] is not None for k in TERM_NAMES},
         chi2=fit.chi2,
-        **terms,
+    )
+
+
+def _axis_model(axis: str, terms, ci, names, ambiguous, estimate) -> NoiseModel:
+    """The one-axis noise model of an identification: each term's model value
+    (:func:`gyrocore.noise.model.model_value`), the intervals and resolved flags of the ``names``
+    the estimator identified."""
+    return NoiseModel(
+        **{k: model_value(k, terms.get(k), ambiguous, estimate) for k in TERMS},
+        ci95={k: [ci[k]] for k in names},
+        resolved={k: [terms.get(k) is not None] for k in names},
+        axes=(axis,),
+        source="identified",
     )
 
 
@@ -1228,7 +1188,7 @@ def needed_duration_s(result: AllanResult, name: str, *, level_factor: float = 0
     """
     from .gmwm import Z_POWER, fisher_margin
 
-    level = result.ci95.get(name, (0.0, float("nan")))[1] * level_factor
+    level = result.interval(name)[1] * level_factor if name in result.model.ci95 else float("nan")
     if not (math.isfinite(level) and 0 < level < 1e100):
         return float("nan")
     base = {k: v for k, v in result.all_terms().items() if v is not None}
@@ -1254,7 +1214,7 @@ SHORT_RECORD_S = 1800.0
 def _warn_short(axes: Mapping[str, AllanResult], duration_s: float, n: int, rate: float, method: str) -> None:
     """One warning when no long-τ term is resolved on any axis of a record shorter than
     :data:`SHORT_RECORD_S`: which terms need how long a record (at half their upper bound)."""
-    if duration_s >= SHORT_RECORD_S or any(getattr(r, k) is not None for r in axes.values() for k in _LONG):
+    if duration_s >= SHORT_RECORD_S or any(r.all_terms()[k] is not None for r in axes.values() for k in _LONG):
         return
     names = [k for k in _LONG if method == "gmwm" or k != "correlated_sigma_rad_s"]
     need = {}
@@ -1285,7 +1245,7 @@ def identify_noise(
     check_static: bool = True,
     engine: str = "fast",
     options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
-) -> "NoiseResult":
+) -> AllanAnalysis:
     """Identify the noise terms of a still recording or of rate arrays (the public API).
 
     Parameters
@@ -1311,10 +1271,11 @@ def identify_noise(
 
     Returns
     -------
-    NoiseResult
-        Frozen; ``.axes[a]`` is a :class:`NoiseAxis` with every term (None = not resolved),
-        ``.estimate``, ``.ci95`` (95 % intervals; [0, upper bound] when unresolved),
-        ``.resolved`` flags and the ADEV curves.
+    AllanAnalysis
+        Frozen; ``.axes[a]`` is an :class:`AllanResult` whose ``model`` holds every term (None =
+        not resolved in :meth:`AllanResult.all_terms`), its 95 % intervals ([0, upper bound] when
+        unresolved) and ``resolved`` flags, its ``.estimate`` and ADEV curves; ``.noise_model()`` the
+        axes' models as one.
     """
     if isinstance(data, Recording):
         rec = data
@@ -1410,11 +1371,6 @@ def _identify_arrays(
     return AllanAnalysis(axes=res, rate_hz=rate, n_samples=n, duration_s=duration, method=method, still_fraction=still)
 
 
-#: Public names of the results: a per-axis result and the whole analysis.
-NoiseAxis = AllanResult
-NoiseResult = AllanAnalysis
-
-
 # ---------------------------------------------------------------------------- datasheet units
 def to_datasheet_units(name: str, value: float | None) -> tuple[float | None, str]:
     """Convert an IEEE 952 term from SI to the datasheet unit engineers use.
@@ -1435,68 +1391,14 @@ def to_datasheet_units(name: str, value: float | None) -> tuple[float | None, st
     return value * f[0], f[1]
 
 
-# ---------------------------------------------------------------------------- article model
-@dataclass(frozen=True, eq=False)
-class SimpleNoiseModel:
-    """The seed article's model (§2.2): rate = truth + β + X, X ~ N(0, σ²), per axis.
-
-    Attributes
-    ----------
-    bias_rad_s : ndarray, shape (3,)
-        β, mean of the still recording, rad/s.
-    bias_se_rad_s : ndarray, shape (3,)
-        Standard error of β under the model's own assumption (white X): σ/√n. Correlated noise
-        (bias instability, random walk) makes the true error larger; compare with the Allan
-        deviation at τ = duration.
-    sigma_rad_s : ndarray, shape (3,)
-        σ, sample standard deviation (ddof=1), rad/s.
-    sigma_se_rad_s : ndarray, shape (3,)
-        σ/√(2(n−1)), Gaussian standard error of σ.
-    n_samples : int
-    rate_hz : float
-    """
-
-    bias_rad_s: np.ndarray
-    bias_se_rad_s: np.ndarray
-    sigma_rad_s: np.ndarray
-    sigma_se_rad_s: np.ndarray
-    n_samples: int
-    rate_hz: float
-    units: str = "rad/s"
-    format_version: str = FORMAT_VERSION
-
-    @property
-    def noise_density_rad_per_sqrt_s(self) -> np.ndarray:
-        """σ/√rate: the white-noise density the model implies (DESIGN.md convention)."""
-        return self.sigma_rad_s / math.sqrt(self.rate_hz)
-
-
-def simple_noise_model(recording: Recording) -> SimpleNoiseModel:
-    """Fit the article's bias + Gaussian model to a still recording (per axis mean and σ)."""
-    g = recording.gyro_rad_s
-    n = g.shape[0]
-    if n < 3:
-        raise GyroInputError(f"simple noise model needs at least 3 samples, got {n}")
-    mu = g.mean(axis=0)
-    sd = g.std(axis=0, ddof=1)
-    return SimpleNoiseModel(
-        bias_rad_s=mu,
-        bias_se_rad_s=sd / math.sqrt(n),
-        sigma_rad_s=sd,
-        sigma_se_rad_s=sd / math.sqrt(2.0 * (n - 1)),
-        n_samples=n,
-        rate_hz=float(recording.rate_hz),
-    )
-
-
 # ---------------------------------------------------------------------------- Kalibr
 def _kalibr_value(r: Mapping[str, AllanResult], name: str) -> tuple[float, bool]:
     """Largest axis value of a term (conservative scalar); (value, is_upper_bound)."""
     vals, upper = [], False
     for res in r.values():
-        v = getattr(res, name)
+        v = res.all_terms()[name]
         if v is None:
-            v = res.ci95[name][1]
+            v = res.interval(name)[1]
             upper = True
         vals.append(v)
     return float(max(vals)), upper

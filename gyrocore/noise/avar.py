@@ -40,6 +40,7 @@ __all__ = [
     "avar_covariance",
     "greenhall_edf",
     "base_method",
+    "spectrum",
 ]
 
 #: Coefficient names, in the order of the linear coefficient vector (variance scale):
@@ -198,7 +199,7 @@ def _pair_factor(m_key: tuple[int, ...]) -> np.ndarray:
     )
 
 
-def _spectrum(nu: np.ndarray, rate_hz: float, c: np.ndarray, tau_c_s: float | None) -> np.ndarray:
+def spectrum(nu: np.ndarray, rate_hz: float, c: np.ndarray, tau_c_s: float | None) -> np.ndarray:
     """Two-sided spectrum (rad²/s² per cycle/sample) of the stochastic terms c = (Q², N², B², K², R², σ²)."""
     s = np.sin(np.pi * nu)
     S = c[1] * rate_hz + c[0] * rate_hz**2 * 4.0 * s * s + c[2] / (2.0 * s) + c[3] / rate_hz / (4.0 * s * s)
@@ -251,7 +252,7 @@ def _pure_spec_edf(m_key: tuple[int, ...], n: int) -> np.ndarray:
     for k, idx in enumerate((3, 2, 1, 0)):  # K, B, N, Q columns of the coefficient vector
         c = np.zeros(6)
         c[idx] = 1.0
-        G = H2 * _spectrum(nu, 1.0, c, None)[None, :]
+        G = H2 * spectrum(nu, 1.0, c, None)[None, :]
         d = (G * G * w[None, :]).sum(axis=1) + (np.where(fast, G, 0.0) ** 2 * w[None, :]).sum(axis=1) * (pf[:, 0] - 1.0)
         lv = (G * w[None, :]).sum(axis=1)
         out[k] = 2.0 * lv**2 / np.maximum(d, np.finfo(float).tiny)
@@ -289,7 +290,7 @@ def avar_covariance(
     if not np.any(cc[:4] > 0) and not cc[5] > 0:
         cc = cc.copy()
         cc[1] = 1.0
-    S = _spectrum(nu, rate_hz, cc, tau_c_s)
+    S = spectrum(nu, rate_hz, cc, tau_c_s)
     G = H2 * S[None, :]
     C = (G * w[None, :]) @ G.T
     # products of two fast-oscillating sin⁴ terms: replace (3/8)² by their exact mean

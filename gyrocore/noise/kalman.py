@@ -33,8 +33,10 @@ import scipy.linalg
 
 from gyrocore.errors import GyroInputError, warn_repair
 
+from .model import NoiseModel
+
 __all__ = [
-    "BiasNoiseModel",
+    "tracking_model",
     "kf_predict",
     "kf_update",
     "steady_state_variance",
@@ -97,112 +99,65 @@ def steady_state_variance(phi: float, q: float, r: float) -> tuple[float, float]
 
 
 # ---------------------------------------------------------------------------- noise model
-@dataclass(frozen=True, eq=False)
-class BiasNoiseModel:
-    """Gyro noise model for bias tracking, per sensor axis.
+def tracking_model(analysis) -> NoiseModel:
+    """The noise model a bias tracker runs on, from an identification of axes x, y, z.
 
-    Attributes
-    ----------
-    arw_rad_per_sqrt_s : ndarray, shape (3,)
-        White rate noise density N (rad/s/√Hz); per-sample σ = N·√rate.
-    rrw_rad_per_s_sqrt_s : ndarray, shape (3,)
-        Rate random walk K (rad/s/√s); bias as a random walk, q = K²·dt. Zero = constant.
-    gm_sigma_rad_s, gm_tau_s : ndarray, shape (3,) or None
-        First-order Gauss–Markov bias (σ, τc); when given it replaces the random walk.
-    source : str
-        Where the numbers came from.
+    ``analysis``: a :class:`gyrocore.noise.allan.AllanAnalysis` (or a dict axis → AllanResult).
+    N is required (resolved on every axis). The bias process: random walk with K where K is
+    resolved on every axis; else the identified first-order Gauss–Markov term where it is
+    resolved on every axis; else a Gauss–Markov process matched to the bias-instability floor
+    (σ = 0.6643 B / 0.6178, τc = τ(ADEV minimum)/1.89) where B is resolved or fitted but
+    ambiguous with a Gauss–Markov term (the model's value of B); else a random walk with K at
+    the upper end of its 95 % interval (what the data cannot exclude).
     """
-
-    arw_rad_per_sqrt_s: np.ndarray
-    rrw_rad_per_s_sqrt_s: np.ndarray
-    gm_sigma_rad_s: np.ndarray | None = None
-    gm_tau_s: np.ndarray | None = None
-    source: str = "given"
-
-    def __post_init__(self) -> None:
-        for name in ("arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s", "gm_sigma_rad_s", "gm_tau_s"):
-            v = getattr(self, name)
-            if v is None:
-                continue
-            v = np.broadcast_to(np.asarray(v, float), (3,)).copy()
-            if np.any(v < 0) or not np.all(np.isfinite(v)):
-                raise GyroInputError(f"{name} must be finite and >= 0")
-            object.__setattr__(self, name, v)
-        if np.any(self.arw_rad_per_sqrt_s <= 0):
-            raise GyroInputError("arw_rad_per_sqrt_s must be > 0 (the measurement noise)")
-        if (self.gm_sigma_rad_s is None) != (self.gm_tau_s is None):
-            raise GyroInputError("Gauss-Markov bias needs both gm_sigma_rad_s and gm_tau_s")
-        if self.gm_tau_s is not None and np.any(self.gm_tau_s <= 0):
-            raise GyroInputError("gm_tau_s must be > 0")
-
-    @property
-    def gauss_markov(self) -> bool:
-        return self.gm_sigma_rad_s is not None
-
-    def discrete(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Per-axis bias transition φ (3,) and process-noise variance q (3,) over dt_s."""
-        if self.gauss_markov:
-            phi = np.exp(-dt_s / self.gm_tau_s)
-            return phi, self.gm_sigma_rad_s**2 * (1.0 - phi**2)
-        return np.ones(3), self.rrw_rad_per_s_sqrt_s**2 * dt_s
-
-    @classmethod
-    def from_allan(cls, analysis) -> "BiasNoiseModel":
-        """From a :class:`gyrocore.noise.allan.AllanAnalysis` (or a dict axis → AllanResult).
-
-        N is required (resolved on every axis). The bias process: random walk with K where
-        K is resolved on every axis; else the identified first-order Gauss–Markov term
-        (``correlated_sigma_rad_s``, ``correlated_tau_c_s`` of the GMWM identification)
-        where it is resolved on every axis; else a Gauss–Markov process matched to the
-        bias-instability floor (σ = 0.6643 B / 0.6178, τc = τ(ADEV minimum)/1.89) where B is
-        resolved or fitted but ambiguous with a Gauss–Markov term; else a random walk with K at the upper end of its 95 % interval (what the
-        data cannot exclude).
-        """
-        axes = getattr(analysis, "axes", analysis)
-        if set(axes) != {"x", "y", "z"}:
-            raise GyroInputError("bias tracking needs the Allan terms of all three axes x, y, z")
-        res = [axes[a] for a in ("x", "y", "z")]
-        N = []
-        for r in res:
-            if r.arw_rad_per_sqrt_s is None:
-                raise GyroInputError(
-                    f"angle random walk N of axis {r.axis} not resolved; cannot set the measurement noise"
-                )
-            N.append(r.arw_rad_per_sqrt_s)
-        K = [r.rrw_rad_per_s_sqrt_s for r in res]
-        # a flicker floor fitted but not told from a Gauss–Markov term (``ambiguous``):
-        # either way a Gauss–Markov process matched to the floor is the model to track
-        B = [
-            r.bias_instability_rad_s
-            if r.bias_instability_rad_s is not None
-            else (
-                r.estimate.get("bias_instability_rad_s") or None
-                if "bias_instability_rad_s" in getattr(r, "ambiguous", {})
-                else None
-            )
-            for r in res
-        ]
-        if all(k is not None for k in K):
-            return cls(np.array(N), np.array(K), source="allan: N, K")
-        gs = [getattr(r, "correlated_sigma_rad_s", None) for r in res]
-        gt = [getattr(r, "correlated_tau_c_s", None) for r in res]
-        if all(v is not None for v in gs) and all(v is not None for v in gt):
-            return cls(
-                np.array(N),
-                np.zeros(3),
-                gm_sigma_rad_s=np.array(gs, float),
-                gm_tau_s=np.array(gt, float),
-                source="noise: N, Gauss-Markov (identified)",
-            )
-        if all(b is not None for b in B):
-            sig = np.array(B) * _B_FLOOR / _GM_PEAK
-            tau = np.array([r.taus_s[int(np.argmin(r.adev_rad_s))] / _GM_TAU for r in res])
-            return cls(np.array(N), np.zeros(3), gm_sigma_rad_s=sig, gm_tau_s=tau, source="allan: N, B -> Gauss-Markov")
-        Kub = np.array([k if k is not None else r.ci95["rrw_rad_per_s_sqrt_s"][1] for k, r in zip(K, res)])
-        warn_repair(
-            "rate random walk K not resolved on every axis: bias tracked as a random walk with K at its 95 % upper bound"
+    axes = getattr(analysis, "axes", analysis)
+    if set(axes) != {"x", "y", "z"}:
+        raise GyroInputError("bias tracking needs the Allan terms of all three axes x, y, z")
+    res = [axes[a] for a in ("x", "y", "z")]
+    rep = [r.all_terms() for r in res]
+    N = []
+    for r, t in zip(res, rep):
+        if t["arw_rad_per_sqrt_s"] is None:
+            raise GyroInputError(f"angle random walk N of axis {r.axis} not resolved; cannot set the measurement noise")
+        N.append(t["arw_rad_per_sqrt_s"])
+    K = [t["rrw_rad_per_s_sqrt_s"] for t in rep]
+    if all(k is not None for k in K):
+        return NoiseModel(np.array(N), rrw_rad_per_s_sqrt_s=np.array(K), source="allan: N, K")
+    gs = [t["correlated_sigma_rad_s"] for t in rep]
+    gt = [t["correlated_tau_c_s"] for t in rep]
+    if all(v is not None for v in gs) and all(v is not None for v in gt):
+        return NoiseModel(
+            np.array(N),
+            correlated_sigma_rad_s=np.array(gs, float),
+            correlated_tau_c_s=np.array(gt, float),
+            source="noise: N, Gauss-Markov (identified)",
         )
-        return cls(np.array(N), Kub, source="allan: N, K (upper bound where unresolved)")
+    # a flicker floor fitted but not told from a Gauss–Markov term (``ambiguous``) has its fitted
+    # value in the model: either way a Gauss–Markov process matched to the floor is the model to track
+    B = np.array([float(r.model.bias_instability_rad_s[0]) for r in res])
+    if np.all(B > 0):
+        sig = B * _B_FLOOR / _GM_PEAK
+        tau = np.array([r.taus_s[int(np.argmin(r.adev_rad_s))] / _GM_TAU for r in res])
+        return NoiseModel(
+            np.array(N), correlated_sigma_rad_s=sig, correlated_tau_c_s=tau, source="allan: N, B -> Gauss-Markov"
+        )
+    Kub = np.array([k if k is not None else r.interval("rrw_rad_per_s_sqrt_s")[1] for k, r in zip(K, res)])
+    warn_repair(
+        "rate random walk K not resolved on every axis: bias tracked as a random walk with K at its 95 % upper bound"
+    )
+    return NoiseModel(np.array(N), rrw_rad_per_s_sqrt_s=Kub, source="allan: N, K (upper bound where unresolved)")
+
+
+def _check_tracking(model: NoiseModel) -> None:
+    if model.axes != ("x", "y", "z"):
+        raise GyroInputError("bias tracking needs the noise model of the three axes x, y, z")
+    if np.any(model.arw_rad_per_sqrt_s <= 0):
+        raise GyroInputError("arw_rad_per_sqrt_s must be > 0 (the measurement noise)")
+
+
+def _gauss_markov(model: NoiseModel) -> bool:
+    """Does the model's bias carry a Gauss–Markov term (tracked as its own state)?"""
+    return bool(np.any(model.correlated_sigma_rad_s > 0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,7 +185,8 @@ class StillBiasTracker:
 
     Parameters
     ----------
-    model : BiasNoiseModel
+    model : NoiseModel
+        Of axes x, y, z (:func:`tracking_model`); N > 0.
     rate_hz : float
         Sample rate.
     bias0_rad_s : array (3,)
@@ -239,23 +195,24 @@ class StillBiasTracker:
         Its standard deviation (turn-on repeatability).
     """
 
-    def __init__(self, model: BiasNoiseModel, *, rate_hz: float, bias0_rad_s=0.0, bias0_sigma_rad_s=0.1) -> None:
+    def __init__(self, model: NoiseModel, *, rate_hz: float, bias0_rad_s=0.0, bias0_sigma_rad_s=0.1) -> None:
         from filterpy.kalman import KalmanFilter
 
+        _check_tracking(model)
         if not (rate_hz > 0):
             raise GyroInputError(f"rate_hz must be > 0, got {rate_hz}")
         self.model = model
         self.rate_hz = float(rate_hz)
         dt = 1.0 / self.rate_hz
-        phi, q = model.discrete(dt)
+        phi, q = model.bias_process(dt)
         self.phi, self.q = phi, q
         self.r = model.arw_rad_per_sqrt_s**2 * self.rate_hz
         b0 = np.broadcast_to(np.asarray(bias0_rad_s, float), (3,)).copy()
         s0 = np.broadcast_to(np.asarray(bias0_sigma_rad_s, float), (3,)) ** 2
-        if model.gauss_markov:
+        if _gauss_markov(model):
             kf = KalmanFilter(dim_x=6, dim_z=3)
             kf.x = np.concatenate([b0, np.zeros(3)])
-            kf.P = np.diag(np.concatenate([s0, model.gm_sigma_rad_s**2]))
+            kf.P = np.diag(np.concatenate([s0, model.correlated_sigma_rad_s**2]))
             kf.F = np.diag(np.concatenate([np.ones(3), phi]))
             kf.Q = np.diag(np.concatenate([np.zeros(3), q]))
             kf.H = np.hstack([np.eye(3), np.eye(3)])
@@ -369,8 +326,8 @@ class AttitudeBiasTracker:
 
     Parameters
     ----------
-    model : BiasNoiseModel
-        N (rad/√s) drives the attitude error, K (or Gauss–Markov) the bias.
+    model : NoiseModel
+        Of axes x, y, z (:func:`tracking_model`); N (rad/√s) drives the attitude error, K (or Gauss–Markov) the bias.
     ref_sigma_rad : float
         Standard deviation of the reference attitude per axis (rad, small angle).
     q0_wxyz : array (4,)
@@ -381,7 +338,7 @@ class AttitudeBiasTracker:
 
     def __init__(
         self,
-        model: BiasNoiseModel,
+        model: NoiseModel,
         *,
         ref_sigma_rad: float,
         q0_wxyz=(1.0, 0.0, 0.0, 0.0),
@@ -391,6 +348,7 @@ class AttitudeBiasTracker:
     ) -> None:
         from filterpy.kalman import KalmanFilter
 
+        _check_tracking(model)
         if not (ref_sigma_rad > 0):
             raise GyroInputError(f"ref_sigma_rad must be > 0, got {ref_sigma_rad}")
         self.model = model
@@ -420,11 +378,8 @@ class AttitudeBiasTracker:
         Q = np.zeros((6, 6))
         # Gauss–Markov bias: tracked as a random walk with the same short-term diffusion
         # K² = 2σ²/τc (keeps the turn-on constant; conservative beyond τc).
-        K2 = (
-            2.0 * self.model.gm_sigma_rad_s**2 / self.model.gm_tau_s
-            if self.model.gauss_markov
-            else self.model.rrw_rad_per_s_sqrt_s**2
-        )
+        m = self.model
+        K2 = 2.0 * m.correlated_sigma_rad_s**2 / m.correlated_tau_c_s if _gauss_markov(m) else m.rrw_rad_per_s_sqrt_s**2
         # Farrenkopf's discrete noise of the (angle, random-walk bias) pair
         Q[:3, :3] = np.diag(N2 * dt + K2 * dt**3 / 3.0)
         Q[:3, 3:] = Q[3:, :3] = np.diag(-K2 * dt**2 / 2.0)

@@ -198,7 +198,7 @@ def test_r2_shape_lower_limit_covers_the_true_shape():
 def test_identified_noise_takes_slow_terms_from_the_longest_run():
     from types import SimpleNamespace
 
-    from gyrocore.calib.budget import NoiseModel
+    from gyrocore.noise.model import NoiseModel
 
     def res(rate, n, N, B):
         nm = NoiseModel(arw_rad_per_sqrt_s=np.full(3, N), bias_instability_rad_s=np.full(3, B))

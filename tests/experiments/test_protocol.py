@@ -90,7 +90,7 @@ def test_record_support_follows_the_resolvability_rule():
 
     uv = _unit_var_10min()
     # the floor is linear in each term's variance coefficient (what record_support relies on)
-    from gyrocore.calib.budget import NoiseModel
+    from gyrocore.noise.model import NoiseModel
 
     res, ground = _fake_hover(rate=100.0, ground_s=3.0, flight_s=600.0)
     inp, segs, start = P._prefixed_inputs(res, ground, 2.0)

@@ -69,7 +69,8 @@ def _dur(t_s: float) -> str:
 
 def report_text(analysis) -> str:
     """Readable table in SI and datasheet units."""
-    from gyrocore.noise.allan import ALL_TERM_NAMES, TERM_NAMES, to_datasheet_units
+    from gyrocore.noise.allan import to_datasheet_units
+    from gyrocore.noise.model import IEEE_TERMS, TERMS
 
     lines = [
         f"method {getattr(analysis, 'method', 'gmwm')}; "
@@ -80,9 +81,10 @@ def report_text(analysis) -> str:
         f"{'axis':4} {'term':24} {'value (SI)':>12} {'95% interval (SI)':>27} {'datasheet':>22}",
     ]
     for ax, r in analysis.axes.items():
-        for name in ALL_TERM_NAMES if r.method == "gmwm" else TERM_NAMES:
-            v = getattr(r, name)
-            lo, hi = r.ci95[name]
+        terms = r.all_terms()
+        for name in TERMS if r.method == "gmwm" else IEEE_TERMS:
+            v = terms[name]
+            lo, hi = r.interval(name)
             ds, unit = to_datasheet_units(name, v)
             if name == "correlated_tau_c_s":
                 if v is None:
@@ -176,12 +178,13 @@ def adev_figure(analysis):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gyrocore.noise.allan import ALL_TERM_NAMES
+    from gyrocore.noise.model import TERMS
 
     axes = list(analysis.axes.items())
     fig, ax_list = plt.subplots(1, len(axes), figsize=(5.2 * len(axes), 4.4), squeeze=False)
     for plot_ax, (name, r) in zip(ax_list[0], axes):
         shaded = []
+        terms = r.all_terms()
         t = r.taus_s
         err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
         plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
@@ -238,9 +241,9 @@ def adev_figure(analysis):
         lo_y = float(np.min(r.adev_ci95_rad_s[:, 0])) / 3
         hi_y = float(np.max(r.adev_ci95_rad_s[:, 1])) * 3
         for term in ("quantization_rad", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2"):
-            if getattr(r, term) is not None or term not in r.ci95:
+            if terms[term] is not None or term not in r.model.ci95:
                 continue
-            ub = r.ci95[term][1]
+            ub = r.interval(term)[1]
             if not (np.isfinite(ub) and ub > 0):
                 continue
             yb = _term_adev(r, term, ub, tt)
@@ -255,20 +258,20 @@ def adev_figure(analysis):
                     alpha=0.8,
                     label=f"{_ASYMPTOTE[term][0]} < {ub:.2g} (95 % bound, unresolved)",
                 )
-        for term in ALL_TERM_NAMES:
+        for term in TERMS:
             if term == "correlated_tau_c_s":
                 continue
-            v = getattr(r, term)
+            v = terms[term]
             if v is None:
                 continue
             label = {"correlated_sigma_rad_s": "GM"}.get(term) or _ASYMPTOTE[term][0]
             c = _COLORS[term]
             y = _term_adev(r, term, v, tt)
-            lo_v, hi_v = r.ci95[term]
+            lo_v, hi_v = r.interval(term)
             plot_ax.fill_between(
                 tt, _term_adev(r, term, lo_v, tt), _term_adev(r, term, hi_v, tt), color=c, alpha=0.15, lw=0
             )
-            extra = f", tc = {r.correlated_tau_c_s:.3g} s" if term == "correlated_sigma_rad_s" else ""
+            extra = f", tc = {terms['correlated_tau_c_s']:.3g} s" if term == "correlated_sigma_rad_s" else ""
             ds, ds_unit = _datasheet(term, v)
             unit = {
                 "quantization_rad": "rad",
@@ -289,10 +292,10 @@ def adev_figure(analysis):
             )
             # resolvable region: where this term is the largest of the fitted terms
             others = np.zeros_like(tt)
-            for o in ALL_TERM_NAMES:
-                if o in (term, "correlated_tau_c_s") or getattr(r, o) is None:
+            for o in TERMS:
+                if o in (term, "correlated_tau_c_s") or terms[o] is None:
                     continue
-                others = np.maximum(others, _term_adev(r, o, getattr(r, o), tt))
+                others = np.maximum(others, _term_adev(r, o, terms[o], tt))
             dom = y > others
             if np.any(dom) and term in _LONG_TAU:
                 plot_ax.axvspan(tt[dom][0], tt[dom][-1], color=c, alpha=0.07, lw=0)

@@ -9,6 +9,7 @@ from scipy import signal
 from gyrocore.calib import budget as B
 from gyrocore.effects import registry as E
 from gyrocore.attitude import floor_sigma_theta_rad
+from gyrocore.noise.model import NoiseModel
 
 
 def _still(n, rate):
@@ -25,11 +26,11 @@ def test_floor_matches_the_closed_form_for_white_rrw_and_gauss_markov():
     rate, n = 100.0, 6000
     t, q = _still(n, rate)
     N, K, sg, tc = 1e-4, 3e-6, 2e-4, 7.0
-    nm = B.NoiseModel(
+    nm = NoiseModel(
         arw_rad_per_sqrt_s=np.full(3, N),
-        rrw_rad_s_per_sqrt_s=np.full(3, K),
-        gm_sigma_rad_s=np.full(3, sg),
-        gm_tau_c_s=np.full(3, tc),
+        rrw_rad_per_s_sqrt_s=np.full(3, K),
+        correlated_sigma_rad_s=np.full(3, sg),
+        correlated_tau_c_s=np.full(3, tc),
     )
     pr = B.predict_error(E.ModelInputs(t_s=t, q_SW_wxyz=q), start=0, segments=[(slice(0, n), None)], noise=nm)
     want = np.sum(
@@ -64,7 +65,7 @@ def test_window_and_flicker_against_monte_carlo_rotating():
     ax = np.array([0.0, 0.6, 0.8])
     q = np.concatenate([np.cos(ang / 2)[:, None], np.sin(ang / 2)[:, None] * ax[None, :]], axis=1)
     N, Bf = 1e-4, 3e-5
-    nm = B.NoiseModel(arw_rad_per_sqrt_s=np.full(3, N), bias_instability_rad_s=np.full(3, Bf))
+    nm = NoiseModel(arw_rad_per_sqrt_s=np.full(3, N), bias_instability_rad_s=np.full(3, Bf))
     pr = B.predict_error(E.ModelInputs(t_s=t, q_SW_wxyz=q), start=win.stop, segments=[(slice(0, n), win)], noise=nm)
     R = B.rotation_matrices(q)[win.stop :]
     M = 300
@@ -112,7 +113,7 @@ def test_sensitivity_of_scale_and_bias_on_a_turn_about_z():
     np.testing.assert_allclose(S[sc, 2, 2], 0.5 * tm[sc], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(S[:, :, 3:], 0.0, atol=1e-12)
     np.testing.assert_allclose(se, [1e-3] * 3 + [1e-4] * 3)
-    pr = B.predict_error(inp, start=200, segments=segs, noise=B.NoiseModel(arw_rad_per_sqrt_s=np.zeros(3)), groups=[g])
+    pr = B.predict_error(inp, start=200, segments=segs, noise=NoiseModel(arw_rad_per_sqrt_s=np.zeros(3)), groups=[g])
     np.testing.assert_allclose(pr.var_rad2["param:x"][-1], (0.5 * (t[-1] + 0.01 - 2.0) * 1e-3) ** 2, rtol=1e-9)
     b = pr.budget_deg()
     assert set(b) == {"param:x"}
@@ -122,7 +123,7 @@ def test_budget_squares_add_up_and_uncorrected_is_reported_not_predicted():
     rate, n = 100.0, 3000
     t, q = _still(n, rate)
     segs = [(slice(0, n), slice(0, 200))]
-    nm = B.NoiseModel(arw_rad_per_sqrt_s=np.full(3, 1e-4), bias_instability_rad_s=np.full(3, 2e-5))
+    nm = NoiseModel(arw_rad_per_sqrt_s=np.full(3, 1e-4), bias_instability_rad_s=np.full(3, 2e-5))
     dw = np.zeros((n, 3))
     dw[:, 0] = 1e-5 * t  # a ramp: not removed by the window mean
     pr = B.predict_error(
@@ -142,11 +143,11 @@ def test_budget_squares_add_up_and_uncorrected_is_reported_not_predicted():
 
 
 def test_noise_model_from_catalogue_params():
-    nm = B.NoiseModel.from_params(
+    nm = NoiseModel.from_params(
         {"arw": {"n_rad_per_sqrt_s": np.array([1e-4, 2e-4, 3e-4])}, "quantization": {"lsb_rad_s": np.array(1e-3)}}
     )
-    np.testing.assert_allclose(nm.white_n2(1000.0), np.array([1e-4, 2e-4, 3e-4]) ** 2 + 1e-6 / 12e3)
-    assert np.all(nm.bias_instability_rad_s == 0) and np.all(np.isinf(nm.gm_tau_c_s))
+    np.testing.assert_allclose(nm.white_var_rad2_s(1000.0), np.array([1e-4, 2e-4, 3e-4]) ** 2 + 1e-6 / 12e3)
+    assert np.all(nm.bias_instability_rad_s == 0) and np.all(np.isinf(nm.correlated_tau_c_s))
 
 
 def test_flicker_block_covariance_kernel_matches_the_numpy_form():

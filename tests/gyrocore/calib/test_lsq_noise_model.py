@@ -8,7 +8,8 @@ from scipy import signal
 
 from gyrocore.effects import registry as E
 from gyrocore.calib import covariance, lsq
-from gyrocore.calib.budget import Blocks, NoiseModel, block_covariance
+from gyrocore.calib.budget import Blocks, block_covariance
+from gyrocore.noise.model import NoiseModel
 from gyrocore.errors import GyroInputError
 
 
@@ -54,9 +55,9 @@ def test_meat_equals_dense_sandwich_when_every_bin_is_a_row():
     nm = NoiseModel(
         arw_rad_per_sqrt_s=np.array([1e-4, 2e-4, 3e-4]),
         bias_instability_rad_s=np.array([3e-5, 0, 1e-5]),
-        rrw_rad_s_per_sqrt_s=np.array([0, 1e-6, 2e-6]),
-        gm_sigma_rad_s=np.array([5e-5, 0, 0]),
-        gm_tau_c_s=np.array([2.0, np.inf, np.inf]),
+        rrw_rad_per_s_sqrt_s=np.array([0, 1e-6, 2e-6]),
+        correlated_sigma_rad_s=np.array([5e-5, 0, 0]),
+        correlated_tau_c_s=np.array([2.0, np.inf, np.inf]),
     )
     S = covariance.noise_model_meat(U, t0, t1, np.full(n, avg), nm, dt_s=dt)
     blk = Blocks(
@@ -78,8 +79,8 @@ def test_meat_equals_dense_sandwich_when_every_bin_is_a_row():
         C = (
             (nm.arw_rad_per_sqrt_s[i] ** 2 / (avg * dt)) * np.eye(n)
             + nm.bias_instability_rad_s[i] ** 2 * Cf
-            + nm.rrw_rad_s_per_sqrt_s[i] ** 2 * Ck
-            + nm.gm_sigma_rad_s[i] ** 2 * Cg
+            + nm.rrw_rad_per_s_sqrt_s[i] ** 2 * Ck
+            + nm.correlated_sigma_rad_s[i] ** 2 * Cg
         )
         ref += U[:, i, :].T @ C @ U[:, i, :]
     np.testing.assert_allclose(S, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())

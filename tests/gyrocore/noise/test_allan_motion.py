@@ -37,9 +37,9 @@ def _assert_n_near(res, n_true):
     half-width / 1.96): two-sided 6.7e-4 per axis, ≤ 2e-3 for the three (a bare 95 % interval
     per axis would fail one test run in seven)."""
     for a in "xyz":
-        lo, hi = res.axes[a].ci95["arw_rad_per_sqrt_s"]
+        lo, hi = res.axes[a].interval("arw_rad_per_sqrt_s")
         se = (hi - lo) / (2 * 1.96)
-        z = (res.axes[a].arw_rad_per_sqrt_s - n_true) / se
+        z = (res.axes[a].all_terms()["arw_rad_per_sqrt_s"] - n_true) / se
         assert abs(z) < 3.4, (a, z)
 
 
@@ -102,14 +102,16 @@ def test_px4_sample_ulg_noise_from_its_still_part(shared_data, tmp_path, capsys)
     ref = AL.allan_analysis(cut)
     for a in "xyz":
         got = j["axes"][a]["arw_rad_per_sqrt_s"]
-        lo, hi = ref.axes[a].ci95["arw_rad_per_sqrt_s"]
+        lo, hi = ref.axes[a].interval("arw_rad_per_sqrt_s")
         # (the old code: 1.7e-2 rad/sqrt(s) on x, 59 deg/sqrt(h) — 500x the still part's)
         assert lo <= got <= hi, (a, lo, got, hi)
     # --t-from-s gives the user's own cut, with no warning
     status, out2, err2 = _gh(capsys, "noise", str(p), "--json", "--t-from-s", "10")
     assert status == 0 and "motion" not in err2
     j2 = json.loads(out2)
-    assert j2["axes"]["x"]["arw_rad_per_sqrt_s"] == pytest.approx(ref.axes["x"].arw_rad_per_sqrt_s, rel=1e-12)
+    assert j2["axes"]["x"]["arw_rad_per_sqrt_s"] == pytest.approx(
+        ref.axes["x"].all_terms()["arw_rad_per_sqrt_s"], rel=1e-12
+    )
 
 
 def test_imutk_multipose_session_uses_its_initial_static_phase(shared_data, tmp_path, capsys):
@@ -209,7 +211,9 @@ def test_paused_log_uses_the_rate_of_its_samples_not_the_wall_span(shared_data, 
     j = json.loads(out)
     assert j["rate_hz"] == pytest.approx(100.0, rel=1e-9)
     for a in "xyz":
-        assert j["axes"][a]["arw_rad_per_sqrt_s"] == pytest.approx(ref.axes[a].arw_rad_per_sqrt_s, rel=1e-9)
+        assert j["axes"][a]["arw_rad_per_sqrt_s"] == pytest.approx(
+            ref.axes[a].all_terms()["arw_rad_per_sqrt_s"], rel=1e-9
+        )
 
 
 def test_gyro_only_file_in_deg_s_labelled_rad_s_warns(shared_data, tmp_path, capsys):

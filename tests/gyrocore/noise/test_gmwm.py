@@ -12,6 +12,7 @@ import scipy.stats
 from gyrocore.noise import allan as AL
 from gyrocore.noise import avar as V
 from gyrocore.noise import gmwm as G
+from gyrocore.noise.model import TERMS
 from gyrocore.noise.options import NoiseOptions
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
@@ -97,17 +98,17 @@ def test_arw_plus_rrw_is_not_reported_as_bias_instability(method):
         g = _nk(np.random.default_rng(seed), n)
         res = AL.identify_noise(g, rate_hz=RATE, method=method, check_static=False)
         for r in res.axes.values():
-            assert r.bias_instability_rad_s is None
-            assert r.correlated_sigma_rad_s is None
-            assert r.rrw_rad_per_s_sqrt_s is not None
-            lo, hi = r.ci95["arw_rad_per_sqrt_s"]
+            assert r.all_terms()["bias_instability_rad_s"] is None
+            assert r.all_terms()["correlated_sigma_rad_s"] is None
+            assert r.all_terms()["rrw_rad_per_s_sqrt_s"] is not None
+            lo, hi = r.interval("arw_rad_per_sqrt_s")
             assert lo <= 1e-4 <= hi
             # K interval: 95 %; 6 axes, allow one miss (P(≥ 2 misses) ≈ 3 %)
     misses = 0
     for seed in (11, 12):
         res = AL.identify_noise(_nk(np.random.default_rng(seed), n), rate_hz=RATE, method=method, check_static=False)
         misses += sum(
-            not (r.ci95["rrw_rad_per_s_sqrt_s"][0] <= 2e-6 <= r.ci95["rrw_rad_per_s_sqrt_s"][1])
+            not (r.interval("rrw_rad_per_s_sqrt_s")[0] <= 2e-6 <= r.interval("rrw_rad_per_s_sqrt_s")[1])
             for r in res.axes.values()
         )
     assert misses <= 1
@@ -126,10 +127,10 @@ def test_gauss_markov_identified_with_its_correlation_time():
     res = AL.identify_noise(g, rate_hz=50.0, check_static=False)
     cov_s = cov_t = 0
     for r in res.axes.values():
-        assert r.correlated_sigma_rad_s is not None and r.bias_instability_rad_s is None
-        lo, hi = r.ci95["correlated_tau_c_s"]
+        assert r.all_terms()["correlated_sigma_rad_s"] is not None and r.all_terms()["bias_instability_rad_s"] is None
+        lo, hi = r.interval("correlated_tau_c_s")
         cov_t += lo <= 20.0 <= hi
-        lo, hi = r.ci95["correlated_sigma_rad_s"]
+        lo, hi = r.interval("correlated_sigma_rad_s")
         cov_s += lo <= 3e-5 <= hi
     assert cov_t >= 2 and cov_s >= 2
 
@@ -138,14 +139,14 @@ def test_identify_noise_api_shapes_and_errors():
     rng = np.random.default_rng(3)
     g = 1e-3 * rng.standard_normal(20000)
     res = AL.identify_noise(g, rate_hz=RATE, check_static=False)
-    assert isinstance(res, AL.NoiseResult) and list(res.axes) == ["x"]
+    assert isinstance(res, AL.AllanAnalysis) and list(res.axes) == ["x"]
     r = res.axes["x"]
-    assert isinstance(r, AL.NoiseAxis) and r.method == "gmwm"
+    assert isinstance(r, AL.AllanResult) and r.method == "gmwm"
     js = r.to_json()
-    for k in AL.ALL_TERM_NAMES:
+    for k in TERMS:
         assert k in js
     assert js["correlated_sigma_rad_s"] is None and js["correlated_tau_c_s"] is None
-    assert r.resolved["arw_rad_per_sqrt_s"] and not r.resolved["bias_instability_rad_s"]
+    assert r.model.resolved["arw_rad_per_sqrt_s"][0] and not r.model.resolved["bias_instability_rad_s"][0]
     with pytest.raises(GyroInputError, match="rate_hz"):
         AL.identify_noise(g)
     with pytest.raises(GyroInputError, match="shape"):
@@ -153,7 +154,7 @@ def test_identify_noise_api_shapes_and_errors():
     with pytest.raises(GyroInputError, match="method"):
         AL.identify_noise(g, rate_hz=RATE, method="kalman")
     with pytest.raises((AttributeError, TypeError)):
-        r.arw_rad_per_sqrt_s = 1.0  # frozen
+        r.model = None  # frozen
 
 
 def test_short_record_one_warning_naming_terms():
@@ -167,7 +168,7 @@ def test_short_record_one_warning_naming_terms():
     assert len(msgs) == 1 and "no long-tau term resolved" in msgs[0]
     assert "B at half its upper bound needs >=" in msgs[0] and "K at half" in msgs[0]
     for r in res.axes.values():
-        assert r.rrw_rad_per_s_sqrt_s is None and r.ci95["rrw_rad_per_s_sqrt_s"][1] > 0
+        assert r.all_terms()["rrw_rad_per_s_sqrt_s"] is None and r.interval("rrw_rad_per_s_sqrt_s")[1] > 0
 
 
 def _gh(capsys, *args):
@@ -225,11 +226,11 @@ def test_arw_rrw_monte_carlo_rates():
         )
         for r in res.axes.values():
             axes += 1
-            b += r.bias_instability_rad_s is not None
-            k += r.rrw_rad_per_s_sqrt_s is not None
-            lo, hi = r.ci95["rrw_rad_per_s_sqrt_s"]
+            b += r.all_terms()["bias_instability_rad_s"] is not None
+            k += r.all_terms()["rrw_rad_per_s_sqrt_s"] is not None
+            lo, hi = r.interval("rrw_rad_per_s_sqrt_s")
             cov_k += lo <= 2e-6 <= hi
-            lo, hi = r.ci95["arw_rad_per_sqrt_s"]
+            lo, hi = r.interval("arw_rad_per_sqrt_s")
             cov_n += lo <= 1e-4 <= hi
     assert axes == 60
     k_min = int(scipy.stats.binom.ppf(0.01, 60, 0.90))
@@ -255,7 +256,7 @@ def test_adev_plot_label_mentions_shading_only_when_shaded():
     finally:
         plt.close(fig)
     nk = AL.identify_noise(_nk(rng, n)[:, 0], rate_hz=RATE, check_static=False)
-    assert nk.axes["x"].rrw_rad_per_s_sqrt_s is not None
+    assert nk.axes["x"].all_terms()["rrw_rad_per_s_sqrt_s"] is not None
     fig = adev_figure(nk)
     try:
         assert "shaded: where K dominates" in fig.axes[0].get_xlabel()

@@ -11,6 +11,7 @@ import scipy.stats
 
 from gyrocore.noise import allan as AL
 from gyrocore.noise import kalman as KF
+from gyrocore.noise.model import TERMS, NoiseModel, model_value
 from gyrocore.errors import GyroInputError, RepairWarning
 from gyrocore.data.recording import Recording
 
@@ -54,7 +55,7 @@ def test_steady_state_matches_riccati_montecarlo():
 
 def test_filterpy_tracker_equals_pure_steps():
     rng = np.random.default_rng(22)
-    model = KF.BiasNoiseModel(np.full(3, N), np.full(3, K))
+    model = NoiseModel(np.full(3, N), rrw_rad_per_s_sqrt_s=np.full(3, K))
     g = 0.01 + N * math.sqrt(RATE_HZ) * rng.standard_normal((500, 3))
     tr = KF.StillBiasTracker(model, rate_hz=RATE_HZ, bias0_sigma_rad_s=0.05)
     out = tr.run(g)
@@ -71,8 +72,8 @@ def test_filterpy_tracker_equals_pure_steps():
 
 
 def test_gauss_markov_model_steady_state():
-    m = KF.BiasNoiseModel(np.full(3, N), np.zeros(3), gm_sigma_rad_s=np.full(3, 0.01), gm_tau_s=np.full(3, 5.0))
-    phi, q = m.discrete(DT)
+    m = NoiseModel(np.full(3, N), correlated_sigma_rad_s=np.full(3, 0.01), correlated_tau_c_s=np.full(3, 5.0))
+    phi, q = m.bias_process(DT)
     np.testing.assert_allclose(phi, math.exp(-DT / 5.0))
     np.testing.assert_allclose(q / (1 - phi**2), 0.01**2)  # stationary variance σ²
     tr = KF.StillBiasTracker(m, rate_hz=RATE_HZ)
@@ -98,34 +99,33 @@ def test_model_from_allan():
         rng.standard_normal((n, 3)), axis=0
     ) * 2e-3 / math.sqrt(RATE_HZ)
     a = AL.allan_analysis(Recording(t_s=np.arange(n) / RATE_HZ, gyro_rad_s=g))
-    m = KF.BiasNoiseModel.from_allan(a)
-    assert m.source == "allan: N, K" and not m.gauss_markov
-    np.testing.assert_allclose(m.arw_rad_per_sqrt_s, [a.axes[x].arw_rad_per_sqrt_s for x in "xyz"])
-    np.testing.assert_allclose(m.rrw_rad_per_s_sqrt_s, [a.axes[x].rrw_rad_per_s_sqrt_s for x in "xyz"])
+    m = KF.tracking_model(a)
+    assert m.source == "allan: N, K" and not np.any(m.correlated_sigma_rad_s > 0)
+    np.testing.assert_allclose(m.arw_rad_per_sqrt_s, [a.axes[x].all_terms()["arw_rad_per_sqrt_s"] for x in "xyz"])
+    np.testing.assert_allclose(m.rrw_rad_per_s_sqrt_s, [a.axes[x].all_terms()["rrw_rad_per_s_sqrt_s"] for x in "xyz"])
     w = AL.allan_analysis(
         Recording(t_s=np.arange(20000) / RATE_HZ, gyro_rad_s=N * 10 * rng.standard_normal((20000, 3)))
     )
     with pytest.warns(RepairWarning, match="upper bound"):
-        m2 = KF.BiasNoiseModel.from_allan(w)
-    np.testing.assert_allclose(m2.rrw_rad_per_s_sqrt_s, [w.axes[x].ci95["rrw_rad_per_s_sqrt_s"][1] for x in "xyz"])
-    with pytest.raises(GyroInputError):
-        KF.BiasNoiseModel(np.zeros(3), np.zeros(3))
+        m2 = KF.tracking_model(w)
+    np.testing.assert_allclose(m2.rrw_rad_per_s_sqrt_s, [w.axes[x].interval("rrw_rad_per_s_sqrt_s")[1] for x in "xyz"])
+    with pytest.raises(GyroInputError, match="arw"):
+        KF.StillBiasTracker(NoiseModel(np.zeros(3)), rate_hz=RATE_HZ)  # no measurement noise
     # a flicker floor fitted but ambiguous with a Gauss–Markov term (the GMWM stand-in check):
     # tracked as the Gauss–Markov process matched to the floor, like a resolved B
     import dataclasses
 
-    amb = {
-        x: dataclasses.replace(
-            r,
-            bias_instability_rad_s=None,
-            estimate={**r.estimate, "bias_instability_rad_s": 3e-5},
-            ambiguous={"bias_instability_rad_s": "correlated_sigma_rad_s"},
-        )
-        for x, r in w.axes.items()
-    }
-    m3 = KF.BiasNoiseModel.from_allan(amb)
-    assert m3.source == "allan: N, B -> Gauss-Markov" and m3.gauss_markov
-    np.testing.assert_allclose(m3.gm_sigma_rad_s, 3e-5 * KF._B_FLOOR / KF._GM_PEAK)
+    def ambiguous_b(r):
+        est = {**r.estimate, "bias_instability_rad_s": 3e-5}
+        amb = {"bias_instability_rad_s": "correlated_sigma_rad_s"}
+        terms = {**r.all_terms(), "bias_instability_rad_s": None}
+        model = dataclasses.replace(r.model, **{k: model_value(k, terms[k], amb, est) for k in TERMS})
+        return dataclasses.replace(r, model=model, estimate=est, ambiguous=amb)
+
+    amb = {x: ambiguous_b(r) for x, r in w.axes.items()}
+    m3 = KF.tracking_model(amb)
+    assert m3.source == "allan: N, B -> Gauss-Markov" and np.all(m3.correlated_sigma_rad_s > 0)
+    np.testing.assert_allclose(m3.correlated_sigma_rad_s, 3e-5 * KF._B_FLOOR / KF._GM_PEAK)
 
 
 def test_quaternion_helpers():
@@ -145,7 +145,7 @@ def _attitude_run(seed: int, n: int, ref_sigma: float):
     b = 0.02 * rng.standard_normal(3) + np.cumsum(K * math.sqrt(DT) * rng.standard_normal((n, 3)), axis=0)
     g = omega + b + N * math.sqrt(RATE_HZ) * rng.standard_normal((n, 3))
     q_ref = KF.quat_mul(q_true, KF.quat_exp(ref_sigma * rng.standard_normal((n, 3))))
-    model = KF.BiasNoiseModel(np.full(3, N), np.full(3, K))
+    model = NoiseModel(np.full(3, N), rrw_rad_per_s_sqrt_s=np.full(3, K))
     tr = KF.AttitudeBiasTracker(
         model, ref_sigma_rad=ref_sigma, q0_wxyz=q_ref[0], bias0_sigma_rad_s=0.05, att0_sigma_rad=ref_sigma
     )
@@ -193,7 +193,7 @@ def test_attitude_tracker_on_broad_matches_rest_bias(shared_data):
         rec = read_broad(p)
         sl = startup_still_slice(rec, max_duration_s=60.0)
         rest = rec.slice(0, sl.stop)
-        model = KF.BiasNoiseModel.from_allan(AL.allan_analysis(rest))
+        model = KF.tracking_model(AL.allan_analysis(rest))
     b_rest = rest.gyro_rad_s.mean(axis=0)
     se_rest = rest.gyro_rad_s.std(axis=0, ddof=1) / math.sqrt(rest.n)
     t, g, q = rec.t_s[sl.stop :], rec.gyro_rad_s[sl.stop :], rec.ref_quat_wxyz[sl.stop :]

@@ -74,11 +74,16 @@ def test_low_pass_octaves_are_not_fitted_and_n_is_unbiased():
     assert any("shaped by the sensor's low-pass" in str(c.message) for c in caught)
     for a, r in res.axes.items():
         assert r.fit_from_tau_s > r.taus_s[0]
-        lo, hi = r.ci95["arw_rad_per_sqrt_s"]
+        lo, hi = r.interval("arw_rad_per_sqrt_s")
         # 99.9 % two-sided from the 95 % interval (half-width/1.96 = SE): 3.29 SE
         se = (hi - lo) / (2 * 1.96)
-        assert abs(r.arw_rad_per_sqrt_s - N) <= 3.29 * se, (a, r.arw_rad_per_sqrt_s, lo, hi)
-        assert r.bias_instability_rad_s is None and r.quantization_rad is None
+        assert abs(r.all_terms()["arw_rad_per_sqrt_s"] - N) <= 3.29 * se, (
+            a,
+            r.all_terms()["arw_rad_per_sqrt_s"],
+            lo,
+            hi,
+        )
+        assert r.all_terms()["bias_instability_rad_s"] is None and r.all_terms()["quantization_rad"] is None
     _assert_fits(res.axes, 3)
 
 
@@ -124,9 +129,14 @@ def test_red_spectrum_is_no_line_and_flicker_plateau_is_unbiased():
         warnings.simplefilter("ignore")
         res = AL.identify_noise(g, rate_hz=rate, check_static=False)
     for a, r in res.axes.items():
-        lo, hi = r.ci95["bias_instability_rad_s"]
-        assert r.bias_instability_rad_s is not None and lo <= B <= hi, (a, r.bias_instability_rad_s / B, lo / B, hi / B)
-        assert r.correlated_sigma_rad_s is None, a
+        lo, hi = r.interval("bias_instability_rad_s")
+        assert r.all_terms()["bias_instability_rad_s"] is not None and lo <= B <= hi, (
+            a,
+            r.all_terms()["bias_instability_rad_s"] / B,
+            lo / B,
+            hi / B,
+        )
+        assert r.all_terms()["correlated_sigma_rad_s"] is None, a
     # a real line beside the red spectrum is still found: 1 Hz (bin 51 of 1024 at 20 Hz); the
     # Hann peak bin's PSD ≈ (A²/2)/(1.5·Δf) = 1.7e-7 against the white floor 2N² = 2e-8 there
     # (8.5×; the family-wise threshold is ≈ 1.6× the floor)
@@ -166,8 +176,8 @@ def test_flicker_at_the_first_octaves_is_no_low_pass():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         r = AL.identify_noise(g[:, 1:2], rate_hz=rate, check_static=False).axes["x"]
-    lo, hi = r.ci95["arw_rad_per_sqrt_s"]
-    assert r.fit_from_tau_s == r.taus_s[0] and lo <= N <= hi, (r.arw_rad_per_sqrt_s / N, lo / N, hi / N)
+    lo, hi = r.interval("arw_rad_per_sqrt_s")
+    assert r.fit_from_tau_s == r.taus_s[0] and lo <= N <= hi, (r.all_terms()["arw_rad_per_sqrt_s"] / N, lo / N, hi / N)
 
 
 def test_flicker_shape_at_the_first_octaves_stays_inside_n_interval():
@@ -187,7 +197,7 @@ def test_flicker_shape_at_the_first_octaves_stays_inside_n_interval():
     A = V.term_avar(m, rate)
     avar = A[:, 1] * N**2 + f * B**2 + A[:, 3] * K**2
     r = gmwm.fit_noise(m / rate, avar, m, n)
-    lo, hi = r.ci95["arw_rad_per_sqrt_s"]
+    lo, hi = r.interval("arw_rad_per_sqrt_s")
     z = (r.terms["arw_rad_per_sqrt_s"] - N) / ((hi - lo) / (2 * 1.959964))
     assert abs(z) <= 0.67, (z, lo / N, hi / N)
 
@@ -209,11 +219,16 @@ def test_narrowband_line_is_removed_not_taken_for_quantization():
     # rms of the line A/√2 from the excess over the floor of ~5 bins: the floor's χ² noise over
     # those bins is < 1 % of the line's power here; 5 % allows the leakage outside ±2 bins (Hann)
     assert r.lines_rms[0] == pytest.approx(A / math.sqrt(2), rel=0.05)
-    assert r.quantization_rad is None
+    assert r.all_terms()["quantization_rad"] is None
     for a, rr in res.axes.items():
-        lo, hi = rr.ci95["arw_rad_per_sqrt_s"]
+        lo, hi = rr.interval("arw_rad_per_sqrt_s")
         se = (hi - lo) / (2 * 1.96)
-        assert abs(rr.arw_rad_per_sqrt_s - N) <= 3.29 * se, (a, rr.arw_rad_per_sqrt_s, lo, hi)
+        assert abs(rr.all_terms()["arw_rad_per_sqrt_s"] - N) <= 3.29 * se, (
+            a,
+            rr.all_terms()["arw_rad_per_sqrt_s"],
+            lo,
+            hi,
+        )
     assert res.axes["x"].lines_hz == () and res.axes["y"].lines_hz == ()
     _assert_fits(res.axes, 3)
 

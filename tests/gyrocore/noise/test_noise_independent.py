@@ -69,13 +69,13 @@ def test_resolved_rrw_interval_is_finite_next_to_a_nested_gm():
     x = _white_rw(3, 50.0, 7200.0, 1.7e-4, K)
     r = identify_noise(x, rate_hz=50.0, check_static=False, axes=("x",))
     ax = r.axes["x"]
-    lo, hi = ax.ci95["rrw_rad_per_s_sqrt_s"]
-    assert ax.rrw_rad_per_s_sqrt_s is not None
+    lo, hi = ax.interval("rrw_rad_per_s_sqrt_s")
+    assert ax.all_terms()["rrw_rad_per_s_sqrt_s"] is not None
     assert math.isfinite(hi), (lo, hi)
     # the selected N + K model's chi-square interval: ν = 2c²/se² is large for a resolved K, so
     # the ends are within a factor ~2 of the estimate (here [2.16, 3.67]e-6 around 2.72e-6 — this
     # axis' random walk sags: one of the ~5 % misses, which is what the slow test counts)
-    k = ax.rrw_rad_per_s_sqrt_s
+    k = ax.all_terms()["rrw_rad_per_s_sqrt_s"]
     assert k / 2.0 < lo < k < hi < 2.0 * k, (k, lo, hi)
 
 
@@ -95,9 +95,9 @@ def test_rrw_interval_coverage_independent_random_walk():
         x = np.column_stack([G.white(n, 50.0, 1e-4, rng) + G.random_walk(n, 50.0, K, rng) for _ in range(3)])
         r = identify_noise(x, rate_hz=50.0, check_static=False)
         for ax in r.axes.values():
-            lo, hi = ax.ci95["rrw_rad_per_s_sqrt_s"]
+            lo, hi = ax.interval("rrw_rad_per_s_sqrt_s")
             assert math.isfinite(hi)
-            found += ax.rrw_rad_per_s_sqrt_s is not None
+            found += ax.all_terms()["rrw_rad_per_s_sqrt_s"] is not None
             covered += lo <= K <= hi
     assert found >= 38 and covered >= 42, (found, covered)
 
@@ -116,9 +116,9 @@ def test_upper_bound_of_an_unresolved_random_walk_covers():
         x = _white_rw_seeded([s, 901], 50.0, 600.0, 1e-4, K)
         r = identify_noise(x, rate_hz=50.0, check_static=False)
         for ax in r.axes.values():
-            if ax.rrw_rad_per_s_sqrt_s is None:
+            if ax.all_terms()["rrw_rad_per_s_sqrt_s"] is None:
                 unresolved += 1
-                hi = ax.ci95["rrw_rad_per_s_sqrt_s"][1]
+                hi = ax.interval("rrw_rad_per_s_sqrt_s")[1]
                 assert math.isfinite(hi)
                 covered += hi >= K
     # K is claimed with probability Φ(margin) = Φ(−0.79) ≈ 21 % (a present but unresolvable term,

@@ -146,9 +146,9 @@ def test_identify_noise_with_the_check_reports_k_ambiguous_with_a_gm():
         on = AL.identify_noise(g[:, 2:3], rate_hz=50.0, check_static=False, options=NoiseOptions(rw_check=True)).axes[
             "x"
         ]
-    assert off.rrw_rad_per_s_sqrt_s is not None and "rrw_rad_per_s_sqrt_s" not in off.ambiguous
-    assert on.rrw_rad_per_s_sqrt_s is None
+    assert off.all_terms()["rrw_rad_per_s_sqrt_s"] is not None and "rrw_rad_per_s_sqrt_s" not in off.ambiguous
+    assert on.all_terms()["rrw_rad_per_s_sqrt_s"] is None
     assert on.ambiguous["rrw_rad_per_s_sqrt_s"] == "correlated_sigma_rad_s"
-    assert on.ci95["rrw_rad_per_s_sqrt_s"][0] == 0.0
-    assert on.ci95["rrw_rad_per_s_sqrt_s"][1] == pytest.approx(off.ci95["rrw_rad_per_s_sqrt_s"][1])
-    assert on.arw_rad_per_sqrt_s == pytest.approx(off.arw_rad_per_sqrt_s)
+    assert on.interval("rrw_rad_per_s_sqrt_s")[0] == 0.0
+    assert on.interval("rrw_rad_per_s_sqrt_s")[1] == pytest.approx(off.interval("rrw_rad_per_s_sqrt_s")[1])
+    assert on.all_terms()["arw_rad_per_sqrt_s"] == pytest.approx(off.all_terms()["arw_rad_per_sqrt_s"])
