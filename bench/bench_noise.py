@@ -4,7 +4,7 @@ Both on the same data (white N + random walk K + flicker B, three axes), timed s
 one run, interleaved, best of ``--repeat`` (single timings on this shared machine vary 3–10×
 with the load; the ratio of the best times is the figure):
 
-- **ADEV alone**: :func:`gyrocore.noise.allan.oadev` (fast kernel, rate → angle integration included)
+- **ADEV alone**: :func:`gyrocore.noise.adev.oadev` (fast kernel, rate → angle integration included)
   at the octave τ the old analysis used (m ≤ (n−1)/4), three axes;
 - **full identification**: :func:`gyrocore.noise.allan.identify_noise` with ``method`` (the ADEV at
   every octave up to (n−1)/2, EDF, model covariance, subset selection, intervals), three axes,
@@ -27,6 +27,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from gyrocore.noise import adev as ADEV  # noqa: E402
 from gyrocore.noise import allan as AL  # noqa: E402
 
 
@@ -45,7 +46,7 @@ def main(argv=None) -> None:
     g = SN.white_rate_noise(rng, n, rate_hz=rate, n_rad_per_sqrt_s=1e-4)
     g += SN.rate_random_walk(rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=2e-6)
     g += SN.flicker_noise(rng, n, rate_hz=rate, b_rad_s=1.5e-5)
-    m_old = AL.octave_m(n)
+    m_old = ADEV.octave_m(n)
     t_adev, t_full, c_adev, c_full = [], [], [], []
     res = None
     # warm-up on a short slice (caches: flicker factors, EDF tables, spectral grids)
@@ -55,7 +56,7 @@ def main(argv=None) -> None:
     for _ in range(a.repeat):
         t0, c0 = time.perf_counter(), time.process_time()
         for ax in range(3):
-            AL.oadev(g[:, ax], rate, m_old)
+            ADEV.oadev(g[:, ax], rate, m_old)
         t_adev.append(time.perf_counter() - t0)
         c_adev.append(time.process_time() - c0)
         t0, c0 = time.perf_counter(), time.process_time()
@@ -73,7 +74,7 @@ def main(argv=None) -> None:
 
     m_all = V.scales(n)
     c0 = time.process_time()
-    curves = [AL.oadev(g[:, ax], rate, m_all) for ax in range(3)]
+    curves = [ADEV.oadev(g[:, ax], rate, m_all) for ax in range(3)]
     c_adev_all = time.process_time() - c0
     c0 = time.process_time()
     for _t, d, _n in curves:

@@ -365,7 +365,7 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
     Wald pivot), with the standard error at the true model (is the covariance model right?),
     and the coverage of the Wald and of the chi-square (Satterthwaite) interval."""
 
-    from gyrocore.noise import allan as AL
+    from gyrocore.noise import adev as ADEV
     from gyrocore.noise import avar as V
     from gyrocore.noise import gmwm as G
     from sim import noise as SN
@@ -384,7 +384,7 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
             rng, n, rate_hz=rate, k_rad_s_per_sqrt_s=2e-6
         )
         for ax in range(3):
-            t, d, _ = AL.oadev(g[:, ax], rate, m)
+            t, d, _ = ADEV.oadev(g[:, ax], rate, m)
             f = G.fit_noise(t, d**2, m, n, candidates=("arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s"))
             c = f.coef[3]
             lo, hi = f.ci95["rrw_rad_per_s_sqrt_s"]
@@ -419,7 +419,7 @@ def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, b
     model) for every alternative of the same size (mean, sd, P(D < 0))."""
     from collections import Counter
 
-    from gyrocore.noise import allan as AL
+    from gyrocore.noise import adev as ADEV
     from gyrocore.noise import avar as V
     from gyrocore.noise import gmwm as G
 
@@ -433,7 +433,7 @@ def selection_census(mix: str, T_s: float, rate_hz: float, *, seeds: int = 40, b
         rng = np.random.default_rng(np.random.SeedSequence([s, base]))
         g = simulate(rng, MIXES[mix], n, rate_hz)
         for ax in range(3):
-            t, d, _ = AL.oadev(g[:, ax], rate_hz, m)
+            t, d, _ = ADEV.oadev(g[:, ax], rate_hz, m)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 f = G.fit_noise(t, d**2, m, n)

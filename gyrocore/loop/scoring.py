@@ -91,7 +91,7 @@ def describe_remaining(res: Residual, e: np.ndarray) -> Remaining:
     if e_run.shape[0] > 16:
         e = e_run
         f, P = signal.welch(e, fs=fs, axis=0, nperseg=min(256, e.shape[0]))
-        from gyrocore.noise.allan import octave_m, oadev
+        from gyrocore.noise.adev import octave_m, oadev
 
         m = octave_m(e.shape[0])
         m = m[m <= e.shape[0] // 3] if (m <= e.shape[0] // 3).any() else m[:1]

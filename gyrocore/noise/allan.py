@@ -2,21 +2,16 @@
 
 What is here
 ------------
-- :func:`oadev` — overlapping Allan deviation of a rate signal (NIST SP 1065 eq. 11), either
-  through ``allantools.oadev`` or through our own kernel (same phase, same formula, in-place
-  buffers: identical values to relative 1e-12, faster on long records, see
-  ``bench/bench_allan.py``).
-- :func:`allan_analysis` — per axis: deviation, chi-square confidence intervals from
-  Greenhall's equivalent degrees of freedom (``allantools.edf_greenhall``), and the five
-  IEEE 952 terms fitted **jointly** by non-negative weighted least squares on the Allan
-  variance::
-
-      σ²(τ) = 3Q²/τ² + N²/τ + (2 ln2/π)B² + K²τ/3 + R²τ²/2
-
-  (Q angle quantization [rad], N angle random walk [rad/√s], B bias instability [rad/s],
-  K rate random walk [rad/s/√s], R rate ramp [rad/s²]; IEEE Std 952-1997 annex C).
-  A term the data cannot resolve (its 95 % interval reaches zero) is ``None``, not a guess.
-- :func:`kalibr_imu_yaml` — Kalibr's ``imu.yaml`` (noise density = N, random walk = K).
+- :func:`identify_noise` / :func:`allan_analysis` — per axis: the overlapping Allan deviation
+  (:func:`gyrocore.noise.adev.oadev`), chi-square confidence intervals from Greenhall's
+  equivalent degrees of freedom, and the noise model — the terms of
+  σ²(τ) = 3Q²/τ² + N²/τ + (2 ln2/π)B² + K²τ/3 + R²τ²/2 and a Gauss–Markov bias, fitted by the GMWM
+  (:mod:`gyrocore.noise.gmwm`; or the IEEE 952 fits, :mod:`gyrocore.noise.ieee952`) after
+  removing narrowband lines and the sensor's low-pass octaves (:mod:`gyrocore.noise.diagnostics`).
+  The result of each axis carries a :class:`gyrocore.noise.model.NoiseModel`; a term the data
+  cannot resolve (its 95 % interval reaches zero) is ``None`` in the JSON, not a guess.
+- the motion gate of a noise record (:func:`analysed_span`: the whole record or its longest still
+  stretch) and the record length a term needs (:func:`needed_duration_s`).
 
 Conventions: rate signals are rad/s in the sensor frame S; the sample rate is the mean rate
 (N−1)/duration and the sample index is the time base (bursty host timestamps of real logs
@@ -37,6 +32,8 @@ import scipy.stats
 from gyrocore.errors import GyroInputError, warn_repair
 
 from . import avar as AV, diagnostics, gmwm
+from .adev import oadev, octave_m
+from .ieee952 import ieee952_design, select_ieee952, term_interval
 from .model import IEEE_TERMS, TERM_UNITS, TERMS, NoiseModel, model_value
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 from gyrocore.data.recording import AXES, GYRO_COLS, Recording
@@ -51,340 +48,12 @@ __all__ = [
     "needed_duration_s",
     "TERMS",
     "METHODS",
-    "oadev",
-    "octave_m",
     "allan_analysis",
-    "fit_ieee952",
-    "select_ieee952",
-    "avar_correlation_white",
-    "avar_correlation_model",
-    "kalibr_imu_yaml",
-    "to_datasheet_units",
     "FORMAT_VERSION",
 ]
 
 FORMAT_VERSION = "2.0"  # 2.0: GM terms, method, resolved flags, τ up to T/2
 RAD2DEG = 180.0 / math.pi
-
-# Noise type α (S_y ∝ f^α) that dominates where each term dominates; used for the EDF.
-# Q: white phase (angle) noise α=2; N: white rate α=0; B: flicker rate α=−1;
-# K: random-walk rate α=−2; R: drift, treated as α=−2 (Greenhall needs α > −3 for AVAR).
-_TERM_ALPHA = (2, 0, -1, -2, -2)
-_B_FACTOR = 2.0 * math.log(2.0) / math.pi  # σ² = (2 ln2/π)·B² on the flat part
-_Z95 = scipy.stats.norm.isf(0.025)
-_LONG_TERMS = ("bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2")
-
-
-# ---------------------------------------------------------------------------- deviation
-def octave_m(n_samples: int, *, max_m: int | None = None) -> np.ndarray:
-    """Averaging factors m = 1, 2, 4, ... (octave spacing) usable on ``n_samples`` rate samples.
-
-    Overlapping ADEV needs 2m ≤ N − 1 phase differences; by default m ≤ (N−1)//4 so that the
-    last point still has ≥ ~3 equivalent degrees of freedom.
-    """
-    top = (n_samples - 1) // 4 if max_m is None else int(max_m)
-    top = min(top, (n_samples - 1) // 2)
-    if top < 1:
-        return np.zeros(0, dtype=np.int64)
-    return 2 ** np.arange(int(math.floor(math.log2(top))) + 1, dtype=np.int64)
-
-
-def _phase(omega: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Integrated angle (the 'phase' of SP 1065), exactly as ``allantools.frequency2phase``."""
-    import allantools
-
-    return allantools.frequency2phase(np.asarray(omega, dtype=float), rate_hz)
-
-
-def _oadev_fast(
-    phase: np.ndarray, rate_hz: float, m: np.ndarray, *, chunk: int = 1 << 16
-) -> tuple[np.ndarray, np.ndarray]:
-    """Overlapping ADEV kernel: cache-sized blocks, in-place second differences, no BLAS.
-
-    Same formula as ``allantools.calc_adev_phase(phase, rate, m, 1)``:
-    σ(mτ0) = sqrt(Σ(x[i+2m] − 2x[i+m] + x[i])² / (2 n)) / (m τ0), n = len(x) − 2m.
-    The second difference of each block of ``chunk`` terms is formed in one reused buffer
-    that stays in cache (allantools allocates four full-length temporaries per τ), and the
-    squares are summed with numpy's pairwise sum (a BLAS dot on small blocks costs thread
-    start-up time on a busy machine).
-    """
-    L = phase.shape[0]
-    buf = np.empty(chunk)
-    dev = np.empty(m.shape[0])
-    ns = np.empty(m.shape[0], dtype=np.int64)
-    for i, mj in enumerate(m.tolist()):
-        n = L - 2 * mj
-        s = 0.0
-        for a in range(0, n, chunk):
-            b = min(a + chunk, n)
-            v = buf[: b - a]
-            np.add(phase[a + 2 * mj : b + 2 * mj], phase[a:b], out=v)
-            mid = phase[a + mj : b + mj]
-            v -= mid
-            v -= mid
-            np.multiply(v, v, out=v)
-            s += float(v.sum())
-        dev[i] = math.sqrt(s / (2.0 * n)) / mj * rate_hz
-        ns[i] = n
-    return dev, ns
-
-
-def oadev(
-    omega: np.ndarray, rate_hz: float, m: Sequence[int] | np.ndarray, *, engine: str = "fast"
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Overlapping Allan deviation of one rate signal.
-
-    Parameters
-    ----------
-    omega : ndarray, shape (N,)
-        Rate samples (any unit U; the deviation comes out in U), evenly spaced by 1/rate_hz.
-    rate_hz : float
-        Sample rate, Hz (use the mean rate (N−1)/duration for jittery timestamps).
-    m : sequence of int
-        Averaging factors; τ = m / rate_hz.
-    engine : {"fast", "allantools"}
-        ``"allantools"`` calls ``allantools.oadev(..., data_type="freq")``; ``"fast"`` uses the
-        same phase and formula with in-place buffers (NIST SP 1065 eq. 11).
-
-    Returns
-    -------
-    taus_s : ndarray, shape (M,)
-    adev : ndarray, shape (M,), unit U
-    n_terms : ndarray, shape (M,)  number of second differences averaged (N − 2m)
-    """
-    m = np.asarray(m, dtype=np.int64)
-    if engine == "allantools":
-        import allantools
-
-        taus, dev, _err, ns = allantools.oadev(
-            np.asarray(omega, float), rate=rate_hz, data_type="freq", taus=m / rate_hz
-        )
-        return np.asarray(taus), np.asarray(dev), np.asarray(ns, dtype=np.int64)
-    if engine != "fast":
-        raise GyroInputError(f"unknown Allan engine {engine!r} (use 'fast' or 'allantools')")
-    phase = _phase(omega, rate_hz)
-    dev, ns = _oadev_fast(phase, rate_hz, m)
-    return m / rate_hz, dev, ns
-
-
-# ---------------------------------------------------------------------------- the model
-def ieee952_design(taus_s: np.ndarray) -> np.ndarray:
-    """Columns of σ²(τ) for coefficients c = (Q², N², B², K², R²); shape (M, 5)."""
-    t = np.asarray(taus_s, float)
-    return np.column_stack([3.0 / t**2, 1.0 / t, np.full_like(t, _B_FACTOR), t / 3.0, t**2 / 2.0])
-
-
-_CORR_CACHE: dict[tuple, np.ndarray] = {}
-
-
-def avar_correlation_white(m: np.ndarray, n_phase: int) -> np.ndarray:
-    """Correlation matrix of overlapping AVAR estimates at factors ``m`` under white rate noise.
-
-    σ̂²(m) ∝ Σ_k d_m(k)², d_m = h_m ∗ y with h_m = (−1 ×m, +1 ×m). For Gaussian y,
-    Cov(Σ_k d_i(k)², Σ_l d_j(l)²) = 2 Σ_k Σ_l g_ij(k−l)², g_ij the cross-correlation of h_i
-    and h_j (exact count of (k, l) pairs per lag). Octave-spaced points are far from
-    independent (ρ ≈ 0.5–0.7 between neighbours); ignoring it makes the term intervals about
-    1.6× too narrow (measured by Monte Carlo, tests/gyrocore/noise/test_allan.py).
-    """
-    import scipy.signal
-
-    key = (tuple(int(v) for v in m), int(n_phase))
-    hit = _CORR_CACHE.get(key)
-    if hit is not None:
-        return hit
-    m = [int(v) for v in m]
-    n = [n_phase - 2 * v for v in m]
-    h = [np.concatenate([-np.ones(v), np.ones(v)]) for v in m]
-    M = len(m)
-    V = np.zeros((M, M))
-    for i in range(M):
-        for j in range(i, M):
-            g = scipy.signal.fftconvolve(h[i], h[j][::-1])  # g[lag + len_j − 1]
-            g = np.rint(g)  # integer counts; remove FFT round-off
-            lags = np.arange(g.size) - (h[j].size - 1)  # g at lag = Cov(d_i(k), d_j(k + lag))
-            # pairs (k, l = k + lag) with 0 ≤ k < n_i, 0 ≤ l < n_j
-            pairs = np.clip(np.minimum(n[i], n[j] - lags) - np.maximum(0, -lags), 0, None)
-            V[i, j] = V[j, i] = 2.0 * float(np.sum(pairs * g * g))
-    d = np.sqrt(np.diag(V))
-    R = V / np.outer(d, d)
-    _CORR_CACHE[key] = R
-    return R
-
-
-_QF_CACHE: dict[tuple, np.ndarray] = {}
-_QF_STACK: dict[tuple, np.ndarray] = {}
-_MAX_RATIO = 1024  # pairs of τ further apart than this are taken as uncorrelated
-
-
-def _pair_quadratic(mi: int, mj: int, n_phase: int, res: int = 16) -> np.ndarray:
-    """Coefficients (A1..A6) of Cov(Σd_i², Σd_j²)/2 as a quadratic form in (a, b, c).
-
-    a = white-rate variance per sample (N²·rate), b = rate-random-walk increment variance
-    (K²·τ0), c = white-angle variance in rate units (Q²·rate²). d_m = Haar filter h_m (−1 ×m,
-    +1 ×m) on the rate for a; its running sum, the triangle g_m(v) = min(v, 2m − v), on the
-    random-walk increments for b; p_m = δ₀ − 2δ_m + δ₂m on the angle noise for c. With
-    c_ij(lag) = a·X_hh + b·X_gg + c·X_pp (cross-correlations of the filters),
-    Cov = 2 Σ_lag pairs(lag)·c_ij(lag)² = 2(a²A1 + b²A2 + c²A3 + 2abA4 + 2acA5 + 2bcA6).
-    Long filters are evaluated on a grid of step s = min(m)/res (box sums are exact on it; the
-    triangle's Riemann sum has O(1/res) error) — checked against Monte Carlo in the tests.
-    """
-    key = (mi, mj, n_phase, res)
-    hit = _QF_CACHE.get(key)
-    if hit is not None:
-        return hit
-    import scipy.signal
-
-    s = max(1, min(mi, mj) // res)
-    ni, nj = n_phase - 2 * mi, n_phase - 2 * mj
-
-    def h_dec(mm: int) -> np.ndarray:
-        L = mm // s
-        return np.concatenate([-np.ones(L), np.ones(L)])
-
-    def g_dec(mm: int) -> np.ndarray:
-        v = np.arange(0, 2 * mm, s, dtype=float)
-        return np.minimum(v, 2 * mm - v)
-
-    hj = h_dec(mj)
-    Wf = s * np.rint(scipy.signal.fftconvolve(h_dec(mi), hj[::-1]))
-    Kf = s * scipy.signal.fftconvolve(g_dec(mi), g_dec(mj)[::-1])
-    idx0 = hj.size - 1
-    lags = (np.arange(Wf.size) - idx0) * s  # value at lag = Cov(d_i(k), d_j(k + lag))
-    pairs = np.clip(np.minimum(ni, nj - lags) - np.maximum(0, -lags), 0, None).astype(float)
-    A1 = s * float(np.sum(pairs * Wf * Wf))
-    A2 = s * float(np.sum(pairs * Kf * Kf))
-    A4 = s * float(np.sum(pairs * Wf * Kf))
-    P: dict[int, float] = {}
-    for u, pu in ((0, 1.0), (mi, -2.0), (2 * mi, 1.0)):
-        for v, pv in ((0, 1.0), (mj, -2.0), (2 * mj, 1.0)):
-            P[u - v] = P.get(u - v, 0.0) + pu * pv  # shared angle sample: l = k + (u − v)
-    A3 = A5 = A6 = 0.0
-    grid = np.arange(Wf.size)
-    for lag, pv in P.items():
-        if pv == 0.0:
-            continue
-        pr = max(0, min(ni, nj - lag) - max(0, -lag))
-        k = lag / s + idx0
-        A3 += pr * pv * pv
-        A5 += pr * pv * float(np.interp(k, grid, Wf))
-        A6 += pr * pv * float(np.interp(k, grid, Kf))
-    out = np.array([A1, A2, A3, A4, A5, A6])
-    _QF_CACHE[key] = out
-    return out
-
-
-def avar_correlation_model(m: np.ndarray, n_phase: int, rate_hz: float, coef: np.ndarray) -> np.ndarray:
-    """Correlation of overlapping AVAR estimates for white rate + rate random walk + white angle.
-
-    ``coef`` = (Q², N², B², K², R²) of the current fit; B and R do not enter (flicker has no
-    finite-filter form; a ramp is deterministic). Pure white noise when N = K = Q = 0.
-    Random walk correlates the octave points far more than white noise (neighbours ≈ 0.87
-    instead of 0.5), so using the white correlation for it over-counts long-τ evidence.
-    """
-    Q2, N2, _B2, K2, _R2 = (float(v) for v in coef)
-    a, b, c = N2 * rate_hz, K2 / rate_hz, Q2 * rate_hz**2
-    if not (a > 0 or b > 0 or c > 0):
-        a, b, c = 1.0, 0.0, 0.0
-    key = (tuple(int(v) for v in m), int(n_phase))
-    T = _QF_STACK.get(key)
-    if T is None:
-        M = len(m)
-        T = np.zeros((M, M, 6))
-        for i in range(M):
-            for j in range(i, M):
-                mi, mj = int(m[i]), int(m[j])
-                if max(mi, mj) > _MAX_RATIO * min(mi, mj):
-                    continue
-                T[i, j] = T[j, i] = _pair_quadratic(mi, mj, int(n_phase))
-        _QF_STACK[key] = T
-    C = T @ np.array([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c])
-    d = np.sqrt(np.diag(C))
-    R = C / np.outer(d, d)
-    # far pairs set to 0 may leave R slightly indefinite: clip its eigenvalues
-    w, V = np.linalg.eigh(R)
-    if w.min() < 1e-6:
-        R = (V * np.maximum(w, 1e-6)) @ V.T
-        d = np.sqrt(np.diag(R))
-        R = R / np.outer(d, d)
-    return R
-
-
-@dataclass(frozen=True)
-class _Fit:
-    coef: np.ndarray  # (5,) c = (Q², N², B², K², R²)
-    cov: np.ndarray  # (5, 5)
-    edf: np.ndarray  # (M,)
-    alpha: np.ndarray  # (M,)
-    chi2: float = float("nan")  # whitened residual sum of squares at the final weights
-
-
-def fit_ieee952(
-    taus_s: np.ndarray,
-    avar: np.ndarray,
-    m: np.ndarray,
-    n_phase: int,
-    *,
-    iterations: int = 4,
-    terms: Sequence[str] = IEEE_TERMS,
-) -> _Fit:
-    """Joint non-negative generalised least-squares fit of the IEEE 952 terms.
-
-    Model: σ²(τ) = A(τ)·c with c = (Q², N², B², K², R²) ≥ 0 (IEEE Std 952 eq. C.2 sum).
-    Covariance of the AVAR estimates: C_ij = ρ_ij·√(V_i V_j), with V_i = 2σ_i⁴/edf_i
-    (chi-square, NIST SP 1065 eq. 45), σ_i² from the current *model* (not the noisy estimate,
-    which would bias the fit low), edf_i from Greenhall's algorithm for the noise type that
-    dominates the model at τ_i, and ρ_ij the correlation between overlapping AVAR estimates
-    under the current model's white, random-walk and quantization parts
-    (:func:`avar_correlation_model`; white noise at the start). The system is whitened with the Cholesky
-    factor of C and solved by NNLS; iterated ``iterations`` times from a white-noise start.
-
-    Returns the coefficients and their covariance (AᵀC⁻¹A)⁻¹ at the final weights, computed
-    without the sign constraint so that a term pinned at zero still gets an upper bound.
-    """
-    A_full = ieee952_design(taus_s)
-    use = np.array([k in terms for k in IEEE_TERMS])
-    A = A_full[:, use]
-    m = np.asarray(m, dtype=np.int64)
-    avar = np.asarray(avar, float)
-    rate_hz = float(m[0] / taus_s[0])
-    alpha = np.zeros(len(taus_s), dtype=int)
-    model = avar.copy()
-    coef = np.zeros(5)
-    tiny = np.finfo(float).tiny
-
-    def whitened(model_, alpha_):
-        R = avar_correlation_model(m, n_phase, rate_hz, coef)
-        edf_ = np.array([AV.greenhall_edf(int(a_), int(mm), int(n_phase)) for a_, mm in zip(alpha_, m)])
-        sd = np.sqrt(2.0 / edf_) * np.maximum(model_, tiny)
-        L = np.linalg.cholesky(R * np.outer(sd, sd))
-        # np.linalg.solve rather than scipy's solve_triangular: on these ~20×5 systems the
-        # latter costs milliseconds per call (BLAS thread start-up), ×100 in the selection.
-        W_ = np.linalg.solve(L, np.column_stack([A, avar]))
-        Aw_, yw_ = W_[:, :-1], W_[:, -1]
-        return edf_, Aw_, yw_
-
-    for _ in range(max(1, iterations)):
-        edf, Aw, yw = whitened(model, alpha)
-        # Column scaling keeps NNLS well conditioned (the columns span many decades).
-        scale = np.linalg.norm(Aw, axis=0)
-        scale[scale == 0] = 1.0
-        sol, _ = scipy.optimize.nnls(Aw / scale, yw, maxiter=50 * A.shape[1])
-        coef = np.zeros(5)
-        coef[use] = sol / scale
-        new_model = A_full @ coef
-        model = np.where(new_model > 0, new_model, avar)
-        contrib = A_full * coef[None, :]
-        alpha = np.array(_TERM_ALPHA)[np.argmax(contrib, axis=1)]
-    edf, Aw, yw = whitened(model, alpha)
-    chi2 = float(np.sum((yw - Aw @ coef[use]) ** 2))
-    scale = np.linalg.norm(Aw, axis=0)
-    scale[scale == 0] = 1.0
-    An = Aw / scale
-    cov_used = np.linalg.pinv(An.T @ An) / np.outer(scale, scale)
-    cov = np.full((5, 5), np.nan)
-    idx = np.flatnonzero(use)
-    cov[np.ix_(idx, idx)] = cov_used
-    return _Fit(coef=coef, cov=cov, edf=edf, alpha=alpha, chi2=chi2)
 
 
 # ---------------------------------------------------------------------------- results
@@ -561,80 +230,6 @@ class AllanAnalysis:
         return out
 
 
-def _term_interval(fit: _Fit, i: int) -> tuple[float, float, float]:
-    """(c, lo, hi) of coefficient i with its 95 % normal interval on the variance scale."""
-    c = float(fit.coef[i])
-    v = fit.cov[i, i]
-    se = math.sqrt(v) if (math.isfinite(v) and v > 0) else float("inf")
-    return c, c - _Z95 * se, c + _Z95 * se
-
-
-def select_ieee952(
-    taus_s: np.ndarray, avar: np.ndarray, m: np.ndarray, n_phase: int, *, keep_z: float = 3.0
-) -> tuple[_Fit, list[str], dict[str, float]]:
-    """Joint fit with backward elimination of the terms the data cannot resolve.
-
-    Start from all five terms; while some active term is not significant (c/se < ``keep_z``
-    on the variance coefficient, or NNLS pinned it at 0), drop the least significant one
-    (smallest c/se) and refit the others jointly; then add back the dropped term that, fitted next
-    to the kept ones, lowers the generalised χ² most and is significant itself (if above ``keep_z`` without making a kept term
-    insignificant) and repeat. ``keep_z = 3`` rather than 1.96: with four
-    candidate terms absent, a 5 % level keeps a spurious one in ~20 % of white-noise records
-    and the N interval then under-covers (measured 91 % for a nominal 95 %). Collinear neighbours (e.g. K and R, or B
-    and K over a short τ range) would otherwise share one signal and all look insignificant.
-
-    Returns the final fit, the active terms and, for each dropped term, an upper bound: the
-    upper end of its 95 % interval when it replaces the kept terms of its τ family (B, K, R
-    stand in for each other over a short record), or next to the final terms if larger.
-    """
-
-    def z_of(fit_: _Fit, name: str) -> float:
-        c, _lo, hi = _term_interval(fit_, IEEE_TERMS.index(name))
-        se = (hi - c) / _Z95
-        return c / se if (c > 0 and se > 0 and math.isfinite(se)) else 0.0
-
-    active = list(IEEE_TERMS)
-    upper: dict[str, float] = {}
-    for _round in range(2 * len(IEEE_TERMS)):
-        # backward: drop the least significant term while one is below keep_z
-        while True:
-            fit = fit_ieee952(taus_s, avar, m, n_phase, terms=active)
-            zs = {name: z_of(fit, name) for name in active}
-            worst = min(zs, key=zs.get)
-            if zs[worst] >= keep_z or len(active) == 1:
-                break
-            upper[worst] = _term_interval(fit, IEEE_TERMS.index(worst))[2]
-            active.remove(worst)
-        # forward: a dropped term that is significant next to the kept ones comes back
-        # (collinear neighbours dropped together in the backward pass, e.g. B, K and R)
-        best, best_chi2, best_hi = None, float("inf"), {}
-        for name in IEEE_TERMS:
-            if name in active:
-                continue
-            trial = fit_ieee952(taus_s, avar, m, n_phase, terms=active + [name])
-            z = z_of(trial, name)
-            best_hi[name] = _term_interval(trial, IEEE_TERMS.index(name))[2]
-            if z > keep_z and all(z_of(trial, k) >= keep_z for k in active) and trial.chi2 < best_chi2:
-                best, best_chi2 = name, trial.chi2
-        if best is None:
-            # Upper bound of each dropped term: fitted in place of the kept terms of its own
-            # τ family (long: B, K, R, which can stand in for each other over a short record;
-            # short: Q), so that a neighbour does not absorb its signal.
-            for name in IEEE_TERMS:
-                if name in active:
-                    continue
-                if name in _LONG_TERMS:
-                    trial_terms = [k for k in active if k not in _LONG_TERMS] + [name]
-                else:
-                    trial_terms = active + [name]
-                trial = fit_ieee952(taus_s, avar, m, n_phase, terms=trial_terms)
-                upper[name] = max(_term_interval(trial, IEEE_TERMS.index(name))[2], best_hi.get(name, 0.0))
-            return fit, active, upper
-        active = [k for k in IEEE_TERMS if k in active or k == best]
-        upper.pop(best, None)
-    return fit, active, upper
-
-
 METHODS = ("gmwm", "adev", "adev_legacy")
 
 
@@ -695,104 +290,117 @@ def _axis_result(
     taus, dev, ns = oadev(omega, rate_hz, m, engine=engine)
     if not np.all(dev > 0):
         raise GyroInputError(f"{signal} axis {axis}: constant signal (zero Allan deviation), nothing to identify")
+    if method == "adev_legacy":
+        return _legacy_result(omega, rate_hz, m, taus, dev, axis=axis, signal=signal, method=method)
+    return _gmwm_result(omega, rate_hz, m, taus, dev, axis=axis, signal=signal, method=method, options=options)
+
+
+def _remove_lines(omega, rate_hz, m, taus, dev, *, axis: str, signal: str):
+    """The Allan variance less that of the narrowband lines (vibration, interference: not sensor
+    noise; one warning naming them), and the lines (:func:`gyrocore.noise.diagnostics.line_avar`)."""
+    avar = dev**2
+    lines = diagnostics.line_avar(omega, rate_hz, m)
+    if lines.freqs_hz:
+        avar = np.maximum(avar - lines.avar, 0.05 * avar)
+        warn_repair(
+            f"{signal} axis {axis}: narrowband line(s) at "
+            + ", ".join(f"{fq:.4g} Hz (rms {a:.2g})" for fq, a in zip(lines.freqs_hz, lines.rms))
+            + " are not sensor noise: their Allan variance (up to "
+            + f"{100 * float(np.max(lines.avar / dev**2)):.0f} % at tau = {taus[int(np.argmax(lines.avar / dev**2))]:.3g} s)"
+            + " is removed before the noise fit"
+        )
+    return avar, lines
+
+
+def _gmwm_result(omega, rate_hz, m, taus, dev, *, axis: str, signal: str, method: str, options: NoiseOptions):
+    """One axis by the GMWM (or the joint IEEE 952 fit, ``adev``) on the line-free Allan variance
+    above the sensor's low-pass, with the random-walk check, the goodness of fit and the sum of
+    the reported terms."""
+    n = int(omega.shape[0])
+    avar, lines = _remove_lines(omega, rate_hz, m, taus, dev, axis=axis, signal=signal)
+    # the octaves shaped by the sensor's low-pass are left out of the fit
+    k0 = diagnostics.bandwidth_start(avar, m, n, rate_hz)
+    # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
+    meth = method + "+lp" if k0 else method
+    f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth, options=options)
+    f = _random_walk_check(f, omega, rate_hz, taus[-1], low_pass=bool(k0), on=options.rw_check)
+    sel = [AV.LINEAR.index(k) for k in f.selected]
+    chk = diagnostics.goodness_of_fit(avar[k0:], f.fit_avar, f.cov, f.edf, diagnostics.n_params(f.coef, f.tau_c_s, sel))
+    fit_all = AV.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef
+    edf = f.edf
+    if k0:
+        edf = AV.avar_covariance(m, n, rate_hz, f.coef, f.tau_c_s, np.where(fit_all > 0, fit_all, avar), method=meth)[1]
+        warn_repair(
+            f"{signal} axis {axis}: the Allan variance below tau = {taus[k0]:.3g} s is shaped by the sensor's "
+            f"low-pass (over the first octave it falls to {avar[1] / avar[0]:.2f} of its value; white noise: 0.5): "
+            f"the noise model is fitted from tau = {taus[k0]:.3g} s"
+        )
+    # the sum of what is reported: unresolved terms (null, bounds only) left out. A term fitted
+    # but not told from a stand-in (``ambiguous``: reported as "fitted X, not told from Y") stays
+    # in: the data reject the model without it, only its name is open (sunsided 10-min x: without
+    # it the sum is 7 σ below the last points)
+    c_rep = np.array(f.coef, float).copy()
+    for i, name in enumerate(AV.LINEAR):
+        if f.terms.get(name) is None and name not in f.ambiguous and not (k0 and i == 0):
+            c_rep[i] = 0.0  # (the low-pass deficit, column 0 under "+lp", is N's shape)
+    rep_all = AV.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ c_rep
+    if not chk.ok:
+        j = int(np.argmax(np.abs(chk.z)))
+        warn_repair(
+            f"{signal} axis {axis}: the fitted noise model does not fit its Allan variance (goodness of fit "
+            f"p = {chk.p_value:.2g}; {chk.misses} of {chk.z.size} points outside their 95 % interval, worst "
+            f"at tau = {taus[k0 + j]:.3g} s, {math.sqrt(avar[k0 + j] / f.fit_avar[j]):.2g}x the fitted "
+            "deviation): its terms are not to be trusted"
+        )
+    lo_q = scipy.stats.chi2.ppf(0.025, edf)
+    hi_q = scipy.stats.chi2.ppf(0.975, edf)
+    ci_dev = np.column_stack([dev * np.sqrt(edf / hi_q), dev * np.sqrt(edf / lo_q)])
+    names = TERMS if method == "gmwm" else IEEE_TERMS
+    terms = {k: f.terms.get(k) for k in TERMS}
+    est = {k: float(f.estimate[k]) for k in names}
+    ci = {k: (float(f.ci95[k][0]), float(f.ci95[k][1])) for k in names}
+    if k0:  # beside a low-pass, Q is not identified (its column is the filter's deficit)
+        terms["quantization_rad"] = None
+        est["quantization_rad"] = 0.0
+        ci["quantization_rad"] = (0.0, float("inf"))
+    return AllanResult(
+        axis=axis,
+        signal=signal,
+        model=_axis_model(axis, terms, ci, names, f.ambiguous, est),
+        taus_s=taus,
+        adev_rad_s=dev,
+        adev_ci95_rad_s=ci_dev,
+        edf=edf,
+        fit_adev_rad_s=np.sqrt(np.maximum(fit_all, 0.0)),
+        estimate=est,
+        rate_hz=rate_hz,
+        n_samples=int(omega.shape[0]),
+        method=method,
+        chi2=f.chi2,
+        dof=f.dof,
+        ambiguous=dict(f.ambiguous),
+        not_resolvable={k: dict(v) for k, v in f.not_resolvable.items()},
+        reported_adev_rad_s=np.sqrt(np.maximum(rep_all, 0.0)),
+        fit_from_tau_s=float(taus[k0]),
+        lines_hz=tuple(lines.freqs_hz),
+        lines_rms=tuple(lines.rms),
+        lines_adev_rad_s=np.sqrt(lines.avar),
+        fit_check={
+            "ok": chk.ok,
+            "p_value": chk.p_value,
+            "stat": chk.stat,
+            "dof": chk.dof,
+            "misses": chk.misses,
+            "points": int(chk.z.size),
+            "p_misses": chk.p_misses,
+            "z": [float(v) for v in chk.z],
+        },
+    )
+
+
+def _legacy_result(omega, rate_hz, m, taus, dev, *, axis: str, signal: str, method: str):
+    """One axis by the earlier IEEE 952 fit with backward elimination (``adev_legacy``)."""
     n_phase = omega.shape[0] + 1
-    if method != "adev_legacy":
-        n = int(omega.shape[0])
-        avar = dev**2
-        # narrowband lines (vibration, interference) are not sensor noise: their Allan
-        # variance is subtracted before the fit (one warning naming them)
-        lines = diagnostics.line_avar(omega, rate_hz, m)
-        if lines.freqs_hz:
-            avar = np.maximum(avar - lines.avar, 0.05 * avar)
-            warn_repair(
-                f"{signal} axis {axis}: narrowband line(s) at "
-                + ", ".join(f"{fq:.4g} Hz (rms {a:.2g})" for fq, a in zip(lines.freqs_hz, lines.rms))
-                + " are not sensor noise: their Allan variance (up to "
-                + f"{100 * float(np.max(lines.avar / dev**2)):.0f} % at tau = {taus[int(np.argmax(lines.avar / dev**2))]:.3g} s)"
-                + " is removed before the noise fit"
-            )
-        # the octaves shaped by the sensor's low-pass are left out of the fit
-        k0 = diagnostics.bandwidth_start(avar, m, n, rate_hz)
-        # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
-        meth = method + "+lp" if k0 else method
-        f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth, options=options)
-        f = _random_walk_check(f, omega, rate_hz, taus[-1], low_pass=bool(k0), on=options.rw_check)
-        sel = [AV.LINEAR.index(k) for k in f.selected]
-        chk = diagnostics.goodness_of_fit(
-            avar[k0:], f.fit_avar, f.cov, f.edf, diagnostics.n_params(f.coef, f.tau_c_s, sel)
-        )
-        fit_all = AV.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ f.coef
-        edf = f.edf
-        if k0:
-            edf = AV.avar_covariance(
-                m, n, rate_hz, f.coef, f.tau_c_s, np.where(fit_all > 0, fit_all, avar), method=meth
-            )[1]
-            warn_repair(
-                f"{signal} axis {axis}: the Allan variance below tau = {taus[k0]:.3g} s is shaped by the sensor's "
-                f"low-pass (over the first octave it falls to {avar[1] / avar[0]:.2f} of its value; white noise: 0.5): "
-                f"the noise model is fitted from tau = {taus[k0]:.3g} s"
-            )
-        # the sum of what is reported: unresolved terms (null, bounds only) left out. A term fitted
-        # but not told from a stand-in (``ambiguous``: reported as "fitted X, not told from Y") stays
-        # in: the data reject the model without it, only its name is open (sunsided 10-min x: without
-        # it the sum is 7 σ below the last points)
-        c_rep = np.array(f.coef, float).copy()
-        for i, name in enumerate(AV.LINEAR):
-            if f.terms.get(name) is None and name not in f.ambiguous and not (k0 and i == 0):
-                c_rep[i] = 0.0  # (the low-pass deficit, column 0 under "+lp", is N's shape)
-        rep_all = AV.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ c_rep
-        if not chk.ok:
-            j = int(np.argmax(np.abs(chk.z)))
-            warn_repair(
-                f"{signal} axis {axis}: the fitted noise model does not fit its Allan variance (goodness of fit "
-                f"p = {chk.p_value:.2g}; {chk.misses} of {chk.z.size} points outside their 95 % interval, worst "
-                f"at tau = {taus[k0 + j]:.3g} s, {math.sqrt(avar[k0 + j] / f.fit_avar[j]):.2g}x the fitted "
-                "deviation): its terms are not to be trusted"
-            )
-        lo_q = scipy.stats.chi2.ppf(0.025, edf)
-        hi_q = scipy.stats.chi2.ppf(0.975, edf)
-        ci_dev = np.column_stack([dev * np.sqrt(edf / hi_q), dev * np.sqrt(edf / lo_q)])
-        names = TERMS if method == "gmwm" else IEEE_TERMS
-        terms = {k: f.terms.get(k) for k in TERMS}
-        est = {k: float(f.estimate[k]) for k in names}
-        ci = {k: (float(f.ci95[k][0]), float(f.ci95[k][1])) for k in names}
-        if k0:  # beside a low-pass, Q is not identified (its column is the filter's deficit)
-            terms["quantization_rad"] = None
-            est["quantization_rad"] = 0.0
-            ci["quantization_rad"] = (0.0, float("inf"))
-        return AllanResult(
-            axis=axis,
-            signal=signal,
-            model=_axis_model(axis, terms, ci, names, f.ambiguous, est),
-            taus_s=taus,
-            adev_rad_s=dev,
-            adev_ci95_rad_s=ci_dev,
-            edf=edf,
-            fit_adev_rad_s=np.sqrt(np.maximum(fit_all, 0.0)),
-            estimate=est,
-            rate_hz=rate_hz,
-            n_samples=int(omega.shape[0]),
-            method=method,
-            chi2=f.chi2,
-            dof=f.dof,
-            ambiguous=dict(f.ambiguous),
-            not_resolvable={k: dict(v) for k, v in f.not_resolvable.items()},
-            reported_adev_rad_s=np.sqrt(np.maximum(rep_all, 0.0)),
-            fit_from_tau_s=float(taus[k0]),
-            lines_hz=tuple(lines.freqs_hz),
-            lines_rms=tuple(lines.rms),
-            lines_adev_rad_s=np.sqrt(lines.avar),
-            fit_check={
-                "ok": chk.ok,
-                "p_value": chk.p_value,
-                "stat": chk.stat,
-                "dof": chk.dof,
-                "misses": chk.misses,
-                "points": int(chk.z.size),
-                "p_misses": chk.p_misses,
-                "z": [float(v) for v in chk.z],
-            },
-        )
     fit, active, upper = select_ieee952(taus, dev**2, m, n_phase)
     lo_q = scipy.stats.chi2.ppf(0.025, fit.edf)
     hi_q = scipy.stats.chi2.ppf(0.975, fit.edf)
@@ -803,7 +411,7 @@ def _axis_result(
     ci: dict[str, tuple[float, float]] = {}
     for i, name in enumerate(IEEE_TERMS):
         if name in active:
-            c, lo, hi = _term_interval(fit, i)
+            c, lo, hi = term_interval(fit, i)
             est[name] = math.sqrt(max(c, 0.0))
             ci[name] = (math.sqrt(max(lo, 0.0)), math.sqrt(max(hi, 0.0)) if math.isfinite(hi) else float("inf"))
             terms[name] = est[name] if (c > 0 and lo > 0) else None
@@ -1369,91 +977,3 @@ def _identify_arrays(
     if method != "adev_legacy":
         _warn_short(res, duration, n, rate, method)
     return AllanAnalysis(axes=res, rate_hz=rate, n_samples=n, duration_s=duration, method=method, still_fraction=still)
-
-
-# ---------------------------------------------------------------------------- datasheet units
-def to_datasheet_units(name: str, value: float | None) -> tuple[float | None, str]:
-    """Convert an IEEE 952 term from SI to the datasheet unit engineers use.
-
-    N: deg/√h (×180/π×60); B: deg/h; K: deg/h/√h (×180/π×3600×60); R: deg/h²; Q: arcsec.
-    """
-    if value is None:
-        return None, ""
-    f = {
-        "quantization_rad": (RAD2DEG * 3600.0, "arcsec"),
-        "arw_rad_per_sqrt_s": (RAD2DEG * 60.0, "deg/sqrt(h)"),
-        "bias_instability_rad_s": (RAD2DEG * 3600.0, "deg/h"),
-        "rrw_rad_per_s_sqrt_s": (RAD2DEG * 3600.0 * 60.0, "deg/h/sqrt(h)"),
-        "rate_ramp_rad_s2": (RAD2DEG * 3600.0**2, "deg/h^2"),
-        "correlated_sigma_rad_s": (RAD2DEG * 3600.0, "deg/h"),
-        "correlated_tau_c_s": (1.0, "s"),
-    }[name]
-    return value * f[0], f[1]
-
-
-# ---------------------------------------------------------------------------- Kalibr
-def _kalibr_value(r: Mapping[str, AllanResult], name: str) -> tuple[float, bool]:
-    """Largest axis value of a term (conservative scalar); (value, is_upper_bound)."""
-    vals, upper = [], False
-    for res in r.values():
-        v = res.all_terms()[name]
-        if v is None:
-            v = res.interval(name)[1]
-            upper = True
-        vals.append(v)
-    return float(max(vals)), upper
-
-
-def kalibr_imu_yaml(analysis: AllanAnalysis, *, rostopic: str = "/imu0", inflate: float = 1.0) -> str:
-    """Kalibr ``imu.yaml`` text from an Allan analysis.
-
-    Kalibr's ``gyroscope_noise_density`` is the white-noise density N (rad/s/√Hz = rad/√s),
-    the ``gyroscope_random_walk`` is the rate random walk K (rad/s²/√Hz = rad/s/√s) — NOT the
-    bias instability B (rad/s), a common confusion. Kalibr takes one scalar per sensor; we
-    write the largest axis. An unresolved K is replaced by the upper end of its 95 % interval
-    (said in a comment). Kalibr's wiki recommends inflating static Allan values for motion
-    (e.g. ×10 on the random walks); ``inflate`` multiplies every value and is recorded.
-    """
-    g = analysis.axes
-    if not g:
-        raise GyroInputError("no gyro axes in the Allan analysis")
-    nd, nd_up = _kalibr_value(g, "arw_rad_per_sqrt_s")
-    rw, rw_up = _kalibr_value(g, "rrw_rad_per_s_sqrt_s")
-    lines = [
-        "# Kalibr IMU noise model, written by gyroharness (gyrocore.noise.allan) from a static recording",
-        f"# {analysis.n_samples} samples, {analysis.duration_s:.1f} s, mean rate {analysis.rate_hz:.6g} Hz; "
-        f"values = largest axis of {','.join(g)}",
-        f"# inflation factor applied to every value below: {inflate:g} "
-        "(Kalibr recommends inflating static Allan values for dynamic use)",
-        "#",
-        "# gyroscope_noise_density = white rate noise N (Allan 1/sqrt(tau) slope at tau = 1 s)",
-        "#   units rad/s/sqrt(Hz) = rad/sqrt(s)  (angle random walk; x 180/pi x 60 -> deg/sqrt(h))",
-        "# gyroscope_random_walk  = rate random walk K (Allan +1/2 slope, read at tau = 3 s)",
-        "#   units rad/s^2/sqrt(Hz) = rad/s/sqrt(s)  -- NOT the bias instability (rad/s, the flat floor)",
-    ]
-    if rw_up:
-        lines.append("# gyroscope_random_walk: K not resolved by the data; the value is its 95 % upper bound")
-    if nd_up:
-        lines.append("# gyroscope_noise_density: N not resolved by the data; the value is its 95 % upper bound")
-    if analysis.accel:
-        and_, and_up = _kalibr_value(analysis.accel, "arw_rad_per_sqrt_s")
-        arw, arw_up = _kalibr_value(analysis.accel, "rrw_rad_per_s_sqrt_s")
-        lines += [
-            "# accelerometer_noise_density: white noise, m/s^2/sqrt(Hz); accelerometer_random_walk: m/s^3/sqrt(Hz)",
-        ]
-        if and_up or arw_up:
-            lines.append("# an accelerometer value not resolved by the data is its 95 % upper bound")
-        lines += [
-            f"accelerometer_noise_density: {and_ * inflate:.6e}",
-            f"accelerometer_random_walk: {arw * inflate:.6e}",
-        ]
-    else:
-        lines.append("# accelerometer_* not written: the recording has no accelerometer analysis (Kalibr needs them)")
-    lines += [
-        f"gyroscope_noise_density: {nd * inflate:.6e}",
-        f"gyroscope_random_walk: {rw * inflate:.6e}",
-        f"rostopic: {rostopic}",
-        f"update_rate: {analysis.rate_hz:.6g}",
-        "",
-    ]
-    return "\n".join(lines)

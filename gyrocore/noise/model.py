@@ -26,7 +26,9 @@ from gyrocore.errors import GyroInputError
 
 from .avar import LINEAR, spectrum, term_avar
 
-__all__ = ["NoiseModel", "TERMS", "IEEE_TERMS", "TERM_UNITS", "model_value"]
+__all__ = ["NoiseModel", "TERMS", "IEEE_TERMS", "TERM_UNITS", "model_value", "to_datasheet_units"]
+
+RAD2DEG = 180.0 / math.pi
 
 #: The IEEE 952 terms (DESIGN.md JSON of ``allan``), in the order of the estimators' coefficients.
 IEEE_TERMS = (
@@ -48,6 +50,25 @@ TERM_UNITS = {
     "rate_ramp_rad_s2": "rad/s^2",
 }
 _TAU = "correlated_tau_c_s"
+
+
+def to_datasheet_units(name: str, value: float | None) -> tuple[float | None, str]:
+    """Convert an IEEE 952 term from SI to the datasheet unit engineers use.
+
+    N: deg/√h (×180/π×60); B: deg/h; K: deg/h/√h (×180/π×3600×60); R: deg/h²; Q: arcsec.
+    """
+    if value is None:
+        return None, ""
+    f = {
+        "quantization_rad": (RAD2DEG * 3600.0, "arcsec"),
+        "arw_rad_per_sqrt_s": (RAD2DEG * 60.0, "deg/sqrt(h)"),
+        "bias_instability_rad_s": (RAD2DEG * 3600.0, "deg/h"),
+        "rrw_rad_per_s_sqrt_s": (RAD2DEG * 3600.0 * 60.0, "deg/h/sqrt(h)"),
+        "rate_ramp_rad_s2": (RAD2DEG * 3600.0**2, "deg/h^2"),
+        "correlated_sigma_rad_s": (RAD2DEG * 3600.0, "deg/h"),
+        "correlated_tau_c_s": (1.0, "s"),
+    }[name]
+    return value * f[0], f[1]
 
 
 def model_value(

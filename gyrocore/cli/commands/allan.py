@@ -69,7 +69,7 @@ def _dur(t_s: float) -> str:
 
 def report_text(analysis) -> str:
     """Readable table in SI and datasheet units."""
-    from gyrocore.noise.allan import to_datasheet_units
+    from gyrocore.noise.model import to_datasheet_units
     from gyrocore.noise.model import IEEE_TERMS, TERMS
 
     lines = [
@@ -143,7 +143,7 @@ _RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
 
 def _datasheet(term: str, value: float) -> tuple[float, str]:
     """The term in datasheet units for the legend ('' unit when there is none)."""
-    from gyrocore.noise.allan import to_datasheet_units
+    from gyrocore.noise.model import to_datasheet_units
 
     try:
         v, unit = to_datasheet_units(term, value)
@@ -358,7 +358,8 @@ def command(
 ):
     """Noise identification per axis of a still recording: Allan deviation and the terms Q, N, B, K, R and a
     Gauss-Markov bias (sigma, tau_c), each with its 95 % interval (null = not resolved)."""
-    from gyrocore.noise.allan import allan_analysis, kalibr_imu_yaml
+    from gyrocore.noise.allan import allan_analysis
+    from gyrocore.noise.kalibr import kalibr_imu_yaml
     from gyrocore.data.recording import atomic_write_text, read_recording
 
     if is_large(file, "allan"):

@@ -11,6 +11,10 @@ import pytest
 import scipy.stats
 
 from gyrocore.noise import allan as AL
+from gyrocore.noise import adev as ADEV
+from gyrocore.noise import ieee952 as IEEE
+from gyrocore.noise.kalibr import kalibr_imu_yaml
+from gyrocore.noise.model import to_datasheet_units
 from gyrocore.noise.model import IEEE_TERMS
 from gyrocore.cli import build_group, run_cli
 from gyrocore.errors import GyroInputError, RepairWarning
@@ -35,9 +39,9 @@ def _binom_ok(k: int, n: int, p: float, level: float = 1e-3) -> bool:
 def test_fast_kernel_matches_allantools():
     rng = np.random.default_rng(1)
     y = 0.01 * rng.standard_normal(50001) + np.cumsum(rng.standard_normal(50001)) * 1e-5
-    m = AL.octave_m(y.size)
-    t1, d1, n1 = AL.oadev(y, RATE_HZ, m, engine="allantools")
-    t2, d2, n2 = AL.oadev(y, RATE_HZ, m, engine="fast")
+    m = ADEV.octave_m(y.size)
+    t1, d1, n1 = ADEV.oadev(y, RATE_HZ, m, engine="allantools")
+    t2, d2, n2 = ADEV.oadev(y, RATE_HZ, m, engine="fast")
     np.testing.assert_array_equal(n1, n2)
     np.testing.assert_allclose(t1, t2, rtol=1e-15)
     assert np.max(np.abs(d2 / d1 - 1)) < 1e-12
@@ -149,7 +153,7 @@ def test_kalibr_yaml_names_and_units():
     rng = np.random.default_rng(8)
     N = 0.003
     a = AL.allan_analysis(_rec(_white(rng, 30000, N)))
-    text = AL.kalibr_imu_yaml(a, inflate=2.0)
+    text = kalibr_imu_yaml(a, inflate=2.0)
     kv = dict(line.split(": ", 1) for line in text.splitlines() if line and not line.startswith("#"))
     nd = max(r.all_terms()["arw_rad_per_sqrt_s"] for r in a.axes.values())
     assert float(kv["gyroscope_noise_density"]) == pytest.approx(2 * nd, rel=1e-6)
@@ -161,11 +165,11 @@ def test_kalibr_yaml_names_and_units():
 
 
 def test_datasheet_units():
-    v, u = AL.to_datasheet_units("arw_rad_per_sqrt_s", math.radians(1) / 60)  # 1 deg/√h
+    v, u = to_datasheet_units("arw_rad_per_sqrt_s", math.radians(1) / 60)  # 1 deg/√h
     assert v == pytest.approx(1.0) and u == "deg/sqrt(h)"
-    v, u = AL.to_datasheet_units("bias_instability_rad_s", math.radians(1) / 3600)
+    v, u = to_datasheet_units("bias_instability_rad_s", math.radians(1) / 3600)
     assert v == pytest.approx(1.0) and u == "deg/h"
-    assert AL.to_datasheet_units("rrw_rad_per_s_sqrt_s", None) == (None, "")
+    assert to_datasheet_units("rrw_rad_per_s_sqrt_s", None) == (None, "")
 
 
 # ---------------------------------------------------------------------------- CLI
@@ -269,10 +273,10 @@ def test_avar_correlation_model_matches_monte_carlo():
     so 4 SE = 0.1. White noise alone must reproduce avar_correlation_white (same filters).
     """
     fs, n, S = 100.0, 1024, 1500
-    m = AL.octave_m(n)
+    m = ADEV.octave_m(n)
     np.testing.assert_allclose(
-        AL.avar_correlation_model(m, n + 1, fs, np.array([0, 1e-4, 0, 0, 0])),
-        AL.avar_correlation_white(m, n + 1),
+        IEEE.avar_correlation_model(m, n + 1, fs, np.array([0, 1e-4, 0, 0, 0])),
+        IEEE.avar_correlation_white(m, n + 1),
         atol=2e-3,
     )
     N, K, Q = 0.003, 1e-2, 3e-4  # Q dominates at τ = 0.01 s, N up to ≈ 0.05 s, K beyond
@@ -282,9 +286,9 @@ def test_avar_correlation_model_matches_monte_carlo():
         + np.cumsum(rng.standard_normal((S, n)), axis=1) * K / math.sqrt(fs)
         + np.diff(Q * rng.standard_normal((S, n + 1)), axis=1) * fs
     )
-    av = np.array([AL.oadev(row, fs, m)[1] ** 2 for row in y])
+    av = np.array([ADEV.oadev(row, fs, m)[1] ** 2 for row in y])
     R_mc = np.corrcoef(av.T)
-    R = AL.avar_correlation_model(m, n + 1, fs, np.array([Q**2, N**2, 0, K**2, 0]))
+    R = IEEE.avar_correlation_model(m, n + 1, fs, np.array([Q**2, N**2, 0, K**2, 0]))
     assert np.max(np.abs(R - R_mc)) < 0.1
     # and it differs from the white-noise correlation where the random walk dominates
-    assert R[-1, -2] > AL.avar_correlation_white(m, n + 1)[-1, -2] + 0.2
+    assert R[-1, -2] > IEEE.avar_correlation_white(m, n + 1)[-1, -2] + 0.2

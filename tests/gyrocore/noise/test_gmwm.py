@@ -10,6 +10,8 @@ import pytest
 import scipy.stats
 
 from gyrocore.noise import allan as AL
+from gyrocore.noise import adev as ADEV
+from gyrocore.noise import ieee952 as IEEE
 from gyrocore.noise import avar as V
 from gyrocore.noise import gmwm as G
 from gyrocore.noise.model import TERMS
@@ -29,7 +31,7 @@ def _mean_avar(gen, n, m, reps, seed):
     for _ in range(reps):
         g = gen(rng, n)
         for ax in range(3):
-            _t, d, _n = AL.oadev(g[:, ax], RATE, m)
+            _t, d, _n = ADEV.oadev(g[:, ax], RATE, m)
             acc.append(d**2)
     acc = np.array(acc)
     return acc.mean(0), acc.std(0, ddof=1) / math.sqrt(acc.shape[0])
@@ -67,9 +69,9 @@ def test_spectral_correlation_matches_exact_white_plus_random_walk():
     one of gyrocore.noise.allan for white + random walk (checked there against Monte Carlo) to 0.05
     (the log-grid averaging of the fast sin⁴ factors is the approximation)."""
     n = 200000
-    m = AL.octave_m(n)
+    m = ADEV.octave_m(n)
     coef = np.array([0.0, 1e-8, 0.0, 4e-12, 0.0])
-    R_exact = AL.avar_correlation_model(m, n + 1, RATE, coef)
+    R_exact = IEEE.avar_correlation_model(m, n + 1, RATE, coef)
     model = V.term_avar(m, RATE) @ np.r_[coef, 0.0]
     C, _edf, _a = V.avar_covariance(m, n, RATE, np.r_[coef, 0.0], None, model)
     d = np.sqrt(np.diag(C))
@@ -323,7 +325,7 @@ def test_arw_interval_with_quantization_at_1khz_covers():
             + np.diff(rng.standard_normal((n + 1, 3)) * 2e-5, axis=0) * rate
         )
         for ax in range(3):
-            t, d, _ = AL.oadev(g[:, ax], rate, m)
+            t, d, _ = ADEV.oadev(g[:, ax], rate, m)
             f = G.fit_noise(
                 t, d**2, m, n, candidates=("quantization_rad", "arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s")
             )

@@ -21,6 +21,7 @@ import scipy.signal
 import scipy.stats
 
 from gyrocore.noise import allan as AL
+from gyrocore.noise import adev as ADEV
 from gyrocore.noise import avar as V
 from gyrocore.noise import diagnostics, gmwm
 from gyrocore.cli import build_group, run_cli
@@ -95,7 +96,7 @@ def test_white_noise_keeps_every_octave_and_has_no_line():
     g = rng.standard_normal((n, 3)) * 1e-4 * math.sqrt(rate)
     avar_m = V.scales(n)
     for a in range(3):
-        _t, dev, _n = AL.oadev(g[:, a], rate, avar_m)
+        _t, dev, _n = ADEV.oadev(g[:, a], rate, avar_m)
         assert diagnostics.bandwidth_start(dev**2, avar_m, n, rate) == 0
         assert diagnostics.line_avar(g[:, a], rate, avar_m).freqs_hz == ()
 
@@ -171,7 +172,7 @@ def test_flicker_at_the_first_octaves_is_no_low_pass():
     )
     m = V.scales(n)
     for a in range(3):
-        _t, dev, _n = AL.oadev(g[:, a], rate, m)
+        _t, dev, _n = ADEV.oadev(g[:, a], rate, m)
         assert diagnostics.bandwidth_start(dev**2, m, n, rate) == 0, a
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -254,7 +255,7 @@ def test_goodness_of_fit_is_calibrated_on_the_model():
     g = simulate(np.random.default_rng(np.random.SeedSequence([0, 5503])), MIXES["N+K"], 360000, rate)
     m = V.scales(g.shape[0])
     for a in range(3):
-        taus, dev, _n = AL.oadev(g[:, a], rate, m)
+        taus, dev, _n = ADEV.oadev(g[:, a], rate, m)
         f = gmwm.fit_noise(taus, dev**2, m, g.shape[0], candidates=("arw_rad_per_sqrt_s",))
         chk = diagnostics.goodness_of_fit(dev**2, f.fit_avar, f.cov, f.edf, 1)
         assert chk.p_value < 1e-3 and not chk.ok
