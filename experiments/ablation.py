@@ -60,6 +60,7 @@ from .calibrators import calibration_recordings, CoreCalibrator, CoreParams, str
 from .montecarlo import run_campaign, TaskResult, write_campaign
 from gyrocore.attitude import mahony, tilt_error_rad
 from gyrocore.calib.budget import ParameterGroup, predict_error
+from gyrocore.noise.model import NoiseModel
 from gyrocore.calib.params import load_params, save_params
 from gyrocore.data.recording import atomic_write_text
 from sim import scenarios as S
