@@ -2,7 +2,8 @@
 
 Every bounded-memory analysis on the calibration side (the least-squares fits of
 :mod:`gyrocore.calib.lsq`, the static-bias gate of :mod:`gyrocore.calib.bias`) reads its data
-through this small protocol instead of asking whether the recording is in memory or on disk:
+through this small protocol instead of asking whether the recording is in memory or on disk
+(and so does the one still gate of :mod:`gyrocore.data.still`):
 
 ``n``, ``t_s`` (the time column, in memory), ``meta``, ``names`` (SI column names of the file
 format: ``gyro_x_rad_s``, ``ref_x_rad_s``, ``temp_c``, …), ``rows(name, a, b)``,
@@ -12,7 +13,8 @@ memory, or a file beside the spill) and ``block_bytes`` (the size of the blocks 
 at a time: views of memory cost nothing, reads from disk are fresh arrays).
 
 :func:`columns_of` gives the source of a :class:`~gyrocore.data.recording.Recording` in memory
-(:class:`RecordingColumns`: views, no copy) or passes a
+(:class:`RecordingColumns`: views, no copy), of a bare (N, 3) gyro array (:class:`GyroColumns`,
+its columns the gyro's: views, no copy) or passes a
 :class:`~gyrocore.data.spill.ColumnSpill` (the columns of a long file on disk) through.
 """
 
@@ -23,9 +25,19 @@ from pathlib import Path
 
 import numpy as np
 
+from gyrocore.errors import GyroInputError
+
 from .recording import ACCEL_COLS, GYRO_COLS, REF_QUAT_COLS, REF_RATE_COLS, TEMP_COL, TIME_COL, Recording
 
-__all__ = ["RecordingColumns", "ScratchArray", "ScratchFiles", "columns_of", "MEMORY_BLOCK_BYTES", "DISK_BLOCK_BYTES"]
+__all__ = [
+    "GyroColumns",
+    "RecordingColumns",
+    "ScratchArray",
+    "ScratchFiles",
+    "columns_of",
+    "MEMORY_BLOCK_BYTES",
+    "DISK_BLOCK_BYTES",
+]
 
 #: Block of rows worth handling at a time in memory (views of the recording: no copy).
 MEMORY_BLOCK_BYTES = 32 * 2**20
@@ -78,31 +90,18 @@ class ScratchFiles:
             p.unlink(missing_ok=True)
 
 
-class RecordingColumns:
-    """The chunk-source protocol over a :class:`~gyrocore.data.recording.Recording` in memory
-    (rows are views of its arrays; :meth:`column` and :meth:`block` of several columns copy)."""
+class _MemoryColumns:
+    """The chunk-source protocol over arrays in memory, a group of named columns per 2-D array
+    (rows and a whole group's block are views; :meth:`column` and a mixed :meth:`block` copy)."""
 
     block_bytes = MEMORY_BLOCK_BYTES
 
-    def __init__(self, rec: Recording) -> None:
-        self.recording = rec
-        self.n = rec.n
-        self.t_s = rec.t_s
-        self.meta = rec.meta
-        cols: dict[str, np.ndarray] = {TIME_COL: rec.t_s}
-        groups = (
-            (GYRO_COLS, rec.gyro_rad_s),
-            (ACCEL_COLS, rec.accel_m_s2),
-            (REF_RATE_COLS, rec.ref_rate_rad_s),
-            (REF_QUAT_COLS, rec.ref_quat_wxyz),
-        )
-        for names, arr in groups:
-            if arr is not None:
-                cols.update({nm: arr[:, j] for j, nm in enumerate(names)})
-        if rec.temp_c is not None:
-            cols[TEMP_COL] = rec.temp_c
+    def __init__(self, n: int, t_s, meta: dict, cols: dict[str, np.ndarray], groups: dict[tuple, np.ndarray]) -> None:
+        self.n = int(n)
+        self.t_s = t_s
+        self.meta = meta
         self._cols = cols
-        self._groups = {names: arr for names, arr in groups if arr is not None}
+        self._groups = groups
         self.names = list(cols)
 
     def rows(self, name: str, a: int, b: int) -> np.ndarray:
@@ -127,7 +126,46 @@ class RecordingColumns:
         return ScratchArray(self.n, ncol)
 
 
+class RecordingColumns(_MemoryColumns):
+    """The chunk-source protocol over a :class:`~gyrocore.data.recording.Recording` in memory
+    (rows are views of its arrays; :meth:`column` and :meth:`block` of several columns copy)."""
+
+    def __init__(self, rec: Recording) -> None:
+        self.recording = rec
+        cols: dict[str, np.ndarray] = {TIME_COL: rec.t_s}
+        groups = (
+            (GYRO_COLS, rec.gyro_rad_s),
+            (ACCEL_COLS, rec.accel_m_s2),
+            (REF_RATE_COLS, rec.ref_rate_rad_s),
+            (REF_QUAT_COLS, rec.ref_quat_wxyz),
+        )
+        for names, arr in groups:
+            if arr is not None:
+                cols.update({nm: arr[:, j] for j, nm in enumerate(names)})
+        if rec.temp_c is not None:
+            cols[TEMP_COL] = rec.temp_c
+        super().__init__(rec.n, rec.t_s, rec.meta, cols, {names: arr for names, arr in groups if arr is not None})
+
+
+class GyroColumns(_MemoryColumns):
+    """The chunk-source protocol over a bare gyro array (N, 3), rad/s, sensor frame S, in memory:
+    its columns are :data:`~gyrocore.data.recording.GYRO_COLS` (views of the array, converted to
+    float64 once: no copy when it is float64 already). No time column (``t_s`` None)."""
+
+    def __init__(self, gyro_rad_s) -> None:
+        x = np.asarray(gyro_rad_s, float)
+        if x.ndim != 2 or x.shape[1] != len(GYRO_COLS):
+            raise GyroInputError(f"gyro must be (N, 3), got shape {x.shape}")
+        cols = {nm: x[:, j] for j, nm in enumerate(GYRO_COLS)}
+        super().__init__(x.shape[0], None, {}, cols, {GYRO_COLS: x})
+
+
 def columns_of(data):
-    """The chunk source of ``data``: a :class:`Recording` → :class:`RecordingColumns`; a source
-    already (a :class:`~gyrocore.data.spill.ColumnSpill`, a :class:`RecordingColumns`) → itself."""
-    return RecordingColumns(data) if isinstance(data, Recording) else data
+    """The chunk source of ``data``: a :class:`Recording` → :class:`RecordingColumns`; a bare
+    (N, 3) gyro array → :class:`GyroColumns`; a source already (a
+    :class:`~gyrocore.data.spill.ColumnSpill`, any object with ``block`` and ``column``) → itself."""
+    if isinstance(data, Recording):
+        return RecordingColumns(data)
+    if hasattr(data, "block") and hasattr(data, "column"):
+        return data
+    return GyroColumns(data)

@@ -32,10 +32,9 @@ that mean and variance. It reacts to high-frequency vibration but is ~50× less 
 motion than the variance. ``threshold`` fixes the threshold instead of deriving it (the article's
 500 raw counts).
 
-:func:`still_windows` reads the record a block of windows at a time, from an (N, 3) array or
-from a chunk source of the file's columns (``n``, ``block(names, a, b)``, ``column(name)``: a
-:class:`gyrocore.data.spill.ColumnSpill` on disk, :class:`gyrocore.data.columns.RecordingColumns`):
-the same arithmetic on the same windows, so a record on disk gets exactly the numbers of the same
+:func:`still_windows` reads the record a block of windows at a time through the one chunk source
+(:func:`gyrocore.data.columns.columns_of`: an (N, 3) array or a Recording in memory, views; a
+:class:`gyrocore.data.spill.ColumnSpill` on disk): the same arithmetic on the same windows, so a record on disk gets exactly the numbers of the same
 record in memory, with memory O(block + one column). Every caller passes its own
 :class:`StillGate`: ``calib.bias.StaticBiasCalibrator.still_gate``, ``calib.rotations.STILL_GATE``,
 ``loop.residual.STILL_GATE``, and the noise analysis's 2-s gate (``noise.allan``).
@@ -52,6 +51,7 @@ import scipy.stats
 
 from gyrocore.errors import GyroInputError, warn_repair
 
+from .columns import columns_of
 from .recording import GYRO_COLS
 
 __all__ = [
@@ -242,42 +242,6 @@ class StillWindows:
         return out
 
 
-# ---------------------------------------------------------------------------- sources
-class _ArrayGyro:
-    def __init__(self, x: np.ndarray) -> None:
-        self.x = np.asarray(x, float)
-        if self.x.ndim != 2:
-            raise GyroInputError(f"gyro must be (N, 3), got shape {self.x.shape}")
-        self.n = self.x.shape[0]
-
-    def block(self, a: int, b: int) -> np.ndarray:
-        return self.x[a:b]
-
-    def column(self, j: int) -> np.ndarray:
-        return np.array(self.x[:, j], float)
-
-
-class _ColumnsGyro:
-    """The gyro of a chunk source (a :class:`gyrocore.data.spill.ColumnSpill`, or any object with
-    ``n``, ``block(names, a, b)`` and ``column(name)`` over the file format's column names)."""
-
-    def __init__(self, cols) -> None:
-        self.cols = cols
-        self.n = int(cols.n)
-
-    def block(self, a: int, b: int) -> np.ndarray:
-        return self.cols.block(GYRO_COLS, a, b)
-
-    def column(self, j: int) -> np.ndarray:
-        return self.cols.column(GYRO_COLS[j])
-
-
-def _source(gyro):
-    if isinstance(gyro, (_ArrayGyro, _ColumnsGyro)):
-        return gyro
-    return _ColumnsGyro(gyro) if hasattr(gyro, "block") and hasattr(gyro, "column") else _ArrayGyro(gyro)
-
-
 # ---------------------------------------------------------------------------- noise
 def _rsd_consuming(v: np.ndarray) -> float:
     """Robust σ (1.4826·MAD) of a fresh 1-D array, computed in place (it is overwritten); 0 when
@@ -308,22 +272,22 @@ def robust_diff_noise(x) -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    x : ndarray, shape (N, C), or a chunk source of the gyro columns
+    x : ndarray, shape (N, 3), a Recording, or a chunk source of its columns (:func:`columns_of`)
+        Rate, rad/s, sensor frame S.
 
     Returns
     -------
-    sigma_diff : ndarray, shape (C,)
-    rho : ndarray, shape (C,), clipped to [−0.95, 0.95]
+    sigma_diff : ndarray, shape (3,)
+    rho : ndarray, shape (3,), clipped to [−0.95, 0.95]
     """
-    src = _source(x)
+    src = columns_of(x)
     if src.n < 4:
         raise GyroInputError(f"need at least 4 samples to estimate the noise, got {src.n}")
-    C = src.x.shape[1] if isinstance(src, _ArrayGyro) else 3
-    s1, s2 = np.empty(C), np.empty(C)
-    for j in range(C):
+    s1, s2 = np.empty(len(GYRO_COLS)), np.empty(len(GYRO_COLS))
+    for j, name in enumerate(GYRO_COLS):
         for lag, out in ((1, s1), (2, s2)):
-            s = _rsd_consuming(_lag_diff_in_place(src.column(j), lag))
-            out[j] = s if s > 0 else float(_lag_diff_in_place(src.column(j), lag).std())
+            s = _rsd_consuming(_lag_diff_in_place(src.column(name), lag))
+            out[j] = s if s > 0 else float(_lag_diff_in_place(src.column(name), lag).std())
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
     return s1, np.clip(rho, -0.95, 0.95)
@@ -338,7 +302,7 @@ def _refuse_constant(sigma_diff: np.ndarray, src) -> None:
     """
     flat = [i for i in range(min(3, sigma_diff.size)) if not sigma_diff[i] > 0]
     if flat:
-        first = src.block(0, 1)
+        first = src.block(GYRO_COLS, 0, 1)
         vals = " (" + ", ".join(f"{'xyz'[i]} = {float(first[0, i]):.6g} rad/s" for i in flat) + ")"
         raise GyroInputError(
             f"gyro axis {', '.join('xyz'[i] for i in flat)} never changes over the record{vals}: its output is "
@@ -450,7 +414,7 @@ def _window_pass(src, n: int, W: int, statistic: str, lag_max: int | None, block
     per = max(1, int(block_bytes) // max(1, n * 3 * 8))
     for a in range(0, W, per):
         b = min(a + per, W)
-        blk = np.asarray(src.block(a * n, b * n), float).reshape(b - a, n, 3)
+        blk = np.asarray(src.block(GYRO_COLS, a * n, b * n), float).reshape(b - a, n, 3)
         means[a:b] = blk.mean(axis=1)
         var[a:b] = blk.var(axis=1, ddof=1)
         if statistic == "abs_diff":
@@ -478,8 +442,9 @@ def still_windows(
 
     Parameters
     ----------
-    gyro : ndarray (N, 3), or a chunk source of the columns (``n``, ``block(names, a, b)``,
-        ``column(name)``: a :class:`gyrocore.data.spill.ColumnSpill` for a record on disk)
+    gyro : ndarray (N, 3), a Recording, or a chunk source of its columns
+        (:func:`gyrocore.data.columns.columns_of`; a :class:`gyrocore.data.spill.ColumnSpill`
+        for a record on disk)
         Rate, rad/s, sensor frame S, evenly spaced at ``rate_hz``; from disk the same numbers
         as in memory, read a block of windows at a time.
     rate_hz : float
@@ -501,7 +466,7 @@ def still_windows(
     """
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise GyroInputError("cannot find still parts: unknown sample rate")
-    src = _source(gyro)
+    src = columns_of(gyro)
     n = gate.samples(rate_hz)
     if n < 8:
         raise GyroInputError(f"still window of {n} samples is too short (need >= 8)")
