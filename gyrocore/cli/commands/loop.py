@@ -290,98 +290,22 @@ def command(
     """The residual loop on FILE (a data file or any real set `gyroharness convert` reads)."""
     import os
 
-    from gyrocore.readers.convert import load_with_segments
     from gyrocore.errors import GyroInputError
     from gyrocore.loop.loop import run_loop
-    from gyrocore.data.segments import read_segments
+    from gyrocore.loop.search import AttitudeLineOptions
 
     if output and os.path.exists(output) and not force:
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")
     declared = _split(effects) or []
-    if (
-        not segments
-        and not validate
-        and not validate_split
-        and reference in ("auto", "rate")
-        and is_large(path, "loop", need=("ref_rate",))
-    ):
-        # a long data file with reference rates: spilled to per-column files and looped over a
-        # window at a time (gyrocore.calib.stream.SpilledRecording); the same loop, bounded memory.
-        # What only the in-memory path does (NaN rows in the reference) falls through below.
-        import tempfile
-
-        from gyrocore.effects.registry import check_effect_names
-        from gyrocore.data.spill import spill_columns
-        from gyrocore.calib.stream import NotStreamable, SpilledRecording, bounded_heap, release_memory
-
-        check_effect_names(declared)  # a misspelt effect is one error line before a long spill
-        if candidates:
-            check_effect_names(_split(candidates))
-
-        bounded_heap()  # freed window arrays go back to the system (see there)
-        with tempfile.TemporaryDirectory(prefix="gyroharness_loop_") as tmp:
-            store = spill_columns(path, tmp, accel=True, groups=("temp", "ref_rate", "ref_quat"))
-            release_memory()
-            try:
-                result = run_loop(
-                    SpilledRecording(store),
-                    declared=declared,
-                    candidates=_split(candidates),
-                    min_rms_reduction=min_rms_reduction,
-                    min_attitude_reduction=min_attitude_reduction,
-                    open_search=open_search,
-                    seed=seed,
-                    reference=reference,
-                    window_s=window_s,
-                    alpha=alpha,
-                    thermal_order=thermal_order,
-                    angle_sigma_deg=angle_sigma_deg,
-                    axis_sigma_deg=axis_sigma_deg,
-                    angle_mode=angle_mode,
-                )
-            except NotStreamable:
-                result = None
-            if result is not None:
-                _finish(
-                    result,
-                    SpilledRecording(store),
-                    path=path,
-                    output=output,
-                    plot_dir=plot_dir,
-                    thermal_order=thermal_order,
-                    as_json=as_json,
-                )
-                return
-    conv = load_with_segments(path)
-    segs = list(conv.segments)
-    if segments:
-        segs = read_segments(segments)
-    val_conv = None
-    if validate and validate_split:
-        raise GyroInputError("give --validate OTHER or --validate-split, not both")
-    if validate_split:
-        from gyrocore.readers.common import Converted
-        from gyrocore.loop.validate import split_halves
-
-        if segs:
-            raise GyroInputError(
-                "--validate-split cuts a recording in time; known-rotation segments would be cut too "
-                "(use --validate OTHER)"
-            )
-        first, second = split_halves(conv.recording)
-        conv = Converted(recording=first, segments=())
-        val_conv = Converted(recording=second, segments=())
-        validate = f"{path} (second half, t >= {second.t_s[0]:.6g} s)"
-    elif validate:
-        from gyrocore.loop.validate import check_compatible
-
-        val_conv = load_with_segments(validate)
-        check_compatible(conv.recording, val_conv.recording, fit_name=path, val_name=validate)
-    from gyrocore.loop.search import AttitudeLineOptions
-
-    opts = dict(
-        attitude_lines=AttitudeLineOptions(segments=line_segments, statistic=line_statistic),
-        segments=segs,
+    search = dict(
+        declared=declared,
+        candidates=_split(candidates),
+        min_rms_reduction=min_rms_reduction,
+        min_attitude_reduction=min_attitude_reduction,
+        open_search=open_search,
+        seed=seed,
+    )
+    model = dict(
         reference=reference,
         window_s=window_s,
         alpha=alpha,
@@ -390,16 +314,23 @@ def command(
         axis_sigma_deg=axis_sigma_deg,
         angle_mode=angle_mode,
     )
-    result = run_loop(
-        conv.recording,
-        declared=declared,
-        candidates=_split(candidates),
-        min_rms_reduction=min_rms_reduction,
-        min_attitude_reduction=min_attitude_reduction,
-        open_search=open_search,
-        seed=seed,
-        **opts,
+    finish = dict(path=path, output=output, plot_dir=plot_dir, thermal_order=thermal_order, as_json=as_json)
+    if (
+        not segments
+        and not validate
+        and not validate_split
+        and reference in ("auto", "rate")
+        and is_large(path, "loop", need=("ref_rate",))
+        and _run_spilled(path, search, model, finish)
+    ):
+        return
+    conv, segs, val_conv, validate = _fit_and_validation(path, segments, validate, validate_split)
+    opts = dict(
+        attitude_lines=AttitudeLineOptions(segments=line_segments, statistic=line_statistic),
+        segments=segs,
+        **model,
     )
+    result = run_loop(conv.recording, **search, **opts)
     extra: dict = {}
     if validate_split:
         extra["fitted_on"] = f"{path} (first half, t < {conv.recording.t_s[-1]:.6g} s)"
@@ -416,14 +347,76 @@ def command(
     _finish(
         result,
         conv.recording,
-        path=path,
-        output=output,
-        plot_dir=plot_dir,
-        thermal_order=thermal_order,
-        as_json=as_json,
+        **finish,
         extra=extra,
         extra_text=validation_text(extra["validation"]) if validate else None,
     )
+
+
+def _run_spilled(path, search: dict, model: dict, finish: dict) -> bool:
+    """Loop a long data file with reference rates a window at a time: spilled to per-column
+    files (gyrocore.calib.stream.SpilledRecording); the same loop, bounded memory. False when
+    the recording needs what only the in-memory path does (NaN rows in the reference)."""
+    import tempfile
+
+    from gyrocore.calib.stream import NotStreamable, SpilledRecording, bounded_heap, release_memory
+    from gyrocore.data.spill import spill_columns
+    from gyrocore.effects.registry import check_effect_names
+    from gyrocore.loop.loop import run_loop
+
+    check_effect_names(search["declared"])  # a misspelt effect is one error line before a long spill
+    if search["candidates"]:
+        check_effect_names(search["candidates"])
+
+    bounded_heap()  # freed window arrays go back to the system (see there)
+    with tempfile.TemporaryDirectory(prefix="gyroharness_loop_") as tmp:
+        store = spill_columns(path, tmp, accel=True, groups=("temp", "ref_rate", "ref_quat"))
+        release_memory()
+        try:
+            result = run_loop(SpilledRecording(store), **search, **model)
+        except NotStreamable:
+            return False
+        _finish(result, SpilledRecording(store), **finish)
+        return True
+
+
+def _fit_and_validation(path, segments, validate, validate_split):
+    """The recording to fit (with its segments) and the one to validate on.
+
+    Returns ``(conv, segs, val_conv, validate)``: ``val_conv`` is None without validation;
+    with ``--validate-split`` the fit is FILE's first half, the validation its second, and
+    ``validate`` becomes the label of that half.
+    """
+    from gyrocore.data.segments import read_segments
+    from gyrocore.errors import GyroInputError
+    from gyrocore.readers.convert import load_with_segments
+
+    conv = load_with_segments(path)
+    segs = list(conv.segments)
+    if segments:
+        segs = read_segments(segments)
+    val_conv = None
+    if validate and validate_split:
+        raise GyroInputError("give --validate OTHER or --validate-split, not both")
+    if validate_split:
+        from gyrocore.loop.validate import split_halves
+        from gyrocore.readers.common import Converted
+
+        if segs:
+            raise GyroInputError(
+                "--validate-split cuts a recording in time; known-rotation segments would be cut too "
+                "(use --validate OTHER)"
+            )
+        first, second = split_halves(conv.recording)
+        conv = Converted(recording=first, segments=())
+        val_conv = Converted(recording=second, segments=())
+        validate = f"{path} (second half, t >= {second.t_s[0]:.6g} s)"
+    elif validate:
+        from gyrocore.loop.validate import check_compatible
+
+        val_conv = load_with_segments(validate)
+        check_compatible(conv.recording, val_conv.recording, fit_name=path, val_name=validate)
+    return conv, segs, val_conv, validate
 
 
 def _finish(result, rec, *, path, output, plot_dir, thermal_order, as_json, extra=None, extra_text=None) -> None:
