@@ -178,144 +178,168 @@ def adev_figure(analysis):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gyrocore.noise.model import TERMS
-
     axes = list(analysis.axes.items())
     fig, ax_list = plt.subplots(1, len(axes), figsize=(5.2 * len(axes), 4.4), squeeze=False)
     for plot_ax, (name, r) in zip(ax_list[0], axes):
-        shaded = []
-        terms = r.all_terms()
-        t = r.taus_s
-        err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
-        plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
-        tt = np.geomspace(t[0], t[-1], 200)
-        # the solid line is the sum of the REPORTED terms, over the fitted τ range; a
-        # stand-in that was fitted but is not reported (ambiguous) shows as the thin grey fit;
-        # unresolved terms appear only as their 95 % upper bounds (dotted)
-        t0 = r.fit_from_tau_s if np.isfinite(r.fit_from_tau_s) else t[0]
-        fitted = t >= t0 * (1 - 1e-9)
-        rep = r.reported_adev_rad_s if r.reported_adev_rad_s is not None else r.fit_adev_rad_s
-        chk = r.fit_check or {}
-        fit_note = (
-            ""
-            if not chk
-            else (
-                f"; fit p = {chk['p_value']:.2g}" if chk["ok"] else f"; MODEL DOES NOT FIT (p = {chk['p_value']:.1g})"
-            )
-        )
-        plot_ax.loglog(t[fitted], rep[fitted], "r-", lw=1.8, label=f"sum of reported terms ({r.method}{fit_note})")
-        for k, v in (getattr(r, "ambiguous", None) or {}).items():
-            # fitted, needed by the data, but not told from a stand-in: in the sum, named as open
-            val = r.estimate.get(k, float("nan"))
-            if k in _ASYMPTOTE and np.isfinite(val) and val > 0:
-                plot_ax.loglog(
-                    tt,
-                    _term_adev(r, k, val, tt),
-                    "-.",
-                    lw=1,
-                    color=_COLORS.get(k, "0.4"),
-                    label=f"{_label(k)} = {val:.2g} or {_label(v)} (fitted, not told apart: unresolved)",
-                )
-        if getattr(r, "lines_hz", ()) and r.lines_adev_rad_s is not None:
-            plot_ax.loglog(
-                t,
-                np.sqrt(rep**2 + r.lines_adev_rad_s**2),
-                "--",
-                color="tab:red",
-                lw=0.9,
-                alpha=0.7,
-                label="with narrowband line(s) at "
-                + ", ".join(f"{fq:.3g}" for fq in r.lines_hz)
-                + " Hz (not noise, removed before the fit)",
-            )
-        if np.any(~fitted):
-            plot_ax.axvspan(t[0] / 1.2, t0 / np.sqrt(2), color="0.6", alpha=0.15, lw=0)
-            plot_ax.loglog(
-                t[~fitted],
-                rep[~fitted],
-                ":",
-                color="r",
-                lw=1,
-                label=f"below tau = {t0:.2g} s: sensor low-pass, not fitted (grey)",
-            )
+        tt = np.geomspace(r.taus_s[0], r.taus_s[-1], 200)
+        _plot_measured_and_fit(plot_ax, r, tt)
         lo_y = float(np.min(r.adev_ci95_rad_s[:, 0])) / 3
         hi_y = float(np.max(r.adev_ci95_rad_s[:, 1])) * 3
-        for term in ("quantization_rad", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2"):
-            if terms[term] is not None or term not in r.model.ci95:
-                continue
-            ub = r.interval(term)[1]
-            if not (np.isfinite(ub) and ub > 0):
-                continue
-            yb = _term_adev(r, term, ub, tt)
-            keep = (yb >= lo_y) & (yb <= hi_y)
-            if np.any(keep):
-                plot_ax.loglog(
-                    tt[keep],
-                    yb[keep],
-                    ":",
-                    lw=0.9,
-                    color=_COLORS[term],
-                    alpha=0.8,
-                    label=f"{_ASYMPTOTE[term][0]} < {ub:.2g} (95 % bound, unresolved)",
-                )
-        for term in TERMS:
-            if term == "correlated_tau_c_s":
-                continue
-            v = terms[term]
-            if v is None:
-                continue
-            label = {"correlated_sigma_rad_s": "GM"}.get(term) or _ASYMPTOTE[term][0]
-            c = _COLORS[term]
-            y = _term_adev(r, term, v, tt)
-            lo_v, hi_v = r.interval(term)
-            plot_ax.fill_between(
-                tt, _term_adev(r, term, lo_v, tt), _term_adev(r, term, hi_v, tt), color=c, alpha=0.15, lw=0
-            )
-            extra = f", tc = {terms['correlated_tau_c_s']:.3g} s" if term == "correlated_sigma_rad_s" else ""
-            ds, ds_unit = _datasheet(term, v)
-            unit = {
-                "quantization_rad": "rad",
-                "arw_rad_per_sqrt_s": "rad/√s",
-                "bias_instability_rad_s": "rad/s",
-                "rrw_rad_per_s_sqrt_s": "rad/s/√s",
-                "rate_ramp_rad_s2": "rad/s²",
-                "correlated_sigma_rad_s": "rad/s",
-            }[term]
-            plot_ax.loglog(
-                tt,
-                y,
-                "--",
-                lw=1,
-                color=c,
-                label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}] {unit}{extra}"
-                + (f" = {ds:.3g} {ds_unit}" if ds_unit else ""),
-            )
-            # resolvable region: where this term is the largest of the fitted terms
-            others = np.zeros_like(tt)
-            for o in TERMS:
-                if o in (term, "correlated_tau_c_s") or terms[o] is None:
-                    continue
-                others = np.maximum(others, _term_adev(r, o, terms[o], tt))
-            dom = y > others
-            if np.any(dom) and term in _LONG_TAU:
-                plot_ax.axvspan(tt[dom][0], tt[dom][-1], color=c, alpha=0.07, lw=0)
-                shaded.append(label)
-        plot_ax.set_ylim(lo_y, hi_y)
-        plot_ax.set_xscale("log")
-        plot_ax.set_yscale("log")
-        plot_ax.set_xlabel(
-            "averaging time tau [s]"
-            + (f"; shaded: where {', '.join(shaded)} dominates" if shaded else "; no long-tau term resolved")
-        )
-        plot_ax.set_ylabel("Allan deviation [rad/s]")
-        # the datasheet unit beside the SI one (flight-controller and navigation users read deg/h)
-        sec = plot_ax.secondary_yaxis("right", functions=(lambda y: y * _RAD_S_TO_DEG_H, lambda y: y / _RAD_S_TO_DEG_H))
-        sec.set_ylabel("[deg/h]")
-        plot_ax.set_title(f"gyro {name}")
-        plot_ax.grid(True, which="both", alpha=0.3)
-        plot_ax.legend(fontsize=6)
+        terms = r.all_terms()
+        _plot_unresolved_bounds(plot_ax, r, terms, tt, lo_y, hi_y)
+        shaded = _plot_resolved_terms(plot_ax, r, terms, tt)
+        _label_panel(plot_ax, name, shaded, lo_y, hi_y)
     fig.tight_layout()
     return fig
+
+
+def _plot_measured_and_fit(plot_ax, r, tt) -> None:
+    """The measured ADEV with its 95 % bars, the sum of the reported terms over the fitted τ
+    range, ambiguous stand-ins, narrowband lines and the unfitted short-τ range."""
+    t = r.taus_s
+    err = np.abs(r.adev_ci95_rad_s.T - r.adev_rad_s[None, :])
+    plot_ax.errorbar(t, r.adev_rad_s, yerr=err, fmt="o", ms=3, color="k", capsize=2, label="OADEV, 95 % CI")
+    # the solid line is the sum of the REPORTED terms, over the fitted τ range; a
+    # stand-in that was fitted but is not reported (ambiguous) shows as the thin grey fit;
+    # unresolved terms appear only as their 95 % upper bounds (dotted)
+    t0 = r.fit_from_tau_s if np.isfinite(r.fit_from_tau_s) else t[0]
+    fitted = t >= t0 * (1 - 1e-9)
+    rep = r.reported_adev_rad_s if r.reported_adev_rad_s is not None else r.fit_adev_rad_s
+    chk = r.fit_check or {}
+    fit_note = (
+        ""
+        if not chk
+        else (f"; fit p = {chk['p_value']:.2g}" if chk["ok"] else f"; MODEL DOES NOT FIT (p = {chk['p_value']:.1g})")
+    )
+    plot_ax.loglog(t[fitted], rep[fitted], "r-", lw=1.8, label=f"sum of reported terms ({r.method}{fit_note})")
+    for k, v in (getattr(r, "ambiguous", None) or {}).items():
+        # fitted, needed by the data, but not told from a stand-in: in the sum, named as open
+        val = r.estimate.get(k, float("nan"))
+        if k in _ASYMPTOTE and np.isfinite(val) and val > 0:
+            plot_ax.loglog(
+                tt,
+                _term_adev(r, k, val, tt),
+                "-.",
+                lw=1,
+                color=_COLORS.get(k, "0.4"),
+                label=f"{_label(k)} = {val:.2g} or {_label(v)} (fitted, not told apart: unresolved)",
+            )
+    if getattr(r, "lines_hz", ()) and r.lines_adev_rad_s is not None:
+        plot_ax.loglog(
+            t,
+            np.sqrt(rep**2 + r.lines_adev_rad_s**2),
+            "--",
+            color="tab:red",
+            lw=0.9,
+            alpha=0.7,
+            label="with narrowband line(s) at "
+            + ", ".join(f"{fq:.3g}" for fq in r.lines_hz)
+            + " Hz (not noise, removed before the fit)",
+        )
+    if np.any(~fitted):
+        plot_ax.axvspan(t[0] / 1.2, t0 / np.sqrt(2), color="0.6", alpha=0.15, lw=0)
+        plot_ax.loglog(
+            t[~fitted],
+            rep[~fitted],
+            ":",
+            color="r",
+            lw=1,
+            label=f"below tau = {t0:.2g} s: sensor low-pass, not fitted (grey)",
+        )
+
+
+def _plot_unresolved_bounds(plot_ax, r, terms: dict, tt, lo_y: float, hi_y: float) -> None:
+    """Each unresolved term's 95 % upper bound (dotted), where it falls inside the panel."""
+    for term in ("quantization_rad", "bias_instability_rad_s", "rrw_rad_per_s_sqrt_s", "rate_ramp_rad_s2"):
+        if terms[term] is not None or term not in r.model.ci95:
+            continue
+        ub = r.interval(term)[1]
+        if not (np.isfinite(ub) and ub > 0):
+            continue
+        yb = _term_adev(r, term, ub, tt)
+        keep = (yb >= lo_y) & (yb <= hi_y)
+        if np.any(keep):
+            plot_ax.loglog(
+                tt[keep],
+                yb[keep],
+                ":",
+                lw=0.9,
+                color=_COLORS[term],
+                alpha=0.8,
+                label=f"{_ASYMPTOTE[term][0]} < {ub:.2g} (95 % bound, unresolved)",
+            )
+
+
+#: SI unit of each reported term in the legend
+_TERM_UNIT = {
+    "quantization_rad": "rad",
+    "arw_rad_per_sqrt_s": "rad/√s",
+    "bias_instability_rad_s": "rad/s",
+    "rrw_rad_per_s_sqrt_s": "rad/s/√s",
+    "rate_ramp_rad_s2": "rad/s²",
+    "correlated_sigma_rad_s": "rad/s",
+}
+
+
+def _plot_resolved_terms(plot_ax, r, terms: dict, tt) -> list[str]:
+    """Each resolved term's line and 95 % band, and the τ range where a long-τ term dominates
+    shaded; returns the labels of the shaded terms."""
+    from gyrocore.noise.model import TERMS
+
+    shaded = []
+    for term in TERMS:
+        if term == "correlated_tau_c_s":
+            continue
+        v = terms[term]
+        if v is None:
+            continue
+        label = {"correlated_sigma_rad_s": "GM"}.get(term) or _ASYMPTOTE[term][0]
+        c = _COLORS[term]
+        y = _term_adev(r, term, v, tt)
+        lo_v, hi_v = r.interval(term)
+        plot_ax.fill_between(
+            tt, _term_adev(r, term, lo_v, tt), _term_adev(r, term, hi_v, tt), color=c, alpha=0.15, lw=0
+        )
+        extra = f", tc = {terms['correlated_tau_c_s']:.3g} s" if term == "correlated_sigma_rad_s" else ""
+        ds, ds_unit = _datasheet(term, v)
+        plot_ax.loglog(
+            tt,
+            y,
+            "--",
+            lw=1,
+            color=c,
+            label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}] {_TERM_UNIT[term]}{extra}"
+            + (f" = {ds:.3g} {ds_unit}" if ds_unit else ""),
+        )
+        # resolvable region: where this term is the largest of the fitted terms
+        others = np.zeros_like(tt)
+        for o in TERMS:
+            if o in (term, "correlated_tau_c_s") or terms[o] is None:
+                continue
+            others = np.maximum(others, _term_adev(r, o, terms[o], tt))
+        dom = y > others
+        if np.any(dom) and term in _LONG_TAU:
+            plot_ax.axvspan(tt[dom][0], tt[dom][-1], color=c, alpha=0.07, lw=0)
+            shaded.append(label)
+    return shaded
+
+
+def _label_panel(plot_ax, name: str, shaded: list[str], lo_y: float, hi_y: float) -> None:
+    """Limits, log axes, labels (deg/h beside rad/s), title, grid and legend of one panel."""
+    plot_ax.set_ylim(lo_y, hi_y)
+    plot_ax.set_xscale("log")
+    plot_ax.set_yscale("log")
+    plot_ax.set_xlabel(
+        "averaging time tau [s]"
+        + (f"; shaded: where {', '.join(shaded)} dominates" if shaded else "; no long-tau term resolved")
+    )
+    plot_ax.set_ylabel("Allan deviation [rad/s]")
+    # the datasheet unit beside the SI one (flight-controller and navigation users read deg/h)
+    sec = plot_ax.secondary_yaxis("right", functions=(lambda y: y * _RAD_S_TO_DEG_H, lambda y: y / _RAD_S_TO_DEG_H))
+    sec.set_ylabel("[deg/h]")
+    plot_ax.set_title(f"gyro {name}")
+    plot_ax.grid(True, which="both", alpha=0.3)
+    plot_ax.legend(fontsize=6)
 
 
 #: Files whose t + gyro columns would exceed this are analysed one axis at a time
