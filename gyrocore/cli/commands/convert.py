@@ -138,13 +138,7 @@ def command(
     """Convert INPUT (Betaflight/INAV/Cleanflight blackbox .BBL/.BFL/.TXT, ArduPilot DataFlash .bin, PX4 .ulg, sunsided folder, tomisuarez2/imucal/x-io CSV, BROAD .hdf5,
     IMU-TK .mat, gnss-ins-sim folder, or a data file, CSV or Parquet) to the DESIGN.md data file
     (CSV, or Parquet with --to parquet or an output named .parquet)."""
-    outs = [output] + ([segments_out] if segments_out else [])
-    for o in outs:
-        if not force and os.path.exists(o):
-            raise GyroInputError(f"{o} exists; pass --force to overwrite it")
-    for i in (input_path, *append):
-        if os.path.abspath(output) == os.path.abspath(i):
-            raise GyroInputError(f"{output}: output would overwrite the input")
+    _check_outputs(output, segments_out, (input_path, *append), force=force)
     out_parquet = to == "parquet" or (to == "auto" and output.lower().endswith(PARQUET_SUFFIXES))
     out_fmt = "auto" if to == "auto" else to
     opts = dict(
@@ -166,59 +160,20 @@ def command(
 
         actual = detect_format(input_path) if fmt == "auto" else fmt
         if actual in ("csv", "parquet") and is_large(input_path, "convert") and not retime and not append:
-            unsupported = [k for k, v in opts.items() if v is not None and k != "retime"]
-            if unsupported:
-                raise GyroInputError(f"option --{unsupported[0].replace('_', '-')} does not apply to format {actual}")
-            n = (
-                write_chunks(iter_chunks(input_path, rows=chunk_rows), output, overwrite=True)
-                if out_fmt == "auto"
-                else (_write_chunks_as(out_fmt, iter_chunks(input_path, rows=chunk_rows), output))
-            )
-            summary = {
-                "input": input_path,
-                "format": actual,
-                "output": output,
-                "n_samples": n,
-                "streamed": True,
-                "chunk_rows": chunk_rows,
-                "segments": 0,
-            }
-            rec = None
+            summary = _convert_streamed(input_path, output, actual, out_fmt, opts, chunk_rows)
             segs = ()
         else:
-            conv = load_with_segments(input_path, format=actual, **opts)
-            if append:
-                conv = concat_converted(
-                    [conv]
-                    + [
-                        load_with_segments(a, format=fmt if fmt != "auto" else detect_format(a), **opts) for a in append
-                    ],
-                    gap_s=gap_s,
-                )
-            rec, segs = conv.recording, conv.segments
-            if segments_out and not segs:
-                raise GyroInputError(
-                    f"{input_path}: this recording has no known rotations; --segments-out needs a rotation session"
-                )
-            (write_parquet if out_parquet else write_csv)(rec, output, overwrite=True)
-            summary = {
-                "input": input_path,
-                "format": conv.format,
-                "output": output,
-                "n_samples": rec.n,
-                "duration_s": rec.duration_s,
-                "rate_hz": rec.rate_hz,
-                "streamed": False,
-                "columns": {
-                    "accel": rec.accel_m_s2 is not None,
-                    "temp": rec.temp_c is not None,
-                    "ref_rate": rec.ref_rate_rad_s is not None,
-                    "ref_quat": rec.ref_quat_wxyz is not None,
-                    "extra": sorted(rec.extra),
-                },
-                "meta": dict(rec.meta),
-                "segments": len(segs),
-            }
+            summary, segs = _convert_in_memory(
+                input_path,
+                output,
+                actual,
+                fmt,
+                opts,
+                append=append,
+                gap_s=gap_s,
+                out_parquet=out_parquet,
+                segments_out=segments_out,
+            )
     for w in caught:
         if issubclass(w.category, RepairWarning):
             repairs.append(str(w.message))
@@ -238,6 +193,76 @@ def command(
         n = summary["n_samples"]
         extra = f", {len(segs)} segments -> {segments_out}" if segments_out else ""
         click.echo(f"{input_path} ({summary['format']}) -> {output}: {n} samples{extra}")
+
+
+def _check_outputs(output: str, segments_out: str | None, inputs, *, force: bool) -> None:
+    """One error line for an output that exists (without --force) or would overwrite an input."""
+    outs = [output] + ([segments_out] if segments_out else [])
+    for o in outs:
+        if not force and os.path.exists(o):
+            raise GyroInputError(f"{o} exists; pass --force to overwrite it")
+    for i in inputs:
+        if os.path.abspath(output) == os.path.abspath(i):
+            raise GyroInputError(f"{output}: output would overwrite the input")
+
+
+def _convert_streamed(input_path: str, output: str, actual: str, out_fmt: str, opts: dict, chunk_rows: int) -> dict:
+    """A large data file copied chunk by chunk (bounded memory); its JSON summary."""
+    unsupported = [k for k, v in opts.items() if v is not None and k != "retime"]
+    if unsupported:
+        raise GyroInputError(f"option --{unsupported[0].replace('_', '-')} does not apply to format {actual}")
+    n = (
+        write_chunks(iter_chunks(input_path, rows=chunk_rows), output, overwrite=True)
+        if out_fmt == "auto"
+        else (_write_chunks_as(out_fmt, iter_chunks(input_path, rows=chunk_rows), output))
+    )
+    return {
+        "input": input_path,
+        "format": actual,
+        "output": output,
+        "n_samples": n,
+        "streamed": True,
+        "chunk_rows": chunk_rows,
+        "segments": 0,
+    }
+
+
+def _convert_in_memory(input_path, output, actual, fmt, opts, *, append, gap_s, out_parquet, segments_out):
+    """Read INPUT (and any --append recordings, joined) and write the data file; returns its
+    JSON summary and the known-rotation segments."""
+    from gyrocore.readers.convert import detect_format
+
+    conv = load_with_segments(input_path, format=actual, **opts)
+    if append:
+        conv = concat_converted(
+            [conv] + [load_with_segments(a, format=fmt if fmt != "auto" else detect_format(a), **opts) for a in append],
+            gap_s=gap_s,
+        )
+    rec, segs = conv.recording, conv.segments
+    if segments_out and not segs:
+        raise GyroInputError(
+            f"{input_path}: this recording has no known rotations; --segments-out needs a rotation session"
+        )
+    (write_parquet if out_parquet else write_csv)(rec, output, overwrite=True)
+    summary = {
+        "input": input_path,
+        "format": conv.format,
+        "output": output,
+        "n_samples": rec.n,
+        "duration_s": rec.duration_s,
+        "rate_hz": rec.rate_hz,
+        "streamed": False,
+        "columns": {
+            "accel": rec.accel_m_s2 is not None,
+            "temp": rec.temp_c is not None,
+            "ref_rate": rec.ref_rate_rad_s is not None,
+            "ref_quat": rec.ref_quat_wxyz is not None,
+            "extra": sorted(rec.extra),
+        },
+        "meta": dict(rec.meta),
+        "segments": len(segs),
+    }
+    return summary, segs
 
 
 def _write_chunks_as(fmt: str, chunks, output: str) -> int:
