@@ -264,19 +264,7 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
     """Decoded messages → :class:`~gyrocore.data.recording.Recording` (see :func:`read_dataflash`)."""
     from gyrocore.data.recording import Recording
 
-    if not imu:
-        raise GyroInputError(f"{p}: no IMU messages of instance {imu_instance}")
-    if rest > 0:
-        warn_repair(
-            f"{p.name}: the log ends with {rest} bytes that do not form a complete message (truncated): "
-            f"the complete messages are kept"
-        )
-    if not imu_units:
-        raise GyroInputError(f"{p}: the log has no FMTU units for IMU: gyro/accel units cannot be checked")
-    bad = {k: imu_units.get(k) for k in ("GyrX", "GyrY", "GyrZ") if imu_units.get(k) != "rad/s"}
-    bad.update({k: imu_units.get(k) for k in ("AccX", "AccY", "AccZ") if imu_units.get(k) != "m/s/s"})
-    if bad:
-        raise GyroInputError(f"{p}: IMU units {bad} are not rad/s and m/s/s: not read")
+    _check_imu(p, imu, imu_units, rest, imu_instance)
     a = np.asarray(imu, dtype=float)
     keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
     n_back = int((~keep).sum())
@@ -296,44 +284,8 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
     )
     extra = _motor_extras(t_us, rcou, ctun, params, lacks, notes)
     ghz = float(np.nanmedian(a[:, 7])) if np.isfinite(a[:, 7]).any() else float("nan")
-    chain = []
-    f_lpf = params.get("INS_GYRO_FILTER", 0.0)
-    if f_lpf > 0 and math.isfinite(ghz):
-        chain.append(
-            {
-                "kind": "butter2",
-                "cutoff_hz": f_lpf,
-                "rate_hz": ghz,
-                "dynamic": False,
-                "header": "INS_GYRO_FILTER (LowPassFilter2p: 2nd-order Butterworth at the gyro rate IMU.GHz)",
-            }
-        )
-    for pre in ("INS_HNTCH", "INS_HNTC2"):
-        if params.get(f"{pre}_ENABLE", 0) >= 1:
-            chain.append(
-                {
-                    "kind": "dyn_notch",
-                    "cutoff_hz": params.get(f"{pre}_FREQ", 0.0),
-                    "rate_hz": ghz if math.isfinite(ghz) else log_hz,
-                    "dynamic": True,
-                    "max_hz": None,
-                    "header": f"{pre}_* (harmonic notch, mode {params.get(f'{pre}_MODE', float('nan')):g}, "
-                    f"{params.get(f'{pre}_HMNCS', float('nan')):g} harmonics bitmask, BW {params.get(f'{pre}_BW', float('nan')):g} Hz)",
-                }
-            )
-    lacks.append(
-        f"gyro logged at {log_hz:.0f} Hz (IMU messages): Nyquist {log_hz / 2:.1f} Hz, far below the motor lines "
-        f"(gyro sampled at {ghz:.0f} Hz)"
-    )
-    lacks.append(
-        "no unfiltered gyro stream: IMU holds the gyro after INS_GYRO_FILTER and the notches"
-        + (
-            f"; the batch sampler's {isb} ISBH windows are in the log: convert --stream batch"
-            if isb
-            else " (INS_LOG_BAT_* batch sampler not logged)"
-        )
-    )
-    lacks.append("no per-motor RPM converted (ESC telemetry not read)")
+    chain = _filter_chain(params, ghz, log_hz)
+    lacks.extend(_imu_lacks(log_hz, ghz, isb))
     if n_back:
         warn_repair(f"{p.name}: {n_back} IMU samples whose time did not move forward dropped")
     hdr = {
@@ -377,6 +329,70 @@ def _to_recording(p, log, imu, rcou, ctun, params, msgs, isb, imu_units, rest, i
     return Recording(t_s=t_s, gyro_rad_s=a[:, 1:4].copy(), accel_m_s2=a[:, 4:7].copy(), meta=meta, extra=extra)
 
 
+def _check_imu(p, imu, imu_units, rest, imu_instance) -> None:
+    """One error line for a log without IMU messages or without SI units for them; a repair
+    warning for a truncated last message."""
+    if not imu:
+        raise GyroInputError(f"{p}: no IMU messages of instance {imu_instance}")
+    if rest > 0:
+        warn_repair(
+            f"{p.name}: the log ends with {rest} bytes that do not form a complete message (truncated): "
+            f"the complete messages are kept"
+        )
+    if not imu_units:
+        raise GyroInputError(f"{p}: the log has no FMTU units for IMU: gyro/accel units cannot be checked")
+    bad = {k: imu_units.get(k) for k in ("GyrX", "GyrY", "GyrZ") if imu_units.get(k) != "rad/s"}
+    bad.update({k: imu_units.get(k) for k in ("AccX", "AccY", "AccZ") if imu_units.get(k) != "m/s/s"})
+    if bad:
+        raise GyroInputError(f"{p}: IMU units {bad} are not rad/s and m/s/s: not read")
+
+
+def _filter_chain(params: dict, ghz: float, log_hz: float) -> list[dict]:
+    """The gyro filter chain the parameters declare (INS_GYRO_FILTER, harmonic notches), in
+    the ``gyro_filters`` metadata form; ``ghz`` is the gyro sample rate (IMU.GHz), Hz."""
+    chain = []
+    f_lpf = params.get("INS_GYRO_FILTER", 0.0)
+    if f_lpf > 0 and math.isfinite(ghz):
+        chain.append(
+            {
+                "kind": "butter2",
+                "cutoff_hz": f_lpf,
+                "rate_hz": ghz,
+                "dynamic": False,
+                "header": "INS_GYRO_FILTER (LowPassFilter2p: 2nd-order Butterworth at the gyro rate IMU.GHz)",
+            }
+        )
+    for pre in ("INS_HNTCH", "INS_HNTC2"):
+        if params.get(f"{pre}_ENABLE", 0) >= 1:
+            chain.append(
+                {
+                    "kind": "dyn_notch",
+                    "cutoff_hz": params.get(f"{pre}_FREQ", 0.0),
+                    "rate_hz": ghz if math.isfinite(ghz) else log_hz,
+                    "dynamic": True,
+                    "max_hz": None,
+                    "header": f"{pre}_* (harmonic notch, mode {params.get(f'{pre}_MODE', float('nan')):g}, "
+                    f"{params.get(f'{pre}_HMNCS', float('nan')):g} harmonics bitmask, BW {params.get(f'{pre}_BW', float('nan')):g} Hz)",
+                }
+            )
+    return chain
+
+
+def _imu_lacks(log_hz: float, ghz: float, isb: int) -> list[str]:
+    """What the IMU messages lack for vibration work (the ``lacks`` metadata lines)."""
+    return [
+        f"gyro logged at {log_hz:.0f} Hz (IMU messages): Nyquist {log_hz / 2:.1f} Hz, far below the motor lines "
+        f"(gyro sampled at {ghz:.0f} Hz)",
+        "no unfiltered gyro stream: IMU holds the gyro after INS_GYRO_FILTER and the notches"
+        + (
+            f"; the batch sampler's {isb} ISBH windows are in the log: convert --stream batch"
+            if isb
+            else " (INS_LOG_BAT_* batch sampler not logged)"
+        ),
+        "no per-motor RPM converted (ESC telemetry not read)",
+    ]
+
+
 #: INS_LOG_BAT_OPT bits (AP_InertialSensor BatchSampler ``batch_opt_t``): sensor-rate logging,
 #: post-filter sampling, pre- and post-filter sampling.
 BATCH_OPT_SENSOR_RATE, BATCH_OPT_POST_FILTER, BATCH_OPT_PRE_POST_FILTER = 1, 2, 4
@@ -407,50 +423,11 @@ def _batch_recording(p, imu_rec, isb, rcou, ctun, params, imu_instance):
     """
     from gyrocore.data.recording import Recording
 
-    hdr, data = isb["hdr"], isb["data"]
     opt = int(params.get("INS_LOG_BAT_OPT", 0) or 0)
-    by_inst: dict[int, list] = {}
-    dropped = 0
-    for n, (typ, inst, mul, cnt, t0_us, rate) in sorted(hdr.items()):
-        if typ != 1:
-            continue
-        seg = sorted(data.get(n, []), key=lambda r: r[0])
-        if not seg or [r[0] for r in seg] != list(range(len(seg))) or sum(r[1].size for r in seg) != cnt or mul <= 0:
-            dropped += inst == imu_instance
-            continue
-        g = np.column_stack([np.concatenate([r[k] for r in seg]) for k in (1, 2, 3)]) / mul
-        by_inst.setdefault(inst, []).append((t0_us, rate, g))
-    if not by_inst:
-        raise GyroInputError(
-            f"{p}: no complete gyro batch (ISBH/ISBD) in the log: the batch sampler was off "
-            f"(INS_LOG_BAT_MASK) or its batches are incomplete"
-        )
-    f_lpf = float(params.get("INS_GYRO_FILTER", 0.0) or 0.0)
+    by_inst, dropped = _gyro_batches(p, isb, imu_instance)
     post = bool(opt & BATCH_OPT_POST_FILTER) and not opt & BATCH_OPT_PRE_POST_FILTER
-    check = ""
-    inst = imu_instance
-    if opt & BATCH_OPT_PRE_POST_FILTER:
-        if inst not in by_inst or len(by_inst) < 2 or f_lpf <= 0:
-            raise GyroInputError(
-                f"{p}: INS_LOG_BAT_OPT {opt} (pre and post filter) but the gyro batches of IMU "
-                f"{imu_instance} and their counterpart are not both in the log"
-            )
-        f_lo = 4.0 * f_lpf
-        hf = {k: _hf_rms(v, f_lo) for k, v in by_inst.items()}
-        others = [k for k in hf if k != inst]
-        ratio = hf[inst] / max(min(hf[k] for k in others), 1e-12)
-        if ratio < 3.0:
-            raise GyroInputError(
-                f"{p}: cannot tell the pre-filter gyro batches of IMU {imu_instance} from the "
-                f"post-filter ones (rms above {f_lo:.0f} Hz only {ratio:.1f}x the quietest instance)"
-            )
-        check = (
-            f"INS_LOG_BAT_OPT {opt}: batch instances {sorted(hf)}; instance {inst} taken as pre-filter on the data: rms above "
-            f"{f_lo:.0f} Hz " + ", ".join(f"instance {k} {np.degrees(v):.2f} deg/s" for k, v in sorted(hf.items()))
-        )
-    elif inst not in by_inst:
-        raise GyroInputError(f"{p}: no gyro batch of IMU {imu_instance} (instances {sorted(by_inst)})")
-    wins = sorted(by_inst[inst], key=lambda w: w[0])
+    check = _check_batch_instance(p, by_inst, params, opt, imu_instance)
+    wins = sorted(by_inst[imu_instance], key=lambda w: w[0])
     t_parts, g_parts = [], []
     last = -np.inf
     for t0_us, rate, g in wins:
@@ -481,7 +458,69 @@ def _batch_recording(p, imu_rec, isb, rcou, ctun, params, imu_instance):
         signal_txt = "raw (batch sampler, before INS_GYRO_FILTER and the notches)"
     if dropped:
         warn_repair(f"{p.name}: {dropped} incomplete or overlapping gyro batch(es) dropped")
-    meta = dict(imu_rec.meta)
+    meta = _batch_meta(imu_rec.meta, wins, rate, signal_txt, check, lacks)
+    if pre_meta:
+        meta["gyro_prefilter"] = json.dumps(pre_meta)
+    meta["time_us_first"] = f"{t_us[0]:.0f}"
+    return Recording(t_s=(t_us - t_us[0]) * 1e-6, gyro_rad_s=gyro, accel_m_s2=None, meta=meta, extra=extra)
+
+
+def _gyro_batches(p, isb: dict, imu_instance: int) -> tuple[dict[int, list], int]:
+    """The complete gyro batches by instance, ``{inst: [(t0_us, rate_hz, gyro (n, 3) rad/s)]}``,
+    and the number of incomplete ones of ``imu_instance`` dropped."""
+    hdr, data = isb["hdr"], isb["data"]
+    by_inst: dict[int, list] = {}
+    dropped = 0
+    for n, (typ, inst, mul, cnt, t0_us, rate) in sorted(hdr.items()):
+        if typ != 1:
+            continue
+        seg = sorted(data.get(n, []), key=lambda r: r[0])
+        if not seg or [r[0] for r in seg] != list(range(len(seg))) or sum(r[1].size for r in seg) != cnt or mul <= 0:
+            dropped += inst == imu_instance
+            continue
+        g = np.column_stack([np.concatenate([r[k] for r in seg]) for k in (1, 2, 3)]) / mul
+        by_inst.setdefault(inst, []).append((t0_us, rate, g))
+    if not by_inst:
+        raise GyroInputError(
+            f"{p}: no complete gyro batch (ISBH/ISBD) in the log: the batch sampler was off "
+            f"(INS_LOG_BAT_MASK) or its batches are incomplete"
+        )
+    return by_inst, dropped
+
+
+def _check_batch_instance(p, by_inst: dict, params: dict, opt: int, imu_instance: int) -> str:
+    """One error line unless ``imu_instance`` has gyro batches (and, with pre- and post-filter
+    batches, is told on the data to be the pre-filter one); returns that check's text."""
+    f_lpf = float(params.get("INS_GYRO_FILTER", 0.0) or 0.0)
+    check = ""
+    inst = imu_instance
+    if opt & BATCH_OPT_PRE_POST_FILTER:
+        if inst not in by_inst or len(by_inst) < 2 or f_lpf <= 0:
+            raise GyroInputError(
+                f"{p}: INS_LOG_BAT_OPT {opt} (pre and post filter) but the gyro batches of IMU "
+                f"{imu_instance} and their counterpart are not both in the log"
+            )
+        f_lo = 4.0 * f_lpf
+        hf = {k: _hf_rms(v, f_lo) for k, v in by_inst.items()}
+        others = [k for k in hf if k != inst]
+        ratio = hf[inst] / max(min(hf[k] for k in others), 1e-12)
+        if ratio < 3.0:
+            raise GyroInputError(
+                f"{p}: cannot tell the pre-filter gyro batches of IMU {imu_instance} from the "
+                f"post-filter ones (rms above {f_lo:.0f} Hz only {ratio:.1f}x the quietest instance)"
+            )
+        check = (
+            f"INS_LOG_BAT_OPT {opt}: batch instances {sorted(hf)}; instance {inst} taken as pre-filter on the data: rms above "
+            f"{f_lo:.0f} Hz " + ", ".join(f"instance {k} {np.degrees(v):.2f} deg/s" for k, v in sorted(hf.items()))
+        )
+    elif inst not in by_inst:
+        raise GyroInputError(f"{p}: no gyro batch of IMU {imu_instance} (instances {sorted(by_inst)})")
+    return check
+
+
+def _batch_meta(imu_meta: dict, wins: list, rate: float, signal_txt: str, check: str, lacks: list[str]) -> dict:
+    """The IMU recording's metadata restated for the batch stream (rate, windows, lacks)."""
+    meta = dict(imu_meta)
     meta.pop("_t0_us", None)
     meta.update(
         {
@@ -503,7 +542,4 @@ def _batch_recording(p, imu_rec, isb, rcou, ctun, params, imu_instance):
             ),
         }
     )
-    if pre_meta:
-        meta["gyro_prefilter"] = json.dumps(pre_meta)
-    meta["time_us_first"] = f"{t_us[0]:.0f}"
-    return Recording(t_s=(t_us - t_us[0]) * 1e-6, gyro_rad_s=gyro, accel_m_s2=None, meta=meta, extra=extra)
+    return meta
