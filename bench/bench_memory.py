@@ -153,6 +153,7 @@ IMPORTS = {
     "imports_loop": [
         "gyrocore.loop.loop",
         "gyrocore.loop.search",
+        "gyrocore.loop.lines",
         "gyrocore.loop.residual",
         "gyrocore.calibrator",
         "gyrocore.calib.lsq",

@@ -33,7 +33,7 @@ from scipy import signal
 
 from gyrocore.attitude import integrate_gyro
 from gyrocore.data.recording import Recording
-from gyrocore.loop.search import AttitudeLineOptions
+from gyrocore.loop.lines import AttitudeLineOptions
 
 DEG = np.pi / 180.0
 

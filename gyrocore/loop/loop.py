@@ -65,6 +65,7 @@ from gyrocore.effects import registry as E
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment
+from . import lines as LN
 from . import search as S
 from . import source
 from .residual import Residual, build_residual
@@ -140,7 +141,7 @@ class _LoopRun:
         open_search: bool = True,
         max_open_steps: int = 8,
         seed: int = 0,
-        attitude_lines: S.AttitudeLineOptions | None = None,
+        attitude_lines: LN.AttitudeLineOptions | None = None,
     ) -> None:
         self.declared = E.check_effect_names(declared)
         self.notes = list(res.notes)
@@ -151,7 +152,7 @@ class _LoopRun:
         self.max_open_steps = max_open_steps
         self.rebuild = rebuild
         self.can_hold = rebuild is not None
-        self.line_options = attitude_lines or S.AttitudeLineOptions()
+        self.line_options = attitude_lines or LN.AttitudeLineOptions()
         self.orders = {"bias_thermal": thermal_order, "scale_thermal": thermal_order}
         self.model = Model(res, self.orders)
         self.model_effects, self.cands, self.untestable = self._effects_and_candidates(res, candidates)
@@ -536,7 +537,7 @@ def run_loop(
     angle_mode: str = "rotation",
     open_search: bool = True,
     seed: int = 0,
-    attitude_lines: S.AttitudeLineOptions | None = None,
+    attitude_lines: LN.AttitudeLineOptions | None = None,
 ) -> LoopResult:
     """Close the loop on one recording.
 
@@ -577,7 +578,7 @@ def run_loop(
         between the catalogue (½) and the three open kinds (⅙ each).
     seed : int
         Seed of the step test's parametric bootstrap.
-    attitude_lines : gyrocore.loop.search.AttitudeLineOptions, optional
+    attitude_lines : gyrocore.loop.lines.AttitudeLineOptions, optional
         The sample-level line test against a reference attitude (segments, its statistic,
         the reference's line mask); default ``AttitudeLineOptions()``.
 

@@ -12,6 +12,7 @@ from gyrocore.effects import registry as E
 from gyrocore.attitude import rate_error_vs_attitude
 from gyrocore.data.recording import Recording
 from gyrocore.calib.stream import rows_of
+from . import lines as LN
 from . import search as S
 from . import source
 from .residual import Residual
@@ -27,7 +28,7 @@ def line_series(
     res: Residual,
     rec: Recording,
     correction: np.ndarray,
-    options: S.AttitudeLineOptions | None = None,
+    options: LN.AttitudeLineOptions | None = None,
     raw: tuple[Recording, float] | None = None,
 ):
     """The series the line search runs on: (x (n, 3), t (n,), fs, reference motion (n, R) or
@@ -50,7 +51,7 @@ def line_series(
         mot = np.nan_to_num(rec.accel_m_s2[sl]) if rec.accel_m_s2 is not None else None
         return x, t[sl], rec.rate_hz, mot, "sample", sl
     if res.kind == "attitude":
-        return attitude_line_series(rec, correction, options or S.AttitudeLineOptions(), raw=raw)
+        return attitude_line_series(rec, correction, options or LN.AttitudeLineOptions(), raw=raw)
     return None
 
 
@@ -79,7 +80,7 @@ def _rate_line_series(rec, correction):
 def attitude_line_series(
     rec: Recording,
     correction: np.ndarray,
-    options: S.AttitudeLineOptions | None = None,
+    options: LN.AttitudeLineOptions | None = None,
     raw: tuple[Recording, float] | None = None,
 ):
     """Sample-level residual against a reference attitude, for the line search.
@@ -88,7 +89,7 @@ def attitude_line_series(
     e_k = rotvec(ΔR_refᵀ·exp((gyro_k − model_k)·Δt_k))/Δt_k
     (:func:`gyrocore.attitude.rate_error_vs_attitude`) on the samples whose reference is
     valid at both ends of a regular interval; those are cut into equal segments
-    (:func:`gyrocore.search.even_segments`) that never straddle a dropout. White attitude
+    (:func:`gyrocore.loop.lines.even_segments`) that never straddle a dropout. White attitude
     noise σ_q of the reference becomes rate noise of one-sided PSD 8σ_q²·fs·sin²(πf/fs)
     (∝ f² below fs/4): the F-test's local noise estimate carries it, so the test stays
     valid and only loses power where it dominates the gyro's own noise (docs/loop.md §6).
@@ -97,7 +98,7 @@ def attitude_line_series(
     its grid): None otherwise, and the window-level test alone runs.
 
     ``raw`` = (the recording before the time-offset advance, τ): the gyro is advanced by τ
-    with a band-limited interpolator (:func:`gyrocore.loop.search.band_limited_advance`; the
+    with a band-limited interpolator (:func:`gyrocore.loop.lines.band_limited_advance`; the
     cubic spline of ``rec`` is kept only within 16 samples of a gap), whose gain stays 1 up to
     0.4·fs where the spline's falls to 0.875 at fs/3. ``options`` (default
     ``AttitudeLineOptions()``): ``segments``, the target number of segments; ``mask_accel``,
@@ -110,11 +111,11 @@ def attitude_line_series(
     """
     if rec.ref_quat_wxyz is None:
         return None
-    options = options or S.AttitudeLineOptions()
+    options = options or LN.AttitudeLineOptions()
     t = rec.t_s
     gyro = rec.gyro_rad_s
     if raw is not None and raw[1] != 0.0:
-        g_bl = S.band_limited_advance(t, raw[0].gyro_rad_s, raw[1])
+        g_bl = LN.band_limited_advance(t, raw[0].gyro_rad_s, raw[1])
         gyro = np.where(np.isfinite(g_bl), g_bl, gyro)
     e, w_ref, valid = rate_error_vs_attitude(t, rec.ref_quat_wxyz, gyro - correction)
     ok_q = np.all(np.isfinite(rec.ref_quat_wxyz), axis=1)
@@ -122,7 +123,7 @@ def attitude_line_series(
     # rows are its own consecutive frames (not every 4th row of a 1-kHz gyro)
     if valid.sum() < 0.5 * ok_q.sum():
         return None
-    idx, L = S.even_segments(t, valid, n_target=options.segments)
+    idx, L = LN.even_segments(t, valid, n_target=options.segments)
     if idx.size == 0:
         return None
     tt = t[idx]
@@ -175,7 +176,7 @@ class LoopState(Protocol):
     held: dict  # sample-level lines removed from the gyro: name -> [(axis, f_hz, a_cos, a_sin), ...]
     open_last: dict  # what the open search tested last (written here)
     can_hold: bool  # whether the residual can be rebuilt (sample-level lines can be removed)
-    line_options: S.AttitudeLineOptions  # the sample-level line test against a reference attitude
+    line_options: LN.AttitudeLineOptions  # the sample-level line test against a reference attitude
 
     def base_rec(self) -> Recording: ...
 
@@ -305,7 +306,7 @@ def _sample_line_options(run: LoopState, ser: tuple, thr: float) -> list:
     """Lines of the sample-level residual ``ser`` (:func:`line_series`), each fitted as a sinusoid
     to be removed from the gyro (raw time frame)."""
     x, tt, fs, mot, level, _ = ser[:6]
-    seg_len = ser[6] if len(ser) > 6 else S.segment_length(x.shape[0])
+    seg_len = ser[6] if len(ser) > 6 else LN.segment_length(x.shape[0])
     # (axis, frequency) already removed
     done = [
         (i, E.resolve(n).arg)
@@ -316,7 +317,7 @@ def _sample_line_options(run: LoopState, ser: tuple, thr: float) -> list:
     if run.res.kind == "attitude":
         # the segments' start times carry the line's phase across them (coherent statistic)
         opts = run.line_options
-        lines = S.screen_lines(
+        lines = LN.screen_lines(
             x,
             fs,
             ref=mot,
@@ -328,7 +329,7 @@ def _sample_line_options(run: LoopState, ser: tuple, thr: float) -> list:
             mask_family_wise=True,
         )
     else:
-        lines = S.screen_lines(x, fs, ref=mot, skip=done, seg_max=seg_len)
+        lines = LN.screen_lines(x, fs, ref=mot, skip=done, seg_max=seg_len)
     run.open_last["periodic"] = [_line_row(line, thr, "sample") for line in lines]
     options = []
     for line in lines:
@@ -348,14 +349,14 @@ def _sample_line_option(line, x, tt, fs, seg_len, thr, level, tau_acc, attitude)
     # window at a time into one (n,) array)
     xi = source.column(x, i)
     # ± one bin of the segment grid (fs/L)
-    f = S.round_frequency(S.refine_frequency(xi, tt, line.frequency_hz, line.resolution_hz or fs / seg_len))
-    cv = S.sinusoid_cv_reduction(xi, tt, f)
+    f = S.round_frequency(LN.refine_frequency(xi, tt, line.frequency_hz, line.resolution_hz or fs / seg_len))
+    cv = LN.sinusoid_cv_reduction(xi, tt, f)
     if not cv > 0:
         return None
     name = E.family_name("periodic", f)
-    coef, se = S.fit_sinusoid(xi, tt, f)
+    coef, se = LN.fit_sinusoid(xi, tt, f)
     a, b = float(coef[0, 0]), float(coef[1, 0])
-    before, after = S.sinusoid_rms(xi, tt, f, a, b)
+    before, after = LN.sinusoid_rms(xi, tt, f, a, b)
     # raw time frame: the residual is of the gyro advanced by tau (time_offset)
     phi = 2 * np.pi * f * tau_acc
     a_raw, b_raw = a * np.cos(phi) - b * np.sin(phi), a * np.sin(phi) + b * np.cos(phi)
@@ -400,7 +401,7 @@ def _window_line_options(run: LoopState, cv_base: float, thr: float, both: bool)
     done = [
         (ax, E.resolve(base).arg) for base, ax in map(split_axis, run.model_effects) if base.startswith("periodic[")
     ]
-    lines = S.screen_lines(x, fs, ref=mot, skip=done)
+    lines = LN.screen_lines(x, fs, ref=mot, skip=done)
     run.open_last["periodic"] = (run.open_last.get("periodic", []) if both else []) + [
         _line_row(line, thr, "window") for line in lines
     ]
@@ -408,7 +409,7 @@ def _window_line_options(run: LoopState, cv_base: float, thr: float, both: bool)
     for line in lines:
         if line.log10_p >= np.log10(thr):
             continue
-        f = S.round_frequency(S.refine_frequency(x[:, line.axis], tt, line.frequency_hz, 2 * line.bandwidth_hz))
+        f = S.round_frequency(LN.refine_frequency(x[:, line.axis], tt, line.frequency_hz, 2 * line.bandwidth_hz))
         name = E.family_name("periodic", f)
         ev, _ = run.open_term_test(f"{name}@{line.axis}", thr, cv_base)
         # the harmonic F decided significance; the window refit must hold out of sample

@@ -11,7 +11,7 @@ from gyrocore.effects import registry as E
 from gyrocore.attitude import rate_error_vs_attitude
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
-from . import search as S
+from . import lines as LN
 from .residual import Residual, build_residual
 from .result import LoopResult
 from .model import advance
@@ -263,7 +263,7 @@ def _line_validation(sample: dict, lines: Sequence[str]) -> list[dict]:
         row = {"effect": name, "frequency_hz": f}
         for tag in ("before", "after"):
             t, e, ok = sample[tag]
-            coef, se = S.fit_sinusoid(e[ok], t[ok], f)
+            coef, se = LN.fit_sinusoid(e[ok], t[ok], f)
             row[f"amplitude_{tag}_rad_s"] = [float(np.hypot(coef[0, i], coef[1, i])) for i in range(3)]
             row[f"amplitude_std_error_{tag}_rad_s"] = [
                 float(np.hypot(se[0, i], se[1, i]) / np.sqrt(2)) for i in range(3)

@@ -292,7 +292,7 @@ def command(
 
     from gyrocore.errors import GyroInputError
     from gyrocore.loop.loop import run_loop
-    from gyrocore.loop.search import AttitudeLineOptions
+    from gyrocore.loop.lines import AttitudeLineOptions
 
     if output and os.path.exists(output) and not force:
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")

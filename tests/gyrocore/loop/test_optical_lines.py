@@ -14,7 +14,7 @@ from experiments.optical_lines import (
     taper_efficiency,
     trial,
 )
-from gyrocore.loop import search as S
+from gyrocore.loop import lines as LN
 from gyrocore.attitude import attitude_rate, integrate_gyro, rate_error_vs_attitude
 from gyrocore.loop.loop import run_loop
 from gyrocore.loop.model import advance
@@ -47,7 +47,7 @@ def test_even_segments_never_straddle_a_gap():
     t[1500:] += 0.02  # a timestamp gap (4 frames dropped)
     ok = np.ones(3000, bool)
     ok[700:720] = False  # tracking lost
-    idx, L = S.even_segments(t, ok, n_target=4, min_len=128)
+    idx, L = LN.even_segments(t, ok, n_target=4, min_len=128)
     assert idx.size % L == 0 and idx.size >= 0.75 * 2980
     for s in range(idx.size // L):
         seg = idx[s * L : (s + 1) * L]
@@ -130,8 +130,8 @@ def test_line_the_reference_also_carries_is_not_reported():
     # control: the same residual screened without the motion mask has the line, far past the
     # threshold — so the test above can fail
     tau = r.params["time_offset"]["tau_s"][0]
-    x, tt, fs, mot, _, _, L = attitude_line_series(advance(rec, tau), np.zeros((rec.n, 3)), S.AttitudeLineOptions())
-    bare = S.screen_lines(x, fs, seg_max=L)
+    x, tt, fs, mot, _, _, L = attitude_line_series(advance(rec, tau), np.zeros((rec.n, 3)), LN.AttitudeLineOptions())
+    bare = LN.screen_lines(x, fs, seg_max=L)
     assert bare[0].axis == 0 and abs(bare[0].frequency_hz - 47.3) < 0.5
     assert bare[0].log10_p < np.log10(per[0]["threshold"]) - 3
 
@@ -167,7 +167,7 @@ def test_coherent_f_is_f_2_12s_under_the_null_and_noncentral_f_with_a_line():
     Fnull, Fline = [], []
     for _ in range(150):
         x, t0 = _segmented_noise(rng, S_, L, 300)
-        h = S.coherent_harmonic_f(x, 1.0, t0)
+        h = LN.coherent_harmonic_f(x, 1.0, t0)
         df = h.freq_hz[1] - h.freq_hz[0]
         js = [int(round(f / df)) - 1 for f in np.arange(0.06, 0.44, 3 * W)[:15]]
         Fnull += list(h.F[js, 0])
@@ -178,12 +178,12 @@ def test_coherent_f_is_f_2_12s_under_the_null_and_noncentral_f_with_a_line():
 
         A = 10.0 / np.sqrt(taper_efficiency(L) * L * S_ / 2.0)
         xl = x + A * np.cos(2 * np.pi * f0 * tt + rng.uniform(0, 2 * np.pi))[:, None]
-        Fline.append(S.coherent_harmonic_f(xl, 1.0, t0).F[js[5], 0])
+        Fline.append(LN.coherent_harmonic_f(xl, 1.0, t0).F[js[5], 0])
     assert h.df1 == 2 and h.df2 == 12 * S_
     assert stats.kstest(Fnull, stats.f(2, 12 * S_).cdf).statistic < 1.95 / np.sqrt(len(Fnull))
     assert stats.kstest(Fline, stats.ncf(2, 12 * S_, 100.0).cdf).statistic < 1.95 / np.sqrt(len(Fline))
     # the pooled statistic of the same data has the same λ in 2S numerator degrees of freedom
-    hp = S.harmonic_f_test(xl, 1.0, seg_max=L)
+    hp = LN.harmonic_f_test(xl, 1.0, seg_max=L)
     assert hp.df1 == 2 * S_
 
 
@@ -193,7 +193,7 @@ def test_reference_mask_level_is_per_frequency():
     # level 1e-3 (Bonferroni over those bins and columns) at most 0.1 %. Masks come in chunks of
     # 64 bins of 2048: over 30 draws the per-frequency level gives Poisson(≤ 0.94) chunks
     # (P(≥ 6) < 1e-3), the per-bin level ≈ 19 (P(< 8) < 1e-3)
-    from gyrocore.loop.search import _motion_mask
+    from gyrocore.loop.lines import _motion_mask
 
     L = 1024
     f = np.fft.rfftfreq(4 * L, 1.0)[1:]
@@ -210,14 +210,14 @@ def test_coherent_reference_mask_level_is_per_frequency():
     # the fine bins within ±2W and the columns, P(a frequency masked by noise) ≤ 1e-3; a mask is
     # ≥ 4W/(fs/2) = 3.1 % of the band here, so the bound allows a masked fraction ≤ 1e-3 on
     # average: over 30 draws ≤ 5 hit draws (Poisson(≤ 0.97), P(≥ 6) < 1e-3)
-    from gyrocore.loop.search import _motion_mask_coherent
+    from gyrocore.loop.lines import _motion_mask_coherent
 
     L, S_ = 1024, 8
     hits = 0
     for seed in range(30):
         rng = np.random.default_rng([seed, 7])
         m, starts = _segmented_noise(rng, S_, L, 300, C=3)
-        f = S.coherent_harmonic_f(m[:, :1], 1.0, starts).freq_hz
+        f = LN.coherent_harmonic_f(m[:, :1], 1.0, starts).freq_hz
         hits += bool(_motion_mask_coherent(m, 1.0, starts, f, 4.0 / L, p_mask=1e-3).any())
     assert hits <= 5
 
@@ -230,7 +230,7 @@ def test_line_only_the_reference_carries_is_not_reported():
     from gyrocore.attitude import qmul
 
     rec = optical_recording(seed=4)
-    ser = attitude_line_series(rec, np.zeros((rec.n, 3)), S.AttitudeLineOptions())
+    ser = attitude_line_series(rec, np.zeros((rec.n, 3)), LN.AttitudeLineOptions())
     f = 55.3
     A = 12.0 / line_z(1.0, f, ser[5].size / RATE_HZ, ser[6])
     th = A / (2 * np.pi * f) * np.sin(2 * np.pi * f * rec.t_s)  # rotation about x of rate A·cos
@@ -239,8 +239,8 @@ def test_line_only_the_reference_carries_is_not_reported():
     r = run_loop(rec2, declared=["bias", "time_offset"], candidates=["bias_ramp"])
     assert not [u for u in r.unexplained if u.kind == "periodic"]
     # control: unmasked, the residual has it far past the threshold
-    x, tt, fs, mot, _, _, L = attitude_line_series(rec2, np.zeros((rec.n, 3)), S.AttitudeLineOptions())
-    bare = S.screen_lines(x, fs, seg_max=L, seg_start_s=tt[::L], statistics=("coherent",))
+    x, tt, fs, mot, _, _, L = attitude_line_series(rec2, np.zeros((rec.n, 3)), LN.AttitudeLineOptions())
+    bare = LN.screen_lines(x, fs, seg_max=L, seg_start_s=tt[::L], statistics=("coherent",))
     assert bare[0].axis == 0 and abs(bare[0].frequency_hz - f) < 0.05 and bare[0].log10_p < np.log10(2.8e-4) - 3
 
 
@@ -253,7 +253,7 @@ def test_band_limited_advance_keeps_a_line_near_nyquist():
     tau = -0.48 / fs
     for f in (20.0, 80.0, 96.0):  # ≤ 0.4·fs: Kaiser-sinc gain 1 ± 1e-4 (its design)
         x = np.cos(2 * np.pi * f * t)[:, None]
-        y = S.band_limited_advance(t, x, tau)[:, 0]
+        y = LN.band_limited_advance(t, x, tau)[:, 0]
         ok = np.isfinite(y)
         assert ok.sum() >= 6000 - 4 * 16 and not ok[2990:3010].any()
         assert np.abs(y[ok] - np.cos(2 * np.pi * f * (t[ok] + tau))).max() < 1e-3
@@ -280,7 +280,7 @@ def test_accelerometer_sharing_the_line_does_not_mask_it():
         rec,
         declared=["bias", "time_offset"],
         candidates=["bias_ramp"],
-        attitude_lines=S.AttitudeLineOptions(mask_accel=True),
+        attitude_lines=LN.AttitudeLineOptions(mask_accel=True),
     )
     assert not [u for u in r2.unexplained if u.kind == "periodic"]
 
@@ -293,14 +293,14 @@ def test_attitude_line_options_are_passed_in_and_checked():
         rec,
         declared=["bias", "time_offset"],
         candidates=["bias_ramp"],
-        attitude_lines=S.AttitudeLineOptions(segments=3),
+        attitude_lines=LN.AttitudeLineOptions(segments=3),
     )
     (u,) = r.unexplained
     assert u.evidence["segments"]["n"] < 15  # default (8, dropouts): 15-18 segments of ≈ 570
     assert "phase-coherent" in u.evidence["test"]
     for bad in ({"statistic": "best"}, {"segments": 0}, {"mask_level": 0.0}):
         with pytest.raises(GyroInputError):
-            S.AttitudeLineOptions(**bad)
+            LN.AttitudeLineOptions(**bad)
 
 
 @pytest.mark.parametrize("line_hz", [40.3, 300.3])

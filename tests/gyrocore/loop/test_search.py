@@ -20,6 +20,7 @@ from scipy import stats
 
 from experiments.close_the_loop import effect_params, synthetic_recording
 from gyrocore.effects import registry as E
+from gyrocore.loop import lines as LN
 from gyrocore.loop import search as S
 from gyrocore.loop.bias_step import simulate_gaussian
 from gyrocore.cli.commands.loop import command as loop_command
@@ -61,7 +62,7 @@ def test_harmonic_f_is_calibrated_in_coloured_noise():
     x[0] = e[0]
     for k in range(1, n):
         x[k] = 0.95 * x[k - 1] + e[k]
-    h = S.harmonic_f_test(x, 100.0)
+    h = LN.harmonic_f_test(x, 100.0)
     sel = h.freq_hz > 10 * h.bandwidth_hz
     F = h.F[sel][:: 4 * 8][:400]
     p = stats.f.sf(F, h.df1, h.df2)
