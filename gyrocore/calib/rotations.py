@@ -461,35 +461,13 @@ def gravity_pose_calibration(
     bias_from : {"first", "all"}
         Bias from the first pose (Tedaldi's initialisation) or from all poses.
     """
-    from scipy.optimize import least_squares
-
-    from gyrocore.attitude import integrate_gyro
-
     if recording.accel_m_s2 is None:
         raise GyroInputError("multi-pose calibration needs the accel_*_m_s2 columns (gravity is the reference)")
     if bias_from not in ("first", "all"):
         raise GyroInputError(f"bias_from must be 'first' or 'all', not {bias_from!r}")
     y = recording.gyro_rad_s
     f = recording.accel_m_s2
-    t = recording.t_s
-    rate = recording.rate_hz
-    if intervals is None:
-        if still is None:
-            still = still_samples(
-                recording,
-                replace(
-                    STILL_GATE,
-                    window_s=window_s,
-                    false_reject_rate=false_reject_rate,
-                    variance_factor=float(pose_std_factor) ** 2,
-                ),
-            )
-        runs = [(a, b) for a, b in _runs(np.asarray(still, bool)) if (b - a) >= min_pose_s * rate]
-    else:
-        runs = [(int(a), int(b)) for a, b in intervals]
-    if len(runs) < 4:
-        raise GyroInputError(f"multi-pose calibration: found {len(runs)} still poses, need at least 4")
-    runs = sorted(runs)
+    runs = _pose_runs(recording, still, intervals, window_s, min_pose_s, false_reject_rate, pose_std_factor)
     if bias_from == "first":
         a, b_ = runs[0]
         e0 = y[a:b_]
@@ -500,47 +478,8 @@ def gravity_pose_calibration(
     se_b = np.sqrt(lr / e0.shape[0])
     u = np.array([f[a:b_].mean(axis=0) for a, b_ in runs])
     u = u / np.linalg.norm(u, axis=1, keepdims=True)
-    moves_all = [(k, runs[k][1] - 1, runs[k + 1][0] + 1) for k in range(len(runs) - 1)]
-    # a motion through a clipped (saturated) sample cannot be integrated: drop it
-    absy = np.abs(y)
-    top = absy.max(axis=0)
-    clipped = np.any(
-        (absy >= top[None, :] * (1 - 1e-9)) & (np.sum(absy >= top * (1 - 1e-9), axis=0) >= 3)[None, :], axis=1
-    )
-    moves = [(k, a, b_) for k, a, b_ in moves_all if not clipped[a:b_].any()]
-    n_sat = len(moves_all) - len(moves)
-    if n_sat:
-        warn_repair(
-            f"multi-pose calibration: {n_sat} of {len(moves_all)} motions pass through clipped (saturated) gyro samples and are not used"
-        )
-    if 3 * len(moves) < 12:
-        raise GyroInputError(
-            f"multi-pose calibration: only {len(moves)} usable motions between poses, need at least 4 "
-            f"({len(runs)} still poses found at {pose_std_factor:g}x the rest noise; hand-held poses "
-            "tremble: a larger factor, calibrate --pose-std-factor 10, admits them)"
-        )
-    yb = y - bias
-
-    def rot_of(M, a, b_):
-        q = integrate_gyro(t[a:b_], yb[a:b_] @ M.T)[-1]
-        w, x, yy, z = q
-        return np.array(
-            [
-                [1 - 2 * (yy * yy + z * z), 2 * (x * yy - w * z), 2 * (x * z + w * yy)],
-                [2 * (x * yy + w * z), 1 - 2 * (x * x + z * z), 2 * (yy * z - w * x)],
-                [2 * (x * z - w * yy), 2 * (yy * z + w * x), 1 - 2 * (x * x + yy * yy)],
-            ]
-        )
-
-    def resid(p):
-        M = p.reshape(3, 3)
-        out = np.empty((len(moves), 3))
-        for j, (k, a, b_) in enumerate(moves):
-            R = rot_of(M, a, b_)
-            out[j] = u[k + 1] - R.T @ u[k]
-        return out.ravel()
-
-    sol = least_squares(resid, np.eye(3).ravel(), method="lm", x_scale=np.full(9, 0.01))
+    moves, n_sat = _usable_moves(y, runs, pose_std_factor)
+    sol = _fit_gravity_moves(recording.t_s, y - bias, u, moves)
     M = sol.x.reshape(3, 3)
     J = sol.jac
     m = J.shape[0]
@@ -565,3 +504,80 @@ def gravity_pose_calibration(
         condition=cond,
         n_motions_saturated=n_sat,
     )
+
+
+def _pose_runs(recording, still, intervals, window_s, min_pose_s, false_reject_rate, pose_std_factor):
+    """The still poses as sorted sample ranges ``[(start, stop)]`` (at least 4): the given
+    ``intervals``, else the runs of ``still`` (default the still gate) of at least ``min_pose_s``."""
+    if intervals is None:
+        if still is None:
+            still = still_samples(
+                recording,
+                replace(
+                    STILL_GATE,
+                    window_s=window_s,
+                    false_reject_rate=false_reject_rate,
+                    variance_factor=float(pose_std_factor) ** 2,
+                ),
+            )
+        runs = [(a, b) for a, b in _runs(np.asarray(still, bool)) if (b - a) >= min_pose_s * recording.rate_hz]
+    else:
+        runs = [(int(a), int(b)) for a, b in intervals]
+    if len(runs) < 4:
+        raise GyroInputError(f"multi-pose calibration: found {len(runs)} still poses, need at least 4")
+    return sorted(runs)
+
+
+def _usable_moves(y: np.ndarray, runs, pose_std_factor: float):
+    """The motions between consecutive poses ``[(k, start, stop)]`` that can be integrated
+    (none passes through a clipped gyro sample), and how many were dropped for clipping."""
+    moves_all = [(k, runs[k][1] - 1, runs[k + 1][0] + 1) for k in range(len(runs) - 1)]
+    # a motion through a clipped (saturated) sample cannot be integrated: drop it
+    absy = np.abs(y)
+    top = absy.max(axis=0)
+    clipped = np.any(
+        (absy >= top[None, :] * (1 - 1e-9)) & (np.sum(absy >= top * (1 - 1e-9), axis=0) >= 3)[None, :], axis=1
+    )
+    moves = [(k, a, b_) for k, a, b_ in moves_all if not clipped[a:b_].any()]
+    n_sat = len(moves_all) - len(moves)
+    if n_sat:
+        warn_repair(
+            f"multi-pose calibration: {n_sat} of {len(moves_all)} motions pass through clipped (saturated) gyro samples and are not used"
+        )
+    if 3 * len(moves) < 12:
+        raise GyroInputError(
+            f"multi-pose calibration: only {len(moves)} usable motions between poses, need at least 4 "
+            f"({len(runs)} still poses found at {pose_std_factor:g}x the rest noise; hand-held poses "
+            "tremble: a larger factor, calibrate --pose-std-factor 10, admits them)"
+        )
+    return moves, n_sat
+
+
+def _fit_gravity_moves(t: np.ndarray, yb: np.ndarray, u: np.ndarray, moves):
+    """Levenberg–Marquardt fit of M (the ``least_squares`` solution, x = M row-major) so that
+    each motion's integrated rotation R carries pose k's gravity direction ``u[k]`` to
+    ``u[k+1] = Rᵀ·u[k]``; ``yb`` is the bias-free gyro, rad/s."""
+    from scipy.optimize import least_squares
+
+    from gyrocore.attitude import integrate_gyro
+
+    def rot_of(M, a, b_):
+        q = integrate_gyro(t[a:b_], yb[a:b_] @ M.T)[-1]
+        w, x, yy, z = q
+        return np.array(
+            [
+                [1 - 2 * (yy * yy + z * z), 2 * (x * yy - w * z), 2 * (x * z + w * yy)],
+                [2 * (x * yy + w * z), 1 - 2 * (x * x + z * z), 2 * (yy * z - w * x)],
+                [2 * (x * z - w * yy), 2 * (yy * z + w * x), 1 - 2 * (x * x + yy * yy)],
+            ]
+        )
+
+    def resid(p):
+        M = p.reshape(3, 3)
+        out = np.empty((len(moves), 3))
+        for j, (k, a, b_) in enumerate(moves):
+            R = rot_of(M, a, b_)
+            out[j] = u[k + 1] - R.T @ u[k]
+        return out.ravel()
+
+    return least_squares(resid, np.eye(3).ravel(), method="lm", x_scale=np.full(9, 0.01))
