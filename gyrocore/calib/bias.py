@@ -430,53 +430,83 @@ class StaticBiasCalibrator:
         else:
             sigma = np.sqrt((sw.variance[still] if n_still else sw.variance).mean(axis=0))
         last = W if self.max_retries is None else min(W, 1 + int(self.max_retries) + (need - 1))
-
+        common = dict(recording=recording, n=n, W=W, last=last, n_still=n_still, sigma=sigma, rho=rho, vif=vif)
         if self.rule == "converge":
-            s_mean2 = sigma**2 * vif / n
-            if self.converge_tolerance_rad_s is None:
-                q3 = scipy.stats.chi2.isf(self.false_reject_rate, 3)
-                ok = lambda d: float(np.sum(d * d / (2 * s_mean2))) <= q3  # noqa: E731
-                thr = np.sqrt(2 * s_mean2 * q3)
-                units = "rad/s (per-axis scale of the derived Mahalanobis tolerance on mean differences)"
-            else:
-                tol = float(self.converge_tolerance_rad_s)
-                ok = lambda d: float(np.linalg.norm(d)) < tol  # noqa: E731
-                thr = np.full(3, tol)
-                units = "rad/s (tolerance on |mean difference|)"
-                alpha = float("nan")
-            # 50 % detection, approx: a step h at a window boundary moves the difference by h;
-            # a ramp a moves it by a·n·dt.
-            step = thr.copy()
-            ramp = thr / (n * dt)
-            means = sw.means
-            for k in range(1, last):
-                if ok(means[k] - means[k - 1]):
-                    bias = 0.5 * (means[k] + means[k - 1])
-                    se = sigma * np.sqrt(vif / (2 * n))
-                    return self._result(
-                        bias,
-                        se,
-                        recording,
-                        (k - 1) * n,
-                        2 * n,
-                        k - 1,
-                        W,
-                        n_still,
-                        alpha,
-                        thr,
-                        units,
-                        sigma,
-                        rho,
-                        vif,
-                        step,
-                        ramp,
-                    )
-            raise GyroInputError(
-                f"motion detected throughout: no two consecutive {n}-sample window means agreed "
-                f"within tolerance over {last} windows"
-                + (f"; {inflated}: the recording moves smoothly the whole time" if inflated else "")
-            )
+            return self._fit_converge(sw.means, dt=dt, inflated=inflated, alpha=alpha, **common)
+        return self._fit_first_still(
+            xw, still, sigma_diff, inflated=inflated, alpha=alpha, thr=thr, units=units, step=step, ramp=ramp, **common
+        )
 
+    def _fit_converge(self, means, *, recording, n, W, last, n_still, sigma, rho, vif, dt, inflated, alpha):
+        """The "converge" rule: the first two consecutive window means that agree (Mahalanobis
+        tolerance from the noise, or a given tolerance); their average is the bias."""
+        s_mean2 = sigma**2 * vif / n
+        if self.converge_tolerance_rad_s is None:
+            q3 = scipy.stats.chi2.isf(self.false_reject_rate, 3)
+            ok = lambda d: float(np.sum(d * d / (2 * s_mean2))) <= q3  # noqa: E731
+            thr = np.sqrt(2 * s_mean2 * q3)
+            units = "rad/s (per-axis scale of the derived Mahalanobis tolerance on mean differences)"
+        else:
+            tol = float(self.converge_tolerance_rad_s)
+            ok = lambda d: float(np.linalg.norm(d)) < tol  # noqa: E731
+            thr = np.full(3, tol)
+            units = "rad/s (tolerance on |mean difference|)"
+            alpha = float("nan")
+        # 50 % detection, approx: a step h at a window boundary moves the difference by h;
+        # a ramp a moves it by a·n·dt.
+        step = thr.copy()
+        ramp = thr / (n * dt)
+        for k in range(1, last):
+            if ok(means[k] - means[k - 1]):
+                bias = 0.5 * (means[k] + means[k - 1])
+                se = sigma * np.sqrt(vif / (2 * n))
+                return self._result(
+                    bias,
+                    se,
+                    recording,
+                    (k - 1) * n,
+                    2 * n,
+                    k - 1,
+                    W,
+                    n_still,
+                    alpha,
+                    thr,
+                    units,
+                    sigma,
+                    rho,
+                    vif,
+                    step,
+                    ramp,
+                )
+        raise GyroInputError(
+            f"motion detected throughout: no two consecutive {n}-sample window means agreed "
+            f"within tolerance over {last} windows"
+            + (f"; {inflated}: the recording moves smoothly the whole time" if inflated else "")
+        )
+
+    def _fit_first_still(
+        self,
+        xw,
+        still,
+        sigma_diff,
+        *,
+        recording,
+        n,
+        W,
+        last,
+        n_still,
+        sigma,
+        rho,
+        vif,
+        inflated,
+        alpha,
+        thr,
+        units,
+        step,
+        ramp,
+    ):
+        """The first still window's mean (or median) is the bias; one error line when every
+        window tried moves."""
         for k in range(last):
             if still[k]:
                 w = xw[k]
