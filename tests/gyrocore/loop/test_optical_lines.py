@@ -333,7 +333,7 @@ def test_cli_line_options(tmp_path):
     args = [str(f), "--effects", "bias,time_offset", "--candidates", "bias_ramp", "--json"]
     out = CliRunner().invoke(loop_command, args + ["--line-statistic", "pooled", "--line-segments", "4"])
     assert out.exit_code == 0, out.output
-    (u,) = json.loads(out.output)["unexplained"]
+    (u,) = json.loads(out.stdout)["unexplained"]
     assert u["kind"] == "periodic" and u["axis"] == "x" and abs(u["frequency_hz"] - 40.5366) < 1 / 60
     assert "phase-coherent" not in u["evidence"]["test"] and u["evidence"]["df1"] > 2
     bad = CliRunner().invoke(loop_command, args + ["--line-statistic", "best"])
