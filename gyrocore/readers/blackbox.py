@@ -218,6 +218,9 @@ def _read_event(reader, data: bytes, n: int, inav: bool = False) -> str:
     return "bad"
 
 
+# One piece on purpose: a byte-stream state machine over orangebox's frame decoder (the
+# resynchronisation after a corrupt frame, the loop-iteration/time plausibility of each I/P frame
+# and the predictor context share the loop's local state; split, they would pass it around).
 def _iter_frames(parser, stats: dict) -> Iterator[tuple]:
     """Accepted main frames of the parser's current log (see the module docstring)."""
     from orangebox.types import Frame, FrameType
