@@ -387,7 +387,7 @@ def k_interval_check(*, seeds: int = 12, seed0: int = 900) -> dict:
             t, d, _ = ADEV.oadev(g[:, ax], rate, m)
             f = G.fit_noise(t, d**2, m, n, candidates=("arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s"))
             c = f.coef[3]
-            lo, hi = f.ci95["rrw_rad_per_s_sqrt_s"]
+            lo, hi = f.interval("rrw_rad_per_s_sqrt_s")
             chi2_cover.append(lo**2 <= k2 <= hi**2)
             # the interval is c·ν/χ²(ν) with ν = 2c²/se²: recover se from the chi-square ends
             nu = _nu_from_interval(c, lo**2, hi**2)

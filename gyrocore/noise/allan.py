@@ -34,7 +34,7 @@ from gyrocore.errors import GyroInputError, warn_repair
 from . import avar as AV, diagnostics, gmwm
 from .adev import oadev, octave_m
 from .ieee952 import ieee952_design, select_ieee952, term_interval
-from .model import IEEE_TERMS, TERM_UNITS, TERMS, NoiseModel, model_value
+from .model import IEEE_TERMS, TERM_UNITS, TERMS, NoiseModel
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 from gyrocore.data.recording import AXES, GYRO_COLS, Recording
 from gyrocore.data.still import StillGate, still_windows
@@ -253,8 +253,8 @@ def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *
     if (
         not on
         or not f.method.startswith("gmwm")
-        or f.terms.get(k) is None
-        or "correlated_sigma_rad_s" not in f.ci95
+        or f.all_terms()[k] is None
+        or "correlated_sigma_rad_s" not in f.model.ci95
         or not set(f.selected) <= _RW_CHECK_MODELS
     ):
         return f
@@ -267,11 +267,12 @@ def _random_walk_check(f, omega: np.ndarray, rate_hz: float, tau_max_s: float, *
     )
     if chk is None or chk.claimed:
         return f
-    terms = dict(f.terms)
-    terms[k] = None
-    ci = dict(f.ci95)
+    terms = {**f.all_terms(), k: None}
+    ci = {n: f.interval(n) for n in f.model.ci95}
     ci[k] = (0.0, ci[k][1])
-    return _replace(f, terms=terms, ci95=ci, ambiguous={**dict(f.ambiguous), k: "correlated_sigma_rad_s"})
+    ambiguous = {**dict(f.ambiguous), k: "correlated_sigma_rad_s"}
+    model = NoiseModel.identified(f.model.axes[0], terms, ci, ambiguous, f.estimate)
+    return _replace(f, model=model, ambiguous=ambiguous)
 
 
 def _axis_result(
@@ -322,7 +323,7 @@ def _gmwm_result(omega, rate_hz, m, taus, dev, *, axis: str, signal: str, method
     k0 = diagnostics.bandwidth_start(avar, m, n, rate_hz)
     # above the cut the low-pass still leaves a −κN²/τ² deficit: fitted in place of Q ("+lp")
     meth = method + "+lp" if k0 else method
-    f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth, options=options)
+    f = gmwm.fit_noise(taus[k0:], avar[k0:], m[k0:], n, method=meth, options=options, axis=axis)
     f = _random_walk_check(f, omega, rate_hz, taus[-1], low_pass=bool(k0), on=options.rw_check)
     sel = [AV.LINEAR.index(k) for k in f.selected]
     chk = diagnostics.goodness_of_fit(avar[k0:], f.fit_avar, f.cov, f.edf, diagnostics.n_params(f.coef, f.tau_c_s, sel))
@@ -340,8 +341,9 @@ def _gmwm_result(omega, rate_hz, m, taus, dev, *, axis: str, signal: str, method
     # in: the data reject the model without it, only its name is open (sunsided 10-min x: without
     # it the sum is 7 σ below the last points)
     c_rep = np.array(f.coef, float).copy()
+    reported = f.all_terms()
     for i, name in enumerate(AV.LINEAR):
-        if f.terms.get(name) is None and name not in f.ambiguous and not (k0 and i == 0):
+        if reported[name] is None and name not in f.ambiguous and not (k0 and i == 0):
             c_rep[i] = 0.0  # (the low-pass deficit, column 0 under "+lp", is N's shape)
     rep_all = AV.term_avar(m, rate_hz, method=meth, tau_c_s=f.tau_c_s) @ c_rep
     if not chk.ok:
@@ -356,17 +358,17 @@ def _gmwm_result(omega, rate_hz, m, taus, dev, *, axis: str, signal: str, method
     hi_q = scipy.stats.chi2.ppf(0.975, edf)
     ci_dev = np.column_stack([dev * np.sqrt(edf / hi_q), dev * np.sqrt(edf / lo_q)])
     names = TERMS if method == "gmwm" else IEEE_TERMS
-    terms = {k: f.terms.get(k) for k in TERMS}
     est = {k: float(f.estimate[k]) for k in names}
-    ci = {k: (float(f.ci95[k][0]), float(f.ci95[k][1])) for k in names}
+    model = f.model
     if k0:  # beside a low-pass, Q is not identified (its column is the filter's deficit)
-        terms["quantization_rad"] = None
         est["quantization_rad"] = 0.0
-        ci["quantization_rad"] = (0.0, float("inf"))
+        ci = {k: f.interval(k) for k in names} | {"quantization_rad": (0.0, float("inf"))}
+        terms = {**f.all_terms(), "quantization_rad": None}
+        model = NoiseModel.identified(axis, terms, ci, f.ambiguous, est, names)
     return AllanResult(
         axis=axis,
         signal=signal,
-        model=_axis_model(axis, terms, ci, names, f.ambiguous, est),
+        model=model,
         taus_s=taus,
         adev_rad_s=dev,
         adev_ci95_rad_s=ci_dev,
@@ -423,7 +425,7 @@ def _legacy_result(omega, rate_hz, m, taus, dev, *, axis: str, signal: str, meth
     return AllanResult(
         axis=axis,
         signal=signal,
-        model=_axis_model(axis, terms, ci, IEEE_TERMS, {}, est),
+        model=NoiseModel.identified(axis, terms, ci, {}, est, IEEE_TERMS),
         taus_s=taus,
         adev_rad_s=dev,
         adev_ci95_rad_s=ci_dev,
@@ -434,19 +436,6 @@ def _legacy_result(omega, rate_hz, m, taus, dev, *, axis: str, signal: str, meth
         n_samples=int(omega.shape[0]),
         method=method,
         chi2=fit.chi2,
-    )
-
-
-def _axis_model(axis: str, terms, ci, names, ambiguous, estimate) -> NoiseModel:
-    """The one-axis noise model of an identification: each term's model value
-    (:func:`gyrocore.noise.model.model_value`), the intervals and resolved flags of the ``names``
-    the estimator identified."""
-    return NoiseModel(
-        **{k: model_value(k, terms.get(k), ambiguous, estimate) for k in TERMS},
-        ci95={k: [ci[k]] for k in names},
-        resolved={k: [terms.get(k) is not None] for k in names},
-        axes=(axis,),
-        source="identified",
     )
 
 

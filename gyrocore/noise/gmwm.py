@@ -68,6 +68,7 @@ import scipy.stats
 
 from .avar import LINEAR, avar_covariance, base_method, gm_avar, greenhall_edf, scales, term_avar
 from .diagnostics import ALPHA_GOF, FitCheck, goodness_of_fit, n_params
+from .model import NoiseModel
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
 
 __all__ = [
@@ -108,13 +109,15 @@ class NoiseFit:
     Attributes
     ----------
     method : str
-    terms : dict
-        Selected terms, SI values (None = not selected): keys of :data:`ALL_TERMS`.
+    model : NoiseModel
+        The fitted noise model of the axis (:class:`gyrocore.noise.model.NoiseModel`, one axis):
+        its values (:func:`gyrocore.noise.model.model_value`), the 95 % interval of every candidate
+        term (``model.ci95``; [0, upper bound] for an unselected one) and ``resolved`` flags;
+        :meth:`all_terms` gives the selected values (None = not selected or not resolved).
     estimate : dict
-        Point estimate of every term (0 for an unselected linear term; the profiled τc of the
-        best fit with a GM term, else NaN).
-    ci95 : dict
-        (lo, hi) of every term; [0, upper bound] for unselected terms.
+        The fit's point estimate of every term, also the unselected ones (0 for an unselected
+        linear term; the profiled τc of the best fit with a GM term, else NaN): a diagnostic
+        beside the model, for the upper bounds and stand-in checks.
     coef : ndarray (6,)
         Variance-scale coefficients of the selected fit (Q², N², B², K², R², σ²).
     tau_c_s : float or None
@@ -128,9 +131,8 @@ class NoiseFit:
     """
 
     method: str
-    terms: Mapping[str, float | None]
+    model: NoiseModel
     estimate: Mapping[str, float]
-    ci95: Mapping[str, tuple[float, float]]
     coef: np.ndarray
     tau_c_s: float | None
     cov: np.ndarray
@@ -147,6 +149,16 @@ class NoiseFit:
     #: unclaimed terms the record is too short to resolve at their fitted level
     #: (:func:`not_resolvable`): {term: {"expected_z", "threshold", "record_s", "needed_s"}}
     not_resolvable: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+
+    def all_terms(self) -> dict[str, float | None]:
+        """The selected value of every term of :data:`ALL_TERMS` (None = not selected or not
+        resolved), read from the model."""
+        return {k: self.model.reported(k)[0] for k in ALL_TERMS}
+
+    def interval(self, name: str) -> tuple[float, float]:
+        """95 % interval (lo, hi) of a term; [0, upper bound] when not selected."""
+        lo, hi = self.model.ci95[name][0]
+        return float(lo), float(hi)
 
 
 def _nnls_gls(A: np.ndarray, y: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, float]:
@@ -524,6 +536,7 @@ def fit_noise(
     iterations: int = 3,
     candidates: Sequence[str] | None = None,
     options: NoiseOptions = DEFAULT_NOISE_OPTIONS,
+    axis: str = "x",
 ) -> NoiseFit:
     """Identify the noise terms of one axis from its overlapping Allan variance at octave factors m.
 
@@ -549,6 +562,8 @@ def fit_noise(
         Terms allowed (names of :data:`LINEAR`); default all (``adev``: all but GM).
     options : NoiseOptions, optional
         ``robust_ci`` (default True): intervals robust to an unselected confounder.
+    axis : str, optional
+        Name of the axis, for the fitted model (sensor frame S).
 
     Returns
     -------
@@ -563,11 +578,11 @@ def fit_noise(
     terms, est, ci = _selected_intervals(p, sub, cov_p, ambiguous, robust=options.robust_ci)
     _unselected_bounds(p, sub, ambiguous, est, ci)
     short = _short_record(p, sub)
+    amb = {LINEAR[i]: LINEAR[j] for i, j in ambiguous.items()}
     return NoiseFit(
         method=method,
-        terms=terms,
+        model=NoiseModel.identified(axis, terms, ci, amb, est),
         estimate=est,
-        ci95=ci,
         coef=coef_s,
         tau_c_s=tc_s if 5 in sub else None,
         cov=C,
@@ -578,7 +593,7 @@ def fit_noise(
         selected=tuple(LINEAR[i] for i in sub),
         tau_c_range_s=(float(p.m[0] / p.rate_hz), float(p.m[-1] / p.rate_hz)),
         criteria={tuple(LINEAR[i] for i in k): v for k, v in p.lchi2.items()},
-        ambiguous={LINEAR[i]: LINEAR[j] for i, j in ambiguous.items()},
+        ambiguous=amb,
         dropped={LINEAR[i]: z for i, z in p.dropped.items()},
         not_resolvable=short,
     )

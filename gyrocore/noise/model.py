@@ -178,6 +178,28 @@ class NoiseModel:
             source="catalogue parameters",
         )
 
+    @classmethod
+    def identified(
+        cls,
+        axis: str,
+        terms: Mapping[str, float | None],
+        ci95: Mapping[str, tuple[float, float]],
+        ambiguous: Mapping[str, str],
+        estimate: Mapping[str, float],
+        names: Sequence[str] | None = None,
+    ) -> "NoiseModel":
+        """The one-axis model of an estimator's identification: each term's model value
+        (:func:`model_value`), the 95 % intervals and resolved flags of the ``names`` it identified
+        (default: the terms with an interval, in :data:`TERMS` order)."""
+        names = [k for k in TERMS if k in ci95] if names is None else list(names)
+        return cls(
+            **{k: model_value(k, terms.get(k), ambiguous, estimate) for k in TERMS},
+            ci95={k: [ci95[k]] for k in names},
+            resolved={k: [terms.get(k) is not None] for k in names},
+            axes=(axis,),
+            source="identified",
+        )
+
     # ------------------------------------------------------------------ views
     def reported(self, name: str) -> list[float | None]:
         """Per axis: the value where the estimator resolved the term, else ``None`` (DESIGN.md JSON:

@@ -283,11 +283,11 @@ def test_stand_in_check_flicker_floor_against_gauss_markov():
     assert G.expected_z(truth_b, n_samples=360000, rate_hz=RATE)["bias_instability_rad_s"] < G.Z_POWER
     assert G.expected_z(truth_b, n_samples=1440000, rate_hz=RATE)["bias_instability_rad_s"] >= G.Z_POWER
     f = blend(3600, 0.5)
-    assert "bias_instability_rad_s" in f.selected and f.terms["bias_instability_rad_s"] is None
+    assert "bias_instability_rad_s" in f.selected and f.all_terms()["bias_instability_rad_s"] is None
     assert f.ambiguous == {"bias_instability_rad_s": "correlated_sigma_rad_s"}
-    assert f.estimate["bias_instability_rad_s"] > 0 and f.ci95["bias_instability_rad_s"][0] == 0.0
+    assert f.estimate["bias_instability_rad_s"] > 0 and f.interval("bias_instability_rad_s")[0] == 0.0
     f4 = blend(14400, 0.7)
-    assert f4.terms["bias_instability_rad_s"] is not None and not f4.ambiguous
+    assert f4.all_terms()["bias_instability_rad_s"] is not None and not f4.ambiguous
 
 
 def test_chi_square_interval_of_a_coefficient():
@@ -329,7 +329,7 @@ def test_arw_interval_with_quantization_at_1khz_covers():
             f = G.fit_noise(
                 t, d**2, m, n, candidates=("quantization_rad", "arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s")
             )
-            lo, hi = f.ci95["arw_rad_per_sqrt_s"]
+            lo, hi = f.interval("arw_rad_per_sqrt_s")
             covered += lo <= 1e-4 <= hi
     assert covered >= 53, covered
     # pure white rate noise: Greenhall's EDF untouched
@@ -362,11 +362,11 @@ def test_ramp_must_reject_the_random_walk_world():
     r_world = G.fit_noise(m / RATE, k_world, m, n, candidates=("arw_rad_per_sqrt_s", "rate_ramp_rad_s2")).fit_avar
     f = G.fit_noise(m / RATE, 0.5 * k_world + 0.5 * r_world, m, n)
     assert f.selected == ("arw_rad_per_sqrt_s", "rrw_rad_per_s_sqrt_s"), f.selected
-    assert f.terms["rate_ramp_rad_s2"] is None and f.terms["rrw_rad_per_s_sqrt_s"] is not None
+    assert f.all_terms()["rate_ramp_rad_s2"] is None and f.all_terms()["rrw_rad_per_s_sqrt_s"] is not None
     f0 = G.fit_noise(m / RATE, G.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 0, 9.0 * _ramp2(r_world, m), 0]), m, n)
-    assert f0.terms["rate_ramp_rad_s2"] is not None and f0.terms["rrw_rad_per_s_sqrt_s"] is None
+    assert f0.all_terms()["rate_ramp_rad_s2"] is not None and f0.all_terms()["rrw_rad_per_s_sqrt_s"] is None
     f1 = G.fit_noise(m / RATE, r_world, m, n)
-    assert f1.terms["rate_ramp_rad_s2"] is None and f1.terms["rrw_rad_per_s_sqrt_s"] is not None
+    assert f1.all_terms()["rate_ramp_rad_s2"] is None and f1.all_terms()["rrw_rad_per_s_sqrt_s"] is not None
     # the rule: a ramp claimed for a true K only when the K world is rejected (level ALPHA_RAMP),
     # so K's margin against R is at least z_{1−α} — the R stand-in alone no longer caps it at ≈ 1.3
     z_k = G.expected_z({"arw_rad_per_sqrt_s": 1e-4, "rrw_rad_per_s_sqrt_s": 2e-6}, n_samples=n, rate_hz=RATE)
@@ -385,9 +385,9 @@ def test_ramp_claimed_at_the_level_of_every_claim():
     k_world = V.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 4e-12, 0, 0])
     r_world = G.fit_noise(m / RATE, k_world, m, n, candidates=("arw_rad_per_sqrt_s", "rate_ramp_rad_s2")).fit_avar
     f = G.fit_noise(m / RATE, 0.25 * k_world + 0.75 * r_world, m, n)
-    assert f.terms["rate_ramp_rad_s2"] is None and f.terms["rrw_rad_per_s_sqrt_s"] is not None, f.selected
+    assert f.all_terms()["rate_ramp_rad_s2"] is None and f.all_terms()["rrw_rad_per_s_sqrt_s"] is not None, f.selected
     f1 = G.fit_noise(m / RATE, G.term_avar(m, RATE) @ np.array([0, 1e-8, 0, 0, 9.0 * _ramp2(r_world, m), 0]), m, n)
-    assert f1.terms["rate_ramp_rad_s2"] is not None and f1.terms["rrw_rad_per_s_sqrt_s"] is None
+    assert f1.all_terms()["rate_ramp_rad_s2"] is not None and f1.all_terms()["rrw_rad_per_s_sqrt_s"] is None
     assert G.ALPHA_RAMP == G.ALPHA
 
 
@@ -407,8 +407,8 @@ def test_interval_robust_to_an_omitted_confounder():
 
     f0, f1 = fit(1e-5, False), fit(1e-5, True)
     assert "bias_instability_rad_s" not in f1.selected and "correlated_sigma_rad_s" in f1.selected
-    lo0, hi0 = f0.ci95["correlated_sigma_rad_s"]
-    lo1, hi1 = f1.ci95["correlated_sigma_rad_s"]
+    lo0, hi0 = f0.interval("correlated_sigma_rad_s")
+    lo1, hi1 = f1.interval("correlated_sigma_rad_s")
     assert lo1 < 0.9 * lo0 and hi1 >= hi0  # widened towards the enlarged model's σ (smaller: B takes its share)
-    assert f1.ci95["arw_rad_per_sqrt_s"] == f0.ci95["arw_rad_per_sqrt_s"]  # N is not touched
-    assert fit(5e-6, True).ci95["correlated_sigma_rad_s"] == fit(5e-6, False).ci95["correlated_sigma_rad_s"]
+    assert f1.interval("arw_rad_per_sqrt_s") == f0.interval("arw_rad_per_sqrt_s")  # N is not touched
+    assert fit(5e-6, True).interval("correlated_sigma_rad_s") == fit(5e-6, False).interval("correlated_sigma_rad_s")

@@ -198,8 +198,8 @@ def test_flicker_shape_at_the_first_octaves_stays_inside_n_interval():
     A = V.term_avar(m, rate)
     avar = A[:, 1] * N**2 + f * B**2 + A[:, 3] * K**2
     r = gmwm.fit_noise(m / rate, avar, m, n)
-    lo, hi = r.ci95["arw_rad_per_sqrt_s"]
-    z = (r.terms["arw_rad_per_sqrt_s"] - N) / ((hi - lo) / (2 * 1.959964))
+    lo, hi = r.interval("arw_rad_per_sqrt_s")
+    z = (r.all_terms()["arw_rad_per_sqrt_s"] - N) / ((hi - lo) / (2 * 1.959964))
     assert abs(z) <= 0.67, (z, lo / N, hi / N)
 
 

@@ -39,7 +39,7 @@ def test_k_below_the_guard_is_declared_not_resolvable_with_the_reason():
     record length that would resolve it (K's information grows with the number of long octaves:
     between 2 and 4 h here). The rule at the truth agrees: K not resolvable at 1 h."""
     f, n = _fit_truth(3600.0)
-    assert f.terms[K] is None
+    assert f.all_terms()[K] is None
     v = f.not_resolvable[K]
     assert v["expected_z"] < v["threshold"] == G.Z_NEEDED
     assert abs(v["expected_z"] - 1.98) < 0.05, v
@@ -51,7 +51,7 @@ def test_k_above_the_guard_is_found_and_not_declared():
     """4 h: K's Fisher z at the truth is ≈ 4 (> z₀.₉₉ + z₀.₉ = 3.61): the rule calls it resolvable and
     the noise-free fit claims it, with no "not resolvable" entry."""
     f, n = _fit_truth(14400.0)
-    assert f.terms[K] is not None and K not in f.not_resolvable
+    assert f.all_terms()[K] is not None and K not in f.not_resolvable
     assert abs(f.estimate[K] / TRUTH[K] - 1.0) < 0.02
     assert G.expected_z(TRUTH, n_samples=n, rate_hz=RATE)[K] >= G.Z_POWER
 
