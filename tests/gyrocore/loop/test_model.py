@@ -390,34 +390,10 @@ def test_long_record_chunked_fit_equals_whole_array_fit(monkeypatch):
     # result up to float-addition order where blocks straddle windows: relative rounding
     # ~average·eps ≈ 1e-14 times the normal-equation condition (< 1e3 here) → 1e-9 relative.
     from gyrocore.calib import lsq
+    from tests.gyrocore.calib.test_stream import _thermal_rate_record
 
-    rng = np.random.default_rng(11)
-    n = 12000
-    t = np.arange(n) / 200.0
-    w = np.stack(
-        [
-            0.8 * np.sin(2 * np.pi * t / 7.0),
-            0.6 * np.sin(2 * np.pi * t / 5.0 + 1),
-            0.5 * np.sin(2 * np.pi * t / 11.0 + 2),
-        ],
-        1,
-    )
-    T = 25 + 20 * (1 - np.exp(-t / 20.0))
-    params = {
-        "bias": {"b_rad_s": np.array([0.01, -0.007, 0.004])},
-        "scale": {"s": np.array([0.01, -0.02, 0.005])},
-        "bias_thermal": {
-            "poly_rad_s": np.array([[2e-4, -3e-6], [-1.5e-4, 2e-6], [1e-4, 4e-6]]),
-            "t0_c": np.asarray(30.0),
-            "temp_min_c": np.asarray(0.0),
-            "temp_max_c": np.asarray(100.0),
-        },
-        "time_offset": {"tau_s": np.asarray(0.004)},
-    }
-    y = w + E.deterministic(params, E.ModelInputs(t_s=t, omega_S_rad_s=w, temp_c=T))
-    y = y + 2e-3 * rng.standard_normal((n, 3))
-    y[rng.choice(n, 40, replace=False)] += 0.5  # transients for the robust pass
-    rec = Recording(t_s=t, gyro_rad_s=y, temp_c=T, ref_rate_rad_s=w)
+    r = _thermal_rate_record()  # the streamed-fit test's record, without its accelerometer
+    rec = Recording(t_s=r.t_s, gyro_rad_s=r.gyro_rad_s, temp_c=r.temp_c, ref_rate_rad_s=r.ref_rate_rad_s)
     eff = ["bias", "scale", "bias_thermal", "time_offset"]
     monkeypatch.setitem(lsq.fit_effects.__kwdefaults__, "chunk_rows", None)
     whole = Calibrator(effects=eff, max_rows=1000).fit(rec)
