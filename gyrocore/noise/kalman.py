@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from gyrocore.attitude import qmul
 from gyrocore.errors import GyroInputError, warn_repair
 
 from .model import NoiseModel
@@ -43,7 +44,6 @@ __all__ = [
     "StillBiasTracker",
     "AttitudeBiasTracker",
     "BiasTrack",
-    "quat_mul",
     "quat_exp",
     "quat_log",
 ]
@@ -266,22 +266,7 @@ class StillBiasTracker:
         )
 
 
-# ---------------------------------------------------------------------------- quaternions
-def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product p ⊗ q, w,x,y,z, batched."""
-    pw, px, py, pz = np.moveaxis(np.asarray(p, float), -1, 0)
-    qw, qx, qy, qz = np.moveaxis(np.asarray(q, float), -1, 0)
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
-
-
+# ---------------------------------------------------------------------------- quaternions (the product is gyrocore.attitude.qmul)
 def quat_exp(v: np.ndarray) -> np.ndarray:
     """Unit quaternion of the rotation vector v (rad), w,x,y,z, batched."""
     v = np.asarray(v, float)
@@ -391,15 +376,15 @@ class AttitudeBiasTracker:
         omega_hat = np.asarray(gyro_rad_s, float) - self.b
         F, Q = self._FQ(omega_hat, dt_s)
         self.kf.predict(F=F, Q=Q)
-        self.q = quat_mul(self.q, quat_exp(omega_hat * dt_s))
+        self.q = qmul(self.q, quat_exp(omega_hat * dt_s))
         self.q /= np.linalg.norm(self.q)
 
     def update(self, q_ref_wxyz: np.ndarray) -> None:
         """Fuse one reference attitude (4,), then move the error into q̂, b̂ and reset it."""
-        z = quat_log(quat_mul(self.q * np.array([1.0, -1.0, -1.0, -1.0]), np.asarray(q_ref_wxyz, float)))
+        z = quat_log(qmul(self.q * np.array([1.0, -1.0, -1.0, -1.0]), np.asarray(q_ref_wxyz, float)))
         self.kf.update(z)
         dx = np.array(self.kf.x, float).reshape(6)
-        self.q = quat_mul(self.q, quat_exp(dx[:3]))
+        self.q = qmul(self.q, quat_exp(dx[:3]))
         self.q /= np.linalg.norm(self.q)
         self.b = self.b + dx[3:]
         self.kf.x = np.zeros(6)
