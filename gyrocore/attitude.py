@@ -64,7 +64,9 @@ __all__ = [
     "qmul",
     "qconj",
     "qnormalize",
-    "quat_exp",
+    "quat_exp_half",
+    "quat_from_rotvec",
+    "rotvec_from_quat",
     "delta_quats",
     "prefix_product",
     "integrate_gyro",
@@ -129,14 +131,41 @@ def qnormalize(q: np.ndarray) -> np.ndarray:
     return q / n
 
 
-def quat_exp(v: np.ndarray) -> np.ndarray:
-    """exp((0, v)) = (cos|v|, v/|v|·sin|v|) for rotation half-vectors v, shape (..., 3) -> (..., 4).
+def quat_exp_half(v: np.ndarray) -> np.ndarray:
+    """exp((0, v)) = (cos|v|, v/|v|·sin|v|) of rotation **half**-vectors v = θ/2, rad, shape
+    (..., 3) -> (..., 4) w,x,y,z: the rotation by the rotation vector 2v (the integrator's exact
+    step, v = ω·Δt/2). Of a whole rotation vector θ: :func:`quat_from_rotvec`.
 
     sin(a)/a is evaluated by its series for small |v| so that |v| → 0 is exact.
     """
     v = np.asarray(v, float)
     flat = v.reshape(-1, 3)
     return _dq_soa(flat, np.full(flat.shape[0], 2.0)).T.reshape(v.shape[:-1] + (4,))
+
+
+def quat_from_rotvec(rotvec_rad: np.ndarray) -> np.ndarray:
+    """Unit quaternion w,x,y,z of the rotation vector θ (rad, the **whole** angle: |θ| about
+    θ/|θ|), shape (..., 3) -> (..., 4): exp((0, θ/2)) (cf. :func:`quat_exp_half` of θ/2, the
+    same rotation by other arithmetic). The attitude filter's error-state exponential."""
+    v = np.asarray(rotvec_rad, float)
+    a = np.linalg.norm(v, axis=-1, keepdims=True)
+    half = 0.5 * a
+    # sin(a/2)/a with its series near 0
+    s = np.where(a > 1e-8, np.sin(half) / np.where(a > 1e-8, a, 1.0), 0.5 - a * a / 48.0)
+    return np.concatenate([np.cos(half), s * v], axis=-1)
+
+
+def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation vector θ (rad, the whole angle; shortest: w ≥ 0) of unit quaternions w,x,y,z,
+    shape (..., 4) -> (..., 3): the inverse of :func:`quat_from_rotvec`."""
+    q = np.asarray(q, float)
+    q = np.where(q[..., :1] < 0, -q, q)
+    w = np.clip(q[..., :1], -1.0, 1.0)
+    v = q[..., 1:]
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    ang = 2.0 * np.arctan2(n, w)
+    f = np.where(n > 1e-12, ang / np.where(n > 1e-12, n, 1.0), 2.0 / np.maximum(w, 1e-300))
+    return f * v
 
 
 # ------------------------------------------------------------------ integration

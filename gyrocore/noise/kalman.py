@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from gyrocore.attitude import qmul
+from gyrocore.attitude import qmul, quat_from_rotvec, rotvec_from_quat
 from gyrocore.errors import GyroInputError, warn_repair
 
 from .model import NoiseModel
@@ -44,8 +44,6 @@ __all__ = [
     "StillBiasTracker",
     "AttitudeBiasTracker",
     "BiasTrack",
-    "quat_exp",
-    "quat_log",
 ]
 
 # First-order Gauss–Markov: ADEV peak ≈ 0.6178 σ at τ ≈ 1.89 τc; flicker floor = 0.6643 B.
@@ -266,29 +264,6 @@ class StillBiasTracker:
         )
 
 
-# ---------------------------------------------------------------------------- quaternions (the product is gyrocore.attitude.qmul)
-def quat_exp(v: np.ndarray) -> np.ndarray:
-    """Unit quaternion of the rotation vector v (rad), w,x,y,z, batched."""
-    v = np.asarray(v, float)
-    a = np.linalg.norm(v, axis=-1, keepdims=True)
-    half = 0.5 * a
-    # sin(a/2)/a with its series near 0
-    s = np.where(a > 1e-8, np.sin(half) / np.where(a > 1e-8, a, 1.0), 0.5 - a * a / 48.0)
-    return np.concatenate([np.cos(half), s * v], axis=-1)
-
-
-def quat_log(q: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad) of a unit quaternion w,x,y,z (shortest, w ≥ 0), batched."""
-    q = np.asarray(q, float)
-    q = np.where(q[..., :1] < 0, -q, q)
-    w = np.clip(q[..., :1], -1.0, 1.0)
-    v = q[..., 1:]
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    ang = 2.0 * np.arctan2(n, w)
-    f = np.where(n > 1e-12, ang / np.where(n > 1e-12, n, 1.0), 2.0 / np.maximum(w, 1e-300))
-    return f * v
-
-
 def _skew(w: np.ndarray) -> np.ndarray:
     x, y, z = w
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
@@ -376,15 +351,15 @@ class AttitudeBiasTracker:
         omega_hat = np.asarray(gyro_rad_s, float) - self.b
         F, Q = self._FQ(omega_hat, dt_s)
         self.kf.predict(F=F, Q=Q)
-        self.q = qmul(self.q, quat_exp(omega_hat * dt_s))
+        self.q = qmul(self.q, quat_from_rotvec(omega_hat * dt_s))
         self.q /= np.linalg.norm(self.q)
 
     def update(self, q_ref_wxyz: np.ndarray) -> None:
         """Fuse one reference attitude (4,), then move the error into q̂, b̂ and reset it."""
-        z = quat_log(qmul(self.q * np.array([1.0, -1.0, -1.0, -1.0]), np.asarray(q_ref_wxyz, float)))
+        z = rotvec_from_quat(qmul(self.q * np.array([1.0, -1.0, -1.0, -1.0]), np.asarray(q_ref_wxyz, float)))
         self.kf.update(z)
         dx = np.array(self.kf.x, float).reshape(6)
-        self.q = qmul(self.q, quat_exp(dx[:3]))
+        self.q = qmul(self.q, quat_from_rotvec(dx[:3]))
         self.q /= np.linalg.norm(self.q)
         self.b = self.b + dx[3:]
         self.kf.x = np.zeros(6)

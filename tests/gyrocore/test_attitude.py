@@ -46,6 +46,20 @@ def test_constant_rate_is_exact_rotation():
     assert np.max(A.error_angle_rad(q, truth)) < 1e-12
 
 
+def test_half_vector_and_rotation_vector_exponentials():
+    # quat_exp_half takes θ/2, quat_from_rotvec takes θ: the same rotation, the names say which
+    # argument; both unit quaternions, so components agree to rounding (a few ulp of 1: 1e-15)
+    rng = np.random.default_rng(7)
+    theta = 0.5 * rng.normal(size=(200, 3)) * np.array([[1.0], [1e-9]]).repeat(100, axis=0)  # |θ| < π
+    q_half = A.quat_exp_half(0.5 * theta)
+    q_rv = A.quat_from_rotvec(theta)
+    np.testing.assert_allclose(q_half, q_rv, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(A.rotvec_from_quat(q_rv), theta, rtol=1e-12, atol=1e-18)
+    # half the vector is not the whole: a 2-rad rotation vector read as a half-vector turns 4 rad
+    v = np.array([[2.0, 0.0, 0.0]])
+    np.testing.assert_allclose(A.error_angle_rad(A.quat_exp_half(v), A.quat_from_rotvec(v)), 2.0, atol=1e-12)
+
+
 def test_body_to_world_convention():
     # +z rate for 90° turns the sensor x axis onto the world y axis (q rotates S -> W).
     t = np.linspace(0.0, 1.0, 101)
