@@ -71,6 +71,7 @@ __all__ = [
     "prefix_product",
     "integrate_gyro",
     "integrate_gyro_loop",
+    "integrate_gyro_windows",
     "error_angle_rad",
     "tilt_error_rad",
     "score_attitude",
@@ -300,6 +301,50 @@ def integrate_gyro(
         carry = out[:, s1] / math.sqrt(float(np.dot(out[:, s1], out[:, s1])))
     out /= np.sqrt(np.einsum("ij,ij->j", out, out))[None, :]
     return out.T
+
+
+def integrate_gyro_windows(
+    t_s: np.ndarray,
+    rate_rows,
+    windows,
+    *,
+    q0_wxyz: np.ndarray | None = None,
+):
+    """:func:`integrate_gyro` (backward hold) of a rate read a window of rows at a time, the
+    attitude carried across the windows.
+
+    Each window after the first starts from the previous window's last attitude and last rate
+    sample, so the backward-hold step across the cut is taken once (with the previous window's
+    last rate prepended, the step into the window's first sample is that of the whole record).
+
+    Parameters
+    ----------
+    t_s : ndarray, shape (N,)
+        Sample times, s, strictly increasing (in memory).
+    rate_rows : callable
+        ``rate_rows(lo, hi)`` -> rows lo:hi of the rate of S relative to W, in S, rad/s,
+        shape (hi − lo, 3).
+    windows : iterable of (int, int)
+        Consecutive row ranges [lo, hi) covering the record in order.
+    q0_wxyz : ndarray, shape (4,), optional
+        Initial attitude S→W (default identity).
+
+    Yields
+    ------
+    lo, hi : int
+        The window.
+    q_SW_wxyz : ndarray, shape (hi − lo, 4)
+        The attitude on rows lo:hi, w,x,y,z.
+    """
+    q_carry = w_last = None
+    for lo, hi in windows:
+        w = rate_rows(lo, hi)
+        if q_carry is None:
+            q = integrate_gyro(t_s[lo:hi], w, q0_wxyz=q0_wxyz, hold="backward")
+        else:
+            q = integrate_gyro(t_s[lo - 1 : hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward")[1:]
+        yield lo, hi, q
+        q_carry, w_last = q[-1], w[-1:]
 
 
 def _exp_step(qw: float, qx: float, qy: float, qz: float, hx: float, hy: float, hz: float):

@@ -221,30 +221,21 @@ class SpilledRecording:
     def reference_quaternions(self) -> Rows | None:
         """The reference attitude S→W per sample: ``ref_q*`` when finite everywhere, else the
         reference rate integrated window by window (the attitude carried across windows;
-        :func:`gyrocore.attitude.integrate_gyro`, backward hold), kept in a file beside the
+        :func:`gyrocore.attitude.integrate_gyro_windows`, backward hold), kept in a file beside the
         spill. None without either."""
         if self.ref_quat_wxyz is not None and self.all_finite("ref_quat"):
             return self.ref_quat_wxyz
         if self.ref_rate_rad_s is None or not self.all_finite("ref_rate"):
             return None
         if self._q_integrated is None:
-            from gyrocore.attitude import integrate_gyro
+            from gyrocore.attitude import integrate_gyro_windows
 
             names = [f"ref_int_q{c}" for c in "wxyz"]
             files = [open(self.store.folder / f"{nm}.f64", "wb") for nm in names]
-            q_carry = w_last = None
             try:
-                for lo, hi in self.chunks():
-                    w = self.ref_rate_rad_s.rows(lo, hi)
-                    if q_carry is None:
-                        q = integrate_gyro(self.t_s[lo:hi], w, hold="backward")
-                    else:
-                        q = integrate_gyro(
-                            self.t_s[lo - 1 : hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward"
-                        )[1:]
+                for _, _, q in integrate_gyro_windows(self.t_s, self.ref_rate_rad_s.rows, self.chunks()):
                     for j in range(4):
                         np.ascontiguousarray(q[:, j]).tofile(files[j])
-                    q_carry, w_last = q[-1], w[-1:]
             finally:
                 for fh in files:
                     fh.close()

@@ -23,7 +23,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gyrocore.attitude import integrate_gyro
+from gyrocore.attitude import integrate_gyro, integrate_gyro_windows
 from gyrocore.calib.stream import LazyRotations, Rows, SpilledRecording, held_correction, rows_of
 from gyrocore.data.recording import Recording
 
@@ -41,19 +41,11 @@ def column(x, i: int) -> np.ndarray:
 
 
 def integrated_windows(src, rate, q0_wxyz: np.ndarray | None = None):
-    """The rate (N, 3) rad/s integrated window by window (backward hold, :func:`integrate_gyro`),
-    the attitude carried across windows: yields (lo, hi, q (hi − lo, 4) w,x,y,z) per window,
-    starting from ``q0_wxyz`` (default: identity)."""
-    t = src.rec.t_s
-    q_carry = w_last = None
-    for lo, hi in src.windows():
-        w = rows_of(rate, lo, hi)
-        if q_carry is None:
-            q = integrate_gyro(t[lo:hi], w, q0_wxyz=q0_wxyz, hold="backward")
-        else:
-            q = integrate_gyro(t[lo - 1 : hi], np.vstack([w_last, w]), q0_wxyz=q_carry, hold="backward")[1:]
-        yield lo, hi, q
-        q_carry, w_last = q[-1], w[-1:]
+    """The rate (N, 3) rad/s integrated window by window over the source's windows, the
+    attitude carried across them (:func:`gyrocore.attitude.integrate_gyro_windows`, backward
+    hold): yields (lo, hi, q (hi − lo, 4) w,x,y,z) per window, starting from ``q0_wxyz``
+    (default: identity)."""
+    return integrate_gyro_windows(src.rec.t_s, lambda lo, hi: rows_of(rate, lo, hi), src.windows(), q0_wxyz=q0_wxyz)
 
 
 class _InMemory:

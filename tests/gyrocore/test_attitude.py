@@ -36,6 +36,27 @@ def test_vectorised_matches_loop_random_rates_and_jittery_steps(monkeypatch):
         A.integrate_gyro(t, w, hold="midpoint")
 
 
+def test_windows_carry_the_attitude_across_the_cuts():
+    rng = np.random.default_rng(11)
+    n = 3001
+    t = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, n))
+    w = rng.normal(0.0, 3.0, (n, 3))
+    q0 = A.qnormalize(rng.normal(size=4))
+    whole = A.integrate_gyro(t, w, q0_wxyz=q0)
+    # one window is the whole-record call itself: the same numbers
+    ((lo, hi, q),) = list(A.integrate_gyro_windows(t, lambda a, b: w[a:b], [(0, n)], q0_wxyz=q0))
+    assert (lo, hi) == (0, n) and np.array_equal(q, whole)
+    # windows of 700 rows: each restarts from the carried, renormalised attitude (ε per cut,
+    # the product's rounding ≲ n·ε ≈ 3e3 · 1.1e-16 ≈ 3e-13 rad as in the test above)
+    cuts = [(a, min(a + 700, n)) for a in range(0, n, 700)]
+    parts = list(A.integrate_gyro_windows(t, lambda a, b: w[a:b], cuts, q0_wxyz=q0))
+    assert [(a, b) for a, b, _ in parts] == cuts
+    assert np.max(A.error_angle_rad(np.vstack([q for *_, q in parts]), whole)) < 1e-11
+    # a window that forgot the carried step would be off by one step's rotation (|ω|·Δt ~ 5e-3 rad)
+    first = A.integrate_gyro(t[700:1400], w[700:1400], q0_wxyz=parts[0][2][-1])
+    assert np.max(A.error_angle_rad(first, whole[700:1400])) > 1e-4
+
+
 def test_constant_rate_is_exact_rotation():
     # ZOH exact step: constant ω about a fixed axis integrates to exp(ω t / 2) exactly.
     t = np.linspace(0.0, 7.3, 7301)
