@@ -83,19 +83,32 @@ def locate_bad_value(path: str, *, skiprows: int, delimiter: str | None = ",", n
     return f"{path}: rows have different numbers of values"
 
 
-def _parse_rows(lines: list[str], first_lineno: int, header: list[str], path: str) -> tuple[np.ndarray, int]:
+def _parse_rows(
+    lines: list[str], first_lineno: int, header: list[str], path: str, *, last: bool = False
+) -> tuple[np.ndarray, int]:
     """Slow exact parser (used when the fast one fails): empty fields → NaN, else one-line errors.
+
+    ``last``: ``lines`` end the file. Its last non-blank line, cut short (fewer values than the
+    header names, or a last value that is not a number: a logger stopped mid-write, a copy cut
+    off), is dropped with a warning; anywhere else such a line is an error.
 
     Returns the array and the number of empty fields that were read as NaN.
     """
     n = len(header)
     out = []
     n_empty = 0
+    k_final = _final_line(lines) if last else -1
     for k, line in enumerate(lines):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         f = s.split(",")
+        if k == k_final and _cut_short(f, n):
+            warn_repair(
+                f"{path}: last line {first_lineno + k} is cut short ({len(f)} of {n} values, "
+                f"{s[-20:]!r}: the write was interrupted?); dropped"
+            )
+            continue
         if len(f) != n:
             raise GyroInputError(f"{path}: line {first_lineno + k}: {len(f)} values but the header names {n} columns")
         row = []
@@ -115,8 +128,36 @@ def _parse_rows(lines: list[str], first_lineno: int, header: list[str], path: st
     return (np.asarray(out, dtype=float).reshape(-1, n), n_empty)
 
 
-def _slow_parse(lines: list[str], first_lineno: int, header: list[str], path: str) -> np.ndarray:
-    data, n_empty = _parse_rows(lines, first_lineno, header, path)
+def _final_line(lines: list[str]) -> int:
+    """Index of the last non-blank, non-comment line of ``lines`` (-1 when none)."""
+    for k in range(len(lines) - 1, -1, -1):
+        s = lines[k].strip()
+        if s and not s.startswith("#"):
+            return k
+    return -1
+
+
+def _cut_short(fields: list[str], n: int) -> bool:
+    """A row cut off mid-write: fewer than ``n`` values, or all ``n`` with a last one that is
+    not a number (``1.2e-``). A row with more values, or with text before its last value, is
+    not a truncation."""
+    if len(fields) > n:
+        return False
+    try:
+        [float(v) for v in fields[:-1] if v.strip()]
+    except ValueError:
+        return False
+    if len(fields) < n:
+        return True
+    try:
+        float(fields[-1]) if fields[-1].strip() else None
+    except ValueError:
+        return True
+    return False
+
+
+def _slow_parse(lines: list[str], first_lineno: int, header: list[str], path: str, *, last: bool = False) -> np.ndarray:
+    data, n_empty = _parse_rows(lines, first_lineno, header, path, last=last)
     if n_empty:
         warn_repair(f"{path}: {n_empty} empty fields read as missing values (NaN)")
     return data
@@ -452,14 +493,21 @@ def _exact_blocks(path, header, n_skip, want, skip_data_rows, first_lineno, rows
             for _ in range(n_skip):
                 fh.readline()
             lineno = _data_lines(fh, skip_data_rows, first_lineno)
-            while True:
-                lines = list(itertools.islice(fh, rows))
-                if not lines:
-                    break
-                data = _slow_parse(lines, lineno, header, path)
+            lines = list(itertools.islice(fh, rows))
+            while lines:
+                # one chunk read ahead: the parser must know which lines end the file (a last
+                # line cut short is dropped there, an error anywhere else)
+                following = list(itertools.islice(fh, rows))
+                while following and _final_line(following) < 0:  # blank lines: is there data after them?
+                    more = list(itertools.islice(fh, rows))
+                    if not more:
+                        break
+                    following += more
+                data = _slow_parse(lines, lineno, header, path, last=_final_line(following) < 0)
                 lineno += len(lines)
                 if data.shape[0]:
                     yield {i: data[:, i].copy() for i in want}
+                lines = following
     except UnicodeDecodeError as exc:  # found by bench/fuzz_reader.py (atheris)
         raise GyroInputError(f"{path}: not UTF-8 text after the header near line {lineno} ({exc.reason})") from None
 

@@ -186,9 +186,33 @@ def test_text_in_number_names_line_and_column(tmp_path):
     p = _write(tmp_path, "# a: b\n" + HEADER + "\n0,0,0,0\n0.01,0,abc,0\n")
     with pytest.raises(GyroInputError, match=r"line 4, column 'gyro_y_rad_s': text in a number \('abc'\)"):
         read_csv(p)
-    p = _write(tmp_path, HEADER + "\n0,0,0,0\n0.01,0,0\n")
+    p = _write(tmp_path, HEADER + "\n0,0,0,0\n0.01,0,0\n0.02,0,0,0\n")
     with pytest.raises(GyroInputError, match="line 3: 3 values but the header names 4 columns"):
         read_csv(p)
+
+
+@pytest.mark.parametrize("cut", ["0.03,0.5,0.2", "0.03,0.5,0.2,1.5e-", "0.03,0."])
+def test_last_line_cut_short_is_dropped_with_a_warning(tmp_path, cut):
+    """A logger stopped mid-write leaves its last line short: that line is dropped and said;
+    the same line with a row after it (not the end of the file) stays an error."""
+    body = "".join(f"{k * 0.01:.2f},{k},0.5,{-k}\n" for k in range(3))
+    for tail in ("", "\n", "\n\n"):  # with and without the final newline, blank lines after
+        p = _write(tmp_path, HEADER + "\n" + body + cut + tail)
+        with pytest.warns(RepairWarning, match=r"last line 5 is cut short \(\d of 4 values.*dropped"):
+            rec = read_csv(p)
+        assert np.array_equal(rec.gyro_rad_s[:, 0], [0.0, 1.0, 2.0]) and rec.n == 3
+        chunks = list(iter_csv_chunks(p, rows=2))  # the chunked path drops it too
+        assert sum(c.n for c in chunks) == 3
+    p = _write(tmp_path, HEADER + "\n" + body + cut + "\n0.04,0,0,0\n")
+    with pytest.raises(GyroInputError, match="line 5"):
+        read_csv(p)
+
+
+def test_last_line_with_text_or_too_many_values_is_still_an_error(tmp_path):
+    for last in ("0.03,abc,0.2,0.1", "0.03,0.1,0.2,0.3,0.4"):
+        p = _write(tmp_path, HEADER + "\n0,0,0,0\n0.01,0,0,0\n" + last + "\n")
+        with pytest.raises(GyroInputError, match="line 4"):
+            read_csv(p)
 
 
 def test_missing_and_incomplete_columns(tmp_path):
