@@ -26,6 +26,8 @@ __all__ = [
     "ljung_box_p",
     "low_frequency_excess",
     "residual_autocov_model",
+    "residual_autocov_models",
+    "autocov_apply",
     "residual_sandwich_meat",
     "long_run_covariance",
     "noise_model_meat",
@@ -294,12 +296,44 @@ def residual_autocov_model(
     return out
 
 
+def residual_autocov_models(e: np.ndarray) -> list[np.ndarray]:
+    """:func:`residual_autocov_model` of each column of e (N, K): K arrays γ(0..L)."""
+    return [residual_autocov_model(e[:, i]) for i in range(e.shape[1])]
+
+
+#: Columns per block of :func:`autocov_apply` (memory only: the complex spectra of all 900
+#: columns of a step scan at once are ~0.3 GB; each column's convolution is independent).
+AUTOCOV_BLOCK_COLUMNS = 64
+
+
+def autocov_apply(U: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Γ·U for the Toeplitz autocovariance Γ of lags 0..L given by g (:func:`residual_autocov_model`),
+    U (M, K): a convolution along time by FFT (scipy.signal.fftconvolve), lags beyond M − 1
+    unused. Returns (M, K)."""
+    from scipy import signal as _signal
+
+    M = U.shape[0]
+    L = min(g.size - 1, M - 1)
+    if L <= 0:
+        return g[0] * U
+    ker = np.concatenate([g[L:0:-1], g[: L + 1]])  # lags −L..L
+    K = U.shape[1]
+    if K <= AUTOCOV_BLOCK_COLUMNS:
+        return _signal.fftconvolve(U, ker[:, None], mode="full", axes=0)[L : L + M]
+    out = np.empty(U.shape)
+    for c in range(0, K, AUTOCOV_BLOCK_COLUMNS):
+        out[:, c : c + AUTOCOV_BLOCK_COLUMNS] = _signal.fftconvolve(
+            U[:, c : c + AUTOCOV_BLOCK_COLUMNS], ker[:, None], mode="full", axes=0
+        )[L : L + M]
+    return out
+
+
 def residual_sandwich_meat(A: np.ndarray, W: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, int]:
     """Meat Σ_i (W_i A_i)ᵀ Γ_i (W_i A_i) of the sandwich covariance with stationary errors.
 
     Γ_i is the Toeplitz autocovariance of axis i's residual from
     :func:`residual_autocov_model` (axes assumed mutually uncorrelated); the product is a
-    convolution along time, done by FFT (scipy.signal.fftconvolve), O(P·N log N).
+    convolution along time, done by FFT (:func:`autocov_apply`), O(P·N log N).
 
     Parameters
     ----------
@@ -312,8 +346,6 @@ def residual_sandwich_meat(A: np.ndarray, W: np.ndarray, e: np.ndarray) -> tuple
     S : ndarray, shape (P, P)
     L : int — the longest lag used.
     """
-    from scipy import signal as _signal
-
     n, _, P = A.shape
     S = np.zeros((P, P))
     Lmax = 0
@@ -328,9 +360,7 @@ def residual_sandwich_meat(A: np.ndarray, W: np.ndarray, e: np.ndarray) -> tuple
         if L == 0:
             S[np.ix_(cols, cols)] += g[0] * (u[:, cols].T @ u[:, cols])
             continue
-        ker = np.concatenate([g[::-1], g[1:]])  # lags −L..L
-        v = _signal.fftconvolve(u[:, cols], ker[:, None], mode="full", axes=0)[L : L + n]
-        S[np.ix_(cols, cols)] += u[:, cols].T @ v
+        S[np.ix_(cols, cols)] += u[:, cols].T @ autocov_apply(u[:, cols], g)  # L ≤ n − 1: every lag of g
     return (S + S.T) / 2, Lmax
 
 

@@ -17,7 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .search import _autocovs, _gamma_apply, _project_off, _weighted
+from gyrocore.calib.covariance import autocov_apply, residual_autocov_models
+
+from .projection import project_off, weighted_design, weighted_residual
 
 __all__ = ["screen_step", "simulate_gaussian", "step_noise_model", "simulate_noise_model", "StepScreen"]
 
@@ -130,10 +132,10 @@ def step_columns(res, idx: np.ndarray) -> np.ndarray:
 
 
 def _weighted_step_columns(res, idx: np.ndarray, sw: np.ndarray) -> np.ndarray:
-    """``_weighted(step_columns(res, idx), sw)`` built directly as (3M, 3J) (without the
+    """``weighted_design(step_columns(res, idx), sw)`` built directly as (3M, 3J) (without the
     rotation operator: the same numbers, one array instead of two)."""
     if res.R_GS is not None:
-        return _weighted(step_columns(res, idx), sw)
+        return weighted_design(step_columns(res, idx), sw)
     M, J = res.m, idx.size
     t0 = res.inputs.t_s[res.win_start]
     ts = t0[idx]
@@ -161,8 +163,8 @@ def _refine_step(res, X0, e, sw, idx, jbest) -> int:
     if fine.size <= 1:
         return int(idx[jbest])
     C = step_columns(res, fine)
-    Cp = _project_off(_weighted(X0, sw), _weighted(C, sw))
-    ew = np.concatenate([e[:, i] * sw[i] for i in range(3)])
+    Cp = project_off(weighted_design(X0, sw), weighted_design(C, sw))
+    ew = weighted_residual(e, sw)
     J = fine.size
     z = (Cp.T @ ew).reshape(J, 3)
     Cp3 = Cp.reshape(Cp.shape[0], J, 3)
@@ -211,9 +213,9 @@ def screen_step(
     if idx.size > max_candidates:
         idx = idx[np.linspace(0, idx.size - 1, max_candidates).astype(int)]
     sw = 1.0 / np.maximum(np.asarray(sigma, float), 1e-300)
-    Xw = _weighted(X0, sw)
-    Cp = _project_off(Xw, _weighted_step_columns(res, idx, sw), overwrite=True)
-    ew = np.concatenate([e[:, i] * sw[i] for i in range(3)])
+    Xw = weighted_design(X0, sw)
+    Cp = project_off(Xw, _weighted_step_columns(res, idx, sw), overwrite=True)
+    ew = weighted_residual(e, sw)
     J = idx.size
     z = (Cp.T @ ew).reshape(J, 3)
     Cp3 = Cp.reshape(Cp.shape[0], J, 3)
@@ -229,13 +231,13 @@ def screen_step(
     zf = z.copy()
     del Cp, Cp3
     E_alt = e_alt.reshape(3, M).T
-    gs = _autocovs(E_alt if noise_from == "alternative" else ew.reshape(3, M).T)
+    gs = residual_autocov_models(E_alt if noise_from == "alternative" else ew.reshape(3, M).T)
     # the test statistic is a *local* contrast (mean of the h windows after τ minus the h
     # before, projected off the model): abrupt changes count, slow wander (Gauss–Markov with a
     # correlation time of the record's length, flicker, random walk) hardly does — whereas the
     # global CUSUM contrast cannot tell a step from a wander that the short-lag noise model
     # does not see
-    # the weighted contrast columns (_weighted of the (M, 3, 3J) design: rows axis-major, axis
+    # the weighted contrast columns (weighted_design of the (M, 3, 3J) design: rows axis-major, axis
     # i's rows × √w_i), built in place: the same numbers, one (3M, 3J) array
     Clw = np.zeros((3 * M, 3 * J))
     for i in range(3):
@@ -243,13 +245,13 @@ def screen_step(
         for j, k in enumerate(idx):
             Clw[i * M + k : i * M + k + h, 3 * j + i] = up
             Clw[i * M + k - h : i * M + k, 3 * j + i] = down
-    Clp = _project_off(Xw, Clw, overwrite=True)
+    Clp = project_off(Xw, Clw, overwrite=True)
     del Clw
     z = (Clp.T @ ew).reshape(J, 3)
     V = np.zeros((J, 3, 3))
     for a in range(3):
         U = Clp[a * M : (a + 1) * M]
-        GU = _gamma_apply(U, gs[a])
+        GU = autocov_apply(U, gs[a])
         V += np.einsum("mja,mjb->jab", U.reshape(M, J, 3), GU.reshape(M, J, 3))
         del GU
     Vinv = np.linalg.pinv(V)

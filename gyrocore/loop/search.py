@@ -41,12 +41,13 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy import signal as _signal
 from scipy import stats
 
 from gyrocore.calib import covariance
 from gyrocore.errors import GyroInputError
 from gyrocore.effects import registry as E
+
+from .projection import project_off, weighted_design, weighted_residual
 
 __all__ = [
     "ALPHA_SHARE",
@@ -181,57 +182,6 @@ class Unexplained:
         return d
 
 
-# ---------------------------------------------------------------------------- noise model helpers
-def _autocovs(e_w: np.ndarray) -> list[np.ndarray]:
-    """The HAC autocovariance model of each column of e_w (M, 3)."""
-    return [covariance.residual_autocov_model(e_w[:, i]) for i in range(e_w.shape[1])]
-
-
-def _gamma_apply(U: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """Γ·U for a Toeplitz Γ with autocovariance g (lags 0..L), U (M, K)."""
-    M = U.shape[0]
-    L = min(g.size - 1, M - 1)
-    if L <= 0:
-        return g[0] * U
-    ker = np.concatenate([g[L:0:-1], g[: L + 1]])
-    # in blocks of columns: each column's convolution is independent (same FFT length), and
-    # the complex spectra of all 900 step columns at once are ~0.3 GB
-    K = U.shape[1]
-    if K <= _GAMMA_BLOCK:
-        return _signal.fftconvolve(U, ker[:, None], mode="full", axes=0)[L : L + M]
-    out = np.empty(U.shape)
-    for c in range(0, K, _GAMMA_BLOCK):
-        out[:, c : c + _GAMMA_BLOCK] = _signal.fftconvolve(
-            U[:, c : c + _GAMMA_BLOCK], ker[:, None], mode="full", axes=0
-        )[L : L + M]
-    return out
-
-
-#: Columns per block of :func:`_gamma_apply` (memory only).
-_GAMMA_BLOCK = 64
-
-
-def _project_off(Xw: np.ndarray, C: np.ndarray, *, overwrite: bool = False) -> np.ndarray:
-    """C minus its least-squares projection on the columns of Xw (both (R, ·)); ``overwrite``:
-    in place in C (a temporary of the caller's: one (R, ·) array fewer, the same numbers)."""
-    if Xw.shape[1] == 0:
-        return C
-    Q, Rr = np.linalg.qr(Xw, mode="reduced")
-    keep = np.abs(np.diag(Rr)) > 1e-10 * max(np.abs(np.diag(Rr)).max(), 1e-300)
-    Q = Q[:, keep]
-    if overwrite:  # in blocks of columns: a (R, 64) temporary instead of (R, ·)
-        for c in range(0, C.shape[1], _GAMMA_BLOCK):
-            blk = C[:, c : c + _GAMMA_BLOCK]
-            blk -= Q @ (Q.T @ blk)
-        return C
-    return C - Q @ (Q.T @ C)
-
-
-def _weighted(X: np.ndarray, sw: np.ndarray) -> np.ndarray:
-    """(M, 3, P) design × per-axis √w -> flattened (3M, P), axis-major rows."""
-    return np.concatenate([X[:, i, :] * sw[i] for i in range(3)], axis=0)
-
-
 # ---------------------------------------------------------------------------- regressor library
 def library_windows(res, terms: Sequence[str]) -> np.ndarray:
     """Window regressors of the library: (M, 3, 3·T), column 3·k + i = term k on gyro axis i.
@@ -337,7 +287,7 @@ def collinear_simpler(
     """
     Xlib = library_windows(res, terms) if Xlib is None else Xlib
     sw = 1.0 / np.maximum(np.asarray(sigma, float), 1e-300)
-    Xw = _weighted(X0, sw)
+    Xw = weighted_design(X0, sw)
     pos = {t: k for k, t in enumerate(terms)}
     out = {}
     for k, term in enumerate(terms):
@@ -350,7 +300,7 @@ def collinear_simpler(
             continue
         for i in range(3):
             cols = [3 * k + i] + [3 * kk + i for _, kk in subs]
-            P = _project_off(Xw, _weighted(Xlib[:, :, cols], sw))
+            P = project_off(Xw, weighted_design(Xlib[:, :, cols], sw))
             c = P[:, 0]
             nc = float(c @ c)
             if not nc > 0:
@@ -393,16 +343,16 @@ def score_tests(X0: np.ndarray, e: np.ndarray, sigma: np.ndarray, C: np.ndarray)
     """
     M = e.shape[0]
     sw = 1.0 / np.maximum(np.asarray(sigma, float), 1e-300)
-    Xw = _weighted(X0, sw)
-    Cw = _weighted(C, sw)
-    ew = np.concatenate([e[:, i] * sw[i] for i in range(3)])
-    Cp = _project_off(Xw, Cw)
+    Xw = weighted_design(X0, sw)
+    Cw = weighted_design(C, sw)
+    ew = weighted_residual(e, sw)
+    Cp = project_off(Xw, Cw)
     z = Cp.T @ ew
-    gs = _autocovs(np.stack([e[:, i] * sw[i] for i in range(3)], axis=1))
+    gs = covariance.residual_autocov_models(np.stack([e[:, i] * sw[i] for i in range(3)], axis=1))
     var = np.zeros(C.shape[2])
     for i in range(3):
         U = Cp[i * M : (i + 1) * M]
-        var += np.einsum("mk,mk->k", U, _gamma_apply(U, gs[i]))
+        var += np.einsum("mk,mk->k", U, covariance.autocov_apply(U, gs[i]))
     nrm = np.einsum("rk,rk->k", Cp, Cp)
     with np.errstate(divide="ignore", invalid="ignore"):
         F = np.where(var > 0, z**2 / var, 0.0)
