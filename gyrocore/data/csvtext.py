@@ -471,9 +471,34 @@ def _time_col(header: list[str], path: str) -> tuple[int, float]:
                 f" (the header is one column {header[0][:60]!r}: the file is separated by "
                 f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)"
             )
+        else:
+            hint = _header_hint(header)
         raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
     h, i = found[0]
     return i, TIME_ALTS[h]
+
+
+def _header_hint(header: list[str]) -> str:
+    """What the header row holds, for the "missing column" error: a first row of numbers (no
+    header), or the names found (another tool's CSV: ``Time (s)``, ``gx``, ...)."""
+
+    def number(h: str) -> bool:
+        try:
+            float(h)
+        except ValueError:
+            return False
+        return True
+
+    if header and all(number(h) for h in header if h):
+        return (
+            f" (the first line, {','.join(header)[:40]!r}, is numbers: the file has no header row; a data file "
+            f"starts with one naming its columns t_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s,... (docs/data.md))"
+        )
+    names = ", ".join(repr(h[:30]) for h in header[:6]) + (f", ... ({len(header)} columns)" if len(header) > 6 else "")
+    return (
+        f" (the header names {names}; a data file names its columns t_s, gyro_x_rad_s or gyro_x_deg_s, ... "
+        f"(docs/data.md): rename them, or `gyroharness convert` a source it knows)"
+    )
 
 
 def _check_header(header: list[str], path: str) -> None:

@@ -23,6 +23,7 @@ from gyrocore.errors import GyroInputError, warn_repair
 
 from .checks import DEG, G0_M_S2, _timing_checks, _unit_checks, _valid_rows, detect_saturation
 from .csvtext import (
+    TIME_ALTS,
     _MAX_BLOCK_BYTES,
     _Filler,
     _Moments,
@@ -423,7 +424,12 @@ class _Layout:
         idx, fac = zip(*(_find(self.header, n) for n in names))
         if all(i is None for i in idx):
             if required:
-                raise GyroInputError(f"{path}: missing required column(s) {', '.join(names)}")
+                have = [h for h in self.header if h not in TIME_ALTS]
+                raise GyroInputError(
+                    f"{path}: missing required column(s) {', '.join(names)} (the other columns are "
+                    f"{', '.join(repr(h[:30]) for h in have[:6])}{', ...' if len(have) > 6 else ''}; rad/s or deg/s "
+                    f"columns named gyro_x_rad_s / gyro_x_deg_s are read)"
+                )
             return None
         if any(i is None for i in idx):
             missing = [n for n, i in zip(names, idx) if i is None]

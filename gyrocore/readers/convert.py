@@ -270,11 +270,14 @@ def _check_convert_memory(path: Path, fmt: str) -> None:
         )
 
 
-def read_any(path: str | os.PathLike) -> Recording:
+def read_any(path: str | os.PathLike, *, columns: Sequence[str] | None = None) -> Recording:
     """A DESIGN.md data file (CSV or Parquet), or any set `gyroharness convert` reads (BROAD
-    .hdf5, ULog, ...)."""
+    .hdf5, ULog, blackbox, a tomisuarez2/x-io CSV, a sunsided folder, ...).
+
+    ``columns``: the column groups a data file is read for (see
+    :func:`gyrocore.data.recording.read_csv`); another source is read whole by its reader."""
     if detect_format(path) in ("csv", "parquet"):
-        return read_recording(path)
+        return read_recording(path, columns=columns)
     return load_with_segments(path).recording
 
 

@@ -344,7 +344,7 @@ def _label_panel(plot_ax, name: str, shaded: list[str], lo_y: float, hi_y: float
 
 #: Files whose t + gyro columns would exceed this are analysed one axis at a time
 @click.command("allan")
-@click.argument("file", type=click.Path(dir_okay=False))  # CSV or Parquet
+@click.argument("file", type=click.Path())  # a data file or any source `convert` reads (folders too)
 @click.option(
     "--plot", "plot", type=click.Path(dir_okay=False), default=None, help="write a PNG of the deviation and fit"
 )
@@ -384,7 +384,8 @@ def command(
     Gauss-Markov bias (sigma, tau_c), each with its 95 % interval (null = not resolved)."""
     from gyrocore.noise.allan import allan_analysis
     from gyrocore.noise.kalibr import kalibr_imu_yaml
-    from gyrocore.data.recording import atomic_write_text, read_recording
+    from gyrocore.data.recording import atomic_write_text
+    from gyrocore.readers.convert import read_any
 
     if is_large(file, "allan"):
         # long files: one axis at a time (memory); the motion gate loads the three axes once
@@ -401,7 +402,9 @@ def command(
         )
     else:
         # only the columns the analysis needs (t, gyro; accel for Kalibr)
-        rec = read_recording(file, columns=("accel",) if kalibr_yaml is not None else ())
+        # a data file: only the columns the analysis needs; any other source `convert` reads
+        # (a ULog, a blackbox, a tomisuarez2 CSV, a sunsided folder, ...) through its reader
+        rec = read_any(file, columns=("accel",) if kalibr_yaml is not None else ())
         if t_from_s is not None or t_to_s is not None:
             rec = rec.slice(*t_rows(rec.t_s, t_from_s, t_to_s))
         want_accel = kalibr_yaml is not None and rec.accel_m_s2 is not None

@@ -32,7 +32,7 @@ def report_text(r) -> str:
 
 
 @click.command("bias")
-@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("file", type=click.Path())  # a data file or any source `convert` reads (folders too)
 @click.option("--rule", type=click.Choice(["mean", "median", "converge", "article"]), default="mean", show_default=True)
 @click.option(
     "--statistic",
@@ -94,9 +94,11 @@ def command(
         with tempfile.TemporaryDirectory(prefix="gyroharness_bias_") as tmp:
             r = cal.fit(spill_columns(file, tmp))
     else:
-        from gyrocore.data.recording import read_recording
+        from gyrocore.readers.convert import read_any
 
-        r = cal.fit(read_recording(file, columns=()))  # t and gyro only (the gate and the estimate use nothing else)
+        # a data file: t and gyro only (the gate and the estimate use nothing else); any other
+        # source `convert` reads (a ULog, a blackbox, a tomisuarez2 CSV, ...) through its reader
+        r = cal.fit(read_any(file, columns=()))
     from gyrocore.data.checks import STILL_NOISE_SUSPECT_RAD_S
 
     if noise_dps is None and np.any(np.asarray(r.noise_sigma_rad_s) > STILL_NOISE_SUSPECT_RAD_S):

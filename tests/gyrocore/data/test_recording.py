@@ -226,6 +226,19 @@ def test_missing_and_incomplete_columns(tmp_path):
         read_csv(_write(tmp_path, HEADER + ",t_s\n0,0,0,0,0\n"))
 
 
+def test_missing_column_errors_say_what_the_header_holds(tmp_path):
+    """Another tool's CSV: the error names the header found (or says there is none) and the
+    names a data file uses, on one line."""
+    with pytest.raises(GyroInputError, match=r"the header names 'Time \(s\)', 'Gyro X \(deg/s\)'.*t_s, gyro_x_rad_s"):
+        read_csv(_write(tmp_path, "Time (s),Gyro X (deg/s),Gyro Y (deg/s),Gyro Z (deg/s)\n0,1,2,3\n0.01,1,2,3\n"))
+    with pytest.raises(GyroInputError, match=r"is numbers: the file has no header row"):
+        read_csv(_write(tmp_path, "0,1,2,3\n0.01,1,2,3\n"))
+    with pytest.raises(
+        GyroInputError, match=r"missing required column\(s\) gyro_x_rad_s.*other columns are 'gx', 'gy'"
+    ):
+        read_csv(_write(tmp_path, "t_s,gx,gy,gz\n0,1,2,3\n0.01,1,2,3\n"))
+
+
 def test_nan_rows_repaired_and_ref_nan_kept(tmp_path):
     text = (
         HEADER
