@@ -15,7 +15,16 @@ from gyrocore.errors import GyroInputError, warn_repair
 
 from .csvtext import TIME_ALTS
 
-__all__ = ["DEG", "G0_M_S2", "DEG_S_SUSPECT_RAD_S", "STILL_NOISE_SUSPECT_RAD_S", "detect_saturation"]
+__all__ = [
+    "DEG",
+    "G0_M_S2",
+    "DEG_S_SUSPECT_RAD_S",
+    "STILL_NOISE_SUSPECT_RAD_S",
+    "MAD_TO_SIGMA",
+    "robust_diff_sigma",
+    "still_noise_rad_s",
+    "detect_saturation",
+]
 
 DEG = np.pi / 180.0
 G0_M_S2 = 9.80665
@@ -64,41 +73,77 @@ def _valid_rows(t, gyro, accel, temp, path, repair, *, t_prev: float = -np.inf) 
     return keep, n_bad, n_back
 
 
-def _robust_noise(x: np.ndarray) -> float:
-    """Per-sample white-noise σ from first differences: 1.4826·MAD(Δx)/√2; the smallest
-    non-zero step when more than half of the differences are exactly zero (coarse quantum)."""
-    d = np.diff(x)
+#: MAD → σ of Gaussian data, 1/Φ⁻¹(3/4).
+MAD_TO_SIGMA = 1.482602218505602
+#: The same to four digits: the constant of the reader's deg/s check (:func:`still_noise_rad_s`),
+#: kept so that its figures and warnings stay as they were.
+MAD_TO_SIGMA_4 = 1.4826
+
+
+def lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndarray:
+    """x[k + lag] − x[k] written over x[k] block by block (block [a, b) reads x[a .. b + lag),
+    none of it overwritten yet); returns the view x[:N − lag]."""
+    n = x.shape[0] - lag
+    for a in range(0, max(n, 0), block):
+        b = min(a + block, n)
+        x[a:b] = x[a + lag : b + lag] - x[a:b]
+    return x[: max(n, 0)]
+
+
+def robust_diff_sigma(
+    x, *, lag: int = 1, per_sample: bool = False, zero_mad: str = "std", mad_to_sigma: float = MAD_TO_SIGMA
+) -> float:
+    """Robust σ of a series' lag differences Δ_k = x[k + lag] − x[k]: ``mad_to_sigma``·MAD(Δ).
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), or a callable returning one
+        The series (any unit). An array is copied; a callable must return a fresh array each
+        call, which is overwritten (memory: one column) — it is called again only for the
+        ``"std"`` or ``"step"`` answer below.
+    lag : int
+        Lag of the differences, samples.
+    per_sample : bool
+        Divide by √2: the per-sample σ of white noise (Var Δ = 2σ²), not Δ's own σ_Δ.
+    zero_mad : {"std", "step"}
+        The answer when the MAD is 0 (output quantized more coarsely than its noise): the plain
+        standard deviation of Δ, or the smallest non-zero |Δ| (0 when none), neither divided by √2.
+    mad_to_sigma : float
+        MAD → σ factor (:data:`MAD_TO_SIGMA`; the reader's deg/s check uses :data:`MAD_TO_SIGMA_4`).
+
+    Returns
+    -------
+    float
+        σ, the unit of x (0 with fewer than lag + 1 samples).
+    """
+    fresh = x if callable(x) else (lambda: np.array(x, dtype=float))
+    d = lag_diff_in_place(fresh(), lag)
     if d.size == 0:
         return 0.0
     # in place (the median and the MAD do not depend on the order of d, which the partition
-    # permutes): the same values with d as the only temporary
+    # permutes): no temporary
     med = np.median(d, overwrite_input=True)
     np.subtract(d, med, out=d)
     np.abs(d, out=d)
     mad = float(np.median(d, overwrite_input=True))
     if mad > 0:
-        return 1.4826 * mad / np.sqrt(2.0)
-    d = np.diff(x)
-    nz = np.abs(d[d != 0])
-    return float(nz.min()) if nz.size else 0.0
+        s = mad_to_sigma * mad
+        return s / np.sqrt(2.0) if per_sample else s
+    del d  # one column at a time
+    d = lag_diff_in_place(fresh(), lag)
+    if zero_mad == "std":
+        return float(d.std())
+    if zero_mad == "step":
+        nz = np.abs(d[d != 0])
+        return float(nz.min()) if nz.size else 0.0
+    raise ValueError(f"zero_mad must be 'std' or 'step', not {zero_mad!r}")
 
 
-def _robust_noise_consuming(x: np.ndarray, block: int = 1 << 20) -> float | None:
-    """:func:`_robust_noise` of a fresh 1-D array, overwriting it: the first differences are
-    formed in place block by block (block [a, b) reads x[a..b], none of it overwritten yet),
-    so no second (N,) array is made. None when the MAD is 0 (the fallback needs the data)."""
-    n = x.shape[0]
-    if n < 2:
-        return 0.0
-    for a in range(0, n - 1, block):
-        b = min(a + block, n - 1)
-        x[a:b] = x[a + 1 : b + 1] - x[a:b]
-    d = x[: n - 1]
-    med = np.median(d, overwrite_input=True)
-    np.subtract(d, med, out=d)
-    np.abs(d, out=d)
-    mad = float(np.median(d, overwrite_input=True))
-    return 1.4826 * mad / np.sqrt(2.0) if mad > 0 else None
+def still_noise_rad_s(x) -> float:
+    """Per-sample noise of a still gyro axis for the deg/s-as-rad/s check (rad/s): σ from first
+    differences, 1.4826·MAD(Δx)/√2; the smallest non-zero step when more than half of the
+    differences are exactly zero (coarse quantum). ``x`` as in :func:`robust_diff_sigma`."""
+    return robust_diff_sigma(x, per_sample=True, zero_mad="step", mad_to_sigma=MAD_TO_SIGMA_4)
 
 
 def detect_saturation(
@@ -195,7 +240,7 @@ def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
     if sd is None or not bool(np.all(sd < 0.05 * G0_M_S2)):
         return
     med = np.array([np.median(gyro[:, i]) for i in range(3)])  # per column: no (N, 3) copy
-    noise = np.array([_robust_noise(gyro[:, i]) for i in range(3)])
+    noise = np.array([still_noise_rad_s(gyro[:, i]) for i in range(3)])
     # (a large median alone is not evidence: a centred sensor on a turning rate table also has steady accel)
     if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
         warn_repair(

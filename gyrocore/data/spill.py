@@ -9,6 +9,7 @@ column at a time (the fits of :mod:`gyrocore.calib.stream`, the per-axis noise a
 from __future__ import annotations
 
 import os
+from functools import partial
 from pathlib import Path
 from typing import Iterable
 
@@ -22,8 +23,7 @@ from .checks import (
     DEG_S_SUSPECT_RAD_S,
     G0_M_S2,
     STILL_NOISE_SUSPECT_RAD_S,
-    _robust_noise,
-    _robust_noise_consuming,
+    still_noise_rad_s,
     _timing_checks,
     detect_saturation,
 )
@@ -131,13 +131,10 @@ def _checks(store: ColumnSpill, path: str, layout, *, accel: bool, has_accel: bo
             if sd is not None and bool(np.all(sd < 0.05 * G0_M_S2)):
                 med, noise = [], []
                 for j in range(3):
-                    # one column in memory at a time: the noise from a copy overwritten in place,
+                    # one column in memory at a time: the noise from a read overwritten in place,
                     # then the median from the column read again (the same values)
+                    noise.append(still_noise_rad_s(partial(store.column, GYRO_COLS[j])))
                     c = store.column(GYRO_COLS[j])
-                    v = _robust_noise_consuming(c)
-                    del c
-                    c = store.column(GYRO_COLS[j])
-                    noise.append(_robust_noise(c) if v is None else v)
                     med.append(float(np.median(c, overwrite_input=True)))  # c is not used again
                     del c
                 if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):

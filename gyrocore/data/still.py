@@ -45,12 +45,14 @@ from __future__ import annotations
 import math
 from typing import Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 import scipy.stats
 
 from gyrocore.errors import GyroInputError, warn_repair
 
+from .checks import robust_diff_sigma
 from .columns import columns_of
 from .recording import GYRO_COLS
 
@@ -69,7 +71,6 @@ __all__ = [
 ]
 
 STATISTICS = ("variance", "abs_diff")
-_MAD = 1.482602218505602  # 1/Φ⁻¹(3/4): MAD → σ for Gaussian data
 #: Fewer windows than this: the noise comes from the first differences, not a window quantile.
 MIN_WINDOWS_FOR_QUANTILE = 10
 NOISE_RATIO_BOUND = 4.0
@@ -243,25 +244,6 @@ class StillWindows:
 
 
 # ---------------------------------------------------------------------------- noise
-def _rsd_consuming(v: np.ndarray) -> float:
-    """Robust σ (1.4826·MAD) of a fresh 1-D array, computed in place (it is overwritten); 0 when
-    the MAD is 0."""
-    med = np.median(v, overwrite_input=True)  # permutes v; the MAD does not depend on the order
-    np.subtract(v, med, out=v)
-    np.abs(v, out=v)
-    return _MAD * float(np.median(v, overwrite_input=True))
-
-
-def _lag_diff_in_place(x: np.ndarray, lag: int, block: int = 1 << 20) -> np.ndarray:
-    """x[k + lag] − x[k] written over x[k] block by block (block [a, b) reads x[a .. b + lag),
-    none of it overwritten yet); returns the view x[:N − lag]."""
-    n = x.shape[0] - lag
-    for a in range(0, max(n, 0), block):
-        b = min(a + block, n)
-        x[a:b] = x[a + lag : b + lag] - x[a:b]
-    return x[: max(n, 0)]
-
-
 def robust_diff_noise(x) -> tuple[np.ndarray, np.ndarray]:
     """Robust σ_Δ (std of first differences) and ρ = corr(Δ_k, Δ_k+1) per column.
 
@@ -286,8 +268,7 @@ def robust_diff_noise(x) -> tuple[np.ndarray, np.ndarray]:
     s1, s2 = np.empty(len(GYRO_COLS)), np.empty(len(GYRO_COLS))
     for j, name in enumerate(GYRO_COLS):
         for lag, out in ((1, s1), (2, s2)):
-            s = _rsd_consuming(_lag_diff_in_place(src.column(name), lag))
-            out[j] = s if s > 0 else float(_lag_diff_in_place(src.column(name), lag).std())
+            out[j] = robust_diff_sigma(partial(src.column, name), lag=lag, zero_mad="std")  # a fresh read per call
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.where(s1 > 0, s2**2 / (2 * s1**2) - 1.0, -0.5)
     return s1, np.clip(rho, -0.95, 0.95)

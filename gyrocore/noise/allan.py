@@ -511,10 +511,10 @@ def _check_rest_noise(recording: Recording) -> None:
     rad/s header. The reader makes this check only when accel columns say the sensor is at rest;
     a gyro-only file (an MPU-6050's 0.1 deg/s read as 0.1 rad/s) reached the analysis silently
     with N 57x too large."""
-    from gyrocore.data.checks import STILL_NOISE_SUSPECT_RAD_S, _robust_noise
+    from gyrocore.data.checks import STILL_NOISE_SUSPECT_RAD_S, still_noise_rad_s
 
     g = np.asarray(recording.gyro_rad_s)
-    noise = np.array([_robust_noise(np.array(g[:, i], float)) for i in range(3)])
+    noise = np.array([still_noise_rad_s(g[:, i]) for i in range(3)])
     if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
         warn_repair(
             f"the still record's per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s exceeds any MEMS "

@@ -140,3 +140,31 @@ def test_bad_input_is_one_line():
     sd, rho = robust_diff_noise(np.random.default_rng(1).standard_normal((100_000, 3)))
     np.testing.assert_allclose(sd, math.sqrt(2), rtol=0.02)  # MAD σ: rel. SE 1.167/√1e5 = 0.4 %
     np.testing.assert_allclose(rho, -0.5, atol=0.03)
+
+
+def test_robust_diff_sigma_flavours():
+    # the one robust noise of differences: σ_Δ (the still gate), per-sample σ_Δ/√2 (the
+    # reader's deg/s check), the two zero-MAD answers; an array is not touched, a callable's
+    # fresh arrays are
+    from gyrocore.data.checks import MAD_TO_SIGMA, MAD_TO_SIGMA_4, robust_diff_sigma, still_noise_rad_s
+
+    x = 0.01 * np.random.default_rng(4).standard_normal(50_001)
+    x0 = x.copy()
+    s = robust_diff_sigma(x)
+    assert np.array_equal(x, x0)
+    assert robust_diff_sigma(lambda: x.copy()) == s
+    assert robust_diff_sigma(x, per_sample=True) == s / np.sqrt(2.0)
+    assert still_noise_rad_s(x) == robust_diff_sigma(x, per_sample=True, mad_to_sigma=MAD_TO_SIGMA_4)
+    # the same MAD, another factor (a few roundings apart: 1e-14)
+    np.testing.assert_allclose(still_noise_rad_s(x), s / np.sqrt(2.0) * MAD_TO_SIGMA_4 / MAD_TO_SIGMA, rtol=1e-14)
+    # white noise: σ_Δ = √2·σ; the MAD σ has relative SE ≈ 1.167/√N = 0.5 %, the lag-1
+    # differences' MA(1) correlation inflates it a little: 3 % is > 4 SE
+    np.testing.assert_allclose(s, 0.01 * math.sqrt(2), rtol=0.03)
+    # a quantum of 5 σ: more than half the differences are 0, the MAD is 0
+    q = 0.05 * np.round(x / 0.05)
+    assert robust_diff_sigma(q, zero_mad="step") == 0.05
+    assert robust_diff_sigma(q, zero_mad="std") == float(np.diff(q).std())
+    assert robust_diff_sigma(np.zeros(10), zero_mad="step") == 0.0
+    assert robust_diff_sigma(np.zeros(1)) == 0.0
+    with pytest.raises(ValueError, match="zero_mad"):
+        robust_diff_sigma(q, zero_mad="min")
