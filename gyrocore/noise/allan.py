@@ -36,6 +36,7 @@ from .adev import oadev, octave_m
 from .ieee952 import ieee952_design, select_ieee952, term_interval
 from .model import IEEE_TERMS, TERM_UNITS, TERMS, NoiseModel
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
+from gyrocore.data.checks import gap_threshold_s
 from gyrocore.data.recording import AXES, GYRO_COLS, Recording
 from gyrocore.data.still import StillGate, still_windows
 
@@ -457,7 +458,7 @@ def _check_timestamps(rec: Recording) -> float:
     if not (med <= 0 or d.max() > 5 * mean or abs(med - mean) > 0.2 * mean or d.max() > 1.5 * med):
         return mean_rate
     bursty = med < 0.5 * mean and d.max() > 4.0 * mean
-    gaps = d > 1.5 * med
+    gaps = d > gap_threshold_s(d, med)  # 1.5 × median on a clean clock; beyond a host clock's jitter
     if med > 0 and not bursty and gaps.any() and (~gaps).sum() >= 2:
         rate = float((~gaps).sum() / d[~gaps].sum())
         if abs(rate / mean_rate - 1.0) > 1e-3:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
+from gyrocore.data.checks import gap_threshold_s
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment
 
@@ -73,7 +74,8 @@ def timing_report(t_s: np.ndarray, *, gap_factor: float = 1.5) -> TimingReport:
     mean = float((t_s[-1] - t_s[0]) / d.size)
     mx = float(d.max())
     bursty = bool(med < 0.5 * mean and mx > 4.0 * mean)
-    n_gaps = int(np.count_nonzero(d > gap_factor * med)) if med > 0 else 0
+    # beyond the jitter of a host clock too (long intervals mirrored by short ones are no gaps)
+    n_gaps = int(np.count_nonzero(d > max(gap_factor * med, gap_threshold_s(d, med)))) if med > 0 else 0
     return TimingReport(med, mean, mx, n_gaps, bursty)
 
 
