@@ -221,8 +221,8 @@ class SpilledRecording:
     def reference_quaternions(self) -> Rows | None:
         """The reference attitude S→W per sample: ``ref_q*`` when finite everywhere, else the
         reference rate integrated window by window (the attitude carried across windows;
-        :func:`gyrocore.attitude.integrate_gyro_windows`, backward hold), kept in a file beside the
-        spill. None without either."""
+        :func:`gyrocore.attitude.integrate_gyro_windows`, backward hold), kept in a work column of
+        the spill (:meth:`~gyrocore.data.spill.ColumnSpill.scratch`). None without either."""
         if self.ref_quat_wxyz is not None and self.all_finite("ref_quat"):
             return self.ref_quat_wxyz
         if self.ref_rate_rad_s is None or not self.all_finite("ref_rate"):
@@ -230,19 +230,10 @@ class SpilledRecording:
         if self._q_integrated is None:
             from gyrocore.attitude import integrate_gyro_windows
 
-            names = [f"ref_int_q{c}" for c in "wxyz"]
-            files = [open(self.store.folder / f"{nm}.f64", "wb") for nm in names]
-            try:
-                for _, _, q in integrate_gyro_windows(self.t_s, self.ref_rate_rad_s.rows, self.chunks()):
-                    for j in range(4):
-                        np.ascontiguousarray(q[:, j]).tofile(files[j])
-            finally:
-                for fh in files:
-                    fh.close()
-            for nm in names:
-                if nm not in self.store.names:
-                    self.store.names.append(nm)
-            self._q_integrated = LazyColumn(self.store, names)
+            q_col = self.store.scratch("ref_int_q", 4)  # w, x, y, z: files beside the spill
+            for lo, hi, q in integrate_gyro_windows(self.t_s, self.ref_rate_rad_s.rows, self.chunks()):
+                q_col.write(lo, hi, q)
+            self._q_integrated = Rows(q_col.rows, self.n, 4)
         return self._q_integrated
 
 

@@ -46,8 +46,8 @@ DISK_BLOCK_BYTES = 4 * 2**20
 
 
 class ScratchArray:
-    """A writable (N, ncol) work column in memory: ``write(a, b, x)`` rows a:b, ``axis(i)`` a
-    fresh (N,) copy of column i."""
+    """A writable (N, ncol) work column in memory: ``write(a, b, x)`` rows a:b, ``rows(a, b)``
+    rows a:b back, ``axis(i)`` a fresh (N,) copy of column i."""
 
     def __init__(self, n: int, ncol: int) -> None:
         self.n = int(n)
@@ -55,6 +55,10 @@ class ScratchArray:
 
     def write(self, a: int, b: int, x: np.ndarray) -> None:
         self.data[a:b] = x
+
+    def rows(self, a: int, b: int) -> np.ndarray:
+        """Rows a:b of every column, (b − a, ncol) (a view)."""
+        return self.data[max(0, int(a)) : min(self.n, int(b))]
 
     def axis(self, i: int) -> np.ndarray:
         return self.data[:, i].copy()
@@ -66,7 +70,8 @@ class ScratchArray:
 
 class ScratchFiles:
     """A writable (N, ncol) work column on disk, one file per column in ``folder``:
-    ``write(a, b, x)`` rows a:b, ``axis(i)`` column i read back (N,)."""
+    ``write(a, b, x)`` rows a:b, ``rows(a, b)`` rows a:b read back, ``axis(i)`` column i read
+    back (N,)."""
 
     def __init__(self, folder: str | os.PathLike, name: str, n: int, ncol: int) -> None:
         self.n = int(n)
@@ -80,6 +85,14 @@ class ScratchFiles:
             with open(p, "r+b") as fh:
                 fh.seek(8 * int(a))
                 fh.write(np.ascontiguousarray(x[:, i], dtype=np.float64).tobytes())
+
+    def rows(self, a: int, b: int) -> np.ndarray:
+        """Rows a:b of every column read back, (b − a, ncol) (a fresh array)."""
+        a, b = max(0, int(a)), min(self.n, int(b))
+        out = np.empty((max(b - a, 0), len(self.paths)))
+        for j, p in enumerate(self.paths):
+            out[:, j] = np.fromfile(p, dtype=np.float64, count=max(b - a, 0), offset=8 * a)
+        return out
 
     def axis(self, i: int) -> np.ndarray:
         return np.fromfile(self.paths[i], dtype=np.float64, count=self.n)

@@ -13,7 +13,24 @@ recording in the one object that tells the two storages apart:
 
 Recurrences cut by a window (the attitude integration) are carried across it: each window
 starts from the previous one's last attitude and sample, so the backward-hold step across the
-cut is taken once.
+cut is taken once (:func:`gyrocore.attitude.integrate_gyro_windows`).
+
+This is not a second chunk source beside :func:`gyrocore.data.columns.columns_of`, which stays
+the one way a recording's *stored* columns are read a block at a time: on disk every read here
+goes through it (a :class:`~gyrocore.calib.stream.SpilledRecording`'s columns are
+:class:`~gyrocore.data.spill.ColumnSpill` ``rows``/``block`` reads, its integrated reference
+attitude a ``scratch`` work column). What this module windows is different, for two reasons:
+
+* its per-sample values are *derived* (the model's correction, the residual, the attitude error,
+  the gyro with the loop's lines removed or advanced by τ), computed where a window asks for
+  them, with recurrences carried across windows — not named file columns;
+* in memory the loop is **one window** (whole arrays), so that its numbers are those of the
+  whole-array computation; the chunk source cuts a recording in memory into blocks of
+  ``MEMORY_BLOCK_BYTES``, and windows that cut the loop's sums and its attitude recurrence
+  move its numbers by rounding (≲ 1e-9 relative in the estimates: the tolerance of
+  tests/gyrocore/loop/test_loop_stream.py, which compares the two storages). On disk the
+  window is ``chunk_rows`` rows (sized by the largest per-sample design,
+  :data:`~gyrocore.calib.stream.SPILL_CHUNK_ROWS`), not a byte budget of raw columns.
 """
 
 from __future__ import annotations
