@@ -36,6 +36,18 @@ def _check_path(path: str) -> None:
         raise GyroInputError(f"{path}: empty file")
 
 
+#: Compressed files (first bytes, name, the command that unpacks it): a log shared as
+#: ``log.csv.gz`` or ``flight.zip`` is named as such, not as "binary file".
+_COMPRESSED = (
+    (b"\x1f\x8b", "gzip", "gunzip -k FILE"),
+    (b"PK\x03\x04", "zip", "unzip FILE"),
+    (b"BZh", "bzip2", "bunzip2 -k FILE"),
+    (b"\xfd7zXZ\x00", "xz", "unxz -k FILE"),
+    (b"\x28\xb5\x2f\xfd", "zstd", "unzstd FILE"),
+    (b"7z\xbc\xaf\x27\x1c", "7-Zip", "7z x FILE"),
+)
+
+
 def _sniff_file(path: str) -> None:
     """Existence, folder, empty, binary and encoding checks with one-line errors."""
     _check_path(path)
@@ -50,6 +62,12 @@ def _sniff_file(path: str) -> None:
         raise GyroInputError(
             f"{path}: {kind}, not a data file; convert it first: gyroharness convert {path} -o OUT.csv"
         )
+    for magic, kind, how in _COMPRESSED:
+        if head.startswith(magic):
+            raise GyroInputError(
+                f"{path}: {kind}-compressed file; decompress it first ({how.replace('FILE', path)}) and pass the "
+                f"file inside"
+            )
     if b"\x00" in head:
         raise GyroInputError(f"{path}: binary file, expected a CSV data file")
     try:

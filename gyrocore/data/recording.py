@@ -225,8 +225,19 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, overwrite: bool = T
 
 
 def file_sha256(path: str | os.PathLike) -> str:
-    """SHA-256 hex digest of a file, read in 1 MiB chunks."""
+    """SHA-256 hex digest of a file, read in 1 MiB chunks.
+
+    A folder (a recording kept as several files: sunsided's ``mpu6050_*.mat``, gnss-ins-sim's
+    ``gyro-0.csv``/``time.csv``): the digest of its files in sorted order of their relative
+    paths, each entering as ``path NUL sha256(bytes) NUL`` — it changes when any file, or a
+    name, does.
+    """
     h = hashlib.sha256()
+    if os.path.isdir(path):
+        root = Path(path)
+        for f in sorted(q for q in root.rglob("*") if q.is_file()):
+            h.update(f.relative_to(root).as_posix().encode() + b"\0" + file_sha256(f).encode() + b"\0")
+        return h.hexdigest()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)

@@ -109,7 +109,7 @@ def external_bias(bias_from: str | None, bias_dps: str | None, bias_se_dps: str,
 
 
 @click.command("calibrate")
-@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("file", type=click.Path())  # a data file or any source `convert` reads (folders too)
 @click.option(
     "--effects", "effects", required=True, help="comma-separated catalogue effects, e.g. bias,scale,misalignment"
 )
@@ -270,7 +270,7 @@ def command(
         _warn_unobservable(res)
         _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
         return
-    rec = read_any(file)  # CSV or Parquet data file, or a set `convert` reads (BROAD .hdf5, ...)
+    rec, segments = _read_with_known_rotations(file, segments, poses)
     # (a reference attitude and no reference rate: Calibrator.fit fits against the attitude)
     if (angle_sigma_deg or axis_sigma_deg) and not segments:
         raise GyroInputError("--angle-sigma-deg/--axis-sigma-deg are for the integral method: give --segments too")
@@ -304,6 +304,40 @@ def command(
         )
     _warn_unobservable(res)
     _write_and_report(res, output, px4_params, as_json, px4_device_id=px4_device_id)
+
+
+def _read_with_known_rotations(file, segments, poses):
+    """The recording, and the segments the integral method uses: ``--segments`` when given; else
+    the known rotations of a source whose reader defines them (imucal's x/y/z_rot, a joined
+    sunsided session), when they turn about all three axes (what the method needs) — said in one
+    warning; a source with turns about fewer axes keeps its other references, and the warning
+    says how to use the turns."""
+    from gyrocore.readers.convert import detect_format, load_with_segments, read_any
+
+    if segments or poses or detect_format(file) in ("csv", "parquet"):
+        return read_any(file), segments  # a data file, or the user chose the method
+    conv = load_with_segments(file)
+    turns = [sg for sg in conv.segments if sg.kind == "rotation"]
+    if not turns:
+        return conv.recording, segments
+    axes = {int(np.argmax(np.abs(sg.angle_S_deg))) for sg in turns}
+    what = "; ".join(sg.label or f"{sg.t_start_s:g}-{sg.t_end_s:g} s" for sg in turns)
+    if len(axes) == 3:
+        warnings.warn(
+            f"{conv.format}: calibrating against the {len(turns)} known rotations its reader defines ({what}), "
+            f"the integral method (--segments FILE or --poses chooses otherwise)",
+            UserWarning,
+            stacklevel=2,
+        )
+        return conv.recording, list(turns)
+    warnings.warn(
+        f"{conv.format}: its known rotations ({what}) turn about {len(axes)} axis/axes; the integral method needs "
+        f"all three, so they are not used (join a session's turns: gyroharness convert ... --append ... "
+        f"--segments-out SEG.csv, then calibrate --segments SEG.csv)",
+        UserWarning,
+        stacklevel=2,
+    )
+    return conv.recording, segments
 
 
 def _warn_sign(res) -> None:

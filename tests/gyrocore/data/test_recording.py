@@ -170,6 +170,31 @@ def test_binary_and_hdf5(tmp_path):
         read_csv(p)
 
 
+@pytest.mark.parametrize(
+    "kind, pack",
+    [
+        ("gzip", lambda b: __import__("gzip").compress(b)),
+        ("bzip2", lambda b: __import__("bz2").compress(b)),
+        ("xz", lambda b: __import__("lzma").compress(b)),
+    ],
+)
+def test_compressed_file_is_named_with_the_command_that_unpacks_it(tmp_path, kind, pack):
+    p = tmp_path / "log.csv.x"
+    p.write_bytes(pack((HEADER + "\n0,0,0,0\n0.01,0,0,0\n").encode()))
+    with pytest.raises(GyroInputError, match=rf"{kind}-compressed file; decompress it first \(\w+ .*log\.csv\.x"):
+        read_csv(p)
+
+
+def test_zip_file_is_named(tmp_path):
+    import zipfile
+
+    p = tmp_path / "logs.zip"
+    with zipfile.ZipFile(p, "w") as z:
+        z.writestr("a.csv", HEADER + "\n0,0,0,0\n")
+    with pytest.raises(GyroInputError, match=r"zip-compressed file; decompress it first \(unzip .*logs\.zip\)"):
+        read_csv(p)
+
+
 def test_fuzz_regression_bad_text_then_invalid_utf8(tmp_path):
     """Found by bench/fuzz_reader.py (atheris): a bad number sends the reader to its exact
     parser, which then met an invalid UTF-8 byte at the end and raised UnicodeDecodeError."""
