@@ -228,7 +228,6 @@ def command(
     from gyrocore.effects.registry import check_effect_names
     from gyrocore.errors import GyroInputError
     from gyrocore.calibrator import Calibrator
-    from gyrocore.readers.convert import read_any
 
     names = check_effect_names(effects.split(","))
     for p in [output] + ([px4_params] if px4_params else []):
