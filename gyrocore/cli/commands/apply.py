@@ -158,6 +158,16 @@ def command(file, params_path, output, power_up_bias, chunk_rows, force, as_json
         raise GyroInputError(f"{output} exists; pass --force to overwrite it")
     if os.path.exists(file) and os.path.exists(output) and os.path.samefile(file, output):
         raise GyroInputError(f"{output}: output would overwrite the input")
+    from gyrocore.readers.convert import detect_format
+
+    fmt = detect_format(file)
+    if fmt not in ("csv", "parquet"):
+        # apply rewrites a data file row for row (its other columns copied): a source in another
+        # format is converted first, so that what is corrected is the file the user keeps
+        raise GyroInputError(
+            f"{file}: a {fmt} recording, not a data file; convert it first: gyroharness convert {file} -o DATA.csv, "
+            f"then apply DATA.csv"
+        )
     res = load_params(params_path)
     st = apply_streaming(res, file, output, power_up_bias=power_up_bias, rows=chunk_rows)
     n = st["n"]

@@ -60,3 +60,19 @@ def test_unknown_folder_and_missing_file_one_line(capsys, tmp_path):
     assert_error(s, err, r"folder is not a known recording")
     s, _, err = gh(capsys, "bias", tmp_path / "nope.csv")
     assert_error(s, err, r"no such file")
+
+
+def test_apply_names_the_source_and_the_convert_command(capsys, shared_data, tmp_path):
+    """`apply` rewrites a data file row for row: a raw source is one line saying to convert it
+    (before: "missing required column t_s" on tomisuarez2's `Fs,100` header)."""
+    raw = shared_data / "tomisuarez2_mpu6050" / "imu_90_x_rot.csv"
+    conv = tmp_path / "rot.csv"
+    assert gh(capsys, "convert", raw, "-o", conv)[0] == 0
+    params = tmp_path / "p.json"
+    s, _, err = gh(capsys, "calibrate", conv, "--effects", "bias", "-o", params)
+    assert s == 0, err
+    s, _, err = gh(capsys, "apply", raw, "--params", params, "-o", tmp_path / "c.csv")
+    assert_error(
+        s, err, r"a tomisuarez2 recording, not a data file; convert it first: gyroharness convert .*imu_90_x_rot"
+    )
+    assert not (tmp_path / "c.csv").exists()
