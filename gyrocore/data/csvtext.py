@@ -102,13 +102,17 @@ def locate_bad_value(path: str, *, skiprows: int, delimiter: str | None = ",", n
 
 
 def _parse_rows(
-    lines: list[str], first_lineno: int, header: list[str], path: str, *, last: bool = False
+    lines: list[str], first_lineno: int, header: list[str], path: str, *, last: bool = False, first: bool = False
 ) -> tuple[np.ndarray, int]:
     """Slow exact parser (used when the fast one fails): empty fields → NaN, else one-line errors.
 
     ``last``: ``lines`` end the file. Its last non-blank line, cut short (fewer values than the
     header names, or a last value that is not a number: a logger stopped mid-write, a copy cut
-    off), is dropped with a warning; anywhere else such a line is an error.
+    off), is dropped with a warning; anywhere else such a line is an error. ``first``: ``lines``
+    start the data; a first line of text only is a units row (skipped with a warning, or an error
+    when a unit contradicts its column's name). Anywhere, a line repeating the header (files
+    joined with ``cat``) is skipped, and one empty field after the last column (``x,y,z,``) is
+    ignored; each with a warning.
 
     Returns the array and the number of empty fields that were read as NaN.
     """
@@ -116,11 +120,24 @@ def _parse_rows(
     out = []
     n_empty = 0
     k_final = _final_line(lines) if last else -1
+    k_first = _first_line(lines) if first else -1
+    trailing_comma = False
     for k, line in enumerate(lines):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         f = s.split(",")
+        if len(f) == n + 1 and not f[-1].strip():
+            # "x,y,z," rows (an Arduino print loop) under a header without the trailing comma
+            trailing_comma = True
+            f = f[:-1]
+        if _is_text_row(f):
+            if [_header_name(v) for v in f] == [h if not h.startswith("unnamed_") else "" for h in header]:
+                warn_repair(f"{path}: line {first_lineno + k} repeats the header (files joined?): skipped")
+                continue
+            if k == k_first and len(f) == n:
+                _check_units_row(f, header, path, first_lineno + k)
+                continue
         if k == k_final and _cut_short(f, n):
             warn_repair(
                 f"{path}: last line {first_lineno + k} is cut short ({len(f)} of {n} values, "
@@ -143,7 +160,47 @@ def _parse_rows(
                     f"{path}: line {first_lineno + k}, column {header[j]!r}: text in a number ({v[:40]!r})"
                 ) from None
         out.append(row)
+    if trailing_comma:
+        warn_repair(f"{path}: data rows end with a comma (an empty field the header does not name): ignored")
     return (np.asarray(out, dtype=float).reshape(-1, n), n_empty)
+
+
+def _first_line(lines: list[str]) -> int:
+    """Index of the first non-blank, non-comment line of ``lines`` (-1 when none)."""
+    for k, line in enumerate(lines):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            return k
+    return -1
+
+
+def _is_text_row(fields: list[str]) -> bool:
+    """No field of the row is a number, and some are text (a header or a units row, not data)."""
+    if not any(v.strip() for v in fields):
+        return False
+    for v in fields:
+        try:
+            float(v)
+            return False
+        except ValueError:
+            pass
+    return True
+
+
+def _check_units_row(fields: list[str], header: list[str], path: str, lineno: int) -> None:
+    """A row of units under the header (``s,deg/s,deg/s,...``: LabVIEW, motion-capture and
+    spreadsheet exports): skipped with a warning when it agrees with the names' units; a unit
+    that contradicts the name (deg under ``_rad_s``, rad under ``_deg_s``) is an error (which one
+    is right cannot be told from the file)."""
+    for h, u in zip(header, fields):
+        u_l = u.strip().strip('"').lower()
+        clash = ("deg" in u_l and h.endswith("_rad_s")) or ("rad" in u_l and h.endswith("_deg_s"))
+        if clash:
+            raise GyroInputError(
+                f"{path}: line {lineno} gives column {h!r} the unit {u.strip()!r}, which its name contradicts; "
+                f"name the column for its unit (gyro_x_rad_s or gyro_x_deg_s) and delete the units row"
+            )
+    warn_repair(f"{path}: line {lineno} is a row of units ({','.join(v.strip() for v in fields)[:60]!r}): skipped")
 
 
 def _final_line(lines: list[str]) -> int:
@@ -174,8 +231,10 @@ def _cut_short(fields: list[str], n: int) -> bool:
     return False
 
 
-def _slow_parse(lines: list[str], first_lineno: int, header: list[str], path: str, *, last: bool = False) -> np.ndarray:
-    data, n_empty = _parse_rows(lines, first_lineno, header, path, last=last)
+def _slow_parse(
+    lines: list[str], first_lineno: int, header: list[str], path: str, *, last: bool = False, first: bool = False
+) -> np.ndarray:
+    data, n_empty = _parse_rows(lines, first_lineno, header, path, last=last, first=first)
     if n_empty:
         warn_repair(f"{path}: {n_empty} empty fields read as missing values (NaN)")
     return data
@@ -489,6 +548,11 @@ def _time_col(header: list[str], path: str) -> tuple[int, float]:
                 f" (the header is one column {header[0][:60]!r}: the file is separated by "
                 f"{'tab' if sep == chr(9) else repr(sep)}; a data file is comma-separated)"
             )
+        elif len(header) == 1 and len(header[0].split()) > 1 and any(h in TIME_ALTS for h in header[0].split()):
+            hint = (
+                f" (the header is one column {header[0][:60]!r}: the file is separated by spaces; a data file is "
+                f"comma-separated)"
+            )
         else:
             hint = _header_hint(header)
         raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
@@ -546,7 +610,10 @@ def _exact_blocks(path, header, n_skip, want, skip_data_rows, first_lineno, rows
                     if not more:
                         break
                     following += more
-                data = _slow_parse(lines, lineno, header, path, last=_final_line(following) < 0)
+                data = _slow_parse(
+                    lines, lineno, header, path, last=_final_line(following) < 0, first=skip_data_rows == 0
+                )
+                skip_data_rows = -1  # the next chunks do not start the data
                 lineno += len(lines)
                 if data.shape[0]:
                     yield {i: data[:, i].copy() for i in want}

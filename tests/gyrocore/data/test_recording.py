@@ -233,6 +233,48 @@ def test_last_line_cut_short_is_dropped_with_a_warning(tmp_path, cut):
         read_csv(p)
 
 
+def _rows(n=6):
+    return "".join(f"{k * 0.01:.2f},{k},0.5,{-k}\n" for k in range(n))
+
+
+def test_units_row_under_the_header_is_skipped_or_refused_when_it_contradicts(tmp_path):
+    """LabVIEW/motion-capture exports put a units row under the names."""
+    p = _write(tmp_path, HEADER + "\ns,rad/s,rad/s,rad/s\n" + _rows())
+    with pytest.warns(RepairWarning, match=r"line 2 is a row of units \('s,rad/s,rad/s,rad/s'\): skipped"):
+        rec = read_csv(p)
+    assert rec.n == 6 and np.array_equal(rec.gyro_rad_s[:, 0], np.arange(6.0))
+    p = _write(tmp_path, HEADER + "\ns,deg/s,deg/s,deg/s\n" + _rows())  # which is right? refuse
+    with pytest.raises(GyroInputError, match=r"line 2 gives column 'gyro_x_rad_s' the unit 'deg/s'"):
+        read_csv(p)
+    p = _write(tmp_path, HEADER + "\n" + _rows(2) + "s,rad/s,rad/s,rad/s\n" + _rows())  # not under the header
+    with pytest.raises(GyroInputError, match=r"line 4, column 't_s': text in a number"):
+        read_csv(p)
+
+
+def test_repeated_header_of_joined_files_is_skipped(tmp_path):
+    later = "".join(f"{1 + k * 0.01:.2f},{k},0.5,{-k}\n" for k in range(4))
+    p = _write(tmp_path, HEADER + "\n" + _rows() + HEADER + "\n" + later)
+    with pytest.warns(RepairWarning, match=r"line 8 repeats the header \(files joined\?\): skipped"):
+        rec = read_csv(p)
+    assert rec.n == 10
+
+
+def test_trailing_comma_on_data_rows_only(tmp_path):
+    p = _write(tmp_path, HEADER + "\n" + "".join(r + ",\n" for r in _rows().splitlines()))
+    with pytest.warns(RepairWarning, match="data rows end with a comma"):
+        rec = read_csv(p)
+    assert rec.n == 6 and np.array_equal(rec.gyro_rad_s[:, 2], -np.arange(6.0))
+    p = _write(tmp_path, HEADER + "\n0,0,0,0,,\n0.01,0,0,0\n")  # two extra fields: still an error
+    with pytest.raises(GyroInputError, match="line 2: 6 values"):
+        read_csv(p)
+
+
+def test_space_separated_file_is_named(tmp_path):
+    p = _write(tmp_path, HEADER.replace(",", " ") + "\n0 0 0 0\n0.01 0 0 0\n")
+    with pytest.raises(GyroInputError, match="separated by spaces"):
+        read_csv(p)
+
+
 def test_last_line_with_text_or_too_many_values_is_still_an_error(tmp_path):
     for last in ("0.03,abc,0.2,0.1", "0.03,0.1,0.2,0.3,0.4"):
         p = _write(tmp_path, HEADER + "\n0,0,0,0\n0.01,0,0,0\n" + last + "\n")
