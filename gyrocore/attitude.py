@@ -67,6 +67,7 @@ __all__ = [
     "quat_exp_half",
     "quat_from_rotvec",
     "rotvec_from_quat",
+    "rotation_matrices",
     "delta_quats",
     "prefix_product",
     "integrate_gyro",
@@ -167,6 +168,14 @@ def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
     ang = 2.0 * np.arctan2(n, w)
     f = np.where(n > 1e-12, ang / np.where(n > 1e-12, n, 1.0), 2.0 / np.maximum(w, 1e-300))
     return f * v
+
+
+def rotation_matrices(q_wxyz: np.ndarray) -> np.ndarray:
+    """Rotation matrices R (..., 3, 3) of quaternions w,x,y,z (..., 4) (normalised first;
+    scipy's ``Rotation``): for q_SW, R_WS maps S coordinates into W."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q_wxyz, float), scalar_first=True).as_matrix()
 
 
 # ------------------------------------------------------------------ integration

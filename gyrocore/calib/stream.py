@@ -107,10 +107,10 @@ class LazyRotations(Rows):
     """Rotation matrices R (N, 3, 3) of a quaternion column set (w, x, y, z), rows on demand."""
 
     def __init__(self, q: Rows) -> None:
-        from scipy.spatial.transform import Rotation
+        from gyrocore.attitude import rotation_matrices
 
         def fn(lo, hi):
-            return Rotation.from_quat(np.asarray(q.rows(lo, hi), float), scalar_first=True).as_matrix()
+            return rotation_matrices(q.rows(lo, hi))
 
         super().__init__(fn, q.n, 3)
         self.shape = (q.n, 3, 3)

@@ -105,6 +105,15 @@ class StepScreen:
     n_candidates: int
     size_rad_s: np.ndarray  # (3,) score estimate of the step
 
+    def evidence(self) -> dict:
+        """The scan's figures in a step's evidence (JSON keys of the loop's result)."""
+        return {
+            "sup_statistic": self.statistic,
+            "bootstrap_p": self.p_value,
+            "n_boot": self.n_boot,
+            "n_candidates": self.n_candidates,
+        }
+
 
 def step_columns(res, idx: np.ndarray) -> np.ndarray:
     """Window regressors of unit bias steps starting at window ``idx`` (step at its start time):

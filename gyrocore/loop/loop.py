@@ -57,6 +57,7 @@ the integrated angle inside still segments (``still``), or the per-segment angle
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Sequence
 
 import numpy as np
@@ -397,10 +398,7 @@ class _LoopRun:
         evd = evidence_dict(ev_s)
         evd.update(
             {
-                "sup_statistic": st.statistic,
-                "bootstrap_p": st.p_value,
-                "n_boot": st.n_boot,
-                "n_candidates": st.n_candidates,
+                **st.evidence(),
                 "log10_p_step": st.log10_p,
                 "threshold_step": thr_step,
                 "vs_ramp": {"cv_rms_step_rad_s": cv_step, "cv_rms_ramp_rad_s": cv_ramp, "chosen": "step"},
@@ -589,26 +587,18 @@ def run_loop(
     if not 0 < alpha < 1:
         raise GyroInputError(f"alpha must be in (0, 1), not {alpha}")
     with _single_thread():
-        res = build_residual(
-            rec,
-            reference=reference,
+        build = partial(
+            build_residual,
             segments=segments,
             window_s=window_s,
             angle_sigma_deg=angle_sigma_deg,
             axis_sigma_deg=axis_sigma_deg,
             angle_mode=angle_mode,
         )
+        res = build(rec, reference=reference)
 
         def rebuild(r: Recording) -> Residual:
-            return build_residual(
-                r,
-                reference=res.kind,
-                segments=segments,
-                window_s=window_s,
-                angle_sigma_deg=angle_sigma_deg,
-                axis_sigma_deg=axis_sigma_deg,
-                angle_mode=angle_mode,
-            )
+            return build(r, reference=res.kind)  # the reference resolved on the first build
 
         return loop_residual(
             res,

@@ -459,10 +459,7 @@ def _step_options(run: LoopState, cv_base: float) -> list:
     evd = evidence_dict(ev)
     evd.update(
         {
-            "sup_statistic": st.statistic,
-            "bootstrap_p": st.p_value,
-            "n_boot": st.n_boot,
-            "n_candidates": st.n_candidates,
+            **st.evidence(),
             "threshold_step": thr_step,
             "residual": "window",
         }

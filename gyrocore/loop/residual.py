@@ -58,7 +58,7 @@ from scipy import signal
 from scipy.spatial.transform import Rotation
 
 from gyrocore.effects import registry as E
-from gyrocore.attitude import integrate_gyro
+from gyrocore.attitude import integrate_gyro, rotation_matrices
 from gyrocore.errors import GyroInputError
 from gyrocore.data.recording import Recording
 from gyrocore.data.segments import Segment, as_segments
@@ -472,10 +472,6 @@ def _smooth(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     return signal.sosfiltfilt(sos, x, axis=0)
 
 
-def _R(q: np.ndarray) -> np.ndarray:
-    return Rotation.from_quat(np.asarray(q, float), scalar_first=True).as_matrix()
-
-
 def _fill_nan_rows(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     ok = np.all(np.isfinite(x), axis=1)
     if ok.all() or not ok.any():
@@ -647,7 +643,7 @@ def _still_residual(rec: Recording, segs: Sequence[Segment], window_s: float | N
         desc = f"still samples found by a motion gate ({mask.mean():.0%} of the recording): true rate 0"
     a, b = _blocks(mask, _n_block(rec, window_s))
     q_ref = rec.ref_quat_wxyz
-    R_WS = _R(q_ref) if q_ref is not None and np.all(np.isfinite(q_ref)) else None
+    R_WS = rotation_matrices(q_ref) if q_ref is not None and np.all(np.isfinite(q_ref)) else None
     r = np.where(np.isfinite(gyro), gyro, 0.0)
     return _block_means_residual("still", rec, r, np.zeros((rec.n, 3)), a, b, R_WS, desc, [])
 
@@ -695,9 +691,9 @@ def _attitude_residual(rec: Recording, window_s: float | None, outlier_mad: floa
     if n_lost:
         notes.append(f"{n_lost} of {keep.size} windows dropped: reference attitude NaN at an end")
     q_hat = integrate_gyro(t, gyro, hold="backward")
-    R_GS = _R(q_hat)
+    R_GS = rotation_matrices(q_hat)
     R_ref = np.full((n, 3, 3), np.nan)
-    R_ref[ok] = _R(q_ref[ok])
+    R_ref[ok] = rotation_matrices(q_ref[ok])
     # E = (R_a^T R_b)^T · (R̂_a^T R̂_b)
     rel_ref = np.einsum("mji,mjk->mik", R_ref[a], R_ref[b])
     rel_hat = np.einsum("mji,mjk->mik", R_GS[a], R_GS[b])
@@ -782,7 +778,7 @@ def _angles_residual(
     b0 = gyro[still].mean(axis=0) if still.any() else np.zeros(3)
     if angle_mode not in ("rotation", "axis"):
         raise GyroInputError(f"angle mode must be 'rotation' or 'axis', not '{angle_mode}'")
-    R_GS = _R(integrate_gyro(t, gyro - b0, hold="backward")) if angle_mode == "rotation" else None
+    R_GS = rotation_matrices(integrate_gyro(t, gyro - b0, hold="backward")) if angle_mode == "rotation" else None
     inputs = E.ModelInputs(t_s=t, omega_S_rad_s=omega, f_S_m_s2=rec.accel_m_s2, temp_c=rec.temp_c)
     how_compared = (
         "integrated gyro rotation vs known rotation"

@@ -38,9 +38,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from gyrocore.attitude import integrate_gyro, integrate_gyro_windows
+from gyrocore.attitude import integrate_gyro, integrate_gyro_windows, rotation_matrices
 from gyrocore.calib.stream import LazyRotations, Rows, SpilledRecording, held_correction, rows_of
 from gyrocore.data.recording import Recording
 
@@ -99,7 +98,7 @@ class _InMemory:
 
     def rotations(self, q) -> np.ndarray:
         """Rotation matrices (N, 3, 3) of quaternions (N, 4) w,x,y,z."""
-        return Rotation.from_quat(np.asarray(q, float), scalar_first=True).as_matrix()
+        return rotation_matrices(q)
 
     def without_lines(self, held: dict) -> Recording:
         """The recording with the narrow-band lines ``held`` removed from the gyro (raw time frame)."""
