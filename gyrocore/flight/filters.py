@@ -78,7 +78,9 @@ def _check_fc(fc_hz: float, rate_hz: float) -> None:
     if not (np.isfinite(rate_hz) and rate_hz > 0):
         raise GyroInputError(f"sample rate must be positive, got {rate_hz} Hz")
     if not (np.isfinite(fc_hz) and 0 < fc_hz < rate_hz / 2):
-        raise GyroInputError(f"cutoff {fc_hz} Hz must be in (0, {rate_hz / 2:g}) Hz (Nyquist at {rate_hz:g} Hz)")
+        raise GyroInputError(
+            f"cutoff {fc_hz} Hz must be in (0, {rate_hz / 2:g}) Hz (the Nyquist frequency at {rate_hz:g} Hz)"
+        )
 
 
 def article_lpf_coefficient(fc_hz: float, rate_hz: float) -> float:

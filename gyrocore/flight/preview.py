@@ -859,6 +859,10 @@ def _butter2_best(ctx: _PreviewContext, as_flown: list | None, bands: list, budg
     }
     b2 = []
     for fc in sorted(set(CUTOFF_GRID_HZ + (20.0, 30.0)) | set(flown_b2)):
+        if fc not in flown_b2 and fc * 2.0 >= ctx.rate_hz / 2:
+            # the grid's rule in candidates(): a cutoff at or above a quarter of the filter rate is
+            # not designed (a PX4 ULog's 250-Hz sensor_combined: 140 Hz was above its Nyquist)
+            continue
         st = (
             _stage("butter2", fc, float(flown_b2[fc].get("rate_hz") or ctx.rate_hz))
             if fc in flown_b2

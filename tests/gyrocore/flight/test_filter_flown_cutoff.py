@@ -26,3 +26,20 @@ def test_ardupilot_lowpass_line_keeps_the_flown_cutoff():
     assert out["recommended"]["name"] == "as flown"
     assert out["firmware"]["ardupilot"]["INS_GYRO_FILTER"] == 42
     assert out["px4_ardupilot_lowpass"]["attitude_cost"] <= out["as_flown"]["attitude_cost"] * (1 + 1e-9)
+
+
+def test_low_rate_log_keeps_the_butterworth_grid_below_a_quarter_of_its_rate(shared_data):
+    """A PX4 ULog's sensor_combined is logged at ~200-250 Hz and carries no filter rate: the
+    PX4/ArduPilot Butterworth grid ran at that rate up to 300 Hz and `filter` died on "cutoff
+    140.0 Hz must be in (0, 125) Hz" for every PX4 log. Its grid now follows the candidates'
+    rule (a cutoff below a quarter of the filter rate)."""
+    from gyrocore.readers.ulog import read_ulog
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = read_ulog(shared_data / "pyulog_samples" / "sample_log_small.ulg")
+        out = recommend_filter(rec)
+    rate = out["filter_rate_hz"]
+    assert rate < 250.0  # the logged rate (~204.6 Hz): nothing to run the filters faster
+    assert out["px4_ardupilot_lowpass"]["cutoff_hz"] < rate / 4
+    assert out["firmware"]["px4"]["IMU_GYRO_CUTOFF"] < rate / 4
