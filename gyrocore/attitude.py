@@ -91,31 +91,24 @@ def qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product p ⊗ q of quaternion arrays, shape (..., 4), w first."""
     p = np.asarray(p, float)
     q = np.asarray(q, float)
-    pw, px, py, pz = np.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
+    return np.stack(_hamilton(np.moveaxis(p, -1, 0), np.moveaxis(q, -1, 0)), axis=-1)
 
 
 def _qmul_soa(p, q):
     """Hamilton product on component tuples/arrays of shape (4, ...) (struct of arrays)."""
+    return np.stack(_hamilton(p, q))
+
+
+def _hamilton(p, q) -> list:
+    """The four components (w, x, y, z) of p ⊗ q from the components of p and q."""
     pw, px, py, pz = p
     qw, qx, qy, qz = q
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ]
-    )
+    return [
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    ]
 
 
 def qconj(q: np.ndarray) -> np.ndarray:

@@ -186,6 +186,20 @@ def _block_mean_var_model(g: np.ndarray, L: int) -> float:
     return float((L * g[0] + 2.0 * np.sum((L - l) * g[1:k])) / L**2)
 
 
+def _block_mean_vars(x: np.ndarray, g: np.ndarray):
+    """For L = 16, 32, … ≤ N/8: (L, m, the sample variance (ddof 1) of the m = N // L means of L
+    consecutive samples of x − mean(x), its model :func:`_block_mean_var_model` under g); lazily
+    (a test may stop at the first block length that says enough)."""
+    n = x.shape[0]
+    xc = x - x.mean()
+    L = 16
+    while L <= n // 8:
+        m = n // L
+        bm = xc[: m * L].reshape(m, L).mean(axis=1)
+        yield L, m, float(np.var(bm, ddof=1)), _block_mean_var_model(g, L)
+        L *= 2
+
+
 def _gm_block_var(s2: float, phi: float, L: int) -> float:
     """Var of an L-sample mean of a Gauss–Markov sequence (variance s2, lag-1 corr φ)."""
     if phi <= 0:
@@ -202,14 +216,9 @@ def low_frequency_excess(x: np.ndarray, *, alpha: float = 1e-3, n_direct: int = 
     if n < 16 * 8:
         return False
     g = _autocov(x, n_direct)
-    xc = x - x.mean()
-    L = 16
-    while L <= n // 8:
-        m = n // L
-        bm = xc[: m * L].reshape(m, L).mean(axis=1)
-        if np.var(bm, ddof=1) > stats.chi2.ppf(1 - alpha, m - 1) / (m - 1) * _block_mean_var_model(g, L):
+    for L, m, v, v_model in _block_mean_vars(x, g):
+        if v > stats.chi2.ppf(1 - alpha, m - 1) / (m - 1) * v_model:
             return True
-        L *= 2
     return False
 
 
@@ -254,17 +263,12 @@ def residual_autocov_model(
     g = _short_and_tail(x, n_direct, max_lag, tail_floor)
     if not low_freq_check or n < 16 * 8:
         return g
-    xc = x - x.mean()
     Ls, vobs, vmod, wts = [], [], [], []
-    L = 16
-    while L <= n // 8:
-        m = n // L
-        bm = xc[: m * L].reshape(m, L).mean(axis=1)
+    for L, m, v, v_model in _block_mean_vars(x, g):
         Ls.append(L)
-        vobs.append(float(np.var(bm, ddof=1)))
-        vmod.append(_block_mean_var_model(g, L))
+        vobs.append(v)
+        vmod.append(v_model)
         wts.append(m - 1)
-        L *= 2
     if not Ls:
         return g
     Ls, vobs, vmod, wts = map(np.asarray, (Ls, vobs, vmod, wts))

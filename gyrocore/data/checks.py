@@ -228,11 +228,7 @@ def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
     if not gyro_col.endswith("_rad_s") or gyro.shape[0] < 2:
         return
     peak = max(float(np.max(gyro)), -float(np.min(gyro)))  # = max |gyro|, without an (N, 3) temporary
-    if peak > DEG_S_SUSPECT_RAD_S:
-        raise GyroInputError(
-            f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
-            f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
-        )
+    _refuse_deg_s_peak(peak, path, gyro_col)
     # still recording (accel steady, std < 0.05 g): a MEMS gyro at rest has per-sample noise
     # < 0.05 rad/s (2.9 deg/s; even 0.01 deg/s/sqrt(Hz) at 8 kHz is 0.9 deg/s); deg/s numbers
     # read as rad/s are 57x too big (an MPU-6050's 0.1 deg/s becomes 0.1 "rad/s").
@@ -242,14 +238,40 @@ def _unit_checks(rec_t, gyro, accel, path, gyro_col, *, accel_std=None) -> None:
         return
     med = np.array([np.median(gyro[:, i]) for i in range(3)])  # per column: no (N, 3) copy
     noise = np.array([still_noise_rad_s(gyro[:, i]) for i in range(3)])
+    _warn_still_noise(path, med, noise)
+
+
+def _refuse_deg_s_peak(peak_rad_s: float, path, gyro_col: str) -> None:
+    """One error line when a column labelled rad/s peaks beyond any MEMS full scale."""
+    if peak_rad_s > DEG_S_SUSPECT_RAD_S:
+        raise GyroInputError(
+            f"{path}: gyro peaks at {peak_rad_s:.1f} rad/s ({np.rad2deg(peak_rad_s):.0f} deg/s), beyond any MEMS full "
+            f"scale (<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it "
+            f"{gyro_col.replace('_rad_s', '_deg_s')}"
+        )
+
+
+def _warn_still_noise(path, med, noise) -> None:
+    """The warning of a still recording (accel steady) whose per-sample noise (3,) rad/s is beyond
+    any MEMS gyro at rest; ``med`` the gyro's median per axis (3,), rad/s."""
     # (a large median alone is not evidence: a centred sensor on a turning rate table also has steady accel)
-    if np.any(noise > STILL_NOISE_SUSPECT_RAD_S):
+    if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
         warn_repair(
             f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
             f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
             f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
             f"Data left unchanged"
         )
+
+
+def _check_time_span(t: np.ndarray, path) -> None:
+    """One error line when the time column's span or steps overflow float64."""
+    span = np.subtract(t[-1], t[0], dtype=float) if t.size else 0.0
+    with np.errstate(all="ignore"):
+        if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
+            raise GyroInputError(
+                f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})"
+            )
 
 
 #: Quantile of the sample intervals whose distance below the median measures the timestamps'

@@ -21,7 +21,7 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
 
-from .checks import DEG, G0_M_S2, _timing_checks, _unit_checks, _valid_rows, detect_saturation
+from .checks import DEG, G0_M_S2, _check_time_span, _timing_checks, _unit_checks, _valid_rows, detect_saturation
 from .csvtext import (
     TIME_ALTS,
     _MAX_BLOCK_BYTES,
@@ -480,12 +480,7 @@ def _finish(
     t, gyro, accel, temp, rref, qref, meta, extra, path, *, checks: bool, retime: bool, accel_std=None
 ) -> Recording:
     """Post-parse checks common to the whole-file and chunked readers."""
-    span = np.subtract(t[-1], t[0], dtype=float) if t.size else 0.0
-    with np.errstate(all="ignore"):
-        if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
-            raise GyroInputError(
-                f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})"
-            )
+    _check_time_span(t, path)
     if checks:
         with np.errstate(all="ignore"):  # absurd finite values (1e300) must not print overflow warnings
             _unit_checks(t, gyro, accel, path, meta.pop("__gyro_col__", "gyro_x_rad_s"), accel_std=accel_std)

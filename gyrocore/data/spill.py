@@ -20,12 +20,13 @@ from gyrocore.errors import GyroInputError, warn_repair
 from .columns import DISK_BLOCK_BYTES, ScratchFiles
 from .checks import (
     DEG,
-    DEG_S_SUSPECT_RAD_S,
     G0_M_S2,
-    STILL_NOISE_SUSPECT_RAD_S,
-    still_noise_rad_s,
+    _check_time_span,
+    _refuse_deg_s_peak,
     _timing_checks,
+    _warn_still_noise,
     detect_saturation,
+    still_noise_rad_s,
 )
 from .csvtext import _header_info, _Moments, _sniff_file
 from .recording import (
@@ -121,12 +122,7 @@ def _checks(store: ColumnSpill, path: str, layout, *, accel: bool, has_accel: bo
     gyro_col = layout.gyro_unit_col
     with np.errstate(all="ignore"):
         if gyro_col.endswith("_rad_s"):
-            peak = gyro_peak
-            if peak > DEG_S_SUSPECT_RAD_S:
-                raise GyroInputError(
-                    f"{path}: gyro peaks at {peak:.1f} rad/s ({np.rad2deg(peak):.0f} deg/s), beyond any MEMS full scale "
-                    f"(<= 4000 deg/s = 70 rad/s): the column is probably deg/s; rename it {gyro_col.replace('_rad_s', '_deg_s')}"
-                )
+            _refuse_deg_s_peak(gyro_peak, path, gyro_col)
             sd = mom.std() if has_accel else None  # chunks are SI already
             if sd is not None and bool(np.all(sd < 0.05 * G0_M_S2)):
                 med, noise = [], []
@@ -137,13 +133,7 @@ def _checks(store: ColumnSpill, path: str, layout, *, accel: bool, has_accel: bo
                     c = store.column(GYRO_COLS[j])
                     med.append(float(np.median(c, overwrite_input=True)))  # c is not used again
                     del c
-                if np.any(np.asarray(noise) > STILL_NOISE_SUSPECT_RAD_S):
-                    warn_repair(
-                        f"{path}: still recording (accel steady) but gyro median ({', '.join(f'{m:.3g}' for m in med)}) rad/s "
-                        f"and per-sample noise ({', '.join(f'{v:.3g}' for v in noise)}) rad/s : the noise exceeds any MEMS gyro at rest "
-                        f"({STILL_NOISE_SUSPECT_RAD_S} rad/s per sample): is it deg/s labelled rad/s? "
-                        f"Data left unchanged"
-                    )
+                _warn_still_noise(path, med, noise)
         _timing_checks(t, path, False, layout.header[layout.t])
         found, n_sat = [], 0
         sat_any = None
@@ -236,11 +226,6 @@ def spill_columns(
         raise GyroInputError(f"{path}: fewer than 2 valid samples")
     t = np.fromfile(folder / f"{TIME_COL}.f64", dtype=np.float64, count=n)
     store = ColumnSpill(folder, names, n, t, meta)
-    span = np.subtract(t[-1], t[0], dtype=float)
-    with np.errstate(all="ignore"):
-        if not np.isfinite(span) or not np.all(np.isfinite(np.diff(t))):
-            raise GyroInputError(
-                f"{path}: time column spans beyond the float range (t_s from {t[0]:.3g} to {t[-1]:.3g})"
-            )
+    _check_time_span(t, path)
     _checks(store, path, layout, accel=accel, has_accel=has_accel, gyro_peak=max(g_max, -g_min), mom=mom)
     return store
