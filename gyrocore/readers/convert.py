@@ -64,6 +64,7 @@ FORMATS = (
     "imutk",
     "gnss_ins_sim",
     "fusion",
+    "raw_dump",
     "csv",
     "parquet",
 )
@@ -110,6 +111,10 @@ def detect_format(path: str | os.PathLike) -> str:
         return "imucal_annotated"
     if first.startswith("Time (s),Gyroscope"):
         return "fusion"
+    from .rawdump import looks_like_raw_dump
+
+    if looks_like_raw_dump(p):  # gx,gy,gz / GyX... counts (an Arduino MPU-6050 sketch's log)
+        return "raw_dump"
     return "csv"
 
 
@@ -197,6 +202,7 @@ def load_with_segments(path: str | os.PathLike, *, format: str = "auto", **optio
         "imutk": read_imutk,
         "gnss_ins_sim": read_gnss_ins_sim,
         "fusion": read_fusion,
+        "raw_dump": _read_raw_dump,
         "csv": read_csv,
         "parquet": read_parquet,
     }
@@ -230,6 +236,24 @@ def _read_blackbox(path: str | os.PathLike, *, log_index: int | None = None) -> 
     from .blackbox import read_blackbox
 
     return read_blackbox(path, log_index=log_index)
+
+
+def _read_raw_dump(
+    path: str | os.PathLike,
+    *,
+    lsb_per_dps: float | None = None,
+    lsb_per_g: float | None = None,
+    rate_hz: float | None = None,
+) -> Recording:
+    """Raw-count IMU dump (``gx,gy,gz``, ``GyX``, ``millis``, ...): :func:`gyrocore.readers.rawdump.read_raw_dump`."""
+    from .rawdump import MPU6050_LSB_PER_DPS, MPU6050_LSB_PER_G, read_raw_dump
+
+    return read_raw_dump(
+        path,
+        lsb_per_dps=lsb_per_dps or MPU6050_LSB_PER_DPS,
+        lsb_per_g=lsb_per_g or MPU6050_LSB_PER_G,
+        rate_hz=rate_hz,
+    )
 
 
 def _read_dataflash(path: str | os.PathLike, *, stream: str | None = None) -> Recording:
