@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from gyrocore.data.recording import ACCEL_COLS, GYRO_COLS, REF_RATE_COLS, TEMP_COL, Recording
-from gyrocore.data.spill import ColumnSpill
+from gyrocore.data.spill import ColumnSpill, release_arrow_memory
 
 __all__ = [
     "Rows",
@@ -242,11 +242,8 @@ def release_memory() -> None:
     the C heap (glibc ``malloc_trim``; nothing elsewhere) — the reader's blocks otherwise stay
     in the process's resident set (~20 MiB after a CSV of 10⁶ rows)."""
     import ctypes
-    import sys
 
-    pa = sys.modules.get("pyarrow")
-    if pa is not None:
-        pa.default_memory_pool().release_unused()
+    release_arrow_memory()
     try:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):  # pragma: no cover - not glibc

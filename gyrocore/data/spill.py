@@ -44,7 +44,7 @@ from .recording import (
     iter_chunks,
 )
 
-__all__ = ["ColumnSpill", "spill_columns"]
+__all__ = ["ColumnSpill", "spill_columns", "release_arrow_memory"]
 
 
 class ColumnSpill:
@@ -105,7 +105,7 @@ class ColumnSpill:
         )
 
 
-def _release_arrow_memory() -> None:
+def release_arrow_memory() -> None:
     """Return the memory Arrow's allocator keeps after a read to the system (its pools hold
     freed blocks for reuse: ~20 MiB after streaming a long CSV)."""
     import sys
@@ -221,7 +221,7 @@ def spill_columns(
     finally:
         for fh in files.values():
             fh.close()
-    _release_arrow_memory()
+    release_arrow_memory()
     if n < 2:
         raise GyroInputError(f"{path}: fewer than 2 valid samples")
     t = np.fromfile(folder / f"{TIME_COL}.f64", dtype=np.float64, count=n)
