@@ -163,6 +163,15 @@ def _weighted_step_columns(res, idx: np.ndarray, sw: np.ndarray) -> np.ndarray:
 STEP_NOISE_FROM = "alternative"
 
 
+def _step_scores(Cp: np.ndarray, ew: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The scores z = Cpᵀ·ew (J, 3) and the Gram matrices (J, 3, 3) of the three weighted,
+    projected step columns of each of the J candidate times (Cp (3M, 3J), column 3j + axis)."""
+    J = Cp.shape[1] // 3
+    z = (Cp.T @ ew).reshape(J, 3)
+    Cp3 = Cp.reshape(Cp.shape[0], J, 3)
+    return z, np.einsum("rja,rjb->jab", Cp3, Cp3)
+
+
 def _refine_step(res, X0, e, sw, idx, jbest) -> int:
     """Window index of the least-squares step location between the coarse neighbours of
     ``idx[jbest]`` (the test ran on a thinned grid; the location is refined on every window)."""
@@ -173,12 +182,8 @@ def _refine_step(res, X0, e, sw, idx, jbest) -> int:
         return int(idx[jbest])
     C = step_columns(res, fine)
     Cp = project_off(weighted_design(X0, sw), weighted_design(C, sw))
-    ew = weighted_residual(e, sw)
-    J = fine.size
-    z = (Cp.T @ ew).reshape(J, 3)
-    Cp3 = Cp.reshape(Cp.shape[0], J, 3)
-    G = np.einsum("rja,rjb->jab", Cp3, Cp3)
-    gain = [float(z[j] @ np.linalg.lstsq(G[j], z[j], rcond=None)[0]) for j in range(J)]
+    z, G = _step_scores(Cp, weighted_residual(e, sw))
+    gain = [float(z[j] @ np.linalg.lstsq(G[j], z[j], rcond=None)[0]) for j in range(fine.size)]
     return int(fine[int(np.argmax(gain))])
 
 
@@ -226,9 +231,7 @@ def screen_step(
     Cp = project_off(Xw, _weighted_step_columns(res, idx, sw), overwrite=True)
     ew = weighted_residual(e, sw)
     J = idx.size
-    z = (Cp.T @ ew).reshape(J, 3)
-    Cp3 = Cp.reshape(Cp.shape[0], J, 3)
-    Gjj = np.einsum("rja,rjb->jab", Cp3, Cp3)  # (J, 3, 3): the three columns of each τ
+    z, Gjj = _step_scores(Cp, ew)
     # best step by least squares (white weights) -> the alternative's residual -> noise model
     with np.errstate(invalid="ignore"):
         th = np.linalg.solve(Gjj + 1e-300 * np.eye(3), z[:, :, None])[:, :, 0]
@@ -238,7 +241,7 @@ def screen_step(
     # the full-step scores z (= Cpᵀ·ew) are all that is needed of Cp below (the size
     # estimate): Cp is released before the contrast columns are built (memory)
     zf = z.copy()
-    del Cp, Cp3
+    del Cp
     E_alt = e_alt.reshape(3, M).T
     gs = residual_autocov_models(E_alt if noise_from == "alternative" else ew.reshape(3, M).T)
     # the test statistic is a *local* contrast (mean of the h windows after τ minus the h
