@@ -39,7 +39,7 @@ from gyrocore.errors import GyroInputError
 from gyrocore.calib.rows import ReferenceRows
 from gyrocore.data.columns import columns_of
 from gyrocore.data.recording import ACCEL_COLS, REF_RATE_COLS, TEMP_COL, Recording, file_sha256
-from gyrocore.data.still import still_samples
+from gyrocore.data.still import moving_throughout, still_samples
 from gyrocore.noise.model import NoiseModel
 
 __all__ = [
@@ -727,6 +727,13 @@ class LeastSquaresMethod:
         if m.sum() < 10:
             raise GyroInputError(
                 "no reference rates (ref_*_rad_s) and no still part in the data: nothing to calibrate against"
+            )
+        moving = moving_throughout(rec, gate)
+        if moving:
+            raise GyroInputError(
+                f"no reference rates (ref_*_rad_s) and no still part: the record moves throughout ({moving}), so its "
+                "quietest windows are motion, not a bias; give a reference (known rotations --segments, ref_* "
+                "columns) or a still recording"
             )
         notes.append(
             f"no reference rates: fitted against rate 0 on {int(m.sum())} still samples "

@@ -66,6 +66,7 @@ __all__ = [
     "runs",
     "windows_touching",
     "still_samples",
+    "moving_throughout",
     "NOISE_RATIO_BOUND",
     "MIN_WINDOWS_FOR_QUANTILE",
 ]
@@ -565,3 +566,27 @@ def still_samples(
         return np.zeros(recording.n, bool)
     excl = windows_touching(recording.t_s, n, exclude_s, margin_s) if len(exclude_s) else None
     return still_windows(recording.gyro_rad_s, rate, gate, exclude=excl).sample_mask()
+
+
+def moving_throughout(recording, gate: StillGate) -> str:
+    """'' unless the windows ``gate`` calls still are the quietest part of a record that moves
+    throughout; returns why, in one phrase.
+
+    Their noise (the median of their window variances, ≈ σ² for ν ≳ 30) is set against what the
+    sample-to-sample differences of the record predict (σ_Δ²/2, raised for an on-chip low-pass
+    as in the ``noise_from="auto"`` test); more than :data:`NOISE_RATIO_BOUND` times it is
+    motion. A gate with ``noise_from="windows"`` (the rotation calibrations: the known motion
+    excluded, the rest mostly still) takes σ² from the window-variance quantile whatever the
+    windows hold; a caller that has excluded nothing asks this first, so that a hand-rotated or
+    flown record does not yield "still" windows that are its slowest motion (a sunsided rotate-*
+    run gave a 15 deg/s "bias"). Still windows of a genuinely still part pass (ratio ≈ 1: the
+    static MPU-6050, PX4 and gnss-ins-sim records give 0.85-1.5).
+    """
+    rate = recording.rate_hz
+    n = gate.samples(rate)
+    if recording.n < 2 * max(n, 1):
+        return ""
+    sw = still_windows(recording.gyro_rad_s, rate, gate)
+    if int(sw.still.sum()) < 2:
+        return ""
+    return _check_noise_plausible(np.median(sw.variance[sw.still], axis=0), sw.sigma_diff_rad_s, sw.diff_corr)

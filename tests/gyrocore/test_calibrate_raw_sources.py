@@ -72,3 +72,56 @@ def test_folder_digest_follows_its_files(tmp_path):
     assert file_sha256(d) != file_sha256(d / "a.csv")
     with pytest.raises(FileNotFoundError):
         file_sha256(tmp_path / "missing")
+
+
+@pytest.mark.parametrize(
+    "rel",
+    [
+        "sunsided_mpu6050/set-2/rotate-ccw-around-z-pointing-up",  # two hand turns, no still part
+        "sunsided_mpu6050/set-1/tilt-sphere",  # tilted about by hand throughout
+        "blackbox_public/LOG00037.BFL",  # a 17-s flight
+    ],
+)
+def test_bias_of_a_record_moving_throughout_is_refused(capsys, shared_data, tmp_path, rel):
+    """Without a reference the fit is against rate 0 on the still windows; the rotation gate
+    (noise from the window-variance quantile) called the slowest motion "still" and gave a bias
+    of 14.7 deg/s (rotate-z, residual 24 deg/s), 16 deg/s (tilt-sphere) or 1.7 deg/s (the
+    flight). Those windows' variance is 4.3-21 x what the sample-to-sample differences predict;
+    refused, one line."""
+    s, _, err = gh(capsys, "calibrate", shared_data / rel, "--effects", "bias", "-o", tmp_path / "p.json")
+    errors = [ln for ln in err if ln.startswith("error:")]
+    assert s != 0 and len(errors) == 1 and "the record moves throughout" in errors[0], err
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_bias_of_still_records_is_unchanged_by_that_test(capsys, shared_data, tmp_path):
+    """A still record, and one that is still for only 3 s of 10 (gnss-ins-sim's 360 deg turn),
+    keep their fit: their still windows' noise is what the differences predict."""
+    from gyrocore.readers.convert import load_any
+
+    rel = "tomisuarez2_mpu6050/imu_static_test.csv"
+    s, _, err = gh(capsys, "calibrate", shared_data / rel, "--effects", "bias", "-o", tmp_path / "a.json")
+    assert s == 0, err
+    b = np.asarray(_params(tmp_path / "a.json")["bias"]["b_rad_s"])
+    g = _quiet_load(load_any, shared_data / rel).gyro_rad_s
+    # 98 % of the samples are the still windows': the fit (their mean) is the record's mean to
+    # well within one standard error sigma/sqrt(N) (1.3-2.0e-5 rad/s); 3 SE
+    assert np.all(np.abs(b - g.mean(axis=0)) < 3 * g.std(axis=0) / np.sqrt(g.shape[0])), (b, g.mean(axis=0))
+    s, _, err = gh(
+        capsys,
+        "calibrate",
+        shared_data / "gnss_ins_sim_logged_360z" / "bosch",
+        "--effects",
+        "bias",
+        "-o",
+        tmp_path / "b.json",
+    )
+    assert s == 0, err
+
+
+def _quiet_load(fn, *a):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fn(*a)
