@@ -373,6 +373,10 @@ def read_blackbox_logs(path: str | os.PathLike, *, log_index: int | None = None)
             parser.set_log_index(li)
         except Exception as exc:
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            if log_index is None and count > 1:
+                # one damaged log of a multi-log file (a dump cut inside a header): the others are read
+                warn_repair(f"{p.name}: log {li} of {count}: header cut off or unreadable ({msg}); skipped")
+                continue
             raise GyroInputError(f"{p}: log {li}: unreadable header ({msg})") from None
         hdr = parser.headers
         if hdr.get("Data version") not in (1, 2):
@@ -392,6 +396,11 @@ def read_blackbox_logs(path: str | os.PathLike, *, log_index: int | None = None)
         from orangebox.types import FrameType
 
         if FrameType.INTRA not in fdefs or FrameType.INTER not in fdefs:
+            if log_index is None and count > 1:
+                warn_repair(
+                    f"{p.name}: log {li} of {count}: header has no main-frame field definitions (cut off?); skipped"
+                )
+                continue
             raise GyroInputError(f"{p}: log {li}: header has no main-frame field definitions (truncated header?)")
         names = tuple(d.name for d in fdefs[FrameType.INTRA])
         stats = {"n_corrupt": 0, "n_unanchored": 0, "truncated": False, "ended": False}
@@ -672,8 +681,6 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
     rows = np.nonzero(keep)[0]
     t_us = t_us[rows]
     gyro_deg_s = g[rows] / gyro_div
-    rates = inav_loop_rates(hdr) if inav else loop_rates(hdr, fw)
-    chain = inav_filter_chain(hdr, rates) if inav else gyro_filter_chain(hdr, fw)
     it = log.column("loopIteration")
     dt = np.diff(t_us) * 1e-6
     log_hz = 1.0 / float(np.median(dt))
@@ -684,6 +691,13 @@ def _convert_log(log: BlackboxLog, src: str) -> _LogConversion:
         loop_hz_meas = float(np.sum(di[ok]) / np.sum(dt[ok])) if ok.any() else float("nan")
     else:
         loop_hz_meas = float("nan")
+    where = f"{Path(src).name}: log {log.index}: "
+    rates = (
+        inav_loop_rates(hdr, measured_loop_hz=loop_hz_meas, where=where)
+        if inav
+        else loop_rates(hdr, fw, measured_loop_hz=loop_hz_meas, where=where)
+    )
+    chain = inav_filter_chain(hdr, rates) if inav else gyro_filter_chain(hdr, fw, rates)
     # unit check on the data: full scale and still part
     full = float(np.max(np.abs(gyro_deg_s)))
     if full > 4100:

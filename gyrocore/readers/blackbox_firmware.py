@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import Sequence
 
-from gyrocore.errors import GyroInputError
+from gyrocore.errors import GyroInputError, warn_repair
 
 __all__ = [
     "FirmwareInfo",
@@ -293,7 +293,24 @@ def _lpf_kind(fw: FirmwareInfo, type_idx) -> str:
     return "fir" if t == 2 and fw.version < (3, 4, 0) else f"type{t}"
 
 
-def loop_rates(headers: dict, fw: FirmwareInfo) -> dict:
+def _loop_period_us(headers: dict, measured_loop_hz: float | None, loops_per_iteration: float, where: str) -> float:
+    """``looptime`` (µs), or — when the header's is not a period (INAV writes "InfinityHz" in
+    some builds: FLIGHT_LOGS.md) — the period the log's own ``loopIteration`` count measured
+    (``loops_per_iteration`` gyro loops per counted iteration), with a warning."""
+    lt = _h(headers, "looptime")
+    if isinstance(lt, (int, float)) and lt > 0:
+        return float(lt)
+    if measured_loop_hz is not None and math.isfinite(measured_loop_hz) and measured_loop_hz > 0:
+        period = 1e6 / (float(measured_loop_hz) * loops_per_iteration)
+        warn_repair(
+            f"{where}header 'looptime' is {lt!r}, not a loop period in µs: the loop rate is taken from the logged "
+            f"loopIteration count, {1e6 / period:.6g} Hz"
+        )
+        return period
+    raise GyroInputError(f"{where}header 'looptime' is {lt!r}, not a loop period in µs")
+
+
+def loop_rates(headers: dict, fw: FirmwareInfo, *, measured_loop_hz: float | None = None, where: str = "") -> dict:
     """Gyro, PID (gyro-filter) and nominal logged rates from the header, Hz.
 
     3.1–4.1: ``looptime`` is the gyro loop period (gyro.targetLooptime); gyro filters run
@@ -303,11 +320,9 @@ def loop_rates(headers: dict, fw: FirmwareInfo) -> dict:
     (it is the downsampling filter). ``P interval`` is "num/denom" (3.1–3.2) or an integer
     count of loops between logged frames (3.3+).
     """
-    lt = _h(headers, "looptime")
-    if not isinstance(lt, (int, float)) or not lt > 0:
-        raise GyroInputError(f"header 'looptime' is {lt!r}, not a loop period in µs")
-    gyro_hz = 1e6 / float(lt)
     denom = _h(headers, "pid_process_denom", 1) or 1
+    # loopIteration counts PID loops: pid_process_denom gyro loops each
+    gyro_hz = 1e6 / _loop_period_us(headers, measured_loop_hz, float(denom), where)
     if fw.version >= (4, 2, 0):
         pid_hz = gyro_hz / float(denom)
         filt_hz, lpf2_hz = pid_hz, gyro_hz
@@ -323,7 +338,7 @@ def loop_rates(headers: dict, fw: FirmwareInfo) -> dict:
     return {"gyro_hz": gyro_hz, "pid_hz": pid_hz, "filter_hz": filt_hz, "lpf2_hz": lpf2_hz, "log_hz_nominal": log_hz}
 
 
-def gyro_filter_chain(headers: dict, fw: FirmwareInfo) -> list[FilterStage]:
+def gyro_filter_chain(headers: dict, fw: FirmwareInfo, rates: dict | None = None) -> list[FilterStage]:
     """The firmware's software gyro filters from the header, in the firmware's order.
 
     Header names per version (blackbox.c of each tag): 3.1–3.3 ``gyro_lowpass_hz`` +
@@ -335,7 +350,7 @@ def gyro_filter_chain(headers: dict, fw: FirmwareInfo) -> list[FilterStage]:
     4.0–4.2, ``rpm_filter_*`` 4.3+, active only with ``dshot_bidir`` = 1).
     Order: 3.1 LPF → notch1 → notch2 (sensors/gyro.c); 3.2+ notches → LPF(s).
     """
-    r = loop_rates(headers, fw)
+    r = loop_rates(headers, fw) if rates is None else rates  # rates: :func:`loop_rates` of this log
     fr, f2 = r["filter_hz"], r["lpf2_hz"]
     # static notches
     hz = _hlist(headers, "gyro_notch_hz")
@@ -424,17 +439,14 @@ def dyn_notch_feature(headers: dict, fw: FirmwareInfo) -> bool:
     return isinstance(feats, int) and bool(feats & _FEATURE_DYNAMIC_FILTER)
 
 
-def inav_loop_rates(headers: dict) -> dict:
+def inav_loop_rates(headers: dict, *, measured_loop_hz: float | None = None, where: str = "") -> dict:
     """INAV loop and logged rates from the header, Hz (INAV source read: :data:`INAV_READ`).
 
     ``looptime`` is ``getLooptime()``: the PID/filter loop period in µs (the gyro task's own
     sampling period is not in the header: ``gyro_hz`` is NaN). ``P interval`` is
     ``rate_num/rate_denom``: one main frame per ``rate_denom/rate_num`` loops.
     """
-    lt = _h(headers, "looptime")
-    if not isinstance(lt, (int, float)) or not lt > 0:
-        raise GyroInputError(f"header 'looptime' is {lt!r}, not a loop period in µs")
-    pid_hz = 1e6 / float(lt)
+    pid_hz = 1e6 / _loop_period_us(headers, measured_loop_hz, 1.0, where)
     pint = _h(headers, "P interval", "1/1")
     if isinstance(pint, str) and "/" in pint:
         num, den = (int(x) for x in pint.split("/"))
