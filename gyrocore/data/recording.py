@@ -21,7 +21,16 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
 
-from .checks import DEG, G0_M_S2, _check_time_span, _timing_checks, _unit_checks, _valid_rows, detect_saturation
+from .checks import (
+    DEG,
+    G0_M_S2,
+    _check_time_span,
+    _timing_checks,
+    _unit_checks,
+    _valid_rows,
+    coarse_clock_retime,
+    detect_saturation,
+)
 from .csvtext import (
     TIME_ALTS,
     _MAX_BLOCK_BYTES,
@@ -592,6 +601,9 @@ def _assemble_filled(fill: _Filler, meta, path, *, repair, retime, checks, min_r
     dropped with a warning; copies only when rows are dropped)."""
     t, gyro, accel, temp, rref, qref, extra = fill.columns()
     layout = fill.layout
+    t_even = coarse_clock_retime(t, gyro, path, repair)
+    if t_even is not None:
+        t[:] = t_even
     keep, n_bad, n_back = _valid_rows(t, gyro, accel, temp, path, repair)
     if n_bad:
         warn_repair(f"{path}: dropped {n_bad} rows with NaN/inf time, gyro, accel or temperature")

@@ -88,3 +88,39 @@ def test_noise_rate_of_a_jittered_log_is_the_mean_rate(capsys, tmp_path):
     for ax in "xyz":
         a, b = (out[k]["axes"][ax]["arw_rad_per_sqrt_s"] for k in ("even", "jit"))
         assert b == pytest.approx(a, rel=1e-4)  # same samples, rates equal to 1e-4: N ∝ 1/√rate
+
+
+@pytest.mark.parametrize("tick_s", [0.015625, 0.02])  # Windows' 64-Hz clock; a 20-ms host stamp
+def test_coarse_clock_keeps_every_sample(capsys, tmp_path, tick_s):
+    """A 100-Hz stream stamped by a clock that ticks every 15.6 or 20 ms repeats a third to a
+    half of its stamps. Dropping the repeats (the rule for a time that repeats) lost those
+    samples and put `noise` at 64 or 50 Hz with N 25-41 % high; now every row is kept on a
+    uniform grid at the mean rate, and N is the evenly stamped file's."""
+    rng = np.random.default_rng(6)
+    gyro = rng.normal(0.0, 2e-3, (N, 3))
+    t_even = np.arange(N) * T_S
+    t_coarse = np.floor(t_even / tick_s) * tick_s
+    assert np.count_nonzero(np.diff(t_coarse) == 0) > 0.3 * N
+    with pytest.warns(RepairWarning, match=r"timestamps repeat the previous one .*all rows kept, on a uniform grid"):
+        rec = read_csv(_write(tmp_path / "coarse.csv", t_coarse, gyro))
+    assert rec.n == N and np.array_equal(rec.gyro_rad_s, gyro)
+    # the grid spans first to last stamp: the last is floored by < one tick, rate off by < tick/T
+    assert rec.rate_hz == pytest.approx(100.0, rel=tick_s / (N * T_S))
+    out = {}
+    for name, t in (("even", t_even), ("coarse", t_coarse)):
+        s, o, err = gh(capsys, "noise", _write(tmp_path / f"{name}.csv", t, gyro), "--json", "--method", "adev")
+        assert s == 0, err
+        out[name] = json.loads(o)
+    for ax in "xyz":
+        a, b = (out[k]["axes"][ax]["arw_rad_per_sqrt_s"] for k in ("even", "coarse"))
+        assert b == pytest.approx(a, rel=1e-3)  # same samples; rate within tick/T = 2e-4: N ∝ 1/√rate
+
+
+def test_rows_written_twice_are_still_dropped(tmp_path):
+    """A repeated time with the same gyro values is a row written twice, not a coarse clock."""
+    t = np.arange(300) * T_S
+    gyro = np.random.default_rng(7).normal(0, 1e-3, (300, 3))
+    idx = np.sort(np.concatenate([np.arange(300), np.arange(0, 300, 10)]))  # every 10th row twice
+    with pytest.warns(RepairWarning, match="dropped 30 rows whose timestamp goes backwards or repeats"):
+        rec = read_csv(_write(tmp_path / "twice.csv", t[idx], gyro[idx]))
+    assert rec.n == 300 and np.array_equal(rec.t_s, t)
