@@ -69,17 +69,33 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0, gyro_instance: int 
     try:
         sc = ulog.get_dataset("sensor_combined", multi_id)
     except (KeyError, IndexError, ValueError):
-        raise GyroInputError(f"{p}: no sensor_combined topic (instance {multi_id}) in the log") from None
+        raise GyroInputError(
+            f"{p}: no sensor_combined topic (instance {multi_id}) in the log{_gyro_topics_hint(ulog)}"
+        ) from None
+    if sc.data["timestamp"].size == 0:
+        raise GyroInputError(f"{p}: sensor_combined (instance {multi_id}) holds no samples")
+    missing = [f for f in ("gyro_rad[0]", "gyro_rad[1]", "gyro_rad[2]") if f not in sc.data]
+    if missing:
+        # a PX4 release whose sensor_combined names its fields otherwise: not guessed
+        raise GyroInputError(
+            f"{p}: sensor_combined has no {', '.join(missing)} (its fields: {', '.join(sorted(sc.data)[:12])}): a "
+            f"layout this reader does not know{_gyro_topics_hint(ulog)}"
+        )
     ts_us = np.asarray(sc.data["timestamp"], dtype=np.int64)
     gyro = np.column_stack([sc.data[f"gyro_rad[{i}]"] for i in range(3)]).astype(float)
-    accel = np.column_stack([sc.data[f"accelerometer_m_s2[{i}]"] for i in range(3)]).astype(float)
-    keep = _check_finite(p.name, {"g": gyro, "a": accel}, repairs)
+    if all(f"accelerometer_m_s2[{i}]" in sc.data for i in range(3)):
+        accel = np.column_stack([sc.data[f"accelerometer_m_s2[{i}]"] for i in range(3)]).astype(float)
+    else:
+        accel = None
+        repairs.note("sensor_combined has no accelerometer_m_s2[0..2]: gyro only")
+    keep = _check_finite(p.name, {"g": gyro} if accel is None else {"g": gyro, "a": accel}, repairs)
     # timestamps must increase strictly
     order_ok = np.concatenate([[True], np.diff(ts_us) > 0])
     if not order_ok.all():
         repairs.add(f"dropped {int((~order_ok).sum())} rows whose timestamp repeats or goes backwards")
         keep &= order_ok
-    ts_us, gyro, accel = ts_us[keep], gyro[keep], accel[keep]
+    ts_us, gyro = ts_us[keep], gyro[keep]
+    accel = None if accel is None else accel[keep]
     t_s = (ts_us - ts_us[0]) * 1e-6
     extra: dict[str, np.ndarray] = {}
     temp = None
@@ -127,6 +143,23 @@ def read_ulog(path: str | os.PathLike, *, multi_id: int = 0, gyro_instance: int 
         note="ekf_q* columns are PX4's attitude estimate (vehicle_attitude), NOT a reference",
     )
     return Recording(t_s=t_s, gyro_rad_s=gyro, accel_m_s2=accel, temp_c=temp, meta=meta, extra=extra)
+
+
+def _gyro_topics_hint(ulog) -> str:
+    """'' or "; it logs sensor_gyro 0 (...Hz), ...: read one with --gyro-instance N" — what the log
+    holds instead, so the user knows which reader option applies."""
+    out, readable = [], []
+    for d in ulog.data_list:
+        if d.name in ("sensor_gyro", "sensor_gyro_fifo", "vehicle_angular_velocity"):
+            t = np.asarray(d.data["timestamp"], float)
+            hz = (t.size - 1) / ((t[-1] - t[0]) * 1e-6) if t.size > 1 and t[-1] > t[0] else float("nan")
+            out.append(f"{d.name} {d.multi_id} ({hz:.3g} Hz)")
+            if d.name == "sensor_gyro" and hz >= ULOG_MIN_GYRO_RATE_HZ:
+                readable.append(str(d.multi_id))
+    if not out:
+        return "; it logs no gyro topic (sensor_gyro, sensor_gyro_fifo, vehicle_angular_velocity)"
+    tail = f"; read sensor_gyro with --gyro-instance {' or '.join(readable)}" if readable else ""
+    return f"; it logs {', '.join(out)}{tail}"
 
 
 def _read_ulog_sensor_gyro(ulog, p: Path, inst: int) -> Recording:
