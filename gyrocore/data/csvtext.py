@@ -68,13 +68,45 @@ def _sniff_file(path: str) -> None:
                 f"{path}: {kind}-compressed file; decompress it first ({how.replace('FILE', path)}) and pass the "
                 f"file inside"
             )
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")) or _utf16_without_bom(head):
+        # Excel's "Unicode text", Windows PowerShell's `>` redirect
+        raise GyroInputError(
+            f"{path}: UTF-16 text (a Windows 'Unicode' export or PowerShell redirect); save it as UTF-8 "
+            f"(iconv -f UTF-16 -t UTF-8 {path} > OUT.csv)"
+        )
     if b"\x00" in head:
         raise GyroInputError(f"{path}: binary file, expected a CSV data file")
     try:
         head.decode("utf-8")
     except UnicodeDecodeError as exc:
         if exc.start < len(head) - 4:  # not just a multibyte char cut at the 8 KiB boundary
-            raise GyroInputError(f"{path}: not UTF-8 text (binary file?), expected a CSV data file") from None
+            raise GyroInputError(_not_utf8(path, head, exc.start)) from None
+
+
+def _utf16_without_bom(head: bytes) -> bool:
+    """ASCII text stored as UTF-16 without a byte-order mark: every other byte is NUL."""
+    h = head[: len(head) // 2 * 2]
+    return len(h) >= 8 and (h[1::2].count(0) > 0.9 * len(h) // 2 or h[0::2].count(0) > 0.9 * len(h) // 2)
+
+
+def _not_utf8(path: str, head: bytes, at: int) -> str:
+    """The one-line error for bytes that are not UTF-8: text in a legacy 8-bit encoding (a '°' or
+    'µ' from Windows-1252 / Latin-1 in a comment or the header) is named with its line and the
+    command that converts it; anything else is called binary."""
+    if head.strip(b"\xff") == b"":
+        return f"{path}: erased flash (every byte 0xFF): no log or data in it"
+    bad = sum(1 for b in head if b < 9 or 13 < b < 32)
+    high = sum(1 for b in head if b >= 128)
+    if bad == 0 and high <= 0.1 * len(head):  # ASCII text with a few 8-bit characters
+        line = head[:at].count(b"\n") + 1
+        start = head.rfind(b"\n", 0, at) + 1
+        end = head.find(b"\n", at)
+        text = head[start : end if end >= 0 else len(head)].decode("cp1252", errors="replace").strip()
+        return (
+            f"{path}: line {line} is not UTF-8 ({text[:60]!r} in Windows-1252/Latin-1?); save the file as UTF-8 "
+            f"(iconv -f WINDOWS-1252 -t UTF-8 {path} > OUT.csv)"
+        )
+    return f"{path}: not UTF-8 text (binary file?), expected a CSV data file"
 
 
 def locate_bad_value(path: str, *, skiprows: int, delimiter: str | None = ",", ncols: int | None = None) -> str:

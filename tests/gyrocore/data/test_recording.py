@@ -185,6 +185,23 @@ def test_compressed_file_is_named_with_the_command_that_unpacks_it(tmp_path, kin
         read_csv(p)
 
 
+def test_text_encodings_are_named(tmp_path):
+    """Windows exports: a Latin-1 '°' in a comment, UTF-16 (with and without a BOM); and an
+    erased-flash dump. Each was "not UTF-8 text (binary file?)" or "binary file"."""
+    body = HEADER + "\n0,0,0,0\n0.01,0,0,0\n"
+    p = tmp_path / "a.csv"
+    p.write_bytes("# sensor: MPU-6050 ±250°/s\n".encode("latin-1") + body.encode())
+    with pytest.raises(GyroInputError, match=r"line 1 is not UTF-8 \('# sensor: MPU-6050 ±250°/s' in Windows-1252"):
+        read_csv(p)
+    for enc in ("utf-16", "utf-16-le"):
+        p.write_bytes(body.encode(enc))
+        with pytest.raises(GyroInputError, match=r"UTF-16 text .*iconv -f UTF-16 -t UTF-8"):
+            read_csv(p)
+    p.write_bytes(b"\xff" * 4096)
+    with pytest.raises(GyroInputError, match=r"erased flash \(every byte 0xFF\)"):
+        read_csv(p)
+
+
 def test_zip_file_is_named(tmp_path):
     import zipfile
 
