@@ -36,7 +36,7 @@ from gyrocore.errors import GyroInputError
 from gyrocore.calib.bias import StaticBiasCalibrator
 from gyrocore.calib.params import save_params
 from gyrocore.calibrator import Calibrator
-from gyrocore.data.recording import atomic_write_bytes, file_sha256, read_recording
+from gyrocore.data.recording import atomic_write_bytes, file_sha256
 from gyrocore.effects.registry import check_effect_names
 from gyrocore.loop.loop import run_loop
 from gyrocore.noise.allan import allan_analysis
@@ -106,7 +106,7 @@ def _num(x) -> float:
 
 
 def headline_bias(path: str, options: dict) -> dict:
-    rec = read_recording(path, columns=())
+    rec = read_any(path, columns=())  # as `gyroharness bias`: a data file or any source `convert` reads
     r = StaticBiasCalibrator().fit(rec)
     out = {"n_samples": rec.n, "duration_s": rec.duration_s, "rate_hz": rec.rate_hz}
     out.update(_vec("bias", r.bias_rad_s, "_rad_s"))
@@ -117,7 +117,7 @@ def headline_bias(path: str, options: dict) -> dict:
 
 
 def headline_allan(path: str, options: dict) -> dict:
-    rec = read_recording(path, columns=())
+    rec = read_any(path, columns=())  # as `gyroharness allan`
     # the motion gate as `gyroharness allan` runs it: a record with motion is cut to its
     # longest still stretch (warning) or refused (one error line, the row marked failed)
     res = allan_analysis(rec, check_static=True)

@@ -98,3 +98,17 @@ def test_commands_read_a_dump_directly(capsys, tmp_path, counts):
         s2, out2, e2 = gh(capsys, "bias", conv, "--json")
     assert s1 == 0 and s2 == 0, (e1, e2)
     assert json.loads(out1)["bias_rad_s"] == json.loads(out2)["bias_rad_s"]
+
+
+def test_batch_reads_dumps_as_the_commands_do(capsys, tmp_path, counts):
+    """`batch bias DIR` ran read_recording: a raw dump in the folder failed with "missing t_s"."""
+    A, _ = counts
+    n = A.shape[0]
+    d = tmp_path / "logs"
+    d.mkdir()
+    _write(d / "dump.csv", ["millis", "ax", "ay", "az", "gx", "gy", "gz"], np.column_stack([np.arange(n) * 10, A]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s, out, err = gh(capsys, "batch", "bias", d, "--json", "-o", tmp_path / "t.csv")
+    res = json.loads(out)
+    assert s == 0 and res["n_failed"] == 0, (err, res.get("failed"))
