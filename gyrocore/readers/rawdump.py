@@ -42,8 +42,45 @@ _WRAP = {"millis": 2.0**32, "micros": 2.0**32}
 _TIME_NO_UNIT = ("t", "time", "timestamp", "stamp")
 
 
+#: Units a header may give in brackets (``Gyro X (deg/s)``, ``time [ms]``), lower case, spaces
+#: removed → (quantity, factor to SI).
+_UNITS = {
+    "rad/s": ("rate", 1.0),
+    "rads": ("rate", 1.0),
+    "deg/s": ("rate", DEG),
+    "°/s": ("rate", DEG),
+    "dps": ("rate", DEG),
+    "degs": ("rate", DEG),
+    "mdps": ("rate", DEG * 1e-3),
+    "m/s^2": ("accel", 1.0),
+    "m/s2": ("accel", 1.0),
+    "m/s²": ("accel", 1.0),
+    "ms^-2": ("accel", 1.0),
+    "g": ("accel", G0_M_S2),
+    "mg": ("accel", G0_M_S2 * 1e-3),
+    "s": ("time", 1.0),
+    "sec": ("time", 1.0),
+    "ms": ("time", 1e-3),
+    "us": ("time", 1e-6),
+    "µs": ("time", 1e-6),
+    "μs": ("time", 1e-6),
+    "ns": ("time", 1e-9),
+    "°c": ("temp", 1.0),
+    "degc": ("temp", 1.0),
+    "c": ("temp", 1.0),
+}
+
+
+def _split_unit(name: str) -> tuple[str, str | None]:
+    """``'Gyro X (deg/s)'`` → (``'Gyro X'``, ``'deg/s'``); no bracketed unit → (name, None)."""
+    m = re.match(r"^(.*?)\s*[\(\[]\s*([^\)\]]+?)\s*[\)\]]\s*$", name.strip().strip('"'))
+    if not m:
+        return name, None
+    return m.group(1), m.group(2).replace(" ", "").lower()
+
+
 def _key(name: str) -> str:
-    return re.sub(r"[\s_.\-\"']", "", name).lower()
+    return re.sub(r"[\s_.\-\"']", "", _split_unit(name)[0]).lower()
 
 
 def _columns(header: list[str]) -> dict[str, list[int] | int]:
@@ -59,11 +96,28 @@ def _columns(header: list[str]) -> dict[str, list[int] | int]:
     for i, k in enumerate(keys):
         if k in _TEMP and "temp" not in found:
             found["temp"] = i
-        if k in _TIME and "time" not in found:
+        unit = _split_unit(header[i])[1]
+        timed = unit is not None and _UNITS.get(unit, ("",))[0] == "time"
+        if (k in _TIME or (timed and k in _TIME_NO_UNIT)) and "time" not in found:
             found["time"] = i
-        if k in _TIME_NO_UNIT and "time_no_unit" not in found:
+        elif k in _TIME_NO_UNIT and "time_no_unit" not in found:
             found["time_no_unit"] = i
     return found
+
+
+def _units_of(p: Path, header: list[str], idx: list[int], quantity: str) -> float | None:
+    """The SI factor of a triplet whose names carry a unit (``(deg/s)``, ``[g]``), or None when
+    none does (raw counts); one unit for the three, of the right quantity, else an error."""
+    units = [_split_unit(header[i])[1] for i in idx]
+    if all(u is None for u in units):
+        return None
+    names = [header[i] for i in idx]
+    if any(u is None for u in units) or len(set(units)) > 1:
+        raise GyroInputError(f"{p}: columns {names} give different units ({units}); give all three the same one")
+    q, f = _UNITS.get(units[0], (None, 0.0))
+    if q != quantity:
+        raise GyroInputError(f"{p}: columns {names}: unit {units[0]!r} is not one this reader knows for {quantity}")
+    return f
 
 
 def _header_and_sep(path: Path) -> tuple[list[str], str | None, int]:
@@ -153,15 +207,28 @@ def read_raw_dump(
     gyro_c = np.column_stack([data[i] for i in cols["gyro"]])
     accel_c = np.column_stack([data[i] for i in cols["accel"]]) if "accel" in cols else None
     temp_c = data[cols["temp"]] if "temp" in cols else None
-    _check_counts(p, gyro_c, accel_c)
+    g_si = _units_of(p, header, cols["gyro"], "rate")
+    a_si = _units_of(p, header, cols["accel"], "accel") if "accel" in cols else None
+    if g_si is None:  # raw counts: only counts are scaled by the sensitivities
+        _check_counts(p, gyro_c, accel_c)
+    elif "accel" in cols and a_si is None:
+        raise GyroInputError(f"{p}: the gyro columns give a unit but the accel columns do not; give theirs too")
     t_raw = data[cols["time"]] if "time" in cols else None
     keep = _check_finite(
         p.name, {k: v for k, v in {"g": gyro_c, "a": accel_c, "t": t_raw}.items() if v is not None}, repairs
     )
-    gyro = gyro_c[keep] / lsb_per_dps * DEG
-    accel = None if accel_c is None else accel_c[keep] / lsb_per_g * G0_M_S2
-    # MPU-6050 die temperature (register map §4.18): °C = count / 340 + 36.53
-    temp = None if temp_c is None else temp_c[keep] / 340.0 + 36.53
+    gyro = gyro_c[keep] * g_si if g_si is not None else gyro_c[keep] / lsb_per_dps * DEG
+    if accel_c is None:
+        accel = None
+    else:
+        accel = accel_c[keep] * a_si if a_si is not None else accel_c[keep] / lsb_per_g * G0_M_S2
+    if temp_c is None:
+        temp = None
+    elif _split_unit(header[cols["temp"]])[1] is not None or g_si is not None:
+        temp = temp_c[keep]  # a table in physical units: °C
+    else:
+        # MPU-6050 die temperature (register map §4.18): °C = count / 340 + 36.53
+        temp = temp_c[keep] / 340.0 + 36.53
     if t_raw is None and "time_no_unit" in cols and rate_hz is None:
         name = header[cols["time_no_unit"]]
         raise GyroInputError(
@@ -192,10 +259,20 @@ def read_raw_dump(
     meta = _meta(
         str(p),
         "raw_dump",
-        "raw-count IMU dump (MPU-6050 scales unless given)",
+        "IMU table (units from its header)"
+        if g_si is not None
+        else "raw-count IMU dump (MPU-6050 scales unless given)",
         rate,
         repairs,
-        scale=f"gyro {lsb_per_dps:g} LSB/(deg/s), accel {lsb_per_g:g} LSB/g (nominal, not calibrated)",
+        scale=(
+            "units from the header: "
+            + ", ".join(
+                str(_split_unit(header[i])[1])
+                for i in [cols["gyro"][0]] + ([cols["accel"][0]] if "accel" in cols else [])
+            )
+            if g_si is not None
+            else f"gyro {lsb_per_dps:g} LSB/(deg/s), accel {lsb_per_g:g} LSB/g (nominal, not calibrated)"
+        ),
         timing=timing,
         columns=", ".join(
             f"{q}: {[header[i] for i in v] if isinstance(v, list) else header[v]}" for q, v in cols.items()
@@ -231,6 +308,11 @@ def _check_counts(p: Path, gyro: np.ndarray, accel: np.ndarray | None) -> None:
 def _time(name: str, t_raw: np.ndarray, repairs: _Repairs) -> tuple[np.ndarray, str]:
     """Seconds from the dump's time column; an Arduino counter's 32-bit wrap undone."""
     k = _key(name)
+    unit = _split_unit(name)[1]
+    if k not in _TIME:  # 'time (ms)': the unit in brackets
+        t = t_raw.astype(float)
+        f = _UNITS[unit][1]
+        return (t - t[0]) * f, f"column {name!r} ({unit}), from its first value"
     t = t_raw.astype(float)
     wrap = _WRAP.get(k)
     if wrap is not None:

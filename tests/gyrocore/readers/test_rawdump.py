@@ -112,3 +112,33 @@ def test_batch_reads_dumps_as_the_commands_do(capsys, tmp_path, counts):
         s, out, err = gh(capsys, "batch", "bias", d, "--json", "-o", tmp_path / "t.csv")
     res = json.loads(out)
     assert s == 0 and res["n_failed"] == 0, (err, res.get("failed"))
+
+
+def test_units_in_brackets_are_converted(tmp_path, counts):
+    """Another user's table with its units in the header (``Timestamp [ms]``, ``Gyro X (deg/s)``,
+    ``Acc X [g]``, ``Temp [°C]``): converted to SI, never scaled as counts; the same numbers as
+    the tomisuarez2 reader to float rounding (the %.9g text of the values)."""
+    A, ref = counts
+    n = A.shape[0]
+    dps = A[:, 3:] / 131.0
+    g = A[:, :3] / 16384.0
+    p = tmp_path / "units.csv"
+    p.write_text(
+        "Timestamp [ms],Gyro X (deg/s),Gyro Y (deg/s),Gyro Z (deg/s),Acc X [g],Acc Y [g],Acc Z [g],Temp [°C]\n"
+        + "".join(
+            f"{10 * i},{r[0]:.9g},{r[1]:.9g},{r[2]:.9g},{a[0]:.9g},{a[1]:.9g},{a[2]:.9g},25.5\n"
+            for i, (r, a) in enumerate(zip(dps, g))
+        )
+    )
+    assert cv.detect_format(p) == "raw_dump"
+    rec = cv.load_any(p)
+    assert np.allclose(rec.gyro_rad_s, ref.gyro_rad_s, rtol=1e-8, atol=0)
+    assert np.allclose(rec.accel_m_s2, ref.accel_m_s2, rtol=1e-8, atol=0)
+    assert np.allclose(rec.t_s, np.arange(n) * 0.01) and np.all(rec.temp_c == 25.5)
+    p.write_text("time (s),gx (deg/s),gy (rad/s),gz (deg/s)\n0,1,2,3\n0.01,1,2,3\n")
+    with pytest.raises(GyroInputError, match="give different units"):
+        cv.load_any(p)
+
+
+def test_the_x_io_layout_stays_its_own_reader(shared_data):
+    assert cv.detect_format(shared_data / "fusion_xio" / "sensor_data.csv") == "fusion"
