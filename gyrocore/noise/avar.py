@@ -10,9 +10,10 @@ averaging factors are the octaves m = 1, 2, 4, … ≤ (n−1)/2 (:func:`scales`
 
 Covariance of the Allan-variance estimates
 ------------------------------------------
-Var σ̂²_j = 2σ_j⁴/edf_j with Greenhall's EDF (``allantools.edf_greenhall``; exact for power
-laws at any m ≤ (n−1)/2, including the last octaves where edf ≈ 1–5) for the power law that
-has the local log–log slope of the fitted model at τ_j. The correlation between scales is the
+Var σ̂²_j = 2σ_j⁴/edf_j with the EDF of the power law that has the local log–log slope of the
+fitted model at τ_j (:func:`power_law_edf`: the exact large-sample EDF where the record is long
+against the filter, Greenhall's finite-sample EDF at the last octaves where edf ≈ 1–5), times the
+mixture's spectral EDF over the pure law's where terms share an octave. The correlation between scales is the
 large-sample Gaussian form (Percival & Walden eq. 308 generalised to two scales):
 Cov(σ̂²_i, σ̂²_j) ∝ ∫|H_i(ν)|²|H_j(ν)|² S(ν)² dν / max(M_i, M_j), with |H_m(ν)|² =
 4 sin⁴(πmν)/(m² sin²(πν)) the Haar (Allan) filter, S the model's two-sided spectrum (white
@@ -38,7 +39,7 @@ __all__ = [
     "gm_avar",
     "model_avar",
     "avar_covariance",
-    "greenhall_edf",
+    "power_law_edf",
     "base_method",
     "spectrum",
 ]
@@ -215,11 +216,38 @@ def _alpha_of_slope(mu: np.ndarray) -> np.ndarray:
     return np.where(mu <= -1.5, 2, np.where(a == 1, 0, a))
 
 
+#: the large-sample (1/M) form of the EDF holds where the record is long against the filter: the
+#: lag-correlation of the Allan filter output spans < 2m terms, and with M ≥ 64·m terms the
+#: finite-M correction is below 0.5 % (Greenhall's finite-sample values over the spectral ones at
+#: n = 72 000: 1.001 at M/m ≈ 1100, 1.004 at 140, 1.007 at 70, 1.015 at 35, all four laws)
+_LARGE_SAMPLE_M_PER_FACTOR = 64
+
+
 @functools.lru_cache(maxsize=8192)
-def greenhall_edf(alpha: int, m: int, n_phase: int) -> float:
+def power_law_edf(alpha: int, m: int, n_phase: int) -> float:
     """Equivalent degrees of freedom of the overlapping Allan variance at factor m of a power law
-    S ∝ f^α on ``n_phase`` phase points (Greenhall, ``allantools.edf_greenhall``; SP 1065 eq. 47,
-    the white-rate approximation, where its tables do not reach); at least 1."""
+    S_y ∝ f^α (α = −2 random-walk rate K, −1 flicker B, 0 white rate N, 2 white angle Q) on
+    ``n_phase`` phase points; at least 1.
+
+    Where the record is long against the filter (M = n_phase − 2m ≥ 64·m terms): the exact
+    large-sample EDF, 2σ⁴M/∫|H_m|⁴S² dν (Percival & Walden eq. 308; :func:`_pure_spec_edf`).
+    At the longer factors: Greenhall's finite-sample EDF (Greenhall & Riley 2003,
+    ``allantools.edf_greenhall``; SP 1065 eq. 47, the white-rate approximation, where it fails).
+
+    Why not Greenhall's everywhere: ``allantools.edf_greenhall`` (2024.06) is wrong at the first
+    octaves for α ≤ 0 (its summation branch, 3m ≤ 100). At n = 72 000: white rate noise, m = 1,
+    it gives 56 347 where the exact value is 2(n − 1)/3 = 48 000 (the first differences have
+    lag-one correlation −½, their squares ¼: Var σ̂² = 3σ⁴/M) — Monte Carlo 47 445 ± 1 061
+    (4 000 records); m = 4: 22 148 vs exact 25 041, MC 25 299 ± 566; random-walk rate, m = 1:
+    54 926 where the first differences of a random walk's rate are white, so σ̂²(1) is a mean
+    of M independent squares and edf = M = 71 999 (MC 68 151 ± 1 760). The 17 % excess at
+    m = 1, the octave with the most samples, made N's interval 4 % too narrow.
+    """
+    n = int(n_phase) - 1
+    big_m = int(n_phase) - 2 * int(m)
+    if int(alpha) in _ALPHAS and big_m >= _LARGE_SAMPLE_M_PER_FACTOR * int(m):
+        row = int(np.searchsorted(_ALPHAS, int(alpha)))
+        return max(float(_pure_spec_edf((int(m),), n)[row, 0]) * big_m, 1.0)
     import allantools
 
     try:
@@ -229,7 +257,6 @@ def greenhall_edf(alpha: int, m: int, n_phase: int) -> float:
     except Exception:  # pragma: no cover
         e = float("nan")
     if not math.isfinite(e) or e <= 0:
-        n = n_phase - 1
         e = (3 * (n - 1) / (2 * m) - 2 * (n - 2) / n) * 4 * m * m / (4 * m * m + 5)
     return max(e, 1.0)
 
@@ -272,7 +299,8 @@ def avar_covariance(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Covariance (M, M) of the overlapping AVAR estimates under the model; also edf (M,), α (M,).
 
-    Diagonal 2·model²/edf (Greenhall EDF for the local power law of the model); correlation
+    Diagonal 2·model²/edf (:func:`power_law_edf` of the local power law of the model, corrected
+    for mixtures); correlation
     from the spectral integral of the module docstring, including the finite-M factor
     √(min(M_i, M_j)/max(M_i, M_j)).
     """
@@ -308,14 +336,13 @@ def avar_covariance(
     lm = np.log(np.maximum(model, np.finfo(float).tiny))
     mu = np.gradient(lm, lt) if m.size > 1 else np.array([-1.0])
     alpha = _alpha_of_slope(mu)
-    edf = np.array([greenhall_edf(int(a), int(v), int(n_samples) + 1) for a, v in zip(alpha, m)])
-    # Mixtures: Greenhall's EDF is that of ONE power law; where two terms share an
+    edf = np.array([power_law_edf(int(a), int(v), int(n_samples) + 1) for a, v in zip(alpha, m)])
+    # Mixtures: power_law_edf is that of ONE power law; where two terms share an
     # octave (white angle Q and white rate N over m = 1…3Q²f_s/N² at 1 kHz) Var σ̂² is not
     # that law's. The large-sample variance Var σ̂²_j ≈ 2∫|H_j|⁴S² dν / M_j (Percival & Walden
-    # eq. 308; the diagonal of C above) gives edf_spec = 2σ⁴_j M_j / ∫|H_j|⁴S², which is
-    # Greenhall's for a pure law within 1 % over the middle octaves (m = 64 … n/2¹⁰ at
-    # n = 6·10⁵; off by up to 30 % at m ≤ 4 from the grid and by far at the last octaves).
-    # The EDF used is Greenhall's times the mixture's edf_spec over the pure law's edf_spec
+    # eq. 308; the diagonal of C above) gives edf_spec = 2σ⁴_j M_j / ∫|H_j|⁴S² (exact for a
+    # pure law where M ≫ m: 2(n−1)/3 for white rate noise at m = 1; not at the last octaves).
+    # The EDF used is the pure law's times the mixture's edf_spec over the pure law's edf_spec
     # at the same m: unchanged for a pure law, Greenhall's finite-M form kept at the last
     # octaves, the mixture's variance in the shared octaves (white-PM EDF ≈ n/2 at m = 64
     # became 3.5× too large with Q + N at 1 kHz: N's interval covered 62–79 %).

@@ -66,7 +66,7 @@ import numpy as np
 import scipy.optimize
 import scipy.stats
 
-from .avar import LINEAR, avar_covariance, base_method, gm_avar, greenhall_edf, scales, term_avar
+from .avar import LINEAR, avar_covariance, base_method, gm_avar, power_law_edf, scales, term_avar
 from .diagnostics import ALPHA_GOF, FitCheck, goodness_of_fit, n_params
 from .model import NoiseModel
 from .options import DEFAULT_NOISE_OPTIONS, NoiseOptions
@@ -255,7 +255,7 @@ def _fit_model(m, rate_hz, avar, n_samples, sub, method, tc_grid, iterations=3, 
     ``iterations`` rounds with the model covariance (τc re-profiled near its value).
     Returns coef (6,), τc, C, edf, whitening L = chol(C)⁻¹, χ², −2 log L (Gaussian).
     """
-    edf0 = np.array([greenhall_edf(0, int(v), int(n_samples) + 1) for v in m])
+    edf0 = np.array([power_law_edf(0, int(v), int(n_samples) + 1) for v in m])
     L0 = np.diag(1.0 / (avar * np.sqrt(2.0 / edf0)))
     c_use, tc_, _ = _fit_subset(m, rate_hz, avar, L0, sub, method, tc_grid)
     coef_ = np.zeros(6)

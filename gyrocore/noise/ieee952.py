@@ -220,7 +220,7 @@ def fit_ieee952(
 
     def whitened(model_, alpha_):
         R = avar_correlation_model(m, n_phase, rate_hz, coef)
-        edf_ = np.array([AV.greenhall_edf(int(a_), int(mm), int(n_phase)) for a_, mm in zip(alpha_, m)])
+        edf_ = np.array([AV.power_law_edf(int(a_), int(mm), int(n_phase)) for a_, mm in zip(alpha_, m)])
         sd = np.sqrt(2.0 / edf_) * np.maximum(model_, tiny)
         L = np.linalg.cholesky(R * np.outer(sd, sd))
         # np.linalg.solve rather than scipy's solve_triangular: on these ~20×5 systems the

@@ -336,7 +336,7 @@ def test_arw_interval_with_quantization_at_1khz_covers():
     c = np.array([0.0, 1e-8, 0.0, 0.0, 0.0, 0.0])
     model = V.term_avar(m, rate) @ c
     _C, edf, alpha = V.avar_covariance(m, n, rate, c, None, model)
-    assert np.allclose(edf, [V.greenhall_edf(0, int(v), n + 1) for v in m], rtol=1e-9)
+    assert np.allclose(edf, [V.power_law_edf(0, int(v), n + 1) for v in m], rtol=1e-9)
 
 
 def _ramp2(r_world, m):
