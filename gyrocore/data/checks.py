@@ -110,6 +110,12 @@ def coarse_clock_retime(t: np.ndarray, gyro: np.ndarray, path: str, repair: bool
         f"{path}: {n_zero} timestamps repeat the previous one (a clock coarser than the samples — its smallest step "
         f"{tick * 1e3:.3g} ms, the mean interval {mean * 1e3:.3g} ms — or one that stalled); all rows kept, on a "
         f"uniform grid at the mean rate {1.0 / mean:.6g} Hz"
+        + (
+            f"; the stamps also jump {float(d.max()):.3g} s at t = {float(t[int(np.argmax(d))]):.6g} s, which the grid "
+            f"spreads over the samples (right for a stalled clock, wrong if the logger paused there)"
+            if float(d.max()) > 10.0 * max(mean, tick)
+            else ""
+        )
     )
     return t[0] + np.arange(t.size) * mean
 
