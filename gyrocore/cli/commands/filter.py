@@ -114,7 +114,10 @@ def command(path, loop_hz, window_s, use, log_index, plot, force, as_json):
         if fmt == "blackbox"
         else (read_csv(path) if fmt == "csv" else load_any(path))
     )
-    out = recommend_filter(rec, loop_hz=loop_hz, window_s=window_s, use=use)
+    from .vibration import batch_hint
+
+    with batch_hint(rec, path):
+        out = recommend_filter(rec, loop_hz=loop_hz, window_s=window_s, use=use)
     for w in out["_res"].warnings:
         warn_repair(w)
     out["file"] = path

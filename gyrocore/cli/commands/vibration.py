@@ -8,6 +8,7 @@ the simulator reads; ``--plot PNG`` the spectra per throttle band with the lines
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 
@@ -75,7 +76,7 @@ def command(
     """Vibration of a flight log or a simulated hover: spectra vs throttle, broadband level, lines and their laws."""
     from gyrocore.readers.convert import detect_format, load_any
     from gyrocore.data.recording import read_csv
-    from gyrocore.flight.vibration import analyse, plot_vibration, write_spec
+    from gyrocore.flight.vibration import plot_vibration, write_spec
 
     for o in (spec_out, plot):
         if o and not force and os.path.exists(o):
@@ -101,16 +102,8 @@ def command(
             raise GyroInputError(f"--band-edges must be a comma list of numbers, got {band_edges!r}") from None
     if t_from_s is not None and t_to_s is not None and not t_to_s > t_from_s:
         raise GyroInputError("--t-to-s must be after --t-from-s")
-    res = analyse(
-        rec,
-        use=use,
-        undo=not no_undo,
-        window_s=window_s,
-        n_bands=n_bands,
-        t_from_s=t_from_s,
-        t_to_s=t_to_s,
-        band_edges=edges,
-    )
+    with batch_hint(rec, path):
+        res = _analyse(rec, use, no_undo, window_s, n_bands, t_from_s, t_to_s, edges)
     for w in res.warnings:
         warn_repair(w)
     out = res.to_json()
@@ -159,3 +152,41 @@ def command(
         click.echo(f"dominant {a}: {dv['kind']} at {dv['frequency_hz']:.1f} Hz")
     for n in res.notes:
         click.echo("note: " + n)
+
+
+def _analyse(rec, use, no_undo, window_s, n_bands, t_from_s, t_to_s, edges):
+    from gyrocore.flight.vibration import analyse
+
+    return analyse(
+        rec,
+        use=use,
+        undo=not no_undo,
+        window_s=window_s,
+        n_bands=n_bands,
+        t_from_s=t_from_s,
+        t_to_s=t_to_s,
+        band_edges=edges,
+    )
+
+
+@contextlib.contextmanager
+def batch_hint(rec, path):
+    """An ArduPilot log read from its IMU messages (logged at tens of Hz) whose batch sampler holds
+    the gyro at the sensor rate: an analysis that fails on the slow stream says how to read the
+    fast one (the IMU stream's own advice, "a longer --window-s", cannot reach the motor lines)."""
+    try:
+        yield
+    except GyroInputError as exc:
+        m = rec.meta
+        if (
+            m.get("format") == "dataflash"
+            and m.get("stream", "imu") != "batch"
+            and float(m.get("batch_sampler_windows", 0) or 0) > 0
+            and rec.rate_hz < 200.0
+        ):
+            raise GyroInputError(
+                f"{exc} (the IMU messages are logged at {rec.rate_hz:.3g} Hz; the log's batch sampler holds the "
+                f"gyro at the sensor rate: gyroharness convert {path} --stream batch -o isb.csv, then analyse "
+                f"isb.csv with --window-s 0.15)"
+            ) from None
+        raise
