@@ -158,10 +158,11 @@ def read_dataflash(path: str | os.PathLike, *, imu_instance: int = 0, stream: st
     skipped = [int(m.group(1)) for m in re.finditer(r"Skipped (\d+) bad bytes", text)]
     bad_hdr = len(re.findall(r"bad header|unknown msg type", text))
     if skipped or bad_hdr:
-        warn_repair(
-            f"{p.name}: corrupt data skipped: {len(skipped)} stretch(es), {sum(skipped)} bytes"
-            + (f" ({bad_hdr} bad message headers while indexing)" if bad_hdr else "")
-        )
+        what = [f"{len(skipped)} stretch(es), {sum(skipped)} bytes"] if skipped else []
+        if bad_hdr:
+            # pymavlink's index steps a byte at a time past a bad header: one per byte of garbage
+            what.append(f"{bad_hdr} bad message header(s) stepped over while indexing (about one per byte)")
+        warn_repair(f"{p.name}: corrupt data skipped: {'; '.join(what)}")
     rec = _to_recording(p, log, imu, rcou, ctun, params, msgs, len(isb["hdr"]), imu_units, rest, imu_instance)
     if stream == "batch":
         return _batch_recording(p, rec, isb, rcou, ctun, params, imu_instance)
