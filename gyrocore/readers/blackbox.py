@@ -824,6 +824,18 @@ def read_blackbox(path: str | os.PathLike, *, log_index: int | None = None):
             msgs.append(f"log {lg.index}: {lg.n_corrupt} corrupt frame(s) skipped")
         if lg.n_wrapped_throttle:
             msgs.append(f"log {lg.index}: {lg.n_wrapped_throttle} rcCommand[3] values below minthrottle read as signed")
+        if not np.any(c.gyro):
+            # INAV 9.0.1's ground logs (PROVENANCE): gyroADC 0 in every frame, gyroRaw not; kept as logged
+            pre = [
+                k
+                for k in ("gyro_prefilter_x_rad_s", "gyro_prefilter_y_rad_s", "gyro_prefilter_z_rad_s")
+                if k in c.extra
+            ]
+            alive = bool(pre) and any(np.any(c.extra[k]) for k in pre)
+            msgs.append(
+                f"log {lg.index}: gyroADC is 0 in every frame (the field logged nothing): the gyro columns of this log "
+                f"are zero" + ("; gyro_prefilter_x/y/z_rad_s hold the logged unfiltered gyro" if alive else "")
+            )
         for m in msgs:
             warn_repair(f"{p.name}: {m}")
     keys = set.intersection(*(set(c.extra) for _, c in convs))

@@ -61,3 +61,15 @@ def test_looptime_infinityhz_takes_the_measured_loop_rate(shared_data, tmp_path,
     # the measured loop rate is the nominal one within the clock's few per cent (8 kHz: 7883 Hz;
     # INAV 2 kHz: 1933 Hz)
     assert float(rec.meta[field]) == pytest.approx(float(ref.meta[field]), rel=0.05)
+
+
+def test_a_log_whose_gyroadc_is_all_zero_says_so(shared_data):
+    """INAV 9.0.1's ground logs 1-2 carry gyroADC = 0 in every frame while gyroRaw moves
+    (PROVENANCE: both decoders agree). The data file then held zero gyro columns without a word;
+    now a warning names the log and where the logged gyro is. Log 3 (gyroADC non-zero) says nothing."""
+    src = shared_data / "blackbox_public" / INAV
+    rec, msgs = _read(src, log_index=1)
+    assert not np.any(rec.gyro_rad_s) and np.any(rec.extra["gyro_prefilter_x_rad_s"])
+    assert any("log 1: gyroADC is 0 in every frame" in m and "gyro_prefilter" in m for m in msgs), msgs
+    rec3, msgs3 = _read(src, log_index=3)
+    assert np.any(rec3.gyro_rad_s) and not any("gyroADC is 0" in m for m in msgs3)
