@@ -587,6 +587,6 @@ def moving_throughout(recording, gate: StillGate) -> str:
     if recording.n < 2 * max(n, 1):
         return ""
     sw = still_windows(recording.gyro_rad_s, rate, gate)
-    if int(sw.still.sum()) < 2:
+    if not sw.still.any():
         return ""
     return _check_noise_plausible(np.median(sw.variance[sw.still], axis=0), sw.sigma_diff_rad_s, sw.diff_corr)
