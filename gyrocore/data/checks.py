@@ -13,7 +13,7 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
 
-from .csvtext import TIME_ALTS
+from .csvtext import TIME_ALTS, TIME_NAME_ALTS
 
 __all__ = [
     "DEG",
@@ -91,10 +91,10 @@ def coarse_clock_retime(t: np.ndarray, gyro: np.ndarray, path: str, repair: bool
     record), with a warning. Rows that repeat the time *and* the gyro values are written twice,
     not a coarse clock: left to the usual drop.
     """
+    if t.size < 3 or not np.all(np.isfinite(t)):  # NaN/inf times: dropped first, the usual way
+        return None
     d = np.diff(t)
     n = d.size
-    if n < 2 or not np.all(np.isfinite(t)):
-        return None
     zero = d == 0
     n_zero = int(np.count_nonzero(zero))
     if n_zero < max(2.0, COARSE_CLOCK_MIN_REPEAT * n) or bool(np.any(d < 0)) or not t[-1] > t[0]:
@@ -357,7 +357,7 @@ def gap_threshold_s(d_s: np.ndarray, median_dt_s: float, *, overwrite_input: boo
 def _time_unit_check(med_dt_s: float, path: str, time_col: str) -> None:
     """One error line (median interval > :data:`T_S_MAX_MEDIAN_DT_S`) or warning
     (> :data:`T_S_SUSPECT_MEDIAN_DT_S`) when a column labelled seconds is evidently a counter."""
-    if TIME_ALTS.get(time_col) != 1.0 or not (med_dt_s > T_S_SUSPECT_MEDIAN_DT_S):  # not labelled seconds
+    if {**TIME_ALTS, **TIME_NAME_ALTS}.get(time_col) != 1.0 or not (med_dt_s > T_S_SUSPECT_MEDIAN_DT_S):  # not seconds
         return
     what = f"{path}: column t_s has a median sample interval of {med_dt_s:.6g} s ({1 / med_dt_s:.3g} Hz)"
     if med_dt_s > T_S_MAX_MEDIAN_DT_S:

@@ -17,11 +17,18 @@ import numpy as np
 
 from gyrocore.errors import GyroInputError, warn_repair
 
-__all__ = ["locate_bad_value", "TIME_ALTS"]
+__all__ = ["locate_bad_value", "TIME_ALTS", "TIME_NAME_ALTS"]
 
 #: Time columns accepted in place of ``t_s`` (converted to seconds on read): a logger's
 #: millisecond, microsecond or nanosecond counter (Arduino millis(), PX4 timestamp, ROS stamps).
 TIME_ALTS = {"t_s": 1.0, "t_ms": 1e-3, "t_us": 1e-6, "t_ns": 1e-9}
+#: ... and, when none of those is in the header, the long names other tools write with the unit
+#: in the name (pyulog's ulog2csv-style ``timestamp_us``, ``time_ms``): read the same way.
+TIME_NAME_ALTS = {
+    f"{stem}_{u}": f
+    for stem in ("time", "timestamp")
+    for u, f in (("s", 1.0), ("ms", 1e-3), ("us", 1e-6), ("ns", 1e-9))
+}
 
 
 def _check_path(path: str) -> None:
@@ -570,6 +577,8 @@ def _header_info(path: str) -> tuple[dict[str, str], list[str], int]:
 def _time_col(header: list[str], path: str) -> tuple[int, float]:
     """Index of the time column (``t_s`` or one of :data:`TIME_ALTS`) and its factor to seconds."""
     found = [(h, header.index(h)) for h in TIME_ALTS if h in header]
+    if not found:  # a long name with its unit (timestamp_us) only when no t_* column is there
+        found = [(h, header.index(h)) for h in TIME_NAME_ALTS if h in header]
     if len(found) > 1:
         raise GyroInputError(f"{path}: several time columns ({', '.join(h for h, _ in found)}); keep one")
     if not found:
@@ -589,7 +598,7 @@ def _time_col(header: list[str], path: str) -> tuple[int, float]:
             hint = _header_hint(header)
         raise GyroInputError(f"{path}: missing required column t_s (or t_ms, t_us, t_ns){hint}")
     h, i = found[0]
-    return i, TIME_ALTS[h]
+    return i, {**TIME_ALTS, **TIME_NAME_ALTS}[h]
 
 
 def _header_hint(header: list[str]) -> str:

@@ -472,16 +472,23 @@ class _Layout:
         return out
 
 
+#: Short stems other tools write for a DESIGN.md stem (pyulog-style ``acc_x_m_s2``).
+_ALT_STEMS = {"accel_": "acc_"}
+
+
 def _find(header: list[str], si_name: str) -> tuple[int | None, float]:
-    """Index of column ``si_name`` or of an accepted alternative unit, and its SI factor."""
-    if si_name in header:
-        return header.index(si_name), 1.0
-    for si_suffix, alts in _ALT_UNITS.items():
-        if si_name.endswith(si_suffix):
-            stem = si_name[: -len(si_suffix)]
-            for suffix, factor in alts:
-                if stem + suffix in header:
-                    return header.index(stem + suffix), factor
+    """Index of column ``si_name`` or of an accepted alternative unit (or short stem: ``acc_x_m_s2``),
+    and its SI factor."""
+    names = [si_name] + [alt + si_name[len(st) :] for st, alt in _ALT_STEMS.items() if si_name.startswith(st)]
+    for name in names:
+        if name in header:
+            return header.index(name), 1.0
+        for si_suffix, alts in _ALT_UNITS.items():
+            if name.endswith(si_suffix):
+                stem = name[: -len(si_suffix)]
+                for suffix, factor in alts:
+                    if stem + suffix in header:
+                        return header.index(stem + suffix), factor
     return None, 1.0
 
 

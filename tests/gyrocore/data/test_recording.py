@@ -323,6 +323,30 @@ def test_missing_column_errors_say_what_the_header_holds(tmp_path):
         read_csv(_write(tmp_path, "t_s,gx,gy,gz\n0,1,2,3\n0.01,1,2,3\n"))
 
 
+def test_long_time_names_and_acc_stem_are_read(tmp_path, shared_data):
+    """pyulog-style CSVs (``timestamp_us``, ``acc_x_m_s2``; the shared
+    sample_ulg_sensor_combined.csv) were "missing required column t_s"; a long time name is read
+    only when no t_* column is there (a file with both keeps t_s, no 'several time columns')."""
+    p = _write(
+        tmp_path,
+        "timestamp_us,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s,acc_x_m_s2,acc_y_m_s2,acc_z_m_s2\n"
+        + "".join(f"{1000000 + 4000 * k},0.1,0.2,0.3,0,0,9.8\n" for k in range(5)),
+    )
+    rec = read_csv(p)
+    assert np.allclose(rec.t_s, 1.0 + np.arange(5) * 0.004) and np.all(rec.accel_m_s2[:, 2] == 9.8)  # us -> s
+    p = _write(tmp_path, HEADER + ",timestamp_us\n" + "".join(f"{k * 0.01},0,0,0,{123 + k}\n" for k in range(5)))
+    rec = read_csv(p)
+    assert np.allclose(rec.t_s, np.arange(5) * 0.01) and "timestamp_us" in rec.extra
+    csv = shared_data / "pyulog_samples" / "sample_ulg_sensor_combined.csv"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = read_csv(csv)
+        from gyrocore.readers.ulog import read_ulog
+
+        b = read_ulog(shared_data / "pyulog_samples" / "sample.ulg")
+    assert a.n == b.n and np.allclose(a.gyro_rad_s, b.gyro_rad_s, rtol=1e-8, atol=1e-12)  # 9 significant digits
+
+
 def test_nan_rows_repaired_and_ref_nan_kept(tmp_path):
     text = (
         HEADER
