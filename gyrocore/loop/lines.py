@@ -35,6 +35,7 @@ __all__ = [
     "screen_lines",
     "fit_sinusoid",
     "refine_frequency",
+    "reference_on_rows",
 ]
 
 _SEG_MAX = 65536
@@ -555,6 +556,67 @@ def even_segments(
         return np.zeros(0, int), 0
     idx = [np.arange(a_ + j * L, a_ + (j + 1) * L) for a_, r in zip(a, runs) for j in range(r // L)]
     return np.concatenate(idx), L
+
+
+def reference_on_rows(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, float]:
+    """A reference attitude sampled more slowly than the gyro, put on every gyro row.
+
+    A tracker at 100–240 Hz beside a gyro at 400 Hz–1 kHz reaches a recording in one of three
+    ways: on the row nearest each of its frames (NaN between), held (each frame repeated on the
+    rows until the next one: exact repeats), or already interpolated. The first two are not
+    differentiable row by row: NaN rows leave no consecutive valid pair, and a held reference
+    differentiates into a pulse train — the whole frame's rotation on one row, zero on the
+    others — whose images of the motion and of the reference noise at every multiple of the
+    frame rate fill the band up to the gyro's Nyquist frequency with noise the F-test must
+    then beat. Here the *frames* (finite rows that are not an exact repeat of the previous
+    finite row, up to sign) are interpolated onto the rows by slerp between consecutive frames
+    (shortest path, so a sign flip q → −q between frames is no rotation), the rate between two
+    frames constant: its content above the frame rate's Nyquist frequency is only the images
+    of what lies below it, which the reference's own line mask excludes. Never across a
+    dropout: rows between frames more than 1.5 median frame intervals apart stay NaN, as do
+    rows before the first frame and after the last.
+
+    Parameters
+    ----------
+    t_s : ndarray, shape (N,)
+        Gyro row times, s.
+    q_wxyz : ndarray, shape (N, 4)
+        Reference attitude S→W, w,x,y,z (NaN: no frame on that row).
+
+    Returns
+    -------
+    q_wxyz : ndarray, shape (N, 4)
+        The input itself when the frames are on at least half the rows (nothing to do), else
+        the interpolated reference.
+    frame_rate_hz : float
+        The frames' rate (1 / median frame interval); the rows' rate when unchanged.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t = np.asarray(t_s, float)
+    q = np.asarray(q_wxyz, float)
+    ok = np.all(np.isfinite(q), axis=1)
+    fin = np.flatnonzero(ok)
+    rows_hz = 1.0 / float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    if fin.size < 2:
+        return q, rows_hz
+    repeat = np.all(q[fin[1:]] == q[fin[:-1]], axis=1) | np.all(q[fin[1:]] == -q[fin[:-1]], axis=1)
+    frames = np.concatenate([fin[:1], fin[1:][~repeat]])
+    # frames on at least half the rows they span: the reference is on the gyro's rows already
+    if frames.size >= 0.5 * (fin[-1] - fin[0] + 1) or frames.size < 2:
+        return q, rows_hz
+    tf = t[frames]
+    d_f = np.diff(tf)
+    d_med = float(np.median(d_f))
+    out = np.full_like(q, np.nan)
+    inside = (t >= tf[0]) & (t <= tf[-1])
+    j = np.clip(np.searchsorted(tf, t, side="right") - 1, 0, frames.size - 2)
+    use = inside & (d_f[j] <= 1.5 * d_med)
+    use[frames] = True  # a frame itself is valid whatever its neighbours
+    if use.any():
+        s = Slerp(tf, Rotation.from_quat(q[frames][:, [1, 2, 3, 0]]))
+        out[use] = s(t[use]).as_quat()[:, [3, 0, 1, 2]]
+    return out, 1.0 / d_med
 
 
 def band_limited_advance(

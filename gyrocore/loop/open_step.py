@@ -117,8 +117,13 @@ def attitude_line_series(
     if raw is not None and raw[1] != 0.0:
         g_bl = LN.band_limited_advance(t, raw[0].gyro_rad_s, raw[1])
         gyro = np.where(np.isfinite(g_bl), g_bl, gyro)
-    e, w_ref, valid = rate_error_vs_attitude(t, rec.ref_quat_wxyz, gyro - correction)
-    ok_q = np.all(np.isfinite(rec.ref_quat_wxyz), axis=1)
+    # a reference slower than the gyro (NaN between its frames, or each frame held) is put on
+    # every row by slerp between its frames: a gyro line above its Nyquist frequency is then in
+    # the residual and not in the reference, and the reference's images of its own content at
+    # multiples of its frame rate are lines of the reference, masked below
+    q_ref, _ = LN.reference_on_rows(t, rec.ref_quat_wxyz)
+    e, w_ref, valid = rate_error_vs_attitude(t, q_ref, gyro - correction)
+    ok_q = np.all(np.isfinite(q_ref), axis=1)
     # the reference must be on (nearly) every gyro row where it is tracked: adjacent valid
     # rows are its own consecutive frames (not every 4th row of a 1-kHz gyro)
     if valid.sum() < 0.5 * ok_q.sum():
