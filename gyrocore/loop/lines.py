@@ -558,6 +558,26 @@ def even_segments(
     return np.concatenate(idx), L
 
 
+def _regular_frame_times(tf: np.ndarray, row_s: float) -> np.ndarray:
+    """Frame stamps ``tf`` (F,) s put on the straight line t₀ + n_k·Δ they were rounded from, when
+    every stamp is within 0.75·``row_s`` of it (:func:`reference_on_rows`); else ``tf``."""
+    d = np.diff(tf)
+    reg = d <= 1.5 * np.median(d)
+    if tf.size < 3 or not reg.any():
+        return tf
+    dt = float(d[reg].mean())  # the mean interval: the median is a whole number of rows
+    t0 = float(tf[0])
+    for _ in range(3):
+        n_k = np.rint((tf - t0) / dt)
+        A = np.column_stack([np.ones_like(n_k), n_k])
+        (t0, dt), *_ = np.linalg.lstsq(A, tf, rcond=None)
+    n_k = np.rint((tf - t0) / dt)
+    fit = t0 + n_k * dt
+    if np.all(np.diff(n_k) >= 1) and float(np.max(np.abs(tf - fit))) <= 0.75 * row_s:
+        return fit
+    return tf
+
+
 def reference_on_rows(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, float]:
     """A reference attitude sampled more slowly than the gyro, put on every gyro row.
 
@@ -575,6 +595,15 @@ def reference_on_rows(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, 
     of what lies below it, which the reference's own line mask excludes. Never across a
     dropout: rows between frames more than 1.5 median frame intervals apart stay NaN, as do
     rows before the first frame and after the last.
+
+    **Frame times.** A tracker's frames stamped on the gyro's rows carry the rows' rounding:
+    at 120 Hz beside 1 kHz the intervals run 8, 8, 9 rows, a stamp error of period 3 frames, so
+    the slerped rate carries ω·δ_k at 40 Hz and its multiples (± the motion's frequencies) — lines
+    of the reference, masked with ±2W about them (a quarter of the band above 60 Hz on a
+    tumbling record). A tracker's own clock is regular: when every frame stamp lies within 0.75
+    row of a straight line t₀ + n_k·Δ in the frame count n_k (dropped frames skip counts), the
+    frames are put at the line's times; otherwise (an irregular tracker, a clock that wanders by
+    more than a row) the stamps are used as they are.
 
     Parameters
     ----------
@@ -605,14 +634,13 @@ def reference_on_rows(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, 
     # frames on at least half the rows they span: the reference is on the gyro's rows already
     if frames.size >= 0.5 * (fin[-1] - fin[0] + 1) or frames.size < 2:
         return q, rows_hz
-    tf = t[frames]
+    tf = _regular_frame_times(t[frames], float(np.median(np.diff(t))))
     d_f = np.diff(tf)
     d_med = float(np.median(d_f))
     out = np.full_like(q, np.nan)
     inside = (t >= tf[0]) & (t <= tf[-1])
     j = np.clip(np.searchsorted(tf, t, side="right") - 1, 0, frames.size - 2)
     use = inside & (d_f[j] <= 1.5 * d_med)
-    use[frames] = True  # a frame itself is valid whatever its neighbours
     if use.any():
         s = Slerp(tf, Rotation.from_quat(q[frames][:, [1, 2, 3, 0]]))
         out[use] = s(t[use]).as_quat()[:, [3, 0, 1, 2]]

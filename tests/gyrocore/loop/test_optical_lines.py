@@ -303,20 +303,116 @@ def test_attitude_line_options_are_passed_in_and_checked():
             LN.AttitudeLineOptions(**bad)
 
 
-@pytest.mark.parametrize("line_hz", [40.3, 300.3])
-def test_reference_slower_than_the_gyro_is_not_differentiated_against_it(line_hz):
-    # a 120-Hz tracker beside a 1-kHz gyro carrying a strong line (20 °/s) below / above the
-    # tracker's Nyquist frequency: the sample level is not run (a line above 60 Hz would alias
-    # onto the tracker's grid, one below cannot be told from that alias), nothing is reported,
-    # and the JSON says why with the rates
+def test_reference_on_rows_slerps_frames_and_stops_at_dropouts():
+    # a 120-Hz reference beside a 1-kHz gyro, NaN between frames and held: the same frames, put on
+    # the rows by slerp (the rate between two frames constant), NaN across a dropout, a sign flip
+    # between frames no rotation
     from experiments.optical_lines import slow_reference_recording
 
-    rec = slow_reference_recording(seed=2, line_axis=0, line_hz=line_hz, line_amp_rad_s=20 * DEG)
+    kw = dict(seed=5, duration_s=6.0, gaps=2, sign_flips=True)
+    rec_nan = slow_reference_recording(fill="nan", **kw)
+    rec_hold = slow_reference_recording(fill="hold", **kw)
+    q_nan, f_nan = LN.reference_on_rows(rec_nan.t_s, rec_nan.ref_quat_wxyz)
+    q_hold, f_hold = LN.reference_on_rows(rec_hold.t_s, rec_hold.ref_quat_wxyz)
+    # the tracker's rate from its frame grid (the stamps' median interval would say 8 rows, 125 Hz)
+    assert abs(f_nan - 120.0) < 1e-3 and f_hold == f_nan
+    ok = np.isfinite(q_nan[:, 0])
+    assert np.array_equal(ok, np.isfinite(q_hold[:, 0])) and np.allclose(q_nan[ok], q_hold[ok])
+    # no sign flip turns into a 2π rotation: the rate stays that of the tumbling (≲ 2.4 rad/s)
+    w, valid = attitude_rate(rec_nan.t_s, q_nan)
+    assert valid.mean() > 0.9 and np.nanmax(np.abs(w)) < 5.0
+    fr = np.isfinite(rec_nan.ref_quat_wxyz[:, 0])
+    fi = np.flatnonzero(fr)
+    # a dropout (> 1.5 frame intervals between frames) stays NaN: nothing invented across it
+    big = np.flatnonzero(np.diff(fi) > 1.5 * 8.34)
+    assert big.size >= 2 and all(not ok[fi[k] + 1 : fi[k + 1]].any() for k in big)
+    # a reference already on the rows is returned as it is
+    rec = optical_recording(seed=1, duration_s=5.0)
+    q, f = LN.reference_on_rows(rec.t_s, rec.ref_quat_wxyz)
+    assert q is rec.ref_quat_wxyz
+
+
+def test_frame_stamps_rounded_to_rows_are_put_back_on_the_trackers_grid():
+    # 120-Hz frames stamped on a 1-kHz gyro's rows (rounded: 8, 8, 9 rows), frames dropped: the
+    # straight line in the frame count recovers the tracker's times to rounding; stamps that wander
+    # by more than a row (an irregular tracker) are kept as they are
+    from gyrocore.loop.lines import _regular_frame_times
+
+    rng = np.random.default_rng(4)
+    t_true = 0.0123 + np.arange(2000) / 120.0
+    keep = np.ones(t_true.size, bool)
+    keep[[50, 51, 52, 700, 1400, 1401]] = False
+    stamps = np.rint(t_true[keep] * 1000.0) / 1000.0
+    err = _regular_frame_times(stamps, 1e-3) - t_true[keep]
+    # the line's end-to-end error from a least-squares fit of N stamps with rounding noise
+    # σ = row/√12: ≈ σ·√(12/N) = row/√N = 22 µs here; allowed 4× that, ≪ the ±500 µs rounding it
+    # removes (measured: 1.4 µs). A constant offset remains, the mean of the rounding over the
+    # 3-frame pattern, |·| ≤ row/(2·3) (a time offset, the loop's to fit)
+    assert np.ptp(err) < 4e-3 / np.sqrt(stamps.size) and abs(err.mean()) <= 1e-3 / 6
+    assert np.max(np.abs(stamps - t_true[keep])) > 3e-4  # control: the stamps were 0.33 ms off
+    wander = stamps + rng.integers(-3, 4, stamps.size) * 1e-3
+    assert np.array_equal(_regular_frame_times(wander, 1e-3), wander)
+
+
+@pytest.mark.parametrize("fill", ["nan", "hold"])
+@pytest.mark.parametrize("line_hz", [40.3, 300.3])
+def test_reference_slower_than_the_gyro_finds_the_gyro_line(fill, line_hz):
+    # a 120-Hz tracker beside a 1-kHz gyro (NaN between frames or each frame held, frame
+    # exposures jittered ±0.5 ms, dropped frames, q or −q per frame) with a 3 °/s gyro line below /
+    # above the tracker's Nyquist frequency (60 Hz). Slerped onto the rows, the reference carries
+    # neither. The residual's PSD (experiments.optical_lines.residual_psd, ref_rate_hz=120: the
+    # reference's differenced noise held over each frame) is 1.35e-4 (rad/s)²/Hz at 40 Hz and
+    # 4.3e-6 at 300 Hz (sinc² of the hold); stamp jitter adds ≈ 27 % (σ_eq = ω_rms·J/√3 ≈ 2.7e-4
+    # rad beside σ_q = 5.2e-4). σ_A = √(S/T_eff), T_eff ≈ 50 s: 0.11 °/s at 40 Hz, 0.019 °/s at
+    # 300 Hz, so 3 °/s is ≈ 28σ / 150σ (the test's threshold ≈ 6.3σ). Before: the sample level was
+    # not run on a NaN-between-frames reference (nothing found), and a held one was
+    # differentiated into a pulse train (a 0.3 °/s line at 300 Hz, ≈ 15σ here, missed).
+    from experiments.optical_lines import slow_reference_recording
+
+    rec = slow_reference_recording(
+        seed=2,
+        line_axis=0,
+        line_hz=line_hz,
+        line_amp_rad_s=3.0 * DEG,
+        fill=fill,
+        frame_jitter_s=5e-4,
+        gaps=5,
+        sign_flips=True,
+    )
     r = run_loop(rec, declared=["bias", "time_offset"], candidates=["bias_ramp"])
-    note = r.open_search["periodic_sample_level"]
-    assert note.startswith("not run") and "120 frames/s beside a 1000-Hz gyro" in note and "60 Hz" in note
-    assert not [p for p in r.open_search.get("periodic", []) if p.get("level") == "sample"]
-    assert not [u for u in r.unexplained if u.kind == "periodic"]
+    assert "periodic_sample_level" not in r.open_search
+    (u,) = [u for u in r.unexplained if u.kind == "periodic"]
+    assert u.axis == "x" and abs(u.fields["frequency_hz"] - line_hz) <= 1.0 / 60.0
+    assert r.unexplained == (u,)
+
+
+def test_slow_reference_images_are_not_reported():
+    # no line: the slerped reference's rate is a staircase, whose images of the tumbling motion
+    # at k·120 ± (0.1-1.5) Hz are in the residual; they are lines of the reference, masked. Control:
+    # unmasked, the residual's strongest line is such an image, far past the threshold.
+    from experiments.optical_lines import slow_reference_recording
+
+    rec = slow_reference_recording(seed=3, fill="hold", frame_jitter_s=5e-4, gaps=5, sign_flips=True)
+    r = run_loop(rec, declared=["bias", "time_offset"], candidates=["bias_ramp"])
+    assert r.unexplained == ()
+    x, tt, fs, mot, _, _, L = attitude_line_series(rec, np.zeros((rec.n, 3)), LN.AttitudeLineOptions())
+    bare = LN.screen_lines(x, fs, seg_max=L, seg_start_s=tt[::L], statistics=("coherent",))
+    near = [b for b in bare if min(abs(b.frequency_hz - k * 120.0) for k in (1, 2, 3, 4)) < 2.0]
+    assert near and min(b.log10_p for b in near) < np.log10(2.8e-4) - 3, bare
+
+
+def test_quaternion_sign_flips_change_nothing():
+    # q and −q per frame at random: the same attitude, so the same loop result to rounding
+    rec = optical_recording(seed=3, line_axis=1, line_hz=47.3, line_amp_rad_s=2.0 * DEG)
+    flip = optical_recording(seed=3, line_axis=1, line_hz=47.3, line_amp_rad_s=2.0 * DEG, sign_flips=True)
+    ok = np.isfinite(rec.ref_quat_wxyz[:, 0])
+    assert (np.sign(flip.ref_quat_wxyz[ok, 0]) != np.sign(rec.ref_quat_wxyz[ok, 0])).mean() > 0.4
+    r0 = run_loop(rec, declared=["bias", "time_offset"], candidates=["bias_ramp"])
+    r1 = run_loop(flip, declared=["bias", "time_offset"], candidates=["bias_ramp"])
+    assert [u.effect for u in r1.unexplained] == [u.effect for u in r0.unexplained] != []
+    assert np.isclose(
+        r1.unexplained[0].fields["amplitude_rad_s"], r0.unexplained[0].fields["amplitude_rad_s"], rtol=1e-6
+    )
 
 
 def test_cli_line_options(tmp_path):
