@@ -634,6 +634,10 @@ def reference_on_rows(t_s: np.ndarray, q_wxyz: np.ndarray) -> tuple[np.ndarray, 
     # frames on at least half the rows they span: the reference is on the gyro's rows already
     if frames.size >= 0.5 * (fin[-1] - fin[0] + 1) or frames.size < 2:
         return q, rows_hz
+    # ... and consecutive frames a row apart for the most part (a noise-free reference that is
+    # exactly still for a spell repeats itself without being slower than the gyro)
+    if np.median(np.diff(t[frames])) < 1.5 / rows_hz:
+        return q, rows_hz
     tf = _regular_frame_times(t[frames], float(np.median(np.diff(t))))
     d_f = np.diff(tf)
     d_med = float(np.median(d_f))

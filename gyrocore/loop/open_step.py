@@ -93,9 +93,11 @@ def attitude_line_series(
     noise σ_q of the reference becomes rate noise of one-sided PSD 8σ_q²·fs·sin²(πf/fs)
     (∝ f² below fs/4): the F-test's local noise estimate carries it, so the test stays
     valid and only loses power where it dominates the gyro's own noise (docs/loop.md §6).
-    Needs the reference on the gyro's rows (a reference sampled more slowly than the gyro,
-    NaN between its frames, would alias the gyro's lines above its Nyquist frequency onto
-    its grid): None otherwise, and the window-level test alone runs.
+    A reference sampled more slowly than the gyro (NaN between its frames, or each frame held)
+    is first slerped onto the gyro's rows (:func:`gyrocore.loop.lines.reference_on_rows`): the
+    residual is then on the gyro's grid, a gyro line above the reference's Nyquist frequency is
+    in it and not in the reference, and the reference's images of its own content at multiples
+    of its frame rate are its own lines, masked. None without a gap-free run of 512 samples.
 
     ``raw`` = (the recording before the time-offset advance, τ): the gyro is advanced by τ
     with a band-limited interpolator (:func:`gyrocore.loop.lines.band_limited_advance`; the
@@ -143,18 +145,10 @@ def _sample_level_not_run(rec: Recording) -> str:
     """Why the sample-level line test did not run against a reference attitude (JSON note)."""
     if source.of(rec).on_disk or rec.ref_quat_wxyz is None:
         return "not run: no reference attitude in memory; window level only"
-    ok = np.all(np.isfinite(rec.ref_quat_wxyz), axis=1)
-    d = np.diff(rec.t_s[ok])
-    # the frame rate: mean interval between consecutive frames, tracking losses left out
-    f_ref = 1.0 / float(np.mean(d[d <= 1.5 * np.median(d)])) if d.size else 0.0
-    if ok.sum() and (ok[1:] & ok[:-1]).sum() < 0.5 * ok.sum():
-        return (
-            f"not run: the reference attitude is on {ok.mean():.1%} of the gyro's rows ({f_ref:.0f} frames/s beside a "
-            f"{rec.rate_hz:.0f}-Hz gyro): differentiated on its own frames it would see the gyro only below its Nyquist "
-            f"frequency {f_ref / 2:.0f} Hz, and a gyro line above that aliases onto its grid (a line there cannot be "
-            "told from the reference); window level only (below 0.5 Hz)"
-        )
-    return "not run: the reference attitude has no gap-free run of 512 samples; window level only"
+    return (
+        "not run: the reference attitude (a slower one slerped onto the gyro's rows between its frames) has no "
+        "gap-free run of 512 samples; window level only"
+    )
 
 
 def _longest_run(ok: np.ndarray) -> tuple[int, int]:
