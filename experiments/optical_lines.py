@@ -17,7 +17,9 @@ tested: the loop's own segments (``attitude_line_series`` on the recording witho
 so z is the σ of the test's statistic. (2|μ̂_s|²ΣU²/(S fs/2) is χ²₂(λ_s) per segment with
 λ_s = A²ΣU²/(S·fs); over the segments λ = z², the noncentrality of the coherent F(2, 12S; λ)
 the loop decides with, and of the pooled F(2S, 12S; λ).) ``slow_reference_recording``: a
-reference slower than the gyro (120 Hz beside 1 kHz), where the sample level is not run.
+reference slower than the gyro (120 Hz beside 1 kHz; NaN between frames or held, frame jitter,
+dropped frames, sign flips), which the loop slerps onto the gyro's rows; ``SCENARIOS`` /
+``--reference``: the study's reference scenarios.
 
 Command: ``python -m experiments.optical_lines --seeds 20`` (a table of described lines per
 seed; ``--null``: no line, what the loop reports); docs/loop.md §6.
