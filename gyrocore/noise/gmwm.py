@@ -515,6 +515,11 @@ class _Problem:
     def jacobian(self, coef, tc, sub) -> np.ndarray:
         return _jacobian(self.m, self.rate_hz, coef, tc, sub, self.method)
 
+    def pinned(self, sub) -> bool:
+        """Is a term of subset ``sub`` (the low-pass deficit aside) fitted at zero? Then it is the same
+        model as a smaller subset."""
+        return bool(np.any(self.fits[sub][0][[i for i in sub if i not in self.lp]] <= 0))
+
     def wald(self, sub) -> np.ndarray:
         """Covariance of the parameters of subset ``sub`` (inverse Fisher information at its fit)."""
         coef_, tc_, _C, _edf, L_ = self.fits[sub][:5]
@@ -655,14 +660,10 @@ def _select(p: _Problem) -> tuple[int, ...]:
     underrates a long-τ point far above the model (thin upper tail of log χ²_ν at ν ≈ 2–6). A
     subset with a term pinned at zero is the same model as a smaller subset and is skipped."""
     rejected = {s_: p_ < ALPHA_GOF_SCREEN for s_, p_ in p.gof_p.items()}
-
-    def pinned(s_):
-        return np.any(p.fits[s_][0][[i for i in s_ if i not in p.lp]] <= 0)
-
-    screen = not all(rejected[s_] for s_ in p.subsets if not pinned(s_))
+    screen = not all(rejected[s_] for s_ in p.subsets if not p.pinned(s_))
     best = None
     for sub in p.subsets:
-        if pinned(sub) or (screen and rejected[sub]):
+        if p.pinned(sub) or (screen and rejected[sub]):
             continue
         crit = p.lchi2[sub] + _penalty(sub)
         if best is None or crit < best[0]:
@@ -752,7 +753,7 @@ def _white_ends(p: _Problem, sub, lo: float, hi: float, hinted: Sequence[int] = 
     alts = [tuple(k for k in sub if k != x) for x in sub if x != 1 and x not in p.lp and _marginal(p, sub, x)]
     alts += [tuple(sorted(set(sub) | {x})) for x in hinted if x not in sub]
     for s2 in alts:
-        if s2 not in p.fits or np.any(p.fits[s2][0][[k for k in s2 if k != 1 and k not in p.lp]] <= 0):
+        if s2 not in p.fits or p.pinned(s2):
             continue  # a term pinned at zero: the same model as a smaller one
         cov_s = p.wald(s2)
         _c, lo2, hi2 = _interval(float(p.fits[s2][0][1]), float(cov_s[s2.index(1), s2.index(1)]))
@@ -763,7 +764,7 @@ def _white_ends(p: _Problem, sub, lo: float, hi: float, hinted: Sequence[int] = 
 def _selected_intervals(p: _Problem, sub, cov_p, ambiguous, *, robust: bool, hinted: Sequence[int] = ()):
     """Values, estimates and 95 % intervals of the selected terms (chi-square pivot on the
     variance scale; with ``robust``, widened where an unselected confounder moves them,
-    :func:`_robust_ends`). A term fitted but not told from a stand-in (``ambiguous``) is
+    :func:`_robust_ends`, and N's where a marginal or unresolvable term beside it does, :func:`_white_ends`). A term fitted but not told from a stand-in (``ambiguous``) is
     reported unresolved (None) with [0, its upper end]. Returns (terms, estimate, ci95)."""
     coef_s, tc_s = p.fits[sub][0], p.fits[sub][1]
     terms: dict[str, float | None] = {k: None for k in ALL_TERMS}
