@@ -308,7 +308,7 @@ def _plot_resolved_terms(plot_ax, r, terms: dict, tt) -> list[str]:
             "--",
             lw=1,
             color=c,
-            label=f"{label} = {v:.3g} [{lo_v:.2g}, {hi_v:.2g}] {_TERM_UNIT[term]}{extra}"
+            label=f"{label} = {v:.3g} [{lo_v:.3g}, {hi_v:.3g}] {_TERM_UNIT[term]}{extra}"
             + (f" = {ds:.3g} {ds_unit}" if ds_unit else ""),
         )
         # resolvable region: where this term is the largest of the fitted terms
